@@ -1,0 +1,1 @@
+"""The `sss` command-line interface (import name ``sssphase_cli``)."""

@@ -1,0 +1,91 @@
+"""Entry point of the `sss` command.
+
+Command groups are created here; each area of the product registers its commands from its own
+module (``register(groups)``), so this file only lists the modules. Command modules import only
+typer/rich/stdlib at top level and load heavy libraries (torch, zmq, opencv) inside the command.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.util
+import os
+import sys
+
+import typer
+from rich.console import Console
+
+from sssphase_core.errors import SssError
+
+err_console = Console(stderr=True)
+
+app = typer.Typer(
+    name="sss",
+    no_args_is_help=True,
+    add_completion=False,
+    help="Capture translucent objects with phase-shift patterns, learn their subsurface scattering, relight them.",
+)
+
+GROUP_HELP = {
+    "bench": "Benchmarks: error against run time, written to JSON and Markdown.",
+    "train": "Training: SimSiam pretraining and decoder fitting.",
+    "eval": "Evaluation: kNN accuracy, footprint and relighting metrics.",
+    "viz": "Visualisations: PCA-RGB feature maps, footprint profiles.",
+    "daemon": "The acquisition daemon: start, stop, status, keys.",
+}
+groups: dict[str, typer.Typer] = {"root": app}
+for _name, _help in GROUP_HELP.items():
+    groups[_name] = typer.Typer(no_args_is_help=True, help=_help)
+
+# One module per product area; each defines register(groups: dict[str, typer.Typer]).
+COMMAND_MODULES = [
+    "sssphase_cli.cmd_foundation",  # patterns, decode, bench psp
+    "sssphase_cli.cmd_sim",  # sim
+    "sssphase_cli.cmd_capture",  # devices, plugins, daemon, capture, validate, import, bench daemon
+    "sssphase_cli.cmd_learn",  # train, eval knn/footprints, viz pca
+    "sssphase_cli.cmd_relight",  # relight, eval relight, demo, bench relight/stability
+]
+
+
+def _register_all() -> None:
+    for mod_name in COMMAND_MODULES:
+        if importlib.util.find_spec(mod_name) is None:
+            continue  # area not installed in this build
+        importlib.import_module(mod_name).register(groups)
+    for name, group in groups.items():
+        if name != "root" and (group.registered_commands or group.registered_groups):
+            app.add_typer(group, name=name)
+
+
+_register_all()
+
+
+def main() -> None:
+    """Run the CLI; user-facing errors are printed as one clear message, never a traceback."""
+    try:
+        app(standalone_mode=False)
+    except SssError as exc:
+        err_console.print(f"[bold red]error:[/] {exc}")
+        sys.exit(2)
+    except KeyboardInterrupt:
+        err_console.print("[yellow]interrupted[/] (work done so far is kept; rerun the command to resume)")
+        sys.exit(130)
+    except Exception as exc:  # click's own usage errors and anything unexpected
+        import click
+
+        if isinstance(exc, click.exceptions.Exit):
+            sys.exit(exc.exit_code)
+        if isinstance(exc, click.ClickException):
+            exc.show()
+            sys.exit(exc.exit_code)
+        if isinstance(exc, click.exceptions.Abort):
+            err_console.print("[yellow]aborted[/]")
+            sys.exit(1)
+        if os.environ.get("SSS_DEBUG"):
+            raise
+        err_console.print(f"[bold red]internal error:[/] {type(exc).__name__}: {exc}\n(set SSS_DEBUG=1 for a traceback)")
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,1 @@
+"""Physically based simulated projector-camera rig (numpy only; no torch)."""
