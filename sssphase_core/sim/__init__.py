@@ -1,1 +1,46 @@
-"""Physically based simulated projector-camera rig (numpy only; no torch)."""
+"""Physically based simulated projector-camera rig (numpy/scipy only; never imports torch).
+
+A pinhole camera and a verged pinhole projector look at a procedural object on a turntable.
+Surfaces are sphere-traced signed-distance functions with spatially varying materials; light
+transport is a per-pixel Christensen-Burley normalized-diffusion footprint plus a direct term, so
+one linear operator renders any projector pattern and the exact footprints are available.
+
+Modules: ``rig`` (pinholes, poses, presets), ``geometry`` (SDF primitives, sphere tracing),
+``materials`` (Jensen 2001 -> Burley), ``objects`` (the catalogue), ``transport`` (footprints,
+splatting), ``sensor`` (noise, Bayer, bit depth), ``scene`` (:class:`SimScene`), ``bench`` (speed).
+"""
+
+from sssphase_core.errors import UnknownObjectError
+from sssphase_core.sim.materials import JENSEN_2001, MATERIAL_NAMES, MATERIALS, Material
+from sssphase_core.sim.objects import (
+    CATALOGUE,
+    TRAIN_OBJECTS,
+    UNSEEN_OBJECTS,
+    MaterialSample,
+    SimObject,
+    get_object,
+)
+from sssphase_core.sim.rig import Pinhole, Projector, RigConfig, make_rig, rig_preset
+from sssphase_core.sim.scene import SimScene
+from sssphase_core.sim.sensor import SensorConfig
+
+__all__ = [
+    "CATALOGUE",
+    "JENSEN_2001",
+    "MATERIALS",
+    "MATERIAL_NAMES",
+    "TRAIN_OBJECTS",
+    "UNSEEN_OBJECTS",
+    "Material",
+    "MaterialSample",
+    "Pinhole",
+    "Projector",
+    "RigConfig",
+    "SensorConfig",
+    "SimObject",
+    "SimScene",
+    "UnknownObjectError",
+    "get_object",
+    "make_rig",
+    "rig_preset",
+]

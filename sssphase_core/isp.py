@@ -1,0 +1,115 @@
+"""Camera raw processing, the paper's chain: 3x3 median per RGGB plane, Malvar-He-Cutler demosaicing,
+black level and scaling to linear camera units; plus HDR merging of exposure brackets.
+
+numpy at module level only; OpenCV and colour-demosaicing are imported inside the functions.
+Bayer layout is RGGB: R at (even row, even col), B at (odd, odd).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+
+from sssphase_core.errors import InputError
+
+#: A sample counts as saturated from this fraction of its clipping level (demosaicing mixes
+#: clipped neighbours into nearby samples).
+SATURATION_MARGIN = 0.95
+
+
+def _check_mosaic(raw: np.ndarray) -> np.ndarray:
+    raw = np.asarray(raw)
+    if raw.ndim != 2 or raw.shape[0] % 2 or raw.shape[1] % 2:
+        raise InputError(f"a Bayer mosaic must be 2-D with even sides, got shape {raw.shape}")
+    return raw
+
+
+def median3_bayer(raw: np.ndarray) -> np.ndarray:
+    """3x3 median filter applied to each of the four RGGB planes separately (same dtype and shape)."""
+    import cv2
+
+    raw = _check_mosaic(raw)
+    work = raw if raw.dtype in (np.uint8, np.uint16, np.float32) else raw.astype(np.float32)
+    out = np.empty_like(work)
+    for dy in (0, 1):
+        for dx in (0, 1):
+            out[dy::2, dx::2] = cv2.medianBlur(np.ascontiguousarray(work[dy::2, dx::2]), 3)
+    return out.astype(raw.dtype, copy=False)
+
+
+def demosaic(raw: np.ndarray, method: str = "malvar") -> np.ndarray:
+    """RGGB mosaic (H, W) -> RGB (H, W, 3) float32 in the mosaic's units.
+
+    ``malvar``: Malvar-He-Cutler 2004 via colour-demosaicing (falls back to OpenCV's edge-aware
+    demosaicing if that package is missing); ``opencv``: OpenCV's edge-aware (``COLOR_Bayer*_EA``).
+    """
+    raw = _check_mosaic(raw)
+    if method == "malvar":
+        try:
+            with warnings.catch_warnings():  # the package imports deprecated scipy namespaces
+                warnings.simplefilter("ignore", DeprecationWarning)
+                from colour_demosaicing import demosaicing_CFA_Bayer_Malvar2004
+        except ImportError:  # pragma: no cover - colour-demosaicing is a declared dependency
+            method = "opencv"
+        else:
+            return demosaicing_CFA_Bayer_Malvar2004(raw.astype(np.float64), "RGGB").astype(np.float32)
+    if method == "opencv":
+        import cv2
+
+        # OpenCV names Bayer layouts by the second row's last two pixels: RGGB is its "BayerBG".
+        scale = 65535.0 / max(float(raw.max()), 1e-12)
+        as16 = np.clip(raw.astype(np.float64) * scale, 0, 65535).astype(np.uint16)
+        return (cv2.cvtColor(as16, cv2.COLOR_BayerBG2RGB_EA).astype(np.float64) / scale).astype(np.float32)
+    raise InputError(f"unknown demosaicing method {method!r}; use 'malvar' or 'opencv'")
+
+
+def develop(raw: np.ndarray, black_level: float, white_scale: float, *, median: bool = True, method: str = "malvar") -> np.ndarray:
+    """Raw Bayer frame (H, W) -> linear RGB (H, W, 3) float32: median, demosaic, ``(x - black) / white_scale``.
+
+    ``white_scale`` is the DN above black that one linear camera unit produces at the frame's exposure.
+    """
+    if not white_scale > 0:
+        raise InputError(f"white_scale must be positive, got {white_scale}")
+    mosaic = median3_bayer(raw) if median else _check_mosaic(raw)
+    rgb = demosaic(mosaic, method)
+    return ((rgb - np.float32(black_level)) / np.float32(white_scale)).astype(np.float32)
+
+
+def hdr_merge(
+    frames: np.ndarray,
+    exposures,
+    saturation: float,
+    *,
+    electrons_per_unit: float | None = None,
+    read_noise: float = 0.0,
+) -> np.ndarray:
+    """Merge an exposure bracket into one linear image.
+
+    ``frames`` (E, ...) are developed images each already in linear camera units (as
+    ``SimScene.capture`` returns them); frame i was taken at relative exposure ``exposures[i]`` and
+    clips at ``saturation / exposures[i]`` (``saturation``: clipping level at exposure 1). Samples
+    at or above ``SATURATION_MARGIN`` of their clipping level are ignored. Weights are inverse
+    variances under Poisson-Gaussian noise: with photon noise only they are proportional to the
+    exposure (the merge is then the maximum-likelihood sum of counts over sum of times); with
+    ``electrons_per_unit`` (at exposure 1) and ``read_noise`` (electrons) the read noise is included.
+    Where every sample is saturated, the shortest exposure's (clipped) value is kept.
+    """
+    x = np.asarray(frames, np.float64)
+    t = np.asarray(exposures, np.float64).reshape((-1,) + (1,) * (x.ndim - 1))
+    if x.shape[0] != t.shape[0] or x.shape[0] == 0:
+        raise InputError(f"need one exposure per frame, got {x.shape[0]} frames and {t.shape[0]} exposures")
+    if not (t > 0).all() or not saturation > 0:
+        raise InputError("exposures and saturation must be positive")
+    ok = x < SATURATION_MARGIN * saturation / t
+    w = np.where(ok, t, 0.0)
+    total = w.sum(axis=0)
+    merged = np.where(total > 0, (w * x).sum(axis=0) / np.where(total > 0, total, 1.0), 0.0)
+    if electrons_per_unit is not None and read_noise > 0:
+        k = electrons_per_unit * t  # electrons per unit at each exposure
+        var = (np.clip(merged, 0, None) * k + read_noise**2) / k**2
+        w = np.where(ok, 1.0 / var, 0.0)
+        total = w.sum(axis=0)
+        merged = np.where(total > 0, (w * x).sum(axis=0) / np.where(total > 0, total, 1.0), merged)
+    shortest = x[np.argmin(t.ravel())]
+    return np.where(ok.any(axis=0), merged, shortest).astype(np.float32)

@@ -1,0 +1,210 @@
+"""One view of one object on the simulated rig: exact geometry, correspondences, rendering, capture."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+
+from sssphase_core.errors import InputError
+from sssphase_core.sim import geometry as g
+from sssphase_core.sim.materials import burley_scale
+from sssphase_core.sim.objects import SimObject, get_object
+from sssphase_core.sim.rig import RigConfig, rig_preset
+from sssphase_core.sim.sensor import expose
+from sssphase_core.sim.transport import SurfaceMaps, Transport
+
+#: |cos| between the view ray and the normal is clamped here, bounding cell areas at grazing angles.
+COS_VIEW_MIN = 0.1
+SHADOW_OFFSET = 0.05  # mm, start of shadow rays off the surface
+
+
+class SimScene:
+    """Object ``obj`` (a :class:`SimObject` or catalogue name) on the turntable at view ``view`` of
+    ``n_views`` (angle 360 * view / n_views about the camera's y axis through the turntable centre).
+
+    Attributes (all (H, W, ...) camera maps): ``mask``; ``points`` and ``normals`` (camera space,
+    NaN off the surface); ``area`` (mm^2 per pixel); ``irradiance`` E_p; ``lit`` (receives projector
+    light); ``proj_xy`` exact projector (x, y), NaN where the pixel gets no projector light
+    (off the surface, outside the projector image, back-facing or in shadow); ``material`` (int16
+    index into ``sssphase_core.sim.MATERIAL_NAMES``, -1 off the surface), ``albedo``, ``mfp`` (scaled, mm).
+    """
+
+    def __init__(self, obj: SimObject | str, rig: RigConfig | None = None, view: int = 0, n_views: int = 4, seed: int = 0):
+        self.obj = get_object(obj) if isinstance(obj, str) else obj
+        self.rig = rig or rig_preset("cpu")
+        self.view, self.n_views, self.seed = view, n_views, seed
+        self.angle = self.rig.view_angle(view, n_views)
+        self._trace()
+        self.transport = Transport(
+            SurfaceMaps(self.mask, self.points, self.area, self.irradiance, self.albedo, self.rate, self.rho_s),
+            self.rig.patch,
+        )
+        self._unit_white: np.ndarray | None = None
+
+    # --- geometry ------------------------------------------------------------------------------
+
+    def _trace(self) -> None:
+        cam, proj, rig = self.rig.camera, self.rig.projector, self.rig
+        h, w = cam.height, cam.width
+        turn = g.rotation_y(np.deg2rad(self.angle))  # object -> camera orientation
+        centre = np.asarray(rig.turntable_centre, np.float64)
+        rays = cam.rays().reshape(-1, 3)
+        origin = -centre @ turn  # camera centre in object space (R^T (0 - C))
+        dirs = rays @ turn
+        origins = np.broadcast_to(origin, dirs.shape)
+        t0, t1, meets = g.ray_sphere(origins, dirs, self.obj.radius)
+        sel = np.flatnonzero(meets)
+        t, hit = g.sphere_trace(self.obj.sdf, origins[sel], dirs[sel], t0[sel], t1[sel])
+        sel, t = sel[hit], t[hit]
+        p_obj = origin + t[:, None] * dirs[sel]
+        n_obj = g.sdf_normals(self.obj.sdf, p_obj)
+        p_cam = p_obj @ turn.T + centre
+        n_cam = n_obj @ turn.T
+
+        cos_view = np.maximum(np.abs(np.einsum("ij,ij->i", n_cam, rays[sel])), COS_VIEW_MIN)
+        area = p_cam[:, 2] ** 2 * rays[sel, 2] / (cam.fx * cam.fy * cos_view)
+
+        xy_p = proj.project(proj.to_projector(p_cam))
+        in_frame = (
+            (proj.to_projector(p_cam)[:, 2] > 0)
+            & (xy_p[:, 0] >= -0.5) & (xy_p[:, 0] <= proj.width - 0.5)
+            & (xy_p[:, 1] >= -0.5) & (xy_p[:, 1] <= proj.height - 0.5)
+        )
+        to_light = proj.centre - p_cam
+        dist = np.linalg.norm(to_light, axis=1)
+        to_light /= dist[:, None]
+        cos_in = np.einsum("ij,ij->i", n_cam, to_light)
+        lit = in_frame & (cos_in > 0)
+        lit[lit] &= ~self._shadowed(p_obj[lit], n_obj[lit], to_light[lit] @ turn)
+        e = np.where(lit, cos_in * (rig.reference_distance / dist) ** 2, 0.0)
+
+        mat = self.obj.shade(p_obj)
+        mfp = mat.mfp * rig.sss_scale
+        rate = burley_scale(mat.albedo) / mfp
+
+        def to_map(values: np.ndarray, fill: float) -> np.ndarray:
+            out = np.full((h * w,) + values.shape[1:], fill, values.dtype)
+            out[sel] = values
+            return out.reshape((h, w) + values.shape[1:])
+
+        nan = np.nan
+        self.mask = to_map(np.ones(len(sel), bool), False)
+        self.points = to_map(p_cam.astype(np.float32), nan)
+        self.normals = to_map(n_cam.astype(np.float32), nan)
+        self.area = to_map(area.astype(np.float32), nan)
+        self.irradiance = to_map(e.astype(np.float32), 0.0)
+        self.lit = to_map(lit, False)
+        self.proj_xy = to_map(np.where(lit[:, None], xy_p, nan).astype(np.float32), nan)
+        self.material = to_map(mat.label, -1)
+        self.albedo = to_map(mat.albedo.astype(np.float32), nan)
+        self.mfp = to_map(mfp.astype(np.float32), nan)
+        self.rate = to_map(rate.astype(np.float32), nan)
+        self.rho_s = to_map(mat.rho_s.astype(np.float32), nan)
+
+    def _shadowed(self, p_obj: np.ndarray, n_obj: np.ndarray, light_obj: np.ndarray) -> np.ndarray:
+        """Shadow rays toward the projector (object space), sphere-traced out of the bounding sphere."""
+        origins = p_obj + SHADOW_OFFSET * n_obj
+        _, t1, _ = g.ray_sphere(origins, light_obj, self.obj.radius)
+        _, blocked = g.sphere_trace(self.obj.sdf, origins, light_obj, np.full(len(p_obj), SHADOW_OFFSET), t1)
+        return blocked
+
+    # --- light transport -----------------------------------------------------------------------
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.mask.shape
+
+    def _check_patterns(self, patterns: np.ndarray) -> np.ndarray:
+        pats = np.asarray(patterns, np.float32)
+        proj = self.rig.projector
+        if pats.ndim in (2, 3) and pats.shape[:2] == (proj.height, proj.width):
+            pats = pats[None]
+        if pats.ndim not in (3, 4) or pats.shape[1:3] != (proj.height, proj.width) or (pats.ndim == 4 and pats.shape[3] != 3):
+            raise InputError(
+                f"patterns must be (P, {proj.height}, {proj.width}) or (P, {proj.height}, {proj.width}, 3), got {pats.shape}"
+            )
+        if not np.isfinite(pats).all():
+            raise InputError("patterns contain NaN or inf")
+        return pats
+
+    def emitted(self, patterns: np.ndarray, pixels: np.ndarray | None = None) -> np.ndarray:
+        """Projector light above black, ``(1 - black) * L**gamma``, looked up bilinearly at the lit
+        pixels' correspondences (0 outside the projector image) -> (N, P, 3) for flat ``pixels``."""
+        pats = self._check_patterns(patterns)
+        proj = self.rig.projector
+        idx = self.transport.lit_index if pixels is None else pixels
+        light = (1 - proj.black) * np.clip(pats, 0, 1) ** np.float32(proj.gamma)
+        if light.ndim == 3:
+            light = light[..., None]
+        xy = self.proj_xy.reshape(-1, 2)[idx]
+        x0, y0 = np.floor(xy[:, 0]).astype(np.int64), np.floor(xy[:, 1]).astype(np.int64)
+        fx, fy = xy[:, 0] - x0, xy[:, 1] - y0
+        out = np.zeros((len(idx), light.shape[0], light.shape[3]), np.float32)
+        for dy, dx, wgt in ((0, 0, (1 - fy) * (1 - fx)), (0, 1, (1 - fy) * fx), (1, 0, fy * (1 - fx)), (1, 1, fy * fx)):
+            xi, yi = x0 + dx, y0 + dy
+            ok = (xi >= 0) & (xi < proj.width) & (yi >= 0) & (yi < proj.height)
+            out[ok] += wgt[ok, None, None] * light[:, yi[ok], xi[ok], :].transpose(1, 0, 2)
+        return np.broadcast_to(out, out.shape[:2] + (3,))
+
+    def _unit_light(self) -> np.ndarray:
+        """Unit emitted light over the whole projector image, looked up at the lit pixels (N, 1, 3)."""
+        return self.emitted(np.ones((1,) + self.shape_projector, np.float32)) / (1 - self.rig.projector.black)
+
+    def unit_white(self) -> np.ndarray:
+        """Image (H, W, 3) under unit emitted light everywhere: the black level's image is black times it."""
+        if self._unit_white is None:
+            self._unit_white = self._splat(self._unit_light())[0]
+        return self._unit_white
+
+    def _splat(self, light: np.ndarray, progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+        lit = np.flatnonzero((light > 0).any(axis=(1, 2)))
+        return self.transport.splat(self.transport.lit_index[lit], np.ascontiguousarray(light[lit]), progress)
+
+    def render(self, patterns: np.ndarray, progress: Callable[[int, int], None] | None = None) -> np.ndarray:
+        """Noise-free images (P, H, W, 3) float32 in linear camera units under projector patterns.
+
+        Cost is proportional to the pixels lit by some pattern; the projector black level adds
+        ``black * unit_white()``, computed once per scene (with the first render).
+        """
+        light = self.emitted(patterns)
+        if self._unit_white is None:  # share the pass: one extra all-ones pattern
+            images = self._splat(np.concatenate([light, self._unit_light()], axis=1), progress)
+            self._unit_white, images = images[-1], images[:-1]
+        else:
+            images = self._splat(light, progress)
+        return images + np.float32(self.rig.projector.black) * self._unit_white
+
+    @property
+    def shape_projector(self) -> tuple[int, int]:
+        return self.rig.projector.height, self.rig.projector.width
+
+    def footprints(self, pixels: np.ndarray) -> np.ndarray:
+        """Exact footprints (N, K, K, 3) of camera pixels (N, 2) int (y, x), centred at K // 2."""
+        pix = np.asarray(pixels, np.int64).reshape(-1, 2)
+        h, w = self.shape
+        if ((pix < 0) | (pix >= (h, w))).any():
+            raise InputError(f"pixels must lie inside the {w}x{h} image")
+        return self.transport.footprints(pix[:, 0] * w + pix[:, 1])
+
+    def capture(
+        self,
+        patterns: np.ndarray,
+        rng: np.random.Generator | None = None,
+        exposure: float = 1.0,
+        raw: bool = False,
+        progress: Callable[[int, int], None] | None = None,
+    ) -> np.ndarray:
+        """Noisy sensor frames: raw uint16 Bayer (P, H, W), or developed RGB float32 (P, H, W, 3) in
+        linear camera units (same scale as :meth:`render`). Without ``rng``, a generator seeded with
+        the scene's ``seed`` is used (the same noise on every call)."""
+        from sssphase_core import isp
+
+        if not exposure > 0:
+            raise InputError(f"exposure must be positive, got {exposure}")
+        rng = rng if rng is not None else np.random.default_rng(self.seed)
+        sensor = self.rig.sensor
+        frames = expose(self.render(patterns, progress), sensor, rng, exposure)
+        if raw:
+            return frames
+        return np.stack([isp.develop(f, sensor.black_level, sensor.dn_per_unit(exposure)) for f in frames])

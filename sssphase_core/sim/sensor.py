@@ -1,0 +1,63 @@
+"""Camera sensor: exposure, Poisson-Gaussian noise, RGGB Bayer mosaic, black level, bit depth, clipping."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class SensorConfig:
+    """Linear value 1.0 (the reference white) collects ``white_fraction * full_well`` electrons at
+    nominal exposure 1.0; the full well maps to the top DN code. ``read_noise`` in electrons."""
+
+    bit_depth: int = 12
+    full_well: float = 10000.0
+    white_fraction: float = 0.6
+    read_noise: float = 3.0
+    black_level: int = 256  # DN
+
+    @property
+    def max_dn(self) -> int:
+        return 2**self.bit_depth - 1
+
+    @property
+    def electrons_per_unit(self) -> float:
+        return self.white_fraction * self.full_well
+
+    @property
+    def dn_per_electron(self) -> float:
+        return (self.max_dn - self.black_level) / self.full_well
+
+    def dn_per_unit(self, exposure: float = 1.0) -> float:
+        """DN above black per linear camera unit at ``exposure`` (the ``white_scale`` of isp.develop)."""
+        return self.electrons_per_unit * exposure * self.dn_per_electron
+
+    def noise_std(self, linear: np.ndarray, exposure: float = 1.0) -> np.ndarray:
+        """Standard deviation of a raw sample in linear units: photon shot noise, read noise and
+        quantisation (before demosaicing and the median, which lower it)."""
+        k = self.electrons_per_unit * exposure
+        quant = 1.0 / (self.dn_per_electron * k)
+        return np.sqrt(np.clip(linear, 0, None) / k + (self.read_noise / k) ** 2 + quant**2 / 12)
+
+    def saturation(self, exposure: float = 1.0) -> float:
+        """Linear value at which a sample clips (full well) at ``exposure``."""
+        return self.full_well / (self.electrons_per_unit * exposure)
+
+
+def bayer_mosaic(rgb: np.ndarray) -> np.ndarray:
+    """RGGB mosaic of (..., H, W, 3) -> (..., H, W): R at (even, even), B at (odd, odd), G elsewhere."""
+    h, w = rgb.shape[-3:-1]
+    yy, xx = np.mgrid[0:h, 0:w]
+    channel = np.where((yy % 2 == 0) & (xx % 2 == 0), 0, np.where((yy % 2 == 1) & (xx % 2 == 1), 2, 1))
+    return np.take_along_axis(rgb, np.broadcast_to(channel[..., None], rgb.shape[:-1] + (1,)), axis=-1)[..., 0]
+
+
+def expose(linear: np.ndarray, config: SensorConfig, rng: np.random.Generator, exposure: float = 1.0) -> np.ndarray:
+    """Noisy raw Bayer frames (uint16, (..., H, W)) from linear RGB images (..., H, W, 3)."""
+    mean_e = np.clip(bayer_mosaic(np.asarray(linear, np.float64)), 0.0, None) * (config.electrons_per_unit * exposure)
+    electrons = rng.poisson(mean_e).astype(np.float64) + rng.normal(0.0, config.read_noise, mean_e.shape)
+    electrons = np.minimum(electrons, config.full_well)
+    dn = np.round(config.black_level + electrons * config.dn_per_electron)
+    return np.clip(dn, 0, config.max_dn).astype(np.uint16)

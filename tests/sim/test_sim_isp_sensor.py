@@ -1,0 +1,113 @@
+"""Camera raw processing (median, demosaicing, develop, HDR merge) and the simulated sensor."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sssphase_core import isp
+from sssphase_core.errors import InputError
+from sssphase_core.sim.sensor import SensorConfig, bayer_mosaic, expose
+
+
+def smooth_image(h: int = 64, w: int = 96) -> np.ndarray:
+    yy, xx = np.mgrid[0:h, 0:w]
+    return np.stack([0.5 + 0.3 * np.sin(xx / 9.0), 0.4 + 0.2 * np.cos(yy / 7.0), 0.3 + 0.2 * np.sin((xx + yy) / 11.0)], -1)
+
+
+@pytest.mark.parametrize(("method", "tol"), [("malvar", 0.01), ("opencv", 0.01)])
+def test_demosaic_recovers_a_smooth_image(method, tol):
+    img = smooth_image()
+    out = isp.demosaic(bayer_mosaic(img), method)
+    assert out.shape == img.shape and out.dtype == np.float32
+    assert np.abs(out - img)[4:-4, 4:-4].max() < tol  # colour order right, interpolation smooth
+
+
+def test_bayer_mosaic_is_rggb():
+    img = np.zeros((4, 4, 3))
+    img[..., 0], img[..., 1], img[..., 2] = 1.0, 2.0, 3.0
+    raw = bayer_mosaic(img)
+    assert raw[0, 0] == 1 and raw[0, 1] == 2 and raw[1, 0] == 2 and raw[1, 1] == 3
+
+
+def test_median_works_per_bayer_plane():
+    img = np.zeros((16, 16, 3))
+    img[..., 0], img[..., 1], img[..., 2] = 100.0, 200.0, 300.0
+    raw = bayer_mosaic(img).astype(np.uint16)
+    np.testing.assert_array_equal(isp.median3_bayer(raw), raw)  # planes never mix
+    hot = raw.copy()
+    hot[6, 6] = 4000  # a hot red pixel
+    out = isp.median3_bayer(hot)
+    assert out[6, 6] == 100 and out.dtype == np.uint16
+
+
+def test_develop_subtracts_black_and_scales():
+    raw = np.full((8, 8), 1256, np.uint16)
+    np.testing.assert_allclose(isp.develop(raw, 256, 2000.0), 0.5, atol=1e-6)
+    with pytest.raises(InputError):
+        isp.develop(np.zeros((7, 8), np.uint16), 0, 1.0)
+
+
+def test_sensor_noise_bit_depth_and_clipping():
+    cfg = SensorConfig(bit_depth=12, full_well=10000, white_fraction=0.6, read_noise=3.0, black_level=256)
+    linear = np.broadcast_to(smooth_image(), (2, 64, 96, 3)) * np.array([1.0, 5.0])[:, None, None, None]
+    a = expose(linear, cfg, np.random.default_rng(3))
+    b = expose(linear, cfg, np.random.default_rng(3))
+    np.testing.assert_array_equal(a, b)  # seeded
+    assert a.dtype == np.uint16 and a.shape == (2, 64, 96) and a.max() <= 4095
+    assert (a[1] == 4095).mean() > 0.5  # 5x white saturates
+    dev = isp.develop(a[0], cfg.black_level, cfg.dn_per_unit(1.0), median=False)
+    truth = bayer_mosaic(smooth_image())
+    err = bayer_mosaic(dev) - truth
+    # Poisson-Gaussian: variance = x / (electrons per unit) + (read / electrons per unit)^2 + quantisation
+    predicted = np.sqrt(truth / cfg.electrons_per_unit + (cfg.read_noise / cfg.electrons_per_unit) ** 2)
+    np.testing.assert_allclose(cfg.noise_std(truth), np.sqrt(predicted**2 + 1 / 12 / (cfg.dn_per_unit()) ** 2))
+    assert abs(err.std() / np.sqrt(np.mean(cfg.noise_std(truth) ** 2)) - 1) < 0.1
+    assert abs(err.mean()) < 0.003
+
+
+def test_white_reads_sixty_percent_of_full_scale():
+    cfg = SensorConfig()
+    raw = expose(np.ones((1, 32, 32, 3)), cfg, np.random.default_rng(0))
+    frac = (raw.mean() - cfg.black_level) / (cfg.max_dn - cfg.black_level)
+    assert abs(frac - cfg.white_fraction) < 0.01
+
+
+def test_hdr_merge_recovers_values_beyond_saturation():
+    cfg = SensorConfig()
+    truth = smooth_image() * 4.0  # up to ~3.2, well above the 1.67 that clips at exposure 1
+    exposures = [1.0, 0.25, 0.0625]
+    rng = np.random.default_rng(5)
+    frames = np.stack([isp.develop(expose(truth[None], cfg, rng, t)[0], cfg.black_level, cfg.dn_per_unit(t))
+                       for t in exposures])
+    clipped = frames[0] >= isp.SATURATION_MARGIN * cfg.saturation(1.0)
+    assert clipped.mean() > 0.2
+    merged = isp.hdr_merge(frames, exposures, cfg.saturation(1.0))
+    inner = (slice(4, -4), slice(4, -4))
+    rel = np.abs(merged - truth)[inner] / truth[inner]
+    assert np.isfinite(merged).all()
+    assert rel[clipped[inner]].mean() < 0.02 and np.percentile(rel, 99) < 0.1
+    assert np.abs(frames[0] - truth)[inner][clipped[inner]].mean() > 0.3  # the single exposure was wrong
+    with_read = isp.hdr_merge(frames, exposures, cfg.saturation(1.0), electrons_per_unit=cfg.electrons_per_unit,
+                              read_noise=cfg.read_noise)
+    assert np.abs(with_read - truth)[inner].mean() <= np.abs(merged - truth)[inner].mean() * 1.05
+
+
+def test_hdr_merge_keeps_the_shortest_exposure_when_everything_clips():
+    frames = np.array([[2.0], [1.5]])
+    out = isp.hdr_merge(frames, [1.0, 0.5], saturation=1.0)  # clips at 1.0 and 2.0: both saturated
+    assert out[0] == pytest.approx(1.5)
+    with pytest.raises(InputError):
+        isp.hdr_merge(frames, [1.0], saturation=1.0)
+
+
+def test_capture_matches_render_on_average(apple):
+    pattern = np.ones((1,) + apple.shape_projector, np.float32)
+    clean = apple.render(pattern)[0]
+    noisy = apple.capture(pattern, np.random.default_rng(0))[0]
+    raw = apple.capture(pattern, np.random.default_rng(0), raw=True)
+    assert raw.dtype == np.uint16 and raw.shape == (1,) + apple.shape
+    inner = apple.mask & (clean[..., 1] > 0.2)
+    assert abs(np.median(noisy[inner] / clean[inner]) - 1) < 0.03
+    dim = apple.capture(pattern, np.random.default_rng(0), exposure=0.25)[0]
+    assert abs(np.median(dim[inner] / clean[inner]) - 1) < 0.05  # developed frames stay in linear units
