@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import typer
 from PIL import Image
-from sssphase_cli import cmd_sim
 from typer.testing import CliRunner
 
+from sssphase_cli import cmd_sim
 from sssphase_core.errors import UnknownObjectError
 
 
