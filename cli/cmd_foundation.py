@@ -1,0 +1,211 @@
+"""`sss patterns`, `sss decode` and `sss bench psp`: projector patterns, PSP decoding, its benchmark."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import typer
+
+from sssphase_core.errors import DataError, InputError
+
+FRAME_SUFFIXES = (".npy", ".png", ".tif", ".tiff")
+
+
+def _parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"projector size must look like 1920x1080, got {text!r}") from None
+    if w < 1 or h < 1:
+        raise InputError(f"projector size must be positive, got {text!r}")
+    return w, h
+
+
+def _save_png(path: Path, image) -> None:
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(image).save(path)
+
+
+def patterns(
+    out: Path = typer.Option(..., "--out", help="output folder (created)"),
+    projector: str = typer.Option("1920x1080", "--projector", help="projector resolution WxH"),
+    footprints: bool = typer.Option(False, "--footprints", help="include the dot grids (spacing² frames)"),
+    dot_spacing: int = typer.Option(55, "--dot-spacing", min=1, help="dot-grid spacing in projector px"),
+    reference: list[str] = typer.Option([], "--reference", help="reference pattern(s): white, black, checkerboard, stripes_x, stripes_y"),
+    period: float | None = typer.Option(None, "--period", help="high-frequency period in px (default: preset for the resolution)"),
+    shifts: int = typer.Option(4, "--shifts", min=3, help="phase shifts per fringe set"),
+    unwrap: bool = typer.Option(True, "--unwrap/--no-unwrap", help="include the lower-frequency unwrapping sets"),
+    gamma: float = typer.Option(2.2, "--gamma", help="projector gamma to pre-distort for"),
+    hdr: str = typer.Option("", "--hdr", help="comma-separated exposure bracket, e.g. 1,4,16 (listed in plan.json)"),
+) -> None:
+    """Write the capture plan's projector patterns as 8-bit PNGs named by plan key, plus plan.json."""
+    import numpy as np
+    from rich.progress import Progress
+
+    from sssphase_core.patterns import PSPConfig, capture_plan, period_ladder, psp_config_for
+
+    w, h = _parse_size(projector)
+    if period is None:
+        config = psp_config_for(w, h, n_shifts=shifts)
+    else:
+        config = PSPConfig(period=period, n_shifts=shifts, unwrap_periods=period_ladder(period, max(w, h)))
+    try:
+        exposures = tuple(float(e) for e in hdr.split(",") if e.strip())
+    except ValueError:
+        raise InputError(f"--hdr must be comma-separated numbers, got {hdr!r}") from None
+    plan = capture_plan(w, h, psp=config, unwrap=unwrap, footprints=footprints, dot_spacing=dot_spacing,
+                        references=reference, hdr_exposures=exposures, gamma=gamma)
+    out.mkdir(parents=True, exist_ok=True)
+    unique = list({f.key: f for f in plan}.values())
+    with Progress() as bar:
+        task = bar.add_task("writing patterns", total=len(unique))
+        for frame in unique:
+            img = np.round(np.clip(frame.pattern(), 0, 1) * 255).astype(np.uint8)
+            _save_png(out / f"{frame.key}.png", img)
+            bar.advance(task)
+    (out / "plan.json").write_text(plan.to_json() + "\n")
+    typer.echo(f"{len(unique)} patterns ({len(plan)} planned frames) written to {out}")
+
+
+def _find_frame(folder: Path, key: str) -> Path | None:
+    for stem in (key, key.replace("/", "__")):
+        for suffix in FRAME_SUFFIXES:
+            path = folder / f"{stem}{suffix}"
+            if path.is_file():
+                return path
+    return None
+
+
+def _load_frame(path: Path):
+    import numpy as np
+
+    if path.suffix == ".npy":
+        return np.load(path)
+    import cv2
+
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise DataError(f"cannot read image {path}")
+    return img[..., ::-1].copy() if img.ndim == 3 else img
+
+
+def _psp_from_plan(plan: dict):
+    from sssphase_core.patterns import PSPConfig
+
+    psp = plan.get("psp")
+    if not psp:
+        raise DataError("plan.json has no PSP configuration")
+    return PSPConfig(period=psp["period"], n_shifts=psp["n_shifts"], unwrap_periods=tuple(psp["unwrap_periods"]),
+                     orientations=tuple(psp.get("orientations", ("x", "y"))))
+
+
+def decode_cmd(
+    folder: Path = typer.Argument(..., help="folder of captured frames named by plan key (PNG, TIFF or NPY)"),
+    out: Path = typer.Option(..., "--out", help="output folder for maps (.npy) and viewable PNGs"),
+    projector: str | None = typer.Option(None, "--projector", help="projector WxH (default: from plan.json)"),
+    min_modulation: float = typer.Option(0.01, "--min-modulation", help="minimum fringe modulation B (normalised units)"),
+    saturation: float | None = typer.Option(None, "--saturation", help="saturation level (default 0.99 for 8/16-bit files)"),
+) -> None:
+    """Decode PSP frames into camera -> projector correspondences (xp, yp, mask, reason) + PNGs."""
+    import numpy as np
+    from rich.progress import Progress
+
+    from sssphase_core.patterns import psp_config_for, psp_key
+    from sssphase_core.psp import Reason, decode, wrapped_phase
+
+    if not folder.is_dir():
+        raise InputError(f"{folder} is not a folder")
+    plan_path = folder / "plan.json"
+    plan = json.loads(plan_path.read_text()) if plan_path.is_file() else None
+    if projector is not None:
+        size = _parse_size(projector)
+    elif plan is not None:
+        size = tuple(plan["projector"])
+    else:
+        raise InputError(f"no plan.json in {folder}: give --projector WxH")
+    config = _psp_from_plan(plan) if plan is not None else psp_config_for(*size)
+    keys = [psp_key(o, p, n) for o in ("x", "y") for p in config.periods for n in range(config.n_shifts)]
+    frames = {}
+    with Progress() as bar:
+        task = bar.add_task("loading frames", total=len(keys))
+        for key in keys:
+            path = _find_frame(folder, key)
+            if path is None:
+                raise DataError(f"frame {key!r} not found in {folder} (expected {key}.png/.tif/.npy or {key.replace('/', '__')}.*)")
+            frames[key] = _load_frame(path)
+            bar.advance(task)
+    corr = decode(frames, config, size, min_modulation=min_modulation, saturation=saturation)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in ("xp", "yp", "mask", "reason", "modulation", "offset", "modulation_ratio"):
+        np.save(out / f"{name}.npy", getattr(corr, name))
+    for o in ("x", "y"):
+        stack = [frames[psp_key(o, config.period, n)] for n in range(config.n_shifts)]
+        phi, _, _ = wrapped_phase([f.astype(np.float32).mean(-1) if f.ndim == 3 else f for f in stack])
+        _save_png(out / f"phase_{o}.png", _colour(np.where(corr.mask, (phi + np.pi) / (2 * np.pi), np.nan), "twilight"))
+    _save_png(out / "xp.png", _colour(corr.xp / max(1, size[0] - 1), "turbo"))
+    _save_png(out / "yp.png", _colour(corr.yp / max(1, size[1] - 1), "turbo"))
+    _save_png(out / "mask.png", (corr.mask * 255).astype(np.uint8))
+    _save_png(out / "reason.png", _reason_image(corr.reason))
+    top = float(np.percentile(corr.modulation, 99.5)) or 1.0
+    _save_png(out / "modulation.png", _colour(np.clip(corr.modulation / top, 0, 1), "magma"))
+    coverage = corr.coverage()
+    summary = {"projector": list(size), "psp": {"period": config.period, "n_shifts": config.n_shifts,
+               "unwrap_periods": list(config.unwrap_periods)}, "coverage": coverage,
+               "reason_colours": {r.name: list(REASON_COLOURS[r]) for r in Reason}}
+    (out / "decode.json").write_text(json.dumps(summary, indent=1) + "\n")
+    typer.echo(f"decoded {coverage['VALID']} of {corr.mask.size} pixels -> {out}  ({coverage})")
+
+
+REASON_COLOURS = {0: (255, 255, 255), 1: (230, 159, 0), 2: (213, 94, 0), 3: (40, 40, 40), 4: (204, 121, 167),
+                  5: (86, 180, 233), 6: (255, 0, 0)}
+
+
+def _reason_image(reason):
+    import numpy as np
+
+    lut = np.zeros((256, 3), np.uint8)
+    for code, colour in REASON_COLOURS.items():
+        lut[code] = colour
+    return lut[reason]
+
+
+def _colour(values, cmap: str):
+    """Float map in [0, 1] (NaN -> black) -> RGB uint8 with a matplotlib colour map."""
+    import numpy as np
+    from matplotlib import colormaps
+
+    finite = np.isfinite(values)
+    rgb = colormaps[cmap](np.clip(np.where(finite, values, 0), 0, 1))[..., :3]
+    rgb[~finite] = 0
+    return np.round(rgb * 255).astype(np.uint8)
+
+
+def bench_psp(
+    out: Path = typer.Option(..., "--out", help="JSON result file"),
+    md: Path | None = typer.Option(None, "--md", help="also write a Markdown table here"),
+    quick: bool = typer.Option(False, "--quick", help="small run (< 1 minute), for smoke tests"),
+) -> None:
+    """PSP decoding speed against OpenCV, accuracy against exact correspondences, error vs run time."""
+    from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
+
+    from sssphase_core.bench import psp_bench
+    from sssphase_core.bench.report import write_report
+
+    with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn()) as bar:
+        task = bar.add_task("bench psp", total=None)
+        result, tables = psp_bench.run(quick=quick, progress=lambda msg: bar.update(task, description=msg))
+    write_report(result, tables, out, md, title="sss bench psp" + (" (quick)" if quick else ""))
+    s = result["speed"]
+    typer.echo(
+        f"decode + unwrap {s['ours_ms_per_phase_map']:.1f} ms/phase map vs OpenCV PSP {s['opencv_psp_3step_ms']:.1f} ms "
+        f"({s['ratio_opencv_over_ours_per_map']:.1f}x) -> {out}"
+    )
+
+
+def register(groups: dict[str, typer.Typer]) -> None:
+    groups["root"].command("patterns")(patterns)
+    groups["root"].command("decode")(decode_cmd)
+    groups["bench"].command("psp")(bench_psp)

@@ -1,0 +1,89 @@
+"""`sss patterns`, `sss decode` and `sss bench psp --quick` end to end."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+from typer.testing import CliRunner
+
+runner = CliRunner()
+
+
+def _app():
+    from sssphase_cli.main import app  # the installed CLI (cli/ folder), imported like the entry point does
+
+    return app
+
+
+def _run(*args: str):
+    result = runner.invoke(_app(), list(args), catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    return result
+
+
+def test_patterns_writes_plan_pngs(tmp_path):
+    _run("patterns", "--projector", "64x48", "--out", str(tmp_path), "--footprints", "--dot-spacing", "4",
+         "--reference", "checkerboard")
+    plan = json.loads((tmp_path / "plan.json").read_text())
+    keys = [f["key"] for f in plan["frames"]]
+    assert sum(k.startswith("dots/") for k in keys) == 16
+    assert "ref/checkerboard" in keys and "black" in keys
+    for key in keys:
+        img = np.asarray(Image.open(tmp_path / f"{key}.png"))
+        assert img.dtype == np.uint8 and img.shape == (48, 64)
+    lit = sum(np.asarray(Image.open(tmp_path / f"dots/{sx}_{sy}.png")) // 255 for sx in range(4) for sy in range(4))
+    assert (lit == 1).all()
+
+
+def test_patterns_without_footprints_has_no_dot_grids(tmp_path):
+    _run("patterns", "--projector", "64x48", "--out", str(tmp_path))
+    assert not (tmp_path / "dots").exists()
+    kinds = {f["kind"] for f in json.loads((tmp_path / "plan.json").read_text())["frames"]}
+    assert kinds == {"psp"}
+
+
+def test_decode_folder_of_captures(tmp_path):
+    """Patterns -> 'captures' (camera = projector, gamma applied, 16-bit PNG) -> correspondence maps."""
+    pat_dir, cap_dir, out_dir = tmp_path / "patterns", tmp_path / "captures", tmp_path / "decoded"
+    _run("patterns", "--projector", "80x60", "--out", str(pat_dir))
+    plan = json.loads((pat_dir / "plan.json").read_text())
+    cap_dir.mkdir()
+    (cap_dir / "plan.json").write_text(json.dumps(plan))
+    for frame in plan["frames"]:
+        value = np.asarray(Image.open(pat_dir / f"{frame['key']}.png")).astype(np.float64) / 255
+        emitted = 0.05 + 0.8 * value ** plan["gamma"]
+        name = frame["key"].replace("/", "__")
+        Image.fromarray(np.round(emitted * 65535).astype(np.uint16)).save(cap_dir / f"{name}.png")
+    _run("decode", str(cap_dir), "--out", str(out_dir))
+    xp, yp, mask = (np.load(out_dir / f"{n}.npy") for n in ("xp", "yp", "mask"))
+    yy, xx = np.mgrid[:60, :80]
+    assert mask.all()
+    assert np.abs(xp - xx).max() < 0.15 and np.abs(yp - yy).max() < 0.15  # 8-bit pattern quantisation
+    for png in ("phase_x", "phase_y", "xp", "yp", "mask", "reason", "modulation"):
+        assert (out_dir / f"{png}.png").is_file()
+    assert json.loads((out_dir / "decode.json").read_text())["coverage"]["VALID"] == 80 * 60
+
+
+def test_decode_reports_missing_frames_as_one_line(tmp_path):
+    (tmp_path / "plan.json").write_text(json.dumps({"projector": [32, 24], "gamma": 2.2,
+                                                    "psp": {"period": 8, "n_shifts": 4, "unwrap_periods": [40]}}))
+    from sssphase_core.errors import DataError
+
+    with pytest.raises(DataError, match="psp/x/p40/s0"):
+        runner.invoke(_app(), ["decode", str(tmp_path), "--out", str(tmp_path / "o")], catch_exceptions=False)
+
+
+@pytest.mark.slow
+def test_bench_psp_quick_smoke(tmp_path):
+    out, md = tmp_path / "psp.json", tmp_path / "psp.md"
+    _run("bench", "psp", "--quick", "--out", str(out), "--md", str(md))
+    data = json.loads(out.read_text())
+    speed = data["speed"]
+    assert speed["ours_ms_per_phase_map"] > 0 and speed["opencv_psp_3step_ms"] > 0
+    assert [r["noise"] for r in data["synthetic"]] == [0.0, 0.01, 0.04]
+    assert data["synthetic"][0]["median_px"] < 0.01  # noise-free synthetic fringes decode exactly
+    assert {r["n_shifts"] for r in data["tradeoff"]} == {3, 4}
+    assert "OpenCV" in md.read_text()

@@ -1,0 +1,119 @@
+"""Dot-grid footprint extraction."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.ndimage import convolve
+
+from sssphase_core.errors import InputError
+from sssphase_core.footprints import DotGridExtractor
+from sssphase_core.patterns import dot_grid
+
+K = 9
+SPACING = 10  # wider than the 9-px kernel: neighbouring dots' footprints do not overlap
+
+
+def _kernel():
+    yy, xx = np.mgrid[-3:4, -4:5]  # 7 x 9 anisotropic, off-centre mass
+    ker = np.exp(-(xx**2) / 4.0 - (yy - 0.5) ** 2 / 1.5)
+    ker /= ker.sum()
+    return np.stack([ker, 0.5 * ker, 0.2 * ker], -1)
+
+
+def _scene(h=30, w=40):
+    """Camera = projector (identity correspondence, some pixels masked); light spreads by a known kernel."""
+    yy, xx = np.mgrid[:h, :w].astype(np.float32)
+    mask = np.ones((h, w), bool)
+    mask[5:8, 10:14] = False
+    xp = np.where(mask, xx + 0.3, np.nan).astype(np.float32)  # rounding to the pixel itself
+    yp = np.where(mask, yy - 0.2, np.nan).astype(np.float32)
+    ker = _kernel()
+
+    def frame(sx, sy):
+        dots = dot_grid(w, h, SPACING, sx, sy)
+        return np.stack([convolve(dots, ker[..., c], mode="constant") for c in range(3)], -1)
+
+    return xp, yp, mask, frame
+
+
+def _expected_crop(y, x, h, w):
+    """The kernel placed in a K x K patch centred on (y, x), cut where it leaves the image."""
+    ker = _kernel()
+    patch = np.zeros((K, K, 3))
+    kh, kw = ker.shape[:2]
+    top, left = K // 2 - kh // 2, K // 2 - kw // 2
+    patch[top : top + kh, left : left + kw] = ker
+    yy = y - K // 2 + np.arange(K)
+    xx = x - K // 2 + np.arange(K)
+    patch[(yy < 0) | (yy >= h)] = 0
+    patch[:, (xx < 0) | (xx >= w)] = 0
+    return patch
+
+
+def test_every_valid_pixel_gets_its_own_centred_footprint():
+    h, w = 30, 40
+    xp, yp, mask, frame = _scene(h, w)
+    ex = DotGridExtractor(xp, yp, mask, SPACING, K)
+    for sy in range(SPACING):
+        for sx in range(SPACING):
+            ex.add(sx, sy, frame(sx, sy))
+    pixels, fps = ex.result()
+    assert len(ex.missing()) == 0
+    assert pixels.shape == (mask.sum(), 2) and fps.shape == (mask.sum(), K, K, 3) and fps.dtype == np.float32
+    assert mask[pixels[:, 0], pixels[:, 1]].all()
+    for (y, x), fp in zip(pixels, fps, strict=True):
+        np.testing.assert_allclose(fp, _expected_crop(y, x, h, w), atol=1e-6)
+
+
+def test_partial_capture_lists_missing_pixels():
+    xp, yp, mask, frame = _scene()
+    ex = DotGridExtractor(xp, yp, mask, SPACING, K)
+    assert ex.add(2, 3, frame(2, 3)) > 0
+    pixels, fps = ex.result()
+    assert (pixels[:, 1] % SPACING == 2).all() and (pixels[:, 0] % SPACING == 3).all()
+    assert len(pixels) + len(ex.missing()) == mask.sum()
+    assert ex.add(0, 0, np.zeros((30, 40, 3))) > 0  # a black frame stores (zero) footprints too
+
+
+def test_rounding_selects_the_lighting_frame():
+    xp = np.array([[6.49, 6.51, -0.4]], np.float32)
+    yp = np.array([[0.0, 0.0, 0.0]], np.float32)
+    ex = DotGridExtractor(xp, yp, np.ones((1, 3), bool), 6, 3)
+    assert ex.add(0, 0, np.ones((1, 3, 3))) == 2  # 6.49 -> 6 and -0.4 -> 0 are lit by shift 0
+    assert ex.add(1, 0, np.ones((1, 3, 3))) == 1  # 6.51 -> 7
+    pixels, fps = ex.result()
+    assert len(pixels) == 3 and fps[:, 1, 1].min() == 1
+    np.testing.assert_array_equal(fps[0, 0], 0)  # row above the one-row image is zero padding
+
+
+def test_bad_arguments_rejected():
+    xp, yp, mask, frame = _scene()
+    ex = DotGridExtractor(xp, yp, mask, SPACING, K)
+    with pytest.raises(InputError):
+        ex.add(SPACING, 0, frame(0, 0))
+    with pytest.raises(InputError):
+        ex.add(0, 0, np.zeros((10, 10, 3)))
+    with pytest.raises(InputError):
+        DotGridExtractor(xp, yp[:5], mask, SPACING, K)
+
+
+def test_dot_grid_crops_match_simulated_footprints():
+    """On the simulated rig, dot-grid crops approximate the exact footprints (a dot lights the few camera
+    pixels around its correspondence, so they agree in shape and energy, not exactly)."""
+    sim = pytest.importorskip("sssphase_core.sim")
+    scene = sim.SimScene("pear")
+    wp, hp = scene.rig.projector.width, scene.rig.projector.height
+    spacing, shifts = 32, [(0, 0), (16, 16), (5, 21)]
+    xp, yp = scene.proj_xy[..., 0], scene.proj_xy[..., 1]
+    ex = DotGridExtractor(xp, yp, scene.lit, spacing, scene.rig.patch)
+    images = scene.render(np.stack([dot_grid(wp, hp, spacing, sx, sy) for sx, sy in shifts] + [np.zeros((hp, wp), np.float32)]))
+    for (sx, sy), img in zip(shifts, images[:-1], strict=True):
+        ex.add(sx, sy, img - images[-1])  # subtract the projector's black level
+    pixels, crops = ex.result()
+    assert len(pixels) > 10
+    exact = scene.footprints(pixels)
+    cosine = (crops * exact).sum((1, 2, 3)) / np.sqrt((crops**2).sum((1, 2, 3)) * (exact**2).sum((1, 2, 3)))
+    energy = crops.sum((1, 2, 3)) / exact.sum((1, 2, 3))
+    assert np.median(cosine) > 0.8
+    assert 0.8 < np.median(energy) < 1.3
