@@ -136,7 +136,7 @@ def rig_preset(name: str = "cpu") -> RigConfig:
     marble soap, skin) lose only a few percent of their energy outside the patch.
     """
     if name == "cpu":
-        return make_rig("cpu", (256, 192), (256, 192), 32, sss_scale=1.0)
+        return make_rig("cpu", (256, 192), (256, 192), 32, sss_scale=1.0, sensor=SensorConfig(isp_median=False))
     if name == "paper":
         # 1080p sees the same field as the CPU preset with 5.6x finer pixels; a 90 px patch then spans
         # 11 mm on the object (22 mm at the CPU preset), so distances are halved.

@@ -207,4 +207,5 @@ class SimScene:
         frames = expose(self.render(patterns, progress), sensor, rng, exposure)
         if raw:
             return frames
-        return np.stack([isp.develop(f, sensor.black_level, sensor.dn_per_unit(exposure)) for f in frames])
+        scale = sensor.dn_per_unit(exposure)
+        return np.stack([isp.develop(f, sensor.black_level, scale, median=sensor.isp_median) for f in frames])

@@ -52,6 +52,12 @@ def test_sim_command_writes_viewable_pngs(app, tmp_path):
         assert psp.shape == (192, 256, 3) and mask.any()
         assert psp[mask].std() > 20  # fringes visible on the object
         assert np.asarray(Image.open(vdir / "footprints.png")).max() > 200
+        decoded = info["views"][view]["decode"]
+        assert decoded["valid_fraction"] > 0.9
+        assert decoded["median_error_px"] < 0.2  # noisy capture decoded against the exact correspondences
+        maps = np.load(vdir / "decoded.npz")
+        assert np.isfinite(maps["xp"][maps["mask"]]).all() and np.isnan(maps["xp"][~maps["mask"]]).all()
+        assert (maps["reason"][~maps["mask"]] > 0).all()
 
 
 def test_sim_command_rejects_unknown_objects(app, tmp_path):
