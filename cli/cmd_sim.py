@@ -103,7 +103,8 @@ def _decode_view(frames: dict, config, scene, vdir: Path) -> dict:
     wp, hp = rig.projector.width, rig.projector.height
     corr = decode(frames, config, (wp, hp))
     np.savez_compressed(vdir / "decoded.npz", xp=corr.xp, yp=corr.yp, mask=corr.mask, reason=corr.reason)
-    on_object = corr.mask & scene.mask
+    lit = scene.mask & np.isfinite(scene.proj_xy[..., 0])  # exact correspondence exists (not shadowed)
+    on_object = corr.mask & lit
     err = np.hypot(corr.xp - scene.proj_xy[..., 0], corr.yp - scene.proj_xy[..., 1])[on_object]
     _save(vdir / "decoded_x.png", _colour_map(np.where(corr.mask, corr.xp, np.nan) / (wp - 1), "turbo"))
     _save(vdir / "decoded_y.png", _colour_map(np.where(corr.mask, corr.yp, np.nan) / (hp - 1), "turbo"))
@@ -111,9 +112,9 @@ def _decode_view(frames: dict, config, scene, vdir: Path) -> dict:
     err_map = np.full(scene.mask.shape, np.nan, np.float32)
     err_map[on_object] = err
     _save(vdir / "decode_error.png", _colour_map(err_map / 0.5, "magma"))  # 0 .. 0.5 projector px
-    lit = scene.mask & np.isfinite(scene.proj_xy[..., 0])
     return {
         "valid_fraction": float(on_object.sum() / max(lit.sum(), 1)),
+        "valid_in_shadow": int((corr.mask & scene.mask & ~lit).sum()),  # lit only through scattering
         "median_error_px": float(np.median(err)) if err.size else float("nan"),
         "p99_error_px": float(np.percentile(err, 99)) if err.size else float("nan"),
         "reasons": {r.name: int((corr.reason[scene.mask] == r).sum()) for r in Reason},
