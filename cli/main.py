@@ -42,6 +42,7 @@ COMMAND_MODULES = [
     "sssphase_cli.cmd_foundation",  # patterns, decode, bench psp
     "sssphase_cli.cmd_sim",  # sim
     "sssphase_cli.cmd_capture",  # devices, plugins, daemon, capture, validate, import, bench daemon
+    "sssphase_cli.cmd_devices",  # udev install
     "sssphase_cli.cmd_learn",  # train, eval knn/footprints, viz pca
     "sssphase_cli.cmd_relight",  # relight, eval relight, demo, bench relight/stability
 ]
@@ -63,7 +64,8 @@ _register_all()
 def main() -> None:
     """Run the CLI; user-facing errors are printed as one clear message, never a traceback."""
     try:
-        app(standalone_mode=False)
+        rc = app(standalone_mode=False)
+        sys.exit(rc if isinstance(rc, int) else 0)
     except SssError as exc:
         err_console.print(f"[bold red]error:[/] {exc}")
         sys.exit(2)

@@ -1,0 +1,279 @@
+"""Acquisition commands: ``sss devices``, ``plugins``, ``daemon start|stop|status|keys``, ``capture``,
+``validate``, ``import`` and ``bench daemon``. Heavy modules (zmq, numpy, torch) load inside commands."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.table import Table
+
+console = Console()
+
+
+def _client(timeout_s: float = 10.0):
+    """A client for the running local daemon, or None when none answers."""
+    from sssphase_daemon.client import DaemonClient, DaemonUnavailable
+
+    try:
+        client = DaemonClient.from_state(timeout_s=timeout_s)
+    except DaemonUnavailable:
+        return None
+    if client.ping(timeout_s=2.0):
+        return client
+    client.close()
+    return None
+
+
+def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] = False) -> None:
+    """List devices with their stable IDs (asks the running daemon, else discovers locally)."""
+    from dataclasses import asdict
+
+    client = _client()
+    if client is not None:
+        with client:
+            found = client.call("devices")
+        devs, errors, where = found["devices"], found["errors"], "daemon"
+    else:
+        from sssphase_plugins.manager import discover_devices
+
+        infos, errors = discover_devices()
+        devs, where = [asdict(d) for d in infos], "local discovery (no daemon running)"
+    if as_json:
+        console.print_json(json.dumps({"devices": devs, "errors": errors}))
+        return
+    table = Table(title=f"devices ({where})")
+    for col in ("id", "kind", "plugin", "model", "serial"):
+        table.add_column(col)
+    for d in devs:
+        table.add_row(d["id"], d["kind"], d["plugin"], d["model"], d["serial"])
+    console.print(table)
+    for plugin, err in errors.items():
+        console.print(f"[red]plugin {plugin} failed:[/] {err}")
+
+
+def plugins() -> None:
+    """List device and model-backend plugins with their versions (broken ones named with the error)."""
+    from sssphase_plugins.manager import device_providers, get_plugin_manager, plugin_records
+
+    pm = get_plugin_manager()
+    device_providers(pm)  # surfaces plugins whose hooks raise
+    table = Table(title="plugins")
+    for col in ("name", "kind", "version", "source"):
+        table.add_column(col)
+    for r in plugin_records(pm):
+        table.add_row(r.name, r.kind if r.ok else "[red]broken[/]", r.version, r.source if r.ok else f"[red]{r.source}[/]")
+    console.print(table)
+
+
+# ---- daemon ---------------------------------------------------------------------------------
+def daemon_start(
+    endpoint: Annotated[str | None, typer.Option(help="control endpoint (default: ipc:// in the runtime dir)")] = None,
+    preview: Annotated[str | None, typer.Option(help="PUB endpoint for a live preview")] = None,
+    curve_dir: Annotated[Path | None, typer.Option(help="CURVE keys (required off loopback)")] = None,
+    foreground: Annotated[bool, typer.Option("--foreground", help="run in this process (systemd, debugging)")] = False,
+) -> None:
+    """Start the acquisition daemon (detached unless --foreground)."""
+    from sssphase_core.errors import InputError
+    from sssphase_daemon import security
+    from sssphase_daemon.client import spawn_daemon
+
+    if _client() is not None:
+        raise InputError("a daemon is already running (`sss daemon status`)")
+    args = [*(["--endpoint", endpoint] if endpoint else []), *(["--preview", preview] if preview else []),
+            *(["--curve-dir", str(curve_dir)] if curve_dir else [])]
+    if endpoint and not security.is_local(endpoint) and curve_dir is None:
+        raise InputError(f"{endpoint} is not loopback/ipc: generate keys with `sss daemon keys` and pass --curve-dir")
+    if foreground:
+        from sssphase_daemon.__main__ import main
+
+        sys.exit(main(args))
+    proc = spawn_daemon(extra_args=tuple(args))
+    state = security.read_state()
+    console.print(f"daemon started (pid {proc.pid}) on {state.endpoint if state else '?'}")
+
+
+def daemon_stop() -> None:
+    """Stop the running daemon."""
+    from sssphase_daemon import security
+
+    client = _client()
+    if client is None:
+        state = security.read_state()
+        if state is not None:
+            try:
+                os.kill(state.pid, signal.SIGTERM)
+                console.print(f"daemon (pid {state.pid}) did not answer; sent SIGTERM")
+            except ProcessLookupError:
+                security.state_path().unlink(missing_ok=True)
+                console.print("no daemon running (removed a stale state file)")
+            return
+        console.print("no daemon running")
+        return
+    with client:
+        pid = client.call("hello")["pid"]
+        client.call("shutdown")
+    console.print(f"daemon (pid {pid}) stopped")
+
+
+def daemon_status() -> None:
+    """Show the daemon's endpoint, rigs and jobs."""
+    client = _client()
+    if client is None:
+        console.print("no daemon running")
+        sys.exit(1)  # typer.Exit's code is dropped by cli.main
+    with client:
+        hello, status = client.call("hello"), client.call("status")
+    console.print(f"daemon pid {hello['pid']} version {hello['version']} protocol {hello['protocol']} on {hello['endpoint']}"
+                  f" (up {status['uptime_s']:.0f} s, {status['clients']} clients)")
+    for rig in status["rigs"]:
+        console.print(f"  rig {rig['rig']}: {rig['devices']}")
+    for job in status["jobs"]:
+        console.print(f"  job {job['job']}: {job['state']} {job['sent']}/{job['total']}" + (f" {job['error']}" if job["error"] else ""))
+
+
+def daemon_keys(
+    directory: Annotated[Path | None, typer.Option("--dir", help="where to write (default ~/.config/sssphase/curve)")] = None,
+    overwrite: Annotated[bool, typer.Option(help="replace existing keys")] = False,
+) -> None:
+    """Generate CURVE key pairs for a daemon bound off loopback, and authorise the client key."""
+    from sssphase_core.errors import InputError
+    from sssphase_daemon import security
+
+    try:
+        path = security.generate_keys(directory, overwrite=overwrite)
+    except FileExistsError as exc:
+        raise InputError(str(exc)) from None
+    console.print(f"CURVE keys written to {path}; start the daemon with --curve-dir {path} and give clients "
+                  f"client.key_secret and server.key")
+
+
+# ---- capture --------------------------------------------------------------------------------
+def capture(
+    object_name: Annotated[str, typer.Option("--object", help="session name; on the sim rig also the catalogue object")],
+    views: Annotated[int, typer.Option(help="number of views (turntable steps)")] = 4,
+    footprints: Annotated[bool, typer.Option(help="also capture dot grids and extract ground-truth footprints")] = False,
+    reference: Annotated[list[str] | None, typer.Option(help="reference pattern: a name (checkerboard, stripes_x, ...) or an image file; repeatable")] = None,
+    hdr: Annotated[bool, typer.Option(help="capture exposure brackets (1/4, 1, 4) and merge them")] = False,
+    resume: Annotated[bool, typer.Option(help="continue an interrupted session")] = False,
+    rig: Annotated[Path | None, typer.Option(help="rig file (TOML); default: the sim rig")] = None,
+    out: Annotated[Path, typer.Option(help="session root folder")] = Path("sessions"),
+    seed: Annotated[int, typer.Option(help="sim noise seed")] = 0,
+    preset: Annotated[str, typer.Option(help="sim rig preset: cpu or paper")] = "cpu",
+    dot_spacing: Annotated[int | None, typer.Option(help="dot-grid spacing in projector pixels")] = None,
+    keep_dots: Annotated[bool, typer.Option(help="keep the raw dot-grid frames")] = False,
+    keep_unwrap: Annotated[bool, typer.Option(help="keep the unwrapping frames (default: only the decoded result)")] = False,
+    timeout: Annotated[float, typer.Option(help="seconds without an answer before the daemon counts as gone")] = 10.0,
+) -> None:
+    """Capture a session through the daemon (starting a local sim daemon if none runs)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from sssphase_core.capture import DEFAULT_HDR, CaptureRequest, RigSpec, run_capture
+    from sssphase_core.session import check_object_name
+
+    check_object_name(object_name)
+    spec = RigSpec.from_toml(rig) if rig else RigSpec()
+    req = CaptureRequest(object_name, views, footprints, tuple(reference or ()), DEFAULT_HDR if hdr else (),
+                         keep_dots, keep_unwrap, resume, out, seed, preset, dot_spacing)
+    client, started = _client(timeout), None
+    if client is None:
+        from sssphase_daemon.client import DaemonClient, spawn_daemon
+
+        started = spawn_daemon()
+        console.print(f"[yellow]no daemon running:[/] started a local one with the sim rig (pid {started.pid})")
+        client = DaemonClient.from_state(timeout_s=timeout)
+
+    def ask_move(view: int, angle: float) -> None:
+        typer.confirm(f"turn the object to view {view} ({angle:.0f} deg) and press enter", default=True)
+
+    columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+    try:
+        with client, Progress(*columns, console=console) as bar:
+            tasks: dict[int, int] = {}
+
+            def progress(view: int, done: int, total: int) -> None:
+                if view not in tasks:
+                    tasks[view] = bar.add_task(f"view {view + 1}/{views}", total=total)
+                bar.update(tasks[view], completed=done)
+
+            session = run_capture(client, req, spec, progress=progress, ask_move=None if spec.turntable else ask_move)
+    except KeyboardInterrupt:
+        # cli.main ignores the exit code typer returns for Ctrl-C, so leave with it here
+        Console(stderr=True).print("[yellow]interrupted[/]: complete views are kept; rerun with --resume to continue")
+        sys.exit(130)
+    finally:
+        if started is not None:
+            started.terminate()
+            started.wait(10)
+            console.print(f"stopped the local daemon (pid {started.pid})")
+    console.print(f"session {session.path}: {len(session.views())}/{views} views complete")
+
+
+def validate(session: Annotated[Path, typer.Argument(help="session folder")]) -> None:
+    """Check a session: every view complete, every array present and matching its checksum."""
+    from sssphase_core.errors import DataError
+    from sssphase_core.session import Session
+
+    s = Session.open(session)
+    problems = s.validate()
+    if problems:
+        for p in problems:
+            console.print(f"[red]{p}[/]")
+        raise DataError(f"{session}: {len(problems)} problem(s)")
+    n = sum(len(s.arrays(v)) for v in s.views())
+    console.print(f"[green]ok[/] {session}: {len(s.views())} views, {n} arrays, checksums match")
+
+
+def import_images(
+    folder: Annotated[Path, typer.Argument(help="folder of images (view_000/, view_001/ ... or one view)")],
+    object_name: Annotated[str, typer.Option("--object", help="session name")],
+    projector: Annotated[str, typer.Option(help="projector size WxH, e.g. 1920x1080")],
+    out: Annotated[Path, typer.Option(help="session root folder")] = Path("sessions"),
+) -> None:
+    """Import images from another rig (files named by plan key, '/' as '__'; see SESSION_FORMAT.md)."""
+    from sssphase_core.capture import import_folder
+    from sssphase_core.errors import InputError
+
+    try:
+        w, h = (int(v) for v in projector.lower().split("x"))
+    except ValueError:
+        raise InputError(f"--projector must be WxH, got {projector!r}") from None
+    session = import_folder(folder, out, object_name, (w, h))
+    console.print(f"imported {len(session.views())} view(s) into {session.path}")
+
+
+def bench_daemon(
+    out: Annotated[Path, typer.Option(help="JSON result file (a Markdown table is printed and written next to it)")],
+    frames: Annotated[int, typer.Option(help="frames per throughput run")] = 200,
+) -> None:
+    """Daemon frame throughput vs bare pyzmq PUSH/PULL (tcp, ipc), one sim view's capture time, peak memory."""
+    from sssphase_daemon.bench import run_bench
+
+    t0 = time.time()
+    result, markdown = run_bench(frames)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
+    out.with_suffix(".md").write_text(markdown)
+    console.print(markdown)
+    console.print(f"wrote {out} and {out.with_suffix('.md')} in {time.time() - t0:.0f} s")
+
+
+def register(groups: dict[str, typer.Typer]) -> None:
+    root = groups["root"]
+    root.command("devices")(devices)
+    root.command("plugins")(plugins)
+    root.command("capture")(capture)
+    root.command("validate")(validate)
+    root.command("import")(import_images)
+    groups["daemon"].command("start")(daemon_start)
+    groups["daemon"].command("stop")(daemon_stop)
+    groups["daemon"].command("status")(daemon_status)
+    groups["daemon"].command("keys")(daemon_keys)
+    groups["bench"].command("daemon")(bench_daemon)

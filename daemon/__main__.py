@@ -1,0 +1,46 @@
+"""``python -m sssphase_daemon``: run the acquisition daemon in the foreground (systemd, ``sss daemon start``)."""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import signal
+import sys
+from pathlib import Path
+
+from sssphase_daemon import protocol, security
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="sssphase_daemon", description=__doc__)
+    parser.add_argument("--endpoint", help="control endpoint (default: ipc:// socket in the runtime dir)")
+    parser.add_argument("--preview", help="optional PUB endpoint for a live preview that may drop frames")
+    parser.add_argument("--curve-dir", type=Path, help="CURVE keys from `sss daemon keys` (required off loopback)")
+    parser.add_argument("--client-timeout", type=float, default=10.0, help="seconds without heartbeat before a client counts as dead")
+    parser.add_argument("--max-message-bytes", type=int, default=protocol.DEFAULT_MAX_MESSAGE_BYTES)
+    parser.add_argument("--state-file", type=Path, help="where to write endpoint, pid and token (default: runtime dir)")
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    from sssphase_daemon.server import Daemon
+
+    try:
+        daemon = Daemon(args.endpoint, curve_dir=args.curve_dir, preview=args.preview,
+                        client_timeout_s=args.client_timeout, max_message_bytes=args.max_message_bytes,
+                        state_file=args.state_file or security.state_path())
+    except (PermissionError, OSError, ValueError) as exc:
+        print(f"sssphase daemon: {exc}", file=sys.stderr)
+        return 2
+
+    def stop(signum: int, frame: object) -> None:
+        daemon.running = False
+
+    signal.signal(signal.SIGTERM, stop)
+    signal.signal(signal.SIGINT, stop)
+    path = daemon.write_state()
+    logging.getLogger("sssphase.daemon").info("serving on %s (state in %s)", daemon.endpoint, path)
+    daemon.serve_forever()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,212 @@
+"""Client side of the daemon protocol: requests on a DEALER socket, frames from the job's PUSH stream.
+
+While frames arrive a thread heartbeats the job on its own socket; if the stream goes quiet the client pings
+the daemon and raises :class:`DaemonUnavailable` when the daemon does not answer (killed, crashed).
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import subprocess
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zmq
+
+from sssphase_core.errors import SssError
+from sssphase_daemon import protocol, security
+
+
+class DaemonError(SssError):
+    """The daemon refused a request or a job failed (``code`` is the protocol error code)."""
+
+    def __init__(self, code: str, message: str) -> None:
+        super().__init__(message)
+        self.code = code
+
+
+class DaemonUnavailable(SssError):
+    """No daemon answers at the endpoint."""
+
+
+@dataclass
+class ReceivedFrame:
+    name: str
+    seq: int
+    data: np.ndarray
+    header: dict[str, Any]
+
+
+class DaemonClient:
+    """Talk to one daemon. ``DaemonClient.from_state()`` finds the local one via its state file."""
+
+    def __init__(self, endpoint: str, token: str, *, curve_dir: Path | None = None, timeout_s: float = 10.0,
+                 heartbeat_s: float = 1.0, max_message_bytes: int = protocol.DEFAULT_MAX_MESSAGE_BYTES) -> None:
+        self.endpoint, self.token = endpoint, token
+        self.timeout_s, self.heartbeat_s, self.max_bytes = timeout_s, heartbeat_s, max_message_bytes
+        self.curve = security.client_keys(curve_dir) if curve_dir is not None else None
+        self.ctx = zmq.Context.instance()
+        self.ids = itertools.count(1)
+        self.sock = self._socket(zmq.DEALER)
+        self.sock.connect(endpoint)
+
+    @classmethod
+    def from_state(cls, state_file: Path | None = None, **kwargs: Any) -> DaemonClient:
+        state = security.read_state(state_file)
+        if state is None:
+            raise DaemonUnavailable("no daemon is running (start one with `sss daemon start`)")
+        curve = Path(state.curve_dir) if state.curve_dir else None
+        return cls(state.endpoint, state.token, curve_dir=curve, **kwargs)
+
+    def _socket(self, kind: int) -> zmq.Socket:
+        sock = self.ctx.socket(kind)
+        sock.linger = 0
+        if self.curve is not None:
+            sock.curve_publickey, sock.curve_secretkey, sock.curve_serverkey = self.curve
+        return sock
+
+    def close(self) -> None:
+        self.sock.close(linger=0)
+
+    def __enter__(self) -> DaemonClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # ---- requests --------------------------------------------------------------------------
+    def send(self, op: str, **args: Any) -> int:
+        rid = next(self.ids)
+        self.sock.send(protocol.request(rid, op, self.token, **args))
+        return rid
+
+    def _wait(self, rid: int, timeout_s: float) -> dict[str, Any]:
+        deadline = time.monotonic() + timeout_s
+        while (left := deadline - time.monotonic()) > 0:
+            if not self.sock.poll(int(left * 1000) + 1):
+                break
+            msg = protocol.unpack(self.sock.recv(), self.max_bytes)
+            if isinstance(msg, dict) and msg.get("id") == rid:
+                return msg
+        raise DaemonUnavailable(f"the daemon at {self.endpoint} did not answer within {timeout_s:g} s")
+
+    def call(self, op: str, timeout_s: float | None = None, **args: Any) -> dict[str, Any]:
+        """Send a request and return its result; raise :class:`DaemonError` on an error reply."""
+        msg = self._wait(self.send(op, **args), self.timeout_s if timeout_s is None else timeout_s)
+        if not msg.get("ok"):
+            err = msg.get("error") or {}
+            raise DaemonError(str(err.get("code", "?")), f"daemon: {err.get('message', 'unknown error')}")
+        return msg["result"]
+
+    def ping(self, timeout_s: float = 2.0) -> bool:
+        try:
+            self.call("ping", timeout_s=timeout_s)
+            return True
+        except DaemonUnavailable:
+            return False
+
+    # ---- frame streams ---------------------------------------------------------------------
+    def capture(self, rig: str, frames: list[dict[str, Any]]) -> Iterator[ReceivedFrame]:
+        """Run a capture job and yield its frames in order (see :meth:`receive`)."""
+        return self.receive(self.call("capture", rig=rig, frames=frames))
+
+    def stream(self, rig: str, count: int) -> Iterator[ReceivedFrame]:
+        return self.receive(self.call("stream", rig=rig, count=count))
+
+    def _check_job(self, job_id: str) -> None:
+        """The stream went quiet: raise if the daemon is gone or the job ended without telling us."""
+        try:
+            state = self.call("job", timeout_s=2.0, job=job_id)
+        except DaemonUnavailable:
+            raise DaemonUnavailable(f"the daemon at {self.endpoint} stopped answering mid-stream") from None
+        except DaemonError as exc:
+            raise DaemonError(exc.code, f"the capture job vanished from the daemon ({exc})") from None
+        if state["state"] != "running":
+            raise DaemonError(protocol.INTERNAL, f"the job ended ({state['state']}) but its stream did not finish")
+
+    def _heartbeat(self, job_id: str, stop: threading.Event) -> None:
+        """Heartbeat the job from a thread with its own socket, so slow frame processing never starves it."""
+        sock = self._socket(zmq.DEALER)
+        sock.connect(self.endpoint)
+        try:
+            while not stop.wait(self.heartbeat_s):
+                sock.send(protocol.request(0, "heartbeat", self.token, job=job_id))
+                while sock.poll(0):
+                    sock.recv()
+        finally:
+            sock.close(linger=0)
+
+    def receive(self, job: dict[str, Any]) -> Iterator[ReceivedFrame]:
+        """Yield the job's frames (heartbeating meanwhile); raise on a failed job, a gap or a dead daemon."""
+        pull = self._socket(zmq.PULL)
+        pull.rcvhwm = 16
+        pull.connect(job["endpoint"])
+        expected, finished = 0, False
+        last_data = time.monotonic()
+        stop = threading.Event()
+        beat = threading.Thread(target=self._heartbeat, args=(job["job"], stop), daemon=True)
+        beat.start()
+        try:
+            while True:
+                try:  # receive first, poll only when nothing is queued (one syscall less per frame)
+                    parts = pull.recv_multipart(flags=zmq.NOBLOCK, copy=False)
+                except zmq.Again:
+                    if not pull.poll(int(self.heartbeat_s * 1000)) and time.monotonic() - last_data > self.timeout_s:
+                        self._check_job(job["job"])
+                        last_data = time.monotonic()
+                    continue
+                last_data = time.monotonic()
+                header = protocol.unpack(parts[0].bytes, self.max_bytes)
+                if header.get("type") == "end":
+                    finished = True
+                    self.send("cancel", job=job["job"])  # acknowledges the end: the daemon closes the stream
+                    if not header.get("ok"):
+                        err = header.get("error") or {}
+                        raise DaemonError(str(err.get("code")), f"capture failed after {header.get('frames')} frames: "
+                                                                f"{err.get('message')}")
+                    if header.get("frames") != expected:
+                        raise DaemonError(protocol.INTERNAL, f"stream ended after {expected} of {header.get('frames')} frames")
+                    return
+                if header.get("seq") != expected:
+                    raise DaemonError(protocol.INTERNAL, f"frame {expected} lost (got {header.get('seq')})")
+                expected += 1
+                yield ReceivedFrame(header["name"], header["seq"], protocol.decode_frame(header, parts[1].buffer), header)
+        finally:
+            stop.set()
+            beat.join()
+            if not finished:
+                try:
+                    self.send("cancel", job=job["job"])
+                except zmq.ZMQError:
+                    pass
+            pull.close(linger=0)
+
+
+def spawn_daemon(*, endpoint: str | None = None, extra_args: tuple[str, ...] = (), env: dict[str, str] | None = None,
+                 log_path: Path | None = None, wait_s: float = 20.0) -> subprocess.Popen:
+    """Start ``python -m sssphase_daemon`` detached and wait until it answers; returns the process."""
+    state_file = security.state_path()
+    cmd = [sys.executable, "-m", "sssphase_daemon", *(["--endpoint", endpoint] if endpoint else []), *extra_args]
+    log = open(log_path or security.runtime_dir() / "daemon.log", "ab")  # noqa: SIM115 - handed to the child
+    proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                            start_new_session=True, env={**os.environ, **(env or {})})
+    log.close()
+    deadline = time.monotonic() + wait_s
+    while time.monotonic() < deadline:
+        if proc.poll() is not None:
+            raise DaemonUnavailable(f"the daemon exited with status {proc.returncode} (see {log.name})")
+        state = security.read_state(state_file)
+        if state is not None and state.pid == proc.pid:
+            with DaemonClient(state.endpoint, state.token) as client:
+                if client.ping(timeout_s=1.0):
+                    return proc
+        time.sleep(0.05)
+    proc.kill()
+    raise DaemonUnavailable(f"the daemon did not start within {wait_s:g} s (see {log.name})")

@@ -1,0 +1,144 @@
+"""Where the daemon listens, who may talk to it, and the state file clients find it by.
+
+* Local endpoints (``ipc://`` or ``tcp://127.0.0.1``/``localhost``/``[::1]``) need no keys: the runtime
+  directory is private (mode 0700) and every request carries a random token from the state file
+  (mode 0600), so other local users cannot drive the devices.
+* Any other bind address requires ZeroMQ CURVE: the server's secret key and a folder of authorised
+  client public keys (``sss daemon keys`` writes both), checked by pyzmq's authenticator.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import secrets
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from urllib.parse import urlsplit
+
+LOCAL_HOSTS = {"127.0.0.1", "localhost", "::1", "[::1]"}
+SERVER_CERT, CLIENT_CERT, AUTHORIZED = "server", "client", "authorized_clients"
+
+
+def _private_dir(path: Path) -> Path:
+    path.mkdir(parents=True, exist_ok=True, mode=0o700)
+    st = path.stat()
+    if st.st_uid != os.getuid() or st.st_mode & 0o077:
+        raise PermissionError(f"{path} must be owned by you with mode 0700 (it holds the daemon's socket and token)")
+    return path
+
+
+def runtime_dir() -> Path:
+    """``$SSS_RUNTIME_DIR``, else ``$XDG_RUNTIME_DIR/sssphase``, else a per-user folder in the temp dir."""
+    if os.environ.get("SSS_RUNTIME_DIR"):
+        return _private_dir(Path(os.environ["SSS_RUNTIME_DIR"]))
+    if os.environ.get("XDG_RUNTIME_DIR"):
+        return _private_dir(Path(os.environ["XDG_RUNTIME_DIR"]) / "sssphase")
+    return _private_dir(Path(tempfile.gettempdir()) / f"sssphase-{os.getuid()}")
+
+
+def default_endpoint(transport: str = "ipc") -> str:
+    return f"ipc://{runtime_dir() / 'control.sock'}" if transport == "ipc" else "tcp://127.0.0.1:5591"
+
+
+def host_of(endpoint: str) -> str:
+    return (urlsplit(endpoint).hostname or "") if endpoint.startswith("tcp://") else ""
+
+
+def is_local(endpoint: str) -> bool:
+    """True for ipc:// and loopback tcp endpoints (no CURVE needed)."""
+    if endpoint.startswith("ipc://"):
+        return True
+    if endpoint.startswith("tcp://"):
+        return host_of(endpoint) in LOCAL_HOSTS
+    return False
+
+
+def stream_endpoint(control: str, job: str) -> str:
+    """A fresh endpoint for one job's frame stream on the same transport/interface as ``control``."""
+    if control.startswith("ipc://"):
+        return f"ipc://{Path(control[6:]).parent / f'stream-{job}.sock'}"
+    host = urlsplit(control).hostname or "127.0.0.1"
+    return f"tcp://{'[' + host + ']' if ':' in host else host}:*"
+
+
+def new_token() -> str:
+    return secrets.token_urlsafe(32)
+
+
+@dataclass(frozen=True)
+class DaemonState:
+    """What a client needs to find and address a running daemon."""
+
+    endpoint: str
+    token: str
+    pid: int
+    version: str
+    started: float
+    preview: str = ""
+    curve_dir: str = ""
+
+
+def state_path() -> Path:
+    return runtime_dir() / "daemon.json"
+
+
+def write_state(state: DaemonState, path: Path | None = None) -> Path:
+    """Atomically write the state file, readable by the owner only."""
+    path = path or state_path()
+    tmp = path.with_suffix(f".tmp{os.getpid()}")
+    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
+    with os.fdopen(fd, "w") as f:
+        json.dump(asdict(state), f)
+    os.replace(tmp, path)
+    return path
+
+
+def read_state(path: Path | None = None) -> DaemonState | None:
+    path = path or state_path()
+    try:
+        return DaemonState(**json.loads(path.read_text()))
+    except (OSError, ValueError, TypeError):
+        return None
+
+
+def curve_dir() -> Path:
+    base = os.environ.get("SSS_CONFIG_DIR") or os.environ.get("XDG_CONFIG_HOME") or str(Path.home() / ".config")
+    return Path(base) / "sssphase" / "curve"
+
+
+def generate_keys(directory: Path | None = None, *, overwrite: bool = False) -> Path:
+    """Create server and client CURVE key pairs and authorise the client (``sss daemon keys``)."""
+    import zmq.auth
+
+    directory = _private_dir(directory or curve_dir())
+    if (directory / f"{SERVER_CERT}.key_secret").exists() and not overwrite:
+        raise FileExistsError(f"keys already exist in {directory} (pass --overwrite to replace them)")
+    for name in (SERVER_CERT, CLIENT_CERT):
+        zmq.auth.create_certificates(directory, name)
+    for secret in directory.glob("*.key_secret"):
+        secret.chmod(0o600)
+    authorized = _private_dir(directory / AUTHORIZED)
+    (authorized / f"{CLIENT_CERT}.key").write_bytes((directory / f"{CLIENT_CERT}.key").read_bytes())
+    return directory
+
+
+def server_keys(directory: Path) -> tuple[bytes, bytes]:
+    import zmq.auth
+
+    public, secret = zmq.auth.load_certificate(directory / f"{SERVER_CERT}.key_secret")
+    if secret is None:
+        raise ValueError(f"no server secret key in {directory}")
+    return public, secret
+
+
+def client_keys(directory: Path) -> tuple[bytes, bytes, bytes]:
+    """(client public, client secret, server public) for a CURVE client."""
+    import zmq.auth
+
+    public, secret = zmq.auth.load_certificate(directory / f"{CLIENT_CERT}.key_secret")
+    server_public, _ = zmq.auth.load_certificate(directory / f"{SERVER_CERT}.key")
+    if secret is None:
+        raise ValueError(f"no client secret key in {directory}")
+    return public, secret, server_public

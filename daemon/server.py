@@ -1,0 +1,436 @@
+"""The acquisition daemon: owns the devices and serves them over ZeroMQ.
+
+One ROUTER control socket answers every request from the main thread (it never blocks on a
+device for long); each capture runs in a job thread that drives the rig's projector and camera and
+pushes frames on the job's own PUSH socket. Any request from a client counts as its heartbeat; a job
+whose client stops heartbeating is cancelled so a dead client never stalls the daemon. A device
+error ends that job with a clear error (in the stream's end message and in ``job``) and the daemon
+keeps serving. Malformed, oversized, wrong-version or unauthenticated requests get an error reply
+(or are dropped by ZeroMQ) and never reach a handler.
+"""
+
+from __future__ import annotations
+
+import functools
+import hmac
+import itertools
+import logging
+import os
+import sys
+import threading
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zmq
+
+from sssphase_core.errors import SssError
+from sssphase_daemon import protocol, security
+from sssphase_daemon.frames import ClientGone, FrameSender, Preview, configure_curve_server
+from sssphase_daemon.protocol import ProtocolError
+from sssphase_plugins import manager
+from sssphase_plugins.drivers import DeviceError
+
+log = logging.getLogger("sssphase.daemon")
+MAX_FRAMES_PER_JOB = 200_000
+HEAVY_MODULES = ("torch", "depthai", "hid", "usb", "serial")  # a sim-only daemon must load none of these
+FRAME_KINDS = ("psp", "white", "black", "dots", "ref", "image")
+
+
+@dataclass
+class Rig:
+    """Opened devices used together; ``shared`` lets one plugin's devices share state (the sim scene)."""
+
+    id: str
+    owner: bytes
+    devices: dict[str, Any]
+    options: dict[str, Any]
+    lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def close(self) -> None:
+        for driver in self.devices.values():
+            try:
+                driver.close()
+            except Exception as exc:  # closing must not take the daemon down
+                log.warning("closing %s failed: %s", driver.info.id, exc)
+
+
+@dataclass
+class Job:
+    id: str
+    owner: bytes
+    rig: Rig
+    endpoint: str
+    total: int
+    sent: int = 0
+    state: str = "running"  # running | done | failed | cancelled
+    error: dict[str, str] | None = None
+    cancel: threading.Event = field(default_factory=threading.Event)
+    started: float = field(default_factory=time.time)
+    last_beat: float = field(default_factory=time.monotonic)
+
+    def summary(self) -> dict[str, Any]:
+        return {"job": self.id, "rig": self.rig.id, "state": self.state, "sent": self.sent, "total": self.total,
+                "error": self.error, "started": self.started}
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _pattern_for(spec: dict[str, Any]) -> np.ndarray:
+    """Render the projector image of one requested frame (an uploaded image or a planned pattern)."""
+    if spec["kind"] == "image":
+        img = spec["image"]
+        return protocol.decode_frame(img, img["data"]).astype(np.float32)
+    from sssphase_core.patterns import PlannedFrame
+
+    return PlannedFrame(spec["key"], spec["kind"], dict(spec["params"]), float(spec["exposure"])).pattern()
+
+
+def _check_frames(frames: Any) -> list[dict[str, Any]]:
+    if not isinstance(frames, list) or not 0 < len(frames) <= MAX_FRAMES_PER_JOB:
+        raise ProtocolError(protocol.BAD_ARGS, f"frames must be a list of 1..{MAX_FRAMES_PER_JOB} frame specs")
+    for f in frames:
+        ok = (isinstance(f, dict) and isinstance(f.get("name"), str) and f.get("kind") in FRAME_KINDS
+              and isinstance(f.get("params", {}), dict) and isinstance(f.get("exposure", 1.0), int | float)
+              and f.get("exposure", 1.0) > 0 and (f.get("kind") != "image" or isinstance(f.get("image"), dict)))
+        if not ok:
+            raise ProtocolError(protocol.BAD_ARGS, f"bad frame spec {str(f)[:120]}")
+        f.setdefault("key", f["name"])
+        f.setdefault("params", {})
+        f.setdefault("exposure", 1.0)
+    return frames
+
+
+class Daemon:
+    """Serve the control socket until ``shutdown``; see the module docstring."""
+
+    def __init__(self, endpoint: str | None = None, *, token: str | None = None, curve_dir: Path | None = None,
+                 preview: str | None = None, client_timeout_s: float = 10.0,
+                 max_message_bytes: int = protocol.DEFAULT_MAX_MESSAGE_BYTES, state_file: Path | None = None) -> None:
+        self.endpoint = endpoint or security.default_endpoint()
+        self.curve: tuple[bytes, bytes] | None = None
+        self.ctx = zmq.Context()
+        self.auth = None
+        if not security.is_local(self.endpoint) or curve_dir is not None:
+            if curve_dir is None:
+                raise PermissionError(f"binding {self.endpoint} (not loopback/ipc) requires CURVE keys: run "
+                                      "`sss daemon keys` and pass --curve-dir")
+            from zmq.auth.thread import ThreadAuthenticator
+
+            self.curve = security.server_keys(curve_dir)
+            self.auth = ThreadAuthenticator(self.ctx)
+            self.auth.start()
+            self.auth.configure_curve(domain="*", location=str(curve_dir / security.AUTHORIZED))
+        running = security.read_state(state_file) if state_file is not None else None
+        if running is not None and running.pid != os.getpid() and _pid_alive(running.pid):
+            raise PermissionError(f"another daemon (pid {running.pid}) is serving {running.endpoint}; stop it first")
+        self.token = token or security.new_token()
+        self.max_bytes = max_message_bytes
+        self.client_timeout = client_timeout_s
+        self.rig_idle_s = max(300.0, 10 * client_timeout_s)  # a rig outlives pauses between views
+        self.control = self.ctx.socket(zmq.ROUTER)
+        self.control.linger = 0
+        self.control.setsockopt(zmq.MAXMSGSIZE, max_message_bytes + 4096)
+        self.control.setsockopt(zmq.ROUTER_MANDATORY, 0)
+        configure_curve_server(self.control, self.curve)
+        if self.endpoint.startswith("ipc://"):
+            Path(self.endpoint[6:]).unlink(missing_ok=True)
+        self.control.bind(self.endpoint)
+        self.endpoint = self.control.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.preview = Preview(self.ctx, preview, self.curve) if preview else None
+        self.pm = manager.get_plugin_manager()
+        self.rigs: dict[str, Rig] = {}
+        self.jobs: dict[str, Job] = {}
+        self.last_seen: dict[bytes, float] = {}
+        self.lock = threading.Lock()
+        self.running = True
+        self.started = time.time()
+        self.counter = itertools.count()
+        self.state_file = state_file
+        self.handlers: dict[str, Callable[[bytes, dict[str, Any]], Any]] = {
+            "hello": self._hello, "ping": self._ping, "heartbeat": self._heartbeat, "devices": self._devices,
+            "plugins": self._plugins, "status": self._status, "open_rig": self._open_rig,
+            "close_rig": self._close_rig, "move": self._move, "capture": self._capture, "stream": self._stream,
+            "job": self._job, "cancel": self._cancel, "shutdown": self._shutdown,
+        }
+
+    # ---- lifecycle -------------------------------------------------------------------------
+    def write_state(self) -> Path:
+        from sssphase_core import __version__
+
+        state = security.DaemonState(self.endpoint, self.token, os.getpid(), __version__, self.started,
+                                     self.preview.endpoint if self.preview else "")
+        return security.write_state(state, self.state_file)
+
+    def serve_forever(self) -> None:
+        poller = zmq.Poller()
+        poller.register(self.control, zmq.POLLIN)
+        try:
+            while self.running:
+                if poller.poll(200):
+                    self._handle(self.control.recv_multipart(copy=True))
+                self._reap()
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        for job in list(self.jobs.values()):
+            job.cancel.set()
+        for job_thread in [t for t in threading.enumerate() if t.name.startswith("sss-job-")]:
+            job_thread.join(timeout=5)
+        for rig in list(self.rigs.values()):
+            rig.close()
+        self.rigs.clear()
+        if self.preview:
+            self.preview.close()
+        self.control.close(linger=0)
+        if self.auth:
+            self.auth.stop()
+        self.ctx.term()
+        if self.endpoint.startswith("ipc://"):
+            Path(self.endpoint[6:]).unlink(missing_ok=True)
+        if self.state_file is not None:
+            self.state_file.unlink(missing_ok=True)
+
+    def _alive(self, owner: bytes, timeout: float | None = None) -> bool:
+        return time.monotonic() - self.last_seen.get(owner, 0.0) < (timeout or self.client_timeout)
+
+    def _reap(self) -> None:
+        """Cancel jobs whose heartbeats stopped (dead client); close long-idle rigs; forget old jobs."""
+        now = time.monotonic()
+        with self.lock:
+            for job in self.jobs.values():  # running, or finished but not yet acknowledged
+                if not job.cancel.is_set() and now - job.last_beat > self.client_timeout:
+                    log.warning("job %s: no heartbeat for %.1f s, cancelling", job.id, now - job.last_beat)
+                    job.cancel.set()
+            busy = {j.rig.id for j in self.jobs.values() if j.state == "running"}
+            for rid, rig in list(self.rigs.items()):
+                if rid not in busy and not self._alive(rig.owner, self.rig_idle_s):
+                    rig.close()
+                    del self.rigs[rid]
+            finished = [j for j in self.jobs.values() if j.state != "running" and j.cancel.is_set()]
+            for job in sorted(finished, key=lambda j: j.started)[:-64]:
+                del self.jobs[job.id]
+            stale = [c for c in self.last_seen if not self._alive(c) and time.monotonic() - self.last_seen[c] > 600]
+            for c in stale:
+                del self.last_seen[c]
+
+    # ---- request dispatch ------------------------------------------------------------------
+    def _handle(self, parts: list[bytes]) -> None:
+        if len(parts) < 2 or any(p for p in parts[1:-1]):
+            return  # not an envelope we can answer: drop
+        identity, envelope, payload = parts[0], parts[1:-1], parts[-1]
+        rid: Any = None
+        try:
+            req = protocol.parse_request(payload, self.max_bytes)
+            rid = req.id
+            if not hmac.compare_digest(req.token.encode(), self.token.encode()):
+                raise ProtocolError(protocol.UNAUTHENTICATED, "missing or wrong token (read it from the daemon state file)")
+            self.last_seen[identity] = time.monotonic()
+            result = self.handlers[req.op](identity, req.args)
+            reply = protocol.reply_ok(rid, result)
+        except ProtocolError as exc:
+            reply = protocol.reply_error(rid, exc.code, str(exc))
+        except DeviceError as exc:
+            reply = protocol.reply_error(rid, protocol.DEVICE, str(exc))
+        except (KeyError, ValueError, TypeError) as exc:
+            reply = protocol.reply_error(rid, protocol.BAD_ARGS, f"{type(exc).__name__}: {exc}"[:500])
+        except Exception as exc:  # the daemon keeps serving whatever a handler does
+            log.exception("handler failed")
+            reply = protocol.reply_error(rid, protocol.INTERNAL, f"{type(exc).__name__}: {exc}"[:500])
+        try:
+            self.control.send_multipart([identity, *envelope, reply], flags=zmq.NOBLOCK)
+        except zmq.ZMQError:
+            pass  # the client went away
+
+    # ---- handlers --------------------------------------------------------------------------
+    def _hello(self, client: bytes, args: dict) -> dict:
+        from sssphase_core import __version__
+
+        return {"protocol": protocol.PROTOCOL_VERSION, "version": __version__, "pid": os.getpid(),
+                "endpoint": self.endpoint, "preview": self.preview.endpoint if self.preview else "",
+                "client_timeout_s": self.client_timeout}
+
+    def _ping(self, client: bytes, args: dict) -> dict:
+        return {"time": time.time()}
+
+    def _heartbeat(self, client: bytes, args: dict) -> dict:
+        job = self.jobs.get(args.get("job"))  # type: ignore[arg-type]
+        if job is not None:
+            job.last_beat = time.monotonic()
+        return {"time": time.time(), "job": job.state if job else None}
+
+    def _devices(self, client: bytes, args: dict) -> dict:
+        devices, errors = manager.discover_devices(self.pm)
+        return {"devices": [asdict(d) for d in devices], "errors": errors}
+
+    def _plugins(self, client: bytes, args: dict) -> dict:
+        return {"plugins": [asdict(r) for r in manager.plugin_records(self.pm)]}
+
+    def _status(self, client: bytes, args: dict) -> dict:
+        with self.lock:
+            return {"pid": os.getpid(), "uptime_s": time.time() - self.started, "endpoint": self.endpoint,
+                    "rigs": [{"rig": r.id, "devices": {k: d.info.id for k, d in r.devices.items()}} for r in self.rigs.values()],
+                    "jobs": [j.summary() for j in self.jobs.values()],
+                    "clients": sum(self._alive(c) for c in self.last_seen),
+                    "heavy_modules": [m for m in HEAVY_MODULES if m in sys.modules]}
+
+    def _open_rig(self, client: bytes, args: dict) -> dict:
+        options = args.get("options", {})
+        wanted = {k: args[k] for k in ("camera", "projector", "trigger", "turntable") if args.get(k)}
+        if "camera" not in wanted or not isinstance(options, dict) or not all(isinstance(v, str) for v in wanted.values()):
+            raise ProtocolError(protocol.BAD_ARGS, "open_rig needs a camera device id (string) and an options map")
+        shared: dict[str, Any] = {}
+        devices: dict[str, Any] = {}
+        try:
+            for kind, device_id in wanted.items():
+                try:
+                    provider = manager.find_provider(device_id, self.pm)
+                except KeyError as exc:
+                    raise ProtocolError(protocol.NOT_FOUND, str(exc.args[0])) from None
+                devices[kind] = provider.open(device_id, options, shared)
+        except Exception as exc:
+            for d in devices.values():
+                d.close()
+            if isinstance(exc, SssError):
+                raise ProtocolError(protocol.BAD_ARGS, str(exc)) from None
+            raise
+        rig = Rig(uuid.uuid4().hex[:12], client, devices, options)
+        with self.lock:
+            self.rigs[rig.id] = rig
+        info = {k: asdict(d.info) for k, d in devices.items()}
+        projector = devices.get("projector")
+        versions = {r.name: r.version for r in manager.plugin_records(self.pm)}
+        return {"rig": rig.id, "devices": info, "projector_size": list(projector.resolution) if projector else None,
+                "plugins": {d["plugin"]: versions.get(d["plugin"], "?") for d in info.values()}}
+
+    def _get_rig(self, args: dict) -> Rig:
+        rig = self.rigs.get(args.get("rig"))  # type: ignore[arg-type]
+        if rig is None:
+            raise ProtocolError(protocol.NOT_FOUND, f"no open rig {str(args.get('rig'))[:40]!r}")
+        return rig
+
+    def _close_rig(self, client: bytes, args: dict) -> dict:
+        rig = self._get_rig(args)
+        if not rig.lock.acquire(timeout=1.0):
+            raise ProtocolError(protocol.BUSY, f"rig {rig.id} is capturing; cancel the job first")
+        try:
+            rig.close()
+            with self.lock:
+                del self.rigs[rig.id]
+        finally:
+            rig.lock.release()
+        return {"closed": rig.id}
+
+    def _move(self, client: bytes, args: dict) -> dict:
+        rig = self._get_rig(args)
+        table = rig.devices.get("turntable")
+        if table is None:
+            raise ProtocolError(protocol.NOT_FOUND, "this rig has no turntable")
+        if not rig.lock.acquire(timeout=1.0):
+            raise ProtocolError(protocol.BUSY, f"rig {rig.id} is capturing")
+        try:
+            return {"angle": table.move_to(float(args["angle"]))}
+        finally:
+            rig.lock.release()
+
+    def _start_job(self, client: bytes, rig: Rig, total: int, frames: Callable[[Job], Iterator[tuple[str, Any]]]) -> dict:
+        job_id = f"{next(self.counter)}-{uuid.uuid4().hex[:8]}"
+        sender = FrameSender(self.ctx, security.stream_endpoint(self.endpoint, job_id), self.curve)
+        job = Job(job_id, client, rig, sender.endpoint, total)
+        with self.lock:
+            self.jobs[job_id] = job
+        threading.Thread(target=self._run_job, args=(job, sender, frames), name=f"sss-job-{job_id}", daemon=True).start()
+        return {"job": job_id, "endpoint": sender.endpoint, "frames": total}
+
+    def _capture(self, client: bytes, args: dict) -> dict:
+        rig = self._get_rig(args)
+        frames = _check_frames(args.get("frames"))
+        if "projector" not in rig.devices:
+            raise ProtocolError(protocol.BAD_ARGS, "capture needs a rig with a projector (use 'stream' otherwise)")
+
+        def run(job: Job) -> Iterator[tuple[str, Any]]:
+            camera, projector = rig.devices["camera"], rig.devices["projector"]
+            if hasattr(projector, "preload"):  # pattern-sequence memory (DLP) or the sim's batch renderer
+                projector.preload([(spec["name"], functools.partial(_pattern_for, spec)) for spec in frames])
+            for spec in frames:
+                projector.show(_pattern_for(spec), tag=spec["name"], confirm=True)
+                camera.configure(exposure=float(spec["exposure"]))
+                yield spec["name"], camera.grab()
+
+        return self._start_job(client, rig, len(frames), run)
+
+    def _stream(self, client: bytes, args: dict) -> dict:
+        rig = self._get_rig(args)
+        count = args.get("count")
+        if not isinstance(count, int) or not 0 < count <= 10_000_000:
+            raise ProtocolError(protocol.BAD_ARGS, "stream needs a positive frame count")
+
+        def run(job: Job) -> Iterator[tuple[str, Any]]:
+            for frame in rig.devices["camera"].stream(count):
+                yield f"stream/{frame.sequence}", frame
+
+        return self._start_job(client, rig, count, run)
+
+    def _run_job(self, job: Job, sender: FrameSender, frames: Callable[[Job], Iterator[tuple[str, Any]]]) -> None:
+        def alive() -> bool:
+            return not job.cancel.is_set()
+
+        try:
+            with job.rig.lock:
+                for name, frame in frames(job):
+                    header = protocol.frame_header(job.id, job.sent, name, frame.data, frame.timestamp_ns,
+                                                   frame.exposure, frame.meta)
+                    sender.send_frame(header, frame.data, alive)
+                    if self.preview:
+                        self.preview.publish(job.id, job.sent, name, frame.data)
+                    job.sent += 1
+            job.state = "done"
+        except ClientGone:
+            job.state = "cancelled"
+        except DeviceError as exc:
+            job.state, job.error = "failed", {"code": protocol.DEVICE, "message": str(exc)}
+        except SssError as exc:
+            job.state, job.error = "failed", {"code": protocol.BAD_ARGS, "message": str(exc)}
+        except Exception as exc:
+            log.exception("job %s failed", job.id)
+            job.state, job.error = "failed", {"code": protocol.INTERNAL, "message": f"{type(exc).__name__}: {exc}"}
+        try:
+            if job.state != "cancelled":
+                sender.send_end(protocol.end_header(job.id, job.sent, job.error),
+                                lambda: not job.cancel.is_set() and self.running)
+                # keep the queued frames deliverable until the client acknowledges the end or dies
+                while self.running and not job.cancel.wait(0.1):
+                    pass
+        except ClientGone:
+            pass
+        finally:
+            sender.close()
+
+    def _job(self, client: bytes, args: dict) -> dict:
+        job = self.jobs.get(args.get("job"))  # type: ignore[arg-type]
+        if job is None:
+            raise ProtocolError(protocol.NOT_FOUND, f"no job {str(args.get('job'))[:40]!r}")
+        return job.summary()
+
+    def _cancel(self, client: bytes, args: dict) -> dict:
+        job = self.jobs.get(args.get("job"))  # type: ignore[arg-type]
+        if job is not None:
+            job.cancel.set()
+        return {"cancelled": job is not None}
+
+    def _shutdown(self, client: bytes, args: dict) -> dict:
+        self.running = False
+        return {"stopping": True}

@@ -1,0 +1,126 @@
+"""Typed driver protocols that device plugins implement, and the records they exchange.
+
+A plugin's hooks return :class:`DeviceProvider` objects; the daemon (never the hook call) asks a
+provider to ``discover()`` its devices, each with a stable ID, and to ``open()`` one of them. The
+driver objects it returns follow the small protocols below. Drivers raise :class:`DeviceError` for
+device failures; the daemon turns it into a clear error for the client and keeps serving.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, Literal, Protocol, runtime_checkable
+
+import numpy as np
+
+DeviceKind = Literal["camera", "projector", "trigger", "turntable"]
+DEVICE_KINDS: tuple[DeviceKind, ...] = ("camera", "projector", "trigger", "turntable")
+
+
+class DeviceError(RuntimeError):
+    """A device failed (disconnected, timed out, refused a setting)."""
+
+
+@dataclass(frozen=True)
+class DeviceInfo:
+    """One discovered device. ``id`` is stable across runs (e.g. ``plugin:serial``)."""
+
+    id: str
+    kind: DeviceKind
+    plugin: str
+    model: str
+    serial: str = ""
+
+
+@dataclass
+class Frame:
+    """A camera frame with its metadata; ``data`` is (H, W, 3) or (H, W) (raw Bayer)."""
+
+    data: np.ndarray
+    sequence: int
+    timestamp_ns: int
+    exposure: float
+    meta: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ShowReceipt:
+    """Confirmation that a projector image is on screen (``on_screen_ns`` on the device clock)."""
+
+    frame_id: int
+    tag: str
+    on_screen_ns: int
+
+
+@runtime_checkable
+class Camera(Protocol):
+    info: DeviceInfo
+
+    def configure(self, *, exposure: float | None = None, gain: float | None = None,
+                  pixel_format: str | None = None) -> None:
+        """Set exposure (relative to the rig's reference exposure), gain and output format."""
+
+    def grab(self, timeout_s: float = 5.0) -> Frame:
+        """Trigger one exposure and return the frame (software trigger)."""
+
+    def stream(self, count: int) -> Any:
+        """Free-running acquisition: an iterator of ``count`` frames."""
+
+    def close(self) -> None: ...
+
+
+@runtime_checkable
+class Projector(Protocol):
+    info: DeviceInfo
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        """(width, height) in projector pixels."""
+
+    def show(self, image: np.ndarray, *, tag: str = "", confirm: bool = True) -> ShowReceipt:
+        """Display a pattern (float values in [0, 1]); with ``confirm`` return once it is on screen."""
+
+    # Optional: ``preload(sequence: list[tuple[tag, Callable[[], ndarray]]])`` announces the coming
+    # patterns in display order (pattern-sequence memory of DLP projectors; batch rendering in the sim).
+
+    def close(self) -> None: ...
+
+
+@runtime_checkable
+class Trigger(Protocol):
+    info: DeviceInfo
+
+    def fire(self) -> int:
+        """Emit one trigger pulse; returns the device timestamp in ns."""
+
+    def close(self) -> None: ...
+
+
+@runtime_checkable
+class Turntable(Protocol):
+    info: DeviceInfo
+
+    @property
+    def angle(self) -> float:
+        """Current angle in degrees."""
+
+    def move_to(self, angle_deg: float) -> float:
+        """Move and return the reached angle once settled."""
+
+    def close(self) -> None: ...
+
+
+Driver = Camera | Projector | Trigger | Turntable
+
+
+@runtime_checkable
+class DeviceProvider(Protocol):
+    """What hooks return: cheap to build; device I/O happens only in ``discover`` and ``open``."""
+
+    kind: DeviceKind
+
+    def discover(self) -> list[DeviceInfo]: ...
+
+    def open(self, device_id: str, options: Mapping[str, Any], shared: dict[str, Any]) -> Driver:
+        """Open a device. ``shared`` is one dict per rig, so devices of one plugin can share state."""

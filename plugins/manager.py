@@ -1,0 +1,167 @@
+"""The one pluggy plugin manager for device plugins and model backends.
+
+Loads, like pytest/tox do, the hook specifications (devices, and model backends when
+``sssphase_plugins.backend_hookspecs`` exists), then the plugins of the entry-point groups
+``sssphase_devices`` and ``sssphase_backends``, then any modules named in ``$SSS_PLUGINS``
+(comma-separated, like ``PYTEST_PLUGINS``). A plugin that fails to import, implements an unknown
+hook, or raises inside a hook is recorded with its name in ``load_errors`` and left out; the others
+keep working.
+"""
+
+from __future__ import annotations
+
+import importlib
+import importlib.metadata
+import importlib.util
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import pluggy
+
+from sssphase_plugins import hookspecs
+from sssphase_plugins.drivers import DeviceInfo, DeviceProvider
+
+ENTRY_POINT_GROUPS = ("sssphase_devices", "sssphase_backends")
+BACKEND_SPECS_MODULE = "sssphase_plugins.backend_hookspecs"
+BUILTIN_PLUGINS = {"sim": "sssphase_plugins.sim_plugin"}
+ENV_PLUGINS = "SSS_PLUGINS"
+
+
+class PluginManager(pluggy.PluginManager):
+    """pluggy's manager plus a record of plugins that could not be loaded or failed in a hook."""
+
+    def __init__(self) -> None:
+        super().__init__(hookspecs.PROJECT)
+        self.load_errors: dict[str, str] = {}
+
+
+@dataclass(frozen=True)
+class PluginRecord:
+    name: str
+    kind: str  # "device", "backend", "device+backend" or "broken"
+    version: str
+    source: str  # distribution, module path, or the error message
+    ok: bool
+
+
+_manager: PluginManager | None = None
+
+
+def _error_text(exc: BaseException) -> str:
+    return f"{type(exc).__name__}: {exc}".strip()
+
+
+def _register_checked(pm: PluginManager, name: str, load: Any) -> None:
+    """Register one plugin, isolating its failure (import error, unknown hook) under its name."""
+    try:
+        load()
+        pm.check_pending()
+    except Exception as exc:  # a broken third-party plugin must not take the others down
+        plugin = pm.get_plugin(name)
+        if plugin is not None:
+            pm.unregister(plugin)
+        pm.load_errors[name] = _error_text(exc)
+
+
+def build_plugin_manager() -> PluginManager:
+    """A fresh manager with every hookspec and plugin loaded (see module docstring)."""
+    pm = PluginManager()
+    pm.add_hookspecs(hookspecs)
+    if importlib.util.find_spec(BACKEND_SPECS_MODULE) is not None:
+        pm.add_hookspecs(importlib.import_module(BACKEND_SPECS_MODULE))
+    for group in ENTRY_POINT_GROUPS:
+        for ep in importlib.metadata.entry_points(group=group):
+            if pm.has_plugin(ep.name) or pm.is_blocked(ep.name):
+                continue
+            _register_checked(pm, ep.name, lambda g=group, n=ep.name: pm.load_setuptools_entrypoints(g, name=n))
+    extra = [m.strip() for m in os.environ.get(ENV_PLUGINS, "").split(",") if m.strip()]
+    builtins = {n: m for n, m in BUILTIN_PLUGINS.items() if not pm.has_plugin(n)}
+    for name, module in [*builtins.items(), *((m, m) for m in extra)]:
+        if pm.has_plugin(name):
+            continue
+        _register_checked(pm, name, lambda n=name, m=module: pm.register(importlib.import_module(m), name=n))
+    return pm
+
+
+def get_plugin_manager(*, refresh: bool = False) -> PluginManager:
+    """The process-wide plugin manager (built on first use)."""
+    global _manager
+    if _manager is None or refresh:
+        _manager = build_plugin_manager()
+    return _manager
+
+
+def _plugin_version(pm: PluginManager, plugin: object) -> tuple[str, str]:
+    for p, dist in pm.list_plugin_distinfo():
+        if p is plugin:
+            return str(dist.version), f"{dist.project_name}"
+    version = getattr(plugin, "__version__", None)
+    if version is None:
+        from sssphase_core import __version__ as version
+    return str(version), getattr(plugin, "__name__", type(plugin).__name__)
+
+
+def plugin_records(pm: PluginManager | None = None) -> list[PluginRecord]:
+    """Every plugin with its kind and version, broken ones included (``ok=False``)."""
+    pm = pm or get_plugin_manager()
+    device_hooks = set(hookspecs.DEVICE_HOOKS.values())
+    records = []
+    for name, plugin in pm.list_name_plugin():
+        if plugin is None:
+            continue
+        hooks = {impl_hook.name for impl_hook in pm.get_hookcallers(plugin) or []}
+        kinds = [k for k, present in (("device", hooks & device_hooks), ("backend", hooks - device_hooks)) if present]
+        version, source = _plugin_version(pm, plugin)
+        records.append(PluginRecord(name, "+".join(kinds) or "none", version, source, True))
+    records += [PluginRecord(n, "broken", "?", err, False) for n, err in pm.load_errors.items()]
+    return sorted(records, key=lambda r: r.name)
+
+
+def device_providers(pm: PluginManager | None = None, kind: str | None = None) -> list[tuple[str, DeviceProvider]]:
+    """(plugin name, provider) for every device hook implementation; a raising plugin is recorded."""
+    pm = pm or get_plugin_manager()
+    out: list[tuple[str, DeviceProvider]] = []
+    for k, hook_name in hookspecs.DEVICE_HOOKS.items():
+        if kind is not None and k != kind:
+            continue
+        for impl in getattr(pm.hook, hook_name).get_hookimpls():
+            try:
+                providers = impl.function() or []
+            except Exception as exc:
+                pm.load_errors[impl.plugin_name] = f"{hook_name} failed: {_error_text(exc)}"
+                continue
+            out += [(impl.plugin_name, p) for p in providers]
+    return out
+
+
+def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo], dict[str, str]]:
+    """Run discovery on every provider (this may do device I/O). Returns devices and errors by plugin."""
+    pm = pm or get_plugin_manager()
+    devices: list[DeviceInfo] = []
+    errors: dict[str, str] = {}
+    for plugin, provider in device_providers(pm):
+        try:
+            devices += provider.discover()
+        except Exception as exc:
+            errors[plugin] = f"discovery of {provider.kind}s failed: {_error_text(exc)}"
+    errors.update(pm.load_errors)
+    return sorted(devices, key=lambda d: d.id), errors
+
+
+def find_provider(device_id: str, pm: PluginManager | None = None) -> DeviceProvider:
+    """The provider that owns ``device_id``. IDs are ``plugin:...``, so only that plugin's providers
+    are asked first (opening a sim rig never runs discovery, or imports, of hardware plugins)."""
+    pm = pm or get_plugin_manager()
+    providers = device_providers(pm)
+    prefix = device_id.split(":", 1)[0]
+    ranked = [p for n, p in providers if n == prefix] + [p for n, p in providers if n != prefix]
+    for provider in ranked:
+        try:
+            ids = [d.id for d in provider.discover()]
+        except Exception:  # a plugin with no device (or a broken one) must not block the others
+            continue
+        if device_id in ids:
+            return provider
+    known = ", ".join(d.id for d in discover_devices(pm)[0]) or "none"
+    raise KeyError(f"no device {device_id!r} (known devices: {known})")

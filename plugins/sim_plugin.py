@@ -1,0 +1,283 @@
+"""Built-in ``sim`` device plugin: a camera, a projector and a turntable sharing one simulated scene.
+
+It behaves like hardware: a camera exposure sees the pattern that was *on screen* when the exposure
+started (``Projector.show(confirm=False)`` followed at once by a grab sees the previous image, as on
+a real rig); frames carry a sequence number, a device-clock timestamp (simulated: each frame takes
+``frame_period_s * exposure``) and the exposure. Noise is drawn from a generator seeded by
+``(seed, view, pattern tag, exposure)`` so a re-captured frame is bit-identical (resumable sessions).
+
+Rig options (all optional): ``object`` (catalogue name, default "apple"), ``preset`` ("cpu"|"paper"),
+``seed``, ``n_views``, ``view``, ``latency_s`` (projector), ``frame_period_s``, ``realtime`` (sleep
+for the simulated times), ``raw`` (Bayer frames), and fault injection for tests: ``fail_at_frame``
+(the camera raises at that grab) and ``grab_delay_s`` (slow frames).
+The ``sim:bench-camera`` streams one fixed frame (``shape``, ``dtype``) for throughput benchmarks.
+
+Like a DLP projector's pattern-sequence mode, ``SimProjector.preload`` takes the upcoming patterns
+(lazily, as ``(tag, render)`` pairs); the scene then renders them noise-free in batches of
+``RENDER_BATCH`` (one light-transport pass per batch instead of one per frame) and each camera
+exposure only adds sensor noise to the cached image of the pattern on screen.
+"""
+
+from __future__ import annotations
+
+import time
+import zlib
+from collections.abc import Callable, Iterator, Mapping
+from typing import Any
+
+import numpy as np
+
+from sssphase_plugins.drivers import DeviceError, DeviceInfo, Frame, ShowReceipt
+from sssphase_plugins.hookspecs import hookimpl
+
+PLUGIN = "sim"
+CAMERA_ID, BENCH_CAMERA_ID = "sim:camera0", "sim:bench-camera"
+PROJECTOR_ID, TURNTABLE_ID = "sim:projector0", "sim:turntable0"
+RENDER_BATCH = 32
+
+
+def _sim():
+    """The simulator module, imported only when a sim device is opened (numpy only, no torch)."""
+    from sssphase_core import sim
+
+    return sim
+
+
+class SimBench:
+    """State shared by the sim devices of one rig: scene, shown pattern, turntable, device clock."""
+
+    def __init__(self, options: Mapping[str, Any]) -> None:
+        sim = _sim()
+        self.object_name = str(options.get("object", "apple"))
+        self.obj = sim.get_object(self.object_name)  # UnknownObjectError lists the catalogue
+        self.rig = sim.rig_preset(str(options.get("preset", "cpu")))
+        self.seed = int(options.get("seed", 0))
+        self.n_views = int(options.get("n_views", 4))
+        self.view = int(options.get("view", 0)) % self.n_views
+        self.latency_ns = int(float(options.get("latency_s", 1 / 60)) * 1e9)
+        self.frame_period_ns = int(float(options.get("frame_period_s", 1 / 30)) * 1e9)
+        self.realtime = bool(options.get("realtime", False))
+        self.clock_ns = 0
+        self.shown: list[tuple[int, np.ndarray, str, int]] = []  # (on_screen_ns, image, tag, frame_id)
+        self._scene = None
+        self._scene_view = -1
+        self.sequence: list[tuple[str, Callable[[], np.ndarray]]] = []  # preloaded (tag, pattern)
+        self.rendered: dict[str, np.ndarray] = {}  # tag -> noise-free image of the current view
+
+    @property
+    def projector_size(self) -> tuple[int, int]:
+        return projector_size(self.rig)
+
+    @property
+    def scene(self):
+        if self._scene_view != self.view:
+            self._scene = _sim().SimScene(self.obj, rig=self.rig, view=self.view, n_views=self.n_views, seed=self.seed)
+            self._scene_view = self.view
+            self.rendered.clear()
+        return self._scene
+
+    def render(self, pattern: np.ndarray, tag: str) -> np.ndarray:
+        """Noise-free image of ``pattern``; preloaded patterns are rendered in batches and cached."""
+        scene = self.scene
+        if tag in self.rendered:
+            return self.rendered[tag]
+        index = next((i for i, (t, _) in enumerate(self.sequence) if t == tag), None)
+        if index is None:
+            return scene.render(pattern[None])[0]
+        batch, self.sequence = self.sequence[index:index + RENDER_BATCH], self.sequence[index + RENDER_BATCH:]
+        images = scene.render(np.stack([make() for _, make in batch]))
+        self.rendered = {t: img for (t, _), img in zip(batch, images, strict=True)}  # this batch only
+        return self.rendered[tag]
+
+    def capture(self, pattern: np.ndarray, tag: str, rng: np.random.Generator, exposure: float, raw: bool) -> np.ndarray:
+        """What ``SimScene.capture`` returns for this pattern, from the (cached) noise-free image."""
+        from sssphase_core import isp
+        from sssphase_core.sim.sensor import expose
+
+        sensor = self.rig.sensor
+        frame = expose(self.render(pattern, tag)[None], sensor, rng, exposure)[0]
+        return frame if raw else isp.develop(frame, sensor.black_level, sensor.dn_per_unit(exposure), median=sensor.isp_median)
+
+    def advance(self, ns: int) -> None:
+        self.clock_ns += ns
+        if self.realtime:
+            time.sleep(ns / 1e9)
+
+    def visible_pattern(self) -> tuple[np.ndarray | None, str, int]:
+        """The image on screen at the current device time (None before the first show)."""
+        on = [s for s in self.shown if s[0] <= self.clock_ns]
+        if not on:
+            return None, "", -1
+        _, image, tag, frame_id = on[-1]
+        self.shown = [s for s in self.shown if s[0] >= on[-1][0]]  # keep the visible one and pending ones
+        return image, tag, frame_id
+
+
+def projector_size(rig: Any) -> tuple[int, int]:
+    """(width, height) of a sim rig's projector."""
+    return int(rig.projector.width), int(rig.projector.height)
+
+
+def _bench(shared: dict[str, Any], options: Mapping[str, Any]) -> SimBench:
+    if "sim_bench" not in shared:
+        shared["sim_bench"] = SimBench(options)
+    return shared["sim_bench"]
+
+
+class SimCamera:
+    def __init__(self, bench: SimBench, options: Mapping[str, Any]) -> None:
+        self.info = DeviceInfo(CAMERA_ID, "camera", PLUGIN, "simulated camera", "camera0")
+        self.bench = bench
+        self.exposure = 1.0
+        self.gain = 1.0
+        self.raw = bool(options.get("raw", False))
+        self.fail_at = int(options.get("fail_at_frame", -1))
+        self.delay_s = float(options.get("grab_delay_s", 0.0))
+        self.sequence = 0
+
+    def configure(self, *, exposure: float | None = None, gain: float | None = None,
+                  pixel_format: str | None = None) -> None:
+        if exposure is not None:
+            if not exposure > 0:
+                raise DeviceError(f"exposure must be positive, got {exposure}")
+            self.exposure = float(exposure)
+        if gain is not None:
+            self.gain = float(gain)
+        if pixel_format is not None:
+            if pixel_format not in ("rgb32f", "bayer16"):
+                raise DeviceError(f"sim camera formats are rgb32f and bayer16, not {pixel_format!r}")
+            self.raw = pixel_format == "bayer16"
+
+    def grab(self, timeout_s: float = 5.0) -> Frame:
+        if self.sequence == self.fail_at:
+            raise DeviceError(f"{self.info.id}: simulated sensor failure at frame {self.sequence}")
+        if self.delay_s:
+            time.sleep(self.delay_s)
+        b = self.bench
+        image, tag, frame_id = b.visible_pattern()
+        w, h = b.projector_size
+        pattern = np.zeros((h, w), np.float32) if image is None else image
+        key = [b.seed, b.view, zlib.crc32(tag.encode()), int(np.float64(self.exposure).view(np.uint64) & 0xFFFFFFFF)]
+        rng = np.random.default_rng(key)
+        data = b.capture(pattern, tag, rng, self.exposure * self.gain, self.raw)
+        frame = Frame(np.ascontiguousarray(data), self.sequence, b.clock_ns, self.exposure,
+                      {"pattern_tag": tag, "pattern_frame_id": frame_id, "view": b.view, "gain": self.gain})
+        self.sequence += 1
+        b.advance(int(b.frame_period_ns * max(self.exposure, 1.0)))
+        return frame
+
+    def stream(self, count: int) -> Iterator[Frame]:
+        return (self.grab() for _ in range(count))
+
+    def close(self) -> None:
+        pass
+
+
+class SimProjector:
+    def __init__(self, bench: SimBench) -> None:
+        self.info = DeviceInfo(PROJECTOR_ID, "projector", PLUGIN, "simulated projector", "projector0")
+        self.bench = bench
+        self.frame_id = 0
+
+    @property
+    def resolution(self) -> tuple[int, int]:
+        return self.bench.projector_size
+
+    def show(self, image: np.ndarray, *, tag: str = "", confirm: bool = True) -> ShowReceipt:
+        w, h = self.resolution
+        if image.shape[:2] != (h, w):
+            raise DeviceError(f"{self.info.id}: image is {image.shape[1]}x{image.shape[0]}, projector is {w}x{h}")
+        b = self.bench
+        self.frame_id += 1
+        on_screen = b.clock_ns + b.latency_ns
+        b.shown.append((on_screen, np.asarray(image, np.float32), tag, self.frame_id))
+        if confirm:
+            b.advance(on_screen - b.clock_ns)
+        return ShowReceipt(self.frame_id, tag, on_screen)
+
+    def preload(self, sequence: list[tuple[str, Callable[[], np.ndarray]]]) -> None:
+        """Announce the coming patterns (tag, render function) in display order."""
+        self.bench.sequence = list(sequence)
+        self.bench.rendered.clear()
+
+    def close(self) -> None:
+        pass
+
+
+class SimTurntable:
+    def __init__(self, bench: SimBench) -> None:
+        self.info = DeviceInfo(TURNTABLE_ID, "turntable", PLUGIN, "simulated turntable", "turntable0")
+        self.bench = bench
+
+    @property
+    def angle(self) -> float:
+        return 360.0 * self.bench.view / self.bench.n_views
+
+    def move_to(self, angle_deg: float) -> float:
+        step = 360.0 / self.bench.n_views
+        self.bench.view = int(round(float(angle_deg) / step)) % self.bench.n_views
+        self.bench.advance(int(0.5e9))
+        return self.angle
+
+    def close(self) -> None:
+        pass
+
+
+class BenchCamera:
+    """Streams one fixed frame as fast as the consumer takes it (daemon throughput benchmark)."""
+
+    def __init__(self, options: Mapping[str, Any]) -> None:
+        self.info = DeviceInfo(BENCH_CAMERA_ID, "camera", PLUGIN, "fixed-frame benchmark camera", "bench-camera")
+        shape = tuple(int(s) for s in options.get("shape", (1080, 1920, 3)))
+        rng = np.random.default_rng(int(options.get("seed", 0)))
+        self.data = rng.integers(0, 65535, size=shape, dtype=np.uint16).astype(str(options.get("dtype", "uint16")))
+        self.sequence = 0
+
+    def configure(self, *, exposure: float | None = None, gain: float | None = None,
+                  pixel_format: str | None = None) -> None:
+        pass
+
+    def grab(self, timeout_s: float = 5.0) -> Frame:
+        self.sequence += 1
+        return Frame(self.data, self.sequence - 1, time.monotonic_ns(), 1.0, {})
+
+    def stream(self, count: int) -> Iterator[Frame]:
+        return (self.grab() for _ in range(count))
+
+    def close(self) -> None:
+        pass
+
+
+class _Provider:
+    """One provider per kind; discovery is static (no I/O), opening builds the shared bench."""
+
+    def __init__(self, kind: str, ids: tuple[str, ...], models: tuple[str, ...]) -> None:
+        self.kind = kind
+        self.ids, self.models = ids, models
+
+    def discover(self) -> list[DeviceInfo]:
+        return [DeviceInfo(i, self.kind, PLUGIN, m, i.split(":")[1]) for i, m in zip(self.ids, self.models, strict=True)]
+
+    def open(self, device_id: str, options: Mapping[str, Any], shared: dict[str, Any]):
+        if device_id not in self.ids:
+            raise DeviceError(f"the sim plugin has no {self.kind} {device_id!r}")
+        if device_id == BENCH_CAMERA_ID:
+            return BenchCamera(options)
+        bench = _bench(shared, options)
+        return {"camera": lambda: SimCamera(bench, options), "projector": lambda: SimProjector(bench),
+                "turntable": lambda: SimTurntable(bench)}[self.kind]()
+
+
+@hookimpl
+def sssphase_cameras() -> list[_Provider]:
+    return [_Provider("camera", (CAMERA_ID, BENCH_CAMERA_ID), ("simulated camera", "fixed-frame benchmark camera"))]
+
+
+@hookimpl
+def sssphase_projectors() -> list[_Provider]:
+    return [_Provider("projector", (PROJECTOR_ID,), ("simulated projector",))]
+
+
+@hookimpl
+def sssphase_turntables() -> list[_Provider]:
+    return [_Provider("turntable", (TURNTABLE_ID,), ("simulated turntable",))]

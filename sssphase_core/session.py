@@ -1,0 +1,282 @@
+"""Session store: one folder per object, a JSON manifest and chunked, compressed zarr v3 arrays.
+
+Layout (see SESSION_FORMAT.md)::
+
+    <root>/<object>/manifest.json       rig, devices, plugin versions, plan, timestamps, views
+    <root>/<object>/view_000/<name>/    one zarr array per name: psp, white, black, corr/xp, ...
+
+Every write is atomic: a view's arrays are written into ``.view_NNN.partial`` and renamed into
+place once complete, then the manifest (with each array's SHA-256) is replaced atomically. An
+interrupted capture therefore leaves only complete views plus a partial folder that ``resume``
+discards. ``FAULT_HOOK`` (tests) is called before every array write, e.g. to inject ENOSPC.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import re
+import shutil
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sssphase_core.errors import DataError, InputError
+
+FORMAT = "sssphase-session"
+FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+ARRAY_RE = re.compile(r"^[a-z][a-z0-9_]*(/[A-Za-z0-9][A-Za-z0-9_.-]*){0,2}$")
+REQUIRED = ("psp", "white", "black", "corr/xp", "corr/yp", "corr/mask", "corr/reason")
+FAULT_HOOK: Callable[[str], None] | None = None
+
+
+def check_object_name(name: str) -> str:
+    """Refuse names that could escape the session root (``../``, separators, absolute paths)."""
+    if not isinstance(name, str) or not NAME_RE.match(name) or name in (".", ".."):
+        raise InputError(f"object name {name!r} is not allowed: use letters, digits, '_', '-', '.' "
+                         "(no path separators, no '..', at most 64 characters)")
+    return name
+
+
+def view_dir_name(view: int) -> str:
+    return f"view_{view:03d}"
+
+
+def array_checksum(arr: np.ndarray) -> str:
+    return "sha256:" + hashlib.sha256(memoryview(np.ascontiguousarray(arr)).cast("B")).hexdigest()
+
+
+def _chunks(shape: tuple[int, ...], itemsize: int, target: int = 2**21) -> tuple[int, ...]:
+    """Chunks of about ``target`` bytes: trailing dims whole, split the leading ones (1 image, N rows)."""
+    chunks = list(shape)
+    for i, n in enumerate(shape):
+        rest = int(np.prod(shape[i + 1:], dtype=np.int64)) * itemsize
+        chunks[i] = int(min(n, max(1, target // max(rest, 1))))
+        if chunks[i] > 1 or rest <= target:
+            break
+    return tuple(max(1, c) for c in chunks)
+
+
+def write_json_atomic(path: Path, obj: Any) -> None:
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with open(tmp, "w") as f:
+        json.dump(obj, f, indent=1, sort_keys=True)
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def _codec(dtype: np.dtype):
+    """Blosc LZ4 with byte shuffle: noisy float images barely compress, so speed matters most."""
+    from zarr.codecs import BloscCodec, BloscShuffle
+
+    shuffle = BloscShuffle.shuffle if np.dtype(dtype).itemsize > 1 else BloscShuffle.noshuffle
+    return BloscCodec(cname="lz4", clevel=5, shuffle=shuffle)
+
+
+def _zarr_write(path: Path, data: np.ndarray) -> None:
+    import zarr
+
+    data = np.ascontiguousarray(data)
+    arr = zarr.create_array(store=str(path), shape=data.shape, dtype=data.dtype, chunks=_chunks(data.shape, data.dtype.itemsize),
+                            compressors=_codec(data.dtype), fill_value=0, zarr_format=3, overwrite=True)
+    if data.size:
+        arr[...] = data
+
+
+class ViewWriter:
+    """Writes one view's arrays into a partial folder; ``commit`` renames it into place atomically."""
+
+    def __init__(self, session: Session, view: int) -> None:
+        self.session, self.view = session, view
+        self.final = session.path / view_dir_name(view)
+        self.partial = session.path / f".{view_dir_name(view)}.partial"
+        shutil.rmtree(self.partial, ignore_errors=True)
+        self.partial.mkdir(parents=True)
+        self.arrays: dict[str, dict[str, Any]] = {}
+
+    def write(self, name: str, data: np.ndarray) -> None:
+        if not ARRAY_RE.match(name):
+            raise InputError(f"bad array name {name!r}")
+        try:
+            if FAULT_HOOK is not None:
+                FAULT_HOOK(name)
+            _zarr_write(self.partial / name, data)
+        except OSError as exc:
+            self.abort()
+            if exc.errno == errno.ENOSPC:
+                raise DataError(f"disk full while writing {name} of view {self.view} in {self.session.path}: "
+                                "free some space and rerun with --resume") from exc
+            raise DataError(f"cannot write {name} of view {self.view}: {exc}") from exc
+        self.arrays[name] = {"shape": list(data.shape), "dtype": np.dtype(data.dtype).str, "checksum": array_checksum(data)}
+
+    def stream_array(self, name: str, count: int) -> StreamedArray:
+        """An array of ``count`` equal-shape frames written one at a time (raw dot grids)."""
+        return StreamedArray(self, name, count)
+
+    def abort(self) -> None:
+        shutil.rmtree(self.partial, ignore_errors=True)
+
+    def commit(self, info: dict[str, Any] | None = None) -> None:
+        shutil.rmtree(self.final, ignore_errors=True)
+        os.replace(self.partial, self.final)
+        self.session.set_view(self.view, {"status": "complete", "arrays": self.arrays, "completed": time.time(),
+                                          **(info or {})})
+
+
+class StreamedArray:
+    """``(count, *frame.shape)`` zarr array filled frame by frame, checksummed on the way."""
+
+    def __init__(self, writer: ViewWriter, name: str, count: int) -> None:
+        self.writer, self.name, self.count = writer, name, count
+        self.arr: Any = None
+        self.index = 0
+        self.hash = hashlib.sha256()
+
+    def append(self, frame: np.ndarray) -> None:
+        import zarr
+
+        frame = np.ascontiguousarray(frame)
+        if self.arr is None:
+            if FAULT_HOOK is not None:
+                FAULT_HOOK(self.name)
+            self.arr = zarr.create_array(store=str(self.writer.partial / self.name), shape=(self.count, *frame.shape),
+                                         dtype=frame.dtype, chunks=(1, *frame.shape), fill_value=0, zarr_format=3,
+                                         compressors=_codec(frame.dtype))
+        self.arr[self.index] = frame
+        self.hash.update(memoryview(frame).cast("B"))
+        self.index += 1
+
+    def close(self) -> None:
+        if self.index != self.count:
+            raise DataError(f"{self.name}: got {self.index} of {self.count} frames")
+        self.writer.arrays[self.name] = {"shape": list(self.arr.shape), "dtype": self.arr.dtype.str,
+                                         "checksum": "sha256:" + self.hash.hexdigest()}
+
+
+@dataclass
+class Session:
+    """A session folder. ``Session.open(path)`` to read; ``Session.create(root, name, ...)`` to write."""
+
+    path: Path
+    manifest: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def create(cls, root: Path, name: str, *, resume: bool = False, **info: Any) -> Session:
+        """New session ``root/name``; with ``resume`` reopen an existing one (its partial views dropped)."""
+        path = Path(root) / check_object_name(name)
+        if (path / MANIFEST).exists():
+            if not resume:
+                raise InputError(f"session {path} already exists: pass --resume to continue it or choose --out")
+            session = cls.open(path)
+            for partial in path.glob(".view_*.partial"):
+                shutil.rmtree(partial, ignore_errors=True)
+            session.manifest.update({k: v for k, v in info.items() if k not in session.manifest})
+            session.manifest["resumed"] = [*session.manifest.get("resumed", []), time.time()]
+            session.save()
+            return session
+        path.mkdir(parents=True, exist_ok=True)
+        session = cls(path, {"format": FORMAT, "format_version": FORMAT_VERSION, "object": name,
+                             "created": time.time(), "views": {}, **info})
+        session.save()
+        return session
+
+    @classmethod
+    def open(cls, path: Path | str) -> Session:
+        path = Path(path)
+        try:
+            manifest = json.loads((path / MANIFEST).read_text())
+        except FileNotFoundError:
+            raise DataError(f"{path} is not a session (no {MANIFEST})") from None
+        except ValueError as exc:
+            raise DataError(f"{path / MANIFEST} is corrupt: {exc}") from None
+        if manifest.get("format") != FORMAT or manifest.get("format_version", 0) > FORMAT_VERSION:
+            raise DataError(f"{path} is not a version-{FORMAT_VERSION} sssphase session")
+        return cls(path, manifest)
+
+    def save(self) -> None:
+        self.manifest["updated"] = time.time()
+        write_json_atomic(self.path / MANIFEST, self.manifest)
+
+    # ---- views -----------------------------------------------------------------------------
+    def set_view(self, view: int, entry: dict[str, Any]) -> None:
+        self.manifest["views"][str(view)] = entry
+        self.save()
+
+    def status(self, view: int) -> str:
+        return self.manifest["views"].get(str(view), {}).get("status", "pending")
+
+    def views(self) -> list[int]:
+        """Complete views, in order."""
+        return sorted(int(v) for v, e in self.manifest["views"].items() if e.get("status") == "complete")
+
+    def begin_view(self, view: int) -> ViewWriter:
+        self.set_view(view, {"status": "capturing", "started": time.time()})
+        return ViewWriter(self, view)
+
+    # ---- reading ---------------------------------------------------------------------------
+    @property
+    def name(self) -> str:
+        return str(self.manifest["object"])
+
+    @property
+    def objects(self) -> list[str]:
+        """Object names in this session (one per session folder); their index is the class label."""
+        return [self.name]
+
+    def arrays(self, view: int) -> list[str]:
+        return sorted(self.manifest["views"].get(str(view), {}).get("arrays", {}))
+
+    def read(self, view: int, name: str):
+        """The array lazily (a zarr array: index it, or ``np.asarray`` it, to load numpy data)."""
+        import zarr
+
+        if name not in self.arrays(view):
+            raise DataError(f"view {view} of {self.path} has no array {name!r} (has: {', '.join(self.arrays(view))})")
+        return zarr.open_array(str(self.path / view_dir_name(view) / name), mode="r")
+
+    def load(self, view: int, name: str) -> np.ndarray:
+        """The whole array as numpy."""
+        return np.asarray(self.read(view, name)[...])
+
+    def iter_views(self) -> Iterator[tuple[int, dict[str, Any]]]:
+        for v in self.views():
+            yield v, self.manifest["views"][str(v)]
+
+    # ---- checking --------------------------------------------------------------------------
+    def validate(self, *, expected_views: int | None = None) -> list[str]:
+        """Problems found (empty when the session is complete and intact); reads every array."""
+        problems = []
+        n = expected_views if expected_views is not None else int(self.manifest.get("n_views", 0))
+        for v in range(n):
+            if self.status(v) != "complete":
+                problems.append(f"view {v}: {self.status(v)} (not captured completely; rerun with --resume)")
+        for v, entry in self.iter_views():
+            for name in REQUIRED:
+                if name not in entry.get("arrays", {}):
+                    problems.append(f"view {v}: required array {name} missing from the manifest")
+            for name, meta in entry.get("arrays", {}).items():
+                try:
+                    data = self.load(v, name)
+                except Exception as exc:
+                    problems.append(f"view {v}: array {name} missing or unreadable ({type(exc).__name__}: {str(exc)[:80]})")
+                    continue
+                if list(data.shape) != meta["shape"] or data.dtype.str != meta["dtype"]:
+                    problems.append(f"view {v}: array {name} is {data.shape} {data.dtype.str}, manifest says "
+                                    f"{tuple(meta['shape'])} {meta['dtype']}")
+                elif array_checksum(data) != meta["checksum"]:
+                    problems.append(f"view {v}: array {name} is corrupt (checksum mismatch)")
+        return problems
+
+
+def list_sessions(root: Path | str) -> list[Session]:
+    """Every session folder directly under ``root`` (the learning data set), by object name."""
+    return [Session.open(p.parent) for p in sorted(Path(root).glob(f"*/{MANIFEST}"))]

@@ -1,0 +1,236 @@
+"""Capture sessions end to end through a real daemon process with the sim plugin."""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sssphase_core import session as session_mod
+from sssphase_core.capture import DEFAULT_HDR, CaptureRequest, RigSpec, import_folder, run_capture
+from sssphase_core.errors import DataError, InputError
+from sssphase_core.session import Session
+
+VIEWS = 2
+OBJECT = "apple"
+CAPTURE = ("capture", "--object", OBJECT, "--views", str(VIEWS), "--reference", "checkerboard")
+SLOW_RIG = """
+[devices]
+camera = "sim:camera0"
+projector = "sim:projector0"
+turntable = "sim:turntable0"
+[options]
+grab_delay_s = 0.1
+"""
+
+
+def _arrays(s: Session) -> dict[str, np.ndarray]:
+    return {f"{v}/{n}": s.load(v, n) for v in s.views() for n in s.arrays(v)}
+
+
+def _wait_for(predicate, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while not predicate():
+        assert time.monotonic() < deadline, "timed out"
+        time.sleep(0.05)
+
+
+def _view_status(root: Path, view: int) -> str:
+    try:
+        return json.loads((root / OBJECT / "manifest.json").read_text())["views"].get(str(view), {}).get("status", "")
+    except (OSError, ValueError):
+        return ""
+
+
+@pytest.fixture(scope="module")
+def reference(runtime_dir, tmp_path_factory):
+    """An uninterrupted capture through the CLI, with no daemon running (so it starts one)."""
+    out = tmp_path_factory.mktemp("ref")
+    runtime = Path(tempfile.mkdtemp(prefix="sssr", dir="/tmp"))  # no daemon has ever run here
+    cmd = [sys.executable, "-c", "from sssphase_cli.main import main; main()", *CAPTURE, "--out", str(out)]
+    done = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env={**os.environ, "SSS_RUNTIME_DIR": str(runtime)})
+    shutil.rmtree(runtime, ignore_errors=True)
+    assert done.returncode == 0, done.stderr + done.stdout
+    return out, done.stdout, Session.open(out / OBJECT)
+
+
+def test_capture_without_daemon_starts_one_and_writes_a_valid_session(reference, sss):
+    out, stdout, s = reference
+    assert "started a local one with the sim rig" in stdout
+    assert s.views() == list(range(VIEWS)) and s.objects == [OBJECT]
+    ok = sss("validate", str(out / OBJECT))
+    assert ok.returncode == 0 and "checksums match" in ok.stdout
+    m = s.manifest
+    assert m["devices"]["camera"]["id"] == "sim:camera0" and m["plugins"]["sim"]
+    assert len(m["plan"]["frames"]) == 2 * 3 * 4 + 3  # x/y, 3 periods, 4 shifts; white, black, checkerboard
+    psp = s.read(0, "psp")
+    assert psp.shape == (8, 192, 256, 3) and psp.dtype == np.float32 and not isinstance(psp, np.ndarray)
+    assert np.asarray(psp[3, 100:102]).shape == (2, 256, 3)
+    for name in ("white", "black", "ref/checkerboard", "corr/reason", "gt/labels", "gt/render/checkerboard"):
+        assert m["views"]["1"]["arrays"][name]["checksum"].startswith("sha256:")
+    # the decoded correspondence matches the simulator's exact one where it is valid
+    xp, mask, gt = s.load(1, "corr/xp"), s.load(1, "corr/mask"), s.load(1, "gt/proj_xy")
+    assert mask.sum() > 2000
+    assert np.nanmedian(np.abs(xp[mask] - gt[..., 0][mask])) < 0.5
+    white, render = s.load(0, "white"), s.load(0, "gt/render/white")
+    assert abs(float(white[mask].mean()) - float(render[mask].mean())) < 0.05 * float(render[mask].mean())
+
+
+@pytest.mark.parametrize("bad", ["../evil", "/etc/passwd", "a/b", "..", "x" * 80])
+def test_object_names_that_escape_the_root_are_refused(bad, sss, tmp_path):
+    done = sss("capture", "--object", bad, "--views", "1", "--out", str(tmp_path / "s"))
+    assert done.returncode == 2 and "is not allowed" in done.stderr
+    assert not (tmp_path / "s").exists() and not (tmp_path / "evil").exists()
+
+
+def test_unknown_sim_object_lists_the_catalogue(daemon, sss, tmp_path):
+    done = sss("capture", "--object", "banana", "--views", "1", "--out", str(tmp_path))
+    assert done.returncode == 2 and "banana" in done.stderr and "apple" in done.stderr and "lego" in done.stderr
+
+
+@pytest.mark.slow
+def test_daemon_sigkill_mid_capture_then_resume_is_byte_identical(reference, daemon_factory, tmp_path):
+    proc, _, runtime = daemon_factory()
+    args = [sys.executable, "-c", "from sssphase_cli.main import main; main()", *CAPTURE, "--out", str(tmp_path),
+            "--timeout", "2"]
+    cli = subprocess.Popen(args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           env={**os.environ, "SSS_RUNTIME_DIR": str(runtime)})
+    _wait_for(lambda: _view_status(tmp_path, 0) == "complete" and _view_status(tmp_path, 1) == "capturing")
+    time.sleep(0.3)  # into view 1's frame stream
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    _, err = cli.communicate(timeout=60)
+    assert cli.returncode == 2 and re.search("stopped answering|did not answer", err), err
+    assert Session.open(tmp_path / OBJECT).views() == [0]
+    _, _, runtime = daemon_factory()
+    done = subprocess.run([*args, "--resume"], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "SSS_RUNTIME_DIR": str(runtime)})
+    assert done.returncode == 0, done.stderr
+    resumed, expected = _arrays(Session.open(tmp_path / OBJECT)), _arrays(reference[2])
+    assert resumed.keys() == expected.keys()
+    for name, arr in expected.items():
+        assert arr.dtype == resumed[name].dtype and arr.tobytes() == resumed[name].tobytes(), name
+
+
+def test_ctrl_c_leaves_a_resumable_session(daemon_factory, tmp_path, sss):
+    _, _, runtime = daemon_factory()
+    (tmp_path / "rig.toml").write_text(SLOW_RIG)
+    args = ["capture", "--object", OBJECT, "--views", "1", "--out", str(tmp_path), "--rig", str(tmp_path / "rig.toml")]
+    cli = subprocess.Popen([sys.executable, "-c", "from sssphase_cli.main import main; main()", *args],
+                           stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                           env={**os.environ, "SSS_RUNTIME_DIR": str(runtime)},
+                           preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))  # as in a terminal
+    _wait_for(lambda: _view_status(tmp_path, 0) == "capturing")
+    time.sleep(0.5)
+    cli.send_signal(signal.SIGINT)
+    _, err = cli.communicate(timeout=30)
+    assert cli.returncode == 130 and "interrupted" in err
+    s = Session.open(tmp_path / OBJECT)
+    assert s.views() == [] and s.status(0) == "interrupted" and not list((tmp_path / OBJECT).glob(".view_*"))
+    done = sss("validate", str(tmp_path / OBJECT))
+    assert done.returncode == 2 and "rerun with --resume" in done.stdout  # resuming is tested with SIGKILL below
+
+
+def test_disk_full_is_reported_and_the_session_resumes(reference, daemon_factory, tmp_path, monkeypatch):
+    _, client, _ = daemon_factory()
+    shutil.copytree(reference[0] / OBJECT, tmp_path / OBJECT)
+    s = Session.open(tmp_path / OBJECT)
+    s.manifest["views"].pop("1")
+    s.save()
+    shutil.rmtree(tmp_path / OBJECT / "view_001")
+
+    def full(name: str) -> None:
+        if name == "corr/xp":
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(session_mod, "FAULT_HOOK", full)
+    req = CaptureRequest(OBJECT, views=VIEWS, references=("checkerboard",), resume=True, out=tmp_path)
+    with pytest.raises(DataError, match="disk full.*--resume"):
+        run_capture(client, req)
+    s = Session.open(tmp_path / OBJECT)
+    assert s.views() == [0] and s.status(1) == "interrupted" and not (tmp_path / OBJECT / ".view_001.partial").exists()
+    assert s.validate() == ["view 1: interrupted (not captured completely; rerun with --resume)"]
+
+
+def test_validate_reports_corrupt_and_missing_arrays(reference, tmp_path, sss):
+    shutil.copytree(reference[0] / OBJECT, tmp_path / OBJECT)
+    view = tmp_path / OBJECT / "view_000"
+    chunk = max((p for p in (view / "psp").rglob("*") if p.is_file() and p.name != "zarr.json"), key=lambda p: p.stat().st_size)
+    data = bytearray(chunk.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    chunk.write_bytes(bytes(data))
+    shutil.rmtree(view / "white")
+    problems = Session.open(tmp_path / OBJECT).validate()
+    assert any("psp" in p and ("corrupt" in p or "unreadable" in p) for p in problems)
+    assert any("white" in p and "missing" in p for p in problems)
+    done = sss("validate", str(tmp_path / OBJECT))
+    assert done.returncode == 2 and "problem(s)" in done.stderr and "corrupt" in done.stdout
+
+
+@pytest.mark.slow
+def test_footprints_stream_into_crops_and_raw_dots_on_request(daemon, tmp_path):
+    _, client = daemon
+    req = CaptureRequest("pear", views=1, footprints=True, dot_spacing=8, keep_dots=True, out=tmp_path)
+    s = run_capture(client, req)
+    assert s.validate() == []
+    pixels, crops = s.load(0, "footprints/pixels"), s.load(0, "footprints/crops")
+    mask = s.load(0, "corr/mask")
+    assert crops.shape == (len(pixels), 32, 32, 3) and len(pixels) == mask.sum()
+    assert s.read(0, "dots").shape == (64, 192, 256, 3)
+    assert s.manifest["views"]["0"]["footprints"] == {"count": len(pixels), "missing": 0, "spacing": 8}
+    centre, between_dots = crops[:, 16, 16].mean(), crops[:, 20, 20].mean()
+    assert centre > 1.5 * between_dots, (centre, between_dots)  # each crop is centred on its lit pixel
+
+
+def test_import_from_a_folder_of_images(tmp_path):
+    import cv2
+
+    from sssphase_core.patterns import capture_plan
+    from sssphase_core.sim import SimScene
+
+    scene = SimScene("orange")
+    plan = capture_plan(256, 192, references=("white", "black"))
+    frames = scene.capture(np.stack([f.pattern() for f in plan]), np.random.default_rng(1))
+    folder = tmp_path / "rig_images" / "view_000"
+    folder.mkdir(parents=True)
+    for f, img in zip(plan, frames, strict=True):
+        if f.key == "white":
+            cv2.imwrite(str(folder / "white.png"), cv2.cvtColor(np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16), cv2.COLOR_RGB2BGR))
+        else:
+            np.save(folder / f"{f.key.replace('/', '__')}.npy", img)
+    s = import_folder(tmp_path / "rig_images", tmp_path / "sessions", "orange_rig2", (256, 192))
+    assert s.validate() == [] and s.views() == [0]
+    xp, mask = s.load(0, "corr/xp"), s.load(0, "corr/mask")
+    assert mask.sum() > 1000 and np.nanmedian(np.abs(xp[mask] - scene.proj_xy[..., 0][mask])) < 0.5
+    assert s.load(0, "white").max() <= 1.0
+    with pytest.raises(Exception, match="white"):
+        import_folder(tmp_path / "sessions", tmp_path / "x", "empty", (256, 192))
+
+
+@pytest.mark.slow
+def test_hdr_brackets_on_a_rig_without_turntable(daemon, tmp_path):
+    _, client = daemon
+    (tmp_path / "rig.toml").write_text('[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\n')
+    rig = RigSpec.from_toml(tmp_path / "rig.toml")
+    asked: list[tuple[int, float]] = []
+    req = CaptureRequest("soap", views=1, hdr=DEFAULT_HDR, out=tmp_path)
+    s = run_capture(client, req, rig, ask_move=lambda v, a: asked.append((v, a)))
+    assert asked == [(0, 0.0)] and s.validate() == []
+    assert len(s.manifest["plan"]["frames"]) == 3 * (24 + 2)
+    white, render, mask = s.load(0, "white"), s.load(0, "gt/render/white"), s.load(0, "corr/mask")
+    assert mask.sum() > 1000
+    assert np.abs(white - render)[mask].mean() < 0.05 * render[mask].mean()
+    (tmp_path / "bad.toml").write_text('[devices]\ncamera = "sim:camera0"\n')
+    with pytest.raises(InputError, match="projector"):
+        RigSpec.from_toml(tmp_path / "bad.toml")

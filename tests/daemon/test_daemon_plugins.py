@@ -1,0 +1,142 @@
+"""Plugin manager (broken plugins isolated, both hook families) and the sim devices' hardware-like behaviour."""
+
+from __future__ import annotations
+
+import textwrap
+
+import numpy as np
+import pytest
+
+from sssphase_plugins import manager, sim_plugin
+from sssphase_plugins.drivers import Camera, DeviceError, Projector, Turntable
+
+GOOD = """
+from sssphase_plugins.hookspecs import hookimpl
+from sssphase_plugins.drivers import DeviceInfo
+__version__ = "2.5"
+class P:
+    kind = "trigger"
+    def discover(self):
+        return [DeviceInfo("acme:trig-7", "trigger", "acme_good", "Acme trigger", "7")]
+    def open(self, device_id, options, shared):
+        raise NotImplementedError
+@hookimpl
+def sssphase_triggers():
+    return [P()]
+"""
+BROKEN_IMPORT = "import a_module_that_does_not_exist\n"
+UNKNOWN_HOOK = """
+from sssphase_plugins.hookspecs import hookimpl
+@hookimpl
+def sssphase_cameraz():
+    return []
+"""
+RAISING_HOOK = """
+from sssphase_plugins.hookspecs import hookimpl
+@hookimpl
+def sssphase_cameras():
+    raise RuntimeError("usb stack exploded")
+"""
+
+
+@pytest.fixture
+def plugin_dir(tmp_path, monkeypatch):
+    for name, src in {"acme_good": GOOD, "acme_broken": BROKEN_IMPORT, "acme_typo": UNKNOWN_HOOK,
+                      "acme_raises": RAISING_HOOK}.items():
+        (tmp_path / f"{name}.py").write_text(textwrap.dedent(src))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv(manager.ENV_PLUGINS, "acme_broken,acme_good,acme_typo,acme_raises")
+    return tmp_path
+
+
+def test_broken_plugins_are_named_and_do_not_take_others_down(plugin_dir):
+    pm = manager.build_plugin_manager()
+    devices, errors = manager.discover_devices(pm)
+    ids = {d.id for d in devices}
+    assert {"acme:trig-7", sim_plugin.CAMERA_ID, sim_plugin.PROJECTOR_ID, sim_plugin.TURNTABLE_ID} <= ids
+    assert "ModuleNotFoundError" in errors["acme_broken"]
+    assert "sssphase_cameraz" in errors["acme_typo"]
+    assert "usb stack exploded" in errors["acme_raises"]
+    records = {r.name: r for r in manager.plugin_records(pm)}
+    assert records["acme_good"].ok and records["acme_good"].version == "2.5" and records["acme_good"].kind == "device"
+    assert not records["acme_broken"].ok and records["sim"].ok
+
+
+def test_backend_hookspecs_and_entry_point_groups_share_the_manager():
+    assert manager.ENTRY_POINT_GROUPS == ("sssphase_devices", "sssphase_backends")
+    pm = manager.get_plugin_manager(refresh=True)
+    assert pm.project_name == "sssphase" and pm.has_plugin("sim")
+    assert all(hasattr(pm.hook, h) for h in ("sssphase_cameras", "sssphase_projectors", "sssphase_turntables"))
+
+
+def test_discovery_ids_are_stable():
+    first, _ = manager.discover_devices(manager.build_plugin_manager())
+    second, _ = manager.discover_devices(manager.build_plugin_manager())
+    assert [d.id for d in first] == [d.id for d in second]
+    assert len({d.id for d in first}) == len(first)
+
+
+@pytest.fixture(scope="module")
+def sim_rig():
+    shared: dict = {}
+    opts = {"object": "pear", "n_views": 4, "seed": 3}
+    pm = manager.build_plugin_manager()
+    cam, proj, table = (manager.find_provider(dev_id, pm).open(dev_id, opts, shared)
+                        for dev_id in (sim_plugin.CAMERA_ID, sim_plugin.PROJECTOR_ID, sim_plugin.TURNTABLE_ID))
+    return cam, proj, table
+
+
+def test_sim_devices_follow_the_driver_protocols(sim_rig):
+    cam, proj, table = sim_rig
+    assert isinstance(cam, Camera) and isinstance(proj, Projector) and isinstance(table, Turntable)
+    assert proj.resolution == (256, 192)
+    with pytest.raises(DeviceError, match="projector is 256x192"):
+        proj.show(np.zeros((10, 10), np.float32))
+    with pytest.raises(DeviceError):
+        cam.configure(exposure=0)
+
+
+def test_camera_sees_only_a_pattern_that_is_already_on_screen(sim_rig):
+    cam, proj, table = sim_rig
+    w, h = proj.resolution
+    black, white = np.zeros((h, w), np.float32), np.ones((h, w), np.float32)
+    proj.preload([("black", lambda: black), ("white", lambda: white)])  # one render pass for both
+    cam.configure(exposure=1.0)
+    proj.show(black, tag="black")
+    dark = cam.grab()
+    proj.show(white, tag="white", confirm=False)  # not yet on screen: the exposure still sees black
+    early = cam.grab()
+    assert early.meta["pattern_tag"] == "black"
+    proj.show(white, tag="white")
+    lit = cam.grab()
+    assert lit.meta["pattern_tag"] == "white" and lit.sequence == early.sequence + 1
+    assert lit.timestamp_ns > early.timestamp_ns > dark.timestamp_ns
+    assert lit.data.mean() > 5 * max(early.data.mean(), 1e-3)
+
+
+def test_sim_frames_are_reproducible_per_pattern_and_exposure(sim_rig):
+    cam, proj, table = sim_rig
+    w, h = proj.resolution
+    img = np.full((h, w), 0.5, np.float32)
+    proj.preload([("half", lambda: img)])
+    proj.show(img, tag="half")
+    a = cam.grab().data
+    proj.show(img, tag="half")
+    b = cam.grab().data
+    cam.configure(exposure=2.0)
+    proj.show(img, tag="half")
+    c = cam.grab().data
+    cam.configure(exposure=1.0)
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    assert table.move_to(90.0) == 90.0
+    proj.show(img, tag="half")
+    assert not np.array_equal(cam.grab().data, a)  # another view
+    table.move_to(0.0)
+
+
+def test_fault_injection_option_fails_the_camera():
+    shared: dict = {}
+    provider = manager.find_provider(sim_plugin.CAMERA_ID, manager.build_plugin_manager())
+    cam = provider.open(sim_plugin.CAMERA_ID, {"fail_at_frame": 0}, shared)
+    with pytest.raises(DeviceError, match="simulated sensor failure"):
+        cam.grab()

@@ -1,0 +1,221 @@
+"""The daemon process: fuzzing, authentication, dead clients, device failures, concurrent clients."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import msgpack
+import numpy as np
+import pytest
+import zmq
+
+from sssphase_core.patterns import capture_plan
+from sssphase_daemon import protocol, security
+from sssphase_daemon.client import DaemonClient, DaemonError
+
+
+def _drain(sock: zmq.Socket, wait_ms: int = 50) -> list[dict]:
+    out = []
+    while sock.poll(wait_ms):
+        out.append(msgpack.unpackb(sock.recv_multipart()[-1], raw=False))
+    return out
+
+
+def _fuzz_messages(token: str, n: int, rng: np.random.Generator) -> list[list[bytes]]:
+    good = protocol.request(1, "ping", token)
+    variants = [
+        lambda: [rng.bytes(int(rng.integers(0, 200)))],  # random bytes
+        lambda: [good[: int(rng.integers(0, len(good)))]],  # truncated
+        lambda: [msgpack.packb({"v": int(rng.integers(2, 99)), "id": 1, "op": "ping", "token": token})],  # version
+        lambda: [msgpack.packb({"v": 1, "id": 1, "op": "ping", "token": "x" * int(rng.integers(0, 50))})],  # auth
+        lambda: [msgpack.packb({"v": 1, "id": 1, "op": "ping"})],  # no token
+        lambda: [msgpack.packb({"v": 1, "id": [1], "op": 3, "token": token})],  # wrong types
+        lambda: [msgpack.packb({"v": 1, "id": 2, "op": "rm -rf", "token": token})],  # unknown op
+        lambda: [msgpack.packb({"v": 1, "id": 3, "op": "capture", "token": token, "args": {"rig": "nope", "frames": 5}})],
+        lambda: [msgpack.packb({"v": 1, "id": 4, "op": "stream", "token": token, "args": {"rig": {"a": 1}, "count": -1}})],
+        lambda: [msgpack.packb({"v": 1, "id": 5, "op": "open_rig", "token": token, "args": {"camera": 7}})],
+        lambda: [msgpack.packb([1, 2, 3])],  # not a map
+        lambda: [b"\xc1"],  # reserved msgpack byte
+        lambda: [b"x", b"y", good],  # non-empty delimiter frames
+        lambda: [b"", b"", good[:-1]],
+        lambda: [b"\x91" * 5000],  # deeply nested arrays
+    ]
+    return [variants[int(rng.integers(0, len(variants)))]() for _ in range(n)]
+
+
+def test_fuzzing_10000_messages_leaves_the_daemon_serving(daemon):
+    proc, client = daemon
+    sock = zmq.Context.instance().socket(zmq.DEALER)
+    sock.linger = 0
+    sock.connect(client.endpoint)
+    rng = np.random.default_rng(7)
+    replies: list[dict] = []
+    for _batch in range(10):
+        for parts in _fuzz_messages(client.token, 1000, rng):
+            sock.send_multipart(parts)
+        replies += _drain(sock, 200)
+    assert proc.poll() is None
+    assert len(replies) > 8000 and all(r["ok"] is False for r in replies)
+    codes = {r["error"]["code"] for r in replies}
+    assert {protocol.BAD_MESSAGE, protocol.BAD_VERSION, protocol.UNAUTHENTICATED, protocol.UNKNOWN_OP,
+            protocol.NOT_FOUND} <= codes
+    # oversized: ZeroMQ drops the connection at the transport (limit 1 MiB); the daemon lives on
+    big = zmq.Context.instance().socket(zmq.DEALER)
+    big.linger = 0
+    big.connect(client.endpoint)
+    big.send(b"\x00" * (3 * 2**20))
+    assert not big.poll(300)
+    big.close()
+    assert client.call("ping")["time"] > 0
+    sock.close()
+
+
+def test_wrong_token_is_refused(daemon):
+    _, client = daemon
+    intruder = DaemonClient(client.endpoint, "not-the-token", timeout_s=3)
+    with pytest.raises(DaemonError, match="token") as exc:
+        intruder.call("devices")
+    assert exc.value.code == protocol.UNAUTHENTICATED
+    intruder.close()
+
+
+def test_off_loopback_bind_needs_curve_keys_and_refuses_plain_clients(runtime_dir, tmp_path):
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime_dir)}
+    refused = subprocess.run([sys.executable, "-m", "sssphase_daemon", "--endpoint", "tcp://0.0.0.0:*",
+                              "--state-file", str(tmp_path / "s.json")], capture_output=True, text=True, env=env, timeout=30)
+    assert refused.returncode == 2 and "CURVE" in refused.stderr
+    keys = security.generate_keys(tmp_path / "curve")
+    state_file = tmp_path / "curve.json"
+    proc = subprocess.Popen([sys.executable, "-m", "sssphase_daemon", "--endpoint", "tcp://0.0.0.0:*",
+                             "--curve-dir", str(keys), "--state-file", str(state_file)], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 20
+        while (state := security.read_state(state_file)) is None and time.monotonic() < deadline:
+            time.sleep(0.05)
+        port = state.endpoint.rsplit(":", 1)[1]
+        endpoint = f"tcp://127.0.0.1:{port}"
+        plain = DaemonClient(endpoint, state.token, timeout_s=1.0)  # right token, no CURVE handshake
+        assert not plain.ping(timeout_s=1.0)
+        plain.close()
+        with DaemonClient(endpoint, state.token, curve_dir=keys, timeout_s=5.0) as good:
+            assert good.call("hello")["protocol"] == protocol.PROTOCOL_VERSION
+    finally:
+        proc.terminate()
+        proc.wait(10)
+
+
+CLIENT_SCRIPT = """
+import sys
+from sssphase_daemon.client import DaemonClient
+client = DaemonClient(sys.argv[1], sys.argv[2], heartbeat_s=0.2)
+rig = client.call("open_rig", camera="sim:bench-camera", options={"shape": [512, 512, 3]})["rig"]
+for i, frame in enumerate(client.stream(rig, 100000)):
+    if i == 3:
+        print("streaming", flush=True)
+"""
+
+
+def test_client_killed_mid_stream_does_not_stall_the_daemon(daemon):
+    proc, client = daemon
+    victim = subprocess.Popen([sys.executable, "-c", CLIENT_SCRIPT, client.endpoint, client.token],
+                              stdout=subprocess.PIPE, text=True)
+    assert victim.stdout.readline().strip() == "streaming"
+    victim.kill()
+    victim.wait()
+    jobs = []
+    deadline = time.monotonic() + 15
+    while time.monotonic() < deadline:
+        jobs = [j for j in client.call("status")["jobs"] if j["total"] == 100000]
+        if jobs and jobs[-1]["state"] == "cancelled":
+            break
+        time.sleep(0.2)
+    assert jobs and jobs[-1]["state"] == "cancelled" and jobs[-1]["sent"] < 100000
+    rig = client.call("open_rig", camera="sim:bench-camera", options={"shape": [64, 64, 3]})["rig"]
+    assert len(list(client.stream(rig, 20))) == 20
+
+
+def test_device_failure_mid_view_is_reported_and_the_daemon_keeps_serving(daemon):
+    proc, client = daemon
+    plan = capture_plan(256, 192, references=("white", "black"))
+    frames = json.loads(plan.to_json())["frames"]
+    rig = client.call("open_rig", camera="sim:camera0", projector="sim:projector0",
+                      options={"object": "star", "fail_at_frame": 4})["rig"]
+    got = []
+    with pytest.raises(DaemonError, match="simulated sensor failure at frame 4") as exc:
+        for frame in client.capture(rig, frames[:8]):
+            got.append(frame.name)
+    assert exc.value.code == protocol.DEVICE and got == [f["name"] for f in frames[:4]]
+    failed = [j for j in client.call("status")["jobs"] if j["rig"] == rig]
+    assert failed[-1]["state"] == "failed"
+    ok_rig = client.call("open_rig", camera="sim:camera0", projector="sim:projector0", options={"object": "star"})["rig"]
+    names = [f.name for f in client.capture(ok_rig, frames[:3])]
+    assert names == [f["name"] for f in frames[:3]]
+    assert client.call("status")["heavy_modules"] == []  # a sim-only daemon loads no torch, no hardware library
+
+
+def test_several_clients_at_once(daemon):
+    _, first = daemon
+    results: dict[int, list[int]] = {}
+    errors: list[BaseException] = []
+
+    def work(i: int) -> None:
+        try:
+            with DaemonClient(first.endpoint, first.token, timeout_s=10) as c:
+                rig = c.call("open_rig", camera="sim:bench-camera", options={"shape": [256, 256, 3], "seed": i})["rig"]
+                seqs = []
+                for f in c.stream(rig, 60):
+                    seqs.append(f.seq)
+                    assert f.data.shape == (256, 256, 3)
+                    c.call("status") if f.seq % 20 == 0 else None
+                results[i] = seqs
+        except BaseException as exc:  # surfaced in the main thread
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(i,)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(60)
+    assert not errors, errors
+    assert all(results[i] == list(range(60)) for i in range(4))
+
+
+def test_daemon_sigterm_exits_cleanly_and_removes_its_socket(fresh_daemon):
+    proc, client, runtime = fresh_daemon
+    sock_path = client.endpoint[len("ipc://"):]
+    assert os.path.exists(sock_path)
+    second = subprocess.run([sys.executable, "-m", "sssphase_daemon"], capture_output=True, text=True, timeout=30,
+                            env={**os.environ, "SSS_RUNTIME_DIR": str(runtime)})
+    assert second.returncode == 2 and f"another daemon (pid {proc.pid})" in second.stderr
+    assert client.ping()
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(10) == 0
+    assert not os.path.exists(sock_path) and security.read_state(runtime / "daemon.json") is None
+
+
+def test_preview_publishes_subsampled_frames_without_slowing_the_stream(daemon_factory):
+    _, client, runtime = daemon_factory("--preview", "ipc://{runtime}/preview.sock")
+    endpoint = client.call("hello")["preview"]
+    assert endpoint.startswith("ipc://")
+    sub = zmq.Context.instance().socket(zmq.SUB)
+    sub.linger = 0
+    sub.subscribe(b"preview")
+    sub.connect(endpoint)
+    time.sleep(0.3)  # let the subscription reach the publisher
+    rig = client.call("open_rig", camera="sim:bench-camera", options={"shape": [64, 96, 3]})["rig"]
+    frames = list(client.stream(rig, 50))
+    assert [f.seq for f in frames] == list(range(50))  # the lossless stream is complete
+    previews = []
+    while sub.poll(200):
+        _, header, data = sub.recv_multipart()
+        previews.append(protocol.decode_frame(msgpack.unpackb(header), data))
+    sub.close()
+    assert 0 < len(previews) <= 50  # the preview may drop frames
+    assert np.array_equal(previews[0], frames[0].data[::4, ::4])  # the bench camera repeats one frame
