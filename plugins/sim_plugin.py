@@ -91,12 +91,7 @@ class SimBench:
 
     def capture(self, pattern: np.ndarray, tag: str, rng: np.random.Generator, exposure: float, raw: bool) -> np.ndarray:
         """What ``SimScene.capture`` returns for this pattern, from the (cached) noise-free image."""
-        from sssphase_core import isp
-        from sssphase_core.sim.sensor import expose
-
-        sensor = self.rig.sensor
-        frame = expose(self.render(pattern, tag)[None], sensor, rng, exposure)[0]
-        return frame if raw else isp.develop(frame, sensor.black_level, sensor.dn_per_unit(exposure), median=sensor.isp_median)
+        return self.scene.sense(self.render(pattern, tag)[None], rng, exposure, raw)[0]
 
     def advance(self, ns: int) -> None:
         self.clock_ns += ns

@@ -198,13 +198,17 @@ class SimScene:
         """Noisy sensor frames: raw uint16 Bayer (P, H, W), or developed RGB float32 (P, H, W, 3) in
         linear camera units (same scale as :meth:`render`). Without ``rng``, a generator seeded with
         the scene's ``seed`` is used (the same noise on every call)."""
-        from sssphase_core import isp
-
         if not exposure > 0:
             raise InputError(f"exposure must be positive, got {exposure}")
         rng = rng if rng is not None else np.random.default_rng(self.seed)
+        return self.sense(self.render(patterns, progress), rng, exposure, raw)
+
+    def sense(self, images: np.ndarray, rng: np.random.Generator, exposure: float = 1.0, raw: bool = False) -> np.ndarray:
+        """Noise-free images (P, H, W, 3) through the sensor: raw Bayer frames, or developed by the ISP."""
+        from sssphase_core import isp
+
         sensor = self.rig.sensor
-        frames = expose(self.render(patterns, progress), sensor, rng, exposure)
+        frames = expose(images, sensor, rng, exposure)
         if raw:
             return frames
         scale = sensor.dn_per_unit(exposure)
