@@ -56,7 +56,10 @@ def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] 
         table.add_row(d["id"], d["kind"], d["plugin"], d["model"], d["serial"])
     console.print(table)
     for plugin, err in errors.items():
-        console.print(f"[red]plugin {plugin} failed:[/] {err}")
+        if err.startswith("no device"):
+            console.print(f"[yellow]{plugin}:[/] {err}")
+        else:
+            console.print(f"[red]plugin {plugin} failed:[/] {err}")
 
 
 def plugins() -> None:

@@ -144,7 +144,11 @@ def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo],
         try:
             devices += provider.discover()
         except Exception as exc:
-            errors[plugin] = f"discovery of {provider.kind}s failed: {_error_text(exc)}"
+            text = str(exc).strip()
+            if text.startswith("no device"):  # an absent device is an answer, not a failure
+                errors[plugin] = text
+            else:
+                errors[plugin] = f"discovery of {provider.kind}s failed: {_error_text(exc)}"
     errors.update(pm.load_errors)
     return sorted(devices, key=lambda d: d.id), errors
 
