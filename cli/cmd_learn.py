@@ -1,0 +1,341 @@
+"""`sss train pretrain|decoder`, `sss eval knn|footprints`, `sss viz pca`: the learning commands.
+
+Data come from the simulated rig (default: ``--source sim``); patches are cached under ``--cache``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+console = Console()
+
+ObjectsOpt = Annotated[str, typer.Option("--objects", help="Comma-separated object names (default: the paper's split).")]
+ViewsOpt = Annotated[str, typer.Option("--views", help="Comma-separated view indices.")]
+CacheOpt = Annotated[Path, typer.Option("--cache", help="Folder caching simulated views (.npz).")]
+SessionsOpt = Annotated[
+    Path | None, typer.Option("--sessions", help="Folder of captured sessions (one per object) to use instead of the simulator.")
+]
+DEFAULT_CACHE = Path(".sss_cache")
+
+
+def _names(text: str, default: tuple[str, ...]) -> list[str]:
+    return [t.strip() for t in text.split(",") if t.strip()] if text else list(default)
+
+
+def _ints(text: str) -> list[int]:
+    from sssphase_core.errors import InputError
+
+    try:
+        return [int(t) for t in text.split(",") if t.strip()]
+    except ValueError as exc:
+        raise InputError(f"expected comma-separated integers, got {text!r}") from exc
+
+
+def _views(objects: list[str], views: list[int], *, n_views: int, rig: str, pixels: int | None, footprints: bool,
+           seed: int, cache: Path, noisy: bool = False, sessions: Path | None = None):
+    """Views from captured sessions (``--sessions``) or else rendered by the simulator."""
+    if sessions is not None:
+        from sssphase_core.data import session_views
+
+        with console.status(f"reading sessions under {sessions}"):
+            return session_views(sessions, objects or None, views or None, pixels_per_view=pixels, footprints=footprints, seed=seed)
+    from sssphase_core.data import simulate_views
+
+    with console.status(f"simulating {len(objects)} object(s) x {len(views)} view(s) (cached in {cache})"):
+        return simulate_views(objects, views, n_views=n_views, rig=rig, pixels_per_view=pixels, footprints=footprints,
+                              noisy_footprints=noisy, seed=seed, cache_dir=cache)
+
+
+def _objects(vds) -> list[str]:
+    return list(dict.fromkeys(v.object for v in vds))
+
+
+def _write(out: Path | None, payload: dict, markdown: str) -> None:
+    console.print(markdown)
+    if out is not None:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(payload, indent=2))
+        out.with_suffix(".md").write_text(markdown + "\n")
+        console.print(f"wrote {out} and {out.with_suffix('.md')}")
+
+
+# --- train -------------------------------------------------------------------------------------------
+
+
+def train_pretrain(
+    out: Annotated[Path, typer.Option("--out", help="Run folder (checkpoint last.pt, metrics.jsonl).")] = Path("runs/pretrain"),
+    preset: Annotated[str, typer.Option(help="Model preset: lite or paper.")] = "lite",
+    objects: ObjectsOpt = "",
+    views: ViewsOpt = "0,1,2,3",
+    n_views: Annotated[int, typer.Option(help="Turntable views per object.")] = 4,
+    rig: Annotated[str, typer.Option(help="Simulated rig preset (cpu: K=32, paper: K=90).")] = "cpu",
+    pixels_per_view: Annotated[int, typer.Option(help="Surface pixels sampled per view.")] = 2000,
+    epochs: int = 10,
+    batch_size: int = 64,
+    lr: float = 0.05,
+    warmup_epochs: float = 2.0,
+    augment: Annotated[str, typer.Option(help="psp (weak/strong PSP set) or imagenet (baseline).")] = "psp",
+    fix_pred_lr: bool = False,
+    seed: int = 0,
+    ckpt_every: Annotated[int, typer.Option(help="Steps between mid-epoch checkpoints.")] = 50,
+    device: str = "auto",
+    resume: Annotated[bool, typer.Option(help="Continue from out/last.pt when present.")] = True,
+    cache: CacheOpt = DEFAULT_CACHE,
+    sessions: SessionsOpt = None,
+) -> None:
+    """SimSiam pretraining of the encoder on PSP patches of the training objects (resumable)."""
+    from sssphase_core.data import PatchDataset
+    from sssphase_core.models import get_preset
+    from sssphase_core.sim import TRAIN_OBJECTS
+    from sssphase_core.training import PretrainConfig, pretrain
+
+    p = get_preset(preset)
+    names = _names(objects, () if sessions else TRAIN_OBJECTS)
+    vds = _views(names, _ints(views), n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=False, seed=seed,
+                 cache=cache, sessions=sessions)
+    names = names or _objects(vds)
+    ds = PatchDataset(vds, p.patch, names)
+    cfg = PretrainConfig(epochs=epochs, batch_size=batch_size, seed=seed, ckpt_every=ckpt_every, device=device, preset=preset,
+                         lr=lr, warmup_epochs=warmup_epochs, fix_pred_lr=fix_pred_lr, augment=augment)
+    console.print(f"pretraining [bold]{preset}[/] on {len(ds)} patches of {', '.join(names)} -> {out}")
+    path = pretrain(cfg, ds, out, resume=resume)
+    console.print(f"[green]done[/]: {path}")
+
+
+def train_decoder(
+    encoder: Annotated[Path, typer.Option("--encoder", help="Pretraining checkpoint (run folder or .pt).")],
+    out: Annotated[Path, typer.Option("--out", help="Run folder.")] = Path("runs/decoder"),
+    objects: ObjectsOpt = "",
+    views: ViewsOpt = "0,1,2",
+    val_views: Annotated[str, typer.Option(help="Held-out views of the same objects for validation.")] = "3",
+    n_views: int = 4,
+    rig: str = "cpu",
+    pixels_per_view: int = 2000,
+    noisy_targets: Annotated[bool, typer.Option(help="Add capture noise to the footprint targets.")] = False,
+    epochs: int = 10,
+    batch_size: int = 32,
+    lr: float = 1e-3,
+    aux_classes: Annotated[int, typer.Option(help="> 0: auxiliary material-classification head with this many classes.")] = 0,
+    seed: int = 0,
+    ckpt_every: int = 50,
+    device: str = "auto",
+    resume: bool = True,
+    cache: CacheOpt = DEFAULT_CACHE,
+    sessions: SessionsOpt = None,
+) -> None:
+    """Fit the footprint decoder with the SBH loss on the frozen encoder (resumable)."""
+    from sssphase_core.data import PatchDataset
+    from sssphase_core.evaluation import plot_metric_vs_time
+    from sssphase_core.sim import TRAIN_OBJECTS
+    from sssphase_core.training import METRICS, DecoderConfig, load_encoder
+    from sssphase_core.training import train_decoder as fit
+
+    patch = load_encoder(encoder).preset.patch
+    names = _names(objects, () if sessions else TRAIN_OBJECTS)
+    kw = dict(n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=True, seed=seed, cache=cache, noisy=noisy_targets,
+              sessions=sessions)
+    train_vds = _views(names, _ints(views), **kw)
+    val_vds = _views(names, _ints(val_views), **kw) if val_views else []
+    names = names or _objects([*train_vds, *val_vds])
+    ds = PatchDataset(train_vds, patch, names, with_targets=True)
+    val = PatchDataset(val_vds, patch, names, with_targets=True) if val_vds else None
+    cfg = DecoderConfig(epochs=epochs, batch_size=batch_size, seed=seed, ckpt_every=ckpt_every, device=device, lr=lr,
+                        aux_classes=aux_classes)
+    console.print(f"training the decoder on {len(ds)} footprints of {', '.join(names)} -> {out}")
+    path = fit(cfg, encoder, ds, out, val=val, resume=resume)
+    if val is not None:
+        plot_metric_vs_time(out / METRICS, "val_mse", out / "error_vs_time.png")
+        console.print(f"validation error against run time: {out / 'error_vs_time.png'}")
+    console.print(f"[green]done[/]: {path}")
+
+
+# --- eval --------------------------------------------------------------------------------------------
+
+
+def eval_knn(
+    checkpoint: Annotated[list[str], typer.Option("--checkpoint", help="NAME=PATH (repeat to compare, e.g. psp=... imagenet=...).")],
+    objects: ObjectsOpt = "",
+    views: ViewsOpt = "0,1,2,3",
+    n_views: int = 4,
+    rig: str = "cpu",
+    pixels_per_view: int = 1000,
+    k: int = 20,
+    vote: Annotated[str, typer.Option(help="majority or weighted.")] = "majority",
+    label: Annotated[str, typer.Option(help="object (the paper's Table 2) or material.")] = "object",
+    seed: Annotated[int, typer.Option(help="Pixel sampling seed (use one the encoder was not trained on for new patches).")] = 1,
+    out: Annotated[Path | None, typer.Option(help="JSON output (a .md table is written next to it).")] = None,
+    cache: CacheOpt = DEFAULT_CACHE,
+    sessions: SessionsOpt = None,
+) -> None:
+    """kNN accuracy of frozen embeddings with view-level leave-one-out (cosine similarity)."""
+    import numpy as np
+
+    from sssphase_core.data import PatchDataset
+    from sssphase_core.errors import InputError
+    from sssphase_core.evaluation import embed_pixels, knn_leave_one_view_out
+    from sssphase_core.sim import MATERIAL_NAMES, TRAIN_OBJECTS
+    from sssphase_core.training import load_encoder
+
+    runs = dict(c.split("=", 1) if "=" in c else (Path(c).stem if Path(c).suffix else Path(c).name, c) for c in checkpoint)
+    names = _names(objects, () if sessions else TRAIN_OBJECTS)
+    if label not in ("object", "material"):
+        raise InputError(f"--label must be object or material, got {label!r}")
+    vds = _views(names, _ints(views), n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=False, seed=seed,
+                 cache=cache, sessions=sessions)
+    names = names or _objects(vds)
+    results = {}
+    for run, path in runs.items():
+        enc = load_encoder(path)
+        ds = PatchDataset(vds, enc.preset.patch, names)
+        with console.status(f"embedding {len(ds)} patches with {run}"):
+            emb = np.concatenate([embed_pixels(enc, v.psp, v.pixels) for v in vds])
+        labels = ds.labels(label)
+        keep = labels >= 0
+        classes = names if label == "object" else list(MATERIAL_NAMES)
+        res = knn_leave_one_view_out(emb[keep], labels[keep], ds.labels("view")[keep], k=k, vote=vote, class_names=classes)
+        res.pop("pred")
+        results[run] = res
+    rows = sorted({c for r in results.values() for c in r["per_class"]}, key=str)
+    md = [f"| {label.capitalize()} | " + " | ".join(results) + " |", "|---|" + "---|" * len(results)]
+    md += [f"| {c} | " + " | ".join(f"{100 * r['per_class'].get(c, float('nan')):.2f}" for r in results.values()) + " |" for c in rows]
+    md += ["| **overall** | " + " | ".join(f"{100 * r['overall']:.2f}" for r in results.values()) + " |"]
+    md += ["| **mean per view** | " + " | ".join(f"{100 * r['mean_per_view']:.2f}" for r in results.values()) + " |"]
+    header = f"kNN accuracy (%), k={k}, {vote} vote, view-level leave-one-out over views {views}"
+    _write(out, {"k": k, "vote": vote, "label": label, "views": views, "results": results}, header + "\n\n" + "\n".join(md))
+
+
+def eval_footprints(
+    checkpoint: Annotated[Path, typer.Option("--checkpoint", help="Decoder checkpoint (run folder or .pt).")],
+    objects: ObjectsOpt = "",
+    views: ViewsOpt = "0",
+    n_views: int = 4,
+    rig: str = "cpu",
+    pixels_per_view: int = 500,
+    baseline: Annotated[str, typer.Option(help="Backend to compare with ('' for none).")] = "analytic",
+    seed: int = 2,
+    plots: Annotated[Path | None, typer.Option(help="Folder for footprint profile plots (one per object).")] = None,
+    out: Annotated[Path | None, typer.Option(help="JSON output (a .md table is written next to it).")] = None,
+    cache: CacheOpt = DEFAULT_CACHE,
+    sessions: SessionsOpt = None,
+) -> None:
+    """MSE, PSNR (data range 1) and SSIM (data range = GT peak) per object, like the paper's Table 1."""
+    import numpy as np
+
+    from sssphase_core.backends import get_backend
+    from sssphase_core.evaluation import footprint_metrics, plot_profiles, summarise
+    from sssphase_core.sim import UNSEEN_OBJECTS, rig_preset
+
+    names = _names(objects, () if sessions else UNSEEN_OBJECTS)
+    vds = _views(names, _ints(views), n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=True, seed=seed,
+                 cache=cache, sessions=sessions)
+    names = names or _objects(vds)
+    backends = {"torch": get_backend("torch", checkpoint=checkpoint)}
+    if baseline:
+        patch = backends["torch"].patch
+        opts = {"patch": patch, "black": rig_preset(rig).projector.black} if baseline == "analytic" else {}
+        backends[baseline] = get_backend(baseline, **opts)
+    console.print("LPIPS skipped: it needs pretrained backbone weights that are not available offline.")
+    results: dict[str, dict[str, dict[str, float]]] = {}
+    if plots is not None:
+        plots.mkdir(parents=True, exist_ok=True)
+    for obj in names:
+        obj_views = [v for v in vds if v.object == obj]
+        gt = np.concatenate([np.asarray(v.footprints) for v in obj_views])
+        results[obj] = {}
+        preds = {}
+        for bname, be in backends.items():
+            with console.status(f"{bname}: predicting {len(gt)} footprints of {obj}"):
+                preds[bname] = np.concatenate([be.predict_footprints((v.psp, v.pixels)) for v in obj_views])
+            results[obj][bname] = summarise(footprint_metrics(preds[bname], gt))
+        if plots is not None:
+            i = int(np.argmax(gt.sum(axis=(1, 2, 3))))
+            for bname, pred in preds.items():
+                plot_profiles(gt[i], pred[i], plots / f"{obj}_{bname}.png", title=f"{obj}: {bname}")
+    cols = list(backends)
+    md = ["| Object | " + " | ".join(f"{b} MSE×1e-5 | {b} PSNR | {b} SSIM" for b in cols) + " |", "|---|" + "---|" * (3 * len(cols))]
+    for obj, res in results.items():
+        md.append(f"| {obj} | " + " | ".join(f"{res[b]['mse'] * 1e5:.2f} | {res[b]['psnr']:.2f} | {res[b]['ssim']:.3f}" for b in cols) + " |")
+    note = ("PSNR: data range 1 (white reference = 1.0); SSIM: 11x11 Gaussian window, data range = each GT footprint's peak; "
+            "LPIPS not computed (no offline weights).")
+    _write(out, {"objects": names, "views": views, "results": results, "note": note},
+           f"Footprint reconstruction on views {views}\n\n" + "\n".join(md) + "\n\n" + note)
+
+
+# --- viz ---------------------------------------------------------------------------------------------
+
+
+def viz_pca(
+    checkpoint: Annotated[Path, typer.Option("--checkpoint", help="Encoder checkpoint (pretraining or decoder run).")],
+    objects: Annotated[str, typer.Option(help="Comma-separated objects shown side by side.")] = "soap,shovel",
+    view: int = 0,
+    n_views: int = 4,
+    rig: str = "cpu",
+    stride: Annotated[int, typer.Option(help="Embed every stride-th pixel in x and y.")] = 2,
+    out: Annotated[Path, typer.Option(help="PNG output.")] = Path("pca_rgb.png"),
+    cache: CacheOpt = DEFAULT_CACHE,
+    sessions: SessionsOpt = None,
+) -> None:
+    """PCA-RGB map: joint PCA of the patch embeddings of the images shown, first 3 components as RGB."""
+    import numpy as np
+    from PIL import Image
+
+    from sssphase_core.evaluation import embed_pixels, paint, pca_rgb
+    from sssphase_core.training import load_encoder
+
+    enc = load_encoder(checkpoint)
+    names = _names(objects, ())
+    vds = _views(names, [view], n_views=n_views, rig=rig, pixels=None, footprints=False, seed=0, cache=cache,
+                 sessions=sessions)
+    grids = [v.pixels[(v.pixels[:, 0] % stride == 0) & (v.pixels[:, 1] % stride == 0)] for v in vds]
+    embs = []
+    for v, px in zip(vds, grids, strict=True):
+        with console.status(f"embedding {len(px)} pixels of {v.object}"):
+            embs.append(embed_pixels(enc, v.psp, px))
+    panels = []
+    for v, px, rgb in zip(vds, grids, pca_rgb(embs), strict=True):
+        h, w = v.psp.shape[1:3]
+        panels.append(paint((-(-h // stride), -(-w // stride)), px // stride, rgb))
+    img = np.concatenate(panels, axis=1)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray((img * 255).round().astype(np.uint8)).save(out)
+    console.print(f"wrote {out} ({', '.join(names)}, view {view})")
+
+
+def bench_learn(
+    out: Annotated[Path, typer.Option(help="JSON output.")] = Path("bench_learn.json"),
+    md: Annotated[Path | None, typer.Option(help="Markdown table output.")] = None,
+    repeats: int = 3,
+    device: str = "cpu",
+) -> None:
+    """Throughput (patches/s) of the lite and paper presets, inference and training, ratio to paper."""
+    from sssphase_core.bench.report import Table, machine_info, write_report
+    from sssphase_core.evaluation import measure_throughput
+
+    batches = {"paper": 8, "lite": 64}
+    results = {}
+    for name, batch in batches.items():
+        with console.status(f"measuring the {name} preset (batch {batch})"):
+            results[name] = {"batch": batch, **measure_throughput(name, batch=batch, repeats=repeats, device=device)}
+    base = results["paper"]
+    table = Table("Learning throughput (patches/s); baseline: the paper preset, same run",
+                  ["preset", "batch", "encoder params", "decoder params", "inference", "x paper", "SimSiam step", "x paper"])
+    for name, r in results.items():
+        table.rows.append([name, r["batch"], f"{r['encoder_params'] / 1e6:.2f}M", f"{r['decoder_params'] / 1e6:.2f}M",
+                           r["infer_patches_s"], r["infer_patches_s"] / base["infer_patches_s"],
+                           r["train_patches_s"], r["train_patches_s"] / base["train_patches_s"]])
+    write_report({"machine": machine_info(), "device": device, "results": results}, [table], out, md, title="sss bench learn")
+    console.print(table.markdown())
+
+
+def register(groups: dict[str, typer.Typer]) -> None:
+    groups["bench"].command("learn")(bench_learn)
+    groups["train"].command("pretrain")(train_pretrain)
+    groups["train"].command("decoder")(train_decoder)
+    groups["eval"].command("knn")(eval_knn)
+    groups["eval"].command("footprints")(eval_footprints)
+    groups["viz"].command("pca")(viz_pca)

@@ -1,0 +1,154 @@
+"""Augmentations for 24-channel PSP patches (8 images x RGB), applied identically to all 8 images.
+
+Tensors are (B, 24, K, K) with channel ``img * 3 + c``; images 0-3 are the x-orientation shifts
+(vertical stripes), 4-7 the y-orientation shifts. Every random parameter is drawn once per patch
+from torch's global RNG (the training loop seeds it per step, which makes resume exact) and shared
+by the 8 images; only the per-pixel noise of the phase jitter is drawn independently per value.
+
+* ``weak``: random resized crop (side 80/90 of the patch, resized back) + slight brightness/contrast.
+* ``strong`` (the paper's PSP set, applied after ``weak``): PSP flip, phase-shift permutation,
+  Gaussian blur with sigma sampled in [0.1, 1], intensity scaling, phase jitter, salt & pepper.
+* ``imagenet``: the SimSiam/ImageNet baseline (crop 0.2-1, colour jitter 0.4/0.4/0.4/0.1 p 0.8,
+  blur, horizontal flip), applied to the whole stack at once.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import kornia.augmentation as KA
+import kornia.enhance as KE
+import torch
+from kornia.filters import gaussian_blur2d
+
+N_IMAGES = 8
+
+
+@dataclass(frozen=True)
+class AugmentConfig:
+    """Probabilities and ranges; defaults follow the issue (the authors' values where known)."""
+
+    crop_side: float = 80 / 90
+    jitter_weak: float = 0.1
+    sp_p: float = 0.3
+    sp_amount: float = 0.05
+    blur_sigma: tuple[float, float] = (0.1, 1.0)
+    phase_jitter: float = 0.01
+    flip_p: float = 0.4
+    permute_p: float = 0.4
+    intensity: tuple[float, float] = (0.7, 1.3)
+
+
+def _uniform(b: int, lo: float, hi: float, like: torch.Tensor) -> torch.Tensor:
+    return torch.rand(b, device=like.device, dtype=like.dtype) * (hi - lo) + lo
+
+
+def _per_sample(v: torch.Tensor) -> torch.Tensor:
+    return v.view(-1, 1, 1, 1)
+
+
+def _chance(b: int, p: float, like: torch.Tensor) -> torch.Tensor:
+    return torch.rand(b, device=like.device) < p
+
+
+def random_resized_crop(x: torch.Tensor, scale: tuple[float, float], ratio: tuple[float, float]) -> torch.Tensor:
+    """Kornia's crop on all 24 channels at once (geometric ops accept any channel count)."""
+    k = x.shape[-1]
+    return KA.RandomResizedCrop((k, k), scale=scale, ratio=ratio)(x)
+
+
+def brightness_contrast(x: torch.Tensor, amount: float) -> torch.Tensor:
+    """Gain and contrast about the patch mean, both in [1 - amount, 1 + amount], shared by all channels."""
+    b = x.shape[0]
+    gain = _per_sample(_uniform(b, 1 - amount, 1 + amount, x))
+    contrast = _per_sample(_uniform(b, 1 - amount, 1 + amount, x))
+    mean = x.mean(dim=(1, 2, 3), keepdim=True)
+    return ((x - mean) * contrast + mean) * gain
+
+
+def weak(x: torch.Tensor, cfg: AugmentConfig = AugmentConfig()) -> torch.Tensor:
+    area = cfg.crop_side**2
+    return brightness_contrast(random_resized_crop(x, (area, area), (1.0, 1.0)), cfg.jitter_weak)
+
+
+def psp_flip(x: torch.Tensor, p: float) -> torch.Tensor:
+    """Flip x-orientation images horizontally and y-orientation images vertically (chosen per patch)."""
+    half = 3 * N_IMAGES // 2
+    flipped = torch.cat([x[:, :half].flip(-1), x[:, half:].flip(-2)], dim=1)
+    return torch.where(_per_sample(_chance(x.shape[0], p, x)), flipped, x)
+
+
+def permute_shifts(x: torch.Tensor, p: float) -> torch.Tensor:
+    """Randomly permute the 4 phase shifts within each orientation (independent permutations)."""
+    b, _, h, w = x.shape
+    n = N_IMAGES // 2
+    perm = torch.rand(b, 2, n, device=x.device).argsort(-1) + torch.tensor([0, n], device=x.device).view(1, 2, 1)
+    keep = ~_chance(b, p, x)
+    perm = torch.where(keep.view(b, 1, 1), torch.arange(N_IMAGES, device=x.device).view(1, 2, n), perm)
+    idx = perm.reshape(b, N_IMAGES, 1, 1, 1).expand(b, N_IMAGES, 3, h, w)
+    return x.view(b, N_IMAGES, 3, h, w).gather(1, idx).view(b, 3 * N_IMAGES, h, w)
+
+
+def gaussian_blur(x: torch.Tensor, sigma: tuple[float, float], p: float = 1.0) -> torch.Tensor:
+    """Gaussian blur with an isotropic sigma drawn per patch in ``sigma``; kernel covers +-3 sigma."""
+    b = x.shape[0]
+    s = _uniform(b, *sigma, x).clamp_min(1e-3)
+    size = 2 * int(3 * sigma[1] + 0.5) + 1
+    blurred = gaussian_blur2d(x, (size, size), torch.stack([s, s], dim=1), border_type="reflect")
+    return torch.where(_per_sample(_chance(b, p, x)), blurred, x)
+
+
+def salt_and_pepper(x: torch.Tensor, p: float, amount: float) -> torch.Tensor:
+    """With probability p per patch, set `amount` of the pixels to the patch max and `amount` to 0.
+
+    The same pixel positions are hit in all 8 images and all colour channels.
+    """
+    b, _, h, w = x.shape
+    u = torch.rand(b, 1, h, w, device=x.device)
+    active = _per_sample(_chance(b, p, x))
+    salt = (u < amount) & active
+    pepper = (u >= 1 - amount) & active
+    peak = x.amax(dim=(1, 2, 3), keepdim=True).expand_as(x)
+    return torch.where(pepper, torch.zeros_like(x), torch.where(salt, peak, x))
+
+
+def strong(x: torch.Tensor, cfg: AugmentConfig = AugmentConfig()) -> torch.Tensor:
+    b = x.shape[0]
+    x = permute_shifts(psp_flip(x, cfg.flip_p), cfg.permute_p)
+    x = gaussian_blur(x, cfg.blur_sigma)
+    x = x * _per_sample(_uniform(b, *cfg.intensity, x))
+    x = x + cfg.phase_jitter * torch.randn_like(x)
+    return salt_and_pepper(x, cfg.sp_p, cfg.sp_amount)
+
+
+def colour_jitter(x: torch.Tensor, b: float, c: float, s: float, h: float, p: float) -> torch.Tensor:
+    """Colour jitter with one set of factors per patch, applied to each of its 8 RGB images."""
+    n, _, hh, ww = x.shape
+    rgb = x.reshape(n * N_IMAGES, 3, hh, ww)
+
+    def factor(lo: float, hi: float) -> torch.Tensor:
+        return _uniform(n, lo, hi, x).repeat_interleave(N_IMAGES)
+
+    out = KE.adjust_brightness(rgb, factor(-b, b), clip_output=False)
+    out = KE.adjust_contrast(out, factor(1 - c, 1 + c), clip_output=False)
+    out = KE.adjust_saturation(out, factor(1 - s, 1 + s))
+    out = KE.adjust_hue(out, factor(-h, h) * torch.pi * 2)
+    out = out.reshape(n, 3 * N_IMAGES, hh, ww)
+    return torch.where(_per_sample(_chance(n, p, x)), out, x)
+
+
+def imagenet(x: torch.Tensor) -> torch.Tensor:
+    """The ImageNet-style baseline (SimSiam's recipe minus grayscale) on the whole 24-channel stack."""
+    x = random_resized_crop(x, (0.2, 1.0), (3 / 4, 4 / 3))
+    x = colour_jitter(x, 0.4, 0.4, 0.4, 0.1, p=0.8)
+    x = gaussian_blur(x, (0.1, 2.0), p=0.5)
+    return torch.where(_per_sample(_chance(x.shape[0], 0.5, x)), x.flip(-1), x)
+
+
+def two_views(x: torch.Tensor, kind: str = "psp", cfg: AugmentConfig = AugmentConfig()) -> tuple[torch.Tensor, torch.Tensor]:
+    """SimSiam's pair: weak/strong for ``psp`` (Mean-Shifted BYOL style), imagenet/imagenet otherwise."""
+    if kind == "psp":
+        return weak(x, cfg), strong(weak(x, cfg), cfg)
+    if kind == "imagenet":
+        return imagenet(x), imagenet(x)
+    raise ValueError(f"unknown augmentation kind {kind!r} (psp or imagenet)")

@@ -1,0 +1,65 @@
+"""Model backends: ``torch`` (the paper's method) and ``analytic`` (a physics baseline), plus plugins.
+
+Backends register through the pluggy hook ``sssphase_model_backends`` (entry-point group
+``sssphase_backends``, spec in ``sssphase_plugins.backend_hookspecs``). This package registers the
+built-ins itself (entry point ``builtin = "sssphase_core.backends"``) with lazy factories, so
+loading the plugin manager (e.g. in the daemon) never imports torch.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+
+import pluggy
+
+from sssphase_core.backends.base import FootprintBackend, Query, as_patches
+from sssphase_core.errors import InputError
+
+#: Same project name as the plugin manager (``sssphase_plugins.hookspecs.PROJECT``).
+hookimpl = pluggy.HookimplMarker("sssphase")
+
+BUILTIN = {
+    "torch": "sssphase_core.backends.torch_backend:TorchBackend",
+    "analytic": "sssphase_core.backends.analytic_backend:AnalyticBackend",
+}
+
+
+def _lazy(target: str) -> Callable[..., FootprintBackend]:
+    """A factory that imports ``module:Class`` only when a backend is built."""
+
+    def build(**options: object) -> FootprintBackend:
+        module, attr = target.split(":")
+        return getattr(importlib.import_module(module), attr)(**options)
+
+    build.__name__ = build.__qualname__ = target.split(":")[1]
+    return build
+
+
+@hookimpl
+def sssphase_model_backends() -> dict[str, Callable[..., FootprintBackend]]:
+    return {name: _lazy(target) for name, target in BUILTIN.items()}
+
+
+def available_backends() -> dict[str, Callable[..., FootprintBackend]]:
+    """{name: factory} of the built-ins and of every plugin implementing ``sssphase_model_backends``."""
+    found = sssphase_model_backends()
+    try:
+        from sssphase_plugins.manager import get_plugin_manager
+    except ImportError:
+        return found
+    hook = getattr(get_plugin_manager().hook, "sssphase_model_backends", None)
+    for result in reversed(hook()) if hook is not None else []:  # pluggy calls the latest plugin first
+        found.update(result)
+    return found
+
+
+def get_backend(name: str, **options: object) -> FootprintBackend:
+    """Build backend ``name`` with its options (e.g. ``checkpoint=...`` for torch)."""
+    backends = available_backends()
+    if name not in backends:
+        raise InputError(f"unknown model backend {name!r}; available: {', '.join(sorted(backends))}")
+    return backends[name](**options)
+
+
+__all__ = ["BUILTIN", "FootprintBackend", "Query", "as_patches", "available_backends", "get_backend", "hookimpl"]

@@ -1,0 +1,234 @@
+"""Evaluation: kNN with view-level leave-one-out, footprint metrics, PCA-RGB maps and plots."""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from sssphase_core.data import crop_patches, to_channels_first
+from sssphase_core.errors import InputError
+from sssphase_core.losses import ssim_map
+
+# --- embeddings ----------------------------------------------------------------------------------
+
+
+@torch.no_grad()
+def embed_pixels(encoder: torch.nn.Module, psp: np.ndarray, pixels: np.ndarray, *, batch_size: int = 256,
+                 device: str | torch.device = "cpu") -> np.ndarray:
+    """(N, D) frozen-encoder embeddings of the patches around ``pixels`` of one (8, H, W, 3) PSP stack."""
+    encoder = encoder.eval().to(device)
+    stack = to_channels_first(psp)
+    k = encoder.preset.patch
+    out = [encoder(crop_patches(stack, pixels[i : i + batch_size], k).to(device)).float().cpu()
+           for i in range(0, len(pixels), batch_size)]
+    return torch.cat(out).numpy() if out else np.zeros((0, encoder.preset.embed_dim), np.float32)
+
+
+# --- kNN -----------------------------------------------------------------------------------------
+
+
+def knn_predict(query: torch.Tensor, db: torch.Tensor, db_labels: torch.Tensor, n_classes: int, k: int,
+                vote: str, temperature: float = 0.07, chunk: int = 2048) -> torch.Tensor:
+    """Labels of L2-normalised ``query`` rows by cosine kNN over ``db``.
+
+    ``majority``: most frequent label among the k nearest (ties go to the larger summed similarity);
+    ``weighted``: votes weighted by exp(similarity / temperature) (Wu et al. 2018).
+    """
+    if vote not in ("majority", "weighted"):
+        raise InputError(f"unknown vote {vote!r} (majority or weighted)")
+    k = min(k, len(db))
+    preds = []
+    for i in range(0, len(query), chunk):
+        sim, nn_idx = (query[i : i + chunk] @ db.T).topk(k, dim=1)
+        labels = db_labels[nn_idx]
+        w = torch.ones_like(sim) + 1e-3 * sim if vote == "majority" else torch.exp(sim / temperature)
+        scores = torch.zeros(len(sim), n_classes, dtype=w.dtype).scatter_add_(1, labels, w)
+        preds.append(scores.argmax(dim=1))
+    return torch.cat(preds)
+
+
+def knn_leave_one_view_out(embeddings: np.ndarray, labels: np.ndarray, views: np.ndarray, *, k: int = 20,
+                           vote: str = "majority", class_names: Sequence[str] | None = None) -> dict:
+    """View-level leave-one-out: all patches of one view are queries, the other views the database.
+
+    Returns overall accuracy (over all held-out patches), mean per-view accuracy, per-view and
+    per-class accuracy (keys are ``class_names`` when given) and the predictions.
+    """
+    emb = torch.nn.functional.normalize(torch.as_tensor(embeddings, dtype=torch.float32), dim=1)
+    lab = torch.as_tensor(labels, dtype=torch.long)
+    views = np.asarray(views)
+    uniq = np.unique(views)
+    if len(uniq) < 2:
+        raise InputError("view-level leave-one-out needs patches from at least two views")
+    n_classes = int(lab.max()) + 1
+    pred = torch.empty_like(lab)
+    for v in uniq:
+        q = torch.as_tensor(views == v)
+        pred[q] = knn_predict(emb[q], emb[~q], lab[~q], n_classes, k, vote)
+    correct = (pred == lab).numpy()
+    name = (lambda c: class_names[c]) if class_names is not None else (lambda c: int(c))
+    per_view = {int(v): float(correct[views == v].mean()) for v in uniq}
+    per_class = {name(c): float(correct[labels == c].mean()) for c in np.unique(labels)}
+    return {"overall": float(correct.mean()), "mean_per_view": float(np.mean(list(per_view.values()))),
+            "per_view": per_view, "per_class": per_class, "k": k, "vote": vote, "pred": pred.numpy()}
+
+
+# --- footprint metrics ---------------------------------------------------------------------------
+
+
+def footprint_metrics(pred: np.ndarray, target: np.ndarray, *, data_range: float = 1.0) -> dict[str, np.ndarray]:
+    """Per-footprint metrics of (N, K, K, 3) arrays in linear camera units.
+
+    ``mse``; ``psnr`` = 10 log10(data_range^2 / mse) with ``data_range`` 1 (the paper's convention:
+    a white reference reads 1.0); ``ssim`` with data range = the footprint's own GT peak (see
+    ``losses.ssim_map``); ``ssim_r1`` with data range 1 like the authors' code (nearly blind on
+    footprints that peak at ~0.04, reported only for comparison).
+    """
+    p = torch.as_tensor(np.asarray(pred, np.float32)).permute(0, 3, 1, 2)
+    t = torch.as_tensor(np.asarray(target, np.float32)).permute(0, 3, 1, 2)
+    mse = ((p - t) ** 2).mean(dim=(1, 2, 3))
+    from kornia.metrics import ssim as kornia_ssim
+
+    return {
+        "mse": mse.numpy(),
+        "psnr": (10 * torch.log10(data_range**2 / mse.clamp_min(1e-20))).numpy(),
+        "ssim": ssim_map(p, t).mean(dim=(1, 2, 3)).numpy(),
+        "ssim_r1": kornia_ssim(p, t, 11, max_val=data_range).mean(dim=(1, 2, 3)).numpy(),
+    }
+
+
+def summarise(metrics: dict[str, np.ndarray]) -> dict[str, float]:
+    """Means; PSNR is recomputed from the mean MSE (aggregate PSNR, as for a whole test set)."""
+    out = {k: float(np.mean(v)) for k, v in metrics.items()}
+    out["psnr"] = 10 * math.log10(1.0 / max(out["mse"], 1e-20))
+    return out
+
+
+# --- PCA-RGB -------------------------------------------------------------------------------------
+
+
+def pca_rgb(embeddings: Sequence[np.ndarray], *, percentiles: tuple[float, float] = (1.0, 99.0)) -> list[np.ndarray]:
+    """Joint PCA of several images' (N_i, D) embeddings; first 3 components -> RGB in [0, 1] (N_i, 3).
+
+    Each component is stretched between the given percentiles over all images jointly, so colours
+    are comparable across the images shown together. The sign of each component is fixed so its
+    largest-magnitude loading is positive (deterministic colours).
+    """
+    x = torch.as_tensor(np.concatenate(embeddings), dtype=torch.float64)
+    if len(x) < 3:
+        raise InputError("PCA-RGB needs at least 3 embedded pixels")
+    x = x - x.mean(dim=0)
+    _, _, vt = torch.linalg.svd(x, full_matrices=False)
+    comps = vt[:3]
+    comps = comps * torch.sign(comps.gather(1, comps.abs().argmax(dim=1, keepdim=True)))
+    proj = (x @ comps.T).numpy()
+    if proj.shape[1] < 3:
+        proj = np.pad(proj, ((0, 0), (0, 3 - proj.shape[1])))
+    lo, hi = np.percentile(proj, percentiles, axis=0)
+    rgb = np.clip((proj - lo) / np.maximum(hi - lo, 1e-12), 0, 1).astype(np.float32)
+    return np.split(rgb, np.cumsum([len(e) for e in embeddings])[:-1])
+
+
+def paint(shape: tuple[int, int], pixels: np.ndarray, colours: np.ndarray) -> np.ndarray:
+    """(H, W, 3) image, black except at ``pixels``."""
+    img = np.zeros((*shape, 3), np.float32)
+    img[pixels[:, 0], pixels[:, 1]] = colours
+    return img
+
+
+# --- plots ---------------------------------------------------------------------------------------
+
+
+def plot_profiles(gt: np.ndarray, pred: np.ndarray, path: Path | str, *, title: str = "") -> None:
+    """Centre row of one (K, K, 3) footprint per channel: GT solid, prediction dotted; and the difference."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    k = gt.shape[0]
+    x = np.arange(k) - k // 2
+    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.2))
+    for c, colour in enumerate("rgb"):
+        a.plot(x, gt[k // 2, :, c], "-", color=colour, label=f"GT {colour.upper()}")
+        a.plot(x, pred[k // 2, :, c], ":", color=colour, lw=2, label=f"pred {colour.upper()}")
+        b.plot(x, pred[k // 2, :, c] - gt[k // 2, :, c], color=colour)
+    a.set(xlabel="offset (px)", ylabel="linear camera units", title=title or "footprint profile")
+    b.set(xlabel="offset (px)", title="prediction - GT")
+    a.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def read_metrics(path: Path | str) -> list[dict]:
+    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
+
+
+def plot_metric_vs_time(metrics_path: Path | str, key: str, out: Path | str) -> None:
+    """The error against run time: ``key`` of every metrics.jsonl row against its ``wall_s``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = [r for r in read_metrics(metrics_path) if key in r]
+    if not rows:
+        raise InputError(f"no {key!r} in {metrics_path}")
+    fig, ax = plt.subplots(figsize=(5, 3.2))
+    ax.plot([r["wall_s"] for r in rows], [r[key] for r in rows], "o-")
+    ax.set(xlabel="run time (s)", ylabel=key, title=f"{key} against run time")
+    if all(r[key] > 0 for r in rows):
+        ax.set_yscale("log")
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)
+
+
+# --- throughput ----------------------------------------------------------------------------------
+
+
+def measure_throughput(preset: str, *, batch: int, repeats: int = 3, device: str = "cpu") -> dict[str, float]:
+    """Patches/s of footprint inference (encoder + decoder forward) and of one SimSiam training step."""
+    import time
+
+    from sssphase_core.augment import two_views
+    from sssphase_core.models import Decoder, SimSiam, get_preset
+
+    p = get_preset(preset)
+    torch.manual_seed(0)
+    model, dec = SimSiam(p).to(device), Decoder(p).to(device).eval()
+    opt = torch.optim.SGD(model.parameters(), lr=0.01, momentum=0.9)
+    x = torch.rand(batch, 24, p.patch, p.patch, device=device)
+
+    def infer() -> None:
+        with torch.no_grad():
+            model.encoder.eval()
+            dec(*model.encoder.features(x))
+
+    def train_step() -> None:
+        model.train()
+        loss = model(*two_views(x))["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+
+    def rate(fn) -> float:
+        fn()  # warm-up
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            times.append(time.perf_counter() - t0)
+        return batch / float(np.median(times))
+
+    return {"infer_patches_s": rate(infer), "train_patches_s": rate(train_step),
+            "encoder_params": sum(q.numel() for q in model.encoder.parameters()),
+            "decoder_params": sum(q.numel() for q in dec.parameters())}

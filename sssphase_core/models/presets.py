@@ -1,0 +1,74 @@
+"""Model size presets: ``paper`` (the authors' sizes) and ``lite`` (trains in minutes on 2 CPU cores).
+
+Both presets build the same code; a preset is plain data (ints, floats, tuples) so that it can be
+stored inside every checkpoint and loaded with ``torch.load(weights_only=True)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, fields
+
+from sssphase_core.errors import InputError
+
+
+@dataclass(frozen=True)
+class ModelPreset:
+    """Sizes of the encoder, SimSiam heads and decoder.
+
+    ``patch`` is the footprint/PSP patch size K; the network works on ``padded`` = K rounded up to a
+    multiple of 16 (paper: 90 -> 96) so that four halvings are exact.
+    """
+
+    name: str
+    patch: int
+    in_channels: int
+    stem: int
+    stages: tuple[int, int, int]
+    bottleneck: int
+    dropout: float
+    proj_hidden: int
+    proj_dim: int
+    pred_hidden: int
+    decoder: tuple[int, int, int, int]
+    attention: int
+
+    @property
+    def padded(self) -> int:
+        return -(-self.patch // 16) * 16
+
+    @property
+    def embed_dim(self) -> int:
+        return self.bottleneck
+
+    def to_dict(self) -> dict:
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_dict(cls, data: dict) -> ModelPreset:
+        kw = {f.name: data[f.name] for f in fields(cls)}
+        return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in kw.items()})
+
+
+PRESETS: dict[str, ModelPreset] = {
+    "paper": ModelPreset(
+        name="paper", patch=90, in_channels=24, stem=128, stages=(256, 384, 512), bottleneck=1024,
+        dropout=0.2, proj_hidden=2048, proj_dim=2048, pred_hidden=512,
+        decoder=(512, 384, 256, 128), attention=64,
+    ),
+    "lite": ModelPreset(
+        name="lite", patch=32, in_channels=24, stem=16, stages=(32, 48, 64), bottleneck=128,
+        dropout=0.2, proj_hidden=256, proj_dim=256, pred_hidden=64,
+        decoder=(64, 48, 32, 16), attention=8,
+    ),
+}
+
+
+def get_preset(preset: str | ModelPreset | dict) -> ModelPreset:
+    """A preset by name (``paper``/``lite``), or rebuilt from a checkpoint's dict."""
+    if isinstance(preset, ModelPreset):
+        return preset
+    if isinstance(preset, dict):
+        return ModelPreset.from_dict(preset)
+    if preset not in PRESETS:
+        raise InputError(f"unknown model preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    return PRESETS[preset]

@@ -1,0 +1,485 @@
+"""Training loops: SimSiam pretraining and decoder fitting, with exact resume, metrics and DDP.
+
+Both loops share :class:`Loop`: a deterministic schedule (the epoch's sample order comes from
+``DistributedSampler(seed, epoch)``, and torch's global RNG, which drives augmentations and dropout,
+is re-seeded from (seed, global step) before every step), so a run resumed from a checkpoint
+reproduces exactly the steps of an uninterrupted one. Checkpoints (``last.pt``) hold plain tensors
+and dicts only and are read with ``torch.load(weights_only=True)``; they are written atomically at
+the end of every epoch and every ``ckpt_every`` steps, so a run killed mid-epoch loses at most that
+many steps. Metrics go to ``metrics.jsonl`` (one row per epoch with the cumulative run time
+``wall_s``). Under ``torchrun`` (WORLD_SIZE > 1) the model is wrapped in DDP (gloo on CPU, NCCL on
+GPU, SyncBatchNorm on GPU only: PyTorch's SyncBN has no CPU kernel) and rank 0 writes files.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, fields
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import nn
+
+from sssphase_core import augment
+from sssphase_core.data import PatchDataset
+from sssphase_core.errors import DataError, SssError
+from sssphase_core.losses import SBHLoss
+from sssphase_core.models import Decoder, Encoder, ModelPreset, SimSiam, get_preset
+
+CHECKPOINT = "last.pt"
+METRICS = "metrics.jsonl"
+
+
+class TrainingCollapsed(SssError):
+    """SimSiam's representation collapsed (constant embeddings); training was stopped."""
+
+
+class SimulatedInterrupt(RuntimeError):
+    """Raised by ``stop_after_steps`` to emulate a run killed mid-epoch (tests)."""
+
+
+# --- checkpoints ---------------------------------------------------------------------------------
+
+
+def save_checkpoint(path: Path, payload: dict) -> None:
+    """Atomic ``torch.save`` (write to a temporary file, then rename)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    torch.save(payload, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: Path | str) -> dict:
+    """Load with ``weights_only=True``: tensors, dicts, lists and numbers only, never arbitrary objects."""
+    path = Path(path)
+    if path.is_dir():
+        path = path / CHECKPOINT
+    if not path.exists():
+        raise DataError(f"no checkpoint at {path}")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise DataError(f"cannot read checkpoint {path}: {exc}") from exc
+
+
+def load_encoder(path: Path | str) -> Encoder:
+    """The frozen encoder (eval mode) of a pretraining or decoder checkpoint."""
+    ckpt = load_checkpoint(path)
+    enc = Encoder(get_preset(ckpt["preset"]))
+    enc.load_state_dict(ckpt["encoder"])
+    return enc.eval().requires_grad_(False)
+
+
+def load_decoder(path: Path | str) -> tuple[Encoder, Decoder]:
+    """(encoder, decoder) of a decoder checkpoint, both in eval mode."""
+    ckpt = load_checkpoint(path)
+    if "decoder" not in ckpt:
+        raise DataError(f"{path} is a pretraining checkpoint; train a decoder with `sss train decoder`")
+    preset = get_preset(ckpt["preset"])
+    enc, dec = Encoder(preset), Decoder(preset, n_classes=int(ckpt["config"].get("aux_classes", 0)))
+    enc.load_state_dict(ckpt["encoder"])
+    dec.load_state_dict(ckpt["decoder"])
+    return enc.eval().requires_grad_(False), dec.eval()
+
+
+# --- distributed ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Dist:
+    rank: int = 0
+    world: int = 1
+    device: torch.device = torch.device("cpu")
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+def init_distributed(device: str = "auto") -> Dist:
+    """Join the torchrun process group when WORLD_SIZE > 1 (gloo on CPU, NCCL on CUDA)."""
+    use_cuda = torch.cuda.is_available() if device == "auto" else device.startswith("cuda")
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    if use_cuda:
+        local = int(os.environ.get("LOCAL_RANK", "0"))
+        torch.cuda.set_device(local)
+        dev = torch.device("cuda", local)
+    else:
+        dev = torch.device("cpu")
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if use_cuda else "gloo")
+    return Dist(rank, world, dev)
+
+
+def _all_mean(values: dict[str, float], d: Dist) -> dict[str, float]:
+    if d.world == 1 or not values:
+        return values
+    t = torch.tensor(list(values.values()), dtype=torch.float64)
+    dist.all_reduce(t)
+    return dict(zip(values, (t / d.world).tolist(), strict=True))
+
+
+def _wrap(model: nn.Module, d: Dist) -> nn.Module:
+    if d.world == 1:
+        return model
+    if d.device.type == "cuda":
+        model = nn.SyncBatchNorm.convert_sync_batchnorm(model)
+    return nn.parallel.DistributedDataParallel(model, device_ids=[d.device.index] if d.device.type == "cuda" else None)
+
+
+# --- collapse monitor ------------------------------------------------------------------------------
+
+
+def projection_std(z: torch.Tensor) -> float:
+    """Mean over dimensions of the batch std of L2-normalised projections (healthy ~ 1/sqrt(d), collapse -> 0)."""
+    return float(nn.functional.normalize(z.float(), dim=1).std(dim=0).mean())
+
+
+def effective_rank(x: torch.Tensor) -> float:
+    """exp(entropy) of the normalised singular values of centred embeddings (Roy & Vetterli 2007)."""
+    s = torch.linalg.svdvals(x.float() - x.float().mean(dim=0))
+    p = s / s.sum().clamp_min(1e-12)
+    return float(torch.exp(-(p * torch.log(p.clamp_min(1e-12))).sum()))
+
+
+# --- the shared loop -----------------------------------------------------------------------------
+
+
+@dataclass
+class LoopConfig:
+    epochs: int = 10
+    batch_size: int = 64
+    seed: int = 0
+    ckpt_every: int = 50  # steps between mid-epoch checkpoints (0: epoch ends only)
+    device: str = "auto"
+    amp: bool = True  # bfloat16 autocast on CUDA; ignored on CPU
+
+
+class Loop:
+    """Epoch/step bookkeeping, exact resume, checkpoints, metrics and progress for one task."""
+
+    def __init__(self, cfg: LoopConfig, dataset: PatchDataset, out_dir: Path, d: Dist, kind: str) -> None:
+        self.cfg, self.dataset, self.out_dir, self.d, self.kind = cfg, dataset, Path(out_dir), d, kind
+        self.sampler = torch.utils.data.DistributedSampler(
+            dataset, num_replicas=d.world, rank=d.rank, shuffle=True, seed=cfg.seed, drop_last=True
+        )
+        self.steps_per_epoch = len(self.sampler) // cfg.batch_size
+        if self.steps_per_epoch == 0:
+            raise DataError(f"{len(dataset)} patches are fewer than one batch of {cfg.batch_size} per process")
+        self.epoch, self.step_in_epoch, self.wall_s = 0, 0, 0.0
+        self.sums: dict[str, float] = {}
+
+    @property
+    def total_steps(self) -> int:
+        return self.cfg.epochs * self.steps_per_epoch
+
+    @property
+    def global_step(self) -> int:
+        return self.epoch * self.steps_per_epoch + self.step_in_epoch
+
+    def state(self) -> dict:
+        return {"epoch": self.epoch, "step_in_epoch": self.step_in_epoch, "wall_s": self.wall_s, "sums": dict(self.sums)}
+
+    def restore(self, state: dict) -> None:
+        self.epoch, self.step_in_epoch = int(state["epoch"]), int(state["step_in_epoch"])
+        self.wall_s, self.sums = float(state["wall_s"]), dict(state["sums"])
+
+    def log(self, row: dict) -> None:
+        if self.d.main:
+            with open(self.out_dir / METRICS, "a") as f:
+                f.write(json.dumps(row) + "\n")
+
+    def run(
+        self,
+        step: Callable[[dict[str, torch.Tensor], int], dict[str, float]],
+        end_epoch: Callable[[int], dict[str, float]],
+        save: Callable[[], None],
+        *,
+        progress: bool = True,
+        stop_after_steps: int | None = None,
+    ) -> None:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+        steps_run = 0
+        bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                       TextColumn("{task.fields[info]}"), TimeRemainingColumn(), disable=not (progress and self.d.main))
+        with bar:
+            task = bar.add_task(self.kind, total=self.total_steps, completed=self.global_step, info="")
+            while self.epoch < self.cfg.epochs:
+                self.sampler.set_epoch(self.epoch)
+                order = np.fromiter(iter(self.sampler), dtype=np.int64)
+                t0 = time.perf_counter()
+                while self.step_in_epoch < self.steps_per_epoch:
+                    if stop_after_steps is not None and steps_run >= stop_after_steps:
+                        raise SimulatedInterrupt(f"stopped after {steps_run} steps")
+                    b = self.cfg.batch_size
+                    idx = order[self.step_in_epoch * b : (self.step_in_epoch + 1) * b]
+                    torch.manual_seed(self.cfg.seed * 1_000_003 + self.global_step)
+                    batch = {k: v.to(self.d.device, non_blocking=True) for k, v in self.dataset.batch(idx).items()}
+                    for k, v in step(batch, self.global_step).items():
+                        self.sums[k] = self.sums.get(k, 0.0) + v
+                    self.step_in_epoch += 1
+                    steps_run += 1
+                    bar.update(task, advance=1, info=f"epoch {self.epoch + 1}/{self.cfg.epochs} loss {self.sums['loss'] / self.step_in_epoch:.4f}")
+                    if self.cfg.ckpt_every and steps_run % self.cfg.ckpt_every == 0 and self.step_in_epoch < self.steps_per_epoch:
+                        self.wall_s += time.perf_counter() - t0
+                        t0 = time.perf_counter()
+                        save()
+                self.wall_s += time.perf_counter() - t0
+                means = _all_mean({k: v / self.steps_per_epoch for k, v in self.sums.items()}, self.d)
+                row = {"epoch": self.epoch + 1, "step": self.global_step, **means, **end_epoch(self.epoch)}
+                row["wall_s"] = round(self.wall_s, 3)
+                self.epoch, self.step_in_epoch, self.sums = self.epoch + 1, 0, {}
+                save()
+                self.log(row)
+                collapse = row.get("collapsed", 0.0)
+                if collapse:
+                    raise TrainingCollapsed(
+                        f"representation collapsed at epoch {row['epoch']}: std of normalised projections "
+                        f"{row['proj_std']:.4g} (healthy ~ {row['proj_std_healthy']:.4g}), effective rank "
+                        f"{row['eff_rank']:.1f}; lower the learning rate or lengthen the warmup "
+                        f"(checkpoint kept in {self.out_dir / CHECKPOINT})"
+                    )
+        if self.d.world > 1:
+            dist.barrier()  # every rank returns once rank 0 has written the final checkpoint
+
+
+def _autocast(d: Dist, enabled: bool):
+    return torch.autocast(d.device.type, dtype=torch.bfloat16, enabled=enabled and d.device.type == "cuda")
+
+
+def _config_dict(cfg: object) -> dict:
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(cfg).items()}
+
+
+def _resume_state(out_dir: Path, resume: bool, kind: str, preset: ModelPreset | None = None) -> dict | None:
+    path = out_dir / CHECKPOINT
+    if not resume or not path.exists():
+        return None
+    ckpt = load_checkpoint(path)
+    if ckpt.get("kind") != kind:
+        raise DataError(f"{path} holds a {ckpt.get('kind')} run, not {kind}; choose another output folder")
+    if preset is not None and get_preset(ckpt["preset"]) != preset:
+        raise DataError(f"{path} was trained with preset {ckpt['preset']['name']}, not {preset.name}: "
+                        "resume with the same preset or pass --no-resume")
+    return ckpt
+
+
+# --- SimSiam pretraining ---------------------------------------------------------------------------
+
+
+@dataclass
+class PretrainConfig(LoopConfig):
+    preset: str = "lite"
+    lr: float = 0.05  # not scaled with the batch size (the paper)
+    momentum: float = 0.9
+    weight_decay: float = 1e-4
+    warmup_epochs: float = 2.0  # linear warmup, then cosine decay to 0 (paper: 20 of its epochs)
+    fix_pred_lr: bool = False  # SimSiam's option: the predictor keeps the base lr
+    augment: str = "psp"  # psp (weak/strong) or imagenet
+    collapse_std_frac: float = 0.1  # collapse when proj std < frac / sqrt(d)
+    monitor_samples: int = 2048
+
+
+def lr_at(step: int, total: int, warmup: int, base: float) -> float:
+    """Linear warmup over ``warmup`` steps then cosine decay to 0 (no restarts)."""
+    if step < warmup:
+        return base * (step + 1) / warmup
+    t = (step - warmup) / max(1, total - warmup)
+    return base * 0.5 * (1 + math.cos(math.pi * min(1.0, t)))
+
+
+def pretrain(
+    cfg: PretrainConfig,
+    dataset: PatchDataset,
+    out_dir: Path | str,
+    *,
+    preset: ModelPreset | None = None,
+    resume: bool = True,
+    progress: bool = True,
+    stop_after_steps: int | None = None,
+) -> Path:
+    """SimSiam pretraining of the encoder; returns the checkpoint path (``out_dir/last.pt``)."""
+    out_dir = Path(out_dir)
+    d = init_distributed(cfg.device)
+    p = preset or get_preset(cfg.preset)
+    if p.patch != dataset.patch:
+        raise DataError(f"preset {p.name} expects {p.patch}px patches, the dataset has {dataset.patch}px")
+    torch.manual_seed(cfg.seed)
+    model = SimSiam(p).to(d.device)
+    net = _wrap(model, d)
+    pred_params = list(model.predictor.parameters())
+    pred_ids = {id(q) for q in pred_params}
+    groups = [
+        {"params": [q for q in model.parameters() if id(q) not in pred_ids], "fix": False},
+        {"params": pred_params, "fix": cfg.fix_pred_lr},
+    ]
+    opt = torch.optim.SGD(groups, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+    loop = Loop(cfg, dataset, out_dir, d, "pretrain")
+    ckpt = _resume_state(out_dir, resume, "pretrain", p)
+    if ckpt is not None:
+        model.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        loop.restore(ckpt["loop"])
+    elif d.main and (out_dir / METRICS).exists():
+        (out_dir / METRICS).unlink()
+    warmup = max(1, round(cfg.warmup_epochs * loop.steps_per_epoch))
+    monitor: dict[str, list[torch.Tensor]] = {"z": [], "y": []}
+
+    def step(batch: dict[str, torch.Tensor], gstep: int) -> dict[str, float]:
+        lr = lr_at(gstep, loop.total_steps, warmup, cfg.lr)
+        for g in opt.param_groups:
+            g["lr"] = cfg.lr if g["fix"] else lr
+        model.train()
+        x1, x2 = augment.two_views(batch["psp"], cfg.augment)
+        with _autocast(d, cfg.amp):
+            out = net(x1, x2)
+        opt.zero_grad(set_to_none=True)
+        out["loss"].backward()
+        opt.step()
+        if sum(len(t) for t in monitor["z"]) < cfg.monitor_samples:
+            monitor["z"].append(out["projection"].float().cpu())
+            monitor["y"].append(out["embedding"].float().cpu())
+        return {"loss": float(out["loss"].detach()), "lr": lr}
+
+    def end_epoch(epoch: int) -> dict[str, float]:
+        z, y = torch.cat(monitor["z"]), torch.cat(monitor["y"])
+        monitor["z"].clear()
+        monitor["y"].clear()
+        healthy = 1.0 / math.sqrt(z.shape[1])
+        stats = _all_mean({"proj_std": projection_std(z), "eff_rank": effective_rank(y)}, d)
+        stats["proj_std_healthy"] = healthy
+        stats["collapsed"] = float(stats["proj_std"] < cfg.collapse_std_frac * healthy)
+        return stats
+
+    def save() -> None:
+        if d.main:
+            save_checkpoint(out_dir / CHECKPOINT, {
+                "kind": "pretrain", "preset": p.to_dict(), "config": _config_dict(cfg),
+                "model": model.state_dict(), "encoder": model.encoder.state_dict(),
+                "optimizer": opt.state_dict(), "loop": loop.state(),
+            })
+
+    loop.run(step, end_epoch, save, progress=progress, stop_after_steps=stop_after_steps)
+    return out_dir / CHECKPOINT
+
+
+# --- decoder -------------------------------------------------------------------------------------
+
+
+@dataclass
+class DecoderConfig(LoopConfig):
+    epochs: int = 10
+    batch_size: int = 32
+    lr: float = 1e-3  # Adam (the paper)
+    out_scale: float = 0.05
+    aux_classes: int = 0  # > 0: auxiliary material-classification head on the embedding
+    aux_weight: float = 0.1
+    val_samples: int = 512
+
+
+def _decoder_forward(enc: Encoder, dec: nn.Module, psp: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    with torch.no_grad():
+        bottleneck, skips = enc.features(psp)
+    out = dec(bottleneck, skips)
+    return (out, None) if isinstance(out, torch.Tensor) else out
+
+
+@torch.no_grad()
+def validate_decoder(enc: Encoder, dec: Decoder, dataset: PatchDataset, n: int, batch_size: int, device: torch.device) -> dict[str, float]:
+    """SBH loss, MSE and PSNR (data range 1) on the first ``n`` patches of a fixed permutation."""
+    dec.eval()
+    idx = np.random.default_rng(0).permutation(len(dataset))[:n]
+    loss_fn, sums, count = SBHLoss(), {"val_loss": 0.0, "val_mse": 0.0}, 0
+    for i in range(0, len(idx), batch_size):
+        b = dataset.batch(idx[i : i + batch_size])
+        pred, _ = _decoder_forward(enc, dec, b["psp"].to(device))
+        target = b["footprint"].to(device)
+        sums["val_loss"] += float(loss_fn(pred, target)[0]) * len(target)
+        sums["val_mse"] += float(((pred.float() - target) ** 2).mean()) * len(target)
+        count += len(target)
+    out = {k: v / count for k, v in sums.items()}
+    out["val_psnr"] = 10 * math.log10(1.0 / max(out["val_mse"], 1e-20))
+    return out
+
+
+def train_decoder(
+    cfg: DecoderConfig,
+    encoder_ckpt: Path | str,
+    dataset: PatchDataset,
+    out_dir: Path | str,
+    *,
+    val: PatchDataset | None = None,
+    resume: bool = True,
+    progress: bool = True,
+    stop_after_steps: int | None = None,
+) -> Path:
+    """Fit the decoder with the SBH loss on a frozen encoder (kept in eval mode: BN stats and dropout fixed)."""
+    out_dir = Path(out_dir)
+    d = init_distributed(cfg.device)
+    src = load_checkpoint(encoder_ckpt)
+    p = get_preset(src["preset"])
+    if p.patch != dataset.patch:
+        raise DataError(f"the encoder's preset {p.name} expects {p.patch}px patches, the dataset has {dataset.patch}px")
+    enc = Encoder(p)
+    enc.load_state_dict(src["encoder"])
+    enc = enc.to(d.device).eval().requires_grad_(False)
+    torch.manual_seed(cfg.seed)
+    dec = Decoder(p, out_scale=cfg.out_scale, n_classes=cfg.aux_classes).to(d.device)
+    net = _wrap(dec, d)
+    opt = torch.optim.Adam(dec.parameters(), lr=cfg.lr)
+    loop = Loop(cfg, dataset, out_dir, d, "decoder")
+    ckpt = _resume_state(out_dir, resume, "decoder")
+    if ckpt is not None:
+        dec.load_state_dict(ckpt["decoder"])
+        opt.load_state_dict(ckpt["optimizer"])
+        loop.restore(ckpt["loop"])
+    elif d.main and (out_dir / METRICS).exists():
+        (out_dir / METRICS).unlink()
+    loss_fn = SBHLoss()
+
+    def step(batch: dict[str, torch.Tensor], gstep: int) -> dict[str, float]:
+        dec.train()
+        enc.eval()  # never leaves eval mode: its BN statistics and dropout stay frozen
+        with _autocast(d, cfg.amp):
+            pred, logits = _decoder_forward(enc, net, batch["psp"])
+        loss, terms = loss_fn(pred, batch["footprint"])
+        if logits is not None:
+            known = batch["material"] >= 0
+            if known.any():
+                aux = nn.functional.cross_entropy(logits[known].float(), batch["material"][known])
+                loss = loss + cfg.aux_weight * aux
+                terms["aux"] = float(aux.detach())
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        return {"loss": float(loss.detach()), **terms}
+
+    def end_epoch(epoch: int) -> dict[str, float]:
+        if val is None or not d.main:
+            return {}
+        return validate_decoder(enc, dec, val, cfg.val_samples, cfg.batch_size, d.device)
+
+    def save() -> None:
+        if d.main:
+            save_checkpoint(out_dir / CHECKPOINT, {
+                "kind": "decoder", "preset": p.to_dict(), "config": _config_dict(cfg),
+                "encoder": enc.state_dict(), "decoder": dec.state_dict(),
+                "optimizer": opt.state_dict(), "loop": loop.state(),
+            })
+
+    loop.run(step, end_epoch, save, progress=progress, stop_after_steps=stop_after_steps)
+    return out_dir / CHECKPOINT
+
+
+def config_from_dict(cls: type, data: dict) -> object:
+    """Rebuild a config dataclass from a checkpoint's dict (unknown keys ignored)."""
+    names = {f.name for f in fields(cls)}
+    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items() if k in names})

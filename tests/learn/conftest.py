@@ -1,0 +1,36 @@
+"""Fixtures for the learning tests: a tiny preset (same code as lite/paper) and synthetic views."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from sssphase_core.data import PatchDataset, synthetic_views
+from sssphase_core.models.presets import ModelPreset
+
+TINY = ModelPreset(name="tiny", patch=16, in_channels=24, stem=8, stages=(8, 12, 16), bottleneck=32, dropout=0.2,
+                   proj_hidden=32, proj_dim=32, pred_hidden=8, decoder=(16, 12, 8, 8), attention=4)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def _one_thread():
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="session")
+def tiny() -> ModelPreset:
+    return TINY
+
+
+@pytest.fixture(scope="session")
+def synthetic():
+    """(views, kernels): 2 objects x 2 views, 64 pixels each, 16 px patches."""
+    return synthetic_views(("a", "b"), (0, 1), size=(48, 48), patch=16, pixels_per_view=64)
+
+
+@pytest.fixture(scope="session")
+def dataset(synthetic) -> PatchDataset:
+    return PatchDataset(synthetic[0], 16, ["a", "b"], with_targets=True)

@@ -1,0 +1,98 @@
+"""Model backends: the analytic physics baseline, the torch backend and plugin registration."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sssphase_core.backends import FootprintBackend, available_backends, get_backend
+from sssphase_core.backends.analytic_backend import AnalyticBackend
+from sssphase_core.data import psp_patches, synthetic_views
+from sssphase_core.errors import InputError
+from sssphase_core.evaluation import footprint_metrics, summarise
+
+
+@pytest.fixture(scope="module")
+def flat_scene():
+    views, kernels = synthetic_views(("a", "b"), (0,), size=(64, 64), patch=32, period=8.0, pixels_per_view=20, noise=0.0)
+    return views, kernels
+
+
+def test_analytic_recovers_known_exponential_kernels(flat_scene):
+    views, kernels = flat_scene
+    be = AnalyticBackend(patch=32, black=0.0, profile="exponential")
+    for v in views:
+        est = be.estimate(psp_patches(v.psp, v.pixels, 32))
+        k = kernels[v.object]
+        assert np.allclose(est["energy"], k.sum(axis=(0, 1)), rtol=1e-3)
+        # isotropic kernel: equal widths along x and y, consistent with the known per-channel widths
+        assert np.allclose(est["widths"][..., 0], est["widths"][..., 1], rtol=1e-3)
+        assert np.allclose(np.abs(est["freq"][:, 0, 0]), 2 * np.pi / 8, rtol=1e-3)
+        pred = be.predict_footprints((v.psp, v.pixels))
+        assert pred.shape == (20, 32, 32, 3)
+        assert summarise(footprint_metrics(pred, np.asarray(v.footprints)))["ssim"] > 0.97
+
+
+def test_analytic_detects_anisotropy():
+    be = AnalyticBackend(patch=16, black=0.0, profile="exponential")
+    # MTF per orientation for widths (dx, dy) = (2, 0.5) at k = 0.8 rad/px along x resp. y
+    k2 = np.array([[[0.64, 0.0], [0.0, 0.64]]])
+    u = np.stack([np.full(3, 0.64 * 4), np.full(3, 0.64 * 0.25)])[None]
+    widths = be._solve_widths(k2, u)
+    assert np.allclose(widths[0, :, 0], 2.0) and np.allclose(widths[0, :, 1], 0.5)
+    fp = be.render(np.ones((1, 3)), widths)
+    assert fp[0, 8, :, 0].sum() > 2 * fp[0, :, 8, 0].sum()  # wider along x than along y
+
+
+def test_footprints_integrate_to_the_energy():
+    be = AnalyticBackend(patch=32)
+    fp = be.render(np.array([[0.5, 0.3, 0.1]]), np.full((1, 3, 2), 1.5))
+    assert np.allclose(fp.sum(axis=(1, 2)), [0.5, 0.3, 0.1], rtol=1e-5)
+    assert fp[0].argmax() // 3 == 16 * 32 + 16  # peak on the entry pixel
+
+
+def test_backends_are_registered_and_follow_the_protocol():
+    found = available_backends()
+    assert {"torch", "analytic"} <= found.keys()
+    assert isinstance(get_backend("analytic"), FootprintBackend)
+    with pytest.raises(InputError, match="analytic"):
+        get_backend("nope")
+
+
+def test_backend_hookspec_is_loaded_by_the_plugin_manager():
+    pytest.importorskip("sssphase_plugins.manager")
+    from sssphase_plugins.manager import build_plugin_manager
+
+    pm = build_plugin_manager()
+    assert hasattr(pm.hook, "sssphase_model_backends")
+    import sssphase_core.backends as builtin
+
+    if not pm.is_registered(builtin):
+        pm.register(builtin, name="builtin-test")
+    merged = {k: v for d in pm.hook.sssphase_model_backends() for k, v in d.items()}
+    assert isinstance(merged["analytic"](patch=16), AnalyticBackend)
+
+
+def test_loading_the_backend_registry_does_not_import_torch():
+    import subprocess
+    import sys
+
+    code = "import sys, sssphase_core.backends as b; b.sssphase_model_backends(); print('torch' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "False"
+
+
+def test_torch_backend_fits_and_predicts(dataset, tiny, tmp_path, synthetic):
+    from sssphase_core.training import DecoderConfig, PretrainConfig
+
+    views = synthetic[0]
+    be = get_backend("torch")
+    with pytest.raises(InputError):
+        be.predict_footprints(np.zeros((1, 24, 16, 16), np.float32))
+    enc = be.pretrain(views, tmp_path / "pre", config=PretrainConfig(epochs=1, batch_size=16, ckpt_every=0), preset=tiny, progress=False)
+    be.fit(views, tmp_path / "dec", encoder=enc, config=DecoderConfig(epochs=1, batch_size=16, ckpt_every=0), progress=False)
+    v = views[0]
+    a = be.predict_footprints((v.psp, v.pixels[:5]))
+    b = be.predict_footprints(psp_patches(v.psp, v.pixels[:5], 16))
+    assert a.shape == (5, 16, 16, 3) and np.allclose(a, b, atol=1e-6)
+    with pytest.raises(InputError, match="N, 24, K, K"):
+        be.predict_footprints(np.zeros((2, 8, 16, 16), np.float32))

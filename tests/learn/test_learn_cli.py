@@ -1,0 +1,57 @@
+"""The learning commands end to end on the simulated rig (tiny sizes)."""
+
+from __future__ import annotations
+
+import importlib
+import json
+
+import pytest
+from typer.testing import CliRunner
+
+app = importlib.import_module("sssphase_cli.main").app  # the installed `sss` app (cli/ folder)
+runner = CliRunner()
+
+
+def invoke(*args: str):
+    result = runner.invoke(app, list(args), catch_exceptions=False)
+    assert result.exit_code == 0, result.output
+    return result
+
+
+def test_commands_are_registered():
+    for group, cmd in [("train", "pretrain"), ("train", "decoder"), ("eval", "knn"), ("eval", "footprints"), ("viz", "pca")]:
+        assert runner.invoke(app, [group, cmd, "--help"]).exit_code == 0
+
+
+def test_missing_checkpoint_is_a_one_line_error(tmp_path):
+    from sssphase_core.errors import DataError
+
+    with pytest.raises(DataError, match="no checkpoint"):
+        runner.invoke(app, ["viz", "pca", "--checkpoint", str(tmp_path / "none.pt")], catch_exceptions=False)
+
+
+@pytest.mark.slow
+def test_train_eval_viz_on_the_simulator(tmp_path):
+    pytest.importorskip("sssphase_core.sim")
+    cache = str(tmp_path / "cache")
+    common = ["--objects", "star,shovel", "--views", "0,1", "--pixels-per-view", "64", "--cache", cache]
+    pre, dec = tmp_path / "pre", tmp_path / "dec"
+    invoke("train", "pretrain", "--out", str(pre), "--epochs", "1", "--batch-size", "32", *common)
+    assert (pre / "last.pt").exists() and (pre / "metrics.jsonl").exists()
+    invoke("eval", "knn", "--checkpoint", f"psp={pre}", "--k", "5", "--seed", "0", "--out", str(tmp_path / "knn.json"), *common)
+    knn = json.loads((tmp_path / "knn.json").read_text())
+    assert 0 <= knn["results"]["psp"]["overall"] <= 1 and "| star |" in (tmp_path / "knn.md").read_text()
+    invoke("train", "decoder", "--encoder", str(pre), "--out", str(dec), "--epochs", "1", "--batch-size", "32",
+           "--views", "0", "--val-views", "1", "--objects", "star", "--pixels-per-view", "64", "--cache", cache)
+    assert (dec / "error_vs_time.png").exists()
+    invoke("eval", "footprints", "--checkpoint", str(dec), "--objects", "soap", "--views", "0", "--pixels-per-view", "16",
+           "--plots", str(tmp_path / "plots"), "--out", str(tmp_path / "fp.json"), "--cache", cache)
+    fp = json.loads((tmp_path / "fp.json").read_text())["results"]["soap"]
+    assert {"torch", "analytic"} <= fp.keys() and fp["torch"]["psnr"] > 0
+    assert (tmp_path / "plots" / "soap_torch.png").exists()
+    invoke("viz", "pca", "--checkpoint", str(pre), "--objects", "star", "--stride", "8", "--out", str(tmp_path / "pca.png"),
+           "--cache", cache)
+    from PIL import Image
+
+    img = Image.open(tmp_path / "pca.png")
+    assert img.size == (256 // 8, 192 // 8)  # one panel at stride 8

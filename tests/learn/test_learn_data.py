@@ -1,0 +1,116 @@
+"""Patch extraction, datasets, splits and deterministic sampling."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from sssphase_core.data import (
+    PatchDataset,
+    ViewData,
+    crop_patches,
+    psp_patches,
+    sample_pixels,
+    split_by_object,
+    split_by_view,
+    synthetic_views,
+)
+from sssphase_core.errors import DataError, InputError
+
+
+def test_crop_centres_the_pixel_and_zero_pads_outside():
+    stack = torch.arange(2 * 5 * 6, dtype=torch.float32).view(2, 5, 6) + 1
+    patches = crop_patches(stack, np.array([[2, 3], [0, 0]]), 4)
+    assert patches.shape == (2, 2, 4, 4)
+    assert torch.equal(patches[0, :, 2, 2], stack[:, 2, 3])
+    assert torch.equal(patches[0, :, 0, 0], stack[:, 0, 1])
+    assert torch.equal(patches[1, :, 2, 2], stack[:, 0, 0])
+    assert (patches[1, :, :2, :] == 0).all() and (patches[1, :, :, :2] == 0).all()
+
+
+def test_patch_channel_order_is_image_times_three_plus_colour():
+    psp = np.zeros((8, 5, 5, 3), np.float32)
+    for i in range(8):
+        for c in range(3):
+            psp[i, ..., c] = 10 * i + c
+    p = psp_patches(psp, np.array([[2, 2]]), 3)
+    assert p[0, :, 1, 1].tolist() == [10 * i + c for i in range(8) for c in range(3)]
+
+
+def test_dataset_items_labels_and_targets(synthetic, dataset):
+    views, kernels = synthetic
+    assert len(dataset) == sum(len(v.pixels) for v in views)
+    b = dataset.batch(np.array([0, len(dataset) - 1]))
+    assert b["psp"].shape == (2, 24, 16, 16) and b["footprint"].shape == (2, 3, 16, 16)
+    assert b["object"].tolist() == [0, 1] and b["view"].tolist() == [0, 1]
+    assert torch.allclose(b["footprint"][1], torch.as_tensor(kernels["b"]).permute(2, 0, 1))
+    item = dataset[3]
+    assert item["psp"].shape == (24, 16, 16) and item["object"].ndim == 0
+    assert set(np.unique(dataset.labels("view"))) == {0, 1}
+
+
+def test_dataset_rejects_missing_footprints_and_unknown_classes(synthetic):
+    views, _ = synthetic
+    bare = [ViewData(v.object, v.view, v.psp, v.pixels, v.materials) for v in views]
+    with pytest.raises(DataError, match="footprints"):
+        PatchDataset(bare, 16, ["a", "b"], with_targets=True)
+    with pytest.raises(InputError, match="classes"):
+        PatchDataset(bare, 16, ["a"])
+    with pytest.raises(DataError, match="8, H, W, 3"):
+        ViewData("x", 0, np.zeros((4, 5, 5, 3), np.float32), np.zeros((0, 2), int), np.zeros(0, int))
+
+
+def test_splits_by_object_and_by_view(synthetic):
+    views, _ = synthetic
+    train, test = split_by_object(views, ["b"])
+    assert {v.object for v in train} == {"a"} and {v.object for v in test} == {"b"}
+    train, test = split_by_view(views, [1])
+    assert {v.view for v in train} == {0} and {v.view for v in test} == {1}
+
+
+def test_sampling_is_deterministic_and_seed_dependent():
+    mask = np.random.default_rng(0).random((40, 40)) > 0.3
+    a, b, c = sample_pixels(mask, 50, 1), sample_pixels(mask, 50, 1), sample_pixels(mask, 50, 2)
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    assert mask[a[:, 0], a[:, 1]].all()
+    v1, _ = synthetic_views(("a",), (0,), pixels_per_view=10, seed=3)
+    v2, _ = synthetic_views(("a",), (0,), pixels_per_view=10, seed=3)
+    assert np.array_equal(v1[0].psp, v2[0].psp) and np.array_equal(v1[0].pixels, v2[0].pixels)
+
+
+def test_footprints_are_read_lazily_from_chunked_arrays(synthetic, tmp_path):
+    zarr = pytest.importorskip("zarr")
+    v = synthetic[0][0]
+    z = zarr.open_array(tmp_path / "fp.zarr", mode="w", shape=np.asarray(v.footprints).shape, chunks=(8, 16, 16, 3), dtype="f4")
+    z[:] = np.asarray(v.footprints)
+    ds = PatchDataset([ViewData(v.object, v.view, v.psp, v.pixels, v.materials, z)], 16, ["a"], with_targets=True)
+    idx = np.array([5, 1, 30])
+    assert np.allclose(ds.batch(idx)["footprint"].numpy(), np.asarray(v.footprints)[idx].transpose(0, 3, 1, 2))
+
+
+def test_session_views_stream_footprints_from_the_store(synthetic, tmp_path):
+    session = pytest.importorskip("sssphase_core.session")
+    v = synthetic[0][0]
+    s = session.Session.create(tmp_path, "obj")
+    w = s.begin_view(0)
+    mask = np.zeros(v.psp.shape[1:3], bool)
+    mask[v.pixels[:, 0], v.pixels[:, 1]] = True
+    w.write("psp", v.psp)
+    w.write("corr/mask", mask)
+    w.write("footprints/pixels", v.pixels.astype(np.int32))
+    w.write("footprints/crops", np.asarray(v.footprints) * np.arange(1, len(v.pixels) + 1)[:, None, None, None])
+    w.commit()
+    from sssphase_core.data import session_views
+
+    (vd,) = session_views(tmp_path, footprints=True, pixels_per_view=20, seed=0)
+    assert vd.object == "obj" and len(vd.pixels) == 20 and (vd.materials == -1).all()
+    ds = PatchDataset([vd], 16, ["obj"], with_targets=True)
+    b = ds.batch(np.array([3, 0]))
+    rows = [int(np.flatnonzero((v.pixels == vd.pixels[i]).all(1))[0]) for i in (3, 0)]
+    expect = np.asarray(v.footprints)[rows] * (np.array(rows) + 1)[:, None, None, None]
+    assert np.allclose(b["footprint"].numpy(), expect.transpose(0, 3, 1, 2))
+    (plain,) = session_views(tmp_path, pixels_per_view=None)
+    assert len(plain.pixels) == mask.sum() and plain.footprints is None
+    with pytest.raises(DataError, match="no session"):
+        session_views(tmp_path, ["apple"])

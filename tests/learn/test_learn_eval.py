@@ -1,0 +1,121 @@
+"""kNN view-level leave-one-out, footprint metrics, PCA-RGB, plots."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from sssphase_core.errors import InputError
+from sssphase_core.evaluation import (
+    embed_pixels,
+    footprint_metrics,
+    knn_leave_one_view_out,
+    knn_predict,
+    paint,
+    pca_rgb,
+    plot_metric_vs_time,
+    plot_profiles,
+    summarise,
+)
+from sssphase_core.models import Encoder
+
+
+def clusters(n: int = 400, d: int = 8, noise: float = 0.3, seed: int = 0):
+    rng = np.random.default_rng(seed)
+    centres = rng.normal(size=(3, d))
+    labels = rng.integers(0, 3, n)
+    views = rng.integers(0, 4, n)
+    return centres[labels] + noise * rng.normal(size=(n, d)), labels, views
+
+
+def test_knn_separable_clusters_are_classified():
+    emb, labels, views = clusters()
+    for vote in ("majority", "weighted"):
+        res = knn_leave_one_view_out(emb, labels, views, k=5, vote=vote, class_names=["x", "y", "z"])
+        assert res["overall"] == 1.0 and res["mean_per_view"] == 1.0
+        assert set(res["per_class"]) == {"x", "y", "z"} and set(res["per_view"]) == {0, 1, 2, 3}
+
+
+def test_knn_never_uses_patches_of_the_held_out_view():
+    # each view's patches sit on their own point; only another view's points carry the true label
+    emb = np.repeat(np.eye(4), 10, axis=0)
+    views = np.repeat(np.arange(4), 10)
+    labels = views % 2
+    res = knn_leave_one_view_out(emb + 1e-3, labels, views, k=3)
+    # same-view neighbours would give 100 %; cross-view neighbours are orthogonal (ties) -> not perfect
+    assert res["overall"] < 1.0
+
+
+def test_overall_and_mean_per_view_accuracy_differ_with_unequal_views():
+    emb, labels, views = clusters(noise=2.0, seed=1)
+    views = np.where(np.arange(len(views)) < 40, 0, 1 + views % 3)
+    res = knn_leave_one_view_out(emb, labels, views, k=7)
+    pv = res["per_view"]
+    counts = {v: int((views == v).sum()) for v in pv}
+    assert res["mean_per_view"] == pytest.approx(np.mean(list(pv.values())))
+    assert res["overall"] == pytest.approx(sum(pv[v] * counts[v] for v in pv) / len(views))
+
+
+def test_weighted_vote_prefers_closer_neighbours():
+    db = torch.nn.functional.normalize(torch.tensor([[1.0, 0.0], [0.6, 0.8], [0.6, 0.8]]), dim=1)
+    q = torch.tensor([[1.0, 0.0]])
+    labels = torch.tensor([0, 1, 1])
+    assert knn_predict(q, db, labels, 2, 3, "majority").item() == 1
+    assert knn_predict(q, db, labels, 2, 3, "weighted").item() == 0
+    with pytest.raises(InputError):
+        knn_predict(q, db, labels, 2, 3, "median")
+
+
+def test_footprint_metrics():
+    rng = np.random.default_rng(0)
+    gt = 0.04 * rng.random((6, 16, 16, 3)).astype(np.float32)
+    same = footprint_metrics(gt, gt)
+    assert np.allclose(same["ssim"], 1, atol=1e-4) and (same["psnr"] > 150).all()
+    noisy = footprint_metrics(gt + 0.004 * rng.standard_normal(gt.shape).astype(np.float32), gt)
+    s = summarise(noisy)
+    assert s["psnr"] == pytest.approx(10 * np.log10(1 / 0.004**2), abs=0.3)
+    assert s["ssim"] < s["ssim_r1"]  # data range 1 is nearly blind to footprint-level errors
+
+
+def test_pca_rgb_is_joint_and_in_range():
+    emb, labels, _ = clusters()
+    a, b = pca_rgb([emb[:150], emb[150:]])
+    assert a.shape == (150, 3) and b.shape == (250, 3)
+    assert 0 <= min(a.min(), b.min()) and max(a.max(), b.max()) <= 1
+    # same cluster -> similar colour, different clusters -> different colours
+    allc = np.concatenate([a, b])
+    means = np.stack([allc[labels == c].mean(0) for c in range(3)])
+    spread = max(allc[labels == c].std(0).max() for c in range(3))
+    assert min(np.linalg.norm(means[i] - means[j]) for i in range(3) for j in range(i)) > 2 * spread
+    img = paint((4, 5), np.array([[1, 2]]), np.array([[0.1, 0.2, 0.3]]))
+    assert img[1, 2].tolist() == pytest.approx([0.1, 0.2, 0.3]) and img.sum() == pytest.approx(0.6)
+
+
+def test_embed_pixels_matches_a_direct_forward(tiny, synthetic):
+    enc = Encoder(tiny).eval()
+    v = synthetic[0][0]
+    emb = embed_pixels(enc, v.psp, v.pixels[:10], batch_size=4)
+    from sssphase_core.data import psp_patches
+
+    with torch.no_grad():
+        direct = enc(torch.as_tensor(psp_patches(v.psp, v.pixels[:10], 16))).numpy()
+    assert emb.shape == (10, tiny.embed_dim) and np.allclose(emb, direct, atol=1e-5)
+
+
+def test_plots_are_written(tmp_path):
+    gt = np.random.default_rng(0).random((16, 16, 3)).astype(np.float32)
+    plot_profiles(gt, gt * 0.9, tmp_path / "p.png")
+    (tmp_path / "m.jsonl").write_text('{"wall_s": 1, "val_mse": 0.1}\n{"wall_s": 2, "val_mse": 0.05}\n')
+    plot_metric_vs_time(tmp_path / "m.jsonl", "val_mse", tmp_path / "t.png")
+    assert (tmp_path / "p.png").stat().st_size > 1000 and (tmp_path / "t.png").stat().st_size > 1000
+    with pytest.raises(InputError):
+        plot_metric_vs_time(tmp_path / "m.jsonl", "missing", tmp_path / "x.png")
+
+
+def test_throughput_measure_reports_rates_and_sizes():
+    from sssphase_core.evaluation import measure_throughput
+
+    r = measure_throughput("lite", batch=2, repeats=1)
+    assert r["infer_patches_s"] > 0 and r["train_patches_s"] > 0
+    assert r["encoder_params"] > r["decoder_params"] > 0

@@ -1,0 +1,72 @@
+"""Model presets: parameter counts and shapes (forward at batch 1, no training)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from sssphase_core.errors import InputError
+from sssphase_core.models import Decoder, Encoder, SimSiam, get_preset
+from sssphase_core.models.decoder import UpStage
+
+
+def n_params(m: torch.nn.Module) -> int:
+    return sum(p.numel() for p in m.parameters())
+
+
+@pytest.mark.parametrize(("name", "patch", "embed"), [("paper", 90, 1024), ("lite", 32, 128)])
+def test_encoder_decoder_shapes_at_batch_one(name, patch, embed):
+    p = get_preset(name)
+    enc, dec = Encoder(p).eval(), Decoder(p).eval()
+    x = torch.randn(1, 24, patch, patch)
+    with torch.no_grad():
+        bottleneck, skips = enc.features(x)
+        assert enc(x).shape == (1, embed)
+        assert dec(bottleneck, skips).shape == (1, 3, patch, patch)
+    pad = p.padded
+    assert pad % 16 == 0 and pad >= patch
+    assert bottleneck.shape == (1, embed, pad // 16, pad // 16)
+    assert [s.shape[-1] for s in skips] == [pad, pad // 2, pad // 4, pad // 8]
+
+
+def test_paper_parameter_counts_match_the_authors():
+    p = get_preset("paper")
+    assert p.padded == 96
+    assert 31e6 < n_params(Encoder(p)) < 33e6
+    assert 21.5e6 < n_params(Decoder(p)) < 24e6
+
+
+def test_lite_is_much_smaller_than_paper():
+    assert n_params(SimSiam("lite")) * 20 < n_params(SimSiam("paper").encoder)
+
+
+def test_simsiam_loss_is_symmetric_negative_cosine(tiny):
+    m = SimSiam(tiny).train()
+    x = torch.randn(8, 24, 16, 16)
+    out = m(x, x.clone())
+    assert -1.0 <= float(out["loss"].detach()) <= 1.0
+    out["loss"].backward()
+    assert all(p.grad is not None for p in m.predictor.parameters())
+    # last projector BN has no affine parameters (SimSiam)
+    assert m.projector[-1].affine is False
+
+
+def test_preset_roundtrip_and_unknown_name(tiny):
+    assert get_preset(tiny.to_dict()) == tiny
+    with pytest.raises(InputError, match="lite"):
+        get_preset("huge")
+
+
+def test_icnr_init_gives_no_checkerboard():
+    stage = UpStage(8, 4, 4, 2)
+    x = torch.randn(1, 8, 5, 5)
+    up = stage.shuffle(stage.expand(x))
+    # every 2x2 block produced from one input pixel is constant at initialisation
+    assert torch.allclose(up[..., 0::2, 0::2], up[..., 1::2, 1::2])
+    assert torch.allclose(up[..., 0::2, 0::2], up[..., 0::2, 1::2])
+
+
+def test_auxiliary_material_head(tiny):
+    enc, dec = Encoder(tiny).eval(), Decoder(tiny, n_classes=5)
+    fp, logits = dec(*enc.features(torch.randn(2, 24, 16, 16)))
+    assert fp.shape == (2, 3, 16, 16) and logits.shape == (2, 5)

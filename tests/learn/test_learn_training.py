@@ -1,0 +1,137 @@
+"""Training loops: exact resume, interrupted runs, checkpoints, frozen encoder, collapse monitor."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from sssphase_core.models import get_preset
+from sssphase_core.training import (
+    CHECKPOINT,
+    METRICS,
+    DecoderConfig,
+    PretrainConfig,
+    SimulatedInterrupt,
+    TrainingCollapsed,
+    effective_rank,
+    load_checkpoint,
+    load_decoder,
+    lr_at,
+    pretrain,
+    projection_std,
+    train_decoder,
+)
+
+PRE = PretrainConfig(epochs=2, batch_size=16, ckpt_every=3, warmup_epochs=1)
+
+
+def states_equal(a: dict, b: dict) -> bool:
+    return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
+
+
+@pytest.fixture(scope="module")
+def pretrained(dataset, tiny, tmp_path_factory):
+    out = tmp_path_factory.mktemp("pre") / "run"
+    pretrain(PRE, dataset, out, preset=tiny, progress=False)
+    return out
+
+
+def test_pretrain_writes_safe_checkpoints_and_metrics(pretrained, tiny):
+    ckpt = torch.load(pretrained / CHECKPOINT, weights_only=True)
+    assert ckpt["preset"]["name"] == "tiny" and ckpt["kind"] == "pretrain"
+    assert "optimizer" in ckpt and ckpt["loop"]["epoch"] == 2
+    rows = [json.loads(line) for line in (pretrained / METRICS).read_text().splitlines()]
+    assert [r["epoch"] for r in rows] == [1, 2]
+    assert rows[1]["wall_s"] > rows[0]["wall_s"] > 0
+    for r in rows:
+        assert r["proj_std_healthy"] == pytest.approx(1 / tiny.proj_dim**0.5)
+        assert r["proj_std"] > 0 and r["eff_rank"] > 1 and r["collapsed"] == 0
+
+
+def test_run_interrupted_mid_epoch_resumes_to_the_same_state(pretrained, dataset, tiny, tmp_path):
+    out = tmp_path / "run"
+    with pytest.raises(SimulatedInterrupt):
+        pretrain(PRE, dataset, out, preset=tiny, progress=False, stop_after_steps=7)
+    mid = load_checkpoint(out)["loop"]
+    assert mid["epoch"] == 0 and mid["step_in_epoch"] == 6  # last mid-epoch checkpoint
+    pretrain(PRE, dataset, out, preset=tiny, progress=False)
+    a, b = load_checkpoint(pretrained), load_checkpoint(out)
+    assert states_equal(a["model"], b["model"])
+    assert a["loop"]["epoch"] == b["loop"]["epoch"] == 2
+
+
+def test_resume_off_restarts_from_scratch(pretrained, dataset, tiny, tmp_path):
+    out = tmp_path / "run"
+    with pytest.raises(SimulatedInterrupt):
+        pretrain(PRE, dataset, out, preset=tiny, progress=False, stop_after_steps=4)
+    cfg = PretrainConfig(epochs=1, batch_size=16, ckpt_every=0, warmup_epochs=1)
+    pretrain(cfg, dataset, out, preset=tiny, progress=False, resume=False)
+    assert load_checkpoint(out)["loop"]["epoch"] == 1
+    assert len((out / METRICS).read_text().splitlines()) == 1
+
+
+def test_collapse_stops_training_with_a_clear_message(dataset, tiny, tmp_path):
+    cfg = PretrainConfig(epochs=3, batch_size=16, ckpt_every=0, collapse_std_frac=100.0)
+    with pytest.raises(TrainingCollapsed, match="collapsed at epoch 1.*healthy"):
+        pretrain(cfg, dataset, tmp_path / "run", preset=tiny, progress=False)
+    assert load_checkpoint(tmp_path / "run")["loop"]["epoch"] == 1
+
+
+def test_collapse_statistics():
+    torch.manual_seed(0)
+    healthy = torch.randn(4096, 64)
+    assert projection_std(healthy) == pytest.approx(1 / 8, rel=0.05)
+    assert projection_std(torch.ones(100, 64) + 1e-6 * torch.randn(100, 64)) < 1e-3
+    rank1 = torch.randn(500, 1) * torch.randn(1, 32)
+    assert effective_rank(rank1) < 1.5
+    assert effective_rank(healthy) > 50
+
+
+def test_warmup_then_cosine_schedule():
+    lrs = [lr_at(s, 100, 10, 0.05) for s in range(100)]
+    assert lrs[0] == pytest.approx(0.005) and lrs[9] == pytest.approx(0.05)
+    assert all(a >= b for a, b in zip(lrs[9:], lrs[10:], strict=False))
+    assert lrs[-1] < 1e-4
+
+
+def test_decoder_training_keeps_the_encoder_frozen(pretrained, dataset, tmp_path):
+    src = load_checkpoint(pretrained)
+    cfg = DecoderConfig(epochs=1, batch_size=16, ckpt_every=0, aux_classes=2)
+    train_decoder(cfg, pretrained, dataset, tmp_path / "dec", val=dataset, progress=False)
+    ckpt = load_checkpoint(tmp_path / "dec")
+    assert ckpt["kind"] == "decoder" and ckpt["preset"]["name"] == "tiny"
+    # BN running statistics (and every other encoder tensor) unchanged
+    assert states_equal(src["encoder"], ckpt["encoder"])
+    assert any(k.endswith("running_var") for k in ckpt["encoder"])
+    rows = [json.loads(line) for line in (tmp_path / "dec" / METRICS).read_text().splitlines()]
+    assert {"val_mse", "val_psnr", "wall_s", "aux", "ssim", "grad"} <= rows[0].keys()
+    enc, dec = load_decoder(tmp_path / "dec")
+    assert not enc.training and not dec.training
+
+
+def test_decoder_resume_is_exact(pretrained, dataset, tmp_path):
+    cfg = DecoderConfig(epochs=1, batch_size=16, ckpt_every=2)
+    train_decoder(cfg, pretrained, dataset, tmp_path / "a", progress=False)
+    with pytest.raises(SimulatedInterrupt):
+        train_decoder(cfg, pretrained, dataset, tmp_path / "b", progress=False, stop_after_steps=5)
+    train_decoder(cfg, pretrained, dataset, tmp_path / "b", progress=False)
+    assert states_equal(load_checkpoint(tmp_path / "a")["decoder"], load_checkpoint(tmp_path / "b")["decoder"])
+
+
+def test_decoder_rejects_a_pretraining_run_as_its_own_output(pretrained, dataset):
+    from sssphase_core.errors import DataError
+
+    with pytest.raises(DataError, match="pretrain"):
+        train_decoder(DecoderConfig(epochs=1, batch_size=16), pretrained, dataset, pretrained, progress=False)
+
+
+def test_resume_refuses_another_preset(pretrained, dataset):
+    from dataclasses import replace
+
+    from sssphase_core.errors import DataError
+
+    other = replace(get_preset(load_checkpoint(pretrained)["preset"]), stem=4)
+    with pytest.raises(DataError, match="preset"):
+        pretrain(PRE, dataset, pretrained, preset=other, progress=False)
