@@ -255,6 +255,7 @@ def import_images(
 def bench_daemon(
     out: Annotated[Path, typer.Option(help="JSON result file (a Markdown table is printed and written next to it)")],
     frames: Annotated[int, typer.Option(help="frames per throughput run")] = 200,
+    md: Annotated[Path | None, typer.Option(help="Markdown table file (default: next to --out)")] = None,
 ) -> None:
     """Daemon frame throughput vs bare pyzmq PUSH/PULL (tcp, ipc), one sim view's capture time, peak memory."""
     from sssphase_daemon.bench import run_bench
@@ -263,9 +264,11 @@ def bench_daemon(
     result, markdown = run_bench(frames)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1))
-    out.with_suffix(".md").write_text(markdown)
+    md = md or out.with_suffix(".md")
+    md.parent.mkdir(parents=True, exist_ok=True)
+    md.write_text(markdown)
     console.print(markdown)
-    console.print(f"wrote {out} and {out.with_suffix('.md')} in {time.time() - t0:.0f} s")
+    console.print(f"wrote {out} and {md} in {time.time() - t0:.0f} s")
 
 
 def register(groups: dict[str, typer.Typer]) -> None:
