@@ -1,0 +1,211 @@
+"""`sss relight`, `sss eval relight`, `sss demo`, `sss bench relight`, `sss bench stability`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+console = Console()
+
+BackendOpt = Annotated[str, typer.Option("--backend", help="torch, analytic, measured (captured / exact sim footprints) or none.")]
+CheckpointOpt = Annotated[Path | None, typer.Option("--checkpoint", help="Decoder checkpoint for the torch backend.")]
+
+
+def _progress():
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console)
+
+
+def _sessions(paths: list[Path]):
+    from sssphase_core.errors import InputError
+    from sssphase_core.session import MANIFEST, Session, list_sessions
+
+    found = []
+    for p in paths:
+        found += [Session.open(p)] if (p / MANIFEST).exists() else list_sessions(p)
+    if not found:
+        raise InputError(f"no sessions under {', '.join(map(str, paths))}")
+    return found
+
+
+def _views(session, views: str) -> list[int]:
+    from sssphase_core.errors import InputError
+
+    if not views:
+        return session.views()
+    try:
+        return [int(v) for v in views.split(",") if v.strip()]
+    except ValueError:
+        raise InputError(f"--views must be comma-separated integers, got {views!r}") from None
+
+
+def _model_tag(checkpoint: Path | None) -> str:
+    """Short digest of the checkpoint path and modification time: a retrained model gets a new cache."""
+    import hashlib
+
+    key = "none" if checkpoint is None else f"{Path(checkpoint).resolve()}:{Path(checkpoint).stat().st_mtime_ns}"
+    return hashlib.sha256(key.encode()).hexdigest()[:10]
+
+
+def relight_cmd(
+    session: Annotated[Path, typer.Argument(help="Session folder (one object).")],
+    pattern: Annotated[list[str], typer.Option("--pattern", help="Pattern image (PNG/TIFF) or a named pattern (checkerboard, stripes_x, ...); repeat.")],
+    backend: BackendOpt = "torch",
+    checkpoint: CheckpointOpt = None,
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("relit"),
+    views: Annotated[str, typer.Option(help="Comma-separated views (default: all).")] = "",
+    resize: Annotated[bool, typer.Option("--resize", help="Resize patterns to the projector's size.")] = False,
+    chunk: Annotated[int, typer.Option(help="Pixels per footprint/splat chunk.")] = 1024,
+    device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
+    cache: Annotated[bool, typer.Option(help="Keep predicted footprints in OUT/cache (float16) for later patterns.")] = True,
+) -> None:
+    """Relight a captured object under new projector patterns (several patterns share one footprint pass)."""
+    import numpy as np
+
+    from sssphase_core.bench.relight_bench import reference_patterns
+    from sssphase_core.errors import InputError
+    from sssphase_core.patterns import REFERENCE_NAMES
+    from sssphase_core.relight import (
+        FootprintCache,
+        load_view,
+        make_source,
+        read_pattern,
+        relight,
+        write_images,
+    )
+    from sssphase_core.relight_eval import comparison_figure, relight_metrics
+    from sssphase_core.session import Session
+
+    s = Session.open(session)
+    names, pats = [], []
+    for v in _views(s, views):
+        rv = load_view(s, v)
+        if not pats:
+            wp, hp = rv.proj.projector_size
+            for p in pattern:
+                if Path(p).exists():
+                    names.append(Path(p).stem)
+                    pats.append(read_pattern(p, (wp, hp), resize=resize))
+                elif p in rv.references:  # the session's own reference pattern
+                    names.append(p)
+                    pats.append(rv.references[p])
+                elif p in REFERENCE_NAMES:
+                    names.append(p)
+                    pats.append(reference_patterns(wp, hp, [p])[p])
+                else:
+                    raise InputError(f"--pattern {p!r} is neither an image file nor one of {', '.join(REFERENCE_NAMES)}")
+            colour = any(p.ndim == 3 for p in pats)
+            pats = [np.repeat(p[..., None], 3, -1) if colour and p.ndim == 2 else p for p in pats]
+        source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device)
+        if cache:
+            source = FootprintCache(source, out / "cache" / f"{rv.object}_v{v}_{backend}_{_model_tag(checkpoint)}.npz",
+                                    rv.proj.shape, patch)
+        with _progress() as bar:
+            task = bar.add_task(f"{rv.object} view {v}: {backend}", total=None)
+            relit = relight(source, rv.proj, pats, patch, white=rv.white, chunk=chunk, device=device,
+                            progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))
+        if cache:
+            source.save()
+        for name, img in zip(names, relit, strict=True):
+            stem = out / f"{rv.object}_v{v}_{name}_{backend}"
+            paths = write_images(stem, img)
+            line = f"wrote {', '.join(str(p) for p in paths)}"
+            if name in rv.captured:
+                met = relight_metrics(img, rv.captured[name], rv.proj.mask)
+                comparison_figure(rv.captured[name], img, rv.proj.mask, stem.with_name(stem.name + "_compare.png"),
+                                  title=f"{rv.object} view {v}, {name}", metrics=met)
+                line += f"  (vs reference: PSNR {met['psnr']:.2f} dB, SSIM {met['ssim']:.3f})"
+            console.print(line)
+
+
+def eval_relight(
+    sessions: Annotated[list[Path], typer.Argument(help="Session folders, or folders holding sessions.")],
+    backend: Annotated[str, typer.Option("--backend", help="Comma-separated backends.")] = "none,analytic,measured",
+    checkpoint: CheckpointOpt = None,
+    views: Annotated[str, typer.Option(help="Comma-separated views (default: all).")] = "",
+    out: Annotated[Path, typer.Option("--out", help="Output folder (figures, relight_eval.json / .md).")] = Path("eval_relight"),
+    device: str = "cpu",
+) -> None:
+    """Relight every reference pattern of the sessions and tabulate MSE / PSNR / SSIM over objects and views."""
+    from sssphase_core.bench.report import write_report
+    from sssphase_core.relight import load_view
+    from sssphase_core.relight_eval import LPIPS_NOTE, aggregate, evaluate_view, metrics_table
+
+    backends = [b.strip() for b in backend.split(",") if b.strip()]
+    rows = []
+    with _progress() as bar:
+        for s in _sessions(sessions):
+            for v in _views(s, views):
+                rv = load_view(s, v)
+                for b in backends:
+                    task = bar.add_task(f"{rv.object} view {v}: {b}", total=None)
+                    rows += evaluate_view(rv, b, out, checkpoint=checkpoint, device=device,
+                                          progress=lambda d, t, task=task: bar.update(task, completed=d, total=t))
+    table = metrics_table(rows)
+    per_object = metrics_table(rows, by=("object", "backend"), title="Relighting per object")
+    write_report({"rows": rows, "aggregate": aggregate(rows), "lpips": LPIPS_NOTE}, [table, per_object],
+                 out / "relight_eval.json", md=out / "relight_eval.md", title="Relighting against reference captures")
+    console.print(table.markdown())
+    console.print(f"wrote {out / 'relight_eval.json'} and {out / 'relight_eval.md'}")
+
+
+def bench_relight(
+    out: Annotated[Path, typer.Option("--out", help="JSON output (.md and .png written next to it).")] = Path("bench_relight.json"),
+    objects: Annotated[str, typer.Option(help="Comma-separated simulated objects.")] = "soap",
+    checkpoint: CheckpointOpt = None,
+    backends: Annotated[str, typer.Option(help="Comma-separated backends.")] = "none,analytic,measured,torch",
+    radii: Annotated[str, typer.Option(help="Footprint truncation radii (px).")] = "4,8",
+    chunks: Annotated[str, typer.Option(help="Chunk sizes besides the default 1024.")] = "256,4096",
+    repeats: int = 3,
+) -> None:
+    """Relit PSNR against run time per backend, radius, chunk and precision; cost vs lit fraction; splat FLOP/s."""
+    from sssphase_core.bench import relight_bench
+
+    ints = lambda t: tuple(int(x) for x in t.split(",") if x.strip())  # noqa: E731
+    with console.status("benchmarking") as st:
+        res = relight_bench.run(out, objects=tuple(o for o in objects.split(",") if o), checkpoint=checkpoint,
+                                backends=tuple(b for b in backends.split(",") if b), radii=ints(radii), chunks=ints(chunks),
+                                repeats=repeats, progress=lambda m: st.update(m))
+    console.print(out.with_suffix(".md").read_text())
+    console.print(f"wrote {out}, {out.with_suffix('.md')} and {res['figure']}")
+
+
+def bench_stability(
+    out: Annotated[Path, typer.Option("--out", help="JSON output (.md written next to it).")] = Path("bench_stability.json"),
+    cases: Annotated[str, typer.Option(help="Comma-separated cases (default: all).")] = "",
+    checkpoint: CheckpointOpt = None,
+    backends: Annotated[str, typer.Option(help="Comma-separated backends.")] = "none,analytic,measured,torch",
+) -> None:
+    """Extreme materials, saturation, low light and grazing views: no NaN/inf, error per case."""
+    from sssphase_core.bench import stability_bench
+
+    with console.status("stability sweep") as st:
+        res = stability_bench.run(out, cases=[c for c in cases.split(",") if c] or None, checkpoint=checkpoint,
+                                  backends=tuple(b for b in backends.split(",") if b), progress=lambda m: st.update(m))
+    console.print(out.with_suffix(".md").read_text())
+    if res["non_finite"]:
+        raise typer.Exit(1)
+
+
+def demo(
+    out: Annotated[Path, typer.Option("--out", help="Demo folder (resumable: finished steps are skipped).")] = Path("demo"),
+    preset: Annotated[str, typer.Option(help="lite (minutes on 2 CPU cores) or tiny (tests).")] = "lite",
+    fresh: Annotated[bool, typer.Option("--fresh", help="Redo every step.")] = False,
+) -> None:
+    """End to end on the simulated rig: capture, pretrain, fit the decoder, relight unseen objects, report."""
+    from sssphase_core.demo import run_demo
+
+    report = run_demo(out, preset=preset, fresh=fresh, console=console)
+    console.print(f"[green]report[/]: {report}")
+
+
+def register(groups: dict[str, typer.Typer]) -> None:
+    groups["root"].command("relight")(relight_cmd)
+    groups["root"].command("demo")(demo)
+    groups["eval"].command("relight")(eval_relight)
+    groups["bench"].command("relight")(bench_relight)
+    groups["bench"].command("stability")(bench_stability)

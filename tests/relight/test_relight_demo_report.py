@@ -1,0 +1,64 @@
+"""`sss demo --preset tiny` end to end, resumed, and its report rendered in headless Chromium."""
+
+import re
+import shutil
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sssphase_core.demo import STEPS, run_demo
+
+CHROMIUM = Path("/usr/bin/chromium")
+FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+         "--disable-sync", "--no-first-run"]
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo")
+    lines: list[str] = []
+    report = run_demo(out, preset="tiny", log=lines.append)
+    return out, report, lines
+
+
+@pytest.mark.slow
+def test_demo_runs_every_step_and_resumes(demo):
+    out, report, lines = demo
+    assert report == out / "report" / "index.html" and report.exists()
+    for step in STEPS:
+        assert any(line.startswith(f"[{step}] done") for line in lines), (step, lines)
+    page = report.read_text()
+    assert "not available" not in page
+    for backend in ("none", "torch", "measured"):
+        assert f"sand_rake_v1_checkerboard_{backend}_compare.png" in page
+    again: list[str] = []
+    run_demo(out, preset="tiny", log=again.append)
+    skipped = [s for s in STEPS if any(line.startswith(f"[{s}] already done") for line in again)]
+    assert skipped == [s for s in STEPS if s != "report"]  # only the report is rewritten
+    assert any(line.startswith("[report] done") for line in again), again
+    resumed = report.read_text()
+    assert "resumed: skipped" in resumed and "sand_rake_v1_checkerboard_torch_compare.png" in resumed
+
+
+@pytest.mark.slow
+def test_report_renders_with_its_images_in_headless_chromium(demo, tmp_path):
+    if not CHROMIUM.exists() or shutil.which(str(CHROMIUM)) is None:
+        pytest.skip("/usr/bin/chromium is not installed (Debian package `chromium`: apt-get install -y chromium)")
+    _, report, _ = demo
+    url = report.resolve().as_uri()
+    common = [str(CHROMIUM), *FLAGS, f"--user-data-dir={tmp_path / 'profile'}"]
+    dom = subprocess.run([*common, "--virtual-time-budget=5000", "--dump-dom", url], capture_output=True, text=True,
+                         timeout=60).stdout
+    srcs = re.findall(r"<img[^>]*src=\"([^\"]+)\"", dom)
+    assert len(srcs) >= 6 and all((report.parent / s).exists() for s in srcs)
+    loaded = re.search(r'data-images-loaded="(\d+)"', dom)
+    total = re.search(r'data-images-total="(\d+)"', dom)
+    assert loaded and total and loaded.group(1) == total.group(1) == str(len(srcs))
+    shot = tmp_path / "shot.png"
+    subprocess.run([*common, f"--screenshot={shot}", "--window-size=1200,1600", url], capture_output=True, timeout=60)
+    from PIL import Image
+
+    img = np.asarray(Image.open(shot).convert("L"), np.float32)
+    assert img.shape == (1600, 1200) and img.std() > 10  # not blank: text, tables and figures

@@ -1,0 +1,141 @@
+"""Splat kernels, truncation, precision, the no-scattering baseline, the footprint cache and image IO."""
+
+import numpy as np
+import pytest
+import torch
+
+from sssphase_core.errors import InputError
+from sssphase_core.relight import (
+    FootprintCache,
+    Projection,
+    emitted_light,
+    no_scattering_source,
+    read_pattern,
+    relight,
+    sample_projector,
+    write_images,
+)
+
+
+def _proj(h=30, w=36, wp=40, hp=34):
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    mask = (yy - h / 2) ** 2 + (xx - w / 2) ** 2 < (min(h, w) / 2.3) ** 2
+    xp = np.where(mask, xx * 1.05 + 0.4, np.nan).astype(np.float32)
+    yp = np.where(mask, yy * 1.05 + 0.2, np.nan).astype(np.float32)
+    return Projection(xp, yp, mask, (wp, hp), gamma=2.2, black=0.01)
+
+
+@pytest.fixture
+def scene():
+    rng = np.random.default_rng(1)
+    proj, k = _proj(), 7
+    h, w = proj.shape
+    fps = rng.random((h, w, k, k, 3)).astype(np.float32) * 0.05
+    pats = rng.random((3, 34, 40)).astype(np.float32)
+    return proj, k, fps, pats
+
+
+def test_csc_and_index_kernels_agree(scene):
+    proj, k, fps, pats = scene
+    src = lambda px: fps[px[:, 0], px[:, 1]]  # noqa: E731
+    a = relight(src, proj, pats, k, method="csc", chunk=50)
+    b = relight(src, proj, pats, k, method="index", chunk=333)
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+    assert np.array_equal(a, relight(src, proj, pats, k, method="csc", chunk=50))  # deterministic
+
+
+def test_radius_truncation_equals_zeroing_the_outer_ring(scene):
+    proj, k, fps, pats = scene
+    cut = fps.copy()
+    cut[..., [0, -1], :, :] = 0
+    cut[..., :, [0, -1], :] = 0
+    a = relight(lambda px: fps[px[:, 0], px[:, 1]], proj, pats, k, radius=k // 2 - 1)
+    b = relight(lambda px: cut[px[:, 0], px[:, 1]], proj, pats, k)
+    np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
+
+
+def test_bf16_is_close_but_not_identical(scene):
+    proj, k, fps, pats = scene
+    src = lambda px: fps[px[:, 0], px[:, 1]]  # noqa: E731
+    a = relight(src, proj, pats, k)
+    b = relight(src, proj, pats, k, dtype=torch.bfloat16)
+    assert not np.array_equal(a, b)
+    np.testing.assert_allclose(a, b, rtol=2e-2, atol=1e-3 * a.max())
+
+
+def test_no_scattering_keeps_each_pixels_light():
+    proj = _proj()
+    rng = np.random.default_rng(2)
+    white = rng.random((*proj.shape, 3)).astype(np.float32)
+    pats = rng.random((2, 34, 40)).astype(np.float32)
+    out = relight(no_scattering_source(white), proj, pats, 1, white=white)
+    ys, xs = np.nonzero(proj.mask)
+    c = sample_projector(emitted_light(pats, proj.gamma), proj.xp[ys, xs], proj.yp[ys, xs]) * (1 - proj.black)
+    expect = white[ys, xs][:, None] * c + proj.black * white[ys, xs][:, None]
+    np.testing.assert_allclose(out[:, ys, xs].transpose(1, 0, 2), expect, rtol=1e-5, atol=1e-6)
+    wide = relight(no_scattering_source(white, 5), proj, pats, 5, white=white)  # same image with a bigger patch
+    np.testing.assert_allclose(wide, out, atol=1e-6)
+
+
+def test_footprint_cache_skips_the_source_for_cached_pixels(tmp_path, scene):
+    proj, k, fps, pats = scene
+    calls = []
+
+    def src(px):
+        calls.append(len(px))
+        return fps[px[:, 0], px[:, 1]]
+
+    cache = FootprintCache(src, tmp_path / "fp.npz", proj.shape, k)
+    first = relight(cache, proj, pats[:1], k)
+    cache.save()
+    n_first = sum(calls)
+    again = FootprintCache(src, tmp_path / "fp.npz", proj.shape, k)
+    second = relight(again, proj, pats[:1], k)
+    assert sum(calls) == n_first and again.hits == n_first and again.misses == 0
+    np.testing.assert_allclose(second, first, rtol=2e-3, atol=1e-4)  # float16 storage
+
+
+def test_write_images_16bit_linear_and_display(tmp_path):
+    import cv2
+
+    img = np.zeros((8, 10, 3), np.float32)
+    img[2:5, 3:6] = (0.25, 0.5, 1.5)
+    paths = write_images(tmp_path / "x", img)
+    lin = cv2.imread(str(paths[0]), cv2.IMREAD_UNCHANGED)
+    assert lin.dtype == np.uint16 and lin.shape == (8, 10, 3)
+    np.testing.assert_allclose(lin[3, 4, ::-1] / 65535, (0.25, 0.5, 1.0), atol=1e-4)  # clipped at 1
+    disp = cv2.imread(str(paths[1]), cv2.IMREAD_UNCHANGED)
+    assert disp.dtype == np.uint8 and disp.max() == 255 and disp[0, 0].max() == 0
+
+
+def test_read_pattern_checks_size_and_resizes(tmp_path):
+    from PIL import Image
+
+    Image.fromarray((np.arange(20 * 30).reshape(20, 30) % 256).astype(np.uint8)).save(tmp_path / "p.png")
+    with pytest.raises(InputError, match="--resize"):
+        read_pattern(tmp_path / "p.png", (40, 34))
+    pat = read_pattern(tmp_path / "p.png", (40, 34), resize=True)
+    assert pat.shape == (34, 40) and 0 <= pat.min() and pat.max() <= 1
+
+
+def test_non_finite_footprints_are_zeroed_with_a_warning(scene):
+    proj, k, fps, pats = scene
+    bad = fps.copy()
+    ys, xs = np.nonzero(proj.mask)
+    bad[ys[0], xs[0], 0, 0, 0] = np.inf
+    bad[ys[1], xs[1], 2, 3, 1] = np.nan
+    with pytest.warns(RuntimeWarning, match="2 non-finite"):
+        out = relight(lambda px: bad[px[:, 0], px[:, 1]], proj, pats, k)
+    assert np.isfinite(out).all()
+
+
+def test_nearest_measured_source_rescales_the_nearest_captured_footprint():
+    from sssphase_core.relight import nearest_measured_source
+
+    white = np.ones((20, 20, 3), np.float32)
+    white[:, 10:] = 2.0  # the right half reflects twice as much
+    dots = np.array([[5, 5], [5, 17]])
+    crops = np.stack([np.full((3, 3, 3), 1.0, np.float32), np.full((3, 3, 3), 4.0, np.float32)])
+    fp = nearest_measured_source(dots, crops, white)(np.array([[6, 4], [4, 18], [5, 10]]))
+    # (6, 4) and (4, 18): their own dot, same white; (5, 10): nearest dot (5, 5), white ratio 2 / 1
+    np.testing.assert_allclose(fp[:, 1, 1, 0], [1.0, 4.0, 2.0])
