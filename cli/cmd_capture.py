@@ -15,7 +15,7 @@ import typer
 from rich.console import Console
 from rich.table import Table
 
-console = Console()
+console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
 
 
 def _client(timeout_s: float = 10.0):
@@ -209,7 +209,7 @@ def capture(
             session = run_capture(client, req, spec, progress=progress, ask_move=None if spec.turntable else ask_move)
     except KeyboardInterrupt:
         # cli.main ignores the exit code typer returns for Ctrl-C, so leave with it here
-        Console(stderr=True).print("[yellow]interrupted[/]: complete views are kept; rerun with --resume to continue")
+        Console(stderr=True, soft_wrap=True).print("[yellow]interrupted[/]: complete views are kept; rerun with --resume to continue")
         sys.exit(130)
     finally:
         if started is not None:

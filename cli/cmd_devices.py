@@ -16,7 +16,7 @@ from sssphase_core.errors import InputError
 
 RULES_SOURCE = Path(__file__).resolve().parents[1] / "udev"
 RULES_DIR = Path("/etc/udev/rules.d")
-console = Console()
+console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
 
 
 def rules_files(source: Path = RULES_SOURCE) -> list[Path]:

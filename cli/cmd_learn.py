@@ -12,7 +12,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
-console = Console()
+console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
 
 ObjectsOpt = Annotated[str, typer.Option("--objects", help="Comma-separated object names (default: the paper's split).")]
 ViewsOpt = Annotated[str, typer.Option("--views", help="Comma-separated view indices.")]

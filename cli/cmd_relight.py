@@ -8,7 +8,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
-console = Console()
+console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
 
 BackendOpt = Annotated[str, typer.Option("--backend", help="torch, analytic, measured (captured / exact sim footprints) or none.")]
 CheckpointOpt = Annotated[Path | None, typer.Option("--checkpoint", help="Decoder checkpoint for the torch backend.")]

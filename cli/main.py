@@ -17,7 +17,7 @@ from rich.console import Console
 
 from sssphase_core.errors import SssError
 
-err_console = Console(stderr=True)
+err_console = Console(stderr=True, soft_wrap=True)
 
 app = typer.Typer(
     name="sss",
