@@ -55,8 +55,11 @@ class UpStage(nn.Module):
 class Decoder(nn.Module):
     """Predicts a (B, 3, K, K) footprint from the encoder's bottleneck map and skips.
 
-    Outputs are multiplied by the buffer ``out_scale`` (footprints peak near 0.04 in linear camera
-    units) so that the final 1x1 conv works on O(1) values. ``n_classes`` > 0 adds the auxiliary
+    Outputs are ``softplus(head) * out_scale``: footprints are light, never negative (a linear head
+    drifted to negative footprints in short runs, which the log term cannot correct since it clamps
+    predictions at 0), and ``out_scale`` (footprints peak near 0.04 in linear camera units) keeps the
+    final 1x1 conv on O(1) values. Its bias starts at -4 (softplus = 0.018, i.e. ~1e-3 after
+    scaling: the level of a footprint's tail, where most pixels are). ``n_classes`` > 0 adds the auxiliary
     material-classification head on the pooled embedding (``forward`` then returns (footprint, logits)).
     """
 
@@ -70,6 +73,7 @@ class Decoder(nn.Module):
             UpStage(chans[i], chans[i + 1], skips[i], max(p.attention, chans[i + 1] // 4)) for i in range(4)
         )
         self.head = nn.Sequential(nn.BatchNorm2d(p.decoder[-1]), nn.LeakyReLU(NEG_SLOPE), nn.Conv2d(p.decoder[-1], 3, 1))
+        nn.init.constant_(self.head[-1].bias, -4.0)
         self.register_buffer("out_scale", torch.tensor(float(out_scale)))
         self.aux = nn.Linear(p.bottleneck, n_classes) if n_classes > 0 else None
 
@@ -79,7 +83,7 @@ class Decoder(nn.Module):
         h = bottleneck
         for stage, skip in zip(self.stages, reversed(skips), strict=True):
             h = stage(h, skip)
-        out = self.head(h) * self.out_scale
+        out = F.softplus(self.head(h)) * self.out_scale
         lo = (out.shape[-1] - self.preset.patch) // 2
         out = out[..., lo : lo + self.preset.patch, lo : lo + self.preset.patch]
         if self.aux is None:
