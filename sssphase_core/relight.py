@@ -21,6 +21,7 @@ import scipy.sparse
 import torch
 
 from sssphase_core.errors import InputError
+from sssphase_core.projector import emitted_light, sample_projector
 
 #: Produces the (N, K, K, 3) footprints of camera pixels given as (N, 2) int (y, x).
 FootprintSource = Callable[[np.ndarray], "np.ndarray | torch.Tensor"]
@@ -40,35 +41,6 @@ class Projection:
     @property
     def shape(self) -> tuple[int, int]:
         return self.mask.shape
-
-
-def emitted_light(patterns: np.ndarray, gamma: float) -> np.ndarray:
-    """Pattern values in [0, 1] -> relative emitted radiance above black, (P, Hp, Wp, 3) float32."""
-    pats = np.asarray(patterns, dtype=np.float32)
-    if pats.ndim == 3:
-        pats = np.repeat(pats[..., None], 3, axis=-1)
-    if pats.ndim != 4 or pats.shape[-1] != 3:
-        raise InputError(f"patterns must be (P, Hp, Wp) or (P, Hp, Wp, 3), got shape {pats.shape}")
-    if not np.isfinite(pats).all():
-        raise InputError("patterns contain NaN or inf values")
-    return np.clip(pats, 0.0, 1.0) ** np.float32(gamma)
-
-
-def sample_projector(light: np.ndarray, xp: np.ndarray, yp: np.ndarray) -> np.ndarray:
-    """Bilinear lookup of emitted light (P, Hp, Wp, 3) at projector points -> (N, P, 3); 0 outside."""
-    _, hp, wp, _ = light.shape
-    x0 = np.floor(xp).astype(np.int64)
-    y0 = np.floor(yp).astype(np.int64)
-    fx = (xp - x0).astype(np.float32)[:, None, None]
-    fy = (yp - y0).astype(np.float32)[:, None, None]
-    out = np.zeros((xp.shape[0], light.shape[0], 3), np.float32)
-    for dy, dx, w in ((0, 0, (1 - fy) * (1 - fx)), (0, 1, (1 - fy) * fx), (1, 0, fy * (1 - fx)), (1, 1, fy * fx)):
-        xi, yi = x0 + dx, y0 + dy
-        inside = (xi >= 0) & (xi < wp) & (yi >= 0) & (yi < hp)
-        vals = np.zeros_like(out)
-        vals[inside] = light[:, yi[inside], xi[inside], :].transpose(1, 0, 2)
-        out += w * vals
-    return out
 
 
 def lit_pixels(proj: Projection, light: np.ndarray, threshold: float = 0.0) -> tuple[np.ndarray, np.ndarray]:

@@ -7,6 +7,7 @@ from collections.abc import Callable
 import numpy as np
 
 from sssphase_core.errors import InputError
+from sssphase_core.projector import sample_projector
 from sssphase_core.sim import geometry as g
 from sssphase_core.sim.materials import burley_scale
 from sssphase_core.sim.objects import SimObject, get_object
@@ -138,13 +139,7 @@ class SimScene:
         if light.ndim == 3:
             light = light[..., None]
         xy = self.proj_xy.reshape(-1, 2)[idx]
-        x0, y0 = np.floor(xy[:, 0]).astype(np.int64), np.floor(xy[:, 1]).astype(np.int64)
-        fx, fy = xy[:, 0] - x0, xy[:, 1] - y0
-        out = np.zeros((len(idx), light.shape[0], light.shape[3]), np.float32)
-        for dy, dx, wgt in ((0, 0, (1 - fy) * (1 - fx)), (0, 1, (1 - fy) * fx), (1, 0, fy * (1 - fx)), (1, 1, fy * fx)):
-            xi, yi = x0 + dx, y0 + dy
-            ok = (xi >= 0) & (xi < proj.width) & (yi >= 0) & (yi < proj.height)
-            out[ok] += wgt[ok, None, None] * light[:, yi[ok], xi[ok], :].transpose(1, 0, 2)
+        out = sample_projector(light, xy[:, 0], xy[:, 1])  # mono patterns stay one channel until here
         return np.broadcast_to(out, out.shape[:2] + (3,))
 
     def _unit_light(self) -> np.ndarray:
