@@ -73,11 +73,14 @@ def synthetic_frames(
     amplitude: float = 0.2,
     blur: float = 0.0,
     noise: float = 0.0,
+    channels: tuple[float, ...] | None = None,
     rng: np.random.Generator | None = None,
     dtype: type = np.float32,
 ) -> dict[str, np.ndarray]:
     """Frames ``offset + amplitude cos(2π u / P - δ_n)`` at camera pixels seeing projector (xp, yp),
-    Gaussian-blurred by ``blur`` px and with Gaussian noise ``noise``; uint8 output scales [0, 1] to 0..255."""
+    Gaussian-blurred by ``blur`` px (an SSS stand-in whose symmetric kernel keeps the phase of a
+    linear ramp), times per-channel gains ``channels`` (RGB frames) if given, with Gaussian noise
+    ``noise``; uint8 output scales [0, 1] to 0..255."""
     from scipy.ndimage import gaussian_filter
 
     rng = rng or np.random.default_rng(0)
@@ -88,6 +91,8 @@ def synthetic_frames(
                 img = offset + amplitude * np.cos(2 * np.pi * u / p - 2 * np.pi * n / config.n_shifts)
                 if blur:
                     img = gaussian_filter(img, blur, mode="nearest")
+                if channels is not None:
+                    img = img[..., None] * np.asarray(channels)
                 if noise:
                     img = img + rng.normal(0.0, noise, img.shape)
                 if dtype == np.uint8:

@@ -7,7 +7,6 @@ import torch
 from sssphase_core.errors import InputError
 from sssphase_core.relight import (
     FootprintCache,
-    Projection,
     emitted_light,
     no_scattering_source,
     read_pattern,
@@ -17,18 +16,10 @@ from sssphase_core.relight import (
 )
 
 
-def _proj(h=30, w=36, wp=40, hp=34):
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    mask = (yy - h / 2) ** 2 + (xx - w / 2) ** 2 < (min(h, w) / 2.3) ** 2
-    xp = np.where(mask, xx * 1.05 + 0.4, np.nan).astype(np.float32)
-    yp = np.where(mask, yy * 1.05 + 0.2, np.nan).astype(np.float32)
-    return Projection(xp, yp, mask, (wp, hp), gamma=2.2, black=0.01)
-
-
 @pytest.fixture
-def scene():
+def scene(make_projection):
     rng = np.random.default_rng(1)
-    proj, k = _proj(), 7
+    proj, k = make_projection(30, 36, 40, 34, scale=1.05, offset=(0.4, 0.2), radius_div=2.3, black=0.01), 7
     h, w = proj.shape
     fps = rng.random((h, w, k, k, 3)).astype(np.float32) * 0.05
     pats = rng.random((3, 34, 40)).astype(np.float32)
@@ -63,8 +54,8 @@ def test_bf16_is_close_but_not_identical(scene):
     np.testing.assert_allclose(a, b, rtol=2e-2, atol=1e-3 * a.max())
 
 
-def test_no_scattering_keeps_each_pixels_light():
-    proj = _proj()
+def test_no_scattering_keeps_each_pixels_light(make_projection):
+    proj = make_projection(30, 36, 40, 34, scale=1.05, offset=(0.4, 0.2), radius_div=2.3, black=0.01)
     rng = np.random.default_rng(2)
     white = rng.random((*proj.shape, 3)).astype(np.float32)
     pats = rng.random((2, 34, 40)).astype(np.float32)

@@ -7,17 +7,9 @@ from sssphase_core.errors import InputError
 from sssphase_core.relight import Projection, emitted_light, relight, sample_projector
 
 
-def _toy_projection(h=40, w=48, wp=60, hp=50):
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    mask = (yy - h / 2) ** 2 + (xx - w / 2) ** 2 < (min(h, w) / 2.5) ** 2
-    xp = np.where(mask, xx * 1.1 + 0.3, np.nan).astype(np.float32)
-    yp = np.where(mask, yy * 1.1 + 0.7, np.nan).astype(np.float32)
-    return Projection(xp, yp, mask, (wp, hp), gamma=2.2, black=0.0)
-
-
-def test_splat_matches_brute_force_loop():
+def test_splat_matches_brute_force_loop(make_projection):
     rng = np.random.default_rng(0)
-    proj, k = _toy_projection(), 9
+    proj, k = make_projection(), 9
     h, w = proj.shape
     fps = rng.random((h, w, k, k, 3)).astype(np.float32)
     pats = (rng.random((2, 50, 60)) > 0.5).astype(np.float32)
@@ -32,8 +24,8 @@ def test_splat_matches_brute_force_loop():
     np.testing.assert_allclose(out, ref, rtol=1e-5, atol=1e-5)
 
 
-def test_unlit_pixels_never_reach_the_footprint_source():
-    proj, k = _toy_projection(), 5
+def test_unlit_pixels_never_reach_the_footprint_source(make_projection):
+    proj, k = make_projection(), 5
     pats = np.zeros((1, 50, 60), np.float32)
     pats[:, :, :30] = 1.0  # left half of the projector only
     seen = []
@@ -48,8 +40,8 @@ def test_unlit_pixels_never_reach_the_footprint_source():
     assert np.all(proj.xp[px[:, 0], px[:, 1]] < 30)  # bilinear support ends at x < 30
 
 
-def test_pattern_size_mismatch_is_a_clear_error():
-    proj = _toy_projection()
+def test_pattern_size_mismatch_is_a_clear_error(make_projection):
+    proj = make_projection()
     with pytest.raises(InputError, match="does not match the projector"):
         relight(lambda px: np.zeros((len(px), 3, 3, 3)), proj, np.ones((1, 10, 10), np.float32), 3)
 

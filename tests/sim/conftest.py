@@ -1,18 +1,10 @@
-"""Simulator fixtures: catalogue scenes and small custom objects with known materials."""
+"""Simulator fixtures: a catalogue scene and the CPU rig (custom test scenes are in sim_scenes.py)."""
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
-from sssphase_core.sim import SimObject, SimScene, rig_preset
-from sssphase_core.sim import geometry as g
-from sssphase_core.sim.materials import Material
-from sssphase_core.sim.objects import uniform
-
-
-def custom_object(sdf, material: Material, radius: float = 50.0, name: str = "test") -> SimObject:
-    return SimObject(name, "test", "made for a test", radius, sdf, uniform(material))
+from sssphase_core.sim import SimScene, rig_preset
 
 
 @pytest.fixture(scope="session")
@@ -23,19 +15,3 @@ def apple() -> SimScene:
 @pytest.fixture(scope="session")
 def slab_rig():
     return rig_preset("cpu")
-
-
-def slab_scene(material: Material, tilt_deg: float = 0.0) -> SimScene:
-    """A flat square slab facing the camera (optionally turned about y), filling most of the view."""
-    obj = custom_object(lambda p: g.round_box(p, (0, 0, 0), (40, 40, 3), 1.0), material, radius=57.0)
-    obj = SimObject(obj.name, obj.split, obj.description, obj.radius, obj.natural_sdf, obj.natural_shade,
-                    tuple(tuple(row) for row in g.rotation_y(np.deg2rad(tilt_deg))))
-    return SimScene(obj)
-
-
-def centre_pixel(scene: SimScene) -> tuple[int, int]:
-    """The lit pixel nearest the image centre."""
-    ys, xs = np.nonzero(scene.lit)
-    h, w = scene.shape
-    i = np.argmin((ys - h / 2) ** 2 + (xs - w / 2) ** 2)
-    return int(ys[i]), int(xs[i])

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import centre_pixel, custom_object, slab_scene
+from sim_scenes import centre_pixel, custom_object, slab_scene
 
 from sssphase_core.errors import InputError
 from sssphase_core.sim import SimScene
