@@ -120,6 +120,7 @@ def train_decoder(
     epochs: int = 10,
     batch_size: int = 32,
     lr: float = 1e-3,
+    head: Annotated[str, typer.Option(help="reciprocal (energy from the PSP patch x learned shape) or direct (the paper's head).")] = "reciprocal",
     aux_classes: Annotated[int, typer.Option(help="> 0: auxiliary material-classification head with this many classes.")] = 0,
     seed: int = 0,
     ckpt_every: int = 50,
@@ -130,11 +131,15 @@ def train_decoder(
 ) -> None:
     """Fit the footprint decoder with the SBH loss on the frozen encoder (resumable)."""
     from sssphase_core.data import PatchDataset
+    from sssphase_core.errors import InputError
     from sssphase_core.evaluation import plot_metric_vs_time
+    from sssphase_core.models.decoder import HEADS
     from sssphase_core.sim import TRAIN_OBJECTS
     from sssphase_core.training import METRICS, DecoderConfig, load_encoder
     from sssphase_core.training import train_decoder as fit
 
+    if head not in HEADS:
+        raise InputError(f"unknown decoder head {head!r}; choose one of {', '.join(HEADS)}")
     patch = load_encoder(encoder).preset.patch
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
     kw = dict(n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=True, seed=seed, cache=cache, noisy=noisy_targets,
@@ -145,7 +150,7 @@ def train_decoder(
     ds = PatchDataset(train_vds, patch, names, with_targets=True)
     val = PatchDataset(val_vds, patch, names, with_targets=True) if val_vds else None
     cfg = DecoderConfig(epochs=epochs, batch_size=batch_size, seed=seed, ckpt_every=ckpt_every, device=device, lr=lr,
-                        aux_classes=aux_classes)
+                        head=head, aux_classes=aux_classes)
     console.print(f"training the decoder on {len(ds)} footprints of {', '.join(names)} -> {out}")
     path = fit(cfg, encoder, ds, out, val=val, resume=resume)
     if val is not None:

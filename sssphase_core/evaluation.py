@@ -209,7 +209,7 @@ def measure_throughput(preset: str, *, batch: int, repeats: int = 3, device: str
     def infer() -> None:
         with torch.no_grad():
             model.encoder.eval()
-            dec(*model.encoder.features(x))
+            dec(*model.encoder.features(x), x)
 
     def train_step() -> None:
         model.train()

@@ -34,10 +34,15 @@ from sssphase_core.models import Decoder, Encoder, ModelPreset, SimSiam, get_pre
 
 CHECKPOINT = "last.pt"
 METRICS = "metrics.jsonl"
+PRIOR_SAMPLES = 1024  # training footprints averaged into the reciprocal head's initial shape
 
 
 class TrainingCollapsed(SssError):
     """SimSiam's representation collapsed (constant embeddings); training was stopped."""
+
+
+class TrainingDiverged(SssError):
+    """The loss became NaN or infinite; training stops before the next checkpoint would save it."""
 
 
 class SimulatedInterrupt(RuntimeError):
@@ -82,7 +87,9 @@ def load_decoder(path: Path | str) -> tuple[Encoder, Decoder]:
     if "decoder" not in ckpt:
         raise DataError(f"{path} is a pretraining checkpoint; train a decoder with `sss train decoder`")
     preset = get_preset(ckpt["preset"])
-    enc, dec = Encoder(preset), Decoder(preset, n_classes=int(ckpt["config"].get("aux_classes", 0)))
+    cfg = ckpt["config"]  # checkpoints from before the head option hold the direct head
+    enc = Encoder(preset)
+    dec = Decoder(preset, n_classes=int(cfg.get("aux_classes", 0)), head=cfg.get("head", "direct"))
     enc.load_state_dict(ckpt["encoder"])
     dec.load_state_dict(ckpt["decoder"])
     return enc.eval().requires_grad_(False), dec.eval()
@@ -223,7 +230,14 @@ class Loop:
                     idx = order[self.step_in_epoch * b : (self.step_in_epoch + 1) * b]
                     torch.manual_seed(self.cfg.seed * 1_000_003 + self.global_step)
                     batch = {k: v.to(self.d.device, non_blocking=True) for k, v in self.dataset.batch(idx).items()}
-                    for k, v in step(batch, self.global_step).items():
+                    values = step(batch, self.global_step)
+                    if not math.isfinite(values["loss"]):
+                        raise TrainingDiverged(
+                            f"the {self.kind} loss became {values['loss']} at epoch {self.epoch + 1}, step "
+                            f"{self.step_in_epoch + 1}; lower the learning rate (the last good checkpoint is kept "
+                            f"in {self.out_dir / CHECKPOINT}, which --resume continues from)"
+                        )
+                    for k, v in values.items():
                         self.sums[k] = self.sums.get(k, 0.0) + v
                     self.step_in_epoch += 1
                     steps_run += 1
@@ -380,6 +394,8 @@ class DecoderConfig(LoopConfig):
     batch_size: int = 32
     lr: float = 1e-3  # Adam (the paper)
     out_scale: float = 0.05
+    head: str = "reciprocal"  # reciprocal (energy from the PSP patch x learned shape) or direct (the paper's)
+    physics_lr_mult: float = 10.0  # the reciprocal head's small profile MLP, prior map and gain learn faster
     aux_classes: int = 0  # > 0: auxiliary material-classification head on the embedding
     aux_weight: float = 0.1
     val_samples: int = 512
@@ -388,7 +404,7 @@ class DecoderConfig(LoopConfig):
 def _decoder_forward(enc: Encoder, dec: nn.Module, psp: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
     with torch.no_grad():
         bottleneck, skips = enc.features(psp)
-    out = dec(bottleneck, skips)
+    out = dec(bottleneck, skips, psp)
     return (out, None) if isinstance(out, torch.Tensor) else out
 
 
@@ -432,17 +448,24 @@ def train_decoder(
     enc.load_state_dict(src["encoder"])
     enc = enc.to(d.device).eval().requires_grad_(False)
     torch.manual_seed(cfg.seed)
-    dec = Decoder(p, out_scale=cfg.out_scale, n_classes=cfg.aux_classes).to(d.device)
+    dec = Decoder(p, out_scale=cfg.out_scale, n_classes=cfg.aux_classes, head=cfg.head).to(d.device)
     net = _wrap(dec, d)
-    opt = torch.optim.Adam(dec.parameters(), lr=cfg.lr)
+    physics = dec.physics_parameters()
+    ids = {id(q) for q in physics}
+    opt = torch.optim.Adam([{"params": [q for q in dec.parameters() if id(q) not in ids], "lr": cfg.lr},
+                            {"params": physics, "lr": cfg.lr * cfg.physics_lr_mult}])
     loop = Loop(cfg, dataset, out_dir, d, "decoder")
     ckpt = _resume_state(out_dir, resume, "decoder")
     if ckpt is not None:
         dec.load_state_dict(ckpt["decoder"])
         opt.load_state_dict(ckpt["optimizer"])
         loop.restore(ckpt["loop"])
-    elif d.main and (out_dir / METRICS).exists():
-        (out_dir / METRICS).unlink()
+    else:
+        if d.main and (out_dir / METRICS).exists():
+            (out_dir / METRICS).unlink()
+        # Same on every rank: the first patches of a seeded permutation.
+        first = np.random.default_rng(cfg.seed).permutation(len(dataset))[:PRIOR_SAMPLES]
+        dec.init_shape_prior(dataset.batch(np.sort(first))["footprint"].to(d.device))
     loss_fn = SBHLoss()
 
     def step(batch: dict[str, torch.Tensor], gstep: int) -> dict[str, float]:

@@ -27,6 +27,7 @@ if TYPE_CHECKING:
     from sssphase_core.data import ViewData
 
 N_SHIFTS = 4
+_MEAN_INV_R = 4 * np.log(1 + np.sqrt(2))  # mean of 1/r over a unit square centred on the pole
 _U = np.logspace(-8, 8, 4000)
 _MTF = {
     "burley": lambda u: 0.25 * (1 / np.sqrt(1 + u) + 3 / np.sqrt(1 + 9 * u)),
@@ -96,6 +97,9 @@ class AnalyticBackend:
             dx = widths[i : i + self.chunk, :, 0][:, :, None, None, None, None]
             dy = widths[i : i + self.chunk, :, 1][:, :, None, None, None, None]
             r = np.hypot(ax[None, None, :, :, None, None] / dy, ax[None, None, None, None, :, :] / dx)
+            # An odd supersample puts a sample on the 1/r pole: give it the square's mean 1/r instead,
+            # (1/a) * 4 ln(1 + sqrt 2) for a sub-pixel of side a = 1/s (in width-scaled units).
+            r = np.maximum(r, 1.0 / (s * _MEAN_INV_R * np.sqrt(dx * dy)))
             prof = _PROFILE[self.profile](r).sum(axis=(3, 5))  # (n, 3, K, K)
             prof /= prof.sum(axis=(2, 3), keepdims=True)
             out[i : i + self.chunk] = (prof * energy[i : i + self.chunk, :, None, None]).transpose(0, 2, 3, 1)

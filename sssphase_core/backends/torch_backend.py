@@ -65,7 +65,7 @@ class TorchBackend:
         for i in range(0, len(patches), self.batch_size):
             x = torch.as_tensor(patches[i : i + self.batch_size], device=self.device)
             bottleneck, skips = self.encoder.features(x)
-            pred = self.decoder(bottleneck, skips)
+            pred = self.decoder(bottleneck, skips, x)
             pred = pred[0] if isinstance(pred, tuple) else pred
             out.append(pred.float().permute(0, 2, 3, 1).cpu())
         return torch.cat(out).numpy() if out else np.zeros((0, self.patch, self.patch, 3), np.float32)

@@ -6,7 +6,15 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from sssphase_core.errors import InputError
 from sssphase_core.models.encoder import NEG_SLOPE, PreActBlock
+from sssphase_core.models.physics import (
+    RadialProfile,
+    RingAverage,
+    modulation_features,
+    surface_support,
+    white_from_psp,
+)
 from sssphase_core.models.presets import ModelPreset, get_preset
 
 
@@ -52,40 +60,96 @@ class UpStage(nn.Module):
         return self.block(torch.cat([up, self.gate(up, skip)], dim=1))
 
 
+HEADS = ("reciprocal", "direct")
+OFF_SURFACE = -30.0  # log-shape off the lit surface (e^-30: nothing, yet finite gradients)
+
+
 class Decoder(nn.Module):
     """Predicts a (B, 3, K, K) footprint from the encoder's bottleneck map and skips.
 
-    Outputs are ``softplus(head) * out_scale``: footprints are light, never negative (a linear head
-    drifted to negative footprints in short runs, which the log term cannot correct since it clamps
-    predictions at 0), and ``out_scale`` (footprints peak near 0.04 in linear camera units) keeps the
-    final 1x1 conv on O(1) values. Its bias starts at -4 (softplus = 0.018, i.e. ~1e-3 after
-    scaling: the level of a footprint's tail, where most pixels are). ``n_classes`` > 0 adds the auxiliary
-    material-classification head on the pooled embedding (``forward`` then returns (footprint, logits)).
+    Two heads on the same 1x1 conv:
+
+    * ``reciprocal`` (default): footprint = energy * shape. The shape is a softmax over the K x K
+      window per colour (non-negative, sums to 1) of three log-terms: a learned prior map
+      (initialised to the training footprints' mean shape, :meth:`init_shape_prior`), a radial
+      profile predicted from the centre pixel's modulation ratios and fringe frequencies
+      (:class:`~sssphase_core.models.physics.RadialProfile`), and the conv output less its ring
+      means (the decoder's angular detail: anisotropy, edges; zero at start), restricted to the lit
+      surface in the patch (:func:`~sssphase_core.models.physics.surface_support`). The conv may not set
+      the radial profile: trained on a handful of materials it keys on their colour and gives
+      unseen ones the wrong width (measured: a near-delta footprint for the sand rake). The energy is the pixel's white value read from its own PSP
+      patch (:func:`~sssphase_core.models.physics.white_from_psp`) times a learned per-colour factor.
+      Energy is what relighting needs most and the SBH terms constrain least (they are relative:
+      log, peak-normalised SSIM, normalised gradients), so it comes from physics, and the profile
+      comes from brightness-free features, so it carries over to unseen materials (measured in
+      the README).
+    * ``direct`` (the paper's): ``softplus(conv) * out_scale``; ``out_scale`` (footprints peak near
+      0.04 in linear camera units) keeps the conv on O(1) values, bias -4 starts at ~1e-3 (a tail).
+
+    ``n_classes`` > 0 adds the auxiliary material-classification head on the pooled embedding
+    (``forward`` then returns (footprint, logits)).
     """
 
-    def __init__(self, preset: ModelPreset | str, out_scale: float = 0.05, n_classes: int = 0) -> None:
+    def __init__(self, preset: ModelPreset | str, out_scale: float = 0.05, n_classes: int = 0,
+                 head: str = "reciprocal") -> None:
         super().__init__()
+        if head not in HEADS:
+            raise InputError(f"unknown decoder head {head!r}; choose one of {', '.join(HEADS)}")
         p = get_preset(preset)
-        self.preset = p
+        self.preset, self.head_kind = p, head
         skips = (*reversed(p.stages), p.stem)
         chans = (p.bottleneck, *p.decoder)
         self.stages = nn.ModuleList(
             UpStage(chans[i], chans[i + 1], skips[i], max(p.attention, chans[i + 1] // 4)) for i in range(4)
         )
         self.head = nn.Sequential(nn.BatchNorm2d(p.decoder[-1]), nn.LeakyReLU(NEG_SLOPE), nn.Conv2d(p.decoder[-1], 3, 1))
-        nn.init.constant_(self.head[-1].bias, -4.0)
+        nn.init.constant_(self.head[-1].bias, -4.0 if head == "direct" else 0.0)
+        if head == "reciprocal":
+            nn.init.zeros_(self.head[-1].weight)
         self.register_buffer("out_scale", torch.tensor(float(out_scale)))
+        if head == "reciprocal":
+            self.shape_prior = nn.Parameter(torch.zeros(3, p.patch, p.patch))
+            self.profile = RadialProfile(p.patch)
+            self.angular = RingAverage(p.patch)
+            self.log_gain = nn.Parameter(torch.zeros(3))
         self.aux = nn.Linear(p.bottleneck, n_classes) if n_classes > 0 else None
 
+    def physics_parameters(self) -> list[nn.Parameter]:
+        """The reciprocal head's few physics-side parameters (profile MLP, prior map, gain)."""
+        if self.head_kind != "reciprocal":
+            return []
+        return [*self.profile.parameters(), self.shape_prior, self.log_gain]
+
+    @torch.no_grad()
+    def init_shape_prior(self, footprints: torch.Tensor, floor: float = 1e-7) -> None:
+        """Set the log-prior map to the mean per-channel-normalised shape of (N, 3, K, K) footprints."""
+        if self.head_kind != "reciprocal":
+            return
+        fp = footprints.float().clamp_min(0)
+        shape = fp / fp.sum(dim=(2, 3), keepdim=True).clamp_min(1e-12)
+        self.shape_prior.copy_(torch.log(shape.mean(dim=0) + floor))
+
     def forward(
-        self, bottleneck: torch.Tensor, skips: list[torch.Tensor]
+        self, bottleneck: torch.Tensor, skips: list[torch.Tensor], psp: torch.Tensor | None = None
     ) -> torch.Tensor | tuple[torch.Tensor, torch.Tensor]:
         h = bottleneck
         for stage, skip in zip(self.stages, reversed(skips), strict=True):
             h = stage(h, skip)
-        out = F.softplus(self.head(h)) * self.out_scale
-        lo = (out.shape[-1] - self.preset.patch) // 2
-        out = out[..., lo : lo + self.preset.patch, lo : lo + self.preset.patch]
+        k = self.preset.patch
+        lo = (h.shape[-1] - k) // 2
+        raw = self.head(h)[..., lo : lo + k, lo : lo + k]
+        pooled = bottleneck.mean(dim=(2, 3))
+        if self.head_kind == "direct":
+            out = F.softplus(raw) * self.out_scale
+        else:
+            if psp is None:
+                raise InputError("the reciprocal decoder head needs the PSP patches (its energy comes from them)")
+            detail = self.angular(raw.float())  # the conv adds angular detail, never a radial profile
+            logits = detail + self.shape_prior + self.profile(modulation_features(psp))
+            logits = logits.masked_fill(~surface_support(psp), OFF_SURFACE)  # light exits on the surface only
+            shape = torch.softmax(logits.flatten(2), dim=-1).view(raw.shape)
+            energy = white_from_psp(psp).clamp_min(0) * torch.exp(self.log_gain.clamp(-3.0, 3.0))
+            out = shape * energy[:, :, None, None]
         if self.aux is None:
             return out
-        return out, self.aux(bottleneck.mean(dim=(2, 3)))
+        return out, self.aux(pooled)

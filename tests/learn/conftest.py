@@ -34,3 +34,13 @@ def synthetic():
 @pytest.fixture(scope="session")
 def dataset(synthetic) -> PatchDataset:
     return PatchDataset(synthetic[0], 16, ["a", "b"], with_targets=True)
+
+
+@pytest.fixture(scope="session")
+def pretrained(dataset, tiny, tmp_path_factory):
+    """A tiny SimSiam run (2 epochs) on the synthetic dataset."""
+    from sssphase_core.training import PretrainConfig, pretrain
+
+    out = tmp_path_factory.mktemp("pre") / "run"
+    pretrain(PretrainConfig(epochs=2, batch_size=16, ckpt_every=3, warmup_epochs=1), dataset, out, preset=tiny, progress=False)
+    return out

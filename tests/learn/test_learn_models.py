@@ -22,7 +22,7 @@ def test_encoder_decoder_shapes_at_batch_one(name, patch, embed):
     with torch.no_grad():
         bottleneck, skips = enc.features(x)
         assert enc(x).shape == (1, embed)
-        assert dec(bottleneck, skips).shape == (1, 3, patch, patch)
+        assert dec(bottleneck, skips, x).shape == (1, 3, patch, patch)
     pad = p.padded
     assert pad % 16 == 0 and pad >= patch
     assert bottleneck.shape == (1, embed, pad // 16, pad // 16)
@@ -68,5 +68,6 @@ def test_icnr_init_gives_no_checkerboard():
 
 def test_auxiliary_material_head(tiny):
     enc, dec = Encoder(tiny).eval(), Decoder(tiny, n_classes=5)
-    fp, logits = dec(*enc.features(torch.randn(2, 24, 16, 16)))
+    x = torch.randn(2, 24, 16, 16)
+    fp, logits = dec(*enc.features(x), x)
     assert fp.shape == (2, 3, 16, 16) and logits.shape == (2, 5)

@@ -31,13 +31,6 @@ def states_equal(a: dict, b: dict) -> bool:
     return a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a)
 
 
-@pytest.fixture(scope="module")
-def pretrained(dataset, tiny, tmp_path_factory):
-    out = tmp_path_factory.mktemp("pre") / "run"
-    pretrain(PRE, dataset, out, preset=tiny, progress=False)
-    return out
-
-
 def test_pretrain_writes_safe_checkpoints_and_metrics(pretrained, tiny):
     ckpt = torch.load(pretrained / CHECKPOINT, weights_only=True)
     assert ckpt["preset"]["name"] == "tiny" and ckpt["kind"] == "pretrain"

@@ -1,0 +1,130 @@
+"""Physics read straight from a PSP patch, for the decoder's reciprocal head.
+
+A fringe image is the emitted sinusoid convolved with the footprints, so at the centre pixel:
+
+* the offset A (mean of the 4 shifts) is (black + (1 - black) / 2) x the pixel's white value,
+  which by reciprocity is its footprint's energy (:func:`white_from_psp`);
+* the modulation ratio B / A, per orientation and colour, is the footprint's MTF at the local fringe
+  wave vector k (times the projector/camera system MTF), and k itself is the phase step between
+  neighbouring pixels (:func:`modulation_features`).
+
+These are brightness-free, so a profile predicted from them carries over to materials the decoder
+never saw, where features that also see colour and brightness latch on to the training materials.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+N_SHIFTS = 4
+#: Knots (px from the centre) of the radial log-profile: dense near the centre, where relighting is decided.
+KNOTS = (0.0, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 11.0, 16.0, 23.0, 32.0, 45.0, 64.0)
+MOD_FLOOR = 1e-3
+SUPPORT_FRAC = 0.03  # a neighbour is off the surface when its offset is below 3% of the centre's
+
+
+def _split(psp: torch.Tensor) -> torch.Tensor:
+    """(B, 24, K, K) -> (B, orientation 2, shift 4, colour 3, K, K), float32."""
+    b, _, k, _ = psp.shape
+    return psp.float().reshape(b, 2, N_SHIFTS, 3, k, k)
+
+
+def white_from_psp(psp: torch.Tensor) -> torch.Tensor:
+    """(B, 24, K, K) -> (B, 3): 2 A at the centre pixel (the white value for black level 0)."""
+    k = psp.shape[-1]
+    return 2.0 * _split(psp)[..., k // 2, k // 2].mean(dim=(1, 2))
+
+
+def surface_support(psp: torch.Tensor, frac: float = SUPPORT_FRAC) -> torch.Tensor:
+    """(B, 24, K, K) -> (B, 1, K, K) bool: pixels whose offset A (all colours) exceeds ``frac`` of the
+    centre's, i.e. the lit surface around the pixel. Footprint light exits on the surface only, and
+    white (the footprint's energy, by reciprocity) counts only that light."""
+    a = _split(psp).mean(dim=(1, 2)).sum(dim=1, keepdim=True)  # (B, 1, K, K)
+    k = psp.shape[-1]
+    return a > frac * a[..., k // 2 : k // 2 + 1, k // 2 : k // 2 + 1].clamp_min(1e-6)
+
+
+def modulation_features(psp: torch.Tensor, window: int = 2, smooth: int = 2) -> torch.Tensor:
+    """(B, 24, K, K) -> (B, 3, 6) per colour: log(B/A) for the x and y fringes (amplitude and offset
+    averaged over the (2 smooth + 1)^2 centre window), then the squared
+    components (k_x^2, k_y^2) of both fringes' wave vectors (rad/px, measured in a
+    (2 window + 1)^2 neighbourhood on all colours)."""
+    x = _split(psp)
+    k = x.shape[-1]
+    c = k // 2
+    cos_s, sin_s = x[:, :, 0] - x[:, :, 2], x[:, :, 1] - x[:, :, 3]  # (B, 2, 3, K, K): 2 B cos, 2 B sin
+    near = slice(c - smooth, c + smooth + 1)  # B and A averaged over a small window: less noise
+    offset = x[..., near, near].mean(dim=(2, -2, -1))  # (B, 2, 3)
+    amp = 0.5 * torch.sqrt(cos_s[..., near, near] ** 2 + sin_s[..., near, near] ** 2).mean(dim=(-2, -1))
+    log_mod = torch.log((amp / offset.abs().clamp_min(1e-6)).clamp(MOD_FLOOR, 2.0))
+    lo, hi = c - window, c + window + 1
+    zc, zs = cos_s.sum(dim=2)[..., lo:hi, lo:hi], sin_s.sum(dim=2)[..., lo:hi, lo:hi]  # (B, 2, w, w)
+
+    def step(dim: int) -> torch.Tensor:
+        n = zc.shape[dim]
+        c1, c0 = zc.narrow(dim, 1, n - 1), zc.narrow(dim, 0, n - 1)
+        s1, s0 = zs.narrow(dim, 1, n - 1), zs.narrow(dim, 0, n - 1)
+        re = (c1 * c0 + s1 * s0).sum(dim=(-2, -1))
+        im = (s1 * c0 - c1 * s0).sum(dim=(-2, -1))
+        return torch.atan2(im, re)  # (B, 2)
+
+    k2 = torch.stack([step(-1), step(-2)], dim=-1) ** 2  # (B, orientation, axis)
+    k2 = k2.flatten(1)[:, None, :].expand(-1, 3, -1)
+    return torch.cat([log_mod.transpose(1, 2), k2], dim=-1)
+
+
+class RadialProfile(nn.Module):
+    """Per-colour log-profile over the K x K window from the modulation features.
+
+    One MLP shared by the three colours (plus a colour one-hot) maps a colour's 6 features to the
+    values of a piecewise-linear log-profile at :data:`KNOTS` and a log-stretch (s_x, s_y) of the
+    radius (anisotropy). Its last layer starts at zero: the profile then adds nothing.
+    """
+
+    def __init__(self, patch: int, hidden: int = 64) -> None:
+        super().__init__()
+        knots = [kn for kn in KNOTS if kn <= patch] + ([float(patch)] if patch > KNOTS[-1] else [])
+        self.register_buffer("knots", torch.tensor(knots))
+        half = patch // 2
+        yy, xx = torch.meshgrid(torch.arange(patch) - half, torch.arange(patch) - half, indexing="ij")
+        self.register_buffer("dy", yy.float())
+        self.register_buffer("dx", xx.float())
+        self.mlp = nn.Sequential(nn.Linear(6 + 3, hidden), nn.SiLU(), nn.Linear(hidden, hidden), nn.SiLU(),
+                                 nn.Linear(hidden, len(knots) + 2))
+        nn.init.zeros_(self.mlp[-1].weight)
+        nn.init.zeros_(self.mlp[-1].bias)
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        """(B, 3, 6) -> (B, 3, K, K) log-profile."""
+        b = features.shape[0]
+        onehot = torch.eye(3, device=features.device).expand(b, -1, -1)
+        out = self.mlp(torch.cat([features, onehot], dim=-1))  # (B, 3, J + 2)
+        values, stretch = out[..., :-2], out[..., -2:].clamp(-3.0, 3.0)
+        sx, sy = torch.exp(stretch[..., 0])[..., None, None], torch.exp(stretch[..., 1])[..., None, None]
+        r2 = (self.dx / sx) ** 2 + (self.dy / sy) ** 2  # sqrt has an infinite slope at the centre
+        r = torch.sqrt(r2.clamp_min(1e-12)).clamp_max(float(self.knots[-1]))  # (B, 3, K, K)
+        j = (torch.searchsorted(self.knots, r.flatten(2).contiguous(), right=True) - 1).clamp(0, len(self.knots) - 2)
+        j = j.view(r.shape)
+        k0, k1 = self.knots[j], self.knots[j + 1]
+        t = (r - k0) / (k1 - k0)
+        v0 = torch.gather(values, 2, j.flatten(2)).view(r.shape)
+        v1 = torch.gather(values, 2, (j + 1).flatten(2)).view(r.shape)
+        return v0 + t * (v1 - v0)
+
+
+class RingAverage(nn.Module):
+    """Removes each ring's mean (rings of integer radius around the centre) from a (B, C, K, K) map,
+    so that what remains cannot change a radial profile, only its angular detail."""
+
+    def __init__(self, patch: int) -> None:
+        super().__init__()
+        half = patch // 2
+        yy, xx = torch.meshgrid(torch.arange(patch) - half, torch.arange(patch) - half, indexing="ij")
+        ring = torch.sqrt((yy**2 + xx**2).float()).round().long().flatten()
+        member = torch.nn.functional.one_hot(ring).float()  # (K*K, R)
+        self.register_buffer("average", member @ torch.diag(1.0 / member.sum(0)) @ member.T)  # (K*K, K*K)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        flat = x.flatten(2)
+        return (flat - flat @ self.average).view(x.shape)
