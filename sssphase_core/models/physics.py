@@ -21,6 +21,7 @@ N_SHIFTS = 4
 #: Knots (px from the centre) of the radial log-profile: dense near the centre, where relighting is decided.
 KNOTS = (0.0, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 11.0, 16.0, 23.0, 32.0, 45.0, 64.0)
 MOD_FLOOR = 1e-3
+N_FEATURES = 13  # per colour: own log-modulation (2), k^2 (4), light share (1), all colours' (6)
 SUPPORT_FRAC = 0.03  # a neighbour is off the surface when its offset is below 3% of the centre's
 
 
@@ -46,10 +47,11 @@ def surface_support(psp: torch.Tensor, frac: float = SUPPORT_FRAC) -> torch.Tens
 
 
 def modulation_features(psp: torch.Tensor, window: int = 2, smooth: int = 2) -> torch.Tensor:
-    """(B, 24, K, K) -> (B, 3, 6) per colour: log(B/A) for the x and y fringes (amplitude and offset
-    averaged over the (2 smooth + 1)^2 centre window), then the squared
+    """(B, 24, K, K) -> (B, 3, N_FEATURES) per colour: log(B/A) for the x and y fringes (amplitude
+    and offset averaged over the (2 smooth + 1)^2 centre window), then the squared
     components (k_x^2, k_y^2) of both fringes' wave vectors (rad/px, measured in a
-    (2 window + 1)^2 neighbourhood on all colours)."""
+    (2 window + 1)^2 neighbourhood on all colours), the log of the colour's share of the light,
+    and all three colours' log-modulations."""
     x = _split(psp)
     k = x.shape[-1]
     c = k // 2
@@ -71,13 +73,19 @@ def modulation_features(psp: torch.Tensor, window: int = 2, smooth: int = 2) -> 
 
     k2 = torch.stack([step(-1), step(-2)], dim=-1) ** 2  # (B, orientation, axis)
     k2 = k2.flatten(1)[:, None, :].expand(-1, 3, -1)
-    return torch.cat([log_mod.transpose(1, 2), k2], dim=-1)
+    own = log_mod.transpose(1, 2)  # (B, 3, 2)
+    # Demosaicing leaks the bright colours' fringes into a dim one: give each colour the others'
+    # modulation and its share of the light, so the leak can be told from a narrow footprint.
+    colour = offset.mean(dim=1).clamp_min(1e-6)  # (B, 3)
+    share = torch.log(colour / colour.sum(dim=1, keepdim=True))[..., None]
+    every = own.flatten(1)[:, None, :].expand(-1, 3, -1)
+    return torch.cat([own, k2, share, every], dim=-1)
 
 
 class RadialProfile(nn.Module):
     """Per-colour log-profile over the K x K window from the modulation features.
 
-    One MLP shared by the three colours (plus a colour one-hot) maps a colour's 6 features to the
+    One MLP shared by the three colours (plus a colour one-hot) maps a colour's features to the
     values of a piecewise-linear log-profile at :data:`KNOTS` and a log-stretch (s_x, s_y) of the
     radius (anisotropy). Its last layer starts at zero: the profile then adds nothing.
     """
@@ -90,13 +98,13 @@ class RadialProfile(nn.Module):
         yy, xx = torch.meshgrid(torch.arange(patch) - half, torch.arange(patch) - half, indexing="ij")
         self.register_buffer("dy", yy.float())
         self.register_buffer("dx", xx.float())
-        self.mlp = nn.Sequential(nn.Linear(6 + 3, hidden), nn.SiLU(), nn.Linear(hidden, hidden), nn.SiLU(),
+        self.mlp = nn.Sequential(nn.Linear(N_FEATURES + 3, hidden), nn.SiLU(), nn.Linear(hidden, hidden), nn.SiLU(),
                                  nn.Linear(hidden, len(knots) + 2))
         nn.init.zeros_(self.mlp[-1].weight)
         nn.init.zeros_(self.mlp[-1].bias)
 
     def forward(self, features: torch.Tensor) -> torch.Tensor:
-        """(B, 3, 6) -> (B, 3, K, K) log-profile."""
+        """(B, 3, N_FEATURES) -> (B, 3, K, K) log-profile."""
         b = features.shape[0]
         onehot = torch.eye(3, device=features.device).expand(b, -1, -1)
         out = self.mlp(torch.cat([features, onehot], dim=-1))  # (B, 3, J + 2)

@@ -8,7 +8,13 @@ import torch
 
 from sssphase_core.data import psp_patches
 from sssphase_core.models import Decoder, Encoder
-from sssphase_core.models.physics import RadialProfile, RingAverage, modulation_features, white_from_psp
+from sssphase_core.models.physics import (
+    N_FEATURES,
+    RadialProfile,
+    RingAverage,
+    modulation_features,
+    white_from_psp,
+)
 from sssphase_core.training import (
     DecoderConfig,
     TrainingDiverged,
@@ -36,7 +42,8 @@ def test_white_from_psp_is_the_footprint_energy(synthetic, obj):
 @pytest.mark.parametrize("obj", ["a", "b"])
 def test_modulation_features_measure_the_footprint_mtf_and_fringe_frequency(synthetic, obj):
     x, kernel = _patches(synthetic, obj)
-    f = modulation_features(x).numpy()  # (N, 3, 6)
+    f = modulation_features(x).numpy()  # (N, 3, N_FEATURES)
+    assert f.shape[1:] == (3, N_FEATURES)
     c = kernel.shape[0] // 2
     d = np.arange(kernel.shape[0]) - c
     k = 2 * np.pi / PERIOD
@@ -46,7 +53,9 @@ def test_modulation_features_measure_the_footprint_mtf_and_fringe_frequency(synt
     np.testing.assert_allclose(np.median(f[:, :, 0], 0)[bright], np.log(mtf_x)[bright], atol=0.03)
     np.testing.assert_allclose(np.median(f[:, :, 1], 0)[bright], np.log(mtf_y)[bright], atol=0.03)
     # x fringes vary along x, y fringes along y: (k_xx^2, k_xy^2, k_yx^2, k_yy^2) = (k^2, 0, 0, k^2)
-    np.testing.assert_allclose(np.median(f[:, 0, 2:], 0), [k * k, 0, 0, k * k], atol=0.02)
+    np.testing.assert_allclose(np.median(f[:, 0, 2:6], 0), [k * k, 0, 0, k * k], atol=0.02)
+    share = np.exp(f[:, :, 6]).mean(0)  # each colour's share of the light
+    np.testing.assert_allclose(share, kernel.sum(axis=(0, 1)) / kernel.sum(), atol=0.02)
 
 
 def test_reciprocal_head_conserves_the_white_energy_at_start(tiny, dataset):
@@ -92,7 +101,7 @@ def test_radial_profile_interpolates_its_knots():
     prof = RadialProfile(16)
     with torch.no_grad():
         prof.mlp[-1].bias[: len(prof.knots)] = -prof.knots  # log-profile = -r
-    out = prof(torch.zeros(1, 3, 6))[0, 0]
+    out = prof(torch.zeros(1, 3, N_FEATURES))[0, 0]
     r = torch.sqrt(prof.dx**2 + prof.dy**2)
     torch.testing.assert_close(out, -r, rtol=0, atol=1e-5)
 
