@@ -463,9 +463,9 @@ def train_decoder(
     else:
         if d.main and (out_dir / METRICS).exists():
             (out_dir / METRICS).unlink()
-        # Same on every rank: the first patches of a seeded permutation.
-        first = np.random.default_rng(cfg.seed).permutation(len(dataset))[:PRIOR_SAMPLES]
-        dec.init_shape_prior(dataset.batch(np.sort(first))["footprint"].to(d.device))
+        if cfg.head == "reciprocal":  # same on every rank: the first patches of a seeded permutation
+            first = np.random.default_rng(cfg.seed).permutation(len(dataset))[:PRIOR_SAMPLES]
+            dec.init_shape_prior(dataset.batch(np.sort(first))["footprint"].to(d.device))
     loss_fn = SBHLoss()
 
     def step(batch: dict[str, torch.Tensor], gstep: int) -> dict[str, float]:
