@@ -75,10 +75,11 @@ class Decoder(nn.Module):
       profile predicted from the centre pixel's modulation ratios and fringe frequencies
       (:class:`~sssphase_core.models.physics.RadialProfile`), and the conv output less its ring
       means (the decoder's angular detail: anisotropy, edges; zero at start), restricted to the lit
-      surface in the patch (:func:`~sssphase_core.models.physics.surface_support`). The conv may not set
-      the radial profile: trained on a handful of materials it keys on their colour and gives
-      unseen ones the wrong width (measured: a near-delta footprint for the sand rake). The energy is the pixel's white value read from its own PSP
-      patch (:func:`~sssphase_core.models.physics.white_from_psp`) times a learned per-colour factor.
+      surface in the patch (:func:`~sssphase_core.models.physics.surface_support`). The conv may not
+      set the radial profile: trained on a handful of materials it keys on their colour and gives
+      unseen ones the wrong width (measured: a near-delta footprint for the sand rake). The energy
+      is the pixel's white value read from its own PSP patch
+      (:func:`~sssphase_core.models.physics.white_from_psp`) times a learned per-colour factor.
       Energy is what relighting needs most and the SBH terms constrain least (they are relative:
       log, peak-normalised SSIM, normalised gradients), so it comes from physics, and the profile
       comes from brightness-free features, so it carries over to unseen materials (measured in
@@ -104,10 +105,9 @@ class Decoder(nn.Module):
         )
         self.head = nn.Sequential(nn.BatchNorm2d(p.decoder[-1]), nn.LeakyReLU(NEG_SLOPE), nn.Conv2d(p.decoder[-1], 3, 1))
         nn.init.constant_(self.head[-1].bias, -4.0 if head == "direct" else 0.0)
-        if head == "reciprocal":
-            nn.init.zeros_(self.head[-1].weight)
         self.register_buffer("out_scale", torch.tensor(float(out_scale)))
         if head == "reciprocal":
+            nn.init.zeros_(self.head[-1].weight)
             self.shape_prior = nn.Parameter(torch.zeros(3, p.patch, p.patch))
             self.profile = RadialProfile(p.patch)
             self.angular = RingAverage(p.patch)

@@ -25,6 +25,13 @@ N_FEATURES = 13  # per colour: own log-modulation (2), k^2 (4), light share (1),
 SUPPORT_FRAC = 0.03  # a neighbour is off the surface when its offset is below 3% of the centre's
 
 
+def _offsets(patch: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """(dy, dx) float (K, K) maps of pixel offsets from the patch centre K // 2."""
+    d = (torch.arange(patch) - patch // 2).float()
+    dy, dx = torch.meshgrid(d, d, indexing="ij")
+    return dy.clone(), dx.clone()  # meshgrid views: a buffer must own its memory
+
+
 def _split(psp: torch.Tensor) -> torch.Tensor:
     """(B, 24, K, K) -> (B, orientation 2, shift 4, colour 3, K, K), float32."""
     b, _, k, _ = psp.shape
@@ -94,10 +101,9 @@ class RadialProfile(nn.Module):
         super().__init__()
         knots = [kn for kn in KNOTS if kn <= patch] + ([float(patch)] if patch > KNOTS[-1] else [])
         self.register_buffer("knots", torch.tensor(knots))
-        half = patch // 2
-        yy, xx = torch.meshgrid(torch.arange(patch) - half, torch.arange(patch) - half, indexing="ij")
-        self.register_buffer("dy", yy.float())
-        self.register_buffer("dx", xx.float())
+        dy, dx = _offsets(patch)
+        self.register_buffer("dy", dy)
+        self.register_buffer("dx", dx)
         self.mlp = nn.Sequential(nn.Linear(N_FEATURES + 3, hidden), nn.SiLU(), nn.Linear(hidden, hidden), nn.SiLU(),
                                  nn.Linear(hidden, len(knots) + 2))
         nn.init.zeros_(self.mlp[-1].weight)
@@ -127,9 +133,8 @@ class RingAverage(nn.Module):
 
     def __init__(self, patch: int) -> None:
         super().__init__()
-        half = patch // 2
-        yy, xx = torch.meshgrid(torch.arange(patch) - half, torch.arange(patch) - half, indexing="ij")
-        ring = torch.sqrt((yy**2 + xx**2).float()).round().long().flatten()
+        dy, dx = _offsets(patch)
+        ring = torch.sqrt(dy**2 + dx**2).round().long().flatten()
         member = torch.nn.functional.one_hot(ring).float()  # (K*K, R)
         self.register_buffer("average", member @ torch.diag(1.0 / member.sum(0)) @ member.T)  # (K*K, K*K)
 
