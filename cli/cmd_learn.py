@@ -108,7 +108,10 @@ def train_pretrain(
 
 
 def train_decoder(
-    encoder: Annotated[Path, typer.Option("--encoder", help="Pretraining checkpoint (run folder or .pt).")],
+    encoder: Annotated[Path | None, typer.Option("--encoder", help="Pretraining checkpoint (run folder or .pt).")] = None,
+    end_to_end: Annotated[bool, typer.Option("--end-to-end", help="No --encoder: train encoder and decoder together "
+                                             "from random weights (the supervised U-Net baseline, no SSL).")] = False,
+    preset: Annotated[str, typer.Option(help="Model preset of an --end-to-end run (lite or paper).")] = "lite",
     out: Annotated[Path, typer.Option("--out", help="Run folder.")] = Path("runs/decoder"),
     objects: ObjectsOpt = "",
     views: ViewsOpt = "0,1,2",
@@ -129,10 +132,11 @@ def train_decoder(
     cache: CacheOpt = DEFAULT_CACHE,
     sessions: SessionsOpt = None,
 ) -> None:
-    """Fit the footprint decoder with the SBH loss on the frozen encoder (resumable)."""
+    """Fit the footprint decoder with the SBH loss on the frozen encoder, or end-to-end (resumable)."""
     from sssphase_core.data import PatchDataset
     from sssphase_core.errors import InputError
     from sssphase_core.evaluation import plot_metric_vs_time
+    from sssphase_core.models import get_preset
     from sssphase_core.models.decoder import HEADS
     from sssphase_core.sim import TRAIN_OBJECTS
     from sssphase_core.training import METRICS, DecoderConfig, load_encoder
@@ -140,7 +144,10 @@ def train_decoder(
 
     if head not in HEADS:
         raise InputError(f"unknown decoder head {head!r}; choose one of {', '.join(HEADS)}")
-    patch = load_encoder(encoder).preset.patch
+    if (encoder is None) == (not end_to_end):
+        raise InputError("give either --encoder PATH (a pretraining run; the paper's method) or --end-to-end (the "
+                         "supervised baseline without SSL), not both or neither")
+    patch = get_preset(preset).patch if end_to_end else load_encoder(encoder).preset.patch
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
     kw = dict(n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=True, seed=seed, cache=cache, noisy=noisy_targets,
               sessions=sessions)
@@ -150,8 +157,9 @@ def train_decoder(
     ds = PatchDataset(train_vds, patch, names, with_targets=True)
     val = PatchDataset(val_vds, patch, names, with_targets=True) if val_vds else None
     cfg = DecoderConfig(epochs=epochs, batch_size=batch_size, seed=seed, ckpt_every=ckpt_every, device=device, lr=lr,
-                        head=head, aux_classes=aux_classes)
-    console.print(f"training the decoder on {len(ds)} footprints of {', '.join(names)} -> {out}")
+                        head=head, aux_classes=aux_classes, preset=preset)
+    what = f"encoder and decoder end-to-end ({preset})" if end_to_end else "the decoder"
+    console.print(f"training {what} on {len(ds)} footprints of {', '.join(names)} -> {out}")
     path = fit(cfg, encoder, ds, out, val=val, resume=resume)
     if val is not None:
         plot_metric_vs_time(out / METRICS, "val_mse", out / "error_vs_time.png")
@@ -169,7 +177,7 @@ def eval_knn(
     n_views: int = 4,
     rig: str = "cpu",
     pixels_per_view: int = 1000,
-    k: int = 20,
+    k: Annotated[str, typer.Option(help="Neighbours; a comma list adds a sweep (the table uses the first).")] = "20",
     vote: Annotated[str, typer.Option(help="majority or weighted.")] = "majority",
     label: Annotated[str, typer.Option(help="object (the paper's Table 2) or material.")] = "object",
     seed: Annotated[int, typer.Option(help="Pixel sampling seed (use one the encoder was not trained on for new patches).")] = 1,
@@ -190,6 +198,9 @@ def eval_knn(
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
     if label not in ("object", "material"):
         raise InputError(f"--label must be object or material, got {label!r}")
+    ks = _ints(k)
+    if not ks or min(ks) < 1:
+        raise InputError(f"--k needs one or more positive integers, got {k!r}")
     vds = _views(names, _ints(views), n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=False, seed=seed,
                  cache=cache, sessions=sessions)
     names = names or _objects(vds)
@@ -202,16 +213,22 @@ def eval_knn(
         labels = ds.labels(label)
         keep = labels >= 0
         classes = names if label == "object" else list(MATERIAL_NAMES)
-        res = knn_leave_one_view_out(emb[keep], labels[keep], ds.labels("view")[keep], k=k, vote=vote, class_names=classes)
+        sweep = {kk: knn_leave_one_view_out(emb[keep], labels[keep], ds.labels("view")[keep], k=kk, vote=vote,
+                                            class_names=classes) for kk in ks}
+        res = sweep[ks[0]]
         res.pop("pred")
+        res["overall_by_k"] = {kk: r["overall"] for kk, r in sweep.items()}
         results[run] = res
     rows = sorted({c for r in results.values() for c in r["per_class"]}, key=str)
     md = [f"| {label.capitalize()} | " + " | ".join(results) + " |", "|---|" + "---|" * len(results)]
     md += [f"| {c} | " + " | ".join(f"{100 * r['per_class'].get(c, float('nan')):.2f}" for r in results.values()) + " |" for c in rows]
     md += ["| **overall** | " + " | ".join(f"{100 * r['overall']:.2f}" for r in results.values()) + " |"]
     md += ["| **mean per view** | " + " | ".join(f"{100 * r['mean_per_view']:.2f}" for r in results.values()) + " |"]
-    header = f"kNN accuracy (%), k={k}, {vote} vote, view-level leave-one-out over views {views}"
-    _write(out, {"k": k, "vote": vote, "label": label, "views": views, "results": results}, header + "\n\n" + "\n".join(md))
+    if len(ks) > 1:
+        md += ["", "Overall accuracy (%) against k:", "", "| k | " + " | ".join(results) + " |", "|---|" + "---|" * len(results)]
+        md += [f"| {kk} | " + " | ".join(f"{100 * r['overall_by_k'][kk]:.2f}" for r in results.values()) + " |" for kk in ks]
+    header = f"kNN accuracy (%), k={ks[0]}, {vote} vote, view-level leave-one-out over views {views}"
+    _write(out, {"k": ks[0], "vote": vote, "label": label, "views": views, "results": results}, header + "\n\n" + "\n".join(md))
 
 
 def eval_footprints(
@@ -222,6 +239,8 @@ def eval_footprints(
     rig: str = "cpu",
     pixels_per_view: int = 500,
     baseline: Annotated[str, typer.Option(help="Backend to compare with ('' for none).")] = "analytic",
+    compare: Annotated[list[str] | None, typer.Option("--compare", help="NAME=PATH: another decoder run in the table "
+                                                      "(repeat; e.g. unet=runs/dec_e2e from --end-to-end).")] = None,
     seed: int = 2,
     plots: Annotated[Path | None, typer.Option(help="Folder for footprint profile plots (one per object).")] = None,
     out: Annotated[Path | None, typer.Option(help="JSON output (a .md table is written next to it).")] = None,
@@ -232,6 +251,7 @@ def eval_footprints(
     import numpy as np
 
     from sssphase_core.backends import get_backend
+    from sssphase_core.errors import InputError
     from sssphase_core.evaluation import footprint_metrics, plot_profiles, summarise
     from sssphase_core.sim import UNSEEN_OBJECTS, rig_preset
 
@@ -240,6 +260,11 @@ def eval_footprints(
                  cache=cache, sessions=sessions)
     names = names or _objects(vds)
     backends = {"torch": get_backend("torch", checkpoint=checkpoint)}
+    for item in compare or []:
+        name, sep, path = item.partition("=")
+        if not sep or not name or name in backends or name == baseline:
+            raise InputError(f"--compare takes NAME=PATH with a new name, got {item!r}")
+        backends[name] = get_backend("torch", checkpoint=path)
     if baseline:
         patch = backends["torch"].patch
         opts = {"patch": patch, "black": rig_preset(rig).projector.black} if baseline == "analytic" else {}

@@ -18,7 +18,7 @@ import math
 import os
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields
+from dataclasses import asdict, dataclass, fields, replace
 from pathlib import Path
 
 import numpy as np
@@ -399,24 +399,38 @@ class DecoderConfig(LoopConfig):
     aux_classes: int = 0  # > 0: auxiliary material-classification head on the embedding
     aux_weight: float = 0.1
     val_samples: int = 512
+    end_to_end: bool = False  # set when no encoder checkpoint is given: the supervised U-Net baseline (no SSL)
+    preset: str = "lite"  # the end-to-end model's preset (a frozen encoder brings its own)
 
 
-def _decoder_forward(enc: Encoder, dec: nn.Module, psp: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
-    with torch.no_grad():
-        bottleneck, skips = enc.features(psp)
-    out = dec(bottleneck, skips, psp)
-    return (out, None) if isinstance(out, torch.Tensor) else out
+class FootprintNet(nn.Module):
+    """PSP patches -> (footprints, aux logits or None): the encoder's features through the decoder.
+
+    The encoder gets gradients only when ``train_encoder`` (the end-to-end U-Net baseline); one module
+    so that DDP sees every trained parameter.
+    """
+
+    def __init__(self, encoder: Encoder, decoder: Decoder, *, train_encoder: bool = False) -> None:
+        super().__init__()
+        self.encoder, self.decoder, self.train_encoder = encoder, decoder, train_encoder
+
+    def forward(self, psp: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+        with torch.set_grad_enabled(self.train_encoder and torch.is_grad_enabled()):
+            bottleneck, skips = self.encoder.features(psp)
+        out = self.decoder(bottleneck, skips, psp)
+        return (out, None) if isinstance(out, torch.Tensor) else out
 
 
 @torch.no_grad()
 def validate_decoder(enc: Encoder, dec: Decoder, dataset: PatchDataset, n: int, batch_size: int, device: torch.device) -> dict[str, float]:
     """SBH loss, MSE and PSNR (data range 1) on the first ``n`` patches of a fixed permutation."""
+    enc.eval()
     dec.eval()
     idx = np.random.default_rng(0).permutation(len(dataset))[:n]
     loss_fn, sums, count = SBHLoss(), {"val_loss": 0.0, "val_mse": 0.0}, 0
     for i in range(0, len(idx), batch_size):
         b = dataset.batch(idx[i : i + batch_size])
-        pred, _ = _decoder_forward(enc, dec, b["psp"].to(device))
+        pred, _ = FootprintNet(enc, dec)(b["psp"].to(device))
         target = b["footprint"].to(device)
         sums["val_loss"] += float(loss_fn(pred, target)[0]) * len(target)
         sums["val_mse"] += float(((pred.float() - target) ** 2).mean()) * len(target)
@@ -428,7 +442,7 @@ def validate_decoder(enc: Encoder, dec: Decoder, dataset: PatchDataset, n: int, 
 
 def train_decoder(
     cfg: DecoderConfig,
-    encoder_ckpt: Path | str,
+    encoder_ckpt: Path | str | None,
     dataset: PatchDataset,
     out_dir: Path | str,
     *,
@@ -436,27 +450,44 @@ def train_decoder(
     resume: bool = True,
     progress: bool = True,
     stop_after_steps: int | None = None,
+    preset: ModelPreset | None = None,
 ) -> Path:
-    """Fit the decoder with the SBH loss on a frozen encoder (kept in eval mode: BN stats and dropout fixed)."""
+    """Fit the decoder with the SBH loss on a frozen encoder (kept in eval mode: BN stats and dropout fixed).
+
+    ``encoder_ckpt=None`` trains encoder and decoder together from random weights instead: the
+    end-to-end supervised U-Net baseline without SSL pretraining (``preset`` or ``cfg.preset`` sizes it).
+    """
     out_dir = Path(out_dir)
     d = init_distributed(cfg.device)
-    src = load_checkpoint(encoder_ckpt)
-    p = get_preset(src["preset"])
+    cfg = replace(cfg, end_to_end=encoder_ckpt is None)
+    torch.manual_seed(cfg.seed)
+    if cfg.end_to_end:
+        p = preset or get_preset(cfg.preset)
+        cfg = replace(cfg, preset=p.name)
+        enc = Encoder(p).to(d.device)
+    else:
+        src = load_checkpoint(encoder_ckpt)
+        p = get_preset(src["preset"])
+        enc = Encoder(p)
+        enc.load_state_dict(src["encoder"])
+        enc = enc.to(d.device).eval().requires_grad_(False)
     if p.patch != dataset.patch:
         raise DataError(f"the encoder's preset {p.name} expects {p.patch}px patches, the dataset has {dataset.patch}px")
-    enc = Encoder(p)
-    enc.load_state_dict(src["encoder"])
-    enc = enc.to(d.device).eval().requires_grad_(False)
-    torch.manual_seed(cfg.seed)
     dec = Decoder(p, out_scale=cfg.out_scale, n_classes=cfg.aux_classes, head=cfg.head).to(d.device)
-    net = _wrap(dec, d)
+    net = _wrap(FootprintNet(enc, dec, train_encoder=cfg.end_to_end), d)
     physics = dec.physics_parameters()
     ids = {id(q) for q in physics}
-    opt = torch.optim.Adam([{"params": [q for q in dec.parameters() if id(q) not in ids], "lr": cfg.lr},
+    trained = [*enc.parameters(), *dec.parameters()] if cfg.end_to_end else list(dec.parameters())
+    opt = torch.optim.Adam([{"params": [q for q in trained if id(q) not in ids], "lr": cfg.lr},
                             {"params": physics, "lr": cfg.lr * cfg.physics_lr_mult}])
     loop = Loop(cfg, dataset, out_dir, d, "decoder")
-    ckpt = _resume_state(out_dir, resume, "decoder")
+    ckpt = _resume_state(out_dir, resume, "decoder", p)
     if ckpt is not None:
+        if bool(ckpt["config"].get("end_to_end", False)) != cfg.end_to_end:
+            raise DataError(f"{out_dir / CHECKPOINT} is {'an end-to-end' if not cfg.end_to_end else 'a frozen-encoder'} "
+                            "decoder run; choose another output folder or pass --no-resume")
+        if cfg.end_to_end:
+            enc.load_state_dict(ckpt["encoder"])
         dec.load_state_dict(ckpt["decoder"])
         opt.load_state_dict(ckpt["optimizer"])
         loop.restore(ckpt["loop"])
@@ -470,9 +501,9 @@ def train_decoder(
 
     def step(batch: dict[str, torch.Tensor], gstep: int) -> dict[str, float]:
         dec.train()
-        enc.eval()  # never leaves eval mode: its BN statistics and dropout stay frozen
+        enc.train(cfg.end_to_end)  # a frozen encoder never leaves eval mode: BN statistics and dropout stay fixed
         with _autocast(d, cfg.amp):
-            pred, logits = _decoder_forward(enc, net, batch["psp"])
+            pred, logits = net(batch["psp"])
         loss, terms = loss_fn(pred, batch["footprint"])
         if logits is not None:
             known = batch["material"] >= 0

@@ -43,16 +43,20 @@ class TorchBackend:
         ds = PatchDataset(views, p.patch, sorted({v.object for v in views}))
         return pretrain(cfg, ds, out_dir, preset=p, **options)
 
-    def fit(self, views: Sequence[ViewData], out_dir: Path, *, encoder: Path | str, config: DecoderConfig | None = None,
+    def fit(self, views: Sequence[ViewData], out_dir: Path, *, encoder: Path | str | None, config: DecoderConfig | None = None,
             val_views: Sequence[ViewData] | None = None, **options: object) -> Path:
-        """Train the decoder on a frozen pretrained ``encoder`` checkpoint, then load the result."""
+        """Train the decoder on a frozen pretrained ``encoder`` checkpoint, then load the result.
+
+        ``encoder=None`` trains encoder and decoder end-to-end (the U-Net baseline, ``config.preset``).
+        """
         from sssphase_core.training import load_encoder
 
-        patch = load_encoder(encoder).preset.patch
+        config = config or DecoderConfig()
+        patch = get_preset(config.preset).patch if encoder is None else load_encoder(encoder).preset.patch
         classes = sorted({v.object for v in [*views, *(val_views or [])]})
         ds = PatchDataset(views, patch, classes, with_targets=True)
         val = PatchDataset(val_views, patch, classes, with_targets=True) if val_views else None
-        path = train_decoder(config or DecoderConfig(), encoder, ds, out_dir, val=val, **options)
+        path = train_decoder(config, encoder, ds, out_dir, val=val, **options)
         self.load(path)
         return path
 

@@ -30,6 +30,15 @@ def test_missing_checkpoint_is_a_one_line_error(tmp_path):
         runner.invoke(app, ["viz", "pca", "--checkpoint", str(tmp_path / "none.pt")], catch_exceptions=False)
 
 
+@pytest.mark.parametrize("args", [[], ["--encoder", "runs/pre", "--end-to-end"]])
+def test_decoder_needs_exactly_one_of_encoder_or_end_to_end(args, tmp_path):
+    from sssphase_core.errors import InputError
+
+    with pytest.raises(InputError, match="--encoder PATH .* or --end-to-end"):
+        runner.invoke(app, ["train", "decoder", *args, "--out", str(tmp_path / "dec")], catch_exceptions=False)
+    assert not (tmp_path / "dec").exists()
+
+
 @pytest.mark.slow
 def test_train_eval_viz_on_the_simulator(tmp_path):
     pytest.importorskip("sssphase_core.sim")
@@ -38,16 +47,23 @@ def test_train_eval_viz_on_the_simulator(tmp_path):
     pre, dec = tmp_path / "pre", tmp_path / "dec"
     invoke("train", "pretrain", "--out", str(pre), "--epochs", "1", "--batch-size", "32", *common)
     assert (pre / "last.pt").exists() and (pre / "metrics.jsonl").exists()
-    invoke("eval", "knn", "--checkpoint", f"psp={pre}", "--k", "5", "--seed", "0", "--out", str(tmp_path / "knn.json"), *common)
+    invoke("eval", "knn", "--checkpoint", f"psp={pre}", "--k", "5,1", "--seed", "0", "--out", str(tmp_path / "knn.json"), *common)
     knn = json.loads((tmp_path / "knn.json").read_text())
-    assert 0 <= knn["results"]["psp"]["overall"] <= 1 and "| star |" in (tmp_path / "knn.md").read_text()
+    psp = knn["results"]["psp"]
+    assert knn["k"] == 5 and psp["k"] == 5 and 0 <= psp["overall"] <= 1 and psp["overall_by_k"]["5"] == psp["overall"]
+    assert set(psp["overall_by_k"]) == {"5", "1"}
+    assert "| star |" in (tmp_path / "knn.md").read_text() and "against k" in (tmp_path / "knn.md").read_text()
     invoke("train", "decoder", "--encoder", str(pre), "--out", str(dec), "--epochs", "1", "--batch-size", "32",
            "--views", "0", "--val-views", "1", "--objects", "star", "--pixels-per-view", "64", "--cache", cache)
     assert (dec / "error_vs_time.png").exists()
-    invoke("eval", "footprints", "--checkpoint", str(dec), "--objects", "soap", "--views", "0", "--pixels-per-view", "16",
-           "--plots", str(tmp_path / "plots"), "--out", str(tmp_path / "fp.json"), "--cache", cache)
+    e2e = tmp_path / "e2e"  # the supervised U-Net baseline: no SSL, encoder trained with the decoder
+    invoke("train", "decoder", "--end-to-end", "--out", str(e2e), "--epochs", "1", "--batch-size", "32",
+           "--views", "0", "--val-views", "", "--objects", "star", "--pixels-per-view", "64", "--cache", cache)
+    invoke("eval", "footprints", "--checkpoint", str(dec), "--compare", f"unet={e2e}", "--objects", "soap", "--views", "0",
+           "--pixels-per-view", "16", "--plots", str(tmp_path / "plots"), "--out", str(tmp_path / "fp.json"), "--cache", cache)
     fp = json.loads((tmp_path / "fp.json").read_text())["results"]["soap"]
-    assert {"torch", "analytic"} <= fp.keys() and fp["torch"]["psnr"] > 0
+    assert {"torch", "unet", "analytic"} == fp.keys() and min(r["psnr"] for r in fp.values()) > 0
+    assert "unet PSNR" in (tmp_path / "fp.md").read_text()
     assert (tmp_path / "plots" / "soap_torch.png").exists()
     invoke("viz", "pca", "--checkpoint", str(pre), "--objects", "star", "--stride", "8", "--out", str(tmp_path / "pca.png"),
            "--cache", cache)

@@ -113,6 +113,37 @@ def test_decoder_resume_is_exact(pretrained, dataset, tmp_path):
     assert states_equal(load_checkpoint(tmp_path / "a")["decoder"], load_checkpoint(tmp_path / "b")["decoder"])
 
 
+def test_end_to_end_baseline_trains_the_encoder_too(dataset, tiny, tmp_path):
+    from sssphase_core.models import Encoder
+
+    cfg = DecoderConfig(epochs=1, batch_size=16, ckpt_every=0)
+    train_decoder(cfg, None, dataset, tmp_path / "e2e", progress=False, preset=tiny)
+    ckpt = load_checkpoint(tmp_path / "e2e")
+    assert ckpt["config"]["end_to_end"] and ckpt["config"]["preset"] == "tiny"
+    torch.manual_seed(cfg.seed)
+    init = Encoder(tiny).state_dict()  # the run's starting weights (same seed)
+    moved = [k for k in init if k.endswith("weight") and not torch.equal(init[k], ckpt["encoder"][k])]
+    assert len(moved) > 0.9 * sum(k.endswith("weight") for k in init)
+    bn = [k for k in init if k.endswith("running_var")]
+    assert bn and all(not torch.equal(init[k], ckpt["encoder"][k]) for k in bn)  # trained in train mode
+    enc, dec = load_decoder(tmp_path / "e2e")  # the torch backend loads it like any decoder run
+    assert not enc.training and not dec.training
+
+
+def test_end_to_end_resume_is_exact_and_not_mixed_with_a_frozen_run(pretrained, dataset, tiny, tmp_path):
+    from sssphase_core.errors import DataError
+
+    cfg = DecoderConfig(epochs=1, batch_size=16, ckpt_every=2)
+    train_decoder(cfg, None, dataset, tmp_path / "a", progress=False, preset=tiny)
+    with pytest.raises(SimulatedInterrupt):
+        train_decoder(cfg, None, dataset, tmp_path / "b", progress=False, preset=tiny, stop_after_steps=3)
+    train_decoder(cfg, None, dataset, tmp_path / "b", progress=False, preset=tiny)
+    a, b = load_checkpoint(tmp_path / "a"), load_checkpoint(tmp_path / "b")
+    assert states_equal(a["encoder"], b["encoder"]) and states_equal(a["decoder"], b["decoder"])
+    with pytest.raises(DataError, match="end-to-end"):
+        train_decoder(cfg, pretrained, dataset, tmp_path / "a", progress=False)
+
+
 def test_decoder_rejects_a_pretraining_run_as_its_own_output(pretrained, dataset):
     from sssphase_core.errors import DataError
 
