@@ -81,6 +81,7 @@ def train_pretrain(
     warmup_epochs: float = 2.0,
     augment: Annotated[str, typer.Option(help="psp (weak/strong PSP set) or imagenet (baseline).")] = "psp",
     fix_pred_lr: bool = False,
+    knn_monitor: Annotated[int, typer.Option(help="Training patches in the per-epoch kNN monitor (0: off).")] = 2000,
     seed: int = 0,
     ckpt_every: Annotated[int, typer.Option(help="Steps between mid-epoch checkpoints.")] = 50,
     device: str = "auto",
@@ -90,9 +91,10 @@ def train_pretrain(
 ) -> None:
     """SimSiam pretraining of the encoder on PSP patches of the training objects (resumable)."""
     from sssphase_core.data import PatchDataset
+    from sssphase_core.evaluation import plot_metric_vs_time, read_metrics
     from sssphase_core.models import get_preset
     from sssphase_core.sim import TRAIN_OBJECTS
-    from sssphase_core.training import PretrainConfig, pretrain
+    from sssphase_core.training import METRICS, PretrainConfig, pretrain
 
     p = get_preset(preset)
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
@@ -101,9 +103,14 @@ def train_pretrain(
     names = names or _objects(vds)
     ds = PatchDataset(vds, p.patch, names)
     cfg = PretrainConfig(epochs=epochs, batch_size=batch_size, seed=seed, ckpt_every=ckpt_every, device=device, preset=preset,
-                         lr=lr, warmup_epochs=warmup_epochs, fix_pred_lr=fix_pred_lr, augment=augment)
+                         lr=lr, warmup_epochs=warmup_epochs, fix_pred_lr=fix_pred_lr, augment=augment, knn_monitor=knn_monitor)
     console.print(f"pretraining [bold]{preset}[/] on {len(ds)} patches of {', '.join(names)} -> {out}")
     path = pretrain(cfg, ds, out, resume=resume)
+    rows = [r for r in read_metrics(out / METRICS) if "knn_acc" in r]
+    if rows:
+        plot_metric_vs_time(out / METRICS, "knn_acc", out / "knn_vs_time.png", log=False)
+        trail = ", ".join(f"{100 * r['knn_acc']:.1f}" for r in rows)
+        console.print(f"kNN monitor (% per epoch, training patches): {trail}; plot {out / 'knn_vs_time.png'}")
     console.print(f"[green]done[/]: {path}")
 
 

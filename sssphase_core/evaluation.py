@@ -170,7 +170,7 @@ def read_metrics(path: Path | str) -> list[dict]:
     return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
 
 
-def plot_metric_vs_time(metrics_path: Path | str, key: str, out: Path | str) -> None:
+def plot_metric_vs_time(metrics_path: Path | str, key: str, out: Path | str, *, log: bool = True) -> None:
     """The error against run time: ``key`` of every metrics.jsonl row against its ``wall_s``."""
     import matplotlib
 
@@ -183,7 +183,7 @@ def plot_metric_vs_time(metrics_path: Path | str, key: str, out: Path | str) -> 
     fig, ax = plt.subplots(figsize=(5, 3.2))
     ax.plot([r["wall_s"] for r in rows], [r[key] for r in rows], "o-")
     ax.set(xlabel="run time (s)", ylabel=key, title=f"{key} against run time")
-    if all(r[key] > 0 for r in rows):
+    if log and all(r[key] > 0 for r in rows):
         ax.set_yscale("log")
     fig.tight_layout()
     fig.savefig(out, dpi=120)

@@ -300,6 +300,8 @@ class PretrainConfig(LoopConfig):
     augment: str = "psp"  # psp (weak/strong) or imagenet
     collapse_std_frac: float = 0.1  # collapse when proj std < frac / sqrt(d)
     monitor_samples: int = 2048
+    knn_monitor: int = 2000  # training patches in the end-of-epoch kNN monitor (view-level leave-one-out; 0: off)
+    knn_k: int = 20
 
 
 def lr_at(step: int, total: int, warmup: int, base: float) -> float:
@@ -308,6 +310,30 @@ def lr_at(step: int, total: int, warmup: int, base: float) -> float:
         return base * (step + 1) / warmup
     t = (step - warmup) / max(1, total - warmup)
     return base * 0.5 * (1 + math.cos(math.pi * min(1.0, t)))
+
+
+def _knn_monitor_indices(dataset: PatchDataset, n: int, seed: int) -> np.ndarray | None:
+    """A fixed, seeded subset of the training patches for the kNN monitor (None: off or one view only)."""
+    if n <= 0 or len(np.unique(dataset.labels("view"))) < 2:
+        return None
+    return np.sort(np.random.default_rng(seed + 7).permutation(len(dataset))[:n])
+
+
+@torch.no_grad()
+def knn_monitor(encoder: Encoder, dataset: PatchDataset, idx: np.ndarray, k: int, device: torch.device) -> float:
+    """Object kNN accuracy (cosine, majority vote, view-level leave-one-out) of the frozen embeddings of
+    ``idx``: a cheap per-epoch check of representation quality. It uses training patches, so it is a
+    monitor; the reported figure is ``sss eval knn`` on fresh patches.
+    """
+    from sssphase_core.evaluation import knn_leave_one_view_out
+
+    was = encoder.training
+    encoder.eval()
+    emb = torch.cat([encoder(dataset.batch(idx[i : i + 256])["psp"].to(device)).float().cpu()
+                     for i in range(0, len(idx), 256)])
+    encoder.train(was)
+    res = knn_leave_one_view_out(emb.numpy(), dataset.labels("object")[idx], dataset.labels("view")[idx], k=k)
+    return res["overall"]
 
 
 def pretrain(
@@ -363,6 +389,8 @@ def pretrain(
             monitor["y"].append(out["embedding"].float().cpu())
         return {"loss": float(out["loss"].detach()), "lr": lr}
 
+    knn_idx = _knn_monitor_indices(dataset, cfg.knn_monitor, cfg.seed)
+
     def end_epoch(epoch: int) -> dict[str, float]:
         z, y = torch.cat(monitor["z"]), torch.cat(monitor["y"])
         monitor["z"].clear()
@@ -371,6 +399,8 @@ def pretrain(
         stats = _all_mean({"proj_std": projection_std(z), "eff_rank": effective_rank(y)}, d)
         stats["proj_std_healthy"] = healthy
         stats["collapsed"] = float(stats["proj_std"] < cfg.collapse_std_frac * healthy)
+        if knn_idx is not None:  # every rank computes the same number (same weights, same patches)
+            stats["knn_acc"] = knn_monitor(model.encoder, dataset, knn_idx, cfg.knn_k, d.device)
         return stats
 
     def save() -> None:

@@ -46,7 +46,7 @@ def test_train_eval_viz_on_the_simulator(tmp_path):
     common = ["--objects", "star,shovel", "--views", "0,1", "--pixels-per-view", "64", "--cache", cache]
     pre, dec = tmp_path / "pre", tmp_path / "dec"
     invoke("train", "pretrain", "--out", str(pre), "--epochs", "1", "--batch-size", "32", *common)
-    assert (pre / "last.pt").exists() and (pre / "metrics.jsonl").exists()
+    assert (pre / "last.pt").exists() and (pre / "metrics.jsonl").exists() and (pre / "knn_vs_time.png").exists()
     invoke("eval", "knn", "--checkpoint", f"psp={pre}", "--k", "5,1", "--seed", "0", "--out", str(tmp_path / "knn.json"), *common)
     knn = json.loads((tmp_path / "knn.json").read_text())
     psp = knn["results"]["psp"]

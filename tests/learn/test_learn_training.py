@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 import torch
 
@@ -70,6 +71,27 @@ def test_collapse_stops_training_with_a_clear_message(dataset, tiny, tmp_path):
     with pytest.raises(TrainingCollapsed, match="collapsed at epoch 1.*healthy"):
         pretrain(cfg, dataset, tmp_path / "run", preset=tiny, progress=False)
     assert load_checkpoint(tmp_path / "run")["loop"]["epoch"] == 1
+
+
+def test_knn_monitor_is_logged_every_epoch_and_measures_the_right_patches(pretrained, dataset):
+    from sssphase_core.data import PatchDataset
+    from sssphase_core.evaluation import knn_leave_one_view_out
+    from sssphase_core.training import _knn_monitor_indices, knn_monitor
+
+    rows = [json.loads(line) for line in (pretrained / METRICS).read_text().splitlines()]
+    assert len(rows) == PRE.epochs and all(0.0 <= r["knn_acc"] <= 1.0 for r in rows)
+
+    class MeanColour(torch.nn.Module):  # a stand-in encoder: the mean of each of the 24 channels
+        def forward(self, x):
+            return x.mean(dim=(2, 3))
+
+    idx = _knn_monitor_indices(dataset, 100, seed=0)
+    assert len(idx) == 100 and len(np.unique(idx)) == 100
+    emb = dataset.batch(idx)["psp"].mean(dim=(2, 3)).numpy()
+    want = knn_leave_one_view_out(emb, dataset.labels("object")[idx], dataset.labels("view")[idx], k=5)["overall"]
+    assert knn_monitor(MeanColour(), dataset, idx, 5, torch.device("cpu")) == want
+    one_view = PatchDataset([v for v in dataset.views if v.view == 0], 16, ["a", "b"])
+    assert _knn_monitor_indices(one_view, 100, seed=0) is None  # leave-one-view-out needs two views
 
 
 def test_collapse_statistics():
