@@ -80,7 +80,7 @@ def train_pretrain(
     lr: float = 0.05,
     warmup_epochs: float = 2.0,
     augment: Annotated[str, typer.Option(help="psp (weak/strong PSP set) or imagenet (baseline).")] = "psp",
-    fix_pred_lr: bool = False,
+    fix_pred_lr: Annotated[bool, typer.Option(help="Keep the predictor at the base lr (no schedule).")] = True,
     knn_monitor: Annotated[int, typer.Option(help="Training patches in the per-epoch kNN monitor (0: off).")] = 2000,
     seed: int = 0,
     ckpt_every: Annotated[int, typer.Option(help="Steps between mid-epoch checkpoints.")] = 50,

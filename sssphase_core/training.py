@@ -296,7 +296,7 @@ class PretrainConfig(LoopConfig):
     momentum: float = 0.9
     weight_decay: float = 1e-4
     warmup_epochs: float = 2.0  # linear warmup, then cosine decay to 0 (paper: 20 of its epochs)
-    fix_pred_lr: bool = False  # SimSiam's option: the predictor keeps the base lr
+    fix_pred_lr: bool = True  # the predictor keeps the base lr (SimSiam's recommendation; kept kNN rising here)
     augment: str = "psp"  # psp (weak/strong) or imagenet
     collapse_std_frac: float = 0.1  # collapse when proj std < frac / sqrt(d)
     monitor_samples: int = 2048

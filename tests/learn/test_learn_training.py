@@ -94,6 +94,12 @@ def test_knn_monitor_is_logged_every_epoch_and_measures_the_right_patches(pretra
     assert _knn_monitor_indices(one_view, 100, seed=0) is None  # leave-one-view-out needs two views
 
 
+def test_predictor_keeps_the_base_lr_by_default_while_the_rest_decays(pretrained):
+    backbone, predictor = load_checkpoint(pretrained)["optimizer"]["param_groups"]
+    assert PRE.fix_pred_lr and predictor["fix"] and not backbone["fix"]
+    assert predictor["lr"] == PRE.lr and backbone["lr"] < 0.2 * PRE.lr  # cosine decay near its end
+
+
 def test_collapse_statistics():
     torch.manual_seed(0)
     healthy = torch.randn(4096, 64)
