@@ -54,7 +54,7 @@ class DemoConfig:
 
 
 PRESETS = {
-    # Under 5 minutes on 2 CPU cores (168 s measured): 4000 training patches, 2 SimSiam epochs,
+    # Under 5 minutes on 2 CPU cores (140 s measured): 4000 training patches, 2 SimSiam epochs,
     # 3 decoder epochs (the reciprocal head's profile generalises better from more patches than from
     # more epochs); the unseen objects are the two smallest at view 1 (crab 2.5k, sand rake 1.4k
     # valid pixels, every one run through the network).
