@@ -430,7 +430,7 @@ class DecoderConfig(LoopConfig):
     aux_weight: float = 0.1
     val_samples: int = 512
     end_to_end: bool = False  # set when no encoder checkpoint is given: the supervised U-Net baseline (no SSL)
-    preset: str = "lite"  # the end-to-end model's preset (a frozen encoder brings its own)
+    preset: str = "lite"  # sizes an end-to-end model; a frozen encoder brings its own (recorded either way)
 
 
 class FootprintNet(nn.Module):
@@ -457,10 +457,10 @@ def validate_decoder(enc: Encoder, dec: Decoder, dataset: PatchDataset, n: int, 
     enc.eval()
     dec.eval()
     idx = np.random.default_rng(0).permutation(len(dataset))[:n]
-    loss_fn, sums, count = SBHLoss(), {"val_loss": 0.0, "val_mse": 0.0}, 0
+    net, loss_fn, sums, count = FootprintNet(enc, dec), SBHLoss(), {"val_loss": 0.0, "val_mse": 0.0}, 0
     for i in range(0, len(idx), batch_size):
         b = dataset.batch(idx[i : i + batch_size])
-        pred, _ = FootprintNet(enc, dec)(b["psp"].to(device))
+        pred, _ = net(b["psp"].to(device))
         target = b["footprint"].to(device)
         sums["val_loss"] += float(loss_fn(pred, target)[0]) * len(target)
         sums["val_mse"] += float(((pred.float() - target) ** 2).mean()) * len(target)
@@ -489,11 +489,9 @@ def train_decoder(
     """
     out_dir = Path(out_dir)
     d = init_distributed(cfg.device)
-    cfg = replace(cfg, end_to_end=encoder_ckpt is None)
     torch.manual_seed(cfg.seed)
-    if cfg.end_to_end:
+    if encoder_ckpt is None:
         p = preset or get_preset(cfg.preset)
-        cfg = replace(cfg, preset=p.name)
         enc = Encoder(p).to(d.device)
     else:
         src = load_checkpoint(encoder_ckpt)
@@ -501,6 +499,7 @@ def train_decoder(
         enc = Encoder(p)
         enc.load_state_dict(src["encoder"])
         enc = enc.to(d.device).eval().requires_grad_(False)
+    cfg = replace(cfg, end_to_end=encoder_ckpt is None, preset=p.name)  # the checkpoint records what ran
     if p.patch != dataset.patch:
         raise DataError(f"the encoder's preset {p.name} expects {p.patch}px patches, the dataset has {dataset.patch}px")
     dec = Decoder(p, out_scale=cfg.out_scale, n_classes=cfg.aux_classes, head=cfg.head).to(d.device)

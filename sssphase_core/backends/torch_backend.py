@@ -12,7 +12,14 @@ from sssphase_core.backends.base import Query, as_patches
 from sssphase_core.data import PatchDataset, ViewData
 from sssphase_core.errors import InputError
 from sssphase_core.models import ModelPreset, get_preset
-from sssphase_core.training import DecoderConfig, PretrainConfig, load_decoder, pretrain, train_decoder
+from sssphase_core.training import (
+    DecoderConfig,
+    FootprintNet,
+    PretrainConfig,
+    load_decoder,
+    pretrain,
+    train_decoder,
+)
 
 
 class TorchBackend:
@@ -68,8 +75,6 @@ class TorchBackend:
         out = []
         for i in range(0, len(patches), self.batch_size):
             x = torch.as_tensor(patches[i : i + self.batch_size], device=self.device)
-            bottleneck, skips = self.encoder.features(x)
-            pred = self.decoder(bottleneck, skips, x)
-            pred = pred[0] if isinstance(pred, tuple) else pred
+            pred, _ = FootprintNet(self.encoder, self.decoder)(x)
             out.append(pred.float().permute(0, 2, 3, 1).cpu())
         return torch.cat(out).numpy() if out else np.zeros((0, self.patch, self.patch, 3), np.float32)
