@@ -13,6 +13,7 @@ from typing import Annotated
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 from rich.table import Table
 
 console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
@@ -57,9 +58,9 @@ def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] 
     console.print(table)
     for plugin, err in errors.items():
         if err.startswith("no device"):
-            console.print(f"[yellow]{plugin}:[/] {err}")
+            console.print(f"[yellow]{escape(plugin)}:[/] {escape(err)}")
         else:
-            console.print(f"[red]plugin {plugin} failed:[/] {err}")
+            console.print(f"[red]plugin {escape(plugin)} failed:[/] {escape(err)}")
 
 
 def plugins() -> None:
@@ -228,7 +229,7 @@ def validate(session: Annotated[Path, typer.Argument(help="session folder")]) ->
     problems = s.validate()
     if problems:
         for p in problems:
-            console.print(f"[red]{p}[/]")
+            console.print(f"[red]{escape(p)}[/]")
         raise DataError(f"{session}: {len(problems)} problem(s)")
     n = sum(len(s.arrays(v)) for v in s.views())
     console.print(f"[green]ok[/] {session}: {len(s.views())} views, {n} arrays, checksums match")

@@ -14,6 +14,7 @@ import sys
 
 import typer
 from rich.console import Console
+from rich.markup import escape
 
 from sssphase_core.errors import SssError
 
@@ -61,31 +62,39 @@ def _register_all() -> None:
 _register_all()
 
 
+def _is_usage_exception(exc: BaseException, name: str) -> bool:
+    """Whether ``exc`` is click's ``name`` exception, by class name.
+
+    Typer >= 0.29 vendors click (``typer._click``) instead of depending on it, so the classes are not
+    importable from a stable public module; their names and attributes (``exit_code``, ``show``) are.
+    """
+    return any(cls.__name__ == name for cls in type(exc).__mro__)
+
+
 def main() -> None:
     """Run the CLI; user-facing errors are printed as one clear message, never a traceback."""
     try:
         rc = app(standalone_mode=False)
         sys.exit(rc if isinstance(rc, int) else 0)
     except SssError as exc:
-        err_console.print(f"[bold red]error:[/] {exc}")
+        err_console.print(f"[bold red]error:[/] {escape(str(exc))}")
         sys.exit(2)
     except KeyboardInterrupt:
         err_console.print("[yellow]interrupted[/] (work done so far is kept; rerun the command to resume)")
         sys.exit(130)
     except Exception as exc:  # click's own usage errors and anything unexpected
-        import click
-
-        if isinstance(exc, click.exceptions.Exit):
-            sys.exit(exc.exit_code)
-        if isinstance(exc, click.ClickException):
-            exc.show()
-            sys.exit(exc.exit_code)
-        if isinstance(exc, click.exceptions.Abort):
+        if _is_usage_exception(exc, "Exit"):
+            sys.exit(exc.exit_code)  # type: ignore[attr-defined]
+        if _is_usage_exception(exc, "ClickException"):
+            exc.show()  # type: ignore[attr-defined]
+            sys.exit(exc.exit_code)  # type: ignore[attr-defined]
+        if _is_usage_exception(exc, "Abort"):
             err_console.print("[yellow]aborted[/]")
             sys.exit(1)
         if os.environ.get("SSS_DEBUG"):
             raise
-        err_console.print(f"[bold red]internal error:[/] {type(exc).__name__}: {exc}\n(set SSS_DEBUG=1 for a traceback)")
+        err_console.print(f"[bold red]internal error:[/] {escape(f'{type(exc).__name__}: {exc}')}\n"
+                          "(set SSS_DEBUG=1 for a traceback)")
         sys.exit(1)
 
 
