@@ -10,7 +10,7 @@ from rich.console import Console
 
 console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
 
-BackendOpt = Annotated[str, typer.Option("--backend", help="torch, analytic, measured (captured / exact sim footprints) or none.")]
+BackendOpt = Annotated[str, typer.Option("--backend", help="torch, analytic, measured (the session's captured dot-grid footprints), none, or exact (simulated sessions only: the simulator's ground truth, for evaluation).")]
 CheckpointOpt = Annotated[Path | None, typer.Option("--checkpoint", help="Decoder checkpoint for the torch backend.")]
 
 
@@ -157,7 +157,7 @@ def bench_relight(
     out: Annotated[Path, typer.Option("--out", help="JSON output (.md and .png written next to it).")] = Path("bench_relight.json"),
     objects: Annotated[str, typer.Option(help="Comma-separated simulated objects.")] = "soap",
     checkpoint: CheckpointOpt = None,
-    backends: Annotated[str, typer.Option(help="Comma-separated backends.")] = "none,analytic,measured,torch",
+    backends: Annotated[str, typer.Option(help="Comma-separated backends.")] = "none,analytic,exact,torch",
     radii: Annotated[str, typer.Option(help="Footprint truncation radii (px).")] = "4,8",
     chunks: Annotated[str, typer.Option(help="Chunk sizes besides the default 1024.")] = "256,4096",
     repeats: int = 3,
@@ -178,7 +178,7 @@ def bench_stability(
     out: Annotated[Path, typer.Option("--out", help="JSON output (.md written next to it).")] = Path("bench_stability.json"),
     cases: Annotated[str, typer.Option(help="Comma-separated cases (default: all).")] = "",
     checkpoint: CheckpointOpt = None,
-    backends: Annotated[str, typer.Option(help="Comma-separated backends.")] = "none,analytic,measured,torch",
+    backends: Annotated[str, typer.Option(help="Comma-separated backends.")] = "none,analytic,exact,torch",
 ) -> None:
     """Extreme materials, saturation, low light and grazing views: no NaN/inf, error per case."""
     from sssphase_core.bench import stability_bench

@@ -197,12 +197,13 @@ class ViewProcessor:
 
     def _add_dots(self, key: str, image: np.ndarray) -> None:
         if self.extractor is None:
-            from sssphase_core.footprints import DotGridExtractor
+            from sssphase_core.footprints import DotGridExtractor, dark_reference
 
             corr = self.decode()
             self.extractor = DotGridExtractor(corr.xp, corr.yp, corr.mask, self.spacing, self.patch)
+            self.dark = dark_reference(self.images["black"], self.images["white"])
         sx, sy = (int(v) for v in key.split("/")[1].split("_"))
-        self.extractor.add(sx, sy, image - self.images["black"])
+        self.extractor.add(sx, sy, image - self.dark)
         if self.dots is not None:
             self.dots.append(image)
 

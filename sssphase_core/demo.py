@@ -45,7 +45,7 @@ class DemoConfig:
     pretrain_batch: int = 64
     decoder_epochs: int = 3
     decoder_batch: int = 32
-    backends: tuple[str, ...] = ("none", "analytic", "torch", "measured")
+    backends: tuple[str, ...] = ("none", "analytic", "torch", "exact")
     analytic_supersample: int = 2
     pca_stride: int = 2
     footprint_pixels: int = 200
@@ -61,7 +61,7 @@ PRESETS = {
     "lite": DemoConfig(("apple", "pear", "orange", "star", "shovel"), (0, 2), ("crab", "sand_rake"), pixels_per_view=400,
                        pretrain_epochs=2, pretrain_batch=32, decoder_epochs=3),
     "tiny": DemoConfig(("apple", "star"), (0, 2), ("sand_rake",), pixels_per_view=8, pretrain_epochs=1, pretrain_batch=32,
-                       decoder_epochs=1, decoder_batch=16, backends=("none", "torch", "measured"), pca_stride=4,
+                       decoder_epochs=1, decoder_batch=16, backends=("none", "torch", "exact"), pca_stride=4,
                        footprint_pixels=32),
 }
 

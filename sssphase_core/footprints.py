@@ -1,15 +1,29 @@
-"""Ground-truth footprints from dot-grid captures (numpy only).
+"""Ground-truth footprints from dot-grid captures (numpy + scipy).
 
 Dot-grid frame ``(sx, sy)`` lights projector pixels ``(sx + i*s, sy + j*s)``. A camera pixel p whose
-rounded projector coordinate is one of them receives light in that frame, so the ``K x K`` crop of
-the frame centred on p is p's footprint (spacing large enough that neighbouring dots' footprints do
-not overlap). Frames arrive one at a time; only the crops are kept.
+rounded projector coordinate is one of them receives light in that frame, and the ``K x K`` crop of
+the frame centred on p, made to mean what relighting assumes, is p's footprint:
+
+* **per camera pixel**: a dot is one *projector* pixel, which covers ``1 / |det J|`` camera pixels
+  (J = d(xp, yp) / d(x, y), the camera->projector Jacobian of the decoded correspondence), while a
+  footprint is the light that enters through one *camera* pixel. Each crop is multiplied by the
+  pixel's ``|det J|`` (smoothed over 5x5 valid pixels), so a white pattern relit from the footprints
+  gives the white image back. Without it, crops carry 1.1-1.7x the energy where the projector is
+  spread over the camera view.
+* **its own dot only**: where the projector pattern is compressed in the camera view, a K x K crop
+  also holds neighbouring dots. Crop pixels whose projector coordinate is nearer to another dot of
+  the same frame than to p's own dot are set to 0: the dot's Voronoi cell in projector space. Light
+  that scatters further than half the dot spacing is lost there, which is why the spacing should
+  exceed the footprint's width (the paper's 55 px for K = 90).
+
+Frames arrive one at a time; only the crops are kept.
 """
 
 from __future__ import annotations
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
+from scipy.ndimage import uniform_filter
 
 from sssphase_core.errors import InputError
 
@@ -18,8 +32,10 @@ class DotGridExtractor:
     """Collects the ``K x K x C`` footprint of every valid camera pixel from streamed dot-grid frames.
 
     ``xp, yp, mask``: the correspondence maps ``(H, W)``; ``spacing``: dot spacing s in projector
-    pixels; ``patch``: K. Crops are centred on the pixel (index ``K // 2``) and zero-padded at the
-    image border. Storage is preallocated lazily (``np.zeros``) as ``(N, K, K, C)`` ``dtype``.
+    pixels; ``patch``: K. Crops are centred on the pixel (index ``K // 2``), zero-padded at the
+    image border, scaled to one camera pixel's light (``|det J|``) and cut to the pixel's own dot
+    (``isolate``; see the module docstring). Storage is preallocated (``np.zeros``) as
+    ``(N, K, K, C)`` ``dtype``.
     """
 
     def __init__(
@@ -32,6 +48,8 @@ class DotGridExtractor:
         *,
         channels: int = 3,
         dtype: np.dtype = np.float32,
+        per_camera_pixel: bool = True,
+        isolate: bool = True,
     ) -> None:
         if xp.shape != yp.shape or xp.shape != mask.shape or xp.ndim != 2:
             raise InputError(f"xp, yp and mask must share one (H, W) shape, got {xp.shape}, {yp.shape}, {mask.shape}")
@@ -44,6 +62,10 @@ class DotGridExtractor:
         rx = np.floor(xp[ys, xs].astype(np.float64) + 0.5).astype(np.int64)
         ry = np.floor(yp[ys, xs].astype(np.float64) + 0.5).astype(np.int64)
         inside = (rx >= 0) & (ry >= 0)
+        self.isolate = bool(isolate)
+        self._valid = valid
+        self._xp, self._yp = np.where(valid, xp, 0.0).astype(np.float64), np.where(valid, yp, 0.0).astype(np.float64)
+        self.scale = (jacobian_area(xp, yp, valid)[ys, xs] if per_camera_pixel else np.ones(len(ys))).astype(np.float32)
         # shift index of the frame that lights each pixel (-1: never lit)
         self._shift = np.where(inside, (ry % spacing) * spacing + rx % spacing, -1)
         order = np.argsort(self._shift, kind="stable")
@@ -73,9 +95,33 @@ class DotGridExtractor:
         sy1, sx1 = min(self.shape[0], y1 - half + k), min(self.shape[1], x1 - half + k)
         region[sy0 - (y0 - half) : sy1 - (y0 - half), sx0 - (x0 - half) : sx1 - (x0 - half)] = frame[sy0:sy1, sx0:sx1]
         windows = sliding_window_view(region, (k, k), axis=(0, 1))  # (h, w, C, K, K)
-        self._footprints[idx] = windows[ys - y0, xs - x0].transpose(0, 2, 3, 1)
+        crops = windows[ys - y0, xs - x0].transpose(0, 2, 3, 1) * self.scale[idx, None, None, None]
+        if self.isolate:
+            crops *= self._own_dot_windows(idx, shift_x, shift_y, y0, x0, y1, x1)[..., None]
+        self._footprints[idx] = crops
         self._lit[idx] = True
         return len(idx)
+
+    def _own_dot_windows(self, idx: np.ndarray, shift_x: int, shift_y: int, y0: int, x0: int, y1: int, x1: int) -> np.ndarray:
+        """``(n, K, K)`` bool: crop pixels whose nearest dot of this frame, in projector space, is the crop's.
+
+        Each valid pixel's projector coordinate names its nearest dot of the grid, so cells follow the
+        local Jacobian and need no lit camera pixel (a dot between camera pixel centres on a grazing
+        surface is still told apart). Pixels without a coordinate (outside the image, invalid) are kept.
+        """
+        k, half, s = self.patch, self.patch // 2, self.spacing
+        h, w = self.shape
+        labels = np.full((y1 - y0 + k, x1 - x0 + k), -2, np.int64)  # -2: outside the image
+        ry0, rx0 = max(0, y0 - half), max(0, x0 - half)
+        ry1, rx1 = min(h, y1 - half + k), min(w, x1 - half + k)
+        gx = np.floor((self._xp[ry0:ry1, rx0:rx1] - shift_x) / s + 0.5).astype(np.int64)
+        gy = np.floor((self._yp[ry0:ry1, rx0:rx1] - shift_y) / s + 0.5).astype(np.int64)
+        lab = np.where(self._valid[ry0:ry1, rx0:rx1], gy * (1 << 20) + gx, -2)  # no coordinate: kept
+        labels[ry0 - (y0 - half) : ry1 - (y0 - half), rx0 - (x0 - half) : rx1 - (x0 - half)] = lab
+        ys, xs = self.pixels[idx, 0], self.pixels[idx, 1]
+        own = labels[ys - y0 + half, xs - x0 + half]
+        windows = sliding_window_view(labels, (k, k))  # (h, w, K, K)
+        return (windows[ys - y0, xs - x0] == own[:, None, None]) | (windows[ys - y0, xs - x0] == -2)
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
         """``(pixels (N, 2) int yx, footprints (N, K, K, C))`` of the pixels lit so far."""
@@ -86,3 +132,69 @@ class DotGridExtractor:
     def missing(self) -> np.ndarray:
         """Valid pixels ``(M, 2)`` yx that no added frame has lit yet."""
         return self.pixels[~self._lit]
+
+
+def jacobian_area(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray | None = None, smooth: int = 5) -> np.ndarray:
+    """``|det J|`` ``(H, W)`` float32: projector area seen by each camera pixel, J = d(xp, yp)/d(x, y).
+
+    Central differences between valid neighbours (one-sided at a gap), averaged over ``smooth x smooth``
+    valid pixels to tame the decoding noise; pixels with no estimate take the median over the view
+    (1 where nothing is valid, e.g. a one-row image). Differences across a depth edge are clipped to
+    8x the view's median first.
+    """
+    valid = np.isfinite(xp) & np.isfinite(yp) if valid is None else valid & np.isfinite(xp) & np.isfinite(yp)
+    if min(xp.shape) < 2 or not valid.any():
+        return np.ones(xp.shape, np.float32)
+
+    def deriv(a: np.ndarray, axis: int) -> np.ndarray:
+        a = np.where(valid, a.astype(np.float64), np.nan)
+        fwd = np.diff(a, axis=axis, append=np.nan)
+        bwd = np.diff(a, axis=axis, prepend=np.nan)
+        d = np.where(np.isfinite(fwd) & np.isfinite(bwd), 0.5 * (fwd + bwd), np.where(np.isfinite(fwd), fwd, bwd))
+        return d
+
+    det = np.abs(deriv(xp, 1) * deriv(yp, 0) - deriv(xp, 0) * deriv(yp, 1))
+    ok = np.isfinite(det)
+    if not ok.any():
+        return np.ones(xp.shape, np.float32)
+    typical = float(np.median(det[ok]))
+    det = np.clip(det, typical / 8, typical * 8)  # depth edges: a correspondence jump is no area
+    num = uniform_filter(np.where(ok, det, 0.0), smooth, mode="constant")
+    den = uniform_filter(ok.astype(np.float64), smooth, mode="constant")
+    out = np.where(den > 1e-9, num / np.maximum(den, 1e-9), np.median(det[ok]))
+    return out.astype(np.float32)
+
+
+def dark_reference(black: np.ndarray, white: np.ndarray, *, window: int = 7, floor: float = 0.02) -> np.ndarray:
+    """A low-noise estimate ``(H, W, C)`` of the black frame, to subtract from every dot-grid frame.
+
+    Each camera pixel lies in the crops of ~K^2 footprints, so the noise of one black frame would be
+    subtracted ~K^2 times at the same place (coherently) when footprints are splatted: on the CPU
+    preset it cost relit soap 6 dB. The projector's black light is a smooth fraction of the white
+    image, so the estimate is ``(box(black) / box(white)) * white`` over ``window x window`` pixels
+    where the white image is above ``floor``, and ``box(black)`` elsewhere.
+    """
+    black = np.asarray(black, np.float32)
+    white = np.asarray(white, np.float32)
+    size = (window, window) + (1,) * (black.ndim - 2)
+    bb, ww = uniform_filter(black, size), uniform_filter(white, size)
+    lit = ww > floor
+    return np.where(lit, bb / np.where(lit, ww, 1.0) * white, bb).astype(np.float32)
+
+
+def transport_weights(pixels: np.ndarray, xp: np.ndarray, yp: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``(N,)`` weights that turn per-camera-pixel crops back into the light transport, each dot once.
+
+    Every camera pixel whose rounded projector coordinate is dot d stores d's response scaled by
+    ``|det J|``; where the camera is finer than the projector, d is stored by n(d) > 1 pixels (1 or 2
+    on the CPU preset, in a moire pattern). Relighting with the crops as camera-pixel footprints
+    then counts each dot ``n(d) |det J|`` times, ~1 only on average. With these weights,
+    ``1 / (n(d) |det J|)``, the splat is ``sum_d L(d) response_d`` over the captured dots: the
+    measured transport applied to the pattern, whatever the rig's light model.
+    """
+    pixels = np.asarray(pixels, np.int64)
+    rx = np.floor(xp[pixels[:, 0], pixels[:, 1]].astype(np.float64) + 0.5).astype(np.int64)
+    ry = np.floor(yp[pixels[:, 0], pixels[:, 1]].astype(np.float64) + 0.5).astype(np.int64)
+    _, inverse, counts = np.unique(ry * (1 << 20) + rx, return_inverse=True, return_counts=True)
+    area = jacobian_area(xp, yp, mask)[pixels[:, 0], pixels[:, 1]]
+    return (1.0 / (counts[inverse.ravel()] * np.maximum(area, 1e-6))).astype(np.float32)

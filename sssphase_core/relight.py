@@ -181,7 +181,7 @@ def relight(
 
 # --- footprint sources -------------------------------------------------------------------------
 
-BACKENDS = ("torch", "analytic", "measured", "none")
+BACKENDS = ("torch", "analytic", "measured", "none", "exact")
 
 
 def no_scattering_source(white: np.ndarray, patch: int = 1) -> FootprintSource:
@@ -204,18 +204,31 @@ def backend_source(backend: object, psp: np.ndarray) -> FootprintSource:
     return lambda pixels: backend.predict_footprints((stack, np.asarray(pixels)))  # type: ignore[attr-defined]
 
 
-def nearest_measured_source(pixels: np.ndarray, crops: np.ndarray, white: np.ndarray) -> FootprintSource:
-    """Captured footprints (dot-grid crops at ``pixels``) for a real rig: each pixel takes its nearest
-    captured footprint, rescaled by the ratio of their white-image values."""
+WHITE_FLOOR = 1e-3  # white values below this (linear camera units) are noise: no ratio is taken
+
+
+def nearest_measured_source(pixels: np.ndarray, crops: np.ndarray, white: np.ndarray,
+                            weights: np.ndarray | None = None) -> FootprintSource:
+    """Captured footprints (dot-grid crops ``(N, K, K, 3)`` at ``pixels`` ``(N, 2)`` yx), each times its
+    ``weights`` entry (``(N,)``, default 1): a pixel with its own crop gets it; any other pixel takes
+    its nearest captured footprint, rescaled by the ratio of their white-image values (only where
+    both are above the noise floor, at most 4x)."""
     from scipy.spatial import cKDTree
 
     tree = cKDTree(np.asarray(pixels, np.float64))
     img = np.asarray(white, np.float32)
-    px_ref, fps = np.asarray(pixels, np.int64), np.asarray(crops, np.float32)  # one crop per dot: small
+    img = np.repeat(img[..., None], 3, axis=-1) if img.ndim == 2 else img
+    px_ref = np.asarray(pixels, np.int64)
+    fps = np.asarray(crops, np.float32)  # read once: every relit pixel needs its crop
+    if weights is not None:
+        fps = fps * np.asarray(weights, np.float32)[:, None, None, None]
 
     def source(query: np.ndarray) -> np.ndarray:
-        _, idx = tree.query(np.asarray(query, np.float64))
-        ratio = img[query[:, 0], query[:, 1]] / np.maximum(img[px_ref[idx, 0], px_ref[idx, 1]], 1e-6)
+        query = np.asarray(query, np.int64)
+        _, idx = tree.query(query.astype(np.float64))
+        wq, wr = img[query[:, 0], query[:, 1]], img[px_ref[idx, 0], px_ref[idx, 1]]
+        ratio = np.where(wr > WHITE_FLOOR, np.clip(wq / np.maximum(wr, WHITE_FLOOR), 0.0, 4.0), 1.0)
+        ratio[(px_ref[idx] == query).all(axis=1)] = 1.0
         return fps[idx] * ratio[:, None, None, :]
 
     return source
@@ -288,7 +301,7 @@ class RelightView:
     session: object | None = None
 
     def scene(self):
-        """The simulator scene of a simulated session (exact footprints: the ``measured`` upper bound)."""
+        """The simulator scene of a simulated session (exact footprints, ``exact``: evaluation only)."""
         from sssphase_core.sim import SimScene, rig_preset
 
         if self.sim is None:
@@ -351,15 +364,20 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
     the model backend (e.g. ``supersample`` for ``analytic``)."""
     if name == "none":
         return no_scattering_source(rv.white), 1
-    if name == "measured":
-        if rv.sim is not None:
-            return rv.scene().footprints, rv.patch
+    if name == "exact":  # ground truth for evaluation only: no lab has these
+        if rv.sim is None:
+            raise InputError(f"{rv.object}: exact footprints exist only for simulated sessions (use measured)")
+        return rv.scene().footprints, rv.patch
+    if name == "measured":  # the session's own captured dot-grid crops, simulated or not
         arrays = rv.session.arrays(rv.view)  # type: ignore[attr-defined]
         if "footprints/crops" not in arrays:
             raise InputError(f"{rv.object} view {rv.view} has no captured footprints: capture with --footprints")
+        from sssphase_core.footprints import transport_weights
+
         px = np.asarray(rv.session.load(rv.view, "footprints/pixels"), np.int64)  # type: ignore[attr-defined]
         crops = rv.session.read(rv.view, "footprints/crops")  # type: ignore[attr-defined]
-        return nearest_measured_source(px, crops, rv.white), int(crops.shape[1])
+        weights = transport_weights(px, rv.proj.xp, rv.proj.yp, rv.proj.mask)
+        return nearest_measured_source(px, crops, rv.white, weights), int(crops.shape[1])
     from sssphase_core.backends import get_backend
 
     if name == "torch":

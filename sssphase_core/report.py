@@ -64,7 +64,7 @@ def error_vs_runtime_plot(rows: Sequence[dict[str, Any]], path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4), constrained_layout=True)
-    colours = {"none": "tab:gray", "analytic": "tab:orange", "measured": "tab:green", "torch": "tab:blue"}
+    colours = {"none": "tab:gray", "analytic": "tab:orange", "measured": "tab:olive", "exact": "tab:green", "torch": "tab:blue"}
     for backend in dict.fromkeys(r["backend"] for r in rows):
         rs = [r for r in rows if r["backend"] == backend]
         ax.scatter([max(r["seconds"], 1e-4) for r in rs], [r["psnr"] for r in rs], label=backend, color=colours.get(backend))
@@ -96,7 +96,7 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
     parts.append(html_table(cols, body))
     parts.append(f"<p class='note'>PSNR in dB with peak 1.0 (linear camera units: a white Lambertian reference reads 1.0), "
                  f"SSIM (11 px Gaussian window), both on the object mask, mean over the checkerboard and stripe patterns. "
-                 f"{_esc(LPIPS_NOTE)}. <code>measured</code> splats the simulator's exact footprints (the upper bound); "
+                 f"{_esc(LPIPS_NOTE)}. <code>exact</code> splats the simulator's exact footprints (the upper bound, ground truth no lab has; <code>measured</code> would splat captured dot-grid crops); "
                  f"<code>none</code> keeps each pixel's own light (no scattering).</p>")
     for name, why in result.get("skipped", {}).items():
         parts.append(_not_available(f"relighting with the {name} backend", {"reason": why}))

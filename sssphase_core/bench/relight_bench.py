@@ -2,7 +2,7 @@
 
 Everything runs on simulated views, so the reference is the simulator's noise-free render under
 the same pattern. Backends: ``none`` (no scattering), ``analytic`` (physics baseline from the PSP
-modulation), ``measured`` (the exact simulator footprints: the upper bound), ``torch`` when a decoder
+modulation), ``exact`` (the simulator's exact footprints: the upper bound, ground truth no lab has), ``torch`` when a decoder
 checkpoint is given. Swept: footprint truncation radius, chunk size and precision (fp32, bf16).
 Times are the footprint time (network / model / simulator, measured once per backend) plus the splat.
 """
@@ -82,8 +82,8 @@ def sim_view(obj: Any, view: int = 0, *, n_views: int = 4, seed: int = 0, rig: s
 
 
 def source_for(backend: str, sv: SimView, checkpoint: Path | str | None) -> tuple[Callable, int]:
-    """The footprint source of ``backend`` for a simulated view (``measured``: exact footprints)."""
-    if backend == "measured":
+    """The footprint source of ``backend`` for a simulated view (``exact``: the simulator's footprints)."""
+    if backend == "exact":
         return sv.scene.footprints, sv.patch
     return make_source(backend, sv, checkpoint=checkpoint)  # type: ignore[arg-type]
 
@@ -200,7 +200,7 @@ def plot(rows: list[dict[str, Any]], lit: list[dict[str, Any]], path: Path) -> P
     import matplotlib.pyplot as plt
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
-    colours = {"none": "tab:gray", "analytic": "tab:orange", "measured": "tab:green", "torch": "tab:blue"}
+    colours = {"none": "tab:gray", "analytic": "tab:orange", "exact": "tab:green", "torch": "tab:blue"}
     for backend in dict.fromkeys(r["backend"] for r in rows):
         rs = [r for r in rows if r["backend"] == backend]
         a.scatter([r["seconds"] for r in rs], [r["psnr"] for r in rs], label=backend, color=colours.get(backend))
@@ -211,7 +211,7 @@ def plot(rows: list[dict[str, Any]], lit: list[dict[str, Any]], path: Path) -> P
     a.set_ylabel("relit PSNR vs noise-free reference (dB)")
     a.set_title("work-precision")
     a.legend()
-    b.plot([r["lit_fraction"] for r in lit], [r["time_fraction"] for r in lit], "o-", label="measured")
+    b.plot([r["lit_fraction"] for r in lit], [r["time_fraction"] for r in lit], "o-", label="exact")
     b.plot([0, 1], [0, 1], "k--", lw=0.8, label="proportional")
     b.set_xlabel("lit valid pixels (fraction of full white)")
     b.set_ylabel("run time (fraction of full white)")
@@ -224,7 +224,7 @@ def plot(rows: list[dict[str, Any]], lit: list[dict[str, Any]], path: Path) -> P
 
 
 def run(out: Path, *, objects: Sequence[str] = ("soap",), checkpoint: Path | str | None = None,
-        backends: Sequence[str] = ("none", "analytic", "measured", "torch"), radii: Sequence[int] = (4, 8),
+        backends: Sequence[str] = ("none", "analytic", "exact", "torch"), radii: Sequence[int] = (4, 8),
         chunks: Sequence[int] = (256, 4096), dtypes: Sequence[str] = ("fp32", "bf16"), repeats: int = 3,
         progress: Progress | None = None) -> dict[str, Any]:
     """The whole benchmark; writes ``out`` (JSON), ``out.md`` and ``out.png``. Returns the result."""
@@ -254,10 +254,10 @@ def run(out: Path, *, objects: Sequence[str] = ("soap",), checkpoint: Path | str
         Table("Work-precision: relit PSNR against run time", ["object", "backend", "dtype", "chunk", "radius", "PSNR (dB)", "SSIM", "time (s)"],
               [[r["object"], r["backend"], r["dtype"], r["chunk"], r["radius"], r["psnr"], r["ssim"], r["seconds"]] for r in rows],
               note="PSNR (peak 1.0, linear camera units) on the object mask, mean over the checkerboard and stripe patterns. "
-              "Time = footprints (once per backend) + splat; `measured` footprints come from the simulator's cache "
+              "Time = footprints (once per backend) + splat; `exact` footprints come from the simulator's cache "
               "(filled when the references were rendered), so its time is lookup + splat."
               + (f" Skipped: {', '.join(skipped)} (no --checkpoint)." if skipped else "")),
-        Table("Cost against lit valid pixels (measured footprints)", ["pattern", "lit pixels", "lit fraction", "time (s)", "time fraction"],
+        Table("Cost against lit valid pixels (exact footprints)", ["pattern", "lit pixels", "lit fraction", "time (s)", "time fraction"],
               [[r["pattern"], r["lit_pixels"], r["lit_fraction"], r["seconds"], r["time_fraction"]] for r in lit]),
         Table("Splat throughput against dense matmul", ["kernel", "time (s)", "GFLOP/s", "ratio to matmul"],
               [[s["method"], s["seconds"], s["flops"] / 1e9, s["ratio_to_matmul"]] for s in splats],

@@ -1,7 +1,7 @@
 """`sss bench stability`: relighting under extreme materials, exposures and geometry.
 
 Each case is a simulated view (noisy PSP inputs, exact correspondences) relit under a checkerboard
-with the ``none``, ``analytic`` and ``measured`` (exact footprint) backends, plus ``torch`` with a
+with the ``none``, ``analytic`` and ``exact`` (the simulator's footprint) backends, plus ``torch`` with a
 checkpoint. Checked: no NaN/inf in the inputs, the predicted footprints or the relit images; the
 error (PSNR against the simulator's noise-free render) is reported per case and backend.
 """
@@ -100,7 +100,7 @@ def run_case(case: Case, backends: Sequence[str], checkpoint: Path | str | None 
     return rows
 
 
-def run(out: Path, *, cases: Sequence[str] | None = None, backends: Sequence[str] = ("none", "analytic", "measured", "torch"),
+def run(out: Path, *, cases: Sequence[str] | None = None, backends: Sequence[str] = ("none", "analytic", "exact", "torch"),
         checkpoint: Path | str | None = None, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """All (or the named) cases; writes ``out`` (JSON) and ``out.md``. Returns the result."""
     from sssphase_core.errors import InputError

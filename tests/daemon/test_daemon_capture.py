@@ -234,3 +234,47 @@ def test_hdr_brackets_on_a_rig_without_turntable(daemon, tmp_path):
     (tmp_path / "bad.toml").write_text('[devices]\ncamera = "sim:camera0"\n')
     with pytest.raises(InputError, match="projector"):
         RigSpec.from_toml(tmp_path / "bad.toml")
+
+
+@pytest.fixture(scope="module")
+def soap_with_footprints(daemon, tmp_path_factory):
+    """One soap view with dot-grid footprints at the default spacing, through a real daemon."""
+    _, client = daemon
+    req = CaptureRequest("soap", views=1, footprints=True, references=("checkerboard",), out=tmp_path_factory.mktemp("fp"))
+    return run_capture(client, req)
+
+
+@pytest.mark.slow
+def test_captured_footprints_carry_one_camera_pixels_energy(soap_with_footprints):
+    """Dot crops are normalised per camera pixel (|det J|) and cut to their own dot: their energy matches
+    the simulator's exact footprints of the same pixels (it was 1.33x before the normalisation)."""
+    from sssphase_core.sim import SimScene
+
+    s = soap_with_footprints
+    pixels, crops = s.load(0, "footprints/pixels").astype(np.int64), s.load(0, "footprints/crops")
+    pick = np.random.default_rng(0).choice(len(pixels), 400, replace=False)
+    exact = SimScene("soap", view=0, n_views=1).footprints(pixels[pick])
+    e_exact = exact.sum(axis=(1, 2)).mean(axis=1)
+    ok = e_exact > 0.05
+    ratio = crops[pick].sum(axis=(1, 2)).mean(axis=1)[ok] / e_exact[ok]
+    assert 0.9 < np.median(ratio) < 1.1, np.median(ratio)
+
+
+@pytest.mark.slow
+def test_measured_backend_splats_the_captured_crops_and_exact_the_simulators(soap_with_footprints):
+    from sssphase_core.relight import load_view, make_source
+
+    s = soap_with_footprints
+    rv = load_view(s, 0)
+    pixels, crops = s.load(0, "footprints/pixels").astype(np.int64), s.load(0, "footprints/crops")
+    from sssphase_core.footprints import transport_weights
+
+    measured, k = make_source("measured", rv)
+    weights = transport_weights(pixels, rv.proj.xp, rv.proj.yp, rv.proj.mask)
+    np.testing.assert_allclose(measured(pixels[:50]), crops[:50] * weights[:50, None, None, None], rtol=1e-6)
+    assert 0.3 < np.median(weights) < 1.5  # each dot once: 1 / (n(d) |det J|)
+    exact, k2 = make_source("exact", rv)
+    assert k == k2 == 32
+    assert not np.allclose(exact(pixels[:50]), crops[:50], atol=1e-4)  # ground truth is a different thing
+    finite = np.isfinite(measured(pixels)).all()
+    assert finite and np.abs(measured(pixels).sum(axis=(1, 2))).max() < 20  # no white-ratio blow-up

@@ -117,3 +117,89 @@ def test_dot_grid_crops_match_simulated_footprints():
     energy = crops.sum((1, 2, 3)) / exact.sum((1, 2, 3))
     assert np.median(cosine) > 0.8
     assert 0.8 < np.median(energy) < 1.3
+
+
+def _stretched_scene(h=24, w=30, spacing=10):
+    """Camera pixel x sees projector columns [2x - 1, 2x + 1): |det J| = 2. A dot at an even projector
+    column 2x lights half of camera pixel x (area model), spread by a 3x3 kernel of energy 1."""
+    yy, xx = np.mgrid[:h, :w].astype(np.float32)
+    xp, yp = 2 * xx, yy.copy()
+    ker = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], np.float32) / 16
+
+    def frame(sx, sy):
+        img = np.zeros((h, w), np.float32)
+        for dy in range(sy, h, spacing):
+            for dx in range(sx, 2 * w, spacing):
+                if dx % 2 == 0:
+                    img[dy, dx // 2] += 0.5
+        return np.repeat(convolve(img, ker, mode="constant")[..., None], 3, -1)
+
+    return xp, yp, np.ones((h, w), bool), frame
+
+
+def test_crops_are_normalised_per_camera_pixel():
+    """A dot is one projector pixel; the footprint is one camera pixel's light: energy x |det J|."""
+    xp, yp, mask, frame = _stretched_scene()
+    energies = {}
+    for per_pixel in (False, True):
+        ex = DotGridExtractor(xp, yp, mask, 10, 9, per_camera_pixel=per_pixel)
+        ex.add(0, 0, frame(0, 0))
+        pixels, crops = ex.result()
+        inner = (pixels[:, 0] > 1) & (pixels[:, 0] < 22) & (pixels[:, 1] > 1) & (pixels[:, 1] < 28)
+        energies[per_pixel] = crops[inner].sum(axis=(1, 2))
+    np.testing.assert_allclose(energies[False], 0.5, atol=1e-5)
+    np.testing.assert_allclose(energies[True], 1.0, atol=1e-5)
+
+
+def test_neighbouring_dots_are_cut_from_a_crop():
+    """Dots 10 projector px apart are 5 camera px apart here, inside a 9 px crop: only the own dot stays."""
+    xp, yp, mask, frame = _stretched_scene()
+    ker = np.array([[1, 2, 1], [2, 4, 2], [1, 2, 1]], np.float32) / 16
+    for isolate, expect_neighbours in ((False, True), (True, False)):
+        ex = DotGridExtractor(xp, yp, mask, 10, 9, isolate=isolate)
+        ex.add(0, 0, frame(0, 0))
+        pixels, crops = ex.result()
+        i = int(np.flatnonzero((pixels == (10, 10)).all(axis=1))[0])
+        own = np.zeros((9, 9), np.float32)
+        own[3:6, 3:6] = ker  # x |det J| = 2 of the half-pixel dot
+        has_neighbours = not np.allclose(crops[i, ..., 0], own, atol=1e-6)
+        assert has_neighbours == expect_neighbours
+
+
+def test_jacobian_area_of_an_affine_map_and_at_a_depth_edge():
+    from sssphase_core.footprints import jacobian_area
+
+    yy, xx = np.mgrid[:20, :30].astype(np.float32)
+    area = jacobian_area(1.5 * xx + 0.2 * yy, 0.1 * xx + 0.8 * yy)
+    np.testing.assert_allclose(area, 1.5 * 0.8 - 0.2 * 0.1, rtol=1e-5)
+    jump = np.where(xx < 15, xx, xx + 500)  # a correspondence jump is no area
+    assert jacobian_area(jump, yy).max() <= 8.0 + 1e-6
+    assert np.isfinite(jacobian_area(np.full((1, 5), np.nan), np.full((1, 5), np.nan))).all()
+
+
+def test_dark_reference_is_unbiased_and_far_less_noisy():
+    from sssphase_core.footprints import dark_reference
+
+    rng = np.random.default_rng(0)
+    yy, xx = np.mgrid[:96, :128].astype(np.float32)
+    white = np.repeat((0.4 + 0.5 * (np.sin(xx / 9) > 0))[..., None], 3, -1).astype(np.float32)
+    true_black = 0.003 * white
+    black = true_black + rng.normal(0, 7e-4, white.shape).astype(np.float32)
+    est = dark_reference(black, white)
+    inner = (slice(8, -8), slice(8, -8))
+    assert abs(float((est - true_black)[inner].mean())) < 5e-5
+    assert float((est - true_black)[inner].std()) < 0.25 * float((black - true_black)[inner].std())
+
+
+def test_transport_weights_count_each_dot_once():
+    """Camera finer than the projector (|det J| = 0.25): 4 pixels round to each dot, each stores the dot's
+    response x 0.25; the weights 1 / (n |det J|) = 1 make the 4 copies sum to the response once."""
+    from sssphase_core.footprints import transport_weights
+
+    yy, xx = np.mgrid[:16, :16].astype(np.float32)
+    xp, yp = 0.5 * xx + 0.1, 0.5 * yy + 0.1  # camera pixels 2x and 2x+1 round to projector pixel x
+    mask = np.ones((16, 16), bool)
+    pixels = np.argwhere(mask)
+    w = transport_weights(pixels, xp, yp, mask)
+    inner = (pixels < 14).all(axis=1)  # pixel 15 shares its dot with pixel 16, outside the image
+    np.testing.assert_allclose(w[inner] * 0.25 * 4, 1.0, rtol=1e-5)

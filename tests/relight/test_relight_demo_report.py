@@ -31,7 +31,7 @@ def test_demo_runs_every_step_and_resumes(demo):
         assert any(line.startswith(f"[{step}] done") for line in lines), (step, lines)
     page = report.read_text()
     assert "not available" not in page
-    for backend in ("none", "torch", "measured"):
+    for backend in ("none", "torch", "exact"):
         assert f"sand_rake_v1_checkerboard_{backend}_compare.png" in page
     again: list[str] = []
     run_demo(out, preset="tiny", log=again.append)

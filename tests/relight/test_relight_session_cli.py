@@ -31,14 +31,14 @@ def test_load_view_reads_projection_references_and_truth(session):
 def test_cli_relight_writes_images_and_scores_named_references(session, tmp_path):
     out = tmp_path / "relit"
     res = runner.invoke(app, ["relight", str(session), "--pattern", "checkerboard", "--pattern", "white",
-                              "--backend", "measured", "--out", str(out)])
+                              "--backend", "exact", "--out", str(out)])
     assert res.exit_code == 0, res.output
     assert "PSNR" in res.output  # checkerboard has a reference capture
     for name in ("checkerboard", "white"):
-        assert (out / f"sand_rake_v1_{name}_measured.png").exists()
-        assert (out / f"sand_rake_v1_{name}_measured_display.png").exists()
-    assert (out / "sand_rake_v1_checkerboard_measured_compare.png").exists()
-    assert len(list((out / "cache").glob("sand_rake_v1_measured_*.npz"))) == 1
+        assert (out / f"sand_rake_v1_{name}_exact.png").exists()
+        assert (out / f"sand_rake_v1_{name}_exact_display.png").exists()
+    assert (out / "sand_rake_v1_checkerboard_exact_compare.png").exists()
+    assert len(list((out / "cache").glob("sand_rake_v1_exact_*.npz"))) == 1
 
 
 def test_cli_relight_rejects_a_wrong_pattern_size(session, tmp_path):
@@ -54,13 +54,13 @@ def test_cli_relight_rejects_a_wrong_pattern_size(session, tmp_path):
     assert ok.exit_code == 0, ok.output
 
 
-def test_eval_relight_table_measured_beats_no_scattering(session, tmp_path):
-    res = runner.invoke(app, ["eval", "relight", str(session), "--backend", "none,measured", "--out", str(tmp_path)])
+def test_eval_relight_table_exact_beats_no_scattering(session, tmp_path):
+    res = runner.invoke(app, ["eval", "relight", str(session), "--backend", "none,exact", "--out", str(tmp_path)])
     assert res.exit_code == 0, res.output
     data = json.loads((tmp_path / "relight_eval.json").read_text())
     psnr = {(a["backend"], a["pattern"]): a["psnr"] for a in data["aggregate"]}
     for pattern in ("checkerboard", "stripes_x"):
-        assert psnr[("measured", pattern)] > psnr[("none", pattern)] + 3
+        assert psnr[("exact", pattern)] > psnr[("none", pattern)] + 3
     assert "LPIPS skipped" in (tmp_path / "relight_eval.md").read_text()
 
 
