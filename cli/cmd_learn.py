@@ -106,6 +106,7 @@ def train_pretrain(
                          lr=lr, warmup_epochs=warmup_epochs, fix_pred_lr=fix_pred_lr, augment=augment, knn_monitor=knn_monitor)
     console.print(f"pretraining [bold]{preset}[/] on {len(ds)} patches of {', '.join(names)} -> {out}")
     path = pretrain(cfg, ds, out, resume=resume)
+    _print_final(out / METRICS, ("loss", "knn_acc", "eff_rank"), "knn_acc")
     rows = [r for r in read_metrics(out / METRICS) if "knn_acc" in r]
     if rows:
         plot_metric_vs_time(out / METRICS, "knn_acc", out / "knn_vs_time.png", log=False)
@@ -138,6 +139,9 @@ def train_decoder(
     resume: bool = True,
     cache: CacheOpt = DEFAULT_CACHE,
     sessions: SessionsOpt = None,
+    check_sessions: Annotated[list[Path] | None, typer.Option(
+        "--check-sessions", help="Sessions with reference captures (e.g. captured with --reference checkerboard) on "
+        "which the trained model is relit against the none and analytic baselines; repeatable. Default: --sessions.")] = None,
 ) -> None:
     """Fit the footprint decoder with the SBH loss on the frozen encoder, or end-to-end (resumable)."""
     from sssphase_core.data import PatchDataset
@@ -171,7 +175,51 @@ def train_decoder(
     if val is not None:
         plot_metric_vs_time(out / METRICS, "val_mse", out / "error_vs_time.png")
         console.print(f"validation error against run time: {out / 'error_vs_time.png'}")
+    _print_final(out / METRICS, ("val_loss", "val_psnr"), "val_loss")
     console.print(f"[green]done[/]: {path}")
+    _check_against_baselines(out, check_sessions or ([sessions] if sessions else []), _ints(val_views) if sessions and not
+                             check_sessions else None, device)
+
+
+def _print_final(metrics: Path, names: tuple[str, ...], monitored: str) -> None:
+    """The last epoch's figures and the epoch kept in best.pt."""
+    from sssphase_core.evaluation import read_metrics
+    from sssphase_core.training import BEST
+
+    rows = read_metrics(metrics)
+    if not rows:
+        return
+    last = rows[-1]
+    figures = ", ".join(f"{n} {last[n]:.4g}" for n in names if n in last)
+    if figures:
+        console.print(f"final (epoch {last['epoch']}): {figures}")
+    best = last.get("best_epoch")
+    if best is not None:
+        row = next(r for r in rows if r["epoch"] == best)
+        console.print(f"best {monitored} at epoch {best} ({row[monitored]:.4g}): {metrics.parent / BEST} "
+                      "(what backends load from this run folder)")
+
+
+def _check_against_baselines(run: Path, roots: list[Path], views: list[int] | None, device: str) -> None:
+    """Relight held-out views with reference captures by the new model and the none/analytic baselines."""
+    from sssphase_cli.cmd_relight import _sessions
+    from sssphase_core.relight_eval import baseline_check
+
+    if not roots:
+        console.print("no --check-sessions: relighting against the baselines was not checked")
+        return
+    with console.status("relighting held-out views against the none and analytic baselines"):
+        res = baseline_check(_sessions(roots), run, run / "check", views=views, device=device)
+    if not res["views"]:
+        console.print(f"[yellow]not checked:[/] no view of {', '.join(map(str, roots))} has reference captures "
+                      "(capture one with --reference checkerboard and pass it as --check-sessions)")
+        return
+    where = ", ".join(f"{o} view {v}" for o, v in res["views"])
+    figures = ", ".join(f"{b} {psnr:.2f} dB" for b, psnr in res["mean_psnr"].items())
+    console.print(f"relit PSNR on {where}: {figures}")
+    for b in res["losing_to"]:
+        console.print(f"[bold yellow]warning:[/] the model relights worse than the {b} baseline "
+                      f"({res['mean_psnr']['torch']:.2f} < {res['mean_psnr'][b]:.2f} dB); do not use it as is")
 
 
 # --- eval --------------------------------------------------------------------------------------------

@@ -47,6 +47,10 @@ def _model_tag(checkpoint: Path | None) -> str:
     """Short digest of the checkpoint path and modification time: a retrained model gets a new cache."""
     import hashlib
 
+    if checkpoint is not None:
+        from sssphase_core.training import resolve_checkpoint
+
+        checkpoint = resolve_checkpoint(checkpoint)
     key = "none" if checkpoint is None else f"{Path(checkpoint).resolve()}:{Path(checkpoint).stat().st_mtime_ns}"
     return hashlib.sha256(key.encode()).hexdigest()[:10]
 
@@ -101,6 +105,10 @@ def relight_cmd(
             colour = any(p.ndim == 3 for p in pats)
             pats = [np.repeat(p[..., None], 3, -1) if colour and p.ndim == 2 else p for p in pats]
         source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device)
+        if backend == "torch" and checkpoint is not None:
+            from sssphase_core.training import resolve_checkpoint
+
+            console.print(f"torch backend: {resolve_checkpoint(checkpoint)}")
         if cache:
             source = FootprintCache(source, out / "cache" / f"{rv.object}_v{v}_{backend}_{_model_tag(checkpoint)}.npz",
                                     rv.proj.shape, patch)

@@ -85,7 +85,10 @@ class SimBench:
         if index is None:
             return scene.render(pattern[None])[0]
         batch, self.sequence = self.sequence[index:index + RENDER_BATCH], self.sequence[index + RENDER_BATCH:]
-        images = scene.render(np.stack([make() for _, make in batch]))
+        patterns = [make() for _, make in batch]
+        if any(p.ndim == 3 for p in patterns):  # a colour image in the batch: render every pattern as RGB
+            patterns = [np.repeat(p[..., None], 3, axis=-1) if p.ndim == 2 else p for p in patterns]
+        images = scene.render(np.stack(patterns))
         self.rendered = {t: img for (t, _), img in zip(batch, images, strict=True)}  # this batch only
         return self.rendered[tag]
 

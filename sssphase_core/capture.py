@@ -149,6 +149,7 @@ class ViewProcessor:
         self.brackets: dict[str, list[tuple[float, np.ndarray]]] = {}
         self.psp: dict[str, np.ndarray] = {}
         self.images: dict[str, np.ndarray] = {}
+        self.patterns: dict[str, np.ndarray] = {}  # ref/<name> -> the projected image of a file reference
         self.corr = None
         self.extractor = None
 
@@ -168,6 +169,9 @@ class ViewProcessor:
         if tag is not None and tag != spec["name"]:
             raise DataError(f"frame {spec['name']} saw pattern {tag!r}: projector and camera are out of sync")
         key, exposure = spec["key"], float(spec["exposure"])
+        if spec.get("kind") == "image" and "image" in spec and key not in self.patterns:  # the user's own pattern
+            img = spec["image"]
+            self.patterns[key] = np.frombuffer(img["data"], img["dtype"]).reshape(img["shape"])
         bracket = self.brackets.setdefault(key, [])
         bracket.append((exposure, self._develop(frame.data, exposure)))
         if len(bracket) < self.n_exposures:
@@ -223,6 +227,8 @@ class ViewProcessor:
             w.write(f"corr/{name}", np.asarray(getattr(corr, name)))
         for key, image in self.images.items():
             w.write(key, image)
+        for key, pattern in self.patterns.items():  # so that relighting can be evaluated against ref/<name>
+            w.write(f"pattern/{key.removeprefix('ref/')}", np.asarray(pattern, np.float32))
         if self.extractor is not None:
             pixels, crops = self.extractor.result()
             w.write("footprints/pixels", pixels.astype(np.int32))

@@ -84,18 +84,34 @@ def wmse_term(pred: torch.Tensor, target: torch.Tensor, eps: float = VAR_EPS) ->
     return (w * (pred - target) ** 2).mean()
 
 
-class SBHLoss(torch.nn.Module):
-    """Self-Balanced Hybrid loss; ``forward`` returns the total and the unweighted terms (floats)."""
+def noise_floor(footprints: torch.Tensor, border: int = 2) -> float:
+    """Robust noise std of captured footprints ``(B, 3, K, K)``: 1.4826 x the median absolute value of
+    the outer ``border`` rows and columns, where the light of the centre pixel has decayed. Exact
+    (simulated) footprints give ~0; captured ones their camera noise after black subtraction.
+    Zeros (pixels cut to another dot's cell) are left out."""
+    k = footprints.shape[-1]
+    ring = torch.ones(k, k, dtype=torch.bool, device=footprints.device)
+    ring[border : k - border, border : k - border] = False
+    values = footprints[..., ring].float().flatten()
+    values = values[values != 0]
+    return float(1.4826 * values.abs().median()) if values.numel() else 0.0
 
-    def __init__(self, weights: SBHWeights = SBHWeights()) -> None:
+
+class SBHLoss(torch.nn.Module):
+    """Self-Balanced Hybrid loss; ``forward`` returns the total and the unweighted terms (floats).
+
+    ``log_eps``: the log term's offset; training on captured footprints sets it to their noise floor
+    (:func:`noise_floor`), so the log term does not fit noise below it."""
+
+    def __init__(self, weights: SBHWeights = SBHWeights(), log_eps: float = LOG_EPS) -> None:
         super().__init__()
-        self.weights = weights
+        self.weights, self.log_eps = weights, float(log_eps)
 
     def forward(self, pred: torch.Tensor, target: torch.Tensor) -> tuple[torch.Tensor, dict[str, float]]:
         pred, target = pred.float(), target.float()
         terms = {
             "l1": l1_term(pred, target),
-            "log": log_term(pred, target),
+            "log": log_term(pred, target, self.log_eps),
             "ssim": ssim_term(pred, target),
             "grad": grad_term(pred, target),
             "wmse": wmse_term(pred, target),

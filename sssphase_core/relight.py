@@ -139,7 +139,12 @@ def relight(
     kernel (see :class:`Splatter`). Non-finite footprint values are set to 0 with a warning.
     ``progress(done, total)`` is called after each chunk.
     """
-    pats = np.stack(list(patterns)) if not isinstance(patterns, np.ndarray) else patterns
+    if not isinstance(patterns, np.ndarray):
+        listed = [np.asarray(p, np.float32) for p in patterns]
+        if any(p.ndim == 3 for p in listed):  # mono and colour patterns together: all as RGB
+            listed = [np.repeat(p[..., None], 3, axis=-1) if p.ndim == 2 else p for p in listed]
+        patterns = np.stack(listed)
+    pats = patterns
     if pats.ndim == 2:
         pats = pats[None]
     wp, hp = proj.projector_size
@@ -346,6 +351,8 @@ def load_view(session: object, view: int) -> RelightView:
         if f["kind"] == "ref" and f["key"] not in (f"ref/{n}" for n in references):
             name = f["key"].removeprefix("ref/")
             references[name] = PlannedFrame(f["key"], f["kind"], f["params"], 1.0).pattern()
+    for name in (a.removeprefix("pattern/") for a in arrays if a.startswith("pattern/")):
+        references.setdefault(name, load(f"pattern/{name}").astype(np.float32))  # the user's own pattern files
     for name in list(references):
         gt = f"gt/render/{name}"
         if gt in arrays:

@@ -129,3 +129,37 @@ def metrics_table(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend"
     cols = [*by, "PSNR (dB)", "SSIM", "MSE", "time (s)", "n"]
     body = [[*(a[k] for k in by), a["psnr"], a["ssim"], a["mse"], a["seconds"], a["n"]] for a in agg]
     return Table(title, cols, body, note=f"Mean over objects and views; PSNR peak 1.0 (linear camera units), on the object mask. {LPIPS_NOTE}.")
+
+
+BASELINES = ("none", "analytic")
+
+
+def baseline_check(sessions: Sequence[Any], checkpoint: Path | str, out_dir: Path | str, *,
+                   views: Sequence[int] | None = None, max_views: int = 2, device: str = "cpu") -> dict[str, Any]:
+    """Relight views with reference captures by the trained model and by the ``none`` and ``analytic``
+    baselines: ``{"rows": per object/view/pattern/backend metrics, "mean_psnr": {backend: dB},
+    "losing_to": [baselines the model is below], "views": [(object, view)]}``.
+
+    ``views`` restricts the views of each session (e.g. held-out ones); at most ``max_views`` views are
+    relit in all. Sessions without reference captures give an empty result (``views == []``).
+    """
+    from sssphase_core.relight import load_view
+
+    picked = []
+    for session in sessions:
+        for v in session.views():
+            if (views is None or v in views) and len(picked) < max_views:
+                if any(a.startswith("ref/") or a.startswith("gt/render/") for a in session.arrays(v)):
+                    picked.append((session, v))
+    rows: list[dict[str, Any]] = []
+    for session, v in picked:
+        rv = load_view(session, v)
+        if not rv.references:
+            continue
+        for backend in ("torch", *BASELINES):
+            rows += evaluate_view(rv, backend, out_dir, checkpoint=checkpoint if backend == "torch" else None,
+                                  device=device, write=False)
+    mean = {b: float(np.mean([r["psnr"] for r in rows if r["backend"] == b])) for b in ("torch", *BASELINES)} if rows else {}
+    losing = [b for b in BASELINES if mean and mean["torch"] < mean[b]]
+    return {"rows": rows, "mean_psnr": mean, "losing_to": losing,
+            "views": sorted({(r["object"], r["view"]) for r in rows})}

@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, fields, replace
@@ -29,10 +30,11 @@ from torch import nn
 from sssphase_core import augment
 from sssphase_core.data import PatchDataset
 from sssphase_core.errors import DataError, SssError
-from sssphase_core.losses import SBHLoss
+from sssphase_core.losses import LOG_EPS, SBHLoss, noise_floor
 from sssphase_core.models import Decoder, Encoder, ModelPreset, SimSiam, get_preset
 
 CHECKPOINT = "last.pt"
+BEST = "best.pt"  # the epoch with the best monitored figure (kNN monitor / validation loss)
 METRICS = "metrics.jsonl"
 PRIOR_SAMPLES = 1024  # training footprints averaged into the reciprocal head's initial shape
 
@@ -60,11 +62,18 @@ def save_checkpoint(path: Path, payload: dict) -> None:
     os.replace(tmp, path)
 
 
-def load_checkpoint(path: Path | str) -> dict:
-    """Load with ``weights_only=True``: tensors, dicts, lists and numbers only, never arbitrary objects."""
+def resolve_checkpoint(path: Path | str) -> Path:
+    """A run folder means its ``best.pt`` when training kept one, else its ``last.pt``; a file is itself."""
     path = Path(path)
     if path.is_dir():
-        path = path / CHECKPOINT
+        return path / BEST if (path / BEST).exists() else path / CHECKPOINT
+    return path
+
+
+def load_checkpoint(path: Path | str) -> dict:
+    """Load with ``weights_only=True``: tensors, dicts, lists and numbers only, never arbitrary objects.
+    A run folder loads its best checkpoint (:func:`resolve_checkpoint`)."""
+    path = resolve_checkpoint(path)
     if not path.exists():
         raise DataError(f"no checkpoint at {path}")
     try:
@@ -172,8 +181,12 @@ class LoopConfig:
 class Loop:
     """Epoch/step bookkeeping, exact resume, checkpoints, metrics and progress for one task."""
 
-    def __init__(self, cfg: LoopConfig, dataset: PatchDataset, out_dir: Path, d: Dist, kind: str) -> None:
+    def __init__(self, cfg: LoopConfig, dataset: PatchDataset, out_dir: Path, d: Dist, kind: str,
+                 best: tuple[str, str] | None = None) -> None:
+        """``best``: (metric of the epoch row, "max" or "min"); the best epoch's checkpoint is copied to ``best.pt``."""
         self.cfg, self.dataset, self.out_dir, self.d, self.kind = cfg, dataset, Path(out_dir), d, kind
+        self.best_metric = best
+        self.best: dict[str, float] = {}  # {"epoch", "value"} of best.pt
         self.sampler = torch.utils.data.DistributedSampler(
             dataset, num_replicas=d.world, rank=d.rank, shuffle=True, seed=cfg.seed, drop_last=True
         )
@@ -192,11 +205,34 @@ class Loop:
         return self.epoch * self.steps_per_epoch + self.step_in_epoch
 
     def state(self) -> dict:
-        return {"epoch": self.epoch, "step_in_epoch": self.step_in_epoch, "wall_s": self.wall_s, "sums": dict(self.sums)}
+        return {"epoch": self.epoch, "step_in_epoch": self.step_in_epoch, "wall_s": self.wall_s, "sums": dict(self.sums),
+                "best": dict(self.best)}
 
     def restore(self, state: dict) -> None:
         self.epoch, self.step_in_epoch = int(state["epoch"]), int(state["step_in_epoch"])
         self.wall_s, self.sums = float(state["wall_s"]), dict(state["sums"])
+        self.best = dict(state.get("best", {}))
+
+    def _stage_best(self, row: dict) -> None:
+        """Note whether this epoch's monitored figure is the best so far (before the checkpoint is saved,
+        so that the saved loop state already knows it)."""
+        self._new_best = False
+        name, mode = self.best_metric  # type: ignore[misc]
+        value = row.get(name)
+        if value is not None and math.isfinite(value):
+            old = self.best.get("value")
+            if old is None or (value > old if mode == "max" else value < old):
+                self.best, self._new_best = {"epoch": row["epoch"], "value": float(value)}, True
+        if self.best:
+            row["best_epoch"] = self.best["epoch"]
+
+    def keep_if_best(self) -> None:
+        """Copy the checkpoint just written to ``best.pt`` when its epoch was staged as the best."""
+        if getattr(self, "_new_best", False):
+            tmp = self.out_dir / (BEST + ".tmp")
+            shutil.copyfile(self.out_dir / CHECKPOINT, tmp)
+            os.replace(tmp, self.out_dir / BEST)
+            self._new_best = False
 
     def log(self, row: dict) -> None:
         if self.d.main:
@@ -251,7 +287,10 @@ class Loop:
                 row = {"epoch": self.epoch + 1, "step": self.global_step, **means, **end_epoch(self.epoch)}
                 row["wall_s"] = round(self.wall_s, 3)
                 self.epoch, self.step_in_epoch, self.sums = self.epoch + 1, 0, {}
+                if self.best_metric is not None and self.d.main:
+                    self._stage_best(row)
                 save()
+                self.keep_if_best()
                 self.log(row)
                 collapse = row.get("collapsed", 0.0)
                 if collapse:
@@ -302,6 +341,12 @@ class PretrainConfig(LoopConfig):
     monitor_samples: int = 2048
     knn_monitor: int = 2000  # training patches in the end-of-epoch kNN monitor (view-level leave-one-out; 0: off)
     knn_k: int = 20
+
+
+def _start_fresh(out_dir: Path) -> None:
+    """A new run in a used folder: the old run's metrics and best checkpoint must not mix with it."""
+    for name in (METRICS, BEST):
+        (out_dir / name).unlink(missing_ok=True)
 
 
 def lr_at(step: int, total: int, warmup: int, base: float) -> float:
@@ -362,14 +407,14 @@ def pretrain(
         {"params": pred_params, "fix": cfg.fix_pred_lr},
     ]
     opt = torch.optim.SGD(groups, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
-    loop = Loop(cfg, dataset, out_dir, d, "pretrain")
+    loop = Loop(cfg, dataset, out_dir, d, "pretrain", best=("knn_acc", "max") if cfg.knn_monitor else None)
     ckpt = _resume_state(out_dir, resume, "pretrain", p)
     if ckpt is not None:
         model.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
         loop.restore(ckpt["loop"])
-    elif d.main and (out_dir / METRICS).exists():
-        (out_dir / METRICS).unlink()
+    elif d.main:
+        _start_fresh(out_dir)
     warmup = max(1, round(cfg.warmup_epochs * loop.steps_per_epoch))
     monitor: dict[str, list[torch.Tensor]] = {"z": [], "y": []}
 
@@ -428,6 +473,7 @@ class DecoderConfig(LoopConfig):
     physics_lr_mult: float = 10.0  # the reciprocal head's small profile MLP, prior map and gain learn faster
     aux_classes: int = 0  # > 0: auxiliary material-classification head on the embedding
     aux_weight: float = 0.1
+    log_eps: float | None = None  # SBH log offset; None: max(LOG_EPS, noise floor of the training footprints)
     val_samples: int = 512
     end_to_end: bool = False  # set when no encoder checkpoint is given: the supervised U-Net baseline (no SSL)
     preset: str = "lite"  # sizes an end-to-end model; a frozen encoder brings its own (recorded either way)
@@ -452,12 +498,13 @@ class FootprintNet(nn.Module):
 
 
 @torch.no_grad()
-def validate_decoder(enc: Encoder, dec: Decoder, dataset: PatchDataset, n: int, batch_size: int, device: torch.device) -> dict[str, float]:
+def validate_decoder(enc: Encoder, dec: Decoder, dataset: PatchDataset, n: int, batch_size: int, device: torch.device,
+                     log_eps: float = LOG_EPS) -> dict[str, float]:
     """SBH loss, MSE and PSNR (data range 1) on the first ``n`` patches of a fixed permutation."""
     enc.eval()
     dec.eval()
     idx = np.random.default_rng(0).permutation(len(dataset))[:n]
-    net, loss_fn, sums, count = FootprintNet(enc, dec), SBHLoss(), {"val_loss": 0.0, "val_mse": 0.0}, 0
+    net, loss_fn, sums, count = FootprintNet(enc, dec), SBHLoss(log_eps=log_eps), {"val_loss": 0.0, "val_mse": 0.0}, 0
     for i in range(0, len(idx), batch_size):
         b = dataset.batch(idx[i : i + batch_size])
         pred, _ = net(b["psp"].to(device))
@@ -509,7 +556,7 @@ def train_decoder(
     trained = [*enc.parameters(), *dec.parameters()] if cfg.end_to_end else list(dec.parameters())
     opt = torch.optim.Adam([{"params": [q for q in trained if id(q) not in ids], "lr": cfg.lr},
                             {"params": physics, "lr": cfg.lr * cfg.physics_lr_mult}])
-    loop = Loop(cfg, dataset, out_dir, d, "decoder")
+    loop = Loop(cfg, dataset, out_dir, d, "decoder", best=("val_loss", "min") if val is not None else None)
     ckpt = _resume_state(out_dir, resume, "decoder", p)
     if ckpt is not None:
         if bool(ckpt["config"].get("end_to_end", False)) != cfg.end_to_end:
@@ -521,12 +568,15 @@ def train_decoder(
         opt.load_state_dict(ckpt["optimizer"])
         loop.restore(ckpt["loop"])
     else:
-        if d.main and (out_dir / METRICS).exists():
-            (out_dir / METRICS).unlink()
+        if d.main:
+            _start_fresh(out_dir)
         if cfg.head == "reciprocal":  # same on every rank: the first patches of a seeded permutation
             first = np.random.default_rng(cfg.seed).permutation(len(dataset))[:PRIOR_SAMPLES]
             dec.init_shape_prior(dataset.batch(np.sort(first))["footprint"].to(d.device))
-    loss_fn = SBHLoss()
+    if cfg.log_eps is None:  # recorded in the checkpoint's config, so a resumed run uses the same value
+        sample = np.sort(np.random.default_rng(cfg.seed).permutation(len(dataset))[:PRIOR_SAMPLES])
+        cfg = replace(cfg, log_eps=max(LOG_EPS, noise_floor(dataset.batch(sample)["footprint"])))
+    loss_fn = SBHLoss(log_eps=cfg.log_eps)
 
     def step(batch: dict[str, torch.Tensor], gstep: int) -> dict[str, float]:
         dec.train()
@@ -548,7 +598,7 @@ def train_decoder(
     def end_epoch(epoch: int) -> dict[str, float]:
         if val is None or not d.main:
             return {}
-        return validate_decoder(enc, dec, val, cfg.val_samples, cfg.batch_size, d.device)
+        return validate_decoder(enc, dec, val, cfg.val_samples, cfg.batch_size, d.device, cfg.log_eps or LOG_EPS)
 
     def save() -> None:
         if d.main:

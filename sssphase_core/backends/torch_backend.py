@@ -18,6 +18,7 @@ from sssphase_core.training import (
     PretrainConfig,
     load_decoder,
     pretrain,
+    resolve_checkpoint,
     train_decoder,
 )
 
@@ -40,7 +41,7 @@ class TorchBackend:
         self.encoder.to(self.device)
         self.decoder.to(self.device)
         self.patch = self.encoder.preset.patch
-        self.checkpoint = Path(checkpoint)
+        self.checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
 
     def pretrain(self, views: Sequence[ViewData], out_dir: Path, *, config: PretrainConfig | None = None,
                  preset: ModelPreset | None = None, **options: object) -> Path:

@@ -278,3 +278,23 @@ def test_measured_backend_splats_the_captured_crops_and_exact_the_simulators(soa
     assert not np.allclose(exact(pixels[:50]), crops[:50], atol=1e-4)  # ground truth is a different thing
     finite = np.isfinite(measured(pixels)).all()
     assert finite and np.abs(measured(pixels).sum(axis=(1, 2))).max() < 20  # no white-ratio blow-up
+
+
+@pytest.mark.slow
+def test_a_colour_reference_file_is_captured_and_evaluated_with_the_named_ones(daemon, tmp_path):
+    from PIL import Image
+
+    from sssphase_core.relight import load_view
+    from sssphase_core.relight_eval import evaluate_view
+
+    yy, xx = np.mgrid[:192, :256]
+    logo = np.stack([(xx % 64 < 32) * 255, (yy % 48 < 24) * 255, np.full_like(xx, 128)], -1).astype(np.uint8)
+    Image.fromarray(logo).save(tmp_path / "logo.png")
+    _, client = daemon
+    req = CaptureRequest("leaf", views=1, references=(str(tmp_path / "logo.png"), "checkerboard"), out=tmp_path / "s")
+    s = run_capture(client, req)
+    assert {"ref/logo", "ref/checkerboard", "pattern/logo"} <= set(s.arrays(0))
+    rv = load_view(s, 0)
+    assert set(rv.references) == {"logo", "checkerboard"} and rv.references["logo"].shape == (192, 256, 3)
+    rows = evaluate_view(rv, "none", tmp_path / "ev", write=False)
+    assert {r["pattern"] for r in rows} == {"logo", "checkerboard"} and all(r["psnr"] > 15 for r in rows)

@@ -187,3 +187,44 @@ def test_resume_refuses_another_preset(pretrained, dataset):
     other = replace(get_preset(load_checkpoint(pretrained)["preset"]), stem=4)
     with pytest.raises(DataError, match="preset"):
         pretrain(PRE, dataset, pretrained, preset=other, progress=False)
+
+
+def test_best_checkpoint_is_the_best_monitored_epoch_and_what_a_run_folder_loads(pretrained):
+    from sssphase_core.training import BEST, resolve_checkpoint
+
+    rows = [json.loads(line) for line in (pretrained / METRICS).read_text().splitlines()]
+    assert all("knn_acc" in r for r in rows)
+    best = max(rows, key=lambda r: (r["knn_acc"], -r["epoch"]))  # the first epoch reaching the maximum
+    assert rows[-1]["best_epoch"] == best["epoch"]
+    assert (pretrained / BEST).exists() and resolve_checkpoint(pretrained) == pretrained / BEST
+    assert torch.load(pretrained / BEST, weights_only=True)["loop"]["epoch"] == best["epoch"]
+    assert load_checkpoint(pretrained)["loop"]["epoch"] == best["epoch"]
+    assert load_checkpoint(pretrained / CHECKPOINT)["loop"]["epoch"] == 2  # last.pt stays the resume point
+
+
+def test_decoder_keeps_the_epoch_with_the_lowest_validation_loss(pretrained, dataset, tmp_path, monkeypatch):
+    import sssphase_core.training as training
+
+    losses = iter([0.5, 0.2, 0.4])  # epoch 2 is the best, epoch 3 is the last
+    monkeypatch.setattr(training, "validate_decoder", lambda *a, **k: {"val_loss": next(losses), "val_mse": 1e-4,
+                                                                          "val_psnr": 40.0})
+    out = tmp_path / "dec"
+    train_decoder(DecoderConfig(epochs=3, batch_size=16, ckpt_every=0), pretrained, dataset, out, val=dataset, progress=False)
+    assert torch.load(out / training.BEST, weights_only=True)["loop"]["epoch"] == 2
+    assert torch.load(out / CHECKPOINT, weights_only=True)["loop"]["epoch"] == 3
+    assert load_checkpoint(out)["loop"]["epoch"] == 2
+
+
+def test_noise_floor_of_footprints_and_the_log_offset_it_sets(pretrained, dataset, tmp_path):
+    from sssphase_core.losses import LOG_EPS, noise_floor
+
+    rng = np.random.default_rng(0)
+    clean = torch.zeros(64, 3, 16, 16)
+    clean[:, :, 6:10, 6:10] = 0.02
+    assert noise_floor(clean) == 0.0
+    noisy = clean + torch.from_numpy(rng.normal(0, 7e-4, clean.shape).astype(np.float32))
+    assert noise_floor(noisy) == pytest.approx(7e-4, rel=0.1)
+    out = tmp_path / "dec"
+    train_decoder(DecoderConfig(epochs=1, batch_size=16, ckpt_every=0), pretrained, dataset, out, progress=False)
+    eps = torch.load(out / CHECKPOINT, weights_only=True)["config"]["log_eps"]
+    assert eps >= LOG_EPS  # recorded, so a resumed run uses the same offset
