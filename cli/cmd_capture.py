@@ -240,8 +240,10 @@ def import_images(
     object_name: Annotated[str, typer.Option("--object", help="session name")],
     projector: Annotated[str, typer.Option(help="projector size WxH, e.g. 1920x1080")],
     out: Annotated[Path, typer.Option(help="session root folder")] = Path("sessions"),
+    gamma: Annotated[float, typer.Option(help="the projector's gamma (pattern value -> light)")] = 2.2,
+    patch: Annotated[int, typer.Option(help="footprint crop size K for dot-grid frames")] = 32,
 ) -> None:
-    """Import images from another rig (files named by plan key, '/' as '__'; see SESSION_FORMAT.md)."""
+    """Import frames from another rig (named by plan key, '/' as '__' or folders; see SESSION_FORMAT.md)."""
     from sssphase_core.capture import import_folder
     from sssphase_core.errors import InputError
 
@@ -249,7 +251,7 @@ def import_images(
         w, h = (int(v) for v in projector.lower().split("x"))
     except ValueError:
         raise InputError(f"--projector must be WxH, got {projector!r}") from None
-    session = import_folder(folder, out, object_name, (w, h))
+    session = import_folder(folder, out, object_name, (w, h), patch=patch, gamma=gamma)
     console.print(f"imported {len(session.views())} view(s) into {session.path}")
 
 

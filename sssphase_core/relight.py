@@ -439,12 +439,21 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: b
     """A pattern image file -> float32 values in [0, 1], (Hp, Wp) or (Hp, Wp, 3); size must match."""
     from PIL import Image
 
-    try:
-        img = Image.open(path)
-        img.load()
-    except OSError as exc:
-        raise InputError(f"cannot read pattern {path}: {exc}") from None
     wp, hp = projector_size
+    try:
+        img = Image.open(path)  # reads the header only: the size is checked before any pixel is decoded
+        w, h = img.size
+        if w * h > max(4 * wp * hp, 1 << 22):
+            raise InputError(f"pattern {path} is {w}x{h}, far larger than the {wp}x{hp} projector: refused "
+                             "without decoding it (scale it down first)")
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            img.load()
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning):
+        raise InputError(f"pattern {path} is far larger than the {wp}x{hp} projector: refused without decoding it "
+                         "(scale it down first)") from None
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise InputError(f"cannot read pattern {path}: {exc}") from None
     if img.size != (wp, hp):
         if not resize:
             raise InputError(f"pattern {path} is {img.size[0]}x{img.size[1]} but the projector is {wp}x{hp} "

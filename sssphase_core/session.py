@@ -40,7 +40,7 @@ FAULT_HOOK: Callable[[str], None] | None = None
 
 def check_object_name(name: str) -> str:
     """Refuse names that could escape the session root (``../``, separators, absolute paths)."""
-    if not isinstance(name, str) or not NAME_RE.match(name) or name in (".", ".."):
+    if not isinstance(name, str) or not NAME_RE.fullmatch(name) or name in (".", ".."):  # fullmatch: "$" allows "\n"
         raise InputError(f"object name {name!r} is not allowed: use letters, digits, '_', '-', '.' "
                          "(no path separators, no '..', at most 64 characters)")
     return name
@@ -104,7 +104,7 @@ class ViewWriter:
         self.arrays: dict[str, dict[str, Any]] = {}
 
     def write(self, name: str, data: np.ndarray) -> None:
-        if not ARRAY_RE.match(name):
+        if not ARRAY_RE.fullmatch(name):
             raise InputError(f"bad array name {name!r}")
         try:
             if FAULT_HOOK is not None:

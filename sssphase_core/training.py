@@ -72,22 +72,53 @@ def resolve_checkpoint(path: Path | str) -> Path:
 
 def load_checkpoint(path: Path | str) -> dict:
     """Load with ``weights_only=True``: tensors, dicts, lists and numbers only, never arbitrary objects.
-    A run folder loads its best checkpoint (:func:`resolve_checkpoint`)."""
+    A run folder loads its best checkpoint (:func:`resolve_checkpoint`). Anything that is not a
+    sssphase checkpoint (pickled objects, an empty or truncated file, another program's tensors) is
+    refused with a :class:`DataError` that says what it is."""
+    import pickle
+
     path = resolve_checkpoint(path)
     if not path.exists():
         raise DataError(f"no checkpoint at {path}")
+    if path.is_file() and path.stat().st_size == 0:
+        raise DataError(f"cannot read checkpoint {path}: the file is empty")
     try:
-        return torch.load(path, map_location="cpu", weights_only=True)
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:
+        raise DataError(f"{path} is not a sssphase checkpoint: it holds pickled Python objects, which are never "
+                        "loaded (only tensors, numbers and dicts)") from None
     except Exception as exc:
-        raise DataError(f"cannot read checkpoint {path}: {exc}") from exc
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DataError(f"cannot read checkpoint {path}: {reason}") from None
+    missing = [k for k in ("kind", "preset", "encoder") if not isinstance(ckpt, dict) or k not in ckpt]
+    if missing or ckpt.get("kind") not in ("pretrain", "decoder"):
+        what = type(ckpt).__name__ if not isinstance(ckpt, dict) else f"a dict without {', '.join(missing) or 'a known kind'}"
+        raise DataError(f"{path} is not a sssphase checkpoint ({what}); use a run folder or .pt written by "
+                        "`sss train pretrain` or `sss train decoder`")
+    return ckpt
+
+
+def _load_weights(module: nn.Module, state: object, path: Path | str, what: str) -> None:
+    try:
+        module.load_state_dict(state)  # type: ignore[arg-type]
+    except (RuntimeError, TypeError, AttributeError) as exc:
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DataError(f"{path}: the {what} weights do not fit the checkpoint's preset ({reason})") from None
 
 
 def load_encoder(path: Path | str) -> Encoder:
     """The frozen encoder (eval mode) of a pretraining or decoder checkpoint."""
     ckpt = load_checkpoint(path)
-    enc = Encoder(get_preset(ckpt["preset"]))
-    enc.load_state_dict(ckpt["encoder"])
+    enc = Encoder(_preset_of(ckpt, path))
+    _load_weights(enc, ckpt["encoder"], path, "encoder")
     return enc.eval().requires_grad_(False)
+
+
+def _preset_of(ckpt: dict, path: Path | str) -> ModelPreset:
+    try:
+        return get_preset(ckpt["preset"])
+    except (SssError, KeyError, TypeError, ValueError) as exc:
+        raise DataError(f"{path}: its model preset cannot be read ({exc})") from None
 
 
 def load_decoder(path: Path | str) -> tuple[Encoder, Decoder]:
@@ -95,12 +126,12 @@ def load_decoder(path: Path | str) -> tuple[Encoder, Decoder]:
     ckpt = load_checkpoint(path)
     if "decoder" not in ckpt:
         raise DataError(f"{path} is a pretraining checkpoint; train a decoder with `sss train decoder`")
-    preset = get_preset(ckpt["preset"])
-    cfg = ckpt["config"]  # checkpoints from before the head option hold the direct head
+    preset = _preset_of(ckpt, path)
+    cfg = ckpt.get("config") if isinstance(ckpt.get("config"), dict) else {}  # old checkpoints: the direct head
     enc = Encoder(preset)
     dec = Decoder(preset, n_classes=int(cfg.get("aux_classes", 0)), head=cfg.get("head", "direct"))
-    enc.load_state_dict(ckpt["encoder"])
-    dec.load_state_dict(ckpt["decoder"])
+    _load_weights(enc, ckpt["encoder"], path, "encoder")
+    _load_weights(dec, ckpt["decoder"], path, "decoder")
     return enc.eval().requires_grad_(False), dec.eval()
 
 

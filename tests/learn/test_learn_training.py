@@ -228,3 +228,42 @@ def test_noise_floor_of_footprints_and_the_log_offset_it_sets(pretrained, datase
     train_decoder(DecoderConfig(epochs=1, batch_size=16, ckpt_every=0), pretrained, dataset, out, progress=False)
     eps = torch.load(out / CHECKPOINT, weights_only=True)["config"]["log_eps"]
     assert eps >= LOG_EPS  # recorded, so a resumed run uses the same offset
+
+
+class _Pickled:  # torch.save pickles this; weights_only loading must refuse it
+    pass
+
+
+@pytest.mark.parametrize(("content", "expected"), [
+    (None, "the file is empty"),
+    ([1, 2, 3], "not a sssphase checkpoint (list)"),
+    ({"kind": "pretrain", "encoder": {}}, "without preset"),
+    (_Pickled(), "pickled Python objects"),
+    (b"PK\x03\x04truncated", "cannot read checkpoint"),
+])
+def test_bad_checkpoints_are_refused_with_one_clear_line(tmp_path, content, expected):
+    from sssphase_core.errors import DataError
+    from sssphase_core.training import load_encoder
+
+    path = tmp_path / "bad.pt"
+    if content is None:
+        path.write_bytes(b"")
+    elif isinstance(content, bytes):
+        path.write_bytes(content)
+    else:
+        torch.save(content, path)
+    with pytest.raises(DataError) as err:
+        load_encoder(path)
+    message = str(err.value)
+    assert expected in message and "\n" not in message, message
+
+
+def test_a_checkpoint_whose_weights_do_not_fit_its_preset_is_refused(pretrained, tmp_path):
+    from sssphase_core.errors import DataError
+    from sssphase_core.training import load_encoder
+
+    ckpt = load_checkpoint(pretrained)
+    ckpt["encoder"] = {k: v[..., :1] if v.ndim else v for k, v in ckpt["encoder"].items()}
+    torch.save(ckpt, tmp_path / "cut.pt")
+    with pytest.raises(DataError, match="do not fit"):
+        load_encoder(tmp_path / "cut.pt")

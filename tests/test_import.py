@@ -1,0 +1,101 @@
+"""`sss import`: frames written by hand (not by our simulator) become a session that relights,
+evaluates and trains like a captured one; hostile folders are refused before anything is written."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+from scipy.ndimage import gaussian_filter
+
+from sssphase_core.capture import import_folder
+from sssphase_core.errors import InputError
+from sssphase_core.patterns import capture_plan
+from sssphase_core.projector import emitted_light
+
+W, H, SPACING, K = 64, 48, 8, 16
+
+
+def _camera(patterns: np.ndarray) -> np.ndarray:
+    """A hand-made rig: camera pixel = projector pixel, albedo 0.8, light spread by a Gaussian (sigma 1.2 px)."""
+    light = emitted_light(patterns, 2.2)  # (P, H, W, 3)
+    return (gaussian_filter(light, (0, 1.2, 1.2, 0), mode="constant") * 0.8).astype(np.float32)
+
+
+def _write(folder: Path, key: str, image: np.ndarray, nested: bool) -> None:
+    path = folder / (key if nested else key.replace("/", "__"))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    u16 = np.round(np.clip(image, 0, 1) * 65535).astype(np.uint16)
+    cv2.imwrite(str(path.with_suffix(".png")), cv2.cvtColor(u16, cv2.COLOR_RGB2BGR))
+
+
+@pytest.fixture(scope="module")
+def frames(tmp_path_factory) -> Path:
+    plan = capture_plan(W, H, footprints=True, dot_spacing=SPACING, references=("white", "black", "checkerboard"))
+    images = _camera(np.stack([f.pattern() for f in plan]))
+    folder = tmp_path_factory.mktemp("rig") / "frames"
+    for i, (f, img) in enumerate(zip(plan, images, strict=True)):
+        _write(folder, f.key, img, nested=f.key.startswith("psp/") and i % 2 == 0)  # both layouts in one folder
+    return folder
+
+
+def test_imported_frames_relight_and_evaluate_like_a_capture(frames, tmp_path):
+    s = import_folder(frames, tmp_path / "sessions", "handmade", (W, H), patch=K)
+    assert s.validate() == [] and "footprints/crops" in s.arrays(0)
+    xp, mask = s.load(0, "corr/xp"), s.load(0, "corr/mask")
+    yy, xx = np.mgrid[:H, :W]
+    assert mask[8:-8, 8:-8].all() and np.abs(xp - xx)[8:-8, 8:-8].max() < 0.2
+    out = tmp_path / "ev"
+    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "eval", "relight", str(s.path), "--backend",
+                          "none,measured", "--out", str(out)], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stdout + res.stderr
+    psnr = {a["backend"]: a["psnr"] for a in json.loads((out / "relight_eval.json").read_text())["aggregate"]}
+    assert psnr["measured"] > psnr["none"] + 3, psnr  # the captured transport explains the blur
+    relit = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "relight", str(s.path), "--pattern", "checkerboard",
+                            "--backend", "measured", "--out", str(tmp_path / "r")], capture_output=True, text=True, timeout=300)
+    assert relit.returncode == 0 and "PSNR" in relit.stdout, relit.stdout + relit.stderr
+
+
+def test_a_failed_import_leaves_nothing_behind(frames, tmp_path):
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    for f in frames.rglob("*.png"):
+        target = bad / f.relative_to(frames)
+        target.parent.mkdir(parents=True, exist_ok=True)
+        target.write_bytes(f.read_bytes())
+    (bad / "dots__0_0.png").write_bytes(b"not a png")
+    with pytest.raises(InputError, match="dots__0_0"):
+        import_folder(bad, tmp_path / "sessions", "again", (W, H), patch=K)
+    assert not (tmp_path / "sessions" / "again").exists()
+
+
+@pytest.mark.parametrize(("name", "expected"), [
+    ("psp__x__p.__s0.png", "no frame name"),
+    ("dots__a_b.png", "no frame name"),
+    ("psp__x__p16__s99999999.png", "no frame name"),
+    ("psp__x__p16__s7.png", "shifts"),
+])
+def test_hostile_frame_names_are_refused_before_any_work(frames, tmp_path, name, expected):
+    folder = tmp_path / "f"
+    folder.mkdir()
+    for key in ("white", "black", *(f"psp__{o}__p16__s{n}" for o in "xy" for n in range(4))):
+        np.save(folder / f"{key}.npy", np.zeros((H, W, 3), np.float32))
+    np.save(folder / name.replace(".png", ".npy"), np.zeros((H, W, 3), np.float32))
+    with pytest.raises(InputError, match=expected):
+        import_folder(folder, tmp_path / "sessions", "hostile", (W, H))
+    assert not (tmp_path / "sessions" / "hostile").exists()
+
+
+def test_a_pickled_npy_is_refused(tmp_path):
+    folder = tmp_path / "f"
+    folder.mkdir()
+    for key in ("black", *(f"psp__{o}__p16__s{n}" for o in "xy" for n in range(4))):
+        np.save(folder / f"{key}.npy", np.zeros((H, W, 3), np.float32))
+    np.save(folder / "white.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(InputError, match="white.npy"):
+        import_folder(folder, tmp_path / "sessions", "pickled", (W, H))
