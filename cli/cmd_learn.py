@@ -133,6 +133,8 @@ def train_decoder(
     lr: float = 1e-3,
     head: Annotated[str, typer.Option(help="reciprocal (energy from the PSP patch x learned shape) or direct (the paper's head).")] = "reciprocal",
     aux_classes: Annotated[int, typer.Option(help="> 0: auxiliary material-classification head with this many classes.")] = 0,
+    learn_gain: Annotated[bool, typer.Option("--learn-gain", help="Reciprocal head: also learn a per-colour energy "
+                                             "gain (default: energy from reciprocity alone).")] = False,
     seed: int = 0,
     ckpt_every: int = 50,
     device: str = "auto",
@@ -168,7 +170,7 @@ def train_decoder(
     ds = PatchDataset(train_vds, patch, names, with_targets=True)
     val = PatchDataset(val_vds, patch, names, with_targets=True) if val_vds else None
     cfg = DecoderConfig(epochs=epochs, batch_size=batch_size, seed=seed, ckpt_every=ckpt_every, device=device, lr=lr,
-                        head=head, aux_classes=aux_classes, preset=preset)
+                        head=head, aux_classes=aux_classes, preset=preset, learn_gain=learn_gain)
     what = f"encoder and decoder end-to-end ({preset})" if end_to_end else "the decoder"
     console.print(f"training {what} on {len(ds)} footprints of {', '.join(names)} -> {out}")
     path = fit(cfg, encoder, ds, out, val=val, resume=resume)
@@ -208,6 +210,10 @@ def _check_against_baselines(run: Path, roots: list[Path], views: list[int] | No
     if not roots:
         console.print("no --check-sessions: relighting against the baselines was not checked")
         return
+    if device == "auto":
+        import torch
+
+        device = "cuda" if torch.cuda.is_available() else "cpu"
     with console.status("relighting held-out views against the none and analytic baselines"):
         res = baseline_check(_sessions(roots), run, run / "check", views=views, device=device)
     if not res["views"]:
@@ -219,7 +225,7 @@ def _check_against_baselines(run: Path, roots: list[Path], views: list[int] | No
     console.print(f"relit PSNR on {where}: {figures}")
     for b in res["losing_to"]:
         console.print(f"[bold yellow]warning:[/] the model relights worse than the {b} baseline "
-                      f"({res['mean_psnr']['torch']:.2f} < {res['mean_psnr'][b]:.2f} dB); do not use it as is")
+                      f"({res['mean_psnr']['torch']:.2f} < {res['mean_psnr'][b]:.2f} dB): prefer the baseline, or train on more data")
 
 
 # --- eval --------------------------------------------------------------------------------------------

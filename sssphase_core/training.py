@@ -505,6 +505,7 @@ class DecoderConfig(LoopConfig):
     aux_classes: int = 0  # > 0: auxiliary material-classification head on the embedding
     aux_weight: float = 0.1
     log_eps: float | None = None  # SBH log offset; None: max(LOG_EPS, noise floor of the training footprints)
+    learn_gain: bool = False  # reciprocal head: learn the per-colour energy gain (else 1: energy from reciprocity)
     val_samples: int = 512
     end_to_end: bool = False  # set when no encoder checkpoint is given: the supervised U-Net baseline (no SSL)
     preset: str = "lite"  # sizes an end-to-end model; a frozen encoder brings its own (recorded either way)
@@ -581,8 +582,8 @@ def train_decoder(
     if p.patch != dataset.patch:
         raise DataError(f"the encoder's preset {p.name} expects {p.patch}px patches, the dataset has {dataset.patch}px")
     dec = Decoder(p, out_scale=cfg.out_scale, n_classes=cfg.aux_classes, head=cfg.head).to(d.device)
+    physics = dec.physics_parameters(gain=cfg.learn_gain)  # before DDP wraps it: a fixed gain is no parameter to sync
     net = _wrap(FootprintNet(enc, dec, train_encoder=cfg.end_to_end), d)
-    physics = dec.physics_parameters()
     ids = {id(q) for q in physics}
     trained = [*enc.parameters(), *dec.parameters()] if cfg.end_to_end else list(dec.parameters())
     opt = torch.optim.Adam([{"params": [q for q in trained if id(q) not in ids], "lr": cfg.lr},

@@ -267,3 +267,12 @@ def test_a_checkpoint_whose_weights_do_not_fit_its_preset_is_refused(pretrained,
     torch.save(ckpt, tmp_path / "cut.pt")
     with pytest.raises(DataError, match="do not fit"):
         load_encoder(tmp_path / "cut.pt")
+
+
+def test_the_energy_gain_stays_at_one_unless_asked(pretrained, dataset, tmp_path):
+    for learn, moved in ((False, False), (True, True)):
+        out = tmp_path / f"gain_{learn}"
+        train_decoder(DecoderConfig(epochs=1, batch_size=16, ckpt_every=0, lr=1e-2, learn_gain=learn), pretrained, dataset,
+                      out, progress=False)
+        gain = torch.load(out / CHECKPOINT, weights_only=True)["decoder"]["log_gain"]
+        assert bool(gain.abs().max() > 0) == moved, gain
