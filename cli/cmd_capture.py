@@ -186,20 +186,17 @@ def capture(
     spec = RigSpec.from_toml(rig) if rig else RigSpec()
     req = CaptureRequest(object_name, views, footprints, tuple(reference or ()), DEFAULT_HDR if hdr else (),
                          keep_dots, keep_unwrap, resume, out, seed, preset, dot_spacing)
-    client, started = _client(timeout), None
-    if client is None:
-        from sssphase_daemon.client import DaemonClient, spawn_daemon
-
-        started = spawn_daemon()
-        console.print(f"[yellow]no daemon running:[/] started a local one with the sim rig (pid {started.pid})")
-        client = DaemonClient.from_state(timeout_s=timeout)
+    from sssphase_daemon.client import local_client
 
     def ask_move(view: int, angle: float) -> None:
         typer.confirm(f"turn the object to view {view} ({angle:.0f} deg) and press enter", default=True)
 
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
+    daemon = local_client(timeout, on_start=lambda pid: console.print(
+        f"[yellow]no daemon running:[/] started a local one with the sim rig (pid {pid})"),
+        on_stop=lambda pid: console.print(f"stopped the local daemon (pid {pid})"))
     try:
-        with client, Progress(*columns, console=console) as bar:
+        with daemon as client, Progress(*columns, console=console) as bar:
             tasks: dict[int, int] = {}
 
             def progress(view: int, done: int, total: int) -> None:
@@ -212,11 +209,6 @@ def capture(
         # cli.main ignores the exit code typer returns for Ctrl-C, so leave with it here
         Console(stderr=True, soft_wrap=True).print("[yellow]interrupted[/]: complete views are kept; rerun with --resume to continue")
         sys.exit(130)
-    finally:
-        if started is not None:
-            started.terminate()
-            started.wait(10)
-            console.print(f"stopped the local daemon (pid {started.pid})")
     console.print(f"session {session.path}: {len(session.views())}/{views} views complete")
 
 

@@ -204,10 +204,17 @@ def demo(
     preset: Annotated[str, typer.Option(help="lite (minutes on 2 CPU cores) or tiny (tests).")] = "lite",
     fresh: Annotated[bool, typer.Option("--fresh", help="Redo every step.")] = False,
 ) -> None:
-    """End to end on the simulated rig: capture, pretrain, fit the decoder, relight unseen objects, report."""
+    """The user's path on the simulated rig: capture sessions through the daemon, pretrain and fit the decoder
+    from them, relight unseen objects, evaluate, report (resumable)."""
     from sssphase_core.demo import run_demo
+    from sssphase_daemon.client import local_client
 
-    report = run_demo(out, preset=preset, fresh=fresh, console=console)
+    def log(message: str) -> None:
+        console.print(message, markup=False, highlight=False)
+
+    with local_client(on_start=lambda pid: log(f"started a local daemon with the sim rig (pid {pid})"),
+                      on_stop=lambda pid: log(f"stopped the local daemon (pid {pid})")) as client:
+        report = run_demo(out, client, preset=preset, fresh=fresh, log=log)
     console.print(f"[green]report[/]: {report}")
 
 

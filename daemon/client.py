@@ -6,13 +6,14 @@ the daemon and raises :class:`DaemonUnavailable` when the daemon does not answer
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import os
 import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -210,3 +211,35 @@ def spawn_daemon(*, endpoint: str | None = None, extra_args: tuple[str, ...] = (
         time.sleep(0.05)
     proc.kill()
     raise DaemonUnavailable(f"the daemon did not start within {wait_s:g} s (see {log.name})")
+
+
+@contextlib.contextmanager
+def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | None = None,
+                 on_stop: Callable[[int], None] | None = None) -> Iterator[DaemonClient]:
+    """A client of the running local daemon, or of one started here (sim rig) and stopped on exit.
+
+    ``on_start(pid)`` / ``on_stop(pid)`` are told when a daemon had to be started / was stopped.
+    """
+    client: DaemonClient | None = None
+    try:
+        client = DaemonClient.from_state(timeout_s=timeout_s)
+        if not client.ping(timeout_s=2.0):
+            client.close()
+            client = None
+    except DaemonUnavailable:
+        client = None
+    started = None
+    if client is None:
+        started = spawn_daemon()
+        if on_start is not None:
+            on_start(started.pid)
+        client = DaemonClient.from_state(timeout_s=timeout_s)
+    try:
+        with client:
+            yield client
+    finally:
+        if started is not None:
+            started.terminate()
+            started.wait(10)
+            if on_stop is not None:
+                on_stop(started.pid)

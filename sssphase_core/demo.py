@@ -1,21 +1,24 @@
-"""`sss demo`: the whole method end to end on the simulated rig, resumable step by step.
+"""`sss demo`: the user's path end to end on the simulated rig, resumable step by step.
+
+Everything goes through what a lab runs: the daemon, sessions, training from sessions.
 
 Steps (each writes ``<out>/steps/<name>.json`` when done and is skipped on the next run):
 
-1. ``train_data``   simulate the training objects' PSP captures with exact footprints (npz cache);
-2. ``test_sessions`` capture unseen objects into session folders: the full PSP plan (decoded with
-   ``sssphase_core.psp.decode``), white, black and reference patterns (checkerboard, stripes),
-   plus the simulator's noise-free renders of the references as ground truth;
-3. ``pretrain``     SimSiam pretraining of the encoder (torch backend);
-4. ``decoder``      fit the footprint decoder on the frozen encoder;
-5. ``relight``      relight the unseen objects under the reference patterns with every backend and
-   evaluate against the ground truth (GT / relit / difference figures);
-6. ``footprints``   footprint metrics of the model backends against the exact footprints (Table 1);
+1. ``train_sessions`` capture the training objects through the daemon into ``<out>/sessions/train``:
+   PSP, unwrapping set, white, black and dot grids, whose crops become the captured footprints;
+2. ``test_sessions``  capture the unseen objects into ``<out>/sessions/test`` with reference patterns
+   (checkerboard, stripes); the sim rig also stores its noise-free renders, used for scoring only;
+3. ``pretrain``       SimSiam pretraining of the encoder on the training sessions' PSP patches;
+4. ``decoder``        the footprint decoder on the frozen encoder, trained on the captured crops;
+5. ``relight``        relight the unseen objects under the reference patterns with every backend and
+   evaluate against the noise-free renders (GT / relit / difference figures);
+6. ``footprints``     footprint metrics of the model backends against the simulator's exact footprints;
 7. ``knn`` and ``pca`` the paper-style kNN table and PCA-RGB maps of the embeddings;
-8. ``report``       ``<out>/report/index.html``.
+8. ``report``         ``<out>/report/index.html``.
 
-A step whose prerequisites are missing (e.g. the learning code) is recorded as not available
-with the reason, and the report says so.
+The simulator's exact footprints appear only as the ``exact`` row (ground truth no lab has) and in
+the footprint metrics. A step whose prerequisites are missing is recorded as not available with the
+reason, and the report says so.
 """
 
 from __future__ import annotations
@@ -36,15 +39,15 @@ from sssphase_core.errors import InputError
 @dataclass(frozen=True)
 class DemoConfig:
     train_objects: tuple[str, ...]
-    train_views: tuple[int, ...]
     test_objects: tuple[str, ...]
-    n_views: int = 4
-    test_view: int = 1
+    train_views: int = 2  # turntable views captured per training object (0 and 180 degrees)
+    test_view: int = 0  # the one view captured per unseen object
     pixels_per_view: int = 600
     pretrain_epochs: int = 3
     pretrain_batch: int = 64
     decoder_epochs: int = 3
     decoder_batch: int = 32
+    references: tuple[str, ...] = ("checkerboard", "stripes_x")
     backends: tuple[str, ...] = ("none", "analytic", "torch", "exact")
     analytic_supersample: int = 2
     pca_stride: int = 2
@@ -54,72 +57,30 @@ class DemoConfig:
 
 
 PRESETS = {
-    # Under 5 minutes on 2 CPU cores (140 s measured): 4000 training patches, 2 SimSiam epochs,
-    # 3 decoder epochs (the reciprocal head's profile generalises better from more patches than from
-    # more epochs); the unseen objects are the two smallest at view 1 (crab 2.5k, sand rake 1.4k
-    # valid pixels, every one run through the network).
-    "lite": DemoConfig(("apple", "pear", "orange", "star", "shovel"), (0, 2), ("crab", "sand_rake"), pixels_per_view=400,
+    # Under 5 minutes on 2 CPU cores: 10 footprint views captured through the daemon (~10 s each),
+    # 4000 training patches, 2 SimSiam epochs, 3 decoder epochs on the captured crops; the unseen
+    # objects are the two smallest (crab, sand rake), every valid pixel run through the network.
+    "lite": DemoConfig(("apple", "pear", "orange", "star", "shovel"), ("crab", "sand_rake"), pixels_per_view=400,
                        pretrain_epochs=2, pretrain_batch=32, decoder_epochs=3),
-    "tiny": DemoConfig(("apple", "star"), (0, 2), ("sand_rake",), pixels_per_view=8, pretrain_epochs=1, pretrain_batch=32,
+    "tiny": DemoConfig(("apple", "star"), ("sand_rake",), pixels_per_view=8, pretrain_epochs=1, pretrain_batch=32,
                        decoder_epochs=1, decoder_batch=16, backends=("none", "torch", "exact"), pca_stride=4,
                        footprint_pixels=32),
 }
 
-STEPS = ("train_data", "test_sessions", "pretrain", "decoder", "relight", "footprints", "knn", "pca", "report")
+STEPS = ("train_sessions", "test_sessions", "pretrain", "decoder", "relight", "footprints", "knn", "pca", "report")
 
 
 class NotAvailable(Exception):
     """A step that cannot run in this build (its reason goes into the report)."""
 
 
-def _write_patterns(width: int, height: int) -> dict[str, np.ndarray]:
-    from sssphase_core.bench.relight_bench import reference_patterns
-
-    return reference_patterns(width, height)
-
-
-def capture_sim_session(root: Path, obj: str, view: int, n_views: int, seed: int, preset: str = "cpu") -> Path:
-    """A session folder for one view of a simulated object (same layout as ``sss capture``)."""
-    from sssphase_core.patterns import PlannedFrame, capture_plan
-    from sssphase_core.psp import decode
-    from sssphase_core.session import Session
-    from sssphase_core.sim import SimScene, rig_preset
-
-    cfg = rig_preset(preset)
-    scene = SimScene(obj, rig=cfg, view=view, n_views=n_views, seed=seed)
-    hp, wp = scene.shape_projector
-    plan = capture_plan(wp, hp, references=("white", "black", "checkerboard", "stripes_x"), gamma=cfg.projector.gamma)
-    pats = np.stack([f.pattern() for f in plan])
-    frames = scene.capture(pats, np.random.default_rng(seed + 7919 * view))
-    by_key = dict(zip(plan.keys(), frames, strict=True))
-    corr = decode({k: v for k, v in by_key.items() if k.startswith("psp/")}, plan.psp, (wp, hp),
-                  saturation=cfg.sensor.saturation(1.0))
-    session = Session.create(root, obj, resume=True, n_views=n_views, plan=json.loads(plan.to_json()),
-                             rig={"camera": "sim:camera0", "projector": "sim:projector0", "patch": cfg.patch,
-                                  "options": {"object": obj, "preset": preset, "seed": seed, "n_views": n_views}})
-    w = session.begin_view(view)
-    order = [f"psp/{o}/p{float(plan.psp.period):g}/s{n}" for o in ("x", "y") for n in range(plan.psp.n_shifts)]
-    w.write("psp", np.stack([by_key[k] for k in order]).astype(np.float32))
-    for name in ("xp", "yp", "mask", "reason", "modulation", "offset"):
-        w.write(f"corr/{name}", np.asarray(getattr(corr, name)))
-    refs = [f for f in plan if f.kind in ("white", "black", "ref")]
-    for f in refs:
-        w.write(f.key, by_key[f.key].astype(np.float32))
-    truth = scene.render(np.stack([PlannedFrame(f.key, f.kind, f.params, 1.0).pattern() for f in refs if f.kind == "ref"]))
-    for f, img in zip([f for f in refs if f.kind == "ref"], truth, strict=True):
-        w.write(f"gt/render/{f.key.removeprefix('ref/')}", img)
-    w.write("gt/proj_xy", scene.proj_xy.astype(np.float32))
-    w.write("gt/labels", scene.material.astype(np.int16))
-    w.write("gt/mask", scene.mask)
-    w.commit({"angle": 360.0 * view / n_views, "coverage": corr.coverage(), "psp_keys": order})
-    return session.path
-
-
 class Demo:
     """Runs the steps in order; ``log`` receives one line per event (the CLI prints them)."""
 
-    def __init__(self, out: Path, config: DemoConfig, *, fresh: bool = False, log: Callable[[str], None] = print):
-        self.out, self.cfg, self.fresh, self.log = Path(out), config, fresh, log
+    def __init__(self, out: Path, config: DemoConfig, client: Any, *, fresh: bool = False,
+                 log: Callable[[str], None] = print):
+        """``client``: a daemon client (``sssphase_daemon.client``; anything with ``call`` and ``capture``)."""
+        self.out, self.cfg, self.client, self.fresh, self.log = Path(out), config, client, fresh, log
         self.steps_dir = self.out / "steps"
         self.steps_dir.mkdir(parents=True, exist_ok=True)
         self.results: dict[str, dict[str, Any]] = {}
@@ -159,25 +120,35 @@ class Demo:
 
     # --- steps -------------------------------------------------------------------------------
 
-    def train_views(self, footprints: bool = True):
-        from sssphase_core.data import simulate_views
+    def _capture(self, obj: str, root: Path, views: int, **kw: Any) -> str:
+        from sssphase_core.capture import CaptureRequest, run_capture
 
-        c = self.cfg
-        return simulate_views(c.train_objects, c.train_views, n_views=c.n_views, pixels_per_view=c.pixels_per_view,
-                              footprints=footprints, seed=c.seed, cache_dir=self.out / "cache")
+        req = CaptureRequest(obj, views=views, resume=True, out=root, seed=self.cfg.seed, **kw)
+        session = run_capture(self.client, req)
+        self.log(f"  captured {obj}: {len(session.views())} view(s) in {session.path}")
+        return str(session.path)
 
-    def train_data(self) -> dict[str, Any]:
-        vds = self.train_views()
-        return {"views": [f"{v.object}/{v.view}" for v in vds], "patches": int(sum(len(v.pixels) for v in vds))}
+    def train_sessions(self) -> dict[str, Any]:
+        root = self.out / "sessions" / "train"
+        paths = [self._capture(o, root, self.cfg.train_views, footprints=True) for o in self.cfg.train_objects]
+        return {"root": str(root), "sessions": paths}
 
     def test_sessions(self) -> dict[str, Any]:
-        root = self.out / "sessions"
-        paths = [str(capture_sim_session(root, o, self.cfg.test_view, self.cfg.n_views, self.cfg.seed))
+        root = self.out / "sessions" / "test"
+        paths = [self._capture(o, root, self.cfg.test_view + 1, references=self.cfg.references)
                  for o in self.cfg.test_objects]
-        return {"sessions": paths}
+        return {"root": str(root), "sessions": paths}
+
+    def train_views(self, footprints: bool = True):
+        """The training sessions' views (PSP patches, and captured footprint crops with ``footprints``)."""
+        from sssphase_core.data import session_views
+
+        self._need("train_sessions")
+        c = self.cfg
+        return session_views(self.results["train_sessions"]["root"], c.train_objects, pixels_per_view=c.pixels_per_view,
+                             footprints=footprints, seed=c.seed)
 
     def pretrain(self) -> dict[str, Any]:
-        self._need("train_data")
         from sssphase_core.backends import get_backend
         from sssphase_core.training import PretrainConfig
 
@@ -188,7 +159,7 @@ class Demo:
         return {"checkpoint": str(path)}
 
     def decoder(self) -> dict[str, Any]:
-        self._need("train_data", "pretrain")
+        self._need("pretrain")
         from sssphase_core.backends import get_backend
         from sssphase_core.training import DecoderConfig
 
@@ -305,15 +276,13 @@ class Demo:
         (self.steps_dir / "report.json").unlink(missing_ok=True)
 
 
-def run_demo(out: Path | str, *, preset: str = "lite", fresh: bool = False, console: Any = None,
-             log: Callable[[str], None] | None = None) -> Path:
-    """Run (or resume) the demo into ``out``; returns the report's path."""
+def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool = False,
+             log: Callable[[str], None] = print) -> Path:
+    """Run (or resume) the demo into ``out`` with a daemon ``client``; returns the report's path."""
     if preset not in PRESETS:
         raise InputError(f"unknown demo preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    if log is None:
-        log = (lambda m: console.print(m, markup=False, highlight=False)) if console is not None else print
     t0 = time.perf_counter()
-    demo = Demo(Path(out), PRESETS[preset], fresh=fresh, log=log)
+    demo = Demo(Path(out), PRESETS[preset], client, fresh=fresh, log=log)
     path = demo.run()
     log(f"demo finished in {time.perf_counter() - t0:.1f} s")
     return path

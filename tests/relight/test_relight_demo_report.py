@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from sssphase_core.demo import STEPS, run_demo
+from sssphase_core.session import Session
 
 CHROMIUM = Path("/usr/bin/chromium")
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
@@ -16,37 +17,41 @@ FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-ne
 
 
 @pytest.fixture(scope="module")
-def demo(tmp_path_factory):
+def demo(tmp_path_factory, sim_daemon):
     out = tmp_path_factory.mktemp("demo")
     lines: list[str] = []
-    report = run_demo(out, preset="tiny", log=lines.append)
-    return out, report, lines
+    report = run_demo(out, sim_daemon, preset="tiny", log=lines.append)
+    return out, report, lines, sim_daemon
 
 
 @pytest.mark.slow
 def test_demo_runs_every_step_and_resumes(demo):
-    out, report, lines = demo
+    out, report, lines, client = demo
     assert report == out / "report" / "index.html" and report.exists()
+    for kind in ("train", "test"):  # the demo's sessions are captured sessions: they validate
+        for session in (out / "sessions" / kind).iterdir():
+            assert Session.open(session).validate() == [], session
+    assert "footprints/crops" in Session.open(out / "sessions" / "train" / "apple").arrays(0)
     for step in STEPS:
         assert any(line.startswith(f"[{step}] done") for line in lines), (step, lines)
     page = report.read_text()
     assert "not available" not in page
     for backend in ("none", "torch", "exact"):
-        assert f"sand_rake_v1_checkerboard_{backend}_compare.png" in page
+        assert f"sand_rake_v0_checkerboard_{backend}_compare.png" in page
     again: list[str] = []
-    run_demo(out, preset="tiny", log=again.append)
+    run_demo(out, client, preset="tiny", log=again.append)
     skipped = [s for s in STEPS if any(line.startswith(f"[{s}] already done") for line in again)]
     assert skipped == [s for s in STEPS if s != "report"]  # only the report is rewritten
     assert any(line.startswith("[report] done") for line in again), again
     resumed = report.read_text()
-    assert "resumed: skipped" in resumed and "sand_rake_v1_checkerboard_torch_compare.png" in resumed
+    assert "resumed: skipped" in resumed and "sand_rake_v0_checkerboard_torch_compare.png" in resumed
 
 
 @pytest.mark.slow
 def test_report_renders_with_its_images_in_headless_chromium(demo, tmp_path):
     if not CHROMIUM.exists() or shutil.which(str(CHROMIUM)) is None:
         pytest.skip("/usr/bin/chromium is not installed (Debian package `chromium`: apt-get install -y chromium)")
-    _, report, _ = demo
+    _, report, _, _ = demo
     url = report.resolve().as_uri()
     common = [str(CHROMIUM), *FLAGS, f"--user-data-dir={tmp_path / 'profile'}"]
     dom = subprocess.run([*common, "--virtual-time-budget=5000", "--dump-dom", url], capture_output=True, text=True,

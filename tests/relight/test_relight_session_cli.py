@@ -7,7 +7,6 @@ import pytest
 from typer.testing import CliRunner
 
 from sssphase_cli.main import app
-from sssphase_core.demo import capture_sim_session
 from sssphase_core.relight import load_view
 from sssphase_core.relight_eval import relight_metrics
 from sssphase_core.session import Session
@@ -16,8 +15,12 @@ runner = CliRunner()
 
 
 @pytest.fixture(scope="module")
-def session(tmp_path_factory):
-    return capture_sim_session(tmp_path_factory.mktemp("sessions"), "sand_rake", view=1, n_views=4, seed=0)
+def session(tmp_path_factory, sim_daemon):
+    """View 1 of 4 of the sand rake with two reference patterns, captured through the daemon."""
+    from sssphase_core.capture import CaptureRequest, run_capture
+
+    req = CaptureRequest("sand_rake", views=2, references=("checkerboard", "stripes_x"), out=tmp_path_factory.mktemp("s"))
+    return run_capture(sim_daemon, req).path
 
 
 def test_load_view_reads_projection_references_and_truth(session):
