@@ -96,6 +96,10 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
         met = relight_metrics(img, rv.captured[name], rv.proj.mask)
         row = {"object": rv.object, "view": rv.view, "pattern": name, "backend": backend, **met,
                "seconds": seconds / len(names), "lit_pixels": int(rv.proj.mask.sum())}
+        capture = _captured_reference(rv, name)
+        if capture is not None:  # a simulated session is scored against its noise-free render and its capture
+            cap = relight_metrics(img, capture, rv.proj.mask)
+            row.update({"psnr_capture": cap["psnr"], "ssim_capture": cap["ssim"]})
         if write:
             stem = out / f"{rv.object}_v{rv.view}_{name}_{backend}"
             from sssphase_core.relight import write_images
@@ -107,6 +111,14 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     return rows
 
 
+def _captured_reference(rv: Any, name: str) -> np.ndarray | None:
+    """The camera's capture ``ref/<name>`` of a view scored against a noise-free render (else None)."""
+    session = getattr(rv, "session", None)
+    if session is None or rv.sim is None or f"ref/{name}" not in session.arrays(rv.view):
+        return None
+    return np.asarray(session.load(rv.view, f"ref/{name}"), np.float32)
+
+
 def aggregate(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend", "pattern")) -> list[dict[str, Any]]:
     """Mean of the metrics and run times over the rows sharing the ``by`` keys (objects and views)."""
     groups: dict[tuple, list[dict[str, Any]]] = {}
@@ -115,7 +127,8 @@ def aggregate(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend", "p
     out = []
     for key, rs in groups.items():
         agg = {k: v for k, v in zip(by, key, strict=True)}
-        agg.update({m: float(np.mean([r[m] for r in rs])) for m in (*METRICS, "seconds")})
+        agg.update({m: float(np.mean([r[m] for r in rs])) for m in (*METRICS, "seconds", "psnr_capture")
+                    if all(m in r for r in rs)})
         agg["n"] = len(rs)
         out.append(agg)
     return out
@@ -126,9 +139,14 @@ def metrics_table(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend"
     from sssphase_core.bench.report import Table
 
     agg = aggregate(rows, by)
-    cols = [*by, "PSNR (dB)", "SSIM", "MSE", "time (s)", "n"]
-    body = [[*(a[k] for k in by), a["psnr"], a["ssim"], a["mse"], a["seconds"], a["n"]] for a in agg]
-    return Table(title, cols, body, note=f"Mean over objects and views; PSNR peak 1.0 (linear camera units), on the object mask. {LPIPS_NOTE}.")
+    both = all("psnr_capture" in a for a in agg)
+    cols = [*by, "PSNR (dB)", *(["PSNR vs capture (dB)"] if both else []), "SSIM", "MSE", "time (s)", "n"]
+    body = [[*(a[k] for k in by), a["psnr"], *([a["psnr_capture"]] if both else []), a["ssim"], a["mse"], a["seconds"], a["n"]]
+            for a in agg]
+    note = ("Mean over objects and views; PSNR peak 1.0 (linear camera units), on the object mask"
+            + ("; simulated sessions are scored against the noise-free render and, in 'vs capture', against the "
+               "camera's own noisy capture of the pattern" if both else "") + f". {LPIPS_NOTE}.")
+    return Table(title, cols, body, note=note)
 
 
 BASELINES = ("none", "analytic")
