@@ -112,6 +112,11 @@ def daemon_stop() -> None:
     if client is None:
         state = security.read_state()
         if state is not None:
+            if not security.is_daemon_process(state.pid):  # the pid may belong to another program by now
+                security.state_path().unlink(missing_ok=True)
+                console.print(f"no daemon running (the state file named pid {state.pid}, which is not a sssphase "
+                              "daemon; removed the stale state file)")
+                return
             try:
                 os.kill(state.pid, signal.SIGTERM)
                 console.print(f"daemon (pid {state.pid}) did not answer; sent SIGTERM")

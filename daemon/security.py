@@ -142,3 +142,14 @@ def client_keys(directory: Path) -> tuple[bytes, bytes, bytes]:
     if secret is None:
         raise ValueError(f"no client secret key in {directory}")
     return public, secret, server_public
+
+
+def is_daemon_process(pid: int) -> bool:
+    """Whether ``pid`` runs ``python -m sssphase_daemon`` (read from /proc; False where that cannot be
+    told), so that a stale state file never makes us signal an unrelated process that reused the pid."""
+    try:
+        argv = Path(f"/proc/{int(pid)}/cmdline").read_bytes().split(b"\0")
+    except (OSError, ValueError):
+        return False
+    return any(arg == b"sssphase_daemon" or arg.endswith(b"/sssphase_daemon") or b"sssphase_daemon/__main__" in arg
+               for arg in argv)

@@ -46,6 +46,33 @@ def check_object_name(name: str) -> str:
     return name
 
 
+MAX_VIEWS = 10_000
+
+
+def manifest_problem(manifest: dict[str, Any]) -> str | None:
+    """What makes a manifest unusable (wrong types, array names that leave the view folder), or None."""
+    n = manifest.get("n_views", 0)
+    if not isinstance(n, int) or isinstance(n, bool) or not 0 <= n <= MAX_VIEWS:
+        return f"n_views must be an integer in [0, {MAX_VIEWS}], got {n!r}"
+    views = manifest.get("views")
+    if not isinstance(views, dict):
+        return "it has no views table"
+    for key, entry in views.items():
+        if not (isinstance(key, str) and key.isdigit() and int(key) < MAX_VIEWS) or not isinstance(entry, dict):
+            return f"view {key!r} is not a view number with an entry"
+        arrays = entry.get("arrays", {})
+        if not isinstance(arrays, dict):
+            return f"view {key}: arrays is not a table"
+        for name, meta in arrays.items():
+            if not isinstance(name, str) or not ARRAY_RE.fullmatch(name):
+                return f"view {key}: array name {name!r} is not allowed"
+            if not (isinstance(meta, dict) and isinstance(meta.get("shape"), list)
+                    and all(isinstance(d, int) and d >= 0 for d in meta["shape"])
+                    and isinstance(meta.get("dtype"), str) and isinstance(meta.get("checksum"), str)):
+                return f"view {key}: array {name} lacks its shape, dtype or checksum"
+    return None
+
+
 def view_dir_name(view: int) -> str:
     return f"view_{view:03d}"
 
@@ -173,6 +200,8 @@ class Session:
     def create(cls, root: Path, name: str, *, resume: bool = False, **info: Any) -> Session:
         """New session ``root/name``; with ``resume`` reopen an existing one (its partial views dropped)."""
         path = Path(root) / check_object_name(name)
+        if path.is_symlink():
+            raise InputError(f"{path} is a symbolic link: a session is written only inside its --out folder")
         if (path / MANIFEST).exists():
             if not resume:
                 raise InputError(f"session {path} already exists: pass --resume to continue it or choose --out")
@@ -198,8 +227,12 @@ class Session:
             raise DataError(f"{path} is not a session (no {MANIFEST})") from None
         except ValueError as exc:
             raise DataError(f"{path / MANIFEST} is corrupt: {exc}") from None
-        if manifest.get("format") != FORMAT or manifest.get("format_version", 0) > FORMAT_VERSION:
+        if not isinstance(manifest, dict) or manifest.get("format") != FORMAT or not isinstance(manifest.get("format_version", 0), int) \
+                or manifest.get("format_version", 0) > FORMAT_VERSION:
             raise DataError(f"{path} is not a version-{FORMAT_VERSION} sssphase session")
+        problem = manifest_problem(manifest)
+        if problem:
+            raise DataError(f"{path / MANIFEST} is damaged: {problem}")
         return cls(path, manifest)
 
     def save(self) -> None:

@@ -53,3 +53,80 @@ def test_a_truncated_pattern_is_one_line(tmp_path):
     np.save(ok, np.zeros((2, 2)))
     with pytest.raises(InputError):
         read_pattern(ok, (256, 192))
+
+
+@pytest.mark.parametrize(("manifest", "expected"), [
+    ([], "not a version-1"),
+    (None, "not a version-1"),
+    ({"format": "sssphase-session", "format_version": 1}, "no views table"),
+    ({"format": "sssphase-session", "format_version": 1, "n_views": 1, "views": {"abc": {}}}, "not a view number"),
+    ({"format": "sssphase-session", "format_version": 1, "n_views": "four", "views": {}}, "n_views"),
+    ({"format": "sssphase-session", "format_version": 1, "n_views": 1e9, "views": {}}, "n_views"),
+    ({"format": "sssphase-session", "format_version": 1, "n_views": 1,
+      "views": {"0": {"status": "complete", "arrays": {"psp": {"dtype": "<f4", "checksum": "x"}}}}}, "shape"),
+    ({"format": "sssphase-session", "format_version": 1, "n_views": 1,
+      "views": {"0": {"status": "complete", "arrays": {"../../x": {"shape": [1], "dtype": "<f4", "checksum": "x"}}}}},
+     "not allowed"),
+])
+def test_damaged_manifests_are_one_line_errors(tmp_path, manifest, expected):
+    import json
+    import subprocess
+    import sys
+
+    from sssphase_core.errors import DataError
+    from sssphase_core.session import Session
+
+    (tmp_path / "s").mkdir()
+    (tmp_path / "s" / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(DataError, match=expected):
+        Session.open(tmp_path / "s")
+    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "validate", str(tmp_path / "s")],
+                         capture_output=True, text=True, timeout=60)
+    assert res.returncode == 2 and "Traceback" not in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+
+
+def test_a_symlinked_session_folder_is_not_written_through(tmp_path):
+    from sssphase_core.session import Session
+
+    (tmp_path / "elsewhere").mkdir()
+    (tmp_path / "out").mkdir()
+    (tmp_path / "out" / "apple").symlink_to(tmp_path / "elsewhere")
+    with pytest.raises(InputError, match="symbolic link"):
+        Session.create(tmp_path / "out", "apple")
+    assert not any((tmp_path / "elsewhere").iterdir())
+
+
+def test_daemon_stop_never_signals_a_process_that_reused_the_pid(tmp_path):
+    import dataclasses
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from sssphase_daemon import security
+
+    sleeper = subprocess.Popen(["sleep", "30"])
+    try:
+        runtime = tmp_path / "rt"
+        runtime.mkdir(mode=0o700)
+        env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
+        state = security.DaemonState(endpoint=f"ipc://{runtime}/gone.sock", token="x" * 32, pid=sleeper.pid,
+                                     version="0", started=time.time())
+        security.write_state(state, runtime / "daemon.json")
+        assert dataclasses.asdict(security.read_state(runtime / "daemon.json"))["pid"] == sleeper.pid
+        res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "daemon", "stop"], capture_output=True,
+                             text=True, timeout=60, env=env)
+        assert res.returncode == 0, res.stdout + res.stderr
+        assert "not a sssphase daemon" in res.stdout
+        time.sleep(0.2)
+        assert sleeper.poll() is None  # still alive: never signalled
+        assert not (runtime / "daemon.json").exists()
+        assert not security.is_daemon_process(sleeper.pid) and not security.is_daemon_process(2**22 + 12345)
+    finally:
+        sleeper.kill()
+
+
+def test_a_running_daemon_is_recognised_as_ours(sim_daemon):
+    from sssphase_daemon import security
+
+    assert security.is_daemon_process(sim_daemon.call("hello")["pid"])
