@@ -27,6 +27,7 @@ from typing import Any
 
 import numpy as np
 
+from sssphase_core.errors import InputError
 from sssphase_plugins.drivers import DeviceError, DeviceInfo, Frame, ShowReceipt
 from sssphase_plugins.hookspecs import hookimpl
 
@@ -43,6 +44,16 @@ def _sim():
     return sim
 
 
+def _number(options: Mapping[str, Any], name: str, default: float, lo: float, hi: float, kind: type) -> Any:
+    """Option ``name`` as ``kind`` within [lo, hi]; a client's wrong value is an InputError (bad_args), not a crash."""
+    value = options.get(name, default)
+    if isinstance(value, bool) or not isinstance(value, int | float) or (kind is int and value != int(value)):
+        raise InputError(f"sim option {name} must be {'an integer' if kind is int else 'a number'}, got {value!r}")
+    if not lo <= value <= hi:  # NaN fails too
+        raise InputError(f"sim option {name} must be in [{lo:g}, {hi:g}], got {value!r}")
+    return kind(value)
+
+
 class SimBench:
     """State shared by the sim devices of one rig: scene, shown pattern, turntable, device clock."""
 
@@ -51,11 +62,11 @@ class SimBench:
         self.object_name = str(options.get("object", "apple"))
         self.obj = sim.get_object(self.object_name)  # UnknownObjectError lists the catalogue
         self.rig = sim.rig_preset(str(options.get("preset", "cpu")))
-        self.seed = int(options.get("seed", 0))
-        self.n_views = int(options.get("n_views", 4))
-        self.view = int(options.get("view", 0)) % self.n_views
-        self.latency_ns = int(float(options.get("latency_s", 1 / 60)) * 1e9)
-        self.frame_period_ns = int(float(options.get("frame_period_s", 1 / 30)) * 1e9)
+        self.seed = _number(options, "seed", 0, 0, 2**63 - 1, int)
+        self.n_views = _number(options, "n_views", 4, 1, 3600, int)
+        self.view = _number(options, "view", 0, 0, 2**31, int) % self.n_views
+        self.latency_ns = int(_number(options, "latency_s", 1 / 60, 0.0, 60.0, float) * 1e9)
+        self.frame_period_ns = int(_number(options, "frame_period_s", 1 / 30, 1e-6, 60.0, float) * 1e9)
         self.realtime = bool(options.get("realtime", False))
         self.clock_ns = 0
         self.shown: list[tuple[int, np.ndarray, str, int]] = []  # (on_screen_ns, image, tag, frame_id)

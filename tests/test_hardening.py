@@ -130,3 +130,14 @@ def test_a_running_daemon_is_recognised_as_ours(sim_daemon):
     from sssphase_daemon import security
 
     assert security.is_daemon_process(sim_daemon.call("hello")["pid"])
+
+
+@pytest.mark.parametrize("options", [{"n_views": 0}, {"n_views": -3}, {"n_views": "four"}, {"seed": 1.5},
+                                     {"frame_period_s": float("nan")}, {"latency_s": -1}, {"view": True}])
+def test_bad_sim_rig_options_are_bad_args_not_internal(sim_daemon, options):
+    from sssphase_daemon.client import DaemonError
+
+    with pytest.raises(DaemonError) as err:
+        sim_daemon.call("open_rig", camera="sim:camera0", projector="sim:projector0", options={"object": "apple", **options})
+    assert err.value.code == "bad_args", str(err.value)
+    assert sim_daemon.ping()  # and the daemon answers the next request
