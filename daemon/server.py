@@ -29,6 +29,7 @@ import numpy as np
 import zmq
 
 from sssphase_core.errors import SssError
+from sssphase_core.patterns import frame_params_problem
 from sssphase_daemon import protocol, security
 from sssphase_daemon.frames import ClientGone, FrameSender, Preview, configure_curve_server
 from sssphase_daemon.protocol import ProtocolError
@@ -107,6 +108,9 @@ def _check_frames(frames: Any) -> list[dict[str, Any]]:
               and f.get("exposure", 1.0) > 0 and (f.get("kind") != "image" or isinstance(f.get("image"), dict)))
         if not ok:
             raise ProtocolError(protocol.BAD_ARGS, f"bad frame spec {str(f)[:120]}")
+        problem = None if f["kind"] == "image" else frame_params_problem(f["kind"], f.get("params", {}))
+        if problem:
+            raise ProtocolError(protocol.BAD_ARGS, f"frame {f['name'][:60]!r}: {problem}")
         f.setdefault("key", f["name"])
         f.setdefault("params", {})
         f.setdefault("exposure", 1.0)

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
 
@@ -25,6 +25,9 @@ DEFAULT_GAMMA = 2.2
 MAX_PERIOD_RATIO = 8.0
 COARSE_MARGIN = 1.1  # the coarsest period spans the screen plus 5 % on each side
 REFERENCE_NAMES = ("white", "black", "checkerboard", "stripes_x", "stripes_y")
+
+
+MAX_SIDE = 16384  # largest projector side a plan or a frame spec may name
 
 
 def _check_size(width: int, height: int) -> None:
@@ -232,6 +235,41 @@ class PlannedFrame:
                 return checkerboard(w, h, p["square"])
             return stripes(w, h, p["period"], p["orientation"])
         raise InputError(f"unknown frame kind {self.kind!r}")
+
+
+def frame_params_problem(kind: str, params: Mapping[str, Any]) -> str | None:
+    """Why ``params`` cannot render a frame of ``kind`` (missing keys, wrong types, out of range), or None.
+
+    The daemon checks every frame spec of a capture request with this before the job starts, so a
+    client's mistake is a ``bad_args`` reply, never an error inside the capture thread.
+    """
+    def integer(name: str, lo: int, hi: int) -> str | None:
+        v = params.get(name)
+        ok = isinstance(v, int) and not isinstance(v, bool) and lo <= v <= hi
+        return None if ok else f"{kind} frame needs {name} as an integer in [{lo}, {hi}], got {v!r}"
+
+    def number(name: str, lo: float, hi: float) -> str | None:
+        v = params.get(name)
+        ok = isinstance(v, int | float) and not isinstance(v, bool) and lo <= v <= hi
+        return None if ok else f"{kind} frame needs {name} as a number in [{lo:g}, {hi:g}], got {v!r}"
+
+    checks = [integer("width", 1, MAX_SIDE), integer("height", 1, MAX_SIDE)]
+    if kind == "psp":
+        checks += [number("period", 1e-3, 1e6), integer("n_shifts", 1, 64), integer("shift", 0, 63), number("gamma", 0.05, 20)]
+        if params.get("orientation") not in ("x", "y"):
+            checks.append(f"psp frame needs orientation x or y, got {params.get('orientation')!r}")
+    elif kind == "dots":
+        checks += [integer("spacing", 1, MAX_SIDE), integer("shift_x", 0, MAX_SIDE), integer("shift_y", 0, MAX_SIDE)]
+    elif kind == "ref":
+        name = params.get("name")
+        if name == "checkerboard":
+            checks.append(integer("square", 1, MAX_SIDE))
+        elif name in ("stripes_x", "stripes_y"):
+            checks += [number("period", 1e-3, 1e6), None if params.get("orientation") in ("x", "y") else
+                       f"ref frame needs orientation x or y, got {params.get('orientation')!r}"]
+        else:
+            checks.append(f"ref frame needs a name among checkerboard, stripes_x, stripes_y, got {name!r}")
+    return next((c for c in checks if c), None)
 
 
 @dataclass(frozen=True)

@@ -141,3 +141,19 @@ def test_bad_sim_rig_options_are_bad_args_not_internal(sim_daemon, options):
         sim_daemon.call("open_rig", camera="sim:camera0", projector="sim:projector0", options={"object": "apple", **options})
     assert err.value.code == "bad_args", str(err.value)
     assert sim_daemon.ping()  # and the daemon answers the next request
+
+
+@pytest.mark.parametrize("params", [{}, {"width": 256, "height": 192}, {"width": 256, "height": 192, "spacing": 0,
+                                                                        "shift_x": 0, "shift_y": 0},
+                                    {"width": "256", "height": 192, "spacing": 8, "shift_x": 0, "shift_y": 0}])
+def test_frame_specs_a_pattern_cannot_be_made_from_are_refused_at_the_door(sim_daemon, params):
+    from sssphase_daemon.client import DaemonError
+
+    rig = sim_daemon.call("open_rig", camera="sim:camera0", projector="sim:projector0", options={"object": "apple"})["rig"]
+    try:
+        with pytest.raises(DaemonError) as err:
+            list(sim_daemon.capture(rig, [{"name": "dots/0_0", "kind": "dots", "params": params}]))
+        assert err.value.code == "bad_args", str(err.value)
+    finally:
+        sim_daemon.call("close_rig", rig=rig)
+    assert sim_daemon.ping()
