@@ -93,8 +93,13 @@ def daemon_start(
         raise InputError("a daemon is already running (`sss daemon status`)")
     args = [*(["--endpoint", endpoint] if endpoint else []), *(["--preview", preview] if preview else []),
             *(["--curve-dir", str(curve_dir)] if curve_dir else [])]
-    if endpoint and not security.is_local(endpoint) and curve_dir is None:
-        raise InputError(f"{endpoint} is not loopback/ipc: generate keys with `sss daemon keys` and pass --curve-dir")
+    for what in (e for e in (endpoint, preview) if e):
+        if not security.is_local(what) and curve_dir is None:
+            raise InputError(f"{what} is not loopback/ipc (an abstract ipc://@ socket has no file permissions either): "
+                             "generate keys with `sss daemon keys` and pass --curve-dir")
+        problem = security.ipc_path_problem(what)
+        if problem:
+            raise InputError(problem)
     if foreground:
         from sssphase_daemon.__main__ import main
 

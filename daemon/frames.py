@@ -58,8 +58,12 @@ class FrameSender:
         self._send([header], alive)
 
     def close(self, linger_s: float = 0.0) -> None:
-        """Close; with ``linger_s`` queued frames still reach a live client in the background."""
+        """Close; with ``linger_s`` queued frames still reach a live client in the background (over the
+        established connection: the ipc socket file itself is removed now, so none is left behind)."""
         self.sock.close(linger=int(linger_s * 1000))
+        from sssphase_daemon.security import remove_ipc_socket
+
+        remove_ipc_socket(self.endpoint)
 
 
 class Preview:

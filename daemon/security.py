@@ -12,6 +12,7 @@ from __future__ import annotations
 import json
 import os
 import secrets
+import stat
 import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -47,9 +48,10 @@ def host_of(endpoint: str) -> str:
 
 
 def is_local(endpoint: str) -> bool:
-    """True for ipc:// and loopback tcp endpoints (no CURVE needed)."""
+    """True for ipc:// socket files and loopback tcp endpoints (no CURVE needed). An abstract ipc socket
+    (``ipc://@name``) has no file permissions, so any local user could connect: not local."""
     if endpoint.startswith("ipc://"):
-        return True
+        return not endpoint[6:].startswith("@")
     if endpoint.startswith("tcp://"):
         return host_of(endpoint) in LOCAL_HOSTS
     return False
@@ -153,3 +155,25 @@ def is_daemon_process(pid: int) -> bool:
         return False
     return any(arg == b"sssphase_daemon" or arg.endswith(b"/sssphase_daemon") or b"sssphase_daemon/__main__" in arg
                for arg in argv)
+
+
+def ipc_path_problem(endpoint: str) -> str | None:
+    """Why the daemon must not bind ``endpoint``'s ipc path (a file that is not a socket sits there), or None."""
+    if not endpoint.startswith("ipc://") or endpoint[6:].startswith("@"):
+        return None
+    path = Path(endpoint[6:])
+    if path.exists() and not stat.S_ISSOCK(path.stat().st_mode):
+        return f"{path} exists and is not a socket: refusing to replace it (choose another --endpoint)"
+    return None
+
+
+def remove_ipc_socket(endpoint: str) -> None:
+    """Remove the socket file of an ipc endpoint; never any other kind of file."""
+    if not endpoint.startswith("ipc://") or endpoint[6:].startswith("@"):
+        return
+    path = Path(endpoint[6:])
+    try:
+        if stat.S_ISSOCK(path.lstat().st_mode):
+            path.unlink()
+    except FileNotFoundError:
+        pass

@@ -149,10 +149,15 @@ class Daemon:
         self.control.setsockopt(zmq.MAXMSGSIZE, max_message_bytes + 4096)
         self.control.setsockopt(zmq.ROUTER_MANDATORY, 0)
         configure_curve_server(self.control, self.curve)
-        if self.endpoint.startswith("ipc://"):
-            Path(self.endpoint[6:]).unlink(missing_ok=True)
+        problem = security.ipc_path_problem(self.endpoint)
+        if problem:
+            raise PermissionError(problem)
+        security.remove_ipc_socket(self.endpoint)  # a dead daemon's socket; nothing else is ever removed
         self.control.bind(self.endpoint)
         self.endpoint = self.control.getsockopt_string(zmq.LAST_ENDPOINT)
+        if preview and not security.is_local(preview) and self.curve is None:
+            raise PermissionError(f"the preview {preview} is not loopback/ipc: like the control socket it needs CURVE "
+                                  "keys (`sss daemon keys`, --curve-dir)")
         self.preview = Preview(self.ctx, preview, self.curve) if preview else None
         self.pm = manager.get_plugin_manager()
         self.rigs: dict[str, Rig] = {}
@@ -203,8 +208,7 @@ class Daemon:
         if self.auth:
             self.auth.stop()
         self.ctx.term()
-        if self.endpoint.startswith("ipc://"):
-            Path(self.endpoint[6:]).unlink(missing_ok=True)
+        security.remove_ipc_socket(self.endpoint)
         if self.state_file is not None:
             self.state_file.unlink(missing_ok=True)
 

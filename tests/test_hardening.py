@@ -157,3 +157,45 @@ def test_frame_specs_a_pattern_cannot_be_made_from_are_refused_at_the_door(sim_d
     finally:
         sim_daemon.call("close_rig", rig=rig)
     assert sim_daemon.ping()
+
+
+def _daemon_main(*args: str, runtime: Path) -> "subprocess.CompletedProcess[str]":
+    import os
+    import subprocess
+    import sys
+
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
+    return subprocess.run([sys.executable, "-m", "sssphase_daemon", "--state-file", str(runtime / "d.json"), *args],
+                          capture_output=True, text=True, timeout=60, env=env)
+
+
+def test_a_preview_off_loopback_needs_curve_like_the_control_socket(tmp_path):
+    res = _daemon_main("--endpoint", f"ipc://{tmp_path}/c.sock", "--preview", "tcp://0.0.0.0:0", runtime=tmp_path)
+    assert res.returncode == 2 and "preview" in res.stderr and "CURVE" in res.stderr, res.stderr
+
+
+def test_the_daemon_never_deletes_a_file_that_is_not_its_socket(tmp_path):
+    notes = tmp_path / "notes.txt"
+    notes.write_text("keep me")
+    res = _daemon_main("--endpoint", f"ipc://{notes}", runtime=tmp_path)
+    assert res.returncode == 2 and "not a socket" in res.stderr, res.stderr
+    assert notes.read_text() == "keep me"
+
+
+def test_an_abstract_ipc_socket_is_not_local():
+    from sssphase_daemon import security
+
+    assert not security.is_local("ipc://@sssphase") and security.is_local("ipc:///run/user/0/sss.sock")
+    res = _daemon_main("--endpoint", "ipc://@sssphase-test", runtime=Path("/tmp"))
+    assert res.returncode == 2 and "CURVE" in res.stderr, res.stderr
+
+
+def test_jobs_leave_no_stream_sockets_behind(sim_daemon, tmp_path):
+    import os
+
+    from sssphase_core.capture import CaptureRequest, run_capture
+
+    runtime = Path(os.environ["SSS_RUNTIME_DIR"])
+    req = CaptureRequest("star", views=1, out=tmp_path)
+    run_capture(sim_daemon, req)
+    assert not list(runtime.glob("stream-*.sock"))
