@@ -159,7 +159,7 @@ def test_frame_specs_a_pattern_cannot_be_made_from_are_refused_at_the_door(sim_d
     assert sim_daemon.ping()
 
 
-def _daemon_main(*args: str, runtime: Path) -> "subprocess.CompletedProcess[str]":
+def _daemon_main(*args: str, runtime: Path) -> subprocess.CompletedProcess[str]:
     import os
     import subprocess
     import sys
