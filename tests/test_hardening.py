@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import os
 import struct
+import subprocess
+import sys
 import zlib
 from pathlib import Path
 
@@ -160,10 +163,6 @@ def test_frame_specs_a_pattern_cannot_be_made_from_are_refused_at_the_door(sim_d
 
 
 def _daemon_main(*args: str, runtime: Path) -> subprocess.CompletedProcess[str]:
-    import os
-    import subprocess
-    import sys
-
     env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
     return subprocess.run([sys.executable, "-m", "sssphase_daemon", "--state-file", str(runtime / "d.json"), *args],
                           capture_output=True, text=True, timeout=60, env=env)
