@@ -101,12 +101,14 @@ def write_json_atomic(path: Path, obj: Any) -> None:
     os.replace(tmp, path)
 
 
-def _codec(dtype: np.dtype):
-    """Blosc LZ4 with byte shuffle: noisy float images barely compress, so speed matters most."""
-    from zarr.codecs import BloscCodec, BloscShuffle
+def _codec(dtype: np.dtype) -> list:
+    """Blosc LZ4 with byte shuffle (noisy float images barely compress, so speed matters most), then a
+    CRC32C per chunk: every read verifies what it reads, so a damaged chunk is an error naming the
+    array, not silently wrong training data (the SHA-256 of ``sss validate`` reads whole arrays)."""
+    from zarr.codecs import BloscCodec, BloscShuffle, Crc32cCodec
 
     shuffle = BloscShuffle.shuffle if np.dtype(dtype).itemsize > 1 else BloscShuffle.noshuffle
-    return BloscCodec(cname="lz4", clevel=5, shuffle=shuffle)
+    return [BloscCodec(cname="lz4", clevel=5, shuffle=shuffle), Crc32cCodec()]
 
 
 def _zarr_write(path: Path, data: np.ndarray) -> None:
@@ -189,6 +191,41 @@ class StreamedArray:
                                          "checksum": "sha256:" + self.hash.hexdigest()}
 
 
+class CheckedArray:
+    """A read-only zarr array whose reads fail with a :class:`DataError` naming it when a chunk is damaged."""
+
+    def __init__(self, array: Any, where: str) -> None:
+        self.array, self.where = array, where
+        self.shape, self.dtype, self.ndim = array.shape, array.dtype, array.ndim
+
+    def __len__(self) -> int:
+        return int(self.shape[0])
+
+    def __getitem__(self, index: Any) -> np.ndarray:
+        return self._checked(lambda: self.array[index])
+
+    @property
+    def oindex(self) -> Any:
+        """Orthogonal indexing (rows by an index array), checked like ``[]``."""
+        outer = self
+
+        class _OIndex:
+            def __getitem__(self, index: Any) -> np.ndarray:
+                return outer._checked(lambda: outer.array.oindex[index])
+
+        return _OIndex()
+
+    def _checked(self, read: Any) -> np.ndarray:
+        try:
+            return read()
+        except Exception as exc:  # zarr/numcodecs raise several types for a checksum or decoding failure
+            reason = str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__
+            raise DataError(f"{self.where} is damaged ({reason}); `sss validate` lists the damage") from None
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        return np.asarray(self[...], dtype=dtype)
+
+
 @dataclass
 class Session:
     """A session folder. ``Session.open(path)`` to read; ``Session.create(root, name, ...)`` to write."""
@@ -268,13 +305,17 @@ class Session:
     def arrays(self, view: int) -> list[str]:
         return sorted(self.manifest["views"].get(str(view), {}).get("arrays", {}))
 
-    def read(self, view: int, name: str):
-        """The array lazily (a zarr array: index it, or ``np.asarray`` it, to load numpy data)."""
+    def read(self, view: int, name: str) -> CheckedArray:
+        """The array lazily (index it, or ``np.asarray`` it, to load numpy data; every chunk read is verified)."""
         import zarr
 
         if name not in self.arrays(view):
             raise DataError(f"view {view} of {self.path} has no array {name!r} (has: {', '.join(self.arrays(view))})")
-        return zarr.open_array(str(self.path / view_dir_name(view) / name), mode="r")
+        where = f"array {name} of view {view} of {self.path}"
+        try:
+            return CheckedArray(zarr.open_array(str(self.path / view_dir_name(view) / name), mode="r"), where)
+        except Exception as exc:  # missing or unreadable metadata
+            raise DataError(f"{where} is missing or unreadable ({type(exc).__name__}); `sss validate` lists the damage") from None
 
     def load(self, view: int, name: str) -> np.ndarray:
         """The whole array as numpy."""
@@ -299,6 +340,10 @@ class Session:
             for name, meta in entry.get("arrays", {}).items():
                 try:
                     data = self.load(v, name)
+                except DataError as exc:  # a chunk failed its CRC32C, or the array's files are gone
+                    what = "corrupt (a chunk fails its checksum)" if "damaged" in str(exc) else "missing or unreadable"
+                    problems.append(f"view {v}: array {name} is {what}")
+                    continue
                 except Exception as exc:
                     problems.append(f"view {v}: array {name} missing or unreadable ({type(exc).__name__}: {str(exc)[:80]})")
                     continue

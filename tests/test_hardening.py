@@ -198,3 +198,20 @@ def test_jobs_leave_no_stream_sockets_behind(sim_daemon, tmp_path):
     req = CaptureRequest("star", views=1, out=tmp_path)
     run_capture(sim_daemon, req)
     assert not list(runtime.glob("stream-*.sock"))
+
+
+def test_a_bit_flip_in_a_chunk_is_an_error_naming_the_array(sim_daemon, tmp_path):
+    from sssphase_core.capture import CaptureRequest, run_capture
+    from sssphase_core.errors import DataError
+    from sssphase_core.relight import load_view
+
+    s = run_capture(sim_daemon, CaptureRequest("leaf", views=1, out=tmp_path))
+    chunk = next(p for p in sorted((s.path / "view_000" / "psp").rglob("*")) if p.is_file() and p.name != "zarr.json")
+    raw = bytearray(chunk.read_bytes())
+    raw[len(raw) // 2] ^= 0x01
+    chunk.write_bytes(bytes(raw))
+    with pytest.raises(DataError, match="array psp of view 0 .* is damaged"):
+        load_view(s, 0)
+    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "relight", str(s.path), "--pattern", "checkerboard",
+                          "--backend", "none", "--out", str(tmp_path / "r")], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and "psp" in res.stderr and "Traceback" not in res.stderr, res.stderr
