@@ -38,6 +38,7 @@ from sssphase_plugins.drivers import DeviceError
 
 log = logging.getLogger("sssphase.daemon")
 MAX_FRAMES_PER_JOB = 200_000
+MAX_OPEN_RIGS = 16  # each may hold a simulated scene or a camera: a client cannot open thousands
 HEAVY_MODULES = ("torch", "depthai", "hid", "usb", "serial")  # a sim-only daemon must load none of these
 FRAME_KINDS = ("psp", "white", "black", "dots", "ref", "image")
 
@@ -53,11 +54,14 @@ class Rig:
     lock: threading.Lock = field(default_factory=threading.Lock)
 
     def close(self) -> None:
+        """Close the devices and drop them: finished jobs keep their rig for ``status``, not its devices
+        (a sim rig's scene is ~120 MB)."""
         for driver in self.devices.values():
             try:
                 driver.close()
             except Exception as exc:  # closing must not take the daemon down
                 log.warning("closing %s failed: %s", driver.info.id, exc)
+        self.devices = {}
 
 
 @dataclass
@@ -300,6 +304,9 @@ class Daemon:
         wanted = {k: args[k] for k in ("camera", "projector", "trigger", "turntable") if args.get(k)}
         if "camera" not in wanted or not isinstance(options, dict) or not all(isinstance(v, str) for v in wanted.values()):
             raise ProtocolError(protocol.BAD_ARGS, "open_rig needs a camera device id (string) and an options map")
+        with self.lock:
+            if len(self.rigs) >= MAX_OPEN_RIGS:
+                raise ProtocolError(protocol.BUSY, f"{len(self.rigs)} rigs are open (at most {MAX_OPEN_RIGS}): close one first")
         shared: dict[str, Any] = {}
         devices: dict[str, Any] = {}
         try:

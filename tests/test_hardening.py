@@ -215,3 +215,41 @@ def test_a_bit_flip_in_a_chunk_is_an_error_naming_the_array(sim_daemon, tmp_path
     res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "relight", str(s.path), "--pattern", "checkerboard",
                           "--backend", "none", "--out", str(tmp_path / "r")], capture_output=True, text=True, timeout=120)
     assert res.returncode == 2 and "psp" in res.stderr and "Traceback" not in res.stderr, res.stderr
+
+
+def _rss_mb(pid: int) -> float:
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError("no VmRSS")
+
+
+@pytest.mark.slow
+def test_closed_rigs_are_freed_and_open_rigs_are_limited(sim_daemon):
+    from sssphase_daemon.client import DaemonError
+
+    pid = sim_daemon.call("hello")["pid"]
+    frames = [{"name": "white", "kind": "white", "params": {"width": 256, "height": 192}}]
+
+    def cycle() -> None:
+        rig = sim_daemon.call("open_rig", camera="sim:camera0", projector="sim:projector0",
+                              options={"object": "apple"})["rig"]
+        list(sim_daemon.capture(rig, frames))
+        sim_daemon.call("close_rig", rig=rig)
+
+    for _ in range(10):
+        cycle()
+    after_10 = _rss_mb(pid)
+    for _ in range(50):
+        cycle()
+    after_60 = _rss_mb(pid)
+    assert after_60 < 1.2 * after_10, (after_10, after_60)
+    opened = []
+    try:
+        with pytest.raises(DaemonError) as err:
+            for _ in range(100):
+                opened.append(sim_daemon.call("open_rig", camera="sim:camera0", options={"object": "apple"})["rig"])
+        assert err.value.code == "busy" and 0 < len(opened) <= 16
+    finally:
+        for rig in opened:
+            sim_daemon.call("close_rig", rig=rig)
