@@ -93,12 +93,18 @@ def _chunks(shape: tuple[int, ...], itemsize: int, target: int = 2**21) -> tuple
 
 
 def write_json_atomic(path: Path, obj: Any) -> None:
+    """Write ``obj`` as JSON to ``path`` atomically; on failure (disk full, read-only folder) the old file
+    stays, no temporary file is left, and the error names the file."""
     tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    with open(tmp, "w") as f:
-        json.dump(obj, f, indent=1, sort_keys=True)
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    try:
+        with open(tmp, "w") as f:
+            json.dump(obj, f, indent=1, sort_keys=True)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise DataError(f"cannot write {path}: {exc.strerror or exc} (the previous version is kept)") from None
 
 
 def _codec(dtype: np.dtype) -> list:
@@ -249,7 +255,10 @@ class Session:
             session.manifest["resumed"] = [*session.manifest.get("resumed", []), time.time()]
             session.save()
             return session
-        path.mkdir(parents=True, exist_ok=True)
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"cannot create the session folder {path}: {exc.strerror or exc}") from None
         session = cls(path, {"format": FORMAT, "format_version": FORMAT_VERSION, "object": name,
                              "created": time.time(), "views": {}, **info})
         session.save()

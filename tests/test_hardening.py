@@ -253,3 +253,36 @@ def test_closed_rigs_are_freed_and_open_rigs_are_limited(sim_daemon):
     finally:
         for rig in opened:
             sim_daemon.call("close_rig", rig=rig)
+
+
+def test_a_full_disk_while_writing_the_manifest_keeps_the_old_one_and_leaves_no_temp_file(tmp_path, monkeypatch):
+    import errno
+    import json
+
+    from sssphase_core import session as session_mod
+    from sssphase_core.errors import DataError
+
+    s = session_mod.Session.create(tmp_path, "apple", n_views=1)
+    before = (s.path / "manifest.json").read_text()
+
+    def full(*args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(session_mod.os, "fsync", full)
+    with pytest.raises(DataError, match="No space left on device"):
+        s.set_view(0, {"status": "capturing"})
+    assert (s.path / "manifest.json").read_text() == before and json.loads(before)["object"] == "apple"
+    assert [p.name for p in s.path.iterdir()] == ["manifest.json"]
+
+
+def test_a_read_only_output_folder_is_one_line(tmp_path, monkeypatch):
+    import errno
+
+    from sssphase_core.session import Session
+
+    def refuse(self, *args, **kwargs):  # what a read-only folder answers (root ignores the mode bits)
+        raise PermissionError(errno.EACCES, "Permission denied", str(self))
+
+    monkeypatch.setattr(Path, "mkdir", refuse)
+    with pytest.raises(InputError, match="cannot create the session folder .*Permission denied"):
+        Session.create(tmp_path / "ro", "apple")
