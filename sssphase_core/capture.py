@@ -214,8 +214,7 @@ class ViewProcessor:
     def finish(self) -> dict[str, Any]:
         """Write the view's arrays (the dot frames were streamed already); returns manifest info."""
         cfg, w = self.plan.psp, self.writer
-        hf = float(cfg.period)
-        order = [f"psp/{o}/p{hf:g}/s{n}" for o in ("x", "y") for n in range(cfg.n_shifts)]
+        order = cfg.input_keys
         corr = self.decode()
         w.write("psp", np.stack([self.psp[k] for k in order]))
         info: dict[str, Any] = {"psp_keys": order, "coverage": corr.coverage()}

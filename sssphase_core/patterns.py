@@ -171,6 +171,12 @@ class PSPConfig:
         """All periods, coarsest first, ending with the high-frequency one."""
         return (*self.unwrap_periods, float(self.period))
 
+    @property
+    def input_keys(self) -> list[str]:
+        """Plan keys of the learning inputs in their stacking order (ARCHITECTURE.md): the high-frequency
+        shifts of ``x``, then of ``y`` (the paper's 8 images for 4 shifts)."""
+        return [psp_key(o, float(self.period), n) for o in ("x", "y") for n in range(self.n_shifts)]
+
     def frames_per_orientation(self, unwrap: bool = True) -> int:
         return self.n_shifts * (len(self.periods) if unwrap else 1)
 
