@@ -148,6 +148,8 @@ class DaemonClient:
         """Yield the job's frames (heartbeating meanwhile); raise on a failed job, a gap or a dead daemon."""
         pull = self._socket(zmq.PULL)
         pull.rcvhwm = 16
+        if self.curve is None:  # the stream takes only peers that know the token
+            pull.plain_username, pull.plain_password = security.STREAM_USER.encode(), self.token.encode()
         pull.connect(job["endpoint"])
         expected, finished = 0, False
         last_data = time.monotonic()

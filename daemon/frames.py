@@ -32,11 +32,16 @@ def configure_curve_server(sock: zmq.Socket, curve: tuple[bytes, bytes] | None) 
 class FrameSender:
     """Binds a PUSH socket for one job; ``send`` blocks under backpressure while ``alive()`` holds."""
 
-    def __init__(self, ctx: zmq.Context, endpoint: str, curve: tuple[bytes, bytes] | None = None) -> None:
+    def __init__(self, ctx: zmq.Context, endpoint: str, curve: tuple[bytes, bytes] | None = None, *,
+                 plain: bool = False) -> None:
+        """``curve``: the daemon's CURVE keys; else ``plain``: peers must log in with the daemon's token
+        (ZeroMQ PLAIN, checked by the daemon's ZAP authenticator)."""
         self.sock = ctx.socket(zmq.PUSH)
         self.sock.sndhwm = SEND_HWM
         self.sock.linger = 0
         configure_curve_server(self.sock, curve)
+        if curve is None and plain:
+            self.sock.plain_server = True
         self.sock.bind(endpoint)
         self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
 

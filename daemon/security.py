@@ -65,6 +65,9 @@ def stream_endpoint(control: str, job: str) -> str:
     return f"tcp://{'[' + host + ']' if ':' in host else host}:*"
 
 
+STREAM_USER = "sss-stream"  # ZeroMQ PLAIN user of job frame streams; the password is the daemon's token
+
+
 def new_token() -> str:
     return secrets.token_urlsafe(32)
 

@@ -145,6 +145,14 @@ class Daemon:
         if running is not None and running.pid != os.getpid() and _pid_alive(running.pid):
             raise PermissionError(f"another daemon (pid {running.pid}) is serving {running.endpoint}; stop it first")
         self.token = token or security.new_token()
+        if self.auth is None:  # frame streams authenticate with the token (ZeroMQ PLAIN), so no other local
+            from zmq.auth.thread import (
+                ThreadAuthenticator,  # process can connect to a job's port and take frames
+            )
+
+            self.auth = ThreadAuthenticator(self.ctx)
+            self.auth.start()
+            self.auth.configure_plain(domain="*", passwords={security.STREAM_USER: self.token})
         self.max_bytes = max_message_bytes
         self.client_timeout = client_timeout_s
         self.rig_idle_s = max(300.0, 10 * client_timeout_s)  # a rig outlives pauses between views
@@ -363,7 +371,8 @@ class Daemon:
 
     def _start_job(self, client: bytes, rig: Rig, total: int, frames: Callable[[Job], Iterator[tuple[str, Any]]]) -> dict:
         job_id = f"{next(self.counter)}-{uuid.uuid4().hex[:8]}"
-        sender = FrameSender(self.ctx, security.stream_endpoint(self.endpoint, job_id), self.curve)
+        sender = FrameSender(self.ctx, security.stream_endpoint(self.endpoint, job_id), self.curve,
+                             plain=self.curve is None)
         job = Job(job_id, client, rig, sender.endpoint, total)
         with self.lock:
             self.jobs[job_id] = job

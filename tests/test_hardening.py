@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import os
+import shutil
 import struct
 import subprocess
 import sys
+import tempfile
 import zlib
 from pathlib import Path
 
@@ -286,3 +288,41 @@ def test_a_read_only_output_folder_is_one_line(tmp_path, monkeypatch):
     monkeypatch.setattr(Path, "mkdir", refuse)
     with pytest.raises(InputError, match="cannot create the session folder .*Permission denied"):
         Session.create(tmp_path / "ro", "apple")
+
+
+def test_a_local_process_without_the_token_cannot_take_a_jobs_frames(tmp_path):
+    import time
+
+    import zmq
+
+    from sssphase_daemon import security
+    from sssphase_daemon.client import DaemonClient
+
+    runtime = Path(tempfile.mkdtemp(prefix="sssh", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
+    proc = subprocess.Popen([sys.executable, "-m", "sssphase_daemon", "--endpoint", "tcp://127.0.0.1:*"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    ctx = zmq.Context()
+    try:
+        deadline = time.monotonic() + 30
+        while (state := security.read_state(runtime / "daemon.json")) is None:
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.05)
+        with DaemonClient(state.endpoint, state.token, timeout_s=10) as client:
+            rig = client.call("open_rig", camera="sim:camera0", projector="sim:projector0", options={"object": "star"})["rig"]
+            frames = [{"name": f"w{i}", "key": "white", "kind": "white", "params": {"width": 256, "height": 192}}
+                      for i in range(6)]
+            job = client.call("capture", rig=rig, frames=frames)
+            assert job["endpoint"].startswith("tcp://127.0.0.1:")
+            thief = ctx.socket(zmq.PULL)
+            thief.linger = 0
+            thief.connect(job["endpoint"])  # connects first: an unauthenticated peer would get frames round-robin
+            time.sleep(0.3)
+            got = list(client.receive(job))
+            assert len(got) == len(frames)
+            assert thief.poll(500) == 0  # the handshake failed: nothing reached it
+    finally:
+        proc.terminate()
+        proc.wait(20)
+        ctx.destroy(linger=0)
+        shutil.rmtree(runtime, ignore_errors=True)
