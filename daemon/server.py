@@ -83,16 +83,6 @@ class Job:
                 "error": self.error, "started": self.started}
 
 
-def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
-
-
 def _pattern_for(spec: dict[str, Any]) -> np.ndarray:
     """Render the projector image of one requested frame (an uploaded image or a planned pattern)."""
     if spec["kind"] == "image":
@@ -142,7 +132,7 @@ class Daemon:
             self.auth.start()
             self.auth.configure_curve(domain="*", location=str(curve_dir / security.AUTHORIZED))
         running = security.read_state(state_file) if state_file is not None else None
-        if running is not None and running.pid != os.getpid() and _pid_alive(running.pid):
+        if running is not None and running.pid != os.getpid() and security.is_daemon_process(running.pid):
             raise PermissionError(f"another daemon (pid {running.pid}) is serving {running.endpoint}; stop it first")
         self.token = token or security.new_token()
         if self.auth is None:  # frame streams authenticate with the token (ZeroMQ PLAIN), so no other local

@@ -326,3 +326,27 @@ def test_a_local_process_without_the_token_cannot_take_a_jobs_frames(tmp_path):
         proc.wait(20)
         ctx.destroy(linger=0)
         shutil.rmtree(runtime, ignore_errors=True)
+
+
+def test_a_stale_state_file_whose_pid_was_reused_does_not_block_a_new_daemon(tmp_path):
+    import time
+
+    from sssphase_daemon import security
+
+    sleeper = subprocess.Popen(["sleep", "30"])
+    runtime = Path(tempfile.mkdtemp(prefix="ssss", dir="/tmp"))
+    try:
+        security.write_state(security.DaemonState(endpoint=f"ipc://{runtime}/old.sock", token="t" * 32, pid=sleeper.pid,
+                                                  version="0", started=time.time()), runtime / "daemon.json")
+        env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
+        sss = [sys.executable, "-m", "sssphase_cli.main"]
+        status = subprocess.run([*sss, "daemon", "status"], capture_output=True, text=True, timeout=60, env=env)
+        assert "no daemon running" in status.stdout
+        start = subprocess.run([*sss, "daemon", "start"], capture_output=True, text=True, timeout=60, env=env)
+        assert start.returncode == 0 and "daemon started" in start.stdout, start.stdout + start.stderr
+        stop = subprocess.run([*sss, "daemon", "stop"], capture_output=True, text=True, timeout=60, env=env)
+        assert stop.returncode == 0 and "stopped" in stop.stdout, stop.stdout + stop.stderr
+        assert sleeper.poll() is None
+    finally:
+        sleeper.kill()
+        shutil.rmtree(runtime, ignore_errors=True)
