@@ -68,7 +68,8 @@ def manifest_problem(manifest: dict[str, Any]) -> str | None:
                 return f"view {key}: array name {name!r} is not allowed"
             if not (isinstance(meta, dict) and isinstance(meta.get("shape"), list)
                     and all(isinstance(d, int) and d >= 0 for d in meta["shape"])
-                    and isinstance(meta.get("dtype"), str) and isinstance(meta.get("checksum"), str)):
+                    and isinstance(meta.get("dtype"), str) and isinstance(meta.get("checksum"), str)
+                    and isinstance(meta.get("chunks", 0), int)):
                 return f"view {key}: array {name} lacks its shape, dtype or checksum"
     return None
 
@@ -117,12 +118,17 @@ def _codec(dtype: np.dtype) -> list:
     return [BloscCodec(cname="lz4", clevel=5, shuffle=shuffle), Crc32cCodec()]
 
 
+def _chunk_count(shape: tuple[int, ...], chunks: tuple[int, ...]) -> int:
+    return int(np.prod([-(-n // c) for n, c in zip(shape, chunks, strict=True)])) if all(shape) else 0
+
+
 def _zarr_write(path: Path, data: np.ndarray) -> None:
     import zarr
 
     data = np.ascontiguousarray(data)
     arr = zarr.create_array(store=str(path), shape=data.shape, dtype=data.dtype, chunks=_chunks(data.shape, data.dtype.itemsize),
-                            compressors=_codec(data.dtype), fill_value=0, zarr_format=3, overwrite=True)
+                            compressors=_codec(data.dtype), fill_value=0, zarr_format=3, overwrite=True,
+                            config={"write_empty_chunks": True})  # every chunk on disk: a missing one is damage
     if data.size:
         arr[...] = data
 
@@ -151,7 +157,8 @@ class ViewWriter:
                 raise DataError(f"disk full while writing {name} of view {self.view} in {self.session.path}: "
                                 "free some space and rerun with --resume") from exc
             raise DataError(f"cannot write {name} of view {self.view}: {exc}") from exc
-        self.arrays[name] = {"shape": list(data.shape), "dtype": np.dtype(data.dtype).str, "checksum": array_checksum(data)}
+        self.arrays[name] = {"shape": list(data.shape), "dtype": np.dtype(data.dtype).str, "checksum": array_checksum(data),
+                             "chunks": _chunk_count(data.shape, _chunks(data.shape, np.dtype(data.dtype).itemsize))}
 
     def stream_array(self, name: str, count: int) -> StreamedArray:
         """An array of ``count`` equal-shape frames written one at a time (raw dot grids)."""
@@ -185,7 +192,7 @@ class StreamedArray:
                 FAULT_HOOK(self.name)
             self.arr = zarr.create_array(store=str(self.writer.partial / self.name), shape=(self.count, *frame.shape),
                                          dtype=frame.dtype, chunks=(1, *frame.shape), fill_value=0, zarr_format=3,
-                                         compressors=_codec(frame.dtype))
+                                         compressors=_codec(frame.dtype), config={"write_empty_chunks": True})
         self.arr[self.index] = frame
         self.hash.update(memoryview(frame).cast("B"))
         self.index += 1
@@ -194,7 +201,7 @@ class StreamedArray:
         if self.index != self.count:
             raise DataError(f"{self.name}: got {self.index} of {self.count} frames")
         self.writer.arrays[self.name] = {"shape": list(self.arr.shape), "dtype": self.arr.dtype.str,
-                                         "checksum": "sha256:" + self.hash.hexdigest()}
+                                         "checksum": "sha256:" + self.hash.hexdigest(), "chunks": self.count}
 
 
 class CheckedArray:
@@ -321,10 +328,18 @@ class Session:
         if name not in self.arrays(view):
             raise DataError(f"view {view} of {self.path} has no array {name!r} (has: {', '.join(self.arrays(view))})")
         where = f"array {name} of view {view} of {self.path}"
+        folder = self.path / view_dir_name(view) / name
         try:
-            return CheckedArray(zarr.open_array(str(self.path / view_dir_name(view) / name), mode="r"), where)
+            array = zarr.open_array(str(folder), mode="r")
         except Exception as exc:  # missing or unreadable metadata
             raise DataError(f"{where} is missing or unreadable ({type(exc).__name__}); `sss validate` lists the damage") from None
+        expected = self.manifest["views"][str(view)]["arrays"][name].get("chunks")  # older sessions: not recorded
+        if expected is not None:
+            found = sum(1 for p in folder.rglob("*") if p.is_file() and p.name != "zarr.json")
+            if found != expected:  # zarr would read a missing chunk as zeros
+                raise DataError(f"{where} is damaged ({expected - found} of {expected} chunks missing); "
+                                "`sss validate` lists the damage")
+        return CheckedArray(array, where)
 
     def load(self, view: int, name: str) -> np.ndarray:
         """The whole array as numpy."""

@@ -350,3 +350,48 @@ def test_a_stale_state_file_whose_pid_was_reused_does_not_block_a_new_daemon(tmp
     finally:
         sleeper.kill()
         shutil.rmtree(runtime, ignore_errors=True)
+
+
+def _chunk_files(view: Path, array: str) -> list[Path]:
+    return [p for p in sorted((view / array).rglob("*")) if p.is_file() and p.name != "zarr.json"]
+
+
+def _set_meta(path: Path, **fields) -> None:
+    import json
+
+    path.write_text(json.dumps({**json.loads(path.read_text()), **fields}))
+
+
+DAMAGE = {
+    "metadata deleted": lambda v: (v / "psp" / "zarr.json").unlink(),
+    "chunk truncated": lambda v: (lambda c: c.write_bytes(c.read_bytes()[:10]))(_chunk_files(v, "psp")[0]),
+    "chunk overwritten": lambda v: (lambda c: c.write_bytes(bytes(range(200))))(_chunk_files(v, "psp")[0]),
+    "array folder removed": lambda v: shutil.rmtree(v / "psp"),
+    "metadata not json": lambda v: (v / "white" / "zarr.json").write_text("{not json"),
+    "shape changed": lambda v: _set_meta(v / "corr" / "xp" / "zarr.json", shape=[10, 10], chunk_grid={
+        "name": "regular", "configuration": {"chunk_shape": [10, 10]}}),
+    "dtype changed": lambda v: _set_meta(v / "corr" / "mask" / "zarr.json", data_type="float64"),
+    "chunk missing": lambda v: _chunk_files(v, "white")[0].unlink(),  # zarr would read it as zeros
+}
+
+
+@pytest.fixture(scope="module")
+def intact_session(sim_daemon, tmp_path_factory):
+    from sssphase_core.capture import CaptureRequest, run_capture
+
+    return run_capture(sim_daemon, CaptureRequest("leaf", views=1, references=("checkerboard",),
+                                                  out=tmp_path_factory.mktemp("intact"))).path
+
+
+@pytest.mark.parametrize("damage", sorted(DAMAGE))
+def test_a_damaged_array_is_one_error_naming_it_wherever_it_is_read(intact_session, tmp_path, damage):
+    from sssphase_core.errors import DataError
+    from sssphase_core.relight import load_view
+    from sssphase_core.session import Session
+
+    copy = tmp_path / "leaf"
+    shutil.copytree(intact_session, copy)
+    DAMAGE[damage](copy / "view_000")
+    with pytest.raises(DataError, match=r"array (psp|white|corr/xp|corr/mask) of view 0 .* is (damaged|missing)"):
+        load_view(Session.open(copy), 0)
+    assert any("view 0: array" in p for p in Session.open(copy).validate())
