@@ -38,6 +38,7 @@ from sssphase_plugins.drivers import DeviceError
 
 log = logging.getLogger("sssphase.daemon")
 MAX_FRAMES_PER_JOB = 200_000
+HANDSHAKE_MS = 5000
 MAX_OPEN_RIGS = 16  # each may hold a simulated scene or a camera: a client cannot open thousands
 HEAVY_MODULES = ("torch", "depthai", "hid", "usb", "serial")  # a sim-only daemon must load none of these
 FRAME_KINDS = ("psp", "white", "black", "dots", "ref", "image")
@@ -81,6 +82,19 @@ class Job:
     def summary(self) -> dict[str, Any]:
         return {"job": self.id, "rig": self.rig.id, "state": self.state, "sent": self.sent, "total": self.total,
                 "error": self.error, "started": self.started}
+
+
+def _raise_fd_limit(target: int = 65536) -> None:
+    """Raise the soft open-file limit toward the hard one: each client connection is a descriptor."""
+    try:
+        import resource
+
+        soft, hard = resource.getrlimit(resource.RLIMIT_NOFILE)
+        want = target if hard == resource.RLIM_INFINITY else min(hard, target)
+        if soft != resource.RLIM_INFINITY and soft < want:
+            resource.setrlimit(resource.RLIMIT_NOFILE, (want, hard))
+    except (ImportError, ValueError, OSError):  # not on this platform, or not allowed: keep the limit
+        pass
 
 
 def _pattern_for(spec: dict[str, Any]) -> np.ndarray:
@@ -146,8 +160,12 @@ class Daemon:
         self.max_bytes = max_message_bytes
         self.client_timeout = client_timeout_s
         self.rig_idle_s = max(300.0, 10 * client_timeout_s)  # a rig outlives pauses between views
+        _raise_fd_limit()
         self.control = self.ctx.socket(zmq.ROUTER)
         self.control.linger = 0
+        # a peer that connects but never completes the ZeroMQ handshake is dropped after this, so idle
+        # unauthenticated connections cannot hold the daemon's file descriptors for long
+        self.control.setsockopt(zmq.HANDSHAKE_IVL, HANDSHAKE_MS)
         self.control.setsockopt(zmq.MAXMSGSIZE, max_message_bytes + 4096)
         self.control.setsockopt(zmq.ROUTER_MANDATORY, 0)
         configure_curve_server(self.control, self.curve)

@@ -395,3 +395,47 @@ def test_a_damaged_array_is_one_error_naming_it_wherever_it_is_read(intact_sessi
     with pytest.raises(DataError, match=r"array (psp|white|corr/xp|corr/mask) of view 0 .* is (damaged|missing)"):
         load_view(Session.open(copy), 0)
     assert any("view 0: array" in p for p in Session.open(copy).validate())
+
+
+@pytest.mark.slow
+def test_idle_unauthenticated_connections_do_not_lock_out_good_clients(tmp_path):
+    """300 TCP connections that never speak ZeroMQ, against a daemon limited to 256 descriptors."""
+    import resource
+    import socket
+    import time
+
+    from sssphase_daemon import security
+    from sssphase_daemon.client import DaemonClient
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (256, 256))
+
+    runtime = Path(tempfile.mkdtemp(prefix="sssi", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
+    proc = subprocess.Popen([sys.executable, "-m", "sssphase_daemon", "--endpoint", "tcp://127.0.0.1:*"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=limit)
+    idle: list[socket.socket] = []
+    try:
+        deadline = time.monotonic() + 30
+        while (state := security.read_state(runtime / "daemon.json")) is None:
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.05)
+        host, port = state.endpoint.removeprefix("tcp://").rsplit(":", 1)
+        for _ in range(300):
+            s = socket.socket()
+            s.settimeout(2)
+            try:
+                s.connect((host, int(port)))
+            except OSError:
+                s.close()
+                continue
+            idle.append(s)
+        with DaemonClient(state.endpoint, state.token, timeout_s=20) as client:
+            assert client.ping(timeout_s=20)
+        assert proc.poll() is None
+    finally:
+        for s in idle:
+            s.close()
+        proc.terminate()
+        proc.wait(20)
+        shutil.rmtree(runtime, ignore_errors=True)
