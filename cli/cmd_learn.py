@@ -204,18 +204,18 @@ def _print_final(metrics: Path, names: tuple[str, ...], monitored: str) -> None:
 
 def _check_against_baselines(run: Path, roots: list[Path], views: list[int] | None, device: str) -> None:
     """Relight held-out views with reference captures by the new model and the none/analytic baselines."""
-    from sssphase_cli.cmd_relight import _sessions
     from sssphase_core.relight_eval import baseline_check
+    from sssphase_core.session import find_sessions
 
     if not roots:
         console.print("no --check-sessions: relighting against the baselines was not checked")
         return
     if device == "auto":
-        import torch
+        from sssphase_core.training import init_distributed
 
-        device = "cuda" if torch.cuda.is_available() else "cpu"
+        device = str(init_distributed(device).device)
     with console.status("relighting held-out views against the none and analytic baselines"):
-        res = baseline_check(_sessions(roots), run, run / "check", views=views, device=device)
+        res = baseline_check(find_sessions(roots), run, run / "check", views=views, device=device)
     if not res["views"]:
         console.print(f"[yellow]not checked:[/] no view of {', '.join(map(str, roots))} has reference captures "
                       "(capture one with --reference checkerboard and pass it as --check-sessions)")

@@ -20,18 +20,6 @@ def _progress():
     return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console)
 
 
-def _sessions(paths: list[Path]):
-    from sssphase_core.errors import InputError
-    from sssphase_core.session import MANIFEST, Session, list_sessions
-
-    found = []
-    for p in paths:
-        found += [Session.open(p)] if (p / MANIFEST).exists() else list_sessions(p)
-    if not found:
-        raise InputError(f"no sessions under {', '.join(map(str, paths))}")
-    return found
-
-
 def _views(session, views: str) -> list[int]:
     from sssphase_core.errors import InputError
 
@@ -47,10 +35,6 @@ def _model_tag(checkpoint: Path | None) -> str:
     """Short digest of the checkpoint path and modification time: a retrained model gets a new cache."""
     import hashlib
 
-    if checkpoint is not None:
-        from sssphase_core.training import resolve_checkpoint
-
-        checkpoint = resolve_checkpoint(checkpoint)
     key = "none" if checkpoint is None else f"{Path(checkpoint).resolve()}:{Path(checkpoint).stat().st_mtime_ns}"
     return hashlib.sha256(key.encode()).hexdigest()[:10]
 
@@ -68,7 +52,6 @@ def relight_cmd(
     cache: Annotated[bool, typer.Option(help="Keep predicted footprints in OUT/cache (float16) for later patterns.")] = True,
 ) -> None:
     """Relight a captured object under new projector patterns (several patterns share one footprint pass)."""
-    import numpy as np
 
     from sssphase_core.bench.relight_bench import reference_patterns
     from sssphase_core.errors import InputError
@@ -83,8 +66,13 @@ def relight_cmd(
     )
     from sssphase_core.relight_eval import comparison_figure, relight_metrics
     from sssphase_core.session import Session
+    from sssphase_core.training import resolve_checkpoint
 
     s = Session.open(session)
+    if checkpoint is not None:
+        checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
+        if backend == "torch":
+            console.print(f"torch backend: {checkpoint}")
     names, pats = [], []
     for v in _views(s, views):
         rv = load_view(s, v)
@@ -102,13 +90,7 @@ def relight_cmd(
                     pats.append(reference_patterns(wp, hp, [p])[p])
                 else:
                     raise InputError(f"--pattern {p!r} is neither an image file nor one of {', '.join(REFERENCE_NAMES)}")
-            colour = any(p.ndim == 3 for p in pats)
-            pats = [np.repeat(p[..., None], 3, -1) if colour and p.ndim == 2 else p for p in pats]
         source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device)
-        if backend == "torch" and checkpoint is not None:
-            from sssphase_core.training import resolve_checkpoint
-
-            console.print(f"torch backend: {resolve_checkpoint(checkpoint)}")
         if cache:
             source = FootprintCache(source, out / "cache" / f"{rv.object}_v{v}_{backend}_{_model_tag(checkpoint)}.npz",
                                     rv.proj.shape, patch)
@@ -142,11 +124,12 @@ def eval_relight(
     from sssphase_core.bench.report import write_report
     from sssphase_core.relight import load_view
     from sssphase_core.relight_eval import LPIPS_NOTE, aggregate, evaluate_view, metrics_table
+    from sssphase_core.session import find_sessions
 
     backends = [b.strip() for b in backend.split(",") if b.strip()]
     rows = []
     with _progress() as bar:
-        for s in _sessions(sessions):
+        for s in find_sessions(sessions):
             for v in _views(s, views):
                 rv = load_view(s, v)
                 for b in backends:

@@ -150,8 +150,7 @@ def jacobian_area(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray | None = Non
         a = np.where(valid, a.astype(np.float64), np.nan)
         fwd = np.diff(a, axis=axis, append=np.nan)
         bwd = np.diff(a, axis=axis, prepend=np.nan)
-        d = np.where(np.isfinite(fwd) & np.isfinite(bwd), 0.5 * (fwd + bwd), np.where(np.isfinite(fwd), fwd, bwd))
-        return d
+        return np.where(np.isfinite(fwd) & np.isfinite(bwd), 0.5 * (fwd + bwd), np.where(np.isfinite(fwd), fwd, bwd))
 
     det = np.abs(deriv(xp, 1) * deriv(yp, 0) - deriv(xp, 0) * deriv(yp, 1))
     ok = np.isfinite(det)
@@ -161,7 +160,7 @@ def jacobian_area(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray | None = Non
     det = np.clip(det, typical / 8, typical * 8)  # depth edges: a correspondence jump is no area
     num = uniform_filter(np.where(ok, det, 0.0), smooth, mode="constant")
     den = uniform_filter(ok.astype(np.float64), smooth, mode="constant")
-    out = np.where(den > 1e-9, num / np.maximum(den, 1e-9), np.median(det[ok]))
+    out = np.where(den > 1e-9, num / np.maximum(den, 1e-9), typical)
     return out.astype(np.float32)
 
 

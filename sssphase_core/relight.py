@@ -139,12 +139,13 @@ def relight(
     kernel (see :class:`Splatter`). Non-finite footprint values are set to 0 with a warning.
     ``progress(done, total)`` is called after each chunk.
     """
-    if not isinstance(patterns, np.ndarray):
+    if isinstance(patterns, np.ndarray):
+        pats = patterns
+    else:
         listed = [np.asarray(p, np.float32) for p in patterns]
         if any(p.ndim == 3 for p in listed):  # mono and colour patterns together: all as RGB
             listed = [np.repeat(p[..., None], 3, axis=-1) if p.ndim == 2 else p for p in listed]
-        patterns = np.stack(listed)
-    pats = patterns
+        pats = np.stack(listed)
     if pats.ndim == 2:
         pats = pats[None]
     wp, hp = proj.projector_size

@@ -20,7 +20,7 @@ import os
 import re
 import shutil
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -377,6 +377,16 @@ class Session:
                 elif array_checksum(data) != meta["checksum"]:
                     problems.append(f"view {v}: array {name} is corrupt (checksum mismatch)")
         return problems
+
+
+def find_sessions(paths: Iterable[Path | str]) -> list[Session]:
+    """Each path is a session folder or a root of session folders; every session found, in order."""
+    found: list[Session] = []
+    for p in map(Path, paths):
+        found += [Session.open(p)] if (p / MANIFEST).exists() else list_sessions(p)
+    if not found:
+        raise InputError(f"no sessions under {', '.join(map(str, paths))}")
+    return found
 
 
 def list_sessions(root: Path | str) -> list[Session]:

@@ -13,6 +13,7 @@ GPU, SyncBatchNorm on GPU only: PyTorch's SyncBN has no CPU kernel) and rank 0 w
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import os
@@ -218,6 +219,7 @@ class Loop:
         self.cfg, self.dataset, self.out_dir, self.d, self.kind = cfg, dataset, Path(out_dir), d, kind
         self.best_metric = best
         self.best: dict[str, float] = {}  # {"epoch", "value"} of best.pt
+        self._new_best = False  # the epoch just staged is the best: copy its checkpoint once saved
         self.sampler = torch.utils.data.DistributedSampler(
             dataset, num_replicas=d.world, rank=d.rank, shuffle=True, seed=cfg.seed, drop_last=True
         )
@@ -259,7 +261,7 @@ class Loop:
 
     def keep_if_best(self) -> None:
         """Copy the checkpoint just written to ``best.pt`` when its epoch was staged as the best."""
-        if getattr(self, "_new_best", False):
+        if self._new_best:
             tmp = self.out_dir / (BEST + ".tmp")
             shutil.copyfile(self.out_dir / CHECKPOINT, tmp)
             os.replace(tmp, self.out_dir / BEST)
@@ -582,13 +584,22 @@ def train_decoder(
     if p.patch != dataset.patch:
         raise DataError(f"the encoder's preset {p.name} expects {p.patch}px patches, the dataset has {dataset.patch}px")
     dec = Decoder(p, out_scale=cfg.out_scale, n_classes=cfg.aux_classes, head=cfg.head).to(d.device)
-    physics = dec.physics_parameters(gain=cfg.learn_gain)  # before DDP wraps it: a fixed gain is no parameter to sync
+    if not cfg.learn_gain:
+        dec.freeze_gain()  # before DDP wraps it: a fixed gain is no parameter to sync
+    physics = dec.physics_parameters()
     net = _wrap(FootprintNet(enc, dec, train_encoder=cfg.end_to_end), d)
     ids = {id(q) for q in physics}
     trained = [*enc.parameters(), *dec.parameters()] if cfg.end_to_end else list(dec.parameters())
     opt = torch.optim.Adam([{"params": [q for q in trained if id(q) not in ids], "lr": cfg.lr},
                             {"params": physics, "lr": cfg.lr * cfg.physics_lr_mult}])
     loop = Loop(cfg, dataset, out_dir, d, "decoder", best=("val_loss", "min") if val is not None else None)
+
+    @functools.cache
+    def first_footprints() -> torch.Tensor:
+        """Footprints of a seeded sample, the same on every rank (shape prior and noise floor); read once."""
+        first = np.random.default_rng(cfg.seed).permutation(len(dataset))[:PRIOR_SAMPLES]
+        return dataset.batch(np.sort(first))["footprint"]
+
     ckpt = _resume_state(out_dir, resume, "decoder", p)
     if ckpt is not None:
         if bool(ckpt["config"].get("end_to_end", False)) != cfg.end_to_end:
@@ -602,12 +613,10 @@ def train_decoder(
     else:
         if d.main:
             _start_fresh(out_dir)
-        if cfg.head == "reciprocal":  # same on every rank: the first patches of a seeded permutation
-            first = np.random.default_rng(cfg.seed).permutation(len(dataset))[:PRIOR_SAMPLES]
-            dec.init_shape_prior(dataset.batch(np.sort(first))["footprint"].to(d.device))
+        if cfg.head == "reciprocal":
+            dec.init_shape_prior(first_footprints().to(d.device))
     if cfg.log_eps is None:  # recorded in the checkpoint's config, so a resumed run uses the same value
-        sample = np.sort(np.random.default_rng(cfg.seed).permutation(len(dataset))[:PRIOR_SAMPLES])
-        cfg = replace(cfg, log_eps=max(LOG_EPS, noise_floor(dataset.batch(sample)["footprint"])))
+        cfg = replace(cfg, log_eps=max(LOG_EPS, noise_floor(first_footprints())))
     loss_fn = SBHLoss(log_eps=cfg.log_eps)
 
     def step(batch: dict[str, torch.Tensor], gstep: int) -> dict[str, float]:

@@ -114,18 +114,21 @@ class Decoder(nn.Module):
             self.log_gain = nn.Parameter(torch.zeros(3))
         self.aux = nn.Linear(p.bottleneck, n_classes) if n_classes > 0 else None
 
-    def physics_parameters(self, *, gain: bool = False) -> list[nn.Parameter]:
-        """The reciprocal head's few physics-side parameters (profile MLP, prior map; the per-colour gain
-        only with ``gain``). The gain stays at 1 by default: the energy is the reciprocity white value
-        read from the PSP patch. Learned from captured dot crops, whose sharp footprints carry
+    def physics_parameters(self) -> list[nn.Parameter]:
+        """The reciprocal head's few physics-side parameters that train (profile MLP, prior map, and the
+        per-colour gain unless :meth:`freeze_gain`)."""
+        if self.head_kind != "reciprocal":
+            return []
+        return [q for q in (*self.profile.parameters(), self.shape_prior, self.log_gain) if q.requires_grad]
+
+    def freeze_gain(self) -> None:
+        """Keep the energy gain at its value (1 for a new head): the energy is then the reciprocity white
+        value read from the PSP patch. Learned from captured dot crops, whose sharp footprints carry
         demosaicing lobes (a centre above the crop's total energy) and a noise floor, the SBH terms set
         it 0.5-2.2x off per colour and relit an unseen soap at 15-17 dB (below no scattering, 23.4 dB);
         with the gain fixed, 33.8 dB."""
-        if self.head_kind != "reciprocal":
-            return []
-        if not gain:
+        if self.head_kind == "reciprocal":
             self.log_gain.requires_grad_(False)
-        return [*self.profile.parameters(), self.shape_prior, *([self.log_gain] if gain else [])]
 
     @torch.no_grad()
     def init_shape_prior(self, footprints: torch.Tensor, floor: float = 1e-7) -> None:
