@@ -86,6 +86,10 @@ def load_checkpoint(path: Path | str) -> dict:
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:
+        with open(path, "rb") as f:
+            archive = f.read(4) == b"PK\x03\x04"  # what torch.save writes
+        if not archive:
+            raise DataError(f"{path} is not a checkpoint file (not written by torch.save)") from None
         raise DataError(f"{path} is not a sssphase checkpoint: it holds pickled Python objects, which are never "
                         "loaded (only tensors, numbers and dicts)") from None
     except Exception as exc:

@@ -240,6 +240,7 @@ class _Pickled:  # torch.save pickles this; weights_only loading must refuse it
     ({"kind": "pretrain", "encoder": {}}, "without preset"),
     (_Pickled(), "pickled Python objects"),
     (b"PK\x03\x04truncated", "cannot read checkpoint"),
+    (b"# a text file\n", "not a checkpoint file"),
 ])
 def test_bad_checkpoints_are_refused_with_one_clear_line(tmp_path, content, expected):
     from sssphase_core.errors import DataError
