@@ -106,7 +106,8 @@ def daemon_start(
         sys.exit(main(args))
     proc = spawn_daemon(extra_args=tuple(args))
     state = security.read_state()
-    console.print(f"daemon started (pid {proc.pid}) on {state.endpoint if state else '?'}")
+    console.print(f"daemon started (pid {proc.pid}) on {state.endpoint if state else '?'}; "
+                  f"log: {security.log_dir() / 'daemon.log'}")
 
 
 def daemon_stop() -> None:
@@ -134,6 +135,12 @@ def daemon_stop() -> None:
     with client:
         pid = client.call("hello")["pid"]
         client.call("shutdown")
+    deadline = time.monotonic() + 20.0  # return once it has gone, so that `start` right after works
+    while security.is_daemon_process(pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if security.is_daemon_process(pid):
+        console.print(f"daemon (pid {pid}) asked to stop; it is still shutting down")
+        return
     console.print(f"daemon (pid {pid}) stopped")
 
 

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import importlib
 import importlib.util
+import logging
 import os
+import signal
 import sys
 
 import typer
@@ -34,6 +36,24 @@ GROUP_HELP = {
     "viz": "Visualisations: PCA-RGB feature maps, footprint profiles.",
     "daemon": "The acquisition daemon: start, stop, status, keys.",
 }
+
+
+def _print_version(value: bool) -> None:
+    if value:
+        from sssphase_core import __version__
+
+        typer.echo(f"sss (sssphase) {__version__}")
+        raise typer.Exit()
+
+
+@app.callback()
+def _root(
+    version: bool = typer.Option(False, "--version", callback=_print_version, is_eager=True,
+                                 help="Print the version and exit."),
+) -> None:
+    """Capture translucent objects with phase-shift patterns, learn their subsurface scattering, relight them."""
+
+
 groups: dict[str, typer.Typer] = {"root": app}
 for _name, _help in GROUP_HELP.items():
     groups[_name] = typer.Typer(no_args_is_help=True, help=_help)
@@ -62,6 +82,27 @@ def _register_all() -> None:
 _register_all()
 
 
+def _flags_show_no_type() -> None:
+    """A flag takes no value, so ``--help`` shows no ``<bool>`` type for it (typer 0.29 prints one)."""
+    from typer.core import TyperOption
+
+    shown = getattr(TyperOption, "display_type_rich", None)
+    if shown is None:
+        return
+
+    def display_type_rich(self, ctx):  # noqa: ANN001, ANN202 - typer's own signature
+        return None if self.is_flag and not self.count else shown(self, ctx)
+
+    TyperOption.display_type_rich = display_type_rich  # type: ignore[method-assign]
+
+
+_flags_show_no_type()
+
+
+def _interrupt_on_sigterm(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt  # `kill PID` says "interrupted" and keeps work done, as Ctrl-C does
+
+
 def _is_usage_exception(exc: BaseException, name: str) -> bool:
     """Whether ``exc`` is click's ``name`` exception, by class name.
 
@@ -73,8 +114,15 @@ def _is_usage_exception(exc: BaseException, name: str) -> bool:
 
 def main() -> None:
     """Run the CLI; user-facing errors are printed as one clear message, never a traceback."""
+    signal.signal(signal.SIGTERM, _interrupt_on_sigterm)
+    if not os.environ.get("SSS_DEBUG"):
+        # zarr decodes chunks on a background asyncio loop: when one chunk is damaged, its sibling tasks
+        # are dropped at exit and asyncio logs each with a traceback. The error itself is reported once.
+        logging.getLogger("asyncio").setLevel(logging.CRITICAL)
     try:
         rc = app(standalone_mode=False)
+        if rc == 130:  # typer turns KeyboardInterrupt (Ctrl-C, or SIGTERM above) into exit code 130
+            raise KeyboardInterrupt
         sys.exit(rc if isinstance(rc, int) else 0)
     except SssError as exc:
         err_console.print(f"[bold red]error:[/] {escape(str(exc))}")

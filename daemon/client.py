@@ -197,7 +197,7 @@ def spawn_daemon(*, endpoint: str | None = None, extra_args: tuple[str, ...] = (
     """Start ``python -m sssphase_daemon`` detached and wait until it answers; returns the process."""
     state_file = security.state_path()
     cmd = [sys.executable, "-m", "sssphase_daemon", *(["--endpoint", endpoint] if endpoint else []), *extra_args]
-    log = open(log_path or security.runtime_dir() / "daemon.log", "ab")  # noqa: SIM115 - handed to the child
+    log = open(log_path or security.log_dir() / "daemon.log", "ab")  # noqa: SIM115 - handed to the child
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                             start_new_session=True, env={**os.environ, **(env or {})})
     log.close()

@@ -94,3 +94,6 @@ class Preview:
 
     def close(self) -> None:
         self.sock.close(linger=0)
+        from sssphase_daemon.security import remove_ipc_socket
+
+        remove_ipc_socket(self.endpoint)

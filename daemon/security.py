@@ -39,6 +39,16 @@ def runtime_dir() -> Path:
     return _private_dir(Path(tempfile.gettempdir()) / f"sssphase-{os.getuid()}")
 
 
+def log_dir() -> Path:
+    """Where a detached daemon writes its log: ``$SSS_LOG_DIR``, else ``$XDG_STATE_HOME/sssphase``, else
+    ``~/.local/state/sssphase``. Not the runtime folder, which holds only live sockets and the state file
+    and is left empty when the daemon stops."""
+    if os.environ.get("SSS_LOG_DIR"):
+        return _private_dir(Path(os.environ["SSS_LOG_DIR"]))
+    state_home = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+    return _private_dir(Path(state_home) / "sssphase")
+
+
 def default_endpoint(transport: str = "ipc") -> str:
     return f"ipc://{runtime_dir() / 'control.sock'}" if transport == "ipc" else "tcp://127.0.0.1:5591"
 

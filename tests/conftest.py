@@ -10,6 +10,20 @@ from pathlib import Path
 import pytest
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _private_log_dir():
+    """Daemons started by tests (and their subprocesses) log into a temporary folder, not the user's state dir."""
+    logs = Path(tempfile.mkdtemp(prefix="sss-logs-"))
+    old = os.environ.get("SSS_LOG_DIR")
+    os.environ["SSS_LOG_DIR"] = str(logs)
+    yield logs
+    if old is None:
+        os.environ.pop("SSS_LOG_DIR", None)
+    else:
+        os.environ["SSS_LOG_DIR"] = old
+    shutil.rmtree(logs, ignore_errors=True)
+
+
 @pytest.fixture(scope="session")
 def sim_daemon():
     """A client of a sim-rig daemon of our own (private runtime folder), as `sss capture` and `sss demo`

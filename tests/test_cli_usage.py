@@ -26,7 +26,7 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["capture", "--object", "apple", "--view", "2"], "No such option"),
         (["relight", "some_session"], "--pattern"),
         (["capture", "--object", "apple", "--views", "two"], "--views"),
-        (["--version"], "No such option"),
+        (["capture", "--version"], "No such option"),
         (["sim", "--object", "apple", "--views", "-"], "--views"),
     ],
 )
@@ -54,3 +54,49 @@ def test_user_errors_keep_square_brackets() -> None:
     assert res.returncode == 2, out
     assert "Traceback" not in out
     assert "no/such/session[depthai]" in out, out
+
+
+def test_version_prints_the_package_version() -> None:
+    from sssphase_core import __version__
+
+    res = _sss("--version")
+    assert res.returncode == 0 and res.stdout.strip() == f"sss (sssphase) {__version__}", res.stdout + res.stderr
+
+
+def _all_commands(group, path=()):  # noqa: ANN001, ANN202 - click objects
+    yield path
+    for name, sub in getattr(group, "commands", {}).items():
+        yield from _all_commands(sub, (*path, name))
+
+
+def test_no_help_page_shows_a_type_for_a_flag() -> None:
+    """Flags take no value: ``--help`` lists them without ``<bool>``, on every command."""
+    import typer.main
+    from typer.testing import CliRunner
+
+    from sssphase_cli.main import app
+
+    runner = CliRunner()
+    paths = list(_all_commands(typer.main.get_command(app)))
+    assert len(paths) > 20
+    for path in paths:
+        res = runner.invoke(app, [*path, "--help"], env={"COLUMNS": "200"})
+        assert res.exit_code == 0, (path, res.output)
+        assert "<bool>" not in res.output, (path, res.output)
+
+
+def test_sigterm_says_interrupted_like_ctrl_c(tmp_path) -> None:
+    """`kill` of a long command ends with the same "interrupted" line as Ctrl-C, not silence."""
+    import signal
+    import time
+
+    env = {**os.environ, "COLUMNS": "200"}
+    proc = subprocess.Popen([sys.executable, "-m", "sssphase_cli.main", "sim", "--object", "apple", "--views", "4",
+                             "--preset", "paper", "--out", str(tmp_path)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    time.sleep(6)
+    assert proc.poll() is None, proc.communicate()
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, out + err
+    assert "interrupted" in err and "Traceback" not in err, err
