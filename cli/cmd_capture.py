@@ -264,6 +264,31 @@ def import_images(
     console.print(f"imported {len(session.views())} view(s) into {session.path}")
 
 
+def export(
+    session: Annotated[Path, typer.Argument(help="session folder")],
+    out: Annotated[Path, typer.Option(help="output folder (OUT/<object>/view_NNN/...)")] = Path("export"),
+    views: Annotated[str, typer.Option(help="comma-separated views (default: all complete views)")] = "",
+) -> None:
+    """Export a session's images, decoded maps and footprints as float32 OpenEXR (needs the exr extra)."""
+    from sssphase_core import exr
+    from sssphase_core.errors import InputError
+    from sssphase_core.export import export_session
+    from sssphase_core.session import Session
+
+    if not exr.available():
+        raise InputError(exr.MISSING)
+    s = Session.open(session)
+    try:
+        chosen = [int(v) for v in views.split(",") if v.strip()] or None
+    except ValueError:
+        raise InputError(f"--views must be comma-separated integers, got {views!r}") from None
+    missing = sorted(set(chosen or []) - set(s.views()))
+    if missing:
+        raise InputError(f"{session} has no complete view {', '.join(map(str, missing))} (complete: {s.views()})")
+    written = export_session(s, out, chosen)
+    console.print(f"wrote {len(written)} files under {out / s.name}")
+
+
 def bench_daemon(
     out: Annotated[Path, typer.Option(help="JSON result file (a Markdown table is printed and written next to it)")],
     frames: Annotated[int, typer.Option(help="frames per throughput run")] = 200,
@@ -290,6 +315,7 @@ def register(groups: dict[str, typer.Typer]) -> None:
     root.command("capture")(capture)
     root.command("validate")(validate)
     root.command("import")(import_images)
+    root.command("export")(export)
     groups["daemon"].command("start")(daemon_start)
     groups["daemon"].command("stop")(daemon_stop)
     groups["daemon"].command("status")(daemon_status)

@@ -50,6 +50,8 @@ def relight_cmd(
     chunk: Annotated[int, typer.Option(help="Pixels per footprint/splat chunk.")] = 1024,
     device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
     cache: Annotated[bool, typer.Option(help="Keep predicted footprints in OUT/cache (float16) for later patterns.")] = True,
+    image_format: Annotated[str, typer.Option("--format", help="png (16-bit linear, clips at 1.0), exr (float32 "
+                                              "linear, unclipped; needs the exr extra) or png,exr.")] = "png",
 ) -> None:
     """Relight a captured object under new projector patterns (several patterns share one footprint pass)."""
 
@@ -68,6 +70,12 @@ def relight_cmd(
     from sssphase_core.session import Session
     from sssphase_core.training import resolve_checkpoint
 
+    formats = tuple(f.strip().lower() for f in image_format.split(",") if f.strip())
+    if "exr" in formats:
+        from sssphase_core import exr
+
+        if not exr.available():
+            raise InputError(f"--format exr: {exr.MISSING}")
     s = Session.open(session)
     if checkpoint is not None:
         checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
@@ -102,8 +110,11 @@ def relight_cmd(
             source.save()
         for name, img in zip(names, relit, strict=True):
             stem = out / f"{rv.object}_v{v}_{name}_{backend}"
-            paths = write_images(stem, img)
+            paths = write_images(stem, img, formats=formats)
             line = f"wrote {', '.join(str(p) for p in paths)}"
+            clipped = float((img[rv.proj.mask] > 1.0).any(axis=-1).mean()) if rv.proj.mask.any() else 0.0
+            if "exr" not in formats and clipped > 0:
+                line += f"  ({clipped:.1%} of the object above 1.0 clipped in the PNG: --format exr keeps them)"
             if name in rv.captured:
                 met = relight_metrics(img, rv.captured[name], rv.proj.mask)
                 comparison_figure(rv.captured[name], img, rv.proj.mask, stem.with_name(stem.name + "_compare.png"),

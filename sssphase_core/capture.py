@@ -352,7 +352,9 @@ def _image_shape(path: Path) -> tuple[int, ...]:
         if path.suffix.lower() == ".npy":
             return tuple(np.load(path, mmap_mode="r", allow_pickle=False).shape)
         if path.suffix.lower() == ".exr":
-            return ()  # OpenCV reads EXR whole: checked after reading
+            from sssphase_core import exr
+
+            return exr.exr_size(path)
         from PIL import Image
 
         Image.MAX_IMAGE_PIXELS = None  # our own limit below, on the header's size
@@ -376,16 +378,16 @@ def _read_image(path: Path) -> np.ndarray:
             raise InputError(f"cannot read {path}: {exc}") from None
         if arr.dtype.kind not in "fiub":
             raise InputError(f"{path} holds {arr.dtype} values, not an image")
-    else:
-        import os
+    elif path.suffix.lower() == ".exr":
+        from sssphase_core import exr
 
-        os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+        arr = exr.read_exr(path)
+    else:
         import cv2
 
         arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
         if arr is None:
-            hint = " (this OpenCV build cannot read EXR: save the frames as 16-bit PNG or .npy)" if path.suffix.lower() == ".exr" else ""
-            raise InputError(f"cannot read image {path}{hint}")
+            raise InputError(f"cannot read image {path}")
         if arr.ndim == 3:
             arr = cv2.cvtColor(arr[..., :3], cv2.COLOR_BGR2RGB)
         if np.issubdtype(arr.dtype, np.integer):

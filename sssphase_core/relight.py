@@ -414,25 +414,38 @@ def display_scale(image: np.ndarray, mask: np.ndarray | None = None, percentile:
     return float(max(np.percentile(np.nan_to_num(vals), percentile), 1e-6))
 
 
-def write_images(stem: Path | str, image: np.ndarray, *, scale: float | None = None) -> list[Path]:
-    """Write ``stem.png`` (16-bit linear, 65535 = 1.0 camera unit), ``stem.exr`` when OpenCV can, and
-    ``stem_display.png`` (sRGB, exposure ``scale`` or the 99.5th percentile). Returns the paths."""
-    import os
+IMAGE_FORMATS = ("png", "exr")
 
-    os.environ.setdefault("OPENCV_IO_ENABLE_OPENEXR", "1")
+
+def write_images(stem: Path | str, image: np.ndarray, *, scale: float | None = None,
+                 formats: tuple[str, ...] = ("png",)) -> list[Path]:
+    """Write the relit ``image`` (H, W, 3) linear camera units; returns the paths.
+
+    ``png``: ``stem.png``, 16-bit linear (65535 = 1.0 camera unit, brighter values clip);
+    ``exr``: ``stem.exr``, float32 unclipped (OpenEXR bindings). Always ``stem_display.png`` (sRGB,
+    exposure ``scale`` or the 99.5th percentile) for looking at.
+    """
     import cv2
 
+    from sssphase_core import exr
+
+    unknown = sorted(set(formats) - set(IMAGE_FORMATS))
+    if unknown:
+        raise InputError(f"unknown image format {', '.join(unknown)}: choose from {', '.join(IMAGE_FORMATS)}")
     stem = Path(stem)
     stem.parent.mkdir(parents=True, exist_ok=True)
-    img = np.nan_to_num(np.asarray(image, np.float32))
-    bgr = img[..., ::-1] if img.ndim == 3 else img
-    paths = [stem.with_suffix(".png"), stem.with_name(stem.name + "_display.png")]
-    cv2.imwrite(str(paths[0]), np.round(np.clip(bgr, 0, 1) * 65535).astype(np.uint16))
-    s = scale if scale is not None else display_scale(img)
-    cv2.imwrite(str(paths[1]), np.round(srgb(bgr / s) * 255).astype(np.uint8))
-    if cv2.haveImageWriter(".exr"):
-        paths.append(stem.with_suffix(".exr"))
-        cv2.imwrite(str(paths[-1]), np.ascontiguousarray(bgr))
+    img = np.asarray(image, np.float32)
+    finite = np.nan_to_num(img)
+    bgr = finite[..., ::-1] if finite.ndim == 3 else finite
+    paths = []
+    if "exr" in formats:
+        paths.append(exr.write_exr(stem.with_suffix(".exr"), img, attributes={"units": "linear camera units"}))
+    if "png" in formats:
+        paths.append(stem.with_suffix(".png"))
+        cv2.imwrite(str(paths[-1]), np.round(np.clip(bgr, 0, 1) * 65535).astype(np.uint16))
+    s = scale if scale is not None else display_scale(finite)
+    paths.append(stem.with_name(stem.name + "_display.png"))
+    cv2.imwrite(str(paths[-1]), np.round(srgb(bgr / s) * 255).astype(np.uint8))
     return paths
 
 

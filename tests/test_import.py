@@ -27,9 +27,14 @@ def _camera(patterns: np.ndarray) -> np.ndarray:
     return (gaussian_filter(light, (0, 1.2, 1.2, 0), mode="constant") * 0.8).astype(np.float32)
 
 
-def _write(folder: Path, key: str, image: np.ndarray, nested: bool) -> None:
+def _write(folder: Path, key: str, image: np.ndarray, nested: bool, as_exr: bool = False) -> None:
     path = folder / (key if nested else key.replace("/", "__"))
     path.parent.mkdir(parents=True, exist_ok=True)
+    if as_exr:  # linear float frames, as a lab's HDR pipeline would save them
+        from sssphase_core.exr import write_exr
+
+        write_exr(path.with_suffix(".exr"), image)
+        return
     u16 = np.round(np.clip(image, 0, 1) * 65535).astype(np.uint16)
     cv2.imwrite(str(path.with_suffix(".png")), cv2.cvtColor(u16, cv2.COLOR_RGB2BGR))
 
@@ -40,7 +45,8 @@ def frames(tmp_path_factory) -> Path:
     images = _camera(np.stack([f.pattern() for f in plan]))
     folder = tmp_path_factory.mktemp("rig") / "frames"
     for i, (f, img) in enumerate(zip(plan, images, strict=True)):
-        _write(folder, f.key, img, nested=f.key.startswith("psp/") and i % 2 == 0)  # both layouts in one folder
+        _write(folder, f.key, img, nested=f.key.startswith("psp/") and i % 2 == 0,  # both layouts in one folder
+               as_exr=i % 3 == 1)
     return folder
 
 
@@ -57,14 +63,21 @@ def test_imported_frames_relight_and_evaluate_like_a_capture(frames, tmp_path):
     psnr = {a["backend"]: a["psnr"] for a in json.loads((out / "relight_eval.json").read_text())["aggregate"]}
     assert psnr["measured"] > psnr["none"] + 3, psnr  # the captured transport explains the blur
     relit = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "relight", str(s.path), "--pattern", "checkerboard",
-                            "--backend", "measured", "--out", str(tmp_path / "r")], capture_output=True, text=True, timeout=300)
+                            "--backend", "measured", "--format", "png,exr", "--out", str(tmp_path / "r")],
+                           capture_output=True, text=True, timeout=300)
     assert relit.returncode == 0 and "PSNR" in relit.stdout, relit.stdout + relit.stderr
+    from sssphase_core.exr import read_exr
+
+    hdr = read_exr(tmp_path / "r" / "handmade_v0_checkerboard_measured.exr")
+    png = cv2.imread(str(tmp_path / "r" / "handmade_v0_checkerboard_measured.png"), cv2.IMREAD_UNCHANGED)[..., ::-1]
+    assert hdr.dtype == np.float32 and hdr.shape == (H, W, 3)
+    np.testing.assert_allclose(np.clip(hdr, 0, 1), png / 65535, atol=1 / 65535)
 
 
 def test_a_failed_import_leaves_nothing_behind(frames, tmp_path):
     bad = tmp_path / "bad"
     bad.mkdir()
-    for f in frames.rglob("*.png"):
+    for f in (f for f in frames.rglob("*") if f.is_file()):
         target = bad / f.relative_to(frames)
         target.parent.mkdir(parents=True, exist_ok=True)
         target.write_bytes(f.read_bytes())
@@ -99,3 +112,25 @@ def test_a_pickled_npy_is_refused(tmp_path):
     np.save(folder / "white.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
     with pytest.raises(InputError, match="white.npy"):
         import_folder(folder, tmp_path / "sessions", "pickled", (W, H))
+
+
+def test_a_session_exports_to_exr_bit_exactly(frames, tmp_path):
+    from sssphase_core.exr import read_exr
+
+    s = import_folder(frames, tmp_path / "sessions", "handmade", (W, H), patch=K)
+    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "export", str(s.path), "--out", str(tmp_path / "x")],
+                         capture_output=True, text=True, timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
+    view = tmp_path / "x" / "handmade" / "view_000"
+    psp = s.load(0, "psp")
+    for i in range(len(psp)):
+        assert read_exr(view / "psp" / f"{i:02d}.exr").tobytes() == psp[i].astype(np.float32).tobytes()
+    assert read_exr(view / "white.exr").tobytes() == s.load(0, "white").astype(np.float32).tobytes()
+    crops, pixels = s.load(0, "footprints/crops"), s.load(0, "footprints/pixels")
+    mosaic = read_exr(view / "footprints_crops.exr")
+    cols = mosaic.shape[1] // K
+    rows = np.loadtxt(view / "footprints_pixels.csv", delimiter=",", ndmin=2)
+    assert len(rows) == len(crops) and (rows == pixels).all()
+    for i in (0, len(crops) // 2, len(crops) - 1):
+        r, c = divmod(i, cols)
+        assert np.array_equal(mosaic[r * K:(r + 1) * K, c * K:(c + 1) * K], crops[i].astype(np.float32))

@@ -99,6 +99,23 @@ def test_write_images_16bit_linear_and_display(tmp_path):
     assert disp.dtype == np.uint8 and disp.max() == 255 and disp[0, 0].max() == 0
 
 
+def test_exr_output_is_the_linear_image_bit_exact_and_unclipped(tmp_path):
+    from sssphase_core.exr import read_exr
+
+    rng = np.random.default_rng(3)
+    img = (rng.standard_normal((9, 11, 3)) * 2).astype(np.float32)  # negative and far above 1.0
+    img[0, 0] = (np.inf, np.nan, 1e-30)
+    paths = write_images(tmp_path / "x", img, formats=("exr",))
+    assert [p.name for p in paths] == ["x.exr", "x_display.png"]
+    back = read_exr(paths[0])
+    assert back.dtype == np.float32 and back.tobytes() == img.tobytes()
+
+
+def test_an_unknown_image_format_is_refused(tmp_path):
+    with pytest.raises(InputError, match="unknown image format tiff"):
+        write_images(tmp_path / "x", np.zeros((2, 2, 3), np.float32), formats=("tiff",))
+
+
 def test_read_pattern_checks_size_and_resizes(tmp_path):
     from PIL import Image
 
@@ -130,3 +147,12 @@ def test_nearest_measured_source_rescales_the_nearest_captured_footprint():
     fp = nearest_measured_source(dots, crops, white)(np.array([[6, 4], [4, 18], [5, 10]]))
     # (6, 4) and (4, 18): their own dot, same white; (5, 10): nearest dot (5, 5), white ratio 2 / 1
     np.testing.assert_allclose(fp[:, 1, 1, 0], [1.0, 4.0, 2.0])
+
+
+def test_without_the_openexr_bindings_exr_says_what_to_install(tmp_path, monkeypatch):
+    import sys
+
+    monkeypatch.setitem(sys.modules, "OpenEXR", None)  # as if not installed
+    with pytest.raises(InputError, match=r"OpenEXR Python bindings, which are not installed: pip install 'sssphase\[exr\]'"):
+        write_images(tmp_path / "x", np.zeros((2, 2, 3), np.float32), formats=("exr",))
+    assert not list(tmp_path.iterdir())

@@ -1,0 +1,83 @@
+"""OpenEXR files through the official ``OpenEXR`` Python bindings (the ``exr`` extra).
+
+Linear float32 images are written unclipped, in camera units, and read back bit-exactly. The OpenCV
+wheel that installs with sssphase cannot write EXR, so this module is the one place EXR goes through.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from sssphase_core.errors import DataError, InputError
+
+MISSING = ("EXR needs the OpenEXR Python bindings, which are not installed: pip install 'sssphase[exr]' "
+           "(or pip install OpenEXR)")
+
+
+def _openexr():
+    try:
+        import OpenEXR
+    except ImportError:
+        raise InputError(MISSING) from None
+    return OpenEXR
+
+
+def available() -> bool:
+    """Whether EXR can be read and written here."""
+    try:
+        _openexr()
+    except InputError:
+        return False
+    return True
+
+
+def write_exr(path: Path | str, image: np.ndarray, *, attributes: dict[str, str] | None = None) -> Path:
+    """Write ``image`` (H, W) as channel ``Y``, (H, W, 3) as ``RGB`` or (H, W, C) as ``c0..``, float32, ZIP.
+
+    Values are stored as given (no clipping, NaN kept). ``attributes`` become string header fields.
+    """
+    OpenEXR = _openexr()
+    img = np.ascontiguousarray(np.asarray(image, dtype=np.float32))
+    if img.ndim == 2:
+        channels = {"Y": img}
+    elif img.ndim == 3 and img.shape[2] == 3:
+        channels = {"RGB": img}
+    elif img.ndim == 3:
+        channels = {f"c{i:02d}": np.ascontiguousarray(img[..., i]) for i in range(img.shape[2])}
+    else:
+        raise InputError(f"cannot write an array of shape {img.shape} as EXR (need H x W or H x W x C)")
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **(attributes or {})}
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with OpenEXR.File(header, channels) as f:
+        f.write(str(path))
+    return path
+
+
+def read_exr(path: Path | str) -> np.ndarray:
+    """An EXR file -> float32 (H, W) for one channel, (H, W, 3) for RGB, else (H, W, C) in name order."""
+    OpenEXR = _openexr()
+    try:
+        with OpenEXR.File(str(path)) as f:
+            channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
+    except (OSError, RuntimeError, ValueError) as exc:
+        raise DataError(f"cannot read EXR {path}: {exc}") from None
+    if not channels:
+        raise DataError(f"EXR {path} has no channels")
+    if len(channels) == 1:
+        return next(iter(channels.values())).astype(np.float32, copy=False)
+    if set(channels) >= {"R", "G", "B"} and len(channels) <= 4:  # split R, G, B (and A) channels
+        return np.stack([channels[c] for c in "RGB"], axis=-1).astype(np.float32, copy=False)
+    return np.stack([channels[c] for c in sorted(channels)], axis=-1).astype(np.float32, copy=False)
+
+
+def exr_size(path: Path | str) -> tuple[int, int]:
+    """(height, width) of an EXR image from its header alone (nothing is decoded)."""
+    OpenEXR = _openexr()
+    try:
+        lo, hi = OpenEXR.File(str(path), header_only=True).header()["dataWindow"]
+    except (OSError, RuntimeError, ValueError, KeyError) as exc:
+        raise DataError(f"cannot read EXR {path}: {exc}") from None
+    return int(hi[1] - lo[1] + 1), int(hi[0] - lo[0] + 1)
