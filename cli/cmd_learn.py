@@ -12,6 +12,8 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from sssphase_cli.run_config import ConfigOpt, save_run_config
+
 console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
 
 ObjectsOpt = Annotated[str, typer.Option("--objects", help="Comma-separated object names (default: the paper's split).")]
@@ -68,6 +70,8 @@ def _write(out: Path | None, payload: dict, markdown: str) -> None:
 
 
 def train_pretrain(
+    ctx: typer.Context,
+    config: ConfigOpt = None,
     out: Annotated[Path, typer.Option("--out", help="Run folder (checkpoint last.pt, metrics.jsonl).")] = Path("runs/pretrain"),
     preset: Annotated[str, typer.Option(help="Model preset: lite or paper.")] = "lite",
     objects: ObjectsOpt = "",
@@ -104,7 +108,8 @@ def train_pretrain(
     ds = PatchDataset(vds, p.patch, names)
     cfg = PretrainConfig(epochs=epochs, batch_size=batch_size, seed=seed, ckpt_every=ckpt_every, device=device, preset=preset,
                          lr=lr, warmup_epochs=warmup_epochs, fix_pred_lr=fix_pred_lr, augment=augment, knn_monitor=knn_monitor)
-    console.print(f"pretraining [bold]{preset}[/] on {len(ds)} patches of {', '.join(names)} -> {out}")
+    console.print(f"pretraining [bold]{preset}[/] on {len(ds)} patches of {', '.join(names)} -> {out} "
+                  f"(options in {save_run_config(ctx, out)})")
     path = pretrain(cfg, ds, out, resume=resume)
     _print_final(out / METRICS, ("loss", "knn_acc", "eff_rank"), "knn_acc")
     rows = [r for r in read_metrics(out / METRICS) if "knn_acc" in r]
@@ -116,6 +121,8 @@ def train_pretrain(
 
 
 def train_decoder(
+    ctx: typer.Context,
+    config: ConfigOpt = None,
     encoder: Annotated[Path | None, typer.Option("--encoder", help="Pretraining checkpoint (run folder or .pt).")] = None,
     end_to_end: Annotated[bool, typer.Option("--end-to-end", help="No --encoder: train encoder and decoder together "
                                              "from random weights (the supervised U-Net baseline, no SSL).")] = False,
@@ -172,7 +179,8 @@ def train_decoder(
     cfg = DecoderConfig(epochs=epochs, batch_size=batch_size, seed=seed, ckpt_every=ckpt_every, device=device, lr=lr,
                         head=head, aux_classes=aux_classes, preset=preset, learn_gain=learn_gain)
     what = f"encoder and decoder end-to-end ({preset})" if end_to_end else "the decoder"
-    console.print(f"training {what} on {len(ds)} footprints of {', '.join(names)} -> {out}")
+    console.print(f"training {what} on {len(ds)} footprints of {', '.join(names)} -> {out} "
+                  f"(options in {save_run_config(ctx, out)})")
     path = fit(cfg, encoder, ds, out, val=val, resume=resume)
     if val is not None:
         plot_metric_vs_time(out / METRICS, "val_mse", out / "error_vs_time.png")

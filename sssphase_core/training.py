@@ -13,8 +13,8 @@ GPU, SyncBatchNorm on GPU only: PyTorch's SyncBN has no CPU kernel) and rank 0 w
 
 from __future__ import annotations
 
+import contextlib
 import functools
-import json
 import math
 import os
 import shutil
@@ -33,10 +33,10 @@ from sssphase_core.data import PatchDataset
 from sssphase_core.errors import DataError, SssError
 from sssphase_core.losses import LOG_EPS, SBHLoss, noise_floor
 from sssphase_core.models import Decoder, Encoder, ModelPreset, SimSiam, get_preset
+from sssphase_core.runlog import METRICS, METRICS_CSV, TB_DIR, RunLog
 
 CHECKPOINT = "last.pt"
 BEST = "best.pt"  # the epoch with the best monitored figure (kNN monitor / validation loss)
-METRICS = "metrics.jsonl"
 PRIOR_SAMPLES = 1024  # training footprints averaged into the reciprocal head's initial shape
 
 
@@ -271,11 +271,6 @@ class Loop:
             os.replace(tmp, self.out_dir / BEST)
             self._new_best = False
 
-    def log(self, row: dict) -> None:
-        if self.d.main:
-            with open(self.out_dir / METRICS, "a") as f:
-                f.write(json.dumps(row) + "\n")
-
     def run(
         self,
         step: Callable[[dict[str, torch.Tensor], int], dict[str, float]],
@@ -290,7 +285,8 @@ class Loop:
         steps_run = 0
         bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
                        TextColumn("{task.fields[info]}"), TimeRemainingColumn(), disable=not (progress and self.d.main))
-        with bar:
+        runlog = RunLog(self.out_dir, resume_step=self.global_step, enabled=self.d.main)
+        with bar, contextlib.closing(runlog):
             task = bar.add_task(self.kind, total=self.total_steps, completed=self.global_step, info="")
             while self.epoch < self.cfg.epochs:
                 self.sampler.set_epoch(self.epoch)
@@ -314,6 +310,7 @@ class Loop:
                         self.sums[k] = self.sums.get(k, 0.0) + v
                     self.step_in_epoch += 1
                     steps_run += 1
+                    runlog.step(self.global_step, values)
                     bar.update(task, advance=1, info=f"epoch {self.epoch + 1}/{self.cfg.epochs} loss {self.sums['loss'] / self.step_in_epoch:.4f}")
                     if self.cfg.ckpt_every and steps_run % self.cfg.ckpt_every == 0 and self.step_in_epoch < self.steps_per_epoch:
                         self.wall_s += time.perf_counter() - t0
@@ -328,7 +325,7 @@ class Loop:
                     self._stage_best(row)
                 save()
                 self.keep_if_best()
-                self.log(row)
+                runlog.epoch(row)
                 collapse = row.get("collapsed", 0.0)
                 if collapse:
                     raise TrainingCollapsed(
@@ -382,8 +379,9 @@ class PretrainConfig(LoopConfig):
 
 def _start_fresh(out_dir: Path) -> None:
     """A new run in a used folder: the old run's metrics and best checkpoint must not mix with it."""
-    for name in (METRICS, BEST):
+    for name in (METRICS, METRICS_CSV, BEST):
         (out_dir / name).unlink(missing_ok=True)
+    shutil.rmtree(out_dir / TB_DIR, ignore_errors=True)
 
 
 def lr_at(step: int, total: int, warmup: int, base: float) -> float:
@@ -638,7 +636,7 @@ def train_decoder(
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
-        return {"loss": float(loss.detach()), **terms}
+        return {"loss": float(loss.detach()), **terms, "lr": opt.param_groups[0]["lr"]}
 
     def end_epoch(epoch: int) -> dict[str, float]:
         if val is None or not d.main:

@@ -39,6 +39,26 @@ def test_decoder_needs_exactly_one_of_encoder_or_end_to_end(args, tmp_path):
     assert not (tmp_path / "dec").exists()
 
 
+def _tensorboard_scalars(logdir) -> dict[str, list[float]]:
+    """Scalars of a run's event files, read by TensorBoard's own reader."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    acc = EventAccumulator(str(logdir))
+    acc.Reload()
+    return {tag: [e.value for e in acc.Scalars(tag)] for tag in acc.Tags()["scalars"]}
+
+
+def test_a_config_of_another_command_is_refused(tmp_path):
+    from sssphase_core.errors import InputError
+
+    (tmp_path / "config.toml").write_text('command = "train decoder"\n[options]\nepochs = 2\n')
+    with pytest.raises(InputError, match="configuration of `sss train decoder`, not of `sss train pretrain`"):
+        runner.invoke(app, ["train", "pretrain", "--config", str(tmp_path)], catch_exceptions=False)
+    (tmp_path / "config.toml").write_text('command = "train pretrain"\n[options]\nepochs = 2\nepoch = 3\n')
+    with pytest.raises(InputError, match="unknown option.* epoch for"):
+        runner.invoke(app, ["train", "pretrain", "--config", str(tmp_path / "config.toml")], catch_exceptions=False)
+
+
 @pytest.mark.slow
 def test_train_eval_viz_on_the_simulator(tmp_path):
     pytest.importorskip("sssphase_core.sim")
@@ -47,6 +67,16 @@ def test_train_eval_viz_on_the_simulator(tmp_path):
     pre, dec = tmp_path / "pre", tmp_path / "dec"
     invoke("train", "pretrain", "--out", str(pre), "--epochs", "1", "--batch-size", "32", *common)
     assert (pre / "last.pt").exists() and (pre / "metrics.jsonl").exists() and (pre / "knn_vs_time.png").exists()
+    tb = _tensorboard_scalars(pre / "tb")
+    assert {"step/loss", "step/lr", "epoch/knn_acc", "epoch/eff_rank"} <= tb.keys()
+    first = json.loads((pre / "metrics.jsonl").read_text().splitlines()[0])
+    assert tb["epoch/knn_acc"] == pytest.approx([first["knn_acc"]]) and len(tb["step/loss"]) == first["step"]
+    assert (pre / "metrics.csv").read_text().splitlines()[0].startswith("epoch,step,loss,lr")
+    again = tmp_path / "pre_again"  # the saved configuration repeats the run; a flag overrides it
+    invoke("train", "pretrain", "--config", str(pre / "config.toml"), "--out", str(again))
+    repeat = json.loads((again / "metrics.jsonl").read_text().splitlines()[0])
+    for name in ("loss", "lr", "knn_acc", "eff_rank", "step"):
+        assert repeat[name] == pytest.approx(first[name], rel=1e-6, abs=1e-9), name
     invoke("eval", "knn", "--checkpoint", f"psp={pre}", "--k", "5,1", "--seed", "0", "--out", str(tmp_path / "knn.json"), *common)
     knn = json.loads((tmp_path / "knn.json").read_text())
     psp = knn["results"]["psp"]
@@ -56,6 +86,7 @@ def test_train_eval_viz_on_the_simulator(tmp_path):
     invoke("train", "decoder", "--encoder", str(pre), "--out", str(dec), "--epochs", "1", "--batch-size", "32",
            "--views", "0", "--val-views", "1", "--objects", "star", "--pixels-per-view", "64", "--cache", cache)
     assert (dec / "error_vs_time.png").exists()
+    assert {"step/loss", "step/lr", "epoch/val_loss", "epoch/val_psnr"} <= _tensorboard_scalars(dec / "tb").keys()
     e2e = tmp_path / "e2e"  # the supervised U-Net baseline: no SSL, encoder trained with the decoder
     invoke("train", "decoder", "--end-to-end", "--out", str(e2e), "--epochs", "1", "--batch-size", "32",
            "--views", "0", "--val-views", "", "--objects", "star", "--pixels-per-view", "64", "--cache", cache)

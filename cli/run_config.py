@@ -1,0 +1,80 @@
+"""A run's full configuration as ``RUN/config.toml``, and ``--config FILE`` to repeat or vary it.
+
+The file names the command and holds every option's resolved value::
+
+    command = "train pretrain"
+    [options]
+    epochs = 4
+    pixels_per_view = 500
+    sessions = "sessions"
+
+``--config`` is read before the other options, so its values become their defaults and flags given on
+the command line override them (``sss train pretrain --config runs/a/config.toml --out runs/b --lr 0.1``).
+"""
+
+from __future__ import annotations
+
+import tomllib
+from pathlib import Path
+from typing import Annotated, Any
+
+import typer
+
+CONFIG = "config.toml"
+NOT_SAVED = {"config", "resume"}  # how to run, not what the run is
+
+
+def _command_name(ctx: typer.Context) -> str:
+    return " ".join(ctx.command_path.split()[1:])  # "sss train pretrain" -> "train pretrain"
+
+
+def _load(ctx: typer.Context, param: Any, value: Path | None) -> Path | None:
+    """Eager callback of ``--config``: the file's options become the defaults of the other options."""
+    from sssphase_core.errors import InputError
+
+    if value is None or ctx.resilient_parsing:
+        return value
+    path = Path(value)
+    if path.is_dir():
+        path = path / CONFIG
+    try:
+        data = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        raise InputError(f"--config {value}: no such file") from None
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise InputError(f"--config {path} is not a readable TOML file: {exc}") from None
+    command, options = data.get("command"), data.get("options")
+    if command != _command_name(ctx) or not isinstance(options, dict):
+        raise InputError(f"--config {path} is a configuration of `sss {command}`, not of `sss {_command_name(ctx)}`"
+                         if isinstance(command, str) else f"--config {path} has no `command` and `[options]` table")
+    known = {p.name for p in ctx.command.params} - NOT_SAVED
+    unknown = sorted(set(options) - known)
+    if unknown:
+        raise InputError(f"--config {path}: unknown option(s) {', '.join(unknown)} for `sss {command}`")
+    ctx.default_map = {**(ctx.default_map or {}), **options}
+    return path
+
+
+ConfigOpt = Annotated[Path | None, typer.Option(
+    "--config", callback=_load, is_eager=True,
+    help="A run's config.toml (or its run folder) whose options become the defaults; flags override them.")]
+
+
+def _toml_value(value: Any) -> Any:
+    if isinstance(value, Path):
+        return str(value)
+    if isinstance(value, list | tuple):
+        return [_toml_value(v) for v in value]
+    return value
+
+
+def save_run_config(ctx: typer.Context, out: Path) -> Path:
+    """Write ``out/config.toml`` with every resolved option of the running command (None left out)."""
+    import tomli_w
+
+    options = {k: _toml_value(v) for k, v in ctx.params.items() if k not in NOT_SAVED and v is not None}
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / (CONFIG + ".tmp")
+    tmp.write_text(tomli_w.dumps({"command": _command_name(ctx), "options": options}))
+    tmp.replace(out / CONFIG)
+    return out / CONFIG
