@@ -141,46 +141,28 @@ def decode_cmd(
     out.mkdir(parents=True, exist_ok=True)
     for name in ("xp", "yp", "mask", "reason", "modulation", "offset", "modulation_ratio"):
         np.save(out / f"{name}.npy", getattr(corr, name))
+    from sssphase_core import figures as fig
+
     for o in ("x", "y"):
         stack = [frames[psp_key(o, config.period, n)] for n in range(config.n_shifts)]
         phi, _, _ = wrapped_phase([f.astype(np.float32).mean(-1) if f.ndim == 3 else f for f in stack])
-        _save_png(out / f"phase_{o}.png", _colour(np.where(corr.mask, (phi + np.pi) / (2 * np.pi), np.nan), "twilight"))
-    _save_png(out / "xp.png", _colour(corr.xp / max(1, size[0] - 1), "turbo"))
-    _save_png(out / "yp.png", _colour(corr.yp / max(1, size[1] - 1), "turbo"))
-    _save_png(out / "mask.png", (corr.mask * 255).astype(np.uint8))
-    _save_png(out / "reason.png", _reason_image(corr.reason))
-    top = float(np.percentile(corr.modulation, 99.5)) or 1.0
-    _save_png(out / "modulation.png", _colour(np.clip(corr.modulation / top, 0, 1), "magma"))
+        fig.value_figure(out / f"phase_{o}.png", np.where(corr.mask, (phi + np.pi) / (2 * np.pi), np.nan),
+                         f"wrapped phase along {o} (period {config.period:g} px)", units="phase (cycles)",
+                         cmap="twilight", vmin=0, vmax=1)
+    for name, values, extent in (("xp", corr.xp, size[0]), ("yp", corr.yp, size[1])):
+        fig.value_figure(out / f"{name}.png", np.where(corr.mask, values, np.nan),
+                         f"decoded projector {name[0]} (black: not decoded)", units="projector px", cmap="turbo",
+                         vmin=0, vmax=extent - 1)
+    fig.label_figure(out / "mask.png", corr.mask.astype(np.int16), {0: "not decoded", 1: "decoded"}, "decoded pixels")
+    fig.label_figure(out / "reason.png", corr.reason.astype(np.int16),
+                     {r.value: r.name.lower().replace("_", " ") for r in Reason}, "decoding outcome per pixel")
+    fig.value_figure(out / "modulation.png", corr.modulation, "fringe modulation B", units="linear camera units",
+                     cmap="magma", vmin=0, vmax=float(np.percentile(corr.modulation, 99.5)) or 1.0)
     coverage = corr.coverage()
     summary = {"projector": list(size), "psp": {"period": config.period, "n_shifts": config.n_shifts,
-               "unwrap_periods": list(config.unwrap_periods)}, "coverage": coverage,
-               "reason_colours": {r.name: list(REASON_COLOURS[r]) for r in Reason}}
+               "unwrap_periods": list(config.unwrap_periods)}, "coverage": coverage}
     (out / "decode.json").write_text(json.dumps(summary, indent=1) + "\n")
     typer.echo(f"decoded {coverage['VALID']} of {corr.mask.size} pixels -> {out}  ({coverage})")
-
-
-REASON_COLOURS = {0: (255, 255, 255), 1: (230, 159, 0), 2: (213, 94, 0), 3: (40, 40, 40), 4: (204, 121, 167),
-                  5: (86, 180, 233), 6: (255, 0, 0)}
-
-
-def _reason_image(reason):
-    import numpy as np
-
-    lut = np.zeros((256, 3), np.uint8)
-    for code, colour in REASON_COLOURS.items():
-        lut[code] = colour
-    return lut[reason]
-
-
-def _colour(values, cmap: str):
-    """Float map in [0, 1] (NaN -> black) -> RGB uint8 with a matplotlib colour map."""
-    import numpy as np
-    from matplotlib import colormaps
-
-    finite = np.isfinite(values)
-    rgb = colormaps[cmap](np.clip(np.where(finite, values, 0), 0, 1))[..., :3]
-    rgb[~finite] = 0
-    return np.round(rgb * 255).astype(np.uint8)
 
 
 def bench_psp(

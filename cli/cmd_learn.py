@@ -45,12 +45,25 @@ def _views(objects: list[str], views: list[int], *, n_views: int, rig: str, pixe
         from sssphase_core.data import session_views
 
         with console.status(f"reading sessions under {sessions}"):
-            return session_views(sessions, objects or None, views or None, pixels_per_view=pixels, footprints=footprints, seed=seed)
+            vds = session_views(sessions, objects or None, views or None, pixels_per_view=pixels, footprints=footprints,
+                                seed=seed)
+        console.print(f"data: captured sessions under {sessions}: {_describe(vds)}")
+        return vds
     from sssphase_core.data import simulate_views
 
     with console.status(f"simulating {len(objects)} object(s) x {len(views)} view(s) (cached in {cache})"):
-        return simulate_views(objects, views, n_views=n_views, rig=rig, pixels_per_view=pixels, footprints=footprints,
-                              noisy_footprints=noisy, seed=seed, cache_dir=cache)
+        vds = simulate_views(objects, views, n_views=n_views, rig=rig, pixels_per_view=pixels, footprints=footprints,
+                             noisy_footprints=noisy, seed=seed, cache_dir=cache)
+    console.print(f"data: the simulated rig ({rig} preset{', exact footprints' if footprints and not noisy else ''}): "
+                  f"{_describe(vds)}; pass --sessions DIR to use your own captures")
+    return vds
+
+
+def _describe(vds) -> str:
+    views: dict[str, list[int]] = {}
+    for v in vds:
+        views.setdefault(v.object, []).append(v.view)
+    return "; ".join(f"{o} view {','.join(map(str, vs))}" for o, vs in views.items())
 
 
 def _objects(vds) -> list[str]:
@@ -114,7 +127,9 @@ def train_pretrain(
     _print_final(out / METRICS, ("loss", "knn_acc", "eff_rank"), "knn_acc")
     rows = [r for r in read_metrics(out / METRICS) if "knn_acc" in r]
     if rows:
-        plot_metric_vs_time(out / METRICS, "knn_acc", out / "knn_vs_time.png", log=False)
+        plot_metric_vs_time(out / METRICS, "knn_acc", out / "knn_vs_time.png", log=False, chance=1 / len(names),
+                            ylabel="kNN accuracy (fraction, training patches)",
+                            title=f"kNN monitor against run time ({len(names)} objects)")
         trail = ", ".join(f"{100 * r['knn_acc']:.1f}" for r in rows)
         console.print(f"kNN monitor (% per epoch, training patches): {trail}; plot {out / 'knn_vs_time.png'}")
     console.print(f"[green]done[/]: {path}")
@@ -183,7 +198,9 @@ def train_decoder(
                   f"(options in {save_run_config(ctx, out)})")
     path = fit(cfg, encoder, ds, out, val=val, resume=resume)
     if val is not None:
-        plot_metric_vs_time(out / METRICS, "val_mse", out / "error_vs_time.png")
+        plot_metric_vs_time(out / METRICS, ("loss", "val_loss"), out / "error_vs_time.png", log=False,
+                            ylabel="SBH loss", right=("val_psnr",),
+                            right_label="validation footprint PSNR (dB)", title="decoder error against run time")
         console.print(f"validation error against run time: {out / 'error_vs_time.png'}")
     _print_final(out / METRICS, ("val_loss", "val_psnr"), "val_loss")
     console.print(f"[green]done[/]: {path}")
@@ -370,7 +387,8 @@ def eval_footprints(
 
 def viz_pca(
     checkpoint: Annotated[Path, typer.Option("--checkpoint", help="Encoder checkpoint (pretraining or decoder run).")],
-    objects: Annotated[str, typer.Option(help="Comma-separated objects shown side by side.")] = "soap,shovel",
+    objects: Annotated[str, typer.Option(help="Comma-separated objects shown side by side (default: every session "
+                                         "under --sessions, else the simulator's soap and shovel).")] = "",
     view: int = 0,
     n_views: int = 4,
     rig: str = "cpu",
@@ -380,29 +398,18 @@ def viz_pca(
     sessions: SessionsOpt = None,
 ) -> None:
     """PCA-RGB map: joint PCA of the patch embeddings of the images shown, first 3 components as RGB."""
-    import numpy as np
-    from PIL import Image
-
-    from sssphase_core.evaluation import embed_pixels, paint, pca_rgb
+    from sssphase_core.evaluation import PCA_TITLE, pca_maps
+    from sssphase_core.figures import panels_figure
     from sssphase_core.training import load_encoder
 
     enc = load_encoder(checkpoint)
-    names = _names(objects, ())
+    names = _names(objects, () if sessions else ("soap", "shovel"))
     vds = _views(names, [view], n_views=n_views, rig=rig, pixels=None, footprints=False, seed=0, cache=cache,
                  sessions=sessions)
-    grids = [v.pixels[(v.pixels[:, 0] % stride == 0) & (v.pixels[:, 1] % stride == 0)] for v in vds]
-    embs = []
-    for v, px in zip(vds, grids, strict=True):
-        with console.status(f"embedding {len(px)} pixels of {v.object}"):
-            embs.append(embed_pixels(enc, v.psp, px))
-    panels = []
-    for v, px, rgb in zip(vds, grids, pca_rgb(embs), strict=True):
-        h, w = v.psp.shape[1:3]
-        panels.append(paint((-(-h // stride), -(-w // stride)), px // stride, rgb))
-    img = np.concatenate(panels, axis=1)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray((img * 255).round().astype(np.uint8)).save(out)
-    console.print(f"wrote {out} ({', '.join(names)}, view {view})")
+    with console.status(f"embedding every {stride}th pixel of {len(vds)} view(s)"):
+        maps = pca_maps(enc, [(v.psp, v.pixels) for v in vds], stride)
+    panels_figure(out, maps, [f"{v.object}, view {v.view}" for v in vds], f"{PCA_TITLE} (every {stride}th pixel)")
+    console.print(f"wrote {out} ({', '.join(v.object for v in vds)}, view {view})")
 
 
 def bench_learn(

@@ -11,7 +11,7 @@ from sssphase_core.errors import InputError
 
 
 def sim(
-    object_name: str = typer.Option("apple", "--object", help="catalogue object (see the error for the list)"),
+    object_name: str = typer.Option("apple", "--object", help="catalogue object (`sss objects` lists them)"),
     views: int = typer.Option(2, "--views", min=1, help="turntable views, 360/views degrees apart"),
     out: Path = typer.Option(..., "--out", help="output folder (created)"),
     preset: str = typer.Option("cpu", "--preset", help="rig preset: cpu (256x192, K=32) or paper (1080p, K=90)"),
@@ -28,6 +28,7 @@ def sim(
     import numpy as np
     from rich.progress import Progress
 
+    from sssphase_core import figures as fig
     from sssphase_core import sim as simlib
     from sssphase_core.patterns import capture_plan, psp_config_for
     from sssphase_core.sim.materials import MATERIALS, dropped_fraction
@@ -56,19 +57,30 @@ def sim(
             vdir.mkdir(exist_ok=True)
             white_level = float(np.percentile(frames[-1][scene.mask], 99)) if scene.mask.any() else 1.0
             keyed = {f.key: frame for f, frame in zip(plan, frames, strict=False)}
+            what = f"{obj.name}, view {view}"
             for key, name in shown.items():
-                _save(vdir / f"{name}.png", _tonemap(keyed[key], white_level))
-            _save(vdir / "white.png", _tonemap(frames[-1], white_level))
-            decoded = _decode_view(keyed, config, scene, vdir) if decode else {}
-            _save(vdir / "mask.png", (scene.mask * 255).astype(np.uint8))
+                fig.image_figure(vdir / f"{name}.png", _tonemap(keyed[key], white_level),
+                                 f"{what}: {name.replace('_', ' ')} (tone-mapped, 99th pct of white = 90%)")
+            fig.image_figure(vdir / "white.png", _tonemap(frames[-1], white_level), f"{what}: white (tone-mapped)")
+            decoded = _decode_view(keyed, config, scene, vdir, what) if decode else {}
+            fig.label_figure(vdir / "mask.png", scene.mask.astype(np.int16), {0: "background", 1: "object"},
+                             f"{what}: object mask")
             for axis, name in enumerate(("x", "y")):
                 coord = scene.proj_xy[..., axis]
-                _save(vdir / f"proj_{name}.png", _colour_map(coord / ((wp, hp)[axis] - 1), "turbo"))
-                _save(vdir / f"phase_{name}.png", _colour_map(np.mod(coord / period, 1.0), "twilight"))
-            _save(vdir / "material.png", _label_map(scene.material))
+                fig.value_figure(vdir / f"proj_{name}.png", coord, f"{what}: exact projector {name}", units="projector px",
+                                 cmap="turbo", vmin=0, vmax=(wp, hp)[axis] - 1)
+                fig.value_figure(vdir / f"phase_{name}.png", np.mod(coord / period, 1.0),
+                                 f"{what}: fringe phase along {name} (period {period:g} px)", units="phase (cycles)",
+                                 cmap="twilight", vmin=0, vmax=1)
+            material = np.where(scene.mask, scene.material, -1)
+            fig.label_figure(vdir / "material.png", material, dict(enumerate(simlib.MATERIAL_NAMES)), f"{what}: materials")
             labels |= {simlib.MATERIAL_NAMES[i] for i in np.unique(scene.material[scene.mask])}
             pixels = _spread_pixels(scene.lit, n_footprints)
-            _save(vdir / "footprints.png", _montage(scene.footprints(pixels)))
+            fps = scene.footprints(pixels)
+            peak = max(float(fps.mean(axis=-1).max()), 1e-30)
+            fig.panels_figure(vdir / "footprints.png", [np.log10(np.maximum(f.mean(axis=-1), 1e-30) / peak) for f in fps],
+                              [f"({y}, {x})" for y, x in pixels], f"{what}: exact footprints at pixels (row, col), mean of RGB",
+                              units="log10 intensity / brightest peak", vmin=-4, vmax=0)
             summary.append({"view": view, "angle_deg": scene.angle, "mask_pixels": int(scene.mask.sum()),
                             "lit_pixels": int(scene.lit.sum()), "footprint_pixels_yx": pixels.tolist(),
                             "decode": decoded})
@@ -93,10 +105,11 @@ def sim(
     typer.echo(f"wrote {views} view(s) of {obj.name} to {out}")
 
 
-def _decode_view(frames: dict, config, scene, vdir: Path) -> dict:
+def _decode_view(frames: dict, config, scene, vdir: Path, what: str) -> dict:
     """Decode a view's captured PSP frames, write the maps, and measure them against the exact values."""
     import numpy as np
 
+    from sssphase_core import figures as fig
     from sssphase_core.psp import Reason, decode
 
     rig = scene.rig
@@ -106,12 +119,16 @@ def _decode_view(frames: dict, config, scene, vdir: Path) -> dict:
     lit = scene.mask & np.isfinite(scene.proj_xy[..., 0])  # exact correspondence exists (not shadowed)
     on_object = corr.mask & lit
     err = np.hypot(corr.xp - scene.proj_xy[..., 0], corr.yp - scene.proj_xy[..., 1])[on_object]
-    _save(vdir / "decoded_x.png", _colour_map(np.where(corr.mask, corr.xp, np.nan) / (wp - 1), "turbo"))
-    _save(vdir / "decoded_y.png", _colour_map(np.where(corr.mask, corr.yp, np.nan) / (hp - 1), "turbo"))
-    _save(vdir / "reason.png", _label_map(np.where(corr.reason == 0, -1, corr.reason.astype(np.int16))))
+    for name, values, size in (("x", corr.xp, wp), ("y", corr.yp, hp)):
+        fig.value_figure(vdir / f"decoded_{name}.png", np.where(corr.mask, values, np.nan),
+                         f"{what}: decoded projector {name} (black: not decoded)", units="projector px", cmap="turbo",
+                         vmin=0, vmax=size - 1)
+    fig.label_figure(vdir / "reason.png", np.where(scene.mask, corr.reason.astype(np.int16), -1),
+                     {r.value: r.name.lower().replace("_", " ") for r in Reason}, f"{what}: decoding outcome per pixel")
     err_map = np.full(scene.mask.shape, np.nan, np.float32)
     err_map[on_object] = err
-    _save(vdir / "decode_error.png", _colour_map(err_map / 0.5, "magma"))  # 0 .. 0.5 projector px
+    fig.value_figure(vdir / "decode_error.png", err_map, f"{what}: correspondence error against the exact map",
+                     units="error (projector px)", cmap="magma", vmin=0, vmax=0.5)
     return {
         "valid_fraction": float(on_object.sum() / max(lit.sum(), 1)),
         "valid_in_shadow": int((corr.mask & scene.mask & ~lit).sum()),  # lit only through scattering
@@ -122,39 +139,13 @@ def _decode_view(frames: dict, config, scene, vdir: Path) -> dict:
     }
 
 
-def _save(path: Path, image) -> None:
-    from PIL import Image
-
-    Image.fromarray(image).save(path)
-
-
 def _tonemap(linear, white_level: float):
-    """Linear RGB -> sRGB uint8 with ``white_level`` at 90 % (NaN -> black)."""
+    """Linear RGB -> sRGB in [0, 1] with ``white_level`` at 90 % (NaN -> black)."""
     import numpy as np
 
     x = np.clip(np.nan_to_num(linear) / max(white_level, 1e-6) * 0.9, 0, 1)
     srgb = np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
-    return (srgb * 255 + 0.5).astype(np.uint8)
-
-
-def _colour_map(values, cmap: str):
-    """Values in [0, 1] (NaN -> black) through a matplotlib colour map -> RGB uint8."""
-    import matplotlib
-    import numpy as np
-
-    rgb = matplotlib.colormaps[cmap](np.clip(np.nan_to_num(values), 0, 1))[..., :3]
-    rgb[~np.isfinite(values)] = 0
-    return (rgb * 255).astype(np.uint8)
-
-
-def _label_map(labels):
-    import matplotlib
-    import numpy as np
-
-    colours = matplotlib.colormaps["tab20"](np.arange(20))[:, :3]
-    rgb = colours[np.mod(labels, 20)]
-    rgb[labels < 0] = 0
-    return (rgb * 255).astype(np.uint8)
+    return srgb.astype(np.float32)
 
 
 def _spread_pixels(lit, n: int):
@@ -168,22 +159,48 @@ def _spread_pixels(lit, n: int):
     return np.stack([ys[pick], xs[pick]], axis=1)
 
 
-def _montage(footprints, zoom: int = 4, decades: float = 4.0):
-    """Footprints (N, K, K, 3) side by side on a log scale (``decades`` below the brightest), 2 rows."""
-    import numpy as np
+def objects() -> None:
+    """The simulated rig's object catalogue: split, materials and whether their coefficients are measured."""
+    from rich.console import Console
+    from rich.table import Table
 
-    n, k = footprints.shape[:2]
-    peak = max(float(footprints.max()), 1e-12)
-    logv = np.clip((np.log10(np.maximum(footprints, 1e-30) / peak) + decades) / decades, 0, 1)
-    tiles = (logv * 255).astype(np.uint8).repeat(zoom, 1).repeat(zoom, 2)
-    cols = (n + 1) // 2
-    size = k * zoom + 2
-    canvas = np.full((2 * size, cols * size, 3), 40, np.uint8)
-    for i, tile in enumerate(tiles):
-        r, c = divmod(i, cols)
-        canvas[r * size + 1 : r * size + 1 + k * zoom, c * size + 1 : c * size + 1 + k * zoom] = tile
-    return canvas
+    from sssphase_core.sim import CATALOGUE
+    from sssphase_core.sim.materials import MATERIALS
+    from sssphase_core.sim.objects import object_materials
+
+    table = Table(title="Simulated objects (sss capture --object NAME)")
+    for col in ("object", "split", "description", "materials (* measured: Jensen et al. 2001)"):
+        table.add_column(col)
+    for obj in CATALOGUE.values():
+        mats = ", ".join(m + ("*" if MATERIALS[m].measured else "") for m in object_materials(obj))
+        table.add_row(obj.name, obj.split, obj.description, mats)
+    Console(soft_wrap=True).print(table)
+
+
+def rigs() -> None:
+    """Simulated rig presets (--preset): camera/projector resolution, footprint patch, fringe periods."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from sssphase_core.capture import dot_spacing_for
+    from sssphase_core.patterns import psp_config_for
+    from sssphase_core.sim.rig import PRESETS, pixel_pitch_mm, rig_preset
+
+    table = Table(title="Rig presets (sss capture/sim --preset NAME; a real rig: --rig RIG.toml, see HARDWARE.md)")
+    for col in ("preset", "camera", "projector", "patch K", "fringe period (px)", "unwrapping periods (px)",
+                "dot spacing (px)", "camera pixel (mm)", "scattering scale"):
+        table.add_column(col)
+    for name in PRESETS:
+        rig = rig_preset(name)
+        psp = psp_config_for(rig.projector.width, rig.projector.height)
+        table.add_row(name, f"{rig.camera.width}x{rig.camera.height}", f"{rig.projector.width}x{rig.projector.height}",
+                      str(rig.patch), f"{psp.period:g} x {psp.n_shifts} shifts",
+                      ", ".join(f"{p:g}" for p in psp.unwrap_periods), str(dot_spacing_for(rig.patch)),
+                      f"{pixel_pitch_mm(rig):.3f}", f"{rig.sss_scale:g}")
+    Console(soft_wrap=True).print(table)
 
 
 def register(groups: dict[str, typer.Typer]) -> None:
     groups["root"].command("sim")(sim)
+    groups["root"].command("objects")(objects)
+    groups["root"].command("rigs")(rigs)

@@ -42,6 +42,11 @@ class ClientLike(Protocol):
     def capture(self, rig: str, frames: list[dict[str, Any]]) -> Iterable[FrameLike]: ...
 
 
+def dot_spacing_for(patch: int) -> int:
+    """Dot-grid spacing (projector px) for footprint crops of ``patch`` px: the paper's 55 px at K = 90."""
+    return max(2, round(DOT_SPACING_PER_PATCH * patch))
+
+
 @dataclass
 class RigSpec:
     """Which devices to use and their options (``--rig RIG.toml``; default: the sim rig)."""
@@ -115,7 +120,7 @@ def build_frames(req: CaptureRequest, size: tuple[int, int], patch: int) -> tupl
 
     named = [r for r in req.references if r in REFERENCE_NAMES]
     files = [Path(r) for r in req.references if r not in REFERENCE_NAMES]
-    spacing = req.dot_spacing or max(2, round(DOT_SPACING_PER_PATCH * patch))
+    spacing = req.dot_spacing or dot_spacing_for(patch)
     plan = capture_plan(*size, footprints=req.footprints, dot_spacing=spacing,
                         references=("white", "black", *named), hdr_exposures=req.hdr)
     frames = json.loads(plan.to_json())["frames"]

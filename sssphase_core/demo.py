@@ -233,28 +233,18 @@ class Demo:
 
     def pca(self) -> dict[str, Any]:
         self._need("pretrain", "test_sessions")
-        from PIL import Image
-
-        from sssphase_core.evaluation import embed_pixels, paint, pca_rgb
+        from sssphase_core.evaluation import PCA_TITLE, pca_maps
+        from sssphase_core.figures import panels_figure
         from sssphase_core.session import Session
         from sssphase_core.training import load_encoder
 
         enc = load_encoder(self.results["pretrain"]["checkpoint"])
-        panels, embs, grids = [], [], []
         sessions = [Session.open(p) for p in self.results["test_sessions"]["sessions"]]
-        stride = self.cfg.pca_stride
-        for s in sessions:
-            mask = s.load(self.cfg.test_view, "corr/mask").astype(bool)
-            px = np.argwhere(mask)
-            px = px[(px[:, 0] % stride == 0) & (px[:, 1] % stride == 0)]
-            embs.append(embed_pixels(enc, s.load(self.cfg.test_view, "psp"), px))
-            grids.append((px, mask.shape))
-        for (px, shape), rgb in zip(grids, pca_rgb(embs), strict=True):
-            panels.append(paint((-(-shape[0] // stride), -(-shape[1] // stride)), px // stride, rgb))
-        path = self.out / "report" / "img" / "pca_rgb.png"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        Image.fromarray((np.concatenate(panels, axis=1) * 255).round().astype(np.uint8)).resize(
-            (sum(p.shape[1] for p in panels) * 2, panels[0].shape[0] * 2), Image.Resampling.NEAREST).save(path)
+        view = self.cfg.test_view
+        maps = pca_maps(enc, [(s.load(view, "psp"), np.argwhere(s.load(view, "corr/mask").astype(bool))) for s in sessions],
+                        self.cfg.pca_stride)
+        panels_figure(self.out / "report" / "img" / "pca_rgb.png", maps, [f"{s.name}, view {view}" for s in sessions],
+                      f"{PCA_TITLE} (every {self.cfg.pca_stride}th pixel)")
         return {"figure": "img/pca_rgb.png", "objects": [s.name for s in sessions]}
 
     def report(self) -> dict[str, Any]:

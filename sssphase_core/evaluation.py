@@ -141,6 +141,21 @@ def paint(shape: tuple[int, int], pixels: np.ndarray, colours: np.ndarray) -> np
     return img
 
 
+def pca_maps(encoder, views: Sequence[tuple[np.ndarray, np.ndarray]], stride: int) -> list[np.ndarray]:
+    """PCA-RGB maps of several views embedded together: ``views`` = (psp (8, H, W, 3), pixels (N, 2) y, x)
+    -> one (ceil(H/stride), ceil(W/stride), 3) map per view, black where no pixel was embedded."""
+    grids = [px[(px[:, 0] % stride == 0) & (px[:, 1] % stride == 0)] for _, px in views]
+    embs = [embed_pixels(encoder, psp, px) for (psp, _), px in zip(views, grids, strict=True)]
+    maps = []
+    for (psp, _), px, rgb in zip(views, grids, pca_rgb(embs), strict=True):
+        h, w = psp.shape[1:3]
+        maps.append(paint((-(-h // stride), -(-w // stride)), px // stride, rgb))
+    return maps
+
+
+PCA_TITLE = "PCA-RGB of encoder embeddings: components 1-3 as R, G, B, one joint PCA over the objects shown"
+
+
 # --- plots ---------------------------------------------------------------------------------------
 
 
@@ -170,21 +185,37 @@ def read_metrics(path: Path | str) -> list[dict]:
     return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
 
 
-def plot_metric_vs_time(metrics_path: Path | str, key: str, out: Path | str, *, log: bool = True) -> None:
-    """The error against run time: ``key`` of every metrics.jsonl row against its ``wall_s``."""
+def plot_metric_vs_time(metrics_path: Path | str, keys: str | Sequence[str], out: Path | str, *, log: bool = True,
+                        ylabel: str | None = None, right: Sequence[str] = (), right_label: str = "",
+                        chance: float | None = None, title: str | None = None) -> None:
+    """Error against run time: each of ``keys`` (and ``right`` on a second axis) of the metrics.jsonl rows
+    against their cumulative ``wall_s``, with a legend; ``chance`` draws the chance level."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    rows = [r for r in read_metrics(metrics_path) if key in r]
-    if not rows:
-        raise InputError(f"no {key!r} in {metrics_path}")
-    fig, ax = plt.subplots(figsize=(5, 3.2))
-    ax.plot([r["wall_s"] for r in rows], [r[key] for r in rows], "o-")
-    ax.set(xlabel="run time (s)", ylabel=key, title=f"{key} against run time")
-    if log and all(r[key] > 0 for r in rows):
+    keys = [keys] if isinstance(keys, str) else list(keys)
+    rows = read_metrics(metrics_path)
+    if not any(keys[0] in r for r in rows):
+        raise InputError(f"no {keys[0]!r} in {metrics_path}")
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    lines = []
+    for key in keys:
+        rs = [r for r in rows if key in r]
+        lines += ax.plot([r["wall_s"] for r in rs], [r[key] for r in rs], "o-", label=key)
+    if chance is not None:
+        lines.append(ax.axhline(chance, color="grey", ls="--", label=f"chance ({chance:.3g})"))
+    ax.set(xlabel="run time (s)", ylabel=ylabel or ", ".join(keys), title=title or f"{', '.join(keys)} against run time")
+    if log and all(r[k] > 0 for k in keys for r in rows if k in r):
         ax.set_yscale("log")
+    if right:
+        twin = ax.twinx()
+        for key, colour in zip(right, ("tab:red", "tab:purple", "tab:brown"), strict=False):
+            rs = [r for r in rows if key in r]
+            lines += twin.plot([r["wall_s"] for r in rs], [r[key] for r in rs], "s--", color=colour, label=key)
+        twin.set_ylabel(right_label or ", ".join(right))
+    ax.legend(handles=lines, fontsize=8, loc="best")
     fig.tight_layout()
     fig.savefig(out, dpi=120)
     plt.close(fig)

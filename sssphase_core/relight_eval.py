@@ -55,12 +55,12 @@ def comparison_figure(reference: np.ndarray, relit: np.ndarray, mask: np.ndarray
     diff = np.abs(np.nan_to_num(relit) - np.nan_to_num(reference)).mean(axis=-1)
     fig, axes = plt.subplots(1, 3, figsize=(10.5, 3.2), constrained_layout=True)
     for ax, img, name in ((axes[0], reference, "reference (GT)"), (axes[1], relit, "relit")):
-        ax.imshow(srgb(np.nan_to_num(img) / scale))
+        ax.imshow(srgb(np.nan_to_num(img) / scale), interpolation="nearest")
         ax.set_title(name, fontsize=9)
     vmax = float(max(np.percentile(diff[mask], 99.5) if mask.any() else diff.max(), 1e-6))
-    im = axes[2].imshow(np.where(mask, diff, 0.0), cmap="inferno", vmin=0, vmax=vmax)
+    im = axes[2].imshow(np.where(mask, diff, 0.0), cmap="inferno", vmin=0, vmax=vmax, interpolation="nearest")
     axes[2].set_title("|relit - GT| (linear units)", fontsize=9)
-    fig.colorbar(im, ax=axes[2], fraction=0.046, pad=0.02)
+    fig.colorbar(im, ax=axes[2], fraction=0.046, pad=0.02, label="mean |error| over RGB (linear camera units)")
     for ax in axes:
         ax.set_axis_off()
     if metrics:

@@ -281,3 +281,15 @@ def get_object(name: str) -> SimObject:
             f"unknown object {name!r}; the catalogue has: training {', '.join(TRAIN_OBJECTS)}; "
             f"unseen {', '.join(UNSEEN_OBJECTS)}"
         ) from None
+
+
+def object_materials(obj: SimObject, samples: int = 20000, seed: int = 0) -> list[str]:
+    """Names of the materials an object is made of (dominant label of points sampled inside it),
+    most frequent first."""
+    rng = np.random.default_rng(seed)
+    p = rng.uniform(-obj.radius, obj.radius, size=(samples, 3))
+    inside = p[obj.sdf(p) <= 0]
+    if len(inside) == 0:
+        return []
+    labels, counts = np.unique(obj.shade(inside).label, return_counts=True)
+    return [MATERIAL_NAMES[int(i)] for i in labels[np.argsort(-counts)]]

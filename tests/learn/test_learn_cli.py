@@ -101,4 +101,4 @@ def test_train_eval_viz_on_the_simulator(tmp_path):
     from PIL import Image
 
     img = Image.open(tmp_path / "pca.png")
-    assert img.size == (256 // 8, 192 // 8)  # one panel at stride 8
+    assert img.size[0] >= 400  # a 32x24 map (stride 8) enlarged into a titled figure
