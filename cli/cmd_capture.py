@@ -289,6 +289,73 @@ def export(
     console.print(f"wrote {len(written)} files under {out / s.name}")
 
 
+def calibrate_projector(
+    rig: Annotated[Path | None, typer.Option(help="rig file (TOML) to calibrate; its [projector] table is rewritten "
+                                             "(default: the sim rig, written to --out)")] = None,
+    out: Annotated[Path | None, typer.Option(help="rig file to write (default: --rig itself, else rig.toml)")] = None,
+    levels: Annotated[int, typer.Option(min=4, max=256, help="grey levels in the ramp, 0 to 1")] = 17,
+    object_name: Annotated[str, typer.Option("--object", help="sim rig: the catalogue object lit by the ramp")] = "soap",
+    check: Annotated[bool, typer.Option("--check", help="sim rig: capture a view with 2.2 and with the fitted curve "
+                                        "and compare the correspondence error with the simulator's exact map")] = False,
+) -> None:
+    """Fit the projector's response (gamma and black per colour) from a grey ramp captured through the daemon."""
+    import tempfile
+
+    import numpy as np
+
+    from sssphase_core.calibration import (
+        capture_ramp,
+        correspondence_error,
+        fit_response,
+        rig_file_with_response,
+    )
+    from sssphase_core.capture import CaptureRequest, RigSpec, run_capture
+    from sssphase_core.errors import InputError
+    from sssphase_daemon.client import local_client
+
+    spec = RigSpec.from_toml(rig) if rig else RigSpec()
+    target = out or rig or Path("rig.toml")
+    if check and not spec.is_sim:
+        raise InputError("--check needs the simulator's exact correspondences: it works on sim rigs only")
+    ramp = tuple(float(v) for v in np.round(np.linspace(0, 1, levels), 4))
+    sim_options = {"object": object_name, "n_views": 1}
+    with local_client(on_start=lambda pid: console.print(f"started a local daemon with the sim rig (pid {pid})")) as client:
+        with console.status(f"capturing a {levels}-level grey ramp"):
+            images = capture_ramp(client, spec, ramp, sim_options=sim_options)
+        fitted = fit_response(ramp, images)
+        table = Table(title=f"projector response ({fitted.pixels} camera pixels; fit rms {fitted.rms:.4f} in relative light)")
+        for col in ("colour", "gamma", "black (relative to white)"):
+            table.add_column(col)
+        for name, g, b in zip("RGB", fitted.gamma_rgb, fitted.black_rgb, strict=True):
+            table.add_row(name, f"{g:.3f}", f"{b:.4f}")
+        table.add_row("used", f"{fitted.gamma:.3f}", f"{fitted.black:.4f}")
+        console.print(table)
+        if check:
+            errors = {}
+            with tempfile.TemporaryDirectory(prefix="sss-cal-") as tmp:
+                nominal = {k: v for k, v in spec.options.items() if k not in ("projector_gamma", "projector_black")}
+                for label, options, gamma in (
+                        ("patterns for gamma 2.2", spec.options, None),
+                        (f"patterns for the fitted {fitted.gamma:.3f}", spec.options, fitted.gamma),
+                        ("nominal: a 2.2 projector with patterns for 2.2", nominal, None)):
+                    checked = RigSpec(spec.camera, spec.projector, spec.turntable, dict(options), gamma=gamma)
+                    with console.status(f"checking: {label}"):
+                        session = run_capture(client, CaptureRequest(object_name, views=1, out=Path(tmp) / str(len(errors))),
+                                              checked)
+                    errors[label] = correspondence_error(session)
+            for label, err in errors.items():
+                console.print(f"correspondence error with {label}: median {err:.3f} projector px")
+    text = target.read_text() if target.exists() else ""
+    if not text and rig is None:
+        import tomli_w
+
+        text = tomli_w.dumps({"devices": {"camera": spec.camera, "projector": spec.projector},
+                              **({"options": spec.options} if spec.options else {})})
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_text(rig_file_with_response(text, fitted))
+    console.print(f"wrote the {escape('[projector]')} table of {target}: capture with `sss capture --rig {target}`")
+
+
 def bench_daemon(
     out: Annotated[Path, typer.Option(help="JSON result file (a Markdown table is printed and written next to it)")],
     frames: Annotated[int, typer.Option(help="frames per throughput run")] = 200,
@@ -316,6 +383,7 @@ def register(groups: dict[str, typer.Typer]) -> None:
     root.command("validate")(validate)
     root.command("import")(import_images)
     root.command("export")(export)
+    groups["calibrate"].command("projector")(calibrate_projector)
     groups["daemon"].command("start")(daemon_start)
     groups["daemon"].command("stop")(daemon_stop)
     groups["daemon"].command("status")(daemon_status)

@@ -35,6 +35,7 @@ GROUP_HELP = {
     "eval": "Evaluation: kNN accuracy, footprint and relighting metrics.",
     "viz": "Visualisations: PCA-RGB feature maps, footprint profiles.",
     "daemon": "The acquisition daemon: start, stop, status, keys.",
+    "calibrate": "Rig calibration: the projector's response.",
 }
 
 

@@ -41,7 +41,7 @@ MAX_FRAMES_PER_JOB = 200_000
 HANDSHAKE_MS = 5000
 MAX_OPEN_RIGS = 16  # each may hold a simulated scene or a camera: a client cannot open thousands
 HEAVY_MODULES = ("torch", "depthai", "hid", "usb", "serial")  # a sim-only daemon must load none of these
-FRAME_KINDS = ("psp", "white", "black", "dots", "ref", "image")
+FRAME_KINDS = ("psp", "white", "black", "level", "dots", "ref", "image")
 
 
 @dataclass

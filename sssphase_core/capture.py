@@ -60,6 +60,9 @@ class RigSpec:
     black_level: float | None = None  # for raw Bayer cameras: develop with these
     white_scale: float | None = None
     median: bool = True  # the paper's 3x3 median per Bayer plane (blurs fringes only a few px wide)
+    gamma: float | None = None  # projector response v**gamma ([projector], from `sss calibrate projector`; None: 2.2)
+    projector_black: float | None = None  # projector black level relative to white (None: estimated/preset)
+    response: dict[str, Any] = field(default_factory=dict)  # the whole fitted [projector] table, as recorded
 
     @property
     def is_sim(self) -> bool:
@@ -72,13 +75,20 @@ class RigSpec:
             cfg = tomllib.loads(Path(path).read_text())
         except (OSError, tomllib.TOMLDecodeError) as exc:
             raise InputError(f"cannot read rig file {path}: {exc}") from None
-        dev, proc = cfg.get("devices", {}), cfg.get("processing", {})
+        dev, proc, resp = cfg.get("devices", {}), cfg.get("processing", {}), cfg.get("projector", {})
         if "camera" not in dev or "projector" not in dev:
             raise InputError(f"{path}: [devices] needs camera and projector ids (see `sss devices`)")
         unknown = set(proc) - {"patch", "saturation", "black_level", "white_scale", "median"}
         if unknown:
             raise InputError(f"{path}: unknown [processing] keys {sorted(unknown)}")
-        return cls(dev["camera"], dev["projector"], dev.get("turntable"), dict(cfg.get("options", {})), **proc)
+        gamma, black = resp.get("gamma"), resp.get("black")
+        if gamma is not None and not (isinstance(gamma, int | float) and 0.3 <= gamma <= 5):
+            raise InputError(f"{path}: [projector] gamma must be a number in [0.3, 5], got {gamma!r}")
+        if black is not None and not (isinstance(black, int | float) and 0 <= black < 0.5):
+            raise InputError(f"{path}: [projector] black must be a number in [0, 0.5), got {black!r}")
+        return cls(dev["camera"], dev["projector"], dev.get("turntable"), dict(cfg.get("options", {})), **proc,
+                   gamma=None if gamma is None else float(gamma), projector_black=None if black is None else float(black),
+                   response=dict(resp))
 
 
 @dataclass
@@ -114,15 +124,18 @@ def _load_reference(path: Path, size: tuple[int, int]) -> np.ndarray:
     return np.clip(arr / (65535.0 if np.asarray(img).dtype == np.uint16 else 255.0), 0, 1)
 
 
-def build_frames(req: CaptureRequest, size: tuple[int, int], patch: int) -> tuple[Any, list[dict[str, Any]], int]:
-    """The capture plan and the daemon's frame specs (named references by plan, files as images)."""
-    from sssphase_core.patterns import REFERENCE_NAMES, capture_plan
+def build_frames(req: CaptureRequest, size: tuple[int, int], patch: int,
+                 gamma: float | None = None) -> tuple[Any, list[dict[str, Any]], int]:
+    """The capture plan and the daemon's frame specs (named references by plan, files as images);
+    PSP patterns are pre-distorted for the projector's ``gamma`` (default 2.2)."""
+    from sssphase_core.patterns import DEFAULT_GAMMA, REFERENCE_NAMES, capture_plan
 
     named = [r for r in req.references if r in REFERENCE_NAMES]
     files = [Path(r) for r in req.references if r not in REFERENCE_NAMES]
     spacing = req.dot_spacing or dot_spacing_for(patch)
     plan = capture_plan(*size, footprints=req.footprints, dot_spacing=spacing,
-                        references=("white", "black", *named), hdr_exposures=req.hdr)
+                        references=("white", "black", *named), hdr_exposures=req.hdr,
+                        gamma=DEFAULT_GAMMA if gamma is None else gamma)
     frames = json.loads(plan.to_json())["frames"]
     for path in files:
         name = check_object_name(path.stem)
@@ -144,6 +157,17 @@ def _plan_digest(frames: list[dict[str, Any]]) -> str:
     return h.hexdigest()
 
 
+def develop_frame(data: np.ndarray, rig: RigSpec, exposure: float = 1.0) -> np.ndarray:
+    """A received frame -> linear RGB float32 (H, W, 3): colour frames as sent, raw Bayer developed."""
+    if data.ndim == 3:
+        return np.asarray(data, np.float32)
+    if rig.black_level is None or rig.white_scale is None:
+        raise DataError("the camera sends raw frames: set [processing] black_level and white_scale in the rig file")
+    from sssphase_core import isp
+
+    return isp.develop(data, rig.black_level, rig.white_scale * exposure, median=rig.median)
+
+
 class ViewProcessor:
     """Consumes one view's frames in plan order: merges HDR brackets, decodes PSP, extracts footprints."""
 
@@ -161,13 +185,7 @@ class ViewProcessor:
         self.dots = writer.stream_array("dots", n_dots) if req.keep_dots and n_dots else None
 
     def _develop(self, data: np.ndarray, exposure: float) -> np.ndarray:
-        if data.ndim == 3:
-            return np.asarray(data, np.float32)
-        if self.rig.black_level is None or self.rig.white_scale is None:
-            raise DataError("the camera sends raw frames: set [processing] black_level and white_scale in the rig file")
-        from sssphase_core import isp
-
-        return isp.develop(data, self.rig.black_level, self.rig.white_scale * exposure, median=self.rig.median)
+        return develop_frame(data, self.rig, exposure)
 
     def add(self, frame: FrameLike, spec: Mapping[str, Any]) -> None:
         tag = frame.header.get("meta", {}).get("pattern_tag")
@@ -243,13 +261,17 @@ class ViewProcessor:
         return info
 
 
-def write_sim_ground_truth(writer: ViewWriter, req: CaptureRequest, view: int, frames: list[dict[str, Any]]) -> None:
+def write_sim_ground_truth(writer: ViewWriter, req: CaptureRequest, view: int, frames: list[dict[str, Any]],
+                           options: dict[str, Any] | None = None) -> None:
     """Exact correspondence, material labels and noise-free renders of the references (exact
-    footprints are left to ``SimScene.footprints``: they would double the session's size)."""
+    footprints are left to ``SimScene.footprints``: they would double the session's size).
+    ``options``: the sim rig's options (a projector response other than the preset's)."""
     from sssphase_core.patterns import PlannedFrame
-    from sssphase_core.sim import SimScene, rig_preset
+    from sssphase_core.sim import SimScene, rig_preset, with_projector_response
 
-    scene = SimScene(req.object, rig=rig_preset(req.preset), view=view, n_views=req.views, seed=req.seed)
+    opts = options or {}
+    rig = with_projector_response(rig_preset(req.preset), opts.get("projector_gamma"), opts.get("projector_black"))
+    scene = SimScene(req.object, rig=rig, view=view, n_views=req.views, seed=req.seed)
     writer.write("gt/proj_xy", scene.proj_xy.astype(np.float32))
     writer.write("gt/labels", scene.material.astype(np.int16))
     writer.write("gt/mask", scene.mask)
@@ -301,7 +323,7 @@ def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, option
         rig.saturation = rig.saturation or preset.sensor.saturation(1.0)
     if req.footprints and rig.patch is None:
         raise InputError("footprints need the crop size: set [processing] patch in the rig file")
-    plan, frames, spacing = build_frames(req, size, rig.patch or 32)
+    plan, frames, spacing = build_frames(req, size, rig.patch or 32, rig.gamma)
     digest = _plan_digest(frames)
     session = Session.create(req.out, req.object, resume=req.resume, n_views=req.views, plan_digest=digest,
                              rig={**asdict(rig), "options": options}, devices=opened["devices"],
@@ -327,7 +349,7 @@ def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, option
                     progress(view, i + 1, len(frames))
             info = proc.finish()
             if rig.is_sim:
-                write_sim_ground_truth(writer, req, view, frames)
+                write_sim_ground_truth(writer, req, view, frames, options)
         except BaseException:
             writer.abort()
             session.set_view(view, {"status": "interrupted"})

@@ -102,6 +102,14 @@ def white(width: int, height: int) -> np.ndarray:
     return np.ones((height, width), np.float32)
 
 
+def level(width: int, height: int, value: float) -> np.ndarray:
+    """A uniform pattern of ``value`` in [0, 1] (grey ramps for projector calibration)."""
+    _check_size(width, height)
+    if not 0.0 <= value <= 1.0:
+        raise InputError(f"a level pattern needs a value in [0, 1], got {value}")
+    return np.full((height, width), value, np.float32)
+
+
 def black(width: int, height: int) -> np.ndarray:
     """Full-black pattern (the projector still emits its black level)."""
     _check_size(width, height)
@@ -214,7 +222,7 @@ class PlannedFrame:
     """One frame of a capture session; ``pattern()`` renders its projector image on demand."""
 
     key: str
-    kind: str  # "psp" | "white" | "black" | "dots" | "ref"
+    kind: str  # "psp" | "white" | "black" | "level" | "dots" | "ref"
     params: dict[str, Any] = field(hash=False)
     exposure: float = 1.0
 
@@ -234,6 +242,8 @@ class PlannedFrame:
             return white(w, h)
         if self.kind == "black":
             return black(w, h)
+        if self.kind == "level":
+            return level(w, h, p["value"])
         if self.kind == "dots":
             return dot_grid(w, h, p["spacing"], p["shift_x"], p["shift_y"])
         if self.kind == "ref":
@@ -264,6 +274,8 @@ def frame_params_problem(kind: str, params: Mapping[str, Any]) -> str | None:
         checks += [number("period", 1e-3, 1e6), integer("n_shifts", 1, 64), integer("shift", 0, 63), number("gamma", 0.05, 20)]
         if params.get("orientation") not in ("x", "y"):
             checks.append(f"psp frame needs orientation x or y, got {params.get('orientation')!r}")
+    elif kind == "level":
+        checks.append(number("value", 0.0, 1.0))
     elif kind == "dots":
         checks += [integer("spacing", 1, MAX_SIDE), integer("shift_x", 0, MAX_SIDE), integer("shift_y", 0, MAX_SIDE)]
     elif kind == "ref":

@@ -340,8 +340,10 @@ def load_view(session: object, view: int) -> RelightView:
         sim = {"object": opts.get("object", m.get("object")), "preset": opts.get("preset", "cpu"),
                "n_views": int(opts.get("n_views", m.get("n_views", 4))), "seed": int(opts.get("seed", 0))}
         preset = rig_preset(sim["preset"])
-        black, patch = float(preset.projector.black), int(rig.get("patch") or preset.patch)
-    elif "black" in arrays:  # the black frame is black_level * white
+        black, patch = float(opts.get("projector_black", preset.projector.black)), int(rig.get("patch") or preset.patch)
+    if rig.get("projector_black") is not None:  # calibrated (sss calibrate projector)
+        black = float(rig["projector_black"])
+    elif sim is None and "black" in arrays:  # the black frame is black_level * white
         blk, wl = load("black").mean(axis=-1), white.mean(axis=-1)
         ok = mask & (wl > 0.05)
         black = float(np.clip(np.median(blk[ok] / wl[ok]), 0, 0.5)) if ok.any() else 0.0

@@ -20,7 +20,7 @@ from sssphase_core.sim.objects import (
     SimObject,
     get_object,
 )
-from sssphase_core.sim.rig import Pinhole, Projector, RigConfig, make_rig, rig_preset
+from sssphase_core.sim.rig import Pinhole, Projector, RigConfig, make_rig, rig_preset, with_projector_response
 from sssphase_core.sim.scene import SimScene
 from sssphase_core.sim.sensor import SensorConfig
 
@@ -43,4 +43,5 @@ __all__ = [
     "get_object",
     "make_rig",
     "rig_preset",
+    "with_projector_response",
 ]

@@ -3,7 +3,7 @@ projector with pose ``X_p = R X_c + t``, a turntable about the camera's y axis, 
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 
@@ -142,6 +142,13 @@ def rig_preset(name: str = "cpu") -> RigConfig:
         # 11 mm on the object (22 mm at the CPU preset), so distances are halved.
         return make_rig("paper", (1920, 1080), (1920, 1080), 90, sss_scale=0.5)
     raise InputError(f"unknown rig preset {name!r}; choose one of {', '.join(PRESETS)}")
+
+
+def with_projector_response(rig: RigConfig, gamma: float | None = None, black: float | None = None) -> RigConfig:
+    """``rig`` with its projector emitting ``black + (1 - black) * v**gamma`` (None keeps the preset's)."""
+    proj = replace(rig.projector, gamma=rig.projector.gamma if gamma is None else float(gamma),
+                   black=rig.projector.black if black is None else float(black))
+    return replace(rig, projector=proj)
 
 
 def pixel_pitch_mm(rig: RigConfig) -> float:

@@ -1,0 +1,166 @@
+"""Projector response calibration: a grey ramp captured through the daemon, fitted per colour.
+
+The projector turns a pattern value v in [0, 1] into light ``black + (1 - black) * v**gamma``. A
+camera pixel sees ``I(v) = a * (black + (1 - black) * r(v)) + ambient`` with an unknown reflectance
+``a``; with the ramp's own v = 0 and v = 1 frames,
+
+    r(v) = (I(v) - I(0)) / (I(1) - I(0))          (albedo and ambient cancel)
+
+per pixel and colour. ``r`` is averaged over well-exposed pixels, then ``gamma`` is fitted by least
+squares on log r = gamma log v (v in [0.1, 1], where r is above the noise). The black level relative
+to white is ``(I(0) - ambient) / (I(1) - ambient)``; the ambient light cannot be told apart from the
+projector's black with a projector alone, so ``black`` is an upper bound (exact in a dark room).
+The tabulated curve r(v) is kept with the fit so a response that is not a power law shows up as a
+large ``rms``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import asdict, dataclass
+from typing import Any
+
+import numpy as np
+
+from sssphase_core.errors import DataError
+
+RAMP_LEVELS = tuple(float(v) for v in np.round(np.linspace(0.0, 1.0, 17), 4))
+FIT_RANGE = (0.1, 1.0)  # values whose response is fitted (below, r is at the noise floor)
+
+
+@dataclass(frozen=True)
+class ProjectorResponse:
+    """A fitted response: per-colour gamma and black, their means (used for patterns and relighting),
+    the tabulated curve ``levels -> response`` (3 colours) and the fit's RMS residual in r."""
+
+    gamma: float
+    black: float
+    gamma_rgb: tuple[float, float, float]
+    black_rgb: tuple[float, float, float]
+    levels: tuple[float, ...]
+    response_rgb: tuple[tuple[float, ...], ...]
+    rms: float
+    pixels: int
+
+    def to_table(self) -> dict[str, Any]:
+        """The rig file's ``[projector]`` table."""
+        def rounded(v: Any) -> Any:
+            if isinstance(v, float):
+                return round(v, 5)
+            return [rounded(x) for x in v] if isinstance(v, list | tuple) else v
+
+        return {k: rounded(v) for k, v in asdict(self).items()}
+
+
+def ramp_frames(width: int, height: int, levels: tuple[float, ...] = RAMP_LEVELS) -> list[dict[str, Any]]:
+    """The daemon's frame specs of a grey ramp (uniform ``level`` frames, first 0, last 1)."""
+    if levels[0] != 0.0 or levels[-1] != 1.0 or len(levels) < 4 or list(levels) != sorted(set(levels)):
+        raise DataError("a calibration ramp needs >= 4 increasing levels from 0 to 1")
+    return [{"name": f"cal/level/{v:.4f}", "key": f"cal/level/{v:.4f}", "kind": "level", "exposure": 1.0,
+             "params": {"width": width, "height": height, "value": v}} for v in levels]
+
+
+def ramp_response(images: np.ndarray, *, saturation: float = 0.98, min_signal: float = 0.05) -> tuple[np.ndarray, int]:
+    """Per-level mean normalised response r (L, 3) from ramp images (L, H, W, 3), and the pixels used.
+
+    Pixels used: the white frame is above ``min_signal`` over black and below ``saturation`` in every
+    colour (clipped pixels would flatten the top of the curve).
+    """
+    imgs = np.asarray(images, np.float64)
+    lo, hi = imgs[0], imgs[-1]
+    good = ((hi - lo) > min_signal).all(axis=-1) & (hi < saturation).all(axis=-1) & np.isfinite(imgs).all(axis=(0, -1))
+    n = int(good.sum())
+    if n < 50:
+        raise DataError(f"only {n} camera pixels see the projector's white well exposed (need 50): aim the projector "
+                        "at a matte target that fills the view, and check the exposure")
+    r = (imgs[:, good] - lo[good]) / (hi[good] - lo[good])  # (L, N, 3)
+    return np.median(r, axis=1), n
+
+
+def fit_response(levels: tuple[float, ...], images: np.ndarray) -> ProjectorResponse:
+    """Fit gamma and black per colour from ramp images (L, H, W, 3) taken at ``levels``."""
+    v = np.asarray(levels, np.float64)
+    r, n = ramp_response(images)
+    use = (v >= FIT_RANGE[0]) & (v <= FIT_RANGE[1])
+    gammas, rms = [], 0.0
+    for c in range(3):
+        ok = use & (r[:, c] > 1e-4)
+        if ok.sum() < 3:
+            raise DataError("the ramp's response is at the noise floor: raise the exposure")
+        x, y = np.log(v[ok]), np.log(r[ok, c])
+        g = float((x * y).sum() / (x * x).sum())  # through the origin: r(1) = 1
+        gammas.append(g)
+        rms = max(rms, float(np.sqrt(np.mean((v[use] ** g - r[use, c]) ** 2))))
+    imgs = np.asarray(images, np.float64)
+    lo, hi = imgs[0], imgs[-1]
+    good = ((hi - lo) > 0.05).all(axis=-1) & (hi < 0.98).all(axis=-1)
+    blacks = np.clip(np.median(lo[good] / hi[good], axis=0), 0.0, 0.5)
+    return ProjectorResponse(
+        gamma=float(np.mean(gammas)), black=float(np.mean(blacks)),
+        gamma_rgb=tuple(float(g) for g in gammas), black_rgb=tuple(float(b) for b in blacks),  # type: ignore[arg-type]
+        levels=tuple(float(x) for x in v), response_rgb=tuple(tuple(float(x) for x in r[:, c]) for c in range(3)),
+        rms=rms, pixels=n)
+
+
+def phase_harmonic(gamma_true: float, gamma_assumed: float, n_shifts: int = 4, samples: int = 720) -> float:
+    """Peak phase error (radians) of ``n_shifts``-step PSP when patterns pre-distorted for
+    ``gamma_assumed`` are shown by a projector with ``gamma_true`` (analytic check of the fit's use)."""
+    t = np.linspace(0, 2 * math.pi, samples, endpoint=False)
+    shifts = 2 * math.pi * np.arange(n_shifts) / n_shifts
+    frames = np.clip(0.5 + 0.5 * np.cos(t[:, None] + shifts[None]), 0, 1) ** (gamma_true / gamma_assumed)
+    phi = np.arctan2(-(frames * np.sin(shifts)).sum(1), (frames * np.cos(shifts)).sum(1))
+    err = np.angle(np.exp(1j * (phi - t)))
+    return float(np.abs(err - np.angle(np.mean(np.exp(1j * err)))).max())
+
+
+def capture_ramp(client: Any, rig: Any, levels: tuple[float, ...] = RAMP_LEVELS, *,
+                 sim_options: dict[str, Any] | None = None) -> np.ndarray:
+    """Capture the grey ramp through the daemon with ``rig`` (a :class:`RigSpec`) -> images (L, H, W, 3)."""
+    from sssphase_core.capture import develop_frame
+
+    options = {**(sim_options or {}), **rig.options} if rig.is_sim else dict(rig.options)
+    opened = client.call("open_rig", camera=rig.camera, projector=rig.projector, turntable=None, options=options)
+    try:
+        frames = ramp_frames(*opened["projector_size"], levels)
+        images = [develop_frame(f.data, rig, 1.0) for f in client.capture(opened["rig"], frames)]
+    finally:
+        try:
+            client.call("close_rig", timeout_s=2.0, rig=opened["rig"])
+        except Exception:  # the daemon may be gone (the caller hears of it from the capture)
+            pass
+    if len(images) != len(levels):
+        raise DataError(f"the ramp capture returned {len(images)} of {len(levels)} frames")
+    return np.stack(images)
+
+
+def rig_file_with_response(text: str, response: ProjectorResponse) -> str:
+    """A rig file's text with its ``[projector]`` table replaced by ``response`` (everything else, comments
+    included, kept as it was)."""
+    import tomli_w
+
+    import re
+
+    note = "# projector response fitted by `sss calibrate projector` (gamma, black: used for patterns and relighting)"
+    header = re.compile(r"^\s*\[\s*([A-Za-z0-9_.\-]+)\s*\]\s*(#.*)?$")  # a table header, not an array line
+    out, skipping = [], False
+    for line in text.splitlines():
+        match = header.match(line)
+        if match:
+            skipping = match.group(1) == "projector"
+        if not skipping and line.strip() != note:
+            out.append(line)
+    while out and not out[-1].strip():
+        out.pop()
+    table = tomli_w.dumps({"projector": response.to_table()})
+    return "\n".join(out) + ("\n\n" if out else "") + note + "\n" + table
+
+
+def correspondence_error(session: Any, view: int = 0) -> float:
+    """Median distance (projector px) between a sim session's decoded and exact correspondences."""
+    xp, yp = np.asarray(session.load(view, "corr/xp")), np.asarray(session.load(view, "corr/yp"))
+    mask = np.asarray(session.load(view, "corr/mask")).astype(bool)
+    gt = np.asarray(session.load(view, "gt/proj_xy"))
+    ok = mask & np.isfinite(gt[..., 0])
+    if not ok.any():
+        raise DataError("no decoded pixel with an exact correspondence")
+    return float(np.median(np.hypot(xp[ok] - gt[ok, 0], yp[ok] - gt[ok, 1])))
