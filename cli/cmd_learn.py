@@ -355,7 +355,9 @@ def eval_footprints(
         patch = backends["torch"].patch
         opts = {"patch": patch, "black": rig_preset(rig).projector.black} if baseline == "analytic" else {}
         backends[baseline] = get_backend(baseline, **opts)
-    console.print("LPIPS skipped: it needs pretrained backbone weights that are not available offline.")
+    from sssphase_core.relight_eval import lpips_note
+
+    console.print(lpips_note())
     results: dict[str, dict[str, dict[str, float]]] = {}
     if plots is not None:
         plots.mkdir(parents=True, exist_ok=True)
@@ -373,11 +375,15 @@ def eval_footprints(
             for bname, pred in preds.items():
                 plot_profiles(gt[i], pred[i], plots / f"{obj}_{bname}.png", title=f"{obj}: {bname}")
     cols = list(backends)
-    md = ["| Object | " + " | ".join(f"{b} MSE×1e-5 | {b} PSNR | {b} SSIM" for b in cols) + " |", "|---|" + "---|" * (3 * len(cols))]
+    with_lpips = all("lpips" in r for res in results.values() for r in res.values())
+    per = 4 if with_lpips else 3
+    md = ["| Object | " + " | ".join(f"{b} MSE×1e-5 | {b} PSNR | {b} SSIM" + (f" | {b} LPIPS" if with_lpips else "")
+                                   for b in cols) + " |", "|---|" + "---|" * (per * len(cols))]
     for obj, res in results.items():
-        md.append(f"| {obj} | " + " | ".join(f"{res[b]['mse'] * 1e5:.2f} | {res[b]['psnr']:.2f} | {res[b]['ssim']:.3f}" for b in cols) + " |")
+        md.append(f"| {obj} | " + " | ".join(f"{res[b]['mse'] * 1e5:.2f} | {res[b]['psnr']:.2f} | {res[b]['ssim']:.3f}"
+                                            + (f" | {res[b]['lpips']:.3f}" if with_lpips else "") for b in cols) + " |")
     note = ("PSNR: data range 1 (white reference = 1.0); SSIM: 11x11 Gaussian window, data range = each GT footprint's peak; "
-            "LPIPS not computed (no offline weights).")
+            f"{lpips_note()}.")
     _write(out, {"objects": names, "views": views, "results": results, "note": note},
            f"Footprint reconstruction on views {views}\n\n" + "\n".join(md) + "\n\n" + note)
 

@@ -136,9 +136,9 @@ def capture_ramp(client: Any, rig: Any, levels: tuple[float, ...] = RAMP_LEVELS,
 def rig_file_with_response(text: str, response: ProjectorResponse) -> str:
     """A rig file's text with its ``[projector]`` table replaced by ``response`` (everything else, comments
     included, kept as it was)."""
-    import tomli_w
-
     import re
+
+    import tomli_w
 
     note = "# projector response fitted by `sss calibrate projector` (gamma, black: used for patterns and relighting)"
     header = re.compile(r"^\s*\[\s*([A-Za-z0-9_.\-]+)\s*\]\s*(#.*)?$")  # a table header, not an array line

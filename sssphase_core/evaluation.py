@@ -87,19 +87,25 @@ def footprint_metrics(pred: np.ndarray, target: np.ndarray, *, data_range: float
     ``mse``; ``psnr`` = 10 log10(data_range^2 / mse) with ``data_range`` 1 (the paper's convention:
     a white reference reads 1.0); ``ssim`` with data range = the footprint's own GT peak (see
     ``losses.ssim_map``); ``ssim_r1`` with data range 1 like the authors' code (nearly blind on
-    footprints that peak at ~0.04, reported only for comparison).
+    footprints that peak at ~0.04, reported only for comparison); ``lpips`` (each footprint shown with
+    its GT peak as white) when the LPIPS weights are on this machine.
     """
     p = torch.as_tensor(np.asarray(pred, np.float32)).permute(0, 3, 1, 2)
     t = torch.as_tensor(np.asarray(target, np.float32)).permute(0, 3, 1, 2)
     mse = ((p - t) ** 2).mean(dim=(1, 2, 3))
     from kornia.metrics import ssim as kornia_ssim
 
-    return {
+    out = {
         "mse": mse.numpy(),
         "psnr": (10 * torch.log10(data_range**2 / mse.clamp_min(1e-20))).numpy(),
         "ssim": ssim_map(p, t).mean(dim=(1, 2, 3)).numpy(),
         "ssim_r1": kornia_ssim(p, t, 11, max_val=data_range).mean(dim=(1, 2, 3)).numpy(),
     }
+    from sssphase_core import lpips
+
+    if lpips.available()[0]:  # with the weights on this machine (see sssphase_core.lpips)
+        out["lpips"] = lpips.lpips_footprints(np.asarray(pred, np.float32), np.asarray(target, np.float32))
+    return out
 
 
 def summarise(metrics: dict[str, np.ndarray]) -> dict[str, float]:

@@ -2,8 +2,8 @@
 
 PSNR uses a stated ``data_range`` (default 1.0: a white Lambertian reference under full white in
 linear camera units). SSIM is kornia's Gaussian-window SSIM map (11 px, sigma 1.5) averaged over
-the mask and the colour channels. LPIPS needs pretrained network weights that cannot be downloaded
-here, so it is reported as skipped (``LPIPS_NOTE``).
+the mask and the colour channels. LPIPS (``sssphase_core.lpips``) is computed when its weights are on
+this machine, and otherwise reported as skipped with what is missing (:func:`lpips_note`).
 """
 
 from __future__ import annotations
@@ -17,8 +17,15 @@ import numpy as np
 
 from sssphase_core.errors import InputError
 
-LPIPS_NOTE = "LPIPS skipped: it needs pretrained network weights, which cannot be downloaded in this environment"
-METRICS = ("mse", "psnr", "ssim")
+METRICS = ("mse", "psnr", "ssim", "lpips")
+
+
+def lpips_note() -> str:
+    """How LPIPS was handled in this process: computed from local weights, or skipped and why."""
+    from sssphase_core import lpips
+
+    ok, why = lpips.available()
+    return "LPIPS: AlexNet v0.1 from local weights (lower is better)" if ok else f"LPIPS skipped: {why}"
 
 
 def relight_metrics(relit: np.ndarray, reference: np.ndarray, mask: np.ndarray, *, data_range: float = 1.0) -> dict[str, float]:
@@ -37,7 +44,12 @@ def relight_metrics(relit: np.ndarray, reference: np.ndarray, mask: np.ndarray, 
     ta = torch.as_tensor(a, dtype=torch.float32).permute(2, 0, 1)[None]
     tb = torch.as_tensor(b, dtype=torch.float32).permute(2, 0, 1)[None]
     ssim_map = kornia.metrics.ssim(ta, tb, window_size=11, max_val=data_range)[0].mean(0).numpy()
-    return {"mse": mse, "psnr": psnr, "ssim": float(ssim_map[m].mean()), "data_range": data_range}
+    out = {"mse": mse, "psnr": psnr, "ssim": float(ssim_map[m].mean()), "data_range": data_range}
+    from sssphase_core import lpips
+
+    if lpips.available()[0]:
+        out["lpips"] = lpips.lpips_distance(a, b, m)
+    return out
 
 
 def comparison_figure(reference: np.ndarray, relit: np.ndarray, mask: np.ndarray, path: Path | str, *, title: str = "",
@@ -140,12 +152,14 @@ def metrics_table(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend"
 
     agg = aggregate(rows, by)
     both = all("psnr_capture" in a for a in agg)
-    cols = [*by, "PSNR (dB)", *(["PSNR vs capture (dB)"] if both else []), "SSIM", "MSE", "time (s)", "n"]
-    body = [[*(a[k] for k in by), a["psnr"], *([a["psnr_capture"]] if both else []), a["ssim"], a["mse"], a["seconds"], a["n"]]
-            for a in agg]
+    with_lpips = bool(agg) and all("lpips" in a for a in agg)
+    cols = [*by, "PSNR (dB)", *(["PSNR vs capture (dB)"] if both else []), "SSIM", *(["LPIPS"] if with_lpips else []),
+            "MSE", "time (s)", "n"]
+    body = [[*(a[k] for k in by), a["psnr"], *([a["psnr_capture"]] if both else []), a["ssim"],
+             *([a["lpips"]] if with_lpips else []), a["mse"], a["seconds"], a["n"]] for a in agg]
     note = ("Mean over objects and views; PSNR peak 1.0 (linear camera units), on the object mask"
             + ("; simulated sessions are scored against the noise-free render and, in 'vs capture', against the "
-               "camera's own noisy capture of the pattern" if both else "") + f". {LPIPS_NOTE}.")
+               "camera's own noisy capture of the pattern" if both else "") + f". {lpips_note()}.")
     return Table(title, cols, body, note=note)
 
 

@@ -80,7 +80,7 @@ def error_vs_runtime_plot(rows: Sequence[dict[str, Any]], path: Path) -> Path:
 
 
 def _relight_section(result: dict[str, Any], out: Path) -> str:
-    from sssphase_core.relight_eval import LPIPS_NOTE, aggregate
+    from sssphase_core.relight_eval import aggregate, lpips_note
 
     rows = result["rows"]
     parts = []
@@ -104,7 +104,7 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
                      "which the noise-free render above does not have.</p>")
     parts.append(f"<p class='note'>PSNR in dB with peak 1.0 (linear camera units: a white Lambertian reference reads 1.0), "
                  f"SSIM (11 px Gaussian window), both on the object mask, mean over the checkerboard and stripe patterns. "
-                 f"{_esc(LPIPS_NOTE)}. <code>exact</code> splats the simulator's exact footprints (the upper bound, ground truth no lab has; <code>measured</code> would splat captured dot-grid crops); "
+                 f"{_esc(lpips_note())}. <code>exact</code> splats the simulator's exact footprints (the upper bound, ground truth no lab has; <code>measured</code> would splat captured dot-grid crops); "
                  f"<code>none</code> keeps each pixel's own light (no scattering).</p>")
     for name, why in result.get("skipped", {}).items():
         parts.append(_not_available(f"relighting with the {name} backend", {"reason": why}))
