@@ -39,6 +39,20 @@ def _model_tag(checkpoint: Path | None) -> str:
     return hashlib.sha256(key.encode()).hexdigest()[:10]
 
 
+def _say_resize(path: str, size: tuple[int, int], mode: str) -> None:
+    """One line when a pattern was resized, with a warning when ``stretch`` changed its aspect ratio."""
+    from PIL import Image
+
+    with Image.open(path) as img:
+        w, h = img.size
+    if (w, h) == size or not mode:
+        return
+    line = f"{path}: {w}x{h} -> {size[0]}x{size[1]} ({mode})"
+    if mode == "stretch" and abs((w / h) / (size[0] / size[1]) - 1) > 0.01:
+        line += f"; [yellow]aspect ratio changed by {100 * abs((w / h) / (size[0] / size[1]) - 1):.0f}%[/] (fit or fill keep it)"
+    console.print(line)
+
+
 def relight_cmd(
     session: Annotated[Path, typer.Argument(help="Session folder (one object).")],
     pattern: Annotated[list[str], typer.Option("--pattern", help="Pattern image (PNG/TIFF) or a named pattern (checkerboard, stripes_x, ...); repeat.")],
@@ -46,7 +60,8 @@ def relight_cmd(
     checkpoint: CheckpointOpt = None,
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("relit"),
     views: Annotated[str, typer.Option(help="Comma-separated views (default: all).")] = "",
-    resize: Annotated[bool, typer.Option("--resize", help="Resize patterns to the projector's size.")] = False,
+    resize: Annotated[str, typer.Option("--resize", help="Bring patterns of another size to the projector's: fit "
+                                        "(keep the aspect ratio, pad with black), fill (keep it, crop) or stretch.")] = "",
     chunk: Annotated[int, typer.Option(help="Pixels per footprint/splat chunk.")] = 1024,
     device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
     cache: Annotated[bool, typer.Option(help="Keep predicted footprints in OUT/cache (float16) for later patterns.")] = True,
@@ -90,6 +105,7 @@ def relight_cmd(
                 if Path(p).exists():
                     names.append(Path(p).stem)
                     pats.append(read_pattern(p, (wp, hp), resize=resize))
+                    _say_resize(p, (wp, hp), resize)
                 elif p in rv.references:  # the session's own reference pattern
                     names.append(p)
                     pats.append(rv.references[p])

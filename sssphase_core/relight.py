@@ -451,10 +451,37 @@ def write_images(stem: Path | str, image: np.ndarray, *, scale: float | None = N
     return paths
 
 
-def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: bool = False) -> np.ndarray:
-    """A pattern image file -> float32 values in [0, 1], (Hp, Wp) or (Hp, Wp, 3); size must match."""
+RESIZE_MODES = ("fit", "fill", "stretch")
+
+
+def _resized(img, size: tuple[int, int], mode: str):
+    """A PIL image brought to ``size`` (W, H): ``stretch`` ignores the aspect ratio, ``fit`` scales it
+    inside and pads with black, ``fill`` scales it to cover and crops the centre."""
     from PIL import Image
 
+    wp, hp = size
+    if mode == "stretch":
+        return img.resize((wp, hp), Image.Resampling.BILINEAR)
+    w, h = img.size
+    k = min(wp / w, hp / h) if mode == "fit" else max(wp / w, hp / h)
+    scaled = img.resize((max(1, round(w * k)), max(1, round(h * k))), Image.Resampling.BILINEAR)
+    canvas = Image.new(scaled.mode, (wp, hp))
+    canvas.paste(scaled, ((wp - scaled.size[0]) // 2, (hp - scaled.size[1]) // 2))
+    return canvas
+
+
+def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: str | bool = "") -> np.ndarray:
+    """A pattern image file -> float32 values in [0, 1], (Hp, Wp) or (Hp, Wp, 3).
+
+    The size must match the projector unless ``resize`` is ``fit``, ``fill`` or ``stretch`` (see
+    :func:`_resized`; ``True`` means ``stretch``). Palette, alpha and CMYK images are read as RGB,
+    16-bit images divided by 65535.
+    """
+    from PIL import Image
+
+    mode = "stretch" if resize is True else (resize or "")
+    if mode and mode not in RESIZE_MODES:
+        raise InputError(f"--resize must be one of {', '.join(RESIZE_MODES)}, got {mode!r}")
     wp, hp = projector_size
     try:
         img = Image.open(path)  # reads the header only: the size is checked before any pixel is decoded
@@ -470,13 +497,22 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: b
                          "(scale it down first)") from None
     except (OSError, SyntaxError, ValueError) as exc:
         raise InputError(f"cannot read pattern {path}: {exc}") from None
+    if img.mode in ("1", "LA"):
+        img = img.convert("L")
+    elif img.mode not in ("L", "RGB", "F") and not img.mode.startswith("I"):
+        img = img.convert("RGB")  # palette (P), RGBA, CMYK, YCbCr: the colours, not their codes
     if img.size != (wp, hp):
-        if not resize:
+        if not mode:
             raise InputError(f"pattern {path} is {img.size[0]}x{img.size[1]} but the projector is {wp}x{hp} "
-                             "(pass --resize to scale it)")
-        img = img.resize((wp, hp), Image.Resampling.BILINEAR)
+                             "(pass --resize fit, fill or stretch)")
+        img = _resized(img, (wp, hp), mode)
     arr = np.asarray(img)
-    scale = 65535.0 if arr.dtype == np.uint16 else (1.0 if arr.dtype.kind == "f" else 255.0)
+    if arr.dtype.kind == "f":
+        scale = 1.0
+    elif img.mode.startswith("I"):
+        scale = 65535.0  # 16-bit PNG/TIFF (Pillow's I;16 and I modes)
+    else:
+        scale = 255.0
     arr = arr.astype(np.float32) / scale
     if arr.ndim == 3:
         arr = arr[..., :3]

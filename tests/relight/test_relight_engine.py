@@ -126,6 +126,32 @@ def test_read_pattern_checks_size_and_resizes(tmp_path):
     assert pat.shape == (34, 40) and 0 <= pat.min() and pat.max() <= 1
 
 
+def test_fit_and_fill_keep_the_aspect_ratio(tmp_path):
+    from PIL import Image
+
+    Image.fromarray(np.full((20, 40), 255, np.uint8)).save(tmp_path / "wide.png")  # 2:1 white
+    fit = read_pattern(tmp_path / "wide.png", (60, 60), resize="fit")
+    assert fit.shape == (60, 60) and fit[:10].max() == 0 and fit[-10:].max() == 0 and fit[30].min() == 1  # letterboxed
+    fill = read_pattern(tmp_path / "wide.png", (60, 60), resize="fill")
+    assert fill.min() == 1  # covered, cropped
+    assert read_pattern(tmp_path / "wide.png", (60, 60), resize="stretch").min() == 1
+    with pytest.raises(InputError, match="--resize must be one of fit, fill, stretch"):
+        read_pattern(tmp_path / "wide.png", (60, 60), resize="zoom")
+
+
+def test_palette_and_16_bit_patterns_are_read_as_their_values(tmp_path):
+    from PIL import Image
+
+    pal = Image.new("P", (8, 6))
+    pal.putpalette([0, 0, 0, 255, 255, 255] + [0] * 762)  # index 1 is white
+    pal.putpixel((2, 3), 1)
+    pal.save(tmp_path / "pal.png")
+    got = read_pattern(tmp_path / "pal.png", (8, 6))
+    assert got[3, 2] == 1.0 and got.sum() == 1.0  # the colour, not the palette index 1/255
+    Image.fromarray(np.full((6, 8), 32768, np.uint16)).save(tmp_path / "p16.png")
+    assert read_pattern(tmp_path / "p16.png", (8, 6)) == pytest.approx(np.full((6, 8), 32768 / 65535))
+
+
 def test_non_finite_footprints_are_zeroed_with_a_warning(scene):
     proj, k, fps, pats = scene
     bad = fps.copy()
