@@ -418,6 +418,47 @@ def viz_pca(
     console.print(f"wrote {out} ({', '.join(v.object for v in vds)}, view {view})")
 
 
+def viz_footprints(
+    session: Annotated[Path, typer.Argument(help="Session folder (captured with --footprints for the 'captured' row).")],
+    backend: Annotated[str, typer.Option(help="Comma-separated rows: captured (the session's dot-grid crops), torch, "
+                                         "analytic, exact (sim sessions), none.")] = "captured,analytic",
+    checkpoint: Annotated[Path | None, typer.Option(help="Decoder checkpoint for the torch row.")] = None,
+    view: int = 0,
+    pixels: Annotated[int, typer.Option(min=1, max=16, help="Pixels shown (spread over the object).")] = 6,
+    out: Annotated[Path, typer.Option(help="PNG output (profiles in <out>_profiles.png).")] = Path("footprints.png"),
+) -> None:
+    """Footprints at a few pixels, one row per source (log scale), and their centre-row profiles."""
+    import numpy as np
+
+    from sssphase_core.figures import grid_figure, profiles_figure
+    from sssphase_core.relight import load_view
+    from sssphase_core.relight_eval import footprints_at
+    from sssphase_core.session import Session
+
+    s = Session.open(session)
+    rv = load_view(s, view)
+    rows = [b.strip() for b in backend.split(",") if b.strip()]
+    if "captured" in rows and "footprints/pixels" in s.arrays(view):
+        candidates = np.asarray(s.load(view, "footprints/pixels"), np.int64)
+    else:
+        rows = [r for r in rows if r != "captured"] or ["analytic"]
+        candidates = np.argwhere(rv.proj.mask)
+    chosen = candidates[np.linspace(0, len(candidates) - 1, pixels + 2)[1:-1].astype(int)]
+    fps = footprints_at(rv, chosen, rows, checkpoint=checkpoint)
+    luminance = {name: f.mean(axis=-1) for name, f in fps.items()}
+    peak = np.maximum(next(iter(luminance.values())).max(axis=(1, 2)), 1e-12)  # each column's first-row peak
+    grid = [[np.log10(np.maximum(luminance[name][i], 1e-30) / peak[i]) for i in range(len(chosen))] for name in rows]
+    titles = [f"({y}, {x})" for y, x in chosen]
+    grid_figure(out, grid, rows, titles, f"{s.name}, view {view}: footprints at pixels (row, col), mean of RGB",
+                units=f"log10 intensity / {rows[0]} peak", vmin=-4, vmax=0.3)
+    k = next(iter(luminance.values())).shape[1]
+    profiles = out.with_name(out.stem + "_profiles.png")
+    profiles_figure(profiles, {name: lum[:, k // 2, :] for name, lum in luminance.items()}, titles,
+                    f"{s.name}, view {view}: centre-row profiles", xlabel="offset (camera px)",
+                    ylabel="linear camera units")
+    console.print(f"wrote {out} and {profiles} ({', '.join(rows)} at {len(chosen)} pixels of {s.name} view {view})")
+
+
 def bench_learn(
     out: Annotated[Path, typer.Option(help="JSON output.")] = Path("bench_learn.json"),
     md: Annotated[Path | None, typer.Option(help="Markdown table output.")] = None,
@@ -451,3 +492,4 @@ def register(groups: dict[str, typer.Typer]) -> None:
     groups["eval"].command("knn")(eval_knn)
     groups["eval"].command("footprints")(eval_footprints)
     groups["viz"].command("pca")(viz_pca)
+    groups["viz"].command("footprints")(viz_footprints)

@@ -127,3 +127,54 @@ def panels_figure(path: Path | str, images: Sequence[np.ndarray], titles: Sequen
     if im is not None and units:
         fig.colorbar(im, ax=list(axes[0]), shrink=0.8, label=units)
     return _save(fig, path)
+
+
+def grid_figure(path: Path | str, rows: Sequence[Sequence[np.ndarray]], row_titles: Sequence[str],
+                col_titles: Sequence[str], title: str, *, units: str, cmap: str = "magma",
+                vmin: float | None = None, vmax: float | None = None) -> Path:
+    """Value maps in a grid (one row per method, one column per sample), one shared colour bar."""
+    import matplotlib.colors as mcolors
+
+    plt = _pyplot()
+    n_rows, n_cols = len(rows), len(rows[0])
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(1.6 * n_cols + 1.8, 1.6 * n_rows + 0.8),
+                             constrained_layout=True, squeeze=False)
+    finite = np.concatenate([np.asarray(v)[np.isfinite(v)].ravel() for row in rows for v in row] or [np.zeros(1)])
+    norm = mcolors.Normalize(vmin if vmin is not None else float(finite.min(initial=0.0)),
+                             vmax if vmax is not None else float(finite.max(initial=1.0)))
+    cm = plt.get_cmap(cmap).with_extremes(bad="black")
+    im = None
+    for r, row in enumerate(rows):
+        for c, img in enumerate(row):
+            ax = axes[r][c]
+            im = ax.imshow(np.ma.masked_invalid(img), cmap=cm, norm=norm, interpolation="nearest")
+            ax.set_xticks([])
+            ax.set_yticks([])
+            if r == 0:
+                ax.set_title(col_titles[c], fontsize=8)
+            if c == 0:
+                ax.set_ylabel(row_titles[r], fontsize=9)
+    fig.suptitle(_title(title, 30 * n_cols), fontsize=10)
+    fig.colorbar(im, ax=axes, shrink=0.8, label=units)
+    return _save(fig, path)
+
+
+def profiles_figure(path: Path | str, curves: Mapping[str, np.ndarray], col_titles: Sequence[str], title: str, *,
+                    xlabel: str, ylabel: str, log: bool = True) -> Path:
+    """One subplot per sample, one line per method: ``curves[name]`` is (N samples, K points) centred on 0."""
+    plt = _pyplot()
+    n = len(col_titles)
+    fig, axes = plt.subplots(1, n, figsize=(2.4 * n + 0.6, 2.8), constrained_layout=True, squeeze=False, sharey=True)
+    for c, ax in enumerate(axes[0]):
+        for name, values in curves.items():
+            y = np.asarray(values[c], np.float64)
+            x = np.arange(len(y)) - len(y) // 2
+            ax.plot(x, np.where(y > 0, y, np.nan) if log else y, label=name, lw=1.2)
+        ax.set_title(col_titles[c], fontsize=8)
+        ax.set_xlabel(xlabel, fontsize=8)
+        if log:
+            ax.set_yscale("log")
+    axes[0][0].set_ylabel(ylabel, fontsize=8)
+    axes[0][-1].legend(fontsize=7, loc="upper right")
+    fig.suptitle(_title(title, 30 * n), fontsize=10)
+    return _save(fig, path)

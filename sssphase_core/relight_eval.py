@@ -195,3 +195,30 @@ def baseline_check(sessions: Sequence[Any], checkpoint: Path | str, out_dir: Pat
     losing = [b for b in BASELINES if mean and mean["torch"] < mean[b]]
     return {"rows": rows, "mean_psnr": mean, "losing_to": losing,
             "views": sorted({(r["object"], r["view"]) for r in rows})}
+
+
+def footprints_at(rv: Any, pixels: np.ndarray, backends: Sequence[str], *, checkpoint: Path | str | None = None,
+                  device: str = "cpu") -> dict[str, np.ndarray]:
+    """Each backend's footprints at camera ``pixels`` (N, 2) yx of a view -> {backend: (N, K, K, 3)},
+    all centre-cropped or zero-padded to the largest K among them (``captured``: the session's own crops)."""
+    from sssphase_core.relight import make_source
+
+    out: dict[str, np.ndarray] = {}
+    for name in backends:
+        if name == "captured":
+            px = np.asarray(rv.session.load(rv.view, "footprints/pixels"), np.int64)
+            index = {tuple(p): i for i, p in enumerate(px)}
+            missing = [tuple(p) for p in pixels if tuple(p) not in index]
+            if missing:
+                raise InputError(f"no captured footprint at pixel(s) {missing[:3]}")
+            crops = rv.session.read(rv.view, "footprints/crops")
+            out[name] = np.stack([np.asarray(crops[index[tuple(p)]], np.float32) for p in pixels])
+        else:
+            source, _ = make_source(name, rv, checkpoint=checkpoint, device=device)
+            fps = source(np.asarray(pixels, np.int64))
+            out[name] = np.asarray(fps.detach().cpu() if hasattr(fps, "detach") else fps, np.float32)
+    k = max(f.shape[1] for f in out.values())
+    for name, f in out.items():
+        pad = (k - f.shape[1]) // 2
+        out[name] = np.pad(f, ((0, 0), (pad, k - f.shape[1] - pad), (pad, k - f.shape[1] - pad), (0, 0)))
+    return out

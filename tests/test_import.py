@@ -134,3 +134,22 @@ def test_a_session_exports_to_exr_bit_exactly(frames, tmp_path):
     for i in (0, len(crops) // 2, len(crops) - 1):
         r, c = divmod(i, cols)
         assert np.array_equal(mosaic[r * K:(r + 1) * K, c * K:(c + 1) * K], crops[i].astype(np.float32))
+
+
+def test_viz_footprints_shows_the_captured_crops_next_to_a_model(frames, tmp_path):
+    s = import_folder(frames, tmp_path / "sessions", "handmade", (W, H), patch=K)
+    out = tmp_path / "fp.png"
+    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "viz", "footprints", str(s.path), "--backend",
+                          "captured,analytic,none", "--pixels", "3", "--out", str(out)], capture_output=True, text=True,
+                         timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert out.is_file() and (tmp_path / "fp_profiles.png").is_file() and "captured, analytic, none at 3 pixels" in res.stdout
+
+    from sssphase_core.relight import load_view
+    from sssphase_core.relight_eval import footprints_at
+
+    px = np.asarray(s.load(0, "footprints/pixels"))[:2]
+    fps = footprints_at(load_view(s, 0), px, ["captured", "none"])
+    assert fps["captured"].shape == fps["none"].shape == (2, K, K, 3)
+    assert np.array_equal(fps["captured"][1], np.asarray(s.load(0, "footprints/crops"))[1])
+    assert np.count_nonzero(fps["none"].sum(-1)) == 2  # one delta per pixel, padded to K
