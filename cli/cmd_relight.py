@@ -74,6 +74,7 @@ def relight_cmd(
     from sssphase_core.errors import InputError
     from sssphase_core.patterns import REFERENCE_NAMES
     from sssphase_core.relight import (
+        DotTransport,
         FootprintCache,
         load_view,
         make_source,
@@ -115,14 +116,15 @@ def relight_cmd(
                 else:
                     raise InputError(f"--pattern {p!r} is neither an image file nor one of {', '.join(REFERENCE_NAMES)}")
         source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device)
-        if cache:
+        cached = cache and not isinstance(source, DotTransport)  # the measured transport is read, not predicted
+        if cached:
             source = FootprintCache(source, out / "cache" / f"{rv.object}_v{v}_{backend}_{_model_tag(checkpoint)}.npz",
                                     rv.proj.shape, patch)
         with _progress() as bar:
             task = bar.add_task(f"{rv.object} view {v}: {backend}", total=None)
             relit = relight(source, rv.proj, pats, patch, white=rv.white, chunk=chunk, device=device,
                             progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))
-        if cache:
+        if cached:
             source.save()
         for name, img in zip(names, relit, strict=True):
             stem = out / f"{rv.object}_v{v}_{name}_{backend}"

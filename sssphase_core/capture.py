@@ -157,6 +157,9 @@ def _plan_digest(frames: list[dict[str, Any]]) -> str:
     return h.hexdigest()
 
 
+MAX_TRANSPORT_BYTES = 2 * 2**30  # per-dot transport crops held per view; larger views keep per-pixel crops only
+
+
 def develop_frame(data: np.ndarray, rig: RigSpec, exposure: float = 1.0) -> np.ndarray:
     """A received frame -> linear RGB float32 (H, W, 3): colour frames as sent, raw Bayer developed."""
     if data.ndim == 3:
@@ -181,6 +184,8 @@ class ViewProcessor:
         self.patterns: dict[str, np.ndarray] = {}  # ref/<name> -> the projected image of a file reference
         self.corr = None
         self.extractor = None
+        self.transport = None  # per-dot light transport (the measured backend's relighting data)
+        self.transport_skipped = ""
 
         self.dots = writer.stream_array("dots", n_dots) if req.keep_dots and n_dots else None
 
@@ -224,13 +229,21 @@ class ViewProcessor:
 
     def _add_dots(self, key: str, image: np.ndarray) -> None:
         if self.extractor is None:
-            from sssphase_core.footprints import DotGridExtractor, dark_reference
+            from sssphase_core.footprints import DotGridExtractor, DotTransportExtractor, dark_reference
 
             corr = self.decode()
             self.extractor = DotGridExtractor(corr.xp, corr.yp, corr.mask, self.spacing, self.patch)
             self.dark = dark_reference(self.images["black"], self.images["white"])
+            self.transport = DotTransportExtractor(corr.xp, corr.yp, corr.mask, self.spacing, self.patch,
+                                                   (self.plan.width, self.plan.height))
+            if self.transport.nbytes > MAX_TRANSPORT_BYTES:  # kept in memory until the view is written
+                self.transport_skipped = (f"{len(self.transport.dots)} dots x {self.patch}^2 crops would take "
+                                          f"{self.transport.nbytes / 2**30:.1f} GiB")
+                self.transport = None
         sx, sy = (int(v) for v in key.split("/")[1].split("_"))
         self.extractor.add(sx, sy, image - self.dark)
+        if self.transport is not None:
+            self.transport.add(sx, sy, image - self.dark)
         if self.dots is not None:
             self.dots.append(image)
 
@@ -256,6 +269,14 @@ class ViewProcessor:
             w.write("footprints/pixels", pixels.astype(np.int32))
             w.write("footprints/crops", crops)
             info["footprints"] = {"count": len(pixels), "missing": len(self.extractor.missing()), "spacing": self.spacing}
+        if self.transport is not None:
+            pixels, dots, crops = self.transport.result()
+            w.write("transport/pixels", pixels.astype(np.int32))
+            w.write("transport/dots", dots.astype(np.int32))
+            w.write("transport/crops", crops)
+            info["transport"] = {"dots": len(dots)}
+        elif self.transport_skipped:
+            info["transport"] = {"skipped": self.transport_skipped}
         if self.dots is not None:
             self.dots.close()
         return info

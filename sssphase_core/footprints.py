@@ -197,3 +197,84 @@ def transport_weights(pixels: np.ndarray, xp: np.ndarray, yp: np.ndarray, mask: 
     _, inverse, counts = np.unique(ry * (1 << 20) + rx, return_inverse=True, return_counts=True)
     area = jacobian_area(xp, yp, mask)[pixels[:, 0], pixels[:, 1]]
     return (1.0 / (counts[inverse.ravel()] * np.maximum(area, 1e-6))).astype(np.float32)
+
+
+class DotTransportExtractor:
+    """The measured light transport, one column per projector dot: ``K x K x C`` crops of each dot-grid
+    frame around the camera pixel that sees the dot, for *every* dot that lands on the object.
+
+    Relighting with it is ``sum_d L(d) crop_d`` placed at the dot's camera pixel, with ``L(d)`` the
+    pattern's light at projector pixel d exactly: no Jacobian, no per-camera-pixel assumption. Unlike
+    :class:`DotGridExtractor` (one crop per camera pixel, for training), a camera pixel that sees
+    several projector pixels (grazing surfaces) gets one crop per dot, and a dot seen by several camera
+    pixels is stored once. A dot belongs to the valid camera pixel whose projector coordinate is
+    nearest, if that is within the pixel's own extent (``sqrt(max(1, |det J|)) / sqrt 2`` projector px).
+    Crops are cut to their dot's Voronoi cell in projector space (as ``DotGridExtractor.isolate``).
+    """
+
+    def __init__(self, xp: np.ndarray, yp: np.ndarray, mask: np.ndarray, spacing: int, patch: int,
+                 projector_size: tuple[int, int], *, channels: int = 3, dtype: np.dtype = np.float16) -> None:
+        from scipy.spatial import cKDTree
+
+        if xp.shape != yp.shape or xp.shape != mask.shape or xp.ndim != 2:
+            raise InputError(f"xp, yp and mask must share one (H, W) shape, got {xp.shape}, {yp.shape}, {mask.shape}")
+        if spacing < 1 or patch < 1:
+            raise InputError(f"spacing and patch must be >= 1, got {spacing}, {patch}")
+        self.shape, self.spacing, self.patch, self.channels, self.dtype = xp.shape, int(spacing), int(patch), channels, dtype
+        valid = mask & np.isfinite(xp) & np.isfinite(yp)
+        self._valid = valid
+        self._xp, self._yp = np.where(valid, xp, 0.0).astype(np.float64), np.where(valid, yp, 0.0).astype(np.float64)
+        vy, vx = np.nonzero(valid)
+        wp, hp = projector_size
+        gy, gx = np.mgrid[0:hp, 0:wp]
+        dots = np.stack([gx.ravel(), gy.ravel()], axis=1)
+        if len(vy) == 0:
+            self.dots, self.pixels = np.zeros((0, 2), np.int64), np.zeros((0, 2), np.int64)
+        else:
+            dist, nearest = cKDTree(np.stack([self._xp[vy, vx], self._yp[vy, vx]], axis=1)).query(
+                dots.astype(np.float64), distance_upper_bound=8.0)
+            found = np.isfinite(dist)
+            dots, dist, nearest = dots[found], dist[found], nearest[found]
+            py, px = vy[nearest], vx[nearest]
+            reach = np.sqrt(np.maximum(1.0, jacobian_area(xp, yp, valid)[py, px])) / np.sqrt(2.0) + 1e-6
+            keep = dist <= reach
+            self.dots = dots[keep].astype(np.int64)
+            self.pixels = np.stack([py[keep], px[keep]], axis=1).astype(np.int64)
+        shift = (self.dots[:, 1] % spacing) * spacing + self.dots[:, 0] % spacing
+        order = np.argsort(shift, kind="stable")
+        bounds = np.searchsorted(shift[order], np.arange(spacing * spacing + 1))
+        self._groups = [order[bounds[i]:bounds[i + 1]] for i in range(spacing * spacing)]
+        self.nbytes = len(self.dots) * patch * patch * channels * np.dtype(dtype).itemsize
+        self._crops = np.zeros((len(self.dots), patch, patch, channels), dtype)  # pages are touched as dots arrive
+        self._lit = np.zeros(len(self.dots), bool)
+
+    def add(self, shift_x: int, shift_y: int, frame: np.ndarray) -> int:
+        """Crop the dots of dot-grid frame ``(shift_x, shift_y)`` (black already subtracted); returns how many."""
+        s, k, half = self.spacing, self.patch, self.patch // 2
+        if not (0 <= shift_x < s and 0 <= shift_y < s):
+            raise InputError(f"dot-grid shift ({shift_x}, {shift_y}) outside [0, {s})")
+        frame = frame[..., None] if frame.ndim == 2 else frame
+        if frame.shape != (*self.shape, self.channels):
+            raise InputError(f"dot-grid frame must be {(*self.shape, self.channels)}, got {frame.shape}")
+        idx = self._groups[shift_y * s + shift_x]
+        if len(idx) == 0:
+            return 0
+        h, w = self.shape
+        padded = np.zeros((h + k, w + k, self.channels), np.float32)
+        padded[half:half + h, half:half + w] = frame
+        labels = np.full((h + k, w + k), -2, np.int64)  # -2: no projector coordinate (kept)
+        gx = np.floor((self._xp - shift_x) / s + 0.5).astype(np.int64)
+        gy = np.floor((self._yp - shift_y) / s + 0.5).astype(np.int64)
+        labels[half:half + h, half:half + w] = np.where(self._valid, gy * (1 << 20) + gx, -2)
+        own = ((self.dots[idx, 1] - shift_y) // s) * (1 << 20) + (self.dots[idx, 0] - shift_x) // s
+        ys, xs = self.pixels[idx, 0], self.pixels[idx, 1]
+        windows = sliding_window_view(padded, (k, k), axis=(0, 1))[ys, xs].transpose(0, 2, 3, 1)  # (n, K, K, C)
+        cells = sliding_window_view(labels, (k, k))[ys, xs]
+        keep = (cells == own[:, None, None]) | (cells == -2)
+        self._crops[idx] = (windows * keep[..., None]).astype(self.dtype)
+        self._lit[idx] = True
+        return len(idx)
+
+    def result(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(pixels (N, 2) yx, dots (N, 2) projector xy, crops (N, K, K, C))`` of the dots seen so far."""
+        return self.pixels[self._lit], self.dots[self._lit], self._crops[self._lit]

@@ -157,14 +157,19 @@ def relight(
     if chunk < 1:
         raise InputError("chunk must be >= 1")
     light = emitted_light(pats, proj.gamma) * np.float32(1.0 - proj.black)
-    pixels, c = lit_pixels(proj, light)
+    if isinstance(source, DotTransport):  # measured columns of the light transport, one per projector dot
+        pixels, c, rows = source.lit(light)
+        fetch: Callable[[slice], np.ndarray | torch.Tensor] = lambda sl: source.crops_at(rows[sl])  # noqa: E731
+    else:
+        pixels, c = lit_pixels(proj, light)
+        fetch = lambda sl: source(pixels[sl])  # noqa: E731
     h, w = proj.shape
     k = patch if radius is None or radius >= patch // 2 else 2 * radius + 1
     splat = Splatter(h, w, k, light.shape[0], device=device, method=method)
     total, n_bad = len(pixels), 0
     for start in range(0, total, chunk):
         sl = slice(start, min(start + chunk, total))
-        fp = source(pixels[sl])
+        fp = fetch(sl)
         fp = fp if torch.is_tensor(fp) else torch.from_numpy(np.ascontiguousarray(fp, dtype=np.float32))
         if fp.shape[1:] != (patch, patch, 3):
             raise InputError(f"the footprint source returned {tuple(fp.shape[1:])} footprints, expected ({patch}, {patch}, 3)")
@@ -186,6 +191,41 @@ def relight(
 
 
 # --- footprint sources -------------------------------------------------------------------------
+
+
+class DotTransport:
+    """The measured light transport of a captured view (``transport/`` arrays of a session): crop ``i``
+    (K, K, 3) is the camera's response to projector pixel ``dots[i]`` (x, y), centred on camera pixel
+    ``pixels[i]`` (y, x). :func:`relight` splats ``sum_i L(dots[i]) crop_i`` with the pattern's light at
+    each dot exactly.
+
+    Crops are denoised as they are read: values where the crop's luminance, smoothed over 1 px, is below
+    ``3 * noise`` of the smoothed noise are set to 0 (each camera pixel lies in ~K^2 crops, so their
+    noise would otherwise add up). ``noise``: the crops' noise std (``losses.noise_floor``).
+    """
+
+    def __init__(self, pixels: np.ndarray, dots: np.ndarray, crops: object, noise: float) -> None:
+        self.pixels, self.dots, self.crops, self.noise = np.asarray(pixels, np.int64), np.asarray(dots, np.int64), crops, noise
+
+    def lit(self, light: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Dots lit by some pattern: (camera pixels (N, 2), light (N, P, C), rows into the crops (N,))."""
+        c = light[:, self.dots[:, 1], self.dots[:, 0], :].transpose(1, 0, 2)
+        rows = np.nonzero((c > 0).any(axis=(1, 2)))[0]
+        return self.pixels[rows], c[rows], rows
+
+    def crops_at(self, rows: np.ndarray) -> np.ndarray:
+        from scipy.ndimage import gaussian_filter
+
+        """Denoised crops (n, K, K, 3) float32 of ``rows`` (ascending, as :meth:`lit` gives them)."""
+        if len(rows) == 0:
+            return np.zeros((0, *self.crops.shape[1:]), np.float32)  # type: ignore[attr-defined]
+        lo, hi = int(rows.min()), int(rows.max()) + 1  # one contiguous read of the (chunked) array
+        crops = np.asarray(self.crops[lo:hi], np.float32)[rows - lo]  # type: ignore[index]
+        if self.noise > 0 and len(crops):
+            smooth = gaussian_filter(crops.mean(axis=-1), (0, 1.0, 1.0))
+            crops = crops * (smooth > 3 * self.noise / (2 * np.sqrt(np.pi)))[..., None]
+        return crops
+
 
 BACKENDS = ("torch", "analytic", "measured", "none", "exact")
 
@@ -380,6 +420,14 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
         return rv.scene().footprints, rv.patch
     if name == "measured":  # the session's own captured dot-grid crops, simulated or not
         arrays = rv.session.arrays(rv.view)  # type: ignore[attr-defined]
+        if "transport/crops" in arrays:  # one crop per projector dot: the captured light transport itself
+            from sssphase_core.losses import noise_floor
+
+            crops = rv.session.read(rv.view, "transport/crops")  # type: ignore[attr-defined]
+            sample = np.asarray(crops[: min(len(crops), 512)], np.float32)
+            noise = noise_floor(torch.from_numpy(sample).permute(0, 3, 1, 2)) if len(sample) else 0.0
+            return DotTransport(rv.session.load(rv.view, "transport/pixels"), rv.session.load(rv.view, "transport/dots"),  # type: ignore[attr-defined]
+                                crops, noise), int(crops.shape[1])
         if "footprints/crops" not in arrays:
             raise InputError(f"{rv.object} view {rv.view} has no captured footprints: capture with --footprints")
         from sssphase_core.footprints import transport_weights

@@ -104,6 +104,7 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     seconds = time.perf_counter() - t0
     rows = []
     out = Path(out_dir)
+    camera_refs: dict[str, np.ndarray] = {}
     for name, img in zip(names, relit, strict=True):
         met = relight_metrics(img, rv.captured[name], rv.proj.mask)
         row = {"object": rv.object, "view": rv.view, "pattern": name, "backend": backend, **met,
@@ -112,6 +113,9 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
         if capture is not None:  # a simulated session is scored against its noise-free render and its capture
             cap = relight_metrics(img, capture, rv.proj.mask)
             row.update({"psnr_capture": cap["psnr"], "ssim_capture": cap["ssim"]})
+            if name not in camera_refs:  # ... and what the camera records of the render without its noise
+                camera_refs[name] = rv.scene().sense_noise_free(rv.captured[name][None])[0]
+            row["psnr_camera"] = relight_metrics(img, camera_refs[name], rv.proj.mask)["psnr"]
         if write:
             stem = out / f"{rv.object}_v{rv.view}_{name}_{backend}"
             from sssphase_core.relight import write_images
@@ -139,7 +143,7 @@ def aggregate(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend", "p
     out = []
     for key, rs in groups.items():
         agg = {k: v for k, v in zip(by, key, strict=True)}
-        agg.update({m: float(np.mean([r[m] for r in rs])) for m in (*METRICS, "seconds", "psnr_capture")
+        agg.update({m: float(np.mean([r[m] for r in rs])) for m in (*METRICS, "seconds", "psnr_capture", "psnr_camera")
                     if all(m in r for r in rs)})
         agg["n"] = len(rs)
         out.append(agg)
@@ -153,13 +157,16 @@ def metrics_table(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend"
     agg = aggregate(rows, by)
     both = all("psnr_capture" in a for a in agg)
     with_lpips = bool(agg) and all("lpips" in a for a in agg)
-    cols = [*by, "PSNR (dB)", *(["PSNR vs capture (dB)"] if both else []), "SSIM", *(["LPIPS"] if with_lpips else []),
-            "MSE", "time (s)", "n"]
-    body = [[*(a[k] for k in by), a["psnr"], *([a["psnr_capture"]] if both else []), a["ssim"],
-             *([a["lpips"]] if with_lpips else []), a["mse"], a["seconds"], a["n"]] for a in agg]
+    camera = both and all("psnr_camera" in a for a in agg)
+    cols = [*by, "PSNR (dB)", *(["PSNR vs capture (dB)"] if both else []), *(["PSNR vs camera, no noise (dB)"] if camera else []),
+            "SSIM", *(["LPIPS"] if with_lpips else []), "MSE", "time (s)", "n"]
+    body = [[*(a[k] for k in by), a["psnr"], *([a["psnr_capture"]] if both else []), *([a["psnr_camera"]] if camera else []),
+             a["ssim"], *([a["lpips"]] if with_lpips else []), a["mse"], a["seconds"], a["n"]] for a in agg]
     note = ("Mean over objects and views; PSNR peak 1.0 (linear camera units), on the object mask"
             + ("; simulated sessions are scored against the noise-free render and, in 'vs capture', against the "
-               "camera's own noisy capture of the pattern" if both else "") + f". {lpips_note()}.")
+               "camera's own noisy capture of the pattern" if both else "")
+            + ("; 'vs camera, no noise': against the render seen through the camera's Bayer sampling and "
+               "demosaicing without its noise (what relighting from captured data can reach)" if camera else "") + f". {lpips_note()}.")
     return Table(title, cols, body, note=note)
 
 

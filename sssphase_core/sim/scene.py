@@ -198,6 +198,17 @@ class SimScene:
         rng = rng if rng is not None else np.random.default_rng(self.seed)
         return self.sense(self.render(patterns, progress), rng, exposure, raw)
 
+    def sense_noise_free(self, images: np.ndarray, exposure: float = 1.0) -> np.ndarray:
+        """Noise-free images (P, H, W, 3) through the camera without its noise: Bayer sampling, clipping
+        and the ISP (demosaicing), what the camera would record on average. Evaluation only."""
+        from sssphase_core import isp
+        from sssphase_core.sim.sensor import expose_noise_free
+
+        sensor = self.rig.sensor
+        frames = expose_noise_free(images, sensor, exposure)
+        scale = sensor.dn_per_unit(exposure)
+        return np.stack([isp.develop(f, sensor.black_level, scale, median=sensor.isp_median) for f in frames])
+
     def sense(self, images: np.ndarray, rng: np.random.Generator, exposure: float = 1.0, raw: bool = False) -> np.ndarray:
         """Noise-free images (P, H, W, 3) through the sensor: raw Bayer frames, or developed by the ISP."""
         from sssphase_core import isp

@@ -65,3 +65,11 @@ def expose(linear: np.ndarray, config: SensorConfig, rng: np.random.Generator, e
     electrons = np.minimum(electrons, config.full_well)
     dn = np.round(config.black_level + electrons * config.dn_per_electron)
     return np.clip(dn, 0, config.max_dn).astype(np.uint16)
+
+
+def expose_noise_free(linear: np.ndarray, config: SensorConfig, exposure: float = 1.0) -> np.ndarray:
+    """The mean raw Bayer frames (float32 DN, (..., H, W)) that :func:`expose` draws around: no photon or
+    read noise, no rounding; clipped at the full well like a real exposure."""
+    mean_e = np.clip(bayer_mosaic(np.asarray(linear, np.float64)), 0.0, None) * (config.electrons_per_unit * exposure)
+    dn = config.black_level + np.minimum(mean_e, config.full_well) * config.dn_per_electron
+    return np.minimum(dn, config.max_dn).astype(np.float32)

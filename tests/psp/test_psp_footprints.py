@@ -203,3 +203,61 @@ def test_transport_weights_count_each_dot_once():
     w = transport_weights(pixels, xp, yp, mask)
     inner = ((pixels >= 1) & (pixels < 14)).all(axis=1)  # border pixels share a dot with pixels outside
     np.testing.assert_allclose(w[inner] * 0.25 * 4, 1.0, rtol=1e-5)
+
+
+def _coarse_camera(h=24, w=32, scale=2):
+    """A camera coarser than the projector (each camera pixel sees scale x scale projector pixels, as on a
+    grazing surface): projector pixel (x, y) lands in camera pixel (y // scale, x // scale) and spreads by a
+    3 x 3 kernel there."""
+    wp, hp = w * scale, h * scale
+    yy, xx = np.mgrid[:h, :w].astype(np.float32)
+    xp, yp = (xx + 0.5) * scale - 0.5, (yy + 0.5) * scale - 0.5
+    ker = np.array([[0.05, 0.1, 0.05], [0.1, 0.4, 0.1], [0.05, 0.1, 0.05]])
+    albedo = np.random.default_rng(0).uniform(0.3, 1.0, (hp, wp))
+
+    def camera(pattern):  # (hp, wp) light -> (h, w, 3) camera image
+        binned = (pattern * albedo).reshape(h, scale, w, scale).sum(axis=(1, 3))
+        img = convolve(binned, ker, mode="constant")
+        return np.repeat(img[..., None], 3, -1).astype(np.float32)
+
+    return xp, yp, np.ones((h, w), bool), camera, (wp, hp)
+
+
+def test_the_transport_keeps_every_dot_where_the_camera_is_coarser_than_the_projector():
+    from sssphase_core.footprints import DotTransportExtractor
+    from sssphase_core.relight import DotTransport, Projection, relight
+
+    xp, yp, mask, camera, (wp, hp) = _coarse_camera()
+    spacing, k = 8, 7
+    tx = DotTransportExtractor(xp, yp, mask, spacing, k, (wp, hp))
+    for sy in range(spacing):
+        for sx in range(spacing):
+            tx.add(sx, sy, camera(dot_grid(wp, hp, spacing, sx, sy)))
+    pixels, dots, crops = tx.result()
+    assert len(dots) == wp * hp  # four dots per camera pixel, each stored once
+    proj = Projection(xp, yp, mask, (wp, hp), gamma=1.0, black=0.0)
+    rng = np.random.default_rng(1)
+    checker = ((np.arange(wp)[None] // 5 + np.arange(hp)[:, None] // 5) % 2).astype(np.float32)
+    for pattern in (np.ones((hp, wp), np.float32), checker, rng.random((hp, wp)).astype(np.float32)):
+        relit = relight(DotTransport(pixels, dots, crops, noise=0.0), proj, [pattern], k)[0]
+        np.testing.assert_allclose(relit, camera(pattern), atol=2e-3)  # float16 crops
+
+
+def test_per_camera_pixel_crops_lose_the_dots_between_pixel_centres():
+    """Why the measured backend relights from the per-dot transport: the per-pixel crops store one
+    dot per camera pixel, so where a pixel sees four their weighted sum misses three of them."""
+    from sssphase_core.footprints import transport_weights
+    from sssphase_core.relight import Projection, nearest_measured_source, relight
+
+    xp, yp, mask, camera, (wp, hp) = _coarse_camera()
+    spacing, k = 8, 7
+    ex = DotGridExtractor(xp, yp, mask, spacing, k)
+    for sy in range(spacing):
+        for sx in range(spacing):
+            ex.add(sx, sy, camera(dot_grid(wp, hp, spacing, sx, sy)))
+    pixels, crops = ex.result()
+    white = camera(np.ones((hp, wp), np.float32))
+    proj = Projection(xp, yp, mask, (wp, hp), gamma=1.0, black=0.0)
+    src = nearest_measured_source(pixels, crops, white, transport_weights(pixels, xp, yp, mask))
+    relit = relight(src, proj, [np.ones((hp, wp), np.float32)], k)[0]
+    assert np.median(relit[4:-4, 4:-4] / white[4:-4, 4:-4]) < 0.5
