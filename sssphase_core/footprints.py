@@ -28,6 +28,24 @@ from scipy.ndimage import uniform_filter
 from sssphase_core.errors import InputError
 
 
+def _dot_frame(shift_x: int, shift_y: int, frame: np.ndarray, spacing: int, shape: tuple[int, int],
+               channels: int) -> np.ndarray:
+    """A dot-grid frame checked against the extractor's shift range and image shape, as (H, W, C)."""
+    if not (0 <= shift_x < spacing and 0 <= shift_y < spacing):
+        raise InputError(f"dot-grid shift ({shift_x}, {shift_y}) outside [0, {spacing})")
+    frame = frame[..., None] if frame.ndim == 2 else frame
+    if frame.shape != (*shape, channels):
+        raise InputError(f"dot-grid frame must be {(*shape, channels)}, got {frame.shape}")
+    return frame
+
+
+def _by_shift(shift: np.ndarray, spacing: int) -> list[np.ndarray]:
+    """Indices grouped by the dot-grid frame (shift index ``sy * spacing + sx``; -1: no frame) that lights them."""
+    order = np.argsort(shift, kind="stable")
+    bounds = np.searchsorted(shift[order], np.arange(spacing * spacing + 1))
+    return [order[bounds[i]:bounds[i + 1]] for i in range(spacing * spacing)]
+
+
 class DotGridExtractor:
     """Collects the ``K x K x C`` footprint of every valid camera pixel from streamed dot-grid frames.
 
@@ -68,21 +86,14 @@ class DotGridExtractor:
         self.scale = (jacobian_area(xp, yp, valid)[ys, xs] if per_camera_pixel else np.ones(len(ys))).astype(np.float32)
         # shift index of the frame that lights each pixel (-1: never lit)
         self._shift = np.where(inside, (ry % spacing) * spacing + rx % spacing, -1)
-        order = np.argsort(self._shift, kind="stable")
-        bounds = np.searchsorted(self._shift[order], np.arange(spacing * spacing + 1))
-        self._groups = [order[bounds[i] : bounds[i + 1]] for i in range(spacing * spacing)]
+        self._groups = _by_shift(self._shift, spacing)
         self._footprints = np.zeros((len(ys), patch, patch, channels), dtype)
         self._lit = np.zeros(len(ys), bool)
 
     def add(self, shift_x: int, shift_y: int, frame: np.ndarray) -> int:
         """Crop the footprints lit by dot-grid frame ``(shift_x, shift_y)``; returns how many were stored."""
-        s = self.spacing
-        if not (0 <= shift_x < s and 0 <= shift_y < s):
-            raise InputError(f"dot-grid shift ({shift_x}, {shift_y}) outside [0, {s})")
-        frame = frame[..., None] if frame.ndim == 2 else frame
-        if frame.shape != (*self.shape, self.channels):
-            raise InputError(f"dot-grid frame must be {(*self.shape, self.channels)}, got {frame.shape}")
-        idx = self._groups[shift_y * s + shift_x]
+        frame = _dot_frame(shift_x, shift_y, frame, self.spacing, self.shape, self.channels)
+        idx = self._groups[shift_y * self.spacing + shift_x]
         if len(idx) == 0:
             return 0
         k, half = self.patch, self.patch // 2
@@ -240,10 +251,7 @@ class DotTransportExtractor:
             keep = dist <= reach
             self.dots = dots[keep].astype(np.int64)
             self.pixels = np.stack([py[keep], px[keep]], axis=1).astype(np.int64)
-        shift = (self.dots[:, 1] % spacing) * spacing + self.dots[:, 0] % spacing
-        order = np.argsort(shift, kind="stable")
-        bounds = np.searchsorted(shift[order], np.arange(spacing * spacing + 1))
-        self._groups = [order[bounds[i]:bounds[i + 1]] for i in range(spacing * spacing)]
+        self._groups = _by_shift((self.dots[:, 1] % spacing) * spacing + self.dots[:, 0] % spacing, spacing)
         self.nbytes = len(self.dots) * patch * patch * channels * np.dtype(dtype).itemsize
         self._crops = np.zeros((len(self.dots), patch, patch, channels), dtype)  # pages are touched as dots arrive
         self._lit = np.zeros(len(self.dots), bool)
@@ -251,11 +259,7 @@ class DotTransportExtractor:
     def add(self, shift_x: int, shift_y: int, frame: np.ndarray) -> int:
         """Crop the dots of dot-grid frame ``(shift_x, shift_y)`` (black already subtracted); returns how many."""
         s, k, half = self.spacing, self.patch, self.patch // 2
-        if not (0 <= shift_x < s and 0 <= shift_y < s):
-            raise InputError(f"dot-grid shift ({shift_x}, {shift_y}) outside [0, {s})")
-        frame = frame[..., None] if frame.ndim == 2 else frame
-        if frame.shape != (*self.shape, self.channels):
-            raise InputError(f"dot-grid frame must be {(*self.shape, self.channels)}, got {frame.shape}")
+        frame = _dot_frame(shift_x, shift_y, frame, s, self.shape, self.channels)
         idx = self._groups[shift_y * s + shift_x]
         if len(idx) == 0:
             return 0

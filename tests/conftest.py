@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import shutil
 import tempfile
 from pathlib import Path
@@ -14,13 +13,9 @@ import pytest
 def _private_log_dir():
     """Daemons started by tests (and their subprocesses) log into a temporary folder, not the user's state dir."""
     logs = Path(tempfile.mkdtemp(prefix="sss-logs-"))
-    old = os.environ.get("SSS_LOG_DIR")
-    os.environ["SSS_LOG_DIR"] = str(logs)
-    yield logs
-    if old is None:
-        os.environ.pop("SSS_LOG_DIR", None)
-    else:
-        os.environ["SSS_LOG_DIR"] = old
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("SSS_LOG_DIR", str(logs))
+        yield logs
     shutil.rmtree(logs, ignore_errors=True)
 
 
@@ -31,14 +26,10 @@ def sim_daemon():
     from sssphase_daemon.client import local_client
 
     runtime = Path(tempfile.mkdtemp(prefix="ssst", dir="/tmp"))  # ipc paths must stay short
-    old = os.environ.get("SSS_RUNTIME_DIR")
-    os.environ["SSS_RUNTIME_DIR"] = str(runtime)
     try:
-        with local_client() as client:
-            yield client
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setenv("SSS_RUNTIME_DIR", str(runtime))
+            with local_client() as client:
+                yield client
     finally:
-        if old is None:
-            os.environ.pop("SSS_RUNTIME_DIR", None)
-        else:
-            os.environ["SSS_RUNTIME_DIR"] = old
         shutil.rmtree(runtime, ignore_errors=True)

@@ -21,13 +21,9 @@ REPO = Path(__file__).resolve().parents[2]
 def runtime_dir():
     """A short private runtime dir (ipc paths are limited to ~100 characters)."""
     path = Path(tempfile.mkdtemp(prefix="sssd", dir="/tmp"))
-    old = os.environ.get("SSS_RUNTIME_DIR")
-    os.environ["SSS_RUNTIME_DIR"] = str(path)
-    yield path
-    if old is None:
-        os.environ.pop("SSS_RUNTIME_DIR", None)
-    else:
-        os.environ["SSS_RUNTIME_DIR"] = old
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("SSS_RUNTIME_DIR", str(path))
+        yield path
     shutil.rmtree(path, ignore_errors=True)
 
 
