@@ -194,6 +194,20 @@ def bench_relight(
     console.print(f"wrote {out}, {out.with_suffix('.md')} and {res['figure']}")
 
 
+def bench_store(
+    sessions: Annotated[list[Path], typer.Argument(help="Sessions captured with --footprints --keep-dots and a --reference.")],
+    out: Annotated[Path, typer.Option("--out", help="JSON output (.md written next to it).")] = Path("bench_store.json"),
+) -> None:
+    """Bytes per stored footprint against float32 and the relit PSNR change the compact store causes."""
+    from sssphase_core.bench import store_bench
+    from sssphase_core.session import find_sessions
+
+    with console.status("measuring the footprint store") as st:
+        store_bench.run(find_sessions(sessions), out, progress=lambda m: st.update(m))
+    console.print(out.with_suffix(".md").read_text())
+    console.print(f"wrote {out} and {out.with_suffix('.md')}")
+
+
 def bench_stability(
     out: Annotated[Path, typer.Option("--out", help="JSON output (.md written next to it).")] = Path("bench_stability.json"),
     cases: Annotated[str, typer.Option(help="Comma-separated cases (default: all).")] = "",
@@ -236,3 +250,4 @@ def register(groups: dict[str, typer.Typer]) -> None:
     groups["eval"].command("relight")(eval_relight)
     groups["bench"].command("relight")(bench_relight)
     groups["bench"].command("stability")(bench_stability)
+    groups["bench"].command("store")(bench_store)

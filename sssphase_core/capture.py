@@ -274,7 +274,7 @@ class ViewProcessor:
             w.write("transport/pixels", pixels.astype(np.int32))
             w.write("transport/dots", dots.astype(np.int32))
             w.write("transport/crops", crops)
-            info["transport"] = {"dots": len(dots)}
+            info["transport"] = {"dots": len(dots), "noise": self.transport.noise, "noise_dropped": True}
         elif self.transport_skipped:
             info["transport"] = {"skipped": self.transport_skipped}
         if self.dots is not None:

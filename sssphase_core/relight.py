@@ -214,16 +214,15 @@ class DotTransport:
         return self.pixels[rows], c[rows], rows
 
     def crops_at(self, rows: np.ndarray) -> np.ndarray:
-        from scipy.ndimage import gaussian_filter
-
         """Denoised crops (n, K, K, 3) float32 of ``rows`` (ascending, as :meth:`lit` gives them)."""
         if len(rows) == 0:
             return np.zeros((0, *self.crops.shape[1:]), np.float32)  # type: ignore[attr-defined]
+        from sssphase_core.footprints import above_noise
+
         lo, hi = int(rows.min()), int(rows.max()) + 1  # one contiguous read of the (chunked) array
         crops = np.asarray(self.crops[lo:hi], np.float32)[rows - lo]  # type: ignore[index]
         if self.noise > 0 and len(crops):
-            smooth = gaussian_filter(crops.mean(axis=-1), (0, 1.0, 1.0))
-            crops = crops * (smooth > 3 * self.noise / (2 * np.sqrt(np.pi)))[..., None]
+            crops = crops * above_noise(crops, self.noise)[..., None]
         return crops
 
 
@@ -421,11 +420,14 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
     if name == "measured":  # the session's own captured dot-grid crops, simulated or not
         arrays = rv.session.arrays(rv.view)  # type: ignore[attr-defined]
         if "transport/crops" in arrays:  # one crop per projector dot: the captured light transport itself
-            from sssphase_core.losses import noise_floor
+            from sssphase_core.footprints import ring_noise
 
             crops = rv.session.read(rv.view, "transport/crops")  # type: ignore[attr-defined]
-            sample = np.asarray(crops[: min(len(crops), 512)], np.float32)
-            noise = noise_floor(torch.from_numpy(sample).permute(0, 3, 1, 2)) if len(sample) else 0.0
+            info = rv.session.manifest["views"][str(rv.view)].get("transport", {})  # type: ignore[attr-defined]
+            if info.get("noise_dropped"):  # the capture zeroed the noise floor already (and recorded it)
+                noise = 0.0
+            else:
+                noise = ring_noise(np.asarray(crops[: min(len(crops), 512)], np.float32)) if len(crops) else 0.0
             return DotTransport(rv.session.load(rv.view, "transport/pixels"), rv.session.load(rv.view, "transport/dots"),  # type: ignore[attr-defined]
                                 crops, noise), int(crops.shape[1])
         if "footprints/crops" not in arrays:

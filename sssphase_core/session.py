@@ -109,13 +109,16 @@ def write_json_atomic(path: Path, obj: Any) -> None:
 
 
 def _codec(dtype: np.dtype) -> list:
-    """Blosc LZ4 with byte shuffle (noisy float images barely compress, so speed matters most), then a
-    CRC32C per chunk: every read verifies what it reads, so a damaged chunk is an error naming the
-    array, not silently wrong training data (the SHA-256 of ``sss validate`` reads whole arrays)."""
+    """Blosc with byte shuffle, then a CRC32C per chunk: every read verifies what it reads, so a damaged
+    chunk is an error naming the array, not silently wrong training data (the SHA-256 of ``sss
+    validate`` reads whole arrays). LZ4 for float32 images (noisy floats barely compress: speed matters
+    most); zstd for float16 arrays, the footprint stores, whose noise floor is zeroed (9% of float32 vs
+    17% with LZ4 on the soap's transport, ``sss bench store``)."""
     from zarr.codecs import BloscCodec, BloscShuffle, Crc32cCodec
 
     shuffle = BloscShuffle.shuffle if np.dtype(dtype).itemsize > 1 else BloscShuffle.noshuffle
-    return [BloscCodec(cname="lz4", clevel=5, shuffle=shuffle), Crc32cCodec()]
+    cname = "zstd" if np.dtype(dtype) == np.float16 else "lz4"
+    return [BloscCodec(cname=cname, clevel=5 if cname == "lz4" else 3, shuffle=shuffle), Crc32cCodec()]
 
 
 def _chunk_count(shape: tuple[int, ...], chunks: tuple[int, ...]) -> int:

@@ -45,3 +45,19 @@ def test_capture_train_from_sessions_relight_and_beat_no_scattering(tmp_path):
     rows = json.loads((tmp_path / "ev" / "relight_eval.json").read_text())["aggregate"]
     psnr = {r["backend"]: r["psnr"] for r in rows}
     assert psnr["torch"] > psnr["none"] + 2, psnr
+
+
+@pytest.mark.slow
+def test_the_compact_footprint_store_is_a_quarter_of_float32_and_relights_the_same(sim_daemon, tmp_path):
+    """`sss bench store` on a capture with kept dot frames: the stored transport (float16, noise floor
+    zeroed, zstd) against float32 with every value, both relit by the measured backend."""
+    from sssphase_core.bench import store_bench
+    from sssphase_core.capture import CaptureRequest, run_capture
+
+    s = run_capture(sim_daemon, CaptureRequest("leaf", views=1, footprints=True, keep_dots=True,
+                                                references=("checkerboard",), out=tmp_path / "s"))
+    assert s.manifest["views"]["0"]["transport"]["noise_dropped"]
+    row = store_bench.run([s], tmp_path / "store.json")["rows"][0]
+    assert row["store"]["bytes"] < 0.25 * row["raw_float32_bytes"]
+    assert abs(row["store"]["psnr"] - row["float32"]["psnr"]) < 0.1
+    assert (tmp_path / "store.md").read_text().count("| leaf |") == 1
