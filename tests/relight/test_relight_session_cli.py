@@ -53,7 +53,7 @@ def test_cli_relight_rejects_a_wrong_pattern_size(session, tmp_path):
     assert res.exit_code != 0
     assert "--resize" in str(res.exception)
     ok = runner.invoke(app, ["relight", str(session), "--pattern", str(tmp_path / "small.png"), "--backend", "none",
-                             "--resize", "--out", str(tmp_path / "o")])
+                             "--resize", "stretch", "--out", str(tmp_path / "o")])
     assert ok.exit_code == 0, ok.output
 
 
