@@ -204,8 +204,8 @@ def train_decoder(
         console.print(f"validation error against run time: {out / 'error_vs_time.png'}")
     _print_final(out / METRICS, ("val_loss", "val_psnr"), "val_loss")
     console.print(f"[green]done[/]: {path}")
-    _check_against_baselines(out, check_sessions or ([sessions] if sessions else []), _ints(val_views) if sessions and not
-                             check_sessions else None, device)
+    held_out = _ints(val_views) if sessions and not check_sessions else []  # the training sessions' held-out views
+    _check_against_baselines(out, check_sessions or ([sessions] if sessions else []), held_out or None, device)
 
 
 def _print_final(metrics: Path, names: tuple[str, ...], monitored: str) -> None:

@@ -194,6 +194,29 @@ def bench_relight(
     console.print(f"wrote {out}, {out.with_suffix('.md')} and {res['figure']}")
 
 
+def report(
+    sessions: Annotated[list[Path], typer.Argument(help="Test sessions (or folders of them) with reference captures.")],
+    out: Annotated[Path, typer.Option("--out", help="Report folder (index.html and img/).")] = Path("report"),
+    train_sessions: Annotated[Path | None, typer.Option(help="Folder of training sessions (for the kNN table).")] = None,
+    pretrain: Annotated[Path | None, typer.Option(help="Pretraining run or checkpoint (kNN table, PCA maps).")] = None,
+    decoder: Annotated[Path | None, typer.Option(help="Decoder run or checkpoint (the torch rows).")] = None,
+    view: Annotated[int, typer.Option(help="The view of each test session to relight.")] = 0,
+    backend: BackendOpt = "none,analytic,measured,torch",
+) -> None:
+    """The demo's HTML report for your own sessions and runs: relit vs reference vs difference, tables, error
+    against run time, kNN, PCA."""
+    from sssphase_core.demo import run_report
+    from sssphase_core.session import find_sessions
+    from sssphase_core.training import resolve_checkpoint
+
+    path = run_report(out, find_sessions(sessions), train_sessions=train_sessions,
+                      pretrain=resolve_checkpoint(pretrain) if pretrain else None,
+                      decoder=resolve_checkpoint(decoder) if decoder else None, view=view,
+                      backends=tuple(b.strip() for b in backend.split(",") if b.strip()),
+                      log=lambda m: console.print(m, markup=False, highlight=False))
+    console.print(f"wrote {path}")
+
+
 def bench_store(
     sessions: Annotated[list[Path], typer.Argument(help="Sessions captured with --footprints --keep-dots and a --reference.")],
     out: Annotated[Path, typer.Option("--out", help="JSON output (.md written next to it).")] = Path("bench_store.json"),
@@ -251,3 +274,4 @@ def register(groups: dict[str, typer.Typer]) -> None:
     groups["bench"].command("relight")(bench_relight)
     groups["bench"].command("stability")(bench_stability)
     groups["bench"].command("store")(bench_store)
+    groups["root"].command("report")(report)

@@ -33,7 +33,7 @@ from typing import Any
 
 import numpy as np
 
-from sssphase_core.errors import InputError
+from sssphase_core.errors import InputError, SssError
 
 
 @dataclass(frozen=True)
@@ -102,7 +102,7 @@ class Demo:
         t0 = time.perf_counter()
         try:
             result = {"status": "done", **fn()}
-        except NotAvailable as exc:
+        except (NotAvailable, SssError) as exc:  # what the step lacks (or a user's data cannot give) is reported
             result = {"status": "not available", "reason": str(exc)}
         except (ImportError, AttributeError, TypeError) as exc:  # a part of the project that is not ready
             result = {"status": "not available", "reason": f"{type(exc).__name__}: {exc}",
@@ -207,6 +207,9 @@ class Demo:
         table: dict[str, dict[str, dict[str, float]]] = {}
         for path in self.results["test_sessions"]["sessions"]:
             rv = load_view(Session.open(path), self.cfg.test_view)
+            if rv.sim is None:
+                raise NotAvailable(f"{rv.object} is not a simulated session: footprint metrics need the simulator's "
+                                   "exact footprints (relit images are scored against the reference captures above)")
             px = sample_pixels(rv.proj.mask, self.cfg.footprint_pixels, self.cfg.seed)
             gt = rv.scene().footprints(px)
             table[rv.object] = {}
@@ -218,6 +221,8 @@ class Demo:
 
     def knn(self) -> dict[str, Any]:
         self._need("pretrain")
+        if len(self.cfg.train_objects) < 2:
+            raise NotAvailable("the kNN table needs training sessions of at least two objects")
         from sssphase_core.evaluation import embed_pixels, knn_leave_one_view_out
         from sssphase_core.training import load_encoder
 
@@ -247,10 +252,13 @@ class Demo:
                       f"{PCA_TITLE} (every {self.cfg.pca_stride}th pixel)")
         return {"figure": "img/pca_rgb.png", "objects": [s.name for s in sessions]}
 
+    report_title = "sssphase demo report"
+    report_rig = "Simulated rig (CPU preset)"
+
     def report(self) -> dict[str, Any]:
         from sssphase_core.report import write_report
 
-        path = write_report(self.out / "report", self.results, asdict(self.cfg))
+        path = write_report(self.out / "report", self.results, asdict(self.cfg), title=self.report_title, rig=self.report_rig)
         return {"path": str(path)}
 
     def run(self) -> Path:
@@ -276,3 +284,45 @@ def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool 
     path = demo.run()
     log(f"demo finished in {time.perf_counter() - t0:.1f} s")
     return path
+
+
+REPORT_STEPS = ("relight", "footprints", "knn", "pca", "report")
+
+
+def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Path | None = None,
+               pretrain: Path | None = None, decoder: Path | None = None, view: int = 0,
+               backends: tuple[str, ...] = ("none", "analytic", "measured", "torch"),
+               log: Callable[[str], None] = print) -> Path:
+    """The demo's report for a user's own sessions and runs: relight ``test_sessions`` (their view
+    ``view``, against every reference they hold) with ``backends``, footprint metrics (simulated
+    sessions only), the kNN table on ``train_sessions`` and PCA maps with the ``pretrain`` encoder.
+    Steps without what they need are listed in the report as not available. Returns its path."""
+    from sssphase_core.session import find_sessions
+
+    tests = list(test_sessions)
+    if not tests:
+        raise InputError("sss report needs at least one test session (with reference captures)")
+    lacking = [f"{s.path} (complete views: {s.views()})" for s in tests if view not in s.views()]
+    if lacking:
+        raise InputError(f"view {view} is not complete in " + "; ".join(lacking))
+    train = find_sessions([train_sessions]) if train_sessions is not None else []
+    objects = tuple(s.name for s in train)
+    has_measured = all("transport/crops" in s.arrays(view) or "footprints/crops" in s.arrays(view)
+                       for s in tests if view in s.views())
+    chosen = tuple(b for b in backends if (b != "torch" or decoder is not None) and (b != "measured" or has_measured))
+    config = DemoConfig(objects, tuple(s.name for s in tests), test_view=view, backends=chosen)
+    demo = Demo(Path(out), config, client=None, fresh=True, log=log)
+    demo.report_title = "sssphase report"
+    sims = {"simulated" if "gt/proj_xy" in s.arrays(view) else "captured" for s in tests if view in s.views()}
+    demo.report_rig = " and ".join(sorted(sims)).capitalize() + " sessions"
+    done = {"status": "done", "seconds": 0.0}
+    if train:
+        demo.results["train_sessions"] = {**done, "root": str(Path(train_sessions)), "sessions": [str(s.path) for s in train]}
+    demo.results["test_sessions"] = {**done, "sessions": [str(s.path) for s in tests]}
+    if pretrain is not None:
+        demo.results["pretrain"] = {**done, "checkpoint": str(pretrain)}
+    if decoder is not None:
+        demo.results["decoder"] = {**done, "checkpoint": str(decoder)}
+    for name in REPORT_STEPS:
+        demo.step(name, getattr(demo, name))
+    return demo.out / "report" / "index.html"

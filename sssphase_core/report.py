@@ -131,13 +131,15 @@ def _knn_section(result: dict[str, Any]) -> str:
               "over the training objects' views (the paper's Table 2 protocol).</p>")
 
 
-def write_report(out: Path | str, results: dict[str, dict[str, Any]], config: dict[str, Any]) -> Path:
-    """Write ``out/index.html`` from the demo's step results; returns its path."""
+def write_report(out: Path | str, results: dict[str, dict[str, Any]], config: dict[str, Any], *,
+                 title: str = "sssphase demo report", rig: str = "Simulated rig (CPU preset)") -> Path:
+    """Write ``out/index.html`` from the demo's (or ``sss report``'s) step results; returns its path."""
     out = Path(out)
     (out / "img").mkdir(parents=True, exist_ok=True)
-    sections = [f"<h1>sssphase demo report</h1><p class='note'>Generated {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}. "
-                f"Simulated rig (CPU preset), model preset <code>{_esc(config.get('model'))}</code>; training objects "
-                f"{_esc(', '.join(config.get('train_objects', ())))}; unseen test objects {_esc(', '.join(config.get('test_objects', ())))}.</p>"]
+    sections = [f"<h1>{_esc(title)}</h1><p class='note'>Generated {time.strftime('%Y-%m-%d %H:%M:%S UTC', time.gmtime())}. "
+                f"{_esc(rig)}, model preset <code>{_esc(config.get('model'))}</code>; training objects "
+                f"{_esc(', '.join(config.get('train_objects', ())) or 'none given')}; test objects "
+                f"{_esc(', '.join(config.get('test_objects', ())))}.</p>"]
     missing = [n for n, r in results.items() if r.get("status") != "done" and n != "report"]
     if missing:
         sections.append(_not_available("steps " + ", ".join(missing), {"reason": "see the timings table below for each reason"}))
@@ -173,7 +175,7 @@ def write_report(out: Path | str, results: dict[str, dict[str, Any]], config: di
     sections.append(html_table(["step", "status", "seconds", "note"], trows, left=2))
     sections.append(f"<p class='note'>Total {sum(float(r.get('seconds', 0)) for r in results.values()):.1f} s of step time "
                     "(skipped steps show the time of the run that did them).</p>")
-    page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>sssphase demo report</title><style>{STYLE}</style></head>"
+    page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{_esc(title)}</title><style>{STYLE}</style></head>"
             f"<body>{''.join(sections)}{LOAD_CHECK}</body></html>")
     path = out / "index.html"
     path.write_text(page)

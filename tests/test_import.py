@@ -153,3 +153,19 @@ def test_viz_footprints_shows_the_captured_crops_next_to_a_model(frames, tmp_pat
     assert fps["captured"].shape == fps["none"].shape == (2, K, K, 3)
     assert np.array_equal(fps["captured"][1], np.asarray(s.load(0, "footprints/crops"))[1])
     assert np.count_nonzero(fps["none"].sum(-1)) == 2  # one delta per pixel, padded to K
+
+
+def test_sss_report_on_a_users_own_session(frames, tmp_path):
+    s = import_folder(frames, tmp_path / "sessions", "handmade", (W, H), patch=K)
+    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "report", str(tmp_path / "sessions"), "--backend",
+                          "none,measured", "--out", str(tmp_path / "rep")], capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stdout + res.stderr
+    page = (tmp_path / "rep" / "report" / "index.html").read_text()
+    assert "<h1>sssphase report</h1>" in page and "Captured sessions" in page
+    assert "measured PSNR" in page and "handmade" in page
+    assert "not a simulated session" in page and "kNN table: not available" in page  # said, not silently left out
+    assert [p.name for p in (tmp_path / "rep" / "report" / "img").glob("*compare.png")]
+    assert "[relight] done" in res.stdout
+    bad = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "report", str(s.path), "--view", "3", "--out",
+                          str(tmp_path / "r2")], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2 and "view 3 is not complete" in bad.stderr and "Traceback" not in bad.stderr
