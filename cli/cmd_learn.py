@@ -466,6 +466,7 @@ def bench_learn(
     device: str = "cpu",
 ) -> None:
     """Throughput (patches/s) of the lite and paper presets, inference and training, ratio to paper."""
+    from sssphase_core.bench.learn_bench import loader_throughput
     from sssphase_core.bench.report import Table, machine_info, write_report
     from sssphase_core.evaluation import measure_throughput
 
@@ -473,16 +474,25 @@ def bench_learn(
     results = {}
     for name, batch in batches.items():
         with console.status(f"measuring the {name} preset (batch {batch})"):
-            results[name] = {"batch": batch, **measure_throughput(name, batch=batch, repeats=repeats, device=device)}
+            results[name] = {"batch": batch, **measure_throughput(name, batch=batch, repeats=repeats, device=device),
+                             **loader_throughput(name, batch=batch, repeats=repeats)}
     base = results["paper"]
     table = Table("Learning throughput (patches/s); baseline: the paper preset, same run",
                   ["preset", "batch", "encoder params", "decoder params", "inference", "x paper", "SimSiam step", "x paper"])
+    loader = Table("Training loader against the model (patches/s, same run): PSP patches cropped from a view stack in "
+                   "memory, footprint targets streamed from a chunked store on disk",
+                   ["preset", "camera", "K", "loader, PSP only", "loader, with targets", "SimSiam step",
+                    "loader / SimSiam step", "loader / inference"])
     for name, r in results.items():
         table.rows.append([name, r["batch"], f"{r['encoder_params'] / 1e6:.2f}M", f"{r['decoder_params'] / 1e6:.2f}M",
                            r["infer_patches_s"], r["infer_patches_s"] / base["infer_patches_s"],
                            r["train_patches_s"], r["train_patches_s"] / base["train_patches_s"]])
-    write_report({"machine": machine_info(), "device": device, "results": results}, [table], out, md, title="sss bench learn")
+        loader.rows.append([name, r["camera"], r["patch"], r["loader_psp_patches_s"], r["loader_patches_s"], r["train_patches_s"],
+                            r["loader_patches_s"] / r["train_patches_s"], r["loader_patches_s"] / r["infer_patches_s"]])
+    write_report({"machine": machine_info(), "device": device, "results": results}, [table, loader], out, md,
+                 title="sss bench learn")
     console.print(table.markdown())
+    console.print(loader.markdown())
 
 
 def register(groups: dict[str, typer.Typer]) -> None:

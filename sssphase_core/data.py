@@ -63,22 +63,29 @@ def to_channels_first(psp: np.ndarray) -> torch.Tensor:
     return t.permute(0, 3, 1, 2).reshape(3 * N_PSP, t.shape[1], t.shape[2])
 
 
-def crop_patches(stack: torch.Tensor, pixels: np.ndarray | torch.Tensor, k: int) -> torch.Tensor:
-    """(C, H, W) stack -> (N, C, K, K) crops with the pixel at K // 2, zero outside the image."""
-    c, h, w = stack.shape
+def pad_for_patches(stack: torch.Tensor, k: int) -> torch.Tensor:
+    """(C, H, W) -> (C, H + K - 1, W + K - 1) zero-padded so that :func:`crop_patches` needs no padding."""
     lo = k // 2
-    padded = torch.nn.functional.pad(stack, (lo, k - 1 - lo, lo, k - 1 - lo))
+    return torch.nn.functional.pad(stack, (lo, k - 1 - lo, lo, k - 1 - lo))
+
+
+def crop_patches(stack: torch.Tensor, pixels: np.ndarray | torch.Tensor, k: int, *, padded: bool = False) -> torch.Tensor:
+    """(C, H, W) stack -> (N, C, K, K) crops with the pixel at K // 2, zero outside the image.
+
+    ``padded``: ``stack`` is already :func:`pad_for_patches`'s output (a training loader pads each view
+    once instead of copying the whole stack per batch: 1080p stacks are 200 MB)."""
+    source = stack if padded else pad_for_patches(stack, k)
     pix = torch.as_tensor(pixels, dtype=torch.long)
     offs = torch.arange(k)
     ys = (pix[:, 0, None] + offs)[:, :, None].expand(-1, k, k)
     xs = (pix[:, 1, None] + offs)[:, None, :].expand(-1, k, k)
-    return padded[:, ys, xs].permute(1, 0, 2, 3)
+    return source[:, ys, xs].permute(1, 0, 2, 3)
 
 
 def psp_patches(psp: np.ndarray, pixels: np.ndarray, k: int, chunk: int = 4096) -> np.ndarray:
     """(8, H, W, 3) PSP images -> (N, 24, K, K) float32 patches around ``pixels``."""
-    stack = to_channels_first(psp)
-    return torch.cat([crop_patches(stack, pixels[i : i + chunk], k) for i in range(0, len(pixels), chunk)]).numpy()
+    stack = pad_for_patches(to_channels_first(psp), k)
+    return torch.cat([crop_patches(stack, pixels[i : i + chunk], k, padded=True) for i in range(0, len(pixels), chunk)]).numpy()
 
 
 class PatchDataset(torch.utils.data.Dataset):
@@ -95,7 +102,7 @@ class PatchDataset(torch.utils.data.Dataset):
         if unknown:
             raise InputError(f"objects {unknown} are not among the classes {list(classes)}")
         self.views, self.patch, self.classes, self.with_targets = list(views), patch, list(classes), with_targets
-        self.stacks = [to_channels_first(v.psp) for v in self.views]
+        self.stacks = [pad_for_patches(to_channels_first(v.psp), patch) for v in self.views]  # padded once
         counts = np.array([len(v.pixels) for v in self.views])
         self.offsets = np.concatenate([[0], np.cumsum(counts)])
         self.view_of = np.repeat(np.arange(len(self.views)), counts)
@@ -128,7 +135,7 @@ class PatchDataset(torch.utils.data.Dataset):
             sel = np.nonzero(vids == vid)[0]
             local = idx[sel] - self.offsets[vid]
             view = self.views[vid]
-            out["psp"][sel] = crop_patches(self.stacks[vid], view.pixels[local], self.patch)
+            out["psp"][sel] = crop_patches(self.stacks[vid], view.pixels[local], self.patch, padded=True)
             if self.with_targets:
                 order = np.argsort(local)  # chunked stores read sorted indices fastest
                 fp = torch.as_tensor(_take(view.footprints, local[order]), dtype=torch.float32)

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sssphase_core.data import crop_patches, to_channels_first
+from sssphase_core.data import crop_patches, pad_for_patches, to_channels_first
 from sssphase_core.errors import InputError
 from sssphase_core.losses import ssim_map
 
@@ -22,9 +22,9 @@ def embed_pixels(encoder: torch.nn.Module, psp: np.ndarray, pixels: np.ndarray, 
                  device: str | torch.device = "cpu") -> np.ndarray:
     """(N, D) frozen-encoder embeddings of the patches around ``pixels`` of one (8, H, W, 3) PSP stack."""
     encoder = encoder.eval().to(device)
-    stack = to_channels_first(psp)
     k = encoder.preset.patch
-    out = [encoder(crop_patches(stack, pixels[i : i + batch_size], k).to(device)).float().cpu()
+    stack = pad_for_patches(to_channels_first(psp), k)  # once, not per batch
+    out = [encoder(crop_patches(stack, pixels[i : i + batch_size], k, padded=True).to(device)).float().cpu()
            for i in range(0, len(pixels), batch_size)]
     return torch.cat(out).numpy() if out else np.zeros((0, encoder.preset.embed_dim), np.float32)
 

@@ -114,3 +114,13 @@ def test_session_views_stream_footprints_from_the_store(synthetic, tmp_path):
     assert len(plain.pixels) == mask.sum() and plain.footprints is None
     with pytest.raises(DataError, match="no session"):
         session_views(tmp_path, ["apple"])
+
+
+def test_a_stack_padded_once_gives_the_same_patches():
+    from sssphase_core.data import crop_patches, pad_for_patches
+
+    stack = torch.rand(24, 17, 23)
+    pixels = np.array([[0, 0], [16, 22], [8, 11], [3, 20]])
+    for k in (4, 5, 9):
+        np.testing.assert_array_equal(crop_patches(pad_for_patches(stack, k), pixels, k, padded=True).numpy(),
+                                      crop_patches(stack, pixels, k).numpy())

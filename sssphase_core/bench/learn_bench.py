@@ -1,0 +1,49 @@
+"""``sss bench learn``'s loader half: patches/s of the training loader at each preset's scale, to set next to
+the model's patches/s measured in the same run.
+
+The loader is the one training uses (:class:`sssphase_core.data.PatchDataset`): PSP patches cropped on the
+fly from a view-level stack held in memory (``(24, H, W)``, the preset's camera size: 256x192 for ``lite``,
+1920x1080 for ``paper``) and footprint targets streamed from a chunked store on disk (written with the
+session codec, read by sorted row indices), for random batches.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+CAMERA = {32: (256, 192), 90: (1920, 1080)}  # patch K -> the camera size of the rig preset that uses it
+
+
+def loader_throughput(preset: str, *, batch: int, repeats: int = 3, footprints: int = 1024, seed: int = 0) -> dict[str, float]:
+    """Patches/s of ``PatchDataset.batch`` without and with streamed footprint targets."""
+    import zarr
+
+    from sssphase_core.data import PatchDataset, ViewData
+    from sssphase_core.models import get_preset
+    from sssphase_core.session import _zarr_write
+
+    k = get_preset(preset).patch
+    w, h = CAMERA.get(k, (256, 192))
+    rng = np.random.default_rng(seed)
+    psp = rng.random((8, h, w, 3), dtype=np.float32)
+    pixels = np.stack([rng.integers(0, h, footprints), rng.integers(0, w, footprints)], axis=1)
+    with tempfile.TemporaryDirectory(prefix="sss-loader-") as tmp:
+        _zarr_write(Path(tmp) / "crops", rng.random((footprints, k, k, 3), dtype=np.float32) * 0.01)
+        store = zarr.open_array(str(Path(tmp) / "crops"), mode="r")
+        view = ViewData("bench", 0, psp, pixels, np.full(footprints, -1), footprints=store)
+        rates = {}
+        for name, targets in (("loader_psp_patches_s", False), ("loader_patches_s", True)):
+            ds = PatchDataset([view], k, ["bench"], with_targets=targets)
+            ds.batch(rng.integers(0, footprints, batch))  # warm-up
+            times = []
+            for _ in range(repeats):
+                idx = rng.integers(0, footprints, batch)
+                t0 = time.perf_counter()
+                ds.batch(idx)
+                times.append(time.perf_counter() - t0)
+            rates[name] = batch / float(np.median(times))
+    return {**rates, "camera": f"{w}x{h}", "patch": k}
