@@ -83,9 +83,20 @@ class DaemonClient:
         self.close()
 
     # ---- requests --------------------------------------------------------------------------
-    def send(self, op: str, **args: Any) -> int:
+    def send(self, op: str, *, send_timeout_s: float | None = None, **args: Any) -> int:
+        """Queue a request; returns its id. Never blocks for longer than ``send_timeout_s`` (default: the
+        client's timeout): a DEALER whose connection is not up (a CURVE handshake refused, a daemon
+        restarting) would otherwise block forever."""
         rid = next(self.ids)
-        self.sock.send(protocol.request(rid, op, self.token, **args))
+        wait = self.timeout_s if send_timeout_s is None else send_timeout_s
+        message = protocol.request(rid, op, self.token, **args)
+        try:
+            if not self.sock.poll(int(wait * 1000) + 1, zmq.POLLOUT):
+                raise zmq.Again()
+            self.sock.send(message, flags=zmq.NOBLOCK)
+        except zmq.Again:
+            raise DaemonUnavailable(f"no connection to the daemon at {self.endpoint} within {wait:g} s (an off-loopback "
+                                    "daemon needs its CURVE keys: --curve-dir)") from None
         return rid
 
     def _wait(self, rid: int, timeout_s: float) -> dict[str, Any]:
@@ -100,7 +111,8 @@ class DaemonClient:
 
     def call(self, op: str, timeout_s: float | None = None, **args: Any) -> dict[str, Any]:
         """Send a request and return its result; raise :class:`DaemonError` on an error reply."""
-        msg = self._wait(self.send(op, **args), self.timeout_s if timeout_s is None else timeout_s)
+        wait = self.timeout_s if timeout_s is None else timeout_s
+        msg = self._wait(self.send(op, send_timeout_s=wait, **args), wait)
         if not msg.get("ok"):
             err = msg.get("error") or {}
             raise DaemonError(str(err.get("code", "?")), f"daemon: {err.get('message', 'unknown error')}")
@@ -138,7 +150,10 @@ class DaemonClient:
         sock.connect(self.endpoint)
         try:
             while not stop.wait(self.heartbeat_s):
-                sock.send(protocol.request(0, "heartbeat", self.token, job=job_id))
+                try:  # a beat that cannot go out now is dropped: the next one follows
+                    sock.send(protocol.request(0, "heartbeat", self.token, job=job_id), flags=zmq.NOBLOCK)
+                except zmq.Again:
+                    pass
                 while sock.poll(0):
                     sock.recv()
         finally:
@@ -169,7 +184,10 @@ class DaemonClient:
                 header = protocol.unpack(parts[0].bytes, self.max_bytes)
                 if header.get("type") == "end":
                     finished = True
-                    self.send("cancel", job=job["job"])  # acknowledges the end: the daemon closes the stream
+                    try:  # acknowledges the end: the daemon closes the stream
+                        self.send("cancel", send_timeout_s=1.0, job=job["job"])
+                    except DaemonUnavailable:
+                        pass
                     if not header.get("ok"):
                         err = header.get("error") or {}
                         raise DaemonError(str(err.get("code")), f"capture failed after {header.get('frames')} frames: "
@@ -186,8 +204,8 @@ class DaemonClient:
             beat.join()
             if not finished:
                 try:
-                    self.send("cancel", job=job["job"])
-                except zmq.ZMQError:
+                    self.send("cancel", send_timeout_s=1.0, job=job["job"])
+                except (zmq.ZMQError, DaemonUnavailable):
                     pass
             pull.close(linger=0)
 
