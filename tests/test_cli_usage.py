@@ -28,6 +28,7 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["capture", "--object", "apple", "--views", "two"], "--views"),
         (["capture", "--version"], "No such option"),
         (["sim", "--object", "apple", "--views", "-"], "--views"),
+        (["relight", "no_session", "--pattern", "checkerboard", "--format", "tiff"], "choose png, exr"),
     ],
 )
 def test_usage_errors_are_one_message_not_a_traceback(args: list[str], expected: str) -> None:
