@@ -72,7 +72,7 @@ def comparison_figure(reference: np.ndarray, relit: np.ndarray, mask: np.ndarray
     vmax = float(max(np.percentile(diff[mask], 99.5) if mask.any() else diff.max(), 1e-6))
     im = axes[2].imshow(np.where(mask, diff, 0.0), cmap="inferno", vmin=0, vmax=vmax, interpolation="nearest")
     axes[2].set_title("|relit - GT| (linear units)", fontsize=9)
-    fig.colorbar(im, ax=axes[2], fraction=0.046, pad=0.02, label="mean |error| over RGB (linear camera units)")
+    fig.colorbar(im, ax=axes[2], fraction=0.046, pad=0.02, label="mean |error| (linear units)")
     for ax in axes:
         ax.set_axis_off()
     if metrics:

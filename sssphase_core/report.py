@@ -102,9 +102,16 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
         parts.append("<p class='note'>The capture carries sensor noise and demosaicing, which bound every backend "
                      "(also <code>exact</code>); footprints learned from captured dot crops carry the same system blur, "
                      "which the noise-free render above does not have.</p>")
+    if all("psnr_camera" in r for r in rows):
+        cam = {(a["object"], a["backend"]): a for a in aggregate(rows, by=("object", "backend"))}
+        parts.append("<h3>Relit images against the camera's image of the pattern without noise</h3>")
+        parts.append(html_table(["object"] + [f"{b} PSNR" for b in backends],
+                                [[o] + [cam[(o, b)]["psnr_camera"] if (o, b) in cam else "n/a" for b in backends] for o in objects]))
+        parts.append("<p class='note'>The noise-free render seen through the camera's Bayer sampling and demosaicing: "
+                     "what the camera records on average, so what relighting from captured data can reach.</p>")
     parts.append(f"<p class='note'>PSNR in dB with peak 1.0 (linear camera units: a white Lambertian reference reads 1.0), "
                  f"SSIM (11 px Gaussian window), both on the object mask, mean over the checkerboard and stripe patterns. "
-                 f"{_esc(lpips_note())}. <code>exact</code> splats the simulator's exact footprints (the upper bound, ground truth no lab has; <code>measured</code> would splat captured dot-grid crops); "
+                 f"{_esc(lpips_note())}. <code>exact</code> splats the simulator's exact footprints (ground truth no lab has); <code>measured</code> splats the session's captured light transport (one crop per projector dot); "
                  f"<code>none</code> keeps each pixel's own light (no scattering).</p>")
     for name, why in result.get("skipped", {}).items():
         parts.append(_not_available(f"relighting with the {name} backend", {"reason": why}))
