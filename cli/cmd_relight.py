@@ -74,9 +74,9 @@ def relight_cmd(
     from sssphase_core.errors import InputError
     from sssphase_core.patterns import REFERENCE_NAMES
     from sssphase_core.relight import (
-        IMAGE_FORMATS,
         DotTransport,
         FootprintCache,
+        check_image_formats,
         load_view,
         make_source,
         read_pattern,
@@ -87,10 +87,7 @@ def relight_cmd(
     from sssphase_core.session import Session
     from sssphase_core.training import resolve_checkpoint
 
-    formats = tuple(f.strip().lower() for f in image_format.split(",") if f.strip())
-    unknown = sorted(set(formats) - set(IMAGE_FORMATS)) or ([] if formats else ["(none)"])
-    if unknown:
-        raise InputError(f"--format {image_format!r}: choose png, exr or png,exr (got {', '.join(unknown)})")
+    formats = check_image_formats(tuple(f.strip().lower() for f in image_format.split(",") if f.strip()))
     if "exr" in formats:
         from sssphase_core import exr
 

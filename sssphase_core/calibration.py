@@ -60,8 +60,10 @@ def ramp_frames(width: int, height: int, levels: tuple[float, ...] = RAMP_LEVELS
              "params": {"width": width, "height": height, "value": v}} for v in levels]
 
 
-def ramp_response(images: np.ndarray, *, saturation: float = 0.98, min_signal: float = 0.05) -> tuple[np.ndarray, int]:
-    """Per-level mean normalised response r (L, 3) from ramp images (L, H, W, 3), and the pixels used.
+def ramp_response(images: np.ndarray, *, saturation: float = 0.98,
+                  min_signal: float = 0.05) -> tuple[np.ndarray, np.ndarray, int]:
+    """From ramp images (L, H, W, 3): the median normalised response r (L, 3), the black level relative
+    to white per colour (3,), and the number of pixels used.
 
     Pixels used: the white frame is above ``min_signal`` over black and below ``saturation`` in every
     colour (clipped pixels would flatten the top of the curve).
@@ -74,13 +76,14 @@ def ramp_response(images: np.ndarray, *, saturation: float = 0.98, min_signal: f
         raise DataError(f"only {n} camera pixels see the projector's white well exposed (need 50): aim the projector "
                         "at a matte target that fills the view, and check the exposure")
     r = (imgs[:, good] - lo[good]) / (hi[good] - lo[good])  # (L, N, 3)
-    return np.median(r, axis=1), n
+    black = np.clip(np.median(lo[good] / hi[good], axis=0), 0.0, 0.5)
+    return np.median(r, axis=1), black, n
 
 
 def fit_response(levels: tuple[float, ...], images: np.ndarray) -> ProjectorResponse:
     """Fit gamma and black per colour from ramp images (L, H, W, 3) taken at ``levels``."""
     v = np.asarray(levels, np.float64)
-    r, n = ramp_response(images)
+    r, blacks, n = ramp_response(images)
     use = (v >= FIT_RANGE[0]) & (v <= FIT_RANGE[1])
     gammas, rms = [], 0.0
     for c in range(3):
@@ -91,10 +94,6 @@ def fit_response(levels: tuple[float, ...], images: np.ndarray) -> ProjectorResp
         g = float((x * y).sum() / (x * x).sum())  # through the origin: r(1) = 1
         gammas.append(g)
         rms = max(rms, float(np.sqrt(np.mean((v[use] ** g - r[use, c]) ** 2))))
-    imgs = np.asarray(images, np.float64)
-    lo, hi = imgs[0], imgs[-1]
-    good = ((hi - lo) > 0.05).all(axis=-1) & (hi < 0.98).all(axis=-1)
-    blacks = np.clip(np.median(lo[good] / hi[good], axis=0), 0.0, 0.5)
     return ProjectorResponse(
         gamma=float(np.mean(gammas)), black=float(np.mean(blacks)),
         gamma_rgb=tuple(float(g) for g in gammas), black_rgb=tuple(float(b) for b in blacks),  # type: ignore[arg-type]

@@ -62,7 +62,6 @@ class RigSpec:
     median: bool = True  # the paper's 3x3 median per Bayer plane (blurs fringes only a few px wide)
     gamma: float | None = None  # projector response v**gamma ([projector], from `sss calibrate projector`; None: 2.2)
     projector_black: float | None = None  # projector black level relative to white (None: estimated/preset)
-    response: dict[str, Any] = field(default_factory=dict)  # the whole fitted [projector] table, as recorded
 
     @property
     def is_sim(self) -> bool:
@@ -87,8 +86,7 @@ class RigSpec:
         if black is not None and not (isinstance(black, int | float) and 0 <= black < 0.5):
             raise InputError(f"{path}: [projector] black must be a number in [0, 0.5), got {black!r}")
         return cls(dev["camera"], dev["projector"], dev.get("turntable"), dict(cfg.get("options", {})), **proc,
-                   gamma=None if gamma is None else float(gamma), projector_black=None if black is None else float(black),
-                   response=dict(resp))
+                   gamma=None if gamma is None else float(gamma), projector_black=None if black is None else float(black))
 
 
 @dataclass
@@ -241,9 +239,10 @@ class ViewProcessor:
                                           f"{self.transport.nbytes / 2**30:.1f} GiB")
                 self.transport = None
         sx, sy = (int(v) for v in key.split("/")[1].split("_"))
-        self.extractor.add(sx, sy, image - self.dark)
+        dots = image - self.dark
+        self.extractor.add(sx, sy, dots)
         if self.transport is not None:
-            self.transport.add(sx, sy, image - self.dark)
+            self.transport.add(sx, sy, dots)
         if self.dots is not None:
             self.dots.append(image)
 

@@ -39,6 +39,15 @@ def _dot_frame(shift_x: int, shift_y: int, frame: np.ndarray, spacing: int, shap
     return frame
 
 
+def _cell_labels(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray, shift_x: int, shift_y: int,
+                 spacing: int) -> np.ndarray:
+    """The dot of frame ``(shift_x, shift_y)`` nearest to each projector coordinate, as one int64 label
+    (its Voronoi cell in projector space); -2 where there is no coordinate."""
+    gx = np.floor((xp - shift_x) / spacing + 0.5).astype(np.int64)
+    gy = np.floor((yp - shift_y) / spacing + 0.5).astype(np.int64)
+    return np.where(valid, gy * (1 << 20) + gx, -2)
+
+
 def _by_shift(shift: np.ndarray, spacing: int) -> list[np.ndarray]:
     """Indices grouped by the dot-grid frame (shift index ``sy * spacing + sx``; -1: no frame) that lights them."""
     order = np.argsort(shift, kind="stable")
@@ -125,9 +134,8 @@ class DotGridExtractor:
         labels = np.full((y1 - y0 + k, x1 - x0 + k), -2, np.int64)  # -2: outside the image
         ry0, rx0 = max(0, y0 - half), max(0, x0 - half)
         ry1, rx1 = min(h, y1 - half + k), min(w, x1 - half + k)
-        gx = np.floor((self._xp[ry0:ry1, rx0:rx1] - shift_x) / s + 0.5).astype(np.int64)
-        gy = np.floor((self._yp[ry0:ry1, rx0:rx1] - shift_y) / s + 0.5).astype(np.int64)
-        lab = np.where(self._valid[ry0:ry1, rx0:rx1], gy * (1 << 20) + gx, -2)  # no coordinate: kept
+        lab = _cell_labels(self._xp[ry0:ry1, rx0:rx1], self._yp[ry0:ry1, rx0:rx1], self._valid[ry0:ry1, rx0:rx1],
+                           shift_x, shift_y, s)
         labels[ry0 - (y0 - half) : ry1 - (y0 - half), rx0 - (x0 - half) : rx1 - (x0 - half)] = lab
         ys, xs = self.pixels[idx, 0], self.pixels[idx, 1]
         own = labels[ys - y0 + half, xs - x0 + half]
@@ -267,10 +275,9 @@ class DotTransportExtractor:
         padded = np.zeros((h + k, w + k, self.channels), np.float32)
         padded[half:half + h, half:half + w] = frame
         labels = np.full((h + k, w + k), -2, np.int64)  # -2: no projector coordinate (kept)
-        gx = np.floor((self._xp - shift_x) / s + 0.5).astype(np.int64)
-        gy = np.floor((self._yp - shift_y) / s + 0.5).astype(np.int64)
-        labels[half:half + h, half:half + w] = np.where(self._valid, gy * (1 << 20) + gx, -2)
-        own = ((self.dots[idx, 1] - shift_y) // s) * (1 << 20) + (self.dots[idx, 0] - shift_x) // s
+        labels[half:half + h, half:half + w] = _cell_labels(self._xp, self._yp, self._valid, shift_x, shift_y, s)
+        own = _cell_labels(self.dots[idx, 0].astype(np.float64), self.dots[idx, 1].astype(np.float64),
+                           np.ones(len(idx), bool), shift_x, shift_y, s)
         ys, xs = self.pixels[idx, 0], self.pixels[idx, 1]
         windows = sliding_window_view(padded, (k, k), axis=(0, 1))[ys, xs].transpose(0, 2, 3, 1)  # (n, K, K, C)
         cells = sliding_window_view(labels, (k, k))[ys, xs]

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -199,9 +199,9 @@ class DotTransport:
     ``pixels[i]`` (y, x). :func:`relight` splats ``sum_i L(dots[i]) crop_i`` with the pattern's light at
     each dot exactly.
 
-    Crops are denoised as they are read: values where the crop's luminance, smoothed over 1 px, is below
-    ``3 * noise`` of the smoothed noise are set to 0 (each camera pixel lies in ~K^2 crops, so their
-    noise would otherwise add up). ``noise``: the crops' noise std (``losses.noise_floor``).
+    With ``noise`` > 0 (the crops' noise std, ``footprints.ring_noise``) crops are denoised as they are
+    read (``footprints.above_noise``); captures from this version zeroed their noise floor already and
+    pass 0.
     """
 
     def __init__(self, pixels: np.ndarray, dots: np.ndarray, crops: object, noise: float) -> None:
@@ -344,6 +344,17 @@ class RelightView:
     captured: dict[str, np.ndarray]  # name -> reference image (noise-free sim render if stored, else capture)
     sim: dict | None = None  # SimScene arguments of a simulated session
     session: object | None = None
+    _camera: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
+
+    def camera_image(self, name: str) -> np.ndarray:
+        """The camera's noise-free image of reference ``name`` (simulated sessions; evaluation only): its
+        render through the sensor's Bayer sampling and demosaicing, without noise. Made once for every
+        reference of the view when first asked."""
+        if not self._camera:
+            names = sorted(self.captured)
+            images = self.scene().sense_noise_free(np.stack([self.captured[n] for n in names]))
+            self._camera.update(zip(names, images, strict=True))
+        return self._camera[name]
 
     def scene(self):
         """The simulator scene of a simulated session (exact footprints, ``exact``: evaluation only)."""
@@ -469,6 +480,14 @@ def display_scale(image: np.ndarray, mask: np.ndarray | None = None, percentile:
 IMAGE_FORMATS = ("png", "exr")
 
 
+def check_image_formats(formats: tuple[str, ...]) -> tuple[str, ...]:
+    """``formats`` if each is one of :data:`IMAGE_FORMATS` (and there is one), else an InputError."""
+    unknown = sorted(set(formats) - set(IMAGE_FORMATS)) or ([] if formats else ["(none)"])
+    if unknown:
+        raise InputError(f"unknown image format {', '.join(unknown)}: choose png, exr or png,exr")
+    return formats
+
+
 def write_images(stem: Path | str, image: np.ndarray, *, scale: float | None = None,
                  formats: tuple[str, ...] = ("png",)) -> list[Path]:
     """Write the relit ``image`` (H, W, 3) linear camera units; returns the paths.
@@ -481,9 +500,7 @@ def write_images(stem: Path | str, image: np.ndarray, *, scale: float | None = N
 
     from sssphase_core import exr
 
-    unknown = sorted(set(formats) - set(IMAGE_FORMATS))
-    if unknown:
-        raise InputError(f"unknown image format {', '.join(unknown)}: choose from {', '.join(IMAGE_FORMATS)}")
+    check_image_formats(formats)
     stem = Path(stem)
     stem.parent.mkdir(parents=True, exist_ok=True)
     img = np.asarray(image, np.float32)

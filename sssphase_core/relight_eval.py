@@ -104,7 +104,6 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     seconds = time.perf_counter() - t0
     rows = []
     out = Path(out_dir)
-    camera_refs: dict[str, np.ndarray] = {}
     for name, img in zip(names, relit, strict=True):
         met = relight_metrics(img, rv.captured[name], rv.proj.mask)
         row = {"object": rv.object, "view": rv.view, "pattern": name, "backend": backend, **met,
@@ -113,9 +112,8 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
         if capture is not None:  # a simulated session is scored against its noise-free render and its capture
             cap = relight_metrics(img, capture, rv.proj.mask)
             row.update({"psnr_capture": cap["psnr"], "ssim_capture": cap["ssim"]})
-            if name not in camera_refs:  # ... and what the camera records of the render without its noise
-                camera_refs[name] = rv.scene().sense_noise_free(rv.captured[name][None])[0]
-            row["psnr_camera"] = relight_metrics(img, camera_refs[name], rv.proj.mask)["psnr"]
+            # ... and against what the camera records of the render without its noise
+            row["psnr_camera"] = relight_metrics(img, rv.camera_image(name), rv.proj.mask)["psnr"]
         if write:
             stem = out / f"{rv.object}_v{rv.view}_{name}_{backend}"
             from sssphase_core.relight import write_images

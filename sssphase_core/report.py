@@ -94,21 +94,20 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
     body.append(["mean"] + [v for b in backends for v in (means[b]["psnr"], means[b]["ssim"])])
     parts.append("<h3>Relit images against the ground truth (paper-style table)</h3>")
     parts.append(html_table(cols, body))
-    if all("psnr_capture" in r for r in rows):
-        cap = {(a["object"], a["backend"]): a for a in aggregate(rows, by=("object", "backend"))}
-        parts.append("<h3>Relit images against the camera's own capture of the pattern</h3>")
-        parts.append(html_table(["object"] + [f"{b} PSNR" for b in backends],
-                                [[o] + [cap[(o, b)]["psnr_capture"] if (o, b) in cap else "n/a" for b in backends] for o in objects]))
-        parts.append("<p class='note'>The capture carries sensor noise and demosaicing, which bound every backend "
-                     "(also <code>exact</code>); footprints learned from captured dot crops carry the same system blur, "
-                     "which the noise-free render above does not have.</p>")
-    if all("psnr_camera" in r for r in rows):
-        cam = {(a["object"], a["backend"]): a for a in aggregate(rows, by=("object", "backend"))}
-        parts.append("<h3>Relit images against the camera's image of the pattern without noise</h3>")
-        parts.append(html_table(["object"] + [f"{b} PSNR" for b in backends],
-                                [[o] + [cam[(o, b)]["psnr_camera"] if (o, b) in cam else "n/a" for b in backends] for o in objects]))
-        parts.append("<p class='note'>The noise-free render seen through the camera's Bayer sampling and demosaicing: "
-                     "what the camera records on average, so what relighting from captured data can reach.</p>")
+    for key, heading, note in (
+            ("psnr_capture", "Relit images against the camera's own capture of the pattern",
+             "The capture carries sensor noise and demosaicing, which bound every backend (also <code>exact</code>); "
+             "footprints learned from captured dot crops carry the same system blur, which the noise-free render above "
+             "does not have."),
+            ("psnr_camera", "Relit images against the camera's image of the pattern without noise",
+             "The noise-free render seen through the camera's Bayer sampling and demosaicing: what the camera records "
+             "on average, so what relighting from captured data can reach.")):
+        if all(key in r for r in rows):
+            parts.append(f"<h3>{heading}</h3>")
+            parts.append(html_table(["object"] + [f"{b} PSNR" for b in backends],
+                                    [[o] + [per_obj[(o, b)][key] if (o, b) in per_obj else "n/a" for b in backends]
+                                     for o in objects]))
+            parts.append(f"<p class='note'>{note}</p>")
     parts.append(f"<p class='note'>PSNR in dB with peak 1.0 (linear camera units: a white Lambertian reference reads 1.0), "
                  f"SSIM (11 px Gaussian window), both on the object mask, mean over the checkerboard and stripe patterns. "
                  f"{_esc(lpips_note())}. <code>exact</code> splats the simulator's exact footprints (ground truth no lab has); <code>measured</code> splats the session's captured light transport (one crop per projector dot); "
