@@ -200,6 +200,10 @@ def capture(
     from sssphase_core.session import check_object_name
 
     check_object_name(object_name)
+    if views < 1:  # before a daemon is started for nothing
+        from sssphase_core.errors import InputError
+
+        raise InputError(f"--views must be >= 1, got {views}")
     spec = RigSpec.from_toml(rig) if rig else RigSpec()
     req = CaptureRequest(object_name, views, footprints, tuple(reference or ()), DEFAULT_HDR if hdr else (),
                          keep_dots, keep_unwrap, resume, out, seed, preset, dot_spacing)

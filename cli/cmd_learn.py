@@ -47,6 +47,11 @@ def _views(objects: list[str], views: list[int], *, n_views: int, rig: str, pixe
         with console.status(f"reading sessions under {sessions}"):
             vds = session_views(sessions, objects or None, views or None, pixels_per_view=pixels, footprints=footprints,
                                 seed=seed)
+        if not vds:
+            from sssphase_core.errors import InputError
+
+            raise InputError(f"no complete session views under {sessions}" + ("" if Path(sessions).is_dir() else
+                                                                              " (no such folder)"))
         console.print(f"data: captured sessions under {sessions}: {_describe(vds)}")
         return vds
     from sssphase_core.data import simulate_views

@@ -81,6 +81,7 @@ class Demo:
                  log: Callable[[str], None] = print):
         """``client``: a daemon client (``sssphase_daemon.client``; anything with ``call`` and ``capture``)."""
         self.out, self.cfg, self.client, self.fresh, self.log = Path(out), config, client, fresh, log
+        self.report_dir = self.out / "report"  # index.html and img/
         self.steps_dir = self.out / "steps"
         self.steps_dir.mkdir(parents=True, exist_ok=True)
         self.results: dict[str, dict[str, Any]] = {}
@@ -175,7 +176,7 @@ class Demo:
         from sssphase_core.relight_eval import evaluate_view
         from sssphase_core.session import Session
 
-        img_dir = self.out / "report" / "img"
+        img_dir = self.report_dir / "img"
         rows, skipped = [], {}
         ckpt = self.results.get("decoder", {}).get("checkpoint") if self.results.get("decoder", {}).get("status") == "done" else None
         for path in self.results["test_sessions"]["sessions"]:
@@ -191,7 +192,7 @@ class Demo:
                     skipped[b] = f"{type(exc).__name__}: {exc}"
                 self.log(f"  relit {rv.object} with {b}")
         for r in rows:
-            r["figure"] = str(Path(r["figure"]).relative_to(self.out / "report"))
+            r["figure"] = str(Path(r["figure"]).relative_to(self.report_dir))
         return {"rows": rows, "skipped": skipped}
 
     def footprints(self) -> dict[str, Any]:
@@ -248,7 +249,7 @@ class Demo:
         view = self.cfg.test_view
         maps = pca_maps(enc, [(s.load(view, "psp"), np.argwhere(s.load(view, "corr/mask").astype(bool))) for s in sessions],
                         self.cfg.pca_stride)
-        panels_figure(self.out / "report" / "img" / "pca_rgb.png", maps, [f"{s.name}, view {view}" for s in sessions],
+        panels_figure(self.report_dir / "img" / "pca_rgb.png", maps, [f"{s.name}, view {view}" for s in sessions],
                       f"{PCA_TITLE} (every {self.cfg.pca_stride}th pixel)")
         return {"figure": "img/pca_rgb.png", "objects": [s.name for s in sessions]}
 
@@ -258,7 +259,7 @@ class Demo:
     def report(self) -> dict[str, Any]:
         from sssphase_core.report import write_report
 
-        path = write_report(self.out / "report", self.results, asdict(self.cfg), title=self.report_title, rig=self.report_rig)
+        path = write_report(self.report_dir, self.results, asdict(self.cfg), title=self.report_title, rig=self.report_rig)
         return {"path": str(path)}
 
     def run(self) -> Path:
@@ -267,7 +268,7 @@ class Demo:
                 self.results.pop("report", None)
                 self.fresh_report()
             self.step(name, getattr(self, name))
-        return self.out / "report" / "index.html"
+        return self.report_dir / "index.html"
 
     def fresh_report(self) -> None:
         """The report is rewritten on every run (it reflects all steps, including newly finished ones)."""
@@ -312,6 +313,7 @@ def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Pat
     chosen = tuple(b for b in backends if (b != "torch" or decoder is not None) and (b != "measured" or has_measured))
     config = DemoConfig(objects, tuple(s.name for s in tests), test_view=view, backends=chosen)
     demo = Demo(Path(out), config, client=None, fresh=True, log=log)
+    demo.report_dir = Path(out)  # OUT/index.html (step records in OUT/steps)
     demo.report_title = "sssphase report"
     sims = {"simulated" if "gt/proj_xy" in s.arrays(view) else "captured" for s in tests if view in s.views()}
     demo.report_rig = " and ".join(sorted(sims)).capitalize() + " sessions"
@@ -325,4 +327,4 @@ def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Pat
         demo.results["decoder"] = {**done, "checkpoint": str(decoder)}
     for name in REPORT_STEPS:
         demo.step(name, getattr(demo, name))
-    return demo.out / "report" / "index.html"
+    return demo.report_dir / "index.html"

@@ -160,11 +160,11 @@ def test_sss_report_on_a_users_own_session(frames, tmp_path):
     res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "report", str(tmp_path / "sessions"), "--backend",
                           "none,measured", "--out", str(tmp_path / "rep")], capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stdout + res.stderr
-    page = (tmp_path / "rep" / "report" / "index.html").read_text()
+    page = (tmp_path / "rep" / "index.html").read_text()
     assert "<h1>sssphase report</h1>" in page and "Captured sessions" in page
     assert "measured PSNR" in page and "handmade" in page
     assert "not a simulated session" in page and "kNN table: not available" in page  # said, not silently left out
-    assert [p.name for p in (tmp_path / "rep" / "report" / "img").glob("*compare.png")]
+    assert [p.name for p in (tmp_path / "rep" / "img").glob("*compare.png")]
     assert "[relight] done" in res.stdout
     bad = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "report", str(s.path), "--view", "3", "--out",
                           str(tmp_path / "r2")], capture_output=True, text=True, timeout=120)
