@@ -379,6 +379,35 @@ def bench_daemon(
     console.print(f"wrote {out} and {md} in {time.time() - t0:.0f} s")
 
 
+def bench_capture(
+    out: Annotated[Path, typer.Option(help="JSON result file (a Markdown table is printed and written next to it)")],
+    preset: Annotated[str, typer.Option(help="sim rig preset (`sss rigs`): paper = 1920x1080, K = 90")] = "paper",
+    object_name: Annotated[str, typer.Option("--object", help="sim object (`sss objects`)")] = "soap",
+    footprints: Annotated[bool, typer.Option("--footprints/--no-footprints", help="capture the dot grids too")] = True,
+    keep: Annotated[Path | None, typer.Option(help="keep the session under this folder (default: removed)")] = None,
+    md: Annotated[Path | None, typer.Option(help="Markdown table file (default: next to --out)")] = None,
+) -> None:
+    """One sim view captured through a daemon: time, peak RSS of daemon and client, session size."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
+
+    from sssphase_core.sim import rig_preset
+    from sssphase_daemon.bench import capture_bench
+
+    rig_preset(preset)  # an unknown preset is one line, before a daemon starts
+    with Progress(TextColumn("capturing"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn(),
+                  console=console, transient=True) as bar:
+        task = bar.add_task("view", total=None)
+        result, markdown = capture_bench(preset, object_name, footprints=footprints, out=keep,
+                                         progress=lambda view, done, total: bar.update(task, completed=done, total=total))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
+    md = md or out.with_suffix(".md")
+    md.parent.mkdir(parents=True, exist_ok=True)
+    md.write_text(markdown)
+    console.print(markdown)
+    console.print(f"wrote {out} and {md}")
+
+
 def register(groups: dict[str, typer.Typer]) -> None:
     root = groups["root"]
     root.command("devices")(devices)
@@ -393,3 +422,4 @@ def register(groups: dict[str, typer.Typer]) -> None:
     groups["daemon"].command("status")(daemon_status)
     groups["daemon"].command("keys")(daemon_keys)
     groups["bench"].command("daemon")(bench_daemon)
+    groups["bench"].command("capture")(bench_capture)

@@ -112,6 +112,70 @@ def sim_view_time(client: DaemonClient, tmp: Path) -> float:
     return time.perf_counter() - t0
 
 
+def _folder_bytes(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file())
+
+
+def capture_bench(preset: str = "paper", object_name: str = "soap", *, footprints: bool = True,
+                  out: Path | None = None, progress: Any = None) -> tuple[dict[str, Any], str]:
+    """One sim view captured the user's way (a daemon process, ``run_capture`` in this one): wall time,
+    frames, peak RSS of the daemon and of this client process, the session's size on disk by array
+    group. ``out``: where the session goes (default: a temporary folder, removed)."""
+    from sssphase_core.capture import CaptureRequest, run_capture
+    from sssphase_core.session import view_dir_name
+
+    with tempfile.TemporaryDirectory(prefix="sssb", dir="/tmp") as tmpdir:
+        tmp = Path(tmpdir)
+        root = out or tmp / "sessions"
+        os.environ["SSS_RUNTIME_DIR"] = str(tmp / "rt")
+        proc = spawn_daemon()
+        state = security.read_state()
+        try:
+            with DaemonClient(state.endpoint, state.token) as client:
+                t0 = time.perf_counter()
+                session = run_capture(client, CaptureRequest(object_name, views=1, out=root, footprints=footprints,
+                                                             preset=preset), progress=progress)
+                seconds = time.perf_counter() - t0
+                daemon_rss = _peak_rss_mb(proc.pid)
+                client.call("shutdown")
+            proc.wait(30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        view = session.manifest["views"]["0"]
+        groups: dict[str, int] = {}
+        for name, meta in view["arrays"].items():
+            groups[name.split("/")[0]] = groups.get(name.split("/")[0], 0) + _folder_bytes(session.path / view_dir_name(0) / name)
+        crops = view["arrays"].get("footprints/crops", {}).get("shape", [0])
+        result = {"preset": preset, "object": object_name, "footprints": footprints, "cpus": os.cpu_count(),
+                  "frames": view["frames"], "seconds": seconds, "frames_per_s": view["frames"] / seconds,
+                  "daemon_peak_rss_mb": daemon_rss,
+                  "client_peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+                  "session_bytes": _folder_bytes(session.path), "bytes_by_group": groups,
+                  "footprint_crops": crops[0], "transport_dots": view.get("transport", {}).get("dots", 0),
+                  "crop_float32_bytes": int(np.prod(crops)) * 4 if len(crops) > 1 else 0}
+    return result, capture_markdown(result)
+
+
+def capture_markdown(r: dict[str, Any]) -> str:
+    gb = 1e9
+    lines = [f"One sim view, `{r['preset']}` preset, {r['object']}, {'with' if r['footprints'] else 'without'} "
+             f"footprints, through the daemon ({r['cpus']} CPUs)", "",
+             "| measure | value |", "|---|---|",
+             f"| frames | {r['frames']:,} |",
+             f"| wall time | {r['seconds']:.0f} s ({r['frames_per_s']:.2f} frames/s) |",
+             f"| daemon peak RSS | {r['daemon_peak_rss_mb']:,.0f} MB |",
+             f"| client peak RSS | {r['client_peak_rss_mb']:,.0f} MB |",
+             f"| session on disk | {r['session_bytes'] / gb:.2f} GB |"]
+    for group, size in sorted(r["bytes_by_group"].items(), key=lambda kv: -kv[1]):
+        lines.append(f"| &nbsp; {group}/ | {size / gb:.3f} GB |")
+    if r["footprint_crops"]:
+        lines.append(f"| footprint crops (one per camera pixel) | {r['footprint_crops']:,} "
+                     f"({r['bytes_by_group'].get('footprints', 0) / r['crop_float32_bytes']:.1%} of float32) |")
+        lines.append(f"| transport crops (one per projector dot) | {r['transport_dots']:,} |")
+    return "\n".join(lines) + "\n"
+
+
 def run_bench(n: int = 200) -> tuple[dict[str, Any], str]:
     result: dict[str, Any] = {"frame": {"shape": list(SHAPE), "dtype": "uint16", "bytes": int(np.prod(SHAPE)) * 2},
                               "frames_per_run": n, "cpus": os.cpu_count(), "runs": {}}

@@ -155,7 +155,6 @@ def _plan_digest(frames: list[dict[str, Any]]) -> str:
     return h.hexdigest()
 
 
-MAX_TRANSPORT_BYTES = 2 * 2**30  # per-dot transport crops held per view; larger views keep per-pixel crops only
 
 
 def develop_frame(data: np.ndarray, rig: RigSpec, exposure: float = 1.0) -> np.ndarray:
@@ -167,6 +166,66 @@ def develop_frame(data: np.ndarray, rig: RigSpec, exposure: float = 1.0) -> np.n
     from sssphase_core import isp
 
     return isp.develop(data, rig.black_level, rig.white_scale * exposure, median=rig.median)
+
+
+class CropStream:
+    """One extractor's crops (``footprints.DotGridExtractor``: one per camera pixel, or
+    ``DotTransportExtractor``: one per projector dot) written to ``<prefix>/crops`` float16 as the dot
+    frames arrive, and their camera pixels (and projector dots) to ``<prefix>/pixels`` (``/dots``) in the
+    same order on ``close``: memory holds one frame's crops and one chunk at any K (a 1080p view at K = 90
+    has ~10^5 crops of 97 kB). With ``drop_noise`` the first ``NOISE_SAMPLE`` crops are held back to
+    measure the noise floor (``ring_noise``), which is then zeroed in every crop (``drop_below_noise``)."""
+
+    def __init__(self, writer: ViewWriter, prefix: str, extractor: Any, *, drop_noise: bool = False,
+                 chunk_bytes: int = 2**21) -> None:
+        self.writer, self.prefix, self.extractor, self.drop_noise = writer, prefix, extractor, drop_noise
+        self.array = writer.growing_array(f"{prefix}/crops", (extractor.patch, extractor.patch, extractor.channels),
+                                          np.float16, chunk_bytes)
+        self.order: list[np.ndarray] = []
+        self.held: list[np.ndarray] = []
+        self.noise: float | None = None
+
+    def add(self, shift_x: int, shift_y: int, frame: np.ndarray) -> None:
+        from sssphase_core.footprints import NOISE_SAMPLE
+
+        idx, crops = self.extractor.crops(shift_x, shift_y, frame)
+        if not len(idx):
+            return
+        self.order.append(idx)
+        if self.drop_noise and self.noise is None:
+            self.held.append(crops)
+            if sum(len(c) for c in self.held) >= NOISE_SAMPLE:
+                self._release()
+            return
+        self.array.extend(self._dropped(crops))
+
+    def _dropped(self, crops: np.ndarray) -> np.ndarray:
+        from sssphase_core.footprints import drop_below_noise
+
+        return drop_below_noise(crops, self.noise) if self.drop_noise and self.noise else crops
+
+    def _release(self) -> None:
+        from sssphase_core.footprints import NOISE_SAMPLE, ring_noise
+
+        held = np.concatenate(self.held) if self.held else np.zeros((0, *self.array.arr.shape[1:]), np.float32)
+        self.held = []
+        self.noise = ring_noise(held[:NOISE_SAMPLE]) if len(held) else 0.0
+        self.array.extend(self._dropped(held))
+
+    def close(self) -> dict[str, Any]:
+        """Write the pixels (and dots) in crop order; returns manifest info (count, noise)."""
+        if self.drop_noise and self.noise is None:
+            self._release()
+        self.array.close()
+        order = np.concatenate(self.order) if self.order else np.zeros(0, np.int64)
+        self.writer.write(f"{self.prefix}/pixels", self.extractor.pixels[order].astype(np.int32))
+        info: dict[str, Any] = {"count": len(order)}
+        if hasattr(self.extractor, "dots"):
+            self.writer.write(f"{self.prefix}/dots", self.extractor.dots[order].astype(np.int32))
+            info["dots"] = len(order)
+        if self.drop_noise:
+            info["noise"] = self.noise
+        return info
 
 
 class ViewProcessor:
@@ -181,9 +240,8 @@ class ViewProcessor:
         self.images: dict[str, np.ndarray] = {}
         self.patterns: dict[str, np.ndarray] = {}  # ref/<name> -> the projected image of a file reference
         self.corr = None
-        self.extractor = None
-        self.transport = None  # per-dot light transport (the measured backend's relighting data)
-        self.transport_skipped = ""
+        self.footprints: CropStream | None = None  # one crop per camera pixel (training targets)
+        self.transport: CropStream | None = None  # one crop per projector dot (the measured backend's data)
 
         self.dots = writer.stream_array("dots", n_dots) if req.keep_dots and n_dots else None
 
@@ -226,23 +284,20 @@ class ViewProcessor:
         return self.corr
 
     def _add_dots(self, key: str, image: np.ndarray) -> None:
-        if self.extractor is None:
+        if self.footprints is None:
             from sssphase_core.footprints import DotGridExtractor, DotTransportExtractor, dark_reference
 
             corr = self.decode()
-            self.extractor = DotGridExtractor(corr.xp, corr.yp, corr.mask, self.spacing, self.patch)
             self.dark = dark_reference(self.images["black"], self.images["white"])
-            self.transport = DotTransportExtractor(corr.xp, corr.yp, corr.mask, self.spacing, self.patch,
-                                                   (self.plan.width, self.plan.height))
-            if self.transport.nbytes > MAX_TRANSPORT_BYTES:  # kept in memory until the view is written
-                self.transport_skipped = (f"{len(self.transport.dots)} dots x {self.patch}^2 crops would take "
-                                          f"{self.transport.nbytes / 2**30:.1f} GiB")
-                self.transport = None
+            self.footprints = CropStream(self.writer, "footprints",
+                                         DotGridExtractor(corr.xp, corr.yp, corr.mask, self.spacing, self.patch))
+            self.transport = CropStream(self.writer, "transport",
+                                        DotTransportExtractor(corr.xp, corr.yp, corr.mask, self.spacing, self.patch,
+                                                              (self.plan.width, self.plan.height)), drop_noise=True)
         sx, sy = (int(v) for v in key.split("/")[1].split("_"))
         dots = image - self.dark
-        self.extractor.add(sx, sy, dots)
-        if self.transport is not None:
-            self.transport.add(sx, sy, dots)
+        self.footprints.add(sx, sy, dots)
+        self.transport.add(sx, sy, dots)
         if self.dots is not None:
             self.dots.append(image)
 
@@ -263,19 +318,10 @@ class ViewProcessor:
             w.write(key, image)
         for key, pattern in self.patterns.items():  # so that relighting can be evaluated against ref/<name>
             w.write(f"pattern/{key.removeprefix('ref/')}", np.asarray(pattern, np.float32))
-        if self.extractor is not None:
-            pixels, crops = self.extractor.result()
-            w.write("footprints/pixels", pixels.astype(np.int32))
-            w.write("footprints/crops", crops)
-            info["footprints"] = {"count": len(pixels), "missing": len(self.extractor.missing()), "spacing": self.spacing}
-        if self.transport is not None:
-            pixels, dots, crops = self.transport.result()
-            w.write("transport/pixels", pixels.astype(np.int32))
-            w.write("transport/dots", dots.astype(np.int32))
-            w.write("transport/crops", crops)
-            info["transport"] = {"dots": len(dots), "noise": self.transport.noise, "noise_dropped": True}
-        elif self.transport_skipped:
-            info["transport"] = {"skipped": self.transport_skipped}
+        if self.footprints is not None and self.transport is not None:
+            info["footprints"] = {**self.footprints.close(), "missing": len(self.footprints.extractor.missing()),
+                                  "spacing": self.spacing}
+            info["transport"] = {**self.transport.close(), "noise_dropped": True}
         if self.dots is not None:
             self.dots.close()
         return info

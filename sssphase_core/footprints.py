@@ -48,6 +48,35 @@ def _cell_labels(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray, shift_x: int
     return np.where(valid, gy * (1 << 20) + gx, -2)
 
 
+def _isolated_windows(frame: np.ndarray, ys: np.ndarray, xs: np.ndarray, own: np.ndarray | None, patch: int,
+                      corr: tuple[np.ndarray, np.ndarray, np.ndarray], shift_x: int, shift_y: int,
+                      spacing: int) -> np.ndarray:
+    """``(n, K, K, C)`` float32 windows of ``frame`` (H, W, C) centred on pixels ``(ys, xs)`` (zero beyond
+    the image), each cut to its own dot's cell: pixels whose projector coordinate (``corr`` = xp, yp,
+    valid) is nearest to another dot of frame ``(shift_x, shift_y)`` are 0 (``own`` (n,): each window's
+    dot as a :func:`_cell_labels` label; None keeps everything). Cells follow the local Jacobian and need
+    no lit camera pixel, so a dot between camera pixel centres on a grazing surface is still told apart;
+    pixels without a coordinate (off the surface, outside the image) are kept. Only the bounding box of
+    the pixels is padded, so the cost follows the object, not the image."""
+    k, half = patch, patch // 2
+    h, w = frame.shape[:2]
+    y0, y1, x0, x1 = int(ys.min()), int(ys.max()), int(xs.min()), int(xs.max())
+    sy0, sx0 = max(0, y0 - half), max(0, x0 - half)
+    sy1, sx1 = min(h, y1 - half + k), min(w, x1 - half + k)
+    oy, ox = sy0 - (y0 - half), sx0 - (x0 - half)
+    region = np.zeros((y1 - y0 + k, x1 - x0 + k, frame.shape[2]), np.float32)
+    region[oy:oy + sy1 - sy0, ox:ox + sx1 - sx0] = frame[sy0:sy1, sx0:sx1]
+    out = sliding_window_view(region, (k, k), axis=(0, 1))[ys - y0, xs - x0].transpose(0, 2, 3, 1)  # (n, K, K, C)
+    if own is None:
+        return np.ascontiguousarray(out)
+    xp, yp, valid = corr
+    labels = np.full(region.shape[:2], -2, np.int64)  # -2: no projector coordinate (kept)
+    labels[oy:oy + sy1 - sy0, ox:ox + sx1 - sx0] = _cell_labels(xp[sy0:sy1, sx0:sx1], yp[sy0:sy1, sx0:sx1],
+                                                                 valid[sy0:sy1, sx0:sx1], shift_x, shift_y, spacing)
+    cells = sliding_window_view(labels, (k, k))[ys - y0, xs - x0]
+    return out * ((cells == own[:, None, None]) | (cells == -2))[..., None]
+
+
 def _by_shift(shift: np.ndarray, spacing: int) -> list[np.ndarray]:
     """Indices grouped by the dot-grid frame (shift index ``sy * spacing + sx``; -1: no frame) that lights them."""
     order = np.argsort(shift, kind="stable")
@@ -96,54 +125,39 @@ class DotGridExtractor:
         # shift index of the frame that lights each pixel (-1: never lit)
         self._shift = np.where(inside, (ry % spacing) * spacing + rx % spacing, -1)
         self._groups = _by_shift(self._shift, spacing)
-        self._footprints = np.zeros((len(ys), patch, patch, channels), dtype)
+        self.dtype = np.dtype(dtype)
+        self._footprints: np.ndarray | None = None  # allocated by the first ``add`` (``crops`` streams)
         self._lit = np.zeros(len(ys), bool)
 
     def add(self, shift_x: int, shift_y: int, frame: np.ndarray) -> int:
-        """Crop the footprints lit by dot-grid frame ``(shift_x, shift_y)``; returns how many were stored."""
+        """Crop and keep the footprints lit by dot-grid frame ``(shift_x, shift_y)``; returns how many."""
+        idx, crops = self.crops(shift_x, shift_y, frame)
+        if self._footprints is None:
+            self._footprints = np.zeros((len(self.pixels), self.patch, self.patch, self.channels), self.dtype)
+        self._footprints[idx] = crops
+        return len(idx)
+
+    def crops(self, shift_x: int, shift_y: int, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(idx (n,), crops (n, K, K, C) float32)`` of the pixels lit by dot-grid frame ``(shift_x,
+        shift_y)`` (``self.pixels[idx]``), without keeping them: a caller that streams them to disk holds
+        one frame's crops at a time. Marks the pixels as lit."""
         frame = _dot_frame(shift_x, shift_y, frame, self.spacing, self.shape, self.channels)
         idx = self._groups[shift_y * self.spacing + shift_x]
         if len(idx) == 0:
-            return 0
-        k, half = self.patch, self.patch // 2
+            return idx, np.zeros((0, self.patch, self.patch, self.channels), np.float32)
         ys, xs = self.pixels[idx, 0], self.pixels[idx, 1]
-        y0, y1 = ys.min(), ys.max()
-        x0, x1 = xs.min(), xs.max()
-        # pad only the bounding box of the pixels lit by this frame
-        region = np.zeros((y1 - y0 + k, x1 - x0 + k, self.channels), frame.dtype)
-        sy0, sx0 = max(0, y0 - half), max(0, x0 - half)
-        sy1, sx1 = min(self.shape[0], y1 - half + k), min(self.shape[1], x1 - half + k)
-        region[sy0 - (y0 - half) : sy1 - (y0 - half), sx0 - (x0 - half) : sx1 - (x0 - half)] = frame[sy0:sy1, sx0:sx1]
-        windows = sliding_window_view(region, (k, k), axis=(0, 1))  # (h, w, C, K, K)
-        crops = windows[ys - y0, xs - x0].transpose(0, 2, 3, 1) * self.scale[idx, None, None, None]
-        if self.isolate:
-            crops *= self._own_dot_windows(idx, shift_x, shift_y, y0, x0, y1, x1)[..., None]
-        self._footprints[idx] = crops
+        own = (_cell_labels(self._xp[ys, xs], self._yp[ys, xs], np.ones(len(idx), bool), shift_x, shift_y, self.spacing)
+               if self.isolate else None)
+        crops = _isolated_windows(frame, ys, xs, own, self.patch, (self._xp, self._yp, self._valid), shift_x, shift_y,
+                                  self.spacing)
+        crops *= self.scale[idx, None, None, None]
         self._lit[idx] = True
-        return len(idx)
-
-    def _own_dot_windows(self, idx: np.ndarray, shift_x: int, shift_y: int, y0: int, x0: int, y1: int, x1: int) -> np.ndarray:
-        """``(n, K, K)`` bool: crop pixels whose nearest dot of this frame, in projector space, is the crop's.
-
-        Each valid pixel's projector coordinate names its nearest dot of the grid, so cells follow the
-        local Jacobian and need no lit camera pixel (a dot between camera pixel centres on a grazing
-        surface is still told apart). Pixels without a coordinate (outside the image, invalid) are kept.
-        """
-        k, half, s = self.patch, self.patch // 2, self.spacing
-        h, w = self.shape
-        labels = np.full((y1 - y0 + k, x1 - x0 + k), -2, np.int64)  # -2: outside the image
-        ry0, rx0 = max(0, y0 - half), max(0, x0 - half)
-        ry1, rx1 = min(h, y1 - half + k), min(w, x1 - half + k)
-        lab = _cell_labels(self._xp[ry0:ry1, rx0:rx1], self._yp[ry0:ry1, rx0:rx1], self._valid[ry0:ry1, rx0:rx1],
-                           shift_x, shift_y, s)
-        labels[ry0 - (y0 - half) : ry1 - (y0 - half), rx0 - (x0 - half) : rx1 - (x0 - half)] = lab
-        ys, xs = self.pixels[idx, 0], self.pixels[idx, 1]
-        own = labels[ys - y0 + half, xs - x0 + half]
-        windows = sliding_window_view(labels, (k, k))  # (h, w, K, K)
-        return (windows[ys - y0, xs - x0] == own[:, None, None]) | (windows[ys - y0, xs - x0] == -2)
+        return idx, crops
 
     def result(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(pixels (N, 2) int yx, footprints (N, K, K, C))`` of the pixels lit so far."""
+        """``(pixels (N, 2) int yx, footprints (N, K, K, C))`` of the pixels lit so far by ``add``."""
+        if self._footprints is None:
+            return self.pixels[:0], np.zeros((0, self.patch, self.patch, self.channels), self.dtype)
         if self._lit.all():
             return self.pixels, self._footprints
         return self.pixels[self._lit], self._footprints[self._lit]
@@ -261,41 +275,51 @@ class DotTransportExtractor:
             self.pixels = np.stack([py[keep], px[keep]], axis=1).astype(np.int64)
         self._groups = _by_shift((self.dots[:, 1] % spacing) * spacing + self.dots[:, 0] % spacing, spacing)
         self.nbytes = len(self.dots) * patch * patch * channels * np.dtype(dtype).itemsize
-        self._crops = np.zeros((len(self.dots), patch, patch, channels), dtype)  # pages are touched as dots arrive
+        self._crops: np.ndarray | None = None  # allocated by the first ``add`` (``crops`` streams)
         self._lit = np.zeros(len(self.dots), bool)
 
     def add(self, shift_x: int, shift_y: int, frame: np.ndarray) -> int:
-        """Crop the dots of dot-grid frame ``(shift_x, shift_y)`` (black already subtracted); returns how many."""
+        """Crop and keep the dots of dot-grid frame ``(shift_x, shift_y)`` (black already subtracted)."""
+        idx, crops = self.crops(shift_x, shift_y, frame)
+        if self._crops is None:  # pages are touched as dots arrive
+            self._crops = np.zeros((len(self.dots), self.patch, self.patch, self.channels), self.dtype)
+        self._crops[idx] = crops
+        return len(idx)
+
+    def crops(self, shift_x: int, shift_y: int, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(idx (n,), crops (n, K, K, C) float32)`` of the dots of frame ``(shift_x, shift_y)``
+        (``self.dots[idx]``, seen at ``self.pixels[idx]``), without keeping them. Marks them as lit."""
         s, k, half = self.spacing, self.patch, self.patch // 2
         frame = _dot_frame(shift_x, shift_y, frame, s, self.shape, self.channels)
         idx = self._groups[shift_y * s + shift_x]
         if len(idx) == 0:
-            return 0
-        h, w = self.shape
-        padded = np.zeros((h + k, w + k, self.channels), np.float32)
-        padded[half:half + h, half:half + w] = frame
-        labels = np.full((h + k, w + k), -2, np.int64)  # -2: no projector coordinate (kept)
-        labels[half:half + h, half:half + w] = _cell_labels(self._xp, self._yp, self._valid, shift_x, shift_y, s)
+            return idx, np.zeros((0, k, k, self.channels), np.float32)
         own = _cell_labels(self.dots[idx, 0].astype(np.float64), self.dots[idx, 1].astype(np.float64),
                            np.ones(len(idx), bool), shift_x, shift_y, s)
-        ys, xs = self.pixels[idx, 0], self.pixels[idx, 1]
-        windows = sliding_window_view(padded, (k, k), axis=(0, 1))[ys, xs].transpose(0, 2, 3, 1)  # (n, K, K, C)
-        cells = sliding_window_view(labels, (k, k))[ys, xs]
-        keep = (cells == own[:, None, None]) | (cells == -2)
-        self._crops[idx] = (windows * keep[..., None]).astype(self.dtype)
+        crops = _isolated_windows(frame, self.pixels[idx, 0], self.pixels[idx, 1], own, k,
+                                  (self._xp, self._yp, self._valid), shift_x, shift_y, s)
         self._lit[idx] = True
-        return len(idx)
+        return idx, crops
 
     def result(self, *, drop_noise: bool = True) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """``(pixels (N, 2) yx, dots (N, 2) projector xy, crops (N, K, K, C))`` of the dots seen so far;
         with ``drop_noise`` the crop values below the noise floor (:func:`above_noise`) are 0, which the
         relighting would drop anyway and which makes the store ~4x smaller. ``self.noise`` is then the
         crops' noise std before the drop (record it: it cannot be estimated from dropped crops)."""
-        crops = self._crops[self._lit]
-        self.noise = ring_noise(crops[:512]) if len(crops) else 0.0  # of the crops as captured
+        crops = self._crops[self._lit] if self._crops is not None else np.zeros((0, self.patch, self.patch, self.channels), self.dtype)
+        self.noise = ring_noise(crops[:NOISE_SAMPLE]) if len(crops) else 0.0  # of the crops as captured
         if drop_noise and len(crops):
-            crops = crops * above_noise(crops, self.noise)[..., None].astype(crops.dtype)
+            crops = drop_below_noise(crops, self.noise)
         return self.pixels[self._lit], self.dots[self._lit], crops
+
+
+#: Crops whose outer ring measures the noise floor of a view's transport (the first ones captured).
+NOISE_SAMPLE = 512
+
+
+def drop_below_noise(crops: np.ndarray, noise: float) -> np.ndarray:
+    """``crops`` (N, K, K, C) with the values below the noise floor (:func:`above_noise`) set to 0."""
+    return crops * above_noise(crops, noise)[..., None].astype(crops.dtype)
 
 
 def ring_noise(crops: np.ndarray, border: int = 2) -> float:

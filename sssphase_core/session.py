@@ -167,6 +167,11 @@ class ViewWriter:
         """An array of ``count`` equal-shape frames written one at a time (raw dot grids)."""
         return StreamedArray(self, name, count)
 
+    def growing_array(self, name: str, row_shape: tuple[int, ...], dtype: np.dtype,
+                      chunk_bytes: int = 2**21) -> GrowingArray:
+        """An array of rows appended in blocks, its length known only at the end (footprint crops)."""
+        return GrowingArray(self, name, row_shape, dtype, chunk_bytes)
+
     def abort(self) -> None:
         shutil.rmtree(self.partial, ignore_errors=True)
 
@@ -205,6 +210,61 @@ class StreamedArray:
             raise DataError(f"{self.name}: got {self.index} of {self.count} frames")
         self.writer.arrays[self.name] = {"shape": list(self.arr.shape), "dtype": self.arr.dtype.str,
                                          "checksum": "sha256:" + self.hash.hexdigest(), "chunks": self.count}
+
+
+class GrowingArray:
+    """``(N, *row_shape)`` zarr array of rows appended in blocks of any length, N not known in advance
+    (footprint crops as dot frames arrive). Rows are held until a whole chunk is full, so each chunk is
+    written once and memory stays at one chunk plus the block being added."""
+
+    def __init__(self, writer: ViewWriter, name: str, row_shape: tuple[int, ...], dtype: np.dtype,
+                 chunk_bytes: int = 2**21) -> None:
+        import zarr
+
+        if not ARRAY_RE.fullmatch(name):
+            raise InputError(f"bad array name {name!r}")
+        if FAULT_HOOK is not None:
+            FAULT_HOOK(name)
+        self.writer, self.name, self.dtype = writer, name, np.dtype(dtype)
+        self.rows = _chunks((1 << 40, *row_shape), self.dtype.itemsize, chunk_bytes)[0]
+        self.arr = zarr.create_array(store=str(writer.partial / name), shape=(0, *row_shape), dtype=self.dtype,
+                                     chunks=(self.rows, *row_shape), fill_value=0, zarr_format=3,
+                                     compressors=_codec(self.dtype), config={"write_empty_chunks": True})
+        self.held: list[np.ndarray] = []
+        self.n_held = 0
+        self.hash = hashlib.sha256()
+
+    def __len__(self) -> int:
+        return self.arr.shape[0] + self.n_held
+
+    def extend(self, rows: np.ndarray) -> None:
+        """Append ``rows`` (n, *row_shape), cast to the array's dtype."""
+        rows = np.ascontiguousarray(rows, self.dtype)
+        if rows.shape[1:] != self.arr.shape[1:]:
+            raise DataError(f"{self.name}: rows of shape {rows.shape[1:]}, expected {self.arr.shape[1:]}")
+        self.held.append(rows)
+        self.n_held += len(rows)
+        if self.n_held >= self.rows:
+            self._flush(whole_chunks=True)
+
+    def _flush(self, whole_chunks: bool) -> None:
+        if not self.n_held:
+            return
+        block = np.concatenate(self.held) if len(self.held) > 1 else self.held[0]
+        n = len(block) - len(block) % self.rows if whole_chunks else len(block)
+        start = self.arr.shape[0]
+        self.arr.resize((start + n, *self.arr.shape[1:]))
+        self.arr[start:start + n] = block[:n]
+        self.hash.update(memoryview(np.ascontiguousarray(block[:n])).cast("B"))
+        self.held = [block[n:]] if n < len(block) else []
+        self.n_held = len(block) - n
+
+    def close(self) -> None:
+        self._flush(whole_chunks=False)
+        shape = tuple(self.arr.shape)
+        self.writer.arrays[self.name] = {"shape": list(shape), "dtype": self.dtype.str,
+                                         "checksum": "sha256:" + self.hash.hexdigest(),
+                                         "chunks": _chunk_count(shape, (self.rows, *shape[1:]))}
 
 
 class CheckedArray:

@@ -261,3 +261,39 @@ def test_per_camera_pixel_crops_lose_the_dots_between_pixel_centres():
     src = nearest_measured_source(pixels, crops, white, transport_weights(pixels, xp, yp, mask))
     relit = relight(src, proj, [np.ones((hp, wp), np.float32)], k)[0]
     assert np.median(relit[4:-4, 4:-4] / white[4:-4, 4:-4]) < 0.5
+
+
+def test_streamed_crops_in_a_session_equal_the_extractors_own(tmp_path):
+    """The capture writes crops to the session as dot frames arrive (bounded memory at 1080p, K = 90):
+    in arrival order, float16, their pixels (and dots) in the same order, checksummed like any array."""
+    from sssphase_core.capture import CropStream
+    from sssphase_core.footprints import DotTransportExtractor
+    from sssphase_core.session import Session, array_checksum
+
+    h, w = 30, 40
+    xp, yp, mask, frame = _scene(h, w)
+    session = Session.create(tmp_path, "obj", n_views=1)
+    writer = session.begin_view(0)
+    grid = CropStream(writer, "footprints", DotGridExtractor(xp, yp, mask, SPACING, K), chunk_bytes=7 * K * K * 3 * 2)
+    transport = CropStream(writer, "transport", DotTransportExtractor(xp, yp, mask, SPACING, K, (w, h)), drop_noise=True)
+    assert grid.array.rows == 7  # several chunks, flushed while frames still arrive
+    reference = DotGridExtractor(xp, yp, mask, SPACING, K)
+    for sy in range(SPACING):
+        for sx in range(SPACING):
+            grid.add(sx, sy, frame(sx, sy))
+            transport.add(sx, sy, frame(sx, sy))
+            reference.add(sx, sy, frame(sx, sy))
+        if sy == 2:
+            assert 0 < grid.array.arr.shape[0] and grid.array.n_held < 7  # written as it goes
+    info_grid, info_tx = grid.close(), transport.close()
+    writer.commit({})
+    px, crops = session.load(0, "footprints/pixels"), session.load(0, "footprints/crops")
+    assert crops.dtype == np.float16 and info_grid["count"] == len(px) == mask.sum()
+    ref_px, ref_crops = reference.result()
+    order = np.lexsort((px[:, 1], px[:, 0]))
+    np.testing.assert_array_equal(px[order], ref_px)
+    np.testing.assert_allclose(crops[order].astype(np.float32), ref_crops, rtol=1e-3, atol=1e-6)
+    assert session.manifest["views"]["0"]["arrays"]["footprints/crops"]["checksum"] == array_checksum(crops)
+    dots = session.load(0, "transport/dots")
+    assert info_tx["dots"] == len(dots) == len(session.load(0, "transport/pixels")) and info_tx["noise"] >= 0
+    assert len(np.unique(dots[:, 1] * w + dots[:, 0])) == len(dots)
