@@ -500,8 +500,36 @@ def bench_learn(
     console.print(loader.markdown())
 
 
+def bench_gpu(
+    out: Annotated[Path, typer.Option(help="JSON output (a Markdown table is written next to it).")] = Path("benchmarks/gpu.json"),
+    device: Annotated[str, typer.Option(help="auto (CUDA when torch sees one), cuda, cuda:N or cpu (plumbing)")] = "auto",
+    preset: Annotated[str, typer.Option(help="model preset (paper, lite, ...)")] = "paper",
+    steps: Annotated[int, typer.Option(help="training steps of each stage")] = 200,
+    batch: Annotated[int, typer.Option(help="patches per step")] = 32,
+    epochs: Annotated[int, typer.Option(help="epochs the steps are split into (one loss figure each)")] = 4,
+    md: Annotated[Path | None, typer.Option(help="Markdown output (default: next to --out)")] = None,
+) -> None:
+    """The GPU path: paper-preset training with mixed precision, CPU/GPU agreement, relighting, NCCL DDP."""
+    import json
+
+    from sssphase_core.bench.gpu_bench import markdown, run
+    from sssphase_core.models import get_preset
+
+    get_preset(preset)  # an unknown preset is one line before any work
+    with console.status("sss bench gpu") as status:
+        result = run(out, device=device, preset=preset, steps=steps, batch=batch, epochs=epochs,
+                     progress=lambda stage: status.update(f"sss bench gpu: {stage}"))
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(result, indent=1))
+    md = md or out.with_suffix(".md")
+    md.write_text(markdown(result))
+    console.print(markdown(result))
+    console.print(f"wrote {out} and {md}")
+
+
 def register(groups: dict[str, typer.Typer]) -> None:
     groups["bench"].command("learn")(bench_learn)
+    groups["bench"].command("gpu")(bench_gpu)
     groups["train"].command("pretrain")(train_pretrain)
     groups["train"].command("decoder")(train_decoder)
     groups["eval"].command("knn")(eval_knn)

@@ -127,6 +127,9 @@ def relight_cmd(
                             progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))
         if cached:
             source.save()
+            if source.uncached:
+                console.print(f"cache: {source.uncached:,} footprints beyond its memory budget were not kept "
+                              "(later patterns recompute them)")
         for name, img in zip(names, relit, strict=True):
             stem = out / f"{rv.object}_v{v}_{name}_{backend}"
             paths = write_images(stem, img, formats=formats)

@@ -51,18 +51,27 @@ def lit_pixels(proj: Projection, light: np.ndarray, threshold: float = 0.0) -> t
     return np.stack([ys[keep], xs[keep]], axis=1), c[keep]
 
 
+#: ``fold`` splat: bytes of the dense column tensor per band of image rows (one row at least).
+FOLD_BAND_BYTES = 256 * 2**20
+
+
 class Splatter:
     """Accumulates scaled K x K footprints into P canvases (padded so no bounds checks are needed).
 
-    CPU: one sparse (canvas x sources) matrix per colour channel times the (sources x P) light,
-    with scipy's compiled CSC kernel (measured ~9x faster than ``torch.index_add_`` and ~30x faster
-    than torch's sparse matmul on the CPU preset, see ``sss bench relight``). Other devices: torch
-    ``index_put_(accumulate=True)``, whose CUDA kernel sorts indices and is deterministic.
+    ``method``: ``csc`` (CPU): one sparse (canvas x sources) matrix per colour channel times the
+    (sources x P) light, with scipy's compiled CSC kernel (measured ~9x faster than
+    ``torch.index_add_`` and ~30x faster than torch's sparse matmul on the CPU preset, see ``sss bench
+    relight``). ``index`` (other devices): torch ``index_put_(accumulate=True)``, whose CUDA kernel
+    sorts indices and is deterministic. ``fold``: ``torch.nn.functional.fold`` (col2im, no atomics)
+    over bands of image rows, the lit pixels' windows scattered into a dense (3P, K^2, rows x W)
+    column tensor (unlit pixels of the band are zero columns, so the cost follows the band's area, and
+    its memory is ``3 P K^2 W`` floats per row). ``auto``: csc on the CPU, index elsewhere.
     """
 
     def __init__(self, height: int, width: int, patch: int, n_patterns: int, device: str = "cpu", method: str = "auto"):
-        if method not in ("auto", "csc", "index"):
-            raise InputError(f"unknown splat method {method!r} (auto, csc or index)")
+        if method not in ("auto", "csc", "index", "fold"):
+            raise InputError(f"unknown splat method {method!r} (auto, csc, index or fold)")
+        self.method = method
         self.h, self.w, self.k, self.p = height, width, patch, n_patterns
         self.hp, self.wp = height + patch, width + patch
         self.device = torch.device(device)
@@ -71,6 +80,8 @@ class Splatter:
         if method == "csc" or (method == "auto" and self.device.type == "cpu"):
             self.device = torch.device("cpu")
             self.canvas: np.ndarray | torch.Tensor = np.zeros((3, self.hp * self.wp, n_patterns), np.float32)
+        elif method == "fold":
+            self.canvas = torch.zeros(n_patterns * 3, self.hp, self.wp, dtype=torch.float32, device=self.device)
         else:
             self.canvas = torch.zeros(self.hp * self.wp, n_patterns * 3, dtype=torch.float32, device=self.device)
             self._toffsets = torch.as_tensor(self._offsets, device=self.device)
@@ -93,14 +104,40 @@ class Splatter:
                 self.canvas[ch, lo:hi] += m @ light[:, :, ch]
             return
         footprints, c = footprints.to(self.device), c.to(self.device)
+        if self.method == "fold":
+            self._fold(pixels, footprints, c)
+            return
         base = torch.as_tensor(corner, device=self.device)
         index = (base[:, None] + self._toffsets[None, :]).reshape(-1)
         vals = footprints.to(torch.float32).reshape(n, kk, 1, 3) * c.to(torch.float32).reshape(n, 1, self.p, 3)
         self.canvas.index_put_((index,), vals.reshape(n * kk, self.p * 3), accumulate=True)
 
+    def _fold(self, pixels: np.ndarray, footprints: torch.Tensor, c: torch.Tensor) -> None:
+        n, k, kk, p3 = len(pixels), self.k, self.k * self.k, self.p * 3
+        # (n, P*3, K*K): every footprint entry times each pattern's light, ordered as fold's columns
+        vals = (footprints.to(torch.float32).reshape(n, 1, kk, 3) * c.to(torch.float32).reshape(n, self.p, 1, 3))
+        vals = vals.permute(0, 1, 3, 2).reshape(n, p3, kk)
+        ys = torch.as_tensor(pixels[:, 0], device=self.device)
+        xs = torch.as_tensor(pixels[:, 1], device=self.device)
+        band = max(1, FOLD_BAND_BYTES // (p3 * kk * self.w * 4))
+        y_lo = int(pixels[:, 0].min())
+        while y_lo <= int(pixels[:, 0].max()):
+            sel = (ys >= y_lo) & (ys < y_lo + band)
+            rows = min(band, self.h - y_lo)
+            if bool(sel.any()):
+                cols = torch.zeros(p3, kk, rows * self.w, dtype=torch.float32, device=self.device)
+                # a camera pixel can carry several dots (measured transport): add, do not assign
+                cols.index_add_(2, (ys[sel] - y_lo) * self.w + xs[sel], vals[sel].permute(1, 2, 0))
+                out = torch.nn.functional.fold(cols, (rows + k - 1, self.w + k - 1), k)  # window top-left = (y, x)
+                self.canvas[:, y_lo:y_lo + rows + k - 1, : self.w + k - 1] += out[:, 0]
+            y_lo += band
+
     def result(self) -> np.ndarray:
         """Canvases cropped to the image, (P, H, W, 3) float32."""
         half = self.k // 2
+        if self.method == "fold":
+            img = self.canvas.reshape(self.p, 3, self.hp, self.wp)[:, :, half : half + self.h, half : half + self.w]
+            return img.permute(0, 2, 3, 1).contiguous().cpu().numpy()
         if isinstance(self.canvas, np.ndarray):
             img = self.canvas.reshape(3, self.hp, self.wp, self.p)[:, half : half + self.h, half : half + self.w]
             return np.ascontiguousarray(img.transpose(3, 1, 2, 0))
@@ -283,20 +320,26 @@ class FootprintCache:
     """A compressed (float16 ``.npz``) cache of footprints keyed by pixel, wrapped around a source.
 
     Later relights (other patterns) read cached footprints and run the source only for pixels that
-    are not cached yet; ``save()`` writes the cache back when new footprints were computed.
+    are not cached yet; ``save()`` writes the cache back when new footprints were computed. It holds
+    at most ``max_bytes`` in memory (a 1080p view at K = 90 has ~15 GB of float16 footprints): past
+    that, footprints pass through uncached and ``uncached`` counts them.
     """
 
-    def __init__(self, source: FootprintSource, path: Path | str, shape: tuple[int, int], patch: int):
+    def __init__(self, source: FootprintSource, path: Path | str, shape: tuple[int, int], patch: int,
+                 max_bytes: int = 2 * 2**30):
         self.source, self.path, self.shape, self.patch = source, Path(path), shape, patch
+        self.max_rows = max(0, int(max_bytes) // (patch * patch * 3 * 2))
         self.slot = np.full(shape[0] * shape[1], -1, np.int64)
-        self.data = np.zeros((0, patch, patch, 3), np.float16)
-        self.hits = self.misses = 0
+        self.data = np.zeros((0, patch, patch, 3), np.float16)  # capacity grows by doubling; ``size`` rows used
+        self.size = 0
+        self.hits = self.misses = self.uncached = 0
         self._dirty = False
         if self.path.exists():
             with np.load(self.path) as z:
                 if z["data"].shape[1:] == (patch, patch, 3) and tuple(z["shape"]) == tuple(shape):
-                    self.data = z["data"]
-                    self.slot[z["index"]] = np.arange(len(z["index"]))
+                    self.data = z["data"][: self.max_rows]
+                    self.size = len(self.data)
+                    self.slot[z["index"][: self.size]] = np.arange(self.size)
 
     def __call__(self, pixels: np.ndarray) -> np.ndarray:
         flat = pixels[:, 0].astype(np.int64) * self.shape[1] + pixels[:, 1]
@@ -308,9 +351,18 @@ class FootprintCache:
             fp = self.source(pixels[miss])
             fp = fp.float().cpu().numpy() if torch.is_tensor(fp) else np.asarray(fp, np.float32)
             out[miss] = fp
-            self.slot[flat[miss]] = len(self.data) + np.arange(int(miss.sum()))
-            self.data = np.concatenate([self.data, fp.astype(np.float16)])
-            self._dirty = True
+            keep = min(len(fp), self.max_rows - self.size)
+            self.uncached += len(fp) - keep
+            if keep > 0:
+                if self.size + keep > len(self.data):
+                    grown = np.zeros((min(self.max_rows, max(2 * len(self.data), self.size + keep, 1024)),
+                                      self.patch, self.patch, 3), np.float16)
+                    grown[: self.size] = self.data[: self.size]
+                    self.data = grown
+                self.data[self.size : self.size + keep] = fp[:keep]
+                self.slot[flat[miss][:keep]] = self.size + np.arange(keep)
+                self.size += keep
+                self._dirty = True
         self.hits += int((~miss).sum())
         self.misses += int(miss.sum())
         return out
@@ -322,7 +374,7 @@ class FootprintCache:
         index = index[np.argsort(self.slot[index])]
         self.path.parent.mkdir(parents=True, exist_ok=True)
         tmp = self.path.with_suffix(".tmp.npz")
-        np.savez_compressed(tmp, data=self.data, index=index, shape=np.asarray(self.shape))
+        np.savez_compressed(tmp, data=self.data[: self.size], index=index, shape=np.asarray(self.shape))
         tmp.replace(self.path)
         self._dirty = False
 

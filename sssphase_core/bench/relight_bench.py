@@ -187,7 +187,7 @@ def splat_throughput(sv: SimView, *, n_patterns: int = 2, repeats: int = 3) -> l
     pats = np.ones((n_patterns, *sv.proj.projector_size[::-1]), np.float32)
     flops = 2.0 * fps.size * n_patterns
     rows = []
-    for method in ("csc", "index"):
+    for method in ("csc", "index", "fold"):
         sec = median_seconds(lambda m=method: relight(source, sv.proj, pats, sv.patch, chunk=2048, method=m), repeats=repeats)
         rows.append({"method": method, "seconds": sec, "flops": flops / sec, "lit_pixels": len(pixels)})
     return rows

@@ -26,13 +26,17 @@ def scene(make_projection):
     return proj, k, fps, pats
 
 
-def test_csc_and_index_kernels_agree(scene):
+def test_csc_index_and_fold_kernels_agree(scene, monkeypatch):
     proj, k, fps, pats = scene
     src = lambda px: fps[px[:, 0], px[:, 1]]  # noqa: E731
     a = relight(src, proj, pats, k, method="csc", chunk=50)
     b = relight(src, proj, pats, k, method="index", chunk=333)
     np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
     assert np.array_equal(a, relight(src, proj, pats, k, method="csc", chunk=50))  # deterministic
+    monkeypatch.setattr("sssphase_core.relight.FOLD_BAND_BYTES", 1)  # one image row per fold band
+    f = relight(src, proj, pats, k, method="fold", chunk=77)
+    np.testing.assert_allclose(f, a, rtol=1e-5, atol=1e-7)
+    assert np.array_equal(f, relight(src, proj, pats, k, method="fold", chunk=77))
 
 
 def test_radius_truncation_equals_zeroing_the_outer_ring(scene):
@@ -84,6 +88,25 @@ def test_footprint_cache_skips_the_source_for_cached_pixels(tmp_path, scene):
     second = relight(again, proj, pats[:1], k)
     assert sum(calls) == n_first and again.hits == n_first and again.misses == 0
     np.testing.assert_allclose(second, first, rtol=2e-3, atol=1e-4)  # float16 storage
+
+
+def test_footprint_cache_stays_within_its_memory_budget(tmp_path, scene):
+    proj, k, fps, pats = scene
+    calls = []
+
+    def src(px):
+        calls.append(len(px))
+        return fps[px[:, 0], px[:, 1]]
+
+    budget = 100 * k * k * 3 * 2  # 100 float16 footprints
+    cache = FootprintCache(src, tmp_path / "fp.npz", proj.shape, k, max_bytes=budget)
+    first = relight(cache, proj, pats[:1], k, chunk=64)
+    n = sum(calls)
+    assert cache.size == 100 and cache.data.nbytes <= budget and cache.uncached == n - 100
+    cache.save()
+    again = FootprintCache(src, tmp_path / "fp.npz", proj.shape, k, max_bytes=budget)
+    np.testing.assert_allclose(relight(again, proj, pats[:1], k, chunk=64), first, rtol=2e-3, atol=1e-4)
+    assert again.hits == 100 and sum(calls) == 2 * n - 100  # only the uncached ones ran again
 
 
 def test_write_images_16bit_linear_and_display(tmp_path):

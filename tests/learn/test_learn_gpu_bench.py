@@ -1,0 +1,34 @@
+"""``sss bench gpu``'s plumbing on the CPU: every stage runs and reports what it measured."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from sssphase_core.bench import gpu_bench
+from sssphase_core.errors import InputError
+
+
+@pytest.mark.slow
+def test_the_gpu_bench_runs_every_stage_on_the_cpu(tmp_path):
+    r = gpu_bench.run(tmp_path / "gpu.json", device="cpu", preset="lite", steps=4, batch=8, epochs=2, relight_size=48)
+    for stage in ("pretrain", "decoder"):
+        s = r["training"][stage]
+        assert s["steps"] == 4 and s["patches_s"] > 0 and len(s["loss_per_epoch"]) == 2 and s["finite"]
+        assert s["peak_memory_mb"] is None  # no device memory on the CPU
+    for label in ("float32", "bf16 autocast"):
+        assert r["agreement"][label]["footprint"] == 0.0  # CPU against itself: the same numbers
+    for method in ("index", "fold"):
+        assert r["relight"][method]["max_rel_diff"] < 1e-5 and r["relight"][method]["seconds"] > 0
+    assert "skipped" in r["ddp"] and "GPU" in r["ddp"]["skipped"]
+    text = gpu_bench.markdown(r)
+    assert "| pretrain | 4 |" in text and "fold" in text and "CPU" in text
+    assert all(math.isfinite(v) for v in r["training"]["decoder"]["loss_per_epoch"])
+
+
+def test_an_absent_cuda_device_is_one_clear_error(monkeypatch):
+    monkeypatch.setattr("torch.cuda.is_available", lambda: False)
+    with pytest.raises(InputError, match="no CUDA device"):
+        gpu_bench._device("cuda")
+    assert gpu_bench._device("auto").type == "cpu"
