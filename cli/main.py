@@ -72,8 +72,6 @@ COMMAND_MODULES = [
 
 def _register_all() -> None:
     for mod_name in COMMAND_MODULES:
-        if importlib.util.find_spec(mod_name) is None:
-            continue  # area not installed in this build
         importlib.import_module(mod_name).register(groups)
     for name, group in groups.items():
         if name != "root" and (group.registered_commands or group.registered_groups):

@@ -144,7 +144,7 @@ def capture_bench(preset: str = "paper", object_name: str = "soap", *, footprint
                 proc.kill()
         view = session.manifest["views"]["0"]
         groups: dict[str, int] = {}
-        for name, meta in view["arrays"].items():
+        for name in view["arrays"]:
             groups[name.split("/")[0]] = groups.get(name.split("/")[0], 0) + _folder_bytes(session.path / view_dir_name(0) / name)
         crops = view["arrays"].get("footprints/crops", {}).get("shape", [0])
         result = {"preset": preset, "object": object_name, "footprints": footprints, "cpus": os.cpu_count(),

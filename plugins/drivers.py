@@ -22,6 +22,14 @@ class DeviceError(RuntimeError):
     """A device failed (disconnected, timed out, refused a setting)."""
 
 
+class DeviceNotFound(DeviceError):
+    """Discovery found no device of this kind (none plugged in, or its library is not installed): an
+    answer to report, not a failure. The message says why and starts with "no device"."""
+
+    def __init__(self, reason: str) -> None:
+        super().__init__(reason if reason.startswith("no device") else f"no device: {reason}")
+
+
 @dataclass(frozen=True)
 class DeviceInfo:
     """One discovered device. ``id`` is stable across runs (e.g. ``plugin:serial``)."""

@@ -69,7 +69,7 @@ from typing import Any
 
 import numpy as np
 
-from sssphase_plugins.drivers import DeviceError, DeviceInfo, ShowReceipt
+from sssphase_plugins.drivers import DeviceError, DeviceInfo, DeviceNotFound, ShowReceipt
 from sssphase_plugins.hdmi_projector import HdmiProjector, HdmiWindow, list_displays
 from sssphase_plugins.hookspecs import hookimpl
 from sssphase_plugins.usb_util import no_device, optional_import, plugin_options, sysfs_usb_devices
@@ -350,7 +350,7 @@ class LightCrafterProvider:
         sizes = self.displays()
         if tuple(NATIVE_RESOLUTION) in sizes:
             return sizes.index(tuple(NATIVE_RESOLUTION))
-        raise DeviceError(f"no {NATIVE_RESOLUTION[0]}x{NATIVE_RESOLUTION[1]} HDMI display found (displays: {sizes}); "
+        raise DeviceNotFound(f"no {NATIVE_RESOLUTION[0]}x{NATIVE_RESOLUTION[1]} HDMI display found (displays: {sizes}); "
                           "set [options.lcr4500] display = <index>")
 
     def open(self, device_id: str, options: Mapping[str, Any], shared: dict[str, Any]) -> LightCrafterProjector:

@@ -19,11 +19,10 @@ from typing import Any
 
 import pluggy
 
-from sssphase_plugins import hookspecs
-from sssphase_plugins.drivers import DeviceInfo, DeviceProvider
+from sssphase_plugins import backend_hookspecs, hookspecs
+from sssphase_plugins.drivers import DeviceInfo, DeviceNotFound, DeviceProvider
 
 ENTRY_POINT_GROUPS = ("sssphase_devices", "sssphase_backends")
-BACKEND_SPECS_MODULE = "sssphase_plugins.backend_hookspecs"
 BUILTIN_PLUGINS = {"sim": "sssphase_plugins.sim_plugin"}
 ENV_PLUGINS = "SSS_PLUGINS"
 
@@ -68,8 +67,7 @@ def build_plugin_manager() -> PluginManager:
     """A fresh manager with every hookspec and plugin loaded (see module docstring)."""
     pm = PluginManager()
     pm.add_hookspecs(hookspecs)
-    if importlib.util.find_spec(BACKEND_SPECS_MODULE) is not None:
-        pm.add_hookspecs(importlib.import_module(BACKEND_SPECS_MODULE))
+    pm.add_hookspecs(backend_hookspecs)
     for group in ENTRY_POINT_GROUPS:
         for ep in importlib.metadata.entry_points(group=group):
             if pm.has_plugin(ep.name) or pm.is_blocked(ep.name):
@@ -143,12 +141,10 @@ def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo],
     for plugin, provider in device_providers(pm):
         try:
             devices += provider.discover()
+        except DeviceNotFound as exc:  # an absent device is an answer, not a failure
+            errors[plugin] = str(exc).strip()
         except Exception as exc:
-            text = str(exc).strip()
-            if text.startswith("no device"):  # an absent device is an answer, not a failure
-                errors[plugin] = text
-            else:
-                errors[plugin] = f"discovery of {provider.kind}s failed: {_error_text(exc)}"
+            errors[plugin] = f"discovery of {provider.kind}s failed: {_error_text(exc)}"
     errors.update(pm.load_errors)
     return sorted(devices, key=lambda d: d.id), errors
 

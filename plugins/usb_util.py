@@ -21,17 +21,17 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from sssphase_plugins.drivers import DeviceError
+from sssphase_plugins.drivers import DeviceError, DeviceNotFound
 
 SYSFS_USB_DEVICES = Path("/sys/bus/usb/devices")
 
 
 def optional_import(module: str, extra: str, library: str | None = None) -> ModuleType:
-    """Import a hardware library, or raise ``DeviceError("no device: <lib> not installed (...)")``."""
+    """Import a hardware library, or raise ``DeviceNotFound("no device: <lib> not installed (...)")``."""
     try:
         return importlib.import_module(module)
     except ImportError:
-        raise DeviceError(f"no device: {library or module} not installed (pip install sssphase[{extra}])") from None
+        raise DeviceNotFound(f"no device: {library or module} not installed (pip install sssphase[{extra}])") from None
 
 
 def plugin_options(options: Mapping[str, Any], name: str) -> dict[str, Any]:
@@ -44,7 +44,7 @@ def plugin_options(options: Mapping[str, Any], name: str) -> dict[str, Any]:
 
 def no_device(reason: str) -> DeviceError:
     """The error discovery raises when the library works but sees no device: says why and what to check."""
-    return DeviceError(f"no device found: {reason}")
+    return DeviceNotFound(f"no device found: {reason}")
 
 
 @dataclass(frozen=True)
@@ -105,7 +105,7 @@ def find_usb(vid: int, pid: int, serial: str | None = None) -> list[UsbIdentity]
     try:
         devices = list(core.find(find_all=True, idVendor=vid, idProduct=pid))
     except core.NoBackendError:
-        raise DeviceError("no device: pyusb has no backend (install the libusb-1.0 system library, "
+        raise DeviceNotFound("no device: pyusb has no backend (install the libusb-1.0 system library, "
                           "e.g. apt install libusb-1.0-0)") from None
     out = []
     for dev in devices:

@@ -289,7 +289,7 @@ class DotTransportExtractor:
     def crops(self, shift_x: int, shift_y: int, frame: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(idx (n,), crops (n, K, K, C) float32)`` of the dots of frame ``(shift_x, shift_y)``
         (``self.dots[idx]``, seen at ``self.pixels[idx]``), without keeping them. Marks them as lit."""
-        s, k, half = self.spacing, self.patch, self.patch // 2
+        s, k = self.spacing, self.patch
         frame = _dot_frame(shift_x, shift_y, frame, s, self.shape, self.channels)
         idx = self._groups[shift_y * s + shift_x]
         if len(idx) == 0:

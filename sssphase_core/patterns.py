@@ -185,9 +185,6 @@ class PSPConfig:
         shifts of ``x``, then of ``y`` (the paper's 8 images for 4 shifts)."""
         return [psp_key(o, float(self.period), n) for o in ("x", "y") for n in range(self.n_shifts)]
 
-    def frames_per_orientation(self, unwrap: bool = True) -> int:
-        return self.n_shifts * (len(self.periods) if unwrap else 1)
-
 
 def period_ladder(period: float, extent: float, max_ratio: float = MAX_PERIOD_RATIO) -> tuple[float, ...]:
     """Lower-frequency periods (coarsest first) from one period spanning ``extent`` px (plus margin)

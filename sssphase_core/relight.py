@@ -263,8 +263,6 @@ class DotTransport:
         return crops
 
 
-BACKENDS = ("torch", "analytic", "measured", "none", "exact")
-
 
 def no_scattering_source(white: np.ndarray, patch: int = 1) -> FootprintSource:
     """The no-scattering baseline: a delta footprint carrying the pixel's white-image value

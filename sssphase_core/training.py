@@ -20,7 +20,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass, fields, replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -653,9 +653,3 @@ def train_decoder(
 
     loop.run(step, end_epoch, save, progress=progress, stop_after_steps=stop_after_steps)
     return out_dir / CHECKPOINT
-
-
-def config_from_dict(cls: type, data: dict) -> object:
-    """Rebuild a config dataclass from a checkpoint's dict (unknown keys ignored)."""
-    names = {f.name for f in fields(cls)}
-    return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in data.items() if k in names})

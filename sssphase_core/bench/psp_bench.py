@@ -11,7 +11,6 @@ subsurface scattering, additive noise), and the simulated rig per object and exp
 
 from __future__ import annotations
 
-import importlib.util
 import math
 import statistics
 import time
@@ -340,23 +339,12 @@ def bench_tradeoff(
     return rows
 
 
-def _simulator_speed() -> dict[str, Any] | None:
-    """``sssphase_core.sim.bench.simulator_speed()`` when the simulator provides it."""
-    if importlib.util.find_spec("sssphase_core.sim.bench") is None:
-        return None
-    from sssphase_core.sim import bench as sim_bench
-
-    fn = getattr(sim_bench, "simulator_speed", None)
-    return None if fn is None else fn()
-
-
 # ------------------------------------------------------------------------------------------ entry point
 
 
 def run(quick: bool = False, progress: Progress | None = None) -> tuple[dict[str, Any], list[Table]]:
     """Run the PSP benchmark; ``quick`` keeps it well under a minute. Returns (JSON dict, tables)."""
     progress = progress or (lambda _msg: None)
-    has_sim = importlib.util.find_spec("sssphase_core.sim.scene") is not None
     result: dict[str, Any] = {"benchmark": "psp", "quick": quick, "machine": machine_info(), "section_seconds": {}}
 
     def section(name: str, fn: Callable[[], Any]) -> None:
@@ -370,22 +358,22 @@ def run(quick: bool = False, progress: Progress | None = None) -> tuple[dict[str
     progress("synthetic accuracy")
     noise = (0.0, 0.01, 0.04) if quick else (0.0, 0.0025, 0.005, 0.01, 0.02, 0.04, 0.08)
     section("synthetic", lambda: bench_synthetic(noise, blur=1.0))
-    if has_sim:
-        from sssphase_core.sim import TRAIN_OBJECTS, UNSEEN_OBJECTS
+    from sssphase_core.sim import TRAIN_OBJECTS, UNSEEN_OBJECTS
+    from sssphase_core.sim.bench import simulator_speed
 
-        objects = ("star",) if quick else (*TRAIN_OBJECTS, *UNSEEN_OBJECTS)
-        exposures = (1.0,) if quick else (1.0, 0.25, 0.0625)
-        section("sim", lambda: bench_sim_objects(objects, exposures, progress))
+    objects = ("star",) if quick else (*TRAIN_OBJECTS, *UNSEEN_OBJECTS)
+    exposures = (1.0,) if quick else (1.0, 0.25, 0.0625)
+    section("sim", lambda: bench_sim_objects(objects, exposures, progress))
     section("tradeoff", lambda: bench_tradeoff(
         shifts=(3, 4) if quick else (3, 4, 6, 8),
         periods=(11.0,) if quick else (8.0, 11.0, 16.0),
-        sim_object="star" if has_sim else None,
+        sim_object="star",
         repeats=1 if quick else 5,
         progress=progress,
     ))
     if not quick:  # about half a minute: not part of the smoke-test run
         progress("simulator speed")
-        section("simulator_speed", _simulator_speed)
+        section("simulator_speed", simulator_speed)
     return result, tables(result)
 
 

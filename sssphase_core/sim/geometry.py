@@ -95,11 +95,6 @@ def rotation_x(angle_rad: float) -> np.ndarray:
     return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
 
 
-def rotation_z(angle_rad: float) -> np.ndarray:
-    c, s = np.cos(angle_rad), np.sin(angle_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def value_noise(p: np.ndarray, scale: float, seed: int = 0) -> np.ndarray:
     """Smooth pseudo-random field in [-1, 1]: a few incommensurate sine waves (cheap, deterministic)."""
     rng = np.random.default_rng(seed)

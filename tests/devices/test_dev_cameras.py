@@ -7,7 +7,7 @@ import pytest
 from dev_fakes import FakeCapture, FakeDepthai
 
 from sssphase_plugins import oak_camera, uvc_camera
-from sssphase_plugins.drivers import DeviceError, DeviceInfo
+from sssphase_plugins.drivers import DeviceError, DeviceInfo, DeviceNotFound
 
 
 def uvc(captures: list[FakeCapture], **opts):
@@ -67,7 +67,7 @@ def test_uvc_sysfs_discovery(tmp_path):
         (root / node / "device").symlink_to(usb / "1-2:1.0")
     ((info, path),) = uvc_camera.list_cameras(root)
     assert (info.id, info.model, path) == ("uvc:046d:0825:ABC", "Webcam C270", "/dev/video0")
-    with pytest.raises(DeviceError, match="no device found"):
+    with pytest.raises(DeviceNotFound, match="no device found"):
         uvc_camera.list_cameras(tmp_path / "missing")
 
 
@@ -109,5 +109,5 @@ def test_oak_disconnect_mid_capture():
 
 def test_oak_real_depthai_without_device():
     pytest.importorskip("depthai")
-    with pytest.raises(DeviceError, match="no device found: depthai sees no OAK"):
+    with pytest.raises(DeviceNotFound, match="no device found: depthai sees no OAK"):
         oak_camera.OakProvider().discover()

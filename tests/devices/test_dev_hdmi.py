@@ -7,7 +7,7 @@ import pytest
 
 pytest.importorskip("pygame")
 from sssphase_plugins import hdmi_projector as hp  # noqa: E402
-from sssphase_plugins.drivers import DeviceError  # noqa: E402
+from sssphase_plugins.drivers import DeviceError, DeviceNotFound  # noqa: E402
 
 
 @pytest.fixture
@@ -51,7 +51,7 @@ def test_headless_fallback_is_not_a_display(monkeypatch):
     monkeypatch.delenv("SDL_VIDEODRIVER", raising=False)
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    with pytest.raises(DeviceError, match="no device found"):
+    with pytest.raises(DeviceNotFound, match="no device found"):
         hp.HdmiProvider().discover()
 
 

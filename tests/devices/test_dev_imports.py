@@ -68,7 +68,7 @@ def test_usb_util_reports_missing_backend_or_no_device():
     import pytest
 
     pytest.importorskip("usb.core")
-    from sssphase_plugins.drivers import DeviceError
+    from sssphase_plugins.drivers import DeviceError, DeviceNotFound
     from sssphase_plugins.usb_util import find_usb, reset_usb
 
     try:
@@ -77,5 +77,5 @@ def test_usb_util_reports_missing_backend_or_no_device():
         assert "libusb-1.0" in str(exc)
     else:
         assert found == []
-        with pytest.raises(DeviceError, match="no device found: no USB device 0451:6401"):
+        with pytest.raises(DeviceNotFound, match="no device found: no USB device 0451:6401"):
             reset_usb(0x0451, 0x6401)

@@ -7,7 +7,7 @@ import pytest
 from dev_fakes import FakeDlpc350Hid, FakeHidApi, FakeWindow
 
 from sssphase_plugins import lightcrafter as lcr
-from sssphase_plugins.drivers import DeviceError
+from sssphase_plugins.drivers import DeviceError, DeviceNotFound
 
 
 def report(*head_and_body: int) -> bytes:
@@ -155,13 +155,13 @@ def test_discovery_without_device():
         def enumerate(self, vid, pid):
             return []
 
-    with pytest.raises(DeviceError, match="no device found: hidapi sees no LightCrafter 4500"):
+    with pytest.raises(DeviceNotFound, match="no device found: hidapi sees no LightCrafter 4500"):
         lcr.LightCrafterProvider(hid_api=NoLightCrafter).discover()
 
 
 def test_real_hidapi_finds_no_device():
     pytest.importorskip("hid")
-    with pytest.raises(DeviceError, match="no device found"):
+    with pytest.raises(DeviceNotFound, match="no device found"):
         lcr.LightCrafterProvider().discover()
 
 

@@ -10,7 +10,7 @@ pytest.importorskip("serial")
 from dev_fakes import FakeBoard  # noqa: E402
 
 from sssphase_plugins import serial_devices as sd  # noqa: E402
-from sssphase_plugins.drivers import DeviceError  # noqa: E402
+from sssphase_plugins.drivers import DeviceError, DeviceNotFound  # noqa: E402
 
 
 class Bench:
@@ -22,7 +22,7 @@ class Bench:
 
     def boards(self):
         if self.board is None:
-            raise DeviceError("no device found: no serial port with a board USB id")
+            raise DeviceNotFound("no device found: no serial port with a board USB id")
         return [(self.board.serial_number, self.port, "RP2040 CDC-ACM serial board")]
 
     def connect(self, port: str):
@@ -117,5 +117,5 @@ def test_ports_found_by_vid_pid_and_serial(monkeypatch):
 
 
 def test_real_pyserial_enumeration_without_board():
-    with pytest.raises(DeviceError, match="no device found: no serial port with a board USB id"):
+    with pytest.raises(DeviceNotFound, match="no device found: no serial port with a board USB id"):
         sd.SerialProvider("trigger").discover()
