@@ -34,7 +34,7 @@ from sssphase_daemon import protocol, security
 from sssphase_daemon.frames import ClientGone, FrameSender, Preview, configure_curve_server
 from sssphase_daemon.protocol import ProtocolError
 from sssphase_plugins import manager
-from sssphase_plugins.drivers import DeviceError
+from sssphase_plugins.drivers import DeviceError, PreloadingProjector, TriggeredCamera
 
 log = logging.getLogger("sssphase.daemon")
 MAX_FRAMES_PER_JOB = 200_000
@@ -338,6 +338,11 @@ class Daemon:
             if isinstance(exc, SssError):
                 raise ProtocolError(protocol.BAD_ARGS, str(exc)) from None
             raise
+        if "trigger" in devices and not isinstance(devices["camera"], TriggeredCamera):
+            for d in devices.values():
+                d.close()
+            raise ProtocolError(protocol.BAD_ARGS, f"camera {wanted['camera']} cannot expose on a hardware trigger "
+                                "(its driver has no wait_frame): open the rig without the trigger")
         rig = Rig(uuid.uuid4().hex[:12], client, devices, options)
         with self.lock:
             self.rigs[rig.id] = rig
@@ -394,13 +399,19 @@ class Daemon:
             raise ProtocolError(protocol.BAD_ARGS, "capture needs a rig with a projector (use 'stream' otherwise)")
 
         def run(job: Job) -> Iterator[tuple[str, Any]]:
-            camera, projector = rig.devices["camera"], rig.devices["projector"]
-            if hasattr(projector, "preload"):  # pattern-sequence memory (DLP) or the sim's batch renderer
+            camera, projector, trigger = rig.devices["camera"], rig.devices["projector"], rig.devices.get("trigger")
+            if isinstance(projector, PreloadingProjector):
                 projector.preload([(spec["name"], functools.partial(_pattern_for, spec)) for spec in frames])
             for spec in frames:
                 projector.show(_pattern_for(spec), tag=spec["name"], confirm=True)
                 camera.configure(exposure=float(spec["exposure"]))
-                yield spec["name"], camera.grab()
+                if trigger is None:  # software trigger
+                    yield spec["name"], camera.grab()
+                    continue
+                fired_ns = trigger.fire()  # the pulse exposes the camera (checked at open_rig: TriggeredCamera)
+                frame = camera.wait_frame()
+                frame.meta["trigger_ns"] = fired_ns
+                yield spec["name"], frame
 
         return self._start_job(client, rig, len(frames), run)
 

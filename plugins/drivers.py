@@ -8,7 +8,7 @@ device failures; the daemon turns it into a clear error for the client and keeps
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol, runtime_checkable
 
@@ -89,10 +89,26 @@ class Projector(Protocol):
     def show(self, image: np.ndarray, *, tag: str = "", confirm: bool = True) -> ShowReceipt:
         """Display a pattern (float values in [0, 1]); with ``confirm`` return once it is on screen."""
 
-    # Optional: ``preload(sequence: list[tuple[tag, Callable[[], ndarray]]])`` announces the coming
-    # patterns in display order (pattern-sequence memory of DLP projectors; batch rendering in the sim).
-
     def close(self) -> None: ...
+
+
+@runtime_checkable
+class PreloadingProjector(Projector, Protocol):
+    """A projector that takes the coming patterns in advance (optional: the daemon calls ``preload``
+    before a capture when the projector has it)."""
+
+    def preload(self, sequence: list[tuple[str, Callable[[], np.ndarray]]]) -> None:
+        """The capture's patterns as ``(tag, render)`` in display order (pattern-sequence memory of DLP
+        projectors; batch rendering in the sim). ``show`` is still called for each, in that order."""
+
+
+@runtime_checkable
+class TriggeredCamera(Camera, Protocol):
+    """A camera that exposes on an external pulse: a rig with a ``trigger`` device needs one. Per frame
+    the daemon shows the pattern, fires the trigger, then takes the frame with ``wait_frame``."""
+
+    def wait_frame(self, timeout_s: float = 5.0) -> Frame:
+        """The frame exposed by the trigger pulse just fired (raise ``DeviceError`` if none comes)."""
 
 
 @runtime_checkable

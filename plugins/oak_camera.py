@@ -168,6 +168,12 @@ class OakCamera:
     def stream(self, count: int) -> Iterator[Frame]:
         return (self.grab() for _ in range(count))
 
+    def wait_frame(self, timeout_s: float = 5.0) -> Frame:
+        """The frame of the trigger edge just fired on FSIN (needs ``fsin = true``)."""
+        if not self.opts.get("fsin"):
+            raise DeviceError(f"{self.info.id}: a rig with a trigger device needs [options.oak] fsin = true")
+        return self.grab(timeout_s)
+
     def close(self) -> None:
         self._stop()
 

@@ -183,6 +183,11 @@ class SimCamera:
     def stream(self, count: int) -> Iterator[Frame]:
         return (self.grab() for _ in range(count))
 
+    def wait_frame(self, timeout_s: float = 5.0) -> Frame:
+        """The frame of a hardware trigger pulse: the sim exposes when asked, as a triggered sensor does
+        on the pulse (a rig with a trigger device, e.g. a serial board, fires it just before)."""
+        return self.grab(timeout_s)
+
     def close(self) -> None:
         pass
 

@@ -62,6 +62,7 @@ class RigSpec:
     median: bool = True  # the paper's 3x3 median per Bayer plane (blurs fringes only a few px wide)
     gamma: float | None = None  # projector response v**gamma ([projector], from `sss calibrate projector`; None: 2.2)
     projector_black: float | None = None  # projector black level relative to white (None: estimated/preset)
+    trigger: str | None = None  # a trigger device that exposes the camera on each frame ([devices] trigger)
 
     @property
     def is_sim(self) -> bool:
@@ -69,7 +70,7 @@ class RigSpec:
 
     @classmethod
     def from_toml(cls, path: Path) -> RigSpec:
-        """``[devices]`` camera/projector/turntable ids, ``[options]`` for the plugin, ``[processing]``."""
+        """``[devices]`` camera/projector/turntable/trigger ids, ``[options]`` for the plugins, ``[processing]``."""
         try:
             cfg = tomllib.loads(Path(path).read_text())
         except (OSError, tomllib.TOMLDecodeError) as exc:
@@ -77,6 +78,10 @@ class RigSpec:
         dev, proc, resp = cfg.get("devices", {}), cfg.get("processing", {}), cfg.get("projector", {})
         if "camera" not in dev or "projector" not in dev:
             raise InputError(f"{path}: [devices] needs camera and projector ids (see `sss devices`)")
+        bad = [k for k, v in dev.items() if k not in ("camera", "projector", "turntable", "trigger") or not isinstance(v, str)]
+        if bad:
+            raise InputError(f"{path}: [devices] takes camera, projector, turntable and trigger device ids (strings), "
+                             f"not {', '.join(sorted(bad))}")
         unknown = set(proc) - {"patch", "saturation", "black_level", "white_scale", "median"}
         if unknown:
             raise InputError(f"{path}: unknown [processing] keys {sorted(unknown)}")
@@ -86,7 +91,8 @@ class RigSpec:
         if black is not None and not (isinstance(black, int | float) and 0 <= black < 0.5):
             raise InputError(f"{path}: [projector] black must be a number in [0, 0.5), got {black!r}")
         return cls(dev["camera"], dev["projector"], dev.get("turntable"), dict(cfg.get("options", {})), **proc,
-                   gamma=None if gamma is None else float(gamma), projector_black=None if black is None else float(black))
+                   gamma=None if gamma is None else float(gamma), projector_black=None if black is None else float(black),
+                   trigger=dev.get("trigger"))
 
 
 @dataclass
@@ -367,7 +373,7 @@ def run_capture(client: ClientLike, req: CaptureRequest, rig: RigSpec | None = N
     if rig.is_sim:
         options = {"object": req.object, "preset": req.preset, "seed": req.seed, "n_views": req.views, **options}
     opened = client.call("open_rig", camera=rig.camera, projector=rig.projector, turntable=rig.turntable,
-                         options=options)
+                         trigger=rig.trigger, options=options)
     try:
         return _capture_views(client, req, rig, options, opened, progress, ask_move)
     finally:

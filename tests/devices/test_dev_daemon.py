@@ -73,6 +73,62 @@ def test_camera_unplugged_mid_capture_daemon_stays_up_and_session_resumes(daemon
     assert rest == ["white/3", "white/4", "white/5"]
 
 
+class FakeTriggerBoard:
+    """The real serial-board driver over a scripted board (``dev_fakes.FakeBoard``) as a trigger plugin."""
+
+    def __init__(self) -> None:
+        from dev_fakes import FakeBoard
+
+        from sssphase_plugins import serial_devices
+
+        self.board = FakeBoard(caps="TRIG", serial_number="T1")
+        self.provider = serial_devices.SerialProvider(
+            "trigger", boards=lambda: [("T1", "/dev/ttyACM0", "trigger board")], connect=lambda port: self.board)
+
+    @hookimpl
+    def sssphase_triggers(self) -> list:
+        return [self.provider]
+
+
+def test_a_hardware_trigger_exposes_every_capture_frame(daemon_with):
+    plugin = FakeTriggerBoard()
+    client = daemon_with(trigger_board=plugin)
+    rig = client.call("open_rig", camera="sim:camera0", projector="sim:projector0", trigger="serial:T1",
+                      options={"serial": {"timeout_s": 0.5}})
+    assert rig["devices"]["trigger"]["id"] == "serial:T1"
+    frames = list(client.capture(rig["rig"], white_frames(rig["projector_size"], 3)))
+    assert [f.name for f in frames] == ["white/0", "white/1", "white/2"]
+    assert plugin.board.fired == 3 and plugin.board.log.count("FIRE") == 3  # one pulse per frame, none repeated
+    fired = [f.header["meta"]["trigger_ns"] for f in frames]
+    assert fired == sorted(fired) and len(set(fired)) == 3  # the board clock at each pulse, with its frame
+
+
+@pytest.mark.slow
+def test_a_rig_file_with_a_trigger_captures_a_session_one_pulse_per_frame(daemon_with, tmp_path):
+    from sssphase_core.capture import CaptureRequest, RigSpec, run_capture
+
+    plugin = FakeTriggerBoard()
+    client = daemon_with(trigger_board=plugin)
+    (tmp_path / "rig.toml").write_text('[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\n'
+                                       'turntable = "sim:turntable0"\ntrigger = "serial:T1"\n'
+                                       '[options.serial]\ntimeout_s = 0.5\n')
+    rig = RigSpec.from_toml(tmp_path / "rig.toml")
+    session = run_capture(client, CaptureRequest("soap", views=1, out=tmp_path / "s"), rig)
+    assert session.validate() == [] and session.manifest["devices"]["trigger"]["id"] == "serial:T1"
+    assert plugin.board.fired == session.manifest["views"]["0"]["frames"] > 20
+    (tmp_path / "bad.toml").write_text('[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\ntrigger = 3\n')
+    with pytest.raises(Exception, match="trigger device ids"):
+        RigSpec.from_toml(tmp_path / "bad.toml")
+
+
+def test_a_camera_that_cannot_be_triggered_is_refused_with_the_trigger(daemon_with):
+    plugin = FakeTriggerBoard()
+    client = daemon_with(flaky=FlakyUvcPlugin(), trigger_board=plugin)
+    with pytest.raises(DaemonError, match=r"camera uvc:046d:0825:ABC cannot expose on a hardware trigger"):
+        client.call("open_rig", camera=CAMERA.id, projector="sim:projector0", trigger="serial:T1", options={})
+    assert plugin.board.fired == 0 and client.ping()
+
+
 example_installed = importlib.util.find_spec("sssphase_example_plugin") is not None
 needs_example = pytest.mark.skipif(not example_installed, reason="the example plugin is not installed "
                                    "(pip install -e examples/sssphase-example-plugin)")
