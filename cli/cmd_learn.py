@@ -12,6 +12,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from sssphase_cli.progress import step_bar
 from sssphase_cli.run_config import ConfigOpt, save_run_config
 
 console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
@@ -128,7 +129,8 @@ def train_pretrain(
                          lr=lr, warmup_epochs=warmup_epochs, fix_pred_lr=fix_pred_lr, augment=augment, knn_monitor=knn_monitor)
     console.print(f"pretraining [bold]{preset}[/] on {len(ds)} patches of {', '.join(names)} -> {out} "
                   f"(options in {save_run_config(ctx, out)})")
-    path = pretrain(cfg, ds, out, resume=resume)
+    with step_bar(console) as progress:
+        path = pretrain(cfg, ds, out, resume=resume, progress=progress)
     _print_final(out / METRICS, ("loss", "knn_acc", "eff_rank"), "knn_acc")
     rows = [r for r in read_metrics(out / METRICS) if "knn_acc" in r]
     if rows:
@@ -201,7 +203,8 @@ def train_decoder(
     what = f"encoder and decoder end-to-end ({preset})" if end_to_end else "the decoder"
     console.print(f"training {what} on {len(ds)} footprints of {', '.join(names)} -> {out} "
                   f"(options in {save_run_config(ctx, out)})")
-    path = fit(cfg, encoder, ds, out, val=val, resume=resume)
+    with step_bar(console) as progress:
+        path = fit(cfg, encoder, ds, out, val=val, resume=resume, progress=progress)
     if val is not None:
         plot_metric_vs_time(out / METRICS, ("loss", "val_loss"), out / "error_vs_time.png", log=False,
                             ylabel="SBH loss", right=("val_psnr",),

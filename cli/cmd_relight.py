@@ -259,6 +259,7 @@ def demo(
 ) -> None:
     """The user's path on the simulated rig: capture sessions through the daemon, pretrain and fit the decoder
     from them, relight unseen objects, evaluate, report (resumable)."""
+    from sssphase_cli.progress import step_bar
     from sssphase_core.demo import run_demo
     from sssphase_daemon.client import local_client
 
@@ -267,7 +268,8 @@ def demo(
 
     with local_client(on_start=lambda pid: log(f"started a local daemon with the sim rig (pid {pid})"),
                       on_stop=lambda pid: log(f"stopped the local daemon (pid {pid})")) as client:
-        report = run_demo(out, client, preset=preset, fresh=fresh, log=log)
+        with step_bar(console) as progress:
+            report = run_demo(out, client, preset=preset, fresh=fresh, log=log, progress=progress)
     console.print(f"[green]report[/]: {report}")
 
 

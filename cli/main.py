@@ -18,6 +18,7 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
+import sssphase_plugins.manager  # noqa: F401  (hands core the model backends of plugins)
 from sssphase_core.errors import SssError
 
 err_console = Console(stderr=True, soft_wrap=True)

@@ -1,7 +1,7 @@
 """The one pluggy plugin manager for device plugins and model backends.
 
-Loads, like pytest/tox do, the hook specifications (devices, and model backends when
-``sssphase_plugins.backend_hookspecs`` exists), then the plugins of the entry-point groups
+Loads, like pytest/tox do, the hook specifications (devices, and model backends from
+``sssphase_core.backends.hookspecs``), then the plugins of the entry-point groups
 ``sssphase_devices`` and ``sssphase_backends``, then any modules named in ``$SSS_PLUGINS``
 (comma-separated, like ``PYTEST_PLUGINS``). A plugin that fails to import, implements an unknown
 hook, or raises inside a hook is recorded with its name in ``load_errors`` and left out; the others
@@ -19,7 +19,9 @@ from typing import Any
 
 import pluggy
 
-from sssphase_plugins import backend_hookspecs, hookspecs
+from sssphase_core import backends
+from sssphase_core.backends import hookspecs as backend_hookspecs
+from sssphase_plugins import hookspecs
 from sssphase_plugins.drivers import DeviceInfo, DeviceNotFound, DeviceProvider
 
 ENTRY_POINT_GROUPS = ("sssphase_devices", "sssphase_backends")
@@ -165,3 +167,11 @@ def find_provider(device_id: str, pm: PluginManager | None = None) -> DeviceProv
             return provider
     known = ", ".join(d.id for d in discover_devices(pm)[0]) or "none"
     raise KeyError(f"no device {device_id!r} (known devices: {known})")
+
+
+def _plugin_model_backends() -> list[dict[str, Any]]:
+    """Every plugin's ``sssphase_model_backends`` result, earliest plugin first (pluggy calls the latest first)."""
+    return list(reversed(get_plugin_manager().hook.sssphase_model_backends()))
+
+
+backends.use_plugin_backends(_plugin_model_backends)  # core asks for plugin backends through this

@@ -77,9 +77,11 @@ class Demo:
     """Runs the steps in order; ``log`` receives one line per event (the CLI prints them)."""
 
     def __init__(self, out: Path, config: DemoConfig, client: Any, *, fresh: bool = False,
-                 log: Callable[[str], None] = print):
-        """``client``: a daemon client (``sssphase_daemon.client``; anything with ``call`` and ``capture``)."""
+                 log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None):
+        """``client``: a daemon client (``sssphase_daemon.client``; anything with ``call`` and ``capture``);
+        ``progress``: the training loops' step callback (``training.StepProgress``)."""
         self.out, self.cfg, self.client, self.fresh, self.log = Path(out), config, client, fresh, log
+        self.progress = progress
         self.report_dir = self.out / "report"  # index.html and img/
         self.steps_dir = self.out / "steps"
         self.steps_dir.mkdir(parents=True, exist_ok=True)
@@ -154,7 +156,8 @@ class Demo:
         c = self.cfg
         cfg = PretrainConfig(epochs=c.pretrain_epochs, batch_size=c.pretrain_batch, seed=c.seed, preset=c.model,
                              warmup_epochs=min(1.0, c.pretrain_epochs / 2), device="cpu")
-        path = get_backend("torch").pretrain(self.train_views(footprints=False), self.out / "runs" / "pretrain", config=cfg)
+        path = get_backend("torch").pretrain(self.train_views(footprints=False), self.out / "runs" / "pretrain", config=cfg,
+                                             progress=self.progress)
         return {"checkpoint": str(path)}
 
     def decoder(self) -> dict[str, Any]:
@@ -165,7 +168,7 @@ class Demo:
         c = self.cfg
         cfg = DecoderConfig(epochs=c.decoder_epochs, batch_size=c.decoder_batch, seed=c.seed, device="cpu")
         path = get_backend("torch").fit(self.train_views(), self.out / "runs" / "decoder",
-                                        encoder=self.results["pretrain"]["checkpoint"], config=cfg)
+                                        encoder=self.results["pretrain"]["checkpoint"], config=cfg, progress=self.progress)
         return {"checkpoint": str(path)}
 
     def relight(self) -> dict[str, Any]:
@@ -274,12 +277,13 @@ class Demo:
 
 
 def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool = False,
-             log: Callable[[str], None] = print) -> Path:
-    """Run (or resume) the demo into ``out`` with a daemon ``client``; returns the report's path."""
+             log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None) -> Path:
+    """Run (or resume) the demo into ``out`` with a daemon ``client``; returns the report's path.
+    ``progress``: the training loops' step callback (``training.StepProgress``)."""
     if preset not in PRESETS:
         raise InputError(f"unknown demo preset {preset!r}; choose one of {', '.join(PRESETS)}")
     t0 = time.perf_counter()
-    demo = Demo(Path(out), PRESETS[preset], client, fresh=fresh, log=log)
+    demo = Demo(Path(out), PRESETS[preset], client, fresh=fresh, log=log, progress=progress)
     path = demo.run()
     log(f"demo finished in {time.perf_counter() - t0:.1f} s")
     return path

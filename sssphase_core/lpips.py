@@ -118,7 +118,7 @@ def load() -> LPIPS:
 def lpips_distance(image: np.ndarray, reference: np.ndarray, mask: np.ndarray | None = None) -> float:
     """LPIPS between two linear (H, W, 3) images, both display-encoded with the reference's exposure
     (99.5th percentile on ``mask`` -> white, sRGB); pixels outside ``mask`` are set to black in both."""
-    from sssphase_core.relight import display_scale, srgb
+    from sssphase_core.colour import display_scale, srgb
 
     scale = display_scale(reference, mask)
     keep = np.ones(reference.shape[:2], bool) if mask is None else mask.astype(bool)
@@ -130,7 +130,7 @@ def lpips_distance(image: np.ndarray, reference: np.ndarray, mask: np.ndarray | 
 
 def lpips_footprints(pred: np.ndarray, target: np.ndarray, batch: int = 256) -> np.ndarray:
     """Per-footprint LPIPS of (N, K, K, 3) linear footprints, each pair shown with its GT peak as white (sRGB)."""
-    from sssphase_core.relight import srgb
+    from sssphase_core.colour import srgb
 
     model = load()
     peak = np.maximum(np.nan_to_num(target).max(axis=(1, 2, 3), keepdims=True), 1e-12)

@@ -20,6 +20,7 @@ import numpy as np
 import scipy.sparse
 import torch
 
+from sssphase_core.colour import display_scale, srgb  # noqa: F401  (part of this module's API)
 from sssphase_core.errors import InputError
 from sssphase_core.projector import emitted_light, sample_projector
 
@@ -513,18 +514,6 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
 
 
 # --- output images -----------------------------------------------------------------------------
-
-
-def srgb(linear: np.ndarray) -> np.ndarray:
-    """Linear [0, 1] -> sRGB-encoded [0, 1]."""
-    x = np.clip(linear, 0.0, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(x, 1 / 2.4) - 0.055)
-
-
-def display_scale(image: np.ndarray, mask: np.ndarray | None = None, percentile: float = 99.5) -> float:
-    """Exposure that maps the ``percentile`` of the (masked) image to display white."""
-    vals = image[mask] if mask is not None and mask.any() else image
-    return float(max(np.percentile(np.nan_to_num(vals), percentile), 1e-6))
 
 
 IMAGE_FORMATS = ("png", "exr")

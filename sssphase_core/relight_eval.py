@@ -61,7 +61,7 @@ def comparison_figure(reference: np.ndarray, relit: np.ndarray, mask: np.ndarray
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sssphase_core.relight import display_scale, srgb
+    from sssphase_core.colour import display_scale, srgb
 
     scale = display_scale(reference, mask)
     diff = np.abs(np.nan_to_num(relit) - np.nan_to_num(reference)).mean(axis=-1)
@@ -149,8 +149,8 @@ def aggregate(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend", "p
 
 
 def metrics_table(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend", "pattern"), title: str = "Relighting"):
-    """A :class:`sssphase_core.bench.report.Table` of :func:`aggregate` (LPIPS noted as skipped)."""
-    from sssphase_core.bench.report import Table
+    """A :class:`sssphase_core.tables.Table` of :func:`aggregate` (LPIPS noted as skipped)."""
+    from sssphase_core.tables import Table
 
     agg = aggregate(rows, by)
     both = all("psnr_capture" in a for a in agg)

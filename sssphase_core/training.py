@@ -214,6 +214,10 @@ class LoopConfig:
     amp: bool = True  # bfloat16 autocast on CUDA; ignored on CPU
 
 
+#: ``progress(task, done, total, info)``: called after every training step (the CLI draws a bar from it).
+StepProgress = Callable[[str, int, int, str], None]
+
+
 class Loop:
     """Epoch/step bookkeeping, exact resume, checkpoints, metrics and progress for one task."""
 
@@ -277,17 +281,16 @@ class Loop:
         end_epoch: Callable[[int], dict[str, float]],
         save: Callable[[], None],
         *,
-        progress: bool = True,
+        progress: StepProgress | bool | None = None,
         stop_after_steps: int | None = None,
     ) -> None:
-        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
-
+        """Run the remaining steps; ``progress(kind, done, total, info)`` after each (on the main process)."""
         steps_run = 0
-        bar = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                       TextColumn("{task.fields[info]}"), TimeRemainingColumn(), disable=not (progress and self.d.main))
+        report = progress if callable(progress) and self.d.main else None
         runlog = RunLog(self.out_dir, resume_step=self.global_step, enabled=self.d.main)
-        with bar, contextlib.closing(runlog):
-            task = bar.add_task(self.kind, total=self.total_steps, completed=self.global_step, info="")
+        with contextlib.closing(runlog):
+            if report is not None:
+                report(self.kind, self.global_step, self.total_steps, "")
             while self.epoch < self.cfg.epochs:
                 self.sampler.set_epoch(self.epoch)
                 order = np.fromiter(iter(self.sampler), dtype=np.int64)
@@ -311,7 +314,9 @@ class Loop:
                     self.step_in_epoch += 1
                     steps_run += 1
                     runlog.step(self.global_step, values)
-                    bar.update(task, advance=1, info=f"epoch {self.epoch + 1}/{self.cfg.epochs} loss {self.sums['loss'] / self.step_in_epoch:.4f}")
+                    if report is not None:
+                        report(self.kind, self.global_step, self.total_steps,
+                               f"epoch {self.epoch + 1}/{self.cfg.epochs} loss {self.sums['loss'] / self.step_in_epoch:.4f}")
                     if self.cfg.ckpt_every and steps_run % self.cfg.ckpt_every == 0 and self.step_in_epoch < self.steps_per_epoch:
                         self.wall_s += time.perf_counter() - t0
                         t0 = time.perf_counter()
@@ -423,7 +428,7 @@ def pretrain(
     *,
     preset: ModelPreset | None = None,
     resume: bool = True,
-    progress: bool = True,
+    progress: StepProgress | bool | None = None,
     stop_after_steps: int | None = None,
 ) -> Path:
     """SimSiam pretraining of the encoder; returns the checkpoint path (``out_dir/last.pt``)."""
@@ -561,7 +566,7 @@ def train_decoder(
     *,
     val: PatchDataset | None = None,
     resume: bool = True,
-    progress: bool = True,
+    progress: StepProgress | bool | None = None,
     stop_after_steps: int | None = None,
     preset: ModelPreset | None = None,
 ) -> Path:

@@ -1,7 +1,7 @@
 """Model backends: ``torch`` (the paper's method) and ``analytic`` (a physics baseline), plus plugins.
 
 Backends register through the pluggy hook ``sssphase_model_backends`` (entry-point group
-``sssphase_backends``, spec in ``sssphase_plugins.backend_hookspecs``). This package registers the
+``sssphase_backends``, spec in :mod:`sssphase_core.backends.hookspecs`). This package registers the
 built-ins itself (entry point ``builtin = "sssphase_core.backends"``) with lazy factories, so
 loading the plugin manager (e.g. in the daemon) never imports torch.
 """
@@ -9,7 +9,7 @@ loading the plugin manager (e.g. in the daemon) never imports torch.
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 import pluggy
 
@@ -41,15 +41,23 @@ def sssphase_model_backends() -> dict[str, Callable[..., FootprintBackend]]:
     return {name: _lazy(target) for name, target in BUILTIN.items()}
 
 
+PluginBackends = Callable[[], Iterable[dict[str, Callable[..., FootprintBackend]]]]
+_plugin_backends: PluginBackends | None = None
+
+
+def use_plugin_backends(source: PluginBackends | None) -> None:
+    """Where plugin backends come from: ``source()`` returns the ``sssphase_model_backends`` results,
+    earliest plugin first. The plugin manager registers itself here when it is imported (core does not
+    import the plugin layer); None: the built-ins only."""
+    global _plugin_backends
+    _plugin_backends = source
+
+
 def available_backends() -> dict[str, Callable[..., FootprintBackend]]:
-    """{name: factory} of the built-ins and of every plugin implementing ``sssphase_model_backends``."""
+    """{name: factory} of the built-ins and of every plugin implementing ``sssphase_model_backends``
+    (a later plugin's name replaces an earlier one's)."""
     found = sssphase_model_backends()
-    try:
-        from sssphase_plugins.manager import get_plugin_manager
-    except ImportError:
-        return found
-    hook = getattr(get_plugin_manager().hook, "sssphase_model_backends", None)
-    for result in reversed(hook()) if hook is not None else []:  # pluggy calls the latest plugin first
+    for result in _plugin_backends() if _plugin_backends is not None else []:
         found.update(result)
     return found
 
@@ -62,4 +70,5 @@ def get_backend(name: str, **options: object) -> FootprintBackend:
     return backends[name](**options)
 
 
-__all__ = ["BUILTIN", "FootprintBackend", "Query", "as_patches", "available_backends", "get_backend", "hookimpl"]
+__all__ = ["BUILTIN", "FootprintBackend", "Query", "as_patches", "available_backends", "get_backend", "hookimpl",
+           "use_plugin_backends"]

@@ -9,11 +9,12 @@ import platform
 import statistics
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from sssphase_core.tables import Table  # noqa: F401  (benchmarks build their tables with it)
 
 
 def median_seconds(fn: Callable[[], object], repeats: int = 5, warmup: int = 1) -> float:
@@ -62,28 +63,6 @@ def machine_info() -> dict[str, Any]:
         pass
     info["numpy"] = np.__version__
     return info
-
-
-@dataclass
-class Table:
-    """A Markdown table: ``rows`` are sequences matching ``columns``; floats are shown with 3 significant digits."""
-
-    title: str
-    columns: Sequence[str]
-    rows: list[Sequence[Any]] = field(default_factory=list)
-    note: str = ""
-
-    def markdown(self) -> str:
-        def fmt(v: Any) -> str:
-            if isinstance(v, float | np.floating):
-                return "n/a" if not math.isfinite(v) else f"{v:.3g}"
-            return str(v)
-
-        lines = [f"### {self.title}", "", "| " + " | ".join(self.columns) + " |", "|" + "---|" * len(self.columns)]
-        lines += ["| " + " | ".join(fmt(v) for v in row) + " |" for row in self.rows]
-        if self.note:
-            lines += ["", self.note]
-        return "\n".join(lines) + "\n"
 
 
 def _jsonable(obj: Any) -> Any:

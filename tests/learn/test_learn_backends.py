@@ -85,6 +85,31 @@ def test_backend_hookspec_is_loaded_by_the_plugin_manager():
     assert isinstance(merged["analytic"](patch=16), AnalyticBackend)
 
 
+def test_a_plugin_backend_reaches_core_through_the_plugin_manager(tmp_path, monkeypatch):
+    """Core does not import the plugin layer: the manager hands it the plugins' backends when loaded."""
+    (tmp_path / "my_backend_plugin.py").write_text(
+        "from sssphase_core.backends import hookimpl\n"
+        "from sssphase_core.backends.analytic_backend import AnalyticBackend\n"
+        "@hookimpl\n"
+        "def sssphase_model_backends():\n"
+        "    return {'mine': lambda **o: AnalyticBackend(patch=8, **o)}\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("SSS_PLUGINS", "my_backend_plugin")
+    from sssphase_core import backends
+    from sssphase_plugins import manager
+
+    try:
+        manager.get_plugin_manager(refresh=True)
+        assert isinstance(get_backend("mine"), AnalyticBackend) and "torch" in available_backends()
+        backends.use_plugin_backends(None)
+        with pytest.raises(InputError, match="unknown model backend 'mine'"):
+            get_backend("mine")
+    finally:
+        backends.use_plugin_backends(manager._plugin_model_backends)
+        monkeypatch.delenv("SSS_PLUGINS")
+        manager.get_plugin_manager(refresh=True)
+
+
 def test_loading_the_backend_registry_does_not_import_torch():
     import subprocess
     import sys
