@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -13,6 +12,7 @@ import torch
 from sssphase_core.data import crop_patches, pad_for_patches, to_channels_first
 from sssphase_core.errors import InputError
 from sssphase_core.losses import ssim_map
+from sssphase_core.metrics import MSE_FLOOR, psnr
 
 # --- embeddings ----------------------------------------------------------------------------------
 
@@ -97,7 +97,7 @@ def footprint_metrics(pred: np.ndarray, target: np.ndarray, *, data_range: float
 
     out = {
         "mse": mse.numpy(),
-        "psnr": (10 * torch.log10(data_range**2 / mse.clamp_min(1e-20))).numpy(),
+        "psnr": psnr(mse.clamp_min(MSE_FLOOR).numpy(), data_range),
         "ssim": ssim_map(p, t).mean(dim=(1, 2, 3)).numpy(),
         "ssim_r1": kornia_ssim(p, t, 11, max_val=data_range).mean(dim=(1, 2, 3)).numpy(),
     }
@@ -111,7 +111,7 @@ def footprint_metrics(pred: np.ndarray, target: np.ndarray, *, data_range: float
 def summarise(metrics: dict[str, np.ndarray]) -> dict[str, float]:
     """Means; PSNR is recomputed from the mean MSE (aggregate PSNR, as for a whole test set)."""
     out = {k: float(np.mean(v)) for k, v in metrics.items()}
-    out["psnr"] = 10 * math.log10(1.0 / max(out["mse"], 1e-20))
+    out["psnr"] = psnr(max(out["mse"], MSE_FLOOR))
     return out
 
 

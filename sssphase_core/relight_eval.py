@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from sssphase_core.errors import InputError
+from sssphase_core.metrics import psnr
 
 METRICS = ("mse", "psnr", "ssim", "lpips")
 
@@ -40,11 +41,11 @@ def relight_metrics(relit: np.ndarray, reference: np.ndarray, mask: np.ndarray, 
         raise InputError("the object mask is empty: nothing to evaluate")
     a, b = np.nan_to_num(relit.astype(np.float64)), np.nan_to_num(reference.astype(np.float64))
     mse = float(np.mean((a[m] - b[m]) ** 2))
-    psnr = float(10 * np.log10(data_range**2 / mse)) if mse > 0 else float("inf")
+    psnr_db = psnr(mse, data_range)
     ta = torch.as_tensor(a, dtype=torch.float32).permute(2, 0, 1)[None]
     tb = torch.as_tensor(b, dtype=torch.float32).permute(2, 0, 1)[None]
     ssim_map = kornia.metrics.ssim(ta, tb, window_size=11, max_val=data_range)[0].mean(0).numpy()
-    out = {"mse": mse, "psnr": psnr, "ssim": float(ssim_map[m].mean()), "data_range": data_range}
+    out = {"mse": mse, "psnr": psnr_db, "ssim": float(ssim_map[m].mean()), "data_range": data_range}
     from sssphase_core import lpips
 
     if lpips.available()[0]:

@@ -32,6 +32,7 @@ from sssphase_core import augment
 from sssphase_core.data import PatchDataset
 from sssphase_core.errors import DataError, SssError
 from sssphase_core.losses import LOG_EPS, SBHLoss, noise_floor
+from sssphase_core.metrics import MSE_FLOOR, psnr
 from sssphase_core.models import Decoder, Encoder, ModelPreset, SimSiam, get_preset
 from sssphase_core.runlog import METRICS, METRICS_CSV, TB_DIR, RunLog
 
@@ -554,7 +555,7 @@ def validate_decoder(enc: Encoder, dec: Decoder, dataset: PatchDataset, n: int, 
         sums["val_mse"] += float(((pred.float() - target) ** 2).mean()) * len(target)
         count += len(target)
     out = {k: v / count for k, v in sums.items()}
-    out["val_psnr"] = 10 * math.log10(1.0 / max(out["val_mse"], 1e-20))
+    out["val_psnr"] = psnr(max(out["val_mse"], MSE_FLOOR))
     return out
 
 
