@@ -366,17 +366,11 @@ def bench_daemon(
     md: Annotated[Path | None, typer.Option(help="Markdown table file (default: next to --out)")] = None,
 ) -> None:
     """Daemon frame throughput vs bare pyzmq PUSH/PULL (tcp, ipc), one sim view's capture time, peak memory."""
+    from sssphase_cli.output import write_result
     from sssphase_daemon.bench import run_bench
 
-    t0 = time.time()
     result, markdown = run_bench(frames)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1))
-    md = md or out.with_suffix(".md")
-    md.parent.mkdir(parents=True, exist_ok=True)
-    md.write_text(markdown)
-    console.print(markdown)
-    console.print(f"wrote {out} and {md} in {time.time() - t0:.0f} s")
+    write_result(console, out, md, result, markdown)
 
 
 def bench_capture(
@@ -390,6 +384,7 @@ def bench_capture(
     """One sim view captured through a daemon: time, peak RSS of daemon and client, session size."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
+    from sssphase_cli.output import write_result
     from sssphase_core.sim import rig_preset
     from sssphase_daemon.bench import capture_bench
 
@@ -399,13 +394,7 @@ def bench_capture(
         task = bar.add_task("view", total=None)
         result, markdown = capture_bench(preset, object_name, footprints=footprints, out=keep,
                                          progress=lambda view, done, total: bar.update(task, completed=done, total=total))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1))
-    md = md or out.with_suffix(".md")
-    md.parent.mkdir(parents=True, exist_ok=True)
-    md.write_text(markdown)
-    console.print(markdown)
-    console.print(f"wrote {out} and {md}")
+    write_result(console, out, md, result, markdown)
 
 
 def register(groups: dict[str, typer.Typer]) -> None:

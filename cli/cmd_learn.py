@@ -513,8 +513,7 @@ def bench_gpu(
     md: Annotated[Path | None, typer.Option(help="Markdown output (default: next to --out)")] = None,
 ) -> None:
     """The GPU path: paper-preset training with mixed precision, CPU/GPU agreement, relighting, NCCL DDP."""
-    import json
-
+    from sssphase_cli.output import write_result
     from sssphase_core.bench.gpu_bench import markdown, run
     from sssphase_core.models import get_preset
 
@@ -522,12 +521,7 @@ def bench_gpu(
     with console.status("sss bench gpu") as status:
         result = run(out, device=device, preset=preset, steps=steps, batch=batch, epochs=epochs,
                      progress=lambda stage: status.update(f"sss bench gpu: {stage}"))
-    out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1))
-    md = md or out.with_suffix(".md")
-    md.write_text(markdown(result))
-    console.print(markdown(result))
-    console.print(f"wrote {out} and {md}")
+    write_result(console, out, md, result, markdown(result))
 
 
 def register(groups: dict[str, typer.Typer]) -> None:
