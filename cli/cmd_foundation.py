@@ -174,12 +174,12 @@ def bench_psp(
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
     from sssphase_core.bench import psp_bench
-    from sssphase_core.bench.report import write_report
+    from sssphase_core.bench.output import write_bench_report
 
     with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn()) as bar:
         task = bar.add_task("bench psp", total=None)
         result, tables = psp_bench.run(quick=quick, progress=lambda msg: bar.update(task, description=msg))
-    write_report(result, tables, out, md, title="sss bench psp" + (" (quick)" if quick else ""))
+    write_bench_report(result, tables, out, md, title="sss bench psp" + (" (quick)" if quick else ""))
     s = result["speed"]
     typer.echo(
         f"decode + unwrap {s['ours_ms_per_phase_map']:.1f} ms/phase map vs OpenCV PSP {s['opencv_psp_3step_ms']:.1f} ms "

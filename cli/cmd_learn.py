@@ -475,7 +475,7 @@ def bench_learn(
 ) -> None:
     """Throughput (patches/s) of the lite and paper presets, inference and training, ratio to paper."""
     from sssphase_core.bench.learn_bench import loader_throughput
-    from sssphase_core.bench.report import Table, machine_info, write_report
+    from sssphase_core.bench.output import Table, machine_info, write_bench_report
     from sssphase_core.evaluation import measure_throughput
 
     batches = {"paper": 8, "lite": 64}
@@ -497,7 +497,7 @@ def bench_learn(
                            r["train_patches_s"], r["train_patches_s"] / base["train_patches_s"]])
         loader.rows.append([name, r["camera"], r["patch"], r["loader_psp_patches_s"], r["loader_patches_s"], r["train_patches_s"],
                             r["loader_patches_s"] / r["train_patches_s"], r["loader_patches_s"] / r["infer_patches_s"]])
-    write_report({"machine": machine_info(), "device": device, "results": results}, [table, loader], out, md,
+    write_bench_report({"machine": machine_info(), "device": device, "results": results}, [table, loader], out, md,
                  title="sss bench learn")
     console.print(table.markdown())
     console.print(loader.markdown())

@@ -154,7 +154,7 @@ def eval_relight(
     device: str = "cpu",
 ) -> None:
     """Relight every reference pattern of the sessions and tabulate MSE / PSNR / SSIM over objects and views."""
-    from sssphase_core.bench.report import write_report
+    from sssphase_core.bench.output import write_bench_report
     from sssphase_core.relight import load_view
     from sssphase_core.relight_eval import aggregate, evaluate_view, lpips_note, metrics_table
     from sssphase_core.session import find_sessions
@@ -171,7 +171,7 @@ def eval_relight(
                                           progress=lambda d, t, task=task: bar.update(task, completed=d, total=t))
     table = metrics_table(rows)
     per_object = metrics_table(rows, by=("object", "backend"), title="Relighting per object")
-    write_report({"rows": rows, "aggregate": aggregate(rows), "lpips": lpips_note()}, [table, per_object],
+    write_bench_report({"rows": rows, "aggregate": aggregate(rows), "lpips": lpips_note()}, [table, per_object],
                  out / "relight_eval.json", md=out / "relight_eval.md", title="Relighting against reference captures")
     console.print(table.markdown())
     console.print(f"wrote {out / 'relight_eval.json'} and {out / 'relight_eval.md'}")

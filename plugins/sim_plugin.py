@@ -55,7 +55,7 @@ def _number(options: Mapping[str, Any], name: str, default: float, lo: float, hi
     return kind(value)
 
 
-class SimBench:
+class SimRigState:
     """State shared by the sim devices of one rig: scene, shown pattern, turntable, device clock."""
 
     def __init__(self, options: Mapping[str, Any]) -> None:
@@ -132,14 +132,14 @@ def projector_size(rig: Any) -> tuple[int, int]:
     return int(rig.projector.width), int(rig.projector.height)
 
 
-def _bench(shared: dict[str, Any], options: Mapping[str, Any]) -> SimBench:
+def _bench(shared: dict[str, Any], options: Mapping[str, Any]) -> SimRigState:
     if "sim_bench" not in shared:
-        shared["sim_bench"] = SimBench(options)
+        shared["sim_bench"] = SimRigState(options)
     return shared["sim_bench"]
 
 
 class SimCamera:
-    def __init__(self, bench: SimBench, options: Mapping[str, Any]) -> None:
+    def __init__(self, bench: SimRigState, options: Mapping[str, Any]) -> None:
         self.info = DeviceInfo(CAMERA_ID, "camera", PLUGIN, "simulated camera", "camera0")
         self.bench = bench
         self.exposure = 1.0
@@ -193,7 +193,7 @@ class SimCamera:
 
 
 class SimProjector:
-    def __init__(self, bench: SimBench) -> None:
+    def __init__(self, bench: SimRigState) -> None:
         self.info = DeviceInfo(PROJECTOR_ID, "projector", PLUGIN, "simulated projector", "projector0")
         self.bench = bench
         self.frame_id = 0
@@ -224,7 +224,7 @@ class SimProjector:
 
 
 class SimTurntable:
-    def __init__(self, bench: SimBench) -> None:
+    def __init__(self, bench: SimRigState) -> None:
         self.info = DeviceInfo(TURNTABLE_ID, "turntable", PLUGIN, "simulated turntable", "turntable0")
         self.bench = bench
 

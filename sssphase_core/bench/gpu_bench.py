@@ -191,7 +191,7 @@ def ddp(preset: str, out: Path, *, steps: int, batch: int) -> dict[str, Any]:
 def run(out: Path, *, device: str = "auto", preset: str = "paper", steps: int = 200, batch: int = 32,
         epochs: int = 4, relight_size: int = 192, progress: Any = None) -> dict[str, Any]:
     """The whole benchmark; returns the result (written by the caller)."""
-    from sssphase_core.bench.report import machine_info
+    from sssphase_core.bench.output import machine_info
 
     dev = _device(device)
     if steps < epochs:

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from sssphase_core.bench.report import Table, interleaved_seconds, machine_info, median_seconds
+from sssphase_core.bench.output import Table, interleaved_seconds, machine_info, median_seconds
 from sssphase_core.patterns import PSPConfig, period_ladder, phase_shift_pattern, psp_config_for, psp_key
 from sssphase_core.psp import Correspondence, decode, wrapped_phase
 

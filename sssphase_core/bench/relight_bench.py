@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from sssphase_core.bench.report import Table, machine_info, median_seconds, write_report
+from sssphase_core.bench.output import Table, machine_info, median_seconds, write_bench_report
 from sssphase_core.relight import Projection, emitted_light, lit_pixels, make_source, relight
 from sssphase_core.relight_eval import relight_metrics
 
@@ -265,5 +265,5 @@ def run(out: Path, *, objects: Sequence[str] = ("soap",), checkpoint: Path | str
     ]
     result = {"machine": machine_info(), "objects": list(objects), "work_precision": rows, "cost_vs_lit": lit,
               "splat": splats, "matmul_flops": peak, "figure": str(figure), "skipped": skipped}
-    write_report(result, tables, out, md=out.with_suffix(".md"), title="Relighting: error against run time")
+    write_bench_report(result, tables, out, md=out.with_suffix(".md"), title="Relighting: error against run time")
     return result

@@ -16,8 +16,8 @@ from typing import Any
 
 import numpy as np
 
+from sssphase_core.bench.output import Table, machine_info, write_bench_report
 from sssphase_core.bench.relight_bench import InMemorySource, SimView, sim_view, source_for
-from sssphase_core.bench.report import Table, machine_info, write_report
 from sssphase_core.relight import emitted_light, lit_pixels, relight
 from sssphase_core.relight_eval import relight_metrics
 
@@ -124,5 +124,5 @@ def run(out: Path, *, cases: Sequence[str] | None = None, backends: Sequence[str
                     r["seconds"]] for r in rows], note=note)
     result = {"machine": machine_info(), "cases": [c.__dict__ for c in chosen], "rows": rows, "non_finite": bad,
               "skipped": [b for b in backends if b not in use]}
-    write_report(result, [table], Path(out), md=Path(out).with_suffix(".md"), title="Relighting stability")
+    write_bench_report(result, [table], Path(out), md=Path(out).with_suffix(".md"), title="Relighting stability")
     return result

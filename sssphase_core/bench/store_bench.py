@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from sssphase_core.bench.report import Table, machine_info, write_report
+from sssphase_core.bench.output import Table, machine_info, write_bench_report
 from sssphase_core.errors import InputError
 
 
@@ -82,5 +82,5 @@ def run(sessions: list[Any], out: Path, progress=None) -> dict[str, Any]:
     table.note = ("float32 B/fp: the baseline written with the session codec (LZ4); 'store / float32': the store's bytes "
                   "over the raw float32 size (N x K x K x 3 x 4 bytes); both relit in the same run.")
     payload = {"machine": machine_info(), "rows": rows}
-    write_report(payload, [table], out, out.with_suffix(".md"), title="sss bench store")
+    write_bench_report(payload, [table], out, out.with_suffix(".md"), title="sss bench store")
     return payload

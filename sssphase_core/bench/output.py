@@ -81,7 +81,7 @@ def _jsonable(obj: Any) -> Any:
     return obj
 
 
-def write_report(result: dict[str, Any], tables: Sequence[Table], out: Path, md: Path | None = None, title: str = "") -> None:
+def write_bench_report(result: dict[str, Any], tables: Sequence[Table], out: Path, md: Path | None = None, title: str = "") -> None:
     """Write ``result`` as JSON to ``out`` and, if ``md`` is given, the tables as Markdown."""
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
