@@ -257,8 +257,11 @@ class DotTransport:
             return np.zeros((0, *self.crops.shape[1:]), np.float32)  # type: ignore[attr-defined]
         from sssphase_core.footprints import above_noise
 
-        lo, hi = int(rows.min()), int(rows.max()) + 1  # one contiguous read of the (chunked) array
-        crops = np.asarray(self.crops[lo:hi], np.float32)[rows - lo]  # type: ignore[index]
+        lo, hi = int(rows.min()), int(rows.max()) + 1
+        if hi - lo <= 4 * len(rows) or not hasattr(self.crops, "oindex"):  # one contiguous read of the chunks
+            crops = np.asarray(self.crops[lo:hi])[rows - lo].astype(np.float32)  # type: ignore[index]
+        else:  # a sparse pattern lights few of the rows in between: read only theirs
+            crops = np.asarray(self.crops.oindex[rows]).astype(np.float32)  # type: ignore[attr-defined]
         if self.noise > 0 and len(crops):
             crops = crops * above_noise(crops, self.noise)[..., None]
         return crops
@@ -279,10 +282,25 @@ def no_scattering_source(white: np.ndarray, patch: int = 1) -> FootprintSource:
     return source
 
 
-def backend_source(backend: object, psp: np.ndarray) -> FootprintSource:
-    """Footprints predicted by a model backend (``predict_footprints((psp, pixels))``)."""
-    stack = np.asarray(psp, np.float32)
-    return lambda pixels: backend.predict_footprints((stack, np.asarray(pixels)))  # type: ignore[attr-defined]
+def backend_source(backend: object, psp: np.ndarray, chunk: int = 256) -> FootprintSource:
+    """Footprints predicted by a model backend from the (N, 24, K, K) PSP patches of the asked pixels,
+    cropped from the view's stack padded once (a 1080p stack is 200 MB) and given to
+    ``predict_footprints`` ``chunk`` at a time (a K = 90 patch is 0.8 MB, and backends work on copies)."""
+    from sssphase_core.data import crop_patches, pad_for_patches, to_channels_first
+
+    k = int(backend.patch)  # type: ignore[attr-defined]
+    stack = pad_for_patches(to_channels_first(np.asarray(psp, np.float32)), k)
+
+    def source(pixels: np.ndarray) -> np.ndarray | torch.Tensor:
+        parts = [backend.predict_footprints(crop_patches(stack, pixels[i:i + chunk], k, padded=True).numpy())  # type: ignore[attr-defined]
+                 for i in range(0, len(pixels), chunk)]
+        if not parts:
+            return np.zeros((0, k, k, 3), np.float32)
+        if torch.is_tensor(parts[0]):
+            return torch.cat(parts)
+        return np.concatenate(parts)
+
+    return source
 
 
 WHITE_FLOOR = 1e-3  # white values below this (linear camera units) are noise: no ratio is taken
