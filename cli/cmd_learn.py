@@ -178,10 +178,9 @@ def train_decoder(
     from sssphase_core.data import PatchDataset
     from sssphase_core.errors import InputError
     from sssphase_core.evaluation import plot_metric_vs_time
-    from sssphase_core.models import get_preset
     from sssphase_core.models.decoder import HEADS
     from sssphase_core.sim import TRAIN_OBJECTS
-    from sssphase_core.training import METRICS, DecoderConfig, load_encoder
+    from sssphase_core.training import METRICS, DecoderConfig, decoder_patch
     from sssphase_core.training import train_decoder as fit
 
     if head not in HEADS:
@@ -189,7 +188,7 @@ def train_decoder(
     if (encoder is None) == (not end_to_end):
         raise InputError("give either --encoder PATH (a pretraining run; the paper's method) or --end-to-end (the "
                          "supervised baseline without SSL), not both or neither")
-    patch = get_preset(preset).patch if end_to_end else load_encoder(encoder).preset.patch
+    patch = decoder_patch(None if end_to_end else encoder, preset)
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
     kw = dict(n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=True, seed=seed, cache=cache, noisy=noisy_targets,
               sessions=sessions)

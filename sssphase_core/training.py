@@ -127,6 +127,11 @@ def _preset_of(ckpt: dict, path: Path | str) -> ModelPreset:
         raise DataError(f"{path}: its model preset cannot be read ({exc})") from None
 
 
+def decoder_patch(encoder_ckpt: Path | str | None, preset: str | ModelPreset) -> int:
+    """The footprint size K a decoder trains at: its frozen encoder's, or ``preset``'s end to end (no encoder)."""
+    return get_preset(preset).patch if encoder_ckpt is None else load_encoder(encoder_ckpt).preset.patch
+
+
 def load_decoder(path: Path | str) -> tuple[Encoder, Decoder]:
     """(encoder, decoder) of a decoder checkpoint, both in eval mode."""
     ckpt = load_checkpoint(path)

@@ -57,10 +57,10 @@ class TorchBackend:
 
         ``encoder=None`` trains encoder and decoder end-to-end (the U-Net baseline, ``config.preset``).
         """
-        from sssphase_core.training import load_encoder
+        from sssphase_core.training import decoder_patch
 
         config = config or DecoderConfig()
-        patch = get_preset(config.preset).patch if encoder is None else load_encoder(encoder).preset.patch
+        patch = decoder_patch(encoder, config.preset)
         classes = sorted({v.object for v in [*views, *(val_views or [])]})
         ds = PatchDataset(views, patch, classes, with_targets=True)
         val = PatchDataset(val_views, patch, classes, with_targets=True) if val_views else None
