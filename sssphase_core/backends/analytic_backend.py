@@ -29,6 +29,8 @@ if TYPE_CHECKING:
 N_SHIFTS = 4
 _MEAN_INV_R = 4 * np.log(1 + np.sqrt(2))  # mean of 1/r over a unit square centred on the pole
 _U = np.logspace(-8, 8, 4000)
+#: Bytes of one supersampled radius grid per render step (the profile makes a few such temporaries).
+RENDER_STEP_BYTES = 128 * 2**20
 _MTF = {
     "burley": lambda u: 0.25 * (1 / np.sqrt(1 + u) + 3 / np.sqrt(1 + 9 * u)),
     "exponential": lambda u: (1 + u) ** -1.5,
@@ -93,16 +95,19 @@ class AnalyticBackend:
         sub = (np.arange(s) + 0.5) / s - 0.5
         ax = (np.arange(k) - k // 2)[:, None] + sub[None, :]  # (K, s)
         out = np.empty((len(energy), k, k, 3), np.float32)
-        for i in range(0, len(energy), self.chunk):
-            dx = widths[i : i + self.chunk, :, 0][:, :, None, None, None, None]
-            dy = widths[i : i + self.chunk, :, 1][:, :, None, None, None, None]
+        # the supersampled radius grid is (n, 3, K s, K s) float64 and the profile makes a few of them:
+        # fewer footprints per step at large K (K = 90, s = 4: 43, not 256, so a step stays ~0.1 GB each)
+        step = max(1, min(self.chunk, RENDER_STEP_BYTES // (3 * (k * s) ** 2 * 8)))
+        for i in range(0, len(energy), step):
+            dx = widths[i : i + step, :, 0][:, :, None, None, None, None]
+            dy = widths[i : i + step, :, 1][:, :, None, None, None, None]
             r = np.hypot(ax[None, None, :, :, None, None] / dy, ax[None, None, None, None, :, :] / dx)
             # An odd supersample puts a sample on the 1/r pole: give it the square's mean 1/r instead,
             # (1/a) * 4 ln(1 + sqrt 2) for a sub-pixel of side a = 1/s (in width-scaled units).
             r = np.maximum(r, 1.0 / (s * _MEAN_INV_R * np.sqrt(dx * dy)))
             prof = _PROFILE[self.profile](r).sum(axis=(3, 5))  # (n, 3, K, K)
             prof /= prof.sum(axis=(2, 3), keepdims=True)
-            out[i : i + self.chunk] = (prof * energy[i : i + self.chunk, :, None, None]).transpose(0, 2, 3, 1)
+            out[i : i + step] = (prof * energy[i : i + step, :, None, None]).transpose(0, 2, 3, 1)
         return out
 
     def predict_footprints(self, query: Query) -> np.ndarray:
