@@ -306,7 +306,8 @@ def session_views(
         s = sessions[name]
         for view in s.views() if views is None else views:
             if view not in s.views():
-                raise DataError(f"session {s.path} has no complete view {view}")
+                raise DataError(f"session {s.path} has no complete view {view} (its views: "
+                                f"{', '.join(map(str, s.views())) or 'none'}; choose with --views / --val-views)")
             psp = np.asarray(s.load(view, "psp"), np.float32)
             rng_seed = view_seed(seed, name, view)
             fp = None
