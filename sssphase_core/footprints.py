@@ -274,7 +274,6 @@ class DotTransportExtractor:
             self.dots = dots[keep].astype(np.int64)
             self.pixels = np.stack([py[keep], px[keep]], axis=1).astype(np.int64)
         self._groups = _by_shift((self.dots[:, 1] % spacing) * spacing + self.dots[:, 0] % spacing, spacing)
-        self.nbytes = len(self.dots) * patch * patch * channels * np.dtype(dtype).itemsize
         self._crops: np.ndarray | None = None  # allocated by the first ``add`` (``crops`` streams)
         self._lit = np.zeros(len(self.dots), bool)
 

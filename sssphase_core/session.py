@@ -234,9 +234,6 @@ class GrowingArray:
         self.n_held = 0
         self.hash = hashlib.sha256()
 
-    def __len__(self) -> int:
-        return self.arr.shape[0] + self.n_held
-
     def extend(self, rows: np.ndarray) -> None:
         """Append ``rows`` (n, *row_shape), cast to the array's dtype."""
         rows = np.ascontiguousarray(rows, self.dtype)
