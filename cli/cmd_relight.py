@@ -252,6 +252,31 @@ def bench_stability(
         raise typer.Exit(1)
 
 
+def bench_gap(
+    sessions: Annotated[list[Path], typer.Argument(help="Simulated sessions (or folders of them) captured with a --reference.")],
+    checkpoint: CheckpointOpt = None,
+    backend: Annotated[str, typer.Option(help="The model backend whose gap to the exact footprints is decomposed.")] = "torch",
+    views: Annotated[str, typer.Option(help="Comma-separated views (default: all).")] = "",
+    out: Annotated[Path, typer.Option("--out", help="JSON output (.md written next to it).")] = Path("bench_gap.json"),
+) -> None:
+    """What separates a model's relighting from the exact footprints': energy, shape, centre, angular detail,
+    silhouettes (simulated sessions; the exact footprints serve evaluation only)."""
+    from sssphase_core.bench import gap_bench
+    from sssphase_core.session import find_sessions
+
+    from sssphase_core.errors import InputError
+
+    try:
+        chosen = [int(v) for v in views.split(",") if v.strip()] or None
+    except ValueError:
+        raise InputError(f"--views must be comma-separated integers, got {views!r}") from None
+    with console.status("decomposing the gap") as st:
+        gap_bench.run(find_sessions(sessions), out, checkpoint=checkpoint, backend=backend, views=chosen,
+                      progress=lambda m: st.update(m))
+    console.print(out.with_suffix(".md").read_text())
+    console.print(f"wrote {out} and {out.with_suffix('.md')}")
+
+
 def demo(
     out: Annotated[Path, typer.Option("--out", help="Demo folder (resumable: finished steps are skipped).")] = Path("demo"),
     preset: Annotated[str, typer.Option(help="lite (minutes on 2 CPU cores) or tiny (tests).")] = "lite",
@@ -280,4 +305,5 @@ def register(groups: dict[str, typer.Typer]) -> None:
     groups["bench"].command("relight")(bench_relight)
     groups["bench"].command("stability")(bench_stability)
     groups["bench"].command("store")(bench_store)
+    groups["bench"].command("gap")(bench_gap)
     groups["root"].command("report")(report)

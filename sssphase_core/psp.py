@@ -415,3 +415,57 @@ def decode(
     _for_each_block(block, _row_blocks(H, W, block_rows))
     return Correspondence(mask=out["reason"] == 0, **out)
 
+
+
+def declip(stack: np.ndarray, saturation: float, *, white: np.ndarray | None = None, white_saturation: float | None = None,
+           black: float = 0.0, margin: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
+    """Repair clipped samples of the paper's 8 inputs (4 shifts per orientation) from the others.
+
+    With 4 shifts, ``I_n + I_{n+2} = 2A`` for both pairs (n = 0, 1), so a sample clipped at the top is
+    ``2A - I_{n+2}`` once A is known: from the orientation's unclipped pair, else from the white capture
+    (A = (black + (1 - black) / 2) x white for a projector with relative ``black`` level). A sample
+    counts as clipped from ``margin`` x ``saturation`` (demosaicing spreads a clipped sample over its
+    neighbours). Not recoverable: both samples of a pair clipped, or one in each pair without a usable
+    white value (absent, or itself at ``white_saturation``).
+
+    Args:
+        stack: (8, H, W, 3) linear camera units, x shifts 0..3 then y shifts 0..3.
+        saturation: the stack's clipping level in the same units.
+        white: (H, W, 3) full-white capture, or None.
+        white_saturation: the white's clipping level (None: it does not clip, e.g. HDR).
+
+    Returns:
+        (repaired (8, H, W, 3) float32 copy, unrecovered (H, W) bool: some colour of some orientation
+        still clipped).
+    """
+    x = np.array(stack, np.float32, copy=True)
+    if x.ndim != 4 or x.shape[0] != 8 or x.shape[-1] != 3:
+        raise InputError(f"declip needs the (8, H, W, 3) paper inputs, got {x.shape}")
+    if not saturation > 0:
+        raise InputError(f"saturation must be positive, got {saturation}")
+    level = np.float32(margin * saturation)
+    a_white = None
+    if white is not None:
+        w = np.asarray(white, np.float32)
+        a_white = np.where(np.isfinite(w), w * np.float32(black + (1.0 - black) / 2.0), np.nan)
+        if white_saturation is not None:
+            a_white = np.where(w < margin * white_saturation, a_white, np.nan)
+    unrecovered = np.zeros(x.shape[1:3], bool)
+    for o in (0, 4):
+        s = x[o : o + 4]  # view: shift n, pairs (0, 2) and (1, 3)
+        clipped = s >= level  # (4, H, W, 3)
+        if not clipped.any():
+            continue
+        n_clipped = clipped[:2].astype(np.int8) + clipped[2:]  # (2, H, W, 3) per pair
+        pair_a = 0.5 * (s[:2] + s[2:])
+        good = n_clipped == 0
+        n_good = good.sum(axis=0)
+        a = np.where(n_good > 0, (pair_a * good).sum(axis=0) / np.maximum(n_good, 1), np.nan)
+        if a_white is not None:
+            a = np.where(n_good > 0, a, a_white)
+        for n in range(4):
+            fix = clipped[n] & (n_clipped[n % 2] == 1) & np.isfinite(a)
+            s[n] = np.where(fix, np.maximum(2.0 * a - s[(n + 2) % 4], s[n]), s[n])  # at least what clipped
+        lost = (n_clipped == 2).any(axis=0) | ((n_clipped > 0).any(axis=0) & ~np.isfinite(a))
+        unrecovered |= lost.any(axis=-1)
+    return x, unrecovered

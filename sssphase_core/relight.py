@@ -413,6 +413,8 @@ class RelightView:
     captured: dict[str, np.ndarray]  # name -> reference image (noise-free sim render if stored, else capture)
     sim: dict | None = None  # SimScene arguments of a simulated session
     session: object | None = None
+    saturation: float | None = None  # clipping level of the PSP frames (linear units), None: unknown
+    white_saturation: float | None = None  # the white capture's (None: it does not clip, e.g. HDR)
     _camera: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
     def camera_image(self, name: str) -> np.ndarray:
@@ -483,8 +485,24 @@ def load_view(session: object, view: int) -> RelightView:
             captured[name] = load(f"ref/{name}").astype(np.float32)
         else:
             references.pop(name)
+    psp_clip, white_clip = clip_levels(plan.get("frames", []), rig.get("saturation"))
     return RelightView(str(m.get("object")), view, proj, load("psp").astype(np.float32), white, patch,
-                       references, captured, sim, session)
+                       references, captured, sim, session, psp_clip, white_clip)
+
+
+def clip_levels(frames: list[dict], saturation: float | None) -> tuple[float | None, float | None]:
+    """Clipping levels (linear units) of a session's PSP and white images from the rig's level at exposure
+    1: a frame developed at exposure e clips at saturation / e; HDR-merged frames clip only where the shortest
+    exposure did."""
+    if not saturation:
+        return None, None
+
+    def level(kind: str) -> float | None:
+        exposures = [float(f.get("exposure", 1.0)) for f in frames if f.get("kind") == kind]
+        return float(saturation) / min(exposures) if exposures else None
+
+    return level("psp"), level("white")
+
 
 
 def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",
@@ -528,7 +546,55 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
         backend = get_backend("analytic", **{"patch": rv.patch, "black": rv.proj.black, **options})
     else:
         backend = get_backend(name, **options)
-    return backend_source(backend, rv.psp), int(backend.patch)
+    psp, lost = model_inputs(rv)
+    source = backend_source(backend, psp)
+    usable = white_usable(rv.white, rv.white_saturation)
+    if (lost & usable).any():  # fringes beyond repair: the energy from the white capture (reciprocity)
+        source = energy_from_white(source, lost & usable, rv.white)
+    return source, int(backend.patch)
+
+
+def model_inputs(rv: RelightView) -> tuple[np.ndarray, np.ndarray]:
+    """The view's PSP stack for a model backend, clipped samples repaired (:func:`psp.declip`), and the
+    (H, W) bool map of pixels whose clipped fringes could not be repaired."""
+    if rv.saturation is None:
+        return rv.psp, np.zeros(rv.psp.shape[1:3], bool)
+    from sssphase_core.psp import declip
+
+    return declip(rv.psp, rv.saturation, white=rv.white, white_saturation=rv.white_saturation, black=rv.proj.black)
+
+
+def white_usable(white: np.ndarray, saturation: float | None, margin: float = 0.95) -> np.ndarray:
+    """(H, W) bool: the white capture is finite, above the noise floor and below its clipping level in
+    every colour (``saturation`` None: it does not clip)."""
+    w = np.asarray(white, np.float32)
+    ok = np.isfinite(w) & (w > WHITE_FLOOR)
+    if saturation is not None:
+        ok &= w < margin * saturation
+    return ok.all(axis=-1)
+
+
+def energy_from_white(source: FootprintSource, where: np.ndarray, white: np.ndarray) -> FootprintSource:
+    """``source``'s footprints, those of the pixels where the (H, W) bool ``where`` is set rescaled per
+    colour to carry the white capture's value (by reciprocity a footprint's energy), where the model's
+    own energy came from clipped fringes. Mixing in no-scattering deltas instead counts light twice
+    where scattering neighbours also deliver it (measured: 20.7 dB against 32.7 on the saturated
+    stability case)."""
+    img = np.asarray(white, np.float32)
+
+    def rescaled(pixels: np.ndarray) -> np.ndarray | torch.Tensor:
+        out = source(pixels)
+        pick = where[pixels[:, 0], pixels[:, 1]]
+        if not pick.any():
+            return out
+        out = out.float().cpu().numpy() if torch.is_tensor(out) else np.array(out, np.float32)
+        energy = out[pick].sum(axis=(1, 2))  # (n, 3)
+        target = img[pixels[pick, 0], pixels[pick, 1]]
+        gain = np.where(energy > WHITE_FLOOR, target / np.maximum(energy, WHITE_FLOOR), 1.0)
+        out[pick] *= gain[:, None, None, :].astype(np.float32)
+        return out
+
+    return rescaled
 
 
 # --- output images -----------------------------------------------------------------------------

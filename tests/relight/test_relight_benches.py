@@ -27,3 +27,19 @@ def test_work_precision_truncation_costs_accuracy_and_lit_counts_follow_patterns
     frac = {r["pattern"]: r["lit_fraction"] for r in lit}
     assert frac["white"] == 1 and 0.3 < frac["checkerboard"] < 0.7 and frac["tenth"] < frac["quarter"] < frac["checkerboard"]
     assert np.isfinite([r["seconds"] for r in lit]).all()
+
+
+def test_saturated_fringes_are_repaired_before_a_model_sees_them():
+    from sssphase_core.relight import model_inputs
+
+    case = next(c for c in stability_bench.CASES if c.name == "saturated")
+    sv = relight_bench.sim_view(stability_bench.case_object(case), exposure=case.exposure)
+    ok = relight_bench.sim_view(stability_bench.case_object(case))  # the same view, nothing clipped
+    assert sv.saturation is not None and (sv.psp >= 0.95 * sv.saturation).any(axis=(0, -1))[sv.proj.mask].mean() > 0.5
+    fixed, lost = model_inputs(sv)
+    keep = sv.proj.mask & ~lost
+    assert 0.2 < keep.sum() / sv.proj.mask.sum() < 0.9
+    err_raw = np.abs(sv.psp[:, keep] - ok.psp[:, keep]).mean()
+    err_fixed = np.abs(fixed[:, keep] - ok.psp[:, keep]).mean()
+    assert err_fixed < 0.25 * err_raw
+    np.testing.assert_allclose(np.median(2 * fixed.mean(0)[keep] / sv.white[keep]), 1.0, atol=0.03)

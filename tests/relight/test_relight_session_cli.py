@@ -80,3 +80,23 @@ def test_metrics_on_mask():
     m = relight_metrics(off, ref, mask)
     assert m["mse"] == pytest.approx(0.01, rel=1e-4) and m["psnr"] == pytest.approx(20.0, abs=1e-3)
     assert relight_metrics(off, ref, mask, data_range=0.5)["psnr"] == pytest.approx(20 + 20 * np.log10(0.5), abs=1e-3)
+
+
+def test_bench_gap_decomposes_a_model_against_the_exact_footprints(session, tmp_path):
+    from sssphase_core.bench.gap_bench import HYBRIDS, hybrid
+
+    out = tmp_path / "gap.json"
+    res = runner.invoke(app, ["bench", "gap", str(session), "--backend", "analytic", "--views", "1", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    rows = json.loads(out.read_text())["rows"]
+    assert {r["pattern"] for r in rows} == {"checkerboard", "stripes_x"}
+    for r in rows:
+        assert r["psnr_exact"] > r["psnr_analytic"] + 5
+        assert all(r["psnr_exact"] > r[f"psnr_{h}"] for h in ("energy", "shape", "centre"))  # each swap costs accuracy
+        assert all(np.isfinite(r[f"share_{h}"]) for h in HYBRIDS) and 0 < r["share_silhouette"] < 1
+    assert "silhouette" in out.with_suffix(".md").read_text()
+    fps = np.random.default_rng(0).random((4, 7, 7, 3)).astype(np.float32)
+    for h in ("energy", "shape", "centre"):  # a model equal to the exact footprints changes nothing
+        np.testing.assert_allclose(hybrid(h, fps, fps), fps, rtol=1e-5)
+    bad = runner.invoke(app, ["bench", "gap", str(session), "--views", "x", "--out", str(out)])
+    assert bad.exit_code != 0 and "--views" in str(bad.exception)
