@@ -262,9 +262,8 @@ def bench_gap(
     """What separates a model's relighting from the exact footprints': energy, shape, centre, angular detail,
     silhouettes (simulated sessions; the exact footprints serve evaluation only)."""
     from sssphase_core.bench import gap_bench
-    from sssphase_core.session import find_sessions
-
     from sssphase_core.errors import InputError
+    from sssphase_core.session import find_sessions
 
     try:
         chosen = [int(v) for v in views.split(",") if v.strip()] or None

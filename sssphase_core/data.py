@@ -308,7 +308,7 @@ def session_views(
             if view not in s.views():
                 raise DataError(f"session {s.path} has no complete view {view} (its views: "
                                 f"{', '.join(map(str, s.views())) or 'none'}; choose with --views / --val-views)")
-            psp = np.asarray(s.load(view, "psp"), np.float32)
+            psp = repaired_psp(s, view)
             rng_seed = view_seed(seed, name, view)
             fp = None
             if footprints:
@@ -325,6 +325,21 @@ def session_views(
             mats = labels[pixels[:, 0], pixels[:, 1]].astype(np.int64) if labels is not None else np.full(len(pixels), -1)
             out.append(ViewData(name, int(view), psp, pixels, mats, fp))
     return out
+
+
+def repaired_psp(session: object, view: int) -> np.ndarray:
+    """A session view's (8, H, W, 3) PSP stack with clipped samples repaired (:func:`psp.declip`) where
+    the session knows its clipping level: what the model backends see when relighting, so training sees it too."""
+    psp = np.asarray(session.load(view, "psp"), np.float32)  # type: ignore[attr-defined]
+    level, white_level = session.clip_levels()  # type: ignore[attr-defined]
+    from sssphase_core.isp import SATURATION_MARGIN
+    from sssphase_core.psp import declip
+
+    if level is None or not (psp >= SATURATION_MARGIN * level).any():
+        return psp
+
+    white = np.asarray(session.load(view, "white"), np.float32)  # type: ignore[attr-defined]
+    return declip(psp, level, white=white, white_saturation=white_level)[0]
 
 
 def synthetic_views(

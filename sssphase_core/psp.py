@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from sssphase_core.errors import InputError
+from sssphase_core.isp import SATURATION_MARGIN
 from sssphase_core.patterns import PSPConfig, psp_key
 
 #: Target number of pixels per processing block (~136 rows at 1080p).
@@ -418,7 +419,7 @@ def decode(
 
 
 def declip(stack: np.ndarray, saturation: float, *, white: np.ndarray | None = None, white_saturation: float | None = None,
-           black: float = 0.0, margin: float = 0.95) -> tuple[np.ndarray, np.ndarray]:
+           black: float = 0.0, margin: float = SATURATION_MARGIN) -> tuple[np.ndarray, np.ndarray]:
     """Repair clipped samples of the paper's 8 inputs (4 shifts per orientation) from the others.
 
     With 4 shifts, ``I_n + I_{n+2} = 2A`` for both pairs (n = 0, 1), so a sample clipped at the top is

@@ -22,6 +22,7 @@ import torch
 
 from sssphase_core.colour import display_scale, srgb  # noqa: F401  (part of this module's API)
 from sssphase_core.errors import InputError
+from sssphase_core.isp import SATURATION_MARGIN
 from sssphase_core.projector import emitted_light, sample_projector
 
 #: Produces the (N, K, K, 3) footprints of camera pixels given as (N, 2) int (y, x).
@@ -485,24 +486,9 @@ def load_view(session: object, view: int) -> RelightView:
             captured[name] = load(f"ref/{name}").astype(np.float32)
         else:
             references.pop(name)
-    psp_clip, white_clip = clip_levels(plan.get("frames", []), rig.get("saturation"))
+    psp_clip, white_clip = session.clip_levels()  # type: ignore[attr-defined]
     return RelightView(str(m.get("object")), view, proj, load("psp").astype(np.float32), white, patch,
                        references, captured, sim, session, psp_clip, white_clip)
-
-
-def clip_levels(frames: list[dict], saturation: float | None) -> tuple[float | None, float | None]:
-    """Clipping levels (linear units) of a session's PSP and white images from the rig's level at exposure
-    1: a frame developed at exposure e clips at saturation / e; HDR-merged frames clip only where the shortest
-    exposure did."""
-    if not saturation:
-        return None, None
-
-    def level(kind: str) -> float | None:
-        exposures = [float(f.get("exposure", 1.0)) for f in frames if f.get("kind") == kind]
-        return float(saturation) / min(exposures) if exposures else None
-
-    return level("psp"), level("white")
-
 
 
 def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",
@@ -564,7 +550,7 @@ def model_inputs(rv: RelightView) -> tuple[np.ndarray, np.ndarray]:
     return declip(rv.psp, rv.saturation, white=rv.white, white_saturation=rv.white_saturation, black=rv.proj.black)
 
 
-def white_usable(white: np.ndarray, saturation: float | None, margin: float = 0.95) -> np.ndarray:
+def white_usable(white: np.ndarray, saturation: float | None, margin: float = SATURATION_MARGIN) -> np.ndarray:
     """(H, W) bool: the white capture is finite, above the noise floor and below its clipping level in
     every colour (``saturation`` None: it does not clip)."""
     w = np.asarray(white, np.float32)

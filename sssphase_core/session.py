@@ -299,6 +299,20 @@ class CheckedArray:
         return np.asarray(self[...], dtype=dtype)
 
 
+def clip_levels(frames: list[dict], saturation: float | None) -> tuple[float | None, float | None]:
+    """Clipping levels (linear units) of a session's PSP and white images from the rig's level at exposure
+    1: a frame developed at exposure e clips at saturation / e; HDR-merged frames clip only where the shortest
+    exposure did."""
+    if not saturation:
+        return None, None
+
+    def level(kind: str) -> float | None:
+        exposures = [float(f.get("exposure", 1.0)) for f in frames if f.get("kind") == kind]
+        return float(saturation) / min(exposures) if exposures else None
+
+    return level("psp"), level("white")
+
+
 @dataclass
 class Session:
     """A session folder. ``Session.open(path)`` to read; ``Session.create(root, name, ...)`` to write."""
@@ -377,6 +391,11 @@ class Session:
     def objects(self) -> list[str]:
         """Object names in this session (one per session folder); their index is the class label."""
         return [self.name]
+
+    def clip_levels(self) -> tuple[float | None, float | None]:
+        """Where this session's PSP and white images clip (linear units; None: unknown or never), from the
+        rig's saturation level and the plan's exposures (:func:`clip_levels`)."""
+        return clip_levels(self.manifest.get("plan", {}).get("frames", []), self.manifest.get("rig", {}).get("saturation"))
 
     def arrays(self, view: int) -> list[str]:
         return sorted(self.manifest["views"].get(str(view), {}).get("arrays", {}))

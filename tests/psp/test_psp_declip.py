@@ -8,7 +8,8 @@ import pytest
 
 from sssphase_core.errors import InputError
 from sssphase_core.psp import declip
-from sssphase_core.relight import clip_levels, energy_from_white, white_usable
+from sssphase_core.relight import energy_from_white, white_usable
+from sssphase_core.session import clip_levels
 
 SHIFTS = np.arange(4) * np.pi / 2
 
@@ -106,3 +107,24 @@ def test_clip_levels_follow_the_exposures_of_the_plan():
     assert clip_levels(frames, 1.6) == (1.6, 0.8)  # HDR brackets clip where the shortest exposure did
     assert clip_levels(frames, None) == (None, None)
     assert clip_levels([{"kind": "psp"}], 1.0) == (1.0, None)
+
+
+def test_training_reads_the_same_repaired_fringes_as_relighting(scene):
+    from sssphase_core.data import repaired_psp
+
+    a, b, phi = scene
+    true = fringes(a, b, phi)
+
+    class ClippedSession:  # what session_views reads: arrays by name and where the session clips
+        def __init__(self, level):
+            self.level = level
+
+        def load(self, view, name):
+            return {"psp": np.minimum(true, 0.5), "white": 2 * a}[name]
+
+        def clip_levels(self):
+            return self.level, None
+
+    fixed, lost = declip(np.minimum(true, 0.5), 0.5 / 0.95, white=2 * a, margin=0.95)
+    np.testing.assert_array_equal(repaired_psp(ClippedSession(0.5 / 0.95), 0), fixed)
+    np.testing.assert_array_equal(repaired_psp(ClippedSession(None), 0), np.minimum(true, 0.5))  # level unknown: as stored
