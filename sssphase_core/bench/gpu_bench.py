@@ -11,7 +11,7 @@
 4. **DDP**: ``torchrun --nproc_per_node=G`` with NCCL when G >= 2 GPUs are visible; with fewer it is
    recorded as skipped, with the reason (DDP over gloo on the CPU is exercised by the test suite).
 
-The data are synthetic flat views (``data.synthetic_views``: fringes blurred by a known kernel), so the
+The data are synthetic flat views (``bench.synthetic.synthetic_views``: fringes blurred by a known kernel), so the
 command needs no session and no network; the figures measure the device, not accuracy.
 """
 
@@ -45,7 +45,8 @@ def _device(name: str) -> torch.device:
 
 
 def _dataset(patch: int, patches: int, seed: int = 0):
-    from sssphase_core.data import PatchDataset, synthetic_views
+    from sssphase_core.bench.synthetic import synthetic_views
+    from sssphase_core.data import PatchDataset
 
     per_view = -(-patches // (len(OBJECTS) * len(VIEWS)))
     side = 2 * patch + max(16, int(math.isqrt(per_view)) + 8)  # enough inner pixels for per_view samples

@@ -5,7 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from sssphase_core.data import PatchDataset, synthetic_views
+from sssphase_core.bench.synthetic import synthetic_views
+from sssphase_core.data import PatchDataset
 from sssphase_core.models.presets import ModelPreset
 
 TINY = ModelPreset(name="tiny", patch=16, in_channels=24, stem=8, stages=(8, 12, 16), bottleneck=32, dropout=0.2,

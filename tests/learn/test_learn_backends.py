@@ -7,7 +7,8 @@ import pytest
 
 from sssphase_core.backends import FootprintBackend, available_backends, get_backend
 from sssphase_core.backends.analytic_backend import AnalyticBackend
-from sssphase_core.data import psp_patches, synthetic_views
+from sssphase_core.bench.synthetic import synthetic_views
+from sssphase_core.data import psp_patches
 from sssphase_core.errors import InputError
 from sssphase_core.evaluation import footprint_metrics, summarise
 

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from sssphase_core.bench.synthetic import synthetic_views
 from sssphase_core.data import (
     PatchDataset,
     ViewData,
@@ -14,7 +15,6 @@ from sssphase_core.data import (
     sample_pixels,
     split_by_object,
     split_by_view,
-    synthetic_views,
 )
 from sssphase_core.errors import DataError, InputError
 

@@ -19,7 +19,8 @@ SCRIPT = textwrap.dedent(
     torch.set_num_threads(1)
     sys.path.insert(0, os.environ["LEARN_TESTS"])
     from conftest import TINY
-    from sssphase_core.data import PatchDataset, synthetic_views
+    from sssphase_core.bench.synthetic import synthetic_views
+    from sssphase_core.data import PatchDataset
     from sssphase_core.training import DecoderConfig, PretrainConfig, pretrain, train_decoder
 
     out = Path(sys.argv[1])

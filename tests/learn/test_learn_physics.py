@@ -121,12 +121,12 @@ def test_a_diverging_loss_stops_training_with_the_last_good_checkpoint(pretraine
     train_decoder(DecoderConfig(epochs=1, batch_size=16, ckpt_every=0), pretrained, dataset, tmp_path / "dec", progress=False)
     good = load_checkpoint(tmp_path / "dec")
 
-    class NaNLoss(training.SBHLoss):
+    class NaNLoss(training.decoder.SBHLoss):
         def forward(self, pred, target):
             loss, terms = super().forward(pred, target)
             return loss * float("nan"), terms
 
-    monkeypatch.setattr(training, "SBHLoss", NaNLoss)
+    monkeypatch.setattr(training.decoder, "SBHLoss", NaNLoss)
     with pytest.raises(TrainingDiverged, match="nan"):
         train_decoder(cfg, pretrained, dataset, tmp_path / "dec", progress=False)
     after = load_checkpoint(tmp_path / "dec")

@@ -14,18 +14,30 @@ from sssphase_core.training import (
     METRICS,
     DecoderConfig,
     PretrainConfig,
-    SimulatedInterrupt,
     TrainingCollapsed,
     effective_rank,
     load_checkpoint,
     load_decoder,
-    lr_at,
     pretrain,
     projection_std,
     train_decoder,
+    warmup_cosine,
 )
 
 PRE = PretrainConfig(epochs=2, batch_size=16, ckpt_every=3, warmup_epochs=1)
+
+
+def interrupt_after(n: int):
+    """A progress callback that interrupts a run after ``n`` steps, as Ctrl-C does."""
+    start: list[int] = []
+
+    def report(kind: str, done: int, total: int, info: str) -> None:
+        if not start:
+            start.append(done)
+        elif done - start[0] >= n:
+            raise KeyboardInterrupt
+
+    return report
 
 
 def states_equal(a: dict, b: dict) -> bool:
@@ -46,8 +58,8 @@ def test_pretrain_writes_safe_checkpoints_and_metrics(pretrained, tiny):
 
 def test_run_interrupted_mid_epoch_resumes_to_the_same_state(pretrained, dataset, tiny, tmp_path):
     out = tmp_path / "run"
-    with pytest.raises(SimulatedInterrupt):
-        pretrain(PRE, dataset, out, preset=tiny, progress=False, stop_after_steps=7)
+    with pytest.raises(KeyboardInterrupt):
+        pretrain(PRE, dataset, out, preset=tiny, progress=interrupt_after(7))
     mid = load_checkpoint(out)["loop"]
     assert mid["epoch"] == 0 and mid["step_in_epoch"] == 6  # last mid-epoch checkpoint
     pretrain(PRE, dataset, out, preset=tiny, progress=False)
@@ -58,8 +70,8 @@ def test_run_interrupted_mid_epoch_resumes_to_the_same_state(pretrained, dataset
 
 def test_resume_off_restarts_from_scratch(pretrained, dataset, tiny, tmp_path):
     out = tmp_path / "run"
-    with pytest.raises(SimulatedInterrupt):
-        pretrain(PRE, dataset, out, preset=tiny, progress=False, stop_after_steps=4)
+    with pytest.raises(KeyboardInterrupt):
+        pretrain(PRE, dataset, out, preset=tiny, progress=interrupt_after(4))
     cfg = PretrainConfig(epochs=1, batch_size=16, ckpt_every=0, warmup_epochs=1)
     pretrain(cfg, dataset, out, preset=tiny, progress=False, resume=False)
     assert load_checkpoint(out)["loop"]["epoch"] == 1
@@ -110,11 +122,24 @@ def test_collapse_statistics():
     assert effective_rank(healthy) > 50
 
 
-def test_warmup_then_cosine_schedule():
-    lrs = [lr_at(s, 100, 10, 0.05) for s in range(100)]
+def test_warmup_then_cosine_schedule_and_its_resumed_continuation():
+    def rates(start: int, steps: int) -> list[tuple[float, float]]:
+        w = [torch.nn.Parameter(torch.zeros(1)), torch.nn.Parameter(torch.zeros(1))]
+        opt = torch.optim.SGD([{"params": [w[0]], "fix": False}, {"params": [w[1]], "fix": True}], lr=0.3)
+        schedule = warmup_cosine(opt, 100, 10, 0.05, start=start)
+        out = []
+        for _ in range(steps):
+            out.append((opt.param_groups[0]["lr"], opt.param_groups[1]["lr"]))
+            opt.step()
+            schedule.step()
+        return out
+
+    lrs = [a for a, _ in rates(0, 100)]
     assert lrs[0] == pytest.approx(0.005) and lrs[9] == pytest.approx(0.05)
     assert all(a >= b for a, b in zip(lrs[9:], lrs[10:], strict=False))
     assert lrs[-1] < 1e-4
+    assert {b for _, b in rates(0, 100)} == {0.05}  # a fixed group keeps the base rate
+    assert [a for a, _ in rates(37, 63)] == lrs[37:]  # a resumed run continues the same schedule
 
 
 def test_decoder_training_keeps_the_encoder_frozen(pretrained, dataset, tmp_path):
@@ -135,8 +160,8 @@ def test_decoder_training_keeps_the_encoder_frozen(pretrained, dataset, tmp_path
 def test_decoder_resume_is_exact(pretrained, dataset, tmp_path):
     cfg = DecoderConfig(epochs=1, batch_size=16, ckpt_every=2)
     train_decoder(cfg, pretrained, dataset, tmp_path / "a", progress=False)
-    with pytest.raises(SimulatedInterrupt):
-        train_decoder(cfg, pretrained, dataset, tmp_path / "b", progress=False, stop_after_steps=5)
+    with pytest.raises(KeyboardInterrupt):
+        train_decoder(cfg, pretrained, dataset, tmp_path / "b", progress=interrupt_after(5))
     train_decoder(cfg, pretrained, dataset, tmp_path / "b", progress=False)
     assert states_equal(load_checkpoint(tmp_path / "a")["decoder"], load_checkpoint(tmp_path / "b")["decoder"])
 
@@ -163,8 +188,8 @@ def test_end_to_end_resume_is_exact_and_not_mixed_with_a_frozen_run(pretrained, 
 
     cfg = DecoderConfig(epochs=1, batch_size=16, ckpt_every=2)
     train_decoder(cfg, None, dataset, tmp_path / "a", progress=False, preset=tiny)
-    with pytest.raises(SimulatedInterrupt):
-        train_decoder(cfg, None, dataset, tmp_path / "b", progress=False, preset=tiny, stop_after_steps=3)
+    with pytest.raises(KeyboardInterrupt):
+        train_decoder(cfg, None, dataset, tmp_path / "b", progress=interrupt_after(3), preset=tiny)
     train_decoder(cfg, None, dataset, tmp_path / "b", progress=False, preset=tiny)
     a, b = load_checkpoint(tmp_path / "a"), load_checkpoint(tmp_path / "b")
     assert states_equal(a["encoder"], b["encoder"]) and states_equal(a["decoder"], b["decoder"])
@@ -206,7 +231,7 @@ def test_decoder_keeps_the_epoch_with_the_lowest_validation_loss(pretrained, dat
     import sssphase_core.training as training
 
     losses = iter([0.5, 0.2, 0.4])  # epoch 2 is the best, epoch 3 is the last
-    monkeypatch.setattr(training, "validate_decoder", lambda *a, **k: {"val_loss": next(losses), "val_mse": 1e-4,
+    monkeypatch.setattr(training.decoder, "validate_decoder", lambda *a, **k: {"val_loss": next(losses), "val_mse": 1e-4,
                                                                           "val_psnr": 40.0})
     out = tmp_path / "dec"
     train_decoder(DecoderConfig(epochs=3, batch_size=16, ckpt_every=0), pretrained, dataset, out, val=dataset, progress=False)

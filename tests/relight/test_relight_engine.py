@@ -33,7 +33,7 @@ def test_csc_index_and_fold_kernels_agree(scene, monkeypatch):
     b = relight(src, proj, pats, k, method="index", chunk=333)
     np.testing.assert_allclose(a, b, rtol=1e-5, atol=1e-7)
     assert np.array_equal(a, relight(src, proj, pats, k, method="csc", chunk=50))  # deterministic
-    monkeypatch.setattr("sssphase_core.relight.FOLD_BAND_BYTES", 1)  # one image row per fold band
+    monkeypatch.setattr("sssphase_core.relight.engine.FOLD_BAND_BYTES", 1)  # one image row per fold band
     f = relight(src, proj, pats, k, method="fold", chunk=77)
     np.testing.assert_allclose(f, a, rtol=1e-5, atol=1e-7)
     assert np.array_equal(f, relight(src, proj, pats, k, method="fold", chunk=77))

@@ -1,0 +1,57 @@
+"""Relighting by footprint splatting: I(q) = sum_p PSF_p(q - p) * c(p), with c(p) = L(pi(p)).
+
+The footprint of every lit surface pixel is produced once per chunk (by a network, an analytic model,
+measured captures or the simulator) and splatted for all requested patterns at once, so several
+patterns share the footprint cost and footprints are never all held in memory.
+
+Only pixels that are valid *and* receive light from at least one pattern are evaluated. The
+projector's black level lights every pixel weakly; its contribution is ``black * white`` (the
+captured white image is the sum of all footprints at unit light), so it costs nothing per pixel.
+
+One job per module, data flowing one way:
+
+* :mod:`~sssphase_core.relight.views`: a session view as relighting reads it (:func:`load_view`);
+* :mod:`~sssphase_core.relight.sources`: where footprints come from (:func:`make_source`);
+* :mod:`~sssphase_core.relight.engine`: the splat (:func:`relight`, :class:`Splatter`);
+* :mod:`~sssphase_core.relight.images`: relit images out, projector patterns in.
+"""
+
+from sssphase_core.colour import display_scale, srgb
+from sssphase_core.projector import emitted_light, sample_projector
+from sssphase_core.relight.engine import (
+    FOLD_BAND_BYTES,
+    FootprintSource,
+    Projection,
+    Splatter,
+    crop_footprints,
+    lit_pixels,
+    relight,
+)
+from sssphase_core.relight.images import (
+    IMAGE_FORMATS,
+    RESIZE_MODES,
+    check_image_formats,
+    read_pattern,
+    write_images,
+)
+from sssphase_core.relight.sources import (
+    WHITE_FLOOR,
+    DotTransport,
+    FootprintCache,
+    backend_source,
+    energy_from_white,
+    make_source,
+    model_inputs,
+    nearest_measured_source,
+    no_scattering_source,
+    white_usable,
+)
+from sssphase_core.relight.views import RelightView, load_view
+
+__all__ = [
+    "FOLD_BAND_BYTES", "IMAGE_FORMATS", "RESIZE_MODES", "WHITE_FLOOR", "DotTransport", "FootprintCache",
+    "FootprintSource", "Projection", "RelightView", "Splatter", "backend_source", "check_image_formats",
+    "crop_footprints", "display_scale", "emitted_light", "energy_from_white", "lit_pixels", "load_view",
+    "make_source", "model_inputs", "nearest_measured_source", "no_scattering_source", "read_pattern", "relight",
+    "sample_projector", "srgb", "white_usable", "write_images",
+]

@@ -1,0 +1,272 @@
+"""Footprint sources: where each lit pixel's (K, K, 3) footprint comes from (no scattering, a model
+backend, the captured light transport or crops, the simulator), and :func:`make_source`, which picks one
+by name for a view."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from sssphase_core.errors import InputError
+from sssphase_core.isp import SATURATION_MARGIN
+from sssphase_core.relight.engine import FootprintSource
+from sssphase_core.relight.views import RelightView
+
+
+class DotTransport:
+    """The measured light transport of a captured view (``transport/`` arrays of a session): crop ``i``
+    (K, K, 3) is the camera's response to projector pixel ``dots[i]`` (x, y), centred on camera pixel
+    ``pixels[i]`` (y, x). :func:`relight` splats ``sum_i L(dots[i]) crop_i`` with the pattern's light at
+    each dot exactly.
+
+    With ``noise`` > 0 (the crops' noise std, ``footprints.ring_noise``) crops are denoised as they are
+    read (``footprints.above_noise``); captures from this version zeroed their noise floor already and
+    pass 0.
+    """
+
+    def __init__(self, pixels: np.ndarray, dots: np.ndarray, crops: object, noise: float) -> None:
+        self.pixels, self.dots, self.crops, self.noise = np.asarray(pixels, np.int64), np.asarray(dots, np.int64), crops, noise
+
+    def lit(self, light: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Dots lit by some pattern: (camera pixels (N, 2), light (N, P, C), rows into the crops (N,))."""
+        c = light[:, self.dots[:, 1], self.dots[:, 0], :].transpose(1, 0, 2)
+        rows = np.nonzero((c > 0).any(axis=(1, 2)))[0]
+        return self.pixels[rows], c[rows], rows
+
+    def crops_at(self, rows: np.ndarray) -> np.ndarray:
+        """Denoised crops (n, K, K, 3) float32 of ``rows`` (ascending, as :meth:`lit` gives them)."""
+        if len(rows) == 0:
+            return np.zeros((0, *self.crops.shape[1:]), np.float32)  # type: ignore[attr-defined]
+        from sssphase_core.footprints import above_noise
+
+        lo, hi = int(rows.min()), int(rows.max()) + 1
+        if hi - lo <= 4 * len(rows) or not hasattr(self.crops, "oindex"):  # one contiguous read of the chunks
+            crops = np.asarray(self.crops[lo:hi])[rows - lo].astype(np.float32)  # type: ignore[index]
+        else:  # a sparse pattern lights few of the rows in between: read only theirs
+            crops = np.asarray(self.crops.oindex[rows]).astype(np.float32)  # type: ignore[attr-defined]
+        if self.noise > 0 and len(crops):
+            crops = crops * above_noise(crops, self.noise)[..., None]
+        return crops
+
+
+
+def no_scattering_source(white: np.ndarray, patch: int = 1) -> FootprintSource:
+    """The no-scattering baseline: a delta footprint carrying the pixel's white-image value
+    (``patch`` 1 splats it at no cost; a larger patch gives the same image)."""
+    img = np.asarray(white, np.float32)
+    img = np.repeat(img[..., None], 3, axis=-1) if img.ndim == 2 else img
+
+    def source(pixels: np.ndarray) -> np.ndarray:
+        fp = np.zeros((len(pixels), patch, patch, 3), np.float32)
+        fp[:, patch // 2, patch // 2] = np.nan_to_num(img[pixels[:, 0], pixels[:, 1]])
+        return fp
+
+    return source
+
+
+def backend_source(backend: object, psp: np.ndarray, chunk: int = 256) -> FootprintSource:
+    """Footprints predicted by a model backend from the (N, 24, K, K) PSP patches of the asked pixels,
+    cropped from the view's stack padded once (a 1080p stack is 200 MB) and given to
+    ``predict_footprints`` ``chunk`` at a time (a K = 90 patch is 0.8 MB, and backends work on copies)."""
+    from sssphase_core.data import crop_patches, pad_for_patches, to_channels_first
+
+    k = int(backend.patch)  # type: ignore[attr-defined]
+    stack = pad_for_patches(to_channels_first(np.asarray(psp, np.float32)), k)
+
+    def source(pixels: np.ndarray) -> np.ndarray | torch.Tensor:
+        parts = [backend.predict_footprints(crop_patches(stack, pixels[i:i + chunk], k, padded=True).numpy())  # type: ignore[attr-defined]
+                 for i in range(0, len(pixels), chunk)]
+        if not parts:
+            return np.zeros((0, k, k, 3), np.float32)
+        if torch.is_tensor(parts[0]):
+            return torch.cat(parts)
+        return np.concatenate(parts)
+
+    return source
+
+
+WHITE_FLOOR = 1e-3  # white values below this (linear camera units) are noise: no ratio is taken
+
+
+def nearest_measured_source(pixels: np.ndarray, crops: np.ndarray, white: np.ndarray,
+                            weights: np.ndarray | None = None) -> FootprintSource:
+    """Captured footprints (dot-grid crops ``(N, K, K, 3)`` at ``pixels`` ``(N, 2)`` yx), each times its
+    ``weights`` entry (``(N,)``, default 1): a pixel with its own crop gets it; any other pixel takes
+    its nearest captured footprint, rescaled by the ratio of their white-image values (only where
+    both are above the noise floor, at most 4x)."""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(np.asarray(pixels, np.float64))
+    img = np.asarray(white, np.float32)
+    img = np.repeat(img[..., None], 3, axis=-1) if img.ndim == 2 else img
+    px_ref = np.asarray(pixels, np.int64)
+    fps = np.asarray(crops, np.float32)  # read once: every relit pixel needs its crop
+    if weights is not None:
+        fps = fps * np.asarray(weights, np.float32)[:, None, None, None]
+
+    def source(query: np.ndarray) -> np.ndarray:
+        query = np.asarray(query, np.int64)
+        _, idx = tree.query(query.astype(np.float64))
+        wq, wr = img[query[:, 0], query[:, 1]], img[px_ref[idx, 0], px_ref[idx, 1]]
+        ratio = np.where(wr > WHITE_FLOOR, np.clip(wq / np.maximum(wr, WHITE_FLOOR), 0.0, 4.0), 1.0)
+        ratio[(px_ref[idx] == query).all(axis=1)] = 1.0
+        return fps[idx] * ratio[:, None, None, :]
+
+    return source
+
+
+class FootprintCache:
+    """A compressed (float16 ``.npz``) cache of footprints keyed by pixel, wrapped around a source.
+
+    Later relights (other patterns) read cached footprints and run the source only for pixels that
+    are not cached yet; ``save()`` writes the cache back when new footprints were computed. It holds
+    at most ``max_bytes`` in memory (a 1080p view at K = 90 has ~15 GB of float16 footprints): past
+    that, footprints pass through uncached and ``uncached`` counts them.
+    """
+
+    def __init__(self, source: FootprintSource, path: Path | str, shape: tuple[int, int], patch: int,
+                 max_bytes: int = 2 * 2**30):
+        self.source, self.path, self.shape, self.patch = source, Path(path), shape, patch
+        self.max_rows = max(0, int(max_bytes) // (patch * patch * 3 * 2))
+        self.slot = np.full(shape[0] * shape[1], -1, np.int64)
+        self.data = np.zeros((0, patch, patch, 3), np.float16)  # capacity grows by doubling; ``size`` rows used
+        self.size = 0
+        self.hits = self.misses = self.uncached = 0
+        self._dirty = False
+        if self.path.exists():
+            with np.load(self.path) as z:
+                if z["data"].shape[1:] == (patch, patch, 3) and tuple(z["shape"]) == tuple(shape):
+                    self.data = z["data"][: self.max_rows]
+                    self.size = len(self.data)
+                    self.slot[z["index"][: self.size]] = np.arange(self.size)
+
+    def __call__(self, pixels: np.ndarray) -> np.ndarray:
+        flat = pixels[:, 0].astype(np.int64) * self.shape[1] + pixels[:, 1]
+        pos = self.slot[flat]
+        miss = pos < 0
+        out = np.empty((len(pixels), self.patch, self.patch, 3), np.float32)
+        out[~miss] = self.data[pos[~miss]]
+        if miss.any():
+            fp = self.source(pixels[miss])
+            fp = fp.float().cpu().numpy() if torch.is_tensor(fp) else np.asarray(fp, np.float32)
+            out[miss] = fp
+            keep = min(len(fp), self.max_rows - self.size)
+            self.uncached += len(fp) - keep
+            if keep > 0:
+                if self.size + keep > len(self.data):
+                    grown = np.zeros((min(self.max_rows, max(2 * len(self.data), self.size + keep, 1024)),
+                                      self.patch, self.patch, 3), np.float16)
+                    grown[: self.size] = self.data[: self.size]
+                    self.data = grown
+                self.data[self.size : self.size + keep] = fp[:keep]
+                self.slot[flat[miss][:keep]] = self.size + np.arange(keep)
+                self.size += keep
+                self._dirty = True
+        self.hits += int((~miss).sum())
+        self.misses += int(miss.sum())
+        return out
+
+    def save(self) -> None:
+        if not self._dirty:
+            return
+        index = np.flatnonzero(self.slot >= 0)
+        index = index[np.argsort(self.slot[index])]
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.path.with_suffix(".tmp.npz")
+        np.savez_compressed(tmp, data=self.data[: self.size], index=index, shape=np.asarray(self.shape))
+        tmp.replace(self.path)
+        self._dirty = False
+
+
+def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",
+                **options: object) -> tuple[FootprintSource, int]:
+    """The footprint source of backend ``name`` for a view -> (source, patch size); ``options`` go to
+    the model backend (e.g. ``supersample`` for ``analytic``)."""
+    if name == "none":
+        return no_scattering_source(rv.white), 1
+    if name == "exact":  # ground truth for evaluation only: no lab has these
+        if rv.sim is None:
+            raise InputError(f"{rv.object}: exact footprints exist only for simulated sessions (use measured)")
+        return rv.scene().footprints, rv.patch
+    if name == "measured":  # the session's own captured dot-grid crops, simulated or not
+        arrays = rv.session.arrays(rv.view)  # type: ignore[attr-defined]
+        if "transport/crops" in arrays:  # one crop per projector dot: the captured light transport itself
+            from sssphase_core.footprints import ring_noise
+
+            crops = rv.session.read(rv.view, "transport/crops")  # type: ignore[attr-defined]
+            info = rv.session.manifest["views"][str(rv.view)].get("transport", {})  # type: ignore[attr-defined]
+            if info.get("noise_dropped"):  # the capture zeroed the noise floor already (and recorded it)
+                noise = 0.0
+            else:
+                noise = ring_noise(np.asarray(crops[: min(len(crops), 512)], np.float32)) if len(crops) else 0.0
+            return DotTransport(rv.session.load(rv.view, "transport/pixels"), rv.session.load(rv.view, "transport/dots"),  # type: ignore[attr-defined]
+                                crops, noise), int(crops.shape[1])
+        if "footprints/crops" not in arrays:
+            raise InputError(f"{rv.object} view {rv.view} has no captured footprints: capture with --footprints")
+        from sssphase_core.footprints import transport_weights
+
+        px = np.asarray(rv.session.load(rv.view, "footprints/pixels"), np.int64)  # type: ignore[attr-defined]
+        crops = rv.session.read(rv.view, "footprints/crops")  # type: ignore[attr-defined]
+        weights = transport_weights(px, rv.proj.xp, rv.proj.yp, rv.proj.mask)
+        return nearest_measured_source(px, crops, rv.white, weights), int(crops.shape[1])
+    from sssphase_core.backends import get_backend
+
+    if name == "torch":
+        if checkpoint is None:
+            raise InputError("the torch backend needs --checkpoint (a decoder checkpoint from `sss train decoder`)")
+        backend = get_backend("torch", checkpoint=checkpoint, device=device, **options)
+    elif name == "analytic":
+        backend = get_backend("analytic", **{"patch": rv.patch, "black": rv.proj.black, **options})
+    else:
+        backend = get_backend(name, **options)
+    psp, lost = model_inputs(rv)
+    source = backend_source(backend, psp)
+    usable = white_usable(rv.white, rv.white_saturation)
+    if (lost & usable).any():  # fringes beyond repair: the energy from the white capture (reciprocity)
+        source = energy_from_white(source, lost & usable, rv.white)
+    return source, int(backend.patch)
+
+
+def model_inputs(rv: RelightView) -> tuple[np.ndarray, np.ndarray]:
+    """The view's PSP stack for a model backend, clipped samples repaired (:func:`psp.declip`), and the
+    (H, W) bool map of pixels whose clipped fringes could not be repaired."""
+    if rv.saturation is None:
+        return rv.psp, np.zeros(rv.psp.shape[1:3], bool)
+    from sssphase_core.psp import declip
+
+    return declip(rv.psp, rv.saturation, white=rv.white, white_saturation=rv.white_saturation, black=rv.proj.black)
+
+
+def white_usable(white: np.ndarray, saturation: float | None, margin: float = SATURATION_MARGIN) -> np.ndarray:
+    """(H, W) bool: the white capture is finite, above the noise floor and below its clipping level in
+    every colour (``saturation`` None: it does not clip)."""
+    w = np.asarray(white, np.float32)
+    ok = np.isfinite(w) & (w > WHITE_FLOOR)
+    if saturation is not None:
+        ok &= w < margin * saturation
+    return ok.all(axis=-1)
+
+
+def energy_from_white(source: FootprintSource, where: np.ndarray, white: np.ndarray) -> FootprintSource:
+    """``source``'s footprints, those of the pixels where the (H, W) bool ``where`` is set rescaled per
+    colour to carry the white capture's value (by reciprocity a footprint's energy), where the model's
+    own energy came from clipped fringes. Mixing in no-scattering deltas instead counts light twice
+    where scattering neighbours also deliver it (measured: 20.7 dB against 32.7 on the saturated
+    stability case)."""
+    img = np.asarray(white, np.float32)
+
+    def rescaled(pixels: np.ndarray) -> np.ndarray | torch.Tensor:
+        out = source(pixels)
+        pick = where[pixels[:, 0], pixels[:, 1]]
+        if not pick.any():
+            return out
+        out = out.float().cpu().numpy() if torch.is_tensor(out) else np.array(out, np.float32)
+        energy = out[pick].sum(axis=(1, 2))  # (n, 3)
+        target = img[pixels[pick, 0], pixels[pick, 1]]
+        gain = np.where(energy > WHITE_FLOOR, target / np.maximum(energy, WHITE_FLOOR), 1.0)
+        out[pick] *= gain[:, None, None, :].astype(np.float32)
+        return out
+
+    return rescaled

@@ -1,0 +1,102 @@
+"""A session view as relighting reads it: correspondences, PSP stack, white image, references and,
+for simulated sessions, the scene (:func:`load_view`)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sssphase_core.errors import InputError
+from sssphase_core.relight.engine import Projection
+
+
+@dataclass
+class RelightView:
+    """What relighting one view of a session needs, plus its references when it has any."""
+
+    object: str
+    view: int
+    proj: Projection
+    psp: np.ndarray  # (8, H, W, 3)
+    white: np.ndarray  # (H, W, 3)
+    patch: int
+    references: dict[str, np.ndarray]  # name -> pattern (Hp, Wp[, 3]) of the ref/<name> captures
+    captured: dict[str, np.ndarray]  # name -> reference image (noise-free sim render if stored, else capture)
+    sim: dict | None = None  # SimScene arguments of a simulated session
+    session: object | None = None
+    saturation: float | None = None  # clipping level of the PSP frames (linear units), None: unknown
+    white_saturation: float | None = None  # the white capture's (None: it does not clip, e.g. HDR)
+    _camera: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
+
+    def camera_image(self, name: str) -> np.ndarray:
+        """The camera's noise-free image of reference ``name`` (simulated sessions; evaluation only): its
+        render through the sensor's Bayer sampling and demosaicing, without noise. Made once for every
+        reference of the view when first asked."""
+        if not self._camera:
+            names = sorted(self.captured)
+            images = self.scene().sense_noise_free(np.stack([self.captured[n] for n in names]))
+            self._camera.update(zip(names, images, strict=True))
+        return self._camera[name]
+
+    def scene(self):
+        """The simulator scene of a simulated session (exact footprints, ``exact``: evaluation only)."""
+        from sssphase_core.sim import SimScene, rig_preset
+
+        if self.sim is None:
+            raise InputError(f"{self.object}: not a simulated session")
+        s = self.sim
+        return SimScene(s["object"], rig=rig_preset(s["preset"]), view=self.view, n_views=s["n_views"], seed=s["seed"])
+
+
+def load_view(session: object, view: int) -> RelightView:
+    """Read one complete view of a :class:`sssphase_core.session.Session` for relighting."""
+    from sssphase_core.patterns import PlannedFrame
+
+    m = session.manifest  # type: ignore[attr-defined]
+    if view not in session.views():  # type: ignore[attr-defined]
+        raise InputError(f"session {session.path} has no complete view {view} (has {session.views()})")  # type: ignore[attr-defined]
+    plan = m.get("plan", {})
+    wp, hp = plan.get("projector", (0, 0))
+    rig = m.get("rig", {})
+    opts = rig.get("options", {})
+    arrays = session.arrays(view)  # type: ignore[attr-defined]
+    load = lambda name: np.asarray(session.load(view, name))  # type: ignore[attr-defined]  # noqa: E731
+    white = load("white").astype(np.float32)
+    mask = load("corr/mask").astype(bool)
+    sim = None
+    black = 0.0
+    patch = int(rig.get("patch") or 32)
+    if str(rig.get("camera", "")).startswith("sim:"):
+        from sssphase_core.sim import rig_preset
+
+        sim = {"object": opts.get("object", m.get("object")), "preset": opts.get("preset", "cpu"),
+               "n_views": int(opts.get("n_views", m.get("n_views", 4))), "seed": int(opts.get("seed", 0))}
+        preset = rig_preset(sim["preset"])
+        black, patch = float(opts.get("projector_black", preset.projector.black)), int(rig.get("patch") or preset.patch)
+    if rig.get("projector_black") is not None:  # calibrated (sss calibrate projector)
+        black = float(rig["projector_black"])
+    elif sim is None and "black" in arrays:  # the black frame is black_level * white
+        blk, wl = load("black").mean(axis=-1), white.mean(axis=-1)
+        ok = mask & (wl > 0.05)
+        black = float(np.clip(np.median(blk[ok] / wl[ok]), 0, 0.5)) if ok.any() else 0.0
+    proj = Projection(load("corr/xp").astype(np.float32), load("corr/yp").astype(np.float32), mask,
+                      (int(wp), int(hp)), float(plan.get("gamma", 2.2)), black)
+    references, captured = {}, {}
+    for f in plan.get("frames", []):
+        if f["kind"] == "ref" and f["key"] not in (f"ref/{n}" for n in references):
+            name = f["key"].removeprefix("ref/")
+            references[name] = PlannedFrame(f["key"], f["kind"], f["params"], 1.0).pattern()
+    for name in (a.removeprefix("pattern/") for a in arrays if a.startswith("pattern/")):
+        references.setdefault(name, load(f"pattern/{name}").astype(np.float32))  # the user's own pattern files
+    for name in list(references):
+        gt = f"gt/render/{name}"
+        if gt in arrays:
+            captured[name] = load(gt).astype(np.float32)
+        elif f"ref/{name}" in arrays:
+            captured[name] = load(f"ref/{name}").astype(np.float32)
+        else:
+            references.pop(name)
+    psp_clip, white_clip = session.clip_levels()  # type: ignore[attr-defined]
+    return RelightView(str(m.get("object")), view, proj, load("psp").astype(np.float32), white, patch,
+                       references, captured, sim, session, psp_clip, white_clip)
