@@ -20,12 +20,12 @@ from sssphase_core.training.loop import (
     Loop,
     LoopConfig,
     StepProgress,
-    _autocast,
-    _config_dict,
-    _resume_state,
-    _start_fresh,
-    _wrap,
+    autocast_for,
+    config_dict,
     init_distributed,
+    resume_state,
+    start_fresh,
+    wrap_ddp,
 )
 
 PRIOR_SAMPLES = 1024  # training footprints averaged into the reciprocal head's initial shape
@@ -121,7 +121,7 @@ def train_decoder(
     if not cfg.learn_gain:
         dec.freeze_gain()  # before DDP wraps it: a fixed gain is no parameter to sync
     physics = dec.physics_parameters()
-    net = _wrap(FootprintNet(enc, dec, train_encoder=cfg.end_to_end), d)
+    net = wrap_ddp(FootprintNet(enc, dec, train_encoder=cfg.end_to_end), d)
     ids = {id(q) for q in physics}
     trained = [*enc.parameters(), *dec.parameters()] if cfg.end_to_end else list(dec.parameters())
     opt = torch.optim.Adam([{"params": [q for q in trained if id(q) not in ids], "lr": cfg.lr},
@@ -134,7 +134,7 @@ def train_decoder(
         first = np.random.default_rng(cfg.seed).permutation(len(dataset))[:PRIOR_SAMPLES]
         return dataset.batch(np.sort(first))["footprint"]
 
-    ckpt = _resume_state(out_dir, resume, "decoder", p)
+    ckpt = resume_state(out_dir, resume, "decoder", p)
     if ckpt is not None:
         if bool(ckpt["config"].get("end_to_end", False)) != cfg.end_to_end:
             raise DataError(f"{out_dir / CHECKPOINT} is {'an end-to-end' if not cfg.end_to_end else 'a frozen-encoder'} "
@@ -146,7 +146,7 @@ def train_decoder(
         loop.restore(ckpt["loop"])
     else:
         if d.main:
-            _start_fresh(out_dir)
+            start_fresh(out_dir)
         if cfg.head == "reciprocal":
             dec.init_shape_prior(first_footprints().to(d.device))
     if cfg.log_eps is None:  # recorded in the checkpoint's config, so a resumed run uses the same value
@@ -156,7 +156,7 @@ def train_decoder(
     def step(batch: dict[str, torch.Tensor], gstep: int) -> dict[str, float]:
         dec.train()
         enc.train(cfg.end_to_end)  # a frozen encoder never leaves eval mode: BN statistics and dropout stay fixed
-        with _autocast(d, cfg.amp):
+        with autocast_for(d, cfg.amp):
             pred, logits = net(batch["psp"])
         loss, terms = loss_fn(pred, batch["footprint"])
         if logits is not None:
@@ -178,7 +178,7 @@ def train_decoder(
     def save() -> None:
         if d.main:
             save_checkpoint(out_dir / CHECKPOINT, {
-                "kind": "decoder", "preset": p.to_dict(), "config": _config_dict(cfg),
+                "kind": "decoder", "preset": p.to_dict(), "config": config_dict(cfg),
                 "encoder": enc.state_dict(), "decoder": dec.state_dict(),
                 "optimizer": opt.state_dict(), "loop": loop.state(),
             })

@@ -59,7 +59,7 @@ def init_distributed(device: str = "auto") -> Dist:
     return Dist(rank, world, dev)
 
 
-def _all_mean(values: dict[str, float], d: Dist) -> dict[str, float]:
+def all_mean(values: dict[str, float], d: Dist) -> dict[str, float]:
     if d.world == 1 or not values:
         return values
     t = torch.tensor(list(values.values()), dtype=torch.float64)
@@ -67,7 +67,7 @@ def _all_mean(values: dict[str, float], d: Dist) -> dict[str, float]:
     return dict(zip(values, (t / d.world).tolist(), strict=True))
 
 
-def _wrap(model: nn.Module, d: Dist) -> nn.Module:
+def wrap_ddp(model: nn.Module, d: Dist) -> nn.Module:
     if d.world == 1:
         return model
     if d.device.type == "cuda":
@@ -191,7 +191,7 @@ class Loop:
                         t0 = time.perf_counter()
                         save()
                 self.wall_s += time.perf_counter() - t0
-                means = _all_mean({k: v / self.steps_per_epoch for k, v in self.sums.items()}, self.d)
+                means = all_mean({k: v / self.steps_per_epoch for k, v in self.sums.items()}, self.d)
                 row = {"epoch": self.epoch + 1, "step": self.global_step, **means, **end_epoch(self.epoch)}
                 row["wall_s"] = round(self.wall_s, 3)
                 self.epoch, self.step_in_epoch, self.sums = self.epoch + 1, 0, {}
@@ -212,15 +212,15 @@ class Loop:
             dist.barrier()  # every rank returns once rank 0 has written the final checkpoint
 
 
-def _autocast(d: Dist, enabled: bool):
+def autocast_for(d: Dist, enabled: bool):
     return torch.autocast(d.device.type, dtype=torch.bfloat16, enabled=enabled and d.device.type == "cuda")
 
 
-def _config_dict(cfg: object) -> dict:
+def config_dict(cfg: object) -> dict:
     return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(cfg).items()}
 
 
-def _resume_state(out_dir: Path, resume: bool, kind: str, preset: ModelPreset | None = None) -> dict | None:
+def resume_state(out_dir: Path, resume: bool, kind: str, preset: ModelPreset | None = None) -> dict | None:
     path = out_dir / CHECKPOINT
     if not resume or not path.exists():
         return None
@@ -233,7 +233,7 @@ def _resume_state(out_dir: Path, resume: bool, kind: str, preset: ModelPreset | 
     return ckpt
 
 
-def _start_fresh(out_dir: Path) -> None:
+def start_fresh(out_dir: Path) -> None:
     """A new run in a used folder: the old run's metrics and best checkpoint must not mix with it."""
     for name in (METRICS, METRICS_CSV, BEST):
         (out_dir / name).unlink(missing_ok=True)

@@ -19,13 +19,13 @@ from sssphase_core.training.loop import (
     Loop,
     LoopConfig,
     StepProgress,
-    _all_mean,
-    _autocast,
-    _config_dict,
-    _resume_state,
-    _start_fresh,
-    _wrap,
+    all_mean,
+    autocast_for,
+    config_dict,
     init_distributed,
+    resume_state,
+    start_fresh,
+    wrap_ddp,
 )
 
 
@@ -116,7 +116,7 @@ def pretrain(
         raise DataError(f"preset {p.name} expects {p.patch}px patches, the dataset has {dataset.patch}px")
     torch.manual_seed(cfg.seed)
     model = SimSiam(p).to(d.device)
-    net = _wrap(model, d)
+    net = wrap_ddp(model, d)
     pred_params = list(model.predictor.parameters())
     pred_ids = {id(q) for q in pred_params}
     groups = [
@@ -125,13 +125,13 @@ def pretrain(
     ]
     opt = torch.optim.SGD(groups, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
     loop = Loop(cfg, dataset, out_dir, d, "pretrain", best=("knn_acc", "max") if cfg.knn_monitor else None)
-    ckpt = _resume_state(out_dir, resume, "pretrain", p)
+    ckpt = resume_state(out_dir, resume, "pretrain", p)
     if ckpt is not None:
         model.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
         loop.restore(ckpt["loop"])
     elif d.main:
-        _start_fresh(out_dir)
+        start_fresh(out_dir)
     warmup = max(1, round(cfg.warmup_epochs * loop.steps_per_epoch))
     schedule = warmup_cosine(opt, loop.total_steps, warmup, cfg.lr, start=loop.global_step)
     monitor: dict[str, list[torch.Tensor]] = {"z": [], "y": []}
@@ -140,7 +140,7 @@ def pretrain(
         lr = opt.param_groups[0]["lr"]  # the backbone's (group 0): the scheduled one
         model.train()
         x1, x2 = augment.two_views(batch["psp"], cfg.augment)
-        with _autocast(d, cfg.amp):
+        with autocast_for(d, cfg.amp):
             out = net(x1, x2)
         opt.zero_grad(set_to_none=True)
         out["loss"].backward()
@@ -158,7 +158,7 @@ def pretrain(
         monitor["z"].clear()
         monitor["y"].clear()
         healthy = 1.0 / math.sqrt(z.shape[1])
-        stats = _all_mean({"proj_std": projection_std(z), "eff_rank": effective_rank(y)}, d)
+        stats = all_mean({"proj_std": projection_std(z), "eff_rank": effective_rank(y)}, d)
         stats["proj_std_healthy"] = healthy
         stats["collapsed"] = float(stats["proj_std"] < cfg.collapse_std_frac * healthy)
         if knn_idx is not None:  # every rank computes the same number (same weights, same patches)
@@ -168,7 +168,7 @@ def pretrain(
     def save() -> None:
         if d.main:
             save_checkpoint(out_dir / CHECKPOINT, {
-                "kind": "pretrain", "preset": p.to_dict(), "config": _config_dict(cfg),
+                "kind": "pretrain", "preset": p.to_dict(), "config": config_dict(cfg),
                 "model": model.state_dict(), "encoder": model.encoder.state_dict(),
                 "optimizer": opt.state_dict(), "loop": loop.state(),
             })

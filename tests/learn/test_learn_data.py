@@ -89,7 +89,7 @@ def test_footprints_are_read_lazily_from_chunked_arrays(synthetic, tmp_path):
     assert np.allclose(ds.batch(idx)["footprint"].numpy(), np.asarray(v.footprints)[idx].transpose(0, 3, 1, 2))
 
 
-def test_session_views_stream_footprints_from_the_store(synthetic, tmp_path):
+def test_session_views_stream_footprints_from_the_store(synthetic, tmp_path, monkeypatch):
     session = pytest.importorskip("sssphase_core.session")
     v = synthetic[0][0]
     s = session.Session.create(tmp_path, "obj")
@@ -110,6 +110,14 @@ def test_session_views_stream_footprints_from_the_store(synthetic, tmp_path):
     rows = [int(np.flatnonzero((v.pixels == vd.pixels[i]).all(1))[0]) for i in (3, 0)]
     expect = np.asarray(v.footprints)[rows] * (np.array(rows) + 1)[:, None, None, None]
     assert np.allclose(b["footprint"].numpy(), expect.transpose(0, 3, 1, 2))
+    assert isinstance(vd.footprints, np.ndarray)  # a few rows: read once, not whole chunks per batch
+    import sssphase_core.data as data
+
+    monkeypatch.setattr(data, "ROWS_IN_MEMORY_BYTES", 0)  # a paper-scale view: rows stay in the store
+    (lazy,) = session_views(tmp_path, footprints=True, pixels_per_view=20, seed=0)
+    assert isinstance(lazy.footprints, data.Rows)
+    lazy_batch = PatchDataset([lazy], 16, ["obj"], with_targets=True).batch(np.array([3, 0]))
+    assert torch.equal(lazy_batch["footprint"], b["footprint"])
     (plain,) = session_views(tmp_path, pixels_per_view=None)
     assert len(plain.pixels) == mask.sum() and plain.footprints is None
     with pytest.raises(DataError, match="no session"):

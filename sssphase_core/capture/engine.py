@@ -1,0 +1,98 @@
+"""The capture engine: runs the capture plan per view through a daemon client and streams frames into
+core processing as they arrive (PSP decoding, dot-grid footprint extraction), writing a session.
+
+The client is passed in (anything with ``call(op, **args) -> dict`` and ``capture(rig, frames)``
+yielding frames with ``name``, ``data`` and ``header``; see ``sssphase_daemon.client``), so this
+module never imports ZeroMQ. Raw dot-grid frames are kept only on request. A view is written
+atomically when complete, so an interrupted capture (Ctrl-C, a dead daemon, a full disk) resumes at
+the first incomplete view; sim frames are seeded per (view, pattern), so a resumed capture is
+bit-identical to an uninterrupted one."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterable
+from dataclasses import asdict
+from typing import Any, Protocol
+
+from sssphase_core import __version__
+from sssphase_core.capture.plan import CaptureRequest, RigSpec, build_frames, plan_digest
+from sssphase_core.capture.processing import FrameLike, ViewProcessor, write_sim_ground_truth
+from sssphase_core.errors import InputError
+from sssphase_core.session import Session, check_object_name
+
+Progress = Callable[[int, int, int], None]  # (view, frames done, frames total)
+
+
+class ClientLike(Protocol):
+    def call(self, op: str, timeout_s: float | None = None, **args: Any) -> dict[str, Any]: ...
+
+    def capture(self, rig: str, frames: list[dict[str, Any]]) -> Iterable[FrameLike]: ...
+
+
+def run_capture(client: ClientLike, req: CaptureRequest, rig: RigSpec | None = None, *,
+                progress: Progress | None = None, ask_move: Callable[[int, float], None] | None = None) -> Session:
+    """Capture ``req.views`` views of ``req.object`` into ``req.out/<object>`` (resuming if asked)."""
+    check_object_name(req.object)
+    if req.views < 1:
+        raise InputError(f"--views must be >= 1, got {req.views}")
+    rig = rig or RigSpec()
+    options = dict(rig.options)
+    if rig.is_sim:
+        options = {"object": req.object, "preset": req.preset, "seed": req.seed, "n_views": req.views, **options}
+    opened = client.call("open_rig", camera=rig.camera, projector=rig.projector, turntable=rig.turntable,
+                         trigger=rig.trigger, options=options)
+    try:
+        return _capture_views(client, req, rig, options, opened, progress, ask_move)
+    finally:
+        try:
+            client.call("close_rig", timeout_s=2.0, rig=opened["rig"])
+        except Exception:  # the daemon may be gone (that is what the caller is told about)
+            pass
+
+
+def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, options: dict[str, Any],
+                   opened: dict[str, Any], progress: Progress | None,
+                   ask_move: Callable[[int, float], None] | None) -> Session:
+    size = tuple(opened["projector_size"])
+    if rig.is_sim:
+        from sssphase_core.sim import rig_preset
+
+        preset = rig_preset(str(options["preset"]))
+        rig.patch = rig.patch or preset.patch
+        rig.saturation = rig.saturation or preset.sensor.saturation(1.0)
+    if req.footprints and rig.patch is None:
+        raise InputError("footprints need the crop size: set [processing] patch in the rig file")
+    plan, frames, spacing = build_frames(req, size, rig.patch or 32, rig.gamma)
+    digest = plan_digest(frames)
+    session = Session.create(req.out, req.object, resume=req.resume, n_views=req.views, plan_digest=digest,
+                             rig={**asdict(rig), "options": options}, devices=opened["devices"],
+                             plugins=opened["plugins"], software={"sssphase": __version__},
+                             plan=json.loads(plan.to_json()), reference_files=list(dict.fromkeys(f["params"]["file"] for f in frames if f["kind"] == "image")))
+    if session.manifest.get("plan_digest") != digest or session.manifest.get("n_views") != req.views:
+        raise InputError(f"{session.path} was captured with a different plan or view count: resume with the same options")
+    n_dots = sum(1 for f in frames if f["kind"] == "dots")
+    for view in range(req.views):
+        if session.status(view) == "complete":
+            continue
+        angle = 360.0 * view / req.views
+        if rig.turntable:
+            client.call("move", rig=opened["rig"], angle=angle)
+        elif ask_move is not None:
+            ask_move(view, angle)
+        writer = session.begin_view(view)
+        try:
+            proc = ViewProcessor(writer, plan, spacing, rig.patch or 32, rig, req, n_dots)
+            for i, (frame, spec) in enumerate(zip(client.capture(opened["rig"], frames), frames, strict=False)):
+                proc.add(frame, spec)
+                if progress:
+                    progress(view, i + 1, len(frames))
+            info = proc.finish()
+            if rig.is_sim:
+                write_sim_ground_truth(writer, req, view, frames, options)
+        except BaseException:
+            writer.abort()
+            session.set_view(view, {"status": "interrupted"})
+            raise
+        writer.commit({"angle": angle, "frames": len(frames), **info})
+    return session

@@ -1,0 +1,205 @@
+"""Frames from another rig (a folder of files named by plan key) through the same view processor as a
+capture (`sss import`)."""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Iterable
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sssphase_core import __version__
+from sssphase_core.capture.plan import CaptureRequest, RigSpec
+from sssphase_core.capture.processing import ViewProcessor
+from sssphase_core.errors import InputError
+from sssphase_core.session import Session, check_object_name
+
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
+PSP_KEY_RE = re.compile(r"^psp/([xy])/p([0-9]{1,5}(?:\.[0-9]{1,6})?)/s([0-9]{1,2})$")
+DOTS_KEY_RE = re.compile(r"^dots/([0-9]{1,3})_([0-9]{1,3})$")
+OTHER_KEY_RE = re.compile(r"^(white|black|(ref|pattern)/[A-Za-z0-9][A-Za-z0-9_.-]{0,63})$")
+MAX_FRAME_PIXELS = 1 << 26  # 64 MP: larger frames are refused from their header, before decoding
+MAX_SHIFTS = 32
+
+
+@dataclass
+class _ImportedFrame:
+    name: str
+    data: np.ndarray
+    header: dict[str, Any] = field(default_factory=dict)
+
+
+def _image_shape(path: Path) -> tuple[int, ...]:
+    """The pixel shape a frame file declares, read from its header only (no pixel is decoded)."""
+    try:
+        if path.suffix.lower() == ".npy":
+            return tuple(np.load(path, mmap_mode="r", allow_pickle=False).shape)
+        if path.suffix.lower() == ".exr":
+            from sssphase_core import exr
+
+            return exr.exr_size(path)
+        from PIL import Image
+
+        Image.MAX_IMAGE_PIXELS = None  # our own limit below, on the header's size
+        with Image.open(path) as img:
+            return (img.size[1], img.size[0])
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+
+
+def _read_image(path: Path) -> np.ndarray:
+    """A linear image as float32 RGB: ``.npy`` and ``.exr`` as stored, 8/16-bit PNG/TIFF divided by the
+    top code. Frames larger than ``MAX_FRAME_PIXELS`` are refused from their header."""
+    shape = _image_shape(path)
+    if len(shape) >= 2 and shape[0] * shape[1] > MAX_FRAME_PIXELS:
+        raise InputError(f"{path} is {shape[1]}x{shape[0]}: larger than any camera frame this importer takes "
+                         f"({MAX_FRAME_PIXELS // 2**20} MP)")
+    if path.suffix.lower() == ".npy":
+        try:
+            arr = np.load(path, allow_pickle=False)
+        except ValueError as exc:  # pickled object arrays are never loaded
+            raise InputError(f"cannot read {path}: {exc}") from None
+        if arr.dtype.kind not in "fiub":
+            raise InputError(f"{path} holds {arr.dtype} values, not an image")
+    elif path.suffix.lower() == ".exr":
+        from sssphase_core import exr
+
+        arr = exr.read_exr(path)
+    else:
+        import cv2
+
+        arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if arr is None:
+            raise InputError(f"cannot read image {path}")
+        if arr.ndim == 3:
+            arr = cv2.cvtColor(arr[..., :3], cv2.COLOR_BGR2RGB)
+        if np.issubdtype(arr.dtype, np.integer):
+            arr = arr.astype(np.float32) / np.iinfo(arr.dtype).max
+    arr = np.asarray(arr, np.float32)
+    if arr.ndim == 3 and arr.shape[-1] == 1:
+        arr = arr[..., 0]
+    if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[-1] != 3):
+        raise InputError(f"{path} has shape {arr.shape}: expected (H, W) or (H, W, 3)")
+    if not np.isfinite(arr).all():
+        raise InputError(f"{path} holds NaN or infinite values")
+    return np.repeat(arr[..., None], 3, axis=-1) if arr.ndim == 2 else arr
+
+
+def _frame_files(vdir: Path) -> dict[str, Path]:
+    """Frame files of one view by plan key: ``psp__x__p20__s0.png`` or ``psp/x/p20/s0.png`` (the layout
+    `sss patterns` writes) are both ``psp/x/p20/s0``. Files of other types are ignored; an image whose
+    name is no plan key is refused, naming it."""
+    files: dict[str, Path] = {}
+    for path in sorted(vdir.rglob("*")):
+        rel = path.relative_to(vdir)
+        if not path.is_file() or path.suffix.lower() not in IMAGE_SUFFIXES or rel.parts[0].startswith("view_"):
+            continue
+        key = rel.with_suffix("").as_posix().replace("__", "/")
+        if not (PSP_KEY_RE.match(key) or DOTS_KEY_RE.match(key) or OTHER_KEY_RE.match(key)):
+            raise InputError(f"{path}: {key!r} is no frame name (expected psp__<x|y>__p<period>__s<n>, white, black, "
+                             "ref__<name>, pattern__<name> or dots__<sx>_<sy>; see SESSION_FORMAT.md)")
+        if m := PSP_KEY_RE.match(key):  # one spelling per frame: p20.0 -> p20, s01 -> s1 (the capture plan's)
+            key = f"psp/{m.group(1)}/p{float(m.group(2)):g}/s{int(m.group(3))}"
+        if key in files:
+            raise InputError(f"{path} and {files[key]} are both frame {key!r}")
+        files[key] = path
+    return files
+
+
+def _psp_config(vdir: Path, keys: Iterable[str]) -> Any:
+    """The PSP configuration the frame names describe; every (orientation, period) needs shifts 0..N-1."""
+    from sssphase_core.patterns import PSPConfig
+
+    sets: dict[tuple[str, float], set[int]] = {}
+    for key in keys:
+        if m := PSP_KEY_RE.match(key):
+            sets.setdefault((m.group(1), float(m.group(2))), set()).add(int(m.group(3)))
+    if not sets:
+        raise InputError(f"{vdir}: no psp__<x|y>__p<period>__s<n> frames")
+    n = max(len(v) for v in sets.values())
+    for (o, period), shifts in sorted(sets.items()):
+        if shifts != set(range(n)) or not 3 <= n <= MAX_SHIFTS:
+            raise InputError(f"{vdir}: PSP frames {o}, period {period:g} have shifts {sorted(shifts)[:8]}; every set "
+                             f"needs shifts 0..N-1 with 3 <= N <= {MAX_SHIFTS}")
+    periods = sorted({p for _, p in sets})
+    for o in ("x", "y"):
+        if (o, periods[0]) not in sets:
+            raise InputError(f"{vdir}: the {o} orientation has no PSP frames at period {periods[0]:g}")
+    if periods[0] <= 0:
+        raise InputError(f"{vdir}: a PSP period must be positive")
+    return PSPConfig(period=periods[0], n_shifts=n, unwrap_periods=tuple(periods[1:]))
+
+
+def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int, int], *, patch: int = 32,
+                  gamma: float = 2.2) -> Session:
+    """Import frames captured by another rig into a session, processed by the capture engine's
+    :class:`ViewProcessor` exactly like a capture.
+
+    ``folder/view_NNN/`` (or ``folder`` itself for one view) holds one image per plan key, with '/'
+    written as '__' or as folders (``psp__x__p20__s0.png`` or ``psp/x/p20/s0.png``, ``white.png``,
+    ``black.png``, ``ref__checkerboard.png``, optionally ``dots__{sx}_{sy}.png``); PNG/TIFF (8/16-bit),
+    ``.npy`` or EXR. A reference that is not a named pattern needs its projected image as
+    ``pattern__<name>.png``. A failed import leaves nothing behind.
+    """
+    import shutil
+
+    from sssphase_core.patterns import REFERENCE_NAMES, CapturePlan, _reference_params
+    from sssphase_core.relight import read_pattern
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder} is not a folder")
+    w, h = (int(v) for v in projector_size)
+    if not (0 < w <= 16384 and 0 < h <= 16384):
+        raise InputError(f"projector size must be positive and at most 16384, got {w}x{h}")
+    view_dirs = sorted(p for p in folder.glob("view_*") if p.is_dir()) or [folder]
+    req = CaptureRequest(check_object_name(name), views=len(view_dirs), out=Path(root))
+    views = [(vdir, _frame_files(vdir)) for vdir in view_dirs]  # refuse bad names before writing anything
+    for (vdir, files) in views:
+        missing = [k for k in ("white", "black") if k not in files]
+        if missing:
+            raise InputError(f"{vdir}: needs white, black and psp__x__p<period>__s<n> frames (missing: {', '.join(missing)})")
+    configs = [_psp_config(vdir, files) for vdir, files in views]
+    path = Path(root) / name
+    if path.exists():
+        raise InputError(f"{path} already exists: import into another --out or choose another --object")
+    frames: list[dict[str, Any]] = []
+    for key in sorted({k for _, files in views for k in files if k.startswith("ref/")}):
+        ref = key.removeprefix("ref/")
+        k, kind, params = _reference_params(ref, w, h) if ref in REFERENCE_NAMES else (key, "image", {"file": ref})
+        frames.append({"name": key, "key": key, "kind": kind, "params": {"width": w, "height": h, **params},
+                       "exposure": 1.0})
+    plan_json = {"projector": [w, h], "gamma": float(gamma), "psp": asdict(configs[0]), "frames": frames}
+    session = Session.create(root, name, n_views=len(view_dirs), imported_from=str(folder.resolve()),
+                             rig={"camera": "import", "projector_size": [w, h], "patch": patch, "imported": True},
+                             plan=plan_json, software={"sssphase": __version__})
+    try:
+        for view, ((vdir, files), config) in enumerate(zip(views, configs, strict=True)):
+            dots = [DOTS_KEY_RE.match(k) for k in files if k.startswith("dots/")]
+            spacing = 1 + max((int(v) for m in dots for v in m.groups()), default=0)
+            plan = CapturePlan(w, h, config, (), gamma)
+            writer = session.begin_view(view)
+            try:
+                proc = ViewProcessor(writer, plan, spacing, patch, RigSpec(camera="import", turntable=None), req, 0)
+                shape = None
+                for key in sorted((k for k in files if not k.startswith("pattern/")), key=lambda k: k.startswith("dots/")):
+                    image = _read_image(files[key])
+                    if shape is not None and image.shape != shape:
+                        raise InputError(f"{files[key]} is {image.shape[1]}x{image.shape[0]}, the other frames "
+                                         f"{shape[1]}x{shape[0]}")
+                    shape = image.shape
+                    proc.add(_ImportedFrame(key, image), {"name": key, "key": key, "exposure": 1.0})
+                for key in (k for k in files if k.startswith("pattern/")):
+                    proc.patterns[f"ref/{key.removeprefix('pattern/')}"] = read_pattern(files[key], (w, h))
+                info = proc.finish()
+            except BaseException:
+                writer.abort()
+                raise
+            writer.commit({"source": str(vdir), **info})
+    except BaseException:
+        shutil.rmtree(session.path, ignore_errors=True)  # nothing half-imported blocks the name
+        raise
+    return session

@@ -1,0 +1,137 @@
+"""What to capture: the rig (devices and processing, ``--rig RIG.toml``), the request (object, views,
+footprints, references, HDR) and the frame list it becomes."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sssphase_core.errors import InputError
+from sssphase_core.session import check_object_name
+
+DEFAULT_HDR = (0.25, 1.0, 4.0)
+DOT_SPACING_PER_PATCH = 55 / 90  # the paper's 55 px spacing for K = 90 patches
+
+
+def dot_spacing_for(patch: int) -> int:
+    """Dot-grid spacing (projector px) for footprint crops of ``patch`` px: the paper's 55 px at K = 90."""
+    return max(2, round(DOT_SPACING_PER_PATCH * patch))
+
+
+@dataclass
+class RigSpec:
+    """Which devices to use and their options (``--rig RIG.toml``; default: the sim rig)."""
+
+    camera: str = "sim:camera0"
+    projector: str = "sim:projector0"
+    turntable: str | None = "sim:turntable0"
+    options: dict[str, Any] = field(default_factory=dict)
+    patch: int | None = None  # footprint crop size K (sim: the preset's)
+    saturation: float | None = None  # linear clipping level at exposure 1 (HDR merge; sim: the sensor's)
+    black_level: float | None = None  # for raw Bayer cameras: develop with these
+    white_scale: float | None = None
+    median: bool = True  # the paper's 3x3 median per Bayer plane (blurs fringes only a few px wide)
+    gamma: float | None = None  # projector response v**gamma ([projector], from `sss calibrate projector`; None: 2.2)
+    projector_black: float | None = None  # projector black level relative to white (None: estimated/preset)
+    trigger: str | None = None  # a trigger device that exposes the camera on each frame ([devices] trigger)
+
+    @property
+    def is_sim(self) -> bool:
+        return self.camera.startswith("sim:")
+
+    @classmethod
+    def from_toml(cls, path: Path) -> RigSpec:
+        """``[devices]`` camera/projector/turntable/trigger ids, ``[options]`` for the plugins, ``[processing]``."""
+        try:
+            cfg = tomllib.loads(Path(path).read_text())
+        except (OSError, tomllib.TOMLDecodeError) as exc:
+            raise InputError(f"cannot read rig file {path}: {exc}") from None
+        dev, proc, resp = cfg.get("devices", {}), cfg.get("processing", {}), cfg.get("projector", {})
+        if "camera" not in dev or "projector" not in dev:
+            raise InputError(f"{path}: [devices] needs camera and projector ids (see `sss devices`)")
+        bad = [k for k, v in dev.items() if k not in ("camera", "projector", "turntable", "trigger") or not isinstance(v, str)]
+        if bad:
+            raise InputError(f"{path}: [devices] takes camera, projector, turntable and trigger device ids (strings), "
+                             f"not {', '.join(sorted(bad))}")
+        unknown = set(proc) - {"patch", "saturation", "black_level", "white_scale", "median"}
+        if unknown:
+            raise InputError(f"{path}: unknown [processing] keys {sorted(unknown)}")
+        gamma, black = resp.get("gamma"), resp.get("black")
+        if gamma is not None and not (isinstance(gamma, int | float) and 0.3 <= gamma <= 5):
+            raise InputError(f"{path}: [projector] gamma must be a number in [0.3, 5], got {gamma!r}")
+        if black is not None and not (isinstance(black, int | float) and 0 <= black < 0.5):
+            raise InputError(f"{path}: [projector] black must be a number in [0, 0.5), got {black!r}")
+        return cls(dev["camera"], dev["projector"], dev.get("turntable"), dict(cfg.get("options", {})), **proc,
+                   gamma=None if gamma is None else float(gamma), projector_black=None if black is None else float(black),
+                   trigger=dev.get("trigger"))
+
+
+@dataclass
+class CaptureRequest:
+    object: str
+    views: int = 4
+    footprints: bool = False
+    references: tuple[str, ...] = ()  # named patterns (patterns.REFERENCE_NAMES) or image files
+    hdr: tuple[float, ...] = ()
+    keep_dots: bool = False
+    keep_unwrap: bool = False
+    resume: bool = False
+    out: Path = Path("sessions")
+    seed: int = 0
+    preset: str = "cpu"
+    dot_spacing: int | None = None
+
+
+
+
+def _load_reference(path: Path, size: tuple[int, int]) -> np.ndarray:
+    from PIL import Image
+
+    try:
+        img = Image.open(path)
+    except OSError as exc:
+        raise InputError(f"cannot read reference image {path}: {exc}") from None
+    w, h = size
+    if img.size != (w, h):
+        raise InputError(f"reference image {path} is {img.size[0]}x{img.size[1]}, the projector is {w}x{h}")
+    arr = np.asarray(img.convert("L" if img.mode in ("L", "I;16", "1") else "RGB"), np.float32)
+    return np.clip(arr / (65535.0 if np.asarray(img).dtype == np.uint16 else 255.0), 0, 1)
+
+
+def build_frames(req: CaptureRequest, size: tuple[int, int], patch: int,
+                 gamma: float | None = None) -> tuple[Any, list[dict[str, Any]], int]:
+    """The capture plan and the daemon's frame specs (named references by plan, files as images);
+    PSP patterns are pre-distorted for the projector's ``gamma`` (default 2.2)."""
+    from sssphase_core.patterns import DEFAULT_GAMMA, REFERENCE_NAMES, capture_plan
+
+    named = [r for r in req.references if r in REFERENCE_NAMES]
+    files = [Path(r) for r in req.references if r not in REFERENCE_NAMES]
+    spacing = req.dot_spacing or dot_spacing_for(patch)
+    plan = capture_plan(*size, footprints=req.footprints, dot_spacing=spacing,
+                        references=("white", "black", *named), hdr_exposures=req.hdr,
+                        gamma=DEFAULT_GAMMA if gamma is None else gamma)
+    frames = json.loads(plan.to_json())["frames"]
+    for path in files:
+        name = check_object_name(path.stem)
+        img = _load_reference(path, size)
+        for e in req.hdr or (1.0,):
+            spec_name = f"ref/{name}" if not req.hdr else f"ref/{name}@e{e:g}"
+            frames.append({"name": spec_name, "key": f"ref/{name}", "kind": "image", "exposure": e,
+                           "params": {"file": path.name, "hdr": len(req.hdr) or None},
+                           "image": {"dtype": img.dtype.str, "shape": list(img.shape), "data": img.tobytes()}})
+    return plan, frames, spacing
+
+
+def plan_digest(frames: list[dict[str, Any]]) -> str:
+    h = hashlib.sha256()
+    for f in frames:
+        h.update(json.dumps({k: v for k, v in f.items() if k != "image"}, sort_keys=True).encode())
+        if "image" in f:
+            h.update(f["image"]["data"])
+    return h.hexdigest()

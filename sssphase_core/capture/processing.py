@@ -1,0 +1,218 @@
+"""Frames into a view: HDR merging, PSP decoding, dot-grid crops streamed to the session as they
+arrive (:class:`ViewProcessor`, the one writer of views), and the simulator's ground truth."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any, Protocol
+
+import numpy as np
+
+from sssphase_core.capture.plan import CaptureRequest, RigSpec
+from sssphase_core.errors import DataError
+from sssphase_core.session import ViewWriter
+
+
+class FrameLike(Protocol):
+    name: str
+    data: np.ndarray
+    header: dict[str, Any]
+
+
+def develop_frame(data: np.ndarray, rig: RigSpec, exposure: float = 1.0) -> np.ndarray:
+    """A received frame -> linear RGB float32 (H, W, 3): colour frames as sent, raw Bayer developed."""
+    if data.ndim == 3:
+        return np.asarray(data, np.float32)
+    if rig.black_level is None or rig.white_scale is None:
+        raise DataError("the camera sends raw frames: set [processing] black_level and white_scale in the rig file")
+    from sssphase_core import isp
+
+    return isp.develop(data, rig.black_level, rig.white_scale * exposure, median=rig.median)
+
+
+class CropStream:
+    """One extractor's crops (``footprints.DotGridExtractor``: one per camera pixel, or
+    ``DotTransportExtractor``: one per projector dot) written to ``<prefix>/crops`` float16 as the dot
+    frames arrive, and their camera pixels (and projector dots) to ``<prefix>/pixels`` (``/dots``) in the
+    same order on ``close``: memory holds one frame's crops and one chunk at any K (a 1080p view at K = 90
+    has ~10^5 crops of 97 kB). With ``drop_noise`` the first ``NOISE_SAMPLE`` crops are held back to
+    measure the noise floor (``ring_noise``), which is then zeroed in every crop (``drop_below_noise``)."""
+
+    def __init__(self, writer: ViewWriter, prefix: str, extractor: Any, *, drop_noise: bool = False,
+                 chunk_bytes: int = 2**21) -> None:
+        self.writer, self.prefix, self.extractor, self.drop_noise = writer, prefix, extractor, drop_noise
+        self.array = writer.growing_array(f"{prefix}/crops", (extractor.patch, extractor.patch, extractor.channels),
+                                          np.float16, chunk_bytes)
+        self.order: list[np.ndarray] = []
+        self.held: list[np.ndarray] = []
+        self.noise: float | None = None
+
+    def add(self, shift_x: int, shift_y: int, frame: np.ndarray) -> None:
+        from sssphase_core.footprints import NOISE_SAMPLE
+
+        idx, crops = self.extractor.crops(shift_x, shift_y, frame)
+        if not len(idx):
+            return
+        self.order.append(idx)
+        if self.drop_noise and self.noise is None:
+            self.held.append(crops)
+            if sum(len(c) for c in self.held) >= NOISE_SAMPLE:
+                self._release()
+            return
+        self.array.extend(self._dropped(crops))
+
+    def _dropped(self, crops: np.ndarray) -> np.ndarray:
+        from sssphase_core.footprints import drop_below_noise
+
+        return drop_below_noise(crops, self.noise) if self.drop_noise and self.noise else crops
+
+    def _release(self) -> None:
+        from sssphase_core.footprints import NOISE_SAMPLE, ring_noise
+
+        held = np.concatenate(self.held) if self.held else np.zeros((0, *self.array.arr.shape[1:]), np.float32)
+        self.held = []
+        self.noise = ring_noise(held[:NOISE_SAMPLE]) if len(held) else 0.0
+        self.array.extend(self._dropped(held))
+
+    def close(self) -> dict[str, Any]:
+        """Write the pixels (and dots) in crop order; returns manifest info (count, noise)."""
+        if self.drop_noise and self.noise is None:
+            self._release()
+        self.array.close()
+        order = np.concatenate(self.order) if self.order else np.zeros(0, np.int64)
+        self.writer.write(f"{self.prefix}/pixels", self.extractor.pixels[order].astype(np.int32))
+        info: dict[str, Any] = {"count": len(order)}
+        if hasattr(self.extractor, "dots"):
+            self.writer.write(f"{self.prefix}/dots", self.extractor.dots[order].astype(np.int32))
+            info["dots"] = len(order)
+        if self.drop_noise:
+            info["noise"] = self.noise
+        return info
+
+
+class ViewProcessor:
+    """Consumes one view's frames in plan order: merges HDR brackets, decodes PSP, extracts footprints."""
+
+    def __init__(self, writer: ViewWriter, plan: Any, spacing: int, patch: int, rig: RigSpec, req: CaptureRequest,
+                 n_dots: int) -> None:
+        self.writer, self.plan, self.spacing, self.patch, self.rig, self.req = writer, plan, spacing, patch, rig, req
+        self.n_exposures = len(req.hdr) or 1
+        self.brackets: dict[str, list[tuple[float, np.ndarray]]] = {}
+        self.psp: dict[str, np.ndarray] = {}
+        self.images: dict[str, np.ndarray] = {}
+        self.patterns: dict[str, np.ndarray] = {}  # ref/<name> -> the projected image of a file reference
+        self.corr = None
+        self.footprints: CropStream | None = None  # one crop per camera pixel (training targets)
+        self.transport: CropStream | None = None  # one crop per projector dot (the measured backend's data)
+
+        self.dots = writer.stream_array("dots", n_dots) if req.keep_dots and n_dots else None
+
+    def _develop(self, data: np.ndarray, exposure: float) -> np.ndarray:
+        return develop_frame(data, self.rig, exposure)
+
+    def add(self, frame: FrameLike, spec: Mapping[str, Any]) -> None:
+        tag = frame.header.get("meta", {}).get("pattern_tag")
+        if tag is not None and tag != spec["name"]:
+            raise DataError(f"frame {spec['name']} saw pattern {tag!r}: projector and camera are out of sync")
+        key, exposure = spec["key"], float(spec["exposure"])
+        if spec.get("kind") == "image" and "image" in spec and key not in self.patterns:  # the user's own pattern
+            img = spec["image"]
+            self.patterns[key] = np.frombuffer(img["data"], img["dtype"]).reshape(img["shape"])
+        bracket = self.brackets.setdefault(key, [])
+        bracket.append((exposure, self._develop(frame.data, exposure)))
+        if len(bracket) < self.n_exposures:
+            return
+        del self.brackets[key]
+        image = bracket[0][1] if len(bracket) == 1 else self._merge(bracket)
+        if key.startswith("psp/"):
+            self.psp[key] = image
+        elif key.startswith("dots/"):
+            self._add_dots(key, image)
+        else:
+            self.images[key] = image
+
+    def _merge(self, bracket: list[tuple[float, np.ndarray]]) -> np.ndarray:
+        from sssphase_core import isp
+
+        if self.rig.saturation is None:
+            raise DataError("HDR needs the rig's saturation level ([processing] saturation in the rig file)")
+        return isp.hdr_merge(np.stack([b[1] for b in bracket]), [b[0] for b in bracket], self.rig.saturation)
+
+    def decode(self) -> Any:
+        if self.corr is None:
+            from sssphase_core import psp
+
+            self.corr = psp.decode(self.psp, self.plan.psp, (self.plan.width, self.plan.height))
+        return self.corr
+
+    def _add_dots(self, key: str, image: np.ndarray) -> None:
+        if self.footprints is None:
+            from sssphase_core.footprints import DotGridExtractor, DotTransportExtractor, dark_reference
+
+            corr = self.decode()
+            self.dark = dark_reference(self.images["black"], self.images["white"])
+            self.footprints = CropStream(self.writer, "footprints",
+                                         DotGridExtractor(corr.xp, corr.yp, corr.mask, self.spacing, self.patch))
+            self.transport = CropStream(self.writer, "transport",
+                                        DotTransportExtractor(corr.xp, corr.yp, corr.mask, self.spacing, self.patch,
+                                                              (self.plan.width, self.plan.height)), drop_noise=True)
+        sx, sy = (int(v) for v in key.split("/")[1].split("_"))
+        dots = image - self.dark
+        self.footprints.add(sx, sy, dots)
+        self.transport.add(sx, sy, dots)
+        if self.dots is not None:
+            self.dots.append(image)
+
+    def finish(self) -> dict[str, Any]:
+        """Write the view's arrays (the dot frames were streamed already); returns manifest info."""
+        cfg, w = self.plan.psp, self.writer
+        order = cfg.input_keys
+        corr = self.decode()
+        w.write("psp", np.stack([self.psp[k] for k in order]))
+        info: dict[str, Any] = {"psp_keys": order, "coverage": corr.coverage()}
+        if self.req.keep_unwrap:
+            unwrap = [k for k in self.psp if k not in order]
+            w.write("unwrap", np.stack([self.psp[k] for k in unwrap]))
+            info["unwrap_keys"] = unwrap
+        for name in ("xp", "yp", "mask", "reason", "modulation", "offset"):
+            w.write(f"corr/{name}", np.asarray(getattr(corr, name)))
+        for key, image in self.images.items():
+            w.write(key, image)
+        for key, pattern in self.patterns.items():  # so that relighting can be evaluated against ref/<name>
+            w.write(f"pattern/{key.removeprefix('ref/')}", np.asarray(pattern, np.float32))
+        if self.footprints is not None and self.transport is not None:
+            info["footprints"] = {**self.footprints.close(), "missing": len(self.footprints.extractor.missing()),
+                                  "spacing": self.spacing}
+            info["transport"] = {**self.transport.close(), "noise_dropped": True}
+        if self.dots is not None:
+            self.dots.close()
+        return info
+
+
+def write_sim_ground_truth(writer: ViewWriter, req: CaptureRequest, view: int, frames: list[dict[str, Any]],
+                           options: dict[str, Any] | None = None) -> None:
+    """Exact correspondence, material labels and noise-free renders of the references (exact
+    footprints are left to ``SimScene.footprints``: they would double the session's size).
+    ``options``: the sim rig's options (a projector response other than the preset's)."""
+    from sssphase_core.patterns import PlannedFrame
+    from sssphase_core.sim import SimScene, rig_preset, with_projector_response
+
+    opts = options or {}
+    rig = with_projector_response(rig_preset(req.preset), opts.get("projector_gamma"), opts.get("projector_black"))
+    scene = SimScene(req.object, rig=rig, view=view, n_views=req.views, seed=req.seed)
+    writer.write("gt/proj_xy", scene.proj_xy.astype(np.float32))
+    writer.write("gt/labels", scene.material.astype(np.int16))
+    writer.write("gt/mask", scene.mask)
+    refs = {f["key"]: f for f in frames if f["kind"] in ("white", "ref", "image")}
+    patterns = []
+    for spec in refs.values():
+        if spec["kind"] == "image":
+            img = spec["image"]
+            patterns.append(np.frombuffer(img["data"], img["dtype"]).reshape(img["shape"]))
+        else:
+            patterns.append(PlannedFrame(spec["key"], spec["kind"], spec["params"], 1.0).pattern())
+    if patterns:
+        colour = any(p.ndim == 3 for p in patterns)
+        stack = np.stack([np.repeat(p[..., None], 3, -1) if colour and p.ndim == 2 else p for p in patterns])
+        for key, image in zip(refs, scene.render(stack), strict=True):
+            writer.write(f"gt/render/{key.removeprefix('ref/')}", image)
