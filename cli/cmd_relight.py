@@ -152,6 +152,8 @@ def eval_relight(
     views: Annotated[str, typer.Option(help="Comma-separated views (default: all).")] = "",
     out: Annotated[Path, typer.Option("--out", help="Output folder (figures, relight_eval.json / .md).")] = Path("eval_relight"),
     device: str = "cpu",
+    calibrate: Annotated[bool, typer.Option(help="Mix a model's footprints with no scattering by the weight that relights "
+                                            "the view's own fringe captures best (--no-calibrate: the model alone).")] = True,
 ) -> None:
     """Relight every reference pattern of the sessions and tabulate MSE / PSNR / SSIM over objects and views."""
     from sssphase_core.bench.output import write_bench_report
@@ -167,7 +169,7 @@ def eval_relight(
                 rv = load_view(s, v)
                 for b in backends:
                     task = bar.add_task(f"{rv.object} view {v}: {b}", total=None)
-                    rows += evaluate_view(rv, b, out, checkpoint=checkpoint, device=device,
+                    rows += evaluate_view(rv, b, out, checkpoint=checkpoint, device=device, calibrate=calibrate,
                                           progress=lambda d, t, task=task: bar.update(task, completed=d, total=t))
     table = metrics_table(rows)
     per_object = metrics_table(rows, by=("object", "backend"), title="Relighting per object")
@@ -258,6 +260,8 @@ def bench_gap(
     backend: Annotated[str, typer.Option(help="The model backend whose gap to the exact footprints is decomposed.")] = "torch",
     views: Annotated[str, typer.Option(help="Comma-separated views (default: all).")] = "",
     out: Annotated[Path, typer.Option("--out", help="JSON output (.md written next to it).")] = Path("bench_gap.json"),
+    calibrate: Annotated[bool, typer.Option(help="The model as relighting uses it, mixed with no scattering by its "
+                                            "view calibration (--no-calibrate: the model alone).")] = True,
 ) -> None:
     """What separates a model's relighting from the exact footprints': energy, shape, centre, angular detail,
     silhouettes (simulated sessions; the exact footprints serve evaluation only)."""
@@ -271,7 +275,7 @@ def bench_gap(
         raise InputError(f"--views must be comma-separated integers, got {views!r}") from None
     with console.status("decomposing the gap") as st:
         gap_bench.run(find_sessions(sessions), out, checkpoint=checkpoint, backend=backend, views=chosen,
-                      progress=lambda m: st.update(m))
+                      calibrate=calibrate, progress=lambda m: st.update(m))
     console.print(out.with_suffix(".md").read_text())
     console.print(f"wrote {out} and {out.with_suffix('.md')}")
 

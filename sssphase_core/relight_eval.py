@@ -109,6 +109,8 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
         met = relight_metrics(img, rv.captured[name], rv.proj.mask)
         row = {"object": rv.object, "view": rv.view, "pattern": name, "backend": backend, **met,
                "seconds": seconds / len(names), "lit_pixels": int(rv.proj.mask.sum())}
+        if hasattr(source, "mix"):  # a model calibrated to the view: its weight against no scattering, per colour
+            row["mix"] = [float(v) for v in source.mix]
         capture = _captured_reference(rv, name)
         if capture is not None:  # a simulated session is scored against its noise-free render and its capture
             cap = relight_metrics(img, capture, rv.proj.mask)

@@ -78,14 +78,14 @@ def edge_band(mask: np.ndarray, width: int = EDGE_PX) -> np.ndarray:
     return mask & ~inner.astype(bool)
 
 
-def decompose(rv: Any, backend: str, checkpoint: Path | str | None) -> list[dict[str, Any]]:
+def decompose(rv: Any, backend: str, checkpoint: Path | str | None, calibrate: bool = True) -> list[dict[str, Any]]:
     """Rows (one per reference pattern) of MSE/PSNR for none, the model, exact and each hybrid of one view."""
     from sssphase_core.relight import emitted_light, lit_pixels, make_source, relight
 
     names = sorted(rv.references)
     pats = [rv.references[n] for n in names]
     pixels, _ = lit_pixels(rv.proj, emitted_light(np.stack(pats), rv.proj.gamma))
-    model_src, k = make_source(backend, rv, checkpoint=checkpoint)
+    model_src, k = make_source(backend, rv, checkpoint=checkpoint, calibrate=calibrate)
     exact_src, ke = make_source("exact", rv)
     if ke != k:
         from sssphase_core.errors import InputError
@@ -115,7 +115,8 @@ def decompose(rv: Any, backend: str, checkpoint: Path | str | None) -> list[dict
 
 
 def run(sessions: Sequence[Any], out: Path, *, checkpoint: Path | str | None, backend: str = "torch",
-        views: Sequence[int] | None = None, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+        views: Sequence[int] | None = None, calibrate: bool = True,
+        progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """:func:`decompose` over simulated sessions' views; writes ``out`` (JSON) and ``out.md``."""
     from sssphase_core.errors import InputError
     from sssphase_core.relight import load_view
@@ -128,7 +129,7 @@ def run(sessions: Sequence[Any], out: Path, *, checkpoint: Path | str | None, ba
                 raise InputError(f"{s.path}: the gap to exact footprints needs a simulated session (exact footprints)")
             if progress:
                 progress(f"{rv.object} view {v}: {backend} and exact footprints, {len(HYBRIDS)} hybrids")
-            rows += decompose(rv, backend, checkpoint)
+            rows += decompose(rv, backend, checkpoint, calibrate)
     if not rows:
         raise InputError("no view to decompose: give sessions with a reference pattern")
     fmt = lambda x: f"{100 * x:.0f}%" if np.isfinite(x) else "-"  # noqa: E731
@@ -141,6 +142,6 @@ def run(sessions: Sequence[Any], out: Path, *, checkpoint: Path | str | None, ba
                   note="energy: exact shape, model energy; shape: model shape, exact energy; centre: exact with the "
                        "model's centre fraction; angular: exact averaged over rings; silhouette: the model's squared "
                        f"error within {EDGE_PX} px of the mask edge over all of it (in brackets: those pixels' share).")
-    result = {"machine": machine_info(), "backend": backend, "checkpoint": str(checkpoint), "rows": rows}
+    result = {"machine": machine_info(), "backend": backend, "checkpoint": str(checkpoint), "calibrated": calibrate, "rows": rows}
     write_bench_report(result, [table], Path(out), md=Path(out).with_suffix(".md"), title="The gap to exact footprints")
     return result

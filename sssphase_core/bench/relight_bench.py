@@ -42,6 +42,7 @@ class SimView:
     session: object | None = None
     saturation: float | None = None  # the PSP frames' clipping level (linear units)
     white_saturation: float | None = None  # None: the noise-free white does not clip
+    psp_patterns: np.ndarray | None = None  # (8, Hp, Wp) projector images of ``psp``
 
 
 def reference_patterns(width: int, height: int, names: Sequence[str] = ("checkerboard", "stripes_x")) -> dict[str, np.ndarray]:
@@ -76,13 +77,15 @@ def sim_view(obj: Any, view: int = 0, *, n_views: int = 4, seed: int = 0, rig: s
     rng = np.random.default_rng(seed + 1000 * view)
     # The developed frames are already in linear camera units whatever the exposure (the ISP divides by
     # the sensor's DN per unit at that exposure): only clipping and noise change with it.
-    psp = scene.capture(paper_inputs(wp, hp, period=psp_config_for(wp, hp).period), rng, exposure=exposure)
+    inputs = paper_inputs(wp, hp, period=psp_config_for(wp, hp).period)
+    psp = scene.capture(inputs, rng, exposure=exposure)
     valid = scene.mask & np.isfinite(scene.proj_xy).all(axis=-1)
     proj = Projection(scene.proj_xy[..., 0], scene.proj_xy[..., 1], valid, (wp, hp), cfg.projector.gamma, cfg.projector.black)
     name = scene.obj.name
     return SimView(name, view, scene, proj, np.asarray(psp, np.float32), images[0], cfg.patch, dict(pats),
                    dict(zip(names, images[1:], strict=True)),
-                   {"object": name, "preset": rig, "n_views": n_views, "seed": seed}, None, cfg.sensor.saturation(exposure))
+                   {"object": name, "preset": rig, "n_views": n_views, "seed": seed}, None, cfg.sensor.saturation(exposure),
+                   None, inputs)
 
 
 def source_for(backend: str, sv: SimView, checkpoint: Path | str | None) -> tuple[Callable, int]:

@@ -40,7 +40,9 @@ from sssphase_core.relight.sources import (
     FootprintCache,
     backend_source,
     energy_from_white,
+    fit_view_mix,
     make_source,
+    mixed_with_no_scattering,
     model_inputs,
     nearest_measured_source,
     no_scattering_source,
@@ -51,7 +53,7 @@ from sssphase_core.relight.views import RelightView, load_view
 __all__ = [
     "FOLD_BAND_BYTES", "IMAGE_FORMATS", "RESIZE_MODES", "WHITE_FLOOR", "DotTransport", "FootprintCache",
     "FootprintSource", "Projection", "RelightView", "Splatter", "backend_source", "check_image_formats",
-    "crop_footprints", "display_scale", "emitted_light", "energy_from_white", "lit_pixels", "load_view",
-    "make_source", "model_inputs", "nearest_measured_source", "no_scattering_source", "read_pattern", "relight",
+    "crop_footprints", "display_scale", "emitted_light", "energy_from_white", "fit_view_mix", "lit_pixels", "load_view",
+    "make_source", "mixed_with_no_scattering", "model_inputs", "nearest_measured_source", "no_scattering_source", "read_pattern", "relight",
     "sample_projector", "srgb", "white_usable", "write_images",
 ]

@@ -27,6 +27,7 @@ class RelightView:
     session: object | None = None
     saturation: float | None = None  # clipping level of the PSP frames (linear units), None: unknown
     white_saturation: float | None = None  # the white capture's (None: it does not clip, e.g. HDR)
+    psp_patterns: np.ndarray | None = None  # (8, Hp, Wp) projector images of the ``psp`` captures, if known
     _camera: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
     def camera_image(self, name: str) -> np.ndarray:
@@ -99,4 +100,20 @@ def load_view(session: object, view: int) -> RelightView:
             references.pop(name)
     psp_clip, white_clip = session.clip_levels()  # type: ignore[attr-defined]
     return RelightView(str(m.get("object")), view, proj, load("psp").astype(np.float32), white, patch,
-                       references, captured, sim, session, psp_clip, white_clip)
+                       references, captured, sim, session, psp_clip, white_clip, paper_input_patterns(plan))
+
+
+def paper_input_patterns(plan: dict) -> np.ndarray | None:
+    """(8, Hp, Wp) projector images of a plan's 8 paper inputs (the finest period, x shifts then y shifts),
+    the patterns under which a session's ``psp`` stack was captured; None when the plan has no such set."""
+    from sssphase_core.patterns import PlannedFrame
+
+    frames = [f for f in plan.get("frames", []) if f.get("kind") == "psp"]
+    if not frames:
+        return None
+    finest = min(float(f["params"]["period"]) for f in frames)
+    chosen = sorted((f for f in frames if float(f["params"]["period"]) == finest),
+                    key=lambda f: (f["params"]["orientation"], int(f["params"]["shift"])))
+    if [(f["params"]["orientation"], int(f["params"]["shift"])) for f in chosen] != [(o, n) for o in "xy" for n in range(4)]:
+        return None
+    return np.stack([PlannedFrame(f["key"], f["kind"], f["params"], 1.0).pattern() for f in chosen])

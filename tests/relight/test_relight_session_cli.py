@@ -100,3 +100,27 @@ def test_bench_gap_decomposes_a_model_against_the_exact_footprints(session, tmp_
         np.testing.assert_allclose(hybrid(h, fps, fps), fps, rtol=1e-5)
     bad = runner.invoke(app, ["bench", "gap", str(session), "--views", "x", "--out", str(out)])
     assert bad.exit_code != 0 and "--views" in str(bad.exception)
+
+
+def test_a_model_is_mixed_with_no_scattering_by_the_views_own_fringe_captures(session):
+    from sssphase_core.relight import fit_view_mix, make_source, no_scattering_source, relight
+
+    rv = load_view(Session.open(session), 1)
+    assert rv.psp_patterns is not None and rv.psp_patterns.shape == (8, 192, 256)
+    raw, k = make_source("analytic", rv, calibrate=False)
+    mixed, _ = make_source("analytic", rv)
+    mix = mixed.mix
+    assert mix.shape == (3,) and ((mix >= 0) & (mix <= 1)).all()
+    np.testing.assert_allclose(fit_view_mix(raw, k, rv), mix, atol=1e-6)
+    px = np.argwhere(rv.proj.mask)[::97]
+    want = raw(px) * mix
+    want[:, k // 2, k // 2] += (1 - mix) * rv.white[px[:, 0], px[:, 1]]
+    np.testing.assert_allclose(mixed(px), want, rtol=1e-5, atol=1e-7)
+    m = rv.proj.mask
+
+    def residual(source, patch):  # how well a source relights the view's own fringe captures
+        out = relight(source, rv.proj, rv.psp_patterns, patch, white=rv.white)
+        return float(((out[:, m] - rv.psp[:, m]) ** 2).mean())
+
+    none = residual(no_scattering_source(rv.white), 1)
+    assert residual(mixed, k) <= min(residual(raw, k), none) * (1 + 1e-6)
