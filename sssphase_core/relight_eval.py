@@ -92,16 +92,30 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     """Relight a :class:`~sssphase_core.relight.RelightView` under all its reference patterns in one
     pass with ``backend`` (``options`` go to the model backend); metrics per pattern (and figures /
     images under ``out_dir`` if ``write``)."""
-    from sssphase_core.relight import make_source, relight
+    from sssphase_core.relight import (
+        MODEL_FREE,
+        make_source,
+        model_inputs,
+        no_scattering_source,
+        relight,
+        view_mix,
+    )
 
     if not rv.references:
         raise InputError(f"{rv.object} view {rv.view} has no reference captures to evaluate against "
                          "(capture with --reference checkerboard ...)")
     names = sorted(rv.references)
     t0 = time.perf_counter()
-    source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device, **options)
-    relit = relight(source, rv.proj, [rv.references[n] for n in names], patch, white=rv.white, chunk=chunk,
-                    device=device, progress=progress)
+    calibrate = bool(options.pop("calibrate", True)) and backend not in MODEL_FREE and rv.psp_patterns is not None
+    source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device, calibrate=False, **options)
+    patterns = [rv.references[n] for n in names] + (list(rv.psp_patterns) if calibrate else [])
+    relit = relight(source, rv.proj, patterns, patch, white=rv.white, chunk=chunk, device=device, progress=progress)
+    mix = None
+    if calibrate:  # the view calibration of make_source, fused into this one footprint pass (linear in footprints)
+        psp, lost = model_inputs(rv)
+        mix = view_mix(rv, relit[len(names):], psp, lost)
+        none = relight(no_scattering_source(rv.white), rv.proj, patterns[: len(names)], 1, white=rv.white)
+        relit = mix * relit[: len(names)] + (1 - mix) * none
     seconds = time.perf_counter() - t0
     rows = []
     out = Path(out_dir)
@@ -109,8 +123,8 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
         met = relight_metrics(img, rv.captured[name], rv.proj.mask)
         row = {"object": rv.object, "view": rv.view, "pattern": name, "backend": backend, **met,
                "seconds": seconds / len(names), "lit_pixels": int(rv.proj.mask.sum())}
-        if hasattr(source, "mix"):  # a model calibrated to the view: its weight against no scattering, per colour
-            row["mix"] = [float(v) for v in source.mix]
+        if mix is not None:  # a model calibrated to the view: its weight against no scattering, per colour
+            row["mix"] = [float(v) for v in mix]
         capture = _captured_reference(rv, name)
         if capture is not None:  # a simulated session is scored against its noise-free render and its capture
             cap = relight_metrics(img, capture, rv.proj.mask)
@@ -222,7 +236,7 @@ def footprints_at(rv: Any, pixels: np.ndarray, backends: Sequence[str], *, check
             crops = rv.session.read(rv.view, "footprints/crops")
             out[name] = np.stack([np.asarray(crops[index[tuple(p)]], np.float32) for p in pixels])
         else:
-            source, _ = make_source(name, rv, checkpoint=checkpoint, device=device)
+            source, _ = make_source(name, rv, checkpoint=checkpoint, device=device, calibrate=False)  # the model's own
             fps = source(np.asarray(pixels, np.int64))
             out[name] = np.asarray(fps.detach().cpu() if hasattr(fps, "detach") else fps, np.float32)
     k = max(f.shape[1] for f in out.values())

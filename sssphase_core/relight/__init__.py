@@ -35,6 +35,7 @@ from sssphase_core.relight.images import (
     write_images,
 )
 from sssphase_core.relight.sources import (
+    MODEL_FREE,
     WHITE_FLOOR,
     DotTransport,
     FootprintCache,
@@ -46,14 +47,15 @@ from sssphase_core.relight.sources import (
     model_inputs,
     nearest_measured_source,
     no_scattering_source,
+    view_mix,
     white_usable,
 )
 from sssphase_core.relight.views import RelightView, load_view
 
 __all__ = [
-    "FOLD_BAND_BYTES", "IMAGE_FORMATS", "RESIZE_MODES", "WHITE_FLOOR", "DotTransport", "FootprintCache",
+    "FOLD_BAND_BYTES", "IMAGE_FORMATS", "MODEL_FREE", "RESIZE_MODES", "WHITE_FLOOR", "DotTransport", "FootprintCache",
     "FootprintSource", "Projection", "RelightView", "Splatter", "backend_source", "check_image_formats",
     "crop_footprints", "display_scale", "emitted_light", "energy_from_white", "fit_view_mix", "lit_pixels", "load_view",
     "make_source", "mixed_with_no_scattering", "model_inputs", "nearest_measured_source", "no_scattering_source", "read_pattern", "relight",
-    "sample_projector", "srgb", "white_usable", "write_images",
+    "sample_projector", "srgb", "view_mix", "white_usable", "write_images",
 ]

@@ -180,6 +180,9 @@ class FootprintCache:
         self._dirty = False
 
 
+MODEL_FREE = ("none", "exact", "measured")  # footprint sources that are data, not a model: never calibrated
+
+
 def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",
                 calibrate: bool = True, **options: object) -> tuple[FootprintSource, int]:
     """The footprint source of backend ``name`` for a view -> (source, patch size); ``options`` go to
@@ -247,18 +250,25 @@ def fit_view_mix(source: FootprintSource, patch: int, rv: RelightView, psp: np.n
         psp: (8, H, W, 3) the captures (default ``rv.psp``; repaired ones from :func:`model_inputs`).
         exclude: (H, W) bool pixels left out of the fit (e.g. fringes clipped beyond repair).
     """
-    captured = rv.psp if psp is None else psp
-    pats = rv.psp_patterns
-    if pats is None:
+    if rv.psp_patterns is None:
         raise InputError(f"{rv.object} view {rv.view}: the projector patterns of its PSP captures are unknown")
     from sssphase_core.relight.engine import relight
 
-    model = relight(source, rv.proj, pats, patch, white=rv.white)
-    none = relight(no_scattering_source(rv.white), rv.proj, pats, 1, white=rv.white)
+    return view_mix(rv, relight(source, rv.proj, rv.psp_patterns, patch, white=rv.white), psp, exclude)
+
+
+def view_mix(rv: RelightView, relit_psp: np.ndarray, psp: np.ndarray | None = None,
+             exclude: np.ndarray | None = None) -> np.ndarray:
+    """:func:`fit_view_mix` from the model's relighting of the view under its PSP patterns,
+    ``relit_psp`` (8, H, W, 3): a caller that relights other patterns too does it in the same pass."""
+    from sssphase_core.relight.engine import relight
+
+    captured = rv.psp if psp is None else psp
+    none = relight(no_scattering_source(rv.white), rv.proj, rv.psp_patterns, 1, white=rv.white)
     m = rv.proj.mask & np.isfinite(captured).all(axis=(0, -1))
     if exclude is not None:
         m &= ~exclude
-    d = (model - none)[:, m].astype(np.float64)  # (8, n, 3)
+    d = (relit_psp - none)[:, m].astype(np.float64)  # (8, n, 3)
     e = (captured - none)[:, m].astype(np.float64)
     den = (d * d).sum(axis=(0, 1))
     mix = np.where(den > 0, (d * e).sum(axis=(0, 1)) / np.where(den > 0, den, 1.0), 1.0)
