@@ -217,7 +217,7 @@ class Demo:
             table[rv.object] = {}
             for b in backends:
                 opts = {"supersample": self.cfg.analytic_supersample} if b == "analytic" else {}
-                source, _ = make_source(b, rv, checkpoint=ckpt, **opts)
+                source, _ = make_source(b, rv, checkpoint=ckpt, calibrate=False, **opts)  # the model's own footprints
                 table[rv.object][b] = summarise(footprint_metrics(np.asarray(source(px), np.float32), gt))
         return {"metrics": table, "backends": backends, "pixels": self.cfg.footprint_pixels}
 
