@@ -1,12 +1,7 @@
-"""The capture engine: runs the capture plan per view through a daemon client and streams frames into
-core processing as they arrive (PSP decoding, dot-grid footprint extraction), writing a session.
-
-The client is passed in (anything with ``call(op, **args) -> dict`` and ``capture(rig, frames)``
-yielding frames with ``name``, ``data`` and ``header``; see ``sssphase_daemon.client``), so this
-module never imports ZeroMQ. Raw dot-grid frames are kept only on request. A view is written
-atomically when complete, so an interrupted capture (Ctrl-C, a dead daemon, a full disk) resumes at
-the first incomplete view; sim frames are seeded per (view, pattern), so a resumed capture is
-bit-identical to an uninterrupted one."""
+"""The daemon loop (:func:`run_capture`): opens the rig, moves the turntable, asks the daemon for each
+view's frames and hands them to the view processor as they arrive; a view that fails or is interrupted
+is marked so and aborted, never half-written. The client is anything with ``call`` and ``capture``
+(:class:`ClientLike`), so this module never imports ZeroMQ."""
 
 from __future__ import annotations
 
