@@ -188,6 +188,7 @@ def capture(
     out: Annotated[Path, typer.Option(help="session root folder")] = Path("sessions"),
     seed: Annotated[int, typer.Option(help="sim noise seed")] = 0,
     preset: Annotated[str, typer.Option(help="sim rig preset: cpu or paper")] = "cpu",
+    transport: Annotated[str | None, typer.Option(help="sim light transport: burley (radially symmetric footprints) or directional_dipole (skewed by the incidence direction)")] = None,
     dot_spacing: Annotated[int | None, typer.Option(help="dot-grid spacing in projector pixels")] = None,
     keep_dots: Annotated[bool, typer.Option(help="keep the raw dot-grid frames")] = False,
     keep_unwrap: Annotated[bool, typer.Option(help="keep the unwrapping frames (default: only the decoded result)")] = False,
@@ -205,8 +206,12 @@ def capture(
 
         raise InputError(f"--views must be >= 1, got {views}")
     spec = RigSpec.from_toml(rig) if rig else RigSpec()
+    if spec.is_sim:  # an unknown preset or transport model is one line, before a daemon starts
+        from sssphase_core.sim import rig_from_options
+
+        rig_from_options({"preset": preset, **spec.options, **({"transport": transport} if transport else {})})
     req = CaptureRequest(object_name, views, footprints, tuple(reference or ()), DEFAULT_HDR if hdr else (),
-                         keep_dots, keep_unwrap, resume, out, seed, preset, dot_spacing)
+                         keep_dots, keep_unwrap, resume, out, seed, preset, dot_spacing, transport)
     from sssphase_daemon.client import local_client
 
     def ask_move(view: int, angle: float) -> None:

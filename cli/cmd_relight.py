@@ -145,6 +145,64 @@ def relight_cmd(
             console.print(line)
 
 
+def geometry_cmd(
+    session: Annotated[Path, typer.Argument(help="Session folder (one object).")],
+    backend: Annotated[str, typer.Option("--backend", help="torch (with --checkpoint), analytic, or exact (simulated sessions: the simulator's footprints, evaluation only).")] = "analytic",
+    checkpoint: CheckpointOpt = None,
+    out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("geometry"),
+    views: Annotated[str, typer.Option(help="Comma-separated views (default: all).")] = "",
+    device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
+) -> None:
+    """Projector points for 3D: the decoded correspondences minus the shift that subsurface scattering
+    gives them (light re-emerges displaced), predicted from the backend's footprints.
+
+    Writes OUT/<object>/view_NNN/correspondence_for_geometry.npz: xp, yp (for triangulation), the
+    decoded xp_decoded, yp_decoded (where light re-emerges: what relighting uses), shift_x, shift_y
+    and mask. On a simulated session both maps are also scored against the exact correspondences.
+    Only footprints that carry the skew of oblique incidence remove the bias along the baseline; the
+    analytic model's are radially symmetric and correct silhouettes and material edges only."""
+    import numpy as np
+
+    from sssphase_core.errors import InputError
+    from sssphase_core.relight import finest_psp_period, geometric_correspondence, load_view, make_source
+    from sssphase_core.session import Session, view_dir_name
+    from sssphase_core.training import resolve_checkpoint
+
+    if backend in ("measured", "none"):
+        raise InputError(f"--backend {backend} cannot predict the scattering shift: "
+                         + ("the dot-grid crops are placed by the decoded correspondences themselves, so they reproduce "
+                            "the decoded points (use torch, analytic or exact)" if backend == "measured"
+                            else "without scattering there is no shift"))
+    s = Session.open(session)
+    period = finest_psp_period(s.manifest.get("plan", {}))
+    if period is None:
+        raise InputError(f"{session}: its capture plan has no PSP frames, so the fringe period is unknown")
+    if checkpoint is not None:
+        checkpoint = resolve_checkpoint(checkpoint)
+    for v in _views(s, views):
+        rv = load_view(s, v)
+        source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device)
+        with console.status(f"{rv.object} view {v}: predicting the scattering shift ({backend})"):
+            geo = geometric_correspondence(source, rv.proj, patch, period)
+        shift_x, shift_y = rv.proj.xp - geo.xp, rv.proj.yp - geo.yp
+        folder = out / rv.object / view_dir_name(v)
+        folder.mkdir(parents=True, exist_ok=True)
+        path = folder / "correspondence_for_geometry.npz"
+        np.savez_compressed(path, xp=geo.xp, yp=geo.yp, xp_decoded=rv.proj.xp, yp_decoded=rv.proj.yp,
+                            shift_x=shift_x, shift_y=shift_y, mask=rv.proj.mask)
+        m = rv.proj.mask
+        line = (f"wrote {path}: median shift {np.nanmedian(shift_x[m]):+.3f} px along x, {np.nanmedian(shift_y[m]):+.3f} px "
+                f"along y (projector px, period {period:g})")
+        if rv.sim is not None and "gt/proj_xy" in s.arrays(v):  # evaluation only: the simulator's exact points
+            gt = np.asarray(s.load(v, "gt/proj_xy"), np.float32)
+            ok = m & np.isfinite(gt[..., 0])
+            err = lambda xp, yp: float(np.median(np.hypot(xp - gt[..., 0], yp - gt[..., 1])[ok]))  # noqa: E731
+            bias = lambda xp: float(np.median((xp - gt[..., 0])[ok]))  # noqa: E731
+            line += (f"; against the exact points: decoded {err(rv.proj.xp, rv.proj.yp):.3f} px (bias x {bias(rv.proj.xp):+.3f}), "
+                     f"for geometry {err(geo.xp, geo.yp):.3f} px (bias x {bias(geo.xp):+.3f})")
+        console.print(line)
+
+
 def eval_relight(
     sessions: Annotated[list[Path], typer.Argument(help="Session folders, or folders holding sessions.")],
     backend: Annotated[str, typer.Option("--backend", help="Comma-separated backends.")] = "none,analytic,measured",
@@ -284,6 +342,7 @@ def demo(
     out: Annotated[Path, typer.Option("--out", help="Demo folder (resumable: finished steps are skipped).")] = Path("demo"),
     preset: Annotated[str, typer.Option(help="lite (minutes on 2 CPU cores) or tiny (tests).")] = "lite",
     fresh: Annotated[bool, typer.Option("--fresh", help="Redo every step.")] = False,
+    transport: Annotated[str | None, typer.Option(help="sim light transport: burley (default) or directional_dipole (footprints skewed by the incidence direction).")] = None,
 ) -> None:
     """The user's path on the simulated rig: capture sessions through the daemon, pretrain and fit the decoder
     from them, relight unseen objects, evaluate, report (resumable)."""
@@ -297,12 +356,13 @@ def demo(
     with local_client(on_start=lambda pid: log(f"started a local daemon with the sim rig (pid {pid})"),
                       on_stop=lambda pid: log(f"stopped the local daemon (pid {pid})")) as client:
         with step_bar(console) as progress:
-            report = run_demo(out, client, preset=preset, fresh=fresh, log=log, progress=progress)
+            report = run_demo(out, client, preset=preset, fresh=fresh, log=log, progress=progress, transport=transport)
     console.print(f"[green]report[/]: {report}")
 
 
 def register(groups: dict[str, typer.Typer]) -> None:
     groups["root"].command("relight")(relight_cmd)
+    groups["root"].command("geometry")(geometry_cmd)
     groups["root"].command("demo")(demo)
     groups["eval"].command("relight")(eval_relight)
     groups["bench"].command("relight")(bench_relight)

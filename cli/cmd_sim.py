@@ -15,6 +15,7 @@ def sim(
     views: int = typer.Option(2, "--views", min=1, help="turntable views, 360/views degrees apart"),
     out: Path = typer.Option(..., "--out", help="output folder (created)"),
     preset: str = typer.Option("cpu", "--preset", help="rig preset: cpu (256x192, K=32) or paper (1080p, K=90)"),
+    transport: str = typer.Option("burley", "--transport", help="sim light transport: burley (radially symmetric footprints) or directional_dipole (skewed by the incidence direction)"),
     seed: int = typer.Option(0, "--seed", help="sensor noise seed"),
     n_footprints: int = typer.Option(6, "--footprints", min=1, max=24, help="footprints in the montage"),
     decode: bool = typer.Option(True, "--decode/--no-decode", help="also capture the unwrapping set and decode it"),
@@ -35,7 +36,7 @@ def sim(
     from sssphase_core.sim.rig import pixel_pitch_mm
 
     obj = simlib.get_object(object_name)
-    rig = simlib.rig_preset(preset)
+    rig = simlib.rig_from_options({"preset": preset, "transport": transport})
     out.mkdir(parents=True, exist_ok=True)
     wp, hp = rig.projector.width, rig.projector.height
     config = psp_config_for(wp, hp)

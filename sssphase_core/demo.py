@@ -77,14 +77,22 @@ class Demo:
     """Runs the steps in order; ``log`` receives one line per event (the CLI prints them)."""
 
     def __init__(self, out: Path, config: DemoConfig, client: Any, *, fresh: bool = False,
-                 log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None):
+                 log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None,
+                 transport: str | None = None):
         """``client``: a daemon client (``sssphase_daemon.client``; anything with ``call`` and ``capture``);
-        ``progress``: the training loops' step callback (``training.StepProgress``)."""
+        ``progress``: the training loops' step callback (``training.StepProgress``); ``transport``:
+        the sim rig's light-transport model (None: burley), fixed for a demo folder."""
         self.out, self.cfg, self.client, self.fresh, self.log = Path(out), config, client, fresh, log
         self.progress = progress
         self.report_dir = self.out / "report"  # index.html and img/
         self.steps_dir = self.out / "steps"
         self.steps_dir.mkdir(parents=True, exist_ok=True)
+        self.transport = transport or "burley"
+        stamp = self.steps_dir / "transport.txt"
+        if stamp.exists() and not fresh and stamp.read_text().strip() != self.transport:
+            raise InputError(f"{self.out} was made with the {stamp.read_text().strip()} transport model: "
+                             f"use another --out for {self.transport}, or --fresh")
+        stamp.write_text(self.transport)
         self.results: dict[str, dict[str, Any]] = {}
 
     def _done(self, name: str) -> dict[str, Any] | None:
@@ -124,7 +132,7 @@ class Demo:
     def _capture(self, obj: str, root: Path, views: int, **kw: Any) -> str:
         from sssphase_core.capture import CaptureRequest, run_capture
 
-        req = CaptureRequest(obj, views=views, resume=True, out=root, seed=self.cfg.seed, **kw)
+        req = CaptureRequest(obj, views=views, resume=True, out=root, seed=self.cfg.seed, transport=self.transport, **kw)
         session = run_capture(self.client, req)
         self.log(f"  captured {obj}: {len(session.views())} view(s) in {session.path}")
         return str(session.path)
@@ -277,13 +285,20 @@ class Demo:
 
 
 def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool = False,
-             log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None) -> Path:
+             log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None,
+             transport: str | None = None) -> Path:
     """Run (or resume) the demo into ``out`` with a daemon ``client``; returns the report's path.
-    ``progress``: the training loops' step callback (``training.StepProgress``)."""
+    ``progress``: the training loops' step callback (``training.StepProgress``); ``transport``: the
+    sim rig's light-transport model (:data:`sssphase_core.sim.TRANSPORTS`; None: burley)."""
     if preset not in PRESETS:
         raise InputError(f"unknown demo preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    if transport is not None:
+        from sssphase_core.sim import TRANSPORTS
+
+        if transport not in TRANSPORTS:
+            raise InputError(f"unknown transport model {transport!r}; choose one of {', '.join(TRANSPORTS)}")
     t0 = time.perf_counter()
-    demo = Demo(Path(out), PRESETS[preset], client, fresh=fresh, log=log, progress=progress)
+    demo = Demo(Path(out), PRESETS[preset], client, fresh=fresh, log=log, progress=progress, transport=transport)
     path = demo.run()
     log(f"demo finished in {time.perf_counter() - t0:.1f} s")
     return path

@@ -35,6 +35,8 @@ def run_capture(client: ClientLike, req: CaptureRequest, rig: RigSpec | None = N
     options = dict(rig.options)
     if rig.is_sim:
         options = {"object": req.object, "preset": req.preset, "seed": req.seed, "n_views": req.views, **options}
+        if req.transport is not None:
+            options["transport"] = req.transport
     opened = client.call("open_rig", camera=rig.camera, projector=rig.projector, turntable=rig.turntable,
                          trigger=rig.trigger, options=options)
     try:

@@ -86,6 +86,7 @@ class CaptureRequest:
     seed: int = 0
     preset: str = "cpu"
     dot_spacing: int | None = None
+    transport: str | None = None  # sim light-transport model (None: the rig's, burley)
 
 
 

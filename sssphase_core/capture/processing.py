@@ -193,12 +193,11 @@ def write_sim_ground_truth(writer: ViewWriter, req: CaptureRequest, view: int, f
                            options: dict[str, Any] | None = None) -> None:
     """Exact correspondence, material labels and noise-free renders of the references (exact
     footprints are left to ``SimScene.footprints``: they would double the session's size).
-    ``options``: the sim rig's options (a projector response other than the preset's)."""
+    ``options``: the sim rig's options (a projector response other than the preset's, the transport model)."""
     from sssphase_core.patterns import PlannedFrame
-    from sssphase_core.sim import SimScene, rig_preset, with_projector_response
+    from sssphase_core.sim import SimScene, rig_from_options
 
-    opts = options or {}
-    rig = with_projector_response(rig_preset(req.preset), opts.get("projector_gamma"), opts.get("projector_black"))
+    rig = rig_from_options({"preset": req.preset, **(options or {})})
     scene = SimScene(req.object, rig=rig, view=view, n_views=req.views, seed=req.seed)
     writer.write("gt/proj_xy", scene.proj_xy.astype(np.float32))
     writer.write("gt/labels", scene.material.astype(np.int16))

@@ -13,7 +13,9 @@ One job per module, data flowing one way:
 * :mod:`~sssphase_core.relight.views`: a session view as relighting reads it (:func:`load_view`);
 * :mod:`~sssphase_core.relight.sources`: where footprints come from (:func:`make_source`);
 * :mod:`~sssphase_core.relight.engine`: the splat (:func:`relight`, :class:`Splatter`);
-* :mod:`~sssphase_core.relight.images`: relit images out, projector patterns in.
+* :mod:`~sssphase_core.relight.images`: relit images out, projector patterns in;
+* :mod:`~sssphase_core.relight.geometry`: the decoded points with the footprints' scattering shift
+  removed, for 3D (relighting keeps the decoded ones).
 """
 
 from sssphase_core.colour import display_scale, srgb
@@ -50,12 +52,14 @@ from sssphase_core.relight.sources import (
     view_mix,
     white_usable,
 )
-from sssphase_core.relight.views import RelightView, load_view
+from sssphase_core.relight.geometry import geometric_correspondence, scattering_shift
+from sssphase_core.relight.views import RelightView, finest_psp_period, load_view
 
 __all__ = [
     "FOLD_BAND_BYTES", "IMAGE_FORMATS", "MODEL_FREE", "RESIZE_MODES", "WHITE_FLOOR", "DotTransport", "FootprintCache",
     "FootprintSource", "Projection", "RelightView", "Splatter", "backend_source", "check_image_formats",
-    "crop_footprints", "display_scale", "emitted_light", "energy_from_white", "fit_view_mix", "lit_pixels", "load_view",
+    "crop_footprints", "display_scale", "emitted_light", "energy_from_white", "finest_psp_period", "fit_view_mix",
+    "geometric_correspondence", "lit_pixels", "load_view",
     "make_source", "mixed_with_no_scattering", "model_inputs", "nearest_measured_source", "no_scattering_source", "read_pattern", "relight",
-    "sample_projector", "srgb", "view_mix", "white_usable", "write_images",
+    "sample_projector", "scattering_shift", "srgb", "view_mix", "white_usable", "write_images",
 ]

@@ -42,12 +42,12 @@ class RelightView:
 
     def scene(self):
         """The simulator scene of a simulated session (exact footprints, ``exact``: evaluation only)."""
-        from sssphase_core.sim import SimScene, rig_preset
+        from sssphase_core.sim import SimScene, rig_from_options
 
         if self.sim is None:
             raise InputError(f"{self.object}: not a simulated session")
         s = self.sim
-        return SimScene(s["object"], rig=rig_preset(s["preset"]), view=self.view, n_views=s["n_views"], seed=s["seed"])
+        return SimScene(s["object"], rig=rig_from_options(s["options"]), view=self.view, n_views=s["n_views"], seed=s["seed"])
 
 
 def load_view(session: object, view: int) -> RelightView:
@@ -72,7 +72,8 @@ def load_view(session: object, view: int) -> RelightView:
         from sssphase_core.sim import rig_preset
 
         sim = {"object": opts.get("object", m.get("object")), "preset": opts.get("preset", "cpu"),
-               "n_views": int(opts.get("n_views", m.get("n_views", 4))), "seed": int(opts.get("seed", 0))}
+               "n_views": int(opts.get("n_views", m.get("n_views", 4))), "seed": int(opts.get("seed", 0)),
+               "options": dict(opts)}
         preset = rig_preset(sim["preset"])
         black, patch = float(opts.get("projector_black", preset.projector.black)), int(rig.get("patch") or preset.patch)
     if rig.get("projector_black") is not None:  # calibrated (sss calibrate projector)
@@ -103,15 +104,21 @@ def load_view(session: object, view: int) -> RelightView:
                        references, captured, sim, session, psp_clip, white_clip, paper_input_patterns(plan))
 
 
+def finest_psp_period(plan: dict) -> float | None:
+    """The finest PSP period of a capture plan (projector px): the fringes the decoded points come from."""
+    periods = [float(f["params"]["period"]) for f in plan.get("frames", []) if f.get("kind") == "psp"]
+    return min(periods) if periods else None
+
+
 def paper_input_patterns(plan: dict) -> np.ndarray | None:
     """(8, Hp, Wp) projector images of a plan's 8 paper inputs (the finest period, x shifts then y shifts),
     the patterns under which a session's ``psp`` stack was captured; None when the plan has no such set."""
     from sssphase_core.patterns import PlannedFrame
 
     frames = [f for f in plan.get("frames", []) if f.get("kind") == "psp"]
-    if not frames:
+    finest = finest_psp_period(plan)
+    if finest is None:
         return None
-    finest = min(float(f["params"]["period"]) for f in frames)
     chosen = sorted((f for f in frames if float(f["params"]["period"]) == finest),
                     key=lambda f: (f["params"]["orientation"], int(f["params"]["shift"])))
     if [(f["params"]["orientation"], int(f["params"]["shift"])) for f in chosen] != [(o, n) for o in "xy" for n in range(4)]:

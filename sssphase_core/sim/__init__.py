@@ -2,12 +2,13 @@
 
 A pinhole camera and a verged pinhole projector look at a procedural object on a turntable.
 Surfaces are sphere-traced signed-distance functions with spatially varying materials; light
-transport is a per-pixel Christensen-Burley normalized-diffusion footprint plus a direct term, so
+transport is a per-pixel Christensen-Burley normalized-diffusion footprint (or, per rig, the
+directional dipole, whose footprints depend on the incidence direction) plus a direct term, so
 one linear operator renders any projector pattern and the exact footprints are available.
 
 Modules: ``rig`` (pinholes, poses, presets), ``geometry`` (SDF primitives, sphere tracing),
-``materials`` (Jensen 2001 -> Burley), ``objects`` (the catalogue), ``transport`` (footprints,
-splatting), ``sensor`` (noise, Bayer, bit depth), ``scene`` (:class:`SimScene`), ``bench`` (speed).
+``materials`` (Jensen 2001 -> Burley), ``dipole`` (the directional dipole), ``objects`` (the
+catalogue), ``transport`` (footprints, splatting), ``sensor`` (noise, Bayer, bit depth), ``scene`` (:class:`SimScene`), ``bench`` (speed).
 """
 
 from sssphase_core.errors import UnknownObjectError
@@ -20,7 +21,17 @@ from sssphase_core.sim.objects import (
     SimObject,
     get_object,
 )
-from sssphase_core.sim.rig import Pinhole, Projector, RigConfig, make_rig, rig_preset, with_projector_response
+from sssphase_core.sim.rig import (
+    TRANSPORTS,
+    Pinhole,
+    Projector,
+    RigConfig,
+    make_rig,
+    rig_from_options,
+    rig_preset,
+    with_projector_response,
+    with_transport,
+)
 from sssphase_core.sim.scene import SimScene
 from sssphase_core.sim.sensor import SensorConfig
 
@@ -33,6 +44,7 @@ __all__ = [
     "UNSEEN_OBJECTS",
     "Material",
     "MaterialSample",
+    "TRANSPORTS",
     "Pinhole",
     "Projector",
     "RigConfig",
@@ -42,6 +54,8 @@ __all__ = [
     "UnknownObjectError",
     "get_object",
     "make_rig",
+    "rig_from_options",
     "rig_preset",
     "with_projector_response",
+    "with_transport",
 ]

@@ -3,7 +3,9 @@ projector with pose ``X_p = R X_c + t``, a turntable about the camera's y axis, 
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, replace
+from typing import Any
 
 import numpy as np
 
@@ -54,10 +56,16 @@ class Projector(Pinhole):
         return points_cam @ np.asarray(self.rotation).T + np.asarray(self.translation)
 
 
+#: Light-transport models of the simulator: Christensen-Burley normalized diffusion (radially
+#: symmetric footprints) and the directional dipole (footprints skewed by the incidence direction).
+TRANSPORTS = ("burley", "directional_dipole")
+
+
 @dataclass(frozen=True)
 class RigConfig:
     """Everything fixed about the rig. ``sss_scale`` multiplies all scattering distances so that
-    footprints fit the ``patch``; ``reference_distance`` is where a white target reads 1.0."""
+    footprints fit the ``patch``; ``reference_distance`` is where a white target reads 1.0;
+    ``transport`` is one of :data:`TRANSPORTS`."""
 
     name: str
     camera: Pinhole
@@ -67,6 +75,11 @@ class RigConfig:
     turntable_centre: tuple[float, float, float] = (0.0, 0.0, 400.0)
     reference_distance: float = 400.0
     sss_scale: float = 1.0
+    transport: str = "burley"
+
+    def __post_init__(self) -> None:
+        if self.transport not in TRANSPORTS:
+            raise InputError(f"unknown transport model {self.transport!r}; choose one of {', '.join(TRANSPORTS)}")
 
     def view_angle(self, view: int, n_views: int) -> float:
         """Turntable angle in degrees of view ``view`` out of ``n_views``."""
@@ -142,6 +155,19 @@ def rig_preset(name: str = "cpu") -> RigConfig:
         # 11 mm on the object (22 mm at the CPU preset), so distances are halved.
         return make_rig("paper", (1920, 1080), (1920, 1080), 90, sss_scale=0.5)
     raise InputError(f"unknown rig preset {name!r}; choose one of {', '.join(PRESETS)}")
+
+
+def with_transport(rig: RigConfig, transport: str | None) -> RigConfig:
+    """``rig`` with light-transport model ``transport`` (None keeps the rig's)."""
+    return rig if transport is None else replace(rig, transport=str(transport))
+
+
+def rig_from_options(options: Mapping[str, Any]) -> RigConfig:
+    """The sim rig a session or daemon was given: ``preset`` (default cpu), then the optional
+    ``projector_gamma`` / ``projector_black`` and ``transport`` (the sim plugin's options)."""
+    rig = rig_preset(str(options.get("preset", "cpu")))
+    rig = with_projector_response(rig, options.get("projector_gamma"), options.get("projector_black"))
+    return with_transport(rig, options.get("transport"))
 
 
 def with_projector_response(rig: RigConfig, gamma: float | None = None, black: float | None = None) -> RigConfig:

@@ -13,7 +13,7 @@ from sssphase_core.sim.materials import burley_scale
 from sssphase_core.sim.objects import SimObject, get_object
 from sssphase_core.sim.rig import RigConfig, rig_preset
 from sssphase_core.sim.sensor import expose
-from sssphase_core.sim.transport import SurfaceMaps, Transport
+from sssphase_core.sim.transport import DirectionalMaps, DirectionalTransport, SurfaceMaps, Transport
 
 #: |cos| between the view ray and the normal is clamped here, bounding cell areas at grazing angles.
 COS_VIEW_MIN = 0.1
@@ -28,7 +28,10 @@ class SimScene:
     NaN off the surface); ``area`` (mm^2 per pixel); ``irradiance`` E_p; ``lit`` (receives projector
     light); ``proj_xy`` exact projector (x, y), NaN where the pixel gets no projector light
     (off the surface, outside the projector image, back-facing or in shadow); ``material`` (int16
-    index into ``sssphase_core.sim.MATERIAL_NAMES``, -1 off the surface), ``albedo``, ``mfp`` (scaled, mm).
+    index into ``sssphase_core.sim.MATERIAL_NAMES``, -1 off the surface), ``albedo``, ``mfp`` (scaled, mm);
+    ``light_dir`` (direction the projector light travels), ``cos_in`` and ``cos_view`` (incidence and
+    viewing cosines). ``rig.transport`` picks the light-transport model (``burley`` or
+    ``directional_dipole``).
     """
 
     def __init__(self, obj: SimObject | str, rig: RigConfig | None = None, view: int = 0, n_views: int = 4, seed: int = 0):
@@ -37,10 +40,12 @@ class SimScene:
         self.view, self.n_views, self.seed = view, n_views, seed
         self.angle = self.rig.view_angle(view, n_views)
         self._trace()
-        self.transport = Transport(
-            SurfaceMaps(self.mask, self.points, self.area, self.irradiance, self.albedo, self.rate, self.rho_s),
-            self.rig.patch,
-        )
+        maps = SurfaceMaps(self.mask, self.points, self.area, self.irradiance, self.albedo, self.rate, self.rho_s)
+        if self.rig.transport == DirectionalTransport.name:
+            directional = DirectionalMaps(self.normals, self.light_dir, self.cos_in, self.cos_view, self.mfp)
+            self.transport: Transport = DirectionalTransport(maps, self.rig.patch, directional)
+        else:
+            self.transport = Transport(maps, self.rig.patch)
         self._unit_white: np.ndarray | None = None
 
     # --- geometry ------------------------------------------------------------------------------
@@ -102,6 +107,9 @@ class SimScene:
         self.mfp = to_map(mfp.astype(np.float32), nan)
         self.rate = to_map(rate.astype(np.float32), nan)
         self.rho_s = to_map(mat.rho_s.astype(np.float32), nan)
+        self.light_dir = to_map((-to_light).astype(np.float32), nan)  # the direction projector light travels
+        self.cos_in = to_map(np.clip(cos_in, 0.0, 1.0).astype(np.float32), 0.0)
+        self.cos_view = to_map(cos_view.astype(np.float32), nan)
 
     def _shadowed(self, p_obj: np.ndarray, n_obj: np.ndarray, light_obj: np.ndarray) -> np.ndarray:
         """Shadow rays toward the projector (object space), sphere-traced out of the bounding sphere."""

@@ -39,6 +39,7 @@ import numpy as np
 import scipy.sparse
 from numpy.lib.stride_tricks import sliding_window_view
 
+from sssphase_core.sim import dipole
 from sssphase_core.sim.materials import burley_cdf
 
 #: Footprint entries evaluated per chunk (bounds the temporary memory to ~100 MB).
@@ -68,8 +69,23 @@ class SurfaceMaps:
     rho_s: np.ndarray  # (H, W)
 
 
+@dataclass
+class DirectionalMaps:
+    """What the directional dipole adds to :class:`SurfaceMaps` (NaN / 0 off the surface)."""
+
+    normals: np.ndarray  # (H, W, 3) outward unit normals, camera space
+    light_dir: np.ndarray  # (H, W, 3) unit direction the projector light travels, camera space
+    cos_in: np.ndarray  # (H, W) cosine between the normal and the direction to the projector
+    cos_view: np.ndarray  # (H, W) |cosine| between the normal and the camera ray
+    mfp: np.ndarray  # (H, W, 3) diffuse mean free path l_d, mm (after sss_scale)
+    eta: float = dipole.ETA
+
+
 class Transport:
-    """Footprints of surface pixels and their splatting, for a fixed patch size K."""
+    """Footprints of surface pixels and their splatting, for a fixed patch size K (Christensen-Burley
+    normalized diffusion; :class:`DirectionalTransport` for the directional dipole)."""
+
+    name = "burley"
 
     def __init__(self, maps: SurfaceMaps, patch: int):
         self.maps, self.k = maps, patch
@@ -194,3 +210,125 @@ class Transport:
                 progress(min(start + step, len(sources)), len(sources))
         img = out.reshape(3, self.hpad, self.wpad, n_pat)[:, self.half : self.half + self.h, self.half : self.half + self.w]
         return np.ascontiguousarray(img.transpose(3, 1, 2, 0))
+
+
+#: Neighbours within this many pixels of the entry pixel are integrated over their cell with
+#: SUBSAMPLES x SUBSAMPLES points (the directional profile varies within a cell there); the entry
+#: pixel's own disc with DISC_NODES radial x DISC_NODES angular Gauss / uniform nodes.
+NEAR_CELLS = 2
+SUBSAMPLES = 4
+DISC_NODES = 16
+
+
+class DirectionalTransport(Transport):
+    """Footprints from the directional dipole (:mod:`sssphase_core.sim.dipole`): they skew toward
+    the direction the projector light travels once refracted, and their energy depends on the
+    incidence angle; the splatting, caching and the direct ``rho_s`` term are the Burley
+    transport's.
+
+    Discretisation: ``F_p(q) = E_p a_p T_in,p R(p -> q) T_out,q / (4 C_phi(1/eta))`` (R: the
+    exitance per unit entered power; T: Fresnel transmittances at the projector and camera angles)
+    with R averaged over q's cell for the (2 NEAR_CELLS + 1)^2 nearest cells (points spread along
+    the surface's image-space derivatives) and sampled at the cell centre beyond; the entry pixel
+    gets R integrated over the disc of its own area, r0 = sqrt(a_p / pi), and the sub-samples of
+    the neighbours that fall inside that disc are dropped (counted once). Entry-point material, as
+    for Burley; scattering coefficients from the material's albedo and mean free path
+    (:func:`sssphase_core.sim.dipole.coefficients`). Cost: ~15x the Burley transport's (a soap
+    view on the CPU preset: 8.3 s against 0.5 s for the first render; later renders reuse the
+    cached footprints). Checked against a fine polar quadrature on a slab: within 0.5 %.
+    """
+
+    name = "directional_dipole"
+
+    def __init__(self, maps: SurfaceMaps, patch: int, directional: DirectionalMaps):
+        super().__init__(maps, patch)
+        self.directional = d = directional
+        self.boundary = dipole.Boundary.of(d.eta)
+        half, k = self.half, patch
+        pad = ((half, k - half), (half, k - half))
+        on = maps.mask[..., None]
+        self.sigma_s, self.sigma_a = dipole.coefficients(np.where(on, np.nan_to_num(maps.albedo), 0.5),
+                                                         np.where(on, np.nan_to_num(d.mfp), 1.0), d.eta)
+        t_out = np.where(maps.mask, self.boundary.transmittance(np.nan_to_num(d.cos_view)) / (4 * self.boundary.c_phi_out), 0.0)
+        self.t_in = np.where(maps.mask, self.boundary.transmittance(np.nan_to_num(d.cos_in)), 0.0)
+        normals = np.where(maps.mask[..., None], np.nan_to_num(d.normals), 0.0).astype(np.float32)
+        self._normal_windows = [sliding_window_view(np.pad(c, pad), (k, k)) for c in np.moveaxis(normals, -1, 0)]
+        self._t_out_window = sliding_window_view(np.pad(t_out.astype(np.float32), pad), (k, k))
+        gy, gx = _surface_derivatives(maps.points, maps.mask)
+        self._gx, self._gy = gx, gy
+
+    def chunk_size(self) -> int:
+        return max(1, CHUNK_ENTRIES // (4 * self.k * self.k))
+
+    def _compute(self, index: np.ndarray) -> np.ndarray:
+        m, k, half, bd = self.maps, self.k, self.half, self.boundary
+        y, x = np.divmod(index, self.w)
+        n = len(index)
+        xp = m.points[y, x].astype(np.float64)  # (N, 3)
+        n_i = np.nan_to_num(self.directional.normals[y, x]).astype(np.float64)
+        w12 = dipole.refract_in(self.directional.light_dir[y, x].astype(np.float64), n_i, self.directional.eta)
+        e, ap = m.irradiance[y, x].astype(np.float64), m.area[y, x].astype(np.float64)
+        power = e * ap * self.t_in[y, x]  # power entering the cell (N,)
+        r0 = np.sqrt(ap / np.pi)
+        offsets = np.stack([win[y, x] for win in self._windows], -1).astype(np.float64) - xp[:, None, None]  # (N, K, K, 3)
+        n_o = np.stack([win[y, x] for win in self._normal_windows], -1).astype(np.float64)
+        t_out = self._t_out_window[y, x].astype(np.float64)  # (N, K, K), 0 off the surface
+
+        # near cells: sub-samples spread along the exit cell's image-space derivatives
+        near = np.arange(-NEAR_CELLS, NEAR_CELLS + 1)
+        cy, cx = np.meshgrid(near, near, indexing="ij")
+        keep = (cy != 0) | (cx != 0)
+        cy, cx = cy[keep], cx[keep]  # (C,)
+        qy, qx = np.clip(y[:, None] + cy, 0, self.h - 1), np.clip(x[:, None] + cx, 0, self.w - 1)  # (N, C)
+        sub = (np.arange(SUBSAMPLES) + 0.5) / SUBSAMPLES - 0.5
+        su, sv = np.meshgrid(sub, sub, indexing="ij")
+        su, sv = su.ravel(), sv.ravel()  # (S,)
+        near_off = offsets[:, half + cy, half + cx]  # (N, C, 3)
+        spread = (sv[None, None, :, None] * self._gy[qy, qx][:, :, None] + su[None, None, :, None] * self._gx[qy, qx][:, :, None])
+        near_off = near_off[:, :, None] + spread  # (N, C, S, 3)
+        outside = np.sqrt(np.sum(near_off**2, axis=-1)) >= r0[:, None, None]
+        near_n = n_o[:, half + cy, half + cx][:, :, None]
+
+        # the entry pixel's own disc, in its tangent plane
+        t1 = np.cross(n_i, np.where(np.abs(n_i[:, :1]) < 0.9, [[1.0, 0, 0]], [[0, 1.0, 0]]))
+        t1 /= np.linalg.norm(t1, axis=1, keepdims=True)
+        t2 = np.cross(n_i, t1)
+        g, gw = np.polynomial.legendre.leggauss(DISC_NODES)
+        u = (g + 1) / 2  # r = r0 u^2 resolves the profile's peak at the entry point
+        phi = 2 * np.pi * (np.arange(DISC_NODES) + 0.5) / DISC_NODES
+        rad = r0[:, None] * u[None] ** 2  # (N, R)
+        disc_off = rad[:, :, None, None] * (np.cos(phi)[None, None, :, None] * t1[:, None, None] + np.sin(phi)[None, None, :, None] * t2[:, None, None])
+        weight = rad * (r0[:, None] * 2 * u[None] * gw[None] / 2) * (2 * np.pi / DISC_NODES)  # r dr dphi, (N, R)
+
+        sp, sa = self.sigma_s[y, x], self.sigma_a[y, x]  # (N, 3)
+        w, ni, sp4, sa4 = w12[:, None, None], n_i[:, None, None], sp[:, None, None], sa[:, None, None]
+        f32 = np.float32  # the K x K field in single precision (twice as fast; the near field stays double)
+        far = dipole.exitance(offsets.astype(f32), w.astype(f32), ni.astype(f32), n_o.astype(f32), sp4.astype(f32), sa4.astype(f32), bd)
+        close = dipole.exitance(near_off, w, ni, near_n, sp4, sa4, bd)  # (N, C, S, 3)
+        far[:, half + cy, half + cx] = np.mean(np.where(outside[..., None], close, 0.0), axis=2)  # (N, K, K, 3)
+        disc = dipole.exitance(disc_off, w, ni, ni, sp4, sa4, bd)  # (N, R, A, 3)
+        own = np.einsum("nrac,nr->nc", disc, weight)  # share of the entered power leaving through the disc
+        img = far * (power[:, None, None] * t_out)[..., None]
+        img[:, half, half] = own * (e * self.t_in[y, x] * t_out[:, half, half])[:, None]
+        out = np.ascontiguousarray(np.moveaxis(img, -1, 0), dtype=np.float32)
+        out[:, :, half, half] += (e * m.rho_s[y, x])[None]
+        return out
+
+
+def _surface_derivatives(points: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """dX/dy, dX/dx (H, W, 3) of the surface points per image pixel: central differences, one-sided
+    at silhouettes, 0 where neither neighbour is on the surface (that cell is then point-sampled)."""
+    pts = np.where(mask[..., None], np.nan_to_num(points), 0.0).astype(np.float64)
+    out = []
+    for axis in (0, 1):
+        fwd, bwd = np.roll(pts, -1, axis), np.roll(pts, 1, axis)
+        m_f, m_b = np.roll(mask, -1, axis), np.roll(mask, 1, axis)
+        edge = [slice(None)] * 2
+        edge[axis] = -1
+        m_f[tuple(edge)] = False
+        edge[axis] = 0
+        m_b[tuple(edge)] = False
+        both = (fwd - bwd) / 2
+        grad = np.where((m_f & m_b)[..., None], both, np.where(m_f[..., None], fwd - pts, np.where(m_b[..., None], pts - bwd, 0.0)))
+        out.append(np.where(mask[..., None], grad, 0.0))
+    return out[0], out[1]

@@ -140,3 +140,13 @@ def test_fault_injection_option_fails_the_camera():
     cam = provider.open(sim_plugin.CAMERA_ID, {"fail_at_frame": 0}, shared)
     with pytest.raises(DeviceError, match="simulated sensor failure"):
         cam.grab()
+
+
+def test_the_transport_model_is_a_sim_option():
+    state = sim_plugin.SimRigState({"object": "soap", "transport": "directional_dipole"})
+    assert state.rig.transport == "directional_dipole" and state.scene.transport.name == "directional_dipole"
+    assert sim_plugin.SimRigState({"object": "soap"}).scene.transport.name == "burley"
+    from sssphase_core.errors import InputError
+
+    with pytest.raises(InputError, match="unknown transport model"):
+        sim_plugin.SimRigState({"object": "soap", "transport": "dipole!"})
