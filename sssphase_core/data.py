@@ -349,4 +349,5 @@ def repaired_psp(session: object, view: int) -> np.ndarray:
         return psp
 
     white = np.asarray(session.load(view, "white"), np.float32)  # type: ignore[attr-defined]
-    return declip(psp, level, white=white, white_saturation=white_level)[0]
+    black = session.projector_black(view, white)  # type: ignore[attr-defined]
+    return declip(psp, level, white=white, white_saturation=white_level, black=black)[0]

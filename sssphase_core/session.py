@@ -397,6 +397,26 @@ class Session:
         rig's saturation level and the plan's exposures (:func:`clip_levels`)."""
         return clip_levels(self.manifest.get("plan", {}).get("frames", []), self.manifest.get("rig", {}).get("saturation"))
 
+    def projector_black(self, view: int, white: np.ndarray | None = None, mask: np.ndarray | None = None) -> float:
+        """The projector's black level relative to white for ``view``: calibrated (``sss calibrate
+        projector``), else the sim rig's, else the median black / white ratio of the view's black frame
+        over the decoded mask (``white``, ``mask``: the view's, if already loaded), else 0."""
+        rig = self.manifest.get("rig", {})
+        opts = rig.get("options", {})
+        if rig.get("projector_black") is not None:
+            return float(rig["projector_black"])
+        if str(rig.get("camera", "")).startswith("sim:"):
+            from sssphase_core.sim import rig_preset
+
+            return float(opts.get("projector_black", rig_preset(opts.get("preset", "cpu")).projector.black))
+        if "black" not in self.arrays(view):
+            return 0.0
+        white = np.asarray(self.load(view, "white"), np.float32) if white is None else white
+        mask = np.asarray(self.load(view, "corr/mask"), bool) if mask is None else mask
+        blk, wl = np.asarray(self.load(view, "black"), np.float32).mean(axis=-1), white.mean(axis=-1)
+        ok = mask & (wl > 0.05)
+        return float(np.clip(np.median(blk[ok] / wl[ok]), 0, 0.5)) if ok.any() else 0.0
+
     def arrays(self, view: int) -> list[str]:
         return sorted(self.manifest["views"].get(str(view), {}).get("arrays", {}))
 

@@ -295,12 +295,16 @@ def mixed_with_no_scattering(source: FootprintSource, mix: np.ndarray, white: np
 
 def model_inputs(rv: RelightView) -> tuple[np.ndarray, np.ndarray]:
     """The view's PSP stack for a model backend, clipped samples repaired (:func:`psp.declip`), and the
-    (H, W) bool map of pixels whose clipped fringes could not be repaired."""
-    if rv.saturation is None:
-        return rv.psp, np.zeros(rv.psp.shape[1:3], bool)
-    from sssphase_core.psp import declip
+    (H, W) bool map of pixels whose clipped fringes could not be repaired (made once per view)."""
+    if rv._model_inputs is None:
+        if rv.saturation is None:
+            rv._model_inputs = rv.psp, np.zeros(rv.psp.shape[1:3], bool)
+        else:
+            from sssphase_core.psp import declip
 
-    return declip(rv.psp, rv.saturation, white=rv.white, white_saturation=rv.white_saturation, black=rv.proj.black)
+            rv._model_inputs = declip(rv.psp, rv.saturation, white=rv.white, white_saturation=rv.white_saturation,
+                                      black=rv.proj.black)
+    return rv._model_inputs
 
 
 def white_usable(white: np.ndarray, saturation: float | None, margin: float = SATURATION_MARGIN) -> np.ndarray:

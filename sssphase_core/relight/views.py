@@ -29,6 +29,7 @@ class RelightView:
     white_saturation: float | None = None  # the white capture's (None: it does not clip, e.g. HDR)
     psp_patterns: np.ndarray | None = None  # (8, Hp, Wp) projector images of the ``psp`` captures, if known
     _camera: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
+    _model_inputs: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
 
     def camera_image(self, name: str) -> np.ndarray:
         """The camera's noise-free image of reference ``name`` (simulated sessions; evaluation only): its
@@ -66,7 +67,6 @@ def load_view(session: object, view: int) -> RelightView:
     white = load("white").astype(np.float32)
     mask = load("corr/mask").astype(bool)
     sim = None
-    black = 0.0
     patch = int(rig.get("patch") or 32)
     if str(rig.get("camera", "")).startswith("sim:"):
         from sssphase_core.sim import rig_preset
@@ -74,14 +74,8 @@ def load_view(session: object, view: int) -> RelightView:
         sim = {"object": opts.get("object", m.get("object")), "preset": opts.get("preset", "cpu"),
                "n_views": int(opts.get("n_views", m.get("n_views", 4))), "seed": int(opts.get("seed", 0)),
                "options": dict(opts)}
-        preset = rig_preset(sim["preset"])
-        black, patch = float(opts.get("projector_black", preset.projector.black)), int(rig.get("patch") or preset.patch)
-    if rig.get("projector_black") is not None:  # calibrated (sss calibrate projector)
-        black = float(rig["projector_black"])
-    elif sim is None and "black" in arrays:  # the black frame is black_level * white
-        blk, wl = load("black").mean(axis=-1), white.mean(axis=-1)
-        ok = mask & (wl > 0.05)
-        black = float(np.clip(np.median(blk[ok] / wl[ok]), 0, 0.5)) if ok.any() else 0.0
+        patch = int(rig.get("patch") or rig_preset(sim["preset"]).patch)
+    black = session.projector_black(view, white, mask)  # type: ignore[attr-defined]
     proj = Projection(load("corr/xp").astype(np.float32), load("corr/yp").astype(np.float32), mask,
                       (int(wp), int(hp)), float(plan.get("gamma", 2.2)), black)
     references, captured = {}, {}
