@@ -196,10 +196,11 @@ def geometry_cmd(
         if rv.sim is not None and "gt/proj_xy" in s.arrays(v):  # evaluation only: the simulator's exact points
             gt = np.asarray(s.load(v, "gt/proj_xy"), np.float32)
             ok = m & np.isfinite(gt[..., 0])
-            err = lambda xp, yp: float(np.median(np.hypot(xp - gt[..., 0], yp - gt[..., 1])[ok]))  # noqa: E731
-            bias = lambda xp: float(np.median((xp - gt[..., 0])[ok]))  # noqa: E731
-            line += (f"; against the exact points: decoded {err(rv.proj.xp, rv.proj.yp):.3f} px (bias x {bias(rv.proj.xp):+.3f}), "
-                     f"for geometry {err(geo.xp, geo.yp):.3f} px (bias x {bias(geo.xp):+.3f})")
+            scores = []
+            for xp, yp in ((rv.proj.xp, rv.proj.yp), (geo.xp, geo.yp)):
+                scores += [float(np.median(np.hypot(xp - gt[..., 0], yp - gt[..., 1])[ok])), float(np.median((xp - gt[..., 0])[ok]))]
+            line += (f"; against the exact points: decoded {scores[0]:.3f} px (bias x {scores[1]:+.3f}), "
+                     f"for geometry {scores[2]:.3f} px (bias x {scores[3]:+.3f})")
         console.print(line)
 
 

@@ -101,12 +101,11 @@ def state_path() -> Path:
 
 def write_state(state: DaemonState, path: Path | None = None) -> Path:
     """Atomically write the state file, readable by the owner only."""
+    from sssphase_core.files import atomic_path
+
     path = path or state_path()
-    tmp = path.with_suffix(f".tmp{os.getpid()}")
-    fd = os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600)
-    with os.fdopen(fd, "w") as f:
+    with atomic_path(path) as tmp, os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "w") as f:
         json.dump(asdict(state), f)
-    os.replace(tmp, path)
     return path
 
 

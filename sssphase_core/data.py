@@ -182,13 +182,13 @@ def _load_cached(path: Path | None, obj: str, view: int) -> ViewData | None:
 def _save_cached(path: Path | None, vd: ViewData) -> None:
     if path is None:
         return
-    path.parent.mkdir(parents=True, exist_ok=True)
+    from sssphase_core.files import atomic_path
+
     arrays = {"psp": vd.psp, "pixels": vd.pixels, "materials": vd.materials}
     if vd.footprints is not None:
         arrays["footprints"] = np.asarray(vd.footprints)
-    tmp = path.with_suffix(".tmp.npz")
-    np.savez(tmp, **arrays)
-    tmp.replace(path)
+    with atomic_path(path, ".npz") as tmp:
+        np.savez(tmp, **arrays)
 
 
 def simulate_views(

@@ -15,6 +15,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from sssphase_core.files import atomic_path
+
 METRICS = "metrics.jsonl"
 METRICS_CSV = "metrics.csv"
 TB_DIR = "tb"
@@ -62,12 +64,10 @@ class RunLog:
             f.write(json.dumps(row) + "\n")
         rows = read_rows(self.out_dir / METRICS)
         columns = list(dict.fromkeys(k for r in rows for k in r))
-        tmp = self.out_dir / (METRICS_CSV + ".tmp")
-        with open(tmp, "w", newline="") as f:
+        with atomic_path(self.out_dir / METRICS_CSV) as tmp, open(tmp, "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=columns)
             writer.writeheader()
             writer.writerows(rows)
-        tmp.replace(self.out_dir / METRICS_CSV)
         if self.writer is not None:
             for name, value in row.items():
                 if name not in ("epoch", "step") and isinstance(value, int | float) and math.isfinite(value):

@@ -96,15 +96,14 @@ def _chunks(shape: tuple[int, ...], itemsize: int, target: int = 2**21) -> tuple
 def write_json_atomic(path: Path, obj: Any) -> None:
     """Write ``obj`` as JSON to ``path`` atomically; on failure (disk full, read-only folder) the old file
     stays, no temporary file is left, and the error names the file."""
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    from sssphase_core.files import atomic_path
+
     try:
-        with open(tmp, "w") as f:
+        with atomic_path(path) as tmp, open(tmp, "w") as f:
             json.dump(obj, f, indent=1, sort_keys=True)
             f.flush()
             os.fsync(f.fileno())
-        os.replace(tmp, path)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
         raise DataError(f"cannot write {path}: {exc.strerror or exc} (the previous version is kept)") from None
 
 

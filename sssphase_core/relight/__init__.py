@@ -29,6 +29,7 @@ from sssphase_core.relight.engine import (
     lit_pixels,
     relight,
 )
+from sssphase_core.relight.geometry import geometric_correspondence, scattering_shift
 from sssphase_core.relight.images import (
     IMAGE_FORMATS,
     RESIZE_MODES,
@@ -52,7 +53,6 @@ from sssphase_core.relight.sources import (
     view_mix,
     white_usable,
 )
-from sssphase_core.relight.geometry import geometric_correspondence, scattering_shift
 from sssphase_core.relight.views import RelightView, finest_psp_period, load_view
 
 __all__ = [

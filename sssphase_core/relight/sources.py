@@ -173,10 +173,10 @@ class FootprintCache:
             return
         index = np.flatnonzero(self.slot >= 0)
         index = index[np.argsort(self.slot[index])]
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.path.with_suffix(".tmp.npz")
-        np.savez_compressed(tmp, data=self.data[: self.size], index=index, shape=np.asarray(self.shape))
-        tmp.replace(self.path)
+        from sssphase_core.files import atomic_path
+
+        with atomic_path(self.path, ".npz") as tmp:
+            np.savez_compressed(tmp, data=self.data[: self.size], index=index, shape=np.asarray(self.shape))
         self._dirty = False
 
 

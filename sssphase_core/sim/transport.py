@@ -261,9 +261,8 @@ class DirectionalTransport(Transport):
         return max(1, CHUNK_ENTRIES // (4 * self.k * self.k))
 
     def _compute(self, index: np.ndarray) -> np.ndarray:
-        m, k, half, bd = self.maps, self.k, self.half, self.boundary
+        m, half, bd = self.maps, self.half, self.boundary
         y, x = np.divmod(index, self.w)
-        n = len(index)
         xp = m.points[y, x].astype(np.float64)  # (N, 3)
         n_i = np.nan_to_num(self.directional.normals[y, x]).astype(np.float64)
         w12 = dipole.refract_in(self.directional.light_dir[y, x].astype(np.float64), n_i, self.directional.eta)

@@ -3,13 +3,13 @@ last checkpoint, and the encoder and decoder they hold."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import torch
 from torch import nn
 
 from sssphase_core.errors import DataError, SssError
+from sssphase_core.files import atomic_path
 from sssphase_core.models import Decoder, Encoder, ModelPreset, get_preset
 
 CHECKPOINT = "last.pt"
@@ -18,10 +18,8 @@ BEST = "best.pt"  # the epoch with the best monitored figure (kNN monitor / vali
 
 def save_checkpoint(path: Path, payload: dict) -> None:
     """Atomic ``torch.save`` (write to a temporary file, then rename)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    torch.save(payload, tmp)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
 
 
 def resolve_checkpoint(path: Path | str) -> Path:

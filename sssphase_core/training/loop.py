@@ -19,6 +19,7 @@ from torch import nn
 
 from sssphase_core.data import PatchDataset
 from sssphase_core.errors import DataError, SssError
+from sssphase_core.files import atomic_path
 from sssphase_core.models import ModelPreset, get_preset
 from sssphase_core.runlog import METRICS, METRICS_CSV, TB_DIR, RunLog
 from sssphase_core.training.checkpoints import BEST, CHECKPOINT, load_checkpoint
@@ -141,9 +142,8 @@ class Loop:
     def keep_if_best(self) -> None:
         """Copy the checkpoint just written to ``best.pt`` when its epoch was staged as the best."""
         if self._new_best:
-            tmp = self.out_dir / (BEST + ".tmp")
-            shutil.copyfile(self.out_dir / CHECKPOINT, tmp)
-            os.replace(tmp, self.out_dir / BEST)
+            with atomic_path(self.out_dir / BEST) as tmp:
+                shutil.copyfile(self.out_dir / CHECKPOINT, tmp)
             self._new_best = False
 
     def run(
