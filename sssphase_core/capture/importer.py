@@ -15,13 +15,12 @@ from sssphase_core import __version__
 from sssphase_core.capture.plan import CaptureRequest, RigSpec
 from sssphase_core.capture.processing import ViewProcessor
 from sssphase_core.errors import InputError
+from sssphase_core.imageio import IMAGE_SUFFIXES, read_frame
 from sssphase_core.session import Session, check_object_name
 
-IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
 PSP_KEY_RE = re.compile(r"^psp/([xy])/p([0-9]{1,5}(?:\.[0-9]{1,6})?)/s([0-9]{1,2})$")
 DOTS_KEY_RE = re.compile(r"^dots/([0-9]{1,3})_([0-9]{1,3})$")
 OTHER_KEY_RE = re.compile(r"^(white|black|(ref|pattern)/[A-Za-z0-9][A-Za-z0-9_.-]{0,63})$")
-MAX_FRAME_PIXELS = 1 << 26  # 64 MP: larger frames are refused from their header, before decoding
 MAX_SHIFTS = 32
 
 
@@ -30,62 +29,6 @@ class _ImportedFrame:
     name: str
     data: np.ndarray
     header: dict[str, Any] = field(default_factory=dict)
-
-
-def _image_shape(path: Path) -> tuple[int, ...]:
-    """The pixel shape a frame file declares, read from its header only (no pixel is decoded)."""
-    try:
-        if path.suffix.lower() == ".npy":
-            return tuple(np.load(path, mmap_mode="r", allow_pickle=False).shape)
-        if path.suffix.lower() == ".exr":
-            from sssphase_core import exr
-
-            return exr.exr_size(path)
-        from PIL import Image
-
-        Image.MAX_IMAGE_PIXELS = None  # our own limit below, on the header's size
-        with Image.open(path) as img:
-            return (img.size[1], img.size[0])
-    except (OSError, ValueError, SyntaxError) as exc:
-        raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
-
-
-def _read_image(path: Path) -> np.ndarray:
-    """A linear image as float32 RGB: ``.npy`` and ``.exr`` as stored, 8/16-bit PNG/TIFF divided by the
-    top code. Frames larger than ``MAX_FRAME_PIXELS`` are refused from their header."""
-    shape = _image_shape(path)
-    if len(shape) >= 2 and shape[0] * shape[1] > MAX_FRAME_PIXELS:
-        raise InputError(f"{path} is {shape[1]}x{shape[0]}: larger than any camera frame this importer takes "
-                         f"({MAX_FRAME_PIXELS // 2**20} MP)")
-    if path.suffix.lower() == ".npy":
-        try:
-            arr = np.load(path, allow_pickle=False)
-        except ValueError as exc:  # pickled object arrays are never loaded
-            raise InputError(f"cannot read {path}: {exc}") from None
-        if arr.dtype.kind not in "fiub":
-            raise InputError(f"{path} holds {arr.dtype} values, not an image")
-    elif path.suffix.lower() == ".exr":
-        from sssphase_core import exr
-
-        arr = exr.read_exr(path)
-    else:
-        import cv2
-
-        arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if arr is None:
-            raise InputError(f"cannot read image {path}")
-        if arr.ndim == 3:
-            arr = cv2.cvtColor(arr[..., :3], cv2.COLOR_BGR2RGB)
-        if np.issubdtype(arr.dtype, np.integer):
-            arr = arr.astype(np.float32) / np.iinfo(arr.dtype).max
-    arr = np.asarray(arr, np.float32)
-    if arr.ndim == 3 and arr.shape[-1] == 1:
-        arr = arr[..., 0]
-    if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[-1] != 3):
-        raise InputError(f"{path} has shape {arr.shape}: expected (H, W) or (H, W, 3)")
-    if not np.isfinite(arr).all():
-        raise InputError(f"{path} holds NaN or infinite values")
-    return np.repeat(arr[..., None], 3, axis=-1) if arr.ndim == 2 else arr
 
 
 def _frame_files(vdir: Path) -> dict[str, Path]:
@@ -186,7 +129,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 proc = ViewProcessor(writer, plan, spacing, patch, RigSpec(camera="import", turntable=None), req, 0)
                 shape = None
                 for key in sorted((k for k in files if not k.startswith("pattern/")), key=lambda k: k.startswith("dots/")):
-                    image = _read_image(files[key])
+                    image = read_frame(files[key])
                     if shape is not None and image.shape != shape:
                         raise InputError(f"{files[key]} is {image.shape[1]}x{image.shape[0]}, the other frames "
                                          f"{shape[1]}x{shape[0]}")

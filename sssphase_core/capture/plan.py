@@ -10,9 +10,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from sssphase_core.errors import InputError
+from sssphase_core.imageio import read_pattern
 from sssphase_core.session import check_object_name
 
 DEFAULT_HDR = (0.25, 1.0, 4.0)
@@ -91,20 +90,6 @@ class CaptureRequest:
 
 
 
-def _load_reference(path: Path, size: tuple[int, int]) -> np.ndarray:
-    from PIL import Image
-
-    try:
-        img = Image.open(path)
-    except OSError as exc:
-        raise InputError(f"cannot read reference image {path}: {exc}") from None
-    w, h = size
-    if img.size != (w, h):
-        raise InputError(f"reference image {path} is {img.size[0]}x{img.size[1]}, the projector is {w}x{h}")
-    arr = np.asarray(img.convert("L" if img.mode in ("L", "I;16", "1") else "RGB"), np.float32)
-    return np.clip(arr / (65535.0 if np.asarray(img).dtype == np.uint16 else 255.0), 0, 1)
-
-
 def build_frames(req: CaptureRequest, size: tuple[int, int], patch: int,
                  gamma: float | None = None) -> tuple[Any, list[dict[str, Any]], int]:
     """The capture plan and the daemon's frame specs (named references by plan, files as images);
@@ -120,7 +105,7 @@ def build_frames(req: CaptureRequest, size: tuple[int, int], patch: int,
     frames = json.loads(plan.to_json())["frames"]
     for path in files:
         name = check_object_name(path.stem)
-        img = _load_reference(path, size)
+        img = read_pattern(path, size, hint="resize it to the projector's size first")
         for e in req.hdr or (1.0,):
             spec_name = f"ref/{name}" if not req.hdr else f"ref/{name}@e{e:g}"
             frames.append({"name": spec_name, "key": f"ref/{name}", "kind": "image", "exposure": e,
