@@ -114,8 +114,9 @@ def train_pretrain(
 ) -> None:
     """SimSiam pretraining of the encoder on PSP patches of the training objects (resumable)."""
     from sssphase_core.data import PatchDataset
-    from sssphase_core.evaluation import plot_metric_vs_time, read_metrics
+    from sssphase_core.figures import plot_metric_vs_time
     from sssphase_core.models import get_preset
+    from sssphase_core.runlog import read_rows
     from sssphase_core.sim import TRAIN_OBJECTS
     from sssphase_core.training import METRICS, PretrainConfig, pretrain
 
@@ -132,7 +133,7 @@ def train_pretrain(
     with step_bar(console) as progress:
         path = pretrain(cfg, ds, out, resume=resume, progress=progress)
     _print_final(out / METRICS, ("loss", "knn_acc", "eff_rank"), "knn_acc")
-    rows = [r for r in read_metrics(out / METRICS) if "knn_acc" in r]
+    rows = [r for r in read_rows(out / METRICS) if "knn_acc" in r]
     if rows:
         plot_metric_vs_time(out / METRICS, "knn_acc", out / "knn_vs_time.png", log=False, chance=1 / len(names),
                             ylabel="kNN accuracy (fraction, training patches)",
@@ -177,7 +178,7 @@ def train_decoder(
     """Fit the footprint decoder with the SBH loss on the frozen encoder, or end-to-end (resumable)."""
     from sssphase_core.data import PatchDataset
     from sssphase_core.errors import InputError
-    from sssphase_core.evaluation import plot_metric_vs_time
+    from sssphase_core.figures import plot_metric_vs_time
     from sssphase_core.models.decoder import HEADS
     from sssphase_core.sim import TRAIN_OBJECTS
     from sssphase_core.training import METRICS, DecoderConfig, decoder_patch
@@ -217,10 +218,10 @@ def train_decoder(
 
 def _print_final(metrics: Path, names: tuple[str, ...], monitored: str) -> None:
     """The last epoch's figures and the epoch kept in best.pt."""
-    from sssphase_core.evaluation import read_metrics
+    from sssphase_core.runlog import read_rows
     from sssphase_core.training import BEST
 
-    rows = read_metrics(metrics)
+    rows = read_rows(metrics)
     if not rows:
         return
     last = rows[-1]
@@ -345,7 +346,8 @@ def eval_footprints(
 
     from sssphase_core.backends import get_backend
     from sssphase_core.errors import InputError
-    from sssphase_core.evaluation import footprint_metrics, plot_profiles, summarise
+    from sssphase_core.evaluation import footprint_metrics, summarise
+    from sssphase_core.figures import plot_profiles
     from sssphase_core.sim import UNSEEN_OBJECTS, rig_preset
 
     names = _names(objects, () if sessions else UNSEEN_OBJECTS)
@@ -473,9 +475,8 @@ def bench_learn(
     device: str = "cpu",
 ) -> None:
     """Throughput (patches/s) of the lite and paper presets, inference and training, ratio to paper."""
-    from sssphase_core.bench.learn_bench import loader_throughput
+    from sssphase_core.bench.learn_bench import loader_throughput, measure_throughput
     from sssphase_core.bench.output import Table, machine_info, write_bench_report
-    from sssphase_core.evaluation import measure_throughput
 
     batches = {"paper": 8, "lite": 64}
     results = {}

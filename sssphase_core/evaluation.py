@@ -1,10 +1,10 @@
-"""Evaluation: kNN with view-level leave-one-out, footprint metrics, PCA-RGB maps and plots."""
+"""Evaluation of what was learned: kNN with view-level leave-one-out, footprint metrics, PCA-RGB maps.
+
+Plots of them are in :mod:`sssphase_core.figures`; throughput in :mod:`sssphase_core.bench.learn_bench`."""
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -160,112 +160,3 @@ def pca_maps(encoder, views: Sequence[tuple[np.ndarray, np.ndarray]], stride: in
 
 
 PCA_TITLE = "PCA-RGB of encoder embeddings: components 1-3 as R, G, B, one joint PCA over the objects shown"
-
-
-# --- plots ---------------------------------------------------------------------------------------
-
-
-def plot_profiles(gt: np.ndarray, pred: np.ndarray, path: Path | str, *, title: str = "") -> None:
-    """Centre row of one (K, K, 3) footprint per channel: GT solid, prediction dotted; and the difference."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    k = gt.shape[0]
-    x = np.arange(k) - k // 2
-    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.2))
-    for c, colour in enumerate("rgb"):
-        a.plot(x, gt[k // 2, :, c], "-", color=colour, label=f"GT {colour.upper()}")
-        a.plot(x, pred[k // 2, :, c], ":", color=colour, lw=2, label=f"pred {colour.upper()}")
-        b.plot(x, pred[k // 2, :, c] - gt[k // 2, :, c], color=colour)
-    a.set(xlabel="offset (px)", ylabel="linear camera units", title=title or "footprint profile")
-    b.set(xlabel="offset (px)", title="prediction - GT")
-    a.legend(fontsize=7, ncol=2)
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-
-
-def read_metrics(path: Path | str) -> list[dict]:
-    return [json.loads(line) for line in Path(path).read_text().splitlines() if line.strip()]
-
-
-def plot_metric_vs_time(metrics_path: Path | str, keys: str | Sequence[str], out: Path | str, *, log: bool = True,
-                        ylabel: str | None = None, right: Sequence[str] = (), right_label: str = "",
-                        chance: float | None = None, title: str | None = None) -> None:
-    """Error against run time: each of ``keys`` (and ``right`` on a second axis) of the metrics.jsonl rows
-    against their cumulative ``wall_s``, with a legend; ``chance`` draws the chance level."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    keys = [keys] if isinstance(keys, str) else list(keys)
-    rows = read_metrics(metrics_path)
-    if not any(keys[0] in r for r in rows):
-        raise InputError(f"no {keys[0]!r} in {metrics_path}")
-    fig, ax = plt.subplots(figsize=(6, 3.6))
-    lines = []
-    for key in keys:
-        rs = [r for r in rows if key in r]
-        lines += ax.plot([r["wall_s"] for r in rs], [r[key] for r in rs], "o-", label=key)
-    if chance is not None:
-        lines.append(ax.axhline(chance, color="grey", ls="--", label=f"chance ({chance:.3g})"))
-    ax.set(xlabel="run time (s)", ylabel=ylabel or ", ".join(keys), title=title or f"{', '.join(keys)} against run time")
-    if log and all(r[k] > 0 for k in keys for r in rows if k in r):
-        ax.set_yscale("log")
-    if right:
-        twin = ax.twinx()
-        for key, colour in zip(right, ("tab:red", "tab:purple", "tab:brown"), strict=False):
-            rs = [r for r in rows if key in r]
-            lines += twin.plot([r["wall_s"] for r in rs], [r[key] for r in rs], "s--", color=colour, label=key)
-        twin.set_ylabel(right_label or ", ".join(right))
-    ax.legend(handles=lines, fontsize=8, loc="best")
-    fig.tight_layout()
-    fig.savefig(out, dpi=120)
-    plt.close(fig)
-
-
-# --- throughput ----------------------------------------------------------------------------------
-
-
-def measure_throughput(preset: str, *, batch: int, repeats: int = 3, device: str = "cpu") -> dict[str, float]:
-    """Patches/s of footprint inference (encoder + decoder forward) and of one SimSiam training step."""
-    import time
-
-    from sssphase_core.augment import two_views
-    from sssphase_core.models import Decoder, SimSiam, get_preset
-
-    p = get_preset(preset)
-    torch.manual_seed(0)
-    model, dec = SimSiam(p).to(device), Decoder(p).to(device).eval()
-    opt = torch.optim.SGD(model.parameters(), lr=0.01, momentum=0.9)
-    x = torch.rand(batch, 24, p.patch, p.patch, device=device)
-
-    def infer() -> None:
-        with torch.no_grad():
-            model.encoder.eval()
-            dec(*model.encoder.features(x), x)
-
-    def train_step() -> None:
-        model.train()
-        loss = model(*two_views(x))["loss"]
-        opt.zero_grad()
-        loss.backward()
-        opt.step()
-
-    def rate(fn) -> float:
-        fn()  # warm-up
-        times = []
-        for _ in range(repeats):
-            t0 = time.perf_counter()
-            fn()
-            if device.startswith("cuda"):
-                torch.cuda.synchronize()
-            times.append(time.perf_counter() - t0)
-        return batch / float(np.median(times))
-
-    return {"infer_patches_s": rate(infer), "train_patches_s": rate(train_step),
-            "encoder_params": sum(q.numel() for q in model.encoder.parameters()),
-            "decoder_params": sum(q.numel() for q in dec.parameters())}

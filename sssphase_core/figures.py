@@ -178,3 +178,67 @@ def profiles_figure(path: Path | str, curves: Mapping[str, np.ndarray], col_titl
     axes[0][-1].legend(fontsize=7, loc="upper right")
     fig.suptitle(_title(title, 30 * n), fontsize=10)
     return _save(fig, path)
+
+
+# --- training curves and footprint profiles ------------------------------------------------------
+
+
+def plot_profiles(gt: np.ndarray, pred: np.ndarray, path: Path | str, *, title: str = "") -> None:
+    """Centre row of one (K, K, 3) footprint per channel: GT solid, prediction dotted; and the difference."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    k = gt.shape[0]
+    x = np.arange(k) - k // 2
+    fig, (a, b) = plt.subplots(1, 2, figsize=(9, 3.2))
+    for c, colour in enumerate("rgb"):
+        a.plot(x, gt[k // 2, :, c], "-", color=colour, label=f"GT {colour.upper()}")
+        a.plot(x, pred[k // 2, :, c], ":", color=colour, lw=2, label=f"pred {colour.upper()}")
+        b.plot(x, pred[k // 2, :, c] - gt[k // 2, :, c], color=colour)
+    a.set(xlabel="offset (px)", ylabel="linear camera units", title=title or "footprint profile")
+    b.set(xlabel="offset (px)", title="prediction - GT")
+    a.legend(fontsize=7, ncol=2)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def plot_metric_vs_time(metrics_path: Path | str, keys: str | Sequence[str], out: Path | str, *, log: bool = True,
+                        ylabel: str | None = None, right: Sequence[str] = (), right_label: str = "",
+                        chance: float | None = None, title: str | None = None) -> None:
+    """Error against run time: each of ``keys`` (and ``right`` on a second axis) of the metrics.jsonl rows
+    against their cumulative ``wall_s``, with a legend; ``chance`` draws the chance level."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    keys = [keys] if isinstance(keys, str) else list(keys)
+    from sssphase_core.errors import InputError
+    from sssphase_core.runlog import read_rows
+
+    rows = read_rows(Path(metrics_path))
+    if not any(keys[0] in r for r in rows):
+        raise InputError(f"no {keys[0]!r} in {metrics_path}")
+    fig, ax = plt.subplots(figsize=(6, 3.6))
+    lines = []
+    for key in keys:
+        rs = [r for r in rows if key in r]
+        lines += ax.plot([r["wall_s"] for r in rs], [r[key] for r in rs], "o-", label=key)
+    if chance is not None:
+        lines.append(ax.axhline(chance, color="grey", ls="--", label=f"chance ({chance:.3g})"))
+    ax.set(xlabel="run time (s)", ylabel=ylabel or ", ".join(keys), title=title or f"{', '.join(keys)} against run time")
+    if log and all(r[k] > 0 for k in keys for r in rows if k in r):
+        ax.set_yscale("log")
+    if right:
+        twin = ax.twinx()
+        for key, colour in zip(right, ("tab:red", "tab:purple", "tab:brown"), strict=False):
+            rs = [r for r in rows if key in r]
+            lines += twin.plot([r["wall_s"] for r in rs], [r[key] for r in rs], "s--", color=colour, label=key)
+        twin.set_ylabel(right_label or ", ".join(right))
+    ax.legend(handles=lines, fontsize=8, loc="best")
+    fig.tight_layout()
+    fig.savefig(out, dpi=120)
+    plt.close(fig)

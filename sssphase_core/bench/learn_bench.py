@@ -47,3 +47,44 @@ def loader_throughput(preset: str, *, batch: int, repeats: int = 3, footprints: 
                 times.append(time.perf_counter() - t0)
             rates[name] = batch / float(np.median(times))
     return {**rates, "camera": f"{w}x{h}", "patch": k}
+
+
+def measure_throughput(preset: str, *, batch: int, repeats: int = 3, device: str = "cpu") -> dict[str, float]:
+    """Patches/s of footprint inference (encoder + decoder forward) and of one SimSiam training step."""
+    import torch
+
+    from sssphase_core.augment import two_views
+    from sssphase_core.models import Decoder, SimSiam, get_preset
+
+    p = get_preset(preset)
+    torch.manual_seed(0)
+    model, dec = SimSiam(p).to(device), Decoder(p).to(device).eval()
+    opt = torch.optim.SGD(model.parameters(), lr=0.01, momentum=0.9)
+    x = torch.rand(batch, 24, p.patch, p.patch, device=device)
+
+    def infer() -> None:
+        with torch.no_grad():
+            model.encoder.eval()
+            dec(*model.encoder.features(x), x)
+
+    def train_step() -> None:
+        model.train()
+        loss = model(*two_views(x))["loss"]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+
+    def rate(fn) -> float:
+        fn()  # warm-up
+        times = []
+        for _ in range(repeats):
+            t0 = time.perf_counter()
+            fn()
+            if device.startswith("cuda"):
+                torch.cuda.synchronize()
+            times.append(time.perf_counter() - t0)
+        return batch / float(np.median(times))
+
+    return {"infer_patches_s": rate(infer), "train_patches_s": rate(train_step),
+            "encoder_params": sum(q.numel() for q in model.encoder.parameters()),
+            "decoder_params": sum(q.numel() for q in dec.parameters())}

@@ -14,10 +14,9 @@ from sssphase_core.evaluation import (
     knn_predict,
     paint,
     pca_rgb,
-    plot_metric_vs_time,
-    plot_profiles,
     summarise,
 )
+from sssphase_core.figures import plot_metric_vs_time, plot_profiles
 from sssphase_core.models import Encoder
 
 
@@ -114,7 +113,7 @@ def test_plots_are_written(tmp_path):
 
 
 def test_throughput_measure_reports_rates_and_sizes():
-    from sssphase_core.evaluation import measure_throughput
+    from sssphase_core.bench.learn_bench import measure_throughput
 
     r = measure_throughput("lite", batch=2, repeats=1)
     assert r["infer_patches_s"] > 0 and r["train_patches_s"] > 0
