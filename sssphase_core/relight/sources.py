@@ -296,15 +296,16 @@ def mixed_with_no_scattering(source: FootprintSource, mix: np.ndarray, white: np
 def model_inputs(rv: RelightView) -> tuple[np.ndarray, np.ndarray]:
     """The view's PSP stack for a model backend, clipped samples repaired (:func:`psp.declip`), and the
     (H, W) bool map of pixels whose clipped fringes could not be repaired (made once per view)."""
-    if rv._model_inputs is None:
+    cached = getattr(rv, "_model_inputs", None)  # views built elsewhere (the benchmarks' SimView) have no cache yet
+    if cached is None:
         if rv.saturation is None:
-            rv._model_inputs = rv.psp, np.zeros(rv.psp.shape[1:3], bool)
+            cached = rv.psp, np.zeros(rv.psp.shape[1:3], bool)
         else:
             from sssphase_core.psp import declip
 
-            rv._model_inputs = declip(rv.psp, rv.saturation, white=rv.white, white_saturation=rv.white_saturation,
-                                      black=rv.proj.black)
-    return rv._model_inputs
+            cached = declip(rv.psp, rv.saturation, white=rv.white, white_saturation=rv.white_saturation, black=rv.proj.black)
+        rv._model_inputs = cached
+    return cached
 
 
 def white_usable(white: np.ndarray, saturation: float | None, margin: float = SATURATION_MARGIN) -> np.ndarray:

@@ -116,8 +116,8 @@ def test_training_reads_the_same_repaired_fringes_as_relighting(scene):
     true = fringes(a, b, phi)
 
     class ClippedSession:  # what session_views reads: arrays by name and where the session clips
-        def __init__(self, level):
-            self.level = level
+        def __init__(self, level, black=0.0):
+            self.level, self.black = level, black
 
         def load(self, view, name):
             return {"psp": np.minimum(true, 0.5), "white": 2 * a}[name]
@@ -125,6 +125,12 @@ def test_training_reads_the_same_repaired_fringes_as_relighting(scene):
         def clip_levels(self):
             return self.level, None
 
+        def projector_black(self, view, white=None, mask=None):
+            return self.black
+
     fixed, lost = declip(np.minimum(true, 0.5), 0.5 / 0.95, white=2 * a, margin=0.95)
     np.testing.assert_array_equal(repaired_psp(ClippedSession(0.5 / 0.95), 0), fixed)
     np.testing.assert_array_equal(repaired_psp(ClippedSession(None), 0), np.minimum(true, 0.5))  # level unknown: as stored
+    # the view's projector black level enters the repair as it does for relighting (A from the white)
+    dark, _ = declip(np.minimum(true, 0.5), 0.5 / 0.95, white=2 * a, margin=0.95, black=0.1)
+    np.testing.assert_array_equal(repaired_psp(ClippedSession(0.5 / 0.95, black=0.1), 0), dark)
