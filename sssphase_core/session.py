@@ -182,33 +182,25 @@ class ViewWriter:
 
 
 class StreamedArray:
-    """``(count, *frame.shape)`` zarr array filled frame by frame, checksummed on the way."""
+    """``(count, *frame.shape)`` frames written one at a time (raw dot grids): a :class:`GrowingArray`
+    of one frame per chunk, made at the first frame, that must end with exactly ``count`` frames."""
 
     def __init__(self, writer: ViewWriter, name: str, count: int) -> None:
         self.writer, self.name, self.count = writer, name, count
-        self.arr: Any = None
+        self.frames: GrowingArray | None = None
         self.index = 0
-        self.hash = hashlib.sha256()
 
     def append(self, frame: np.ndarray) -> None:
-        import zarr
-
         frame = np.ascontiguousarray(frame)
-        if self.arr is None:
-            if FAULT_HOOK is not None:
-                FAULT_HOOK(self.name)
-            self.arr = zarr.create_array(store=str(self.writer.partial / self.name), shape=(self.count, *frame.shape),
-                                         dtype=frame.dtype, chunks=(1, *frame.shape), fill_value=0, zarr_format=3,
-                                         compressors=_codec(frame.dtype), config={"write_empty_chunks": True})
-        self.arr[self.index] = frame
-        self.hash.update(memoryview(frame).cast("B"))
+        if self.frames is None:
+            self.frames = GrowingArray(self.writer, self.name, frame.shape, frame.dtype, chunk_bytes=max(frame.nbytes, 1))
+        self.frames.extend(frame[None])
         self.index += 1
 
     def close(self) -> None:
-        if self.index != self.count:
+        if self.index != self.count or self.frames is None:
             raise DataError(f"{self.name}: got {self.index} of {self.count} frames")
-        self.writer.arrays[self.name] = {"shape": list(self.arr.shape), "dtype": self.arr.dtype.str,
-                                         "checksum": "sha256:" + self.hash.hexdigest(), "chunks": self.count}
+        self.frames.close()
 
 
 class GrowingArray:
