@@ -210,6 +210,10 @@ def capture(
         from sssphase_core.sim import rig_from_options
 
         rig_from_options({"preset": preset, **spec.options, **({"transport": transport} if transport else {})})
+    elif transport is not None:
+        from sssphase_core.errors import InputError
+
+        raise InputError("--transport picks the simulator's light-transport model: it applies to the sim rig only")
     req = CaptureRequest(object_name, views, footprints, tuple(reference or ()), DEFAULT_HDR if hdr else (),
                          keep_dots, keep_unwrap, resume, out, seed, preset, dot_spacing, transport)
     from sssphase_daemon.client import local_client

@@ -29,6 +29,8 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["capture", "--version"], "No such option"),
         (["sim", "--object", "apple", "--views", "-"], "--views"),
         (["relight", "no_session", "--pattern", "checkerboard", "--format", "tiff"], "choose png, exr"),
+        (["capture", "--object", "apple", "--transport", "photon_beams"], "unknown transport model 'photon_beams'"),
+        (["geometry", "no_session", "--backend", "measured"], "placed by the decoded correspondences"),
     ],
 )
 def test_usage_errors_are_one_message_not_a_traceback(args: list[str], expected: str) -> None:
