@@ -9,8 +9,6 @@ import typer
 
 from sssphase_core.errors import DataError, InputError
 
-FRAME_SUFFIXES = (".npy", ".png", ".tif", ".tiff")
-
 
 def _parse_size(text: str) -> tuple[int, int]:
     try:
@@ -70,28 +68,6 @@ def patterns(
     typer.echo(f"{len(unique)} patterns ({len(plan)} planned frames) written to {out}")
 
 
-def _find_frame(folder: Path, key: str) -> Path | None:
-    for stem in (key, key.replace("/", "__")):
-        for suffix in FRAME_SUFFIXES:
-            path = folder / f"{stem}{suffix}"
-            if path.is_file():
-                return path
-    return None
-
-
-def _load_frame(path: Path):
-    import numpy as np
-
-    if path.suffix == ".npy":
-        return np.load(path)
-    import cv2
-
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if img is None:
-        raise DataError(f"cannot read image {path}")
-    return img[..., ::-1].copy() if img.ndim == 3 else img
-
-
 def _psp_from_plan(plan: dict):
     from sssphase_core.patterns import PSPConfig
 
@@ -103,16 +79,18 @@ def _psp_from_plan(plan: dict):
 
 
 def decode_cmd(
-    folder: Path = typer.Argument(..., help="folder of captured frames named by plan key (PNG, TIFF or NPY)"),
+    folder: Path = typer.Argument(..., help="folder of captured frames named by plan key (PNG/TIFF 8/16-bit, EXR or NPY)"),
     out: Path = typer.Option(..., "--out", help="output folder for maps (.npy) and viewable PNGs"),
     projector: str | None = typer.Option(None, "--projector", help="projector WxH (default: from plan.json)"),
     min_modulation: float = typer.Option(0.01, "--min-modulation", help="minimum fringe modulation B (normalised units)"),
-    saturation: float | None = typer.Option(None, "--saturation", help="saturation level (default 0.99 for 8/16-bit files)"),
+    saturation: float | None = typer.Option(None, "--saturation", help="saturation level in [0, 1] of the file's range (default 0.99 for integer files, none for EXR/float)"),
 ) -> None:
     """Decode PSP frames into camera -> projector correspondences (xp, yp, mask, reason) + PNGs."""
     import numpy as np
     from rich.progress import Progress
 
+    from sssphase_core.capture.importer import frame_files
+    from sssphase_core.imageio import read_frame, stores_integers
     from sssphase_core.patterns import psp_config_for, psp_key
     from sssphase_core.psp import Reason, decode, wrapped_phase
 
@@ -128,14 +106,18 @@ def decode_cmd(
         raise InputError(f"no plan.json in {folder}: give --projector WxH")
     config = _psp_from_plan(plan) if plan is not None else psp_config_for(*size)
     keys = [psp_key(o, p, n) for o in ("x", "y") for p in config.periods for n in range(config.n_shifts)]
+    files = frame_files(folder)
+    missing = [key for key in keys if key not in files]
+    if missing:
+        raise DataError(f"frame {missing[0]!r} not found in {folder} (expected {missing[0].replace('/', '__')}.png/.tif/"
+                        f".exr/.npy or {missing[0]}.*; {len(missing)} of {len(keys)} PSP frames missing)")
+    if saturation is None and any(stores_integers(files[key]) for key in keys):
+        saturation = 0.99  # integer files clip at their top code; EXR and float files do not clip
     frames = {}
     with Progress() as bar:
         task = bar.add_task("loading frames", total=len(keys))
         for key in keys:
-            path = _find_frame(folder, key)
-            if path is None:
-                raise DataError(f"frame {key!r} not found in {folder} (expected {key}.png/.tif/.npy or {key.replace('/', '__')}.*)")
-            frames[key] = _load_frame(path)
+            frames[key] = read_frame(files[key])
             bar.advance(task)
     corr = decode(frames, config, size, min_modulation=min_modulation, saturation=saturation)
     out.mkdir(parents=True, exist_ok=True)

@@ -280,11 +280,8 @@ def eval_knn(
     sessions: SessionsOpt = None,
 ) -> None:
     """kNN accuracy of frozen embeddings with view-level leave-one-out (cosine similarity)."""
-    import numpy as np
-
-    from sssphase_core.data import PatchDataset
     from sssphase_core.errors import InputError
-    from sssphase_core.evaluation import embed_pixels, knn_leave_one_view_out
+    from sssphase_core.evaluation import knn_of_views
     from sssphase_core.sim import MATERIAL_NAMES, TRAIN_OBJECTS
     from sssphase_core.training import load_encoder
 
@@ -300,17 +297,10 @@ def eval_knn(
     names = names or _objects(vds)
     results = {}
     for run, path in runs.items():
-        enc = load_encoder(path)
-        ds = PatchDataset(vds, enc.preset.patch, names)
-        with console.status(f"embedding {len(ds)} patches with {run}"):
-            emb = np.concatenate([embed_pixels(enc, v.psp, v.pixels) for v in vds])
-        labels = ds.labels(label)
-        keep = labels >= 0
-        classes = names if label == "object" else list(MATERIAL_NAMES)
-        sweep = {kk: knn_leave_one_view_out(emb[keep], labels[keep], ds.labels("view")[keep], k=kk, vote=vote,
-                                            class_names=classes) for kk in ks}
+        with console.status(f"embedding {sum(len(v.pixels) for v in vds)} patches with {run}"):
+            sweep = knn_of_views(load_encoder(path), vds, names, label=label, material_names=list(MATERIAL_NAMES),
+                                 ks=ks, vote=vote)
         res = sweep[ks[0]]
-        res.pop("pred")
         res["overall_by_k"] = {kk: r["overall"] for kk, r in sweep.items()}
         results[run] = res
     rows = sorted({c for r in results.values() for c in r["per_class"]}, key=str)

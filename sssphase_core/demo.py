@@ -233,18 +233,13 @@ class Demo:
         self._need("pretrain")
         if len(self.cfg.train_objects) < 2:
             raise NotAvailable("the kNN table needs training sessions of at least two objects")
-        from sssphase_core.evaluation import embed_pixels, knn_leave_one_view_out
+        from sssphase_core.evaluation import knn_of_views
         from sssphase_core.training import load_encoder
 
-        enc = load_encoder(self.results["pretrain"]["checkpoint"])
         vds = self.train_views(footprints=False)
-        names = list(self.cfg.train_objects)
-        emb = np.concatenate([embed_pixels(enc, v.psp, v.pixels) for v in vds])
-        labels = np.concatenate([np.full(len(v.pixels), names.index(v.object)) for v in vds])
-        views = np.concatenate([np.full(len(v.pixels), v.view) for v in vds])
-        res = knn_leave_one_view_out(emb, labels, views, k=min(20, len(emb) // 4 or 1), class_names=names)
-        res.pop("pred")
-        return res
+        k = min(20, sum(len(v.pixels) for v in vds) // 4 or 1)
+        return knn_of_views(load_encoder(self.results["pretrain"]["checkpoint"]), vds, list(self.cfg.train_objects),
+                            ks=(k,))[k]
 
     def pca(self) -> dict[str, Any]:
         self._need("pretrain", "test_sessions")

@@ -78,6 +78,33 @@ def knn_leave_one_view_out(embeddings: np.ndarray, labels: np.ndarray, views: np
             "per_view": per_view, "per_class": per_class, "k": k, "vote": vote, "pred": pred.numpy()}
 
 
+def knn_of_views(encoder: torch.nn.Module, views: Sequence, objects: Sequence[str], *, label: str = "object",
+                 material_names: Sequence[str] | None = None, ks: Sequence[int] = (20,),
+                 vote: str = "majority") -> dict[int, dict]:
+    """The kNN table of frozen embeddings of every pixel of ``views`` (``data.View``), per k.
+
+    ``label``: ``object`` (classes ``objects``, the paper's Table 2) or ``material`` (classes
+    ``material_names``; pixels of no known material are left out). Views are the leave-one-out unit
+    (:func:`knn_leave_one_view_out`); predictions are dropped from the results.
+    """
+    from sssphase_core.data import PatchDataset
+
+    if label not in ("object", "material"):
+        raise InputError(f"the kNN label must be object or material, got {label!r}")
+    class_names = list(objects) if label == "object" else material_names
+    ds = PatchDataset(views, encoder.preset.patch, objects)
+    emb = np.concatenate([embed_pixels(encoder, v.psp, v.pixels) for v in views])
+    labels = ds.labels(label)
+    keep = labels >= 0
+    out = {}
+    for k in ks:
+        res = knn_leave_one_view_out(emb[keep], labels[keep], ds.labels("view")[keep], k=k, vote=vote,
+                                     class_names=class_names)
+        res.pop("pred")
+        out[k] = res
+    return out
+
+
 # --- footprint metrics ---------------------------------------------------------------------------
 
 

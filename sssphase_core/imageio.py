@@ -107,6 +107,24 @@ def frame_shape(path: Path) -> tuple[int, ...]:
         raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
 
 
+def stores_integers(path: Path) -> bool:
+    """Whether a frame file holds integer codes (8/16-bit PNG/TIFF, integer ``.npy``): its top code is
+    the sensor's clipping level, so values near 1 after :func:`read_frame` are saturated. EXR and float
+    files have no such level. Read from the header only."""
+    suffix = path.suffix.lower()
+    if suffix == ".exr":
+        return False
+    if suffix == ".npy":
+        return np.load(path, mmap_mode="r", allow_pickle=False).dtype.kind in "iub"
+    from PIL import Image
+
+    try:
+        with Image.open(path) as img:
+            return img.mode != "F"
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise InputError(f"cannot read {path}: {exc}") from None
+
+
 def read_frame(path: Path) -> np.ndarray:
     """A linear image as float32 RGB: ``.npy`` and ``.exr`` as stored, 8/16-bit PNG/TIFF divided by the
     top code. Frames larger than ``MAX_FRAME_PIXELS`` are refused from their header."""

@@ -31,7 +31,7 @@ class _ImportedFrame:
     header: dict[str, Any] = field(default_factory=dict)
 
 
-def _frame_files(vdir: Path) -> dict[str, Path]:
+def frame_files(vdir: Path) -> dict[str, Path]:
     """Frame files of one view by plan key: ``psp__x__p20__s0.png`` or ``psp/x/p20/s0.png`` (the layout
     `sss patterns` writes) are both ``psp/x/p20/s0``. Files of other types are ignored; an image whose
     name is no plan key is refused, naming it."""
@@ -100,7 +100,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
         raise InputError(f"projector size must be positive and at most 16384, got {w}x{h}")
     view_dirs = sorted(p for p in folder.glob("view_*") if p.is_dir()) or [folder]
     req = CaptureRequest(check_object_name(name), views=len(view_dirs), out=Path(root))
-    views = [(vdir, _frame_files(vdir)) for vdir in view_dirs]  # refuse bad names before writing anything
+    views = [(vdir, frame_files(vdir)) for vdir in view_dirs]  # refuse bad names before writing anything
     for (vdir, files) in views:
         missing = [k for k in ("white", "black") if k not in files]
         if missing:

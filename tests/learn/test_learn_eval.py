@@ -118,3 +118,25 @@ def test_throughput_measure_reports_rates_and_sizes():
     r = measure_throughput("lite", batch=2, repeats=1)
     assert r["infer_patches_s"] > 0 and r["train_patches_s"] > 0
     assert r["encoder_params"] > r["decoder_params"] > 0
+
+
+def test_knn_of_views_is_the_leave_one_view_out_table_of_every_pixel(synthetic, tiny):
+    """The one function the CLI and the demo share: embeddings of every pixel of every view, labelled by
+    object (or material) and held out by view."""
+    from sssphase_core.evaluation import knn_of_views
+
+    views = synthetic[0]
+    torch.manual_seed(0)
+    enc = Encoder(tiny).eval()
+    emb = np.concatenate([embed_pixels(enc, v.psp, v.pixels) for v in views])
+    objects = np.concatenate([np.full(len(v.pixels), ["a", "b"].index(v.object)) for v in views])
+    held = np.concatenate([np.full(len(v.pixels), v.view) for v in views])
+    got = knn_of_views(enc, views, ["a", "b"], ks=(3, 7))
+    for k in (3, 7):
+        want = knn_leave_one_view_out(emb, objects, held, k=k, class_names=["a", "b"])
+        assert got[k]["overall"] == pytest.approx(want["overall"]) and got[k]["per_class"] == want["per_class"]
+        assert "pred" not in got[k]
+    materials = knn_of_views(enc, views, ["a", "b"], label="material", material_names=["m0", "m1", "m2", "m3"])[20]
+    assert set(materials["per_class"]) <= {"m0", "m1", "m2", "m3"} and 0 <= materials["overall"] <= 1
+    with pytest.raises(InputError, match="object or material"):
+        knn_of_views(enc, views, ["a", "b"], label="view")

@@ -67,6 +67,38 @@ def test_decode_folder_of_captures(tmp_path):
     assert json.loads((out_dir / "decode.json").read_text())["coverage"]["VALID"] == 80 * 60
 
 
+def _captures_of(pat_dir, scale: float):
+    """Every PSP pattern of a `sss patterns` folder as the linear light a camera would record."""
+    plan = json.loads((pat_dir / "plan.json").read_text())
+    for frame in plan["frames"]:
+        value = np.asarray(Image.open(pat_dir / f"{frame['key']}.png")).astype(np.float32) / 255
+        yield frame["key"], scale * (0.05 + 0.8 * value ** plan["gamma"])
+
+
+def test_decode_reads_exr_in_the_patterns_folder_layout_and_never_calls_float_light_saturated(tmp_path):
+    """Frames as `sss patterns` lays them out (``psp/x/p20/s0``), written as EXR with values above 1:
+    EXR has no top code, so bright light decodes; the same light in 8-bit PNGs clips and is refused."""
+    from sssphase_core import exr
+
+    if not exr.available():
+        pytest.skip("OpenEXR is not installed")
+    pat_dir = tmp_path / "patterns"
+    _run("patterns", "--projector", "80x60", "--out", str(pat_dir))
+    exr_dir, png_dir = tmp_path / "exr", tmp_path / "png"
+    for key, light in _captures_of(pat_dir, scale=3.0):
+        for folder in (exr_dir, png_dir):
+            (folder / key).parent.mkdir(parents=True, exist_ok=True)
+        exr.write_exr(exr_dir / f"{key}.exr", np.repeat(light[..., None], 3, -1))
+        Image.fromarray(np.round(np.clip(light, 0, 1) * 255).astype(np.uint8)).save(png_dir / f"{key}.png")
+    for folder in (exr_dir, png_dir):
+        (folder / "plan.json").write_text((pat_dir / "plan.json").read_text())
+        _run("decode", str(folder), "--out", str(tmp_path / f"out_{folder.name}"))
+    xp, mask = (np.load(tmp_path / "out_exr" / f"{n}.npy") for n in ("xp", "mask"))
+    assert mask.all() and np.abs(xp - np.mgrid[:60, :80][1]).max() < 0.15
+    coverage = json.loads((tmp_path / "out_png" / "decode.json").read_text())["coverage"]
+    assert coverage["SATURATED"] > 0.3 * 80 * 60  # 3x over-exposed 8-bit frames clip at their top code
+
+
 def test_decode_reports_missing_frames_as_one_line(tmp_path):
     (tmp_path / "plan.json").write_text(json.dumps({"projector": [32, 24], "gamma": 2.2,
                                                     "psp": {"period": 8, "n_shifts": 4, "unwrap_periods": [40]}}))
