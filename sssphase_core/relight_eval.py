@@ -92,30 +92,17 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     """Relight a :class:`~sssphase_core.relight.RelightView` under all its reference patterns in one
     pass with ``backend`` (``options`` go to the model backend); metrics per pattern (and figures /
     images under ``out_dir`` if ``write``)."""
-    from sssphase_core.relight import (
-        MODEL_FREE,
-        make_source,
-        model_inputs,
-        no_scattering_source,
-        relight,
-        view_mix,
-    )
+    from sssphase_core.relight import MODEL_FREE, make_source, relight_view
 
     if not rv.references:
         raise InputError(f"{rv.object} view {rv.view} has no reference captures to evaluate against "
                          "(capture with --reference checkerboard ...)")
     names = sorted(rv.references)
     t0 = time.perf_counter()
-    calibrate = bool(options.pop("calibrate", True)) and backend not in MODEL_FREE and rv.psp_patterns is not None
+    calibrate = bool(options.pop("calibrate", True)) and backend not in MODEL_FREE
     source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device, calibrate=False, **options)
-    patterns = [rv.references[n] for n in names] + (list(rv.psp_patterns) if calibrate else [])
-    relit = relight(source, rv.proj, patterns, patch, white=rv.white, chunk=chunk, device=device, progress=progress)
-    mix = None
-    if calibrate:  # the view calibration of make_source, fused into this one footprint pass (linear in footprints)
-        psp, lost = model_inputs(rv)
-        mix = view_mix(rv, relit[len(names):], psp, lost)
-        none = relight(no_scattering_source(rv.white), rv.proj, patterns[: len(names)], 1, white=rv.white)
-        relit = mix * relit[: len(names)] + (1 - mix) * none
+    relit, mix = relight_view(source, patch, rv, [rv.references[n] for n in names], calibrate=calibrate,
+                              chunk=chunk, device=device, progress=progress)
     seconds = time.perf_counter() - t0
     rows = []
     out = Path(out_dir)

@@ -50,6 +50,7 @@ from sssphase_core.relight.sources import (
     model_inputs,
     nearest_measured_source,
     no_scattering_source,
+    relight_view,
     view_mix,
     white_usable,
 )
@@ -60,6 +61,6 @@ __all__ = [
     "FootprintSource", "Projection", "RelightView", "Splatter", "backend_source", "check_image_formats",
     "crop_footprints", "display_scale", "emitted_light", "energy_from_white", "finest_psp_period", "fit_view_mix",
     "geometric_correspondence", "lit_pixels", "load_view",
-    "make_source", "mixed_with_no_scattering", "model_inputs", "nearest_measured_source", "no_scattering_source", "read_pattern", "relight",
+    "make_source", "mixed_with_no_scattering", "model_inputs", "nearest_measured_source", "no_scattering_source", "read_pattern", "relight", "relight_view",
     "sample_projector", "scattering_shift", "srgb", "view_mix", "white_usable", "write_images",
 ]

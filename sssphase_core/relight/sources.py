@@ -4,6 +4,7 @@ by name for a view."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -123,8 +124,12 @@ class FootprintCache:
     Later relights (other patterns) read cached footprints and run the source only for pixels that
     are not cached yet; ``save()`` writes the cache back when new footprints were computed. It holds
     at most ``max_bytes`` in memory (a 1080p view at K = 90 has ~15 GB of float16 footprints): past
-    that, footprints pass through uncached and ``uncached`` counts them.
+    that, footprints pass through uncached and ``uncached`` counts them. It holds the source's own
+    footprints (before any view calibration, which :func:`relight_view` applies after the splat); a
+    file of another ``FORMAT`` (format 1 held calibrated footprints) is ignored and rewritten.
     """
+
+    FORMAT = 2
 
     def __init__(self, source: FootprintSource, path: Path | str, shape: tuple[int, int], patch: int,
                  max_bytes: int = 2 * 2**30):
@@ -137,7 +142,8 @@ class FootprintCache:
         self._dirty = False
         if self.path.exists():
             with np.load(self.path) as z:
-                if z["data"].shape[1:] == (patch, patch, 3) and tuple(z["shape"]) == tuple(shape):
+                current = "format" in z.files and int(z["format"]) == self.FORMAT
+                if current and z["data"].shape[1:] == (patch, patch, 3) and tuple(z["shape"]) == tuple(shape):
                     self.data = z["data"][: self.max_rows]
                     self.size = len(self.data)
                     self.slot[z["index"][: self.size]] = np.arange(self.size)
@@ -176,7 +182,8 @@ class FootprintCache:
         from sssphase_core.files import atomic_path
 
         with atomic_path(self.path, ".npz") as tmp:
-            np.savez_compressed(tmp, data=self.data[: self.size], index=index, shape=np.asarray(self.shape))
+            np.savez_compressed(tmp, data=self.data[: self.size], index=index, shape=np.asarray(self.shape),
+                                format=np.asarray(self.FORMAT))
         self._dirty = False
 
 
@@ -255,6 +262,31 @@ def fit_view_mix(source: FootprintSource, patch: int, rv: RelightView, psp: np.n
     from sssphase_core.relight.engine import relight
 
     return view_mix(rv, relight(source, rv.proj, rv.psp_patterns, patch, white=rv.white), psp, exclude)
+
+
+def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns: list[np.ndarray], *,
+                 calibrate: bool, chunk: int = 2048, device: str = "cpu",
+                 progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """Relight a view under ``patterns`` (P of (Hp, Wp[, 3])) with an uncalibrated ``source``
+    (``make_source(..., calibrate=False)``) -> ((P, H, W, 3) images, per-colour mix (3,) or None).
+
+    With ``calibrate`` (and the view's PSP patterns known) the view calibration of :func:`fit_view_mix`
+    rides on the same footprint pass: the 8 PSP patterns are splatted beside the user's, and since
+    relighting is linear in the footprints the mixed source's images are ``mix * model + (1 - mix) *
+    none``. One pass instead of two (each footprint is predicted once), the same images.
+    """
+    from sssphase_core.relight.engine import relight
+
+    calibrate = calibrate and rv.psp_patterns is not None
+    n = len(patterns)
+    every = list(patterns) + (list(rv.psp_patterns) if calibrate else [])
+    relit = relight(source, rv.proj, every, patch, white=rv.white, chunk=chunk, device=device, progress=progress)
+    if not calibrate:
+        return relit, None
+    psp, lost = model_inputs(rv)
+    mix = view_mix(rv, relit[n:], psp, lost)
+    none = relight(no_scattering_source(rv.white), rv.proj, every[:n], 1, white=rv.white)
+    return mix * relit[:n] + (1 - mix) * none, mix
 
 
 def view_mix(rv: RelightView, relit_psp: np.ndarray, psp: np.ndarray | None = None,

@@ -4,6 +4,7 @@ for simulated sessions, the scene (:func:`load_view`)."""
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -27,9 +28,15 @@ class RelightView:
     session: object | None = None
     saturation: float | None = None  # clipping level of the PSP frames (linear units), None: unknown
     white_saturation: float | None = None  # the white capture's (None: it does not clip, e.g. HDR)
-    psp_patterns: np.ndarray | None = None  # (8, Hp, Wp) projector images of the ``psp`` captures, if known
+    plan: dict = field(default_factory=dict, repr=False)  # the session's capture plan
     _camera: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
     _model_inputs: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
+
+    @cached_property
+    def psp_patterns(self) -> np.ndarray | None:
+        """(8, Hp, Wp) projector images of the ``psp`` captures (None if the plan does not say), made
+        when first asked: only calibration needs them."""
+        return paper_input_patterns(self.plan)
 
     def camera_image(self, name: str) -> np.ndarray:
         """The camera's noise-free image of reference ``name`` (simulated sessions; evaluation only): its
@@ -95,7 +102,7 @@ def load_view(session: object, view: int) -> RelightView:
             references.pop(name)
     psp_clip, white_clip = session.clip_levels()  # type: ignore[attr-defined]
     return RelightView(str(m.get("object")), view, proj, load("psp").astype(np.float32), white, patch,
-                       references, captured, sim, session, psp_clip, white_clip, paper_input_patterns(plan))
+                       references, captured, sim, session, psp_clip, white_clip, plan)
 
 
 def finest_psp_period(plan: dict) -> float | None:

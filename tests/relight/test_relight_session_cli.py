@@ -126,6 +126,29 @@ def test_a_model_is_mixed_with_no_scattering_by_the_views_own_fringe_captures(se
     assert residual(mixed, k) <= min(residual(raw, k), none) * (1 + 1e-6)
 
 
+def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
+    """`relight_view` fits the calibration on the same pass as the user's patterns: the same images as
+    the calibrated source relit separately, with each footprint predicted once instead of twice."""
+    from sssphase_core.relight import make_source, relight, relight_view
+
+    rv = load_view(Session.open(session), 1)
+    raw, k = make_source("analytic", rv, calibrate=False)
+    calls = []
+
+    def counted(pixels):
+        calls.append(len(pixels))
+        return raw(pixels)
+
+    pats = [rv.references["checkerboard"], rv.references["stripes_x"]]
+    fused, mix = relight_view(counted, k, rv, pats, calibrate=True)
+    mixed, _ = make_source("analytic", rv)
+    np.testing.assert_allclose(mix, mixed.mix, atol=1e-6)
+    np.testing.assert_allclose(fused, relight(mixed, rv.proj, pats, k, white=rv.white), rtol=1e-4, atol=1e-6)
+    assert sum(calls) <= rv.proj.mask.sum()  # one footprint per lit pixel: no second pass
+    plain, none_mix = relight_view(raw, k, rv, pats, calibrate=False)
+    assert none_mix is None and plain.shape == fused.shape
+
+
 def test_geometry_cli_writes_both_maps_and_scores_them(session, tmp_path):
     res = runner.invoke(app, ["geometry", str(session), "--backend", "exact", "--views", "1", "--out", str(tmp_path)])
     assert res.exit_code == 0, res.output
