@@ -189,6 +189,7 @@ def capture(
     seed: Annotated[int, typer.Option(help="sim noise seed")] = 0,
     preset: Annotated[str, typer.Option(help="sim rig preset: cpu or paper")] = "cpu",
     transport: Annotated[str | None, typer.Option(help="sim light transport: burley (radially symmetric footprints) or directional_dipole (skewed by the incidence direction)")] = None,
+    randomise_rig: Annotated[bool, typer.Option(help="sim rig: draw projector gamma and black, lens blur, read noise, exposure, demosaicing and transport model (domain randomisation; reproducible from --seed and the object's name)")] = False,
     dot_spacing: Annotated[int | None, typer.Option(help="dot-grid spacing in projector pixels")] = None,
     keep_dots: Annotated[bool, typer.Option(help="keep the raw dot-grid frames")] = False,
     keep_unwrap: Annotated[bool, typer.Option(help="keep the unwrapping frames (default: only the decoded result)")] = False,
@@ -206,16 +207,21 @@ def capture(
 
         raise InputError(f"--views must be >= 1, got {views}")
     spec = RigSpec.from_toml(rig) if rig else RigSpec()
+    drawn = {}
     if spec.is_sim:  # an unknown preset or transport model is one line, before a daemon starts
-        from sssphase_core.sim import rig_from_options
+        from sssphase_core.sim import randomised_rig_options, rig_from_options
 
-        rig_from_options({"preset": preset, **spec.options, **({"transport": transport} if transport else {})})
-    elif transport is not None:
+        drawn = randomised_rig_options(seed, object_name) if randomise_rig else {}
+        rig_from_options({"preset": preset, **spec.options, **drawn, **({"transport": transport} if transport else {})})
+        if drawn:
+            console.print("randomised sim rig: " + ", ".join(f"{k} {v}" for k, v in drawn.items() if k != "transport" or not transport))
+    elif transport is not None or randomise_rig:
         from sssphase_core.errors import InputError
 
-        raise InputError("--transport picks the simulator's light-transport model: it applies to the sim rig only")
+        flag = "--transport" if transport is not None else "--randomise-rig"
+        raise InputError(f"{flag} changes the simulator's physics and camera: it applies to the sim rig only")
     req = CaptureRequest(object_name, views, footprints, tuple(reference or ()), DEFAULT_HDR if hdr else (),
-                         keep_dots, keep_unwrap, resume, out, seed, preset, dot_spacing, transport)
+                         keep_dots, keep_unwrap, resume, out, seed, preset, dot_spacing, transport, drawn)
     from sssphase_daemon.client import local_client
 
     def ask_move(view: int, angle: float) -> None:

@@ -74,13 +74,14 @@ def relight_cmd(
     from sssphase_core.errors import InputError
     from sssphase_core.patterns import REFERENCE_NAMES
     from sssphase_core.relight import (
+        MODEL_FREE,
         DotTransport,
         FootprintCache,
         check_image_formats,
         load_view,
         make_source,
         read_pattern,
-        relight,
+        relight_view,
         write_images,
     )
     from sssphase_core.relight_eval import comparison_figure, relight_metrics
@@ -116,15 +117,18 @@ def relight_cmd(
                     pats.append(reference_patterns(wp, hp, [p])[p])
                 else:
                     raise InputError(f"--pattern {p!r} is neither an image file nor one of {', '.join(REFERENCE_NAMES)}")
-        source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device)
+        source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device, calibrate=False)
         cached = cache and not isinstance(source, DotTransport)  # the measured transport is read, not predicted
         if cached:
             source = FootprintCache(source, out / "cache" / f"{rv.object}_v{v}_{backend}_{_model_tag(checkpoint)}.npz",
                                     rv.proj.shape, patch)
         with _progress() as bar:
             task = bar.add_task(f"{rv.object} view {v}: {backend}", total=None)
-            relit = relight(source, rv.proj, pats, patch, white=rv.white, chunk=chunk, device=device,
-                            progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))
+            relit, mix = relight_view(source, patch, rv, pats, calibrate=backend not in MODEL_FREE, chunk=chunk,
+                                      device=device, progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))
+        if mix is not None:
+            console.print(f"{rv.object} view {v}: {backend} footprints calibrated to the view's fringe captures "
+                          f"(weight against no scattering, R G B: {' '.join(f'{m:.2f}' for m in mix)})")
         if cached:
             source.save()
             if source.uncached:
@@ -344,6 +348,7 @@ def demo(
     preset: Annotated[str, typer.Option(help="lite (minutes on 2 CPU cores) or tiny (tests).")] = "lite",
     fresh: Annotated[bool, typer.Option("--fresh", help="Redo every step.")] = False,
     transport: Annotated[str | None, typer.Option(help="sim light transport: burley (default) or directional_dipole (footprints skewed by the incidence direction).")] = None,
+    randomise_rig: Annotated[bool, typer.Option(help="Capture each training object on its own randomised sim rig (projector response, lens blur, noise, exposure, demosaicing, transport model); the unseen objects on the nominal rig.")] = False,
 ) -> None:
     """The user's path on the simulated rig: capture sessions through the daemon, pretrain and fit the decoder
     from them, relight unseen objects, evaluate, report (resumable)."""
@@ -357,7 +362,8 @@ def demo(
     with local_client(on_start=lambda pid: log(f"started a local daemon with the sim rig (pid {pid})"),
                       on_stop=lambda pid: log(f"stopped the local daemon (pid {pid})")) as client:
         with step_bar(console) as progress:
-            report = run_demo(out, client, preset=preset, fresh=fresh, log=log, progress=progress, transport=transport)
+            report = run_demo(out, client, preset=preset, fresh=fresh, log=log, progress=progress, transport=transport,
+                              randomise_rig=randomise_rig)
     console.print(f"[green]report[/]: {report}")
 
 

@@ -9,7 +9,9 @@ a real rig); frames carry a sequence number, a device-clock timestamp (simulated
 Rig options (all optional): ``object`` (catalogue name, default "apple"), ``preset`` ("cpu"|"paper"),
 ``seed``, ``n_views``, ``view``, ``latency_s`` (projector), ``frame_period_s``, ``realtime`` (sleep
 for the simulated times), ``projector_gamma`` / ``projector_black`` (a projector response other than
-the preset's, for calibration), ``transport`` (``burley`` or ``directional_dipole``), ``raw`` (Bayer frames), and fault injection for tests: ``fail_at_frame``
+the preset's, for calibration), ``transport`` (``burley`` or ``directional_dipole``), the camera's
+``lens_blur`` (px), ``read_noise`` (e-), ``white_fraction`` (exposure) and ``demosaic`` (``malvar`` or
+``opencv``; see ``sim.rig.with_camera``), ``raw`` (Bayer frames), and fault injection for tests: ``fail_at_frame``
 (the camera raises at that grab) and ``grab_delay_s`` (slow frames).
 The ``sim:bench-camera`` streams one fixed frame (``shape``, ``dtype``) for throughput benchmarks.
 
@@ -66,11 +68,7 @@ class SimRigState:
         sim = _sim()
         self.object_name = str(options.get("object", "apple"))
         self.obj = sim.get_object(self.object_name)  # UnknownObjectError lists the catalogue
-        rig = sim.rig_preset(str(options.get("preset", "cpu")))
-        # A projector whose response is not the preset's (calibration tests): light = black + (1 - black) v**gamma
-        _number(options, "projector_gamma", rig.projector.gamma, 0.3, 5.0, float)
-        _number(options, "projector_black", rig.projector.black, 0.0, 0.2, float)
-        self.rig = sim.rig_from_options(options)  # an unknown transport model is an InputError
+        self.rig = sim.rig_from_options(options)  # an unknown preset, transport or out-of-range value is an InputError
         self.seed = _number(options, "seed", 0, 0, 2**63 - 1, int)
         self.n_views = _number(options, "n_views", 4, 1, 3600, int)
         self.view = _number(options, "view", 0, 0, 2**31, int) % self.n_views

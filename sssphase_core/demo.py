@@ -78,21 +78,25 @@ class Demo:
 
     def __init__(self, out: Path, config: DemoConfig, client: Any, *, fresh: bool = False,
                  log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None,
-                 transport: str | None = None):
+                 transport: str | None = None, randomise_rig: bool = False):
         """``client``: a daemon client (``sssphase_daemon.client``; anything with ``call`` and ``capture``);
         ``progress``: the training loops' step callback (``training.StepProgress``); ``transport``:
-        the sim rig's light-transport model (None: burley), fixed for a demo folder."""
+        the sim rig's light-transport model (None: burley); ``randomise_rig``: every training object is
+        captured on its own randomised rig (``sim.randomised_rig_options``: projector response, lens,
+        noise, exposure, demosaicing and transport model), the unseen objects on the nominal one. Both
+        are fixed for a demo folder."""
         self.out, self.cfg, self.client, self.fresh, self.log = Path(out), config, client, fresh, log
         self.progress = progress
         self.report_dir = self.out / "report"  # index.html and img/
         self.steps_dir = self.out / "steps"
         self.steps_dir.mkdir(parents=True, exist_ok=True)
-        self.transport = transport or "burley"
+        self.transport, self.randomise_rig = transport or "burley", randomise_rig
+        physics = self.transport + (", training rigs randomised" if randomise_rig else "")
         stamp = self.steps_dir / "transport.txt"
-        if stamp.exists() and not fresh and stamp.read_text().strip() != self.transport:
+        if stamp.exists() and not fresh and stamp.read_text().strip() != physics:
             raise InputError(f"{self.out} was made with the {stamp.read_text().strip()} transport model: "
-                             f"use another --out for {self.transport}, or --fresh")
-        stamp.write_text(self.transport)
+                             f"use another --out for {physics}, or --fresh")
+        stamp.write_text(physics)
         self.results: dict[str, dict[str, Any]] = {}
 
     def _done(self, name: str) -> dict[str, Any] | None:
@@ -129,17 +133,24 @@ class Demo:
 
     # --- steps -------------------------------------------------------------------------------
 
-    def _capture(self, obj: str, root: Path, views: int, **kw: Any) -> str:
+    def _capture(self, obj: str, root: Path, views: int, *, randomised: bool = False, **kw: Any) -> str:
         from sssphase_core.capture import CaptureRequest, run_capture
 
-        req = CaptureRequest(obj, views=views, resume=True, out=root, seed=self.cfg.seed, transport=self.transport, **kw)
+        physics: dict[str, Any] = {"transport": self.transport}
+        if randomised:
+            from sssphase_core.sim import randomised_rig_options
+
+            physics = {"transport": None, "sim_options": randomised_rig_options(self.cfg.seed, obj)}
+            self.log(f"  {obj}: randomised rig " + ", ".join(f"{k} {v}" for k, v in physics["sim_options"].items()))
+        req = CaptureRequest(obj, views=views, resume=True, out=root, seed=self.cfg.seed, **physics, **kw)
         session = run_capture(self.client, req)
         self.log(f"  captured {obj}: {len(session.views())} view(s) in {session.path}")
         return str(session.path)
 
     def train_sessions(self) -> dict[str, Any]:
         root = self.out / "sessions" / "train"
-        paths = [self._capture(o, root, self.cfg.train_views, footprints=True) for o in self.cfg.train_objects]
+        paths = [self._capture(o, root, self.cfg.train_views, footprints=True, randomised=self.randomise_rig)
+                 for o in self.cfg.train_objects]
         return {"root": str(root), "sessions": paths}
 
     def test_sessions(self) -> dict[str, Any]:
@@ -281,10 +292,11 @@ class Demo:
 
 def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool = False,
              log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None,
-             transport: str | None = None) -> Path:
+             transport: str | None = None, randomise_rig: bool = False) -> Path:
     """Run (or resume) the demo into ``out`` with a daemon ``client``; returns the report's path.
     ``progress``: the training loops' step callback (``training.StepProgress``); ``transport``: the
-    sim rig's light-transport model (:data:`sssphase_core.sim.TRANSPORTS`; None: burley)."""
+    sim rig's light-transport model (:data:`sssphase_core.sim.TRANSPORTS`; None: burley); ``randomise_rig``:
+    domain randomisation of the training captures (see :class:`Demo`)."""
     if preset not in PRESETS:
         raise InputError(f"unknown demo preset {preset!r}; choose one of {', '.join(PRESETS)}")
     if transport is not None:
@@ -293,7 +305,8 @@ def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool 
         if transport not in TRANSPORTS:
             raise InputError(f"unknown transport model {transport!r}; choose one of {', '.join(TRANSPORTS)}")
     t0 = time.perf_counter()
-    demo = Demo(Path(out), PRESETS[preset], client, fresh=fresh, log=log, progress=progress, transport=transport)
+    demo = Demo(Path(out), PRESETS[preset], client, fresh=fresh, log=log, progress=progress, transport=transport,
+                randomise_rig=randomise_rig)
     path = demo.run()
     log(f"demo finished in {time.perf_counter() - t0:.1f} s")
     return path

@@ -34,7 +34,8 @@ def run_capture(client: ClientLike, req: CaptureRequest, rig: RigSpec | None = N
     rig = rig or RigSpec()
     options = dict(rig.options)
     if rig.is_sim:
-        options = {"object": req.object, "preset": req.preset, "seed": req.seed, "n_views": req.views, **options}
+        options = {"object": req.object, "preset": req.preset, "seed": req.seed, "n_views": req.views, **options,
+                   **req.sim_options}
         if req.transport is not None:
             options["transport"] = req.transport
     opened = client.call("open_rig", camera=rig.camera, projector=rig.projector, turntable=rig.turntable,
@@ -53,9 +54,9 @@ def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, option
                    ask_move: Callable[[int, float], None] | None) -> Session:
     size = tuple(opened["projector_size"])
     if rig.is_sim:
-        from sssphase_core.sim import rig_preset
+        from sssphase_core.sim import rig_from_options
 
-        preset = rig_preset(str(options["preset"]))
+        preset = rig_from_options(options)  # the preset with the session's camera options (exposure)
         rig.patch = rig.patch or preset.patch
         rig.saturation = rig.saturation or preset.sensor.saturation(1.0)
     if req.footprints and rig.patch is None:

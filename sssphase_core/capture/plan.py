@@ -86,6 +86,7 @@ class CaptureRequest:
     preset: str = "cpu"
     dot_spacing: int | None = None
     transport: str | None = None  # sim light-transport model (None: the rig's, burley)
+    sim_options: dict[str, Any] = field(default_factory=dict)  # more sim rig options (e.g. sim.randomised_rig_options)
 
 
 

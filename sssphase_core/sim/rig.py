@@ -162,12 +162,65 @@ def with_transport(rig: RigConfig, transport: str | None) -> RigConfig:
     return rig if transport is None else replace(rig, transport=str(transport))
 
 
+#: Sim rig options that change the camera (``SensorConfig`` fields): name -> (low, high) of the
+#: accepted values. ``white_fraction`` is the exposure: the share of the full well a white target fills.
+SENSOR_OPTIONS: dict[str, tuple[float, float]] = {"lens_blur": (0.0, 5.0), "read_noise": (0.0, 100.0),
+                                                  "white_fraction": (0.02, 1.0)}
+DEMOSAIC_METHODS = ("malvar", "opencv")
+
+
+def _option(options: Mapping[str, Any], name: str, lo: float, hi: float) -> float | None:
+    value = options.get(name)
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, int | float) or not lo <= value <= hi:  # NaN fails too
+        raise InputError(f"sim option {name} must be a number in [{lo:g}, {hi:g}], got {value!r}")
+    return float(value)
+
+
+def with_camera(rig: RigConfig, options: Mapping[str, Any]) -> RigConfig:
+    """``rig`` with the camera options among ``options`` (:data:`SENSOR_OPTIONS`, ``demosaic``); others
+    keep the preset's."""
+    changes: dict[str, Any] = {k: v for k in SENSOR_OPTIONS if (v := _option(options, k, *SENSOR_OPTIONS[k])) is not None}
+    if "demosaic" in options:
+        if options["demosaic"] not in DEMOSAIC_METHODS:
+            raise InputError(f"sim option demosaic must be one of {', '.join(DEMOSAIC_METHODS)}, got {options['demosaic']!r}")
+        changes["demosaic"] = str(options["demosaic"])
+    return replace(rig, sensor=replace(rig.sensor, **changes)) if changes else rig
+
+
 def rig_from_options(options: Mapping[str, Any]) -> RigConfig:
     """The sim rig a session or daemon was given: ``preset`` (default cpu), then the optional
-    ``projector_gamma`` / ``projector_black`` and ``transport`` (the sim plugin's options)."""
+    ``projector_gamma`` / ``projector_black``, ``transport`` and camera options (:func:`with_camera`)
+    (the sim plugin's options)."""
     rig = rig_preset(str(options.get("preset", "cpu")))
-    rig = with_projector_response(rig, options.get("projector_gamma"), options.get("projector_black"))
-    return with_transport(rig, options.get("transport"))
+    rig = with_projector_response(rig, _option(options, "projector_gamma", 0.3, 5.0),
+                                  _option(options, "projector_black", 0.0, 0.2))
+    return with_camera(with_transport(rig, options.get("transport")), options)
+
+
+#: Ranges of :func:`randomised_rig_options`: what differs between labs, projectors and cameras.
+RANDOMISED_RANGES: dict[str, tuple[float, float]] = {
+    "projector_gamma": (1.8, 2.6),  # the projector's true response; patterns are still made for 2.2
+    "projector_black": (0.0, 0.01),
+    "lens_blur": (0.0, 1.0),
+    "read_noise": (1.0, 12.0),
+    "white_fraction": (0.3, 0.85),
+}
+
+
+def randomised_rig_options(seed: int, salt: str = "") -> dict[str, Any]:
+    """Domain randomisation: sim rig options drawn from :data:`RANDOMISED_RANGES` (uniform), a
+    demosaicing method and a light-transport model, reproducibly from ``seed`` and ``salt`` (e.g. the
+    object's name: each object gets its own rig). Sessions captured with different draws teach a
+    model several rigs and profile families instead of one."""
+    import zlib
+
+    rng = np.random.default_rng([int(seed), zlib.crc32(salt.encode()), 0x5EED])
+    out: dict[str, Any] = {k: round(float(rng.uniform(lo, hi)), 4) for k, (lo, hi) in RANDOMISED_RANGES.items()}
+    out["demosaic"] = DEMOSAIC_METHODS[int(rng.integers(len(DEMOSAIC_METHODS)))]
+    out["transport"] = TRANSPORTS[int(rng.integers(len(TRANSPORTS)))]
+    return out
 
 
 def with_projector_response(rig: RigConfig, gamma: float | None = None, black: float | None = None) -> RigConfig:

@@ -215,7 +215,8 @@ class SimScene:
         sensor = self.rig.sensor
         frames = expose_noise_free(images, sensor, exposure)
         scale = sensor.dn_per_unit(exposure)
-        return np.stack([isp.develop(f, sensor.black_level, scale, median=sensor.isp_median) for f in frames])
+        return np.stack([isp.develop(f, sensor.black_level, scale, median=sensor.isp_median, method=sensor.demosaic)
+                         for f in frames])
 
     def sense(self, images: np.ndarray, rng: np.random.Generator, exposure: float = 1.0, raw: bool = False) -> np.ndarray:
         """Noise-free images (P, H, W, 3) through the sensor: raw Bayer frames, or developed by the ISP."""
@@ -226,4 +227,5 @@ class SimScene:
         if raw:
             return frames
         scale = sensor.dn_per_unit(exposure)
-        return np.stack([isp.develop(f, sensor.black_level, scale, median=sensor.isp_median) for f in frames])
+        return np.stack([isp.develop(f, sensor.black_level, scale, median=sensor.isp_median, method=sensor.demosaic)
+                         for f in frames])

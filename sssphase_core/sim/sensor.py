@@ -21,6 +21,11 @@ class SensorConfig:
     #: so presets whose high-frequency period is ~10 camera px turn it off (measured: median
     #: correspondence error 0.036 -> 0.25 px on the star at the CPU preset with it on).
     isp_median: bool = True
+    #: The lens's point spread (the system MTF): a Gaussian of this sigma in camera px blurs the
+    #: optical image before it is sampled (0: a perfect lens).
+    lens_blur: float = 0.0
+    #: The camera's demosaicing (``isp.demosaic`` methods: ``malvar`` or ``opencv``).
+    demosaic: str = "malvar"
 
     @property
     def max_dn(self) -> int:
@@ -50,6 +55,19 @@ class SensorConfig:
         return self.full_well / (self.electrons_per_unit * exposure)
 
 
+def through_lens(linear: np.ndarray, config: SensorConfig) -> np.ndarray:
+    """The optical image on the sensor, (..., H, W, 3): ``linear`` blurred by the lens's Gaussian PSF
+    (``config.lens_blur`` px; reflected at the borders). Unchanged for a perfect lens."""
+    if config.lens_blur <= 0:
+        return linear
+    import cv2
+
+    arr = np.asarray(linear, np.float32)
+    flat = arr.reshape(-1, *arr.shape[-3:])
+    out = np.stack([cv2.GaussianBlur(f, (0, 0), float(config.lens_blur), borderType=cv2.BORDER_REFLECT) for f in flat])
+    return out.reshape(arr.shape)
+
+
 def bayer_mosaic(rgb: np.ndarray) -> np.ndarray:
     """RGGB mosaic of (..., H, W, 3) -> (..., H, W): R at (even, even), B at (odd, odd), G elsewhere."""
     h, w = rgb.shape[-3:-1]
@@ -59,8 +77,9 @@ def bayer_mosaic(rgb: np.ndarray) -> np.ndarray:
 
 
 def expose(linear: np.ndarray, config: SensorConfig, rng: np.random.Generator, exposure: float = 1.0) -> np.ndarray:
-    """Noisy raw Bayer frames (uint16, (..., H, W)) from linear RGB images (..., H, W, 3)."""
-    mean_e = np.clip(bayer_mosaic(np.asarray(linear, np.float64)), 0.0, None) * (config.electrons_per_unit * exposure)
+    """Noisy raw Bayer frames (uint16, (..., H, W)) from linear RGB images (..., H, W, 3) in front of the
+    lens."""
+    mean_e = np.clip(bayer_mosaic(np.asarray(through_lens(linear, config), np.float64)), 0.0, None) * (config.electrons_per_unit * exposure)
     electrons = rng.poisson(mean_e).astype(np.float64) + rng.normal(0.0, config.read_noise, mean_e.shape)
     electrons = np.minimum(electrons, config.full_well)
     dn = np.round(config.black_level + electrons * config.dn_per_electron)
@@ -70,6 +89,6 @@ def expose(linear: np.ndarray, config: SensorConfig, rng: np.random.Generator, e
 def expose_noise_free(linear: np.ndarray, config: SensorConfig, exposure: float = 1.0) -> np.ndarray:
     """The mean raw Bayer frames (float32 DN, (..., H, W)) that :func:`expose` draws around: no photon or
     read noise, no rounding; clipped at the full well like a real exposure."""
-    mean_e = np.clip(bayer_mosaic(np.asarray(linear, np.float64)), 0.0, None) * (config.electrons_per_unit * exposure)
+    mean_e = np.clip(bayer_mosaic(np.asarray(through_lens(linear, config), np.float64)), 0.0, None) * (config.electrons_per_unit * exposure)
     dn = config.black_level + np.minimum(mean_e, config.full_well) * config.dn_per_electron
     return np.minimum(dn, config.max_dn).astype(np.float32)
