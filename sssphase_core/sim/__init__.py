@@ -15,6 +15,7 @@ from sssphase_core.errors import UnknownObjectError
 from sssphase_core.sim.materials import JENSEN_2001, MATERIAL_NAMES, MATERIALS, Material
 from sssphase_core.sim.objects import (
     CATALOGUE,
+    EXTRA_OBJECTS,
     TRAIN_OBJECTS,
     UNSEEN_OBJECTS,
     MaterialSample,
@@ -39,6 +40,7 @@ from sssphase_core.sim.sensor import SensorConfig
 
 __all__ = [
     "CATALOGUE",
+    "EXTRA_OBJECTS",
     "JENSEN_2001",
     "MATERIALS",
     "MATERIAL_NAMES",

@@ -48,7 +48,7 @@ class SimObject:
     """A catalogue entry. ``pose`` rotates the object's natural frame into object space."""
 
     name: str
-    split: str  # "train", "unseen" or "test" (objects made for tests)
+    split: str  # "train", "unseen", "extra" (measured materials outside the paper's splits) or "test"
     description: str
     radius: float
     natural_sdf: Callable[[np.ndarray], np.ndarray]
@@ -242,6 +242,26 @@ def _lego_sdf(p):
     return np.minimum(brick, studs)
 
 
+# --- extra objects: measured materials (Jensen et al. 2001) outside the paper's splits ------------
+
+
+def _chicken_sdf(p):
+    return g.ellipsoid(p, (0, 0, 0), (44, 30, 14)) + 0.6 * g.value_noise(p, 12.0, seed=11)
+
+
+def _chicken_shade(p):
+    streak = _smoothstep(0.3, 0.7, g.value_noise(p * np.array([0.5, 3.0, 1.0]), 20.0, seed=12))
+    return mix(np.stack([1 - streak, streak], 1), [M["chicken"], M["chicken_fat"]])
+
+
+def _potato_sdf(p):
+    return g.ellipsoid(p, (0, 0, 0), (42, 27, 30)) + 1.5 * g.value_noise(p, 18.0, seed=13)
+
+
+def _milk_sdf(p):
+    return g.cylinder_y(p, (0, 0, 0), 36.0, 22.0) - 2.0
+
+
 def _build() -> dict[str, SimObject]:
     objs = [
         SimObject("apple", "train", "apple with red and yellow sides and a stem (Jensen apple)", 46, _apple_sdf, _apple_shade),
@@ -263,6 +283,12 @@ def _build() -> dict[str, SimObject]:
                   _pose(g.rotation_y(deg(20)))),
         SimObject("lego", "unseen", "large near-opaque lego brick with studs", 50, _lego_sdf, uniform(M["plastic_lego"]),
                   _pose(g.rotation_x(deg(30)), g.rotation_y(deg(25)))),
+        SimObject("chicken", "extra", "chicken fillet with fat streaks (Jensen chicken1/chicken2)", 46, _chicken_sdf,
+                  _chicken_shade, _pose(g.rotation_x(deg(-50)))),
+        SimObject("potato", "extra", "lumpy potato (Jensen potato)", 44, _potato_sdf, uniform(M["potato"]),
+                  _pose(g.rotation_x(deg(20)))),
+        SimObject("milk", "extra", "puck of skim milk, as in a thin dish (Jensen skimmilk)", 46, _milk_sdf,
+                  uniform(M["skimmilk"]), _pose(g.rotation_x(deg(-30)))),
     ]
     return {o.name: o for o in objs}
 
@@ -270,6 +296,7 @@ def _build() -> dict[str, SimObject]:
 CATALOGUE: dict[str, SimObject] = _build()
 TRAIN_OBJECTS = ("apple", "pear", "orange", "star", "shovel")
 UNSEEN_OBJECTS = ("crab", "hand", "tangerine", "sand_rake", "soap", "leaf", "lego")
+EXTRA_OBJECTS = ("chicken", "potato", "milk")  # measured materials, outside the paper's splits
 
 
 def get_object(name: str) -> SimObject:
@@ -279,7 +306,7 @@ def get_object(name: str) -> SimObject:
     except KeyError:
         raise UnknownObjectError(
             f"unknown object {name!r}; the catalogue has: training {', '.join(TRAIN_OBJECTS)}; "
-            f"unseen {', '.join(UNSEEN_OBJECTS)}"
+            f"unseen {', '.join(UNSEEN_OBJECTS)}; extra (measured materials) {', '.join(EXTRA_OBJECTS)}"
         ) from None
 
 

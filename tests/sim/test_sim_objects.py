@@ -8,6 +8,7 @@ import pytest
 from sssphase_core.errors import InputError, UnknownObjectError
 from sssphase_core.sim import (
     CATALOGUE,
+    EXTRA_OBJECTS,
     MATERIALS,
     TRAIN_OBJECTS,
     UNSEEN_OBJECTS,
@@ -27,13 +28,13 @@ from sssphase_core.sim.materials import (
 def test_catalogue_has_the_papers_objects():
     assert TRAIN_OBJECTS == ("apple", "pear", "orange", "star", "shovel")
     assert UNSEEN_OBJECTS == ("crab", "hand", "tangerine", "sand_rake", "soap", "leaf", "lego")
-    assert set(CATALOGUE) == set(TRAIN_OBJECTS + UNSEEN_OBJECTS)
+    assert set(CATALOGUE) == set(TRAIN_OBJECTS + UNSEEN_OBJECTS + EXTRA_OBJECTS)
     with pytest.raises(UnknownObjectError) as err:
         get_object("banana")
     assert all(name in str(err.value) for name in CATALOGUE)
 
 
-@pytest.mark.parametrize("name", TRAIN_OBJECTS + UNSEEN_OBJECTS)
+@pytest.mark.parametrize("name", TRAIN_OBJECTS + UNSEEN_OBJECTS + EXTRA_OBJECTS)
 def test_every_object_fits_the_view_and_is_lit(name):
     scene = SimScene(name)
     mask = scene.mask
@@ -58,6 +59,16 @@ def test_spatially_varying_materials():
     assert {"leaf", "leaf_vein"} <= _labels("leaf")
     assert _labels("hand") & {"skin", "skin_palm"}
     assert _labels("star") == {"plastic_star"}
+    assert _labels("chicken") == {"chicken", "chicken_fat"}
+
+
+def test_extra_objects_are_made_of_measured_materials_only():
+    """The objects outside the paper's splits carry Jensen et al.'s measured coefficients, flagged so."""
+    for name in EXTRA_OBJECTS:
+        assert CATALOGUE[name].split == "extra"
+        assert all(MATERIALS[m].measured for m in _labels(name)), name
+    sp, sa = JENSEN_2001["chicken1"]
+    assert MATERIALS["chicken"].mfp[0] == pytest.approx(float(diffuse_mean_free_path(sp[0], sa[0])))
 
 
 def _spread(scene: SimScene) -> float:
@@ -120,6 +131,8 @@ def test_dropped_energy_shrinks_with_the_patch_and_fits_the_presets():
     rate = np.array([0.2, 0.5, 2.0])  # mm^-1
     small, large = dropped_fraction(rate, 0.65, 16), dropped_fraction(rate, 0.65, 64)
     assert np.all(small >= large) and small[0] > 0.1 and large[2] < 1e-6
+    extra = {"chicken", "chicken_fat", "potato", "skimmilk"}  # measured, left as measured: they reach further
     for preset in ("cpu", "paper"):
-        worst = max(max(v) for v in dropped_energy(preset).values())
-        assert worst < 0.05  # every catalogue material fits the preset's patch
+        dropped = dropped_energy(preset)
+        assert max(max(v) for k, v in dropped.items() if k not in extra) < 0.05  # the paper splits' materials fit
+        assert max(dropped["chicken"]) > 0.1  # chicken's red light travels beyond the patch
