@@ -10,7 +10,7 @@ from rich.console import Console
 
 console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
 
-BackendOpt = Annotated[str, typer.Option("--backend", help="torch, analytic, measured (the session's captured dot-grid footprints), none, or exact (simulated sessions only: the simulator's ground truth, for evaluation).")]
+BackendOpt = Annotated[str, typer.Option("--backend", help="torch, analytic, blend (torch and analytic weighted by how well they relight the view's own fringe captures; needs --checkpoint), measured (the session's captured dot-grid footprints), none, or exact (simulated sessions only: the simulator's ground truth, for evaluation).")]
 CheckpointOpt = Annotated[Path | None, typer.Option("--checkpoint", help="Decoder checkpoint for the torch backend.")]
 
 
@@ -69,17 +69,19 @@ def relight_cmd(
                                               "linear, unclipped; needs the exr extra) or png,exr.")] = "png",
 ) -> None:
     """Relight a captured object under new projector patterns (several patterns share one footprint pass)."""
+    import numpy as np
 
     from sssphase_core.bench.relight_bench import reference_patterns
     from sssphase_core.errors import InputError
     from sssphase_core.patterns import REFERENCE_NAMES
     from sssphase_core.relight import (
+        BLENDS,
         MODEL_FREE,
         DotTransport,
         FootprintCache,
         check_image_formats,
         load_view,
-        make_source,
+        make_sources,
         read_pattern,
         relight_view,
         write_images,
@@ -117,22 +119,26 @@ def relight_cmd(
                     pats.append(reference_patterns(wp, hp, [p])[p])
                 else:
                     raise InputError(f"--pattern {p!r} is neither an image file nor one of {', '.join(REFERENCE_NAMES)}")
-        source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device, calibrate=False)
-        cached = cache and not isinstance(source, DotTransport)  # the measured transport is read, not predicted
+        sources = make_sources(backend, rv, checkpoint=checkpoint, device=device)
+        cached = cache and not isinstance(sources[0][0], DotTransport)  # the measured transport is read, not predicted
         if cached:
-            source = FootprintCache(source, out / "cache" / f"{rv.object}_v{v}_{backend}_{_model_tag(checkpoint)}.npz",
-                                    rv.proj.shape, patch)
+            members = BLENDS.get(backend, (backend,))
+            sources = [(FootprintCache(src, out / "cache" / f"{rv.object}_v{v}_{m}_{_model_tag(checkpoint if m == 'torch' else None)}.npz",
+                                       rv.proj.shape, k), k) for (src, k), m in zip(sources, members, strict=True)]
+        (source, patch), *also = sources
         with _progress() as bar:
             task = bar.add_task(f"{rv.object} view {v}: {backend}", total=None)
-            relit, mix = relight_view(source, patch, rv, pats, calibrate=backend not in MODEL_FREE, chunk=chunk,
+            relit, mix = relight_view(source, patch, rv, pats, calibrate=backend not in MODEL_FREE, also=also, chunk=chunk,
                                       device=device, progress=lambda done, total, task=task: bar.update(task, completed=done, total=total))
         if mix is not None:
+            weights = "; ".join(f"{m} R G B {' '.join(f'{x:.2f}' for x in row)}"
+                                for m, row in zip(BLENDS.get(backend, (backend,)), np.atleast_2d(mix), strict=True))
             console.print(f"{rv.object} view {v}: {backend} footprints calibrated to the view's fringe captures "
-                          f"(weight against no scattering, R G B: {' '.join(f'{m:.2f}' for m in mix)})")
-        if cached:
-            source.save()
-            if source.uncached:
-                console.print(f"cache: {source.uncached:,} footprints beyond its memory budget were not kept "
+                          f"(weights against no scattering: {weights})")
+        for cache_file, _ in sources if cached else ():
+            cache_file.save()
+            if cache_file.uncached:
+                console.print(f"cache: {cache_file.uncached:,} footprints beyond its memory budget were not kept "
                               "(later patterns recompute them)")
         for name, img in zip(names, relit, strict=True):
             stem = out / f"{rv.object}_v{v}_{name}_{backend}"
@@ -210,7 +216,7 @@ def geometry_cmd(
 
 def eval_relight(
     sessions: Annotated[list[Path], typer.Argument(help="Session folders, or folders holding sessions.")],
-    backend: Annotated[str, typer.Option("--backend", help="Comma-separated backends.")] = "none,analytic,measured",
+    backend: Annotated[str, typer.Option("--backend", help="Comma-separated backends (none, analytic, torch, blend, measured, exact).")] = "none,analytic,measured",
     checkpoint: CheckpointOpt = None,
     views: Annotated[str, typer.Option(help="Comma-separated views (default: all).")] = "",
     out: Annotated[Path, typer.Option("--out", help="Output folder (figures, relight_eval.json / .md).")] = Path("eval_relight"),

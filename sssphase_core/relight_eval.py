@@ -92,7 +92,7 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     """Relight a :class:`~sssphase_core.relight.RelightView` under all its reference patterns in one
     pass with ``backend`` (``options`` go to the model backend); metrics per pattern (and figures /
     images under ``out_dir`` if ``write``)."""
-    from sssphase_core.relight import MODEL_FREE, make_source, relight_view
+    from sssphase_core.relight import MODEL_FREE, make_sources, relight_view
 
     if not rv.references:
         raise InputError(f"{rv.object} view {rv.view} has no reference captures to evaluate against "
@@ -100,8 +100,8 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     names = sorted(rv.references)
     t0 = time.perf_counter()
     calibrate = bool(options.pop("calibrate", True)) and backend not in MODEL_FREE
-    source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device, calibrate=False, **options)
-    relit, mix = relight_view(source, patch, rv, [rv.references[n] for n in names], calibrate=calibrate,
+    (source, patch), *also = make_sources(backend, rv, checkpoint=checkpoint, device=device, **options)
+    relit, mix = relight_view(source, patch, rv, [rv.references[n] for n in names], calibrate=calibrate, also=also,
                               chunk=chunk, device=device, progress=progress)
     seconds = time.perf_counter() - t0
     rows = []
@@ -111,7 +111,7 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
         row = {"object": rv.object, "view": rv.view, "pattern": name, "backend": backend, **met,
                "seconds": seconds / len(names), "lit_pixels": int(rv.proj.mask.sum())}
         if mix is not None:  # a model calibrated to the view: its weight against no scattering, per colour
-            row["mix"] = [float(v) for v in mix]
+            row["mix"] = np.asarray(mix, float).round(4).tolist()  # (3,), or (members, 3) for a blend
         capture = _captured_reference(rv, name)
         if capture is not None:  # a simulated session is scored against its noise-free render and its capture
             cap = relight_metrics(img, capture, rv.proj.mask)

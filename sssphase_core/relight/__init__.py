@@ -38,6 +38,7 @@ from sssphase_core.relight.images import (
     write_images,
 )
 from sssphase_core.relight.sources import (
+    BLENDS,
     MODEL_FREE,
     WHITE_FLOOR,
     DotTransport,
@@ -46,21 +47,25 @@ from sssphase_core.relight.sources import (
     energy_from_white,
     fit_view_mix,
     make_source,
+    make_sources,
     mixed_with_no_scattering,
+    mixture_weights,
     model_inputs,
     nearest_measured_source,
     no_scattering_source,
     relight_view,
     view_mix,
+    view_mixture,
     white_usable,
 )
 from sssphase_core.relight.views import RelightView, finest_psp_period, load_view
 
 __all__ = [
-    "FOLD_BAND_BYTES", "IMAGE_FORMATS", "MODEL_FREE", "RESIZE_MODES", "WHITE_FLOOR", "DotTransport", "FootprintCache",
+    "BLENDS", "FOLD_BAND_BYTES", "IMAGE_FORMATS", "MODEL_FREE", "RESIZE_MODES", "WHITE_FLOOR", "DotTransport", "FootprintCache",
     "FootprintSource", "Projection", "RelightView", "Splatter", "backend_source", "check_image_formats",
     "crop_footprints", "display_scale", "emitted_light", "energy_from_white", "finest_psp_period", "fit_view_mix",
     "geometric_correspondence", "lit_pixels", "load_view",
-    "make_source", "mixed_with_no_scattering", "model_inputs", "nearest_measured_source", "no_scattering_source", "read_pattern", "relight", "relight_view",
-    "sample_projector", "scattering_shift", "srgb", "view_mix", "white_usable", "write_images",
+    "make_source", "make_sources", "mixed_with_no_scattering", "model_inputs", "nearest_measured_source", "no_scattering_source", "read_pattern", "relight", "relight_view",
+    "mixture_weights", "sample_projector", "scattering_shift", "srgb", "view_mix", "view_mixture", "white_usable",
+    "write_images",
 ]

@@ -4,7 +4,7 @@ by name for a view."""
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -188,6 +188,8 @@ class FootprintCache:
 
 
 MODEL_FREE = ("none", "exact", "measured")  # footprint sources that are data, not a model: never calibrated
+#: Backends that blend several models by the view calibration (:func:`relight_view` ``also``).
+BLENDS: dict[str, tuple[str, ...]] = {"blend": ("torch", "analytic")}
 
 
 def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",
@@ -243,6 +245,20 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
     return source, k
 
 
+def make_sources(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",
+                 **options: object) -> list[tuple[FootprintSource, int]]:
+    """The uncalibrated (source, patch) pairs of backend ``name``: its own, or for a blend
+    (:data:`BLENDS`: ``blend`` = the decoder and the analytic model, weighted per view and colour by how
+    well they relight the view's own fringe captures) each member's; ``options`` go to the analytic
+    member of a blend."""
+    if name not in BLENDS:
+        return [make_source(name, rv, checkpoint=checkpoint, device=device, calibrate=False, **options)]
+    if "torch" in BLENDS[name] and checkpoint is None:
+        raise InputError(f"the {name} backend blends the decoder in: it needs --checkpoint (a decoder from `sss train decoder`)")
+    return [make_source(m, rv, checkpoint=checkpoint, device=device, calibrate=False,
+                        **(options if m == "analytic" else {})) for m in BLENDS[name]]
+
+
 def fit_view_mix(source: FootprintSource, patch: int, rv: RelightView, psp: np.ndarray | None = None,
                  exclude: np.ndarray | None = None) -> np.ndarray:
     """Per-colour weight ``a`` (3,) in [0, 1] of a model's footprints against no scattering, fitted on the
@@ -265,8 +281,9 @@ def fit_view_mix(source: FootprintSource, patch: int, rv: RelightView, psp: np.n
 
 
 def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns: list[np.ndarray], *,
-                 calibrate: bool, chunk: int = 2048, device: str = "cpu",
-                 progress: Callable[[int, int], None] | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+                 calibrate: bool, also: Sequence[tuple[FootprintSource, int]] = (), chunk: int = 2048,
+                 device: str = "cpu", progress: Callable[[int, int], None] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
     """Relight a view under ``patterns`` (P of (Hp, Wp[, 3])) with an uncalibrated ``source``
     (``make_source(..., calibrate=False)``) -> ((P, H, W, 3) images, per-colour mix (3,) or None).
 
@@ -274,25 +291,45 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     rides on the same footprint pass: the 8 PSP patterns are splatted beside the user's, and since
     relighting is linear in the footprints the mixed source's images are ``mix * model + (1 - mix) *
     none``. One pass instead of two (each footprint is predicted once), the same images.
+
+    ``also``: more (source, patch) pairs blended in by the same fit (:func:`view_mixture`): the images
+    are ``sum_i mix_i * source_i + (1 - sum_i mix_i) * none`` and the mix is (1 + len(also), 3).
+    Blending needs ``calibrate``.
     """
     from sssphase_core.relight.engine import relight
 
     calibrate = calibrate and rv.psp_patterns is not None
+    if also and not calibrate:
+        raise InputError(f"{rv.object} view {rv.view}: blending sources needs the view calibration (the projector "
+                         "patterns of its PSP captures, and calibration on)")
     n = len(patterns)
     every = list(patterns) + (list(rv.psp_patterns) if calibrate else [])
-    relit = relight(source, rv.proj, every, patch, white=rv.white, chunk=chunk, device=device, progress=progress)
+    relits = [relight(src, rv.proj, every, k, white=rv.white, chunk=chunk, device=device, progress=progress)
+              for src, k in ((source, patch), *also)]
     if not calibrate:
-        return relit, None
+        return relits[0], None
     psp, lost = model_inputs(rv)
-    mix = view_mix(rv, relit[n:], psp, lost)
+    mix = view_mixture(rv, [r[n:] for r in relits], psp, lost)  # (S, 3)
     none = relight(no_scattering_source(rv.white), rv.proj, every[:n], 1, white=rv.white)
-    return mix * relit[:n] + (1 - mix) * none, mix
+    images = (1 - mix.sum(axis=0)) * none
+    for weight, relit in zip(mix, relits, strict=True):
+        images += weight * relit[:n]
+    return images, (mix if also else mix[0])
 
 
 def view_mix(rv: RelightView, relit_psp: np.ndarray, psp: np.ndarray | None = None,
              exclude: np.ndarray | None = None) -> np.ndarray:
     """:func:`fit_view_mix` from the model's relighting of the view under its PSP patterns,
     ``relit_psp`` (8, H, W, 3): a caller that relights other patterns too does it in the same pass."""
+    return view_mixture(rv, [relit_psp], psp, exclude)[0]
+
+
+def view_mixture(rv: RelightView, relit_psps: Sequence[np.ndarray], psp: np.ndarray | None = None,
+                 exclude: np.ndarray | None = None) -> np.ndarray:
+    """Per-colour weights (S, 3) of S sources' relightings of the view under its PSP patterns
+    (each (8, H, W, 3)) against no scattering: ``sum_i a_i R_i + (1 - sum_i a_i) R_none`` fitted to the
+    captures by least squares with ``a_i >= 0`` and ``sum_i a_i <= 1`` (:func:`mixture_weights`).
+    ``psp``: the captures (default ``rv.psp``); ``exclude``: (H, W) pixels left out of the fit."""
     from sssphase_core.relight.engine import relight
 
     captured = rv.psp if psp is None else psp
@@ -300,11 +337,35 @@ def view_mix(rv: RelightView, relit_psp: np.ndarray, psp: np.ndarray | None = No
     m = rv.proj.mask & np.isfinite(captured).all(axis=(0, -1))
     if exclude is not None:
         m &= ~exclude
-    d = (relit_psp - none)[:, m].astype(np.float64)  # (8, n, 3)
-    e = (captured - none)[:, m].astype(np.float64)
-    den = (d * d).sum(axis=(0, 1))
-    mix = np.where(den > 0, (d * e).sum(axis=(0, 1)) / np.where(den > 0, den, 1.0), 1.0)
-    return np.clip(mix, 0.0, 1.0).astype(np.float32)
+    d = np.stack([(r - none)[:, m] for r in relit_psps]).astype(np.float64)  # (S, 8, n, 3)
+    e = (captured - none)[:, m].astype(np.float64)  # (8, n, 3)
+    gram = np.einsum("spnc,tpnc->cst", d, d)
+    cross = np.einsum("spnc,pnc->cs", d, e)
+    return np.stack([mixture_weights(gram[c], cross[c]) for c in range(3)], axis=1).astype(np.float32)
+
+
+def mixture_weights(gram: np.ndarray, cross: np.ndarray) -> np.ndarray:
+    """The weights ``a`` (S,) minimising ``a^T G a - 2 c^T a`` (a least-squares fit with Gram matrix
+    ``gram`` (S, S) and ``cross`` (S,)) subject to ``a >= 0`` and ``sum(a) <= 1``: exact, by trying
+    every set of active sources, free or on the face ``sum(a) = 1`` (2^S small systems; S is 1-3).
+    With one source this is the fitted weight clipped to [0, 1]."""
+    s = len(cross)
+    best, best_cost = np.zeros(s), 0.0
+    for bits in range(1, 2**s):
+        idx = [i for i in range(s) if bits >> i & 1]
+        g, c = gram[np.ix_(idx, idx)], cross[idx]
+        candidates = [np.linalg.lstsq(g, c, rcond=None)[0]]
+        kkt = np.block([[g, np.ones((len(idx), 1))], [np.ones((1, len(idx))), np.zeros((1, 1))]])
+        candidates.append(np.linalg.lstsq(kkt, np.append(c, 1.0), rcond=None)[0][:-1])
+        for sub in candidates:
+            if (sub < -1e-12).any() or sub.sum() > 1 + 1e-9:
+                continue
+            a = np.zeros(s)
+            a[idx] = np.clip(sub, 0, None)
+            cost = float(a @ gram @ a - 2 * cross @ a)
+            if cost < best_cost - 1e-15 * max(1.0, abs(best_cost)):
+                best, best_cost = a, cost
+    return best
 
 
 def mixed_with_no_scattering(source: FootprintSource, mix: np.ndarray, white: np.ndarray) -> FootprintSource:

@@ -163,3 +163,52 @@ def test_geometry_cli_writes_both_maps_and_scores_them(session, tmp_path):
     assert "against the exact points" in res.output
     bad = runner.invoke(app, ["geometry", str(session), "--backend", "measured", "--out", str(tmp_path)])
     assert bad.exit_code != 0 and "placed by the decoded correspondences" in str(bad.exception)
+
+
+@pytest.mark.parametrize("s", [1, 2, 3])
+def test_mixture_weights_are_the_constrained_least_squares_optimum(s):
+    """``a >= 0``, ``sum(a) <= 1``, and no point of a fine grid over that simplex fits better."""
+    from sssphase_core.relight import mixture_weights
+
+    rng = np.random.default_rng(s)
+    grid = np.stack(np.meshgrid(*[np.linspace(0, 1, 41)] * s, indexing="ij"), -1).reshape(-1, s)
+    grid = grid[grid.sum(1) <= 1 + 1e-9]
+    for _ in range(20):
+        d = rng.normal(size=(s, 50)) * rng.uniform(0.1, 2, (s, 1))
+        e = rng.normal(size=50) + d.T @ rng.uniform(-0.5, 1.5, s)
+        gram, cross = d @ d.T, d @ e
+        a = mixture_weights(gram, cross)
+        assert (a >= 0).all() and a.sum() <= 1 + 1e-9
+        cost = lambda w: ((w @ d - e) ** 2).sum()  # noqa: E731
+        assert cost(a) <= min(cost(w) for w in grid) + 1e-9
+        if s == 1:
+            assert a[0] == pytest.approx(np.clip(cross[0] / gram[0, 0], 0, 1))
+    assert (mixture_weights(np.zeros((2, 2)), np.zeros(2)) == 0).all()  # sources equal to none: no weight
+
+
+def test_a_blend_relights_the_fringe_captures_at_least_as_well_as_each_member(session):
+    """Blending two sources by the view calibration: its images are the weighted sum, and since each
+    member's own calibration is a feasible blend, the blend fits the view's captures no worse."""
+    from sssphase_core.relight import make_source, model_inputs, no_scattering_source, relight, relight_view
+
+    rv = load_view(Session.open(session), 1)
+    members = [make_source(b, rv, calibrate=False) for b in ("analytic", "exact")]
+    pats = list(rv.psp_patterns)  # relit under its own fringe patterns: the fitted quantity
+    blend, mix = relight_view(*members[0], rv, pats, calibrate=True, also=members[1:])
+    assert mix.shape == (2, 3) and (mix >= 0).all() and (mix.sum(0) <= 1 + 1e-6).all()
+    none = relight(no_scattering_source(rv.white), rv.proj, pats, 1, white=rv.white)
+    want = (1 - mix.sum(0)) * none + sum(w * relight(src, rv.proj, pats, k, white=rv.white) for w, (src, k) in zip(mix, members))
+    np.testing.assert_allclose(blend, want, rtol=1e-4, atol=1e-6)
+    psp, lost = model_inputs(rv)
+    m = rv.proj.mask & ~lost
+    residual = lambda img: float(((img[:, m] - psp[:, m]) ** 2).sum())  # noqa: E731
+    alone = [relight_view(src, k, rv, pats, calibrate=True)[0] for src, k in members]
+    assert residual(blend) <= min(residual(a) for a in alone) * (1 + 1e-5)
+    with pytest.raises(Exception, match="blending sources needs the view calibration"):
+        relight_view(*members[0], rv, pats, calibrate=False, also=members[1:])
+
+
+def test_blend_without_a_decoder_is_one_clear_error(session, tmp_path):
+    res = runner.invoke(app, ["relight", str(session), "--pattern", "checkerboard", "--backend", "blend",
+                              "--out", str(tmp_path)])
+    assert res.exit_code != 0 and "blend backend blends the decoder in" in str(res.exception)
