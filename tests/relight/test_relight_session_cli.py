@@ -197,7 +197,7 @@ def test_a_blend_relights_the_fringe_captures_at_least_as_well_as_each_member(se
     blend, mix = relight_view(*members[0], rv, pats, calibrate=True, also=members[1:])
     assert mix.shape == (2, 3) and (mix >= 0).all() and (mix.sum(0) <= 1 + 1e-6).all()
     none = relight(no_scattering_source(rv.white), rv.proj, pats, 1, white=rv.white)
-    want = (1 - mix.sum(0)) * none + sum(w * relight(src, rv.proj, pats, k, white=rv.white) for w, (src, k) in zip(mix, members))
+    want = (1 - mix.sum(0)) * none + sum(w * relight(src, rv.proj, pats, k, white=rv.white) for w, (src, k) in zip(mix, members, strict=True))
     np.testing.assert_allclose(blend, want, rtol=1e-4, atol=1e-6)
     psp, lost = model_inputs(rv)
     m = rv.proj.mask & ~lost
