@@ -106,7 +106,7 @@ def decode_cmd(
         raise InputError(f"no plan.json in {folder}: give --projector WxH")
     config = _psp_from_plan(plan) if plan is not None else psp_config_for(*size)
     keys = [psp_key(o, p, n) for o in ("x", "y") for p in config.periods for n in range(config.n_shifts)]
-    files = frame_files(folder)
+    files = frame_files(folder, strict=False)  # other images (e.g. this command's own figures) are not frames
     missing = [key for key in keys if key not in files]
     if missing:
         raise DataError(f"frame {missing[0]!r} not found in {folder} (expected {missing[0].replace('/', '__')}.png/.tif/"
@@ -118,6 +118,10 @@ def decode_cmd(
         task = bar.add_task("loading frames", total=len(keys))
         for key in keys:
             frames[key] = read_frame(files[key])
+            first = frames[keys[0]]
+            if frames[key].shape != first.shape:
+                raise DataError(f"{files[key]} is {frames[key].shape[1]}x{frames[key].shape[0]}, but {files[keys[0]]} is "
+                                f"{first.shape[1]}x{first.shape[0]}: every frame must come from the same camera")
             bar.advance(task)
     corr = decode(frames, config, size, min_modulation=min_modulation, saturation=saturation)
     out.mkdir(parents=True, exist_ok=True)

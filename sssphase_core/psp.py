@@ -351,6 +351,12 @@ def decode(
     The coarsest period must cover the projector extent in its orientation.
     """
     wp, hp = (int(v) for v in projector_size)
+    for name, value in (("min_modulation", min_modulation), ("min_contrast", min_contrast), ("min_offset", min_offset),
+                        ("unwrap_tolerance", unwrap_tolerance)):
+        if not (isinstance(value, int | float) and math.isfinite(value) and value >= 0):
+            raise InputError(f"{name} must be a finite number >= 0, got {value!r}")
+    if saturation is not None and not (math.isfinite(saturation) and saturation > 0):
+        raise InputError(f"saturation must be a positive finite level, got {saturation!r}")
     if set(config.orientations) != {"x", "y"}:
         raise InputError("decoding needs fringe sets in both orientations ('x' and 'y')")
     keys = {(o, p, n): psp_key(o, p, n) for o in ("x", "y") for p in config.periods for n in range(config.n_shifts)}

@@ -31,10 +31,11 @@ class _ImportedFrame:
     header: dict[str, Any] = field(default_factory=dict)
 
 
-def frame_files(vdir: Path) -> dict[str, Path]:
+def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
     """Frame files of one view by plan key: ``psp__x__p20__s0.png`` or ``psp/x/p20/s0.png`` (the layout
     `sss patterns` writes) are both ``psp/x/p20/s0``. Files of other types are ignored; an image whose
-    name is no plan key is refused, naming it."""
+    name is no plan key is refused, naming it (``strict=False``: skipped, for readers that want only
+    some keys, e.g. `sss decode` in a folder that also holds its own outputs)."""
     files: dict[str, Path] = {}
     for path in sorted(vdir.rglob("*")):
         rel = path.relative_to(vdir)
@@ -42,6 +43,8 @@ def frame_files(vdir: Path) -> dict[str, Path]:
             continue
         key = rel.with_suffix("").as_posix().replace("__", "/")
         if not (PSP_KEY_RE.match(key) or DOTS_KEY_RE.match(key) or OTHER_KEY_RE.match(key)):
+            if not strict:
+                continue
             raise InputError(f"{path}: {key!r} is no frame name (expected psp__<x|y>__p<period>__s<n>, white, black, "
                              "ref__<name>, pattern__<name> or dots__<sx>_<sy>; see SESSION_FORMAT.md)")
         if m := PSP_KEY_RE.match(key):  # one spelling per frame: p20.0 -> p20, s01 -> s1 (the capture plan's)

@@ -119,3 +119,20 @@ def test_bench_psp_quick_smoke(tmp_path):
     assert data["synthetic"][0]["median_px"] < 0.01  # noise-free synthetic fringes decode exactly
     assert {r["n_shifts"] for r in data["tradeoff"]} == {3, 4}
     assert "OpenCV" in md.read_text()
+
+
+def test_decode_names_the_odd_frame_ignores_other_images_and_refuses_nan_thresholds(tmp_path):
+    from sssphase_core.errors import DataError, InputError
+
+    pat_dir = tmp_path / "patterns"
+    _run("patterns", "--projector", "64x48", "--out", str(pat_dir))
+    Image.fromarray(np.zeros((8, 8), np.uint8)).save(tmp_path / "patterns" / "holiday.png")  # not a frame: skipped
+    _run("decode", str(pat_dir), "--out", str(pat_dir))  # its own figures in the folder do not trip a rerun
+    _run("decode", str(pat_dir), "--out", str(pat_dir))
+    with pytest.raises(InputError, match="min_modulation must be a finite number"):
+        runner.invoke(_app(), ["decode", str(pat_dir), "--out", str(tmp_path / "o"), "--min-modulation", "nan"],
+                      catch_exceptions=False)
+    odd = next((pat_dir / "psp" / "y").rglob("s2.png"))
+    Image.fromarray(np.zeros((10, 12), np.uint8)).save(odd)
+    with pytest.raises(DataError, match=rf"{odd.name} is 12x10, but .* is 64x48"):
+        runner.invoke(_app(), ["decode", str(pat_dir), "--out", str(tmp_path / "o")], catch_exceptions=False)
