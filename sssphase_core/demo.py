@@ -94,8 +94,8 @@ class Demo:
         physics = self.transport + (", training rigs randomised" if randomise_rig else "")
         stamp = self.steps_dir / "transport.txt"
         if stamp.exists() and not fresh and stamp.read_text().strip() != physics:
-            raise InputError(f"{self.out} was made with the {stamp.read_text().strip()} transport model: "
-                             f"use another --out for {physics}, or --fresh")
+            raise InputError(f"{self.out} was made with the simulator's {stamp.read_text().strip()!r} physics, this run "
+                             f"asks for {physics!r}: use another --out, or --fresh")
         stamp.write_text(physics)
         self.results: dict[str, dict[str, Any]] = {}
 
