@@ -199,7 +199,7 @@ def capture(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from sssphase_core.capture import DEFAULT_HDR, CaptureRequest, RigSpec, run_capture
-    from sssphase_core.session import check_object_name
+    from sssphase_core.store.session import check_object_name
 
     check_object_name(object_name)
     if views < 1:  # before a daemon is started for nothing
@@ -251,7 +251,7 @@ def capture(
 def validate(session: Annotated[Path, typer.Argument(help="session folder")]) -> None:
     """Check a session: every view complete, every array present and matching its checksum."""
     from sssphase_core.errors import DataError
-    from sssphase_core.session import Session
+    from sssphase_core.store.session import Session
 
     s = Session.open(session)
     problems = s.validate()
@@ -289,10 +289,10 @@ def export(
     views: Annotated[str, typer.Option(help="comma-separated views (default: all complete views)")] = "",
 ) -> None:
     """Export a session's images, decoded maps and footprints as float32 OpenEXR (needs the exr extra)."""
-    from sssphase_core import exr
     from sssphase_core.errors import InputError
-    from sssphase_core.export import export_session
-    from sssphase_core.session import Session
+    from sssphase_core.reporting.export import export_session
+    from sssphase_core.store import exr
+    from sssphase_core.store.session import Session
 
     if not exr.available():
         raise InputError(exr.MISSING)
@@ -322,13 +322,13 @@ def calibrate_projector(
 
     import numpy as np
 
-    from sssphase_core.calibration import (
+    from sssphase_core.capture import CaptureRequest, RigSpec, run_capture
+    from sssphase_core.capture.calibration import (
         capture_ramp,
         correspondence_error,
         fit_response,
         rig_file_with_response,
     )
-    from sssphase_core.capture import CaptureRequest, RigSpec, run_capture
     from sssphase_core.errors import InputError
     from sssphase_daemon.client import local_client
 

@@ -43,7 +43,7 @@ def patterns(
     import numpy as np
     from rich.progress import Progress
 
-    from sssphase_core.patterns import PSPConfig, capture_plan, period_ladder, psp_config_for
+    from sssphase_core.processing.patterns import PSPConfig, capture_plan, period_ladder, psp_config_for
 
     w, h = _parse_size(projector)
     if period is None:
@@ -69,7 +69,7 @@ def patterns(
 
 
 def _psp_from_plan(plan: dict):
-    from sssphase_core.patterns import PSPConfig
+    from sssphase_core.processing.patterns import PSPConfig
 
     psp = plan.get("psp")
     if not psp:
@@ -90,9 +90,9 @@ def decode_cmd(
     from rich.progress import Progress
 
     from sssphase_core.capture.importer import frame_files
-    from sssphase_core.imageio import read_frame, stores_integers
-    from sssphase_core.patterns import psp_config_for, psp_key
-    from sssphase_core.psp import Reason, decode, wrapped_phase
+    from sssphase_core.processing.patterns import psp_config_for, psp_key
+    from sssphase_core.processing.psp import Reason, decode, wrapped_phase
+    from sssphase_core.store.imageio import read_frame, stores_integers
 
     if not folder.is_dir():
         raise InputError(f"{folder} is not a folder")
@@ -127,7 +127,7 @@ def decode_cmd(
     out.mkdir(parents=True, exist_ok=True)
     for name in ("xp", "yp", "mask", "reason", "modulation", "offset", "modulation_ratio"):
         np.save(out / f"{name}.npy", getattr(corr, name))
-    from sssphase_core import figures as fig
+    from sssphase_core.reporting import figures as fig
 
     for o in ("x", "y"):
         stack = [frames[psp_key(o, config.period, n)] for n in range(config.n_shifts)]

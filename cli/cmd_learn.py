@@ -43,7 +43,7 @@ def _views(objects: list[str], views: list[int], *, n_views: int, rig: str, pixe
            seed: int, cache: Path, noisy: bool = False, sessions: Path | None = None):
     """Views from captured sessions (``--sessions``) or else rendered by the simulator."""
     if sessions is not None:
-        from sssphase_core.data import session_views
+        from sssphase_core.learning.data import session_views
 
         with console.status(f"reading sessions under {sessions}"):
             vds = session_views(sessions, objects or None, views or None, pixels_per_view=pixels, footprints=footprints,
@@ -55,7 +55,7 @@ def _views(objects: list[str], views: list[int], *, n_views: int, rig: str, pixe
                                                                               " (no such folder)"))
         console.print(f"data: captured sessions under {sessions}: {_describe(vds)}")
         return vds
-    from sssphase_core.data import simulate_views
+    from sssphase_core.learning.data import simulate_views
 
     with console.status(f"simulating {len(objects)} object(s) x {len(views)} view(s) (cached in {cache})"):
         vds = simulate_views(objects, views, n_views=n_views, rig=rig, pixels_per_view=pixels, footprints=footprints,
@@ -113,12 +113,12 @@ def train_pretrain(
     sessions: SessionsOpt = None,
 ) -> None:
     """SimSiam pretraining of the encoder on PSP patches of the training objects (resumable)."""
-    from sssphase_core.data import PatchDataset
-    from sssphase_core.figures import plot_metric_vs_time
-    from sssphase_core.models import get_preset
-    from sssphase_core.runlog import read_rows
+    from sssphase_core.learning.data import PatchDataset
+    from sssphase_core.learning.models import get_preset
+    from sssphase_core.learning.runlog import read_rows
+    from sssphase_core.learning.training import METRICS, PretrainConfig, pretrain
+    from sssphase_core.reporting.figures import plot_metric_vs_time
     from sssphase_core.sim import TRAIN_OBJECTS
-    from sssphase_core.training import METRICS, PretrainConfig, pretrain
 
     p = get_preset(preset)
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
@@ -176,13 +176,13 @@ def train_decoder(
         "which the trained model is relit against the none and analytic baselines; repeatable. Default: --sessions.")] = None,
 ) -> None:
     """Fit the footprint decoder with the SBH loss on the frozen encoder, or end-to-end (resumable)."""
-    from sssphase_core.data import PatchDataset
     from sssphase_core.errors import InputError
-    from sssphase_core.figures import plot_metric_vs_time
-    from sssphase_core.models.decoder import HEADS
+    from sssphase_core.learning.data import PatchDataset
+    from sssphase_core.learning.models.decoder import HEADS
+    from sssphase_core.learning.training import METRICS, DecoderConfig, decoder_patch
+    from sssphase_core.learning.training import train_decoder as fit
+    from sssphase_core.reporting.figures import plot_metric_vs_time
     from sssphase_core.sim import TRAIN_OBJECTS
-    from sssphase_core.training import METRICS, DecoderConfig, decoder_patch
-    from sssphase_core.training import train_decoder as fit
 
     if head not in HEADS:
         raise InputError(f"unknown decoder head {head!r}; choose one of {', '.join(HEADS)}")
@@ -218,8 +218,8 @@ def train_decoder(
 
 def _print_final(metrics: Path, names: tuple[str, ...], monitored: str) -> None:
     """The last epoch's figures and the epoch kept in best.pt."""
-    from sssphase_core.runlog import read_rows
-    from sssphase_core.training import BEST
+    from sssphase_core.learning.runlog import read_rows
+    from sssphase_core.learning.training import BEST
 
     rows = read_rows(metrics)
     if not rows:
@@ -237,14 +237,14 @@ def _print_final(metrics: Path, names: tuple[str, ...], monitored: str) -> None:
 
 def _check_against_baselines(run: Path, roots: list[Path], views: list[int] | None, device: str) -> None:
     """Relight held-out views with reference captures by the new model and the none/analytic baselines."""
-    from sssphase_core.relight_eval import baseline_check
-    from sssphase_core.session import find_sessions
+    from sssphase_core.relight.evaluation import baseline_check
+    from sssphase_core.store.session import find_sessions
 
     if not roots:
         console.print("no --check-sessions: relighting against the baselines was not checked")
         return
     if device == "auto":
-        from sssphase_core.training import init_distributed
+        from sssphase_core.learning.training import init_distributed
 
         device = str(init_distributed(device).device)
     with console.status("relighting held-out views against the none and analytic baselines"):
@@ -281,9 +281,9 @@ def eval_knn(
 ) -> None:
     """kNN accuracy of frozen embeddings with view-level leave-one-out (cosine similarity)."""
     from sssphase_core.errors import InputError
-    from sssphase_core.evaluation import knn_of_views
+    from sssphase_core.learning.evaluation import knn_of_views
+    from sssphase_core.learning.training import load_encoder
     from sssphase_core.sim import MATERIAL_NAMES, TRAIN_OBJECTS
-    from sssphase_core.training import load_encoder
 
     runs = dict(c.split("=", 1) if "=" in c else (Path(c).stem if Path(c).suffix else Path(c).name, c) for c in checkpoint)
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
@@ -334,10 +334,10 @@ def eval_footprints(
     """MSE, PSNR (data range 1) and SSIM (data range = GT peak) per object, like the paper's Table 1."""
     import numpy as np
 
-    from sssphase_core.backends import get_backend
     from sssphase_core.errors import InputError
-    from sssphase_core.evaluation import footprint_metrics, summarise
-    from sssphase_core.figures import plot_profiles
+    from sssphase_core.learning.backends import get_backend
+    from sssphase_core.learning.evaluation import footprint_metrics, summarise
+    from sssphase_core.reporting.figures import plot_profiles
     from sssphase_core.sim import UNSEEN_OBJECTS, rig_preset
 
     names = _names(objects, () if sessions else UNSEEN_OBJECTS)
@@ -354,7 +354,7 @@ def eval_footprints(
         patch = backends["torch"].patch
         opts = {"patch": patch, "black": rig_preset(rig).projector.black} if baseline == "analytic" else {}
         backends[baseline] = get_backend(baseline, **opts)
-    from sssphase_core.relight_eval import lpips_note
+    from sssphase_core.relight.evaluation import lpips_note
 
     console.print(lpips_note())
     results: dict[str, dict[str, dict[str, float]]] = {}
@@ -403,9 +403,9 @@ def viz_pca(
     sessions: SessionsOpt = None,
 ) -> None:
     """PCA-RGB map: joint PCA of the patch embeddings of the images shown, first 3 components as RGB."""
-    from sssphase_core.evaluation import PCA_TITLE, pca_maps
-    from sssphase_core.figures import panels_figure
-    from sssphase_core.training import load_encoder
+    from sssphase_core.learning.evaluation import PCA_TITLE, pca_maps
+    from sssphase_core.learning.training import load_encoder
+    from sssphase_core.reporting.figures import panels_figure
 
     enc = load_encoder(checkpoint)
     names = _names(objects, () if sessions else ("soap", "shovel"))
@@ -429,10 +429,10 @@ def viz_footprints(
     """Footprints at a few pixels, one row per source (log scale), and their centre-row profiles."""
     import numpy as np
 
-    from sssphase_core.figures import grid_figure, profiles_figure
     from sssphase_core.relight import load_view
-    from sssphase_core.relight_eval import footprints_at
-    from sssphase_core.session import Session
+    from sssphase_core.relight.evaluation import footprints_at
+    from sssphase_core.reporting.figures import grid_figure, profiles_figure
+    from sssphase_core.store.session import Session
 
     s = Session.open(session)
     rv = load_view(s, view)
@@ -505,7 +505,7 @@ def bench_gpu(
     """The GPU path: paper-preset training with mixed precision, CPU/GPU agreement, relighting, NCCL DDP."""
     from sssphase_cli.output import write_result
     from sssphase_core.bench.gpu_bench import markdown, run
-    from sssphase_core.models import get_preset
+    from sssphase_core.learning.models import get_preset
 
     get_preset(preset)  # an unknown preset is one line before any work
     with console.status("sss bench gpu") as status:

@@ -73,7 +73,8 @@ def relight_cmd(
 
     from sssphase_core.bench.relight_bench import reference_patterns
     from sssphase_core.errors import InputError
-    from sssphase_core.patterns import REFERENCE_NAMES
+    from sssphase_core.learning.training import resolve_checkpoint
+    from sssphase_core.processing.patterns import REFERENCE_NAMES
     from sssphase_core.relight import (
         BLENDS,
         MODEL_FREE,
@@ -86,13 +87,12 @@ def relight_cmd(
         relight_view,
         write_images,
     )
-    from sssphase_core.relight_eval import comparison_figure, relight_metrics
-    from sssphase_core.session import Session
-    from sssphase_core.training import resolve_checkpoint
+    from sssphase_core.relight.evaluation import comparison_figure, relight_metrics
+    from sssphase_core.store.session import Session
 
     formats = check_image_formats(tuple(f.strip().lower() for f in image_format.split(",") if f.strip()))
     if "exr" in formats:
-        from sssphase_core import exr
+        from sssphase_core.store import exr
 
         if not exr.available():
             raise InputError(f"--format exr: {exr.MISSING}")
@@ -174,9 +174,9 @@ def geometry_cmd(
     import numpy as np
 
     from sssphase_core.errors import InputError
+    from sssphase_core.learning.training import resolve_checkpoint
     from sssphase_core.relight import finest_psp_period, geometric_correspondence, load_view, make_source
-    from sssphase_core.session import Session, view_dir_name
-    from sssphase_core.training import resolve_checkpoint
+    from sssphase_core.store.session import Session, view_dir_name
 
     if backend in ("measured", "none"):
         raise InputError(f"--backend {backend} cannot predict the scattering shift: "
@@ -227,8 +227,8 @@ def eval_relight(
     """Relight every reference pattern of the sessions and tabulate MSE / PSNR / SSIM over objects and views."""
     from sssphase_core.bench.output import write_bench_report
     from sssphase_core.relight import load_view
-    from sssphase_core.relight_eval import aggregate, evaluate_view, lpips_note, metrics_table
-    from sssphase_core.session import find_sessions
+    from sssphase_core.relight.evaluation import aggregate, evaluate_view, lpips_note, metrics_table
+    from sssphase_core.store.session import find_sessions
 
     backends = [b.strip() for b in backend.split(",") if b.strip()]
     rows = []
@@ -280,9 +280,9 @@ def report(
 ) -> None:
     """The demo's HTML report for your own sessions and runs: relit vs reference vs difference, tables, error
     against run time, kNN, PCA."""
-    from sssphase_core.demo import run_report
-    from sssphase_core.session import find_sessions
-    from sssphase_core.training import resolve_checkpoint
+    from sssphase_core.learning.training import resolve_checkpoint
+    from sssphase_core.reporting.demo import run_report
+    from sssphase_core.store.session import find_sessions
 
     path = run_report(out, find_sessions(sessions), train_sessions=train_sessions,
                       pretrain=resolve_checkpoint(pretrain) if pretrain else None,
@@ -298,7 +298,7 @@ def bench_store(
 ) -> None:
     """Bytes per stored footprint against float32 and the relit PSNR change the compact store causes."""
     from sssphase_core.bench import store_bench
-    from sssphase_core.session import find_sessions
+    from sssphase_core.store.session import find_sessions
 
     with console.status("measuring the footprint store") as st:
         store_bench.run(find_sessions(sessions), out, progress=lambda m: st.update(m))
@@ -336,7 +336,7 @@ def bench_gap(
     silhouettes (simulated sessions; the exact footprints serve evaluation only)."""
     from sssphase_core.bench import gap_bench
     from sssphase_core.errors import InputError
-    from sssphase_core.session import find_sessions
+    from sssphase_core.store.session import find_sessions
 
     try:
         chosen = [int(v) for v in views.split(",") if v.strip()] or None
@@ -359,7 +359,7 @@ def demo(
     """The user's path on the simulated rig: capture sessions through the daemon, pretrain and fit the decoder
     from them, relight unseen objects, evaluate, report (resumable)."""
     from sssphase_cli.progress import step_bar
-    from sssphase_core.demo import run_demo
+    from sssphase_core.reporting.demo import run_demo
     from sssphase_daemon.client import local_client
 
     def log(message: str) -> None:

@@ -29,9 +29,9 @@ def sim(
     import numpy as np
     from rich.progress import Progress
 
-    from sssphase_core import figures as fig
     from sssphase_core import sim as simlib
-    from sssphase_core.patterns import capture_plan, psp_config_for
+    from sssphase_core.processing.patterns import capture_plan, psp_config_for
+    from sssphase_core.reporting import figures as fig
     from sssphase_core.sim.materials import MATERIALS, dropped_fraction
     from sssphase_core.sim.rig import pixel_pitch_mm
 
@@ -110,8 +110,8 @@ def _decode_view(frames: dict, config, scene, vdir: Path, what: str) -> dict:
     """Decode a view's captured PSP frames, write the maps, and measure them against the exact values."""
     import numpy as np
 
-    from sssphase_core import figures as fig
-    from sssphase_core.psp import Reason, decode
+    from sssphase_core.processing.psp import Reason, decode
+    from sssphase_core.reporting import figures as fig
 
     rig = scene.rig
     wp, hp = rig.projector.width, rig.projector.height
@@ -184,7 +184,7 @@ def rigs() -> None:
     from rich.table import Table
 
     from sssphase_core.capture import dot_spacing_for
-    from sssphase_core.patterns import psp_config_for
+    from sssphase_core.processing.patterns import psp_config_for
     from sssphase_core.sim.rig import PRESETS, pixel_pitch_mm, rig_preset
 
     table = Table(title="Rig presets (sss capture/sim --preset NAME; a real rig: --rig RIG.toml, see HARDWARE.md)")

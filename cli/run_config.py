@@ -73,7 +73,7 @@ def save_run_config(ctx: typer.Context, out: Path) -> Path:
     import tomli_w
 
     options = {k: _toml_value(v) for k, v in ctx.params.items() if k not in NOT_SAVED and v is not None}
-    from sssphase_core.files import atomic_path
+    from sssphase_core.store.files import atomic_path
 
     with atomic_path(out / CONFIG) as tmp:
         tmp.write_text(tomli_w.dumps({"command": _command_name(ctx), "options": options}))

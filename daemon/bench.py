@@ -122,7 +122,7 @@ def capture_bench(preset: str = "paper", object_name: str = "soap", *, footprint
     frames, peak RSS of the daemon and of this client process, the session's size on disk by array
     group. ``out``: where the session goes (default: a temporary folder, removed)."""
     from sssphase_core.capture import CaptureRequest, run_capture
-    from sssphase_core.session import view_dir_name
+    from sssphase_core.store.session import view_dir_name
 
     with tempfile.TemporaryDirectory(prefix="sssb", dir="/tmp") as tmpdir:
         tmp = Path(tmpdir)

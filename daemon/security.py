@@ -101,7 +101,7 @@ def state_path() -> Path:
 
 def write_state(state: DaemonState, path: Path | None = None) -> Path:
     """Atomically write the state file, readable by the owner only."""
-    from sssphase_core.files import atomic_path
+    from sssphase_core.store.files import atomic_path
 
     path = path or state_path()
     with atomic_path(path) as tmp, os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "w") as f:

@@ -29,7 +29,7 @@ import numpy as np
 import zmq
 
 from sssphase_core.errors import SssError
-from sssphase_core.patterns import frame_params_problem
+from sssphase_core.processing.patterns import frame_params_problem
 from sssphase_daemon import protocol, security
 from sssphase_daemon.frames import ClientGone, FrameSender, Preview, configure_curve_server
 from sssphase_daemon.protocol import ProtocolError
@@ -102,7 +102,7 @@ def _pattern_for(spec: dict[str, Any]) -> np.ndarray:
     if spec["kind"] == "image":
         img = spec["image"]
         return protocol.decode_frame(img, img["data"]).astype(np.float32)
-    from sssphase_core.patterns import PlannedFrame
+    from sssphase_core.processing.patterns import PlannedFrame
 
     return PlannedFrame(spec["key"], spec["kind"], dict(spec["params"]), float(spec["exposure"])).pattern()
 

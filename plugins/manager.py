@@ -1,7 +1,7 @@
 """The one pluggy plugin manager for device plugins and model backends.
 
 Loads, like pytest/tox do, the hook specifications (devices, and model backends from
-``sssphase_core.backends.hookspecs``), then the plugins of the entry-point groups
+``sssphase_core.learning.backends.hookspecs``), then the plugins of the entry-point groups
 ``sssphase_devices`` and ``sssphase_backends``, then any modules named in ``$SSS_PLUGINS``
 (comma-separated, like ``PYTEST_PLUGINS``). A plugin that fails to import, implements an unknown
 hook, or raises inside a hook is recorded with its name in ``load_errors`` and left out; the others
@@ -19,8 +19,8 @@ from typing import Any
 
 import pluggy
 
-from sssphase_core import backends
-from sssphase_core.backends import hookspecs as backend_hookspecs
+from sssphase_core.learning import backends
+from sssphase_core.learning.backends import hookspecs as backend_hookspecs
 from sssphase_plugins import hookspecs
 from sssphase_plugins.drivers import DeviceInfo, DeviceNotFound, DeviceProvider
 

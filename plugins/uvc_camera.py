@@ -13,7 +13,7 @@ default, or ``"linear"``), ``timeout_s`` (read timeout, default 5), ``exposure_s
 dropped after an exposure change while the sensor applies it, default 2), ``max_stale_frames`` (8).
 
 Frames: colour formats give float32 RGB ``(H, W, 3)`` in [0, 1] (linearised); raw formats give the
-``(H, W)`` uint8/uint16 mosaic (develop it with ``sssphase_core.isp``). ``timestamp_ns`` is the V4L2
+``(H, W)`` uint8/uint16 mosaic (develop it with ``sssphase_core.processing.isp``). ``timestamp_ns`` is the V4L2
 buffer timestamp (CLOCK_MONOTONIC) when the driver reports one, else the host's monotonic clock at
 read; frames buffered before the ``grab`` call (older timestamps) are dropped, so a frame never
 predates the pattern shown before it. A failed read reopens the camera once (found again by its ID); if that fails the grab raises

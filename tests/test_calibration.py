@@ -12,7 +12,7 @@ import tomllib
 import numpy as np
 import pytest
 
-from sssphase_core.calibration import RAMP_LEVELS, fit_response, rig_file_with_response
+from sssphase_core.capture.calibration import RAMP_LEVELS, fit_response, rig_file_with_response
 from sssphase_core.errors import DataError
 
 

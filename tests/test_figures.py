@@ -50,7 +50,7 @@ def test_every_png_of_sss_sim_is_a_titled_figure_with_colour_bars_or_legends(sav
 def test_label_colours_follow_the_label_not_its_rank(tmp_path):
     from PIL import Image
 
-    from sssphase_core.figures import label_figure
+    from sssphase_core.reporting.figures import label_figure
 
     names = {0: "valid", 3: "shadow", 5: "outside"}
     a = np.array([[0, 3], [3, 0]], np.int16).repeat(40, 0).repeat(40, 1)
@@ -69,7 +69,7 @@ def test_label_colours_follow_the_label_not_its_rank(tmp_path):
 def test_a_small_image_is_enlarged_without_smoothing(tmp_path):
     from PIL import Image
 
-    from sssphase_core.figures import image_figure
+    from sssphase_core.reporting.figures import image_figure
 
     img = np.zeros((12, 16, 3), np.float32)
     img[::2, ::2] = 1.0  # a one-pixel checker: smoothing would make greys

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sssphase_core.files import atomic_path
+from sssphase_core.store.files import atomic_path
 
 
 def test_the_new_file_replaces_the_old_only_when_the_block_succeeds(tmp_path):

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from sssphase_core.errors import InputError
-from sssphase_core.session import check_object_name
+from sssphase_core.store.session import check_object_name
 
 
 @pytest.mark.parametrize("name", ["nl\n", "apple\n", "../x", "a/b", "", ".", "..", "x" * 65, "\napple"])
@@ -79,7 +79,7 @@ def test_damaged_manifests_are_one_line_errors(tmp_path, manifest, expected):
     import sys
 
     from sssphase_core.errors import DataError
-    from sssphase_core.session import Session
+    from sssphase_core.store.session import Session
 
     (tmp_path / "s").mkdir()
     (tmp_path / "s" / "manifest.json").write_text(json.dumps(manifest))
@@ -91,7 +91,7 @@ def test_damaged_manifests_are_one_line_errors(tmp_path, manifest, expected):
 
 
 def test_a_symlinked_session_folder_is_not_written_through(tmp_path):
-    from sssphase_core.session import Session
+    from sssphase_core.store.session import Session
 
     (tmp_path / "elsewhere").mkdir()
     (tmp_path / "out").mkdir()
@@ -261,8 +261,8 @@ def test_a_full_disk_while_writing_the_manifest_keeps_the_old_one_and_leaves_no_
     import errno
     import json
 
-    from sssphase_core import session as session_mod
     from sssphase_core.errors import DataError
+    from sssphase_core.store import session as session_mod
 
     s = session_mod.Session.create(tmp_path, "apple", n_views=1)
     before = (s.path / "manifest.json").read_text()
@@ -280,7 +280,7 @@ def test_a_full_disk_while_writing_the_manifest_keeps_the_old_one_and_leaves_no_
 def test_a_read_only_output_folder_is_one_line(tmp_path, monkeypatch):
     import errno
 
-    from sssphase_core.session import Session
+    from sssphase_core.store.session import Session
 
     def refuse(self, *args, **kwargs):  # what a read-only folder answers (root ignores the mode bits)
         raise PermissionError(errno.EACCES, "Permission denied", str(self))
@@ -409,7 +409,7 @@ def intact_session(sim_daemon, tmp_path_factory):
 def test_a_damaged_array_is_one_error_naming_it_wherever_it_is_read(intact_session, tmp_path, damage):
     from sssphase_core.errors import DataError
     from sssphase_core.relight import load_view
-    from sssphase_core.session import Session
+    from sssphase_core.store.session import Session
 
     copy = tmp_path / "leaf"
     shutil.copytree(intact_session, copy)

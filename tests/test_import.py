@@ -15,8 +15,8 @@ from scipy.ndimage import gaussian_filter
 
 from sssphase_core.capture import import_folder
 from sssphase_core.errors import InputError
-from sssphase_core.patterns import capture_plan
-from sssphase_core.projector import emitted_light
+from sssphase_core.processing.patterns import capture_plan
+from sssphase_core.processing.projector import emitted_light
 
 W, H, SPACING, K = 64, 48, 8, 16
 
@@ -31,7 +31,7 @@ def _write(folder: Path, key: str, image: np.ndarray, nested: bool, as_exr: bool
     path = folder / (key if nested else key.replace("/", "__"))
     path.parent.mkdir(parents=True, exist_ok=True)
     if as_exr:  # linear float frames, as a lab's HDR pipeline would save them
-        from sssphase_core.exr import write_exr
+        from sssphase_core.store.exr import write_exr
 
         write_exr(path.with_suffix(".exr"), image)
         return
@@ -66,7 +66,7 @@ def test_imported_frames_relight_and_evaluate_like_a_capture(frames, tmp_path):
                             "--backend", "measured", "--format", "png,exr", "--out", str(tmp_path / "r")],
                            capture_output=True, text=True, timeout=300)
     assert relit.returncode == 0 and "PSNR" in relit.stdout, relit.stdout + relit.stderr
-    from sssphase_core.exr import read_exr
+    from sssphase_core.store.exr import read_exr
 
     hdr = read_exr(tmp_path / "r" / "handmade_v0_checkerboard_measured.exr")
     png = cv2.imread(str(tmp_path / "r" / "handmade_v0_checkerboard_measured.png"), cv2.IMREAD_UNCHANGED)[..., ::-1]
@@ -115,7 +115,7 @@ def test_a_pickled_npy_is_refused(tmp_path):
 
 
 def test_a_session_exports_to_exr_bit_exactly(frames, tmp_path):
-    from sssphase_core.exr import read_exr
+    from sssphase_core.store.exr import read_exr
 
     s = import_folder(frames, tmp_path / "sessions", "handmade", (W, H), patch=K)
     res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "export", str(s.path), "--out", str(tmp_path / "x")],
@@ -146,7 +146,7 @@ def test_viz_footprints_shows_the_captured_crops_next_to_a_model(frames, tmp_pat
     assert out.is_file() and (tmp_path / "fp_profiles.png").is_file() and "captured, analytic, none at 3 pixels" in res.stdout
 
     from sssphase_core.relight import load_view
-    from sssphase_core.relight_eval import footprints_at
+    from sssphase_core.relight.evaluation import footprints_at
 
     px = np.asarray(s.load(0, "footprints/pixels"))[:2]
     fps = footprints_at(load_view(s, 0), px, ["captured", "none"])

@@ -70,3 +70,16 @@ def test_torch_is_pinned_to_the_cpu_build() -> None:
     pins = (ROOT / "constraints.txt").read_text()
     assert re.search(r"^torch==2\.13\.0$", pins, re.M)
     assert "torchvision" not in (ROOT / "pyproject.toml").read_text()
+
+
+def test_every_package_folder_is_listed_for_setuptools():
+    """A wheel (not an editable install) holds only the listed packages: a missing one imports on a
+    developer's machine and fails for every user who installs the wheel."""
+    tool = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    dirs = {name: ROOT / folder for name, folder in tool.get("package-dir", {}).items()}
+    dirs.setdefault("sssphase_core", ROOT / "sssphase_core")
+    found = set()
+    for top, folder in dirs.items():
+        for init in folder.rglob("__init__.py"):
+            found.add(".".join([top, *init.parent.relative_to(folder).parts]))
+    assert found == set(tool["packages"]), found ^ set(tool["packages"])

@@ -26,7 +26,7 @@ import numpy as np
 
 from sssphase_core.bench.output import Table, machine_info, write_bench_report
 from sssphase_core.bench.relight_bench import InMemorySource
-from sssphase_core.metrics import psnr
+from sssphase_core.learning.metrics import psnr
 
 HYBRIDS = ("energy", "shape", "centre", "angular")
 EDGE_PX = 2

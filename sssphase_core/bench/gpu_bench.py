@@ -1,7 +1,7 @@
 """``sss bench gpu``: the accelerator path measured in one command, rerunnable on any GPU.
 
-1. **Training**: the loops users run (:func:`~sssphase_core.training.pretrain`, then
-   :func:`~sssphase_core.training.train_decoder` on that encoder) for a fixed number of steps at the
+1. **Training**: the loops users run (:func:`~sssphase_core.learning.training.pretrain`, then
+   :func:`~sssphase_core.learning.training.train_decoder` on that encoder) for a fixed number of steps at the
    preset's patch size, with mixed precision (bf16 autocast on CUDA): patches/s, peak device memory,
    the loss per epoch (finite, and falling from the first epoch to the last).
 2. **Agreement**: one fixed batch through the trained encoder + decoder on the CPU (float32) and on
@@ -46,7 +46,7 @@ def _device(name: str) -> torch.device:
 
 def _dataset(patch: int, patches: int, seed: int = 0):
     from sssphase_core.bench.synthetic import synthetic_views
-    from sssphase_core.data import PatchDataset
+    from sssphase_core.learning.data import PatchDataset
 
     per_view = -(-patches // (len(OBJECTS) * len(VIEWS)))
     side = 2 * patch + max(16, int(math.isqrt(per_view)) + 8)  # enough inner pixels for per_view samples
@@ -60,15 +60,15 @@ def _peak_memory(dev: torch.device) -> float | None:
 
 
 def _epoch_losses(run: Path, key: str) -> list[float]:
-    from sssphase_core.runlog import METRICS, read_rows
+    from sssphase_core.learning.runlog import METRICS, read_rows
 
     return [float(r[key]) for r in read_rows(run / METRICS) if key in r]
 
 
 def training(preset: str, dev: torch.device, out: Path, *, steps: int, batch: int, epochs: int) -> dict[str, Any]:
     """Pretraining and decoder fitting for ``steps`` steps each (``epochs`` epochs, for the loss curve)."""
-    from sssphase_core.models import get_preset
-    from sssphase_core.training import DecoderConfig, PretrainConfig, pretrain, train_decoder
+    from sssphase_core.learning.models import get_preset
+    from sssphase_core.learning.training import DecoderConfig, PretrainConfig, pretrain, train_decoder
 
     p = get_preset(preset)
     per_epoch = max(1, steps // epochs)
@@ -103,7 +103,7 @@ def training(preset: str, dev: torch.device, out: Path, *, steps: int, batch: in
 @torch.no_grad()
 def agreement(decoder_run: Path, dev: torch.device, *, batch: int = 16) -> dict[str, Any]:
     """One fixed batch on the CPU and on ``dev``: max |difference| / peak of the CPU output."""
-    from sssphase_core.training import FootprintNet, load_decoder
+    from sssphase_core.learning.training import FootprintNet, load_decoder
 
     enc, dec = load_decoder(decoder_run)
     net = FootprintNet(enc, dec).eval()
@@ -160,10 +160,10 @@ DDP_SCRIPT = textwrap.dedent(
     from pathlib import Path
     import torch
     from sssphase_core.bench.gpu_bench import _dataset
-    from sssphase_core.training import PretrainConfig, pretrain
+    from sssphase_core.learning.training import PretrainConfig, pretrain
 
     out, preset, batch, steps = Path(sys.argv[1]), sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
-    from sssphase_core.models import get_preset
+    from sssphase_core.learning.models import get_preset
     world = torch.distributed.get_world_size() if torch.distributed.is_initialized() else int(__import__("os").environ["WORLD_SIZE"])
     ds = _dataset(get_preset(preset).patch, steps * batch * world)
     pretrain(PretrainConfig(preset=preset, epochs=1, batch_size=batch, device="cuda", ckpt_every=0, knn_monitor=0),

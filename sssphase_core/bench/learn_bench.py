@@ -1,7 +1,7 @@
 """``sss bench learn``'s loader half: patches/s of the training loader at each preset's scale, to set next to
 the model's patches/s measured in the same run.
 
-The loader is the one training uses (:class:`sssphase_core.data.PatchDataset`): PSP patches cropped on the
+The loader is the one training uses (:class:`sssphase_core.learning.data.PatchDataset`): PSP patches cropped on the
 fly from a view-level stack held in memory (``(24, H, W)``, the preset's camera size: 256x192 for ``lite``,
 1920x1080 for ``paper``) and footprint targets streamed from a chunked store on disk (written with the
 session codec, read by sorted row indices), for random batches.
@@ -22,9 +22,9 @@ def loader_throughput(preset: str, *, batch: int, repeats: int = 3, footprints: 
     """Patches/s of ``PatchDataset.batch`` without and with streamed footprint targets."""
     import zarr
 
-    from sssphase_core.data import PatchDataset, ViewData
-    from sssphase_core.models import get_preset
-    from sssphase_core.session import _zarr_write
+    from sssphase_core.learning.data import PatchDataset, ViewData
+    from sssphase_core.learning.models import get_preset
+    from sssphase_core.store.session import _zarr_write
 
     k = get_preset(preset).patch
     w, h = CAMERA.get(k, (256, 192))
@@ -53,8 +53,8 @@ def measure_throughput(preset: str, *, batch: int, repeats: int = 3, device: str
     """Patches/s of footprint inference (encoder + decoder forward) and of one SimSiam training step."""
     import torch
 
-    from sssphase_core.augment import two_views
-    from sssphase_core.models import Decoder, SimSiam, get_preset
+    from sssphase_core.learning.augment import two_views
+    from sssphase_core.learning.models import Decoder, SimSiam, get_preset
 
     p = get_preset(preset)
     torch.manual_seed(0)

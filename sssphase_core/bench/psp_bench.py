@@ -3,7 +3,7 @@ and error against run time for different numbers of shifts and fringe periods.
 
 Speed baseline: OpenCV's ``cv2.structured_light`` SinusoidalPattern (PSP method) computing a 3-step
 wrapped phase map from 1080p frames, measured in the same run; a numpy float32 implementation of our
-own formula is reported too (the torch-versus-numpy choice of ``sssphase_core.psp``).
+own formula is reported too (the torch-versus-numpy choice of ``sssphase_core.processing.psp``).
 Accuracy: synthetic fringes with an exact affine correspondence (Gaussian blur standing in for
 subsurface scattering, additive noise), and the simulated rig per object and exposure when
 ``sssphase_core.sim`` is present. Scattering bias: decoded correspondences against the exact ones
@@ -21,8 +21,14 @@ from typing import Any
 import numpy as np
 
 from sssphase_core.bench.output import Table, interleaved_seconds, machine_info, median_seconds
-from sssphase_core.patterns import PSPConfig, period_ladder, phase_shift_pattern, psp_config_for, psp_key
-from sssphase_core.psp import Correspondence, decode, wrapped_phase
+from sssphase_core.processing.patterns import (
+    PSPConfig,
+    period_ladder,
+    phase_shift_pattern,
+    psp_config_for,
+    psp_key,
+)
+from sssphase_core.processing.psp import Correspondence, decode, wrapped_phase
 
 SPEED_SIZE = (1920, 1080)
 SYNTH_SIZE = (256, 192)
@@ -264,7 +270,7 @@ class _SimFringes:
 
     def captured(self, clean: dict[str, np.ndarray], exposure: float, rng: np.random.Generator, median: bool) -> dict[str, np.ndarray]:
         """Noisy sensor frames (Poisson-Gaussian, RGGB, bit depth) developed by the ISP chain."""
-        from sssphase_core import isp
+        from sssphase_core.processing import isp
         from sssphase_core.sim.sensor import expose
 
         sensor = self.scene.rig.sensor

@@ -20,7 +20,7 @@ import torch
 
 from sssphase_core.bench.output import Table, machine_info, median_seconds, write_bench_report
 from sssphase_core.relight import Projection, emitted_light, lit_pixels, make_source, relight
-from sssphase_core.relight_eval import relight_metrics
+from sssphase_core.relight.evaluation import relight_metrics
 
 Progress = Callable[[str], None]
 
@@ -49,7 +49,7 @@ def reference_patterns(width: int, height: int, names: Sequence[str] = ("checker
     """Named relighting patterns (checkerboard, stripes_x, stripes_y, white, black) with the capture
     plan's sizes (square = min(width, height) / 12, stripe period = 2 squares)."""
     from sssphase_core.errors import InputError
-    from sssphase_core.patterns import checkerboard, stripes
+    from sssphase_core.processing.patterns import checkerboard, stripes
 
     square = max(2, round(min(width, height) / 12))
     make = {"checkerboard": lambda: checkerboard(width, height, square),
@@ -65,7 +65,7 @@ def reference_patterns(width: int, height: int, names: Sequence[str] = ("checker
 def sim_view(obj: Any, view: int = 0, *, n_views: int = 4, seed: int = 0, rig: str = "cpu", exposure: float = 1.0,
              patterns: dict[str, np.ndarray] | None = None) -> SimView:
     """Simulate one view: noisy PSP inputs (at ``exposure``), exact correspondences, references."""
-    from sssphase_core.patterns import paper_inputs, psp_config_for
+    from sssphase_core.processing.patterns import paper_inputs, psp_config_for
     from sssphase_core.sim import SimScene, rig_preset
 
     cfg = rig_preset(rig)
@@ -151,7 +151,7 @@ def work_precision(sv: SimView, backends: Sequence[str], *, checkpoint: Path | s
 
 def lit_fraction_patterns(width: int, height: int) -> dict[str, np.ndarray]:
     """Patterns lighting about 100 %, 50 %, 25 % and 10 % of the projector."""
-    from sssphase_core.patterns import checkerboard, stripes
+    from sssphase_core.processing.patterns import checkerboard, stripes
 
     quarter = np.zeros((height, width), np.float32)
     quarter[: height // 2, : width // 2] = 1

@@ -19,7 +19,7 @@ import numpy as np
 from sssphase_core.bench.output import Table, machine_info, write_bench_report
 from sssphase_core.bench.relight_bench import InMemorySource, SimView, sim_view, source_for
 from sssphase_core.relight import emitted_light, lit_pixels, relight
-from sssphase_core.relight_eval import relight_metrics
+from sssphase_core.relight.evaluation import relight_metrics
 
 SPHERE_RADIUS = 22.0  # mm: small objects keep the sweep quick
 
@@ -70,7 +70,7 @@ def case_object(case: Case):
 
 def run_case(case: Case, backends: Sequence[str], checkpoint: Path | str | None = None) -> list[dict[str, Any]]:
     """Relit error and finiteness checks of one case for each backend."""
-    from sssphase_core.patterns import checkerboard
+    from sssphase_core.processing.patterns import checkerboard
     from sssphase_core.sim import rig_preset
 
     projector = rig_preset("cpu").projector

@@ -21,7 +21,7 @@ from sssphase_core.errors import InputError
 
 
 def _stored_bytes(array: np.ndarray) -> int:
-    from sssphase_core.session import _zarr_write
+    from sssphase_core.store.session import _zarr_write
 
     with tempfile.TemporaryDirectory() as tmp:
         _zarr_write(Path(tmp) / "a", array)
@@ -29,7 +29,7 @@ def _stored_bytes(array: np.ndarray) -> int:
 
 
 def _transport(session: Any, view: int, rv: Any, dtype: type, drop_noise: bool):
-    from sssphase_core.footprints import DotTransportExtractor, dark_reference
+    from sssphase_core.processing.footprints import DotTransportExtractor, dark_reference
 
     plan = session.manifest["plan"]
     frames = [f for f in plan["frames"] if f["kind"] == "dots"]
@@ -46,7 +46,7 @@ def _transport(session: Any, view: int, rv: Any, dtype: type, drop_noise: bool):
 def run(sessions: list[Any], out: Path, progress=None) -> dict[str, Any]:
     """Measure every complete view with kept dot frames and reference captures; writes JSON and Markdown."""
     from sssphase_core.relight import DotTransport, load_view, relight
-    from sssphase_core.relight_eval import relight_metrics
+    from sssphase_core.relight.evaluation import relight_metrics
 
     rows = []
     for s in sessions:

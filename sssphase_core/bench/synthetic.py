@@ -8,7 +8,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from sssphase_core.data import ViewData, sample_pixels, view_seed
+from sssphase_core.learning.data import ViewData, sample_pixels, view_seed
 
 
 def synthetic_views(

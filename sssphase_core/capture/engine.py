@@ -14,7 +14,7 @@ from sssphase_core import __version__
 from sssphase_core.capture.plan import CaptureRequest, RigSpec, build_frames, plan_digest
 from sssphase_core.capture.processing import FrameLike, ViewProcessor, write_sim_ground_truth
 from sssphase_core.errors import InputError
-from sssphase_core.session import Session, check_object_name
+from sssphase_core.store.session import Session, check_object_name
 
 Progress = Callable[[int, int, int], None]  # (view, frames done, frames total)
 

@@ -15,8 +15,8 @@ from sssphase_core import __version__
 from sssphase_core.capture.plan import CaptureRequest, RigSpec
 from sssphase_core.capture.processing import ViewProcessor
 from sssphase_core.errors import InputError
-from sssphase_core.imageio import IMAGE_SUFFIXES, read_frame
-from sssphase_core.session import Session, check_object_name
+from sssphase_core.store.imageio import IMAGE_SUFFIXES, read_frame, read_pattern
+from sssphase_core.store.session import Session, check_object_name
 
 PSP_KEY_RE = re.compile(r"^psp/([xy])/p([0-9]{1,5}(?:\.[0-9]{1,6})?)/s([0-9]{1,2})$")
 DOTS_KEY_RE = re.compile(r"^dots/([0-9]{1,3})_([0-9]{1,3})$")
@@ -57,7 +57,7 @@ def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
 
 def _psp_config(vdir: Path, keys: Iterable[str]) -> Any:
     """The PSP configuration the frame names describe; every (orientation, period) needs shifts 0..N-1."""
-    from sssphase_core.patterns import PSPConfig
+    from sssphase_core.processing.patterns import PSPConfig
 
     sets: dict[tuple[str, float], set[int]] = {}
     for key in keys:
@@ -92,8 +92,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     """
     import shutil
 
-    from sssphase_core.patterns import REFERENCE_NAMES, CapturePlan, _reference_params
-    from sssphase_core.relight import read_pattern
+    from sssphase_core.processing.patterns import REFERENCE_NAMES, CapturePlan, _reference_params
 
     folder = Path(folder)
     if not folder.is_dir():

@@ -11,8 +11,8 @@ from pathlib import Path
 from typing import Any
 
 from sssphase_core.errors import InputError
-from sssphase_core.imageio import read_pattern
-from sssphase_core.session import check_object_name
+from sssphase_core.store.imageio import read_pattern
+from sssphase_core.store.session import check_object_name
 
 DEFAULT_HDR = (0.25, 1.0, 4.0)
 DOT_SPACING_PER_PATCH = 55 / 90  # the paper's 55 px spacing for K = 90 patches
@@ -95,7 +95,7 @@ def build_frames(req: CaptureRequest, size: tuple[int, int], patch: int,
                  gamma: float | None = None) -> tuple[Any, list[dict[str, Any]], int]:
     """The capture plan and the daemon's frame specs (named references by plan, files as images);
     PSP patterns are pre-distorted for the projector's ``gamma`` (default 2.2)."""
-    from sssphase_core.patterns import DEFAULT_GAMMA, REFERENCE_NAMES, capture_plan
+    from sssphase_core.processing.patterns import DEFAULT_GAMMA, REFERENCE_NAMES, capture_plan
 
     named = [r for r in req.references if r in REFERENCE_NAMES]
     files = [Path(r) for r in req.references if r not in REFERENCE_NAMES]

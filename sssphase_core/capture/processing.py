@@ -10,7 +10,7 @@ import numpy as np
 
 from sssphase_core.capture.plan import CaptureRequest, RigSpec
 from sssphase_core.errors import DataError
-from sssphase_core.session import ViewWriter
+from sssphase_core.store.session import ViewWriter
 
 
 class FrameLike(Protocol):
@@ -25,7 +25,7 @@ def develop_frame(data: np.ndarray, rig: RigSpec, exposure: float = 1.0) -> np.n
         return np.asarray(data, np.float32)
     if rig.black_level is None or rig.white_scale is None:
         raise DataError("the camera sends raw frames: set [processing] black_level and white_scale in the rig file")
-    from sssphase_core import isp
+    from sssphase_core.processing import isp
 
     return isp.develop(data, rig.black_level, rig.white_scale * exposure, median=rig.median)
 
@@ -48,7 +48,7 @@ class CropStream:
         self.noise: float | None = None
 
     def add(self, shift_x: int, shift_y: int, frame: np.ndarray) -> None:
-        from sssphase_core.footprints import NOISE_SAMPLE
+        from sssphase_core.processing.footprints import NOISE_SAMPLE
 
         idx, crops = self.extractor.crops(shift_x, shift_y, frame)
         if not len(idx):
@@ -62,12 +62,12 @@ class CropStream:
         self.array.extend(self._dropped(crops))
 
     def _dropped(self, crops: np.ndarray) -> np.ndarray:
-        from sssphase_core.footprints import drop_below_noise
+        from sssphase_core.processing.footprints import drop_below_noise
 
         return drop_below_noise(crops, self.noise) if self.drop_noise and self.noise else crops
 
     def _release(self) -> None:
-        from sssphase_core.footprints import NOISE_SAMPLE, ring_noise
+        from sssphase_core.processing.footprints import NOISE_SAMPLE, ring_noise
 
         held = np.concatenate(self.held) if self.held else np.zeros((0, *self.array.arr.shape[1:]), np.float32)
         self.held = []
@@ -132,7 +132,7 @@ class ViewProcessor:
             self.images[key] = image
 
     def _merge(self, bracket: list[tuple[float, np.ndarray]]) -> np.ndarray:
-        from sssphase_core import isp
+        from sssphase_core.processing import isp
 
         if self.rig.saturation is None:
             raise DataError("HDR needs the rig's saturation level ([processing] saturation in the rig file)")
@@ -140,14 +140,18 @@ class ViewProcessor:
 
     def decode(self) -> Any:
         if self.corr is None:
-            from sssphase_core import psp
+            from sssphase_core.processing import psp
 
             self.corr = psp.decode(self.psp, self.plan.psp, (self.plan.width, self.plan.height))
         return self.corr
 
     def _add_dots(self, key: str, image: np.ndarray) -> None:
         if self.footprints is None:
-            from sssphase_core.footprints import DotGridExtractor, DotTransportExtractor, dark_reference
+            from sssphase_core.processing.footprints import (
+                DotGridExtractor,
+                DotTransportExtractor,
+                dark_reference,
+            )
 
             corr = self.decode()
             self.dark = dark_reference(self.images["black"], self.images["white"])
@@ -194,7 +198,7 @@ def write_sim_ground_truth(writer: ViewWriter, req: CaptureRequest, view: int, f
     """Exact correspondence, material labels and noise-free renders of the references (exact
     footprints are left to ``SimScene.footprints``: they would double the session's size).
     ``options``: the sim rig's options (a projector response other than the preset's, the transport model)."""
-    from sssphase_core.patterns import PlannedFrame
+    from sssphase_core.processing.patterns import PlannedFrame
     from sssphase_core.sim import SimScene, rig_from_options
 
     rig = rig_from_options({"preset": req.preset, **(options or {})})

@@ -18,8 +18,8 @@ One job per module, data flowing one way:
   removed, for 3D (relighting keeps the decoded ones).
 """
 
-from sssphase_core.colour import display_scale, srgb
-from sssphase_core.projector import emitted_light, sample_projector
+from sssphase_core.processing.colour import display_scale, srgb
+from sssphase_core.processing.projector import emitted_light, sample_projector
 from sssphase_core.relight.engine import (
     FOLD_BAND_BYTES,
     FootprintSource,

@@ -12,7 +12,7 @@ import scipy.sparse
 import torch
 
 from sssphase_core.errors import InputError
-from sssphase_core.projector import emitted_light, sample_projector
+from sssphase_core.processing.projector import emitted_light, sample_projector
 
 #: Produces the (N, K, K, 3) footprints of camera pixels given as (N, 2) int (y, x).
 FootprintSource = Callable[[np.ndarray], "np.ndarray | torch.Tensor"]

@@ -1,4 +1,4 @@
-"""Relit images out (16-bit linear PNG, float32 EXR, a display PNG); patterns in: :mod:`sssphase_core.imageio`."""
+"""Relit images out (16-bit linear PNG, float32 EXR, a display PNG); patterns in: :mod:`sssphase_core.store.imageio`."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ from pathlib import Path
 
 import numpy as np
 
-from sssphase_core.colour import display_scale, srgb
 from sssphase_core.errors import InputError
-from sssphase_core.imageio import RESIZE_MODES, read_pattern
+from sssphase_core.processing.colour import display_scale, srgb
+from sssphase_core.store.imageio import RESIZE_MODES, read_pattern
 
 __all__ = ["IMAGE_FORMATS", "RESIZE_MODES", "check_image_formats", "read_pattern", "write_images"]
 
@@ -33,7 +33,7 @@ def write_images(stem: Path | str, image: np.ndarray, *, scale: float | None = N
     """
     import cv2
 
-    from sssphase_core import exr
+    from sssphase_core.store import exr
 
     check_image_formats(formats)
     stem = Path(stem)

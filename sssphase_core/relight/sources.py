@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from sssphase_core.errors import InputError
-from sssphase_core.isp import SATURATION_MARGIN
+from sssphase_core.processing.isp import SATURATION_MARGIN
 from sssphase_core.relight.engine import FootprintSource
 from sssphase_core.relight.views import RelightView
 
@@ -40,7 +40,7 @@ class DotTransport:
         """Denoised crops (n, K, K, 3) float32 of ``rows`` (ascending, as :meth:`lit` gives them)."""
         if len(rows) == 0:
             return np.zeros((0, *self.crops.shape[1:]), np.float32)  # type: ignore[attr-defined]
-        from sssphase_core.footprints import above_noise
+        from sssphase_core.processing.footprints import above_noise
 
         lo, hi = int(rows.min()), int(rows.max()) + 1
         if hi - lo <= 4 * len(rows) or not hasattr(self.crops, "oindex"):  # one contiguous read of the chunks
@@ -71,7 +71,7 @@ def backend_source(backend: object, psp: np.ndarray, chunk: int = 256) -> Footpr
     """Footprints predicted by a model backend from the (N, 24, K, K) PSP patches of the asked pixels,
     cropped from the view's stack padded once (a 1080p stack is 200 MB) and given to
     ``predict_footprints`` ``chunk`` at a time (a K = 90 patch is 0.8 MB, and backends work on copies)."""
-    from sssphase_core.data import crop_patches, pad_for_patches, to_channels_first
+    from sssphase_core.learning.data import crop_patches, pad_for_patches, to_channels_first
 
     k = int(backend.patch)  # type: ignore[attr-defined]
     stack = pad_for_patches(to_channels_first(np.asarray(psp, np.float32)), k)
@@ -179,7 +179,7 @@ class FootprintCache:
             return
         index = np.flatnonzero(self.slot >= 0)
         index = index[np.argsort(self.slot[index])]
-        from sssphase_core.files import atomic_path
+        from sssphase_core.store.files import atomic_path
 
         with atomic_path(self.path, ".npz") as tmp:
             np.savez_compressed(tmp, data=self.data[: self.size], index=index, shape=np.asarray(self.shape),
@@ -206,7 +206,7 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
     if name == "measured":  # the session's own captured dot-grid crops, simulated or not
         arrays = rv.session.arrays(rv.view)  # type: ignore[attr-defined]
         if "transport/crops" in arrays:  # one crop per projector dot: the captured light transport itself
-            from sssphase_core.footprints import ring_noise
+            from sssphase_core.processing.footprints import ring_noise
 
             crops = rv.session.read(rv.view, "transport/crops")  # type: ignore[attr-defined]
             info = rv.session.manifest["views"][str(rv.view)].get("transport", {})  # type: ignore[attr-defined]
@@ -218,13 +218,13 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
                                 crops, noise), int(crops.shape[1])
         if "footprints/crops" not in arrays:
             raise InputError(f"{rv.object} view {rv.view} has no captured footprints: capture with --footprints")
-        from sssphase_core.footprints import transport_weights
+        from sssphase_core.processing.footprints import transport_weights
 
         px = np.asarray(rv.session.load(rv.view, "footprints/pixels"), np.int64)  # type: ignore[attr-defined]
         crops = rv.session.read(rv.view, "footprints/crops")  # type: ignore[attr-defined]
         weights = transport_weights(px, rv.proj.xp, rv.proj.yp, rv.proj.mask)
         return nearest_measured_source(px, crops, rv.white, weights), int(crops.shape[1])
-    from sssphase_core.backends import get_backend
+    from sssphase_core.learning.backends import get_backend
 
     if name == "torch":
         if checkpoint is None:
@@ -394,7 +394,7 @@ def model_inputs(rv: RelightView) -> tuple[np.ndarray, np.ndarray]:
         if rv.saturation is None:
             cached = rv.psp, np.zeros(rv.psp.shape[1:3], bool)
         else:
-            from sssphase_core.psp import declip
+            from sssphase_core.processing.psp import declip
 
             cached = declip(rv.psp, rv.saturation, white=rv.white, white_saturation=rv.white_saturation, black=rv.proj.black)
         rv._model_inputs = cached

@@ -59,8 +59,8 @@ class RelightView:
 
 
 def load_view(session: object, view: int) -> RelightView:
-    """Read one complete view of a :class:`sssphase_core.session.Session` for relighting."""
-    from sssphase_core.patterns import PlannedFrame
+    """Read one complete view of a :class:`sssphase_core.store.session.Session` for relighting."""
+    from sssphase_core.processing.patterns import PlannedFrame
 
     m = session.manifest  # type: ignore[attr-defined]
     if view not in session.views():  # type: ignore[attr-defined]
@@ -114,7 +114,7 @@ def finest_psp_period(plan: dict) -> float | None:
 def paper_input_patterns(plan: dict) -> np.ndarray | None:
     """(8, Hp, Wp) projector images of a plan's 8 paper inputs (the finest period, x shifts then y shifts),
     the patterns under which a session's ``psp`` stack was captured; None when the plan has no such set."""
-    from sssphase_core.patterns import PlannedFrame
+    from sssphase_core.processing.patterns import PlannedFrame
 
     frames = [f for f in plan.get("frames", []) if f.get("kind") == "psp"]
     finest = finest_psp_period(plan)

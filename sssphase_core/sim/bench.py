@@ -14,7 +14,7 @@ from sssphase_core.sim.scene import SimScene
 
 
 def _psp_and_white(width: int, height: int) -> np.ndarray:
-    from sssphase_core.patterns import paper_inputs, psp_config_for
+    from sssphase_core.processing.patterns import paper_inputs, psp_config_for
 
     pats = paper_inputs(width, height, period=psp_config_for(width, height).period)
     return np.concatenate([pats, np.ones((1, height, width), np.float32)])

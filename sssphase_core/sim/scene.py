@@ -7,7 +7,7 @@ from collections.abc import Callable
 import numpy as np
 
 from sssphase_core.errors import InputError
-from sssphase_core.projector import sample_projector
+from sssphase_core.processing.projector import sample_projector
 from sssphase_core.sim import geometry as g
 from sssphase_core.sim.materials import burley_scale
 from sssphase_core.sim.objects import SimObject, get_object
@@ -209,7 +209,7 @@ class SimScene:
     def sense_noise_free(self, images: np.ndarray, exposure: float = 1.0) -> np.ndarray:
         """Noise-free images (P, H, W, 3) through the camera without its noise: Bayer sampling, clipping
         and the ISP (demosaicing), what the camera would record on average. Evaluation only."""
-        from sssphase_core import isp
+        from sssphase_core.processing import isp
         from sssphase_core.sim.sensor import expose_noise_free
 
         sensor = self.rig.sensor
@@ -220,7 +220,7 @@ class SimScene:
 
     def sense(self, images: np.ndarray, rng: np.random.Generator, exposure: float = 1.0, raw: bool = False) -> np.ndarray:
         """Noise-free images (P, H, W, 3) through the sensor: raw Bayer frames, or developed by the ISP."""
-        from sssphase_core import isp
+        from sssphase_core.processing import isp
 
         sensor = self.rig.sensor
         frames = expose(images, sensor, rng, exposure)

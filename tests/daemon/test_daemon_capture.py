@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sssphase_core import session as session_mod
 from sssphase_core.capture import DEFAULT_HDR, CaptureRequest, RigSpec, import_folder, run_capture
 from sssphase_core.errors import DataError, InputError
-from sssphase_core.session import Session
+from sssphase_core.store import session as session_mod
+from sssphase_core.store.session import Session
 
 VIEWS = 2
 OBJECT = "apple"
@@ -196,7 +196,7 @@ def test_footprints_stream_into_crops_and_raw_dots_on_request(daemon, tmp_path):
 def test_import_from_a_folder_of_images(tmp_path):
     import cv2
 
-    from sssphase_core.patterns import capture_plan
+    from sssphase_core.processing.patterns import capture_plan
     from sssphase_core.sim import SimScene
 
     scene = SimScene("orange")
@@ -286,7 +286,7 @@ def test_a_colour_reference_file_is_captured_and_evaluated_with_the_named_ones(d
     from PIL import Image
 
     from sssphase_core.relight import load_view
-    from sssphase_core.relight_eval import evaluate_view
+    from sssphase_core.relight.evaluation import evaluate_view
 
     yy, xx = np.mgrid[:192, :256]
     logo = np.stack([(xx % 64 < 32) * 255, (yy % 48 < 24) * 255, np.full_like(xx, 128)], -1).astype(np.uint8)

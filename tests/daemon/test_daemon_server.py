@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 import zmq
 
-from sssphase_core.patterns import capture_plan
+from sssphase_core.processing.patterns import capture_plan
 from sssphase_daemon import protocol, security
 from sssphase_daemon.client import DaemonClient, DaemonError
 

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from sssphase_core.bench.synthetic import synthetic_views
-from sssphase_core.data import PatchDataset
-from sssphase_core.models.presets import ModelPreset
+from sssphase_core.learning.data import PatchDataset
+from sssphase_core.learning.models.presets import ModelPreset
 
 TINY = ModelPreset(name="tiny", patch=16, in_channels=24, stem=8, stages=(8, 12, 16), bottleneck=32, dropout=0.2,
                    proj_hidden=32, proj_dim=32, pred_hidden=8, decoder=(16, 12, 8, 8), attention=4)
@@ -40,7 +40,7 @@ def dataset(synthetic) -> PatchDataset:
 @pytest.fixture(scope="session")
 def pretrained(dataset, tiny, tmp_path_factory):
     """A tiny SimSiam run (2 epochs) on the synthetic dataset."""
-    from sssphase_core.training import PretrainConfig, pretrain
+    from sssphase_core.learning.training import PretrainConfig, pretrain
 
     out = tmp_path_factory.mktemp("pre") / "run"
     pretrain(PretrainConfig(epochs=2, batch_size=16, ckpt_every=3, warmup_epochs=1), dataset, out, preset=tiny, progress=False)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from sssphase_core import augment as A
+from sssphase_core.learning import augment as A
 
 
 def stack_of_identical(b: int = 6, k: int = 16) -> torch.Tensor:

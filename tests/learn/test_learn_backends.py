@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sssphase_core.backends import FootprintBackend, available_backends, get_backend
-from sssphase_core.backends.analytic_backend import AnalyticBackend
 from sssphase_core.bench.synthetic import synthetic_views
-from sssphase_core.data import psp_patches
 from sssphase_core.errors import InputError
-from sssphase_core.evaluation import footprint_metrics, summarise
+from sssphase_core.learning.backends import FootprintBackend, available_backends, get_backend
+from sssphase_core.learning.backends.analytic_backend import AnalyticBackend
+from sssphase_core.learning.data import psp_patches
+from sssphase_core.learning.evaluation import footprint_metrics, summarise
 
 
 @pytest.fixture(scope="module")
@@ -78,7 +78,7 @@ def test_backend_hookspec_is_loaded_by_the_plugin_manager():
 
     pm = build_plugin_manager()
     assert hasattr(pm.hook, "sssphase_model_backends")
-    import sssphase_core.backends as builtin
+    import sssphase_core.learning.backends as builtin
 
     if not pm.is_registered(builtin):
         pm.register(builtin, name="builtin-test")
@@ -89,14 +89,14 @@ def test_backend_hookspec_is_loaded_by_the_plugin_manager():
 def test_a_plugin_backend_reaches_core_through_the_plugin_manager(tmp_path, monkeypatch):
     """Core does not import the plugin layer: the manager hands it the plugins' backends when loaded."""
     (tmp_path / "my_backend_plugin.py").write_text(
-        "from sssphase_core.backends import hookimpl\n"
-        "from sssphase_core.backends.analytic_backend import AnalyticBackend\n"
+        "from sssphase_core.learning.backends import hookimpl\n"
+        "from sssphase_core.learning.backends.analytic_backend import AnalyticBackend\n"
         "@hookimpl\n"
         "def sssphase_model_backends():\n"
         "    return {'mine': lambda **o: AnalyticBackend(patch=8, **o)}\n")
     monkeypatch.syspath_prepend(str(tmp_path))
     monkeypatch.setenv("SSS_PLUGINS", "my_backend_plugin")
-    from sssphase_core import backends
+    from sssphase_core.learning import backends
     from sssphase_plugins import manager
 
     try:
@@ -115,12 +115,12 @@ def test_loading_the_backend_registry_does_not_import_torch():
     import subprocess
     import sys
 
-    code = "import sys, sssphase_core.backends as b; b.sssphase_model_backends(); print('torch' in sys.modules)"
+    code = "import sys, sssphase_core.learning.backends as b; b.sssphase_model_backends(); print('torch' in sys.modules)"
     assert subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip() == "False"
 
 
 def test_torch_backend_fits_and_predicts(dataset, tiny, tmp_path, synthetic):
-    from sssphase_core.training import DecoderConfig, PretrainConfig
+    from sssphase_core.learning.training import DecoderConfig, PretrainConfig
 
     views = synthetic[0]
     be = get_backend("torch")

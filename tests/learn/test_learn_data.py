@@ -7,7 +7,8 @@ import pytest
 import torch
 
 from sssphase_core.bench.synthetic import synthetic_views
-from sssphase_core.data import (
+from sssphase_core.errors import DataError, InputError
+from sssphase_core.learning.data import (
     PatchDataset,
     ViewData,
     crop_patches,
@@ -16,7 +17,6 @@ from sssphase_core.data import (
     split_by_object,
     split_by_view,
 )
-from sssphase_core.errors import DataError, InputError
 
 
 def test_crop_centres_the_pixel_and_zero_pads_outside():
@@ -90,7 +90,7 @@ def test_footprints_are_read_lazily_from_chunked_arrays(synthetic, tmp_path):
 
 
 def test_session_views_stream_footprints_from_the_store(synthetic, tmp_path, monkeypatch):
-    session = pytest.importorskip("sssphase_core.session")
+    session = pytest.importorskip("sssphase_core.store.session")
     v = synthetic[0][0]
     s = session.Session.create(tmp_path, "obj")
     w = s.begin_view(0)
@@ -101,7 +101,7 @@ def test_session_views_stream_footprints_from_the_store(synthetic, tmp_path, mon
     w.write("footprints/pixels", v.pixels.astype(np.int32))
     w.write("footprints/crops", np.asarray(v.footprints) * np.arange(1, len(v.pixels) + 1)[:, None, None, None])
     w.commit()
-    from sssphase_core.data import session_views
+    from sssphase_core.learning.data import session_views
 
     (vd,) = session_views(tmp_path, footprints=True, pixels_per_view=20, seed=0)
     assert vd.object == "obj" and len(vd.pixels) == 20 and (vd.materials == -1).all()
@@ -111,7 +111,7 @@ def test_session_views_stream_footprints_from_the_store(synthetic, tmp_path, mon
     expect = np.asarray(v.footprints)[rows] * (np.array(rows) + 1)[:, None, None, None]
     assert np.allclose(b["footprint"].numpy(), expect.transpose(0, 3, 1, 2))
     assert isinstance(vd.footprints, np.ndarray)  # a few rows: read once, not whole chunks per batch
-    import sssphase_core.data as data
+    import sssphase_core.learning.data as data
 
     monkeypatch.setattr(data, "ROWS_IN_MEMORY_BYTES", 0)  # a paper-scale view: rows stay in the store
     (lazy,) = session_views(tmp_path, footprints=True, pixels_per_view=20, seed=0)
@@ -125,7 +125,7 @@ def test_session_views_stream_footprints_from_the_store(synthetic, tmp_path, mon
 
 
 def test_a_stack_padded_once_gives_the_same_patches():
-    from sssphase_core.data import crop_patches, pad_for_patches
+    from sssphase_core.learning.data import crop_patches, pad_for_patches
 
     stack = torch.rand(24, 17, 23)
     pixels = np.array([[0, 0], [16, 22], [8, 11], [3, 20]])

@@ -20,8 +20,8 @@ SCRIPT = textwrap.dedent(
     sys.path.insert(0, os.environ["LEARN_TESTS"])
     from conftest import TINY
     from sssphase_core.bench.synthetic import synthetic_views
-    from sssphase_core.data import PatchDataset
-    from sssphase_core.training import DecoderConfig, PretrainConfig, pretrain, train_decoder
+    from sssphase_core.learning.data import PatchDataset
+    from sssphase_core.learning.training import DecoderConfig, PretrainConfig, pretrain, train_decoder
 
     out = Path(sys.argv[1])
     views, _ = synthetic_views(("a", "b"), (0, 1), size=(48, 48), patch=16, pixels_per_view=64)

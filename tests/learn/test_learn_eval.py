@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from sssphase_core.errors import InputError
-from sssphase_core.evaluation import (
+from sssphase_core.learning.evaluation import (
     embed_pixels,
     footprint_metrics,
     knn_leave_one_view_out,
@@ -16,8 +16,8 @@ from sssphase_core.evaluation import (
     pca_rgb,
     summarise,
 )
-from sssphase_core.figures import plot_metric_vs_time, plot_profiles
-from sssphase_core.models import Encoder
+from sssphase_core.learning.models import Encoder
+from sssphase_core.reporting.figures import plot_metric_vs_time, plot_profiles
 
 
 def clusters(n: int = 400, d: int = 8, noise: float = 0.3, seed: int = 0):
@@ -95,7 +95,7 @@ def test_embed_pixels_matches_a_direct_forward(tiny, synthetic):
     enc = Encoder(tiny).eval()
     v = synthetic[0][0]
     emb = embed_pixels(enc, v.psp, v.pixels[:10], batch_size=4)
-    from sssphase_core.data import psp_patches
+    from sssphase_core.learning.data import psp_patches
 
     with torch.no_grad():
         direct = enc(torch.as_tensor(psp_patches(v.psp, v.pixels[:10], 16))).numpy()
@@ -123,7 +123,7 @@ def test_throughput_measure_reports_rates_and_sizes():
 def test_knn_of_views_is_the_leave_one_view_out_table_of_every_pixel(synthetic, tiny):
     """The one function the CLI and the demo share: embeddings of every pixel of every view, labelled by
     object (or material) and held out by view."""
-    from sssphase_core.evaluation import knn_of_views
+    from sssphase_core.learning.evaluation import knn_of_views
 
     views = synthetic[0]
     torch.manual_seed(0)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from sssphase_core import losses as L
+from sssphase_core.learning import losses as L
 
 TERMS = [L.l1_term, L.log_term, L.ssim_term, L.grad_term, L.wmse_term]
 

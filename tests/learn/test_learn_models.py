@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from sssphase_core.errors import InputError
-from sssphase_core.models import Decoder, Encoder, SimSiam, get_preset
-from sssphase_core.models.decoder import UpStage
+from sssphase_core.learning.models import Decoder, Encoder, SimSiam, get_preset
+from sssphase_core.learning.models.decoder import UpStage
 
 
 def n_params(m: torch.nn.Module) -> int:

@@ -6,16 +6,16 @@ import numpy as np
 import pytest
 import torch
 
-from sssphase_core.data import psp_patches
-from sssphase_core.models import Decoder, Encoder
-from sssphase_core.models.physics import (
+from sssphase_core.learning.data import psp_patches
+from sssphase_core.learning.models import Decoder, Encoder
+from sssphase_core.learning.models.physics import (
     N_FEATURES,
     RadialProfile,
     RingAverage,
     modulation_features,
     white_from_psp,
 )
-from sssphase_core.training import (
+from sssphase_core.learning.training import (
     DecoderConfig,
     TrainingDiverged,
     load_checkpoint,
@@ -115,7 +115,7 @@ def test_direct_head_checkpoints_round_trip(pretrained, dataset, tmp_path):
 
 
 def test_a_diverging_loss_stops_training_with_the_last_good_checkpoint(pretrained, dataset, tmp_path, monkeypatch):
-    import sssphase_core.training as training
+    import sssphase_core.learning.training as training
 
     cfg = DecoderConfig(epochs=2, batch_size=16, ckpt_every=0)
     train_decoder(DecoderConfig(epochs=1, batch_size=16, ckpt_every=0), pretrained, dataset, tmp_path / "dec", progress=False)

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from sssphase_core.models import get_preset
-from sssphase_core.training import (
+from sssphase_core.learning.models import get_preset
+from sssphase_core.learning.training import (
     CHECKPOINT,
     METRICS,
     DecoderConfig,
@@ -86,9 +86,9 @@ def test_collapse_stops_training_with_a_clear_message(dataset, tiny, tmp_path):
 
 
 def test_knn_monitor_is_logged_every_epoch_and_measures_the_right_patches(pretrained, dataset):
-    from sssphase_core.data import PatchDataset
-    from sssphase_core.evaluation import knn_leave_one_view_out
-    from sssphase_core.training import _knn_monitor_indices, knn_monitor
+    from sssphase_core.learning.data import PatchDataset
+    from sssphase_core.learning.evaluation import knn_leave_one_view_out
+    from sssphase_core.learning.training import _knn_monitor_indices, knn_monitor
 
     rows = [json.loads(line) for line in (pretrained / METRICS).read_text().splitlines()]
     assert len(rows) == PRE.epochs and all(0.0 <= r["knn_acc"] <= 1.0 for r in rows)
@@ -167,7 +167,7 @@ def test_decoder_resume_is_exact(pretrained, dataset, tmp_path):
 
 
 def test_end_to_end_baseline_trains_the_encoder_too(dataset, tiny, tmp_path):
-    from sssphase_core.models import Encoder
+    from sssphase_core.learning.models import Encoder
 
     cfg = DecoderConfig(epochs=1, batch_size=16, ckpt_every=0)
     train_decoder(cfg, None, dataset, tmp_path / "e2e", progress=False, preset=tiny)
@@ -215,7 +215,7 @@ def test_resume_refuses_another_preset(pretrained, dataset):
 
 
 def test_best_checkpoint_is_the_best_monitored_epoch_and_what_a_run_folder_loads(pretrained):
-    from sssphase_core.training import BEST, resolve_checkpoint
+    from sssphase_core.learning.training import BEST, resolve_checkpoint
 
     rows = [json.loads(line) for line in (pretrained / METRICS).read_text().splitlines()]
     assert all("knn_acc" in r for r in rows)
@@ -228,7 +228,7 @@ def test_best_checkpoint_is_the_best_monitored_epoch_and_what_a_run_folder_loads
 
 
 def test_decoder_keeps_the_epoch_with_the_lowest_validation_loss(pretrained, dataset, tmp_path, monkeypatch):
-    import sssphase_core.training as training
+    import sssphase_core.learning.training as training
 
     losses = iter([0.5, 0.2, 0.4])  # epoch 2 is the best, epoch 3 is the last
     monkeypatch.setattr(training.decoder, "validate_decoder", lambda *a, **k: {"val_loss": next(losses), "val_mse": 1e-4,
@@ -241,7 +241,7 @@ def test_decoder_keeps_the_epoch_with_the_lowest_validation_loss(pretrained, dat
 
 
 def test_noise_floor_of_footprints_and_the_log_offset_it_sets(pretrained, dataset, tmp_path):
-    from sssphase_core.losses import LOG_EPS, noise_floor
+    from sssphase_core.learning.losses import LOG_EPS, noise_floor
 
     rng = np.random.default_rng(0)
     clean = torch.zeros(64, 3, 16, 16)
@@ -269,7 +269,7 @@ class _Pickled:  # torch.save pickles this; weights_only loading must refuse it
 ])
 def test_bad_checkpoints_are_refused_with_one_clear_line(tmp_path, content, expected):
     from sssphase_core.errors import DataError
-    from sssphase_core.training import load_encoder
+    from sssphase_core.learning.training import load_encoder
 
     path = tmp_path / "bad.pt"
     if content is None:
@@ -286,7 +286,7 @@ def test_bad_checkpoints_are_refused_with_one_clear_line(tmp_path, content, expe
 
 def test_a_checkpoint_whose_weights_do_not_fit_its_preset_is_refused(pretrained, tmp_path):
     from sssphase_core.errors import DataError
-    from sssphase_core.training import load_encoder
+    from sssphase_core.learning.training import load_encoder
 
     ckpt = load_checkpoint(pretrained)
     ckpt["encoder"] = {k: v[..., :1] if v.ndim else v for k, v in ckpt["encoder"].items()}

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sssphase_core.bench.psp_bench import synthetic_frames
-from sssphase_core.patterns import PSPConfig
+from sssphase_core.processing.patterns import PSPConfig
 
 
 def affine_map(shape: tuple[int, int], scale: float = 0.9, offset: tuple[float, float] = (7.3, 4.1), shear: float = 0.05):

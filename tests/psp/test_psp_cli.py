@@ -78,7 +78,7 @@ def _captures_of(pat_dir, scale: float):
 def test_decode_reads_exr_in_the_patterns_folder_layout_and_never_calls_float_light_saturated(tmp_path):
     """Frames as `sss patterns` lays them out (``psp/x/p20/s0``), written as EXR with values above 1:
     EXR has no top code, so bright light decodes; the same light in 8-bit PNGs clips and is refused."""
-    from sssphase_core import exr
+    from sssphase_core.store import exr
 
     if not exr.available():
         pytest.skip("OpenEXR is not installed")

@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from sssphase_core.errors import InputError
-from sssphase_core.psp import declip
+from sssphase_core.processing.psp import declip
 from sssphase_core.relight import energy_from_white, white_usable
-from sssphase_core.session import clip_levels
+from sssphase_core.store.session import clip_levels
 
 SHIFTS = np.arange(4) * np.pi / 2
 
@@ -110,7 +110,7 @@ def test_clip_levels_follow_the_exposures_of_the_plan():
 
 
 def test_training_reads_the_same_repaired_fringes_as_relighting(scene):
-    from sssphase_core.data import repaired_psp
+    from sssphase_core.learning.data import repaired_psp
 
     a, b, phi = scene
     true = fringes(a, b, phi)

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from sssphase_core.errors import InputError
-from sssphase_core.patterns import PSPConfig, capture_plan, psp_config_for
-from sssphase_core.psp import Reason, decode, modulation_ratio, wrapped_phase
+from sssphase_core.processing.patterns import PSPConfig, capture_plan, psp_config_for
+from sssphase_core.processing.psp import Reason, decode, modulation_ratio, wrapped_phase
 
 CFG = PSPConfig(period=10, n_shifts=4, unwrap_periods=(180, 50))
 PHASE_TOL = 3e-4  # documented arctangent accuracy (cv2.phase: 1.7e-4 rad) plus float32 rounding

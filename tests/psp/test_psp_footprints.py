@@ -7,8 +7,8 @@ import pytest
 from scipy.ndimage import convolve
 
 from sssphase_core.errors import InputError
-from sssphase_core.footprints import DotGridExtractor
-from sssphase_core.patterns import dot_grid
+from sssphase_core.processing.footprints import DotGridExtractor
+from sssphase_core.processing.patterns import dot_grid
 
 K = 9
 SPACING = 10  # wider than the 9-px kernel: neighbouring dots' footprints do not overlap
@@ -167,7 +167,7 @@ def test_neighbouring_dots_are_cut_from_a_crop():
 
 
 def test_jacobian_area_of_an_affine_map_and_at_a_depth_edge():
-    from sssphase_core.footprints import jacobian_area
+    from sssphase_core.processing.footprints import jacobian_area
 
     yy, xx = np.mgrid[:20, :30].astype(np.float32)
     area = jacobian_area(1.5 * xx + 0.2 * yy, 0.1 * xx + 0.8 * yy)
@@ -178,7 +178,7 @@ def test_jacobian_area_of_an_affine_map_and_at_a_depth_edge():
 
 
 def test_dark_reference_is_unbiased_and_far_less_noisy():
-    from sssphase_core.footprints import dark_reference
+    from sssphase_core.processing.footprints import dark_reference
 
     rng = np.random.default_rng(0)
     yy, xx = np.mgrid[:96, :128].astype(np.float32)
@@ -194,7 +194,7 @@ def test_dark_reference_is_unbiased_and_far_less_noisy():
 def test_transport_weights_count_each_dot_once():
     """Camera finer than the projector (|det J| = 0.25): 4 pixels round to each dot, each stores the dot's
     response x 0.25; the weights 1 / (n |det J|) = 1 make the 4 copies sum to the response once."""
-    from sssphase_core.footprints import transport_weights
+    from sssphase_core.processing.footprints import transport_weights
 
     yy, xx = np.mgrid[:16, :16].astype(np.float32)
     xp, yp = 0.5 * xx + 0.1, 0.5 * yy + 0.1  # camera pixels 2x and 2x+1 round to projector pixel x
@@ -224,7 +224,7 @@ def _coarse_camera(h=24, w=32, scale=2):
 
 
 def test_the_transport_keeps_every_dot_where_the_camera_is_coarser_than_the_projector():
-    from sssphase_core.footprints import DotTransportExtractor
+    from sssphase_core.processing.footprints import DotTransportExtractor
     from sssphase_core.relight import DotTransport, Projection, relight
 
     xp, yp, mask, camera, (wp, hp) = _coarse_camera()
@@ -246,7 +246,7 @@ def test_the_transport_keeps_every_dot_where_the_camera_is_coarser_than_the_proj
 def test_per_camera_pixel_crops_lose_the_dots_between_pixel_centres():
     """Why the measured backend relights from the per-dot transport: the per-pixel crops store one
     dot per camera pixel, so where a pixel sees four their weighted sum misses three of them."""
-    from sssphase_core.footprints import transport_weights
+    from sssphase_core.processing.footprints import transport_weights
     from sssphase_core.relight import Projection, nearest_measured_source, relight
 
     xp, yp, mask, camera, (wp, hp) = _coarse_camera()
@@ -267,8 +267,8 @@ def test_streamed_crops_in_a_session_equal_the_extractors_own(tmp_path):
     """The capture writes crops to the session as dot frames arrive (bounded memory at 1080p, K = 90):
     in arrival order, float16, their pixels (and dots) in the same order, checksummed like any array."""
     from sssphase_core.capture import CropStream
-    from sssphase_core.footprints import DotTransportExtractor
-    from sssphase_core.session import Session, array_checksum
+    from sssphase_core.processing.footprints import DotTransportExtractor
+    from sssphase_core.store.session import Session, array_checksum
 
     h, w = 30, 40
     xp, yp, mask, frame = _scene(h, w)

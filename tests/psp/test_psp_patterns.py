@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from sssphase_core.errors import InputError
-from sssphase_core.patterns import (
+from sssphase_core.processing.patterns import (
     PSPConfig,
     capture_plan,
     checkerboard,

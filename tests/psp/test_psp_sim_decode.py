@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sssphase_core.patterns import psp_config_for
+from sssphase_core.processing.patterns import psp_config_for
 
 
 def test_sim_star_decodes_to_exact_correspondences():
     sim = pytest.importorskip("sssphase_core.sim")
     from sssphase_core.bench.psp_bench import _SimFringes, correspondence_errors
-    from sssphase_core.psp import decode
+    from sssphase_core.processing.psp import decode
 
     fringes = _SimFringes(sim.SimScene("star"))
     size = (fringes.wp, fringes.hp)

@@ -7,8 +7,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from sssphase_core.patterns import PSPConfig, period_ladder, psp_key
-from sssphase_core.psp import Reason, decode, wrapped_phase
+from sssphase_core.processing.patterns import PSPConfig, period_ladder, psp_key
+from sssphase_core.processing.psp import Reason, decode, wrapped_phase
 
 CFG = PSPConfig(period=10, n_shifts=4, unwrap_periods=(180, 50))
 PROJ = (160, 120)

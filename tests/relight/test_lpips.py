@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from sssphase_core import lpips
 from sssphase_core.errors import InputError
+from sssphase_core.learning import lpips
 
 
 @pytest.fixture
@@ -40,7 +40,7 @@ def local_weights(tmp_path, monkeypatch):
 
 
 def test_without_weights_lpips_is_skipped_naming_each_missing_file(no_weights, tmp_path):
-    from sssphase_core.relight_eval import lpips_note, relight_metrics
+    from sssphase_core.relight.evaluation import lpips_note, relight_metrics
 
     ok, why = lpips.available()
     assert not ok and lpips.ALEXNET_FILE in why and lpips.LINEAR_FILE in why and str(tmp_path / "torch") in why
@@ -52,8 +52,8 @@ def test_without_weights_lpips_is_skipped_naming_each_missing_file(no_weights, t
 
 
 def test_with_local_weights_lpips_is_a_distance(local_weights):
-    from sssphase_core.evaluation import footprint_metrics
-    from sssphase_core.relight_eval import lpips_note, relight_metrics
+    from sssphase_core.learning.evaluation import footprint_metrics
+    from sssphase_core.relight.evaluation import lpips_note, relight_metrics
 
     rng = np.random.default_rng(1)
     a = rng.random((64, 80, 3)).astype(np.float32) * 0.5

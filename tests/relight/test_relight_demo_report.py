@@ -8,8 +8,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sssphase_core.demo import STEPS, run_demo
-from sssphase_core.session import Session
+from sssphase_core.reporting.demo import STEPS, run_demo
+from sssphase_core.store.session import Session
 
 CHROMIUM = Path("/usr/bin/chromium")
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",

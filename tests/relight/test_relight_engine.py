@@ -123,7 +123,7 @@ def test_write_images_16bit_linear_and_display(tmp_path):
 
 
 def test_exr_output_is_the_linear_image_bit_exact_and_unclipped(tmp_path):
-    from sssphase_core.exr import read_exr
+    from sssphase_core.store.exr import read_exr
 
     rng = np.random.default_rng(3)
     img = (rng.standard_normal((9, 11, 3)) * 2).astype(np.float32)  # negative and far above 1.0

@@ -8,8 +8,8 @@ from typer.testing import CliRunner
 
 from sssphase_cli.main import app
 from sssphase_core.relight import load_view
-from sssphase_core.relight_eval import relight_metrics
-from sssphase_core.session import Session
+from sssphase_core.relight.evaluation import relight_metrics
+from sssphase_core.store.session import Session
 
 runner = CliRunner()
 

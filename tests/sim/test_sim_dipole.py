@@ -160,8 +160,8 @@ def test_decoded_points_are_biased_along_the_baseline_and_the_exact_footprints_r
     from sim_scenes import custom_object
 
     from sssphase_core.bench.psp_bench import _SimFringes
-    from sssphase_core.patterns import psp_config_for
-    from sssphase_core.psp import decode
+    from sssphase_core.processing.patterns import psp_config_for
+    from sssphase_core.processing.psp import decode
     from sssphase_core.relight.engine import Projection
     from sssphase_core.relight.geometry import geometric_correspondence
     from sssphase_core.sim import SimScene, with_transport

@@ -87,8 +87,8 @@ def test_a_randomised_capture_records_its_rig_and_evaluation_rebuilds_it(sim_dae
 @pytest.mark.slow
 def test_the_demo_captures_each_training_object_on_its_own_rig(sim_daemon, tmp_path):
     """`sss demo --randomise-rig`: training sessions carry their draws, and the folder remembers it."""
-    from sssphase_core.demo import Demo, DemoConfig
-    from sssphase_core.session import Session
+    from sssphase_core.reporting.demo import Demo, DemoConfig
+    from sssphase_core.store.session import Session
 
     cfg = DemoConfig(("star", "shovel"), ("sand_rake",), train_views=1)
     demo = Demo(tmp_path, cfg, sim_daemon, log=lambda _: None, randomise_rig=True)

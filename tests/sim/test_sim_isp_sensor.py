@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from sssphase_core import isp
 from sssphase_core.errors import InputError
+from sssphase_core.processing import isp
 from sssphase_core.sim.sensor import SensorConfig, bayer_mosaic, expose
 
 

@@ -1,0 +1,115 @@
+"""A no-learning physics baseline: footprints from the PSP modulation ratios of each pixel.
+
+For a homogeneous neighbourhood, the fringe image is the emitted sinusoid convolved with the
+footprint, so the modulation ratio (B/A) / (B/A)_ideal at a pixel equals the footprint's MTF at
+the local fringe frequency k (radians per camera pixel, measured from the phase gradient in the
+patch), once per orientation and colour channel. With a radial profile family R(r / d) stretched
+by (d_x, d_y) along the camera axes, MTF(k) = G((k_x d_x)^2 + (k_y d_y)^2); the two orientations
+give two linear equations in (d_x^2, d_y^2) per channel (an isotropic width when they are
+degenerate). The footprint's total energy is the pixel's brightness under white, 2 A for a black
+level 0 (A = (black + (1 - black) / 2) * white in general).
+
+Profiles: ``burley`` (Christensen-Burley normalized diffusion, e^{-r/d} + e^{-r/3d} over r,
+G(u) = (1/sqrt(1+u) + 3/sqrt(1+9u)) / 4) or ``exponential`` (e^{-r/d}, G(u) = (1+u)^{-3/2}).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from sssphase_core.learning.backends.base import Query, as_patches
+
+if TYPE_CHECKING:
+    from sssphase_core.learning.data import ViewData
+
+N_SHIFTS = 4
+_MEAN_INV_R = 4 * np.log(1 + np.sqrt(2))  # mean of 1/r over a unit square centred on the pole
+_U = np.logspace(-8, 8, 4000)
+#: Bytes of one supersampled radius grid per render step (the profile makes a few such temporaries).
+RENDER_STEP_BYTES = 128 * 2**20
+_MTF = {
+    "burley": lambda u: 0.25 * (1 / np.sqrt(1 + u) + 3 / np.sqrt(1 + 9 * u)),
+    "exponential": lambda u: (1 + u) ** -1.5,
+}
+_PROFILE = {
+    "burley": lambda r: (np.exp(-r) + np.exp(-r / 3)) / r,
+    "exponential": lambda r: np.exp(-r),
+}
+
+
+class AnalyticBackend:
+    name = "analytic"
+
+    def __init__(self, patch: int = 32, black: float = 0.002, profile: str = "burley", window: int = 2,
+                 supersample: int = 4, chunk: int = 256) -> None:
+        if profile not in _MTF:
+            raise ValueError(f"unknown profile {profile!r} ({', '.join(_MTF)})")
+        self.patch, self.black, self.profile, self.window = patch, black, profile, window
+        self.supersample, self.chunk = supersample, chunk
+
+    def pretrain(self, views: Sequence[ViewData], out_dir: Path, **options: object) -> None:
+        """Nothing to learn."""
+
+    def fit(self, views: Sequence[ViewData], out_dir: Path, **options: object) -> None:
+        """Nothing to learn."""
+
+    def estimate(self, patches: np.ndarray) -> dict[str, np.ndarray]:
+        """Per patch: ``energy`` (N, 3), ``widths`` (N, 3, 2) = (d_x, d_y) in px, ``mtf`` (N, 2, 3),
+        ``freq`` (N, 2, 2) = fringe wave vectors (k_x, k_y) of the x and y orientations."""
+        n, _, k, _ = patches.shape
+        imgs = patches.reshape(n, 2, N_SHIFTS, 3, k, k).astype(np.float64)
+        delta = 2 * np.pi * np.arange(N_SHIFTS) / N_SHIFTS
+        z = np.einsum("nosckl,s->nockl", imgs, np.exp(1j * delta))  # C + iS per orientation, channel
+        c, w = k // 2, self.window
+        amp = imgs[..., c, c].mean(axis=2)  # (N, 2, 3) offset A
+        mod = 2 / N_SHIFTS * np.abs(z[..., c, c])  # (N, 2, 3) amplitude B
+        ideal = (1 - self.black) / (1 + self.black)
+        mtf = np.clip(mod / np.maximum(amp, 1e-12) / ideal, 1e-4, 1.0)
+        zw = z.sum(axis=2)[..., c - w : c + w + 1, c - w : c + w + 1]  # (N, 2, win, win), all channels
+        kx = np.angle((zw[..., :, 1:] * zw[..., :, :-1].conj()).sum(axis=(-2, -1)))
+        ky = np.angle((zw[..., 1:, :] * zw[..., :-1, :].conj()).sum(axis=(-2, -1)))
+        freq = np.stack([kx, ky], axis=-1)  # (N, orientation, axis)
+        u = np.interp(-mtf, -_MTF[self.profile](_U), _U)  # invert the decreasing MTF: (N, 2, 3)
+        widths = self._solve_widths(freq**2, u)
+        energy = amp.mean(axis=1) / (self.black + (1 - self.black) / 2)
+        return {"energy": np.maximum(energy, 0), "widths": widths, "mtf": mtf, "freq": freq}
+
+    def _solve_widths(self, k2: np.ndarray, u: np.ndarray) -> np.ndarray:
+        """Solve k2[o] . (d_x^2, d_y^2) = u[o] per channel; isotropic where the 2x2 system is degenerate."""
+        det = k2[:, 0, 0] * k2[:, 1, 1] - k2[:, 0, 1] * k2[:, 1, 0]
+        norm = k2.sum(axis=2)  # |k_o|^2
+        ok = np.abs(det) > 0.1 * norm[:, 0] * norm[:, 1]
+        inv = np.stack([np.stack([k2[:, 1, 1], -k2[:, 0, 1]], -1), np.stack([-k2[:, 1, 0], k2[:, 0, 0]], -1)], 1)
+        d2 = np.einsum("nao,noc->nca", inv, u) / np.where(ok, det, 1.0)[:, None, None]  # (N, 3, axis)
+        iso = (u.sum(axis=1) / np.maximum(norm.sum(axis=1), 1e-12)[:, None])[..., None]  # (N, 3, 1)
+        d2 = np.where(ok[:, None, None], d2, iso)
+        return np.sqrt(np.clip(d2, 1e-4, (self.patch / 2) ** 2))
+
+    def render(self, energy: np.ndarray, widths: np.ndarray) -> np.ndarray:
+        """(N, K, K, 3) footprints: the profile stretched by ``widths``, pixel-integrated, summing to ``energy``."""
+        k, s = self.patch, self.supersample
+        sub = (np.arange(s) + 0.5) / s - 0.5
+        ax = (np.arange(k) - k // 2)[:, None] + sub[None, :]  # (K, s)
+        out = np.empty((len(energy), k, k, 3), np.float32)
+        # the supersampled radius grid is (n, 3, K s, K s) float64 and the profile makes a few of them:
+        # fewer footprints per step at large K (K = 90, s = 4: 43, not 256, so a step stays ~0.1 GB each)
+        step = max(1, min(self.chunk, RENDER_STEP_BYTES // (3 * (k * s) ** 2 * 8)))
+        for i in range(0, len(energy), step):
+            dx = widths[i : i + step, :, 0][:, :, None, None, None, None]
+            dy = widths[i : i + step, :, 1][:, :, None, None, None, None]
+            r = np.hypot(ax[None, None, :, :, None, None] / dy, ax[None, None, None, None, :, :] / dx)
+            # An odd supersample puts a sample on the 1/r pole: give it the square's mean 1/r instead,
+            # (1/a) * 4 ln(1 + sqrt 2) for a sub-pixel of side a = 1/s (in width-scaled units).
+            r = np.maximum(r, 1.0 / (s * _MEAN_INV_R * np.sqrt(dx * dy)))
+            prof = _PROFILE[self.profile](r).sum(axis=(3, 5))  # (n, 3, K, K)
+            prof /= prof.sum(axis=(2, 3), keepdims=True)
+            out[i : i + step] = (prof * energy[i : i + step, :, None, None]).transpose(0, 2, 3, 1)
+        return out
+
+    def predict_footprints(self, query: Query) -> np.ndarray:
+        est = self.estimate(as_patches(query, self.patch))
+        return self.render(est["energy"], est["widths"])

@@ -1,0 +1,47 @@
+"""The model-backend protocol shared by built-in and third-party backends.
+
+A backend turns PSP observations into per-pixel footprints. ``predict_footprints`` accepts either
+(N, 24, K, K) PSP patches or a (psp (8, H, W, 3), pixels (N, 2) int (y, x)) pair and returns
+(N, K, K, 3) float32 footprints in linear camera units. ``pretrain``/``fit`` train whatever the
+backend learns (no-ops for a physics baseline). This module does not import torch.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
+
+import numpy as np
+
+from sssphase_core.errors import InputError
+
+if TYPE_CHECKING:
+    from sssphase_core.learning.data import ViewData
+
+Query = np.ndarray | tuple[np.ndarray, np.ndarray]
+
+
+@runtime_checkable
+class FootprintBackend(Protocol):
+    name: str
+    patch: int
+
+    def pretrain(self, views: Sequence[ViewData], out_dir: Path, **options: object) -> Path | None: ...
+
+    def fit(self, views: Sequence[ViewData], out_dir: Path, **options: object) -> Path | None: ...
+
+    def predict_footprints(self, query: Query) -> np.ndarray: ...
+
+
+def as_patches(query: Query, patch: int) -> np.ndarray:
+    """(N, 24, K, K) float32 patches from either form of a query."""
+    if isinstance(query, tuple):
+        from sssphase_core.learning.data import psp_patches
+
+        psp, pixels = query
+        return psp_patches(np.asarray(psp, np.float32), np.asarray(pixels), patch)
+    q = np.asarray(query, np.float32)
+    if q.ndim != 4 or q.shape[1] != 24 or q.shape[2] != q.shape[3]:
+        raise InputError(f"PSP patches must be (N, 24, K, K), got {q.shape}")
+    return q

@@ -1,0 +1,81 @@
+"""The paper's method as a backend: SimSiam-pretrained encoder + SBH-trained decoder (torch)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from sssphase_core.errors import InputError
+from sssphase_core.learning.backends.base import Query, as_patches
+from sssphase_core.learning.data import PatchDataset, ViewData
+from sssphase_core.learning.models import ModelPreset, get_preset
+from sssphase_core.learning.training import (
+    DecoderConfig,
+    FootprintNet,
+    PretrainConfig,
+    load_decoder,
+    pretrain,
+    resolve_checkpoint,
+    train_decoder,
+)
+
+
+class TorchBackend:
+    """``checkpoint``: a decoder checkpoint (``sss train decoder``) used by ``predict_footprints``."""
+
+    name = "torch"
+
+    def __init__(self, checkpoint: Path | str | None = None, *, device: str = "cpu", batch_size: int = 128) -> None:
+        self.device, self.batch_size = torch.device(device), batch_size
+        self.checkpoint: Path | None = None
+        self.encoder = self.decoder = None
+        self.patch = 0
+        if checkpoint is not None:
+            self.load(checkpoint)
+
+    def load(self, checkpoint: Path | str) -> None:
+        self.encoder, self.decoder = load_decoder(checkpoint)
+        self.encoder.to(self.device)
+        self.decoder.to(self.device)
+        self.patch = self.encoder.preset.patch
+        self.checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
+
+    def pretrain(self, views: Sequence[ViewData], out_dir: Path, *, config: PretrainConfig | None = None,
+                 preset: ModelPreset | None = None, **options: object) -> Path:
+        """SimSiam pretraining (``preset`` overrides ``config.preset``); returns the checkpoint path."""
+        cfg = config or PretrainConfig()
+        p = preset or get_preset(cfg.preset)
+        ds = PatchDataset(views, p.patch, sorted({v.object for v in views}))
+        return pretrain(cfg, ds, out_dir, preset=p, **options)
+
+    def fit(self, views: Sequence[ViewData], out_dir: Path, *, encoder: Path | str | None, config: DecoderConfig | None = None,
+            val_views: Sequence[ViewData] | None = None, **options: object) -> Path:
+        """Train the decoder on a frozen pretrained ``encoder`` checkpoint, then load the result.
+
+        ``encoder=None`` trains encoder and decoder end-to-end (the U-Net baseline, ``config.preset``).
+        """
+        from sssphase_core.learning.training import decoder_patch
+
+        config = config or DecoderConfig()
+        patch = decoder_patch(encoder, config.preset)
+        classes = sorted({v.object for v in [*views, *(val_views or [])]})
+        ds = PatchDataset(views, patch, classes, with_targets=True)
+        val = PatchDataset(val_views, patch, classes, with_targets=True) if val_views else None
+        path = train_decoder(config, encoder, ds, out_dir, val=val, **options)
+        self.load(path)
+        return path
+
+    @torch.no_grad()
+    def predict_footprints(self, query: Query) -> np.ndarray:
+        if self.decoder is None:
+            raise InputError("the torch backend has no decoder checkpoint: pass checkpoint=... or call fit()")
+        patches = as_patches(query, self.patch)
+        out = []
+        for i in range(0, len(patches), self.batch_size):
+            x = torch.as_tensor(patches[i : i + self.batch_size], device=self.device)
+            pred, _ = FootprintNet(self.encoder, self.decoder)(x)
+            out.append(pred.float().permute(0, 2, 3, 1).cpu())
+        return torch.cat(out).numpy() if out else np.zeros((0, self.patch, self.patch, 3), np.float32)

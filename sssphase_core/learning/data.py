@@ -1,0 +1,353 @@
+"""Patch datasets: 24-channel PSP patches around surface pixels, with footprint targets and labels.
+
+A view is a :class:`ViewData`: its 8 PSP images (8, H, W, 3), the surface pixels used from it, their
+object and material labels and, for decoder training, their footprints (N, K, K, 3), which may be a
+lazily read chunked array (zarr) so that a session's footprints are never all loaded. Views come
+from the simulator (:func:`simulate_views`) or a session directory (:func:`session_views`) (flat
+synthetic scenes with analytic footprints, for `sss bench gpu` and the tests, are in
+:mod:`sssphase_core.bench.synthetic`). Pixel subsets are drawn with seeds
+derived from (seed, object, view), so every run sees the same patches.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import zlib
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from sssphase_core.errors import DataError, InputError
+
+N_PSP = 8
+
+
+@dataclass
+class ViewData:
+    """One view of one object; ``footprints`` (if any) is aligned with ``pixels``."""
+
+    object: str
+    view: int
+    psp: np.ndarray  # (8, H, W, 3) float32
+    pixels: np.ndarray  # (N, 2) int (y, x)
+    materials: np.ndarray  # (N,) int material label, -1 unknown
+    footprints: object | None = None  # (N, K, K, 3) array-like or None
+
+    def __post_init__(self) -> None:
+        if self.psp.ndim != 4 or self.psp.shape[0] != N_PSP or self.psp.shape[-1] != 3:
+            raise DataError(f"{self.object}/view {self.view}: PSP stack must be (8, H, W, 3), got {self.psp.shape}")
+        if self.footprints is not None and self.footprints.shape[0] != len(self.pixels):
+            raise DataError(f"{self.object}/view {self.view}: {self.footprints.shape[0]} footprints for {len(self.pixels)} pixels")
+
+
+def view_seed(seed: int, obj: str, view: int) -> int:
+    """A stable per-(object, view) seed (not Python's salted ``hash``)."""
+    return zlib.crc32(f"{seed}/{obj}/{view}".encode())
+
+
+def sample_pixels(mask: np.ndarray, n: int | None, seed: int) -> np.ndarray:
+    """Up to ``n`` mask pixels (all if None), sorted in raster order, drawn with ``seed``."""
+    pixels = np.argwhere(mask)
+    if n is not None and len(pixels) > n:
+        pick = np.random.default_rng(seed).choice(len(pixels), n, replace=False)
+        pixels = pixels[np.sort(pick)]
+    return pixels.astype(np.int64)
+
+
+def to_channels_first(psp: np.ndarray) -> torch.Tensor:
+    """(8, H, W, 3) -> (24, H, W) tensor with channel ``img * 3 + c``."""
+    t = torch.as_tensor(np.ascontiguousarray(psp, dtype=np.float32))
+    return t.permute(0, 3, 1, 2).reshape(3 * N_PSP, t.shape[1], t.shape[2])
+
+
+def pad_for_patches(stack: torch.Tensor, k: int) -> torch.Tensor:
+    """(C, H, W) -> (C, H + K - 1, W + K - 1) zero-padded so that :func:`crop_patches` needs no padding."""
+    lo = k // 2
+    return torch.nn.functional.pad(stack, (lo, k - 1 - lo, lo, k - 1 - lo))
+
+
+def crop_patches(stack: torch.Tensor, pixels: np.ndarray | torch.Tensor, k: int, *, padded: bool = False) -> torch.Tensor:
+    """(C, H, W) stack -> (N, C, K, K) crops with the pixel at K // 2, zero outside the image.
+
+    ``padded``: ``stack`` is already :func:`pad_for_patches`'s output (a training loader pads each view
+    once instead of copying the whole stack per batch: 1080p stacks are 200 MB)."""
+    source = stack if padded else pad_for_patches(stack, k)
+    pix = torch.as_tensor(pixels, dtype=torch.long)
+    offs = torch.arange(k)
+    ys = (pix[:, 0, None] + offs)[:, :, None].expand(-1, k, k)
+    xs = (pix[:, 1, None] + offs)[:, None, :].expand(-1, k, k)
+    return source[:, ys, xs].permute(1, 0, 2, 3)
+
+
+def psp_patches(psp: np.ndarray, pixels: np.ndarray, k: int, chunk: int = 4096) -> np.ndarray:
+    """(8, H, W, 3) PSP images -> (N, 24, K, K) float32 patches around ``pixels``."""
+    stack = pad_for_patches(to_channels_first(psp), k)
+    return torch.cat([crop_patches(stack, pixels[i : i + chunk], k, padded=True) for i in range(0, len(pixels), chunk)]).numpy()
+
+
+class PatchDataset(torch.utils.data.Dataset):
+    """Patches of several views; items are dicts of tensors (``psp``, ``object``, ``material``, ``view``
+    and ``footprint`` (3, K, K) when ``with_targets``). ``batch(indices)`` builds a batch at once."""
+
+    def __init__(self, views: Sequence[ViewData], patch: int, classes: Sequence[str], *, with_targets: bool = False) -> None:
+        if not views:
+            raise InputError("no views to build a patch dataset from")
+        if with_targets and any(v.footprints is None for v in views):
+            missing = ", ".join(f"{v.object}/{v.view}" for v in views if v.footprints is None)
+            raise DataError(f"no footprints stored for {missing}: decoder training needs captured footprints")
+        unknown = sorted({v.object for v in views} - set(classes))
+        if unknown:
+            raise InputError(f"objects {unknown} are not among the classes {list(classes)}")
+        self.views, self.patch, self.classes, self.with_targets = list(views), patch, list(classes), with_targets
+        self.stacks = [pad_for_patches(to_channels_first(v.psp), patch) for v in self.views]  # padded once
+        counts = np.array([len(v.pixels) for v in self.views])
+        self.offsets = np.concatenate([[0], np.cumsum(counts)])
+        self.view_of = np.repeat(np.arange(len(self.views)), counts)
+        self._labels = {
+            "object": np.repeat([self.classes.index(v.object) for v in self.views], counts),
+            "material": np.concatenate([np.asarray(v.materials, np.int64) for v in self.views]),
+            "view": np.repeat([v.view for v in self.views], counts),
+        }
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        return {k: v[0] for k, v in self.batch(np.array([i])).items()}
+
+    def labels(self, kind: str = "object") -> np.ndarray:
+        """Per-item ``object`` (index into ``classes``), ``material`` label or ``view`` index."""
+        if kind not in self._labels:
+            raise InputError(f"unknown label kind {kind!r} (object, material or view)")
+        return self._labels[kind]
+
+    def batch(self, indices: np.ndarray | torch.Tensor) -> dict[str, torch.Tensor]:
+        idx = np.asarray(indices, dtype=np.int64)
+        vids = self.view_of[idx]
+        out = {k: torch.as_tensor(v[idx]) for k, v in self._labels.items()}
+        out["psp"] = torch.empty(len(idx), 3 * N_PSP, self.patch, self.patch)
+        if self.with_targets:
+            out["footprint"] = torch.empty(len(idx), 3, self.patch, self.patch)
+        for vid in np.unique(vids):
+            sel = np.nonzero(vids == vid)[0]
+            local = idx[sel] - self.offsets[vid]
+            view = self.views[vid]
+            out["psp"][sel] = crop_patches(self.stacks[vid], view.pixels[local], self.patch, padded=True)
+            if self.with_targets:
+                order = np.argsort(local)  # chunked stores read sorted indices fastest
+                fp = torch.as_tensor(_take(view.footprints, local[order]), dtype=torch.float32)
+                out["footprint"][sel[order]] = fp.permute(0, 3, 1, 2)
+        return out
+
+
+def _take(array: object, idx: np.ndarray) -> np.ndarray:
+    """Rows ``idx`` of a numpy or chunked (zarr: ``oindex``) array."""
+    return np.asarray(array.oindex[idx] if hasattr(array, "oindex") else array[idx])
+
+
+def split_by_object(views: Sequence[ViewData], test_objects: Sequence[str]) -> tuple[list[ViewData], list[ViewData]]:
+    """(train, test) with every view of ``test_objects`` in test (unseen objects, as in the paper)."""
+    test = set(test_objects)
+    return [v for v in views if v.object not in test], [v for v in views if v.object in test]
+
+
+def split_by_view(views: Sequence[ViewData], held_out: Sequence[int]) -> tuple[list[ViewData], list[ViewData]]:
+    """(train, test) with the view indices ``held_out`` in test."""
+    held = set(held_out)
+    return [v for v in views if v.view not in held], [v for v in views if v.view in held]
+
+
+# --- sources -----------------------------------------------------------------------------------
+
+
+def _cache_path(cache_dir: Path | None, params: dict) -> Path | None:
+    if cache_dir is None:
+        return None
+    key = hashlib.sha1(json.dumps(params, sort_keys=True).encode()).hexdigest()[:16]
+    return Path(cache_dir) / f"{params['object']}_v{params['view']}_{key}.npz"
+
+
+def _load_cached(path: Path | None, obj: str, view: int) -> ViewData | None:
+    if path is None or not path.exists():
+        return None
+    with np.load(path) as z:
+        fp = z["footprints"] if "footprints" in z.files else None
+        return ViewData(obj, view, z["psp"], z["pixels"], z["materials"], fp)
+
+
+def _save_cached(path: Path | None, vd: ViewData) -> None:
+    if path is None:
+        return
+    from sssphase_core.store.files import atomic_path
+
+    arrays = {"psp": vd.psp, "pixels": vd.pixels, "materials": vd.materials}
+    if vd.footprints is not None:
+        arrays["footprints"] = np.asarray(vd.footprints)
+    with atomic_path(path, ".npz") as tmp:
+        np.savez(tmp, **arrays)
+
+
+def simulate_views(
+    objects: Sequence[str],
+    views: Sequence[int],
+    *,
+    n_views: int = 4,
+    rig: str = "cpu",
+    pixels_per_view: int | None = 2000,
+    footprints: bool = False,
+    noisy_footprints: bool = False,
+    seed: int = 0,
+    cache_dir: Path | str | None = None,
+) -> list[ViewData]:
+    """Render the 8 noisy PSP captures of each (object, view) with the simulated rig.
+
+    Footprint targets are the simulator's exact footprints (plus the capture noise model when
+    ``noisy_footprints``). Results are cached as .npz under ``cache_dir`` keyed by every parameter.
+    """
+    from sssphase_core.processing.patterns import paper_inputs, psp_config_for
+    from sssphase_core.sim import SimScene, get_object, rig_preset
+
+    rig_cfg = rig_preset(rig)
+    out = []
+    for obj in objects:
+        get_object(obj)  # raises UnknownObjectError listing the catalogue
+        for view in views:
+            params = dict(object=obj, view=int(view), n_views=n_views, rig=rig, n=pixels_per_view,
+                          fp=footprints, noisy=noisy_footprints, seed=seed, v=1)
+            path = _cache_path(Path(cache_dir) if cache_dir else None, params)
+            cached = _load_cached(path, obj, int(view))
+            if cached is not None:
+                out.append(cached)
+                continue
+            scene = SimScene(obj, rig=rig_cfg, view=int(view), n_views=n_views, seed=seed)
+            wp, hp = _projector_size(scene)
+            patterns = paper_inputs(wp, hp, period=psp_config_for(wp, hp).period)
+            rng = np.random.default_rng(view_seed(seed, obj, int(view)))
+            psp = np.asarray(scene.capture(patterns, rng), dtype=np.float32)
+            valid = scene.mask & np.isfinite(scene.proj_xy).all(axis=-1)
+            pixels = sample_pixels(valid, pixels_per_view, view_seed(seed + 1, obj, int(view)))
+            materials = _material_labels(scene, pixels)
+            fp = None
+            if footprints:
+                fp = np.asarray(scene.footprints(pixels), dtype=np.float32)
+                if noisy_footprints:
+                    fp = fp + _footprint_noise(scene, fp, rng)
+            vd = ViewData(obj, int(view), psp, pixels, materials, fp)
+            _save_cached(path, vd)
+            out.append(vd)
+    return out
+
+
+def _projector_size(scene: object) -> tuple[int, int]:
+    return int(scene.rig.projector.width), int(scene.rig.projector.height)
+
+
+def _material_labels(scene: object, pixels: np.ndarray) -> np.ndarray:
+    mat = getattr(scene, "material", None)
+    if isinstance(mat, dict):
+        mat = mat.get("label", mat.get("labels"))
+    elif mat is not None and hasattr(mat, "label"):
+        mat = mat.label
+    if mat is None:
+        return np.full(len(pixels), -1, np.int64)
+    return np.asarray(mat)[pixels[:, 0], pixels[:, 1]].astype(np.int64)
+
+
+def _footprint_noise(scene: object, fp: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """One capture's noise on footprints (shot + read noise of the simulated sensor, linear units)."""
+    return (rng.standard_normal(fp.shape) * scene.rig.sensor.noise_std(np.clip(fp, 0, None))).astype(np.float32)
+
+
+#: A view's sampled footprint rows up to this size are read into memory once. A random batch touches
+#: a chunk (hundreds of crops) per row it reads: the lite demo's loader spent 0.14 s per batch of 32.
+ROWS_IN_MEMORY_BYTES = 64 * 2**20
+
+
+class Rows:
+    """Rows ``idx`` of a (possibly chunked, lazily read) array, readable like one: ``shape``, ``[i]``."""
+
+    def __init__(self, array: object, idx: np.ndarray) -> None:
+        self.array, self.idx = array, np.asarray(idx, np.int64)
+        self.shape = (len(self.idx), *array.shape[1:])
+        self.nbytes = int(np.prod(self.shape)) * np.dtype(array.dtype).itemsize  # type: ignore[attr-defined]
+
+    def __len__(self) -> int:
+        return len(self.idx)
+
+    def __getitem__(self, i: np.ndarray) -> np.ndarray:
+        return _take(self.array, self.idx[np.asarray(i)])
+
+    def __array__(self, dtype=None, copy=None) -> np.ndarray:
+        return np.asarray(_take(self.array, self.idx), dtype=dtype)
+
+
+def session_views(
+    root: Path | str,
+    objects: Sequence[str] | None = None,
+    views: Sequence[int] | None = None,
+    *,
+    pixels_per_view: int | None = 2000,
+    footprints: bool = False,
+    seed: int = 0,
+) -> list[ViewData]:
+    """Views of the sessions under ``root`` (one folder per object, see ``sssphase_core.store.session``).
+
+    PSP stacks are loaded per view (8 images, clipped samples repaired: :func:`repaired_psp`).
+    Footprints are read once per view when the sampled rows are small (:data:`ROWS_IN_MEMORY_BYTES`),
+    else they stay in their zarr arrays and are read per batch. With ``footprints`` the pixels are
+    those with captured footprints; otherwise the decoded correspondence mask. Material labels come
+    from ``gt/labels`` when present (simulated sessions), else -1.
+    """
+    from sssphase_core.store.session import list_sessions
+
+    sessions = {s.name: s for s in list_sessions(root)}
+    names = list(objects) if objects else sorted(sessions)
+    missing = [n for n in names if n not in sessions]
+    if missing:
+        raise DataError(f"no session for {missing} under {root} (found: {', '.join(sorted(sessions)) or 'none'})")
+    out = []
+    for name in names:
+        s = sessions[name]
+        for view in s.views() if views is None else views:
+            if view not in s.views():
+                raise DataError(f"session {s.path} has no complete view {view} (its views: "
+                                f"{', '.join(map(str, s.views())) or 'none'}; choose with --views / --val-views)")
+            psp = repaired_psp(s, view)
+            rng_seed = view_seed(seed, name, view)
+            fp = None
+            if footprints:
+                if "footprints/crops" not in s.arrays(view):
+                    raise DataError(f"session {s.path} view {view} has no footprints: capture with --footprints")
+                all_px = s.load(view, "footprints/pixels").astype(np.int64)
+                keep = np.zeros(len(all_px), bool)
+                keep[sample_pixels(np.ones(len(all_px), bool), pixels_per_view, rng_seed)[:, 0]] = True
+                idx = np.flatnonzero(keep)
+                pixels, fp = all_px[idx], Rows(s.read(view, "footprints/crops"), idx)
+                if fp.nbytes <= ROWS_IN_MEMORY_BYTES:  # one sorted read, instead of whole chunks per batch
+                    fp = np.asarray(fp)
+            else:
+                pixels = sample_pixels(s.load(view, "corr/mask").astype(bool), pixels_per_view, rng_seed)
+            labels = s.load(view, "gt/labels") if "gt/labels" in s.arrays(view) else None
+            mats = labels[pixels[:, 0], pixels[:, 1]].astype(np.int64) if labels is not None else np.full(len(pixels), -1)
+            out.append(ViewData(name, int(view), psp, pixels, mats, fp))
+    return out
+
+
+def repaired_psp(session: object, view: int) -> np.ndarray:
+    """A session view's (8, H, W, 3) PSP stack with clipped samples repaired (:func:`psp.declip`) where
+    the session knows its clipping level: what the model backends see when relighting, so training sees it too."""
+    psp = np.asarray(session.load(view, "psp"), np.float32)  # type: ignore[attr-defined]
+    level, white_level = session.clip_levels()  # type: ignore[attr-defined]
+    from sssphase_core.processing.isp import SATURATION_MARGIN
+    from sssphase_core.processing.psp import declip
+
+    if level is None or not (psp >= SATURATION_MARGIN * level).any():
+        return psp
+
+    white = np.asarray(session.load(view, "white"), np.float32)  # type: ignore[attr-defined]
+    black = session.projector_black(view, white)  # type: ignore[attr-defined]
+    return declip(psp, level, white=white, white_saturation=white_level, black=black)[0]

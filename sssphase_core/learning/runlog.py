@@ -1,0 +1,80 @@
+"""Training curves in the formats the field reads, next to each other in the run folder.
+
+- ``metrics.jsonl``: one JSON row per epoch (the project's own record; resumable runs append).
+- ``metrics.csv``: the same rows as a table (columns: the union of all keys), rewritten each epoch.
+- ``tb/``: TensorBoard event files (``tensorboard --logdir RUN``) with every per-step loss term and the
+  learning rate under ``step/``, and every epoch figure (kNN monitor, validation) under ``epoch/``;
+  written when the ``tensorboard`` package is installed (the ``tb`` extra), skipped otherwise.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+from sssphase_core.store.files import atomic_path
+
+METRICS = "metrics.jsonl"
+METRICS_CSV = "metrics.csv"
+TB_DIR = "tb"
+TB_MISSING = "TensorBoard event files need the tensorboard package: pip install 'sssphase[tb]'"
+
+
+def tensorboard_available() -> bool:
+    try:
+        import tensorboard  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def read_rows(path: Path) -> list[dict[str, Any]]:
+    """The epoch rows of a ``metrics.jsonl`` (none when the file does not exist)."""
+    if not path.exists():
+        return []
+    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+
+
+class RunLog:
+    """Writes one run's curves; ``resume_step`` drops TensorBoard events past a resumed checkpoint."""
+
+    def __init__(self, out_dir: Path, *, resume_step: int = 0, enabled: bool = True) -> None:
+        self.out_dir, self.enabled = Path(out_dir), enabled
+        self.writer = None
+        if enabled and tensorboard_available():
+            from torch.utils.tensorboard import SummaryWriter
+
+            self.writer = SummaryWriter(str(self.out_dir / TB_DIR), purge_step=resume_step or None)
+
+    def step(self, global_step: int, values: dict[str, float]) -> None:
+        """Per-step values (loss terms, ``lr``) at ``global_step`` (1-based: steps done)."""
+        if self.writer is not None:
+            for name, value in values.items():
+                if math.isfinite(value):
+                    self.writer.add_scalar(f"step/{name}", value, global_step)
+
+    def epoch(self, row: dict[str, Any]) -> None:
+        """One epoch's row (``epoch``, ``step``, means of the step values and the epoch figures)."""
+        if not self.enabled:
+            return
+        with open(self.out_dir / METRICS, "a") as f:
+            f.write(json.dumps(row) + "\n")
+        rows = read_rows(self.out_dir / METRICS)
+        columns = list(dict.fromkeys(k for r in rows for k in r))
+        with atomic_path(self.out_dir / METRICS_CSV) as tmp, open(tmp, "w", newline="") as f:
+            writer = csv.DictWriter(f, fieldnames=columns)
+            writer.writeheader()
+            writer.writerows(rows)
+        if self.writer is not None:
+            for name, value in row.items():
+                if name not in ("epoch", "step") and isinstance(value, int | float) and math.isfinite(value):
+                    self.writer.add_scalar(f"epoch/{name}", value, int(row["step"]))
+            self.writer.flush()
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+            self.writer = None

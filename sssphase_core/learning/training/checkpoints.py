@@ -1,0 +1,104 @@
+"""Run checkpoints: atomic writes, safe reads (plain tensors, ``weights_only``), a run folder's best or
+last checkpoint, and the encoder and decoder they hold."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from sssphase_core.errors import DataError, SssError
+from sssphase_core.learning.models import Decoder, Encoder, ModelPreset, get_preset
+from sssphase_core.store.files import atomic_path
+
+CHECKPOINT = "last.pt"
+BEST = "best.pt"  # the epoch with the best monitored figure (kNN monitor / validation loss)
+
+
+def save_checkpoint(path: Path, payload: dict) -> None:
+    """Atomic ``torch.save`` (write to a temporary file, then rename)."""
+    with atomic_path(path) as tmp:
+        torch.save(payload, tmp)
+
+
+def resolve_checkpoint(path: Path | str) -> Path:
+    """A run folder means its ``best.pt`` when training kept one, else its ``last.pt``; a file is itself."""
+    path = Path(path)
+    if path.is_dir():
+        return path / BEST if (path / BEST).exists() else path / CHECKPOINT
+    return path
+
+
+def load_checkpoint(path: Path | str) -> dict:
+    """Load with ``weights_only=True``: tensors, dicts, lists and numbers only, never arbitrary objects.
+    A run folder loads its best checkpoint (:func:`resolve_checkpoint`). Anything that is not a
+    sssphase checkpoint (pickled objects, an empty or truncated file, another program's tensors) is
+    refused with a :class:`DataError` that says what it is."""
+    import pickle
+
+    path = resolve_checkpoint(path)
+    if not path.exists():
+        raise DataError(f"no checkpoint at {path}")
+    if path.is_file() and path.stat().st_size == 0:
+        raise DataError(f"cannot read checkpoint {path}: the file is empty")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:
+        with open(path, "rb") as f:
+            archive = f.read(4) == b"PK\x03\x04"  # what torch.save writes
+        if not archive:
+            raise DataError(f"{path} is not a checkpoint file (not written by torch.save)") from None
+        raise DataError(f"{path} is not a sssphase checkpoint: it holds pickled Python objects, which are never "
+                        "loaded (only tensors, numbers and dicts)") from None
+    except Exception as exc:
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DataError(f"cannot read checkpoint {path}: {reason}") from None
+    missing = [k for k in ("kind", "preset", "encoder") if not isinstance(ckpt, dict) or k not in ckpt]
+    if missing or ckpt.get("kind") not in ("pretrain", "decoder"):
+        what = type(ckpt).__name__ if not isinstance(ckpt, dict) else f"a dict without {', '.join(missing) or 'a known kind'}"
+        raise DataError(f"{path} is not a sssphase checkpoint ({what}); use a run folder or .pt written by "
+                        "`sss train pretrain` or `sss train decoder`")
+    return ckpt
+
+
+def _load_weights(module: nn.Module, state: object, path: Path | str, what: str) -> None:
+    try:
+        module.load_state_dict(state)  # type: ignore[arg-type]
+    except (RuntimeError, TypeError, AttributeError) as exc:
+        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        raise DataError(f"{path}: the {what} weights do not fit the checkpoint's preset ({reason})") from None
+
+
+def load_encoder(path: Path | str) -> Encoder:
+    """The frozen encoder (eval mode) of a pretraining or decoder checkpoint."""
+    ckpt = load_checkpoint(path)
+    enc = Encoder(_preset_of(ckpt, path))
+    _load_weights(enc, ckpt["encoder"], path, "encoder")
+    return enc.eval().requires_grad_(False)
+
+
+def _preset_of(ckpt: dict, path: Path | str) -> ModelPreset:
+    try:
+        return get_preset(ckpt["preset"])
+    except (SssError, KeyError, TypeError, ValueError) as exc:
+        raise DataError(f"{path}: its model preset cannot be read ({exc})") from None
+
+
+def decoder_patch(encoder_ckpt: Path | str | None, preset: str | ModelPreset) -> int:
+    """The footprint size K a decoder trains at: its frozen encoder's, or ``preset``'s end to end (no encoder)."""
+    return get_preset(preset).patch if encoder_ckpt is None else load_encoder(encoder_ckpt).preset.patch
+
+
+def load_decoder(path: Path | str) -> tuple[Encoder, Decoder]:
+    """(encoder, decoder) of a decoder checkpoint, both in eval mode."""
+    ckpt = load_checkpoint(path)
+    if "decoder" not in ckpt:
+        raise DataError(f"{path} is a pretraining checkpoint; train a decoder with `sss train decoder`")
+    preset = _preset_of(ckpt, path)
+    cfg = ckpt.get("config") if isinstance(ckpt.get("config"), dict) else {}  # old checkpoints: the direct head
+    enc = Encoder(preset)
+    dec = Decoder(preset, n_classes=int(cfg.get("aux_classes", 0)), head=cfg.get("head", "direct"))
+    _load_weights(enc, ckpt["encoder"], path, "encoder")
+    _load_weights(dec, ckpt["decoder"], path, "decoder")
+    return enc.eval().requires_grad_(False), dec.eval()

@@ -1,0 +1,240 @@
+"""The loop both trainings share: deterministic order and RNG per step (exact resume), checkpoints
+every ``ckpt_every`` steps and epoch, metrics, progress callbacks and DDP under ``torchrun``."""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import shutil
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import nn
+
+from sssphase_core.errors import DataError, SssError
+from sssphase_core.learning.data import PatchDataset
+from sssphase_core.learning.models import ModelPreset, get_preset
+from sssphase_core.learning.runlog import METRICS, METRICS_CSV, TB_DIR, RunLog
+from sssphase_core.learning.training.checkpoints import BEST, CHECKPOINT, load_checkpoint
+from sssphase_core.store.files import atomic_path
+
+
+class TrainingCollapsed(SssError):
+    """SimSiam's representation collapsed (constant embeddings); training was stopped."""
+
+
+class TrainingDiverged(SssError):
+    """The loss became NaN or infinite; training stops before the next checkpoint would save it."""
+
+
+@dataclass(frozen=True)
+class Dist:
+    rank: int = 0
+    world: int = 1
+    device: torch.device = torch.device("cpu")
+
+    @property
+    def main(self) -> bool:
+        return self.rank == 0
+
+
+def init_distributed(device: str = "auto") -> Dist:
+    """Join the torchrun process group when WORLD_SIZE > 1 (gloo on CPU, NCCL on CUDA)."""
+    use_cuda = torch.cuda.is_available() if device == "auto" else device.startswith("cuda")
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    if use_cuda:
+        local = int(os.environ.get("LOCAL_RANK", "0"))
+        torch.cuda.set_device(local)
+        dev = torch.device("cuda", local)
+    else:
+        dev = torch.device("cpu")
+    if world > 1 and not dist.is_initialized():
+        dist.init_process_group("nccl" if use_cuda else "gloo")
+    return Dist(rank, world, dev)
+
+
+def all_mean(values: dict[str, float], d: Dist) -> dict[str, float]:
+    if d.world == 1 or not values:
+        return values
+    t = torch.tensor(list(values.values()), dtype=torch.float64)
+    dist.all_reduce(t)
+    return dict(zip(values, (t / d.world).tolist(), strict=True))
+
+
+def wrap_ddp(model: nn.Module, d: Dist) -> nn.Module:
+    if d.world == 1:
+        return model
+    if d.device.type == "cuda":
+        model = nn.SyncBatchNorm.convert_sync_batchnorm(model)
+    return nn.parallel.DistributedDataParallel(model, device_ids=[d.device.index] if d.device.type == "cuda" else None)
+
+
+@dataclass
+class LoopConfig:
+    epochs: int = 10
+    batch_size: int = 64
+    seed: int = 0
+    ckpt_every: int = 50  # steps between mid-epoch checkpoints (0: epoch ends only)
+    device: str = "auto"
+    amp: bool = True  # bfloat16 autocast on CUDA; ignored on CPU
+
+
+#: ``progress(task, done, total, info)``: called after every training step (the CLI draws a bar from it).
+StepProgress = Callable[[str, int, int, str], None]
+
+
+class Loop:
+    """Epoch/step bookkeeping, exact resume, checkpoints, metrics and progress for one task."""
+
+    def __init__(self, cfg: LoopConfig, dataset: PatchDataset, out_dir: Path, d: Dist, kind: str,
+                 best: tuple[str, str] | None = None) -> None:
+        """``best``: (metric of the epoch row, "max" or "min"); the best epoch's checkpoint is copied to ``best.pt``."""
+        self.cfg, self.dataset, self.out_dir, self.d, self.kind = cfg, dataset, Path(out_dir), d, kind
+        self.best_metric = best
+        self.best: dict[str, float] = {}  # {"epoch", "value"} of best.pt
+        self._new_best = False  # the epoch just staged is the best: copy its checkpoint once saved
+        self.sampler = torch.utils.data.DistributedSampler(
+            dataset, num_replicas=d.world, rank=d.rank, shuffle=True, seed=cfg.seed, drop_last=True
+        )
+        self.steps_per_epoch = len(self.sampler) // cfg.batch_size
+        if self.steps_per_epoch == 0:
+            raise DataError(f"{len(dataset)} patches are fewer than one batch of {cfg.batch_size} per process")
+        self.epoch, self.step_in_epoch, self.wall_s = 0, 0, 0.0
+        self.sums: dict[str, float] = {}
+
+    @property
+    def total_steps(self) -> int:
+        return self.cfg.epochs * self.steps_per_epoch
+
+    @property
+    def global_step(self) -> int:
+        return self.epoch * self.steps_per_epoch + self.step_in_epoch
+
+    def state(self) -> dict:
+        return {"epoch": self.epoch, "step_in_epoch": self.step_in_epoch, "wall_s": self.wall_s, "sums": dict(self.sums),
+                "best": dict(self.best)}
+
+    def restore(self, state: dict) -> None:
+        self.epoch, self.step_in_epoch = int(state["epoch"]), int(state["step_in_epoch"])
+        self.wall_s, self.sums = float(state["wall_s"]), dict(state["sums"])
+        self.best = dict(state.get("best", {}))
+
+    def _stage_best(self, row: dict) -> None:
+        """Note whether this epoch's monitored figure is the best so far (before the checkpoint is saved,
+        so that the saved loop state already knows it)."""
+        self._new_best = False
+        name, mode = self.best_metric  # type: ignore[misc]
+        value = row.get(name)
+        if value is not None and math.isfinite(value):
+            old = self.best.get("value")
+            if old is None or (value > old if mode == "max" else value < old):
+                self.best, self._new_best = {"epoch": row["epoch"], "value": float(value)}, True
+        if self.best:
+            row["best_epoch"] = self.best["epoch"]
+
+    def keep_if_best(self) -> None:
+        """Copy the checkpoint just written to ``best.pt`` when its epoch was staged as the best."""
+        if self._new_best:
+            with atomic_path(self.out_dir / BEST) as tmp:
+                shutil.copyfile(self.out_dir / CHECKPOINT, tmp)
+            self._new_best = False
+
+    def run(
+        self,
+        step: Callable[[dict[str, torch.Tensor], int], dict[str, float]],
+        end_epoch: Callable[[int], dict[str, float]],
+        save: Callable[[], None],
+        *,
+        progress: StepProgress | bool | None = None,
+    ) -> None:
+        """Run the remaining steps; ``progress(kind, done, total, info)`` after each (on the main process).
+        An interrupt (Ctrl-C) between steps loses only the steps since the last checkpoint."""
+        steps_run = 0
+        report = progress if callable(progress) and self.d.main else None
+        runlog = RunLog(self.out_dir, resume_step=self.global_step, enabled=self.d.main)
+        with contextlib.closing(runlog):
+            if report is not None:
+                report(self.kind, self.global_step, self.total_steps, "")
+            while self.epoch < self.cfg.epochs:
+                self.sampler.set_epoch(self.epoch)
+                order = np.fromiter(iter(self.sampler), dtype=np.int64)
+                t0 = time.perf_counter()
+                while self.step_in_epoch < self.steps_per_epoch:
+                    b = self.cfg.batch_size
+                    idx = order[self.step_in_epoch * b : (self.step_in_epoch + 1) * b]
+                    torch.manual_seed(self.cfg.seed * 1_000_003 + self.global_step)
+                    batch = {k: v.to(self.d.device, non_blocking=True) for k, v in self.dataset.batch(idx).items()}
+                    values = step(batch, self.global_step)
+                    if not math.isfinite(values["loss"]):
+                        raise TrainingDiverged(
+                            f"the {self.kind} loss became {values['loss']} at epoch {self.epoch + 1}, step "
+                            f"{self.step_in_epoch + 1}; lower the learning rate (the last good checkpoint is kept "
+                            f"in {self.out_dir / CHECKPOINT}, which --resume continues from)"
+                        )
+                    for k, v in values.items():
+                        self.sums[k] = self.sums.get(k, 0.0) + v
+                    self.step_in_epoch += 1
+                    steps_run += 1
+                    runlog.step(self.global_step, values)
+                    if report is not None:
+                        report(self.kind, self.global_step, self.total_steps,
+                               f"epoch {self.epoch + 1}/{self.cfg.epochs} loss {self.sums['loss'] / self.step_in_epoch:.4f}")
+                    if self.cfg.ckpt_every and steps_run % self.cfg.ckpt_every == 0 and self.step_in_epoch < self.steps_per_epoch:
+                        self.wall_s += time.perf_counter() - t0
+                        t0 = time.perf_counter()
+                        save()
+                self.wall_s += time.perf_counter() - t0
+                means = all_mean({k: v / self.steps_per_epoch for k, v in self.sums.items()}, self.d)
+                row = {"epoch": self.epoch + 1, "step": self.global_step, **means, **end_epoch(self.epoch)}
+                row["wall_s"] = round(self.wall_s, 3)
+                self.epoch, self.step_in_epoch, self.sums = self.epoch + 1, 0, {}
+                if self.best_metric is not None and self.d.main:
+                    self._stage_best(row)
+                save()
+                self.keep_if_best()
+                runlog.epoch(row)
+                collapse = row.get("collapsed", 0.0)
+                if collapse:
+                    raise TrainingCollapsed(
+                        f"representation collapsed at epoch {row['epoch']}: std of normalised projections "
+                        f"{row['proj_std']:.4g} (healthy ~ {row['proj_std_healthy']:.4g}), effective rank "
+                        f"{row['eff_rank']:.1f}; lower the learning rate or lengthen the warmup "
+                        f"(checkpoint kept in {self.out_dir / CHECKPOINT})"
+                    )
+        if self.d.world > 1:
+            dist.barrier()  # every rank returns once rank 0 has written the final checkpoint
+
+
+def autocast_for(d: Dist, enabled: bool):
+    return torch.autocast(d.device.type, dtype=torch.bfloat16, enabled=enabled and d.device.type == "cuda")
+
+
+def config_dict(cfg: object) -> dict:
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(cfg).items()}
+
+
+def resume_state(out_dir: Path, resume: bool, kind: str, preset: ModelPreset | None = None) -> dict | None:
+    path = out_dir / CHECKPOINT
+    if not resume or not path.exists():
+        return None
+    ckpt = load_checkpoint(path)
+    if ckpt.get("kind") != kind:
+        raise DataError(f"{path} holds a {ckpt.get('kind')} run, not {kind}; choose another output folder")
+    if preset is not None and get_preset(ckpt["preset"]) != preset:
+        raise DataError(f"{path} was trained with preset {ckpt['preset']['name']}, not {preset.name}: "
+                        "resume with the same preset or pass --no-resume")
+    return ckpt
+
+
+def start_fresh(out_dir: Path) -> None:
+    """A new run in a used folder: the old run's metrics and best checkpoint must not mix with it."""
+    for name in (METRICS, METRICS_CSV, BEST):
+        (out_dir / name).unlink(missing_ok=True)
+    shutil.rmtree(out_dir / TB_DIR, ignore_errors=True)

@@ -1,0 +1,177 @@
+"""SimSiam pretraining with the PSP augmentations: warmup-cosine schedule, collapse monitor, kNN monitor."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+
+from sssphase_core.errors import DataError
+from sssphase_core.learning import augment
+from sssphase_core.learning.data import PatchDataset
+from sssphase_core.learning.models import Encoder, ModelPreset, SimSiam, get_preset
+from sssphase_core.learning.training.checkpoints import CHECKPOINT, save_checkpoint
+from sssphase_core.learning.training.loop import (
+    Loop,
+    LoopConfig,
+    StepProgress,
+    all_mean,
+    autocast_for,
+    config_dict,
+    init_distributed,
+    resume_state,
+    start_fresh,
+    wrap_ddp,
+)
+
+
+def projection_std(z: torch.Tensor) -> float:
+    """Mean over dimensions of the batch std of L2-normalised projections (healthy ~ 1/sqrt(d), collapse -> 0)."""
+    return float(nn.functional.normalize(z.float(), dim=1).std(dim=0).mean())
+
+
+def effective_rank(x: torch.Tensor) -> float:
+    """exp(entropy) of the normalised singular values of centred embeddings (Roy & Vetterli 2007)."""
+    s = torch.linalg.svdvals(x.float() - x.float().mean(dim=0))
+    p = s / s.sum().clamp_min(1e-12)
+    return float(torch.exp(-(p * torch.log(p.clamp_min(1e-12))).sum()))
+
+
+@dataclass
+class PretrainConfig(LoopConfig):
+    preset: str = "lite"
+    lr: float = 0.05  # not scaled with the batch size (the paper)
+    momentum: float = 0.9
+    weight_decay: float = 1e-4
+    warmup_epochs: float = 2.0  # linear warmup, then cosine decay to 0 (paper: 20 of its epochs)
+    fix_pred_lr: bool = True  # the predictor keeps the base lr (SimSiam's recommendation; kept kNN rising here)
+    augment: str = "psp"  # psp (weak/strong) or imagenet
+    collapse_std_frac: float = 0.1  # collapse when proj std < frac / sqrt(d)
+    monitor_samples: int = 2048
+    knn_monitor: int = 2000  # training patches in the end-of-epoch kNN monitor (view-level leave-one-out; 0: off)
+    knn_k: int = 20
+
+
+def warmup_cosine(opt: torch.optim.Optimizer, total: int, warmup: int, base_lr: float,
+                  start: int = 0) -> torch.optim.lr_scheduler.LambdaLR:
+    """Per-step schedule: linear warmup over ``warmup`` steps, then cosine decay to 0 at ``total`` (no
+    restarts); parameter groups marked ``fix`` keep ``base_lr`` (SimSiam's predictor). ``start``: the
+    global step a resumed run continues from (the schedule is a function of the step, nothing to save)."""
+
+    def factor(step: int) -> float:
+        step += start
+        if step < warmup:
+            return (step + 1) / warmup
+        t = (step - warmup) / max(1, total - warmup)
+        return 0.5 * (1 + math.cos(math.pi * min(1.0, t)))
+
+    for g in opt.param_groups:  # a resumed optimizer holds the last scheduled rate: restart from the base
+        g["lr"] = base_lr
+        g.pop("initial_lr", None)
+    return torch.optim.lr_scheduler.LambdaLR(opt, [(lambda _: 1.0) if g.get("fix") else factor for g in opt.param_groups])
+
+
+def _knn_monitor_indices(dataset: PatchDataset, n: int, seed: int) -> np.ndarray | None:
+    """A fixed, seeded subset of the training patches for the kNN monitor (None: off or one view only)."""
+    if n <= 0 or len(np.unique(dataset.labels("view"))) < 2:
+        return None
+    return np.sort(np.random.default_rng(seed + 7).permutation(len(dataset))[:n])
+
+
+@torch.no_grad()
+def knn_monitor(encoder: Encoder, dataset: PatchDataset, idx: np.ndarray, k: int, device: torch.device) -> float:
+    """Object kNN accuracy (cosine, majority vote, view-level leave-one-out) of the frozen embeddings of
+    ``idx``: a cheap per-epoch check of representation quality. It uses training patches, so it is a
+    monitor; the reported figure is ``sss eval knn`` on fresh patches.
+    """
+    from sssphase_core.learning.evaluation import knn_leave_one_view_out
+
+    was = encoder.training
+    encoder.eval()
+    emb = torch.cat([encoder(dataset.batch(idx[i : i + 256])["psp"].to(device)).float().cpu()
+                     for i in range(0, len(idx), 256)])
+    encoder.train(was)
+    res = knn_leave_one_view_out(emb.numpy(), dataset.labels("object")[idx], dataset.labels("view")[idx], k=k)
+    return res["overall"]
+
+
+def pretrain(
+    cfg: PretrainConfig,
+    dataset: PatchDataset,
+    out_dir: Path | str,
+    *,
+    preset: ModelPreset | None = None,
+    resume: bool = True,
+    progress: StepProgress | bool | None = None,
+) -> Path:
+    """SimSiam pretraining of the encoder; returns the checkpoint path (``out_dir/last.pt``)."""
+    out_dir = Path(out_dir)
+    d = init_distributed(cfg.device)
+    p = preset or get_preset(cfg.preset)
+    if p.patch != dataset.patch:
+        raise DataError(f"preset {p.name} expects {p.patch}px patches, the dataset has {dataset.patch}px")
+    torch.manual_seed(cfg.seed)
+    model = SimSiam(p).to(d.device)
+    net = wrap_ddp(model, d)
+    pred_params = list(model.predictor.parameters())
+    pred_ids = {id(q) for q in pred_params}
+    groups = [
+        {"params": [q for q in model.parameters() if id(q) not in pred_ids], "fix": False},
+        {"params": pred_params, "fix": cfg.fix_pred_lr},
+    ]
+    opt = torch.optim.SGD(groups, lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay)
+    loop = Loop(cfg, dataset, out_dir, d, "pretrain", best=("knn_acc", "max") if cfg.knn_monitor else None)
+    ckpt = resume_state(out_dir, resume, "pretrain", p)
+    if ckpt is not None:
+        model.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        loop.restore(ckpt["loop"])
+    elif d.main:
+        start_fresh(out_dir)
+    warmup = max(1, round(cfg.warmup_epochs * loop.steps_per_epoch))
+    schedule = warmup_cosine(opt, loop.total_steps, warmup, cfg.lr, start=loop.global_step)
+    monitor: dict[str, list[torch.Tensor]] = {"z": [], "y": []}
+
+    def step(batch: dict[str, torch.Tensor], gstep: int) -> dict[str, float]:
+        lr = opt.param_groups[0]["lr"]  # the backbone's (group 0): the scheduled one
+        model.train()
+        x1, x2 = augment.two_views(batch["psp"], cfg.augment)
+        with autocast_for(d, cfg.amp):
+            out = net(x1, x2)
+        opt.zero_grad(set_to_none=True)
+        out["loss"].backward()
+        opt.step()
+        schedule.step()
+        if sum(len(t) for t in monitor["z"]) < cfg.monitor_samples:
+            monitor["z"].append(out["projection"].float().cpu())
+            monitor["y"].append(out["embedding"].float().cpu())
+        return {"loss": float(out["loss"].detach()), "lr": lr}
+
+    knn_idx = _knn_monitor_indices(dataset, cfg.knn_monitor, cfg.seed)
+
+    def end_epoch(epoch: int) -> dict[str, float]:
+        z, y = torch.cat(monitor["z"]), torch.cat(monitor["y"])
+        monitor["z"].clear()
+        monitor["y"].clear()
+        healthy = 1.0 / math.sqrt(z.shape[1])
+        stats = all_mean({"proj_std": projection_std(z), "eff_rank": effective_rank(y)}, d)
+        stats["proj_std_healthy"] = healthy
+        stats["collapsed"] = float(stats["proj_std"] < cfg.collapse_std_frac * healthy)
+        if knn_idx is not None:  # every rank computes the same number (same weights, same patches)
+            stats["knn_acc"] = knn_monitor(model.encoder, dataset, knn_idx, cfg.knn_k, d.device)
+        return stats
+
+    def save() -> None:
+        if d.main:
+            save_checkpoint(out_dir / CHECKPOINT, {
+                "kind": "pretrain", "preset": p.to_dict(), "config": config_dict(cfg),
+                "model": model.state_dict(), "encoder": model.encoder.state_dict(),
+                "optimizer": opt.state_dict(), "loop": loop.state(),
+            })
+
+    loop.run(step, end_epoch, save, progress=progress)
+    return out_dir / CHECKPOINT

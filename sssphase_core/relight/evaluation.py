@@ -1,0 +1,233 @@
+"""Relit images against reference captures: metrics on the object mask and comparison figures.
+
+PSNR uses a stated ``data_range`` (default 1.0: a white Lambertian reference under full white in
+linear camera units). SSIM is kornia's Gaussian-window SSIM map (11 px, sigma 1.5) averaged over
+the mask and the colour channels. LPIPS (``sssphase_core.learning.lpips``) is computed when its weights are on
+this machine, and otherwise reported as skipped with what is missing (:func:`lpips_note`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sssphase_core.errors import InputError
+from sssphase_core.learning.metrics import psnr
+
+METRICS = ("mse", "psnr", "ssim", "lpips")
+
+
+def lpips_note() -> str:
+    """How LPIPS was handled in this process: computed from local weights, or skipped and why."""
+    from sssphase_core.learning import lpips
+
+    ok, why = lpips.available()
+    return "LPIPS: AlexNet v0.1 from local weights (lower is better)" if ok else f"LPIPS skipped: {why}"
+
+
+def relight_metrics(relit: np.ndarray, reference: np.ndarray, mask: np.ndarray, *, data_range: float = 1.0) -> dict[str, float]:
+    """MSE, PSNR (dB, peak ``data_range``) and SSIM of (H, W, 3) linear images on ``mask`` pixels."""
+    import kornia
+    import torch
+
+    if relit.shape != reference.shape or relit.shape[:2] != mask.shape:
+        raise InputError(f"relit {relit.shape}, reference {reference.shape} and mask {mask.shape} do not match")
+    m = mask.astype(bool)
+    if not m.any():
+        raise InputError("the object mask is empty: nothing to evaluate")
+    a, b = np.nan_to_num(relit.astype(np.float64)), np.nan_to_num(reference.astype(np.float64))
+    mse = float(np.mean((a[m] - b[m]) ** 2))
+    psnr_db = psnr(mse, data_range)
+    ta = torch.as_tensor(a, dtype=torch.float32).permute(2, 0, 1)[None]
+    tb = torch.as_tensor(b, dtype=torch.float32).permute(2, 0, 1)[None]
+    ssim_map = kornia.metrics.ssim(ta, tb, window_size=11, max_val=data_range)[0].mean(0).numpy()
+    out = {"mse": mse, "psnr": psnr_db, "ssim": float(ssim_map[m].mean()), "data_range": data_range}
+    from sssphase_core.learning import lpips
+
+    if lpips.available()[0]:
+        out["lpips"] = lpips.lpips_distance(a, b, m)
+    return out
+
+
+def comparison_figure(reference: np.ndarray, relit: np.ndarray, mask: np.ndarray, path: Path | str, *, title: str = "",
+                      metrics: dict[str, float] | None = None) -> Path:
+    """GT | relit | |difference| (PNG). GT and relit share one sRGB exposure; the difference panel
+    is the per-pixel mean absolute error over RGB in linear camera units, with a colour bar."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sssphase_core.processing.colour import display_scale, srgb
+
+    scale = display_scale(reference, mask)
+    diff = np.abs(np.nan_to_num(relit) - np.nan_to_num(reference)).mean(axis=-1)
+    fig, axes = plt.subplots(1, 3, figsize=(10.5, 3.2), constrained_layout=True)
+    for ax, img, name in ((axes[0], reference, "reference (GT)"), (axes[1], relit, "relit")):
+        ax.imshow(srgb(np.nan_to_num(img) / scale), interpolation="nearest")
+        ax.set_title(name, fontsize=9)
+    vmax = float(max(np.percentile(diff[mask], 99.5) if mask.any() else diff.max(), 1e-6))
+    im = axes[2].imshow(np.where(mask, diff, 0.0), cmap="inferno", vmin=0, vmax=vmax, interpolation="nearest")
+    axes[2].set_title("|relit - GT| (linear units)", fontsize=9)
+    fig.colorbar(im, ax=axes[2], fraction=0.046, pad=0.02, label="mean |error| (linear units)")
+    for ax in axes:
+        ax.set_axis_off()
+    if metrics:
+        title = f"{title}  PSNR {metrics['psnr']:.2f} dB  SSIM {metrics['ssim']:.3f}".strip()
+    fig.suptitle(title, fontsize=10)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+    return path
+
+
+def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Path | str | None = None,
+                  chunk: int = 2048, device: str = "cpu", write: bool = True,
+                  progress: Callable[[int, int], None] | None = None, **options: object) -> list[dict[str, Any]]:
+    """Relight a :class:`~sssphase_core.relight.RelightView` under all its reference patterns in one
+    pass with ``backend`` (``options`` go to the model backend); metrics per pattern (and figures /
+    images under ``out_dir`` if ``write``)."""
+    from sssphase_core.relight import MODEL_FREE, make_sources, relight_view
+
+    if not rv.references:
+        raise InputError(f"{rv.object} view {rv.view} has no reference captures to evaluate against "
+                         "(capture with --reference checkerboard ...)")
+    names = sorted(rv.references)
+    t0 = time.perf_counter()
+    calibrate = bool(options.pop("calibrate", True)) and backend not in MODEL_FREE
+    (source, patch), *also = make_sources(backend, rv, checkpoint=checkpoint, device=device, **options)
+    relit, mix = relight_view(source, patch, rv, [rv.references[n] for n in names], calibrate=calibrate, also=also,
+                              chunk=chunk, device=device, progress=progress)
+    seconds = time.perf_counter() - t0
+    rows = []
+    out = Path(out_dir)
+    for name, img in zip(names, relit, strict=True):
+        met = relight_metrics(img, rv.captured[name], rv.proj.mask)
+        row = {"object": rv.object, "view": rv.view, "pattern": name, "backend": backend, **met,
+               "seconds": seconds / len(names), "lit_pixels": int(rv.proj.mask.sum())}
+        if mix is not None:  # a model calibrated to the view: its weight against no scattering, per colour
+            row["mix"] = np.asarray(mix, float).round(4).tolist()  # (3,), or (members, 3) for a blend
+        capture = _captured_reference(rv, name)
+        if capture is not None:  # a simulated session is scored against its noise-free render and its capture
+            cap = relight_metrics(img, capture, rv.proj.mask)
+            row.update({"psnr_capture": cap["psnr"], "ssim_capture": cap["ssim"]})
+            # ... and against what the camera records of the render without its noise
+            row["psnr_camera"] = relight_metrics(img, rv.camera_image(name), rv.proj.mask)["psnr"]
+        if write:
+            stem = out / f"{rv.object}_v{rv.view}_{name}_{backend}"
+            from sssphase_core.relight import write_images
+
+            write_images(stem, img)
+            row["figure"] = str(comparison_figure(rv.captured[name], img, rv.proj.mask, stem.with_name(stem.name + "_compare.png"),
+                                                  title=f"{rv.object} view {rv.view}, {name}, {backend}", metrics=met))
+        rows.append(row)
+    return rows
+
+
+def _captured_reference(rv: Any, name: str) -> np.ndarray | None:
+    """The camera's capture ``ref/<name>`` of a view scored against a noise-free render (else None)."""
+    session = getattr(rv, "session", None)
+    if session is None or rv.sim is None or f"ref/{name}" not in session.arrays(rv.view):
+        return None
+    return np.asarray(session.load(rv.view, f"ref/{name}"), np.float32)
+
+
+def aggregate(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend", "pattern")) -> list[dict[str, Any]]:
+    """Mean of the metrics and run times over the rows sharing the ``by`` keys (objects and views)."""
+    groups: dict[tuple, list[dict[str, Any]]] = {}
+    for r in rows:
+        groups.setdefault(tuple(r[k] for k in by), []).append(r)
+    out = []
+    for key, rs in groups.items():
+        agg = {k: v for k, v in zip(by, key, strict=True)}
+        agg.update({m: float(np.mean([r[m] for r in rs])) for m in (*METRICS, "seconds", "psnr_capture", "psnr_camera")
+                    if all(m in r for r in rs)})
+        agg["n"] = len(rs)
+        out.append(agg)
+    return out
+
+
+def metrics_table(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend", "pattern"), title: str = "Relighting"):
+    """A :class:`sssphase_core.tables.Table` of :func:`aggregate` (LPIPS noted as skipped)."""
+    from sssphase_core.tables import Table
+
+    agg = aggregate(rows, by)
+    both = all("psnr_capture" in a for a in agg)
+    with_lpips = bool(agg) and all("lpips" in a for a in agg)
+    camera = both and all("psnr_camera" in a for a in agg)
+    cols = [*by, "PSNR (dB)", *(["PSNR vs capture (dB)"] if both else []), *(["PSNR vs camera, no noise (dB)"] if camera else []),
+            "SSIM", *(["LPIPS"] if with_lpips else []), "MSE", "time (s)", "n"]
+    body = [[*(a[k] for k in by), a["psnr"], *([a["psnr_capture"]] if both else []), *([a["psnr_camera"]] if camera else []),
+             a["ssim"], *([a["lpips"]] if with_lpips else []), a["mse"], a["seconds"], a["n"]] for a in agg]
+    note = ("Mean over objects and views; PSNR peak 1.0 (linear camera units), on the object mask"
+            + ("; simulated sessions are scored against the noise-free render and, in 'vs capture', against the "
+               "camera's own noisy capture of the pattern" if both else "")
+            + ("; 'vs camera, no noise': against the render seen through the camera's Bayer sampling and "
+               "demosaicing without its noise (what relighting from captured data can reach)" if camera else "") + f". {lpips_note()}.")
+    return Table(title, cols, body, note=note)
+
+
+BASELINES = ("none", "analytic")
+
+
+def baseline_check(sessions: Sequence[Any], checkpoint: Path | str, out_dir: Path | str, *,
+                   views: Sequence[int] | None = None, max_views: int = 2, device: str = "cpu") -> dict[str, Any]:
+    """Relight views with reference captures by the trained model and by the ``none`` and ``analytic``
+    baselines: ``{"rows": per object/view/pattern/backend metrics, "mean_psnr": {backend: dB},
+    "losing_to": [baselines the model is below], "views": [(object, view)]}``.
+
+    ``views`` restricts the views of each session (e.g. held-out ones); at most ``max_views`` views are
+    relit in all. Sessions without reference captures give an empty result (``views == []``).
+    """
+    from sssphase_core.relight import load_view
+
+    picked = []
+    for session in sessions:
+        for v in session.views():
+            if (views is None or v in views) and len(picked) < max_views:
+                if any(a.startswith("ref/") or a.startswith("gt/render/") for a in session.arrays(v)):
+                    picked.append((session, v))
+    rows: list[dict[str, Any]] = []
+    for session, v in picked:
+        rv = load_view(session, v)
+        if not rv.references:
+            continue
+        for backend in ("torch", *BASELINES):
+            rows += evaluate_view(rv, backend, out_dir, checkpoint=checkpoint if backend == "torch" else None,
+                                  device=device, write=False)
+    mean = {b: float(np.mean([r["psnr"] for r in rows if r["backend"] == b])) for b in ("torch", *BASELINES)} if rows else {}
+    losing = [b for b in BASELINES if mean and mean["torch"] < mean[b]]
+    return {"rows": rows, "mean_psnr": mean, "losing_to": losing,
+            "views": sorted({(r["object"], r["view"]) for r in rows})}
+
+
+def footprints_at(rv: Any, pixels: np.ndarray, backends: Sequence[str], *, checkpoint: Path | str | None = None,
+                  device: str = "cpu") -> dict[str, np.ndarray]:
+    """Each backend's footprints at camera ``pixels`` (N, 2) yx of a view -> {backend: (N, K, K, 3)},
+    all centre-cropped or zero-padded to the largest K among them (``captured``: the session's own crops)."""
+    from sssphase_core.relight import make_source
+
+    out: dict[str, np.ndarray] = {}
+    for name in backends:
+        if name == "captured":
+            px = np.asarray(rv.session.load(rv.view, "footprints/pixels"), np.int64)
+            index = {tuple(p): i for i, p in enumerate(px)}
+            missing = [tuple(p) for p in pixels if tuple(p) not in index]
+            if missing:
+                raise InputError(f"no captured footprint at pixel(s) {missing[:3]}")
+            crops = rv.session.read(rv.view, "footprints/crops")
+            out[name] = np.stack([np.asarray(crops[index[tuple(p)]], np.float32) for p in pixels])
+        else:
+            source, _ = make_source(name, rv, checkpoint=checkpoint, device=device, calibrate=False)  # the model's own
+            fps = source(np.asarray(pixels, np.int64))
+            out[name] = np.asarray(fps.detach().cpu() if hasattr(fps, "detach") else fps, np.float32)
+    k = max(f.shape[1] for f in out.values())
+    for name, f in out.items():
+        pad = (k - f.shape[1]) // 2
+        out[name] = np.pad(f, ((0, 0), (pad, k - f.shape[1] - pad), (pad, k - f.shape[1] - pad), (0, 0)))
+    return out

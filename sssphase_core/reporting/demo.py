@@ -1,0 +1,355 @@
+"""`sss demo`: the user's path end to end on the simulated rig, resumable step by step.
+
+Everything goes through what a lab runs: the daemon, sessions, training from sessions.
+
+Steps (each writes ``<out>/steps/<name>.json`` when done and is skipped on the next run):
+
+1. ``train_sessions`` capture the training objects through the daemon into ``<out>/sessions/train``:
+   PSP, unwrapping set, white, black and dot grids, whose crops become the captured footprints;
+2. ``test_sessions``  capture the unseen objects into ``<out>/sessions/test`` with reference patterns
+   (checkerboard, stripes); the sim rig also stores its noise-free renders, used for scoring only;
+3. ``pretrain``       SimSiam pretraining of the encoder on the training sessions' PSP patches;
+4. ``decoder``        the footprint decoder on the frozen encoder, trained on the captured crops;
+5. ``relight``        relight the unseen objects under the reference patterns with every backend and
+   evaluate against the noise-free renders (GT / relit / difference figures);
+6. ``footprints``     footprint metrics of the model backends against the simulator's exact footprints;
+7. ``knn`` and ``pca`` the paper-style kNN table and PCA-RGB maps of the embeddings;
+8. ``report``         ``<out>/report/index.html``.
+
+The simulator's exact footprints appear only as the ``exact`` row (ground truth no lab has) and in
+the footprint metrics. A step whose prerequisites are missing is recorded as not available with the
+reason, and the report says so.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sssphase_core.errors import InputError, SssError
+
+
+@dataclass(frozen=True)
+class DemoConfig:
+    train_objects: tuple[str, ...]
+    test_objects: tuple[str, ...]
+    train_views: int = 2  # turntable views captured per training object (0 and 180 degrees)
+    test_view: int = 0  # the one view captured per unseen object
+    pixels_per_view: int = 600
+    pretrain_epochs: int = 3
+    pretrain_batch: int = 64
+    decoder_epochs: int = 3
+    decoder_batch: int = 32
+    references: tuple[str, ...] = ("checkerboard", "stripes_x")
+    backends: tuple[str, ...] = ("none", "analytic", "torch", "exact")
+    analytic_supersample: int = 2
+    pca_stride: int = 2
+    footprint_pixels: int = 200
+    model: str = "lite"
+    seed: int = 0
+
+
+PRESETS = {
+    # Under 5 minutes on 2 CPU cores: 10 footprint views captured through the daemon (~10 s each),
+    # 4000 training patches, 2 SimSiam epochs, 3 decoder epochs on the captured crops; the unseen
+    # objects are the two smallest (crab, sand rake), every valid pixel run through the network.
+    "lite": DemoConfig(("apple", "pear", "orange", "star", "shovel"), ("crab", "sand_rake"), pixels_per_view=400,
+                       pretrain_epochs=2, pretrain_batch=32, decoder_epochs=3),
+    "tiny": DemoConfig(("apple", "star"), ("sand_rake",), pixels_per_view=8, pretrain_epochs=1, pretrain_batch=32,
+                       decoder_epochs=1, decoder_batch=16, backends=("none", "torch", "exact"), pca_stride=4,
+                       footprint_pixels=32),
+}
+
+STEPS = ("train_sessions", "test_sessions", "pretrain", "decoder", "relight", "footprints", "knn", "pca", "report")
+
+
+class NotAvailable(Exception):
+    """A step that cannot run in this build (its reason goes into the report)."""
+
+
+class Demo:
+    """Runs the steps in order; ``log`` receives one line per event (the CLI prints them)."""
+
+    def __init__(self, out: Path, config: DemoConfig, client: Any, *, fresh: bool = False,
+                 log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None,
+                 transport: str | None = None, randomise_rig: bool = False):
+        """``client``: a daemon client (``sssphase_daemon.client``; anything with ``call`` and ``capture``);
+        ``progress``: the training loops' step callback (``training.StepProgress``); ``transport``:
+        the sim rig's light-transport model (None: burley); ``randomise_rig``: every training object is
+        captured on its own randomised rig (``sim.randomised_rig_options``: projector response, lens,
+        noise, exposure, demosaicing and transport model), the unseen objects on the nominal one. Both
+        are fixed for a demo folder."""
+        self.out, self.cfg, self.client, self.fresh, self.log = Path(out), config, client, fresh, log
+        self.progress = progress
+        self.report_dir = self.out / "report"  # index.html and img/
+        self.steps_dir = self.out / "steps"
+        self.steps_dir.mkdir(parents=True, exist_ok=True)
+        self.transport, self.randomise_rig = transport or "burley", randomise_rig
+        physics = self.transport + (", training rigs randomised" if randomise_rig else "")
+        stamp = self.steps_dir / "transport.txt"
+        if stamp.exists() and not fresh and stamp.read_text().strip() != physics:
+            raise InputError(f"{self.out} was made with the simulator's {stamp.read_text().strip()!r} physics, this run "
+                             f"asks for {physics!r}: use another --out, or --fresh")
+        stamp.write_text(physics)
+        self.results: dict[str, dict[str, Any]] = {}
+
+    def _done(self, name: str) -> dict[str, Any] | None:
+        path = self.steps_dir / f"{name}.json"
+        if self.fresh or not path.exists():
+            return None
+        result = json.loads(path.read_text())
+        return result if result.get("status") == "done" else None
+
+    def step(self, name: str, fn: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+        done = self._done(name)
+        if done is not None:
+            self.log(f"[{name}] already done ({done['seconds']:.1f} s), skipped")
+            self.results[name] = {**done, "resumed": True}
+            return done
+        self.log(f"[{name}] running")
+        t0 = time.perf_counter()
+        try:
+            result = {"status": "done", **fn()}
+        except (NotAvailable, SssError) as exc:  # what the step lacks (or a user's data cannot give) is reported
+            result = {"status": "not available", "reason": str(exc)}
+        except ModuleNotFoundError as exc:  # an optional extra that is not installed; any other error is a bug: raised
+            result = {"status": "not available", "reason": f"needs the {exc.name} package, which is not installed"}
+        result["seconds"] = time.perf_counter() - t0
+        (self.steps_dir / f"{name}.json").write_text(json.dumps(result, indent=1, default=str))
+        self.log(f"[{name}] {result['status']} in {result['seconds']:.1f} s" + (f": {result.get('reason')}" if result["status"] != "done" else ""))
+        self.results[name] = result
+        return result
+
+    def _need(self, *names: str) -> None:
+        for n in names:
+            if self.results.get(n, {}).get("status") != "done":
+                raise NotAvailable(f"needs step {n!r}, which is {self.results.get(n, {}).get('status', 'missing')}")
+
+    # --- steps -------------------------------------------------------------------------------
+
+    def _capture(self, obj: str, root: Path, views: int, *, randomised: bool = False, **kw: Any) -> str:
+        from sssphase_core.capture import CaptureRequest, run_capture
+
+        physics: dict[str, Any] = {"transport": self.transport}
+        if randomised:
+            from sssphase_core.sim import randomised_rig_options
+
+            physics = {"transport": None, "sim_options": randomised_rig_options(self.cfg.seed, obj)}
+            self.log(f"  {obj}: randomised rig " + ", ".join(f"{k} {v}" for k, v in physics["sim_options"].items()))
+        req = CaptureRequest(obj, views=views, resume=True, out=root, seed=self.cfg.seed, **physics, **kw)
+        session = run_capture(self.client, req)
+        self.log(f"  captured {obj}: {len(session.views())} view(s) in {session.path}")
+        return str(session.path)
+
+    def train_sessions(self) -> dict[str, Any]:
+        root = self.out / "sessions" / "train"
+        paths = [self._capture(o, root, self.cfg.train_views, footprints=True, randomised=self.randomise_rig)
+                 for o in self.cfg.train_objects]
+        return {"root": str(root), "sessions": paths}
+
+    def test_sessions(self) -> dict[str, Any]:
+        root = self.out / "sessions" / "test"
+        paths = [self._capture(o, root, self.cfg.test_view + 1, references=self.cfg.references)
+                 for o in self.cfg.test_objects]
+        return {"root": str(root), "sessions": paths}
+
+    def train_views(self, footprints: bool = True):
+        """The training sessions' views (PSP patches, and captured footprint crops with ``footprints``)."""
+        from sssphase_core.learning.data import session_views
+
+        self._need("train_sessions")
+        c = self.cfg
+        return session_views(self.results["train_sessions"]["root"], c.train_objects, pixels_per_view=c.pixels_per_view,
+                             footprints=footprints, seed=c.seed)
+
+    def pretrain(self) -> dict[str, Any]:
+        from sssphase_core.learning.backends import get_backend
+        from sssphase_core.learning.training import PretrainConfig
+
+        c = self.cfg
+        cfg = PretrainConfig(epochs=c.pretrain_epochs, batch_size=c.pretrain_batch, seed=c.seed, preset=c.model,
+                             warmup_epochs=min(1.0, c.pretrain_epochs / 2), device="cpu")
+        path = get_backend("torch").pretrain(self.train_views(footprints=False), self.out / "runs" / "pretrain", config=cfg,
+                                             progress=self.progress)
+        return {"checkpoint": str(path)}
+
+    def decoder(self) -> dict[str, Any]:
+        self._need("pretrain")
+        from sssphase_core.learning.backends import get_backend
+        from sssphase_core.learning.training import DecoderConfig
+
+        c = self.cfg
+        cfg = DecoderConfig(epochs=c.decoder_epochs, batch_size=c.decoder_batch, seed=c.seed, device="cpu")
+        path = get_backend("torch").fit(self.train_views(), self.out / "runs" / "decoder",
+                                        encoder=self.results["pretrain"]["checkpoint"], config=cfg, progress=self.progress)
+        return {"checkpoint": str(path)}
+
+    def relight(self) -> dict[str, Any]:
+        self._need("test_sessions")
+        from sssphase_core.relight import load_view
+        from sssphase_core.relight.evaluation import evaluate_view
+        from sssphase_core.store.session import Session
+
+        img_dir = self.report_dir / "img"
+        rows, skipped = [], {}
+        ckpt = self.results.get("decoder", {}).get("checkpoint") if self.results.get("decoder", {}).get("status") == "done" else None
+        for path in self.results["test_sessions"]["sessions"]:
+            rv = load_view(Session.open(path), self.cfg.test_view)
+            for b in self.cfg.backends:
+                if b == "torch" and ckpt is None:
+                    skipped[b] = "no decoder checkpoint (the decoder step is not available)"
+                    continue
+                try:
+                    opts = {"supersample": self.cfg.analytic_supersample} if b == "analytic" else {}
+                    rows += evaluate_view(rv, b, img_dir, checkpoint=ckpt, **opts)
+                except (NotAvailable, SssError) as exc:  # e.g. no captured transport for `measured`
+                    skipped[b] = str(exc)
+                self.log(f"  relit {rv.object} with {b}")
+        for r in rows:
+            r["figure"] = str(Path(r["figure"]).relative_to(self.report_dir))
+        return {"rows": rows, "skipped": skipped}
+
+    def footprints(self) -> dict[str, Any]:
+        """The paper's Table 1: footprint MSE / PSNR / SSIM on sampled pixels of the unseen objects."""
+        self._need("test_sessions")
+        from sssphase_core.learning.data import sample_pixels
+        from sssphase_core.learning.evaluation import footprint_metrics, summarise
+        from sssphase_core.relight import load_view, make_source
+        from sssphase_core.store.session import Session
+
+        ckpt = self.results.get("decoder", {}).get("checkpoint") if self.results.get("decoder", {}).get("status") == "done" else None
+        backends = [b for b in self.cfg.backends if b in ("analytic", "torch") and (b != "torch" or ckpt)]
+        table: dict[str, dict[str, dict[str, float]]] = {}
+        for path in self.results["test_sessions"]["sessions"]:
+            rv = load_view(Session.open(path), self.cfg.test_view)
+            if rv.sim is None:
+                raise NotAvailable(f"{rv.object} is not a simulated session: footprint metrics need the simulator's "
+                                   "exact footprints (relit images are scored against the reference captures above)")
+            px = sample_pixels(rv.proj.mask, self.cfg.footprint_pixels, self.cfg.seed)
+            gt = rv.scene().footprints(px)
+            table[rv.object] = {}
+            for b in backends:
+                opts = {"supersample": self.cfg.analytic_supersample} if b == "analytic" else {}
+                source, _ = make_source(b, rv, checkpoint=ckpt, calibrate=False, **opts)  # the model's own footprints
+                table[rv.object][b] = summarise(footprint_metrics(np.asarray(source(px), np.float32), gt))
+        return {"metrics": table, "backends": backends, "pixels": self.cfg.footprint_pixels}
+
+    def knn(self) -> dict[str, Any]:
+        self._need("pretrain")
+        if len(self.cfg.train_objects) < 2:
+            raise NotAvailable("the kNN table needs training sessions of at least two objects")
+        from sssphase_core.learning.evaluation import knn_of_views
+        from sssphase_core.learning.training import load_encoder
+
+        vds = self.train_views(footprints=False)
+        k = min(20, sum(len(v.pixels) for v in vds) // 4 or 1)
+        return knn_of_views(load_encoder(self.results["pretrain"]["checkpoint"]), vds, list(self.cfg.train_objects),
+                            ks=(k,))[k]
+
+    def pca(self) -> dict[str, Any]:
+        self._need("pretrain", "test_sessions")
+        from sssphase_core.learning.evaluation import PCA_TITLE, pca_maps
+        from sssphase_core.learning.training import load_encoder
+        from sssphase_core.reporting.figures import panels_figure
+        from sssphase_core.store.session import Session
+
+        enc = load_encoder(self.results["pretrain"]["checkpoint"])
+        sessions = [Session.open(p) for p in self.results["test_sessions"]["sessions"]]
+        view = self.cfg.test_view
+        maps = pca_maps(enc, [(s.load(view, "psp"), np.argwhere(s.load(view, "corr/mask").astype(bool))) for s in sessions],
+                        self.cfg.pca_stride)
+        panels_figure(self.report_dir / "img" / "pca_rgb.png", maps, [f"{s.name}, view {view}" for s in sessions],
+                      f"{PCA_TITLE} (every {self.cfg.pca_stride}th pixel)")
+        return {"figure": "img/pca_rgb.png", "objects": [s.name for s in sessions]}
+
+    report_title = "sssphase demo report"
+    report_rig = "Simulated rig (CPU preset)"
+
+    def report(self) -> dict[str, Any]:
+        from sssphase_core.reporting.report import write_report
+
+        path = write_report(self.report_dir, self.results, asdict(self.cfg), title=self.report_title, rig=self.report_rig)
+        return {"path": str(path)}
+
+    def run(self) -> Path:
+        for name in STEPS:
+            if name == "report":
+                self.results.pop("report", None)
+                self.fresh_report()
+            self.step(name, getattr(self, name))
+        return self.report_dir / "index.html"
+
+    def fresh_report(self) -> None:
+        """The report is rewritten on every run (it reflects all steps, including newly finished ones)."""
+        (self.steps_dir / "report.json").unlink(missing_ok=True)
+
+
+def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool = False,
+             log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None,
+             transport: str | None = None, randomise_rig: bool = False) -> Path:
+    """Run (or resume) the demo into ``out`` with a daemon ``client``; returns the report's path.
+    ``progress``: the training loops' step callback (``training.StepProgress``); ``transport``: the
+    sim rig's light-transport model (:data:`sssphase_core.sim.TRANSPORTS`; None: burley); ``randomise_rig``:
+    domain randomisation of the training captures (see :class:`Demo`)."""
+    if preset not in PRESETS:
+        raise InputError(f"unknown demo preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    if transport is not None:
+        from sssphase_core.sim import TRANSPORTS
+
+        if transport not in TRANSPORTS:
+            raise InputError(f"unknown transport model {transport!r}; choose one of {', '.join(TRANSPORTS)}")
+    t0 = time.perf_counter()
+    demo = Demo(Path(out), PRESETS[preset], client, fresh=fresh, log=log, progress=progress, transport=transport,
+                randomise_rig=randomise_rig)
+    path = demo.run()
+    log(f"demo finished in {time.perf_counter() - t0:.1f} s")
+    return path
+
+
+REPORT_STEPS = ("relight", "footprints", "knn", "pca", "report")
+
+
+def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Path | None = None,
+               pretrain: Path | None = None, decoder: Path | None = None, view: int = 0,
+               backends: tuple[str, ...] = ("none", "analytic", "measured", "torch"),
+               log: Callable[[str], None] = print) -> Path:
+    """The demo's report for a user's own sessions and runs: relight ``test_sessions`` (their view
+    ``view``, against every reference they hold) with ``backends``, footprint metrics (simulated
+    sessions only), the kNN table on ``train_sessions`` and PCA maps with the ``pretrain`` encoder.
+    Steps without what they need are listed in the report as not available. Returns its path."""
+    from sssphase_core.store.session import find_sessions
+
+    tests = list(test_sessions)
+    if not tests:
+        raise InputError("sss report needs at least one test session (with reference captures)")
+    lacking = [f"{s.path} (complete views: {s.views()})" for s in tests if view not in s.views()]
+    if lacking:
+        raise InputError(f"view {view} is not complete in " + "; ".join(lacking))
+    train = find_sessions([train_sessions]) if train_sessions is not None else []
+    objects = tuple(s.name for s in train)
+    has_measured = all("transport/crops" in s.arrays(view) or "footprints/crops" in s.arrays(view)
+                       for s in tests if view in s.views())
+    chosen = tuple(b for b in backends if (b != "torch" or decoder is not None) and (b != "measured" or has_measured))
+    config = DemoConfig(objects, tuple(s.name for s in tests), test_view=view, backends=chosen)
+    demo = Demo(Path(out), config, client=None, fresh=True, log=log)
+    demo.report_dir = Path(out)  # OUT/index.html (step records in OUT/steps)
+    demo.report_title = "sssphase report"
+    sims = {"simulated" if "gt/proj_xy" in s.arrays(view) else "captured" for s in tests if view in s.views()}
+    demo.report_rig = " and ".join(sorted(sims)).capitalize() + " sessions"
+    done = {"status": "done", "seconds": 0.0}
+    if train:
+        demo.results["train_sessions"] = {**done, "root": str(Path(train_sessions)), "sessions": [str(s.path) for s in train]}
+    demo.results["test_sessions"] = {**done, "sessions": [str(s.path) for s in tests]}
+    if pretrain is not None:
+        demo.results["pretrain"] = {**done, "checkpoint": str(pretrain)}
+    if decoder is not None:
+        demo.results["decoder"] = {**done, "checkpoint": str(decoder)}
+    for name in REPORT_STEPS:
+        demo.step(name, getattr(demo, name))
+    return demo.report_dir / "index.html"

@@ -1,0 +1,62 @@
+"""Export a session's views as OpenEXR files (linear float32, unclipped) for other tools.
+
+Per view, into ``OUT/<object>/view_NNN/``: every image array (H, W[, C]) as ``<name>.exr`` (``/`` in
+array names becomes ``_``), every stack (N, H, W, C) as ``<name>/NN.exr``, the footprint crops
+(N, K, K, 3) as one mosaic ``footprints_crops.exr`` (tile ``i`` at row ``i // cols``, column
+``i % cols``) with ``footprints_pixels.csv`` giving each tile's camera pixel (row, col).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from sssphase_core.store.exr import write_exr
+from sssphase_core.store.session import Session, view_dir_name
+
+
+def footprint_mosaic(crops: np.ndarray) -> tuple[np.ndarray, int]:
+    """(N, K, K, C) -> (rows*K, cols*K, C) tiles in row-major order (empty tiles NaN), and cols."""
+    n, k = crops.shape[0], crops.shape[1]
+    cols = max(1, math.ceil(math.sqrt(n)))
+    rows = max(1, math.ceil(n / cols))
+    mosaic = np.full((rows * k, cols * k, crops.shape[-1]), np.nan, np.float32)
+    for i in range(n):
+        r, c = divmod(i, cols)
+        mosaic[r * k:(r + 1) * k, c * k:(c + 1) * k] = crops[i]
+    return mosaic, cols
+
+
+def export_view(session: Session, view: int, out: Path) -> list[Path]:
+    """Write one view's arrays under ``out`` (see the module docstring); returns the files written."""
+    height, width = session.read(view, "white").shape[:2]
+    written: list[Path] = []
+    for name in session.arrays(view):
+        arr = session.read(view, name)
+        stem = out / name.replace("/", "_")
+        shape = tuple(arr.shape)
+        if name == "footprints/crops":
+            mosaic, cols = footprint_mosaic(np.asarray(arr, np.float32))
+            written.append(write_exr(stem.with_suffix(".exr"), mosaic, attributes={"tile_columns": str(cols)}))
+        elif shape[:2] == (height, width):
+            written.append(write_exr(stem.with_suffix(".exr"), np.asarray(arr, np.float32)))
+        elif len(shape) >= 3 and shape[1:3] == (height, width):
+            for i in range(shape[0]):
+                written.append(write_exr(stem / f"{i:02d}.exr", np.asarray(arr[i], np.float32)))
+        elif len(shape) == 2:  # per-row records such as footprints/pixels
+            stem.parent.mkdir(parents=True, exist_ok=True)
+            with open(stem.with_suffix(".csv"), "w", newline="") as f:
+                csv.writer(f).writerows(np.asarray(arr).tolist())
+            written.append(stem.with_suffix(".csv"))
+    return written
+
+
+def export_session(session: Session, out: Path, views: list[int] | None = None) -> list[Path]:
+    """Export ``views`` (default: all complete views) of ``session`` to ``out/<object>/view_NNN``."""
+    written: list[Path] = []
+    for view in views if views is not None else session.views():
+        written += export_view(session, view, Path(out) / session.name / view_dir_name(view))
+    return written

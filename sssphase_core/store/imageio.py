@@ -1,0 +1,163 @@
+"""Image files in: projector patterns (values in [0, 1]) and camera frames (linear float32 RGB).
+
+One reader per meaning, so every command normalises the same file the same way:
+:func:`read_pattern` (``sss relight --pattern``, ``sss capture --reference``) and :func:`read_frame`
+(``sss import``). Sizes are checked from the file's header before any pixel is decoded.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+from sssphase_core.errors import InputError
+
+#: Frame files the importer reads.
+IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
+MAX_FRAME_PIXELS = 1 << 26  # 64 MP: larger frames are refused from their header, before decoding
+
+
+RESIZE_MODES = ("fit", "fill", "stretch")
+
+
+def _resized(img, size: tuple[int, int], mode: str):
+    """A PIL image brought to ``size`` (W, H): ``stretch`` ignores the aspect ratio, ``fit`` scales it
+    inside and pads with black, ``fill`` scales it to cover and crops the centre."""
+    from PIL import Image
+
+    wp, hp = size
+    if mode == "stretch":
+        return img.resize((wp, hp), Image.Resampling.BILINEAR)
+    w, h = img.size
+    k = min(wp / w, hp / h) if mode == "fit" else max(wp / w, hp / h)
+    scaled = img.resize((max(1, round(w * k)), max(1, round(h * k))), Image.Resampling.BILINEAR)
+    canvas = Image.new(scaled.mode, (wp, hp))
+    canvas.paste(scaled, ((wp - scaled.size[0]) // 2, (hp - scaled.size[1]) // 2))
+    return canvas
+
+
+def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: str | bool = "",
+                 hint: str = "pass --resize fit, fill or stretch") -> np.ndarray:
+    """A pattern image file -> float32 values in [0, 1], (Hp, Wp) or (Hp, Wp, 3).
+
+    The size must match the projector unless ``resize`` is ``fit``, ``fill`` or ``stretch`` (see
+    :func:`_resized`; ``True`` means ``stretch``). Palette, alpha and CMYK images are read as RGB,
+    16-bit images divided by 65535. ``hint`` ends the size-mismatch error (what the user can do).
+    """
+    from PIL import Image
+
+    mode = "stretch" if resize is True else (resize or "")
+    if mode and mode not in RESIZE_MODES:
+        raise InputError(f"--resize must be one of {', '.join(RESIZE_MODES)}, got {mode!r}")
+    wp, hp = projector_size
+    try:
+        img = Image.open(path)  # reads the header only: the size is checked before any pixel is decoded
+        w, h = img.size
+        if w * h > max(4 * wp * hp, 1 << 22):
+            raise InputError(f"pattern {path} is {w}x{h}, far larger than the {wp}x{hp} projector: refused "
+                             "without decoding it (scale it down first)")
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", Image.DecompressionBombWarning)
+            img.load()
+    except (Image.DecompressionBombError, Image.DecompressionBombWarning):
+        raise InputError(f"pattern {path} is far larger than the {wp}x{hp} projector: refused without decoding it "
+                         "(scale it down first)") from None
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise InputError(f"cannot read pattern {path}: {exc}") from None
+    if img.mode in ("1", "LA"):
+        img = img.convert("L")
+    elif img.mode not in ("L", "RGB", "F") and not img.mode.startswith("I"):
+        img = img.convert("RGB")  # palette (P), RGBA, CMYK, YCbCr: the colours, not their codes
+    if img.size != (wp, hp):
+        if not mode:
+            raise InputError(f"pattern {path} is {img.size[0]}x{img.size[1]} but the projector is {wp}x{hp} ({hint})")
+        img = _resized(img, (wp, hp), mode)
+    arr = np.asarray(img)
+    if arr.dtype.kind == "f":
+        scale = 1.0
+    elif img.mode.startswith("I"):
+        scale = 65535.0  # 16-bit PNG/TIFF (Pillow's I;16 and I modes)
+    else:
+        scale = 255.0
+    arr = arr.astype(np.float32) / scale
+    if arr.ndim == 3:
+        arr = arr[..., :3]
+        if np.allclose(arr, arr[..., :1]):
+            arr = arr[..., 0]
+    return np.clip(arr, 0, 1)
+
+
+def frame_shape(path: Path) -> tuple[int, ...]:
+    """The pixel shape a frame file declares, read from its header only (no pixel is decoded)."""
+    try:
+        if path.suffix.lower() == ".npy":
+            return tuple(np.load(path, mmap_mode="r", allow_pickle=False).shape)
+        if path.suffix.lower() == ".exr":
+            from sssphase_core.store import exr
+
+            return exr.exr_size(path)
+        from PIL import Image
+
+        Image.MAX_IMAGE_PIXELS = None  # our own limit below, on the header's size
+        with Image.open(path) as img:
+            return (img.size[1], img.size[0])
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+
+
+def stores_integers(path: Path) -> bool:
+    """Whether a frame file holds integer codes (8/16-bit PNG/TIFF, integer ``.npy``): its top code is
+    the sensor's clipping level, so values near 1 after :func:`read_frame` are saturated. EXR and float
+    files have no such level. Read from the header only."""
+    suffix = path.suffix.lower()
+    if suffix == ".exr":
+        return False
+    if suffix == ".npy":
+        return np.load(path, mmap_mode="r", allow_pickle=False).dtype.kind in "iub"
+    from PIL import Image
+
+    try:
+        with Image.open(path) as img:
+            return img.mode != "F"
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise InputError(f"cannot read {path}: {exc}") from None
+
+
+def read_frame(path: Path) -> np.ndarray:
+    """A linear image as float32 RGB: ``.npy`` and ``.exr`` as stored, 8/16-bit PNG/TIFF divided by the
+    top code. Frames larger than ``MAX_FRAME_PIXELS`` are refused from their header."""
+    shape = frame_shape(path)
+    if len(shape) >= 2 and shape[0] * shape[1] > MAX_FRAME_PIXELS:
+        raise InputError(f"{path} is {shape[1]}x{shape[0]}: larger than any camera frame this importer takes "
+                         f"({MAX_FRAME_PIXELS // 2**20} MP)")
+    if path.suffix.lower() == ".npy":
+        try:
+            arr = np.load(path, allow_pickle=False)
+        except ValueError as exc:  # pickled object arrays are never loaded
+            raise InputError(f"cannot read {path}: {exc}") from None
+        if arr.dtype.kind not in "fiub":
+            raise InputError(f"{path} holds {arr.dtype} values, not an image")
+    elif path.suffix.lower() == ".exr":
+        from sssphase_core.store import exr
+
+        arr = exr.read_exr(path)
+    else:
+        import cv2
+
+        arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        if arr is None:
+            raise InputError(f"cannot read image {path}")
+        if arr.ndim == 3:
+            arr = cv2.cvtColor(arr[..., :3], cv2.COLOR_BGR2RGB)
+        if np.issubdtype(arr.dtype, np.integer):
+            arr = arr.astype(np.float32) / np.iinfo(arr.dtype).max
+    arr = np.asarray(arr, np.float32)
+    if arr.ndim == 3 and arr.shape[-1] == 1:
+        arr = arr[..., 0]
+    if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[-1] != 3):
+        raise InputError(f"{path} has shape {arr.shape}: expected (H, W) or (H, W, 3)")
+    if not np.isfinite(arr).all():
+        raise InputError(f"{path} holds NaN or infinite values")
+    return np.repeat(arr[..., None], 3, axis=-1) if arr.ndim == 2 else arr

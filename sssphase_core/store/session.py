@@ -1,0 +1,484 @@
+"""Session store: one folder per object, a JSON manifest and chunked, compressed zarr v3 arrays.
+
+Layout (see SESSION_FORMAT.md)::
+
+    <root>/<object>/manifest.json       rig, devices, plugin versions, plan, timestamps, views
+    <root>/<object>/view_000/<name>/    one zarr array per name: psp, white, black, corr/xp, ...
+
+Every write is atomic: a view's arrays are written into ``.view_NNN.partial`` and renamed into
+place once complete, then the manifest (with each array's SHA-256) is replaced atomically. An
+interrupted capture therefore leaves only complete views plus a partial folder that ``resume``
+discards. ``FAULT_HOOK`` (tests) is called before every array write, e.g. to inject ENOSPC.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import re
+import shutil
+import time
+from collections.abc import Callable, Iterable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sssphase_core.errors import DataError, InputError
+
+FORMAT = "sssphase-session"
+FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+ARRAY_RE = re.compile(r"^[a-z][a-z0-9_]*(/[A-Za-z0-9][A-Za-z0-9_.-]*){0,2}$")
+REQUIRED = ("psp", "white", "black", "corr/xp", "corr/yp", "corr/mask", "corr/reason")
+FAULT_HOOK: Callable[[str], None] | None = None
+
+
+def check_object_name(name: str) -> str:
+    """Refuse names that could escape the session root (``../``, separators, absolute paths)."""
+    if not isinstance(name, str) or not NAME_RE.fullmatch(name) or name in (".", ".."):  # fullmatch: "$" allows "\n"
+        raise InputError(f"object name {name!r} is not allowed: use letters, digits, '_', '-', '.' "
+                         "(no path separators, no '..', at most 64 characters)")
+    return name
+
+
+MAX_VIEWS = 10_000
+
+
+def manifest_problem(manifest: dict[str, Any]) -> str | None:
+    """What makes a manifest unusable (wrong types, array names that leave the view folder), or None."""
+    n = manifest.get("n_views", 0)
+    if not isinstance(n, int) or isinstance(n, bool) or not 0 <= n <= MAX_VIEWS:
+        return f"n_views must be an integer in [0, {MAX_VIEWS}], got {n!r}"
+    views = manifest.get("views")
+    if not isinstance(views, dict):
+        return "it has no views table"
+    for key, entry in views.items():
+        if not (isinstance(key, str) and key.isdigit() and int(key) < MAX_VIEWS) or not isinstance(entry, dict):
+            return f"view {key!r} is not a view number with an entry"
+        arrays = entry.get("arrays", {})
+        if not isinstance(arrays, dict):
+            return f"view {key}: arrays is not a table"
+        for name, meta in arrays.items():
+            if not isinstance(name, str) or not ARRAY_RE.fullmatch(name):
+                return f"view {key}: array name {name!r} is not allowed"
+            if not (isinstance(meta, dict) and isinstance(meta.get("shape"), list)
+                    and all(isinstance(d, int) and d >= 0 for d in meta["shape"])
+                    and isinstance(meta.get("dtype"), str) and isinstance(meta.get("checksum"), str)
+                    and isinstance(meta.get("chunks", 0), int)):
+                return f"view {key}: array {name} lacks its shape, dtype or checksum"
+    return None
+
+
+def view_dir_name(view: int) -> str:
+    return f"view_{view:03d}"
+
+
+def array_checksum(arr: np.ndarray) -> str:
+    return "sha256:" + hashlib.sha256(memoryview(np.ascontiguousarray(arr)).cast("B")).hexdigest()
+
+
+def _chunks(shape: tuple[int, ...], itemsize: int, target: int = 2**21) -> tuple[int, ...]:
+    """Chunks of about ``target`` bytes: trailing dims whole, split the leading ones (1 image, N rows)."""
+    chunks = list(shape)
+    for i, n in enumerate(shape):
+        rest = int(np.prod(shape[i + 1:], dtype=np.int64)) * itemsize
+        chunks[i] = int(min(n, max(1, target // max(rest, 1))))
+        if chunks[i] > 1 or rest <= target:
+            break
+    return tuple(max(1, c) for c in chunks)
+
+
+def write_json_atomic(path: Path, obj: Any) -> None:
+    """Write ``obj`` as JSON to ``path`` atomically; on failure (disk full, read-only folder) the old file
+    stays, no temporary file is left, and the error names the file."""
+    from sssphase_core.store.files import atomic_path
+
+    try:
+        with atomic_path(path) as tmp, open(tmp, "w") as f:
+            json.dump(obj, f, indent=1, sort_keys=True)
+            f.flush()
+            os.fsync(f.fileno())
+    except OSError as exc:
+        raise DataError(f"cannot write {path}: {exc.strerror or exc} (the previous version is kept)") from None
+
+
+def _codec(dtype: np.dtype) -> list:
+    """Blosc with byte shuffle, then a CRC32C per chunk: every read verifies what it reads, so a damaged
+    chunk is an error naming the array, not silently wrong training data (the SHA-256 of ``sss
+    validate`` reads whole arrays). LZ4 for float32 images (noisy floats barely compress: speed matters
+    most); zstd for float16 arrays, the footprint stores, whose noise floor is zeroed (9% of float32 vs
+    17% with LZ4 on the soap's transport, ``sss bench store``)."""
+    from zarr.codecs import BloscCodec, BloscShuffle, Crc32cCodec
+
+    shuffle = BloscShuffle.shuffle if np.dtype(dtype).itemsize > 1 else BloscShuffle.noshuffle
+    cname = "zstd" if np.dtype(dtype) == np.float16 else "lz4"
+    return [BloscCodec(cname=cname, clevel=5 if cname == "lz4" else 3, shuffle=shuffle), Crc32cCodec()]
+
+
+def _chunk_count(shape: tuple[int, ...], chunks: tuple[int, ...]) -> int:
+    return int(np.prod([-(-n // c) for n, c in zip(shape, chunks, strict=True)])) if all(shape) else 0
+
+
+def _zarr_write(path: Path, data: np.ndarray) -> None:
+    import zarr
+
+    data = np.ascontiguousarray(data)
+    arr = zarr.create_array(store=str(path), shape=data.shape, dtype=data.dtype, chunks=_chunks(data.shape, data.dtype.itemsize),
+                            compressors=_codec(data.dtype), fill_value=0, zarr_format=3, overwrite=True,
+                            config={"write_empty_chunks": True})  # every chunk on disk: a missing one is damage
+    if data.size:
+        arr[...] = data
+
+
+class ViewWriter:
+    """Writes one view's arrays into a partial folder; ``commit`` renames it into place atomically."""
+
+    def __init__(self, session: Session, view: int) -> None:
+        self.session, self.view = session, view
+        self.final = session.path / view_dir_name(view)
+        self.partial = session.path / f".{view_dir_name(view)}.partial"
+        shutil.rmtree(self.partial, ignore_errors=True)
+        self.partial.mkdir(parents=True)
+        self.arrays: dict[str, dict[str, Any]] = {}
+
+    def write(self, name: str, data: np.ndarray) -> None:
+        if not ARRAY_RE.fullmatch(name):
+            raise InputError(f"bad array name {name!r}")
+        try:
+            if FAULT_HOOK is not None:
+                FAULT_HOOK(name)
+            _zarr_write(self.partial / name, data)
+        except OSError as exc:
+            self.abort()
+            if exc.errno == errno.ENOSPC:
+                raise DataError(f"disk full while writing {name} of view {self.view} in {self.session.path}: "
+                                "free some space and rerun with --resume") from exc
+            raise DataError(f"cannot write {name} of view {self.view}: {exc}") from exc
+        self.arrays[name] = {"shape": list(data.shape), "dtype": np.dtype(data.dtype).str, "checksum": array_checksum(data),
+                             "chunks": _chunk_count(data.shape, _chunks(data.shape, np.dtype(data.dtype).itemsize))}
+
+    def stream_array(self, name: str, count: int) -> StreamedArray:
+        """An array of ``count`` equal-shape frames written one at a time (raw dot grids)."""
+        return StreamedArray(self, name, count)
+
+    def growing_array(self, name: str, row_shape: tuple[int, ...], dtype: np.dtype,
+                      chunk_bytes: int = 2**21) -> GrowingArray:
+        """An array of rows appended in blocks, its length known only at the end (footprint crops)."""
+        return GrowingArray(self, name, row_shape, dtype, chunk_bytes)
+
+    def abort(self) -> None:
+        shutil.rmtree(self.partial, ignore_errors=True)
+
+    def commit(self, info: dict[str, Any] | None = None) -> None:
+        shutil.rmtree(self.final, ignore_errors=True)
+        os.replace(self.partial, self.final)
+        self.session.set_view(self.view, {"status": "complete", "arrays": self.arrays, "completed": time.time(),
+                                          **(info or {})})
+
+
+class StreamedArray:
+    """``(count, *frame.shape)`` frames written one at a time (raw dot grids): a :class:`GrowingArray`
+    of one frame per chunk, made at the first frame, that must end with exactly ``count`` frames."""
+
+    def __init__(self, writer: ViewWriter, name: str, count: int) -> None:
+        self.writer, self.name, self.count = writer, name, count
+        self.frames: GrowingArray | None = None
+        self.index = 0
+
+    def append(self, frame: np.ndarray) -> None:
+        frame = np.ascontiguousarray(frame)
+        if self.frames is None:
+            self.frames = GrowingArray(self.writer, self.name, frame.shape, frame.dtype, chunk_bytes=max(frame.nbytes, 1))
+        self.frames.extend(frame[None])
+        self.index += 1
+
+    def close(self) -> None:
+        if self.index != self.count or self.frames is None:
+            raise DataError(f"{self.name}: got {self.index} of {self.count} frames")
+        self.frames.close()
+
+
+class GrowingArray:
+    """``(N, *row_shape)`` zarr array of rows appended in blocks of any length, N not known in advance
+    (footprint crops as dot frames arrive). Rows are held until a whole chunk is full, so each chunk is
+    written once and memory stays at one chunk plus the block being added."""
+
+    def __init__(self, writer: ViewWriter, name: str, row_shape: tuple[int, ...], dtype: np.dtype,
+                 chunk_bytes: int = 2**21) -> None:
+        import zarr
+
+        if not ARRAY_RE.fullmatch(name):
+            raise InputError(f"bad array name {name!r}")
+        if FAULT_HOOK is not None:
+            FAULT_HOOK(name)
+        self.writer, self.name, self.dtype = writer, name, np.dtype(dtype)
+        self.rows = _chunks((1 << 40, *row_shape), self.dtype.itemsize, chunk_bytes)[0]
+        self.arr = zarr.create_array(store=str(writer.partial / name), shape=(0, *row_shape), dtype=self.dtype,
+                                     chunks=(self.rows, *row_shape), fill_value=0, zarr_format=3,
+                                     compressors=_codec(self.dtype), config={"write_empty_chunks": True})
+        self.held: list[np.ndarray] = []
+        self.n_held = 0
+        self.hash = hashlib.sha256()
+
+    def extend(self, rows: np.ndarray) -> None:
+        """Append ``rows`` (n, *row_shape), cast to the array's dtype."""
+        rows = np.ascontiguousarray(rows, self.dtype)
+        if rows.shape[1:] != self.arr.shape[1:]:
+            raise DataError(f"{self.name}: rows of shape {rows.shape[1:]}, expected {self.arr.shape[1:]}")
+        self.held.append(rows)
+        self.n_held += len(rows)
+        if self.n_held >= self.rows:
+            self._flush(whole_chunks=True)
+
+    def _flush(self, whole_chunks: bool) -> None:
+        if not self.n_held:
+            return
+        block = np.concatenate(self.held) if len(self.held) > 1 else self.held[0]
+        n = len(block) - len(block) % self.rows if whole_chunks else len(block)
+        start = self.arr.shape[0]
+        self.arr.resize((start + n, *self.arr.shape[1:]))
+        self.arr[start:start + n] = block[:n]
+        self.hash.update(memoryview(np.ascontiguousarray(block[:n])).cast("B"))
+        self.held = [block[n:]] if n < len(block) else []
+        self.n_held = len(block) - n
+
+    def close(self) -> None:
+        self._flush(whole_chunks=False)
+        shape = tuple(self.arr.shape)
+        self.writer.arrays[self.name] = {"shape": list(shape), "dtype": self.dtype.str,
+                                         "checksum": "sha256:" + self.hash.hexdigest(),
+                                         "chunks": _chunk_count(shape, (self.rows, *shape[1:]))}
+
+
+class CheckedArray:
+    """A read-only zarr array whose reads fail with a :class:`DataError` naming it when a chunk is damaged."""
+
+    def __init__(self, array: Any, where: str) -> None:
+        self.array, self.where = array, where
+        self.shape, self.dtype, self.ndim = array.shape, array.dtype, array.ndim
+
+    def __len__(self) -> int:
+        return int(self.shape[0])
+
+    def __getitem__(self, index: Any) -> np.ndarray:
+        return self._checked(lambda: self.array[index])
+
+    @property
+    def oindex(self) -> Any:
+        """Orthogonal indexing (rows by an index array), checked like ``[]``."""
+        outer = self
+
+        class _OIndex:
+            def __getitem__(self, index: Any) -> np.ndarray:
+                return outer._checked(lambda: outer.array.oindex[index])
+
+        return _OIndex()
+
+    def _checked(self, read: Any) -> np.ndarray:
+        try:
+            return read()
+        except Exception as exc:  # zarr/numcodecs raise several types for a checksum or decoding failure
+            reason = str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__
+            raise DataError(f"{self.where} is damaged ({reason}); `sss validate` lists the damage") from None
+
+    def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
+        return np.asarray(self[...], dtype=dtype)
+
+
+def clip_levels(frames: list[dict], saturation: float | None) -> tuple[float | None, float | None]:
+    """Clipping levels (linear units) of a session's PSP and white images from the rig's level at exposure
+    1: a frame developed at exposure e clips at saturation / e; HDR-merged frames clip only where the shortest
+    exposure did."""
+    if not saturation:
+        return None, None
+
+    def level(kind: str) -> float | None:
+        exposures = [float(f.get("exposure", 1.0)) for f in frames if f.get("kind") == kind]
+        return float(saturation) / min(exposures) if exposures else None
+
+    return level("psp"), level("white")
+
+
+@dataclass
+class Session:
+    """A session folder. ``Session.open(path)`` to read; ``Session.create(root, name, ...)`` to write."""
+
+    path: Path
+    manifest: dict[str, Any] = field(default_factory=dict)
+
+    @classmethod
+    def create(cls, root: Path, name: str, *, resume: bool = False, **info: Any) -> Session:
+        """New session ``root/name``; with ``resume`` reopen an existing one (its partial views dropped)."""
+        path = Path(root) / check_object_name(name)
+        if path.is_symlink():
+            raise InputError(f"{path} is a symbolic link: a session is written only inside its --out folder")
+        if (path / MANIFEST).exists():
+            if not resume:
+                raise InputError(f"session {path} already exists: pass --resume to continue it or choose --out")
+            session = cls.open(path)
+            for partial in path.glob(".view_*.partial"):
+                shutil.rmtree(partial, ignore_errors=True)
+            session.manifest.update({k: v for k, v in info.items() if k not in session.manifest})
+            session.manifest["resumed"] = [*session.manifest.get("resumed", []), time.time()]
+            session.save()
+            return session
+        try:
+            path.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:
+            raise InputError(f"cannot create the session folder {path}: {exc.strerror or exc}") from None
+        session = cls(path, {"format": FORMAT, "format_version": FORMAT_VERSION, "object": name,
+                             "created": time.time(), "views": {}, **info})
+        session.save()
+        return session
+
+    @classmethod
+    def open(cls, path: Path | str) -> Session:
+        path = Path(path)
+        try:
+            manifest = json.loads((path / MANIFEST).read_text())
+        except FileNotFoundError:
+            raise DataError(f"{path} is not a session (no {MANIFEST})") from None
+        except ValueError as exc:
+            raise DataError(f"{path / MANIFEST} is corrupt: {exc}") from None
+        if not isinstance(manifest, dict) or manifest.get("format") != FORMAT or not isinstance(manifest.get("format_version", 0), int) \
+                or manifest.get("format_version", 0) > FORMAT_VERSION:
+            raise DataError(f"{path} is not a version-{FORMAT_VERSION} sssphase session")
+        problem = manifest_problem(manifest)
+        if problem:
+            raise DataError(f"{path / MANIFEST} is damaged: {problem}")
+        return cls(path, manifest)
+
+    def save(self) -> None:
+        self.manifest["updated"] = time.time()
+        write_json_atomic(self.path / MANIFEST, self.manifest)
+
+    # ---- views -----------------------------------------------------------------------------
+    def set_view(self, view: int, entry: dict[str, Any]) -> None:
+        self.manifest["views"][str(view)] = entry
+        self.save()
+
+    def status(self, view: int) -> str:
+        return self.manifest["views"].get(str(view), {}).get("status", "pending")
+
+    def views(self) -> list[int]:
+        """Complete views, in order."""
+        return sorted(int(v) for v, e in self.manifest["views"].items() if e.get("status") == "complete")
+
+    def begin_view(self, view: int) -> ViewWriter:
+        self.set_view(view, {"status": "capturing", "started": time.time()})
+        return ViewWriter(self, view)
+
+    # ---- reading ---------------------------------------------------------------------------
+    @property
+    def name(self) -> str:
+        return str(self.manifest["object"])
+
+    @property
+    def objects(self) -> list[str]:
+        """Object names in this session (one per session folder); their index is the class label."""
+        return [self.name]
+
+    def clip_levels(self) -> tuple[float | None, float | None]:
+        """Where this session's PSP and white images clip (linear units; None: unknown or never), from the
+        rig's saturation level and the plan's exposures (:func:`clip_levels`)."""
+        return clip_levels(self.manifest.get("plan", {}).get("frames", []), self.manifest.get("rig", {}).get("saturation"))
+
+    def projector_black(self, view: int, white: np.ndarray | None = None, mask: np.ndarray | None = None) -> float:
+        """The projector's black level relative to white for ``view``: calibrated (``sss calibrate
+        projector``), else the sim rig's, else the median black / white ratio of the view's black frame
+        over the decoded mask (``white``, ``mask``: the view's, if already loaded), else 0."""
+        rig = self.manifest.get("rig", {})
+        opts = rig.get("options", {})
+        if rig.get("projector_black") is not None:
+            return float(rig["projector_black"])
+        if str(rig.get("camera", "")).startswith("sim:"):
+            from sssphase_core.sim import rig_preset
+
+            return float(opts.get("projector_black", rig_preset(opts.get("preset", "cpu")).projector.black))
+        if "black" not in self.arrays(view):
+            return 0.0
+        white = np.asarray(self.load(view, "white"), np.float32) if white is None else white
+        mask = np.asarray(self.load(view, "corr/mask"), bool) if mask is None else mask
+        blk, wl = np.asarray(self.load(view, "black"), np.float32).mean(axis=-1), white.mean(axis=-1)
+        ok = mask & (wl > 0.05)
+        return float(np.clip(np.median(blk[ok] / wl[ok]), 0, 0.5)) if ok.any() else 0.0
+
+    def arrays(self, view: int) -> list[str]:
+        return sorted(self.manifest["views"].get(str(view), {}).get("arrays", {}))
+
+    def read(self, view: int, name: str) -> CheckedArray:
+        """The array lazily (index it, or ``np.asarray`` it, to load numpy data; every chunk read is verified)."""
+        import zarr
+
+        if name not in self.arrays(view):
+            raise DataError(f"view {view} of {self.path} has no array {name!r} (has: {', '.join(self.arrays(view))})")
+        where = f"array {name} of view {view} of {self.path}"
+        folder = self.path / view_dir_name(view) / name
+        try:
+            array = zarr.open_array(str(folder), mode="r")
+        except Exception as exc:  # missing or unreadable metadata
+            raise DataError(f"{where} is missing or unreadable ({type(exc).__name__}); `sss validate` lists the damage") from None
+        expected = self.manifest["views"][str(view)]["arrays"][name].get("chunks")  # older sessions: not recorded
+        if expected is not None:
+            found = sum(1 for p in folder.rglob("*") if p.is_file() and p.name != "zarr.json")
+            if found != expected:  # zarr would read a missing chunk as zeros
+                raise DataError(f"{where} is damaged ({expected - found} of {expected} chunks missing); "
+                                "`sss validate` lists the damage")
+        return CheckedArray(array, where)
+
+    def load(self, view: int, name: str) -> np.ndarray:
+        """The whole array as numpy."""
+        return np.asarray(self.read(view, name)[...])
+
+    def iter_views(self) -> Iterator[tuple[int, dict[str, Any]]]:
+        for v in self.views():
+            yield v, self.manifest["views"][str(v)]
+
+    # ---- checking --------------------------------------------------------------------------
+    def validate(self, *, expected_views: int | None = None) -> list[str]:
+        """Problems found (empty when the session is complete and intact); reads every array."""
+        problems = []
+        n = expected_views if expected_views is not None else int(self.manifest.get("n_views", 0))
+        for v in range(n):
+            if self.status(v) != "complete":
+                problems.append(f"view {v}: {self.status(v)} (not captured completely; rerun with --resume)")
+        for v, entry in self.iter_views():
+            for name in REQUIRED:
+                if name not in entry.get("arrays", {}):
+                    problems.append(f"view {v}: required array {name} missing from the manifest")
+            for name, meta in entry.get("arrays", {}).items():
+                try:
+                    data = self.load(v, name)
+                except DataError as exc:  # a chunk failed its CRC32C, or the array's files are gone
+                    what = "corrupt (a chunk fails its checksum)" if "damaged" in str(exc) else "missing or unreadable"
+                    problems.append(f"view {v}: array {name} is {what}")
+                    continue
+                except Exception as exc:
+                    problems.append(f"view {v}: array {name} missing or unreadable ({type(exc).__name__}: {str(exc)[:80]})")
+                    continue
+                if list(data.shape) != meta["shape"] or data.dtype.str != meta["dtype"]:
+                    problems.append(f"view {v}: array {name} is {data.shape} {data.dtype.str}, manifest says "
+                                    f"{tuple(meta['shape'])} {meta['dtype']}")
+                elif array_checksum(data) != meta["checksum"]:
+                    problems.append(f"view {v}: array {name} is corrupt (checksum mismatch)")
+        return problems
+
+
+def find_sessions(paths: Iterable[Path | str]) -> list[Session]:
+    """Each path is a session folder or a root of session folders; every session found, in order."""
+    found: list[Session] = []
+    for p in map(Path, paths):
+        found += [Session.open(p)] if (p / MANIFEST).exists() else list_sessions(p)
+    if not found:
+        raise InputError(f"no sessions under {', '.join(map(str, paths))}")
+    return found
+
+
+def list_sessions(root: Path | str) -> list[Session]:
+    """Every session folder directly under ``root`` (the learning data set), by object name."""
+    return [Session.open(p.parent) for p in sorted(Path(root).glob(f"*/{MANIFEST}"))]
