@@ -136,7 +136,8 @@ class ViewProcessor:
 
         if self.rig.saturation is None:
             raise DataError("HDR needs the rig's saturation level ([processing] saturation in the rig file)")
-        return isp.hdr_merge(np.stack([b[1] for b in bracket]), [b[0] for b in bracket], self.rig.saturation)
+        return isp.hdr_merge(np.stack([b[1] for b in bracket]), [b[0] for b in bracket], self.rig.saturation,
+                             spread=4 if self.rig.median else 2)
 
     def decode(self) -> Any:
         if self.corr is None:

@@ -7,7 +7,7 @@ import pytest
 
 from sssphase_core.errors import InputError
 from sssphase_core.processing import isp
-from sssphase_core.sim.sensor import SensorConfig, bayer_mosaic, expose
+from sssphase_core.sim.sensor import SensorConfig, bayer_mosaic, expose, expose_noise_free
 
 
 def smooth_image(h: int = 64, w: int = 96) -> np.ndarray:
@@ -91,6 +91,29 @@ def test_hdr_merge_recovers_values_beyond_saturation():
     with_read = isp.hdr_merge(frames, exposures, cfg.saturation(1.0), electrons_per_unit=cfg.electrons_per_unit,
                               read_noise=cfg.read_noise)
     assert np.abs(with_read - truth)[inner].mean() <= np.abs(merged - truth)[inner].mean() * 1.05
+
+
+def test_hdr_merge_leaves_out_what_demosaicing_spread_from_clipped_neighbours():
+    """A bright red checkerboard: the long exposure's red clips on the squares, and demosaicing carries
+    that into the neighbouring pixels (in every colour) below the clipping level. Those pixels must come
+    from the shorter exposures too."""
+    cfg = SensorConfig()
+    yy, xx = np.mgrid[:64, :64]
+    square = ((yy // 6 + xx // 6) % 2).astype(np.float64)
+    truth = np.stack([0.1 + 2.9 * square, 0.05 + 0.3 * square, 0.05 + 0.1 * square], -1)  # red up to 3.0
+    exposures = [4.0, 1.0, 0.25]
+    frames = np.stack([isp.develop(expose_noise_free(truth[None], cfg, t)[0], cfg.black_level, cfg.dn_per_unit(t))
+                       for t in exposures])
+    unclipped = frames[-1]  # 0.25 clips at 6.7: the camera's image of the truth, demosaicing's edges and all
+    err = lambda merged: np.abs(merged - unclipped).max()  # noqa: E731
+    blind = isp.hdr_merge(frames, exposures, cfg.saturation(1.0), spread=0)
+    merged = isp.hdr_merge(frames, exposures, cfg.saturation(1.0))
+    assert err(blind) > 0.1  # values spread from clipped samples pass the per-sample test
+    assert err(merged) < 1e-4
+    flat = np.stack([isp.develop(expose_noise_free(np.full((1, 16, 16, 3), 0.2), cfg, t)[0], cfg.black_level,
+                                 cfg.dn_per_unit(t)) for t in exposures])
+    np.testing.assert_allclose(isp.hdr_merge(flat, exposures, cfg.saturation(1.0)),  # nothing clips: unchanged
+                               isp.hdr_merge(flat, exposures, cfg.saturation(1.0), spread=0))
 
 
 def test_hdr_merge_keeps_the_shortest_exposure_when_everything_clips():
