@@ -183,6 +183,7 @@ def capture(
     footprints: Annotated[bool, typer.Option(help="also capture dot grids and extract ground-truth footprints")] = False,
     reference: Annotated[list[str] | None, typer.Option(help="reference pattern: a name (checkerboard, stripes_x, ...) or an image file; repeatable")] = None,
     hdr: Annotated[bool, typer.Option(help="capture exposure brackets (1/4, 1, 4) and merge them")] = False,
+    hdr_exposures: Annotated[str | None, typer.Option(help="the brackets' relative exposures, e.g. 0.25,1,4,16 (implies --hdr; longer ones lift dim dot grids out of the noise)")] = None,
     resume: Annotated[bool, typer.Option(help="continue an interrupted session")] = False,
     rig: Annotated[Path | None, typer.Option(help="rig file (TOML); default: the sim rig")] = None,
     out: Annotated[Path, typer.Option(help="session root folder")] = Path("sessions"),
@@ -220,7 +221,18 @@ def capture(
 
         flag = "--transport" if transport is not None else "--randomise-rig"
         raise InputError(f"{flag} changes the simulator's physics and camera: it applies to the sim rig only")
-    req = CaptureRequest(object_name, views, footprints, tuple(reference or ()), DEFAULT_HDR if hdr else (),
+    brackets = DEFAULT_HDR if hdr else ()
+    if hdr_exposures is not None:
+        from sssphase_core.errors import InputError
+
+        try:
+            brackets = tuple(float(v) for v in hdr_exposures.split(",") if v.strip())
+        except ValueError:
+            raise InputError(f"--hdr-exposures takes comma-separated numbers, e.g. 0.25,1,4,16; got {hdr_exposures!r}") from None
+    from sssphase_core.capture.engine import check_brackets
+
+    check_brackets(brackets)  # before a daemon starts
+    req = CaptureRequest(object_name, views, footprints, tuple(reference or ()), brackets,
                          keep_dots, keep_unwrap, resume, out, seed, preset, dot_spacing, transport, drawn)
     from sssphase_daemon.client import local_client
 

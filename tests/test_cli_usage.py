@@ -31,6 +31,8 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["relight", "no_session", "--pattern", "checkerboard", "--format", "tiff"], "choose png, exr"),
         (["capture", "--object", "apple", "--transport", "photon_beams"], "unknown transport model 'photon_beams'"),
         (["geometry", "no_session", "--backend", "measured"], "placed by the decoded correspondences"),
+        (["capture", "--object", "apple", "--hdr-exposures", "0.25,1,x"], "--hdr-exposures takes comma-separated"),
+        (["capture", "--object", "apple", "--hdr-exposures", "1,1"], "HDR exposures must be 2 to 8 distinct"),
     ],
 )
 def test_usage_errors_are_one_message_not_a_traceback(args: list[str], expected: str) -> None:

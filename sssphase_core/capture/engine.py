@@ -25,12 +25,26 @@ class ClientLike(Protocol):
     def capture(self, rig: str, frames: list[dict[str, Any]]) -> Iterable[FrameLike]: ...
 
 
+MAX_BRACKETS = 8
+
+
+def check_brackets(exposures: tuple[float, ...]) -> None:
+    """HDR brackets: none, or 2 to ``MAX_BRACKETS`` distinct finite relative exposures in (0, 256]."""
+    if not exposures:
+        return
+    ok = all(isinstance(e, int | float) and 0 < e <= 256 for e in exposures)  # NaN fails too
+    if not ok or not 2 <= len(exposures) <= MAX_BRACKETS or len(set(exposures)) != len(exposures):
+        raise InputError(f"HDR exposures must be 2 to {MAX_BRACKETS} distinct numbers in (0, 256], got "
+                         f"{', '.join(f'{e:g}' for e in exposures)}")
+
+
 def run_capture(client: ClientLike, req: CaptureRequest, rig: RigSpec | None = None, *,
                 progress: Progress | None = None, ask_move: Callable[[int, float], None] | None = None) -> Session:
     """Capture ``req.views`` views of ``req.object`` into ``req.out/<object>`` (resuming if asked)."""
     check_object_name(req.object)
     if req.views < 1:
         raise InputError(f"--views must be >= 1, got {req.views}")
+    check_brackets(req.hdr)
     rig = rig or RigSpec()
     options = dict(rig.options)
     if rig.is_sim:

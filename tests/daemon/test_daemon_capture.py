@@ -224,10 +224,11 @@ def test_hdr_brackets_on_a_rig_without_turntable(daemon, tmp_path):
     (tmp_path / "rig.toml").write_text('[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\n')
     rig = RigSpec.from_toml(tmp_path / "rig.toml")
     asked: list[tuple[int, float]] = []
-    req = CaptureRequest("soap", views=1, hdr=DEFAULT_HDR, out=tmp_path)
+    brackets = (*DEFAULT_HDR, 16.0)  # any brackets (`--hdr-exposures 0.25,1,4,16`)
+    req = CaptureRequest("soap", views=1, hdr=brackets, out=tmp_path)
     s = run_capture(client, req, rig, ask_move=lambda v, a: asked.append((v, a)))
     assert asked == [(0, 0.0)] and s.validate() == []
-    assert len(s.manifest["plan"]["frames"]) == 3 * (24 + 2)
+    assert len(s.manifest["plan"]["frames"]) == 4 * (24 + 2)
     white, render, mask = s.load(0, "white"), s.load(0, "gt/render/white"), s.load(0, "corr/mask")
     assert mask.sum() > 1000
     assert np.abs(white - render)[mask].mean() < 0.05 * render[mask].mean()
