@@ -97,6 +97,9 @@ class Demo:
             raise InputError(f"{self.out} was made with the simulator's {stamp.read_text().strip()!r} physics, this run "
                              f"asks for {physics!r}: use another --out, or --fresh")
         stamp.write_text(physics)
+        self.report_rig = f"Simulated rig (CPU preset), {self.transport.replace('_', ' ')} transport" + (
+            "; every training object captured on its own randomised rig (sim.randomised_rig_options)"
+            if randomise_rig else "")
         self.results: dict[str, dict[str, Any]] = {}
 
     def _done(self, name: str) -> dict[str, Any] | None:

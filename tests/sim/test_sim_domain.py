@@ -92,6 +92,7 @@ def test_the_demo_captures_each_training_object_on_its_own_rig(sim_daemon, tmp_p
 
     cfg = DemoConfig(("star", "shovel"), ("sand_rake",), train_views=1)
     demo = Demo(tmp_path, cfg, sim_daemon, log=lambda _: None, randomise_rig=True)
+    assert "randomised rig" in demo.report_rig  # the report says what the model was trained on
     demo.train_sessions()
     for obj in cfg.train_objects:
         options = Session.open(tmp_path / "sessions" / "train" / obj).manifest["rig"]["options"]
