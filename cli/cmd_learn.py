@@ -281,7 +281,7 @@ def eval_knn(
 ) -> None:
     """kNN accuracy of frozen embeddings with view-level leave-one-out (cosine similarity)."""
     from sssphase_core.errors import InputError
-    from sssphase_core.learning.evaluation import knn_of_views
+    from sssphase_core.learning.evaluation import knn_of_views, knn_tables
     from sssphase_core.learning.training import load_encoder
     from sssphase_core.sim import MATERIAL_NAMES, TRAIN_OBJECTS
 
@@ -303,16 +303,9 @@ def eval_knn(
         res = sweep[ks[0]]
         res["overall_by_k"] = {kk: r["overall"] for kk, r in sweep.items()}
         results[run] = res
-    rows = sorted({c for r in results.values() for c in r["per_class"]}, key=str)
-    md = [f"| {label.capitalize()} | " + " | ".join(results) + " |", "|---|" + "---|" * len(results)]
-    md += [f"| {c} | " + " | ".join(f"{100 * r['per_class'].get(c, float('nan')):.2f}" for r in results.values()) + " |" for c in rows]
-    md += ["| **overall** | " + " | ".join(f"{100 * r['overall']:.2f}" for r in results.values()) + " |"]
-    md += ["| **mean per view** | " + " | ".join(f"{100 * r['mean_per_view']:.2f}" for r in results.values()) + " |"]
-    if len(ks) > 1:
-        md += ["", "Overall accuracy (%) against k:", "", "| k | " + " | ".join(results) + " |", "|---|" + "---|" * len(results)]
-        md += [f"| {kk} | " + " | ".join(f"{100 * r['overall_by_k'][kk]:.2f}" for r in results.values()) + " |" for kk in ks]
-    header = f"kNN accuracy (%), k={ks[0]}, {vote} vote, view-level leave-one-out over views {views}"
-    _write(out, {"k": ks[0], "vote": vote, "label": label, "views": views, "results": results}, header + "\n\n" + "\n".join(md))
+    tables = knn_tables(results, label=label, ks=ks, vote=vote, views=views)
+    _write(out, {"k": ks[0], "vote": vote, "label": label, "views": views, "results": results},
+           "\n".join(t.markdown() for t in tables))
 
 
 def eval_footprints(
@@ -336,7 +329,7 @@ def eval_footprints(
 
     from sssphase_core.errors import InputError
     from sssphase_core.learning.backends import get_backend
-    from sssphase_core.learning.evaluation import footprint_metrics, summarise
+    from sssphase_core.learning.evaluation import footprint_metrics, footprint_table, summarise
     from sssphase_core.reporting.figures import plot_profiles
     from sssphase_core.sim import UNSEEN_OBJECTS, rig_preset
 
@@ -373,18 +366,10 @@ def eval_footprints(
             i = int(np.argmax(gt.sum(axis=(1, 2, 3))))
             for bname, pred in preds.items():
                 plot_profiles(gt[i], pred[i], plots / f"{obj}_{bname}.png", title=f"{obj}: {bname}")
-    cols = list(backends)
-    with_lpips = all("lpips" in r for res in results.values() for r in res.values())
-    per = 4 if with_lpips else 3
-    md = ["| Object | " + " | ".join(f"{b} MSE×1e-5 | {b} PSNR | {b} SSIM" + (f" | {b} LPIPS" if with_lpips else "")
-                                   for b in cols) + " |", "|---|" + "---|" * (per * len(cols))]
-    for obj, res in results.items():
-        md.append(f"| {obj} | " + " | ".join(f"{res[b]['mse'] * 1e5:.2f} | {res[b]['psnr']:.2f} | {res[b]['ssim']:.3f}"
-                                            + (f" | {res[b]['lpips']:.3f}" if with_lpips else "") for b in cols) + " |")
     note = ("PSNR: data range 1 (white reference = 1.0); SSIM: 11x11 Gaussian window, data range = each GT footprint's peak; "
             f"{lpips_note()}.")
     _write(out, {"objects": names, "views": views, "results": results, "note": note},
-           f"Footprint reconstruction on views {views}\n\n" + "\n".join(md) + "\n\n" + note)
+           footprint_table(results, views=views, note=note).markdown())
 
 
 # --- viz ---------------------------------------------------------------------------------------------

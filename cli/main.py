@@ -62,10 +62,11 @@ for _name, _help in GROUP_HELP.items():
 
 # One module per product area; each defines register(groups: dict[str, typer.Typer]).
 COMMAND_MODULES = [
-    "sssphase_cli.cmd_foundation",  # patterns, decode, bench psp
-    "sssphase_cli.cmd_sim",  # sim
-    "sssphase_cli.cmd_capture",  # devices, plugins, daemon, capture, validate, import, bench daemon
-    "sssphase_cli.cmd_devices",  # udev install
+    "sssphase_cli.cmd_psp",  # patterns, decode, bench psp
+    "sssphase_cli.cmd_sim",  # sim, objects, rigs
+    "sssphase_cli.cmd_daemon",  # devices, plugins, daemon start|stop|status|keys, bench daemon
+    "sssphase_cli.cmd_capture",  # capture, validate, import, export, calibrate projector, bench capture
+    "sssphase_cli.cmd_udev",  # udev install
     "sssphase_cli.cmd_learn",  # train, eval knn/footprints, viz pca
     "sssphase_cli.cmd_relight",  # relight, eval relight, demo, bench relight/stability
 ]

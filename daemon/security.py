@@ -18,15 +18,22 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from urllib.parse import urlsplit
 
+from sssphase_core.errors import SssError
+
 LOCAL_HOSTS = {"127.0.0.1", "localhost", "::1", "[::1]"}
 SERVER_CERT, CLIENT_CERT, AUTHORIZED = "server", "client", "authorized_clients"
+
+
+class PrivateDirError(SssError, PermissionError):
+    """A folder for the daemon's socket, token or keys that others could read or write."""
 
 
 def _private_dir(path: Path) -> Path:
     path.mkdir(parents=True, exist_ok=True, mode=0o700)
     st = path.stat()
     if st.st_uid != os.getuid() or st.st_mode & 0o077:
-        raise PermissionError(f"{path} must be owned by you with mode 0700 (it holds the daemon's socket and token)")
+        raise PrivateDirError(f"{path} must be owned by you with mode 0700 (it holds the daemon's socket and token): "
+                              f"run 'chmod 700 {path}' or point SSS_RUNTIME_DIR at a private folder")
     return path
 
 

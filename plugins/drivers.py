@@ -61,6 +61,17 @@ class ShowReceipt:
     on_screen_ns: int
 
 
+def check_pattern(image: np.ndarray, resolution: tuple[int, int], device_id: str) -> np.ndarray:
+    """A pattern for :meth:`Projector.show` as float32 ``(H, W)`` or ``(H, W, 3)`` of the projector's
+    ``resolution`` (width, height); anything else raises :class:`DeviceError` naming both shapes."""
+    w, h = resolution
+    img = np.asarray(image, np.float32)
+    if img.ndim not in (2, 3) or img.shape[:2] != (h, w) or (img.ndim == 3 and img.shape[2] != 3):
+        raise DeviceError(f"{device_id}: a pattern is (H, W) or (H, W, 3) of the projector's {w}x{h}, "
+                          f"got shape {img.shape}")
+    return img
+
+
 @runtime_checkable
 class Camera(Protocol):
     info: DeviceInfo

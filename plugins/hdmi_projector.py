@@ -38,7 +38,7 @@ from typing import Any
 
 import numpy as np
 
-from sssphase_plugins.drivers import DeviceError, DeviceInfo, ShowReceipt
+from sssphase_plugins.drivers import DeviceError, DeviceInfo, ShowReceipt, check_pattern
 from sssphase_plugins.hookspecs import hookimpl
 from sssphase_plugins.usb_util import no_device, optional_import, plugin_options
 
@@ -164,9 +164,7 @@ class HdmiProjector:
         return tuple(self.window.size)  # type: ignore[return-value]
 
     def show(self, image: np.ndarray, *, tag: str = "", confirm: bool = True) -> ShowReceipt:
-        w, h = self.resolution
-        if np.shape(image)[:2] != (h, w):
-            raise DeviceError(f"{self.info.id}: image is {np.shape(image)[1]}x{np.shape(image)[0]}, display is {w}x{h}")
+        image = check_pattern(image, self.resolution, self.info.id)
         self.frame_id += 1
         self.window.send(self.frame_id, to_uint8(image))
         if not confirm:

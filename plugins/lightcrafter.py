@@ -69,7 +69,7 @@ from typing import Any
 
 import numpy as np
 
-from sssphase_plugins.drivers import DeviceError, DeviceInfo, DeviceNotFound, ShowReceipt
+from sssphase_plugins.drivers import DeviceError, DeviceInfo, DeviceNotFound, ShowReceipt, check_pattern
 from sssphase_plugins.hdmi_projector import HdmiProjector, HdmiWindow, list_displays
 from sssphase_plugins.hookspecs import hookimpl
 from sssphase_plugins.usb_util import no_device, optional_import, plugin_options, sysfs_usb_devices
@@ -294,7 +294,7 @@ class LightCrafterProjector(HdmiProjector):
 
     def show(self, image: np.ndarray, *, tag: str = "", confirm: bool = True) -> ShowReceipt:
         if self.mode == "pattern":  # one 8-bit pattern per frame, in the green channel
-            gray = np.asarray(image, np.float32)
+            gray = check_pattern(image, self.resolution, self.info.id)
             gray = gray.mean(axis=2) if gray.ndim == 3 else gray
             image = np.zeros((*gray.shape, 3), np.float32)
             image[..., 1] = gray

@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from sssphase_core.errors import InputError
-from sssphase_plugins.drivers import DeviceError, DeviceInfo, Frame, ShowReceipt
+from sssphase_plugins.drivers import DeviceError, DeviceInfo, Frame, ShowReceipt, check_pattern
 from sssphase_plugins.hookspecs import hookimpl
 
 PLUGIN = "sim"
@@ -208,13 +208,11 @@ class SimProjector:
         return self.bench.projector_size
 
     def show(self, image: np.ndarray, *, tag: str = "", confirm: bool = True) -> ShowReceipt:
-        w, h = self.resolution
-        if image.shape[:2] != (h, w):
-            raise DeviceError(f"{self.info.id}: image is {image.shape[1]}x{image.shape[0]}, projector is {w}x{h}")
+        image = check_pattern(image, self.resolution, self.info.id)
         b = self.bench
         self.frame_id += 1
         on_screen = b.clock_ns + b.latency_ns
-        b.shown.append((on_screen, np.asarray(image, np.float32), tag, self.frame_id))
+        b.shown.append((on_screen, image, tag, self.frame_id))
         if confirm:
             b.advance(on_screen - b.clock_ns)
         return ShowReceipt(self.frame_id, tag, on_screen)

@@ -44,6 +44,18 @@ def test_usage_errors_are_one_message_not_a_traceback(args: list[str], expected:
     assert len(out.strip().splitlines()) <= 12, out
 
 
+def test_a_runtime_folder_others_can_read_is_one_message(tmp_path) -> None:
+    shared = tmp_path / "rt"
+    shared.mkdir(mode=0o755)
+    shared.chmod(0o755)
+    env = {k: v for k, v in os.environ.items() if k != "SSS_DEBUG"} | {"SSS_RUNTIME_DIR": str(shared), "COLUMNS": "200"}
+    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "daemon", "status"], capture_output=True,
+                         text=True, timeout=120, env=env)
+    out = res.stdout + res.stderr
+    assert res.returncode == 2 and "Traceback" not in out and "internal error" not in out, out
+    assert "must be owned by you with mode 0700" in out and f"chmod 700 {shared}" in out, out
+
+
 def test_bare_group_prints_help_and_exits_cleanly() -> None:
     res = _sss("train")
     out = res.stdout + res.stderr

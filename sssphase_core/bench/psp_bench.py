@@ -401,8 +401,8 @@ def run(quick: bool = False, progress: Progress | None = None) -> tuple[dict[str
     progress("synthetic accuracy")
     noise = (0.0, 0.01, 0.04) if quick else (0.0, 0.0025, 0.005, 0.01, 0.02, 0.04, 0.08)
     section("synthetic", lambda: bench_synthetic(noise, blur=1.0))
+    from sssphase_core.bench.sim_bench import simulator_speed
     from sssphase_core.sim import TRAIN_OBJECTS, UNSEEN_OBJECTS
-    from sssphase_core.sim.bench import simulator_speed
 
     objects = ("star",) if quick else (*TRAIN_OBJECTS, *UNSEEN_OBJECTS)
     exposures = (1.0,) if quick else (1.0, 0.25, 0.0625)

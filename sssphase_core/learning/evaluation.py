@@ -13,6 +13,7 @@ from sssphase_core.errors import InputError
 from sssphase_core.learning.data import crop_patches, pad_for_patches, to_channels_first
 from sssphase_core.learning.losses import ssim_map
 from sssphase_core.learning.metrics import MSE_FLOOR, psnr
+from sssphase_core.tables import Table
 
 # --- embeddings ----------------------------------------------------------------------------------
 
@@ -187,3 +188,38 @@ def pca_maps(encoder, views: Sequence[tuple[np.ndarray, np.ndarray]], stride: in
 
 
 PCA_TITLE = "PCA-RGB of encoder embeddings: components 1-3 as R, G, B, one joint PCA over the objects shown"
+
+
+# --- tables --------------------------------------------------------------------------------------
+
+
+def knn_tables(results: dict[str, dict], *, label: str, ks: Sequence[int], vote: str, views: str) -> list[Table]:
+    """The paper's Table 2 from :func:`knn_of_views` results per run (``{run: result at ks[0]}``, each with
+    ``overall_by_k``): accuracy (%) per class, overall and mean per view; with several k, overall against k."""
+    runs = list(results)
+    classes = sorted({c for r in results.values() for c in r["per_class"]}, key=str)
+    pct = lambda v: f"{100 * v:.2f}"  # noqa: E731
+    main = Table(f"kNN accuracy (%), k={ks[0]}, {vote} vote, view-level leave-one-out over views {views}",
+                 [label.capitalize(), *runs])
+    main.rows += [[c, *(pct(r["per_class"].get(c, float("nan"))) for r in results.values())] for c in classes]
+    main.rows.append(["**overall**", *(pct(r["overall"]) for r in results.values())])
+    main.rows.append(["**mean per view**", *(pct(r["mean_per_view"]) for r in results.values())])
+    tables = [main]
+    if len(ks) > 1:
+        tables.append(Table("Overall accuracy (%) against k", ["k", *runs],
+                            [[kk, *(pct(r["overall_by_k"][kk]) for r in results.values())] for kk in ks]))
+    return tables
+
+
+def footprint_table(results: dict[str, dict[str, dict[str, float]]], *, views: str, note: str = "") -> Table:
+    """The paper's Table 1 from ``{object: {source: summarise(...)}}``: MSE x 1e-5, PSNR, SSIM (and LPIPS
+    when every entry has it) per object and footprint source."""
+    sources = list(next(iter(results.values()), {}))
+    with_lpips = all("lpips" in r for res in results.values() for r in res.values())
+    metrics = [("MSE×1e-5", "mse", 1e5, ".2f"), ("PSNR", "psnr", 1, ".2f"), ("SSIM", "ssim", 1, ".3f")]
+    metrics += [("LPIPS", "lpips", 1, ".3f")] if with_lpips else []
+    table = Table(f"Footprint reconstruction on views {views}", ["Object"] + [f"{b} {m[0]}" for b in sources for m in metrics],
+                  note=note)
+    table.rows += [[obj, *(format(res[b][key] * scale, fmt) for b in sources for _n, key, scale, fmt in metrics)]
+                   for obj, res in results.items()]
+    return table

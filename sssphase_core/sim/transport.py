@@ -27,7 +27,7 @@ far away, so their weight underflows to exactly 0): footprints are cut at silhou
 beyond the window is dropped. Rendering computes footprints chunk by chunk, only for pixels lit by
 some pattern, and applies each chunk to all patterns at once as one sparse (targets x sources)
 matrix product per colour channel (scipy's compiled CSC kernel: measured faster than
-``np.bincount`` per pattern and channel, see ``sssphase_core.sim.bench``).
+``np.bincount`` per pattern and channel, see ``sssphase_core.bench.sim_bench``).
 """
 
 from __future__ import annotations

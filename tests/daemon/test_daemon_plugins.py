@@ -90,7 +90,7 @@ def test_sim_devices_follow_the_driver_protocols(sim_rig):
     cam, proj, table = sim_rig
     assert isinstance(cam, Camera) and isinstance(proj, Projector) and isinstance(table, Turntable)
     assert proj.resolution == (256, 192)
-    with pytest.raises(DeviceError, match="projector is 256x192"):
+    with pytest.raises(DeviceError, match="of the projector.s 256x192"):
         proj.show(np.zeros((10, 10), np.float32))
     with pytest.raises(DeviceError):
         cam.configure(exposure=0)

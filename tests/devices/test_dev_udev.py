@@ -7,11 +7,11 @@ import re
 import typer
 from typer.testing import CliRunner
 
-from sssphase_cli import cmd_devices
+from sssphase_cli import cmd_udev
 
 
 def rules_text() -> str:
-    return "".join(f.read_text() for f in cmd_devices.rules_files())
+    return "".join(f.read_text() for f in cmd_udev.rules_files())
 
 
 def test_rules_cover_every_supported_device_group_based():
@@ -35,7 +35,7 @@ def test_serial_rules_match_the_plugin_ids():
 
 def test_install_copies_reloads_and_reports(tmp_path):
     ran, said = [], []
-    code = cmd_devices.install_rules(tmp_path / "rules.d", dry_run=False, is_root=True,
+    code = cmd_udev.install_rules(tmp_path / "rules.d", dry_run=False, is_root=True,
                                      run=lambda cmd: ran.append(cmd) or 0, have_udevadm=True, echo=said.append)
     assert code == 0
     assert (tmp_path / "rules.d" / "60-sssphase.rules").read_text() == rules_text()
@@ -45,7 +45,7 @@ def test_install_copies_reloads_and_reports(tmp_path):
 
 def test_not_root_prints_the_commands(tmp_path):
     said: list[str] = []
-    code = cmd_devices.install_rules(tmp_path, dry_run=False, is_root=False, run=lambda cmd: 1 / 0,
+    code = cmd_udev.install_rules(tmp_path, dry_run=False, is_root=False, run=lambda cmd: 1 / 0,
                                      have_udevadm=True, echo=said.append)
     assert code == 1 and "needs root" in said[0]
     assert any(s.strip().startswith("sudo install -m 0644") for s in said)
@@ -54,7 +54,7 @@ def test_not_root_prints_the_commands(tmp_path):
 
 def test_cli_dry_run(tmp_path):
     app = typer.Typer()
-    cmd_devices.register({"root": app})
+    cmd_udev.register({"root": app})
     app.command("noop")(lambda: None)  # keep `udev` a sub-command group
     result = CliRunner().invoke(app, ["udev", "install", "--dry-run", "--rules-dir", str(tmp_path)])
     assert result.exit_code == 0, result.output

@@ -140,3 +140,20 @@ def test_knn_of_views_is_the_leave_one_view_out_table_of_every_pixel(synthetic, 
     assert set(materials["per_class"]) <= {"m0", "m1", "m2", "m3"} and 0 <= materials["overall"] <= 1
     with pytest.raises(InputError, match="object or material"):
         knn_of_views(enc, views, ["a", "b"], label="view")
+
+
+def test_knn_and_footprint_tables_are_built_in_core():
+    from sssphase_core.learning.evaluation import footprint_table, knn_tables
+
+    run = {"per_class": {"apple": 0.5, "star": 1.0}, "overall": 0.75, "mean_per_view": 0.7, "overall_by_k": {5: 0.75, 1: 0.8}}
+    other = {**run, "per_class": {"apple": 0.25}, "overall": 0.125}
+    main, by_k = knn_tables({"psp": run, "imagenet": other}, label="object", ks=[5, 1], vote="majority", views="0,1")
+    assert main.columns == ["Object", "psp", "imagenet"]
+    assert main.rows[0] == ["apple", "50.00", "25.00"] and main.rows[1][2] == "nan"  # star unseen by the second run
+    assert main.rows[2] == ["**overall**", "75.00", "12.50"] and by_k.rows == [[5, "75.00", "75.00"], [1, "80.00", "80.00"]]
+    assert knn_tables({"psp": run}, label="material", ks=[5], vote="weighted", views="0")[0].columns[0] == "Material"
+    res = {"soap": {"torch": {"mse": 2e-5, "psnr": 47.0, "ssim": 0.9912}, "analytic": {"mse": 1e-4, "psnr": 40.0, "ssim": 0.5}}}
+    table = footprint_table(res, views="0", note="n")
+    assert table.columns[:4] == ["Object", "torch MSE×1e-5", "torch PSNR", "torch SSIM"] and len(table.columns) == 7
+    assert table.rows == [["soap", "2.00", "47.00", "0.991", "10.00", "40.00", "0.500"]]
+    assert "| soap | 2.00 |" in table.markdown()

@@ -17,7 +17,7 @@ from sssphase_core.errors import UnknownObjectError
 
 
 def test_sim_and_isp_never_import_torch():
-    code = ("import sys, numpy as np, sssphase_core.sim, sssphase_core.sim.bench\n"
+    code = ("import sys, numpy as np, sssphase_core.sim, sssphase_core.bench.sim_bench\n"
             "from sssphase_core.processing import isp\n"
             "isp.develop(np.zeros((8, 8), np.uint16), 0, 1.0)  # loads OpenCV and colour-demosaicing\n"
             "assert 'torch' not in sys.modules")
@@ -67,7 +67,7 @@ def test_sim_command_rejects_unknown_objects(app, tmp_path):
 
 
 def test_scatter_strategies_agree():
-    from sssphase_core.sim.bench import scatter_strategies
+    from sssphase_core.bench.sim_bench import scatter_strategies
 
     out = scatter_strategies(n_pixels=200, n_patterns=3)
     assert out["agree"] and set(out["seconds"]) == {"sparse_csc", "bincount", "add_at"}

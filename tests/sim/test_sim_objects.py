@@ -125,7 +125,7 @@ def test_presets_and_views():
 
 
 def test_dropped_energy_shrinks_with_the_patch_and_fits_the_presets():
-    from sssphase_core.sim.bench import dropped_energy
+    from sssphase_core.bench.sim_bench import dropped_energy
     from sssphase_core.sim.materials import dropped_fraction
 
     rate = np.array([0.2, 0.5, 2.0])  # mm^-1

@@ -1,7 +1,8 @@
 """Example third-party sssphase device plugin: a synthetic test-pattern camera.
 
-A plugin module implements hooks from ``sssphase_plugins.hookspecs`` with the ``hookimpl`` marker;
-each returns cheap provider objects, and device I/O happens only in ``discover()`` and ``open()``.
+A plugin module implements the device hooks with the ``hookimpl`` marker, importing only from the
+public API ``sssphase_plugins.api``; each hook returns cheap provider objects, and device I/O happens
+only in ``discover()`` and ``open()``.
 """
 
 from __future__ import annotations
@@ -12,8 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from sssphase_plugins.drivers import DeviceError, DeviceInfo, Frame
-from sssphase_plugins.hookspecs import hookimpl
+from sssphase_plugins.api import DeviceError, DeviceInfo, Frame, hookimpl
 
 __version__ = "0.1.0"
 PLUGIN = "example"

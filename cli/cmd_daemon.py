@@ -1,0 +1,199 @@
+"""Acquisition daemon and devices: ``sss devices``, ``plugins``, ``daemon start|stop|status|keys`` and
+``bench daemon``. Heavy modules (zmq, numpy) load inside commands."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import sys
+import time
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+from rich.markup import escape
+from rich.table import Table
+
+console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
+
+def _client(timeout_s: float = 10.0):
+    """A client for the running local daemon, or None when none answers."""
+    from sssphase_daemon.client import DaemonClient, DaemonUnavailable
+
+    try:
+        client = DaemonClient.from_state(timeout_s=timeout_s)
+    except DaemonUnavailable:
+        return None
+    if client.ping(timeout_s=2.0):
+        return client
+    client.close()
+    return None
+
+
+def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] = False) -> None:
+    """List devices with their stable IDs (asks the running daemon, else discovers locally)."""
+    from dataclasses import asdict
+
+    client = _client()
+    if client is not None:
+        with client:
+            found = client.call("devices")
+        devs, errors, where = found["devices"], found["errors"], "daemon"
+    else:
+        from sssphase_plugins.manager import discover_devices
+
+        infos, errors = discover_devices()
+        devs, where = [asdict(d) for d in infos], "local discovery (no daemon running)"
+    if as_json:
+        console.print_json(json.dumps({"devices": devs, "errors": errors}))
+        return
+    table = Table(title=f"devices ({where})")
+    for col in ("id", "kind", "plugin", "model", "serial"):
+        table.add_column(col)
+    for d in devs:
+        table.add_row(d["id"], d["kind"], d["plugin"], d["model"], d["serial"])
+    console.print(table)
+    for plugin, err in errors.items():
+        if err.startswith("no device"):
+            console.print(f"[yellow]{escape(plugin)}:[/] {escape(err)}")
+        else:
+            console.print(f"[red]plugin {escape(plugin)} failed:[/] {escape(err)}")
+
+
+def plugins() -> None:
+    """List device and model-backend plugins with their versions (broken ones named with the error)."""
+    from sssphase_plugins.manager import device_providers, get_plugin_manager, plugin_records
+
+    pm = get_plugin_manager()
+    device_providers(pm)  # surfaces plugins whose hooks raise
+    table = Table(title="plugins")
+    for col in ("name", "kind", "version", "source"):
+        table.add_column(col)
+    for r in plugin_records(pm):
+        table.add_row(r.name, r.kind if r.ok else "[red]broken[/]", r.version, r.source if r.ok else f"[red]{r.source}[/]")
+    console.print(table)
+
+
+# ---- daemon ---------------------------------------------------------------------------------
+def daemon_start(
+    endpoint: Annotated[str | None, typer.Option(help="control endpoint (default: ipc:// in the runtime dir)")] = None,
+    preview: Annotated[str | None, typer.Option(help="PUB endpoint for a live preview")] = None,
+    curve_dir: Annotated[Path | None, typer.Option(help="CURVE keys (required off loopback)")] = None,
+    foreground: Annotated[bool, typer.Option("--foreground", help="run in this process (systemd, debugging)")] = False,
+) -> None:
+    """Start the acquisition daemon (detached unless --foreground)."""
+    from sssphase_core.errors import InputError
+    from sssphase_daemon import security
+    from sssphase_daemon.client import spawn_daemon
+
+    if _client() is not None:
+        raise InputError("a daemon is already running (`sss daemon status`)")
+    args = [*(["--endpoint", endpoint] if endpoint else []), *(["--preview", preview] if preview else []),
+            *(["--curve-dir", str(curve_dir)] if curve_dir else [])]
+    for what in (e for e in (endpoint, preview) if e):
+        if not security.is_local(what) and curve_dir is None:
+            raise InputError(f"{what} is not loopback/ipc (an abstract ipc://@ socket has no file permissions either): "
+                             "generate keys with `sss daemon keys` and pass --curve-dir")
+        problem = security.ipc_path_problem(what)
+        if problem:
+            raise InputError(problem)
+    if foreground:
+        from sssphase_daemon.__main__ import main
+
+        sys.exit(main(args))
+    proc = spawn_daemon(extra_args=tuple(args))
+    state = security.read_state()
+    console.print(f"daemon started (pid {proc.pid}) on {state.endpoint if state else '?'}; "
+                  f"log: {security.log_dir() / 'daemon.log'}")
+
+
+def daemon_stop() -> None:
+    """Stop the running daemon."""
+    from sssphase_daemon import security
+
+    client = _client()
+    if client is None:
+        state = security.read_state()
+        if state is not None:
+            if not security.is_daemon_process(state.pid):  # the pid may belong to another program by now
+                security.state_path().unlink(missing_ok=True)
+                console.print(f"no daemon running (the state file named pid {state.pid}, which is not a sssphase "
+                              "daemon; removed the stale state file)")
+                return
+            try:
+                os.kill(state.pid, signal.SIGTERM)
+                console.print(f"daemon (pid {state.pid}) did not answer; sent SIGTERM")
+            except ProcessLookupError:
+                security.state_path().unlink(missing_ok=True)
+                console.print("no daemon running (removed a stale state file)")
+            return
+        console.print("no daemon running")
+        return
+    with client:
+        pid = client.call("hello")["pid"]
+        client.call("shutdown")
+    deadline = time.monotonic() + 20.0  # return once it has gone, so that `start` right after works
+    while security.is_daemon_process(pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if security.is_daemon_process(pid):
+        console.print(f"daemon (pid {pid}) asked to stop; it is still shutting down")
+        return
+    console.print(f"daemon (pid {pid}) stopped")
+
+
+def daemon_status() -> None:
+    """Show the daemon's endpoint, rigs and jobs."""
+    client = _client()
+    if client is None:
+        console.print("no daemon running")
+        sys.exit(1)  # typer.Exit's code is dropped by cli.main
+    with client:
+        hello, status = client.call("hello"), client.call("status")
+    console.print(f"daemon pid {hello['pid']} version {hello['version']} protocol {hello['protocol']} on {hello['endpoint']}"
+                  f" (up {status['uptime_s']:.0f} s, {status['clients']} clients)")
+    for rig in status["rigs"]:
+        console.print(f"  rig {rig['rig']}: {rig['devices']}")
+    for job in status["jobs"]:
+        console.print(f"  job {job['job']}: {job['state']} {job['sent']}/{job['total']}" + (f" {job['error']}" if job["error"] else ""))
+
+
+def daemon_keys(
+    directory: Annotated[Path | None, typer.Option("--dir", help="where to write (default ~/.config/sssphase/curve)")] = None,
+    overwrite: Annotated[bool, typer.Option(help="replace existing keys")] = False,
+) -> None:
+    """Generate CURVE key pairs for a daemon bound off loopback, and authorise the client key."""
+    from sssphase_core.errors import InputError
+    from sssphase_daemon import security
+
+    try:
+        path = security.generate_keys(directory, overwrite=overwrite)
+    except FileExistsError as exc:
+        raise InputError(str(exc)) from None
+    console.print(f"CURVE keys written to {path}; start the daemon with --curve-dir {path} and give clients "
+                  f"client.key_secret and server.key")
+
+
+def bench_daemon(
+    out: Annotated[Path, typer.Option(help="JSON result file (a Markdown table is printed and written next to it)")],
+    frames: Annotated[int, typer.Option(help="frames per throughput run")] = 200,
+    md: Annotated[Path | None, typer.Option(help="Markdown table file (default: next to --out)")] = None,
+) -> None:
+    """Daemon frame throughput vs bare pyzmq PUSH/PULL (tcp, ipc), one sim view's capture time, peak memory."""
+    from sssphase_cli.output import write_result
+    from sssphase_daemon.bench import run_bench
+
+    result, markdown = run_bench(frames)
+    write_result(console, out, md, result, markdown)
+
+
+def register(groups: dict[str, typer.Typer]) -> None:
+    root = groups["root"]
+    root.command("devices")(devices)
+    root.command("plugins")(plugins)
+    groups["daemon"].command("start")(daemon_start)
+    groups["daemon"].command("stop")(daemon_stop)
+    groups["daemon"].command("status")(daemon_status)
+    groups["daemon"].command("keys")(daemon_keys)
+    groups["bench"].command("daemon")(bench_daemon)
