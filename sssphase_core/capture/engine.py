@@ -83,7 +83,7 @@ def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, option
                              plan=json.loads(plan.to_json()), reference_files=list(dict.fromkeys(f["params"]["file"] for f in frames if f["kind"] == "image")))
     if session.manifest.get("plan_digest") != digest or session.manifest.get("n_views") != req.views:
         raise InputError(f"{session.path} was captured with a different plan or view count: resume with the same options")
-    n_dots = sum(1 for f in frames if f["kind"] == "dots")
+    n_dots = len({f["key"] for f in frames if f["kind"] == "dots"})  # dot-grid images kept (one per bracket set)
     for view in range(req.views):
         if session.status(view) == "complete":
             continue

@@ -193,6 +193,14 @@ def test_footprints_stream_into_crops_and_raw_dots_on_request(daemon, tmp_path):
     assert centre > 1.5 * between_dots, (centre, between_dots)  # each crop is centred on its lit pixel
 
 
+@pytest.mark.slow
+def test_raw_dots_are_kept_once_per_dot_grid_with_exposure_brackets(daemon, tmp_path):
+    _, client = daemon  # each dot grid is captured at 2 exposures and merged: one kept frame per grid
+    s = run_capture(client, CaptureRequest("pear", views=1, footprints=True, dot_spacing=4, keep_dots=True,
+                                           hdr=(0.5, 2.0), out=tmp_path))
+    assert s.validate() == [] and s.read(0, "dots").shape == (16, 192, 256, 3)
+
+
 def test_import_from_a_folder_of_images(tmp_path):
     import cv2
 
