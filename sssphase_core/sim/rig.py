@@ -39,8 +39,9 @@ class Pinhole:
 
 
 @dataclass(frozen=True)
-class Projector(Pinhole):
-    """Projector intrinsics, pose relative to the camera, and its transfer curve."""
+class ProjectorModel(Pinhole):
+    """The simulated projector: intrinsics, pose relative to the camera and transfer curve (not a device:
+    the device protocol is ``sssphase_plugins.api.Projector``)."""
 
     rotation: Matrix3 = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
     translation: tuple[float, float, float] = (0.0, 0.0, 0.0)
@@ -69,7 +70,7 @@ class RigConfig:
 
     name: str
     camera: Pinhole
-    projector: Projector
+    projector: ProjectorModel
     patch: int
     sensor: SensorConfig = field(default_factory=SensorConfig)
     turntable_centre: tuple[float, float, float] = (0.0, 0.0, 400.0)
@@ -126,7 +127,7 @@ def make_rig(
     wp, hp = projector_size
     d_proj = float(np.linalg.norm(target - p_centre))
     fp = f * (hp / h) * d_proj / distance
-    projector = Projector(wp, hp, fp, fp, (wp - 1) / 2, (hp - 1) / 2, rotation=rot, translation=trans)
+    projector = ProjectorModel(wp, hp, fp, fp, (wp - 1) / 2, (hp - 1) / 2, rotation=rot, translation=trans)
     return RigConfig(
         name=name,
         camera=camera,

@@ -29,7 +29,7 @@ def test_show_confirms_the_image_is_on_screen(projector):
     assert second.on_screen_ns > first.on_screen_ns
     projector.show(np.zeros((h, w)), confirm=False)
     assert projector.show(np.ones((h, w))).frame_id == 4  # the unconfirmed frame's reply is collected too
-    with pytest.raises(DeviceError, match="of the projector.s 1024x768, got shape \(769, 1024\)"):
+    with pytest.raises(DeviceError, match=r"of the projector.s 1024x768, got shape \(769, 1024\)"):
         projector.show(np.zeros((h + 1, w)))
 
 
