@@ -32,7 +32,7 @@ def _transport(session: Any, view: int, rv: Any, dtype: type, drop_noise: bool):
     from sssphase_core.processing.footprints import DotTransportExtractor, dark_reference
 
     plan = session.manifest["plan"]
-    frames = [f for f in plan["frames"] if f["kind"] == "dots"]
+    frames = list({f["key"]: f for f in plan["frames"] if f["kind"] == "dots"}.values())  # one kept frame per dot grid
     spacing, patch = frames[0]["params"]["spacing"], int(session.manifest["rig"].get("patch") or 32)
     tx = DotTransportExtractor(rv.proj.xp, rv.proj.yp, rv.proj.mask, spacing, patch, rv.proj.projector_size, dtype=dtype)
     dark = dark_reference(np.asarray(session.load(view, "black")), rv.white)

@@ -36,7 +36,8 @@ class CropStream:
     frames arrive, and their camera pixels (and projector dots) to ``<prefix>/pixels`` (``/dots``) in the
     same order on ``close``: memory holds one frame's crops and one chunk at any K (a 1080p view at K = 90
     has ~10^5 crops of 97 kB). With ``drop_noise`` the first ``NOISE_SAMPLE`` crops are held back to
-    measure the noise floor (``ring_noise``), which is then zeroed in every crop (``drop_below_noise``)."""
+    measure the noise floor (``ring_noise``), which is then zeroed in every crop (``drop_below_noise``); crops
+    with nothing left (a dot whose light did not reach the camera) are not stored."""
 
     def __init__(self, writer: ViewWriter, prefix: str, extractor: Any, *, drop_noise: bool = False,
                  chunk_bytes: int = 2**21) -> None:
@@ -44,7 +45,7 @@ class CropStream:
         self.array = writer.growing_array(f"{prefix}/crops", (extractor.patch, extractor.patch, extractor.channels),
                                           np.float16, chunk_bytes)
         self.order: list[np.ndarray] = []
-        self.held: list[np.ndarray] = []
+        self.held: list[tuple[np.ndarray, np.ndarray]] = []  # (rows, crops) until the noise floor is known
         self.noise: float | None = None
 
     def add(self, shift_x: int, shift_y: int, frame: np.ndarray) -> None:
@@ -53,26 +54,33 @@ class CropStream:
         idx, crops = self.extractor.crops(shift_x, shift_y, frame)
         if not len(idx):
             return
-        self.order.append(idx)
         if self.drop_noise and self.noise is None:
-            self.held.append(crops)
-            if sum(len(c) for c in self.held) >= NOISE_SAMPLE:
+            self.held.append((idx, crops))
+            if sum(len(c) for _, c in self.held) >= NOISE_SAMPLE:
                 self._release()
             return
-        self.array.extend(self._dropped(crops))
+        self._write(idx, crops)
 
-    def _dropped(self, crops: np.ndarray) -> np.ndarray:
+    def _write(self, idx: np.ndarray, crops: np.ndarray) -> None:
+        """Append crops (and remember their rows); with ``drop_noise`` the noise floor is zeroed and the
+        crops left empty (no light of theirs reached the camera) are not stored."""
         from sssphase_core.processing.footprints import drop_below_noise
 
-        return drop_below_noise(crops, self.noise) if self.drop_noise and self.noise else crops
+        if self.drop_noise and self.noise:
+            crops = drop_below_noise(crops, self.noise)
+            seen = crops.reshape(len(crops), -1).any(axis=1)
+            idx, crops = idx[seen], crops[seen]
+        self.order.append(idx)
+        self.array.extend(crops)
 
     def _release(self) -> None:
         from sssphase_core.processing.footprints import NOISE_SAMPLE, ring_noise
 
-        held = np.concatenate(self.held) if self.held else np.zeros((0, *self.array.arr.shape[1:]), np.float32)
-        self.held = []
-        self.noise = ring_noise(held[:NOISE_SAMPLE]) if len(held) else 0.0
-        self.array.extend(self._dropped(held))
+        held, self.held = self.held, []
+        crops = np.concatenate([c for _, c in held]) if held else np.zeros((0, *self.array.arr.shape[1:]), np.float32)
+        self.noise = ring_noise(crops[:NOISE_SAMPLE]) if len(crops) else 0.0
+        if held:
+            self._write(np.concatenate([i for i, _ in held]), crops)
 
     def close(self) -> dict[str, Any]:
         """Write the pixels (and dots) in crop order; returns manifest info (count, noise)."""

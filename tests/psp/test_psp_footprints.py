@@ -243,6 +243,29 @@ def test_the_transport_keeps_every_dot_where_the_camera_is_coarser_than_the_proj
         np.testing.assert_allclose(relit, camera(pattern), atol=2e-3)  # float16 crops
 
 
+def test_the_transport_keeps_dots_that_land_where_nothing_was_decoded():
+    """A silhouette: the outer camera pixels have no decoded coordinate (grazing, low modulation), but
+    the light of the dots landing there scatters into decoded pixels. Those dots are kept (placed at
+    the nearest decoded pixel), so the decoded pixels next to the edge relight as the camera sees them."""
+    from sssphase_core.processing.footprints import DotTransportExtractor
+    from sssphase_core.relight import DotTransport, Projection, relight
+
+    xp, yp, mask, camera, (wp, hp) = _coarse_camera()
+    mask = mask.copy()
+    mask[:, :6] = False  # a band the decoder rejected, two camera px wider than the kernel's reach
+    spacing, k = 16, 9  # a frame's other dots stay outside each window (undecoded pixels cannot be cut)
+    tx = DotTransportExtractor(xp, yp, mask, spacing, k, (wp, hp))
+    for sy in range(spacing):
+        for sx in range(spacing):
+            tx.add(sx, sy, camera(dot_grid(wp, hp, spacing, sx, sy)))
+    pixels, dots, crops = tx.result(drop_noise=False)  # noise-free: the ring holds only the band dots' light
+    assert (dots[:, 0] < 12).sum() >= 5 * hp  # most of the rejected band's dots within reach of a decoded pixel
+    proj = Projection(xp, yp, mask, (wp, hp), gamma=1.0, black=0.0)
+    pattern = np.random.default_rng(2).random((hp, wp)).astype(np.float32)
+    relit = relight(DotTransport(pixels, dots, crops, noise=0.0), proj, [pattern], k)[0]
+    np.testing.assert_allclose(relit[4:-4, 6:-4], camera(pattern)[4:-4, 6:-4], atol=2e-3)
+
+
 def test_per_camera_pixel_crops_lose_the_dots_between_pixel_centres():
     """Why the measured backend relights from the per-dot transport: the per-pixel crops store one
     dot per camera pixel, so where a pixel sees four their weighted sum misses three of them."""
