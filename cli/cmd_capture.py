@@ -123,13 +123,9 @@ def import_images(
 ) -> None:
     """Import frames from another rig (named by plan key, '/' as '__' or folders; see SESSION_FORMAT.md)."""
     from sssphase_core.capture import import_folder
-    from sssphase_core.errors import InputError
+    from sssphase_core.processing.patterns import parse_projector_size
 
-    try:
-        w, h = (int(v) for v in projector.lower().split("x"))
-    except ValueError:
-        raise InputError(f"--projector must be WxH, got {projector!r}") from None
-    session = import_folder(folder, out, object_name, (w, h), patch=patch, gamma=gamma)
+    session = import_folder(folder, out, object_name, parse_projector_size(projector), patch=patch, gamma=gamma)
     console.print(f"imported {len(session.views())} view(s) into {session.path}")
 
 

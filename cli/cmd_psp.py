@@ -10,16 +10,6 @@ import typer
 from sssphase_core.errors import DataError, InputError
 
 
-def _parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise InputError(f"projector size must look like 1920x1080, got {text!r}") from None
-    if w < 1 or h < 1:
-        raise InputError(f"projector size must be positive, got {text!r}")
-    return w, h
-
-
 def _save_png(path: Path, image) -> None:
     from PIL import Image
 
@@ -43,9 +33,15 @@ def patterns(
     import numpy as np
     from rich.progress import Progress
 
-    from sssphase_core.processing.patterns import PSPConfig, capture_plan, period_ladder, psp_config_for
+    from sssphase_core.processing.patterns import (
+        PSPConfig,
+        capture_plan,
+        parse_projector_size,
+        period_ladder,
+        psp_config_for,
+    )
 
-    w, h = _parse_size(projector)
+    w, h = parse_projector_size(projector)
     if period is None:
         config = psp_config_for(w, h, n_shifts=shifts)
     else:
@@ -90,7 +86,7 @@ def decode_cmd(
     from rich.progress import Progress
 
     from sssphase_core.capture.importer import frame_files
-    from sssphase_core.processing.patterns import psp_config_for, psp_key
+    from sssphase_core.processing.patterns import parse_projector_size, psp_config_for, psp_key
     from sssphase_core.processing.psp import Reason, decode, wrapped_phase
     from sssphase_core.store.imageio import read_frame, stores_integers
 
@@ -99,7 +95,7 @@ def decode_cmd(
     plan_path = folder / "plan.json"
     plan = json.loads(plan_path.read_text()) if plan_path.is_file() else None
     if projector is not None:
-        size = _parse_size(projector)
+        size = parse_projector_size(projector)
     elif plan is not None:
         size = tuple(plan["projector"])
     else:

@@ -41,10 +41,9 @@ def _model_tag(checkpoint: Path | None) -> str:
 
 def _say_resize(path: str, size: tuple[int, int], mode: str) -> None:
     """One line when a pattern was resized, with a warning when ``stretch`` changed its aspect ratio."""
-    from PIL import Image
+    from sssphase_core.store.imageio import frame_shape
 
-    with Image.open(path) as img:
-        w, h = img.size
+    h, w = frame_shape(Path(path))[:2]  # from the file's header (PNG/TIFF, .npy, EXR)
     if (w, h) == size or not mode:
         return
     line = f"{path}: {w}x{h} -> {size[0]}x{size[1]} ({mode})"
@@ -55,14 +54,14 @@ def _say_resize(path: str, size: tuple[int, int], mode: str) -> None:
 
 def relight_cmd(
     session: Annotated[Path, typer.Argument(help="Session folder (one object).")],
-    pattern: Annotated[list[str], typer.Option("--pattern", help="Pattern image (PNG/TIFF) or a named pattern (checkerboard, stripes_x, ...); repeat.")],
+    pattern: Annotated[list[str], typer.Option("--pattern", help="Pattern image (PNG/TIFF, or a .npy array of values in [0, 1]) or a named pattern (checkerboard, stripes_x, ...); repeat.")],
     backend: BackendOpt = "torch",
     checkpoint: CheckpointOpt = None,
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("relit"),
     views: Annotated[str, typer.Option(help="Comma-separated views (default: all).")] = "",
     resize: Annotated[str, typer.Option("--resize", help="Bring patterns of another size to the projector's: fit "
                                         "(keep the aspect ratio, pad with black), fill (keep it, crop) or stretch.")] = "",
-    chunk: Annotated[int, typer.Option(help="Pixels per footprint/splat chunk.")] = 1024,
+    chunk: Annotated[int, typer.Option(min=1, help="Pixels per footprint/splat chunk.")] = 1024,
     device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
     cache: Annotated[bool, typer.Option(help="Keep predicted footprints in OUT/cache (float16) for later patterns.")] = True,
     image_format: Annotated[str, typer.Option("--format", help="png (16-bit linear, clips at 1.0), exr (float32 "

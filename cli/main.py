@@ -131,6 +131,11 @@ def main() -> None:
     except KeyboardInterrupt:
         err_console.print("[yellow]interrupted[/] (work done so far is kept; rerun the command to resume)")
         sys.exit(130)
+    except MemoryError as exc:  # an input far larger than the machine can hold: say so, no traceback
+        detail = str(exc).splitlines()[0] if str(exc) else "the machine's memory is exhausted"
+        err_console.print(f"[bold red]error:[/] out of memory ({escape(detail)}): use smaller inputs, "
+                          "fewer pixels per view or a smaller --chunk / --batch-size")
+        sys.exit(2)
     except Exception as exc:  # click's own usage errors and anything unexpected
         if _is_usage_exception(exc, "Exit"):
             sys.exit(exc.exit_code)  # type: ignore[attr-defined]

@@ -33,6 +33,11 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["geometry", "no_session", "--backend", "measured"], "placed by the decoded correspondences"),
         (["capture", "--object", "apple", "--hdr-exposures", "0.25,1,x"], "--hdr-exposures takes comma-separated"),
         (["capture", "--object", "apple", "--hdr-exposures", "1,1"], "HDR exposures must be 2 to 8 distinct"),
+        (["train", "pretrain", "--batch-size", "0"], "--batch-size"),
+        (["train", "decoder", "--epochs", "0", "--end-to-end"], "--epochs"),
+        (["relight", "s", "--pattern", "checkerboard", "--chunk", "0"], "--chunk"),
+        (["patterns", "--projector", "100000x100000", "--out", "p"], "larger than any projector"),
+        (["import", "f", "--object", "o", "--projector", "19x10x1"], "projector size must look like 1920x1080"),
     ],
 )
 def test_usage_errors_are_one_message_not_a_traceback(args: list[str], expected: str) -> None:

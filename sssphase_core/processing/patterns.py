@@ -33,6 +33,18 @@ MAX_SIDE = 16384  # largest projector side a plan or a frame spec may name
 def _check_size(width: int, height: int) -> None:
     if int(width) < 1 or int(height) < 1:
         raise InputError(f"projector size must be positive, got {width}x{height}")
+    if max(int(width), int(height)) > MAX_SIDE:
+        raise InputError(f"projector size {width}x{height} is larger than any projector (at most {MAX_SIDE} px a side)")
+
+
+def parse_projector_size(text: str) -> tuple[int, int]:
+    """``"1920x1080"`` -> ``(1920, 1080)``, checked (positive, at most :data:`MAX_SIDE` a side)."""
+    try:
+        w, h = (int(v) for v in str(text).lower().split("x"))
+    except ValueError:
+        raise InputError(f"projector size must look like 1920x1080, got {text!r}") from None
+    _check_size(w, h)
+    return w, h
 
 
 def _check_orientation(orientation: str) -> None:

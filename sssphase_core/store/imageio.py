@@ -52,6 +52,8 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
     if mode and mode not in RESIZE_MODES:
         raise InputError(f"--resize must be one of {', '.join(RESIZE_MODES)}, got {mode!r}")
     wp, hp = projector_size
+    if Path(path).suffix.lower() == ".npy":
+        return _read_npy_pattern(Path(path), (wp, hp), mode, hint)
     try:
         img = Image.open(path)  # reads the header only: the size is checked before any pixel is decoded
         w, h = img.size
@@ -87,6 +89,41 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
         if np.allclose(arr, arr[..., :1]):
             arr = arr[..., 0]
     return np.clip(arr, 0, 1)
+
+
+def _read_npy_pattern(path: Path, projector_size: tuple[int, int], mode: str, hint: str) -> np.ndarray:
+    """A ``.npy`` pattern: (Hp, Wp) or (Hp, Wp, 3), float values in [0, 1] or unsigned integers (divided
+    by their type's maximum); the shape is checked from the header before the pixels are read."""
+    from PIL import Image
+
+    wp, hp = projector_size
+    try:
+        arr = np.load(path, mmap_mode="r", allow_pickle=False)
+    except (OSError, ValueError) as exc:
+        raise InputError(f"cannot read pattern {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+    if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] not in (1, 3)) or arr.dtype.kind not in "fu":
+        raise InputError(f"pattern {path} must be an (H, W) or (H, W, 3) array of floats in [0, 1] or unsigned "
+                         f"integers, got {arr.dtype} of shape {arr.shape}")
+    if arr.shape[0] * arr.shape[1] > max(4 * wp * hp, 1 << 22):
+        raise InputError(f"pattern {path} is {arr.shape[1]}x{arr.shape[0]}, far larger than the {wp}x{hp} projector: "
+                         "refused without reading it (scale it down first)")
+    data = np.asarray(arr, np.float64)
+    if data.ndim == 3:
+        data = data[..., 0] if data.shape[2] == 1 else data
+    if arr.dtype.kind == "u":
+        data = data / np.iinfo(arr.dtype).max
+    elif not np.isfinite(data).all():
+        raise InputError(f"pattern {path} must hold finite values in [0, 1]: it has NaN or inf")
+    elif data.min() < 0 or data.max() > 1:
+        raise InputError(f"pattern {path} must hold finite values in [0, 1], got {data.min():.3g} to {data.max():.3g}")
+    data = data.astype(np.float32)
+    if data.shape[:2] != (hp, wp):
+        if not mode:
+            raise InputError(f"pattern {path} is {data.shape[1]}x{data.shape[0]} but the projector is {wp}x{hp} ({hint})")
+        planes = [data] if data.ndim == 2 else [data[..., c] for c in range(3)]
+        data = np.stack([np.asarray(_resized(Image.fromarray(np.ascontiguousarray(p, np.float32)), (wp, hp), mode)) for p in planes], axis=-1)
+        data = data[..., 0] if data.shape[-1] == 1 else data
+    return np.clip(data, 0, 1).astype(np.float32)
 
 
 def frame_shape(path: Path) -> tuple[int, ...]:

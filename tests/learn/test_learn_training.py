@@ -266,6 +266,7 @@ class _Pickled:  # torch.save pickles this; weights_only loading must refuse it
     (_Pickled(), "pickled Python objects"),
     (b"PK\x03\x04truncated", "cannot read checkpoint"),
     (b"# a text file\n", "not a checkpoint file"),
+    (b"\x89PNG\r\n\x1a\n" + bytes(64), "not a checkpoint file"),  # another program's file (torch says "101")
 ])
 def test_bad_checkpoints_are_refused_with_one_clear_line(tmp_path, content, expected):
     from sssphase_core.errors import DataError

@@ -205,3 +205,26 @@ def test_without_the_openexr_bindings_exr_says_what_to_install(tmp_path, monkeyp
     with pytest.raises(InputError, match=r"OpenEXR Python bindings, which are not installed: pip install 'sssphase\[exr\]'"):
         write_images(tmp_path / "x", np.zeros((2, 2, 3), np.float32), formats=("exr",))
     assert not list(tmp_path.iterdir())
+
+
+def test_numpy_patterns_are_read_checked_and_resized(tmp_path):
+    rgb = np.random.default_rng(0).random((34, 40, 3)).astype(np.float32)
+    np.save(tmp_path / "rgb.npy", rgb)
+    np.testing.assert_array_equal(read_pattern(tmp_path / "rgb.npy", (40, 34)), rgb)
+    np.save(tmp_path / "u16.npy", np.full((34, 40), 65535, np.uint16))
+    assert read_pattern(tmp_path / "u16.npy", (40, 34)).max() == 1.0
+    np.save(tmp_path / "small.npy", np.ones((17, 20), np.float32))
+    with pytest.raises(InputError, match="is 20x17 but the projector is 40x34"):
+        read_pattern(tmp_path / "small.npy", (40, 34))
+    assert read_pattern(tmp_path / "small.npy", (40, 34), resize="stretch").shape == (34, 40)
+    assert read_pattern(tmp_path / "rgb.npy", (80, 40), resize="fit").shape == (40, 80, 3)
+    for name, bad, message in [("nan", np.full((34, 40), np.nan, np.float32), "finite values in"),
+                               ("bright", np.full((34, 40), 2.0), "finite values in"),
+                               ("4d", np.zeros((2, 2, 2, 2), np.float32), "must be an"),
+                               ("signed", np.zeros((34, 40), np.int16), "must be an")]:
+        np.save(tmp_path / f"{name}.npy", bad)
+        with pytest.raises(InputError, match=message):
+            read_pattern(tmp_path / f"{name}.npy", (40, 34))
+    np.save(tmp_path / "objects.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(InputError, match="cannot read pattern"):  # never unpickled
+        read_pattern(tmp_path / "objects.npy", (40, 34))
