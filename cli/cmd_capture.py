@@ -134,7 +134,7 @@ def export(
     out: Annotated[Path, typer.Option(help="output folder (OUT/<object>/view_NNN/...)")] = Path("export"),
     views: Annotated[str, typer.Option(help="comma-separated views (default: all complete views)")] = "",
 ) -> None:
-    """Export a session's images, decoded maps and footprints as float32 OpenEXR (needs the exr extra)."""
+    """Export a session's images, decoded maps and footprints as float32 OpenEXR."""
     from sssphase_core.errors import InputError
     from sssphase_core.reporting.export import export_session
     from sssphase_core.store import exr

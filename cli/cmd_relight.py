@@ -65,7 +65,7 @@ def relight_cmd(
     device: Annotated[str, typer.Option(help="cpu or cuda.")] = "cpu",
     cache: Annotated[bool, typer.Option(help="Keep predicted footprints in OUT/cache (float16) for later patterns.")] = True,
     image_format: Annotated[str, typer.Option("--format", help="png (16-bit linear, clips at 1.0), exr (float32 "
-                                              "linear, unclipped; needs the exr extra) or png,exr.")] = "png",
+                                              "linear, unclipped) or png,exr.")] = "png",
 ) -> None:
     """Relight a captured object under new projector patterns (several patterns share one footprint pass)."""
     import numpy as np

@@ -1,4 +1,4 @@
-"""OpenEXR files through the official ``OpenEXR`` Python bindings (the ``exr`` extra).
+"""OpenEXR files through the official ``OpenEXR`` Python bindings.
 
 Linear float32 images are written unclipped, in camera units, and read back bit-exactly. The OpenCV
 wheel that installs with sssphase cannot write EXR, so this module is the one place EXR goes through.
@@ -13,7 +13,7 @@ import numpy as np
 from sssphase_core.errors import DataError, InputError
 
 MISSING = ("EXR needs the OpenEXR Python bindings, which are not installed: pip install 'sssphase[exr]' "
-           "(or pip install OpenEXR)")
+           "(or pip install OpenEXR; a dependency of sssphase, so the install is incomplete)")
 
 
 def _openexr():

@@ -80,8 +80,7 @@ def test_decode_reads_exr_in_the_patterns_folder_layout_and_never_calls_float_li
     EXR has no top code, so bright light decodes; the same light in 8-bit PNGs clips and is refused."""
     from sssphase_core.store import exr
 
-    if not exr.available():
-        pytest.skip("OpenEXR is not installed")
+    assert exr.available(), "OpenEXR is a dependency of sssphase"
     pat_dir = tmp_path / "patterns"
     _run("patterns", "--projector", "80x60", "--out", str(pat_dir))
     exr_dir, png_dir = tmp_path / "exr", tmp_path / "png"
