@@ -227,9 +227,11 @@ def eval_relight(
     from sssphase_core.bench.output import write_bench_report
     from sssphase_core.relight import load_view
     from sssphase_core.relight.evaluation import aggregate, evaluate_view, lpips_note, metrics_table
+    from sssphase_core.relight.sources import check_backends
     from sssphase_core.store.session import find_sessions
 
     backends = [b.strip() for b in backend.split(",") if b.strip()]
+    check_backends(backends, checkpoint)
     rows = []
     with _progress() as bar:
         for s in find_sessions(sessions):

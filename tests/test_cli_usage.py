@@ -33,6 +33,8 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["geometry", "no_session", "--backend", "measured"], "placed by the decoded correspondences"),
         (["capture", "--object", "apple", "--hdr-exposures", "0.25,1,x"], "--hdr-exposures takes comma-separated"),
         (["capture", "--object", "apple", "--hdr-exposures", "1,1"], "HDR exposures must be 2 to 8 distinct"),
+        (["eval", "relight", "s", "--backend", "none,torch"], "the torch backend needs --checkpoint"),
+        (["eval", "relight", "s", "--backend", "none,nonsense"], "unknown backend 'nonsense'; available: analytic, blend"),
         (["train", "pretrain", "--batch-size", "0"], "--batch-size"),
         (["train", "decoder", "--epochs", "0", "--end-to-end"], "--epochs"),
         (["relight", "s", "--pattern", "checkerboard", "--chunk", "0"], "--chunk"),

@@ -245,6 +245,18 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
     return source, k
 
 
+def check_backends(names: Sequence[str], checkpoint: Path | str | None) -> None:
+    """Refuse unknown footprint sources, and the decoder's without a checkpoint, before any work starts."""
+    from sssphase_core.learning.backends import available_backends
+
+    known = [*MODEL_FREE, *BLENDS, *available_backends()]
+    for name in names:
+        if name not in known:
+            raise InputError(f"unknown backend {name!r}; available: {', '.join(sorted(set(known)))}")
+        if checkpoint is None and (name == "torch" or "torch" in BLENDS.get(name, ())):
+            raise InputError(f"the {name} backend needs --checkpoint (a decoder checkpoint from `sss train decoder`)")
+
+
 def make_sources(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",
                  **options: object) -> list[tuple[FootprintSource, int]]:
     """The uncalibrated (source, patch) pairs of backend ``name``: its own, or for a blend
