@@ -64,11 +64,11 @@ class CropStream:
     def _write(self, idx: np.ndarray, crops: np.ndarray) -> None:
         """Append crops (and remember their rows); with ``drop_noise`` the noise floor is zeroed and the
         crops left empty (no light of theirs reached the camera) are not stored."""
-        from sssphase_core.processing.footprints import drop_below_noise
+        from sssphase_core.processing.footprints import drop_below_noise, holds_light
 
         if self.drop_noise and self.noise:
             crops = drop_below_noise(crops, self.noise)
-            seen = crops.reshape(len(crops), -1).any(axis=1)
+            seen = holds_light(crops)
             idx, crops = idx[seen], crops[seen]
         self.order.append(idx)
         self.array.extend(crops)

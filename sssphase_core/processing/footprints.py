@@ -241,12 +241,11 @@ class DotTransportExtractor:
     :class:`DotGridExtractor` (one crop per camera pixel, for training), a camera pixel that sees
     several projector pixels (grazing surfaces) gets one crop per dot, and a dot seen by several camera
     pixels is stored once. A dot belongs to the valid camera pixel whose projector coordinate is
-    nearest, within :data:`DOT_REACH` projector px: that includes dots that land where the camera has
+    nearest, within :data:`DOT_REACH` projector px. That includes dots that land where the camera has
     no decoded coordinate (a silhouette seen at grazing angles, the side just out of view) but whose
-    light scatters into pixels it does see. Only where the pixel's coordinate is the dot's own
-    (within the pixel's extent) did the capture keep such dots until 2026-11: 16% of the crab's dots
-    were lost, all at the silhouette, which cost ``measured`` 7-8 dB against the camera's image (40.2
-    -> 47.9 dB). Dots whose crop holds no light above the noise (:func:`above_noise`) are left out of
+    light scatters into pixels it does see: keeping only dots within a pixel's own extent lost 16% of
+    the crab's dots, all at the silhouette (``measured`` 40.2 -> 47.9 dB against the camera's image
+    once kept). Dots whose crop holds no light above the noise (:func:`holds_light`) are left out of
     :meth:`result`. Crops are cut to their dot's Voronoi cell in projector space (as
     ``DotGridExtractor.isolate``).
     """
@@ -312,7 +311,7 @@ class DotTransportExtractor:
         self.noise = ring_noise(crops[:NOISE_SAMPLE]) if len(crops) else 0.0  # of the crops as captured
         if drop_noise and len(crops):
             crops = drop_below_noise(crops, self.noise)
-            seen = crops.reshape(len(crops), -1).any(axis=1)  # dots whose light reached the camera
+            seen = holds_light(crops)
             pixels, dots, crops = pixels[seen], dots[seen], crops[seen]
         return pixels, dots, crops
 
@@ -328,6 +327,12 @@ NOISE_SAMPLE = 512
 def drop_below_noise(crops: np.ndarray, noise: float) -> np.ndarray:
     """``crops`` (N, K, K, C) with the values below the noise floor (:func:`above_noise`) set to 0."""
     return crops * above_noise(crops, noise)[..., None].astype(crops.dtype)
+
+
+def holds_light(crops: np.ndarray) -> np.ndarray:
+    """``(N,)`` bool: the crops (N, K, K, C) with any value left after :func:`drop_below_noise` (a dot
+    whose light reached the camera)."""
+    return np.asarray(crops).reshape(len(crops), -1).any(axis=1)
 
 
 def ring_noise(crops: np.ndarray, border: int = 2) -> float:
