@@ -70,10 +70,9 @@ def relight_cmd(
     """Relight a captured object under new projector patterns (several patterns share one footprint pass)."""
     import numpy as np
 
-    from sssphase_core.bench.relight_bench import reference_patterns
     from sssphase_core.errors import InputError
     from sssphase_core.learning.training import resolve_checkpoint
-    from sssphase_core.processing.patterns import REFERENCE_NAMES
+    from sssphase_core.processing.patterns import REFERENCE_NAMES, reference_pattern
     from sssphase_core.relight import (
         BLENDS,
         MODEL_FREE,
@@ -87,8 +86,10 @@ def relight_cmd(
         write_images,
     )
     from sssphase_core.relight.evaluation import comparison_figure, relight_metrics
+    from sssphase_core.relight.sources import check_backends
     from sssphase_core.store.session import Session
 
+    check_backends([backend], checkpoint)
     formats = check_image_formats(tuple(f.strip().lower() for f in image_format.split(",") if f.strip()))
     if "exr" in formats:
         from sssphase_core.store import exr
@@ -115,7 +116,7 @@ def relight_cmd(
                     pats.append(rv.references[p])
                 elif p in REFERENCE_NAMES:
                     names.append(p)
-                    pats.append(reference_patterns(wp, hp, [p])[p])
+                    pats.append(reference_pattern(p, wp, hp))
                 else:
                     raise InputError(f"--pattern {p!r} is neither an image file nor one of {', '.join(REFERENCE_NAMES)}")
         sources = make_sources(backend, rv, checkpoint=checkpoint, device=device)

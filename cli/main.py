@@ -68,7 +68,7 @@ COMMAND_MODULES = [
     "sssphase_cli.cmd_capture",  # capture, validate, import, export, calibrate projector, bench capture
     "sssphase_cli.cmd_udev",  # udev install
     "sssphase_cli.cmd_learn",  # train, eval knn/footprints, viz pca
-    "sssphase_cli.cmd_relight",  # relight, eval relight, demo, bench relight/stability
+    "sssphase_cli.cmd_relight",  # relight, geometry, eval relight, report, demo, bench relight/store/stability/gap
 ]
 
 

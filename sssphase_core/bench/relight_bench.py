@@ -46,20 +46,10 @@ class SimView:
 
 
 def reference_patterns(width: int, height: int, names: Sequence[str] = ("checkerboard", "stripes_x")) -> dict[str, np.ndarray]:
-    """Named relighting patterns (checkerboard, stripes_x, stripes_y, white, black) with the capture
-    plan's sizes (square = min(width, height) / 12, stripe period = 2 squares)."""
-    from sssphase_core.errors import InputError
-    from sssphase_core.processing.patterns import checkerboard, stripes
+    """The named reference patterns (:func:`~sssphase_core.processing.patterns.reference_pattern`) by name."""
+    from sssphase_core.processing.patterns import reference_pattern
 
-    square = max(2, round(min(width, height) / 12))
-    make = {"checkerboard": lambda: checkerboard(width, height, square),
-            "stripes_x": lambda: stripes(width, height, 2 * square, "x"),
-            "stripes_y": lambda: stripes(width, height, 2 * square, "y"),
-            "white": lambda: np.ones((height, width), np.float32), "black": lambda: np.zeros((height, width), np.float32)}
-    unknown = [n for n in names if n not in make]
-    if unknown:
-        raise InputError(f"unknown named patterns {unknown}; choose from {', '.join(make)}")
-    return {n: make[n]() for n in names}
+    return {n: reference_pattern(n, width, height) for n in names}
 
 
 def sim_view(obj: Any, view: int = 0, *, n_views: int = 4, seed: int = 0, rig: str = "cpu", exposure: float = 1.0,

@@ -346,6 +346,14 @@ def _reference_params(name: str, width: int, height: int) -> tuple[str, str, dic
     raise InputError(f"unknown reference pattern {name!r}; choose from {', '.join(REFERENCE_NAMES)}")
 
 
+def reference_pattern(name: str, width: int, height: int) -> np.ndarray:
+    """Named reference pattern ``name`` (:data:`REFERENCE_NAMES`) at the size a capture plan uses:
+    checker squares of min(width, height) / 12, stripe period two squares; float32 (Hp, Wp)."""
+    _check_size(width, height)
+    key, kind, params = _reference_params(name, width, height)
+    return PlannedFrame(key, kind, {**params, "width": width, "height": height}).pattern()
+
+
 def capture_plan(
     width: int,
     height: int,
