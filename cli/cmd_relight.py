@@ -86,10 +86,8 @@ def relight_cmd(
         write_images,
     )
     from sssphase_core.relight.evaluation import comparison_figure, relight_metrics
-    from sssphase_core.relight.sources import check_backends
     from sssphase_core.store.session import Session
 
-    check_backends([backend], checkpoint)
     formats = check_image_formats(tuple(f.strip().lower() for f in image_format.split(",") if f.strip()))
     if "exr" in formats:
         from sssphase_core.store import exr
