@@ -45,13 +45,6 @@ class SimView:
     psp_patterns: np.ndarray | None = None  # (8, Hp, Wp) projector images of ``psp``
 
 
-def reference_patterns(width: int, height: int, names: Sequence[str] = ("checkerboard", "stripes_x")) -> dict[str, np.ndarray]:
-    """The named reference patterns (:func:`~sssphase_core.processing.patterns.reference_pattern`) by name."""
-    from sssphase_core.processing.patterns import reference_pattern
-
-    return {n: reference_pattern(n, width, height) for n in names}
-
-
 def sim_view(obj: Any, view: int = 0, *, n_views: int = 4, seed: int = 0, rig: str = "cpu", exposure: float = 1.0,
              patterns: dict[str, np.ndarray] | None = None) -> SimView:
     """Simulate one view: noisy PSP inputs (at ``exposure``), exact correspondences, references."""
@@ -61,7 +54,11 @@ def sim_view(obj: Any, view: int = 0, *, n_views: int = 4, seed: int = 0, rig: s
     cfg = rig_preset(rig)
     scene = SimScene(obj, rig=cfg, view=view, n_views=n_views, seed=seed)
     hp, wp = scene.shape_projector
-    pats = patterns if patterns is not None else reference_patterns(wp, hp)
+    if patterns is None:
+        from sssphase_core.processing.patterns import reference_pattern
+
+        patterns = {n: reference_pattern(n, wp, hp) for n in ("checkerboard", "stripes_x")}
+    pats = patterns
     names = list(pats)
     images = scene.render(np.stack([np.ones((hp, wp), np.float32), *(pats[n] for n in names)]))
     rng = np.random.default_rng(seed + 1000 * view)

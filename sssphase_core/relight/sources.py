@@ -227,8 +227,7 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
     from sssphase_core.learning.backends import get_backend
 
     if name == "torch":
-        if checkpoint is None:
-            raise InputError("the torch backend needs --checkpoint (a decoder checkpoint from `sss train decoder`)")
+        needs_checkpoint(name, checkpoint)
         backend = get_backend("torch", checkpoint=checkpoint, device=device, **options)
     elif name == "analytic":
         backend = get_backend("analytic", **{"patch": rv.patch, "black": rv.proj.black, **options})
@@ -253,8 +252,17 @@ def check_backends(names: Sequence[str], checkpoint: Path | str | None) -> None:
     for name in names:
         if name not in known:
             raise InputError(f"unknown backend {name!r}; available: {', '.join(sorted(set(known)))}")
-        if checkpoint is None and (name == "torch" or "torch" in BLENDS.get(name, ())):
-            raise InputError(f"the {name} backend needs --checkpoint (a decoder checkpoint from `sss train decoder`)")
+        needs_checkpoint(name, checkpoint)
+
+
+def needs_checkpoint(name: str, checkpoint: Path | str | None) -> None:
+    """Refuse the decoder, or a blend with it, without a decoder checkpoint."""
+    if checkpoint is not None:
+        return
+    if name == "torch":
+        raise InputError("the torch backend needs --checkpoint (a decoder checkpoint from `sss train decoder`)")
+    if "torch" in BLENDS.get(name, ()):
+        raise InputError(f"the {name} backend blends the decoder in: it needs --checkpoint (a decoder from `sss train decoder`)")
 
 
 def make_sources(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",
@@ -265,8 +273,7 @@ def make_sources(name: str, rv: RelightView, *, checkpoint: Path | str | None = 
     member of a blend."""
     if name not in BLENDS:
         return [make_source(name, rv, checkpoint=checkpoint, device=device, calibrate=False, **options)]
-    if "torch" in BLENDS[name] and checkpoint is None:
-        raise InputError(f"the {name} backend blends the decoder in: it needs --checkpoint (a decoder from `sss train decoder`)")
+    needs_checkpoint(name, checkpoint)
     return [make_source(m, rv, checkpoint=checkpoint, device=device, calibrate=False,
                         **(options if m == "analytic" else {})) for m in BLENDS[name]]
 
