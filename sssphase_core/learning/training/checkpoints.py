@@ -42,20 +42,16 @@ def load_checkpoint(path: Path | str) -> dict:
         raise DataError(f"no checkpoint at {path}")
     if path.is_file() and path.stat().st_size == 0:
         raise DataError(f"cannot read checkpoint {path}: the file is empty")
+    if path.is_file():
+        with open(path, "rb") as f:
+            if f.read(4) != b"PK\x03\x04":  # what torch.save writes (torch's own error for others: "101")
+                raise DataError(f"{path} is not a checkpoint file (not written by torch.save)")
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError:
-        with open(path, "rb") as f:
-            archive = f.read(4) == b"PK\x03\x04"  # what torch.save writes
-        if not archive:
-            raise DataError(f"{path} is not a checkpoint file (not written by torch.save)") from None
         raise DataError(f"{path} is not a sssphase checkpoint: it holds pickled Python objects, which are never "
                         "loaded (only tensors, numbers and dicts)") from None
     except Exception as exc:
-        with open(path, "rb") as f:
-            archive = f.read(4) == b"PK\x03\x04"
-        if not archive:  # torch's own message for other files is a bare opcode number ("101")
-            raise DataError(f"{path} is not a checkpoint file (not written by torch.save)") from None
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise DataError(f"cannot read checkpoint {path}: {reason}") from None
     missing = [k for k in ("kind", "preset", "encoder") if not isinstance(ckpt, dict) or k not in ckpt]
