@@ -126,6 +126,10 @@ def import_images(
     from sssphase_core.processing.patterns import parse_projector_size
 
     session = import_folder(folder, out, object_name, parse_projector_size(projector), patch=patch, gamma=gamma)
+    scale = session.manifest["rig"].get("frame_scale", 1.0)
+    if scale != 1.0:
+        console.print(f"float frames far from camera units: scaled by {scale:.4g}, which puts the white capture's "
+                      "99.9th percentile at 1 (the rig's frame_scale in the manifest)")
     console.print(f"imported {len(session.views())} view(s) into {session.path}")
 
 

@@ -75,7 +75,7 @@ def _psp_from_plan(plan: dict):
 
 
 def decode_cmd(
-    folder: Path = typer.Argument(..., help="folder of captured frames named by plan key (PNG/TIFF 8/16-bit, EXR or NPY)"),
+    folder: Path = typer.Argument(..., help="folder of captured frames named by plan key (PNG/TIFF 8/16-bit, float TIFF, EXR or NPY)"),
     out: Path = typer.Option(..., "--out", help="output folder for maps (.npy) and viewable PNGs"),
     projector: str | None = typer.Option(None, "--projector", help="projector WxH (default: from plan.json)"),
     min_modulation: float = typer.Option(0.01, "--min-modulation", help="minimum fringe modulation B (normalised units)"),

@@ -54,7 +54,7 @@ def _say_resize(path: str, size: tuple[int, int], mode: str) -> None:
 
 def relight_cmd(
     session: Annotated[Path, typer.Argument(help="Session folder (one object).")],
-    pattern: Annotated[list[str], typer.Option("--pattern", help="Pattern image (PNG/TIFF, or a .npy array of values in [0, 1]) or a named pattern (checkerboard, stripes_x, ...); repeat.")],
+    pattern: Annotated[list[str], typer.Option("--pattern", help="Pattern image (PNG/TIFF, float TIFF/EXR or a .npy array of values in [0, 1]) or a named pattern (checkerboard, stripes_x, ...); repeat.")],
     backend: BackendOpt = "torch",
     checkpoint: CheckpointOpt = None,
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("relit"),

@@ -27,13 +27,16 @@ def _camera(patterns: np.ndarray) -> np.ndarray:
     return (gaussian_filter(light, (0, 1.2, 1.2, 0), mode="constant") * 0.8).astype(np.float32)
 
 
-def _write(folder: Path, key: str, image: np.ndarray, nested: bool, as_exr: bool = False) -> None:
+def _write(folder: Path, key: str, image: np.ndarray, nested: bool, fmt: str = "png") -> None:
     path = folder / (key if nested else key.replace("/", "__"))
     path.parent.mkdir(parents=True, exist_ok=True)
-    if as_exr:  # linear float frames, as a lab's HDR pipeline would save them
+    if fmt == "exr":  # linear float frames, as a lab's HDR pipeline would save them
         from sssphase_core.store.exr import write_exr
 
         write_exr(path.with_suffix(".exr"), image)
+        return
+    if fmt == "tiff":  # float32 RGB TIFF, as renderers write (Pillow cannot decode these)
+        cv2.imwrite(str(path.with_suffix(".tiff")), np.ascontiguousarray(image[..., ::-1], np.float32))
         return
     u16 = np.round(np.clip(image, 0, 1) * 65535).astype(np.uint16)
     cv2.imwrite(str(path.with_suffix(".png")), cv2.cvtColor(u16, cv2.COLOR_RGB2BGR))
@@ -46,7 +49,7 @@ def frames(tmp_path_factory) -> Path:
     folder = tmp_path_factory.mktemp("rig") / "frames"
     for i, (f, img) in enumerate(zip(plan, images, strict=True)):
         _write(folder, f.key, img, nested=f.key.startswith("psp/") and i % 2 == 0,  # both layouts in one folder
-               as_exr=i % 3 == 1)
+               fmt="exr" if i % 3 == 1 else "tiff" if i % 3 == 2 and i % 2 else "png")
     return folder
 
 
@@ -85,6 +88,41 @@ def test_a_failed_import_leaves_nothing_behind(frames, tmp_path):
     with pytest.raises(InputError, match="dots__0_0"):
         import_folder(bad, tmp_path / "sessions", "again", (W, H), patch=K)
     assert not (tmp_path / "sessions" / "again").exists()
+
+
+def _float_frames(folder: Path, scale: float, keys: tuple[str, ...] = ("psp/", "white", "black")) -> Path:
+    """The hand-made rig's PSP, white and black frames as float .npy, in units ``scale`` times the camera's
+    (a path tracer's radiance is in its own units)."""
+    plan = [f for f in capture_plan(W, H, references=("white", "black")) if f.key.startswith(keys)]
+    folder.mkdir(parents=True)
+    for f, img in zip(plan, _camera(np.stack([f.pattern() for f in plan])), strict=True):
+        np.save(folder / (f.key.replace("/", "__") + ".npy"), img * np.float32(scale))
+    return folder
+
+
+def test_float_frames_in_any_units_decode_like_camera_units(tmp_path):
+    ref = import_folder(_float_frames(tmp_path / "unit", 1.0), tmp_path / "s", "unit", (W, H), patch=K)
+    for scale in (1e-4, 1e3):
+        s = import_folder(_float_frames(tmp_path / f"x{scale}", scale), tmp_path / "s", f"x{scale:g}", (W, H), patch=K)
+        assert s.manifest["rig"]["frame_scale"] == pytest.approx(1 / (0.8 * scale), rel=1e-3)  # white's top at 1
+        np.testing.assert_array_equal(s.load(0, "corr/mask"), ref.load(0, "corr/mask"))
+        np.testing.assert_allclose(s.load(0, "corr/xp"), ref.load(0, "corr/xp"), atol=1e-3, equal_nan=True)
+    assert ref.manifest["rig"]["frame_scale"] == 1.0  # camera units already: left as they are
+
+
+def test_frames_where_nothing_decodes_or_too_small_are_refused_naming_why(tmp_path):
+    flat = _float_frames(tmp_path / "flat", 1.0)
+    for f in flat.glob("psp__*"):
+        np.save(f, np.full((H, W, 3), 0.4, np.float32))  # no fringes: every pixel has zero modulation
+    with pytest.raises(InputError, match=r"no camera pixel decoded \(100% low modulation\)"):
+        import_folder(flat, tmp_path / "s", "flat", (W, H), patch=K)
+    tiny = tmp_path / "tiny"
+    tiny.mkdir()
+    for f in flat.glob("*.npy"):
+        np.save(tiny / f.name, np.zeros((4, 4, 3), np.float32))
+    with pytest.raises(InputError, match="4x4: smaller than a camera frame"):
+        import_folder(tiny, tmp_path / "s", "tiny", (W, H), patch=K)
+    assert not (tmp_path / "s").exists() or not any((tmp_path / "s").iterdir())
 
 
 @pytest.mark.parametrize(("name", "expected"), [

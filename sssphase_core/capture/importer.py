@@ -15,13 +15,18 @@ from sssphase_core import __version__
 from sssphase_core.capture.plan import CaptureRequest, RigSpec
 from sssphase_core.capture.processing import ViewProcessor
 from sssphase_core.errors import InputError
-from sssphase_core.store.imageio import IMAGE_SUFFIXES, read_frame, read_pattern
+from sssphase_core.store.imageio import IMAGE_SUFFIXES, read_frame, read_pattern, stores_integers
 from sssphase_core.store.session import Session, check_object_name
 
 PSP_KEY_RE = re.compile(r"^psp/([xy])/p([0-9]{1,5}(?:\.[0-9]{1,6})?)/s([0-9]{1,2})$")
 DOTS_KEY_RE = re.compile(r"^dots/([0-9]{1,3})_([0-9]{1,3})$")
 OTHER_KEY_RE = re.compile(r"^(white|black|(ref|pattern)/[A-Za-z0-9][A-Za-z0-9_.-]{0,63})$")
 MAX_SHIFTS = 32
+#: Float frames (EXR, float TIFF, ``.npy``) have no clipping level: their units are the renderer's or
+#: the pipeline's. When the white capture's 99.9th percentile lies outside this range the frames are
+#: scaled to put it at 1, since the decoder's thresholds and the models work in camera units.
+LINEAR_RANGE = (0.1, 10.0)
+MIN_FRAME_SIDE = 16
 
 
 @dataclass
@@ -79,6 +84,28 @@ def _psp_config(vdir: Path, keys: Iterable[str]) -> Any:
     return PSPConfig(period=periods[0], n_shifts=n, unwrap_periods=tuple(periods[1:]))
 
 
+def frame_scale(whites: Iterable[Path]) -> float:
+    """The factor an import multiplies its frames by: 1 for integer files (their top code is the
+    camera's range) and for float frames whose white level (the 99.9th percentile of the white capture,
+    highest over views) is within :data:`LINEAR_RANGE`, else ``1 / level``."""
+    whites = list(whites)
+    if any(stores_integers(p) for p in whites):
+        return 1.0
+    level = max(float(np.percentile(read_frame(p), 99.9)) for p in whites)
+    if not level > 0 or LINEAR_RANGE[0] <= level <= LINEAR_RANGE[1]:
+        return 1.0  # in range, or all black (the decoder then says that nothing decoded)
+    return 1.0 / level
+
+
+def _nothing_decoded(vdir: Path, coverage: dict[str, int]) -> str:
+    """One line for a view where no camera pixel decoded, with the reasons' shares."""
+    total = max(1, sum(coverage.values()))
+    reasons = ", ".join(f"{100 * n / total:.0f}% {name.lower().replace('_', ' ')}"
+                        for name, n in sorted(coverage.items(), key=lambda kv: -kv[1]) if n)
+    return (f"{vdir}: no camera pixel decoded ({reasons}): the frames must be linear images of the patterns "
+            "their names give (`sss patterns` writes them), with fringes above the noise")
+
+
 def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int, int], *, patch: int = 32,
                   gamma: float = 2.2) -> Session:
     """Import frames captured by another rig into a session, processed by the capture engine's
@@ -87,8 +114,10 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     ``folder/view_NNN/`` (or ``folder`` itself for one view) holds one image per plan key, with '/'
     written as '__' or as folders (``psp__x__p20__s0.png`` or ``psp/x/p20/s0.png``, ``white.png``,
     ``black.png``, ``ref__checkerboard.png``, optionally ``dots__{sx}_{sy}.png``); PNG/TIFF (8/16-bit),
-    ``.npy`` or EXR. A reference that is not a named pattern needs its projected image as
-    ``pattern__<name>.png``. A failed import leaves nothing behind.
+    ``.npy``, float TIFF or EXR; float frames far from camera units are rescaled (:func:`frame_scale`,
+    recorded as the rig's ``frame_scale``). A reference that is not a named pattern needs its projected
+    image as ``pattern__<name>.png``. A view where nothing decodes is refused; a failed import leaves
+    nothing behind.
     """
     import shutil
 
@@ -108,6 +137,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
         if missing:
             raise InputError(f"{vdir}: needs white, black and psp__x__p<period>__s<n> frames (missing: {', '.join(missing)})")
     configs = [_psp_config(vdir, files) for vdir, files in views]
+    scale = frame_scale(files["white"] for _, files in views)
     path = Path(root) / name
     if path.exists():
         raise InputError(f"{path} already exists: import into another --out or choose another --object")
@@ -119,7 +149,8 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                        "exposure": 1.0})
     plan_json = {"projector": [w, h], "gamma": float(gamma), "psp": asdict(configs[0]), "frames": frames}
     session = Session.create(root, name, n_views=len(view_dirs), imported_from=str(folder.resolve()),
-                             rig={"camera": "import", "projector_size": [w, h], "patch": patch, "imported": True},
+                             rig={"camera": "import", "projector_size": [w, h], "patch": patch, "imported": True,
+                                  "frame_scale": scale},
                              plan=plan_json, software={"sssphase": __version__})
     try:
         for view, ((vdir, files), config) in enumerate(zip(views, configs, strict=True)):
@@ -131,15 +162,20 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 proc = ViewProcessor(writer, plan, spacing, patch, RigSpec(camera="import", turntable=None), req, 0)
                 shape = None
                 for key in sorted((k for k in files if not k.startswith("pattern/")), key=lambda k: k.startswith("dots/")):
-                    image = read_frame(files[key])
+                    image = read_frame(files[key]) * np.float32(scale)
                     if shape is not None and image.shape != shape:
                         raise InputError(f"{files[key]} is {image.shape[1]}x{image.shape[0]}, the other frames "
                                          f"{shape[1]}x{shape[0]}")
                     shape = image.shape
+                    if min(shape[:2]) < MIN_FRAME_SIDE:
+                        raise InputError(f"{files[key]} is {shape[1]}x{shape[0]}: smaller than a camera frame "
+                                         f"(at least {MIN_FRAME_SIDE} px a side)")
                     proc.add(_ImportedFrame(key, image), {"name": key, "key": key, "exposure": 1.0})
                 for key in (k for k in files if k.startswith("pattern/")):
                     proc.patterns[f"ref/{key.removeprefix('pattern/')}"] = read_pattern(files[key], (w, h))
                 info = proc.finish()
+                if not info["coverage"].get("VALID"):
+                    raise InputError(_nothing_decoded(vdir, info["coverage"]))
             except BaseException:
                 writer.abort()
                 raise

@@ -29,8 +29,12 @@ def lpips_note() -> str:
     return "LPIPS: AlexNet v0.1 from local weights (lower is better)" if ok else f"LPIPS skipped: {why}"
 
 
+SSIM_WINDOW = 11
+
+
 def relight_metrics(relit: np.ndarray, reference: np.ndarray, mask: np.ndarray, *, data_range: float = 1.0) -> dict[str, float]:
-    """MSE, PSNR (dB, peak ``data_range``) and SSIM of (H, W, 3) linear images on ``mask`` pixels."""
+    """MSE, PSNR (dB, peak ``data_range``) and SSIM (NaN for images smaller than its 11 px window) of
+    (H, W, 3) linear images on ``mask`` pixels."""
     import kornia
     import torch
 
@@ -44,8 +48,11 @@ def relight_metrics(relit: np.ndarray, reference: np.ndarray, mask: np.ndarray, 
     psnr_db = psnr(mse, data_range)
     ta = torch.as_tensor(a, dtype=torch.float32).permute(2, 0, 1)[None]
     tb = torch.as_tensor(b, dtype=torch.float32).permute(2, 0, 1)[None]
-    ssim_map = kornia.metrics.ssim(ta, tb, window_size=11, max_val=data_range)[0].mean(0).numpy()
-    out = {"mse": mse, "psnr": psnr_db, "ssim": float(ssim_map[m].mean()), "data_range": data_range}
+    if min(m.shape) > SSIM_WINDOW // 2:
+        ssim = float(kornia.metrics.ssim(ta, tb, window_size=SSIM_WINDOW, max_val=data_range)[0].mean(0).numpy()[m].mean())
+    else:
+        ssim = float("nan")
+    out = {"mse": mse, "psnr": psnr_db, "ssim": ssim, "data_range": data_range}
     from sssphase_core.learning import lpips
 
     if lpips.available()[0]:

@@ -52,8 +52,13 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
     if mode and mode not in RESIZE_MODES:
         raise InputError(f"--resize must be one of {', '.join(RESIZE_MODES)}, got {mode!r}")
     wp, hp = projector_size
-    if Path(path).suffix.lower() == ".npy":
-        return _read_npy_pattern(Path(path), (wp, hp), mode, hint)
+    path = Path(path)
+    try:
+        as_array = path.suffix.lower() in (".npy", ".exr") or _pil_cannot_decode(path)
+    except (OSError, SyntaxError, ValueError) as exc:
+        raise InputError(f"cannot read pattern {path}: {exc}") from None
+    if as_array:
+        return _read_array_pattern(path, (wp, hp), mode, hint)
     try:
         img = Image.open(path)  # reads the header only: the size is checked before any pixel is decoded
         w, h = img.size
@@ -91,22 +96,23 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
     return np.clip(arr, 0, 1)
 
 
-def _read_npy_pattern(path: Path, projector_size: tuple[int, int], mode: str, hint: str) -> np.ndarray:
-    """A ``.npy`` pattern: (Hp, Wp) or (Hp, Wp, 3), float values in [0, 1] or unsigned integers (divided
-    by their type's maximum); the shape is checked from the header before the pixels are read."""
+def _read_array_pattern(path: Path, projector_size: tuple[int, int], mode: str, hint: str) -> np.ndarray:
+    """A pattern stored as an array (``.npy``, ``.exr``, float TIFF): (Hp, Wp) or (Hp, Wp, 3), float values
+    in [0, 1] or unsigned integers (divided by their type's maximum); the shape is checked from the
+    header before the pixels are read."""
     from PIL import Image
 
     wp, hp = projector_size
-    try:
-        arr = np.load(path, mmap_mode="r", allow_pickle=False)
-    except (OSError, ValueError) as exc:
-        raise InputError(f"cannot read pattern {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
-    if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[2] not in (1, 3)) or arr.dtype.kind not in "fu":
+    shape = frame_shape(path)
+    if len(shape) not in (2, 3) or (len(shape) == 3 and shape[2] not in (1, 3)) or 0 in shape:
+        raise InputError(f"pattern {path} must be an (H, W) or (H, W, 3) image, got shape {shape}")
+    if shape[0] * shape[1] > max(4 * wp * hp, 1 << 22):
+        raise InputError(f"pattern {path} is {shape[1]}x{shape[0]}, far larger than the {wp}x{hp} projector: "
+                         "refused without reading it (scale it down first)")
+    arr = _read_pixels(path)
+    if arr.dtype.kind not in "fu":
         raise InputError(f"pattern {path} must be an (H, W) or (H, W, 3) array of floats in [0, 1] or unsigned "
                          f"integers, got {arr.dtype} of shape {arr.shape}")
-    if arr.shape[0] * arr.shape[1] > max(4 * wp * hp, 1 << 22):
-        raise InputError(f"pattern {path} is {arr.shape[1]}x{arr.shape[0]}, far larger than the {wp}x{hp} projector: "
-                         "refused without reading it (scale it down first)")
     data = np.asarray(arr, np.float64)
     if data.ndim == 3:
         data = data[..., 0] if data.shape[2] == 1 else data
@@ -126,6 +132,35 @@ def _read_npy_pattern(path: Path, projector_size: tuple[int, int], mode: str, hi
     return np.clip(data, 0, 1).astype(np.float32)
 
 
+def _tiff_directory(path: Path) -> dict[int, object] | None:
+    """The first image directory of a TIFF file (tag number -> value), read from its header only; None
+    when the file is not a TIFF. Pillow opens only the TIFF layouts it can decode (not 3-channel
+    float32, which renderers and cameras write), but parses any header."""
+    from PIL import TiffImagePlugin
+
+    with open(path, "rb") as f:
+        head = f.read(8)
+        if head[:4] not in (b"II*\0", b"MM\0*"):
+            return None
+        ifd = TiffImagePlugin.ImageFileDirectory_v2(head)
+        f.seek(ifd.next)
+        ifd.load(f)
+    return dict(ifd)
+
+
+def _pil_cannot_decode(path: Path) -> bool:
+    """Whether ``path`` is a TIFF that Pillow cannot decode (OpenCV reads those)."""
+    from PIL import Image, UnidentifiedImageError
+
+    if path.suffix.lower() not in (".tif", ".tiff"):
+        return False
+    try:
+        with Image.open(path):
+            return False
+    except UnidentifiedImageError:
+        return _tiff_directory(path) is not None
+
+
 def frame_shape(path: Path) -> tuple[int, ...]:
     """The pixel shape a frame file declares, read from its header only (no pixel is decoded)."""
     try:
@@ -135,12 +170,16 @@ def frame_shape(path: Path) -> tuple[int, ...]:
             from sssphase_core.store import exr
 
             return exr.exr_size(path)
+        if _pil_cannot_decode(path):
+            tags = _tiff_directory(path) or {}
+            channels = int(tags.get(277, 1))  # SamplesPerPixel
+            return (int(tags[257]), int(tags[256])) + ((channels,) if channels > 1 else ())
         from PIL import Image
 
         Image.MAX_IMAGE_PIXELS = None  # our own limit below, on the header's size
         with Image.open(path) as img:
             return (img.size[1], img.size[0])
-    except (OSError, ValueError, SyntaxError) as exc:
+    except (OSError, ValueError, SyntaxError, KeyError) as exc:
         raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
 
 
@@ -151,15 +190,40 @@ def stores_integers(path: Path) -> bool:
     suffix = path.suffix.lower()
     if suffix == ".exr":
         return False
-    if suffix == ".npy":
-        return np.load(path, mmap_mode="r", allow_pickle=False).dtype.kind in "iub"
     from PIL import Image
 
     try:
+        if suffix == ".npy":
+            return np.load(path, mmap_mode="r", allow_pickle=False).dtype.kind in "iub"
+        if _pil_cannot_decode(path):
+            formats = (_tiff_directory(path) or {}).get(339, 1)  # SampleFormat: 3 = IEEE float
+            return 3 not in (formats if isinstance(formats, tuple) else (formats,))
         with Image.open(path) as img:
             return img.mode != "F"
     except (OSError, ValueError, SyntaxError) as exc:
-        raise InputError(f"cannot read {path}: {exc}") from None
+        raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+
+
+def _read_pixels(path: Path) -> np.ndarray:
+    """A frame file's pixels as stored (RGB order, integer codes not scaled): ``.npy`` (never
+    unpickled), ``.exr``, or any PNG/TIFF that OpenCV decodes."""
+    if path.suffix.lower() == ".npy":
+        try:
+            return np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:  # pickled object arrays are never loaded
+            raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+    if path.suffix.lower() == ".exr":
+        from sssphase_core.store import exr
+
+        return exr.read_exr(path)
+    import cv2
+
+    arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if arr is None:
+        raise InputError(f"cannot read image {path}")
+    if arr.ndim == 3:
+        arr = cv2.cvtColor(arr[..., :3], cv2.COLOR_BGR2RGB) if arr.shape[2] >= 3 else arr
+    return arr
 
 
 def read_frame(path: Path) -> np.ndarray:
@@ -169,31 +233,15 @@ def read_frame(path: Path) -> np.ndarray:
     if len(shape) >= 2 and shape[0] * shape[1] > MAX_FRAME_PIXELS:
         raise InputError(f"{path} is {shape[1]}x{shape[0]}: larger than any camera frame this importer takes "
                          f"({MAX_FRAME_PIXELS // 2**20} MP)")
-    if path.suffix.lower() == ".npy":
-        try:
-            arr = np.load(path, allow_pickle=False)
-        except ValueError as exc:  # pickled object arrays are never loaded
-            raise InputError(f"cannot read {path}: {exc}") from None
-        if arr.dtype.kind not in "fiub":
-            raise InputError(f"{path} holds {arr.dtype} values, not an image")
-    elif path.suffix.lower() == ".exr":
-        from sssphase_core.store import exr
-
-        arr = exr.read_exr(path)
-    else:
-        import cv2
-
-        arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-        if arr is None:
-            raise InputError(f"cannot read image {path}")
-        if arr.ndim == 3:
-            arr = cv2.cvtColor(arr[..., :3], cv2.COLOR_BGR2RGB)
-        if np.issubdtype(arr.dtype, np.integer):
-            arr = arr.astype(np.float32) / np.iinfo(arr.dtype).max
+    arr = _read_pixels(path)
+    if arr.dtype.kind not in "fiub":
+        raise InputError(f"{path} holds {arr.dtype} values, not an image")
+    if arr.dtype.kind in "iu" and path.suffix.lower() != ".npy":
+        arr = arr.astype(np.float32) / np.iinfo(arr.dtype).max
     arr = np.asarray(arr, np.float32)
     if arr.ndim == 3 and arr.shape[-1] == 1:
         arr = arr[..., 0]
-    if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[-1] != 3):
+    if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[-1] != 3) or arr.size == 0:
         raise InputError(f"{path} has shape {arr.shape}: expected (H, W) or (H, W, 3)")
     if not np.isfinite(arr).all():
         raise InputError(f"{path} holds NaN or infinite values")

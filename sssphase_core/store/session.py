@@ -79,7 +79,9 @@ def view_dir_name(view: int) -> str:
 
 
 def array_checksum(arr: np.ndarray) -> str:
-    return "sha256:" + hashlib.sha256(memoryview(np.ascontiguousarray(arr)).cast("B")).hexdigest()
+    """SHA-256 of the array's bytes in C order (an empty array hashes no bytes)."""
+    data = np.ascontiguousarray(arr)
+    return "sha256:" + hashlib.sha256(memoryview(data).cast("B") if data.size else b"").hexdigest()
 
 
 def _chunks(shape: tuple[int, ...], itemsize: int, target: int = 2**21) -> tuple[int, ...]:

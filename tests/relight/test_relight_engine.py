@@ -221,10 +221,30 @@ def test_numpy_patterns_are_read_checked_and_resized(tmp_path):
     for name, bad, message in [("nan", np.full((34, 40), np.nan, np.float32), "finite values in"),
                                ("bright", np.full((34, 40), 2.0), "finite values in"),
                                ("4d", np.zeros((2, 2, 2, 2), np.float32), "must be an"),
-                               ("signed", np.zeros((34, 40), np.int16), "must be an")]:
+                               ("signed", np.zeros((34, 40), np.int16), "must be an"),
+                               ("empty", np.zeros((0, 40), np.float32), "must be an")]:
         np.save(tmp_path / f"{name}.npy", bad)
         with pytest.raises(InputError, match=message):
             read_pattern(tmp_path / f"{name}.npy", (40, 34))
     np.save(tmp_path / "objects.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
-    with pytest.raises(InputError, match="cannot read pattern"):  # never unpickled
+    with pytest.raises(InputError, match="cannot read"):  # never unpickled
         read_pattern(tmp_path / "objects.npy", (40, 34))
+
+
+def test_float_tiff_and_exr_patterns_are_read_as_their_values(tmp_path):
+    """Renderers and HDR tools write float32 RGB TIFF (which Pillow cannot decode) and EXR."""
+    import cv2
+
+    from sssphase_core.store.exr import write_exr
+
+    rgb = np.random.default_rng(1).random((34, 40, 3)).astype(np.float32)
+    cv2.imwrite(str(tmp_path / "p.tiff"), rgb[..., ::-1])  # OpenCV writes BGR
+    np.testing.assert_array_equal(read_pattern(tmp_path / "p.tiff", (40, 34)), rgb)
+    write_exr(tmp_path / "p.exr", rgb)
+    np.testing.assert_array_equal(read_pattern(tmp_path / "p.exr", (40, 34)), rgb)
+    assert read_pattern(tmp_path / "p.exr", (80, 68), resize="stretch").shape == (68, 80, 3)
+    write_exr(tmp_path / "hdr.exr", rgb * 4)
+    with pytest.raises(InputError, match="finite values in"):
+        read_pattern(tmp_path / "hdr.exr", (40, 34))
+    with pytest.raises(InputError, match="is 40x34 but the projector is 20x17"):
+        read_pattern(tmp_path / "p.tiff", (20, 17))
