@@ -14,6 +14,11 @@ from sssphase_core.store.session import Session
 runner = CliRunner()
 
 
+#: The analytic model's patch in the calibration tests: they test linear algebra on any model's
+#: footprints, and 11 x 11 footprints cost a tenth of the view's 32 x 32.
+SMALL_PATCH = 11
+
+
 @pytest.fixture(scope="module")
 def session(tmp_path_factory, sim_daemon):
     """View 1 of 4 of the sand rake with two reference patterns, captured through the daemon."""
@@ -107,8 +112,8 @@ def test_a_model_is_mixed_with_no_scattering_by_the_views_own_fringe_captures(se
 
     rv = load_view(Session.open(session), 1)
     assert rv.psp_patterns is not None and rv.psp_patterns.shape == (8, 192, 256)
-    raw, k = make_source("analytic", rv, calibrate=False)
-    mixed, _ = make_source("analytic", rv)
+    raw, k = make_source("analytic", rv, calibrate=False, patch=SMALL_PATCH)
+    mixed, _ = make_source("analytic", rv, patch=SMALL_PATCH)
     mix = mixed.mix
     assert mix.shape == (3,) and ((mix >= 0) & (mix <= 1)).all()
     np.testing.assert_allclose(fit_view_mix(raw, k, rv), mix, atol=1e-6)
@@ -132,7 +137,7 @@ def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
     from sssphase_core.relight import make_source, relight, relight_view
 
     rv = load_view(Session.open(session), 1)
-    raw, k = make_source("analytic", rv, calibrate=False)
+    raw, k = make_source("analytic", rv, calibrate=False, patch=SMALL_PATCH)
     calls = []
 
     def counted(pixels):
@@ -141,7 +146,7 @@ def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
 
     pats = [rv.references["checkerboard"], rv.references["stripes_x"]]
     fused, mix = relight_view(counted, k, rv, pats, calibrate=True)
-    mixed, _ = make_source("analytic", rv)
+    mixed, _ = make_source("analytic", rv, patch=SMALL_PATCH)
     np.testing.assert_allclose(mix, mixed.mix, atol=1e-6)
     np.testing.assert_allclose(fused, relight(mixed, rv.proj, pats, k, white=rv.white), rtol=1e-4, atol=1e-6)
     assert sum(calls) <= rv.proj.mask.sum()  # one footprint per lit pixel: no second pass
@@ -192,7 +197,7 @@ def test_a_blend_relights_the_fringe_captures_at_least_as_well_as_each_member(se
     from sssphase_core.relight import make_source, model_inputs, no_scattering_source, relight, relight_view
 
     rv = load_view(Session.open(session), 1)
-    members = [make_source(b, rv, calibrate=False) for b in ("analytic", "exact")]
+    members = [make_source("analytic", rv, calibrate=False, patch=SMALL_PATCH), make_source("exact", rv, calibrate=False)]
     pats = list(rv.psp_patterns)  # relit under its own fringe patterns: the fitted quantity
     blend, mix = relight_view(*members[0], rv, pats, calibrate=True, also=members[1:])
     assert mix.shape == (2, 3) and (mix >= 0).all() and (mix.sum(0) <= 1 + 1e-6).all()
