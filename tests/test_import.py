@@ -59,6 +59,11 @@ def test_imported_frames_relight_and_evaluate_like_a_capture(frames, tmp_path):
     xp, mask = s.load(0, "corr/xp"), s.load(0, "corr/mask")
     yy, xx = np.mgrid[:H, :W]
     assert mask[8:-8, 8:-8].all() and np.abs(xp - xx)[8:-8, 8:-8].max() < 0.2
+    from sssphase_core.relight import load_view
+
+    plan = {f.key: f for f in capture_plan(W, H)}  # the 8 inputs' patterns: what the view calibration relights
+    rv = load_view(s, 0)
+    np.testing.assert_array_equal(rv.psp_patterns, np.stack([plan[k].pattern() for k in rv.session.manifest["views"]["0"]["psp_keys"]]))
     out = tmp_path / "ev"
     res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "eval", "relight", str(s.path), "--backend",
                           "none,measured", "--out", str(out)], capture_output=True, text=True, timeout=300)
