@@ -99,6 +99,16 @@ class PatchDataset(torch.utils.data.Dataset):
         if with_targets and any(v.footprints is None for v in views):
             missing = ", ".join(f"{v.object}/{v.view}" for v in views if v.footprints is None)
             raise DataError(f"no footprints stored for {missing}: decoder training needs captured footprints")
+        if with_targets:
+            odd = [v for v in views if tuple(v.footprints.shape[1:3]) != (patch, patch)]  # type: ignore[union-attr]
+            if odd:
+                from sssphase_core.learning.models import PRESETS
+
+                k = odd[0].footprints.shape[1]  # type: ignore[union-attr]
+                sizes = ", ".join(f"{name} {p.patch}" for name, p in PRESETS.items())
+                raise InputError(f"the footprints of {odd[0].object} view {odd[0].view} are {k}x{k} but this decoder "
+                                 f"predicts {patch}x{patch}: the crop size is the rig's (the rig file's patch, "
+                                 f"`sss import --patch`) and must be the model preset's ({sizes})")
         unknown = sorted({v.object for v in views} - set(classes))
         if unknown:
             raise InputError(f"objects {unknown} are not among the classes {list(classes)}")

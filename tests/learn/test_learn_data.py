@@ -59,6 +59,8 @@ def test_dataset_rejects_missing_footprints_and_unknown_classes(synthetic):
         PatchDataset(bare, 16, ["a"])
     with pytest.raises(DataError, match="8, H, W, 3"):
         ViewData("x", 0, np.zeros((4, 5, 5, 3), np.float32), np.zeros((0, 2), int), np.zeros(0, int))
+    with pytest.raises(InputError, match="are 16x16 but this decoder predicts 32x32"):  # crops of another size
+        PatchDataset(views, 32, ["a", "b"], with_targets=True)
 
 
 def test_splits_by_object_and_by_view(synthetic):
