@@ -7,6 +7,7 @@ typer/rich/stdlib at top level and load heavy libraries (torch, zmq, opencv) ins
 
 from __future__ import annotations
 
+import errno
 import importlib
 import importlib.util
 import logging
@@ -113,6 +114,11 @@ def _is_usage_exception(exc: BaseException, name: str) -> bool:
     return any(cls.__name__ == name for cls in type(exc).__mro__)
 
 
+#: errno values that describe the user's paths and disks, reported as one line (not an internal error).
+FILE_SYSTEM_ERRORS = {errno.ENOTDIR, errno.EISDIR, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EROFS, errno.EEXIST,
+                      errno.ENOENT, errno.ENAMETOOLONG, errno.EDQUOT, errno.ELOOP}
+
+
 def main() -> None:
     """Run the CLI; user-facing errors are printed as one clear message, never a traceback."""
     signal.signal(signal.SIGTERM, _interrupt_on_sigterm)
@@ -147,6 +153,10 @@ def main() -> None:
             sys.exit(1)
         if os.environ.get("SSS_DEBUG"):
             raise
+        if isinstance(exc, OSError) and exc.errno in FILE_SYSTEM_ERRORS:  # the user's paths: a file given as a
+            where = f"{exc.filename}: " if exc.filename else ""  # folder, no permission, a full disk
+            err_console.print(f"[bold red]error:[/] {escape(where + (exc.strerror or str(exc)))}")
+            sys.exit(2)
         err_console.print(f"[bold red]internal error:[/] {escape(f'{type(exc).__name__}: {exc}')}\n"
                           "(set SSS_DEBUG=1 for a traceback)")
         sys.exit(1)

@@ -40,6 +40,8 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["relight", "s", "--pattern", "checkerboard", "--chunk", "0"], "--chunk"),
         (["patterns", "--projector", "100000x100000", "--out", "p"], "larger than any projector"),
         (["import", "f", "--object", "o", "--projector", "19x10x1"], "projector size must look like 1920x1080"),
+        (["bench", "gpu", "--device", "nonsense"], "unknown device 'nonsense': use auto, cpu, cuda or cuda:N"),
+        (["patterns", "--projector", "64x48", "--out", "/proc/version/x"], "/proc/version/x: Not a directory"),
     ],
 )
 def test_usage_errors_are_one_message_not_a_traceback(args: list[str], expected: str) -> None:

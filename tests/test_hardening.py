@@ -461,3 +461,15 @@ def test_idle_unauthenticated_connections_do_not_lock_out_good_clients(tmp_path)
         proc.terminate()
         proc.wait(20)
         shutil.rmtree(runtime, ignore_errors=True)
+
+
+def test_devices_a_process_cannot_use_are_refused_by_name():
+    import torch
+
+    from sssphase_core.compute import compute_device
+
+    assert compute_device("cpu") == torch.device("cpu")
+    assert compute_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    for name, message in (("nonsense", "unknown device"), ("mps", "not supported"), ("cuda:99", "CUDA device")):
+        with pytest.raises(InputError, match=message):
+            compute_device(name)

@@ -29,19 +29,11 @@ from typing import Any
 import numpy as np
 import torch
 
+from sssphase_core.compute import compute_device
 from sssphase_core.errors import InputError
 
 OBJECTS = ("a", "b", "c")
 VIEWS = (0, 1)
-
-
-def _device(name: str) -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    dev = torch.device(name)
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise InputError("--device cuda: this torch build sees no CUDA device (torch.cuda.is_available() is False)")
-    return dev
 
 
 def _dataset(patch: int, patches: int, seed: int = 0):
@@ -194,7 +186,7 @@ def run(out: Path, *, device: str = "auto", preset: str = "paper", steps: int = 
     """The whole benchmark; returns the result (written by the caller)."""
     from sssphase_core.bench.output import machine_info
 
-    dev = _device(device)
+    dev = compute_device(device)
     if steps < epochs:
         raise InputError(f"--steps must be at least --epochs ({epochs}), got {steps}")
     result: dict[str, Any] = {"machine": machine_info(), "device": str(dev),

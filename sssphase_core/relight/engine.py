@@ -11,6 +11,7 @@ import numpy as np
 import scipy.sparse
 import torch
 
+from sssphase_core.compute import compute_device
 from sssphase_core.errors import InputError
 from sssphase_core.processing.projector import emitted_light, sample_projector
 
@@ -65,7 +66,7 @@ class Splatter:
         self.method = method
         self.h, self.w, self.k, self.p = height, width, patch, n_patterns
         self.hp, self.wp = height + patch, width + patch
-        self.device = torch.device(device)
+        self.device = compute_device(device)
         dy, dx = np.meshgrid(np.arange(patch), np.arange(patch), indexing="ij")
         self._offsets = (dy * self.wp + dx).ravel()
         if method == "csc" or (method == "auto" and self.device.type == "cpu"):

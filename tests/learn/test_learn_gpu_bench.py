@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import pytest
 
@@ -30,5 +31,7 @@ def test_the_gpu_bench_runs_every_stage_on_the_cpu(tmp_path):
 def test_an_absent_cuda_device_is_one_clear_error(monkeypatch):
     monkeypatch.setattr("torch.cuda.is_available", lambda: False)
     with pytest.raises(InputError, match="no CUDA device"):
-        gpu_bench._device("cuda")
-    assert gpu_bench._device("auto").type == "cpu"
+        gpu_bench.run(Path("unused.json"), device="cuda")  # refused before anything is written
+    from sssphase_core.compute import compute_device
+
+    assert compute_device("auto").type == "cpu"

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from sssphase_core.compute import compute_device
 from sssphase_core.errors import InputError
 from sssphase_core.learning.backends.base import Query, as_patches
 from sssphase_core.learning.data import PatchDataset, ViewData
@@ -29,7 +30,7 @@ class TorchBackend:
     name = "torch"
 
     def __init__(self, checkpoint: Path | str | None = None, *, device: str = "cpu", batch_size: int = 128) -> None:
-        self.device, self.batch_size = torch.device(device), batch_size
+        self.device, self.batch_size = compute_device(device), batch_size
         self.checkpoint: Path | None = None
         self.encoder = self.decoder = None
         self.patch = 0

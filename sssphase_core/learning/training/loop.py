@@ -17,6 +17,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
+from sssphase_core.compute import compute_device
 from sssphase_core.errors import DataError, SssError
 from sssphase_core.learning.data import PatchDataset
 from sssphase_core.learning.models import ModelPreset, get_preset
@@ -46,7 +47,7 @@ class Dist:
 
 def init_distributed(device: str = "auto") -> Dist:
     """Join the torchrun process group when WORLD_SIZE > 1 (gloo on CPU, NCCL on CUDA)."""
-    use_cuda = torch.cuda.is_available() if device == "auto" else device.startswith("cuda")
+    use_cuda = compute_device(device).type == "cuda"
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     if use_cuda:
