@@ -125,6 +125,13 @@ def test_frames_where_nothing_decodes_or_too_small_are_refused_naming_why(tmp_pa
     tiny.mkdir()
     for f in flat.glob("*.npy"):
         np.save(tiny / f.name, np.zeros((4, 4, 3), np.float32))
+    logo = tmp_path / "logo"
+    logo.mkdir()
+    for f in _float_frames(tmp_path / "good", 1.0).glob("*.npy"):
+        (logo / f.name).write_bytes(f.read_bytes())
+    np.save(logo / "ref__logo.npy", np.zeros((H, W, 3), np.float32))  # a reference without its projected image
+    with pytest.raises(InputError, match="the image projected for it is needed as pattern__logo.png"):
+        import_folder(logo, tmp_path / "s", "logo", (W, H), patch=K)
     with pytest.raises(InputError, match="4x4: smaller than a camera frame"):
         import_folder(tiny, tmp_path / "s", "tiny", (W, H), patch=K)
     assert not (tmp_path / "s").exists() or not any((tmp_path / "s").iterdir())

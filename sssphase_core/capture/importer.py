@@ -136,6 +136,11 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
         missing = [k for k in ("white", "black") if k not in files]
         if missing:
             raise InputError(f"{vdir}: needs white, black and psp__x__p<period>__s<n> frames (missing: {', '.join(missing)})")
+        for key in (k for k in files if k.startswith("ref/")):
+            ref = key.removeprefix("ref/")
+            if ref not in REFERENCE_NAMES and f"pattern/{ref}" not in files:
+                raise InputError(f"{files[key]}: reference {ref!r} is no named pattern ({', '.join(REFERENCE_NAMES)}), so "
+                                 f"the image projected for it is needed as pattern__{ref}.png to relight and evaluate it")
     configs = [_psp_config(vdir, files) for vdir, files in views]
     scale = frame_scale(files["white"] for _, files in views)
     path = Path(root) / name
