@@ -138,14 +138,15 @@ def _tiff_directory(path: Path) -> dict[int, object] | None:
     float32, which renderers and cameras write), but parses any header."""
     from PIL import TiffImagePlugin
 
-    with open(path, "rb") as f:
+    with open(path, "rb") as f, warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # a damaged directory: Pillow warns and reads what it can
         head = f.read(8)
         if head[:4] not in (b"II*\0", b"MM\0*"):
             return None
         ifd = TiffImagePlugin.ImageFileDirectory_v2(head)
         f.seek(ifd.next)
         ifd.load(f)
-    return dict(ifd)
+        return dict(ifd)
 
 
 def _pil_cannot_decode(path: Path) -> bool:
@@ -155,8 +156,10 @@ def _pil_cannot_decode(path: Path) -> bool:
     if path.suffix.lower() not in (".tif", ".tiff"):
         return False
     try:
-        with Image.open(path):
-            return False
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a damaged TIFF directory: the header reader below says so
+            with Image.open(path):
+                return False
     except UnidentifiedImageError:
         return _tiff_directory(path) is not None
 
@@ -172,6 +175,8 @@ def frame_shape(path: Path) -> tuple[int, ...]:
             return exr.exr_size(path)
         if _pil_cannot_decode(path):
             tags = _tiff_directory(path) or {}
+            if 256 not in tags or 257 not in tags:
+                raise ValueError("a TIFF header without an image size (damaged file?)")
             channels = int(tags.get(277, 1))  # SamplesPerPixel
             return (int(tags[257]), int(tags[256])) + ((channels,) if channels > 1 else ())
         from PIL import Image

@@ -248,3 +248,6 @@ def test_float_tiff_and_exr_patterns_are_read_as_their_values(tmp_path):
         read_pattern(tmp_path / "hdr.exr", (40, 34))
     with pytest.raises(InputError, match="is 40x34 but the projector is 20x17"):
         read_pattern(tmp_path / "p.tiff", (20, 17))
+    (tmp_path / "bad.tiff").write_bytes(b"II*\x00\x08\x00\x00\x00\x01\x00\x00\x01\x04\x00")  # a damaged directory
+    with pytest.raises(InputError, match="a TIFF header without an image size"):
+        read_pattern(tmp_path / "bad.tiff", (40, 34))
