@@ -3,6 +3,7 @@ capture (`sss import`)."""
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
@@ -121,7 +122,12 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     """
     import shutil
 
-    from sssphase_core.processing.patterns import REFERENCE_NAMES, CapturePlan, _reference_params
+    from sssphase_core.processing.patterns import (
+        REFERENCE_NAMES,
+        CapturePlan,
+        _reference_params,
+        capture_plan,
+    )
 
     folder = Path(folder)
     if not folder.is_dir():
@@ -152,7 +158,8 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
         k, kind, params = _reference_params(ref, w, h) if ref in REFERENCE_NAMES else (key, "image", {"file": ref})
         frames.append({"name": key, "key": key, "kind": kind, "params": {"width": w, "height": h, **params},
                        "exposure": 1.0})
-    plan_json = {"projector": [w, h], "gamma": float(gamma), "psp": asdict(configs[0]), "frames": frames}
+    psp_frames = json.loads(capture_plan(w, h, psp=configs[0], gamma=gamma).to_json())["frames"]  # as a capture lists them
+    plan_json = {"projector": [w, h], "gamma": float(gamma), "psp": asdict(configs[0]), "frames": psp_frames + frames}
     session = Session.create(root, name, n_views=len(view_dirs), imported_from=str(folder.resolve()),
                              rig={"camera": "import", "projector_size": [w, h], "patch": patch, "imported": True,
                                   "frame_scale": scale},

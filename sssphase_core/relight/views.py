@@ -108,29 +108,18 @@ def load_view(session: object, view: int) -> RelightView:
 def finest_psp_period(plan: dict) -> float | None:
     """The finest PSP period of a capture plan (projector px): the fringes the decoded points come from."""
     periods = [float(f["params"]["period"]) for f in plan.get("frames", []) if f.get("kind") == "psp"]
-    if not periods and plan.get("psp"):  # a plan with only its PSP configuration (`sss import`)
-        periods = [float(plan["psp"]["period"])]
     return min(periods) if periods else None
 
 
 def paper_input_patterns(plan: dict) -> np.ndarray | None:
     """(8, Hp, Wp) projector images of a plan's 8 paper inputs (the finest period, x shifts then y shifts),
-    the patterns under which a session's ``psp`` stack was captured; None when the plan has no such set.
-    From the plan's PSP frames, or, for a plan that lists only its PSP configuration (`sss import`), from
-    that configuration."""
-    from sssphase_core.processing.patterns import PlannedFrame, psp_key
+    the patterns under which a session's ``psp`` stack was captured; None when the plan has no such set."""
+    from sssphase_core.processing.patterns import PlannedFrame
 
     frames = [f for f in plan.get("frames", []) if f.get("kind") == "psp"]
-    if not frames and plan.get("psp") and plan.get("projector"):
-        cfg, (w, h) = plan["psp"], plan["projector"]
-        frames = [{"key": psp_key(o, float(cfg["period"]), n), "kind": "psp",
-                   "params": {"width": int(w), "height": int(h), "orientation": o, "period": float(cfg["period"]), "shift": n,
-                              "n_shifts": int(cfg["n_shifts"]), "gamma": float(plan.get("gamma", 2.2))}}
-                  for o in cfg.get("orientations", ("x", "y")) for n in range(int(cfg["n_shifts"]))]
-    periods = [float(f["params"]["period"]) for f in frames]
-    if not periods:
+    finest = finest_psp_period(plan)
+    if finest is None:
         return None
-    finest = min(periods)
     chosen = sorted((f for f in frames if float(f["params"]["period"]) == finest),
                     key=lambda f: (f["params"]["orientation"], int(f["params"]["shift"])))
     if [(f["params"]["orientation"], int(f["params"]["shift"])) for f in chosen] != [(o, n) for o in "xy" for n in range(4)]:
