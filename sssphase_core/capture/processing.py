@@ -114,8 +114,11 @@ class ViewProcessor:
         self.transport: CropStream | None = None  # one crop per projector dot (the measured backend's data)
 
         self.dots = writer.stream_array("dots", n_dots) if req.keep_dots and n_dots else None
+        self.camera_isp: dict[str, Any] | None = rig.camera_isp  # how the colour frames were made, when known
 
     def _develop(self, data: np.ndarray, exposure: float) -> np.ndarray:
+        if data.ndim == 2:  # a raw Bayer frame developed here: the camera pipeline is this ISP
+            self.camera_isp = {"demosaic": "malvar", "median": bool(self.rig.median)}
         return develop_frame(data, self.rig, exposure)
 
     def add(self, frame: FrameLike, spec: Mapping[str, Any]) -> None:
@@ -182,7 +185,7 @@ class ViewProcessor:
         order = cfg.input_keys
         corr = self.decode()
         w.write("psp", np.stack([self.psp[k] for k in order]))
-        info: dict[str, Any] = {"psp_keys": order, "coverage": corr.coverage()}
+        info: dict[str, Any] = {"psp_keys": order, "coverage": corr.coverage(), "camera_isp": self.camera_isp}
         if self.req.keep_unwrap:
             unwrap = [k for k in self.psp if k not in order]
             w.write("unwrap", np.stack([self.psp[k] for k in unwrap]))

@@ -64,6 +64,29 @@ def demosaic(raw: np.ndarray, method: str = "malvar") -> np.ndarray:
     raise InputError(f"unknown demosaicing method {method!r}; use 'malvar' or 'opencv'")
 
 
+def bayer_mosaic(rgb: np.ndarray) -> np.ndarray:
+    """RGGB mosaic of (..., H, W, 3) -> (..., H, W): R at (even, even), B at (odd, odd), G elsewhere."""
+    h, w = rgb.shape[-3:-1]
+    yy, xx = np.mgrid[0:h, 0:w]
+    channel = np.where((yy % 2 == 0) & (xx % 2 == 0), 0, np.where((yy % 2 == 1) & (xx % 2 == 1), 2, 1))
+    return np.take_along_axis(rgb, np.broadcast_to(channel[..., None], rgb.shape[:-1] + (1,)), axis=-1)[..., 0]
+
+
+def through_camera(images: np.ndarray, *, demosaic: str = "malvar", median: bool = False) -> np.ndarray:
+    """What a camera whose raw frames this ISP develops records of linear images, noise aside:
+    (..., H, W, 3) -> (..., H, W, 3) float32 in the same units (RGGB sampling, the 3x3 median per
+    Bayer plane if ``median``, demosaicing by ``demosaic``). Images made by light transport (a relit
+    image, a render) become comparable with the camera's captures this way: demosaicing alone moves a
+    dim colour's fringe contrast by several percent (measured: blue 0.93 -> 0.99 on a red object).
+    Sides must be even (crops of odd size are padded by one reflected row or column and cut back)."""
+    arr = np.asarray(images, np.float32)
+    h, w = arr.shape[-3:-1]
+    pad = [(0, 0)] * (arr.ndim - 3) + [(0, h % 2), (0, w % 2), (0, 0)]
+    flat = np.pad(arr, pad, mode="reflect" if min(h, w) > 1 else "edge").reshape(-1, h + h % 2, w + w % 2, 3)
+    out = np.stack([develop(bayer_mosaic(f), 0.0, 1.0, median=median, method=demosaic) for f in flat])
+    return out[:, :h, :w].reshape(arr.shape)
+
+
 def develop(raw: np.ndarray, black_level: float, white_scale: float, *, median: bool = True, method: str = "malvar") -> np.ndarray:
     """Raw Bayer frame (H, W) -> linear RGB (H, W, 3) float32: median, demosaic, ``(x - black) / white_scale``.
 

@@ -114,17 +114,21 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     rows = []
     out = Path(out_dir)
     for name, img in zip(names, relit, strict=True):
-        met = relight_metrics(img, rv.captured[name], rv.proj.mask)
+        capture = _captured_reference(rv, name)  # a simulated session's capture beside its noise-free render
+        # A capture is compared with the relit image as the camera would record it (its Bayer sampling and
+        # demosaicing, when the session says which); a render, with the relit image itself. The captured
+        # transport (measured) is made of captured crops, which have been through the camera already.
+        seen = img if backend == "measured" else rv.through_camera(img)
+        met = relight_metrics(img if capture is not None else seen, rv.captured[name], rv.proj.mask)
         row = {"object": rv.object, "view": rv.view, "pattern": name, "backend": backend, **met,
                "seconds": seconds / len(names), "lit_pixels": int(rv.proj.mask.sum())}
         if mix is not None:  # a model calibrated to the view: its weight against no scattering, per colour
             row["mix"] = np.asarray(mix, float).round(4).tolist()  # (3,), or (members, 3) for a blend
-        capture = _captured_reference(rv, name)
         if capture is not None:  # a simulated session is scored against its noise-free render and its capture
-            cap = relight_metrics(img, capture, rv.proj.mask)
+            cap = relight_metrics(seen, capture, rv.proj.mask)
             row.update({"psnr_capture": cap["psnr"], "ssim_capture": cap["ssim"]})
             # ... and against what the camera records of the render without its noise
-            row["psnr_camera"] = relight_metrics(img, rv.camera_image(name), rv.proj.mask)["psnr"]
+            row["psnr_camera"] = relight_metrics(seen, rv.camera_image(name), rv.proj.mask)["psnr"]
         if write:
             stem = out / f"{rv.object}_v{rv.view}_{name}_{backend}"
             from sssphase_core.relight import write_images
@@ -174,6 +178,8 @@ def metrics_table(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend"
     note = ("Mean over objects and views; PSNR peak 1.0 (linear camera units), on the object mask"
             + ("; simulated sessions are scored against the noise-free render and, in 'vs capture', against the "
                "camera's own noisy capture of the pattern" if both else "")
+            + ("; a relit image is compared with a capture as the camera would record it (its Bayer sampling and "
+               "demosaicing, where the session records them)")
             + ("; 'vs camera, no noise': against the render seen through the camera's Bayer sampling and "
                "demosaicing without its noise (what relighting from captured data can reach)" if camera else "") + f". {lpips_note()}.")
     return Table(title, cols, body, note=note)

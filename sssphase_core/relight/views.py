@@ -29,6 +29,7 @@ class RelightView:
     saturation: float | None = None  # clipping level of the PSP frames (linear units), None: unknown
     white_saturation: float | None = None  # the white capture's (None: it does not clip, e.g. HDR)
     plan: dict = field(default_factory=dict, repr=False)  # the session's capture plan
+    camera_isp: dict | None = None  # the camera pipeline that made its captures, when known (view info)
     _camera: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
     _model_inputs: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
 
@@ -37,6 +38,17 @@ class RelightView:
         """(8, Hp, Wp) projector images of the ``psp`` captures (None if the plan does not say), made
         when first asked: only calibration needs them."""
         return paper_input_patterns(self.plan)
+
+    def through_camera(self, images: np.ndarray) -> np.ndarray:
+        """Linear images (..., H, W, 3) as this view's camera records them, noise aside (Bayer sampling and
+        its demosaicing, :func:`isp.through_camera`), so that they compare with its captures; unchanged when
+        the session does not say how its frames were made (a camera that demosaics itself, imports)."""
+        if not self.camera_isp:
+            return np.asarray(images, np.float32)
+        from sssphase_core.processing.isp import through_camera
+
+        return through_camera(images, demosaic=str(self.camera_isp.get("demosaic", "malvar")),
+                              median=bool(self.camera_isp.get("median", False)))
 
     def camera_image(self, name: str) -> np.ndarray:
         """The camera's noise-free image of reference ``name`` (simulated sessions; evaluation only): its
@@ -102,7 +114,8 @@ def load_view(session: object, view: int) -> RelightView:
             references.pop(name)
     psp_clip, white_clip = session.clip_levels()  # type: ignore[attr-defined]
     return RelightView(str(m.get("object")), view, proj, load("psp").astype(np.float32), white, patch,
-                       references, captured, sim, session, psp_clip, white_clip, plan)
+                       references, captured, sim, session, psp_clip, white_clip, plan,
+                       m.get("views", {}).get(str(view), {}).get("camera_isp"))
 
 
 def finest_psp_period(plan: dict) -> float | None:

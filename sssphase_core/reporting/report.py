@@ -96,9 +96,9 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
     parts.append(html_table(cols, body))
     for key, heading, note in (
             ("psnr_capture", "Relit images against the camera's own capture of the pattern",
-             "The capture carries sensor noise and demosaicing, which bound every backend (also <code>exact</code>); "
-             "footprints learned from captured dot crops carry the same system blur, which the noise-free render above "
-             "does not have."),
+             "The capture carries sensor noise, which bounds every backend (also <code>exact</code>); the relit images "
+             "are compared as the camera would record them (its Bayer sampling and demosaicing, where the session "
+             "records them)."),
             ("psnr_camera", "Relit images against the camera's image of the pattern without noise",
              "The noise-free render seen through the camera's Bayer sampling and demosaicing: what the camera records "
              "on average, so what relighting from captured data can reach.")):

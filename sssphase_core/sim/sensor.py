@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from sssphase_core.processing.isp import bayer_mosaic
+
 
 @dataclass(frozen=True)
 class SensorConfig:
@@ -66,14 +68,6 @@ def through_lens(linear: np.ndarray, config: SensorConfig) -> np.ndarray:
     flat = arr.reshape(-1, *arr.shape[-3:])
     out = np.stack([cv2.GaussianBlur(f, (0, 0), float(config.lens_blur), borderType=cv2.BORDER_REFLECT) for f in flat])
     return out.reshape(arr.shape)
-
-
-def bayer_mosaic(rgb: np.ndarray) -> np.ndarray:
-    """RGGB mosaic of (..., H, W, 3) -> (..., H, W): R at (even, even), B at (odd, odd), G elsewhere."""
-    h, w = rgb.shape[-3:-1]
-    yy, xx = np.mgrid[0:h, 0:w]
-    channel = np.where((yy % 2 == 0) & (xx % 2 == 0), 0, np.where((yy % 2 == 1) & (xx % 2 == 1), 2, 1))
-    return np.take_along_axis(rgb, np.broadcast_to(channel[..., None], rgb.shape[:-1] + (1,)), axis=-1)[..., 0]
 
 
 def expose(linear: np.ndarray, config: SensorConfig, rng: np.random.Generator, exposure: float = 1.0) -> np.ndarray:

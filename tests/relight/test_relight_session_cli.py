@@ -107,6 +107,13 @@ def test_bench_gap_decomposes_a_model_against_the_exact_footprints(session, tmp_
     assert bad.exit_code != 0 and "--views" in str(bad.exception)
 
 
+def fitted_pixels(rv):
+    """The pixels the view calibration fits on: the mask less the 2 px that demosaicing mixes with the background."""
+    import cv2
+
+    return rv.proj.mask & cv2.erode(rv.proj.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+
+
 def test_a_model_is_mixed_with_no_scattering_by_the_views_own_fringe_captures(session):
     from sssphase_core.relight import fit_view_mix, make_source, no_scattering_source, relight
 
@@ -121,14 +128,44 @@ def test_a_model_is_mixed_with_no_scattering_by_the_views_own_fringe_captures(se
     want = raw(px) * mix
     want[:, k // 2, k // 2] += (1 - mix) * rv.white[px[:, 0], px[:, 1]]
     np.testing.assert_allclose(mixed(px), want, rtol=1e-5, atol=1e-7)
-    m = rv.proj.mask
+    m = fitted_pixels(rv)
 
-    def residual(source, patch):  # how well a source relights the view's own fringe captures
-        out = relight(source, rv.proj, rv.psp_patterns, patch, white=rv.white)
+    def residual(source, patch):  # how well a source relights the view's own fringe captures, as the camera sees them
+        out = rv.through_camera(relight(source, rv.proj, rv.psp_patterns, patch, white=rv.white))
         return float(((out[:, m] - rv.psp[:, m]) ** 2).mean())
 
     none = residual(no_scattering_source(rv.white), 1)
     assert residual(mixed, k) <= min(residual(raw, k), none) * (1 + 1e-6)
+
+
+def test_the_calibration_compares_relit_fringes_as_the_camera_records_them(session):
+    """The exact footprints relight the fringe captures best at full weight once the relit fringes go
+    through the camera's Bayer sampling and demosaicing (recorded by the capture); compared raw, the
+    demosaicing's contrast changes read as too much scattering and pull the weight towards none."""
+    from sssphase_core.relight import fit_view_mix, make_source
+
+    rv = load_view(Session.open(session), 1)
+    assert rv.camera_isp == {"demosaic": "malvar", "median": False}  # the sim camera's own pipeline
+    exact, k = make_source("exact", rv)
+    seen = fit_view_mix(exact, k, rv)
+    assert (seen > 0.9).all(), seen
+    rv.camera_isp = None  # a session that does not say how its frames were made: compared raw
+    raw = fit_view_mix(exact, k, rv)
+    assert (raw < 0.8).any() and (raw <= seen + 1e-6).all(), (raw, seen)
+
+
+def test_through_camera_is_the_sim_cameras_image_without_noise(session):
+    from sssphase_core.processing.isp import through_camera
+
+    rv = load_view(Session.open(session), 1)
+    scene = rv.scene()
+    render = scene.render(rv.references["checkerboard"][None])
+    sensor = scene.rig.sensor
+    want = scene.sense_noise_free(render)
+    got = through_camera(render, demosaic=sensor.demosaic, median=sensor.isp_median)
+    np.testing.assert_allclose(got, want, atol=2e-4)
+    odd = through_camera(render[:, :-1, :-3])  # odd sides: padded by a reflected row or column, cut back
+    assert odd.shape == render[:, :-1, :-3].shape and np.isfinite(odd).all()
 
 
 def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
@@ -205,8 +242,8 @@ def test_a_blend_relights_the_fringe_captures_at_least_as_well_as_each_member(se
     want = (1 - mix.sum(0)) * none + sum(w * relight(src, rv.proj, pats, k, white=rv.white) for w, (src, k) in zip(mix, members, strict=True))
     np.testing.assert_allclose(blend, want, rtol=1e-4, atol=1e-6)
     psp, lost = model_inputs(rv)
-    m = rv.proj.mask & ~lost
-    residual = lambda img: float(((img[:, m] - psp[:, m]) ** 2).sum())  # noqa: E731
+    m = fitted_pixels(rv) & ~lost
+    residual = lambda img: float(((rv.through_camera(img)[:, m] - psp[:, m]) ** 2).sum())  # noqa: E731
     alone = [relight_view(src, k, rv, pats, calibrate=True)[0] for src, k in members]
     assert residual(blend) <= min(residual(a) for a in alone) * (1 + 1e-5)
     with pytest.raises(Exception, match="blending sources needs the view calibration"):
