@@ -245,6 +245,26 @@ def test_hdr_brackets_on_a_rig_without_turntable(daemon, tmp_path):
         RigSpec.from_toml(tmp_path / "bad.toml")
 
 
+def test_each_view_records_the_camera_pipeline_its_frames_went_through(daemon, tmp_path):
+    """Colour frames from the sim camera: its own demosaicing (no median at the CPU preset); raw Bayer
+    frames developed by this ISP: Malvar and the rig's median. Relighting reads it back to compare relit
+    images with captures as the camera records them."""
+    from sssphase_core.relight import load_view
+    from sssphase_core.sim import rig_preset
+
+    _, client = daemon
+    colour = run_capture(client, CaptureRequest("star", views=1, out=tmp_path / "colour"))
+    assert colour.manifest["views"]["0"]["camera_isp"] == {"demosaic": "malvar", "median": False}
+    sensor = rig_preset("cpu").sensor
+    (tmp_path / "rig.toml").write_text(
+        '[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\nturntable = "sim:turntable0"\n'
+        f'[options]\nraw = true\n[processing]\nblack_level = {sensor.black_level}\n'
+        f'white_scale = {sensor.dn_per_unit(1.0)}\nmedian = true\n')
+    raw = run_capture(client, CaptureRequest("star", views=1, out=tmp_path / "raw"), RigSpec.from_toml(tmp_path / "rig.toml"))
+    assert raw.manifest["views"]["0"]["camera_isp"] == {"demosaic": "malvar", "median": True}
+    assert load_view(raw, 0).camera_isp == {"demosaic": "malvar", "median": True}
+
+
 @pytest.fixture(scope="module")
 def soap_with_footprints(daemon, tmp_path_factory):
     """One soap view with dot-grid footprints at the default spacing, through a real daemon."""
