@@ -358,7 +358,7 @@ def view_mixture(rv: RelightView, relit_psps: Sequence[np.ndarray], psp: np.ndar
     if getattr(rv, "camera_isp", None) and camera is not None:
         # Compare like with like: the relit fringes as the camera would record them. Without this the fit
         # reads demosaicing's contrast changes as scattering (measured: the exact footprints themselves
-        # got weights 0.06-0.35 instead of 1 on the demo's crab, 0.93-1.0 with it).
+        # got weights 0.06-0.35 instead of 1 on the demo's crab, 0.97-1.0 with it).
         none, relit_psps = camera(none), [camera(r) for r in relit_psps]
         import cv2
 
