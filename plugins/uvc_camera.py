@@ -36,6 +36,9 @@ from sssphase_plugins.usb_util import no_device, plugin_options, sysfs_identity
 PLUGIN = "uvc"
 V4L_ROOT = Path("/sys/class/video4linux")
 RAW_FOURCCS = ("BA81", "GBRG", "GRBG", "RGGB", "BYR2", "Y16 ", "GREY")
+#: The Bayer layout each raw fourcc names (V4L2: BA81 = SBGGR8, BYR2 = SBGGR16); Y16 and GREY do not say
+#: (the rig file's ``[processing] bayer`` decides).
+FOURCC_LAYOUTS = {"BA81": "BGGR", "BYR2": "BGGR", "GBRG": "GBRG", "GRBG": "GRBG", "RGGB": "RGGB"}
 OAK_VID = 0x03E7
 
 
@@ -172,7 +175,8 @@ class UvcCamera:
                 raise DeviceError(f"{self.info.id}: no frame from the camera (disconnected or stalled; "
                                   "reopening it failed too)") from None
         frame = Frame(self._convert(image), self.sequence, stamp, self.exposure,
-                      {"fourcc": self.fourcc, "gain": self.gain, "raw": self.raw})
+                      {"fourcc": self.fourcc, "gain": self.gain, "raw": self.raw,
+                       **({"bayer": FOURCC_LAYOUTS[self.fourcc]} if self.raw and self.fourcc in FOURCC_LAYOUTS else {})})
         self.sequence += 1
         return frame
 

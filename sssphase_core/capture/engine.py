@@ -73,7 +73,7 @@ def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, option
         preset = rig_from_options(options)  # the preset with the session's camera options (exposure)
         rig.patch = rig.patch or preset.patch
         rig.saturation = rig.saturation or preset.sensor.saturation(1.0)
-        rig.camera_isp = {"demosaic": preset.sensor.demosaic, "median": preset.sensor.isp_median}
+        rig.camera_isp = {"demosaic": preset.sensor.demosaic, "median": preset.sensor.isp_median, "bayer": "RGGB"}
     if req.footprints and rig.patch is None:
         raise InputError("footprints need the crop size: set [processing] patch in the rig file")
     plan, frames, spacing = build_frames(req, size, rig.patch or 32, rig.gamma)

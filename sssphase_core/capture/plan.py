@@ -36,6 +36,7 @@ class RigSpec:
     black_level: float | None = None  # for raw Bayer cameras: develop with these
     white_scale: float | None = None
     median: bool = True  # the paper's 3x3 median per Bayer plane (blurs fringes only a few px wide)
+    bayer: str = "RGGB"  # the raw frames' Bayer layout where the camera does not say (RGGB, GRBG, GBRG, BGGR)
     #: The camera pipeline that made the colour frames, when it is known: ``{"demosaic": method, "median": bool}``
     #: (the sim camera's own; raw frames developed here are recorded per view). Calibration and evaluation
     #: pass relit images through it before comparing them with captures (``isp.through_camera``).
@@ -62,9 +63,14 @@ class RigSpec:
         if bad:
             raise InputError(f"{path}: [devices] takes camera, projector, turntable and trigger device ids (strings), "
                              f"not {', '.join(sorted(bad))}")
-        unknown = set(proc) - {"patch", "saturation", "black_level", "white_scale", "median"}
+        unknown = set(proc) - {"patch", "saturation", "black_level", "white_scale", "median", "bayer"}
         if unknown:
             raise InputError(f"{path}: unknown [processing] keys {sorted(unknown)}")
+        if "bayer" in proc:
+            from sssphase_core.processing.isp import BAYER_LAYOUTS
+
+            if proc["bayer"] not in BAYER_LAYOUTS:
+                raise InputError(f"{path}: [processing] bayer must be one of {', '.join(BAYER_LAYOUTS)}, got {proc['bayer']!r}")
         gamma, black = resp.get("gamma"), resp.get("black")
         if gamma is not None and not (isinstance(gamma, int | float) and 0.3 <= gamma <= 5):
             raise InputError(f"{path}: [projector] gamma must be a number in [0.3, 5], got {gamma!r}")

@@ -19,15 +19,16 @@ class FrameLike(Protocol):
     header: dict[str, Any]
 
 
-def develop_frame(data: np.ndarray, rig: RigSpec, exposure: float = 1.0) -> np.ndarray:
-    """A received frame -> linear RGB float32 (H, W, 3): colour frames as sent, raw Bayer developed."""
+def develop_frame(data: np.ndarray, rig: RigSpec, exposure: float = 1.0, layout: str | None = None) -> np.ndarray:
+    """A received frame -> linear RGB float32 (H, W, 3): colour frames as sent, raw Bayer developed
+    (in ``layout``, the camera's word for it, else the rig's ``bayer``)."""
     if data.ndim == 3:
         return np.asarray(data, np.float32)
     if rig.black_level is None or rig.white_scale is None:
         raise DataError("the camera sends raw frames: set [processing] black_level and white_scale in the rig file")
     from sssphase_core.processing import isp
 
-    return isp.develop(data, rig.black_level, rig.white_scale * exposure, median=rig.median)
+    return isp.develop(data, rig.black_level, rig.white_scale * exposure, median=rig.median, layout=layout or rig.bayer)
 
 
 class CropStream:
@@ -116,10 +117,10 @@ class ViewProcessor:
         self.dots = writer.stream_array("dots", n_dots) if req.keep_dots and n_dots else None
         self.camera_isp: dict[str, Any] | None = rig.camera_isp  # how the colour frames were made, when known
 
-    def _develop(self, data: np.ndarray, exposure: float) -> np.ndarray:
+    def _develop(self, data: np.ndarray, exposure: float, layout: str | None = None) -> np.ndarray:
         if data.ndim == 2:  # a raw Bayer frame developed here: the camera pipeline is this ISP
-            self.camera_isp = {"demosaic": "malvar", "median": bool(self.rig.median)}
-        return develop_frame(data, self.rig, exposure)
+            self.camera_isp = {"demosaic": "malvar", "median": bool(self.rig.median), "bayer": layout or self.rig.bayer}
+        return develop_frame(data, self.rig, exposure, layout)
 
     def add(self, frame: FrameLike, spec: Mapping[str, Any]) -> None:
         tag = frame.header.get("meta", {}).get("pattern_tag")
@@ -130,7 +131,7 @@ class ViewProcessor:
             img = spec["image"]
             self.patterns[key] = np.frombuffer(img["data"], img["dtype"]).reshape(img["shape"])
         bracket = self.brackets.setdefault(key, [])
-        bracket.append((exposure, self._develop(frame.data, exposure)))
+        bracket.append((exposure, self._develop(frame.data, exposure, frame.header.get("meta", {}).get("bayer"))))
         if len(bracket) < self.n_exposures:
             return
         del self.brackets[key]

@@ -2,7 +2,8 @@
 black level and scaling to linear camera units; plus HDR merging of exposure brackets.
 
 numpy at module level only; OpenCV and colour-demosaicing are imported inside the functions.
-Bayer layout is RGGB: R at (even row, even col), B at (odd, odd).
+Bayer layouts: RGGB (R at (even row, even col), B at (odd, odd)) and its shifts GRBG, GBRG, BGGR,
+developed by re-phasing the mosaic to RGGB (one reflected row and/or column) and cutting it back.
 """
 
 from __future__ import annotations
@@ -16,6 +17,17 @@ from sssphase_core.errors import InputError
 #: A sample counts as saturated from this fraction of its clipping level (demosaicing mixes
 #: clipped neighbours into nearby samples).
 SATURATION_MARGIN = 0.95
+
+
+#: Bayer layouts -> where the red sample sits in each 2 x 2 cell (row, column).
+BAYER_LAYOUTS = {"RGGB": (0, 0), "GRBG": (0, 1), "GBRG": (1, 0), "BGGR": (1, 1)}
+
+
+def check_layout(layout: str) -> str:
+    """``layout`` if it is a known Bayer layout (:data:`BAYER_LAYOUTS`), else one clear error."""
+    if layout not in BAYER_LAYOUTS:
+        raise InputError(f"unknown Bayer layout {layout!r}; use one of {', '.join(BAYER_LAYOUTS)}")
+    return layout
 
 
 def _check_mosaic(raw: np.ndarray) -> np.ndarray:
@@ -64,18 +76,19 @@ def demosaic(raw: np.ndarray, method: str = "malvar") -> np.ndarray:
     raise InputError(f"unknown demosaicing method {method!r}; use 'malvar' or 'opencv'")
 
 
-def bayer_mosaic(rgb: np.ndarray) -> np.ndarray:
-    """RGGB mosaic of (..., H, W, 3) -> (..., H, W): R at (even, even), B at (odd, odd), G elsewhere."""
+def bayer_mosaic(rgb: np.ndarray, layout: str = "RGGB") -> np.ndarray:
+    """Bayer mosaic of (..., H, W, 3) -> (..., H, W); RGGB: R at (even, even), B at (odd, odd), G elsewhere."""
+    dy, dx = BAYER_LAYOUTS[check_layout(layout)]
     h, w = rgb.shape[-3:-1]
-    yy, xx = np.mgrid[0:h, 0:w]
+    yy, xx = np.mgrid[dy : h + dy, dx : w + dx]
     channel = np.where((yy % 2 == 0) & (xx % 2 == 0), 0, np.where((yy % 2 == 1) & (xx % 2 == 1), 2, 1))
     return np.take_along_axis(rgb, np.broadcast_to(channel[..., None], rgb.shape[:-1] + (1,)), axis=-1)[..., 0]
 
 
-def through_camera(images: np.ndarray, *, demosaic: str = "malvar", median: bool = False) -> np.ndarray:
+def through_camera(images: np.ndarray, *, demosaic: str = "malvar", median: bool = False, layout: str = "RGGB") -> np.ndarray:
     """What a camera whose raw frames this ISP develops records of linear images, noise aside:
-    (..., H, W, 3) -> (..., H, W, 3) float32 in the same units (RGGB sampling, the 3x3 median per
-    Bayer plane if ``median``, demosaicing by ``demosaic``). Images made by light transport (a relit
+    (..., H, W, 3) -> (..., H, W, 3) float32 in the same units (Bayer sampling in ``layout``, the 3x3
+    median per Bayer plane if ``median``, demosaicing by ``demosaic``). Images made by light transport (a relit
     image, a render) become comparable with the camera's captures this way: demosaicing alone moves a
     dim colour's fringe contrast by several percent (measured: blue 0.93 -> 0.99 on a red object).
     Odd sides are padded by one reflected row or column for the mosaic and cut back."""
@@ -83,19 +96,26 @@ def through_camera(images: np.ndarray, *, demosaic: str = "malvar", median: bool
     h, w = arr.shape[-3:-1]
     pad = [(0, 0)] * (arr.ndim - 3) + [(0, h % 2), (0, w % 2), (0, 0)]
     flat = np.pad(arr, pad, mode="reflect" if min(h, w) > 1 else "edge").reshape(-1, h + h % 2, w + w % 2, 3)
-    out = np.stack([develop(bayer_mosaic(f), 0.0, 1.0, median=median, method=demosaic) for f in flat])
+    out = np.stack([develop(bayer_mosaic(f, layout), 0.0, 1.0, median=median, method=demosaic, layout=layout)
+                    for f in flat])
     return out[:, :h, :w].reshape(arr.shape)
 
 
-def develop(raw: np.ndarray, black_level: float, white_scale: float, *, median: bool = True, method: str = "malvar") -> np.ndarray:
-    """Raw Bayer frame (H, W) -> linear RGB (H, W, 3) float32: median, demosaic, ``(x - black) / white_scale``.
+def develop(raw: np.ndarray, black_level: float, white_scale: float, *, median: bool = True, method: str = "malvar",
+            layout: str = "RGGB") -> np.ndarray:
+    """Raw Bayer frame (H, W) in ``layout`` -> linear RGB (H, W, 3) float32: median, demosaic,
+    ``(x - black) / white_scale``.
 
     ``white_scale`` is the DN above black that one linear camera unit produces at the frame's exposure.
     """
     if not white_scale > 0:
         raise InputError(f"white_scale must be positive, got {white_scale}")
-    mosaic = median3_bayer(raw) if median else _check_mosaic(raw)
-    rgb = demosaic(mosaic, method)
+    dy, dx = BAYER_LAYOUTS[check_layout(layout)]
+    raw = _check_mosaic(raw)
+    if dy or dx:  # re-phase to RGGB: one reflected row / column before (and after, to keep the sides even)
+        raw = np.pad(raw, ((dy, dy), (dx, dx)), mode="reflect")
+    mosaic = median3_bayer(raw) if median else raw
+    rgb = demosaic(mosaic, method)[dy : dy + raw.shape[0] - 2 * dy, dx : dx + raw.shape[1] - 2 * dx]
     return ((rgb - np.float32(black_level)) / np.float32(white_scale)).astype(np.float32)
 
 

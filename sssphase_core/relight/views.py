@@ -48,7 +48,8 @@ class RelightView:
         from sssphase_core.processing.isp import through_camera
 
         return through_camera(images, demosaic=str(self.camera_isp.get("demosaic", "malvar")),
-                              median=bool(self.camera_isp.get("median", False)))
+                              median=bool(self.camera_isp.get("median", False)),
+                              layout=str(self.camera_isp.get("bayer", "RGGB")))
 
     def camera_image(self, name: str) -> np.ndarray:
         """The camera's noise-free image of reference ``name`` (simulated sessions; evaluation only): its

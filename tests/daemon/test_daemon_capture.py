@@ -254,15 +254,19 @@ def test_each_view_records_the_camera_pipeline_its_frames_went_through(daemon, t
 
     _, client = daemon
     colour = run_capture(client, CaptureRequest("star", views=1, out=tmp_path / "colour"))
-    assert colour.manifest["views"]["0"]["camera_isp"] == {"demosaic": "malvar", "median": False}
+    assert colour.manifest["views"]["0"]["camera_isp"] == {"demosaic": "malvar", "median": False, "bayer": "RGGB"}
     sensor = rig_preset("cpu").sensor
     (tmp_path / "rig.toml").write_text(
         '[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\nturntable = "sim:turntable0"\n'
         f'[options]\nraw = true\n[processing]\nblack_level = {sensor.black_level}\n'
         f'white_scale = {sensor.dn_per_unit(1.0)}\nmedian = true\n')
     raw = run_capture(client, CaptureRequest("star", views=1, out=tmp_path / "raw"), RigSpec.from_toml(tmp_path / "rig.toml"))
-    assert raw.manifest["views"]["0"]["camera_isp"] == {"demosaic": "malvar", "median": True}
-    assert load_view(raw, 0).camera_isp == {"demosaic": "malvar", "median": True}
+    assert raw.manifest["views"]["0"]["camera_isp"] == {"demosaic": "malvar", "median": True, "bayer": "RGGB"}
+    assert load_view(raw, 0).camera_isp == {"demosaic": "malvar", "median": True, "bayer": "RGGB"}
+    (tmp_path / "bad.toml").write_text('[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\n'
+                                       '[processing]\nbayer = "RGBG"\n')
+    with pytest.raises(InputError, match=r"\[processing\] bayer must be one of RGGB, GRBG, GBRG, BGGR, got 'RGBG'"):
+        RigSpec.from_toml(tmp_path / "bad.toml")
 
 
 @pytest.fixture(scope="module")

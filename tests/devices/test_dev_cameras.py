@@ -37,6 +37,8 @@ def test_uvc_raw_bayer_and_stale_frames_dropped():
     frame = cam.grab()
     assert frame.data.shape == (24, 32) and frame.data.dtype == np.uint16
     assert cap.reads == 4 and frame.data[0, 0] == 4  # three buffered frames predate the grab
+    assert frame.meta["bayer"] == "BGGR"  # V4L2 BYR2 is SBGGR16: the daemon develops it in that layout
+    assert "bayer" not in uvc([FakeCapture(shape=(24, 32), dtype=np.uint16)], fourcc="Y16 ").grab().meta  # the rig file says
 
 
 def test_uvc_refused_exposure_is_an_error():

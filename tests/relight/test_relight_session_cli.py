@@ -145,7 +145,7 @@ def test_the_calibration_compares_relit_fringes_as_the_camera_records_them(sessi
     from sssphase_core.relight import fit_view_mix, make_source
 
     rv = load_view(Session.open(session), 1)
-    assert rv.camera_isp == {"demosaic": "malvar", "median": False}  # the sim camera's own pipeline
+    assert rv.camera_isp == {"demosaic": "malvar", "median": False, "bayer": "RGGB"}  # the sim camera's own pipeline
     exact, k = make_source("exact", rv)
     seen = fit_view_mix(exact, k, rv)
     assert (seen > 0.9).all(), seen

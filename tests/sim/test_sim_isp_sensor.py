@@ -134,3 +134,24 @@ def test_capture_matches_render_on_average(apple):
     assert abs(np.median(noisy[inner] / clean[inner]) - 1) < 0.03
     dim = apple.capture(pattern, np.random.default_rng(0), exposure=0.25)[0]
     assert abs(np.median(dim[inner] / clean[inner]) - 1) < 0.05  # developed frames stay in linear units
+
+
+def test_every_bayer_layout_develops_to_the_image_and_a_wrong_one_does_not():
+    """A mosaic in GRBG, GBRG or BGGR is developed by re-phasing it to RGGB; developing it as RGGB
+    instead swaps colours (what a GRBG camera's frames would have become)."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    img = cv2.GaussianBlur(rng.random((64, 80, 3)).astype(np.float32), (0, 0), 4) * 3 + 0.2
+    inner = (slice(4, -4), slice(4, -4))
+    for layout in isp.BAYER_LAYOUTS:
+        mosaic = bayer_mosaic(img, layout)
+        assert mosaic.shape == (64, 80)
+        good = isp.develop(mosaic, 0.0, 1.0, median=False, layout=layout)
+        assert good.shape == img.shape and np.abs(good - img)[inner].max() < 0.02, layout
+        seen = isp.through_camera(img[None], layout=layout)[0]
+        np.testing.assert_allclose(seen, good, atol=1e-6)
+        if layout != "RGGB":
+            assert np.abs(isp.develop(mosaic, 0.0, 1.0, median=False) - img)[inner].max() > 0.2, layout
+    with pytest.raises(InputError, match="unknown Bayer layout 'RGBG'"):
+        isp.develop(np.zeros((4, 4)), 0.0, 1.0, layout="RGBG")
