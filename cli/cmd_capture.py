@@ -48,7 +48,12 @@ def capture(
     spec = RigSpec.from_toml(rig) if rig else RigSpec()
     drawn = {}
     if spec.is_sim:  # an unknown preset or transport model is one line, before a daemon starts
-        from sssphase_core.sim import randomised_rig_options, rig_from_options
+        from sssphase_core.sim import MAX_VIEWS, randomised_rig_options, rig_from_options
+
+        if views > MAX_VIEWS:
+            from sssphase_core.errors import InputError
+
+            raise InputError(f"--views: the sim rig's turntable takes at most {MAX_VIEWS} views, got {views}")
 
         drawn = randomised_rig_options(seed, object_name) if randomise_rig else {}
         rig_from_options({"preset": preset, **spec.options, **drawn, **({"transport": transport} if transport else {})})

@@ -70,7 +70,7 @@ class SimRigState:
         self.obj = sim.get_object(self.object_name)  # UnknownObjectError lists the catalogue
         self.rig = sim.rig_from_options(options)  # an unknown preset, transport or out-of-range value is an InputError
         self.seed = _number(options, "seed", 0, 0, 2**63 - 1, int)
-        self.n_views = _number(options, "n_views", 4, 1, 3600, int)
+        self.n_views = _number(options, "n_views", 4, 1, sim.MAX_VIEWS, int)
         self.view = _number(options, "view", 0, 0, 2**31, int) % self.n_views
         self.latency_ns = int(_number(options, "latency_s", 1 / 60, 0.0, 60.0, float) * 1e9)
         self.frame_period_ns = int(_number(options, "frame_period_s", 1 / 30, 1e-6, 60.0, float) * 1e9)

@@ -26,6 +26,7 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["capture", "--object", "apple", "--view", "2"], "No such option"),
         (["relight", "some_session"], "--pattern"),
         (["capture", "--object", "apple", "--views", "two"], "--views"),
+        (["capture", "--object", "apple", "--views", "100000"], "turntable takes at most 3600 views, got 100000"),
         (["capture", "--version"], "No such option"),
         (["sim", "--object", "apple", "--views", "-"], "--views"),
         (["relight", "no_session", "--pattern", "checkerboard", "--format", "tiff"], "choose png, exr"),
@@ -51,6 +52,7 @@ def test_usage_errors_are_one_message_not_a_traceback(args: list[str], expected:
     assert "Traceback" not in out and "ModuleNotFoundError" not in out, out
     assert expected in out
     assert len(out.strip().splitlines()) <= 12, out
+    assert "started a local one" not in out, out  # refused before a daemon is started for nothing
 
 
 def test_a_runtime_folder_others_can_read_is_one_message(tmp_path) -> None:

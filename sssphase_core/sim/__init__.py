@@ -23,6 +23,7 @@ from sssphase_core.sim.objects import (
     get_object,
 )
 from sssphase_core.sim.rig import (
+    MAX_VIEWS,
     RANDOMISED_RANGES,
     TRANSPORTS,
     Pinhole,
@@ -44,6 +45,7 @@ __all__ = [
     "JENSEN_2001",
     "MATERIALS",
     "MATERIAL_NAMES",
+    "MAX_VIEWS",
     "TRAIN_OBJECTS",
     "UNSEEN_OBJECTS",
     "Material",

@@ -141,6 +141,8 @@ def make_rig(
 
 
 PRESETS = ("cpu", "paper")
+#: Turntable views of one sim session at most (its steps: one view per 0.1 degree).
+MAX_VIEWS = 3600
 
 
 def rig_preset(name: str = "cpu") -> RigConfig:
