@@ -67,13 +67,14 @@ def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, option
                    opened: dict[str, Any], progress: Progress | None,
                    ask_move: Callable[[int, float], None] | None) -> Session:
     size = tuple(opened["projector_size"])
+    camera_isp = None  # how the camera made its colour frames, when known (raw frames: ViewProcessor knows)
     if rig.is_sim:
         from sssphase_core.sim import rig_from_options
 
         preset = rig_from_options(options)  # the preset with the session's camera options (exposure)
         rig.patch = rig.patch or preset.patch
         rig.saturation = rig.saturation or preset.sensor.saturation(1.0)
-        rig.camera_isp = {"demosaic": preset.sensor.demosaic, "median": preset.sensor.isp_median, "bayer": "RGGB"}
+        camera_isp = {"demosaic": preset.sensor.demosaic, "median": preset.sensor.isp_median, "bayer": "RGGB"}
     if req.footprints and rig.patch is None:
         raise InputError("footprints need the crop size: set [processing] patch in the rig file")
     plan, frames, spacing = build_frames(req, size, rig.patch or 32, rig.gamma)
@@ -95,7 +96,7 @@ def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, option
             ask_move(view, angle)
         writer = session.begin_view(view)
         try:
-            proc = ViewProcessor(writer, plan, spacing, rig.patch or 32, rig, req, n_dots)
+            proc = ViewProcessor(writer, plan, spacing, rig.patch or 32, rig, req, n_dots, camera_isp)
             for i, (frame, spec) in enumerate(zip(client.capture(opened["rig"], frames), frames, strict=False)):
                 proc.add(frame, spec)
                 if progress:

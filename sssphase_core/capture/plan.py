@@ -37,10 +37,6 @@ class RigSpec:
     white_scale: float | None = None
     median: bool = True  # the paper's 3x3 median per Bayer plane (blurs fringes only a few px wide)
     bayer: str = "RGGB"  # the raw frames' Bayer layout where the camera does not say (RGGB, GRBG, GBRG, BGGR)
-    #: The camera pipeline that made the colour frames, when it is known: ``{"demosaic": method, "median": bool}``
-    #: (the sim camera's own; raw frames developed here are recorded per view). Calibration and evaluation
-    #: pass relit images through it before comparing them with captures (``isp.through_camera``).
-    camera_isp: dict[str, Any] | None = None
     gamma: float | None = None  # projector response v**gamma ([projector], from `sss calibrate projector`; None: 2.2)
     projector_black: float | None = None  # projector black level relative to white (None: estimated/preset)
     trigger: str | None = None  # a trigger device that exposes the camera on each frame ([devices] trigger)

@@ -103,7 +103,10 @@ class ViewProcessor:
     """Consumes one view's frames in plan order: merges HDR brackets, decodes PSP, extracts footprints."""
 
     def __init__(self, writer: ViewWriter, plan: Any, spacing: int, patch: int, rig: RigSpec, req: CaptureRequest,
-                 n_dots: int) -> None:
+                 n_dots: int, camera_isp: dict[str, Any] | None = None) -> None:
+        """``camera_isp``: how a camera that sends colour frames made them (``{"demosaic", "median", "bayer"}``,
+        the sim camera's), recorded in the view's info; raw frames developed here record this ISP instead.
+        Relighting passes relit images through it before comparing them with captures (``isp.through_camera``)."""
         self.writer, self.plan, self.spacing, self.patch, self.rig, self.req = writer, plan, spacing, patch, rig, req
         self.n_exposures = len(req.hdr) or 1
         self.brackets: dict[str, list[tuple[float, np.ndarray]]] = {}
@@ -115,11 +118,12 @@ class ViewProcessor:
         self.transport: CropStream | None = None  # one crop per projector dot (the measured backend's data)
 
         self.dots = writer.stream_array("dots", n_dots) if req.keep_dots and n_dots else None
-        self.camera_isp: dict[str, Any] | None = rig.camera_isp  # how the colour frames were made, when known
+        self.camera_isp = camera_isp
 
     def _develop(self, data: np.ndarray, exposure: float, layout: str | None = None) -> np.ndarray:
         if data.ndim == 2:  # a raw Bayer frame developed here: the camera pipeline is this ISP
-            self.camera_isp = {"demosaic": "malvar", "median": bool(self.rig.median), "bayer": layout or self.rig.bayer}
+            layout = layout or self.rig.bayer
+            self.camera_isp = {"demosaic": "malvar", "median": bool(self.rig.median), "bayer": layout}
         return develop_frame(data, self.rig, exposure, layout)
 
     def add(self, frame: FrameLike, spec: Mapping[str, Any]) -> None:

@@ -353,16 +353,12 @@ def view_mixture(rv: RelightView, relit_psps: Sequence[np.ndarray], psp: np.ndar
 
     captured = rv.psp if psp is None else psp
     none = relight(no_scattering_source(rv.white), rv.proj, rv.psp_patterns, 1, white=rv.white)
-    m = rv.proj.mask & np.isfinite(captured).all(axis=(0, -1))
-    camera = getattr(rv, "through_camera", None)
-    if getattr(rv, "camera_isp", None) and camera is not None:
+    m = calibration_pixels(rv) & np.isfinite(captured).all(axis=(0, -1))
+    if getattr(rv, "camera_isp", None):  # views built elsewhere (the benchmarks' SimView) have no camera record
         # Compare like with like: the relit fringes as the camera would record them. Without this the fit
         # reads demosaicing's contrast changes as scattering (measured: the exact footprints themselves
         # got weights 0.06-0.35 instead of 1 on the demo's crab, 0.97-1.0 with it).
-        none, relit_psps = camera(none), [camera(r) for r in relit_psps]
-        import cv2
-
-        m &= cv2.erode(rv.proj.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)  # demosaicing's reach
+        none, relit_psps = rv.through_camera(none), [rv.through_camera(r) for r in relit_psps]
     if exclude is not None:
         m &= ~exclude
     d = np.stack([(r - none)[:, m] for r in relit_psps]).astype(np.float64)  # (S, 8, n, 3)
@@ -370,6 +366,16 @@ def view_mixture(rv: RelightView, relit_psps: Sequence[np.ndarray], psp: np.ndar
     gram = np.einsum("spnc,tpnc->cst", d, d)
     cross = np.einsum("spnc,pnc->cs", d, e)
     return np.stack([mixture_weights(gram[c], cross[c]) for c in range(3)], axis=1).astype(np.float32)
+
+
+def calibration_pixels(rv: RelightView) -> np.ndarray:
+    """(H, W) bool: the pixels the view calibration fits on, the object mask, less the 2 px next to the
+    silhouette when relit fringes go through the camera (demosaicing mixes them with the background)."""
+    if not getattr(rv, "camera_isp", None):
+        return rv.proj.mask
+    import cv2
+
+    return rv.proj.mask & cv2.erode(rv.proj.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
 
 
 def mixture_weights(gram: np.ndarray, cross: np.ndarray) -> np.ndarray:

@@ -9,6 +9,7 @@ from typer.testing import CliRunner
 from sssphase_cli.main import app
 from sssphase_core.relight import load_view
 from sssphase_core.relight.evaluation import relight_metrics
+from sssphase_core.relight.sources import calibration_pixels
 from sssphase_core.store.session import Session
 
 runner = CliRunner()
@@ -107,13 +108,6 @@ def test_bench_gap_decomposes_a_model_against_the_exact_footprints(session, tmp_
     assert bad.exit_code != 0 and "--views" in str(bad.exception)
 
 
-def fitted_pixels(rv):
-    """The pixels the view calibration fits on: the mask less the 2 px that demosaicing mixes with the background."""
-    import cv2
-
-    return rv.proj.mask & cv2.erode(rv.proj.mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-
-
 def test_a_model_is_mixed_with_no_scattering_by_the_views_own_fringe_captures(session):
     from sssphase_core.relight import fit_view_mix, make_source, no_scattering_source, relight
 
@@ -128,7 +122,7 @@ def test_a_model_is_mixed_with_no_scattering_by_the_views_own_fringe_captures(se
     want = raw(px) * mix
     want[:, k // 2, k // 2] += (1 - mix) * rv.white[px[:, 0], px[:, 1]]
     np.testing.assert_allclose(mixed(px), want, rtol=1e-5, atol=1e-7)
-    m = fitted_pixels(rv)
+    m = calibration_pixels(rv)
 
     def residual(source, patch):  # how well a source relights the view's own fringe captures, as the camera sees them
         out = rv.through_camera(relight(source, rv.proj, rv.psp_patterns, patch, white=rv.white))
@@ -242,7 +236,7 @@ def test_a_blend_relights_the_fringe_captures_at_least_as_well_as_each_member(se
     want = (1 - mix.sum(0)) * none + sum(w * relight(src, rv.proj, pats, k, white=rv.white) for w, (src, k) in zip(mix, members, strict=True))
     np.testing.assert_allclose(blend, want, rtol=1e-4, atol=1e-6)
     psp, lost = model_inputs(rv)
-    m = fitted_pixels(rv) & ~lost
+    m = calibration_pixels(rv) & ~lost
     residual = lambda img: float(((rv.through_camera(img)[:, m] - psp[:, m]) ** 2).sum())  # noqa: E731
     alone = [relight_view(src, k, rv, pats, calibrate=True)[0] for src, k in members]
     assert residual(blend) <= min(residual(a) for a in alone) * (1 + 1e-5)
