@@ -224,13 +224,18 @@ def eval_relight(
 ) -> None:
     """Relight every reference pattern of the sessions and tabulate MSE / PSNR / SSIM over objects and views."""
     from sssphase_core.bench.output import write_bench_report
+    from sssphase_core.learning.training import resolve_checkpoint
     from sssphase_core.relight import load_view
     from sssphase_core.relight.evaluation import aggregate, evaluate_view, lpips_note, metrics_table
-    from sssphase_core.relight.sources import check_backends
+    from sssphase_core.relight.sources import check_backends, uses_decoder
     from sssphase_core.store.session import find_sessions
 
     backends = [b.strip() for b in backend.split(",") if b.strip()]
+    if checkpoint is not None:
+        checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
     check_backends(backends, checkpoint)
+    if checkpoint is not None and any(uses_decoder(b) for b in backends):
+        console.print(f"torch backend: {checkpoint}")
     rows = []
     with _progress() as bar:
         for s in find_sessions(sessions):

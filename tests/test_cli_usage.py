@@ -36,6 +36,7 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["capture", "--object", "apple", "--hdr-exposures", "1,1"], "HDR exposures must be 2 to 8 distinct"),
         (["eval", "relight", "s", "--backend", "none,torch"], "the torch backend needs --checkpoint"),
         (["eval", "relight", "s", "--backend", "none,nonsense"], "unknown backend 'nonsense'; available: analytic, blend"),
+        (["eval", "relight", "s", "--backend", "blend", "--checkpoint", "/nonexistent/ck.pt"], "no checkpoint at /nonexistent/ck.pt"),
         (["train", "pretrain", "--batch-size", "0"], "--batch-size"),
         (["train", "decoder", "--epochs", "0", "--end-to-end"], "--epochs"),
         (["relight", "s", "--pattern", "checkerboard", "--chunk", "0"], "--chunk"),
@@ -53,6 +54,7 @@ def test_usage_errors_are_one_message_not_a_traceback(args: list[str], expected:
     assert expected in out
     assert len(out.strip().splitlines()) <= 12, out
     assert "started a local one" not in out, out  # refused before a daemon is started for nothing
+    assert "\u2501" not in out, out  # ... and before any progress bar is drawn
 
 
 def test_a_runtime_folder_others_can_read_is_one_message(tmp_path) -> None:

@@ -27,9 +27,9 @@ import numpy as np
 from sssphase_core.bench.output import Table, machine_info, write_bench_report
 from sssphase_core.bench.relight_bench import InMemorySource
 from sssphase_core.learning.metrics import psnr
+from sssphase_core.relight.evaluation import SILHOUETTE_PX, edge_band
 
 HYBRIDS = ("energy", "shape", "centre", "angular")
-EDGE_PX = 2
 
 
 def _ring_average(fps: np.ndarray) -> np.ndarray:
@@ -68,14 +68,6 @@ def hybrid(name: str, model: np.ndarray, exact: np.ndarray) -> np.ndarray:
 def _lookup(fps: np.ndarray, like: InMemorySource) -> Callable[[np.ndarray], np.ndarray]:
     """A footprint source returning rows of ``fps`` (N, K, K, 3) for the pixels ``like`` holds, in its order."""
     return lambda px: fps[like.slot[px[:, 0] * like.width + px[:, 1]]]
-
-
-def edge_band(mask: np.ndarray, width: int = EDGE_PX) -> np.ndarray:
-    """(H, W) bool: mask pixels within ``width`` px of a pixel outside the mask."""
-    import cv2
-
-    inner = cv2.erode(mask.astype(np.uint8), np.ones((2 * width + 1, 2 * width + 1), np.uint8), borderValue=0)
-    return mask & ~inner.astype(bool)
 
 
 def decompose(rv: Any, backend: str, checkpoint: Path | str | None, calibrate: bool = True) -> list[dict[str, Any]]:
@@ -141,7 +133,7 @@ def run(sessions: Sequence[Any], out: Path, *, checkpoint: Path | str | None, ba
                     f"{fmt(r['share_silhouette'])} ({fmt(r['edge_fraction_of_pixels'])})"] for r in rows],
                   note="energy: exact shape, model energy; shape: model shape, exact energy; centre: exact with the "
                        "model's centre fraction; angular: exact averaged over rings; silhouette: the model's squared "
-                       f"error within {EDGE_PX} px of the mask edge over all of it (in brackets: those pixels' share).")
+                       f"error within {SILHOUETTE_PX} px of the mask edge over all of it (in brackets: those pixels' share).")
     result = {"machine": machine_info(), "backend": backend, "checkpoint": str(checkpoint), "calibrated": calibrate, "rows": rows}
     write_bench_report(result, [table], Path(out), md=Path(out).with_suffix(".md"), title="The gap to exact footprints")
     return result

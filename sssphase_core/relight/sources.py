@@ -245,7 +245,8 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
 
 
 def check_backends(names: Sequence[str], checkpoint: Path | str | None) -> None:
-    """Refuse unknown footprint sources, and the decoder's without a checkpoint, before any work starts."""
+    """Refuse unknown footprint sources, and the decoder's without a readable checkpoint, before any work
+    starts (a missing or foreign checkpoint is one line before any progress is shown)."""
     from sssphase_core.learning.backends import available_backends
 
     known = [*MODEL_FREE, *BLENDS, *available_backends()]
@@ -253,6 +254,15 @@ def check_backends(names: Sequence[str], checkpoint: Path | str | None) -> None:
         if name not in known:
             raise InputError(f"unknown backend {name!r}; available: {', '.join(sorted(set(known)))}")
         needs_checkpoint(name, checkpoint)
+    if checkpoint is not None and any(uses_decoder(n) for n in names):
+        from sssphase_core.learning.training.checkpoints import load_checkpoint
+
+        load_checkpoint(checkpoint)  # raises DataError naming what the file is
+
+
+def uses_decoder(name: str) -> bool:
+    """Whether backend ``name`` runs the decoder (``torch``, or a blend with it): it needs a checkpoint."""
+    return name == "torch" or "torch" in BLENDS.get(name, ())
 
 
 def needs_checkpoint(name: str, checkpoint: Path | str | None) -> None:

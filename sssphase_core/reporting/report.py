@@ -95,6 +95,10 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
     parts.append("<h3>Relit images against the ground truth (paper-style table)</h3>")
     parts.append(html_table(cols, body))
     for key, heading, note in (
+            ("psnr_interior", "Relit images against the ground truth, away from the silhouette",
+             "PSNR on the object mask less the 2 px next to its edge: there a camera mixes object and background "
+             "(blur, demosaicing), which bounds every source that takes its light from captures, "
+             "<code>none</code> included; inside, the footprints decide."),
             ("psnr_capture", "Relit images against the camera's own capture of the pattern",
              "The capture carries sensor noise, which bounds every backend (also <code>exact</code>); the relit images "
              "are compared as the camera would record them (its Bayer sampling and demosaicing, where the session "

@@ -70,7 +70,10 @@ def test_eval_relight_table_exact_beats_no_scattering(session, tmp_path):
     psnr = {(a["backend"], a["pattern"]): a["psnr"] for a in data["aggregate"]}
     for pattern in ("checkerboard", "stripes_x"):
         assert psnr[("exact", pattern)] > psnr[("none", pattern)] + 3
-    assert "LPIPS skipped" in (tmp_path / "relight_eval.md").read_text()
+    md = (tmp_path / "relight_eval.md").read_text()
+    assert "LPIPS skipped" in md and "px inside (dB)" in md
+    for r in data["rows"]:  # each row also scored away from the silhouette, where the camera mixes in background
+        assert np.isfinite(r["psnr_interior"]) and r["psnr_interior"] != r["psnr"]
 
 
 def test_metrics_on_mask():
@@ -86,6 +89,23 @@ def test_metrics_on_mask():
     m = relight_metrics(off, ref, mask)
     assert m["mse"] == pytest.approx(0.01, rel=1e-4) and m["psnr"] == pytest.approx(20.0, abs=1e-3)
     assert relight_metrics(off, ref, mask, data_range=0.5)["psnr"] == pytest.approx(20 + 20 * np.log10(0.5), abs=1e-3)
+
+
+def test_interior_psnr_leaves_out_the_silhouette_band_only():
+    from sssphase_core.relight.evaluation import edge_band, interior_psnr
+
+    ref = np.full((20, 24, 3), 0.5, np.float32)
+    mask = np.zeros((20, 24), bool)
+    mask[4:16, 4:20] = True
+    band = edge_band(mask)
+    assert band.sum() == mask.sum() - 8 * 12  # the 2 px next to the edge of a 12 x 16 rectangle
+    at_edge = ref.copy()
+    at_edge[band] += 0.1
+    assert relight_metrics(at_edge, ref, mask)["psnr"] < 25 and interior_psnr(at_edge, ref, mask) == float("inf")
+    inside = ref.copy()
+    inside[mask & ~band] += 0.1
+    assert interior_psnr(inside, ref, mask) == pytest.approx(20.0, abs=1e-3)
+    assert np.isnan(interior_psnr(ref, ref, band & ~band))  # nothing inside: not a number, not an error
 
 
 def test_bench_gap_decomposes_a_model_against_the_exact_footprints(session, tmp_path):
