@@ -130,7 +130,9 @@ def paper_input_patterns(plan: dict) -> np.ndarray | None:
     the patterns under which a session's ``psp`` stack was captured; None when the plan has no such set."""
     from sssphase_core.processing.patterns import PlannedFrame
 
-    frames = [f for f in plan.get("frames", []) if f.get("kind") == "psp"]
+    # One frame per pattern: an HDR plan lists each pattern once per exposure bracket (same key), merged into one
+    # image (without this, HDR sessions silently lost the view calibration: the crab relit 4-6 dB worse).
+    frames = list({f["key"]: f for f in plan.get("frames", []) if f.get("kind") == "psp"}.values())
     finest = finest_psp_period(plan)
     if finest is None:
         return None

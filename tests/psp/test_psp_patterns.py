@@ -58,6 +58,21 @@ def test_paper_inputs_are_four_x_then_four_y_shifts():
     assert np.ptp(pats[4:], axis=2).max() == 0
 
 
+def test_an_hdr_plan_names_the_same_eight_inputs_as_a_single_exposure_one():
+    """Exposure brackets list each pattern once per exposure under one key: the 8 inputs (the patterns the
+    view calibration relights) are still found (HDR sessions used to lose the calibration silently)."""
+    import json
+
+    from sssphase_core.relight.views import paper_input_patterns
+
+    single = json.loads(capture_plan(64, 48).to_json())
+    hdr = json.loads(capture_plan(64, 48, hdr_exposures=(0.25, 1.0, 4.0)).to_json())
+    assert len([f for f in hdr["frames"] if f["kind"] == "psp"]) == 3 * len([f for f in single["frames"] if f["kind"] == "psp"])
+    expected = paper_input_patterns(single)
+    assert expected is not None and expected.shape == (8, 48, 64)
+    np.testing.assert_array_equal(paper_input_patterns(hdr), expected)
+
+
 def test_too_few_shifts_rejected():
     with pytest.raises(InputError):
         phase_shift_patterns(10, 10, period=4, n_shifts=2)
