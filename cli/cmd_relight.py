@@ -250,6 +250,13 @@ def eval_relight(
     write_bench_report({"rows": rows, "aggregate": aggregate(rows), "lpips": lpips_note()}, [table, per_object],
                  out / "relight_eval.json", md=out / "relight_eval.md", title="Relighting against reference captures")
     console.print(table.markdown())
+    if calibrate:  # a model relit without the view calibration is worth a word: it scores several dB lower
+        from sssphase_core.relight.sources import MODEL_FREE
+
+        for obj, view, b in dict.fromkeys((r["object"], r["view"], r["backend"]) for r in rows
+                                          if r["backend"] not in MODEL_FREE and "mix" not in r):
+            console.print(f"note: {obj} view {view}: {b} is not calibrated to the view (the projector patterns of its "
+                          "PSP captures are unknown): the model alone")
     console.print(f"wrote {out / 'relight_eval.json'} and {out / 'relight_eval.md'}")
 
 

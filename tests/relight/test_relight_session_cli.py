@@ -76,6 +76,23 @@ def test_eval_relight_table_exact_beats_no_scattering(session, tmp_path):
         assert np.isfinite(r["psnr_interior"]) and r["psnr_interior"] != r["psnr"]
 
 
+def test_eval_relight_says_when_a_model_cannot_be_calibrated_to_the_view(session, tmp_path):
+    import shutil
+
+    copy = tmp_path / "sand_rake"
+    shutil.copytree(session, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    for f in manifest["plan"]["frames"]:  # a plan that no longer says which 8 patterns the PSP stack was taken under
+        if f["kind"] == "psp":
+            f["params"]["shift"] = 0
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    res = runner.invoke(app, ["eval", "relight", str(copy), "--backend", "none,analytic", "--views", "1",
+                              "--out", str(tmp_path / "e")])
+    assert res.exit_code == 0, res.output
+    assert "note: sand_rake view 1: analytic is not calibrated to the view" in " ".join(res.output.split())
+    assert "none is not calibrated" not in res.output  # data, not a model: nothing to calibrate
+
+
 def test_metrics_on_mask():
     rng = np.random.default_rng(0)
     ref = rng.random((20, 24, 3)).astype(np.float32)
