@@ -18,7 +18,8 @@ from sssphase_cli.run_config import ConfigOpt, save_run_config
 console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
 
 ObjectsOpt = Annotated[str, typer.Option("--objects", help="Comma-separated object names (default: the paper's split).")]
-ViewsOpt = Annotated[str, typer.Option("--views", help="Comma-separated view indices.")]
+ViewsOpt = Annotated[str | None, typer.Option("--views", help="Comma-separated view indices (with --sessions, default: "
+                                                "every complete view).")]
 CacheOpt = Annotated[Path, typer.Option("--cache", help="Folder caching simulated views (.npz).")]
 SessionsOpt = Annotated[
     Path | None, typer.Option("--sessions", help="Folder of captured sessions (one per object) to use instead of the simulator.")
@@ -39,9 +40,18 @@ def _ints(text: str) -> list[int]:
         raise InputError(f"expected comma-separated integers, got {text!r}") from exc
 
 
-def _views(objects: list[str], views: list[int], *, n_views: int, rig: str, pixels: int | None, footprints: bool,
-           seed: int, cache: Path, noisy: bool = False, sessions: Path | None = None):
-    """Views from captured sessions (``--sessions``) or else rendered by the simulator."""
+def _chosen(views: str | None, sim_default: str, sessions: Path | None) -> list[int] | None:
+    """The --views given, else every complete view of the sessions (None), else the simulator's default views."""
+    if views is not None:
+        return _ints(views)
+    return None if sessions is not None else _ints(sim_default)
+
+
+def _views(objects: list[str], views: list[int] | dict[str, list[int]] | None, *, n_views: int, rig: str,
+           pixels: int | None, footprints: bool, seed: int, cache: Path, noisy: bool = False, sessions: Path | None = None,
+           role: str = "data"):
+    """Views from captured sessions (``--sessions``; ``views`` None: every complete view, or per object) or else
+    rendered by the simulator."""
     if sessions is not None:
         from sssphase_core.learning.data import session_views
 
@@ -53,14 +63,14 @@ def _views(objects: list[str], views: list[int], *, n_views: int, rig: str, pixe
 
             raise InputError(f"no complete session views under {sessions}" + ("" if Path(sessions).is_dir() else
                                                                               " (no such folder)"))
-        console.print(f"data: captured sessions under {sessions}: {_describe(vds)}")
+        console.print(f"{role}: captured sessions under {sessions}: {_describe(vds)}")
         return vds
     from sssphase_core.learning.data import simulate_views
 
     with console.status(f"simulating {len(objects)} object(s) x {len(views)} view(s) (cached in {cache})"):
         vds = simulate_views(objects, views, n_views=n_views, rig=rig, pixels_per_view=pixels, footprints=footprints,
                              noisy_footprints=noisy, seed=seed, cache_dir=cache)
-    console.print(f"data: the simulated rig ({rig} preset{', exact footprints' if footprints and not noisy else ''}): "
+    console.print(f"{role}: the simulated rig ({rig} preset{', exact footprints' if footprints and not noisy else ''}): "
                   f"{_describe(vds)}; pass --sessions DIR to use your own captures")
     return vds
 
@@ -94,7 +104,7 @@ def train_pretrain(
     out: Annotated[Path, typer.Option("--out", help="Run folder (checkpoint last.pt, metrics.jsonl).")] = Path("runs/pretrain"),
     preset: Annotated[str, typer.Option(help="Model preset: lite or paper.")] = "lite",
     objects: ObjectsOpt = "",
-    views: ViewsOpt = "0,1,2,3",
+    views: ViewsOpt = None,
     n_views: Annotated[int, typer.Option(help="Turntable views per object.")] = 4,
     rig: Annotated[str, typer.Option(help="Simulated rig preset (cpu: K=32, paper: K=90).")] = "cpu",
     pixels_per_view: Annotated[int, typer.Option(help="Surface pixels sampled per view.")] = 2000,
@@ -122,8 +132,8 @@ def train_pretrain(
 
     p = get_preset(preset)
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
-    vds = _views(names, _ints(views), n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=False, seed=seed,
-                 cache=cache, sessions=sessions)
+    vds = _views(names, _chosen(views, "0,1,2,3", sessions), n_views=n_views, rig=rig, pixels=pixels_per_view,
+                 footprints=False, seed=seed, cache=cache, sessions=sessions)
     names = names or _objects(vds)
     ds = PatchDataset(vds, p.patch, names)
     cfg = PretrainConfig(epochs=epochs, batch_size=batch_size, seed=seed, ckpt_every=ckpt_every, device=device, preset=preset,
@@ -152,8 +162,10 @@ def train_decoder(
     preset: Annotated[str, typer.Option(help="Model preset of an --end-to-end run (lite or paper).")] = "lite",
     out: Annotated[Path, typer.Option("--out", help="Run folder.")] = Path("runs/decoder"),
     objects: ObjectsOpt = "",
-    views: ViewsOpt = "0,1,2",
-    val_views: Annotated[str, typer.Option(help="Held-out views of the same objects for validation.")] = "3",
+    views: ViewsOpt = None,
+    val_views: Annotated[str | None, typer.Option(help="Held-out views of the same objects for validation (with "
+                                                  "--sessions, default: each session's last view when it has two or more; "
+                                                  "\"\" for none).")] = None,
     n_views: int = 4,
     rig: str = "cpu",
     pixels_per_view: int = 2000,
@@ -193,8 +205,18 @@ def train_decoder(
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
     kw = dict(n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=True, seed=seed, cache=cache, noisy=noisy_targets,
               sessions=sessions)
-    train_vds = _views(names, _ints(views), **kw)
-    val_vds = _views(names, _ints(val_views), **kw) if val_views else []
+    train_views, held = _chosen(views, "0,1,2", sessions), _chosen(val_views, "3", sessions)
+    if sessions is not None and held is None:  # the default: each session's last view held out, when it has two
+        from sssphase_core.learning.data import held_out_split
+
+        split_train, split_val = held_out_split(sessions, names or None)
+        if train_views is None:
+            train_views, held = (split_train, split_val) if any(split_val.values()) else (None, [])
+        else:  # the views given train; a last view that is not among them validates
+            left = {o: [v for v in vs if v not in train_views] for o, vs in split_val.items()}
+            held = left if any(left.values()) else []
+    train_vds = _views(names, train_views, **kw)
+    val_vds = _views(names, held, role="validation (held out)", **kw) if held else []
     names = names or _objects([*train_vds, *val_vds])
     ds = PatchDataset(train_vds, patch, names, with_targets=True)
     val = PatchDataset(val_vds, patch, names, with_targets=True) if val_vds else None
@@ -212,7 +234,7 @@ def train_decoder(
         console.print(f"validation error against run time: {out / 'error_vs_time.png'}")
     _print_final(out / METRICS, ("val_loss", "val_psnr"), "val_loss")
     console.print(f"[green]done[/]: {path}")
-    held_out = _ints(val_views) if sessions and not check_sessions else []  # the training sessions' held-out views
+    held_out = sorted({v for vd in val_vds for v in [vd.view]}) if sessions and not check_sessions else []  # held-out views
     _check_against_baselines(out, check_sessions or ([sessions] if sessions else []), held_out or None, device)
 
 
@@ -267,7 +289,7 @@ def _check_against_baselines(run: Path, roots: list[Path], views: list[int] | No
 def eval_knn(
     checkpoint: Annotated[list[str], typer.Option("--checkpoint", help="NAME=PATH (repeat to compare, e.g. psp=... imagenet=...).")],
     objects: ObjectsOpt = "",
-    views: ViewsOpt = "0,1,2,3",
+    views: ViewsOpt = None,
     n_views: int = 4,
     rig: str = "cpu",
     pixels_per_view: int = 1000,
@@ -292,8 +314,8 @@ def eval_knn(
     ks = _ints(k)
     if not ks or min(ks) < 1:
         raise InputError(f"--k needs one or more positive integers, got {k!r}")
-    vds = _views(names, _ints(views), n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=False, seed=seed,
-                 cache=cache, sessions=sessions)
+    vds = _views(names, _chosen(views, "0,1,2,3", sessions), n_views=n_views, rig=rig, pixels=pixels_per_view,
+                 footprints=False, seed=seed, cache=cache, sessions=sessions)
     names = names or _objects(vds)
     results = {}
     for run, path in runs.items():
@@ -303,8 +325,9 @@ def eval_knn(
         res = sweep[ks[0]]
         res["overall_by_k"] = {kk: r["overall"] for kk, r in sweep.items()}
         results[run] = res
-    tables = knn_tables(results, label=label, ks=ks, vote=vote, views=views)
-    _write(out, {"k": ks[0], "vote": vote, "label": label, "views": views, "results": results},
+    used = views if views is not None else ",".join(map(str, sorted({v.view for v in vds})))
+    tables = knn_tables(results, label=label, ks=ks, vote=vote, views=used)
+    _write(out, {"k": ks[0], "vote": vote, "label": label, "views": used, "results": results},
            "\n".join(t.markdown() for t in tables))
 
 
@@ -334,7 +357,7 @@ def eval_footprints(
     from sssphase_core.sim import UNSEEN_OBJECTS, rig_preset
 
     names = _names(objects, () if sessions else UNSEEN_OBJECTS)
-    vds = _views(names, _ints(views), n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=True, seed=seed,
+    vds = _views(names, _ints(views or "0"), n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=True, seed=seed,
                  cache=cache, sessions=sessions)
     names = names or _objects(vds)
     backends = {"torch": get_backend("torch", checkpoint=checkpoint)}

@@ -33,11 +33,15 @@ def test_capture_train_from_sessions_relight_and_beat_no_scattering(tmp_path):
         _sss("capture", "--object", obj, "--views", "2", "--footprints", "--out", str(train), env=env)
     _sss("capture", "--object", "soap", "--views", "1", "--reference", "checkerboard", "--out", str(test), env=env)
     pre, dec = tmp_path / "runs" / "pre", tmp_path / "runs" / "dec"
-    out = _sss("train", "pretrain", "--sessions", str(train), "--out", str(pre), "--pixels-per-view", "150", "--views", "0,1",
+    # No --views: what was captured is used (2 views each), the decoder holding each session's last view out.
+    out = _sss("train", "pretrain", "--sessions", str(train), "--out", str(pre), "--pixels-per-view", "150",
                "--epochs", "2", "--warmup-epochs", "1", "--batch-size", "32", "--knn-monitor", "200", env=env)
     assert "best knn_acc at epoch" in out and (pre / "best.pt").exists()
-    out = _sss("train", "decoder", "--encoder", str(pre), "--sessions", str(train), "--views", "0", "--val-views", "1",
+    assert f"data: captured sessions under {train}: apple view 0,1; star view 0,1" in out, out
+    out = _sss("train", "decoder", "--encoder", str(pre), "--sessions", str(train),
                "--out", str(dec), "--pixels-per-view", "300", "--epochs", "2", "--check-sessions", str(test), env=env)
+    assert f"data: captured sessions under {train}: apple view 0; star view 0" in out, out
+    assert f"validation (held out): captured sessions under {train}: apple view 1; star view 1" in out, out
     assert "final (epoch 2): val_loss" in out and "relit PSNR on soap view 0" in out
     assert "worse than the none baseline" not in out, out
     _sss("eval", "relight", str(test), "--backend", "none,torch", "--checkpoint", str(dec), "--out", str(tmp_path / "ev"),

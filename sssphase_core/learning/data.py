@@ -14,7 +14,7 @@ from __future__ import annotations
 import hashlib
 import json
 import zlib
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -295,10 +295,26 @@ class Rows:
         return np.asarray(_take(self.array, self.idx), dtype=dtype)
 
 
+def held_out_split(root: Path | str, objects: Sequence[str] | None = None) -> tuple[dict[str, list[int]], dict[str, list[int]]]:
+    """Training and validation views ``({object: views}, {object: views})`` of the sessions under ``root``:
+    each session's last complete view is held out for validation when it has two or more, else all of
+    its views train (what `sss train decoder --sessions` uses when no views are given)."""
+    from sssphase_core.store.session import list_sessions
+
+    train, val = {}, {}
+    for s in list_sessions(root):
+        if objects and s.name not in objects:
+            continue
+        views = sorted(s.views())
+        held = views[-1:] if len(views) >= 2 else []
+        train[s.name], val[s.name] = [v for v in views if v not in held], held
+    return train, val
+
+
 def session_views(
     root: Path | str,
     objects: Sequence[str] | None = None,
-    views: Sequence[int] | None = None,
+    views: Sequence[int] | Mapping[str, Sequence[int]] | None = None,
     *,
     pixels_per_view: int | None = 2000,
     footprints: bool = False,
@@ -307,7 +323,8 @@ def session_views(
     """Views of the sessions under ``root`` (one folder per object, see ``sssphase_core.store.session``).
 
     PSP stacks are loaded per view (8 images, clipped samples repaired: :func:`repaired_psp`).
-    Footprints are read once per view when the sampled rows are small (:data:`ROWS_IN_MEMORY_BYTES`),
+    ``views``: the same views of every session, each object's own (a mapping), or None for every complete
+    view. Footprints are read once per view when the sampled rows are small (:data:`ROWS_IN_MEMORY_BYTES`),
     else they stay in their zarr arrays and are read per batch. With ``footprints`` the pixels are
     those with captured footprints; otherwise the decoded correspondence mask. Material labels come
     from ``gt/labels`` when present (simulated sessions), else -1.
@@ -322,7 +339,8 @@ def session_views(
     out = []
     for name in names:
         s = sessions[name]
-        for view in s.views() if views is None else views:
+        chosen = views.get(name, []) if isinstance(views, Mapping) else views
+        for view in s.views() if chosen is None else chosen:
             if view not in s.views():
                 raise DataError(f"session {s.path} has no complete view {view} (its views: "
                                 f"{', '.join(map(str, s.views())) or 'none'}; choose with --views / --val-views)")
