@@ -37,7 +37,7 @@ class CropStream:
     frames arrive, and their camera pixels (and projector dots) to ``<prefix>/pixels`` (``/dots``) in the
     same order on ``close``: memory holds one frame's crops and one chunk at any K (a 1080p view at K = 90
     has ~10^5 crops of 97 kB). With ``drop_noise`` the first ``NOISE_SAMPLE`` crops are held back to
-    measure the noise floor (``ring_noise``), which is then zeroed in every crop (``drop_below_noise``); crops
+    measure the noise floor (``crop_noise``), which is then zeroed in every crop (``drop_below_noise``); crops
     with nothing left (a dot whose light did not reach the camera) are not stored."""
 
     def __init__(self, writer: ViewWriter, prefix: str, extractor: Any, *, drop_noise: bool = False,
@@ -75,11 +75,11 @@ class CropStream:
         self.array.extend(crops)
 
     def _release(self) -> None:
-        from sssphase_core.processing.footprints import NOISE_SAMPLE, ring_noise
+        from sssphase_core.processing.footprints import NOISE_SAMPLE, crop_noise
 
         held, self.held = self.held, []
         crops = np.concatenate([c for _, c in held]) if held else np.zeros((0, *self.array.arr.shape[1:]), np.float32)
-        self.noise = ring_noise(crops[:NOISE_SAMPLE]) if len(crops) else 0.0
+        self.noise = crop_noise(crops[:NOISE_SAMPLE]) if len(crops) else 0.0
         if held:
             self._write(np.concatenate([i for i, _ in held]), crops)
 

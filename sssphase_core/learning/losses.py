@@ -84,17 +84,12 @@ def wmse_term(pred: torch.Tensor, target: torch.Tensor, eps: float = VAR_EPS) ->
     return (w * (pred - target) ** 2).mean()
 
 
-def noise_floor(footprints: torch.Tensor, border: int = 2) -> float:
-    """Robust noise std of captured footprints ``(B, 3, K, K)``: 1.4826 x the median absolute value of
-    the outer ``border`` rows and columns, where the light of the centre pixel has decayed. Exact
-    (simulated) footprints give ~0; captured ones their camera noise after black subtraction.
-    Zeros (pixels cut to another dot's cell) are left out."""
-    k = footprints.shape[-1]
-    ring = torch.ones(k, k, dtype=torch.bool, device=footprints.device)
-    ring[border : k - border, border : k - border] = False
-    values = footprints[..., ring].float().flatten()
-    values = values[values != 0]
-    return float(1.4826 * values.abs().median()) if values.numel() else 0.0
+def noise_floor(footprints: torch.Tensor) -> float:
+    """Robust noise std of captured footprints ``(B, 3, K, K)`` (:func:`footprints.crop_noise`): exact
+    (simulated) footprints give ~0, captured ones their camera noise after black subtraction."""
+    from sssphase_core.processing.footprints import crop_noise
+
+    return crop_noise(footprints.detach().float().cpu().permute(0, 2, 3, 1).numpy())
 
 
 class SBHLoss(torch.nn.Module):

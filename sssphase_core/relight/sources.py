@@ -22,7 +22,7 @@ class DotTransport:
     ``pixels[i]`` (y, x). :func:`relight` splats ``sum_i L(dots[i]) crop_i`` with the pattern's light at
     each dot exactly.
 
-    With ``noise`` > 0 (the crops' noise std, ``footprints.ring_noise``) crops are denoised as they are
+    With ``noise`` > 0 (the crops' noise std, ``footprints.crop_noise``) crops are denoised as they are
     read (``footprints.above_noise``); captures from this version zeroed their noise floor already and
     pass 0.
     """
@@ -206,14 +206,14 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
     if name == "measured":  # the session's own captured dot-grid crops, simulated or not
         arrays = rv.session.arrays(rv.view)  # type: ignore[attr-defined]
         if "transport/crops" in arrays:  # one crop per projector dot: the captured light transport itself
-            from sssphase_core.processing.footprints import ring_noise
+            from sssphase_core.processing.footprints import crop_noise
 
             crops = rv.session.read(rv.view, "transport/crops")  # type: ignore[attr-defined]
             info = rv.session.manifest["views"][str(rv.view)].get("transport", {})  # type: ignore[attr-defined]
             if info.get("noise_dropped"):  # the capture zeroed the noise floor already (and recorded it)
                 noise = 0.0
             else:
-                noise = ring_noise(np.asarray(crops[: min(len(crops), 512)], np.float32)) if len(crops) else 0.0
+                noise = crop_noise(np.asarray(crops[: min(len(crops), 512)], np.float32)) if len(crops) else 0.0
             return DotTransport(rv.session.load(rv.view, "transport/pixels"), rv.session.load(rv.view, "transport/dots"),  # type: ignore[attr-defined]
                                 crops, noise), int(crops.shape[1])
         if "footprints/crops" not in arrays:

@@ -320,3 +320,24 @@ def test_streamed_crops_in_a_session_equal_the_extractors_own(tmp_path):
     dots = session.load(0, "transport/dots")
     assert info_tx["dots"] == len(dots) == len(session.load(0, "transport/pixels")) and info_tx["noise"] >= 0
     assert len(np.unique(dots[:, 1] * w + dots[:, 0])) == len(dots)
+
+
+def test_crop_noise_reads_the_ring_or_else_the_outer_part_of_each_crops_own_cell():
+    """The noise floor that denoises the captured transport: from the crops' outer ring where it sees
+    something (off the surface), and from inside each crop's own cell where the surface fills the crops
+    (the ring then lies in other dots' cells, is zeroed, and used to read 0: nothing was denoised)."""
+    from sssphase_core.processing.footprints import crop_noise
+
+    rng = np.random.default_rng(0)
+    k, sigma = 16, 0.01
+    r = np.hypot(*np.meshgrid(np.arange(k) - k // 2, np.arange(k) - k // 2, indexing="ij"))
+    clean = np.repeat((0.09 * np.exp(-(r**2) / (2 * 1.2**2)))[None, ..., None], 200, axis=0).repeat(3, axis=-1)
+    noisy = clean + rng.normal(0, sigma, clean.shape)
+    assert crop_noise(noisy) == pytest.approx(sigma, rel=0.1)  # the ring holds noise
+    cell = (np.abs(np.arange(k) - k // 2) <= 4)[:, None] & (np.abs(np.arange(k) - k // 2) <= 4)[None, :]
+    own = noisy * cell[None, ..., None]  # a 9 x 9 cell: the ring lies in other dots' cells
+    assert crop_noise(own) == pytest.approx(sigma, rel=0.15)
+    assert crop_noise(clean * cell[None, ..., None]) < 0.1 * sigma  # a smooth tail is not noise
+    block = np.zeros((8, k, k, 3))
+    block[:, 6:10, 6:10] = 0.02
+    assert crop_noise(block) == 0.0 and crop_noise(np.zeros((0, k, k, 3))) == 0.0
