@@ -236,9 +236,9 @@ def eval_relight(
     check_backends(backends, checkpoint)
     if checkpoint is not None and any(uses_decoder(b) for b in backends):
         console.print(f"torch backend: {checkpoint}")
-    rows = []
+    rows, found = [], find_sessions(sessions)  # a missing folder is one line before any progress is drawn
     with _progress() as bar:
-        for s in find_sessions(sessions):
+        for s in found:
             for v in _views(s, views):
                 rv = load_view(s, v)
                 for b in backends:

@@ -37,6 +37,7 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["eval", "relight", "s", "--backend", "none,torch"], "the torch backend needs --checkpoint"),
         (["eval", "relight", "s", "--backend", "none,nonsense"], "unknown backend 'nonsense'; available: analytic, blend"),
         (["eval", "relight", "s", "--backend", "blend", "--checkpoint", "/nonexistent/ck.pt"], "no checkpoint at /nonexistent/ck.pt"),
+        (["eval", "relight", "/nonexistent/sessions", "--backend", "none"], "no sessions under /nonexistent/sessions"),
         (["train", "pretrain", "--batch-size", "0"], "--batch-size"),
         (["train", "decoder", "--epochs", "0", "--end-to-end"], "--epochs"),
         (["relight", "s", "--pattern", "checkerboard", "--chunk", "0"], "--chunk"),
@@ -54,7 +55,7 @@ def test_usage_errors_are_one_message_not_a_traceback(args: list[str], expected:
     assert expected in out
     assert len(out.strip().splitlines()) <= 12, out
     assert "started a local one" not in out, out  # refused before a daemon is started for nothing
-    assert "\u2501" not in out, out  # ... and before any progress bar is drawn
+    assert "\u2501" not in out and not out.startswith("\n"), out  # ... and before any progress display starts
 
 
 def test_a_runtime_folder_others_can_read_is_one_message(tmp_path) -> None:
