@@ -137,7 +137,9 @@ def test_bench_gap_decomposes_a_model_against_the_exact_footprints(session, tmp_
         assert r["psnr_exact"] > r["psnr_analytic"] + 5
         assert all(r["psnr_exact"] > r[f"psnr_{h}"] for h in ("energy", "shape", "centre"))  # each swap costs accuracy
         assert all(np.isfinite(r[f"share_{h}"]) for h in HYBRIDS) and 0 < r["share_silhouette"] < 1
-    assert "silhouette" in out.with_suffix(".md").read_text()
+        assert r["psnr_inside_exact"] > r["psnr_inside_analytic"] and r["psnr_inside_none"] != r["psnr_none"]
+    md = out.with_suffix(".md").read_text()
+    assert "silhouette" in md and "away from the silhouette" in md
     fps = np.random.default_rng(0).random((4, 7, 7, 3)).astype(np.float32)
     for h in ("energy", "shape", "centre"):  # a model equal to the exact footprints changes nothing
         np.testing.assert_allclose(hybrid(h, fps, fps), fps, rtol=1e-5)
