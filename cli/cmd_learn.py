@@ -234,7 +234,7 @@ def train_decoder(
         console.print(f"validation error against run time: {out / 'error_vs_time.png'}")
     _print_final(out / METRICS, ("val_loss", "val_psnr"), "val_loss")
     console.print(f"[green]done[/]: {path}")
-    held_out = sorted({v for vd in val_vds for v in [vd.view]}) if sessions and not check_sessions else []  # held-out views
+    held_out = sorted({vd.view for vd in val_vds}) if sessions and not check_sessions else []  # the held-out views
     _check_against_baselines(out, check_sessions or ([sessions] if sessions else []), held_out or None, device)
 
 

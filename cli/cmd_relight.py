@@ -227,7 +227,7 @@ def eval_relight(
     from sssphase_core.learning.training import resolve_checkpoint
     from sssphase_core.relight import load_view
     from sssphase_core.relight.evaluation import aggregate, evaluate_view, lpips_note, metrics_table
-    from sssphase_core.relight.sources import check_backends, uses_decoder
+    from sssphase_core.relight.sources import MODEL_FREE, check_backends, uses_decoder
     from sssphase_core.store.session import find_sessions
 
     backends = [b.strip() for b in backend.split(",") if b.strip()]
@@ -251,8 +251,6 @@ def eval_relight(
                  out / "relight_eval.json", md=out / "relight_eval.md", title="Relighting against reference captures")
     console.print(table.markdown())
     if calibrate:  # a model relit without the view calibration is worth a word: it scores several dB lower
-        from sssphase_core.relight.sources import MODEL_FREE
-
         for obj, view, b in dict.fromkeys((r["object"], r["view"], r["backend"]) for r in rows
                                           if r["backend"] not in MODEL_FREE and "mix" not in r):
             console.print(f"note: {obj} view {view}: {b} is not calibrated to the view (the projector patterns of its "
