@@ -47,6 +47,11 @@ def _chosen(views: str | None, sim_default: str, sessions: Path | None) -> list[
     return None if sessions is not None else _ints(sim_default)
 
 
+def _used_views(views: str | None, vds) -> str:
+    """The --views as given, or the views that were read (the sessions' own), for tables and JSON."""
+    return views if views is not None else ",".join(map(str, sorted({v.view for v in vds})))
+
+
 def _views(objects: list[str], views: list[int] | dict[str, list[int]] | None, *, n_views: int, rig: str,
            pixels: int | None, footprints: bool, seed: int, cache: Path, noisy: bool = False, sessions: Path | None = None,
            role: str = "data"):
@@ -325,7 +330,7 @@ def eval_knn(
         res = sweep[ks[0]]
         res["overall_by_k"] = {kk: r["overall"] for kk, r in sweep.items()}
         results[run] = res
-    used = views if views is not None else ",".join(map(str, sorted({v.view for v in vds})))
+    used = _used_views(views, vds)
     tables = knn_tables(results, label=label, ks=ks, vote=vote, views=used)
     _write(out, {"k": ks[0], "vote": vote, "label": label, "views": used, "results": results},
            "\n".join(t.markdown() for t in tables))
@@ -334,7 +339,7 @@ def eval_knn(
 def eval_footprints(
     checkpoint: Annotated[Path, typer.Option("--checkpoint", help="Decoder checkpoint (run folder or .pt).")],
     objects: ObjectsOpt = "",
-    views: ViewsOpt = "0",
+    views: ViewsOpt = None,
     n_views: int = 4,
     rig: str = "cpu",
     pixels_per_view: int = 500,
@@ -357,7 +362,7 @@ def eval_footprints(
     from sssphase_core.sim import UNSEEN_OBJECTS, rig_preset
 
     names = _names(objects, () if sessions else UNSEEN_OBJECTS)
-    vds = _views(names, _ints(views or "0"), n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=True, seed=seed,
+    vds = _views(names, _chosen(views, "0", sessions), n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=True, seed=seed,
                  cache=cache, sessions=sessions)
     names = names or _objects(vds)
     backends = {"torch": get_backend("torch", checkpoint=checkpoint)}
@@ -391,8 +396,9 @@ def eval_footprints(
                 plot_profiles(gt[i], pred[i], plots / f"{obj}_{bname}.png", title=f"{obj}: {bname}")
     note = ("PSNR: data range 1 (white reference = 1.0); SSIM: 11x11 Gaussian window, data range = each GT footprint's peak; "
             f"{lpips_note()}.")
-    _write(out, {"objects": names, "views": views, "results": results, "note": note},
-           footprint_table(results, views=views, note=note).markdown())
+    used = _used_views(views, vds)
+    _write(out, {"objects": names, "views": used, "results": results, "note": note},
+           footprint_table(results, views=used, note=note).markdown())
 
 
 # --- viz ---------------------------------------------------------------------------------------------
