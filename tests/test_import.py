@@ -120,8 +120,12 @@ def test_a_noisy_capture_that_fills_the_frame_is_denoised_by_its_own_noise_floor
     res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "eval", "relight", str(s.path), "--backend",
                           "none,measured", "--out", str(out)], capture_output=True, text=True, timeout=300)
     assert res.returncode == 0, res.stdout + res.stderr
-    psnr = {a["backend"]: a["psnr"] for a in json.loads((out / "relight_eval.json").read_text())["aggregate"]}
+    data = json.loads((out / "relight_eval.json").read_text())
+    psnr = {a["backend"]: a["psnr"] for a in data["aggregate"]}
     assert psnr["measured"] > 25 > psnr["none"] + 10, psnr
+    (row,) = [r for r in data["rows"] if r["backend"] == "measured"]  # the noise mask the view's own fringes chose
+    fit = row["denoise_fit_psnr"]
+    assert set(fit) == {"1.0", "2.0"} and fit[str(row["denoise_smoothing"])] == max(fit.values()), row
 
 
 def test_float_frames_in_any_units_decode_like_camera_units(tmp_path):
@@ -238,3 +242,40 @@ def test_sss_report_on_a_users_own_session(frames, tmp_path):
     bad = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "report", str(s.path), "--view", "3", "--out",
                           str(tmp_path / "r2")], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "view 3 is not complete" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_the_captures_choose_the_noise_mask_that_keeps_faint_wide_tails(tmp_path):
+    """A frame-filling wide scatterer with shot noise and a clean black frame (as a renderer writes): a
+    1 px noise mask drops the faint tails that add up over many dots, a 2 px mask keeps them. The view's
+    own fringe captures choose the 2 px mask, and it relights a noise-free reference better."""
+    from sssphase_core.processing.footprints import DENOISE_SMOOTHING
+    from sssphase_core.relight import load_view, relight
+    from sssphase_core.relight.sources import denoised_transport
+
+    wp, hp, spacing, k = 112, 84, 16, 32
+    plan = capture_plan(wp, hp, footprints=True, dot_spacing=spacing, references=("white", "black", "checkerboard"))
+    r = np.hypot(*np.mgrid[-10:11, -10:11]).astype(np.float32)
+    kernels = [np.exp(-r / lam) / np.exp(-r / lam).sum() for lam in (2.5, 1.2, 0.7)]
+
+    def render(pattern: np.ndarray) -> np.ndarray:
+        light = emitted_light(pattern[None], 2.2)[0] * np.float32(0.35)
+        return np.stack([cv2.filter2D(light[..., c], -1, kernels[c], borderType=cv2.BORDER_CONSTANT) for c in range(3)], -1)
+
+    rng, folder = np.random.default_rng(0), tmp_path / "render"
+    clean = {}
+    for f in plan:
+        img = render(f.pattern())
+        clean[f.key] = img
+        noisy = rng.poisson(np.maximum(img, 0) * 4000) / 4000 + rng.normal(0, 0.001, img.shape)  # shot and read noise
+        _write(folder, f.key, noisy.astype(np.float32), nested=False, fmt="exr")
+    s = import_folder(folder, tmp_path / "sessions", "wide", (wp, hp), patch=k)
+    rv = load_view(s, 0)
+    info = s.manifest["views"]["0"]["transport"]
+    assert info["denoise_smoothing"] == list(DENOISE_SMOOTHING) and info["noise"] > 0
+    args = (rv, s.load(0, "transport/pixels"), s.load(0, "transport/dots"), s.read(0, "transport/crops"), info["noise"])
+    chosen, tight = denoised_transport(*args, DENOISE_SMOOTHING), denoised_transport(*args, (1.0,))
+    assert chosen.smoothing == 2.0 and chosen.fit[2.0] > chosen.fit[1.0] + 1, chosen.fit
+    m, ref = rv.proj.mask, clean["ref/checkerboard"]
+    err = {t.smoothing: np.mean((relight(t, rv.proj, [rv.references["checkerboard"]], k)[0][m] - ref[m]) ** 2)
+           for t in (chosen, tight)}
+    assert err[2.0] < 0.7 * err[1.0], err  # > 1.5 dB better against the noise-free reference

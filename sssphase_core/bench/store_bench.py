@@ -40,13 +40,15 @@ def _transport(session: Any, view: int, rv: Any, dtype: type, drop_noise: bool):
     for i, f in enumerate(frames):
         tx.add(f["params"]["shift_x"], f["params"]["shift_y"], np.asarray(dots[i], np.float32) - dark)
     pixels, dots_xy, crops = tx.result(drop_noise=drop_noise)
-    return pixels, dots_xy, crops, 0.0 if drop_noise else tx.noise  # dropped crops are not denoised twice
+    return pixels, dots_xy, crops, tx.noise  # the store keeps the union of the masks; relighting picks one
 
 
 def run(sessions: list[Any], out: Path, progress=None) -> dict[str, Any]:
     """Measure every complete view with kept dot frames and reference captures; writes JSON and Markdown."""
-    from sssphase_core.relight import DotTransport, load_view, relight
+    from sssphase_core.processing.footprints import DENOISE_SMOOTHING
+    from sssphase_core.relight import load_view, relight
     from sssphase_core.relight.evaluation import relight_metrics
+    from sssphase_core.relight.sources import denoised_transport
 
     rows = []
     for s in sessions:
@@ -64,7 +66,7 @@ def run(sessions: list[Any], out: Path, progress=None) -> dict[str, Any]:
                 t0 = time.perf_counter()
                 pixels, dots, crops, noise = _transport(s, view, rv, dtype, drop)
                 seconds = time.perf_counter() - t0
-                source = DotTransport(pixels, dots, crops, noise)
+                source = denoised_transport(rv, pixels, dots, crops, noise, DENOISE_SMOOTHING)
                 relit = relight(source, rv.proj, [rv.references[n] for n in names], crops.shape[1], white=rv.white)
                 psnr = float(np.mean([relight_metrics(img, rv.captured[n], rv.proj.mask)["psnr"] for n, img in zip(names, relit, strict=True)]))
                 result[label] = {"bytes": _stored_bytes(crops), "footprints": len(crops), "psnr": psnr, "extract_s": seconds}

@@ -95,7 +95,10 @@ class CropStream:
             self.writer.write(f"{self.prefix}/dots", self.extractor.dots[order].astype(np.int32))
             info["dots"] = len(order)
         if self.drop_noise:
+            from sssphase_core.processing.footprints import DENOISE_SMOOTHING
+
             info["noise"] = self.noise
+            info["denoise_smoothing"] = list(DENOISE_SMOOTHING)  # the masks whose union is stored
         return info
 
 

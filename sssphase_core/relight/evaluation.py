@@ -147,6 +147,9 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
                "seconds": seconds / len(names), "lit_pixels": int(rv.proj.mask.sum())}
         if mix is not None:  # a model calibrated to the view: its weight against no scattering, per colour
             row["mix"] = np.asarray(mix, float).round(4).tolist()  # (3,), or (members, 3) for a blend
+        if getattr(source, "fit", None):  # the captured transport's noise mask, chosen on the view's fringe captures
+            row["denoise_smoothing"] = source.smoothing  # type: ignore[attr-defined]
+            row["denoise_fit_psnr"] = {str(k): round(v, 3) for k, v in source.fit.items()}  # type: ignore[attr-defined]
         if capture is not None:  # a simulated session is scored against its noise-free render and its capture
             cap = relight_metrics(seen, capture, rv.proj.mask)
             row.update({"psnr_capture": cap["psnr"], "ssim_capture": cap["ssim"]})

@@ -23,12 +23,13 @@ class DotTransport:
     each dot exactly.
 
     With ``noise`` > 0 (the crops' noise std, ``footprints.crop_noise``) crops are denoised as they are
-    read (``footprints.above_noise``); captures from this version zeroed their noise floor already and
-    pass 0.
+    read by the mask of ``smoothing`` px (``footprints.above_noise``; :func:`denoised_transport` picks it
+    per view); crops whose noise floor was zeroed with a single mask pass 0.
     """
 
-    def __init__(self, pixels: np.ndarray, dots: np.ndarray, crops: object, noise: float) -> None:
+    def __init__(self, pixels: np.ndarray, dots: np.ndarray, crops: object, noise: float, smoothing: float = 1.0) -> None:
         self.pixels, self.dots, self.crops, self.noise = np.asarray(pixels, np.int64), np.asarray(dots, np.int64), crops, noise
+        self.smoothing = float(smoothing)
 
     def lit(self, light: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Dots lit by some pattern: (camera pixels (N, 2), light (N, P, C), rows into the crops (N,))."""
@@ -48,8 +49,30 @@ class DotTransport:
         else:  # a sparse pattern lights few of the rows in between: read only theirs
             crops = np.asarray(self.crops.oindex[rows]).astype(np.float32)  # type: ignore[attr-defined]
         if self.noise > 0 and len(crops):
-            crops = crops * above_noise(crops, self.noise)[..., None]
+            crops = crops * above_noise(crops, self.noise, smoothing=self.smoothing)[..., None]
         return crops
+
+
+def denoised_transport(rv: RelightView, pixels: np.ndarray, dots: np.ndarray, crops: object, noise: float,
+                       smoothings: Sequence[float]) -> DotTransport:
+    """The captured transport of a view denoised by the mask (one of ``smoothings`` px, see
+    ``footprints.DENOISE_SMOOTHING``) that relights the view's own 8 fringe captures best: no ground
+    truth, and the crops are camera images like the captures, so they are compared as they are. Its
+    ``fit`` records each candidate's PSNR (dB) on those captures. Without the view's PSP patterns, the
+    first candidate."""
+    from sssphase_core.learning.metrics import psnr
+    from sssphase_core.relight.engine import relight
+
+    candidates = [DotTransport(pixels, dots, crops, noise, s) for s in smoothings]
+    if rv.psp_patterns is None or noise <= 0 or len(candidates) == 1:
+        return candidates[0]
+    m = rv.proj.mask & np.isfinite(rv.psp).all(axis=(0, -1))
+    k = int(crops.shape[1])  # type: ignore[attr-defined]
+    fit = {t.smoothing: psnr(float(np.mean((relight(t, rv.proj, rv.psp_patterns, k, white=rv.white)[:, m] - rv.psp[:, m]) ** 2)))
+           for t in candidates}
+    best = next(t for t in candidates if t.smoothing == max(fit, key=fit.__getitem__))
+    best.fit = fit  # type: ignore[attr-defined]
+    return best
 
 
 
@@ -210,12 +233,15 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
 
             crops = rv.session.read(rv.view, "transport/crops")  # type: ignore[attr-defined]
             info = rv.session.manifest["views"][str(rv.view)].get("transport", {})  # type: ignore[attr-defined]
-            if info.get("noise_dropped"):  # the capture zeroed the noise floor already (and recorded it)
+            smoothings = [float(x) for x in info.get("denoise_smoothing", [1.0])]
+            if info.get("noise_dropped") and len(smoothings) == 1:  # zeroed with one mask at capture: as stored
                 noise = 0.0
+            elif info.get("noise_dropped"):  # the union of several masks stored: the view's own captures choose
+                noise = float(info.get("noise", 0.0))
             else:
                 noise = crop_noise(np.asarray(crops[: min(len(crops), 512)], np.float32)) if len(crops) else 0.0
-            return DotTransport(rv.session.load(rv.view, "transport/pixels"), rv.session.load(rv.view, "transport/dots"),  # type: ignore[attr-defined]
-                                crops, noise), int(crops.shape[1])
+            pixels, dots = rv.session.load(rv.view, "transport/pixels"), rv.session.load(rv.view, "transport/dots")  # type: ignore[attr-defined]
+            return denoised_transport(rv, pixels, dots, crops, noise, smoothings), int(crops.shape[1])
         if "footprints/crops" not in arrays:
             raise InputError(f"{rv.object} view {rv.view} has no captured footprints: capture with --footprints")
         from sssphase_core.processing.footprints import transport_weights
