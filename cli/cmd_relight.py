@@ -133,6 +133,11 @@ def relight_cmd(
                                 for m, row in zip(BLENDS.get(backend, (backend,)), np.atleast_2d(mix), strict=True))
             console.print(f"{rv.object} view {v}: {backend} footprints calibrated to the view's fringe captures "
                           f"(weights against no scattering: {weights})")
+        fit = getattr(source, "fit", None)  # the captured transport's noise mask, chosen on the view's fringe captures
+        if fit:
+            others = ", ".join(f"{s:g} px {p:.1f} dB" for s, p in fit.items() if s != source.smoothing)  # type: ignore[attr-defined]
+            console.print(f"{rv.object} view {v}: captured transport denoised with the {source.smoothing:g} px noise mask "  # type: ignore[attr-defined]
+                          f"(relights the view's fringe captures at {fit[source.smoothing]:.1f} dB; {others})")  # type: ignore[attr-defined]
         for cache_file, _ in sources if cached else ():
             cache_file.save()
             if cache_file.uncached:

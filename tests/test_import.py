@@ -126,6 +126,9 @@ def test_a_noisy_capture_that_fills_the_frame_is_denoised_by_its_own_noise_floor
     (row,) = [r for r in data["rows"] if r["backend"] == "measured"]  # the noise mask the view's own fringes chose
     fit = row["denoise_fit_psnr"]
     assert set(fit) == {"1.0", "2.0"} and fit[str(row["denoise_smoothing"])] == max(fit.values()), row
+    relit = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "relight", str(s.path), "--pattern", "checkerboard",
+                            "--backend", "measured", "--out", str(tmp_path / "r")], capture_output=True, text=True, timeout=300)
+    assert f"captured transport denoised with the {row['denoise_smoothing']:g} px noise mask" in relit.stdout, relit.stdout
 
 
 def test_float_frames_in_any_units_decode_like_camera_units(tmp_path):
