@@ -1,0 +1,60 @@
+"""Frames of a stand-in for an independent renderer, written without the simulator (``sssphase_core.sim``):
+an ellipse of colour-textured albedo seen through a slightly curved camera->projector map, light spread
+by a normalised exponential kernel per colour (lengths in camera px), Poisson shot noise (6000 photons
+per unit) and Gaussian read noise (7e-4), as float EXR named by plan key for `sss import`. The noise-free
+reference images are written beside the folder (``<name>_clean_ref__*.exr``).
+
+    python benchmarks/standin_render.py OUT NAME L_R L_G L_B SEED
+    sss import OUT/NAME --object NAME --projector 256x192 --out SESSIONS
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from sssphase_core.processing.patterns import capture_plan
+from sssphase_core.processing.projector import emitted_light
+from sssphase_core.store.exr import write_exr
+
+WP, HP, W, H = 256, 192, 200, 150
+
+
+def main(out: Path, name: str, lengths: tuple[float, float, float], seed: int) -> None:
+    plan = capture_plan(WP, HP, footprints=True, dot_spacing=20, references=("white", "black", "checkerboard", "stripes_x"))
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
+    mapx = (xx * 1.1 + 15 + 0.0005 * (xx - 100) ** 2).astype(np.float32)
+    mapy = (yy * 1.1 + 12 + 0.03 * xx).astype(np.float32)
+    cx, cy, ax, ay = 100 + rng.uniform(-10, 10), 75 + rng.uniform(-5, 5), rng.uniform(60, 85), rng.uniform(45, 60)
+    inside = ((xx - cx) ** 2 / ax**2 + (yy - cy) ** 2 / ay**2) < 1
+    base = rng.uniform(0.3, 0.9, 3)
+    albedo = np.stack([base[c] * (0.8 + 0.2 * np.sin(xx / rng.uniform(5, 15) + c)) for c in range(3)], -1).astype(np.float32)
+    r = np.hypot(*np.mgrid[-15:16, -15:16]).astype(np.float32)
+    kernels = [np.exp(-r / lam) / np.exp(-r / lam).sum() for lam in lengths]
+
+    def render(pattern: np.ndarray) -> np.ndarray:
+        light = emitted_light(pattern[None], 2.2)[0]
+        seen = np.stack([cv2.remap(light[..., c], mapx, mapy, cv2.INTER_LINEAR, borderValue=0) for c in range(3)], -1)
+        seen = seen * inside[..., None] * albedo
+        spread = np.stack([cv2.filter2D(seen[..., c], -1, kernels[c], borderType=cv2.BORDER_CONSTANT) for c in range(3)], -1)
+        return (spread * inside[..., None]).astype(np.float32)
+
+    folder = out / name
+    folder.mkdir(parents=True, exist_ok=False)
+    for f in plan:
+        img = render(f.pattern())
+        noisy = rng.poisson(np.maximum(img, 0) * 6000) / 6000 + rng.normal(0, 0.0007, img.shape)
+        write_exr(folder / (f.key.replace("/", "__") + ".exr"), noisy.astype(np.float32))
+        if f.key.startswith("ref/"):
+            write_exr(out / f"{name}_clean_{f.key.replace('/', '__')}.exr", img)
+
+
+if __name__ == "__main__":
+    a = sys.argv[1:]
+    if len(a) != 6:
+        sys.exit(__doc__)
+    main(Path(a[0]), a[1], (float(a[2]), float(a[3]), float(a[4])), int(a[5]))
