@@ -122,6 +122,8 @@ class ViewProcessor:
 
         self.dots = writer.stream_array("dots", n_dots) if req.keep_dots and n_dots else None
         self.camera_isp = camera_isp
+        self.bound: np.ndarray | None = None  # (H, W, C) the brightest value any pattern can give (once decoded)
+        self.outliers = 0  # values above it, repaired
 
     def _develop(self, data: np.ndarray, exposure: float, layout: str | None = None) -> np.ndarray:
         if data.ndim == 2:  # a raw Bayer frame developed here: the camera pipeline is this ISP
@@ -162,8 +164,27 @@ class ViewProcessor:
         if self.corr is None:
             from sssphase_core.processing import psp
 
+            self._repair_outliers()
             self.corr = psp.decode(self.psp, self.plan.psp, (self.plan.width, self.plan.height))
         return self.corr
+
+    def _repair_outliers(self) -> None:
+        """Before anything reads the frames: values no pattern could make (above the robust white image, e.g. a
+        path tracer's fireflies) are replaced by their neighbours' median in every frame, dot grids as they
+        come (measured: 6 fireflies per frame of 200 x 150 took the captured transport of an imported render
+        to -15.8 dB and the decoder to 14 dB)."""
+        from sssphase_core.processing.isp import outlier_bound, repair_outliers, robust_white
+
+        if "white" not in self.images:
+            return
+        sets: dict[str, list[np.ndarray]] = {}
+        for key, image in self.psp.items():  # psp/<orientation>/p<period>/s<shift>: one set per orientation and period
+            sets.setdefault(key.rsplit("/", 1)[0], []).append(image)
+        self.bound = outlier_bound(robust_white(self.images["white"], [np.stack(v) for v in sets.values()]))
+        for frames in (self.psp, self.images):
+            for key, image in frames.items():
+                frames[key], n = repair_outliers(image, self.bound)
+                self.outliers += n
 
     def _add_dots(self, key: str, image: np.ndarray) -> None:
         if self.footprints is None:
@@ -181,6 +202,11 @@ class ViewProcessor:
                                         DotTransportExtractor(corr.xp, corr.yp, corr.mask, self.spacing, self.patch,
                                                               (self.plan.width, self.plan.height)), drop_noise=True)
         sx, sy = (int(v) for v in key.split("/")[1].split("_"))
+        if self.bound is not None:
+            from sssphase_core.processing.isp import repair_outliers
+
+            image, n = repair_outliers(image, self.bound)
+            self.outliers += n
         dots = image - self.dark
         self.footprints.add(sx, sy, dots)
         self.transport.add(sx, sy, dots)
@@ -193,7 +219,8 @@ class ViewProcessor:
         order = cfg.input_keys
         corr = self.decode()
         w.write("psp", np.stack([self.psp[k] for k in order]))
-        info: dict[str, Any] = {"psp_keys": order, "coverage": corr.coverage(), "camera_isp": self.camera_isp}
+        info: dict[str, Any] = {"psp_keys": order, "coverage": corr.coverage(), "camera_isp": self.camera_isp,
+                                "outliers_repaired": self.outliers}
         if self.req.keep_unwrap:
             unwrap = [k for k in self.psp if k not in order]
             w.write("unwrap", np.stack([self.psp[k] for k in unwrap]))

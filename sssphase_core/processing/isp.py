@@ -169,3 +169,48 @@ def hdr_merge(
         merged = np.where(total > 0, (w * x).sum(axis=0) / np.where(total > 0, total, 1.0), merged)
     shortest = x[np.argmin(t.ravel())]
     return np.where(ok.any(axis=0), merged, shortest).astype(np.float32)
+
+
+#: A frame under a pattern no brighter than full white exceeds the robust white image by at most noise.
+#: Values above ``OUTLIER_GAIN x white + OUTLIER_FLOOR x (the white's 99.9th percentile)`` are outliers.
+OUTLIER_GAIN, OUTLIER_FLOOR = 1.5, 0.05
+
+
+def robust_white(white: np.ndarray, psp_sets: list[np.ndarray]) -> np.ndarray:
+    """(H, W, C) the white image, robust to an outlier in any one frame: the median of the white capture and
+    each PSP set's ``2 x mean over its shifts`` ((N, H, W, C) each; the shifted fringes average to half the
+    white light, whatever the scattering), so a firefly in one frame moves it by nothing."""
+    estimates = [np.asarray(white, np.float32)] + [2 * np.asarray(s, np.float32).mean(axis=0) for s in psp_sets]
+    return np.median(np.stack(estimates), axis=0).astype(np.float32)
+
+
+def outlier_bound(white: np.ndarray) -> np.ndarray:
+    """(H, W, 1) the largest value a frame under any pattern (no brighter than full white) may hold at each
+    pixel, in any colour, from a :func:`robust_white` (H, W, C): its brightest colour over the 3 x 3
+    neighbourhood, since demosaicing moves a sparse pattern's light between colours and neighbours (a dot
+    frame's blue on the red sim crab reaches 2.5x the white's blue there)."""
+    import cv2
+
+    w = np.asarray(white, np.float32)
+    top = float(np.percentile(w, 99.9)) if w.size else 0.0
+    brightest = cv2.dilate(np.maximum(w.max(axis=-1), 0), np.ones((3, 3), np.uint8))
+    return (OUTLIER_GAIN * brightest + OUTLIER_FLOOR * max(top, 0.0))[..., None].astype(np.float32)
+
+
+def repair_outliers(frame: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, int]:
+    """``(frame, n)``: the (H, W, C) frame with the values above ``bound`` (fireflies of a path tracer, cosmic
+    rays: isolated values brighter than full white could make them) replaced by the median of their 3 x 3
+    neighbourhood; ``n`` the number replaced. A frame without any is returned as it is."""
+    import cv2
+
+    frame = np.asarray(frame, np.float32)
+    bad = frame > bound
+    n = int(bad.sum())
+    if not n:
+        return frame, 0
+    out = frame.copy()
+    for c in range(frame.shape[-1]):
+        if bad[..., c].any():
+            med = cv2.medianBlur(np.where(bad[..., c], 0, frame[..., c]).astype(np.float32), 3)
+            out[..., c] = np.where(bad[..., c], med, frame[..., c])
+    return out, n
