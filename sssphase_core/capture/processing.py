@@ -180,7 +180,7 @@ class ViewProcessor:
         sets: dict[str, list[np.ndarray]] = {}
         for key, image in self.psp.items():  # psp/<orientation>/p<period>/s<shift>: one set per orientation and period
             sets.setdefault(key.rsplit("/", 1)[0], []).append(image)
-        self.bound = outlier_bound(robust_white(self.images["white"], [np.stack(v) for v in sets.values()]))
+        self.bound = outlier_bound(robust_white(self.images["white"], list(sets.values())))
         for frames in (self.psp, self.images):
             for key, image in frames.items():
                 frames[key], n = repair_outliers(image, self.bound)
