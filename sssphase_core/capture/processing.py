@@ -122,7 +122,7 @@ class ViewProcessor:
 
         self.dots = writer.stream_array("dots", n_dots) if req.keep_dots and n_dots else None
         self.camera_isp = camera_isp
-        self.bound: np.ndarray | None = None  # (H, W, C) the brightest value any pattern can give (once decoded)
+        self.bound: np.ndarray | None = None  # (H, W, 1) the brightest value any pattern can give (once decoded)
         self.outliers = 0  # values above it, repaired
 
     def _develop(self, data: np.ndarray, exposure: float, layout: str | None = None) -> np.ndarray:
@@ -149,8 +149,8 @@ class ViewProcessor:
             self.psp[key] = image
         elif key.startswith("dots/"):
             self._add_dots(key, image)
-        else:
-            self.images[key] = image
+        else:  # repaired with the others at the decode, or as it comes after it
+            self.images[key] = image if self.bound is None else self._repaired(image)
 
     def _merge(self, bracket: list[tuple[float, np.ndarray]]) -> np.ndarray:
         from sssphase_core.processing import isp
@@ -173,7 +173,7 @@ class ViewProcessor:
         path tracer's fireflies) are replaced by their neighbours' median in every frame, dot grids as they
         come (measured: 6 fireflies per frame of 200 x 150 took the captured transport of an imported render
         to -15.8 dB and the decoder to 14 dB)."""
-        from sssphase_core.processing.isp import outlier_bound, repair_outliers, robust_white
+        from sssphase_core.processing.isp import outlier_bound, robust_white
 
         if "white" not in self.images:
             return
@@ -183,8 +183,15 @@ class ViewProcessor:
         self.bound = outlier_bound(robust_white(self.images["white"], list(sets.values())))
         for frames in (self.psp, self.images):
             for key, image in frames.items():
-                frames[key], n = repair_outliers(image, self.bound)
-                self.outliers += n
+                frames[key] = self._repaired(image)
+
+    def _repaired(self, image: np.ndarray) -> np.ndarray:
+        """``image`` with the values above ``self.bound`` replaced (``isp.repair_outliers``), counted."""
+        from sssphase_core.processing.isp import repair_outliers
+
+        image, n = repair_outliers(image, self.bound)  # type: ignore[arg-type]
+        self.outliers += n
+        return image
 
     def _add_dots(self, key: str, image: np.ndarray) -> None:
         if self.footprints is None:
@@ -202,11 +209,8 @@ class ViewProcessor:
                                         DotTransportExtractor(corr.xp, corr.yp, corr.mask, self.spacing, self.patch,
                                                               (self.plan.width, self.plan.height)), drop_noise=True)
         sx, sy = (int(v) for v in key.split("/")[1].split("_"))
-        if self.bound is not None:
-            from sssphase_core.processing.isp import repair_outliers
-
-            image, n = repair_outliers(image, self.bound)
-            self.outliers += n
+        if self.bound is not None:  # dot grids come after the decode: repaired as they come
+            image = self._repaired(image)
         dots = image - self.dark
         self.footprints.add(sx, sy, dots)
         self.transport.add(sx, sy, dots)

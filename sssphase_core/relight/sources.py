@@ -30,6 +30,7 @@ class DotTransport:
     def __init__(self, pixels: np.ndarray, dots: np.ndarray, crops: object, noise: float, smoothing: float = 1.0) -> None:
         self.pixels, self.dots, self.crops, self.noise = np.asarray(pixels, np.int64), np.asarray(dots, np.int64), crops, noise
         self.smoothing = float(smoothing)
+        self.fit: dict[float, float] = {}  # PSNR (dB) of each candidate mask on the view's fringe captures, when chosen
 
     def lit(self, light: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Dots lit by some pattern: (camera pixels (N, 2), light (N, P, C), rows into the crops (N,))."""
@@ -71,7 +72,7 @@ def denoised_transport(rv: RelightView, pixels: np.ndarray, dots: np.ndarray, cr
     fit = {t.smoothing: psnr(float(np.mean((relight(t, rv.proj, rv.psp_patterns, k, white=rv.white)[:, m] - rv.psp[:, m]) ** 2)))
            for t in candidates}
     best = next(t for t in candidates if t.smoothing == max(fit, key=fit.__getitem__))
-    best.fit = fit  # type: ignore[attr-defined]
+    best.fit = fit
     return best
 
 
@@ -293,12 +294,11 @@ def uses_decoder(name: str) -> bool:
 
 def needs_checkpoint(name: str, checkpoint: Path | str | None) -> None:
     """Refuse the decoder, or a blend with it, without a decoder checkpoint."""
-    if checkpoint is not None:
+    if checkpoint is not None or not uses_decoder(name):
         return
     if name == "torch":
         raise InputError("the torch backend needs --checkpoint (a decoder checkpoint from `sss train decoder`)")
-    if "torch" in BLENDS.get(name, ()):
-        raise InputError(f"the {name} backend blends the decoder in: it needs --checkpoint (a decoder from `sss train decoder`)")
+    raise InputError(f"the {name} backend blends the decoder in: it needs --checkpoint (a decoder from `sss train decoder`)")
 
 
 def make_sources(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",
