@@ -240,6 +240,7 @@ def test_hdr_brackets_on_a_rig_without_turntable(daemon, tmp_path):
     white, render, mask = s.load(0, "white"), s.load(0, "gt/render/white"), s.load(0, "corr/mask")
     assert mask.sum() > 1000
     assert np.abs(white - render)[mask].mean() < 0.05 * render[mask].mean()
+    assert s.manifest["views"]["0"]["hot_pixels"] == s.manifest["views"]["0"]["outliers_repaired"] == 0
     (tmp_path / "bad.toml").write_text('[devices]\ncamera = "sim:camera0"\n')
     with pytest.raises(InputError, match="projector"):
         RigSpec.from_toml(tmp_path / "bad.toml")
@@ -255,6 +256,7 @@ def test_each_view_records_the_camera_pipeline_its_frames_went_through(daemon, t
     _, client = daemon
     colour = run_capture(client, CaptureRequest("star", views=1, out=tmp_path / "colour"))
     assert colour.manifest["views"]["0"]["camera_isp"] == {"demosaic": "malvar", "median": False, "bayer": "RGGB"}
+    assert colour.manifest["views"]["0"]["hot_pixels"] == colour.manifest["views"]["0"]["outliers_repaired"] == 0
     sensor = rig_preset("cpu").sensor
     (tmp_path / "rig.toml").write_text(
         '[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\nturntable = "sim:turntable0"\n'
@@ -263,6 +265,7 @@ def test_each_view_records_the_camera_pipeline_its_frames_went_through(daemon, t
     raw = run_capture(client, CaptureRequest("star", views=1, out=tmp_path / "raw"), RigSpec.from_toml(tmp_path / "rig.toml"))
     assert raw.manifest["views"]["0"]["camera_isp"] == {"demosaic": "malvar", "median": True, "bayer": "RGGB"}
     assert load_view(raw, 0).camera_isp == {"demosaic": "malvar", "median": True, "bayer": "RGGB"}
+    assert raw.manifest["views"]["0"]["hot_pixels"] == raw.manifest["views"]["0"]["outliers_repaired"] == 0
     (tmp_path / "bad.toml").write_text('[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\n'
                                        '[processing]\nbayer = "RGBG"\n')
     with pytest.raises(InputError, match=r"\[processing\] bayer must be one of RGGB, GRBG, GBRG, BGGR, got 'RGBG'"):
