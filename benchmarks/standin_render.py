@@ -4,7 +4,12 @@ by a normalised exponential kernel per colour (lengths in camera px), Poisson sh
 per unit) and Gaussian read noise (7e-4), as float EXR named by plan key for `sss import`. The noise-free
 reference images are written beside the folder (``<name>_clean_ref__*.exr``).
 
-    python benchmarks/standin_render.py OUT NAME L_R L_G L_B SEED
+With FORWARD = g > 0 the kernels are directional instead, as for light entering obliquely: each lit
+pixel spreads its light by exp(-(r - g_p d.e_p) / L) (d: offset, r = |d|, e_p: the incidence direction
+projected on the surface, mostly along the projector baseline, g_p from 0.3 g to g across the object),
+so footprints are skewed forward and the fringes a pixel sees are shifted; no kernel family of ours.
+
+    python benchmarks/standin_render.py OUT NAME L_R L_G L_B SEED [FORWARD]
     sss import OUT/NAME --object NAME --projector 256x192 --out SESSIONS
 """
 
@@ -23,7 +28,30 @@ from sssphase_core.store.exr import write_exr
 WP, HP, W, H = 256, 192, 200, 150
 
 
-def main(out: Path, name: str, lengths: tuple[float, float, float], seed: int) -> None:
+def directional_spread(lengths: tuple[float, float, float], forward: np.ndarray, angle: np.ndarray, radius: int = 12):
+    """Per-pixel forward-skewed exponential kernels -> spread(seen (H, W, 3)) -> (H, W, 3), light kept inside."""
+    import torch
+
+    k = 2 * radius + 1
+    dy, dx = (t.reshape(-1, 1) for t in np.mgrid[-radius : radius + 1, -radius : radius + 1].astype(np.float32))
+    r = np.hypot(dx, dy)
+    along = dx * np.cos(angle).reshape(1, -1) + dy * np.sin(angle).reshape(1, -1)  # (K*K, H*W)
+    weights = []
+    for lam in lengths:
+        w = np.exp(-(r - forward.reshape(1, -1) * along) / lam)
+        weights.append(w / w.sum(0, keepdims=True))
+    wt = torch.from_numpy(np.concatenate(weights, 0).astype(np.float32))  # (3*K*K, H*W), channel-major
+
+    def spread(seen: np.ndarray) -> np.ndarray:
+        src = torch.from_numpy(np.ascontiguousarray(seen.transpose(2, 0, 1).reshape(3, 1, -1)))
+        cols = (wt.view(3, k * k, -1) * src).reshape(1, 3 * k * k, -1)
+        out = torch.nn.functional.fold(cols, (H, W), k, padding=radius)[0]
+        return out.numpy().transpose(1, 2, 0)
+
+    return spread
+
+
+def main(out: Path, name: str, lengths: tuple[float, float, float], seed: int, forward: float = 0.0) -> None:
     plan = capture_plan(WP, HP, footprints=True, dot_spacing=20, references=("white", "black", "checkerboard", "stripes_x"))
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
@@ -35,12 +63,18 @@ def main(out: Path, name: str, lengths: tuple[float, float, float], seed: int) -
     albedo = np.stack([base[c] * (0.8 + 0.2 * np.sin(xx / rng.uniform(5, 15) + c)) for c in range(3)], -1).astype(np.float32)
     r = np.hypot(*np.mgrid[-15:16, -15:16]).astype(np.float32)
     kernels = [np.exp(-r / lam) / np.exp(-r / lam).sum() for lam in lengths]
+    if forward > 0:
+        g = forward * np.clip(0.3 + 0.35 * ((xx - cx) / ax + 1), 0.3, 1.0)
+        directional = directional_spread(lengths, g.astype(np.float32), (0.25 * (yy - cy) / ay).astype(np.float32))
 
     def render(pattern: np.ndarray) -> np.ndarray:
         light = emitted_light(pattern[None], 2.2)[0]
         seen = np.stack([cv2.remap(light[..., c], mapx, mapy, cv2.INTER_LINEAR, borderValue=0) for c in range(3)], -1)
         seen = seen * inside[..., None] * albedo
-        spread = np.stack([cv2.filter2D(seen[..., c], -1, kernels[c], borderType=cv2.BORDER_CONSTANT) for c in range(3)], -1)
+        if forward > 0:
+            spread = directional(seen)
+        else:
+            spread = np.stack([cv2.filter2D(seen[..., c], -1, kernels[c], borderType=cv2.BORDER_CONSTANT) for c in range(3)], -1)
         return (spread * inside[..., None]).astype(np.float32)
 
     folder = out / name
@@ -55,6 +89,6 @@ def main(out: Path, name: str, lengths: tuple[float, float, float], seed: int) -
 
 if __name__ == "__main__":
     a = sys.argv[1:]
-    if len(a) != 6:
+    if len(a) not in (6, 7):
         sys.exit(__doc__)
-    main(Path(a[0]), a[1], (float(a[2]), float(a[3]), float(a[4])), int(a[5]))
+    main(Path(a[0]), a[1], (float(a[2]), float(a[3]), float(a[4])), int(a[5]), float(a[6]) if len(a) == 7 else 0.0)
