@@ -13,6 +13,10 @@ from rich.markup import escape
 from rich.table import Table
 
 console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
+#: ``sss capture --seed``: the sim rig's noise seeds (plugins/sim_plugin.py takes 0 to 2**63 - 1).
+MAX_SEED = 2**63 - 1
+#: ``sss capture --timeout``: at most a day (the daemon client waits in whole milliseconds, a C int).
+MAX_TIMEOUT_S = 86400
 
 
 def capture(
@@ -45,6 +49,14 @@ def capture(
         from sssphase_core.errors import InputError
 
         raise InputError(f"--views must be >= 1, got {views}")
+    if not 0 < timeout <= MAX_TIMEOUT_S:  # NaN fails too
+        from sssphase_core.errors import InputError
+
+        raise InputError(f"--timeout must be a number of seconds in (0, {MAX_TIMEOUT_S}], got {timeout}")
+    if not 0 <= seed <= MAX_SEED:
+        from sssphase_core.errors import InputError
+
+        raise InputError(f"--seed must be 0 to {MAX_SEED} (2**63 - 1, what the sim rig takes), got {seed}")
     spec = RigSpec.from_toml(rig) if rig else RigSpec()
     drawn = {}
     if spec.is_sim:  # an unknown preset or transport model is one line, before a daemon starts
@@ -75,6 +87,15 @@ def capture(
     from sssphase_core.capture.engine import check_brackets
 
     check_brackets(brackets)  # before a daemon starts
+    from sssphase_core.capture.plan import reference_keys
+
+    reference_keys(reference or ())
+    from sssphase_core.processing.patterns import REFERENCE_NAMES
+    from sssphase_core.store.imageio import frame_shape
+
+    for ref in reference or ():
+        if ref not in REFERENCE_NAMES:
+            frame_shape(Path(ref))  # an unreadable or empty image file is one line before a daemon starts
     req = CaptureRequest(object_name, views, footprints, tuple(reference or ()), brackets,
                          keep_dots, keep_unwrap, resume, out, seed, preset, dot_spacing, transport, drawn)
     from sssphase_daemon.client import local_client

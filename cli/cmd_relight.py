@@ -117,6 +117,10 @@ def relight_cmd(
                     pats.append(reference_pattern(p, wp, hp))
                 else:
                     raise InputError(f"--pattern {p!r} is neither an image file nor one of {', '.join(REFERENCE_NAMES)}")
+            twins = sorted({n for n in names if names.count(n) > 1})
+            if twins:  # each pattern's name is its output file's
+                raise InputError(f"--pattern: two patterns would both be written as {twins[0]!r}: "
+                                 "rename one (the output files are named by the pattern)")
         sources = make_sources(backend, rv, checkpoint=checkpoint, device=device)
         cached = cache and not isinstance(sources[0][0], DotTransport)  # the measured transport is read, not predicted
         if cached:
@@ -295,14 +299,28 @@ def report(
 ) -> None:
     """The demo's HTML report for your own sessions and runs: relit vs reference vs difference, tables, error
     against run time, kNN, PCA."""
+    from sssphase_core.errors import InputError
     from sssphase_core.learning.training import resolve_checkpoint
+    from sssphase_core.learning.training.checkpoints import load_checkpoint
+    from sssphase_core.relight.sources import check_backends, uses_decoder
     from sssphase_core.reporting.demo import run_report
     from sssphase_core.store.session import find_sessions
 
-    path = run_report(out, find_sessions(sessions), train_sessions=train_sessions,
-                      pretrain=resolve_checkpoint(pretrain) if pretrain else None,
-                      decoder=resolve_checkpoint(decoder) if decoder else None, view=view,
-                      backends=tuple(b.strip() for b in backend.split(",") if b.strip()),
+    backends = tuple(b.strip() for b in backend.split(",") if b.strip())
+    decoder = resolve_checkpoint(decoder) if decoder else None
+    pretrain = resolve_checkpoint(pretrain) if pretrain else None
+    # as `sss eval relight`: unknown backends and unreadable checkpoints are one line before any work (without
+    # --decoder the torch rows are left out, as the default backends list them)
+    blends = [b for b in backends if b != "torch" and uses_decoder(b)]
+    if decoder is None and blends:
+        raise InputError(f"the {blends[0]} backend blends the decoder in: it needs --decoder (a run of `sss train decoder`)")
+    checked = [b for b in backends if b != "torch" or decoder is not None]
+    check_backends(checked, decoder)  # loads the decoder when a backend runs it
+    for ckpt in (pretrain, None if any(map(uses_decoder, checked)) else decoder):
+        if ckpt is not None:
+            load_checkpoint(ckpt)  # raises DataError naming what the file is
+    path = run_report(out, find_sessions(sessions), train_sessions=train_sessions, pretrain=pretrain,
+                      decoder=decoder, view=view, backends=backends,
                       log=lambda m: console.print(m, markup=False, highlight=False))
     console.print(f"wrote {path}")
 

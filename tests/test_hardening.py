@@ -72,6 +72,8 @@ def test_a_truncated_pattern_is_one_line(tmp_path):
     ({"format": "sssphase-session", "format_version": 1, "n_views": 1,
       "views": {"0": {"status": "complete", "arrays": {"../../x": {"shape": [1], "dtype": "<f4", "checksum": "x"}}}}},
      "not allowed"),
+    *(({"format": "sssphase-session", "format_version": 1, "object": name, "n_views": 0, "views": {}},  # names outputs
+       "object name .* is not allowed") for name in ("../../evil", "/tmp/evil", "a/b", None)),
 ])
 def test_damaged_manifests_are_one_line_errors(tmp_path, manifest, expected):
     import json
@@ -473,3 +475,23 @@ def test_devices_a_process_cannot_use_are_refused_by_name():
     for name, message in (("nonsense", "unknown device"), ("mps", "not supported"), ("cuda:99", "CUDA device")):
         with pytest.raises(InputError, match=message):
             compute_device(name)
+
+
+def test_two_references_that_would_share_a_key_are_refused_before_a_daemon_starts(tmp_path):
+    """`--reference a/x.png --reference b/x.png` (or a file named like a pattern) would store both captures
+    as ref/x and keep one: refused in one line, no daemon started, nothing written."""
+    import subprocess
+    import sys
+
+    from PIL import Image
+
+    for rel in ("a/x.png", "b/x.png", "checkerboard.png"):
+        (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(np.zeros((192, 256), np.uint8)).save(tmp_path / rel)
+    for refs, key in ((["a/x.png", "b/x.png"], "ref/x"), (["checkerboard", "checkerboard.png"], "ref/checkerboard")):
+        args = [a for r in refs for a in ("--reference", str(tmp_path / r) if r.endswith(".png") else r)]
+        res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "capture", "--object", "soap", "--views", "1",
+                              *args, "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
+        out = res.stdout + res.stderr
+        assert res.returncode == 2 and f"would both be stored as {key}" in out and "Traceback" not in out, out
+        assert "started a local one" not in out and not (tmp_path / "out").exists(), out

@@ -97,12 +97,27 @@ class CaptureRequest:
 
 
 
+def reference_keys(references: tuple[str, ...] | list[str]) -> list[str]:
+    """The session key (``ref/<name>``) each ``--reference`` is stored under: a pattern's name, or an image
+    file's stem (checked as a name). Two references of one key would lose a capture: refused."""
+    from sssphase_core.processing.patterns import REFERENCE_NAMES
+
+    keys: dict[str, str] = {}
+    for r in dict.fromkeys(references):  # a named pattern given twice is captured once
+        key = f"ref/{r if r in REFERENCE_NAMES else check_object_name(Path(r).stem)}"
+        if key in keys:
+            raise InputError(f"--reference {keys[key]} and {r} would both be stored as {key}: rename the file")
+        keys[key] = r
+    return list(keys)
+
+
 def build_frames(req: CaptureRequest, size: tuple[int, int], patch: int,
                  gamma: float | None = None) -> tuple[Any, list[dict[str, Any]], int]:
     """The capture plan and the daemon's frame specs (named references by plan, files as images);
     PSP patterns are pre-distorted for the projector's ``gamma`` (default 2.2)."""
     from sssphase_core.processing.patterns import DEFAULT_GAMMA, REFERENCE_NAMES, capture_plan
 
+    reference_keys(req.references)
     named = [r for r in req.references if r in REFERENCE_NAMES]
     files = [Path(r) for r in req.references if r not in REFERENCE_NAMES]
     spacing = req.dot_spacing or dot_spacing_for(patch)

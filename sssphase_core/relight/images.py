@@ -31,8 +31,6 @@ def write_images(stem: Path | str, image: np.ndarray, *, scale: float | None = N
     ``exr``: ``stem.exr``, float32 unclipped (OpenEXR bindings). Always ``stem_display.png`` (sRGB,
     exposure ``scale`` or the 99.5th percentile) for looking at.
     """
-    import cv2
-
     from sssphase_core.store import exr
 
     check_image_formats(formats)
@@ -42,12 +40,23 @@ def write_images(stem: Path | str, image: np.ndarray, *, scale: float | None = N
     finite = np.nan_to_num(img)
     bgr = finite[..., ::-1] if finite.ndim == 3 else finite
     paths = []
-    if "exr" in formats:
-        paths.append(exr.write_exr(stem.with_suffix(".exr"), img, attributes={"units": "linear camera units"}))
+    if "exr" in formats:  # stem + ".exr", not with_suffix: a dot in an object or pattern name is no suffix
+        paths.append(exr.write_exr(stem.with_name(stem.name + ".exr"), img, attributes={"units": "linear camera units"}))
     if "png" in formats:
-        paths.append(stem.with_suffix(".png"))
-        cv2.imwrite(str(paths[-1]), np.round(np.clip(bgr, 0, 1) * 65535).astype(np.uint16))
+        paths.append(_imwrite(stem.with_name(stem.name + ".png"), np.round(np.clip(bgr, 0, 1) * 65535).astype(np.uint16)))
     s = scale if scale is not None else display_scale(finite)
-    paths.append(stem.with_name(stem.name + "_display.png"))
-    cv2.imwrite(str(paths[-1]), np.round(srgb(bgr / s) * 255).astype(np.uint8))
+    paths.append(_imwrite(stem.with_name(stem.name + "_display.png"), np.round(srgb(bgr / s) * 255).astype(np.uint8)))
     return paths
+
+
+def _imwrite(path: Path, image: np.ndarray) -> Path:
+    """``cv2.imwrite`` that says so when the file was not written (a name too long, a full disk, no permission)."""
+    import cv2
+
+    try:
+        ok = cv2.imwrite(str(path), image)
+    except cv2.error:
+        ok = False
+    if not ok:
+        raise InputError(f"could not write {path} (is the name too long, the disk full, the folder writable?)")
+    return path

@@ -165,12 +165,29 @@ class FootprintCache:
         self.hits = self.misses = self.uncached = 0
         self._dirty = False
         if self.path.exists():
-            with np.load(self.path) as z:
-                current = "format" in z.files and int(z["format"]) == self.FORMAT
-                if current and z["data"].shape[1:] == (patch, patch, 3) and tuple(z["shape"]) == tuple(shape):
-                    self.data = z["data"][: self.max_rows]
-                    self.size = len(self.data)
-                    self.slot[z["index"][: self.size]] = np.arange(self.size)
+            self._load()
+
+    def _load(self) -> None:
+        """Take the file's footprints when it is a cache of this view and patch; anything else (another
+        format, a damaged or foreign file) is ignored and rewritten: a cache only saves time."""
+        import zipfile
+
+        try:
+            with np.load(self.path, allow_pickle=False) as z:
+                if not ("format" in z.files and int(z["format"]) == self.FORMAT and tuple(z["shape"]) == tuple(self.shape)):
+                    return
+                data, index = z["data"], z["index"]
+        except (OSError, ValueError, KeyError, EOFError, TypeError, zipfile.BadZipFile):
+            return
+        data, index = data[: self.max_rows], np.asarray(index)
+        if (data.shape[1:] != (self.patch, self.patch, 3) or data.dtype != np.float16 or index.ndim != 1
+                or index.dtype.kind not in "iu" or len(index) < len(data)):
+            return
+        index = index[: len(data)].astype(np.int64)
+        if len(index) and (index.min() < 0 or index.max() >= len(self.slot) or len(np.unique(index)) != len(index)):
+            return
+        self.data, self.size = data, len(data)
+        self.slot[index] = np.arange(self.size)
 
     def __call__(self, pixels: np.ndarray) -> np.ndarray:
         flat = pixels[:, 0].astype(np.int64) * self.shape[1] + pixels[:, 1]

@@ -40,17 +40,17 @@ def export_view(session: Session, view: int, out: Path) -> list[Path]:
         shape = tuple(arr.shape)
         if name == "footprints/crops":
             mosaic, cols = footprint_mosaic(np.asarray(arr, np.float32))
-            written.append(write_exr(stem.with_suffix(".exr"), mosaic, attributes={"tile_columns": str(cols)}))
+            written.append(write_exr(stem.with_name(stem.name + ".exr"), mosaic, attributes={"tile_columns": str(cols)}))
         elif shape[:2] == (height, width):
-            written.append(write_exr(stem.with_suffix(".exr"), np.asarray(arr, np.float32)))
+            written.append(write_exr(stem.with_name(stem.name + ".exr"), np.asarray(arr, np.float32)))
         elif len(shape) >= 3 and shape[1:3] == (height, width):
             for i in range(shape[0]):
                 written.append(write_exr(stem / f"{i:02d}.exr", np.asarray(arr[i], np.float32)))
         elif len(shape) == 2:  # per-row records such as footprints/pixels
             stem.parent.mkdir(parents=True, exist_ok=True)
-            with open(stem.with_suffix(".csv"), "w", newline="") as f:
+            with open(stem.with_name(stem.name + ".csv"), "w", newline="") as f:
                 csv.writer(f).writerows(np.asarray(arr).tolist())
-            written.append(stem.with_suffix(".csv"))
+            written.append(stem.with_name(stem.name + ".csv"))
     return written
 
 

@@ -51,13 +51,17 @@ def write_exr(path: Path | str, image: np.ndarray, *, attributes: dict[str, str]
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **(attributes or {})}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    with OpenEXR.File(header, channels) as f:
-        f.write(str(path))
+    try:
+        with OpenEXR.File(header, channels) as f:
+            f.write(str(path))
+    except (OSError, RuntimeError) as exc:  # a name too long, a full disk, a folder not writable
+        raise InputError(f"could not write {path}: {str(exc).strip().splitlines()[-1] if str(exc).strip() else exc!r}") from None
     return path
 
 
 def read_exr(path: Path | str) -> np.ndarray:
-    """An EXR file -> float32 (H, W) for one channel, (H, W, 3) for RGB, else (H, W, C) in name order."""
+    """An EXR file -> float32 (H, W) for one channel, (H, W, 3) for RGB or RGBA (alpha dropped), else
+    (H, W, C) in name order."""
     OpenEXR = _openexr()
     try:
         with OpenEXR.File(str(path)) as f:
@@ -67,7 +71,10 @@ def read_exr(path: Path | str) -> np.ndarray:
     if not channels:
         raise DataError(f"EXR {path} has no channels")
     if len(channels) == 1:
-        return next(iter(channels.values())).astype(np.float32, copy=False)
+        (name, pixels), = channels.items()
+        if name == "RGBA" and pixels.ndim == 3 and pixels.shape[-1] == 4:  # the bindings' interleaved RGBA: no alpha
+            pixels = pixels[..., :3]
+        return pixels.astype(np.float32, copy=False)
     if set(channels) >= {"R", "G", "B"} and len(channels) <= 4:  # split R, G, B (and A) channels
         return np.stack([channels[c] for c in "RGB"], axis=-1).astype(np.float32, copy=False)
     return np.stack([channels[c] for c in sorted(channels)], axis=-1).astype(np.float32, copy=False)

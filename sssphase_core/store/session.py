@@ -71,6 +71,10 @@ def manifest_problem(manifest: dict[str, Any]) -> str | None:
                     and isinstance(meta.get("dtype"), str) and isinstance(meta.get("checksum"), str)
                     and isinstance(meta.get("chunks", 0), int)):
                 return f"view {key}: array {name} lacks its shape, dtype or checksum"
+    try:  # the object names output files and folders: it must not lead out of them
+        check_object_name(manifest.get("object"))  # type: ignore[arg-type]
+    except InputError as e:
+        return str(e)
     return None
 
 

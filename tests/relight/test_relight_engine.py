@@ -90,6 +90,40 @@ def test_footprint_cache_skips_the_source_for_cached_pixels(tmp_path, scene):
     np.testing.assert_allclose(second, first, rtol=2e-3, atol=1e-4)  # float16 storage
 
 
+@pytest.mark.parametrize("damage", ["truncated", "index_out_of_range", "negative_index", "object_array", "not_npz"])
+def test_a_damaged_footprint_cache_is_ignored_and_rewritten(tmp_path, scene, damage):
+    """The cache only saves time: a damaged or foreign file (truncated, indices off the view, pickled
+    objects, not a zip) is ignored, every footprint computed again and right, and the file rewritten."""
+    proj, k, fps, pats = scene
+
+    def src(px):
+        return fps[px[:, 0], px[:, 1]]
+
+    path = tmp_path / "fp.npz"
+    cache = FootprintCache(src, path, proj.shape, k)
+    first = relight(cache, proj, pats[:1], k)
+    cache.save()
+    with np.load(path) as z:
+        parts = {name: z[name] for name in z.files}
+    if damage == "truncated":
+        path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    elif damage == "not_npz":
+        path.write_text("not a cache")
+    else:
+        index = parts["index"].copy()
+        if damage == "object_array":
+            parts["index"] = np.array([object()] * len(index), dtype=object)
+        else:
+            index[0] = 10**9 if damage == "index_out_of_range" else -5
+            parts["index"] = index
+        np.savez(path, **parts)
+    again = FootprintCache(src, path, proj.shape, k)
+    assert again.size == 0
+    np.testing.assert_allclose(relight(again, proj, pats[:1], k), first, rtol=2e-3, atol=1e-4)
+    again.save()
+    assert FootprintCache(src, path, proj.shape, k).size == len(parts["data"])
+
+
 def test_footprint_cache_stays_within_its_memory_budget(tmp_path, scene):
     proj, k, fps, pats = scene
     calls = []
@@ -107,6 +141,14 @@ def test_footprint_cache_stays_within_its_memory_budget(tmp_path, scene):
     again = FootprintCache(src, tmp_path / "fp.npz", proj.shape, k, max_bytes=budget)
     np.testing.assert_allclose(relight(again, proj, pats[:1], k, chunk=64), first, rtol=2e-3, atol=1e-4)
     assert again.hits == 100 and sum(calls) == 2 * n - 100  # only the uncached ones ran again
+
+
+@pytest.mark.parametrize("fmt", ["png", "exr"])
+def test_an_image_that_cannot_be_written_is_an_error_not_a_wrote_line(tmp_path, fmt):
+    """cv2.imwrite returns False (and OpenEXR raises) for a name over the file system's 255 bytes, a full
+    disk or a read-only folder: one error naming the file, never a path reported as written."""
+    with pytest.raises(InputError, match="could not write .*L{200}"):
+        write_images(tmp_path / ("L" * 300), np.zeros((4, 5, 3), np.float32), formats=(fmt,))
 
 
 def test_write_images_16bit_linear_and_display(tmp_path):
@@ -243,6 +285,12 @@ def test_float_tiff_and_exr_patterns_are_read_as_their_values(tmp_path):
     write_exr(tmp_path / "p.exr", rgb)
     np.testing.assert_array_equal(read_pattern(tmp_path / "p.exr", (40, 34)), rgb)
     assert read_pattern(tmp_path / "p.exr", (80, 68), resize="stretch").shape == (68, 80, 3)
+    import OpenEXR  # an RGBA file, as compositors write it: the alpha is dropped
+
+    rgba = np.concatenate([rgb, np.ones_like(rgb[..., :1])], axis=-1)
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {"RGBA": rgba}) as f:
+        f.write(str(tmp_path / "rgba.exr"))
+    np.testing.assert_array_equal(read_pattern(tmp_path / "rgba.exr", (40, 34)), rgb)
     write_exr(tmp_path / "hdr.exr", rgb * 4)
     with pytest.raises(InputError, match="finite values in"):
         read_pattern(tmp_path / "hdr.exr", (40, 34))

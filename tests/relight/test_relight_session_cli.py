@@ -63,6 +63,31 @@ def test_cli_relight_rejects_a_wrong_pattern_size(session, tmp_path):
     assert ok.exit_code == 0, ok.output
 
 
+def test_each_pattern_gets_its_own_files_whatever_its_name(session, tmp_path):
+    """A dot in a pattern's name is no file suffix (lamp.v1 and lamp.v2 are two outputs, the backend kept in
+    both names); two patterns whose files share a name are refused before anything is written."""
+    from PIL import Image
+
+    pats = tmp_path / "pats"
+    for rel in ("lamp.v1.png", "lamp.v2.png", "a/x.png", "b/x.png"):
+        (pats / rel).parent.mkdir(parents=True, exist_ok=True)
+        Image.fromarray(np.full((192, 256), 200 if "v1" in rel else 40, np.uint8)).save(pats / rel)
+    out = tmp_path / "o"
+    res = runner.invoke(app, ["relight", str(session), "--views", "1", "--pattern", str(pats / "lamp.v1.png"), "--pattern",
+                              str(pats / "lamp.v2.png"), "--backend", "none", "--format", "png,exr", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    for v in ("v1", "v2"):
+        assert {p.name for p in out.glob(f"sand_rake_v1_lamp.{v}_none*")} == {
+            f"sand_rake_v1_lamp.{v}_none{end}" for end in (".png", ".exr", "_display.png")}
+    from sssphase_core.store.exr import read_exr
+
+    assert read_exr(out / "sand_rake_v1_lamp.v1_none.exr").mean() > 2 * read_exr(out / "sand_rake_v1_lamp.v2_none.exr").mean()
+    twins = runner.invoke(app, ["relight", str(session), "--views", "1", "--pattern", str(pats / "a/x.png"), "--pattern",
+                                str(pats / "b/x.png"), "--backend", "none", "--out", str(tmp_path / "twins")])
+    assert twins.exit_code != 0 and "both be written as 'x'" in str(twins.exception)
+    assert not (tmp_path / "twins").exists()
+
+
 def test_eval_relight_table_exact_beats_no_scattering(session, tmp_path):
     res = runner.invoke(app, ["eval", "relight", str(session), "--backend", "none,exact", "--out", str(tmp_path)])
     assert res.exit_code == 0, res.output
