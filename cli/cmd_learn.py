@@ -13,7 +13,7 @@ import typer
 from rich.console import Console
 
 from sssphase_cli.progress import step_bar
-from sssphase_cli.run_config import ConfigOpt, save_run_config
+from sssphase_cli.run_config import ConfigOpt, check_run_config, save_run_config
 
 console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
 
@@ -25,6 +25,26 @@ SessionsOpt = Annotated[
     Path | None, typer.Option("--sessions", help="Folder of captured sessions (one per object) to use instead of the simulator.")
 ]
 DEFAULT_CACHE = Path(".sss_cache")
+
+
+def _check_lr(lr: float) -> None:
+    """A learning rate is a finite number > 0 (NaN or a negative one would fail or diverge after the first step)."""
+    import math
+
+    if not (math.isfinite(lr) and lr > 0):
+        from sssphase_core.errors import InputError
+
+        raise InputError(f"--lr must be a finite number > 0, got {lr}")
+
+
+def _check_out(ctx: typer.Context, out: Path, kind: str, resume: bool) -> bool:
+    """Before any data is read: refuse an ``out`` that is a session or holds another kind of run, or a run
+    resumed with options that shaped it changed. True when the run will resume from ``out``."""
+    from sssphase_core.learning.training import check_run_folder
+
+    resuming = check_run_folder(out, kind) is not None and resume
+    check_run_config(ctx, out, resuming=resuming)
+    return resuming
 
 
 def _names(text: str, default: tuple[str, ...]) -> list[str]:
@@ -112,7 +132,7 @@ def train_pretrain(
     views: ViewsOpt = None,
     n_views: Annotated[int, typer.Option(help="Turntable views per object.")] = 4,
     rig: Annotated[str, typer.Option(help="Simulated rig preset (cpu: K=32, paper: K=90).")] = "cpu",
-    pixels_per_view: Annotated[int, typer.Option(help="Surface pixels sampled per view.")] = 2000,
+    pixels_per_view: Annotated[int, typer.Option(min=1, help="Surface pixels sampled per view.")] = 2000,
     epochs: Annotated[int, typer.Option(min=1)] = 10,
     batch_size: Annotated[int, typer.Option(min=1)] = 64,
     lr: float = 0.05,
@@ -135,7 +155,9 @@ def train_pretrain(
     from sssphase_core.reporting.figures import plot_metric_vs_time
     from sssphase_core.sim import TRAIN_OBJECTS
 
+    _check_lr(lr)
     p = get_preset(preset)
+    resuming = _check_out(ctx, out, "pretrain", resume)
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
     vds = _views(names, _chosen(views, "0,1,2,3", sessions), n_views=n_views, rig=rig, pixels=pixels_per_view,
                  footprints=False, seed=seed, cache=cache, sessions=sessions)
@@ -144,7 +166,7 @@ def train_pretrain(
     cfg = PretrainConfig(epochs=epochs, batch_size=batch_size, seed=seed, ckpt_every=ckpt_every, device=device, preset=preset,
                          lr=lr, warmup_epochs=warmup_epochs, fix_pred_lr=fix_pred_lr, augment=augment, knn_monitor=knn_monitor)
     console.print(f"pretraining [bold]{preset}[/] on {len(ds)} patches of {', '.join(names)} -> {out} "
-                  f"(options in {save_run_config(ctx, out)})")
+                  f"(options in {save_run_config(ctx, out, resuming=resuming)})")
     with step_bar(console) as progress:
         path = pretrain(cfg, ds, out, resume=resume, progress=progress)
     _print_final(out / METRICS, ("loss", "knn_acc", "eff_rank"), "knn_acc")
@@ -173,7 +195,7 @@ def train_decoder(
                                                   "\"\" for none).")] = None,
     n_views: int = 4,
     rig: str = "cpu",
-    pixels_per_view: int = 2000,
+    pixels_per_view: Annotated[int, typer.Option(min=1)] = 2000,
     noisy_targets: Annotated[bool, typer.Option(help="Add capture noise to the footprint targets.")] = False,
     epochs: Annotated[int, typer.Option(min=1)] = 10,
     batch_size: Annotated[int, typer.Option(min=1)] = 32,
@@ -201,12 +223,14 @@ def train_decoder(
     from sssphase_core.reporting.figures import plot_metric_vs_time
     from sssphase_core.sim import TRAIN_OBJECTS
 
+    _check_lr(lr)
     if head not in HEADS:
         raise InputError(f"unknown decoder head {head!r}; choose one of {', '.join(HEADS)}")
     if (encoder is None) == (not end_to_end):
         raise InputError("give either --encoder PATH (a pretraining run; the paper's method) or --end-to-end (the "
                          "supervised baseline without SSL), not both or neither")
     patch = decoder_patch(None if end_to_end else encoder, preset)
+    resuming = _check_out(ctx, out, "decoder", resume)
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
     kw = dict(n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=True, seed=seed, cache=cache, noisy=noisy_targets,
               sessions=sessions)
@@ -229,7 +253,7 @@ def train_decoder(
                         head=head, aux_classes=aux_classes, preset=preset, learn_gain=learn_gain)
     what = f"encoder and decoder end-to-end ({preset})" if end_to_end else "the decoder"
     console.print(f"training {what} on {len(ds)} footprints of {', '.join(names)} -> {out} "
-                  f"(options in {save_run_config(ctx, out)})")
+                  f"(options in {save_run_config(ctx, out, resuming=resuming)})")
     with step_bar(console) as progress:
         path = fit(cfg, encoder, ds, out, val=val, resume=resume, progress=progress)
     if val is not None:
@@ -297,7 +321,7 @@ def eval_knn(
     views: ViewsOpt = None,
     n_views: int = 4,
     rig: str = "cpu",
-    pixels_per_view: int = 1000,
+    pixels_per_view: Annotated[int, typer.Option(min=1)] = 1000,
     k: Annotated[str, typer.Option(help="Neighbours; a comma list adds a sweep (the table uses the first).")] = "20",
     vote: Annotated[str, typer.Option(help="majority or weighted.")] = "majority",
     label: Annotated[str, typer.Option(help="object (the paper's Table 2) or material.")] = "object",
@@ -342,7 +366,7 @@ def eval_footprints(
     views: ViewsOpt = None,
     n_views: int = 4,
     rig: str = "cpu",
-    pixels_per_view: int = 500,
+    pixels_per_view: Annotated[int, typer.Option(min=1)] = 500,
     baseline: Annotated[str, typer.Option(help="Backend to compare with ('' for none).")] = "analytic",
     compare: Annotated[list[str] | None, typer.Option("--compare", help="NAME=PATH: another decoder run in the table "
                                                       "(repeat; e.g. unet=runs/dec_e2e from --end-to-end).")] = None,
@@ -362,15 +386,17 @@ def eval_footprints(
     from sssphase_core.sim import UNSEEN_OBJECTS, rig_preset
 
     names = _names(objects, () if sessions else UNSEEN_OBJECTS)
+    from sssphase_core.store.session import NAME_RE
+
+    others = [item.partition("=") for item in compare or []]
+    for (name, sep, _), item in zip(others, compare or [], strict=True):  # NAME names output files
+        if not sep or not NAME_RE.fullmatch(name) or name in ("torch", baseline) or [o[0] for o in others].count(name) > 1:
+            raise InputError(f"--compare takes NAME=PATH with a new name of letters, digits, '_', '-', '.', got {item!r}")
+    backends = {"torch": get_backend("torch", checkpoint=checkpoint)}  # checked before any data is read
+    backends.update({name: get_backend("torch", checkpoint=path) for name, _, path in others})
     vds = _views(names, _chosen(views, "0", sessions), n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=True, seed=seed,
                  cache=cache, sessions=sessions)
     names = names or _objects(vds)
-    backends = {"torch": get_backend("torch", checkpoint=checkpoint)}
-    for item in compare or []:
-        name, sep, path = item.partition("=")
-        if not sep or not name or name in backends or name == baseline:
-            raise InputError(f"--compare takes NAME=PATH with a new name, got {item!r}")
-        backends[name] = get_backend("torch", checkpoint=path)
     if baseline:
         patch = backends["torch"].patch
         opts = {"patch": patch, "black": rig_preset(rig).projector.black} if baseline == "analytic" else {}

@@ -25,7 +25,12 @@ NOT_SAVED = {"config", "resume"}  # how to run, not what the run is
 
 
 def _command_name(ctx: typer.Context) -> str:
-    return " ".join(ctx.command_path.split()[1:])  # "sss train pretrain" -> "train pretrain"
+    """``"train pretrain"`` for ``sss train pretrain``, whatever the program is called (``python -m ...``)."""
+    names = []
+    while ctx.parent is not None:
+        names.append(ctx.info_name or "")
+        ctx = ctx.parent
+    return " ".join(reversed(names))
 
 
 def _load(ctx: typer.Context, param: Any, value: Path | None) -> Path | None:
@@ -68,11 +73,44 @@ def _toml_value(value: Any) -> Any:
     return value
 
 
-def save_run_config(ctx: typer.Context, out: Path) -> Path:
-    """Write ``out/config.toml`` with every resolved option of the running command (None left out)."""
+#: Options a resumed run may change: how long and where it runs, not what it learns from.
+RESUMABLE = {"epochs", "device", "ckpt_every", "cache", "out"}
+
+
+def _options(ctx: typer.Context) -> dict[str, Any]:
+    return {k: _toml_value(v) for k, v in ctx.params.items() if k not in NOT_SAVED and v is not None}
+
+
+def check_run_config(ctx: typer.Context, *args: Any, **kwargs: Any) -> None:
+    """:func:`save_run_config`'s check alone (before any data is read)."""
+    save_run_config(ctx, *args, write=False, **kwargs)
+
+
+def save_run_config(ctx: typer.Context, out: Path, *, resuming: bool = False, write: bool = True) -> Path:
+    """Write ``out/config.toml`` with every resolved option of the running command (None left out).
+
+    ``resuming`` (a run continues from ``out``'s checkpoint): an option that shaped the run (data, model,
+    optimiser) differing from the saved one is refused, so the file keeps saying what the run is."""
     import tomli_w
 
-    options = {k: _toml_value(v) for k, v in ctx.params.items() if k not in NOT_SAVED and v is not None}
+    options = _options(ctx)
+    saved_path = out / CONFIG
+    if resuming and saved_path.is_file():
+        from sssphase_core.errors import InputError
+
+        try:
+            saved = tomllib.loads(saved_path.read_text()).get("options", {})
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            saved = {}
+        saved = saved if isinstance(saved, dict) else {}  # an option the file does not name is not compared
+        changed = sorted(k for k in saved if k not in RESUMABLE and options.get(k) != saved[k])
+        if changed:
+            k = changed[0]
+            raise InputError(f"{out} holds a run made with --{k.replace('_', '-')} {saved.get(k)!r}, not {options.get(k)!r}"
+                             f"{f' (and {len(changed) - 1} more)' if len(changed) > 1 else ''}: resume it with its own "
+                             f"options (--config {out}), or pass --no-resume or another --out")
+    if not write:
+        return saved_path
     from sssphase_core.store.files import atomic_path
 
     with atomic_path(out / CONFIG) as tmp:

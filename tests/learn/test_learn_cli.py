@@ -102,3 +102,89 @@ def test_train_eval_viz_on_the_simulator(tmp_path):
 
     img = Image.open(tmp_path / "pca.png")
     assert img.size[0] >= 400  # a 32x24 map (stride 8) enlarged into a titled figure
+
+
+def test_a_run_folder_of_another_kind_or_a_session_is_never_overwritten(tmp_path):
+    """`--no-resume` starts over in a folder of the same kind only: a pretraining run (or a session) given as
+    a decoder's --out is refused before anything is read or written, its files untouched."""
+    from sssphase_core.errors import DataError
+    from sssphase_core.learning.training import save_checkpoint
+
+    run = tmp_path / "pre"
+    save_checkpoint(run / "last.pt", {"kind": "pretrain", "preset": {}, "encoder": {}})
+    (run / "metrics.jsonl").write_text('{"epoch": 1}\n')
+    before = {p.name: p.read_bytes() for p in run.iterdir()}
+    for resume in ("--resume", "--no-resume"):
+        with pytest.raises(DataError, match="holds a pretrain run, not decoder"):
+            runner.invoke(app, ["train", "decoder", "--end-to-end", "--out", str(run), resume, "--epochs", "1"],
+                          catch_exceptions=False)
+    assert {p.name: p.read_bytes() for p in run.iterdir()} == before
+    session = tmp_path / "session"
+    session.mkdir()
+    (session / "manifest.json").write_text("{}")
+    with pytest.raises(DataError, match="is a session folder"):
+        runner.invoke(app, ["train", "pretrain", "--out", str(session), "--no-resume"], catch_exceptions=False)
+    assert sorted(p.name for p in session.iterdir()) == ["manifest.json"]
+
+
+def test_a_run_resumed_with_other_data_or_model_options_is_refused(tmp_path):
+    """config.toml says what the run is: resuming it with an option that shaped it changed (here the pixels
+    per view) is refused before any data is read; the epochs may grow."""
+    from sssphase_core.errors import InputError
+    from sssphase_core.learning.training import save_checkpoint
+
+    run = tmp_path / "dec"
+    save_checkpoint(run / "last.pt", {"kind": "decoder", "preset": {}, "encoder": {}})
+    (run / "config.toml").write_text('command = "train decoder"\n[options]\nend_to_end = true\npixels_per_view = 50\n'
+                                     'epochs = 1\n')
+    saved = (run / "config.toml").read_text()
+    with pytest.raises(InputError, match="made with --pixels-per-view 50, not 60.*--no-resume"):
+        runner.invoke(app, ["train", "decoder", "--config", str(run), "--out", str(run), "--pixels-per-view", "60"],
+                      catch_exceptions=False)
+    assert (run / "config.toml").read_text() == saved
+
+
+@pytest.mark.parametrize("item", ["../../x=run", "/abs=run", "a/b=run", "torch=run", "norun"])
+def test_compare_names_that_are_not_plain_or_new_are_refused_first(item, tmp_path):
+    """--compare NAME names output files: a name with a path in it (or taken, or missing) is refused before
+    any checkpoint or data is read."""
+    from sssphase_core.errors import InputError
+
+    with pytest.raises(InputError, match="--compare takes NAME=PATH with a new name"):
+        runner.invoke(app, ["eval", "footprints", "--checkpoint", str(tmp_path / "none.pt"), "--compare", item,
+                            "--out", str(tmp_path / "o")], catch_exceptions=False)
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(("args", "expected"), [
+    (["train", "decoder", "--end-to-end", "--pixels-per-view", "-5"], "Invalid value for '--pixels-per-view'"),
+    (["train", "pretrain", "--pixels-per-view", "0"], "Invalid value for '--pixels-per-view'"),
+    (["eval", "footprints", "--checkpoint", "ck.pt", "--pixels-per-view", "-1"], "Invalid value for '--pixels-per-view'"),
+    (["eval", "knn", "--checkpoint", "ck.pt", "--pixels-per-view", "0"], "Invalid value for '--pixels-per-view'"),
+    (["train", "decoder", "--end-to-end", "--lr", "-1"], "error: --lr must be a finite number > 0, got -1.0"),
+    (["train", "decoder", "--end-to-end", "--lr", "nan"], "error: --lr must be a finite number > 0, got nan"),
+    (["train", "pretrain", "--lr", "0"], "error: --lr must be a finite number > 0, got 0.0"),
+])
+def test_bad_sample_counts_and_learning_rates_are_refused_before_any_work(args, expected, tmp_path):
+    import subprocess
+    import sys
+
+    out_args = ["--out", str(tmp_path / "run")] if args[0] == "train" else []
+    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args, *out_args, "--cache", str(tmp_path / "cache")],
+                         capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    out = res.stdout + res.stderr
+    assert res.returncode == 2 and "Traceback" not in out and "internal error" not in out, out
+    assert [line for line in out.splitlines() if expected in line] == [out.strip().splitlines()[-1]], out
+    assert not (tmp_path / "run").exists() and not (tmp_path / "cache").exists()
+
+
+def test_a_config_is_recognised_whatever_the_program_is_called(tmp_path):
+    """`python -m sssphase_cli.main train decoder --config RUN` reads RUN's config like `sss` does (the command
+    name was taken from the program's path, so every config was 'of another command')."""
+    import subprocess
+    import sys
+
+    (tmp_path / "config.toml").write_text('command = "train decoder"\n[options]\nepochs = 2\n')
+    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "train", "decoder", "--config", str(tmp_path),
+                          "--out", str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
+    assert res.returncode == 2 and "give either --encoder PATH" in res.stderr, res.stderr  # past the config

@@ -41,6 +41,7 @@ from sssphase_core.learning.training.loop import (
     StepProgress,
     TrainingCollapsed,
     TrainingDiverged,
+    check_run_folder,
     init_distributed,
 )
 from sssphase_core.learning.training.pretrain import (
@@ -56,7 +57,7 @@ from sssphase_core.learning.training.pretrain import (
 __all__ = [
     "BEST", "CHECKPOINT", "METRICS", "METRICS_CSV", "PRIOR_SAMPLES", "TB_DIR", "DecoderConfig", "Dist", "FootprintNet",
     "Loop", "LoopConfig", "PretrainConfig", "StepProgress", "TrainingCollapsed", "TrainingDiverged", "_knn_monitor_indices",
-    "decoder_patch", "effective_rank", "init_distributed", "knn_monitor", "load_checkpoint", "load_decoder",
+    "check_run_folder", "decoder_patch", "effective_rank", "init_distributed", "knn_monitor", "load_checkpoint", "load_decoder",
     "load_encoder", "pretrain", "projection_std", "resolve_checkpoint", "save_checkpoint", "train_decoder",
     "validate_decoder", "warmup_cosine",
 ]

@@ -221,13 +221,25 @@ def config_dict(cfg: object) -> dict:
     return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(cfg).items()}
 
 
-def resume_state(out_dir: Path, resume: bool, kind: str, preset: ModelPreset | None = None) -> dict | None:
+def check_run_folder(out_dir: Path, kind: str) -> dict | None:
+    """Refuse an output folder that is a session, or that holds a run of another kind (a new run, resumed
+    or not, would overwrite it); returns the folder's checkpoint of this kind, or None."""
+    if (out_dir / "manifest.json").exists():
+        raise DataError(f"{out_dir} is a session folder: choose another output folder for the run")
     path = out_dir / CHECKPOINT
-    if not resume or not path.exists():
+    if not path.exists():
         return None
     ckpt = load_checkpoint(path)
     if ckpt.get("kind") != kind:
         raise DataError(f"{path} holds a {ckpt.get('kind')} run, not {kind}; choose another output folder")
+    return ckpt
+
+
+def resume_state(out_dir: Path, resume: bool, kind: str, preset: ModelPreset | None = None) -> dict | None:
+    path = out_dir / CHECKPOINT
+    ckpt = check_run_folder(out_dir, kind)
+    if not resume or ckpt is None:
+        return None
     if preset is not None and get_preset(ckpt["preset"]) != preset:
         raise DataError(f"{path} was trained with preset {ckpt['preset']['name']}, not {preset.name}: "
                         "resume with the same preset or pass --no-resume")
