@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import typer
@@ -33,6 +34,7 @@ def patterns(
     import numpy as np
     from rich.progress import Progress
 
+    from sssphase_core.capture.importer import GAMMA_RANGE, MAX_SHIFTS
     from sssphase_core.processing.patterns import (
         PSPConfig,
         capture_plan,
@@ -42,6 +44,12 @@ def patterns(
     )
 
     w, h = parse_projector_size(projector)
+    if period is not None and not (math.isfinite(period) and period >= 2):
+        raise InputError(f"--period must be a finite fringe period of at least 2 projector px, got {period}")
+    if shifts > MAX_SHIFTS:  # what `sss import` and the decoder take
+        raise InputError(f"--shifts must be 3 to {MAX_SHIFTS}, got {shifts}")
+    if not GAMMA_RANGE[0] <= gamma <= GAMMA_RANGE[1]:  # NaN fails too
+        raise InputError(f"--gamma must be a number in [{GAMMA_RANGE[0]:g}, {GAMMA_RANGE[1]:g}] (as a rig file's), got {gamma}")
     if period is None:
         config = psp_config_for(w, h, n_shifts=shifts)
     else:

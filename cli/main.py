@@ -148,6 +148,12 @@ def main() -> None:
         if _is_usage_exception(exc, "ClickException"):
             exc.show()  # type: ignore[attr-defined]
             sys.exit(exc.exit_code)  # type: ignore[attr-defined]
+        if _is_usage_exception(exc, "Abort") and isinstance(exc.__cause__, EOFError):
+            # click turns an EOFError into Abort ("aborted"): here a file that ended early (an empty .npy)
+            detail = str(exc.__cause__).splitlines()[0] if str(exc.__cause__) else "no data left"
+            err_console.print(f"[bold red]error:[/] an input file ended early (EOFError: {escape(detail)}): "
+                              "an empty or truncated file?")
+            sys.exit(2)
         if _is_usage_exception(exc, "Abort"):
             err_console.print("[yellow]aborted[/]")
             sys.exit(1)

@@ -131,3 +131,39 @@ def test_sigterm_says_interrupted_like_ctrl_c(tmp_path) -> None:
     out, err = proc.communicate(timeout=60)
     assert proc.returncode == 130, out + err
     assert "interrupted" in err and "Traceback" not in err, err
+
+
+@pytest.mark.parametrize(
+    ("args", "expected"),
+    [
+        (["capture", "--object", "apple", "--timeout", "nan"], "--timeout must be a number of seconds in (0, 86400], got nan"),
+        (["capture", "--object", "apple", "--seed", "99999999999999999999999"],
+         "--seed must be 0 to 9223372036854775807 (2**63 - 1, what the sim rig takes), got 99999999999999999999999"),
+    ],
+)
+def test_capture_options_out_of_range_are_one_line_before_a_daemon_starts(args: list[str], expected: str) -> None:
+    res = _sss(*args)
+    out = res.stdout + res.stderr
+    assert res.returncode == 2 and "Traceback" not in out and "internal error" not in out, out
+    assert out.strip().splitlines() == [f"error: {expected}"], out  # nothing else: no daemon was started
+
+
+def test_an_eof_error_that_escapes_a_command_is_one_line_not_aborted(monkeypatch, capsys, tmp_path) -> None:
+    """Click turns an EOFError (numpy's, reading an empty .npy) into a bare "Aborted"; `sss` names it."""
+    import signal
+
+    import sssphase_core.processing.patterns as patterns
+    from sssphase_cli.main import main
+
+    def cut_short(*args: object) -> None:
+        raise EOFError("No data left in file")
+
+    monkeypatch.setattr(patterns, "parse_projector_size", cut_short)
+    monkeypatch.setattr(signal, "signal", lambda *args: None)  # leave pytest's SIGTERM handler alone
+    monkeypatch.setattr(sys, "argv", ["sss", "patterns", "--out", str(tmp_path / "p")])
+    with pytest.raises(SystemExit) as exc:
+        main()
+    err = capsys.readouterr().err
+    assert exc.value.code == 2, err
+    assert err.strip().splitlines() == ["error: an input file ended early (EOFError: No data left in file): an empty or "
+                                        "truncated file?"], err

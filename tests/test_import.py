@@ -191,6 +191,63 @@ def test_a_pickled_npy_is_refused(tmp_path):
         import_folder(folder, tmp_path / "sessions", "pickled", (W, H))
 
 
+def _sss_import(folder: Path, out: Path, *options: str) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "sssphase_cli.main", "import", str(folder), "--object", "o",
+                           "--projector", f"{W}x{H}", "--out", str(out), *options], capture_output=True, text=True,
+                          timeout=120)
+
+
+def _one_line_error(res: subprocess.CompletedProcess[str], expected: str) -> None:
+    out = res.stdout + res.stderr
+    assert res.returncode == 2, out
+    assert "Traceback" not in out and "internal error" not in out and "aborted" not in out, out
+    assert len(out.strip().splitlines()) == 1 and expected in out, out
+
+
+@pytest.mark.parametrize(("option", "value", "expected"), [
+    ("--patch", "-1", "--patch (the footprint crop size K) must be 1 to 256 px, got -1"),
+    ("--patch", "100000", "must be 1 to 256 px, got 100000"),
+    ("--gamma", "nan", "--gamma (the projector's gamma) must be a number in [0.3, 5] (as a rig file's), got nan"),
+    ("--gamma", "0", "must be a number in [0.3, 5] (as a rig file's), got 0.0"),
+    ("--gamma", "inf", "must be a number in [0.3, 5] (as a rig file's), got inf"),
+])
+def test_import_options_out_of_range_are_one_line_before_any_work(tmp_path, option, value, expected):
+    folder = _float_frames(tmp_path / "f", 1.0)
+    _one_line_error(_sss_import(folder, tmp_path / "s", option, value), expected)
+    assert not (tmp_path / "s").exists()
+
+
+def test_an_empty_npy_frame_is_one_line_naming_it(tmp_path):
+    folder = _float_frames(tmp_path / "f", 1.0)
+    (folder / "black.npy").write_bytes(b"")  # numpy: EOFError, which click turned into a bare "Aborted"
+    _one_line_error(_sss_import(folder, tmp_path / "s"), f"{folder / 'black.npy'}: empty or truncated .npy file")
+
+
+def test_an_empty_npy_pattern_or_reference_is_one_line_naming_it(tmp_path):
+    s = import_folder(_float_frames(tmp_path / "f", 1.0), tmp_path / "sessions", "plain", (W, H))
+    zero = tmp_path / "zero.npy"
+    zero.write_bytes(b"")
+    for args in (["relight", str(s.path), "--pattern", str(zero), "--backend", "none", "--out", str(tmp_path / "r")],
+                 ["capture", "--object", "apple", "--reference", str(zero), "--out", str(tmp_path / "c")]):
+        res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True,
+                             timeout=120)
+        _one_line_error(res, f"{zero}: empty or truncated .npy file")  # not click's bare "Aborted"
+    assert not (tmp_path / "c").exists()  # refused before a daemon was started for it
+
+
+def test_report_refuses_unknown_backends_and_foreign_decoders_in_one_line(tmp_path):
+    s = import_folder(_float_frames(tmp_path / "f", 1.0), tmp_path / "sessions", "plain", (W, H))
+    evil = tmp_path / "evil.pt"
+    evil.write_bytes(b"not a checkpoint")
+    for options, expected in ((["--backend", "bogus"], "unknown backend 'bogus'; available: analytic"),
+                              (["--backend", "torch", "--decoder", str(evil)], f"{evil} is not a checkpoint file"),
+                              (["--pretrain", str(evil)], f"{evil} is not a checkpoint file")):
+        res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "report", str(s.path), *options, "--out",
+                              str(tmp_path / "rep")], capture_output=True, text=True, timeout=300)
+        _one_line_error(res, expected)  # was exit 0, "done", with the problem only inside the page
+        assert not (tmp_path / "rep").exists()
+
+
 def test_a_session_exports_to_exr_bit_exactly(frames, tmp_path):
     from sssphase_core.store.exr import read_exr
 
@@ -287,7 +344,7 @@ def test_the_captures_choose_the_noise_mask_that_keeps_faint_wide_tails(tmp_path
 
 def _perturbed(frames: Path, out: Path, change) -> Path:
     """A copy of the frames folder (as float EXR) with ``change(image)`` applied to every frame."""
-    out.mkdir()
+    out.mkdir(parents=True)
     for path in sorted(frames.rglob("*.*")):
         key = path.relative_to(frames).with_suffix("").as_posix().replace("/", "__")
         if path.suffix == ".png":
@@ -359,3 +416,13 @@ def test_hot_pixels_are_found_in_the_black_frame_and_their_offset_leaves_every_f
     out = _relit_psnr([clean, s], tmp_path)
     assert out["hot"]["none"] > out["clean"]["none"] - 0.5, out
     assert out["hot"]["measured"] > 40, out
+
+
+def test_view_folders_import_in_numeric_order(frames, tmp_path):
+    """view_2 comes before view_10 (a text sort put view_10 first)."""
+    folder = tmp_path / "two"
+    _perturbed(frames, folder / "view_2", lambda img: img)
+    _perturbed(frames, folder / "view_10", lambda img: img * np.float32(0.5))
+    s = import_folder(folder, tmp_path / "s", "two", (W, H), patch=K)
+    assert s.views() == [0, 1]
+    assert s.load(0, "white").mean() > 1.8 * s.load(1, "white").mean()

@@ -23,6 +23,11 @@ PSP_KEY_RE = re.compile(r"^psp/([xy])/p([0-9]{1,5}(?:\.[0-9]{1,6})?)/s([0-9]{1,2
 DOTS_KEY_RE = re.compile(r"^dots/([0-9]{1,3})_([0-9]{1,3})$")
 OTHER_KEY_RE = re.compile(r"^(white|black|(ref|pattern)/[A-Za-z0-9][A-Za-z0-9_.-]{0,63})$")
 MAX_SHIFTS = 32
+#: Footprint crop sizes K an import takes (the paper's rig uses 90; past 256 a relight chunk of crops
+#: alone needs gigabytes).
+PATCH_RANGE = (1, 256)
+#: Projector gammas an import takes: the range a rig file's ``[projector] gamma`` and the sim rig accept.
+GAMMA_RANGE = (0.3, 5.0)
 #: Float frames (EXR, float TIFF, ``.npy``) have no clipping level: their units are the renderer's or
 #: the pipeline's. When the white capture's 99.9th percentile lies outside this range the frames are
 #: scaled to put it at 1, since the decoder's thresholds and the models work in camera units.
@@ -129,13 +134,19 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
         capture_plan,
     )
 
+    if not PATCH_RANGE[0] <= patch <= PATCH_RANGE[1]:
+        raise InputError(f"--patch (the footprint crop size K) must be {PATCH_RANGE[0]} to {PATCH_RANGE[1]} px, got {patch}")
+    if not GAMMA_RANGE[0] <= gamma <= GAMMA_RANGE[1]:  # NaN fails too
+        raise InputError(f"--gamma (the projector's gamma) must be a number in [{GAMMA_RANGE[0]:g}, {GAMMA_RANGE[1]:g}] "
+                         f"(as a rig file's), got {gamma}")
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(f"{folder} is not a folder")
     w, h = (int(v) for v in projector_size)
     if not (0 < w <= 16384 and 0 < h <= 16384):
         raise InputError(f"projector size must be positive and at most 16384, got {w}x{h}")
-    view_dirs = sorted(p for p in folder.glob("view_*") if p.is_dir()) or [folder]
+    view_dirs = sorted((p for p in folder.glob("view_*") if p.is_dir()),  # view_2 before view_10
+                       key=lambda p: (int(p.name[5:]) if p.name[5:].isdigit() else float("inf"), p.name)) or [folder]
     req = CaptureRequest(check_object_name(name), views=len(view_dirs), out=Path(root))
     views = [(vdir, frame_files(vdir)) for vdir in view_dirs]  # refuse bad names before writing anything
     for (vdir, files) in views:

@@ -164,11 +164,21 @@ def _pil_cannot_decode(path: Path) -> bool:
         return _tiff_directory(path) is not None
 
 
+def _load_npy(path: Path, **kwargs) -> np.ndarray:
+    """``np.load`` of a user's ``.npy`` file (never unpickled). An empty or cut-short file, where numpy
+    raises EOFError (which click would turn into a bare "Aborted"), raises ValueError: every caller
+    reports it as an InputError naming the file."""
+    try:
+        return np.load(path, allow_pickle=False, **kwargs)
+    except EOFError:
+        raise ValueError("empty or truncated .npy file") from None
+
+
 def frame_shape(path: Path) -> tuple[int, ...]:
     """The pixel shape a frame file declares, read from its header only (no pixel is decoded)."""
     try:
         if path.suffix.lower() == ".npy":
-            return tuple(np.load(path, mmap_mode="r", allow_pickle=False).shape)
+            return tuple(_load_npy(path, mmap_mode="r").shape)
         if path.suffix.lower() == ".exr":
             from sssphase_core.store import exr
 
@@ -199,7 +209,7 @@ def stores_integers(path: Path) -> bool:
 
     try:
         if suffix == ".npy":
-            return np.load(path, mmap_mode="r", allow_pickle=False).dtype.kind in "iub"
+            return _load_npy(path, mmap_mode="r").dtype.kind in "iub"
         if _pil_cannot_decode(path):
             formats = (_tiff_directory(path) or {}).get(339, 1)  # SampleFormat: 3 = IEEE float
             return 3 not in (formats if isinstance(formats, tuple) else (formats,))
@@ -214,7 +224,7 @@ def _read_pixels(path: Path) -> np.ndarray:
     unpickled), ``.exr``, or any PNG/TIFF that OpenCV decodes."""
     if path.suffix.lower() == ".npy":
         try:
-            return np.load(path, allow_pickle=False)
+            return _load_npy(path)
         except (OSError, ValueError) as exc:  # pickled object arrays are never loaded
             raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
     if path.suffix.lower() == ".exr":

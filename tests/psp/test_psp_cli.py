@@ -135,3 +135,22 @@ def test_decode_names_the_odd_frame_ignores_other_images_and_refuses_nan_thresho
     Image.fromarray(np.zeros((10, 12), np.uint8)).save(odd)
     with pytest.raises(DataError, match=rf"{odd.name} is 12x10, but .* is 64x48"):
         runner.invoke(_app(), ["decode", str(pat_dir), "--out", str(tmp_path / "o")], catch_exceptions=False)
+
+
+@pytest.mark.parametrize(("option", "value", "expected"), [
+    ("--period", "0", "--period must be a finite fringe period of at least 2 projector px, got 0.0"),
+    ("--period", "nan", "--period must be a finite fringe period of at least 2 projector px, got nan"),
+    ("--period", "-3", "--period must be a finite fringe period of at least 2 projector px, got -3.0"),
+    ("--shifts", "100000", "--shifts must be 3 to 32, got 100000"),  # ran for minutes
+    ("--gamma", "nan", "--gamma must be a number in [0.3, 5] (as a rig file's), got nan"),
+])
+def test_patterns_refuses_bad_fringe_options_in_one_line(tmp_path, option, value, expected):
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "patterns", "--projector", "64x48", "--out",
+                          str(tmp_path / "p"), option, value], capture_output=True, text=True, timeout=60)
+    out = res.stdout + res.stderr
+    assert res.returncode == 2 and "Traceback" not in out and "internal error" not in out, out
+    assert out.strip().splitlines() == [f"error: {expected}"], out
+    assert not (tmp_path / "p").exists()
