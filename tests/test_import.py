@@ -426,3 +426,24 @@ def test_view_folders_import_in_numeric_order(frames, tmp_path):
     s = import_folder(folder, tmp_path / "s", "two", (W, H), patch=K)
     assert s.views() == [0, 1]
     assert s.load(0, "white").mean() > 1.8 * s.load(1, "white").mean()
+
+
+def test_16_bit_npy_frames_import_like_16_bit_pngs(frames, tmp_path):
+    """A lab's raw frames saved as uint16 .npy are the camera's codes, like a 16-bit PNG's: divided by the
+    top code (they were taken as linear values in the tens of thousands, saturation unseen)."""
+    import shutil
+
+    folders = {kind: tmp_path / kind for kind in ("png", "npy")}
+    for kind, folder in folders.items():
+        folder.mkdir()
+        for path in sorted(frames.rglob("*.*")):
+            key = path.relative_to(frames).with_suffix("").as_posix().replace("/", "__")
+            if path.suffix == ".png" and kind == "npy":  # the fixture's 16-bit PNGs as uint16 .npy
+                codes = cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_UNCHANGED), cv2.COLOR_BGR2RGB)
+                np.save(folder / f"{key}.npy", codes.astype(np.uint16))
+            else:
+                shutil.copy(path, folder / f"{key}{path.suffix}")
+    a = import_folder(folders["png"], tmp_path / "s", "png", (W, H), patch=K)
+    b = import_folder(folders["npy"], tmp_path / "s", "npy", (W, H), patch=K)
+    np.testing.assert_array_equal(a.load(0, "white"), b.load(0, "white"))
+    assert 0.2 < float(b.load(0, "white").max()) <= 1.0

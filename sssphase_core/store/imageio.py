@@ -199,7 +199,7 @@ def frame_shape(path: Path) -> tuple[int, ...]:
 
 
 def stores_integers(path: Path) -> bool:
-    """Whether a frame file holds integer codes (8/16-bit PNG/TIFF, integer ``.npy``): its top code is
+    """Whether a frame file holds integer codes (8/16-bit PNG/TIFF or ``.npy``): its top code is
     the sensor's clipping level, so values near 1 after :func:`read_frame` are saturated. EXR and float
     files have no such level. Read from the header only."""
     suffix = path.suffix.lower()
@@ -209,7 +209,8 @@ def stores_integers(path: Path) -> bool:
 
     try:
         if suffix == ".npy":
-            return _load_npy(path, mmap_mode="r").dtype.kind in "iub"
+            dtype = _load_npy(path, mmap_mode="r").dtype
+            return dtype.kind == "b" or (dtype.kind in "iu" and dtype.itemsize <= 2)  # as read_frame scales them
         if _pil_cannot_decode(path):
             formats = (_tiff_directory(path) or {}).get(339, 1)  # SampleFormat: 3 = IEEE float
             return 3 not in (formats if isinstance(formats, tuple) else (formats,))
@@ -242,8 +243,8 @@ def _read_pixels(path: Path) -> np.ndarray:
 
 
 def read_frame(path: Path) -> np.ndarray:
-    """A linear image as float32 RGB: ``.npy`` and ``.exr`` as stored, 8/16-bit PNG/TIFF divided by the
-    top code. Frames larger than ``MAX_FRAME_PIXELS`` are refused from their header."""
+    """A linear image as float32 RGB: 8/16-bit integers (PNG, TIFF, ``.npy``) divided by the top code,
+    float ``.npy`` / ``.exr`` / TIFF and wider integer ``.npy`` as stored. Frames larger than ``MAX_FRAME_PIXELS`` are refused from their header."""
     shape = frame_shape(path)
     if len(shape) >= 2 and shape[0] * shape[1] > MAX_FRAME_PIXELS:
         raise InputError(f"{path} is {shape[1]}x{shape[0]}: larger than any camera frame this importer takes "
@@ -251,8 +252,8 @@ def read_frame(path: Path) -> np.ndarray:
     arr = _read_pixels(path)
     if arr.dtype.kind not in "fiub":
         raise InputError(f"{path} holds {arr.dtype} values, not an image")
-    if arr.dtype.kind in "iu" and path.suffix.lower() != ".npy":
-        arr = arr.astype(np.float32) / np.iinfo(arr.dtype).max
+    if arr.dtype.kind in "iu" and (arr.dtype.itemsize <= 2 or path.suffix.lower() != ".npy"):
+        arr = arr.astype(np.float32) / np.iinfo(arr.dtype).max  # a camera's codes, as a 16-bit PNG's
     arr = np.asarray(arr, np.float32)
     if arr.ndim == 3 and arr.shape[-1] == 1:
         arr = arr[..., 0]
