@@ -172,6 +172,10 @@ def _load_npy(path: Path, **kwargs) -> np.ndarray:
         return np.load(path, allow_pickle=False, **kwargs)
     except EOFError:
         raise ValueError("empty or truncated .npy file") from None
+    except ValueError as exc:
+        if "pickle" in str(exc).lower() or "python objects" in str(exc).lower():  # numpy invites unsafe loading: never
+            raise ValueError("not a numeric .npy array (pickled data, or not a .npy file at all; never loaded)") from None
+        raise
 
 
 def frame_shape(path: Path) -> tuple[int, ...]:
