@@ -205,9 +205,10 @@ def outlier_bound(white: np.ndarray) -> np.ndarray:
 
 #: A pixel is hot where its black frame exceeds its neighbours' by this many noise sigmas (robust, from the
 #: whole frame) plus this fraction of the white's 99.9th percentile, and every lit frame shows at least half
-#: that excess too; more than HOT_MAX_FRACTION of the pixels so marked is no sensor defect but content
-#: (nothing is then changed).
-HOT_SIGMAS, HOT_FLOOR, HOT_MAX_FRACTION = 8.0, 1e-3, 0.01
+#: that excess too (or the pixel is stuck: it answers light by less than STUCK_RESPONSE of its neighbours'
+#: answer); more than HOT_MAX_FRACTION of the pixels so marked is no sensor defect but content (nothing is
+#: then changed).
+HOT_SIGMAS, HOT_FLOOR, HOT_MAX_FRACTION, STUCK_RESPONSE = 8.0, 1e-3, 0.01, 0.1
 
 
 def hot_pixel_offsets(black: np.ndarray, lit: list[np.ndarray]) -> np.ndarray:
@@ -220,8 +221,10 @@ def hot_pixel_offsets(black: np.ndarray, lit: list[np.ndarray]) -> np.ndarray:
     Found in ``black`` (H, W, C) as an excess over the 3 x 3 median beyond what the projector's black light
     on the texture gives (``r x`` the white's excess, ``r`` the black / white ratio), confirmed by the
     median excess of the ``lit`` frames (the white, each PSP set's mean over its shifts: a defect adds to
-    all alike; a firefly in the black frame alone is not one). Subtracting the offset keeps the pixel's
-    signal (its fringe phase), which replacing it by its neighbours would not."""
+    all alike; a firefly in the black frame alone is not one) or by a white no brighter than the black
+    where the neighbours answer light (a stuck pixel, the same value in every frame: subtracting its
+    offset leaves it dark, and decoding leaves it out). Subtracting the offset keeps a hot pixel's signal
+    (its fringe phase), which replacing it by its neighbours would not."""
     import cv2
 
     black = np.asarray(black, np.float32)
@@ -239,7 +242,10 @@ def hot_pixel_offsets(black: np.ndarray, lit: list[np.ndarray]) -> np.ndarray:
         excess_lit = np.median([f[..., c] - cv2.medianBlur(np.ascontiguousarray(f[..., c]), 3) for f in lit], axis=0)
         excess = excess_b - ratio * (white[..., c] - cv2.medianBlur(np.ascontiguousarray(white[..., c]), 3))
         sigma = 1.4826 * float(np.median(np.abs(excess - np.median(excess))))
-        hot = (excess > HOT_SIGMAS * sigma + HOT_FLOOR * top) & (excess_lit > 0.5 * excess)
+        response = white[..., c] - b  # what light adds; ~0 at a stuck pixel whatever its value
+        around = cv2.medianBlur(np.ascontiguousarray(response), 3)
+        stuck = (np.abs(response) < STUCK_RESPONSE * around) & (around > HOT_SIGMAS * sigma + HOT_FLOOR * top)
+        hot = (excess > HOT_SIGMAS * sigma + HOT_FLOOR * top) & ((excess_lit > 0.5 * excess) | stuck)
         offsets[..., c] = np.where(hot, excess_b, 0.0)
     return offsets if (offsets > 0).any(axis=-1).mean() <= HOT_MAX_FRACTION else np.zeros(black.shape, np.float32)
 
