@@ -182,13 +182,12 @@ class ViewProcessor:
         sets: dict[str, list[np.ndarray]] = {}
         for key, image in self.psp.items():  # psp/<orientation>/p<period>/s<shift>: one set per orientation and period
             sets.setdefault(key.rsplit("/", 1)[0], []).append(image)
-        white = self.images["white"]
-        if "black" in self.images:
-            hot = hot_pixel_offsets(self.images["black"], [white, *(np.mean(f, axis=0) for f in sets.values())])
-            if hot.any():  # subtracted from every frame by _repaired
-                self.hot, white = hot, white - hot
-                sets = {key: [f - hot for f in frames] for key, frames in sets.items()}
-        self.bound = outlier_bound(robust_white(white, list(sets.values())))
+        if "black" in self.images:  # subtracted from every frame by _repaired
+            means = [sum(frames) / np.float32(len(frames)) for frames in sets.values()]  # frame by frame, not stacked
+            hot = hot_pixel_offsets(self.images["black"], [self.images["white"], *means])
+            self.hot = hot if hot.any() else None
+        # the bound from the frames as they came: a hot pixel's is higher by its offset, nowhere else
+        self.bound = outlier_bound(robust_white(self.images["white"], list(sets.values())))
         for frames in (self.psp, self.images):
             for key, image in frames.items():
                 frames[key] = self._repaired(image)
