@@ -9,7 +9,10 @@ pixel spreads its light by exp(-(r - g_p d.e_p) / L) (d: offset, r = |d|, e_p: t
 projected on the surface, mostly along the projector baseline, g_p from 0.3 g to g across the object),
 so footprints are skewed forward and the fringes a pixel sees are shifted; no kernel family of ours.
 
-    python benchmarks/standin_render.py OUT NAME L_R L_G L_B SEED [FORWARD]
+With FLOOR = a > 0 a diffuse, non-scattering surface of albedo a fills the frame behind the object (a
+table or a wall, as most renders have; the object's light stays inside its silhouette).
+
+    python benchmarks/standin_render.py OUT NAME L_R L_G L_B SEED [FORWARD [FLOOR]]
     sss import OUT/NAME --object NAME --projector 256x192 --out SESSIONS
 """
 
@@ -51,7 +54,8 @@ def directional_spread(lengths: tuple[float, float, float], forward: np.ndarray,
     return spread
 
 
-def main(out: Path, name: str, lengths: tuple[float, float, float], seed: int, forward: float = 0.0) -> None:
+def main(out: Path, name: str, lengths: tuple[float, float, float], seed: int, forward: float = 0.0,
+         floor: float = 0.0) -> None:
     plan = capture_plan(WP, HP, footprints=True, dot_spacing=20, references=("white", "black", "checkerboard", "stripes_x"))
     rng = np.random.default_rng(seed)
     yy, xx = np.mgrid[0:H, 0:W].astype(np.float32)
@@ -75,7 +79,11 @@ def main(out: Path, name: str, lengths: tuple[float, float, float], seed: int, f
             spread = directional(seen)
         else:
             spread = np.stack([cv2.filter2D(seen[..., c], -1, kernels[c], borderType=cv2.BORDER_CONSTANT) for c in range(3)], -1)
-        return (spread * inside[..., None]).astype(np.float32)
+        return (spread * inside[..., None] + floor * light_on_floor(light) * ~inside[..., None]).astype(np.float32)
+
+    def light_on_floor(light: np.ndarray) -> np.ndarray:  # the floor is farther: its own camera -> projector map
+        fx, fy = (mapx * 0.97 + 4).astype(np.float32), (mapy * 0.97 + 3).astype(np.float32)
+        return np.stack([cv2.remap(light[..., c], fx, fy, cv2.INTER_LINEAR, borderValue=0) for c in range(3)], -1)
 
     folder = out / name
     folder.mkdir(parents=True, exist_ok=False)
@@ -89,6 +97,6 @@ def main(out: Path, name: str, lengths: tuple[float, float, float], seed: int, f
 
 if __name__ == "__main__":
     a = sys.argv[1:]
-    if len(a) not in (6, 7):
+    if len(a) not in (6, 7, 8):
         sys.exit(__doc__)
-    main(Path(a[0]), a[1], (float(a[2]), float(a[3]), float(a[4])), int(a[5]), float(a[6]) if len(a) == 7 else 0.0)
+    main(Path(a[0]), a[1], (float(a[2]), float(a[3]), float(a[4])), int(a[5]), *(float(v) for v in a[6:]))

@@ -136,7 +136,8 @@ def relight_cmd(
             weights = "; ".join(f"{m} R G B {' '.join(f'{x:.2f}' for x in row)}"
                                 for m, row in zip(BLENDS.get(backend, (backend,)), np.atleast_2d(mix), strict=True))
             console.print(f"{rv.object} view {v}: {backend} footprints calibrated to the view's fringe captures "
-                          f"(weights against no scattering: {weights})")
+                          f"(view-wide weights against no scattering: {weights}"
+                          f"{'; refined pixel by pixel' if len(np.atleast_2d(mix)) == 1 else ''})")
         fit = getattr(source, "fit", None)  # the captured transport's noise mask, chosen on the view's fringe captures
         if fit:
             others = ", ".join(f"{s:g} px {p:.1f} dB" for s, p in fit.items() if s != source.smoothing)  # type: ignore[attr-defined]

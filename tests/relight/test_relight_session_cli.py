@@ -226,10 +226,35 @@ def test_through_camera_is_the_sim_cameras_image_without_noise(session):
     assert odd.shape == render[:, :-1, :-3].shape and np.isfinite(odd).all()
 
 
+def test_the_local_mixture_finds_each_materials_weight():
+    """Two materials in one view (an object on a diffuse table): on the left the captures are the model's
+    fringes, on the right no scattering's. The view-wide weight is their compromise; the local one is 1
+    and 0 away from the border, and the view-wide weight where no pixel has evidence."""
+    from types import SimpleNamespace
+
+    from sssphase_core.relight.sources import local_mixture
+
+    rng = np.random.default_rng(0)
+    h, w = 40, 60
+    none = rng.random((8, h, w, 3)).astype(np.float32)
+    model = (none + 0.2 * rng.standard_normal((8, h, w, 3))).astype(np.float32)
+    captured = np.where(np.arange(w)[None, None, :, None] < w // 2, model, none)
+    mask = np.ones((h, w), bool)
+    mask[:, -15:] = False  # no evidence there
+    rv = SimpleNamespace(proj=SimpleNamespace(mask=mask), camera_isp=None)
+    view = np.array([0.5, 0.5, 0.5], np.float32)
+    weight = local_mixture(rv, model, none, captured, None, view)
+    assert weight.shape == (h, w, 3)
+    np.testing.assert_allclose(weight[:, :20], 1.0, atol=0.04)  # the prior pulls 5% toward the view weight
+    np.testing.assert_allclose(weight[:, 35:40], 0.0, atol=0.04)
+    np.testing.assert_allclose(weight[:, -1], 0.5, atol=0.05)
+
+
 def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
-    """`relight_view` fits the calibration on the same pass as the user's patterns: the same images as
-    the calibrated source relit separately, with each footprint predicted once instead of twice."""
+    """`relight_view` fits the calibration on the same pass as the user's patterns: the view-wide mix of the
+    calibrated source, refined per pixel (`local_mixture`), with each footprint predicted once."""
     from sssphase_core.relight import make_source, relight, relight_view
+    from sssphase_core.relight.sources import local_mixture, model_inputs, no_scattering_source
 
     rv = load_view(Session.open(session), 1)
     raw, k = make_source("analytic", rv, calibrate=False, patch=SMALL_PATCH)
@@ -243,8 +268,14 @@ def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
     fused, mix = relight_view(counted, k, rv, pats, calibrate=True)
     mixed, _ = make_source("analytic", rv, patch=SMALL_PATCH)
     np.testing.assert_allclose(mix, mixed.mix, atol=1e-6)
-    np.testing.assert_allclose(fused, relight(mixed, rv.proj, pats, k, white=rv.white), rtol=1e-4, atol=1e-6)
     assert sum(calls) <= rv.proj.mask.sum()  # one footprint per lit pixel: no second pass
+    every = pats + list(rv.psp_patterns)
+    model, none = (relight(src, rv.proj, every, kk, white=rv.white) for src, kk in ((raw, k), (no_scattering_source(rv.white), 1)))
+    psp, lost = model_inputs(rv)
+    weight = local_mixture(rv, model[2:], none[2:], psp, lost, mix)
+    np.testing.assert_allclose(fused, none[:2] + weight * (model[:2] - none[:2]), rtol=1e-4, atol=1e-6)
+    inside = rv.proj.mask & (weight > 0).all(axis=-1) & (weight < 1).all(axis=-1)
+    assert np.abs(np.median(weight[inside], axis=0) - mix).max() < 0.1  # one material: near the view's weight
     plain, none_mix = relight_view(raw, k, rv, pats, calibrate=False)
     assert none_mix is None and plain.shape == fused.shape
 
