@@ -77,10 +77,6 @@ def _toml_value(value: Any) -> Any:
 RESUMABLE = {"epochs", "device", "ckpt_every", "cache", "out"}
 
 
-def _options(ctx: typer.Context) -> dict[str, Any]:
-    return {k: _toml_value(v) for k, v in ctx.params.items() if k not in NOT_SAVED and v is not None}
-
-
 def check_run_config(ctx: typer.Context, *args: Any, **kwargs: Any) -> None:
     """:func:`save_run_config`'s check alone (before any data is read)."""
     save_run_config(ctx, *args, write=False, **kwargs)
@@ -93,7 +89,7 @@ def save_run_config(ctx: typer.Context, out: Path, *, resuming: bool = False, wr
     optimiser) differing from the saved one is refused, so the file keeps saying what the run is."""
     import tomli_w
 
-    options = _options(ctx)
+    options = {k: _toml_value(v) for k, v in ctx.params.items() if k not in NOT_SAVED and v is not None}
     saved_path = out / CONFIG
     if resuming and saved_path.is_file():
         from sssphase_core.errors import InputError

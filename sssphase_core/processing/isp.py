@@ -239,8 +239,9 @@ def hot_pixel_offsets(black: np.ndarray, lit: list[np.ndarray]) -> np.ndarray:
     for c in range(black.shape[-1]):
         b = black[..., c]
         excess_b = b - cv2.medianBlur(b, 3)
-        excess_lit = np.median([f[..., c] - cv2.medianBlur(np.ascontiguousarray(f[..., c]), 3) for f in lit], axis=0)
-        excess = excess_b - ratio * (white[..., c] - cv2.medianBlur(np.ascontiguousarray(white[..., c]), 3))
+        excess_each = [f[..., c] - cv2.medianBlur(np.ascontiguousarray(f[..., c]), 3) for f in lit]  # white first
+        excess_lit = np.median(excess_each, axis=0)
+        excess = excess_b - ratio * excess_each[0]
         sigma = 1.4826 * float(np.median(np.abs(excess - np.median(excess))))
         response = white[..., c] - b  # what light adds; ~0 at a stuck pixel whatever its value
         around = cv2.medianBlur(np.ascontiguousarray(response), 3)

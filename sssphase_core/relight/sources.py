@@ -382,11 +382,12 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     if not calibrate:
         return relits[0], None
     psp, lost = model_inputs(rv)
-    mix = view_mixture(rv, [r[n:] for r in relits], psp, lost)  # (S, 3)
-    none = relight(no_scattering_source(rv.white), rv.proj, every, 1, white=rv.white)
     if not also:  # one model: its weight refined pixel by pixel where the fringes say so (local_mixture)
-        weight = local_mixture(rv, relits[0][n:], none[n:], psp, lost, mix[0])
-        return none[:n] + weight * (relits[0][:n] - none[:n]), mix[0]
+        none = relight(no_scattering_source(rv.white), rv.proj, every, 1, white=rv.white)
+        weight, view_weight = local_mixture(rv, relits[0][n:], none[n:], psp, lost)
+        return none[:n] + weight * (relits[0][:n] - none[:n]), view_weight
+    mix = view_mixture(rv, [r[n:] for r in relits], psp, lost)  # (S, 3)
+    none = relight(no_scattering_source(rv.white), rv.proj, every[:n], 1, white=rv.white)
     images = (1 - mix.sum(axis=0)) * none[:n]
     for weight, relit in zip(mix, relits, strict=True):
         images += weight * relit[:n]
@@ -399,10 +400,11 @@ LOCAL_MIX_SIGMA, LOCAL_MIX_PRIOR = 2.0, 0.05
 
 
 def local_mixture(rv: RelightView, relit_psp: np.ndarray, none_psp: np.ndarray, psp: np.ndarray,
-                  exclude: np.ndarray | None, view_weight: np.ndarray) -> np.ndarray:
-    """(H, W, 3) the weight of one model against no scattering per pixel and colour: the least-squares fit
-    of :func:`view_mixture` made over a Gaussian window (:data:`LOCAL_MIX_SIGMA`) around each pixel,
-    pulled toward ``view_weight`` (3,) where the window holds little evidence, clipped to [0, 1].
+                  exclude: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(weight (H, W, 3), view_weight (3,))``: the weight of one model against no scattering per pixel and
+    colour, the least-squares fit of :func:`view_mixture` made over a Gaussian window
+    (:data:`LOCAL_MIX_SIGMA`) around each pixel, pulled toward the view-wide fit (``view_weight``, the
+    same as :func:`view_mixture`'s for one source) where the window holds little evidence, clipped to [0, 1].
 
     A scene holds more than one material: an object on a diffuse table, a wax figure with a painted
     base. One weight per view is their compromise: on a stand-in skin over a diffuse floor the decoder
@@ -422,12 +424,14 @@ def local_mixture(rv: RelightView, relit_psp: np.ndarray, none_psp: np.ndarray, 
     d = relit_psp - none_psp
     gram = np.where(m[..., None], np.einsum("phwc,phwc->hwc", d, d), 0).astype(np.float32)
     cross = np.where(m[..., None], np.einsum("phwc,phwc->hwc", d, np.nan_to_num(psp - none_psp)), 0).astype(np.float32)
+    total = gram.sum(axis=(0, 1), dtype=np.float64)
+    view_weight = np.clip(cross.sum(axis=(0, 1), dtype=np.float64) / np.where(total > 0, total, np.inf), 0.0, 1.0)
+    view_weight = view_weight.astype(np.float32)
     gram, cross = (cv2.GaussianBlur(a, (0, 0), LOCAL_MIX_SIGMA) for a in (gram, cross))
     prior = LOCAL_MIX_PRIOR * float(np.median(gram[m])) if m.any() else 0.0
     if not prior > 0:
-        return np.broadcast_to(np.asarray(view_weight, np.float32), gram.shape).copy()
-    weight = view_weight.astype(np.float32)
-    return np.clip((cross + prior * weight) / (gram + prior), 0.0, 1.0).astype(np.float32)
+        return np.broadcast_to(view_weight, gram.shape).copy(), view_weight
+    return np.clip((cross + prior * view_weight) / (gram + prior), 0.0, 1.0).astype(np.float32), view_weight
 
 
 def view_mix(rv: RelightView, relit_psp: np.ndarray, psp: np.ndarray | None = None,

@@ -242,12 +242,11 @@ def test_the_local_mixture_finds_each_materials_weight():
     mask = np.ones((h, w), bool)
     mask[:, -15:] = False  # no evidence there
     rv = SimpleNamespace(proj=SimpleNamespace(mask=mask), camera_isp=None)
-    view = np.array([0.5, 0.5, 0.5], np.float32)
-    weight = local_mixture(rv, model, none, captured, None, view)
-    assert weight.shape == (h, w, 3)
+    weight, view = local_mixture(rv, model, none, captured, None)
+    assert weight.shape == (h, w, 3) and ((view > 0.1) & (view < 0.9)).all()  # the compromise of the two
     np.testing.assert_allclose(weight[:, :20], 1.0, atol=0.04)  # the prior pulls 5% toward the view weight
     np.testing.assert_allclose(weight[:, 35:40], 0.0, atol=0.04)
-    np.testing.assert_allclose(weight[:, -1], 0.5, atol=0.05)
+    np.testing.assert_allclose(weight[:, -1], np.broadcast_to(view, (h, 3)), atol=0.05)
 
 
 def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
@@ -272,7 +271,8 @@ def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
     every = pats + list(rv.psp_patterns)
     model, none = (relight(src, rv.proj, every, kk, white=rv.white) for src, kk in ((raw, k), (no_scattering_source(rv.white), 1)))
     psp, lost = model_inputs(rv)
-    weight = local_mixture(rv, model[2:], none[2:], psp, lost, mix)
+    weight, view_weight = local_mixture(rv, model[2:], none[2:], psp, lost)
+    np.testing.assert_array_equal(view_weight, mix)
     np.testing.assert_allclose(fused, none[:2] + weight * (model[:2] - none[:2]), rtol=1e-4, atol=1e-6)
     inside = rv.proj.mask & (weight > 0).all(axis=-1) & (weight < 1).all(axis=-1)
     assert np.abs(np.median(weight[inside], axis=0) - mix).max() < 0.1  # one material: near the view's weight

@@ -30,7 +30,7 @@ def resolve_checkpoint(path: Path | str) -> Path:
     return path
 
 
-def load_checkpoint(path: Path | str) -> dict:
+def load_checkpoint(path: Path | str, *, mmap: bool = False) -> dict:
     """Load with ``weights_only=True``: tensors, dicts, lists and numbers only, never arbitrary objects.
     A run folder loads its best checkpoint (:func:`resolve_checkpoint`). Anything that is not a
     sssphase checkpoint (pickled objects, an empty or truncated file, another program's tensors) is
@@ -47,7 +47,7 @@ def load_checkpoint(path: Path | str) -> dict:
             if f.read(4) != b"PK\x03\x04":  # what torch.save writes (torch's own error for others: "101")
                 raise DataError(f"{path} is not a checkpoint file (not written by torch.save)")
     try:
-        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+        ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)  # mmap: tensors read when touched
     except pickle.UnpicklingError:
         raise DataError(f"{path} is not a sssphase checkpoint: it holds pickled Python objects, which are never "
                         "loaded (only tensors, numbers and dicts)") from None

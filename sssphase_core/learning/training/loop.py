@@ -229,7 +229,7 @@ def check_run_folder(out_dir: Path, kind: str) -> dict | None:
     path = out_dir / CHECKPOINT
     if not path.exists():
         return None
-    ckpt = load_checkpoint(path)
+    ckpt = load_checkpoint(path, mmap=True)  # mapped: only the kind is looked at, no tensor is read
     if ckpt.get("kind") != kind:
         raise DataError(f"{path} holds a {ckpt.get('kind')} run, not {kind}; choose another output folder")
     return ckpt
@@ -237,9 +237,9 @@ def check_run_folder(out_dir: Path, kind: str) -> dict | None:
 
 def resume_state(out_dir: Path, resume: bool, kind: str, preset: ModelPreset | None = None) -> dict | None:
     path = out_dir / CHECKPOINT
-    ckpt = check_run_folder(out_dir, kind)
-    if not resume or ckpt is None:
+    if check_run_folder(out_dir, kind) is None or not resume:
         return None
+    ckpt = load_checkpoint(path)  # read whole: the check's mapping only looked
     if preset is not None and get_preset(ckpt["preset"]) != preset:
         raise DataError(f"{path} was trained with preset {ckpt['preset']['name']}, not {preset.name}: "
                         "resume with the same preset or pass --no-resume")
