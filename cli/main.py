@@ -114,6 +114,15 @@ def _is_usage_exception(exc: BaseException, name: str) -> bool:
     return any(cls.__name__ == name for cls in type(exc).__mro__)
 
 
+def _usage_line(exc: Exception) -> str:
+    """Click's usage error as one line: its message and where help is (click prints four lines)."""
+    message = " ".join(exc.format_message().split())  # type: ignore[attr-defined]
+    ctx = getattr(exc, "ctx", None)
+    if ctx is None:
+        return message
+    return f"{message} (see '{ctx.command_path} --help')"
+
+
 #: errno values that describe the user's paths and disks, reported as one line (not an internal error).
 FILE_SYSTEM_ERRORS = {errno.ENOTDIR, errno.EISDIR, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EROFS, errno.EEXIST,
                       errno.ENOENT, errno.ENAMETOOLONG, errno.EDQUOT, errno.ELOOP}
@@ -146,7 +155,7 @@ def main() -> None:
         if _is_usage_exception(exc, "Exit"):
             sys.exit(exc.exit_code)  # type: ignore[attr-defined]
         if _is_usage_exception(exc, "ClickException"):
-            exc.show()  # type: ignore[attr-defined]
+            err_console.print(f"[bold red]error:[/] {escape(_usage_line(exc))}")
             sys.exit(exc.exit_code)  # type: ignore[attr-defined]
         if _is_usage_exception(exc, "Abort") and isinstance(exc.__cause__, EOFError):
             # click turns an EOFError into Abort ("aborted"): here a file that ended early (an empty .npy)

@@ -167,3 +167,22 @@ def test_an_eof_error_that_escapes_a_command_is_one_line_not_aborted(monkeypatch
     assert exc.value.code == 2, err
     assert err.strip().splitlines() == ["error: an input file ended early (EOFError: No data left in file): an empty or "
                                         "truncated file?"], err
+
+
+@pytest.mark.parametrize(("args", "expected"), [
+    (["train", "decoder", "--encoder", "e", "--sessions", "s", "--pixels-per-view", "0"],
+     "error: Invalid value for '--pixels-per-view': Input should be greater than or equal to 1 "
+     "(see 'sss train decoder --help')"),
+    (["relight"], "error: Missing argument 'session'. (see 'sss relight --help')"),
+    (["no-such-command"], "error: No such command 'no-such-command'. (see 'sss --help')"),
+])
+def test_click_usage_errors_are_one_line_naming_where_help_is(args: list[str], expected: str) -> None:
+    """Run as the installed ``sss`` script, so help is named as the user typed the command."""
+    from pathlib import Path
+
+    script = Path(sys.executable).parent / "sss"
+    env = {k: v for k, v in os.environ.items() if k != "SSS_DEBUG"}
+    res = subprocess.run([str(script), *args], capture_output=True, text=True, timeout=120, env=env)
+    out = res.stdout + res.stderr
+    assert res.returncode == 2, out
+    assert out.strip().splitlines() == [expected], out
