@@ -242,11 +242,40 @@ def test_the_local_mixture_finds_each_materials_weight():
     mask = np.ones((h, w), bool)
     mask[:, -15:] = False  # no evidence there
     rv = SimpleNamespace(proj=SimpleNamespace(mask=mask), camera_isp=None)
-    weight, view = local_mixture(rv, model, none, captured, None)
+    (weight,), (view,) = local_mixture(rv, [model], none, captured, None)
     assert weight.shape == (h, w, 3) and ((view > 0.1) & (view < 0.9)).all()  # the compromise of the two
     np.testing.assert_allclose(weight[:, :20], 1.0, atol=0.04)  # the prior pulls 5% toward the view weight
     np.testing.assert_allclose(weight[:, 35:40], 0.0, atol=0.04)
     np.testing.assert_allclose(weight[:, -1], np.broadcast_to(view, (h, 3)), atol=0.05)
+
+
+def test_a_blend_is_weighted_per_pixel_by_each_materials_own_source():
+    """Three materials in one view: the captures are source A's fringes on the left, B's in the middle and
+    no scattering's on the right. Each region's weights come out (1, 0), (0, 1) and (0, 0), always within
+    ``a >= 0``, ``sum(a) <= 1``; the view-wide weights are the constrained fit over the whole view."""
+    from types import SimpleNamespace
+
+    from sssphase_core.relight import mixture_weights
+    from sssphase_core.relight.sources import local_mixture
+
+    rng = np.random.default_rng(1)
+    h, w = 30, 90
+    none = rng.random((8, h, w, 3)).astype(np.float32)
+    a, b = ((none + 0.2 * rng.standard_normal((8, h, w, 3))).astype(np.float32) for _ in range(2))
+    col = np.arange(w)[None, None, :, None]
+    captured = np.where(col < 30, a, np.where(col < 60, b, none))
+    rv = SimpleNamespace(proj=SimpleNamespace(mask=np.ones((h, w), bool)), camera_isp=None)
+    weights, view = local_mixture(rv, [a, b], none, captured, None)
+    assert weights.shape == (2, h, w, 3) and view.shape == (2, 3)
+    assert (weights >= 0).all() and (weights.sum(axis=0) <= 1 + 1e-5).all()
+    for lo, want in ((0, (1, 0)), (30, (0, 1)), (60, (0, 0))):
+        got = weights[:, :, lo + 8:lo + 22].reshape(2, -1)
+        np.testing.assert_allclose(got, np.broadcast_to(np.array(want, np.float32)[:, None], got.shape), atol=0.06)
+    d = np.stack([(a - none).ravel(), (b - none).ravel()]).reshape(2, -1, 3)
+    e = (captured - none).reshape(-1, 3)
+    for c in range(3):
+        want = mixture_weights(d[:, :, c] @ d[:, :, c].T, d[:, :, c] @ e[:, c])
+        np.testing.assert_allclose(view[:, c], want, atol=1e-4)
 
 
 def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
@@ -271,7 +300,7 @@ def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
     every = pats + list(rv.psp_patterns)
     model, none = (relight(src, rv.proj, every, kk, white=rv.white) for src, kk in ((raw, k), (no_scattering_source(rv.white), 1)))
     psp, lost = model_inputs(rv)
-    weight, view_weight = local_mixture(rv, model[2:], none[2:], psp, lost)
+    (weight,), (view_weight,) = local_mixture(rv, [model[2:]], none[2:], psp, lost)
     np.testing.assert_array_equal(view_weight, mix)
     np.testing.assert_allclose(fused, none[:2] + weight * (model[:2] - none[:2]), rtol=1e-4, atol=1e-6)
     inside = rv.proj.mask & (weight > 0).all(axis=-1) & (weight < 1).all(axis=-1)
@@ -318,9 +347,11 @@ def test_mixture_weights_are_the_constrained_least_squares_optimum(s):
 
 
 def test_a_blend_relights_the_fringe_captures_at_least_as_well_as_each_member(session):
-    """Blending two sources by the view calibration: its images are the weighted sum, and since each
-    member's own calibration is a feasible blend, the blend fits the view's captures no worse."""
+    """Blending two sources by the view calibration: its images are the sum weighted pixel by pixel
+    (`local_mixture`), and since each member's own calibration is a feasible blend, the blend fits the
+    view's captures no worse."""
     from sssphase_core.relight import make_source, model_inputs, no_scattering_source, relight, relight_view
+    from sssphase_core.relight.sources import local_mixture
 
     rv = load_view(Session.open(session), 1)
     members = [make_source("analytic", rv, calibrate=False, patch=SMALL_PATCH), make_source("exact", rv, calibrate=False)]
@@ -328,9 +359,12 @@ def test_a_blend_relights_the_fringe_captures_at_least_as_well_as_each_member(se
     blend, mix = relight_view(*members[0], rv, pats, calibrate=True, also=members[1:])
     assert mix.shape == (2, 3) and (mix >= 0).all() and (mix.sum(0) <= 1 + 1e-6).all()
     none = relight(no_scattering_source(rv.white), rv.proj, pats, 1, white=rv.white)
-    want = (1 - mix.sum(0)) * none + sum(w * relight(src, rv.proj, pats, k, white=rv.white) for w, (src, k) in zip(mix, members, strict=True))
-    np.testing.assert_allclose(blend, want, rtol=1e-4, atol=1e-6)
+    relits = [relight(src, rv.proj, pats, k, white=rv.white) for src, k in members]
     psp, lost = model_inputs(rv)
+    weights, view_weights = local_mixture(rv, relits, none, psp, lost)
+    np.testing.assert_allclose(view_weights, mix, atol=1e-5)
+    want = none + sum(w * (r - none) for w, r in zip(weights, relits, strict=True))
+    np.testing.assert_allclose(blend, want, rtol=1e-4, atol=1e-6)
     m = calibration_pixels(rv) & ~lost
     residual = lambda img: float(((rv.through_camera(img)[:, m] - psp[:, m]) ** 2).sum())  # noqa: E731
     alone = [relight_view(src, k, rv, pats, calibrate=True)[0] for src, k in members]
