@@ -495,3 +495,33 @@ def test_two_references_that_would_share_a_key_are_refused_before_a_daemon_start
         out = res.stdout + res.stderr
         assert res.returncode == 2 and f"would both be stored as {key}" in out and "Traceback" not in out, out
         assert "started a local one" not in out and not (tmp_path / "out").exists(), out
+
+
+@pytest.mark.parametrize(("array", "cut"), [("white", (slice(None, -4), slice(None))), ("corr/xp", (slice(None), slice(3, None))),
+                                            ("psp", (slice(1, None),)), ("ref/checkerboard", (slice(None), slice(None, -1)))])
+def test_a_view_whose_arrays_disagree_on_the_camera_size_is_one_error(intact_session, tmp_path, array, cut):
+    """Arrays intact and as the manifest says, but not of one camera (one replaced by hand, rewritten
+    whole): relighting names the array and the sizes instead of failing inside numpy."""
+    from sssphase_core.errors import DataError
+    from sssphase_core.relight import load_view
+    from sssphase_core.store.session import Session
+
+    copy = tmp_path / "leaf"
+    shutil.copytree(intact_session, copy)
+    s = Session.open(copy)
+    info = {k: v for k, v in s.manifest["views"]["0"].items() if k not in ("status", "arrays", "completed")}
+    data = {name: s.load(0, name) for name in s.arrays(0)}
+    writer = s.begin_view(0)
+    for name, value in data.items():
+        writer.write(name, value[cut] if name == array else value)
+    writer.commit(info)
+    if array == "ref/checkerboard":  # a sim session is scored on its render, and on its capture beside it
+        from sssphase_core.relight.evaluation import _captured_reference
+
+        rv = load_view(Session.open(copy), 0)
+        with pytest.raises(DataError, match=r"view 0 of .*: ref/checkerboard is 192x255x3 where the view's white"):
+            _captured_reference(rv, "checkerboard")
+        return
+    with pytest.raises(DataError, match=r"view 0 of .*: (psp|white|corr/xp) (is|holds) "):
+        load_view(Session.open(copy), 0)
+    assert not Session.open(copy).validate()  # every array is intact: only their sizes disagree

@@ -171,7 +171,13 @@ def _captured_reference(rv: Any, name: str) -> np.ndarray | None:
     session = getattr(rv, "session", None)
     if session is None or rv.sim is None or f"ref/{name}" not in session.arrays(rv.view):
         return None
-    return np.asarray(session.load(rv.view, f"ref/{name}"), np.float32)
+    image = np.asarray(session.load(rv.view, f"ref/{name}"), np.float32)
+    if image.shape != rv.white.shape:
+        from sssphase_core.errors import DataError
+
+        raise DataError(f"view {rv.view} of {session.path}: ref/{name} is {'x'.join(map(str, image.shape))} where the "
+                        f"view's white image is {'x'.join(map(str, rv.white.shape))}: the view's arrays do not belong together")
+    return image
 
 
 def aggregate(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend", "pattern")) -> list[dict[str, Any]]:

@@ -8,7 +8,7 @@ from functools import cached_property
 
 import numpy as np
 
-from sssphase_core.errors import InputError
+from sssphase_core.errors import DataError, InputError
 from sssphase_core.relight.engine import Projection
 
 
@@ -95,9 +95,14 @@ def load_view(session: object, view: int) -> RelightView:
                "n_views": int(opts.get("n_views", m.get("n_views", 4))), "seed": int(opts.get("seed", 0)),
                "options": dict(opts)}
         patch = int(rig.get("patch") or rig_preset(sim["preset"]).patch)
+    where = f"view {view} of {session.path}"  # type: ignore[attr-defined]
+    xp, yp, psp = (load(name).astype(np.float32) for name in ("corr/xp", "corr/yp", "psp"))
+    _check_view_shapes(where, mask, {"corr/xp": xp, "corr/yp": yp}, {"psp": psp, "white": white})
+    if psp.ndim != 4 or len(psp) != 8:
+        raise DataError(f"{where}: psp holds {psp.shape[0] if psp.ndim == 4 else 'no'} frames where the paper's "
+                        "inputs are 8 (4 shifts x 2 orientations)")
     black = session.projector_black(view, white, mask)  # type: ignore[attr-defined]
-    proj = Projection(load("corr/xp").astype(np.float32), load("corr/yp").astype(np.float32), mask,
-                      (int(wp), int(hp)), float(plan.get("gamma", 2.2)), black)
+    proj = Projection(xp, yp, mask, (int(wp), int(hp)), float(plan.get("gamma", 2.2)), black)
     references, captured = {}, {}
     for f in plan.get("frames", []):
         if f["kind"] == "ref" and f["key"] not in (f"ref/{n}" for n in references):
@@ -113,10 +118,22 @@ def load_view(session: object, view: int) -> RelightView:
             captured[name] = load(f"ref/{name}").astype(np.float32)
         else:
             references.pop(name)
+    _check_view_shapes(where, mask, {}, {f"reference {n}": c for n, c in captured.items()})
     psp_clip, white_clip = session.clip_levels()  # type: ignore[attr-defined]
-    return RelightView(str(m.get("object")), view, proj, load("psp").astype(np.float32), white, patch,
+    return RelightView(str(m.get("object")), view, proj, psp, white, patch,
                        references, captured, sim, session, psp_clip, white_clip, plan,
                        m.get("views", {}).get(str(view), {}).get("camera_isp"))
+
+
+def _check_view_shapes(where: str, mask: np.ndarray, maps: dict[str, np.ndarray], images: dict[str, np.ndarray]) -> None:
+    """One clear error when a view's arrays disagree on the camera's size (arrays edited or swapped by
+    hand): ``maps`` (H, W) like ``mask``; ``images`` (..., H, W, 3)."""
+    h, w = mask.shape
+    for name, array in {**maps, **images}.items():
+        ok = array.shape == (h, w) if name in maps else array.shape[-3:] == (h, w, 3)
+        if not ok:
+            raise DataError(f"{where}: {name} is {'x'.join(map(str, array.shape))} but the decoded mask is {w}x{h} "
+                            "(width x height): the view's arrays do not belong together")
 
 
 def finest_psp_period(plan: dict) -> float | None:

@@ -429,7 +429,11 @@ class Session:
             array = zarr.open_array(str(folder), mode="r")
         except Exception as exc:  # missing or unreadable metadata
             raise DataError(f"{where} is missing or unreadable ({type(exc).__name__}); `sss validate` lists the damage") from None
-        expected = self.manifest["views"][str(view)]["arrays"][name].get("chunks")  # older sessions: not recorded
+        meta = self.manifest["views"][str(view)]["arrays"][name]
+        if meta.get("shape") is not None and list(array.shape) != list(meta["shape"]):
+            raise DataError(f"{where} is damaged (shape {tuple(array.shape)} where the manifest says "
+                            f"{tuple(meta['shape'])}); `sss validate` lists the damage")
+        expected = meta.get("chunks")  # older sessions: not recorded
         if expected is not None:
             found = sum(1 for p in folder.rglob("*") if p.is_file() and p.name != "zarr.json")
             if found != expected:  # zarr would read a missing chunk as zeros
