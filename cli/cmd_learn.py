@@ -22,8 +22,11 @@ ViewsOpt = Annotated[str | None, typer.Option("--views", help="Comma-separated v
                                                 "every complete view).")]
 CacheOpt = Annotated[Path, typer.Option("--cache", help="Folder caching simulated views (.npz).")]
 SessionsOpt = Annotated[
-    Path | None, typer.Option("--sessions", help="Folder of captured sessions (one per object) to use instead of the simulator.")
+    Path | None, typer.Option("--sessions", help="Folder of captured sessions (one per object), or one session folder, "
+                              "to use instead of the simulator.")
 ]
+MAX_SEED = 2**32 - 1  # numpy's and torch's seeds take it; the loop derives per-step seeds from it
+NViewsOpt = Annotated[int, typer.Option(min=1, help="Turntable views per object (simulator).")]
 DEFAULT_CACHE = Path(".sss_cache")
 
 
@@ -35,6 +38,15 @@ def _check_lr(lr: float) -> None:
         from sssphase_core.errors import InputError
 
         raise InputError(f"--lr must be a finite number > 0, got {lr}")
+
+
+def _check_batch(batch_size: int, ds, what: str) -> None:
+    """Before the run's folder is written: at least one whole batch (the loop drops a last, partial one)."""
+    if len(ds) < batch_size:
+        from sssphase_core.errors import InputError
+
+        raise InputError(f"--batch-size {batch_size} is more than the {len(ds)} {what}: lower it, or sample more "
+                         "--pixels-per-view / views")
 
 
 def _check_out(ctx: typer.Context, out: Path, kind: str, resume: bool) -> bool:
@@ -130,18 +142,18 @@ def train_pretrain(
     preset: Annotated[str, typer.Option(help="Model preset: lite or paper.")] = "lite",
     objects: ObjectsOpt = "",
     views: ViewsOpt = None,
-    n_views: Annotated[int, typer.Option(help="Turntable views per object.")] = 4,
+    n_views: NViewsOpt = 4,
     rig: Annotated[str, typer.Option(help="Simulated rig preset (cpu: K=32, paper: K=90).")] = "cpu",
     pixels_per_view: Annotated[int, typer.Option(min=1, help="Surface pixels sampled per view.")] = 2000,
     epochs: Annotated[int, typer.Option(min=1)] = 10,
-    batch_size: Annotated[int, typer.Option(min=1)] = 64,
+    batch_size: Annotated[int, typer.Option(min=1, help="Patches per step (at least 2: SimSiam's BatchNorm).")] = 64,
     lr: float = 0.05,
-    warmup_epochs: float = 2.0,
+    warmup_epochs: Annotated[float, typer.Option(help="Epochs of linear learning-rate warmup (>= 0), then cosine decay.")] = 2.0,
     augment: Annotated[str, typer.Option(help="psp (weak/strong PSP set) or imagenet (baseline).")] = "psp",
     fix_pred_lr: Annotated[bool, typer.Option(help="Keep the predictor at the base lr (no schedule).")] = True,
-    knn_monitor: Annotated[int, typer.Option(help="Training patches in the per-epoch kNN monitor (0: off).")] = 2000,
-    seed: int = 0,
-    ckpt_every: Annotated[int, typer.Option(help="Steps between mid-epoch checkpoints.")] = 50,
+    knn_monitor: Annotated[int, typer.Option(min=0, help="Training patches in the per-epoch kNN monitor (0: off).")] = 2000,
+    seed: Annotated[int, typer.Option(min=0, max=MAX_SEED)] = 0,
+    ckpt_every: Annotated[int, typer.Option(min=0, help="Steps between mid-epoch checkpoints (0: epoch ends only).")] = 50,
     device: str = "auto",
     resume: Annotated[bool, typer.Option(help="Continue from out/last.pt when present.")] = True,
     cache: CacheOpt = DEFAULT_CACHE,
@@ -152,10 +164,12 @@ def train_pretrain(
     from sssphase_core.learning.models import get_preset
     from sssphase_core.learning.runlog import read_rows
     from sssphase_core.learning.training import METRICS, PretrainConfig, pretrain
+    from sssphase_core.learning.training.pretrain import check_pretrain_options
     from sssphase_core.reporting.figures import plot_metric_vs_time
     from sssphase_core.sim import TRAIN_OBJECTS
 
     _check_lr(lr)
+    check_pretrain_options(batch_size, warmup_epochs)
     p = get_preset(preset)
     resuming = _check_out(ctx, out, "pretrain", resume)
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
@@ -163,6 +177,10 @@ def train_pretrain(
                  footprints=False, seed=seed, cache=cache, sessions=sessions)
     names = names or _objects(vds)
     ds = PatchDataset(vds, p.patch, names)
+    _check_batch(batch_size, ds, "training patches")
+    if warmup_epochs >= epochs:
+        console.print(f"[yellow]note:[/] --warmup-epochs {warmup_epochs:g} is not shorter than --epochs {epochs}: the "
+                      f"learning rate rises for the whole run, to about {epochs / warmup_epochs:.2g} x --lr, and never decays")
     cfg = PretrainConfig(epochs=epochs, batch_size=batch_size, seed=seed, ckpt_every=ckpt_every, device=device, preset=preset,
                          lr=lr, warmup_epochs=warmup_epochs, fix_pred_lr=fix_pred_lr, augment=augment, knn_monitor=knn_monitor)
     console.print(f"pretraining [bold]{preset}[/] on {len(ds)} patches of {', '.join(names)} -> {out} "
@@ -193,7 +211,7 @@ def train_decoder(
     val_views: Annotated[str | None, typer.Option(help="Held-out views of the same objects for validation (with "
                                                   "--sessions, default: each session's last view when it has two or more; "
                                                   "\"\" for none).")] = None,
-    n_views: int = 4,
+    n_views: NViewsOpt = 4,
     rig: str = "cpu",
     pixels_per_view: Annotated[int, typer.Option(min=1)] = 2000,
     noisy_targets: Annotated[bool, typer.Option(help="Add capture noise to the footprint targets.")] = False,
@@ -201,11 +219,12 @@ def train_decoder(
     batch_size: Annotated[int, typer.Option(min=1)] = 32,
     lr: float = 1e-3,
     head: Annotated[str, typer.Option(help="reciprocal (energy from the PSP patch x learned shape) or direct (the paper's head).")] = "reciprocal",
-    aux_classes: Annotated[int, typer.Option(help="> 0: auxiliary material-classification head with this many classes.")] = 0,
+    aux_classes: Annotated[int, typer.Option(help="0: none; else an auxiliary material-classification head with this many "
+                                             "classes (>= 2, more than the largest material label).")] = 0,
     learn_gain: Annotated[bool, typer.Option("--learn-gain", help="Reciprocal head: also learn a per-colour energy "
                                              "gain (default: energy from reciprocity alone).")] = False,
-    seed: int = 0,
-    ckpt_every: int = 50,
+    seed: Annotated[int, typer.Option(min=0, max=MAX_SEED)] = 0,
+    ckpt_every: Annotated[int, typer.Option(min=0, help="Steps between mid-epoch checkpoints (0: epoch ends only).")] = 50,
     device: str = "auto",
     resume: bool = True,
     cache: CacheOpt = DEFAULT_CACHE,
@@ -220,10 +239,12 @@ def train_decoder(
     from sssphase_core.learning.models.decoder import HEADS
     from sssphase_core.learning.training import METRICS, DecoderConfig, decoder_patch
     from sssphase_core.learning.training import train_decoder as fit
+    from sssphase_core.learning.training.decoder import check_aux_classes
     from sssphase_core.reporting.figures import plot_metric_vs_time
     from sssphase_core.sim import TRAIN_OBJECTS
 
     _check_lr(lr)
+    check_aux_classes(aux_classes)
     if head not in HEADS:
         raise InputError(f"unknown decoder head {head!r}; choose one of {', '.join(HEADS)}")
     if (encoder is None) == (not end_to_end):
@@ -249,6 +270,8 @@ def train_decoder(
     names = names or _objects([*train_vds, *val_vds])
     ds = PatchDataset(train_vds, patch, names, with_targets=True)
     val = PatchDataset(val_vds, patch, names, with_targets=True) if val_vds else None
+    _check_batch(batch_size, ds, "training footprints")
+    check_aux_classes(aux_classes, ds)
     cfg = DecoderConfig(epochs=epochs, batch_size=batch_size, seed=seed, ckpt_every=ckpt_every, device=device, lr=lr,
                         head=head, aux_classes=aux_classes, preset=preset, learn_gain=learn_gain)
     what = f"encoder and decoder end-to-end ({preset})" if end_to_end else "the decoder"
@@ -319,13 +342,14 @@ def eval_knn(
     checkpoint: Annotated[list[str], typer.Option("--checkpoint", help="NAME=PATH (repeat to compare, e.g. psp=... imagenet=...).")],
     objects: ObjectsOpt = "",
     views: ViewsOpt = None,
-    n_views: int = 4,
+    n_views: NViewsOpt = 4,
     rig: str = "cpu",
     pixels_per_view: Annotated[int, typer.Option(min=1)] = 1000,
     k: Annotated[str, typer.Option(help="Neighbours; a comma list adds a sweep (the table uses the first).")] = "20",
     vote: Annotated[str, typer.Option(help="majority or weighted.")] = "majority",
     label: Annotated[str, typer.Option(help="object (the paper's Table 2) or material.")] = "object",
-    seed: Annotated[int, typer.Option(help="Pixel sampling seed (use one the encoder was not trained on for new patches).")] = 1,
+    seed: Annotated[int, typer.Option(min=0, max=MAX_SEED, help="Pixel sampling seed (use one the encoder was not "
+                                      "trained on for new patches).")] = 1,
     out: Annotated[Path | None, typer.Option(help="JSON output (a .md table is written next to it).")] = None,
     cache: CacheOpt = DEFAULT_CACHE,
     sessions: SessionsOpt = None,
@@ -364,13 +388,13 @@ def eval_footprints(
     checkpoint: Annotated[Path, typer.Option("--checkpoint", help="Decoder checkpoint (run folder or .pt).")],
     objects: ObjectsOpt = "",
     views: ViewsOpt = None,
-    n_views: int = 4,
+    n_views: NViewsOpt = 4,
     rig: str = "cpu",
     pixels_per_view: Annotated[int, typer.Option(min=1)] = 500,
     baseline: Annotated[str, typer.Option(help="Backend to compare with ('' for none).")] = "analytic",
     compare: Annotated[list[str] | None, typer.Option("--compare", help="NAME=PATH: another decoder run in the table "
                                                       "(repeat; e.g. unet=runs/dec_e2e from --end-to-end).")] = None,
-    seed: int = 2,
+    seed: Annotated[int, typer.Option(min=0, max=MAX_SEED)] = 2,
     plots: Annotated[Path | None, typer.Option(help="Folder for footprint profile plots (one per object).")] = None,
     out: Annotated[Path | None, typer.Option(help="JSON output (a .md table is written next to it).")] = None,
     cache: CacheOpt = DEFAULT_CACHE,
@@ -434,10 +458,10 @@ def viz_pca(
     checkpoint: Annotated[Path, typer.Option("--checkpoint", help="Encoder checkpoint (pretraining or decoder run).")],
     objects: Annotated[str, typer.Option(help="Comma-separated objects shown side by side (default: every session "
                                          "under --sessions, else the simulator's soap and shovel).")] = "",
-    view: int = 0,
-    n_views: int = 4,
+    view: Annotated[int, typer.Option(min=0)] = 0,
+    n_views: NViewsOpt = 4,
     rig: str = "cpu",
-    stride: Annotated[int, typer.Option(help="Embed every stride-th pixel in x and y.")] = 2,
+    stride: Annotated[int, typer.Option(min=1, help="Embed every stride-th pixel in x and y.")] = 2,
     out: Annotated[Path, typer.Option(help="PNG output.")] = Path("pca_rgb.png"),
     cache: CacheOpt = DEFAULT_CACHE,
     sessions: SessionsOpt = None,

@@ -24,6 +24,10 @@ def _views(session, views: str) -> list[int]:
     from sssphase_core.errors import InputError
 
     if not views:
+        if not session.views():  # a capture that was interrupted: nothing to relight, and saying nothing misleads
+            states = ", ".join(f"view {v}: {session.status(int(v))}" for v in sorted(session.manifest["views"], key=int))
+            raise InputError(f"session {session.path} has no complete view ({states or 'no views'}); "
+                             f"`sss validate {session.path}` says more, `sss capture ... --resume` completes it")
         return session.views()
     try:
         return [int(v) for v in views.split(",") if v.strip()]
@@ -237,16 +241,26 @@ def eval_relight(
     from sssphase_core.learning.training import resolve_checkpoint
     from sssphase_core.relight import load_view
     from sssphase_core.relight.evaluation import aggregate, evaluate_view, lpips_note, metrics_table
+    from sssphase_core.errors import InputError
     from sssphase_core.relight.sources import MODEL_FREE, check_backends, uses_decoder
     from sssphase_core.store.session import find_sessions
 
     backends = [b.strip() for b in backend.split(",") if b.strip()]
+    if not backends:
+        raise InputError(f"--backend names no backend (got {backend!r}): give e.g. none,analytic,torch")
     if checkpoint is not None:
         checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
     check_backends(backends, checkpoint)
+    rows, found = [], find_sessions(sessions)  # a missing folder is one line before any progress is drawn
+    by_object: dict[str, Path] = {}
+    for s in found:  # outputs are named by object and view: two sessions of one object would overwrite each other
+        if by_object.setdefault(s.name, s.path) != s.path:
+            raise InputError(f"two sessions hold the object {s.name!r} ({by_object[s.name]} and {s.path}): their "
+                             "results would share names; evaluate them with separate --out folders")
+    for s in found:
+        _views(s, views)  # every session has views to evaluate, before any work
     if checkpoint is not None and any(uses_decoder(b) for b in backends):
         console.print(f"torch backend: {checkpoint}")
-    rows, found = [], find_sessions(sessions)  # a missing folder is one line before any progress is drawn
     with _progress() as bar:
         for s in found:
             for v in _views(s, views):

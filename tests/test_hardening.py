@@ -74,6 +74,14 @@ def test_a_truncated_pattern_is_one_line(tmp_path):
      "not allowed"),
     *(({"format": "sssphase-session", "format_version": 1, "object": name, "n_views": 0, "views": {}},  # names outputs
        "object name .* is not allowed") for name in ("../../evil", "/tmp/evil", "a/b", None)),
+    *(({"format": "sssphase-session", "format_version": 1, "object": "o", "n_views": 0, "views": {}, "plan": plan}, expected)
+      for plan, expected in (({"projector": "160x120"}, r"plan.projector must be \[width, height\]"),
+                             ({"projector": [0, 120]}, "plan.projector must be"),
+                             ({"projector": [160.5, 120]}, "plan.projector must be"),
+                             ({"gamma": float("nan")}, r"plan.gamma .* must be a number in \[0.05, 20\], got nan"),
+                             ({"gamma": 0}, "plan.gamma"), ({"gamma": "2.2"}, "plan.gamma"),
+                             ({"frames": [{"key": 1}]}, "plan.frames must be a list of frames"),
+                             ([], "plan is not a table"))),
 ])
 def test_damaged_manifests_are_one_line_errors(tmp_path, manifest, expected):
     import json
@@ -525,3 +533,102 @@ def test_a_view_whose_arrays_disagree_on_the_camera_size_is_one_error(intact_ses
     with pytest.raises(DataError, match=r"view 0 of .*: (psp|white|corr/xp) (is|holds) "):
         load_view(Session.open(copy), 0)
     assert not Session.open(copy).validate()  # every array is intact: only their sizes disagree
+
+
+@pytest.mark.parametrize("edit", ["white inf", "psp nan", "xp nan on the mask", "xp far off the projector"])
+def test_non_finite_or_impossible_values_in_a_view_are_one_error(intact_session, tmp_path, edit):
+    """A session written by another program, its checksums consistent with what it holds: NaN, inf or
+    projector points nowhere near the projector are named where relighting reads them, not relit into
+    NaN images and -inf PSNRs."""
+    from sssphase_core.errors import DataError
+    from sssphase_core.relight import load_view
+    from sssphase_core.store.session import Session
+
+    copy = tmp_path / "leaf"
+    shutil.copytree(intact_session, copy)
+    s = Session.open(copy)
+    info = {k: v for k, v in s.manifest["views"]["0"].items() if k not in ("status", "arrays", "completed")}
+    data = {name: np.array(s.load(0, name)) for name in s.arrays(0)}
+    mask = data["corr/mask"].astype(bool)
+    r, c = np.argwhere(mask)[len(np.argwhere(mask)) // 2]
+    name, value = {"white inf": ("white", np.inf), "psp nan": ("psp", np.nan), "xp nan on the mask": ("corr/xp", np.nan),
+                   "xp far off the projector": ("corr/xp", 1e9)}[edit]
+    if data[name].ndim == 2:  # a map (H, W)
+        data[name][r, c] = value
+    else:  # images (..., H, W, 3)
+        data[name][..., r, c, :] = value
+    writer = s.begin_view(0)
+    for key, array in data.items():
+        writer.write(key, array)
+    writer.commit(info)
+    assert not Session.open(copy).validate()  # intact, as its writer meant it
+    expected = "projector coordinates far outside" if edit.endswith("projector") else "NaN or infinite values"
+    with pytest.raises(DataError, match=f"view 0 of .*: {name} (holds|is) .*{expected}"):
+        load_view(Session.open(copy), 0)
+
+
+def test_a_file_left_in_an_array_folder_is_not_a_chunk(intact_session, tmp_path):
+    """``.DS_Store`` or notes left inside an array's folder (a Finder copy, a sync tool) do not make an
+    intact session unreadable."""
+    from sssphase_core.relight import load_view
+    from sssphase_core.store.session import Session
+
+    copy = tmp_path / "leaf"
+    shutil.copytree(intact_session, copy)
+    (copy / "view_000" / "white" / ".DS_Store").write_bytes(b"\0\0\0\1Bud1")
+    (copy / "view_000" / "psp" / "c" / "notes.txt").write_text("hello")
+    assert not Session.open(copy).validate()
+    assert load_view(Session.open(copy), 0).white.shape[-1] == 3
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if k != "SSS_DEBUG"}
+    return subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True,
+                          timeout=300, env={**env, "COLUMNS": "300"})
+
+
+def _one_line(res: subprocess.CompletedProcess[str], expected: str) -> None:
+    out = (res.stdout + res.stderr).strip()
+    assert res.returncode == 2 and "Traceback" not in out and len(out.splitlines()) == 1, out
+    assert expected in out, out
+
+
+def test_an_interrupted_session_is_said_so_not_relit_into_nothing(intact_session, tmp_path):
+    """A capture stopped before its only view was complete: relight, eval and export used to exit 0 having
+    done nothing ("wrote 0 files", empty tables)."""
+    import json
+
+    copy = tmp_path / "leaf"
+    shutil.copytree(intact_session, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["views"]["0"]["status"] = "capturing"
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    expected = f"session {copy} has no complete view (view 0: capturing)"
+    _one_line(_cli("relight", str(copy), "--pattern", "checkerboard", "--backend", "none", "--out", str(tmp_path / "r")),
+              expected)
+    _one_line(_cli("eval", "relight", str(copy), "--backend", "none", "--out", str(tmp_path / "e")), expected)
+    _one_line(_cli("export", str(copy), "--out", str(tmp_path / "x")), "has no complete view to export")
+    assert not any((tmp_path / d).exists() for d in ("r", "e", "x"))
+
+
+def test_eval_counts_a_session_once_and_refuses_two_sessions_of_one_object(intact_session, tmp_path):
+    from sssphase_core.store.session import find_sessions
+
+    assert len(find_sessions([intact_session, intact_session.parent, intact_session])) == 1
+    other = tmp_path / "elsewhere" / "leaf"
+    shutil.copytree(intact_session, other)
+    _one_line(_cli("eval", "relight", str(intact_session), str(other), "--backend", "none", "--out", str(tmp_path / "e")),
+              "two sessions hold the object 'leaf'")
+    _one_line(_cli("eval", "relight", str(intact_session), "--backend", ",", "--out", str(tmp_path / "e")),
+              "--backend names no backend")
+    assert not (tmp_path / "e").exists()
+
+
+def test_export_never_writes_into_a_session(intact_session, tmp_path):
+    """`sss export S --out <the folder holding S>` put its EXRs inside the session's array folders."""
+    copy = tmp_path / "sessions" / "leaf"
+    shutil.copytree(intact_session, copy)
+    before = sorted(p for p in copy.rglob("*"))
+    for out in (copy.parent, copy, copy / "view_000"):
+        _one_line(_cli("export", str(copy), "--out", str(out)), f"would write into the session {copy.resolve()}")
+    assert sorted(p for p in copy.rglob("*")) == before

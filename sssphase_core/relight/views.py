@@ -79,7 +79,10 @@ def load_view(session: object, view: int) -> RelightView:
     if view not in session.views():  # type: ignore[attr-defined]
         raise InputError(f"session {session.path} has no complete view {view} (has {session.views()})")  # type: ignore[attr-defined]
     plan = m.get("plan", {})
-    wp, hp = plan.get("projector", (0, 0))
+    if "projector" not in plan:
+        raise DataError(f"{session.path}: the manifest has no capture plan (plan.projector): the patterns its "  # type: ignore[attr-defined]
+                        "frames were captured under are unknown, so it cannot be relit")
+    wp, hp = plan["projector"]
     rig = m.get("rig", {})
     opts = rig.get("options", {})
     arrays = session.arrays(view)  # type: ignore[attr-defined]
@@ -119,6 +122,11 @@ def load_view(session: object, view: int) -> RelightView:
         else:
             references.pop(name)
     _check_view_shapes(where, mask, {}, {f"reference {n}": c for n, c in captured.items()})
+    _check_finite(where, mask, {"corr/xp": xp, "corr/yp": yp},
+                  {"psp": psp, "white": white, **{f"reference {n}": c for n, c in captured.items()}})
+    for name, coord, side in (("corr/xp", xp, wp), ("corr/yp", yp, hp)):
+        if mask.any() and not (np.abs(coord[mask] - side / 2) <= 1.5 * side).all():  # a decoded point lies on the projector
+            raise DataError(f"{where}: {name} holds projector coordinates far outside the projector's 0 to {side} px")
     psp_clip, white_clip = session.clip_levels()  # type: ignore[attr-defined]
     return RelightView(str(m.get("object")), view, proj, psp, white, patch,
                        references, captured, sim, session, psp_clip, white_clip, plan,
@@ -134,6 +142,16 @@ def _check_view_shapes(where: str, mask: np.ndarray, maps: dict[str, np.ndarray]
         if not ok:
             raise DataError(f"{where}: {name} is {'x'.join(map(str, array.shape))} but the decoded mask is {w}x{h} "
                             "(width x height): the view's arrays do not belong together")
+
+
+def _check_finite(where: str, mask: np.ndarray, maps: dict[str, np.ndarray], images: dict[str, np.ndarray]) -> None:
+    """One clear error for NaN or inf where relighting reads (a session written by another program: our
+    writers refuse them): anywhere in ``images``, on the decoded ``mask`` in ``maps``."""
+    for name, array in {**maps, **images}.items():
+        bad = ~np.isfinite(array[mask] if name in maps else array)
+        if bad.any():
+            raise DataError(f"{where}: {name} holds {int(bad.sum())} NaN or infinite values"
+                            f"{' on the decoded pixels' if name in maps else ''}; images must be finite")
 
 
 def finest_psp_period(plan: dict) -> float | None:

@@ -71,6 +71,9 @@ def manifest_problem(manifest: dict[str, Any]) -> str | None:
                     and isinstance(meta.get("dtype"), str) and isinstance(meta.get("checksum"), str)
                     and isinstance(meta.get("chunks", 0), int)):
                 return f"view {key}: array {name} lacks its shape, dtype or checksum"
+    problem = plan_problem(manifest.get("plan", {}))
+    if problem:
+        return problem
     try:  # the object names output files and folders: it must not lead out of them
         check_object_name(manifest.get("object"))  # type: ignore[arg-type]
     except InputError as e:
@@ -128,6 +131,15 @@ def _codec(dtype: np.dtype) -> list:
 
 def _chunk_count(shape: tuple[int, ...], chunks: tuple[int, ...]) -> int:
     return int(np.prod([-(-n // c) for n, c in zip(shape, chunks, strict=True)])) if all(shape) else 0
+
+
+def _stored_chunks(folder: Path) -> int:
+    """How many chunk files an array folder holds: zarr's ``c/<i>/<j>/...`` keys only, so that a file that
+    something else left there (``.DS_Store``, ``notes.txt``) is not counted as a chunk."""
+    root = folder / "c"
+    if root.is_file():  # a 0-d array's one chunk
+        return 1
+    return sum(1 for p in root.rglob("*") if p.is_file() and all(part.isdigit() for part in p.relative_to(root).parts))
 
 
 def _zarr_write(path: Path, data: np.ndarray) -> None:
@@ -310,6 +322,32 @@ def clip_levels(frames: list[dict], saturation: float | None) -> tuple[float | N
     return level("psp"), level("white")
 
 
+def plan_problem(plan: Any) -> str | None:
+    """What makes a manifest's capture plan unusable (its projector size, gamma or frames of the wrong type
+    or range: a manifest edited by hand or by another program), or None."""
+    import math
+
+    from sssphase_core.processing.patterns import MAX_SIDE
+
+    if not isinstance(plan, dict):
+        return "plan is not a table"
+    if "projector" in plan:
+        size = plan["projector"]
+        if not (isinstance(size, list) and len(size) == 2
+                and all(isinstance(d, int) and not isinstance(d, bool) and 1 <= d <= MAX_SIDE for d in size)):
+            return f"plan.projector must be [width, height] in whole pixels, 1 to {MAX_SIDE}, got {size!r}"
+    if "gamma" in plan:
+        gamma = plan["gamma"]
+        if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not (math.isfinite(gamma) and 0.05 <= gamma <= 20):
+            return f"plan.gamma (the projector's gamma) must be a number in [0.05, 20], got {gamma!r}"
+    frames = plan.get("frames", [])
+    if not isinstance(frames, list) or not all(
+            isinstance(f, dict) and isinstance(f.get("key"), str) and isinstance(f.get("kind"), str)
+            and isinstance(f.get("params", {}), dict) for f in frames):
+        return "plan.frames must be a list of frames, each with a key, a kind and params"
+    return None
+
+
 @dataclass
 class Session:
     """A session folder. ``Session.open(path)`` to read; ``Session.create(root, name, ...)`` to write."""
@@ -435,7 +473,7 @@ class Session:
                             f"{tuple(meta['shape'])}); `sss validate` lists the damage")
         expected = meta.get("chunks")  # older sessions: not recorded
         if expected is not None:
-            found = sum(1 for p in folder.rglob("*") if p.is_file() and p.name != "zarr.json")
+            found = _stored_chunks(folder)
             if found != expected:  # zarr would read a missing chunk as zeros
                 raise DataError(f"{where} is damaged ({expected - found} of {expected} chunks missing); "
                                 "`sss validate` lists the damage")
@@ -479,11 +517,24 @@ class Session:
         return problems
 
 
+def session_around(path: Path | str) -> Path | None:
+    """The session folder that ``path`` is, or lies inside (a folder with a session manifest), else None:
+    outputs must not be written into a session's own folders."""
+    for folder in (Path(path).resolve(), *Path(path).resolve().parents):
+        if (folder / MANIFEST).is_file():
+            return folder
+    return None
+
+
 def find_sessions(paths: Iterable[Path | str]) -> list[Session]:
     """Each path is a session folder or a root of session folders; every session found, in order."""
     found: list[Session] = []
     for p in map(Path, paths):
         found += [Session.open(p)] if (p / MANIFEST).exists() else list_sessions(p)
+    unique: dict[Path, Session] = {}  # a session named twice (itself and its parent folder) counts once
+    for s in found:
+        unique.setdefault(s.path.resolve(), s)
+    found = list(unique.values())
     if not found:
         raise InputError(f"no sessions under {', '.join(map(str, paths))}")
     return found

@@ -63,11 +63,19 @@ def load_checkpoint(path: Path | str, *, mmap: bool = False) -> dict:
 
 
 def _load_weights(module: nn.Module, state: object, path: Path | str, what: str) -> None:
+    """Load ``state`` into ``module``; weights that do not fit, or that are not all finite (NaN or infinite:
+    every prediction would be NaN, silently zeroed downstream), are refused naming the file."""
     try:
         module.load_state_dict(state)  # type: ignore[arg-type]
     except (RuntimeError, TypeError, AttributeError) as exc:
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         raise DataError(f"{path}: the {what} weights do not fit the checkpoint's preset ({reason})") from None
+    bad = {name: int((~torch.isfinite(t)).sum()) for name, t in module.state_dict().items() if t.is_floating_point()}
+    bad = {name: n for name, n in bad.items() if n}
+    if bad:
+        raise DataError(f"{resolve_checkpoint(path)}: the {what} weights are not all finite ({sum(bad.values())} NaN or "
+                        f"infinite values, first in {next(iter(bad))}); the checkpoint cannot be used: take an earlier "
+                        "one or train again")
 
 
 def load_encoder(path: Path | str) -> Encoder:

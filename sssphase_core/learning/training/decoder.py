@@ -10,12 +10,12 @@ import numpy as np
 import torch
 from torch import nn
 
-from sssphase_core.errors import DataError
+from sssphase_core.errors import DataError, InputError
 from sssphase_core.learning.data import PatchDataset
 from sssphase_core.learning.losses import LOG_EPS, SBHLoss, noise_floor
 from sssphase_core.learning.metrics import MSE_FLOOR, psnr
 from sssphase_core.learning.models import Decoder, Encoder, ModelPreset, get_preset
-from sssphase_core.learning.training.checkpoints import CHECKPOINT, load_checkpoint, save_checkpoint
+from sssphase_core.learning.training.checkpoints import CHECKPOINT, load_encoder, save_checkpoint
 from sssphase_core.learning.training.loop import (
     Loop,
     LoopConfig,
@@ -46,6 +46,27 @@ class DecoderConfig(LoopConfig):
     val_samples: int = 512
     end_to_end: bool = False  # set when no encoder checkpoint is given: the supervised U-Net baseline (no SSL)
     preset: str = "lite"  # sizes an end-to-end model; a frozen encoder brings its own (recorded either way)
+
+
+def check_aux_classes(n: int, dataset: PatchDataset | None = None) -> None:
+    """``n`` (``--aux-classes``) is 0 (no auxiliary head) or a number of material classes >= 2 that covers
+    every material label of ``dataset``, which must have some (else the head would never train)."""
+    if n == 0:
+        return
+    if n < 2:
+        raise InputError(f"--aux-classes must be 0 (no auxiliary material head) or a number of material classes >= 2, "
+                         f"got {n}")
+    if dataset is None:
+        return
+    labels = dataset.labels("material")
+    known = labels[labels >= 0]
+    if not len(known):
+        raise InputError(f"--aux-classes {n}: the training data have no material labels (captured sessions have them "
+                         "only with gt/labels, as simulated ones do), so the auxiliary head would never train; leave "
+                         "--aux-classes 0")
+    if int(known.max()) >= n:
+        raise InputError(f"--aux-classes {n} is too few: the training data have material label {int(known.max())} "
+                         f"(labels count from 0); give at least {int(known.max()) + 1}")
 
 
 class FootprintNet(nn.Module):
@@ -102,6 +123,7 @@ def train_decoder(
     ``encoder_ckpt=None`` trains encoder and decoder together from random weights instead: the
     end-to-end supervised U-Net baseline without SSL pretraining (``preset`` or ``cfg.preset`` sizes it).
     """
+    check_aux_classes(cfg.aux_classes, dataset)
     out_dir = Path(out_dir)
     d = init_distributed(cfg.device)
     torch.manual_seed(cfg.seed)
@@ -109,11 +131,8 @@ def train_decoder(
         p = preset or get_preset(cfg.preset)
         enc = Encoder(p).to(d.device)
     else:
-        src = load_checkpoint(encoder_ckpt)
-        p = get_preset(src["preset"])
-        enc = Encoder(p)
-        enc.load_state_dict(src["encoder"])
-        enc = enc.to(d.device).eval().requires_grad_(False)
+        enc = load_encoder(encoder_ckpt).to(d.device)  # eval mode, frozen; weights checked (finite, fitting)
+        p = enc.preset
     cfg = replace(cfg, end_to_end=encoder_ckpt is None, preset=p.name)  # the checkpoint records what ran
     if p.patch != dataset.patch:
         raise DataError(f"the encoder's preset {p.name} expects {p.patch}px patches, the dataset has {dataset.patch}px")

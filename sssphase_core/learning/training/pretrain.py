@@ -10,7 +10,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from sssphase_core.errors import DataError
+from sssphase_core.errors import DataError, InputError
 from sssphase_core.learning import augment
 from sssphase_core.learning.data import PatchDataset
 from sssphase_core.learning.models import Encoder, ModelPreset, SimSiam, get_preset
@@ -54,6 +54,21 @@ class PretrainConfig(LoopConfig):
     monitor_samples: int = 2048
     knn_monitor: int = 2000  # training patches in the end-of-epoch kNN monitor (view-level leave-one-out; 0: off)
     knn_k: int = 20
+
+
+#: SimSiam's projector and predictor normalise over the batch (BatchNorm1d): a batch of one has nothing to
+#: normalise over (torch refuses it in training mode). The loop only takes whole batches, so none is smaller.
+MIN_PRETRAIN_BATCH = 2
+
+
+def check_pretrain_options(batch_size: int, warmup_epochs: float) -> None:
+    """Refuse, before any work, a batch too small for SimSiam's BatchNorm and a warmup that is not a finite
+    number >= 0 (NaN or infinity cannot count steps; a negative one would mean none)."""
+    if batch_size < MIN_PRETRAIN_BATCH:
+        raise InputError(f"--batch-size must be at least {MIN_PRETRAIN_BATCH} for pretraining, got {batch_size}: "
+                         "SimSiam's projector and predictor normalise over the batch (BatchNorm)")
+    if not (math.isfinite(warmup_epochs) and warmup_epochs >= 0):
+        raise InputError(f"--warmup-epochs must be a finite number >= 0, got {warmup_epochs}")
 
 
 def warmup_cosine(opt: torch.optim.Optimizer, total: int, warmup: int, base_lr: float,
@@ -109,6 +124,7 @@ def pretrain(
     progress: StepProgress | bool | None = None,
 ) -> Path:
     """SimSiam pretraining of the encoder; returns the checkpoint path (``out_dir/last.pt``)."""
+    check_pretrain_options(cfg.batch_size, cfg.warmup_epochs)
     out_dir = Path(out_dir)
     d = init_distributed(cfg.device)
     p = preset or get_preset(cfg.preset)
