@@ -151,7 +151,7 @@ def test_frames_where_nothing_decodes_or_too_small_are_refused_naming_why(tmp_pa
     tiny = tmp_path / "tiny"
     tiny.mkdir()
     for f in flat.glob("*.npy"):
-        np.save(tiny / f.name, np.zeros((4, 4, 3), np.float32))
+        np.save(tiny / f.name, np.full((4, 4, 3), 0.5, np.float32))
     logo = tmp_path / "logo"
     logo.mkdir()
     for f in _float_frames(tmp_path / "good", 1.0).glob("*.npy"):
@@ -452,3 +452,34 @@ def test_16_bit_npy_frames_import_like_16_bit_pngs(frames, tmp_path):
     b = import_folder(folders["npy"], tmp_path / "s", "npy", (W, H), patch=K)
     np.testing.assert_array_equal(a.load(0, "white"), b.load(0, "white"))
     assert 0.2 < float(b.load(0, "white").max()) <= 1.0
+
+
+@pytest.mark.parametrize(("frame", "change", "expected"), [
+    ("white", lambda img: img * 0, "the white capture holds no light (99.9th percentile 0)"),
+    ("white", lambda img: -img, "the white capture holds no light (99.9th percentile -"),
+    ("white", lambda img: img * np.float32(1e-44), "the white capture holds no light"),  # denormal: 1/level overflows
+    ("psp__x__p18__s1", lambda img: img - np.float32(0.6), "of its values are below -0.1 x the white level"),
+    ("black", lambda img: img - np.float32(0.5), "of its values are below -0.1 x the white level"),
+])
+def test_frames_without_light_or_far_below_zero_are_refused_naming_them(tmp_path, frame, change, expected):
+    """A black, negative or denormal white capture, a frame with a black level subtracted twice: imported
+    without a word, they relit at 3.9-10.4 dB where "none" read 18.4. Noise around zero still imports."""
+    folder = _float_frames(tmp_path / "f", 1.0)
+    path = folder / f"{frame}.npy"
+    np.save(path, change(np.load(path)))
+    with pytest.raises(InputError, match=f"{path}: .*{expected.replace('(', '.').replace(')', '.')}"):
+        import_folder(folder, tmp_path / "s", "o", (W, H), patch=K)
+    assert not (tmp_path / "s" / "o").exists()
+    noisy = _float_frames(tmp_path / "n", 1.0)
+    rng = np.random.default_rng(0)
+    for p in noisy.glob("*.npy"):  # read noise of 2% of white around zero in every frame: not refused
+        np.save(p, np.load(p) + rng.normal(0, 0.02, (H, W, 3)).astype(np.float32))
+    assert import_folder(noisy, tmp_path / "s", "noisy", (W, H), patch=K).views() == [0]
+
+
+def test_frames_beside_view_folders_are_refused_not_left_out(tmp_path):
+    """Loose frames next to view_NNN folders were one view silently dropped."""
+    folder = _float_frames(tmp_path / "mixed", 1.0)
+    _float_frames(folder / "view_001", 1.0)
+    with pytest.raises(InputError, match="holds frames beside its view_NNN folders"):
+        import_folder(folder, tmp_path / "s", "o", (W, H), patch=K)

@@ -90,17 +90,46 @@ def _psp_config(vdir: Path, keys: Iterable[str]) -> Any:
     return PSPConfig(period=periods[0], n_shifts=n, unwrap_periods=tuple(periods[1:]))
 
 
-def frame_scale(whites: Iterable[Path]) -> float:
+#: The smallest white level (99.9th percentile of a white capture, file units) taken for light: below it
+#: (denormal floats) rescaling to camera units would overflow float32.
+MIN_WHITE_LEVEL = 1e-30
+#: A frame may hold values below zero (noise around a subtracted black level), but not many far below:
+#: at most this share of its pixels below ``-NEGATIVE_LIMIT x`` the white level.
+NEGATIVE_LIMIT, NEGATIVE_SHARE = 0.1, 1e-3
+
+
+def white_levels(whites: Iterable[Path]) -> list[float]:
+    """Each white capture's level (its 99.9th percentile, file units); one line naming a white capture that
+    holds no light (black, negative, denormal) instead of a view where nothing decodes."""
+    levels = []
+    for path in whites:
+        level = float(np.percentile(read_frame(path), 99.9))
+        if not level >= MIN_WHITE_LEVEL:
+            raise InputError(f"{path}: the white capture holds no light (99.9th percentile {level:.3g}): it must be a "
+                             "linear image of the object under the projector's full white")
+        levels.append(level)
+    return levels
+
+
+def frame_scale(whites: Iterable[Path], levels: Iterable[float]) -> float:
     """The factor an import multiplies its frames by: 1 for integer files (their top code is the
-    camera's range) and for float frames whose white level (the 99.9th percentile of the white capture,
-    highest over views) is within :data:`LINEAR_RANGE`, else ``1 / level``."""
-    whites = list(whites)
+    camera's range) and for float frames whose white level (:func:`white_levels`, highest over views) is
+    within :data:`LINEAR_RANGE`, else ``1 / level``."""
     if any(stores_integers(p) for p in whites):
         return 1.0
-    level = max(float(np.percentile(read_frame(p), 99.9)) for p in whites)
-    if not level > 0 or LINEAR_RANGE[0] <= level <= LINEAR_RANGE[1]:
-        return 1.0  # in range, or all black (the decoder then says that nothing decoded)
-    return 1.0 / level
+    level = max(levels)
+    return 1.0 if LINEAR_RANGE[0] <= level <= LINEAR_RANGE[1] else 1.0 / level
+
+
+def check_not_negative(path: Path, image: np.ndarray, white_level: float) -> None:
+    """Refuse a frame with many values far below zero (:data:`NEGATIVE_LIMIT` of the view's white level,
+    in more than :data:`NEGATIVE_SHARE` of its values): a black level subtracted twice, a signed format
+    read wrongly. Noise around zero passes."""
+    far = np.count_nonzero(image < -NEGATIVE_LIMIT * white_level)
+    if far > NEGATIVE_SHARE * image.size:
+        raise InputError(f"{path}: {100 * far / image.size:.2g}% of its values are below -{NEGATIVE_LIMIT:g} x the white "
+                         f"level (down to {float(image.min()):.3g}, white {white_level:.3g}): frames must be linear "
+                         "light, at most noise below zero")
 
 
 def _nothing_decoded(vdir: Path, coverage: dict[str, int]) -> str:
@@ -147,6 +176,9 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
         raise InputError(f"projector size must be positive and at most 16384, got {w}x{h}")
     view_dirs = sorted((p for p in folder.glob("view_*") if p.is_dir()),  # view_2 before view_10
                        key=lambda p: (int(p.name[5:]) if p.name[5:].isdigit() else float("inf"), p.name)) or [folder]
+    if view_dirs != [folder] and frame_files(folder, strict=False):  # one view's frames would be left out
+        raise InputError(f"{folder} holds frames beside its view_NNN folders: move them into a view folder of their "
+                         "own (e.g. view_000) or import them separately")
     req = CaptureRequest(check_object_name(name), views=len(view_dirs), out=Path(root))
     views = [(vdir, frame_files(vdir)) for vdir in view_dirs]  # refuse bad names before writing anything
     for (vdir, files) in views:
@@ -159,7 +191,8 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 raise InputError(f"{files[key]}: reference {ref!r} is no named pattern ({', '.join(REFERENCE_NAMES)}), so "
                                  f"the image projected for it is needed as pattern__{ref}.png to relight and evaluate it")
     configs = [_psp_config(vdir, files) for vdir, files in views]
-    scale = frame_scale(files["white"] for _, files in views)
+    levels = white_levels(files["white"] for _, files in views)
+    scale = frame_scale([files["white"] for _, files in views], levels)
     path = Path(root) / name
     if path.exists():
         raise InputError(f"{path} already exists: import into another --out or choose another --object")
@@ -176,7 +209,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                                   "frame_scale": scale},
                              plan=plan_json, software={"sssphase": __version__})
     try:
-        for view, ((vdir, files), config) in enumerate(zip(views, configs, strict=True)):
+        for view, ((vdir, files), config, level) in enumerate(zip(views, configs, levels, strict=True)):
             dots = [DOTS_KEY_RE.match(k) for k in files if k.startswith("dots/")]
             spacing = 1 + max((int(v) for m in dots for v in m.groups()), default=0)
             plan = CapturePlan(w, h, config, (), gamma)
@@ -186,6 +219,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 shape = None
                 for key in sorted((k for k in files if not k.startswith("pattern/")), key=lambda k: k.startswith("dots/")):
                     image = read_frame(files[key]) * np.float32(scale)
+                    check_not_negative(files[key], image, level * scale)
                     if shape is not None and image.shape != shape:
                         raise InputError(f"{files[key]} is {image.shape[1]}x{image.shape[0]}, the other frames "
                                          f"{shape[1]}x{shape[0]}")
