@@ -35,6 +35,17 @@ def _views(session, views: str) -> list[int]:
         raise InputError(f"--views must be comma-separated integers, got {views!r}") from None
 
 
+def _same_pattern(pattern: np.ndarray, reference: np.ndarray) -> bool:
+    """Whether a pattern (Hp, Wp[, 3]) is the one a session's reference was captured under (within an 8-bit
+    step): only then is the relit image scored against that capture, whatever the pattern file is called."""
+    import numpy as np
+
+    a, b = np.asarray(pattern, np.float32), np.asarray(reference, np.float32)
+    if a.ndim != b.ndim:
+        a, b = (x if x.ndim == 3 else np.repeat(x[..., None], 3, axis=-1) for x in (a, b))
+    return a.shape == b.shape and bool(np.abs(a - b).max(initial=0.0) <= 1 / 255)
+
+
 def _model_tag(checkpoint: Path | None) -> str:
     """Short digest of the checkpoint path and modification time: a retrained model gets a new cache."""
     import hashlib
@@ -159,7 +170,7 @@ def relight_cmd(
             clipped = float((img[rv.proj.mask] > 1.0).any(axis=-1).mean()) if rv.proj.mask.any() else 0.0
             if "exr" not in formats and clipped > 0:
                 line += f"  ({clipped:.1%} of the object above 1.0 clipped in the PNG: --format exr keeps them)"
-            if name in rv.captured:
+            if name in rv.captured and _same_pattern(pats[names.index(name)], rv.references[name]):
                 met = relight_metrics(img, rv.captured[name], rv.proj.mask)
                 comparison_figure(rv.captured[name], img, rv.proj.mask, stem.with_name(stem.name + "_compare.png"),
                                   title=f"{rv.object} view {v}, {name}", metrics=met)

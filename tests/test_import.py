@@ -483,3 +483,17 @@ def test_frames_beside_view_folders_are_refused_not_left_out(tmp_path):
     _float_frames(folder / "view_001", 1.0)
     with pytest.raises(InputError, match="holds frames beside its view_NNN folders"):
         import_folder(folder, tmp_path / "s", "o", (W, H), patch=K)
+
+
+def test_a_given_projected_image_wins_over_our_pattern_of_the_same_name(tmp_path):
+    """``pattern__checkerboard.png`` beside ``ref__checkerboard``: the lab's own checkerboard (another check
+    size) is what its capture shows, so relighting and evaluation use it, not ours."""
+    from sssphase_core.processing.patterns import reference_pattern
+    from sssphase_core.relight import load_view
+
+    folder = _float_frames(tmp_path / "f", 1.0)
+    theirs = reference_pattern("stripes_x", W, H)  # not our checkerboard
+    np.save(folder / "pattern__checkerboard.npy", theirs)
+    np.save(folder / "ref__checkerboard.npy", _camera(theirs[None])[0])
+    rv = load_view(import_folder(folder, tmp_path / "s", "o", (W, H), patch=K), 0)
+    np.testing.assert_allclose(rv.references["checkerboard"], theirs, atol=1e-6)

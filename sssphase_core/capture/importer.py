@@ -197,9 +197,11 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     if path.exists():
         raise InputError(f"{path} already exists: import into another --out or choose another --object")
     frames: list[dict[str, Any]] = []
+    given = {k for _, files in views for k in files if k.startswith("pattern/")}  # the projected images the user gives
     for key in sorted({k for _, files in views for k in files if k.startswith("ref/")}):
         ref = key.removeprefix("ref/")
-        k, kind, params = _reference_params(ref, w, h) if ref in REFERENCE_NAMES else (key, "image", {"file": ref})
+        named = ref in REFERENCE_NAMES and f"pattern/{ref}" not in given  # a given image wins over our pattern of that name
+        k, kind, params = _reference_params(ref, w, h) if named else (key, "image", {"file": ref})
         frames.append({"name": key, "key": key, "kind": kind, "params": {"width": w, "height": h, **params},
                        "exposure": 1.0})
     psp_frames = json.loads(capture_plan(w, h, psp=configs[0], gamma=gamma).to_json())["frames"]  # as a capture lists them

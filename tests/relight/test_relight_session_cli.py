@@ -377,3 +377,23 @@ def test_blend_without_a_decoder_is_one_clear_error(session, tmp_path):
     res = runner.invoke(app, ["relight", str(session), "--pattern", "checkerboard", "--backend", "blend",
                               "--out", str(tmp_path)])
     assert res.exit_code != 0 and "blend backend blends the decoder in" in str(res.exception)
+
+
+def test_a_pattern_is_scored_against_a_reference_only_when_it_is_that_pattern(session, tmp_path):
+    """A file called checkerboard.png that holds stripes was scored against the captured checkerboard
+    (10.7 dB, a comparison figure and all); the real checkerboard, as an 8-bit file, still is."""
+    import cv2
+
+    from sssphase_core.processing.patterns import reference_pattern
+
+    rv = load_view(Session.open(session), 1)
+    wp, hp = rv.proj.projector_size
+    for folder, name in ((tmp_path / "liar", "stripes_x"), (tmp_path / "honest", "checkerboard")):
+        folder.mkdir()
+        cv2.imwrite(str(folder / "checkerboard.png"), np.round(reference_pattern(name, wp, hp) * 255).astype(np.uint8))
+        res = runner.invoke(app, ["relight", str(session), "--pattern", str(folder / "checkerboard.png"), "--backend",
+                                  "none", "--views", "1", "--out", str(folder / "out")])
+        assert res.exit_code == 0, res.output
+        scored = "vs reference" in res.output
+        assert scored == (name == "checkerboard"), res.output
+        assert any((folder / "out").glob("*_compare.png")) == scored
