@@ -87,7 +87,7 @@ def decode_cmd(
     out: Path = typer.Option(..., "--out", help="output folder for maps (.npy) and viewable PNGs"),
     projector: str | None = typer.Option(None, "--projector", help="projector WxH (default: from plan.json)"),
     min_modulation: float = typer.Option(0.01, "--min-modulation", help="minimum fringe modulation B (normalised units)"),
-    saturation: float | None = typer.Option(None, "--saturation", help="saturation level in [0, 1] of the file's range (default 0.99 for integer files, none for EXR/float)"),
+    saturation: float | None = typer.Option(None, "--saturation", help="clipping level in the frames' units: integer files read as 0 to 1 (default 0.99), EXR/float files in their own units (default: none)"),
 ) -> None:
     """Decode PSP frames into camera -> projector correspondences (xp, yp, mask, reason) + PNGs."""
     import numpy as np

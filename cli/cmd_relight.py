@@ -103,17 +103,24 @@ def relight_cmd(
     from sssphase_core.relight.evaluation import comparison_figure, relight_metrics
     from sssphase_core.store.session import Session
 
+    from sssphase_core.compute import compute_device
+    from sssphase_core.relight.sources import check_backends
+
     formats = check_image_formats(tuple(f.strip().lower() for f in image_format.split(",") if f.strip()))
     if "exr" in formats:
         from sssphase_core.store import exr
 
         if not exr.available():
             raise InputError(f"--format exr: {exr.MISSING}")
-    s = Session.open(session)
+    if any(not p.strip() for p in pattern):
+        raise InputError("--pattern is empty: give an image file or a named pattern (checkerboard, stripes_x, ...)")
+    compute_device(device)  # one line before any progress is drawn
     if checkpoint is not None:
         checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
-        if backend == "torch":
-            console.print(f"torch backend: {checkpoint}")
+    check_backends([backend], checkpoint)
+    s = Session.open(session)
+    if checkpoint is not None and backend == "torch":
+        console.print(f"torch backend: {checkpoint}")
     names, pats = [], []
     for v in _views(s, views):
         rv = load_view(s, v)
@@ -262,6 +269,9 @@ def eval_relight(
     if checkpoint is not None:
         checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
     check_backends(backends, checkpoint)
+    from sssphase_core.compute import compute_device
+
+    compute_device(device)  # one line before any progress is drawn
     rows, found = [], find_sessions(sessions)  # a missing folder is one line before any progress is drawn
     by_object: dict[str, Path] = {}
     for s in found:  # outputs are named by object and view: two sessions of one object would overwrite each other

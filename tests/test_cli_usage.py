@@ -186,3 +186,21 @@ def test_click_usage_errors_are_one_line_naming_where_help_is(args: list[str], e
     out = res.stdout + res.stderr
     assert res.returncode == 2, out
     assert out.strip().splitlines() == [expected], out
+
+
+@pytest.mark.parametrize(("args", "expected"), [
+    (["relight", "no_session", "--pattern", ""],
+     "error: --pattern is empty: give an image file or a named pattern (checkerboard, stripes_x, ...)"),
+    (["relight", "no_session", "--pattern", "checkerboard", "--backend", "bogus"],
+     "error: unknown backend 'bogus'; available: analytic, blend, exact, measured, none, torch"),
+    (["relight", "no_session", "--pattern", "checkerboard", "--device", "tpu"],
+     "error: unknown device 'tpu': use auto, cpu, cuda or cuda:N"),
+    (["eval", "relight", "no_session", "--backend", "none", "--device", "tpu"],
+     "error: unknown device 'tpu': use auto, cpu, cuda or cuda:N"),
+])
+def test_relight_options_are_checked_before_the_session_is_read(args: list[str], expected: str) -> None:
+    """One line, before any progress bar is drawn (an empty one preceded the device error)."""
+    res = _sss(*args)
+    out = res.stdout + res.stderr
+    assert res.returncode == 2, out
+    assert out.strip().splitlines() == [expected], out

@@ -231,7 +231,8 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                                          f"(at least {MIN_FRAME_SIDE} px a side)")
                     proc.add(_ImportedFrame(key, image), {"name": key, "key": key, "exposure": 1.0})
                 for key in (k for k in files if k.startswith("pattern/")):
-                    proc.patterns[f"ref/{key.removeprefix('pattern/')}"] = read_pattern(files[key], (w, h))
+                    proc.patterns[f"ref/{key.removeprefix('pattern/')}"] = read_pattern(
+                        files[key], (w, h), hint="the image projected for a reference is the projector's size (--projector)")
                 info = proc.finish()
                 if not info["coverage"].get("VALID"):
                     raise InputError(_nothing_decoded(vdir, info["coverage"]))
