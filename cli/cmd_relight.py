@@ -70,7 +70,11 @@ def _say_resize(path: str, size: tuple[int, int], mode: str) -> None:
 def relight_cmd(
     session: Annotated[Path, typer.Argument(help="Session folder (one object).")],
     pattern: Annotated[list[str], typer.Option("--pattern", help="Pattern image (PNG/TIFF, float TIFF/EXR or a .npy array of values in [0, 1]) or a named pattern (checkerboard, stripes_x, ...); repeat.")],
-    backend: BackendOpt = "torch",
+    backend: Annotated[str, typer.Option("--backend", help="auto (blend with --checkpoint, else analytic), torch, "
+                                         "analytic, blend (torch and analytic weighted pixel by pixel by how well they "
+                                         "relight the view's own fringe captures; needs --checkpoint), measured (the "
+                                         "session's captured light transport), none, or exact (simulated sessions "
+                                         "only: the simulator's ground truth, for evaluation).")] = "auto",
     checkpoint: CheckpointOpt = None,
     out: Annotated[Path, typer.Option("--out", help="Output folder.")] = Path("relit"),
     views: Annotated[str, typer.Option(help="Comma-separated views (default: all).")] = "",
@@ -104,7 +108,7 @@ def relight_cmd(
     from sssphase_core.store.session import Session
 
     from sssphase_core.compute import compute_device
-    from sssphase_core.relight.sources import check_backends
+    from sssphase_core.relight.sources import check_backends, uses_decoder
 
     formats = check_image_formats(tuple(f.strip().lower() for f in image_format.split(",") if f.strip()))
     if "exr" in formats:
@@ -117,10 +121,14 @@ def relight_cmd(
     compute_device(device)  # one line before any progress is drawn
     if checkpoint is not None:
         checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
+    if backend == "auto":  # the best measured source the user can run (README: blend >= torch on every object tried)
+        backend = "blend" if checkpoint is not None else "analytic"
+        console.print(f"backend: {backend}" + ("" if checkpoint is not None else
+                                                " (no --checkpoint: the analytic model; a trained decoder blends in)"))
     check_backends([backend], checkpoint)
     s = Session.open(session)
-    if checkpoint is not None and backend == "torch":
-        console.print(f"torch backend: {checkpoint}")
+    if checkpoint is not None and uses_decoder(backend):
+        console.print(f"decoder: {checkpoint}")
     names, pats = [], []
     for v in _views(s, views):
         rv = load_view(s, v)

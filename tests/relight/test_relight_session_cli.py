@@ -397,3 +397,12 @@ def test_a_pattern_is_scored_against_a_reference_only_when_it_is_that_pattern(se
         scored = "vs reference" in res.output
         assert scored == (name == "checkerboard"), res.output
         assert any((folder / "out").glob("*_compare.png")) == scored
+
+
+def test_relight_without_a_backend_takes_the_analytic_model_until_a_decoder_is_given(session, tmp_path):
+    """`--backend auto` (the default): the blend of decoder and analytic model with --checkpoint (ahead of
+    the decoder alone on every object measured), the analytic model without one, saying which."""
+    res = runner.invoke(app, ["relight", str(session), "--views", "1", "--pattern", "checkerboard", "--out", str(tmp_path)])
+    assert res.exit_code == 0, res.output
+    assert "backend: analytic (no --checkpoint" in res.output
+    assert (tmp_path / "sand_rake_v1_checkerboard_analytic.png").exists()
