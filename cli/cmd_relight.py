@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
+
+if TYPE_CHECKING:
+    import numpy as np
 
 console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
 
@@ -89,6 +92,7 @@ def relight_cmd(
     """Relight a captured object under new projector patterns (several patterns share one footprint pass)."""
     import numpy as np
 
+    from sssphase_core.compute import compute_device
     from sssphase_core.errors import InputError
     from sssphase_core.learning.training import resolve_checkpoint
     from sssphase_core.processing.patterns import REFERENCE_NAMES, reference_pattern
@@ -105,10 +109,8 @@ def relight_cmd(
         write_images,
     )
     from sssphase_core.relight.evaluation import comparison_figure, relight_metrics
-    from sssphase_core.store.session import Session
-
-    from sssphase_core.compute import compute_device
     from sssphase_core.relight.sources import check_backends, uses_decoder
+    from sssphase_core.store.session import Session
 
     formats = check_image_formats(tuple(f.strip().lower() for f in image_format.split(",") if f.strip()))
     if "exr" in formats:
@@ -264,10 +266,11 @@ def eval_relight(
 ) -> None:
     """Relight every reference pattern of the sessions and tabulate MSE / PSNR / SSIM over objects and views."""
     from sssphase_core.bench.output import write_bench_report
+    from sssphase_core.compute import compute_device
+    from sssphase_core.errors import InputError
     from sssphase_core.learning.training import resolve_checkpoint
     from sssphase_core.relight import load_view
     from sssphase_core.relight.evaluation import aggregate, evaluate_view, lpips_note, metrics_table
-    from sssphase_core.errors import InputError
     from sssphase_core.relight.sources import MODEL_FREE, check_backends, uses_decoder
     from sssphase_core.store.session import find_sessions
 
@@ -277,8 +280,6 @@ def eval_relight(
     if checkpoint is not None:
         checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
     check_backends(backends, checkpoint)
-    from sssphase_core.compute import compute_device
-
     compute_device(device)  # one line before any progress is drawn
     rows, found = [], find_sessions(sessions)  # a missing folder is one line before any progress is drawn
     by_object: dict[str, Path] = {}

@@ -14,6 +14,7 @@ import logging
 import os
 import signal
 import sys
+import warnings
 
 import typer
 from rich.console import Console
@@ -105,6 +106,13 @@ def _interrupt_on_sigterm(signum: int, frame: object) -> None:
     raise KeyboardInterrupt  # `kill PID` says "interrupted" and keeps work done, as Ctrl-C does
 
 
+def _one_line_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                      file: object = None, line: str | None = None) -> None:
+    """A warning as one line, without the source line that Python prints under it (SSS_DEBUG=1 keeps that)."""
+    text = " ".join(str(message).split())
+    err_console.print(f"[yellow]warning:[/] {escape(text)}" + ("" if category is UserWarning else f" ({category.__name__})"))
+
+
 def _is_usage_exception(exc: BaseException, name: str) -> bool:
     """Whether ``exc`` is click's ``name`` exception, by class name.
 
@@ -132,6 +140,7 @@ def main() -> None:
     """Run the CLI; user-facing errors are printed as one clear message, never a traceback."""
     signal.signal(signal.SIGTERM, _interrupt_on_sigterm)
     if not os.environ.get("SSS_DEBUG"):
+        warnings.showwarning = _one_line_warning
         # zarr decodes chunks on a background asyncio loop: when one chunk is damaged, its sibling tasks
         # are dropped at exit and asyncio logs each with a traceback. The error itself is reported once.
         logging.getLogger("asyncio").setLevel(logging.CRITICAL)

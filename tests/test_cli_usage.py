@@ -204,3 +204,28 @@ def test_relight_options_are_checked_before_the_session_is_read(args: list[str],
     out = res.stdout + res.stderr
     assert res.returncode == 2, out
     assert out.strip().splitlines() == [expected], out
+
+
+def test_a_warning_that_escapes_a_command_is_one_line_without_its_source(monkeypatch, capsys) -> None:
+    """numpy's RuntimeWarnings (an overflow on extreme input) printed their file, line and source line."""
+    import warnings
+
+    import numpy as np
+
+    from sssphase_cli import main as cli_main
+
+    def noisy(standalone_mode: bool = False) -> int:
+        np.float32(3e38) * np.float32(10)  # overflow: a RuntimeWarning
+        warnings.warn("two\nlines")
+        return 0
+
+    monkeypatch.delenv("SSS_DEBUG", raising=False)
+    monkeypatch.setattr(cli_main, "app", noisy)
+    monkeypatch.setattr(warnings, "showwarning", warnings.showwarning)  # restored after the test
+    with warnings.catch_warnings():
+        warnings.simplefilter("always")
+        with pytest.raises(SystemExit) as done:
+            cli_main.main()
+    assert done.value.code == 0
+    err = capsys.readouterr().err
+    assert err.splitlines() == ["warning: overflow encountered in scalar multiply (RuntimeWarning)", "warning: two lines"], err
