@@ -632,3 +632,16 @@ def test_export_never_writes_into_a_session(intact_session, tmp_path):
     for out in (copy.parent, copy, copy / "view_000"):
         _one_line(_cli("export", str(copy), "--out", str(out)), f"would write into the session {copy.resolve()}")
     assert sorted(p for p in copy.rglob("*")) == before
+
+
+def test_a_truncated_frame_is_one_line_without_the_native_librarys_own(tmp_path):
+    """libpng printed "libpng error: Read Error" on stderr (file descriptor 2, past Python) before ours."""
+    import cv2
+
+    cv2.imwrite(str(tmp_path / "whole.png"), (np.random.default_rng(0).random((60, 80, 3)) * 255).astype(np.uint8))
+    data = (tmp_path / "whole.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[: len(data) // 2])
+    code = ("from pathlib import Path\nfrom sssphase_core.store.imageio import read_frame\n"
+            f"try:\n    read_frame(Path({str(tmp_path / 'cut.png')!r}))\nexcept Exception as e:\n    print(e)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert res.stderr == "" and "damaged, truncated or not an image" in res.stdout, (res.stdout, res.stderr)

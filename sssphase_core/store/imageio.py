@@ -7,7 +7,10 @@ One reader per meaning, so every command normalises the same file the same way:
 
 from __future__ import annotations
 
+import contextlib
+import os
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -224,6 +227,24 @@ def stores_integers(path: Path) -> bool:
         raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
 
 
+@contextlib.contextmanager
+def _native_stderr_silenced() -> Iterator[None]:
+    """Native libraries' writes to file descriptor 2 (not Python's) dropped for the block: the error they
+    describe is reported once, as one line, by the caller."""
+    try:
+        saved = os.dup(2)
+    except OSError:  # no stderr to silence
+        yield
+        return
+    try:
+        with open(os.devnull, "wb") as null:
+            os.dup2(null.fileno(), 2)
+            yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+
+
 def _read_pixels(path: Path) -> np.ndarray:
     """A frame file's pixels as stored (RGB order, integer codes not scaled): ``.npy`` (never
     unpickled), ``.exr``, or any PNG/TIFF that OpenCV decodes."""
@@ -238,9 +259,10 @@ def _read_pixels(path: Path) -> np.ndarray:
         return exr.read_exr(path)
     import cv2
 
-    arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    with _native_stderr_silenced():  # libpng/libtiff print their own "Read Error" lines on a damaged file
+        arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if arr is None:
-        raise InputError(f"cannot read image {path}")
+        raise InputError(f"cannot read image {path} (damaged, truncated or not an image)")
     if arr.ndim == 3:
         arr = cv2.cvtColor(arr[..., :3], cv2.COLOR_BGR2RGB) if arr.shape[2] >= 3 else arr
     return arr
