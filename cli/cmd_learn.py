@@ -30,14 +30,20 @@ NViewsOpt = Annotated[int, typer.Option(min=1, help="Turntable views per object 
 DEFAULT_CACHE = Path(".sss_cache")
 
 
+MAX_LR = 10.0  # SimSiam's SGD rate is 0.05 x batch/256 (0.8 at batch 4096); Adam's 1e-3
+
+
 def _check_lr(lr: float) -> None:
-    """A learning rate is a finite number > 0 (NaN or a negative one would fail or diverge after the first step)."""
+    """A learning rate is a finite number > 0 (NaN or a negative one would fail or diverge after the first step)
+    and at most :data:`MAX_LR` (above it, a run diverges, or, with the decoder's bounded heads, silently learns nothing)."""
     import math
 
-    if not (math.isfinite(lr) and lr > 0):
-        from sssphase_core.errors import InputError
+    from sssphase_core.errors import InputError
 
+    if not (math.isfinite(lr) and lr > 0):
         raise InputError(f"--lr must be a finite number > 0, got {lr}")
+    if lr > MAX_LR:
+        raise InputError(f"--lr must be at most {MAX_LR:g}, got {lr:g} (defaults: 0.05 for pretraining, 1e-3 for the decoder)")
 
 
 def _check_batch(batch_size: int, ds, what: str) -> None:
@@ -370,6 +376,10 @@ def eval_knn(
     vds = _views(names, _chosen(views, "0,1,2,3", sessions), n_views=n_views, rig=rig, pixels=pixels_per_view,
                  footprints=False, seed=seed, cache=cache, sessions=sessions)
     names = names or _objects(vds)
+    n_patches = sum(len(v.pixels) for v in vds)
+    if max(ks) >= n_patches:
+        raise InputError(f"--k {max(ks)} is not smaller than the {n_patches} patches read: every patch would get the "
+                         "majority label; lower --k or raise --pixels-per-view")
     results = {}
     for run, path in runs.items():
         with console.status(f"embedding {sum(len(v.pixels) for v in vds)} patches with {run}"):

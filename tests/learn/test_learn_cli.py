@@ -164,6 +164,31 @@ def test_compare_names_that_are_not_plain_or_new_are_refused_first(item, tmp_pat
     (["train", "decoder", "--end-to-end", "--lr", "-1"], "error: --lr must be a finite number > 0, got -1.0"),
     (["train", "decoder", "--end-to-end", "--lr", "nan"], "error: --lr must be a finite number > 0, got nan"),
     (["train", "pretrain", "--lr", "0"], "error: --lr must be a finite number > 0, got 0.0"),
+    # SimSiam's BatchNorm1d cannot normalise a batch of one ("Expected more than 1 value per channel")
+    (["train", "pretrain", "--batch-size", "1", "--knn-monitor", "0"],
+     "error: --batch-size must be at least 2 for pretraining, got 1: SimSiam's projector and predictor normalise"),
+    # NaN/inf crashed after config.toml was written (so --config repeated the crash); -1 meant no warmup, silently
+    (["train", "pretrain", "--warmup-epochs", "nan"], "error: --warmup-epochs must be a finite number >= 0, got nan"),
+    (["train", "pretrain", "--warmup-epochs", "inf"], "error: --warmup-epochs must be a finite number >= 0, got inf"),
+    (["train", "pretrain", "--warmup-epochs", "-1"], "error: --warmup-epochs must be a finite number >= 0, got -1.0"),
+    # -1 silently meant no auxiliary head; 1 is a one-class "classification" that never learns anything
+    (["train", "decoder", "--end-to-end", "--aux-classes", "-1"],
+     "error: --aux-classes must be 0 (no auxiliary material head) or a number of material classes from 2 to 24"),
+    (["train", "decoder", "--end-to-end", "--aux-classes", "1"], "the simulator's materials, which label the data), got 1"),
+    (["train", "decoder", "--end-to-end", "--aux-classes", "1000000000000"], "got 1000000000000"),  # was: out of memory
+    (["train", "pretrain", "--lr", "1e12"], "error: --lr must be at most 10, got 1e+12"),  # a silent no-op run (decoder)
+    (["train", "decoder", "--end-to-end", "--lr", "11"], "error: --lr must be at most 10, got 11"),
+    # a negative count silently meant "off" or "every step"; a negative seed crashed numpy's generator
+    (["train", "pretrain", "--knn-monitor", "-1"], "Invalid value for '--knn-monitor'"),
+    (["train", "pretrain", "--ckpt-every", "-1"], "Invalid value for '--ckpt-every'"),
+    (["train", "decoder", "--end-to-end", "--ckpt-every", "-5"], "Invalid value for '--ckpt-every'"),
+    (["train", "decoder", "--end-to-end", "--seed", "-1"], "Invalid value for '--seed'"),
+    (["eval", "knn", "--checkpoint", "ck.pt", "--seed", "-1"], "Invalid value for '--seed'"),
+    (["eval", "footprints", "--checkpoint", "ck.pt", "--seed", "99999999999999999999"], "Invalid value for '--seed'"),
+    (["train", "pretrain", "--n-views", "0"], "Invalid value for '--n-views'"),
+    (["eval", "footprints", "--checkpoint", "ck.pt", "--n-views", "-1"], "Invalid value for '--n-views'"),
+    (["viz", "pca", "--checkpoint", "ck.pt", "--stride", "0"], "Invalid value for '--stride'"),
+    (["viz", "pca", "--checkpoint", "ck.pt", "--view", "-1"], "Invalid value for '--view'"),
 ])
 def test_bad_sample_counts_and_learning_rates_are_refused_before_any_work(args, expected, tmp_path):
     import subprocess

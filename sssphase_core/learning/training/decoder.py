@@ -51,11 +51,13 @@ class DecoderConfig(LoopConfig):
 def check_aux_classes(n: int, dataset: PatchDataset | None = None) -> None:
     """``n`` (``--aux-classes``) is 0 (no auxiliary head) or a number of material classes >= 2 that covers
     every material label of ``dataset``, which must have some (else the head would never train)."""
+    from sssphase_core.sim.materials import MATERIAL_NAMES  # what material labels index
+
     if n == 0:
         return
-    if n < 2:
-        raise InputError(f"--aux-classes must be 0 (no auxiliary material head) or a number of material classes >= 2, "
-                         f"got {n}")
+    if not 2 <= n <= len(MATERIAL_NAMES):
+        raise InputError(f"--aux-classes must be 0 (no auxiliary material head) or a number of material classes from 2 "
+                         f"to {len(MATERIAL_NAMES)} (the simulator's materials, which label the data), got {n}")
     if dataset is None:
         return
     labels = dataset.labels("material")

@@ -1,0 +1,157 @@
+"""Bad training options and unusable checkpoints are refused with one line, before any work or file."""
+
+from __future__ import annotations
+
+import importlib
+import math
+
+import numpy as np
+import pytest
+import torch
+from typer.testing import CliRunner
+
+from sssphase_core.errors import DataError, InputError
+
+app = importlib.import_module("sssphase_cli.main").app
+runner = CliRunner()
+
+
+def _decoder_checkpoint(path, preset, *, poison: str | None = None) -> None:
+    """A decoder checkpoint of fresh ``preset`` weights (no training); ``poison``: the part set to NaN."""
+    from sssphase_core.learning.models import Decoder, Encoder
+    from sssphase_core.learning.training import save_checkpoint
+
+    torch.manual_seed(0)
+    parts = {"encoder": Encoder(preset).state_dict(), "decoder": Decoder(preset, head="reciprocal").state_dict()}
+    if poison is not None:
+        for t in parts[poison].values():
+            if t.is_floating_point():
+                t.fill_(math.nan)
+    save_checkpoint(path, {"kind": "decoder", "preset": preset.to_dict(), "config": {"head": "reciprocal"}, **parts})
+
+
+@pytest.mark.parametrize("poison", ["decoder", "encoder"])
+def test_a_checkpoint_with_non_finite_weights_is_refused_where_it_is_loaded(poison, tiny, tmp_path):
+    """NaN weights made every footprint NaN, which relighting silently zeroed (then reported a PSNR)."""
+    from sssphase_core.learning.backends.torch_backend import TorchBackend
+    from sssphase_core.learning.training import load_decoder, load_encoder
+
+    good, bad = tmp_path / "good.pt", tmp_path / "nan_dec.pt"
+    _decoder_checkpoint(good, tiny)
+    _decoder_checkpoint(bad, tiny, poison=poison)
+    load_decoder(good)  # fresh finite weights load
+    TorchBackend(checkpoint=good)
+    expected = rf"{bad}: the {poison} weights are not all finite \(\d+ NaN or infinite values"
+    with pytest.raises(DataError, match=expected):
+        load_decoder(bad)
+    with pytest.raises(DataError, match=expected):
+        TorchBackend(checkpoint=bad)  # what `sss relight --backend torch --checkpoint` and eval footprints use
+    if poison == "encoder":
+        with pytest.raises(DataError, match=expected):
+            load_encoder(bad)  # `--encoder`, `eval knn`, `viz pca`
+        with pytest.raises(DataError, match=expected):
+            runner.invoke(app, ["train", "decoder", "--encoder", str(bad), "--out", str(tmp_path / "dec")],
+                          catch_exceptions=False)
+        assert not (tmp_path / "dec").exists()
+
+
+def test_a_warmup_saved_as_nan_is_refused_when_the_config_is_repeated(tmp_path):
+    (tmp_path / "config.toml").write_text('command = "train pretrain"\n[options]\nwarmup_epochs = nan\n')
+    with pytest.raises(InputError, match="--warmup-epochs must be a finite number >= 0, got nan"):
+        runner.invoke(app, ["train", "pretrain", "--config", str(tmp_path), "--out", str(tmp_path / "run"),
+                            "--cache", str(tmp_path / "cache")], catch_exceptions=False)
+    assert not (tmp_path / "run").exists() and not (tmp_path / "cache").exists()
+
+
+def test_the_library_refuses_what_the_cli_refuses(dataset, tiny, tmp_path):
+    """TorchBackend.pretrain/fit call these loops directly: same checks, before the run folder is made."""
+    from sssphase_core.learning.training import DecoderConfig, PretrainConfig, pretrain, train_decoder
+
+    for cfg, match in [(PretrainConfig(batch_size=1), "--batch-size must be at least 2"),
+                       (PretrainConfig(warmup_epochs=float("nan")), "--warmup-epochs must be a finite number"),
+                       (PretrainConfig(warmup_epochs=-1.0), "--warmup-epochs must be a finite number")]:
+        with pytest.raises(InputError, match=match):
+            pretrain(cfg, dataset, tmp_path / "pre", preset=tiny, progress=False)
+    with pytest.raises(InputError, match="--aux-classes must be 0"):
+        train_decoder(DecoderConfig(aux_classes=-1), None, dataset, tmp_path / "dec", preset=tiny, progress=False)
+    # the synthetic views' material labels are 0 and 1: one class is too few
+    with pytest.raises(InputError, match="--aux-classes must be 0 .*got 1"):
+        train_decoder(DecoderConfig(aux_classes=1), None, dataset, tmp_path / "dec", preset=tiny, progress=False)
+    assert not (tmp_path / "pre").exists() and not (tmp_path / "dec").exists()
+
+
+def test_aux_classes_must_cover_the_material_labels_of_the_training_data(synthetic):
+    from sssphase_core.learning.data import PatchDataset, ViewData
+    from sssphase_core.learning.training.decoder import check_aux_classes
+
+    views = synthetic[0]
+    ds = PatchDataset(views, 16, ["a", "b"], with_targets=True)  # labels 0 and 1
+    check_aux_classes(2, ds)
+    check_aux_classes(0, ds)
+    wide = [ViewData(v.object, v.view, v.psp, v.pixels, v.materials + 16, v.footprints) for v in views]
+    with pytest.raises(InputError, match="--aux-classes 3 is too few: the training data have material label 17 .*at least 18"):
+        check_aux_classes(3, PatchDataset(wide, 16, ["a", "b"], with_targets=True))
+    unlabelled = [ViewData(v.object, v.view, v.psp, v.pixels, np.full_like(v.materials, -1), v.footprints) for v in views]
+    with pytest.raises(InputError, match="no material labels"):
+        check_aux_classes(24, PatchDataset(unlabelled, 16, ["a", "b"], with_targets=True))
+
+
+def _session_root(synthetic, root):
+    """Sessions 'one' (view 0) and 'three' (views 0, 2, 5) made of a synthetic view, under ``root``."""
+    from sssphase_core.store.session import Session
+
+    v = synthetic[0][0]
+    mask = np.zeros(v.psp.shape[1:3], bool)
+    mask[v.pixels[:, 0], v.pixels[:, 1]] = True
+    for name, views in (("one", [0]), ("three", [0, 2, 5])):
+        s = Session.create(root, name)
+        for view in views:
+            w = s.begin_view(view)
+            w.write("psp", v.psp)
+            w.write("corr/mask", mask)
+            w.commit()
+    return root
+
+
+def test_a_session_folder_given_as_sessions_is_a_one_session_set(synthetic, tmp_path):
+    """`--sessions S/obj` said "no complete session views under S/obj"; --check-sessions already took it."""
+    from sssphase_core.learning.data import held_out_split, session_views
+
+    root = _session_root(synthetic, tmp_path / "sessions")
+    one = root / "three"
+    assert held_out_split(one) == ({"three": [0, 2]}, {"three": [5]}) == held_out_split(root, ["three"])
+    got = [(d.object, d.view, d.pixels.tolist()) for d in session_views(one, pixels_per_view=5)]
+    assert got == [(d.object, d.view, d.pixels.tolist()) for d in session_views(root, ["three"], pixels_per_view=5)]
+    assert [d.object for d in session_views(one, ["three"], [2], pixels_per_view=5)] == ["three"]
+    with pytest.raises(DataError, match="no session for \\['one'\\]"):
+        session_views(one, ["one"])
+
+
+def test_eval_knn_reads_a_session_folder_given_as_sessions(synthetic, tiny, tmp_path):
+    import json
+
+    root = _session_root(synthetic, tmp_path / "sessions")
+    ckpt = tmp_path / "enc.pt"
+    _decoder_checkpoint(ckpt, tiny)
+    res = runner.invoke(app, ["eval", "knn", "--checkpoint", f"fresh={ckpt}", "--sessions", str(root / "three"),
+                              "--pixels-per-view", "8", "--k", "1", "--out", str(tmp_path / "knn.json")],
+                        catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    assert "captured sessions under" in res.output and "three view 0,2,5" in res.output
+    assert json.loads((tmp_path / "knn.json").read_text())["views"] == "0,2,5"
+
+
+def test_a_batch_or_k_larger_than_the_data_is_refused_before_the_run_folder_is_written(synthetic, tiny, tmp_path):
+    """Too few patches for one batch failed inside the loop, after config.toml was written; a k of at least
+    the patches read made every kNN prediction the majority label, silently."""
+    root = _session_root(synthetic, tmp_path / "sessions")
+    with pytest.raises(InputError, match=r"--batch-size 1000 is more than the \d+ training patches"):
+        runner.invoke(app, ["train", "pretrain", "--sessions", str(root), "--pixels-per-view", "8", "--batch-size", "1000",
+                            "--out", str(tmp_path / "run")], catch_exceptions=False)
+    assert not (tmp_path / "run").exists()
+    ckpt = tmp_path / "enc.pt"
+    _decoder_checkpoint(ckpt, tiny)
+    with pytest.raises(InputError, match=r"--k 32 is not smaller than the 32 patches read"):
+        runner.invoke(app, ["eval", "knn", "--checkpoint", str(ckpt), "--sessions", str(root), "--pixels-per-view", "8",
+                            "--k", "5,32", "--out", str(tmp_path / "knn.json")], catch_exceptions=False)
+    assert not (tmp_path / "knn.json").exists()
