@@ -216,7 +216,7 @@ def test_a_warning_that_escapes_a_command_is_one_line_without_its_source(monkeyp
 
     def noisy(standalone_mode: bool = False) -> int:
         np.float32(3e38) * np.float32(10)  # overflow: a RuntimeWarning
-        warnings.warn("two\nlines")
+        warnings.warn("two\nlines", stacklevel=1)
         return 0
 
     monkeypatch.delenv("SSS_DEBUG", raising=False)
