@@ -123,11 +123,13 @@ def relight_cmd(
     compute_device(device)  # one line before any progress is drawn
     if checkpoint is not None:
         checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
-    if backend == "auto":  # the best measured source the user can run (README: blend >= torch on every object tried)
+    auto = backend == "auto"  # the best measured source the user can run (README: blend >= torch on every object tried)
+    if auto:
         backend = "blend" if checkpoint is not None else "analytic"
+    check_backends([backend], checkpoint)
+    if auto:
         console.print(f"backend: {backend}" + ("" if checkpoint is not None else
                                                 " (no --checkpoint: the analytic model; a trained decoder blends in)"))
-    check_backends([backend], checkpoint)
     s = Session.open(session)
     if checkpoint is not None and uses_decoder(backend):
         console.print(f"decoder: {checkpoint}")

@@ -299,9 +299,9 @@ def check_backends(names: Sequence[str], checkpoint: Path | str | None) -> None:
             raise InputError(f"unknown backend {name!r}; available: {', '.join(sorted(set(known)))}")
         needs_checkpoint(name, checkpoint)
     if checkpoint is not None and any(uses_decoder(n) for n in names):
-        from sssphase_core.learning.training.checkpoints import load_checkpoint
+        from sssphase_core.learning.training.checkpoints import load_decoder
 
-        load_checkpoint(checkpoint)  # raises DataError naming what the file is
+        load_decoder(checkpoint)  # raises DataError naming what the file is, or weights that are not finite
 
 
 def uses_decoder(name: str) -> bool:
