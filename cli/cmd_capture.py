@@ -96,6 +96,10 @@ def capture(
     for ref in reference or ():
         if ref not in REFERENCE_NAMES:
             frame_shape(Path(ref))  # an unreadable or empty image file is one line before a daemon starts
+    if dot_spacing is not None:  # 0 meant the default, 10^12 exhausted the memory: one line before a daemon starts
+        from sssphase_core.processing.patterns import check_dot_spacing
+
+        check_dot_spacing(dot_spacing)
     req = CaptureRequest(object_name, views, footprints, tuple(reference or ()), brackets,
                          keep_dots, keep_unwrap, resume, out, seed, preset, dot_spacing, transport, drawn)
     from sssphase_daemon.client import local_client

@@ -12,9 +12,12 @@ from rich.console import Console
 def write_result(console: Console, out: Path, md: Path | None, result: dict[str, Any], markdown: str) -> Path:
     """``result`` as JSON to ``out`` and ``markdown`` to ``md`` (default: ``out`` with ``.md``); prints the
     table and the paths. Returns the Markdown path."""
+    from sssphase_core.bench.output import check_result_paths
+
+    md = md or out.with_suffix(".md")
+    check_result_paths(out, md)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=1, default=str))
-    md = md or out.with_suffix(".md")
     md.parent.mkdir(parents=True, exist_ok=True)
     md.write_text(markdown)
     console.print(markdown)

@@ -139,6 +139,11 @@ def test_sigterm_says_interrupted_like_ctrl_c(tmp_path) -> None:
         (["capture", "--object", "apple", "--timeout", "nan"], "--timeout must be a number of seconds in (0, 86400], got nan"),
         (["capture", "--object", "apple", "--seed", "99999999999999999999999"],
          "--seed must be 0 to 9223372036854775807 (2**63 - 1, what the sim rig takes), got 99999999999999999999999"),
+        *((["capture", "--object", "apple", "--footprints", "--dot-spacing", v],
+           f"dot spacing must be 1 to 256 projector px (the projector's side at most; the plan holds spacing^2 dot "
+           f"frames), got {v}") for v in ("0", "1000000000000")),
+        (["patterns", "--footprints", "--projector", "64x48", "--dot-spacing", "100", "--out", "never_written"],
+         "dot spacing must be 1 to 48 projector px (the projector's side at most; the plan holds spacing^2 dot frames), got 100"),
     ],
 )
 def test_capture_options_out_of_range_are_one_line_before_a_daemon_starts(args: list[str], expected: str) -> None:

@@ -645,3 +645,21 @@ def test_a_truncated_frame_is_one_line_without_the_native_librarys_own(tmp_path)
             f"try:\n    read_frame(Path({str(tmp_path / 'cut.png')!r}))\nexcept Exception as e:\n    print(e)\n")
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert res.stderr == "" and "damaged, truncated or not an image" in res.stdout, (res.stdout, res.stderr)
+
+
+def test_result_files_never_land_inside_a_session_or_on_their_markdown_twin(intact_session, tmp_path):
+    """`sss eval knn --out S/apple/manifest.json` replaced the session's manifest; `--out x.md` wrote the JSON
+    and then the Markdown over it."""
+    from sssphase_core.bench.output import check_result_paths
+
+    copy = tmp_path / "leaf"
+    shutil.copytree(intact_session, copy)
+    manifest = (copy / "manifest.json").read_bytes()
+    _one_line(_cli("eval", "knn", "--checkpoint", "none.pt", "--sessions", str(tmp_path), "--out", str(copy / "manifest.json")),
+              f"would write into the session {copy.resolve()}")
+    assert (copy / "manifest.json").read_bytes() == manifest
+    with pytest.raises(InputError, match="would be the same file"):
+        check_result_paths(tmp_path / "x.md", tmp_path / "x.md")
+    with pytest.raises(InputError, match="is a folder"):
+        check_result_paths(tmp_path)
+    check_result_paths(tmp_path / "ok.json", tmp_path / "ok.md")

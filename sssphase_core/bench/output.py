@@ -81,9 +81,26 @@ def _jsonable(obj: Any) -> Any:
     return obj
 
 
+def check_result_paths(out: Path | str, md: Path | str | None = None) -> None:
+    """Refuse result files that would land inside a session (``--out S/apple/manifest.json`` replaced a
+    session's manifest), on an existing folder, or a JSON and its Markdown on one path."""
+    from sssphase_core.errors import InputError
+    from sssphase_core.store.session import session_around
+
+    for path in (Path(out), *([Path(md)] if md is not None else [])):
+        inside = session_around(path.parent)
+        if inside is not None:
+            raise InputError(f"--out {path} would write into the session {inside}: choose a file outside it")
+        if path.is_dir():
+            raise InputError(f"--out {path} is a folder: give a file name (e.g. {path / 'result.json'})")
+    if md is not None and Path(md).resolve() == Path(out).resolve():
+        raise InputError(f"--out {out}: the JSON record and its Markdown table would be the same file; give a .json name")
+
+
 def write_bench_report(result: dict[str, Any], tables: Sequence[Table], out: Path, md: Path | None = None, title: str = "") -> None:
     """Write ``result`` as JSON to ``out`` and, if ``md`` is given, the tables as Markdown."""
     out = Path(out)
+    check_result_paths(out, md)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(_jsonable(result), indent=1) + "\n")
     if md is not None:

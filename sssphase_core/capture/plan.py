@@ -120,7 +120,7 @@ def build_frames(req: CaptureRequest, size: tuple[int, int], patch: int,
     reference_keys(req.references)
     named = [r for r in req.references if r in REFERENCE_NAMES]
     files = [Path(r) for r in req.references if r not in REFERENCE_NAMES]
-    spacing = req.dot_spacing or dot_spacing_for(patch)
+    spacing = dot_spacing_for(patch) if req.dot_spacing is None else req.dot_spacing
     plan = capture_plan(*size, footprints=req.footprints, dot_spacing=spacing,
                         references=("white", "black", *named), hdr_exposures=req.hdr,
                         gamma=DEFAULT_GAMMA if gamma is None else gamma)

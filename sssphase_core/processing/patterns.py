@@ -354,6 +354,19 @@ def reference_pattern(name: str, width: int, height: int) -> np.ndarray:
     return PlannedFrame(key, kind, {**params, "width": width, "height": height}).pattern()
 
 
+#: The widest dot grid a plan takes (projector px): spacing^2 dot frames (the paper's 55 px: 3025 frames).
+MAX_DOT_SPACING = 256
+
+
+def check_dot_spacing(spacing: int, width: int | None = None, height: int | None = None) -> None:
+    """Refuse a dot spacing that is not 1 to :data:`MAX_DOT_SPACING` px, or wider than the projector: a
+    plan holds spacing^2 dot frames (10^12 grew the client to 24 GB before anything was captured)."""
+    top = min([MAX_DOT_SPACING, *(s for s in (width, height) if s)])
+    if isinstance(spacing, bool) or not isinstance(spacing, int) or not 1 <= spacing <= top:
+        raise InputError(f"dot spacing must be 1 to {top} projector px (the projector's side at most; the plan "
+                         f"holds spacing^2 dot frames), got {spacing}")
+
+
 def capture_plan(
     width: int,
     height: int,
@@ -383,8 +396,7 @@ def capture_plan(
         refs.append("black")
     specs += [_reference_params(name, width, height) for name in refs]
     if footprints:
-        if dot_spacing < 1:
-            raise InputError(f"dot spacing must be >= 1, got {dot_spacing}")
+        check_dot_spacing(dot_spacing, width, height)
         for sy in range(dot_spacing):
             for sx in range(dot_spacing):
                 specs.append((f"dots/{sx}_{sy}", "dots", {"spacing": dot_spacing, "shift_x": sx, "shift_y": sy}))
