@@ -95,6 +95,8 @@ def reply_error(rid: Any, code: str, message: str) -> bytes:
 
 def frame_header(job: str, seq: int, name: str, data: np.ndarray, timestamp_ns: int, exposure: float,
                  meta: dict[str, Any]) -> bytes:
+    if data.dtype.kind not in "biuf":  # an object array's bytes are pointers into this process: never sent
+        raise ProtocolError(BAD_MESSAGE, f"frame {name!r} has dtype {data.dtype.str}: numeric types only")
     return pack({"v": PROTOCOL_VERSION, "type": "frame", "job": job, "seq": seq, "name": name,
                  "dtype": data.dtype.str, "shape": list(data.shape), "timestamp_ns": int(timestamp_ns),
                  "exposure": float(exposure), "meta": meta})
@@ -108,8 +110,8 @@ def decode_frame(header: dict[str, Any], buffer: Any) -> np.ndarray:
     """The frame array viewed on the received buffer (no copy); checks size against the header."""
     dtype = np.dtype(header["dtype"])
     shape = tuple(int(s) for s in header["shape"])
-    if dtype.hasobject:
-        raise ProtocolError(BAD_MESSAGE, "object dtypes are not allowed")
+    if dtype.kind not in "biuf":  # numbers only: no objects (pointers), no void or string records
+        raise ProtocolError(BAD_MESSAGE, f"frame dtype {dtype.str} is not allowed: numeric types only")
     arr = np.frombuffer(buffer, dtype=dtype)
     if arr.size != int(np.prod(shape)):
         raise ProtocolError(BAD_MESSAGE, f"frame buffer of {arr.nbytes} bytes does not match shape {shape} {dtype}")

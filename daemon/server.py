@@ -15,6 +15,7 @@ import functools
 import hmac
 import itertools
 import logging
+import math
 import os
 import sys
 import threading
@@ -107,6 +108,20 @@ def _pattern_for(spec: dict[str, Any]) -> np.ndarray:
     return PlannedFrame(spec["key"], spec["kind"], dict(spec["params"]), float(spec["exposure"])).pattern()
 
 
+def _image_problem(img: dict[str, Any]) -> str | None:
+    """What is wrong with an uploaded projector image (``{"dtype", "shape", "data"}``), or None: it is
+    decoded when the job runs, so a bad one is refused with the request, not as an internal error later."""
+    try:
+        arr = protocol.decode_frame(img, img["data"])
+    except ProtocolError as exc:
+        return str(exc)
+    except (KeyError, TypeError, ValueError) as exc:
+        return f"the image needs dtype, shape and data ({type(exc).__name__}: {str(exc)[:80]})"
+    if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[-1] not in (1, 3)) or not arr.size:
+        return f"the image must be (H, W) or (H, W, 3), got {arr.shape}"
+    return None
+
+
 def _check_frames(frames: Any) -> list[dict[str, Any]]:
     if not isinstance(frames, list) or not 0 < len(frames) <= MAX_FRAMES_PER_JOB:
         raise ProtocolError(protocol.BAD_ARGS, f"frames must be a list of 1..{MAX_FRAMES_PER_JOB} frame specs")
@@ -116,7 +131,7 @@ def _check_frames(frames: Any) -> list[dict[str, Any]]:
               and f.get("exposure", 1.0) > 0 and (f.get("kind") != "image" or isinstance(f.get("image"), dict)))
         if not ok:
             raise ProtocolError(protocol.BAD_ARGS, f"bad frame spec {str(f)[:120]}")
-        problem = None if f["kind"] == "image" else frame_params_problem(f["kind"], f.get("params", {}))
+        problem = _image_problem(f["image"]) if f["kind"] == "image" else frame_params_problem(f["kind"], f.get("params", {}))
         if problem:
             raise ProtocolError(protocol.BAD_ARGS, f"frame {f['name'][:60]!r}: {problem}")
         f.setdefault("key", f["name"])
@@ -375,10 +390,13 @@ class Daemon:
         table = rig.devices.get("turntable")
         if table is None:
             raise ProtocolError(protocol.NOT_FOUND, "this rig has no turntable")
+        angle = args.get("angle")
+        if isinstance(angle, bool) or not isinstance(angle, int | float) or not math.isfinite(angle):
+            raise ProtocolError(protocol.BAD_ARGS, f"move needs a finite angle in degrees, got {str(angle)[:40]}")
         if not rig.lock.acquire(timeout=1.0):
             raise ProtocolError(protocol.BUSY, f"rig {rig.id} is capturing")
         try:
-            return {"angle": table.move_to(float(args["angle"]))}
+            return {"angle": table.move_to(float(angle))}
         finally:
             rig.lock.release()
 

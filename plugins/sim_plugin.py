@@ -252,7 +252,13 @@ class BenchCamera:
         self.info = DeviceInfo(BENCH_CAMERA_ID, "camera", PLUGIN, "fixed-frame benchmark camera", "bench-camera")
         shape = tuple(int(s) for s in options.get("shape", (1080, 1920, 3)))
         rng = np.random.default_rng(int(options.get("seed", 0)))
-        self.data = rng.integers(0, 65535, size=shape, dtype=np.uint16).astype(str(options.get("dtype", "uint16")))
+        try:
+            dtype = np.dtype(str(options.get("dtype", "uint16")))
+        except TypeError:
+            raise InputError(f"bench camera dtype {str(options.get('dtype'))[:40]!r} is not a numpy type") from None
+        if dtype.kind not in "biuf":  # an object array's bytes would be pointers into the daemon
+            raise InputError(f"bench camera dtype must be numeric, got {dtype.str}")
+        self.data = rng.integers(0, 65535, size=shape, dtype=np.uint16).astype(dtype)
         self.sequence = 0
 
     def configure(self, *, exposure: float | None = None, gain: float | None = None,

@@ -663,3 +663,41 @@ def test_result_files_never_land_inside_a_session_or_on_their_markdown_twin(inta
     with pytest.raises(InputError, match="is a folder"):
         check_result_paths(tmp_path)
     check_result_paths(tmp_path / "ok.json", tmp_path / "ok.md")
+
+
+@pytest.mark.parametrize("image", [{"shape": [4, 4], "data": b"\0" * 16},  # no dtype
+                                   {"dtype": "|V4", "shape": [2, 2], "data": b"\0" * 16},  # void records
+                                   {"dtype": "|O", "shape": [2], "data": b"\0" * 16},  # pointers
+                                   {"dtype": "<f4", "shape": [2, 2, 2, 2], "data": b"\0" * 64}])  # 4-D
+def test_uploaded_images_the_job_could_not_use_are_refused_with_the_request(sim_daemon, image):
+    """They were accepted, and the job failed later with code `internal` and a traceback in the log."""
+    from sssphase_daemon.client import DaemonError
+
+    rig = sim_daemon.call("open_rig", camera="sim:camera0", projector="sim:projector0", options={"object": "apple"})["rig"]
+    try:
+        with pytest.raises(DaemonError) as err:
+            list(sim_daemon.capture(rig, [{"name": "ref/mine", "kind": "image", "image": image}]))
+        assert err.value.code == "bad_args", str(err.value)
+    finally:
+        sim_daemon.call("close_rig", rig=rig)
+    assert sim_daemon.ping()
+
+
+def test_an_infinite_turntable_angle_and_object_frames_are_bad_args(sim_daemon):
+    """`move` to inf was `internal`; a bench camera of object dtype streamed pointers into the daemon."""
+    from sssphase_daemon.client import DaemonError
+
+    rig = sim_daemon.call("open_rig", camera="sim:camera0", projector="sim:projector0", turntable="sim:turntable0",
+                          options={"object": "apple"})["rig"]
+    try:
+        for angle in (float("inf"), float("nan"), "90", None):
+            with pytest.raises(DaemonError) as err:
+                sim_daemon.call("move", rig=rig, angle=angle)
+            assert err.value.code == "bad_args", str(err.value)
+    finally:
+        sim_daemon.call("close_rig", rig=rig)
+    for dtype in ("object", "V4", "not-a-type"):
+        with pytest.raises(DaemonError) as err:
+            sim_daemon.call("open_rig", camera="sim:bench-camera", options={"shape": [2, 2], "dtype": dtype})
+        assert err.value.code == "bad_args", str(err.value)
+    assert sim_daemon.ping()
