@@ -219,6 +219,13 @@ def calibrate_projector(
 
     spec = RigSpec.from_toml(rig) if rig else RigSpec()
     target = out or rig or Path("rig.toml")
+    if target.is_dir():
+        raise InputError(f"--out {target} is a folder: give the rig file to write (e.g. {target / 'rig.toml'})")
+    if target.exists() and target != rig:  # rewriting another file (a script, an image) would destroy it
+        try:
+            RigSpec.from_toml(target)
+        except InputError:
+            raise InputError(f"--out {target} exists and is not a rig file: choose a new file, or the rig file itself") from None
     if check and not spec.is_sim:
         raise InputError("--check needs the simulator's exact correspondences: it works on sim rigs only")
     ramp = tuple(float(v) for v in np.round(np.linspace(0, 1, levels), 4))

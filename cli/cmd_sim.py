@@ -35,6 +35,10 @@ def sim(
     from sssphase_core.sim.materials import MATERIALS, dropped_fraction
     from sssphase_core.sim.rig import pixel_pitch_mm
 
+    if views > simlib.MAX_VIEWS:  # as `sss capture`: the turntable's limit, before a view is rendered
+        raise InputError(f"--views: the sim rig's turntable takes at most {simlib.MAX_VIEWS} views, got {views}")
+    if not 0 <= seed <= 2**63 - 1:
+        raise InputError(f"--seed must be 0 to {2**63 - 1} (2**63 - 1), got {seed}")
     obj = simlib.get_object(object_name)
     rig = simlib.rig_from_options({"preset": preset, "transport": transport})
     out.mkdir(parents=True, exist_ok=True)

@@ -234,3 +234,45 @@ def test_a_warning_that_escapes_a_command_is_one_line_without_its_source(monkeyp
     assert done.value.code == 0
     err = capsys.readouterr().err
     assert err.splitlines() == ["warning: overflow encountered in scalar multiply (RuntimeWarning)", "warning: two lines"], err
+
+
+RIG_HEAD = '[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\n'
+
+
+@pytest.mark.parametrize(("text", "expected"), [
+    (RIG_HEAD + "[processing]\npatch = -5\n", "[processing] patch must be a whole number in [1, 256], got -5"),
+    (RIG_HEAD + "[processing]\nsaturation = nan\n", "[processing] saturation must be a number in [1e-06, 1e+12], got nan"),
+    (RIG_HEAD + "[processing]\nmedian = 3\n", "[processing] median must be true or false, got 3"),
+    ("options = 5\n" + RIG_HEAD, "options must be a [options] table, got int"),
+    (b"\xff\xfe\x00binary", "cannot read rig file"),
+])
+def test_rig_files_are_checked_before_a_daemon_starts(tmp_path, text, expected):
+    """A negative patch or a NaN saturation failed only after capturing (and wrote NaN into the manifest);
+    a top-level `options = 5` or a binary file were internal errors."""
+    rig = tmp_path / "rig.toml"
+    rig.write_bytes(text if isinstance(text, bytes) else text.encode())
+    res = _sss("capture", "--object", "apple", "--rig", str(rig), "--out", str(tmp_path / "s"))
+    out = (res.stdout + res.stderr).strip()
+    assert res.returncode == 2 and len(out.splitlines()) == 1 and expected in out, out
+    assert not (tmp_path / "s").exists()
+
+
+def test_calibrate_never_overwrites_a_file_that_is_not_a_rig_file(tmp_path):
+    victim = tmp_path / "victim.py"
+    victim.write_text('print("important")\n')
+    res = _sss("calibrate", "projector", "--levels", "4", "--out", str(victim))
+    out = (res.stdout + res.stderr).strip()
+    assert res.returncode == 2 and out.splitlines() == [f"error: --out {victim} exists and is not a rig file: choose a "
+                                                        "new file, or the rig file itself"], out
+    assert victim.read_text() == 'print("important")\n'
+
+
+@pytest.mark.parametrize(("args", "expected"), [
+    (["--views", "1000000000000"], "--views: the sim rig's turntable takes at most"),
+    (["--seed", "-1"], "--seed must be 0 to 9223372036854775807"),
+])
+def test_sim_options_are_ranged_like_capture(tmp_path, args, expected):
+    res = _sss("sim", "--out", str(tmp_path / "o"), *args)
+    out = (res.stdout + res.stderr).strip()
+    assert res.returncode == 2 and len(out.splitlines()) == 1 and expected in out, out
+    assert not (tmp_path / "o").exists()

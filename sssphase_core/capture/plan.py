@@ -50,9 +50,12 @@ class RigSpec:
         """``[devices]`` camera/projector/turntable/trigger ids, ``[options]`` for the plugins, ``[processing]``."""
         try:
             cfg = tomllib.loads(Path(path).read_text())
-        except (OSError, tomllib.TOMLDecodeError) as exc:
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
             raise InputError(f"cannot read rig file {path}: {exc}") from None
         dev, proc, resp = cfg.get("devices", {}), cfg.get("processing", {}), cfg.get("projector", {})
+        for table in ("devices", "processing", "projector", "options"):
+            if not isinstance(cfg.get(table, {}), dict):
+                raise InputError(f"{path}: {table} must be a [{table}] table, got {type(cfg[table]).__name__}")
         if "camera" not in dev or "projector" not in dev:
             raise InputError(f"{path}: [devices] needs camera and projector ids (see `sss devices`)")
         bad = [k for k, v in dev.items() if k not in ("camera", "projector", "turntable", "trigger") or not isinstance(v, str)]
@@ -67,6 +70,15 @@ class RigSpec:
 
             if proc["bayer"] not in BAYER_LAYOUTS:
                 raise InputError(f"{path}: [processing] bayer must be one of {', '.join(BAYER_LAYOUTS)}, got {proc['bayer']!r}")
+        ranges = {"patch": (1, 256), "saturation": (1e-6, 1e12), "black_level": (0, 1e12), "white_scale": (1e-12, 1e12)}
+        for key, (lo, hi) in ranges.items():  # a NaN or negative value failed only after capturing, or wrote NaN JSON
+            v = proc.get(key)
+            if v is not None and (isinstance(v, bool) or not isinstance(v, int | float) or not lo <= v <= hi
+                                  or (key == "patch" and not isinstance(v, int))):
+                raise InputError(f"{path}: [processing] {key} must be a {'whole ' if key == 'patch' else ''}number in "
+                                 f"[{lo:g}, {hi:g}], got {v!r}")
+        if "median" in proc and not isinstance(proc["median"], bool):
+            raise InputError(f"{path}: [processing] median must be true or false, got {proc['median']!r}")
         gamma, black = resp.get("gamma"), resp.get("black")
         if gamma is not None and not (isinstance(gamma, int | float) and 0.3 <= gamma <= 5):
             raise InputError(f"{path}: [projector] gamma must be a number in [0.3, 5], got {gamma!r}")
