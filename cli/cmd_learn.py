@@ -129,7 +129,7 @@ def _objects(vds) -> list[str]:
     return list(dict.fromkeys(v.object for v in vds))
 
 
-def _check_out(out: Path | None) -> None:
+def _check_result_file(out: Path | None) -> None:
     """Refuse, before any work, a result file inside a session or on its own Markdown twin."""
     if out is not None:
         from sssphase_core.bench.output import check_result_paths
@@ -138,7 +138,7 @@ def _check_out(out: Path | None) -> None:
 
 
 def _write(out: Path | None, payload: dict, markdown: str) -> None:
-    _check_out(out)
+    _check_result_file(out)
     console.print(markdown)
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
@@ -372,7 +372,7 @@ def eval_knn(
     """kNN accuracy of frozen embeddings with view-level leave-one-out (cosine similarity)."""
     from sssphase_core.errors import InputError
 
-    _check_out(out)
+    _check_result_file(out)
     from sssphase_core.learning.evaluation import knn_of_views, knn_tables
     from sssphase_core.learning.training import load_encoder
     from sssphase_core.sim import MATERIAL_NAMES, TRAIN_OBJECTS
@@ -422,7 +422,7 @@ def eval_footprints(
     sessions: SessionsOpt = None,
 ) -> None:
     """MSE, PSNR (data range 1) and SSIM (data range = GT peak) per object, like the paper's Table 1."""
-    _check_out(out)
+    _check_result_file(out)
     import numpy as np
 
     from sssphase_core.errors import InputError

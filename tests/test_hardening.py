@@ -701,3 +701,16 @@ def test_an_infinite_turntable_angle_and_object_frames_are_bad_args(sim_daemon):
             sim_daemon.call("open_rig", camera="sim:bench-camera", options={"shape": [2, 2], "dtype": dtype})
         assert err.value.code == "bad_args", str(err.value)
     assert sim_daemon.ping()
+
+
+def test_resuming_with_other_rig_settings_is_refused(sim_daemon, tmp_path):
+    """`--resume --seed 7 --transport directional_dipole` captured the remaining views on another rig and
+    reported success; the manifest still named the first one."""
+    from sssphase_core.capture import CaptureRequest, run_capture
+
+    req = CaptureRequest("leaf", views=1, out=tmp_path)
+    run_capture(sim_daemon, req)
+    assert run_capture(sim_daemon, CaptureRequest("leaf", views=1, out=tmp_path, resume=True)).views() == [0]
+    for changed in ({"seed": 7}, {"transport": "directional_dipole"}):
+        with pytest.raises(InputError, match=r"was captured with other rig settings \(options differ\)"):
+            run_capture(sim_daemon, CaptureRequest("leaf", views=1, out=tmp_path, resume=True, **changed))

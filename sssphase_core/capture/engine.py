@@ -85,6 +85,11 @@ def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, option
                              plan=json.loads(plan.to_json()), reference_files=list(dict.fromkeys(f["params"]["file"] for f in frames if f["kind"] == "image")))
     if session.manifest.get("plan_digest") != digest or session.manifest.get("n_views") != req.views:
         raise InputError(f"{session.path} was captured with a different plan or view count: resume with the same options")
+    before, now = (json.loads(json.dumps(r, default=str)) for r in (session.manifest.get("rig", {}), {**asdict(rig), "options": options}))
+    changed = sorted({k for k in set(before) | set(now) if before.get(k) != now.get(k)})
+    if changed:  # the new views would be captured on another rig (another seed, transport, camera) than the first
+        raise InputError(f"{session.path} was captured with other rig settings ({', '.join(changed)} differ): "
+                         "resume with the same --rig, --seed, --transport and --preset, or capture into a new --out")
     n_dots = len({f["key"] for f in frames if f["kind"] == "dots"})  # dot-grid images kept (one per bracket set)
     for view in range(req.views):
         if session.status(view) == "complete":
