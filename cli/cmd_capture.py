@@ -80,10 +80,14 @@ def capture(
     if hdr_exposures is not None:
         from sssphase_core.errors import InputError
 
+        items = hdr_exposures.split(",")
         try:
-            brackets = tuple(float(v) for v in hdr_exposures.split(",") if v.strip())
+            if not hdr_exposures.strip() or any(not v.strip() for v in items):  # '' or '1,,2': HDR asked, none given
+                raise ValueError
+            brackets = tuple(float(v) for v in items)
         except ValueError:
-            raise InputError(f"--hdr-exposures takes comma-separated numbers, e.g. 0.25,1,4,16; got {hdr_exposures!r}") from None
+            shown = hdr_exposures if len(hdr_exposures) <= 60 else hdr_exposures[:57] + "..."
+            raise InputError(f"--hdr-exposures takes comma-separated numbers, e.g. 0.25,1,4,16; got {shown!r}") from None
     from sssphase_core.capture.engine import check_brackets
 
     check_brackets(brackets)  # before a daemon starts

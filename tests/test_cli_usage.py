@@ -139,6 +139,13 @@ def test_sigterm_says_interrupted_like_ctrl_c(tmp_path) -> None:
         (["capture", "--object", "apple", "--timeout", "nan"], "--timeout must be a number of seconds in (0, 86400], got nan"),
         (["capture", "--object", "apple", "--seed", "99999999999999999999999"],
          "--seed must be 0 to 9223372036854775807 (2**63 - 1, what the sim rig takes), got 99999999999999999999999"),
+        *((["capture", "--object", "apple", "--hdr-exposures", v],
+           f"--hdr-exposures takes comma-separated numbers, e.g. 0.25,1,4,16; got {v!r}") for v in ("", ",", "1,,2")),
+        (["capture", "--object", "apple", "--hdr-exposures", ",".join(["1"] * 1000)],
+         "HDR exposures must be 2 to 8 distinct numbers in (0, 256], got 1000: 1, 1, 1, 1, 1, 1, 1, 1, 1, ..."),
+        (["capture", "--object", "apple", "--reference", " .png"],
+         "--reference ' .png': the file name ' ' cannot name a capture: use letters, digits, '_', '-', '.' "
+         "(it is stored as ref/<name>)"),
         *((["capture", "--object", "apple", "--footprints", "--dot-spacing", v],
            f"dot spacing must be 1 to 256 projector px (the projector's side at most; the plan holds spacing^2 dot "
            f"frames), got {v}") for v in ("0", "1000000000000")),

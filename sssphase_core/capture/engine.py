@@ -34,8 +34,8 @@ def check_brackets(exposures: tuple[float, ...]) -> None:
         return
     ok = all(isinstance(e, int | float) and 0 < e <= 256 for e in exposures)  # NaN fails too
     if not ok or not 2 <= len(exposures) <= MAX_BRACKETS or len(set(exposures)) != len(exposures):
-        raise InputError(f"HDR exposures must be 2 to {MAX_BRACKETS} distinct numbers in (0, 256], got "
-                         f"{', '.join(f'{e:g}' for e in exposures)}")
+        shown = ", ".join(f"{e:g}" for e in exposures[:MAX_BRACKETS + 1]) + (", ..." if len(exposures) > MAX_BRACKETS + 1 else "")
+        raise InputError(f"HDR exposures must be 2 to {MAX_BRACKETS} distinct numbers in (0, 256], got {len(exposures)}: {shown}")
 
 
 def run_capture(client: ClientLike, req: CaptureRequest, rig: RigSpec | None = None, *,

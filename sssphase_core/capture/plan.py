@@ -109,6 +109,15 @@ class CaptureRequest:
 
 
 
+def _reference_name(path: str) -> str:
+    """A reference image file's stem, the name its capture is stored under: checked like an object name."""
+    try:
+        return check_object_name(Path(path).stem)
+    except InputError:
+        raise InputError(f"--reference {path!r}: the file name {Path(path).stem!r} cannot name a capture: use "
+                         "letters, digits, '_', '-', '.' (it is stored as ref/<name>)") from None
+
+
 def reference_keys(references: tuple[str, ...] | list[str]) -> list[str]:
     """The session key (``ref/<name>``) each ``--reference`` is stored under: a pattern's name, or an image
     file's stem (checked as a name). Two references of one key would lose a capture: refused."""
@@ -116,7 +125,7 @@ def reference_keys(references: tuple[str, ...] | list[str]) -> list[str]:
 
     keys: dict[str, str] = {}
     for r in dict.fromkeys(references):  # a named pattern given twice is captured once
-        key = f"ref/{r if r in REFERENCE_NAMES else check_object_name(Path(r).stem)}"
+        key = f"ref/{r if r in REFERENCE_NAMES else _reference_name(r)}"
         if key in keys:
             raise InputError(f"--reference {keys[key]} and {r} would both be stored as {key}: rename the file")
         keys[key] = r
@@ -138,7 +147,7 @@ def build_frames(req: CaptureRequest, size: tuple[int, int], patch: int,
                         gamma=DEFAULT_GAMMA if gamma is None else gamma)
     frames = json.loads(plan.to_json())["frames"]
     for path in files:
-        name = check_object_name(path.stem)
+        name = _reference_name(str(path))
         img = read_pattern(path, size, hint="resize it to the projector's size first")
         for e in req.hdr or (1.0,):
             spec_name = f"ref/{name}" if not req.hdr else f"ref/{name}@e{e:g}"
