@@ -377,7 +377,15 @@ def eval_knn(
     from sssphase_core.learning.training import load_encoder
     from sssphase_core.sim import MATERIAL_NAMES, TRAIN_OBJECTS
 
-    runs = dict(c.split("=", 1) if "=" in c else (Path(c).stem if Path(c).suffix else Path(c).name, c) for c in checkpoint)
+    pairs = [c.split("=", 1) if "=" in c else (Path(c).stem if Path(c).suffix else Path(c).name, c) for c in checkpoint]
+    from sssphase_core.store.session import NAME_RE
+
+    names_given = [n for n, _ in pairs]
+    for (name, _), item in zip(pairs, checkpoint, strict=True):  # a column each: one name, plain
+        if not NAME_RE.fullmatch(name) or names_given.count(name) > 1:
+            raise InputError(f"--checkpoint takes NAME=PATH (or PATH) with a distinct name of letters, digits, '_', "
+                             f"'-', '.', got {item!r}")
+    runs = dict(pairs)
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
     if label not in ("object", "material"):
         raise InputError(f"--label must be object or material, got {label!r}")

@@ -213,3 +213,18 @@ def test_a_config_is_recognised_whatever_the_program_is_called(tmp_path):
     res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "train", "decoder", "--config", str(tmp_path),
                           "--out", str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
     assert res.returncode == 2 and "give either --encoder PATH" in res.stderr, res.stderr  # past the config
+
+
+@pytest.mark.parametrize("args", [["--checkpoint", "psp=a.pt", "--checkpoint", "psp=b.pt"],
+                                  ["--checkpoint", "a/last.pt", "--checkpoint", "b/last.pt"],
+                                  ["--checkpoint", "../x=a.pt"]])
+def test_eval_knn_columns_have_distinct_plain_names(args):
+    """Two checkpoints of one name dropped a column silently; '../x' was taken as a column name."""
+    import subprocess
+    import sys
+
+    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "eval", "knn", *args], capture_output=True,
+                         text=True, timeout=120)
+    out = (res.stdout + res.stderr).strip()
+    assert res.returncode == 2 and len(out.splitlines()) == 1, out
+    assert "--checkpoint takes NAME=PATH (or PATH) with a distinct name" in out, out
