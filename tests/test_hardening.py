@@ -714,3 +714,20 @@ def test_resuming_with_other_rig_settings_is_refused(sim_daemon, tmp_path):
     for changed in ({"seed": 7}, {"transport": "directional_dipole"}):
         with pytest.raises(InputError, match=r"was captured with other rig settings \(options differ\)"):
             run_capture(sim_daemon, CaptureRequest("leaf", views=1, out=tmp_path, resume=True, **changed))
+
+
+def test_relight_eval_geometry_and_report_never_write_into_a_session(intact_session, tmp_path):
+    """`sss report S --out S` wrote index.html, img/ and steps/ into the session; `sss geometry S --out <its
+    parent>` put an .npz inside view_000/."""
+    copy = tmp_path / "sessions" / "leaf"
+    shutil.copytree(intact_session, copy)
+    before = sorted(copy.rglob("*"))
+    for args in (["relight", str(copy), "--pattern", "checkerboard", "--backend", "none"],
+                 ["eval", "relight", str(copy), "--backend", "none"],
+                 ["geometry", str(copy), "--backend", "none"],
+                 ["report", str(copy)]):
+        for out in (copy, copy / "view_000" / "x"):
+            _one_line(_cli(*args, "--out", str(out)), f"is inside the session {copy.resolve()}: choose a folder outside it")
+    _one_line(_cli("geometry", str(copy), "--backend", "analytic", "--out", str(copy.parent)),
+              f"is inside the session {copy.resolve()}")  # OUT/<object>/view_NNN would be the session's own view
+    assert sorted(copy.rglob("*")) == before
