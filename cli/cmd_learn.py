@@ -523,18 +523,27 @@ def viz_footprints(
     """Footprints at a few pixels, one row per source (log scale), and their centre-row profiles."""
     import numpy as np
 
+    from sssphase_core.errors import InputError
     from sssphase_core.relight import load_view
     from sssphase_core.relight.evaluation import footprints_at
     from sssphase_core.reporting.figures import grid_figure, profiles_figure
     from sssphase_core.store.session import Session
 
+    if out.is_dir() or out.suffix.lower() != ".png":  # the figure is a PNG: 'adir' became adir.png, '.txt' an internal error
+        raise InputError(f"--out {out}: give a .png file name (e.g. {out / 'footprints.png' if out.is_dir() else out.with_suffix('.png')})")
     s = Session.open(session)
     rv = load_view(s, view)
     rows = [b.strip() for b in backend.split(",") if b.strip()]
+    if not rows:
+        raise InputError(f"--backend names no row (got {backend!r}): e.g. captured,analytic")
     if "captured" in rows and "footprints/pixels" in s.arrays(view):
         candidates = np.asarray(s.load(view, "footprints/pixels"), np.int64)
     else:
-        rows = [r for r in rows if r != "captured"] or ["analytic"]
+        if "captured" in rows:
+            if rows == ["captured"]:
+                raise InputError(f"{session} view {view} has no captured footprints (capture with --footprints)")
+            console.print(f"note: {session} view {view} has no captured footprints: that row is left out")
+        rows = [r for r in rows if r != "captured"]
         candidates = np.argwhere(rv.proj.mask)
     chosen = candidates[np.linspace(0, len(candidates) - 1, pixels + 2)[1:-1].astype(int)]
     fps = footprints_at(rv, chosen, rows, checkpoint=checkpoint)

@@ -731,3 +731,16 @@ def test_relight_eval_geometry_and_report_never_write_into_a_session(intact_sess
     _one_line(_cli("geometry", str(copy), "--backend", "analytic", "--out", str(copy.parent)),
               f"is inside the session {copy.resolve()}")  # OUT/<object>/view_NNN would be the session's own view
     assert sorted(copy.rglob("*")) == before
+
+
+def test_viz_footprints_says_what_it_writes_and_what_it_leaves_out(intact_session, tmp_path):
+    """`--out adir` wrote adir.png but said "wrote adir"; `--out x.txt` was an internal error; `--backend
+    captured` on a session without dot grids silently showed the analytic model."""
+    (tmp_path / "adir").mkdir()
+    for out in (tmp_path / "adir", tmp_path / "x.txt", tmp_path / "noext"):
+        _one_line(_cli("viz", "footprints", str(intact_session), "--out", str(out)), "give a .png file name")
+    _one_line(_cli("viz", "footprints", str(intact_session), "--backend", "captured", "--out", str(tmp_path / "f.png")),
+              "has no captured footprints (capture with --footprints)")
+    res = _cli("viz", "footprints", str(intact_session), "--pixels", "2", "--out", str(tmp_path / "f.png"))
+    assert res.returncode == 0 and "has no captured footprints: that row is left out" in res.stdout, res.stdout + res.stderr
+    assert (tmp_path / "f.png").exists() and (tmp_path / "f_profiles.png").exists()
