@@ -744,3 +744,22 @@ def test_viz_footprints_says_what_it_writes_and_what_it_leaves_out(intact_sessio
     res = _cli("viz", "footprints", str(intact_session), "--pixels", "2", "--out", str(tmp_path / "f.png"))
     assert res.returncode == 0 and "has no captured footprints: that row is left out" in res.stdout, res.stdout + res.stderr
     assert (tmp_path / "f.png").exists() and (tmp_path / "f_profiles.png").exists()
+
+
+def test_a_session_being_captured_is_not_captured_into_by_a_second_process(sim_daemon, tmp_path):
+    """Two captures into one folder at once: both reported success and the manifest lost a view."""
+    from sssphase_core.capture import CaptureRequest, run_capture
+
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time\nfrom pathlib import Path\nfrom sssphase_core.capture.engine import _capture_lock\n"
+        f"with _capture_lock(Path({str(tmp_path)!r}), 'leaf'):\n    print('held', flush=True)\n    time.sleep(60)\n")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(InputError, match=rf"session {tmp_path}/leaf is being captured by pid {holder.pid}"):
+            run_capture(sim_daemon, CaptureRequest("leaf", views=1, out=tmp_path, resume=True))
+        assert not (tmp_path / "leaf").exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    assert run_capture(sim_daemon, CaptureRequest("leaf", views=1, out=tmp_path)).views() == [0]  # lock freed

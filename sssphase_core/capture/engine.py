@@ -5,9 +5,12 @@ is marked so and aborted, never half-written. The client is anything with ``call
 
 from __future__ import annotations
 
+import contextlib
 import json
-from collections.abc import Callable, Iterable
+import os
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict
+from pathlib import Path
 from typing import Any, Protocol
 
 from sssphase_core import __version__
@@ -52,15 +55,45 @@ def run_capture(client: ClientLike, req: CaptureRequest, rig: RigSpec | None = N
                    **req.sim_options}
         if req.transport is not None:
             options["transport"] = req.transport
-    opened = client.call("open_rig", camera=rig.camera, projector=rig.projector, turntable=rig.turntable,
-                         trigger=rig.trigger, options=options)
-    try:
-        return _capture_views(client, req, rig, options, opened, progress, ask_move)
-    finally:
+    with _capture_lock(Path(req.out), req.object):
+        opened = client.call("open_rig", camera=rig.camera, projector=rig.projector, turntable=rig.turntable,
+                             trigger=rig.trigger, options=options)
         try:
-            client.call("close_rig", timeout_s=2.0, rig=opened["rig"])
-        except Exception:  # the daemon may be gone (that is what the caller is told about)
-            pass
+            return _capture_views(client, req, rig, options, opened, progress, ask_move)
+        finally:
+            try:
+                client.call("close_rig", timeout_s=2.0, rig=opened["rig"])
+            except Exception:  # the daemon may be gone (that is what the caller is told about)
+                pass
+
+
+@contextlib.contextmanager
+def _capture_lock(out: Path, name: str) -> Iterator[None]:
+    """One capture per session at a time: an exclusive lock on ``out/.<name>.lock`` (beside the session
+    folder, so that it is taken before a resume drops partial views). Two captures into one folder lost a
+    view from the manifest while both reported success."""
+    import fcntl
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        handle = open(out / f".{name}.lock", "a+")  # noqa: SIM115 - held for the whole capture
+    except OSError as exc:
+        raise InputError(f"cannot create the session folder {out / name}: {exc.strerror or exc}") from None
+    try:
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            holder = handle.read().strip() or "another process"
+            raise InputError(f"session {out / name} is being captured by {holder}: wait for it, or capture into "
+                             "another --out") from None
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"pid {os.getpid()}")
+        handle.flush()
+        yield
+    finally:
+        handle.close()  # releases the lock
 
 
 def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, options: dict[str, Any],
