@@ -88,17 +88,17 @@ def daemon_start(
     from sssphase_daemon import security
     from sssphase_daemon.client import spawn_daemon
 
-    if _client() is not None:
-        raise InputError("a daemon is already running (`sss daemon status`)")
     args = [*(["--endpoint", endpoint] if endpoint else []), *(["--preview", preview] if preview else []),
             *(["--curve-dir", str(curve_dir)] if curve_dir else [])]
     for what in (e for e in (endpoint, preview) if e):
         if not security.is_local(what) and curve_dir is None:
             raise InputError(f"{what} is not loopback/ipc (an abstract ipc://@ socket has no file permissions either): "
                              "generate keys with `sss daemon keys` and pass --curve-dir")
-        problem = security.ipc_path_problem(what)
+        problem = security.endpoint_problem(what) or security.ipc_path_problem(what)
         if problem:
             raise InputError(problem)
+    if _client() is not None:
+        raise InputError("a daemon is already running (`sss daemon status`)")
     if foreground:
         from sssphase_daemon.__main__ import main
 

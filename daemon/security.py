@@ -74,6 +74,25 @@ def is_local(endpoint: str) -> bool:
     return False
 
 
+def endpoint_problem(endpoint: str) -> str | None:
+    """What makes an endpoint unusable before binding it (ZeroMQ takes port 99999 as 99999 - 65536, and
+    a missing folder or a bad port only shows as a traceback in the daemon's log), or None."""
+    if endpoint.startswith("tcp://") and not endpoint.endswith(":*"):
+        try:
+            port = urlsplit(endpoint).port
+        except ValueError:
+            return f"{endpoint}: the port must be a number from 1 to 65535 (or * for any)"
+        if port is None:
+            return f"{endpoint}: give a port (tcp://HOST:PORT, 1 to 65535, or * for any)"
+        if port is not None and not 1 <= port <= 65535:
+            return f"{endpoint}: the port must be a number from 1 to 65535, got {port}"
+    elif endpoint.startswith("ipc://") and not endpoint[6:].startswith("@"):
+        folder = Path(endpoint[6:]).parent
+        if not folder.is_dir():
+            return f"{endpoint}: the folder {folder} does not exist"
+    return None
+
+
 def stream_endpoint(control: str, job: str) -> str:
     """A fresh endpoint for one job's frame stream on the same transport/interface as ``control``."""
     if control.startswith("ipc://"):

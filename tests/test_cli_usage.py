@@ -283,3 +283,18 @@ def test_sim_options_are_ranged_like_capture(tmp_path, args, expected):
     out = (res.stdout + res.stderr).strip()
     assert res.returncode == 2 and len(out.splitlines()) == 1 and expected in out, out
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize(("endpoint", "expected"), [
+    ("tcp://127.0.0.1:99999", "the port must be a number from 1 to 65535"),  # ZeroMQ bound 99999 - 65536
+    ("tcp://127.0.0.1:abc", "the port must be a number from 1 to 65535"),
+    ("tcp://127.0.0.1", "give a port"),
+    ("ipc:///nonexistent/dir/x.sock", "the folder /nonexistent/dir does not exist"),
+])
+def test_daemon_endpoints_that_cannot_be_bound_are_one_line_before_starting(endpoint: str, expected: str, tmp_path,
+                                                                           monkeypatch) -> None:
+    """They started a daemon that bound another port, or exited with "status 1 (see log)"."""
+    monkeypatch.setenv("SSS_RUNTIME_DIR", str(tmp_path))  # no daemon of another test or session is asked
+    res = _sss("daemon", "start", "--endpoint", endpoint)
+    out = (res.stdout + res.stderr).strip()
+    assert res.returncode == 2 and len(out.splitlines()) == 1 and expected in out, out
