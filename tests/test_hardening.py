@@ -763,3 +763,4 @@ def test_a_session_being_captured_is_not_captured_into_by_a_second_process(sim_d
         holder.kill()
         holder.wait()
     assert run_capture(sim_daemon, CaptureRequest("leaf", views=1, out=tmp_path)).views() == [0]  # lock freed
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["leaf"]  # and no lock file left beside the session

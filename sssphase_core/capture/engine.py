@@ -70,8 +70,8 @@ def run_capture(client: ClientLike, req: CaptureRequest, rig: RigSpec | None = N
 @contextlib.contextmanager
 def _capture_lock(out: Path, name: str) -> Iterator[None]:
     """One capture per session at a time: an exclusive lock on ``out/.<name>.lock`` (beside the session
-    folder, so that it is taken before a resume drops partial views). Two captures into one folder lost a
-    view from the manifest while both reported success."""
+    folder, so that it is taken before a resume drops partial views; removed by its holder when done).
+    Two captures into one folder lost a view from the manifest while both reported success."""
     import fcntl
 
     try:
@@ -91,7 +91,10 @@ def _capture_lock(out: Path, name: str) -> Iterator[None]:
         handle.truncate()
         handle.write(f"pid {os.getpid()}")
         handle.flush()
-        yield
+        try:
+            yield
+        finally:
+            (out / f".{name}.lock").unlink(missing_ok=True)  # nothing left beside the sessions once done
     finally:
         handle.close()  # releases the lock
 
