@@ -176,7 +176,7 @@ def export(
     from sssphase_core.errors import InputError
     from sssphase_core.reporting.export import export_session
     from sssphase_core.store import exr
-    from sssphase_core.store.session import Session, session_around
+    from sssphase_core.store.session import Session, refuse_inside_session
 
     if not exr.available():
         raise InputError(exr.MISSING)
@@ -190,9 +190,7 @@ def export(
         raise InputError(f"{session} has no complete view {', '.join(map(str, missing))} (complete: {s.views()})")
     if not s.views():
         raise InputError(f"{session} has no complete view to export (an interrupted capture? `sss validate {session}`)")
-    inside = session_around(out / s.name)
-    if inside is not None:
-        raise InputError(f"--out {out} would write into the session {inside}: choose a folder outside it")
+    refuse_inside_session(out / s.name, what=f"--out {out}: its folder")
     written = export_session(s, out, chosen)
     console.print(f"wrote {len(written)} files under {out / s.name}")
 

@@ -38,17 +38,6 @@ def _views(session, views: str) -> list[int]:
         raise InputError(f"--views must be comma-separated integers, got {views!r}") from None
 
 
-def _outside_sessions(out: Path) -> None:
-    """Refuse an output folder inside a session (or a session itself): results stay beside the data, never
-    in it (a session's folders hold only what its manifest lists)."""
-    from sssphase_core.errors import InputError
-    from sssphase_core.store.session import session_around
-
-    inside = session_around(out)
-    if inside is not None:
-        raise InputError(f"--out {out} is inside the session {inside}: choose a folder outside it")
-
-
 def _same_pattern(pattern: np.ndarray, reference: np.ndarray) -> bool:
     """Whether a pattern (Hp, Wp[, 3]) is the one a session's reference was captured under (within an 8-bit
     step): only then is the relit image scored against that capture, whatever the pattern file is called."""
@@ -101,7 +90,9 @@ def relight_cmd(
                                               "linear, unclipped) or png,exr.")] = "png",
 ) -> None:
     """Relight a captured object under new projector patterns (several patterns share one footprint pass)."""
-    _outside_sessions(out)
+    from sssphase_core.store.session import refuse_inside_session
+
+    refuse_inside_session(out)
     import numpy as np
 
     from sssphase_core.compute import compute_device
@@ -225,13 +216,15 @@ def geometry_cmd(
     and mask. On a simulated session both maps are also scored against the exact correspondences.
     Only footprints that carry the skew of oblique incidence remove the bias along the baseline; the
     analytic model's are radially symmetric and correct silhouettes and material edges only."""
-    _outside_sessions(out)
+    from sssphase_core.store.session import refuse_inside_session
+
+    refuse_inside_session(out)
     import numpy as np
 
     from sssphase_core.errors import InputError
     from sssphase_core.learning.training import resolve_checkpoint
     from sssphase_core.relight import finest_psp_period, geometric_correspondence, load_view, make_source
-    from sssphase_core.store.session import Session, view_dir_name
+    from sssphase_core.store.session import Session, refuse_inside_session, view_dir_name
 
     if backend in ("measured", "none"):
         raise InputError(f"--backend {backend} cannot predict the scattering shift: "
@@ -239,7 +232,7 @@ def geometry_cmd(
                             "the decoded points (use torch, analytic or exact)" if backend == "measured"
                             else "without scattering there is no shift"))
     s = Session.open(session)
-    _outside_sessions(out / s.name)  # written as OUT/<object>/view_NNN: OUT must not hold the session itself
+    refuse_inside_session(out / s.name, what=f"--out {out}: its folder")  # written as OUT/<object>/view_NNN: OUT must not hold the session itself
     period = finest_psp_period(s.manifest.get("plan", {}))
     if period is None:
         raise InputError(f"{session}: its capture plan has no PSP frames, so the fringe period is unknown")
@@ -281,7 +274,9 @@ def eval_relight(
                                             "the view's own fringe captures best (--no-calibrate: the model alone).")] = True,
 ) -> None:
     """Relight every reference pattern of the sessions and tabulate MSE / PSNR / SSIM over objects and views."""
-    _outside_sessions(out)
+    from sssphase_core.store.session import refuse_inside_session
+
+    refuse_inside_session(out)
     from sssphase_core.bench.output import write_bench_report
     from sssphase_core.compute import compute_device
     from sssphase_core.errors import InputError
@@ -361,7 +356,9 @@ def report(
 ) -> None:
     """The demo's HTML report for your own sessions and runs: relit vs reference vs difference, tables, error
     against run time, kNN, PCA."""
-    _outside_sessions(out)
+    from sssphase_core.store.session import refuse_inside_session
+
+    refuse_inside_session(out)
     from sssphase_core.errors import InputError
     from sssphase_core.learning.training import resolve_checkpoint
     from sssphase_core.learning.training.checkpoints import load_checkpoint

@@ -193,6 +193,41 @@ def test_the_daemon_never_deletes_a_file_that_is_not_its_socket(tmp_path):
     assert notes.read_text() == "keep me"
 
 
+def test_a_second_daemon_never_takes_the_socket_of_one_that_lost_its_state_file(tmp_path):
+    """With its state file deleted, a running daemon was unreachable by `sss daemon stop`, and `sss daemon
+    start` bound a second daemon on the same ipc path, leaving the first running, orphaned."""
+    import socket
+
+    sock_path = tmp_path / "control.sock"
+    listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)  # stands in for the orphaned daemon
+    listener.bind(str(sock_path))
+    listener.listen(4)
+    try:
+        res = _daemon_main("--endpoint", f"ipc://{sock_path}", runtime=tmp_path)
+        assert res.returncode == 2 and "a process is listening on" in res.stderr, res.stderr
+        cli = _run_cli("daemon", "start", runtime=tmp_path, env_extra={})
+        out = (cli.stdout + cli.stderr).strip()
+        assert cli.returncode == 2 and len(out.splitlines()) == 1 and "a process is listening on" in out, out
+        assert sock_path.exists()  # the listener's socket is left alone
+    finally:
+        listener.close()
+    # a dead daemon's socket file (nothing listening) is replaced as before
+    assert _socket_is_replaceable(sock_path)
+
+
+def _socket_is_replaceable(path: Path) -> bool:
+    from sssphase_daemon import security
+
+    return security.ipc_path_problem(f"ipc://{path}") is None
+
+
+def _run_cli(*args: str, runtime: Path, env_extra: dict[str, str]) -> subprocess.CompletedProcess[str]:
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime), "COLUMNS": "200", **env_extra}
+    env.pop("SSS_DEBUG", None)
+    return subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True,
+                          timeout=60, env=env)
+
+
 def test_an_abstract_ipc_socket_is_not_local():
     from sssphase_daemon import security
 
@@ -727,9 +762,9 @@ def test_relight_eval_geometry_and_report_never_write_into_a_session(intact_sess
                  ["geometry", str(copy), "--backend", "none"],
                  ["report", str(copy)]):
         for out in (copy, copy / "view_000" / "x"):
-            _one_line(_cli(*args, "--out", str(out)), f"is inside the session {copy.resolve()}: choose a folder outside it")
+            _one_line(_cli(*args, "--out", str(out)), f"would write into the session {copy.resolve()}: choose a location outside it")
     _one_line(_cli("geometry", str(copy), "--backend", "analytic", "--out", str(copy.parent)),
-              f"is inside the session {copy.resolve()}")  # OUT/<object>/view_NNN would be the session's own view
+              f"would write into the session {copy.resolve()}")  # OUT/<object>/view_NNN would be the session's own view
     assert sorted(copy.rglob("*")) == before
 
 

@@ -85,12 +85,10 @@ def check_result_paths(out: Path | str, md: Path | str | None = None) -> None:
     """Refuse result files that would land inside a session (``--out S/apple/manifest.json`` replaced a
     session's manifest), on an existing folder, or a JSON and its Markdown on one path."""
     from sssphase_core.errors import InputError
-    from sssphase_core.store.session import session_around
+    from sssphase_core.store.session import refuse_inside_session
 
     for path in (Path(out), *([Path(md)] if md is not None else [])):
-        inside = session_around(path.parent)
-        if inside is not None:
-            raise InputError(f"--out {path} would write into the session {inside}: choose a file outside it")
+        refuse_inside_session(path.parent, what=f"--out {path}: its folder")
         if path.is_dir():
             raise InputError(f"--out {path} is a folder: give a file name (e.g. {path / 'result.json'})")
     if md is not None and Path(md).resolve() == Path(out).resolve():

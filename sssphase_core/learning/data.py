@@ -295,19 +295,13 @@ class Rows:
         return np.asarray(_take(self.array, self.idx), dtype=dtype)
 
 
-def sessions_at(root: Path | str) -> list:
-    """The sessions a ``--sessions`` folder holds: every session folder directly under it, or, when the
-    folder is itself a session, that one session (a one-object data set; as ``--check-sessions`` reads it)."""
-    from sssphase_core.store.session import MANIFEST, Session, list_sessions
-
-    return [Session.open(root)] if (Path(root) / MANIFEST).exists() else list_sessions(root)
-
-
 def held_out_split(root: Path | str, objects: Sequence[str] | None = None) -> tuple[dict[str, list[int]], dict[str, list[int]]]:
     """Training and validation views ``({object: views}, {object: views})`` of the sessions under ``root``:
     each session's last complete view is held out for validation when it has two or more, else all of
     its views train (what `sss train decoder --sessions` uses when no views are given). ``root`` may
-    also be one session folder (:func:`sessions_at`)."""
+    also be one session folder (:func:`~sssphase_core.store.session.sessions_at`)."""
+    from sssphase_core.store.session import sessions_at
+
     train, val = {}, {}
     for s in sessions_at(root):
         if objects and s.name not in objects:
@@ -328,7 +322,7 @@ def session_views(
     seed: int = 0,
 ) -> list[ViewData]:
     """Views of the sessions under ``root`` (one folder per object, see ``sssphase_core.store.session``; or
-    ``root`` is one session folder: :func:`sessions_at`).
+    ``root`` is one session folder: :func:`~sssphase_core.store.session.sessions_at`).
 
     PSP stacks are loaded per view (8 images, clipped samples repaired: :func:`repaired_psp`).
     ``views``: the same views of every session, each object's own (a mapping), or None for every complete
@@ -337,6 +331,8 @@ def session_views(
     those with captured footprints; otherwise the decoded correspondence mask. Material labels come
     from ``gt/labels`` when present (simulated sessions), else -1.
     """
+    from sssphase_core.store.session import sessions_at
+
     sessions = {s.name: s for s in sessions_at(root)}
     names = list(objects) if objects else sorted(sessions)
     missing = [n for n in names if n not in sessions]

@@ -526,11 +526,25 @@ def session_around(path: Path | str) -> Path | None:
     return None
 
 
+def refuse_inside_session(path: Path | str, what: str = "--out") -> None:
+    """Raise :class:`InputError` when ``path`` is, or lies inside, a session folder: results stay beside
+    the data, never in it (a session's folders hold only what its manifest lists)."""
+    inside = session_around(path)
+    if inside is not None:
+        raise InputError(f"{what} {path} would write into the session {inside}: choose a location outside it")
+
+
+def sessions_at(root: Path | str) -> list[Session]:
+    """The sessions a folder holds: the folder itself when it is a session, else every session folder
+    directly under it (possibly none)."""
+    return [Session.open(root)] if (Path(root) / MANIFEST).exists() else list_sessions(root)
+
+
 def find_sessions(paths: Iterable[Path | str]) -> list[Session]:
     """Each path is a session folder or a root of session folders; every session found, in order."""
     found: list[Session] = []
-    for p in map(Path, paths):
-        found += [Session.open(p)] if (p / MANIFEST).exists() else list_sessions(p)
+    for p in paths:
+        found += sessions_at(p)
     unique: dict[Path, Session] = {}  # a session named twice (itself and its parent folder) counts once
     for s in found:
         unique.setdefault(s.path.resolve(), s)
