@@ -99,6 +99,9 @@ def daemon_start(
             raise InputError(problem)
     if _client() is not None:
         raise InputError("a daemon is already running (`sss daemon status`)")
+    problem = security.ipc_path_problem(endpoint or security.default_endpoint())
+    if problem:  # a daemon that lost its state file still holds the default socket
+        raise InputError(problem)
     if foreground:
         from sssphase_daemon.__main__ import main
 

@@ -202,7 +202,24 @@ def ipc_path_problem(endpoint: str) -> str | None:
     path = Path(endpoint[6:])
     if path.exists() and not stat.S_ISSOCK(path.stat().st_mode):
         return f"{path} exists and is not a socket: refusing to replace it (choose another --endpoint)"
+    if path.exists() and _socket_listening(path):
+        return (f"a process is listening on {path} (a daemon whose state file is gone? binding would take its socket "
+                "and leave it running unreachable): stop it, e.g. `pkill -f sssphase_daemon`, or choose another --endpoint")
     return None
+
+
+def _socket_listening(path: Path) -> bool:
+    """Whether a process accepts connections on the Unix socket ``path`` (ZeroMQ drops a peer that never
+    completes its handshake, so probing it is harmless)."""
+    import socket
+
+    with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
+        probe.settimeout(1.0)
+        try:
+            probe.connect(str(path))
+        except OSError:  # refused (a dead daemon's socket file), or not ours to open
+            return False
+    return True
 
 
 def remove_ipc_socket(endpoint: str) -> None:
