@@ -370,6 +370,8 @@ def eval_knn(
     sessions: SessionsOpt = None,
 ) -> None:
     """kNN accuracy of frozen embeddings with view-level leave-one-out (cosine similarity)."""
+    import numpy as np
+
     from sssphase_core.errors import InputError
 
     _check_result_file(out)
@@ -396,6 +398,12 @@ def eval_knn(
                  footprints=False, seed=seed, cache=cache, sessions=sessions)
     names = names or _objects(vds)
     n_patches = sum(len(v.pixels) for v in vds)
+    classes = (set(v.object for v in vds) if label == "object"
+               else {int(m) for v in vds for m in np.unique(v.materials) if m >= 0})
+    if len(classes) < 2:  # every patch would get the one label: 100% that measures nothing
+        raise InputError(f"kNN by {label} needs two or more {label}s to tell apart; the views read hold "
+                         + (f"only {', '.join(map(str, sorted(classes)))}" if classes else "no material labels (sessions "
+                            "without ground truth: use --label object)"))
     if max(ks) >= n_patches:
         raise InputError(f"--k {max(ks)} is not smaller than the {n_patches} patches read: every patch would get the "
                          "majority label; lower --k or raise --pixels-per-view")

@@ -128,12 +128,20 @@ def test_a_session_folder_given_as_sessions_is_a_one_session_set(synthetic, tmp_
 
 
 def test_eval_knn_reads_a_session_folder_given_as_sessions(synthetic, tiny, tmp_path):
+    """A session folder is a one-object data set: kNN by object over it would score every patch 100%, so it
+    is refused by name (as is one without material labels by material); the folder of sessions is read."""
     import json
 
     root = _session_root(synthetic, tmp_path / "sessions")
     ckpt = tmp_path / "enc.pt"
     _decoder_checkpoint(ckpt, tiny)
-    res = runner.invoke(app, ["eval", "knn", "--checkpoint", f"fresh={ckpt}", "--sessions", str(root / "three"),
+    for label, why in (("object", "needs two or more objects to tell apart; the views read hold only three"),
+                       ("material", "no material labels")):
+        res = runner.invoke(app, ["eval", "knn", "--checkpoint", f"fresh={ckpt}", "--sessions", str(root / "three"),
+                                  "--pixels-per-view", "8", "--k", "1", "--label", label, "--out", str(tmp_path / "knn.json")])
+        assert isinstance(res.exception, InputError) and why in str(res.exception), res.output
+    assert not (tmp_path / "knn.json").exists()
+    res = runner.invoke(app, ["eval", "knn", "--checkpoint", f"fresh={ckpt}", "--sessions", str(root),
                               "--pixels-per-view", "8", "--k", "1", "--out", str(tmp_path / "knn.json")],
                         catch_exceptions=False)
     assert res.exit_code == 0, res.output
