@@ -247,7 +247,7 @@ RIG_HEAD = '[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\n'
 
 
 @pytest.mark.parametrize(("text", "expected"), [
-    (RIG_HEAD + "[processing]\npatch = -5\n", "[processing] patch must be a whole number in [1, 256], got -5"),
+    (RIG_HEAD + "[processing]\npatch = -5\n", "[processing] patch must be a whole number in [9, 256], got -5"),
     (RIG_HEAD + "[processing]\nsaturation = nan\n", "[processing] saturation must be a number in [1e-06, 1e+12], got nan"),
     (RIG_HEAD + "[processing]\nmedian = 3\n", "[processing] median must be true or false, got 3"),
     ("options = 5\n" + RIG_HEAD, "options must be a [options] table, got int"),

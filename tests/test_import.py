@@ -206,8 +206,8 @@ def _one_line_error(res: subprocess.CompletedProcess[str], expected: str) -> Non
 
 
 @pytest.mark.parametrize(("option", "value", "expected"), [
-    ("--patch", "-1", "--patch (the footprint crop size K) must be 1 to 256 px, got -1"),
-    ("--patch", "100000", "must be 1 to 256 px, got 100000"),
+    ("--patch", "-1", "--patch (the footprint crop size K) must be 9 to 256 px, got -1"),
+    ("--patch", "100000", "must be 9 to 256 px, got 100000"), ("--patch", "1", "must be 9 to 256 px, got 1"),
     ("--gamma", "nan", "--gamma (the projector's gamma) must be a number in [0.3, 5] (as a rig file's), got nan"),
     ("--gamma", "0", "must be a number in [0.3, 5] (as a rig file's), got 0.0"),
     ("--gamma", "inf", "must be a number in [0.3, 5] (as a rig file's), got inf"),

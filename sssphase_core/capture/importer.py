@@ -16,6 +16,7 @@ from sssphase_core import __version__
 from sssphase_core.capture.plan import CaptureRequest, RigSpec
 from sssphase_core.capture.processing import ViewProcessor
 from sssphase_core.errors import InputError
+from sssphase_core.processing.footprints import PATCH_RANGE
 from sssphase_core.store.imageio import IMAGE_SUFFIXES, read_frame, read_pattern, stores_integers
 from sssphase_core.store.session import Session, check_object_name
 
@@ -23,9 +24,6 @@ PSP_KEY_RE = re.compile(r"^psp/([xy])/p([0-9]{1,5}(?:\.[0-9]{1,6})?)/s([0-9]{1,2
 DOTS_KEY_RE = re.compile(r"^dots/([0-9]{1,3})_([0-9]{1,3})$")
 OTHER_KEY_RE = re.compile(r"^(white|black|(ref|pattern)/[A-Za-z0-9][A-Za-z0-9_.-]{0,63})$")
 MAX_SHIFTS = 32
-#: Footprint crop sizes K an import takes (the paper's rig uses 90; past 256 a relight chunk of crops
-#: alone needs gigabytes).
-PATCH_RANGE = (1, 256)
 #: Projector gammas an import takes: the range a rig file's ``[projector] gamma`` and the sim rig accept.
 GAMMA_RANGE = (0.3, 5.0)
 #: Float frames (EXR, float TIFF, ``.npy``) have no clipping level: their units are the renderer's or

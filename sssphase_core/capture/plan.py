@@ -70,7 +70,9 @@ class RigSpec:
 
             if proc["bayer"] not in BAYER_LAYOUTS:
                 raise InputError(f"{path}: [processing] bayer must be one of {', '.join(BAYER_LAYOUTS)}, got {proc['bayer']!r}")
-        ranges = {"patch": (1, 256), "saturation": (1e-6, 1e12), "black_level": (0, 1e12), "white_scale": (1e-12, 1e12)}
+        from sssphase_core.processing.footprints import PATCH_RANGE
+
+        ranges = {"patch": PATCH_RANGE, "saturation": (1e-6, 1e12), "black_level": (0, 1e12), "white_scale": (1e-12, 1e12)}
         for key, (lo, hi) in ranges.items():  # a NaN or negative value failed only after capturing, or wrote NaN JSON
             v = proc.get(key)
             if v is not None and (isinstance(v, bool) or not isinstance(v, int | float) or not lo <= v <= hi

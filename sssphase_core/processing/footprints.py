@@ -348,6 +348,10 @@ def holds_light(crops: np.ndarray) -> np.ndarray:
 
 #: Ring values below which :func:`crop_noise` measures the noise inside the crops' own cells instead.
 RING_SAMPLES = 256
+#: Footprint crop sizes K a rig or an import takes: the crop's noise is read from its outer 2 px
+#: (:func:`crop_noise`), so below 9 px that ring is the footprint itself and every crop reads as noise;
+#: the paper's rig uses 90, and past 256 a relight chunk of crops alone needs gigabytes.
+PATCH_RANGE = (9, 256)
 
 
 def crop_noise(crops: np.ndarray, border: int = 2) -> float:
