@@ -43,6 +43,7 @@ class Reason(enum.IntEnum):
     UNWRAP_INCONSISTENT = 4  # neighbouring frequencies disagree by more than the tolerance
     OUTSIDE = 5  # maps outside the projector image
     BAD_INPUT = 6  # NaN/inf in some input frame (added to the ARCHITECTURE.md codes)
+    DEMOSAIC_BLEED = 7  # at the silhouette, fringes only in the colours demosaicing filled in (isp.demosaic_bleed)
 
 
 @dataclass
@@ -62,6 +63,14 @@ class Correspondence:
     modulation: np.ndarray
     offset: np.ndarray
     modulation_ratio: np.ndarray
+
+    def reject(self, where: np.ndarray, reason: Reason) -> None:
+        """Mark the valid pixels ``where`` (H, W) invalid for ``reason`` (a test made after decoding)."""
+        where = np.asarray(where, bool) & self.mask
+        self.reason[where] = int(reason)
+        self.mask &= ~where
+        self.xp[where] = np.nan
+        self.yp[where] = np.nan
 
     def coverage(self) -> dict[str, int]:
         """Pixel count per reason name."""

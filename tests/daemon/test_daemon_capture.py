@@ -19,6 +19,7 @@ import pytest
 
 from sssphase_core.capture import DEFAULT_HDR, CaptureRequest, RigSpec, import_folder, run_capture
 from sssphase_core.errors import DataError, InputError
+from sssphase_core.processing.psp import Reason
 from sssphase_core.store import session as session_mod
 from sssphase_core.store.session import Session
 
@@ -257,6 +258,12 @@ def test_each_view_records_the_camera_pipeline_its_frames_went_through(daemon, t
     colour = run_capture(client, CaptureRequest("star", views=1, out=tmp_path / "colour"))
     assert colour.manifest["views"]["0"]["camera_isp"] == {"demosaic": "malvar", "median": False, "bayer": "RGGB"}
     assert colour.manifest["views"]["0"]["hot_pixels"] == colour.manifest["views"]["0"]["outliers_repaired"] == 0
+    # knowing the Bayer pipeline, the decoder drops background pixels beside the silhouette whose fringes
+    # only demosaicing gave them (they decoded as surface, and relighting lit them with the object's light)
+    reason, render = colour.load(0, "corr/reason"), colour.load(0, "gt/render/white").max(axis=-1)
+    bleed = reason == Reason.DEMOSAIC_BLEED
+    assert colour.manifest["views"]["0"]["coverage"]["DEMOSAIC_BLEED"] == bleed.sum() > 50
+    assert (render[bleed] < 0.02).mean() > 0.9 and (render[reason == Reason.VALID] < 0.02).sum() < 10
     sensor = rig_preset("cpu").sensor
     (tmp_path / "rig.toml").write_text(
         '[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\nturntable = "sim:turntable0"\n'

@@ -121,3 +121,29 @@ def test_coverage_counts_every_pixel(fringes, camera_map):
     xp, yp = camera_map((20, 20))
     corr = decode(fringes(CFG, xp, yp), CFG, PROJ)
     assert sum(corr.coverage().values()) == 400
+
+
+@pytest.mark.parametrize("demosaic", ["malvar", "opencv"])
+def test_demosaic_bleed_finds_background_pixels_that_only_borrowed_fringes(demosaic):
+    """A bright disk's fringes on black, through a Bayer camera: background pixels beside the disk show the
+    fringes in the colours demosaicing filled in, while their own sample stays dark. Those, and no disk
+    pixel, are flagged; a colour an object lacks is not bleed in its interior."""
+    from sssphase_core.processing.isp import demosaic_bleed, through_camera
+
+    h, w = 64, 80
+    yy, xx = np.mgrid[:h, :w]
+    disk = np.hypot(yy - 31.3, xx - 40.6) < 18
+    colour = np.array([0.8, 0.45, 0.3], np.float32)
+    sets = []
+    for coord in (xx, yy):
+        shifts = [0.5 + 0.45 * np.cos(2 * np.pi * coord / 9.0 - np.pi * k / 2) for k in range(4)]
+        scene = np.stack([np.where(disk, s, 0.0)[..., None] * colour for s in shifts]).astype(np.float32)
+        sets.append(through_camera(scene, demosaic=demosaic))
+    seen = np.abs(sets[0][0] - sets[0][2]).max(axis=-1) > 0.01  # what a decoder would take as surface
+    assert (seen & ~disk).sum() > 20  # demosaicing spread the fringes beyond the disk
+    flagged = demosaic_bleed(seen, sets)
+    assert not (flagged & disk).any()
+    assert flagged.sum() >= 0.9 * (seen & ~disk).sum()
+    # an object without blue: its interior blue sites show no fringes of their own and are kept
+    red = [np.where(disk[None, ..., None], s * np.array([1.0, 0.5, 0.0], np.float32) / colour, 0) for s in sets]
+    assert not demosaic_bleed(disk, red)[np.hypot(yy - 31.3, xx - 40.6) < 16].any()
