@@ -148,6 +148,16 @@ def test_frames_where_nothing_decodes_or_too_small_are_refused_naming_why(tmp_pa
         np.save(f, np.full((H, W, 3), 0.4, np.float32))  # no fringes: every pixel has zero modulation
     with pytest.raises(InputError, match=r"no camera pixel decoded \(100% low modulation\)"):
         import_folder(flat, tmp_path / "s", "flat", (W, H), patch=K)
+    # 8-bit frames of a camera exposed far too long: every fringe clipped at the top code, which the
+    # decoder sees as no modulation; the line says clipped, not "low modulation ... above the noise"
+    plan = capture_plan(W, H, references=("white", "black"))
+    for f, img in zip(plan, _camera(np.stack([f.pattern() for f in plan])), strict=True):
+        path = tmp_path / "clipped" / (f.key.replace("/", "__") + ".png")
+        path.parent.mkdir(exist_ok=True)
+        cv2.imwrite(str(path), np.round(np.clip(img * (40 if f.key != "black" else 1), 0, 1) * 255).astype(np.uint8))
+    with pytest.raises(InputError, match=r"no camera pixel decoded: \d+% of the fringe frames' values sit at the files' top "
+                                         r"code \(the camera clipped them"):
+        import_folder(tmp_path / "clipped", tmp_path / "s", "clipped", (W, H), patch=K)
     tiny = tmp_path / "tiny"
     tiny.mkdir()
     for f in flat.glob("*.npy"):

@@ -130,8 +130,17 @@ def check_not_negative(path: Path, image: np.ndarray, white_level: float) -> Non
                          "light, at most noise below zero")
 
 
-def _nothing_decoded(vdir: Path, coverage: dict[str, int]) -> str:
-    """One line for a view where no camera pixel decoded, with the reasons' shares."""
+#: Integer frames with more than this share of their fringe values at the top code are called clipped when
+#: nothing decodes (a saturated fringe has no modulation, which the decoder reports as low modulation).
+CLIPPED_SHARE = 0.25
+
+
+def _nothing_decoded(vdir: Path, coverage: dict[str, int], clipped: float = 0.0) -> str:
+    """One line for a view where no camera pixel decoded, with the reasons' shares; ``clipped``: the share of
+    the fringe frames' values at an integer file's top code."""
+    if clipped > CLIPPED_SHARE:
+        return (f"{vdir}: no camera pixel decoded: {100 * clipped:.0f}% of the fringe frames' values sit at the files' "
+                "top code (the camera clipped them, so no fringe is left): capture with a shorter exposure")
     total = max(1, sum(coverage.values()))
     reasons = ", ".join(f"{100 * n / total:.0f}% {name.lower().replace('_', ' ')}"
                         for name, n in sorted(coverage.items(), key=lambda kv: -kv[1]) if n)
@@ -216,9 +225,12 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
             writer = session.begin_view(view)
             try:
                 proc = ViewProcessor(writer, plan, spacing, patch, RigSpec(camera="import", turntable=None), req, 0)
-                shape = None
+                shape, top, fringe_values = None, 0, 0
                 for key in sorted((k for k in files if not k.startswith("pattern/")), key=lambda k: k.startswith("dots/")):
                     image = read_frame(files[key]) * np.float32(scale)
+                    if key.startswith("psp/") and stores_integers(files[key]):  # read as code / top code
+                        top += int(np.count_nonzero(image >= 0.999 * scale))
+                        fringe_values += image.size
                     check_not_negative(files[key], image, level * scale)
                     if shape is not None and image.shape != shape:
                         raise InputError(f"{files[key]} is {image.shape[1]}x{image.shape[0]}, the other frames "
@@ -233,7 +245,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                         files[key], (w, h), hint="the image projected for a reference is the projector's size (--projector)")
                 info = proc.finish()
                 if not info["coverage"].get("VALID"):
-                    raise InputError(_nothing_decoded(vdir, info["coverage"]))
+                    raise InputError(_nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values)))
             except BaseException:
                 writer.abort()
                 raise
