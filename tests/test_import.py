@@ -158,6 +158,9 @@ def test_frames_where_nothing_decodes_or_too_small_are_refused_naming_why(tmp_pa
     with pytest.raises(InputError, match=r"no camera pixel decoded: \d+% of the fringe frames' values sit at the files' top "
                                          r"code \(the camera clipped them"):
         import_folder(tmp_path / "clipped", tmp_path / "s", "clipped", (W, H), patch=K)
+    (tmp_path / "folder" / "white.png").mkdir(parents=True)  # made by mistake: it said "missing: white, black"
+    with pytest.raises(InputError, match="white.png is a folder, not a frame file"):
+        import_folder(tmp_path / "folder", tmp_path / "s", "folder", (W, H), patch=K)
     tiny = tmp_path / "tiny"
     tiny.mkdir()
     for f in flat.glob("*.npy"):

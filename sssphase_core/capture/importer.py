@@ -48,7 +48,11 @@ def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
     files: dict[str, Path] = {}
     for path in sorted(vdir.rglob("*")):
         rel = path.relative_to(vdir)
-        if not path.is_file() or path.suffix.lower() not in IMAGE_SUFFIXES or rel.parts[0].startswith("view_"):
+        if path.suffix.lower() not in IMAGE_SUFFIXES or rel.parts[0].startswith("view_"):
+            continue
+        if not path.is_file():
+            if strict and path.is_dir():  # e.g. white.png made by mistake as a folder: not "missing: white"
+                raise InputError(f"{path} is a folder, not a frame file")
             continue
         key = rel.with_suffix("").as_posix().replace("__", "/")
         if not (PSP_KEY_RE.match(key) or DOTS_KEY_RE.match(key) or OTHER_KEY_RE.match(key)):

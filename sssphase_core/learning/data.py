@@ -345,7 +345,7 @@ def session_views(
         for view in s.views() if chosen is None else chosen:
             if view not in s.views():
                 raise DataError(f"session {s.path} has no complete view {view} (its views: "
-                                f"{', '.join(map(str, s.views())) or 'none'}; choose with --views / --val-views)")
+                                f"{', '.join(map(str, s.views())) or 'none'}; choose among those)")
             psp = repaired_psp(s, view)
             rng_seed = view_seed(seed, name, view)
             fp = None
