@@ -14,7 +14,7 @@ import pytest
 from scipy.ndimage import gaussian_filter
 
 from sssphase_core.capture import import_folder
-from sssphase_core.errors import InputError
+from sssphase_core.errors import DataError, InputError
 from sssphase_core.processing.patterns import capture_plan
 from sssphase_core.processing.projector import emitted_light
 from sssphase_core.store.session import Session
@@ -408,6 +408,34 @@ def test_fireflies_in_the_frames_are_repaired_before_anything_reads_them(frames,
     assert out["fireflies"]["measured"] > 40, out  # the clean frames' 72 dB is exact; one firefly per frame sinks it
 
 
+def test_a_path_tracers_stray_nan_and_inf_samples_are_repaired_and_a_broken_file_is_refused(frames, tmp_path):
+    """A few NaN / inf pixels in a render's frames refused the whole import ("holds NaN or infinite values");
+    they are now replaced by their finite neighbours' median and counted, and the view relights as without
+    them. A frame with many of them is a broken file: one line naming it and the count."""
+    clean = import_folder(frames, tmp_path / "s", "clean", (W, H), patch=K)
+    assert clean.manifest["views"]["0"]["nonfinite_repaired"] == 0
+    rng = np.random.default_rng(4)
+
+    def stray(img: np.ndarray) -> np.ndarray:
+        ys, xs, cs = rng.integers(0, H, 2), rng.integers(0, W, 2), rng.integers(0, 3, 2)
+        img[ys, xs, cs] = np.float32([np.nan, np.inf])
+        return img
+
+    s = import_folder(_perturbed(frames, tmp_path / "stray", stray), tmp_path / "s", "stray", (W, H), patch=K)
+    assert s.manifest["views"]["0"]["nonfinite_repaired"] == 2 * len(list(frames.rglob("*.*")))
+    np.testing.assert_allclose(s.load(0, "corr/xp")[8:-8, 8:-8], clean.load(0, "corr/xp")[8:-8, 8:-8], atol=0.1)
+    out = _relit_psnr([clean, s], tmp_path)
+    assert out["stray"]["none"] > out["clean"]["none"] - 0.5, out
+
+    def broken(img: np.ndarray) -> np.ndarray:
+        img[:4] = np.nan  # 4 of 48 rows
+        return img
+
+    with pytest.raises(InputError, match=r"of its \d+ values are NaN or infinite \(more than the 0.1%"):
+        import_folder(_perturbed(frames, tmp_path / "broken", broken), tmp_path / "s", "broken", (W, H), patch=K)
+    assert not (tmp_path / "s" / "broken").exists()
+
+
 def test_hot_pixels_are_found_in_the_black_frame_and_their_offset_leaves_every_frame(frames, tmp_path):
     """Hot pixels (the same value added to every frame, black included) survive the smoothed dark frame that
     the dot grids subtract, so each sat in every footprint crop around it; they are found in the black frame
@@ -510,3 +538,26 @@ def test_a_given_projected_image_wins_over_our_pattern_of_the_same_name(tmp_path
     np.save(folder / "ref__checkerboard.npy", _camera(theirs[None])[0])
     rv = load_view(import_folder(folder, tmp_path / "s", "o", (W, H), patch=K), 0)
     np.testing.assert_allclose(rv.references["checkerboard"], theirs, atol=1e-6)
+
+
+def test_renderers_multi_layer_exr_frames_are_read_by_their_colour_layer(tmp_path):
+    """Path tracers write multi-layer EXR (Blender's ViewLayer.Combined.R, with depth and normals beside it):
+    the colour layer is read; a file with several unnamed colour layers is refused naming them."""
+    import OpenEXR
+
+    from sssphase_core.store.imageio import read_frame
+
+    rng = np.random.default_rng(0)
+    rgb = rng.random((H, W, 3)).astype(np.float32)
+    layers = {f"ViewLayer.Combined.{c}": np.ascontiguousarray(rgb[..., i]) for i, c in enumerate("RGB")}
+    layers |= {f"ViewLayer.Normal.{c}": rng.random((H, W)).astype(np.float32) for c in "RGB"}
+    layers |= {"ViewLayer.Combined.A": np.ones((H, W), np.float32), "ViewLayer.Depth.Z": rng.random((H, W)).astype(np.float32)}
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    with OpenEXR.File(header, layers) as f:
+        f.write(str(tmp_path / "white.exr"))
+    np.testing.assert_array_equal(read_frame(tmp_path / "white.exr"), rgb)
+    two = {f"{lay}.{c}": np.ascontiguousarray(rgb[..., i]) for lay in ("left", "right") for i, c in enumerate("RGB")}
+    with OpenEXR.File(header, two) as f:
+        f.write(str(tmp_path / "two.exr"))
+    with pytest.raises(DataError, match=r"holds several colour layers \(left, right\)"):
+        read_frame(tmp_path / "two.exr")

@@ -100,12 +100,26 @@ MIN_WHITE_LEVEL = 1e-30
 NEGATIVE_LIMIT, NEGATIVE_SHARE = 0.1, 1e-3
 
 
+def read_imported(path: Path) -> tuple[np.ndarray, int]:
+    """``(frame, n)``: a frame file as :func:`read_frame` reads it, with up to ``isp.NONFINITE_LIMIT`` of its
+    values NaN / inf (a path tracer's degenerate samples) repaired from their neighbours, ``n`` of them; more
+    is refused in one line."""
+    from sssphase_core.processing.isp import NONFINITE_LIMIT, repair_nonfinite
+
+    image = read_frame(path, finite=False)
+    bad = int(np.count_nonzero(~np.isfinite(image)))
+    if bad > NONFINITE_LIMIT * image.size:
+        raise InputError(f"{path}: {bad} of its {image.size} values are NaN or infinite (more than the "
+                         f"{NONFINITE_LIMIT:.1%} a path tracer's stray samples make): the file or its renderer is broken")
+    return repair_nonfinite(image) if bad else (image, 0)
+
+
 def white_levels(whites: Iterable[Path]) -> list[float]:
     """Each white capture's level (its 99.9th percentile, file units); one line naming a white capture that
     holds no light (black, negative, denormal) instead of a view where nothing decodes."""
     levels = []
     for path in whites:
-        level = float(np.percentile(read_frame(path), 99.9))
+        level = float(np.percentile(read_imported(path)[0], 99.9))
         if not level >= MIN_WHITE_LEVEL:
             raise InputError(f"{path}: the white capture holds no light (99.9th percentile {level:.3g}): it must be a "
                              "linear image of the object under the projector's full white")
@@ -229,9 +243,11 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
             writer = session.begin_view(view)
             try:
                 proc = ViewProcessor(writer, plan, spacing, patch, RigSpec(camera="import", turntable=None), req, 0)
-                shape, top, fringe_values = None, 0, 0
+                shape, top, fringe_values, nonfinite = None, 0, 0, 0
                 for key in sorted((k for k in files if not k.startswith("pattern/")), key=lambda k: k.startswith("dots/")):
-                    image = read_frame(files[key]) * np.float32(scale)
+                    image, repaired = read_imported(files[key])
+                    image *= np.float32(scale)
+                    nonfinite += repaired
                     if key.startswith("psp/") and stores_integers(files[key]):  # read as code / top code
                         top += int(np.count_nonzero(image >= 0.999 * scale))
                         fringe_values += image.size
@@ -247,7 +263,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 for key in (k for k in files if k.startswith("pattern/")):
                     proc.patterns[f"ref/{key.removeprefix('pattern/')}"] = read_pattern(
                         files[key], (w, h), hint="the image projected for a reference is the projector's size (--projector)")
-                info = proc.finish()
+                info = {**proc.finish(), "nonfinite_repaired": nonfinite}
                 if not info["coverage"].get("VALID"):
                     raise InputError(_nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values)))
             except BaseException:

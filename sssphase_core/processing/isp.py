@@ -314,3 +314,31 @@ def repair_outliers(frame: np.ndarray, bound: np.ndarray) -> tuple[np.ndarray, i
             med = cv2.medianBlur(np.where(bad[..., c], 0, frame[..., c]).astype(np.float32), 3)
             out[..., c] = np.where(bad[..., c], med, frame[..., c])
     return out, n
+
+
+#: Non-finite values a frame may hold and still be imported (repaired): path tracers leave a few NaN or inf
+#: pixels (a degenerate sample); more is a broken file or pipeline, refused.
+NONFINITE_LIMIT = 1e-3
+
+
+def repair_nonfinite(frame: np.ndarray) -> tuple[np.ndarray, int]:
+    """``(frame, n)``: the (H, W, C) frame with its NaN / inf values replaced by the median of the finite
+    values of their 3 x 3 neighbourhood (5 x 5 where none is finite, else 0); ``n`` the number replaced."""
+    frame = np.asarray(frame, np.float32)
+    bad = ~np.isfinite(frame)
+    n = int(bad.sum())
+    if not n:
+        return frame, 0
+    out = frame.copy()
+    h, w = frame.shape[:2]
+    for y, x, c in zip(*np.nonzero(bad), strict=True):
+        for r in (1, 2):
+            window = frame[max(0, y - r):y + r + 1, max(0, x - r):x + r + 1, c]
+            finite = window[np.isfinite(window)]
+            if finite.size:
+                out[y, x, c] = np.median(finite)
+                break
+        else:
+            out[y, x, c] = 0.0
+    return out, n
+

@@ -64,7 +64,7 @@ def read_exr(path: Path | str) -> np.ndarray:
     (H, W, C) in name order."""
     OpenEXR = _openexr()
     try:
-        with OpenEXR.File(str(path)) as f:
+        with OpenEXR.File(str(path), separate_channels=True) as f:  # a layer's R, G, B as channels of their own
             channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
     except (OSError, RuntimeError, ValueError) as exc:
         raise DataError(f"cannot read EXR {path}: {exc}") from None
@@ -77,7 +77,25 @@ def read_exr(path: Path | str) -> np.ndarray:
         return pixels.astype(np.float32, copy=False)
     if set(channels) >= {"R", "G", "B"} and len(channels) <= 4:  # split R, G, B (and A) channels
         return np.stack([channels[c] for c in "RGB"], axis=-1).astype(np.float32, copy=False)
+    layer = _colour_layer(path, channels)
+    if layer is not None:
+        return np.stack([channels[f"{layer}{c}"] for c in "RGB"], axis=-1).astype(np.float32, copy=False)
     return np.stack([channels[c] for c in sorted(channels)], axis=-1).astype(np.float32, copy=False)
+
+
+def _colour_layer(path: Path | str, channels: dict[str, np.ndarray]) -> str | None:
+    """The prefix (``"ViewLayer.Combined."``, ``""``) of the image's colour in a file with more channels than
+    R, G, B, A: the one layer with R, G and B, else the one named combined / beauty (renderers' multi-layer
+    files also hold depth, normals, albedo ...); None when no layer has R, G and B. Ambiguous files are refused."""
+    layers = sorted({name[:-1] for name in channels if name.endswith(("R", "G", "B"))
+                     if all(f"{name[:-1]}{c}" in channels for c in "RGB") and (name[:-1] == "" or name[:-1].endswith("."))})
+    if len(layers) > 1:
+        named = [lay for lay in layers if any(w in lay.lower() for w in ("combined", "beauty"))]
+        if len(named) != 1:
+            raise DataError(f"EXR {path} holds several colour layers ({', '.join(lay.rstrip('.') or '(unnamed)' for lay in layers)}): "
+                            "write the image's colour alone, or as a layer named Combined or Beauty")
+        layers = named
+    return layers[0] if layers else None
 
 
 def exr_size(path: Path | str) -> tuple[int, int]:

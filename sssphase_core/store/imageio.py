@@ -268,9 +268,10 @@ def _read_pixels(path: Path) -> np.ndarray:
     return arr
 
 
-def read_frame(path: Path) -> np.ndarray:
+def read_frame(path: Path, *, finite: bool = True) -> np.ndarray:
     """A linear image as float32 RGB: 8/16-bit integers (PNG, TIFF, ``.npy``) divided by the top code,
-    float ``.npy`` / ``.exr`` / TIFF and wider integer ``.npy`` as stored. Frames larger than ``MAX_FRAME_PIXELS`` are refused from their header."""
+    float ``.npy`` / ``.exr`` / TIFF and wider integer ``.npy`` as stored. Frames larger than ``MAX_FRAME_PIXELS`` are refused from their header.
+    NaN / inf values are refused unless ``finite`` is False (the importer repairs a few: ``isp.repair_nonfinite``)."""
     shape = frame_shape(path)
     if len(shape) >= 2 and shape[0] * shape[1] > MAX_FRAME_PIXELS:
         raise InputError(f"{path} is {shape[1]}x{shape[0]}: larger than any camera frame this importer takes "
@@ -285,6 +286,6 @@ def read_frame(path: Path) -> np.ndarray:
         arr = arr[..., 0]
     if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[-1] != 3) or arr.size == 0:
         raise InputError(f"{path} has shape {arr.shape}: expected (H, W) or (H, W, 3)")
-    if not np.isfinite(arr).all():
+    if finite and not np.isfinite(arr).all():
         raise InputError(f"{path} holds NaN or infinite values")
     return np.repeat(arr[..., None], 3, axis=-1) if arr.ndim == 2 else arr
