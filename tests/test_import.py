@@ -158,6 +158,13 @@ def test_frames_where_nothing_decodes_or_too_small_are_refused_naming_why(tmp_pa
     with pytest.raises(InputError, match=r"no camera pixel decoded: \d+% of the fringe frames' values sit at the files' top "
                                          r"code \(the camera clipped them"):
         import_folder(tmp_path / "clipped", tmp_path / "s", "clipped", (W, H), patch=K)
+    no_black = tmp_path / "no_black"
+    no_black.mkdir()
+    for f in flat.glob("*.npy"):
+        if f.name != "black.npy":
+            (no_black / f.name).write_bytes(f.read_bytes())
+    with pytest.raises(InputError, match=r"\(missing: black\); a render without the projector's black light has an all-zero"):
+        import_folder(no_black, tmp_path / "s", "no_black", (W, H), patch=K)
     (tmp_path / "folder" / "white.png").mkdir(parents=True)  # made by mistake: it said "missing: white, black"
     with pytest.raises(InputError, match="white.png is a folder, not a frame file"):
         import_folder(tmp_path / "folder", tmp_path / "s", "folder", (W, H), patch=K)

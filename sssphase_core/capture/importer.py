@@ -209,7 +209,9 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     for (vdir, files) in views:
         missing = [k for k in ("white", "black") if k not in files]
         if missing:
-            raise InputError(f"{vdir}: needs white, black and psp__x__p<period>__s<n> frames (missing: {', '.join(missing)})")
+            raise InputError(f"{vdir}: needs white, black and psp__x__p<period>__s<n> frames (missing: {', '.join(missing)})"
+                             + ("; a render without the projector's black light has an all-zero black frame"
+                                if missing == ["black"] else ""))
         for key in (k for k in files if k.startswith("ref/")):
             ref = key.removeprefix("ref/")
             if ref not in REFERENCE_NAMES and f"pattern/{ref}" not in files:
