@@ -114,12 +114,12 @@ def _decode_view(frames: dict, config, scene, vdir: Path, what: str) -> dict:
     """Decode a view's captured PSP frames, write the maps, and measure them against the exact values."""
     import numpy as np
 
-    from sssphase_core.processing.psp import Reason, decode
+    from sssphase_core.processing.psp import Reason, decode_camera
     from sssphase_core.reporting import figures as fig
 
     rig = scene.rig
     wp, hp = rig.projector.width, rig.projector.height
-    corr = decode(frames, config, (wp, hp))
+    corr = decode_camera(frames, config, (wp, hp), bayer="RGGB")  # the sim sensor's layout, as a capture decodes
     np.savez_compressed(vdir / "decoded.npz", xp=corr.xp, yp=corr.yp, mask=corr.mask, reason=corr.reason)
     lit = scene.mask & np.isfinite(scene.proj_xy[..., 0])  # exact correspondence exists (not shadowed)
     on_object = corr.mask & lit

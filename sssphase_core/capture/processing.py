@@ -166,15 +166,8 @@ class ViewProcessor:
             from sssphase_core.processing import psp
 
             self._repair_outliers()
-            self.corr = psp.decode(self.psp, self.plan.psp, (self.plan.width, self.plan.height))
-            if self.camera_isp:  # a Bayer camera whose pipeline is known: its silhouettes bleed
-                from sssphase_core.processing.isp import demosaic_bleed
-
-                keys = self.plan.psp.input_keys
-                n = self.plan.psp.n_shifts
-                sets = [np.stack([self.psp[k] for k in keys[i:i + n]]) for i in range(0, len(keys), n)]
-                self.corr.reject(demosaic_bleed(self.corr.mask, sets, str(self.camera_isp.get("bayer", "RGGB"))),
-                                 psp.Reason.DEMOSAIC_BLEED)
+            bayer = str(self.camera_isp.get("bayer", "RGGB")) if self.camera_isp else None  # a known Bayer pipeline
+            self.corr = psp.decode_camera(self.psp, self.plan.psp, (self.plan.width, self.plan.height), bayer=bayer)
         return self.corr
 
     def _repair_outliers(self) -> None:

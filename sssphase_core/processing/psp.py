@@ -432,6 +432,22 @@ def decode(
     return Correspondence(mask=out["reason"] == 0, **out)
 
 
+def decode_camera(frames: Mapping[str, np.ndarray], config: PSPConfig, projector_size: tuple[int, int], *,
+                  bayer: str | None = None, **thresholds: float | int | None) -> Correspondence:
+    """:func:`decode` for a camera's frames: where they come from a Bayer sensor of layout ``bayer`` (its
+    demosaicing keeps each pixel's own sample), silhouette pixels that only demosaicing lit are dropped
+    (``Reason.DEMOSAIC_BLEED``, :func:`sssphase_core.processing.isp.demosaic_bleed`)."""
+    corr = decode(frames, config, projector_size, **thresholds)
+    if bayer is not None:
+        from sssphase_core.processing.isp import demosaic_bleed
+
+        keys = config.input_keys
+        n = config.n_shifts
+        sets = [np.stack([frames[k] for k in keys[i:i + n]]) for i in range(0, len(keys), n)]
+        corr.reject(demosaic_bleed(corr.mask, sets, bayer), Reason.DEMOSAIC_BLEED)
+    return corr
+
+
 
 def declip(stack: np.ndarray, saturation: float, *, white: np.ndarray | None = None, white_saturation: float | None = None,
            black: float = 0.0, margin: float = SATURATION_MARGIN) -> tuple[np.ndarray, np.ndarray]:
