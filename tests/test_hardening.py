@@ -781,6 +781,32 @@ def test_viz_footprints_says_what_it_writes_and_what_it_leaves_out(intact_sessio
     assert (tmp_path / "f.png").exists() and (tmp_path / "f_profiles.png").exists()
 
 
+def test_a_lock_file_removed_between_open_and_lock_is_opened_again(tmp_path, monkeypatch):
+    """The holder removes its lock file when done: a capture that opened the old file just before and then
+    locked it held a lock on nothing, and a third capture could lock a new file at the same path."""
+    import builtins
+
+    from sssphase_core.capture import engine
+
+    path, opened = tmp_path / ".leaf.lock", []
+
+    def racing_open(file, mode="r", *args, **kwargs):
+        handle = builtins.open(file, mode, *args, **kwargs)
+        opened.append(handle)
+        if len(opened) == 1:  # the holder finishes right after our open: its file goes, a new one comes
+            Path(file).unlink()
+            Path(file).write_text("pid 1")
+        return handle
+
+    monkeypatch.setattr(engine, "open", racing_open, raising=False)
+    handle = engine._locked(path, tmp_path / "leaf")
+    try:
+        assert len(opened) == 2 and opened[0].closed
+        assert os.fstat(handle.fileno()).st_ino == os.stat(path).st_ino
+    finally:
+        handle.close()
+
+
 def test_a_session_being_captured_is_not_captured_into_by_a_second_process(sim_daemon, tmp_path):
     """Two captures into one folder at once: both reported success and the manifest lost a view."""
     from sssphase_core.capture import CaptureRequest, run_capture

@@ -72,21 +72,13 @@ def _capture_lock(out: Path, name: str) -> Iterator[None]:
     """One capture per session at a time: an exclusive lock on ``out/.<name>.lock`` (beside the session
     folder, so that it is taken before a resume drops partial views; removed by its holder when done).
     Two captures into one folder lost a view from the manifest while both reported success."""
-    import fcntl
-
+    path = out / f".{name}.lock"
     try:
         out.mkdir(parents=True, exist_ok=True)
-        handle = open(out / f".{name}.lock", "a+")  # noqa: SIM115 - held for the whole capture
     except OSError as exc:
         raise InputError(f"cannot create the session folder {out / name}: {exc.strerror or exc}") from None
+    handle = _locked(path, out / name)
     try:
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            handle.seek(0)
-            holder = handle.read().strip() or "another process"
-            raise InputError(f"session {out / name} is being captured by {holder}: wait for it, or capture into "
-                             "another --out") from None
         handle.seek(0)
         handle.truncate()
         handle.write(f"pid {os.getpid()}")
@@ -94,9 +86,36 @@ def _capture_lock(out: Path, name: str) -> Iterator[None]:
         try:
             yield
         finally:
-            (out / f".{name}.lock").unlink(missing_ok=True)  # nothing left beside the sessions once done
+            path.unlink(missing_ok=True)  # nothing left beside the sessions once done
     finally:
         handle.close()  # releases the lock
+
+
+def _locked(path: Path, session: Path, attempts: int = 10) -> Any:
+    """The lock file ``path`` opened and exclusively locked. A file its holder removed between our open and
+    our lock is no lock at all (a third capture would create and lock a new one): then it is opened again."""
+    import fcntl
+
+    for _ in range(attempts):
+        try:
+            handle = open(path, "a+")  # noqa: SIM115 - held for the whole capture
+        except OSError as exc:
+            raise InputError(f"cannot create the lock file {path}: {exc.strerror or exc}") from None
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            holder = handle.read().strip() or "another process"
+            handle.close()
+            raise InputError(f"session {session} is being captured by {holder}: wait for it, or capture into "
+                             "another --out") from None
+        try:
+            if os.stat(path).st_ino == os.fstat(handle.fileno()).st_ino:
+                return handle
+        except FileNotFoundError:
+            pass
+        handle.close()  # the holder removed it as we opened it: try the path again
+    raise InputError(f"could not lock {path}: it keeps being removed (another capture of {session}?)")
 
 
 def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, options: dict[str, Any],
