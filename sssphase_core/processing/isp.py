@@ -330,7 +330,6 @@ def repair_nonfinite(frame: np.ndarray) -> tuple[np.ndarray, int]:
     if not n:
         return frame, 0
     out = frame.copy()
-    h, w = frame.shape[:2]
     for y, x, c in zip(*np.nonzero(bad), strict=True):
         for r in (1, 2):
             window = frame[max(0, y - r):y + r + 1, max(0, x - r):x + r + 1, c]
@@ -341,4 +340,3 @@ def repair_nonfinite(frame: np.ndarray) -> tuple[np.ndarray, int]:
         else:
             out[y, x, c] = 0.0
     return out, n
-

@@ -438,7 +438,7 @@ def decode_camera(frames: Mapping[str, np.ndarray], config: PSPConfig, projector
     demosaicing keeps each pixel's own sample), silhouette pixels that only demosaicing lit are dropped
     (``Reason.DEMOSAIC_BLEED``, :func:`sssphase_core.processing.isp.demosaic_bleed`)."""
     corr = decode(frames, config, projector_size, **thresholds)
-    if bayer is not None:
+    if bayer is not None and np.ndim(frames[config.input_keys[0]]) == 3:  # colour frames (a mono camera has no mosaic)
         from sssphase_core.processing.isp import demosaic_bleed
 
         keys = config.input_keys
