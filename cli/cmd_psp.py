@@ -88,18 +88,22 @@ def decode_cmd(
     projector: str | None = typer.Option(None, "--projector", help="projector WxH (default: from plan.json)"),
     min_modulation: float = typer.Option(0.01, "--min-modulation", help="minimum fringe modulation B (normalised units)"),
     saturation: float | None = typer.Option(None, "--saturation", help="clipping level in the frames' units: integer files read as 0 to 1 (default 0.99), EXR/float files in their own units (default: none)"),
+    bayer: str | None = typer.Option(None, "--bayer", help="the frames were demosaiced from a Bayer sensor of this layout (RGGB, GRBG, GBRG, BGGR) by a demosaicer that keeps each pixel's own sample (Malvar, OpenCV): silhouette pixels that only demosaicing lit are dropped (reason demosaic bleed)"),
 ) -> None:
     """Decode PSP frames into camera -> projector correspondences (xp, yp, mask, reason) + PNGs."""
     import numpy as np
     from rich.progress import Progress
 
     from sssphase_core.capture.importer import frame_files
+    from sssphase_core.processing.isp import check_layout
     from sssphase_core.processing.patterns import parse_projector_size, psp_config_for, psp_key
-    from sssphase_core.processing.psp import Reason, decode, wrapped_phase
+    from sssphase_core.processing.psp import Reason, decode_camera, wrapped_phase
     from sssphase_core.store.imageio import read_frame, stores_integers
 
     if not folder.is_dir():
         raise InputError(f"{folder} is not a folder")
+    if bayer is not None:
+        bayer = check_layout(bayer.upper())
     plan_path = folder / "plan.json"
     plan = json.loads(plan_path.read_text()) if plan_path.is_file() else None
     if projector is not None:
@@ -127,7 +131,7 @@ def decode_cmd(
                 raise DataError(f"{files[key]} is {frames[key].shape[1]}x{frames[key].shape[0]}, but {files[keys[0]]} is "
                                 f"{first.shape[1]}x{first.shape[0]}: every frame must come from the same camera")
             bar.advance(task)
-    corr = decode(frames, config, size, min_modulation=min_modulation, saturation=saturation)
+    corr = decode_camera(frames, config, size, bayer=bayer, min_modulation=min_modulation, saturation=saturation)
     out.mkdir(parents=True, exist_ok=True)
     for name in ("xp", "yp", "mask", "reason", "modulation", "offset", "modulation_ratio"):
         np.save(out / f"{name}.npy", getattr(corr, name))

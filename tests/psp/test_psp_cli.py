@@ -154,3 +154,30 @@ def test_patterns_refuses_bad_fringe_options_in_one_line(tmp_path, option, value
     assert res.returncode == 2 and "Traceback" not in out and "internal error" not in out, out
     assert out.strip().splitlines() == [f"error: {expected}"], out
     assert not (tmp_path / "p").exists()
+
+
+def test_decode_with_bayer_drops_the_silhouette_pixels_only_demosaicing_lit(tmp_path):
+    """A bright disk on black seen through a Bayer camera (Malvar): `sss decode` takes the background pixels
+    beside it as surface; with --bayer it drops them (reason demosaic bleed) and keeps the disk."""
+    from sssphase_core.processing.isp import through_camera
+
+    pat_dir, cap_dir = tmp_path / "patterns", tmp_path / "captures"
+    _run("patterns", "--projector", "80x60", "--out", str(pat_dir))
+    cap_dir.mkdir()
+    (cap_dir / "plan.json").write_text((pat_dir / "plan.json").read_text())
+    yy, xx = np.mgrid[:60, :80]
+    disk = np.hypot(yy - 29.5, xx - 40.2) < 18
+    for key, light in _captures_of(pat_dir, 1.0):
+        seen = np.where(disk, light, 0.0)[..., None] * np.float32([0.8, 0.45, 0.3])
+        np.save(cap_dir / (key.replace("/", "__") + ".npy"), through_camera(seen.astype(np.float32)))
+    masks = {}
+    for name, extra in (("plain", []), ("bayer", ["--bayer", "rggb"])):
+        _run("decode", str(cap_dir), "--out", str(tmp_path / name), *extra)
+        masks[name] = np.load(tmp_path / name / "mask.npy")
+    assert (masks["plain"] & ~disk).sum() > 20
+    assert (masks["bayer"] & ~disk).sum() <= 0.1 * (masks["plain"] & ~disk).sum()
+    assert (masks["bayer"] & disk).sum() >= (masks["plain"] & disk).sum() - 2
+    coverage = json.loads((tmp_path / "bayer" / "decode.json").read_text())["coverage"]
+    assert coverage["DEMOSAIC_BLEED"] == (masks["plain"] & ~masks["bayer"]).sum()
+    res = runner.invoke(_app(), ["decode", str(cap_dir), "--out", str(tmp_path / "x"), "--bayer", "RGBG"])
+    assert res.exit_code != 0 and "unknown Bayer layout 'RGBG'" in str(res.exception)
