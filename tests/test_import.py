@@ -568,3 +568,18 @@ def test_renderers_multi_layer_exr_frames_are_read_by_their_colour_layer(tmp_pat
         f.write(str(tmp_path / "two.exr"))
     with pytest.raises(DataError, match=r"holds several colour layers \(left, right\)"):
         read_frame(tmp_path / "two.exr")
+    # depth in one part, the colour in another (multi-part files): the colour is read
+    parts = [OpenEXR.Part({**header, "name": "depth"}, {"Z": np.zeros((H, W), np.float32)}),
+             OpenEXR.Part({**header, "name": "beauty"}, {"RGB": rgb})]
+    OpenEXR.File(parts).write(str(tmp_path / "parts.exr"))
+    np.testing.assert_array_equal(read_frame(tmp_path / "parts.exr"), rgb)
+    # no light channels: depth alone, or luminance/chroma, were read as an image
+    for name, channels, why in (("depth", {"Z": rgb[..., 0]}, r"its channels: Z\)"),
+                                ("yc", {"Y": rgb[..., 0], "RY": rgb[..., 1], "BY": rgb[..., 2]}, "luminance/chroma")):
+        with OpenEXR.File(header, {k: np.ascontiguousarray(v) for k, v in channels.items()}) as f:
+            f.write(str(tmp_path / f"{name}.exr"))
+        with pytest.raises(DataError, match=rf"holds no image light as R, G, B or one grey channel .*{why}"):
+            read_frame(tmp_path / f"{name}.exr")
+    (tmp_path / "cut.exr").write_bytes((tmp_path / "white.exr").read_bytes()[:400])
+    with pytest.raises(DataError, match=r"cannot read EXR .*cut.exr \(damaged, truncated or not an EXR file\)$"):
+        read_frame(tmp_path / "cut.exr")

@@ -59,28 +59,35 @@ def write_exr(path: Path | str, image: np.ndarray, *, attributes: dict[str, str]
     return path
 
 
+#: Single channels read as a grey image (luminance or intensity); depth (Z), alpha (A) or others are not light.
+GREY_CHANNELS = ("Y", "L", "I")
+
+
 def read_exr(path: Path | str) -> np.ndarray:
-    """An EXR file -> float32 (H, W) for one channel, (H, W, 3) for RGB or RGBA (alpha dropped), else
-    (H, W, C) in name order."""
+    """An EXR file's image -> float32 (H, W) for a grey channel (:data:`GREY_CHANNELS`), (H, W, 3) for its
+    colour: R, G, B (alpha dropped), or a renderer's colour layer (:func:`_colour_layer`), in the first part
+    that holds one (multi-part files keep depth or normals in parts of their own). Files without light
+    channels (depth only, luminance/chroma) or that cannot be decoded are refused in one line."""
+    from sssphase_core.store.imageio import _native_stderr_silenced
+
     OpenEXR = _openexr()
     try:
-        with OpenEXR.File(str(path), separate_channels=True) as f:  # a layer's R, G, B as channels of their own
-            channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
-    except (OSError, RuntimeError, ValueError) as exc:
-        raise DataError(f"cannot read EXR {path}: {exc}") from None
-    if not channels:
-        raise DataError(f"EXR {path} has no channels")
-    if len(channels) == 1:
-        (name, pixels), = channels.items()
-        if name == "RGBA" and pixels.ndim == 3 and pixels.shape[-1] == 4:  # the bindings' interleaved RGBA: no alpha
-            pixels = pixels[..., :3]
-        return pixels.astype(np.float32, copy=False)
-    if set(channels) >= {"R", "G", "B"} and len(channels) <= 4:  # split R, G, B (and A) channels
-        return np.stack([channels[c] for c in "RGB"], axis=-1).astype(np.float32, copy=False)
-    layer = _colour_layer(path, channels)
-    if layer is not None:
-        return np.stack([channels[f"{layer}{c}"] for c in "RGB"], axis=-1).astype(np.float32, copy=False)
-    return np.stack([channels[c] for c in sorted(channels)], axis=-1).astype(np.float32, copy=False)
+        with _native_stderr_silenced(), OpenEXR.File(str(path), separate_channels=True) as f:  # R, G, B apart
+            parts = [{name: np.asarray(ch.pixels) for name, ch in part.channels.items()} for part in f.parts]
+    except (OSError, RuntimeError, ValueError):  # the library prints its own lines; one of ours instead
+        raise DataError(f"cannot read EXR {path} (damaged, truncated or not an EXR file)") from None
+    for channels in parts:
+        if {"R", "G", "B"} <= set(channels):
+            return np.stack([channels[c] for c in "RGB"], axis=-1).astype(np.float32, copy=False)
+        layer = _colour_layer(path, channels)
+        if layer is not None:
+            return np.stack([channels[f"{layer}{c}"] for c in "RGB"], axis=-1).astype(np.float32, copy=False)
+        grey = [name for name in channels if name.rsplit(".", 1)[-1] in GREY_CHANNELS]
+        if len(channels) == 1 and grey:
+            return channels[grey[0]].astype(np.float32, copy=False)
+    names = ", ".join(sorted({name for channels in parts for name in channels})) or "none"
+    raise DataError(f"EXR {path} holds no image light as R, G, B or one grey channel (Y) (its channels: {names}"
+                    + ("; luminance/chroma: write RGB" if any("RY" in c or "BY" in c for c in parts) else "") + ")")
 
 
 def _colour_layer(path: Path | str, channels: dict[str, np.ndarray]) -> str | None:
@@ -100,9 +107,12 @@ def _colour_layer(path: Path | str, channels: dict[str, np.ndarray]) -> str | No
 
 def exr_size(path: Path | str) -> tuple[int, int]:
     """(height, width) of an EXR image from its header alone (nothing is decoded)."""
+    from sssphase_core.store.imageio import _native_stderr_silenced
+
     OpenEXR = _openexr()
     try:
-        lo, hi = OpenEXR.File(str(path), header_only=True).header()["dataWindow"]
-    except (OSError, RuntimeError, ValueError, KeyError) as exc:
-        raise DataError(f"cannot read EXR {path}: {exc}") from None
+        with _native_stderr_silenced():
+            lo, hi = OpenEXR.File(str(path), header_only=True).header()["dataWindow"]
+    except (OSError, RuntimeError, ValueError, KeyError):
+        raise DataError(f"cannot read EXR {path} (damaged, truncated or not an EXR file)") from None
     return int(hi[1] - lo[1] + 1), int(hi[0] - lo[0] + 1)
