@@ -72,14 +72,31 @@ def patterns(
     typer.echo(f"{len(unique)} patterns ({len(plan)} planned frames) written to {out}")
 
 
-def _psp_from_plan(plan: dict):
+def _read_plan(path: Path) -> dict:
+    """A folder's ``plan.json`` (as `sss patterns` writes it), checked: one line naming the file otherwise."""
+    from sssphase_core.store.session import plan_problem
+
+    try:
+        plan = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"{path}: not a readable capture plan ({type(exc).__name__}: {str(exc).splitlines()[0][:80]})") from None
+    problem = plan_problem(plan) or (None if isinstance(plan, dict) and "projector" in plan else "it names no projector size")
+    if problem:
+        raise InputError(f"{path}: {problem}")
+    return plan
+
+
+def _psp_from_plan(plan: dict, path: Path):
     from sssphase_core.processing.patterns import PSPConfig
 
     psp = plan.get("psp")
-    if not psp:
-        raise DataError("plan.json has no PSP configuration")
-    return PSPConfig(period=psp["period"], n_shifts=psp["n_shifts"], unwrap_periods=tuple(psp["unwrap_periods"]),
-                     orientations=tuple(psp.get("orientations", ("x", "y"))))
+    if not isinstance(psp, dict) or not psp:
+        raise InputError(f"{path} has no PSP configuration (psp: period, n_shifts, unwrap_periods)")
+    try:
+        return PSPConfig(period=psp["period"], n_shifts=psp["n_shifts"], unwrap_periods=tuple(psp["unwrap_periods"]),
+                         orientations=tuple(psp.get("orientations", ("x", "y"))))
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(f"{path}: its psp configuration is incomplete or of the wrong type ({type(exc).__name__}: {exc})") from None
 
 
 def decode_cmd(
@@ -105,14 +122,14 @@ def decode_cmd(
     if bayer is not None:
         bayer = check_layout(bayer.upper())
     plan_path = folder / "plan.json"
-    plan = json.loads(plan_path.read_text()) if plan_path.is_file() else None
+    plan = _read_plan(plan_path) if plan_path.is_file() else None
     if projector is not None:
         size = parse_projector_size(projector)
     elif plan is not None:
         size = tuple(plan["projector"])
     else:
         raise InputError(f"no plan.json in {folder}: give --projector WxH")
-    config = _psp_from_plan(plan) if plan is not None else psp_config_for(*size)
+    config = _psp_from_plan(plan, plan_path) if plan is not None else psp_config_for(*size)
     keys = [psp_key(o, p, n) for o in ("x", "y") for p in config.periods for n in range(config.n_shifts)]
     files = frame_files(folder, strict=False)  # other images (e.g. this command's own figures) are not frames
     missing = [key for key in keys if key not in files]

@@ -4,6 +4,7 @@ evaluates and trains like a captured one; hostile folders are refused before any
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -165,6 +166,22 @@ def test_frames_where_nothing_decodes_or_too_small_are_refused_naming_why(tmp_pa
             (no_black / f.name).write_bytes(f.read_bytes())
     with pytest.raises(InputError, match=r"\(missing: black\); a render without the projector's black light has an all-zero"):
         import_folder(no_black, tmp_path / "s", "no_black", (W, H), patch=K)
+    for name, make, why in (("dangling", lambda f: f.symlink_to(f.with_name("gone.npy")), "is a broken symbolic link"),
+                            ("fifo", os.mkfifo, r"is not a regular file \(a FIFO or a device\)")):
+        folder = tmp_path / name
+        folder.mkdir()
+        for f in flat.glob("*.npy"):
+            if f.name != "white.npy":
+                (folder / f.name).write_bytes(f.read_bytes())
+        make(folder / "white.npy")  # said "missing: white"
+        with pytest.raises(InputError, match=why):
+            import_folder(folder, tmp_path / "s", name, (W, H), patch=K)
+    huge = tmp_path / "huge"
+    huge.mkdir()
+    for f in flat.glob("*.npy"):
+        np.save(huge / f.name, np.load(f).astype(np.float64) * 1e40)  # finite, beyond float32: "NaN or infinite"
+    with pytest.raises(InputError, match=r"holds values up to [0-9.]+e\+\d+, beyond what float32 frames hold"):
+        import_folder(huge, tmp_path / "s", "huge", (W, H), patch=K)
     (tmp_path / "folder" / "white.png").mkdir(parents=True)  # made by mistake: it said "missing: white, black"
     with pytest.raises(InputError, match="white.png is a folder, not a frame file"):
         import_folder(tmp_path / "folder", tmp_path / "s", "folder", (W, H), patch=K)

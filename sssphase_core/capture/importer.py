@@ -51,8 +51,13 @@ def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
         if path.suffix.lower() not in IMAGE_SUFFIXES or rel.parts[0].startswith("view_"):
             continue
         if not path.is_file():
-            if strict and path.is_dir():  # e.g. white.png made by mistake as a folder: not "missing: white"
-                raise InputError(f"{path} is a folder, not a frame file")
+            if strict:  # said "missing: white" for a white.png that cannot be read
+                if path.is_dir():
+                    raise InputError(f"{path} is a folder, not a frame file")
+                if path.is_symlink() and not path.exists():
+                    raise InputError(f"{path} is a broken symbolic link (or a loop)")
+                if path.exists():
+                    raise InputError(f"{path} is not a regular file (a FIFO or a device): frames must be image files")
             continue
         key = rel.with_suffix("").as_posix().replace("__", "/")
         if not (PSP_KEY_RE.match(key) or DOTS_KEY_RE.match(key) or OTHER_KEY_RE.match(key)):

@@ -281,6 +281,10 @@ def read_frame(path: Path, *, finite: bool = True) -> np.ndarray:
         raise InputError(f"{path} holds {arr.dtype} values, not an image")
     if arr.dtype.kind in "iu" and (arr.dtype.itemsize <= 2 or path.suffix.lower() != ".npy"):
         arr = arr.astype(np.float32) / np.iinfo(arr.dtype).max  # a camera's codes, as a 16-bit PNG's
+    if arr.dtype.kind == "f" and arr.dtype.itemsize > 4:  # float64 beyond float32 would become inf, called broken
+        top = float(np.abs(arr[np.isfinite(arr)]).max(initial=0.0))
+        if top > float(np.finfo(np.float32).max) / 16:
+            raise InputError(f"{path} holds values up to {top:.3g}, beyond what float32 frames hold: scale them down")
     arr = np.asarray(arr, np.float32)
     if arr.ndim == 3 and arr.shape[-1] == 1:
         arr = arr[..., 0]

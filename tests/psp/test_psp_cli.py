@@ -181,3 +181,21 @@ def test_decode_with_bayer_drops_the_silhouette_pixels_only_demosaicing_lit(tmp_
     assert coverage["DEMOSAIC_BLEED"] == (masks["plain"] & ~masks["bayer"]).sum()
     res = runner.invoke(_app(), ["decode", str(cap_dir), "--out", str(tmp_path / "x"), "--bayer", "RGBG"])
     assert res.exit_code != 0 and "unknown Bayer layout 'RGBG'" in str(res.exception)
+
+
+@pytest.mark.parametrize(("text", "expected"), [
+    ("{not json", "not a readable capture plan (JSONDecodeError"),
+    ("[]", "plan is not a table"),
+    ('{"psp": {}}', "it names no projector size"),
+    ('{"projector": [64, 48, 3]}', "plan.projector must be [width, height]"),
+    ('{"projector": [-64, 48]}', "plan.projector must be [width, height]"),
+    ('{"projector": [80, 60], "psp": {"period": 11, "n_shifts": 4}}', "its psp configuration is incomplete"),
+])
+def test_decode_names_a_broken_plan_json_in_one_line(tmp_path, text, expected):
+    """A hand-edited plan.json was an internal error (KeyError, JSONDecodeError ...) or decoded nothing."""
+    from sssphase_core.errors import InputError
+
+    (tmp_path / "plan.json").write_text(text)
+    res = runner.invoke(_app(), ["decode", str(tmp_path), "--out", str(tmp_path / "out")])
+    assert isinstance(res.exception, InputError) and expected in str(res.exception), res.output
+    assert str(tmp_path / "plan.json") in str(res.exception)
