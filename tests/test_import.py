@@ -176,6 +176,14 @@ def test_frames_where_nothing_decodes_or_too_small_are_refused_naming_why(tmp_pa
         make(folder / "white.npy")  # said "missing: white"
         with pytest.raises(InputError, match=why):
             import_folder(folder, tmp_path / "s", name, (W, H), patch=K)
+    for gain, why in ((100.0, r"psp__x__p\S+\.npy: \d+(\.\d)?x brighter than the white capture"),
+                      (0.01, r"the fringe set's mean is 0.0\d*x the white capture's level")):
+        mixed = tmp_path / f"mixed{gain:g}"  # fringes in other units than the white: imported with VALID pixels
+        mixed.mkdir()
+        for f in _float_frames(tmp_path / f"good{gain:g}", 1.0).glob("*.npy"):
+            np.save(mixed / f.name, np.load(f) * np.float32(gain if f.name.startswith("psp") else 1.0))
+        with pytest.raises(InputError, match=why):
+            import_folder(mixed, tmp_path / "s", f"mixed{gain:g}", (W, H), patch=K)
     huge = tmp_path / "huge"
     huge.mkdir()
     for f in flat.glob("*.npy"):

@@ -119,6 +119,24 @@ def read_imported(path: Path) -> tuple[np.ndarray, int]:
     return repair_nonfinite(image) if bad else (image, 0)
 
 
+#: A fringe frame's level (99.9th percentile) may exceed the white capture's by this factor at most (noise,
+#: a firefly), and a fringe set's mean (half the white's light) fall below it by this factor at most: beyond
+#: either, the frames of one view were written in different units or exposures.
+FRINGE_ABOVE_WHITE, SET_BELOW_WHITE = 2.0, 0.05
+
+
+def _check_fringe_level(path: Path, image: np.ndarray, white_level: float, *, mean: bool = False) -> None:
+    """Refuse fringe frames (or a set's mean, ``mean``) in other units or exposure than the view's white."""
+    level = float(np.percentile(image, 99.9))
+    if not mean and level > FRINGE_ABOVE_WHITE * white_level:
+        raise InputError(f"{path}: {level / white_level:.3g}x brighter than the white capture (99.9th percentiles "
+                         f"{level:.3g} and {white_level:.3g}): a view's frames must share one exposure and units")
+    if mean and level < SET_BELOW_WHITE * white_level:
+        raise InputError(f"{path}*: the fringe set's mean is {level / white_level:.2g}x the white capture's level "
+                         f"({level:.3g} and {white_level:.3g}), where it is about 0.5x: a view's frames must share "
+                         "one exposure and units")
+
+
 def white_levels(whites: Iterable[Path]) -> list[float]:
     """Each white capture's level (its 99.9th percentile, file units); one line naming a white capture that
     holds no light (black, negative, denormal) instead of a view where nothing decodes."""
@@ -251,6 +269,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
             try:
                 proc = ViewProcessor(writer, plan, spacing, patch, RigSpec(camera="import", turntable=None), req, 0)
                 shape, top, fringe_values, nonfinite = None, 0, 0, 0
+                set_sums: dict[str, np.ndarray] = {}  # each fringe set's sum: its mean is half the white's light
                 for key in sorted((k for k in files if not k.startswith("pattern/")), key=lambda k: k.startswith("dots/")):
                     image, repaired = read_imported(files[key])
                     image *= np.float32(scale)
@@ -259,6 +278,10 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                         top += int(np.count_nonzero(image >= 0.999 * scale))
                         fringe_values += image.size
                     check_not_negative(files[key], image, level * scale)
+                    if key.startswith("psp/"):
+                        _check_fringe_level(files[key], image, level * scale)
+                        set_key = key.rsplit("/", 1)[0]
+                        set_sums[set_key] = set_sums.get(set_key, 0) + image
                     if shape is not None and image.shape != shape:
                         raise InputError(f"{files[key]} is {image.shape[1]}x{image.shape[0]}, the other frames "
                                          f"{shape[1]}x{shape[0]}")
@@ -270,6 +293,8 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 for key in (k for k in files if k.startswith("pattern/")):
                     proc.patterns[f"ref/{key.removeprefix('pattern/')}"] = read_pattern(
                         files[key], (w, h), hint="the image projected for a reference is the projector's size (--projector)")
+                for set_key, total in set_sums.items():
+                    _check_fringe_level(vdir / set_key.replace("/", "__"), total / config.n_shifts, level * scale, mean=True)
                 info = {**proc.finish(), "nonfinite_repaired": nonfinite}
                 if not info["coverage"].get("VALID"):
                     raise InputError(_nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values)))
