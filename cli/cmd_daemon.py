@@ -32,6 +32,15 @@ def _client(timeout_s: float = 10.0):
     return None
 
 
+def _orphan() -> int | None:
+    """The pid of a sssphase daemon serving the default ipc socket without a state file, else None."""
+    from sssphase_daemon import security
+
+    path = security.default_endpoint().removeprefix("ipc://")
+    pid = security.socket_listener(path) if os.path.exists(path) else None
+    return pid if pid and security.read_state() is None and security.is_daemon_process(pid) else None
+
+
 def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] = False) -> None:
     """List devices with their stable IDs (asks the running daemon, else discovers locally)."""
     from dataclasses import asdict
@@ -119,6 +128,11 @@ def daemon_stop() -> None:
     client = _client()
     if client is None:
         state = security.read_state()
+        orphan = _orphan()
+        if state is None and orphan is not None:  # serving the default socket, its state file gone
+            os.kill(orphan, signal.SIGTERM)
+            console.print(f"daemon (pid {orphan}) had no state file; sent SIGTERM")
+            return
         if state is not None:
             if not security.is_daemon_process(state.pid):  # the pid may belong to another program by now
                 security.state_path().unlink(missing_ok=True)
@@ -150,7 +164,10 @@ def daemon_status() -> None:
     """Show the daemon's endpoint, rigs and jobs."""
     client = _client()
     if client is None:
-        console.print("no daemon running")
+        orphan = _orphan()
+        console.print("no daemon running" if orphan is None else
+                      f"a daemon (pid {orphan}) serves the default socket but its state file is gone, so nothing can "
+                      "talk to it: `sss daemon stop` ends it")
         sys.exit(1)  # typer.Exit's code is dropped by cli.main
     with client:
         hello, status = client.call("hello"), client.call("status")

@@ -210,19 +210,32 @@ class DaemonClient:
             pull.close(linger=0)
 
 
+def _last_line(path: str, start: int) -> str:
+    """The last non-empty line the daemon wrote to its log from byte ``start`` (its reason for exiting)."""
+    try:
+        with open(path, "rb") as f:
+            f.seek(start)
+            lines = [ln.strip() for ln in f.read().decode(errors="replace").splitlines() if ln.strip()]
+    except OSError:
+        return "no log"
+    return lines[-1][:300] if lines else "nothing logged"
+
+
 def spawn_daemon(*, endpoint: str | None = None, extra_args: tuple[str, ...] = (), env: dict[str, str] | None = None,
                  log_path: Path | None = None, wait_s: float = 20.0) -> subprocess.Popen:
     """Start ``python -m sssphase_daemon`` detached and wait until it answers; returns the process."""
     state_file = security.state_path()
     cmd = [sys.executable, "-m", "sssphase_daemon", *(["--endpoint", endpoint] if endpoint else []), *extra_args]
     log = open(log_path or security.log_dir() / "daemon.log", "ab")  # noqa: SIM115 - handed to the child
+    start = log.tell()
     proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                             start_new_session=True, env={**os.environ, **(env or {})})
     log.close()
     deadline = time.monotonic() + wait_s
     while time.monotonic() < deadline:
         if proc.poll() is not None:
-            raise DaemonUnavailable(f"the daemon exited with status {proc.returncode} (see {log.name})")
+            raise DaemonUnavailable(f"the daemon exited with status {proc.returncode}: {_last_line(log.name, start)} "
+                                    f"(see {log.name})")
         state = security.read_state(state_file)
         if state is not None and state.pid == proc.pid:
             with DaemonClient(state.endpoint, state.token) as client:

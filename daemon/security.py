@@ -202,24 +202,30 @@ def ipc_path_problem(endpoint: str) -> str | None:
     path = Path(endpoint[6:])
     if path.exists() and not stat.S_ISSOCK(path.stat().st_mode):
         return f"{path} exists and is not a socket: refusing to replace it (choose another --endpoint)"
-    if path.exists() and _socket_listening(path):
-        return (f"a process is listening on {path} (a daemon whose state file is gone? binding would take its socket "
-                "and leave it running unreachable): stop it, e.g. `pkill -f sssphase_daemon`, or choose another --endpoint")
+    if path.exists() and (pid := socket_listener(path)) is not None:
+        who = f"pid {pid}" if pid > 0 else "a process"
+        return (f"{who} is listening on {path} (a daemon whose state file is gone? binding would take its socket and "
+                "leave it running unreachable): " + (f"`sss daemon stop` ends it, or `kill {pid}`" if pid > 0 else "stop it")
+                + "; or choose another --endpoint")
     return None
 
 
-def _socket_listening(path: Path) -> bool:
-    """Whether a process accepts connections on the Unix socket ``path`` (ZeroMQ drops a peer that never
-    completes its handshake, so probing it is harmless)."""
+def socket_listener(path: Path | str) -> int | None:
+    """The pid of the process accepting connections on the Unix socket ``path`` (0 when the kernel does not say),
+    or None when none does. ZeroMQ drops a peer that never completes its handshake, so probing it is harmless."""
     import socket
+    import struct
 
     with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as probe:
         probe.settimeout(1.0)
         try:
             probe.connect(str(path))
         except OSError:  # refused (a dead daemon's socket file), or not ours to open
-            return False
-    return True
+            return None
+        try:  # Linux: the listener's credentials (pid, uid, gid)
+            return int(struct.unpack("3i", probe.getsockopt(socket.SOL_SOCKET, socket.SO_PEERCRED, 12))[0])
+        except (AttributeError, OSError):
+            return 0
 
 
 def remove_ipc_socket(endpoint: str) -> None:

@@ -8,6 +8,7 @@ import struct
 import subprocess
 import sys
 import tempfile
+import time
 import zlib
 from pathlib import Path
 
@@ -204,15 +205,50 @@ def test_a_second_daemon_never_takes_the_socket_of_one_that_lost_its_state_file(
     listener.listen(4)
     try:
         res = _daemon_main("--endpoint", f"ipc://{sock_path}", runtime=tmp_path)
-        assert res.returncode == 2 and "a process is listening on" in res.stderr, res.stderr
+        assert res.returncode == 2 and f"pid {os.getpid()} is listening on" in res.stderr, res.stderr
         cli = _run_cli("daemon", "start", runtime=tmp_path, env_extra={})
         out = (cli.stdout + cli.stderr).strip()
-        assert cli.returncode == 2 and len(out.splitlines()) == 1 and "a process is listening on" in out, out
+        assert cli.returncode == 2 and len(out.splitlines()) == 1 and f"pid {os.getpid()} is listening on" in out, out
         assert sock_path.exists()  # the listener's socket is left alone
     finally:
         listener.close()
     # a dead daemon's socket file (nothing listening) is replaced as before
     assert _socket_is_replaceable(sock_path)
+
+
+def test_a_daemon_whose_state_file_was_deleted_is_found_by_status_and_ended_by_stop(tmp_path):
+    """`status` and `stop` said "no daemon running" while it served the default socket."""
+    from sssphase_daemon import security
+
+    runtime = tmp_path / "rt"
+    started = _run_cli("daemon", "start", runtime=runtime, env_extra={"SSS_LOG_DIR": str(tmp_path / "log")})
+    assert started.returncode == 0, started.stdout + started.stderr
+    pid = int(started.stdout.split("pid ")[1].split(")")[0])
+    try:
+        (runtime / "daemon.json").unlink()
+        status = _run_cli("daemon", "status", runtime=runtime, env_extra={})
+        assert status.returncode == 1 and f"a daemon (pid {pid}) serves the default socket but its state file is gone" \
+            in status.stdout, status.stdout + status.stderr
+        stop = _run_cli("daemon", "stop", runtime=runtime, env_extra={})
+        assert stop.returncode == 0 and f"daemon (pid {pid}) had no state file; sent SIGTERM" in stop.stdout, stop.stdout
+        for _ in range(200):
+            if not security.is_daemon_process(pid):
+                break
+            time.sleep(0.05)
+        assert not security.is_daemon_process(pid)
+    finally:
+        if security.is_daemon_process(pid):
+            os.kill(pid, 9)
+
+
+def test_a_daemon_that_exits_at_start_says_why_not_only_see_the_log(tmp_path):
+    """`sss daemon start` said "the daemon exited with status 2 (see daemon.log)"; the reason was in the log."""
+    (tmp_path / "keys").mkdir()
+    res = _run_cli("daemon", "start", "--endpoint", "tcp://127.0.0.1:5599", "--curve-dir", str(tmp_path / "keys"),
+                   runtime=tmp_path / "rt", env_extra={"SSS_LOG_DIR": str(tmp_path / "log")})
+    out = (res.stdout + res.stderr).strip()
+    assert res.returncode == 2 and len(out.splitlines()) == 1, out
+    assert "the daemon exited with status 2: sssphase daemon: Invalid certificate file" in out, out
 
 
 def _socket_is_replaceable(path: Path) -> bool:
