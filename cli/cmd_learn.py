@@ -110,6 +110,12 @@ def _views(objects: list[str], views: list[int] | dict[str, list[int]] | None, *
         return vds
     from sssphase_core.learning.data import simulate_views
 
+    wanted = sorted({v for vs in (views.values() if isinstance(views, dict) else [views or []]) for v in vs})
+    if wanted and wanted[-1] >= n_views:  # view 0 was simulated before "view must be in [0, 1)"
+        from sssphase_core.errors import InputError
+
+        raise InputError(f"views {','.join(map(str, wanted))} need --n-views above {wanted[-1]} (the turntable's views "
+                         f"per object; it is {n_views}): pass --views within 0..{n_views - 1} or raise --n-views")
     with console.status(f"simulating {len(objects)} object(s) x {len(views)} view(s) (cached in {cache})"):
         vds = simulate_views(objects, views, n_views=n_views, rig=rig, pixels_per_view=pixels, footprints=footprints,
                              noisy_footprints=noisy, seed=seed, cache_dir=cache)
@@ -388,6 +394,9 @@ def eval_knn(
             raise InputError(f"--checkpoint takes NAME=PATH (or PATH) with a distinct name of letters, digits, '_', "
                              f"'-', '.', got {item!r}")
     runs = dict(pairs)
+    missing = [path for path in runs.values() if not Path(path).exists()]
+    if missing:  # before any view is read or simulated
+        raise InputError(f"no checkpoint at {missing[0]} (a pretraining run folder or its .pt file)")
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
     if label not in ("object", "material"):
         raise InputError(f"--label must be object or material, got {label!r}")

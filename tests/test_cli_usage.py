@@ -38,6 +38,8 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["eval", "relight", "s", "--backend", "none,nonsense"], "unknown backend 'nonsense'; available: analytic, blend"),
         (["eval", "relight", "s", "--backend", "blend", "--checkpoint", "/nonexistent/ck.pt"], "no checkpoint at /nonexistent/ck.pt"),
         (["eval", "relight", "/nonexistent/sessions", "--backend", "none"], "no sessions under /nonexistent/sessions"),
+        (["eval", "knn", "--checkpoint", "/nonexistent/enc.pt"], "no checkpoint at /nonexistent/enc.pt"),  # before simulating
+        (["eval", "knn", "--checkpoint", "root=/", "--n-views", "1"], "views 0,1,2,3 need --n-views above 3"),
         (["train", "pretrain", "--batch-size", "0"], "--batch-size"),
         (["train", "decoder", "--epochs", "0", "--end-to-end"], "--epochs"),
         (["relight", "s", "--pattern", "checkerboard", "--chunk", "0"], "--chunk"),
