@@ -608,3 +608,18 @@ def test_renderers_multi_layer_exr_frames_are_read_by_their_colour_layer(tmp_pat
     (tmp_path / "cut.exr").write_bytes((tmp_path / "white.exr").read_bytes()[:400])
     with pytest.raises(DataError, match=r"cannot read EXR .*cut.exr \(damaged, truncated or not an EXR file\)$"):
         read_frame(tmp_path / "cut.exr")
+
+
+def test_an_import_warns_of_a_wrong_projector_size_and_of_clipped_light(tmp_path):
+    """Imports that decode but are suspect exited 0 in silence: frames of a 64x48 projector imported as 48x40
+    (a quarter of the pixels mapped outside), and a white capture clipped at its top code."""
+    good = _float_frames(tmp_path / "good", 1.0)
+    with pytest.warns(UserWarning, match=r"% of the decoded pixels map outside the 48x40 projector: is --projector right\?"):
+        import_folder(good, tmp_path / "s", "small", (48, 40), patch=K)
+    clipped = tmp_path / "clipped"
+    clipped.mkdir()
+    for f in good.glob("*.npy"):
+        img = np.full((H, W, 3), 1.0, np.float32) if f.stem == "white" else np.load(f)
+        cv2.imwrite(str(clipped / (f.stem + ".png")), np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16))
+    with pytest.warns(UserWarning, match=r"the white capture is clipped at 100.0% of the decoded pixels"):
+        import_folder(clipped, tmp_path / "s", "clipped", (W, H), patch=K)

@@ -189,6 +189,32 @@ def _nothing_decoded(vdir: Path, coverage: dict[str, int], clipped: float = 0.0)
             "their names give (`sss patterns` writes them), with fringes above the noise")
 
 
+#: Shares of a view's decoded pixels beyond which an import warns: mapped outside the projector (a wrong
+#: --projector), or at an integer file's top code (clipped light, underestimated).
+OUTSIDE_WARN, CLIPPED_WARN = 0.2, 0.01
+
+
+def _warn_suspect_view(vdir: Path, coverage: dict[str, int], size: tuple[int, int], fringes_clipped: float,
+                       white: np.ndarray, mask: np.ndarray, top: float | None) -> None:
+    """One warning line each for what an import cannot refuse but the user should know: many pixels mapped
+    outside the projector, or clipped fringes or white (integer files; ``top`` the white's top code)."""
+    import warnings
+
+    valid, outside = coverage.get("VALID", 0), coverage.get("OUTSIDE", 0)
+    if outside > OUTSIDE_WARN * (valid + outside):
+        warnings.warn(f"{vdir}: {100 * outside / (valid + outside):.0f}% of the decoded pixels map outside the "
+                      f"{size[0]}x{size[1]} projector: is --projector right?", stacklevel=3)
+    if fringes_clipped > CLIPPED_WARN:
+        warnings.warn(f"{vdir}: {100 * fringes_clipped:.1f}% of the fringe frames' values sit at the files' top code "
+                      "(clipped): their light and modulation are underestimated; capture with a shorter exposure",
+                      stacklevel=3)
+    if top is not None and mask.any():
+        clipped = float((white[mask] >= 0.999 * top).any(axis=-1).mean())
+        if clipped > CLIPPED_WARN:
+            warnings.warn(f"{vdir}: the white capture is clipped at {100 * clipped:.1f}% of the decoded pixels (its "
+                          "top code): their light is underestimated; capture it with a shorter exposure", stacklevel=3)
+
+
 def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int, int], *, patch: int = 32,
                   gamma: float = 2.2) -> Session:
     """Import frames captured by another rig into a session, processed by the capture engine's
@@ -298,6 +324,8 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 info = {**proc.finish(), "nonfinite_repaired": nonfinite}
                 if not info["coverage"].get("VALID"):
                     raise InputError(_nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values)))
+                _warn_suspect_view(vdir, info["coverage"], (w, h), top / max(1, fringe_values),
+                                   proc.images["white"], proc.corr.mask, scale if stores_integers(files["white"]) else None)
             except BaseException:
                 writer.abort()
                 raise

@@ -376,7 +376,8 @@ def decode(
         if config.periods[0] < extent:
             raise InputError(
                 f"coarsest period {config.periods[0]:g} px is shorter than the projector extent {extent} px "
-                f"along {o}: add unwrap periods (see patterns.psp_config_for)"
+                f"along {o}, so its positions cannot be told apart: is the projector size right? (else the frames "
+                "need coarser unwrap periods, as `sss patterns` plans them)"
             )
     first = frames[keys[("x", config.period, 0)]]
     shape = first.shape
