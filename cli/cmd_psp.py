@@ -60,6 +60,8 @@ def patterns(
         raise InputError(f"--hdr must be comma-separated numbers, got {hdr!r}") from None
     plan = capture_plan(w, h, psp=config, unwrap=unwrap, footprints=footprints, dot_spacing=dot_spacing,
                         references=reference, hdr_exposures=exposures, gamma=gamma)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} is a file: give a folder")
     out.mkdir(parents=True, exist_ok=True)
     unique = list({f.key: f for f in plan}.values())
     with Progress() as bar:
@@ -149,6 +151,8 @@ def decode_cmd(
                                 f"{first.shape[1]}x{first.shape[0]}: every frame must come from the same camera")
             bar.advance(task)
     corr = decode_camera(frames, config, size, bayer=bayer, min_modulation=min_modulation, saturation=saturation)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} is a file: give a folder")
     out.mkdir(parents=True, exist_ok=True)
     for name in ("xp", "yp", "mask", "reason", "modulation", "offset", "modulation_ratio"):
         np.save(out / f"{name}.npy", getattr(corr, name))

@@ -323,7 +323,8 @@ NONFINITE_LIMIT = 1e-3
 
 def repair_nonfinite(frame: np.ndarray) -> tuple[np.ndarray, int]:
     """``(frame, n)``: the (H, W, C) frame with its NaN / inf values replaced by the median of the finite
-    values of their 3 x 3 neighbourhood (5 x 5 where none is finite, else 0); ``n`` the number replaced."""
+    values of their 3 x 3 neighbourhood (wider, up to 17 x 17, where none is finite, else 0); ``n`` the number
+    replaced."""
     frame = np.asarray(frame, np.float32)
     bad = ~np.isfinite(frame)
     n = int(bad.sum())
@@ -331,7 +332,7 @@ def repair_nonfinite(frame: np.ndarray) -> tuple[np.ndarray, int]:
         return frame, 0
     out = frame.copy()
     for y, x, c in zip(*np.nonzero(bad), strict=True):
-        for r in (1, 2):
+        for r in (1, 2, 4, 8):
             window = frame[max(0, y - r):y + r + 1, max(0, x - r):x + r + 1, c]
             finite = window[np.isfinite(window)]
             if finite.size:
