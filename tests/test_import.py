@@ -184,6 +184,14 @@ def test_frames_where_nothing_decodes_or_too_small_are_refused_naming_why(tmp_pa
             np.save(mixed / f.name, np.load(f) * np.float32(gain if f.name.startswith("psp") else 1.0))
         with pytest.raises(InputError, match=why):
             import_folder(mixed, tmp_path / "s", f"mixed{gain:g}", (W, H), patch=K)
+    odd = tmp_path / "odd"  # one fringe frame of another size: summing its set was a broadcasting error
+    odd.mkdir()
+    for f in flat.glob("*.npy"):
+        (odd / f.name).write_bytes(f.read_bytes())
+    last = sorted(odd.glob("psp__y__*.npy"))[-1]
+    np.save(last, np.load(last)[: H // 2, : W // 2])
+    with pytest.raises(InputError, match=rf"{last.name} is {W // 2}x{H // 2}, the other frames {W}x{H}"):
+        import_folder(odd, tmp_path / "s", "odd", (W, H), patch=K)
     huge = tmp_path / "huge"
     huge.mkdir()
     for f in flat.glob("*.npy"):

@@ -298,16 +298,12 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 set_sums: dict[str, np.ndarray] = {}  # each fringe set's sum: its mean is half the white's light
                 for key in sorted((k for k in files if not k.startswith("pattern/")), key=lambda k: k.startswith("dots/")):
                     image, repaired = read_imported(files[key])
-                    image *= np.float32(scale)
+                    image = image * np.float32(scale)
                     nonfinite += repaired
                     if key.startswith("psp/") and stores_integers(files[key]):  # read as code / top code
                         top += int(np.count_nonzero(image >= 0.999 * scale))
                         fringe_values += image.size
                     check_not_negative(files[key], image, level * scale)
-                    if key.startswith("psp/"):
-                        _check_fringe_level(files[key], image, level * scale)
-                        set_key = key.rsplit("/", 1)[0]
-                        set_sums[set_key] = set_sums.get(set_key, 0) + image
                     if shape is not None and image.shape != shape:
                         raise InputError(f"{files[key]} is {image.shape[1]}x{image.shape[0]}, the other frames "
                                          f"{shape[1]}x{shape[0]}")
@@ -315,6 +311,10 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                     if min(shape[:2]) < MIN_FRAME_SIDE:
                         raise InputError(f"{files[key]} is {shape[1]}x{shape[0]}: smaller than a camera frame "
                                          f"(at least {MIN_FRAME_SIDE} px a side)")
+                    if key.startswith("psp/"):  # (after the size checks: sets are summed)
+                        _check_fringe_level(files[key], image, level * scale)
+                        set_key = key.rsplit("/", 1)[0]
+                        set_sums[set_key] = set_sums.get(set_key, 0) + image
                     proc.add(_ImportedFrame(key, image), {"name": key, "key": key, "exposure": 1.0})
                 for key in (k for k in files if k.startswith("pattern/")):
                     proc.patterns[f"ref/{key.removeprefix('pattern/')}"] = read_pattern(
