@@ -113,7 +113,7 @@ def decode_cmd(
     import numpy as np
     from rich.progress import Progress
 
-    from sssphase_core.capture.importer import frame_files
+    from sssphase_core.capture.importer import MIN_FRAME_SIDE, frame_files
     from sssphase_core.processing.isp import check_layout
     from sssphase_core.processing.patterns import parse_projector_size, psp_config_for, psp_key
     from sssphase_core.processing.psp import Reason, decode_camera, wrapped_phase
@@ -123,6 +123,8 @@ def decode_cmd(
         raise InputError(f"{folder} is not a folder")
     if bayer is not None:
         bayer = check_layout(bayer.upper())
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} is a file: give a folder")
     plan_path = folder / "plan.json"
     plan = _read_plan(plan_path) if plan_path.is_file() else None
     if projector is not None:
@@ -149,10 +151,11 @@ def decode_cmd(
             if frames[key].shape != first.shape:
                 raise DataError(f"{files[key]} is {frames[key].shape[1]}x{frames[key].shape[0]}, but {files[keys[0]]} is "
                                 f"{first.shape[1]}x{first.shape[0]}: every frame must come from the same camera")
+            if min(first.shape[:2]) < MIN_FRAME_SIDE:  # as `sss import` refuses them
+                raise InputError(f"{files[key]} is {first.shape[1]}x{first.shape[0]}: smaller than a camera frame "
+                                 f"(at least {MIN_FRAME_SIDE} px a side)")
             bar.advance(task)
     corr = decode_camera(frames, config, size, bayer=bayer, min_modulation=min_modulation, saturation=saturation)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} is a file: give a folder")
     out.mkdir(parents=True, exist_ok=True)
     for name in ("xp", "yp", "mask", "reason", "modulation", "offset", "modulation_ratio"):
         np.save(out / f"{name}.npy", getattr(corr, name))

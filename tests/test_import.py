@@ -184,6 +184,13 @@ def test_frames_where_nothing_decodes_or_too_small_are_refused_naming_why(tmp_pa
             np.save(mixed / f.name, np.load(f) * np.float32(gain if f.name.startswith("psp") else 1.0))
         with pytest.raises(InputError, match=why):
             import_folder(mixed, tmp_path / "s", f"mixed{gain:g}", (W, H), patch=K)
+    named = tmp_path / "named"  # view_abc was imported as the next view, renumbered in silence
+    for view in ("view_000", "view_abc"):
+        (named / view).mkdir(parents=True)
+        for f in _float_frames(tmp_path / f"v{view}", 1.0).glob("*.npy"):
+            (named / view / f.name).write_bytes(f.read_bytes())
+    with pytest.raises(InputError, match=r"view_abc is no view folder: name view folders view_NNN"):
+        import_folder(named, tmp_path / "s", "named", (W, H), patch=K)
     odd = tmp_path / "odd"  # one fringe frame of another size: summing its set was a broadcasting error
     odd.mkdir()
     for f in flat.glob("*.npy"):

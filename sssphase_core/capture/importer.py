@@ -250,6 +250,9 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
         raise InputError(f"projector size must be positive and at most 16384, got {w}x{h}")
     view_dirs = sorted((p for p in folder.glob("view_*") if p.is_dir()),  # view_2 before view_10
                        key=lambda p: (int(p.name[5:]) if p.name[5:].isdigit() else float("inf"), p.name)) or [folder]
+    odd = [p.name for p in view_dirs if p != folder and not p.name[5:].isdigit()]
+    if odd:  # it was imported as the next view, renumbered in silence
+        raise InputError(f"{folder / odd[0]} is no view folder: name view folders view_NNN (NNN a number), or move it out")
     if view_dirs != [folder] and frame_files(folder, strict=False):  # one view's frames would be left out
         raise InputError(f"{folder} holds frames beside its view_NNN folders: move them into a view folder of their "
                          "own (e.g. view_000) or import them separately")

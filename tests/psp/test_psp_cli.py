@@ -199,3 +199,16 @@ def test_decode_names_a_broken_plan_json_in_one_line(tmp_path, text, expected):
     res = runner.invoke(_app(), ["decode", str(tmp_path), "--out", str(tmp_path / "out")])
     assert isinstance(res.exception, InputError) and expected in str(res.exception), res.output
     assert str(tmp_path / "plan.json") in str(res.exception)
+
+
+def test_decode_refuses_frames_smaller_than_a_camera_frame_as_import_does(tmp_path):
+    """`sss decode` took 1 x 1 frames ("decoded 0 of 1") where `sss import` refuses them."""
+    from sssphase_core.errors import InputError
+
+    pat_dir = tmp_path / "patterns"
+    _run("patterns", "--projector", "80x60", "--out", str(pat_dir))
+    (tmp_path / "cap").mkdir()
+    for key, light in _captures_of(pat_dir, 1.0):
+        np.save(tmp_path / "cap" / (key.replace("/", "__") + ".npy"), light[:1, :1])
+    res = runner.invoke(_app(), ["decode", str(tmp_path / "cap"), "--projector", "80x60", "--out", str(tmp_path / "o")])
+    assert isinstance(res.exception, InputError) and "is 1x1: smaller than a camera frame (at least 16 px" in str(res.exception)
