@@ -101,52 +101,6 @@ def through_camera(images: np.ndarray, *, demosaic: str = "malvar", median: bool
     return out[:, :h, :w].reshape(arr.shape)
 
 
-#: A silhouette pixel whose own Bayer sample shows less than this share of the fringe modulation that its
-#: demosaiced colour shows is demosaicing's bleed, not surface (:func:`demosaic_bleed`). Measured on the
-#: sim rig's crab and sand rake: such background pixels 0.02-0.07 (median), lit silhouette pixels 0.1-0.9,
-#: interior pixels at least the object's dimmest colour's share (0.37 and 0.49 there).
-BLEED_RATIO = 0.1
-
-
-def demosaic_bleed(mask: np.ndarray, fringe_sets: list[np.ndarray], layout: str = "RGGB", *,
-                   ratio: float = BLEED_RATIO, border: int = 4, reach: int = 3) -> np.ndarray:
-    """(H, W) bool: pixels on the edge of ``mask`` (beside a pixel outside it) whose fringes came from their
-    neighbours through demosaicing, not from the surface.
-
-    A pixel measures one colour, its own Bayer sample; demosaicing (Malvar's, OpenCV's edge-aware away from
-    the image border) keeps that sample and fills the other two from the neighbours. Beside a bright
-    silhouette a background pixel then shows the object's fringes in its filled colours while its own
-    sample stays at the noise: it decodes as surface, and relighting gave it the object's light (on the
-    sim rig's demo objects 2-4% of the mask held 23-36% of the decoder's squared error against the
-    render). ``fringe_sets``: phase-shift sets ``(N, H, W, 3)`` (N equally spaced shifts); the own sample's
-    modulation, summed over the sets, is compared with the channel mean's. Only the mask's edge is tested
-    (a colour missing from an object's interior is its colour, not bleed), peeled up to ``reach`` times (the
-    demosaicers reach 2 px, the 3 x 3 median per Bayer plane one more), and not within ``border`` px of
-    the image border, where the demosaicers pad."""
-    mask = np.asarray(mask, bool)
-    h, w = mask.shape
-    own = np.zeros((h, w), np.float64)
-    mean = np.zeros((h, w), np.float64)
-    for frames in fringe_sets:
-        frames = np.asarray(frames, np.float64)
-        n = len(frames)
-        phasor = np.exp(-2j * np.pi * np.arange(n) / n)
-        own += np.abs(np.tensordot(phasor, bayer_mosaic(frames, layout), axes=1))
-        mean += np.abs(np.tensordot(phasor, frames.mean(axis=-1), axes=1))
-    borrowed = own < ratio * mean
-    borrowed[:border], borrowed[h - border:], borrowed[:, :border], borrowed[:, w - border:] = False, False, False, False
-    kept, bleed = mask.copy(), np.zeros_like(mask)
-    for _ in range(reach):
-        padded = np.pad(kept, 1, constant_values=True)  # the image border is not a silhouette
-        inner = padded[:-2, 1:-1] & padded[2:, 1:-1] & padded[1:-1, :-2] & padded[1:-1, 2:]
-        peel = kept & ~inner & borrowed
-        if not peel.any():
-            break
-        bleed |= peel
-        kept &= ~peel
-    return bleed
-
-
 def develop(raw: np.ndarray, black_level: float, white_scale: float, *, median: bool = True, method: str = "malvar",
             layout: str = "RGGB") -> np.ndarray:
     """Raw Bayer frame (H, W) in ``layout`` -> linear RGB (H, W, 3) float32: median, demosaic,

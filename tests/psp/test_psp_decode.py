@@ -128,7 +128,8 @@ def test_demosaic_bleed_finds_background_pixels_that_only_borrowed_fringes(demos
     """A bright disk's fringes on black, through a Bayer camera: background pixels beside the disk show the
     fringes in the colours demosaicing filled in, while their own sample stays dark. Those, and no disk
     pixel, are flagged; a colour an object lacks is not bleed in its interior."""
-    from sssphase_core.processing.isp import demosaic_bleed, through_camera
+    from sssphase_core.processing.isp import through_camera
+    from sssphase_core.processing.psp import demosaic_bleed
 
     h, w = 64, 80
     yy, xx = np.mgrid[:h, :w]
