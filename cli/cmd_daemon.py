@@ -108,7 +108,7 @@ def daemon_start(
             raise InputError(problem)
     if _client() is not None:
         raise InputError("a daemon is already running (`sss daemon status`)")
-    problem = security.ipc_path_problem(endpoint or security.default_endpoint())
+    problem = None if endpoint else security.ipc_path_problem(security.default_endpoint())  # (a given one: above)
     if problem:  # a daemon that lost its state file still holds the default socket
         raise InputError(problem)
     if foreground:
@@ -128,8 +128,7 @@ def daemon_stop() -> None:
     client = _client()
     if client is None:
         state = security.read_state()
-        orphan = _orphan()
-        if state is None and orphan is not None:  # serving the default socket, its state file gone
+        if state is None and (orphan := _orphan()) is not None:  # serving the default socket, its state file gone
             os.kill(orphan, signal.SIGTERM)
             console.print(f"daemon (pid {orphan}) had no state file; sent SIGTERM")
             return

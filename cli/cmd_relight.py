@@ -224,7 +224,7 @@ def geometry_cmd(
     from sssphase_core.errors import InputError
     from sssphase_core.learning.training import resolve_checkpoint
     from sssphase_core.relight import finest_psp_period, geometric_correspondence, load_view, make_source
-    from sssphase_core.store.session import Session, refuse_inside_session, view_dir_name
+    from sssphase_core.store.session import Session, view_dir_name
 
     if backend in ("measured", "none"):
         raise InputError(f"--backend {backend} cannot predict the scattering shift: "

@@ -84,7 +84,7 @@ def endpoint_problem(endpoint: str) -> str | None:
             return f"{endpoint}: the port must be a number from 1 to 65535 (or * for any)"
         if port is None:
             return f"{endpoint}: give a port (tcp://HOST:PORT, 1 to 65535, or * for any)"
-        if port is not None and not 1 <= port <= 65535:
+        if not 1 <= port <= 65535:
             return f"{endpoint}: the port must be a number from 1 to 65535, got {port}"
     elif endpoint.startswith("ipc://") and not endpoint[6:].startswith("@"):
         folder = Path(endpoint[6:]).parent

@@ -68,11 +68,11 @@ def read_exr(path: Path | str) -> np.ndarray:
     colour: R, G, B (alpha dropped), or a renderer's colour layer (:func:`_colour_layer`), in the first part
     that holds one (multi-part files keep depth or normals in parts of their own). Files without light
     channels (depth only, luminance/chroma) or that cannot be decoded are refused in one line."""
-    from sssphase_core.store.imageio import _native_stderr_silenced
+    from sssphase_core.store.imageio import native_stderr_silenced
 
     OpenEXR = _openexr()
     try:
-        with _native_stderr_silenced(), OpenEXR.File(str(path), separate_channels=True) as f:  # R, G, B apart
+        with native_stderr_silenced(), OpenEXR.File(str(path), separate_channels=True) as f:  # R, G, B apart
             parts = [{name: np.asarray(ch.pixels) for name, ch in part.channels.items()} for part in f.parts]
     except (OSError, RuntimeError, ValueError):  # the library prints its own lines; one of ours instead
         raise DataError(f"cannot read EXR {path} (damaged, truncated or not an EXR file)") from None
@@ -107,11 +107,11 @@ def _colour_layer(path: Path | str, channels: dict[str, np.ndarray]) -> str | No
 
 def exr_size(path: Path | str) -> tuple[int, int]:
     """(height, width) of an EXR image from its header alone (nothing is decoded)."""
-    from sssphase_core.store.imageio import _native_stderr_silenced
+    from sssphase_core.store.imageio import native_stderr_silenced
 
     OpenEXR = _openexr()
     try:
-        with _native_stderr_silenced():
+        with native_stderr_silenced():
             lo, hi = OpenEXR.File(str(path), header_only=True).header()["dataWindow"]
     except (OSError, RuntimeError, ValueError, KeyError):
         raise DataError(f"cannot read EXR {path} (damaged, truncated or not an EXR file)") from None

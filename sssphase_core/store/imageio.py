@@ -228,7 +228,7 @@ def stores_integers(path: Path) -> bool:
 
 
 @contextlib.contextmanager
-def _native_stderr_silenced() -> Iterator[None]:
+def native_stderr_silenced() -> Iterator[None]:
     """Native libraries' writes to file descriptor 2 (not Python's) dropped for the block: the error they
     describe is reported once, as one line, by the caller."""
     try:
@@ -259,7 +259,7 @@ def _read_pixels(path: Path) -> np.ndarray:
         return exr.read_exr(path)
     import cv2
 
-    with _native_stderr_silenced():  # libpng/libtiff print their own "Read Error" lines on a damaged file
+    with native_stderr_silenced():  # libpng/libtiff print their own "Read Error" lines on a damaged file
         arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if arr is None:
         raise InputError(f"cannot read image {path} (damaged, truncated or not an image)")
