@@ -163,16 +163,21 @@ def test_bad_sim_rig_options_are_bad_args_not_internal(sim_daemon, options):
                                                                         "shift_x": 0, "shift_y": 0},
                                     {"width": "256", "height": 192, "spacing": 8, "shift_x": 0, "shift_y": 0}])
 def test_frame_specs_a_pattern_cannot_be_made_from_are_refused_at_the_door(sim_daemon, params):
+    _refused_as_bad_args(sim_daemon, {"name": "dots/0_0", "kind": "dots", "params": params})
+
+
+def _refused_as_bad_args(client, frame: dict) -> None:
+    """A capture of ``frame`` on the sim rig is refused with the request (bad_args), and the daemon lives on."""
     from sssphase_daemon.client import DaemonError
 
-    rig = sim_daemon.call("open_rig", camera="sim:camera0", projector="sim:projector0", options={"object": "apple"})["rig"]
+    rig = client.call("open_rig", camera="sim:camera0", projector="sim:projector0", options={"object": "apple"})["rig"]
     try:
         with pytest.raises(DaemonError) as err:
-            list(sim_daemon.capture(rig, [{"name": "dots/0_0", "kind": "dots", "params": params}]))
+            list(client.capture(rig, [frame]))
         assert err.value.code == "bad_args", str(err.value)
     finally:
-        sim_daemon.call("close_rig", rig=rig)
-    assert sim_daemon.ping()
+        client.call("close_rig", rig=rig)
+    assert client.ping()
 
 
 def _daemon_main(*args: str, runtime: Path) -> subprocess.CompletedProcess[str]:
@@ -742,16 +747,7 @@ def test_result_files_never_land_inside_a_session_or_on_their_markdown_twin(inta
                                    {"dtype": "<f4", "shape": [2, 2, 2, 2], "data": b"\0" * 64}])  # 4-D
 def test_uploaded_images_the_job_could_not_use_are_refused_with_the_request(sim_daemon, image):
     """They were accepted, and the job failed later with code `internal` and a traceback in the log."""
-    from sssphase_daemon.client import DaemonError
-
-    rig = sim_daemon.call("open_rig", camera="sim:camera0", projector="sim:projector0", options={"object": "apple"})["rig"]
-    try:
-        with pytest.raises(DaemonError) as err:
-            list(sim_daemon.capture(rig, [{"name": "ref/mine", "kind": "image", "image": image}]))
-        assert err.value.code == "bad_args", str(err.value)
-    finally:
-        sim_daemon.call("close_rig", rig=rig)
-    assert sim_daemon.ping()
+    _refused_as_bad_args(sim_daemon, {"name": "ref/mine", "kind": "image", "image": image})
 
 
 def test_an_infinite_turntable_angle_and_object_frames_are_bad_args(sim_daemon):

@@ -45,3 +45,26 @@ def pretrained(dataset, tiny, tmp_path_factory):
     out = tmp_path_factory.mktemp("pre") / "run"
     pretrain(PretrainConfig(epochs=2, batch_size=16, ckpt_every=3, warmup_epochs=1), dataset, out, preset=tiny, progress=False)
     return out
+
+
+@pytest.fixture
+def one_and_three_sessions(synthetic):
+    """``make(root)``: sessions 'one' (view 0) and 'three' (views 0, 2, 5) made of a synthetic view, under ``root``."""
+    import numpy as np
+
+    from sssphase_core.store.session import Session
+
+    def make(root):
+        v = synthetic[0][0]
+        mask = np.zeros(v.psp.shape[1:3], bool)
+        mask[v.pixels[:, 0], v.pixels[:, 1]] = True
+        for name, views in (("one", [0]), ("three", [0, 2, 5])):
+            s = Session.create(root, name)
+            for view in views:
+                w = s.begin_view(view)
+                w.write("psp", v.psp)
+                w.write("corr/mask", mask)
+                w.commit()
+        return root
+
+    return make

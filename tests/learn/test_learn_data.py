@@ -91,20 +91,10 @@ def test_footprints_are_read_lazily_from_chunked_arrays(synthetic, tmp_path):
     assert np.allclose(ds.batch(idx)["footprint"].numpy(), np.asarray(v.footprints)[idx].transpose(0, 3, 1, 2))
 
 
-def test_each_session_holds_out_its_last_view_when_it_has_two_or_more(synthetic, tmp_path):
+def test_each_session_holds_out_its_last_view_when_it_has_two_or_more(one_and_three_sessions, synthetic, tmp_path):
     from sssphase_core.learning.data import held_out_split, session_views
-    from sssphase_core.store.session import Session
 
-    v = synthetic[0][0]
-    mask = np.zeros(v.psp.shape[1:3], bool)
-    mask[v.pixels[:, 0], v.pixels[:, 1]] = True
-    for name, views in (("one", [0]), ("three", [0, 2, 5])):
-        s = Session.create(tmp_path, name)
-        for view in views:
-            w = s.begin_view(view)
-            w.write("psp", v.psp)
-            w.write("corr/mask", mask)
-            w.commit()
+    one_and_three_sessions(tmp_path)
     train, val = held_out_split(tmp_path)
     assert train == {"one": [0], "three": [0, 2]} and val == {"one": [], "three": [5]}
     assert held_out_split(tmp_path, ["three"]) == ({"three": [0, 2]}, {"three": [5]})

@@ -96,28 +96,11 @@ def test_aux_classes_must_cover_the_material_labels_of_the_training_data(synthet
         check_aux_classes(24, PatchDataset(unlabelled, 16, ["a", "b"], with_targets=True))
 
 
-def _session_root(synthetic, root):
-    """Sessions 'one' (view 0) and 'three' (views 0, 2, 5) made of a synthetic view, under ``root``."""
-    from sssphase_core.store.session import Session
-
-    v = synthetic[0][0]
-    mask = np.zeros(v.psp.shape[1:3], bool)
-    mask[v.pixels[:, 0], v.pixels[:, 1]] = True
-    for name, views in (("one", [0]), ("three", [0, 2, 5])):
-        s = Session.create(root, name)
-        for view in views:
-            w = s.begin_view(view)
-            w.write("psp", v.psp)
-            w.write("corr/mask", mask)
-            w.commit()
-    return root
-
-
-def test_a_session_folder_given_as_sessions_is_a_one_session_set(synthetic, tmp_path):
+def test_a_session_folder_given_as_sessions_is_a_one_session_set(one_and_three_sessions, synthetic, tmp_path):
     """`--sessions S/obj` said "no complete session views under S/obj"; --check-sessions already took it."""
     from sssphase_core.learning.data import held_out_split, session_views
 
-    root = _session_root(synthetic, tmp_path / "sessions")
+    root = one_and_three_sessions(tmp_path / "sessions")
     one = root / "three"
     assert held_out_split(one) == ({"three": [0, 2]}, {"three": [5]}) == held_out_split(root, ["three"])
     got = [(d.object, d.view, d.pixels.tolist()) for d in session_views(one, pixels_per_view=5)]
@@ -127,12 +110,12 @@ def test_a_session_folder_given_as_sessions_is_a_one_session_set(synthetic, tmp_
         session_views(one, ["one"])
 
 
-def test_eval_knn_reads_a_session_folder_given_as_sessions(synthetic, tiny, tmp_path):
+def test_eval_knn_reads_a_session_folder_given_as_sessions(one_and_three_sessions, tiny, tmp_path):
     """A session folder is a one-object data set: kNN by object over it would score every patch 100%, so it
     is refused by name (as is one without material labels by material); the folder of sessions is read."""
     import json
 
-    root = _session_root(synthetic, tmp_path / "sessions")
+    root = one_and_three_sessions(tmp_path / "sessions")
     ckpt = tmp_path / "enc.pt"
     _decoder_checkpoint(ckpt, tiny)
     for label, why in (("object", "needs two or more objects to tell apart; the views read hold only three"),
@@ -149,10 +132,10 @@ def test_eval_knn_reads_a_session_folder_given_as_sessions(synthetic, tiny, tmp_
     assert json.loads((tmp_path / "knn.json").read_text())["views"] == "0,2,5"
 
 
-def test_a_batch_or_k_larger_than_the_data_is_refused_before_the_run_folder_is_written(synthetic, tiny, tmp_path):
+def test_a_batch_or_k_larger_than_the_data_is_refused_before_the_run_folder_is_written(one_and_three_sessions, tiny, tmp_path):
     """Too few patches for one batch failed inside the loop, after config.toml was written; a k of at least
     the patches read made every kNN prediction the majority label, silently."""
-    root = _session_root(synthetic, tmp_path / "sessions")
+    root = one_and_three_sessions(tmp_path / "sessions")
     with pytest.raises(InputError, match=r"--batch-size 1000 is more than the \d+ training patches"):
         runner.invoke(app, ["train", "pretrain", "--sessions", str(root), "--pixels-per-view", "8", "--batch-size", "1000",
                             "--out", str(tmp_path / "run")], catch_exceptions=False)
