@@ -522,9 +522,9 @@ def viz_pca(
     names = _names(objects, () if sessions else ("soap", "shovel"))
     vds = _views(names, [view], n_views=n_views, rig=rig, pixels=None, footprints=False, seed=0, cache=cache,
                  sessions=sessions)
-    with console.status(f"embedding every {stride}th pixel of {len(vds)} view(s)"):
+    with console.status(f"embedding one pixel in {stride} along x and y of {len(vds)} view(s)"):
         maps = pca_maps(enc, [(v.psp, v.pixels) for v in vds], stride)
-    panels_figure(out, maps, [f"{v.object}, view {v.view}" for v in vds], f"{PCA_TITLE} (every {stride}th pixel)")
+    panels_figure(out, maps, [f"{v.object}, view {v.view}" for v in vds], f"{PCA_TITLE} (one pixel in {stride} along x and y)")
     console.print(f"wrote {out} ({', '.join(v.object for v in vds)}, view {view})")
 
 

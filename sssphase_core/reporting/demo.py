@@ -268,7 +268,7 @@ class Demo:
         maps = pca_maps(enc, [(s.load(view, "psp"), np.argwhere(s.load(view, "corr/mask").astype(bool))) for s in sessions],
                         self.cfg.pca_stride)
         panels_figure(self.report_dir / "img" / "pca_rgb.png", maps, [f"{s.name}, view {view}" for s in sessions],
-                      f"{PCA_TITLE} (every {self.cfg.pca_stride}th pixel)")
+                      f"{PCA_TITLE} (one pixel in {self.cfg.pca_stride} along x and y)")
         return {"figure": "img/pca_rgb.png", "objects": [s.name for s in sessions]}
 
     report_title = "sssphase demo report"

@@ -123,7 +123,7 @@ def panels_figure(path: Path | str, images: Sequence[np.ndarray], titles: Sequen
             ax.imshow(np.clip(np.nan_to_num(img.astype(np.float32)), 0, 1), interpolation="nearest")
         ax.set_title(sub, fontsize=8)
         ax.axis("off")
-    fig.suptitle(_title(title, max(50, 30 * n)), fontsize=10)
+    fig.suptitle(_title(title, max(30, int(11 * fig.get_figwidth()))), fontsize=10)  # ~11 characters an inch at 10 pt
     if im is not None and units:
         fig.colorbar(im, ax=list(axes[0]), shrink=0.8, label=units)
     return _save(fig, path)
