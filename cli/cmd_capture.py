@@ -154,13 +154,21 @@ def import_images(
     out: Annotated[Path, typer.Option(help="session root folder")] = Path("sessions"),
     gamma: Annotated[float, typer.Option(help="the projector's gamma (pattern value -> light)")] = 2.2,
     patch: Annotated[int, typer.Option(help="footprint crop size K for dot-grid frames")] = 32,
+    encoding: Annotated[str, typer.Option(help="how 8/16-bit files map codes to light: auto (their sRGB / ICC / gAMA "
+                                               "tag, else linear), linear (a camera's raw codes) or srgb; float "
+                                               "files are linear")] = "auto",
 ) -> None:
     """Import frames from another rig (named by plan key, '/' as '__' or folders; see SESSION_FORMAT.md)."""
     from sssphase_core.capture import import_folder
     from sssphase_core.processing.patterns import parse_projector_size
 
-    session = import_folder(folder, out, object_name, parse_projector_size(projector), patch=patch, gamma=gamma)
-    scale = session.manifest["rig"].get("frame_scale", 1.0)
+    session = import_folder(folder, out, object_name, parse_projector_size(projector), patch=patch, gamma=gamma,
+                            encoding=encoding)
+    rig = session.manifest["rig"]
+    if rig["frame_encoding"] != "linear":
+        console.print(f"frames decoded from {rig['frame_encoding']} to linear light ({rig['frame_encoding_from']}; "
+                      "--encoding linear reads the codes as light)")
+    scale = rig.get("frame_scale", 1.0)
     if scale != 1.0:
         console.print(f"float frames far from camera units: scaled by {scale:.4g}, which puts the white capture's "
                       "99.9th percentile at 1 (the rig's frame_scale in the manifest)")

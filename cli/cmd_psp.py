@@ -146,7 +146,7 @@ def decode_cmd(
     with Progress() as bar:
         task = bar.add_task("loading frames", total=len(keys))
         for key in keys:
-            frames[key] = read_frame(files[key])
+            frames[key] = read_frame(files[key], encoding="auto")  # tagged sRGB files as light, as `sss import` reads them
             first = frames[keys[0]]
             if frames[key].shape != first.shape:
                 raise DataError(f"{files[key]} is {frames[key].shape[1]}x{frames[key].shape[0]}, but {files[keys[0]]} is "

@@ -7,6 +7,7 @@ import json
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import cv2
@@ -638,3 +639,51 @@ def test_an_import_warns_of_a_wrong_projector_size_and_of_clipped_light(tmp_path
         cv2.imwrite(str(clipped / (f.stem + ".png")), np.round(np.clip(img, 0, 1) * 65535).astype(np.uint16))
     with pytest.warns(UserWarning, match=r"the white capture is clipped at 100.0% of the decoded pixels"):
         import_folder(clipped, tmp_path / "s", "clipped", (W, H), patch=K)
+
+
+def _srgb_codes(light: np.ndarray) -> np.ndarray:
+    """Linear light in [0, 1] -> 8-bit sRGB codes (IEC 61966-2-1), as a renderer's PNG output holds them."""
+    v = np.clip(light, 0, 1)
+    return np.round(255 * np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)).astype(np.uint8)
+
+
+def test_srgb_encoded_frames_are_decoded_to_light_by_their_tag_or_flagged_by_their_fringes(tmp_path):
+    """A renderer's or a webcam's 8-bit PNGs hold sRGB codes, which were read as light: the fringe offset
+    (the footprints' energy) came out ~1.4x too bright against the white. Tagged files are decoded; untagged
+    ones are named by their fringes' mean (0.5 of the white's light in linear frames, whatever the transport)."""
+    from PIL import Image, PngImagePlugin
+
+    linear = _float_frames(tmp_path / "linear", 1.0)
+    tagged, untagged = tmp_path / "tagged", tmp_path / "untagged"
+    for folder in (tagged, untagged):
+        folder.mkdir()
+    srgb_chunk = PngImagePlugin.PngInfo()
+    srgb_chunk.add(b"sRGB", b"\x00")  # perceptual rendering intent
+    for f in linear.glob("*.npy"):
+        codes = _srgb_codes(np.load(f))
+        Image.fromarray(codes).save(tagged / f"{f.stem}.png", pnginfo=srgb_chunk)
+        Image.fromarray(codes).save(untagged / f"{f.stem}.png")
+    ref = import_folder(linear, tmp_path / "s", "linear", (W, H), patch=K)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # a decoded sRGB import is clean
+        dec = import_folder(tagged, tmp_path / "s", "tagged", (W, H), patch=K)
+    assert dec.manifest["rig"]["frame_encoding"] == "srgb" and "sRGB chunk" in dec.manifest["rig"]["frame_encoding_from"]
+    mask = ref.load(0, "corr/mask") & dec.load(0, "corr/mask")
+    for name in ("corr/offset", "white"):  # light, within 8-bit quantisation
+        a, b = ref.load(0, name)[mask], dec.load(0, name)[mask]
+        assert np.median(b / np.maximum(a, 1e-3)) == pytest.approx(1.0, abs=0.02), name
+    assert abs(ref.manifest["views"]["0"]["fringe_mean_share"] - 0.5) < 0.01
+    with pytest.warns(UserWarning, match=r"the fringe frames average 0\.[67]\d of the white capture's light .* "
+                                         r"import with --encoding srgb"):
+        raw = import_folder(untagged, tmp_path / "s", "untagged", (W, H), patch=K)
+    assert raw.manifest["rig"]["frame_encoding"] == "linear"
+    forced = import_folder(untagged, tmp_path / "s", "forced", (W, H), patch=K, encoding="srgb")
+    np.testing.assert_array_equal(forced.load(0, "white"), dec.load(0, "white"))
+    (untagged / "white.png").unlink()  # one tagged file among untagged ones
+    Image.fromarray(_srgb_codes(np.load(linear / "white.npy"))).save(untagged / "white.png", pnginfo=srgb_chunk)
+    with pytest.raises(InputError, match=r"is (srgb|linear) \(.*\) but .* is (linear|srgb) .*give --encoding"):
+        import_folder(untagged, tmp_path / "s", "mixed", (W, H), patch=K)
+    (untagged / "white.png").rename(untagged / "white.jpg")
+    with pytest.raises(InputError, match=r"white\.jpg: \.jpg frames are lossy"):
+        import_folder(untagged, tmp_path / "s", "jpeg", (W, H), patch=K)
+    assert not (tmp_path / "s" / "mixed").exists() and not (tmp_path / "s" / "jpeg").exists()

@@ -17,7 +17,15 @@ from sssphase_core.capture.plan import CaptureRequest, RigSpec
 from sssphase_core.capture.processing import ViewProcessor
 from sssphase_core.errors import InputError
 from sssphase_core.processing.footprints import PATCH_RANGE
-from sssphase_core.store.imageio import IMAGE_SUFFIXES, read_frame, read_pattern, stores_integers
+from sssphase_core.store.imageio import (
+    ENCODINGS,
+    IMAGE_SUFFIXES,
+    LOSSY_SUFFIXES,
+    declared_encoding,
+    read_frame,
+    read_pattern,
+    stores_integers,
+)
 from sssphase_core.store.session import Session, check_object_name
 
 PSP_KEY_RE = re.compile(r"^psp/([xy])/p([0-9]{1,5}(?:\.[0-9]{1,6})?)/s([0-9]{1,2})$")
@@ -48,6 +56,9 @@ def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
     files: dict[str, Path] = {}
     for path in sorted(vdir.rglob("*")):
         rel = path.relative_to(vdir)
+        if strict and path.suffix.lower() in LOSSY_SUFFIXES and not rel.parts[0].startswith("view_"):
+            raise InputError(f"{path}: {path.suffix} frames are lossy (8 x 8 blocks, halved colour resolution), which "
+                             "corrupts fringes: save the camera's frames as PNG, TIFF, EXR or .npy")
         if path.suffix.lower() not in IMAGE_SUFFIXES or rel.parts[0].startswith("view_"):
             continue
         if not path.is_file():
@@ -105,13 +116,13 @@ MIN_WHITE_LEVEL = 1e-30
 NEGATIVE_LIMIT, NEGATIVE_SHARE = 0.1, 1e-3
 
 
-def read_imported(path: Path) -> tuple[np.ndarray, int]:
-    """``(frame, n)``: a frame file as :func:`read_frame` reads it, with up to ``isp.NONFINITE_LIMIT`` of its
-    values NaN / inf (a path tracer's degenerate samples) repaired from their neighbours, ``n`` of them; more
-    is refused in one line."""
+def read_imported(path: Path, encoding: str = "linear") -> tuple[np.ndarray, int]:
+    """``(frame, n)``: a frame file as :func:`read_frame` reads it (integer codes decoded by ``encoding``),
+    with up to ``isp.NONFINITE_LIMIT`` of its values NaN / inf (a path tracer's degenerate samples) repaired
+    from their neighbours, ``n`` of them; more is refused in one line."""
     from sssphase_core.processing.isp import NONFINITE_LIMIT, repair_nonfinite
 
-    image = read_frame(path, finite=False)
+    image = read_frame(path, finite=False, encoding=encoding)
     bad = int(np.count_nonzero(~np.isfinite(image)))
     if bad > NONFINITE_LIMIT * image.size:
         raise InputError(f"{path}: {bad} of its {image.size} values are NaN or infinite (more than the "
@@ -137,12 +148,12 @@ def _check_fringe_level(path: Path, image: np.ndarray, white_level: float, *, me
                          "one exposure and units")
 
 
-def white_levels(whites: Iterable[Path]) -> list[float]:
+def white_levels(whites: Iterable[Path], encoding: str = "linear") -> list[float]:
     """Each white capture's level (its 99.9th percentile, file units); one line naming a white capture that
     holds no light (black, negative, denormal) instead of a view where nothing decodes."""
     levels = []
     for path in whites:
-        level = float(np.percentile(read_imported(path)[0], 99.9))
+        level = float(np.percentile(read_imported(path, encoding)[0], 99.9))
         if not level >= MIN_WHITE_LEVEL:
             raise InputError(f"{path}: the white capture holds no light (99.9th percentile {level:.3g}): it must be a "
                              "linear image of the object under the projector's full white")
@@ -171,6 +182,44 @@ def check_not_negative(path: Path, image: np.ndarray, white_level: float) -> Non
                          "light, at most noise below zero")
 
 
+def frames_encoding(files: Iterable[Path], encoding: str = "auto") -> tuple[str, str]:
+    """``(encoding, why)`` of one import's integer frame files (:func:`imageio.decode_codes`): ``encoding``
+    as given, or for ``"auto"`` the files' own tags (:func:`imageio.declared_encoding`), which must agree
+    (one line naming two that do not). Float frames are linear whatever is asked."""
+    if encoding not in ENCODINGS:
+        raise InputError(f"--encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
+    if encoding != "auto":
+        return encoding, f"as --encoding {encoding} asked"
+    seen: dict[str, tuple[Path, str]] = {}
+    for path in files:
+        if stores_integers(path):
+            enc, why = declared_encoding(path)
+            seen.setdefault(enc, (path, why))
+    if len(seen) > 1:
+        (e1, (p1, w1)), (e2, (p2, w2)) = list(seen.items())[:2]
+        raise InputError(f"{p1} is {e1} ({w1}) but {p2} is {e2} ({w2}): an import's frames share one encoding; "
+                         "re-save them alike or give --encoding linear or srgb")
+    return next(((e, why) for e, (_, why) in seen.items()), ("linear", "float frames"))
+
+
+#: Linear frames of a fringe set average this share of the white capture's light (both above black) at every
+#: pixel, whatever the light transport: the patterns' mean light is half the white's. An import warns beyond
+#: the tolerance (gamma-encoded files, or a projector whose gamma is not the one the patterns were made for).
+FRINGE_MEAN_SHARE, FRINGE_MEAN_TOLERANCE = 0.5, 0.1
+
+
+def fringe_mean_share(sets: Iterable[np.ndarray], white: np.ndarray, black: np.ndarray, mask: np.ndarray) -> float:
+    """The fringe sets' mean light as a share of the white's, both above black, colours summed: the median over
+    decoded pixels (``mask``, (H, W)) lit above a fifth of their median white; NaN when none is. ``sets``: each
+    (N, H, W, C) or (N, H, W) the shifts of one fringe set."""
+    lit = (white - black).reshape(*white.shape[:2], -1).sum(-1)
+    keep = mask & (lit > 0.2 * float(np.median(lit[mask]))) if mask.any() else mask
+    if not keep.any():
+        return float("nan")
+    shares = [((np.mean(s, axis=0) - black).reshape(*white.shape[:2], -1).sum(-1)[keep] / lit[keep]) for s in sets]
+    return float(np.median(np.concatenate(shares)))
+
+
 #: Integer frames with more than this share of their fringe values at the top code are called clipped when
 #: nothing decodes (a saturated fringe has no modulation, which the decoder reports as low modulation).
 CLIPPED_SHARE = 0.25
@@ -195,11 +244,21 @@ OUTSIDE_WARN, CLIPPED_WARN = 0.2, 0.01
 
 
 def _warn_suspect_view(vdir: Path, coverage: dict[str, int], size: tuple[int, int], fringes_clipped: float,
-                       white: np.ndarray, mask: np.ndarray, top: float | None) -> None:
+                       white: np.ndarray, mask: np.ndarray, top: float | None, mean_share: float = 0.5,
+                       gamma: float = 2.2, encoding: str = "linear") -> None:
     """One warning line each for what an import cannot refuse but the user should know: many pixels mapped
-    outside the projector, or clipped fringes or white (integer files; ``top`` the white's top code)."""
+    outside the projector, clipped fringes or white (integer files; ``top`` the white's top code), or
+    fringes whose mean is not half the white's light (``mean_share``, :func:`fringe_mean_share`)."""
     import warnings
 
+    if abs(mean_share - FRINGE_MEAN_SHARE) > FRINGE_MEAN_TOLERANCE:
+        hint = ("if the files are gamma-encoded (sRGB), import with --encoding srgb; " if encoding == "linear" else
+                f"the files were decoded as {encoding}: if they are linear, import with --encoding linear; ")
+        warnings.warn(f"{vdir}: the fringe frames average {mean_share:.2f} of the white capture's light (above black, "
+                      f"median over decoded pixels) where linear frames give {FRINGE_MEAN_SHARE:.2f}: {hint}if the "
+                      f"projector's gamma is not {gamma:g} (a renderer that takes pattern values as light has gamma 1), "
+                      "make the patterns for the right one (`sss patterns --gamma`) and import with that --gamma",
+                      stacklevel=3)
     valid, outside = coverage.get("VALID", 0), coverage.get("OUTSIDE", 0)
     if outside > OUTSIDE_WARN * (valid + outside):
         warnings.warn(f"{vdir}: {100 * outside / (valid + outside):.0f}% of the decoded pixels map outside the "
@@ -216,7 +275,7 @@ def _warn_suspect_view(vdir: Path, coverage: dict[str, int], size: tuple[int, in
 
 
 def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int, int], *, patch: int = 32,
-                  gamma: float = 2.2) -> Session:
+                  gamma: float = 2.2, encoding: str = "auto") -> Session:
     """Import frames captured by another rig into a session, processed by the capture engine's
     :class:`ViewProcessor` exactly like a capture.
 
@@ -224,7 +283,9 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     written as '__' or as folders (``psp__x__p20__s0.png`` or ``psp/x/p20/s0.png``, ``white.png``,
     ``black.png``, ``ref__checkerboard.png``, optionally ``dots__{sx}_{sy}.png``); PNG/TIFF (8/16-bit),
     ``.npy``, float TIFF or EXR; float frames far from camera units are rescaled (:func:`frame_scale`,
-    recorded as the rig's ``frame_scale``). A reference that is not a named pattern needs its projected
+    recorded as the rig's ``frame_scale``); integer codes are decoded to light by ``encoding``
+    (:func:`frames_encoding`: ``auto`` reads the files' sRGB / ICC / gAMA tags; recorded as the rig's
+    ``frame_encoding``). A reference that is not a named pattern needs its projected
     image as ``pattern__<name>.png``. A view where nothing decodes is refused; a failed import leaves
     nothing behind.
     """
@@ -270,7 +331,9 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 raise InputError(f"{files[key]}: reference {ref!r} is no named pattern ({', '.join(REFERENCE_NAMES)}), so "
                                  f"the image projected for it is needed as pattern__{ref}.png to relight and evaluate it")
     configs = [_psp_config(vdir, files) for vdir, files in views]
-    levels = white_levels(files["white"] for _, files in views)
+    encoding, encoding_tag = frames_encoding((p for _, files in views for k, p in files.items()
+                                              if not k.startswith("pattern/")), encoding)
+    levels = white_levels((files["white"] for _, files in views), encoding)
     scale = frame_scale([files["white"] for _, files in views], levels)
     path = Path(root) / name
     if path.exists():
@@ -287,7 +350,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     plan_json = {"projector": [w, h], "gamma": float(gamma), "psp": asdict(configs[0]), "frames": psp_frames + frames}
     session = Session.create(root, name, n_views=len(view_dirs), imported_from=str(folder.resolve()),
                              rig={"camera": "import", "projector_size": [w, h], "patch": patch, "imported": True,
-                                  "frame_scale": scale},
+                                  "frame_scale": scale, "frame_encoding": encoding, "frame_encoding_from": encoding_tag},
                              plan=plan_json, software={"sssphase": __version__})
     try:
         for view, ((vdir, files), config, level) in enumerate(zip(views, configs, levels, strict=True)):
@@ -300,7 +363,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 shape, top, fringe_values, nonfinite = None, 0, 0, 0
                 set_sums: dict[str, np.ndarray] = {}  # each fringe set's sum: its mean is half the white's light
                 for key in sorted((k for k in files if not k.startswith("pattern/")), key=lambda k: k.startswith("dots/")):
-                    image, repaired = read_imported(files[key])
+                    image, repaired = read_imported(files[key], encoding)
                     image = image * np.float32(scale)
                     nonfinite += repaired
                     if key.startswith("psp/") and stores_integers(files[key]):  # read as code / top code
@@ -327,8 +390,14 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 info = {**proc.finish(), "nonfinite_repaired": nonfinite}
                 if not info["coverage"].get("VALID"):
                     raise InputError(_nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values)))
+                inputs = config.input_keys
+                share = fringe_mean_share([np.stack([proc.psp[k] for k in inputs[i:i + config.n_shifts]])
+                                           for i in range(0, len(inputs), config.n_shifts)],
+                                          proc.images["white"], proc.images["black"], proc.corr.mask)
                 _warn_suspect_view(vdir, info["coverage"], (w, h), top / max(1, fringe_values),
-                                   proc.images["white"], proc.corr.mask, scale if stores_integers(files["white"]) else None)
+                                   proc.images["white"], proc.corr.mask, scale if stores_integers(files["white"]) else None,
+                                   share, gamma, encoding)
+                info["fringe_mean_share"] = round(share, 4) if np.isfinite(share) else None
             except BaseException:
                 writer.abort()
                 raise

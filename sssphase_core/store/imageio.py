@@ -19,6 +19,12 @@ from sssphase_core.errors import InputError
 
 #: Frame files the importer reads.
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".npy", ".exr")
+#: Lossy files an importer refuses by name (their 8x8 blocks and halved colour resolution corrupt fringes).
+LOSSY_SUFFIXES = (".jpg", ".jpeg", ".webp")
+#: How an integer frame file's codes map to light: ``linear`` (a camera's raw codes) or ``srgb`` (the sRGB
+#: curve, which PNG files tagged sRGB or with an ICC profile, and JPEG data, hold); ``auto`` reads the tag
+#: (:func:`declared_encoding`). A PNG's gAMA chunk gives a power law. Float files are linear whatever is asked.
+ENCODINGS = ("auto", "linear", "srgb")
 MAX_FRAME_PIXELS = 1 << 26  # 64 MP: larger frames are refused from their header, before decoding
 
 
@@ -268,8 +274,48 @@ def _read_pixels(path: Path) -> np.ndarray:
     return arr
 
 
-def read_frame(path: Path, *, finite: bool = True) -> np.ndarray:
-    """A linear image as float32 RGB: 8/16-bit integers (PNG, TIFF, ``.npy``) divided by the top code,
+def declared_encoding(path: Path) -> tuple[str, str]:
+    """``(encoding, why)``: how an integer frame file says its codes map to light, from its header:
+    ``"srgb"`` for a PNG with an sRGB chunk or an ICC profile and for JPEG data (whatever the file's
+    name), ``"gamma <g>"`` for a PNG's gAMA chunk (codes = light^(1/g)), else ``"linear"``; ``why`` names the
+    tag. Float files and ``.npy`` arrays are ``"linear"``."""
+    if path.suffix.lower() in (".npy", ".exr") or not stores_integers(path) or _pil_cannot_decode(path):
+        return "linear", "float or array data"
+    from PIL import Image
+
+    try:
+        with Image.open(path) as img:
+            fmt, info = img.format, dict(img.info)
+    except (OSError, ValueError, SyntaxError) as exc:
+        raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+    if fmt == "JPEG":
+        return "srgb", "JPEG data"
+    if "srgb" in info:
+        return "srgb", "its sRGB chunk"
+    if info.get("icc_profile"):
+        return "srgb", "its ICC colour profile"
+    g = info.get("gamma")
+    if isinstance(g, (int, float)) and 0.05 <= g <= 2.0 and abs(1.0 / g - 1.0) > 0.01:
+        return f"gamma {1.0 / g:.4g}", f"its gAMA chunk ({g:g})"
+    return "linear", "no colour tag"
+
+
+def decode_codes(values: np.ndarray, encoding: str) -> np.ndarray:
+    """Codes scaled to [0, 1] -> linear light, for an ``encoding`` of :func:`declared_encoding`: the sRGB
+    curve (IEC 61966-2-1), ``light = code^g`` for ``"gamma <g>"``, unchanged for ``"linear"``."""
+    if encoding == "linear":
+        return values
+    v = np.clip(values, 0.0, 1.0)
+    if encoding == "srgb":
+        return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(np.float32)
+    if encoding.startswith("gamma "):
+        return (v ** np.float32(float(encoding.split()[1]))).astype(np.float32)
+    raise ValueError(f"unknown encoding {encoding!r}")
+
+
+def read_frame(path: Path, *, finite: bool = True, encoding: str = "linear") -> np.ndarray:
+    """A linear image as float32 RGB: 8/16-bit integers (PNG, TIFF, ``.npy``) divided by the top code and
+    decoded by ``encoding`` (:func:`decode_codes`; ``"auto"``: the file's own tag, :func:`declared_encoding`),
     float ``.npy`` / ``.exr`` / TIFF and wider integer ``.npy`` as stored. Frames larger than ``MAX_FRAME_PIXELS`` are refused from their header.
     NaN / inf values are refused unless ``finite`` is False (the importer repairs a few: ``isp.repair_nonfinite``)."""
     shape = frame_shape(path)
@@ -281,6 +327,9 @@ def read_frame(path: Path, *, finite: bool = True) -> np.ndarray:
         raise InputError(f"{path} holds {arr.dtype} values, not an image")
     if arr.dtype.kind in "iu" and (arr.dtype.itemsize <= 2 or path.suffix.lower() != ".npy"):
         arr = arr.astype(np.float32) / np.iinfo(arr.dtype).max  # a camera's codes, as a 16-bit PNG's
+        if encoding == "auto":
+            encoding = declared_encoding(path)[0]
+        arr = decode_codes(arr, encoding)
     if arr.dtype.kind == "f" and arr.dtype.itemsize > 4:  # float64 beyond float32 would become inf, called broken
         top = float(np.abs(arr[np.isfinite(arr)]).max(initial=0.0))
         if top > float(np.finfo(np.float32).max) / 16:
