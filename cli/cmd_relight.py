@@ -130,12 +130,7 @@ def relight_cmd(
     if auto:
         backend = "blend" if checkpoint is not None else "analytic"
     check_backends([backend], checkpoint)
-    if auto:
-        console.print(f"backend: {backend}" + ("" if checkpoint is not None else
-                                                " (no --checkpoint: the analytic model; a trained decoder blends in)"))
     s = Session.open(session)
-    if checkpoint is not None and uses_decoder(backend):
-        console.print(f"decoder: {checkpoint}")
     names, pats = [], []
     for v in _views(s, views):
         rv = load_view(s, v)
@@ -158,6 +153,11 @@ def relight_cmd(
             if twins:  # each pattern's name is its output file's
                 raise InputError(f"--pattern: two patterns would both be written as {twins[0]!r}: "
                                  "rename one (the output files are named by the pattern)")
+            if auto:  # said once the input is known good
+                console.print(f"backend: {backend}" + ("" if checkpoint is not None else
+                                                        " (no --checkpoint: the analytic model; a trained decoder blends in)"))
+            if checkpoint is not None and uses_decoder(backend):
+                console.print(f"decoder: {checkpoint}")
         sources = make_sources(backend, rv, checkpoint=checkpoint, device=device)
         cached = cache and not isinstance(sources[0][0], DotTransport)  # the measured transport is read, not predicted
         if cached:

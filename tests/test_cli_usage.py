@@ -207,6 +207,8 @@ def test_click_usage_errors_are_one_line_naming_where_help_is(args: list[str], e
      "error: --pattern is empty: give an image file or a named pattern (checkerboard, stripes_x, ...)"),
     (["relight", "no_session", "--pattern", "checkerboard", "--backend", "bogus"],
      "error: unknown backend 'bogus'; available: analytic, blend, exact, measured, none, torch"),
+    (["relight", "no_session", "--pattern", "checkerboard"],  # "backend: analytic" was said first
+     "error: no_session is not a session (no manifest.json)"),
     (["relight", "no_session", "--pattern", "checkerboard", "--device", "tpu"],
      "error: unknown device 'tpu': use auto, cpu, cuda or cuda:N"),
     (["eval", "relight", "no_session", "--backend", "none", "--device", "tpu"],
