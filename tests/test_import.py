@@ -686,4 +686,8 @@ def test_srgb_encoded_frames_are_decoded_to_light_by_their_tag_or_flagged_by_the
     (untagged / "white.png").rename(untagged / "white.jpg")
     with pytest.raises(InputError, match=r"white\.jpg: \.jpg frames are lossy"):
         import_folder(untagged, tmp_path / "s", "jpeg", (W, H), patch=K)
+    (untagged / "white.jpg").unlink()
+    Image.fromarray(_srgb_codes(np.load(linear / "white.npy"))).save(untagged / "white.png", format="JPEG")
+    with pytest.raises(InputError, match=r"white\.png holds JPEG data, which is lossy"):  # whatever its name says
+        import_folder(untagged, tmp_path / "s", "jpeg", (W, H), patch=K, encoding="linear")
     assert not (tmp_path / "s" / "mixed").exists() and not (tmp_path / "s" / "jpeg").exists()

@@ -188,13 +188,16 @@ def frames_encoding(files: Iterable[Path], encoding: str = "auto") -> tuple[str,
     (one line naming two that do not). Float frames are linear whatever is asked."""
     if encoding not in ENCODINGS:
         raise InputError(f"--encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
-    if encoding != "auto":
-        return encoding, f"as --encoding {encoding} asked"
     seen: dict[str, tuple[Path, str]] = {}
     for path in files:
         if stores_integers(path):
             enc, why = declared_encoding(path)
+            if why == "JPEG data":  # whatever the file's name says
+                raise InputError(f"{path} holds JPEG data, which is lossy (8 x 8 blocks, halved colour resolution) and "
+                                 "corrupts fringes: save the camera's frames as PNG, TIFF, EXR or .npy")
             seen.setdefault(enc, (path, why))
+    if encoding != "auto":
+        return encoding, f"as --encoding {encoding} asked"
     if len(seen) > 1:
         (e1, (p1, w1)), (e2, (p2, w2)) = list(seen.items())[:2]
         raise InputError(f"{p1} is {e1} ({w1}) but {p2} is {e2} ({w2}): an import's frames share one encoding; "
@@ -251,7 +254,7 @@ def _warn_suspect_view(vdir: Path, coverage: dict[str, int], size: tuple[int, in
     fringes whose mean is not half the white's light (``mean_share``, :func:`fringe_mean_share`)."""
     import warnings
 
-    if abs(mean_share - FRINGE_MEAN_SHARE) > FRINGE_MEAN_TOLERANCE:
+    if abs(mean_share - FRINGE_MEAN_SHARE) > FRINGE_MEAN_TOLERANCE and fringes_clipped <= CLIPPED_WARN:  # (clipping: below)
         hint = ("if the files are gamma-encoded (sRGB), import with --encoding srgb; " if encoding == "linear" else
                 f"the files were decoded as {encoding}: if they are linear, import with --encoding linear; ")
         warnings.warn(f"{vdir}: the fringe frames average {mean_share:.2f} of the white capture's light (above black, "
