@@ -11,6 +11,8 @@ from rich.console import Console
 if TYPE_CHECKING:
     import numpy as np
 
+    from sssphase_core.store.session import Session
+
 console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
 
 BackendOpt = Annotated[str, typer.Option("--backend", help="torch, analytic, blend (torch and analytic weighted by how well they relight the view's own fringe captures; needs --checkpoint), measured (the session's captured dot-grid footprints), none, or exact (simulated sessions only: the simulator's ground truth, for evaluation).")]
@@ -55,6 +57,18 @@ def _model_tag(checkpoint: Path | None) -> str:
 
     key = "none" if checkpoint is None else f"{Path(checkpoint).resolve()}:{Path(checkpoint).stat().st_mtime_ns}"
     return hashlib.sha256(key.encode()).hexdigest()[:10]
+
+
+def _view_tag(session: Session, view: int) -> str:
+    """Short digest of a view's array checksums (the manifest's): footprints cached for one session's view
+    are never read for another session's (the same object name imported again, another session relit into
+    the same --out)."""
+    import hashlib
+    import json
+
+    arrays = session.manifest.get("views", {}).get(str(view), {}).get("arrays", {})
+    key = json.dumps({name: a.get("checksum") for name, a in sorted(arrays.items())}, sort_keys=True)
+    return hashlib.sha256(f"{session.path.resolve()}:{key}".encode()).hexdigest()[:10]
 
 
 def _say_resize(path: str, size: tuple[int, int], mode: str) -> None:
@@ -162,7 +176,7 @@ def relight_cmd(
         cached = cache and not isinstance(sources[0][0], DotTransport)  # the measured transport is read, not predicted
         if cached:
             members = BLENDS.get(backend, (backend,))
-            sources = [(FootprintCache(src, out / "cache" / f"{rv.object}_v{v}_{m}_{_model_tag(checkpoint if m == 'torch' else None)}.npz",
+            sources = [(FootprintCache(src, out / "cache" / f"{rv.object}_v{v}_{_view_tag(s, v)}_{m}_{_model_tag(checkpoint if m == 'torch' else None)}.npz",
                                        rv.proj.shape, k), k) for (src, k), m in zip(sources, members, strict=True)]
         (source, patch), *also = sources
         with _progress() as bar:

@@ -691,3 +691,24 @@ def test_srgb_encoded_frames_are_decoded_to_light_by_their_tag_or_flagged_by_the
     with pytest.raises(InputError, match=r"white\.png holds JPEG data, which is lossy"):  # whatever its name says
         import_folder(untagged, tmp_path / "s", "jpeg", (W, H), patch=K, encoding="linear")
     assert not (tmp_path / "s" / "mixed").exists() and not (tmp_path / "s" / "jpeg").exists()
+
+
+def test_footprints_cached_for_one_session_are_never_read_for_another(tmp_path):
+    """The footprint cache in OUT/cache was named by object, view, backend and model only: the same object
+    imported again (here: brighter frames) and relit into the same --out got the first session's footprints."""
+    from sssphase_core.store.exr import read_exr
+
+    for name, scale in (("a", 1.0), ("b", 3.0)):
+        import_folder(_float_frames(tmp_path / f"f{name}", scale), tmp_path / name, "obj", (W, H), patch=K)
+
+    def relit(session: str, out: str) -> np.ndarray:
+        res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "relight", str(tmp_path / session / "obj"),
+                              "--pattern", "checkerboard", "--backend", "analytic", "--format", "exr",
+                              "--out", str(tmp_path / out)], capture_output=True, text=True, timeout=300)
+        assert res.returncode == 0, res.stdout + res.stderr
+        return read_exr(tmp_path / out / "obj_v0_checkerboard_analytic.exr")
+
+    relit("a", "shared")
+    fresh, shared = relit("b", "fresh"), relit("b", "shared")
+    np.testing.assert_array_equal(shared, fresh)
+    assert len(list((tmp_path / "shared" / "cache").glob("obj_v0_*_analytic_*.npz"))) == 2

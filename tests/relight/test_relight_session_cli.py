@@ -47,7 +47,7 @@ def test_cli_relight_writes_images_and_scores_named_references(session, tmp_path
         assert (out / f"sand_rake_v1_{name}_exact.png").exists()
         assert (out / f"sand_rake_v1_{name}_exact_display.png").exists()
     assert (out / "sand_rake_v1_checkerboard_exact_compare.png").exists()
-    assert len(list((out / "cache").glob("sand_rake_v1_exact_*.npz"))) == 1
+    assert len(list((out / "cache").glob("sand_rake_v1_*_exact_*.npz"))) == 1
 
 
 def test_cli_relight_rejects_a_wrong_pattern_size(session, tmp_path):
