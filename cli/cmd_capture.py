@@ -95,15 +95,27 @@ def capture(
 
     reference_keys(reference or ())
     from sssphase_core.processing.patterns import REFERENCE_NAMES
-    from sssphase_core.store.imageio import frame_shape
+    from sssphase_core.store.imageio import MAX_FRAME_PIXELS, frame_shape, read_pattern
 
     for ref in reference or ():
-        if ref not in REFERENCE_NAMES:
-            frame_shape(Path(ref))  # an unreadable or empty image file is one line before a daemon starts
+        if ref not in REFERENCE_NAMES:  # an unreadable file or values outside [0, 1]: one line before a daemon starts
+            h, w = frame_shape(Path(ref))[:2]
+            if w * h > MAX_FRAME_PIXELS:
+                from sssphase_core.errors import InputError
+
+                raise InputError(f"--reference {ref} is {w}x{h}: larger than any projector (scale it down first)")
+            read_pattern(Path(ref), (w, h))  # (its size is checked against the rig's projector by the daemon)
     if dot_spacing is not None:  # 0 meant the default, 10^12 exhausted the memory: one line before a daemon starts
         from sssphase_core.processing.patterns import check_dot_spacing
 
         check_dot_spacing(dot_spacing)
+    from sssphase_core.store.session import refuse_inside_session
+
+    refuse_inside_session(out, "--out")  # before a daemon starts
+    if out.exists() and not out.is_dir():
+        from sssphase_core.errors import InputError
+
+        raise InputError(f"--out {out} is a file: give the folder that holds sessions")
     req = CaptureRequest(object_name, views, footprints, tuple(reference or ()), brackets,
                          keep_dots, keep_unwrap, resume, out, seed, preset, dot_spacing, transport, drawn)
     from sssphase_daemon.client import local_client
@@ -184,15 +196,18 @@ def export(
     from sssphase_core.errors import InputError
     from sssphase_core.reporting.export import export_session
     from sssphase_core.store import exr
-    from sssphase_core.store.session import Session, refuse_inside_session
+    from sssphase_core.store.session import Session, check_output_folder, refuse_inside_session
 
     if not exr.available():
         raise InputError(exr.MISSING)
+    check_output_folder(out)
     s = Session.open(session)
     try:
-        chosen = [int(v) for v in views.split(",") if v.strip()] or None
+        chosen = list(dict.fromkeys(int(v) for v in views.split(",") if v.strip())) or None
     except ValueError:
         raise InputError(f"--views must be comma-separated integers, got {views!r}") from None
+    if views.strip() and chosen is None:
+        raise InputError(f"--views {views!r} names no view: give comma-separated view numbers, or leave it out for all")
     missing = sorted(set(chosen or []) - set(s.views()))
     if missing:
         raise InputError(f"{session} has no complete view {', '.join(map(str, missing))} (complete: {s.views()})")

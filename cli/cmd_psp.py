@@ -50,6 +50,9 @@ def patterns(
         raise InputError(f"--shifts must be 3 to {MAX_SHIFTS}, got {shifts}")
     if not GAMMA_RANGE[0] <= gamma <= GAMMA_RANGE[1]:  # NaN fails too
         raise InputError(f"--gamma must be a number in [{GAMMA_RANGE[0]:g}, {GAMMA_RANGE[1]:g}] (as a rig file's), got {gamma}")
+    if period is not None and period > max(w, h):  # its frame names would also read p1e+06, which import refuses
+        raise InputError(f"--period {period:g} is longer than the {w}x{h} projector: the fringes need at least one "
+                         "period across it")
     if period is None:
         config = psp_config_for(w, h, n_shifts=shifts)
     else:
@@ -62,6 +65,15 @@ def patterns(
                         references=reference, hdr_exposures=exposures, gamma=gamma)
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} is a file: give a folder")
+    from sssphase_core.store.imageio import IMAGE_SUFFIXES
+    from sssphase_core.store.session import refuse_inside_session
+
+    refuse_inside_session(out, "--out")
+    held = next((p for p in sorted(out.rglob("*")) if p.name == "plan.json" or p.suffix.lower() in IMAGE_SUFFIXES),
+                None) if out.is_dir() else None
+    if held is not None:  # captured frames share the patterns' names; an earlier set would be left beside this one
+        raise InputError(f"--out {out} already holds {held.relative_to(out)}: write the patterns into a new folder "
+                         "(nothing was written)")
     out.mkdir(parents=True, exist_ok=True)
     unique = list({f.key: f for f in plan}.values())
     with Progress() as bar:
@@ -125,6 +137,9 @@ def decode_cmd(
         bayer = check_layout(bayer.upper())
     if out.exists() and not out.is_dir():
         raise InputError(f"--out {out} is a file: give a folder")
+    from sssphase_core.store.session import refuse_inside_session
+
+    refuse_inside_session(out, "--out")
     plan_path = folder / "plan.json"
     plan = _read_plan(plan_path) if plan_path.is_file() else None
     if projector is not None:
@@ -137,6 +152,8 @@ def decode_cmd(
     keys = [psp_key(o, p, n) for o in ("x", "y") for p in config.periods for n in range(config.n_shifts)]
     files = frame_files(folder, strict=False)  # other images (e.g. this command's own figures) are not frames
     missing = [key for key in keys if key not in files]
+    if missing and any(p.is_dir() and p.name.startswith("view_") for p in folder.iterdir()):
+        raise InputError(f"{folder} holds view folders: decode one view at a time (sss decode {folder / 'view_000'} ...)")
     if missing:
         raise DataError(f"frame {missing[0]!r} not found in {folder} (expected {missing[0].replace('/', '__')}.png/.tif/"
                         f".exr/.npy or {missing[0]}.*; {len(missing)} of {len(keys)} PSP frames missing)")

@@ -35,9 +35,16 @@ def _views(session, views: str) -> list[int]:
                              f"`sss validate {session.path}` says more, `sss capture ... --resume` completes it")
         return session.views()
     try:
-        return [int(v) for v in views.split(",") if v.strip()]
+        chosen = list(dict.fromkeys(int(v) for v in views.split(",") if v.strip()))  # a view named twice runs once
     except ValueError:
         raise InputError(f"--views must be comma-separated integers, got {views!r}") from None
+    if not chosen:
+        raise InputError(f"--views {views!r} names no view: give comma-separated view numbers, or leave it out for all")
+    missing = [v for v in chosen if v not in session.views()]
+    if missing:  # before any view is relit
+        raise InputError(f"session {session.path} has no complete view {', '.join(map(str, missing))} "
+                         f"(complete: {', '.join(map(str, session.views())) or 'none'})")
+    return chosen
 
 
 def _same_pattern(pattern: np.ndarray, reference: np.ndarray) -> bool:
@@ -104,9 +111,9 @@ def relight_cmd(
                                               "linear, unclipped) or png,exr.")] = "png",
 ) -> None:
     """Relight a captured object under new projector patterns (several patterns share one footprint pass)."""
-    from sssphase_core.store.session import refuse_inside_session
+    from sssphase_core.store.session import check_output_folder
 
-    refuse_inside_session(out)
+    check_output_folder(out)
     import numpy as np
 
     from sssphase_core.compute import compute_device
@@ -129,12 +136,16 @@ def relight_cmd(
     from sssphase_core.relight.sources import check_backends, uses_decoder
     from sssphase_core.store.session import Session
 
-    formats = check_image_formats(tuple(f.strip().lower() for f in image_format.split(",") if f.strip()))
+    formats = check_image_formats(tuple(dict.fromkeys(f.strip().lower() for f in image_format.split(",") if f.strip())))
     if "exr" in formats:
         from sssphase_core.store import exr
 
         if not exr.available():
             raise InputError(f"--format exr: {exr.MISSING}")
+    from sssphase_core.store.imageio import RESIZE_MODES
+
+    if resize and resize not in RESIZE_MODES:  # (read only for pattern files: checked whatever is given)
+        raise InputError(f"--resize must be one of {', '.join(RESIZE_MODES)}, got {resize!r}")
     if any(not p.strip() for p in pattern):
         raise InputError("--pattern is empty: give an image file or a named pattern (checkerboard, stripes_x, ...)")
     compute_device(device)  # one line before any progress is drawn
@@ -151,7 +162,7 @@ def relight_cmd(
         if not pats:
             wp, hp = rv.proj.projector_size
             for p in pattern:
-                if Path(p).exists():
+                if Path(p).is_file():  # (a folder named like a pattern does not hide the pattern)
                     names.append(Path(p).stem)
                     pats.append(read_pattern(p, (wp, hp), resize=resize))
                     _say_resize(p, (wp, hp), resize)
@@ -230,15 +241,15 @@ def geometry_cmd(
     and mask. On a simulated session both maps are also scored against the exact correspondences.
     Only footprints that carry the skew of oblique incidence remove the bias along the baseline; the
     analytic model's are radially symmetric and correct silhouettes and material edges only."""
-    from sssphase_core.store.session import refuse_inside_session
+    from sssphase_core.store.session import check_output_folder
 
-    refuse_inside_session(out)
+    check_output_folder(out)
     import numpy as np
 
     from sssphase_core.errors import InputError
     from sssphase_core.learning.training import resolve_checkpoint
     from sssphase_core.relight import finest_psp_period, geometric_correspondence, load_view, make_source
-    from sssphase_core.store.session import Session, view_dir_name
+    from sssphase_core.store.session import Session, refuse_inside_session, view_dir_name
 
     if backend in ("measured", "none"):
         raise InputError(f"--backend {backend} cannot predict the scattering shift: "
@@ -288,9 +299,9 @@ def eval_relight(
                                             "the view's own fringe captures best (--no-calibrate: the model alone).")] = True,
 ) -> None:
     """Relight every reference pattern of the sessions and tabulate MSE / PSNR / SSIM over objects and views."""
-    from sssphase_core.store.session import refuse_inside_session
+    from sssphase_core.store.session import check_output_folder
 
-    refuse_inside_session(out)
+    check_output_folder(out)
     from sssphase_core.bench.output import write_bench_report
     from sssphase_core.compute import compute_device
     from sssphase_core.errors import InputError
@@ -300,7 +311,7 @@ def eval_relight(
     from sssphase_core.relight.sources import MODEL_FREE, check_backends, uses_decoder
     from sssphase_core.store.session import find_sessions
 
-    backends = [b.strip() for b in backend.split(",") if b.strip()]
+    backends = list(dict.fromkeys(b.strip() for b in backend.split(",") if b.strip()))  # each once
     if not backends:
         raise InputError(f"--backend names no backend (got {backend!r}): give e.g. none,analytic,torch")
     if checkpoint is not None:
@@ -313,8 +324,11 @@ def eval_relight(
         if by_object.setdefault(s.name, s.path) != s.path:
             raise InputError(f"two sessions hold the object {s.name!r} ({by_object[s.name]} and {s.path}): their "
                              "results would share names; evaluate them with separate --out folders")
-    for s in found:
-        _views(s, views)  # every session has views to evaluate, before any work
+    for s in found:  # every session has views to evaluate, with references, before any work
+        for v in _views(s, views):
+            if not any(a.startswith("ref/") or (a.startswith("gt/render/") and a != "gt/render/white") for a in s.arrays(v)):
+                raise InputError(f"{s.name} view {v} has no reference captures to evaluate against (capture with "
+                                 "--reference checkerboard ...)")
     if checkpoint is not None and any(uses_decoder(b) for b in backends):
         console.print(f"torch backend: {checkpoint}")
     with _progress() as bar:
@@ -370,9 +384,9 @@ def report(
 ) -> None:
     """The demo's HTML report for your own sessions and runs: relit vs reference vs difference, tables, error
     against run time, kNN, PCA."""
-    from sssphase_core.store.session import refuse_inside_session
+    from sssphase_core.store.session import check_output_folder
 
-    refuse_inside_session(out)
+    check_output_folder(out)
     from sssphase_core.errors import InputError
     from sssphase_core.learning.training import resolve_checkpoint
     from sssphase_core.learning.training.checkpoints import load_checkpoint
@@ -380,7 +394,7 @@ def report(
     from sssphase_core.reporting.demo import run_report
     from sssphase_core.store.session import find_sessions
 
-    backends = tuple(b.strip() for b in backend.split(",") if b.strip())
+    backends = tuple(dict.fromkeys(b.strip() for b in backend.split(",") if b.strip()))
     decoder = resolve_checkpoint(decoder) if decoder else None
     pretrain = resolve_checkpoint(pretrain) if pretrain else None
     # as `sss eval relight`: unknown backends and unreadable checkpoints are one line before any work (without

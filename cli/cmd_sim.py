@@ -41,6 +41,17 @@ def sim(
         raise InputError(f"--seed must be 0 to {2**63 - 1} (2**63 - 1), got {seed}")
     obj = simlib.get_object(object_name)
     rig = simlib.rig_from_options({"preset": preset, "transport": transport})
+    from sssphase_core.store.session import refuse_inside_session
+
+    refuse_inside_session(out, "--out")
+    if out.exists() and not out.is_dir():
+        raise InputError(f"--out {out} is a file: give a folder")
+    if (out / "scene.json").is_file():  # an earlier `sss sim` here: its view folders go, none is left beside these
+        import re
+        import shutil
+
+        for old in (p for p in out.iterdir() if p.is_dir() and not p.is_symlink() and re.fullmatch(r"view[0-9]+", p.name)):
+            shutil.rmtree(old)
     out.mkdir(parents=True, exist_ok=True)
     wp, hp = rig.projector.width, rig.projector.height
     config = psp_config_for(wp, hp)

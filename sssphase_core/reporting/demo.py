@@ -339,6 +339,14 @@ def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Pat
     has_measured = all("transport/crops" in s.arrays(view) or "footprints/crops" in s.arrays(view)
                        for s in tests if view in s.views())
     chosen = tuple(b for b in backends if (b != "torch" or decoder is not None) and (b != "measured" or has_measured))
+    if not chosen:  # the report said "done" with no relighting at all
+        raise InputError(f"no backend of {', '.join(backends)} can run: torch needs --decoder (a run of `sss train "
+                         "decoder`), measured needs sessions captured with --footprints")
+    bare = [s.name for s in tests if not any(a.startswith("ref/") or (a.startswith("gt/render/") and a != "gt/render/white")
+                                             for a in s.arrays(view))]
+    if bare:
+        raise InputError(f"view {view} of {', '.join(bare)} has no reference captures to relight against (capture with "
+                         "--reference checkerboard ...)")
     config = DemoConfig(objects, tuple(s.name for s in tests), test_view=view, backends=chosen)
     demo = Demo(Path(out), config, client=None, fresh=True, log=log)
     demo.report_dir = Path(out)  # OUT/index.html (step records in OUT/steps)

@@ -41,8 +41,8 @@ FAULT_HOOK: Callable[[str], None] | None = None
 def check_object_name(name: str) -> str:
     """Refuse names that could escape the session root (``../``, separators, absolute paths)."""
     if not isinstance(name, str) or not NAME_RE.fullmatch(name) or name in (".", ".."):  # fullmatch: "$" allows "\n"
-        raise InputError(f"object name {name!r} is not allowed: use letters, digits, '_', '-', '.' "
-                         "(no path separators, no '..', at most 64 characters)")
+        raise InputError(f"object name {name!r} is not allowed: use letters, digits, '_', '-', '.', starting with a "
+                         "letter or digit (no path separators, no '..', at most 64 characters)")
     return name
 
 
@@ -359,6 +359,9 @@ class Session:
     def create(cls, root: Path, name: str, *, resume: bool = False, **info: Any) -> Session:
         """New session ``root/name``; with ``resume`` reopen an existing one (its partial views dropped)."""
         path = Path(root) / check_object_name(name)
+        refuse_inside_session(root, "--out")  # a session inside another's folders, which validate then lists
+        if Path(root).exists() and not Path(root).is_dir():
+            raise InputError(f"--out {root} is a file: give the folder that holds sessions")
         if path.is_symlink():
             raise InputError(f"{path} is a symbolic link: a session is written only inside its --out folder")
         if (path / MANIFEST).exists():
@@ -532,6 +535,14 @@ def refuse_inside_session(path: Path | str, what: str = "--out") -> None:
     inside = session_around(path)
     if inside is not None:
         raise InputError(f"{what} {path} would write into the session {inside}: choose a location outside it")
+
+
+def check_output_folder(path: Path | str, what: str = "--out") -> None:
+    """Refuse an output folder that is an existing file, or lies inside a session (:func:`refuse_inside_session`),
+    in one line before any work."""
+    if Path(path).exists() and not Path(path).is_dir():
+        raise InputError(f"{what} {path} is a file: give a folder")
+    refuse_inside_session(path, what)
 
 
 def sessions_at(root: Path | str) -> list[Session]:
