@@ -153,7 +153,10 @@ def main() -> None:
         err_console.print(f"[bold red]error:[/] {escape(str(exc))}")
         sys.exit(2)
     except KeyboardInterrupt:
-        err_console.print("[yellow]interrupted[/] (work done so far is kept; rerun the command to resume)")
+        if sys.argv[1:2] == ["import"]:  # an import is all or nothing: the half-written session was removed
+            err_console.print("[yellow]interrupted[/] (nothing was imported; rerun the command to import)")
+        else:
+            err_console.print("[yellow]interrupted[/] (work done so far is kept; rerun the command to resume)")
         sys.exit(130)
     except MemoryError as exc:  # an input far larger than the machine can hold: say so, no traceback
         detail = str(exc).splitlines()[0] if str(exc) else "the machine's memory is exhausted"

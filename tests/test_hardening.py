@@ -569,15 +569,17 @@ def test_two_references_that_would_share_a_key_are_refused_before_a_daemon_start
 
     from PIL import Image
 
-    for rel in ("a/x.png", "b/x.png", "checkerboard.png"):
+    for rel in ("a/x.png", "b/x.png", "checkerboard.png", "white.png"):
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         Image.fromarray(np.zeros((192, 256), np.uint8)).save(tmp_path / rel)
-    for refs, key in ((["a/x.png", "b/x.png"], "ref/x"), (["checkerboard", "checkerboard.png"], "ref/checkerboard")):
+    for refs, expected in ((["a/x.png", "b/x.png"], "would both be stored as ref/x"),
+                           (["checkerboard", "checkerboard.png"], "a file named like the pattern 'checkerboard'"),
+                           (["white.png"], "a file named like the pattern 'white'")):  # it overwrote the white's truth
         args = [a for r in refs for a in ("--reference", str(tmp_path / r) if r.endswith(".png") else r)]
         res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "capture", "--object", "soap", "--views", "1",
                               *args, "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
         out = res.stdout + res.stderr
-        assert res.returncode == 2 and f"would both be stored as {key}" in out and "Traceback" not in out, out
+        assert res.returncode == 2 and expected in out and "Traceback" not in out, out
         assert "started a local one" not in out and not (tmp_path / "out").exists(), out
 
 

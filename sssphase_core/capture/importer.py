@@ -223,6 +223,21 @@ def fringe_mean_share(sets: Iterable[np.ndarray], white: np.ndarray, black: np.n
     return float(np.median(np.concatenate(shares)))
 
 
+#: The projector's light (white less black, colours summed; its 99.9th percentile) must reach this share of
+#: the white capture's level (three colours): a black frame as bright as the white one (a copy, the wrong
+#: file, lights left on) decoded without a word.
+PROJECTOR_LIGHT_SHARE = 0.05
+
+
+def check_white_above_black(vdir: Path, white: np.ndarray, black: np.ndarray, white_level: float) -> None:
+    """Refuse a view whose white capture is hardly brighter than its black one (:data:`PROJECTOR_LIGHT_SHARE`)."""
+    light = float(np.percentile((white - black).reshape(-1, white.shape[-1] if white.ndim == 3 else 1).sum(-1), 99.9))
+    if not light > PROJECTOR_LIGHT_SHARE * 3 * white_level:
+        raise InputError(f"{vdir}: the white capture is hardly brighter than the black one (white - black reaches "
+                         f"{light:.3g} where the white reaches {3 * white_level:.3g}, colours summed): black is the scene "
+                         "under the projector's black, white under its full white")
+
+
 #: Integer frames with more than this share of their fringe values at the top code are called clipped when
 #: nothing decodes (a saturated fringe has no modulation, which the decoder reports as low modulation).
 CLIPPED_SHARE = 0.25
@@ -317,12 +332,20 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     odd = [p.name for p in view_dirs if p != folder and not p.name[5:].isdigit()]
     if odd:  # it was imported as the next view, renumbered in silence
         raise InputError(f"{folder / odd[0]} is no view folder: name view folders view_NNN (NNN a number), or move it out")
+    numbers = [int(p.name[5:]) for p in view_dirs if p != folder]
+    if numbers and numbers != list(range(len(numbers))):  # sessions number views 0..N-1
+        import warnings
+
+        warnings.warn(f"{folder}: view folders {', '.join(p.name for p in view_dirs)} are imported as views 0 to "
+                      f"{len(numbers) - 1} in that order", stacklevel=2)
     if view_dirs != [folder] and frame_files(folder, strict=False):  # one view's frames would be left out
         raise InputError(f"{folder} holds frames beside its view_NNN folders: move them into a view folder of their "
                          "own (e.g. view_000) or import them separately")
     req = CaptureRequest(check_object_name(name), views=len(view_dirs), out=Path(root))
     views = [(vdir, frame_files(vdir)) for vdir in view_dirs]  # refuse bad names before writing anything
     for (vdir, files) in views:
+        if not files:
+            raise InputError(f"{vdir} holds no frame files (psp__x__p<period>__s<n>, white, black ...: see SESSION_FORMAT.md)")
         missing = [k for k in ("white", "black") if k not in files]
         if missing:
             raise InputError(f"{vdir}: needs white, black and psp__x__p<period>__s<n> frames (missing: {', '.join(missing)})"
@@ -393,6 +416,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 info = {**proc.finish(), "nonfinite_repaired": nonfinite}
                 if not info["coverage"].get("VALID"):
                     raise InputError(_nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values)))
+                check_white_above_black(vdir, proc.images["white"], proc.images["black"], level * scale)
                 inputs = config.input_keys
                 share = fringe_mean_share([np.stack([proc.psp[k] for k in inputs[i:i + config.n_shifts]])
                                            for i in range(0, len(inputs), config.n_shifts)],

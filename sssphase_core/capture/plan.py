@@ -127,6 +127,9 @@ def reference_keys(references: tuple[str, ...] | list[str]) -> list[str]:
 
     keys: dict[str, str] = {}
     for r in dict.fromkeys(references):  # a named pattern given twice is captured once
+        if r not in REFERENCE_NAMES and _reference_name(r) in REFERENCE_NAMES:  # its truth would be the named one's
+            raise InputError(f"--reference {r}: a file named like the pattern {_reference_name(r)!r} would be stored and "
+                             "evaluated as that pattern: rename the file")
         key = f"ref/{r if r in REFERENCE_NAMES else _reference_name(r)}"
         if key in keys:
             raise InputError(f"--reference {keys[key]} and {r} would both be stored as {key}: rename the file")

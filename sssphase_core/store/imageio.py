@@ -63,7 +63,7 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
     wp, hp = projector_size
     path = Path(path)
     try:
-        as_array = path.suffix.lower() in (".npy", ".exr") or _pil_cannot_decode(path)
+        as_array = path.suffix.lower() in (".npy", ".exr") or _pil_cannot_decode(path) or _png_16_bit_colour(path)
     except (OSError, SyntaxError, ValueError) as exc:
         raise InputError(f"cannot read pattern {path}: {exc}") from None
     if as_array:
@@ -97,12 +97,25 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
         scale = 65535.0  # 16-bit PNG/TIFF (Pillow's I;16 and I modes)
     else:
         scale = 255.0
+    if arr.dtype.kind == "f" and not np.isfinite(arr).all():  # a single-channel float TIFF (Pillow's mode F)
+        raise InputError(f"pattern {path} must hold finite values in [0, 1]: it has NaN or inf")
+    if arr.dtype.kind == "f" and (arr.min() < 0 or arr.max() > 1):
+        raise InputError(f"pattern {path} must hold finite values in [0, 1], got {arr.min():.3g} to {arr.max():.3g}")
     arr = arr.astype(np.float32) / scale
     if arr.ndim == 3:
         arr = arr[..., :3]
         if np.allclose(arr, arr[..., :1]):
             arr = arr[..., 0]
     return np.clip(arr, 0, 1)
+
+
+def _png_16_bit_colour(path: Path) -> bool:
+    """Whether ``path`` is a 16-bit RGB(A) PNG (from its IHDR chunk), which Pillow reads at 8 bits."""
+    if path.suffix.lower() != ".png" or not path.is_file():
+        return False
+    with open(path, "rb") as f:
+        head = f.read(26)
+    return head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" and head[24] == 16 and head[25] in (2, 6)
 
 
 def _read_array_pattern(path: Path, projector_size: tuple[int, int], mode: str, hint: str) -> np.ndarray:
@@ -295,8 +308,8 @@ def declared_encoding(path: Path) -> tuple[str, str]:
     if info.get("icc_profile"):
         return "srgb", "its ICC colour profile"
     g = info.get("gamma")
-    if isinstance(g, (int, float)) and 0.05 <= g <= 2.0 and abs(1.0 / g - 1.0) > 0.01:
-        return f"gamma {1.0 / g:.4g}", f"its gAMA chunk ({g:g})"
+    if isinstance(g, (int, float)) and 0.05 <= g <= 20.0:
+        return ("linear", f"its gAMA chunk ({g:g})") if abs(g - 1.0) <= 0.01 else (f"gamma {1.0 / g:.4g}", f"its gAMA chunk ({g:g})")
     return "linear", "no colour tag"
 
 
