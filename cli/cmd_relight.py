@@ -476,6 +476,7 @@ def demo(
     fresh: Annotated[bool, typer.Option("--fresh", help="Redo every step.")] = False,
     transport: Annotated[str | None, typer.Option(help="sim light transport: burley (default) or directional_dipole (footprints skewed by the incidence direction).")] = None,
     randomise_rig: Annotated[bool, typer.Option(help="Capture each training object on its own randomised sim rig (projector response, lens blur, noise, exposure, demosaicing, transport model); the unseen objects on the nominal rig.")] = False,
+    three_chip: Annotated[bool, typer.Option("--three-chip", help="Capture every object with a three-chip sim camera (every pixel sees R, G and B: nothing is demosaiced; the sim option demosaic = \"none\").")] = False,
 ) -> None:
     """The user's path on the simulated rig: capture sessions through the daemon, pretrain and fit the decoder
     from them, relight unseen objects, evaluate, report (resumable)."""
@@ -490,7 +491,7 @@ def demo(
                       on_stop=lambda pid: log(f"stopped the local daemon (pid {pid})")) as client:
         with step_bar(console) as progress:
             report = run_demo(out, client, preset=preset, fresh=fresh, log=log, progress=progress, transport=transport,
-                              randomise_rig=randomise_rig)
+                              randomise_rig=randomise_rig, three_chip=three_chip)
     console.print(f"[green]report[/]: {report}")
 
 

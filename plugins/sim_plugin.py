@@ -11,7 +11,8 @@ Rig options (all optional): ``object`` (catalogue name, default "apple"), ``pres
 for the simulated times), ``projector_gamma`` / ``projector_black`` (a projector response other than
 the preset's, for calibration), ``transport`` (``burley`` or ``directional_dipole``), the camera's
 ``lens_blur`` (px), ``read_noise`` (e-), ``white_fraction`` (exposure) and ``demosaic`` (``malvar`` or
-``opencv``; see ``sim.rig.with_camera``), ``raw`` (Bayer frames), and fault injection for tests: ``fail_at_frame``
+``opencv``, or ``none`` for a three-chip camera without a colour filter array; see ``sim.rig.with_camera``),
+``raw`` (Bayer frames; not for a three-chip camera), and fault injection for tests: ``fail_at_frame``
 (the camera raises at that grab) and ``grab_delay_s`` (slow frames).
 The ``sim:bench-camera`` streams one fixed frame (``shape``, ``dtype``) for throughput benchmarks.
 
@@ -150,6 +151,8 @@ class SimCamera:
         self.exposure = 1.0
         self.gain = 1.0
         self.raw = bool(options.get("raw", False))
+        if self.raw and bench.rig.sensor.demosaic == "none":
+            raise DeviceError("a three-chip sim camera (demosaic none) has no raw Bayer frames: leave out the raw option")
         self.fail_at = int(options.get("fail_at_frame", -1))
         self.delay_s = float(options.get("grab_delay_s", 0.0))
         self.sequence = 0
@@ -165,6 +168,8 @@ class SimCamera:
         if pixel_format is not None:
             if pixel_format not in ("rgb32f", "bayer16"):
                 raise DeviceError(f"sim camera formats are rgb32f and bayer16, not {pixel_format!r}")
+            if pixel_format == "bayer16" and self.bench.rig.sensor.demosaic == "none":
+                raise DeviceError("a three-chip sim camera (demosaic none) has no raw Bayer frames (bayer16)")
             self.raw = pixel_format == "bayer16"
 
     def grab(self, timeout_s: float = 5.0) -> Frame:

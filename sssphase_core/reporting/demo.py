@@ -78,20 +78,22 @@ class Demo:
 
     def __init__(self, out: Path, config: DemoConfig, client: Any, *, fresh: bool = False,
                  log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None,
-                 transport: str | None = None, randomise_rig: bool = False):
+                 transport: str | None = None, randomise_rig: bool = False, three_chip: bool = False):
         """``client``: a daemon client (``sssphase_daemon.client``; anything with ``call`` and ``capture``);
         ``progress``: the training loops' step callback (``training.StepProgress``); ``transport``:
         the sim rig's light-transport model (None: burley); ``randomise_rig``: every training object is
         captured on its own randomised rig (``sim.randomised_rig_options``: projector response, lens,
-        noise, exposure, demosaicing and transport model), the unseen objects on the nominal one. Both
+        noise, exposure, demosaicing and transport model), the unseen objects on the nominal one;
+        ``three_chip``: every object is captured by a three-chip sim camera (nothing demosaiced). All
         are fixed for a demo folder."""
         self.out, self.cfg, self.client, self.fresh, self.log = Path(out), config, client, fresh, log
         self.progress = progress
         self.report_dir = self.out / "report"  # index.html and img/
         self.steps_dir = self.out / "steps"
         self.steps_dir.mkdir(parents=True, exist_ok=True)
-        self.transport, self.randomise_rig = transport or "burley", randomise_rig
-        physics = self.transport + (", training rigs randomised" if randomise_rig else "")
+        self.transport, self.randomise_rig, self.three_chip = transport or "burley", randomise_rig, three_chip
+        physics = (self.transport + (", training rigs randomised" if randomise_rig else "")
+                   + (", three-chip camera" if three_chip else ""))
         stamp = self.steps_dir / "transport.txt"
         if stamp.exists() and not fresh and stamp.read_text().strip() != physics:
             raise InputError(f"{self.out} was made with the simulator's {stamp.read_text().strip()!r} physics, this run "
@@ -99,7 +101,7 @@ class Demo:
         stamp.write_text(physics)
         self.report_rig = f"Simulated rig (CPU preset), {self.transport.replace('_', ' ')} transport" + (
             "; every training object captured on its own randomised rig (sim.randomised_rig_options)"
-            if randomise_rig else "")
+            if randomise_rig else "") + ("; a three-chip camera (no colour filter array)" if three_chip else "")
         self.results: dict[str, dict[str, Any]] = {}
 
     def _done(self, name: str) -> dict[str, Any] | None:
@@ -145,6 +147,8 @@ class Demo:
 
             physics = {"transport": None, "sim_options": randomised_rig_options(self.cfg.seed, obj)}
             self.log(f"  {obj}: randomised rig " + ", ".join(f"{k} {v}" for k, v in physics["sim_options"].items()))
+        if self.three_chip:
+            physics["sim_options"] = {**physics.get("sim_options", {}), "demosaic": "none"}
         req = CaptureRequest(obj, views=views, resume=True, out=root, seed=self.cfg.seed, **physics, **kw)
         session = run_capture(self.client, req)
         self.log(f"  captured {obj}: {len(session.views())} view(s) in {session.path}")
@@ -295,11 +299,11 @@ class Demo:
 
 def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool = False,
              log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None,
-             transport: str | None = None, randomise_rig: bool = False) -> Path:
+             transport: str | None = None, randomise_rig: bool = False, three_chip: bool = False) -> Path:
     """Run (or resume) the demo into ``out`` with a daemon ``client``; returns the report's path.
     ``progress``: the training loops' step callback (``training.StepProgress``); ``transport``: the
     sim rig's light-transport model (:data:`sssphase_core.sim.TRANSPORTS`; None: burley); ``randomise_rig``:
-    domain randomisation of the training captures (see :class:`Demo`)."""
+    domain randomisation of the training captures; ``three_chip``: a three-chip sim camera (see :class:`Demo`)."""
     if preset not in PRESETS:
         raise InputError(f"unknown demo preset {preset!r}; choose one of {', '.join(PRESETS)}")
     if transport is not None:
@@ -309,7 +313,7 @@ def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool 
             raise InputError(f"unknown transport model {transport!r}; choose one of {', '.join(TRANSPORTS)}")
     t0 = time.perf_counter()
     demo = Demo(Path(out), PRESETS[preset], client, fresh=fresh, log=log, progress=progress, transport=transport,
-                randomise_rig=randomise_rig)
+                randomise_rig=randomise_rig, three_chip=three_chip)
     path = demo.run()
     log(f"demo finished in {time.perf_counter() - t0:.1f} s")
     return path

@@ -170,6 +170,9 @@ def with_transport(rig: RigConfig, transport: str | None) -> RigConfig:
 SENSOR_OPTIONS: dict[str, tuple[float, float]] = {"lens_blur": (0.0, 5.0), "read_noise": (0.0, 100.0),
                                                   "white_fraction": (0.02, 1.0)}
 DEMOSAIC_METHODS = ("malvar", "opencv")
+#: The sim option ``demosaic`` of a camera without a colour filter array (three sensors behind a prism, or
+#: one behind a filter wheel): every pixel measures R, G and B, nothing is demosaiced.
+THREE_CHIP = "none"
 
 
 def _option(options: Mapping[str, Any], name: str, lo: float, hi: float) -> float | None:
@@ -186,8 +189,9 @@ def with_camera(rig: RigConfig, options: Mapping[str, Any]) -> RigConfig:
     keep the preset's."""
     changes: dict[str, Any] = {k: v for k in SENSOR_OPTIONS if (v := _option(options, k, *SENSOR_OPTIONS[k])) is not None}
     if "demosaic" in options:
-        if options["demosaic"] not in DEMOSAIC_METHODS:
-            raise InputError(f"sim option demosaic must be one of {', '.join(DEMOSAIC_METHODS)}, got {options['demosaic']!r}")
+        if options["demosaic"] not in (*DEMOSAIC_METHODS, THREE_CHIP):
+            raise InputError(f"sim option demosaic must be one of {', '.join(DEMOSAIC_METHODS)} (a Bayer camera's) or "
+                             f"{THREE_CHIP} (a three-chip camera: every pixel sees R, G and B), got {options['demosaic']!r}")
         changes["demosaic"] = str(options["demosaic"])
     return replace(rig, sensor=replace(rig.sensor, **changes)) if changes else rig
 

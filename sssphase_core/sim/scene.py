@@ -12,7 +12,7 @@ from sssphase_core.sim import geometry as g
 from sssphase_core.sim.materials import burley_scale
 from sssphase_core.sim.objects import SimObject, get_object
 from sssphase_core.sim.rig import RigConfig, rig_preset
-from sssphase_core.sim.sensor import expose
+from sssphase_core.sim.sensor import develop, expose
 from sssphase_core.sim.transport import DirectionalMaps, DirectionalTransport, SurfaceMaps, Transport
 
 #: |cos| between the view ray and the normal is clamped here, bounding cell areas at grazing angles.
@@ -207,25 +207,21 @@ class SimScene:
         return self.sense(self.render(patterns, progress), rng, exposure, raw)
 
     def sense_noise_free(self, images: np.ndarray, exposure: float = 1.0) -> np.ndarray:
-        """Noise-free images (P, H, W, 3) through the camera without its noise: Bayer sampling, clipping
-        and the ISP (demosaicing), what the camera would record on average. Evaluation only."""
-        from sssphase_core.processing import isp
+        """Noise-free images (P, H, W, 3) through the camera without its noise: Bayer sampling (none for a
+        three-chip camera), clipping and the ISP (demosaicing), what the camera would record on average.
+        Evaluation only."""
         from sssphase_core.sim.sensor import expose_noise_free
 
         sensor = self.rig.sensor
         frames = expose_noise_free(images, sensor, exposure)
         scale = sensor.dn_per_unit(exposure)
-        return np.stack([isp.develop(f, sensor.black_level, scale, median=sensor.isp_median, method=sensor.demosaic)
-                         for f in frames])
+        return develop(frames, sensor, scale)
 
     def sense(self, images: np.ndarray, rng: np.random.Generator, exposure: float = 1.0, raw: bool = False) -> np.ndarray:
         """Noise-free images (P, H, W, 3) through the sensor: raw Bayer frames, or developed by the ISP."""
-        from sssphase_core.processing import isp
 
         sensor = self.rig.sensor
         frames = expose(images, sensor, rng, exposure)
         if raw:
             return frames
-        scale = sensor.dn_per_unit(exposure)
-        return np.stack([isp.develop(f, sensor.black_level, scale, median=sensor.isp_median, method=sensor.demosaic)
-                         for f in frames])
+        return develop(frames, sensor, sensor.dn_per_unit(exposure))

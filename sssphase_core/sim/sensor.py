@@ -26,7 +26,8 @@ class SensorConfig:
     #: The lens's point spread (the system MTF): a Gaussian of this sigma in camera px blurs the
     #: optical image before it is sampled (0: a perfect lens).
     lens_blur: float = 0.0
-    #: The camera's demosaicing (``isp.demosaic`` methods: ``malvar`` or ``opencv``).
+    #: The camera's demosaicing (``isp.demosaic`` methods: ``malvar`` or ``opencv``), or ``none`` for a
+    #: three-chip camera (no colour filter array).
     demosaic: str = "malvar"
 
     @property
@@ -70,10 +71,17 @@ def through_lens(linear: np.ndarray, config: SensorConfig) -> np.ndarray:
     return out.reshape(arr.shape)
 
 
+def _on_sensor(linear: np.ndarray, config: SensorConfig) -> np.ndarray:
+    """What the photosites see, float64: the lens's image through the Bayer filter (..., H, W), or all three
+    colours at every pixel for a three-chip camera (``demosaic == "none"``, (..., H, W, 3))."""
+    image = np.asarray(through_lens(linear, config), np.float64)
+    return image if config.demosaic == "none" else bayer_mosaic(image)
+
+
 def expose(linear: np.ndarray, config: SensorConfig, rng: np.random.Generator, exposure: float = 1.0) -> np.ndarray:
-    """Noisy raw Bayer frames (uint16, (..., H, W)) from linear RGB images (..., H, W, 3) in front of the
-    lens."""
-    mean_e = np.clip(bayer_mosaic(np.asarray(through_lens(linear, config), np.float64)), 0.0, None) * (config.electrons_per_unit * exposure)
+    """Noisy raw frames (uint16: Bayer (..., H, W), or (..., H, W, 3) for a three-chip camera) from linear RGB
+    images (..., H, W, 3) in front of the lens."""
+    mean_e = np.clip(_on_sensor(linear, config), 0.0, None) * (config.electrons_per_unit * exposure)
     electrons = rng.poisson(mean_e).astype(np.float64) + rng.normal(0.0, config.read_noise, mean_e.shape)
     electrons = np.minimum(electrons, config.full_well)
     dn = np.round(config.black_level + electrons * config.dn_per_electron)
@@ -83,6 +91,18 @@ def expose(linear: np.ndarray, config: SensorConfig, rng: np.random.Generator, e
 def expose_noise_free(linear: np.ndarray, config: SensorConfig, exposure: float = 1.0) -> np.ndarray:
     """The mean raw Bayer frames (float32 DN, (..., H, W)) that :func:`expose` draws around: no photon or
     read noise, no rounding; clipped at the full well like a real exposure."""
-    mean_e = np.clip(bayer_mosaic(np.asarray(through_lens(linear, config), np.float64)), 0.0, None) * (config.electrons_per_unit * exposure)
+    mean_e = np.clip(_on_sensor(linear, config), 0.0, None) * (config.electrons_per_unit * exposure)
     dn = config.black_level + np.minimum(mean_e, config.full_well) * config.dn_per_electron
     return np.minimum(dn, config.max_dn).astype(np.float32)
+
+
+def develop(frames: np.ndarray, config: SensorConfig, dn_per_unit: float) -> np.ndarray:
+    """Raw frames of :func:`expose` (P, H, W) Bayer or (P, H, W, 3) three-chip -> linear RGB float32
+    (P, H, W, 3): the camera's ISP (median, demosaicing) for a Bayer camera; black level and scale only for a
+    three-chip one, which has nothing to demosaic."""
+    from sssphase_core.processing import isp
+
+    if config.demosaic == "none":
+        return ((np.asarray(frames, np.float32) - np.float32(config.black_level)) / np.float32(dn_per_unit)).astype(np.float32)
+    return np.stack([isp.develop(f, config.black_level, dn_per_unit, median=config.isp_median, method=config.demosaic)
+                     for f in frames])

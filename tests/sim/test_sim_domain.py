@@ -66,6 +66,26 @@ def test_exposure_and_demosaicing_reach_the_camera():
     assert np.abs(malvar - opencv).max() > 0.01
 
 
+def test_a_three_chip_camera_sees_every_colour_at_every_pixel():
+    """``demosaic = "none"``: no colour filter array, so the camera's image of colour detail is the image itself
+    (a Bayer camera's differs at every edge), and its noise is the photosites' own (no demosaicing correlates
+    it); raw Bayer frames are refused."""
+    from sssphase_plugins.drivers import DeviceError
+    from sssphase_plugins.sim_plugin import SimCamera, SimRigState
+
+    edge = np.zeros((1, 192, 256, 3), np.float32)
+    edge[..., ::7, :, 0] = 0.8
+    edge[..., 1::5, 2] = 0.3
+    three = SimScene("star", rig=rig_from_options({"demosaic": "none"}))
+    np.testing.assert_allclose(three.sense_noise_free(edge), edge, atol=2e-4)  # (quantised black level only)
+    assert np.abs(SimScene("star", rig=rig_from_options({})).sense_noise_free(edge) - edge).max() > 0.1
+    flat = np.full((1, 192, 256, 3), 0.4, np.float32)
+    noisy = three.sense(flat, np.random.default_rng(0))[0] - 0.4
+    assert abs(np.corrcoef(noisy[:, :-1, 1].ravel(), noisy[:, 1:, 1].ravel())[0, 1]) < 0.05  # neighbours independent
+    with pytest.raises(DeviceError, match="three-chip"):
+        SimCamera(SimRigState({"demosaic": "none"}), {"raw": True})
+
+
 @pytest.mark.slow
 def test_a_randomised_capture_records_its_rig_and_evaluation_rebuilds_it(sim_daemon, tmp_path):
     """The drawn options travel with the session: the exact footprints of evaluation come from the
