@@ -104,8 +104,8 @@ def _views(objects: list[str], views: list[int] | dict[str, list[int]] | None, *
         if not vds:
             from sssphase_core.errors import InputError
 
-            raise InputError(f"no complete session views under {sessions}" + ("" if Path(sessions).is_dir() else
-                                                                              " (no such folder)"))
+            why = "" if Path(sessions).is_dir() else " (a file, not a folder)" if Path(sessions).exists() else " (no such folder)"
+            raise InputError(f"no complete session views under {sessions}{why}")
         console.print(f"{role}: captured sessions under {sessions}: {_describe(vds)}")
         return vds
     from sssphase_core.learning.data import simulate_views
