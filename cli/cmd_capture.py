@@ -169,13 +169,17 @@ def import_images(
     encoding: Annotated[str, typer.Option(help="how 8/16-bit files map codes to light: auto (their sRGB / ICC / gAMA "
                                                "tag, else linear), linear (a camera's raw codes) or srgb; float "
                                                "files are linear")] = "auto",
+    bayer: Annotated[str | None, typer.Option(help="the camera demosaiced its Bayer frames of this layout (RGGB, GRBG, "
+                                                   "GBRG, BGGR): silhouette pixels only demosaicing lit are dropped")] = None,
+    demosaic: Annotated[str, typer.Option(help="with --bayer, how it demosaiced: malvar or opencv (relit fringes are "
+                                               "then compared through it), or other")] = "other",
 ) -> None:
     """Import frames from another rig (named by plan key, '/' as '__' or folders; see SESSION_FORMAT.md)."""
     from sssphase_core.capture import import_folder
     from sssphase_core.processing.patterns import parse_projector_size
 
     session = import_folder(folder, out, object_name, parse_projector_size(projector), patch=patch, gamma=gamma,
-                            encoding=encoding)
+                            encoding=encoding, bayer=bayer, demosaic=demosaic)
     rig = session.manifest["rig"]
     if rig["frame_encoding"] != "linear":
         console.print(f"frames decoded from {rig['frame_encoding']} to linear light ({rig['frame_encoding_from']}; "

@@ -712,3 +712,32 @@ def test_footprints_cached_for_one_session_are_never_read_for_another(tmp_path):
     fresh, shared = relit("b", "fresh"), relit("b", "shared")
     np.testing.assert_array_equal(shared, fresh)
     assert len(list((tmp_path / "shared" / "cache").glob("obj_v0_*_analytic_*.npz"))) == 2
+
+
+def test_frames_a_camera_demosaiced_itself_drop_the_silhouettes_bleed_when_the_layout_is_given(tmp_path):
+    """A camera that demosaics on board (most colour USB cameras) lights background pixels beside the
+    silhouette with the object's fringes in their filled colours; `sss import --bayer RGGB` drops them as
+    `sss decode --bayer` does and records the pipeline, which the view calibration then reproduces."""
+    from sssphase_core.processing.isp import through_camera
+    from sssphase_core.processing.psp import Reason
+
+    plan = [f for f in capture_plan(W, H, references=("white", "black")) if f.key.startswith(("psp/", "white", "black"))]
+    yy, xx = np.mgrid[:H, :W]
+    inside = ((yy - H / 2) / 16) ** 2 + ((xx - W / 2) / 22) ** 2 <= 1  # an ellipse on a black background
+    light = emitted_light(np.stack([f.pattern() for f in plan]), 2.2) * np.float32([0.8, 0.5, 0.3]) * inside[..., None]
+    frames = np.clip(through_camera(light.astype(np.float32), demosaic="malvar", median=False, layout="RGGB"), 0, None)
+    folder = tmp_path / "f"
+    folder.mkdir()
+    for f, img in zip(plan, frames, strict=True):
+        np.save(folder / (f.key.replace("/", "__") + ".npy"), img)
+    plain = import_folder(folder, tmp_path / "s", "plain", (W, H), patch=16)
+    told = import_folder(folder, tmp_path / "s", "told", (W, H), patch=16, bayer="rggb", demosaic="malvar")
+    outside = lambda s: int((s.load(0, "corr/mask").astype(bool) & ~inside).sum())  # noqa: E731
+    assert outside(plain) > 10 and outside(told) < outside(plain) // 2, (outside(plain), outside(told))
+    assert told.manifest["views"]["0"]["coverage"].get(Reason.DEMOSAIC_BLEED.name, 0) > 0
+    assert told.manifest["views"]["0"]["camera_isp"] == {"bayer": "RGGB", "demosaic": "malvar", "median": False}
+    assert plain.manifest["views"]["0"]["camera_isp"] is None
+    with pytest.raises(InputError, match=r"--demosaic must be one of malvar, opencv, other"):
+        import_folder(folder, tmp_path / "s", "bad", (W, H), bayer="RGGB", demosaic="ahd")
+    with pytest.raises(InputError, match=r"unknown Bayer layout 'RGBG'"):
+        import_folder(folder, tmp_path / "s", "bad", (W, H), bayer="RGBG")

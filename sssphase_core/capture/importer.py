@@ -292,8 +292,14 @@ def _warn_suspect_view(vdir: Path, coverage: dict[str, int], size: tuple[int, in
                           "top code): their light is underestimated; capture it with a shorter exposure", stacklevel=3)
 
 
+#: How a camera that demosaics its own Bayer frames did it, for ``sss import --demosaic``: the methods
+#: ``isp.demosaic`` reproduces, or ``other`` (unknown: only the silhouette's bleed is dropped).
+IMPORT_DEMOSAIC = ("malvar", "opencv", "other")
+
+
 def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int, int], *, patch: int = 32,
-                  gamma: float = 2.2, encoding: str = "auto") -> Session:
+                  gamma: float = 2.2, encoding: str = "auto", bayer: str | None = None,
+                  demosaic: str = "other") -> Session:
     """Import frames captured by another rig into a session, processed by the capture engine's
     :class:`ViewProcessor` exactly like a capture.
 
@@ -303,7 +309,10 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     ``.npy``, float TIFF or EXR; float frames far from camera units are rescaled (:func:`frame_scale`,
     recorded as the rig's ``frame_scale``); integer codes are decoded to light by ``encoding``
     (:func:`frames_encoding`: ``auto`` reads the files' sRGB / ICC / gAMA tags; recorded as the rig's
-    ``frame_encoding``). A reference that is not a named pattern needs its projected
+    ``frame_encoding``). ``bayer``: the frames were demosaiced from a Bayer sensor of that layout (by
+    ``demosaic``, :data:`IMPORT_DEMOSAIC`), recorded as each view's ``camera_isp``: silhouette pixels that only
+    demosaicing lit are dropped (``psp.demosaic_bleed``), and with a known method the view calibration compares
+    relit fringes through it (``isp.through_camera``). A reference that is not a named pattern needs its projected
     image as ``pattern__<name>.png``. A view where nothing decodes is refused; a failed import leaves
     nothing behind.
     """
@@ -321,6 +330,13 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     if not GAMMA_RANGE[0] <= gamma <= GAMMA_RANGE[1]:  # NaN fails too
         raise InputError(f"--gamma (the projector's gamma) must be a number in [{GAMMA_RANGE[0]:g}, {GAMMA_RANGE[1]:g}] "
                          f"(as a rig file's), got {gamma}")
+    camera_isp = None
+    if bayer is not None:
+        from sssphase_core.processing.isp import check_layout
+
+        if demosaic not in IMPORT_DEMOSAIC:
+            raise InputError(f"--demosaic must be one of {', '.join(IMPORT_DEMOSAIC)}, got {demosaic!r}")
+        camera_isp = {"bayer": check_layout(bayer.upper()), "demosaic": demosaic, "median": False}
     folder = Path(folder)
     if not folder.is_dir():
         raise InputError(f"{folder} is not a folder")
@@ -385,7 +401,8 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
             plan = CapturePlan(w, h, config, (), gamma)
             writer = session.begin_view(view)
             try:
-                proc = ViewProcessor(writer, plan, spacing, patch, RigSpec(camera="import", turntable=None), req, 0)
+                proc = ViewProcessor(writer, plan, spacing, patch, RigSpec(camera="import", turntable=None), req, 0,
+                                     camera_isp)
                 shape, top, fringe_values, nonfinite = None, 0, 0, 0
                 set_sums: dict[str, np.ndarray] = {}  # each fringe set's sum: its mean is half the white's light
                 for key in sorted((k for k in files if not k.startswith("pattern/")), key=lambda k: k.startswith("dots/")):

@@ -43,7 +43,7 @@ class RelightView:
         """Linear images (..., H, W, 3) as this view's camera records them, noise aside (Bayer sampling and
         its demosaicing, :func:`isp.through_camera`), so that they compare with its captures; unchanged when
         the session does not say how its frames were made (a camera that demosaics itself, imports)."""
-        if not self.camera_isp:
+        if not self.camera_isp or self.camera_isp.get("demosaic") == "other":  # (an import's unknown demosaicer)
             return np.asarray(images, np.float32)
         from sssphase_core.processing.isp import through_camera
 
