@@ -169,8 +169,9 @@ def import_images(
     encoding: Annotated[str, typer.Option(help="how 8/16-bit files map codes to light: auto (their sRGB / ICC / gAMA "
                                                "tag, else linear), linear (a camera's raw codes) or srgb; float "
                                                "files are linear")] = "auto",
-    bayer: Annotated[str | None, typer.Option(help="the camera demosaiced its Bayer frames of this layout (RGGB, GRBG, "
-                                                   "GBRG, BGGR): silhouette pixels only demosaicing lit are dropped")] = None,
+    bayer: Annotated[str, typer.Option(help="the camera demosaiced its Bayer frames of this layout (RGGB, GRBG, GBRG, "
+                                            "BGGR): silhouette pixels only demosaicing lit are dropped; auto: the layout "
+                                            "the frames' noise shows, if any; none: never")] = "auto",
     demosaic: Annotated[str, typer.Option(help="with --bayer, how it demosaiced: malvar or opencv (relit fringes are "
                                                "then compared through it), or other")] = "other",
 ) -> None:
@@ -181,6 +182,10 @@ def import_images(
     session = import_folder(folder, out, object_name, parse_projector_size(projector), patch=patch, gamma=gamma,
                             encoding=encoding, bayer=bayer, demosaic=demosaic)
     rig = session.manifest["rig"]
+    for v, info in sorted(session.manifest["views"].items(), key=lambda kv: int(kv[0])):
+        if str(info.get("bayer_detected", "none")).split(":")[0] != "none":
+            console.print(f"view {v}: demosaiced from a {info['bayer_detected']}; pixels only demosaicing lit at the "
+                          "silhouette are dropped (--bayer none keeps them)")
     if rig["frame_encoding"] != "linear":
         console.print(f"frames decoded from {rig['frame_encoding']} to linear light ({rig['frame_encoding_from']}; "
                       "--encoding linear reads the codes as light)")

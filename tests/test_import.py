@@ -730,7 +730,7 @@ def test_frames_a_camera_demosaiced_itself_drop_the_silhouettes_bleed_when_the_l
     folder.mkdir()
     for f, img in zip(plan, frames, strict=True):
         np.save(folder / (f.key.replace("/", "__") + ".npy"), img)
-    plain = import_folder(folder, tmp_path / "s", "plain", (W, H), patch=16)
+    plain = import_folder(folder, tmp_path / "s", "plain", (W, H), patch=16, bayer="none")
     told = import_folder(folder, tmp_path / "s", "told", (W, H), patch=16, bayer="rggb", demosaic="malvar")
     outside = lambda s: int((s.load(0, "corr/mask").astype(bool) & ~inside).sum())  # noqa: E731
     assert outside(plain) > 10 and outside(told) < outside(plain) // 2, (outside(plain), outside(told))
@@ -741,3 +741,36 @@ def test_frames_a_camera_demosaiced_itself_drop_the_silhouettes_bleed_when_the_l
         import_folder(folder, tmp_path / "s", "bad", (W, H), bayer="RGGB", demosaic="ahd")
     with pytest.raises(InputError, match=r"unknown Bayer layout 'RGBG'"):
         import_folder(folder, tmp_path / "s", "bad", (W, H), bayer="RGBG")
+
+
+def test_the_bayer_layout_a_camera_demosaiced_from_is_read_from_the_frames_noise(tmp_path):
+    """Each photosite's shot noise follows its own colour, and the PSP residual I0 + I2 - I1 - I3 is noise
+    only, so its variance per 2 x 2 site gives the layout away (`--bayer auto`, the default); frames with no
+    colour filter array (renders, three-chip cameras) have none to give."""
+    from sssphase_core.processing.isp import detect_bayer_layout, through_camera
+    from sssphase_core.processing.psp import Reason
+
+    w, h = 2 * W, 2 * H  # enough pixels per 2 x 2 site (isp.BAYER_MIN_PIXELS)
+    plan = [f for f in capture_plan(w, h, references=("white", "black")) if f.key.startswith(("psp/", "white", "black"))]
+    yy, xx = np.mgrid[:h, :w]
+    inside = ((yy - h / 2) / 38) ** 2 + ((xx - w / 2) / 54) ** 2 <= 1
+    light = (emitted_light(np.stack([f.pattern() for f in plan]), 2.2) * np.float32([0.9, 0.45, 0.15])
+             * inside[..., None]).astype(np.float32)
+    rng = np.random.default_rng(0)
+    noisy = light + rng.normal(size=light.shape).astype(np.float32) * np.sqrt(light / 3000)  # shot noise
+    for name, frames in (("bayer", through_camera(noisy, demosaic="malvar", median=False, layout="GRBG")),
+                         ("three_chip", noisy)):
+        folder = tmp_path / name
+        folder.mkdir()
+        for f, img in zip(plan, np.clip(frames, 0, None), strict=True):
+            np.save(folder / (f.key.replace("/", "__") + ".npy"), img)
+        s = import_folder(folder, tmp_path / "s", name, (w, h), patch=16)
+        info = s.manifest["views"]["0"]
+        if name == "bayer":
+            assert info["bayer_detected"].startswith("GRBG: the noise of its 2 x 2 sites follows GRBG"), info["bayer_detected"]
+            assert info["camera_isp"]["bayer"] == "GRBG" and info["coverage"].get(Reason.DEMOSAIC_BLEED.name, 0) > 0
+        else:
+            assert info["bayer_detected"].startswith("none: the noise is alike at every 2 x 2 site"), info["bayer_detected"]
+            assert info["camera_isp"] is None
+    psp = np.stack([light[i] for i in range(8)])
+    assert detect_bayer_layout([psp[:4], psp[4:]], light[-2], inside)[0] is None  # noise-free: nothing to read

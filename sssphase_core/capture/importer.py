@@ -297,8 +297,24 @@ def _warn_suspect_view(vdir: Path, coverage: dict[str, int], size: tuple[int, in
 IMPORT_DEMOSAIC = ("malvar", "opencv", "other")
 
 
+def _detect_bayer(proc: ViewProcessor, config: Any, demosaic: str) -> str:
+    """Set ``proc.camera_isp`` to the Bayer layout the view's frames show (:func:`isp.detect_bayer_layout`,
+    on the lit pixels of the white) before anything decodes them; returns the reason either way."""
+    from sssphase_core.processing.isp import detect_bayer_layout
+
+    inputs = config.input_keys
+    white = proc.images["white"] - proc.images.get("black", 0)
+    lit = white.sum(-1)
+    mask = lit > 0.25 * float(np.percentile(lit, 99))
+    layout, why = detect_bayer_layout([np.stack([proc.psp[k] for k in inputs[i:i + config.n_shifts]])
+                                       for i in range(0, len(inputs), config.n_shifts)], white, mask)
+    if layout is not None:
+        proc.camera_isp = {"bayer": layout, "demosaic": demosaic, "median": False}
+    return f"{layout}: {why}" if layout else f"none: {why}"
+
+
 def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int, int], *, patch: int = 32,
-                  gamma: float = 2.2, encoding: str = "auto", bayer: str | None = None,
+                  gamma: float = 2.2, encoding: str = "auto", bayer: str | None = "auto",
                   demosaic: str = "other") -> Session:
     """Import frames captured by another rig into a session, processed by the capture engine's
     :class:`ViewProcessor` exactly like a capture.
@@ -312,7 +328,9 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     ``frame_encoding``). ``bayer``: the frames were demosaiced from a Bayer sensor of that layout (by
     ``demosaic``, :data:`IMPORT_DEMOSAIC`), recorded as each view's ``camera_isp``: silhouette pixels that only
     demosaicing lit are dropped (``psp.demosaic_bleed``), and with a known method the view calibration compares
-    relit fringes through it (``isp.through_camera``). A reference that is not a named pattern needs its projected
+    relit fringes through it (``isp.through_camera``); ``"auto"`` (default): each view's layout as its noise
+    shows it (:func:`isp.detect_bayer_layout`, the reason in the view's ``bayer_detected``), else none;
+    ``None`` or ``"none"``: none. A reference that is not a named pattern needs its projected
     image as ``pattern__<name>.png``. A view where nothing decodes is refused; a failed import leaves
     nothing behind.
     """
@@ -331,11 +349,12 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
         raise InputError(f"--gamma (the projector's gamma) must be a number in [{GAMMA_RANGE[0]:g}, {GAMMA_RANGE[1]:g}] "
                          f"(as a rig file's), got {gamma}")
     camera_isp = None
-    if bayer is not None:
+    if demosaic not in IMPORT_DEMOSAIC:
+        raise InputError(f"--demosaic must be one of {', '.join(IMPORT_DEMOSAIC)}, got {demosaic!r}")
+    auto_bayer = bayer is not None and bayer.lower() == "auto"
+    if bayer is not None and bayer.lower() not in ("auto", "none"):
         from sssphase_core.processing.isp import check_layout
 
-        if demosaic not in IMPORT_DEMOSAIC:
-            raise InputError(f"--demosaic must be one of {', '.join(IMPORT_DEMOSAIC)}, got {demosaic!r}")
         camera_isp = {"bayer": check_layout(bayer.upper()), "demosaic": demosaic, "median": False}
     folder = Path(folder)
     if not folder.is_dir():
@@ -352,8 +371,9 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     if numbers and numbers != list(range(len(numbers))):  # sessions number views 0..N-1
         import warnings
 
-        warnings.warn(f"{folder}: view folders {', '.join(p.name for p in view_dirs)} are imported as views 0 to "
-                      f"{len(numbers) - 1} in that order", stacklevel=2)
+        as_views = "view 0" if len(numbers) == 1 else f"views 0 to {len(numbers) - 1} in that order"
+        warnings.warn(f"{folder}: view folder{'s' if len(numbers) > 1 else ''} {', '.join(p.name for p in view_dirs)} "
+                      f"{'are' if len(numbers) > 1 else 'is'} imported as {as_views}", stacklevel=2)
     if view_dirs != [folder] and frame_files(folder, strict=False):  # one view's frames would be left out
         raise InputError(f"{folder} holds frames beside its view_NNN folders: move them into a view folder of their "
                          "own (e.g. view_000) or import them separately")
@@ -405,7 +425,10 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                                      camera_isp)
                 shape, top, fringe_values, nonfinite = None, 0, 0, 0
                 set_sums: dict[str, np.ndarray] = {}  # each fringe set's sum: its mean is half the white's light
+                detected = None
                 for key in sorted((k for k in files if not k.startswith("pattern/")), key=lambda k: k.startswith("dots/")):
+                    if auto_bayer and detected is None and key.startswith("dots/"):  # before the decode the dots start
+                        detected = _detect_bayer(proc, config, demosaic)
                     image, repaired = read_imported(files[key], encoding)
                     image = image * np.float32(scale)
                     nonfinite += repaired
@@ -430,7 +453,11 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                         files[key], (w, h), hint="the image projected for a reference is the projector's size (--projector)")
                 for set_key, total in set_sums.items():
                     _check_fringe_level(vdir / set_key.replace("/", "__"), total / config.n_shifts, level * scale, mean=True)
+                if auto_bayer and detected is None:
+                    detected = _detect_bayer(proc, config, demosaic)
                 info = {**proc.finish(), "nonfinite_repaired": nonfinite}
+                if auto_bayer:
+                    info["bayer_detected"] = detected
                 if not info["coverage"].get("VALID"):
                     raise InputError(_nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values)))
                 check_white_above_black(vdir, proc.images["white"], proc.images["black"], level * scale)
