@@ -673,6 +673,9 @@ def test_srgb_encoded_frames_are_decoded_to_light_by_their_tag_or_flagged_by_the
         a, b = ref.load(0, name)[mask], dec.load(0, name)[mask]
         assert np.median(b / np.maximum(a, 1e-3)) == pytest.approx(1.0, abs=0.02), name
     assert abs(ref.manifest["views"]["0"]["fringe_mean_share"] - 0.5) < 0.01
+    floats = import_folder(linear, tmp_path / "s", "floats", (W, H), patch=K, encoding="srgb")  # .npy floats: light
+    assert floats.manifest["rig"]["frame_encoding"] == "linear"
+    np.testing.assert_array_equal(floats.load(0, "white"), ref.load(0, "white"))
     with pytest.warns(UserWarning, match=r"the fringe frames average 0\.[67]\d of the white capture's light .* "
                                          r"import with --encoding srgb"):
         raw = import_folder(untagged, tmp_path / "s", "untagged", (W, H), patch=K)

@@ -189,13 +189,17 @@ def frames_encoding(files: Iterable[Path], encoding: str = "auto") -> tuple[str,
     if encoding not in ENCODINGS:
         raise InputError(f"--encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
     seen: dict[str, tuple[Path, str]] = {}
+    integers = False
     for path in files:
         if stores_integers(path):
+            integers = True
             enc, why = declared_encoding(path)
             if why == "JPEG data":  # whatever the file's name says
                 raise InputError(f"{path} holds JPEG data, which is lossy (8 x 8 blocks, halved colour resolution) and "
                                  "corrupts fringes: save the camera's frames as PNG, TIFF, EXR or .npy")
             seen.setdefault(enc, (path, why))
+    if not integers:  # nothing to decode, whatever was asked
+        return "linear", "float frames"
     if encoding != "auto":
         return encoding, f"as --encoding {encoding} asked"
     if len(seen) > 1:
