@@ -279,7 +279,8 @@ def _warn_suspect_view(vdir: Path, coverage: dict[str, int], size: tuple[int, in
         warnings.warn(f"{vdir}: the fringe frames average {mean_share:.2f} of the white capture's light (above black, "
                       f"median over decoded pixels) where linear frames give {FRINGE_MEAN_SHARE:.2f}: {hint}if the "
                       f"projector's gamma is not {gamma:g} (a renderer that takes pattern values as light has gamma 1), "
-                      "make the patterns for the right one (`sss patterns --gamma`) and import with that --gamma",
+                      "make the patterns for the right one (`sss patterns --gamma`) and import with that --gamma; the "
+                      "white and the fringes must share one exposure",
                       stacklevel=3)
     valid, outside = coverage.get("VALID", 0), coverage.get("OUTSIDE", 0)
     if outside > OUTSIDE_WARN * (valid + outside):
