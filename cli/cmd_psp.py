@@ -69,13 +69,16 @@ def patterns(
     from sssphase_core.store.session import refuse_inside_session
 
     refuse_inside_session(out, "--out")
-    held = next((p for p in sorted(out.rglob("*")) if p.name == "plan.json" or p.suffix.lower() in IMAGE_SUFFIXES),
-                None) if out.is_dir() else None
+    unique = list({f.key: f for f in plan}.values())
+    held = None
+    if out.is_dir():  # (bounded: the folder's own entries and the paths this plan writes, never a whole tree)
+        mine = (out / f"{f.key}{suffix}" for f in unique for suffix in IMAGE_SUFFIXES)
+        held = next((p for p in (*sorted(out.iterdir()), *mine) if p.is_file() and
+                     (p.name == "plan.json" or p.suffix.lower() in IMAGE_SUFFIXES)), None)
     if held is not None:  # captured frames share the patterns' names; an earlier set would be left beside this one
         raise InputError(f"--out {out} already holds {held.relative_to(out)}: write the patterns into a new folder "
                          "(nothing was written)")
     out.mkdir(parents=True, exist_ok=True)
-    unique = list({f.key: f for f in plan}.values())
     with Progress() as bar:
         task = bar.add_task("writing patterns", total=len(unique))
         for frame in unique:

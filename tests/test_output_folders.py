@@ -55,8 +55,11 @@ def test_patterns_never_overwrite_a_folder_of_frames(tmp_path):
     cv2.imwrite(str(frames / "white.png"), np.full((H, W), 50000, np.uint16))
     before = _digest(frames)
     _one_line(_sss("patterns", "--projector", f"{W}x{H}", "--out", str(frames)),
-              f"--out {frames} already holds psp/x/p5/s0.png: write the patterns into a new folder (nothing was written)")
+              f"--out {frames} already holds white.png: write the patterns into a new folder (nothing was written)")
     assert _digest(frames) == before
+    (frames / "white.png").unlink()  # a frame in the nested layout `sss patterns` writes
+    _one_line(_sss("patterns", "--projector", f"{W}x{H}", "--out", str(frames)), "already holds psp/x/p5/s0.png")
+    assert _digest(frames) == {k: v for k, v in before.items() if k != "white.png"}
     assert _sss("patterns", "--projector", f"{W}x{H}", "--out", str(tmp_path / "p")).returncode == 0
     _one_line(_sss("patterns", "--projector", f"{W}x{H}", "--period", "10", "--out", str(tmp_path / "p")),
               "already holds")
