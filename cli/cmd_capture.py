@@ -183,9 +183,13 @@ def import_images(
                             encoding=encoding, bayer=bayer, demosaic=demosaic)
     rig = session.manifest["rig"]
     for v, info in sorted(session.manifest["views"].items(), key=lambda kv: int(kv[0])):
-        if str(info.get("bayer_detected", "none")).split(":")[0] != "none":
-            console.print(f"view {v}: demosaiced from a {info['bayer_detected']}; pixels only demosaicing lit at the "
+        found = str(info.get("bayer_detected", "none"))
+        if found.split(":")[0] != "none":
+            console.print(f"view {v}: demosaiced from a {found}; pixels only demosaicing lit at the "
                           "silhouette are dropped (--bayer none keeps them)")
+        elif "matches no layout clearly" in found:  # a colour filter array suspected, not applied
+            console.print(f"view {v}: {found.removeprefix('none: ')}: if the camera demosaiced its frames, pass "
+                          "--bayer LAYOUT")
     if rig["frame_encoding"] != "linear":
         console.print(f"frames decoded from {rig['frame_encoding']} to linear light ({rig['frame_encoding_from']}; "
                       "--encoding linear reads the codes as light)")

@@ -25,6 +25,10 @@ def _progress():
     return Progress(TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeElapsedColumn(), console=console)
 
 
+#: `sss eval relight`'s backends unless --backend names others (measured left out where no view has crops).
+EVAL_BACKENDS = "none,analytic,measured"
+
+
 def _views(session, views: str) -> list[int]:
     from sssphase_core.errors import InputError
 
@@ -290,7 +294,7 @@ def geometry_cmd(
 
 def eval_relight(
     sessions: Annotated[list[Path], typer.Argument(help="Session folders, or folders holding sessions.")],
-    backend: Annotated[str, typer.Option("--backend", help="Comma-separated backends (none, analytic, torch, blend, measured, exact).")] = "none,analytic,measured",
+    backend: Annotated[str, typer.Option("--backend", help="Comma-separated backends (none, analytic, torch, blend, measured, exact); by default measured only where the views hold dot-grid footprints.")] = EVAL_BACKENDS,
     checkpoint: CheckpointOpt = None,
     views: Annotated[str, typer.Option(help="Comma-separated views (default: all).")] = "",
     out: Annotated[Path, typer.Option("--out", help="Output folder (figures, relight_eval.json / .md).")] = Path("eval_relight"),
@@ -324,11 +328,20 @@ def eval_relight(
         if by_object.setdefault(s.name, s.path) != s.path:
             raise InputError(f"two sessions hold the object {s.name!r} ({by_object[s.name]} and {s.path}): their "
                              "results would share names; evaluate them with separate --out folders")
+    bare = []  # views without the dot-grid crops `measured` relights with
     for s in found:  # every session has views to evaluate, with references, before any work
         for v in _views(s, views):
             if not any(a.startswith("ref/") or (a.startswith("gt/render/") and a != "gt/render/white") for a in s.arrays(v)):
                 raise InputError(f"{s.name} view {v} has no reference captures to evaluate against (capture with "
                                  "--reference checkerboard ...)")
+            if not {"transport/crops", "footprints/crops"} & set(s.arrays(v)):
+                bare.append(f"{s.name} view {v}")
+    if "measured" in backends and bare:
+        if backend != EVAL_BACKENDS:  # asked for: refused before any work (it failed after the other backends)
+            raise InputError(f"--backend measured: {bare[0]} has no captured footprints (capture with --footprints)")
+        backends.remove("measured")
+        console.print(f"measured left out: {', '.join(bare[:3])}{' ...' if len(bare) > 3 else ''} holds no dot-grid "
+                      "footprints (capture with --footprints)")
     if checkpoint is not None and any(uses_decoder(b) for b in backends):
         console.print(f"torch backend: {checkpoint}")
     with _progress() as bar:

@@ -113,7 +113,7 @@ def _psp_config(vdir: Path, keys: Iterable[str]) -> Any:
 MIN_WHITE_LEVEL = 1e-30
 #: A frame may hold values below zero (noise around a subtracted black level), but not many far below:
 #: at most this share of its pixels below ``-NEGATIVE_LIMIT x`` the white level.
-NEGATIVE_LIMIT, NEGATIVE_SHARE = 0.1, 1e-3
+NEGATIVE_LIMIT, NEGATIVE_SHARE = 0.25, 1e-3  # (Malvar's overshoot at a sharp edge reaches -0.15 x white)
 
 
 def read_imported(path: Path, encoding: str = "linear") -> tuple[np.ndarray, int]:
@@ -186,6 +186,7 @@ def frames_encoding(files: Iterable[Path], encoding: str = "auto") -> tuple[str,
     """``(encoding, why)`` of one import's integer frame files (:func:`imageio.decode_codes`): ``encoding``
     as given, or for ``"auto"`` the files' own tags (:func:`imageio.declared_encoding`), which must agree
     (one line naming two that do not). Float frames are linear whatever is asked."""
+    encoding = str(encoding).lower()
     if encoding not in ENCODINGS:
         raise InputError(f"--encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
     seen: dict[str, tuple[Path, str]] = {}
@@ -354,6 +355,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
         raise InputError(f"--gamma (the projector's gamma) must be a number in [{GAMMA_RANGE[0]:g}, {GAMMA_RANGE[1]:g}] "
                          f"(as a rig file's), got {gamma}")
     camera_isp = None
+    demosaic = str(demosaic).lower()
     if demosaic not in IMPORT_DEMOSAIC:
         raise InputError(f"--demosaic must be one of {', '.join(IMPORT_DEMOSAIC)}, got {demosaic!r}")
     auto_bayer = bayer is not None and bayer.lower() == "auto"
@@ -470,6 +472,10 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 share = fringe_mean_share([np.stack([proc.psp[k] for k in inputs[i:i + config.n_shifts]])
                                            for i in range(0, len(inputs), config.n_shifts)],
                                           proc.images["white"], proc.images["black"], proc.corr.mask)
+                if share < FRINGE_MEAN_SHARE - 0.4:  # fringes hardly above (or below) black: the black frame is wrong
+                    raise InputError(f"{files['black']}: the fringe frames average {share:.2f} of the white's light above "
+                                     "this black frame, where they give 0.50: it is brighter than the scene under the "
+                                     "projector's black (the wrong file, or light left on)")
                 _warn_suspect_view(vdir, info["coverage"], (w, h), top / max(1, fringe_values),
                                    proc.images["white"], proc.corr.mask, scale if stores_integers(files["white"]) else None,
                                    share, gamma, encoding)

@@ -293,7 +293,7 @@ def declared_encoding(path: Path) -> tuple[str, str]:
     name), ``"gamma <g>"`` for a PNG's gAMA chunk (codes = light^(1/g)), else ``"linear"``; ``why`` names the
     tag. Float files and ``.npy`` arrays are ``"linear"``."""
     if path.suffix.lower() in (".npy", ".exr") or not stores_integers(path) or _pil_cannot_decode(path):
-        return "linear", "float or array data"
+        return "linear", "no colour tag (an array or float file)"
     from PIL import Image
 
     try:
