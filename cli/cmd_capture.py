@@ -109,13 +109,9 @@ def capture(
         from sssphase_core.processing.patterns import check_dot_spacing
 
         check_dot_spacing(dot_spacing)
-    from sssphase_core.store.session import refuse_inside_session
+    from sssphase_core.store.session import check_output_folder
 
-    refuse_inside_session(out, "--out")  # before a daemon starts
-    if out.exists() and not out.is_dir():
-        from sssphase_core.errors import InputError
-
-        raise InputError(f"--out {out} is a file: give the folder that holds sessions")
+    check_output_folder(out)  # before a daemon starts
     req = CaptureRequest(object_name, views, footprints, tuple(reference or ()), brackets,
                          keep_dots, keep_unwrap, resume, out, seed, preset, dot_spacing, transport, drawn)
     from sssphase_daemon.client import local_client

@@ -63,12 +63,10 @@ def patterns(
         raise InputError(f"--hdr must be comma-separated numbers, got {hdr!r}") from None
     plan = capture_plan(w, h, psp=config, unwrap=unwrap, footprints=footprints, dot_spacing=dot_spacing,
                         references=reference, hdr_exposures=exposures, gamma=gamma)
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} is a file: give a folder")
     from sssphase_core.store.imageio import IMAGE_SUFFIXES
-    from sssphase_core.store.session import refuse_inside_session
+    from sssphase_core.store.session import check_output_folder
 
-    refuse_inside_session(out, "--out")
+    check_output_folder(out)
     unique = list({f.key: f for f in plan}.values())
     held = None
     if out.is_dir():  # (bounded: the folder's own entries and the paths this plan writes, never a whole tree)
@@ -138,11 +136,9 @@ def decode_cmd(
         raise InputError(f"{folder} is not a folder")
     if bayer is not None:
         bayer = check_layout(bayer.upper())
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} is a file: give a folder")
-    from sssphase_core.store.session import refuse_inside_session
+    from sssphase_core.store.session import check_output_folder
 
-    refuse_inside_session(out, "--out")
+    check_output_folder(out)
     plan_path = folder / "plan.json"
     plan = _read_plan(plan_path) if plan_path.is_file() else None
     if projector is not None:

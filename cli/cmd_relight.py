@@ -313,6 +313,7 @@ def eval_relight(
     from sssphase_core.relight import load_view
     from sssphase_core.relight.evaluation import aggregate, evaluate_view, lpips_note, metrics_table
     from sssphase_core.relight.sources import MODEL_FREE, check_backends, uses_decoder
+    from sssphase_core.relight.views import has_captured_transport, has_references
     from sssphase_core.store.session import find_sessions
 
     backends = list(dict.fromkeys(b.strip() for b in backend.split(",") if b.strip()))  # each once
@@ -331,10 +332,10 @@ def eval_relight(
     bare = []  # views without the dot-grid crops `measured` relights with
     for s in found:  # every session has views to evaluate, with references, before any work
         for v in _views(s, views):
-            if not any(a.startswith("ref/") or (a.startswith("gt/render/") and a != "gt/render/white") for a in s.arrays(v)):
+            if not has_references(s.arrays(v)):
                 raise InputError(f"{s.name} view {v} has no reference captures to evaluate against (capture with "
                                  "--reference checkerboard ...)")
-            if not {"transport/crops", "footprints/crops"} & set(s.arrays(v)):
+            if not has_captured_transport(s.arrays(v)):
                 bare.append(f"{s.name} view {v}")
     if "measured" in backends and bare:
         if backend != EVAL_BACKENDS:  # asked for: refused before any work (it failed after the other backends)

@@ -41,11 +41,9 @@ def sim(
         raise InputError(f"--seed must be 0 to {2**63 - 1} (2**63 - 1), got {seed}")
     obj = simlib.get_object(object_name)
     rig = simlib.rig_from_options({"preset": preset, "transport": transport})
-    from sssphase_core.store.session import refuse_inside_session
+    from sssphase_core.store.session import check_output_folder
 
-    refuse_inside_session(out, "--out")
-    if out.exists() and not out.is_dir():
-        raise InputError(f"--out {out} is a file: give a folder")
+    check_output_folder(out)
     if (out / "scene.json").is_file():  # an earlier `sss sim` here: its view folders go, none is left beside these
         import re
         import shutil

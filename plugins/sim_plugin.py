@@ -151,7 +151,7 @@ class SimCamera:
         self.exposure = 1.0
         self.gain = 1.0
         self.raw = bool(options.get("raw", False))
-        if self.raw and bench.rig.sensor.demosaic == "none":
+        if self.raw and bench.rig.sensor.three_chip:
             raise DeviceError("a three-chip sim camera (demosaic none) has no raw Bayer frames: leave out the raw option")
         self.fail_at = int(options.get("fail_at_frame", -1))
         self.delay_s = float(options.get("grab_delay_s", 0.0))
@@ -168,7 +168,7 @@ class SimCamera:
         if pixel_format is not None:
             if pixel_format not in ("rgb32f", "bayer16"):
                 raise DeviceError(f"sim camera formats are rgb32f and bayer16, not {pixel_format!r}")
-            if pixel_format == "bayer16" and self.bench.rig.sensor.demosaic == "none":
+            if pixel_format == "bayer16" and self.bench.rig.sensor.three_chip:
                 raise DeviceError("a three-chip sim camera (demosaic none) has no raw Bayer frames (bayer16)")
             self.raw = pixel_format == "bayer16"
 

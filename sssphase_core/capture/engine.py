@@ -129,7 +129,7 @@ def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, option
         preset = rig_from_options(options)  # the preset with the session's camera options (exposure)
         rig.patch = rig.patch or preset.patch
         rig.saturation = rig.saturation or preset.sensor.saturation(1.0)
-        camera_isp = None if preset.sensor.demosaic == "none" else {  # a three-chip camera has no Bayer pipeline
+        camera_isp = None if preset.sensor.three_chip else {  # a three-chip camera has no Bayer pipeline
             "demosaic": preset.sensor.demosaic, "median": preset.sensor.isp_median, "bayer": "RGGB"}
     if req.footprints and rig.patch is None:
         raise InputError("footprints need the crop size: set [processing] patch in the rig file")

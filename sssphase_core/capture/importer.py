@@ -303,17 +303,20 @@ def _warn_suspect_view(vdir: Path, coverage: dict[str, int], size: tuple[int, in
 IMPORT_DEMOSAIC = ("malvar", "opencv", "other")
 
 
+def _input_sets(proc: ViewProcessor, config: Any) -> list[np.ndarray]:
+    """The view's learning inputs as fringe sets, each (N, H, W, 3): one per orientation (as captured)."""
+    keys, n = config.input_keys, config.n_shifts
+    return [np.stack([proc.psp[k] for k in keys[i:i + n]]) for i in range(0, len(keys), n)]
+
+
 def _detect_bayer(proc: ViewProcessor, config: Any, demosaic: str) -> str:
     """Set ``proc.camera_isp`` to the Bayer layout the view's frames show (:func:`isp.detect_bayer_layout`,
     on the lit pixels of the white) before anything decodes them; returns the reason either way."""
     from sssphase_core.processing.isp import detect_bayer_layout
 
-    inputs = config.input_keys
     white = proc.images["white"] - proc.images.get("black", 0)
     lit = white.sum(-1)
-    mask = lit > 0.25 * float(np.percentile(lit, 99))
-    layout, why = detect_bayer_layout([np.stack([proc.psp[k] for k in inputs[i:i + config.n_shifts]])
-                                       for i in range(0, len(inputs), config.n_shifts)], white, mask)
+    layout, why = detect_bayer_layout(_input_sets(proc, config), white, lit > 0.25 * float(np.percentile(lit, 99)))
     if layout is not None:
         proc.camera_isp = {"bayer": layout, "demosaic": demosaic, "median": False}
     return f"{layout}: {why}" if layout else f"none: {why}"
@@ -468,10 +471,8 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 if not info["coverage"].get("VALID"):
                     raise InputError(_nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values)))
                 check_white_above_black(vdir, proc.images["white"], proc.images["black"], level * scale)
-                inputs = config.input_keys
-                share = fringe_mean_share([np.stack([proc.psp[k] for k in inputs[i:i + config.n_shifts]])
-                                           for i in range(0, len(inputs), config.n_shifts)],
-                                          proc.images["white"], proc.images["black"], proc.corr.mask)
+                share = fringe_mean_share(_input_sets(proc, config), proc.images["white"], proc.images["black"],
+                                          proc.corr.mask)
                 if share < FRINGE_MEAN_SHARE - 0.4:  # fringes hardly above (or below) black: the black frame is wrong
                     raise InputError(f"{files['black']}: the fringe frames average {share:.2f} of the white's light above "
                                      "this black frame, where they give 0.50: it is brighter than the scene under the "

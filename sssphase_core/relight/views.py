@@ -71,6 +71,17 @@ class RelightView:
         return SimScene(s["object"], rig=rig_from_options(s["options"]), view=self.view, n_views=s["n_views"], seed=s["seed"])
 
 
+def has_references(arrays) -> bool:
+    """Whether a view's arrays (names) hold a reference capture to relight against: a ``ref/<name>`` capture
+    or, on simulated sessions, a reference's render (``gt/render/white`` is the white's, not a reference)."""
+    return any(a.startswith("ref/") or (a.startswith("gt/render/") and a != "gt/render/white") for a in arrays)
+
+
+def has_captured_transport(arrays) -> bool:
+    """Whether a view's arrays (names) hold the dot-grid crops the ``measured`` backend relights with."""
+    return bool({"transport/crops", "footprints/crops"} & set(arrays))
+
+
 def load_view(session: object, view: int) -> RelightView:
     """Read one complete view of a :class:`sssphase_core.store.session.Session` for relighting."""
     from sssphase_core.processing.patterns import PlannedFrame

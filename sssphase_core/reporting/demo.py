@@ -330,6 +330,7 @@ def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Pat
     ``view``, against every reference they hold) with ``backends``, footprint metrics (simulated
     sessions only), the kNN table on ``train_sessions`` and PCA maps with the ``pretrain`` encoder.
     Steps without what they need are listed in the report as not available. Returns its path."""
+    from sssphase_core.relight.views import has_captured_transport, has_references
     from sssphase_core.store.session import find_sessions
 
     tests = list(test_sessions)
@@ -340,14 +341,13 @@ def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Pat
         raise InputError(f"view {view} is not complete in " + "; ".join(lacking))
     train = find_sessions([train_sessions]) if train_sessions is not None else []
     objects = tuple(s.name for s in train)
-    has_measured = all("transport/crops" in s.arrays(view) or "footprints/crops" in s.arrays(view)
+    has_measured = all(has_captured_transport(s.arrays(view))
                        for s in tests if view in s.views())
     chosen = tuple(b for b in backends if (b != "torch" or decoder is not None) and (b != "measured" or has_measured))
     if not chosen:  # the report said "done" with no relighting at all
         raise InputError(f"no backend of {', '.join(backends)} can run: torch needs --decoder (a run of `sss train "
                          "decoder`), measured needs sessions captured with --footprints")
-    bare = [s.name for s in tests if not any(a.startswith("ref/") or (a.startswith("gt/render/") and a != "gt/render/white")
-                                             for a in s.arrays(view))]
+    bare = [s.name for s in tests if not has_references(s.arrays(view))]
     if bare:
         raise InputError(f"view {view} of {', '.join(bare)} has no reference captures to relight against (capture with "
                          "--reference checkerboard ...)")

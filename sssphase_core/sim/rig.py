@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 
 from sssphase_core.errors import InputError
-from sssphase_core.sim.sensor import SensorConfig
+from sssphase_core.sim.sensor import THREE_CHIP, SensorConfig
 
 Matrix3 = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
 
@@ -170,9 +170,6 @@ def with_transport(rig: RigConfig, transport: str | None) -> RigConfig:
 SENSOR_OPTIONS: dict[str, tuple[float, float]] = {"lens_blur": (0.0, 5.0), "read_noise": (0.0, 100.0),
                                                   "white_fraction": (0.02, 1.0)}
 DEMOSAIC_METHODS = ("malvar", "opencv")
-#: The sim option ``demosaic`` of a camera without a colour filter array (three sensors behind a prism, or
-#: one behind a filter wheel): every pixel measures R, G and B, nothing is demosaiced.
-THREE_CHIP = "none"
 
 
 def _option(options: Mapping[str, Any], name: str, lo: float, hi: float) -> float | None:

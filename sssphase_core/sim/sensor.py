@@ -8,6 +8,10 @@ import numpy as np
 
 from sssphase_core.processing.isp import bayer_mosaic
 
+#: The ``demosaic`` of a camera without a colour filter array (three sensors behind a prism, or one behind a
+#: filter wheel): every pixel measures R, G and B, nothing is demosaiced.
+THREE_CHIP = "none"
+
 
 @dataclass(frozen=True)
 class SensorConfig:
@@ -26,9 +30,14 @@ class SensorConfig:
     #: The lens's point spread (the system MTF): a Gaussian of this sigma in camera px blurs the
     #: optical image before it is sampled (0: a perfect lens).
     lens_blur: float = 0.0
-    #: The camera's demosaicing (``isp.demosaic`` methods: ``malvar`` or ``opencv``), or ``none`` for a
-    #: three-chip camera (no colour filter array).
+    #: The camera's demosaicing (``isp.demosaic`` methods: ``malvar`` or ``opencv``), or :data:`THREE_CHIP`
+    #: for a camera without a colour filter array.
     demosaic: str = "malvar"
+
+    @property
+    def three_chip(self) -> bool:
+        """Whether every pixel sees R, G and B (no colour filter array, nothing demosaiced)."""
+        return self.demosaic == THREE_CHIP
 
     @property
     def max_dn(self) -> int:
@@ -73,9 +82,9 @@ def through_lens(linear: np.ndarray, config: SensorConfig) -> np.ndarray:
 
 def _on_sensor(linear: np.ndarray, config: SensorConfig) -> np.ndarray:
     """What the photosites see, float64: the lens's image through the Bayer filter (..., H, W), or all three
-    colours at every pixel for a three-chip camera (``demosaic == "none"``, (..., H, W, 3))."""
+    colours at every pixel for a three-chip camera (:data:`THREE_CHIP`, (..., H, W, 3))."""
     image = np.asarray(through_lens(linear, config), np.float64)
-    return image if config.demosaic == "none" else bayer_mosaic(image)
+    return image if config.three_chip else bayer_mosaic(image)
 
 
 def expose(linear: np.ndarray, config: SensorConfig, rng: np.random.Generator, exposure: float = 1.0) -> np.ndarray:
@@ -102,7 +111,7 @@ def develop(frames: np.ndarray, config: SensorConfig, dn_per_unit: float) -> np.
     three-chip one, which has nothing to demosaic."""
     from sssphase_core.processing import isp
 
-    if config.demosaic == "none":
+    if config.three_chip:
         return ((np.asarray(frames, np.float32) - np.float32(config.black_level)) / np.float32(dn_per_unit)).astype(np.float32)
     return np.stack([isp.develop(f, config.black_level, dn_per_unit, median=config.isp_median, method=config.demosaic)
                      for f in frames])
