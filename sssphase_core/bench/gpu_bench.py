@@ -23,6 +23,7 @@ import sys
 import tempfile
 import textwrap
 import time
+from functools import partial
 from pathlib import Path
 from typing import Any
 
@@ -57,8 +58,14 @@ def _epoch_losses(run: Path, key: str) -> list[float]:
     return [float(r[key]) for r in read_rows(run / METRICS) if key in r]
 
 
+#: the loaders compared by :func:`training`: today's default (next batch built on a worker thread, patches
+#: cropped on the device where the stacks fit) and the plain host loader as the same-run baseline.
+LOADERS = {"default": {}, "host": {"prefetch": False, "stacks_on_device": False}}
+
+
 def training(preset: str, dev: torch.device, out: Path, *, steps: int, batch: int, epochs: int) -> dict[str, Any]:
-    """Pretraining and decoder fitting for ``steps`` steps each (``epochs`` epochs, for the loss curve)."""
+    """Pretraining and decoder fitting for ``steps`` steps each (``epochs`` epochs, for the loss curve), once
+    with each of :data:`LOADERS` (``result[stage]`` the default, ``result[stage + "_host"]`` the baseline)."""
     from sssphase_core.learning.models import get_preset
     from sssphase_core.learning.training import DecoderConfig, PretrainConfig, pretrain, train_decoder
 
@@ -66,30 +73,49 @@ def training(preset: str, dev: torch.device, out: Path, *, steps: int, batch: in
     per_epoch = max(1, steps // epochs)
     ds = _dataset(p.patch, per_epoch * batch)
     result: dict[str, Any] = {"preset": preset, "patch": p.patch, "batch": batch, "patches": len(ds)}
-    runs = {
-        "pretrain": lambda: pretrain(PretrainConfig(preset=preset, epochs=epochs, batch_size=batch, device=str(dev),
-                                                    ckpt_every=0, knn_monitor=0, warmup_epochs=0.5),
-                                     ds, out / "pre", resume=False, progress=False),
-        "decoder": lambda: train_decoder(DecoderConfig(epochs=epochs, batch_size=batch, device=str(dev), ckpt_every=0,
-                                                       val_samples=0), out / "pre", ds, out / "dec", resume=False,
-                                         progress=False),
-    }
-    for name, run in runs.items():
-        if dev.type == "cuda":
-            torch.cuda.reset_peak_memory_stats(dev)
-            torch.cuda.synchronize(dev)
-        t0 = time.perf_counter()
-        run()
-        if dev.type == "cuda":
-            torch.cuda.synchronize(dev)
-        seconds = time.perf_counter() - t0
-        losses = _epoch_losses(out / ("pre" if name == "pretrain" else "dec"), "loss")
-        n_steps = per_epoch * epochs
-        result[name] = {"steps": n_steps, "seconds": seconds, "patches_s": n_steps * batch / seconds,
-                        "peak_memory_mb": _peak_memory(dev), "loss_per_epoch": losses,
-                        "finite": bool(losses) and all(math.isfinite(v) for v in losses),
-                        "falling": len(losses) > 1 and losses[-1] < losses[0]}
+    for loader, options in LOADERS.items():
+        pre, dec = out / f"pre_{loader}", out / ("dec" if loader == "default" else f"dec_{loader}")
+        pre_cfg = PretrainConfig(preset=preset, epochs=epochs, batch_size=batch, device=str(dev), ckpt_every=0,
+                                 knn_monitor=0, warmup_epochs=0.5, **options)
+        dec_cfg = DecoderConfig(epochs=epochs, batch_size=batch, device=str(dev), ckpt_every=0, val_samples=0, **options)
+        runs = {"pretrain": partial(pretrain, pre_cfg, ds, pre, resume=False, progress=False),
+                "decoder": partial(train_decoder, dec_cfg, pre, ds, dec, resume=False, progress=False)}
+        for name, run in runs.items():
+            if dev.type == "cuda":
+                torch.cuda.reset_peak_memory_stats(dev)
+                torch.cuda.synchronize(dev)
+            t0 = time.perf_counter()
+            run()
+            if dev.type == "cuda":
+                torch.cuda.synchronize(dev)
+            seconds = time.perf_counter() - t0
+            run_dir = pre if name == "pretrain" else dec
+            losses = _epoch_losses(run_dir, "loss")
+            n_steps = per_epoch * epochs
+            result[name if loader == "default" else f"{name}_{loader}"] = {
+                "steps": n_steps, "seconds": seconds, "patches_s": n_steps * batch / seconds,
+                "steady_patches_s": _steady_rate(run_dir, per_epoch * batch),
+                "data_wait_share": _data_wait_share(run_dir), "peak_memory_mb": _peak_memory(dev),
+                "loss_per_epoch": losses, "finite": bool(losses) and all(math.isfinite(v) for v in losses),
+                "falling": len(losses) > 1 and losses[-1] < losses[0]}
     return result
+
+
+def _steady_rate(run: Path, patches_per_epoch: int) -> float:
+    """Patches/s of the training loop after its first epoch (which pays for warm-up: kernel selection, caches),
+    from the run's epoch rows; NaN with a single epoch."""
+    from sssphase_core.learning.runlog import METRICS, read_rows
+
+    walls = [r["wall_s"] for r in read_rows(run / METRICS) if "wall_s" in r]
+    return patches_per_epoch * (len(walls) - 1) / (walls[-1] - walls[0]) if len(walls) > 1 and walls[-1] > walls[0] else float("nan")
+
+
+def _data_wait_share(run: Path) -> float:
+    """Share of the training loop's time spent waiting for batches (from the run's epoch rows)."""
+    from sssphase_core.learning.runlog import METRICS, read_rows
+
+    rows = [r for r in read_rows(run / METRICS) if "data_wait_s" in r]
+    return sum(r["data_wait_s"] for r in rows) / rows[-1]["wall_s"] if rows and rows[-1]["wall_s"] > 0 else float("nan")
 
 
 @torch.no_grad()
@@ -208,12 +234,21 @@ def markdown(r: dict[str, Any]) -> str:
     t = r["training"]
     lines = [f"`sss bench gpu` on {r['device_name']} ({r['device']}), torch {r['torch']}, preset `{t['preset']}` "
              f"(K = {t['patch']}), batch {t['batch']}", "",
-             "| stage | steps | patches/s | peak device memory | loss per epoch | finite, falling |", "|---|---|---|---|---|---|"]
+             "| stage | loader | steps | patches/s (all) | patches/s (after epoch 1) | waiting for data | peak device memory "
+             "| loss per epoch | finite, falling |", "|---|---|---|---|---|---|---|---|---|"]
     for name in ("pretrain", "decoder"):
-        s = t[name]
-        mem = f"{s['peak_memory_mb']:,.0f} MB" if s["peak_memory_mb"] is not None else "n/a (CPU)"
-        lines.append(f"| {name} | {s['steps']} | {s['patches_s']:.1f} | {mem} | "
-                     f"{' → '.join(f'{v:.4g}' for v in s['loss_per_epoch'])} | {s['finite']}, {s['falling']} |")
+        for key, loader in ((name, "default"), (f"{name}_host", "host (baseline)")):
+            if key not in t:
+                continue
+            s = t[key]
+            mem = f"{s['peak_memory_mb']:,.0f} MB" if s["peak_memory_mb"] is not None else "n/a (CPU)"
+            lines.append(f"| {name} | {loader} | {s['steps']} | {s['patches_s']:.1f} | {s.get('steady_patches_s', float('nan')):.1f} | "
+                         f"{s.get('data_wait_share', float('nan')):.0%} | "
+                         f"{mem} | {' → '.join(f'{v:.4g}' for v in s['loss_per_epoch'])} | {s['finite']}, {s['falling']} |")
+    ratios = [f"{name} {t[name]['steady_patches_s'] / t[name + '_host']['steady_patches_s']:.2f}×"
+              for name in ("pretrain", "decoder") if name + "_host" in t]
+    if ratios:
+        lines += ["", "Default loader against the host loader (patches/s after epoch 1), same run: " + ", ".join(ratios) + "."]
     lines += ["", "| CPU vs device, fixed batch | footprint max rel. diff | embedding max rel. diff |", "|---|---|---|"]
     for label, a in r["agreement"].items():
         lines.append(f"| {label}{'' if a['autocast'] or label == 'float32' else ' (not applied off CUDA)'} | "

@@ -76,8 +76,8 @@ def crop_patches(stack: torch.Tensor, pixels: np.ndarray | torch.Tensor, k: int,
     ``padded``: ``stack`` is already :func:`pad_for_patches`'s output (a training loader pads each view
     once instead of copying the whole stack per batch: 1080p stacks are 200 MB)."""
     source = stack if padded else pad_for_patches(stack, k)
-    pix = torch.as_tensor(pixels, dtype=torch.long)
-    offs = torch.arange(k)
+    pix = torch.as_tensor(pixels, dtype=torch.long, device=source.device)
+    offs = torch.arange(k, device=source.device)
     ys = (pix[:, 0, None] + offs)[:, :, None].expand(-1, k, k)
     xs = (pix[:, 1, None] + offs)[:, None, :].expand(-1, k, k)
     return source[:, ys, xs].permute(1, 0, 2, 3)
@@ -114,6 +114,7 @@ class PatchDataset(torch.utils.data.Dataset):
             raise InputError(f"objects {unknown} are not among the classes {list(classes)}")
         self.views, self.patch, self.classes, self.with_targets = list(views), patch, list(classes), with_targets
         self.stacks = [pad_for_patches(to_channels_first(v.psp), patch) for v in self.views]  # padded once
+        self._crop_from = self.stacks  # or their copies on a training device (place)
         counts = np.array([len(v.pixels) for v in self.views])
         self.offsets = np.concatenate([[0], np.cumsum(counts)])
         self.view_of = np.repeat(np.arange(len(self.views)), counts)
@@ -125,6 +126,17 @@ class PatchDataset(torch.utils.data.Dataset):
 
     def __len__(self) -> int:
         return int(self.offsets[-1])
+
+    @property
+    def stack_bytes(self) -> int:
+        """Bytes of the padded PSP view stacks (what :meth:`place` copies)."""
+        return sum(s.numel() * s.element_size() for s in self.stacks)
+
+    def place(self, device: torch.device | str | None) -> None:
+        """Crop patches from copies of the PSP stacks on ``device`` (no host crop, no host-to-device copy
+        of the patches; footprint targets and labels stay on the host); ``None``: from the host stacks
+        again, the copies released."""
+        self._crop_from = self.stacks if device is None else [s.to(device) for s in self.stacks]
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         return {k: v[0] for k, v in self.batch(np.array([i])).items()}
@@ -139,14 +151,15 @@ class PatchDataset(torch.utils.data.Dataset):
         idx = np.asarray(indices, dtype=np.int64)
         vids = self.view_of[idx]
         out = {k: torch.as_tensor(v[idx]) for k, v in self._labels.items()}
-        out["psp"] = torch.empty(len(idx), 3 * N_PSP, self.patch, self.patch)
+        out["psp"] = torch.empty(len(idx), 3 * N_PSP, self.patch, self.patch, device=self._crop_from[0].device)
         if self.with_targets:
             out["footprint"] = torch.empty(len(idx), 3, self.patch, self.patch)
         for vid in np.unique(vids):
             sel = np.nonzero(vids == vid)[0]
             local = idx[sel] - self.offsets[vid]
             view = self.views[vid]
-            out["psp"][sel] = crop_patches(self.stacks[vid], view.pixels[local], self.patch, padded=True)
+            out["psp"][torch.as_tensor(sel, device=out["psp"].device)] = crop_patches(
+                self._crop_from[vid], view.pixels[local], self.patch, padded=True)
             if self.with_targets:
                 order = np.argsort(local)  # chunked stores read sorted indices fastest
                 fp = torch.as_tensor(_take(view.footprints, local[order]), dtype=torch.float32)

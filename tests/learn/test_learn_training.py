@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -66,6 +67,43 @@ def test_run_interrupted_mid_epoch_resumes_to_the_same_state(pretrained, dataset
     a, b = load_checkpoint(pretrained), load_checkpoint(out)
     assert states_equal(a["model"], b["model"])
     assert a["loop"]["epoch"] == b["loop"]["epoch"] == 2
+
+
+def test_prefetching_batches_on_a_worker_thread_changes_nothing_and_resumes_exactly(pretrained, dataset, tiny, tmp_path):
+    """The worker thread builds the same batches in the same order: weights equal to the plain loop's, also
+    after an interrupt that leaves a batch in flight; every epoch logs the time it waited for data."""
+    out = tmp_path / "run"
+    cfg = dataclasses.replace(PRE, prefetch=True)
+    with pytest.raises(KeyboardInterrupt):
+        pretrain(cfg, dataset, out, preset=tiny, progress=interrupt_after(7))
+    pretrain(cfg, dataset, out, preset=tiny, progress=False)
+    assert states_equal(load_checkpoint(pretrained)["model"], load_checkpoint(out)["model"])
+    rows = [json.loads(line) for line in (out / METRICS).read_text().splitlines()]
+    assert all(0 <= r["data_wait_s"] <= r["wall_s"] for r in rows)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_patches_cropped_on_the_device_equal_the_host_crops_and_training_gives_the_dataset_back(dataset, tiny, tmp_path):
+    from sssphase_core.learning.training.loop import place_stacks
+
+    idx = np.random.default_rng(0).permutation(len(dataset))[:40]
+    host = dataset.batch(idx)
+    assert host["psp"].device.type == "cpu"
+    assert place_stacks(dataset, torch.device("cuda"), None)
+    try:
+        dev = dataset.batch(idx)
+        assert dev["psp"].is_cuda and torch.equal(dev["psp"].cpu(), host["psp"])
+    finally:
+        dataset.place(None)
+    pretrain(dataclasses.replace(PRE, epochs=1, device="cuda"), dataset, tmp_path / "run", preset=tiny, progress=False)
+    assert dataset.batch(idx)["psp"].device.type == "cpu"  # the run's device copies are released
+
+
+def test_stacks_stay_on_the_host_for_cpu_training(dataset):
+    from sssphase_core.learning.training.loop import place_stacks
+
+    assert not place_stacks(dataset, torch.device("cpu"), True)
+    assert dataset.batch(np.arange(4))["psp"].device.type == "cpu"
 
 
 def test_resume_off_restarts_from_scratch(pretrained, dataset, tiny, tmp_path):

@@ -3,11 +3,14 @@
 Both loops share :class:`Loop`: a deterministic schedule (the epoch's sample order comes from
 ``DistributedSampler(seed, epoch)``, and torch's global RNG, which drives augmentations and dropout,
 is re-seeded from (seed, global step) before every step), so a run resumed from a checkpoint
-reproduces exactly the steps of an uninterrupted one. Checkpoints (``last.pt``) hold plain tensors
+reproduces exactly the steps of an uninterrupted one (bit for bit on the CPU; decoder training on CUDA
+is not bit-reproducible even without a resume). Checkpoints (``last.pt``) hold plain tensors
 and dicts only and are read with ``torch.load(weights_only=True)``; they are written atomically at
 the end of every epoch and every ``ckpt_every`` steps, so a run killed mid-epoch loses at most that
 many steps. Metrics go to ``metrics.jsonl`` (one row per epoch with the cumulative run time
-``wall_s``). Under ``torchrun`` (WORLD_SIZE > 1) the model is wrapped in DDP (gloo on CPU, NCCL on
+``wall_s`` and the epoch's time spent waiting for batches, ``data_wait_s``). Off the CPU the next batch
+is built on a worker thread during each step, and on CUDA patches are cropped from copies of the view
+stacks on the device when they fit (``prefetch``, ``stacks_on_device``). Under ``torchrun`` (WORLD_SIZE > 1) the model is wrapped in DDP (gloo on CPU, NCCL on
 GPU, SyncBatchNorm on GPU only: PyTorch's SyncBN has no CPU kernel) and rank 0 writes files.
 
 One job per module: :mod:`~sssphase_core.learning.training.checkpoints` (atomic, safe checkpoints and the

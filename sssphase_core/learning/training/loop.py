@@ -9,6 +9,7 @@ import os
 import shutil
 import time
 from collections.abc import Callable
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -85,6 +86,24 @@ class LoopConfig:
     ckpt_every: int = 50  # steps between mid-epoch checkpoints (0: epoch ends only)
     device: str = "auto"
     amp: bool = True  # bfloat16 autocast on CUDA; ignored on CPU
+    prefetch: bool | None = None  # build the next batch on a worker thread during the step (None: off the CPU)
+    stacks_on_device: bool | None = None  # crop patches on the device (None: on CUDA when the stacks fit)
+
+
+#: ``stacks_on_device=None`` moves the PSP view stacks to a CUDA device when they take at most this share
+#: of its free memory.
+STACK_MEMORY_SHARE = 0.25
+
+
+def place_stacks(dataset: PatchDataset, device: torch.device, wanted: bool | None) -> bool:
+    """Copy ``dataset``'s PSP view stacks to ``device`` when ``wanted`` (None: on CUDA when they fit in
+    :data:`STACK_MEMORY_SHARE` of its free memory); returns whether patches are now cropped there."""
+    if wanted is False or device.type == "cpu" or (wanted is None and device.type != "cuda"):
+        return False
+    if wanted is None and dataset.stack_bytes > STACK_MEMORY_SHARE * torch.cuda.mem_get_info(device)[0]:
+        return False
+    dataset.place(device)
+    return True
 
 
 #: ``progress(task, done, total, info)``: called after every training step (the CLI draws a bar from it).
@@ -109,6 +128,7 @@ class Loop:
             raise DataError(f"{len(dataset)} patches are fewer than one batch of {cfg.batch_size} per process")
         self.epoch, self.step_in_epoch, self.wall_s = 0, 0, 0.0
         self.sums: dict[str, float] = {}
+        self.prefetch = d.device.type != "cpu" if cfg.prefetch is None else cfg.prefetch
 
     @property
     def total_steps(self) -> int:
@@ -147,6 +167,9 @@ class Loop:
                 shutil.copyfile(self.out_dir / CHECKPOINT, tmp)
             self._new_best = False
 
+    def _load(self, idx: np.ndarray) -> dict[str, torch.Tensor]:
+        return {k: v.to(self.d.device, non_blocking=True) for k, v in self.dataset.batch(idx).items()}
+
     def run(
         self,
         step: Callable[[dict[str, torch.Tensor], int], dict[str, float]],
@@ -156,22 +179,33 @@ class Loop:
         progress: StepProgress | bool | None = None,
     ) -> None:
         """Run the remaining steps; ``progress(kind, done, total, info)`` after each (on the main process).
-        An interrupt (Ctrl-C) between steps loses only the steps since the last checkpoint."""
+        An interrupt (Ctrl-C) between steps loses only the steps since the last checkpoint. With
+        ``prefetch`` the next batch is built on a worker thread while the device runs the step; each
+        epoch's row records ``data_wait_s``, the time the loop waited for batches."""
         steps_run = 0
         report = progress if callable(progress) and self.d.main else None
         runlog = RunLog(self.out_dir, resume_step=self.global_step, enabled=self.d.main)
-        with contextlib.closing(runlog):
+        with contextlib.ExitStack() as cleanup:  # left in reverse: pending batch, device stacks, run log
+            cleanup.enter_context(contextlib.closing(runlog))
+            if place_stacks(self.dataset, self.d.device, self.cfg.stacks_on_device):
+                cleanup.callback(self.dataset.place, None)  # the caller's dataset crops on the host again
+            pool = cleanup.enter_context(ThreadPoolExecutor(1, thread_name_prefix="sss-batches")) if self.prefetch else None
             if report is not None:
                 report(self.kind, self.global_step, self.total_steps, "")
             while self.epoch < self.cfg.epochs:
                 self.sampler.set_epoch(self.epoch)
                 order = np.fromiter(iter(self.sampler), dtype=np.int64)
-                t0 = time.perf_counter()
+                batch_at = order[: self.steps_per_epoch * self.cfg.batch_size].reshape(self.steps_per_epoch, -1)
+                pending: Future | None = None
+                t0, data_wait = time.perf_counter(), 0.0
                 while self.step_in_epoch < self.steps_per_epoch:
-                    b = self.cfg.batch_size
-                    idx = order[self.step_in_epoch * b : (self.step_in_epoch + 1) * b]
+                    t_data = time.perf_counter()
+                    batch = pending.result() if pending is not None else self._load(batch_at[self.step_in_epoch])
+                    pending = None
+                    if pool is not None and self.step_in_epoch + 1 < self.steps_per_epoch:
+                        pending = pool.submit(self._load, batch_at[self.step_in_epoch + 1])
+                    data_wait += time.perf_counter() - t_data
                     torch.manual_seed(self.cfg.seed * 1_000_003 + self.global_step)
-                    batch = {k: v.to(self.d.device, non_blocking=True) for k, v in self.dataset.batch(idx).items()}
                     values = step(batch, self.global_step)
                     if not math.isfinite(values["loss"]):
                         raise TrainingDiverged(
@@ -195,6 +229,7 @@ class Loop:
                 means = all_mean({k: v / self.steps_per_epoch for k, v in self.sums.items()}, self.d)
                 row = {"epoch": self.epoch + 1, "step": self.global_step, **means, **end_epoch(self.epoch)}
                 row["wall_s"] = round(self.wall_s, 3)
+                row["data_wait_s"] = round(data_wait, 3)
                 self.epoch, self.step_in_epoch, self.sums = self.epoch + 1, 0, {}
                 if self.best_metric is not None and self.d.main:
                     self._stage_best(row)
