@@ -122,7 +122,9 @@ def capture(
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     daemon = local_client(timeout, on_start=lambda pid: console.print(
         f"[yellow]no daemon running:[/] started a local one with the sim rig (pid {pid})"),
-        on_stop=lambda pid: console.print(f"stopped the local daemon (pid {pid})"))
+        on_stop=lambda pid: console.print(f"stopped the local daemon (pid {pid})"),
+        on_left=lambda pid: console.print(f"left the local daemon (pid {pid}) running: another client is using it "
+                                          "(`sss daemon stop` ends it)"))
     try:
         with daemon as client, Progress(*columns, console=console) as bar:
             tasks: dict[int, int] = {}

@@ -100,12 +100,17 @@ def daemon_start(
     args = [*(["--endpoint", endpoint] if endpoint else []), *(["--preview", preview] if preview else []),
             *(["--curve-dir", str(curve_dir)] if curve_dir else [])]
     for what in (e for e in (endpoint, preview) if e):
+        problem = security.endpoint_problem(what)
+        if problem:
+            raise InputError(problem)
         if not security.is_local(what) and curve_dir is None:
             raise InputError(f"{what} is not loopback/ipc (an abstract ipc://@ socket has no file permissions either): "
                              "generate keys with `sss daemon keys` and pass --curve-dir")
-        problem = security.endpoint_problem(what) or security.ipc_path_problem(what)
+        problem = security.ipc_path_problem(what)
         if problem:
             raise InputError(problem)
+    if endpoint and preview and endpoint == preview:
+        raise InputError(f"--preview {preview} is the control endpoint: give the preview its own endpoint")
     if _client() is not None:
         raise InputError("a daemon is already running (`sss daemon status`)")
     problem = None if endpoint else security.ipc_path_problem(security.default_endpoint())  # (a given one: above)

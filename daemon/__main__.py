@@ -21,12 +21,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--state-file", type=Path, help="where to write endpoint, pid and token (default: runtime dir)")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
+    import zmq
+
     from sssphase_daemon.server import Daemon
 
     try:
         daemon = Daemon(args.endpoint, curve_dir=args.curve_dir, preview=args.preview,
                         client_timeout_s=args.client_timeout, max_message_bytes=args.max_message_bytes,
                         state_file=args.state_file or security.state_path())
+    except zmq.ZMQError as exc:  # a bind that failed: address in use, no such interface, ...
+        print(f"sssphase daemon: cannot listen: {exc}", file=sys.stderr)
+        return 2
     except (PermissionError, OSError, ValueError) as exc:
         print(f"sssphase daemon: {exc}", file=sys.stderr)
         return 2

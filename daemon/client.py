@@ -52,6 +52,7 @@ class DaemonClient:
                  heartbeat_s: float = 1.0, max_message_bytes: int = protocol.DEFAULT_MAX_MESSAGE_BYTES) -> None:
         self.endpoint, self.token = endpoint, token
         self.timeout_s, self.heartbeat_s, self.max_bytes = timeout_s, heartbeat_s, max_message_bytes
+        self.curve_dir = curve_dir
         self.curve = security.client_keys(curve_dir) if curve_dir is not None else None
         self.ctx = zmq.Context.instance()
         self.ids = itertools.count(1)
@@ -69,6 +70,7 @@ class DaemonClient:
     def _socket(self, kind: int) -> zmq.Socket:
         sock = self.ctx.socket(kind)
         sock.linger = 0
+        sock.ipv6 = True  # a daemon on [::1] (or a stream it binds there) is reachable; IPv4 still works
         if self.curve is not None:
             sock.curve_publickey, sock.curve_secretkey, sock.curve_serverkey = self.curve
         return sock
@@ -238,7 +240,8 @@ def spawn_daemon(*, endpoint: str | None = None, extra_args: tuple[str, ...] = (
                                     f"(see {log.name})")
         state = security.read_state(state_file)
         if state is not None and state.pid == proc.pid:
-            with DaemonClient(state.endpoint, state.token) as client:
+            with DaemonClient(state.endpoint, state.token,
+                              curve_dir=Path(state.curve_dir) if state.curve_dir else None) as client:
                 if client.ping(timeout_s=1.0):
                     return proc
         time.sleep(0.05)
@@ -248,10 +251,13 @@ def spawn_daemon(*, endpoint: str | None = None, extra_args: tuple[str, ...] = (
 
 @contextlib.contextmanager
 def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | None = None,
-                 on_stop: Callable[[int], None] | None = None) -> Iterator[DaemonClient]:
-    """A client of the running local daemon, or of one started here (sim rig) and stopped on exit.
+                 on_stop: Callable[[int], None] | None = None,
+                 on_left: Callable[[int], None] | None = None) -> Iterator[DaemonClient]:
+    """A client of the running local daemon, or of one started here (sim rig) and stopped on exit, unless
+    another client has a rig open or a job running on it then (a second `sss capture` that found it).
 
-    ``on_start(pid)`` / ``on_stop(pid)`` are told when a daemon had to be started / was stopped.
+    ``on_start(pid)`` / ``on_stop(pid)`` / ``on_left(pid)`` are told when a daemon had to be started / was
+    stopped / was left running for another client.
     """
     client: DaemonClient | None = None
     try:
@@ -271,8 +277,21 @@ def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | N
         with client:
             yield client
     finally:
-        if started is not None:
+        if started is not None and _used_by_others(client):
+            if on_left is not None:
+                on_left(started.pid)
+        elif started is not None:
             started.terminate()
             started.wait(10)
             if on_stop is not None:
                 on_stop(started.pid)
+
+
+def _used_by_others(client: DaemonClient) -> bool:
+    """Whether the daemon has an open rig or a running job (this client closes its own rigs first)."""
+    try:
+        with DaemonClient(client.endpoint, client.token, curve_dir=client.curve_dir, timeout_s=2.0) as probe:
+            status = probe.call("status", timeout_s=2.0)
+    except (DaemonUnavailable, DaemonError, zmq.ZMQError):
+        return False
+    return bool(status.get("rigs")) or any(j.get("state") == "running" for j in status.get("jobs", []))

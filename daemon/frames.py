@@ -29,6 +29,24 @@ def configure_curve_server(sock: zmq.Socket, curve: tuple[bytes, bytes] | None) 
         sock.curve_publickey, sock.curve_secretkey = curve
 
 
+def bind(sock: zmq.Socket, endpoint: str, curve: tuple[bytes, bytes] | None) -> str:
+    """Bind ``sock`` (IPv6 on for a bracketed IPv6 host); returns the bound address. Without CURVE the bound
+    address must be loopback or an ipc file, else the socket is closed and PermissionError raised."""
+    from sssphase_daemon.security import check_bound_locally, is_ipv6
+
+    if is_ipv6(endpoint):
+        sock.ipv6 = True
+    sock.bind(endpoint)
+    bound = sock.getsockopt_string(zmq.LAST_ENDPOINT)
+    if curve is None:
+        try:
+            check_bound_locally(bound)
+        except PermissionError:
+            sock.close(linger=0)
+            raise
+    return bound
+
+
 class FrameSender:
     """Binds a PUSH socket for one job; ``send`` blocks under backpressure while ``alive()`` holds."""
 
@@ -42,8 +60,7 @@ class FrameSender:
         configure_curve_server(self.sock, curve)
         if curve is None and plain:
             self.sock.plain_server = True
-        self.sock.bind(endpoint)
-        self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        self.endpoint = bind(self.sock, endpoint, curve)
 
     def _send(self, parts: list, alive: Callable[[], bool]) -> None:
         while True:
@@ -72,15 +89,18 @@ class FrameSender:
 
 
 class Preview:
-    """Best-effort live preview (PUB): a 4x-subsampled copy of each frame, dropped when busy."""
+    """Best-effort live preview (PUB): a 4x-subsampled copy of each frame, dropped when busy. Subscribers
+    authenticate like job streams: CURVE, else ZeroMQ PLAIN with the daemon's token (``token``)."""
 
-    def __init__(self, ctx: zmq.Context, endpoint: str, curve: tuple[bytes, bytes] | None = None) -> None:
+    def __init__(self, ctx: zmq.Context, endpoint: str, curve: tuple[bytes, bytes] | None = None, *,
+                 token: str | None = None) -> None:
         self.sock = ctx.socket(zmq.PUB)
         self.sock.sndhwm = 2
         self.sock.linger = 0
         configure_curve_server(self.sock, curve)
-        self.sock.bind(endpoint)
-        self.endpoint = self.sock.getsockopt_string(zmq.LAST_ENDPOINT)
+        if curve is None and token is not None:
+            self.sock.plain_server = True
+        self.endpoint = bind(self.sock, endpoint, curve)
         self.lock = threading.Lock()
 
     def publish(self, job: str, seq: int, name: str, data: np.ndarray) -> None:

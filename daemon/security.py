@@ -11,16 +11,20 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import secrets
 import stat
 import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from urllib.parse import urlsplit
 
 from sssphase_core.errors import SssError
 
-LOCAL_HOSTS = {"127.0.0.1", "localhost", "::1", "[::1]"}
+LOCAL_HOSTS = {"127.0.0.1", "localhost", "::1"}
+#: ``tcp://HOST:PORT`` and nothing else: a host name, an IPv4 address, ``*`` or a bracketed IPv6 address, and
+#: a port or ``*``. ZeroMQ reads some other strings its own way (``tcp://0.0.0.0%1@127.0.0.1:5609`` binds
+#: every interface while a URL parser sees 127.0.0.1), so nothing else is accepted.
+_TCP_ENDPOINT = re.compile(r"tcp://(?:\[(?P<v6>[0-9A-Fa-f:.]+)\]|(?P<host>\*|[A-Za-z0-9](?:[A-Za-z0-9.-]*[A-Za-z0-9])?)):(?P<port>\*|[0-9]{1,5})")
 SERVER_CERT, CLIENT_CERT, AUTHORIZED = "server", "client", "authorized_clients"
 
 
@@ -60,32 +64,49 @@ def default_endpoint(transport: str = "ipc") -> str:
     return f"ipc://{runtime_dir() / 'control.sock'}" if transport == "ipc" else "tcp://127.0.0.1:5591"
 
 
+def tcp_parts(endpoint: str) -> tuple[str, str] | None:
+    """(host, port) of a well-formed ``tcp://HOST:PORT`` endpoint (IPv6 hosts without brackets), else None."""
+    m = _TCP_ENDPOINT.fullmatch(endpoint)
+    return None if m is None else (m["v6"] or m["host"], m["port"])
+
+
 def host_of(endpoint: str) -> str:
-    return (urlsplit(endpoint).hostname or "") if endpoint.startswith("tcp://") else ""
+    parts = tcp_parts(endpoint)
+    return parts[0] if parts else ""
+
+
+def is_ipv6(endpoint: str) -> bool:
+    """A tcp endpoint with a bracketed IPv6 host (its socket needs ZeroMQ's IPV6 option)."""
+    return endpoint.startswith("tcp://[")
 
 
 def is_local(endpoint: str) -> bool:
-    """True for ipc:// socket files and loopback tcp endpoints (no CURVE needed). An abstract ipc socket
-    (``ipc://@name``) has no file permissions, so any local user could connect: not local."""
+    """True for ipc:// socket files and well-formed loopback tcp endpoints (no CURVE needed). An abstract
+    ipc socket (``ipc://@name``) has no file permissions, so any local user could connect: not local."""
     if endpoint.startswith("ipc://"):
         return not endpoint[6:].startswith("@")
-    if endpoint.startswith("tcp://"):
-        return host_of(endpoint) in LOCAL_HOSTS
-    return False
+    return host_of(endpoint) in LOCAL_HOSTS
+
+
+def check_bound_locally(bound: str) -> None:
+    """Refuse a socket bound without CURVE whose actual address (ZeroMQ's ``LAST_ENDPOINT``) is not
+    loopback or an ipc file: the last line of defence if an endpoint string was read two ways."""
+    host = host_of(bound)
+    if bound.startswith("tcp://") and not (host == "::1" or host.startswith("127.")):
+        raise PermissionError(f"{bound} is not a loopback address: without CURVE keys the daemon listens on "
+                              "loopback or ipc only (`sss daemon keys`, --curve-dir)")
 
 
 def endpoint_problem(endpoint: str) -> str | None:
     """What makes an endpoint unusable before binding it (ZeroMQ takes port 99999 as 99999 - 65536, and
     a missing folder or a bad port only shows as a traceback in the daemon's log), or None."""
-    if endpoint.startswith("tcp://") and not endpoint.endswith(":*"):
-        try:
-            port = urlsplit(endpoint).port
-        except ValueError:
-            return f"{endpoint}: the port must be a number from 1 to 65535 (or * for any)"
-        if port is None:
-            return f"{endpoint}: give a port (tcp://HOST:PORT, 1 to 65535, or * for any)"
-        if not 1 <= port <= 65535:
-            return f"{endpoint}: the port must be a number from 1 to 65535, got {port}"
+    if endpoint.startswith("tcp://"):
+        parts = tcp_parts(endpoint)
+        if parts is None:
+            return (f"{endpoint}: write tcp://HOST:PORT with a host name, an IPv4 address, * or an [IPv6] address "
+                    "and a port from 1 to 65535 or * (no interface suffix, user, path or query)")
+        if parts[1] != "*" and not 1 <= int(parts[1]) <= 65535:
+            return f"{endpoint}: the port must be a number from 1 to 65535, got {int(parts[1])}"
     elif endpoint.startswith("ipc://") and not endpoint[6:].startswith("@"):
         folder = Path(endpoint[6:]).parent
         if not folder.is_dir():
@@ -97,7 +118,7 @@ def stream_endpoint(control: str, job: str) -> str:
     """A fresh endpoint for one job's frame stream on the same transport/interface as ``control``."""
     if control.startswith("ipc://"):
         return f"ipc://{Path(control[6:]).parent / f'stream-{job}.sock'}"
-    host = urlsplit(control).hostname or "127.0.0.1"
+    host = host_of(control) or "127.0.0.1"
     return f"tcp://{'[' + host + ']' if ':' in host else host}:*"
 
 
@@ -164,9 +185,23 @@ def generate_keys(directory: Path | None = None, *, overwrite: bool = False) -> 
     return directory
 
 
+def check_key_dir(directory: Path) -> None:
+    """Refuse a CURVE key folder (or its authorised-clients folder) that other users could read or write:
+    they could take the secret key or authorise their own."""
+    for path in (directory, directory / AUTHORIZED):
+        try:
+            st = path.stat()
+        except OSError:
+            continue
+        if st.st_uid != os.getuid() or st.st_mode & 0o077:
+            raise PrivateDirError(f"{path} must be owned by you with mode 0700 (it holds CURVE keys): "
+                                  f"run 'chmod -R go-rwx {directory}'")
+
+
 def server_keys(directory: Path) -> tuple[bytes, bytes]:
     import zmq.auth
 
+    check_key_dir(directory)
     public, secret = zmq.auth.load_certificate(directory / f"{SERVER_CERT}.key_secret")
     if secret is None:
         raise ValueError(f"no server secret key in {directory}")
@@ -177,6 +212,7 @@ def client_keys(directory: Path) -> tuple[bytes, bytes, bytes]:
     """(client public, client secret, server public) for a CURVE client."""
     import zmq.auth
 
+    check_key_dir(directory)
     public, secret = zmq.auth.load_certificate(directory / f"{CLIENT_CERT}.key_secret")
     server_public, _ = zmq.auth.load_certificate(directory / f"{SERVER_CERT}.key")
     if secret is None:

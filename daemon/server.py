@@ -15,7 +15,6 @@ import functools
 import hmac
 import itertools
 import logging
-import math
 import os
 import sys
 import threading
@@ -32,7 +31,7 @@ import zmq
 from sssphase_core.errors import SssError
 from sssphase_core.processing.patterns import frame_params_problem
 from sssphase_daemon import protocol, security
-from sssphase_daemon.frames import ClientGone, FrameSender, Preview, configure_curve_server
+from sssphase_daemon.frames import ClientGone, FrameSender, Preview, bind, configure_curve_server
 from sssphase_daemon.protocol import ProtocolError
 from sssphase_plugins import manager
 from sssphase_plugins.drivers import DeviceError, PreloadingProjector, TriggeredCamera
@@ -122,13 +121,22 @@ def _image_problem(img: dict[str, Any]) -> str | None:
     return None
 
 
+#: a turntable angle in degrees (ten turns either way); beyond it float angles lose whole degrees
+MAX_ANGLE = 3600.0
+#: a frame's exposure, relative to the rig's own (1.0): HDR brackets span a few powers of two; beyond these
+#: bounds (or NaN/inf) a driver's arithmetic breaks.
+MIN_EXPOSURE, MAX_EXPOSURE = 1e-6, 1e6
+
+
 def _check_frames(frames: Any) -> list[dict[str, Any]]:
     if not isinstance(frames, list) or not 0 < len(frames) <= MAX_FRAMES_PER_JOB:
         raise ProtocolError(protocol.BAD_ARGS, f"frames must be a list of 1..{MAX_FRAMES_PER_JOB} frame specs")
     for f in frames:
+        exposure = f.get("exposure", 1.0) if isinstance(f, dict) else None
         ok = (isinstance(f, dict) and isinstance(f.get("name"), str) and f.get("kind") in FRAME_KINDS
-              and isinstance(f.get("params", {}), dict) and isinstance(f.get("exposure", 1.0), int | float)
-              and f.get("exposure", 1.0) > 0 and (f.get("kind") != "image" or isinstance(f.get("image"), dict)))
+              and isinstance(f.get("params", {}), dict) and isinstance(exposure, int | float)
+              and not isinstance(exposure, bool) and MIN_EXPOSURE <= exposure <= MAX_EXPOSURE
+              and (f.get("kind") != "image" or isinstance(f.get("image"), dict)))
         if not ok:
             raise ProtocolError(protocol.BAD_ARGS, f"bad frame spec {str(f)[:120]}")
         problem = _image_problem(f["image"]) if f["kind"] == "image" else frame_params_problem(f["kind"], f.get("params", {}))
@@ -147,7 +155,11 @@ class Daemon:
                  preview: str | None = None, client_timeout_s: float = 10.0,
                  max_message_bytes: int = protocol.DEFAULT_MAX_MESSAGE_BYTES, state_file: Path | None = None) -> None:
         self.endpoint = endpoint or security.default_endpoint()
+        for what in (e for e in (self.endpoint, preview) if e):
+            if (problem := security.endpoint_problem(what)) is not None:
+                raise ValueError(problem)
         self.curve: tuple[bytes, bytes] | None = None
+        self.curve_dir = curve_dir.resolve() if curve_dir is not None else None
         self.ctx = zmq.Context()
         self.auth = None
         if not security.is_local(self.endpoint) or curve_dir is not None:
@@ -187,13 +199,12 @@ class Daemon:
         problem = security.ipc_path_problem(self.endpoint)
         if problem:
             raise PermissionError(problem)
-        security.remove_ipc_socket(self.endpoint)  # a dead daemon's socket; nothing else is ever removed
-        self.control.bind(self.endpoint)
-        self.endpoint = self.control.getsockopt_string(zmq.LAST_ENDPOINT)
         if preview and not security.is_local(preview) and self.curve is None:
             raise PermissionError(f"the preview {preview} is not loopback/ipc: like the control socket it needs CURVE "
                                   "keys (`sss daemon keys`, --curve-dir)")
-        self.preview = Preview(self.ctx, preview, self.curve) if preview else None
+        security.remove_ipc_socket(self.endpoint)  # a dead daemon's socket; nothing else is ever removed
+        self.endpoint = bind(self.control, self.endpoint, self.curve)
+        self.preview = Preview(self.ctx, preview, self.curve, token=self.token) if preview else None
         self.pm = manager.get_plugin_manager()
         self.rigs: dict[str, Rig] = {}
         self.jobs: dict[str, Job] = {}
@@ -215,7 +226,8 @@ class Daemon:
         from sssphase_core import __version__
 
         state = security.DaemonState(self.endpoint, self.token, os.getpid(), __version__, self.started,
-                                     self.preview.endpoint if self.preview else "")
+                                     self.preview.endpoint if self.preview else "",
+                                     str(self.curve_dir) if self.curve_dir is not None else "")
         return security.write_state(state, self.state_file)
 
     def serve_forever(self) -> None:
@@ -343,7 +355,7 @@ class Daemon:
         try:
             for kind, device_id in wanted.items():
                 try:
-                    provider = manager.find_provider(device_id, self.pm)
+                    provider = manager.find_provider(device_id, self.pm, kind=kind)
                 except KeyError as exc:
                     raise ProtocolError(protocol.NOT_FOUND, str(exc.args[0])) from None
                 devices[kind] = provider.open(device_id, options, shared)
@@ -359,13 +371,19 @@ class Daemon:
             raise ProtocolError(protocol.BAD_ARGS, f"camera {wanted['camera']} cannot expose on a hardware trigger "
                                 "(its driver has no wait_frame): open the rig without the trigger")
         rig = Rig(uuid.uuid4().hex[:12], client, devices, options)
+        try:  # a driver that breaks here must not hold a rig slot
+            info = {k: asdict(d.info) for k, d in devices.items()}
+            projector = devices.get("projector")
+            versions = {r.name: r.version for r in manager.plugin_records(self.pm)}
+            reply = {"rig": rig.id, "devices": info, "projector_size": list(projector.resolution) if projector else None,
+                     "plugins": {d["plugin"]: versions.get(d["plugin"], "?") for d in info.values()}}
+        except Exception:
+            for d in devices.values():
+                d.close()
+            raise
         with self.lock:
             self.rigs[rig.id] = rig
-        info = {k: asdict(d.info) for k, d in devices.items()}
-        projector = devices.get("projector")
-        versions = {r.name: r.version for r in manager.plugin_records(self.pm)}
-        return {"rig": rig.id, "devices": info, "projector_size": list(projector.resolution) if projector else None,
-                "plugins": {d["plugin"]: versions.get(d["plugin"], "?") for d in info.values()}}
+        return reply
 
     def _get_rig(self, args: dict) -> Rig:
         rig = self.rigs.get(args.get("rig"))  # type: ignore[arg-type]
@@ -391,8 +409,8 @@ class Daemon:
         if table is None:
             raise ProtocolError(protocol.NOT_FOUND, "this rig has no turntable")
         angle = args.get("angle")
-        if isinstance(angle, bool) or not isinstance(angle, int | float) or not math.isfinite(angle):
-            raise ProtocolError(protocol.BAD_ARGS, f"move needs a finite angle in degrees, got {str(angle)[:40]}")
+        if isinstance(angle, bool) or not isinstance(angle, int | float) or not abs(angle) <= MAX_ANGLE:
+            raise ProtocolError(protocol.BAD_ARGS, f"move needs an angle in degrees within ±{MAX_ANGLE:g}, got {str(angle)[:40]}")
         if not rig.lock.acquire(timeout=1.0):
             raise ProtocolError(protocol.BUSY, f"rig {rig.id} is capturing")
         try:

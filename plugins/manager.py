@@ -58,7 +58,7 @@ def _register_checked(pm: PluginManager, name: str, load: Any) -> None:
     try:
         load()
         pm.check_pending()
-    except Exception as exc:  # a broken third-party plugin must not take the others down
+    except (Exception, SystemExit) as exc:  # a broken third-party plugin must not take the others down
         plugin = pm.get_plugin(name)
         if plugin is not None:
             pm.unregister(plugin)
@@ -97,9 +97,10 @@ def _plugin_version(pm: PluginManager, plugin: object) -> tuple[str, str]:
         if p is plugin:
             return str(dist.version), f"{dist.project_name}"
     version = getattr(plugin, "__version__", None)
-    if version is None:
+    module = getattr(plugin, "__name__", type(plugin).__name__)
+    if version is None and module.startswith(("sssphase_plugins.", "sssphase_core.")):  # ours: the package's
         from sssphase_core import __version__ as version
-    return str(version), getattr(plugin, "__name__", type(plugin).__name__)
+    return str(version) if version is not None else "?", module
 
 
 def plugin_records(pm: PluginManager | None = None) -> list[PluginRecord]:
@@ -108,7 +109,7 @@ def plugin_records(pm: PluginManager | None = None) -> list[PluginRecord]:
     device_hooks = set(hookspecs.DEVICE_HOOKS.values())
     records = []
     for name, plugin in pm.list_name_plugin():
-        if plugin is None:
+        if plugin is None or name in pm.load_errors:  # a plugin whose hook failed is listed once, as broken
             continue
         hooks = {impl_hook.name for impl_hook in pm.get_hookcallers(plugin) or []}
         kinds = [k for k, present in (("device", hooks & device_hooks), ("backend", hooks - device_hooks)) if present]
@@ -127,12 +128,24 @@ def device_providers(pm: PluginManager | None = None, kind: str | None = None) -
             continue
         for impl in getattr(pm.hook, hook_name).get_hookimpls():
             try:
-                providers = impl.function() or []
-            except Exception as exc:
+                providers = list(impl.function() or [])
+                bad = [p for p in providers if not all(hasattr(p, a) for a in ("kind", "discover", "open"))]
+                if bad:
+                    raise TypeError(f"returned {type(bad[0]).__name__!s:.40} instead of device providers "
+                                    "(objects with kind, discover and open)")
+            except (Exception, SystemExit) as exc:
                 pm.load_errors[impl.plugin_name] = f"{hook_name} failed: {_error_text(exc)}"
                 continue
             out += [(impl.plugin_name, p) for p in providers]
     return out
+
+
+def _discover(provider: DeviceProvider) -> list[DeviceInfo]:
+    """``provider.discover()``, checked: a list of DeviceInfo (else TypeError)."""
+    found = list(provider.discover())
+    if not all(isinstance(d, DeviceInfo) for d in found):
+        raise TypeError("discover() returned something other than DeviceInfo records")
+    return found
 
 
 def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo], dict[str, str]]:
@@ -142,31 +155,34 @@ def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo],
     errors: dict[str, str] = {}
     for plugin, provider in device_providers(pm):
         try:
-            devices += provider.discover()
+            devices += _discover(provider)
         except DeviceNotFound as exc:  # an absent device is an answer, not a failure
             errors[plugin] = str(exc).strip()
-        except Exception as exc:
-            errors[plugin] = f"discovery of {provider.kind}s failed: {_error_text(exc)}"
+        except (Exception, SystemExit) as exc:
+            errors[plugin] = f"discovery of {getattr(provider, 'kind', 'device')}s failed: {_error_text(exc)}"
     errors.update(pm.load_errors)
     return sorted(devices, key=lambda d: d.id), errors
 
 
-def find_provider(device_id: str, pm: PluginManager | None = None) -> DeviceProvider:
-    """The provider that owns ``device_id``. IDs are ``plugin:...``, so only that plugin's providers
-    are asked first (opening a sim rig never runs discovery, or imports, of hardware plugins)."""
+def find_provider(device_id: str, pm: PluginManager | None = None, kind: str | None = None) -> DeviceProvider:
+    """The provider that owns ``device_id`` (of ``kind``: camera, projector, ...; KeyError naming the
+    device's real kind otherwise). IDs are ``plugin:...``, so only that plugin's providers are asked
+    first (opening a sim rig never runs discovery, or imports, of hardware plugins)."""
     pm = pm or get_plugin_manager()
     providers = device_providers(pm)
     prefix = device_id.split(":", 1)[0]
     ranked = [p for n, p in providers if n == prefix] + [p for n, p in providers if n != prefix]
     for provider in ranked:
         try:
-            ids = [d.id for d in provider.discover()]
-        except Exception:  # a plugin with no device (or a broken one) must not block the others
+            ids = [d.id for d in _discover(provider)]
+        except (Exception, SystemExit):  # a plugin with no device (or a broken one) must not block the others
             continue
         if device_id in ids:
+            if kind is not None and provider.kind != kind:
+                raise KeyError(f"{device_id} is a {provider.kind}, not a {kind}")
             return provider
-    known = ", ".join(d.id for d in discover_devices(pm)[0]) or "none"
-    raise KeyError(f"no device {device_id!r} (known devices: {known})")
+    known = ", ".join(d.id for d in discover_devices(pm)[0] if kind is None or d.kind == kind) or "none"
+    raise KeyError(f"no {kind or 'device'} {device_id!r} (known {kind or 'device'}s: {known})")
 
 
 def _plugin_model_backends() -> list[dict[str, Any]]:

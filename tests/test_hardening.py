@@ -187,7 +187,7 @@ def _daemon_main(*args: str, runtime: Path) -> subprocess.CompletedProcess[str]:
 
 
 def test_a_preview_off_loopback_needs_curve_like_the_control_socket(tmp_path):
-    res = _daemon_main("--endpoint", f"ipc://{tmp_path}/c.sock", "--preview", "tcp://0.0.0.0:0", runtime=tmp_path)
+    res = _daemon_main("--endpoint", f"ipc://{tmp_path}/c.sock", "--preview", "tcp://0.0.0.0:*", runtime=tmp_path)
     assert res.returncode == 2 and "preview" in res.stderr and "CURVE" in res.stderr, res.stderr
 
 
@@ -248,7 +248,7 @@ def test_a_daemon_whose_state_file_was_deleted_is_found_by_status_and_ended_by_s
 
 def test_a_daemon_that_exits_at_start_says_why_not_only_see_the_log(tmp_path):
     """`sss daemon start` said "the daemon exited with status 2 (see daemon.log)"; the reason was in the log."""
-    (tmp_path / "keys").mkdir()
+    (tmp_path / "keys").mkdir(mode=0o700)
     res = _run_cli("daemon", "start", "--endpoint", "tcp://127.0.0.1:5599", "--curve-dir", str(tmp_path / "keys"),
                    runtime=tmp_path / "rt", env_extra={"SSS_LOG_DIR": str(tmp_path / "log")})
     out = (res.stdout + res.stderr).strip()
@@ -275,6 +275,64 @@ def test_an_abstract_ipc_socket_is_not_local():
     assert not security.is_local("ipc://@sssphase") and security.is_local("ipc:///run/user/0/sss.sock")
     res = _daemon_main("--endpoint", "ipc://@sssphase-test", runtime=Path("/tmp"))
     assert res.returncode == 2 and "CURVE" in res.stderr, res.stderr
+
+
+@pytest.mark.parametrize("endpoint", [
+    "tcp://0.0.0.0%1@127.0.0.1:5609",  # ZeroMQ binds 0.0.0.0 here while a URL parser reads 127.0.0.1
+    "tcp://127.0.0.1:5605/", "tcp://127.0.0.1:5606?x", "tcp://user@127.0.0.1:5607", "tcp://127.0.0.1:0", "tcp://127.0.0.1",
+])
+def test_an_endpoint_zeromq_could_read_another_way_is_refused_before_binding(endpoint, tmp_path):
+    from sssphase_daemon import security
+
+    assert security.endpoint_problem(endpoint) is not None
+    assert not security.is_local(endpoint) or endpoint.endswith(":0")  # a well-formed loopback host, a bad port
+    res = _daemon_main("--endpoint", endpoint, runtime=tmp_path)
+    assert res.returncode == 2 and ("tcp://HOST:PORT" in res.stderr or "port must be" in res.stderr), res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1, res.stderr
+
+
+def test_loopback_endpoints_and_the_check_of_what_was_bound():
+    from sssphase_daemon import security
+
+    for local in ("tcp://127.0.0.1:5591", "tcp://localhost:*", "tcp://[::1]:5591"):
+        assert security.is_local(local) and security.endpoint_problem(local) is None, local
+    for remote in ("tcp://0.0.0.0:5591", "tcp://*:5591", "tcp://eth0:5591", "tcp://[::]:5591", "tcp://10.0.0.2:1"):
+        assert not security.is_local(remote) and security.endpoint_problem(remote) is None, remote
+    for bound in ("tcp://127.0.0.1:40000", "tcp://127.0.0.5:1", "tcp://[::1]:40000", "ipc:///tmp/x.sock"):
+        security.check_bound_locally(bound)
+    for bound in ("tcp://0.0.0.0:40000", "tcp://192.0.2.2:1", "tcp://[::]:1"):
+        with pytest.raises(PermissionError, match="not a loopback"):
+            security.check_bound_locally(bound)
+
+
+def test_a_curve_key_folder_others_can_read_is_refused(tmp_path):
+    from sssphase_daemon import security
+
+    keys = security.generate_keys(tmp_path / "keys")
+    security.server_keys(keys)  # private: fine
+    keys.chmod(0o755)
+    with pytest.raises(security.PrivateDirError, match="mode 0700"):
+        security.server_keys(keys)
+    keys.chmod(0o700)
+    (keys / security.AUTHORIZED).chmod(0o777)  # anyone could authorise their own key
+    with pytest.raises(security.PrivateDirError, match="authorized_clients"):
+        security.client_keys(keys)
+
+
+def test_a_curve_daemon_started_by_the_cli_is_found_and_used_by_the_cli(tmp_path):
+    """`sss daemon start --curve-dir` waited 20 s and killed the daemon: its state file had no key folder, so
+    neither the start-up ping nor any later command could talk to it."""
+    env = {"SSS_LOG_DIR": str(tmp_path / "log"), "SSS_CONFIG_DIR": str(tmp_path / "cfg")}
+    runtime = tmp_path / "rt"
+    assert _run_cli("daemon", "keys", "--dir", str(tmp_path / "keys"), runtime=runtime, env_extra=env).returncode == 0
+    start = _run_cli("daemon", "start", "--endpoint", "tcp://127.0.0.1:*", "--curve-dir", str(tmp_path / "keys"),
+                     runtime=runtime, env_extra=env)
+    try:
+        assert start.returncode == 0 and "daemon started" in start.stdout, start.stdout + start.stderr
+        status = _run_cli("daemon", "status", runtime=runtime, env_extra=env)
+        assert status.returncode == 0 and "tcp://127.0.0.1:" in status.stdout, status.stdout + status.stderr
+    finally:
+        _run_cli("daemon", "stop", runtime=runtime, env_extra=env)
 
 
 def test_jobs_leave_no_stream_sockets_behind(sim_daemon, tmp_path):
@@ -859,3 +917,24 @@ def test_a_session_being_captured_is_not_captured_into_by_a_second_process(sim_d
         holder.wait()
     assert run_capture(sim_daemon, CaptureRequest("leaf", views=1, out=tmp_path)).views() == [0]  # lock freed
     assert sorted(p.name for p in tmp_path.iterdir()) == ["leaf"]  # and no lock file left beside the session
+
+
+def test_a_session_left_without_any_view_by_a_failed_capture_does_not_block_the_next_one(tmp_path):
+    """A capture that failed before its first view (a rig without a turntable, a broken trigger) left a
+    manifest with no view: a plain rerun said 'already exists: pass --resume', and --resume refused the
+    corrected rig's settings. A session with a view is never replaced."""
+    import numpy as np
+
+    from sssphase_core.store.session import Session
+
+    first = Session.create(tmp_path, "apple", n_views=1, rig={"camera": "sim:camera0", "options": {"width": 0}})
+    first.begin_view(0)  # failed during its first view: "capturing", a partial folder
+    with pytest.warns(UserWarning, match="holds no complete view"):
+        again = Session.create(tmp_path, "apple", n_views=2, rig={"camera": "sim:camera0"})
+    assert again.manifest["n_views"] == 2 and again.manifest["rig"] == {"camera": "sim:camera0"}
+    assert not (tmp_path / "apple" / ".view_000.partial").exists()
+    writer = again.begin_view(0)
+    writer.write("white", np.zeros((2, 2, 3), np.float32))
+    writer.commit({})
+    with pytest.raises(InputError, match="already exists: pass --resume"):
+        Session.create(tmp_path, "apple", n_views=2)

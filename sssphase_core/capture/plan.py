@@ -82,11 +82,19 @@ class RigSpec:
         if "median" in proc and not isinstance(proc["median"], bool):
             raise InputError(f"{path}: [processing] median must be true or false, got {proc['median']!r}")
         gamma, black = resp.get("gamma"), resp.get("black")
-        if gamma is not None and not (isinstance(gamma, int | float) and 0.3 <= gamma <= 5):
+        if gamma is not None and not (isinstance(gamma, int | float) and not isinstance(gamma, bool) and 0.3 <= gamma <= 5):
             raise InputError(f"{path}: [projector] gamma must be a number in [0.3, 5], got {gamma!r}")
-        if black is not None and not (isinstance(black, int | float) and 0 <= black < 0.5):
+        if black is not None and not (isinstance(black, int | float) and not isinstance(black, bool) and 0 <= black < 0.5):
             raise InputError(f"{path}: [projector] black must be a number in [0, 0.5), got {black!r}")
-        return cls(dev["camera"], dev["projector"], dev.get("turntable"), dict(cfg.get("options", {})), **proc,
+        options = cfg.get("options", {})
+        if all(str(v).startswith("sim:") for v in dev.values()):  # a sim rig: its plugin's options only
+            from sssphase_core.sim.rig import SIM_RIG_OPTIONS
+
+            unknown = sorted(set(options) - SIM_RIG_OPTIONS)
+            if unknown:  # a misspelt option was ignored: the capture ran with the default
+                raise InputError(f"{path}: unknown sim rig [options] {', '.join(unknown)} (known: "
+                                 f"{', '.join(sorted(SIM_RIG_OPTIONS))})")
+        return cls(dev["camera"], dev["projector"], dev.get("turntable"), dict(options), **proc,
                    gamma=None if gamma is None else float(gamma), projector_black=None if black is None else float(black),
                    trigger=dev.get("trigger"))
 

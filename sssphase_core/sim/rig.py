@@ -170,6 +170,10 @@ def with_transport(rig: RigConfig, transport: str | None) -> RigConfig:
 SENSOR_OPTIONS: dict[str, tuple[float, float]] = {"lens_blur": (0.0, 5.0), "read_noise": (0.0, 100.0),
                                                   "white_fraction": (0.02, 1.0)}
 DEMOSAIC_METHODS = ("malvar", "opencv")
+#: every rig option of the sim device plugin (``sssphase_plugins.sim_plugin``'s docstring says what each does)
+SIM_RIG_OPTIONS = frozenset({"object", "preset", "seed", "n_views", "view", "latency_s", "frame_period_s", "realtime",
+                             "projector_gamma", "projector_black", "transport", "demosaic", "raw", "fail_at_frame",
+                             "grab_delay_s", "shape", "dtype", *SENSOR_OPTIONS})
 
 
 def _option(options: Mapping[str, Any], name: str, lo: float, hi: float) -> float | None:

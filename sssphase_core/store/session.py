@@ -20,6 +20,7 @@ import os
 import re
 import shutil
 import time
+import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -355,6 +356,20 @@ class Session:
     path: Path
     manifest: dict[str, Any] = field(default_factory=dict)
 
+    @staticmethod
+    def _holds_no_view(path: Path) -> bool:
+        """Whether the session folder ``path`` has a readable manifest with no view, and nothing beside it but
+        partial views (so that starting it afresh loses no data)."""
+        try:
+            manifest = json.loads((path / MANIFEST).read_text())
+        except (OSError, ValueError):
+            return False
+        if not isinstance(manifest, dict) or manifest.get("format") != FORMAT or not isinstance(manifest.get("views", {}), dict):
+            return False
+        complete = [v for v in manifest.get("views", {}).values() if not isinstance(v, dict) or v.get("status") == "complete"]
+        extra = [p for p in path.iterdir() if p.name != MANIFEST and not p.name.startswith(".view_")]
+        return not complete and not extra
+
     @classmethod
     def create(cls, root: Path, name: str, *, resume: bool = False, **info: Any) -> Session:
         """New session ``root/name``; with ``resume`` reopen an existing one (its partial views dropped)."""
@@ -364,6 +379,12 @@ class Session:
             raise InputError(f"--out {root} is a file: give the folder that holds sessions")
         if path.is_symlink():
             raise InputError(f"{path} is a symbolic link: a session is written only inside its --out folder")
+        if (path / MANIFEST).exists() and cls._holds_no_view(path):  # a capture that failed before its first view
+            warnings.warn(f"{path} holds no complete view (an earlier capture stopped before one): starting it afresh",
+                          UserWarning, stacklevel=2)
+            for partial in path.glob(".view_*.partial"):
+                shutil.rmtree(partial, ignore_errors=True)
+            (path / MANIFEST).unlink()
         if (path / MANIFEST).exists():
             if not resume:
                 raise InputError(f"session {path} already exists: pass --resume to continue it or choose --out")

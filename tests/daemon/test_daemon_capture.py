@@ -342,3 +342,26 @@ def test_a_colour_reference_file_is_captured_and_evaluated_with_the_named_ones(d
     assert set(rv.references) == {"logo", "checkerboard"} and rv.references["logo"].shape == (192, 256, 3)
     rows = evaluate_view(rv, "none", tmp_path / "ev", write=False)
     assert {r["pattern"] for r in rows} == {"logo", "checkerboard"} and all(r["psnr"] > 15 for r in rows)
+
+
+@pytest.mark.parametrize("extra, message", [
+    ("[projector]\ngamma = true\n", r"\[projector\] gamma must be a number"),  # true was read as gamma 1.0
+    ("[projector]\nblack = false\n", r"\[projector\] black must be a number"),
+    ("[options]\nwidth = 0\nheight = 0\n", r"unknown sim rig \[options\] height, width \(known: demosaic"),
+    ("[options]\nread_nosie = 4\n", r"unknown sim rig \[options\] read_nosie"),  # a typo ran with the default
+])
+def test_rig_file_values_the_capture_would_have_ignored_or_misread_are_refused(tmp_path, extra, message):
+    (tmp_path / "rig.toml").write_text('[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\n' + extra)
+    with pytest.raises(InputError, match=message):
+        RigSpec.from_toml(tmp_path / "rig.toml")
+
+
+def test_every_documented_sim_rig_option_is_known_and_options_of_other_plugins_pass(tmp_path):
+    from sssphase_core.sim.rig import SENSOR_OPTIONS, SIM_RIG_OPTIONS
+    from sssphase_plugins import sim_plugin
+
+    assert set(SENSOR_OPTIONS) <= SIM_RIG_OPTIONS
+    assert all(f"``{k}``" in sim_plugin.__doc__ for k in SIM_RIG_OPTIONS - {"view"}), sim_plugin.__doc__
+    (tmp_path / "rig.toml").write_text('[devices]\ncamera = "uvc:cam0"\nprojector = "sim:projector0"\n'
+                                       '[options]\nserial = "/dev/ttyACM0"\nread_noise = 3\n')
+    assert RigSpec.from_toml(tmp_path / "rig.toml").options["serial"] == "/dev/ttyACM0"  # not a sim-only rig

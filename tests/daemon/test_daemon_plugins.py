@@ -38,14 +38,51 @@ def sssphase_cameras():
     raise RuntimeError("usb stack exploded")
 """
 
+NOT_A_LIST = """
+from sssphase_plugins.hookspecs import hookimpl
+@hookimpl
+def sssphase_cameras():
+    return 5
+"""
+NO_KIND = """
+from sssphase_plugins.hookspecs import hookimpl
+class P:
+    def discover(self):
+        raise RuntimeError("no")
+@hookimpl
+def sssphase_projectors():
+    return [P()]
+"""
+BAD_DISCOVERY = """
+from sssphase_plugins.hookspecs import hookimpl
+class P:
+    kind = "turntable"
+    def discover(self):
+        return ["not a DeviceInfo", 5]
+    def open(self, device_id, options, shared):
+        raise NotImplementedError
+@hookimpl
+def sssphase_turntables():
+    return [P()]
+"""
+EXITS = "import sys\nsys.exit(3)\n"
+UNVERSIONED = """
+from sssphase_plugins.hookspecs import hookimpl
+@hookimpl
+def sssphase_triggers():
+    return []
+"""
+PLUGINS = {"acme_good": GOOD, "acme_broken": BROKEN_IMPORT, "acme_typo": UNKNOWN_HOOK, "acme_raises": RAISING_HOOK,
+           "acme_int": NOT_A_LIST, "acme_nokind": NO_KIND, "acme_baddisc": BAD_DISCOVERY, "acme_exits": EXITS,
+           "acme_plain": UNVERSIONED}
+
 
 @pytest.fixture
 def plugin_dir(tmp_path, monkeypatch):
-    for name, src in {"acme_good": GOOD, "acme_broken": BROKEN_IMPORT, "acme_typo": UNKNOWN_HOOK,
-                      "acme_raises": RAISING_HOOK}.items():
+    for name, src in PLUGINS.items():
         (tmp_path / f"{name}.py").write_text(textwrap.dedent(src))
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setenv(manager.ENV_PLUGINS, "acme_broken,acme_good,acme_typo,acme_raises")
+    monkeypatch.setenv(manager.ENV_PLUGINS, ",".join(PLUGINS))
     return tmp_path
 
 
@@ -57,9 +94,19 @@ def test_broken_plugins_are_named_and_do_not_take_others_down(plugin_dir):
     assert "ModuleNotFoundError" in errors["acme_broken"]
     assert "sssphase_cameraz" in errors["acme_typo"]
     assert "usb stack exploded" in errors["acme_raises"]
+    # hooks that return the wrong things, or exit the interpreter, are named too (they took `sss devices`,
+    # `sss plugins` and every capture down with a TypeError/AttributeError, or ended the process)
+    assert "sssphase_cameras failed" in errors["acme_int"] and "instead of device providers" in errors["acme_nokind"]
+    assert "DeviceInfo" in errors["acme_baddisc"] and "SystemExit" in errors["acme_exits"]
     records = {r.name: r for r in manager.plugin_records(pm)}
     assert records["acme_good"].ok and records["acme_good"].version == "2.5" and records["acme_good"].kind == "device"
     assert not records["acme_broken"].ok and records["sim"].ok
+    assert records["acme_plain"].ok and records["acme_plain"].version == "?"  # not sssphase's own version
+    assert records["sim"].version != "?"  # the built-in plugin carries the package's
+    assert not records["acme_raises"].ok and [r.name for r in manager.plugin_records(pm)].count("acme_raises") == 1
+    assert manager.find_provider(sim_plugin.CAMERA_ID, pm).kind == "camera"  # the others keep working
+    with pytest.raises(KeyError, match="is a projector, not a camera"):
+        manager.find_provider(sim_plugin.PROJECTOR_ID, pm, kind="camera")
 
 
 def test_backend_hookspecs_and_entry_point_groups_share_the_manager():

@@ -4,11 +4,14 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
+from pathlib import Path
 
 import msgpack
 import numpy as np
@@ -160,6 +163,31 @@ def test_device_failure_mid_view_is_reported_and_the_daemon_keeps_serving(daemon
     assert client.call("status")["heavy_modules"] == []  # a sim-only daemon loads no torch, no hardware library
 
 
+def test_devices_of_the_wrong_kind_absurd_exposures_and_angles_are_bad_args_and_hold_no_rig(daemon):
+    """A projector id given as the camera opened a rig that then failed with an AttributeError (an
+    `internal` error, a traceback in the log) and kept its slot: 16 such tries locked captures out."""
+    proc, client = daemon
+    rigs_before = len(client.call("status")["rigs"])  # the module's daemon serves earlier tests' rigs too
+    for _ in range(3):
+        with pytest.raises(DaemonError, match="sim:projector0 is a projector, not a camera") as exc:
+            client.call("open_rig", camera="sim:projector0", projector="sim:camera0", options={})
+        assert exc.value.code == protocol.NOT_FOUND
+    with pytest.raises(DaemonError, match="is a camera, not a turntable"):
+        client.call("open_rig", camera="sim:camera0", turntable="sim:camera0", options={})
+    assert len(client.call("status")["rigs"]) == rigs_before
+    rig = client.call("open_rig", camera="sim:camera0", projector="sim:projector0", turntable="sim:turntable0",
+                      options={"object": "star"})["rig"]
+    for exposure in (float("inf"), float("nan"), 1e300, 1e-300, True, 0):
+        frame = {"name": "w", "kind": "white", "params": {}, "exposure": exposure}
+        with pytest.raises(DaemonError, match="bad frame spec") as exc:
+            client.call("capture", rig=rig, frames=[frame])
+        assert exc.value.code == protocol.BAD_ARGS
+    for angle in (1e308, -1e308, float("nan"), float("inf")):
+        with pytest.raises(DaemonError, match="within ±3600") as exc:
+            client.call("move", rig=rig, angle=angle)
+    assert client.call("move", rig=rig, angle=90.0)["angle"] == pytest.approx(90.0)
+
+
 def test_several_clients_at_once(daemon):
     _, first = daemon
     results: dict[int, list[int]] = {}
@@ -204,18 +232,50 @@ def test_preview_publishes_subsampled_frames_without_slowing_the_stream(daemon_f
     _, client, runtime = daemon_factory("--preview", "ipc://{runtime}/preview.sock")
     endpoint = client.call("hello")["preview"]
     assert endpoint.startswith("ipc://")
-    sub = zmq.Context.instance().socket(zmq.SUB)
-    sub.linger = 0
-    sub.subscribe(b"preview")
-    sub.connect(endpoint)
+    subs = []
+    for password in (client.token, "wrong"):  # subscribers log in like job streams (PLAIN, the token)
+        sub = zmq.Context.instance().socket(zmq.SUB)
+        sub.linger = 0
+        sub.plain_username, sub.plain_password = security.STREAM_USER.encode(), password.encode()
+        sub.subscribe(b"preview")
+        sub.connect(endpoint)
+        subs.append(sub)
     time.sleep(0.3)  # let the subscription reach the publisher
     rig = client.call("open_rig", camera="sim:bench-camera", options={"shape": [64, 96, 3]})["rig"]
     frames = list(client.stream(rig, 50))
     assert [f.seq for f in frames] == list(range(50))  # the lossless stream is complete
     previews = []
-    while sub.poll(200):
-        _, header, data = sub.recv_multipart()
+    while subs[0].poll(200):
+        _, header, data = subs[0].recv_multipart()
         previews.append(protocol.decode_frame(msgpack.unpackb(header), data))
-    sub.close()
+    assert not subs[1].poll(100)  # without the token nothing arrives
+    for sub in subs:
+        sub.close()
     assert 0 < len(previews) <= 50  # the preview may drop frames
     assert np.array_equal(previews[0], frames[0].data[::4, ::4])  # the bench camera repeats one frame
+
+
+def test_a_daemon_started_for_one_capture_is_left_running_while_another_client_uses_it(tmp_path, monkeypatch):
+    """The first `sss capture` stopped the daemon it had started while a second capture, which had found
+    it running, was mid-view: the second one failed with 'did not answer within 10 s'."""
+    from sssphase_daemon.client import local_client
+
+    runtime = Path(tempfile.mkdtemp(prefix="sssl", dir="/tmp"))  # ipc paths must stay short
+    monkeypatch.setenv("SSS_RUNTIME_DIR", str(runtime))
+    events: list[str] = []
+    try:
+        with local_client(on_start=lambda pid: events.append("start"), on_stop=lambda pid: events.append("stop"),
+                          on_left=lambda pid: events.append("left")) as first:
+            pid = first.call("status")["pid"]
+            second = DaemonClient.from_state(timeout_s=5.0)
+            rig = second.call("open_rig", camera="sim:camera0", projector="sim:projector0", options={"object": "star"})["rig"]
+        assert events == ["start", "left"]
+        assert second.call("status")["pid"] == pid  # still serving the second client
+        second.call("close_rig", rig=rig)
+        with local_client(on_stop=lambda pid: events.append("stop"), on_left=lambda pid: events.append("left")):
+            pass  # it did not start this one: it leaves it alone
+        assert events == ["start", "left"]
+        second.call("shutdown", timeout_s=2.0)
+        second.close()
+    finally:
+        shutil.rmtree(runtime, ignore_errors=True)
