@@ -55,6 +55,9 @@ def patterns(
                          "period across it")
     if period is None:
         config = psp_config_for(w, h, n_shifts=shifts)
+        if config.period > max(w, h):  # the default period is not shorter than a tiny projector either
+            raise InputError(f"a {w}x{h} projector is smaller than one fringe period ({config.period:g} px): "
+                             "PSP needs a few periods across it")
     else:
         config = PSPConfig(period=period, n_shifts=shifts, unwrap_periods=period_ladder(period, max(w, h)))
     try:

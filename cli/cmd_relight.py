@@ -137,6 +137,7 @@ def relight_cmd(
         write_images,
     )
     from sssphase_core.relight.evaluation import comparison_figure, relight_metrics
+    from sssphase_core.relight.images import display_scale
     from sssphase_core.relight.sources import check_backends, uses_decoder
     from sssphase_core.store.session import Session
 
@@ -159,6 +160,8 @@ def relight_cmd(
     if auto:
         backend = "blend" if checkpoint is not None else "analytic"
     check_backends([backend], checkpoint)
+    if checkpoint is not None and not uses_decoder(backend):
+        console.print(f"note: --checkpoint is not used by --backend {backend}")
     s = Session.open(session)
     names, pats = [], []
     for v in _views(s, views):
@@ -216,7 +219,8 @@ def relight_cmd(
                               "(later patterns recompute them)")
         for name, img in zip(names, relit, strict=True):
             stem = out / f"{rv.object}_v{v}_{name}_{backend}"
-            paths = write_images(stem, img, formats=formats)
+            # the display PNGs of a view share one exposure, its white capture's, so that a dim pattern looks dim
+            paths = write_images(stem, img, formats=formats, scale=display_scale(rv.white))
             line = f"wrote {', '.join(str(p) for p in paths)}"
             clipped = float((img[rv.proj.mask] > 1.0).any(axis=-1).mean()) if rv.proj.mask.any() else 0.0
             if "exr" not in formats and clipped > 0:
@@ -250,11 +254,17 @@ def geometry_cmd(
     check_output_folder(out)
     import numpy as np
 
+    from sssphase_core.compute import compute_device
     from sssphase_core.errors import InputError
+    from sssphase_core.learning.backends import available_backends
     from sssphase_core.learning.training import resolve_checkpoint
     from sssphase_core.relight import finest_psp_period, geometric_correspondence, load_view, make_source
     from sssphase_core.store.session import Session, refuse_inside_session, view_dir_name
 
+    compute_device(device)  # an unknown device is refused here too, not ignored by the model-free backends
+    usable = ["exact", *sorted(available_backends())]
+    if backend not in (*usable, "measured", "none"):
+        raise InputError(f"--backend {backend!r} cannot predict the scattering shift here; use one of {', '.join(usable)}")
     if backend in ("measured", "none"):
         raise InputError(f"--backend {backend} cannot predict the scattering shift: "
                          + ("the dot-grid crops are placed by the decoded correspondences themselves, so they reproduce "
@@ -502,7 +512,9 @@ def demo(
         console.print(message, markup=False, highlight=False)
 
     with local_client(on_start=lambda pid: log(f"started a local daemon with the sim rig (pid {pid})"),
-                      on_stop=lambda pid: log(f"stopped the local daemon (pid {pid})")) as client:
+                      on_stop=lambda pid: log(f"stopped the local daemon (pid {pid})"),
+                      on_left=lambda pid: log(f"left the local daemon (pid {pid}) running: another client is using it "
+                                              "(`sss daemon stop` ends it)")) as client:
         with step_bar(console) as progress:
             report = run_demo(out, client, preset=preset, fresh=fresh, log=log, progress=progress, transport=transport,
                               randomise_rig=randomise_rig, three_chip=three_chip)

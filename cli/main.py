@@ -136,6 +136,17 @@ FILE_SYSTEM_ERRORS = {errno.ENOTDIR, errno.EISDIR, errno.EACCES, errno.EPERM, er
                       errno.ENOENT, errno.ENAMETOOLONG, errno.EDQUOT, errno.ELOOP}
 
 
+#: what an interrupted command leaves, and how to go on (by its first word)
+INTERRUPTED = {
+    "import": "nothing was imported; rerun the command to import",  # all or nothing: the half-written session is removed
+    "capture": "the views captured so far are kept; rerun with --resume to continue",
+    "train": "training continues from its last checkpoint when the command is rerun",
+    "demo": "work done so far is kept; rerun the command to resume",
+    "patterns": "the patterns written so far are kept in --out; rerun into a new or emptied folder",
+    "": "outputs written so far are kept; rerun the command to redo the rest",
+}
+
+
 def main() -> None:
     """Run the CLI; user-facing errors are printed as one clear message, never a traceback."""
     signal.signal(signal.SIGTERM, _interrupt_on_sigterm)
@@ -153,10 +164,7 @@ def main() -> None:
         err_console.print(f"[bold red]error:[/] {escape(str(exc))}")
         sys.exit(2)
     except KeyboardInterrupt:
-        if sys.argv[1:2] == ["import"]:  # an import is all or nothing: the half-written session was removed
-            err_console.print("[yellow]interrupted[/] (nothing was imported; rerun the command to import)")
-        else:
-            err_console.print("[yellow]interrupted[/] (work done so far is kept; rerun the command to resume)")
+        err_console.print(f"[yellow]interrupted[/] ({INTERRUPTED.get(sys.argv[1] if len(sys.argv) > 1 else '', INTERRUPTED[''])})")
         sys.exit(130)
     except MemoryError as exc:  # an input far larger than the machine can hold: say so, no traceback
         detail = str(exc).splitlines()[0] if str(exc) else "the machine's memory is exhausted"

@@ -102,6 +102,10 @@ def endpoint_problem(endpoint: str) -> str | None:
     a missing folder or a bad port only shows as a traceback in the daemon's log), or None."""
     if endpoint.startswith("tcp://"):
         parts = tcp_parts(endpoint)
+        if parts is None and _TCP_ENDPOINT.fullmatch(endpoint + ":1"):
+            return f"{endpoint}: give a port (tcp://HOST:PORT, 1 to 65535, or * for any)"
+        if parts is None and _TCP_ENDPOINT.fullmatch(endpoint.rsplit(":", 1)[0] + ":1"):  # the host is fine, the port not
+            return f"{endpoint}: the port must be a number from 1 to 65535 (or * for any)"
         if parts is None:
             return (f"{endpoint}: write tcp://HOST:PORT with a host name, an IPv4 address, * or an [IPv6] address "
                     "and a port from 1 to 65535 or * (no interface suffix, user, path or query)")

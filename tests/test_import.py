@@ -321,6 +321,13 @@ def test_a_session_exports_to_exr_bit_exactly(frames, tmp_path):
     psp = s.load(0, "psp")
     for i in range(len(psp)):
         assert read_exr(view / "psp" / f"{i:02d}.exr").tobytes() == psp[i].astype(np.float32).tobytes()
+    # which fringe each file holds (the numbers alone did not say): x shifts, then y shifts of the finest period
+    import OpenEXR
+
+    keys = [line.split(",")[1] for line in (view / "psp" / "keys.csv").read_text().splitlines()[1:]]
+    assert [k.rsplit("/", 1)[1] for k in keys] == [f"s{n}" for n in range(4)] * 2 and keys[0].startswith("psp/x/")
+    with OpenEXR.File(str(view / "psp" / "05.exr")) as f:
+        assert f.header()["sssphase_key"] == keys[5] and keys[5].startswith("psp/y/")
     assert read_exr(view / "white.exr").tobytes() == s.load(0, "white").astype(np.float32).tobytes()
     crops, pixels = s.load(0, "footprints/crops"), s.load(0, "footprints/pixels")
     mosaic = read_exr(view / "footprints_crops.exr")

@@ -158,8 +158,9 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
         if write:
             stem = out / f"{rv.object}_v{rv.view}_{name}_{backend}"
             from sssphase_core.relight import write_images
+            from sssphase_core.relight.images import display_scale
 
-            write_images(stem, img)
+            write_images(stem, img, scale=display_scale(rv.white))  # one exposure per view, shared by its patterns
             row["figure"] = str(comparison_figure(rv.captured[name], img, rv.proj.mask, stem.with_name(stem.name + "_compare.png"),
                                                   title=f"{rv.object} view {rv.view}, {name}, {backend}", metrics=met))
         rows.append(row)

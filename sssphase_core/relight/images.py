@@ -29,7 +29,8 @@ def write_images(stem: Path | str, image: np.ndarray, *, scale: float | None = N
 
     ``png``: ``stem.png``, 16-bit linear (65535 = 1.0 camera unit, brighter values clip);
     ``exr``: ``stem.exr``, float32 unclipped (OpenEXR bindings). Always ``stem_display.png`` (sRGB,
-    exposure ``scale`` or the 99.5th percentile) for looking at.
+    exposure ``scale``, e.g. one per view from its white capture so that its patterns compare, or else
+    the image's own 99.5th percentile) for looking at.
     """
     from sssphase_core.store import exr
 

@@ -112,6 +112,9 @@ def load_view(session: object, view: int) -> RelightView:
     where = f"view {view} of {session.path}"  # type: ignore[attr-defined]
     xp, yp, psp = (load(name).astype(np.float32) for name in ("corr/xp", "corr/yp", "psp"))
     _check_view_shapes(where, mask, {"corr/xp": xp, "corr/yp": yp}, {"psp": psp, "white": white})
+    if not mask.any():  # it relit as black (no warning) and failed only when scored
+        raise DataError(f"{where}: no pixel decoded (corr/mask is empty): nothing to relight; check the capture "
+                        "(`sss decode` shows why pixels were dropped)")
     if psp.ndim != 4 or len(psp) != 8:
         raise DataError(f"{where}: psp holds {psp.shape[0] if psp.ndim == 4 else 'no'} frames where the paper's "
                         "inputs are 8 (4 shifts x 2 orientations)")
@@ -178,6 +181,15 @@ def paper_input_patterns(plan: dict) -> np.ndarray | None:
 
     # One frame per pattern: an HDR plan lists each pattern once per exposure bracket (same key), merged into one
     # image (without this, HDR sessions silently lost the view calibration: the crab relit 4-6 dB worse).
+    chosen = paper_input_frames(plan)
+    if chosen is None:
+        return None
+    return np.stack([PlannedFrame(f["key"], f["kind"], f["params"], 1.0).pattern() for f in chosen])
+
+
+def paper_input_frames(plan: dict) -> list[dict] | None:
+    """The plan's frames of the 8 paper inputs in the order of a session's ``psp`` stack (the finest period,
+    x shifts then y shifts), or None when the plan has no such set."""
     frames = list({f["key"]: f for f in plan.get("frames", []) if f.get("kind") == "psp"}.values())
     finest = finest_psp_period(plan)
     if finest is None:
@@ -186,4 +198,4 @@ def paper_input_patterns(plan: dict) -> np.ndarray | None:
                     key=lambda f: (f["params"]["orientation"], int(f["params"]["shift"])))
     if [(f["params"]["orientation"], int(f["params"]["shift"])) for f in chosen] != [(o, n) for o in "xy" for n in range(4)]:
         return None
-    return np.stack([PlannedFrame(f["key"], f["kind"], f["params"], 1.0).pattern() for f in chosen])
+    return chosen

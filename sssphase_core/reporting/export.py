@@ -1,7 +1,8 @@
 """Export a session's views as OpenEXR files (linear float32, unclipped) for other tools.
 
 Per view, into ``OUT/<object>/view_NNN/``: every image array (H, W[, C]) as ``<name>.exr`` (``/`` in
-array names becomes ``_``), every stack (N, H, W, C) as ``<name>/NN.exr``, the footprint crops
+array names becomes ``_``), every stack (N, H, W, C) as ``<name>/NN.exr`` (the PSP frames with their plan
+key, e.g. ``psp/x/p11/s0``, in the EXR header field ``sssphase_key`` and in ``psp/keys.csv``), the footprint crops
 (N, K, K, 3) as one mosaic ``footprints_crops.exr`` (tile ``i`` at row ``i // cols``, column
 ``i % cols``) with ``footprints_pixels.csv`` giving each tile's camera pixel (row, col).
 """
@@ -44,14 +45,27 @@ def export_view(session: Session, view: int, out: Path) -> list[Path]:
         elif shape[:2] == (height, width):
             written.append(write_exr(stem.with_name(stem.name + ".exr"), np.asarray(arr, np.float32)))
         elif len(shape) >= 3 and shape[1:3] == (height, width):
+            keys = _psp_keys(session) if name == "psp" else None
             for i in range(shape[0]):
-                written.append(write_exr(stem / f"{i:02d}.exr", np.asarray(arr[i], np.float32)))
+                attributes = {"sssphase_key": keys[i]} if keys and len(keys) == shape[0] else None
+                written.append(write_exr(stem / f"{i:02d}.exr", np.asarray(arr[i], np.float32), attributes=attributes))
+            if keys and len(keys) == shape[0]:  # which fringe each file holds, for tools that read no EXR header
+                (stem / "keys.csv").write_text("file,key\n" + "".join(f"{i:02d}.exr,{k}\n" for i, k in enumerate(keys)))
+                written.append(stem / "keys.csv")
         elif len(shape) == 2:  # per-row records such as footprints/pixels
             stem.parent.mkdir(parents=True, exist_ok=True)
             with open(stem.with_name(stem.name + ".csv"), "w", newline="") as f:
                 csv.writer(f).writerows(np.asarray(arr).tolist())
             written.append(stem.with_name(stem.name + ".csv"))
     return written
+
+
+def _psp_keys(session: Session) -> list[str] | None:
+    """The plan keys (``psp/x/p11/s0`` ...) of a session's ``psp`` stack, in its order."""
+    from sssphase_core.relight.views import paper_input_frames
+
+    frames = paper_input_frames(session.manifest.get("plan", {}))
+    return [f["key"] for f in frames] if frames else None
 
 
 def export_session(session: Session, out: Path, views: list[int] | None = None) -> list[Path]:

@@ -52,8 +52,9 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
     """A pattern image file -> float32 values in [0, 1], (Hp, Wp) or (Hp, Wp, 3).
 
     The size must match the projector unless ``resize`` is ``fit``, ``fill`` or ``stretch`` (see
-    :func:`_resized`; ``True`` means ``stretch``). Palette, alpha and CMYK images are read as RGB,
-    16-bit images divided by 65535. ``hint`` ends the size-mismatch error (what the user can do).
+    :func:`_resized`; ``True`` means ``stretch``). Palette and CMYK images are read as RGB, an alpha
+    channel as opacity over black (transparent = no light, with a warning), 16-bit images divided by
+    65535; multi-frame files and signed or 32-bit integer images are refused. ``hint`` ends the size-mismatch error (what the user can do).
     """
     from PIL import Image
 
@@ -82,10 +83,15 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
                          "(scale it down first)") from None
     except (OSError, SyntaxError, ValueError) as exc:
         raise InputError(f"cannot read pattern {path}: {exc}") from None
-    if img.mode in ("1", "LA"):
+    if getattr(img, "n_frames", 1) > 1:  # only the first frame was used, without a word
+        raise InputError(f"pattern {path} holds {img.n_frames} frames (an animation or a multi-page file): give one "
+                         "image file per pattern")
+    if img.mode in ("LA", "RGBA", "PA") or (img.mode == "P" and "transparency" in img.info):
+        img = _over_black(img, path)
+    if img.mode == "1":
         img = img.convert("L")
     elif img.mode not in ("L", "RGB", "F") and not img.mode.startswith("I"):
-        img = img.convert("RGB")  # palette (P), RGBA, CMYK, YCbCr: the colours, not their codes
+        img = img.convert("RGB")  # palette (P), CMYK, YCbCr: the colours, not their codes
     if img.size != (wp, hp):
         if not mode:
             raise InputError(f"pattern {path} is {img.size[0]}x{img.size[1]} but the projector is {wp}x{hp} ({hint})")
@@ -95,6 +101,9 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
         scale = 1.0
     elif img.mode.startswith("I"):
         scale = 65535.0  # 16-bit PNG/TIFF (Pillow's I;16 and I modes)
+        if arr.min() < 0 or arr.max() > 65535:  # a signed or 32-bit integer image: its range is not a pattern's
+            raise InputError(f"pattern {path} holds integers from {arr.min()} to {arr.max()}: give 8- or 16-bit "
+                             "unsigned values, or floats in [0, 1]")
     else:
         scale = 255.0
     if arr.dtype.kind == "f" and not np.isfinite(arr).all():  # a single-channel float TIFF (Pillow's mode F)
@@ -107,6 +116,21 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
         if np.allclose(arr, arr[..., :1]):
             arr = arr[..., 0]
     return np.clip(arr, 0, 1)
+
+
+def _over_black(img: object, path: Path) -> object:
+    """An image with an alpha channel as the light it asks for: transparent pixels give no light (the colour
+    times its opacity, i.e. composited over black); warns when any pixel is not opaque. Grey stays grey."""
+    from PIL import Image
+
+    grey = img.mode == "LA"  # type: ignore[attr-defined]
+    rgba = np.asarray(img.convert("RGBA"), np.float32)  # type: ignore[attr-defined]
+    alpha = rgba[..., 3:] / 255.0
+    if (alpha < 1).any():
+        warnings.warn(f"pattern {path}: {float((alpha < 1).mean()):.0%} of its pixels are transparent: they are "
+                      "projected as their colour times their opacity (transparent = no light)", UserWarning, stacklevel=3)
+    rgb = np.round(rgba[..., :3] * alpha).astype(np.uint8)
+    return Image.fromarray(rgb[..., 0], "L") if grey else Image.fromarray(rgb, "RGB")
 
 
 def _png_16_bit_colour(path: Path) -> bool:

@@ -143,13 +143,15 @@ def test_decode_names_the_odd_frame_ignores_other_images_and_refuses_nan_thresho
     ("--period", "-3", "--period must be a finite fringe period of at least 2 projector px, got -3.0"),
     ("--shifts", "100000", "--shifts must be 3 to 32, got 100000"),  # ran for minutes
     ("--gamma", "nan", "--gamma must be a number in [0.3, 5] (as a rig file's), got nan"),
+    ("--projector", "3x2", "a 3x2 projector is smaller than one fringe period (4 px): PSP needs a few periods across it"),
 ])
 def test_patterns_refuses_bad_fringe_options_in_one_line(tmp_path, option, value, expected):
     import subprocess
     import sys
 
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "patterns", "--projector", "64x48", "--out",
-                          str(tmp_path / "p"), option, value], capture_output=True, text=True, timeout=60)
+    args = [option, value] if option == "--projector" else ["--projector", "64x48", option, value]
+    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "patterns", "--out", str(tmp_path / "p"), *args],
+                         capture_output=True, text=True, timeout=60)
     out = res.stdout + res.stderr
     assert res.returncode == 2 and "Traceback" not in out and "internal error" not in out, out
     assert out.strip().splitlines() == [f"error: {expected}"], out

@@ -1,5 +1,7 @@
 """Splat kernels, truncation, precision, the no-scattering baseline, the footprint cache and image IO."""
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -215,6 +217,37 @@ def test_palette_and_16_bit_patterns_are_read_as_their_values(tmp_path):
     assert got[3, 2] == 1.0 and got.sum() == 1.0  # the colour, not the palette index 1/255
     Image.fromarray(np.full((6, 8), 32768, np.uint16)).save(tmp_path / "p16.png")
     assert read_pattern(tmp_path / "p16.png", (8, 6)) == pytest.approx(np.full((6, 8), 32768 / 65535))
+
+
+def test_transparency_animations_and_wide_integers_are_not_misread_in_patterns(tmp_path):
+    """An RGBA checkerboard drawn with alpha relit as full white (alpha dropped); an animated GIF used its
+    first frame; a 32-bit TIFF of 2**30 read as 1.0 everywhere (divided by 65535, clipped)."""
+    from PIL import Image
+
+    alpha = np.zeros((6, 8), np.uint8)
+    alpha[:, :4] = 255  # left half opaque, right half transparent
+    Image.fromarray(np.dstack([np.full((6, 8, 3), 200, np.uint8), alpha]), "RGBA").save(tmp_path / "rgba.png")
+    with pytest.warns(UserWarning, match="50% of its pixels are transparent"):
+        got = read_pattern(tmp_path / "rgba.png", (8, 6))
+    assert got[:, :4] == pytest.approx(200 / 255) and (got[:, 4:] == 0).all()  # no light where transparent
+    Image.fromarray(np.dstack([np.full((6, 8), 255, np.uint8), alpha]), "LA").save(tmp_path / "la.png")
+    with pytest.warns(UserWarning, match="transparent"):
+        got = read_pattern(tmp_path / "la.png", (8, 6))
+    assert got.ndim == 2 and (got[:, :4] == 1).all() and (got[:, 4:] == 0).all()
+    Image.fromarray(np.dstack([np.full((6, 8, 3), 9, np.uint8), np.full((6, 8), 255, np.uint8)]), "RGBA").save(tmp_path / "opaque.png")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # opaque: no warning
+        assert read_pattern(tmp_path / "opaque.png", (8, 6)) == pytest.approx(9 / 255)
+    frames = [Image.fromarray(np.full((6, 8), v, np.uint8)) for v in (0, 255)]
+    frames[0].save(tmp_path / "anim.gif", save_all=True, append_images=frames[1:], duration=100, loop=0)
+    with pytest.raises(InputError, match="holds 2 frames"):
+        read_pattern(tmp_path / "anim.gif", (8, 6))
+    Image.fromarray(np.full((6, 8), 2**30, np.int32)).save(tmp_path / "i32.tif")
+    with pytest.raises(InputError, match="8- or 16-bit unsigned"):
+        read_pattern(tmp_path / "i32.tif", (8, 6))
+    Image.fromarray(np.full((6, 8), -5, np.int32)).save(tmp_path / "neg.tif")
+    with pytest.raises(InputError, match="from -5 to -5"):
+        read_pattern(tmp_path / "neg.tif", (8, 6))
 
 
 def test_non_finite_footprints_are_zeroed_with_a_warning(scene):

@@ -406,3 +406,46 @@ def test_relight_without_a_backend_takes_the_analytic_model_until_a_decoder_is_g
     assert res.exit_code == 0, res.output
     assert "backend: analytic (no --checkpoint" in res.output
     assert (tmp_path / "sand_rake_v1_checkerboard_analytic.png").exists()
+
+
+def test_display_images_of_a_view_share_one_exposure_and_an_empty_view_is_refused(session, tmp_path):
+    """Each display PNG was exposed to its own 99.5th percentile: a view relit under black looked as bright as
+    under white. A view whose decode mask was empty relit as black without a word (and failed when scored)."""
+    import hashlib
+    import shutil
+
+    import cv2
+    import zarr
+
+    from sssphase_core.errors import DataError
+
+    out = tmp_path / "relit"
+    res = runner.invoke(app, ["relight", str(session), "--pattern", "black", "--pattern", "white", "--backend", "none",
+                              "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    black, white = (cv2.imread(str(out / f"sand_rake_v1_{n}_none_display.png")) for n in ("black", "white"))
+    assert black.mean() < 0.1 * white.mean() and white.max() == 255
+    empty = tmp_path / "empty" / "sand_rake"
+    shutil.copytree(session, empty)
+    with zarr.config.set({"array.write_empty_chunks": True}):
+        arr = zarr.open_array(str(empty / "view_001" / "corr" / "mask"), mode="r+")
+        arr[...] = np.zeros(arr.shape, bool)
+    s = Session.open(empty)
+    data = np.ascontiguousarray(arr[...])
+    s.manifest["views"]["1"]["arrays"]["corr/mask"]["checksum"] = "sha256:" + hashlib.sha256(memoryview(data).cast("B")).hexdigest()
+    s.save()
+    assert Session.open(empty).validate() == []  # a consistent session, only with nothing decoded
+    res = runner.invoke(app, ["relight", str(empty), "--pattern", "checkerboard", "--backend", "none", "--views", "1",
+                              "--out", str(tmp_path / "e")])
+    assert isinstance(res.exception, DataError) and "no pixel decoded (corr/mask is empty)" in str(res.exception)
+    assert not list(tmp_path.glob("e/*.png"))
+
+
+def test_geometry_names_the_backends_it_takes_and_checks_the_device(session, tmp_path):
+    from sssphase_core.errors import InputError
+
+    res = runner.invoke(app, ["geometry", str(session), "--backend", "blend", "--out", str(tmp_path / "g")])
+    assert isinstance(res.exception, InputError) and "use one of exact, analytic, torch" in str(res.exception)
+    res = runner.invoke(app, ["geometry", str(session), "--backend", "exact", "--device", "tpu", "--out", str(tmp_path / "g")])
+    assert isinstance(res.exception, InputError) and "unknown device 'tpu'" in str(res.exception)  # was ignored
+    assert not (tmp_path / "g").exists()
