@@ -526,8 +526,15 @@ class Session:
             for name, meta in entry.get("arrays", {}).items():
                 try:
                     data = self.load(v, name)
-                except DataError as exc:  # a chunk failed its CRC32C, or the array's files are gone
-                    what = "corrupt (a chunk fails its checksum)" if "damaged" in str(exc) else "missing or unreadable"
+                except DataError as exc:  # a chunk failed its CRC32C, chunks or files are gone, the shape differs
+                    text = str(exc).split("; `sss validate`")[0]
+                    detail = text.split(" is damaged ", 1)[1] if " is damaged " in text else None
+                    if detail is None:
+                        what = "missing or unreadable"
+                    elif "chunks missing" in detail or detail.startswith("(shape"):
+                        what = f"damaged {detail}"
+                    else:
+                        what = f"corrupt (a chunk fails its checksum: {detail.strip('()')})"
                     problems.append(f"view {v}: array {name} is {what}")
                     continue
                 except Exception as exc:

@@ -177,6 +177,16 @@ def test_validate_reports_corrupt_and_missing_arrays(reference, tmp_path, sss):
     assert any("white" in p and "missing" in p for p in problems)
     done = sss("validate", str(tmp_path / OBJECT))
     assert done.returncode == 2 and "problem(s)" in done.stderr and "corrupt" in done.stdout
+    # a deleted chunk and a shape that disagrees with the manifest were both called "a chunk fails its checksum"
+    other = tmp_path / "other" / OBJECT
+    shutil.copytree(reference[0] / OBJECT, other)
+    next(p for p in (other / "view_000" / "corr" / "xp").rglob("*") if p.is_file() and p.name != "zarr.json").unlink()
+    meta = json.loads((other / "manifest.json").read_text())
+    meta["views"]["0"]["arrays"]["white"]["shape"] = [10, 10, 3]
+    (other / "manifest.json").write_text(json.dumps(meta))
+    problems = Session.open(other).validate()
+    assert any("corr/xp is damaged (1 of" in p and "chunks missing" in p for p in problems), problems
+    assert any("white is damaged (shape" in p and "(10, 10, 3)" in p for p in problems), problems
 
 
 @pytest.mark.slow
