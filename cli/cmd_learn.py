@@ -58,8 +58,13 @@ def _check_batch(batch_size: int, ds, what: str) -> None:
 def _check_out(ctx: typer.Context, out: Path, kind: str, resume: bool) -> bool:
     """Before any data is read: refuse an ``out`` that is a session or holds another kind of run, or a run
     resumed with options that shaped it changed. True when the run will resume from ``out``."""
+    from sssphase_core.errors import InputError
     from sssphase_core.learning.training import check_run_folder
+    from sssphase_core.store.session import MANIFEST, check_output_folder
 
+    check_output_folder(out)  # not inside a session (a view folder)
+    if out.is_dir() and any((child / MANIFEST).is_file() for child in out.iterdir() if child.is_dir()):
+        raise InputError(f"--out {out} holds sessions: give the run a folder of its own (e.g. runs/{kind})")
     resuming = check_run_folder(out, kind) is not None and resume
     check_run_config(ctx, out, resuming=resuming)
     return resuming
@@ -81,7 +86,7 @@ def _ints(text: str) -> list[int]:
 def _chosen(views: str | None, sim_default: str, sessions: Path | None) -> list[int] | None:
     """The --views given, else every complete view of the sessions (None), else the simulator's default views."""
     if views is not None:
-        return _ints(views)
+        return list(dict.fromkeys(_ints(views)))  # a view named twice is read once (it trained twice as often)
     return None if sessions is not None else _ints(sim_default)
 
 
@@ -190,7 +195,7 @@ def train_pretrain(
     from sssphase_core.sim import TRAIN_OBJECTS
 
     _check_lr(lr)
-    check_pretrain_options(batch_size, warmup_epochs)
+    check_pretrain_options(batch_size, warmup_epochs, augment)
     p = get_preset(preset)
     resuming = _check_out(ctx, out, "pretrain", resume)
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
@@ -286,8 +291,17 @@ def train_decoder(
         else:  # the views given train; a last view that is not among them validates
             left = {o: [v for v in vs if v not in train_views] for o, vs in split_val.items()}
             held = left if any(left.values()) else []
+    if check_sessions:  # a typo here was found only after the whole training
+        from sssphase_core.store.session import find_sessions
+
+        find_sessions(check_sessions)
     train_vds = _views(names, train_views, **kw)
     val_vds = _views(names, held, role="validation (held out)", **kw) if held else []
+    both = sorted({(v.object, v.view) for v in train_vds} & {(v.object, v.view) for v in val_vds})
+    if both:  # it was labelled "held out" and chose best.pt
+        raise InputError(f"--val-views: {', '.join(f'{o} view {v}' for o, v in both)} "
+                         f"{'is also a training view' if len(both) == 1 else 'are also training views'}; validation views "
+                         "must be held out")
     names = names or _objects([*train_vds, *val_vds])
     ds = PatchDataset(train_vds, patch, names, with_targets=True)
     val = PatchDataset(val_vds, patch, names, with_targets=True) if val_vds else None
@@ -448,6 +462,10 @@ def eval_footprints(
 ) -> None:
     """MSE, PSNR (data range 1) and SSIM (data range = GT peak) per object, like the paper's Table 1."""
     _check_result_file(out)
+    if plots is not None:
+        from sssphase_core.store.session import check_output_folder
+
+        check_output_folder(plots, "--plots")
     import numpy as np
 
     from sssphase_core.errors import InputError
@@ -476,8 +494,6 @@ def eval_footprints(
 
     console.print(lpips_note())
     results: dict[str, dict[str, dict[str, float]]] = {}
-    if plots is not None:
-        plots.mkdir(parents=True, exist_ok=True)
     for obj in names:
         obj_views = [v for v in vds if v.object == obj]
         gt = np.concatenate([np.asarray(v.footprints) for v in obj_views])
@@ -488,6 +504,7 @@ def eval_footprints(
                 preds[bname] = np.concatenate([be.predict_footprints((v.psp, v.pixels)) for v in obj_views])
             results[obj][bname] = summarise(footprint_metrics(preds[bname], gt))
         if plots is not None:
+            plots.mkdir(parents=True, exist_ok=True)
             i = int(np.argmax(gt.sum(axis=(1, 2, 3))))
             for bname, pred in preds.items():
                 plot_profiles(gt[i], pred[i], plots / f"{obj}_{bname}.png", title=f"{obj}: {bname}")

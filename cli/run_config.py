@@ -45,13 +45,15 @@ def _load(ctx: typer.Context, param: Any, value: Path | None) -> Path | None:
     try:
         data = tomllib.loads(path.read_text())
     except FileNotFoundError:
-        raise InputError(f"--config {value}: no such file") from None
+        raise InputError(f"--config {value}: the folder has no {CONFIG}" if Path(value).is_dir()
+                         else f"--config {value}: no such file") from None
     except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
         raise InputError(f"--config {path} is not a readable TOML file: {exc}") from None
     command, options = data.get("command"), data.get("options")
-    if command != _command_name(ctx) or not isinstance(options, dict):
-        raise InputError(f"--config {path} is a configuration of `sss {command}`, not of `sss {_command_name(ctx)}`"
-                         if isinstance(command, str) else f"--config {path} has no `command` and `[options]` table")
+    if not isinstance(command, str) or not isinstance(options, dict):
+        raise InputError(f"--config {path} needs a `command` name and an `[options]` table")
+    if command != _command_name(ctx):
+        raise InputError(f"--config {path} is a configuration of `sss {command}`, not of `sss {_command_name(ctx)}`")
     known = {p.name for p in ctx.command.params} - NOT_SAVED
     unknown = sorted(set(options) - known)
     if unknown:
@@ -66,11 +68,20 @@ ConfigOpt = Annotated[Path | None, typer.Option(
 
 
 def _toml_value(value: Any) -> Any:
-    if isinstance(value, Path):
-        return str(value)
+    if isinstance(value, Path):  # absolute: `--config RUN` from another folder reads the same data, writes the same run
+        return str(value.resolve())
     if isinstance(value, list | tuple):
         return [_toml_value(v) for v in value]
     return value
+
+
+def _same(now: Any, saved: Any, is_path: bool) -> bool:
+    """Whether an option's value equals the saved one (paths compared resolved: a file written before paths
+    were stored absolute holds them as given, relative to where the run was started)."""
+    if not is_path or now is None or saved is None:
+        return now == saved
+    as_list = lambda v: [v] if isinstance(v, str) else list(v)  # noqa: E731
+    return [str(Path(x).resolve()) for x in as_list(now)] == [str(Path(x).resolve()) for x in as_list(saved)]
 
 
 #: Options a resumed run may change: how long and where it runs, not what it learns from.
@@ -91,15 +102,20 @@ def save_run_config(ctx: typer.Context, out: Path, *, resuming: bool = False, wr
 
     options = {k: _toml_value(v) for k, v in ctx.params.items() if k not in NOT_SAVED and v is not None}
     saved_path = out / CONFIG
-    if resuming and saved_path.is_file():
+    if resuming:
         from sssphase_core.errors import InputError
 
         try:
-            saved = tomllib.loads(saved_path.read_text()).get("options", {})
+            saved = tomllib.loads(saved_path.read_text()).get("options")
         except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
-            saved = {}
-        saved = saved if isinstance(saved, dict) else {}  # an option the file does not name is not compared
-        changed = sorted(k for k in saved if k not in RESUMABLE and options.get(k) != saved[k])
+            saved = None
+        if not isinstance(saved, dict):  # a run of the API or the demo, or a damaged file: it resumed with any options
+            raise InputError(f"{out} holds a checkpoint but no readable {CONFIG}: the options it was trained with are "
+                             "unknown, so it is not resumed with these; pass --no-resume to start afresh there, or "
+                             "another --out")
+        paths = {k for k, v in ctx.params.items() if isinstance(v, Path) or (isinstance(v, list | tuple) and v
+                                                                              and all(isinstance(x, Path) for x in v))}
+        changed = sorted(k for k in saved if k not in RESUMABLE and not _same(options.get(k), saved[k], k in paths))
         if changed:
             k = changed[0]
             raise InputError(f"{out} holds a run made with --{k.replace('_', '-')} {saved.get(k)!r}, not {options.get(k)!r}"

@@ -360,12 +360,20 @@ def session_views(
                 raise DataError(f"session {s.path} has no complete view {view} (its views: "
                                 f"{', '.join(map(str, s.views())) or 'none'}; choose among those)")
             psp = repaired_psp(s, view)
+            if not np.isfinite(psp).all():  # it surfaced as a NaN loss blamed on the learning rate
+                raise DataError(f"session {s.path} view {view}: psp holds {int((~np.isfinite(psp)).sum()):,} NaN or "
+                                "infinite values: re-capture or re-import the view, or leave it out (--views)")
             rng_seed = view_seed(seed, name, view)
             fp = None
             if footprints:
                 if "footprints/crops" not in s.arrays(view):
                     raise DataError(f"session {s.path} view {view} has no footprints: capture with --footprints")
                 all_px = s.load(view, "footprints/pixels").astype(np.int64)
+                h, w = psp.shape[1:3]
+                if all_px.ndim != 2 or all_px.shape[1:] != (2,) or not (
+                        (all_px >= 0).all() and (all_px[:, 0] < h).all() and (all_px[:, 1] < w).all()):
+                    raise DataError(f"session {s.path} view {view}: footprints/pixels are not (N, 2) pixels inside the "
+                                    f"{w}x{h} image: the session is damaged")
                 keep = np.zeros(len(all_px), bool)
                 keep[sample_pixels(np.ones(len(all_px), bool), pixels_per_view, rng_seed)[:, 0]] = True
                 idx = np.flatnonzero(keep)

@@ -57,12 +57,13 @@ class RunLog:
                     self.writer.add_scalar(f"step/{name}", value, global_step)
 
     def epoch(self, row: dict[str, Any]) -> None:
-        """One epoch's row (``epoch``, ``step``, means of the step values and the epoch figures)."""
+        """One epoch's row (``epoch``, ``step``, means of the step values and the epoch figures); it replaces
+        the rows of that epoch and later ones (a run resumed inside an epoch whose row was written)."""
         if not self.enabled:
             return
-        with open(self.out_dir / METRICS, "a") as f:
-            f.write(json.dumps(row) + "\n")
-        rows = read_rows(self.out_dir / METRICS)
+        rows = [r for r in read_rows(self.out_dir / METRICS) if r.get("epoch", 0) < row["epoch"]] + [row]
+        with atomic_path(self.out_dir / METRICS) as tmp:
+            tmp.write_text("".join(json.dumps(r) + "\n" for r in rows))
         columns = list(dict.fromkeys(k for r in rows for k in r))
         with atomic_path(self.out_dir / METRICS_CSV) as tmp, open(tmp, "w", newline="") as f:
             writer = csv.DictWriter(f, fieldnames=columns)

@@ -77,6 +77,13 @@ def test_train_eval_viz_on_the_simulator(tmp_path):
     repeat = json.loads((again / "metrics.jsonl").read_text().splitlines()[0])
     for name in ("loss", "lr", "knn_acc", "eff_rank", "step"):
         assert repeat[name] == pytest.approx(first[name], rel=1e-6, abs=1e-9), name
+    elsewhere = tmp_path / "elsewhere"  # `--config RUN` from another folder continues that run, not a new one there
+    elsewhere.mkdir()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.chdir(elsewhere)
+        invoke("train", "pretrain", "--config", "../pre", "--epochs", "2")
+    assert [json.loads(r)["epoch"] for r in (pre / "metrics.jsonl").read_text().splitlines()] == [1, 2]
+    assert not list(elsewhere.iterdir())
     invoke("eval", "knn", "--checkpoint", f"psp={pre}", "--k", "5,1", "--seed", "0", "--out", str(tmp_path / "knn.json"), *common)
     knn = json.loads((tmp_path / "knn.json").read_text())
     psp = knn["results"]["psp"]
@@ -107,7 +114,7 @@ def test_train_eval_viz_on_the_simulator(tmp_path):
 def test_a_run_folder_of_another_kind_or_a_session_is_never_overwritten(tmp_path):
     """`--no-resume` starts over in a folder of the same kind only: a pretraining run (or a session) given as
     a decoder's --out is refused before anything is read or written, its files untouched."""
-    from sssphase_core.errors import DataError
+    from sssphase_core.errors import DataError, InputError
     from sssphase_core.learning.training import save_checkpoint
 
     run = tmp_path / "pre"
@@ -122,7 +129,7 @@ def test_a_run_folder_of_another_kind_or_a_session_is_never_overwritten(tmp_path
     session = tmp_path / "session"
     session.mkdir()
     (session / "manifest.json").write_text("{}")
-    with pytest.raises(DataError, match="is a session folder"):
+    with pytest.raises(InputError, match="would write into the session"):
         runner.invoke(app, ["train", "pretrain", "--out", str(session), "--no-resume"], catch_exceptions=False)
     assert sorted(p.name for p in session.iterdir()) == ["manifest.json"]
 
@@ -142,6 +149,51 @@ def test_a_run_resumed_with_other_data_or_model_options_is_refused(tmp_path):
         runner.invoke(app, ["train", "decoder", "--config", str(run), "--out", str(run), "--pixels-per-view", "60"],
                       catch_exceptions=False)
     assert (run / "config.toml").read_text() == saved
+
+
+@pytest.mark.parametrize("config", [None, "garbage [[[", 'command = "train decoder"\noptions = 5\n'])
+def test_a_run_whose_options_are_unknown_is_not_resumed_with_new_ones(config, tmp_path):
+    """A checkpoint without a readable config.toml (the demo's runs, a damaged file) resumed with any options:
+    epochs 1-2 on one data set, epoch 3 on another, and config.toml then described only the last."""
+    from sssphase_core.errors import InputError
+    from sssphase_core.learning.training import save_checkpoint
+
+    run = tmp_path / "dec"
+    save_checkpoint(run / "last.pt", {"kind": "decoder", "preset": {}, "encoder": {}})
+    if config is not None:
+        (run / "config.toml").write_text(config)
+    with pytest.raises(InputError, match="no readable config.toml.*--no-resume"):
+        runner.invoke(app, ["train", "decoder", "--end-to-end", "--out", str(run), "--epochs", "3"], catch_exceptions=False)
+    assert (run / "config.toml").exists() == (config is not None)
+
+
+def test_outputs_inside_a_session_or_among_sessions_are_refused(tmp_path):
+    from sssphase_core.errors import InputError
+
+    session = tmp_path / "sessions" / "shovel"
+    (session / "view_000").mkdir(parents=True)
+    (session / "manifest.json").write_text("{}")
+    for out, message in ((session / "view_000", "inside the session|into the session"), (tmp_path / "sessions", "holds sessions")):
+        with pytest.raises(InputError, match=message):
+            runner.invoke(app, ["train", "pretrain", "--out", str(out), "--no-resume"], catch_exceptions=False)
+    assert sorted(p.name for p in (session / "view_000").iterdir()) == []
+    with pytest.raises(InputError, match="--plots"):
+        runner.invoke(app, ["eval", "footprints", "--checkpoint", str(tmp_path / "none"), "--plots", str(session / "plots")],
+                      catch_exceptions=False)
+    assert not (session / "plots").exists()
+
+
+def test_validation_views_that_are_training_views_and_a_mistyped_check_session_are_refused_before_training(tmp_path):
+    from sssphase_core.errors import InputError
+
+    common = ["train", "decoder", "--end-to-end", "--objects", "star", "--pixels-per-view", "4", "--batch-size", "2",
+              "--epochs", "1", "--cache", str(tmp_path / "cache")]
+    with pytest.raises(InputError, match="star view 0 is also a training view; validation views must be held out"):
+        runner.invoke(app, [*common, "--views", "0,1", "--val-views", "0", "--out", str(tmp_path / "a")], catch_exceptions=False)
+    with pytest.raises(InputError, match="no sessions under"):  # it was found after the whole training
+        runner.invoke(app, [*common, "--views", "0", "--val-views", "1", "--out", str(tmp_path / "b"),
+                            "--check-sessions", str(tmp_path / "typo")], catch_exceptions=False)
+    assert not (tmp_path / "a" / "last.pt").exists() and not (tmp_path / "b" / "last.pt").exists()
 
 
 @pytest.mark.parametrize("item", ["../../x=run", "/abs=run", "a/b=run", "torch=run", "norun"])

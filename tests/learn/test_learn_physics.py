@@ -135,6 +135,23 @@ def test_a_diverging_loss_stops_training_with_the_last_good_checkpoint(pretraine
 
 
 
+def test_nan_in_the_training_data_is_named_not_blamed_on_the_learning_rate(pretrained, synthetic, tmp_path):
+    """NaN footprint crops gave 'the decoder loss became nan ... lower the learning rate (the last good
+    checkpoint is kept in last.pt ...)', and no last.pt existed."""
+    from dataclasses import replace
+
+    from sssphase_core.errors import DataError
+    from sssphase_core.learning.data import PatchDataset
+
+    views = list(synthetic[0])
+    fp = np.array(views[1].footprints, copy=True)
+    fp[:, 3, 3] = np.nan  # every crop of object a's view 1
+    views[1] = replace(views[1], footprints=fp)
+    with pytest.raises(DataError, match=r"hold NaN or infinite values \(a view 1; psp or footprint crops\)"):
+        train_decoder(DecoderConfig(epochs=1, batch_size=16, ckpt_every=0), pretrained,
+                      PatchDataset(views, 16, ["a", "b"], with_targets=True), tmp_path / "dec", progress=False)
+
+
 def test_ring_average_keeps_only_angular_detail():
     ring = RingAverage(16)
     prof = RadialProfile(16)

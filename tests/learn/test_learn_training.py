@@ -204,6 +204,26 @@ def test_decoder_resume_is_exact(pretrained, dataset, tmp_path):
     assert states_equal(load_checkpoint(tmp_path / "a")["decoder"], load_checkpoint(tmp_path / "b")["decoder"])
 
 
+def test_a_decoder_is_not_resumed_on_an_encoder_that_changed_since(pretrained, dataset, tmp_path):
+    """Continuing the pretraining run and then resuming a decoder fitted on it swapped the frozen encoder
+    between the decoder's epochs, without a word."""
+    import shutil
+
+    from sssphase_core.errors import DataError
+    from sssphase_core.learning.training.checkpoints import save_checkpoint
+
+    shutil.copytree(pretrained, tmp_path / "pre")
+    enc = tmp_path / "pre" / CHECKPOINT
+    train_decoder(DecoderConfig(epochs=1, batch_size=16, ckpt_every=0), enc, dataset, tmp_path / "dec", progress=False)
+    train_decoder(DecoderConfig(epochs=2, batch_size=16, ckpt_every=0), enc, dataset, tmp_path / "dec", progress=False)
+    ckpt = load_checkpoint(enc)  # the same encoder resumes; now it changes
+    first = next(k for k, v in ckpt["encoder"].items() if v.is_floating_point())
+    ckpt["encoder"][first] = ckpt["encoder"][first] + 0.01  # "trained further"
+    save_checkpoint(enc, ckpt)
+    with pytest.raises(DataError, match="other encoder weights"):
+        train_decoder(DecoderConfig(epochs=3, batch_size=16, ckpt_every=0), enc, dataset, tmp_path / "dec", progress=False)
+
+
 def test_end_to_end_baseline_trains_the_encoder_too(dataset, tiny, tmp_path):
     from sssphase_core.learning.models import Encoder
 
@@ -341,3 +361,16 @@ def test_the_energy_gain_stays_at_one_unless_asked(pretrained, dataset, tmp_path
                       out, progress=False)
         gain = torch.load(out / CHECKPOINT, weights_only=True)["decoder"]["log_gain"]
         assert bool(gain.abs().max() > 0) == moved, gain
+
+
+def test_an_epoch_row_written_again_after_a_resume_replaces_the_first(tmp_path):
+    """The row is written before the epoch's checkpoint (an interrupt between the two lost the row: the
+    curves silently missed an epoch); a resumed run that writes it again replaces it."""
+    from sssphase_core.learning.runlog import RunLog, read_rows
+
+    log = RunLog(tmp_path, enabled=True)
+    for epoch, loss in ((1, 3.0), (2, 2.0), (2, 1.5), (3, 1.0)):
+        log.epoch({"epoch": epoch, "step": 10 * epoch, "loss": loss, "wall_s": float(epoch)})
+    log.close()
+    assert [(r["epoch"], r["loss"]) for r in read_rows(tmp_path / METRICS)] == [(1, 3.0), (2, 1.5), (3, 1.0)]
+    assert (tmp_path / "metrics.csv").read_text().count("\n") == 4  # header + three rows

@@ -162,6 +162,10 @@ def train_decoder(
                             "decoder run; choose another output folder or pass --no-resume")
         if cfg.end_to_end:
             enc.load_state_dict(ckpt["encoder"])
+        elif "encoder" in ckpt and not all(torch.equal(v.to(d.device), enc.state_dict()[k]) for k, v in ckpt["encoder"].items()):
+            raise DataError(f"{out_dir / CHECKPOINT} was fitted on other encoder weights than {encoder_ckpt} holds now "
+                            "(was the pretraining run continued?): resuming would swap its frozen encoder midway; pass "
+                            "--no-resume, or another --out")
         dec.load_state_dict(ckpt["decoder"])
         opt.load_state_dict(ckpt["optimizer"])
         loop.restore(ckpt["loop"])

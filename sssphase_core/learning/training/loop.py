@@ -167,6 +167,25 @@ class Loop:
                 shutil.copyfile(self.out_dir / CHECKPOINT, tmp)
             self._new_best = False
 
+    def _diverged(self, batch: dict[str, torch.Tensor], loss: float) -> None:
+        """Raise for a non-finite loss: DataError naming the views when the batch itself holds NaN/inf (the
+        footprint crops, say), else TrainingDiverged (the learning rate)."""
+        bad = torch.zeros(len(batch["object"]), dtype=torch.bool)
+        for key in ("psp", "footprint"):
+            if key in batch:
+                bad |= ~torch.isfinite(batch[key].flatten(1)).all(dim=1).cpu()
+        if bad.any():
+            where = sorted({(self.dataset.classes[int(o)], int(v)) for o, v in zip(batch["object"][bad], batch["view"][bad],
+                                                                                     strict=True)})
+            raise DataError(f"the {self.kind} training data hold NaN or infinite values ("
+                            f"{', '.join(f'{o} view {v}' for o, v in where)}; psp or footprint crops): re-capture or "
+                            "leave those views out")
+        kept = self.out_dir / CHECKPOINT
+        raise TrainingDiverged(
+            f"the {self.kind} loss became {loss} at epoch {self.epoch + 1}, step {self.step_in_epoch + 1}; lower the "
+            "learning rate" + (f" (the last good checkpoint is kept in {kept}, which --resume continues from)"
+                               if kept.exists() else " (no checkpoint was written yet)"))
+
     def _load(self, idx: np.ndarray) -> dict[str, torch.Tensor]:
         return {k: v.to(self.d.device, non_blocking=True) for k, v in self.dataset.batch(idx).items()}
 
@@ -208,11 +227,7 @@ class Loop:
                     torch.manual_seed(self.cfg.seed * 1_000_003 + self.global_step)
                     values = step(batch, self.global_step)
                     if not math.isfinite(values["loss"]):
-                        raise TrainingDiverged(
-                            f"the {self.kind} loss became {values['loss']} at epoch {self.epoch + 1}, step "
-                            f"{self.step_in_epoch + 1}; lower the learning rate (the last good checkpoint is kept "
-                            f"in {self.out_dir / CHECKPOINT}, which --resume continues from)"
-                        )
+                        self._diverged(batch, values["loss"])
                     for k, v in values.items():
                         self.sums[k] = self.sums.get(k, 0.0) + v
                     self.step_in_epoch += 1
@@ -233,9 +248,9 @@ class Loop:
                 self.epoch, self.step_in_epoch, self.sums = self.epoch + 1, 0, {}
                 if self.best_metric is not None and self.d.main:
                     self._stage_best(row)
+                runlog.epoch(row)  # before the checkpoint: an interrupt between the two loses no row (it is rewritten)
                 save()
                 self.keep_if_best()
-                runlog.epoch(row)
                 collapse = row.get("collapsed", 0.0)
                 if collapse:
                     raise TrainingCollapsed(
@@ -283,6 +298,6 @@ def resume_state(out_dir: Path, resume: bool, kind: str, preset: ModelPreset | N
 
 def start_fresh(out_dir: Path) -> None:
     """A new run in a used folder: the old run's metrics and best checkpoint must not mix with it."""
-    for name in (METRICS, METRICS_CSV, BEST):
+    for name in (METRICS, METRICS_CSV, BEST, "knn_vs_time.png", "error_vs_time.png"):  # the old run's figures too
         (out_dir / name).unlink(missing_ok=True)
     shutil.rmtree(out_dir / TB_DIR, ignore_errors=True)

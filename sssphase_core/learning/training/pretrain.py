@@ -61,9 +61,16 @@ class PretrainConfig(LoopConfig):
 MIN_PRETRAIN_BATCH = 2
 
 
-def check_pretrain_options(batch_size: int, warmup_epochs: float) -> None:
-    """Refuse, before any work, a batch too small for SimSiam's BatchNorm and a warmup that is not a finite
-    number >= 0 (NaN or infinity cannot count steps; a negative one would mean none)."""
+#: SimSiam's augmentation sets (``augment.two_views``): the paper's PSP weak/strong pair, or ImageNet's
+AUGMENT_KINDS = ("psp", "imagenet")
+
+
+def check_pretrain_options(batch_size: int, warmup_epochs: float, augment: str = "psp") -> None:
+    """Refuse, before any work, a batch too small for SimSiam's BatchNorm, a warmup that is not a finite
+    number >= 0 (NaN or infinity cannot count steps; a negative one would mean none) and an unknown
+    augmentation set."""
+    if augment not in AUGMENT_KINDS:
+        raise InputError(f"--augment must be one of {', '.join(AUGMENT_KINDS)}, got {augment!r}")
     if batch_size < MIN_PRETRAIN_BATCH:
         raise InputError(f"--batch-size must be at least {MIN_PRETRAIN_BATCH} for pretraining, got {batch_size}: "
                          "SimSiam's projector and predictor normalise over the batch (BatchNorm)")
@@ -124,7 +131,7 @@ def pretrain(
     progress: StepProgress | bool | None = None,
 ) -> Path:
     """SimSiam pretraining of the encoder; returns the checkpoint path (``out_dir/last.pt``)."""
-    check_pretrain_options(cfg.batch_size, cfg.warmup_epochs)
+    check_pretrain_options(cfg.batch_size, cfg.warmup_epochs, cfg.augment)
     out_dir = Path(out_dir)
     d = init_distributed(cfg.device)
     p = preset or get_preset(cfg.preset)
