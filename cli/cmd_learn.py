@@ -204,6 +204,9 @@ def train_pretrain(
     names = names or _objects(vds)
     ds = PatchDataset(vds, p.patch, names)
     _check_batch(batch_size, ds, "training patches")
+    if knn_monitor and (len(set(ds.labels("view"))) < 2 or len(set(ds.labels("object"))) < 2):
+        console.print("note: the kNN monitor is off: it needs two views (leave one view out) and two objects (a "
+                      "one-object vote is always right)")
     if warmup_epochs >= epochs:
         console.print(f"[yellow]note:[/] --warmup-epochs {warmup_epochs:g} is not shorter than --epochs {epochs}: the "
                       f"learning rate rises for the whole run, to about {epochs / warmup_epochs:.2g} x --lr, and never decays")
@@ -276,6 +279,10 @@ def train_decoder(
     if (encoder is None) == (not end_to_end):
         raise InputError("give either --encoder PATH (a pretraining run; the paper's method) or --end-to-end (the "
                          "supervised baseline without SSL), not both or neither")
+    given = getattr(ctx.get_parameter_source("preset"), "name", "")  # typed on the command line (not a default/config)
+    if encoder is not None and given in ("COMMANDLINE", "ENVIRONMENT"):
+        raise InputError("--preset sets the model of an --end-to-end run; with --encoder the decoder takes the encoder's "
+                         "preset (it was ignored, and config.toml recorded the wrong one)")
     patch = decoder_patch(None if end_to_end else encoder, preset)
     resuming = _check_out(ctx, out, "decoder", resume)
     names = _names(objects, () if sessions else TRAIN_OBJECTS)

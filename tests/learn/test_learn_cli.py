@@ -196,6 +196,15 @@ def test_validation_views_that_are_training_views_and_a_mistyped_check_session_a
     assert not (tmp_path / "a" / "last.pt").exists() and not (tmp_path / "b" / "last.pt").exists()
 
 
+def test_a_preset_typed_beside_an_encoder_is_refused_not_recorded(tmp_path):
+    from sssphase_core.errors import InputError
+
+    with pytest.raises(InputError, match="--preset sets the model of an --end-to-end run"):
+        runner.invoke(app, ["train", "decoder", "--encoder", str(tmp_path / "pre"), "--preset", "paper", "--out",
+                            str(tmp_path / "d")], catch_exceptions=False)
+    assert not (tmp_path / "d").exists()
+
+
 @pytest.mark.parametrize("item", ["../../x=run", "/abs=run", "a/b=run", "torch=run", "norun"])
 def test_compare_names_that_are_not_plain_or_new_are_refused_first(item, tmp_path):
     """--compare NAME names output files: a name with a path in it (or taken, or missing) is refused before

@@ -142,6 +142,8 @@ def test_knn_monitor_is_logged_every_epoch_and_measures_the_right_patches(pretra
     assert knn_monitor(MeanColour(), dataset, idx, 5, torch.device("cpu")) == want
     one_view = PatchDataset([v for v in dataset.views if v.view == 0], 16, ["a", "b"])
     assert _knn_monitor_indices(one_view, 100, seed=0) is None  # leave-one-view-out needs two views
+    one_object = PatchDataset([v for v in dataset.views if v.object == "a"], 16, ["a", "b"])
+    assert _knn_monitor_indices(one_object, 100, seed=0) is None  # a one-class vote is always right (it read 100%)
 
 
 def test_predictor_keeps_the_base_lr_by_default_while_the_rest_decays(pretrained):

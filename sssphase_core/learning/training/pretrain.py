@@ -98,8 +98,9 @@ def warmup_cosine(opt: torch.optim.Optimizer, total: int, warmup: int, base_lr: 
 
 
 def _knn_monitor_indices(dataset: PatchDataset, n: int, seed: int) -> np.ndarray | None:
-    """A fixed, seeded subset of the training patches for the kNN monitor (None: off or one view only)."""
-    if n <= 0 or len(np.unique(dataset.labels("view"))) < 2:
+    """A fixed, seeded subset of the training patches for the kNN monitor (None: off, or nothing to monitor:
+    one view (leave-one-view-out has no other) or one object (a one-class vote is always right))."""
+    if n <= 0 or len(np.unique(dataset.labels("view"))) < 2 or len(np.unique(dataset.labels("object"))) < 2:
         return None
     return np.sort(np.random.default_rng(seed + 7).permutation(len(dataset))[:n])
 
