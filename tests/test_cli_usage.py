@@ -37,7 +37,7 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["eval", "relight", "s", "--backend", "none,torch"], "the torch backend needs --checkpoint"),
         (["eval", "relight", "s", "--backend", "none,nonsense"], "unknown backend 'nonsense'; available: analytic, blend"),
         (["eval", "relight", "s", "--backend", "blend", "--checkpoint", "/nonexistent/ck.pt"], "no checkpoint at /nonexistent/ck.pt"),
-        (["eval", "relight", "/nonexistent/sessions", "--backend", "none"], "no sessions under /nonexistent/sessions"),
+        (["eval", "relight", "/nonexistent/sessions", "--backend", "none"], "/nonexistent/sessions does not exist"),
         (["eval", "knn", "--checkpoint", "/nonexistent/enc.pt"], "no checkpoint at /nonexistent/enc.pt"),  # before simulating
         (["eval", "knn", "--checkpoint", "root=/", "--n-views", "1"], "views 0,1,2,3 need --n-views above 3"),
         (["train", "pretrain", "--batch-size", "0"], "--batch-size"),
@@ -208,7 +208,7 @@ def test_click_usage_errors_are_one_line_naming_where_help_is(args: list[str], e
     (["relight", "no_session", "--pattern", "checkerboard", "--backend", "bogus"],
      "error: unknown backend 'bogus'; available: analytic, blend, exact, measured, none, torch"),
     (["relight", "no_session", "--pattern", "checkerboard"],  # "backend: analytic" was said first
-     "error: no_session is not a session (no manifest.json)"),
+     "error: no_session does not exist"),
     (["relight", "no_session", "--pattern", "checkerboard", "--device", "tpu"],
      "error: unknown device 'tpu': use auto, cpu, cuda or cuda:N"),
     (["eval", "relight", "no_session", "--backend", "none", "--device", "tpu"],

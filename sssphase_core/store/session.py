@@ -410,7 +410,9 @@ class Session:
         try:
             manifest = json.loads((path / MANIFEST).read_text())
         except FileNotFoundError:
-            raise DataError(f"{path} is not a session (no {MANIFEST})") from None
+            raise DataError(f"{path} does not exist" if not path.exists() else f"{path} is not a session (no {MANIFEST})") from None
+        except NotADirectoryError:
+            raise DataError(f"{path} is a file, not a session folder") from None
         except ValueError as exc:
             raise DataError(f"{path / MANIFEST} is corrupt: {exc}") from None
         if not isinstance(manifest, dict) or manifest.get("format") != FORMAT or not isinstance(manifest.get("format_version", 0), int) \
@@ -589,7 +591,8 @@ def find_sessions(paths: Iterable[Path | str]) -> list[Session]:
         unique.setdefault(s.path.resolve(), s)
     found = list(unique.values())
     if not found:
-        raise InputError(f"no sessions under {', '.join(map(str, paths))}")
+        missing = [str(p) for p in paths if not Path(p).exists()]
+        raise InputError(f"{', '.join(missing)} does not exist" if missing else f"no sessions under {', '.join(map(str, paths))}")
     return found
 
 

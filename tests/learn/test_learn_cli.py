@@ -190,7 +190,7 @@ def test_validation_views_that_are_training_views_and_a_mistyped_check_session_a
               "--epochs", "1", "--cache", str(tmp_path / "cache")]
     with pytest.raises(InputError, match="star view 0 is also a training view; validation views must be held out"):
         runner.invoke(app, [*common, "--views", "0,1", "--val-views", "0", "--out", str(tmp_path / "a")], catch_exceptions=False)
-    with pytest.raises(InputError, match="no sessions under"):  # it was found after the whole training
+    with pytest.raises(InputError, match="typo does not exist"):  # it was found after the whole training
         runner.invoke(app, [*common, "--views", "0", "--val-views", "1", "--out", str(tmp_path / "b"),
                             "--check-sessions", str(tmp_path / "typo")], catch_exceptions=False)
     assert not (tmp_path / "a" / "last.pt").exists() and not (tmp_path / "b" / "last.pt").exists()
