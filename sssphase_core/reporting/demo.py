@@ -220,7 +220,7 @@ class Demo:
                 self.log(f"  relit {rv.object} with {b}")
         for r in rows:
             r["figure"] = str(Path(r["figure"]).relative_to(self.report_dir))
-        return {"rows": rows, "skipped": skipped}
+        return {"rows": rows, "skipped": skipped, "analytic_supersample": self.cfg.analytic_supersample}
 
     def footprints(self) -> dict[str, Any]:
         """The paper's Table 1: footprint MSE / PSNR / SSIM on sampled pixels of the unseen objects."""

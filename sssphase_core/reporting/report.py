@@ -115,7 +115,11 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
     parts.append(f"<p class='note'>PSNR in dB with peak 1.0 (linear camera units: a white Lambertian reference reads 1.0), "
                  f"SSIM (11 px Gaussian window), both on the object mask, mean over the checkerboard and stripe patterns. "
                  f"{_esc(lpips_note())}. <code>exact</code> splats the simulator's exact footprints (ground truth no lab has); <code>measured</code> splats the session's captured light transport (one crop per projector dot); "
-                 f"<code>none</code> keeps each pixel's own light (no scattering).</p>")
+                 f"<code>none</code> keeps each pixel's own light (no scattering)."
+                 + (f" <code>analytic</code> integrates each footprint pixel at {int(result['analytic_supersample'])}"
+                    f" × {int(result['analytic_supersample'])} points here (<code>sss relight</code> and <code>sss eval "
+                    "relight</code>: 4 × 4), so their figures for it can differ slightly."
+                    if "analytic" in backends and result.get("analytic_supersample") else "") + "</p>")
     for name, why in result.get("skipped", {}).items():
         parts.append(_not_available(f"relighting with the {name} backend", {"reason": why}))
     if "torch" in means:

@@ -250,6 +250,7 @@ def test_compare_names_that_are_not_plain_or_new_are_refused_first(item, tmp_pat
     (["eval", "footprints", "--checkpoint", "ck.pt", "--n-views", "-1"], "Invalid value for '--n-views'"),
     (["viz", "pca", "--checkpoint", "ck.pt", "--stride", "0"], "Invalid value for '--stride'"),
     (["viz", "pca", "--checkpoint", "ck.pt", "--view", "-1"], "Invalid value for '--view'"),
+    (["train", "pretrain", "--epochs", "100000000000000000000"], "Invalid value for '--epochs'"),  # it started a run
 ])
 def test_bad_sample_counts_and_learning_rates_are_refused_before_any_work(args, expected, tmp_path):
     import subprocess
