@@ -189,7 +189,7 @@ def train_pretrain(
     from sssphase_core.learning.data import PatchDataset
     from sssphase_core.learning.models import get_preset
     from sssphase_core.learning.runlog import read_rows
-    from sssphase_core.learning.training import METRICS, PretrainConfig, pretrain
+    from sssphase_core.learning.training import METRICS, PretrainConfig, _knn_monitor_indices, pretrain
     from sssphase_core.learning.training.pretrain import check_pretrain_options
     from sssphase_core.reporting.figures import plot_metric_vs_time
     from sssphase_core.sim import TRAIN_OBJECTS
@@ -204,7 +204,7 @@ def train_pretrain(
     names = names or _objects(vds)
     ds = PatchDataset(vds, p.patch, names)
     _check_batch(batch_size, ds, "training patches")
-    if knn_monitor and (len(set(ds.labels("view"))) < 2 or len(set(ds.labels("object"))) < 2):
+    if knn_monitor and _knn_monitor_indices(ds, knn_monitor, seed) is None:
         console.print("note: the kNN monitor is off: it needs two views (leave one view out) and two objects (a "
                       "one-object vote is always right)")
     if warmup_epochs >= epochs:

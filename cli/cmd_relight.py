@@ -217,10 +217,10 @@ def relight_cmd(
             if cache_file.uncached:
                 console.print(f"cache: {cache_file.uncached:,} footprints beyond its memory budget were not kept "
                               "(later patterns recompute them)")
+        exposure = display_scale(rv.white)  # the display PNGs of a view share its white's: a dim pattern looks dim
         for name, img in zip(names, relit, strict=True):
             stem = out / f"{rv.object}_v{v}_{name}_{backend}"
-            # the display PNGs of a view share one exposure, its white capture's, so that a dim pattern looks dim
-            paths = write_images(stem, img, formats=formats, scale=display_scale(rv.white))
+            paths = write_images(stem, img, formats=formats, scale=exposure)
             line = f"wrote {', '.join(str(p) for p in paths)}"
             clipped = float((img[rv.proj.mask] > 1.0).any(axis=-1).mean()) if rv.proj.mask.any() else 0.0
             if "exr" not in formats and clipped > 0:

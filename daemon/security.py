@@ -32,10 +32,15 @@ class PrivateDirError(SssError, PermissionError):
     """A folder for the daemon's socket, token or keys that others could read or write."""
 
 
+def _private(path: Path) -> bool:
+    """Whether ``path`` is owned by this user and closed to everyone else."""
+    st = path.stat()
+    return st.st_uid == os.getuid() and not st.st_mode & 0o077
+
+
 def _private_dir(path: Path) -> Path:
     path.mkdir(parents=True, exist_ok=True, mode=0o700)
-    st = path.stat()
-    if st.st_uid != os.getuid() or st.st_mode & 0o077:
+    if not _private(path):
         raise PrivateDirError(f"{path} must be owned by you with mode 0700 (it holds the daemon's socket and token): "
                               f"run 'chmod 700 {path}' or point SSS_RUNTIME_DIR at a private folder")
     return path
@@ -192,12 +197,8 @@ def generate_keys(directory: Path | None = None, *, overwrite: bool = False) -> 
 def check_key_dir(directory: Path) -> None:
     """Refuse a CURVE key folder (or its authorised-clients folder) that other users could read or write:
     they could take the secret key or authorise their own."""
-    for path in (directory, directory / AUTHORIZED):
-        try:
-            st = path.stat()
-        except OSError:
-            continue
-        if st.st_uid != os.getuid() or st.st_mode & 0o077:
+    for path in (p for p in (directory, directory / AUTHORIZED) if p.is_dir()):
+        if not _private(path):
             raise PrivateDirError(f"{path} must be owned by you with mode 0700 (it holds CURVE keys): "
                                   f"run 'chmod -R go-rwx {directory}'")
 

@@ -67,6 +67,7 @@ def training(preset: str, dev: torch.device, out: Path, *, steps: int, batch: in
     """Pretraining and decoder fitting for ``steps`` steps each (``epochs`` epochs, for the loss curve), once
     with each of :data:`LOADERS` (``result[stage]`` the default, ``result[stage + "_host"]`` the baseline)."""
     from sssphase_core.learning.models import get_preset
+    from sssphase_core.learning.runlog import METRICS, read_rows
     from sssphase_core.learning.training import DecoderConfig, PretrainConfig, pretrain, train_decoder
 
     p = get_preset(preset)
@@ -89,32 +90,27 @@ def training(preset: str, dev: torch.device, out: Path, *, steps: int, batch: in
             if dev.type == "cuda":
                 torch.cuda.synchronize(dev)
             seconds = time.perf_counter() - t0
-            run_dir = pre if name == "pretrain" else dec
-            losses = _epoch_losses(run_dir, "loss")
+            rows = read_rows((pre if name == "pretrain" else dec) / METRICS)  # the run's epoch rows
+            losses = [float(r["loss"]) for r in rows]
             n_steps = per_epoch * epochs
             result[name if loader == "default" else f"{name}_{loader}"] = {
                 "steps": n_steps, "seconds": seconds, "patches_s": n_steps * batch / seconds,
-                "steady_patches_s": _steady_rate(run_dir, per_epoch * batch),
-                "data_wait_share": _data_wait_share(run_dir), "peak_memory_mb": _peak_memory(dev),
-                "loss_per_epoch": losses, "finite": bool(losses) and all(math.isfinite(v) for v in losses),
+                "steady_patches_s": _steady_rate(rows, per_epoch * batch), "data_wait_share": _data_wait_share(rows),
+                "peak_memory_mb": _peak_memory(dev), "loss_per_epoch": losses,
+                "finite": bool(losses) and all(math.isfinite(v) for v in losses),
                 "falling": len(losses) > 1 and losses[-1] < losses[0]}
     return result
 
 
-def _steady_rate(run: Path, patches_per_epoch: int) -> float:
+def _steady_rate(rows: list[dict[str, Any]], patches_per_epoch: int) -> float:
     """Patches/s of the training loop after its first epoch (which pays for warm-up: kernel selection, caches),
     from the run's epoch rows; NaN with a single epoch."""
-    from sssphase_core.learning.runlog import METRICS, read_rows
-
-    walls = [r["wall_s"] for r in read_rows(run / METRICS) if "wall_s" in r]
+    walls = [r["wall_s"] for r in rows]
     return patches_per_epoch * (len(walls) - 1) / (walls[-1] - walls[0]) if len(walls) > 1 and walls[-1] > walls[0] else float("nan")
 
 
-def _data_wait_share(run: Path) -> float:
-    """Share of the training loop's time spent waiting for batches (from the run's epoch rows)."""
-    from sssphase_core.learning.runlog import METRICS, read_rows
-
-    rows = [r for r in read_rows(run / METRICS) if "data_wait_s" in r]
+def _data_wait_share(rows: list[dict[str, Any]]) -> float:
+    """Share of the training loop's time spent waiting for batches, from the run's epoch rows."""
     return sum(r["data_wait_s"] for r in rows) / rows[-1]["wall_s"] if rows and rows[-1]["wall_s"] > 0 else float("nan")
 
 

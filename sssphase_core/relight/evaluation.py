@@ -17,6 +17,7 @@ import numpy as np
 
 from sssphase_core.errors import InputError
 from sssphase_core.learning.metrics import psnr
+from sssphase_core.processing.colour import display_scale
 
 METRICS = ("mse", "psnr", "ssim", "lpips")
 
@@ -90,7 +91,7 @@ def comparison_figure(reference: np.ndarray, relit: np.ndarray, mask: np.ndarray
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from sssphase_core.processing.colour import display_scale, srgb
+    from sssphase_core.processing.colour import srgb
 
     scale = display_scale(reference, mask)
     diff = np.abs(np.nan_to_num(relit) - np.nan_to_num(reference)).mean(axis=-1)
@@ -134,6 +135,7 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     seconds = time.perf_counter() - t0
     rows = []
     out = Path(out_dir)
+    exposure = display_scale(rv.white) if write else None  # one display exposure per view, shared by its patterns
     for name, img in zip(names, relit, strict=True):
         capture = _captured_reference(rv, name)  # a simulated session's capture beside its noise-free render
         # A capture is compared with the relit image as the camera would record it (its Bayer sampling and
@@ -158,9 +160,8 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
         if write:
             stem = out / f"{rv.object}_v{rv.view}_{name}_{backend}"
             from sssphase_core.relight import write_images
-            from sssphase_core.relight.images import display_scale
 
-            write_images(stem, img, scale=display_scale(rv.white))  # one exposure per view, shared by its patterns
+            write_images(stem, img, scale=exposure)
             row["figure"] = str(comparison_figure(rv.captured[name], img, rv.proj.mask, stem.with_name(stem.name + "_compare.png"),
                                                   title=f"{rv.object} view {rv.view}, {name}, {backend}", metrics=met))
         rows.append(row)

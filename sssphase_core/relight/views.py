@@ -179,8 +179,6 @@ def paper_input_patterns(plan: dict) -> np.ndarray | None:
     the patterns under which a session's ``psp`` stack was captured; None when the plan has no such set."""
     from sssphase_core.processing.patterns import PlannedFrame
 
-    # One frame per pattern: an HDR plan lists each pattern once per exposure bracket (same key), merged into one
-    # image (without this, HDR sessions silently lost the view calibration: the crab relit 4-6 dB worse).
     chosen = paper_input_frames(plan)
     if chosen is None:
         return None
@@ -190,6 +188,8 @@ def paper_input_patterns(plan: dict) -> np.ndarray | None:
 def paper_input_frames(plan: dict) -> list[dict] | None:
     """The plan's frames of the 8 paper inputs in the order of a session's ``psp`` stack (the finest period,
     x shifts then y shifts), or None when the plan has no such set."""
+    # One frame per pattern: an HDR plan lists each pattern once per exposure bracket (same key), merged into one
+    # image (without this, HDR sessions silently lost the view calibration: the crab relit 4-6 dB worse).
     frames = list({f["key"]: f for f in plan.get("frames", []) if f.get("kind") == "psp"}.values())
     finest = finest_psp_period(plan)
     if finest is None:

@@ -46,10 +46,11 @@ def export_view(session: Session, view: int, out: Path) -> list[Path]:
             written.append(write_exr(stem.with_name(stem.name + ".exr"), np.asarray(arr, np.float32)))
         elif len(shape) >= 3 and shape[1:3] == (height, width):
             keys = _psp_keys(session) if name == "psp" else None
+            keys = keys if keys and len(keys) == shape[0] else None
             for i in range(shape[0]):
-                attributes = {"sssphase_key": keys[i]} if keys and len(keys) == shape[0] else None
+                attributes = {"sssphase_key": keys[i]} if keys else None
                 written.append(write_exr(stem / f"{i:02d}.exr", np.asarray(arr[i], np.float32), attributes=attributes))
-            if keys and len(keys) == shape[0]:  # which fringe each file holds, for tools that read no EXR header
+            if keys:  # which fringe each file holds, for tools that read no EXR header
                 (stem / "keys.csv").write_text("file,key\n" + "".join(f"{i:02d}.exr,{k}\n" for i, k in enumerate(keys)))
                 written.append(stem / "keys.csv")
         elif len(shape) == 2:  # per-row records such as footprints/pixels

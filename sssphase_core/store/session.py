@@ -274,6 +274,15 @@ class GrowingArray:
                                          "chunks": _chunk_count(shape, (self.rows, *shape[1:]))}
 
 
+class DamagedArray(DataError):
+    """A session array that cannot be read as its manifest says: ``detail`` says how ("missing or unreadable
+    (...)", "damaged (...)"); ``checksum``: a chunk failed its CRC32C (or did not decode)."""
+
+    def __init__(self, where: str, detail: str, *, checksum: bool = False) -> None:
+        super().__init__(f"{where} is {detail}; `sss validate` lists the damage")
+        self.detail, self.checksum = detail, checksum
+
+
 class CheckedArray:
     """A read-only zarr array whose reads fail with a :class:`DataError` naming it when a chunk is damaged."""
 
@@ -303,7 +312,7 @@ class CheckedArray:
             return read()
         except Exception as exc:  # zarr/numcodecs raise several types for a checksum or decoding failure
             reason = str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__
-            raise DataError(f"{self.where} is damaged ({reason}); `sss validate` lists the damage") from None
+            raise DamagedArray(self.where, f"damaged ({reason})", checksum=True) from None
 
     def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
         return np.asarray(self[...], dtype=dtype)
@@ -492,17 +501,15 @@ class Session:
         try:
             array = zarr.open_array(str(folder), mode="r")
         except Exception as exc:  # missing or unreadable metadata
-            raise DataError(f"{where} is missing or unreadable ({type(exc).__name__}); `sss validate` lists the damage") from None
+            raise DamagedArray(where, f"missing or unreadable ({type(exc).__name__})") from None
         meta = self.manifest["views"][str(view)]["arrays"][name]
         if meta.get("shape") is not None and list(array.shape) != list(meta["shape"]):
-            raise DataError(f"{where} is damaged (shape {tuple(array.shape)} where the manifest says "
-                            f"{tuple(meta['shape'])}); `sss validate` lists the damage")
+            raise DamagedArray(where, f"damaged (shape {tuple(array.shape)} where the manifest says {tuple(meta['shape'])})")
         expected = meta.get("chunks")  # older sessions: not recorded
         if expected is not None:
             found = _stored_chunks(folder)
             if found != expected:  # zarr would read a missing chunk as zeros
-                raise DataError(f"{where} is damaged ({expected - found} of {expected} chunks missing); "
-                                "`sss validate` lists the damage")
+                raise DamagedArray(where, f"damaged ({expected - found} of {expected} chunks missing)")
         return CheckedArray(array, where)
 
     def load(self, view: int, name: str) -> np.ndarray:
@@ -528,15 +535,9 @@ class Session:
             for name, meta in entry.get("arrays", {}).items():
                 try:
                     data = self.load(v, name)
-                except DataError as exc:  # a chunk failed its CRC32C, chunks or files are gone, the shape differs
-                    text = str(exc).split("; `sss validate`")[0]
-                    detail = text.split(" is damaged ", 1)[1] if " is damaged " in text else None
-                    if detail is None:
-                        what = "missing or unreadable"
-                    elif "chunks missing" in detail or detail.startswith("(shape"):
-                        what = f"damaged {detail}"
-                    else:
-                        what = f"corrupt (a chunk fails its checksum: {detail.strip('()')})"
+                except DamagedArray as exc:  # a chunk failed its CRC32C, chunks or files are gone, the shape differs
+                    what = f"corrupt (a chunk fails its checksum: {exc.detail.removeprefix('damaged (')[:-1]})" \
+                        if exc.checksum else exc.detail
                     problems.append(f"view {v}: array {name} is {what}")
                     continue
                 except Exception as exc:
