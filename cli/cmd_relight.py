@@ -137,7 +137,7 @@ def relight_cmd(
         write_images,
     )
     from sssphase_core.relight.evaluation import comparison_figure, relight_metrics
-    from sssphase_core.relight.images import display_scale
+    from sssphase_core.relight.images import check_provenance, display_scale, record_provenance
     from sssphase_core.relight.sources import check_backends, uses_decoder
     from sssphase_core.store.session import Session
 
@@ -164,7 +164,8 @@ def relight_cmd(
         console.print(f"note: --checkpoint is not used by --backend {backend}")
     s = Session.open(session)
     names, pats = [], []
-    for v in _views(s, views):
+    chosen = _views(s, views)
+    for v in chosen:
         rv = load_view(s, v)
         if not pats:
             wp, hp = rv.proj.projector_size
@@ -185,6 +186,7 @@ def relight_cmd(
             if twins:  # each pattern's name is its output file's
                 raise InputError(f"--pattern: two patterns would both be written as {twins[0]!r}: "
                                  "rename one (the output files are named by the pattern)")
+            check_provenance(out, [f"{rv.object}_v{u}_{n}_{backend}" for u in chosen for n in names], s.path)
             if auto:  # said once the input is known good
                 console.print(f"backend: {backend}" + ("" if checkpoint is not None else
                                                         " (no --checkpoint: the analytic model; a trained decoder blends in)"))
@@ -221,6 +223,7 @@ def relight_cmd(
         for name, img in zip(names, relit, strict=True):
             stem = out / f"{rv.object}_v{v}_{name}_{backend}"
             paths = write_images(stem, img, formats=formats, scale=exposure)
+            record_provenance(out, [stem.name], s.path)
             line = f"wrote {', '.join(str(p) for p in paths)}"
             clipped = float((img[rv.proj.mask] > 1.0).any(axis=-1).mean()) if rv.proj.mask.any() else 0.0
             if "exr" not in formats and clipped > 0:

@@ -449,3 +449,25 @@ def test_geometry_names_the_backends_it_takes_and_checks_the_device(session, tmp
     res = runner.invoke(app, ["geometry", str(session), "--backend", "exact", "--device", "tpu", "--out", str(tmp_path / "g")])
     assert isinstance(res.exception, InputError) and "unknown device 'tpu'" in str(res.exception)  # was ignored
     assert not (tmp_path / "g").exists()
+
+
+def test_relight_does_not_overwrite_another_sessions_images_of_the_same_object(session, tmp_path):
+    """Relit images are named by object, view, pattern and backend: a second session of the same object (a
+    re-capture, a copy) relit into the same --out is refused before any work; a rerun of the first is not."""
+    import shutil
+
+    twin = tmp_path / "again" / session.name
+    shutil.copytree(session, twin)
+    out = tmp_path / "o"
+    args = ["--views", "1", "--pattern", "white", "--backend", "none", "--out", str(out)]
+    assert runner.invoke(app, ["relight", str(session), *args]).exit_code == 0
+    first = (out / "sand_rake_v1_white_none.png").read_bytes()
+    (out / "sand_rake_v1_white_none.png").write_bytes(first + b"mark")  # any rewrite would drop the mark
+    res = runner.invoke(app, ["relight", str(twin), *args])
+    assert res.exit_code != 0 and "relit from another session" in str(res.exception)
+    assert str(session.resolve()) in str(res.exception)
+    assert (out / "sand_rake_v1_white_none.png").read_bytes() == first + b"mark"
+    again = runner.invoke(app, ["relight", str(session), *args])  # the same session again: the usual rerun
+    assert again.exit_code == 0, again.output
+    assert not (out / "sand_rake_v1_white_none.png").read_bytes().endswith(b"mark")  # rewritten
+    assert runner.invoke(app, ["relight", str(twin), *args[:-1], str(tmp_path / "o2")]).exit_code == 0
