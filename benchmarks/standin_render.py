@@ -54,6 +54,20 @@ def directional_spread(lengths: tuple[float, float, float], forward: np.ndarray,
     return spread
 
 
+def write_frames(out: Path, name: str, plan, render, rng: np.random.Generator) -> None:  # noqa: ANN001
+    """Every frame of ``plan`` rendered (``render(pattern) -> (H, W, 3)``), with Poisson shot noise (6000
+    photons per unit) and Gaussian read noise (7e-4), as float EXR named by its key in OUT/NAME; the
+    reference patterns also noise-free beside the folder (``NAME_clean_ref__*.exr``)."""
+    folder = out / name
+    folder.mkdir(parents=True, exist_ok=False)
+    for f in plan:
+        img = render(f.pattern())
+        noisy = rng.poisson(np.maximum(img, 0) * 6000) / 6000 + rng.normal(0, 0.0007, img.shape)
+        write_exr(folder / (f.key.replace("/", "__") + ".exr"), noisy.astype(np.float32))
+        if f.key.startswith("ref/"):
+            write_exr(out / f"{name}_clean_{f.key.replace('/', '__')}.exr", img)
+
+
 def main(out: Path, name: str, lengths: tuple[float, float, float], seed: int, forward: float = 0.0,
          floor: float = 0.0) -> None:
     plan = capture_plan(WP, HP, footprints=True, dot_spacing=20, references=("white", "black", "checkerboard", "stripes_x"))
@@ -85,14 +99,7 @@ def main(out: Path, name: str, lengths: tuple[float, float, float], seed: int, f
         fx, fy = (mapx * 0.97 + 4).astype(np.float32), (mapy * 0.97 + 3).astype(np.float32)
         return np.stack([cv2.remap(light[..., c], fx, fy, cv2.INTER_LINEAR, borderValue=0) for c in range(3)], -1)
 
-    folder = out / name
-    folder.mkdir(parents=True, exist_ok=False)
-    for f in plan:
-        img = render(f.pattern())
-        noisy = rng.poisson(np.maximum(img, 0) * 6000) / 6000 + rng.normal(0, 0.0007, img.shape)
-        write_exr(folder / (f.key.replace("/", "__") + ".exr"), noisy.astype(np.float32))
-        if f.key.startswith("ref/"):
-            write_exr(out / f"{name}_clean_{f.key.replace('/', '__')}.exr", img)
+    write_frames(out, name, plan, render, rng)
 
 
 if __name__ == "__main__":

@@ -40,7 +40,9 @@ import numpy as np
 
 from sssphase_core.processing.patterns import capture_plan
 from sssphase_core.processing.projector import emitted_light
-from sssphase_core.store.exr import write_exr
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from standin_render import write_frames  # noqa: E402  (the first stand-in's noise and file naming)
 
 WP, HP, W, H = 256, 192, 200, 150
 ETA = 1.3
@@ -215,14 +217,7 @@ def main(out: Path, name: str, material: str, mm_per_px: float, seed: int, g: fl
         spread = torch.nn.functional.fold((wt * src).reshape(1, 3 * k * k, -1), (H, W), k, padding=RADIUS)[0]
         return (spread.numpy().transpose(1, 2, 0) * inside[..., None]).astype(np.float32)
 
-    folder = out / name
-    folder.mkdir(parents=True, exist_ok=False)
-    for f in plan:
-        img = render(f.pattern())
-        noisy = rng.poisson(np.maximum(img, 0) * 6000) / 6000 + rng.normal(0, 0.0007, img.shape)
-        write_exr(folder / (f.key.replace("/", "__") + ".exr"), noisy.astype(np.float32))
-        if f.key.startswith("ref/"):
-            write_exr(out / f"{name}_clean_{f.key.replace('/', '__')}.exr", img)
+    write_frames(out, name, plan, render, rng)
 
 
 if __name__ == "__main__":
