@@ -207,7 +207,7 @@ def export(
     from sssphase_core.errors import InputError
     from sssphase_core.reporting.export import export_session
     from sssphase_core.store import exr
-    from sssphase_core.store.session import Session, check_output_folder, refuse_inside_session
+    from sssphase_core.store.session import Session, check_output_folder, claim_output, refuse_inside_session
 
     if not exr.available():
         raise InputError(exr.MISSING)
@@ -225,6 +225,7 @@ def export(
     if not s.views():
         raise InputError(f"{session} has no complete view to export (an interrupted capture? `sss validate {session}`)")
     refuse_inside_session(out / s.name, what=f"--out {out}: its folder")
+    claim_output(out, [s])  # OUT/<object>: another session's export of the same object is not mixed into
     written = export_session(s, out, chosen)
     console.print(f"wrote {len(written)} files under {out / s.name}")
 

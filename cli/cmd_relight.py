@@ -137,9 +137,9 @@ def relight_cmd(
         write_images,
     )
     from sssphase_core.relight.evaluation import comparison_figure, relight_metrics
-    from sssphase_core.relight.images import check_provenance, display_scale, record_provenance
+    from sssphase_core.relight.images import display_scale
     from sssphase_core.relight.sources import check_backends, uses_decoder
-    from sssphase_core.store.session import Session
+    from sssphase_core.store.session import Session, claim_output
 
     formats = check_image_formats(tuple(dict.fromkeys(f.strip().lower() for f in image_format.split(",") if f.strip())))
     if "exr" in formats:
@@ -164,8 +164,7 @@ def relight_cmd(
         console.print(f"note: --checkpoint is not used by --backend {backend}")
     s = Session.open(session)
     names, pats = [], []
-    chosen = _views(s, views)
-    for v in chosen:
+    for v in _views(s, views):
         rv = load_view(s, v)
         if not pats:
             wp, hp = rv.proj.projector_size
@@ -186,7 +185,7 @@ def relight_cmd(
             if twins:  # each pattern's name is its output file's
                 raise InputError(f"--pattern: two patterns would both be written as {twins[0]!r}: "
                                  "rename one (the output files are named by the pattern)")
-            check_provenance(out, [f"{rv.object}_v{u}_{n}_{backend}" for u in chosen for n in names], s.path)
+            claim_output(out, [s])  # images are named by object: another session's of the same object are not replaced
             if auto:  # said once the input is known good
                 console.print(f"backend: {backend}" + ("" if checkpoint is not None else
                                                         " (no --checkpoint: the analytic model; a trained decoder blends in)"))
@@ -223,7 +222,6 @@ def relight_cmd(
         for name, img in zip(names, relit, strict=True):
             stem = out / f"{rv.object}_v{v}_{name}_{backend}"
             paths = write_images(stem, img, formats=formats, scale=exposure)
-            record_provenance(out, [stem.name], s.path)
             line = f"wrote {', '.join(str(p) for p in paths)}"
             clipped = float((img[rv.proj.mask] > 1.0).any(axis=-1).mean()) if rv.proj.mask.any() else 0.0
             if "exr" not in formats and clipped > 0:
@@ -262,7 +260,7 @@ def geometry_cmd(
     from sssphase_core.learning.backends import available_backends
     from sssphase_core.learning.training import resolve_checkpoint
     from sssphase_core.relight import finest_psp_period, geometric_correspondence, load_view, make_source
-    from sssphase_core.store.session import Session, refuse_inside_session, view_dir_name
+    from sssphase_core.store.session import Session, claim_output, refuse_inside_session, view_dir_name
 
     compute_device(device)  # an unknown device is refused here too, not ignored by the model-free backends
     usable = ["exact", *sorted(available_backends())]
@@ -275,6 +273,7 @@ def geometry_cmd(
                             else "without scattering there is no shift"))
     s = Session.open(session)
     refuse_inside_session(out / s.name, what=f"--out {out}: its folder")  # written as OUT/<object>/view_NNN: OUT must not hold the session itself
+    claim_output(out, [s])
     period = finest_psp_period(s.manifest.get("plan", {}))
     if period is None:
         raise InputError(f"{session}: its capture plan has no PSP frames, so the fringe period is unknown")
@@ -327,7 +326,7 @@ def eval_relight(
     from sssphase_core.relight.evaluation import aggregate, evaluate_view, lpips_note, metrics_table
     from sssphase_core.relight.sources import MODEL_FREE, check_backends, uses_decoder
     from sssphase_core.relight.views import has_captured_transport, has_references
-    from sssphase_core.store.session import find_sessions
+    from sssphase_core.store.session import by_object, claim_output, find_sessions
 
     backends = list(dict.fromkeys(b.strip() for b in backend.split(",") if b.strip()))  # each once
     if not backends:
@@ -337,11 +336,7 @@ def eval_relight(
     check_backends(backends, checkpoint)
     compute_device(device)  # one line before any progress is drawn
     rows, found = [], find_sessions(sessions)  # a missing folder is one line before any progress is drawn
-    by_object: dict[str, Path] = {}
-    for s in found:  # outputs are named by object and view: two sessions of one object would overwrite each other
-        if by_object.setdefault(s.name, s.path) != s.path:
-            raise InputError(f"two sessions hold the object {s.name!r} ({by_object[s.name]} and {s.path}): their "
-                             "results would share names; evaluate them with separate --out folders")
+    by_object(found, purpose="their results would share names; evaluate them with separate --out folders")
     bare = []  # views without the dot-grid crops `measured` relights with
     for s in found:  # every session has views to evaluate, with references, before any work
         for v in _views(s, views):
@@ -356,6 +351,7 @@ def eval_relight(
         backends.remove("measured")
         console.print(f"measured left out: {', '.join(bare[:3])}{' ...' if len(bare) > 3 else ''} holds no dot-grid "
                       "footprints (capture with --footprints)")
+    claim_output(out, found)  # figures are named by object: another session's of the same object are not replaced
     if checkpoint is not None and any(uses_decoder(b) for b in backends):
         console.print(f"torch backend: {checkpoint}")
     with _progress() as bar:

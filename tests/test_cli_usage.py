@@ -254,6 +254,8 @@ RIG_HEAD = '[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\n'
     (RIG_HEAD + "[processing]\npatch = -5\n", "[processing] patch must be a whole number in [9, 256], got -5"),
     (RIG_HEAD + "[processing]\nsaturation = nan\n", "[processing] saturation must be a number in [1e-06, 1e+12], got nan"),
     (RIG_HEAD + "[processing]\nmedian = 3\n", "[processing] median must be true or false, got 3"),
+    (RIG_HEAD + "[processing]\nblack_level = 64\nwhite_scale = 0.000434\n",  # its inverse, as HARDWARE.md once said
+     "white_scale is the DN above black that one linear camera unit gives (a white at 2,300 DN: 2300), got 0.000434"),
     ("options = 5\n" + RIG_HEAD, "options must be a [options] table, got int"),
     (b"\xff\xfe\x00binary", "cannot read rig file"),
 ])

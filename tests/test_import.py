@@ -719,6 +719,8 @@ def test_footprints_cached_for_one_session_are_never_read_for_another(tmp_path):
         return read_exr(tmp_path / out / "obj_v0_checkerboard_analytic.exr")
 
     relit("a", "shared")
+    for image in (tmp_path / "shared").glob("obj_v0_*"):  # (another session's images there are refused; its cache stays)
+        image.unlink()
     fresh, shared = relit("b", "fresh"), relit("b", "shared")
     np.testing.assert_array_equal(shared, fresh)
     assert len(list((tmp_path / "shared" / "cache").glob("obj_v0_*_analytic_*.npz"))) == 2
@@ -812,3 +814,56 @@ def test_an_import_without_dot_grids_evaluates_without_measured_and_a_black_abov
     with pytest.raises(InputError, match=r"black\.npy: the fringe frames average -\d+\.\d\d of the white's light above this "
                                          r"black frame"):
         import_folder(folder, tmp_path / "s", "bright_black", (W, H), patch=K)
+
+
+def test_frames_of_any_shift_count_give_the_four_step_images_they_imply(tmp_path):
+    """Learning and relighting read the paper's 4 shifts per orientation. A renderer's 6-step frames (which
+    decoded, then failed every relight) are resampled by their first harmonic: a linear camera sees the
+    fringes as A + C cos d + S sin d, so the 4-step images come out as a 4-step capture would have given,
+    and the view calibration relights them under the matching 4-step patterns."""
+    from sssphase_core.processing.patterns import PSPConfig, psp_config_for
+    from sssphase_core.processing.psp import four_step
+    from sssphase_core.relight import load_view
+
+    ramp = np.linspace(0, 1, 7, dtype=np.float32)[:, None] * np.ones((7, 5), np.float32)
+    sines = np.stack([0.4 + 0.3 * np.cos(2 * ramp + 2 * np.pi * n / 6) for n in range(6)])
+    np.testing.assert_allclose(four_step(sines), np.stack([0.4 + 0.3 * np.cos(2 * ramp + np.pi * k / 2) for k in range(4)]),
+                               atol=1e-6)
+    sessions = {}
+    for n in (4, 6):
+        base = psp_config_for(W, H)
+        config = PSPConfig(period=base.period, n_shifts=n, unwrap_periods=base.unwrap_periods)
+        plan = list(capture_plan(W, H, psp=config, references=("white", "black", "checkerboard")))
+        folder = tmp_path / f"f{n}"
+        folder.mkdir()
+        for f, img in zip(plan, _camera(np.stack([f.pattern() for f in plan])), strict=True):
+            np.save(folder / (f.key.replace("/", "__") + ".npy"), img)
+        sessions[n] = load_view(import_folder(folder, tmp_path / f"s{n}", "ramp", (W, H), patch=K), 0)
+    four, six = sessions[4], sessions[6]
+    assert six.session.manifest["views"]["0"]["psp_from_shifts"] == 6
+    m = four.proj.mask & six.proj.mask
+    np.testing.assert_allclose(six.psp[:, m], four.psp[:, m], atol=2e-4)
+    np.testing.assert_allclose(six.psp_patterns, four.psp_patterns, atol=1e-6)
+
+
+def test_an_import_warns_when_a_reference_capture_does_not_follow_its_pattern(tmp_path):
+    """Frames rendered for another projector size decode (their names give the fringes) but every named
+    pattern, made at the --projector size, is another image: relighting then scored 9.6 dB in silence. Each
+    reference capture is compared with its pattern at the decoded points (recorded as reference_match)."""
+    plan = [f for f in capture_plan(W, H, references=("white", "black", "checkerboard"))]
+    images = dict(zip((f.key for f in plan), _camera(np.stack([f.pattern() for f in plan])), strict=True))
+    for name, swap in (("right", False), ("other", True)):
+        folder = tmp_path / name
+        folder.mkdir()
+        for key, img in images.items():
+            if swap and key == "ref/checkerboard":  # the camera saw another checkerboard: its squares swapped
+                img = _camera(1.0 - next(f for f in plan if f.key == key).pattern()[None])[0]
+            np.save(folder / (key.replace("/", "__") + ".npy"), img)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # no warning for the right pattern
+        right = import_folder(tmp_path / "right", tmp_path / "s", "right", (W, H), patch=K)
+    assert right.manifest["views"]["0"]["reference_match"]["checkerboard"] > 0.8
+    with pytest.warns(UserWarning, match=r"checkerboard \(correlation -0\.\d\d\) does not follow the pattern .* is "
+                                         r"--projector right \(64x48\)"):
+        other = import_folder(tmp_path / "other", tmp_path / "s", "other", (W, H), patch=K)
+    assert other.manifest["views"]["0"]["reference_match"]["checkerboard"] < -0.5

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import warnings
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -266,14 +267,47 @@ def _nothing_decoded(vdir: Path, coverage: dict[str, int], clipped: float = 0.0)
 OUTSIDE_WARN, CLIPPED_WARN = 0.2, 0.01
 
 
+#: Below this correlation between a reference capture and its pattern at the decoded points, an import warns.
+REFERENCE_MATCH_WARN = 0.3
+
+
+def reference_match(proc: ViewProcessor, frames: list[dict[str, Any]], gamma: float) -> dict[str, float]:
+    """Per reference capture of a decoded view: the correlation, over decoded pixels, between its light (above
+    black, relative to the white's) and the light its pattern sends to each pixel's decoded projector point.
+
+    Scattering blurs but keeps it high (the demo's and the stand-ins' references: see the tests); a pattern
+    made for another projector size (a wrong ``--projector``) or another image gives about 0.
+    """
+    from sssphase_core.processing.patterns import PlannedFrame
+    from sssphase_core.processing.projector import emitted_light
+
+    m = proc.corr.mask
+    white = np.maximum((proc.images["white"] - proc.images["black"])[m].mean(-1), 1e-6)
+    found = {}
+    for f in frames:
+        name = f["name"].removeprefix("ref/")
+        if name in ("white", "black") or f["name"] not in proc.images:
+            continue
+        pattern = proc.patterns.get(f["name"]) if f["kind"] == "image" else PlannedFrame(f["key"], f["kind"], f["params"], 1.0).pattern()
+        if pattern is None:
+            continue
+        light = emitted_light(np.asarray(pattern, np.float32)[None], gamma)[0]
+        light = light.mean(-1) if light.ndim == 3 else light
+        ix = np.clip(np.round(proc.corr.xp[m]).astype(int), 0, light.shape[1] - 1)
+        iy = np.clip(np.round(proc.corr.yp[m]).astype(int), 0, light.shape[0] - 1)
+        seen = (proc.images[f["name"]] - proc.images["black"])[m].mean(-1) / white
+        sent = light[iy, ix]
+        if seen.std() > 0 and sent.std() > 0:
+            found[name] = float(np.corrcoef(seen, sent)[0, 1])
+    return found
+
+
 def _warn_suspect_view(vdir: Path, coverage: dict[str, int], size: tuple[int, int], fringes_clipped: float,
                        white: np.ndarray, mask: np.ndarray, top: float | None, mean_share: float = 0.5,
                        gamma: float = 2.2, encoding: str = "linear") -> None:
     """One warning line each for what an import cannot refuse but the user should know: many pixels mapped
     outside the projector, clipped fringes or white (integer files; ``top`` the white's top code), or
     fringes whose mean is not half the white's light (``mean_share``, :func:`fringe_mean_share`)."""
-    import warnings
-
     if abs(mean_share - FRINGE_MEAN_SHARE) > FRINGE_MEAN_TOLERANCE and fringes_clipped <= CLIPPED_WARN:  # (clipping: below)
         hint = ("if the files are gamma-encoded (sRGB), import with --encoding srgb; " if encoding == "linear" else
                 f"the files were decoded as {encoding}: if they are linear, import with --encoding linear; ")
@@ -379,8 +413,6 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
         raise InputError(f"{folder / odd[0]} is no view folder: name view folders view_NNN (NNN a number), or move it out")
     numbers = [int(p.name[5:]) for p in view_dirs if p != folder]
     if numbers and numbers != list(range(len(numbers))):  # sessions number views 0..N-1
-        import warnings
-
         as_views = "view 0" if len(numbers) == 1 else f"views 0 to {len(numbers) - 1} in that order"
         warnings.warn(f"{folder}: view folder{'s' if len(numbers) > 1 else ''} {', '.join(p.name for p in view_dirs)} "
                       f"{'are' if len(numbers) > 1 else 'is'} imported as {as_views}", stacklevel=2)
@@ -481,6 +513,14 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                                    proc.images["white"], proc.corr.mask, scale if stores_integers(files["white"]) else None,
                                    share, gamma, encoding)
                 info["fringe_mean_share"] = round(share, 4) if np.isfinite(share) else None
+                match = reference_match(proc, frames, gamma)
+                info["reference_match"] = {k: round(v, 3) for k, v in match.items()}
+                astray = {ref: r for ref, r in match.items() if r < REFERENCE_MATCH_WARN}
+                if astray:
+                    warnings.warn(f"{vdir}: the reference capture{'s' if len(astray) > 1 else ''} "
+                                  f"{', '.join(f'{ref} (correlation {r:.2f})' for ref, r in astray.items())} do"
+                                  f"{'' if len(astray) > 1 else 'es'} not follow the pattern at the decoded points: is "
+                                  f"--projector right ({w}x{h})? the patterns are made at that size", UserWarning, stacklevel=2)
             except BaseException:
                 writer.abort()
                 raise

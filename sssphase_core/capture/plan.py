@@ -79,6 +79,9 @@ class RigSpec:
                                   or (key == "patch" and not isinstance(v, int))):
                 raise InputError(f"{path}: [processing] {key} must be a {'whole ' if key == 'patch' else ''}number in "
                                  f"[{lo:g}, {hi:g}], got {v!r}")
+        if isinstance(proc.get("white_scale"), int | float) and proc["white_scale"] < 1:  # raw frames count whole DN
+            raise InputError(f"{path}: [processing] white_scale is the DN above black that one linear camera unit gives "
+                             f"(a white at 2,300 DN: 2300), got {proc['white_scale']:g}, below one DN: its inverse?")
         if "median" in proc and not isinstance(proc["median"], bool):
             raise InputError(f"{path}: [processing] median must be true or false, got {proc['median']!r}")
         gamma, black = resp.get("gamma"), resp.get("black")

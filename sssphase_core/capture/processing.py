@@ -233,10 +233,15 @@ class ViewProcessor:
         cfg, w = self.plan.psp, self.writer
         order = cfg.input_keys
         corr = self.decode()
-        w.write("psp", np.stack([self.psp[k] for k in order]))
+        from sssphase_core.processing.psp import four_step
+
+        n = cfg.n_shifts  # learning and relighting read the paper's 4 shifts per orientation: other counts are resampled
+        w.write("psp", np.concatenate([four_step(np.stack([self.psp[k] for k in order[i:i + n]])) for i in (0, n)]))
         info: dict[str, Any] = {"psp_keys": order, "coverage": corr.coverage(), "camera_isp": self.camera_isp,
                                 "outliers_repaired": self.outliers,
                                 "hot_pixels": 0 if self.hot is None else int((self.hot > 0).any(axis=-1).sum())}
+        if n != 4:
+            info["psp_from_shifts"] = n  # `psp` holds the 4-step images their first harmonic gives (psp.four_step)
         if self.req.keep_unwrap:
             unwrap = [k for k in self.psp if k not in order]
             w.write("unwrap", np.stack([self.psp[k] for k in unwrap]))

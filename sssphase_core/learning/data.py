@@ -344,9 +344,10 @@ def session_views(
     those with captured footprints; otherwise the decoded correspondence mask. Material labels come
     from ``gt/labels`` when present (simulated sessions), else -1.
     """
-    from sssphase_core.store.session import sessions_at
+    from sssphase_core.store.session import by_object, sessions_at
 
-    sessions = {s.name: s for s in sessions_at(root)}
+    sessions = by_object(sessions_at(root), purpose="training would read one of them only; give "
+                         "--sessions a folder holding one session per object")
     names = list(objects) if objects else sorted(sessions)
     missing = [n for n in names if n not in sessions]
     if missing:

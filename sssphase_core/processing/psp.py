@@ -97,6 +97,25 @@ def _coefficients(n_shifts: int) -> tuple[list[float], list[float]]:
     return [clean(math.sin(d)) for d in deltas], [clean(math.cos(d)) for d in deltas]
 
 
+def four_step(frames: np.ndarray) -> np.ndarray:
+    """The 4-step set (4, ...) of one N-step fringe set ``frames`` (N, ...), N >= 3 shifts δ_n = 2πn/N.
+
+    A linear camera sees a sinusoid at the fringes' frequency as ``A + C cos δ + S sin δ`` per pixel, so
+    the first harmonic of any N-step set (A, C, S: least squares, exact for equally spaced shifts) gives
+    the images the paper's 4 shifts (δ = 0, π/2, π, 3π/2) would have given; a 4-step set is returned as it is.
+    """
+    frames = np.asarray(frames, np.float32)
+    n = len(frames)
+    if n == 4:
+        return frames
+    if n < 3:
+        raise InputError(f"a fringe set needs at least 3 shifts, got {n}")
+    sin, cos = (np.asarray(c, np.float32).reshape((n,) + (1,) * (frames.ndim - 1)) for c in _coefficients(n))
+    a = frames.mean(0)
+    c, s = (2.0 / n) * (frames * cos).sum(0), (2.0 / n) * (frames * sin).sum(0)
+    return np.stack([a + c, a + s, a - c, a - s])
+
+
 class _Block:
     """Accumulates Σ I_n sin δ_n, Σ I_n cos δ_n and Σ I_n over one block of rows.
 

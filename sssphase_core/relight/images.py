@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -12,13 +10,9 @@ from sssphase_core.errors import InputError
 from sssphase_core.processing.colour import display_scale, srgb
 from sssphase_core.store.imageio import RESIZE_MODES, read_pattern
 
-__all__ = ["IMAGE_FORMATS", "PROVENANCE", "RESIZE_MODES", "check_image_formats", "check_provenance", "read_pattern",
-           "record_provenance", "write_images"]
+__all__ = ["IMAGE_FORMATS", "RESIZE_MODES", "check_image_formats", "read_pattern", "write_images"]
 
 IMAGE_FORMATS = ("png", "exr")
-
-#: the file in an output folder that names the session each relit image (by stem) was relit from
-PROVENANCE = "relit_from.json"
 
 
 def check_image_formats(formats: tuple[str, ...]) -> tuple[str, ...]:
@@ -68,33 +62,3 @@ def _imwrite(path: Path, image: np.ndarray) -> Path:
         raise InputError(f"could not write {path} (is the name too long, the disk full, the folder writable?)")
     return path
 
-
-def _provenance(out: Path) -> dict[str, str]:
-    try:
-        data = json.loads((out / PROVENANCE).read_text())
-    except (OSError, ValueError):  # none yet, or unreadable: nothing is known of earlier runs
-        return {}
-    return {str(k): str(v) for k, v in data.items()} if isinstance(data, dict) else {}
-
-
-def check_provenance(out: Path, stems: Iterable[str], session: Path) -> None:
-    """Refuse, before any work, to overwrite relit images in ``out`` that another session was relit into.
-
-    Relit images are named by object, view, pattern and backend; two sessions of one object (a re-capture,
-    an imported copy) share those names. ``out/relit_from.json`` records which session each stem came from.
-    """
-    known, here = _provenance(out), str(Path(session).resolve())
-    for stem in stems:
-        source = known.get(stem)
-        if source is not None and source != here and any((out / f"{stem}.{f}").exists() for f in IMAGE_FORMATS):
-            raise InputError(f"--out {out} holds {stem} relit from another session ({source}); relighting {session} "
-                             "would overwrite it: choose another --out")
-
-
-def record_provenance(out: Path, stems: Iterable[str], session: Path) -> None:
-    """Note in ``out/relit_from.json`` that ``stems`` were relit from ``session``."""
-    known = _provenance(out)
-    known.update(dict.fromkeys(stems, str(Path(session).resolve())))
-    tmp = out / (PROVENANCE + ".tmp")
-    tmp.write_text(json.dumps(known, indent=1, sort_keys=True))
-    tmp.replace(out / PROVENANCE)

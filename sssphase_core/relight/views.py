@@ -187,7 +187,8 @@ def paper_input_patterns(plan: dict) -> np.ndarray | None:
 
 def paper_input_frames(plan: dict) -> list[dict] | None:
     """The plan's frames of the 8 paper inputs in the order of a session's ``psp`` stack (the finest period,
-    x shifts then y shifts), or None when the plan has no such set."""
+    x shifts then y shifts), or None when the plan has no such set. A plan of N != 4 shifts gives the 4-step
+    frames its stack was resampled to (keys ending in ``~4``)."""
     # One frame per pattern: an HDR plan lists each pattern once per exposure bracket (same key), merged into one
     # image (without this, HDR sessions silently lost the view calibration: the crab relit 4-6 dB worse).
     frames = list({f["key"]: f for f in plan.get("frames", []) if f.get("kind") == "psp"}.values())
@@ -196,6 +197,11 @@ def paper_input_frames(plan: dict) -> list[dict] | None:
         return None
     chosen = sorted((f for f in frames if float(f["params"]["period"]) == finest),
                     key=lambda f: (f["params"]["orientation"], int(f["params"]["shift"])))
-    if [(f["params"]["orientation"], int(f["params"]["shift"])) for f in chosen] != [(o, n) for o in "xy" for n in range(4)]:
+    n = len(chosen) // 2
+    if n < 3 or [(f["params"]["orientation"], int(f["params"]["shift"])) for f in chosen] != [(o, k) for o in "xy" for k in range(n)]:
         return None
-    return chosen
+    if n == 4:
+        return chosen
+    # an N-step plan: its psp stack holds the 4-step images (psp.four_step), made under these patterns
+    return [{**f, "key": f"{f['key']}~4", "params": {**f["params"], "shift": k, "n_shifts": 4}}
+            for f in (chosen[0], chosen[n]) for k in range(4)]

@@ -582,6 +582,61 @@ def sessions_at(root: Path | str) -> list[Session]:
     return [Session.open(root)] if (Path(root) / MANIFEST).exists() else list_sessions(root)
 
 
+#: the file in an output folder that names the session each object's outputs there came from
+OUTPUT_SOURCES = "sources.json"
+
+
+def _has_outputs(out: Path, obj: str) -> bool:
+    """Whether ``out`` holds outputs of ``obj``: its folder (OUT/<object>/view_NNN) or files named OBJECT_vN..."""
+    if (out / obj).exists():
+        return True
+    try:
+        return any(p.name.startswith(f"{obj}_v") for p in out.iterdir())
+    except OSError:
+        return False
+
+
+def claim_output(out: Path | str, sessions: Iterable[Session]) -> None:
+    """Make ``out`` the place of these sessions' outputs, refusing (before any work) one that holds another
+    session's outputs of the same object: every command names its outputs by object (OUT/<object>/...,
+    OUT/<object>_v<view>_...), so a re-capture or a copy would silently replace them. The owners are
+    recorded in ``OUT/sources.json`` (object -> session folder)."""
+    out = Path(out)
+    record = out / OUTPUT_SOURCES
+    known: dict[str, str] = {}
+    if record.exists() or record.is_symlink():
+        try:
+            data = json.loads(record.read_text())
+        except (OSError, ValueError) as e:
+            raise InputError(f"{record} cannot be read ({getattr(e, 'strerror', None) or e}): it names the session "
+                             "behind each object's outputs there; remove it, or choose another --out") from None
+        if not isinstance(data, dict) or not all(isinstance(v, str) for v in data.values()):
+            raise InputError(f"{record} is not a map of object names to session folders: remove it, or choose another --out")
+        known = {str(k): v for k, v in data.items()}
+    claims = {s.name: str(s.path.resolve()) for s in sessions}
+    for obj, here in claims.items():
+        if known.get(obj, here) != here and _has_outputs(out, obj):
+            raise InputError(f"--out {out} holds outputs of {obj!r} from another session ({known[obj]}); this session "
+                             f"({here}) would overwrite them: choose another --out")
+    if all(known.get(k) == v for k, v in claims.items()):
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    tmp = out / f".{OUTPUT_SOURCES}.tmp"
+    tmp.write_text(json.dumps({**known, **claims}, indent=1, sort_keys=True))
+    tmp.replace(record)
+
+
+def by_object(sessions: Iterable[Session], *, purpose: str) -> dict[str, Session]:
+    """The sessions keyed by their object name; two sessions of one object (a re-capture, a copy) are one
+    InputError, since every result is named by the object. ``purpose`` says what would go wrong."""
+    found: dict[str, Session] = {}
+    for s in sessions:
+        other = found.setdefault(s.name, s)
+        if other.path.resolve() != s.path.resolve():
+            raise InputError(f"two sessions hold the object {s.name!r} ({other.path} and {s.path}): {purpose}")
+    return found
+
+
 def find_sessions(paths: Iterable[Path | str]) -> list[Session]:
     """Each path is a session folder or a root of session folders; every session found, in order."""
     found: list[Session] = []

@@ -146,3 +146,15 @@ def test_a_stack_padded_once_gives_the_same_patches():
     for k in (4, 5, 9):
         np.testing.assert_array_equal(crop_patches(pad_for_patches(stack, k), pixels, k, padded=True).numpy(),
                                       crop_patches(stack, pixels, k).numpy())
+
+
+def test_training_refuses_two_sessions_of_one_object(tmp_path):
+    """Views are keyed by object name: a second session of the same object would be dropped without a word."""
+    from sssphase_core.learning.data import session_views
+    from sssphase_core.store.session import Session
+
+    (tmp_path / "all").mkdir()
+    for day in ("day1", "day2"):  # the same object captured twice, the second folder renamed by the user
+        Session.create(tmp_path / day, "wax").path.rename(tmp_path / "all" / f"wax_{day}")
+    with pytest.raises(InputError, match="two sessions hold the object 'wax'.*training would read one of them only"):
+        session_views(tmp_path / "all")

@@ -451,23 +451,30 @@ def test_geometry_names_the_backends_it_takes_and_checks_the_device(session, tmp
     assert not (tmp_path / "g").exists()
 
 
-def test_relight_does_not_overwrite_another_sessions_images_of_the_same_object(session, tmp_path):
-    """Relit images are named by object, view, pattern and backend: a second session of the same object (a
-    re-capture, a copy) relit into the same --out is refused before any work; a rerun of the first is not."""
+def test_outputs_of_another_session_of_the_same_object_are_not_replaced(session, tmp_path):
+    """Outputs are named by object: a second session of the same object (a re-capture, a copy) relit, evaluated
+    or exported into the same --out is refused before any work, whatever its patterns; a rerun of the first is
+    not. A record that cannot be read is named, not ignored."""
     import shutil
 
     twin = tmp_path / "again" / session.name
     shutil.copytree(session, twin)
     out = tmp_path / "o"
-    args = ["--views", "1", "--pattern", "white", "--backend", "none", "--out", str(out)]
-    assert runner.invoke(app, ["relight", str(session), *args]).exit_code == 0
+    args = ["--views", "1", "--backend", "none", "--out", str(out)]
+    assert runner.invoke(app, ["relight", str(session), "--pattern", "white", *args]).exit_code == 0
     first = (out / "sand_rake_v1_white_none.png").read_bytes()
     (out / "sand_rake_v1_white_none.png").write_bytes(first + b"mark")  # any rewrite would drop the mark
-    res = runner.invoke(app, ["relight", str(twin), *args])
-    assert res.exit_code != 0 and "relit from another session" in str(res.exception)
-    assert str(session.resolve()) in str(res.exception)
+    for cmd in (["relight", str(twin), "--pattern", "white", *args], ["relight", str(twin), "--pattern", "black", *args],
+                ["eval", "relight", str(twin), *args], ["export", str(twin), "--out", str(out)]):
+        res = runner.invoke(app, cmd)
+        assert res.exit_code != 0 and "holds outputs of 'sand_rake' from another session" in str(res.exception), cmd
+        assert str(session.resolve()) in str(res.exception)
     assert (out / "sand_rake_v1_white_none.png").read_bytes() == first + b"mark"
-    again = runner.invoke(app, ["relight", str(session), *args])  # the same session again: the usual rerun
+    assert not list(out.glob("*black*")) and not (out / "sand_rake").exists()
+    again = runner.invoke(app, ["relight", str(session), "--pattern", "white", *args])  # the same session: a rerun
     assert again.exit_code == 0, again.output
-    assert not (out / "sand_rake_v1_white_none.png").read_bytes().endswith(b"mark")  # rewritten
-    assert runner.invoke(app, ["relight", str(twin), *args[:-1], str(tmp_path / "o2")]).exit_code == 0
+    assert not (out / "sand_rake_v1_white_none.png").read_bytes().endswith(b"mark")
+    assert runner.invoke(app, ["relight", str(twin), "--pattern", "white", *args[:-1], str(tmp_path / "o2")]).exit_code == 0
+    (out / "sources.json").write_text('{"sand_rake": "/x"')  # truncated
+    res = runner.invoke(app, ["relight", str(session), "--pattern", "white", *args])
+    assert res.exit_code != 0 and "sources.json cannot be read" in str(res.exception)
