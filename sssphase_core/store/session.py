@@ -590,8 +590,9 @@ def _has_outputs(out: Path, obj: str) -> bool:
     """Whether ``out`` holds outputs of ``obj``: its folder (OUT/<object>/view_NNN) or files named OBJECT_vN..."""
     if (out / obj).exists():
         return True
+    named = re.compile(re.escape(obj) + r"_v\d+_")  # OBJECT_v<view>_PATTERN_BACKEND... (an object crab_v2's match crab's too)
     try:
-        return any(p.name.startswith(f"{obj}_v") for p in out.iterdir())
+        return any(named.match(p.name) for p in out.iterdir())
     except OSError:
         return False
 
