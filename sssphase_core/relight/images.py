@@ -61,4 +61,3 @@ def _imwrite(path: Path, image: np.ndarray) -> Path:
     if not ok:
         raise InputError(f"could not write {path} (is the name too long, the disk full, the folder writable?)")
     return path
-

@@ -622,9 +622,7 @@ def claim_output(out: Path | str, sessions: Iterable[Session]) -> None:
     if all(known.get(k) == v for k, v in claims.items()):
         return
     out.mkdir(parents=True, exist_ok=True)
-    tmp = out / f".{OUTPUT_SOURCES}.tmp"
-    tmp.write_text(json.dumps({**known, **claims}, indent=1, sort_keys=True))
-    tmp.replace(record)
+    write_json_atomic(record, {**known, **claims})
 
 
 def by_object(sessions: Iterable[Session], *, purpose: str) -> dict[str, Session]:
