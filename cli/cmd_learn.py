@@ -27,6 +27,10 @@ SessionsOpt = Annotated[
 ]
 MAX_SEED = 2**32 - 1  # numpy's and torch's seeds take it; the loop derives per-step seeds from it
 NViewsOpt = Annotated[int, typer.Option(min=1, help="Turntable views per object (simulator).")]
+DeterministicOpt = Annotated[bool, typer.Option(
+    help="CUDA: deterministic kernels, so a resumed run ends with exactly an uninterrupted run's weights (`sss bench "
+         "gpu` measures the cost: on an H200 0.26x the speed for SimSiam, which resumed exactly without them, and 0.90x "
+         "for the decoder, which did not); the CPU's kernels always are.")]
 DEFAULT_CACHE = Path(".sss_cache")
 
 
@@ -181,6 +185,7 @@ def train_pretrain(
     seed: Annotated[int, typer.Option(min=0, max=MAX_SEED)] = 0,
     ckpt_every: Annotated[int, typer.Option(min=0, help="Steps between mid-epoch checkpoints (0: epoch ends only).")] = 50,
     device: str = "auto",
+    deterministic: DeterministicOpt = False,
     resume: Annotated[bool, typer.Option(help="Continue from out/last.pt when present.")] = True,
     cache: CacheOpt = DEFAULT_CACHE,
     sessions: SessionsOpt = None,
@@ -211,7 +216,7 @@ def train_pretrain(
         console.print(f"[yellow]note:[/] --warmup-epochs {warmup_epochs:g} is not shorter than --epochs {epochs}: the "
                       f"learning rate rises for the whole run, to about {epochs / warmup_epochs:.2g} x --lr, and never decays")
     cfg = PretrainConfig(epochs=epochs, batch_size=batch_size, seed=seed, ckpt_every=ckpt_every, device=device, preset=preset,
-                         lr=lr, warmup_epochs=warmup_epochs, fix_pred_lr=fix_pred_lr, augment=augment, knn_monitor=knn_monitor)
+                         deterministic=deterministic, lr=lr, warmup_epochs=warmup_epochs, fix_pred_lr=fix_pred_lr, augment=augment, knn_monitor=knn_monitor)
     console.print(f"pretraining [bold]{preset}[/] on {len(ds)} patches of {', '.join(names)} -> {out} "
                   f"(options in {save_run_config(ctx, out, resuming=resuming)})")
     with step_bar(console) as progress:
@@ -255,6 +260,7 @@ def train_decoder(
     seed: Annotated[int, typer.Option(min=0, max=MAX_SEED)] = 0,
     ckpt_every: Annotated[int, typer.Option(min=0, help="Steps between mid-epoch checkpoints (0: epoch ends only).")] = 50,
     device: str = "auto",
+    deterministic: DeterministicOpt = True,
     resume: bool = True,
     cache: CacheOpt = DEFAULT_CACHE,
     sessions: SessionsOpt = None,
@@ -315,7 +321,7 @@ def train_decoder(
     _check_batch(batch_size, ds, "training footprints")
     check_aux_classes(aux_classes, ds)
     cfg = DecoderConfig(epochs=epochs, batch_size=batch_size, seed=seed, ckpt_every=ckpt_every, device=device, lr=lr,
-                        head=head, aux_classes=aux_classes, preset=preset, learn_gain=learn_gain)
+                        deterministic=deterministic, head=head, aux_classes=aux_classes, preset=preset, learn_gain=learn_gain)
     what = f"encoder and decoder end-to-end ({preset})" if end_to_end else "the decoder"
     console.print(f"training {what} on {len(ds)} footprints of {', '.join(names)} -> {out} "
                   f"(options in {save_run_config(ctx, out, resuming=resuming)})")

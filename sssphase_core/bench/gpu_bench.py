@@ -23,6 +23,7 @@ import sys
 import tempfile
 import textwrap
 import time
+from dataclasses import replace
 from functools import partial
 from pathlib import Path
 from typing import Any
@@ -58,14 +59,17 @@ def _epoch_losses(run: Path, key: str) -> list[float]:
     return [float(r[key]) for r in read_rows(run / METRICS) if key in r]
 
 
-#: the loaders compared by :func:`training`: today's default (next batch built on a worker thread, patches
-#: cropped on the device where the stacks fit) and the plain host loader as the same-run baseline.
-LOADERS = {"default": {}, "host": {"prefetch": False, "stacks_on_device": False}}
+#: the variants compared by :func:`training`: today's default (next batch built on a worker thread, patches
+#: cropped on the device where the stacks fit; deterministic kernels for the decoder, not for SimSiam), the
+#: plain host loader as the same-run baseline, and the default with the other kernel choice (``flip``:
+#: what determinism costs each stage).
+LOADERS = {"default": {}, "host": {"prefetch": False, "stacks_on_device": False}, "kernels": {"flip": True}}
+LOADER_LABELS = {"default": "default", "host": "host loader (baseline)", "kernels": "other kernels"}
 
 
 def training(preset: str, dev: torch.device, out: Path, *, steps: int, batch: int, epochs: int) -> dict[str, Any]:
     """Pretraining and decoder fitting for ``steps`` steps each (``epochs`` epochs, for the loss curve), once
-    with each of :data:`LOADERS` (``result[stage]`` the default, ``result[stage + "_host"]`` the baseline)."""
+    with each of :data:`LOADERS` (``result[stage]`` the default, ``result[stage + "_host"]`` etc. the others)."""
     from sssphase_core.learning.models import get_preset
     from sssphase_core.learning.runlog import METRICS, read_rows
     from sssphase_core.learning.training import DecoderConfig, PretrainConfig, pretrain, train_decoder
@@ -76,9 +80,15 @@ def training(preset: str, dev: torch.device, out: Path, *, steps: int, batch: in
     result: dict[str, Any] = {"preset": preset, "patch": p.patch, "batch": batch, "patches": len(ds)}
     for loader, options in LOADERS.items():
         pre, dec = out / f"pre_{loader}", out / ("dec" if loader == "default" else f"dec_{loader}")
+        options = dict(options)
+        flip = options.pop("flip", False)
         pre_cfg = PretrainConfig(preset=preset, epochs=epochs, batch_size=batch, device=str(dev), ckpt_every=0,
                                  knn_monitor=0, warmup_epochs=0.5, **options)
         dec_cfg = DecoderConfig(epochs=epochs, batch_size=batch, device=str(dev), ckpt_every=0, val_samples=0, **options)
+        if flip:
+            pre_cfg = replace(pre_cfg, deterministic=not pre_cfg.deterministic)
+            dec_cfg = replace(dec_cfg, deterministic=not dec_cfg.deterministic)
+        result[f"deterministic_{loader}"] = {"pretrain": pre_cfg.deterministic, "decoder": dec_cfg.deterministic}
         runs = {"pretrain": partial(pretrain, pre_cfg, ds, pre, resume=False, progress=False),
                 "decoder": partial(train_decoder, dec_cfg, pre, ds, dec, resume=False, progress=False)}
         for name, run in runs.items():
@@ -233,7 +243,7 @@ def markdown(r: dict[str, Any]) -> str:
              "| stage | loader | steps | patches/s (all) | patches/s (after epoch 1) | waiting for data | peak device memory "
              "| loss per epoch | finite, falling |", "|---|---|---|---|---|---|---|---|---|"]
     for name in ("pretrain", "decoder"):
-        for key, loader in ((name, "default"), (f"{name}_host", "host (baseline)")):
+        for key, loader in ((name if v == "default" else f"{name}_{v}", label) for v, label in LOADER_LABELS.items()):
             if key not in t:
                 continue
             s = t[key]
@@ -245,6 +255,17 @@ def markdown(r: dict[str, Any]) -> str:
               for name in ("pretrain", "decoder") if name + "_host" in t]
     if ratios:
         lines += ["", "Default loader against the host loader (patches/s after epoch 1), same run: " + ", ".join(ratios) + "."]
+    if "deterministic_kernels" in t:
+        det = t["deterministic_default"]
+        costs = []
+        for name in ("pretrain", "decoder"):
+            fast, slow = (name + "_kernels", name) if det[name] else (name, name + "_kernels")
+            costs.append(f"{name} {t[slow]['steady_patches_s'] / t[fast]['steady_patches_s']:.2f}× "
+                         f"({'default' if det[name] else 'other'})")
+        same = {name: t[name]["loss_per_epoch"] == t[name + "_host"]["loss_per_epoch"] for name in ("pretrain", "decoder")}
+        lines += ["", "Deterministic kernels against CUDA's default ones (patches/s after epoch 1), same run: "
+                  + ", ".join(costs) + ". Loss per epoch identical with the host loader (same batches and kernels, "
+                  "other cropping): " + ", ".join(f"{k} {v}" for k, v in same.items()) + "."]
     lines += ["", "| CPU vs device, fixed batch | footprint max rel. diff | embedding max rel. diff |", "|---|---|---|"]
     for label, a in r["agreement"].items():
         lines.append(f"| {label}{'' if a['autocast'] or label == 'float32' else ' (not applied off CUDA)'} | "

@@ -14,20 +14,24 @@ from sssphase_core.errors import InputError
 @pytest.mark.slow
 def test_the_gpu_bench_runs_every_stage_on_the_cpu(tmp_path):
     r = gpu_bench.run(tmp_path / "gpu.json", device="cpu", preset="lite", steps=4, batch=8, epochs=2, relight_size=48)
-    for stage in ("pretrain", "decoder", "pretrain_host", "decoder_host"):  # both loaders, same run
+    for stage in ("pretrain", "decoder", "pretrain_host", "decoder_host", "pretrain_kernels", "decoder_kernels"):
         s = r["training"][stage]
         assert s["steps"] == 4 and s["patches_s"] > 0 and len(s["loss_per_epoch"]) == 2 and s["finite"]
         assert s["steady_patches_s"] > 0 and 0 <= s["data_wait_share"] <= 1
         assert s["peak_memory_mb"] is None  # no device memory on the CPU
-    for stage in ("pretrain", "decoder"):  # neither loader option applies on the CPU: the same training
+    for stage in ("pretrain", "decoder"):  # neither loader nor kernel option applies on the CPU: the same training
         assert r["training"][stage]["loss_per_epoch"] == r["training"][stage + "_host"]["loss_per_epoch"]
+        assert r["training"][stage]["loss_per_epoch"] == r["training"][stage + "_kernels"]["loss_per_epoch"]
     for label in ("float32", "bf16 autocast"):
         assert r["agreement"][label]["footprint"] == 0.0  # CPU against itself: the same numbers
     for method in ("index", "fold"):
         assert r["relight"][method]["max_rel_diff"] < 1e-5 and r["relight"][method]["seconds"] > 0
     assert "skipped" in r["ddp"] and "GPU" in r["ddp"]["skipped"]
     text = gpu_bench.markdown(r)
-    assert "| pretrain | default | 4 |" in text and "| decoder | host (baseline) | 4 |" in text
+    assert "| pretrain | default | 4 |" in text and "| decoder | host loader (baseline) | 4 |" in text
+    assert "| decoder | other kernels | 4 |" in text and "identical with the host loader" in text
+    assert r["training"]["deterministic_default"] == {"pretrain": False, "decoder": True}
+    assert r["training"]["deterministic_kernels"] == {"pretrain": True, "decoder": False}
     assert "same run: pretrain" in text and "fold" in text and "CPU" in text
     assert all(math.isfinite(v) for v in r["training"]["decoder"]["loss_per_epoch"])
 

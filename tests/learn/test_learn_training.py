@@ -376,3 +376,42 @@ def test_an_epoch_row_written_again_after_a_resume_replaces_the_first(tmp_path):
     log.close()
     assert [(r["epoch"], r["loss"]) for r in read_rows(tmp_path / METRICS)] == [(1, 3.0), (2, 1.5), (3, 1.0)]
     assert (tmp_path / "metrics.csv").read_text().count("\n") == 4  # header + three rows
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_paper_preset_runs_resume_exactly_on_cuda_with_the_default_kernels(tmp_path):
+    """The claim behind each stage's default ``deterministic``, at the paper's size, in bf16 autocast."""
+    from sssphase_core.bench.gpu_bench import _dataset
+
+    ds = _dataset(get_preset("paper").patch, 12 * 16)
+    pre = PretrainConfig(preset="paper", epochs=1, batch_size=16, ckpt_every=4, knn_monitor=0, warmup_epochs=0.5)
+    dec = DecoderConfig(epochs=1, batch_size=16, ckpt_every=4, val_samples=0)
+    assert not pre.deterministic and dec.deterministic
+    pretrain(pre, ds, tmp_path / "pa", progress=False)
+    with pytest.raises(KeyboardInterrupt):
+        pretrain(pre, ds, tmp_path / "pb", progress=interrupt_after(6))
+    pretrain(pre, ds, tmp_path / "pb", progress=False)
+    assert states_equal(load_checkpoint(tmp_path / "pa")["model"], load_checkpoint(tmp_path / "pb")["model"])
+    train_decoder(dec, tmp_path / "pa", ds, tmp_path / "da", progress=False)
+    with pytest.raises(KeyboardInterrupt):
+        train_decoder(dec, tmp_path / "pa", ds, tmp_path / "db", progress=interrupt_after(6))
+    train_decoder(dec, tmp_path / "pa", ds, tmp_path / "db", progress=False)
+    assert states_equal(load_checkpoint(tmp_path / "da")["decoder"], load_checkpoint(tmp_path / "db")["decoder"])
+
+
+def test_deterministic_kernels_are_asked_of_cuda_for_the_run_only():
+    """Without deterministic kernels a resumed decoder run ended with other weights than an uninterrupted one
+    on an H200 (with them it did not); other code in the process must not inherit the setting."""
+    from sssphase_core.learning.training.loop import deterministic_kernels
+
+    before = torch.are_deterministic_algorithms_enabled()
+    assert not before  # the test process runs with PyTorch's default
+    with deterministic_kernels(torch.device("cuda"), True):  # only the flag is set: no CUDA needed here
+        assert torch.are_deterministic_algorithms_enabled() and torch.is_deterministic_algorithms_warn_only_enabled()
+    assert torch.are_deterministic_algorithms_enabled() is before
+    for device, enabled in ((torch.device("cpu"), True), (torch.device("cuda"), False)):
+        with deterministic_kernels(device, enabled):  # the CPU's kernels are deterministic already
+            assert not torch.are_deterministic_algorithms_enabled()
+    with pytest.raises(KeyboardInterrupt), deterministic_kernels(torch.device("cuda"), True):
+        raise KeyboardInterrupt  # an interrupted run leaves the process as it found it
+    assert not torch.are_deterministic_algorithms_enabled()

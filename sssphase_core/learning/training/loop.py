@@ -8,7 +8,7 @@ import math
 import os
 import shutil
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -52,6 +52,9 @@ def init_distributed(device: str = "auto") -> Dist:
     world = int(os.environ.get("WORLD_SIZE", "1"))
     rank = int(os.environ.get("RANK", "0"))
     if use_cuda:
+        # cuBLAS reads its workspace size once per process: deterministic kernels (LoopConfig.deterministic)
+        # need this one set before the first matrix product
+        os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
         local = int(os.environ.get("LOCAL_RANK", "0"))
         torch.cuda.set_device(local)
         dev = torch.device("cuda", local)
@@ -88,6 +91,7 @@ class LoopConfig:
     amp: bool = True  # bfloat16 autocast on CUDA; ignored on CPU
     prefetch: bool | None = None  # build the next batch on a worker thread during the step (None: off the CPU)
     stacks_on_device: bool | None = None  # crop patches on the device (None: on CUDA when the stacks fit)
+    deterministic: bool = True  # CUDA: deterministic kernels, so a resumed run ends bit-identical (CPU: always are)
 
 
 #: ``stacks_on_device=None`` moves the PSP view stacks to a CUDA device when they take at most this share
@@ -104,6 +108,24 @@ def place_stacks(dataset: PatchDataset, device: torch.device, wanted: bool | Non
         return False
     dataset.place(device)
     return True
+
+
+@contextlib.contextmanager
+def deterministic_kernels(device: torch.device, enabled: bool = True) -> Iterator[None]:
+    """Within the block, CUDA uses deterministic kernels where it has them (cuDNN's convolutions, the
+    backward of gather and of reflection padding, ...), so the same steps give the same weights: an
+    interrupted run resumes to exactly what an uninterrupted one ends with. An op with no deterministic
+    kernel warns (it is not refused). The previous setting is restored on exit. CPU kernels are
+    deterministic already: nothing changes there."""
+    if device.type != "cuda" or not enabled:
+        yield
+        return
+    was, was_warn = torch.are_deterministic_algorithms_enabled(), torch.is_deterministic_algorithms_warn_only_enabled()
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(was, warn_only=was_warn)
 
 
 #: ``progress(task, done, total, info)``: called after every training step (the CLI draws a bar from it).
@@ -206,6 +228,7 @@ class Loop:
         runlog = RunLog(self.out_dir, resume_step=self.global_step, enabled=self.d.main)
         with contextlib.ExitStack() as cleanup:  # left in reverse: pending batch, device stacks, run log
             cleanup.enter_context(contextlib.closing(runlog))
+            cleanup.enter_context(deterministic_kernels(self.d.device, self.cfg.deterministic))
             if place_stacks(self.dataset, self.d.device, self.cfg.stacks_on_device):
                 cleanup.callback(self.dataset.place, None)  # the caller's dataset crops on the host again
             pool = cleanup.enter_context(ThreadPoolExecutor(1, thread_name_prefix="sss-batches")) if self.prefetch else None
