@@ -23,7 +23,7 @@ def patterns(
     projector: str = typer.Option("1920x1080", "--projector", help="projector resolution WxH"),
     footprints: bool = typer.Option(False, "--footprints", help="include the dot grids (spacing² frames)"),
     dot_spacing: int = typer.Option(55, "--dot-spacing", min=1, help="dot-grid spacing in projector px"),
-    reference: list[str] = typer.Option([], "--reference", help="reference pattern(s): white, black, checkerboard, stripes_x, stripes_y"),
+    reference: list[str] = typer.Option([], "--reference", help="reference pattern(s) besides white and black (always written: an import needs both): checkerboard, stripes_x, stripes_y"),
     period: float | None = typer.Option(None, "--period", help="high-frequency period in px (default: preset for the resolution)"),
     shifts: int = typer.Option(4, "--shifts", min=3, help="phase shifts per fringe set"),
     unwrap: bool = typer.Option(True, "--unwrap/--no-unwrap", help="include the lower-frequency unwrapping sets"),
@@ -64,8 +64,9 @@ def patterns(
         exposures = tuple(float(e) for e in hdr.split(",") if e.strip())
     except ValueError:
         raise InputError(f"--hdr must be comma-separated numbers, got {hdr!r}") from None
+    references = list(dict.fromkeys(["white", "black", *reference]))  # every import needs both (mask, light)
     plan = capture_plan(w, h, psp=config, unwrap=unwrap, footprints=footprints, dot_spacing=dot_spacing,
-                        references=reference, hdr_exposures=exposures, gamma=gamma)
+                        references=references, hdr_exposures=exposures, gamma=gamma)
     from sssphase_core.store.imageio import IMAGE_SUFFIXES
     from sssphase_core.store.session import check_output_folder
 
@@ -129,7 +130,12 @@ def decode_cmd(
     import numpy as np
     from rich.progress import Progress
 
-    from sssphase_core.capture.importer import MIN_FRAME_SIDE, frame_files
+    from sssphase_core.capture.importer import (
+        LINEAR_RANGE,
+        MIN_FRAME_SIDE,
+        frame_files,
+        psp_config_from_names,
+    )
     from sssphase_core.processing.isp import check_layout
     from sssphase_core.processing.patterns import parse_projector_size, psp_config_for, psp_key
     from sssphase_core.processing.psp import Reason, decode_camera, wrapped_phase
@@ -150,9 +156,14 @@ def decode_cmd(
         size = tuple(plan["projector"])
     else:
         raise InputError(f"no plan.json in {folder}: give --projector WxH")
-    config = _psp_from_plan(plan, plan_path) if plan is not None else psp_config_for(*size)
-    keys = [psp_key(o, p, n) for o in ("x", "y") for p in config.periods for n in range(config.n_shifts)]
     files = frame_files(folder, strict=False)  # other images (e.g. this command's own figures) are not frames
+    if plan is not None:
+        config = _psp_from_plan(plan, plan_path)
+    elif any(key.startswith("psp/") for key in files):  # the file names say the periods and shifts, as for `sss import`
+        config = psp_config_from_names(folder, files)
+    else:
+        config = psp_config_for(*size)  # (names the first missing frame below)
+    keys = [psp_key(o, p, n) for o in ("x", "y") for p in config.periods for n in range(config.n_shifts)]
     missing = [key for key in keys if key not in files]
     if missing and any(p.is_dir() and p.name.startswith("view_") for p in folder.iterdir()):
         raise InputError(f"{folder} holds view folders: decode one view at a time (sss decode {folder / 'view_000'} ...)")
@@ -174,6 +185,16 @@ def decode_cmd(
                 raise InputError(f"{files[key]} is {first.shape[1]}x{first.shape[0]}: smaller than a camera frame "
                                  f"(at least {MIN_FRAME_SIDE} px a side)")
             bar.advance(task)
+    if not any(stores_integers(files[key]) for key in keys):  # float frames in a renderer's units: to camera units,
+        level = max(float(np.percentile(f, 99.9)) for f in frames.values())  # as `sss import` scales them
+        if not level > 0 or not np.isfinite(level):
+            raise InputError(f"the PSP frames in {folder} hold no light (99.9th percentile {level:.3g}): they must be "
+                             "linear images of the fringe patterns")
+        if not LINEAR_RANGE[0] <= level <= LINEAR_RANGE[1]:
+            frames = {k: (f.astype(np.float64) / level).astype(np.float32) for k, f in frames.items()}
+            saturation = None if saturation is None else saturation / level
+            typer.echo(f"float frames at level {level:.3g} (99.9th percentile) scaled to 1 (the decoder's thresholds "
+                       "are in camera units)")
     corr = decode_camera(frames, config, size, bayer=bayer, min_modulation=min_modulation, saturation=saturation)
     out.mkdir(parents=True, exist_ok=True)
     for name in ("xp", "yp", "mask", "reason", "modulation", "offset", "modulation_ratio"):

@@ -867,3 +867,88 @@ def test_an_import_warns_when_a_reference_capture_does_not_follow_its_pattern(tm
                                          r"--projector right \(64x48\)"):
         other = import_folder(tmp_path / "other", tmp_path / "s", "other", (W, H), patch=K)
     assert other.manifest["views"]["0"]["reference_match"]["checkerboard"] < -0.5
+
+
+def test_a_dropped_or_copied_fringe_frame_is_refused_and_shifts_out_of_order_are_named(tmp_path):
+    """An all-black or white-copy fringe frame imported without a word (0.7-0.8 px decoding error), and
+    frames s1 and s3 exchanged dropped half the object as "unwrap inconsistent" without one."""
+    for name, change in (("dropped", lambda img, white: img * 0), ("copied", lambda img, white: white)):
+        folder = _float_frames(tmp_path / name, 1.0)
+        frame = folder / "psp__x__p18__s1.npy"
+        np.save(frame, change(np.load(frame), np.load(folder / "white.npy")))
+        with pytest.raises(InputError, match=r"psp__x__p18\*: opposite shifts .* s0 \+ s2 hold 1\.00, s1 \+ s3 hold"):
+            import_folder(folder, tmp_path / "s", name, (W, H), patch=K)
+        assert not (tmp_path / "s" / name).exists()
+    folder = _float_frames(tmp_path / "swapped", 1.0)
+    s1, s3 = folder / "psp__x__p18__s1.npy", folder / "psp__x__p18__s3.npy"
+    a, b = np.load(s1), np.load(s3)
+    np.save(s1, b)
+    np.save(s3, a)
+    with pytest.warns(UserWarning, match="did not unwrap consistently .* in the order they were projected"):
+        import_folder(folder, tmp_path / "s", "swapped", (W, H), patch=K)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the frames as captured: no warning
+        import_folder(_float_frames(tmp_path / "clean", 1.0), tmp_path / "s", "clean", (W, H), patch=K)
+
+
+def _dot_frames(folder: Path) -> Path:
+    """The hand-made rig's frames with a full dot grid, as float .npy."""
+    plan = capture_plan(W, H, footprints=True, dot_spacing=SPACING, references=("white", "black"))
+    folder.mkdir(parents=True)
+    for f, img in zip(plan, _camera(np.stack([f.pattern() for f in plan])), strict=True):
+        np.save(folder / (f.key.replace("/", "__") + ".npy"), img)
+    return folder
+
+
+def test_dot_frames_must_be_a_whole_grid_holding_the_whites_light(tmp_path):
+    """Dot frames replaced by the white (or black) capture made footprints 37x too bright that relit at -23 dB,
+    and a grid with 34 of its 36 frames missing imported as footprints with nothing in them, without a word."""
+    folder = _dot_frames(tmp_path / "f")
+    s = import_folder(folder, tmp_path / "s", "whole", (W, H), patch=K)
+    assert abs(s.manifest["views"]["0"]["dots_light_share"] - 1) < 0.05
+    missing = folder / "dots__3_5.npy"
+    kept = np.load(missing)
+    missing.unlink()
+    with pytest.raises(InputError, match=r"1 of the 64 frames of a 8 x 8 dot grid are missing \(dots__3_5\)"):
+        import_folder(folder, tmp_path / "s", "missing", (W, H), patch=K)
+    np.save(missing, kept)
+    white = np.load(folder / "white.npy")
+    for path in folder.glob("dots__*.npy"):
+        np.save(path, white)
+    with pytest.raises(InputError, match=r"the 64 dot-grid frames together hold 64\.\d\d of the white capture's light"):
+        import_folder(folder, tmp_path / "s", "white", (W, H), patch=K)
+    assert not (tmp_path / "s" / "white").exists()
+    folder = _dot_frames(tmp_path / "g")
+    black = np.load(folder / "black.npy")
+    for path in folder.glob("dots__*.npy"):  # captured at 1.5x the white's exposure
+        np.save(path, black + 1.5 * (np.load(path) - black))
+    with pytest.warns(UserWarning, match=r"hold 1\.5\d of the white .* 1\.5\dx too bright"):
+        import_folder(folder, tmp_path / "s", "brighter", (W, H), patch=K)
+
+
+def test_views_in_other_units_are_refused_naming_both_whites(tmp_path):
+    """One view in units 1000x the other's: the shared scale crushed view 0, refused as "100% shadow"."""
+    _float_frames(tmp_path / "f" / "view_000", 1.0)
+    _float_frames(tmp_path / "f" / "view_001", 1000.0)
+    with pytest.raises(InputError, match=r"view_001/white.npy is 1e\+03x as bright as .*view_000/white.npy"):
+        import_folder(tmp_path / "f", tmp_path / "s", "o", (W, H), patch=K)
+
+
+def test_exr_frames_are_placed_by_their_display_window(tmp_path):
+    """A renderer's overscan (data window beyond the display window) or region render was read as its data
+    window's pixels: shifted 6 px against the other frames, decoded 0.6 px off without a word."""
+    import OpenEXR
+
+    from sssphase_core.store.exr import exr_size, read_exr
+
+    image = np.random.default_rng(0).random((20, 36)).astype(np.float32)
+    for name, data_window, want in (("overscan", ((-3, 0), (32, 19)), image[:, 3:33]),
+                                    ("region", ((4, 2), (39, 21)), np.pad(image[:18, :26], ((2, 0), (4, 0))))):
+        path = tmp_path / f"{name}.exr"
+        header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+                  "dataWindow": data_window, "displayWindow": ((0, 0), (29, 19))}
+        with OpenEXR.File(header, {c: image for c in "RGB"}) as f:
+            f.write(str(path))
+        got = read_exr(path)
+        assert got.shape == (20, 30, 3) and exr_size(path) == (20, 30)
+        assert np.array_equal(got[..., 1], want)

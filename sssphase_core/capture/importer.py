@@ -85,7 +85,7 @@ def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
     return files
 
 
-def _psp_config(vdir: Path, keys: Iterable[str]) -> Any:
+def psp_config_from_names(vdir: Path, keys: Iterable[str]) -> Any:
     """The PSP configuration the frame names describe; every (orientation, period) needs shifts 0..N-1."""
     from sssphase_core.processing.patterns import PSPConfig
 
@@ -160,6 +160,10 @@ def white_levels(whites: Iterable[Path], encoding: str = "linear") -> list[float
                              "linear image of the object under the projector's full white")
         levels.append(level)
     return levels
+
+
+#: The white captures of one import's views may differ in level by this factor at most (one exposure, one unit).
+VIEW_LEVEL_RATIO = 100.0
 
 
 def frame_scale(whites: Iterable[Path], levels: Iterable[float]) -> float:
@@ -244,6 +248,77 @@ def check_white_above_black(vdir: Path, white: np.ndarray, black: np.ndarray, wh
                          "under the projector's black, white under its full white")
 
 
+def _lit(white: np.ndarray, black: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(light, lit)``: the projector's light (white less black, colours summed, float64) and where it is
+    above a fifth of its 99th percentile, both (H, W)."""
+    light = (np.asarray(white, np.float64) - black).reshape(*white.shape[:2], -1).sum(-1)
+    return light, light > 0.2 * float(np.percentile(light, 99))
+
+
+#: Opposite shifts of a fringe set (n and n + N/2) sum to the same light at every pixel, whatever the transport,
+#: the projector's gamma or the exposure: a pair of a set whose sum differs from another pair's by more than this
+#: share of the larger holds a dropped, constant or foreign frame.
+PAIR_SUM_TOLERANCE = 0.25
+
+
+def check_opposite_shifts(vdir: Path, pair_sums: dict[str, list[np.ndarray]], white: np.ndarray, black: np.ndarray) -> None:
+    """Refuse a fringe set whose opposite-shift pairs do not hold the same light (:data:`PAIR_SUM_TOLERANCE`).
+    ``pair_sums``: set key (``psp/x/p20``) -> per pair n (0 <= n < N/2) the sum of frames n and n + N/2, (H, W, C)."""
+    light, lit = _lit(white, black)
+    if not lit.any():
+        return
+    for set_key, sums in pair_sums.items():
+        shares = [float(np.median(((np.asarray(t, np.float64) - 2 * black).reshape(*lit.shape, -1).sum(-1))[lit]
+                                  / light[lit])) for t in sums]
+        if len(shares) > 1 and max(shares) - min(shares) > PAIR_SUM_TOLERANCE * max(abs(v) for v in shares):
+            n = len(shares)
+            pairs = ", ".join(f"s{i} + s{i + n} hold {v:.2f}" for i, v in enumerate(shares))
+            raise InputError(f"{vdir / set_key.replace('/', '__')}*: opposite shifts of a fringe set hold the same light "
+                             f"at every pixel, but here {pairs} of the white's (above black, median over lit pixels): a "
+                             "frame of the set is missing light, a copy of another frame, or from another exposure")
+
+
+#: A full dot grid (``dots__{sx}_{sy}`` for every offset) lights every projector pixel once, so its frames
+#: above black hold the white's light: beyond ``DOTS_LIGHT_REFUSE`` (a factor) the dot frames are refused,
+#: beyond ``DOTS_LIGHT_WARN`` an import warns (another exposure, or a projector whose brightness follows the
+#: image's content).
+DOTS_LIGHT_REFUSE, DOTS_LIGHT_WARN = 2.0, 1.25
+
+
+def check_dot_frames(vdir: Path, files: dict[str, Path]) -> int:
+    """The dot grid's spacing (0 without dot frames); one line naming the missing frames of an incomplete grid."""
+    offsets = [tuple(int(v) for v in m.groups()) for k in files if (m := DOTS_KEY_RE.match(k))]
+    if not offsets:
+        return 0
+    spacing = 1 + max(v for o in offsets for v in o)
+    missing = sorted({(sx, sy) for sx in range(spacing) for sy in range(spacing)} - set(offsets), key=lambda o: (o[1], o[0]))
+    if missing:
+        named = ", ".join(f"dots__{sx}_{sy}" for sx, sy in missing[:4]) + (" ..." if len(missing) > 4 else "")
+        raise InputError(f"{vdir}: {len(missing)} of the {spacing * spacing} frames of a {spacing} x {spacing} dot grid are "
+                         f"missing ({named}): a grid's frames together light every projector pixel once; give them "
+                         "all, or none")
+    return spacing
+
+
+def check_dots_light(vdir: Path, dot_sum: np.ndarray, n_dots: int, white: np.ndarray, black: np.ndarray) -> float:
+    """The dot frames' light (summed, above black) as a share of the white's (median over lit pixels), refused
+    or warned about beyond :data:`DOTS_LIGHT_REFUSE` / :data:`DOTS_LIGHT_WARN`; returned for the view's record."""
+    light, lit = _lit(white, black)
+    if not lit.any():
+        return float("nan")
+    share = float(np.median((dot_sum - n_dots * np.asarray(black, np.float64)).reshape(*lit.shape, -1).sum(-1)[lit]
+                            / light[lit]))
+    what = (f"{vdir}: the {n_dots} dot-grid frames together hold {share:.2f} of the white capture's light (above black, "
+            "median over lit pixels), where a full grid lights every projector pixel once and gives 1.00")
+    if not 1 / DOTS_LIGHT_REFUSE <= share <= DOTS_LIGHT_REFUSE:
+        raise InputError(f"{what}: they are not dot grids of this view at its exposure (the white's, the black's or "
+                         "other files, or another exposure)")
+    if not 1 / DOTS_LIGHT_WARN <= share <= DOTS_LIGHT_WARN:
+        warnings.warn(f"{what}: the measured transport will be {share:.2f}x too bright (another exposure than the "
+                      "white's, or a projector whose brightness follows the image's content)", stacklevel=3)
+    return share
+
+
 #: Integer frames with more than this share of their fringe values at the top code are called clipped when
 #: nothing decodes (a saturated fringe has no modulation, which the decoder reports as low modulation).
 CLIPPED_SHARE = 0.25
@@ -265,6 +340,8 @@ def _nothing_decoded(vdir: Path, coverage: dict[str, int], clipped: float = 0.0)
 #: Shares of a view's decoded pixels beyond which an import warns: mapped outside the projector (a wrong
 #: --projector), or at an integer file's top code (clipped light, underestimated).
 OUTSIDE_WARN, CLIPPED_WARN = 0.2, 0.01
+#: Warn when more than this share of the decodable pixels failed to unwrap (frames out of order, wrong periods).
+UNWRAP_WARN = 0.2
 
 
 #: Below this correlation between a reference capture and its pattern at the decoded points, an import warns.
@@ -318,6 +395,11 @@ def _warn_suspect_view(vdir: Path, coverage: dict[str, int], size: tuple[int, in
                       "white and the fringes must share one exposure",
                       stacklevel=3)
     valid, outside = coverage.get("VALID", 0), coverage.get("OUTSIDE", 0)
+    inconsistent = coverage.get("UNWRAP_INCONSISTENT", 0)
+    if inconsistent > UNWRAP_WARN * (valid + inconsistent):
+        warnings.warn(f"{vdir}: {100 * inconsistent / (valid + inconsistent):.0f}% of the fringe-lit pixels did not "
+                      "unwrap consistently over the fringe periods and were dropped: are the shifts s0, s1, ... in the "
+                      "order they were projected, and the periods in the file names the projected ones?", stacklevel=3)
     if outside > OUTSIDE_WARN * (valid + outside):
         warnings.warn(f"{vdir}: {100 * outside / (valid + outside):.0f}% of the decoded pixels map outside the "
                       f"{size[0]}x{size[1]} projector: is --projector right?", stacklevel=3)
@@ -349,7 +431,7 @@ def _detect_bayer(proc: ViewProcessor, config: Any, demosaic: str) -> str:
     from sssphase_core.processing.isp import detect_bayer_layout
 
     white = proc.images["white"] - proc.images.get("black", 0)
-    lit = white.sum(-1)
+    lit = white.sum(-1, dtype=np.float64)  # (a stray 3e38 overflows float32)
     layout, why = detect_bayer_layout(_input_sets(proc, config), white, lit > 0.25 * float(np.percentile(lit, 99)))
     if layout is not None:
         proc.camera_isp = {"bayer": layout, "demosaic": demosaic, "median": False}
@@ -429,15 +511,21 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
             raise InputError(f"{vdir}: needs white, black and psp__x__p<period>__s<n> frames (missing: {', '.join(missing)})"
                              + ("; a render without the projector's black light has an all-zero black frame"
                                 if missing == ["black"] else ""))
+        check_dot_frames(vdir, files)
         for key in (k for k in files if k.startswith("ref/")):
             ref = key.removeprefix("ref/")
             if ref not in REFERENCE_NAMES and f"pattern/{ref}" not in files:
                 raise InputError(f"{files[key]}: reference {ref!r} is no named pattern ({', '.join(REFERENCE_NAMES)}), so "
                                  f"the image projected for it is needed as pattern__{ref}.png to relight and evaluate it")
-    configs = [_psp_config(vdir, files) for vdir, files in views]
+    configs = [psp_config_from_names(vdir, files) for vdir, files in views]
     encoding, encoding_tag = frames_encoding((p for _, files in views for k, p in files.items()
                                               if not k.startswith("pattern/")), encoding)
     levels = white_levels((files["white"] for _, files in views), encoding)
+    if max(levels) > VIEW_LEVEL_RATIO * min(levels):
+        hi, lo = int(np.argmax(levels)), int(np.argmin(levels))
+        raise InputError(f"{views[hi][1]['white']} is {max(levels) / min(levels):.3g}x as bright as {views[lo][1]['white']} "
+                         "(99.9th percentiles): an import's views share one exposure and units (the frames are scaled "
+                         "together)")
     scale = frame_scale([files["white"] for _, files in views], levels)
     path = Path(root) / name
     if path.exists():
@@ -458,8 +546,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                              plan=plan_json, software={"sssphase": __version__})
     try:
         for view, ((vdir, files), config, level) in enumerate(zip(views, configs, levels, strict=True)):
-            dots = [DOTS_KEY_RE.match(k) for k in files if k.startswith("dots/")]
-            spacing = 1 + max((int(v) for m in dots for v in m.groups()), default=0)
+            spacing = max(1, check_dot_frames(vdir, files))
             plan = CapturePlan(w, h, config, (), gamma)
             writer = session.begin_view(view)
             try:
@@ -467,6 +554,8 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                                      camera_isp)
                 shape, top, fringe_values, nonfinite = None, 0, 0, 0
                 set_sums: dict[str, np.ndarray] = {}  # each fringe set's sum: its mean is half the white's light
+                pair_sums: dict[str, list[np.ndarray]] = {}  # opposite shifts' sums per set (even N): all equal
+                dot_sum, n_dots = None, 0  # the dot frames' sum: a full grid holds the white's light
                 detected = None
                 for key in sorted((k for k in files if not k.startswith("pattern/")), key=lambda k: k.startswith("dots/")):
                     if auto_bayer and detected is None and key.startswith("dots/"):  # before the decode the dots start
@@ -489,6 +578,13 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                         _check_fringe_level(files[key], image, level * scale)
                         set_key = key.rsplit("/", 1)[0]
                         set_sums[set_key] = set_sums.get(set_key, 0) + image
+                        if config.n_shifts % 2 == 0:
+                            half, shift = config.n_shifts // 2, int(key.rsplit("/s", 1)[1])
+                            sums = pair_sums.setdefault(set_key, [np.zeros(image.shape, np.float64) for _ in range(half)])
+                            sums[shift % half] += image
+                    elif key.startswith("dots/"):
+                        dot_sum = image.astype(np.float64) if dot_sum is None else dot_sum + image
+                        n_dots += 1
                     proc.add(_ImportedFrame(key, image), {"name": key, "key": key, "exposure": 1.0})
                 for key in (k for k in files if k.startswith("pattern/")):
                     proc.patterns[f"ref/{key.removeprefix('pattern/')}"] = read_pattern(
@@ -500,6 +596,10 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 info = {**proc.finish(), "nonfinite_repaired": nonfinite}
                 if auto_bayer:
                     info["bayer_detected"] = detected
+                check_opposite_shifts(vdir, pair_sums, proc.images["white"], proc.images["black"])
+                if dot_sum is not None:
+                    info["dots_light_share"] = round(check_dots_light(vdir, dot_sum, n_dots, proc.images["white"],
+                                                                      proc.images["black"]), 4)
                 if not info["coverage"].get("VALID"):
                     raise InputError(_nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values)))
                 check_white_above_black(vdir, proc.images["white"], proc.images["black"], level * scale)

@@ -242,7 +242,8 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
         return no_scattering_source(rv.white), 1
     if name == "exact":  # ground truth for evaluation only: no lab has these
         if rv.sim is None:
-            raise InputError(f"{rv.object}: exact footprints exist only for simulated sessions (use measured)")
+            raise InputError(f"{rv.object}: exact footprints exist only for simulated sessions (the simulator's ground "
+                             "truth); this session was captured or imported")
         return rv.scene().footprints, rv.patch
     if name == "measured":  # the session's own captured dot-grid crops, simulated or not
         arrays = rv.session.arrays(rv.view)  # type: ignore[attr-defined]

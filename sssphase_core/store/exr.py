@@ -73,8 +73,9 @@ def read_exr(path: Path | str) -> np.ndarray:
     OpenEXR = _openexr()
     try:
         with native_stderr_silenced(), OpenEXR.File(str(path), separate_channels=True) as f:  # R, G, B apart
-            parts = [{name: np.asarray(ch.pixels) for name, ch in part.channels.items()} for part in f.parts]
-    except (OSError, RuntimeError, ValueError):  # the library prints its own lines; one of ours instead
+            parts = [{name: _in_display_window(np.asarray(ch.pixels), part.header) for name, ch in part.channels.items()}
+                     for part in f.parts]
+    except (OSError, RuntimeError, ValueError, KeyError):  # the library prints its own lines; one of ours instead
         raise DataError(f"cannot read EXR {path} (damaged, truncated or not an EXR file)") from None
     for channels in parts:
         if {"R", "G", "B"} <= set(channels):
@@ -88,6 +89,27 @@ def read_exr(path: Path | str) -> np.ndarray:
     names = ", ".join(sorted({name for channels in parts for name in channels})) or "none"
     raise DataError(f"EXR {path} holds no image light as R, G, B or one grey channel (Y) (its channels: {names}"
                     + ("; luminance/chroma: write RGB" if any("RY" in c or "BY" in c for c in parts) else "") + ")")
+
+
+def _windows(header: dict) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int]]:
+    """(data window, display window) of an EXR header, each (x0, y0, x1, y1) inclusive."""
+    (ax0, ay0), (ax1, ay1) = header["dataWindow"]
+    (bx0, by0), (bx1, by1) = header.get("displayWindow", header["dataWindow"])
+    return (int(ax0), int(ay0), int(ax1), int(ay1)), (int(bx0), int(by0), int(bx1), int(by1))
+
+
+def _in_display_window(pixels: np.ndarray, header: dict) -> np.ndarray:
+    """A channel's pixels (its data window) placed in the image's display window: a renderer's overscan is cut
+    off and a region render is padded with zeros (no light), so that every frame's pixel (x, y) is the same
+    camera pixel whatever window each file stores. (H, W) of the data window -> (H', W') of the display window."""
+    (ax0, ay0, ax1, ay1), (bx0, by0, bx1, by1) = _windows(header)
+    if (ax0, ay0, ax1, ay1) == (bx0, by0, bx1, by1):
+        return pixels
+    out = np.zeros((by1 - by0 + 1, bx1 - bx0 + 1), pixels.dtype)
+    x0, y0, x1, y1 = max(ax0, bx0), max(ay0, by0), min(ax1, bx1), min(ay1, by1)
+    if x0 <= x1 and y0 <= y1:
+        out[y0 - by0 : y1 - by0 + 1, x0 - bx0 : x1 - bx0 + 1] = pixels[y0 - ay0 : y1 - ay0 + 1, x0 - ax0 : x1 - ax0 + 1]
+    return out
 
 
 def _colour_layer(path: Path | str, channels: dict[str, np.ndarray]) -> str | None:
@@ -106,13 +128,14 @@ def _colour_layer(path: Path | str, channels: dict[str, np.ndarray]) -> str | No
 
 
 def exr_size(path: Path | str) -> tuple[int, int]:
-    """(height, width) of an EXR image from its header alone (nothing is decoded)."""
+    """(height, width) of an EXR image (its display window, as :func:`read_exr` returns it) from its header
+    alone (nothing is decoded)."""
     from sssphase_core.store.imageio import native_stderr_silenced
 
     OpenEXR = _openexr()
     try:
         with native_stderr_silenced():
-            lo, hi = OpenEXR.File(str(path), header_only=True).header()["dataWindow"]
+            _, (x0, y0, x1, y1) = _windows(OpenEXR.File(str(path), header_only=True).header())
     except (OSError, RuntimeError, ValueError, KeyError):
         raise DataError(f"cannot read EXR {path} (damaged, truncated or not an EXR file)") from None
-    return int(hi[1] - lo[1] + 1), int(hi[0] - lo[0] + 1)
+    return y1 - y0 + 1, x1 - x0 + 1

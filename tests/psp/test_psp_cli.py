@@ -38,11 +38,13 @@ def test_patterns_writes_plan_pngs(tmp_path):
     assert (lit == 1).all()
 
 
-def test_patterns_without_footprints_has_no_dot_grids(tmp_path):
+def test_patterns_without_footprints_has_no_dot_grids_but_the_white_and_black_an_import_needs(tmp_path):
+    """A lab that captured exactly what `sss patterns` wrote was refused by `sss import` (no white, no black)."""
     _run("patterns", "--projector", "64x48", "--out", str(tmp_path))
     assert not (tmp_path / "dots").exists()
-    kinds = {f["kind"] for f in json.loads((tmp_path / "plan.json").read_text())["frames"]}
-    assert kinds == {"psp"}
+    frames = json.loads((tmp_path / "plan.json").read_text())["frames"]
+    assert {f["kind"] for f in frames} == {"psp", "white", "black"}
+    assert (tmp_path / "white.png").is_file() and (tmp_path / "black.png").is_file()
 
 
 def test_decode_folder_of_captures(tmp_path):
@@ -214,3 +216,19 @@ def test_decode_refuses_frames_smaller_than_a_camera_frame_as_import_does(tmp_pa
         np.save(tmp_path / "cap" / (key.replace("/", "__") + ".npy"), light[:1, :1])
     res = runner.invoke(_app(), ["decode", str(tmp_path / "cap"), "--projector", "80x60", "--out", str(tmp_path / "o")])
     assert isinstance(res.exception, InputError) and "is 1x1: smaller than a camera frame (at least 16 px" in str(res.exception)
+
+
+def test_decode_without_a_plan_reads_the_shift_count_from_the_names_and_scales_float_frames(tmp_path):
+    """5-step frames in a renderer's units (1e-3 of the camera's), no plan.json: decoded as 4-step they gave
+    389 of 19,200 pixels at 0.83 px, and at 1e-3 nothing (all "shadow"), exit code 0 both times."""
+    pat_dir, cap_dir, out_dir = tmp_path / "patterns", tmp_path / "captures", tmp_path / "decoded"
+    _run("patterns", "--projector", "80x60", "--out", str(pat_dir), "--shifts", "5")
+    cap_dir.mkdir()
+    for key, light in _captures_of(pat_dir, scale=1e-3):
+        np.save(cap_dir / (key.replace("/", "__") + ".npy"), light.astype(np.float32))
+    result = _run("decode", str(cap_dir), "--out", str(out_dir), "--projector", "80x60")
+    assert "scaled to 1" in result.output
+    xp, yp, mask = (np.load(out_dir / f"{n}.npy") for n in ("xp", "yp", "mask"))
+    yy, xx = np.mgrid[:60, :80]
+    assert mask.all() and np.abs(xp - xx).max() < 0.15 and np.abs(yp - yy).max() < 0.15
+    assert json.loads((out_dir / "decode.json").read_text())["psp"]["n_shifts"] == 5
