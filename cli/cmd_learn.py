@@ -75,7 +75,19 @@ def _check_out(ctx: typer.Context, out: Path, kind: str, resume: bool) -> bool:
 
 
 def _names(text: str, default: tuple[str, ...]) -> list[str]:
-    return [t.strip() for t in text.split(",") if t.strip()] if text else list(default)
+    """Comma-separated names, each once (``apple,apple`` read the session twice and skewed kNN's accuracies)."""
+    return list(dict.fromkeys(t.strip() for t in text.split(",") if t.strip())) if text else list(default)
+
+
+def _png_out(out: Path, example: str) -> None:
+    """Refuse a figure's ``--out`` that is no .png file name (a folder became FOLDER.png and 'x.txt' failed after
+    all the work) or that lies inside a session, before any work."""
+    from sssphase_core.errors import InputError
+    from sssphase_core.store.session import refuse_inside_session
+
+    if out.is_dir() or out.suffix.lower() != ".png":
+        raise InputError(f"--out {out}: give a .png file name (e.g. {out / example if out.is_dir() else out.with_suffix('.png')})")
+    refuse_inside_session(out.parent, f"--out {out}: its folder")
 
 
 def _ints(text: str) -> list[int]:
@@ -440,9 +452,14 @@ def eval_knn(
         raise InputError(f"kNN by {label} needs two or more {label}s to tell apart; the views read hold "
                          + (f"only {', '.join(map(str, sorted(classes)))}" if classes else "no material labels (sessions "
                             "without ground truth: use --label object)"))
-    if max(ks) >= n_patches:
-        raise InputError(f"--k {max(ks)} is not smaller than the {n_patches} patches read: every patch would get the "
-                         "majority label; lower --k or raise --pixels-per-view")
+    per_view: dict[int, int] = {}
+    for v in vds:  # leave-one-view-out: the patches of one view index are the queries, the others the database
+        per_view[v.view] = per_view.get(v.view, 0) + len(v.pixels)
+    database = n_patches - max(per_view.values())
+    if max(ks) >= database:  # (it was clamped to the database in silence and reported as given)
+        raise InputError(f"--k {max(ks)} is not smaller than the {database} patches of the smallest leave-one-view-out "
+                         f"database ({n_patches} read, {max(per_view.values())} of them in one view): every patch would "
+                         "get the majority label; lower --k or raise --pixels-per-view")
     results = {}
     for run, path in runs.items():
         with console.status(f"embedding {sum(len(v.pixels) for v in vds)} patches with {run}"):
@@ -481,7 +498,7 @@ def eval_footprints(
         check_output_folder(plots, "--plots")
     import numpy as np
 
-    from sssphase_core.errors import InputError
+    from sssphase_core.errors import DataError, InputError
     from sssphase_core.learning.backends import get_backend
     from sssphase_core.learning.evaluation import footprint_metrics, footprint_table, summarise
     from sssphase_core.reporting.figures import plot_profiles
@@ -496,6 +513,9 @@ def eval_footprints(
             raise InputError(f"--compare takes NAME=PATH with a new name of letters, digits, '_', '-', '.', got {item!r}")
     backends = {"torch": get_backend("torch", checkpoint=checkpoint)}  # checked before any data is read
     backends.update({name: get_backend("torch", checkpoint=path) for name, _, path in others})
+    if baseline == "torch":  # the model itself (it said "pass checkpoint=... or call fit()" after reading the data)
+        raise InputError("--baseline torch is the model --checkpoint gives; compare another decoder with --compare "
+                         "NAME=RUN, or choose a baseline that is no decoder (analytic, or '' for none)")
     vds = _views(names, _chosen(views, "0", sessions), n_views=n_views, rig=rig, pixels=pixels_per_view, footprints=True, seed=seed,
                  cache=cache, sessions=sessions)
     names = names or _objects(vds)
@@ -510,6 +530,10 @@ def eval_footprints(
     for obj in names:
         obj_views = [v for v in vds if v.object == obj]
         gt = np.concatenate([np.asarray(v.footprints) for v in obj_views])
+        bad = int(np.count_nonzero(~np.isfinite(gt).all(axis=(1, 2, 3))))
+        if bad:  # the table read NaN (and its JSON was no JSON)
+            raise DataError(f"{bad} of the {len(gt)} sampled footprint crops of {obj} hold NaN or infinite values: the "
+                            "session's footprint crops are corrupt (a capture never stores them)")
         results[obj] = {}
         preds = {}
         for bname, be in backends.items():
@@ -548,6 +572,7 @@ def viz_pca(
     from sssphase_core.learning.training import load_encoder
     from sssphase_core.reporting.figures import panels_figure
 
+    _png_out(out, "pca_rgb.png")
     enc = load_encoder(checkpoint)
     names = _names(objects, () if sessions else ("soap", "shovel"))
     vds = _views(names, [view], n_views=n_views, rig=rig, pixels=None, footprints=False, seed=0, cache=cache,
@@ -576,8 +601,7 @@ def viz_footprints(
     from sssphase_core.reporting.figures import grid_figure, profiles_figure
     from sssphase_core.store.session import Session
 
-    if out.is_dir() or out.suffix.lower() != ".png":  # the figure is a PNG: 'adir' became adir.png, '.txt' an internal error
-        raise InputError(f"--out {out}: give a .png file name (e.g. {out / 'footprints.png' if out.is_dir() else out.with_suffix('.png')})")
+    _png_out(out, "footprints.png")
     s = Session.open(session)
     rv = load_view(s, view)
     rows = [b.strip() for b in backend.split(",") if b.strip()]

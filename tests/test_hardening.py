@@ -938,3 +938,26 @@ def test_a_session_left_without_any_view_by_a_failed_capture_does_not_block_the_
     writer.commit({})
     with pytest.raises(InputError, match="already exists: pass --resume"):
         Session.create(tmp_path, "apple", n_views=2)
+
+
+def test_nan_in_a_reference_capture_is_refused_not_scored_as_zero(intact_session, tmp_path):
+    """A reference capture rewritten with NaN (checksums valid: `sss validate` says ok) was scored as 0 there:
+    23.1 dB where the intact capture read 33.5, without a word."""
+    from sssphase_core.errors import DataError
+    from sssphase_core.relight import load_view
+    from sssphase_core.relight.evaluation import evaluate_view
+    from sssphase_core.store.session import Session
+
+    copy = tmp_path / "leaf"
+    shutil.copytree(intact_session, copy)
+    s = Session.open(copy)
+    entry = dict(s.manifest["views"]["0"])
+    arrays = {n: np.asarray(s.read(0, n)) for n in s.arrays(0)}
+    arrays["ref/checkerboard"][10:12, 10:20] = np.nan
+    w = s.begin_view(0)
+    for name, data in arrays.items():
+        w.write(name, data)
+    w.commit({k: v for k, v in entry.items() if k not in ("arrays", "status", "completed")})
+    assert Session.open(copy).validate() == []  # stored as written
+    with pytest.raises(DataError, match=r"ref/checkerboard holds 60 NaN or infinite values"):
+        evaluate_view(load_view(Session.open(copy), 0), "none", tmp_path / "img")

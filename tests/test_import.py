@@ -337,6 +337,12 @@ def test_a_session_exports_to_exr_bit_exactly(frames, tmp_path):
     for i in (0, len(crops) // 2, len(crops) - 1):
         r, c = divmod(i, cols)
         assert np.array_equal(mosaic[r * K:(r + 1) * K, c * K:(c + 1) * K], crops[i].astype(np.float32))
+    dots = s.load(0, "transport/crops")  # the captured transport `measured` relights with was left out in silence
+    mosaic = read_exr(view / "transport_crops.exr")
+    cols = mosaic.shape[1] // K
+    r, c = divmod(len(dots) - 1, cols)
+    assert np.array_equal(mosaic[r * K:(r + 1) * K, c * K:(c + 1) * K], dots[-1].astype(np.float32))
+    assert len(np.loadtxt(view / "transport_dots.csv", delimiter=",", ndmin=2)) == len(dots)
 
 
 def test_viz_footprints_shows_the_captured_crops_next_to_a_model(frames, tmp_path):
@@ -372,6 +378,37 @@ def test_sss_report_on_a_users_own_session(frames, tmp_path):
     bad = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "report", str(s.path), "--view", "3", "--out",
                           str(tmp_path / "r2")], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2 and "view 3 is not complete" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_sss_report_writes_only_where_it_may_and_stops_at_damaged_data(frames, tmp_path):
+    """It replaced a user's own index.html and a demo folder's step records (a resumed demo then kept the
+    report's rows), merged two sessions of one object, and reported a damaged session as "done"."""
+    import shutil
+
+    s = import_folder(frames, tmp_path / "sessions", "handmade", (W, H), patch=K)
+
+    def report(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run([sys.executable, "-m", "sssphase_cli.main", "report", *args, "--backend", "none"],
+                              capture_output=True, text=True, timeout=300)
+
+    site = tmp_path / "site"
+    site.mkdir()
+    (site / "index.html").write_text("<h1>my lab</h1>")
+    res = report(str(s.path), "--out", str(site))
+    assert res.returncode == 2 and "holds index.html, not a folder `sss report` wrote" in res.stderr
+    assert (site / "index.html").read_text() == "<h1>my lab</h1>" and sorted(p.name for p in site.iterdir()) == ["index.html"]
+    demo = tmp_path / "demo"
+    for sub in ("steps", "sessions"):
+        (demo / sub).mkdir(parents=True)
+    res = report(str(s.path), "--out", str(demo))
+    assert res.returncode == 2 and "is a demo folder" in res.stderr
+    shutil.copytree(s.path, tmp_path / "copy" / "handmade")
+    res = report(str(s.path), str(tmp_path / "copy"), "--out", str(tmp_path / "rep"))
+    assert res.returncode == 2 and "two sessions hold the object 'handmade'" in res.stderr
+    chunk = next(p for p in sorted((tmp_path / "copy" / "handmade" / "view_000" / "white" / "c").rglob("*")) if p.is_file())
+    chunk.write_bytes(chunk.read_bytes()[:20])
+    res = report(str(tmp_path / "copy"), "--out", str(tmp_path / "rep"))
+    assert res.returncode == 2 and "damaged" in res.stderr and "Traceback" not in res.stderr
 
 
 def test_the_captures_choose_the_noise_mask_that_keeps_faint_wide_tails(tmp_path):

@@ -13,6 +13,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import warnings
+import zipfile
 import zlib
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -195,11 +197,17 @@ def _cache_path(cache_dir: Path | None, params: dict) -> Path | None:
 
 
 def _load_cached(path: Path | None, obj: str, view: int) -> ViewData | None:
+    """A cached simulated view, or None when there is none or the file is damaged (it is simulated again and
+    the cache rewritten: the cache is ours, never a user's data)."""
     if path is None or not path.exists():
         return None
-    with np.load(path) as z:
-        fp = z["footprints"] if "footprints" in z.files else None
-        return ViewData(obj, view, z["psp"], z["pixels"], z["materials"], fp)
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            fp = z["footprints"] if "footprints" in z.files else None
+            return ViewData(obj, view, z["psp"], z["pixels"], z["materials"], fp)
+    except (OSError, ValueError, KeyError, EOFError, zipfile.BadZipFile):  # truncated, foreign or pickled
+        warnings.warn(f"{path}: a damaged cache file of {obj} view {view}; simulated again", stacklevel=3)
+        return None
 
 
 def _save_cached(path: Path | None, vd: ViewData) -> None:

@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from sssphase_core.errors import InputError, SssError
+from sssphase_core.store.session import DamagedArray
 
 
 @dataclass(frozen=True)
@@ -121,6 +122,8 @@ class Demo:
         t0 = time.perf_counter()
         try:
             result = {"status": "done", **fn()}
+        except DamagedArray:  # damaged data stops the run in one line (`sss validate` lists it), not reported as lacking
+            raise
         except (NotAvailable, SssError) as exc:  # what the step lacks (or a user's data cannot give) is reported
             result = {"status": "not available", "reason": str(exc)}
         except ModuleNotFoundError as exc:  # an optional extra that is not installed; any other error is a bug: raised
@@ -322,6 +325,24 @@ def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool 
 REPORT_STEPS = ("relight", "footprints", "knn", "pca", "report")
 
 
+#: The file that marks a folder as written by ``sss report`` (which may write there again).
+REPORT_MARK = ".sss-report"
+
+
+def claim_report_folder(out: Path) -> None:
+    """Refuse a report folder that holds anything ``sss report`` did not write there (a demo folder's step
+    records, a user's own index.html: both were replaced), then mark it as a report's."""
+    if out.is_dir() and not (out / REPORT_MARK).is_file():
+        held = next(iter(sorted(out.iterdir())), None)
+        if held is not None:
+            what = ("a demo folder (its step records would be replaced)" if (out / "steps").is_dir() and
+                    ((out / "sessions").exists() or (out / "runs").exists()) else f"a folder that holds {held.name}")
+            raise InputError(f"--out {out} is {what}, not a folder `sss report` wrote: write the report into a new or "
+                             "empty folder (nothing was written)")
+    out.mkdir(parents=True, exist_ok=True)
+    (out / REPORT_MARK).write_text("written by sss report; it may write here again\n")
+
+
 def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Path | None = None,
                pretrain: Path | None = None, decoder: Path | None = None, view: int = 0,
                backends: tuple[str, ...] = ("none", "analytic", "measured", "torch"),
@@ -331,11 +352,12 @@ def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Pat
     sessions only), the kNN table on ``train_sessions`` and PCA maps with the ``pretrain`` encoder.
     Steps without what they need are listed in the report as not available. Returns its path."""
     from sssphase_core.relight.views import has_captured_transport, has_references
-    from sssphase_core.store.session import find_sessions
+    from sssphase_core.store.session import by_object, find_sessions
 
     tests = list(test_sessions)
     if not tests:
         raise InputError("sss report needs at least one test session (with reference captures)")
+    by_object(tests, purpose="the report names its rows and figures by object; report them separately")
     lacking = [f"{s.path} (complete views: {s.views()})" for s in tests if view not in s.views()]
     if lacking:
         raise InputError(f"view {view} is not complete in " + "; ".join(lacking))
@@ -351,6 +373,7 @@ def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Pat
     if bare:
         raise InputError(f"view {view} of {', '.join(bare)} has no reference captures to relight against (capture with "
                          "--reference checkerboard ...)")
+    claim_report_folder(Path(out))
     config = DemoConfig(objects, tuple(s.name for s in tests), test_view=view, backends=chosen)
     demo = Demo(Path(out), config, client=None, fresh=True, log=log)
     demo.report_dir = Path(out)  # OUT/index.html (step records in OUT/steps)

@@ -4,7 +4,9 @@ Per view, into ``OUT/<object>/view_NNN/``: every image array (H, W[, C]) as ``<n
 array names becomes ``_``), every stack (N, H, W, C) as ``<name>/NN.exr`` (the PSP frames with their plan
 key, e.g. ``psp/x/p11/s0``, in the EXR header field ``sssphase_key`` and in ``psp/keys.csv``), the footprint crops
 (N, K, K, 3) as one mosaic ``footprints_crops.exr`` (tile ``i`` at row ``i // cols``, column
-``i % cols``) with ``footprints_pixels.csv`` giving each tile's camera pixel (row, col).
+``i % cols``) with ``footprints_pixels.csv`` giving each tile's camera pixel (row, col), and the captured
+transport's crops (one per projector dot) likewise as ``transport_crops.exr`` beside ``transport_dots.csv``
+and ``transport_pixels.csv``.
 """
 
 from __future__ import annotations
@@ -39,7 +41,7 @@ def export_view(session: Session, view: int, out: Path) -> list[Path]:
         arr = session.read(view, name)
         stem = out / name.replace("/", "_")
         shape = tuple(arr.shape)
-        if name == "footprints/crops":
+        if name.endswith("/crops") and len(shape) == 4:  # footprints/crops; transport/crops (one per projector dot)
             mosaic, cols = footprint_mosaic(np.asarray(arr, np.float32))
             written.append(write_exr(stem.with_name(stem.name + ".exr"), mosaic, attributes={"tile_columns": str(cols)}))
         elif shape[:2] == (height, width):

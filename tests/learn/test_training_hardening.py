@@ -142,7 +142,31 @@ def test_a_batch_or_k_larger_than_the_data_is_refused_before_the_run_folder_is_w
     assert not (tmp_path / "run").exists()
     ckpt = tmp_path / "enc.pt"
     _decoder_checkpoint(ckpt, tiny)
-    with pytest.raises(InputError, match=r"--k 32 is not smaller than the 32 patches read"):
+    # a k the smallest leave-one-view-out database cannot give was clamped to it and reported as given
+    with pytest.raises(InputError, match=r"--k 16 is not smaller than the 16 patches of the smallest leave-one-view-out "
+                                         r"database \(32 read, 16 of them in one view\)"):
         runner.invoke(app, ["eval", "knn", "--checkpoint", str(ckpt), "--sessions", str(root), "--pixels-per-view", "8",
-                            "--k", "5,32", "--out", str(tmp_path / "knn.json")], catch_exceptions=False)
+                            "--k", "5,16", "--out", str(tmp_path / "knn.json")], catch_exceptions=False)
     assert not (tmp_path / "knn.json").exists()
+
+
+def test_figure_and_evaluation_options_are_refused_before_any_work(one_and_three_sessions, tiny, tmp_path):
+    """viz pca ran the whole embedding before "Format 'txt' is not supported" (an internal error), wrote FOLDER.png
+    for a folder and figures into a session; eval footprints --baseline torch said "call fit()" after reading
+    the data; eval knn read an object named twice twice (its accuracies changed)."""
+    from sssphase_cli.cmd_learn import _names
+
+    root = one_and_three_sessions(tmp_path / "sessions")
+    ckpt = tmp_path / "enc.pt"
+    _decoder_checkpoint(ckpt, tiny)
+    for out, expected in ((tmp_path / "pca.txt", r"give a \.png file name \(e\.g\. .*pca\.png\)"),
+                          (tmp_path, r"give a \.png file name \(e\.g\. .*pca_rgb\.png\)"),
+                          (root / "one" / "pca.png", "would write into the session")):
+        with pytest.raises(InputError, match=expected):
+            runner.invoke(app, ["viz", "pca", "--checkpoint", str(tmp_path / "absent.pt"), "--sessions", str(root),
+                                "--out", str(out)], catch_exceptions=False)
+    assert not (root / "one" / "pca.png").exists() and not (tmp_path.parent / f"{tmp_path.name}.png").exists()
+    with pytest.raises(InputError, match="--baseline torch is the model --checkpoint gives"):
+        runner.invoke(app, ["eval", "footprints", "--checkpoint", str(ckpt), "--sessions", str(root), "--baseline", "torch",
+                            "--out", str(tmp_path / "fp.json")], catch_exceptions=False)
+    assert _names("apple, apple,pear,apple", ()) == ["apple", "pear"]
