@@ -90,13 +90,13 @@ def _png_out(out: Path, example: str) -> None:
     refuse_inside_session(out.parent, f"--out {out}: its folder")
 
 
-def _ints(text: str) -> list[int]:
+def _ints(text: str, option: str = "--views") -> list[int]:
     from sssphase_core.errors import InputError
 
     try:
         return [int(t) for t in text.split(",") if t.strip()]
     except ValueError as exc:
-        raise InputError(f"expected comma-separated integers, got {text!r}") from exc
+        raise InputError(f"{option} expects comma-separated integers, got {text!r}") from exc
 
 
 def _chosen(views: str | None, sim_default: str, sessions: Path | None) -> list[int] | None:
@@ -439,7 +439,7 @@ def eval_knn(
     names = _names(objects, () if sessions else TRAIN_OBJECTS)
     if label not in ("object", "material"):
         raise InputError(f"--label must be object or material, got {label!r}")
-    ks = _ints(k)
+    ks = _ints(k, "--k")
     if not ks or min(ks) < 1:
         raise InputError(f"--k needs one or more positive integers, got {k!r}")
     vds = _views(names, _chosen(views, "0,1,2,3", sessions), n_views=n_views, rig=rig, pixels=pixels_per_view,

@@ -372,7 +372,10 @@ def test_sss_report_on_a_users_own_session(frames, tmp_path):
     page = (tmp_path / "rep" / "index.html").read_text()
     assert "<h1>sssphase report</h1>" in page and "Captured sessions" in page
     assert "measured PSNR" in page and "handmade" in page
-    assert "not a simulated session" in page and "kNN table: not available" in page  # said, not silently left out
+    assert "no footprint model among the backends" in page and "kNN table: not available" in page  # said, not left out
+    config = page[page.index("<h2>Configuration</h2>"):page.index("<h2>Timings</h2>")]
+    assert "not given" in config and "checkerboard" in config and "stripes_x" not in config  # what was given,
+    assert "pretrain_epochs" not in config and "none given" in config  # not the demo's built-in settings
     assert [p.name for p in (tmp_path / "rep" / "img").glob("*compare.png")]
     assert "[relight] done" in res.stdout
     bad = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "report", str(s.path), "--view", "3", "--out",

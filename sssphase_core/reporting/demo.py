@@ -235,6 +235,8 @@ class Demo:
 
         ckpt = self.results.get("decoder", {}).get("checkpoint") if self.results.get("decoder", {}).get("status") == "done" else None
         backends = [b for b in self.cfg.backends if b in ("analytic", "torch") and (b != "torch" or ckpt)]
+        if not backends:  # (it said "done" and the report "the step did not run")
+            raise NotAvailable("no footprint model among the backends: the table scores analytic and torch footprints")
         table: dict[str, dict[str, dict[str, float]]] = {}
         for path in self.results["test_sessions"]["sessions"]:
             rv = load_view(Session.open(path), self.cfg.test_view)
@@ -280,11 +282,13 @@ class Demo:
 
     report_title = "sssphase demo report"
     report_rig = "Simulated rig (CPU preset)"
+    report_config: dict[str, Any] | None = None  # the report's Configuration table (default: the demo's settings)
 
     def report(self) -> dict[str, Any]:
         from sssphase_core.reporting.report import write_report
 
-        path = write_report(self.report_dir, self.results, asdict(self.cfg), title=self.report_title, rig=self.report_rig)
+        config = self.report_config if self.report_config is not None else asdict(self.cfg)
+        path = write_report(self.report_dir, self.results, config, title=self.report_title, rig=self.report_rig)
         return {"path": str(path)}
 
     def run(self) -> Path:
@@ -323,6 +327,31 @@ def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool 
 
 
 REPORT_STEPS = ("relight", "footprints", "knn", "pca", "report")
+
+
+def _report_config(tests: list[Any], train: list[Any], view: int, backends: tuple[str, ...], pretrain: Path | None,
+                   decoder: Path | None) -> dict[str, Any]:
+    """What ``sss report`` was given, for its Configuration table: the sessions, their references, the backends,
+    and each run's checkpoint with the options it was trained with (the demo's own settings are not these)."""
+    from sssphase_core.learning.training.checkpoints import load_checkpoint
+
+    config: dict[str, Any] = {"test_objects": [s.name for s in tests], "train_objects": [s.name for s in train],
+                              "test_view": view, "backends": list(backends)}
+    refs = sorted({f["key"].removeprefix("ref/") for s in tests for f in s.manifest.get("plan", {}).get("frames", [])
+                   if f.get("kind") == "ref"})
+    config["references"] = refs or ["none"]
+    presets = []
+    for role, ckpt in (("pretrain", pretrain), ("decoder", decoder)):
+        if ckpt is None:
+            config[role] = "not given"
+            continue
+        saved = load_checkpoint(ckpt, mmap=True)
+        options = saved.get("config", {}) if isinstance(saved.get("config"), dict) else {}
+        presets.append(str((saved.get("preset") or {}).get("name", "?")))
+        config[role] = str(ckpt)
+        config |= {f"{role}_{k}": options[k] for k in ("epochs", "batch_size", "lr", "head", "augment") if k in options}
+    config["model"] = ", ".join(dict.fromkeys(presets)) or "none given"
+    return config
 
 
 #: The file that marks a folder as written by ``sss report`` (which may write there again).
@@ -380,6 +409,7 @@ def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Pat
     demo.report_title = "sssphase report"
     sims = {"simulated" if "gt/proj_xy" in s.arrays(view) else "captured" for s in tests if view in s.views()}
     demo.report_rig = " and ".join(sorted(sims)).capitalize() + " sessions"
+    demo.report_config = _report_config(tests, train, view, chosen, pretrain, decoder)
     done = {"status": "done", "seconds": 0.0}
     if train:
         demo.results["train_sessions"] = {**done, "root": str(Path(train_sessions)), "sessions": [str(s.path) for s in train]}

@@ -169,7 +169,9 @@ def profiles_figure(path: Path | str, curves: Mapping[str, np.ndarray], col_titl
         for name, values in curves.items():
             y = np.asarray(values[c], np.float64)
             x = np.arange(len(y)) - len(y) // 2
-            ax.plot(x, np.where(y > 0, y, np.nan) if log else y, label=name, lw=1.2)
+            # markers: a delta footprint (no scattering) is one point, and isolated positive samples of a noisy
+            # crop between values <= 0 (not drawn on a log axis) stay visible
+            ax.plot(x, np.where(y > 0, y, np.nan) if log else y, label=name, lw=1.2, marker=".", ms=3)
         ax.set_title(col_titles[c], fontsize=8)
         ax.set_xlabel(xlabel, fontsize=8)
         if log:

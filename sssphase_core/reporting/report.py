@@ -113,7 +113,7 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
                                      for o in objects]))
             parts.append(f"<p class='note'>{note}</p>")
     parts.append(f"<p class='note'>PSNR in dB with peak 1.0 (linear camera units: a white Lambertian reference reads 1.0), "
-                 f"SSIM (11 px Gaussian window), both on the object mask, mean over the checkerboard and stripe patterns. "
+                 f"SSIM (11 px Gaussian window), both on the object mask, mean over the view's reference patterns. "
                  f"{_esc(lpips_note())}. <code>exact</code> splats the simulator's exact footprints (ground truth no lab has); <code>measured</code> splats the session's captured light transport (one crop per projector dot); "
                  f"<code>none</code> keeps each pixel's own light (no scattering)."
                  + (f" <code>analytic</code> integrates each footprint pixel at {int(result['analytic_supersample'])}"
