@@ -798,7 +798,11 @@ def test_result_files_never_land_inside_a_session_or_on_their_markdown_twin(inta
         check_result_paths(tmp_path / "x.md", tmp_path / "x.md")
     with pytest.raises(InputError, match="is a folder"):
         check_result_paths(tmp_path)
+    (tmp_path / "afile").write_text("mine")  # refused before the work, not "File exists" after it
+    with pytest.raises(InputError, match=r"afile is a file, so no folder can be made there"):
+        check_result_paths(tmp_path / "afile" / "sub" / "k.json", tmp_path / "afile" / "sub" / "k.md")
     check_result_paths(tmp_path / "ok.json", tmp_path / "ok.md")
+    check_result_paths(tmp_path / "new" / "deeper" / "ok.json")
 
 
 @pytest.mark.parametrize("image", [{"shape": [4, 4], "data": b"\0" * 16},  # no dtype

@@ -91,6 +91,9 @@ def check_result_paths(out: Path | str, md: Path | str | None = None) -> None:
         refuse_inside_session(path.parent, what=f"--out {path}: its folder")
         if path.is_dir():
             raise InputError(f"--out {path} is a folder: give a file name (e.g. {path / 'result.json'})")
+        above = next((a for a in path.parents if a.exists()), None)  # "afile: File exists" came after all the work
+        if above is not None and not above.is_dir():
+            raise InputError(f"--out {path}: {above} is a file, so no folder can be made there")
     if md is not None and Path(md).resolve() == Path(out).resolve():
         raise InputError(f"--out {out}: the JSON record and its Markdown table would be the same file; give a .json name")
 
