@@ -167,7 +167,7 @@ class DaemonClient:
         pull.rcvhwm = 16
         if self.curve is None:  # the stream takes only peers that know the token
             pull.plain_username, pull.plain_password = security.STREAM_USER.encode(), self.token.encode()
-        pull.connect(job["endpoint"])
+        pull.connect(security.reachable_stream(job["endpoint"], self.endpoint))  # a remote client: not 0.0.0.0
         expected, finished = 0, False
         last_data = time.monotonic()
         stop = threading.Event()

@@ -131,6 +131,20 @@ def stream_endpoint(control: str, job: str) -> str:
     return f"tcp://{'[' + host + ']' if ':' in host else host}:*"
 
 
+#: Hosts a daemon binds to listen on every interface: no address a client elsewhere can connect to.
+WILDCARD_HOSTS = ("*", "0.0.0.0", "::", "0:0:0:0:0:0:0:0")
+
+
+def reachable_stream(stream: str, control: str) -> str:
+    """A job's stream endpoint as a client that reached the daemon at ``control`` connects to it: a stream bound on
+    every interface (``tcp://0.0.0.0:PORT``, which on the client's machine means the client itself) takes the
+    control endpoint's host. Other endpoints are returned as they are."""
+    parts, host = tcp_parts(stream), host_of(control)
+    if parts is None or parts[0] not in WILDCARD_HOSTS or not host or host in WILDCARD_HOSTS:
+        return stream
+    return f"tcp://{'[' + host + ']' if ':' in host else host}:{parts[1]}"
+
+
 STREAM_USER = "sss-stream"  # ZeroMQ PLAIN user of job frame streams; the password is the daemon's token
 
 
@@ -215,14 +229,29 @@ def server_keys(directory: Path) -> tuple[bytes, bytes]:
 
 def client_keys(directory: Path) -> tuple[bytes, bytes, bytes]:
     """(client public, client secret, server public) for a CURVE client."""
-    import zmq.auth
 
     check_key_dir(directory)
-    public, secret = zmq.auth.load_certificate(directory / f"{CLIENT_CERT}.key_secret")
-    server_public, _ = zmq.auth.load_certificate(directory / f"{SERVER_CERT}.key")
+    public, secret = _certificate(directory / f"{CLIENT_CERT}.key_secret")
+    server_public, _ = _certificate(directory / f"{SERVER_CERT}.key")
     if secret is None:
-        raise ValueError(f"no client secret key in {directory}")
+        raise KeyFileError(f"{directory / f'{CLIENT_CERT}.key_secret'} holds no client secret key: make the keys again "
+                           "(`sss daemon keys`)")
     return public, secret, server_public
+
+
+class KeyFileError(SssError, ValueError):
+    """A CURVE key file that is missing, damaged or of the wrong kind."""
+
+
+def _certificate(path: Path) -> tuple[bytes, bytes | None]:
+    """``zmq.auth.load_certificate`` with one clear error for a damaged or missing file (it was an internal error)."""
+    import zmq.auth
+
+    try:
+        return zmq.auth.load_certificate(path)
+    except (OSError, ValueError) as exc:
+        raise KeyFileError(f"{path}: not a readable CURVE key file ({str(exc).splitlines()[0][:100]}): make the keys "
+                           "again (`sss daemon keys`) or copy them intact") from None
 
 
 def is_daemon_process(pid: int) -> bool:

@@ -65,6 +65,16 @@ class Rig:
         self.devices = {}
 
 
+def _close_all(devices: dict[str, Any]) -> None:
+    """Close every driver, each whatever the others do (a failing close must not leave the rest open)."""
+    for driver in devices.values():
+        try:
+            driver.close()
+        except Exception as exc:
+            log.warning("closing a device failed: %s", exc)
+    devices.clear()
+
+
 @dataclass
 class Job:
     id: str
@@ -302,6 +312,9 @@ class Daemon:
             reply = protocol.reply_error(rid, protocol.DEVICE, str(exc))
         except (KeyError, ValueError, TypeError) as exc:
             reply = protocol.reply_error(rid, protocol.BAD_ARGS, f"{type(exc).__name__}: {exc}"[:500])
+        except SystemExit as exc:  # a device plugin's sys.exit() ended the daemon without a line in its log
+            log.exception("a device plugin called sys.exit(%s)", exc.code)
+            reply = protocol.reply_error(rid, protocol.DEVICE, f"a device plugin called sys.exit({exc.code!r})")
         except Exception as exc:  # the daemon keeps serving whatever a handler does
             log.exception("handler failed")
             reply = protocol.reply_error(rid, protocol.INTERNAL, f"{type(exc).__name__}: {exc}"[:500])
@@ -358,10 +371,14 @@ class Daemon:
                     provider = manager.find_provider(device_id, self.pm, kind=kind)
                 except KeyError as exc:
                     raise ProtocolError(protocol.NOT_FOUND, str(exc.args[0])) from None
-                devices[kind] = provider.open(device_id, options, shared)
-        except Exception as exc:
-            for d in devices.values():
-                d.close()
+                driver = provider.open(device_id, options, shared)
+                if not (callable(getattr(driver, "close", None)) and hasattr(driver, "info")):
+                    _close_all(devices)  # (an AttributeError on 'close' named no plugin, and left the others open)
+                    raise ProtocolError(protocol.DEVICE, f"open() of the plugin of {device_id} returned "
+                                        f"{type(driver).__name__}, not a {kind} driver")
+                devices[kind] = driver
+        except BaseException as exc:  # a plugin's sys.exit() too: the devices opened so far are closed
+            _close_all(devices)
             if isinstance(exc, SssError):
                 raise ProtocolError(protocol.BAD_ARGS, str(exc)) from None
             raise
@@ -483,6 +500,9 @@ class Daemon:
             job.state, job.error = "failed", {"code": protocol.DEVICE, "message": str(exc)}
         except SssError as exc:
             job.state, job.error = "failed", {"code": protocol.BAD_ARGS, "message": str(exc)}
+        except SystemExit as exc:  # a plugin's sys.exit() ended the job's thread: the job hung "running" for ever
+            log.exception("job %s: a device plugin called sys.exit(%s)", job.id, exc.code)
+            job.state, job.error = "failed", {"code": protocol.DEVICE, "message": f"a device plugin called sys.exit({exc.code!r})"}
         except Exception as exc:
             log.exception("job %s failed", job.id)
             job.state, job.error = "failed", {"code": protocol.INTERNAL, "message": f"{type(exc).__name__}: {exc}"}

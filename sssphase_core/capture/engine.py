@@ -8,6 +8,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict
 from pathlib import Path
@@ -170,4 +171,10 @@ def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, option
             session.set_view(view, {"status": "interrupted"})
             raise
         writer.commit({"angle": angle, "frames": len(frames), **info})
+        coverage = info.get("coverage", {})
+        if coverage and not coverage.get("VALID"):  # "complete" and valid, with nothing in it to learn or relight
+            causes = ", ".join(f"{k.lower().replace('_', ' ')} {v}" for k, v in coverage.items() if v)
+            warnings.warn(f"{session.path} view {view}: no camera pixel decoded ({causes}): is the projector on and in "
+                          "focus, the exposure right, the object in view? (the view is kept as captured: once the "
+                          "rig is right, capture again into a new --out)", stacklevel=2)
     return session

@@ -375,3 +375,13 @@ def test_every_documented_sim_rig_option_is_known_and_options_of_other_plugins_p
     (tmp_path / "rig.toml").write_text('[devices]\ncamera = "uvc:cam0"\nprojector = "sim:projector0"\n'
                                        '[options]\nserial = "/dev/ttyACM0"\nread_noise = 3\n')
     assert RigSpec.from_toml(tmp_path / "rig.toml").options["serial"] == "/dev/ttyACM0"  # not a sim-only rig
+
+
+def test_a_view_where_nothing_decodes_is_kept_with_a_warning(runtime_dir, sss, tmp_path):
+    """A rig whose camera sees no fringes (here the sim's benchmark camera, which never looks at the projector)
+    gave a session that said "1/1 views complete" and validated, without a word."""
+    rig = tmp_path / "rig.toml"
+    rig.write_text('[devices]\ncamera = "sim:bench-camera"\nprojector = "sim:projector0"\nturntable = "sim:turntable0"\n')
+    res = sss("capture", "--object", "apple", "--views", "1", "--rig", str(rig), "--out", str(tmp_path / "s"))
+    assert res.returncode == 0, res.stderr
+    assert "view 0: no camera pixel decoded (low modulation" in res.stderr and "Traceback" not in res.stderr

@@ -109,9 +109,21 @@ def test_off_loopback_bind_needs_curve_keys_and_refuses_plain_clients(runtime_di
         plain.close()
         with DaemonClient(endpoint, state.token, curve_dir=keys, timeout_s=5.0) as good:
             assert good.call("hello")["protocol"] == protocol.PROTOCOL_VERSION
+            rig = good.call("open_rig", camera="sim:bench-camera", options={"shape": [8, 8, 3]})["rig"]
+            assert len(list(good.stream(rig, 2))) == 2  # the job's stream, over CURVE too
+        secret = keys / "client.key_secret"
+        secret.write_text("garbage")  # a damaged key: one line, not "internal error: ValueError"
+        with pytest.raises(security.KeyFileError, match="client.key_secret: not a readable CURVE key file"):
+            DaemonClient(endpoint, state.token, curve_dir=keys, timeout_s=1.0)
     finally:
         proc.terminate()
         proc.wait(10)
+    # a stream bound on every interface is reached where the client reached the daemon (a remote client was
+    # handed tcp://0.0.0.0:PORT, its own machine, and waited for frames for ever)
+    assert security.reachable_stream("tcp://0.0.0.0:5000", "tcp://192.168.1.5:56150") == "tcp://192.168.1.5:5000"
+    assert security.reachable_stream("tcp://[::]:5000", "tcp://[fe80::1]:56150") == "tcp://[fe80::1]:5000"
+    assert security.reachable_stream("tcp://10.0.0.2:5000", "tcp://192.168.1.5:1") == "tcp://10.0.0.2:5000"
+    assert security.reachable_stream("ipc:///run/a.sock", "ipc:///run/c.sock") == "ipc:///run/a.sock"
 
 
 CLIENT_SCRIPT = """
@@ -279,3 +291,64 @@ def test_a_daemon_started_for_one_capture_is_left_running_while_another_client_u
         second.close()
     finally:
         shutil.rmtree(runtime, ignore_errors=True)
+
+
+EXITING_PLUGIN = '''
+import sys
+from sssphase_plugins.api import DeviceInfo, hookimpl
+
+__version__ = "1.0"
+
+
+class Camera:
+    def __init__(self, device_id):
+        self.info = DeviceInfo(device_id, "camera", "exiting", "exits", device_id)
+
+    def configure(self, **kw):
+        pass
+
+    def grab(self, timeout_s=5.0):
+        sys.exit(4)
+
+    def stream(self, count):
+        return (self.grab() for _ in range(count))
+
+    def close(self):
+        pass
+
+
+class Provider:
+    kind = "camera"
+
+    def discover(self):
+        return [DeviceInfo(f"exiting:{n}", "camera", "exiting", n, n) for n in ("open", "grab", "junk")]
+
+    def open(self, device_id, options, shared):
+        if device_id == "exiting:open":
+            sys.exit(3)
+        return 7 if device_id == "exiting:junk" else Camera(device_id)
+
+
+@hookimpl
+def sssphase_cameras():
+    return [Provider()]
+'''
+
+
+def test_a_plugin_that_exits_or_returns_no_driver_fails_its_request_not_the_daemon(daemon_factory, tmp_path, monkeypatch):
+    """sys.exit() in a plugin's open() ended the daemon without a line in its log, in grab() it left the job
+    "running" for ever (the client hung); an int from open() was "internal: AttributeError ... 'close'"."""
+    from sssphase_daemon.client import DaemonError
+
+    (tmp_path / "exiting_plugin.py").write_text(EXITING_PLUGIN)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("SSS_PLUGINS", "exiting_plugin")
+    proc, client, _ = daemon_factory()
+    with pytest.raises(DaemonError, match=r"a device plugin called sys.exit\(3\)"):
+        client.call("open_rig", camera="exiting:open")
+    with pytest.raises(DaemonError, match="open.. of the plugin of exiting:junk returned int, not a camera driver"):
+        client.call("open_rig", camera="exiting:junk")
+    rig = client.call("open_rig", camera="exiting:grab")["rig"]
+    with pytest.raises(DaemonError, match=r"a device plugin called sys.exit\(4\)"):
+        list(client.stream(rig, 2))
+    assert proc.poll() is None and client.ping(timeout_s=2.0)
