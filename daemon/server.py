@@ -40,6 +40,7 @@ log = logging.getLogger("sssphase.daemon")
 MAX_FRAMES_PER_JOB = 200_000
 HANDSHAKE_MS = 5000
 MAX_OPEN_RIGS = 16  # each may hold a simulated scene or a camera: a client cannot open thousands
+MAX_RUNNING_JOBS = 32  # each holds a thread and a stream socket: thousands exhausted ZeroMQ's sockets and threads
 HEAVY_MODULES = ("torch", "depthai", "hid", "usb", "serial")  # a sim-only daemon must load none of these
 FRAME_KINDS = ("psp", "white", "black", "level", "dots", "ref", "image")
 
@@ -436,6 +437,11 @@ class Daemon:
             rig.lock.release()
 
     def _start_job(self, client: bytes, rig: Rig, total: int, frames: Callable[[Job], Iterator[tuple[str, Any]]]) -> dict:
+        with self.lock:
+            running = sum(j.state == "running" for j in self.jobs.values())
+        if running >= MAX_RUNNING_JOBS:
+            raise ProtocolError(protocol.BUSY, f"{running} capture jobs are running (at most {MAX_RUNNING_JOBS}): read or "
+                                "cancel one first")
         job_id = f"{next(self.counter)}-{uuid.uuid4().hex[:8]}"
         sender = FrameSender(self.ctx, security.stream_endpoint(self.endpoint, job_id), self.curve,
                              plain=self.curve is None)

@@ -31,6 +31,33 @@ class ClientLike(Protocol):
 
 MAX_BRACKETS = 8
 
+#: Seconds between the pings that keep a rig open while the user turns the object by hand (a daemon closes a
+#: rig whose client it has not heard from for 5 minutes; a prompt left waiting lost the rig and the capture).
+KEEPALIVE_S = 30.0
+
+
+@contextlib.contextmanager
+def _keeping_rig_open(client: ClientLike) -> Iterator[None]:
+    """Ping the daemon from a thread while the block waits for the user (the main thread sends nothing then)."""
+    import threading
+
+    stop = threading.Event()
+
+    def beat() -> None:
+        while not stop.wait(KEEPALIVE_S):
+            try:
+                client.call("ping", timeout_s=5.0)
+            except Exception:  # a daemon that went away is reported by the next capture request
+                return
+
+    thread = threading.Thread(target=beat, name="sss-keep-rig", daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        stop.set()
+        thread.join()
+
 
 def check_brackets(exposures: tuple[float, ...]) -> None:
     """HDR brackets: none, or 2 to ``MAX_BRACKETS`` distinct finite relative exposures in (0, 256]."""
@@ -155,7 +182,8 @@ def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, option
         if rig.turntable:
             client.call("move", rig=opened["rig"], angle=angle)
         elif ask_move is not None:
-            ask_move(view, angle)
+            with _keeping_rig_open(client):
+                ask_move(view, angle)
         writer = session.begin_view(view)
         try:
             proc = ViewProcessor(writer, plan, spacing, rig.patch or 32, rig, req, n_dots, camera_isp)

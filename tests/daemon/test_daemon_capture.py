@@ -385,3 +385,25 @@ def test_a_view_where_nothing_decodes_is_kept_with_a_warning(runtime_dir, sss, t
     res = sss("capture", "--object", "apple", "--views", "1", "--rig", str(rig), "--out", str(tmp_path / "s"))
     assert res.returncode == 0, res.stderr
     assert "view 0: no camera pixel decoded (low modulation" in res.stderr and "Traceback" not in res.stderr
+
+
+def test_the_rig_is_kept_open_while_the_user_turns_the_object_by_hand(monkeypatch):
+    """On a rig without a turntable the daemon closed the rig 5 minutes into the "turn the object" prompt (no
+    request came), and the next view failed with "no open rig"."""
+    import time
+
+    from sssphase_core.capture import engine
+
+    calls: list[str] = []
+
+    class Client:
+        def call(self, op, timeout_s=None, **args):
+            calls.append(op)
+            return {}
+
+    monkeypatch.setattr(engine, "KEEPALIVE_S", 0.02)
+    with engine._keeping_rig_open(Client()):
+        time.sleep(0.3)  # the user at the prompt
+    n = len(calls)
+    time.sleep(0.1)
+    assert n >= 5 and set(calls) == {"ping"} and len(calls) == n  # pinged while waiting, and only then

@@ -352,3 +352,22 @@ def test_a_plugin_that_exits_or_returns_no_driver_fails_its_request_not_the_daem
     with pytest.raises(DaemonError, match=r"a device plugin called sys.exit\(4\)"):
         list(client.stream(rig, 2))
     assert proc.poll() is None and client.ping(timeout_s=2.0)
+
+
+def test_a_client_cannot_start_more_jobs_or_open_more_rigs_than_the_daemon_holds(daemon_factory):
+    """3,000 one-frame jobs never read took the daemon to 1,025 threads and ZeroMQ's socket limit: every
+    later capture then failed with "Too many open files", and shutting down took a minute."""
+    from sssphase_daemon.client import DaemonError
+    from sssphase_daemon.server import MAX_OPEN_RIGS, MAX_RUNNING_JOBS
+
+    proc, client, _ = daemon_factory()
+    rig = client.call("open_rig", camera="sim:bench-camera", options={"shape": [4, 4, 3]})["rig"]
+    for _ in range(MAX_RUNNING_JOBS):
+        client.call("stream", rig=rig, count=1_000_000)  # never read: each job stays running
+    with pytest.raises(DaemonError, match=f"{MAX_RUNNING_JOBS} capture jobs are running"):
+        client.call("stream", rig=rig, count=1)
+    for _ in range(MAX_OPEN_RIGS - 1):
+        client.call("open_rig", camera="sim:bench-camera", options={"shape": [4, 4, 3]})
+    with pytest.raises(DaemonError, match=f"{MAX_OPEN_RIGS} rigs are open"):
+        client.call("open_rig", camera="sim:bench-camera", options={"shape": [4, 4, 3]})
+    assert client.ping(timeout_s=2.0)
