@@ -234,19 +234,33 @@ def spawn_daemon(*, endpoint: str | None = None, extra_args: tuple[str, ...] = (
                             start_new_session=True, env={**os.environ, **(env or {})})
     log.close()
     deadline = time.monotonic() + wait_s
-    while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise DaemonUnavailable(f"the daemon exited with status {proc.returncode}: {_last_line(log.name, start)} "
-                                    f"(see {log.name})")
-        state = security.read_state(state_file)
-        if state is not None and state.pid == proc.pid:
-            with DaemonClient(state.endpoint, state.token,
-                              curve_dir=Path(state.curve_dir) if state.curve_dir else None) as client:
-                if client.ping(timeout_s=1.0):
-                    return proc
-        time.sleep(0.05)
+    try:
+        while time.monotonic() < deadline:
+            if proc.poll() is not None:
+                raise DaemonUnavailable(f"the daemon exited with status {proc.returncode}: {_last_line(log.name, start)} "
+                                        f"(see {log.name})")
+            state = security.read_state(state_file)
+            if state is not None and state.pid == proc.pid:
+                with DaemonClient(state.endpoint, state.token,
+                                  curve_dir=Path(state.curve_dir) if state.curve_dir else None) as client:
+                    if client.ping(timeout_s=1.0):
+                        return proc
+            time.sleep(0.05)
+    except BaseException:  # Ctrl-C while it starts: a detached daemon nobody would stop was left running
+        _stop(proc)
+        raise
     proc.kill()
     raise DaemonUnavailable(f"the daemon did not start within {wait_s:g} s (see {log.name})")
+
+
+def _stop(proc: subprocess.Popen) -> None:
+    """Terminate a daemon this process started (killed if it does not exit within 10 s)."""
+    proc.terminate()
+    try:
+        proc.wait(10)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait(10)
 
 
 @contextlib.contextmanager
@@ -270,9 +284,13 @@ def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | N
     started = None
     if client is None:
         started = spawn_daemon()
-        if on_start is not None:
-            on_start(started.pid)
-        client = DaemonClient.from_state(timeout_s=timeout_s)
+        try:
+            if on_start is not None:
+                on_start(started.pid)
+            client = DaemonClient.from_state(timeout_s=timeout_s)
+        except BaseException:  # (an interrupt here left the daemon this started running)
+            _stop(started)
+            raise
     try:
         with client:
             yield client

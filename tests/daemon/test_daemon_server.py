@@ -371,3 +371,25 @@ def test_a_client_cannot_start_more_jobs_or_open_more_rigs_than_the_daemon_holds
     with pytest.raises(DaemonError, match=f"{MAX_OPEN_RIGS} rigs are open"):
         client.call("open_rig", camera="sim:bench-camera", options={"shape": [4, 4, 3]})
     assert client.ping(timeout_s=2.0)
+
+
+def test_an_interrupt_while_a_local_daemon_starts_stops_it(runtime_dir, monkeypatch):
+    """Ctrl-C while `sss capture` waited for the daemon it had started left that daemon running, detached,
+    and later captures reused it without ever stopping it."""
+    from sssphase_daemon import client as client_module
+
+    started: list[subprocess.Popen] = []
+    popen = subprocess.Popen
+
+    def recording(*args, **kwargs):
+        started.append(popen(*args, **kwargs))
+        return started[-1]
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(client_module.subprocess, "Popen", recording)
+    monkeypatch.setattr(client_module.security, "read_state", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        client_module.spawn_daemon()
+    assert len(started) == 1 and started[0].poll() is not None  # stopped, not left running
