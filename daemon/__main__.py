@@ -19,7 +19,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--client-timeout", type=float, default=10.0, help="seconds without heartbeat before a client counts as dead")
     parser.add_argument("--max-message-bytes", type=int, default=protocol.DEFAULT_MAX_MESSAGE_BYTES)
     parser.add_argument("--state-file", type=Path, help="where to write endpoint, pid and token (default: runtime dir)")
+    parser.add_argument("--exit-when-idle", type=float, metavar="SECONDS",
+                        help="exit once no rig is open, no job runs and no client was heard from for this long")
     args = parser.parse_args(argv)
+    if args.exit_when_idle is not None and not args.exit_when_idle > 0:  # NaN too
+        parser.error(f"--exit-when-idle must be a positive number of seconds, got {args.exit_when_idle}")
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     import zmq
 
@@ -28,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         daemon = Daemon(args.endpoint, curve_dir=args.curve_dir, preview=args.preview,
                         client_timeout_s=args.client_timeout, max_message_bytes=args.max_message_bytes,
-                        state_file=args.state_file or security.state_path())
+                        state_file=args.state_file or security.state_path(), exit_when_idle_s=args.exit_when_idle)
     except zmq.ZMQError as exc:  # a bind that failed: address in use, no such interface, ...
         print(f"sssphase daemon: cannot listen: {exc}", file=sys.stderr)
         return 2

@@ -263,6 +263,10 @@ def _stop(proc: subprocess.Popen) -> None:
         proc.wait(10)
 
 
+#: A daemon started by :func:`local_client` exits after this many seconds without a rig, a job or a client.
+LOCAL_DAEMON_IDLE_S = 600
+
+
 @contextlib.contextmanager
 def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | None = None,
                  on_stop: Callable[[int], None] | None = None,
@@ -282,8 +286,8 @@ def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | N
     except DaemonUnavailable:
         client = None
     started = None
-    if client is None:
-        started = spawn_daemon()
+    if client is None:  # it ends itself once unused: an interrupted or killed capture cannot leave it for ever
+        started = spawn_daemon(extra_args=("--exit-when-idle", str(LOCAL_DAEMON_IDLE_S)))
         try:
             if on_start is not None:
                 on_start(started.pid)

@@ -164,7 +164,12 @@ class Daemon:
 
     def __init__(self, endpoint: str | None = None, *, token: str | None = None, curve_dir: Path | None = None,
                  preview: str | None = None, client_timeout_s: float = 10.0,
-                 max_message_bytes: int = protocol.DEFAULT_MAX_MESSAGE_BYTES, state_file: Path | None = None) -> None:
+                 max_message_bytes: int = protocol.DEFAULT_MAX_MESSAGE_BYTES, state_file: Path | None = None,
+                 exit_when_idle_s: float | None = None) -> None:
+        """``exit_when_idle_s``: stop once no rig is open, no job runs and no client has been heard from for this
+        long (a daemon a capture started for itself: a capture interrupted or killed left it running for ever)."""
+        self.exit_when_idle_s = exit_when_idle_s
+        self.started_at = time.monotonic()
         self.endpoint = endpoint or security.default_endpoint()
         for what in (e for e in (self.endpoint, preview) if e):
             if (problem := security.endpoint_problem(what)) is not None:
@@ -249,6 +254,9 @@ class Daemon:
                 if poller.poll(200):
                     self._handle(self.control.recv_multipart(copy=True))
                 self._reap()
+                if self.exit_when_idle_s is not None and self.idle_s() > self.exit_when_idle_s:
+                    log.info("idle for %.0f s (no rig, job or client): exiting", self.idle_s())
+                    self.running = False
         finally:
             self.close()
 
@@ -269,6 +277,14 @@ class Daemon:
         security.remove_ipc_socket(self.endpoint)
         if self.state_file is not None:
             self.state_file.unlink(missing_ok=True)
+
+    def idle_s(self) -> float:
+        """Seconds since the daemon last had an open rig, a running job or a request (0 while it has)."""
+        with self.lock:
+            if self.rigs or any(j.state == "running" for j in self.jobs.values()):
+                return 0.0
+            last = max(self.last_seen.values(), default=self.started_at)
+        return time.monotonic() - max(last, self.started_at)
 
     def _alive(self, owner: bytes, timeout: float | None = None) -> bool:
         return time.monotonic() - self.last_seen.get(owner, 0.0) < (timeout or self.client_timeout)

@@ -393,3 +393,33 @@ def test_an_interrupt_while_a_local_daemon_starts_stops_it(runtime_dir, monkeypa
     with pytest.raises(KeyboardInterrupt):
         client_module.spawn_daemon()
     assert len(started) == 1 and started[0].poll() is not None  # stopped, not left running
+
+
+def test_a_daemon_started_for_a_capture_exits_once_unused(daemon_factory):
+    """An interrupted or killed `sss capture` could leave the daemon it started running for ever: the daemon it
+    starts (`--exit-when-idle`) now ends itself once no rig, job or client has been seen for that long."""
+    proc, client, path = daemon_factory("--exit-when-idle", "1")
+    rig = client.call("open_rig", camera="sim:bench-camera", options={"shape": [4, 4, 3]})["rig"]
+    time.sleep(2.0)  # an open rig keeps it (the rig's owner may be at the "turn the object" prompt)
+    assert proc.poll() is None
+    client.call("close_rig", rig=rig)
+    deadline = time.monotonic() + 10
+    while proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert proc.returncode == 0 and not (path / "daemon.json").exists()
+
+
+def test_the_daemon_a_capture_starts_for_itself_is_told_to_exit_when_unused(tmp_path, monkeypatch):
+    from sssphase_daemon import client as client_module
+
+    asked: list[tuple[str, ...]] = []
+
+    def spawn(*, extra_args=(), **kwargs):
+        asked.append(tuple(extra_args))
+        raise KeyboardInterrupt  # (nothing is started here)
+
+    monkeypatch.setenv("SSS_RUNTIME_DIR", str(tmp_path))  # no daemon runs there
+    monkeypatch.setattr(client_module, "spawn_daemon", spawn)
+    with pytest.raises(KeyboardInterrupt), client_module.local_client():
+        pass
+    assert asked == [("--exit-when-idle", str(client_module.LOCAL_DAEMON_IDLE_S))]
