@@ -29,8 +29,8 @@ MAX_SEED = 2**32 - 1  # numpy's and torch's seeds take it; the loop derives per-
 NViewsOpt = Annotated[int, typer.Option(min=1, help="Turntable views per object (simulator).")]
 DeterministicOpt = Annotated[bool, typer.Option(
     help="CUDA: deterministic kernels, so a resumed run ends with exactly an uninterrupted run's weights (`sss bench "
-         "gpu` measures the cost: on an H200 0.26x the speed for SimSiam, which resumed exactly without them, and 0.90x "
-         "for the decoder, which did not); the CPU's kernels always are.")]
+         "gpu` measures the cost; the README gives an H200's: SimSiam resumed exactly without them, the decoder did "
+         "not); the CPU's kernels always are.")]
 DEFAULT_CACHE = Path(".sss_cache")
 
 

@@ -130,12 +130,7 @@ def decode_cmd(
     import numpy as np
     from rich.progress import Progress
 
-    from sssphase_core.capture.importer import (
-        LINEAR_RANGE,
-        MIN_FRAME_SIDE,
-        frame_files,
-        psp_config_from_names,
-    )
+    from sssphase_core.capture.importer import MIN_FRAME_SIDE, frame_files, frame_scale, psp_config_from_names
     from sssphase_core.processing.isp import check_layout
     from sssphase_core.processing.patterns import parse_projector_size, psp_config_for, psp_key
     from sssphase_core.processing.psp import Reason, decode_camera, wrapped_phase
@@ -185,16 +180,16 @@ def decode_cmd(
                 raise InputError(f"{files[key]} is {first.shape[1]}x{first.shape[0]}: smaller than a camera frame "
                                  f"(at least {MIN_FRAME_SIDE} px a side)")
             bar.advance(task)
-    if not any(stores_integers(files[key]) for key in keys):  # float frames in a renderer's units: to camera units,
-        level = max(float(np.percentile(f, 99.9)) for f in frames.values())  # as `sss import` scales them
-        if not level > 0 or not np.isfinite(level):
-            raise InputError(f"the PSP frames in {folder} hold no light (99.9th percentile {level:.3g}): they must be "
-                             "linear images of the fringe patterns")
-        if not LINEAR_RANGE[0] <= level <= LINEAR_RANGE[1]:
-            frames = {k: (f.astype(np.float64) / level).astype(np.float32) for k, f in frames.items()}
-            saturation = None if saturation is None else saturation / level
-            typer.echo(f"float frames at level {level:.3g} (99.9th percentile) scaled to 1 (the decoder's thresholds "
-                       "are in camera units)")
+    level = max(float(np.percentile(f, 99.9)) for f in frames.values())
+    if not any(stores_integers(files[key]) for key in keys) and not (level > 0 and np.isfinite(level)):
+        raise InputError(f"the PSP frames in {folder} hold no light (99.9th percentile {level:.3g}): they must be "
+                         "linear images of the fringe patterns")
+    scale = frame_scale([files[key] for key in keys], [level])  # float frames in a renderer's units, as `sss import`
+    if scale != 1.0:
+        frames = {k: (f.astype(np.float64) * scale).astype(np.float32) for k, f in frames.items()}
+        saturation = None if saturation is None else saturation * scale
+        typer.echo(f"float frames at level {level:.3g} (99.9th percentile) scaled to 1 (the decoder's thresholds are "
+                   "in camera units)")
     corr = decode_camera(frames, config, size, bayer=bayer, min_modulation=min_modulation, saturation=saturation)
     out.mkdir(parents=True, exist_ok=True)
     for name in ("xp", "yp", "mask", "reason", "modulation", "offset", "modulation_ratio"):

@@ -303,8 +303,7 @@ def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | N
             if on_left is not None:
                 on_left(started.pid)
         elif started is not None:
-            started.terminate()
-            started.wait(10)
+            _stop(started)
             if on_stop is not None:
                 on_stop(started.pid)
 

@@ -61,9 +61,9 @@ def _epoch_losses(run: Path, key: str) -> list[float]:
 
 #: the variants compared by :func:`training`: today's default (next batch built on a worker thread, patches
 #: cropped on the device where the stacks fit; deterministic kernels for the decoder, not for SimSiam), the
-#: plain host loader as the same-run baseline, and the default with the other kernel choice (``flip``:
+#: plain host loader as the same-run baseline, and the default with the other kernel choice (``kernels``:
 #: what determinism costs each stage).
-LOADERS = {"default": {}, "host": {"prefetch": False, "stacks_on_device": False}, "kernels": {"flip": True}}
+LOADERS = {"default": {}, "host": {"prefetch": False, "stacks_on_device": False}, "kernels": {}}
 LOADER_LABELS = {"default": "default", "host": "host loader (baseline)", "kernels": "other kernels"}
 
 
@@ -80,12 +80,10 @@ def training(preset: str, dev: torch.device, out: Path, *, steps: int, batch: in
     result: dict[str, Any] = {"preset": preset, "patch": p.patch, "batch": batch, "patches": len(ds)}
     for loader, options in LOADERS.items():
         pre, dec = out / f"pre_{loader}", out / ("dec" if loader == "default" else f"dec_{loader}")
-        options = dict(options)
-        flip = options.pop("flip", False)
         pre_cfg = PretrainConfig(preset=preset, epochs=epochs, batch_size=batch, device=str(dev), ckpt_every=0,
                                  knn_monitor=0, warmup_epochs=0.5, **options)
         dec_cfg = DecoderConfig(epochs=epochs, batch_size=batch, device=str(dev), ckpt_every=0, val_samples=0, **options)
-        if flip:
+        if loader == "kernels":
             pre_cfg = replace(pre_cfg, deterministic=not pre_cfg.deterministic)
             dec_cfg = replace(dec_cfg, deterministic=not dec_cfg.deterministic)
         result[f"deterministic_{loader}"] = {"pretrain": pre_cfg.deterministic, "decoder": dec_cfg.deterministic}
