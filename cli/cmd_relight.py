@@ -333,6 +333,9 @@ def eval_relight(
         raise InputError(f"--backend names no backend (got {backend!r}): give e.g. none,analytic,torch")
     if checkpoint is not None:
         checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
+        if not any(map(uses_decoder, backends)):  # (the model was silently not evaluated, the checkpoint not read)
+            console.print(f"note: --checkpoint is read only by torch and blend, which --backend {','.join(backends)} "
+                          "does not list: add them to evaluate the model")
     check_backends(backends, checkpoint)
     compute_device(device)  # one line before any progress is drawn
     rows, found = [], find_sessions(sessions)  # a missing folder is one line before any progress is drawn

@@ -965,3 +965,13 @@ def test_nan_in_a_reference_capture_is_refused_not_scored_as_zero(intact_session
     assert Session.open(copy).validate() == []  # stored as written
     with pytest.raises(DataError, match=r"ref/checkerboard holds 60 NaN or infinite values"):
         evaluate_view(load_view(Session.open(copy), 0), "none", tmp_path / "img")
+
+
+def test_eval_relight_says_when_its_checkpoint_is_not_used(intact_session, tmp_path):
+    """`sss eval relight S --checkpoint RUN` with the default backends evaluated no model, without a word."""
+    ckpt = tmp_path / "run.pt"
+    ckpt.write_bytes(b"")  # never read: no listed backend runs a decoder
+    res = _cli("eval", "relight", str(intact_session), "--checkpoint", str(ckpt), "--backend", "none", "--out",
+               str(tmp_path / "e"))
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "--checkpoint is read only by torch and blend, which --backend none does not list" in res.stdout
