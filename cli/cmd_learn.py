@@ -269,6 +269,11 @@ def train_decoder(
                                              "classes (>= 2, more than the largest material label).")] = 0,
     learn_gain: Annotated[bool, typer.Option("--learn-gain", help="Reciprocal head: also learn a per-colour energy "
                                              "gain (default: energy from reciprocity alone).")] = False,
+    capture_model: Annotated[bool, typer.Option(help="Compare each predicted footprint with its captured crop as the "
+                                                "crop recorded it (moved to where its dot lit the surface, then the "
+                                                "camera's Bayer sampling and demosaicing), so the decoder predicts the "
+                                                "light entering at the pixel (--no-capture-model: the crops are the "
+                                                "targets, blurred by both).")] = True,
     seed: Annotated[int, typer.Option(min=0, max=MAX_SEED)] = 0,
     ckpt_every: Annotated[int, typer.Option(min=0, help="Steps between mid-epoch checkpoints (0: epoch ends only).")] = 50,
     device: str = "auto",
@@ -333,7 +338,8 @@ def train_decoder(
     _check_batch(batch_size, ds, "training footprints")
     check_aux_classes(aux_classes, ds)
     cfg = DecoderConfig(epochs=epochs, batch_size=batch_size, seed=seed, ckpt_every=ckpt_every, device=device, lr=lr,
-                        deterministic=deterministic, head=head, aux_classes=aux_classes, preset=preset, learn_gain=learn_gain)
+                        deterministic=deterministic, head=head, aux_classes=aux_classes, preset=preset, learn_gain=learn_gain,
+                        capture_model=capture_model)
     what = f"encoder and decoder end-to-end ({preset})" if end_to_end else "the decoder"
     console.print(f"training {what} on {len(ds)} footprints of {', '.join(names)} -> {out} "
                   f"(options in {save_run_config(ctx, out, resuming=resuming)})")

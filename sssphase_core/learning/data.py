@@ -38,6 +38,8 @@ class ViewData:
     pixels: np.ndarray  # (N, 2) int (y, x)
     materials: np.ndarray  # (N,) int material label, -1 unknown
     footprints: object | None = None  # (N, K, K, 3) array-like or None
+    isp: dict | None = None  # the camera pipeline that made the footprint crops (a session view's camera_isp)
+    offsets: np.ndarray | None = None  # (N, 2) (dy, dx) px: where each crop's dot lit the surface (None: at the pixel)
 
     def __post_init__(self) -> None:
         if self.psp.ndim != 4 or self.psp.shape[0] != N_PSP or self.psp.shape[-1] != 3:
@@ -93,7 +95,9 @@ def psp_patches(psp: np.ndarray, pixels: np.ndarray, k: int, chunk: int = 4096) 
 
 class PatchDataset(torch.utils.data.Dataset):
     """Patches of several views; items are dicts of tensors (``psp``, ``object``, ``material``, ``view``
-    and ``footprint`` (3, K, K) when ``with_targets``). ``batch(indices)`` builds a batch at once."""
+    and, when ``with_targets``, ``footprint`` (3, K, K), ``camera``, the code of the camera that recorded
+    it (:func:`sssphase_core.learning.camera.crop_codes`), and ``offset`` (2,), where its dot lit the surface
+    (:func:`sssphase_core.processing.footprints.dot_offsets`). ``batch(indices)`` builds a batch at once."""
 
     def __init__(self, views: Sequence[ViewData], patch: int, classes: Sequence[str], *, with_targets: bool = False) -> None:
         if not views:
@@ -125,6 +129,12 @@ class PatchDataset(torch.utils.data.Dataset):
             "material": np.concatenate([np.asarray(v.materials, np.int64) for v in self.views]),
             "view": np.repeat([v.view for v in self.views], counts),
         }
+        if with_targets:  # each crop's camera and dot offset, through which decoder training passes its prediction
+            from sssphase_core.learning.camera import crop_codes
+
+            self.camera = np.concatenate([crop_codes(v.isp, v.pixels, patch) for v in self.views])
+            self.dot_offsets = np.concatenate([np.zeros((len(v.pixels), 2), np.float32) if v.offsets is None
+                                           else np.asarray(v.offsets, np.float32).reshape(-1, 2) for v in self.views])
 
     def __len__(self) -> int:
         return int(self.offsets[-1])
@@ -156,6 +166,7 @@ class PatchDataset(torch.utils.data.Dataset):
         out["psp"] = torch.empty(len(idx), 3 * N_PSP, self.patch, self.patch, device=self._crop_from[0].device)
         if self.with_targets:
             out["footprint"] = torch.empty(len(idx), 3, self.patch, self.patch)
+            out["camera"], out["offset"] = torch.as_tensor(self.camera[idx]), torch.as_tensor(self.dot_offsets[idx])
         for vid in np.unique(vids):
             sel = np.nonzero(vids == vid)[0]
             local = idx[sel] - self.offsets[vid]
@@ -349,8 +360,10 @@ def session_views(
     ``views``: the same views of every session, each object's own (a mapping), or None for every complete
     view. Footprints are read once per view when the sampled rows are small (:data:`ROWS_IN_MEMORY_BYTES`),
     else they stay in their zarr arrays and are read per batch. With ``footprints`` the pixels are
-    those with captured footprints; otherwise the decoded correspondence mask. Material labels come
-    from ``gt/labels`` when present (simulated sessions), else -1.
+    those with captured footprints, and each view records how its crops were recorded (the camera's
+    ``camera_isp`` and each crop's dot offset, for :mod:`sssphase_core.learning.camera`); otherwise the
+    decoded correspondence mask.
+    Material labels come from ``gt/labels`` when present (simulated sessions), else -1.
     """
     from sssphase_core.store.session import by_object, sessions_at
 
@@ -393,7 +406,15 @@ def session_views(
                 pixels = sample_pixels(s.load(view, "corr/mask").astype(bool), pixels_per_view, rng_seed)
             labels = s.load(view, "gt/labels") if "gt/labels" in s.arrays(view) else None
             mats = labels[pixels[:, 0], pixels[:, 1]].astype(np.int64) if labels is not None else np.full(len(pixels), -1)
-            out.append(ViewData(name, int(view), psp, pixels, mats, fp))
+            isp, offsets = None, None
+            if footprints:  # how the crops were recorded: the camera's pipeline, and where each one's dot landed
+                from sssphase_core.processing.footprints import dot_offsets
+
+                isp = s.manifest.get("views", {}).get(str(view), {}).get("camera_isp")
+                if {"corr/xp", "corr/yp", "corr/mask"} <= set(s.arrays(view)):  # else: crops centred on their pixels
+                    xp, yp = (s.load(view, k).astype(np.float64) for k in ("corr/xp", "corr/yp"))
+                    offsets = dot_offsets(xp, yp, s.load(view, "corr/mask").astype(bool), pixels)
+            out.append(ViewData(name, int(view), psp, pixels, mats, fp, isp, offsets))
     return out
 
 

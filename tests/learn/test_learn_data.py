@@ -132,10 +132,38 @@ def test_session_views_stream_footprints_from_the_store(synthetic, tmp_path, mon
     assert isinstance(lazy.footprints, data.Rows)
     lazy_batch = PatchDataset([lazy], 16, ["obj"], with_targets=True).batch(np.array([3, 0]))
     assert torch.equal(lazy_batch["footprint"], b["footprint"])
+    assert (b["camera"] == -1).all() and not b["offset"].any()  # no camera record, no correspondences: crops as they are
     (plain,) = session_views(tmp_path, pixels_per_view=None)
     assert len(plain.pixels) == mask.sum() and plain.footprints is None
     with pytest.raises(DataError, match="no session"):
         session_views(tmp_path, ["apple"])
+
+
+def test_footprint_batches_say_how_each_crop_was_recorded(synthetic, tmp_path):
+    """A captured view's crops come with their camera (Bayer phase of each crop) and where each one's dot lit the
+    surface, read from the view's correspondences: what decoder training passes its predictions through."""
+    from sssphase_core.learning.camera import crop_codes
+    from sssphase_core.learning.data import session_views
+    from sssphase_core.processing.footprints import dot_offsets
+    from sssphase_core.store.session import Session
+
+    v = synthetic[0][0]
+    h, w = v.psp.shape[1:3]
+    yy, xx = np.mgrid[:h, :w].astype(np.float32)
+    xp, yp = 1.2 * xx + 0.3, 0.9 * yy - 0.4
+    s = Session.create(tmp_path, "obj")
+    wr = s.begin_view(0)
+    for name, arr in (("psp", v.psp), ("corr/mask", np.ones((h, w), bool)), ("corr/xp", xp), ("corr/yp", yp),
+                      ("footprints/pixels", v.pixels.astype(np.int32)), ("footprints/crops", np.asarray(v.footprints))):
+        wr.write(name, arr)
+    isp_record = {"bayer": "GRBG", "demosaic": "opencv", "median": True}
+    wr.commit({"camera_isp": isp_record})
+    (vd,) = session_views(tmp_path, footprints=True, pixels_per_view=12, seed=0)
+    assert vd.isp == isp_record
+    b = PatchDataset([vd], 16, ["obj"], with_targets=True).batch(np.arange(12))
+    np.testing.assert_array_equal(b["camera"].numpy(), crop_codes(isp_record, vd.pixels, 16))
+    np.testing.assert_allclose(b["offset"].numpy(), dot_offsets(xp, yp, np.ones((h, w), bool), vd.pixels), atol=1e-6)
+    assert b["offset"].abs().max() > 0.05  # off-integer correspondences: the dots light the surface off the pixels
 
 
 def test_a_stack_padded_once_gives_the_same_patches():

@@ -11,6 +11,7 @@ import torch
 from torch import nn
 
 from sssphase_core.errors import DataError, InputError
+from sssphase_core.learning.camera import as_captured
 from sssphase_core.learning.data import PatchDataset
 from sssphase_core.learning.losses import LOG_EPS, SBHLoss, noise_floor
 from sssphase_core.learning.metrics import MSE_FLOOR, psnr
@@ -46,6 +47,10 @@ class DecoderConfig(LoopConfig):
     val_samples: int = 512
     end_to_end: bool = False  # set when no encoder checkpoint is given: the supervised U-Net baseline (no SSL)
     preset: str = "lite"  # sizes an end-to-end model; a frozen encoder brings its own (recorded either way)
+    # Compare each predicted footprint with its captured crop as the crop recorded it (moved to where its dot
+    # lit the surface, then Bayer sampling and demosaicing: learning.camera.as_captured), so the decoder
+    # predicts the light entering at the pixel, before the sensor; False: the crops themselves are the targets
+    capture_model: bool = True
 
 
 def check_aux_classes(n: int, dataset: PatchDataset | None = None) -> None:
@@ -91,8 +96,9 @@ class FootprintNet(nn.Module):
 
 @torch.no_grad()
 def validate_decoder(enc: Encoder, dec: Decoder, dataset: PatchDataset, n: int, batch_size: int, device: torch.device,
-                     log_eps: float = LOG_EPS) -> dict[str, float]:
-    """SBH loss, MSE and PSNR (data range 1) on the first ``n`` patches of a fixed permutation."""
+                     log_eps: float = LOG_EPS, capture_model: bool = True) -> dict[str, float]:
+    """SBH loss, MSE and PSNR (data range 1) on the first ``n`` patches of a fixed permutation (predictions
+    as their targets recorded them with ``capture_model``: :attr:`DecoderConfig.capture_model`)."""
     enc.eval()
     dec.eval()
     idx = np.random.default_rng(0).permutation(len(dataset))[:n]
@@ -100,6 +106,8 @@ def validate_decoder(enc: Encoder, dec: Decoder, dataset: PatchDataset, n: int, 
     for i in range(0, len(idx), batch_size):
         b = dataset.batch(idx[i : i + batch_size])
         pred, _ = net(b["psp"].to(device))
+        if capture_model:
+            pred = as_captured(pred, b["camera"].to(device), b["offset"].to(device))
         target = b["footprint"].to(device)
         sums["val_loss"] += float(loss_fn(pred, target)[0]) * len(target)
         sums["val_mse"] += float(((pred.float() - target) ** 2).mean()) * len(target)
@@ -183,6 +191,8 @@ def train_decoder(
         enc.train(cfg.end_to_end)  # a frozen encoder never leaves eval mode: BN statistics and dropout stay fixed
         with autocast_for(d, cfg.amp):
             pred, logits = net(batch["psp"])
+        if cfg.capture_model:  # the light entering at the pixel, recorded as its target crop was
+            pred = as_captured(pred.float(), batch["camera"].to(pred.device), batch["offset"].to(pred.device))
         loss, terms = loss_fn(pred, batch["footprint"])
         if logits is not None:
             known = batch["material"] >= 0
@@ -198,7 +208,8 @@ def train_decoder(
     def end_epoch(epoch: int) -> dict[str, float]:
         if val is None or not d.main:
             return {}
-        return validate_decoder(enc, dec, val, cfg.val_samples, cfg.batch_size, d.device, cfg.log_eps or LOG_EPS)
+        return validate_decoder(enc, dec, val, cfg.val_samples, cfg.batch_size, d.device, cfg.log_eps or LOG_EPS,
+                                cfg.capture_model)
 
     def save() -> None:
         if d.main:

@@ -1,0 +1,168 @@
+"""How a dot-grid crop records a footprint (learning.camera), and what decoder training gains from modelling it."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from sssphase_core.learning.camera import (
+    NO_CAMERA,
+    as_captured,
+    bayer_demosaic,
+    crop_codes,
+    shift_subpixel,
+    through_camera,
+)
+from sssphase_core.processing import isp
+
+
+def _crop(img: np.ndarray, p: tuple[int, int], k: int) -> np.ndarray:
+    return img[p[0] - k // 2 : p[0] - k // 2 + k, p[1] - k // 2 : p[1] - k // 2 + k]
+
+
+@pytest.mark.parametrize("layout", ["RGGB", "GRBG", "GBRG", "BGGR"])
+@pytest.mark.parametrize("median", [False, True])
+def test_a_crop_through_the_camera_is_the_crop_of_the_camera_image(layout, median):
+    """Crops of an image, passed through their camera at their own Bayer phase, equal the crops of the whole
+    image developed by the ISP (Malvar via colour-demosaicing, the per-plane median via OpenCV)."""
+    rng = np.random.default_rng(0)
+    img = rng.random((40, 46, 3)).astype(np.float32)
+    developed = isp.through_camera(img, demosaic="malvar", median=median, layout=layout)
+    k, border = 14, 4 if median else 2  # the crop's edge lacks the neighbours the whole image had
+    pixels = np.array([[20, 23], [21, 23], [20, 24], [21, 24]])  # all four Bayer phases
+    codes = crop_codes({"bayer": layout, "demosaic": "malvar", "median": median}, pixels, k)
+    assert len(set(codes.tolist())) == 4
+    crops = torch.tensor(np.stack([_crop(img, p, k) for p in pixels])).permute(0, 3, 1, 2)
+    out = through_camera(crops, codes).permute(0, 2, 3, 1).numpy()
+    for p, o in zip(pixels, out, strict=True):
+        inner = (slice(border, -border), slice(border, -border))
+        np.testing.assert_allclose(o[inner], _crop(developed, p, k)[inner], atol=2e-6)
+
+
+@pytest.mark.parametrize("method", ["malvar", "bilinear"])
+def test_demosaicing_models_keep_a_flat_colour(method):
+    flat = torch.tensor([0.7, 0.2, 0.05]).view(1, 3, 1, 1).expand(2, 3, 10, 10).clone()
+    for phase in range(4):
+        out = bayer_demosaic(flat, phase, method)
+        torch.testing.assert_close(out[..., 2:-2, 2:-2], flat[..., 2:-2, 2:-2], atol=1e-6, rtol=0)
+
+
+def test_views_without_a_bayer_pipeline_are_left_alone():
+    fp = torch.rand(3, 3, 8, 8)
+    for isp_record in (None, {"bayer": "RGGB", "demosaic": "other"}, {}):
+        codes = crop_codes(isp_record, np.array([[5, 5], [6, 7], [9, 2]]), 8)
+        assert (codes == NO_CAMERA).all()
+        assert through_camera(fp, codes) is fp
+    assert as_captured(fp, np.full(3, NO_CAMERA), np.zeros((3, 2))) is fp
+
+
+def test_shift_subpixel_moves_a_dot_bilinearly_and_keeps_its_light():
+    dot = torch.zeros(1, 1, 7, 7)
+    dot[0, 0, 3, 3] = 1.0
+    moved = shift_subpixel(dot, torch.tensor([[-0.25, 0.5]]))[0, 0]  # (dy, dx): up a quarter, right a half
+    expect = torch.zeros(7, 7)
+    expect[3, 3], expect[3, 4], expect[2, 3], expect[2, 4] = 0.375, 0.375, 0.125, 0.125
+    torch.testing.assert_close(moved, expect, atol=1e-6, rtol=0)
+    assert shift_subpixel(dot, torch.zeros(1, 2)) is dot
+
+
+def test_the_capture_model_is_differentiable():
+    fp = torch.rand(4, 3, 10, 10, requires_grad=True)
+    codes = crop_codes({"bayer": "RGGB", "demosaic": "opencv", "median": True}, np.array([[5, 5], [5, 6], [6, 5], [6, 6]]), 10)
+    out = as_captured(fp, codes, torch.tensor([[0.3, -0.2], [0.0, 0.0], [-1.0, 0.4], [0.2, 0.2]]))
+    out.square().sum().backward()
+    assert fp.grad is not None and torch.isfinite(fp.grad).all() and fp.grad.abs().sum() > 0
+
+
+def test_fitting_through_the_capture_model_recovers_the_footprint_the_crops_blur():
+    """Crops of one footprint recorded at the four Bayer phases and random dot offsets: their mean is a blurred
+    footprint (the red centre share drops from 0.44 to 0.17; the dim blue one rises from 0.11 to 0.31 with
+    Malvar's lobes), while a footprint fitted through the capture model is the true one."""
+    k = 12
+    r2 = (np.mgrid[:k, :k] - k // 2).astype(np.float32) ** 2
+    true = np.stack([np.exp(-(r2[0] + r2[1]) / (2 * s * s)) for s in (0.6, 0.8, 1.2)], 0)
+    true = torch.tensor(true / true.sum(axis=(1, 2), keepdims=True) * np.array([0.5, 0.3, 0.2])[:, None, None],
+                        dtype=torch.float32)
+    rng = np.random.default_rng(1)
+    n = 64
+    pixels = rng.integers(20, 60, size=(n, 2))
+    codes = crop_codes({"bayer": "RGGB", "demosaic": "malvar", "median": False}, pixels, k)
+    offsets = torch.tensor(rng.uniform(-0.6, 0.6, size=(n, 2)), dtype=torch.float32)
+    crops = as_captured(true.expand(n, -1, -1, -1).contiguous(), codes, offsets)
+    logits = torch.zeros(3, k * k, requires_grad=True)
+    opt = torch.optim.Adam([logits], lr=0.05)
+    energy = true.sum(dim=(1, 2))
+    for _ in range(400):
+        fit = torch.softmax(logits, dim=-1).view(3, k, k) * energy[:, None, None]
+        loss = (as_captured(fit.expand(n, -1, -1, -1), codes, offsets) - crops).square().mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    fit = (torch.softmax(logits, dim=-1).view(3, k, k) * energy[:, None, None]).detach()
+    c = k // 2
+    share = lambda f: (f[:, c, c] / f.sum(dim=(1, 2))).numpy()  # noqa: E731
+    mean_crop = crops.mean(dim=0)
+    assert share(mean_crop)[0] < 0.75 * share(true)[0]  # what a decoder fitted to the crops themselves learns
+    np.testing.assert_allclose(share(fit), share(true), atol=0.03)
+    assert float((fit - true).abs().sum()) < 0.25 * float((mean_crop - true).abs().sum())
+
+
+def test_dot_offsets_of_an_affine_correspondence():
+    from sssphase_core.processing.footprints import MAX_DOT_OFFSET, dot_offsets
+
+    yy, xx = np.mgrid[:30, :40].astype(np.float64)
+    jac = np.array([[1.3, 0.2], [-0.1, 0.9]])  # [[dxp/dx, dxp/dy], [dyp/dx, dyp/dy]]
+    xp, yp = jac[0, 0] * xx + jac[0, 1] * yy + 0.37, jac[1, 0] * xx + jac[1, 1] * yy - 0.21
+    valid = np.ones(xp.shape, bool)
+    pixels = np.array([[10, 12], [15, 20], [22, 31]])
+    got = dot_offsets(xp, yp, valid, pixels)
+    for (y, x), (dy, dx) in zip(pixels, got, strict=True):
+        err = np.array([round(xp[y, x]) - xp[y, x], round(yp[y, x]) - yp[y, x]])
+        np.testing.assert_allclose([dx, dy], np.linalg.solve(jac, err), atol=1e-5)
+        # the dot's projector pixel is where the pixel plus its offset maps to
+        np.testing.assert_allclose(jac @ [x + dx, y + dy] + [0.37, -0.21], np.round([xp[y, x], yp[y, x]]), atol=1e-5)
+    flat = np.zeros_like(xp)  # a singular correspondence: no offset can be read, none is made up
+    assert np.isfinite(dot_offsets(flat, flat, valid, pixels)).all()
+    grazing = dot_offsets(xp * 1e-3, yp, valid, pixels)
+    assert np.abs(grazing).max() <= MAX_DOT_OFFSET
+
+
+def test_even_amplitude_window_reads_the_same_modulation_at_every_bayer_phase():
+    """A uniform red surface under fringes, through a Malvar camera: the modulation features of its pixels
+    must not depend on where they sit in the Bayer pattern (a 5 x 5 window read log-modulations 0.2 apart)."""
+    from sssphase_core.learning.data import psp_patches
+    from sssphase_core.learning.models.physics import modulation_features
+
+    yy, xx = np.mgrid[:48, :48].astype(np.float32)
+    frames = []
+    for coord in (xx, yy):
+        for s in range(4):
+            pattern = 0.5 + 0.5 * np.cos(2 * np.pi * coord / 6.0 + s * np.pi / 2)
+            frames.append(np.stack([cv2.GaussianBlur(pattern, (0, 0), sigma) * r
+                                    for sigma, r in ((1.2, 0.8), (0.8, 0.3), (0.5, 0.1))], -1))
+    psp = isp.through_camera(np.array(frames, np.float32), demosaic="malvar")
+    pixels = np.array([[24, 24], [24, 25], [25, 24], [25, 25]])
+    features = modulation_features(torch.tensor(psp_patches(psp, pixels, 16))).numpy()
+    assert np.ptp(features[:, :, :2], axis=0).max() < 1e-3
+
+
+def test_the_capture_model_is_deterministic_where_training_asks_for_it():
+    """Decoder training runs CUDA with deterministic kernels by default (`loop.deterministic_kernels`): every op
+    of the capture model must have a deterministic backward there (grid_sample's and scatter's do not)."""
+    device = "cuda" if torch.cuda.is_available() else "cpu"
+    rng = np.random.default_rng(3)
+    codes = crop_codes({"bayer": "RGGB", "demosaic": "malvar", "median": True}, rng.integers(0, 50, (16, 2)), 12)
+    offsets = torch.tensor(rng.uniform(-1.5, 1.5, (16, 2)), dtype=torch.float32)
+    grads = []
+    previous = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(True)
+    try:
+        for _ in range(2):
+            fp = torch.rand(16, 3, 12, 12, generator=torch.Generator().manual_seed(0)).to(device).requires_grad_()
+            as_captured(fp, torch.as_tensor(codes, device=device), offsets.to(device)).pow(2).sum().backward()
+            grads.append(fp.grad.cpu())
+    finally:
+        torch.use_deterministic_algorithms(previous)
+    assert torch.equal(grads[0], grads[1]) and grads[0].abs().sum() > 0
