@@ -9,6 +9,7 @@ import torch
 
 from sssphase_core.learning.camera import (
     NO_CAMERA,
+    CaptureModel,
     as_captured,
     bayer_demosaic,
     crop_codes,
@@ -71,7 +72,9 @@ def test_shift_subpixel_moves_a_dot_bilinearly_and_keeps_its_light():
 def test_the_capture_model_is_differentiable():
     fp = torch.rand(4, 3, 10, 10, requires_grad=True)
     codes = crop_codes({"bayer": "RGGB", "demosaic": "opencv", "median": True}, np.array([[5, 5], [5, 6], [6, 5], [6, 6]]), 10)
-    out = as_captured(fp, codes, torch.tensor([[0.3, -0.2], [0.0, 0.0], [-1.0, 0.4], [0.2, 0.2]]))
+    offsets = torch.tensor([[0.3, -0.2], [0.0, 0.0], [-1.0, 0.4], [0.2, 0.2]])
+    out = as_captured(fp, codes, offsets)
+    assert torch.equal(CaptureModel()(fp, torch.as_tensor(codes), offsets), out)  # the module form
     out.square().sum().backward()
     assert fp.grad is not None and torch.isfinite(fp.grad).all() and fp.grad.abs().sum() > 0
 
