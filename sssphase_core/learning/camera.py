@@ -78,11 +78,12 @@ def crop_codes(isp: dict | None, pixels: np.ndarray, patch: int) -> np.ndarray:
     return base + 2 * (top % 2) + (left % 2)
 
 
-def _sites(phase: int, h: int, w: int, device: torch.device) -> torch.Tensor:
-    """(H, W) int site colour (0 R, 1 G, 2 B) of a crop whose top-left pixel has Bayer ``phase``."""
-    yy = torch.arange(h, device=device)[:, None] + phase // 2
-    xx = torch.arange(w, device=device)[None, :] + phase % 2
-    return torch.where((yy % 2 == 0) & (xx % 2 == 0), 0, torch.where((yy % 2 == 1) & (xx % 2 == 1), 2, 1))
+def _parities(phase: torch.Tensor, h: int, w: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Row and column parities ((B, H, 1), (B, 1, W)) in RGGB terms of crops whose top-left pixels have Bayer
+    ``phase`` (B,): red where both are 0, blue where both are 1."""
+    yy = (torch.arange(h, device=phase.device)[None, :, None] + (phase // 2)[:, None, None]) % 2
+    xx = (torch.arange(w, device=phase.device)[None, None, :] + (phase % 2)[:, None, None]) % 2
+    return yy, xx
 
 
 #: A sorting network whose middle output is the median of 9 values (19 compare-exchanges, Paeth's): min and
@@ -106,19 +107,23 @@ def _median3_planes(mosaic: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def bayer_demosaic(footprints: torch.Tensor, phase: int, method: str = "malvar", *, median: bool = False) -> torch.Tensor:
-    """What a Bayer camera records of (B, 3, H, W) linear images whose top-left pixel sits at Bayer ``phase``
-    (0 RGGB, 1 GRBG, 2 GBRG, 3 BGGR): each pixel's own colour sampled, the 3x3 median per Bayer plane if
-    ``median``, the other colours interpolated by ``method`` (``malvar`` or ``bilinear``) -> (B, 3, H, W).
-    Linear (median aside) and differentiable; zero outside the images."""
+def bayer_demosaic(footprints: torch.Tensor, phase: int | torch.Tensor, method: str = "malvar", *,
+                   median: bool = False) -> torch.Tensor:
+    """What a Bayer camera records of (B, 3, H, W) linear images whose top-left pixels sit at Bayer ``phase``
+    (an int, or (B,) one per image; 0 RGGB, 1 GRBG, 2 GBRG, 3 BGGR): each pixel's own colour sampled, the 3x3
+    median per Bayer plane if ``median``, the other colours interpolated by ``method`` (``malvar`` or
+    ``bilinear``) -> (B, 3, H, W). Linear (median aside) and differentiable; zero outside the images."""
     if method not in _KERNELS:
         raise InputError(f"unknown demosaicing model {method!r}; use one of {', '.join(_KERNELS)}")
     b, c, h, w = footprints.shape
     if c != 3:
         raise InputError(f"bayer_demosaic needs (B, 3, H, W) images, got {tuple(footprints.shape)}")
     x = footprints.float()
-    site = _sites(int(phase), h, w, x.device)
-    own = (site == torch.arange(3, device=x.device)[:, None, None]).to(x.dtype)  # (3, H, W) one-hot
+    phases = torch.as_tensor(phase, device=x.device).reshape(-1).expand(b)
+    yy, xx = _parities(phases, h, w)
+    is_r, is_b = (yy == 0) & (xx == 0), (yy == 1) & (xx == 1)  # (B, H, W)
+    is_g = ~(is_r | is_b)
+    own = torch.stack([is_r, is_g, is_b], dim=1).to(x.dtype)  # (B, 3, H, W) one-hot
     mosaic = (x * own).sum(dim=1, keepdim=True)  # (B, 1, H, W): each pixel's own colour
     if median:
         mosaic = _median3_planes(mosaic)
@@ -126,9 +131,7 @@ def bayer_demosaic(footprints: torch.Tensor, phase: int, method: str = "malvar",
     est = nn.functional.conv2d(mosaic, kernels[:, None], padding=2)  # (B, 4, H, W): green, row, col, cross
     green, row, col, cross = est.unbind(1)
     m = mosaic[:, 0]
-    yy = (torch.arange(h, device=x.device)[:, None] + phase // 2) % 2
-    is_r, is_g, is_b = site == 0, site == 1, site == 2
-    r_row = yy == 0  # green sites in a red row (RGGB from the phase: red rows are the even ones)
+    r_row = yy == 0  # (B, H, 1): green sites in a red row (red rows are the even ones in RGGB terms)
     red = torch.where(is_r, m, torch.where(is_g, torch.where(r_row, row, col), cross))
     blue = torch.where(is_b, m, torch.where(is_g, torch.where(r_row, col, row), cross))
     grn = torch.where(is_g, m, green)
@@ -137,18 +140,20 @@ def bayer_demosaic(footprints: torch.Tensor, phase: int, method: str = "malvar",
 
 def through_camera(footprints: torch.Tensor, codes: torch.Tensor | np.ndarray) -> torch.Tensor:
     """(B, 3, K, K) footprints as each one's camera recorded it: ``codes`` (B,) from :func:`crop_codes`
-    (``NO_CAMERA``: unchanged)."""
+    (``NO_CAMERA``: unchanged). One pass per camera pipeline (usually one), each crop at its own phase."""
     codes = torch.as_tensor(codes, device=footprints.device).reshape(-1)
     if len(codes) != len(footprints):
         raise InputError(f"{len(codes)} camera codes for {len(footprints)} footprints")
     if bool((codes == NO_CAMERA).all()):
         return footprints
     out = footprints
-    for code in torch.unique(codes).tolist():  # a handful: 4 Bayer phases per camera pipeline
-        if code == NO_CAMERA:
+    pipelines = torch.where(codes == NO_CAMERA, -1, codes // 4)
+    for pipeline in torch.unique(pipelines).tolist():
+        if pipeline < 0:
             continue
-        sel = (codes == code)[:, None, None, None]  # elementwise selection: deterministic backward on every device
-        out = torch.where(sel, bayer_demosaic(footprints, code % 4, _METHODS[code // 8], median=bool(code & 4)), out)
+        sel = (pipelines == pipeline)[:, None, None, None]  # elementwise selection: deterministic backward everywhere
+        seen = bayer_demosaic(footprints, codes.clamp_min(0) % 4, _METHODS[pipeline // 2], median=bool(pipeline & 1))
+        out = torch.where(sel, seen, out)
     return out
 
 
