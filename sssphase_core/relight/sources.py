@@ -418,7 +418,7 @@ def local_mixture(rv: RelightView, relit_psps: Sequence[np.ndarray], none_psp: n
 
     if getattr(rv, "camera_isp", None):
         relit_psps, none_psp = [rv.through_camera(r) for r in relit_psps], rv.through_camera(none_psp)
-    m = calibration_pixels(rv) & np.isfinite(psp).all(axis=(0, -1))
+    m = rv.proj.mask & np.isfinite(psp).all(axis=(0, -1))  # the silhouette too: see view_mixture
     if exclude is not None:
         m &= ~exclude
     s = len(relit_psps)
@@ -470,7 +470,12 @@ def view_mixture(rv: RelightView, relit_psps: Sequence[np.ndarray], psp: np.ndar
 
     captured = rv.psp if psp is None else psp
     none = relight(no_scattering_source(rv.white), rv.proj, rv.psp_patterns, 1, white=rv.white)
-    m = calibration_pixels(rv) & np.isfinite(captured).all(axis=(0, -1))
+    # The whole decoded mask, its silhouette included: the relit fringes are compared as the camera records them,
+    # so demosaicing's mixing of object and background is on both sides, and the masks hold no background that
+    # only demosaicing lit (psp.demosaic_bleed). Leaving out the 2 px next to the silhouette (as before that fix)
+    # left the local weights there to the interior's: with decoders trained through the capture model the demo's
+    # sand rake relit 0.1-0.3 dB worse against the render and 0.5-1.3 dB worse against its captures.
+    m = rv.proj.mask & np.isfinite(captured).all(axis=(0, -1))
     if getattr(rv, "camera_isp", None):  # views built elsewhere (the benchmarks' SimView) have no camera record
         # Compare like with like: the relit fringes as the camera would record them. Without this the fit
         # reads demosaicing's contrast changes as scattering (measured: the exact footprints themselves
@@ -483,17 +488,6 @@ def view_mixture(rv: RelightView, relit_psps: Sequence[np.ndarray], psp: np.ndar
     gram = np.einsum("spnc,tpnc->cst", d, d)
     cross = np.einsum("spnc,pnc->cs", d, e)
     return np.stack([mixture_weights(gram[c], cross[c]) for c in range(3)], axis=1).astype(np.float32)
-
-
-def calibration_pixels(rv: RelightView) -> np.ndarray:
-    """(H, W) bool: the pixels the view calibration fits on: the decoded mask, its silhouette included. The
-    relit fringes are compared as the camera records them, so demosaicing's mixing of object and background
-    there is on both sides; the masks no longer hold background that only demosaicing lit
-    (``psp.demosaic_bleed``). Leaving the 2 px next to the silhouette out (as before that fix) left the
-    local weights there to the interior's: with decoders trained through the capture model
-    (``learning.camera``) the demo's sand rake relit 0.1-0.3 dB worse against the render and 0.5-1.3 dB
-    worse against its captures, the crab within 0.04 dB / 0.1-0.2 dB worse."""
-    return rv.proj.mask
 
 
 def mixture_weights(gram: np.ndarray, cross: np.ndarray) -> np.ndarray:

@@ -9,7 +9,6 @@ from typer.testing import CliRunner
 from sssphase_cli.main import app
 from sssphase_core.relight import load_view
 from sssphase_core.relight.evaluation import relight_metrics
-from sssphase_core.relight.sources import calibration_pixels
 from sssphase_core.store.session import Session
 
 runner = CliRunner()
@@ -186,7 +185,7 @@ def test_a_model_is_mixed_with_no_scattering_by_the_views_own_fringe_captures(se
     want = raw(px) * mix
     want[:, k // 2, k // 2] += (1 - mix) * rv.white[px[:, 0], px[:, 1]]
     np.testing.assert_allclose(mixed(px), want, rtol=1e-5, atol=1e-7)
-    m = calibration_pixels(rv)
+    m = rv.proj.mask  # what the calibration fits on
 
     def residual(source, patch):  # how well a source relights the view's own fringe captures, as the camera sees them
         out = rv.through_camera(relight(source, rv.proj, rv.psp_patterns, patch, white=rv.white))
@@ -365,7 +364,7 @@ def test_a_blend_relights_the_fringe_captures_at_least_as_well_as_each_member(se
     np.testing.assert_allclose(view_weights, mix, atol=1e-5)
     want = none + sum(w * (r - none) for w, r in zip(weights, relits, strict=True))
     np.testing.assert_allclose(blend, want, rtol=1e-4, atol=1e-6)
-    m = calibration_pixels(rv) & ~lost
+    m = rv.proj.mask & ~lost
     residual = lambda img: float(((rv.through_camera(img)[:, m] - psp[:, m]) ** 2).sum())  # noqa: E731
     alone = [relight_view(src, k, rv, pats, calibrate=True)[0] for src, k in members]
     assert residual(blend) <= min(residual(a) for a in alone) * (1 + 1e-5)
