@@ -9,7 +9,10 @@ at a time:
 * ``centre``: E with M's fraction of the energy on the entry pixel (the rest of E rescaled to keep
   E's energy) -> the error of the centre (direct reflection and the profile's peak);
 * ``angular``: E averaged over rings around the entry pixel -> what the anisotropy is worth;
-* ``silhouette``: the model's own error split into the pixels within 2 px of the mask's edge and the rest.
+* ``silhouette``: the model's own error split into the pixels within 2 px of the mask's edge and the rest;
+* ``white``: E's shape with the captured white's value as its energy (reciprocity): what exact shapes reach
+  with the energy a capture gives, beside the white capture's own accuracy against the white that the
+  exact footprints relight (noise-free, before the camera) -> how far captured light can take any model.
 
 Errors are MSE against the noise-free render of each reference pattern on the object mask; a hybrid's
 *share* is (MSE(hybrid) - MSE(exact)) / (MSE(model) - MSE(exact)). Shares need not add to 1 (the terms
@@ -43,10 +46,15 @@ def _ring_average(fps: np.ndarray) -> np.ndarray:
     return np.einsum("pq,nqc->npc", average, flat, optimize=True).reshape(fps.shape).astype(np.float32)
 
 
-def hybrid(name: str, model: np.ndarray, exact: np.ndarray) -> np.ndarray:
-    """(N, K, K, 3) footprints of hybrid ``name`` (see the module docstring) from model and exact ones."""
+def hybrid(name: str, model: np.ndarray, exact: np.ndarray, white: np.ndarray | None = None) -> np.ndarray:
+    """(N, K, K, 3) footprints of hybrid ``name`` (see the module docstring) from model and exact ones;
+    ``white`` (N, 3): the captured white at each footprint's pixel (hybrid ``white`` only)."""
     em, ee = model.sum(axis=(1, 2), keepdims=True), exact.sum(axis=(1, 2), keepdims=True)
     safe = lambda e: np.where(np.abs(e) > 1e-12, e, 1.0)  # noqa: E731
+    if name == "white":
+        if white is None:
+            raise ValueError("the white hybrid needs the captured white at each pixel")
+        return exact / safe(ee) * np.asarray(white, np.float32)[:, None, None, :]
     if name == "energy":
         return exact / safe(ee) * em
     if name == "shape":
@@ -89,13 +97,20 @@ def decompose(rv: Any, backend: str, checkpoint: Path | str | None, calibrate: b
     sources: dict[str, Callable] = {"none": lambda p: np.pad(none_src(p), pad), backend: model, "exact": exact}
     for h in HYBRIDS:
         sources[h] = _lookup(hybrid(h, model.fps, exact.fps), model)
+    sources["white"] = _lookup(hybrid("white", model.fps, exact.fps, rv.white[pixels[:, 0], pixels[:, 1]]), model)
     mask, band = rv.proj.mask, edge_band(rv.proj.mask)
+    inside = mask & ~band
     relit = {name: relight(src, rv.proj, pats, k, white=rv.white) for name, src in sources.items()}
+    # the white capture against the white the exact footprints relight (noise-free, before the camera)
+    flat = np.ones((rv.proj.projector_size[1], rv.proj.projector_size[0]), np.float32)
+    true_white = relight(exact_src, rv.proj, [flat], k)[0] / np.float32(1.0 - rv.proj.black)  # light 1, black included
+    white_err = (np.asarray(rv.white, np.float32) - true_white) ** 2
+    white_capture = {"psnr_white_capture": psnr(float(white_err[mask].mean())),
+                     "psnr_inside_white_capture": psnr(float(white_err[inside].mean())) if inside.any() else float("nan")}
     rows = []
     for i, pat in enumerate(names):
         ref = rv.captured[pat]
         mse = {name: float(np.mean((img[i][mask] - ref[mask]) ** 2)) for name, img in relit.items()}
-        inside = mask & ~band
         mse_in = {name: float(np.mean((img[i][inside] - ref[inside]) ** 2)) for name, img in relit.items()} if inside.any() else {}
         gap = mse[backend] - mse["exact"]
         err = ((relit[backend][i] - ref) ** 2).mean(axis=-1)
@@ -103,7 +118,7 @@ def decompose(rv: Any, backend: str, checkpoint: Path | str | None, calibrate: b
                **{f"psnr_{n}": psnr(m) for n, m in mse.items()}, **{f"mse_{n}": m for n, m in mse.items()},
                **{f"psnr_inside_{n}": psnr(m) for n, m in mse_in.items()},
                **{f"share_{h}": (mse[h] - mse["exact"]) / gap if gap > 0 else float("nan") for h in HYBRIDS},
-               "edge_fraction_of_pixels": float(band.sum() / mask.sum()),
+               **white_capture, "edge_fraction_of_pixels": float(band.sum() / mask.sum()),
                "share_silhouette": float(err[band].sum() / err[mask].sum()) if err[mask].sum() > 0 else float("nan")}
         rows.append(row)
     return rows
@@ -143,6 +158,20 @@ def run(sessions: Sequence[Any], out: Path, *, checkpoint: Path | str | None, ba
                    [[r["object"], r["pattern"], *(r.get(f"psnr_inside_{n}", float("nan")) for n in names)] for r in rows],
                    note="The same relit images as above; the hybrids as above. At the silhouette the camera mixes object "
                         "and background in every capture, which bounds every source that takes its light from captures.")
+    def share(r: dict[str, Any], top: float) -> float:  # the backend's share of the way from none to ``top`` (dB)
+        return (r[f"psnr_{backend}"] - r["psnr_none"]) / (top - r["psnr_none"]) if top > r["psnr_none"] else float("nan")
+
+    bound = Table("What captured light allows: the white capture, and exact shapes with its energy (PSNR, dB, whole "
+                  "mask / inside)", ["object", "pattern", "white capture", "exact shapes, white's energy",
+                                     f"{backend}'s share of none -> exact", f"{backend}'s share of none -> exact shapes, "
+                                     "white's energy"],
+                  [[r["object"], r["pattern"], f"{r['psnr_white_capture']:.1f} / {r['psnr_inside_white_capture']:.1f}",
+                    f"{r['psnr_white']:.1f} / {r.get('psnr_inside_white', float('nan')):.1f}",
+                    fmt(share(r, r["psnr_exact"])), fmt(share(r, r["psnr_white"]))] for r in rows],
+                  note="white capture: the view's white image against the white that the exact footprints relight "
+                       "(noise-free, before the camera's Bayer sampling and demosaicing); exact shapes, white's energy: "
+                       "each exact footprint rescaled to the captured white at its pixel (the energy by reciprocity, "
+                       "as every source that reads its light from captures has it), relit against the render.")
     result = {"machine": machine_info(), "backend": backend, "checkpoint": str(checkpoint), "calibrated": calibrate, "rows": rows}
-    write_bench_report(result, [table, inside], Path(out), md=Path(out).with_suffix(".md"), title="The gap to exact footprints")
+    write_bench_report(result, [table, inside, bound], Path(out), md=Path(out).with_suffix(".md"), title="The gap to exact footprints")
     return result

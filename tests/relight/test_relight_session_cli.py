@@ -162,11 +162,14 @@ def test_bench_gap_decomposes_a_model_against_the_exact_footprints(session, tmp_
         assert all(r["psnr_exact"] > r[f"psnr_{h}"] for h in ("energy", "shape", "centre"))  # each swap costs accuracy
         assert all(np.isfinite(r[f"share_{h}"]) for h in HYBRIDS) and 0 < r["share_silhouette"] < 1
         assert r["psnr_inside_exact"] > r["psnr_inside_analytic"] and r["psnr_inside_none"] != r["psnr_none"]
+        # the camera's noisy, demosaiced white bounds what captured light allows, below the exact footprints
+        assert r["psnr_exact"] > r["psnr_white"] and 20 < r["psnr_white_capture"] < r["psnr_inside_white_capture"]
     md = out.with_suffix(".md").read_text()
-    assert "silhouette" in md and "away from the silhouette" in md
+    assert "silhouette" in md and "away from the silhouette" in md and "What captured light allows" in md
     fps = np.random.default_rng(0).random((4, 7, 7, 3)).astype(np.float32)
     for h in ("energy", "shape", "centre"):  # a model equal to the exact footprints changes nothing
         np.testing.assert_allclose(hybrid(h, fps, fps), fps, rtol=1e-5)
+    np.testing.assert_allclose(hybrid("white", fps, fps, 2 * fps.sum(axis=(1, 2))), 2 * fps, rtol=1e-5)
     bad = runner.invoke(app, ["bench", "gap", str(session), "--views", "x", "--out", str(out)])
     assert bad.exit_code != 0 and "--views" in str(bad.exception)
 
