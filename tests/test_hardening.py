@@ -751,6 +751,10 @@ def test_eval_counts_a_session_once_and_refuses_two_sessions_of_one_object(intac
     from sssphase_core.store.session import find_sessions
 
     assert len(find_sessions([intact_session, intact_session.parent, intact_session])) == 1
+    lab = tmp_path / "lab"  # a folder of session folders' folders (a demo's sessions/): said, not searched
+    shutil.copytree(intact_session, lab / "day1" / "leaf")
+    _one_line(_cli("eval", "relight", str(lab), "--backend", "none", "--out", str(tmp_path / "e")),
+              f"no sessions under {lab}; folders of sessions below it: {lab / 'day1'}")
     other = tmp_path / "elsewhere" / "leaf"
     shutil.copytree(intact_session, other)
     _one_line(_cli("eval", "relight", str(intact_session), str(other), "--backend", "none", "--out", str(tmp_path / "e")),

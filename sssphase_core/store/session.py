@@ -647,7 +647,13 @@ def find_sessions(paths: Iterable[Path | str]) -> list[Session]:
     found = list(unique.values())
     if not found:
         missing = [str(p) for p in paths if not Path(p).exists()]
-        raise InputError(f"{', '.join(missing)} does not exist" if missing else f"no sessions under {', '.join(map(str, paths))}")
+        if missing:
+            raise InputError(f"{', '.join(missing)} does not exist")
+        deeper = sorted({m.parent.parent for p in paths for m in Path(p).glob(f"*/*/*/{MANIFEST}")} |
+                        {m.parent.parent for p in paths for m in Path(p).glob(f"*/*/{MANIFEST}")})
+        hint = (f"; folders of sessions below it: {', '.join(str(d) for d in deeper[:6])}"
+                f"{' ...' if len(deeper) > 6 else ''} (name one: sessions are read one folder down only)") if deeper else ""
+        raise InputError(f"no sessions under {', '.join(map(str, paths))}{hint}")
     return found
 
 
