@@ -151,17 +151,39 @@ def _discover(provider: DeviceProvider) -> list[DeviceInfo]:
 def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo], dict[str, str]]:
     """Run discovery on every provider (this may do device I/O). Returns devices and errors by plugin."""
     pm = pm or get_plugin_manager()
-    devices: list[DeviceInfo] = []
+    found: dict[str, tuple[str, DeviceInfo]] = {}  # id -> (plugin, device): one entry per id
     errors: dict[str, str] = {}
     for plugin, provider in device_providers(pm):
         try:
-            devices += _discover(provider)
+            devices = _discover(provider)
         except DeviceNotFound as exc:  # an absent device is an answer, not a failure
             errors[plugin] = str(exc).strip()
+            continue
         except (Exception, SystemExit) as exc:
             errors[plugin] = f"discovery of {getattr(provider, 'kind', 'device')}s failed: {_error_text(exc)}"
+            continue
+        for d in devices:
+            if d.id not in found:
+                found[d.id] = (plugin, d)
+                continue
+            first = found[d.id][0]
+            if first == plugin and found[d.id][1].kind != d.kind:
+                said = f"reports {d.id} as a {found[d.id][1].kind} and as a {d.kind}: ids must be unique"
+                errors[plugin] = f"{errors[plugin]}; {said}" if plugin in errors else said
+                continue
+            prefix = d.id.split(":", 1)[0]  # ids are 'plugin:...': the plugin an id names owns it
+            if prefix not in (first, plugin):
+                said = (f"reports device {d.id}, which plugin {first} reports too, and neither is {prefix!r}, the "
+                        "plugin its id names: it opens from neither until one is disabled")
+                errors[plugin] = f"{errors[plugin]}; {said}" if plugin in errors else said
+                continue
+            owner, loser = (plugin, first) if prefix == plugin else (first, plugin)
+            found[d.id] = (owner, d if owner == plugin else found[d.id][1])
+            if loser != owner:
+                said = f"reports device {d.id}, which plugin {owner} reports too: it opens from {owner}"
+                errors[loser] = f"{errors[loser]}; {said}" if loser in errors else said
     errors.update(pm.load_errors)
-    return sorted(devices, key=lambda d: d.id), errors
+    return sorted((d for _, d in found.values()), key=lambda d: d.id), errors
 
 
 def find_provider(device_id: str, pm: PluginManager | None = None, kind: str | None = None) -> DeviceProvider:
@@ -171,16 +193,26 @@ def find_provider(device_id: str, pm: PluginManager | None = None, kind: str | N
     pm = pm or get_plugin_manager()
     providers = device_providers(pm)
     prefix = device_id.split(":", 1)[0]
-    ranked = [p for n, p in providers if n == prefix] + [p for n, p in providers if n != prefix]
-    for provider in ranked:
+    ranked = [(n, p) for n, p in providers if n == prefix] + [(n, p) for n, p in providers if n != prefix]
+    matches: list[tuple[str, DeviceProvider]] = []
+    for name, provider in ranked:
         try:
             ids = [d.id for d in _discover(provider)]
         except (Exception, SystemExit):  # a plugin with no device (or a broken one) must not block the others
             continue
         if device_id in ids:
-            if kind is not None and provider.kind != kind:
-                raise KeyError(f"{device_id} is a {provider.kind}, not a {kind}")
-            return provider
+            if name == prefix:  # the plugin the id names owns it
+                matches = [(name, provider)]
+                break
+            matches.append((name, provider))
+    if len({n for n, _ in matches}) > 1:
+        raise KeyError(f"device {device_id!r} is reported by plugins {', '.join(sorted({n for n, _ in matches}))} and "
+                       f"none of them is {prefix!r}, the plugin its id names: uninstall or disable one (sss plugins)")
+    if matches:
+        provider = matches[0][1]
+        if kind is not None and provider.kind != kind:
+            raise KeyError(f"{device_id} is a {provider.kind}, not a {kind}")
+        return provider
     known = ", ".join(d.id for d in discover_devices(pm)[0] if kind is None or d.kind == kind) or "none"
     raise KeyError(f"no {kind or 'device'} {device_id!r} (known {kind or 'device'}s: {known})")
 

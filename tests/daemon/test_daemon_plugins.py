@@ -109,6 +109,42 @@ def test_broken_plugins_are_named_and_do_not_take_others_down(plugin_dir):
         manager.find_provider(sim_plugin.PROJECTOR_ID, pm, kind="camera")
 
 
+CLONES = {  # two plugins that report the sim's camera, and one id that two plugins other than its own report
+    "acme_clone": """
+from sssphase_plugins.hookspecs import hookimpl
+from sssphase_plugins.drivers import DeviceInfo
+class P:
+    kind = "camera"
+    def discover(self):
+        return [DeviceInfo("sim:camera0", "camera", "acme_clone", "Not the sim", "1"),
+                DeviceInfo("other:cam", "camera", "acme_clone", "Shared", "1")]
+    def open(self, device_id, options, shared):
+        raise NotImplementedError
+@hookimpl
+def sssphase_cameras():
+    return [P()]
+""",
+}
+CLONES["acme_clone2"] = CLONES["acme_clone"].replace("acme_clone", "acme_clone2")
+
+
+def test_a_device_id_reported_twice_is_said_and_opens_from_the_plugin_it_names(tmp_path, monkeypatch):
+    for name, src in CLONES.items():
+        (tmp_path / f"{name}.py").write_text(textwrap.dedent(src))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv(manager.ENV_PLUGINS, ",".join(CLONES))
+    pm = manager.build_plugin_manager()
+    devices, errors = manager.discover_devices(pm)
+    ids = [d.id for d in devices]
+    assert len(ids) == len(set(ids)) and sim_plugin.CAMERA_ID in ids and "other:cam" in ids  # each id listed once
+    assert [d.plugin for d in devices if d.id == sim_plugin.CAMERA_ID] == ["sim"]
+    assert all(f"reports device {sim_plugin.CAMERA_ID}, which plugin sim reports too" in errors[n] for n in CLONES)
+    assert "other:cam" in errors["acme_clone2"] and "neither is 'other'" in errors["acme_clone2"]
+    assert type(manager.find_provider(sim_plugin.CAMERA_ID, pm)).__module__.startswith("sssphase_plugins.sim")
+    with pytest.raises(KeyError, match="reported by plugins acme_clone, acme_clone2 and none of them is 'other'"):
+        manager.find_provider("other:cam", pm)
+
+
 def test_backend_hookspecs_and_entry_point_groups_share_the_manager():
     assert manager.ENTRY_POINT_GROUPS == ("sssphase_devices", "sssphase_backends")
     pm = manager.get_plugin_manager(refresh=True)
