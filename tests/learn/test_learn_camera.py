@@ -147,8 +147,24 @@ def test_even_amplitude_window_reads_the_same_modulation_at_every_bayer_phase():
                                     for sigma, r in ((1.2, 0.8), (0.8, 0.3), (0.5, 0.1))], -1))
     psp = isp.through_camera(np.array(frames, np.float32), demosaic="malvar")
     pixels = np.array([[24, 24], [24, 25], [25, 24], [25, 25]])
-    features = modulation_features(torch.tensor(psp_patches(psp, pixels, 16))).numpy()
+    patches = torch.tensor(psp_patches(psp, pixels, 16))
+    features = modulation_features(patches).numpy()
     assert np.ptp(features[:, :, :2], axis=0).max() < 1e-3
+    odd = modulation_features(patches, even=False).numpy()  # the window decoders before it were trained with
+    assert np.ptp(odd[:, :, :2], axis=0).max() > 0.05
+
+
+def test_a_decoder_trained_before_the_even_window_runs_with_its_own(tmp_path):
+    """Checkpoints are read as trained: a decoder from before the capture model (no capture_model in its
+    config) read the modulation over a 5 x 5 window; run with the 6 x 6 one its profile would be off."""
+    from sssphase_core.learning.models import Decoder, Encoder
+    from sssphase_core.learning.training.checkpoints import load_decoder, save_checkpoint
+
+    enc, dec = Encoder("lite"), Decoder("lite", head="reciprocal")
+    for name, config in (("old", {"head": "reciprocal"}), ("new", {"head": "reciprocal", "capture_model": True})):
+        save_checkpoint(tmp_path / f"{name}.pt", {"kind": "decoder", "preset": "lite", "config": config,
+                                                  "encoder": enc.state_dict(), "decoder": dec.state_dict()})
+    assert not load_decoder(tmp_path / "old.pt")[1].even_window and load_decoder(tmp_path / "new.pt")[1].even_window
 
 
 def test_the_capture_model_is_deterministic_where_training_asks_for_it():

@@ -112,6 +112,8 @@ class Decoder(nn.Module):
             self.profile = RadialProfile(p.patch)
             self.angular = RingAverage(p.patch)
             self.log_gain = nn.Parameter(torch.zeros(3))
+        #: the profile's modulation window has an even side (False: a decoder trained before, as trained)
+        self.even_window = True
         self.aux = nn.Linear(p.bottleneck, n_classes) if n_classes > 0 else None
 
     def physics_parameters(self) -> list[nn.Parameter]:
@@ -155,7 +157,7 @@ class Decoder(nn.Module):
             if psp is None:
                 raise InputError("the reciprocal decoder head needs the PSP patches (its energy comes from them)")
             detail = self.angular(raw.float())  # the conv adds angular detail, never a radial profile
-            logits = detail + self.shape_prior + self.profile(modulation_features(psp))
+            logits = detail + self.shape_prior + self.profile(modulation_features(psp, even=self.even_window))
             logits = logits.masked_fill(~surface_support(psp), OFF_SURFACE)  # light exits on the surface only
             shape = torch.softmax(logits.flatten(2), dim=-1).view(raw.shape)
             energy = white_from_psp(psp).clamp_min(0) * torch.exp(self.log_gain.clamp(-3.0, 3.0))

@@ -53,7 +53,7 @@ def surface_support(psp: torch.Tensor, frac: float = SUPPORT_FRAC) -> torch.Tens
     return a > frac * a[..., k // 2 : k // 2 + 1, k // 2 : k // 2 + 1].clamp_min(1e-6)
 
 
-def modulation_features(psp: torch.Tensor, window: int = 2, smooth: int = 2) -> torch.Tensor:
+def modulation_features(psp: torch.Tensor, window: int = 2, smooth: int = 2, even: bool = True) -> torch.Tensor:
     """(B, 24, K, K) -> (B, 3, N_FEATURES) per colour: log(B/A) for the x and y fringes (amplitude
     and offset averaged over the (2 smooth + 2)^2 window around the centre), then the squared
     components (k_x^2, k_y^2) of both fringes' wave vectors (rad/px, measured in a
@@ -64,12 +64,13 @@ def modulation_features(psp: torch.Tensor, window: int = 2, smooth: int = 2) -> 
     wherever it lies: a colour's modulation is its own sample's at its sites and demosaicing's
     interpolation elsewhere, and an odd window counted them by the centre pixel's Bayer position,
     which the profile then followed (measured on the demo's crab with a 5 x 5 window: predicted
-    red centre shares 0.80 at red sites, 0.66 at blue ones; exact 0.74 at both)."""
+    red centre shares 0.80 at red sites, 0.66 at blue ones; exact 0.74 at both). ``even=False``: the
+    (2 smooth + 1)^2 window of decoders trained before that change (their checkpoints run as trained)."""
     x = _split(psp)
     k = x.shape[-1]
     c = k // 2
     cos_s, sin_s = x[:, :, 0] - x[:, :, 2], x[:, :, 1] - x[:, :, 3]  # (B, 2, 3, K, K): 2 B cos, 2 B sin
-    near = slice(max(c - smooth - 1, 0), c + smooth + 1)  # B and A averaged over an even window: less noise
+    near = slice(max(c - smooth - int(even), 0), c + smooth + 1)  # B and A averaged over an even window: less noise
     offset = x[..., near, near].mean(dim=(2, -2, -1))  # (B, 2, 3)
     amp = 0.5 * torch.sqrt(cos_s[..., near, near] ** 2 + sin_s[..., near, near] ** 2).mean(dim=(-2, -1))
     log_mod = torch.log((amp / offset.abs().clamp_min(1e-6)).clamp(MOD_FLOOR, 2.0))

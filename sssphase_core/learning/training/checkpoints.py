@@ -109,4 +109,7 @@ def load_decoder(path: Path | str) -> tuple[Encoder, Decoder]:
     dec = Decoder(preset, n_classes=int(cfg.get("aux_classes", 0)), head=cfg.get("head", "direct"))
     _load_weights(enc, ckpt["encoder"], path, "encoder")
     _load_weights(dec, ckpt["decoder"], path, "decoder")
+    # decoders trained before the capture model (their config has no capture_model) read the fringe
+    # modulation over an odd 5 x 5 window: run them as trained
+    dec.even_window = "capture_model" in cfg
     return enc.eval().requires_grad_(False), dec.eval()
