@@ -346,6 +346,18 @@ def test_jobs_leave_no_stream_sockets_behind(sim_daemon, tmp_path):
     assert not list(runtime.glob("stream-*.sock"))
 
 
+def test_a_capture_the_daemon_refuses_leaves_no_empty_folder(sim_daemon, tmp_path):
+    from sssphase_core.capture import CaptureRequest, run_capture
+    from sssphase_core.errors import SssError
+
+    keep = tmp_path / "lab"
+    keep.mkdir()  # a folder the user made is kept, empty or not
+    for out in (tmp_path / "new" / "deeper", keep):
+        with pytest.raises(SssError, match="unknown object 'nosuchobject'"):
+            run_capture(sim_daemon, CaptureRequest("nosuchobject", views=1, out=out))
+    assert not (tmp_path / "new").exists() and keep.is_dir() and not any(keep.iterdir())
+
+
 def test_a_bit_flip_in_a_chunk_is_an_error_naming_the_array(sim_daemon, tmp_path):
     from sssphase_core.capture import CaptureRequest, run_capture
     from sssphase_core.errors import DataError

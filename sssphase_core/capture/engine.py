@@ -101,6 +101,7 @@ def _capture_lock(out: Path, name: str) -> Iterator[None]:
     folder, so that it is taken before a resume drops partial views; removed by its holder when done).
     Two captures into one folder lost a view from the manifest while both reported success."""
     path = out / f".{name}.lock"
+    created = [d for d in (out, *out.parents) if not d.exists()]  # deepest first: removed again if left empty
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
@@ -117,6 +118,11 @@ def _capture_lock(out: Path, name: str) -> Iterator[None]:
             path.unlink(missing_ok=True)  # nothing left beside the sessions once done
     finally:
         handle.close()  # releases the lock
+        for d in created:  # a capture refused before it wrote anything leaves no empty folders behind
+            try:
+                d.rmdir()
+            except OSError:  # not empty (the session, or another's files): kept
+                break
 
 
 def _locked(path: Path, session: Path, attempts: int = 10) -> Any:
