@@ -2,7 +2,8 @@
 
 One ROUTER control socket answers every request from the main thread (it never blocks on a
 device for long); each capture runs in a job thread that drives the rig's projector and camera and
-pushes frames on the job's own PUSH socket. Any request from a client counts as its heartbeat; a job
+pushes frames on the job's own PUSH socket, and device discovery in a thread of its own, whose reply the
+main thread sends. Any request from a client counts as its heartbeat; a job
 whose client stops heartbeating is cancelled so a dead client never stalls the daemon. A device
 error ends that job with a clear error (in the stream's end message and in ``job``) and the daemon
 keeps serving. Malformed, oversized, wrong-version or unauthenticated requests get an error reply
@@ -16,6 +17,7 @@ import hmac
 import itertools
 import logging
 import os
+import queue
 import sys
 import threading
 import time
@@ -226,6 +228,11 @@ class Daemon:
         self.jobs: dict[str, Job] = {}
         self.last_seen: dict[bytes, float] = {}
         self.lock = threading.Lock()
+        # device discovery (plugins' USB/serial enumeration, seconds or more) runs off the main thread, one
+        # at a time (plugins need not be thread-safe); its replies wait here for the main thread to send
+        self.discovery_lock = threading.Lock()
+        self.discovery_waiters: list[tuple[bytes, list[bytes], Any]] | None = None
+        self.replies: queue.SimpleQueue[list[bytes]] = queue.SimpleQueue()
         self.running = True
         self.started = time.time()
         self.counter = itertools.count()
@@ -251,8 +258,9 @@ class Daemon:
         poller.register(self.control, zmq.POLLIN)
         try:
             while self.running:
-                if poller.poll(200):
+                if poller.poll(200 if self.discovery_waiters is None else 20):
                     self._handle(self.control.recv_multipart(copy=True))
+                self._send_replies()
                 self._reap()
                 if self.exit_when_idle_s is not None and self.idle_s() > self.exit_when_idle_s:
                     log.info("idle for %.0f s (no rig, job or client): exiting", self.idle_s())
@@ -321,6 +329,9 @@ class Daemon:
             if not hmac.compare_digest(req.token.encode(), self.token.encode()):
                 raise ProtocolError(protocol.UNAUTHENTICATED, "missing or wrong token (read it from the daemon state file)")
             self.last_seen[identity] = time.monotonic()
+            if req.op == "devices":  # answered when discovery is done; the control socket keeps serving
+                self._discover_for(identity, envelope, rid)
+                return
             result = self.handlers[req.op](identity, req.args)
             reply = protocol.reply_ok(rid, result)
         except ProtocolError as exc:
@@ -358,8 +369,44 @@ class Daemon:
         return {"time": time.time(), "job": job.state if job else None}
 
     def _devices(self, client: bytes, args: dict) -> dict:
-        devices, errors = manager.discover_devices(self.pm)
+        with self.discovery_lock:
+            devices, errors = manager.discover_devices(self.pm)
         return {"devices": [asdict(d) for d in devices], "errors": errors}
+
+    def _discover_for(self, identity: bytes, envelope: list[bytes], rid: Any) -> None:
+        """Answer a ``devices`` request from a discovery thread: a slow plugin (a USB bus that takes
+        seconds to enumerate) held the main thread, so heartbeats went unanswered and running captures
+        were cancelled. Requests that arrive while one discovery runs share its result."""
+        with self.lock:
+            start = self.discovery_waiters is None
+            self.discovery_waiters = [*(self.discovery_waiters or []), (identity, envelope, rid)]
+        if start:
+            threading.Thread(target=self._discovery_thread, name="sss-discovery", daemon=True).start()
+
+    def _discovery_thread(self) -> None:
+        try:
+            result: Any = self._devices(b"", {})
+        except BaseException as exc:  # a plugin's sys.exit() too: the waiting clients get an error, not silence
+            log.exception("device discovery failed")
+            result = exc
+        with self.lock:
+            waiters, self.discovery_waiters = self.discovery_waiters or [], None
+        for identity, envelope, rid in waiters:
+            reply = (protocol.reply_ok(rid, result) if not isinstance(result, BaseException) else
+                     protocol.reply_error(rid, protocol.INTERNAL, f"device discovery failed: {type(result).__name__}: {result}"[:500]))
+            self.replies.put([identity, *envelope, reply])
+
+    def _send_replies(self) -> None:
+        """Send the replies made off the main thread (ZeroMQ sockets belong to one thread)."""
+        while True:
+            try:
+                parts = self.replies.get_nowait()
+            except queue.Empty:
+                return
+            try:
+                self.control.send_multipart(parts, flags=zmq.NOBLOCK)
+            except zmq.ZMQError:
+                pass  # the client went away
 
     def _plugins(self, client: bytes, args: dict) -> dict:
         return {"plugins": [asdict(r) for r in manager.plugin_records(self.pm)]}
@@ -385,7 +432,8 @@ class Daemon:
         try:
             for kind, device_id in wanted.items():
                 try:
-                    provider = manager.find_provider(device_id, self.pm, kind=kind)
+                    with self.discovery_lock:  # not while a discovery thread asks the same plugins
+                        provider = manager.find_provider(device_id, self.pm, kind=kind)
                 except KeyError as exc:
                     raise ProtocolError(protocol.NOT_FOUND, str(exc.args[0])) from None
                 driver = provider.open(device_id, options, shared)

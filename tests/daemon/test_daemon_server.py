@@ -354,6 +354,52 @@ def test_a_plugin_that_exits_or_returns_no_driver_fails_its_request_not_the_daem
     assert proc.poll() is None and client.ping(timeout_s=2.0)
 
 
+SLOW_PLUGIN = """
+import time
+from sssphase_plugins.api import DeviceInfo, hookimpl
+
+
+class Provider:
+    kind = "camera"
+
+    def discover(self):
+        time.sleep(3.0)  # a USB bus that takes seconds to enumerate
+        return [DeviceInfo("slow:cam", "camera", "slow", "slow", "1")]
+
+    def open(self, device_id, options, shared):
+        raise NotImplementedError
+
+
+@hookimpl
+def sssphase_cameras():
+    return [Provider()]
+"""
+
+
+def test_a_slow_plugin_discovery_does_not_hold_the_daemon(daemon_factory, tmp_path, monkeypatch):
+    """Discovery ran on the control thread: while a plugin enumerated its bus, nothing was answered, not even
+    the heartbeats of a running capture (cancelled as if its client had died)."""
+    import threading
+
+    from sssphase_daemon.client import DaemonClient
+
+    (tmp_path / "slow_plugin.py").write_text(SLOW_PLUGIN)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("SSS_PLUGINS", "slow_plugin")
+    proc, client, _ = daemon_factory()
+    found: dict = {}
+    asker = threading.Thread(target=lambda: found.update(client.call("devices", timeout_s=20.0)))
+    asker.start()
+    time.sleep(0.5)  # the discovery is under way
+    with DaemonClient(client.endpoint, client.token, timeout_s=5.0) as other:
+        t0 = time.monotonic()
+        assert other.ping(timeout_s=2.0) and time.monotonic() - t0 < 1.0  # answered while the plugin enumerates
+        both = other.call("devices", timeout_s=20.0)  # a second request shares the discovery under way
+    asker.join(timeout=20)
+    assert time.monotonic() - t0 < 5.0 and {d["id"] for d in both["devices"]} == {d["id"] for d in found["devices"]}
+    assert "slow:cam" in {d["id"] for d in found["devices"]} and proc.poll() is None
+
+
 def test_a_client_cannot_start_more_jobs_or_open_more_rigs_than_the_daemon_holds(daemon_factory):
     """3,000 one-frame jobs never read took the daemon to 1,025 threads and ZeroMQ's socket limit: every
     later capture then failed with "Too many open files", and shutting down took a minute."""
