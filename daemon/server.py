@@ -238,7 +238,7 @@ class Daemon:
         self.counter = itertools.count()
         self.state_file = state_file
         self.handlers: dict[str, Callable[[bytes, dict[str, Any]], Any]] = {
-            "hello": self._hello, "ping": self._ping, "heartbeat": self._heartbeat, "devices": self._devices,
+            "hello": self._hello, "ping": self._ping, "heartbeat": self._heartbeat,  # devices: _discover_for
             "plugins": self._plugins, "status": self._status, "open_rig": self._open_rig,
             "close_rig": self._close_rig, "move": self._move, "capture": self._capture, "stream": self._stream,
             "job": self._job, "cancel": self._cancel, "shutdown": self._shutdown,
@@ -368,7 +368,8 @@ class Daemon:
             job.last_beat = time.monotonic()
         return {"time": time.time(), "job": job.state if job else None}
 
-    def _devices(self, client: bytes, args: dict) -> dict:
+    def _devices(self) -> dict:
+        """Every plugin's devices and discovery errors (device I/O: run on the discovery thread)."""
         with self.discovery_lock:
             devices, errors = manager.discover_devices(self.pm)
         return {"devices": [asdict(d) for d in devices], "errors": errors}
@@ -385,7 +386,7 @@ class Daemon:
 
     def _discovery_thread(self) -> None:
         try:
-            result: Any = self._devices(b"", {})
+            result: Any = self._devices()
         except BaseException as exc:  # a plugin's sys.exit() too: the waiting clients get an error, not silence
             log.exception("device discovery failed")
             result = exc

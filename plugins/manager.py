@@ -148,6 +148,11 @@ def _discover(provider: DeviceProvider) -> list[DeviceInfo]:
     return found
 
 
+def _say(errors: dict[str, str], plugin: str, text: str) -> None:
+    """Add ``text`` to what is said of ``plugin`` (one line per plugin, its problems joined by '; ')."""
+    errors[plugin] = f"{errors[plugin]}; {text}" if plugin in errors else text
+
+
 def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo], dict[str, str]]:
     """Run discovery on every provider (this may do device I/O). Returns devices and errors by plugin."""
     pm = pm or get_plugin_manager()
@@ -168,20 +173,17 @@ def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo],
                 continue
             first = found[d.id][0]
             if first == plugin and found[d.id][1].kind != d.kind:
-                said = f"reports {d.id} as a {found[d.id][1].kind} and as a {d.kind}: ids must be unique"
-                errors[plugin] = f"{errors[plugin]}; {said}" if plugin in errors else said
+                _say(errors, plugin, f"reports {d.id} as a {found[d.id][1].kind} and as a {d.kind}: ids must be unique")
                 continue
             prefix = d.id.split(":", 1)[0]  # ids are 'plugin:...': the plugin an id names owns it
             if prefix not in (first, plugin):
-                said = (f"reports device {d.id}, which plugin {first} reports too, and neither is {prefix!r}, the "
-                        "plugin its id names: it opens from neither until one is disabled")
-                errors[plugin] = f"{errors[plugin]}; {said}" if plugin in errors else said
+                _say(errors, plugin, f"reports device {d.id}, which plugin {first} reports too, and neither is "
+                                     f"{prefix!r}, the plugin its id names: it opens from neither until one is disabled")
                 continue
             owner, loser = (plugin, first) if prefix == plugin else (first, plugin)
             found[d.id] = (owner, d if owner == plugin else found[d.id][1])
             if loser != owner:
-                said = f"reports device {d.id}, which plugin {owner} reports too: it opens from {owner}"
-                errors[loser] = f"{errors[loser]}; {said}" if loser in errors else said
+                _say(errors, loser, f"reports device {d.id}, which plugin {owner} reports too: it opens from {owner}")
     errors.update(pm.load_errors)
     return sorted((d for _, d in found.values()), key=lambda d: d.id), errors
 
