@@ -20,7 +20,6 @@ import typer
 from rich.console import Console
 from rich.markup import escape
 
-import sssphase_plugins.manager  # noqa: F401  (hands core the model backends of plugins)
 from sssphase_core.errors import SssError
 
 err_console = Console(stderr=True, soft_wrap=True)
@@ -56,6 +55,9 @@ def _root(
                                  help="Print the version and exit."),
 ) -> None:
     """Capture translucent objects with phase-shift patterns, learn their subsurface scattering, relight them."""
+    # Runs before any command (not for `sss --help`, which stays fast): the plugin manager hands core
+    # the model backends of plugins; it imports numpy and reads every installed package's entry points.
+    import sssphase_plugins.manager  # noqa: F401
 
 
 groups: dict[str, typer.Typer] = {"root": app}

@@ -1,0 +1,41 @@
+"""`sss --help` stays fast: drawing the help imports no numpy, torch or plugin (the ≤ 0.5 s budget of the
+front door; the figure itself is measured with farm-bench, see the docs' CLI page)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+PROBE = """
+import sys
+sys.argv = ["sss", "--help"]
+from sssphase_cli.main import main
+try:
+    main()
+except SystemExit as exc:
+    code = exc.code
+heavy = sorted(m for m in ("numpy", "torch", "zmq", "scipy", "cv2", "pluggy", "sssphase_plugins.manager")
+               if m in sys.modules)
+print("HEAVY=" + ",".join(heavy), "CODE=" + str(code), file=sys.stderr)
+"""
+
+
+def _probe(argv: list[str]) -> tuple[str, str]:
+    code = PROBE.replace('["sss", "--help"]', repr(["sss", *argv]))
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    line = [ln for ln in proc.stderr.splitlines() if ln.startswith("HEAVY=")]
+    assert line, proc.stderr[-2000:]
+    return proc.stdout, line[-1]
+
+
+def test_top_level_help_imports_nothing_heavy():
+    out, probe = _probe(["--help"])
+    assert "relight" in out and "capture" in out  # the help itself was drawn
+    assert probe == "HEAVY= CODE=0", probe
+
+
+def test_a_command_still_loads_the_plugins():
+    """The plugin manager (model backends of plugins) is loaded once a command runs."""
+    out, probe = _probe(["plugins"])
+    assert "builtin" in out
+    assert "sssphase_plugins.manager" in probe and "pluggy" in probe, probe
