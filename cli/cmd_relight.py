@@ -136,9 +136,9 @@ def relight_cmd(
         relight_view,
         write_images,
     )
+    from sssphase_core.relight.backends import check_backends, uses_decoder
     from sssphase_core.relight.evaluation import comparison_figure, relight_metrics
     from sssphase_core.relight.images import display_scale
-    from sssphase_core.relight.sources import check_backends, uses_decoder
     from sssphase_core.store.session import Session, claim_output
 
     formats = check_image_formats(tuple(dict.fromkeys(f.strip().lower() for f in image_format.split(",") if f.strip())))
@@ -323,8 +323,8 @@ def eval_relight(
     from sssphase_core.errors import InputError
     from sssphase_core.learning.training import resolve_checkpoint
     from sssphase_core.relight import load_view
+    from sssphase_core.relight.backends import MODEL_FREE, check_backends, uses_decoder
     from sssphase_core.relight.evaluation import aggregate, evaluate_view, lpips_note, metrics_table
-    from sssphase_core.relight.sources import MODEL_FREE, check_backends, uses_decoder
     from sssphase_core.relight.views import has_captured_transport, has_references
     from sssphase_core.store.session import by_object, claim_output, find_sessions
 
@@ -416,7 +416,7 @@ def report(
     from sssphase_core.errors import InputError
     from sssphase_core.learning.training import resolve_checkpoint
     from sssphase_core.learning.training.checkpoints import load_checkpoint
-    from sssphase_core.relight.sources import check_backends, uses_decoder
+    from sssphase_core.relight.backends import check_backends, uses_decoder
     from sssphase_core.reporting.demo import run_report
     from sssphase_core.store.session import find_sessions
 

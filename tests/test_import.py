@@ -420,7 +420,7 @@ def test_the_captures_choose_the_noise_mask_that_keeps_faint_wide_tails(tmp_path
     own fringe captures choose the 2 px mask, and it relights a noise-free reference better."""
     from sssphase_core.processing.footprints import DENOISE_SMOOTHING
     from sssphase_core.relight import load_view, relight
-    from sssphase_core.relight.sources import denoised_transport
+    from sssphase_core.relight.transport import denoised_transport
 
     wp, hp, spacing, k = 112, 84, 16, 32
     plan = capture_plan(wp, hp, footprints=True, dot_spacing=spacing, references=("white", "black", "checkerboard"))

@@ -48,7 +48,7 @@ def run(sessions: list[Any], out: Path, progress=None) -> dict[str, Any]:
     from sssphase_core.processing.footprints import DENOISE_SMOOTHING
     from sssphase_core.relight import load_view, relight
     from sssphase_core.relight.evaluation import relight_metrics
-    from sssphase_core.relight.sources import denoised_transport
+    from sssphase_core.relight.transport import denoised_transport
 
     rows = []
     for s in sessions:

@@ -361,7 +361,7 @@ NOISE_SAMPLE = 512
 
 #: Smoothings (px) of the candidate noise masks (:func:`above_noise`). A stored transport keeps what any of
 #: them keeps, and relighting uses, per view, the one whose transport relights the view's own fringe captures
-#: best (``relight.sources.denoised_transport``). Neither wins everywhere (measured, relit checkerboard):
+#: best (``relight.transport.denoised_transport``). Neither wins everywhere (measured, relit checkerboard):
 #: the sim crab 41.1 dB with 1 px against 38.4 with 2 px, while a frame-filling wide scatterer with
 #: shot noise and a clean black frame 25.6 against 29.3 (1 px drops its faint tails, which add up).
 DENOISE_SMOOTHING = (1.0, 2.0)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 import scipy.sparse
@@ -17,6 +18,21 @@ from sssphase_core.processing.projector import emitted_light, sample_projector
 
 #: Produces the (N, K, K, 3) footprints of camera pixels given as (N, 2) int (y, x).
 FootprintSource = Callable[[np.ndarray], "np.ndarray | torch.Tensor"]
+
+
+@runtime_checkable
+class TransportColumns(Protocol):
+    """A source that lights its own columns of the light transport, one crop per projector dot (the
+    measured transport, :class:`~sssphase_core.relight.transport.DotTransport`), instead of giving the
+    footprints of the camera pixels :func:`lit_pixels` picks."""
+
+    def lit(self, light: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Columns lit by some pattern: (camera pixels (N, 2), light (N, P, C), rows (N,))."""
+        ...
+
+    def crops_at(self, rows: np.ndarray) -> np.ndarray:
+        """The (n, K, K, 3) crops of ``rows``."""
+        ...
 
 
 @dataclass(frozen=True)
@@ -186,9 +202,7 @@ def relight(
     if chunk < 1:
         raise InputError("chunk must be >= 1")
     light = emitted_light(pats, proj.gamma) * np.float32(1.0 - proj.black)
-    from sssphase_core.relight.sources import DotTransport  # the one source that lights its own columns
-
-    if isinstance(source, DotTransport):  # measured columns of the light transport, one per projector dot
+    if isinstance(source, TransportColumns):  # measured columns of the light transport, one per projector dot
         pixels, c, rows = source.lit(light)
         fetch: Callable[[slice], np.ndarray | torch.Tensor] = lambda sl: source.crops_at(rows[sl])  # noqa: E731
     else:

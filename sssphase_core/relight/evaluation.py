@@ -118,10 +118,11 @@ def comparison_figure(reference: np.ndarray, relit: np.ndarray, mask: np.ndarray
 def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Path | str | None = None,
                   chunk: int = 2048, device: str = "cpu", write: bool = True,
                   progress: Callable[[int, int], None] | None = None, **options: object) -> list[dict[str, Any]]:
-    """Relight a :class:`~sssphase_core.relight.RelightView` under all its reference patterns in one
+    """Relight a :class:`~sssphase_core.relight.views.RelightView` under all its reference patterns in one
     pass with ``backend`` (``options`` go to the model backend); metrics per pattern (and figures /
     images under ``out_dir`` if ``write``)."""
-    from sssphase_core.relight import MODEL_FREE, make_sources, relight_view
+    from sssphase_core.relight.backends import MODEL_FREE, make_sources
+    from sssphase_core.relight.pipeline import relight_view
 
     if not rv.references:
         raise InputError(f"{rv.object} view {rv.view} has no reference captures to evaluate against "
@@ -159,7 +160,7 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
             row["psnr_camera"] = relight_metrics(seen, rv.camera_image(name), rv.proj.mask)["psnr"]
         if write:
             stem = out / f"{rv.object}_v{rv.view}_{name}_{backend}"
-            from sssphase_core.relight import write_images
+            from sssphase_core.relight.images import write_images
 
             write_images(stem, img, scale=exposure)
             row["figure"] = str(comparison_figure(rv.captured[name], img, rv.proj.mask, stem.with_name(stem.name + "_compare.png"),
@@ -240,7 +241,7 @@ def baseline_check(sessions: Sequence[Any], checkpoint: Path | str, out_dir: Pat
     ``views`` restricts the views of each session (e.g. held-out ones); at most ``max_views`` views are
     relit in all. Sessions without reference captures give an empty result (``views == []``).
     """
-    from sssphase_core.relight import load_view
+    from sssphase_core.relight.views import load_view
 
     picked = []
     for session in sessions:
@@ -266,7 +267,7 @@ def footprints_at(rv: Any, pixels: np.ndarray, backends: Sequence[str], *, check
                   device: str = "cpu") -> dict[str, np.ndarray]:
     """Each backend's footprints at camera ``pixels`` (N, 2) yx of a view -> {backend: (N, K, K, 3)},
     all centre-cropped or zero-padded to the largest K among them (``captured``: the session's own crops)."""
-    from sssphase_core.relight import make_source
+    from sssphase_core.relight.backends import make_source
 
     out: dict[str, np.ndarray] = {}
     for name in backends:

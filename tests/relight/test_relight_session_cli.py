@@ -234,7 +234,7 @@ def test_the_local_mixture_finds_each_materials_weight():
     and 0 away from the border, and the view-wide weight where no pixel has evidence."""
     from types import SimpleNamespace
 
-    from sssphase_core.relight.sources import local_mixture
+    from sssphase_core.relight.calibration import local_mixture
 
     rng = np.random.default_rng(0)
     h, w = 40, 60
@@ -258,7 +258,7 @@ def test_a_blend_is_weighted_per_pixel_by_each_materials_own_source():
     from types import SimpleNamespace
 
     from sssphase_core.relight import mixture_weights
-    from sssphase_core.relight.sources import local_mixture
+    from sssphase_core.relight.calibration import local_mixture
 
     rng = np.random.default_rng(1)
     h, w = 30, 90
@@ -284,7 +284,8 @@ def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
     """`relight_view` fits the calibration on the same pass as the user's patterns: the view-wide mix of the
     calibrated source, refined per pixel (`local_mixture`), with each footprint predicted once."""
     from sssphase_core.relight import make_source, relight, relight_view
-    from sssphase_core.relight.sources import local_mixture, model_inputs, no_scattering_source
+    from sssphase_core.relight.calibration import local_mixture, model_inputs
+    from sssphase_core.relight.sources import no_scattering_source
 
     rv = load_view(Session.open(session), 1)
     raw, k = make_source("analytic", rv, calibrate=False, patch=SMALL_PATCH)
@@ -353,7 +354,7 @@ def test_a_blend_relights_the_fringe_captures_at_least_as_well_as_each_member(se
     (`local_mixture`), and since each member's own calibration is a feasible blend, the blend fits the
     view's captures no worse."""
     from sssphase_core.relight import make_source, model_inputs, no_scattering_source, relight, relight_view
-    from sssphase_core.relight.sources import local_mixture
+    from sssphase_core.relight.calibration import local_mixture
 
     rv = load_view(Session.open(session), 1)
     members = [make_source("analytic", rv, calibrate=False, patch=SMALL_PATCH), make_source("exact", rv, calibrate=False)]

@@ -1,0 +1,126 @@
+"""Which footprint source a backend name gives a view (:func:`make_source`, :func:`make_sources` for
+blends), and the checks that refuse unknown backends or a missing decoder before any work
+(:func:`check_backends`)."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from sssphase_core.errors import InputError
+from sssphase_core.relight.calibration import (
+    energy_from_white,
+    fit_view_mix,
+    mixed_with_no_scattering,
+    model_inputs,
+    white_usable,
+)
+from sssphase_core.relight.engine import FootprintSource
+from sssphase_core.relight.sources import backend_source, nearest_measured_source, no_scattering_source
+from sssphase_core.relight.transport import denoised_transport
+from sssphase_core.relight.views import RelightView
+
+MODEL_FREE = ("none", "exact", "measured")  # footprint sources that are data, not a model: never calibrated
+#: Backends that blend several models by the view calibration (:func:`relight_view` ``also``).
+BLENDS: dict[str, tuple[str, ...]] = {"blend": ("torch", "analytic")}
+
+
+def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",
+                calibrate: bool = True, **options: object) -> tuple[FootprintSource, int]:
+    """The footprint source of backend ``name`` for a view -> (source, patch size); ``options`` go to
+    the model backend (e.g. ``supersample`` for ``analytic``). A model backend's footprints are
+    ``calibrate``-d to the view (:func:`fit_view_mix`) unless told not to."""
+    if name == "none":
+        return no_scattering_source(rv.white), 1
+    if name == "exact":  # ground truth for evaluation only: no lab has these
+        if rv.sim is None:
+            raise InputError(f"{rv.object}: exact footprints exist only for simulated sessions (the simulator's ground "
+                             "truth); this session was captured or imported")
+        return rv.scene().footprints, rv.patch
+    if name == "measured":  # the session's own captured dot-grid crops, simulated or not
+        arrays = rv.session.arrays(rv.view)  # type: ignore[attr-defined]
+        if "transport/crops" in arrays:  # one crop per projector dot: the captured light transport itself
+            from sssphase_core.processing.footprints import crop_noise
+
+            crops = rv.session.read(rv.view, "transport/crops")  # type: ignore[attr-defined]
+            info = rv.session.manifest["views"][str(rv.view)].get("transport", {})  # type: ignore[attr-defined]
+            smoothings = [float(x) for x in info.get("denoise_smoothing", [1.0])]
+            if info.get("noise_dropped") and len(smoothings) == 1:  # zeroed with one mask at capture: as stored
+                noise = 0.0
+            elif info.get("noise_dropped"):  # the union of several masks stored: the view's own captures choose
+                noise = float(info.get("noise", 0.0))
+            else:
+                noise = crop_noise(np.asarray(crops[: min(len(crops), 512)], np.float32)) if len(crops) else 0.0
+            pixels, dots = rv.session.load(rv.view, "transport/pixels"), rv.session.load(rv.view, "transport/dots")  # type: ignore[attr-defined]
+            return denoised_transport(rv, pixels, dots, crops, noise, smoothings), int(crops.shape[1])
+        if "footprints/crops" not in arrays:
+            raise InputError(f"{rv.object} view {rv.view} has no captured footprints: capture with --footprints")
+        from sssphase_core.processing.footprints import transport_weights
+
+        px = np.asarray(rv.session.load(rv.view, "footprints/pixels"), np.int64)  # type: ignore[attr-defined]
+        crops = rv.session.read(rv.view, "footprints/crops")  # type: ignore[attr-defined]
+        weights = transport_weights(px, rv.proj.xp, rv.proj.yp, rv.proj.mask)
+        return nearest_measured_source(px, crops, rv.white, weights), int(crops.shape[1])
+    from sssphase_core.learning.backends import get_backend
+
+    if name == "torch":
+        needs_checkpoint(name, checkpoint)
+        backend = get_backend("torch", checkpoint=checkpoint, device=device, **options)
+    elif name == "analytic":
+        backend = get_backend("analytic", **{"patch": rv.patch, "black": rv.proj.black, **options})
+    else:
+        backend = get_backend(name, **options)
+    psp, lost = model_inputs(rv)
+    source = backend_source(backend, psp)
+    usable = white_usable(rv.white, rv.white_saturation)
+    if (lost & usable).any():  # fringes beyond repair: the energy from the white capture (reciprocity)
+        source = energy_from_white(source, lost & usable, rv.white)
+    k = int(backend.patch)
+    if calibrate and rv.psp_patterns is not None:
+        source = mixed_with_no_scattering(source, fit_view_mix(source, k, rv, psp, lost), rv.white)
+    return source, k
+
+
+def check_backends(names: Sequence[str], checkpoint: Path | str | None) -> None:
+    """Refuse unknown footprint sources, and the decoder's without a readable checkpoint, before any work
+    starts (a missing or foreign checkpoint is one line before any progress is shown)."""
+    from sssphase_core.learning.backends import available_backends
+
+    known = [*MODEL_FREE, *BLENDS, *available_backends()]
+    for name in names:
+        if name not in known:
+            raise InputError(f"unknown backend {name!r}; available: {', '.join(sorted(set(known)))}")
+        needs_checkpoint(name, checkpoint)
+    if checkpoint is not None and any(uses_decoder(n) for n in names):
+        from sssphase_core.learning.training.checkpoints import load_decoder
+
+        load_decoder(checkpoint)  # raises DataError naming what the file is, or weights that are not finite
+
+
+def uses_decoder(name: str) -> bool:
+    """Whether backend ``name`` runs the decoder (``torch``, or a blend with it): it needs a checkpoint."""
+    return name == "torch" or "torch" in BLENDS.get(name, ())
+
+
+def needs_checkpoint(name: str, checkpoint: Path | str | None) -> None:
+    """Refuse the decoder, or a blend with it, without a decoder checkpoint."""
+    if checkpoint is not None or not uses_decoder(name):
+        return
+    if name == "torch":
+        raise InputError("the torch backend needs --checkpoint (a decoder checkpoint from `sss train decoder`)")
+    raise InputError(f"the {name} backend blends the decoder in: it needs --checkpoint (a decoder from `sss train decoder`)")
+
+
+def make_sources(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",
+                 **options: object) -> list[tuple[FootprintSource, int]]:
+    """The uncalibrated (source, patch) pairs of backend ``name``: its own, or for a blend
+    (:data:`BLENDS`: ``blend`` = the decoder and the analytic model, weighted per view and colour by how
+    well they relight the view's own fringe captures) each member's; ``options`` go to the analytic
+    member of a blend."""
+    if name not in BLENDS:
+        return [make_source(name, rv, checkpoint=checkpoint, device=device, calibrate=False, **options)]
+    needs_checkpoint(name, checkpoint)
+    return [make_source(m, rv, checkpoint=checkpoint, device=device, calibrate=False,
+                        **(options if m == "analytic" else {})) for m in BLENDS[name]]

@@ -1,0 +1,51 @@
+"""The one call that relights a view (:func:`relight_view`): the user's patterns and the view calibration
+in one footprint pass, blends included."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+
+import numpy as np
+
+from sssphase_core.errors import InputError
+from sssphase_core.relight.calibration import local_mixture, model_inputs
+from sssphase_core.relight.engine import FootprintSource, relight
+from sssphase_core.relight.sources import no_scattering_source
+from sssphase_core.relight.views import RelightView
+
+
+def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns: list[np.ndarray], *,
+                 calibrate: bool, also: Sequence[tuple[FootprintSource, int]] = (), chunk: int = 2048,
+                 device: str = "cpu", progress: Callable[[int, int], None] | None = None
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
+    """Relight a view under ``patterns`` (P of (Hp, Wp[, 3])) with an uncalibrated ``source``
+    (``make_source(..., calibrate=False)``) -> ((P, H, W, 3) images, view-wide per-colour mix (3,) or None).
+
+    With ``calibrate`` (and the view's PSP patterns known) the view calibration of :func:`fit_view_mix`
+    rides on the same footprint pass: the 8 PSP patterns are splatted beside the user's, and since
+    relighting is linear in the footprints the mixed source's images are ``mix * model + (1 - mix) *
+    none``, with the mix refined per pixel (:func:`local_mixture`). One pass instead of two (each
+    footprint is predicted once).
+
+    ``also``: more (source, patch) pairs blended in by the same fit: the images are
+    ``sum_i mix_i * source_i + (1 - sum_i mix_i) * none``, each ``mix_i`` refined per pixel too, and the
+    view-wide mix returned is (1 + len(also), 3). Blending needs ``calibrate``.
+    """
+    calibrate = calibrate and rv.psp_patterns is not None
+    if also and not calibrate:
+        raise InputError(f"{rv.object} view {rv.view}: blending sources needs the view calibration (the projector "
+                         "patterns of its PSP captures, and calibration on)")
+    n = len(patterns)
+    every = list(patterns) + (list(rv.psp_patterns) if calibrate else [])
+    relits = [relight(src, rv.proj, every, k, white=rv.white, chunk=chunk, device=device, progress=progress)
+              for src, k in ((source, patch), *also)]
+    if not calibrate:
+        return relits[0], None
+    psp, lost = model_inputs(rv)
+    none = relight(no_scattering_source(rv.white), rv.proj, every, 1, white=rv.white)
+    # each source's weight refined pixel by pixel where the view's own fringes say so
+    weights, view_weights = local_mixture(rv, [r[n:] for r in relits], none[n:], psp, lost)
+    images = none[:n].copy()
+    for weight, relit in zip(weights, relits, strict=True):
+        images += weight * (relit[:n] - none[:n])
+    return images, (view_weights[0] if not also else view_weights)
