@@ -126,7 +126,7 @@ def test_collapse_stops_training_with_a_clear_message(dataset, tiny, tmp_path):
 def test_knn_monitor_is_logged_every_epoch_and_measures_the_right_patches(pretrained, dataset):
     from sssphase_core.learning.data import PatchDataset
     from sssphase_core.learning.evaluation import knn_leave_one_view_out
-    from sssphase_core.learning.training import _knn_monitor_indices, knn_monitor
+    from sssphase_core.learning.training import knn_monitor, knn_monitor_indices
 
     rows = [json.loads(line) for line in (pretrained / METRICS).read_text().splitlines()]
     assert len(rows) == PRE.epochs and all(0.0 <= r["knn_acc"] <= 1.0 for r in rows)
@@ -135,15 +135,15 @@ def test_knn_monitor_is_logged_every_epoch_and_measures_the_right_patches(pretra
         def forward(self, x):
             return x.mean(dim=(2, 3))
 
-    idx = _knn_monitor_indices(dataset, 100, seed=0)
+    idx = knn_monitor_indices(dataset, 100, seed=0)
     assert len(idx) == 100 and len(np.unique(idx)) == 100
     emb = dataset.batch(idx)["psp"].mean(dim=(2, 3)).numpy()
     want = knn_leave_one_view_out(emb, dataset.labels("object")[idx], dataset.labels("view")[idx], k=5)["overall"]
     assert knn_monitor(MeanColour(), dataset, idx, 5, torch.device("cpu")) == want
     one_view = PatchDataset([v for v in dataset.views if v.view == 0], 16, ["a", "b"])
-    assert _knn_monitor_indices(one_view, 100, seed=0) is None  # leave-one-view-out needs two views
+    assert knn_monitor_indices(one_view, 100, seed=0) is None  # leave-one-view-out needs two views
     one_object = PatchDataset([v for v in dataset.views if v.object == "a"], 16, ["a", "b"])
-    assert _knn_monitor_indices(one_object, 100, seed=0) is None  # a one-class vote is always right (it read 100%)
+    assert knn_monitor_indices(one_object, 100, seed=0) is None  # a one-class vote is always right (it read 100%)
 
 
 def test_predictor_keeps_the_base_lr_by_default_while_the_rest_decays(pretrained):

@@ -49,9 +49,9 @@ from sssphase_core.learning.training.loop import (
 )
 from sssphase_core.learning.training.pretrain import (
     PretrainConfig,
-    _knn_monitor_indices,
     effective_rank,
     knn_monitor,
+    knn_monitor_indices,
     pretrain,
     projection_std,
     warmup_cosine,
@@ -59,8 +59,8 @@ from sssphase_core.learning.training.pretrain import (
 
 __all__ = [
     "BEST", "CHECKPOINT", "METRICS", "METRICS_CSV", "PRIOR_SAMPLES", "TB_DIR", "DecoderConfig", "Dist", "FootprintNet",
-    "Loop", "LoopConfig", "PretrainConfig", "StepProgress", "TrainingCollapsed", "TrainingDiverged", "_knn_monitor_indices",
-    "check_run_folder", "decoder_patch", "effective_rank", "init_distributed", "knn_monitor", "load_checkpoint", "load_decoder",
+    "Loop", "LoopConfig", "PretrainConfig", "StepProgress", "TrainingCollapsed", "TrainingDiverged",
+    "check_run_folder", "decoder_patch", "effective_rank", "init_distributed", "knn_monitor", "knn_monitor_indices", "load_checkpoint", "load_decoder",
     "load_encoder", "pretrain", "projection_std", "resolve_checkpoint", "save_checkpoint", "train_decoder",
     "validate_decoder", "warmup_cosine",
 ]

@@ -99,7 +99,7 @@ def warmup_cosine(opt: torch.optim.Optimizer, total: int, warmup: int, base_lr: 
     return torch.optim.lr_scheduler.LambdaLR(opt, [(lambda _: 1.0) if g.get("fix") else factor for g in opt.param_groups])
 
 
-def _knn_monitor_indices(dataset: PatchDataset, n: int, seed: int) -> np.ndarray | None:
+def knn_monitor_indices(dataset: PatchDataset, n: int, seed: int) -> np.ndarray | None:
     """A fixed, seeded subset of the training patches for the kNN monitor (None: off, or nothing to monitor:
     one view (leave-one-view-out has no other) or one object (a one-class vote is always right))."""
     if n <= 0 or len(np.unique(dataset.labels("view"))) < 2 or len(np.unique(dataset.labels("object"))) < 2:
@@ -177,7 +177,7 @@ def pretrain(
             monitor["y"].append(out["embedding"].float().cpu())
         return {"loss": float(out["loss"].detach()), "lr": lr}
 
-    knn_idx = _knn_monitor_indices(dataset, cfg.knn_monitor, cfg.seed)
+    knn_idx = knn_monitor_indices(dataset, cfg.knn_monitor, cfg.seed)
 
     def end_epoch(epoch: int) -> dict[str, float]:
         z, y = torch.cat(monitor["z"]), torch.cat(monitor["y"])
