@@ -1,0 +1,465 @@
+"""The learning commands' session-level runners: ``sss train pretrain|decoder`` and ``sss eval knn|footprints``
+are one call each here, so the CLI, a notebook or a web view run the same code.
+
+Each runner checks its options before any work, reads the data (``learning.inputs.load_views``: captured
+sessions or the simulator), says what it does through a :class:`~sssphase_core.learning.inputs.Report`
+and returns what it made (a checkpoint and the run's figures, or the evaluation's results and tables)::
+
+    from sssphase_core.reporting.learning_runs import PretrainOptions, run_pretrain
+    run_pretrain(PretrainOptions(out=Path("runs/pre"), epochs=2, sessions=Path("sessions")))
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sssphase_core.errors import DataError, InputError
+from sssphase_core.learning.inputs import (
+    Report,
+    RunConfigFile,
+    ViewOptions,
+    check_batch,
+    check_lr,
+    check_run_out,
+    chosen_views,
+    decoder_view_choice,
+    load_views,
+    parse_ints,
+    parse_names,
+    training_data_from_sessions,
+    used_views,
+    view_objects,
+)
+from sssphase_core.tables import Table
+
+# --- training ----------------------------------------------------------------------------------------
+
+
+@dataclass(kw_only=True)
+class TrainOptions(ViewOptions):
+    """What both trainings share (a run folder ``out``, resumed from its checkpoint with ``resume``)."""
+
+    out: Path
+    preset: str = "lite"
+    epochs: int = 10
+    batch_size: int = 64
+    lr: float = 0.05
+    ckpt_every: int = 50
+    device: str = "auto"
+    deterministic: bool = False
+    resume: bool = True
+
+
+@dataclass(kw_only=True)
+class PretrainOptions(TrainOptions):
+    """``sss train pretrain``'s options (SimSiam on the training objects' PSP patches)."""
+
+    out: Path = Path("runs/pretrain")
+    warmup_epochs: float = 2.0
+    augment: str = "psp"
+    fix_pred_lr: bool = True
+    knn_monitor: int = 2000
+
+
+@dataclass(kw_only=True)
+class DecoderOptions(TrainOptions):
+    """``sss train decoder``'s options: on the frozen ``encoder`` (a pretraining run), or ``end_to_end``.
+    ``preset_given``: the preset was chosen (not a default), which only an end-to-end run may do."""
+
+    out: Path = Path("runs/decoder")
+    encoder: Path | None = None
+    end_to_end: bool = False
+    preset_given: bool = False
+    val_views: str | Sequence[int] | None = None
+    noisy_targets: bool = False
+    batch_size: int = 32
+    lr: float = 1e-3
+    head: str = "reciprocal"
+    aux_classes: int = 0
+    learn_gain: bool = False
+    capture_model: bool = True
+    deterministic: bool = True
+    check_sessions: Sequence[Path] | None = None
+
+
+@dataclass
+class TrainResult:
+    """A finished run: its checkpoint, its metrics rows and the figures it drew."""
+
+    checkpoint: Path
+    rows: list[dict[str, Any]]
+    figures: list[Path] = field(default_factory=list)
+    baselines: dict[str, Any] | None = None  # the decoder's relighting check (``baseline_check``), when one ran
+
+
+def final_lines(metrics: Path, names: Sequence[str], monitored: str) -> list[str]:
+    """The last epoch's figures and the epoch kept in best.pt, as lines."""
+    from sssphase_core.learning.runlog import read_rows
+    from sssphase_core.learning.training import BEST
+
+    rows = read_rows(metrics)
+    if not rows:
+        return []
+    last, lines = rows[-1], []
+    figures = ", ".join(f"{n} {last[n]:.4g}" for n in names if n in last)
+    if figures:
+        lines.append(f"final (epoch {last['epoch']}): {figures}")
+    best = last.get("best_epoch")
+    if best is not None:
+        row = next(r for r in rows if r["epoch"] == best)
+        lines.append(f"best {monitored} at epoch {best} ({row[monitored]:.4g}): {metrics.parent / BEST} "
+                     "(what backends load from this run folder)")
+    return lines
+
+
+def _header(report: Report, text: str, out: Path, config_file: RunConfigFile | None, resuming: bool) -> None:
+    saved = f" (options in {config_file.save(out, resuming)})" if config_file is not None else ""
+    report.say(f"{text} -> {out}{saved}")
+
+
+def run_pretrain(opts: PretrainOptions, report: Report = Report(), *,
+                 config_file: RunConfigFile | None = None) -> TrainResult:
+    """SimSiam pretraining of the encoder on PSP patches of the training objects (resumable); draws
+    ``knn_vs_time.png`` when the kNN monitor ran."""
+    from sssphase_core.learning.data import PatchDataset
+    from sssphase_core.learning.models import get_preset
+    from sssphase_core.learning.runlog import read_rows
+    from sssphase_core.learning.training import METRICS, PretrainConfig, knn_monitor_indices, pretrain
+    from sssphase_core.learning.training.pretrain import check_pretrain_options
+    from sssphase_core.sim import TRAIN_OBJECTS
+
+    check_lr(opts.lr)
+    check_pretrain_options(opts.batch_size, opts.warmup_epochs, opts.augment)
+    p = get_preset(opts.preset)
+    resuming = check_run_out(opts.out, "pretrain", opts.resume, config_file)
+    names = parse_names(opts.objects, () if opts.sessions else TRAIN_OBJECTS)
+    vds = load_views(names, chosen_views(opts.views, "0,1,2,3", opts.sessions), opts, footprints=False, report=report)
+    names = names or view_objects(vds)
+    ds = PatchDataset(vds, p.patch, names)
+    check_batch(opts.batch_size, ds, "training patches")
+    if opts.knn_monitor and knn_monitor_indices(ds, opts.knn_monitor, opts.seed) is None:
+        report.say("note: the kNN monitor is off: it needs two views (leave one view out) and two objects (a "
+                   "one-object vote is always right)")
+    if opts.warmup_epochs >= opts.epochs:
+        report.say(f"{report.style('note:', 'note')} --warmup-epochs {opts.warmup_epochs:g} is not shorter than --epochs "
+                   f"{opts.epochs}: the learning rate rises for the whole run, to about {opts.epochs / opts.warmup_epochs:.2g}"
+                   " x --lr, and never decays")
+    cfg = PretrainConfig(epochs=opts.epochs, batch_size=opts.batch_size, seed=opts.seed, ckpt_every=opts.ckpt_every,
+                         device=opts.device, preset=opts.preset, deterministic=opts.deterministic, lr=opts.lr,
+                         warmup_epochs=opts.warmup_epochs, fix_pred_lr=opts.fix_pred_lr, augment=opts.augment,
+                         knn_monitor=opts.knn_monitor)
+    _header(report, f"pretraining {report.style(opts.preset, 'strong')} on {len(ds)} patches of {', '.join(names)}",
+            opts.out, config_file, resuming)
+    with report.training() as progress:
+        path = pretrain(cfg, ds, opts.out, resume=opts.resume, progress=progress)
+    result = TrainResult(path, read_rows(opts.out / METRICS))
+    for line in final_lines(opts.out / METRICS, ("loss", "knn_acc", "eff_rank"), "knn_acc"):
+        report.say(line)
+    _knn_trail(opts.out, result, len(names), report)
+    report.say(f"{report.style('done', 'done')}: {path}")
+    return result
+
+
+def _knn_trail(out: Path, result: TrainResult, n_objects: int, report: Report) -> None:
+    """The kNN monitor's accuracy per epoch, plotted against run time and said."""
+    from sssphase_core.learning.training import METRICS
+    from sssphase_core.reporting.figures import plot_metric_vs_time
+
+    rows = [r for r in result.rows if "knn_acc" in r]
+    if not rows:
+        return
+    plot = out / "knn_vs_time.png"
+    plot_metric_vs_time(out / METRICS, "knn_acc", plot, log=False, chance=1 / n_objects,
+                        ylabel="kNN accuracy (fraction, training patches)",
+                        title=f"kNN monitor against run time ({n_objects} objects)")
+    result.figures.append(plot)
+    trail = ", ".join(f"{100 * r['knn_acc']:.1f}" for r in rows)
+    report.say(f"kNN monitor (% per epoch, training patches): {trail}; plot {plot}")
+
+
+def _check_decoder_options(opts: DecoderOptions) -> int:
+    """Refuse, before any data is read, what no decoder run can be; the run's patch size."""
+    from sssphase_core.learning.models.decoder import HEADS
+    from sssphase_core.learning.training import decoder_patch
+    from sssphase_core.learning.training.decoder import check_aux_classes
+
+    check_lr(opts.lr)
+    check_aux_classes(opts.aux_classes)
+    if opts.head not in HEADS:
+        raise InputError(f"unknown decoder head {opts.head!r}; choose one of {', '.join(HEADS)}")
+    if (opts.encoder is None) == (not opts.end_to_end):
+        raise InputError("give either --encoder PATH (a pretraining run; the paper's method) or --end-to-end (the "
+                         "supervised baseline without SSL), not both or neither")
+    if opts.encoder is not None and opts.preset_given:
+        raise InputError("--preset sets the model of an --end-to-end run; with --encoder the decoder takes the encoder's "
+                         "preset (it was ignored, and config.toml recorded the wrong one)")
+    return decoder_patch(None if opts.end_to_end else opts.encoder, opts.preset)
+
+
+def run_decoder(opts: DecoderOptions, report: Report = Report(), *,
+                config_file: RunConfigFile | None = None) -> TrainResult:
+    """Fit the footprint decoder with the SBH loss on the frozen encoder, or end-to-end (resumable); then
+    relight the ``check_sessions`` (default: ``sessions``) against the none and analytic baselines."""
+    from sssphase_core.learning.data import PatchDataset
+    from sssphase_core.learning.runlog import read_rows
+    from sssphase_core.learning.training import METRICS, DecoderConfig, train_decoder
+    from sssphase_core.learning.training.decoder import check_aux_classes
+    from sssphase_core.sim import TRAIN_OBJECTS
+
+    patch = _check_decoder_options(opts)
+    resuming = check_run_out(opts.out, "decoder", opts.resume, config_file)
+    names = parse_names(opts.objects, () if opts.sessions else TRAIN_OBJECTS)
+    choice = decoder_view_choice(names, opts.views, opts.val_views, opts.sessions)
+    if opts.check_sessions:  # a typo here was found only after the whole training
+        from sssphase_core.store.session import find_sessions
+
+        find_sessions(opts.check_sessions)
+    train_vds, val_vds = training_data_from_sessions(names, opts, choice, noisy=opts.noisy_targets, report=report)
+    names = names or view_objects([*train_vds, *val_vds])
+    ds = PatchDataset(train_vds, patch, names, with_targets=True)
+    val = PatchDataset(val_vds, patch, names, with_targets=True) if val_vds else None
+    check_batch(opts.batch_size, ds, "training footprints")
+    check_aux_classes(opts.aux_classes, ds)
+    cfg = DecoderConfig(epochs=opts.epochs, batch_size=opts.batch_size, seed=opts.seed, ckpt_every=opts.ckpt_every,
+                        device=opts.device, lr=opts.lr, deterministic=opts.deterministic, head=opts.head,
+                        aux_classes=opts.aux_classes, preset=opts.preset, learn_gain=opts.learn_gain,
+                        capture_model=opts.capture_model)
+    what = f"encoder and decoder end-to-end ({opts.preset})" if opts.end_to_end else "the decoder"
+    _header(report, f"training {what} on {len(ds)} footprints of {', '.join(names)}", opts.out, config_file, resuming)
+    with report.training() as progress:
+        path = train_decoder(cfg, opts.encoder, ds, opts.out, val=val, resume=opts.resume, progress=progress)
+    result = TrainResult(path, read_rows(opts.out / METRICS))
+    if val is not None:
+        result.figures.append(_validation_plot(opts.out))
+        report.say(f"validation error against run time: {result.figures[-1]}")
+    for line in final_lines(opts.out / METRICS, ("val_loss", "val_psnr"), "val_loss"):
+        report.say(line)
+    report.say(f"{report.style('done', 'done')}: {path}")
+    held_out = sorted({vd.view for vd in val_vds}) if opts.sessions and not opts.check_sessions else []
+    roots = list(opts.check_sessions or ([opts.sessions] if opts.sessions else []))
+    result.baselines = check_against_baselines(opts.out, roots, held_out or None, opts.device, report)
+    return result
+
+
+def _validation_plot(out: Path) -> Path:
+    from sssphase_core.learning.training import METRICS
+    from sssphase_core.reporting.figures import plot_metric_vs_time
+
+    plot_metric_vs_time(out / METRICS, ("loss", "val_loss"), out / "error_vs_time.png", log=False,
+                        ylabel="SBH loss", right=("val_psnr",),
+                        right_label="validation footprint PSNR (dB)", title="decoder error against run time")
+    return out / "error_vs_time.png"
+
+
+def check_against_baselines(run: Path, roots: Sequence[Path], views: list[int] | None, device: str,
+                            report: Report = Report()) -> dict[str, Any] | None:
+    """Relight the views of ``roots`` with reference captures by the run's model and the none/analytic
+    baselines (``relight.evaluation.baseline_check``; None: no ``roots``); says the mean PSNRs and warns when
+    the model loses to a baseline."""
+    from sssphase_core.relight.evaluation import baseline_check
+    from sssphase_core.store.session import find_sessions
+
+    if not roots:
+        report.say("no --check-sessions: relighting against the baselines was not checked")
+        return None
+    if device == "auto":
+        from sssphase_core.learning.training import init_distributed
+
+        device = str(init_distributed(device).device)
+    with report.busy("relighting held-out views against the none and analytic baselines"):
+        res = baseline_check(find_sessions(roots), run, run / "check", views=views, device=device)
+    if not res["views"]:
+        report.say(f"{report.style('not checked:', 'note')} no view of {', '.join(map(str, roots))} has reference "
+                   "captures (capture one with --reference checkerboard and pass it as --check-sessions)")
+        return res
+    where = ", ".join(f"{o} view {v}" for o, v in res["views"])
+    figures = ", ".join(f"{b} {psnr:.2f} dB" for b, psnr in res["mean_psnr"].items())
+    report.say(f"relit PSNR on {where}: {figures}")
+    for b in res["losing_to"]:
+        report.say(f"{report.style('warning:', 'warning')} the model relights worse than the {b} baseline "
+                   f"({res['mean_psnr']['torch']:.2f} < {res['mean_psnr'][b]:.2f} dB): prefer the baseline, or train on more data")
+    return res
+
+
+# --- evaluation --------------------------------------------------------------------------------------
+
+
+@dataclass
+class Evaluation:
+    """An evaluation's results (``payload``, the JSON written) and its tables."""
+
+    payload: dict[str, Any]
+    tables: list[Table]
+
+    def markdown(self) -> str:
+        return "\n".join(t.markdown() for t in self.tables)
+
+
+@dataclass(kw_only=True)
+class KnnOptions(ViewOptions):
+    """``sss eval knn``'s options: ``checkpoints`` are ``NAME=PATH`` or ``PATH`` (named by its file or folder)."""
+
+    checkpoints: Sequence[str]
+    pixels_per_view: int = 1000
+    k: str | Sequence[int] = "20"
+    vote: str = "majority"
+    label: str = "object"
+    seed: int = 1
+
+
+def named_checkpoints(items: Sequence[str]) -> dict[str, str]:
+    """``NAME=PATH`` (or ``PATH``, named by its stem or folder) -> ``{name: path}``: one column each, named
+    plainly and once; every path must exist (checked before any view is read or simulated)."""
+    from sssphase_core.store.session import NAME_RE
+
+    pairs = [c.split("=", 1) if "=" in c else (Path(c).stem if Path(c).suffix else Path(c).name, c) for c in items]
+    names_given = [n for n, _ in pairs]
+    for (name, _), item in zip(pairs, items, strict=True):
+        if not NAME_RE.fullmatch(name) or names_given.count(name) > 1:
+            raise InputError(f"--checkpoint takes NAME=PATH (or PATH) with a distinct name of letters, digits, '_', "
+                             f"'-', '.', got {item!r}")
+    runs = dict(pairs)
+    missing = [path for path in runs.values() if not Path(path).exists()]
+    if missing:
+        raise InputError(f"no checkpoint at {missing[0]} (a pretraining run folder or its .pt file)")
+    return runs
+
+
+def _check_knn_data(vds: Sequence[Any], label: str, ks: Sequence[int]) -> None:
+    """Two classes to tell apart, and a k below the smallest leave-one-view-out database."""
+    import numpy as np
+
+    n_patches = sum(len(v.pixels) for v in vds)
+    classes = (set(v.object for v in vds) if label == "object"
+               else {int(m) for v in vds for m in np.unique(v.materials) if m >= 0})
+    if len(classes) < 2:  # every patch would get the one label: 100% that measures nothing
+        raise InputError(f"kNN by {label} needs two or more {label}s to tell apart; the views read hold "
+                         + (f"only {', '.join(map(str, sorted(classes)))}" if classes else "no material labels (sessions "
+                            "without ground truth: use --label object)"))
+    per_view: dict[int, int] = {}
+    for v in vds:  # leave-one-view-out: the patches of one view index are the queries, the others the database
+        per_view[v.view] = per_view.get(v.view, 0) + len(v.pixels)
+    database = n_patches - max(per_view.values())
+    if max(ks) >= database:  # (it was clamped to the database in silence and reported as given)
+        raise InputError(f"--k {max(ks)} is not smaller than the {database} patches of the smallest leave-one-view-out "
+                         f"database ({n_patches} read, {max(per_view.values())} of them in one view): every patch would "
+                         "get the majority label; lower --k or raise --pixels-per-view")
+
+
+def evaluate_knn(opts: KnnOptions, report: Report = Report()) -> Evaluation:
+    """kNN accuracy of frozen embeddings with view-level leave-one-out (cosine similarity), one column per
+    checkpoint; the first k makes the table, the others a sweep."""
+    from sssphase_core.learning.evaluation import knn_of_views, knn_tables
+    from sssphase_core.learning.training import load_encoder
+    from sssphase_core.sim import MATERIAL_NAMES, TRAIN_OBJECTS
+
+    runs = named_checkpoints(opts.checkpoints)
+    names = parse_names(opts.objects, () if opts.sessions else TRAIN_OBJECTS)
+    if opts.label not in ("object", "material"):
+        raise InputError(f"--label must be object or material, got {opts.label!r}")
+    ks = parse_ints(opts.k, "--k") if isinstance(opts.k, str) else [int(k) for k in opts.k]
+    if not ks or min(ks) < 1:
+        raise InputError(f"--k needs one or more positive integers, got {opts.k!r}")
+    vds = load_views(names, chosen_views(opts.views, "0,1,2,3", opts.sessions), opts, footprints=False, report=report)
+    names = names or view_objects(vds)
+    _check_knn_data(vds, opts.label, ks)
+    results = {}
+    for run, path in runs.items():
+        with report.busy(f"embedding {sum(len(v.pixels) for v in vds)} patches with {run}"):
+            sweep = knn_of_views(load_encoder(path), vds, names, label=opts.label, material_names=list(MATERIAL_NAMES),
+                                 ks=ks, vote=opts.vote)
+        res = sweep[ks[0]]
+        res["overall_by_k"] = {kk: r["overall"] for kk, r in sweep.items()}
+        results[run] = res
+    used = used_views(opts.views, vds)
+    tables = knn_tables(results, label=opts.label, ks=ks, vote=opts.vote, views=used)
+    return Evaluation({"k": ks[0], "vote": opts.vote, "label": opts.label, "views": used, "results": results}, tables)
+
+
+@dataclass(kw_only=True)
+class FootprintOptions(ViewOptions):
+    """``sss eval footprints``'s options: the decoder ``checkpoint``, ``compare`` (``NAME=PATH`` decoder runs),
+    a ``baseline`` backend ('' for none) and a folder of profile ``plots``."""
+
+    checkpoint: Path
+    pixels_per_view: int = 500
+    baseline: str = "analytic"
+    compare: Sequence[str] | None = None
+    seed: int = 2
+    plots: Path | None = None
+
+
+def _footprint_backends(opts: FootprintOptions) -> dict[str, Any]:
+    """The model, the --compare decoders (checked before any data is read); the baseline is added later."""
+    from sssphase_core.learning.backends import get_backend
+    from sssphase_core.store.session import NAME_RE
+
+    others = [item.partition("=") for item in opts.compare or []]
+    for (name, sep, _), item in zip(others, opts.compare or [], strict=True):  # NAME names output files
+        if not sep or not NAME_RE.fullmatch(name) or name in ("torch", opts.baseline) or [o[0] for o in others].count(name) > 1:
+            raise InputError(f"--compare takes NAME=PATH with a new name of letters, digits, '_', '-', '.', got {item!r}")
+    backends = {"torch": get_backend("torch", checkpoint=opts.checkpoint)}
+    backends.update({name: get_backend("torch", checkpoint=path) for name, _, path in others})
+    if opts.baseline == "torch":  # the model itself (it said "pass checkpoint=... or call fit()" after reading the data)
+        raise InputError("--baseline torch is the model --checkpoint gives; compare another decoder with --compare "
+                         "NAME=RUN, or choose a baseline that is no decoder (analytic, or '' for none)")
+    return backends
+
+
+def evaluate_footprints(opts: FootprintOptions, report: Report = Report()) -> Evaluation:
+    """MSE, PSNR (data range 1) and SSIM (data range = GT peak) per object and backend, like the paper's
+    Table 1; with ``plots``, one profile plot per object and backend (its brightest footprint)."""
+    from sssphase_core.learning.backends import get_backend
+    from sssphase_core.learning.evaluation import footprint_table
+    from sssphase_core.relight.evaluation import lpips_note
+    from sssphase_core.sim import UNSEEN_OBJECTS, rig_preset
+
+    if opts.plots is not None:
+        from sssphase_core.store.session import check_output_folder
+
+        check_output_folder(opts.plots, "--plots")
+    names = parse_names(opts.objects, () if opts.sessions else UNSEEN_OBJECTS)
+    backends = _footprint_backends(opts)
+    vds = load_views(names, chosen_views(opts.views, "0", opts.sessions), opts, footprints=True, report=report)
+    names = names or view_objects(vds)
+    if opts.baseline:
+        analytic = opts.baseline == "analytic"
+        extra = {"patch": backends["torch"].patch, "black": rig_preset(opts.rig).projector.black} if analytic else {}
+        backends[opts.baseline] = get_backend(opts.baseline, **extra)
+    report.say(lpips_note())
+    results = {obj: _object_footprints(obj, [v for v in vds if v.object == obj], backends, opts.plots, report)
+               for obj in names}
+    note = ("PSNR: data range 1 (white reference = 1.0); SSIM: 11x11 Gaussian window, data range = each GT footprint's peak; "
+            f"{lpips_note()}.")
+    used = used_views(opts.views, vds)
+    return Evaluation({"objects": names, "views": used, "results": results, "note": note},
+                      [footprint_table(results, views=used, note=note)])
+
+
+def _object_footprints(obj: str, obj_views: Sequence[Any], backends: dict[str, Any], plots: Path | None,
+                       report: Report) -> dict[str, dict[str, float]]:
+    """One object's metrics per backend (and its profile plots)."""
+    import numpy as np
+
+    from sssphase_core.learning.evaluation import footprint_metrics, summarise
+    from sssphase_core.reporting.figures import plot_profiles
+
+    gt = np.concatenate([np.asarray(v.footprints) for v in obj_views])
+    bad = int(np.count_nonzero(~np.isfinite(gt).all(axis=(1, 2, 3))))
+    if bad:  # the table read NaN (and its JSON was no JSON)
+        raise DataError(f"{bad} of the {len(gt)} sampled footprint crops of {obj} hold NaN or infinite values: the "
+                        "session's footprint crops are corrupt (a capture never stores them)")
+    results, preds = {}, {}
+    for bname, be in backends.items():
+        with report.busy(f"{bname}: predicting {len(gt)} footprints of {obj}"):
+            preds[bname] = np.concatenate([be.predict_footprints((v.psp, v.pixels)) for v in obj_views])
+        results[bname] = summarise(footprint_metrics(preds[bname], gt))
+    if plots is not None:
+        plots.mkdir(parents=True, exist_ok=True)
+        i = int(np.argmax(gt.sum(axis=(1, 2, 3))))
+        for bname, pred in preds.items():
+            plot_profiles(gt[i], pred[i], plots / f"{obj}_{bname}.png", title=f"{obj}: {bname}")
+    return results
