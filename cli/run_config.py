@@ -20,6 +20,8 @@ from typing import Annotated, Any
 
 import typer
 
+from sssphase_core.learning.inputs import RunConfigFile
+
 CONFIG = "config.toml"
 NOT_SAVED = {"config", "resume"}  # how to run, not what the run is
 
@@ -128,3 +130,9 @@ def save_run_config(ctx: typer.Context, out: Path, *, resuming: bool = False, wr
     with atomic_path(out / CONFIG) as tmp:
         tmp.write_text(tomli_w.dumps({"command": _command_name(ctx), "options": options}))
     return out / CONFIG
+
+
+def run_config_file(ctx: typer.Context) -> RunConfigFile:
+    """The running command's ``config.toml`` as the runners take it (checked before the data, saved before training)."""
+    return RunConfigFile(check=lambda out, resuming: check_run_config(ctx, out, resuming=resuming),
+                         save=lambda out, resuming: save_run_config(ctx, out, resuming=resuming))

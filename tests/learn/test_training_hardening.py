@@ -154,7 +154,7 @@ def test_figure_and_evaluation_options_are_refused_before_any_work(one_and_three
     """viz pca ran the whole embedding before "Format 'txt' is not supported" (an internal error), wrote FOLDER.png
     for a folder and figures into a session; eval footprints --baseline torch said "call fit()" after reading
     the data; eval knn read an object named twice twice (its accuracies changed)."""
-    from sssphase_cli.cmd_learn import _names
+    from sssphase_core.learning.inputs import parse_names
 
     root = one_and_three_sessions(tmp_path / "sessions")
     ckpt = tmp_path / "enc.pt"
@@ -169,4 +169,4 @@ def test_figure_and_evaluation_options_are_refused_before_any_work(one_and_three
     with pytest.raises(InputError, match="--baseline torch is the model --checkpoint gives"):
         runner.invoke(app, ["eval", "footprints", "--checkpoint", str(ckpt), "--sessions", str(root), "--baseline", "torch",
                             "--out", str(tmp_path / "fp.json")], catch_exceptions=False)
-    assert _names("apple, apple,pear,apple", ()) == ["apple", "pear"]
+    assert parse_names("apple, apple,pear,apple", ()) == ["apple", "pear"]
