@@ -1,0 +1,263 @@
+"""The learning commands' core: data options and views (``learning.inputs``) and the session-level runners
+(``reporting.learning_runs``), called directly as a notebook would, with a Report that records what they say."""
+
+from __future__ import annotations
+
+import contextlib
+import json
+
+import numpy as np
+import pytest
+
+from sssphase_core.errors import InputError
+from sssphase_core.learning.inputs import (
+    Report,
+    RunConfigFile,
+    ViewOptions,
+    chosen_views,
+    decoder_view_choice,
+    describe_views,
+    load_views,
+    parse_ints,
+    parse_names,
+    training_data_from_sessions,
+    used_views,
+)
+
+
+class Said:
+    """A Report that keeps its lines, its statuses and the kinds it styled."""
+
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+        self.statuses: list[str] = []
+
+    def report(self) -> Report:
+        @contextlib.contextmanager
+        def status(text):
+            self.statuses.append(text)
+            yield
+
+        return Report(say=self.lines.append, status=status, style=lambda text, kind: f"<{kind}>{text}</{kind}>")
+
+
+def _sessions(root, synthetic, footprints: bool = False):
+    """Sessions 'one' (view 0) and 'three' (views 0, 2, 5) of a synthetic view (with footprint crops)."""
+    from sssphase_core.store.session import Session
+
+    v = synthetic[0][0]
+    mask = np.zeros(v.psp.shape[1:3], bool)
+    mask[v.pixels[:, 0], v.pixels[:, 1]] = True
+    for name, views in (("one", [0]), ("three", [0, 2, 5])):
+        s = Session.create(root, name)
+        for view in views:
+            w = s.begin_view(view)
+            w.write("psp", v.psp)
+            w.write("corr/mask", mask)
+            if footprints:
+                w.write("footprints/pixels", v.pixels.astype(np.int32))
+                w.write("footprints/crops", np.asarray(v.footprints, np.float32))
+            w.commit()
+    return root
+
+
+def _decoder_checkpoint(path, preset) -> None:
+    """A decoder checkpoint of fresh ``preset`` weights (no training)."""
+    import torch
+
+    from sssphase_core.learning.models import Decoder, Encoder
+    from sssphase_core.learning.training import save_checkpoint
+
+    torch.manual_seed(0)
+    parts = {"encoder": Encoder(preset).state_dict(), "decoder": Decoder(preset, head="reciprocal").state_dict()}
+    save_checkpoint(path, {"kind": "decoder", "preset": preset.to_dict(), "config": {"head": "reciprocal"}, **parts})
+
+
+def test_names_and_views_are_parsed_once_each_and_echoed_as_given():
+    assert parse_names("apple, apple,pear,apple", ()) == ["apple", "pear"]
+    assert parse_names(["pear", "pear", "soap"], ()) == ["pear", "soap"]
+    assert parse_names("", ("a", "b")) == ["a", "b"]
+    assert parse_ints("3, 1,") == [3, 1]
+    with pytest.raises(InputError, match="--k expects comma-separated integers, got 'x'"):
+        parse_ints("x", "--k")
+    assert chosen_views("1,1,0", "0,1,2,3", None) == [1, 0]
+    assert chosen_views(None, "0,1,2,3", None) == [0, 1, 2, 3]  # the simulator's default
+    assert chosen_views(None, "0,1,2,3", "sessions") is None  # every complete view of the sessions
+    assert chosen_views([2, 2], "0", None) == [2]
+
+
+def test_views_are_read_from_sessions_and_described(synthetic, tmp_path):
+    root = _sessions(tmp_path / "sessions", synthetic)
+    said = Said()
+    vds = load_views([], None, ViewOptions(sessions=root, pixels_per_view=5), footprints=False, report=said.report())
+    assert [(v.object, v.view, len(v.pixels)) for v in vds] == [("one", 0, 5), ("three", 0, 5), ("three", 2, 5),
+                                                                ("three", 5, 5)]
+    assert said.statuses == [f"reading sessions under {root}"]
+    assert said.lines == [f"data: captured sessions under {root}: one view 0; three view 0,2,5"]
+    assert describe_views(vds) == "one view 0; three view 0,2,5"
+    assert used_views(None, vds) == "0,2,5" and used_views("5, 0", vds) == "5, 0" and used_views([2, 0], vds) == "2,0"
+    with pytest.raises(InputError, match=r"no complete session views under .*absent \(no such folder\)"):
+        load_views([], None, ViewOptions(sessions=tmp_path / "absent"), footprints=False, report=said.report())
+
+
+def test_simulated_views_beyond_the_turntable_are_refused_before_any_rendering(tmp_path):
+    said = Said()
+    with pytest.raises(InputError, match=r"views 0,4 need --n-views above 4 .* it is 4\): pass --views within 0..3"):
+        load_views(["star"], [0, 4], ViewOptions(cache=tmp_path / "cache"), footprints=False, report=said.report())
+    assert said.statuses == [] and not (tmp_path / "cache").exists()
+
+
+def test_decoder_views_hold_out_each_sessions_last_view_unless_it_trains(synthetic, tmp_path):
+    root = _sessions(tmp_path / "sessions", synthetic, footprints=True)
+    assert decoder_view_choice([], None, None, root) == ({"one": [0], "three": [0, 2]}, {"one": [], "three": [5]})
+    assert decoder_view_choice([], "0", None, root) == ([0], {"one": [], "three": [5]})  # its last view, if not training
+    assert decoder_view_choice(["three"], "0,2,5", None, root) == ([0, 2, 5], [])  # every view trains: none held out
+    assert decoder_view_choice([], "0", "", root) == ([0], [])  # "" : no validation
+    assert decoder_view_choice([], None, None, None) == ([0, 1, 2], [3])  # the simulator's
+    said = Said()
+    opts = ViewOptions(sessions=root, pixels_per_view=4)
+    train, val = training_data_from_sessions([], opts, decoder_view_choice([], None, None, root), report=said.report())
+    assert [(v.object, v.view) for v in train] == [("one", 0), ("three", 0), ("three", 2)]
+    assert [(v.object, v.view) for v in val] == [("three", 5)] and all(v.footprints is not None for v in val)
+    assert said.lines[1] == f"validation (held out): captured sessions under {root}: three view 5"
+    with pytest.raises(InputError, match="--val-views: three view 2 is also a training view; validation views must be held out"):
+        training_data_from_sessions(["three"], opts, ([0, 2], [2]), report=said.report())
+
+
+def test_final_lines_name_the_last_epoch_and_the_kept_one(tmp_path):
+    from sssphase_core.reporting.learning_runs import final_lines
+
+    rows = [{"epoch": 1, "step": 4, "val_loss": 0.25, "val_psnr": 31.0, "best_epoch": 1},
+            {"epoch": 2, "step": 8, "val_loss": 0.5, "val_psnr": 30.12345, "best_epoch": 1}]
+    (tmp_path / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert final_lines(tmp_path / "metrics.jsonl", ("loss", "val_loss", "val_psnr"), "val_loss") == [
+        "final (epoch 2): val_loss 0.5, val_psnr 30.12",
+        f"best val_loss at epoch 1 (0.25): {tmp_path / 'best.pt'} (what backends load from this run folder)"]
+    assert final_lines(tmp_path / "absent.jsonl", ("loss",), "loss") == []
+
+
+def test_named_checkpoints_are_plain_distinct_and_present(tmp_path):
+    from sssphase_core.reporting.learning_runs import named_checkpoints
+
+    (tmp_path / "a").mkdir()
+    (tmp_path / "enc.pt").write_bytes(b"")
+    assert named_checkpoints([f"psp={tmp_path / 'a'}", str(tmp_path / "enc.pt")]) == {
+        "psp": str(tmp_path / "a"), "enc": str(tmp_path / "enc.pt")}
+    with pytest.raises(InputError, match="distinct name"):
+        named_checkpoints([f"x={tmp_path / 'a'}", f"x={tmp_path / 'enc.pt'}"])
+    with pytest.raises(InputError, match="no checkpoint at .*missing.pt"):
+        named_checkpoints([str(tmp_path / "missing.pt")])
+
+
+def test_run_pretrain_checks_the_config_before_the_data_and_saves_it_before_training(synthetic, tmp_path):
+    from sssphase_core.reporting.learning_runs import PretrainOptions, run_pretrain
+
+    root = _sessions(tmp_path / "sessions", synthetic)
+    out = tmp_path / "run"
+    calls: list[tuple[str, bool]] = []
+
+    def refuse(path, resuming):
+        raise InputError("changed options")
+
+    said = Said()
+    opts = PretrainOptions(out=out, sessions=root, pixels_per_view=8, batch_size=8, epochs=1, warmup_epochs=1,
+                           knn_monitor=16, device="cpu")
+    with pytest.raises(InputError, match="changed options"):  # refused before any session is read
+        run_pretrain(opts, said.report(), config_file=RunConfigFile(refuse, lambda p, r: p))
+    assert said.lines == [] and said.statuses == [] and not out.exists()
+
+    def save(path, resuming):
+        calls.append(("save", resuming))
+        return path / "options.toml"
+
+    result = run_pretrain(opts, said.report(),
+                          config_file=RunConfigFile(lambda p, r: calls.append(("check", r)), save))
+    assert calls == [("check", False), ("save", False)]
+    assert result.checkpoint == out / "last.pt" and result.checkpoint.exists()
+    assert [r["epoch"] for r in result.rows] == [1] and 0 <= result.rows[0]["knn_acc"] <= 1
+    assert result.figures == [out / "knn_vs_time.png"] and result.figures[0].exists()
+    assert said.lines[0] == f"data: captured sessions under {root}: one view 0; three view 0,2,5"
+    assert said.lines[1].startswith("<note>note:</note> --warmup-epochs 1 is not shorter than --epochs 1")
+    assert said.lines[2] == (f"pretraining <strong>lite</strong> on 32 patches of one, three -> {out} "
+                             f"(options in {out / 'options.toml'})")
+    assert said.lines[-2] == f"kNN monitor (% per epoch, training patches): {100 * result.rows[0]['knn_acc']:.1f}; " \
+                             f"plot {out / 'knn_vs_time.png'}"
+    assert said.lines[-1] == f"<done>done</done>: {out / 'last.pt'}"
+
+
+def test_run_pretrain_refuses_a_batch_larger_than_the_data_before_the_run_folder(synthetic, tmp_path):
+    from sssphase_core.reporting.learning_runs import PretrainOptions, run_pretrain
+
+    root = _sessions(tmp_path / "sessions", synthetic)
+    with pytest.raises(InputError, match="--batch-size 64 is more than the 32 training patches"):
+        run_pretrain(PretrainOptions(out=tmp_path / "run", sessions=root, pixels_per_view=8), Report(say=lambda s: None))
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(("changes", "expected"), [
+    ({"encoder": None}, "give either --encoder PATH"),
+    ({"end_to_end": True}, "give either --encoder PATH"),
+    ({"preset_given": True}, "--preset sets the model of an --end-to-end run"),
+    ({"head": "wide"}, "unknown decoder head 'wide'"),
+    ({"lr": 20.0}, "--lr must be at most 10, got 20"),
+])
+def test_run_decoder_refuses_bad_options_before_any_data(changes, expected, tmp_path):
+    from sssphase_core.reporting.learning_runs import DecoderOptions, run_decoder
+
+    said = Said()
+    opts = DecoderOptions(**{"out": tmp_path / "dec", "encoder": tmp_path / "pre", **changes})
+    with pytest.raises(InputError, match=expected):
+        run_decoder(opts, said.report())
+    assert said.lines == [] and not (tmp_path / "dec").exists()
+
+
+def test_check_against_baselines_without_sessions_says_so():
+    from sssphase_core.reporting.learning_runs import check_against_baselines
+
+    said = Said()
+    assert check_against_baselines(None, [], None, "cpu", said.report()) is None  # type: ignore[arg-type]
+    assert said.lines == ["no --check-sessions: relighting against the baselines was not checked"]
+
+
+def test_evaluate_knn_returns_the_results_and_tables_it_measured(synthetic, tiny, tmp_path):
+    from sssphase_core.reporting.learning_runs import KnnOptions, evaluate_knn
+
+    root = _sessions(tmp_path / "sessions", synthetic)
+    _decoder_checkpoint(tmp_path / "enc.pt", tiny)
+    said = Said()
+    ev = evaluate_knn(KnnOptions(checkpoints=[f"fresh={tmp_path / 'enc.pt'}"], sessions=root, pixels_per_view=8, k="1,3"),
+                      said.report())
+    res = ev.payload["results"]["fresh"]
+    assert ev.payload["k"] == 1 and ev.payload["views"] == "0,2,5" and ev.payload["label"] == "object"
+    assert set(res["overall_by_k"]) == {1, 3} and res["overall_by_k"][1] == res["overall"]
+    assert 0 <= res["overall"] <= 1
+    assert said.statuses == [f"reading sessions under {root}", "embedding 32 patches with fresh"]
+    assert "| three |" in ev.markdown() and "against k" in ev.markdown()
+    with pytest.raises(InputError, match=r"--k 16 is not smaller than the 16 patches .*\(32 read, 16 of them in one view\)"):
+        evaluate_knn(KnnOptions(checkpoints=[str(tmp_path / "enc.pt")], sessions=root, pixels_per_view=8, k="16"),
+                     said.report())
+    with pytest.raises(InputError, match="needs two or more objects to tell apart; the views read hold only three"):
+        evaluate_knn(KnnOptions(checkpoints=[str(tmp_path / "enc.pt")], sessions=root / "three", pixels_per_view=8,
+                                k="1"), said.report())
+
+
+def test_evaluate_footprints_measures_each_backend_and_plots_it(synthetic, tiny, tmp_path):
+    from sssphase_core.reporting.learning_runs import FootprintOptions, evaluate_footprints
+
+    root = _sessions(tmp_path / "sessions", synthetic, footprints=True)
+    with pytest.raises(InputError, match="--compare takes NAME=PATH with a new name"):  # before the checkpoint is read
+        evaluate_footprints(FootprintOptions(checkpoint=tmp_path / "none.pt", compare=["torch=x"], sessions=root))
+    _decoder_checkpoint(tmp_path / "dec.pt", tiny)
+    with pytest.raises(InputError, match="--baseline torch is the model --checkpoint gives"):
+        evaluate_footprints(FootprintOptions(checkpoint=tmp_path / "dec.pt", baseline="torch", sessions=root))
+    said = Said()
+    ev = evaluate_footprints(FootprintOptions(checkpoint=tmp_path / "dec.pt", compare=[f"again={tmp_path / 'dec.pt'}"],
+                                              baseline="", objects="three", views="0,2", pixels_per_view=4,
+                                              sessions=root, plots=tmp_path / "plots"), said.report())
+    res = ev.payload["results"]["three"]
+    assert ev.payload["objects"] == ["three"] and ev.payload["views"] == "0,2" and set(res) == {"torch", "again"}
+    assert res["torch"] == res["again"] and np.isfinite(res["torch"]["psnr"]) and res["torch"]["mse"] >= 0
+    assert said.statuses[1:] == ["torch: predicting 8 footprints of three", "again: predicting 8 footprints of three"]
+    assert said.lines[1].startswith("LPIPS") and ev.payload["note"].endswith(said.lines[1] + ".")
+    assert sorted(p.name for p in (tmp_path / "plots").iterdir()) == ["three_again.png", "three_torch.png"]
+    assert "again PSNR" in ev.markdown()
