@@ -137,6 +137,41 @@ def read_imported(path: Path, encoding: str = "linear") -> tuple[np.ndarray, int
 FRINGE_ABOVE_WHITE, SET_BELOW_WHITE = 2.0, 0.05
 
 
+class FrameLoader:
+    """One view's frame files read in turn, the one reader of `sss import` and `sss decode`: each file decoded to
+    light by ``encoding`` (:func:`read_frame`), with a few NaN / inf values repaired (:func:`read_imported`;
+    ``repair=False``: refused, as `sss decode` does), times ``scale``, and refused unless every frame has the first's
+    size and that size is a camera frame's (at least ``MIN_FRAME_SIDE`` a side). ``repaired`` counts the values
+    repaired so far."""
+
+    def __init__(self, encoding: str = "linear", scale: float = 1.0, *, repair: bool = True) -> None:
+        self.encoding, self.scale, self.repair = encoding, scale, repair
+        self.first: Path | None = None
+        self.shape: tuple[int, ...] | None = None
+        self.repaired = 0
+
+    def read(self, path: Path) -> np.ndarray:
+        if self.repair:
+            image, repaired = read_imported(path, self.encoding)
+            self.repaired += repaired
+        else:
+            image = read_frame(path, encoding=self.encoding)
+        image = image * np.float32(self.scale)  # (times 1: the same values)
+        if self.shape is not None and image.shape != self.shape:
+            self.refuse_size(path, image.shape)
+        if self.first is None:
+            self.first, self.shape = path, image.shape
+        if min(image.shape[:2]) < MIN_FRAME_SIDE:
+            raise InputError(f"{path} is {image.shape[1]}x{image.shape[0]}: smaller than a camera frame "
+                             f"(at least {MIN_FRAME_SIDE} px a side)")
+        return image
+
+    def refuse_size(self, path: Path, shape: tuple[int, ...]) -> None:
+        """Raise for a frame of another size than the first (a subclass words it for its command)."""
+        assert self.shape is not None
+        raise InputError(f"{path} is {shape[1]}x{shape[0]}, the other frames {self.shape[1]}x{self.shape[0]}")
+
+
 def _check_fringe_level(path: Path, image: np.ndarray, white_level: float, *, mean: bool = False) -> None:
     """Refuse fringe frames (or a set's mean, ``mean``) in other units or exposure than the view's white."""
     level = float(np.percentile(image, 99.9))
@@ -552,7 +587,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
             try:
                 proc = ViewProcessor(writer, plan, spacing, patch, RigSpec(camera="import", turntable=None), req, 0,
                                      camera_isp)
-                shape, top, fringe_values, nonfinite = None, 0, 0, 0
+                loader, top, fringe_values = FrameLoader(encoding, scale), 0, 0
                 set_sums: dict[str, np.ndarray] = {}  # each fringe set's sum: its mean is half the white's light
                 pair_sums: dict[str, list[np.ndarray]] = {}  # opposite shifts' sums per set (even N): all equal
                 dot_sum, n_dots = None, 0  # the dot frames' sum: a full grid holds the white's light
@@ -560,20 +595,11 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 for key in sorted((k for k in files if not k.startswith("pattern/")), key=lambda k: k.startswith("dots/")):
                     if auto_bayer and detected is None and key.startswith("dots/"):  # before the decode the dots start
                         detected = _detect_bayer(proc, config, demosaic)
-                    image, repaired = read_imported(files[key], encoding)
-                    image = image * np.float32(scale)
-                    nonfinite += repaired
+                    image = loader.read(files[key])
                     if key.startswith("psp/") and stores_integers(files[key]):  # read as code / top code
                         top += int(np.count_nonzero(image >= 0.999 * scale))
                         fringe_values += image.size
                     check_not_negative(files[key], image, level * scale)
-                    if shape is not None and image.shape != shape:
-                        raise InputError(f"{files[key]} is {image.shape[1]}x{image.shape[0]}, the other frames "
-                                         f"{shape[1]}x{shape[0]}")
-                    shape = image.shape
-                    if min(shape[:2]) < MIN_FRAME_SIDE:
-                        raise InputError(f"{files[key]} is {shape[1]}x{shape[0]}: smaller than a camera frame "
-                                         f"(at least {MIN_FRAME_SIDE} px a side)")
                     if key.startswith("psp/"):  # (after the size checks: sets are summed)
                         _check_fringe_level(files[key], image, level * scale)
                         set_key = key.rsplit("/", 1)[0]
@@ -593,7 +619,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                     _check_fringe_level(vdir / set_key.replace("/", "__"), total / config.n_shifts, level * scale, mean=True)
                 if auto_bayer and detected is None:
                     detected = _detect_bayer(proc, config, demosaic)
-                info = {**proc.finish(), "nonfinite_repaired": nonfinite}
+                info = {**proc.finish(), "nonfinite_repaired": loader.repaired}
                 if auto_bayer:
                     info["bayer_detected"] = detected
                 check_opposite_shifts(vdir, pair_sums, proc.images["white"], proc.images["black"])

@@ -1,0 +1,86 @@
+"""`sss decode`: a folder of captured PSP frames decoded into camera -> projector correspondences, written
+as maps (``.npy``), viewable figures and ``decode.json``."""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sssphase_core.capture.psp_folder import FrameProgress, PspFolder, read_psp_folder
+from sssphase_core.errors import InputError
+from sssphase_core.processing.patterns import psp_key
+from sssphase_core.processing.psp import Correspondence, Reason, decode_camera, wrapped_phase
+from sssphase_core.reporting import figures as fig
+from sssphase_core.store.session import check_output_folder
+
+#: The arrays of a decoded folder, each ``<name>.npy``.
+DECODED_ARRAYS = ("xp", "yp", "mask", "reason", "modulation", "offset", "modulation_ratio")
+
+
+@dataclass
+class DecodedFolder:
+    """What :func:`decode_folder` wrote to ``out``: the correspondence and its ``coverage`` (pixels per reason)."""
+
+    out: Path
+    corr: Correspondence
+    coverage: dict[str, int]
+
+    @property
+    def pixels(self) -> int:
+        return int(self.corr.mask.size)
+
+
+def decode_folder(folder: Path, out: Path, *, projector: str | None = None, min_modulation: float = 0.01,
+                  saturation: float | None = None, bayer: str | None = None, progress: FrameProgress | None = None,
+                  report: Callable[[str], None] | None = None) -> DecodedFolder:
+    """Decode the PSP frames in ``folder`` (:func:`~sssphase_core.capture.psp_folder.read_psp_folder`) into
+    ``out``: ``xp, yp, mask, reason, modulation, offset, modulation_ratio`` as ``.npy``, their figures and
+    the wrapped phases as PNGs, and ``decode.json`` (projector size, PSP configuration, coverage).
+    ``bayer``: the frames were demosaiced from a sensor of that layout (silhouette pixels only demosaicing lit
+    are dropped). ``report(line)`` is told when float frames were scaled to camera units."""
+    from sssphase_core.processing.isp import check_layout
+
+    if not folder.is_dir():
+        raise InputError(f"{folder} is not a folder")
+    if bayer is not None:
+        bayer = check_layout(bayer.upper())
+    check_output_folder(out)
+    view = read_psp_folder(folder, projector, saturation=saturation, progress=progress)
+    if view.scale != 1.0 and report is not None:
+        report(f"float frames at level {view.level:.3g} (99.9th percentile) scaled to 1 (the decoder's thresholds are "
+               "in camera units)")
+    corr = decode_camera(view.frames, view.config, view.size, bayer=bayer, min_modulation=min_modulation,
+                         saturation=view.saturation)
+    out.mkdir(parents=True, exist_ok=True)
+    for name in DECODED_ARRAYS:
+        np.save(out / f"{name}.npy", getattr(corr, name))
+    _figures(out, view, corr)
+    config, coverage = view.config, corr.coverage()
+    summary = {"projector": list(view.size), "psp": {"period": config.period, "n_shifts": config.n_shifts,
+               "unwrap_periods": list(config.unwrap_periods)}, "coverage": coverage}
+    (out / "decode.json").write_text(json.dumps(summary, indent=1) + "\n")
+    return DecodedFolder(out, corr, coverage)
+
+
+def _figures(out: Path, view: PspFolder, corr: Correspondence) -> None:
+    """The wrapped phase per orientation, the decoded maps, the mask, the reasons and the modulation as PNGs."""
+    config = view.config
+    for o in ("x", "y"):
+        stack = [view.frames[psp_key(o, config.period, n)] for n in range(config.n_shifts)]
+        phi, _, _ = wrapped_phase([f.astype(np.float32).mean(-1) if f.ndim == 3 else f for f in stack])
+        fig.value_figure(out / f"phase_{o}.png", np.where(corr.mask, (phi + np.pi) / (2 * np.pi), np.nan),
+                         f"wrapped phase along {o} (period {config.period:g} px)", units="phase (cycles)",
+                         cmap="twilight", vmin=0, vmax=1)
+    for name, values, extent in (("xp", corr.xp, view.size[0]), ("yp", corr.yp, view.size[1])):
+        fig.value_figure(out / f"{name}.png", np.where(corr.mask, values, np.nan),
+                         f"decoded projector {name[0]} (black: not decoded)", units="projector px", cmap="turbo",
+                         vmin=0, vmax=extent - 1)
+    fig.label_figure(out / "mask.png", corr.mask.astype(np.int16), {0: "not decoded", 1: "decoded"}, "decoded pixels")
+    fig.label_figure(out / "reason.png", corr.reason.astype(np.int16),
+                     {r.value: r.name.lower().replace("_", " ") for r in Reason}, "decoding outcome per pixel")
+    fig.value_figure(out / "modulation.png", corr.modulation, "fringe modulation B", units="linear camera units",
+                     cmap="magma", vmin=0, vmax=float(np.percentile(corr.modulation, 99.5)) or 1.0)
