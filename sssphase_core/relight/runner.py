@@ -1,0 +1,538 @@
+"""A session relit, its geometry, or its evaluation against reference captures, as every front end runs
+them (``sss relight``, ``sss geometry``, ``sss eval relight``, a notebook, a web view): the checks before
+any work, the patterns and backend chosen, the footprint caches, the outputs written, each returned as a
+result.
+
+Narration and progress go through a :class:`Narrator` (the default says nothing): its ``say`` gets each
+line the CLI prints, as it happens; ``bar``, ``task`` and ``status`` frame the long steps. Core imports
+neither rich nor typer; the CLI's narrator draws with them.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Callable, Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sssphase_core.errors import InputError
+from sssphase_core.relight.backends import (
+    BLENDS,
+    MODEL_FREE,
+    check_backends,
+    make_source,
+    make_sources,
+    uses_decoder,
+)
+from sssphase_core.relight.cache import FootprintCache
+from sssphase_core.relight.engine import FootprintSource
+from sssphase_core.relight.evaluation import (
+    aggregate,
+    comparison_figure,
+    evaluate_view,
+    lpips_note,
+    metrics_table,
+    relight_metrics,
+)
+from sssphase_core.relight.geometry import geometric_correspondence
+from sssphase_core.relight.images import check_image_formats, display_scale, read_pattern, write_images
+from sssphase_core.relight.pipeline import relight_view
+from sssphase_core.relight.transport import DotTransport
+from sssphase_core.relight.views import (
+    RelightView,
+    finest_psp_period,
+    has_captured_transport,
+    has_references,
+    load_view,
+)
+from sssphase_core.store.session import Session
+
+#: ``evaluate_sessions``' backends unless others are named (measured left out where no view has crops).
+EVAL_BACKENDS = "none,analytic,measured"
+
+
+class Narrator:
+    """How a run talks to its front end. This one says nothing; the CLI's prints with rich, a notebook
+    may collect the lines. Subclass it or give any object with these four methods."""
+
+    def say(self, text: str, warning: str = "") -> None:
+        """One line for the user; ``warning``: a part of it worth highlighting."""
+
+    @contextmanager
+    def bar(self) -> Iterator[None]:
+        """A progress display, open while its tasks (:meth:`task`) run."""
+        yield
+
+    def task(self, label: str) -> Callable[[int, int], None]:
+        """A task of the open progress display -> its ``progress(done, total)``."""
+        return lambda done, total: None
+
+    @contextmanager
+    def status(self, label: str) -> Iterator[None]:
+        """A step without a count (a spinner)."""
+        yield
+
+
+def choose_views(session: Session, views: str | Sequence[int] | None = None) -> list[int]:
+    """The complete views ``views`` names (comma-separated text or numbers; empty or None: all), each once,
+    checked before any is relit."""
+    if not views:
+        if not session.views():  # a capture that was interrupted: nothing to relight, and saying nothing misleads
+            states = ", ".join(f"view {v}: {session.status(int(v))}" for v in sorted(session.manifest["views"], key=int))
+            raise InputError(f"session {session.path} has no complete view ({states or 'no views'}); "
+                             f"`sss validate {session.path}` says more, `sss capture ... --resume` completes it")
+        return session.views()
+    try:
+        numbers = [int(v) for v in views.split(",") if v.strip()] if isinstance(views, str) else [int(v) for v in views]
+    except ValueError:
+        raise InputError(f"--views must be comma-separated integers, got {views!r}") from None
+    chosen = list(dict.fromkeys(numbers))  # a view named twice runs once
+    if not chosen:
+        raise InputError(f"--views {views!r} names no view: give comma-separated view numbers, or leave it out for all")
+    missing = [v for v in chosen if v not in session.views()]
+    if missing:  # before any view is relit
+        raise InputError(f"session {session.path} has no complete view {', '.join(map(str, missing))} "
+                         f"(complete: {', '.join(map(str, session.views())) or 'none'})")
+    return chosen
+
+
+def same_pattern(pattern: np.ndarray, reference: np.ndarray) -> bool:
+    """Whether a pattern (Hp, Wp[, 3]) is the one a session's reference was captured under (within an 8-bit
+    step): only then is the relit image scored against that capture, whatever the pattern file is called."""
+    a, b = np.asarray(pattern, np.float32), np.asarray(reference, np.float32)
+    if a.ndim != b.ndim:
+        a, b = (x if x.ndim == 3 else np.repeat(x[..., None], 3, axis=-1) for x in (a, b))
+    return a.shape == b.shape and bool(np.abs(a - b).max(initial=0.0) <= 1 / 255)
+
+
+def model_tag(checkpoint: Path | str | None) -> str:
+    """Short digest of the checkpoint path and modification time: a retrained model gets a new cache."""
+    key = "none" if checkpoint is None else f"{Path(checkpoint).resolve()}:{Path(checkpoint).stat().st_mtime_ns}"
+    return hashlib.sha256(key.encode()).hexdigest()[:10]
+
+
+def view_tag(session: Session, view: int) -> str:
+    """Short digest of a view's array checksums (the manifest's): footprints cached for one session's view
+    are never read for another session's (the same object name imported again, another session relit into
+    the same output folder)."""
+    arrays = session.manifest.get("views", {}).get(str(view), {}).get("arrays", {})
+    key = json.dumps({name: a.get("checksum") for name, a in sorted(arrays.items())}, sort_keys=True)
+    return hashlib.sha256(f"{session.path.resolve()}:{key}".encode()).hexdigest()[:10]
+
+
+def cache_path(out: Path, session: Session, rv: RelightView, member: str, checkpoint: Path | str | None) -> Path:
+    """The footprint cache of backend ``member`` for a view: named by object, view, the view's arrays and
+    (for the decoder) the checkpoint, so that nothing stale or foreign is read."""
+    tag = model_tag(checkpoint if member == "torch" else None)
+    return out / "cache" / f"{rv.object}_v{rv.view}_{view_tag(session, rv.view)}_{member}_{tag}.npz"
+
+
+def parse_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
+    """``png``, ``exr`` or both (``"png,exr"`` or a sequence), each once, checked (EXR needs its bindings)."""
+    items = formats.split(",") if isinstance(formats, str) else list(formats)
+    chosen = check_image_formats(tuple(dict.fromkeys(f.strip().lower() for f in items if f.strip())))
+    if "exr" in chosen:
+        from sssphase_core.store import exr
+
+        if not exr.available():
+            raise InputError(f"--format exr: {exr.MISSING}")
+    return chosen
+
+
+def resize_note(path: str, size: tuple[int, int], mode: str) -> tuple[str, str] | None:
+    """``(line, warning)`` when a pattern file was resized (the warning, when ``stretch`` changed its aspect
+    ratio), else None."""
+    from sssphase_core.store.imageio import frame_shape
+
+    h, w = frame_shape(Path(path))[:2]  # from the file's header (PNG/TIFF, .npy, EXR)
+    if (w, h) == size or not mode:
+        return None
+    line, warning = f"{path}: {w}x{h} -> {size[0]}x{size[1]} ({mode})", ""
+    if mode == "stretch" and abs((w / h) / (size[0] / size[1]) - 1) > 0.01:
+        warning = f"aspect ratio changed by {100 * abs((w / h) / (size[0] / size[1]) - 1):.0f}%"
+        line += f"; {warning} (fit or fill keep it)"
+    return line, warning
+
+
+def resolve_patterns(specs: Sequence[str], rv: RelightView, resize: str = "",
+                     narrator: Narrator | None = None) -> tuple[list[str], list[np.ndarray]]:
+    """``(names, patterns)`` of the patterns ``specs`` names, in the projector's size: an image file (read,
+    ``resize``-d), one of the view's own reference patterns, or a named pattern. Each name is its output
+    file's, so two patterns may not share one."""
+    from sssphase_core.processing.patterns import REFERENCE_NAMES, reference_pattern
+
+    say = narrator or Narrator()
+    wp, hp = rv.proj.projector_size
+    names, pats = [], []
+    for p in specs:
+        if Path(p).is_file():  # (a folder named like a pattern does not hide the pattern)
+            names.append(Path(p).stem)
+            pats.append(read_pattern(p, (wp, hp), resize=resize))
+            note = resize_note(p, (wp, hp), resize)
+            if note:
+                say.say(*note)
+        elif p in rv.references:  # the session's own reference pattern
+            names.append(p)
+            pats.append(rv.references[p])
+        elif p in REFERENCE_NAMES:
+            names.append(p)
+            pats.append(reference_pattern(p, wp, hp))
+        else:
+            raise InputError(f"--pattern {p!r} is neither an image file nor one of {', '.join(REFERENCE_NAMES)}")
+    twins = sorted({n for n in names if names.count(n) > 1})
+    if twins:  # each pattern's name is its output file's
+        raise InputError(f"--pattern: two patterns would both be written as {twins[0]!r}: "
+                         "rename one (the output files are named by the pattern)")
+    return names, pats
+
+
+def mix_line(rv: RelightView, backend: str, mix: np.ndarray) -> str:
+    """The line that tells a view's calibration: each member's view-wide weights against no scattering."""
+    rows = np.atleast_2d(mix)
+    weights = "; ".join(f"{m} R G B {' '.join(f'{x:.2f}' for x in row)}"
+                        for m, row in zip(BLENDS.get(backend, (backend,)), rows, strict=True))
+    return (f"{rv.object} view {rv.view}: {backend} footprints calibrated to the view's fringe captures "
+            f"(view-wide weights against no scattering: {weights}{'; refined pixel by pixel' if len(rows) == 1 else ''})")
+
+
+def denoise_line(rv: RelightView, source: DotTransport) -> str:
+    """The line that tells which noise mask the captured transport was denoised with, and the others' fit."""
+    fit = source.fit
+    others = ", ".join(f"{s:g} px {p:.1f} dB" for s, p in fit.items() if s != source.smoothing)
+    return (f"{rv.object} view {rv.view}: captured transport denoised with the {source.smoothing:g} px noise mask "
+            f"(relights the view's fringe captures at {fit[source.smoothing]:.1f} dB; {others})")
+
+
+@dataclass
+class RelitImage:
+    """One relit image written: its files, the fraction of the object above 1.0, its scores against the
+    view's reference capture of the same pattern (None without one)."""
+
+    object: str
+    view: int
+    pattern: str
+    paths: list[Path]
+    clipped: float
+    metrics: dict[str, float] | None = None
+    figure: Path | None = None
+
+
+@dataclass
+class RelightResult:
+    """What :func:`relight_session` did: the backend it ran (``auto`` resolved), the decoder it read, the
+    patterns' names, every image written and each view's calibration weights (None: not calibrated)."""
+
+    backend: str
+    checkpoint: Path | None
+    patterns: list[str] = field(default_factory=list)
+    images: list[RelitImage] = field(default_factory=list)
+    mixes: dict[int, np.ndarray | None] = field(default_factory=dict)
+
+
+def resolve_backend(backend: str, checkpoint: Path | str | None, narrator: Narrator | None = None
+                    ) -> tuple[str, Path | None]:
+    """``(backend, checkpoint)`` checked before any work: a run folder's best checkpoint, ``auto`` as the
+    best source the user can run (blend with a decoder, else analytic; README: blend >= torch on every object
+    tried), unknown backends and unreadable decoders refused, an unused checkpoint noted."""
+    from sssphase_core.learning.training import resolve_checkpoint
+
+    if checkpoint is not None:
+        checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
+    if backend == "auto":
+        backend = "blend" if checkpoint is not None else "analytic"
+    check_backends([backend], checkpoint)
+    if checkpoint is not None and not uses_decoder(backend):
+        (narrator or Narrator()).say(f"note: --checkpoint is not used by --backend {backend}")
+    return backend, None if checkpoint is None else Path(checkpoint)
+
+
+def _check_relight_options(out: Path, patterns: Sequence[str], resize: str, formats: str | Sequence[str],
+                           device: str) -> tuple[str, ...]:
+    """The options of :func:`relight_session` checked, in the order the CLI always checked them."""
+    from sssphase_core.compute import compute_device
+    from sssphase_core.store.imageio import RESIZE_MODES
+    from sssphase_core.store.session import check_output_folder
+
+    check_output_folder(out)
+    chosen = parse_formats(formats)
+    if resize and resize not in RESIZE_MODES:  # (read only for pattern files: checked whatever is given)
+        raise InputError(f"--resize must be one of {', '.join(RESIZE_MODES)}, got {resize!r}")
+    if any(not p.strip() for p in patterns):
+        raise InputError("--pattern is empty: give an image file or a named pattern (checkerboard, stripes_x, ...)")
+    compute_device(device)  # one line before any progress is drawn
+    return chosen
+
+
+def relight_session(session: Path | str | Session, patterns: Sequence[str], *, backend: str = "auto",
+                    checkpoint: Path | str | None = None, out: Path | str = Path("relit"),
+                    views: str | Sequence[int] | None = "", resize: str = "", chunk: int = 1024, device: str = "cpu",
+                    cache: bool = True, formats: str | Sequence[str] = "png",
+                    narrator: Narrator | None = None) -> RelightResult:
+    """Relight a session's views under ``patterns`` (image files, the session's reference names or named
+    patterns) with ``backend`` (``auto``: blend with a ``checkpoint``, else analytic) and write the images
+    to ``out`` as ``<object>_v<view>_<pattern>_<backend>.png`` / ``.exr`` (``formats``), with a comparison
+    figure and scores wherever the view holds a reference capture of the same pattern. Model footprints
+    are cached in ``out/cache`` (``cache``) for later patterns."""
+    from sssphase_core.store.session import claim_output
+
+    out, say = Path(out), narrator or Narrator()
+    chosen_formats = _check_relight_options(out, patterns, resize, formats, device)
+    auto = backend == "auto"
+    backend, ckpt = resolve_backend(backend, checkpoint, say)
+    s = session if isinstance(session, Session) else Session.open(session)
+    result, pats = RelightResult(backend, ckpt), []
+    for v in choose_views(s, views):
+        rv = load_view(s, v)
+        if not pats:
+            result.patterns, pats = resolve_patterns(patterns, rv, resize, say)
+            claim_output(out, [s])  # images are named by object: another session's of the same object are not replaced
+            if auto:  # said once the input is known good
+                say.say(f"backend: {backend}" + ("" if ckpt is not None else
+                                                 " (no --checkpoint: the analytic model; a trained decoder blends in)"))
+            if ckpt is not None and uses_decoder(backend):
+                say.say(f"decoder: {ckpt}")
+        relit, result.mixes[v] = _relight_one(s, rv, pats, backend, ckpt, out, chunk=chunk, device=device,
+                                              cache=cache, say=say)
+        result.images += write_relit(rv, relit, result.patterns, pats, out, backend, chosen_formats, say)
+    return result
+
+
+def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: str, checkpoint: Path | None,
+                 out: Path, *, chunk: int, device: str, cache: bool, say: Narrator) -> tuple[np.ndarray, np.ndarray | None]:
+    """One view relit (its footprints cached unless the source is the captured transport), its calibration
+    and denoising told, its caches saved -> (images (P, H, W, 3), calibration weights or None)."""
+    sources: list[tuple[FootprintSource, int]] = make_sources(backend, rv, checkpoint=checkpoint, device=device)
+    cached = cache and not isinstance(sources[0][0], DotTransport)  # the measured transport is read, not predicted
+    if cached:
+        members = BLENDS.get(backend, (backend,))
+        sources = [(FootprintCache(src, cache_path(out, s, rv, m, checkpoint), rv.proj.shape, k), k)
+                   for (src, k), m in zip(sources, members, strict=True)]
+    (source, patch), *also = sources
+    with say.bar():
+        progress = say.task(f"{rv.object} view {rv.view}: {backend}")
+        relit, mix = relight_view(source, patch, rv, pats, calibrate=backend not in MODEL_FREE, also=also, chunk=chunk,
+                                  device=device, progress=progress)
+    if mix is not None:
+        say.say(mix_line(rv, backend, mix))
+    if isinstance(source, DotTransport) and source.fit:  # its noise mask, chosen on the view's fringe captures
+        say.say(denoise_line(rv, source))
+    for cache_file, _ in sources if cached else ():
+        cache_file.save()  # type: ignore[attr-defined]
+        if cache_file.uncached:  # type: ignore[attr-defined]
+            say.say(f"cache: {cache_file.uncached:,} footprints beyond its memory budget were not kept "  # type: ignore[attr-defined]
+                    "(later patterns recompute them)")
+    return relit, mix
+
+
+def write_relit(rv: RelightView, relit: np.ndarray, names: Sequence[str], pats: Sequence[np.ndarray], out: Path,
+                backend: str, formats: tuple[str, ...], narrator: Narrator | None = None) -> list[RelitImage]:
+    """Write a view's relit images (one display exposure per view: a dim pattern looks dim), each scored
+    against the view's reference capture when it was relit under that very pattern."""
+    say = narrator or Narrator()
+    exposure = display_scale(rv.white)
+    written = []
+    for name, pat, img in zip(names, pats, relit, strict=True):
+        stem = out / f"{rv.object}_v{rv.view}_{name}_{backend}"
+        item = RelitImage(rv.object, rv.view, name, write_images(stem, img, formats=formats, scale=exposure),
+                          float((img[rv.proj.mask] > 1.0).any(axis=-1).mean()) if rv.proj.mask.any() else 0.0)
+        line = f"wrote {', '.join(str(p) for p in item.paths)}"
+        if "exr" not in formats and item.clipped > 0:
+            line += f"  ({item.clipped:.1%} of the object above 1.0 clipped in the PNG: --format exr keeps them)"
+        if name in rv.captured and same_pattern(pat, rv.references[name]):
+            item.metrics = relight_metrics(img, rv.captured[name], rv.proj.mask)
+            item.figure = comparison_figure(rv.captured[name], img, rv.proj.mask, stem.with_name(stem.name + "_compare.png"),
+                                            title=f"{rv.object} view {rv.view}, {name}", metrics=item.metrics)
+            line += f"  (vs reference: PSNR {item.metrics['psnr']:.2f} dB, SSIM {item.metrics['ssim']:.3f})"
+        say.say(line)
+        written.append(item)
+    return written
+
+
+@dataclass
+class GeometryView:
+    """One view's correspondences for geometry written: the file, the median scattering shift (projector px)
+    and, on simulated sessions, the decoded and corrected points' median distance and x bias to the exact
+    ones (``exact``: decoded, decoded bias, for geometry, its bias)."""
+
+    object: str
+    view: int
+    path: Path
+    shift: tuple[float, float]
+    period: float
+    exact: tuple[float, float, float, float] | None = None
+
+
+def _check_geometry_backend(backend: str) -> None:
+    """Refuse backends that cannot predict the scattering shift, saying why."""
+    from sssphase_core.learning.backends import available_backends
+
+    usable = ["exact", *sorted(available_backends())]
+    if backend not in (*usable, "measured", "none"):
+        raise InputError(f"--backend {backend!r} cannot predict the scattering shift here; use one of {', '.join(usable)}")
+    if backend in ("measured", "none"):
+        raise InputError(f"--backend {backend} cannot predict the scattering shift: "
+                         + ("the dot-grid crops are placed by the decoded correspondences themselves, so they reproduce "
+                            "the decoded points (use torch, analytic or exact)" if backend == "measured"
+                            else "without scattering there is no shift"))
+
+
+def geometry_session(session: Path | str | Session, *, backend: str = "analytic", checkpoint: Path | str | None = None,
+                     out: Path | str = Path("geometry"), views: str | Sequence[int] | None = "", device: str = "cpu",
+                     narrator: Narrator | None = None) -> list[GeometryView]:
+    """Projector points for 3D of a session's views: the decoded correspondences minus the scattering shift
+    predicted from ``backend``'s footprints, written as ``out/<object>/view_NNN/correspondence_for_geometry.npz``
+    (xp, yp, xp_decoded, yp_decoded, shift_x, shift_y, mask); scored against the exact points on simulated
+    sessions."""
+    from sssphase_core.compute import compute_device
+    from sssphase_core.learning.training import resolve_checkpoint
+    from sssphase_core.store.session import check_output_folder, claim_output, refuse_inside_session
+
+    out, say = Path(out), narrator or Narrator()
+    check_output_folder(out)
+    compute_device(device)  # an unknown device is refused here too, not ignored by the model-free backends
+    _check_geometry_backend(backend)
+    s = session if isinstance(session, Session) else Session.open(session)
+    refuse_inside_session(out / s.name, what=f"--out {out}: its folder")  # written as OUT/<object>/view_NNN: OUT must not hold the session itself
+    claim_output(out, [s])
+    period = finest_psp_period(s.manifest.get("plan", {}))
+    if period is None:
+        raise InputError(f"{session if not isinstance(session, Session) else session.path}: its capture plan has no "
+                         "PSP frames, so the fringe period is unknown")
+    if checkpoint is not None:
+        checkpoint = resolve_checkpoint(checkpoint)
+    done = []
+    for v in choose_views(s, views):
+        rv = load_view(s, v)
+        source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device)
+        with say.status(f"{rv.object} view {v}: predicting the scattering shift ({backend})"):
+            geo = geometric_correspondence(source, rv.proj, patch, period)
+        done.append(_write_geometry(s, rv, geo, out, period))
+        say.say(_geometry_line(done[-1]))
+    return done
+
+
+def _write_geometry(s: Session, rv: RelightView, geo: Any, out: Path, period: float) -> GeometryView:
+    """Write one view's correspondences for geometry and score them (simulated sessions)."""
+    from sssphase_core.store.session import view_dir_name
+
+    shift_x, shift_y = rv.proj.xp - geo.xp, rv.proj.yp - geo.yp
+    folder = out / rv.object / view_dir_name(rv.view)
+    folder.mkdir(parents=True, exist_ok=True)
+    path = folder / "correspondence_for_geometry.npz"
+    np.savez_compressed(path, xp=geo.xp, yp=geo.yp, xp_decoded=rv.proj.xp, yp_decoded=rv.proj.yp,
+                        shift_x=shift_x, shift_y=shift_y, mask=rv.proj.mask)
+    m = rv.proj.mask
+    done = GeometryView(rv.object, rv.view, path, (float(np.nanmedian(shift_x[m])), float(np.nanmedian(shift_y[m]))), period)
+    if rv.sim is not None and "gt/proj_xy" in s.arrays(rv.view):  # evaluation only: the simulator's exact points
+        gt = np.asarray(s.load(rv.view, "gt/proj_xy"), np.float32)
+        ok = m & np.isfinite(gt[..., 0])
+        scores: list[float] = []
+        for xp, yp in ((rv.proj.xp, rv.proj.yp), (geo.xp, geo.yp)):
+            scores += [float(np.median(np.hypot(xp - gt[..., 0], yp - gt[..., 1])[ok])), float(np.median((xp - gt[..., 0])[ok]))]
+        done.exact = (scores[0], scores[1], scores[2], scores[3])
+    return done
+
+
+def _geometry_line(g: GeometryView) -> str:
+    line = (f"wrote {g.path}: median shift {g.shift[0]:+.3f} px along x, {g.shift[1]:+.3f} px "
+            f"along y (projector px, period {g.period:g})")
+    if g.exact is not None:
+        line += (f"; against the exact points: decoded {g.exact[0]:.3f} px (bias x {g.exact[1]:+.3f}), "
+                 f"for geometry {g.exact[2]:.3f} px (bias x {g.exact[3]:+.3f})")
+    return line
+
+
+@dataclass
+class EvaluationResult:
+    """What :func:`evaluate_sessions` did: a row per object, view, pattern and backend, the tables, the
+    record and its Markdown."""
+
+    rows: list[dict[str, Any]]
+    backends: list[str]
+    tables: list[Any]
+    json: Path
+    md: Path
+
+
+def _eval_backends(backend: str, checkpoint: Path | str | None, say: Narrator) -> tuple[list[str], Path | None]:
+    """The backends ``backend`` lists, each once, checked (and the checkpoint resolved) before any work."""
+    from sssphase_core.learning.training import resolve_checkpoint
+
+    backends = list(dict.fromkeys(b.strip() for b in backend.split(",") if b.strip()))  # each once
+    if not backends:
+        raise InputError(f"--backend names no backend (got {backend!r}): give e.g. none,analytic,torch")
+    if checkpoint is not None:
+        checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
+        if not any(map(uses_decoder, backends)):  # (the model was silently not evaluated, the checkpoint not read)
+            say.say(f"note: --checkpoint is read only by torch and blend, which --backend {','.join(backends)} "
+                    "does not list: add them to evaluate the model")
+    check_backends(backends, checkpoint)
+    return backends, None if checkpoint is None else Path(checkpoint)
+
+
+def _eval_views(found: Sequence[Session], views: str | Sequence[int] | None, backends: list[str], asked: bool,
+                say: Narrator) -> None:
+    """Every session has views to evaluate, with references, before any work; ``measured`` is left out (or,
+    ``asked`` for, refused) where a view holds no dot-grid footprints."""
+    bare = []  # views without the dot-grid crops `measured` relights with
+    for s in found:
+        for v in choose_views(s, views):
+            if not has_references(s.arrays(v)):
+                raise InputError(f"{s.name} view {v} has no reference captures to evaluate against (capture with "
+                                 "--reference checkerboard ...)")
+            if not has_captured_transport(s.arrays(v)):
+                bare.append(f"{s.name} view {v}")
+    if "measured" in backends and bare:
+        if asked:  # refused before any work (it failed after the other backends)
+            raise InputError(f"--backend measured: {bare[0]} has no captured footprints (capture with --footprints)")
+        backends.remove("measured")
+        say.say(f"measured left out: {', '.join(bare[:3])}{' ...' if len(bare) > 3 else ''} holds no dot-grid "
+                "footprints (capture with --footprints)")
+
+
+def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BACKENDS, checkpoint: Path | str | None = None,
+                      views: str | Sequence[int] | None = "", out: Path | str = Path("eval_relight"), device: str = "cpu",
+                      calibrate: bool = True, narrator: Narrator | None = None) -> EvaluationResult:
+    """Relight every reference pattern of the sessions (folders, or folders holding sessions) with each of
+    ``backend``'s comma-separated backends and tabulate MSE / PSNR / SSIM over objects and views: figures
+    and images in ``out``, ``relight_eval.json`` and ``.md``. The default backends leave ``measured`` out
+    where a view holds no dot-grid footprints."""
+    from sssphase_core.compute import compute_device
+    from sssphase_core.store.results import write_report
+    from sssphase_core.store.session import by_object, check_output_folder, claim_output, find_sessions
+
+    out, say = Path(out), narrator or Narrator()
+    check_output_folder(out)
+    backends, checkpoint = _eval_backends(backend, checkpoint, say)
+    compute_device(device)  # one line before any progress is drawn
+    found = find_sessions(list(sessions))  # a missing folder is one line before any progress is drawn
+    by_object(found, purpose="their results would share names; evaluate them with separate --out folders")
+    _eval_views(found, views, backends, backend != EVAL_BACKENDS, say)
+    claim_output(out, found)  # figures are named by object: another session's of the same object are not replaced
+    if checkpoint is not None and any(uses_decoder(b) for b in backends):
+        say.say(f"torch backend: {checkpoint}")
+    rows: list[dict[str, Any]] = []
+    with say.bar():
+        for s in found:
+            for v in choose_views(s, views):
+                rv = load_view(s, v)
+                for b in backends:
+                    rows += evaluate_view(rv, b, out, checkpoint=checkpoint, device=device, calibrate=calibrate,
+                                          progress=say.task(f"{rv.object} view {v}: {b}"))
+    tables = [metrics_table(rows), metrics_table(rows, by=("object", "backend"), title="Relighting per object")]
+    result = EvaluationResult(rows, backends, tables, out / "relight_eval.json", out / "relight_eval.md")
+    write_report({"rows": rows, "aggregate": aggregate(rows), "lpips": lpips_note()}, tables, result.json, md=result.md,
+                 title="Relighting against reference captures")
+    say.say(tables[0].markdown())
+    if calibrate:  # a model relit without the view calibration is worth a word: it scores several dB lower
+        for obj, view, b in dict.fromkeys((r["object"], r["view"], r["backend"]) for r in rows
+                                          if r["backend"] not in MODEL_FREE and "mix" not in r):
+            say.say(f"note: {obj} view {view}: {b} is not calibrated to the view (the projector patterns of its "
+                    "PSP captures are unknown): the model alone")
+    say.say(f"wrote {result.json} and {result.md}")
+    return result

@@ -1,0 +1,170 @@
+"""The session runner that `sss relight`, `sss geometry` and `sss eval relight` call (and a notebook or web
+view can call the same way): results returned, narration through a narrator, outputs written."""
+
+import numpy as np
+import pytest
+
+from sssphase_core.errors import InputError
+from sssphase_core.relight.runner import (
+    EVAL_BACKENDS,
+    Narrator,
+    cache_path,
+    choose_views,
+    evaluate_sessions,
+    geometry_session,
+    parse_formats,
+    relight_session,
+    resize_note,
+    same_pattern,
+)
+from sssphase_core.store.session import Session
+
+
+class Recorder(Narrator):
+    """Keeps what a run says and the progress it reports."""
+
+    def __init__(self):
+        self.lines, self.tasks, self.progress = [], [], []
+
+    def say(self, text, warning=""):
+        self.lines.append((text, warning))
+
+    def task(self, label):
+        self.tasks.append(label)
+        return lambda done, total: self.progress.append((label, done, total))
+
+    def text(self):
+        return "\n".join(t for t, _ in self.lines)
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory, sim_daemon):
+    """One view of the soap with a checkerboard reference, captured through the daemon."""
+    from sssphase_core.capture import CaptureRequest, run_capture
+
+    req = CaptureRequest("soap", views=1, references=("checkerboard",), out=tmp_path_factory.mktemp("s"))
+    return run_capture(sim_daemon, req).path
+
+
+def test_relight_session_returns_what_it_wrote_and_scores_a_reference(session, tmp_path):
+    said = Recorder()
+    res = relight_session(session, ["checkerboard", "white"], backend="none", out=tmp_path, narrator=said)
+    assert res.backend == "none" and res.checkpoint is None and res.patterns == ["checkerboard", "white"]
+    assert res.mixes == {0: None}  # model-free: never calibrated
+    by_name = {im.pattern: im for im in res.images}
+    assert set(by_name) == {"checkerboard", "white"}
+    for im in res.images:
+        assert im.view == 0 and im.object == "soap"
+        assert [p.name for p in im.paths] == [f"soap_v0_{im.pattern}_none.png", f"soap_v0_{im.pattern}_none_display.png"]
+        assert all(p.exists() for p in im.paths) and 0.0 <= im.clipped <= 1.0
+    board = by_name["checkerboard"]
+    assert board.metrics is not None and board.metrics["psnr"] > 15 and board.figure.exists()
+    assert by_name["white"].metrics is None  # no reference capture of the white pattern
+    assert said.tasks == ["soap view 0: none"] and said.progress[-1][1] == said.progress[-1][2]
+    lines = [t for t, _ in said.lines]
+    assert lines[0].startswith("wrote ") and f"PSNR {board.metrics['psnr']:.2f} dB" in lines[0]
+    assert len(list((tmp_path / "cache").glob("soap_v0_*_none_*.npz"))) == 1  # the footprints, for later patterns
+
+
+def test_auto_is_the_analytic_model_calibrated_to_the_view_and_cached(session, tmp_path):
+    said = Recorder()
+    res = relight_session(Session.open(session), ["checkerboard"], out=tmp_path, views=[0], narrator=said,
+                          formats="exr,png")
+    assert res.backend == "analytic"
+    assert said.lines[0] == ("backend: analytic (no --checkpoint: the analytic model; a trained decoder blends in)", "")
+    mix = res.mixes[0]
+    assert mix.shape == (3,) and ((0 <= mix) & (mix <= 1)).all()
+    assert "analytic footprints calibrated to the view's fringe captures" in said.text()
+    assert sorted(p.suffix for p in res.images[0].paths) == [".exr", ".png", ".png"]  # linear EXR and PNG, display PNG
+    s = Session.open(session)
+    from sssphase_core.relight import load_view
+
+    cached = cache_path(tmp_path, s, load_view(s, 0), "analytic", None)
+    assert cached.exists() and cached.parent == tmp_path / "cache"
+
+
+def test_relight_session_checks_its_input_before_any_work(session, tmp_path):
+    with pytest.raises(InputError, match="two patterns would both be written as 'checkerboard'"):
+        relight_session(session, ["checkerboard", "checkerboard"], backend="none", out=tmp_path / "a")
+    with pytest.raises(InputError, match="--resize must be one of"):
+        relight_session(session, ["checkerboard"], backend="none", resize="bogus", out=tmp_path / "b")
+    with pytest.raises(InputError, match="the torch backend needs --checkpoint"):
+        relight_session(session, ["checkerboard"], backend="torch", out=tmp_path / "c")
+    with pytest.raises(InputError, match="has no complete view 3"):
+        relight_session(session, ["checkerboard"], backend="none", views="0,3", out=tmp_path / "d")
+    assert not any((tmp_path / n).exists() and any((tmp_path / n).glob("*.png")) for n in "abcd")
+
+
+def test_geometry_session_writes_and_scores_the_corrected_points(session, tmp_path):
+    said = Recorder()
+    (geo,) = geometry_session(session, backend="exact", out=tmp_path, narrator=said)
+    assert geo.path == tmp_path / "soap" / "view_000" / "correspondence_for_geometry.npz" and geo.path.exists()
+    data = np.load(geo.path)
+    assert set(data.files) == {"xp", "yp", "xp_decoded", "yp_decoded", "shift_x", "shift_y", "mask"}
+    assert np.isfinite(geo.shift).all() and geo.period > 0
+    assert geo.exact is not None and geo.exact[2] <= geo.exact[0] + 1e-3  # the exact footprints never make it worse
+    assert said.lines[-1][0].startswith(f"wrote {geo.path}: median shift") and "against the exact points" in said.lines[-1][0]
+    with pytest.raises(InputError, match="without scattering there is no shift"):
+        geometry_session(session, backend="none", out=tmp_path / "g")
+
+
+def test_evaluate_sessions_tabulates_and_writes_its_record(session, tmp_path):
+    said = Recorder()
+    res = evaluate_sessions([session], backend="none", out=tmp_path, narrator=said)
+    assert res.backends == ["none"] and res.json.exists() and res.md.exists()
+    assert [(r["object"], r["view"], r["pattern"], r["backend"]) for r in res.rows] == [("soap", 0, "checkerboard", "none")]
+    assert np.isfinite(res.rows[0]["psnr"]) and said.tasks == ["soap view 0: none"]
+    assert said.lines[-1] == (f"wrote {res.json} and {res.md}", "")
+    assert res.tables[0].markdown() in said.text()
+    with pytest.raises(InputError, match="--backend measured: soap view 0 has no captured footprints"):
+        evaluate_sessions([session], backend="none,measured", out=tmp_path / "m")
+
+
+class FakeSession:
+    path = "S"
+    manifest = {"views": {"0": {}, "1": {}, "2": {}}}
+
+    def views(self):
+        return [0, 2]
+
+    def status(self, v):
+        return "complete" if v != 1 else "capturing"
+
+
+def test_choose_views_takes_text_or_numbers_each_once():
+    s = FakeSession()
+    assert choose_views(s, "") == [0, 2] and choose_views(s, None) == [0, 2]
+    assert choose_views(s, "2, 0,2") == [2, 0] and choose_views(s, [2, 2]) == [2]
+    with pytest.raises(InputError, match="names no view"):
+        choose_views(s, " , ")
+    with pytest.raises(InputError, match="must be comma-separated integers"):
+        choose_views(s, "a")
+    with pytest.raises(InputError, match=r"has no complete view 1 \(complete: 0, 2\)"):
+        choose_views(s, "1")
+    s.views = lambda: []
+    with pytest.raises(InputError, match="view 1: capturing"):
+        choose_views(s)
+
+
+def test_small_helpers(tmp_path):
+    from PIL import Image
+
+    from sssphase_cli import cmd_relight
+
+    assert EVAL_BACKENDS == cmd_relight.EVAL_BACKENDS  # the CLI's default is the runner's
+    assert parse_formats("PNG, png") == ("png",) and parse_formats(["exr", "png"]) == ("exr", "png")
+    with pytest.raises(InputError, match="choose png, exr"):
+        parse_formats("tiff")
+    board = np.indices((4, 6)).sum(axis=0) % 2
+    assert same_pattern(board, np.repeat(board[..., None], 3, axis=-1))  # mono and RGB of one pattern
+    assert not same_pattern(board, 1 - board) and not same_pattern(board, board[:, :4])
+    Image.fromarray(np.zeros((10, 20), np.uint8)).save(tmp_path / "p.png")
+    assert resize_note(str(tmp_path / "p.png"), (20, 10), "stretch") is None
+    line, warning = resize_note(str(tmp_path / "p.png"), (40, 40), "stretch")
+    assert line == f"{tmp_path / 'p.png'}: 20x10 -> 40x40 (stretch); aspect ratio changed by 100% (fit or fill keep it)"
+    assert warning == "aspect ratio changed by 100%"
+    assert resize_note(str(tmp_path / "p.png"), (40, 20), "fit") == (f"{tmp_path / 'p.png'}: 20x10 -> 40x20 (fit)", "")
+    quiet = Narrator()  # the default narrator says nothing and frames nothing
+    quiet.say("x")
+    with quiet.bar(), quiet.status("y"):
+        quiet.task("z")(1, 2)
