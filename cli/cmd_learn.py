@@ -252,19 +252,12 @@ def viz_pca(
     sessions: SessionsOpt = None,
 ) -> None:
     """PCA-RGB map: joint PCA of the patch embeddings of the images shown, first 3 components as RGB."""
-    from sssphase_core.learning.evaluation import PCA_TITLE, pca_maps
-    from sssphase_core.learning.inputs import ViewOptions, load_views, parse_names
-    from sssphase_core.learning.training import load_encoder
-    from sssphase_core.reporting.figures import panels_figure
+    from sssphase_core.learning.inputs import ViewOptions
+    from sssphase_core.reporting.learning_runs import pca_figure
 
     _png_out(out, "pca_rgb.png")
-    enc = load_encoder(checkpoint)
-    names = parse_names(objects, () if sessions else ("soap", "shovel"))
     data = ViewOptions(n_views=n_views, rig=rig, seed=0, cache=cache, sessions=sessions)
-    vds = load_views(names, [view], data, pixels=None, footprints=False, report=_report())
-    with console.status(f"embedding one pixel in {stride} along x and y of {len(vds)} view(s)"):
-        maps = pca_maps(enc, [(v.psp, v.pixels) for v in vds], stride)
-    panels_figure(out, maps, [f"{v.object}, view {v.view}" for v in vds], f"{PCA_TITLE} (one pixel in {stride} along x and y)")
+    vds = pca_figure(checkpoint, objects, view, data, stride, out, _report())
     console.print(f"wrote {out} ({', '.join(v.object for v in vds)}, view {view})")
 
 
@@ -278,43 +271,12 @@ def viz_footprints(
     out: Annotated[Path, typer.Option(help="PNG output (profiles in <out>_profiles.png).")] = Path("footprints.png"),
 ) -> None:
     """Footprints at a few pixels, one row per source (log scale), and their centre-row profiles."""
-    import numpy as np
-
-    from sssphase_core.errors import InputError
-    from sssphase_core.relight import load_view
-    from sssphase_core.relight.evaluation import footprints_at
-    from sssphase_core.reporting.figures import grid_figure, profiles_figure
-    from sssphase_core.store.session import Session
+    from sssphase_core.reporting.learning_runs import footprint_figures
 
     _png_out(out, "footprints.png")
-    s = Session.open(session)
-    rv = load_view(s, view)
-    rows = [b.strip() for b in backend.split(",") if b.strip()]
-    if not rows:
-        raise InputError(f"--backend names no row (got {backend!r}): e.g. captured,analytic")
-    if "captured" in rows and "footprints/pixels" in s.arrays(view):
-        candidates = np.asarray(s.load(view, "footprints/pixels"), np.int64)
-    else:
-        if "captured" in rows:
-            if rows == ["captured"]:
-                raise InputError(f"{session} view {view} has no captured footprints (capture with --footprints)")
-            console.print(f"note: {session} view {view} has no captured footprints: that row is left out")
-        rows = [r for r in rows if r != "captured"]
-        candidates = np.argwhere(rv.proj.mask)
-    chosen = candidates[np.linspace(0, len(candidates) - 1, pixels + 2)[1:-1].astype(int)]
-    fps = footprints_at(rv, chosen, rows, checkpoint=checkpoint)
-    luminance = {name: f.mean(axis=-1) for name, f in fps.items()}
-    peak = np.maximum(next(iter(luminance.values())).max(axis=(1, 2)), 1e-12)  # each column's first-row peak
-    grid = [[np.log10(np.maximum(luminance[name][i], 1e-30) / peak[i]) for i in range(len(chosen))] for name in rows]
-    titles = [f"({y}, {x})" for y, x in chosen]
-    grid_figure(out, grid, rows, titles, f"{s.name}, view {view}: footprints at pixels (row, col), mean of RGB",
-                units=f"log10 intensity / {rows[0]} peak", vmin=-4, vmax=0.3)
-    k = next(iter(luminance.values())).shape[1]
-    profiles = out.with_name(out.stem + "_profiles.png")
-    profiles_figure(profiles, {name: lum[:, k // 2, :] for name, lum in luminance.items()}, titles,
-                    f"{s.name}, view {view}: centre-row profiles", xlabel="offset (camera px)",
-                    ylabel="linear camera units")
-    console.print(f"wrote {out} and {profiles} ({', '.join(rows)} at {len(chosen)} pixels of {s.name} view {view})")
+    fig = footprint_figures(session, view, backend, out=out, pixels=pixels, checkpoint=checkpoint, report=_report())
+    console.print(f"wrote {fig.figure} and {fig.profiles} ({', '.join(fig.rows)} at {len(fig.pixels)} pixels of "
+                  f"{fig.session} view {view})")
 
 
 def bench_learn(

@@ -463,3 +463,85 @@ def _object_footprints(obj: str, obj_views: Sequence[Any], backends: dict[str, A
         for bname, pred in preds.items():
             plot_profiles(gt[i], pred[i], plots / f"{obj}_{bname}.png", title=f"{obj}: {bname}")
     return results
+
+
+# --- figures -----------------------------------------------------------------------------------------
+
+
+def pca_figure(checkpoint: Path | str, objects: str | Sequence[str], view: int, data: ViewOptions, stride: int, out: Path,
+               report: Report = Report()) -> list[Any]:
+    """``sss viz pca``: the PCA-RGB map of each object's ``view`` side by side (a joint PCA of the patch
+    embeddings of the images shown, first 3 components as RGB, one pixel in ``stride`` along x and y),
+    written to ``out``; default objects: every session of ``data.sessions``, else the simulator's soap and
+    shovel. Returns the views shown."""
+    from sssphase_core.learning.evaluation import PCA_TITLE, pca_maps
+    from sssphase_core.learning.training import load_encoder
+    from sssphase_core.reporting.figures import panels_figure
+
+    enc = load_encoder(checkpoint)
+    names = parse_names(objects, () if data.sessions else ("soap", "shovel"))
+    vds = load_views(names, [view], data, pixels=None, footprints=False, report=report)
+    with report.busy(f"embedding one pixel in {stride} along x and y of {len(vds)} view(s)"):
+        maps = pca_maps(enc, [(v.psp, v.pixels) for v in vds], stride)
+    panels_figure(out, maps, [f"{v.object}, view {v.view}" for v in vds], f"{PCA_TITLE} (one pixel in {stride} along x and y)")
+    return vds
+
+
+@dataclass
+class FootprintFigures:
+    """``sss viz footprints``' two figures, the rows drawn and the camera pixels (N, 2) yx shown."""
+
+    figure: Path
+    profiles: Path
+    rows: list[str]
+    pixels: Any
+    session: str
+
+
+def footprint_figures(session: Path | str, view: int, rows: str | Sequence[str], *, out: Path, pixels: int = 6,
+                      checkpoint: Path | str | None = None, report: Report = Report()) -> FootprintFigures:
+    """Footprints at ``pixels`` pixels spread over a session view's object, one row per source (``captured``:
+    the session's dot-grid crops, or a backend), on a log scale relative to the first row's peak (``out``),
+    and their centre-row profiles (``<out>_profiles.png``). A ``captured`` row the view lacks is left out."""
+    import numpy as np
+
+    from sssphase_core.relight import load_view
+    from sssphase_core.relight.evaluation import footprints_at
+    from sssphase_core.store.session import Session
+
+    s = Session.open(session)
+    rv = load_view(s, view)
+    names = [b.strip() for b in (rows.split(",") if isinstance(rows, str) else rows) if b.strip()]
+    if not names:
+        raise InputError(f"--backend names no row (got {rows!r}): e.g. captured,analytic")
+    if "captured" in names and "footprints/pixels" in s.arrays(view):
+        candidates = np.asarray(s.load(view, "footprints/pixels"), np.int64)
+    else:
+        if "captured" in names:
+            if names == ["captured"]:
+                raise InputError(f"{session} view {view} has no captured footprints (capture with --footprints)")
+            report.say(f"note: {session} view {view} has no captured footprints: that row is left out")
+        names = [r for r in names if r != "captured"]
+        candidates = np.argwhere(rv.proj.mask)
+    chosen = candidates[np.linspace(0, len(candidates) - 1, pixels + 2)[1:-1].astype(int)]
+    fps = footprints_at(rv, chosen, names, checkpoint=checkpoint)
+    profiles = _draw_footprints(out, {name: f.mean(axis=-1) for name, f in fps.items()}, names, chosen,
+                                f"{s.name}, view {view}")
+    return FootprintFigures(out, profiles, names, chosen, s.name)
+
+
+def _draw_footprints(out: Path, luminance: dict[str, Any], rows: list[str], chosen: Any, where: str) -> Path:
+    import numpy as np
+
+    from sssphase_core.reporting.figures import grid_figure, profiles_figure
+
+    peak = np.maximum(next(iter(luminance.values())).max(axis=(1, 2)), 1e-12)  # each column's first-row peak
+    grid = [[np.log10(np.maximum(luminance[name][i], 1e-30) / peak[i]) for i in range(len(chosen))] for name in rows]
+    titles = [f"({y}, {x})" for y, x in chosen]
+    grid_figure(out, grid, rows, titles, f"{where}: footprints at pixels (row, col), mean of RGB",
+                units=f"log10 intensity / {rows[0]} peak", vmin=-4, vmax=0.3)
+    k = next(iter(luminance.values())).shape[1]
+    profiles = out.with_name(out.stem + "_profiles.png")
+    profiles_figure(profiles, {name: lum[:, k // 2, :] for name, lum in luminance.items()}, titles,
+                    f"{where}: centre-row profiles", xlabel="offset (camera px)", ylabel="linear camera units")
+    return profiles

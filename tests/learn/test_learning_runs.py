@@ -261,3 +261,18 @@ def test_evaluate_footprints_measures_each_backend_and_plots_it(synthetic, tiny,
     assert said.lines[1].startswith("LPIPS") and ev.payload["note"].endswith(said.lines[1] + ".")
     assert sorted(p.name for p in (tmp_path / "plots").iterdir()) == ["three_again.png", "three_torch.png"]
     assert "again PSNR" in ev.markdown()
+
+
+def test_pca_figure_draws_every_session_view_and_returns_them(synthetic, tiny, tmp_path):
+    from PIL import Image
+
+    from sssphase_core.reporting.learning_runs import pca_figure
+
+    root = _sessions(tmp_path / "sessions", synthetic)
+    _decoder_checkpoint(tmp_path / "enc.pt", tiny)
+    said = Said()
+    vds = pca_figure(tmp_path / "enc.pt", "", 0, ViewOptions(sessions=root), 4, tmp_path / "pca.png", said.report())
+    assert [(v.object, v.view) for v in vds] == [("one", 0), ("three", 0)]
+    assert len(vds[0].pixels) == len({tuple(p) for p in synthetic[0][0].pixels.tolist()})  # every masked pixel
+    assert said.statuses[-1] == "embedding one pixel in 4 along x and y of 2 view(s)"
+    assert Image.open(tmp_path / "pca.png").size[0] > 100
