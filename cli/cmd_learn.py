@@ -286,32 +286,14 @@ def bench_learn(
     device: str = "cpu",
 ) -> None:
     """Throughput (patches/s) of the lite and paper presets, inference and training, ratio to paper."""
-    from sssphase_core.bench.learn_bench import loader_throughput, measure_throughput
-    from sssphase_core.bench.output import Table, machine_info, write_bench_report
+    from sssphase_core.bench.learn_bench import learn_bench
+    from sssphase_core.bench.output import machine_info, write_bench_report
 
-    batches = {"paper": 8, "lite": 64}
-    results = {}
-    for name, batch in batches.items():
-        with console.status(f"measuring the {name} preset (batch {batch})"):
-            results[name] = {"batch": batch, **measure_throughput(name, batch=batch, repeats=repeats, device=device),
-                             **loader_throughput(name, batch=batch, repeats=repeats)}
-    base = results["paper"]
-    table = Table("Learning throughput (patches/s); baseline: the paper preset, same run",
-                  ["preset", "batch", "encoder params", "decoder params", "inference", "x paper", "SimSiam step", "x paper"])
-    loader = Table("Training loader against the model (patches/s, same run): PSP patches cropped from a view stack in "
-                   "memory, footprint targets streamed from a chunked store on disk",
-                   ["preset", "camera", "K", "loader, PSP only", "loader, with targets", "SimSiam step",
-                    "loader / SimSiam step", "loader / inference"])
-    for name, r in results.items():
-        table.rows.append([name, r["batch"], f"{r['encoder_params'] / 1e6:.2f}M", f"{r['decoder_params'] / 1e6:.2f}M",
-                           r["infer_patches_s"], r["infer_patches_s"] / base["infer_patches_s"],
-                           r["train_patches_s"], r["train_patches_s"] / base["train_patches_s"]])
-        loader.rows.append([name, r["camera"], r["patch"], r["loader_psp_patches_s"], r["loader_patches_s"], r["train_patches_s"],
-                            r["loader_patches_s"] / r["train_patches_s"], r["loader_patches_s"] / r["infer_patches_s"]])
-    write_bench_report({"machine": machine_info(), "device": device, "results": results}, [table, loader], out, md,
-                 title="sss bench learn")
-    console.print(table.markdown())
-    console.print(loader.markdown())
+    results, tables = learn_bench(repeats=repeats, device=device, status=console.status)
+    write_bench_report({"machine": machine_info(), "device": device, "results": results}, tables, out, md,
+                       title="sss bench learn")
+    for table in tables:
+        console.print(table.markdown())
 
 
 def bench_gpu(

@@ -1,4 +1,4 @@
-"""``sss bench learn``'s loader half: patches/s of the training loader at each preset's scale, to set next to
+"""``sss bench learn`` (:func:`learn_bench`: the measurements and their tables) and its loader half: patches/s of the training loader at each preset's scale, to set next to
 the model's patches/s measured in the same run.
 
 The loader is the one training uses (:class:`sssphase_core.learning.data.PatchDataset`): PSP patches cropped on the
@@ -9,9 +9,13 @@ session codec, read by sorted row indices), for random batches.
 
 from __future__ import annotations
 
+import contextlib
 import tempfile
 import time
+from collections.abc import Callable
+from contextlib import AbstractContextManager
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -88,3 +92,35 @@ def measure_throughput(preset: str, *, batch: int, repeats: int = 3, device: str
     return {"infer_patches_s": rate(infer), "train_patches_s": rate(train_step),
             "encoder_params": sum(q.numel() for q in model.encoder.parameters()),
             "decoder_params": sum(q.numel() for q in dec.parameters())}
+
+
+#: The batch each preset is measured with (`sss bench learn`).
+BENCH_BATCHES = {"paper": 8, "lite": 64}
+
+
+def learn_bench(*, repeats: int = 3, device: str = "cpu", status: Callable[[str], AbstractContextManager[Any]] | None = None
+                ) -> tuple[dict[str, dict[str, Any]], list[Any]]:
+    """``sss bench learn``: each preset's inference and SimSiam-step throughput and its training loader's, with
+    the tables (ratios to the paper preset measured in the same run). ``status(text)``: the context each
+    measurement runs in."""
+    from sssphase_core.bench.output import Table
+
+    results = {}
+    for name, batch in BENCH_BATCHES.items():
+        with status(f"measuring the {name} preset (batch {batch})") if status else contextlib.nullcontext():
+            results[name] = {"batch": batch, **measure_throughput(name, batch=batch, repeats=repeats, device=device),
+                             **loader_throughput(name, batch=batch, repeats=repeats)}
+    base = results["paper"]
+    table = Table("Learning throughput (patches/s); baseline: the paper preset, same run",
+                  ["preset", "batch", "encoder params", "decoder params", "inference", "x paper", "SimSiam step", "x paper"])
+    loader = Table("Training loader against the model (patches/s, same run): PSP patches cropped from a view stack in "
+                   "memory, footprint targets streamed from a chunked store on disk",
+                   ["preset", "camera", "K", "loader, PSP only", "loader, with targets", "SimSiam step",
+                    "loader / SimSiam step", "loader / inference"])
+    for name, r in results.items():
+        table.rows.append([name, r["batch"], f"{r['encoder_params'] / 1e6:.2f}M", f"{r['decoder_params'] / 1e6:.2f}M",
+                           r["infer_patches_s"], r["infer_patches_s"] / base["infer_patches_s"],
+                           r["train_patches_s"], r["train_patches_s"] / base["train_patches_s"]])
+        loader.rows.append([name, r["camera"], r["patch"], r["loader_psp_patches_s"], r["loader_patches_s"], r["train_patches_s"],
+                            r["loader_patches_s"] / r["train_patches_s"], r["loader_patches_s"] / r["infer_patches_s"]])
+    return results, [table, loader]

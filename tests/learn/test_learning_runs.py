@@ -276,3 +276,45 @@ def test_pca_figure_draws_every_session_view_and_returns_them(synthetic, tiny, t
     assert len(vds[0].pixels) == len({tuple(p) for p in synthetic[0][0].pixels.tolist()})  # every masked pixel
     assert said.statuses[-1] == "embedding one pixel in 4 along x and y of 2 view(s)"
     assert Image.open(tmp_path / "pca.png").size[0] > 100
+
+
+def test_learn_bench_tables_set_each_preset_against_the_paper_one(monkeypatch):
+    from sssphase_core.bench import learn_bench as lb
+
+    speed = {"paper": 10.0, "lite": 40.0}
+    monkeypatch.setattr(lb, "measure_throughput", lambda name, **kw: {
+        "encoder_params": 2e6, "decoder_params": 1e6, "infer_patches_s": 2 * speed[name], "train_patches_s": speed[name]})
+    monkeypatch.setattr(lb, "loader_throughput", lambda name, **kw: {
+        "camera": name, "patch": 90 if name == "paper" else 32, "loader_psp_patches_s": 100.0, "loader_patches_s": 80.0})
+    measured: list[str] = []
+
+    @contextlib.contextmanager
+    def status(text):
+        measured.append(text)
+        yield
+
+    results, (table, loader) = lb.learn_bench(repeats=1, status=status)
+    assert measured == ["measuring the paper preset (batch 8)", "measuring the lite preset (batch 64)"]
+    assert results["lite"]["batch"] == 64 and results["lite"]["train_patches_s"] == 40.0
+    assert table.rows[1] == ["lite", 64, "2.00M", "1.00M", 80.0, 4.0, 40.0, 4.0]
+    assert loader.rows[0] == ["paper", "paper", 90, 100.0, 80.0, 10.0, 8.0, 4.0]
+
+
+def test_sss_bench_learn_prints_and_writes_the_tables_learn_bench_returns(monkeypatch, tmp_path):
+    import importlib
+
+    from typer.testing import CliRunner
+
+    from sssphase_core.bench import learn_bench as lb
+    from sssphase_core.bench.output import Table
+
+    table = Table("Speeds", ["preset", "inference"])
+    table.rows.append(["lite", 12.5])
+    monkeypatch.setattr(lb, "learn_bench", lambda **kw: ({"lite": {"batch": 64, "seen": kw["device"]}}, [table]))
+    app = importlib.import_module("sssphase_cli.main").app
+    res = CliRunner().invoke(app, ["bench", "learn", "--out", str(tmp_path / "b.json"), "--md", str(tmp_path / "b.md")],
+                             catch_exceptions=False)
+    assert res.exit_code == 0, res.output
+    assert "Speeds" in res.output and "| lite |" in res.output
+    assert json.loads((tmp_path / "b.json").read_text())["results"] == {"lite": {"batch": 64, "seen": "cpu"}}
+    assert "| lite |" in (tmp_path / "b.md").read_text()
