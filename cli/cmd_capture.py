@@ -13,8 +13,6 @@ from rich.markup import escape
 from rich.table import Table
 
 console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
-#: ``sss capture --seed``: the sim rig's noise seeds (plugins/sim_plugin.py takes 0 to 2**63 - 1).
-MAX_SEED = 2**63 - 1
 #: ``sss capture --timeout``: at most a day (the daemon client waits in whole milliseconds, a C int).
 MAX_TIMEOUT_S = 86400
 
@@ -41,92 +39,26 @@ def capture(
     """Capture a session through the daemon (starting a local sim daemon if none runs)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from sssphase_core.capture import DEFAULT_HDR, CaptureRequest, RigSpec, run_capture
-    from sssphase_core.store.session import check_object_name
+    from sssphase_core.capture import CaptureRequest, RigSpec, run_capture
 
-    check_object_name(object_name)
-    if views < 1:  # before a daemon is started for nothing
-        from sssphase_core.errors import InputError
-
-        raise InputError(f"--views must be >= 1, got {views}")
     if not 0 < timeout <= MAX_TIMEOUT_S:  # NaN fails too
         from sssphase_core.errors import InputError
 
         raise InputError(f"--timeout must be a number of seconds in (0, {MAX_TIMEOUT_S}], got {timeout}")
-    if not 0 <= seed <= MAX_SEED:
-        from sssphase_core.errors import InputError
-
-        raise InputError(f"--seed must be 0 to {MAX_SEED} (2**63 - 1, what the sim rig takes), got {seed}")
     spec = RigSpec.from_toml(rig) if rig else RigSpec()
-    drawn = {}
-    if spec.is_sim:  # an unknown preset or transport model is one line, before a daemon starts
-        from sssphase_core.sim import MAX_VIEWS, randomised_rig_options, rig_from_options
-
-        if views > MAX_VIEWS:
-            from sssphase_core.errors import InputError
-
-            raise InputError(f"--views: the sim rig's turntable takes at most {MAX_VIEWS} views, got {views}")
-
-        drawn = randomised_rig_options(seed, object_name) if randomise_rig else {}
-        rig_from_options({"preset": preset, **spec.options, **drawn, **({"transport": transport} if transport else {})})
-        if drawn:
-            console.print("randomised sim rig: " + ", ".join(f"{k} {v}" for k, v in drawn.items() if k != "transport" or not transport))
-    elif transport is not None or randomise_rig:
-        from sssphase_core.errors import InputError
-
-        flag = "--transport" if transport is not None else "--randomise-rig"
-        raise InputError(f"{flag} changes the simulator's physics and camera: it applies to the sim rig only")
-    brackets = DEFAULT_HDR if hdr else ()
-    if hdr_exposures is not None:
-        from sssphase_core.errors import InputError
-
-        items = hdr_exposures.split(",")
-        try:
-            if not hdr_exposures.strip() or any(not v.strip() for v in items):  # '' or '1,,2': HDR asked, none given
-                raise ValueError
-            brackets = tuple(float(v) for v in items)
-        except ValueError:
-            shown = hdr_exposures if len(hdr_exposures) <= 60 else hdr_exposures[:57] + "..."
-            raise InputError(f"--hdr-exposures takes comma-separated numbers, e.g. 0.25,1,4,16; got {shown!r}") from None
-    from sssphase_core.capture.engine import check_brackets
-
-    check_brackets(brackets)  # before a daemon starts
-    from sssphase_core.capture.plan import reference_keys
-
-    reference_keys(reference or ())
-    from sssphase_core.processing.patterns import REFERENCE_NAMES
-    from sssphase_core.store.imageio import MAX_FRAME_PIXELS, frame_shape, read_pattern
-
-    for ref in reference or ():
-        if ref not in REFERENCE_NAMES:  # an unreadable file or values outside [0, 1]: one line before a daemon starts
-            h, w = frame_shape(Path(ref))[:2]
-            if w * h > MAX_FRAME_PIXELS:
-                from sssphase_core.errors import InputError
-
-                raise InputError(f"--reference {ref} is {w}x{h}: larger than any projector (scale it down first)")
-            read_pattern(Path(ref), (w, h))  # (its size is checked against the rig's projector by the daemon)
-    if dot_spacing is not None:  # 0 meant the default, 10^12 exhausted the memory: one line before a daemon starts
-        from sssphase_core.processing.patterns import check_dot_spacing
-
-        check_dot_spacing(dot_spacing)
-    from sssphase_core.store.session import check_output_folder
-
-    check_output_folder(out)  # before a daemon starts
-    req = CaptureRequest(object_name, views, footprints, tuple(reference or ()), brackets,
-                         keep_dots, keep_unwrap, resume, out, seed, preset, dot_spacing, transport, drawn)
-    from sssphase_daemon.client import local_client
+    req = CaptureRequest.from_options(
+        object_name, spec, views=views, footprints=footprints, references=reference or (), hdr=hdr,
+        hdr_exposures=hdr_exposures, keep_dots=keep_dots, keep_unwrap=keep_unwrap, resume=resume, out=out, seed=seed,
+        preset=preset, dot_spacing=dot_spacing, transport=transport, randomise_rig=randomise_rig,
+        on_drawn=lambda drawn: console.print("randomised sim rig: " + ", ".join(
+            f"{k} {v}" for k, v in drawn.items() if k != "transport" or not transport)))
 
     def ask_move(view: int, angle: float) -> None:
         typer.confirm(f"turn the object to view {view} ({angle:.0f} deg) and press enter", default=True)
 
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
-    daemon = local_client(timeout, on_start=lambda pid: console.print(
-        f"[yellow]no daemon running:[/] started a local one with the sim rig (pid {pid})"),
-        on_stop=lambda pid: console.print(f"stopped the local daemon (pid {pid})"),
-        on_left=lambda pid: console.print(f"left the local daemon (pid {pid}) running: another client is using it "
-                                          "(`sss daemon stop` ends it)"))
     try:
-        with daemon as client, Progress(*columns, console=console) as bar:
+        with _local_daemon(timeout) as client, Progress(*columns, console=console) as bar:
             tasks: dict[int, int] = {}
 
             def progress(view: int, done: int, total: int) -> None:
@@ -140,6 +72,17 @@ def capture(
         Console(stderr=True, soft_wrap=True).print("[yellow]interrupted[/]: complete views are kept; rerun with --resume to continue")
         sys.exit(130)
     console.print(f"session {session.path}: {len(session.views())}/{views} views complete")
+
+
+def _local_daemon(timeout: float):
+    """The running local daemon's client, or one started here (each said on the console)."""
+    from sssphase_daemon.client import local_client
+
+    return local_client(timeout, on_start=lambda pid: console.print(
+        f"[yellow]no daemon running:[/] started a local one with the sim rig (pid {pid})"),
+        on_stop=lambda pid: console.print(f"stopped the local daemon (pid {pid})"),
+        on_left=lambda pid: console.print(f"left the local daemon (pid {pid}) running: another client is using it "
+                                          "(`sss daemon stop` ends it)"))
 
 
 def validate(session: Annotated[Path, typer.Argument(help="session folder")]) -> None:
@@ -240,68 +183,24 @@ def calibrate_projector(
                                         "and compare the correspondence error with the simulator's exact map")] = False,
 ) -> None:
     """Fit the projector's response (gamma and black per colour) from a grey ramp captured through the daemon."""
-    import tempfile
-
-    import numpy as np
-
-    from sssphase_core.capture import CaptureRequest, RigSpec, run_capture
-    from sssphase_core.capture.calibration import (
-        capture_ramp,
-        correspondence_error,
-        fit_response,
-        rig_file_with_response,
-    )
-    from sssphase_core.errors import InputError
+    from sssphase_core.capture.calibration import CalibrationRequest, calibrate_projector
     from sssphase_daemon.client import local_client
 
-    spec = RigSpec.from_toml(rig) if rig else RigSpec()
-    target = out or rig or Path("rig.toml")
-    if target.is_dir():
-        raise InputError(f"--out {target} is a folder: give the rig file to write (e.g. {target / 'rig.toml'})")
-    if target.exists() and target != rig:  # rewriting another file (a script, an image) would destroy it
-        try:
-            RigSpec.from_toml(target)
-        except InputError:
-            raise InputError(f"--out {target} exists and is not a rig file: choose a new file, or the rig file itself") from None
-    if check and not spec.is_sim:
-        raise InputError("--check needs the simulator's exact correspondences: it works on sim rigs only")
-    ramp = tuple(float(v) for v in np.round(np.linspace(0, 1, levels), 4))
-    sim_options = {"object": object_name, "n_views": 1}
+    req = CalibrationRequest(rig, out, levels, object_name, check)
     with local_client(on_start=lambda pid: console.print(f"started a local daemon with the sim rig (pid {pid})")) as client:
-        with console.status(f"capturing a {levels}-level grey ramp"):
-            images = capture_ramp(client, spec, ramp, sim_options=sim_options)
-        fitted = fit_response(ramp, images)
-        table = Table(title=f"projector response ({fitted.pixels} camera pixels; fit rms {fitted.rms:.4f} in relative light)")
-        for col in ("colour", "gamma", "black (relative to white)"):
-            table.add_column(col)
-        for name, g, b in zip("RGB", fitted.gamma_rgb, fitted.black_rgb, strict=True):
-            table.add_row(name, f"{g:.3f}", f"{b:.4f}")
-        table.add_row("used", f"{fitted.gamma:.3f}", f"{fitted.black:.4f}")
-        console.print(table)
-        if check:
-            errors = {}
-            with tempfile.TemporaryDirectory(prefix="sss-cal-") as tmp:
-                nominal = {k: v for k, v in spec.options.items() if k not in ("projector_gamma", "projector_black")}
-                for label, options, gamma in (
-                        ("patterns for gamma 2.2", spec.options, None),
-                        (f"patterns for the fitted {fitted.gamma:.3f}", spec.options, fitted.gamma),
-                        ("nominal: a 2.2 projector with patterns for 2.2", nominal, None)):
-                    checked = RigSpec(spec.camera, spec.projector, spec.turntable, dict(options), gamma=gamma)
-                    with console.status(f"checking: {label}"):
-                        session = run_capture(client, CaptureRequest(object_name, views=1, out=Path(tmp) / str(len(errors))),
-                                              checked)
-                    errors[label] = correspondence_error(session)
-            for label, err in errors.items():
-                console.print(f"correspondence error with {label}: median {err:.3f} projector px")
-    text = target.read_text() if target.exists() else ""
-    if not text and rig is None:
-        import tomli_w
+        calibrate_projector(client, req, status=console.status, on_fit=_print_response, on_check=lambda label, err:
+                            console.print(f"correspondence error with {label}: median {err:.3f} projector px"))
+    console.print(f"wrote the {escape('[projector]')} table of {req.target}: capture with `sss capture --rig {req.target}`")
 
-        text = tomli_w.dumps({"devices": {"camera": spec.camera, "projector": spec.projector},
-                              **({"options": spec.options} if spec.options else {})})
-    target.parent.mkdir(parents=True, exist_ok=True)
-    target.write_text(rig_file_with_response(text, fitted))
-    console.print(f"wrote the {escape('[projector]')} table of {target}: capture with `sss capture --rig {target}`")
+
+def _print_response(fitted) -> None:
+    table = Table(title=f"projector response ({fitted.pixels} camera pixels; fit rms {fitted.rms:.4f} in relative light)")
+    for col in ("colour", "gamma", "black (relative to white)"):
+        table.add_column(col)
+    for name, g, b in zip("RGB", fitted.gamma_rgb, fitted.black_rgb, strict=True):
+        table.add_row(name, f"{g:.3f}", f"{b:.4f}")
+    table.add_row("used", f"{fitted.gamma:.3f}", f"{fitted.black:.4f}")
+    console.print(table)
 
 
 def bench_capture(

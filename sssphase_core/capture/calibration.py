@@ -16,13 +16,16 @@ large ``rms``.
 
 from __future__ import annotations
 
+import contextlib
 import math
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from sssphase_core.errors import DataError
+from sssphase_core.errors import DataError, InputError
 
 RAMP_LEVELS = tuple(float(v) for v in np.round(np.linspace(0.0, 1.0, 17), 4))
 FIT_RANGE = (0.1, 1.0)  # values whose response is fitted (below, r is at the noise floor)
@@ -163,3 +166,102 @@ def correspondence_error(session: Any, view: int = 0) -> float:
     if not ok.any():
         raise DataError("no decoded pixel with an exact correspondence")
     return float(np.median(np.hypot(xp[ok] - gt[ok, 0], yp[ok] - gt[ok, 1])))
+
+
+@dataclass
+class CalibrationRequest:
+    """`sss calibrate projector`: the rig file to calibrate (``rig``; None: the sim rig) and the rig file to write
+    (``out``; default: ``rig`` itself, else ``rig.toml``), checked on construction: ``spec`` and ``target``
+    are what they resolve to. ``check`` (sim rigs only) compares the correspondence error with 2.2 and with the
+    fitted curve against the simulator's exact map."""
+
+    rig: Path | None = None
+    out: Path | None = None
+    levels: int = 17
+    object_name: str = "soap"
+    check: bool = False
+
+    def __post_init__(self) -> None:
+        from sssphase_core.capture.plan import RigSpec
+
+        self.spec = RigSpec.from_toml(self.rig) if self.rig else RigSpec()
+        self.target = self.out or self.rig or Path("rig.toml")
+        target = self.target
+        if target.is_dir():
+            raise InputError(f"--out {target} is a folder: give the rig file to write (e.g. {target / 'rig.toml'})")
+        if target.exists() and target != self.rig:  # rewriting another file (a script, an image) would destroy it
+            try:
+                RigSpec.from_toml(target)
+            except InputError:
+                raise InputError(f"--out {target} exists and is not a rig file: choose a new file, or the rig file "
+                                 "itself") from None
+        if self.check and not self.spec.is_sim:
+            raise InputError("--check needs the simulator's exact correspondences: it works on sim rigs only")
+
+    @property
+    def ramp(self) -> tuple[float, ...]:
+        return tuple(float(v) for v in np.round(np.linspace(0, 1, self.levels), 4))
+
+
+def _no_status(text: str) -> contextlib.AbstractContextManager[None]:
+    return contextlib.nullcontext()
+
+
+def calibrate_projector(client: Any, req: CalibrationRequest, *,
+                        status: Callable[[str], contextlib.AbstractContextManager[Any]] = _no_status,
+                        on_fit: Callable[[ProjectorResponse], None] | None = None,
+                        on_check: Callable[[str, float], None] | None = None) -> ProjectorResponse:
+    """Capture ``req``'s grey ramp through the daemon ``client``, fit the response (told to ``on_fit``), with
+    ``req.check`` capture a view three ways and tell each median correspondence error to ``on_check(label,
+    error)``, then write the ``[projector]`` table into ``req.target``. ``status(text)`` wraps each capture."""
+    spec = req.spec
+    with status(f"capturing a {req.levels}-level grey ramp"):
+        images = capture_ramp(client, spec, req.ramp, sim_options={"object": req.object_name, "n_views": 1})
+    fitted = fit_response(req.ramp, images)
+    if on_fit is not None:
+        on_fit(fitted)
+    if req.check:
+        errors = _check_response(client, req, fitted, status)
+        for label, err in errors.items():
+            if on_check is not None:
+                on_check(label, err)
+    write_rig_response(req, fitted)
+    return fitted
+
+
+def _check_response(client: Any, req: CalibrationRequest, fitted: ProjectorResponse,
+                    status: Callable[[str], contextlib.AbstractContextManager[Any]]) -> dict[str, float]:
+    """The median correspondence error of a sim view captured with patterns for 2.2, for the fitted gamma, and
+    on a nominal 2.2 projector."""
+    import tempfile
+
+    from sssphase_core.capture.engine import run_capture
+    from sssphase_core.capture.plan import CaptureRequest, RigSpec
+
+    spec, errors = req.spec, {}
+    with tempfile.TemporaryDirectory(prefix="sss-cal-") as tmp:
+        nominal = {k: v for k, v in spec.options.items() if k not in ("projector_gamma", "projector_black")}
+        for label, options, gamma in (
+                ("patterns for gamma 2.2", spec.options, None),
+                (f"patterns for the fitted {fitted.gamma:.3f}", spec.options, fitted.gamma),
+                ("nominal: a 2.2 projector with patterns for 2.2", nominal, None)):
+            checked = RigSpec(spec.camera, spec.projector, spec.turntable, dict(options), gamma=gamma)
+            with status(f"checking: {label}"):
+                session = run_capture(client, CaptureRequest(req.object_name, views=1, out=Path(tmp) / str(len(errors))),
+                                      checked)
+            errors[label] = correspondence_error(session)
+    return errors
+
+
+def write_rig_response(req: CalibrationRequest, fitted: ProjectorResponse) -> Path:
+    """Write ``fitted`` as the ``[projector]`` table of ``req.target`` (a new file: the sim rig's devices too)."""
+    target, spec = req.target, req.spec
+    text = target.read_text() if target.exists() else ""
+    if not text and req.rig is None:
+        import tomli_w
+
+        text = tomli_w.dumps({"devices": {"camera": spec.camera, "projector": spec.projector},
+                              **({"options": spec.options} if spec.options else {})})
+    target.parent.mkdir(parents=True, exist_ok=True)
+    target.write_text(rig_file_with_response(text, fitted))
+    return target

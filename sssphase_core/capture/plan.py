@@ -6,6 +6,7 @@ from __future__ import annotations
 import hashlib
 import json
 import tomllib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -15,6 +16,8 @@ from sssphase_core.store.imageio import read_pattern
 from sssphase_core.store.session import check_object_name
 
 DEFAULT_HDR = (0.25, 1.0, 4.0)
+#: The sim rig's noise seeds (plugins/sim_plugin.py takes 0 to 2**63 - 1).
+MAX_SEED = 2**63 - 1
 DOT_SPACING_PER_PATCH = 55 / 90  # the paper's 55 px spacing for K = 90 patches
 
 
@@ -119,7 +122,88 @@ class CaptureRequest:
     transport: str | None = None  # sim light-transport model (None: the rig's, burley)
     sim_options: dict[str, Any] = field(default_factory=dict)  # more sim rig options (e.g. sim.randomised_rig_options)
 
+    @classmethod
+    def from_options(cls, object_name: str, rig: RigSpec, *, views: int = 4, footprints: bool = False,
+                     references: tuple[str, ...] | list[str] = (), hdr: bool = False, hdr_exposures: str | None = None,
+                     keep_dots: bool = False, keep_unwrap: bool = False, resume: bool = False, out: Path = Path("sessions"),
+                     seed: int = 0, preset: str = "cpu", dot_spacing: int | None = None, transport: str | None = None,
+                     randomise_rig: bool = False,
+                     on_drawn: Callable[[dict[str, Any]], None] | None = None) -> CaptureRequest:
+        """A request from `sss capture`'s options (and a form's: the same names), checked for ``rig`` as
+        :meth:`validate` checks it, in the order the options are given. ``hdr_exposures``: comma-separated
+        relative exposures (implies ``hdr``; ``hdr``: :data:`DEFAULT_HDR`). ``randomise_rig`` draws the sim rig's
+        physics and camera from ``seed`` and the object's name (:func:`sim.randomised_rig_options`), told to
+        ``on_drawn`` as soon as drawn."""
+        req = cls(object_name, views, footprints, tuple(references), (), keep_dots, keep_unwrap, resume, out, seed,
+                  preset, dot_spacing, transport)
+        req._check_counts()
+        if randomise_rig and rig.is_sim:
+            from sssphase_core.sim import randomised_rig_options
 
+            req.sim_options = randomised_rig_options(seed, object_name)
+        req._check_rig(rig, randomise_rig)
+        if req.sim_options and on_drawn is not None:
+            on_drawn(req.sim_options)
+        req.hdr = parse_exposures(hdr_exposures) if hdr_exposures is not None else DEFAULT_HDR if hdr else ()
+        req._check_frames()
+        return req
+
+    def validate(self, rig: RigSpec | None = None) -> None:
+        """Refuse, in one line, a request that ``rig`` (default: the sim rig) cannot capture, before a daemon
+        starts: the name, views, seed, sim rig options, HDR brackets, references, dot spacing and output folder."""
+        self._check_counts()
+        self._check_rig(rig or RigSpec(), False)
+        self._check_frames()
+
+    def _check_counts(self) -> None:
+        check_object_name(self.object)
+        if self.views < 1:
+            raise InputError(f"--views must be >= 1, got {self.views}")
+        if not 0 <= self.seed <= MAX_SEED:
+            raise InputError(f"--seed must be 0 to {MAX_SEED} (2**63 - 1, what the sim rig takes), got {self.seed}")
+
+    def _check_rig(self, rig: RigSpec, randomise_rig: bool) -> None:
+        if rig.is_sim:  # an unknown preset or transport model is one line, before a daemon starts
+            from sssphase_core.sim import MAX_VIEWS, rig_from_options
+
+            if self.views > MAX_VIEWS:
+                raise InputError(f"--views: the sim rig's turntable takes at most {MAX_VIEWS} views, got {self.views}")
+            rig_from_options({"preset": self.preset, **rig.options, **self.sim_options,
+                              **({"transport": self.transport} if self.transport else {})})
+        elif self.transport is not None or randomise_rig:
+            flag = "--transport" if self.transport is not None else "--randomise-rig"
+            raise InputError(f"{flag} changes the simulator's physics and camera: it applies to the sim rig only")
+
+    def _check_frames(self) -> None:
+        from sssphase_core.capture.engine import check_brackets
+        from sssphase_core.processing.patterns import REFERENCE_NAMES, check_dot_spacing
+        from sssphase_core.store.imageio import MAX_FRAME_PIXELS, frame_shape
+        from sssphase_core.store.session import check_output_folder
+
+        check_brackets(self.hdr)
+        reference_keys(self.references)
+        for ref in self.references:
+            if ref not in REFERENCE_NAMES:  # an unreadable file or values outside [0, 1]: one line before a daemon starts
+                h, w = frame_shape(Path(ref))[:2]
+                if w * h > MAX_FRAME_PIXELS:
+                    raise InputError(f"--reference {ref} is {w}x{h}: larger than any projector (scale it down first)")
+                read_pattern(Path(ref), (w, h))  # (its size is checked against the rig's projector by the daemon)
+        if self.dot_spacing is not None:  # 0 meant the default, 10^12 exhausted the memory
+            check_dot_spacing(self.dot_spacing)
+        check_output_folder(self.out)
+
+
+def parse_exposures(text: str) -> tuple[float, ...]:
+    """``--hdr-exposures``: comma-separated relative exposures, e.g. ``"0.25,1,4,16"`` (checked by
+    :func:`engine.check_brackets` in :meth:`CaptureRequest.validate`)."""
+    items = text.split(",")
+    try:
+        if not text.strip() or any(not v.strip() for v in items):  # '' or '1,,2': HDR asked, none given
+            raise ValueError
+        return tuple(float(v) for v in items)
+    except ValueError:
+        shown = text if len(text) <= 60 else text[:57] + "..."
+        raise InputError(f"--hdr-exposures takes comma-separated numbers, e.g. 0.25,1,4,16; got {shown!r}") from None
 
 
 def _reference_name(path: str) -> str:

@@ -1,0 +1,88 @@
+"""The capture request's checks (CaptureRequest.from_options / validate) and the calibration request, called
+directly: what `sss capture` and `sss calibrate projector` refuse before a daemon starts."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from sssphase_core.capture import DEFAULT_HDR, CaptureRequest, RigSpec
+from sssphase_core.capture.calibration import CalibrationRequest, write_rig_response
+from sssphase_core.capture.plan import parse_exposures
+from sssphase_core.errors import InputError
+
+
+def test_from_options_builds_the_request_and_draws_a_randomised_rig_once(tmp_path):
+    drawn = []
+    req = CaptureRequest.from_options("apple", RigSpec(), views=2, hdr=True, out=tmp_path, seed=3,
+                                      randomise_rig=True, on_drawn=drawn.append)
+    assert req.hdr == DEFAULT_HDR and req.views == 2 and req.out == tmp_path
+    assert len(drawn) == 1 and drawn[0] == req.sim_options and "projector_gamma" in req.sim_options
+    again = CaptureRequest.from_options("apple", RigSpec(), out=tmp_path, seed=3, randomise_rig=True)
+    assert again.sim_options == req.sim_options  # reproducible from the seed and the name
+    assert CaptureRequest.from_options("apple", RigSpec(), hdr_exposures="0.5,2", out=tmp_path).hdr == (0.5, 2.0)
+
+
+@pytest.mark.parametrize(("kwargs", "expected"), [
+    ({"views": 0}, "--views must be >= 1, got 0"),
+    ({"seed": -1}, "--seed must be 0 to 9223372036854775807"),
+    ({"views": 10**6}, "turntable takes at most"),
+    ({"transport": "nonsense"}, "nonsense"),
+    ({"hdr_exposures": "1,,2"}, "--hdr-exposures takes comma-separated numbers"),
+    ({"hdr_exposures": "1"}, "HDR exposures must be 2 to 8 distinct numbers"),
+    ({"dot_spacing": 0}, "dot"),
+    ({"references": ["checkerboard", "no_such_file.png"]}, "no_such_file.png"),
+])
+def test_from_options_refuses_in_one_line(tmp_path, kwargs, expected):
+    with pytest.raises(InputError, match=expected.replace("(", r"\(")):
+        CaptureRequest.from_options("apple", RigSpec(), out=tmp_path / "s", **kwargs)
+    assert not (tmp_path / "s").exists()
+
+
+def test_validate_checks_a_request_made_directly(tmp_path):
+    CaptureRequest("apple", views=1, out=tmp_path).validate()
+    with pytest.raises(InputError, match="applies to the sim rig only"):
+        CaptureRequest("apple", transport="burley", out=tmp_path).validate(RigSpec(camera="x:cam", projector="x:proj"))
+    with pytest.raises(InputError, match="HDR exposures"):
+        CaptureRequest("apple", hdr=(1.0, 1.0), out=tmp_path).validate()
+    with pytest.raises(InputError, match="--randomise-rig changes the simulator"):
+        CaptureRequest.from_options("apple", RigSpec(camera="x:cam", projector="x:proj"), out=tmp_path,
+                                    randomise_rig=True)
+
+
+def test_parse_exposures():
+    assert parse_exposures(" 0.25, 1 ,4") == (0.25, 1.0, 4.0)
+    for bad in ("", "a,b", "1,"):
+        with pytest.raises(InputError, match="--hdr-exposures"):
+            parse_exposures(bad)
+
+
+def test_calibration_request_resolves_and_checks_the_target(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    req = CalibrationRequest()
+    assert req.target == Path("rig.toml") and req.spec.is_sim and req.ramp[0] == 0 and req.ramp[-1] == 1
+    assert len(req.ramp) == 17
+    with pytest.raises(InputError, match="is a folder"):
+        CalibrationRequest(out=tmp_path)
+    (tmp_path / "script.py").write_text("print('x')\n")
+    with pytest.raises(InputError, match="exists and is not a rig file"):
+        CalibrationRequest(out=tmp_path / "script.py")
+    real = tmp_path / "real.toml"
+    real.write_text('[devices]\ncamera = "x:cam"\nprojector = "x:proj"\n')
+    with pytest.raises(InputError, match="works on sim rigs only"):
+        CalibrationRequest(rig=real, check=True)
+
+
+def test_write_rig_response_writes_a_sim_rig_file_with_the_fit(tmp_path):
+    import numpy as np
+
+    from sssphase_core.capture.calibration import fit_response
+
+    levels = tuple(float(v) for v in np.linspace(0, 1, 9))
+    light = np.array([0.8 * (0.02 + 0.98 * v ** 2.0) for v in levels], np.float32)
+    images = np.broadcast_to(light[:, None, None, None], (9, 8, 8, 3)).copy()
+    fitted = fit_response(levels, images)
+    target = write_rig_response(CalibrationRequest(out=tmp_path / "rigs" / "r.toml"), fitted)
+    spec = RigSpec.from_toml(target)
+    assert spec.is_sim and spec.gamma == pytest.approx(2.0, abs=0.05)
