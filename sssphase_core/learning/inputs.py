@@ -78,7 +78,7 @@ class ViewOptions:
     views: str | Sequence[int] | None = None
     n_views: int = 4
     rig: str = "cpu"
-    pixels_per_view: int = 2000
+    pixels_per_view: int | None = 2000  # surface pixels sampled per view (None: all)
     seed: int = 0
     cache: Path = DEFAULT_CACHE
     sessions: Path | None = None
@@ -129,14 +129,11 @@ def view_objects(vds: Sequence[ViewData]) -> list[str]:
 
 
 def load_views(names: Sequence[str], views: list[int] | dict[str, list[int]] | None, opts: ViewOptions, *,
-               footprints: bool, pixels: int | None = -1, noisy: bool = False, role: str = "data",
-               report: Report = Report()) -> list[ViewData]:
+               footprints: bool, noisy: bool = False, role: str = "data", report: Report = Report()) -> list[ViewData]:
     """The training or evaluation data: views of captured sessions (``opts.sessions``; ``views`` None: every
-    complete view, or a list per object) or else rendered by the simulator; says where they came from.
-    ``pixels``: surface pixels sampled per view (None: all; default: ``opts.pixels_per_view``)."""
-    pixels = opts.pixels_per_view if pixels == -1 else pixels
+    complete view, or a list per object) or else rendered by the simulator; says where they came from."""
     if opts.sessions is not None:
-        return _session_views(names, views, opts, footprints=footprints, pixels=pixels, role=role, report=report)
+        return _session_views(names, views, opts, footprints=footprints, role=role, report=report)
     from sssphase_core.learning.data import simulate_views
 
     wanted = sorted({v for vs in (views.values() if isinstance(views, dict) else [views or []]) for v in vs})
@@ -144,20 +141,20 @@ def load_views(names: Sequence[str], views: list[int] | dict[str, list[int]] | N
         raise InputError(f"views {','.join(map(str, wanted))} need --n-views above {wanted[-1]} (the turntable's views "
                          f"per object; it is {opts.n_views}): pass --views within 0..{opts.n_views - 1} or raise --n-views")
     with report.busy(f"simulating {len(names)} object(s) x {len(views or [])} view(s) (cached in {opts.cache})"):
-        vds = simulate_views(names, views, n_views=opts.n_views, rig=opts.rig, pixels_per_view=pixels,
+        vds = simulate_views(names, views, n_views=opts.n_views, rig=opts.rig, pixels_per_view=opts.pixels_per_view,
                              footprints=footprints, noisy_footprints=noisy, seed=opts.seed, cache_dir=opts.cache)
     report.say(f"{role}: the simulated rig ({opts.rig} preset{', exact footprints' if footprints and not noisy else ''}): "
                f"{describe_views(vds)}; pass --sessions DIR to use your own captures")
     return vds
 
 
-def _session_views(names: Sequence[str], views: Any, opts: ViewOptions, *, footprints: bool, pixels: int | None,
-                   role: str, report: Report) -> list[ViewData]:
+def _session_views(names: Sequence[str], views: Any, opts: ViewOptions, *, footprints: bool, role: str,
+                   report: Report) -> list[ViewData]:
     from sssphase_core.learning.data import session_views
 
     sessions = Path(opts.sessions)  # type: ignore[arg-type]
     with report.busy(f"reading sessions under {opts.sessions}"):
-        vds = session_views(sessions, names or None, views or None, pixels_per_view=pixels, footprints=footprints,
+        vds = session_views(sessions, names or None, views or None, pixels_per_view=opts.pixels_per_view, footprints=footprints,
                             seed=opts.seed)
     if not vds:
         why = "" if sessions.is_dir() else " (a file, not a folder)" if sessions.exists() else " (no such folder)"

@@ -12,7 +12,7 @@ and returns what it made (a checkpoint and the run's figures, or the evaluation'
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -480,7 +480,7 @@ def pca_figure(checkpoint: Path | str, objects: str | Sequence[str], view: int, 
 
     enc = load_encoder(checkpoint)
     names = parse_names(objects, () if data.sessions else ("soap", "shovel"))
-    vds = load_views(names, [view], data, pixels=None, footprints=False, report=report)
+    vds = load_views(names, [view], replace(data, pixels_per_view=None), footprints=False, report=report)
     with report.busy(f"embedding one pixel in {stride} along x and y of {len(vds)} view(s)"):
         maps = pca_maps(enc, [(v.psp, v.pixels) for v in vds], stride)
     panels_figure(out, maps, [f"{v.object}, view {v.view}" for v in vds], f"{PCA_TITLE} (one pixel in {stride} along x and y)")
