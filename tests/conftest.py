@@ -2,11 +2,20 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import tempfile
 from pathlib import Path
 
 import pytest
+
+# pytest-xdist runs one worker per core: each worker's torch (and the `sss` processes it starts) gets its
+# share of the cores instead of all of them, so that parallel tests do not oversubscribe the machine.
+_workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+if _workers > 1:
+    _share = str(max(1, (os.cpu_count() or 1) // _workers))
+    for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
+        os.environ.setdefault(_var, _share)
 
 
 @pytest.fixture(scope="session", autouse=True)
@@ -33,3 +42,24 @@ def sim_daemon():
                 yield client
     finally:
         shutil.rmtree(runtime, ignore_errors=True)
+
+
+@pytest.hookimpl(tryfirst=True)  # before xdist's own hook, which reads the groups into the node ids
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Order and group the tests for pytest-xdist.
+
+    * Tests marked ``slow`` run first, so that the longest ones do not start last on one worker while the
+      other worker idles.
+    * Tests that use a module- or class-scoped fixture of their own module (a capture, a trained demo)
+      share one worker (``xdist_group``), so the fixture is built once instead of once per worker.
+    """
+    for item in items:
+        info = getattr(item, "_fixtureinfo", None)
+        if info is None or item.get_closest_marker("xdist_group"):
+            continue
+        for name in info.names_closure:
+            defs = info.name2fixturedefs.get(name)
+            if defs and defs[-1].scope in ("module", "class") and defs[-1].baseid not in ("", "tests"):
+                item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))
+                break
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable: file order kept otherwise

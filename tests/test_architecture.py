@@ -34,3 +34,30 @@ def test_a_broken_contract_is_reported(tmp_path):
         'source_modules = ["sssphase_cli"]\nforbidden_modules = ["rich"]\n')
     proc = _lint(tmp_path / "bad.toml")
     assert proc.returncode != 0 and "BROKEN" in proc.stdout
+
+
+def test_cli_functions_only_parse_and_print():
+    """The CLI is thin (each command parses, calls one function of the library, prints): no function in cli/
+    runs over 60 lines, signature included; the work lives in core runners the web view and notebooks share."""
+    import ast
+
+    long = []
+    for path in sorted((ROOT / "cli").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef)) and node.end_lineno - node.lineno + 1 > 60:
+                long.append(f"{path.name}:{node.name} ({node.end_lineno - node.lineno + 1} lines)")
+    assert long == [], long
+
+
+def test_cli_imports_no_private_name_of_the_library():
+    """The CLI calls the library's public API only (a `_name` import means logic that belongs in core)."""
+    import ast
+
+    private = []
+    for path in sorted((ROOT / "cli").glob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.ImportFrom) and (node.module or "").startswith(("sssphase_core", "sssphase_daemon",
+                                                                                   "sssphase_plugins")):
+                private += [f"{path.name}: {node.module}.{a.name}" for a in node.names
+                            if a.name.startswith("_") and not a.name.endswith("__")]
+    assert private == [], private

@@ -166,13 +166,13 @@ def test_an_eof_error_that_escapes_a_command_is_one_line_not_aborted(monkeypatch
     """Click turns an EOFError (numpy's, reading an empty .npy) into a bare "Aborted"; `sss` names it."""
     import signal
 
-    import sssphase_core.processing.patterns as patterns
+    import sssphase_core.capture.pattern_files as pattern_files  # where `sss patterns` reads the projector size
     from sssphase_cli.main import main
 
     def cut_short(*args: object) -> None:
         raise EOFError("No data left in file")
 
-    monkeypatch.setattr(patterns, "parse_projector_size", cut_short)
+    monkeypatch.setattr(pattern_files, "parse_projector_size", cut_short)
     monkeypatch.setattr(signal, "signal", lambda *args: None)  # leave pytest's SIGTERM handler alone
     monkeypatch.setattr(sys, "argv", ["sss", "patterns", "--out", str(tmp_path / "p")])
     with pytest.raises(SystemExit) as exc:

@@ -45,10 +45,18 @@ def stop_daemon(proc: subprocess.Popen, client: DaemonClient) -> None:
 
 @pytest.fixture(scope="module")
 def daemon(runtime_dir):
-    """A daemon process (client timeout 4 s, 1 MiB message limit) and a client for it."""
-    proc, client = start_daemon()
-    yield proc, client
-    stop_daemon(proc, client)
+    """A daemon process (client timeout 4 s, 1 MiB message limit) and a client for it, in a runtime dir of
+    its own that the module's `sss` commands find (SSS_RUNTIME_DIR while the module runs): another
+    session fixture's daemon (``sim_daemon``) or one a capture started must not be serving there."""
+    path = Path(tempfile.mkdtemp(prefix="sssm", dir="/tmp"))
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("SSS_RUNTIME_DIR", str(path))
+        proc, client = start_daemon()
+        try:
+            yield proc, client
+        finally:
+            stop_daemon(proc, client)
+            shutil.rmtree(path, ignore_errors=True)
 
 
 def run_sss(*args: str, env: dict[str, str] | None = None, timeout: float = 120) -> subprocess.CompletedProcess:
