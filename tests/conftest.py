@@ -63,3 +63,4 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
                 item.add_marker(pytest.mark.xdist_group(item.nodeid.split("::")[0]))
                 break
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable: file order kept otherwise
+

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from learn_sessions import synthetic_sessions
 
 from sssphase_core.bench.synthetic import synthetic_views
 from sssphase_core.learning.data import PatchDataset
@@ -49,22 +50,6 @@ def pretrained(dataset, tiny, tmp_path_factory):
 
 @pytest.fixture
 def one_and_three_sessions(synthetic):
-    """``make(root)``: sessions 'one' (view 0) and 'three' (views 0, 2, 5) made of a synthetic view, under ``root``."""
-    import numpy as np
-
-    from sssphase_core.store.session import Session
-
-    def make(root):
-        v = synthetic[0][0]
-        mask = np.zeros(v.psp.shape[1:3], bool)
-        mask[v.pixels[:, 0], v.pixels[:, 1]] = True
-        for name, views in (("one", [0]), ("three", [0, 2, 5])):
-            s = Session.create(root, name)
-            for view in views:
-                w = s.begin_view(view)
-                w.write("psp", v.psp)
-                w.write("corr/mask", mask)
-                w.commit()
-        return root
-
-    return make
+    """``make(root, footprints=False)``: sessions 'one' (view 0) and 'three' (views 0, 2, 5) made of a synthetic
+    view (with its footprint crops when asked), under ``root``."""
+    return lambda root, footprints=False: synthetic_sessions(root, synthetic, footprints)

@@ -8,6 +8,7 @@ import json
 
 import numpy as np
 import pytest
+from learn_sessions import synthetic_sessions
 
 from sssphase_core.errors import InputError
 from sssphase_core.learning.inputs import (
@@ -41,24 +42,6 @@ class Said:
         return Report(say=self.lines.append, status=status, style=lambda text, kind: f"<{kind}>{text}</{kind}>")
 
 
-def _sessions(root, synthetic, footprints: bool = False):
-    """Sessions 'one' (view 0) and 'three' (views 0, 2, 5) of a synthetic view (with footprint crops)."""
-    from sssphase_core.store.session import Session
-
-    v = synthetic[0][0]
-    mask = np.zeros(v.psp.shape[1:3], bool)
-    mask[v.pixels[:, 0], v.pixels[:, 1]] = True
-    for name, views in (("one", [0]), ("three", [0, 2, 5])):
-        s = Session.create(root, name)
-        for view in views:
-            w = s.begin_view(view)
-            w.write("psp", v.psp)
-            w.write("corr/mask", mask)
-            if footprints:
-                w.write("footprints/pixels", v.pixels.astype(np.int32))
-                w.write("footprints/crops", np.asarray(v.footprints, np.float32))
-            w.commit()
-    return root
 
 
 def _decoder_checkpoint(path, preset) -> None:
@@ -87,7 +70,7 @@ def test_names_and_views_are_parsed_once_each_and_echoed_as_given():
 
 
 def test_views_are_read_from_sessions_and_described(synthetic, tmp_path):
-    root = _sessions(tmp_path / "sessions", synthetic)
+    root = synthetic_sessions(tmp_path / "sessions", synthetic)
     said = Said()
     vds = load_views([], None, ViewOptions(sessions=root, pixels_per_view=5), footprints=False, report=said.report())
     assert [(v.object, v.view, len(v.pixels)) for v in vds] == [("one", 0, 5), ("three", 0, 5), ("three", 2, 5),
@@ -108,7 +91,7 @@ def test_simulated_views_beyond_the_turntable_are_refused_before_any_rendering(t
 
 
 def test_decoder_views_hold_out_each_sessions_last_view_unless_it_trains(synthetic, tmp_path):
-    root = _sessions(tmp_path / "sessions", synthetic, footprints=True)
+    root = synthetic_sessions(tmp_path / "sessions", synthetic, footprints=True)
     assert decoder_view_choice([], None, None, root) == ({"one": [0], "three": [0, 2]}, {"one": [], "three": [5]})
     assert decoder_view_choice([], "0", None, root) == ([0], {"one": [], "three": [5]})  # its last view, if not training
     assert decoder_view_choice(["three"], "0,2,5", None, root) == ([0, 2, 5], [])  # every view trains: none held out
@@ -152,7 +135,7 @@ def test_named_checkpoints_are_plain_distinct_and_present(tmp_path):
 def test_run_pretrain_checks_the_config_before_the_data_and_saves_it_before_training(synthetic, tmp_path):
     from sssphase_core.reporting.learning_runs import PretrainOptions, run_pretrain
 
-    root = _sessions(tmp_path / "sessions", synthetic)
+    root = synthetic_sessions(tmp_path / "sessions", synthetic)
     out = tmp_path / "run"
     calls: list[tuple[str, bool]] = []
 
@@ -188,7 +171,7 @@ def test_run_pretrain_checks_the_config_before_the_data_and_saves_it_before_trai
 def test_run_pretrain_refuses_a_batch_larger_than_the_data_before_the_run_folder(synthetic, tmp_path):
     from sssphase_core.reporting.learning_runs import PretrainOptions, run_pretrain
 
-    root = _sessions(tmp_path / "sessions", synthetic)
+    root = synthetic_sessions(tmp_path / "sessions", synthetic)
     with pytest.raises(InputError, match="--batch-size 64 is more than the 32 training patches"):
         run_pretrain(PretrainOptions(out=tmp_path / "run", sessions=root, pixels_per_view=8), Report(say=lambda s: None))
     assert not (tmp_path / "run").exists()
@@ -222,7 +205,7 @@ def test_check_against_baselines_without_sessions_says_so():
 def test_evaluate_knn_returns_the_results_and_tables_it_measured(synthetic, tiny, tmp_path):
     from sssphase_core.reporting.learning_runs import KnnOptions, evaluate_knn
 
-    root = _sessions(tmp_path / "sessions", synthetic)
+    root = synthetic_sessions(tmp_path / "sessions", synthetic)
     _decoder_checkpoint(tmp_path / "enc.pt", tiny)
     said = Said()
     ev = evaluate_knn(KnnOptions(checkpoints=[f"fresh={tmp_path / 'enc.pt'}"], sessions=root, pixels_per_view=8, k="1,3"),
@@ -244,7 +227,7 @@ def test_evaluate_knn_returns_the_results_and_tables_it_measured(synthetic, tiny
 def test_evaluate_footprints_measures_each_backend_and_plots_it(synthetic, tiny, tmp_path):
     from sssphase_core.reporting.learning_runs import FootprintOptions, evaluate_footprints
 
-    root = _sessions(tmp_path / "sessions", synthetic, footprints=True)
+    root = synthetic_sessions(tmp_path / "sessions", synthetic, footprints=True)
     with pytest.raises(InputError, match="--compare takes NAME=PATH with a new name"):  # before the checkpoint is read
         evaluate_footprints(FootprintOptions(checkpoint=tmp_path / "none.pt", compare=["torch=x"], sessions=root))
     _decoder_checkpoint(tmp_path / "dec.pt", tiny)
@@ -268,7 +251,7 @@ def test_pca_figure_draws_every_session_view_and_returns_them(synthetic, tiny, t
 
     from sssphase_core.reporting.learning_runs import pca_figure
 
-    root = _sessions(tmp_path / "sessions", synthetic)
+    root = synthetic_sessions(tmp_path / "sessions", synthetic)
     _decoder_checkpoint(tmp_path / "enc.pt", tiny)
     said = Said()
     vds = pca_figure(tmp_path / "enc.pt", "", 0, ViewOptions(sessions=root), 4, tmp_path / "pca.png", said.report())
