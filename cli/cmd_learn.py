@@ -32,7 +32,7 @@ MAX_SEED = 2**32 - 1  # numpy's and torch's seeds take it; the loop derives per-
 NViewsOpt = Annotated[int, typer.Option(min=1, help="Turntable views per object (simulator).")]
 DeterministicOpt = Annotated[bool, typer.Option(
     help="CUDA: deterministic kernels, so a resumed run ends with exactly an uninterrupted run's weights (`sss bench "
-         "gpu` measures the cost; the README gives an H200's: SimSiam resumed exactly without them, the decoder did "
+         "gpu` measures the cost; the docs' paper-scale page gives an H200's: SimSiam resumed exactly without them, the decoder did "
          "not); the CPU's kernels always are.")]
 SeedOpt = Annotated[int, typer.Option(min=0, max=MAX_SEED)]
 EpochsOpt = Annotated[int, typer.Option(min=1, max=100_000)]

@@ -237,7 +237,7 @@ class RelightResult:
 def resolve_backend(backend: str, checkpoint: Path | str | None, narrator: Narrator | None = None
                     ) -> tuple[str, Path | None]:
     """``(backend, checkpoint)`` checked before any work: a run folder's best checkpoint, ``auto`` as the
-    best source the user can run (blend with a decoder, else analytic; README: blend >= torch on every object
+    best source the user can run (blend with a decoder, else analytic; docs, relighting: blend >= torch on every object
     tried), unknown backends and unreadable decoders refused, an unused checkpoint noted."""
     from sssphase_core.learning.training import resolve_checkpoint
 

@@ -83,7 +83,7 @@ class Decoder(nn.Module):
       Energy is what relighting needs most and the SBH terms constrain least (they are relative:
       log, peak-normalised SSIM, normalised gradients), so it comes from physics, and the profile
       comes from brightness-free features, so it carries over to unseen materials (measured in
-      the README).
+      the docs' learning and relighting pages).
     * ``direct`` (the paper's): ``softplus(conv) * out_scale``; ``out_scale`` (footprints peak near
       0.04 in linear camera units) keeps the conv on O(1) values, bias -4 starts at ~1e-3 (a tail).
 
