@@ -174,7 +174,7 @@ def export(
 
 
 def calibrate_projector(
-    rig: Annotated[Path | None, typer.Option(help="rig file (TOML) to calibrate; its [projector] table is rewritten "
+    rig: Annotated[Path | None, typer.Option(help="rig file (TOML) to calibrate; its \"projector\" table is rewritten "
                                              "(default: the sim rig, written to --out)")] = None,
     out: Annotated[Path | None, typer.Option(help="rig file to write (default: --rig itself, else rig.toml)")] = None,
     levels: Annotated[int, typer.Option(min=4, max=256, help="grey levels in the ramp, 0 to 1")] = 17,
