@@ -6,35 +6,7 @@ from pathlib import Path
 
 import typer
 
-
-class _Bar:
-    """A rich progress bar for a library call that reports ``progress(done, total)``: shown from the first report,
-    closed at the last (or when the block ends)."""
-
-    def __init__(self, description: str) -> None:
-        self.description, self.bar, self.task = description, None, None
-
-    def __call__(self, done: int, total: int) -> None:
-        if self.bar is None:
-            from rich.progress import Progress
-
-            self.bar = Progress()
-            self.bar.start()
-            self.task = self.bar.add_task(self.description, total=total)
-        self.bar.update(self.task, completed=done)
-        if done >= total:
-            self.close()
-
-    def close(self) -> None:
-        if self.bar is not None:
-            self.bar.stop()
-            self.bar = None
-
-    def __enter__(self) -> _Bar:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.close()
+from sssphase_cli.progress import LazyBar
 
 
 def patterns(
@@ -52,7 +24,7 @@ def patterns(
     """Write the capture plan's projector patterns as 8-bit PNGs named by plan key, plus plan.json."""
     from sssphase_core.capture.pattern_files import write_patterns
 
-    with _Bar("writing patterns") as bar:
+    with LazyBar("writing patterns") as bar:
         written = write_patterns(out, projector, footprints=footprints, dot_spacing=dot_spacing, references=reference,
                                  period=period, shifts=shifts, unwrap=unwrap, gamma=gamma, hdr=hdr, progress=bar)
     typer.echo(f"{written.patterns} patterns ({written.planned} planned frames) written to {out}")
@@ -69,7 +41,7 @@ def decode_cmd(
     """Decode PSP frames into camera -> projector correspondences (xp, yp, mask, reason) + PNGs."""
     from sssphase_core.reporting.decoded import decode_folder
 
-    with _Bar("loading frames") as bar:
+    with LazyBar("loading frames") as bar:
         result = decode_folder(folder, out, projector=projector, min_modulation=min_modulation, saturation=saturation,
                                bayer=bayer, progress=bar, report=typer.echo)
     typer.echo(f"decoded {result.coverage['VALID']} of {result.pixels} pixels -> {out}  ({result.coverage})")

@@ -6,21 +6,18 @@ from pathlib import Path
 
 import typer
 
+from sssphase_cli.progress import LazyBar
 
-class _SimBar:
-    """The rich bar of `sss sim`'s views and, below it, the lit pixels of the view being rendered (created on
-    the library's first report, so that a refused run prints nothing but its error)."""
+
+class _SimBar(LazyBar):
+    """`sss sim`'s bar of views and, below it, the lit pixels of the view being rendered."""
 
     def __init__(self, object_name: str) -> None:
-        self.object_name, self.bar, self.task, self.pixels = object_name, None, None, {}
+        super().__init__(f"sim {object_name}")
+        self.pixels: dict[int, int] = {}
 
-    def __call__(self, view: int | None, done: int, total: int | None) -> None:
-        if self.bar is None:
-            from rich.progress import Progress
-
-            self.bar = Progress()
-            self.bar.start()
-            self.task = self.bar.add_task(f"sim {self.object_name}", total=total)
+    def __call__(self, view: int | None, done: int, total: int | None) -> None:  # type: ignore[override]
+        self.start(total)
         if view is None:  # a view is done: its pixel task goes
             for task in self.pixels.values():
                 self.bar.remove_task(task)
@@ -30,19 +27,6 @@ class _SimBar:
         if view not in self.pixels:
             self.pixels[view] = self.bar.add_task(f"  view {view}: lit pixels", total=None)
         self.bar.update(self.pixels[view], completed=done, total=total)
-
-    def print(self, line: str) -> None:
-        if self.bar is not None:
-            self.bar.console.print(line)
-        else:
-            typer.echo(line)
-
-    def __enter__(self) -> _SimBar:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if self.bar is not None:
-            self.bar.stop()
 
 
 def sim(

@@ -23,3 +23,46 @@ def step_bar(console: Console) -> Iterator[Callable[[str, int, int, str], None]]
             bar.update(tasks[task], completed=done, total=total, info=info)
 
         yield update
+
+
+class LazyBar:
+    """A rich progress bar for a library call that reports ``progress(done, total)``: started on the first
+    report (so a run refused before any work prints only its error), stopped at the last report or when the
+    block ends. ``print`` writes a line above the bar while it is shown."""
+
+    def __init__(self, description: str) -> None:
+        self.description = description
+        self.bar = None
+        self.task = None
+
+    def start(self, total: int | None) -> None:
+        """Show the bar (once) with its main task of ``total`` steps."""
+        if self.bar is None:
+            from rich.progress import Progress
+
+            self.bar = Progress()
+            self.bar.start()
+            self.task = self.bar.add_task(self.description, total=total)
+
+    def __call__(self, done: int, total: int) -> None:
+        self.start(total)
+        self.bar.update(self.task, completed=done)
+        if done >= total:
+            self.close()
+
+    def print(self, line: str) -> None:
+        if self.bar is not None:
+            self.bar.console.print(line)
+        else:
+            print(line)
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.stop()
+            self.bar = None
+
+    def __enter__(self) -> LazyBar:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
