@@ -307,10 +307,14 @@ def bench_gpu(
 ) -> None:
     """The GPU path: paper-preset training with mixed precision, CPU/GPU agreement, relighting, NCCL DDP."""
     from sssphase_cli.output import write_result
+    from sssphase_core.compute import check_device
+
+    check_device(device)  # one line before any work (and before torch is imported)
     from sssphase_core.bench.gpu_bench import markdown, run
     from sssphase_core.learning.models import get_preset
 
     get_preset(preset)  # an unknown preset is one line before any work
+
     with console.status("sss bench gpu") as status:
         result = run(out, device=device, preset=preset, steps=steps, batch=batch, epochs=epochs,
                      progress=lambda stage: status.update(f"sss bench gpu: {stage}"))

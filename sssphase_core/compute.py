@@ -1,28 +1,51 @@
-"""Where torch computes: one check of a user's ``--device`` for every command."""
+"""Where torch computes: one check of a user's ``--device`` for every command.
+
+:func:`check_device` refuses a bad name without importing torch for ``auto`` and ``cpu`` (a front end's
+checks stay fast); :func:`compute_device` gives the torch device.
+"""
 
 from __future__ import annotations
 
-import torch
+import re
+from typing import TYPE_CHECKING
 
 from sssphase_core.errors import InputError
+
+if TYPE_CHECKING:
+    import torch
+
+DEVICE_NAMES = "use auto, cpu, cuda or cuda:N"
+#: Device types torch knows that sssphase does not compute on.
+OTHER_TORCH_DEVICES = ("mps", "xpu", "meta", "hip", "xla", "ipu", "mtia", "hpu", "vulkan", "mkldnn", "opengl", "opencl",
+                       "ideep", "fpga", "maia", "lazy", "ve", "privateuseone")
+
+
+def check_device(name: str) -> None:
+    """Refuse a ``--device`` this process cannot use (an :class:`InputError` naming what is available).
+    ``auto`` and ``cpu`` are checked without importing torch; ``cuda[:N]`` asks torch what it sees."""
+    if name == "auto" or re.fullmatch(r"cpu(:\d+)?", name):
+        return
+    if not re.fullmatch(r"cuda(:\d+)?", name):
+        if name.partition(":")[0] in OTHER_TORCH_DEVICES:
+            raise InputError(f"device {name!r} is not supported: {DEVICE_NAMES}")
+        raise InputError(f"unknown device {name!r}: {DEVICE_NAMES}")
+    import torch
+
+    if not torch.cuda.is_available():
+        raise InputError(f"device {name!r}: this torch build sees no CUDA device (torch.cuda.is_available() is False)")
+    index = int(name.partition(":")[2] or 0)
+    if ":" in name and index >= torch.cuda.device_count():
+        raise InputError(f"device {name!r}: torch sees {torch.cuda.device_count()} CUDA device(s)")
 
 
 def compute_device(name: str | torch.device) -> torch.device:
     """``auto`` (CUDA when torch sees one, else the CPU), ``cpu``, ``cuda`` or ``cuda:N`` -> a torch device
     this process can use; anything else is an :class:`InputError` naming what is available."""
+    import torch
+
     if isinstance(name, torch.device):
         return name
+    check_device(name)
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    try:
-        dev = torch.device(name)
-    except (RuntimeError, ValueError):
-        raise InputError(f"unknown device {name!r}: use auto, cpu, cuda or cuda:N") from None
-    if dev.type not in ("cpu", "cuda"):
-        raise InputError(f"device {name!r} is not supported: use auto, cpu, cuda or cuda:N")
-    if dev.type == "cuda":
-        if not torch.cuda.is_available():
-            raise InputError(f"device {name!r}: this torch build sees no CUDA device (torch.cuda.is_available() is False)")
-        if dev.index is not None and dev.index >= torch.cuda.device_count():
-            raise InputError(f"device {name!r}: torch sees {torch.cuda.device_count()} CUDA device(s)")
-    return dev
+    return torch.device(name)

@@ -39,3 +39,18 @@ def test_a_command_still_loads_the_plugins():
     out, probe = _probe(["plugins"])
     assert "builtin" in out
     assert "sssphase_plugins.manager" in probe and "pluggy" in probe, probe
+
+
+def test_usage_errors_are_answered_before_torch_is_imported():
+    """A refused relight, geometry, evaluation or benchmark request answers in well under a second: the checks
+    run before the modules that import torch (2 s on its own) are loaded."""
+    for argv in (["eval", "relight", "s", "--backend", "blend", "--checkpoint", "/nonexistent/ck.pt"],
+                 ["geometry", "no_session", "--device", "nonsense"],
+                 ["relight", "no_session", "--pattern", "checkerboard", "--format", "tiff"],
+                 ["eval", "knn", "--checkpoint", "root=/", "--n-views", "1"],
+                 ["bench", "gpu", "--device", "nonsense"]):
+        _, probe = _probe(argv)
+        assert "torch" not in probe and "CODE=2" in probe, (argv, probe)
+    _, probe = _probe(["eval", "relight", "/nonexistent/sessions", "--backend", "torch", "--checkpoint", __file__])
+    assert "CODE=2" in probe, probe  # a file that is not a checkpoint: refused, also without torch
+    assert "torch" not in probe, probe

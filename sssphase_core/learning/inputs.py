@@ -134,12 +134,12 @@ def load_views(names: Sequence[str], views: list[int] | dict[str, list[int]] | N
     complete view, or a list per object) or else rendered by the simulator; says where they came from."""
     if opts.sessions is not None:
         return _session_views(names, views, opts, footprints=footprints, role=role, report=report)
-    from sssphase_core.learning.data import simulate_views
-
     wanted = sorted({v for vs in (views.values() if isinstance(views, dict) else [views or []]) for v in vs})
     if wanted and wanted[-1] >= opts.n_views:  # view 0 was simulated before "view must be in [0, 1)"
         raise InputError(f"views {','.join(map(str, wanted))} need --n-views above {wanted[-1]} (the turntable's views "
                          f"per object; it is {opts.n_views}): pass --views within 0..{opts.n_views - 1} or raise --n-views")
+    from sssphase_core.learning.data import simulate_views
+
     with report.busy(f"simulating {len(names)} object(s) x {len(views or [])} view(s) (cached in {opts.cache})"):
         vds = simulate_views(names, views, n_views=opts.n_views, rig=opts.rig, pixels_per_view=opts.pixels_per_view,
                              footprints=footprints, noisy_footprints=noisy, seed=opts.seed, cache_dir=opts.cache)

@@ -1,4 +1,7 @@
-"""Training curves in the formats the field reads, next to each other in the run folder.
+"""A run folder: its checkpoints (:func:`resolve_checkpoint`) and its training curves in the formats the
+field reads, next to each other.
+
+- ``last.pt`` / ``best.pt``: the latest checkpoint and the best monitored epoch's.
 
 - ``metrics.jsonl``: one JSON row per epoch (the project's own record; resumable runs append).
 - ``metrics.csv``: the same rows as a table (columns: the union of all keys), rewritten each epoch.
@@ -15,11 +18,14 @@ import math
 from pathlib import Path
 from typing import Any
 
+from sssphase_core.errors import DataError
 from sssphase_core.store.files import atomic_path
 
 METRICS = "metrics.jsonl"
 METRICS_CSV = "metrics.csv"
 TB_DIR = "tb"
+CHECKPOINT = "last.pt"
+BEST = "best.pt"  # the epoch with the best monitored figure (kNN monitor / validation loss)
 TB_MISSING = "TensorBoard event files need the tensorboard package: pip install 'sssphase[tb]'"
 
 
@@ -79,3 +85,26 @@ class RunLog:
         if self.writer is not None:
             self.writer.close()
             self.writer = None
+
+
+def resolve_checkpoint(path: Path | str) -> Path:
+    """A run folder means its ``best.pt`` when training kept one, else its ``last.pt``; a file is itself."""
+    path = Path(path)
+    if path.is_dir():
+        return path / BEST if (path / BEST).exists() else path / CHECKPOINT
+    return path
+
+
+def check_checkpoint_file(path: Path | str) -> Path:
+    """The checkpoint ``path`` means (:func:`resolve_checkpoint`), refused with a :class:`DataError` when it
+    is missing, empty or not a file ``torch.save`` wrote (checked without importing torch)."""
+    path = resolve_checkpoint(path)
+    if not path.exists():
+        raise DataError(f"no checkpoint at {path}")
+    if path.is_file() and path.stat().st_size == 0:
+        raise DataError(f"cannot read checkpoint {path}: the file is empty")
+    if path.is_file():
+        with open(path, "rb") as f:
+            if f.read(4) != b"PK\x03\x04":  # what torch.save writes (torch's own error for others: "101")
+                raise DataError(f"{path} is not a checkpoint file (not written by torch.save)")
+    return path

@@ -1,10 +1,9 @@
 """Which footprint source a backend name gives a view (:func:`make_source`, :func:`make_sources` for
-blends), and the checks that refuse unknown backends or a missing decoder before any work
-(:func:`check_backends`)."""
+blends). The names and the checks that refuse unknown backends or a missing decoder before any work are
+in :mod:`~sssphase_core.relight.choices` (no torch), re-exported here."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -17,14 +16,11 @@ from sssphase_core.relight.calibration import (
     model_inputs,
     white_usable,
 )
+from sssphase_core.relight.choices import BLENDS, MODEL_FREE, check_backends, needs_checkpoint, uses_decoder  # noqa: F401
 from sssphase_core.relight.engine import FootprintSource
 from sssphase_core.relight.sources import backend_source, nearest_measured_source, no_scattering_source
 from sssphase_core.relight.transport import denoised_transport
 from sssphase_core.relight.views import RelightView
-
-MODEL_FREE = ("none", "exact", "measured")  # footprint sources that are data, not a model: never calibrated
-#: Backends that blend several models by the view calibration (:func:`relight_view` ``also``).
-BLENDS: dict[str, tuple[str, ...]] = {"blend": ("torch", "analytic")}
 
 
 def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",
@@ -81,36 +77,6 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
     if calibrate and rv.psp_patterns is not None:
         source = mixed_with_no_scattering(source, fit_view_mix(source, k, rv, psp, lost), rv.white)
     return source, k
-
-
-def check_backends(names: Sequence[str], checkpoint: Path | str | None) -> None:
-    """Refuse unknown footprint sources, and the decoder's without a readable checkpoint, before any work
-    starts (a missing or foreign checkpoint is one line before any progress is shown)."""
-    from sssphase_core.learning.backends import available_backends
-
-    known = [*MODEL_FREE, *BLENDS, *available_backends()]
-    for name in names:
-        if name not in known:
-            raise InputError(f"unknown backend {name!r}; available: {', '.join(sorted(set(known)))}")
-        needs_checkpoint(name, checkpoint)
-    if checkpoint is not None and any(uses_decoder(n) for n in names):
-        from sssphase_core.learning.training.checkpoints import load_decoder
-
-        load_decoder(checkpoint)  # raises DataError naming what the file is, or weights that are not finite
-
-
-def uses_decoder(name: str) -> bool:
-    """Whether backend ``name`` runs the decoder (``torch``, or a blend with it): it needs a checkpoint."""
-    return name == "torch" or "torch" in BLENDS.get(name, ())
-
-
-def needs_checkpoint(name: str, checkpoint: Path | str | None) -> None:
-    """Refuse the decoder, or a blend with it, without a decoder checkpoint."""
-    if checkpoint is not None or not uses_decoder(name):
-        return
-    if name == "torch":
-        raise InputError("the torch backend needs --checkpoint (a decoder checkpoint from `sss train decoder`)")
-    raise InputError(f"the {name} backend blends the decoder in: it needs --checkpoint (a decoder from `sss train decoder`)")
 
 
 def make_sources(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",

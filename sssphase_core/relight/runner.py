@@ -16,21 +16,12 @@ from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from sssphase_core.errors import InputError
-from sssphase_core.relight.backends import (
-    BLENDS,
-    MODEL_FREE,
-    check_backends,
-    make_source,
-    make_sources,
-    uses_decoder,
-)
-from sssphase_core.relight.cache import FootprintCache
-from sssphase_core.relight.engine import FootprintSource
+from sssphase_core.relight.choices import BLENDS, MODEL_FREE, check_backends, uses_decoder
 from sssphase_core.relight.evaluation import (
     aggregate,
     comparison_figure,
@@ -39,18 +30,14 @@ from sssphase_core.relight.evaluation import (
     metrics_table,
     relight_metrics,
 )
-from sssphase_core.relight.geometry import geometric_correspondence
 from sssphase_core.relight.images import check_image_formats, display_scale, read_pattern, write_images
-from sssphase_core.relight.pipeline import relight_view
-from sssphase_core.relight.transport import DotTransport
-from sssphase_core.relight.views import (
-    RelightView,
-    finest_psp_period,
-    has_captured_transport,
-    has_references,
-    load_view,
-)
+from sssphase_core.relight.views import finest_psp_period, has_captured_transport, has_references, load_view
 from sssphase_core.store.session import Session
+
+if TYPE_CHECKING:  # the work's modules import torch: loaded once the checks have passed
+    from sssphase_core.relight.engine import FootprintSource
+    from sssphase_core.relight.transport import DotTransport
+    from sssphase_core.relight.views import RelightView
 
 #: ``evaluate_sessions``' backends unless others are named (measured left out where no view has crops).
 EVAL_BACKENDS = "none,analytic,measured"
@@ -239,7 +226,7 @@ def resolve_backend(backend: str, checkpoint: Path | str | None, narrator: Narra
     """``(backend, checkpoint)`` checked before any work: a run folder's best checkpoint, ``auto`` as the
     best source the user can run (blend with a decoder, else analytic; docs, relighting: blend >= torch on every object
     tried), unknown backends and unreadable decoders refused, an unused checkpoint noted."""
-    from sssphase_core.learning.training import resolve_checkpoint
+    from sssphase_core.learning.runlog import resolve_checkpoint
 
     if checkpoint is not None:
         checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
@@ -254,7 +241,7 @@ def resolve_backend(backend: str, checkpoint: Path | str | None, narrator: Narra
 def _check_relight_options(out: Path, patterns: Sequence[str], resize: str, formats: str | Sequence[str],
                            device: str) -> tuple[str, ...]:
     """The options of :func:`relight_session` checked, in the order the CLI always checked them."""
-    from sssphase_core.compute import compute_device
+    from sssphase_core.compute import check_device
     from sssphase_core.store.imageio import RESIZE_MODES
     from sssphase_core.store.session import check_output_folder
 
@@ -264,7 +251,7 @@ def _check_relight_options(out: Path, patterns: Sequence[str], resize: str, form
         raise InputError(f"--resize must be one of {', '.join(RESIZE_MODES)}, got {resize!r}")
     if any(not p.strip() for p in patterns):
         raise InputError("--pattern is empty: give an image file or a named pattern (checkerboard, stripes_x, ...)")
-    compute_device(device)  # one line before any progress is drawn
+    check_device(device)  # one line before any progress is drawn
     return chosen
 
 
@@ -306,6 +293,11 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
                  out: Path, *, chunk: int, device: str, cache: bool, say: Narrator) -> tuple[np.ndarray, np.ndarray | None]:
     """One view relit (its footprints cached unless the source is the captured transport), its calibration
     and denoising told, its caches saved -> (images (P, H, W, 3), calibration weights or None)."""
+    from sssphase_core.relight.backends import make_sources
+    from sssphase_core.relight.cache import FootprintCache
+    from sssphase_core.relight.pipeline import relight_view
+    from sssphase_core.relight.transport import DotTransport
+
     sources: list[tuple[FootprintSource, int]] = make_sources(backend, rv, checkpoint=checkpoint, device=device)
     cached = cache and not isinstance(sources[0][0], DotTransport)  # the measured transport is read, not predicted
     if cached:
@@ -388,13 +380,13 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
     predicted from ``backend``'s footprints, written as ``out/<object>/view_NNN/correspondence_for_geometry.npz``
     (xp, yp, xp_decoded, yp_decoded, shift_x, shift_y, mask); scored against the exact points on simulated
     sessions."""
-    from sssphase_core.compute import compute_device
-    from sssphase_core.learning.training import resolve_checkpoint
+    from sssphase_core.compute import check_device
+    from sssphase_core.learning.runlog import resolve_checkpoint
     from sssphase_core.store.session import check_output_folder, claim_output, refuse_inside_session
 
     out, say = Path(out), narrator or Narrator()
     check_output_folder(out)
-    compute_device(device)  # an unknown device is refused here too, not ignored by the model-free backends
+    check_device(device)  # an unknown device is refused here too, not ignored by the model-free backends
     _check_geometry_backend(backend)
     s = session if isinstance(session, Session) else Session.open(session)
     refuse_inside_session(out / s.name, what=f"--out {out}: its folder")  # written as OUT/<object>/view_NNN: OUT must not hold the session itself
@@ -405,6 +397,9 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
                          "PSP frames, so the fringe period is unknown")
     if checkpoint is not None:
         checkpoint = resolve_checkpoint(checkpoint)
+    from sssphase_core.relight.backends import make_source
+    from sssphase_core.relight.geometry import geometric_correspondence
+
     done = []
     for v in choose_views(s, views):
         rv = load_view(s, v)
@@ -461,7 +456,7 @@ class EvaluationResult:
 
 def _eval_backends(backend: str, checkpoint: Path | str | None, say: Narrator) -> tuple[list[str], Path | None]:
     """The backends ``backend`` lists, each once, checked (and the checkpoint resolved) before any work."""
-    from sssphase_core.learning.training import resolve_checkpoint
+    from sssphase_core.learning.runlog import resolve_checkpoint
 
     backends = list(dict.fromkeys(b.strip() for b in backend.split(",") if b.strip()))  # each once
     if not backends:
@@ -502,14 +497,14 @@ def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BAC
     ``backend``'s comma-separated backends and tabulate MSE / PSNR / SSIM over objects and views: figures
     and images in ``out``, ``relight_eval.json`` and ``.md``. The default backends leave ``measured`` out
     where a view holds no dot-grid footprints."""
-    from sssphase_core.compute import compute_device
+    from sssphase_core.compute import check_device
     from sssphase_core.store.results import write_report
     from sssphase_core.store.session import by_object, check_output_folder, claim_output, find_sessions
 
     out, say = Path(out), narrator or Narrator()
     check_output_folder(out)
     backends, checkpoint = _eval_backends(backend, checkpoint, say)
-    compute_device(device)  # one line before any progress is drawn
+    check_device(device)  # one line before any progress is drawn
     found = find_sessions(list(sessions))  # a missing folder is one line before any progress is drawn
     by_object(found, purpose="their results would share names; evaluate them with separate --out folders")
     _eval_views(found, views, backends, backend != EVAL_BACKENDS, say)

@@ -5,11 +5,14 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from sssphase_core.errors import DataError, InputError
-from sssphase_core.relight.engine import Projection
+
+if TYPE_CHECKING:
+    from sssphase_core.relight.engine import Projection
 
 
 @dataclass
@@ -85,6 +88,7 @@ def has_captured_transport(arrays) -> bool:
 def load_view(session: object, view: int) -> RelightView:
     """Read one complete view of a :class:`sssphase_core.store.session.Session` for relighting."""
     from sssphase_core.processing.patterns import PlannedFrame
+    from sssphase_core.relight.engine import Projection
 
     m = session.manifest  # type: ignore[attr-defined]
     if view not in session.views():  # type: ignore[attr-defined]

@@ -352,8 +352,6 @@ def _check_knn_data(vds: Sequence[Any], label: str, ks: Sequence[int]) -> None:
 def evaluate_knn(opts: KnnOptions, report: Report = Report()) -> Evaluation:
     """kNN accuracy of frozen embeddings with view-level leave-one-out (cosine similarity), one column per
     checkpoint; the first k makes the table, the others a sweep."""
-    from sssphase_core.learning.evaluation import knn_of_views, knn_tables
-    from sssphase_core.learning.training import load_encoder
     from sssphase_core.sim import MATERIAL_NAMES, TRAIN_OBJECTS
 
     runs = named_checkpoints(opts.checkpoints)
@@ -366,6 +364,12 @@ def evaluate_knn(opts: KnnOptions, report: Report = Report()) -> Evaluation:
     vds = load_views(names, chosen_views(opts.views, "0,1,2,3", opts.sessions), opts, footprints=False, report=report)
     names = names or view_objects(vds)
     _check_knn_data(vds, opts.label, ks)
+    from sssphase_core.learning.evaluation import (  # (torch: once the input is known good)
+        knn_of_views,
+        knn_tables,
+    )
+    from sssphase_core.learning.training import load_encoder
+
     results = {}
     for run, path in runs.items():
         with report.busy(f"embedding {sum(len(v.pixels) for v in vds)} patches with {run}"):

@@ -10,24 +10,14 @@ from torch import nn
 
 from sssphase_core.errors import DataError, SssError
 from sssphase_core.learning.models import Decoder, Encoder, ModelPreset, get_preset
+from sssphase_core.learning.runlog import BEST, CHECKPOINT, check_checkpoint_file, resolve_checkpoint  # noqa: F401  (the run folder's layout)
 from sssphase_core.store.files import atomic_path
-
-CHECKPOINT = "last.pt"
-BEST = "best.pt"  # the epoch with the best monitored figure (kNN monitor / validation loss)
 
 
 def save_checkpoint(path: Path, payload: dict) -> None:
     """Atomic ``torch.save`` (write to a temporary file, then rename)."""
     with atomic_path(path) as tmp:
         torch.save(payload, tmp)
-
-
-def resolve_checkpoint(path: Path | str) -> Path:
-    """A run folder means its ``best.pt`` when training kept one, else its ``last.pt``; a file is itself."""
-    path = Path(path)
-    if path.is_dir():
-        return path / BEST if (path / BEST).exists() else path / CHECKPOINT
-    return path
 
 
 def load_checkpoint(path: Path | str, *, mmap: bool = False) -> dict:
@@ -37,15 +27,7 @@ def load_checkpoint(path: Path | str, *, mmap: bool = False) -> dict:
     refused with a :class:`DataError` that says what it is."""
     import pickle
 
-    path = resolve_checkpoint(path)
-    if not path.exists():
-        raise DataError(f"no checkpoint at {path}")
-    if path.is_file() and path.stat().st_size == 0:
-        raise DataError(f"cannot read checkpoint {path}: the file is empty")
-    if path.is_file():
-        with open(path, "rb") as f:
-            if f.read(4) != b"PK\x03\x04":  # what torch.save writes (torch's own error for others: "101")
-                raise DataError(f"{path} is not a checkpoint file (not written by torch.save)")
+    path = check_checkpoint_file(path)
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)  # mmap: tensors read when touched
     except pickle.UnpicklingError:

@@ -1,0 +1,46 @@
+"""The backend names a user may give and the checks that refuse them before any work (no torch is
+imported unless a decoder checkpoint is read): :data:`MODEL_FREE`, :data:`BLENDS`, :func:`check_backends`."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from pathlib import Path
+
+from sssphase_core.errors import InputError
+
+MODEL_FREE = ("none", "exact", "measured")  # footprint sources that are data, not a model: never calibrated
+#: Backends that blend several models by the view calibration (:func:`relight_view` ``also``).
+BLENDS: dict[str, tuple[str, ...]] = {"blend": ("torch", "analytic")}
+
+
+def check_backends(names: Sequence[str], checkpoint: Path | str | None) -> None:
+    """Refuse unknown footprint sources, and the decoder's without a readable checkpoint, before any work
+    starts (a missing or foreign checkpoint is one line before any progress is shown)."""
+    from sssphase_core.learning.backends import available_backends
+
+    known = [*MODEL_FREE, *BLENDS, *available_backends()]
+    for name in names:
+        if name not in known:
+            raise InputError(f"unknown backend {name!r}; available: {', '.join(sorted(set(known)))}")
+        needs_checkpoint(name, checkpoint)
+    if checkpoint is not None and any(uses_decoder(n) for n in names):
+        from sssphase_core.learning.runlog import check_checkpoint_file
+
+        check_checkpoint_file(checkpoint)  # a missing or foreign file is refused without importing torch
+        from sssphase_core.learning.training.checkpoints import load_decoder
+
+        load_decoder(checkpoint)  # raises DataError naming what the file is, or weights that are not finite
+
+
+def uses_decoder(name: str) -> bool:
+    """Whether backend ``name`` runs the decoder (``torch``, or a blend with it): it needs a checkpoint."""
+    return name == "torch" or "torch" in BLENDS.get(name, ())
+
+
+def needs_checkpoint(name: str, checkpoint: Path | str | None) -> None:
+    """Refuse the decoder, or a blend with it, without a decoder checkpoint."""
+    if checkpoint is not None or not uses_decoder(name):
+        return
+    if name == "torch":
+        raise InputError("the torch backend needs --checkpoint (a decoder checkpoint from `sss train decoder`)")
+    raise InputError(f"the {name} backend blends the decoder in: it needs --checkpoint (a decoder from `sss train decoder`)")
