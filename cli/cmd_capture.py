@@ -79,7 +79,7 @@ def _local_daemon(timeout: float):
     from sssphase_daemon.client import local_client
 
     return local_client(timeout, on_start=lambda pid: console.print(
-        f"[yellow]no daemon running:[/] started a local one with the sim rig (pid {pid})"),
+        f"[yellow]no daemon running:[/] started a local one (pid {pid})"),
         on_stop=lambda pid: console.print(f"stopped the local daemon (pid {pid})"),
         on_left=lambda pid: console.print(f"left the local daemon (pid {pid}) running: another client is using it "
                                           "(`sss daemon stop` ends it)"))
@@ -187,7 +187,7 @@ def calibrate_projector(
     from sssphase_daemon.client import local_client
 
     req = CalibrationRequest(rig, out, levels, object_name, check)
-    with local_client(on_start=lambda pid: console.print(f"started a local daemon with the sim rig (pid {pid})")) as client:
+    with local_client(on_start=lambda pid: console.print(f"started a local daemon (pid {pid})")) as client:
         calibrate_projector(client, req, status=console.status, on_fit=_print_response, on_check=lambda label, err:
                             console.print(f"correspondence error with {label}: median {err:.3f} projector px"))
     console.print(f"wrote the {escape('[projector]')} table of {req.target}: capture with `sss capture --rig {req.target}`")

@@ -212,6 +212,27 @@ def bench_daemon(
     write_result(console, out, md, result, markdown)
 
 
+def bench_basler(
+    out: Annotated[Path, typer.Option(help="JSON result file (a Markdown table is printed and written next to it)")] = Path("benchmarks/basler.json"),
+    frames: Annotated[int, typer.Option(min=10, max=100_000, help="frames per run")] = 200,
+    serial: Annotated[str, typer.Option(help="the camera's serial number (default: pylon's first emulated camera)")] = "0815-0000",
+    md: Annotated[Path | None, typer.Option(help="Markdown table file (default: next to --out)")] = None,
+) -> None:
+    """Basler camera frames/s through the daemon vs pypylon's own grab loop (the pylon emulator unless
+    PYLON_CAMEMU=0 and --serial names a real camera)."""
+    import importlib.util
+
+    from sssphase_cli.output import write_result
+    from sssphase_core.errors import InputError
+    from sssphase_daemon.camera_bench import run_bench
+
+    if importlib.util.find_spec("pypylon") is None:
+        raise InputError("sss bench basler needs pypylon: pip install 'sssphase[basler]'")
+    with console.status(f"sss bench basler: {frames} frames per run"):
+        result, markdown = run_bench(frames, serial)
+    write_result(console, out, md, result, markdown)
+
+
 def register(groups: dict[str, typer.Typer]) -> None:
     root = groups["root"]
     root.command("devices")(devices)
@@ -221,3 +242,4 @@ def register(groups: dict[str, typer.Typer]) -> None:
     groups["daemon"].command("status")(daemon_status)
     groups["daemon"].command("keys")(daemon_keys)
     groups["bench"].command("daemon")(bench_daemon)
+    groups["bench"].command("basler")(bench_basler)

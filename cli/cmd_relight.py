@@ -267,7 +267,7 @@ def demo(
     def log(message: str) -> None:
         console.print(message, markup=False, highlight=False)
 
-    with local_client(on_start=lambda pid: log(f"started a local daemon with the sim rig (pid {pid})"),
+    with local_client(on_start=lambda pid: log(f"started a local daemon (pid {pid})"),
                       on_stop=lambda pid: log(f"stopped the local daemon (pid {pid})"),
                       on_left=lambda pid: log(f"left the local daemon (pid {pid}) running: another client is using it "
                                               "(`sss daemon stop` ends it)")) as client:

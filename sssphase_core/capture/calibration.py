@@ -124,7 +124,8 @@ def capture_ramp(client: Any, rig: Any, levels: tuple[float, ...] = RAMP_LEVELS,
     opened = client.call("open_rig", camera=rig.camera, projector=rig.projector, turntable=None, options=options)
     try:
         frames = ramp_frames(*opened["projector_size"], levels)
-        images = [develop_frame(f.data, rig, 1.0) for f in client.capture(opened["rig"], frames)]
+        images = [develop_frame(f.data, rig, 1.0, f.header.get("meta", {}).get("bayer"), f.header.get("meta"))
+                  for f in client.capture(opened["rig"], frames)]
     finally:
         try:
             client.call("close_rig", timeout_s=2.0, rig=opened["rig"])

@@ -19,16 +19,32 @@ class FrameLike(Protocol):
     header: dict[str, Any]
 
 
-def develop_frame(data: np.ndarray, rig: RigSpec, exposure: float = 1.0, layout: str | None = None) -> np.ndarray:
+def develop_frame(data: np.ndarray, rig: RigSpec, exposure: float = 1.0, layout: str | None = None,
+                  meta: Mapping[str, Any] | None = None) -> np.ndarray:
     """A received frame -> linear RGB float32 (H, W, 3): colour frames as sent, raw Bayer developed
-    (in ``layout``, the camera's word for it, else the rig's ``bayer``)."""
+    (in ``layout``, the camera's word for it, else the rig's ``bayer``). The black level and white scale
+    are the rig file's; where it gives none, the camera's own (``meta``'s ``black_level`` and
+    ``bit_depth``: linear 1.0 is then the sensor's full scale at the reference exposure)."""
     if data.ndim == 3:
         return np.asarray(data, np.float32)
-    if rig.black_level is None or rig.white_scale is None:
-        raise DataError("the camera sends raw frames: set [processing] black_level and white_scale in the rig file")
+    black, white = raw_levels(rig, meta)
     from sssphase_core.processing import isp
 
-    return isp.develop(data, rig.black_level, rig.white_scale * exposure, median=rig.median, layout=layout or rig.bayer)
+    return isp.develop(data, black, white * exposure, median=rig.median, layout=layout or rig.bayer)
+
+
+def raw_levels(rig: RigSpec, meta: Mapping[str, Any] | None = None) -> tuple[float, float]:
+    """(black level, white scale) in DN for raw frames: the rig file's, else the camera's (``meta``)."""
+    meta = meta or {}
+    black = rig.black_level if rig.black_level is not None else meta.get("black_level")
+    bits = meta.get("bit_depth")
+    white = rig.white_scale
+    if white is None and black is not None and isinstance(bits, int) and 1 <= bits <= 16:
+        white = float(2**bits - 1) - float(black)
+    if black is None or white is None or not white > 0:
+        raise DataError("the camera sends raw frames without its black level and bit depth: set [processing] "
+                        "black_level and white_scale in the rig file")
+    return float(black), float(white)
 
 
 class CropStream:
@@ -126,11 +142,15 @@ class ViewProcessor:
         self.outliers = 0  # values above it, repaired
         self.hot: np.ndarray | None = None  # (H, W, C) what hot pixels add to every frame (once decoded)
 
-    def _develop(self, data: np.ndarray, exposure: float, layout: str | None = None) -> np.ndarray:
+    def _develop(self, data: np.ndarray, exposure: float, meta: Mapping[str, Any]) -> np.ndarray:
+        layout = meta.get("bayer")
         if data.ndim == 2:  # a raw Bayer frame developed here: the camera pipeline is this ISP
             layout = layout or self.rig.bayer
             self.camera_isp = {"demosaic": "malvar", "median": bool(self.rig.median), "bayer": layout}
-        return develop_frame(data, self.rig, exposure, layout)
+            if "bit_depth" in meta:  # the sensor's word, with the levels the frames were developed with
+                black, white = raw_levels(self.rig, meta)
+                self.camera_isp.update(bit_depth=int(meta["bit_depth"]), black_level=black, white_scale=white)
+        return develop_frame(data, self.rig, exposure, layout, meta)
 
     def add(self, frame: FrameLike, spec: Mapping[str, Any]) -> None:
         tag = frame.header.get("meta", {}).get("pattern_tag")
@@ -141,7 +161,7 @@ class ViewProcessor:
             img = spec["image"]
             self.patterns[key] = np.frombuffer(img["data"], img["dtype"]).reshape(img["shape"])
         bracket = self.brackets.setdefault(key, [])
-        bracket.append((exposure, self._develop(frame.data, exposure, frame.header.get("meta", {}).get("bayer"))))
+        bracket.append((exposure, self._develop(frame.data, exposure, frame.header.get("meta", {}))))
         if len(bracket) < self.n_exposures:
             return
         del self.brackets[key]

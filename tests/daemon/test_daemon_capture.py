@@ -68,7 +68,7 @@ def reference(runtime_dir, tmp_path_factory):
 
 def test_capture_without_daemon_starts_one_and_writes_a_valid_session(reference, sss):
     out, stdout, s = reference
-    assert "started a local one with the sim rig" in stdout
+    assert "no daemon running: started a local one (pid" in stdout
     assert s.views() == list(range(VIEWS)) and s.objects == [OBJECT]
     ok = sss("validate", str(out / OBJECT))
     assert ok.returncode == 0 and "checksums match" in ok.stdout

@@ -58,6 +58,24 @@ def _oak_camera():
     return provider.open(info.id, {}, {})
 
 
+def _basler_camera():
+    """A real vendor SDK: pypylon's camera emulation (its test image, software-triggered)."""
+    pytest.importorskip("pypylon", reason="pypylon (extra basler) is not installed")
+    import os
+
+    from sssphase_plugins import basler_camera
+
+    before = os.environ.get("PYLON_CAMEMU")
+    os.environ["PYLON_CAMEMU"] = "1"  # read by pylon at each enumeration: only while opening
+    try:
+        return basler_camera.BaslerProvider().open("basler:0815-0000", {"basler": {"roi": [0, 0, 64, 48]}}, {})
+    finally:
+        if before is None:
+            del os.environ["PYLON_CAMEMU"]
+        else:
+            os.environ["PYLON_CAMEMU"] = before
+
+
 def _hdmi_projector():
     pytest.importorskip("pygame")
     import os
@@ -107,6 +125,7 @@ DEVICES: dict[str, tuple[str, Callable[[], object]]] = {
     "example camera": ("camera", _example_camera),
     "uvc camera": ("camera", _uvc_camera),
     "oak camera": ("camera", _oak_camera),
+    "basler camera (pylon emulator)": ("camera", _basler_camera),
     "hdmi projector": ("projector", _hdmi_projector),
     "lightcrafter (video mode)": ("projector", _lightcrafter("video")),
     "lightcrafter (pattern mode)": ("projector", _lightcrafter("pattern")),

@@ -8,6 +8,7 @@ import typer
 from typer.testing import CliRunner
 
 from sssphase_cli import cmd_udev
+from sssphase_plugins import basler_camera
 
 
 def rules_text() -> str:
@@ -21,6 +22,7 @@ def test_rules_cover_every_supported_device_group_based():
     for pattern in (r'SUBSYSTEM=="usb", ATTR\{idVendor\}=="0451", ATTR\{idProduct\}=="6401"',
                     r'SUBSYSTEM=="hidraw", ATTRS\{idVendor\}=="0451", ATTRS\{idProduct\}=="6401"',
                     r'SUBSYSTEM=="usb", ATTRS\{idVendor\}=="03e7", GROUP',
+                    rf'SUBSYSTEM=="usb", ATTRS\{{idVendor\}}=="{basler_camera.USB_VENDOR:04x}", GROUP',
                     r'SUBSYSTEM=="tty", ATTRS\{idVendor\}=="0403", ATTRS\{idProduct\}=="6001"',
                     r'SUBSYSTEM=="tty", ATTRS\{idVendor\}=="2e8a", ATTRS\{idProduct\}=="000a"'):
         assert re.search(pattern, text), pattern
