@@ -73,6 +73,7 @@ COMMAND_MODULES = [
     "sssphase_cli.cmd_udev",  # udev install
     "sssphase_cli.cmd_learn",  # train, eval knn/footprints, viz pca
     "sssphase_cli.cmd_relight",  # relight, geometry, eval relight, report, demo, bench relight/store/stability/gap
+    "sssphase_cli.cmd_view",  # view (the browser: live view, live decode, sessions, relight)
 ]
 
 

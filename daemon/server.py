@@ -139,6 +139,8 @@ MAX_ANGLE = 3600.0
 #: a frame's exposure, relative to the rig's own (1.0): HDR brackets span a few powers of two; beyond these
 #: bounds (or NaN/inf) a driver's arithmetic breaks.
 MIN_EXPOSURE, MAX_EXPOSURE = 1e-6, 1e6
+#: a frame's camera gain (the driver's own unit, e.g. dB or a factor), when the frame names one
+MAX_GAIN = 1e3
 
 
 def _check_frames(frames: Any) -> list[dict[str, Any]]:
@@ -152,6 +154,10 @@ def _check_frames(frames: Any) -> list[dict[str, Any]]:
               and (f.get("kind") != "image" or isinstance(f.get("image"), dict)))
         if not ok:
             raise ProtocolError(protocol.BAD_ARGS, f"bad frame spec {str(f)[:120]}")
+        gain = f.get("gain")
+        if gain is not None and (isinstance(gain, bool) or not isinstance(gain, int | float) or not 0 <= gain <= MAX_GAIN):
+            raise ProtocolError(protocol.BAD_ARGS, f"frame {f['name'][:60]!r}: gain must be a number in [0, {MAX_GAIN:g}], "
+                                                   f"got {str(gain)[:40]}")
         problem = _image_problem(f["image"]) if f["kind"] == "image" else frame_params_problem(f["kind"], f.get("params", {}))
         if problem:
             raise ProtocolError(protocol.BAD_ARGS, f"frame {f['name'][:60]!r}: {problem}")
@@ -528,7 +534,8 @@ class Daemon:
                 projector.preload([(spec["name"], functools.partial(_pattern_for, spec)) for spec in frames])
             for spec in frames:
                 projector.show(_pattern_for(spec), tag=spec["name"], confirm=True)
-                camera.configure(exposure=float(spec["exposure"]))
+                camera.configure(exposure=float(spec["exposure"]),
+                                 **({"gain": float(spec["gain"])} if spec.get("gain") is not None else {}))
                 if trigger is None:  # software trigger
                     yield spec["name"], camera.grab()
                     continue

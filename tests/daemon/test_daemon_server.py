@@ -175,6 +175,23 @@ def test_device_failure_mid_view_is_reported_and_the_daemon_keeps_serving(daemon
     assert client.call("status")["heavy_modules"] == []  # a sim-only daemon loads no torch, no hardware library
 
 
+def test_a_frame_may_set_the_camera_gain_and_an_absurd_one_is_bad_args(daemon):
+    """`sss view` sets the gain with each frame: the driver gets it with the exposure (the sim camera says
+    which gain a frame had); a gain out of range is refused with the request."""
+    _, client = daemon
+    plan = capture_plan(256, 192, references=("white", "black"))
+    white = next(f for f in json.loads(plan.to_json())["frames"] if f["kind"] == "white")
+    rig = client.call("open_rig", camera="sim:camera0", projector="sim:projector0", options={"object": "star"})["rig"]
+    (frame,) = client.capture(rig, [{**white, "gain": 2.5}])
+    (plain,) = client.capture(rig, [white])
+    assert frame.header["meta"]["gain"] == 2.5 and plain.header["meta"]["gain"] == 2.5  # kept until set again
+    for bad in (-1, 1e9, "loud", True):
+        with pytest.raises(DaemonError, match="gain must be a number in") as exc:
+            list(client.capture(rig, [{**white, "gain": bad}]))
+        assert exc.value.code == protocol.BAD_ARGS
+    client.call("close_rig", rig=rig)
+
+
 def test_devices_of_the_wrong_kind_absurd_exposures_and_angles_are_bad_args_and_hold_no_rig(daemon):
     """A projector id given as the camera opened a rig that then failed with an AttributeError (an
     `internal` error, a traceback in the log) and kept its slot: 16 such tries locked captures out."""

@@ -1,0 +1,49 @@
+"""What a live view computes (sssphase_core.capture.live), without a browser: the patterns it may put on the
+projector, refusals before a daemon sees them, and a frame's exposure statistics."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from sssphase_core.capture.live import HIST_BINS, LIVE_PATTERNS, frame_stats, pattern_spec, psp_set
+from sssphase_core.errors import InputError
+from sssphase_core.processing.patterns import PlannedFrame, frame_params_problem
+
+
+@pytest.mark.parametrize("name", list(LIVE_PATTERNS))
+def test_every_live_pattern_is_a_frame_the_daemon_accepts_and_renders(name):
+    spec = pattern_spec(name, (64, 48), exposure=0.5)
+    assert frame_params_problem(spec["kind"], spec["params"]) is None and spec["exposure"] == 0.5
+    image = PlannedFrame(spec["key"], spec["kind"], spec["params"]).pattern()
+    assert image.shape == (48, 64) and 0 <= image.min() <= image.max() <= 1
+
+
+def test_the_psp_set_is_the_captures_and_each_frame_can_be_shown_alone():
+    frames = psp_set((256, 192))
+    assert {f["kind"] for f in frames} == {"psp", "white", "black"} and len(frames) > 8
+    assert pattern_spec("psp", (256, 192), psp_frame=3)["key"] == frames[3]["key"]
+    with pytest.raises(InputError, match=f"the PSP set has frames 0..{len(frames) - 1}, got {len(frames)}"):
+        pattern_spec("psp", (256, 192), psp_frame=len(frames))
+
+
+def test_refusals_name_the_problem():
+    with pytest.raises(InputError, match="unknown pattern 'plaid'; choose white, black"):
+        pattern_spec("plaid", (64, 48))
+    for bad in (0.0, -1.0, float("nan"), 1e9):
+        with pytest.raises(InputError, match="exposure must be a number in"):
+            pattern_spec("white", (64, 48), exposure=bad)
+    with pytest.raises(InputError, match="an image to project must be 64x48"):
+        pattern_spec("image", (64, 48), image=np.zeros((10, 10), np.float32))
+    spec = pattern_spec("image", (64, 48), image=np.full((48, 64, 3), 0.25, np.float32))
+    assert spec["kind"] == "image" and spec["image"]["shape"] == [48, 64, 3]
+
+
+def test_frame_statistics_count_the_clipped_pixels_and_fill_the_histogram():
+    image = np.zeros((10, 20, 3), np.float32)
+    image[:5] = 0.5
+    image[0, :4, 1] = 1.0  # 4 pixels clipped in green only
+    stats = frame_stats(image, clip=0.98)
+    assert stats.clipped == pytest.approx(4 / 200)
+    assert len(stats.histogram) == 3 and all(len(h) == HIST_BINS and sum(h) == 200 for h in stats.histogram)
+    assert stats.mean[0] == pytest.approx(0.25) and stats.mean[1] > stats.mean[0]

@@ -1,0 +1,238 @@
+"""`sss view` in a real browser (Debian's chromium, headless, over the DevTools protocol): the token, live
+frames that follow the exposure and the pattern, live decode, a session's maps, relighting an uploaded
+pattern to the same image `sss relight` writes, and hostile input answered on the page."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+import urllib.error
+import urllib.request
+import zlib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("starlette")
+pytest.importorskip("websocket", reason="websocket-client (dev extra) drives the browser")
+cdp = pytest.importorskip("cdp")
+
+if not cdp.available():
+    pytest.skip("/usr/bin/chromium is not installed (Debian package `chromium`)", allow_module_level=True)
+
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("view")]
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _sss(*args: str, env: dict[str, str], timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    return subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True, env=env,
+                          cwd=REPO, timeout=timeout)
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    """A session with a reference capture, and `sss view` serving it (its own daemon for the live view)."""
+    root = tmp_path_factory.mktemp("view")
+    runtime = Path(tempfile.mkdtemp(prefix="sssv", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime), "COLUMNS": "200"}
+    done = _sss("capture", "--object", "star", "--views", "1", "--reference", "checkerboard", "--out",
+                str(root / "sessions"), env=env)
+    assert done.returncode == 0, done.stdout + done.stderr
+    proc = subprocess.Popen([sys.executable, "-m", "sssphase_cli.main", "view", "--port", "0", "--sessions",
+                             str(root / "sessions"), "--out", str(root / "out")], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env=env, cwd=REPO)
+    url = None
+    deadline = time.monotonic() + 60
+    while url is None and time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        m = re.search(r"(http://127\.0\.0\.1:\d+/\?token=\S+)", line)
+        url = m.group(1) if m else None
+        assert line or proc.poll() is None, "sss view exited"
+    assert url, "sss view printed no URL"
+    yield {"url": url, "base": url.split("/?")[0], "token": url.split("token=")[1], "root": root, "env": env}
+    proc.terminate()
+    try:
+        proc.wait(20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+    _sss("daemon", "stop", env=env)
+
+
+@pytest.fixture(scope="module")
+def page(served, tmp_path_factory):
+    browser = cdp.Browser(tmp_path_factory.mktemp("profile"))
+    browser.open(served["url"])
+    yield browser
+    browser.close()
+
+
+def _get(url: str, token: str | None = None) -> tuple[int, bytes]:
+    request = urllib.request.Request(url, headers={"X-Token": token} if token else {})
+    try:
+        with urllib.request.urlopen(request, timeout=30) as response:
+            return response.status, response.read()
+    except urllib.error.HTTPError as exc:
+        return exc.code, exc.read()
+
+
+def test_every_route_needs_the_token(served):
+    import websocket
+
+    base = served["base"]
+    assert _get(base + "/")[0] == 403 and _get(base + "/?token=wrong")[0] == 403
+    assert _get(base + "/api/state")[0] == 403 and _get(base + "/api/state", "wrong")[0] == 403
+    assert _get(base + "/api/state", served["token"])[0] == 200
+    with pytest.raises(websocket.WebSocketBadStatusException, match="403"):  # refused at the handshake
+        websocket.create_connection(base.replace("http", "ws") + "/ws/live?token=wrong", timeout=10)
+
+
+def _set(page, element: str, value) -> None:
+    page.evaluate(f"(() => {{ const e = document.getElementById({json.dumps(element)}); "
+                  f"if (e.type === 'checkbox') e.checked = {json.dumps(value)}; else e.value = {json.dumps(value)}; "
+                  "e.dispatchEvent(new Event('change')); })()")
+
+
+def _frame_mean(page) -> float:
+    return page.evaluate("Number(document.getElementById('mean').textContent.split(' / ')[1])")
+
+
+def _frame_green(page) -> np.ndarray:
+    """The green channel of the frame the page shows, as the page has it (H, W)."""
+    values = page.evaluate("""(() => { const img = document.getElementById('live-image');
+        const c = document.createElement('canvas'); c.width = img.naturalWidth; c.height = img.naturalHeight;
+        const g = c.getContext('2d'); g.drawImage(img, 0, 0); const d = g.getImageData(0, 0, c.width, c.height).data;
+        const out = []; for (let i = 1; i < d.length; i += 4) out.push(d[i]); return [c.height, c.width, out]; })()""")
+    return np.asarray(values[2], np.float32).reshape(values[0], values[1])
+
+
+def test_live_frames_arrive_and_follow_the_exposure_and_the_pattern(page, tmp_path):
+    page.wait_for("Number(document.getElementById('frame-count').textContent) > 3", 60)
+    assert page.evaluate("document.getElementById('live-image').naturalWidth") == 256
+    assert float(page.evaluate("document.getElementById('fps').textContent")) > 0
+    assert float(page.evaluate("document.getElementById('latency').textContent")) >= 0
+    _set(page, "pattern", "white")
+    _set(page, "exposure", 1)
+    page.wait_for("state.shown.exposure === 1 && state.shown.pattern === 'white'", 30)
+    bright, white = _frame_mean(page), _frame_green(page)
+    assert (white > 60).mean() > 0.02  # the object, lit
+    _set(page, "exposure", 0.5)
+    page.wait_for("state.shown.exposure === 0.5", 30)
+    assert abs(_frame_mean(page) - bright / 2) < 0.1 * bright  # the camera's signal halves with the exposure
+    _set(page, "exposure", 1)
+    _set(page, "pattern", "checkerboard")
+    page.wait_for("state.shown.exposure === 1 && state.shown.pattern === 'checkerboard'", 30)
+    assert abs(_frame_mean(page) - bright / 2) < 0.15 * bright  # half the squares lit
+    # the frame on the page shows the checkerboard: of the pixels lit under white, some stay as bright (the lit
+    # squares) and some are far darker (the dark squares, lit only by light scattered under the surface)
+    ratio = _frame_green(page)[white > 60] / white[white > 60]  # display (sRGB) values
+    assert (white > 60).sum() > 500 and (ratio > 0.9).mean() > 0.2 and (ratio < 0.7).mean() > 0.2, np.percentile(ratio, [10, 50, 90])
+    page.screenshot(tmp_path / "live.png")
+
+
+def test_live_decode_shows_where_the_object_decodes(page):
+    _set(page, "pattern", "white")
+    _set(page, "decode", True)
+    try:
+        page.wait_for("state.decodes >= 1", 90)
+        valid = float(page.evaluate("document.getElementById('decode-valid').textContent").rstrip("%"))
+        assert 5 < valid < 95  # the star decodes, the background does not
+        reasons = page.evaluate("document.getElementById('reasons').textContent")
+        assert "VALID" in reasons and "LOW_MODULATION" in reasons
+        assert page.evaluate("document.getElementById('decode-mask').naturalWidth") == 256
+    finally:
+        _set(page, "decode", False)
+
+
+def test_a_sessions_maps_have_their_colour_bar_and_unit(page):
+    page.evaluate("document.querySelector('nav button[data-tab=sessions]').click()")
+    _set(page, "map", "modulation")
+    page.wait_for("document.getElementById('map-unit').textContent.includes('fringe amplitude')", 30)
+    page.wait_for("document.getElementById('map-image').naturalWidth === 256", 30)
+    lo, hi = (float(v) for v in page.evaluate("document.getElementById('map-range').textContent").split(" … "))
+    assert 0 <= lo < hi
+    # a click on the object: its PSP patch and footprints side by side (analytic, and exact: a simulated session)
+    page.evaluate("state.probe = null; (() => { const img = document.getElementById('map-image'); "
+                  "const r = img.getBoundingClientRect(); img.dispatchEvent(new MouseEvent('click', "
+                  "{clientX: r.left + 0.5 * r.width, clientY: r.top + 0.55 * r.height})); })()")
+    probe = page.wait_for("state.probe", 120)
+    assert probe["valid"] and probe["footprint_names"] == ["analytic", "exact"], probe
+    assert "no dot-grid crop" in probe["skipped"]["captured"] and "no decoder checkpoint" in probe["skipped"]["torch"]
+    page.wait_for("document.getElementById('probe-footprints').naturalWidth === 2 * (32 + 4)", 30)
+    assert page.evaluate("document.getElementById('probe-patch').naturalWidth") == 8 * (32 + 4)
+
+
+def _relight_on_page(page, timeout: float = 120) -> dict:
+    page.evaluate("state.relit = null; document.getElementById('relight-button').click()")
+    return page.wait_for("state.relit || (document.getElementById('message').textContent || null)", timeout)
+
+
+def test_relighting_an_uploaded_pattern_gives_the_image_sss_relight_writes(served, page, tmp_path):
+    from PIL import Image
+
+    from sssphase_core.store.exr import read_exr
+
+    rng = np.random.default_rng(1)
+    pattern = tmp_path / "blocks.png"
+    Image.fromarray(np.kron(rng.integers(0, 2, (12, 16)) * 255, np.ones((16, 16))).astype(np.uint8)).save(pattern)
+    page.evaluate("document.querySelector('nav button[data-tab=relight]').click()")
+    _set(page, "backend", "analytic")
+    page.evaluate("state.uploaded = null")
+    page.set_file("#upload", pattern)
+    page.wait_for("state.uploaded", 30)
+    result = _relight_on_page(page)
+    assert isinstance(result, dict), result
+    status, exr = _get(served["base"] + result["files"]["exr"], served["token"])
+    assert status == 200
+    (tmp_path / "page.exr").write_bytes(exr)
+    session = served["root"] / "sessions" / "star"
+    done = _sss("relight", str(session), "--pattern", str(pattern), "--backend", "analytic", "--resize", "fit",
+                "--format", "exr", "--out", str(tmp_path / "cli"), env=served["env"])
+    assert done.returncode == 0, done.stdout + done.stderr
+    (cli_exr,) = (tmp_path / "cli").glob("*.exr")
+    np.testing.assert_array_equal(read_exr(tmp_path / "page.exr"), read_exr(cli_exr))  # bit-identical
+    # the view's own reference pattern: relit beside its capture, with scores
+    page.evaluate("state.uploaded = null")
+    _set(page, "relight-pattern", "checkerboard")
+    scored = _relight_on_page(page)
+    assert scored["metrics"]["psnr"] > 20 and scored["figure"]
+    page.wait_for("!document.getElementById('compare-image').hidden && "
+                  "document.getElementById('compare-image').naturalWidth > 0", 30)
+    page.screenshot(tmp_path / "relight.png")
+
+
+def _png_header_only(width: int, height: int) -> bytes:
+    """A PNG whose header claims ``width x height`` (a decompression bomb's promise) and whose data is tiny."""
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
+
+    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0))
+            + chunk(b"IDAT", zlib.compress(b"\x00" * 64)) + chunk(b"IEND", b""))
+
+
+def test_hostile_input_is_one_message_on_the_page_and_the_server_keeps_serving(served, page, tmp_path):
+    page.evaluate("document.querySelector('nav button[data-tab=relight]').click()")
+    text = tmp_path / "notes.png"
+    text.write_text("not an image at all")
+    page.set_file("#upload", text)
+    page.wait_for("document.getElementById('message').textContent.includes('not an image')", 30)
+    bomb = tmp_path / "bomb.png"
+    bomb.write_bytes(_png_header_only(40000, 40000))
+    page.evaluate("state.uploaded = null")
+    page.set_file("#upload", bomb)
+    page.wait_for("state.uploaded", 30)
+    message = _relight_on_page(page)
+    assert isinstance(message, str) and "40000x40000" in message and "refused without decoding it" in message
+    escape = page.evaluate("""fetch('/api/relight', {method: 'POST', headers: {'X-Token': TOKEN,
+        'Content-Type': 'application/json'}, body: JSON.stringify({session: '../../etc', view: 0, pattern: 'checkerboard'})})
+        .then(r => r.json())""")
+    assert "no session '../../etc'" in escape["error"]
+    assert _get(served["base"] + "/api/state", served["token"])[0] == 200  # still serving
+    outside = [p for p in served["root"].parent.iterdir() if p.name == "etc"]
+    assert not outside and sorted(p.name for p in (served["root"] / "out").iterdir()) <= ["relit", "uploads"]

@@ -1,0 +1,403 @@
+"""``sss view``'s web application (Starlette): the live view and live decode over a websocket, the sessions
+under a folder, and relighting through the same core runner as ``sss relight``.
+
+Every route and the websocket need the token ``sss view`` prints (``?token=`` on the page's URL; the page
+sends it as ``X-Token`` on its requests and ``?token=`` on the websocket), compared in constant time.
+Session names are looked up among the sessions found under ``--sessions``, never joined into a path;
+files are served only from the view's own output folder; uploads are size-limited and read by the core's
+pattern reader (decompression bombs refused before decoding).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import base64
+import contextlib
+import hashlib
+import hmac
+import json
+import time
+from collections.abc import AsyncIterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from starlette.applications import Starlette
+from starlette.requests import Request
+from starlette.responses import FileResponse, HTMLResponse, JSONResponse, Response
+from starlette.routing import Route, WebSocketRoute
+from starlette.websockets import WebSocket, WebSocketDisconnect
+
+from sssphase_core.capture.live import LIVE_PATTERNS
+from sssphase_core.errors import SssError
+from sssphase_view.live import LiveRig, LiveSettings
+
+STATIC = Path(__file__).with_name("static")
+MAX_UPLOAD_BYTES = 32 << 20
+IMAGE_MAGIC = {b"\x89PNG": ".png", b"\xff\xd8\xff": ".jpg", b"II*\x00": ".tif", b"MM\x00*": ".tif", b"BM": ".bmp",
+               b"v/1\x01": ".exr"}
+
+
+@dataclass
+class ViewState:
+    """What the application serves: its ``token``, the ``sessions`` folder, a decoder ``checkpoint``, the
+    ``out`` folder its relit images and uploads go to, and the live rig."""
+
+    token: str
+    out: Path
+    sessions: Path | None = None
+    checkpoint: Path | None = None
+    live: LiveRig = field(default_factory=LiveRig)
+    settings: LiveSettings = field(default_factory=LiveSettings)
+    probes: dict[tuple[str, int], Any] = field(default_factory=dict)  # the clicked view and its model sources
+
+
+def _png(image: np.ndarray) -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(image[..., ::-1] if image.ndim == 3 else image))
+    return buf.tobytes() if ok else b""
+
+
+def _jpeg(image: np.ndarray) -> bytes:
+    import cv2
+
+    ok, buf = cv2.imencode(".jpg", np.ascontiguousarray(image[..., ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 85])
+    return buf.tobytes() if ok else b""
+
+
+def display(image: np.ndarray, *, clip: float | None = None) -> np.ndarray:
+    """Linear (H, W, 3) in camera units -> sRGB uint8, pixels at or above ``clip`` painted magenta."""
+    from sssphase_core.processing.colour import srgb
+
+    out = (srgb(np.clip(image, 0, 1)) * 255 + 0.5).astype(np.uint8)
+    if clip is not None:
+        out[(image >= clip).any(axis=-1)] = (255, 0, 255)
+    return out
+
+
+def colour_map(values: np.ndarray, mask: np.ndarray, lo: float | None = None, hi: float | None = None) -> tuple[bytes, float, float]:
+    """A map (H, W) as a viridis PNG (grey outside ``mask``) -> (png, low, high) of its colour bar."""
+    import cv2
+
+    finite = mask & np.isfinite(values)
+    lo = float(np.percentile(values[finite], 1)) if lo is None and finite.any() else (lo or 0.0)
+    hi = float(np.percentile(values[finite], 99)) if hi is None and finite.any() else (hi if hi is not None else 1.0)
+    scaled = np.clip((np.nan_to_num(values) - lo) / max(hi - lo, 1e-12), 0, 1)
+    rgb = cv2.applyColorMap((scaled * 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)[..., ::-1].copy()
+    rgb[~finite] = 64
+    return _png(rgb), lo, hi
+
+
+# --- security ---------------------------------------------------------------------------------------------
+
+
+def _authorised(state: ViewState, given: str | None) -> bool:
+    return given is not None and hmac.compare_digest(given.encode(), state.token.encode())
+
+
+def _problem(message: str, status: int = 400) -> JSONResponse:
+    return JSONResponse({"error": message}, status_code=status)
+
+
+def guarded(handler: Any) -> Any:
+    """A route that answers only with the token; an :class:`SssError` becomes one message for the page."""
+    async def route(request: Request) -> Response:
+        state: ViewState = request.app.state.view
+        if not _authorised(state, request.headers.get("x-token") or request.query_params.get("token")):
+            return _problem("a valid token is required: open the URL `sss view` printed", 403)
+        try:
+            return await handler(request, state)
+        except SssError as exc:
+            return _problem(str(exc))
+    return route
+
+
+# --- pages and sessions --------------------------------------------------------------------------------
+
+
+async def index(request: Request, state: ViewState) -> Response:
+    """The page, its script inline (one guarded request; the script reads the token from the URL)."""
+    html = (STATIC / "index.html").read_text().replace("/*APP_JS*/", (STATIC / "app.js").read_text())
+    return HTMLResponse(html, headers={"Cache-Control": "no-store", "Referrer-Policy": "no-referrer"})
+
+
+def _sessions(state: ViewState) -> dict[str, Any]:
+    from sssphase_core.store.session import find_sessions
+
+    if state.sessions is None or not state.sessions.exists():
+        return {}
+    return {s.name: s for s in find_sessions([state.sessions])}
+
+
+def _session(state: ViewState, name: str) -> Any:
+    from sssphase_core.errors import InputError
+
+    found = _sessions(state)
+    if name not in found:  # names only: '../x' or an absolute path is never a path here
+        raise InputError(f"no session {name!r} under {state.sessions} (known: {', '.join(found) or 'none'})")
+    return found[name]
+
+
+async def api_state(request: Request, state: ViewState) -> Response:
+    from sssphase_core.relight.choices import BLENDS, MODEL_FREE
+
+    sessions = []
+    for name, s in (await asyncio.to_thread(_sessions, state)).items():
+        views = []
+        for v in s.views():
+            arrays = s.arrays(v)
+            views.append({"view": v, "references": sorted(k[4:] for k in arrays if k.startswith("ref/")),
+                          "crops": "transport/crops" in arrays or "footprints/crops" in arrays, "simulated": "gt/proj_xy" in arrays})
+        sessions.append({"name": name, "object": s.objects[0] if s.objects else name, "views": views})
+    backends = [b for b in ("analytic", "none", "measured", "exact", *BLENDS, "torch") if b in (*MODEL_FREE, *BLENDS, "analytic", "torch")]
+    return JSONResponse({"sessions": sessions, "patterns": [*LIVE_PATTERNS, "psp"], "backends": backends,
+                         "checkpoint": str(state.checkpoint) if state.checkpoint else None,
+                         "relight_patterns": ["checkerboard", "stripes_x", "stripes_y"]})
+
+
+async def session_map(request: Request, state: ViewState) -> Response:
+    """A view's decoded map as a PNG; its colour bar's range and unit in headers."""
+    kind = request.path_params["kind"]
+    units = {"modulation": "camera units (fringe amplitude B)", "xp": "projector px", "yp": "projector px",
+             "mask": "valid (1) / not (0)", "white": "linear camera units"}
+    if kind not in units:
+        return _problem(f"unknown map {kind!r}; choose {', '.join(units)}")
+
+    def render() -> tuple[bytes, float, float]:
+        s = _session(state, request.path_params["name"])
+        view = int(request.path_params["view"])
+        if view not in s.views():
+            from sssphase_core.errors import InputError
+
+            raise InputError(f"{s.name} has no complete view {view} (has {s.views()})")
+        mask = s.load(view, "corr/mask").astype(bool)
+        if kind == "white":
+            white = np.asarray(s.load(view, "white"), np.float32)
+            from sssphase_core.processing.colour import display_scale
+
+            return _png(display(white / display_scale(white, mask))), 0.0, display_scale(white, mask)
+        if kind == "mask":
+            return colour_map(mask.astype(np.float32), np.ones_like(mask), 0.0, 1.0)
+        return colour_map(np.asarray(s.load(view, f"corr/{kind}"), np.float32), mask)
+
+    png, lo, hi = await asyncio.to_thread(render)
+    return Response(png, media_type="image/png", headers={"X-Range": f"{lo:.6g},{hi:.6g}", "X-Unit": units[kind]})
+
+
+def _mosaic(tiles: list[np.ndarray], log: bool) -> bytes:
+    """(K, K, 3) tiles side by side as one PNG, each scaled to its own peak (``log``: 4 decades)."""
+    from sssphase_core.processing.colour import srgb
+
+    shown = []
+    for tile in tiles:
+        t = np.clip(np.nan_to_num(tile), 0, None)
+        peak = float(t.max()) or 1.0
+        t = np.clip(1 + np.log10(np.maximum(t / peak, 1e-4)) / 4, 0, 1) if log else srgb(t / peak)
+        shown.append(np.pad((t * 255).astype(np.uint8), ((2, 2), (2, 2), (0, 0)), constant_values=40))
+    return _png(np.concatenate(shown, axis=1))
+
+
+async def session_pixel(request: Request, state: ViewState) -> Response:
+    """A clicked pixel: its PSP patch (the 8 frames) and its footprints from every source, log scale."""
+    from sssphase_core.errors import InputError
+    from sssphase_core.relight.probe import probe_pixel
+    from sssphase_core.relight.views import load_view
+
+    try:
+        x, y = int(request.query_params["x"]), int(request.query_params["y"])
+    except (KeyError, ValueError):
+        return _problem("give the pixel as ?x=COLUMN&y=ROW")
+
+    def run() -> dict[str, Any]:
+        s = _session(state, request.path_params["name"])
+        view = int(request.path_params["view"])
+        if view not in s.views():
+            raise InputError(f"{s.name} has no complete view {view} (has {s.views()})")
+        key = (s.name, view)
+        if key not in state.probes:  # the view and its model sources, kept for the next click
+            state.probes.clear()
+            state.probes[key] = (load_view(s, view), {})
+        rv, sources = state.probes[key]
+        probe = probe_pixel(rv, (y, x), checkpoint=state.checkpoint, sources=sources)
+        names = list(probe.footprints)
+        return {"pixel": [x, y], "valid": probe.valid, "projector": list(probe.projector), "footprint_names": names,
+                "skipped": probe.skipped, "patch_png": base64.b64encode(_mosaic(list(probe.patch), log=False)).decode(),
+                "footprints_png": base64.b64encode(_mosaic([probe.footprints[n] for n in names], log=True)).decode()
+                if names else None}
+
+    return JSONResponse(await asyncio.to_thread(run))
+
+
+# --- relighting --------------------------------------------------------------------------------------------
+
+
+def _upload_path(state: ViewState, name: str) -> Path:
+    from sssphase_core.errors import InputError
+
+    folder = state.out / "uploads"
+    path = folder / name
+    if path.parent != folder or not path.is_file():  # names the server gave, nothing else
+        raise InputError(f"no uploaded pattern {name!r}")
+    return path
+
+
+async def upload(request: Request, state: ViewState) -> Response:
+    """An image body (PNG, JPEG, TIFF, BMP, EXR) -> its name for ``/api/relight``; checked by the pattern reader."""
+    body = bytearray()
+    async for chunk in request.stream():
+        body += chunk
+        if len(body) > MAX_UPLOAD_BYTES:
+            return _problem(f"the upload is larger than {MAX_UPLOAD_BYTES >> 20} MB", 413)
+    suffix = next((ext for magic, ext in IMAGE_MAGIC.items() if body.startswith(magic)), None)
+    if suffix is None:
+        return _problem("not an image: upload a PNG, JPEG, TIFF, BMP or EXR file")
+    folder = state.out / "uploads"
+    folder.mkdir(parents=True, exist_ok=True)
+    name = f"upload_{hashlib.sha256(body).hexdigest()[:12]}{suffix}"
+    (folder / name).write_bytes(bytes(body))
+    return JSONResponse({"name": name})
+
+
+async def relight(request: Request, state: ViewState) -> Response:
+    """Relight one session view under a named or uploaded pattern with ``sss relight``'s runner; the
+    footprints are cached in the output folder, so the next pattern costs only the splat."""
+    from sssphase_core.relight.runner import relight_session
+
+    try:
+        args = await request.json()
+    except json.JSONDecodeError:
+        return _problem("the request body must be JSON")
+    if not isinstance(args, dict):
+        return _problem("the request body must be a JSON object")
+    pattern = str(args.get("pattern", ""))
+    backend = str(args.get("backend", "auto"))
+    try:
+        view = int(args.get("view", 0))
+    except (TypeError, ValueError):
+        return _problem("view must be a whole number")
+
+    def run() -> tuple[Any, float]:
+        s = _session(state, str(args.get("session", "")))
+        spec = str(_upload_path(state, pattern)) if pattern.startswith("upload_") else pattern
+        t0 = time.perf_counter()
+        result = relight_session(s, [spec], backend=backend, checkpoint=state.checkpoint, out=state.out / "relit",
+                                 views=[view], formats=("png", "exr"), cache=True, resize=str(args.get("resize", "")))
+        return result, time.perf_counter() - t0
+
+    result, seconds = await asyncio.to_thread(run)
+    (item,) = result.images
+    files = {("display" if p.stem.endswith("_display") else p.suffix[1:]): f"/api/files/relit/{p.name}" for p in item.paths}
+    return JSONResponse({"backend": result.backend, "pattern": item.pattern, "files": files, "metrics": item.metrics,
+                         "figure": f"/api/files/relit/{item.figure.name}" if item.figure else None,
+                         "seconds": seconds, "clipped": item.clipped})
+
+
+async def files(request: Request, state: ViewState) -> Response:
+    """A file the view wrote (relit images and figures), by its name in the view's output folder."""
+    root = (state.out / "relit").resolve()
+    path = (root / request.path_params["name"]).resolve()
+    if path.parent != root or not path.is_file():
+        return _problem("no such file", 404)
+    return FileResponse(path, filename=path.name)
+
+
+# --- live view and live decode ------------------------------------------------------------------------
+
+
+async def live_socket(websocket: WebSocket) -> None:
+    """Frames (JSON header, then JPEG bytes) or decoded sets (JSON with PNGs) as fast as the rig gives them;
+    the page sends ``{"pattern", "exposure", "psp_frame", "decode"}`` to change what it sees."""
+    state: ViewState = websocket.app.state.view
+    if not _authorised(state, websocket.query_params.get("token")):
+        await websocket.close(code=4403)
+        return
+    await websocket.accept()
+    settings = state.settings
+    receiving = asyncio.create_task(_receive_settings(websocket, settings, state))
+    last = time.perf_counter()
+    try:
+        while not receiving.done():
+            try:
+                if settings.decode:
+                    decoded, white, seconds = await asyncio.to_thread(state.live.decode, settings)
+                    await websocket.send_text(json.dumps(_decode_message(decoded, white, seconds)))
+                    continue
+                frame = await asyncio.to_thread(state.live.frame, settings)
+            except SssError as exc:
+                await websocket.send_text(json.dumps({"type": "error", "message": str(exc)}))
+                await asyncio.sleep(0.5)
+                continue
+            now = time.perf_counter()
+            header = {"type": "frame", "sequence": frame.sequence, "fps": 1.0 / max(now - last, 1e-6),
+                      "requested_ms": frame.requested_s * 1000, "received_ms": frame.received_s * 1000,
+                      "sent_ms": time.time() * 1000, "mean": frame.stats.mean, "histogram": frame.stats.histogram,
+                      "clipped": frame.stats.clipped, "shape": list(frame.image.shape), "pattern": settings.pattern,
+                      "exposure": settings.exposure, "gain": settings.gain}
+            last = now
+            await websocket.send_text(json.dumps(header))
+            await websocket.send_bytes(_jpeg(display(frame.image * np.float32(settings.exposure), clip=frame.stats.clip)))
+    except (WebSocketDisconnect, RuntimeError):
+        pass
+    finally:
+        receiving.cancel()
+
+
+async def _receive_settings(websocket: WebSocket, settings: LiveSettings, state: ViewState) -> None:
+    while True:
+        try:
+            message = json.loads(await websocket.receive_text())
+        except (json.JSONDecodeError, TypeError):
+            continue
+        except WebSocketDisconnect:
+            return
+        if not isinstance(message, dict):
+            continue
+        if "exposure" in message and isinstance(message["exposure"], int | float) and 1e-3 <= message["exposure"] <= 1e3:
+            settings.exposure = float(message["exposure"])
+        if message.get("pattern") in (*LIVE_PATTERNS, "psp"):
+            settings.pattern = message["pattern"]
+        if "gain" in message and (message["gain"] is None or (isinstance(message["gain"], int | float)
+                                                               and 0 <= message["gain"] <= 1e3)):
+            settings.gain = None if message["gain"] is None else float(message["gain"])
+        if isinstance(message.get("psp_frame"), int):
+            settings.psp_frame = message["psp_frame"]
+        if "decode" in message:
+            settings.decode = bool(message["decode"])
+
+
+def _decode_message(decoded: Any, white: np.ndarray, seconds: float) -> dict[str, Any]:
+    from sssphase_core.processing.colour import display_scale
+    from sssphase_core.processing.psp import Reason
+
+    modulation, lo, hi = colour_map(decoded.modulation, np.ones_like(decoded.mask), 0.0,
+                                    max(float(np.percentile(decoded.modulation, 99)), decoded.threshold * 4))
+    mask_rgb = display(white / display_scale(white))
+    mask_rgb[~decoded.mask] = (mask_rgb[~decoded.mask] * 0.25).astype(np.uint8)
+    reasons = {r.name: int((decoded.reason == r).sum()) for r in Reason}
+    return {"type": "decode", "seconds": seconds, "valid": float(decoded.mask.mean()), "threshold": decoded.threshold,
+            "modulation_range": [lo, hi], "reasons": reasons,
+            "mask_png": base64.b64encode(_png(mask_rgb)).decode(), "modulation_png": base64.b64encode(modulation).decode()}
+
+
+def build_app(state: ViewState) -> Starlette:
+    """The ASGI application serving ``state``."""
+    routes = [
+        Route("/", guarded(index)),
+        Route("/api/state", guarded(api_state)),
+        Route("/api/sessions/{name}/{view:int}/map/{kind}.png", guarded(session_map)),
+        Route("/api/sessions/{name}/{view:int}/pixel", guarded(session_pixel)),
+        Route("/api/upload", guarded(upload), methods=["POST"]),
+        Route("/api/relight", guarded(relight), methods=["POST"]),
+        Route("/api/files/relit/{name}", guarded(files)),
+        WebSocketRoute("/ws/live", live_socket),
+    ]
+    @contextlib.asynccontextmanager
+    async def lifespan(app: Starlette) -> AsyncIterator[None]:
+        yield
+        await asyncio.to_thread(state.live.close)  # the rig closed, the daemon this started stopped
+
+    app = Starlette(routes=routes, lifespan=lifespan)
+    app.state.view = state
+    return app

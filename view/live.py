@@ -1,0 +1,105 @@
+"""The rig as the live view sees it: one daemon rig, one frame or one PSP set at a time.
+
+:class:`LiveRig` owns a client of the local daemon (started as ``sss capture`` starts one when none runs)
+and a rig opened on it; :meth:`LiveRig.frame` projects a pattern and returns the developed frame with its
+statistics, :meth:`LiveRig.decode` captures one PSP set and decodes it. What they compute is
+``sssphase_core.capture.live``'s; this module only runs it against the daemon, from a worker thread.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from sssphase_core.capture.live import (
+    FrameStats,
+    LiveDecode,
+    decode_set,
+    develop_live,
+    frame_stats,
+    pattern_spec,
+    psp_set,
+)
+from sssphase_core.capture.plan import RigSpec
+
+
+@dataclass
+class LiveSettings:
+    """What the page asked for: the pattern on the projector, the exposure, live decode on or off."""
+
+    pattern: str = "white"
+    exposure: float = 1.0
+    gain: float | None = None  # the camera's gain in its driver's unit (None: as the rig opened it)
+    psp_frame: int = 0
+    decode: bool = False
+    image: np.ndarray | None = field(default=None, repr=False)  # an uploaded pattern at the projector's size
+
+
+@dataclass
+class LiveFrame:
+    image: np.ndarray  # (H, W, 3) linear, in units of the reference exposure; times the exposure: on the sensor
+    stats: FrameStats
+    sequence: int
+    requested_s: float  # host time (time.time) the frame was asked for
+    received_s: float  # ... and arrived from the daemon
+
+
+class LiveRig:
+    """A rig opened on the local daemon for live use (its devices are the rig file's, else the sim rig's)."""
+
+    def __init__(self, rig: RigSpec | None = None) -> None:
+        self.rig = rig or RigSpec()
+        self.lock = threading.Lock()  # one daemon job at a time
+        self._stack = contextlib.ExitStack()
+        self.client: Any = None
+        self.rig_id: str | None = None
+        self.projector_size: tuple[int, int] = (0, 0)
+        self.sequence = 0
+
+    def open(self) -> None:
+        from sssphase_daemon.client import local_client
+
+        if self.rig_id is not None:
+            return
+        self.client = self._stack.enter_context(local_client())
+        opened = self.client.call("open_rig", camera=self.rig.camera, projector=self.rig.projector, turntable=None,
+                                  options=dict(self.rig.options))
+        self.rig_id, self.projector_size = opened["rig"], tuple(opened["projector_size"])
+
+    def close(self) -> None:
+        with self.lock:
+            if self.rig_id is not None and self.client is not None:
+                with contextlib.suppress(Exception):
+                    self.client.call("close_rig", timeout_s=2.0, rig=self.rig_id)
+            self.rig_id = None
+            self._stack.close()
+
+    def frame(self, settings: LiveSettings) -> LiveFrame:
+        """Project ``settings``' pattern and take one frame through the daemon."""
+        with self.lock:
+            self.open()
+            spec = pattern_spec(settings.pattern, self.projector_size, exposure=settings.exposure,
+                                psp_frame=settings.psp_frame, image=settings.image, gain=settings.gain)
+            asked = time.time()
+            (received,) = list(self.client.capture(self.rig_id, [spec]))
+            got = time.time()
+            image = develop_live(received, self.rig)  # linear, in units of the reference exposure (as captures are)
+            self.sequence += 1
+            return LiveFrame(image, frame_stats(image * np.float32(settings.exposure)), self.sequence, asked, got)
+
+    def decode(self, settings: LiveSettings) -> tuple[LiveDecode, np.ndarray, float]:
+        """Capture one PSP set (and white, black) and decode it -> (decode, white image, seconds)."""
+        with self.lock:
+            self.open()
+            t0 = time.perf_counter()
+            specs = [{**s, "exposure": float(settings.exposure), **({} if settings.gain is None else {"gain": settings.gain})}
+                     for s in psp_set(self.projector_size, self.rig.gamma)]
+            images = {f.header["name"]: develop_live(f, self.rig) for f in self.client.capture(self.rig_id, specs)}
+            bayer = self.rig.bayer if self.rig.is_sim else None
+            result = decode_set(images, self.projector_size, bayer)
+            return result, images["white"], time.perf_counter() - t0

@@ -1,0 +1,53 @@
+"""Serve the view: the bind rule (loopback unless asked), the token, uvicorn on a socket bound first (so
+that ``--port 0`` gives a free port the URL can name)."""
+
+from __future__ import annotations
+
+import ipaddress
+import secrets
+import socket
+from collections.abc import Callable
+from pathlib import Path
+
+from sssphase_core.errors import InputError
+from sssphase_view.app import ViewState, build_app
+from sssphase_view.live import LiveRig
+
+
+def check_host(host: str, allow_remote: bool) -> None:
+    """Loopback only unless ``allow_remote`` (the token still guards every route then)."""
+    try:
+        loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        raise InputError(f"--host must be an IP address (or localhost), got {host!r}") from None
+    if not loopback and not allow_remote:
+        raise InputError(f"--host {host} is not loopback: anyone on that network could reach the rig; pass "
+                         "--allow-remote to serve it there anyway (the token is still required)")
+
+
+def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = None, checkpoint: Path | None = None,
+          out: Path = Path("view_out"), rig: LiveRig | None = None, allow_remote: bool = False,
+          on_ready: Callable[[str], None] | None = None) -> None:
+    """Run the view until interrupted; ``on_ready(url)`` gets the URL with its token once it listens."""
+    import uvicorn
+
+    check_host(host, allow_remote)
+    state = ViewState(token=secrets.token_urlsafe(24), out=Path(out), sessions=sessions, checkpoint=checkpoint,
+                      live=rig or LiveRig())
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    try:
+        sock.bind(("127.0.0.1" if host == "localhost" else host, port))
+        sock.listen(128)  # connections from now on wait for the server (the URL is printed before it runs)
+    except OSError as exc:
+        sock.close()
+        raise InputError(f"cannot listen on {host}:{port}: {exc.strerror}") from None
+    bound = sock.getsockname()[1]
+    shown = f"[{host}]" if ":" in host else host
+    url = f"http://{shown}:{bound}/?token={state.token}"
+    config = uvicorn.Config(build_app(state), log_level="warning", ws="websockets-sansio", lifespan="on")
+    server = uvicorn.Server(config)
+    if on_ready is not None:
+        on_ready(url)
+    server.run(sockets=[sock])

@@ -1,0 +1,201 @@
+// sss view's page: the token comes from the URL `sss view` printed and goes with every request.
+"use strict";
+const TOKEN = new URLSearchParams(location.search).get("token") || "";
+const $ = (id) => document.getElementById(id);
+const state = { frames: 0, sessions: [], uploaded: null, socket: null };
+
+function say(text) { $("message").textContent = text || ""; }
+
+async function api(path, options = {}) {
+  const response = await fetch(path, { ...options, headers: { "X-Token": TOKEN, ...(options.headers || {}) } });
+  if (!response.ok) {
+    let message = response.statusText;
+    try { message = (await response.json()).error || message; } catch (e) { /* not JSON */ }
+    throw new Error(message);
+  }
+  return response;
+}
+
+function fill(select, items, label = (x) => x) {
+  select.innerHTML = "";
+  for (const item of items) {
+    const option = document.createElement("option");
+    option.value = typeof item === "object" ? item.value : item;
+    option.textContent = typeof item === "object" ? item.label : label(item);
+    select.appendChild(option);
+  }
+}
+
+// --- tabs -------------------------------------------------------------------------------------------------
+for (const button of document.querySelectorAll("nav button")) {
+  button.onclick = () => {
+    for (const b of document.querySelectorAll("nav button")) b.classList.toggle("on", b === button);
+    for (const s of document.querySelectorAll("section")) s.classList.toggle("on", s.id === button.dataset.tab);
+  };
+}
+
+// --- live ---------------------------------------------------------------------------------------------------
+function drawHistogram(histogram) {
+  const canvas = $("histogram"), g = canvas.getContext("2d");
+  g.clearRect(0, 0, canvas.width, canvas.height);
+  const colours = ["rgba(255,80,80,0.7)", "rgba(80,255,80,0.7)", "rgba(80,140,255,0.7)"];
+  const peak = Math.max(1, ...histogram.flat());
+  histogram.forEach((bins, c) => {
+    g.strokeStyle = colours[c % 3];
+    g.beginPath();
+    bins.forEach((n, i) => {
+      const x = (i + 0.5) * canvas.width / bins.length, y = canvas.height * (1 - Math.log1p(n) / Math.log1p(peak));
+      if (i === 0) g.moveTo(x, y); else g.lineTo(x, y);
+    });
+    g.stroke();
+  });
+}
+
+function sendSettings() {
+  if (!state.socket || state.socket.readyState !== WebSocket.OPEN) return;
+  state.socket.send(JSON.stringify({
+    pattern: $("pattern").value, exposure: Number($("exposure").value),
+    gain: $("gain").value === "" ? null : Number($("gain").value),
+    psp_frame: Number($("psp-frame").value), decode: $("decode").checked,
+  }));
+  $("decode-panel").hidden = !$("decode").checked;
+}
+
+function connectLive() {
+  const scheme = location.protocol === "https:" ? "wss" : "ws";
+  const socket = new WebSocket(`${scheme}://${location.host}/ws/live?token=${encodeURIComponent(TOKEN)}`);
+  socket.binaryType = "blob";
+  let header = null;
+  socket.onopen = () => { state.socket = socket; sendSettings(); $("status").textContent = "live"; };
+  socket.onclose = () => { $("status").textContent = "live view closed"; state.socket = null; };
+  socket.onmessage = (event) => {
+    if (typeof event.data !== "string") {
+      const old = $("live-image").src;
+      $("live-image").src = URL.createObjectURL(event.data);
+      if (old.startsWith("blob:")) URL.revokeObjectURL(old);
+      if (header) {
+        state.shown = header;  // what the image on the page is: its pattern, exposure, statistics
+        state.frames += 1;
+        $("frame-count").textContent = state.frames;
+        $("fps").textContent = header.fps.toFixed(1);
+        $("latency").textContent = (Date.now() - header.requested_ms).toFixed(0);
+        $("mean").textContent = header.mean.map((m) => m.toFixed(3)).join(" / ");
+        $("clipped").textContent = (100 * header.clipped).toFixed(2) + "%";
+        drawHistogram(header.histogram);
+      }
+      return;
+    }
+    const message = JSON.parse(event.data);
+    if (message.type === "frame") { header = message; return; }
+    if (message.type === "error") { say(message.message); return; }
+    if (message.type === "decode") {
+      $("decode-mask").src = "data:image/png;base64," + message.mask_png;
+      $("decode-modulation").src = "data:image/png;base64," + message.modulation_png;
+      $("decode-seconds").textContent = message.seconds.toFixed(2);
+      $("decode-valid").textContent = (100 * message.valid).toFixed(1) + "%";
+      $("modulation-range").textContent = message.modulation_range.map((v) => v.toPrecision(3)).join(" … ");
+      $("threshold").textContent = message.threshold;
+      $("reasons").innerHTML = Object.entries(message.reasons).map(([k, v]) => `<tr><td>${k}</td><td>${v}</td></tr>`).join("");
+      state.decodes = (state.decodes || 0) + 1;
+    }
+  };
+}
+
+for (const id of ["pattern", "exposure", "gain", "psp-frame", "decode"]) $(id).onchange = sendSettings;
+
+// --- sessions ---------------------------------------------------------------------------------------------
+function views(sessionSelect, viewSelect) {
+  const session = state.sessions.find((s) => s.name === sessionSelect.value);
+  fill(viewSelect, session ? session.views.map((v) => v.view) : []);
+}
+
+async function showMap() {
+  const name = $("session").value, view = $("session-view").value, kind = $("map").value;
+  if (!name) return;
+  try {
+    const response = await api(`/api/sessions/${encodeURIComponent(name)}/${view}/map/${kind}.png`);
+    $("map-image").src = URL.createObjectURL(await response.blob());
+    $("map-range").textContent = response.headers.get("X-Range").replace(",", " … ");
+    $("map-unit").textContent = response.headers.get("X-Unit");
+    $("map-bar").hidden = kind === "white";  // an sRGB image, not a colour-mapped one
+    say("");
+  } catch (e) { say(e.message); }
+}
+
+$("map-image").onclick = async (event) => {
+  const img = $("map-image"), rect = img.getBoundingClientRect();
+  const x = Math.floor((event.clientX - rect.left) * img.naturalWidth / rect.width);
+  const y = Math.floor((event.clientY - rect.top) * img.naturalHeight / rect.height);
+  try {
+    const probe = await (await api(`/api/sessions/${encodeURIComponent($("session").value)}/${$("session-view").value}/pixel?x=${x}&y=${y}`)).json();
+    $("probe").hidden = false;
+    $("probe-info").textContent = `pixel (${x}, ${y}) ` + (probe.valid ? `→ projector (${probe.projector.map((v) => v.toFixed(2)).join(", ")})` : "(not decoded)");
+    $("probe-patch").src = "data:image/png;base64," + probe.patch_png;
+    $("probe-names").textContent = probe.footprint_names.join(" | ");
+    $("probe-footprints").src = probe.footprints_png ? "data:image/png;base64," + probe.footprints_png : "";
+    $("probe-skipped").textContent = Object.entries(probe.skipped).map(([k, v]) => `${k}: ${v}`).join("; ");
+    state.probe = probe;
+    say("");
+  } catch (e) { say(e.message); }
+};
+
+$("session").onchange = () => { views($("session"), $("session-view")); showMap(); };
+$("session-view").onchange = showMap;
+$("map").onchange = showMap;
+
+// --- relight ------------------------------------------------------------------------------------------------
+$("relight-session").onchange = () => views($("relight-session"), $("relight-view"));
+
+$("upload").onchange = async () => {
+  const file = $("upload").files[0];
+  if (!file) return;
+  try {
+    const response = await api("/api/upload", { method: "POST", body: file });
+    state.uploaded = (await response.json()).name;
+    say("");
+    $("relight-info").textContent = `pattern: ${file.name} (uploaded)`;
+  } catch (e) { state.uploaded = null; say(e.message); }
+};
+
+$("relight-button").onclick = async () => {
+  const pattern = state.uploaded || $("relight-pattern").value;
+  say("");
+  $("relight-info").textContent = "relighting (the first pattern of a view computes its footprints) …";
+  try {
+    const response = await api("/api/relight", {
+      method: "POST", headers: { "Content-Type": "application/json" },
+      body: JSON.stringify({ session: $("relight-session").value, view: Number($("relight-view").value),
+                             backend: $("backend").value, pattern, resize: "fit" }),
+    });
+    const result = await response.json();
+    const png = await (await api(result.files.display || result.files.png)).blob();
+    $("relit-image").src = URL.createObjectURL(png);
+    const metrics = result.metrics ? ` · PSNR ${result.metrics.psnr.toFixed(2)} dB, SSIM ${result.metrics.ssim.toFixed(3)}` : "";
+    $("relight-info").textContent = `${result.backend}, ${result.pattern}: ${result.seconds.toFixed(2)} s${metrics}`;
+    $("downloads").innerHTML = Object.entries(result.files)
+      .map(([kind, url]) => `<a href="${url}?token=${encodeURIComponent(TOKEN)}" download>${
+        { png: "PNG (16-bit linear)", exr: "EXR (float, linear)", display: "PNG (display)" }[kind] || kind}</a>`).join(" · ");
+    if (result.figure) {
+      $("compare-image").src = URL.createObjectURL(await (await api(result.figure)).blob());
+      $("compare-image").hidden = false;
+    } else { $("compare-image").hidden = true; }
+    state.relit = result;
+    say("");
+  } catch (e) { $("relight-info").textContent = ""; say(e.message); }
+};
+
+// --- start ---------------------------------------------------------------------------------------------------
+(async () => {
+  try {
+    const info = await (await api("/api/state")).json();
+    state.sessions = info.sessions;
+    fill($("pattern"), info.patterns);
+    fill($("backend"), info.backends.filter((b) => info.checkpoint || !["torch", "blend"].includes(b)));
+    fill($("relight-pattern"), info.relight_patterns);
+    for (const select of [$("session"), $("relight-session")]) fill(select, info.sessions.map((s) => s.name));
+    views($("session"), $("session-view"));
+    views($("relight-session"), $("relight-view"));
+    showMap();
+    connectLive();
+  } catch (e) { say(e.message); }
+})();
