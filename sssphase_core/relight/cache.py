@@ -14,7 +14,8 @@ class FootprintCache:
     """A compressed (float16 ``.npz``) cache of footprints keyed by pixel, wrapped around a source.
 
     Later relights (other patterns) read cached footprints and run the source only for pixels that
-    are not cached yet; ``save()`` writes the cache back when new footprints were computed. It holds
+    are not cached yet; footprints computed now are rounded to float16 as well, so that an image does not
+    depend on whether its footprints were cached; ``save()`` writes the cache back when new footprints were computed. It holds
     at most ``max_bytes`` in memory (a 1080p view at K = 90 has ~15 GB of float16 footprints): past
     that, footprints pass through uncached and ``uncached`` counts them. It holds the source's own
     footprints (before any view calibration, which :func:`relight_view` applies after the splat); a
@@ -66,7 +67,8 @@ class FootprintCache:
         if miss.any():
             fp = self.source(pixels[miss])
             fp = fp.float().cpu().numpy() if torch.is_tensor(fp) else np.asarray(fp, np.float32)
-            out[miss] = fp
+            fp = fp.astype(np.float16)  # as the cache holds them: a relight is the same whether its footprints
+            out[miss] = fp  # were computed now or read back (sss view's next pattern = sss relight's)
             keep = min(len(fp), self.max_rows - self.size)
             self.uncached += len(fp) - keep
             if keep > 0:
