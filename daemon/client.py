@@ -277,24 +277,18 @@ def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | N
     ``on_start(pid)`` / ``on_stop(pid)`` / ``on_left(pid)`` are told when a daemon had to be started / was
     stopped / was left running for another client.
     """
-    client: DaemonClient | None = None
-    try:
-        client = DaemonClient.from_state(timeout_s=timeout_s)
-        if not client.ping(timeout_s=2.0):
-            client.close()
-            client = None
-    except DaemonUnavailable:
-        client = None
     started = None
-    if client is None:  # it ends itself once unused: an interrupted or killed capture cannot leave it for ever
-        started = spawn_daemon(extra_args=("--exit-when-idle", str(LOCAL_DAEMON_IDLE_S)))
-        try:
-            if on_start is not None:
-                on_start(started.pid)
-            client = DaemonClient.from_state(timeout_s=timeout_s)
-        except BaseException:  # (an interrupt here left the daemon this started running)
-            _stop(started)
-            raise
+    with _start_lock():  # clients started together: one starts the daemon, the others find it running
+        client = _running_client(timeout_s)
+        if client is None:  # it ends itself once unused: an interrupted or killed capture cannot leave it for ever
+            started = spawn_daemon(extra_args=("--exit-when-idle", str(LOCAL_DAEMON_IDLE_S)))
+            try:
+                if on_start is not None:
+                    on_start(started.pid)
+                client = DaemonClient.from_state(timeout_s=timeout_s)
+            except BaseException:  # (an interrupt here left the daemon this started running)
+                _stop(started)
+                raise
     try:
         with client:
             yield client
@@ -306,6 +300,33 @@ def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | N
             _stop(started)
             if on_stop is not None:
                 on_stop(started.pid)
+
+
+def _running_client(timeout_s: float) -> DaemonClient | None:
+    """A client of the local daemon when one runs and answers, else None."""
+    try:
+        client = DaemonClient.from_state(timeout_s=timeout_s)
+    except DaemonUnavailable:
+        return None
+    if client.ping(timeout_s=2.0):
+        return client
+    client.close()
+    return None
+
+
+@contextlib.contextmanager
+def _start_lock() -> Iterator[None]:
+    """An exclusive lock on the runtime dir's ``start.lock`` while a client looks for the local daemon and
+    starts one: four `sss capture` started at once with no daemon found none and each started its own, and
+    all but one failed ("the daemon exited with status 2")."""
+    import fcntl
+
+    with open(security.runtime_dir() / "start.lock", "a") as handle:
+        fcntl.flock(handle, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)
 
 
 def _used_by_others(client: DaemonClient) -> bool:

@@ -458,6 +458,33 @@ def test_an_interrupt_while_a_local_daemon_starts_stops_it(runtime_dir, monkeypa
     assert len(started) == 1 and started[0].poll() is not None  # stopped, not left running
 
 
+def test_clients_started_together_with_no_daemon_all_get_the_same_one(monkeypatch):
+    """Four front ends (`sss capture`, `sss view`) started at once with no daemon running: one starts it, the
+    others attach to it; none fails with "the daemon exited with status 2"."""
+    runtime = Path(tempfile.mkdtemp(prefix="sssr", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
+    code = ("import time\nfrom sssphase_daemon import security\nfrom sssphase_daemon.client import local_client\n"
+            "with local_client() as c:\n"
+            "    rig = c.call('open_rig', camera='sim:bench-camera', options={'shape': [8, 8, 3]})['rig']\n"
+            "    print(security.read_state().pid, flush=True)\n"
+            "    time.sleep(1.5)\n"
+            "    c.call('close_rig', rig=rig)\n")
+    procs = [subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              env=env) for _ in range(4)]
+    try:
+        results = [p.communicate(timeout=120) for p in procs]
+        assert all(p.returncode == 0 for p in procs), [r[1][-500:] for r in results]
+        pids = {out.split()[0] for out, _ in results}
+        assert len(pids) == 1, pids  # one daemon served them all
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+        subprocess.run([sys.executable, "-m", "sssphase_cli.main", "daemon", "stop"], env=env, capture_output=True,
+                       timeout=60)
+        shutil.rmtree(runtime, ignore_errors=True)
+
+
 def test_a_daemon_started_for_a_capture_exits_once_unused(daemon_factory):
     """An interrupted or killed `sss capture` could leave the daemon it started running for ever: the daemon it
     starts (`--exit-when-idle`) now ends itself once no rig, job or client has been seen for that long."""
