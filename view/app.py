@@ -13,6 +13,7 @@ from __future__ import annotations
 import asyncio
 import base64
 import contextlib
+import dataclasses
 import hashlib
 import hmac
 import json
@@ -306,6 +307,24 @@ async def files(request: Request, state: ViewState) -> Response:
 # --- live view and live decode ------------------------------------------------------------------------
 
 
+async def live_pixel(request: Request, state: ViewState) -> Response:
+    """The latest live frame at a pixel: linear RGB (the reference exposure's units) and on the sensor."""
+    frame = state.live.last
+    if frame is None:
+        return _problem("no live frame yet")
+    try:
+        x, y = int(request.query_params["x"]), int(request.query_params["y"])
+    except (KeyError, ValueError):
+        return _problem("give the pixel as ?x=COLUMN&y=ROW")
+    h, w = frame.image.shape[:2]
+    if not (0 <= x < w and 0 <= y < h):
+        return _problem(f"pixel ({x}, {y}) is outside the {w}x{h} frame")
+    rgb = [float(v) for v in frame.image[y, x]]
+    return JSONResponse({"pixel": [x, y], "sequence": frame.sequence, "linear": rgb,
+                         "sensor": [v * frame.exposure for v in rgb], "clip": frame.stats.clip})
+
+
+
 async def live_socket(websocket: WebSocket) -> None:
     """Frames (JSON header, then JPEG bytes) or decoded sets (JSON with PNGs) as fast as the rig gives them;
     the page sends ``{"pattern", "exposure", "psp_frame", "decode"}`` to change what it sees."""
@@ -320,11 +339,12 @@ async def live_socket(websocket: WebSocket) -> None:
     try:
         while not receiving.done():
             try:
-                if settings.decode:
-                    decoded, white, seconds = await asyncio.to_thread(state.live.decode, settings)
+                asked = dataclasses.replace(settings)  # what this frame is taken with (the page may change it meanwhile)
+                if asked.decode:
+                    decoded, white, seconds = await asyncio.to_thread(state.live.decode, asked)
                     await websocket.send_text(json.dumps(_decode_message(decoded, white, seconds)))
                     continue
-                frame = await asyncio.to_thread(state.live.frame, settings)
+                frame = await asyncio.to_thread(state.live.frame, asked)
             except SssError as exc:
                 await websocket.send_text(json.dumps({"type": "error", "message": str(exc)}))
                 await asyncio.sleep(0.5)
@@ -333,11 +353,11 @@ async def live_socket(websocket: WebSocket) -> None:
             header = {"type": "frame", "sequence": frame.sequence, "fps": 1.0 / max(now - last, 1e-6),
                       "requested_ms": frame.requested_s * 1000, "received_ms": frame.received_s * 1000,
                       "sent_ms": time.time() * 1000, "mean": frame.stats.mean, "histogram": frame.stats.histogram,
-                      "clipped": frame.stats.clipped, "shape": list(frame.image.shape), "pattern": settings.pattern,
-                      "exposure": settings.exposure, "gain": settings.gain}
+                      "clipped": frame.stats.clipped, "shape": list(frame.image.shape), "pattern": asked.pattern,
+                      "exposure": asked.exposure, "gain": asked.gain}
             last = now
             await websocket.send_text(json.dumps(header))
-            await websocket.send_bytes(_jpeg(display(frame.image * np.float32(settings.exposure), clip=frame.stats.clip)))
+            await websocket.send_bytes(_jpeg(display(frame.image * np.float32(asked.exposure), clip=frame.stats.clip)))
     except (WebSocketDisconnect, RuntimeError):
         pass
     finally:
@@ -388,6 +408,7 @@ def build_app(state: ViewState) -> Starlette:
         Route("/api/state", guarded(api_state)),
         Route("/api/sessions/{name}/{view:int}/map/{kind}.png", guarded(session_map)),
         Route("/api/sessions/{name}/{view:int}/pixel", guarded(session_pixel)),
+        Route("/api/live/pixel", guarded(live_pixel)),
         Route("/api/upload", guarded(upload), methods=["POST"]),
         Route("/api/relight", guarded(relight), methods=["POST"]),
         Route("/api/files/relit/{name}", guarded(files)),

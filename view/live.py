@@ -47,6 +47,7 @@ class LiveFrame:
     sequence: int
     requested_s: float  # host time (time.time) the frame was asked for
     received_s: float  # ... and arrived from the daemon
+    exposure: float = 1.0
 
 
 class LiveRig:
@@ -60,6 +61,7 @@ class LiveRig:
         self.rig_id: str | None = None
         self.projector_size: tuple[int, int] = (0, 0)
         self.sequence = 0
+        self.last: LiveFrame | None = None  # the latest frame, for the page's pixel probe
 
     def open(self) -> None:
         from sssphase_daemon.client import local_client
@@ -90,7 +92,9 @@ class LiveRig:
             got = time.time()
             image = develop_live(received, self.rig)  # linear, in units of the reference exposure (as captures are)
             self.sequence += 1
-            return LiveFrame(image, frame_stats(image * np.float32(settings.exposure)), self.sequence, asked, got)
+            self.last = LiveFrame(image, frame_stats(image * np.float32(settings.exposure)), self.sequence, asked, got,
+                                  settings.exposure)
+            return self.last
 
     def decode(self, settings: LiveSettings) -> tuple[LiveDecode, np.ndarray, float]:
         """Capture one PSP set (and white, black) and decode it -> (decode, white image, seconds)."""

@@ -32,6 +32,10 @@ def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = Non
     import uvicorn
 
     check_host(host, allow_remote)
+    try:
+        Path(out).mkdir(parents=True, exist_ok=True)  # refused now, not at the first relight
+    except OSError as exc:
+        raise InputError(f"--out {out}: {exc.strerror}") from None
     state = ViewState(token=secrets.token_urlsafe(24), out=Path(out), sessions=sessions, checkpoint=checkpoint,
                       live=rig or LiveRig())
     family = socket.AF_INET6 if ":" in host else socket.AF_INET

@@ -133,6 +133,16 @@ def test_live_frames_arrive_and_follow_the_exposure_and_the_pattern(page, tmp_pa
     # squares) and some are far darker (the dark squares, lit only by light scattered under the surface)
     ratio = _frame_green(page)[white > 60] / white[white > 60]  # display (sRGB) values
     assert (white > 60).sum() > 500 and (ratio > 0.9).mean() > 0.2 and (ratio < 0.7).mean() > 0.2, np.percentile(ratio, [10, 50, 90])
+    # zoom in, and a click on the frame reads that pixel's value from the frame itself
+    _set(page, "zoom", "2")
+    assert page.evaluate("document.getElementById('live-image').getBoundingClientRect().width") == 512
+    page.evaluate("state.liveProbe = null; (() => { const img = document.getElementById('live-image'); "
+                  "const r = img.getBoundingClientRect(); img.dispatchEvent(new MouseEvent('click', "
+                  "{clientX: r.left + 0.5 * r.width, clientY: r.top + 0.5 * r.height})); })()")
+    probe = page.wait_for("state.liveProbe", 30)
+    assert abs(probe["pixel"][0] - 128) <= 1 and abs(probe["pixel"][1] - 96) <= 1
+    assert len(probe["linear"]) == 3 and probe["sensor"] == probe["linear"]  # at exposure 1
+    _set(page, "zoom", "0")
     page.screenshot(tmp_path / "live.png")
 
 
@@ -192,10 +202,11 @@ def test_relighting_an_uploaded_pattern_gives_the_image_sss_relight_writes(serve
     assert status == 200
     (tmp_path / "page.exr").write_bytes(exr)
     session = served["root"] / "sessions" / "star"
+    relit = served["root"] / "out" / "relit"  # sss relight into the view's folder: its footprint cache serves both
     done = _sss("relight", str(session), "--pattern", str(pattern), "--backend", "analytic", "--resize", "fit",
-                "--format", "exr", "--out", str(tmp_path / "cli"), env=served["env"])
+                "--format", "exr", "--out", str(relit), env=served["env"])
     assert done.returncode == 0, done.stdout + done.stderr
-    (cli_exr,) = (tmp_path / "cli").glob("*.exr")
+    cli_exr = relit / "star_v0_blocks_analytic.exr"
     np.testing.assert_array_equal(read_exr(tmp_path / "page.exr"), read_exr(cli_exr))  # bit-identical
     # the view's own reference pattern: relit beside its capture, with scores
     page.evaluate("state.uploaded = null")
@@ -204,6 +215,15 @@ def test_relighting_an_uploaded_pattern_gives_the_image_sss_relight_writes(serve
     assert scored["metrics"]["psnr"] > 20 and scored["figure"]
     page.wait_for("!document.getElementById('compare-image').hidden && "
                   "document.getElementById('compare-image').naturalWidth > 0", 30)
+    # a pattern drawn on the page's canvas (a stroke of the mouse), used like an upload
+    page.evaluate("""(() => { const c = document.getElementById('draw'), r = c.getBoundingClientRect();
+        const ev = (type, fx, fy) => new MouseEvent(type, {clientX: r.left + fx * r.width, clientY: r.top + fy * r.height, bubbles: true});
+        c.dispatchEvent(ev('mousedown', 0.2, 0.5)); c.dispatchEvent(ev('mousemove', 0.5, 0.5));
+        c.dispatchEvent(ev('mousemove', 0.8, 0.5)); window.dispatchEvent(ev('mouseup', 0.8, 0.5));
+        state.uploaded = null; document.getElementById('draw-use').click(); })()""")
+    page.wait_for("state.uploaded", 30)
+    drawn = _relight_on_page(page)
+    assert isinstance(drawn, dict) and drawn["pattern"].startswith("upload_") and drawn["metrics"] is None
     page.screenshot(tmp_path / "relight.png")
 
 
@@ -235,4 +255,4 @@ def test_hostile_input_is_one_message_on_the_page_and_the_server_keeps_serving(s
     assert "no session '../../etc'" in escape["error"]
     assert _get(served["base"] + "/api/state", served["token"])[0] == 200  # still serving
     outside = [p for p in served["root"].parent.iterdir() if p.name == "etc"]
-    assert not outside and sorted(p.name for p in (served["root"] / "out").iterdir()) <= ["relit", "uploads"]
+    assert not outside and {p.name for p in (served["root"] / "out").iterdir()} <= {"relit", "uploads"}

@@ -103,6 +103,24 @@ function connectLive() {
 
 for (const id of ["pattern", "exposure", "gain", "psp-frame", "decode"]) $(id).onchange = sendSettings;
 
+$("zoom").onchange = () => {
+  const zoom = Number($("zoom").value), img = $("live-image");
+  img.style.width = zoom ? `${img.naturalWidth * zoom}px` : "";
+  img.style.maxWidth = zoom ? "none" : "";
+};
+
+$("live-image").onclick = async (event) => {
+  const img = $("live-image"), rect = img.getBoundingClientRect();
+  const x = Math.floor((event.clientX - rect.left) * img.naturalWidth / rect.width);
+  const y = Math.floor((event.clientY - rect.top) * img.naturalHeight / rect.height);
+  try {
+    const p = await (await api(`/api/live/pixel?x=${x}&y=${y}`)).json();
+    $("live-probe").textContent = `(${x}, ${y}) linear ${p.linear.map((v) => v.toFixed(4)).join(" / ")}, on the sensor `
+      + `${p.sensor.map((v) => v.toFixed(3)).join(" / ")}${p.sensor.some((v) => v >= p.clip) ? " CLIPPED" : ""}`;
+    state.liveProbe = p;
+  } catch (e) { say(e.message); }
+};
+
 // --- sessions ---------------------------------------------------------------------------------------------
 function views(sessionSelect, viewSelect) {
   const session = state.sessions.find((s) => s.name === sessionSelect.value);
@@ -156,6 +174,29 @@ $("upload").onchange = async () => {
     $("relight-info").textContent = `pattern: ${file.name} (uploaded)`;
   } catch (e) { state.uploaded = null; say(e.message); }
 };
+
+// a pattern drawn on the page: white strokes on black at the projector's aspect, uploaded like a file
+(() => {
+  const canvas = $("draw"), g = canvas.getContext("2d");
+  let down = false;
+  const clear = () => { g.fillStyle = "#000"; g.fillRect(0, 0, canvas.width, canvas.height); };
+  const at = (e) => { const r = canvas.getBoundingClientRect();
+    return [(e.clientX - r.left) * canvas.width / r.width, (e.clientY - r.top) * canvas.height / r.height]; };
+  clear();
+  canvas.onmousedown = (e) => { down = true; g.beginPath(); g.moveTo(...at(e)); };
+  canvas.onmousemove = (e) => { if (!down) return; g.lineTo(...at(e)); g.strokeStyle = "#fff"; g.lineWidth = 12;
+    g.lineCap = "round"; g.stroke(); };
+  window.addEventListener("mouseup", () => { down = false; });
+  $("draw-clear").onclick = clear;
+  $("draw-use").onclick = () => canvas.toBlob(async (blob) => {
+    try {
+      const response = await api("/api/upload", { method: "POST", body: blob });
+      state.uploaded = (await response.json()).name;
+      $("relight-info").textContent = "pattern: the drawing";
+      say("");
+    } catch (e) { say(e.message); }
+  }, "image/png");
+})();
 
 $("relight-button").onclick = async () => {
   const pattern = state.uploaded || $("relight-pattern").value;
