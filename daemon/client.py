@@ -128,12 +128,15 @@ class DaemonClient:
             return False
 
     # ---- frame streams ---------------------------------------------------------------------
-    def capture(self, rig: str, frames: list[dict[str, Any]]) -> Iterator[ReceivedFrame]:
-        """Run a capture job and yield its frames in order (see :meth:`receive`)."""
-        return self.receive(self.call("capture", rig=rig, frames=frames))
+    def capture(self, rig: str, frames: list[dict[str, Any]], deadline_s: float | None = None) -> Iterator[ReceivedFrame]:
+        """Run a capture job and yield its frames in order (see :meth:`receive`); ``deadline_s``: the longest
+        one device call may take before the daemon fails the job naming the device (its default: 600 s)."""
+        extra = {} if deadline_s is None else {"deadline_s": deadline_s}
+        return self.receive(self.call("capture", rig=rig, frames=frames, **extra))
 
-    def stream(self, rig: str, count: int) -> Iterator[ReceivedFrame]:
-        return self.receive(self.call("stream", rig=rig, count=count))
+    def stream(self, rig: str, count: int, deadline_s: float | None = None) -> Iterator[ReceivedFrame]:
+        extra = {} if deadline_s is None else {"deadline_s": deadline_s}
+        return self.receive(self.call("stream", rig=rig, count=count, **extra))
 
     def _check_job(self, job_id: str) -> None:
         """The stream went quiet: raise if the daemon is gone or the job ended without telling us."""
@@ -316,17 +319,17 @@ def _running_client(timeout_s: float) -> DaemonClient | None:
 
 @contextlib.contextmanager
 def _start_lock() -> Iterator[None]:
-    """An exclusive lock on the runtime dir's ``start.lock`` while a client looks for the local daemon and
-    starts one: four `sss capture` started at once with no daemon found none and each started its own, and
-    all but one failed ("the daemon exited with status 2")."""
+    """An exclusive lock on the runtime dir itself (flock on the directory: no file is left behind) while a
+    client looks for the local daemon and starts one: four `sss capture` started at once with no daemon found
+    none and each started its own, and all but one failed ("another daemon is serving")."""
     import fcntl
 
-    with open(security.runtime_dir() / "start.lock", "a") as handle:
-        fcntl.flock(handle, fcntl.LOCK_EX)
-        try:
-            yield
-        finally:
-            fcntl.flock(handle, fcntl.LOCK_UN)
+    fd = os.open(security.runtime_dir(), os.O_RDONLY | os.O_DIRECTORY)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)
+        yield
+    finally:
+        os.close(fd)  # (closing releases the lock)
 
 
 def _used_by_others(client: DaemonClient) -> bool:
