@@ -45,6 +45,14 @@ MAX_OPEN_RIGS = 16  # each may hold a simulated scene or a camera: a client cann
 MAX_RUNNING_JOBS = 32  # each holds a thread and a stream socket: thousands exhausted ZeroMQ's sockets and threads
 HEAVY_MODULES = ("torch", "depthai", "hid", "usb", "serial")  # a sim-only daemon must load none of these
 FRAME_KINDS = ("psp", "white", "black", "level", "dots", "ref", "image")
+#: How long one device call of a job may take unless the request says (``deadline_s``) or the camera
+#: declares itself slower (``frame_timeout_s``, e.g. the simulator at the paper preset).
+DEFAULT_DEADLINE_S = 600.0
+MAX_DEADLINE_S = 86400.0
+
+
+class DeviceStalled(DeviceError):
+    """A device call did not return within the job's deadline: the rig is closed and dropped."""
 
 
 @dataclass
@@ -91,6 +99,8 @@ class Job:
     cancel: threading.Event = field(default_factory=threading.Event)
     started: float = field(default_factory=time.time)
     last_beat: float = field(default_factory=time.monotonic)
+    deadline_s: float = DEFAULT_DEADLINE_S  # the longest one device call may take
+    doing: str = "the rig"  # the device call under way (named when it stalls)
 
     def summary(self) -> dict[str, Any]:
         return {"job": self.id, "rig": self.rig.id, "state": self.state, "sent": self.sent, "total": self.total,
@@ -165,6 +175,17 @@ def _check_frames(frames: Any) -> list[dict[str, Any]]:
         f.setdefault("params", {})
         f.setdefault("exposure", 1.0)
     return frames
+
+
+def _deadline(args: dict, rig: Rig) -> float:
+    """The longest one device call of a job may take: the request's ``deadline_s`` (a client's timeout), but
+    no less than the camera says its frames can take (``frame_timeout_s``: the simulator at the paper preset)."""
+    given = args.get("deadline_s", DEFAULT_DEADLINE_S)
+    if isinstance(given, bool) or not isinstance(given, int | float) or not 0 < given <= MAX_DEADLINE_S:
+        raise ProtocolError(protocol.BAD_ARGS, f"deadline_s must be a number of seconds in (0, {MAX_DEADLINE_S:g}], "
+                                               f"got {str(given)[:40]}")
+    declared = getattr(rig.devices.get("camera"), "frame_timeout_s", 0.0)
+    return max(float(given), float(declared) if isinstance(declared, int | float) else 0.0)
 
 
 class Daemon:
@@ -279,8 +300,13 @@ class Daemon:
             job.cancel.set()
         for job_thread in [t for t in threading.enumerate() if t.name.startswith("sss-job-")]:
             job_thread.join(timeout=5)
-        for rig in list(self.rigs.values()):
-            rig.close()
+        closing = [threading.Thread(target=rig.close, name=f"sss-close-{rig.id}", daemon=True) for rig in self.rigs.values()]
+        for thread in closing:  # a device that hangs in close (a stalled camera) must not keep the daemon alive
+            thread.start()
+        for thread in closing:
+            thread.join(timeout=5)
+            if thread.is_alive():
+                log.warning("%s: a device did not close within 5 s; exiting without it", thread.name)
         self.rigs.clear()
         if self.preview:
             self.preview.close()
@@ -483,7 +509,14 @@ class Daemon:
     def _close_rig(self, client: bytes, args: dict) -> dict:
         rig = self._get_rig(args)
         if not rig.lock.acquire(timeout=1.0):
-            raise ProtocolError(protocol.BUSY, f"rig {rig.id} is capturing; cancel the job first")
+            with self.lock:
+                running = any(j.rig is rig and j.state == "running" and not j.cancel.is_set() for j in self.jobs.values())
+                if not running:  # its job was cancelled, but a device call is still under way (a stalled device)
+                    self.rigs.pop(rig.id, None)
+            if running:
+                raise ProtocolError(protocol.BUSY, f"rig {rig.id} is capturing; cancel the job first")
+            threading.Thread(target=rig.close, name=f"sss-close-{rig.id}", daemon=True).start()
+            return {"closed": rig.id, "note": "a device call was still under way: its devices close in the background"}
         try:
             rig.close()
             with self.lock:
@@ -507,7 +540,9 @@ class Daemon:
         finally:
             rig.lock.release()
 
-    def _start_job(self, client: bytes, rig: Rig, total: int, frames: Callable[[Job], Iterator[tuple[str, Any]]]) -> dict:
+    def _start_job(self, client: bytes, rig: Rig, total: int, frames: Callable[[Job], Iterator[tuple[str, Any]]],
+                   args: dict) -> dict:
+        deadline = _deadline(args, rig)
         with self.lock:
             running = sum(j.state == "running" for j in self.jobs.values())
         if running >= MAX_RUNNING_JOBS:
@@ -516,7 +551,7 @@ class Daemon:
         job_id = f"{next(self.counter)}-{uuid.uuid4().hex[:8]}"
         sender = FrameSender(self.ctx, security.stream_endpoint(self.endpoint, job_id), self.curve,
                              plain=self.curve is None)
-        job = Job(job_id, client, rig, sender.endpoint, total)
+        job = Job(job_id, client, rig, sender.endpoint, total, deadline_s=deadline)
         with self.lock:
             self.jobs[job_id] = job
         threading.Thread(target=self._run_job, args=(job, sender, frames), name=f"sss-job-{job_id}", daemon=True).start()
@@ -533,18 +568,23 @@ class Daemon:
             if isinstance(projector, PreloadingProjector):
                 projector.preload([(spec["name"], functools.partial(_pattern_for, spec)) for spec in frames])
             for spec in frames:
+                job.doing = f"{projector.info.id} (show {spec['name'][:60]})"
                 projector.show(_pattern_for(spec), tag=spec["name"], confirm=True)
+                job.doing = f"{camera.info.id} (configure)"
                 camera.configure(exposure=float(spec["exposure"]),
                                  **({"gain": float(spec["gain"])} if spec.get("gain") is not None else {}))
+                job.doing = f"{camera.info.id} (grab {spec['name'][:60]})"
                 if trigger is None:  # software trigger
                     yield spec["name"], camera.grab()
                     continue
+                job.doing = f"{trigger.info.id} (fire)"
                 fired_ns = trigger.fire()  # the pulse exposes the camera (checked at open_rig: TriggeredCamera)
+                job.doing = f"{camera.info.id} (wait for the triggered frame)"
                 frame = camera.wait_frame()
                 frame.meta["trigger_ns"] = fired_ns
                 yield spec["name"], frame
 
-        return self._start_job(client, rig, len(frames), run)
+        return self._start_job(client, rig, len(frames), run, args)
 
     def _stream(self, client: bytes, args: dict) -> dict:
         rig = self._get_rig(args)
@@ -553,27 +593,33 @@ class Daemon:
             raise ProtocolError(protocol.BAD_ARGS, "stream needs a positive frame count")
 
         def run(job: Job) -> Iterator[tuple[str, Any]]:
+            job.doing = f"{rig.devices['camera'].info.id} (stream)"
             for frame in rig.devices["camera"].stream(count):
                 yield f"stream/{frame.sequence}", frame
 
-        return self._start_job(client, rig, count, run)
+        return self._start_job(client, rig, count, run, args)
 
     def _run_job(self, job: Job, sender: FrameSender, frames: Callable[[Job], Iterator[tuple[str, Any]]]) -> None:
         def alive() -> bool:
             return not job.cancel.is_set()
 
         try:
-            with job.rig.lock:
-                for name, frame in frames(job):
-                    header = protocol.frame_header(job.id, job.sent, name, frame.data, frame.timestamp_ns,
-                                                   frame.exposure, frame.meta)
-                    sender.send_frame(header, frame.data, alive)
-                    if self.preview:
-                        self.preview.publish(job.id, job.sent, name, frame.data)
-                    job.sent += 1
+            for name, frame in self._within_deadline(job, frames):
+                header = protocol.frame_header(job.id, job.sent, name, frame.data, frame.timestamp_ns,
+                                               frame.exposure, frame.meta)
+                sender.send_frame(header, frame.data, alive)
+                if self.preview:
+                    self.preview.publish(job.id, job.sent, name, frame.data)
+                job.sent += 1
             job.state = "done"
         except ClientGone:
             job.state = "cancelled"
+        except DeviceStalled as exc:  # the rig is dropped: its devices are closed in the background (they may hang)
+            log.error("job %s: %s", job.id, exc)
+            job.state, job.error = "failed", {"code": protocol.DEVICE, "message": str(exc)}
+            with self.lock:
+                self.rigs.pop(job.rig.id, None)
+            threading.Thread(target=job.rig.close, name=f"sss-close-{job.rig.id}", daemon=True).start()
         except DeviceError as exc:
             job.state, job.error = "failed", {"code": protocol.DEVICE, "message": str(exc)}
         except SssError as exc:
@@ -595,6 +641,56 @@ class Daemon:
             pass
         finally:
             sender.close()
+
+    def _within_deadline(self, job: Job, frames: Callable[[Job], Iterator[tuple[str, Any]]]) -> Iterator[tuple[str, Any]]:
+        """``frames(job)``'s items, its device calls made in a thread of their own (holding the rig's lock):
+        a call that takes longer than ``job.deadline_s`` raises :class:`DeviceStalled` naming it, and a cancel
+        takes effect within 0.1 s however long the device takes (the call itself cannot be interrupted: its
+        thread stops at the next item)."""
+        items: queue.Queue = queue.Queue(maxsize=2)
+        stop = threading.Event()
+
+        def put(entry: tuple[str, Any]) -> bool:
+            while not stop.is_set():
+                try:
+                    items.put(entry, timeout=0.1)
+                    return True
+                except queue.Full:
+                    continue
+            return False
+
+        def produce() -> None:
+            try:
+                with job.rig.lock:
+                    for item in frames(job):
+                        if not put(("item", item)):
+                            return
+                put(("end", None))
+            except BaseException as exc:  # (a plugin's sys.exit() too) handed to the job thread
+                put(("error", exc))
+
+        threading.Thread(target=produce, name=f"sss-device-{job.id}", daemon=True).start()
+        since = time.monotonic()
+        try:
+            while True:
+                if job.cancel.is_set() or not self.running:
+                    raise ClientGone("job cancelled")
+                try:
+                    kind, value = items.get(timeout=0.1)
+                except queue.Empty:
+                    if time.monotonic() - since > job.deadline_s:
+                        raise DeviceStalled(f"{job.doing} did not answer within {job.deadline_s:g} s (stalled or "
+                                            "disconnected): the rig was closed; check the device, then open the rig "
+                                            "again (a capture continues with --resume)") from None
+                    continue
+                if kind == "end":
+                    return
+                if kind == "error":
+                    raise value
+                yield value
+                since = time.monotonic()
+        finally:
+            stop.set()
 
     def _job(self, client: bytes, args: dict) -> dict:
         job = self.jobs.get(args.get("job"))  # type: ignore[arg-type]

@@ -13,7 +13,8 @@ the preset's, for calibration), ``transport`` (``burley`` or ``directional_dipol
 ``lens_blur`` (px), ``read_noise`` (e-), ``white_fraction`` (exposure) and ``demosaic`` (``malvar`` or
 ``opencv``, or ``none`` for a three-chip camera without a colour filter array; see ``sim.rig.with_camera``),
 ``raw`` (Bayer frames; not for a three-chip camera), and fault injection for tests: ``fail_at_frame``
-(the camera raises at that grab) and ``grab_delay_s`` (slow frames).
+(the camera raises at that grab), ``stall_at_frame`` (that grab never returns) and ``grab_delay_s`` (slow
+frames).
 The ``sim:bench-camera`` streams one fixed frame (``shape``, ``dtype``) for throughput benchmarks.
 
 Like a DLP projector's pattern-sequence mode, ``SimProjector.preload`` takes the upcoming patterns
@@ -155,7 +156,12 @@ class SimCamera:
             raise DeviceError("a three-chip sim camera (demosaic none) has no raw Bayer frames: leave out the raw option")
         self.fail_at = int(options.get("fail_at_frame", -1))
         self.delay_s = float(options.get("grab_delay_s", 0.0))
+        self.stall_at = int(options.get("stall_at_frame", -1))  # that grab never returns (a hung camera)
         self.sequence = 0
+        w, h = bench.rig.camera.width, bench.rig.camera.height
+        #: how long a frame may take to render (the daemon's deadline is no shorter): 10 s at the CPU preset's
+        #: 256 x 192, in proportion at larger cameras (a batch of 1080p frames takes minutes on 2 cores)
+        self.frame_timeout_s = 10.0 * max(1.0, w * h / (256 * 192))
 
     def configure(self, *, exposure: float | None = None, gain: float | None = None,
                   pixel_format: str | None = None) -> None:
@@ -177,6 +183,8 @@ class SimCamera:
             raise DeviceError(f"{self.info.id}: simulated sensor failure at frame {self.sequence}")
         if self.delay_s:
             time.sleep(self.delay_s)
+        if self.sequence == self.stall_at:
+            time.sleep(24 * 3600)  # as a camera whose driver hangs: only the daemon's deadline gets past it
         b = self.bench
         image, tag, frame_id = b.visible_pattern()
         w, h = b.projector_size

@@ -27,6 +27,10 @@ from sssphase_core.capture.live import (
 )
 from sssphase_core.capture.plan import RigSpec
 
+#: A device call of the live view that takes longer fails with the device named on the page (the daemon
+#: allows no less than the camera declares: the simulator at the paper preset takes minutes).
+LIVE_DEADLINE_S = 30.0
+
 
 @dataclass
 class LiveSettings:
@@ -88,7 +92,7 @@ class LiveRig:
             spec = pattern_spec(settings.pattern, self.projector_size, exposure=settings.exposure,
                                 psp_frame=settings.psp_frame, image=settings.image, gain=settings.gain)
             asked = time.time()
-            (received,) = list(self.client.capture(self.rig_id, [spec]))
+            (received,) = list(self.client.capture(self.rig_id, [spec], deadline_s=LIVE_DEADLINE_S))
             got = time.time()
             image = develop_live(received, self.rig)  # linear, in units of the reference exposure (as captures are)
             self.sequence += 1
@@ -103,7 +107,8 @@ class LiveRig:
             t0 = time.perf_counter()
             specs = [{**s, "exposure": float(settings.exposure), **({} if settings.gain is None else {"gain": settings.gain})}
                      for s in psp_set(self.projector_size, self.rig.gamma)]
-            images = {f.header["name"]: develop_live(f, self.rig) for f in self.client.capture(self.rig_id, specs)}
+            images = {f.header["name"]: develop_live(f, self.rig)
+                      for f in self.client.capture(self.rig_id, specs, deadline_s=LIVE_DEADLINE_S)}
             bayer = self.rig.bayer if self.rig.is_sim else None
             result = decode_set(images, self.projector_size, bayer)
             return result, images["white"], time.perf_counter() - t0

@@ -26,7 +26,7 @@ Progress = Callable[[int, int, int], None]  # (view, frames done, frames total)
 class ClientLike(Protocol):
     def call(self, op: str, timeout_s: float | None = None, **args: Any) -> dict[str, Any]: ...
 
-    def capture(self, rig: str, frames: list[dict[str, Any]]) -> Iterable[FrameLike]: ...
+    def capture(self, rig: str, frames: list[dict[str, Any]], deadline_s: float | None = None) -> Iterable[FrameLike]: ...
 
 
 MAX_BRACKETS = 8
@@ -193,7 +193,9 @@ def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, option
         writer = session.begin_view(view)
         try:
             proc = ViewProcessor(writer, plan, spacing, rig.patch or 32, rig, req, n_dots, camera_isp)
-            for i, (frame, spec) in enumerate(zip(client.capture(opened["rig"], frames), frames, strict=False)):
+            deadline = getattr(client, "timeout_s", None)  # a device call that takes longer fails the view, naming it
+            for i, (frame, spec) in enumerate(zip(client.capture(opened["rig"], frames, deadline_s=deadline), frames,
+                                                  strict=False)):
                 proc.add(frame, spec)
                 if progress:
                     progress(view, i + 1, len(frames))

@@ -1,0 +1,87 @@
+"""A device that stops answering hangs nothing: the job fails at its deadline naming the device, a cancel takes
+effect at once, the rig closes, the session keeps its complete views and `sss daemon stop` ends the daemon."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import pytest
+
+from sssphase_daemon import protocol, security
+from sssphase_daemon.client import DaemonClient, DaemonError, spawn_daemon
+
+pytestmark = pytest.mark.slow
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _sss(*args: str, env: dict[str, str], timeout: float = 120) -> tuple[subprocess.CompletedProcess[str], float]:
+    t0 = time.monotonic()
+    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True, env=env,
+                         cwd=REPO, timeout=timeout)
+    return res, time.monotonic() - t0
+
+
+def test_a_stalled_camera_fails_the_capture_at_its_timeout_and_the_daemon_still_stops(tmp_path):
+    runtime = Path(tempfile.mkdtemp(prefix="ssst", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime), "COLUMNS": "200"}
+    rig = tmp_path / "stall.toml"
+    rig.write_text('[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\nturntable = "sim:turntable0"\n'
+                   '[options]\nobject = "star"\nn_views = 2\nstall_at_frame = 30\n')  # view 0 has 26 frames
+    try:
+        started, _ = _sss("daemon", "start", env=env)  # a daemon of its own: the capture leaves it running
+        assert started.returncode == 0, started.stdout + started.stderr
+        res, _ = _sss("capture", "--rig", str(rig), "--object", "star", "--views", "2", "--timeout", "12", "--out",
+                      str(tmp_path / "s"), env=env)
+        out = res.stdout + res.stderr
+        assert res.returncode != 0 and "Traceback" not in out, out
+        assert "sim:camera0 (grab" in out and "did not answer within 12 s" in out, out
+        from sssphase_core.store.session import Session
+
+        assert Session.open(tmp_path / "s" / "star").status(0) == "complete"  # the complete view is kept
+        pid = security.read_state(runtime / "daemon.json").pid
+        stopped, seconds = _sss("daemon", "stop", env=env)
+        assert stopped.returncode == 0 and f"daemon (pid {pid}) stopped" in stopped.stdout, stopped.stdout
+        assert seconds < 10 and not security.is_daemon_process(pid)
+    finally:
+        _sss("daemon", "stop", env=env)
+        shutil.rmtree(runtime, ignore_errors=True)
+
+
+def test_a_cancel_takes_effect_while_a_device_hangs_and_the_rig_still_closes(monkeypatch):
+    runtime = Path(tempfile.mkdtemp(prefix="ssst", dir="/tmp"))
+    monkeypatch.setenv("SSS_RUNTIME_DIR", str(runtime))
+    proc = spawn_daemon()
+    try:
+        state = security.read_state()
+        with DaemonClient(state.endpoint, state.token, timeout_s=5.0) as client:
+            rig = client.call("open_rig", camera="sim:camera0", projector="sim:projector0",
+                              options={"object": "star", "stall_at_frame": 1})["rig"]
+            frames = client.stream(rig, 100, deadline_s=3600)
+            next(frames)  # frame 0 out, frame 1 hanging
+            (job,) = [j["job"] for j in client.call("status")["jobs"] if j["rig"] == rig]
+            time.sleep(0.5)
+            t0 = time.monotonic()
+            client.call("cancel", job=job)
+            while client.call("job", job=job)["state"] == "running" and time.monotonic() - t0 < 5:
+                time.sleep(0.05)
+            assert client.call("job", job=job)["state"] == "cancelled" and time.monotonic() - t0 < 2
+            closed = client.call("close_rig", rig=rig)
+            assert closed["closed"] == rig and "in the background" in closed["note"]
+            with pytest.raises(DaemonError) as exc:  # and it is gone
+                client.call("close_rig", rig=rig)
+            assert exc.value.code == protocol.NOT_FOUND
+            with pytest.raises(DaemonError, match=r"deadline_s must be a number of seconds"):
+                rig2 = client.call("open_rig", camera="sim:camera0", projector="sim:projector0", options={"object": "star"})
+                client.call("stream", rig=rig2["rig"], count=1, deadline_s=-1)
+            client.call("shutdown")
+        assert proc.wait(15) == 0  # the hung device thread does not keep the daemon alive
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        shutil.rmtree(runtime, ignore_errors=True)
