@@ -51,13 +51,21 @@ def write_images(stem: Path | str, image: np.ndarray, *, scale: float | None = N
 
 
 def _imwrite(path: Path, image: np.ndarray) -> Path:
-    """``cv2.imwrite`` that says so when the file was not written (a name too long, a full disk, no permission)."""
+    """``cv2.imwrite`` that says so when the file was not written (a name too long, a full disk, no permission),
+    written under a temporary name and renamed once complete."""
     import cv2
 
+    from sssphase_core.store.files import atomic_path
+
+    problem = f"could not write {path} (is the name too long, the disk full, the folder writable?)"
     try:
-        ok = cv2.imwrite(str(path), image)
-    except cv2.error:
-        ok = False
-    if not ok:
-        raise InputError(f"could not write {path} (is the name too long, the disk full, the folder writable?)")
+        with atomic_path(path, path.suffix) as tmp:  # a full disk leaves the old file (or none), never half of one
+            try:
+                ok = cv2.imwrite(str(tmp), image)
+            except cv2.error:
+                ok = False
+            if not ok:
+                raise InputError(problem)
+    except OSError:  # the rename: a name over the file system's limit
+        raise InputError(problem) from None
     return path

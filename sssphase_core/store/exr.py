@@ -51,9 +51,11 @@ def write_exr(path: Path | str, image: np.ndarray, *, attributes: dict[str, str]
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage, **(attributes or {})}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    from sssphase_core.store.files import atomic_path
+
     try:
-        with OpenEXR.File(header, channels) as f:
-            f.write(str(path))
+        with atomic_path(path, ".exr") as tmp, OpenEXR.File(header, channels) as f:
+            f.write(str(tmp))  # renamed once complete: a full disk leaves no truncated EXR under the name
     except (OSError, RuntimeError) as exc:  # a name too long, a full disk, a folder not writable
         raise InputError(f"could not write {path}: {str(exc).strip().splitlines()[-1] if str(exc).strip() else exc!r}") from None
     return path

@@ -334,3 +334,30 @@ def test_float_tiff_and_exr_patterns_are_read_as_their_values(tmp_path):
     (tmp_path / "bad.tiff").write_bytes(b"II*\x00\x08\x00\x00\x00\x01\x00\x00\x01\x04\x00")  # a damaged directory
     with pytest.raises(InputError, match="a TIFF header without an image size"):
         read_pattern(tmp_path / "bad.tiff", (40, 34))
+
+
+def test_a_full_disk_leaves_no_half_written_image_under_its_name(tmp_path):
+    """`sss relight --format exr` on a disk that filled left a truncated, unreadable EXR under the final name;
+    each image is now written under a temporary name and renamed once complete. The disk fills here by a
+    file-size limit on the writing process (RLIMIT_FSIZE)."""
+    import subprocess
+    import sys
+
+    code = """
+import resource, signal, sys
+import numpy as np
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # a write past the limit fails with EFBIG instead of killing us
+resource.setrlimit(resource.RLIMIT_FSIZE, (30000, 30000))
+from sssphase_core.errors import InputError
+from sssphase_core.relight.images import write_images
+image = np.random.default_rng(0).random((200, 200, 3), dtype=np.float32)
+for fmt in ("exr", "png"):
+    try:
+        write_images(sys.argv[1] + "_" + fmt, image, formats=(fmt,))
+    except InputError as exc:
+        print("refused", fmt, exc)
+"""
+    res = subprocess.run([sys.executable, "-c", code, str(tmp_path / "relit")], capture_output=True, text=True, timeout=120)
+    assert res.stdout.count("refused") == 2, res.stdout + res.stderr
+    assert "could not write" in res.stdout
+    assert sorted(p.name for p in tmp_path.iterdir()) == [], list(tmp_path.iterdir())  # nothing, not even temporaries
