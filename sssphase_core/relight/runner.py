@@ -238,6 +238,23 @@ def resolve_backend(backend: str, checkpoint: Path | str | None, narrator: Narra
     return backend, None if checkpoint is None else Path(checkpoint)
 
 
+def check_decoder_fits(checkpoint: Path | None, backends: Sequence[str], sessions: Sequence[Session]) -> None:
+    """Refuse a decoder whose footprint size is not the sessions' crop size before any work (as training
+    does): a paper-preset decoder (K = 90) on a CPU-preset session (K = 32) ran for minutes up to 5.4 GB."""
+    if checkpoint is None or not any(uses_decoder(b) for b in backends):
+        return
+    from sssphase_core.learning.training.checkpoints import checkpoint_preset
+    from sssphase_core.relight.views import session_patch
+
+    preset = checkpoint_preset(checkpoint)
+    for s in sessions:
+        k = session_patch(s.manifest)
+        if preset.patch != k:
+            raise InputError(f"{checkpoint} is a {preset.name} decoder ({preset.patch}x{preset.patch} footprints) but "
+                             f"{s.name} was captured with {k}x{k} crops (its rig's patch): use a decoder trained at "
+                             f"that size")
+
+
 def _check_relight_options(out: Path, patterns: Sequence[str], resize: str, formats: str | Sequence[str],
                            device: str) -> tuple[str, ...]:
     """The options of :func:`relight_session` checked, in the order the CLI always checked them."""
@@ -272,6 +289,7 @@ def relight_session(session: Path | str | Session, patterns: Sequence[str], *, b
     auto = backend == "auto"
     backend, ckpt = resolve_backend(backend, checkpoint, say)
     s = session if isinstance(session, Session) else Session.open(session)
+    check_decoder_fits(ckpt, [backend], [s])
     result, pats = RelightResult(backend, ckpt), []
     for v in choose_views(s, views):
         rv = load_view(s, v)
@@ -397,6 +415,7 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
                          "PSP frames, so the fringe period is unknown")
     if checkpoint is not None:
         checkpoint = resolve_checkpoint(checkpoint)
+        check_decoder_fits(Path(checkpoint), [backend], [s])
     from sssphase_core.relight.backends import make_source
     from sssphase_core.relight.geometry import geometric_correspondence
 
@@ -507,6 +526,7 @@ def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BAC
     check_device(device)  # one line before any progress is drawn
     found = find_sessions(list(sessions))  # a missing folder is one line before any progress is drawn
     by_object(found, purpose="their results would share names; evaluate them with separate --out folders")
+    check_decoder_fits(checkpoint, backends, found)
     _eval_views(found, views, backends, backend != EVAL_BACKENDS, say)
     claim_output(out, found)  # figures are named by object: another session's of the same object are not replaced
     if checkpoint is not None and any(uses_decoder(b) for b in backends):

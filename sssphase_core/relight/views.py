@@ -105,14 +105,11 @@ def load_view(session: object, view: int) -> RelightView:
     white = load("white").astype(np.float32)
     mask = load("corr/mask").astype(bool)
     sim = None
-    patch = int(rig.get("patch") or 32)
+    patch = session_patch(m)
     if str(rig.get("camera", "")).startswith("sim:"):
-        from sssphase_core.sim import rig_preset
-
         sim = {"object": opts.get("object", m.get("object")), "preset": opts.get("preset", "cpu"),
                "n_views": int(opts.get("n_views", m.get("n_views", 4))), "seed": int(opts.get("seed", 0)),
                "options": dict(opts)}
-        patch = int(rig.get("patch") or rig_preset(sim["preset"]).patch)
     where = f"view {view} of {session.path}"  # type: ignore[attr-defined]
     xp, yp, psp = (load(name).astype(np.float32) for name in ("corr/xp", "corr/yp", "psp"))
     _check_view_shapes(where, mask, {"corr/xp": xp, "corr/yp": yp}, {"psp": psp, "white": white})
@@ -170,6 +167,18 @@ def _check_finite(where: str, mask: np.ndarray, maps: dict[str, np.ndarray], ima
         if bad.any():
             raise DataError(f"{where}: {name} holds {int(bad.sum())} NaN or infinite values"
                             f"{' on the decoded pixels' if name in maps else ''}; images must be finite")
+
+
+def session_patch(manifest: dict) -> int:
+    """The footprint crop size K of a session: its rig's ``patch``, else its sim preset's, else 32."""
+    rig = manifest.get("rig", {})
+    if rig.get("patch"):
+        return int(rig["patch"])
+    if str(rig.get("camera", "")).startswith("sim:"):
+        from sssphase_core.sim import rig_preset
+
+        return int(rig_preset(rig.get("options", {}).get("preset", "cpu")).patch)
+    return 32
 
 
 def finest_psp_period(plan: dict) -> float | None:

@@ -168,3 +168,29 @@ def test_small_helpers(tmp_path):
     quiet.say("x")
     with quiet.bar(), quiet.status("y"):
         quiet.task("z")(1, 2)
+
+
+def test_a_decoder_of_another_footprint_size_is_refused_before_any_work(session, tmp_path):
+    """A paper-preset decoder (K = 90) on a CPU-preset session (K = 32) relit for minutes, grew to 5.4 GB and
+    ended in an allocation error: the decoder's K must be the session's, as training requires."""
+    import dataclasses
+
+    import torch
+
+    from sssphase_core.learning.models import Decoder, Encoder, get_preset
+    from sssphase_core.learning.training import save_checkpoint
+
+    small = dataclasses.replace(get_preset("lite"), name="lite48", patch=48, stem=8, stages=(8, 12, 16), bottleneck=32,
+                                proj_hidden=32, proj_dim=32, pred_hidden=8, decoder=(16, 12, 8, 8), attention=4)
+    torch.manual_seed(0)
+    ckpt = tmp_path / "dec.pt"
+    save_checkpoint(ckpt, {"kind": "decoder", "preset": small.to_dict(), "config": {"head": "reciprocal"},
+                           "encoder": Encoder(small).state_dict(), "decoder": Decoder(small, head="reciprocal").state_dict()})
+    why = r"dec\.pt is a lite48 decoder \(48x48 footprints\) but soap was captured with 32x32 crops"
+    with pytest.raises(InputError, match=why):
+        relight_session(session, ["checkerboard"], backend="blend", checkpoint=ckpt, out=tmp_path / "relit")
+    with pytest.raises(InputError, match=why):
+        evaluate_sessions([session], backend="none,torch", checkpoint=ckpt, out=tmp_path / "eval")
+    with pytest.raises(InputError, match=why):
+        geometry_session(session, backend="torch", checkpoint=ckpt, out=tmp_path / "geo")
+    assert not (tmp_path / "relit").exists() or not any((tmp_path / "relit").glob("*.png"))

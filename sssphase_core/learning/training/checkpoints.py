@@ -75,6 +75,11 @@ def _preset_of(ckpt: dict, path: Path | str) -> ModelPreset:
         raise DataError(f"{path}: its model preset cannot be read ({exc})") from None
 
 
+def checkpoint_preset(path: Path | str) -> ModelPreset:
+    """The model preset a checkpoint was trained at (its tensors are mapped, not read)."""
+    return _preset_of(load_checkpoint(path, mmap=True), path)
+
+
 def decoder_patch(encoder_ckpt: Path | str | None, preset: str | ModelPreset) -> int:
     """The footprint size K a decoder trains at: its frozen encoder's, or ``preset``'s end to end (no encoder)."""
     return get_preset(preset).patch if encoder_ckpt is None else load_encoder(encoder_ckpt).preset.patch
