@@ -34,7 +34,7 @@ def capture(
     dot_spacing: Annotated[int | None, typer.Option(help="dot-grid spacing in projector pixels")] = None,
     keep_dots: Annotated[bool, typer.Option(help="keep the raw dot-grid frames")] = False,
     keep_unwrap: Annotated[bool, typer.Option(help="keep the unwrapping frames (default: only the decoded result)")] = False,
-    timeout: Annotated[float, typer.Option(help="seconds without an answer before the daemon counts as gone")] = 10.0,
+    timeout: Annotated[float, typer.Option(help="seconds without an answer before the daemon counts as gone, or a device call (a frame: raise it for exposures that long) as stalled")] = 10.0,
 ) -> None:
     """Capture a session through the daemon (starting a local sim daemon if none runs)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
