@@ -20,16 +20,9 @@ console = Console(soft_wrap=True)  # result lines stay whole when piped (no term
 
 def _client(timeout_s: float = 10.0):
     """A client for the running local daemon, or None when none answers."""
-    from sssphase_daemon.client import DaemonClient, DaemonUnavailable
+    from sssphase_daemon.client import running_client
 
-    try:
-        client = DaemonClient.from_state(timeout_s=timeout_s)
-    except DaemonUnavailable:
-        return None
-    if client.ping(timeout_s=2.0):
-        return client
-    client.close()
-    return None
+    return running_client(timeout_s)
 
 
 def _orphan() -> int | None:

@@ -282,7 +282,7 @@ def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | N
     """
     started = None
     with _start_lock():  # clients started together: one starts the daemon, the others find it running
-        client = _running_client(timeout_s)
+        client = running_client(timeout_s)
         if client is None:  # it ends itself once unused: an interrupted or killed capture cannot leave it for ever
             started = spawn_daemon(extra_args=("--exit-when-idle", str(LOCAL_DAEMON_IDLE_S)))
             try:
@@ -305,7 +305,7 @@ def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | N
                 on_stop(started.pid)
 
 
-def _running_client(timeout_s: float) -> DaemonClient | None:
+def running_client(timeout_s: float = 10.0) -> DaemonClient | None:
     """A client of the local daemon when one runs and answers, else None."""
     try:
         client = DaemonClient.from_state(timeout_s=timeout_s)
