@@ -177,6 +177,25 @@ def _check_frames(frames: Any) -> list[dict[str, Any]]:
     return frames
 
 
+def _check_frame(job: Job, name: str, frame: Any, first: tuple[tuple[int, ...], str] | None) -> tuple[tuple[int, ...], str]:
+    """A frame a driver delivered, checked before it is sent: an array of numbers of the job's first frame's
+    shape and type, finite where it is float (a corrupted transfer is a device error naming the frame, not
+    a session damaged downstream). Returns the job's (shape, dtype)."""
+    camera = job.rig.devices.get("camera")
+    who = camera.info.id if camera is not None else "the camera"
+    data = getattr(frame, "data", None)
+    if not isinstance(data, np.ndarray) or data.dtype.kind not in "biuf" or data.ndim not in (2, 3) or not data.size:
+        raise DeviceError(f"{who}: frame {name[:60]!r} is not an image array ({type(data).__name__} "
+                          f"{getattr(data, 'shape', '')}): a corrupted transfer")
+    seen = (tuple(data.shape), data.dtype.str)
+    if first is not None and seen != first:
+        raise DeviceError(f"{who}: frame {name[:60]!r} is {seen[0]} {seen[1]}, the job's first frame was {first[0]} "
+                          f"{first[1]}: a corrupted transfer")
+    if data.dtype.kind == "f" and not np.isfinite(data).all():
+        raise DeviceError(f"{who}: frame {name[:60]!r} holds NaN or infinite values: a corrupted transfer")
+    return first or seen
+
+
 def _deadline(args: dict, rig: Rig) -> float:
     """The longest one device call of a job may take: the request's ``deadline_s`` (a client's timeout), but
     no less than the camera says its frames can take (``frame_timeout_s``: the simulator at the paper preset)."""
@@ -603,8 +622,10 @@ class Daemon:
         def alive() -> bool:
             return not job.cancel.is_set()
 
+        first: tuple[tuple[int, ...], str] | None = None
         try:
             for name, frame in self._within_deadline(job, frames):
+                first = _check_frame(job, name, frame, first)
                 header = protocol.frame_header(job.id, job.sent, name, frame.data, frame.timestamp_ns,
                                                frame.exposure, frame.meta)
                 sender.send_frame(header, frame.data, alive)

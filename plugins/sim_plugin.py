@@ -13,8 +13,9 @@ the preset's, for calibration), ``transport`` (``burley`` or ``directional_dipol
 ``lens_blur`` (px), ``read_noise`` (e-), ``white_fraction`` (exposure) and ``demosaic`` (``malvar`` or
 ``opencv``, or ``none`` for a three-chip camera without a colour filter array; see ``sim.rig.with_camera``),
 ``raw`` (Bayer frames; not for a three-chip camera), and fault injection for tests: ``fail_at_frame``
-(the camera raises at that grab), ``stall_at_frame`` (that grab never returns) and ``grab_delay_s`` (slow
-frames).
+(the camera raises at that grab), ``stall_at_frame`` (that grab never returns), ``garbage_at_frame``
+(that frame is half as tall and NaN) and ``grab_delay_s`` (slow frames). Options nobody reads are refused
+by name (``check_options``).
 The ``sim:bench-camera`` streams one fixed frame (``shape``, ``dtype``) for throughput benchmarks.
 
 Like a DLP projector's pattern-sequence mode, ``SimProjector.preload`` takes the upcoming patterns
@@ -139,6 +140,20 @@ def projector_size(rig: Any) -> tuple[int, int]:
     return int(rig.projector.width), int(rig.projector.height)
 
 
+#: The largest frame the bench camera makes (a 10^6 x 10^6 one replied `internal: MemoryError`).
+MAX_FRAME_BYTES = 1 << 30
+
+
+def check_options(options: Mapping[str, Any]) -> None:
+    """Refuse a sim option nobody reads, by name (a misspelt one was ignored: the rig ran with the default);
+    tables (``[options.<plugin>]``) belong to other plugins of the rig."""
+    from sssphase_core.sim.rig import SIM_RIG_OPTIONS
+
+    unknown = sorted(k for k, v in options.items() if k not in SIM_RIG_OPTIONS and not isinstance(v, Mapping))
+    if unknown:
+        raise InputError(f"unknown sim option(s) {', '.join(map(str, unknown))[:200]} (known: {', '.join(sorted(SIM_RIG_OPTIONS))})")
+
+
 def _bench(shared: dict[str, Any], options: Mapping[str, Any]) -> SimRigState:
     if "sim_bench" not in shared:
         shared["sim_bench"] = SimRigState(options)
@@ -157,6 +172,7 @@ class SimCamera:
         self.fail_at = int(options.get("fail_at_frame", -1))
         self.delay_s = float(options.get("grab_delay_s", 0.0))
         self.stall_at = int(options.get("stall_at_frame", -1))  # that grab never returns (a hung camera)
+        self.garbage_at = int(options.get("garbage_at_frame", -1))  # that frame is not a frame of this camera
         self.sequence = 0
         w, h = bench.rig.camera.width, bench.rig.camera.height
         #: how long a frame may take to render (the daemon's deadline is no shorter): 10 s at the CPU preset's
@@ -192,6 +208,8 @@ class SimCamera:
         key = [b.seed, b.view, zlib.crc32(tag.encode()), int(np.float64(self.exposure).view(np.uint64) & 0xFFFFFFFF)]
         rng = np.random.default_rng(key)
         data = b.capture(pattern, tag, rng, self.exposure * self.gain, self.raw)
+        if self.sequence == self.garbage_at:  # a corrupted transfer: half the rows, NaN where pixels were
+            data = np.full((data.shape[0] // 2, *data.shape[1:]), np.nan, np.float32)
         frame = Frame(np.ascontiguousarray(data), self.sequence, b.clock_ns, self.exposure,
                       {"pattern_tag": tag, "pattern_frame_id": frame_id, "view": b.view, "gain": self.gain})
         self.sequence += 1
@@ -271,6 +289,9 @@ class BenchCamera:
             raise InputError(f"bench camera dtype {str(options.get('dtype'))[:40]!r} is not a numpy type") from None
         if dtype.kind not in "biuf":  # an object array's bytes would be pointers into the daemon
             raise InputError(f"bench camera dtype must be numeric, got {dtype.str}")
+        if not (1 <= len(shape) <= 3 and all(s > 0 for s in shape)) or np.prod(shape, dtype=np.float64) * 8 > MAX_FRAME_BYTES:
+            raise InputError(f"bench camera shape {shape} is not a frame of at most {MAX_FRAME_BYTES >> 20} MiB "
+                             "(refused before allocating it)")
         self.data = rng.integers(0, 65535, size=shape, dtype=np.uint16).astype(dtype)
         self.sequence = 0
 
@@ -302,6 +323,7 @@ class _Provider:
     def open(self, device_id: str, options: Mapping[str, Any], shared: dict[str, Any]):
         if device_id not in self.ids:
             raise DeviceError(f"the sim plugin has no {self.kind} {device_id!r}")
+        check_options(options)
         if device_id == BENCH_CAMERA_ID:
             return BenchCamera(options)
         bench = _bench(shared, options)

@@ -172,7 +172,8 @@ SENSOR_OPTIONS: dict[str, tuple[float, float]] = {"lens_blur": (0.0, 5.0), "read
 DEMOSAIC_METHODS = ("malvar", "opencv")
 #: every rig option of the sim device plugin (``sssphase_plugins.sim_plugin``'s docstring says what each does)
 SIM_RIG_OPTIONS = frozenset({"object", "preset", "seed", "n_views", "view", "latency_s", "frame_period_s", "realtime",
-                             "projector_gamma", "projector_black", "transport", "demosaic", "raw", "fail_at_frame", "stall_at_frame",
+                             "projector_gamma", "projector_black", "transport", "demosaic", "raw", "fail_at_frame",
+                             "stall_at_frame", "garbage_at_frame",
                              "grab_delay_s", "shape", "dtype", *SENSOR_OPTIONS})
 
 

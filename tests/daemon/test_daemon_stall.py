@@ -85,3 +85,28 @@ def test_a_cancel_takes_effect_while_a_device_hangs_and_the_rig_still_closes(mon
         if proc.poll() is None:
             proc.kill()
         shutil.rmtree(runtime, ignore_errors=True)
+
+
+def test_a_corrupted_frame_an_unknown_option_and_an_absurd_size_are_one_line_each(daemon):
+    """The sim devices corrupt on demand (garbage_at_frame): the job fails naming the camera and the frame;
+    an option no sim device reads and a frame no memory holds are refused before anything is allocated."""
+    import json
+
+    from sssphase_core.processing.patterns import capture_plan
+
+    _, client = daemon
+    frames = json.loads(capture_plan(256, 192, references=("white", "black")).to_json())["frames"][:4]
+    rig = client.call("open_rig", camera="sim:camera0", projector="sim:projector0",
+                      options={"object": "star", "garbage_at_frame": 2})["rig"]
+    got = []
+    with pytest.raises(DaemonError, match=r"sim:camera0: frame .* is \(96, 256, 3\) <f4, the job's first frame was "
+                                          r"\(192, 256, 3\) <f4: a corrupted transfer") as exc:
+        for frame in client.capture(rig, frames):
+            got.append(frame.name)
+    assert exc.value.code == protocol.DEVICE and len(got) == 2
+    client.call("close_rig", rig=rig)
+    with pytest.raises(DaemonError, match=r"unknown sim option\(s\) grab_delay, objekt \(known: "):
+        client.call("open_rig", camera="sim:camera0", projector="sim:projector0",
+                    options={"objekt": "star", "grab_delay": 1, "basler": {"gain": 0}})  # tables: other plugins'
+    with pytest.raises(DaemonError, match=r"bench camera shape \(1000000, 1000000\) is not a frame of at most 1024 MiB"):
+        client.call("open_rig", camera="sim:bench-camera", options={"shape": [1000000, 1000000]})
