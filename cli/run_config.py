@@ -45,7 +45,9 @@ def _load(ctx: typer.Context, param: Any, value: Path | None) -> Path | None:
     if path.is_dir():
         path = path / CONFIG
     try:
-        data = tomllib.loads(path.read_text())
+        from sssphase_core.store.files import read_input_text
+
+        data = tomllib.loads(read_input_text(path, "--config", max_bytes=1 << 20))
     except FileNotFoundError:
         raise InputError(f"--config {value}: the folder has no {CONFIG}" if Path(value).is_dir()
                          else f"--config {value}: no such file") from None

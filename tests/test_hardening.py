@@ -991,3 +991,29 @@ def test_eval_relight_says_when_its_checkpoint_is_not_used(intact_session, tmp_p
                str(tmp_path / "e"))
     assert res.returncode == 0, res.stdout + res.stderr
     assert "--checkpoint is read only by torch and blend, which --backend none does not list" in res.stdout
+
+
+def test_special_files_and_foreign_bytes_where_a_file_is_expected_are_one_line_within_seconds(tmp_path):
+    """A FIFO given as a rig file, checkpoint, run configuration or session manifest blocked the read for ever;
+    a device (/dev/zero) never ends; bytes that are not UTF-8 were an internal error."""
+    for name in ("rig.toml", "ck.pt", "cfg.toml"):
+        os.mkfifo(tmp_path / name)
+    (tmp_path / "sess").mkdir()
+    os.mkfifo(tmp_path / "sess" / "manifest.json")
+    (tmp_path / "latin1.toml").write_bytes(b"\xff\xfe[devices]\n")
+    env = {**os.environ, "SSS_RUNTIME_DIR": tempfile.mkdtemp(prefix="sssh", dir="/tmp")}
+    cases = [
+        (["capture", "--rig", "rig.toml", "--object", "a"], "rig file rig.toml is a FIFO, not a file"),
+        (["capture", "--rig", "/dev/zero", "--object", "a"], "rig file /dev/zero is a device, not a file"),
+        (["capture", "--rig", "latin1.toml", "--object", "a"], "rig file latin1.toml is not UTF-8 text"),
+        (["eval", "relight", "sess", "--backend", "blend", "--checkpoint", "ck.pt"], "checkpoint ck.pt is a FIFO"),
+        (["train", "decoder", "--config", "cfg.toml"], "--config cfg.toml is a FIFO, not a file"),
+        (["validate", "sess"], "sess/manifest.json is a FIFO, not a file"),
+    ]
+    for args, expected in cases:
+        t0 = time.monotonic()
+        res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True,
+                             cwd=tmp_path, env=env, timeout=60)
+        out = res.stdout + res.stderr
+        assert res.returncode != 0 and expected in out and "Traceback" not in out, (args, out)
+        assert len(out.strip().splitlines()) == 1 and time.monotonic() - t0 < 30, (args, out)

@@ -52,7 +52,9 @@ class RigSpec:
     def from_toml(cls, path: Path) -> RigSpec:
         """``[devices]`` camera/projector/turntable/trigger ids, ``[options]`` for the plugins, ``[processing]``."""
         try:
-            cfg = tomllib.loads(Path(path).read_text())
+            from sssphase_core.store.files import read_input_text
+
+            cfg = tomllib.loads(read_input_text(path, "rig file", max_bytes=1 << 20))
         except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
             raise InputError(f"cannot read rig file {path}: {exc}") from None
         dev, proc, resp = cfg.get("devices", {}), cfg.get("processing", {}), cfg.get("projector", {})

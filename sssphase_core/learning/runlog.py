@@ -98,9 +98,12 @@ def resolve_checkpoint(path: Path | str) -> Path:
 def check_checkpoint_file(path: Path | str) -> Path:
     """The checkpoint ``path`` means (:func:`resolve_checkpoint`), refused with a :class:`DataError` when it
     is missing, empty or not a file ``torch.save`` wrote (checked without importing torch)."""
+    from sssphase_core.store.files import check_input_file
+
     path = resolve_checkpoint(path)
     if not path.exists():
         raise DataError(f"no checkpoint at {path}")
+    check_input_file(path, "checkpoint")  # a FIFO or a device would block torch.load
     if path.is_file() and path.stat().st_size == 0:
         raise DataError(f"cannot read checkpoint {path}: the file is empty")
     if path.is_file():

@@ -27,3 +27,41 @@ def atomic_path(path: Path | str, suffix: str = "") -> Iterator[Path]:
     finally:
         with contextlib.suppress(OSError):
             tmp.unlink()
+
+
+def check_input_file(path: Path | str, what: str, max_bytes: int | None = None) -> Path:
+    """``path`` as an input file: a regular file (a FIFO, a device or a socket would block or never end a
+    read: refused by name), at most ``max_bytes`` long. Missing files are left to the caller's own message."""
+    import stat
+
+    from sssphase_core.errors import InputError
+
+    path = Path(path)
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return path
+    except OSError as exc:
+        raise InputError(f"{what} {path}: {exc.strerror}") from None
+    if stat.S_ISDIR(st.st_mode):
+        return path  # (a folder: the caller says what it wanted instead)
+    if not stat.S_ISREG(st.st_mode):
+        kind = "a FIFO" if stat.S_ISFIFO(st.st_mode) else "a device" if stat.S_ISCHR(st.st_mode) or stat.S_ISBLK(st.st_mode) \
+            else "a socket" if stat.S_ISSOCK(st.st_mode) else "not a regular file"
+        raise InputError(f"{what} {path} is {kind}, not a file: give a regular file")
+    if max_bytes is not None and st.st_size > max_bytes:
+        raise InputError(f"{what} {path} is {st.st_size:,} bytes, more than the {max_bytes:,} such a file can be")
+    return path
+
+
+def read_input_text(path: Path | str, what: str, max_bytes: int = 1 << 24) -> str:
+    """The text of an input file (a rig file, a run configuration, a manifest) checked by
+    :func:`check_input_file` first; text that is not UTF-8 is an :class:`InputError` naming the file."""
+    from sssphase_core.errors import InputError
+
+    path = check_input_file(path, what, max_bytes)
+    try:
+        return Path(path).read_text(encoding="utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{what} {path} is not UTF-8 text (byte {exc.start})") from None
+

@@ -63,6 +63,9 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
         raise InputError(f"--resize must be one of {', '.join(RESIZE_MODES)}, got {mode!r}")
     wp, hp = projector_size
     path = Path(path)
+    from sssphase_core.store.files import check_input_file
+
+    check_input_file(path, "pattern")  # a FIFO would block the read for ever
     try:
         as_array = path.suffix.lower() in (".npy", ".exr") or _pil_cannot_decode(path) or _png_16_bit_colour(path)
     except (OSError, SyntaxError, ValueError) as exc:
@@ -226,6 +229,9 @@ def _load_npy(path: Path, **kwargs) -> np.ndarray:
 
 def frame_shape(path: Path) -> tuple[int, ...]:
     """The pixel shape a frame file declares, read from its header only (no pixel is decoded)."""
+    from sssphase_core.store.files import check_input_file
+
+    check_input_file(path, "frame")  # a FIFO would block the read for ever
     try:
         if path.suffix.lower() == ".npy":
             return tuple(_load_npy(path, mmap_mode="r").shape)

@@ -417,7 +417,9 @@ class Session:
     def open(cls, path: Path | str) -> Session:
         path = Path(path)
         try:
-            manifest = json.loads((path / MANIFEST).read_text())
+            from sssphase_core.store.files import read_input_text
+
+            manifest = json.loads(read_input_text(path / MANIFEST, "the session manifest", max_bytes=1 << 26))
         except FileNotFoundError:
             raise DataError(f"{path} does not exist" if not path.exists() else f"{path} is not a session (no {MANIFEST})") from None
         except NotADirectoryError:
