@@ -94,8 +94,10 @@ def _write(out: Path | None, payload: dict, markdown: str) -> None:
     console.print(markdown)
     if out is not None:
         out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(json.dumps(payload, indent=2))
-        out.with_suffix(".md").write_text(markdown + "\n")
+        from sssphase_core.store.files import write_text
+
+        write_text(out, json.dumps(payload, indent=2))
+        write_text(out.with_suffix(".md"), markdown + "\n")
         console.print(f"wrote {out} and {out.with_suffix('.md')}")
 
 

@@ -8,6 +8,8 @@ from typing import Any
 
 from rich.console import Console
 
+from sssphase_core.store.files import write_text
+
 
 def write_result(console: Console, out: Path, md: Path | None, result: dict[str, Any], markdown: str) -> Path:
     """``result`` as JSON to ``out`` and ``markdown`` to ``md`` (default: ``out`` with ``.md``); prints the
@@ -17,9 +19,9 @@ def write_result(console: Console, out: Path, md: Path | None, result: dict[str,
     md = md or out.with_suffix(".md")
     check_result_paths(out, md)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(result, indent=1, default=str))
+    write_text(out, json.dumps(result, indent=1, default=str))
     md.parent.mkdir(parents=True, exist_ok=True)
-    md.write_text(markdown)
+    write_text(md, markdown)
     console.print(markdown)
     console.print(f"wrote {out} and {md}")
     return md

@@ -4,6 +4,8 @@ has a colour bar (category maps carry a legend)."""
 from __future__ import annotations
 
 import importlib
+import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,7 +26,10 @@ def saved_figures(monkeypatch):
         barred = {id(im.norm) for im in images if im.colorbar is not None}  # panels may share one bar and norm
         unbarred = [im for im in images if id(im.norm) not in barred]
         legends = [ax.get_legend() for ax in self.axes if ax.get_legend() is not None]
-        records.append({"path": str(fname), "titles": titles, "unbarred": unbarred, "legends": legends})
+        path = Path(str(fname))  # figures are saved under a temporary name and renamed (store.files.save_figure)
+        final = re.fullmatch(r"\.(.+)\.\d+-[0-9a-f]+\.tmp\.\w+", path.name)
+        records.append({"path": str(path.with_name(final.group(1)) if final else path), "titles": titles,
+                        "unbarred": unbarred, "legends": legends})
         return original(self, fname, *args, **kwargs)
 
     monkeypatch.setattr(Figure, "savefig", spy)

@@ -26,3 +26,37 @@ def test_a_suffix_keeps_numpy_from_renaming_the_temporary(tmp_path):
         np.savez(tmp, a=np.arange(3))
     np.testing.assert_array_equal(np.load(path)["a"], np.arange(3))
     assert [p.name for p in tmp_path.iterdir()] == ["cache.npz"]
+
+
+def test_reports_figures_and_rig_files_are_never_left_half_written(tmp_path):
+    """Every report, figure and rewritten rig file goes through the one atomic writer: under a full disk (a
+    file-size limit on the writing process) the old file stays whole, or there is none."""
+    import subprocess
+    import sys
+
+    (tmp_path / "old.json").write_text('{"kept": true}\n')
+    code = """
+import resource, signal, sys
+from pathlib import Path
+signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000))
+import matplotlib
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+from sssphase_core.store.files import save_figure, write_text
+from sssphase_core.store.results import write_report
+out = Path(sys.argv[1])
+for name, write in (("old.json", lambda p: write_text(p, "x" * 100000)),
+                    ("report.json", lambda p: write_report({"rows": list(range(30000))}, [], p, md=p.with_suffix(".md"))),
+                    ("figure.png", lambda p: save_figure(plt.figure(figsize=(20, 20)).add_subplot().imshow(
+                        np.random.default_rng(0).random((800, 800))).figure, p))):
+    try:
+        write(out / name)
+    except OSError as exc:
+        print("refused", name, exc.errno)
+"""
+    res = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert res.stdout.count("refused") == 3, res.stdout + res.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["old.json"]  # no report, no figure, no temporaries
+    assert (tmp_path / "old.json").read_text() == '{"kept": true}\n'

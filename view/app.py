@@ -32,6 +32,7 @@ from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from sssphase_core.capture.live import LIVE_PATTERNS
 from sssphase_core.errors import SssError
+from sssphase_core.store.files import write_bytes
 from sssphase_view.live import LiveRig, LiveSettings
 
 STATIC = Path(__file__).with_name("static")
@@ -257,7 +258,7 @@ async def upload(request: Request, state: ViewState) -> Response:
     folder = state.out / "uploads"
     folder.mkdir(parents=True, exist_ok=True)
     name = f"upload_{hashlib.sha256(body).hexdigest()[:12]}{suffix}"
-    (folder / name).write_bytes(bytes(body))
+    write_bytes(folder / name, bytes(body))
     return JSONResponse({"name": name})
 
 

@@ -21,6 +21,7 @@ import torch
 from sssphase_core.bench.output import Table, machine_info, median_seconds, write_bench_report
 from sssphase_core.relight import Projection, emitted_light, lit_pixels, make_source, relight
 from sssphase_core.relight.evaluation import relight_metrics
+from sssphase_core.store.files import save_figure
 
 Progress = Callable[[str], None]
 
@@ -212,7 +213,7 @@ def plot(rows: list[dict[str, Any]], lit: list[dict[str, Any]], path: Path) -> P
     b.set_title("cost against lit pixels")
     b.legend()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
 

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from sssphase_core.errors import DataError, InputError
+from sssphase_core.store.files import write_text
 
 RAMP_LEVELS = tuple(float(v) for v in np.round(np.linspace(0.0, 1.0, 17), 4))
 FIT_RANGE = (0.1, 1.0)  # values whose response is fitted (below, r is at the noise floor)
@@ -264,5 +265,5 @@ def write_rig_response(req: CalibrationRequest, fitted: ProjectorResponse) -> Pa
         text = tomli_w.dumps({"devices": {"camera": spec.camera, "projector": spec.projector},
                               **({"options": spec.options} if spec.options else {})})
     target.parent.mkdir(parents=True, exist_ok=True)
-    target.write_text(rig_file_with_response(text, fitted))
+    write_text(target, rig_file_with_response(text, fitted))
     return target

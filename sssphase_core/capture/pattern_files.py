@@ -19,6 +19,7 @@ from sssphase_core.processing.patterns import (
     period_ladder,
     psp_config_for,
 )
+from sssphase_core.store.files import write_text
 from sssphase_core.store.imageio import IMAGE_SUFFIXES
 from sssphase_core.store.session import check_output_folder
 
@@ -88,5 +89,5 @@ def write_patterns(out: Path, projector: str, *, footprints: bool = False, dot_s
         Image.fromarray(np.round(np.clip(frame.pattern(), 0, 1) * 255).astype(np.uint8)).save(path)
         if progress is not None:
             progress(done, len(unique))
-    (out / "plan.json").write_text(plan.to_json() + "\n")
+    write_text(out / "plan.json", plan.to_json() + "\n")
     return WrittenPatterns(out, len(unique), len(plan))

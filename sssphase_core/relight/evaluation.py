@@ -18,6 +18,7 @@ import numpy as np
 from sssphase_core.errors import InputError
 from sssphase_core.learning.metrics import psnr
 from sssphase_core.processing.colour import display_scale
+from sssphase_core.store.files import save_figure
 
 METRICS = ("mse", "psnr", "ssim", "lpips")
 
@@ -110,7 +111,7 @@ def comparison_figure(reference: np.ndarray, relit: np.ndarray, mask: np.ndarray
     fig.suptitle(title, fontsize=10)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=90)
+    save_figure(fig, path, dpi=90)
     plt.close(fig)
     return path
 

@@ -15,6 +15,7 @@ from sssphase_core.errors import InputError
 from sssphase_core.processing.patterns import psp_key
 from sssphase_core.processing.psp import Correspondence, Reason, decode_camera, wrapped_phase
 from sssphase_core.reporting import figures as fig
+from sssphase_core.store.files import write_text
 from sssphase_core.store.session import check_output_folder
 
 #: The arrays of a decoded folder, each ``<name>.npy``.
@@ -62,7 +63,7 @@ def decode_folder(folder: Path, out: Path, *, projector: str | None = None, min_
     config, coverage = view.config, corr.coverage()
     summary = {"projector": list(view.size), "psp": {"period": config.period, "n_shifts": config.n_shifts,
                "unwrap_periods": list(config.unwrap_periods)}, "coverage": coverage}
-    (out / "decode.json").write_text(json.dumps(summary, indent=1) + "\n")
+    write_text(out / "decode.json", json.dumps(summary, indent=1) + "\n")
     return DecodedFolder(out, corr, coverage)
 
 

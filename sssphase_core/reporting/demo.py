@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from sssphase_core.errors import InputError, SssError
+from sssphase_core.store.files import write_text
 from sssphase_core.store.session import DamagedArray
 
 
@@ -99,7 +100,7 @@ class Demo:
         if stamp.exists() and not fresh and stamp.read_text().strip() != physics:
             raise InputError(f"{self.out} was made with the simulator's {stamp.read_text().strip()!r} physics, this run "
                              f"asks for {physics!r}: use another --out, or --fresh")
-        stamp.write_text(physics)
+        write_text(stamp, physics)
         self.report_rig = f"Simulated rig (CPU preset), {self.transport.replace('_', ' ')} transport" + (
             "; every training object captured on its own randomised rig (sim.randomised_rig_options)"
             if randomise_rig else "") + ("; a three-chip camera (no colour filter array)" if three_chip else "")
@@ -129,7 +130,7 @@ class Demo:
         except ModuleNotFoundError as exc:  # an optional extra that is not installed; any other error is a bug: raised
             result = {"status": "not available", "reason": f"needs the {exc.name} package, which is not installed"}
         result["seconds"] = time.perf_counter() - t0
-        (self.steps_dir / f"{name}.json").write_text(json.dumps(result, indent=1, default=str))
+        write_text(self.steps_dir / f"{name}.json", json.dumps(result, indent=1, default=str))
         self.log(f"[{name}] {result['status']} in {result['seconds']:.1f} s" + (f": {result.get('reason')}" if result["status"] != "done" else ""))
         self.results[name] = result
         return result
@@ -369,7 +370,7 @@ def claim_report_folder(out: Path) -> None:
             raise InputError(f"--out {out} is {what}, not a folder `sss report` wrote: write the report into a new or "
                              "empty folder (nothing was written)")
     out.mkdir(parents=True, exist_ok=True)
-    (out / REPORT_MARK).write_text("written by sss report; it may write here again\n")
+    write_text(out / REPORT_MARK, "written by sss report; it may write here again\n")
 
 
 def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Path | None = None,

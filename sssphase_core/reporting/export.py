@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from sssphase_core.store.exr import write_exr
+from sssphase_core.store.files import write_text
 from sssphase_core.store.session import Session, view_dir_name
 
 
@@ -53,7 +54,7 @@ def export_view(session: Session, view: int, out: Path) -> list[Path]:
                 attributes = {"sssphase_key": keys[i]} if keys else None
                 written.append(write_exr(stem / f"{i:02d}.exr", np.asarray(arr[i], np.float32), attributes=attributes))
             if keys:  # which fringe each file holds, for tools that read no EXR header
-                (stem / "keys.csv").write_text("file,key\n" + "".join(f"{i:02d}.exr,{k}\n" for i, k in enumerate(keys)))
+                write_text(stem / "keys.csv", "file,key\n" + "".join(f"{i:02d}.exr,{k}\n" for i, k in enumerate(keys)))
                 written.append(stem / "keys.csv")
         elif len(shape) == 2:  # per-row records such as footprints/pixels
             stem.parent.mkdir(parents=True, exist_ok=True)

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sssphase_core.store.files import save_figure
+
 MIN_WIDTH_IN = 4.0  # small images are enlarged to at least this width on the page
 MAX_WIDTH_IN = 16.0
 DPI = 110
@@ -42,7 +44,7 @@ def _title(text: str, width: int = 60) -> str:
 def _save(fig, path: Path | str) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI)
+    save_figure(fig, path, dpi=DPI)
     _pyplot().close(fig)
     return path
 
@@ -203,7 +205,7 @@ def plot_profiles(gt: np.ndarray, pred: np.ndarray, path: Path | str, *, title: 
     b.set(xlabel="offset (px)", title="prediction - GT")
     a.legend(fontsize=7, ncol=2)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    save_figure(fig, path, dpi=120)
     plt.close(fig)
 
 
@@ -242,5 +244,5 @@ def plot_metric_vs_time(metrics_path: Path | str, keys: str | Sequence[str], out
         twin.set_ylabel(right_label or ", ".join(right))
     ax.legend(handles=lines, fontsize=8, loc="best")
     fig.tight_layout()
-    fig.savefig(out, dpi=120)
+    save_figure(fig, out, dpi=120)
     plt.close(fig)

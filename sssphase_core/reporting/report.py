@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+from sssphase_core.store.files import save_figure, write_text
+
 STYLE = """
 body { font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1100px; color: #222; }
 h1 { font-size: 1.6em; } h2 { border-bottom: 1px solid #ccc; padding-bottom: .2em; margin-top: 1.6em; }
@@ -74,7 +76,7 @@ def error_vs_runtime_plot(rows: Sequence[dict[str, Any]], path: Path) -> Path:
     ax.set_title("error against run time (unseen objects)")
     ax.legend()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    save_figure(fig, path, dpi=100)
     plt.close(fig)
     return path
 
@@ -192,5 +194,5 @@ def write_report(out: Path | str, results: dict[str, dict[str, Any]], config: di
     page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{_esc(title)}</title><style>{STYLE}</style></head>"
             f"<body>{''.join(sections)}{LOAD_CHECK}</body></html>")
     path = out / "index.html"
-    path.write_text(page)
+    write_text(path, page)
     return path

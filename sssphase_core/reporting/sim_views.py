@@ -18,6 +18,7 @@ from sssphase_core import sim as simlib
 from sssphase_core.errors import InputError
 from sssphase_core.processing.patterns import PSPConfig, capture_plan, psp_config_for
 from sssphase_core.reporting import figures as fig
+from sssphase_core.store.files import write_text
 from sssphase_core.store.session import check_output_folder
 
 #: ``progress(view, done, total)``: ``view`` None: views done of all; else lit pixels rendered in that view.
@@ -87,7 +88,7 @@ def run_sim(object_name: str, views: int, out: Path, *, preset: str = "cpu", tra
         "seed": seed,
         "views": summary,
     }
-    (out / "scene.json").write_text(json.dumps(info, indent=2))
+    write_text(out / "scene.json", json.dumps(info, indent=2))
     return SimRun(out, obj.name, info)
 
 

@@ -29,6 +29,30 @@ def atomic_path(path: Path | str, suffix: str = "") -> Iterator[Path]:
             tmp.unlink()
 
 
+def write_text(path: Path | str, text: str) -> Path:
+    """``path.write_text(text)`` through :func:`atomic_path`: a full disk leaves the old file (or none)."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
+    return path
+
+
+def write_bytes(path: Path | str, data: bytes) -> Path:
+    """``path.write_bytes(data)`` through :func:`atomic_path`."""
+    path = Path(path)
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(data)
+    return path
+
+
+def save_figure(fig: object, path: Path | str, **kwargs: object) -> Path:
+    """``fig.savefig(path, ...)`` through :func:`atomic_path` (the format from ``path``'s suffix)."""
+    path = Path(path)
+    with atomic_path(path, path.suffix) as tmp:
+        fig.savefig(tmp, format=path.suffix.lstrip(".") or None, **kwargs)  # type: ignore[attr-defined]
+    return path
+
+
 def check_input_file(path: Path | str, what: str, max_bytes: int | None = None) -> Path:
     """``path`` as an input file: a regular file (a FIFO, a device or a socket would block or never end a
     read: refused by name), at most ``max_bytes`` long. Missing files are left to the caller's own message."""

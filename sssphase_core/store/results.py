@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from sssphase_core.store.files import write_text
 from sssphase_core.tables import Table
 
 
@@ -53,9 +54,9 @@ def write_report(result: dict[str, Any], tables: Sequence[Table], out: Path, md:
     out = Path(out)
     check_result_paths(out, md)
     out.parent.mkdir(parents=True, exist_ok=True)
-    out.write_text(json.dumps(jsonable(result), indent=1) + "\n")
+    write_text(out, json.dumps(jsonable(result), indent=1) + "\n")
     if md is not None:
         md = Path(md)
         md.parent.mkdir(parents=True, exist_ok=True)
         head = f"## {title}\n\n" if title else ""
-        md.write_text(head + "\n".join(t.markdown() for t in tables))
+        write_text(md, head + "\n".join(t.markdown() for t in tables))
