@@ -257,7 +257,7 @@ RIG_HEAD = '[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\n'
     (RIG_HEAD + "[processing]\nblack_level = 64\nwhite_scale = 0.000434\n",  # its inverse, as HARDWARE.md once said
      "white_scale is the DN above black that one linear camera unit gives (a white at 2,300 DN: 2300), got 0.000434"),
     ("options = 5\n" + RIG_HEAD, "options must be a [options] table, got int"),
-    (b"\xff\xfe\x00binary", "cannot read rig file"),
+    (b"\xff\xfe\x00binary", "is not UTF-8 text"),
 ])
 def test_rig_files_are_checked_before_a_daemon_starts(tmp_path, text, expected):
     """A negative patch or a NaN saturation failed only after capturing (and wrote NaN into the manifest);
