@@ -77,18 +77,25 @@ class Rig:
         _return_freed_memory()
 
 
-def _return_freed_memory() -> None:
-    """Give the heap's free pages back to the system (glibc ``malloc_trim``): a closed rig's scene (~6 MB at
-    the CPU preset) was freed into the arenas of the job threads that rendered it, and a long-running
-    daemon's resident memory kept it."""
+@functools.cache
+def _malloc_trim() -> Callable[[int], int] | None:
+    """glibc's ``malloc_trim``, looked up once (None where the C library has none)."""
     import ctypes
     import ctypes.util
 
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        libc.malloc_trim(0)
-    except (OSError, AttributeError):  # not glibc: nothing to do
-        pass
+        return ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+
+
+def _return_freed_memory() -> None:
+    """Give the heap's free pages back to the system (glibc ``malloc_trim``): a closed rig's scene (~6 MB at
+    the CPU preset) was freed into the arenas of the job threads that rendered it, and a long-running
+    daemon's resident memory kept it."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
 
 
 def _close_all(devices: dict[str, Any]) -> None:

@@ -143,7 +143,7 @@ def _session(state: ViewState, name: str) -> Any:
 
 
 async def api_state(request: Request, state: ViewState) -> Response:
-    from sssphase_core.relight.choices import BLENDS, MODEL_FREE
+    from sssphase_core.relight.choices import BLENDS, MODEL_FREE  # none, exact, measured; blend
 
     sessions = []
     for name, s in (await asyncio.to_thread(_sessions, state)).items():
@@ -153,7 +153,7 @@ async def api_state(request: Request, state: ViewState) -> Response:
             views.append({"view": v, "references": sorted(k[4:] for k in arrays if k.startswith("ref/")),
                           "crops": "transport/crops" in arrays or "footprints/crops" in arrays, "simulated": "gt/proj_xy" in arrays})
         sessions.append({"name": name, "object": s.objects[0] if s.objects else name, "views": views})
-    backends = [b for b in ("analytic", "none", "measured", "exact", *BLENDS, "torch") if b in (*MODEL_FREE, *BLENDS, "analytic", "torch")]
+    backends = ["analytic", *MODEL_FREE, *BLENDS, "torch"]  # (the page leaves out those that need a decoder without one)
     return JSONResponse({"sessions": sessions, "patterns": [*LIVE_PATTERNS, "psp"], "backends": backends,
                          "checkpoint": str(state.checkpoint) if state.checkpoint else None,
                          "relight_patterns": ["checkerboard", "stripes_x", "stripes_y"]})
