@@ -70,11 +70,11 @@ function connectLive() {
   socket.onclose = () => { $("status").textContent = "live view closed"; state.socket = null; };
   socket.onmessage = (event) => {
     if (typeof event.data !== "string") {
-      const old = $("live-image").src;
+      const old = $("live-image").src, shown = header;
+      $("live-image").onload = () => { state.shown = shown; };  // what the image on the page is, once it is drawn
       $("live-image").src = URL.createObjectURL(event.data);
       if (old.startsWith("blob:")) URL.revokeObjectURL(old);
       if (header) {
-        state.shown = header;  // what the image on the page is: its pattern, exposure, statistics
         state.frames += 1;
         $("frame-count").textContent = state.frames;
         $("fps").textContent = header.fps.toFixed(1);
@@ -105,7 +105,8 @@ for (const id of ["pattern", "exposure", "gain", "psp-frame", "decode"]) $(id).o
 
 $("zoom").onchange = () => {
   const zoom = Number($("zoom").value), img = $("live-image");
-  img.style.width = zoom ? `${img.naturalWidth * zoom}px` : "";
+  const width = state.shown ? state.shown.shape[1] : img.naturalWidth;  // (naturalWidth is 0 while a frame loads)
+  img.style.width = zoom ? `${width * zoom}px` : "";
   img.style.maxWidth = zoom ? "none" : "";
 };
 
