@@ -168,22 +168,27 @@ def report(
 
     check_output_folder(out)
     from sssphase_core.errors import InputError
-    from sssphase_core.learning.training import resolve_checkpoint
-    from sssphase_core.learning.training.checkpoints import load_checkpoint
-    from sssphase_core.relight.backends import check_backends, uses_decoder
-    from sssphase_core.reporting.demo import run_report
+    from sssphase_core.learning.runlog import check_checkpoint_file, resolve_checkpoint
+    from sssphase_core.relight.choices import check_backends, uses_decoder
     from sssphase_core.store.session import find_sessions
 
     backends = tuple(dict.fromkeys(b.strip() for b in backend.split(",") if b.strip()))
     decoder = resolve_checkpoint(decoder) if decoder else None
     pretrain = resolve_checkpoint(pretrain) if pretrain else None
-    # as `sss eval relight`: unknown backends and unreadable checkpoints are one line before any work (without
-    # --decoder the torch rows are left out, as the default backends list them)
+    # as `sss eval relight`: unknown backends and unreadable checkpoints are one line before any work, and
+    # before torch is imported where the file alone shows it (without --decoder the torch rows are left out,
+    # as the default backends list them)
     blends = [b for b in backends if b != "torch" and uses_decoder(b)]
     if decoder is None and blends:
         raise InputError(f"the {blends[0]} backend blends the decoder in: it needs --decoder (a run of `sss train decoder`)")
+    for ckpt in (pretrain, decoder):
+        if ckpt is not None:
+            check_checkpoint_file(ckpt)
     checked = [b for b in backends if b != "torch" or decoder is not None]
     check_backends(checked, decoder)  # loads the decoder when a backend runs it
+    from sssphase_core.learning.training.checkpoints import load_checkpoint
+    from sssphase_core.reporting.demo import run_report
+
     for ckpt in (pretrain, None if any(map(uses_decoder, checked)) else decoder):
         if ckpt is not None:
             load_checkpoint(ckpt)  # raises DataError naming what the file is

@@ -64,3 +64,16 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
                 break
     items.sort(key=lambda item: item.get_closest_marker("slow") is None)  # stable: file order kept otherwise
 
+
+
+@pytest.hookimpl(trylast=True)  # after pytest-xdist's worker hook, which appends each item's group to its node id
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Refuse to run when ``--dist loadgroup`` cannot group (a pytest that xdist's renaming no longer reaches,
+    pytest-dev/pytest-xdist#1386): every module fixture would be built on every worker, the suite running
+    minutes longer in silence. constraints.txt pins a pair that groups."""
+    if not (session.config.getvalue("loadgroup") and os.environ.get("PYTEST_XDIST_WORKER")):
+        return
+    lost = [item.nodeid for item in session.items if item.get_closest_marker("xdist_group") and "@" not in item.nodeid]
+    if lost:
+        raise pytest.UsageError(f"pytest {pytest.__version__} with this pytest-xdist does not group tests "
+                                f"(e.g. {lost[0]} has no @group): install with -c constraints.txt")
