@@ -45,9 +45,9 @@ def _load(ctx: typer.Context, param: Any, value: Path | None) -> Path | None:
     if path.is_dir():
         path = path / CONFIG
     try:
-        from sssphase_core.store.files import read_input_text
+        from sssphase_core.store.files import read_toml_input
 
-        data = tomllib.loads(read_input_text(path, "--config", max_bytes=1 << 20))
+        data = read_toml_input(path, "--config")
     except FileNotFoundError:
         raise InputError(f"--config {value}: the folder has no {CONFIG}" if Path(value).is_dir()
                          else f"--config {value}: no such file") from None
@@ -110,8 +110,10 @@ def save_run_config(ctx: typer.Context, out: Path, *, resuming: bool = False, wr
         from sssphase_core.errors import InputError
 
         try:
-            saved = tomllib.loads(saved_path.read_text()).get("options")
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            from sssphase_core.store.files import read_toml_input
+
+            saved = read_toml_input(saved_path, "the run's saved options").get("options")
+        except (OSError, InputError):
             saved = None
         if not isinstance(saved, dict):  # a run of the API or the demo, or a damaged file: it resumed with any options
             raise InputError(f"{out} holds a checkpoint but no readable {CONFIG}: the options it was trained with are "

@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import tomllib
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -52,10 +51,10 @@ class RigSpec:
     def from_toml(cls, path: Path) -> RigSpec:
         """``[devices]`` camera/projector/turntable/trigger ids, ``[options]`` for the plugins, ``[processing]``."""
         try:
-            from sssphase_core.store.files import read_input_text
+            from sssphase_core.store.files import read_toml_input
 
-            cfg = tomllib.loads(read_input_text(path, "rig file", max_bytes=1 << 20))
-        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+            cfg = read_toml_input(path, "rig file")
+        except OSError as exc:
             raise InputError(f"cannot read rig file {path}: {exc}") from None
         dev, proc, resp = cfg.get("devices", {}), cfg.get("processing", {}), cfg.get("projector", {})
         for table in ("devices", "processing", "projector", "options"):

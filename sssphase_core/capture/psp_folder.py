@@ -4,7 +4,6 @@
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,9 +23,11 @@ FrameProgress = Callable[[int, int], None]
 
 def read_plan(path: Path) -> dict[str, Any]:
     """A folder's ``plan.json`` (as `sss patterns` writes it), checked: one line naming the file otherwise."""
+    from sssphase_core.store.files import read_json_input
+
     try:
-        plan = json.loads(path.read_text())
-    except (OSError, UnicodeDecodeError, ValueError) as exc:
+        plan = read_json_input(path, "the capture plan")
+    except OSError as exc:
         raise InputError(f"{path}: not a readable capture plan ({type(exc).__name__}: {str(exc).splitlines()[0][:80]})") from None
     problem = plan_problem(plan) or (None if isinstance(plan, dict) and "projector" in plan else "it names no projector size")
     if problem:

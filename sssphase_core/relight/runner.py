@@ -438,8 +438,11 @@ def _write_geometry(s: Session, rv: RelightView, geo: Any, out: Path, period: fl
     folder = out / rv.object / view_dir_name(rv.view)
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / "correspondence_for_geometry.npz"
-    np.savez_compressed(path, xp=geo.xp, yp=geo.yp, xp_decoded=rv.proj.xp, yp_decoded=rv.proj.yp,
-                        shift_x=shift_x, shift_y=shift_y, mask=rv.proj.mask)
+    from sssphase_core.store.files import atomic_path
+
+    with atomic_path(path, ".npz") as tmp:
+        np.savez_compressed(tmp, xp=geo.xp, yp=geo.yp, xp_decoded=rv.proj.xp, yp_decoded=rv.proj.yp,
+                            shift_x=shift_x, shift_y=shift_y, mask=rv.proj.mask)
     m = rv.proj.mask
     done = GeometryView(rv.object, rv.view, path, (float(np.nanmedian(shift_x[m])), float(np.nanmedian(shift_y[m]))), period)
     if rv.sim is not None and "gt/proj_xy" in s.arrays(rv.view):  # evaluation only: the simulator's exact points

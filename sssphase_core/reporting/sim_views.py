@@ -18,7 +18,7 @@ from sssphase_core import sim as simlib
 from sssphase_core.errors import InputError
 from sssphase_core.processing.patterns import PSPConfig, capture_plan, psp_config_for
 from sssphase_core.reporting import figures as fig
-from sssphase_core.store.files import write_text
+from sssphase_core.store.files import atomic_path, write_text
 from sssphase_core.store.session import check_output_folder
 
 #: ``progress(view, done, total)``: ``view`` None: views done of all; else lit pixels rendered in that view.
@@ -133,7 +133,8 @@ def decode_view(frames: dict, config, scene, vdir: Path, what: str) -> dict:
     rig = scene.rig
     wp, hp = rig.projector.width, rig.projector.height
     corr = decode_camera(frames, config, (wp, hp), bayer="RGGB")  # the sim sensor's layout, as a capture decodes
-    np.savez_compressed(vdir / "decoded.npz", xp=corr.xp, yp=corr.yp, mask=corr.mask, reason=corr.reason)
+    with atomic_path(vdir / "decoded.npz", ".npz") as tmp:
+        np.savez_compressed(tmp, xp=corr.xp, yp=corr.yp, mask=corr.mask, reason=corr.reason)
     lit = scene.mask & np.isfinite(scene.proj_xy[..., 0])  # exact correspondence exists (not shadowed)
     on_object = corr.mask & lit
     err = np.hypot(corr.xp - scene.proj_xy[..., 0], corr.yp - scene.proj_xy[..., 1])[on_object]

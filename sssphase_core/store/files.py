@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import re
 import secrets
 from collections.abc import Iterator
 from pathlib import Path
@@ -12,7 +14,9 @@ from pathlib import Path
 @contextlib.contextmanager
 def atomic_path(path: Path | str, suffix: str = "") -> Iterator[Path]:
     """A temporary path beside ``path`` to write to; it replaces ``path`` in one rename when the block
-    ends without error, and is removed (the old file staying) when it raises.
+    ends without error, and is removed (the old file staying) when it raises. The temporary file's data
+    is flushed to the disk (fsync) before the rename and the folder's entry after it, so a power cut
+    leaves the old file or the whole new one, not an empty file under the final name.
 
     ``suffix`` ends the temporary name (``.npz`` for ``np.savez``, which would append it). The name
     carries the process id and a random part, so two writers never share a temporary file.
@@ -23,10 +27,36 @@ def atomic_path(path: Path | str, suffix: str = "") -> Iterator[Path]:
     tmp = path.with_name(f".{path.name[:40]}.{os.getpid()}-{secrets.token_hex(3)}.tmp{suffix}")
     try:
         yield tmp
+        sync(tmp)
         os.replace(tmp, path)
+        sync(path.parent)
     finally:
         with contextlib.suppress(OSError):
             tmp.unlink()
+
+
+def sync(path: Path | str) -> None:
+    """Flush a file's data, or a folder's entries, to the disk (``fsync``). File systems that cannot
+    (some network and FUSE mounts answer EINVAL) are left as they are."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        if exc.errno not in (errno.EINVAL, errno.ENOTSUP, errno.EBADF):
+            raise
+    finally:
+        os.close(fd)
+
+
+def sync_tree(folder: Path | str) -> None:
+    """:func:`sync` every file and folder under ``folder`` (a session view written as a folder of
+    chunks, before it is renamed into place), then ``folder`` itself."""
+    for root, dirs, files in os.walk(folder):
+        for name in files:
+            sync(Path(root) / name)
+        for name in dirs:
+            sync(Path(root) / name)
+    sync(folder)
 
 
 def write_text(path: Path | str, text: str) -> Path:
@@ -89,3 +119,69 @@ def read_input_text(path: Path | str, what: str, max_bytes: int = 1 << 24) -> st
     except UnicodeDecodeError as exc:
         raise InputError(f"{what} {path} is not UTF-8 text (byte {exc.start})") from None
 
+
+
+#: How deep a configuration, manifest or plan may nest (tables in tables, lists in lists): the project's own
+#: files nest 5 deep; deeper input is hostile or broken, and code that walks it must not recurse without end.
+MAX_NESTING = 32
+
+#: Most dots in a row of TOML text between separators (``a.b.c... = 1``, ``[a.b.c...]``): tomllib builds one
+#: table per dotted-key part in quadratic time (100,000 parts took 8.8 s), so a 1 MiB rig file could hold a
+#: parser for minutes. Counted in linear time (spaces dropped, split at newlines, commas, ``=`` and brackets).
+MAX_DOTS = 2 * MAX_NESTING
+_TOML_SEPARATORS = re.compile(r"[\n,=\[\]{}]")
+
+
+def _longest_dotted_run(text: str) -> int:
+    return max((piece.count(".") for piece in _TOML_SEPARATORS.split(text.replace(" ", "").replace("\t", ""))), default=0)
+
+
+def check_nesting(value: object, what: str, max_depth: int = MAX_NESTING) -> None:
+    """Refuse ``value`` (parsed JSON or TOML) nested more than ``max_depth`` deep, walking it without recursion."""
+    from sssphase_core.errors import InputError
+
+    stack: list[tuple[object, int]] = [(value, 0)]
+    while stack:
+        item, depth = stack.pop()
+        if isinstance(item, (dict, list)):
+            if depth >= max_depth:
+                raise InputError(f"{what} nests deeper than {max_depth} levels: not a file this program wrote")
+            stack.extend((v, depth + 1) for v in (item.values() if isinstance(item, dict) else item))
+
+
+def read_json_input(path: Path | str, what: str, max_bytes: int = 1 << 24) -> object:
+    """A JSON input file (a manifest, a plan, a record) parsed, bounded in size (:func:`check_input_file`) and
+    nesting (:func:`check_nesting`); any fault is an :class:`InputError` naming the file in one line."""
+    import json
+
+    from sssphase_core.errors import InputError
+
+    text = read_input_text(path, what, max_bytes)
+    try:
+        value = json.loads(text)
+    except RecursionError:
+        raise InputError(f"{what} {path} nests deeper than {MAX_NESTING} levels: not a file this program wrote") from None
+    except ValueError as exc:
+        raise InputError(f"{what} {path} is not valid JSON ({str(exc).splitlines()[0][:80]})") from None
+    check_nesting(value, f"{what} {path}")
+    return value
+
+
+def read_toml_input(path: Path | str, what: str, max_bytes: int = 1 << 20) -> dict:
+    """A TOML input file (a rig file, a run configuration) parsed like :func:`read_json_input`; dotted keys of
+    more than :data:`MAX_NESTING` parts are refused before parsing (the parser is quadratic in them)."""
+    import tomllib
+
+    from sssphase_core.errors import InputError
+
+    text = read_input_text(path, what, max_bytes)
+    if _longest_dotted_run(text) > MAX_DOTS:
+        raise InputError(f"{what} {path} has a dotted key of more than {MAX_DOTS} parts: not a configuration")
+    try:
+        value = tomllib.loads(text)
+    except RecursionError:
+        raise InputError(f"{what} {path} nests deeper than {MAX_NESTING} levels: not a configuration") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise InputError(f"{what} {path} is not valid TOML: {exc}") from None
+    check_nesting(value, f"{what} {path}")
+    return value

@@ -110,9 +110,7 @@ def write_json_atomic(path: Path, obj: Any) -> None:
 
     try:
         with atomic_path(path) as tmp, open(tmp, "w") as f:
-            json.dump(obj, f, indent=1, sort_keys=True)
-            f.flush()
-            os.fsync(f.fileno())
+            json.dump(obj, f, indent=1, sort_keys=True)  # (atomic_path syncs it before the rename)
     except OSError as exc:
         raise DataError(f"cannot write {path}: {exc.strerror or exc} (the previous version is kept)") from None
 
@@ -194,8 +192,14 @@ class ViewWriter:
         shutil.rmtree(self.partial, ignore_errors=True)
 
     def commit(self, info: dict[str, Any] | None = None) -> None:
+        """Rename the partial folder into place once its chunks are on the disk, then record the view
+        as complete in the manifest (a power cut before the manifest leaves the view to redo)."""
+        from sssphase_core.store.files import sync, sync_tree
+
+        sync_tree(self.partial)
         shutil.rmtree(self.final, ignore_errors=True)
         os.replace(self.partial, self.final)
+        sync(self.session.path)
         self.session.set_view(self.view, {"status": "complete", "arrays": self.arrays, "completed": time.time(),
                                           **(info or {})})
 
@@ -370,8 +374,10 @@ class Session:
         """Whether the session folder ``path`` has a readable manifest with no view, and nothing beside it but
         partial views (so that starting it afresh loses no data)."""
         try:
-            manifest = json.loads((path / MANIFEST).read_text())
-        except (OSError, ValueError):
+            from sssphase_core.store.files import read_json_input
+
+            manifest = read_json_input(path / MANIFEST, "the session manifest", max_bytes=1 << 26)
+        except (OSError, ValueError, InputError):
             return False
         if not isinstance(manifest, dict) or manifest.get("format") != FORMAT or not isinstance(manifest.get("views", {}), dict):
             return False
@@ -417,9 +423,12 @@ class Session:
     def open(cls, path: Path | str) -> Session:
         path = Path(path)
         try:
-            from sssphase_core.store.files import read_input_text
+            from sssphase_core.store.files import check_nesting, read_input_text
 
             manifest = json.loads(read_input_text(path / MANIFEST, "the session manifest", max_bytes=1 << 26))
+            check_nesting(manifest, f"the session manifest {path / MANIFEST}")
+        except RecursionError:
+            raise DataError(f"{path / MANIFEST} is corrupt: it nests deeper than a manifest can") from None
         except FileNotFoundError:
             raise DataError(f"{path} does not exist" if not path.exists() else f"{path} is not a session (no {MANIFEST})") from None
         except NotADirectoryError:
@@ -609,8 +618,10 @@ def claim_output(out: Path | str, sessions: Iterable[Session]) -> None:
     known: dict[str, str] = {}
     if record.exists() or record.is_symlink():
         try:
-            data = json.loads(record.read_text())
-        except (OSError, ValueError) as e:
+            from sssphase_core.store.files import read_json_input
+
+            data = read_json_input(record, "the output record")
+        except (OSError, InputError) as e:
             raise InputError(f"{record} cannot be read ({getattr(e, 'strerror', None) or e}): it names the session "
                              "behind each object's outputs there; remove it, or choose another --out") from None
         if not isinstance(data, dict) or not all(isinstance(v, str) for v in data.values()):

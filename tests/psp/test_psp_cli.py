@@ -188,7 +188,8 @@ def test_decode_with_bayer_drops_the_silhouette_pixels_only_demosaicing_lit(tmp_
 
 
 @pytest.mark.parametrize(("text", "expected"), [
-    ("{not json", "not a readable capture plan (JSONDecodeError"),
+    ("{not json", "is not valid JSON (Expecting property name"),
+    ("[" * 100000 + "]" * 100000, "nests deeper than 32 levels"),
     ("[]", "plan is not a table"),
     ('{"psp": {}}', "it names no projector size"),
     ('{"projector": [64, 48, 3]}', "plan.projector must be [width, height]"),

@@ -15,9 +15,18 @@ from sssphase_core.store.files import atomic_path
 
 
 def save_checkpoint(path: Path, payload: dict) -> None:
-    """Atomic ``torch.save`` (write to a temporary file, then rename)."""
-    with atomic_path(path) as tmp:
-        torch.save(payload, tmp)
+    """Atomic ``torch.save`` (write to a temporary file, then rename): a disk that fills keeps the previous
+    checkpoint and raises :class:`DataError` naming the file (torch says "unexpected pos 768 vs 662")."""
+    import shutil
+
+    try:
+        with atomic_path(path) as tmp:
+            torch.save(payload, tmp)
+    except (OSError, RuntimeError) as exc:
+        free = shutil.disk_usage(Path(path).parent).free
+        why = "the disk is full" if free < (1 << 20) else str(exc).splitlines()[0][:160]
+        raise DataError(f"could not write the checkpoint {path}: {why} ({free:,} bytes free); "
+                        "the previous checkpoint is kept: free some space and resume") from None
 
 
 def load_checkpoint(path: Path | str, *, mmap: bool = False) -> dict:
