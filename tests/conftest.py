@@ -71,7 +71,7 @@ def pytest_collection_finish(session: pytest.Session) -> None:
     """Refuse to run when ``--dist loadgroup`` cannot group (a pytest that xdist's renaming no longer reaches,
     pytest-dev/pytest-xdist#1386): every module fixture would be built on every worker, the suite running
     minutes longer in silence. constraints.txt pins a pair that groups."""
-    if not (session.config.getvalue("loadgroup") and os.environ.get("PYTEST_XDIST_WORKER")):
+    if not (os.environ.get("PYTEST_XDIST_WORKER") and getattr(session.config.option, "loadgroup", False)):
         return
     lost = [item.nodeid for item in session.items if item.get_closest_marker("xdist_group") and "@" not in item.nodeid]
     if lost:

@@ -1017,3 +1017,36 @@ def test_special_files_and_foreign_bytes_where_a_file_is_expected_are_one_line_w
         out = res.stdout + res.stderr
         assert res.returncode != 0 and expected in out and "Traceback" not in out, (args, out)
         assert len(out.strip().splitlines()) == 1 and time.monotonic() - t0 < 30, (args, out)
+
+
+def test_hostile_structures_and_foreign_path_bytes_are_one_line_within_seconds(tmp_path):
+    """Deep nesting (100,000 levels) in a rig file, a run configuration, a manifest or a capture plan, a
+    dotted key of 100,000 parts (tomllib took minutes on a 1 MiB one) and folder names that are not UTF-8:
+    each one line naming the problem, no traceback, within seconds."""
+    deep = 100_000
+    (tmp_path / "deep.toml").write_text("a = " + "[" * deep + "]" * deep + "\n")
+    (tmp_path / "dotted.toml").write_text("[" + ".".join(["a"] * deep) + "]\nx = 1\n")
+    (tmp_path / "sess").mkdir()
+    (tmp_path / "sess" / "manifest.json").write_text("[" * deep + "]" * deep)
+    (tmp_path / "frames").mkdir()
+    (tmp_path / "frames" / "plan.json").write_text('{"projector": [64, 48], "psp": ' + "[" * 40 + "]" * 40 + "}")
+    foreign = os.fsencode(tmp_path) + b"/caf\xe9"
+    os.mkdir(foreign)
+    env = {**os.environ, "SSS_RUNTIME_DIR": tempfile.mkdtemp(prefix="sssh", dir="/tmp")}
+    cases = [
+        ([b"capture", b"--rig", b"deep.toml", b"--object", b"a"], "rig file deep.toml nests deeper than 32 levels"),
+        ([b"capture", b"--rig", b"dotted.toml", b"--object", b"a"], "rig file dotted.toml has a dotted key of more than 64"),
+        ([b"train", b"decoder", b"--config", b"dotted.toml"], "--config dotted.toml has a dotted key"),
+        ([b"train", b"pretrain", b"--config", b"deep.toml"], "--config deep.toml nests deeper than 32 levels"),
+        ([b"validate", b"sess"], "sess/manifest.json is corrupt: it nests deeper"),
+        ([b"decode", b"frames", b"--out", b"dec"], "frames/plan.json nests deeper than 32 levels"),
+        ([b"validate", foreign], "is not a session (no manifest.json)"),
+        ([b"import", foreign, b"--object", b"x", b"--projector", b"64x48", b"--out", b"o"], "holds no frame files"),
+    ]
+    for args, expected in cases:
+        t0 = time.monotonic()
+        res = subprocess.run([os.fsencode(sys.executable), b"-m", b"sssphase_cli.main", *args], capture_output=True,
+                             cwd=tmp_path, env=env, timeout=60)
+        out = (res.stdout + res.stderr).decode("utf-8", "backslashreplace")
+        assert res.returncode == 2 and expected in out and "Traceback" not in out, (args, out)
+        assert len(out.strip().splitlines()) == 1 and time.monotonic() - t0 < 20, (args, out)
