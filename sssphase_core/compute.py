@@ -49,3 +49,32 @@ def compute_device(name: str | torch.device) -> torch.device:
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(name)
+
+
+def available_memory() -> int | None:
+    """Bytes this process can still allocate: the kernel's ``MemAvailable``, or less under an address-space
+    limit (``ulimit -v``); None where neither is known."""
+    import resource
+
+    found = []
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    found.append(int(line.split()[1]) * 1024)
+    except (OSError, ValueError):
+        pass
+    soft = resource.getrlimit(resource.RLIMIT_AS)[0]
+    if soft != resource.RLIM_INFINITY:
+        found.append(max(0, soft - _address_space_used()))
+    return min(found) if found else None
+
+
+def _address_space_used() -> int:
+    try:
+        with open("/proc/self/statm") as f:
+            import os
+
+            return int(f.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
+    except (OSError, ValueError):
+        return 0

@@ -1021,3 +1021,24 @@ def test_exr_frames_are_placed_by_their_display_window(tmp_path):
         got = read_exr(path)
         assert got.shape == (20, 30, 3) and exr_size(path) == (20, 30)
         assert np.array_equal(got[..., 1], want)
+
+
+def test_frames_too_large_for_the_memory_are_refused_from_their_headers(tmp_path, monkeypatch):
+    """Frames that compress to almost nothing (constant 2400x1800 PNGs, 33 kB each) but decode to 52 MB each:
+    the view's frames are held as float32 until it is processed, so more than the free memory ended in the
+    kernel's out-of-memory kill (a 64-MP bomb per frame passed the per-frame limit). Refused from the first
+    frame's header, before a pixel is decoded."""
+    import time
+
+    from sssphase_core import compute
+
+    folder = tmp_path / "big"
+    folder.mkdir()
+    for f in capture_plan(W, H, references=("white", "black")):
+        level = 1.0 if f.key == "white" else 0.01 if f.key == "black" else 0.5
+        cv2.imwrite(str(folder / (f.key.replace("/", "__") + ".png")), np.full((1800, 2400, 3), int(level * 65535), np.uint16))
+    monkeypatch.setattr(compute, "available_memory", lambda: 2 << 30)  # a machine with 2 GiB free
+    t0 = time.monotonic()
+    with pytest.raises(InputError, match=r"its 26 frames of 2400x1800 need about 4\.\d GiB to import, more than the 2\.0 GiB free"):
+        import_folder(folder, tmp_path / "s", "big", (W, H))
+    assert time.monotonic() - t0 < 2 and not (tmp_path / "s" / "big").exists()
