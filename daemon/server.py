@@ -34,6 +34,7 @@ from sssphase_core.errors import SssError
 from sssphase_core.processing.patterns import frame_params_problem
 from sssphase_daemon import protocol, security
 from sssphase_daemon.frames import ClientGone, FrameSender, Preview, bind, configure_curve_server
+from sssphase_daemon.guard import ConnectionGuard
 from sssphase_daemon.protocol import ProtocolError
 from sssphase_plugins import manager
 from sssphase_plugins.drivers import DeviceError, PreloadingProjector, TriggeredCamera
@@ -290,6 +291,8 @@ class Daemon:
                                   "keys (`sss daemon keys`, --curve-dir)")
         security.remove_ipc_socket(self.endpoint)  # a dead daemon's socket; nothing else is ever removed
         self.endpoint = bind(self.control, self.endpoint, self.curve)
+        # over TCP, a peer's connections that never authenticate are limited (its oldest closed beyond 16)
+        self.guard = ConnectionGuard(self.control) if self.endpoint.startswith("tcp://") else None
         self.preview = Preview(self.ctx, preview, self.curve, token=self.token) if preview else None
         self.pm = manager.get_plugin_manager()
         self.rigs: dict[str, Rig] = {}
@@ -327,7 +330,8 @@ class Daemon:
         try:
             while self.running:
                 if poller.poll(200 if self.discovery_waiters is None else 20):
-                    self._handle(self.control.recv_multipart(copy=True))
+                    frames = self.control.recv_multipart(copy=False)
+                    self._handle([f.bytes for f in frames], fd=frames[-1].get(zmq.SRCFD) if self.guard else None)
                 self._send_replies()
                 self._reap()
                 if self.exit_when_idle_s is not None and self.idle_s() > self.exit_when_idle_s:
@@ -351,6 +355,8 @@ class Daemon:
         self.rigs.clear()
         if self.preview:
             self.preview.close()
+        if self.guard is not None:
+            self.guard.close()
         self.control.close(linger=0)
         if self.auth:
             self.auth.stop()
@@ -391,7 +397,8 @@ class Daemon:
                 del self.last_seen[c]
 
     # ---- request dispatch ------------------------------------------------------------------
-    def _handle(self, parts: list[bytes]) -> None:
+    def _handle(self, parts: list[bytes], fd: int | None = None) -> None:
+        """Answer one request; ``fd``: the descriptor it came on (its connection is proven once it gives the token)."""
         if len(parts) < 2 or any(p for p in parts[1:-1]):
             return  # not an envelope we can answer: drop
         identity, envelope, payload = parts[0], parts[1:-1], parts[-1]
@@ -401,6 +408,8 @@ class Daemon:
             rid = req.id
             if not hmac.compare_digest(req.token.encode(), self.token.encode()):
                 raise ProtocolError(protocol.UNAUTHENTICATED, "missing or wrong token (read it from the daemon state file)")
+            if self.guard is not None:
+                self.guard.proven(fd)
             self.last_seen[identity] = time.monotonic()
             if req.op == "devices":  # answered when discovery is done; the control socket keeps serving
                 self._discover_for(identity, envelope, rid)

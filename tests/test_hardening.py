@@ -576,6 +576,65 @@ def test_a_damaged_array_is_one_error_naming_it_wherever_it_is_read(intact_sessi
 
 
 @pytest.mark.slow
+def test_a_peer_that_keeps_reopening_unauthenticated_connections_does_not_starve_good_clients(tmp_path):
+    """Eight threads that keep 800 TCP connections open and reopen them (never speaking ZeroMQ), against a
+    daemon limited to 256 descriptors: 2 of 8 pings of a good client from the same host went unanswered
+    within 2 s. The daemon keeps 16 unproven connections per peer, closing the oldest, so every ping is
+    answered."""
+    import resource
+    import socket
+    import threading
+    import time
+
+    from sssphase_daemon import security
+    from sssphase_daemon.client import DaemonClient
+
+    def limit() -> None:
+        resource.setrlimit(resource.RLIMIT_NOFILE, (256, 256))
+
+    runtime = Path(tempfile.mkdtemp(prefix="sssg", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
+    proc = subprocess.Popen([sys.executable, "-m", "sssphase_daemon", "--endpoint", "tcp://127.0.0.1:*"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=limit)
+    stop = threading.Event()
+
+    def attacker(host: str, port: int) -> None:
+        held: list[socket.socket] = []
+        while not stop.is_set():
+            try:
+                held.append(socket.create_connection((host, port), timeout=1))
+            except OSError:
+                time.sleep(0.01)
+            if len(held) > 100:
+                held.pop(0).close()
+        for s in held:
+            s.close()
+
+    threads: list[threading.Thread] = []
+    try:
+        deadline = time.monotonic() + 30
+        while (state := security.read_state(runtime / "daemon.json")) is None:
+            assert time.monotonic() < deadline and proc.poll() is None
+            time.sleep(0.05)
+        host, port = state.endpoint.removeprefix("tcp://").rsplit(":", 1)
+        threads = [threading.Thread(target=attacker, args=(host, int(port)), daemon=True) for _ in range(8)]
+        for t in threads:
+            t.start()
+        time.sleep(1.5)  # the descriptors are taken
+        answered = []
+        for _ in range(8):
+            with DaemonClient(state.endpoint, state.token, timeout_s=2) as client:
+                answered.append(client.ping(timeout_s=2))
+        assert answered == [True] * 8 and proc.poll() is None
+    finally:
+        stop.set()
+        for t in threads:
+            t.join(10)
+        proc.terminate()
+        proc.wait(20)
+        shutil.rmtree(runtime, ignore_errors=True)
+
+
 def test_idle_unauthenticated_connections_do_not_lock_out_good_clients(tmp_path):
     """300 TCP connections that never speak ZeroMQ, against a daemon limited to 256 descriptors."""
     import resource
