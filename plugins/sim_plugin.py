@@ -13,8 +13,9 @@ the preset's, for calibration), ``transport`` (``burley`` or ``directional_dipol
 ``lens_blur`` (px), ``read_noise`` (e-), ``white_fraction`` (exposure) and ``demosaic`` (``malvar`` or
 ``opencv``, or ``none`` for a three-chip camera without a colour filter array; see ``sim.rig.with_camera``),
 ``raw`` (Bayer frames; not for a three-chip camera), and fault injection for tests: ``fail_at_frame``
-(the camera raises at that grab), ``stall_at_frame`` (that grab never returns), ``garbage_at_frame``
-(that frame is half as tall and NaN) and ``grab_delay_s`` (slow frames). Options nobody reads are refused
+(the camera raises at that grab), ``disconnect_at_frame`` (the camera is gone from that grab on, as an
+unplugged USB camera: every later call raises until the rig is opened again), ``stall_at_frame`` (that grab
+never returns), ``garbage_at_frame`` (that frame is half as tall and NaN) and ``grab_delay_s`` (slow frames). Options nobody reads are refused
 by name (``check_options``).
 The ``sim:bench-camera`` streams one fixed frame (``shape``, ``dtype``) for throughput benchmarks.
 
@@ -170,6 +171,7 @@ class SimCamera:
         if self.raw and bench.rig.sensor.three_chip:
             raise DeviceError("a three-chip sim camera (demosaic none) has no raw Bayer frames: leave out the raw option")
         self.fail_at = int(options.get("fail_at_frame", -1))
+        self.disconnect_at = int(options.get("disconnect_at_frame", -1))  # gone from that grab on (unplugged)
         self.delay_s = float(options.get("grab_delay_s", 0.0))
         self.stall_at = int(options.get("stall_at_frame", -1))  # that grab never returns (a hung camera)
         self.garbage_at = int(options.get("garbage_at_frame", -1))  # that frame is not a frame of this camera
@@ -195,6 +197,9 @@ class SimCamera:
             self.raw = pixel_format == "bayer16"
 
     def grab(self, timeout_s: float = 5.0) -> Frame:
+        if 0 <= self.disconnect_at <= self.sequence:
+            raise DeviceError(f"{self.info.id}: the camera is disconnected (simulated at frame {self.disconnect_at}): "
+                              "reconnect it and resume the capture")
         if self.sequence == self.fail_at:
             raise DeviceError(f"{self.info.id}: simulated sensor failure at frame {self.sequence}")
         if self.delay_s:

@@ -171,9 +171,11 @@ SENSOR_OPTIONS: dict[str, tuple[float, float]] = {"lens_blur": (0.0, 5.0), "read
                                                   "white_fraction": (0.02, 1.0)}
 DEMOSAIC_METHODS = ("malvar", "opencv")
 #: every rig option of the sim device plugin (``sssphase_plugins.sim_plugin``'s docstring says what each does)
+#: The sim devices' fault injection (tests): options that change when a capture fails, not what it captures.
+FAULT_OPTIONS = frozenset({"fail_at_frame", "disconnect_at_frame", "stall_at_frame", "garbage_at_frame", "grab_delay_s"})
 SIM_RIG_OPTIONS = frozenset({"object", "preset", "seed", "n_views", "view", "latency_s", "frame_period_s", "realtime",
                              "projector_gamma", "projector_black", "transport", "demosaic", "raw", "fail_at_frame",
-                             "stall_at_frame", "garbage_at_frame",
+                             "disconnect_at_frame", "stall_at_frame", "garbage_at_frame",
                              "grab_delay_s", "shape", "dtype", *SENSOR_OPTIONS})
 
 

@@ -53,6 +53,37 @@ def test_a_stalled_camera_fails_the_capture_at_its_timeout_and_the_daemon_still_
         shutil.rmtree(runtime, ignore_errors=True)
 
 
+def test_a_camera_unplugged_mid_capture_is_one_line_and_the_capture_resumes_once_it_is_back(tmp_path):
+    """disconnect_at_frame: the sim camera is gone from that frame on (every later grab raises), as an unplugged
+    USB camera. The capture fails naming the camera, keeps its complete view, and a --resume with the camera
+    back (a rig file without the fault) captures only the missing view."""
+    runtime = Path(tempfile.mkdtemp(prefix="ssst", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime), "COLUMNS": "200"}
+    rigs = {}
+    for name, fault in (("unplugged", "disconnect_at_frame = 30\n"), ("back", "")):
+        rigs[name] = tmp_path / f"{name}.toml"
+        rigs[name].write_text('[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\nturntable = "sim:turntable0"\n'
+                              f'[options]\nobject = "star"\nn_views = 2\n{fault}')  # view 0 has 26 frames
+    try:
+        res, _ = _sss("capture", "--rig", str(rigs["unplugged"]), "--object", "star", "--views", "2", "--out",
+                      str(tmp_path / "s"), env=env)
+        out = res.stdout + res.stderr
+        assert res.returncode != 0 and "Traceback" not in out, out
+        assert "sim:camera0: the camera is disconnected" in out and "resume" in out, out
+        from sssphase_core.store.session import Session
+
+        session = Session.open(tmp_path / "s" / "star")
+        assert session.status(0) == "complete" and session.status(1) != "complete"
+        res, _ = _sss("capture", "--rig", str(rigs["back"]), "--object", "star", "--views", "2", "--resume", "--out",
+                      str(tmp_path / "s"), env=env)
+        assert res.returncode == 0, res.stdout + res.stderr
+        session = Session.open(tmp_path / "s" / "star")
+        assert session.validate(expected_views=2) == []
+    finally:
+        _sss("daemon", "stop", env=env)
+        shutil.rmtree(runtime, ignore_errors=True)
+
+
 def test_a_cancel_takes_effect_while_a_device_hangs_and_the_rig_still_closes(monkeypatch):
     runtime = Path(tempfile.mkdtemp(prefix="ssst", dir="/tmp"))
     monkeypatch.setenv("SSS_RUNTIME_DIR", str(runtime))
