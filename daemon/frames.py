@@ -17,6 +17,8 @@ from sssphase_daemon import protocol
 
 SEND_HWM = 8  # frames queued per stream before the sender waits (8 x 12 MB at 1080p 16-bit RGB)
 POLL_MS = 100
+#: How long a connecting peer has to complete its ZeroMQ handshake (CURVE, or PLAIN with the token).
+HANDSHAKE_MS = 5000
 
 
 class ClientGone(Exception):
@@ -36,6 +38,9 @@ def bind(sock: zmq.Socket, endpoint: str, curve: tuple[bytes, bytes] | None) -> 
 
     if is_ipv6(endpoint):
         sock.ipv6 = True
+    # a peer that never completes its handshake is dropped after this (ZeroMQ's default: 30 s), on every
+    # socket the daemon binds: the control socket, each job's frame stream and the preview
+    sock.setsockopt(zmq.HANDSHAKE_IVL, HANDSHAKE_MS)
     sock.bind(endpoint)
     bound = sock.getsockopt_string(zmq.LAST_ENDPOINT)
     if curve is None:

@@ -41,7 +41,6 @@ from sssphase_plugins.drivers import DeviceError, PreloadingProjector, Triggered
 
 log = logging.getLogger("sssphase.daemon")
 MAX_FRAMES_PER_JOB = 200_000
-HANDSHAKE_MS = 5000
 MAX_OPEN_RIGS = 16  # each may hold a simulated scene or a camera: a client cannot open thousands
 MAX_RUNNING_JOBS = 32  # each holds a thread and a stream socket: thousands exhausted ZeroMQ's sockets and threads
 HEAVY_MODULES = ("torch", "depthai", "hid", "usb", "serial")  # a sim-only daemon must load none of these
@@ -277,9 +276,7 @@ class Daemon:
         _raise_fd_limit()
         self.control = self.ctx.socket(zmq.ROUTER)
         self.control.linger = 0
-        # a peer that connects but never completes the ZeroMQ handshake is dropped after this, so idle
-        # unauthenticated connections cannot hold the daemon's file descriptors for long
-        self.control.setsockopt(zmq.HANDSHAKE_IVL, HANDSHAKE_MS)
+        # (bind() drops a peer that does not complete the ZeroMQ handshake within frames.HANDSHAKE_MS)
         self.control.setsockopt(zmq.MAXMSGSIZE, max_message_bytes + 4096)
         self.control.setsockopt(zmq.ROUTER_MANDATORY, 0)
         configure_curve_server(self.control, self.curve)

@@ -1109,3 +1109,34 @@ def test_hostile_structures_and_foreign_path_bytes_are_one_line_within_seconds(t
         out = (res.stdout + res.stderr).decode("utf-8", "backslashreplace")
         assert res.returncode == 2 and expected in out and "Traceback" not in out, (args, out)
         assert len(out.strip().splitlines()) == 1 and time.monotonic() - t0 < 20, (args, out)
+
+
+def test_every_socket_the_daemon_binds_drops_a_peer_that_never_completes_its_handshake(tmp_path):
+    """The control socket dropped silent peers after 5 s; a job's frame stream and the preview kept them for
+    ZeroMQ's default 30 s. A raw TCP peer that never speaks is now closed by each within the handshake time."""
+    import socket
+    import time
+
+    import zmq
+
+    from sssphase_daemon.frames import HANDSHAKE_MS, FrameSender, Preview
+
+    ctx = zmq.Context()
+    sockets = [FrameSender(ctx, "tcp://127.0.0.1:*", plain=True), Preview(ctx, "tcp://127.0.0.1:*", token="t")]
+    try:
+        t0 = time.monotonic()
+        peers = [socket.create_connection(tuple(b.endpoint.removeprefix("tcp://").rsplit(":", 1)),  # type: ignore[arg-type]
+                                          timeout=HANDSHAKE_MS / 1000 + 5) for b in sockets]
+        for bound, peer in zip(sockets, peers, strict=True):  # both wait at once
+            try:
+                while peer.recv(4096):  # ZeroMQ's greeting, then end of stream when the daemon drops us
+                    pass
+            except ConnectionResetError:
+                pass
+            finally:
+                peer.close()
+            assert time.monotonic() - t0 < HANDSHAKE_MS / 1000 + 2, type(bound).__name__
+    finally:
+        for bound in sockets:
+            bound.sock.close(linger=0)
+        ctx.term()
