@@ -15,6 +15,17 @@ decoded ones, smoothed, since only their differences matter):
 
 Exact footprints of the simulator remove the bias of the directional dipole (``sss bench psp``);
 symmetric footprints predict no shift.
+
+That holds for footprints centred on the point where light *enters* (the simulator's exact ones, the
+analytic model's). A model trained on dot-grid crops learns footprints centred where the crops were cut:
+at the camera pixel whose *decoded* point is the dot's, i.e. on the fringe-weighted mean of where the
+dot's light emerges. Such a footprint reproduces the decoded point by construction (relighting it predicts
+no shift, or noise: the correction went the wrong way), and the shift is instead where the light entered
+inside it: for light entering at offset e (camera px) from the crop's centre, the decoded point of the
+centre is the projector point of e, so b = J e with J the decoded map's Jacobian. The entry point is the
+footprint's maximum (the light is densest where it enters; the tail runs the way it travels):
+:func:`entry_shift`. On the simulator's directional dipole with a demo-size decoder this turned the
+correction's sign (hand: bias +0.110 px decoded, +0.130 relit-fringe correction, +0.073 entry-point one).
 """
 
 from __future__ import annotations
@@ -48,6 +59,51 @@ def scattering_shift(source: FootprintSource, proj: Projection, patch: int, peri
     return out[0], out[1]
 
 
+#: How the backends' footprints are centred: on the point where light enters (physical models), or where the
+#: dot-grid crops they were trained on were cut (learned models: on the decoded point).
+ENTRY_CENTRED = frozenset({"exact", "analytic"})
+
+
+def entry_offsets(source: FootprintSource, pixels: np.ndarray, chunk: int = 2048) -> tuple[np.ndarray, np.ndarray]:
+    """Where light enters inside each of ``pixels``' (N, 2) footprints, relative to their centre (camera px):
+    the sub-pixel maximum of the colour-summed footprint (a parabola through it and its neighbours along each
+    axis); NaN where the maximum lies on the footprint's border (not a single-peaked footprint)."""
+    ey, ex = np.full(len(pixels), np.nan), np.full(len(pixels), np.nan)
+    for i in range(0, len(pixels), chunk):
+        fp = np.asarray(_numpy(source(pixels[i:i + chunk])), np.float64).sum(axis=-1)  # (n, K, K)
+        n, k = fp.shape[:2]
+        iy, ix = np.divmod(fp.reshape(n, -1).argmax(axis=1), k)
+        inner = (iy > 0) & (iy < k - 1) & (ix > 0) & (ix < k - 1)
+        r, cy, cx = np.arange(n), np.clip(iy, 1, k - 2), np.clip(ix, 1, k - 2)
+        centre = fp[r, cy, cx]
+        for out, lo, hi, at in ((ex, fp[r, cy, cx - 1], fp[r, cy, cx + 1], cx), (ey, fp[r, cy - 1, cx], fp[r, cy + 1, cx], cy)):
+            curve = lo - 2 * centre + hi
+            step = np.where(curve < 0, 0.5 * (lo - hi) / np.where(curve < 0, curve, -1.0), 0.0)
+            out[i:i + n] = np.where(inner, at - k // 2 + np.clip(step, -0.5, 0.5), np.nan)
+    return ey, ex
+
+
+def _numpy(footprints: object) -> np.ndarray:
+    return footprints.detach().cpu().numpy() if hasattr(footprints, "detach") else np.asarray(footprints)  # type: ignore[attr-defined]
+
+
+def entry_shift(source: FootprintSource, proj: Projection) -> tuple[np.ndarray, np.ndarray]:
+    """Shift (bx, by) (H, W) in projector pixels of the decoded correspondence for footprints centred on the
+    decoded point (a learned model's): the entry point inside each pixel's footprint (:func:`entry_offsets`)
+    through the Jacobian of the decoded map (``proj``, smoothed); NaN off the mask, at its edge (no
+    Jacobian) and where a footprint has no inner maximum."""
+    valid = proj.mask & np.isfinite(proj.xp) & np.isfinite(proj.yp)
+    ys, xs = np.nonzero(valid)
+    ey, ex = entry_offsets(source, np.stack([ys, xs], axis=1))
+    out = []
+    for coord in (proj.xp, proj.yp):
+        dy, dx = np.gradient(np.where(valid, coord, np.nan).astype(np.float64))  # NaN next to the mask's edge
+        shift = np.full(proj.mask.shape, np.nan, np.float32)
+        shift[ys, xs] = dx[ys, xs] * ex + dy[ys, xs] * ey
+        out.append(shift)
+    return out[0], out[1]
+
+
 #: Gaussian sigma (camera px) of the smoothing applied to the points the shift is predicted from: the
 #: shift depends on differences x_p - x_q, and decoding noise in x_q would otherwise pass into it.
 SMOOTH_SIGMA = 2.0
@@ -67,7 +123,7 @@ def smoothed(proj: Projection, sigma: float = SMOOTH_SIGMA) -> Projection:
 
 
 def geometric_correspondence(source: FootprintSource, proj: Projection, patch: int, period: float,
-                             sigma: float = SMOOTH_SIGMA) -> Projection:
+                             sigma: float = SMOOTH_SIGMA, *, centred_on: str = "entry") -> Projection:
     """``proj`` with the scattering shift removed: the projector point that lit each pixel, for
     triangulation (keep ``proj``, the decoded points, for relighting). Pixels whose shift cannot be
     predicted keep their decoded point.
@@ -77,8 +133,15 @@ def geometric_correspondence(source: FootprintSource, proj: Projection, patch: i
     smoothed (``sigma`` camera px, 0: not) so that decoding noise is not amplified. Iterating with
     the corrected points was tried and is unstable: pixels no light reaches keep their decoded
     point, and that step propagates a footprint's reach inward each iteration (a 1.6 px shift grew
-    to 8 px after 6 iterations on a synthetic ramp)."""
-    bx, by = scattering_shift(source, smoothed(proj, sigma) if sigma > 0 else proj, patch, period)
+    to 8 px after 6 iterations on a synthetic ramp).
+
+    ``centred_on``: ``"entry"`` for footprints centred where light enters (:data:`ENTRY_CENTRED` backends:
+    the shift is predicted by relighting the fringes), ``"decoded"`` for a learned model's, centred on the
+    decoded point (the shift is the entry point inside them, :func:`entry_shift`)."""
+    if centred_on not in ("entry", "decoded"):
+        raise ValueError(f"centred_on must be 'entry' or 'decoded', got {centred_on!r}")
+    points = smoothed(proj, sigma) if sigma > 0 else proj
+    bx, by = scattering_shift(source, points, patch, period) if centred_on == "entry" else entry_shift(source, points)
     decoded_x, decoded_y = proj.xp.astype(np.float32), proj.yp.astype(np.float32)
     return replace(proj, xp=np.where(np.isfinite(bx), decoded_x - bx, decoded_x).astype(np.float32),
                    yp=np.where(np.isfinite(by), decoded_y - by, decoded_y).astype(np.float32))

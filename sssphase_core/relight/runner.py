@@ -417,14 +417,15 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
         checkpoint = resolve_checkpoint(checkpoint)
         check_decoder_fits(Path(checkpoint), [backend], [s])
     from sssphase_core.relight.backends import make_source
-    from sssphase_core.relight.geometry import geometric_correspondence
+    from sssphase_core.relight.geometry import ENTRY_CENTRED, geometric_correspondence
 
     done = []
     for v in choose_views(s, views):
         rv = load_view(s, v)
         source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device)
         with say.status(f"{rv.object} view {v}: predicting the scattering shift ({backend})"):
-            geo = geometric_correspondence(source, rv.proj, patch, period)
+            geo = geometric_correspondence(source, rv.proj, patch, period,
+                                           centred_on="entry" if backend in ENTRY_CENTRED else "decoded")
         done.append(_write_geometry(s, rv, geo, out, period))
         say.say(_geometry_line(done[-1]))
     return done
