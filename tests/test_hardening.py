@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import struct
@@ -595,17 +596,13 @@ time.sleep(600)
 """
 
 
-@pytest.mark.slow
-def test_a_peer_that_keeps_reopening_unauthenticated_connections_does_not_starve_good_clients(tmp_path):
-    """Eight threads that keep 800 TCP connections open and reopen them (never speaking ZeroMQ), against a
-    daemon limited to 256 descriptors: 2 of 8 pings of a good client from the same host went unanswered
-    within 2 s. The daemon keeps 16 unproven connections per peer, closing the silent ones first, so every
-    ping is answered."""
+@contextlib.contextmanager
+def _tcp_daemon_with_256_descriptors():
+    """A daemon of its own on a loopback TCP port, limited to 256 file descriptors: yields its state."""
     import resource
     import time
 
     from sssphase_daemon import security
-    from sssphase_daemon.client import DaemonClient
 
     def limit() -> None:
         resource.setrlimit(resource.RLIMIT_NOFILE, (256, 256))
@@ -614,71 +611,69 @@ def test_a_peer_that_keeps_reopening_unauthenticated_connections_does_not_starve
     env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
     proc = subprocess.Popen([sys.executable, "-m", "sssphase_daemon", "--endpoint", "tcp://127.0.0.1:*"], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=limit)
-    attacker = None
     try:
         deadline = time.monotonic() + 30
         while (state := security.read_state(runtime / "daemon.json")) is None:
             assert time.monotonic() < deadline and proc.poll() is None
             time.sleep(0.05)
-        host, port = state.endpoint.removeprefix("tcp://").rsplit(":", 1)
-        attacker = subprocess.Popen([sys.executable, "-c", _REOPENING_ATTACKER, host, port])
-        time.sleep(2)  # the descriptors are taken
-        answered = []
-        for _ in range(8):
-            with DaemonClient(state.endpoint, state.token, timeout_s=2) as client:
-                answered.append(client.ping(timeout_s=2))
-        assert attacker.poll() is None, "the attack stopped before the pings"
-        assert answered == [True] * 8 and proc.poll() is None
+        yield state
+        assert proc.poll() is None, "the daemon died"
     finally:
-        if attacker is not None:
-            attacker.kill()
-            attacker.wait(10)
         proc.terminate()
         proc.wait(20)
         shutil.rmtree(runtime, ignore_errors=True)
 
 
-def test_idle_unauthenticated_connections_do_not_lock_out_good_clients(tmp_path):
-    """300 TCP connections that never speak ZeroMQ, against a daemon limited to 256 descriptors."""
-    import resource
-    import socket
+@pytest.mark.slow
+def test_a_peer_that_keeps_reopening_unauthenticated_connections_does_not_starve_good_clients():
+    """Eight threads that keep 800 TCP connections open and reopen them (never speaking ZeroMQ), against a
+    daemon limited to 256 descriptors: the first pings of a good client from the same host went unanswered
+    within 2 s. The daemon keeps 16 unproven connections per peer, closing the silent ones first, so every
+    ping is answered."""
     import time
 
-    from sssphase_daemon import security
     from sssphase_daemon.client import DaemonClient
 
-    def limit() -> None:
-        resource.setrlimit(resource.RLIMIT_NOFILE, (256, 256))
-
-    runtime = Path(tempfile.mkdtemp(prefix="sssi", dir="/tmp"))
-    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
-    proc = subprocess.Popen([sys.executable, "-m", "sssphase_daemon", "--endpoint", "tcp://127.0.0.1:*"], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, preexec_fn=limit)
-    idle: list[socket.socket] = []
-    try:
-        deadline = time.monotonic() + 30
-        while (state := security.read_state(runtime / "daemon.json")) is None:
-            assert time.monotonic() < deadline and proc.poll() is None
-            time.sleep(0.05)
+    with _tcp_daemon_with_256_descriptors() as state:
         host, port = state.endpoint.removeprefix("tcp://").rsplit(":", 1)
-        for _ in range(300):
-            s = socket.socket()
-            s.settimeout(2)
-            try:
-                s.connect((host, int(port)))
-            except OSError:
+        attacker = subprocess.Popen([sys.executable, "-c", _REOPENING_ATTACKER, host, port])
+        try:
+            time.sleep(2)  # the descriptors are taken
+            answered = []
+            for _ in range(8):
+                with DaemonClient(state.endpoint, state.token, timeout_s=2) as client:
+                    answered.append(client.ping(timeout_s=2))
+            assert attacker.poll() is None, "the attack stopped before the pings"
+            assert answered == [True] * 8
+        finally:
+            attacker.kill()
+            attacker.wait(10)
+
+
+def test_idle_unauthenticated_connections_do_not_lock_out_good_clients():
+    """300 TCP connections that never speak ZeroMQ, against a daemon limited to 256 descriptors."""
+    import socket
+
+    from sssphase_daemon.client import DaemonClient
+
+    with _tcp_daemon_with_256_descriptors() as state:
+        host, port = state.endpoint.removeprefix("tcp://").rsplit(":", 1)
+        idle: list[socket.socket] = []
+        try:
+            for _ in range(300):
+                s = socket.socket()
+                s.settimeout(2)
+                try:
+                    s.connect((host, int(port)))
+                except OSError:
+                    s.close()
+                    continue
+                idle.append(s)
+            with DaemonClient(state.endpoint, state.token, timeout_s=20) as client:
+                assert client.ping(timeout_s=20)
+        finally:
+            for s in idle:
                 s.close()
-                continue
-            idle.append(s)
-        with DaemonClient(state.endpoint, state.token, timeout_s=20) as client:
-            assert client.ping(timeout_s=20)
-        assert proc.poll() is None
-    finally:
-        for s in idle:
-            s.close()
-        proc.terminate()
-        proc.wait(20)
-        shutil.rmtree(runtime, ignore_errors=True)
 
 
 def test_devices_a_process_cannot_use_are_refused_by_name():
