@@ -212,6 +212,23 @@ def bench_store(
     console.print(f"wrote {out} and {out.with_suffix('.md')}")
 
 
+def bench_geometry(
+    sessions: Annotated[list[Path], typer.Argument(help="Simulated sessions (e.g. `sss capture --transport directional_dipole`).")],
+    out: Annotated[Path, typer.Option("--out", help="JSON output (.md written next to it).")] = Path("bench_geometry.json"),
+    backends: Annotated[str, typer.Option(help="Comma-separated backends (torch needs --checkpoint).")] = "exact,analytic",
+    checkpoint: CheckpointOpt = None,
+) -> None:
+    """Correspondences for geometry (`sss geometry`) per backend against the simulator's exact points."""
+    from sssphase_core.bench import geometry_bench
+    from sssphase_core.store.session import find_sessions
+
+    with console.status("scoring correspondences for geometry") as st:
+        geometry_bench.run(find_sessions(sessions), out, tuple(b.strip() for b in backends.split(",") if b.strip()),
+                           checkpoint, progress=lambda m: st.update(m))
+    console.print(out.with_suffix(".md").read_text())
+    console.print(f"wrote {out} and {out.with_suffix('.md')}")
+
+
 def bench_stability(
     out: Annotated[Path, typer.Option("--out", help="JSON output (.md written next to it).")] = Path("bench_stability.json"),
     cases: Annotated[str, typer.Option(help="Comma-separated cases (default: all).")] = "",
@@ -290,5 +307,6 @@ def register(groups: dict[str, typer.Typer]) -> None:
     groups["bench"].command("relight")(bench_relight)
     groups["bench"].command("stability")(bench_stability)
     groups["bench"].command("store")(bench_store)
+    groups["bench"].command("geometry")(bench_geometry)
     groups["bench"].command("gap")(bench_gap)
     groups["root"].command("report")(report)

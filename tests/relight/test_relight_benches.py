@@ -43,3 +43,32 @@ def test_saturated_fringes_are_repaired_before_a_model_sees_them():
     err_fixed = np.abs(fixed[:, keep] - ok.psp[:, keep]).mean()
     assert err_fixed < 0.25 * err_raw
     np.testing.assert_allclose(np.median(2 * fixed.mean(0)[keep] / sv.white[keep]), 1.0, atol=0.03)
+
+
+def test_bench_geometry_scores_a_backend_against_the_exact_points(sim_daemon, tmp_path):
+    """`sss bench geometry` on a simulated session: a backend's row, the exact footprints bringing the
+    decoded points closer to the exact ones; a session without exact points (captured) is refused."""
+    import pytest
+
+    from sssphase_core.bench import geometry_bench
+    from sssphase_core.capture import CaptureRequest, run_capture
+    from sssphase_core.errors import InputError
+
+    s = run_capture(sim_daemon, CaptureRequest("star", views=1, out=tmp_path / "s"))
+    result = geometry_bench.run([s], tmp_path / "geo.json", ("exact",))  # (analytic: 33 s on this star)
+    rows = {r["backend"]: r for r in result["rows"]}
+    assert set(rows) == {"exact"} and rows["exact"]["transport"] == "burley" and rows["exact"]["seconds"] > 0
+    assert rows["exact"]["corrected_px"] < rows["exact"]["decoded_px"]
+    assert json.loads((tmp_path / "geo.json").read_text())["rows"] == result["rows"]
+    assert "| star | burley | exact |" in (tmp_path / "geo.md").read_text()
+    gt = next((s.path / "view_000").glob("gt"))
+    import shutil
+
+    shutil.rmtree(gt)  # as a captured session: no exact points
+    manifest = json.loads((s.path / "manifest.json").read_text())
+    manifest["views"]["0"]["arrays"] = {k: v for k, v in manifest["views"]["0"]["arrays"].items() if not k.startswith("gt/")}
+    (s.path / "manifest.json").write_text(json.dumps(manifest))
+    from sssphase_core.store.session import Session
+
+    with pytest.raises(InputError, match="no exact points"):
+        geometry_bench.run([Session.open(s.path)], tmp_path / "geo2.json", ("exact",))
