@@ -29,8 +29,11 @@ if TYPE_CHECKING:
 N_SHIFTS = 4
 _MEAN_INV_R = 4 * np.log(1 + np.sqrt(2))  # mean of 1/r over a unit square centred on the pole
 _U = np.logspace(-8, 8, 4000)
-#: Bytes of one supersampled radius grid per render step (the profile makes a few such temporaries).
+#: Bytes of a render step's temporaries (a few (n, 3, K, K) float64 grids).
 RENDER_STEP_BYTES = 128 * 2**20
+#: Pixels whose centre lies within this many pixel diagonals of the profile's pole (in width-scaled units)
+#: are integrated by supersampling; the others take their centre's value (:meth:`AnalyticBackend.render`).
+NEAR_PIXELS = 3.0
 _MTF = {
     "burley": lambda u: 0.25 * (1 / np.sqrt(1 + u) + 3 / np.sqrt(1 + 9 * u)),
     "exponential": lambda u: (1 + u) ** -1.5,
@@ -90,22 +93,32 @@ class AnalyticBackend:
         return np.sqrt(np.clip(d2, 1e-4, (self.patch / 2) ** 2))
 
     def render(self, energy: np.ndarray, widths: np.ndarray) -> np.ndarray:
-        """(N, K, K, 3) footprints: the profile stretched by ``widths``, pixel-integrated, summing to ``energy``."""
+        """(N, K, K, 3) footprints: the profile stretched by ``widths``, pixel-integrated, summing to ``energy``.
+
+        A pixel's integral is its ``supersample``^2 sub-pixel samples' sum where the profile changes across it
+        (within :data:`NEAR_PIXELS` pixel diagonals of the pole, in width-scaled units: the core, and the
+        whole thin line of a strongly anisotropic footprint), and its centre's value elsewhere, where the
+        profile is smooth over the pixel: 6.0x faster than supersampling every pixel (2.3 s -> 0.38 s for
+        2,000 footprints of 0.5-4 px at K = 32; 23 of the 32 s of `sss geometry --backend analytic` on the
+        sim star were spent here), changing footprints by 0.2% of their energy (L1, median; 0.3% at most)."""
         k, s = self.patch, self.supersample
+        ax = (np.arange(k) - k // 2).astype(np.float64)
         sub = (np.arange(s) + 0.5) / s - 0.5
-        ax = (np.arange(k) - k // 2)[:, None] + sub[None, :]  # (K, s)
         out = np.empty((len(energy), k, k, 3), np.float32)
-        # the supersampled radius grid is (n, 3, K s, K s) float64 and the profile makes a few of them:
-        # fewer footprints per step at large K (K = 90, s = 4: 43, not 256, so a step stays ~0.1 GB each)
-        step = max(1, min(self.chunk, RENDER_STEP_BYTES // (3 * (k * s) ** 2 * 8)))
+        step = max(1, min(self.chunk, RENDER_STEP_BYTES // (3 * k * k * 8 * 4)))  # (n, 3, K, K) float64 temporaries
         for i in range(0, len(energy), step):
-            dx = widths[i : i + step, :, 0][:, :, None, None, None, None]
-            dy = widths[i : i + step, :, 1][:, :, None, None, None, None]
-            r = np.hypot(ax[None, None, :, :, None, None] / dy, ax[None, None, None, None, :, :] / dx)
+            w = widths[i : i + step]
+            dx, dy = w[:, :, 0][:, :, None, None], w[:, :, 1][:, :, None, None]
+            rho = np.hypot(ax[None, None, :, None] / dy, ax[None, None, None, :] / dx)  # (n, 3, K, K) at pixel centres
+            near = rho < NEAR_PIXELS * np.hypot(1 / dx, 1 / dy)
+            prof = _PROFILE[self.profile](np.maximum(rho, 1e-300)) * (s * s)  # (the pole is always near)
+            idx = np.nonzero(near)
+            dxs, dys = w[idx[0], idx[1], 0][:, None, None], w[idx[0], idx[1], 1][:, None, None]
+            r = np.hypot((ax[idx[2]][:, None, None] + sub[None, :, None]) / dys, (ax[idx[3]][:, None, None] + sub[None, None, :]) / dxs)
             # An odd supersample puts a sample on the 1/r pole: give it the square's mean 1/r instead,
             # (1/a) * 4 ln(1 + sqrt 2) for a sub-pixel of side a = 1/s (in width-scaled units).
-            r = np.maximum(r, 1.0 / (s * _MEAN_INV_R * np.sqrt(dx * dy)))
-            prof = _PROFILE[self.profile](r).sum(axis=(3, 5))  # (n, 3, K, K)
+            r = np.maximum(r, 1.0 / (s * _MEAN_INV_R * np.sqrt(dxs * dys)))
+            prof[idx] = _PROFILE[self.profile](r).sum(axis=(1, 2))
             prof /= prof.sum(axis=(2, 3), keepdims=True)
             out[i : i + step] = (prof * energy[i : i + step, :, None, None]).transpose(0, 2, 3, 1)
         return out
