@@ -71,10 +71,10 @@ def available_memory() -> int | None:
 
 
 def _address_space_used() -> int:
+    import os
+
     try:
         with open("/proc/self/statm") as f:
-            import os
-
             return int(f.read().split()[0]) * os.sysconf("SC_PAGE_SIZE")
     except (OSError, ValueError):
         return 0

@@ -5,9 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import torch
 
-from sssphase_core.relight.engine import FootprintSource
+from sssphase_core.relight.engine import FootprintSource, footprint_array
 
 
 class FootprintCache:
@@ -66,8 +65,7 @@ class FootprintCache:
         out[~miss] = self.data[pos[~miss]]
         if miss.any():
             fp = self.source(pixels[miss])
-            fp = fp.float().cpu().numpy() if torch.is_tensor(fp) else np.asarray(fp, np.float32)
-            fp = fp.astype(np.float16)  # as the cache holds them: a relight is the same whether its footprints
+            fp = footprint_array(fp).astype(np.float16)  # as the cache holds them: a relight is the same whether its footprints
             out[miss] = fp  # were computed now or read back (sss view's next pattern = sss relight's)
             keep = min(len(fp), self.max_rows - self.size)
             self.uncached += len(fp) - keep

@@ -12,7 +12,7 @@ import torch
 
 from sssphase_core.errors import InputError
 from sssphase_core.processing.isp import SATURATION_MARGIN
-from sssphase_core.relight.engine import FootprintSource, relight
+from sssphase_core.relight.engine import FootprintSource, footprint_array, relight
 from sssphase_core.relight.sources import WHITE_FLOOR, no_scattering_source
 from sssphase_core.relight.views import RelightView
 
@@ -188,7 +188,7 @@ def mixed_with_no_scattering(source: FootprintSource, mix: np.ndarray, white: np
 
     def mixed(pixels: np.ndarray) -> np.ndarray:
         out = source(pixels)
-        out = out.float().cpu().numpy() if torch.is_tensor(out) else np.array(out, np.float32)
+        out = footprint_array(out, writable=True)
         c = out.shape[1] // 2
         out *= weight
         out[:, c, c] += (1 - weight) * np.nan_to_num(img[pixels[:, 0], pixels[:, 1]])
@@ -236,7 +236,7 @@ def energy_from_white(source: FootprintSource, where: np.ndarray, white: np.ndar
         pick = where[pixels[:, 0], pixels[:, 1]]
         if not pick.any():
             return out
-        out = out.float().cpu().numpy() if torch.is_tensor(out) else np.array(out, np.float32)
+        out = footprint_array(out, writable=True)
         energy = out[pick].sum(axis=(1, 2))  # (n, 3)
         target = img[pixels[pick, 0], pixels[pick, 1]]
         gain = np.where(energy > WHITE_FLOOR, target / np.maximum(energy, WHITE_FLOOR), 1.0)

@@ -20,6 +20,14 @@ from sssphase_core.processing.projector import emitted_light, sample_projector
 FootprintSource = Callable[[np.ndarray], "np.ndarray | torch.Tensor"]
 
 
+def footprint_array(footprints: np.ndarray | torch.Tensor, *, writable: bool = False) -> np.ndarray:
+    """A source's (N, K, K, 3) footprints as float32 NumPy (a model's tensor, on any device, moved to the CPU);
+    ``writable``: an array the caller may change in place (a source may hand out an array it keeps)."""
+    if torch.is_tensor(footprints):
+        return footprints.float().cpu().numpy()
+    return np.array(footprints, np.float32) if writable else np.asarray(footprints, np.float32)
+
+
 @runtime_checkable
 class TransportColumns(Protocol):
     """A source that lights its own columns of the light transport, one crop per projector dot (the

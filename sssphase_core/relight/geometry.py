@@ -34,7 +34,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from sssphase_core.relight.engine import FootprintSource, Projection, relight
+from sssphase_core.relight.engine import FootprintSource, Projection, footprint_array, relight
 
 
 def scattering_shift(source: FootprintSource, proj: Projection, patch: int, period: float) -> tuple[np.ndarray, np.ndarray]:
@@ -70,7 +70,7 @@ def entry_offsets(source: FootprintSource, pixels: np.ndarray, chunk: int = 2048
     axis); NaN where the maximum lies on the footprint's border (not a single-peaked footprint)."""
     ey, ex = np.full(len(pixels), np.nan), np.full(len(pixels), np.nan)
     for i in range(0, len(pixels), chunk):
-        fp = np.asarray(_numpy(source(pixels[i:i + chunk])), np.float64).sum(axis=-1)  # (n, K, K)
+        fp = footprint_array(source(pixels[i:i + chunk])).sum(axis=-1, dtype=np.float64)  # (n, K, K)
         n, k = fp.shape[:2]
         iy, ix = np.divmod(fp.reshape(n, -1).argmax(axis=1), k)
         inner = (iy > 0) & (iy < k - 1) & (ix > 0) & (ix < k - 1)
@@ -81,10 +81,6 @@ def entry_offsets(source: FootprintSource, pixels: np.ndarray, chunk: int = 2048
             step = np.where(curve < 0, 0.5 * (lo - hi) / np.where(curve < 0, curve, -1.0), 0.0)
             out[i:i + n] = np.where(inner, at - k // 2 + np.clip(step, -0.5, 0.5), np.nan)
     return ey, ex
-
-
-def _numpy(footprints: object) -> np.ndarray:
-    return footprints.detach().cpu().numpy() if hasattr(footprints, "detach") else np.asarray(footprints)  # type: ignore[attr-defined]
 
 
 def entry_shift(source: FootprintSource, proj: Projection) -> tuple[np.ndarray, np.ndarray]:

@@ -120,7 +120,6 @@ def read_input_text(path: Path | str, what: str, max_bytes: int = 1 << 24) -> st
         raise InputError(f"{what} {path} is not UTF-8 text (byte {exc.start})") from None
 
 
-
 #: How deep a configuration, manifest or plan may nest (tables in tables, lists in lists): the project's own
 #: files nest 5 deep; deeper input is hostile or broken, and code that walks it must not recurse without end.
 MAX_NESTING = 32
@@ -168,8 +167,8 @@ def read_json_input(path: Path | str, what: str, max_bytes: int = 1 << 24) -> ob
 
 
 def read_toml_input(path: Path | str, what: str, max_bytes: int = 1 << 20) -> dict:
-    """A TOML input file (a rig file, a run configuration) parsed like :func:`read_json_input`; dotted keys of
-    more than :data:`MAX_NESTING` parts are refused before parsing (the parser is quadratic in them)."""
+    """A TOML input file (a rig file, a run configuration) parsed like :func:`read_json_input`; a dotted key of
+    more than :data:`MAX_DOTS` parts is refused before parsing (the parser is quadratic in them)."""
     import tomllib
 
     from sssphase_core.errors import InputError
