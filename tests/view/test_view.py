@@ -136,9 +136,16 @@ def test_live_frames_arrive_and_follow_the_exposure_and_the_pattern(page, tmp_pa
     # zoom in, and a click on the frame reads that pixel's value from the frame itself
     _set(page, "zoom", "2")
     assert page.evaluate("document.getElementById('live-image').getBoundingClientRect().width") == 512
-    page.evaluate("state.liveProbe = null; (() => { const img = document.getElementById('live-image'); "
-                  "const r = img.getBoundingClientRect(); img.dispatchEvent(new MouseEvent('click', "
-                  "{clientX: r.left + 0.5 * r.width, clientY: r.top + 0.5 * r.height})); })()")
+    # click while the next frame is still loading (the image's naturalWidth reads 0 then): the page maps the click
+    # with the size of the frame it shows
+    loading = page.evaluate("state.liveProbe = null; (async () => { const img = document.getElementById('live-image'); "
+                            "const r = img.getBoundingClientRect(); img.onload = null; "
+                            "const again = await (await fetch(img.src)).blob(); "
+                            "img.src = URL.createObjectURL(again); await Promise.resolve(); const natural = img.naturalWidth; "
+                            "img.dispatchEvent(new MouseEvent('click', "
+                            "{clientX: r.left + 0.5 * r.width, clientY: r.top + 0.5 * r.height})); "
+                            "const q = img.getBoundingClientRect(); return [natural, q.width, q.height]; })()")
+    assert loading[0] == 0, loading
     probe = page.wait_for("state.liveProbe", 30)
     assert abs(probe["pixel"][0] - 128) <= 1 and abs(probe["pixel"][1] - 96) <= 1
     assert len(probe["linear"]) == 3 and probe["sensor"] == probe["linear"]  # at exposure 1

@@ -103,17 +103,23 @@ function connectLive() {
 
 for (const id of ["pattern", "exposure", "gain", "psp-frame", "decode"]) $(id).onchange = sendSettings;
 
+// The size of the frame on the page, (height, width): naturalWidth/Height read 0 while the next frame loads.
+function shownSize() {
+  const img = $("live-image");
+  return state.shown ? state.shown.shape.slice(0, 2) : [img.naturalHeight, img.naturalWidth];
+}
+
 $("zoom").onchange = () => {
   const zoom = Number($("zoom").value), img = $("live-image");
-  const width = state.shown ? state.shown.shape[1] : img.naturalWidth;  // (naturalWidth is 0 while a frame loads)
-  img.style.width = zoom ? `${width * zoom}px` : "";
+  img.style.width = zoom ? `${shownSize()[1] * zoom}px` : "";
   img.style.maxWidth = zoom ? "none" : "";
 };
 
 $("live-image").onclick = async (event) => {
-  const img = $("live-image"), rect = img.getBoundingClientRect();
-  const x = Math.floor((event.clientX - rect.left) * img.naturalWidth / rect.width);
-  const y = Math.floor((event.clientY - rect.top) * img.naturalHeight / rect.height);
+  const rect = $("live-image").getBoundingClientRect(), [height, width] = shownSize();
+  if (!width || !rect.width) return;  // no frame yet
+  const x = Math.floor((event.clientX - rect.left) * width / rect.width);
+  const y = Math.floor((event.clientY - rect.top) * height / rect.height);
   try {
     const p = await (await api(`/api/live/pixel?x=${x}&y=${y}`)).json();
     $("live-probe").textContent = `(${x}, ${y}) linear ${p.linear.map((v) => v.toFixed(4)).join(" / ")}, on the sensor `
