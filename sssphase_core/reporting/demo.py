@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from sssphase_core.errors import InputError, SssError
+from sssphase_core.errors import DataError, InputError, SssError
 from sssphase_core.store.files import write_text
 from sssphase_core.store.session import DamagedArray
 
@@ -258,12 +258,20 @@ class Demo:
         if len(self.cfg.train_objects) < 2:
             raise NotAvailable("the kNN table needs training sessions of at least two objects")
         from sssphase_core.learning.evaluation import knn_of_views
-        from sssphase_core.learning.training import load_encoder
+        from sssphase_core.learning.training import initial_encoder, load_encoder
 
         vds = self.train_views(footprints=False)
         k = min(20, sum(len(v.pixels) for v in vds) // 4 or 1)
-        return knn_of_views(load_encoder(self.results["pretrain"]["checkpoint"]), vds, list(self.cfg.train_objects),
-                            ks=(k,))[k]
+        checkpoint, objects = self.results["pretrain"]["checkpoint"], list(self.cfg.train_objects)
+        result = knn_of_views(load_encoder(checkpoint), vds, objects, ks=(k,))[k]
+        # the baseline measured in the same run: the encoder pretraining started from (its random initialisation;
+        # unknown for an encoder taken from a decoder run)
+        try:
+            start = knn_of_views(initial_encoder(checkpoint), vds, objects, ks=(k,))[k]
+        except DataError:
+            return result
+        result["initial"] = {"overall": start["overall"], "per_class": start["per_class"]}
+        return result
 
     def pca(self) -> dict[str, Any]:
         self._need("pretrain", "test_sessions")

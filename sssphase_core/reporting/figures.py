@@ -211,9 +211,11 @@ def plot_profiles(gt: np.ndarray, pred: np.ndarray, path: Path | str, *, title: 
 
 def plot_metric_vs_time(metrics_path: Path | str, keys: str | Sequence[str], out: Path | str, *, log: bool = True,
                         ylabel: str | None = None, right: Sequence[str] = (), right_label: str = "",
-                        chance: float | None = None, title: str | None = None) -> None:
+                        chance: float | None = None, title: str | None = None,
+                        reference: tuple[str, float] | None = None) -> None:
     """Error against run time: each of ``keys`` (and ``right`` on a second axis) of the metrics.jsonl rows
-    against their cumulative ``wall_s``, with a legend; ``chance`` draws the chance level."""
+    against their cumulative ``wall_s``, with a legend; ``chance`` draws the chance level, ``reference``
+    (label, value) a baseline measured in the same run."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -233,6 +235,8 @@ def plot_metric_vs_time(metrics_path: Path | str, keys: str | Sequence[str], out
         lines += ax.plot([r["wall_s"] for r in rs], [r[key] for r in rs], "o-", label=key)
     if chance is not None:
         lines.append(ax.axhline(chance, color="grey", ls="--", label=f"chance ({chance:.3g})"))
+    if reference is not None:
+        lines.append(ax.axhline(reference[1], color="tab:green", ls=":", label=f"{reference[0]} ({reference[1]:.3g})"))
     ax.set(xlabel="run time (s)", ylabel=ylabel or ", ".join(keys), title=title or f"{', '.join(keys)} against run time")
     if log and all(r[k] > 0 for k in keys for r in rows if k in r):
         ax.set_yscale("log")

@@ -171,13 +171,22 @@ def _knn_trail(out: Path, result: TrainResult, n_objects: int, report: Report) -
     rows = [r for r in result.rows if "knn_acc" in r]
     if not rows:
         return
+    initial = rows[0].get("knn_initial")
     plot = out / "knn_vs_time.png"
     plot_metric_vs_time(out / METRICS, "knn_acc", plot, log=False, chance=1 / n_objects,
                         ylabel="kNN accuracy (fraction, training patches)",
-                        title=f"kNN monitor against run time ({n_objects} objects)")
+                        title=f"kNN monitor against run time ({n_objects} objects)",
+                        reference=None if initial is None else ("initial encoder", initial))
     result.figures.append(plot)
     trail = ", ".join(f"{100 * r['knn_acc']:.1f}" for r in rows)
-    report.say(f"kNN monitor (% per epoch, training patches): {trail}; plot {plot}")
+    start = "" if initial is None else f"initial encoder {100 * initial:.1f} -> "
+    report.say(f"kNN monitor (% per epoch, training patches): {start}{trail}; plot {plot}")
+    best = max(r["knn_acc"] for r in rows)
+    if initial is not None and best < initial:
+        report.say(f"{report.style('warning:', 'warning')} pretraining never raised the kNN monitor above the encoder's "
+                   f"random initialisation ({100 * best:.1f}% at best against {100 * initial:.1f}%): its features "
+                   "separate the objects less than random ones; train longer or on more patches (--epochs, "
+                   "--pixels-per-view), or lower --lr")
 
 
 def _check_decoder_options(opts: DecoderOptions) -> int:

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 import torch
 
+from sssphase_core.errors import DataError
 from sssphase_core.learning.models import get_preset
 from sssphase_core.learning.training import (
     CHECKPOINT,
@@ -17,6 +18,7 @@ from sssphase_core.learning.training import (
     PretrainConfig,
     TrainingCollapsed,
     effective_rank,
+    initial_encoder,
     load_checkpoint,
     load_decoder,
     pretrain,
@@ -146,6 +148,32 @@ def test_knn_monitor_is_logged_every_epoch_and_measures_the_right_patches(pretra
     assert knn_monitor_indices(one_object, 100, seed=0) is None  # a one-class vote is always right (it read 100%)
 
 
+def test_knn_monitor_starts_from_the_initial_encoder_measured_in_the_same_run(pretrained, dataset, tiny, tmp_path):
+    """The baseline every epoch is compared with: the monitor on the encoder before any step (its random
+    initialisation, seeded by the run), in the first epoch's row and the checkpoint, kept across a resume."""
+    from sssphase_core.learning.models.simsiam import SimSiam
+    from sssphase_core.learning.training import knn_monitor, knn_monitor_indices
+
+    rows = [json.loads(line) for line in (pretrained / METRICS).read_text().splitlines()]
+    torch.manual_seed(PRE.seed)
+    fresh = SimSiam(tiny).encoder
+    idx = knn_monitor_indices(dataset, PRE.knn_monitor, PRE.seed)
+    want = knn_monitor(fresh, dataset, idx, PRE.knn_k, torch.device("cpu"))
+    assert rows[0]["knn_initial"] == want and load_checkpoint(pretrained)["knn_initial"] == want
+    # rebuilt from the checkpoint alone (the demo's and `sss report`'s kNN baseline), leaving torch's RNG alone
+    state = torch.random.get_rng_state()
+    assert knn_monitor(initial_encoder(pretrained / CHECKPOINT), dataset, idx, PRE.knn_k, torch.device("cpu")) == want
+    assert torch.equal(torch.random.get_rng_state(), state)
+    assert rows[0]["knn_acc"] != want or rows[1]["knn_acc"] != want  # the monitor itself measures the trained encoder
+    # interrupted in its first epoch and resumed: the initial figure is the one measured before the first step
+    run = tmp_path / "run"
+    with pytest.raises(KeyboardInterrupt):
+        pretrain(PRE, dataset, run, preset=tiny, progress=interrupt_after(4))
+    assert load_checkpoint(run)["loop"]["epoch"] == 0 and load_checkpoint(run)["loop"]["step_in_epoch"] > 0
+    pretrain(PRE, dataset, run, preset=tiny, progress=False)
+    assert json.loads((run / METRICS).read_text().splitlines()[0])["knn_initial"] == want
+
+
 def test_predictor_keeps_the_base_lr_by_default_while_the_rest_decays(pretrained):
     backbone, predictor = load_checkpoint(pretrained)["optimizer"]["param_groups"]
     assert PRE.fix_pred_lr and predictor["fix"] and not backbone["fix"]
@@ -188,6 +216,8 @@ def test_decoder_training_keeps_the_encoder_frozen(pretrained, dataset, tmp_path
     train_decoder(cfg, pretrained, dataset, tmp_path / "dec", val=dataset, progress=False)
     ckpt = load_checkpoint(tmp_path / "dec")
     assert ckpt["kind"] == "decoder" and ckpt["preset"]["name"] == "tiny"
+    with pytest.raises(DataError, match="not a pretraining checkpoint"):  # whose initial encoder is not its own
+        initial_encoder(tmp_path / "dec" / CHECKPOINT)
     # BN running statistics (and every other encoder tensor) unchanged
     assert states_equal(src["encoder"], ckpt["encoder"])
     assert any(k.endswith("running_var") for k in ckpt["encoder"])
@@ -211,7 +241,6 @@ def test_a_decoder_is_not_resumed_on_an_encoder_that_changed_since(pretrained, d
     between the decoder's epochs, without a word."""
     import shutil
 
-    from sssphase_core.errors import DataError
     from sssphase_core.learning.training.checkpoints import save_checkpoint
 
     shutil.copytree(pretrained, tmp_path / "pre")

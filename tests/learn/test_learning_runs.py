@@ -163,8 +163,12 @@ def test_run_pretrain_checks_the_config_before_the_data_and_saves_it_before_trai
     assert said.lines[1].startswith("<note>note:</note> --warmup-epochs 1 is not shorter than --epochs 1")
     assert said.lines[2] == (f"pretraining <strong>lite</strong> on 32 patches of one, three -> {out} "
                              f"(options in {out / 'options.toml'})")
-    assert said.lines[-2] == f"kNN monitor (% per epoch, training patches): {100 * result.rows[0]['knn_acc']:.1f}; " \
-                             f"plot {out / 'knn_vs_time.png'}"
+    first = result.rows[0]
+    trail = next(line for line in said.lines if line.startswith("kNN monitor"))
+    assert trail == (f"kNN monitor (% per epoch, training patches): initial encoder {100 * first['knn_initial']:.1f} -> "
+                     f"{100 * first['knn_acc']:.1f}; plot {out / 'knn_vs_time.png'}")
+    below = [line for line in said.lines if "never raised the kNN monitor above" in line]
+    assert len(below) == (first["knn_acc"] < first["knn_initial"])  # said exactly when training lost to the start
     assert said.lines[-1] == f"<done>done</done>: {out / 'last.pt'}"
 
 

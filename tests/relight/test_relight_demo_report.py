@@ -1,5 +1,6 @@
 """`sss demo --preset tiny` end to end, resumed, and its report rendered in headless Chromium."""
 
+import json
 import re
 import shutil
 import subprocess
@@ -36,6 +37,9 @@ def test_demo_runs_every_step_and_resumes(demo):
         assert any(line.startswith(f"[{step}] done") for line in lines), (step, lines)
     page = report.read_text()
     assert "not available" not in page
+    knn = json.loads((out / "steps" / "knn.json").read_text())  # beside the pretrained encoder's, the one it started from
+    assert 0 <= knn["initial"]["overall"] <= 1 and knn["initial"]["per_class"].keys() == knn["per_class"].keys()
+    assert "initial encoder (%)" in page
     for backend in ("none", "torch", "exact"):
         assert f"sand_rake_v0_checkerboard_{backend}_compare.png" in page
     again: list[str] = []

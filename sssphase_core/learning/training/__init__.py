@@ -50,6 +50,7 @@ from sssphase_core.learning.training.loop import (
 from sssphase_core.learning.training.pretrain import (
     PretrainConfig,
     effective_rank,
+    initial_encoder,
     knn_monitor,
     knn_monitor_indices,
     pretrain,
@@ -60,7 +61,7 @@ from sssphase_core.learning.training.pretrain import (
 __all__ = [
     "BEST", "CHECKPOINT", "METRICS", "METRICS_CSV", "PRIOR_SAMPLES", "TB_DIR", "DecoderConfig", "Dist", "FootprintNet",
     "Loop", "LoopConfig", "PretrainConfig", "StepProgress", "TrainingCollapsed", "TrainingDiverged",
-    "check_run_folder", "decoder_patch", "effective_rank", "init_distributed", "knn_monitor", "knn_monitor_indices", "load_checkpoint", "load_decoder",
+    "check_run_folder", "decoder_patch", "effective_rank", "init_distributed", "initial_encoder", "knn_monitor", "knn_monitor_indices", "load_checkpoint", "load_decoder",
     "load_encoder", "pretrain", "projection_std", "resolve_checkpoint", "save_checkpoint", "train_decoder",
     "validate_decoder", "warmup_cosine",
 ]

@@ -124,6 +124,21 @@ def knn_monitor(encoder: Encoder, dataset: PatchDataset, idx: np.ndarray, k: int
     return res["overall"]
 
 
+def initial_encoder(path: Path | str) -> Encoder:
+    """The encoder a pretraining checkpoint's run started from (eval mode): its seeded random initialisation,
+    rebuilt as :func:`pretrain` builds it (the baseline its kNN is compared with). Torch's global RNG is left
+    as it was."""
+    from sssphase_core.learning.training.checkpoints import load_checkpoint
+
+    ckpt = load_checkpoint(path, mmap=True)
+    if ckpt.get("kind") != "pretrain":
+        raise DataError(f"{path}: not a pretraining checkpoint, so its initial encoder is unknown")
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(int(ckpt.get("config", {}).get("seed", 0)))
+        encoder = SimSiam(get_preset(ckpt["preset"])).encoder
+    return encoder.eval().requires_grad_(False)
+
+
 def pretrain(
     cfg: PretrainConfig,
     dataset: PatchDataset,
@@ -178,6 +193,11 @@ def pretrain(
         return {"loss": float(out["loss"].detach()), "lr": lr}
 
     knn_idx = knn_monitor_indices(dataset, cfg.knn_monitor, cfg.seed)
+    # the baseline measured in the same run: the monitor on the encoder before any step (its random initialisation),
+    # kept in the checkpoint so that a run resumed before its first epoch ended still reports it
+    knn_initial = (ckpt or {}).get("knn_initial")
+    if knn_idx is not None and knn_initial is None and loop.global_step == 0:
+        knn_initial = knn_monitor(model.encoder, dataset, knn_idx, cfg.knn_k, d.device)
 
     def end_epoch(epoch: int) -> dict[str, float]:
         z, y = torch.cat(monitor["z"]), torch.cat(monitor["y"])
@@ -189,6 +209,8 @@ def pretrain(
         stats["collapsed"] = float(stats["proj_std"] < cfg.collapse_std_frac * healthy)
         if knn_idx is not None:  # every rank computes the same number (same weights, same patches)
             stats["knn_acc"] = knn_monitor(model.encoder, dataset, knn_idx, cfg.knn_k, d.device)
+            if knn_initial is not None:
+                stats["knn_initial"] = knn_initial
         return stats
 
     def save() -> None:
@@ -196,7 +218,7 @@ def pretrain(
             save_checkpoint(out_dir / CHECKPOINT, {
                 "kind": "pretrain", "preset": p.to_dict(), "config": config_dict(cfg),
                 "model": model.state_dict(), "encoder": model.encoder.state_dict(),
-                "optimizer": opt.state_dict(), "loop": loop.state(),
+                "optimizer": opt.state_dict(), "loop": loop.state(), "knn_initial": knn_initial,
             })
 
     loop.run(step, end_epoch, save, progress=progress)
