@@ -52,6 +52,51 @@ def test_footprints_integrate_to_the_energy():
     assert fp[0].argmax() // 3 == 16 * 32 + 16  # peak on the entry pixel
 
 
+def _render_directly(widths: np.ndarray, k: int, s: int) -> np.ndarray:
+    """The render rule pixel by pixel over the whole K x K grid in float64 (the reference the mirrored quadrant
+    must match): supersampled within NEAR_PIXELS diagonals of the pole (width-scaled), the centre's value beyond."""
+    from sssphase_core.learning.backends.analytic_backend import _MEAN_INV_R, NEAR_PIXELS
+
+    burley = lambda r: (np.exp(-r) + np.exp(-r / 3)) / r  # noqa: E731
+    sub = (np.arange(s) + 0.5) / s - 0.5
+    out = np.zeros((len(widths), k, k, 3))
+    for n, w in enumerate(widths):
+        for c, (dx, dy) in enumerate(w):
+            for y in range(k):
+                for x in range(k):
+                    oy, ox = y - k // 2, x - k // 2
+                    if np.hypot(oy / dy, ox / dx) < NEAR_PIXELS * np.hypot(1 / dx, 1 / dy):
+                        r = np.hypot((oy + sub)[:, None] / dy, (ox + sub)[None, :] / dx)
+                        out[n, y, x, c] = burley(np.maximum(r, 1 / (s * _MEAN_INV_R * np.sqrt(dx * dy)))).sum()
+                    else:
+                        out[n, y, x, c] = s * s * burley(np.hypot(oy / dy, ox / dx))
+    return out / out.sum(axis=(1, 2), keepdims=True)
+
+
+@pytest.mark.parametrize("k", [9, 10])
+def test_the_mirrored_quadrant_render_is_the_render_rule_over_the_whole_patch(k):
+    """Footprints are integrated over one quadrant and mirrored (a stretched radial profile, symmetric
+    sub-pixel samples): the same footprints, odd or even K, thin or wide, within float32."""
+    # (widths off the near rule's ties: at 1 x 1 px the pixel (3, 3) lies exactly on its threshold, where float32
+    # and float64 may choose differently, both right)
+    widths = np.array([[[1.1, 0.9], [0.3, 2.0], [4.0, 0.5]], [[0.05, 0.05], [2.6, 2.4], [0.7, 6.0]]])
+    fp = AnalyticBackend(patch=k, supersample=3).render(np.ones((2, 3)), widths)
+    ref = _render_directly(widths, k, 3)
+    assert fp.dtype == np.float32 and np.abs(fp - ref).max() < 2e-6
+
+
+def test_a_query_of_pixels_reads_only_the_window_the_estimate_needs(flat_scene):
+    """(psp, pixels) queries are cropped to the estimate's window, not to K x K: the same footprints as from the
+    full patches, at the image's border too."""
+    views, _ = flat_scene
+    psp = views[0].psp
+    pixels = np.concatenate([views[0].pixels, [[0, 0], [63, 63], [1, 62]]])
+    be = AnalyticBackend(patch=32)
+    assert np.array_equal(be.predict_footprints((psp, pixels)), be.predict_footprints(psp_patches(psp, pixels, 32)))
+    with pytest.raises(InputError, match="5x5 window"):
+        be.estimate(psp_patches(psp, pixels[:2], 4))
+
+
 @pytest.mark.parametrize("supersample", [1, 2, 3, 8])
 def test_burley_render_is_finite_at_any_supersampling(supersample):
     """Odd supersampling puts a sample on the profile's 1/r pole (it used to give NaN)."""
