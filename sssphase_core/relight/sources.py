@@ -26,16 +26,19 @@ def no_scattering_source(white: np.ndarray, patch: int = 1) -> FootprintSource:
 
 
 def backend_source(backend: object, psp: np.ndarray, chunk: int = 256) -> FootprintSource:
-    """Footprints predicted by a model backend from the (N, 24, K, K) PSP patches of the asked pixels,
+    """Footprints predicted by a model backend from the (N, 24, S, S) PSP patches of the asked pixels,
     cropped from the view's stack padded once (a 1080p stack is 200 MB) and given to
-    ``predict_footprints`` ``chunk`` at a time (a K = 90 patch is 0.8 MB, and backends work on copies)."""
+    ``predict_footprints`` ``chunk`` at a time (a K = 90 patch is 0.8 MB, and backends work on copies).
+    S is the backend's ``input_patch`` where it reads less than its footprint's K x K (the analytic model:
+    a 5 x 5 window; cropping K = 90 patches for it took 160 of the 323 s of a 1080p relight), else K."""
     from sssphase_core.learning.data import crop_patches, pad_for_patches, to_channels_first
 
     k = int(backend.patch)  # type: ignore[attr-defined]
-    stack = pad_for_patches(to_channels_first(np.asarray(psp, np.float32)), k)
+    size = int(getattr(backend, "input_patch", k))
+    stack = pad_for_patches(to_channels_first(np.asarray(psp, np.float32)), size)
 
     def source(pixels: np.ndarray) -> np.ndarray | torch.Tensor:
-        parts = [backend.predict_footprints(crop_patches(stack, pixels[i:i + chunk], k, padded=True).numpy())  # type: ignore[attr-defined]
+        parts = [backend.predict_footprints(crop_patches(stack, pixels[i:i + chunk], size, padded=True).numpy())  # type: ignore[attr-defined]
                  for i in range(0, len(pixels), chunk)]
         if not parts:
             return np.zeros((0, k, k, 3), np.float32)

@@ -92,7 +92,12 @@ def test_a_query_of_pixels_reads_only_the_window_the_estimate_needs(flat_scene):
     psp = views[0].psp
     pixels = np.concatenate([views[0].pixels, [[0, 0], [63, 63], [1, 62]]])
     be = AnalyticBackend(patch=32)
-    assert np.array_equal(be.predict_footprints((psp, pixels)), be.predict_footprints(psp_patches(psp, pixels, 32)))
+    full = be.predict_footprints(psp_patches(psp, pixels, 32))
+    assert np.array_equal(be.predict_footprints((psp, pixels)), full)
+    from sssphase_core.relight.sources import backend_source
+
+    # relighting crops the backend's input_patch (5), not K = 32
+    assert be.input_patch == 5 and np.array_equal(backend_source(be, psp, chunk=7)(pixels), full)
     with pytest.raises(InputError, match="5x5 window"):
         be.estimate(psp_patches(psp, pixels[:2], 4))
 

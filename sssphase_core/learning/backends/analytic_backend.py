@@ -59,6 +59,7 @@ class AnalyticBackend:
         if profile not in _MTF:
             raise ValueError(f"unknown profile {profile!r} ({', '.join(_MTF)})")
         self.patch, self.black, self.profile, self.window = patch, black, profile, window
+        self.input_patch = 2 * window + 1  # the PSP window around each pixel that :meth:`estimate` reads
         self.supersample, self.chunk = supersample, chunk
 
     def pretrain(self, views: Sequence[ViewData], out_dir: Path, **options: object) -> None:
@@ -141,5 +142,5 @@ class AnalyticBackend:
     def predict_footprints(self, query: Query) -> np.ndarray:
         # a (psp, pixels) query is cropped to the window the estimate reads, not to K x K (8,100 values per image
         # at K = 90 for the 25 it reads)
-        est = self.estimate(as_patches(query, 2 * self.window + 1 if isinstance(query, tuple) else self.patch))
+        est = self.estimate(as_patches(query, self.input_patch if isinstance(query, tuple) else self.patch))
         return self.render(est["energy"], est["widths"])

@@ -3,7 +3,9 @@
 A backend turns PSP observations into per-pixel footprints. ``predict_footprints`` accepts either
 (N, 24, K, K) PSP patches or a (psp (8, H, W, 3), pixels (N, 2) int (y, x)) pair and returns
 (N, K, K, 3) float32 footprints in linear camera units. ``pretrain``/``fit`` train whatever the
-backend learns (no-ops for a physics baseline). This module does not import torch.
+backend learns (no-ops for a physics baseline). A backend that reads only a small window of each patch
+may say so with an ``input_patch`` attribute (S < K; e.g. the analytic model's 5): relighting then gives it
+(N, 24, S, S) patches. This module does not import torch.
 """
 
 from __future__ import annotations
