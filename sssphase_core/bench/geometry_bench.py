@@ -21,6 +21,7 @@ from sssphase_core.errors import InputError
 def run(sessions: list[Any], out: Path, backends: tuple[str, ...] = ("exact", "analytic"),
         checkpoint: Path | str | None = None, progress: Any = None) -> dict[str, Any]:
     """Score every complete view of ``sessions`` (simulated) for each backend; writes JSON and Markdown."""
+    from sssphase_core.relight.choices import uses_decoder
     from sssphase_core.relight.runner import geometry_session
 
     if not sessions:
@@ -33,7 +34,7 @@ def run(sessions: list[Any], out: Path, backends: tuple[str, ...] = ("exact", "a
                 progress(f"{s.name}: {backend}")
             with tempfile.TemporaryDirectory() as tmp:
                 t0 = time.perf_counter()
-                done = geometry_session(s, backend=backend, checkpoint=checkpoint if backend not in ("exact", "analytic") else None,
+                done = geometry_session(s, backend=backend, checkpoint=checkpoint if uses_decoder(backend) else None,
                                         out=Path(tmp))
                 seconds = (time.perf_counter() - t0) / max(1, len(done))
             for g in done:

@@ -30,7 +30,7 @@ if TYPE_CHECKING:
 N_SHIFTS = 4
 _MEAN_INV_R = 4 * np.log(1 + np.sqrt(2))  # mean of 1/r over a unit square centred on the pole
 _U = np.logspace(-8, 8, 4000)
-#: Bytes of a render step's temporaries (a few (n, 3, K, K) float64 grids).
+#: Bytes of a render step's temporaries (a few (n, 3, K, K) float32 grids).
 RENDER_STEP_BYTES = 128 * 2**20
 #: Pixels whose centre lies within this many pixel diagonals of the profile's pole (in width-scaled units)
 #: are integrated by supersampling; the others take their centre's value (:meth:`AnalyticBackend.render`).
@@ -39,6 +39,8 @@ _MTF = {
     "burley": lambda u: 0.25 * (1 / np.sqrt(1 + u) + 3 / np.sqrt(1 + 9 * u)),
     "exponential": lambda u: (1 + u) ** -1.5,
 }
+
+
 def _burley(r: np.ndarray) -> np.ndarray:
     """e^{-r} + e^{-r/3} over r, with one exponential (e^{-r} = (e^{-r/3})^3)."""
     t = np.exp(-r / 3)

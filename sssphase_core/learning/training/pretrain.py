@@ -209,7 +209,7 @@ def pretrain(
         stats["collapsed"] = float(stats["proj_std"] < cfg.collapse_std_frac * healthy)
         if knn_idx is not None:  # every rank computes the same number (same weights, same patches)
             stats["knn_acc"] = knn_monitor(model.encoder, dataset, knn_idx, cfg.knn_k, d.device)
-            if knn_initial is not None:
+            if knn_initial is not None and epoch == 0:  # once, in the first epoch's row
                 stats["knn_initial"] = knn_initial
         return stats
 
