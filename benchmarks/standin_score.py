@@ -7,7 +7,7 @@
 ``RENDERS/OBJECT_clean_ref__PATTERN.exr`` on the view's decoded mask, and >= 2 px inside it, for every
 session under SESSIONS. ``geometry``: the decoded and the geometry-corrected projector x, y of
 ``sss geometry``'s ``correspondence_for_geometry.npz`` against ``RENDERS/OBJECT_geometry.npz``
-(``standin_volumetric.py``), median signed error by incidence angle.
+(``standin_volumetric.py``, ``mitsuba_render.py``), median signed error by incidence angle.
 """
 
 from __future__ import annotations
@@ -33,7 +33,9 @@ def relight(renders: Path, sessions: Path, relit: Path, backends: list[str]) -> 
     for s in find_sessions([sessions]):
         mask = load_view(s, 0).proj.mask
         inner = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
-        for pattern in ("checkerboard", "stripes_x"):
+        for pattern in ("checkerboard", "stripes_x", "stripes_y"):
+            if not (renders / f"{s.name}_clean_ref__{pattern}.exr").exists():  # stripes_y: mitsuba_render.py's
+                continue
             truth = read_exr(renders / f"{s.name}_clean_ref__{pattern}.exr")
             cells = []
             for b in backends:
@@ -45,11 +47,12 @@ def relight(renders: Path, sessions: Path, relit: Path, backends: list[str]) -> 
 def geometry(renders: Path, name: str, files: list[Path]) -> None:
     exact = np.load(renders / f"{name}_geometry.npz")
     theta = exact["theta"]
+    on_object = exact["mask"] if "mask" in exact.files else True  # mitsuba_render.py's: the object, not the wall
     for f in files:
         z = np.load(f)
         for label, xp, yp in (("decoded", z["xp_decoded"], z["yp_decoded"]), ("for geometry", z["xp"], z["yp"])):
             ex, ey = xp - exact["xp"], yp - exact["yp"]
-            ok = z["mask"] & np.isfinite(ex) & np.isfinite(theta)
+            ok = z["mask"] & on_object & np.isfinite(ex) & np.isfinite(theta)
             parts = [f"|error| {np.median(np.hypot(ex, ey)[ok]):.3f} px"]
             for lo, hi in ((0, 20), (20, 40), (40, 60), (60, 90)):
                 sel = ok & (theta >= lo) & (theta < hi)

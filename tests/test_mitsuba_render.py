@@ -1,0 +1,47 @@
+"""The Mitsuba benchmark's scene (benchmarks/mitsuba_render.py): its meshes are closed and face outward (Mitsuba's
+interior medium is the side the normals point away from), and its grey extinction keeps each colour's measured
+absorption. (Mitsuba itself is not installed by the suite.)"""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+_spec = importlib.util.spec_from_file_location(
+    "mitsuba_render", Path(__file__).resolve().parents[1] / "benchmarks" / "mitsuba_render.py")
+mr = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(mr)
+
+
+def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    lines = path.read_text().splitlines()
+    v = np.array([[float(t) for t in ln.split()[1:]] for ln in lines if ln.startswith("v ")])
+    f = np.array([[int(t) - 1 for t in ln.split()[1:]] for ln in lines if ln.startswith("f ")])
+    return v, f
+
+
+@pytest.mark.parametrize(("radii", "lumps"), [((58.0, 36.0, 40.0), 0), ((45.0, 45.0, 45.0), 4)])
+def test_meshes_are_closed_and_face_outward(tmp_path, radii, lumps):
+    path = tmp_path / "m.obj"
+    mr.sphere_obj(path, radii, lumps, seed=3)
+    v, f = _read_obj(path)
+    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    directed = {tuple(e) for e in edges.tolist()}
+    assert len(directed) == len(edges)  # no directed edge twice: consistently oriented
+    assert all((b, a) in directed for a, b in directed)  # every edge has its twin: closed
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    volume = np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6  # > 0 when the normals point outward
+    if lumps == 0:
+        assert volume == pytest.approx(4 / 3 * np.pi * np.prod(radii), rel=0.01)
+    else:
+        assert volume > 0.5 * 4 / 3 * np.pi * np.prod(radii)
+
+
+@pytest.mark.parametrize("name", sorted(mr.MEDIA))
+def test_grey_extinction_keeps_each_channels_measured_absorption(name):
+    sigma_s, sigma_a = (np.asarray(v) for v in mr.MEDIA[name])
+    sigma_t, albedo = mr.medium_coefficients(name, 1.5, 0.5)
+    assert sigma_t == pytest.approx(1.5 * max(np.mean(sigma_s / 0.5 + sigma_a), 1.02 * sigma_a.max()))
+    assert np.allclose(sigma_t * (1 - np.asarray(albedo)), 1.5 * sigma_a)
+    assert all(0 < a < 1 for a in albedo)
