@@ -185,8 +185,8 @@ def exact_geometry(mi, scene, rig) -> dict[str, np.ndarray]:  # noqa: ANN001
         lit = valid & ~np.asarray(scene.ray_test(sray))
     else:
         for i in np.flatnonzero(valid):
-            lit[i] = not scene.ray_test(mi.Ray3f(o=[float(x) for x in p[i] + w[i] * 1e-2], d=[float(x) for x in w[i]],
-                                                  maxt=float(dist[i] - 2e-2)))
+            ray = mi.Ray3f(o=[float(x) for x in p[i] + w[i] * 1e-2], d=[float(x) for x in w[i]])
+            lit[i] = not scene.ray_test(mi.Ray3f(ray, float(dist[i] - 2e-2)))
     inside = lit & (xp >= -0.5) & (xp <= proj.width - 0.5) & (yp >= -0.5) & (yp <= proj.height - 0.5)
     shape = (cam.height, cam.width)
     return {"xp": np.where(inside, xp, np.nan).reshape(shape).astype(np.float32),
