@@ -18,8 +18,9 @@ sigma_s'/(1-g), so the reduced coefficients stay the measured ones) behind an in
 and a diffuse grey wall behind it. Transport is Mitsuba's ``volpath`` (unbounded depth, Russian
 roulette), so footprints come from random walks, with single scattering, the diffusion tail, the
 forward lean of oblique light and the object's finite thickness and curvature -- nothing of sssphase's
-profiles. Extinction is grey (the channels' mean): colour lives in the absorption, because chromatic
-extinction with spectral MIS over long random walks gives fireflies that 1000s of samples do not average.
+profiles. Extinction is grey (the channels' mean): colour lives in the absorption, because with per-colour
+extinction Mitsuba's RGB mode samples each free flight for one colour and weights the others by ratios that
+multiply over the hundreds of bounces of a high-albedo walk.
 
 ``--train`` renders the capture plan with dot grids (spacing 20, 400 frames, a `sss train` object);
 ``--test`` the PSP, white and reference patterns (checkerboard, stripes_x, stripes_y) of an unseen one.
