@@ -1,9 +1,9 @@
 """Frames of translucent objects rendered by Mitsuba 3, an independent volumetric path tracer, in the
 geometry of the ``cpu`` rig (`sss rigs`): the lab's workflow on physics we did not write (issue 42).
 
-Mitsuba is not a dependency of sssphase; install it beside it, by hand:
+Mitsuba is not a dependency of sssphase; install it beside it, by hand (the ``mitsuba`` extra pins it):
 
-    pip install mitsuba==3.5.2      # its LLVM variant runs on Debian's LLVM 15 (newer wheels need newer LLVM)
+    pip install -c constraints.txt -e ".[mitsuba]"   # mitsuba 3.5.2: its LLVM variant runs on Debian's LLVM 15
     export DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM-15.so.1   # else the slower scalar variant
 
     python benchmarks/mitsuba_render.py OUT NAME --shape SHAPE --medium MEDIUM [--scale S] [--g G] \
@@ -177,7 +177,6 @@ def exact_geometry(mi, scene, rig) -> dict[str, np.ndarray]:  # noqa: ANN001
         xp = proj.fx * pc[:, 0] / pc[:, 2] + proj.cx
         yp = proj.fy * pc[:, 1] / pc[:, 2] + proj.cy
     # lit: nothing between the point and the projector (a shadow ray, offset off the surface)
-    lit = np.zeros(n_px, bool)
     if dr.is_jit_v(mi.Float):
         o = p + w * 1e-2
         sray = mi.Ray3f(mi.Ray3f(o=mi.Point3f(*(mi.Float(o[:, i].astype(np.float32)) for i in range(3))),
@@ -185,6 +184,7 @@ def exact_geometry(mi, scene, rig) -> dict[str, np.ndarray]:  # noqa: ANN001
                         mi.Float((dist - 2e-2).astype(np.float32)))
         lit = valid & ~np.asarray(scene.ray_test(sray))
     else:
+        lit = np.zeros(n_px, bool)
         for i in np.flatnonzero(valid):
             ray = mi.Ray3f(o=[float(x) for x in p[i] + w[i] * 1e-2], d=[float(x) for x in w[i]])
             lit[i] = not scene.ray_test(mi.Ray3f(ray, float(dist[i] - 2e-2)))
