@@ -81,11 +81,10 @@ class Browser:
             time.sleep(0.1)
 
     def set_file(self, selector: str, path: Path) -> None:
-        """Choose ``path`` in the file input ``selector`` and fire its change event, as a user does."""
+        """Choose ``path`` in the file input ``selector``, as a user does (chromium fires its change event)."""
         root = self.send("DOM.getDocument")["root"]["nodeId"]
         node = self.send("DOM.querySelector", nodeId=root, selector=selector)["nodeId"]
         self.send("DOM.setFileInputFiles", files=[str(path)], nodeId=node)
-        self.evaluate(f"document.querySelector({json.dumps(selector)}).dispatchEvent(new Event('change'))")
 
     def screenshot(self, path: Path) -> Path:
         path.write_bytes(base64.b64decode(self.send("Page.captureScreenshot", format="png")["data"]))

@@ -251,9 +251,21 @@ def test_hostile_input_is_one_message_on_the_page_and_the_server_keeps_serving(s
     page.wait_for("document.getElementById('message').textContent.includes('not an image')", 30)
     bomb = tmp_path / "bomb.png"
     bomb.write_bytes(_png_header_only(40000, 40000))
-    page.evaluate("state.uploaded = null")
+    # the user picks a wrong file and at once the right one; the wrong one's answer comes last and changes nothing
+    page.evaluate("""(() => { const fetch0 = window.fetch; let first = true; window.lateAnswered = false;
+        window.fetch = (url, options) => { const answer = fetch0(url, options);
+            if (!String(url).includes('/api/upload') || !first) return answer;
+            first = false;
+            return answer.then(r => new Promise(done => setTimeout(() => { window.lateAnswered = true; done(r); }, 1500)));
+        }; })()""")
+    late = tmp_path / "notes_again.png"
+    late.write_text("still not an image")
+    page.set_file("#upload", late)
     page.set_file("#upload", bomb)
-    page.wait_for("state.uploaded", 30)
+    page.wait_for("state.uploaded && window.lateAnswered", 30)
+    time.sleep(0.3)
+    assert page.evaluate("state.uploaded").startswith("upload_")
+    assert "not an image" not in page.evaluate("document.getElementById('message').textContent")
     message = _relight_on_page(page)
     assert isinstance(message, str) and "far larger than the 256x192 projector" in message
     assert "refused without decoding it" in message

@@ -171,15 +171,29 @@ $("map").onchange = showMap;
 // --- relight ------------------------------------------------------------------------------------------------
 $("relight-session").onchange = () => views($("relight-session"), $("relight-view"));
 
-$("upload").onchange = async () => {
-  const file = $("upload").files[0];
-  if (!file) return;
+// uploads answer in any order; only the latest one (file or drawing) sets the pattern or says what went wrong
+let uploads = 0;
+const uploadPattern = async (body, label) => {
+  const mine = ++uploads;
+  state.uploaded = null;
+  $("relight-info").textContent = `uploading ${label} …`;
   try {
-    const response = await api("/api/upload", { method: "POST", body: file });
-    state.uploaded = (await response.json()).name;
+    const response = await api("/api/upload", { method: "POST", body });
+    const name = (await response.json()).name;
+    if (mine !== uploads) return;
+    state.uploaded = name;
     say("");
-    $("relight-info").textContent = `pattern: ${file.name} (uploaded)`;
-  } catch (e) { state.uploaded = null; say(e.message); }
+    $("relight-info").textContent = `pattern: ${label}`;
+  } catch (e) {
+    if (mine !== uploads) return;
+    $("relight-info").textContent = "";
+    say(e.message);
+  }
+};
+
+$("upload").onchange = () => {
+  const file = $("upload").files[0];
+  if (file) uploadPattern(file, `${file.name} (uploaded)`);
 };
 
 // a pattern drawn on the page: white strokes on black at the projector's aspect, uploaded like a file
@@ -195,13 +209,8 @@ $("upload").onchange = async () => {
     g.lineCap = "round"; g.stroke(); };
   window.addEventListener("mouseup", () => { down = false; });
   $("draw-clear").onclick = clear;
-  $("draw-use").onclick = () => canvas.toBlob(async (blob) => {
-    try {
-      const response = await api("/api/upload", { method: "POST", body: blob });
-      state.uploaded = (await response.json()).name;
-      $("relight-info").textContent = "pattern: the drawing";
-      say("");
-    } catch (e) { say(e.message); }
+  $("draw-use").onclick = () => canvas.toBlob((blob) => {
+    uploadPattern(blob, "the drawing");
   }, "image/png");
 })();
 
