@@ -63,7 +63,7 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
 
     if name == "torch":
         needs_checkpoint(name, checkpoint)
-        backend = get_backend("torch", checkpoint=checkpoint, device=device, **options)
+        backend = get_backend("torch", checkpoint=checkpoint, device=device, **{"black": rv.proj.black, **options})
     elif name == "analytic":
         backend = get_backend("analytic", **{"patch": rv.patch, "black": rv.proj.black, **options})
     else:
@@ -76,7 +76,20 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
     k = int(backend.patch)
     if calibrate and rv.psp_patterns is not None:
         source = mixed_with_no_scattering(source, fit_view_mix(source, k, rv, psp, lost), rv.white)
+    source.backend = backend  # type: ignore[attr-defined]  # what it did, for the narration (domain_line)
     return source, k
+
+
+def domain_line(rv: RelightView, name: str, source: FootprintSource) -> str | None:
+    """One line when the decoder behind ``source`` handed pixels beyond its training widths to the analytic
+    model (:mod:`sssphase_core.learning.domain`); None otherwise."""
+    backend = getattr(source, "backend", None)
+    far, total = getattr(backend, "beyond_domain", 0), getattr(backend, "predicted", 0)
+    if not far or not total:
+        return None
+    limit = "/".join(f"{x:.1f}" for x in backend.domain.limit)  # type: ignore[union-attr]
+    return (f"{rv.object} view {rv.view}: {name}: {far:,} of {total:,} pixels ({far / total:.1%}) have footprints wider "
+            f"than the decoder was trained on (R/G/B {limit} px): the analytic model's footprints there")
 
 
 def make_sources(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",

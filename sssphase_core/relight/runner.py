@@ -311,15 +311,16 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
                  out: Path, *, chunk: int, device: str, cache: bool, say: Narrator) -> tuple[np.ndarray, np.ndarray | None]:
     """One view relit (its footprints cached unless the source is the captured transport), its calibration
     and denoising told, its caches saved -> (images (P, H, W, 3), calibration weights or None)."""
-    from sssphase_core.relight.backends import make_sources
+    from sssphase_core.relight.backends import domain_line, make_sources
     from sssphase_core.relight.cache import FootprintCache
     from sssphase_core.relight.pipeline import relight_view
     from sssphase_core.relight.transport import DotTransport
 
     sources: list[tuple[FootprintSource, int]] = make_sources(backend, rv, checkpoint=checkpoint, device=device)
+    models = [src for src, _ in sources]
+    members = BLENDS.get(backend, (backend,))
     cached = cache and not isinstance(sources[0][0], DotTransport)  # the measured transport is read, not predicted
     if cached:
-        members = BLENDS.get(backend, (backend,))
         sources = [(FootprintCache(src, cache_path(out, s, rv, m, checkpoint), rv.proj.shape, k), k)
                    for (src, k), m in zip(sources, members, strict=True)]
     (source, patch), *also = sources
@@ -329,6 +330,10 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
                                   device=device, progress=progress)
     if mix is not None:
         say.say(mix_line(rv, backend, mix))
+    for model, member in zip(models, members, strict=True):
+        line = domain_line(rv, member, model)
+        if line:
+            say.say(line)
     if isinstance(source, DotTransport) and source.fit:  # its noise mask, chosen on the view's fringe captures
         say.say(denoise_line(rv, source))
     for cache_file, _ in sources if cached else ():

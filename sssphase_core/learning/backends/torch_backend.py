@@ -12,11 +12,13 @@ from sssphase_core.compute import compute_device
 from sssphase_core.errors import InputError
 from sssphase_core.learning.backends.base import Query, as_patches
 from sssphase_core.learning.data import PatchDataset, ViewData
+from sssphase_core.learning.domain import WidthDomain, beyond, pixel_widths
 from sssphase_core.learning.models import ModelPreset, get_preset
 from sssphase_core.learning.training import (
     DecoderConfig,
     FootprintNet,
     PretrainConfig,
+    load_checkpoint,
     load_decoder,
     pretrain,
     resolve_checkpoint,
@@ -25,15 +27,23 @@ from sssphase_core.learning.training import (
 
 
 class TorchBackend:
-    """``checkpoint``: a decoder checkpoint (``sss train decoder``) used by ``predict_footprints``."""
+    """``checkpoint``: a decoder checkpoint (``sss train decoder``) used by ``predict_footprints``.
+
+    Pixels whose footprint is wider than any the decoder was trained on (:mod:`sssphase_core.learning.domain`,
+    recorded in the checkpoint) get the analytic model's footprints (with projector ``black`` level) unless
+    ``guard`` is False; ``beyond_domain`` / ``predicted`` count them and all pixels predicted so far."""
 
     name = "torch"
 
-    def __init__(self, checkpoint: Path | str | None = None, *, device: str = "cpu", batch_size: int = 128) -> None:
+    def __init__(self, checkpoint: Path | str | None = None, *, device: str = "cpu", batch_size: int = 128,
+                 black: float = 0.002, guard: bool = True) -> None:
         self.device, self.batch_size = compute_device(device), batch_size
+        self.black, self.guard = float(black), bool(guard)
         self.checkpoint: Path | None = None
         self.encoder = self.decoder = None
+        self.domain: WidthDomain | None = None
         self.patch = 0
+        self.beyond_domain = self.predicted = 0
         if checkpoint is not None:
             self.load(checkpoint)
 
@@ -43,6 +53,7 @@ class TorchBackend:
         self.decoder.to(self.device)
         self.patch = self.encoder.preset.patch
         self.checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
+        self.domain = WidthDomain.from_dict(load_checkpoint(self.checkpoint, mmap=True).get("domain"))
 
     def pretrain(self, views: Sequence[ViewData], out_dir: Path, *, config: PretrainConfig | None = None,
                  preset: ModelPreset | None = None, **options: object) -> Path:
@@ -74,9 +85,21 @@ class TorchBackend:
         if self.decoder is None:
             raise InputError("the torch backend has no decoder checkpoint: pass checkpoint=... or call fit()")
         patches = as_patches(query, self.patch)
-        out = []
-        for i in range(0, len(patches), self.batch_size):
-            x = torch.as_tensor(patches[i : i + self.batch_size], device=self.device)
+        far = np.zeros(len(patches), bool)
+        if self.guard and self.domain is not None and len(patches):
+            est = pixel_widths(patches, self.patch, self.black)
+            far = beyond(self.domain, est["widths"])
+        out = np.zeros((len(patches), self.patch, self.patch, 3), np.float32)
+        near = np.flatnonzero(~far)
+        for i in range(0, len(near), self.batch_size):
+            x = torch.as_tensor(patches[near[i : i + self.batch_size]], device=self.device)
             pred, _ = FootprintNet(self.encoder, self.decoder)(x)
-            out.append(pred.float().permute(0, 2, 3, 1).cpu())
-        return torch.cat(out).numpy() if out else np.zeros((0, self.patch, self.patch, 3), np.float32)
+            out[near[i : i + self.batch_size]] = pred.float().permute(0, 2, 3, 1).cpu().numpy()
+        if far.any():  # beyond what the decoder learned: the physics, which reads the width at any scale
+            from sssphase_core.learning.backends.analytic_backend import AnalyticBackend
+
+            fallback = AnalyticBackend(patch=self.patch, black=self.black)
+            out[far] = fallback.render(est["energy"][far], est["axes"][far])
+        self.beyond_domain += int(far.sum())
+        self.predicted += len(patches)
+        return out

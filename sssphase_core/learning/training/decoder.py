@@ -13,6 +13,7 @@ from torch import nn
 from sssphase_core.errors import DataError, InputError
 from sssphase_core.learning.camera import as_captured
 from sssphase_core.learning.data import PatchDataset
+from sssphase_core.learning.domain import training_domain
 from sssphase_core.learning.losses import LOG_EPS, SBHLoss, noise_floor
 from sssphase_core.learning.metrics import MSE_FLOOR, psnr
 from sssphase_core.learning.models import Decoder, Encoder, ModelPreset, get_preset
@@ -185,6 +186,8 @@ def train_decoder(
     if cfg.log_eps is None:  # recorded in the checkpoint's config, so a resumed run uses the same value
         cfg = replace(cfg, log_eps=max(LOG_EPS, noise_floor(first_footprints())))
     loss_fn = SBHLoss(log_eps=cfg.log_eps)
+    # the footprint widths it learns from: the torch backend hands pixels beyond them to the analytic model
+    domain = training_domain(dataset.views, dataset.patch, seed=cfg.seed).to_dict() if d.main else None
 
     def step(batch: dict[str, torch.Tensor], gstep: int) -> dict[str, float]:
         dec.train()
@@ -216,7 +219,7 @@ def train_decoder(
             save_checkpoint(out_dir / CHECKPOINT, {
                 "kind": "decoder", "preset": p.to_dict(), "config": config_dict(cfg),
                 "encoder": enc.state_dict(), "decoder": dec.state_dict(),
-                "optimizer": opt.state_dict(), "loop": loop.state(),
+                "optimizer": opt.state_dict(), "loop": loop.state(), "domain": domain,
             })
 
     loop.run(step, end_epoch, save, progress=progress)

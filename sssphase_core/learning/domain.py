@@ -1,0 +1,94 @@
+"""The footprint widths a decoder was trained on, and the pixels that lie beyond them.
+
+A decoder learns the footprints of its training objects. Asked for one far wider than any it saw (a milky
+material, a scattering length near the patch size) it cannot extrapolate: on ``sss bench stability``'s
+``wide`` case (mean free path 60 mm) the demo's decoder relit at 28.6 dB where the analytic model, which
+reads a footprint's width from the fringes' modulation at any scale, reached 36.6. That width
+(:meth:`AnalyticBackend.estimate`, from a 5 x 5 window, no training) describes every pixel: a decoder's
+checkpoint records how far its training pixels' widths reached (:func:`training_domain`), and the torch
+backend gives the pixels beyond that (:func:`beyond`) the analytic model's footprints instead of the
+decoder's extrapolation. Measured on the demo's training pixels, the widths' 99.5th percentile is
+1.7 / 2.1 / 1.1 px (R / G / B); the ``wide`` case's pixels are 3.9 / 3.5 / 2.9 px at their 10th.
+
+Only the wide side is guarded. At the narrow end (no scattering, a black object) the analytic model is
+further from the truth than the decoder (``delta``: 50.9 against 58.7 dB), and the view calibration already
+mixes the decoder with no scattering there.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from sssphase_core.errors import DataError
+
+if TYPE_CHECKING:
+    from sssphase_core.learning.data import ViewData
+
+#: The quantile of the training pixels' widths (per colour) that bounds the domain, and the margin beyond it
+#: that is still the decoder's: a few wide training pixels do not teach it the tail.
+WIDTH_QUANTILE, WIDTH_MARGIN = 0.995, 2.0
+#: Training pixels read for the domain (a seeded sample beyond this).
+MAX_DOMAIN_PIXELS = 50_000
+#: The projector black level the training widths are read with (sessions record theirs only per view).
+DOMAIN_BLACK = 0.002
+
+
+@dataclass(frozen=True)
+class WidthDomain:
+    """``limit`` (3,): the largest footprint width (px, the larger axis) per colour that the decoder is used
+    for; ``quantile`` and ``pixels``: how it was measured."""
+
+    limit: tuple[float, float, float]
+    quantile: float = WIDTH_QUANTILE
+    pixels: int = 0
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"width_limit_px": list(self.limit), "quantile": self.quantile, "pixels": self.pixels}
+
+    @classmethod
+    def from_dict(cls, d: object) -> WidthDomain | None:
+        """The domain a checkpoint recorded; None for checkpoints from before it was recorded."""
+        if not isinstance(d, dict) or "width_limit_px" not in d:
+            return None
+        try:
+            limit = np.asarray(d["width_limit_px"], np.float64)
+        except (TypeError, ValueError):
+            limit = np.full(1, np.nan)
+        if limit.shape != (3,) or not np.isfinite(limit).all() or (limit <= 0).any():
+            raise DataError(f"the checkpoint's training domain is damaged: width limits {d['width_limit_px']!r}")
+        return cls(tuple(float(x) for x in limit), float(d.get("quantile", WIDTH_QUANTILE)), int(d.get("pixels", 0)))  # type: ignore[arg-type]
+
+
+def pixel_widths(patches: np.ndarray, patch: int, black: float = DOMAIN_BLACK) -> dict[str, np.ndarray]:
+    """The analytic model's estimate of (N, 24, S, S) PSP patches (S >= 5; the centre window is read) for
+    footprints of ``patch`` x ``patch`` (widths are clipped at half of it): ``widths`` (N, 3) px, each colour's
+    larger axis, plus :meth:`AnalyticBackend.estimate`'s ``energy`` and ``axes`` (N, 3, 2), the widths along
+    x and y (what :meth:`AnalyticBackend.render` takes)."""
+    from sssphase_core.learning.backends.analytic_backend import AnalyticBackend
+
+    est = AnalyticBackend(patch=int(patch), black=black).estimate(patches)
+    return {"widths": est["widths"].max(axis=-1), "energy": est["energy"], "axes": est["widths"]}
+
+
+def training_domain(views: Sequence[ViewData], patch: int, *, seed: int = 0, black: float = DOMAIN_BLACK) -> WidthDomain:
+    """The width domain of the training ``views``' pixels (a seeded sample of :data:`MAX_DOMAIN_PIXELS`) for a
+    decoder of ``patch`` x ``patch`` footprints."""
+    from sssphase_core.learning.backends.base import as_patches
+
+    widths = [pixel_widths(as_patches((v.psp, v.pixels), 5), patch, black)["widths"] for v in views if len(v.pixels)]
+    if not widths:
+        raise DataError("no training pixels to measure the decoder's width domain on")
+    w = np.concatenate(widths)
+    if len(w) > MAX_DOMAIN_PIXELS:
+        w = w[np.random.default_rng(seed).choice(len(w), MAX_DOMAIN_PIXELS, replace=False)]
+    limit = np.quantile(w, WIDTH_QUANTILE, axis=0) * WIDTH_MARGIN
+    return WidthDomain(tuple(float(x) for x in limit), WIDTH_QUANTILE, len(w))  # type: ignore[arg-type]
+
+
+def beyond(domain: WidthDomain, widths: np.ndarray) -> np.ndarray:
+    """(N,) bool: pixels with any colour's width (N, 3) px beyond the domain's limit."""
+    return (np.asarray(widths) > np.asarray(domain.limit)[None]).any(axis=1)
