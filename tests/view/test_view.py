@@ -234,6 +234,31 @@ def test_relighting_an_uploaded_pattern_gives_the_image_sss_relight_writes(serve
     page.screenshot(tmp_path / "relight.png")
 
 
+def _answer_the_next_one_late(page, url_part: str, delay_ms: int = 1500) -> None:
+    """The page's next request whose URL contains ``url_part`` is answered ``delay_ms`` late (then
+    ``window.lateAnswered`` turns true); the others at once, as before."""
+    page.evaluate("""((part, delay) => { const fetch0 = window.fetch0 || window.fetch; let first = true;
+        window.fetch0 = fetch0; window.lateAnswered = false;
+        window.fetch = (url, options) => { const answer = fetch0(url, options);
+            if (!String(url).includes(part) || !first) return answer;
+            first = false;
+            return answer.then(r => new Promise(done => setTimeout(() => { window.lateAnswered = true; done(r); }, delay)));
+        }; })(%s, %d)""" % (json.dumps(url_part), delay_ms))
+
+
+def test_a_map_picked_after_another_stays_when_the_first_answers_last(page):
+    page.evaluate("document.querySelector('nav button[data-tab=sessions]').click()")
+    _set(page, "map", "white")
+    page.wait_for("document.getElementById('map-unit').textContent === 'linear camera units'", 30)
+    _answer_the_next_one_late(page, "/map/")
+    _set(page, "map", "xp")  # answered late
+    _set(page, "map", "mask")
+    page.wait_for("window.lateAnswered", 30)
+    time.sleep(0.3)
+    assert page.evaluate("document.getElementById('map-unit').textContent") == "valid (1) / not (0)"
+    assert page.evaluate("document.getElementById('map').value") == "mask"
+
+
 def _png_header_only(width: int, height: int) -> bytes:
     """A PNG whose header claims ``width x height`` (a decompression bomb's promise) and whose data is tiny."""
     def chunk(kind: bytes, data: bytes) -> bytes:
@@ -252,12 +277,7 @@ def test_hostile_input_is_one_message_on_the_page_and_the_server_keeps_serving(s
     bomb = tmp_path / "bomb.png"
     bomb.write_bytes(_png_header_only(40000, 40000))
     # the user picks a wrong file and at once the right one; the wrong one's answer comes last and changes nothing
-    page.evaluate("""(() => { const fetch0 = window.fetch; let first = true; window.lateAnswered = false;
-        window.fetch = (url, options) => { const answer = fetch0(url, options);
-            if (!String(url).includes('/api/upload') || !first) return answer;
-            first = false;
-            return answer.then(r => new Promise(done => setTimeout(() => { window.lateAnswered = true; done(r); }, 1500)));
-        }; })()""")
+    _answer_the_next_one_late(page, "/api/upload")
     late = tmp_path / "notes_again.png"
     late.write_text("still not an image")
     page.set_file("#upload", late)

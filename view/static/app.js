@@ -16,6 +16,11 @@ async function api(path, options = {}) {
   return response;
 }
 
+// answers come back in any order: only the latest request of each kind may change the page (a map picked
+// after another, a second relight, a pixel clicked while the last one's probe is on its way)
+const latest = {};
+const ticket = (kind) => { const mine = (latest[kind] = (latest[kind] || 0) + 1); return () => latest[kind] === mine; };
+
 function fill(select, items, label = (x) => x) {
   select.innerHTML = "";
   for (const item of items) {
@@ -120,12 +125,14 @@ $("live-image").onclick = async (event) => {
   if (!width || !rect.width) return;  // no frame yet
   const x = Math.floor((event.clientX - rect.left) * width / rect.width);
   const y = Math.floor((event.clientY - rect.top) * height / rect.height);
+  const current = ticket("live-probe");
   try {
     const p = await (await api(`/api/live/pixel?x=${x}&y=${y}`)).json();
+    if (!current()) return;
     $("live-probe").textContent = `(${x}, ${y}) linear ${p.linear.map((v) => v.toFixed(4)).join(" / ")}, on the sensor `
       + `${p.sensor.map((v) => v.toFixed(3)).join(" / ")}${p.sensor.some((v) => v >= p.clip) ? " CLIPPED" : ""}`;
     state.liveProbe = p;
-  } catch (e) { say(e.message); }
+  } catch (e) { if (current()) say(e.message); }
 };
 
 // --- sessions ---------------------------------------------------------------------------------------------
@@ -137,22 +144,27 @@ function views(sessionSelect, viewSelect) {
 async function showMap() {
   const name = $("session").value, view = $("session-view").value, kind = $("map").value;
   if (!name) return;
+  const current = ticket("map");
   try {
     const response = await api(`/api/sessions/${encodeURIComponent(name)}/${view}/map/${kind}.png`);
-    $("map-image").src = URL.createObjectURL(await response.blob());
+    const blob = await response.blob();
+    if (!current()) return;
+    $("map-image").src = URL.createObjectURL(blob);
     $("map-range").textContent = response.headers.get("X-Range").replace(",", " … ");
     $("map-unit").textContent = response.headers.get("X-Unit");
     $("map-bar").hidden = kind === "white";  // an sRGB image, not a colour-mapped one
     say("");
-  } catch (e) { say(e.message); }
+  } catch (e) { if (current()) say(e.message); }
 }
 
 $("map-image").onclick = async (event) => {
   const img = $("map-image"), rect = img.getBoundingClientRect();
   const x = Math.floor((event.clientX - rect.left) * img.naturalWidth / rect.width);
   const y = Math.floor((event.clientY - rect.top) * img.naturalHeight / rect.height);
+  const current = ticket("probe");
   try {
     const probe = await (await api(`/api/sessions/${encodeURIComponent($("session").value)}/${$("session-view").value}/pixel?x=${x}&y=${y}`)).json();
+    if (!current()) return;
     $("probe").hidden = false;
     $("probe-info").textContent = `pixel (${x}, ${y}) ` + (probe.valid ? `→ projector (${probe.projector.map((v) => v.toFixed(2)).join(", ")})` : "(not decoded)");
     $("probe-patch").src = "data:image/png;base64," + probe.patch_png;
@@ -161,7 +173,7 @@ $("map-image").onclick = async (event) => {
     $("probe-skipped").textContent = Object.entries(probe.skipped).map(([k, v]) => `${k}: ${v}`).join("; ");
     state.probe = probe;
     say("");
-  } catch (e) { say(e.message); }
+  } catch (e) { if (current()) say(e.message); }
 };
 
 $("session").onchange = () => { views($("session"), $("session-view")); showMap(); };
@@ -171,21 +183,20 @@ $("map").onchange = showMap;
 // --- relight ------------------------------------------------------------------------------------------------
 $("relight-session").onchange = () => views($("relight-session"), $("relight-view"));
 
-// uploads answer in any order; only the latest one (file or drawing) sets the pattern or says what went wrong
-let uploads = 0;
+// only the latest upload (file or drawing) sets the pattern or says what went wrong
 const uploadPattern = async (body, label) => {
-  const mine = ++uploads;
+  const current = ticket("upload");
   state.uploaded = null;
   $("relight-info").textContent = `uploading ${label} …`;
   try {
     const response = await api("/api/upload", { method: "POST", body });
     const name = (await response.json()).name;
-    if (mine !== uploads) return;
+    if (!current()) return;
     state.uploaded = name;
     say("");
     $("relight-info").textContent = `pattern: ${label}`;
   } catch (e) {
-    if (mine !== uploads) return;
+    if (!current()) return;
     $("relight-info").textContent = "";
     say(e.message);
   }
@@ -218,6 +229,7 @@ $("relight-button").onclick = async () => {
   const pattern = state.uploaded || $("relight-pattern").value;
   say("");
   $("relight-info").textContent = "relighting (the first pattern of a view computes its footprints) …";
+  const current = ticket("relight");
   try {
     const response = await api("/api/relight", {
       method: "POST", headers: { "Content-Type": "application/json" },
@@ -226,19 +238,21 @@ $("relight-button").onclick = async () => {
     });
     const result = await response.json();
     const png = await (await api(result.files.display || result.files.png)).blob();
+    const figure = result.figure ? await (await api(result.figure)).blob() : null;
+    if (!current()) return;
     $("relit-image").src = URL.createObjectURL(png);
     const metrics = result.metrics ? ` · PSNR ${result.metrics.psnr.toFixed(2)} dB, SSIM ${result.metrics.ssim.toFixed(3)}` : "";
     $("relight-info").textContent = `${result.backend}, ${result.pattern}: ${result.seconds.toFixed(2)} s${metrics}`;
     $("downloads").innerHTML = Object.entries(result.files)
       .map(([kind, url]) => `<a href="${url}?token=${encodeURIComponent(TOKEN)}" download>${
         { png: "PNG (16-bit linear)", exr: "EXR (float, linear)", display: "PNG (display)" }[kind] || kind}</a>`).join(" · ");
-    if (result.figure) {
-      $("compare-image").src = URL.createObjectURL(await (await api(result.figure)).blob());
+    if (figure) {
+      $("compare-image").src = URL.createObjectURL(figure);
       $("compare-image").hidden = false;
     } else { $("compare-image").hidden = true; }
     state.relit = result;
     say("");
-  } catch (e) { $("relight-info").textContent = ""; say(e.message); }
+  } catch (e) { if (current()) { $("relight-info").textContent = ""; say(e.message); } }
 };
 
 // --- start ---------------------------------------------------------------------------------------------------
