@@ -12,6 +12,10 @@ def test_stability_cases_stay_finite_and_exact_footprints_win(tmp_path):
     rows = {(r["case"], r["backend"]): r for r in res["rows"]}
     assert res["non_finite"] == [] and all(r["finite"] for r in rows.values())
     assert rows[("wide", "exact")]["psnr"] > rows[("wide", "none")]["psnr"] + 10
+    # against the same run's baseline (here none alone): exact's margin, and none has none
+    exact = rows[("wide", "exact")]
+    assert exact["vs_baseline_db"] == exact["psnr"] - rows[("wide", "none")]["psnr"] and rows[("wide", "none")]["vs_baseline_db"] is None
+    assert exact["beyond_training_widths"] is None  # not a decoder
     saved = json.loads((tmp_path / "stab.json").read_text())
     assert len(saved["rows"]) == 2 and (tmp_path / "stab.md").read_text().count("| wide |") == 2
 
