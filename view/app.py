@@ -18,7 +18,7 @@ import hashlib
 import hmac
 import json
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -262,6 +262,29 @@ async def upload(request: Request, state: ViewState) -> Response:
     return JSONResponse({"name": name})
 
 
+class _Notes:
+    """The lines ``sss relight`` would print for one relight (its calibration weights, the pixels a decoder
+    gave the analytic model, ...), kept for the page; the files it wrote are listed on the page already."""
+
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+
+    def say(self, text: str, warning: str = "") -> None:
+        if not text.startswith("wrote "):
+            self.lines.append(text)
+
+    @contextlib.contextmanager
+    def bar(self) -> Iterator[None]:
+        yield
+
+    def task(self, label: str) -> Callable[[int, int], None]:
+        return lambda done, total: None
+
+    @contextlib.contextmanager
+    def status(self, label: str) -> Iterator[None]:
+        yield
+
+
 async def relight(request: Request, state: ViewState) -> Response:
     """Relight one session view under a named or uploaded pattern with ``sss relight``'s runner; the
     footprints are cached in the output folder, so the next pattern costs only the splat."""
@@ -280,12 +303,15 @@ async def relight(request: Request, state: ViewState) -> Response:
     except (TypeError, ValueError):
         return _problem("view must be a whole number")
 
+    notes = _Notes()
+
     def run() -> tuple[Any, float]:
         s = _session(state, str(args.get("session", "")))
         spec = str(_upload_path(state, pattern)) if pattern.startswith("upload_") else pattern
         t0 = time.perf_counter()
         result = relight_session(s, [spec], backend=backend, checkpoint=state.checkpoint, out=state.out / "relit",
-                                 views=[view], formats=("png", "exr"), cache=True, resize=str(args.get("resize", "")))
+                                 views=[view], formats=("png", "exr"), cache=True, resize=str(args.get("resize", "")),
+                                 narrator=notes)
         return result, time.perf_counter() - t0
 
     result, seconds = await asyncio.to_thread(run)
@@ -293,7 +319,7 @@ async def relight(request: Request, state: ViewState) -> Response:
     files = {("display" if p.stem.endswith("_display") else p.suffix[1:]): f"/api/files/relit/{p.name}" for p in item.paths}
     return JSONResponse({"backend": result.backend, "pattern": item.pattern, "files": files, "metrics": item.metrics,
                          "figure": f"/api/files/relit/{item.figure.name}" if item.figure else None,
-                         "seconds": seconds, "clipped": item.clipped})
+                         "seconds": seconds, "clipped": item.clipped, "notes": notes.lines})
 
 
 async def files(request: Request, state: ViewState) -> Response:

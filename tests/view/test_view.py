@@ -231,6 +231,14 @@ def test_relighting_an_uploaded_pattern_gives_the_image_sss_relight_writes(serve
     page.wait_for("state.uploaded", 30)
     drawn = _relight_on_page(page)
     assert isinstance(drawn, dict) and drawn["pattern"].startswith("upload_") and drawn["metrics"] is None
+    # a model: what sss relight would say about it (its calibration to the view) is on the page under the image
+    _set(page, "backend", "analytic")
+    page.evaluate("state.uploaded = null")
+    _set(page, "relight-pattern", "checkerboard")
+    modelled = _relight_on_page(page)
+    assert any("calibrated to the view's fringe captures" in line for line in modelled["notes"]), modelled["notes"]
+    assert not any(line.startswith("wrote ") for line in modelled["notes"])
+    assert "calibrated to the view" in page.evaluate("document.getElementById('relight-notes').textContent")
     page.screenshot(tmp_path / "relight.png")
 
 

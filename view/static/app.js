@@ -229,6 +229,7 @@ $("relight-button").onclick = async () => {
   const pattern = state.uploaded || $("relight-pattern").value;
   say("");
   $("relight-info").textContent = "relighting (the first pattern of a view computes its footprints) …";
+  $("relight-notes").textContent = "";
   const current = ticket("relight");
   try {
     const response = await api("/api/relight", {
@@ -243,6 +244,7 @@ $("relight-button").onclick = async () => {
     $("relit-image").src = URL.createObjectURL(png);
     const metrics = result.metrics ? ` · PSNR ${result.metrics.psnr.toFixed(2)} dB, SSIM ${result.metrics.ssim.toFixed(3)}` : "";
     $("relight-info").textContent = `${result.backend}, ${result.pattern}: ${result.seconds.toFixed(2)} s${metrics}`;
+    $("relight-notes").textContent = (result.notes || []).join("\n");
     $("downloads").innerHTML = Object.entries(result.files)
       .map(([kind, url]) => `<a href="${url}?token=${encodeURIComponent(TOKEN)}" download>${
         { png: "PNG (16-bit linear)", exr: "EXR (float, linear)", display: "PNG (display)" }[kind] || kind}</a>`).join(" · ");
