@@ -245,13 +245,14 @@ def test_relighting_an_uploaded_pattern_gives_the_image_sss_relight_writes(serve
 def _answer_the_next_one_late(page, url_part: str, delay_ms: int = 1500) -> None:
     """The page's next request whose URL contains ``url_part`` is answered ``delay_ms`` late (then
     ``window.lateAnswered`` turns true); the others at once, as before."""
-    page.evaluate("""((part, delay) => { const fetch0 = window.fetch0 || window.fetch; let first = true;
+    late = """((part, delay) => { const fetch0 = window.fetch0 || window.fetch; let first = true;
         window.fetch0 = fetch0; window.lateAnswered = false;
         window.fetch = (url, options) => { const answer = fetch0(url, options);
             if (!String(url).includes(part) || !first) return answer;
             first = false;
             return answer.then(r => new Promise(done => setTimeout(() => { window.lateAnswered = true; done(r); }, delay)));
-        }; })(%s, %d)""" % (json.dumps(url_part), delay_ms))
+        }; })"""
+    page.evaluate(f"{late}({json.dumps(url_part)}, {int(delay_ms)})")
 
 
 def test_a_map_picked_after_another_stays_when_the_first_answers_last(page):
