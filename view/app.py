@@ -18,7 +18,7 @@ import hashlib
 import hmac
 import json
 import time
-from collections.abc import AsyncIterator, Callable, Iterator
+from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -32,6 +32,7 @@ from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from sssphase_core.capture.live import LIVE_PATTERNS
 from sssphase_core.errors import SssError
+from sssphase_core.relight.runner import Narrator
 from sssphase_core.store.files import write_bytes
 from sssphase_view.live import LiveRig, LiveSettings
 
@@ -262,7 +263,7 @@ async def upload(request: Request, state: ViewState) -> Response:
     return JSONResponse({"name": name})
 
 
-class _Notes:
+class _Notes(Narrator):
     """The lines ``sss relight`` would print for one relight (its calibration weights, the pixels a decoder
     gave the analytic model, ...), kept for the page; the files it wrote are listed on the page already."""
 
@@ -272,17 +273,6 @@ class _Notes:
     def say(self, text: str, warning: str = "") -> None:
         if not text.startswith("wrote "):
             self.lines.append(text)
-
-    @contextlib.contextmanager
-    def bar(self) -> Iterator[None]:
-        yield
-
-    def task(self, label: str) -> Callable[[int, int], None]:
-        return lambda done, total: None
-
-    @contextlib.contextmanager
-    def status(self, label: str) -> Iterator[None]:
-        yield
 
 
 async def relight(request: Request, state: ViewState) -> Response:

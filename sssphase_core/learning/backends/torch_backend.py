@@ -18,8 +18,8 @@ from sssphase_core.learning.training import (
     DecoderConfig,
     FootprintNet,
     PretrainConfig,
+    decoder_modules,
     load_checkpoint,
-    load_decoder,
     pretrain,
     resolve_checkpoint,
     train_decoder,
@@ -48,12 +48,13 @@ class TorchBackend:
             self.load(checkpoint)
 
     def load(self, checkpoint: Path | str) -> None:
-        self.encoder, self.decoder = load_decoder(checkpoint)
+        self.checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
+        ckpt = load_checkpoint(self.checkpoint)
+        self.encoder, self.decoder = decoder_modules(ckpt, self.checkpoint)
         self.encoder.to(self.device)
         self.decoder.to(self.device)
         self.patch = self.encoder.preset.patch
-        self.checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
-        self.domain = WidthDomain.from_dict(load_checkpoint(self.checkpoint, mmap=True).get("domain"))
+        self.domain = WidthDomain.from_dict(ckpt.get("domain"))
 
     def pretrain(self, views: Sequence[ViewData], out_dir: Path, *, config: PretrainConfig | None = None,
                  preset: ModelPreset | None = None, **options: object) -> Path:

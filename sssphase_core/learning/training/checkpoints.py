@@ -96,7 +96,11 @@ def decoder_patch(encoder_ckpt: Path | str | None, preset: str | ModelPreset) ->
 
 def load_decoder(path: Path | str) -> tuple[Encoder, Decoder]:
     """(encoder, decoder) of a decoder checkpoint, both in eval mode."""
-    ckpt = load_checkpoint(path)
+    return decoder_modules(load_checkpoint(path), path)
+
+
+def decoder_modules(ckpt: dict, path: Path | str) -> tuple[Encoder, Decoder]:
+    """(encoder, decoder) of an already loaded decoder checkpoint ``ckpt`` (read from ``path``), in eval mode."""
     if "decoder" not in ckpt:
         raise DataError(f"{path} is a pretraining checkpoint; train a decoder with `sss train decoder`")
     preset = _preset_of(ckpt, path)
