@@ -35,6 +35,8 @@ def capture(
     keep_dots: Annotated[bool, typer.Option(help="keep the raw dot-grid frames")] = False,
     keep_unwrap: Annotated[bool, typer.Option(help="keep the unwrapping frames (default: only the decoded result)")] = False,
     timeout: Annotated[float, typer.Option(help="seconds without an answer before the daemon counts as gone, or a device call (a frame: raise it for exposures that long) as stalled")] = 10.0,
+    dot_stride: Annotated[int, typer.Option(help="capture every S-th dot shift along x and y: footprints for 1/S^2 of the pixels from 1/S^2 of the dot frames (enough to train a decoder; the measured backend needs 1)")] = 1,
+    device: Annotated[str, typer.Option(help="sim rig: where it renders (cpu, or cuda / cuda:N / auto: the light transport on a GPU, the same images; 1080p in seconds)")] = "cpu",
 ) -> None:
     """Capture a session through the daemon (starting a local sim daemon if none runs)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
@@ -49,8 +51,8 @@ def capture(
     req = CaptureRequest.from_options(
         object_name, spec, views=views, footprints=footprints, references=reference or (), hdr=hdr,
         hdr_exposures=hdr_exposures, keep_dots=keep_dots, keep_unwrap=keep_unwrap, resume=resume, out=out, seed=seed,
-        preset=preset, dot_spacing=dot_spacing, transport=transport, randomise_rig=randomise_rig,
-        on_drawn=lambda drawn: console.print("randomised sim rig: " + ", ".join(
+        preset=preset, dot_spacing=dot_spacing, transport=transport, randomise_rig=randomise_rig, dot_stride=dot_stride,
+        device=device, on_drawn=lambda drawn: console.print("randomised sim rig: " + ", ".join(
             f"{k} {v}" for k, v in drawn.items() if k != "transport" or not transport)))
 
     def ask_move(view: int, angle: float) -> None:

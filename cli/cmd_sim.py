@@ -94,7 +94,35 @@ def rigs() -> None:
     Console(soft_wrap=True).print(table)
 
 
+def bench_sim(
+    out: Path = typer.Option(Path("benchmarks/sim.json"), help="JSON output (a Markdown table is written next to it)."),
+    device: str = typer.Option("auto", help="where the accelerated path renders: auto, cuda, cuda:N (cpu: the plumbing)"),
+    preset: str = typer.Option("paper", help="sim rig preset (`sss rigs`): paper = 1920x1080, K = 90"),
+    object_name: str = typer.Option("soap", "--object", help="sim object (`sss objects`)"),
+    md: Path | None = typer.Option(None, help="Markdown output (default: next to --out)"),
+) -> None:
+    """The simulator on a GPU: one view's whole capture plan rendered there, against its numpy path in the same
+    run; the sensor per frame; the two paths' footprints and images compared."""
+    from rich.console import Console
+
+    from sssphase_cli.output import write_result
+    from sssphase_core.compute import check_device
+    from sssphase_core.sim import get_object, rig_preset
+
+    check_device(device)
+    rig_preset(preset)
+    get_object(object_name)  # unknown names are one line before any work
+    from sssphase_core.bench.sim_accel_bench import markdown, run
+
+    console = Console(soft_wrap=True)
+    with console.status("sss bench sim") as status:
+        result = run(device=device, preset=preset, object_name=object_name,
+                     progress=lambda stage: status.update(f"sss bench sim: {stage}"))
+    write_result(console, out, md, result, markdown(result))
+
+
 def register(groups: dict[str, typer.Typer]) -> None:
+    groups["bench"].command("sim")(bench_sim)
     groups["root"].command("sim")(sim)
     groups["root"].command("objects")(objects)
     groups["root"].command("rigs")(rigs)

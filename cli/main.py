@@ -38,6 +38,7 @@ GROUP_HELP = {
     "viz": "Visualisations: PCA-RGB feature maps, footprint profiles.",
     "daemon": "The acquisition daemon: start, stop, status, keys.",
     "calibrate": "Rig calibration: the projector's response.",
+    "repro": "Reproduce the paper's experiments at its scale within a time budget.",
 }
 
 
@@ -74,6 +75,7 @@ COMMAND_MODULES = [
     "sssphase_cli.cmd_learn",  # train, eval knn/footprints, viz pca
     "sssphase_cli.cmd_relight",  # relight, geometry, eval relight, report, demo, bench relight/store/stability/gap
     "sssphase_cli.cmd_view",  # view (the browser: live view, live decode, sessions, relight)
+    "sssphase_cli.cmd_repro",  # repro paper
 ]
 
 

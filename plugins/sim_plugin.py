@@ -12,7 +12,8 @@ for the simulated times), ``projector_gamma`` / ``projector_black`` (a projector
 the preset's, for calibration), ``transport`` (``burley`` or ``directional_dipole``), the camera's
 ``lens_blur`` (px), ``read_noise`` (e-), ``white_fraction`` (exposure) and ``demosaic`` (``malvar`` or
 ``opencv``, or ``none`` for a three-chip camera without a colour filter array; see ``sim.rig.with_camera``),
-``raw`` (Bayer frames; not for a three-chip camera), and fault injection for tests: ``fail_at_frame``
+``raw`` (Bayer frames; not for a three-chip camera), ``device`` (``cpu``, or ``cuda[:N]``/``auto``: the
+light transport on a torch device, ``sssphase_core.sim_accel``; the same images), and fault injection for tests: ``fail_at_frame``
 (the camera raises at that grab), ``disconnect_at_frame`` (the camera is gone from that grab on, as an
 unplugged USB camera: every later call raises until the rig is opened again), ``stall_at_frame`` (that grab
 never returns), ``garbage_at_frame`` (that frame is half as tall and NaN) and ``grab_delay_s`` (slow frames). Options nobody reads are refused
@@ -65,6 +66,21 @@ def _number(options: Mapping[str, Any], name: str, default: float, lo: float, hi
     return kind(value)
 
 
+def _transport_factory(device: Any):
+    """The rig option ``device``: where the light transport computes (``cpu``: numpy, no torch imported;
+    ``cuda[:N]`` or ``auto``: torch, ``sssphase_core.sim_accel``); a device this process cannot use is refused."""
+    if not isinstance(device, str):
+        raise InputError(f"sim option device must be a string (cpu, cuda, cuda:N or auto), got {device!r}")
+    from sssphase_core.compute import check_device
+
+    check_device(device)
+    if device.partition(":")[0] == "cpu":
+        return None
+    from sssphase_core.sim_accel import transport_factory
+
+    return transport_factory(device)
+
+
 class SimRigState:
     """State shared by the sim devices of one rig: scene, shown pattern, turntable, device clock."""
 
@@ -79,6 +95,7 @@ class SimRigState:
         self.latency_ns = int(_number(options, "latency_s", 1 / 60, 0.0, 60.0, float) * 1e9)
         self.frame_period_ns = int(_number(options, "frame_period_s", 1 / 30, 1e-6, 60.0, float) * 1e9)
         self.realtime = bool(options.get("realtime", False))
+        self.transport_factory = _transport_factory(options.get("device", "cpu"))
         self.clock_ns = 0
         self.shown: list[tuple[int, np.ndarray, str, int]] = []  # (on_screen_ns, image, tag, frame_id)
         self._scene = None
@@ -93,7 +110,8 @@ class SimRigState:
     @property
     def scene(self):
         if self._scene_view != self.view:
-            self._scene = _sim().SimScene(self.obj, rig=self.rig, view=self.view, n_views=self.n_views, seed=self.seed)
+            self._scene = _sim().SimScene(self.obj, rig=self.rig, view=self.view, n_views=self.n_views, seed=self.seed,
+                                          transport_factory=self.transport_factory)
             self._scene_view = self.view
             self.rendered.clear()
         return self._scene

@@ -224,7 +224,8 @@ def run(out: Path, *, device: str = "auto", preset: str = "paper", steps: int = 
                               "torch": torch.__version__}
     with tempfile.TemporaryDirectory(prefix="sss-gpu-") as tmp:
         work = Path(tmp)
-        for name, step in (("training", lambda: training(preset, dev, work, steps=steps, batch=batch, epochs=epochs)),
+        for name, step in (("flops", lambda: flops(preset, dev, result["device_name"])),
+                           ("training", lambda: training(preset, dev, work, steps=steps, batch=batch, epochs=epochs)),
                            ("agreement", lambda: agreement(work / "dec", dev)),
                            ("relight", lambda: relighting(dev, size=relight_size)),
                            ("ddp", lambda: ddp(preset, work, steps=max(1, steps // epochs), batch=batch))):
@@ -232,6 +233,31 @@ def run(out: Path, *, device: str = "auto", preset: str = "paper", steps: int = 
                 progress(name)
             result[name] = step()
     return result
+
+
+def flops(preset: str, dev: torch.device, device_name: str) -> dict[str, Any]:
+    """Model FLOPs per training patch of both stages (counted on one step) and the device's bf16 peak: the
+    datasheet's and a dense matrix product's measured in this run (the baseline MFU is read against)."""
+    from sssphase_core.learning.flops import datasheet_peak, measured_matmul_peak, training_flops_per_patch
+
+    return {"pretrain": training_flops_per_patch(preset, "pretrain"), "decoder": training_flops_per_patch(preset, "decoder"),
+            "datasheet_peak": datasheet_peak(device_name), "matmul_peak": measured_matmul_peak(dev)}
+
+
+def mfu_lines(r: dict[str, Any]) -> list[str]:
+    """The model-FLOPs utilisation of each stage's default run (patches/s after epoch 1) against both peaks."""
+    f, t = r.get("flops"), r["training"]
+    if not f:
+        return []
+    lines = ["", "| stage | model GFLOP per patch (one step) | TFLOP/s reached | of the datasheet's bf16 peak | of a bf16 "
+             "matrix product measured here |", "|---|---|---|---|---|"]
+    for name in ("pretrain", "decoder"):
+        rate = t.get(name, {}).get("steady_patches_s", float("nan"))
+        reached = f[name] * rate
+        sheet = f"{reached / f['datasheet_peak']:.1%} of {f['datasheet_peak'] / 1e12:.0f}" if f.get("datasheet_peak") else "unknown device"
+        lines.append(f"| {name} | {f[name] / 1e9:.1f} | {reached / 1e12:.1f} | {sheet} | "
+                     f"{reached / f['matmul_peak']:.1%} of {f['matmul_peak'] / 1e12:.0f} |")
+    return lines
 
 
 def markdown(r: dict[str, Any]) -> str:
@@ -264,6 +290,7 @@ def markdown(r: dict[str, Any]) -> str:
         lines += ["", "Deterministic kernels against CUDA's default ones (patches/s after epoch 1), same run: "
                   + ", ".join(costs) + ". Loss per epoch identical with the host loader (same batches and kernels, "
                   "other cropping): " + ", ".join(f"{k} {v}" for k, v in same.items()) + "."]
+    lines += mfu_lines(r)
     lines += ["", "| CPU vs device, fixed batch | footprint max rel. diff | embedding max rel. diff |", "|---|---|---|"]
     for label, a in r["agreement"].items():
         lines.append(f"| {label}{'' if a['autocast'] or label == 'float32' else ' (not applied off CUDA)'} | "

@@ -175,12 +175,12 @@ def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, option
                              plan=json.loads(plan.to_json()), reference_files=list(dict.fromkeys(f["params"]["file"] for f in frames if f["kind"] == "image")))
     if session.manifest.get("plan_digest") != digest or session.manifest.get("n_views") != req.views:
         raise InputError(f"{session.path} was captured with a different plan or view count: resume with the same options")
-    from sssphase_core.sim.rig import FAULT_OPTIONS
+    from sssphase_core.sim.rig import COMPUTE_OPTIONS, FAULT_OPTIONS
 
     before, now = (json.loads(json.dumps(r, default=str)) for r in (session.manifest.get("rig", {}), {**asdict(rig), "options": options}))
-    for r in (before, now):  # a fault injected into the sim devices (a camera that fails, then comes back) is no other rig
-        if isinstance(r.get("options"), dict):
-            r["options"] = {k: v for k, v in r["options"].items() if k not in FAULT_OPTIONS}
+    for r in (before, now):  # a fault injected into the sim devices (a camera that fails, then comes back), or the
+        if isinstance(r.get("options"), dict):  # sim computing on a GPU, is no other rig
+            r["options"] = {k: v for k, v in r["options"].items() if k not in FAULT_OPTIONS | COMPUTE_OPTIONS}
     changed = sorted({k for k in set(before) | set(now) if before.get(k) != now.get(k)})
     if changed:  # the new views would be captured on another rig (another seed, transport, camera) than the first
         raise InputError(f"{session.path} was captured with other rig settings ({', '.join(changed)} differ): "

@@ -122,29 +122,37 @@ class CaptureRequest:
     dot_spacing: int | None = None
     transport: str | None = None  # sim light-transport model (None: the rig's, burley)
     sim_options: dict[str, Any] = field(default_factory=dict)  # more sim rig options (e.g. sim.randomised_rig_options)
+    dot_stride: int = 1  # every S-th dot shift along x and y (footprints for 1/S^2 of the pixels; measured needs 1)
 
     @classmethod
     def from_options(cls, object_name: str, rig: RigSpec, *, views: int = 4, footprints: bool = False,
                      references: tuple[str, ...] | list[str] = (), hdr: bool = False, hdr_exposures: str | None = None,
                      keep_dots: bool = False, keep_unwrap: bool = False, resume: bool = False, out: Path = Path("sessions"),
                      seed: int = 0, preset: str = "cpu", dot_spacing: int | None = None, transport: str | None = None,
-                     randomise_rig: bool = False,
+                     randomise_rig: bool = False, dot_stride: int = 1, device: str = "cpu",
                      on_drawn: Callable[[dict[str, Any]], None] | None = None) -> CaptureRequest:
         """A request from `sss capture`'s options (and a form's: the same names), checked for ``rig`` as
         :meth:`validate` checks it, in the order the options are given. ``hdr_exposures``: comma-separated
         relative exposures (implies ``hdr``; ``hdr``: :data:`DEFAULT_HDR`). ``randomise_rig`` draws the sim rig's
         physics and camera from ``seed`` and the object's name (:func:`sim.randomised_rig_options`), told to
-        ``on_drawn`` as soon as drawn."""
+        ``on_drawn`` as soon as drawn. ``device``: where the sim rig renders (``cuda``: on the GPU, the same images)."""
         req = cls(object_name, views, footprints, tuple(references), (), keep_dots, keep_unwrap, resume, out, seed,
-                  preset, dot_spacing, transport)
+                  preset, dot_spacing, transport, dot_stride=dot_stride)
         req._check_counts()
         if randomise_rig and rig.is_sim:
             from sssphase_core.sim import randomised_rig_options
 
             req.sim_options = randomised_rig_options(seed, object_name)
-        req._check_rig(rig, randomise_rig)
         if req.sim_options and on_drawn is not None:
             on_drawn(req.sim_options)
+        if device != "cpu":  # the sim's light transport on a torch device (sssphase_core.sim_accel)
+            if not rig.is_sim:
+                raise InputError("--device places the simulator's rendering: it applies to the sim rig only")
+            from sssphase_core.compute import check_device
+
+            check_device(device)
+            req.sim_options = {**req.sim_options, "device": device}
+        req._check_rig(rig, randomise_rig)
         req.hdr = parse_exposures(hdr_exposures) if hdr_exposures is not None else DEFAULT_HDR if hdr else ()
         req._check_frames()
         return req
@@ -177,7 +185,7 @@ class CaptureRequest:
 
     def _check_frames(self) -> None:
         from sssphase_core.capture.engine import check_brackets
-        from sssphase_core.processing.patterns import REFERENCE_NAMES, check_dot_spacing
+        from sssphase_core.processing.patterns import REFERENCE_NAMES, check_dot_spacing, check_dot_stride
         from sssphase_core.store.imageio import MAX_FRAME_PIXELS, frame_shape
         from sssphase_core.store.session import check_output_folder
 
@@ -191,6 +199,7 @@ class CaptureRequest:
                 read_pattern(Path(ref), (w, h))  # (its size is checked against the rig's projector by the daemon)
         if self.dot_spacing is not None:  # 0 meant the default, 10^12 exhausted the memory
             check_dot_spacing(self.dot_spacing)
+        check_dot_stride(self.dot_stride, self.dot_spacing)
         check_output_folder(self.out)
 
 
@@ -245,7 +254,7 @@ def build_frames(req: CaptureRequest, size: tuple[int, int], patch: int,
     spacing = dot_spacing_for(patch) if req.dot_spacing is None else req.dot_spacing
     plan = capture_plan(*size, footprints=req.footprints, dot_spacing=spacing,
                         references=("white", "black", *named), hdr_exposures=req.hdr,
-                        gamma=DEFAULT_GAMMA if gamma is None else gamma)
+                        gamma=DEFAULT_GAMMA if gamma is None else gamma, dot_stride=req.dot_stride)
     frames = json.loads(plan.to_json())["frames"]
     for path in files:
         name = _reference_name(str(path))

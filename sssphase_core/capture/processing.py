@@ -236,15 +236,17 @@ class ViewProcessor:
             self.dark = dark_reference(self.images["black"], self.images["white"])
             self.footprints = CropStream(self.writer, "footprints",
                                          DotGridExtractor(corr.xp, corr.yp, corr.mask, self.spacing, self.patch))
-            self.transport = CropStream(self.writer, "transport",
-                                        DotTransportExtractor(corr.xp, corr.yp, corr.mask, self.spacing, self.patch,
-                                                              (self.plan.width, self.plan.height)), drop_noise=True)
+            if self.req.dot_stride == 1:  # a sparse lattice is no light transport: only the pixels' crops are kept
+                self.transport = CropStream(self.writer, "transport",
+                                            DotTransportExtractor(corr.xp, corr.yp, corr.mask, self.spacing, self.patch,
+                                                                  (self.plan.width, self.plan.height)), drop_noise=True)
         sx, sy = (int(v) for v in key.split("/")[1].split("_"))
         if self.bound is not None:  # dot grids come after the decode: repaired as they come
             image = self._repaired(image)
         dots = image - self.dark
         self.footprints.add(sx, sy, dots)
-        self.transport.add(sx, sy, dots)
+        if self.transport is not None:
+            self.transport.add(sx, sy, dots)
         if self.dots is not None:
             self.dots.append(image)
 
@@ -272,9 +274,10 @@ class ViewProcessor:
             w.write(key, image)
         for key, pattern in self.patterns.items():  # so that relighting can be evaluated against ref/<name>
             w.write(f"pattern/{key.removeprefix('ref/')}", np.asarray(pattern, np.float32))
-        if self.footprints is not None and self.transport is not None:
+        if self.footprints is not None:
             info["footprints"] = {**self.footprints.close(), "missing": len(self.footprints.extractor.missing()),
-                                  "spacing": self.spacing}
+                                  "spacing": self.spacing, "dot_stride": self.req.dot_stride}
+        if self.transport is not None:
             info["transport"] = {**self.transport.close(), "noise_dropped": True}
         if self.dots is not None:
             self.dots.close()
@@ -285,12 +288,19 @@ def write_sim_ground_truth(writer: ViewWriter, req: CaptureRequest, view: int, f
                            options: dict[str, Any] | None = None) -> None:
     """Exact correspondence, material labels and noise-free renders of the references (exact
     footprints are left to ``SimScene.footprints``: they would double the session's size).
-    ``options``: the sim rig's options (a projector response other than the preset's, the transport model)."""
+    ``options``: the sim rig's options (a projector response other than the preset's, the transport model, the
+    ``device`` it renders on)."""
     from sssphase_core.processing.patterns import PlannedFrame
     from sssphase_core.sim import SimScene, rig_from_options
 
     rig = rig_from_options({"preset": req.preset, **(options or {})})
-    scene = SimScene(req.object, rig=rig, view=view, n_views=req.views, seed=req.seed)
+    device = str((options or {}).get("device", "cpu"))
+    factory = None
+    if device.partition(":")[0] != "cpu":  # renders on the GPU the daemon renders on: numpy took ~50 s per 1080p view
+        from sssphase_core.sim_accel import transport_factory
+
+        factory = transport_factory(device)
+    scene = SimScene(req.object, rig=rig, view=view, n_views=req.views, seed=req.seed, transport_factory=factory)
     writer.write("gt/proj_xy", scene.proj_xy.astype(np.float32))
     writer.write("gt/labels", scene.material.astype(np.int16))
     writer.write("gt/mask", scene.mask)

@@ -81,12 +81,13 @@ def knn_leave_one_view_out(embeddings: np.ndarray, labels: np.ndarray, views: np
 
 def knn_of_views(encoder: torch.nn.Module, views: Sequence, objects: Sequence[str], *, label: str = "object",
                  material_names: Sequence[str] | None = None, ks: Sequence[int] = (20,),
-                 vote: str = "majority") -> dict[int, dict]:
+                 vote: str = "majority", device: str | torch.device = "cpu") -> dict[int, dict]:
     """The kNN table of frozen embeddings of every pixel of ``views`` (``data.View``), per k.
 
     ``label``: ``object`` (classes ``objects``, the paper's Table 2) or ``material`` (classes
     ``material_names``; pixels of no known material are left out). Views are the leave-one-out unit
-    (:func:`knn_leave_one_view_out`); predictions are dropped from the results.
+    (:func:`knn_leave_one_view_out`); predictions are dropped from the results. ``device``: where the
+    encoder embeds the patches.
     """
     from sssphase_core.learning.data import PatchDataset
 
@@ -94,7 +95,7 @@ def knn_of_views(encoder: torch.nn.Module, views: Sequence, objects: Sequence[st
         raise InputError(f"the kNN label must be object or material, got {label!r}")
     class_names = list(objects) if label == "object" else material_names
     ds = PatchDataset(views, encoder.preset.patch, objects)
-    emb = np.concatenate([embed_pixels(encoder, v.psp, v.pixels) for v in views])
+    emb = np.concatenate([embed_pixels(encoder, v.psp, v.pixels, device=device) for v in views])
     labels = ds.labels(label)
     keep = labels >= 0
     out = {}

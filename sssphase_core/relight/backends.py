@@ -53,6 +53,11 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
             return denoised_transport(rv, pixels, dots, crops, noise, smoothings), int(crops.shape[1])
         if "footprints/crops" not in arrays:
             raise InputError(f"{rv.object} view {rv.view} has no captured footprints: capture with --footprints")
+        stride = int(rv.session.manifest["views"][str(rv.view)].get("footprints", {}).get("dot_stride", 1))  # type: ignore[attr-defined]
+        if stride > 1:
+            raise InputError(f"{rv.object} view {rv.view} was captured with --dot-stride {stride}: its dot grids give "
+                             f"footprints to 1/{stride * stride} of the pixels, too few to relight with (they train a "
+                             "decoder); capture with --dot-stride 1 for the measured backend")
         from sssphase_core.processing.footprints import transport_weights
 
         px = np.asarray(rv.session.load(rv.view, "footprints/pixels"), np.int64)  # type: ignore[attr-defined]

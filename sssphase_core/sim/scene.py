@@ -20,6 +20,31 @@ COS_VIEW_MIN = 0.1
 SHADOW_OFFSET = 0.05  # mm, start of shadow rays off the surface
 
 
+#: Patterns lighting less than this share of the projector (dot grids) are looked up only where they reach.
+SPARSE_SHARE = 0.05
+
+
+def _sample_sparse(light: np.ndarray, xy: np.ndarray, on: np.ndarray | None = None) -> np.ndarray:
+    """``sample_projector(light, x, y)`` (P, Hp, Wp, C) at (N, 2) points -> (N, P, C), for sparse light (a dot
+    grid lights ~1/3000 of a 1080p projector) computed only at the points whose four bilinear taps meet a lit
+    projector pixel: the same values, without a lookup at every lit camera pixel per frame. ``on``: the
+    (Hp, Wp) projector pixels any pattern lights, when known."""
+    on = (light > 0).any(axis=(0, 3)) if on is None else on
+    if on.mean() >= SPARSE_SHARE:
+        return sample_projector(light, xy[:, 0], xy[:, 1])
+    padded = np.zeros((on.shape[0] + 2, on.shape[1] + 2), bool)  # taps outside the projector read 0
+    padded[1:-1, 1:-1] = on
+    finite = np.isfinite(xy).all(axis=1)  # (NaN: no projector light; it reads 0)
+    safe = np.where(finite[:, None], xy, -2.0)
+    x0 = np.clip(np.floor(safe[:, 0]).astype(np.int64) + 1, 0, on.shape[1])
+    y0 = np.clip(np.floor(safe[:, 1]).astype(np.int64) + 1, 0, on.shape[0])
+    reach = finite & (padded[y0, x0] | padded[y0, x0 + 1] | padded[y0 + 1, x0] | padded[y0 + 1, x0 + 1])
+    out = np.zeros((len(xy), light.shape[0], light.shape[3]), np.float32)
+    sel = np.flatnonzero(reach)
+    out[sel] = sample_projector(light, xy[sel, 0], xy[sel, 1])
+    return out
+
+
 class SimScene:
     """Object ``obj`` (a :class:`SimObject` or catalogue name) on the turntable at view ``view`` of
     ``n_views`` (angle 360 * view / n_views about the camera's y axis through the turntable centre).
@@ -31,10 +56,12 @@ class SimScene:
     index into ``sssphase_core.sim.MATERIAL_NAMES``, -1 off the surface), ``albedo``, ``mfp`` (scaled, mm);
     ``light_dir`` (direction the projector light travels), ``cos_in`` and ``cos_view`` (incidence and
     viewing cosines). ``rig.transport`` picks the light-transport model (``burley`` or
-    ``directional_dipole``).
+    ``directional_dipole``); ``transport_factory(maps, patch)`` builds the Burley one elsewhere than
+    numpy (``sssphase_core.sim_accel.transport_factory``: on a GPU; same footprints and images).
     """
 
-    def __init__(self, obj: SimObject | str, rig: RigConfig | None = None, view: int = 0, n_views: int = 4, seed: int = 0):
+    def __init__(self, obj: SimObject | str, rig: RigConfig | None = None, view: int = 0, n_views: int = 4, seed: int = 0,
+                 transport_factory: Callable[[SurfaceMaps, int], Transport] | None = None):
         self.obj = get_object(obj) if isinstance(obj, str) else obj
         self.rig = rig or rig_preset("cpu")
         self.view, self.n_views, self.seed = view, n_views, seed
@@ -45,7 +72,7 @@ class SimScene:
             directional = DirectionalMaps(self.normals, self.light_dir, self.cos_in, self.cos_view, self.mfp)
             self.transport: Transport = DirectionalTransport(maps, self.rig.patch, directional)
         else:
-            self.transport = Transport(maps, self.rig.patch)
+            self.transport = (transport_factory or Transport)(maps, self.rig.patch)
         self._unit_white: np.ndarray | None = None
 
     # --- geometry ------------------------------------------------------------------------------
@@ -143,11 +170,18 @@ class SimScene:
         pats = self._check_patterns(patterns)
         proj = self.rig.projector
         idx = self.transport.lit_index if pixels is None else pixels
-        light = (1 - proj.black) * np.clip(pats, 0, 1) ** np.float32(proj.gamma)
+        light = np.clip(pats, 0, 1)
         if light.ndim == 3:
-            light = light[..., None]
+            light = light[..., None]  # mono patterns stay one channel until the lookup
+        lit = light > 0
+        on = lit.any(axis=(0, 3))  # projector pixels any pattern lights
+        scale, gamma = np.float32(1 - proj.black), np.float32(proj.gamma)
+        if on.mean() < SPARSE_SHARE:  # dot grids: the response only where light is (same values)
+            light[lit] = scale * light[lit] ** gamma
+        else:
+            light = scale * light**gamma
         xy = self.proj_xy.reshape(-1, 2)[idx]
-        out = sample_projector(light, xy[:, 0], xy[:, 1])  # mono patterns stay one channel until here
+        out = _sample_sparse(light, xy, on)
         return np.broadcast_to(out, out.shape[:2] + (3,))
 
     def _unit_light(self) -> np.ndarray:

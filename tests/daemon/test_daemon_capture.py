@@ -199,7 +199,8 @@ def test_footprints_stream_into_crops_and_raw_dots_on_request(daemon, tmp_path):
     mask = s.load(0, "corr/mask")
     assert crops.shape == (len(pixels), 32, 32, 3) and len(pixels) == mask.sum()
     assert s.read(0, "dots").shape == (64, 192, 256, 3)
-    assert s.manifest["views"]["0"]["footprints"] == {"count": len(pixels), "missing": 0, "spacing": 8}
+    assert s.manifest["views"]["0"]["footprints"] == {"count": len(pixels), "missing": 0, "spacing": 8,
+                                                           "dot_stride": 1}
     centre, between_dots = crops[:, 16, 16].mean(), crops[:, 20, 20].mean()
     assert centre > 1.5 * between_dots, (centre, between_dots)  # each crop is centred on its lit pixel
 

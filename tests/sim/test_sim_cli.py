@@ -32,7 +32,7 @@ def app() -> typer.Typer:
     def main() -> None:  # a group, as in the real CLI
         pass
 
-    cmd_sim.register({"root": app})
+    cmd_sim.register({"root": app, "bench": typer.Typer()})
     return app
 
 

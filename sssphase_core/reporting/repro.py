@@ -1,0 +1,363 @@
+"""`sss repro paper`: the paper's Tables 1-2 at its scale (1080p, K = 90, the 32M + 22M-parameter model),
+within a time budget on one machine, through the user's path, with the paper's numbers beside ours.
+
+Steps (each recorded in ``<out>/steps/<name>.json`` and skipped when rerun, like ``sss demo``):
+
+1. ``train_sessions``  the paper's five training objects, captured as ``sss capture`` does (the sim rig at
+   the ``paper`` preset, rendering on ``device``; dot grids every ``dot_stride``-th shift: footprints for
+   1 / stride^2 of the pixels, what the decoder samples from);
+2. ``test_sessions``   unseen objects with reference patterns;
+3. ``pretrain_psp`` and ``pretrain_imagenet``  SimSiam with the paper's PSP augmentations and with
+   ImageNet's (Table 2 compares them);
+4. ``decoder``         the footprint decoder (SBH loss) on the frozen PSP encoder, from the captured crops;
+5. ``footprints``      Table 1: footprint MSE / PSNR / SSIM (/ LPIPS with its weights) of unseen objects
+   against the simulator's exact footprints (evaluation only);
+6. ``knn``             Table 2: kNN accuracy per object, view-level leave-one-out, both augmentations;
+7. ``relight``         relit PSNR / SSIM against the reference captures for none / analytic / torch / blend;
+8. ``report``          ``<out>/report.md`` and ``report.json``: our figures beside the paper's, the
+   seconds each step took of the budget, and what was scaled down to fit.
+
+The budget is kept by sizing, not by cutting runs short: the training epochs are chosen from the time left
+after the captures (:func:`epochs_within`, with the throughput ``sss bench gpu`` measured), and a step
+that would start with the budget spent is recorded as not run. The report is rewritten after every step,
+so a run stopped from outside still leaves what it finished.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sssphase_core.errors import InputError
+from sssphase_core.reporting.demo import Demo, DemoConfig, NotAvailable
+from sssphase_core.store.files import write_text
+
+#: The paper's Table 1 (unseen test objects; MSE x 1e-5, LPIPS x 1e-2 there; plain units here).
+PAPER_TABLE1: dict[str, dict[str, float]] = {
+    "apple": {"mse": 4.1e-5, "psnr": 44.67, "ssim": 0.96, "lpips": 8.4e-2},
+    "orange": {"mse": 4.9e-5, "psnr": 43.84, "ssim": 0.94, "lpips": 8.6e-2},
+    "crab": {"mse": 3.5e-5, "psnr": 47.98, "ssim": 0.98, "lpips": 6.5e-2},
+    "hand": {"mse": 3.8e-5, "psnr": 42.51, "ssim": 0.96, "lpips": 6.5e-2},
+}
+#: The paper's Table 2: kNN accuracy (%) per training object, PSP against ImageNet augmentations.
+PAPER_TABLE2: dict[str, dict[str, float]] = {
+    "apple": {"psp": 99.6, "imagenet": 99.04}, "pear": {"psp": 99.99, "imagenet": 98.74},
+    "orange": {"psp": 99.99, "imagenet": 98.92}, "star": {"psp": 99.95, "imagenet": 99.93},
+    "shovel": {"psp": 91.43, "imagenet": 84.91},
+}
+#: What the paper trained with, for the report's "scaled down" table.
+PAPER_SCALE = {"train views per object": "about 40 (a turntable)", "pretraining epochs": 200,
+               "decoder epochs": "not stated", "batch": 128, "patches": "every surface pixel"}
+
+#: Training throughput (patches/s, all time counted) the epoch planner assumes per (device type, model preset):
+#: `sss bench gpu` on one H200 measured 988 (SimSiam) and 947 (decoder) at batch 128 with the paper preset.
+PLANNED_RATE = {("cuda", "paper"): 800.0, ("cuda", "lite"): 4000.0, ("cpu", "paper"): 3.0, ("cpu", "lite"): 150.0}
+
+
+@dataclass(frozen=True)
+class ReproConfig(DemoConfig):
+    rig_preset: str = "paper"
+    dot_stride: int = 11
+    augments: tuple[str, ...] = ("psp", "imagenet")
+    #: shares of the training time left after the captures and the evaluation reserve
+    train_shares: tuple[float, float, float] = (0.3, 0.3, 0.4)  # pretrain psp, pretrain imagenet, decoder
+    eval_reserve_s: float = 150.0  # kept for footprints, kNN and relighting
+
+
+PRESETS = {
+    # One lent H200 (16 cores) in about 8 minutes: the paper's objects, 2 views each (kNN's leave-one-view-out
+    # needs two), 1080p, K = 90, the paper model; epochs fitted to the time the captures leave.
+    "paper": ReproConfig(("apple", "pear", "orange", "star", "shovel"), ("crab", "hand"), train_views=2,
+                         pixels_per_view=1000, pretrain_epochs=20, pretrain_batch=128, decoder_epochs=20,
+                         decoder_batch=128, backends=("none", "torch", "analytic", "blend"), footprint_pixels=256,
+                         model="paper", analytic_supersample=2, eval_reserve_s=60.0),
+    # The test suite's: the CPU rig preset and the lite model, seconds per step.
+    "tiny": ReproConfig(("apple", "star"), ("sand_rake",), train_views=2, pixels_per_view=12, pretrain_epochs=1,
+                        pretrain_batch=8, decoder_epochs=1, decoder_batch=8, backends=("none", "analytic", "torch"),
+                        footprint_pixels=16, model="lite", rig_preset="cpu", dot_stride=4, eval_reserve_s=0.0),
+}
+
+#: A relight is started only with at least this many seconds of the budget left.
+RELIGHT_MIN_S = 20.0
+
+STEPS = ("train_sessions", "test_sessions", "pretrain_psp", "pretrain_imagenet", "decoder", "footprints", "knn",
+         "relight", "report")
+
+#: ``capture(requests) -> session paths``: captures the requests as ``sss capture`` does (the CLI runs them
+#: through daemons, several at once).
+Capture = Callable[[Sequence[Any]], list[str]]
+
+
+def epochs_within(seconds: float, patches: int, rate: float, most: int) -> int:
+    """Epochs of ``patches`` that ``seconds`` allow at ``rate`` patches/s: 1 to ``most``."""
+    if patches <= 0 or rate <= 0:
+        return 1
+    return int(max(1, min(most, math.floor(seconds * rate / patches))))
+
+
+class PaperRepro(Demo):
+    """The paper's experiments at its scale, within ``budget_s`` seconds (see the module docstring)."""
+
+    report_title = "sssphase: the paper's Tables 1-2 reproduced"
+
+    def __init__(self, out: Path, config: ReproConfig, capture: Capture, *, device: str, budget_s: float,
+                 fresh: bool = False, log: Callable[[str], None] = print,
+                 progress: Callable[[str, int, int, str], None] | None = None):
+        super().__init__(out, config, client=None, fresh=fresh, log=log, progress=progress)
+        self.cfg: ReproConfig = config
+        self.capture, self.device, self.budget_s = capture, device, float(budget_s)
+        self.t0 = time.perf_counter()
+        self.planned: dict[str, dict[str, Any]] = {}
+
+    # --- budget ------------------------------------------------------------------------------------
+
+    def spent_s(self) -> float:
+        """Seconds of the budget spent: steps finished in earlier runs plus this run's time."""
+        earlier = sum(float(r.get("seconds", 0.0)) for r in self.results.values() if r.get("resumed"))
+        return earlier + time.perf_counter() - self.t0
+
+    def left_s(self) -> float:
+        return self.budget_s - self.spent_s()
+
+    def step(self, name: str, fn: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+        if name != "report" and self._done(name) is None and self.left_s() <= 0:
+            result = {"status": "not available", "seconds": 0.0,
+                      "reason": f"not run: the budget of {self.budget_s:.0f} s was spent ({self.spent_s():.0f} s)"}
+            self.results[name] = result
+            self.log(f"[{name}] {result['reason']}")
+            return result
+        result = super().step(name, fn)
+        if name != "report":
+            self.write_report()  # what is finished is on disk even if the run is stopped from outside
+        return result
+
+    def _epochs(self, stage: int, patches: int, most: int) -> int:
+        """Epochs for training stage ``stage`` (0: pretrain psp, 1: imagenet, 2: decoder) in its share of the time left."""
+        from sssphase_core.compute import compute_device
+
+        kind = compute_device(self.device).type
+        rate = PLANNED_RATE.get((kind if kind == "cuda" else "cpu", self.cfg.model), 100.0)
+        shares = self.cfg.train_shares[stage:]
+        seconds = max(0.0, self.left_s() - self.cfg.eval_reserve_s) * shares[0] / sum(shares)
+        return epochs_within(seconds, patches, rate, most)
+
+    # --- steps -------------------------------------------------------------------------------------
+
+    def _request(self, obj: str, root: Path, views: int, **kw: Any) -> Any:
+        from sssphase_core.capture import CaptureRequest
+
+        sim = {"device": self.device} if self.device != "cpu" else {}
+        return CaptureRequest(obj, views=views, resume=True, out=root, seed=self.cfg.seed, preset=self.cfg.rig_preset,
+                              sim_options=sim, **kw)
+
+    def _test_requests(self) -> list[Any]:
+        root = self.out / "sessions" / "test"
+        return [self._request(o, root, self.cfg.test_view + 1, references=self.cfg.references) for o in self.cfg.test_objects]
+
+    def train_sessions(self) -> dict[str, Any]:
+        """The training sessions, and the unseen ones captured at the same time (the captures run side by side)."""
+        root = self.out / "sessions" / "train"
+        reqs = [self._request(o, root, self.cfg.train_views, footprints=True, dot_stride=self.cfg.dot_stride)
+                for o in self.cfg.train_objects]
+        tests = self._test_requests() if self._done("test_sessions") is None else []
+        paths = self.capture(reqs + tests)
+        self._tests_captured = paths[len(reqs):]
+        return {"root": str(root), "sessions": paths[: len(reqs)]}
+
+    def test_sessions(self) -> dict[str, Any]:
+        reqs = self._test_requests()
+        paths = getattr(self, "_tests_captured", None) or self.capture(reqs)
+        return {"root": str(self.out / "sessions" / "test"), "sessions": paths}
+
+    def _pretrain(self, augment: str, stage: int) -> dict[str, Any]:
+        from sssphase_core.learning.backends import get_backend
+        from sssphase_core.learning.training import PretrainConfig
+
+        c = self.cfg
+        views = self.train_views(footprints=False)
+        patches = sum(len(v.pixels) for v in views)
+        epochs = self._epochs(stage, patches, c.pretrain_epochs)
+        cfg = PretrainConfig(epochs=epochs, batch_size=min(c.pretrain_batch, patches), seed=c.seed, preset=c.model,
+                             augment=augment, warmup_epochs=min(1.0, epochs / 2), device=self.device, knn_monitor=0)
+        run = self.out / "runs" / f"pretrain_{augment}"
+        path = get_backend("torch").pretrain(views, run, config=cfg, progress=self.progress)
+        return {"checkpoint": str(path), "epochs": epochs, "patches": patches, "batch": cfg.batch_size,
+                **self._throughput(run, "pretrain", cfg.batch_size)}
+
+    def pretrain_psp(self) -> dict[str, Any]:
+        return self._pretrain("psp", 0)
+
+    def pretrain_imagenet(self) -> dict[str, Any]:
+        return self._pretrain("imagenet", 1)
+
+    def decoder(self) -> dict[str, Any]:
+        self._need("pretrain_psp")
+        from sssphase_core.learning.backends import get_backend
+        from sssphase_core.learning.training import DecoderConfig
+
+        c = self.cfg
+        views = self.train_views()
+        patches = sum(len(v.pixels) for v in views)
+        epochs = self._epochs(2, patches, c.decoder_epochs)
+        cfg = DecoderConfig(epochs=epochs, batch_size=min(c.decoder_batch, patches), seed=c.seed, device=self.device)
+        run = self.out / "runs" / "decoder"
+        path = get_backend("torch").fit(views, run, encoder=self.results["pretrain_psp"]["checkpoint"], config=cfg,
+                                        progress=self.progress)
+        return {"checkpoint": str(path), "epochs": epochs, "patches": patches, "batch": cfg.batch_size,
+                **self._throughput(run, "decoder", cfg.batch_size)}
+
+    def _throughput(self, run: Path, stage: str, batch: int) -> dict[str, Any]:
+        """The training loop's patches/s (all its time) and the model FLOPs utilisation against the device's
+        datasheet bf16 peak (:mod:`sssphase_core.learning.flops`)."""
+        from sssphase_core.learning.flops import datasheet_peak, training_flops_per_patch
+        from sssphase_core.learning.runlog import METRICS, read_rows
+
+        rows = read_rows(run / METRICS)
+        if not rows or not rows[-1].get("wall_s"):
+            return {}
+        rate = int(rows[-1]["step"]) * batch / float(rows[-1]["wall_s"])
+        flops = training_flops_per_patch(self.cfg.model, stage)
+        peak = datasheet_peak(self.environment()["device"])
+        return {"patches_s": round(rate, 1), "gflop_per_patch": round(flops / 1e9, 2),
+                "mfu": None if peak is None else round(flops * rate / peak, 4)}
+
+    def _decoder_checkpoint(self) -> str | None:
+        d = self.results.get("decoder", {})
+        return d.get("checkpoint") if d.get("status") == "done" else None
+
+    def footprints(self) -> dict[str, Any]:
+        """Table 1: the unseen objects' footprints against the simulator's exact ones."""
+        self._need("test_sessions")
+        from sssphase_core.learning.data import sample_pixels
+        from sssphase_core.learning.evaluation import footprint_metrics, summarise
+        from sssphase_core.relight import load_view, make_source
+        from sssphase_core.store.session import Session
+
+        ckpt = self._decoder_checkpoint()
+        backends = ["analytic"] + (["torch"] if ckpt else [])
+        table: dict[str, dict[str, dict[str, float]]] = {}
+        for path in self.results["test_sessions"]["sessions"]:
+            rv = load_view(Session.open(path), self.cfg.test_view)
+            if rv.sim is None:
+                raise NotAvailable(f"{rv.object} is not a simulated session: Table 1 needs the simulator's exact footprints")
+            px = sample_pixels(rv.proj.mask, self.cfg.footprint_pixels, self.cfg.seed)
+            gt = rv.scene().footprints(px)
+            table[rv.object] = {}
+            for b in backends:
+                opts = {"supersample": self.cfg.analytic_supersample} if b == "analytic" else {}
+                source, _ = make_source(b, rv, checkpoint=ckpt, calibrate=False, device=self.device, **opts)
+                table[rv.object][b] = summarise(footprint_metrics(np.asarray(source(px), np.float32), gt))
+        from sssphase_core.learning import lpips
+
+        return {"metrics": table, "backends": backends, "pixels": self.cfg.footprint_pixels,
+                "lpips": lpips.available()[1] or "computed"}
+
+    def knn(self) -> dict[str, Any]:
+        """Table 2: kNN accuracy per object (view-level leave-one-out) of both encoders."""
+        from sssphase_core.learning.evaluation import knn_of_views
+        from sssphase_core.learning.training import load_encoder
+
+        views = self.train_views(footprints=False)
+        objects = list(self.cfg.train_objects)
+        k = min(20, sum(len(v.pixels) for v in views) // 4 or 1)
+        out: dict[str, Any] = {"k": k}
+        for augment in self.cfg.augments:
+            run = self.results.get(f"pretrain_{augment}", {})
+            if run.get("status") != "done":
+                out[augment] = {"status": "not available", "reason": f"pretrain_{augment} is {run.get('status', 'missing')}"}
+                continue
+            res = knn_of_views(load_encoder(run["checkpoint"]), views, objects, ks=(k,), device=self.device)[k]
+            out[augment] = {"overall": res["overall"], "per_class": res["per_class"]}
+        if not any("overall" in v for v in out.values() if isinstance(v, dict)):
+            raise NotAvailable("no pretrained encoder to evaluate")
+        return out
+
+    def relight(self) -> dict[str, Any]:
+        self._need("test_sessions")
+        from sssphase_core.relight import load_view
+        from sssphase_core.relight.evaluation import evaluate_view
+        from sssphase_core.store.session import Session
+
+        ckpt = self._decoder_checkpoint()
+        rows, skipped = [], {}
+        for path in self.results["test_sessions"]["sessions"]:
+            rv = load_view(Session.open(path), self.cfg.test_view)
+            for b in self.cfg.backends:
+                if b in ("torch", "blend") and ckpt is None:
+                    skipped[b] = "no decoder checkpoint"
+                    continue
+                if self.left_s() <= RELIGHT_MIN_S:  # a 1080p relight takes tens of seconds: none is started at the end
+                    skipped[f"{rv.object}/{b}"] = "the budget was spent"
+                    continue
+                opts = {"supersample": self.cfg.analytic_supersample} if b == "analytic" else {}
+                t0 = time.perf_counter()
+                rows += evaluate_view(rv, b, self.report_dir / "img", checkpoint=ckpt, device=self.device, **opts)
+                self.log(f"  relit {rv.object} with {b} in {time.perf_counter() - t0:.1f} s")
+        return {"rows": rows, "skipped": skipped}
+
+    # --- report ------------------------------------------------------------------------------------
+
+    def report(self) -> dict[str, Any]:
+        path = self.write_report()
+        return {"path": str(path)}
+
+    def write_report(self) -> Path:
+        """``report.md`` and ``report.json`` from the steps finished so far."""
+        from sssphase_core.reporting.repro_report import repro_markdown
+
+        self.report_dir.mkdir(parents=True, exist_ok=True)
+        info = self.environment()
+        data = {"config": asdict(self.cfg), "device": self.device, "budget_s": self.budget_s,
+                "spent_s": round(self.spent_s(), 1), "environment": info, "steps": self.results,
+                "paper": {"table1": PAPER_TABLE1, "table2": PAPER_TABLE2, "scale": PAPER_SCALE}}
+        write_text(self.report_dir / "report.json", json.dumps(data, indent=1, default=str))
+        path = self.report_dir / "report.md"
+        write_text(path, repro_markdown(data))
+        return path
+
+    def environment(self) -> dict[str, Any]:
+        import os
+        import platform
+
+        import torch
+
+        from sssphase_core.compute import compute_device
+
+        dev = compute_device(self.device)
+        name = torch.cuda.get_device_name(dev) if dev.type == "cuda" else platform.processor() or "CPU"
+        return {"device": f"{name} ({dev})", "torch": torch.__version__, "cpu_cores": os.cpu_count()}
+
+    def run(self) -> Path:
+        for name in STEPS:
+            if name == "report":
+                self.fresh_report()  # it reflects every step, newly finished ones included
+            self.step(name, getattr(self, name))
+        self.write_report()  # with the report step's own record
+        return self.report_dir / "report.md"
+
+
+def run_repro(out: Path | str, capture: Capture, *, preset: str = "paper", device: str = "auto", budget_s: float = 480.0,
+              fresh: bool = False, log: Callable[[str], None] = print,
+              progress: Callable[[str, int, int, str], None] | None = None, **overrides: Any) -> Path:
+    """Run (or resume) ``sss repro paper`` into ``out``; returns the report's path. ``overrides``: fields of the
+    preset's :class:`ReproConfig` (objects, views, sizes)."""
+    if preset not in PRESETS:
+        raise InputError(f"unknown repro preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    if not (math.isfinite(budget_s) and budget_s > 0):
+        raise InputError(f"--budget must be a positive number of seconds, got {budget_s}")
+    from sssphase_core.compute import check_device
+
+    check_device(device)
+    config = replace(PRESETS[preset], **overrides)
+    repro = PaperRepro(Path(out), config, capture, device=device, budget_s=budget_s, fresh=fresh, log=log, progress=progress)
+    repro.report_dir = Path(out)
+    path = repro.run()
+    log(f"repro finished in {repro.spent_s():.1f} s of a {budget_s:.0f} s budget")
+    return path

@@ -1,0 +1,113 @@
+"""The simulator's light transport on a torch device (sssphase_core.sim_accel) renders what the numpy path
+renders: the same footprints and images within float tolerance, on the CPU here and on CUDA where present."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from sssphase_core.errors import InputError
+from sssphase_core.sim import SimScene, rig_preset
+from sssphase_core.sim_accel import TorchTransport, transport_factory
+
+DEVICES = ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device"))]
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize("obj", ["crab", "soap"])
+def test_device_transport_renders_what_numpy_renders(obj, device):
+    cpu = SimScene(obj, rig=rig_preset("cpu"))
+    dev = SimScene(obj, rig=rig_preset("cpu"), transport_factory=transport_factory(device))
+    assert isinstance(dev.transport, TorchTransport) and not isinstance(cpu.transport, TorchTransport)
+    patterns = np.random.default_rng(0).uniform(0, 1, (3, 192, 256)).astype(np.float32)
+    a, b = cpu.render(patterns), dev.render(patterns)
+    assert a.shape == b.shape and a.max() > 0.1
+    assert np.abs(a - b).max() <= 1e-5 * a.max()
+    pixels = np.argwhere(cpu.lit)[::97]
+    fa, fb = cpu.footprints(pixels), dev.footprints(pixels)
+    assert np.abs(fa - fb).max() <= 1e-6 * fa.max()
+    # the near rings clamped at the pixel's own disc are where a port goes wrong: they differ from the far field
+    half = cpu.rig.patch // 2
+    assert np.abs(fa[:, half - 1 : half + 2, half - 1 : half + 2] - fb[:, half - 1 : half + 2, half - 1 : half + 2]).max() \
+        <= 1e-6 * fa.max()
+
+
+def test_a_dot_frame_lights_only_its_dots_on_the_device():
+    """Sparse light (a dot grid) splats only the lit sources, as on the CPU: black away from the dots."""
+    from sssphase_core.processing.patterns import dot_grid
+
+    cpu = SimScene("apple", rig=rig_preset("cpu"))
+    dev = SimScene("apple", rig=rig_preset("cpu"), transport_factory=transport_factory("cpu"))
+    dots = dot_grid(256, 192, 20, 3, 7)[None]
+    a, b = cpu.render(dots), dev.render(dots)
+    assert np.abs(a - b).max() <= 1e-5 * a.max()
+    assert (a[0].sum(-1) > 0).mean() < 0.5  # most of the image stays (near) black
+
+
+def test_directional_dipole_stays_on_the_cpu_whatever_the_device():
+    from sssphase_core.sim.rig import with_transport
+
+    rig = with_transport(rig_preset("cpu"), "directional_dipole")
+    scene = SimScene("star", rig=rig, transport_factory=transport_factory("cpu"))
+    assert not isinstance(scene.transport, TorchTransport)
+
+
+def test_the_sim_option_device_is_checked_before_any_work():
+    from sssphase_plugins.sim_plugin import SimRigState
+
+    assert SimRigState({"object": "star"}).transport_factory is None  # cpu: numpy, torch not needed
+    assert SimRigState({"object": "star", "device": "cpu:0"}).transport_factory is None
+    with pytest.raises(InputError, match="unknown device"):
+        SimRigState({"object": "star", "device": "gpu"})
+    with pytest.raises(InputError, match="must be a string"):
+        SimRigState({"object": "star", "device": 1})
+    if not torch.cuda.is_available():
+        with pytest.raises(InputError, match="sees no CUDA device"):
+            SimRigState({"object": "star", "device": "cuda"})
+    state = SimRigState({"object": "star", "device": "auto"})
+    assert isinstance(state.scene.transport, TorchTransport)
+
+
+def test_a_capture_on_the_device_equals_the_numpy_capture(sim_daemon, tmp_path):
+    """`sss capture --device`: the daemon renders the frames and the client the ground-truth references on the
+    device (torch on the CPU here): the same noise-free renders within float tolerance, captures that agree to
+    within their noise (the same seeds, but a Poisson draw whose rate differs in its last bits can take another
+    path through the generator), the same decoded correspondences, and it resumes across devices."""
+    from sssphase_core.capture import CaptureRequest, RigSpec, run_capture
+
+    got = {}
+    for device in ("cpu", "auto"):
+        req = CaptureRequest.from_options("sand_rake", RigSpec(), views=1, references=["checkerboard"], device=device,
+                                          out=tmp_path / device)
+        got[device] = run_capture(sim_daemon, req)
+    a, b = got["cpu"], got["auto"]
+    assert b.manifest["rig"]["options"]["device"] == "auto"
+    for name in ("gt/render/checkerboard", "gt/render/white"):
+        x, y = np.asarray(a.load(0, name), np.float32), np.asarray(b.load(0, name), np.float32)
+        assert x.shape == y.shape and np.abs(x - y).max() <= 1e-5 * np.abs(x).max(), name
+    x, y = np.asarray(a.load(0, "psp"), np.float32), np.asarray(b.load(0, "psp"), np.float32)
+    assert np.abs(x - y).mean() <= 2e-3 * x.max()  # below the shot noise (~1% of white)
+    mask = a.load(0, "corr/mask").astype(bool) & b.load(0, "corr/mask").astype(bool)
+    assert mask.sum() > 1000
+    assert np.median(np.abs(a.load(0, "corr/xp")[mask] - b.load(0, "corr/xp")[mask])) < 0.05  # projector px
+    again = CaptureRequest.from_options("sand_rake", RigSpec(), views=1, references=["checkerboard"], resume=True,
+                                        out=tmp_path / "auto")
+    assert run_capture(sim_daemon, again).views() == [0]  # the device is where it computes, not another rig
+
+
+def test_sparse_patterns_are_looked_up_only_where_they_reach_with_the_same_values():
+    from sssphase_core.processing.patterns import dot_grid
+    from sssphase_core.processing.projector import sample_projector
+    from sssphase_core.sim.scene import _sample_sparse
+
+    rng = np.random.default_rng(3)
+    light = np.stack([dot_grid(64, 48, 9, 2, 5), dot_grid(64, 48, 9, 8, 0)])[..., None].astype(np.float32)
+    light[1, 0, 63] = 0.5  # a lit pixel in the corner: taps beyond the edge read 0
+    xy = np.column_stack([rng.uniform(-1.5, 64.5, 5000), rng.uniform(-1.5, 48.5, 5000)]).astype(np.float32)
+    xy[:50] = np.nan  # pixels without projector light
+    xy[50:60] = [[63.4, -0.3]] * 10
+    dense = sample_projector(light, xy[:, 0], xy[:, 1])
+    sparse = _sample_sparse(light, xy)
+    assert np.count_nonzero(dense) > 100
+    np.testing.assert_array_equal(sparse, np.nan_to_num(dense))

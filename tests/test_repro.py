@@ -1,0 +1,115 @@
+"""`sss repro paper` at the tiny preset: sessions captured through daemons (two at once, each its own), both
+pretrainings, the decoder, Tables 1-2 beside the paper's, relighting, and the budget; sparse dot grids."""
+
+from __future__ import annotations
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from sssphase_core.capture import CaptureRequest, RigSpec
+from sssphase_core.errors import InputError
+from sssphase_core.processing.patterns import capture_plan
+
+
+def test_a_dot_stride_keeps_every_sth_shift():
+    full = capture_plan(256, 192, footprints=True, dot_spacing=20)
+    sparse = capture_plan(256, 192, footprints=True, dot_spacing=20, dot_stride=3)
+    dots = [f.key for f in sparse.frames if f.kind == "dots"]
+    assert len([f for f in full.frames if f.kind == "dots"]) == 400
+    assert len(dots) == 7 * 7 and "dots/0_0" in dots and "dots/18_3" in dots and "dots/1_0" not in dots
+    with pytest.raises(InputError, match="dot stride must be 1"):
+        capture_plan(256, 192, footprints=True, dot_spacing=20, dot_stride=21)
+    with pytest.raises(InputError, match="dot stride must be 1"):
+        CaptureRequest.from_options("apple", RigSpec(), footprints=True, dot_stride=0, out=Path("x"))
+
+
+def test_device_on_a_rig_file_or_unknown_is_one_line(tmp_path):
+    with pytest.raises(InputError, match="unknown device"):
+        CaptureRequest.from_options("apple", RigSpec(), device="tpu", out=tmp_path)
+    rig = RigSpec(camera="uvc:cam0", projector="hdmi:1", turntable=None)  # not the sim rig
+    with pytest.raises(InputError, match="sim rig only"):
+        CaptureRequest.from_options("apple", rig, device="cuda", out=tmp_path)
+
+
+@pytest.fixture(scope="module")
+def repro(tmp_path_factory):
+    """`sss repro paper --preset tiny --device cpu --workers 2` as a user runs it (a subprocess)."""
+    out = tmp_path_factory.mktemp("repro") / "run"
+    done = subprocess.run([sys.executable, "-m", "sssphase_cli", "repro", "paper", "--preset", "tiny", "--device", "cpu",
+                           "--workers", "2", "--out", str(out)], capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    return out, done.stdout
+
+
+def test_repro_runs_every_step_and_reports_beside_the_paper(repro):
+    out, stdout = repro
+    data = json.loads((out / "report.json").read_text())
+    assert {n: s["status"] for n, s in data["steps"].items()} == dict.fromkeys(
+        ("train_sessions", "test_sessions", "pretrain_psp", "pretrain_imagenet", "decoder", "footprints", "knn", "relight",
+         "report"), "done")
+    steps = data["steps"]
+    for name in ("pretrain_psp", "pretrain_imagenet"):  # the two augmentation sets, each a run of its own
+        ckpt = Path(steps[name]["checkpoint"])
+        assert ckpt.is_file() and f"pretrain_{name.split('_')[1]}" in str(ckpt)
+        assert steps[name]["patches_s"] > 0 and steps[name]["gflop_per_patch"] > 0
+    knn = steps["knn"]
+    for aug in ("psp", "imagenet"):
+        assert set(knn[aug]["per_class"]) == {"apple", "star"} and 0 <= knn[aug]["overall"] <= 1
+    table1 = steps["footprints"]["metrics"]["sand_rake"]
+    assert set(table1) == {"analytic", "torch"} and all(math.isfinite(m["psnr"]) for m in table1.values())
+    assert {r["backend"] for r in steps["relight"]["rows"]} == {"none", "analytic", "torch"}
+    md = (out / "report.md").read_text()
+    assert "| apple | " in md and "99.60" in md and "99.95" in md  # the paper's Table 2 beside ours (apple, star)
+    assert "Where the budget went" in md and "Scaled down to fit" in md and "1/16 of them (stride 4)" in md
+    assert "## Table 1: footprints of unseen objects" in stdout and "report.md" in stdout  # printed at the end
+
+
+def test_repro_sessions_are_sparse_dot_grids_that_the_measured_backend_refuses(repro):
+    from sssphase_core.relight import load_view, make_source
+    from sssphase_core.store.session import Session
+
+    out, _ = repro
+    s = Session.open(out / "sessions" / "train" / "apple")
+    info = s.manifest["views"]["0"]["footprints"]
+    assert info["dot_stride"] == 4 and info["count"] > 0
+    assert "transport/crops" not in s.arrays(0)  # a sparse lattice is no light transport
+    plan_dots = [f for f in s.manifest["plan"]["frames"] if f["kind"] == "dots"]
+    assert len(plan_dots) == 5 * 5  # spacing 20, stride 4
+    with pytest.raises(InputError, match="--dot-stride 4"):
+        make_source("measured", load_view(s, 0))
+
+
+def test_rerunning_resumes_and_a_spent_budget_runs_nothing(repro, tmp_path):
+    from sssphase_core.reporting.repro import run_repro
+
+    out, _ = repro
+    logs: list[str] = []
+    run_repro(out, lambda reqs: pytest.fail("a finished step was captured again"), preset="tiny", device="cpu", log=logs.append)
+    assert sum("already done" in m for m in logs) == 8
+    empty = tmp_path / "none"
+    run_repro(empty, lambda reqs: pytest.fail("nothing may run"), preset="tiny", device="cpu", budget_s=1e-9, log=logs.append)
+    data = json.loads((empty / "report.json").read_text())
+    assert all("budget" in s.get("reason", "") for n, s in data["steps"].items() if n != "report")
+    assert "not run: the budget of 0 s was spent" in (empty / "report.md").read_text()
+
+
+def test_repro_refuses_bad_options_in_one_line(tmp_path):
+    from sssphase_core.reporting.repro import run_repro
+
+    for kwargs, message in (({"preset": "huge"}, "unknown repro preset"), ({"budget_s": float("nan")}, "--budget"),
+                            ({"device": "gpu"}, "unknown device")):
+        with pytest.raises(InputError, match=message):
+            run_repro(tmp_path / "x", lambda reqs: [], **{"preset": "tiny", **kwargs})
+
+
+def test_epochs_fit_the_time_left():
+    from sssphase_core.reporting.repro import epochs_within
+
+    assert epochs_within(100.0, 1000, 50.0, 20) == 5
+    assert epochs_within(0.0, 1000, 50.0, 20) == 1  # at least one
+    assert epochs_within(1e6, 1000, 50.0, 20) == 20  # at most the preset's
