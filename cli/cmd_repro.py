@@ -69,7 +69,7 @@ def parallel_capture(workers: int, run_dir: Path, timeout: float):
 def repro_paper(
     out: Annotated[Path, typer.Option("--out", help="Run folder (resumable: finished steps are skipped).")] = Path("repro"),
     device: Annotated[str, typer.Option(help="Where the simulator renders and the models train: auto, cpu, cuda, cuda:N.")] = "auto",
-    budget: Annotated[float, typer.Option(help="Seconds for the whole run: training epochs are sized to the time the captures leave; a step that would start after it is not run.")] = 480.0,
+    budget: Annotated[float, typer.Option(help="Seconds for this run (a rerun skips finished steps and has a budget of its own): training epochs are sized to the time the captures leave; a step that would start after it is not run.")] = 480.0,
     preset: Annotated[str, typer.Option(help="paper (1080p, K = 90, the paper model: a GPU) or tiny (the CPU rig and lite model: tests).")] = "paper",
     workers: Annotated[int, typer.Option(help="Captures at once, each through its own daemon (0: half the CPU cores, at most the number of sessions).")] = 0,
     train_views: Annotated[int | None, typer.Option(help="Views per training object (default: the preset's; at least 2 for kNN's leave-one-view-out).")] = None,

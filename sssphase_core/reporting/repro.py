@@ -17,7 +17,8 @@ Steps (each recorded in ``<out>/steps/<name>.json`` and skipped when rerun, like
 8. ``report``          ``<out>/report.md`` and ``report.json``: our figures beside the paper's, the
    seconds each step took of the budget, and what was scaled down to fit.
 
-The budget is kept by sizing, not by cutting runs short: the training epochs are chosen from the time left
+The budget (of this run: a rerun skips the finished steps and gets a budget of its own) is kept by sizing,
+not by cutting runs short: the training epochs are chosen from the time left
 after the captures (:func:`epochs_within`, with the throughput ``sss bench gpu`` measured), and a step
 that would start with the budget spent is recorded as not run. The report is rewritten after every step,
 so a run stopped from outside still leaves what it finished.
@@ -114,14 +115,13 @@ class PaperRepro(Demo):
         self.cfg: ReproConfig = config
         self.capture, self.device, self.budget_s = capture, device, float(budget_s)
         self.t0 = time.perf_counter()
-        self.planned: dict[str, dict[str, Any]] = {}
 
     # --- budget ------------------------------------------------------------------------------------
 
     def spent_s(self) -> float:
-        """Seconds of the budget spent: steps finished in earlier runs plus this run's time."""
-        earlier = sum(float(r.get("seconds", 0.0)) for r in self.results.values() if r.get("resumed"))
-        return earlier + time.perf_counter() - self.t0
+        """Seconds of this run's budget spent (a rerun resumes with a budget of its own; the steps it skips
+        keep the seconds they took in the report)."""
+        return time.perf_counter() - self.t0
 
     def left_s(self) -> float:
         return self.budget_s - self.spent_s()

@@ -30,7 +30,8 @@ def _step_rows(data: dict[str, Any]) -> list[list[Any]]:
         extra = ", ".join(f"{k} {r[k]}" for k in ("epochs", "patches", "batch", "patches_s", "gflop_per_patch") if k in r)
         if r.get("mfu") is not None:
             extra += f", MFU {r['mfu']:.1%} (of the datasheet's bf16 peak)"
-        rows.append([name, r.get("status", "?"), f"{float(r.get('seconds', 0.0)):.1f}",
+        status = r.get("status", "?") + (" (an earlier run)" if r.get("resumed") else "")
+        rows.append([name, status, f"{float(r.get('seconds', 0.0)):.1f}",
                      extra or str(r.get("reason", ""))[:160]])
     return rows
 
@@ -40,8 +41,8 @@ def repro_markdown(data: dict[str, Any]) -> str:
     cfg, steps, paper = data["config"], data["steps"], data["paper"]
     env = data["environment"]
     out = ["# The paper's Tables 1-2 at its scale (`sss repro paper`)", "",
-           f"Device: {env['device']}, torch {env['torch']}, {env['cpu_cores']} CPU cores. Budget {data['budget_s']:.0f} s, "
-           f"spent {data['spent_s']:.0f} s. Rig preset `{cfg['rig_preset']}`, model `{cfg['model']}`; the simulator's "
+           f"Device: {env['device']}, torch {env['torch']}, {env['cpu_cores']} CPU cores. Budget of this run "
+           f"{data['budget_s']:.0f} s, spent {data['spent_s']:.0f} s (steps resumed from earlier runs: their own seconds below). Rig preset `{cfg['rig_preset']}`, model `{cfg['model']}`; the simulator's "
            "exact footprints are used for scoring only.", ""]
 
     fp = steps.get("footprints", {})
