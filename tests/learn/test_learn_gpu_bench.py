@@ -34,6 +34,23 @@ def test_the_gpu_bench_runs_every_stage_on_the_cpu(tmp_path):
     assert r["training"]["deterministic_kernels"] == {"pretrain": True, "decoder": False}
     assert "same run: pretrain" in text and "fold" in text and "CPU" in text
     assert all(math.isfinite(v) for v in r["training"]["decoder"]["loss_per_epoch"])
+    f = r["flops"]  # model FLOPs of one training step per patch, and the same run's peak
+    assert 1e8 < f["pretrain"] < 1e9 and 1e8 < f["decoder"] < 1e9 and f["matmul_peak"] > 1e8
+    assert f["datasheet_peak"] is None  # a CPU has no entry
+    assert "GFLOP per patch" in text and "unknown device" in text and "of a bf16 matrix product" in text
+
+
+def test_training_flops_count_what_a_step_runs():
+    """SimSiam runs the encoder on two views forward and backward; the frozen-encoder decoder step runs the
+    encoder forward only: FLOPs grow with the preset and the count is per patch (not per batch)."""
+    from sssphase_core.learning.flops import datasheet_peak, training_flops_per_patch
+
+    lite = training_flops_per_patch("lite", "pretrain")
+    assert training_flops_per_patch("lite", "pretrain", batch=4) == pytest.approx(lite, rel=1e-6)
+    assert training_flops_per_patch("paper", "pretrain") > 100 * lite
+    assert datasheet_peak("NVIDIA H200") == 989e12 and datasheet_peak("Quadro") is None
+    with pytest.raises(ValueError):
+        training_flops_per_patch("lite", "finetune")
 
 
 def test_an_absent_cuda_device_is_one_clear_error(monkeypatch):

@@ -111,3 +111,23 @@ def test_sparse_patterns_are_looked_up_only_where_they_reach_with_the_same_value
     sparse = _sample_sparse(light, xy)
     assert np.count_nonzero(dense) > 100
     np.testing.assert_array_equal(sparse, np.nan_to_num(dense))
+
+
+def test_bench_sim_times_the_plan_and_compares_the_paths(tmp_path):
+    """`sss bench sim` (the plumbing, on the CPU preset with torch on the CPU): every frame kind timed, the numpy
+    baseline measured in the same run, and both paths' footprints and images compared."""
+    import json
+
+    from typer.testing import CliRunner
+
+    from sssphase_cli.main import app
+
+    out = tmp_path / "sim.json"
+    result = CliRunner().invoke(app, ["bench", "sim", "--device", "cpu", "--preset", "cpu", "--object", "star",
+                                      "--out", str(out)])
+    assert result.exit_code == 0, result.output
+    r = json.loads(out.read_text())
+    assert r["frames"] == 426 and r["dot_frames"] == 400 and r["dot_frames_rendered"] == 200
+    assert r["render_s"] >= r["render_psp_s"] > 0 and r["numpy_psp_white_s"] > 0 and r["sense_frame_s"] > 0
+    assert r["footprint_max_rel_diff"] < 1e-6 and r["image_max_rel_diff"] < 1e-5
+    assert "the numpy path" in out.with_suffix(".md").read_text()
