@@ -3,7 +3,13 @@
 # `.whl` carried: the wheels of the dependencies that machine's image lacks, see the device README):
 #   the simulator's CUDA tests, `sss bench sim` (1080p render on the GPU against numpy), and
 #   `sss repro paper --budget BUDGET` (Tables 1-2 at the paper's scale); reports land in $OUT.
-# Usage: benchmarks/device/paper.sh [BUDGET_S] [repro]   ("repro": the repro alone)
+# The wheels (here, once; `.whl/` is ignored by git): for each of pyzmq==27.3.0 kornia==0.9.0 kornia_rs==0.2.0
+#   colour-demosaicing==0.2.7 colour-science==0.4.7 donfig==0.8.1.post1 google-crc32c==1.9.0 numcodecs==0.16.6
+#   zarr==3.1.6 OpenEXR==3.5.3 tomli_w==1.2.0:  python3 -m pip download --no-deps --only-binary=:all:
+#   --python-version 3.12 --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64
+#   --platform manylinux2014_x86_64 --platform manylinux_2_26_x86_64 -d .whl NAME==VERSION   (31 MB in all)
+# Usage: benchmarks/device/paper.sh [BUDGET_S] [repro|all]   (repro first, then the tests and `sss bench sim`;
+#   "repro": the repro alone). One call: timeout_s = BUDGET_S + about 120 (install, relight overrun).
 set -o pipefail
 budget=${1:-300}
 out=${OUT:-/tmp/out}
@@ -12,11 +18,11 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
 export PYTHONPATH=/tmp/site PYTHONUNBUFFERED=1
 python3 -m pip install -q --no-deps --no-build-isolation --no-index . || exit 1
 nvidia-smi -L
+python3 -m sssphase_cli repro paper --device cuda --budget "$budget" --out /tmp/repro 2>&1 | grep -v "━" | tail -80
+cp /tmp/repro/report.md /tmp/repro/report.json "$out/" 2>/dev/null
+for d in /tmp/repro/runs/*/; do cp "$d/metrics.jsonl" "$out/$(basename "$d")_metrics.jsonl" 2>/dev/null; done
 if [ "$2" != repro ]; then
   python3 -m pytest -q -p no:cacheprovider -o addopts="" tests/sim/test_sim_accel.py 2>&1 | tail -3
   python3 -m sssphase_cli bench sim --device cuda --out "$out/sim.json" 2>&1 | tail -20
 fi
-python3 -m sssphase_cli repro paper --device cuda --budget "$budget" --out /tmp/repro 2>&1 | grep -v "━" | tail -80
-cp /tmp/repro/report.md /tmp/repro/report.json "$out/" 2>/dev/null
-for d in /tmp/repro/runs/*/; do cp "$d/metrics.jsonl" "$out/$(basename "$d")_metrics.jsonl" 2>/dev/null; done
 ls -la "$out"
