@@ -139,11 +139,14 @@ class PaperRepro(Demo):
         return result
 
     def _epochs(self, stage: int, patches: int, most: int) -> int:
-        """Epochs for training stage ``stage`` (0: pretrain psp, 1: imagenet, 2: decoder) in its share of the time left."""
+        """Epochs for training stage ``stage`` (0: pretrain psp, 1: imagenet, 2: decoder) in its share of the time
+        left, at the throughput a pretraining of this run reached (before any: :data:`PLANNED_RATE`)."""
         from sssphase_core.compute import compute_device
 
         kind = compute_device(self.device).type
-        rate = PLANNED_RATE.get((kind if kind == "cuda" else "cpu", self.cfg.model), 100.0)
+        measured = [r["patches_s"] for n, r in self.results.items() if n.startswith("pretrain_") and r.get("patches_s")
+                    and not r.get("resumed")]  # this run's own throughput, once a stage has run
+        rate = min(measured) if measured else PLANNED_RATE.get((kind if kind == "cuda" else "cpu", self.cfg.model), 100.0)
         shares = self.cfg.train_shares[stage:]
         seconds = max(0.0, self.left_s() - self.cfg.eval_reserve_s) * shares[0] / sum(shares)
         return epochs_within(seconds, patches, rate, most)
