@@ -96,6 +96,12 @@ class SimRigState:
         self.frame_period_ns = int(_number(options, "frame_period_s", 1 / 30, 1e-6, 60.0, float) * 1e9)
         self.realtime = bool(options.get("realtime", False))
         self.transport_factory = _transport_factory(options.get("device", "cpu"))
+        self.sensor = None  # the camera's sensor on the same device (sim_accel.DeviceSensor), where it applies
+        if self.transport_factory is not None:
+            from sssphase_core.sim_accel import DeviceSensor
+
+            if DeviceSensor.handles(self.rig.sensor):
+                self.sensor = DeviceSensor(str(options["device"]))
         self.clock_ns = 0
         self.shown: list[tuple[int, np.ndarray, str, int]] = []  # (on_screen_ns, image, tag, frame_id)
         self._scene = None
@@ -137,7 +143,10 @@ class SimRigState:
 
     def capture(self, pattern: np.ndarray, tag: str, rng: np.random.Generator, exposure: float, raw: bool) -> np.ndarray:
         """What ``SimScene.capture`` returns for this pattern, from the (cached) noise-free image."""
-        return self.scene.sense(self.render(pattern, tag)[None], rng, exposure, raw)[0]
+        image = self.render(pattern, tag)[None]
+        if self.sensor is not None:
+            return self.sensor.sense(image, self.rig.sensor, rng, exposure, raw)[0]
+        return self.scene.sense(image, rng, exposure, raw)[0]
 
     def advance(self, ns: int) -> None:
         self.clock_ns += ns

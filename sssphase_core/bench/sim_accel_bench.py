@@ -27,7 +27,7 @@ def _sync(device: Any) -> None:
 
 def run(*, device: str, preset: str = "paper", object_name: str = "soap", cpu_pixels: int = 20000,
         compare_pixels: int = 256, dot_sample: int = 200, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
-    """The benchmark's result: the plan's render time on ``device`` (PSP, unwrapping, white/black and the dot
+    """The benchmark's result: the plan's render time on ``device``, the sensor there and in numpy (PSP, unwrapping, white/black and the dot
     grids, noise-free; ``dot_sample`` dot frames rendered and the rest extrapolated: they cost the same each),
     the numpy path's time for the same view (extrapolated from ``cpu_pixels`` lit pixels), one frame through
     the sensor, and the largest differences between the paths."""
@@ -78,6 +78,17 @@ def run(*, device: str, preset: str = "paper", object_name: str = "soap", cpu_pi
     t0 = time.perf_counter()
     scene.sense(first[:1], rng)
     sense_s = time.perf_counter() - t0
+    from sssphase_core.sim_accel import DeviceSensor
+
+    device_sense_s = None
+    if DeviceSensor.handles(rig.sensor):
+        sensor = DeviceSensor(dev)
+        sensor.sense(first[:1], rig.sensor, rng)  # warm-up
+        _sync(dev)
+        t0 = time.perf_counter()
+        sensor.sense(first[:1], rig.sensor, rng)
+        _sync(dev)
+        device_sense_s = time.perf_counter() - t0
 
     say("comparing footprints and images with the numpy path")
     lit = np.argwhere(scene.lit)
@@ -93,7 +104,7 @@ def run(*, device: str, preset: str = "paper", object_name: str = "soap", cpu_pi
             "patch": rig.patch, "frames": len(frames), "dot_frames": n_dots, "dot_frames_rendered": sampled,
             "lit_pixels": int(len(lit)), "trace_s": trace_s, "render_s": render_s, "render_psp_s": psp_s,
             "render_dots_s": dots_s, "numpy_psp_white_s": cpu["render_s"], "numpy_psp_white_frames": cpu["frames"],
-            "numpy_extrapolated": cpu["extrapolated"], "sense_frame_s": sense_s,
+            "numpy_extrapolated": cpu["extrapolated"], "sense_frame_s": sense_s, "device_sense_frame_s": device_sense_s,
             "footprint_max_rel_diff": float(np.abs(fa - fb).max() / max(float(np.abs(fa).max()), 1e-30)),
             "image_max_rel_diff": float(np.abs(ia - ib).max() / max(float(np.abs(ia).max()), 1e-30))}
 
@@ -111,6 +122,8 @@ def markdown(r: dict[str, Any]) -> str:
         f"| ... of which the dot grids ({r['dot_frames_rendered']:,} rendered, the rest extrapolated) | {r['render_dots_s']:.1f} |",
         f"| the numpy path, 8 PSP + white frames (same run, extrapolated) | {r['numpy_psp_white_s']:.1f} ({cpu_per:.2f} per frame: "
         f"{cpu_per / per:.3g}x the device's) |",
-        f"| one frame through the sensor (noise, Bayer, ISP; CPU) | {r['sense_frame_s']:.2f} |", "",
+        f"| one frame through the sensor (noise, Bayer, ISP; numpy on the CPU) | {r['sense_frame_s']:.2f} |",
+        f"| ... through the sensor on {r['device']} (sim_accel.DeviceSensor; its frame back on the host) | "
+        + (f"{r['device_sense_frame_s']:.3f} |" if r.get("device_sense_frame_s") is not None else "not this camera |"), "",
         f"Device against numpy: footprints differ by at most {r['footprint_max_rel_diff']:.1e} of their peak, images by "
         f"{r['image_max_rel_diff']:.1e}.", ""])

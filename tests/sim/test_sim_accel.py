@@ -66,7 +66,9 @@ def test_the_sim_option_device_is_checked_before_any_work():
         with pytest.raises(InputError, match="sees no CUDA device"):
             SimRigState({"object": "star", "device": "cuda"})
     state = SimRigState({"object": "star", "device": "auto"})
-    assert isinstance(state.scene.transport, TorchTransport)
+    assert isinstance(state.scene.transport, TorchTransport) and state.sensor is not None  # the sensor there too
+    assert SimRigState({"object": "star"}).sensor is None
+    assert SimRigState({"object": "star", "device": "auto", "demosaic": "none"}).sensor is None  # three-chip: numpy
 
 
 def test_a_capture_on_the_device_equals_the_numpy_capture(sim_daemon, tmp_path):
@@ -129,5 +131,47 @@ def test_bench_sim_times_the_plan_and_compares_the_paths(tmp_path):
     r = json.loads(out.read_text())
     assert r["frames"] == 426 and r["dot_frames"] == 400 and r["dot_frames_rendered"] == 200
     assert r["render_s"] >= r["render_psp_s"] > 0 and r["numpy_psp_white_s"] > 0 and r["sense_frame_s"] > 0
+    assert r["device_sense_frame_s"] > 0
     assert r["footprint_max_rel_diff"] < 1e-6 and r["image_max_rel_diff"] < 1e-5
     assert "the numpy path" in out.with_suffix(".md").read_text()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_device_isp_equals_the_cameras(device):
+    """Median per Bayer plane and Malvar demosaicing on the device give what processing.isp gives (OpenCV's median
+    and colour-demosaicing's Malvar), borders included."""
+    from sssphase_core.processing.isp import demosaic, develop, median3_bayer
+    from sssphase_core.sim_accel import DeviceSensor, malvar_rggb, median3_rggb
+
+    cfa = np.random.default_rng(0).uniform(0, 4095, (38, 52)).round().astype(np.uint16)
+    t = torch.tensor(cfa, dtype=torch.float64, device=device)[None]
+    np.testing.assert_allclose(malvar_rggb(t)[0].cpu().numpy(), demosaic(cfa.astype(np.float32), "malvar"), atol=1e-3)
+    np.testing.assert_array_equal(median3_rggb(t.float())[0].cpu().numpy(), median3_bayer(cfa).astype(np.float32))
+    cfg = rig_preset("paper").sensor
+    got = DeviceSensor(device).develop(t.float(), cfg, cfg.dn_per_unit(1.0))[0].cpu().numpy()
+    want = develop(cfa, cfg.black_level, cfg.dn_per_unit(1.0), median=True, method="malvar")
+    assert np.abs(got - want).max() <= 1e-6 * np.abs(want).max()
+
+
+@pytest.mark.parametrize("device", DEVICES)
+def test_the_device_sensor_draws_the_cameras_noise(device):
+    """Photon and read noise drawn on the device: the numpy path's mean and spread per colour (another draw, so
+    statistics, not samples), the same frame again from the same seed, raw frames as uint16 Bayer."""
+    from sssphase_core.sim.sensor import expose
+    from sssphase_core.sim_accel import DeviceSensor
+
+    cfg = rig_preset("cpu").sensor
+    img = np.full((2, 64, 64, 3), 0.3, np.float32)
+    img[..., 2] = 0.05
+    sensor = DeviceSensor(device)
+    a = expose(img, cfg, np.random.default_rng(0)).astype(np.float64)
+    b = sensor.expose(img, cfg, np.random.default_rng(0)).cpu().numpy()
+    for y, x in ((0, 0), (1, 1), (0, 1)):  # R, B, G sites
+        pa, pb = a[:, y::2, x::2], b[:, y::2, x::2]
+        assert abs(pa.mean() - pb.mean()) < 0.01 * pa.mean() and abs(pa.std() - pb.std()) < 0.1 * pa.std()
+    assert (b == np.round(b)).all() and b.max() <= cfg.max_dn
+    again = sensor.sense(img, cfg, np.random.default_rng(5))
+    np.testing.assert_array_equal(again, sensor.sense(img, cfg, np.random.default_rng(5)))  # resumable captures
+    raw = sensor.sense(img, cfg, np.random.default_rng(5), raw=True)
+    assert raw.dtype == np.uint16 and raw.shape == (2, 64, 64)
+    assert DeviceSensor.handles(cfg) and not DeviceSensor.handles(rig_preset("cpu").sensor.__class__(demosaic="none"))
