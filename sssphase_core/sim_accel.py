@@ -25,6 +25,7 @@ import numpy as np
 import torch
 
 from sssphase_core.compute import compute_device
+from sssphase_core.processing.isp import MALVAR_KERNELS
 from sssphase_core.sim.sensor import SensorConfig
 from sssphase_core.sim.transport import FAR, NEAR, RATE_CAP, SurfaceMaps, Transport
 
@@ -154,13 +155,6 @@ def transport_factory(device: str | torch.device) -> Callable[[SurfaceMaps, int]
 
 # --- the camera's sensor on the device ------------------------------------------------------------------
 
-#: Malvar, He and Cutler (2004)'s gradient-corrected bilinear filters (x 8): green at red and blue sites; red /
-#: blue at a green site whose row holds that colour; the same across columns; red at blue sites and back.
-_G_AT_RB = [[0, 0, -1, 0, 0], [0, 0, 2, 0, 0], [-1, 2, 4, 2, -1], [0, 0, 2, 0, 0], [0, 0, -1, 0, 0]]
-_C_AT_G_ROW = [[0, 0, 0.5, 0, 0], [0, -1, 0, -1, 0], [-1, 4, 5, 4, -1], [0, -1, 0, -1, 0], [0, 0, 0.5, 0, 0]]
-_C_AT_OPPOSITE = [[0, 0, -1.5, 0, 0], [0, 2, 0, 2, 0], [-1.5, 0, 6, 0, -1.5], [0, 2, 0, 2, 0], [0, 0, -1.5, 0, 0]]
-
-
 def _symmetric_pad(x: torch.Tensor, n: int) -> torch.Tensor:
     """(P, H, W) padded by ``n`` mirrored samples that repeat the edge (scipy.ndimage's ``reflect``: d c b a | a b c d)."""
     x = torch.cat([x[:, :n].flip(1), x, x[:, -n:].flip(1)], dim=1)
@@ -170,7 +164,7 @@ def _symmetric_pad(x: torch.Tensor, n: int) -> torch.Tensor:
 def malvar_rggb(mosaic: torch.Tensor) -> torch.Tensor:
     """RGGB mosaics (P, H, W) -> RGB (P, H, W, 3), Malvar-He-Cutler 2004 with mirrored borders: what
     ``processing.isp.demosaic(method="malvar")`` (colour-demosaicing) gives, on the device."""
-    kernels = torch.tensor([_G_AT_RB, _C_AT_G_ROW, list(map(list, zip(*_C_AT_G_ROW, strict=True))), _C_AT_OPPOSITE],
+    kernels = torch.tensor([MALVAR_KERNELS[k] for k in ("green", "row", "col", "cross")],
                            dtype=mosaic.dtype, device=mosaic.device)[:, None] / 8
     filtered = torch.nn.functional.conv2d(_symmetric_pad(mosaic, 2)[:, None], kernels)  # (P, 4, H, W); kernels symmetric
     g_rb, c_g_row, c_g_col, c_opposite = filtered.unbind(1)

@@ -28,6 +28,7 @@ import torch
 from torch import nn
 
 from sssphase_core.errors import InputError
+from sssphase_core.processing.isp import MALVAR_KERNELS
 
 #: No camera model (simulated exact footprints, a three-chip camera, frames of an unknown pipeline).
 NO_CAMERA = -1
@@ -35,15 +36,7 @@ NO_CAMERA = -1
 DEMOSAIC_MODELS = {"malvar": "malvar", "opencv": "bilinear"}
 _METHODS = ("malvar", "bilinear")
 
-# Malvar, He and Cutler 2004, "High-quality linear interpolation for demosaicing of Bayer-patterned colour
-# images", 5x5 kernels (x 1/8): green at red/blue sites; a colour at a green site whose row holds that
-# colour ("row") or whose column does ("col"); a colour at the opposite colour's site ("cross").
-_MALVAR = {
-    "green": [[0, 0, -1, 0, 0], [0, 0, 2, 0, 0], [-1, 2, 4, 2, -1], [0, 0, 2, 0, 0], [0, 0, -1, 0, 0]],
-    "row": [[0, 0, 0.5, 0, 0], [0, -1, 0, -1, 0], [-1, 4, 5, 4, -1], [0, -1, 0, -1, 0], [0, 0, 0.5, 0, 0]],
-    "cross": [[0, 0, -1.5, 0, 0], [0, 2, 0, 2, 0], [-1.5, 0, 6, 0, -1.5], [0, 2, 0, 2, 0], [0, 0, -1.5, 0, 0]],
-}
-_MALVAR["col"] = np.transpose(_MALVAR["row"]).tolist()
+_MALVAR = MALVAR_KERNELS  # Malvar-He-Cutler 2004 (processing.isp), what colour-demosaicing computes
 _BILINEAR = {
     "green": [[0, 0, 0, 0, 0], [0, 0, 2, 0, 0], [0, 2, 0, 2, 0], [0, 0, 2, 0, 0], [0, 0, 0, 0, 0]],
     "row": [[0, 0, 0, 0, 0], [0, 0, 0, 0, 0], [0, 4, 0, 4, 0], [0, 0, 0, 0, 0], [0, 0, 0, 0, 0]],

@@ -103,6 +103,18 @@ def median3_bayer(raw: np.ndarray) -> np.ndarray:
     return out.astype(raw.dtype, copy=False)
 
 
+#: Malvar, He and Cutler 2004, "High-quality linear interpolation for demosaicing of Bayer-patterned colour images":
+#: the 5 x 5 kernels (x 1/8) of what ``demosaic(method="malvar")`` computes, for the models of it elsewhere
+#: (learning.camera, the sim's device sensor): green at red / blue sites; a colour at a green site whose row
+#: holds that colour ("row") or whose column does ("col"); a colour at the opposite colour's site ("cross").
+MALVAR_KERNELS: dict[str, list[list[float]]] = {
+    "green": [[0, 0, -1, 0, 0], [0, 0, 2, 0, 0], [-1, 2, 4, 2, -1], [0, 0, 2, 0, 0], [0, 0, -1, 0, 0]],
+    "row": [[0, 0, 0.5, 0, 0], [0, -1, 0, -1, 0], [-1, 4, 5, 4, -1], [0, -1, 0, -1, 0], [0, 0, 0.5, 0, 0]],
+    "cross": [[0, 0, -1.5, 0, 0], [0, 2, 0, 2, 0], [-1.5, 0, 6, 0, -1.5], [0, 2, 0, 2, 0], [0, 0, -1.5, 0, 0]],
+}
+MALVAR_KERNELS["col"] = [list(r) for r in zip(*MALVAR_KERNELS["row"], strict=True)]
+
+
 def demosaic(raw: np.ndarray, method: str = "malvar") -> np.ndarray:
     """RGGB mosaic (H, W) -> RGB (H, W, 3) float32 in the mosaic's units.
 
