@@ -1,11 +1,11 @@
-"""The simulator's light transport on a torch device (a GPU): the same footprints and splatting as
-:class:`sssphase_core.sim.transport.Transport`, for rendering 1080p captures in seconds.
+"""The simulator's light transport and camera sensor on a torch device (a GPU): the same footprints and
+splatting as :class:`sssphase_core.sim.transport.Transport`, for rendering 1080p captures in seconds.
 
 The Burley transport's two costs are per-pixel footprints (K x K x 3 exponentials for every lit pixel:
 5 G values for a 1080p view at K = 90) and their splatting under each pattern. Here both run on the
 device: footprints of the lit pixels are computed chunk by chunk with the CPU path's formulas (the same
 float32 field, the same float64 per-pixel constants and clamped near rings) for every batch of patterns
-(not kept: a 1080p view's take 19 GB, and recomputing them costs less than a frame's sensor on the CPU),
+(not kept: a 1080p view's take 19 GB; recomputing them took 0.28 s per fringe frame on an H200, all counted),
 each chunk splatted with one ``index_put_(accumulate=True)`` into a (H + K) x (W + K) x 3P canvas.
 
 The sensor (:class:`DeviceSensor`: photon and read noise, the ISP's median and Malvar demosaicing) runs there
