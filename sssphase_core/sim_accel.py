@@ -54,16 +54,10 @@ class TorchTransport(Transport):
         self._padded = torch.as_tensor(np.pad(pts, pad, constant_values=FAR).reshape(-1, 3), device=dev)
         self._points = torch.as_tensor(np.nan_to_num(maps.points).reshape(-1, 3).astype(np.float32), device=dev)
         self._toffsets = torch.as_tensor(self._offsets.astype(np.int64), device=dev)
-        self.cache_bytes = 0  # nothing kept: several sim daemons may share one GPU
+        self.cache_bytes = 0  # nothing kept (Transport.cache): several sim daemons may share one GPU
 
     def chunk_size(self) -> int:
         return max(1, DEVICE_CHUNK_ENTRIES // (self.k * self.k))
-
-    def cache(self) -> bool:
-        return False
-
-    def weights(self, index: np.ndarray) -> np.ndarray:
-        return self._compute(index)
 
     def _compute(self, index: np.ndarray) -> np.ndarray:
         return self._device_compute(index).reshape(3, len(index), self.k, self.k).cpu().numpy()

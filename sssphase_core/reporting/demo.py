@@ -105,6 +105,7 @@ class Demo:
             "; every training object captured on its own randomised rig (sim.randomised_rig_options)"
             if randomise_rig else "") + ("; a three-chip camera (no colour filter array)" if three_chip else "")
         self.results: dict[str, dict[str, Any]] = {}
+        self.device = "cpu"  # where the models relight and embed (sss repro paper: the GPU)
 
     def _done(self, name: str) -> dict[str, Any] | None:
         path = self.steps_dir / f"{name}.json"
@@ -201,24 +202,37 @@ class Demo:
                                         encoder=self.results["pretrain"]["checkpoint"], config=cfg, progress=self.progress)
         return {"checkpoint": str(path)}
 
+    def _decoder_checkpoint(self) -> str | None:
+        """The decoder step's checkpoint, when that step is done."""
+        d = self.results.get("decoder", {})
+        return d.get("checkpoint") if d.get("status") == "done" else None
+
+    def _may_relight(self) -> str | None:
+        """Why no further relight may start (None: it may); the demo has no budget."""
+        return None
+
     def relight(self) -> dict[str, Any]:
         self._need("test_sessions")
         from sssphase_core.relight import load_view
+        from sssphase_core.relight.choices import uses_decoder
         from sssphase_core.relight.evaluation import evaluate_view
         from sssphase_core.store.session import Session
 
         img_dir = self.report_dir / "img"
         rows, skipped = [], {}
-        ckpt = self.results.get("decoder", {}).get("checkpoint") if self.results.get("decoder", {}).get("status") == "done" else None
+        ckpt = self._decoder_checkpoint()
         for path in self.results["test_sessions"]["sessions"]:
             rv = load_view(Session.open(path), self.cfg.test_view)
             for b in self.cfg.backends:
-                if b == "torch" and ckpt is None:
+                if uses_decoder(b) and ckpt is None:
                     skipped[b] = "no decoder checkpoint (the decoder step is not available)"
+                    continue
+                if (why := self._may_relight()) is not None:
+                    skipped[f"{rv.object}/{b}"] = why
                     continue
                 try:
                     opts = {"supersample": self.cfg.analytic_supersample} if b == "analytic" else {}
-                    rows += evaluate_view(rv, b, img_dir, checkpoint=ckpt, **opts)
+                    rows += evaluate_view(rv, b, img_dir, checkpoint=ckpt, device=self.device, **opts)
                 except (NotAvailable, SssError) as exc:  # e.g. no captured transport for `measured`
                     skipped[b] = str(exc)
                 self.log(f"  relit {rv.object} with {b}")
@@ -234,7 +248,7 @@ class Demo:
         from sssphase_core.relight import load_view, make_source
         from sssphase_core.store.session import Session
 
-        ckpt = self.results.get("decoder", {}).get("checkpoint") if self.results.get("decoder", {}).get("status") == "done" else None
+        ckpt = self._decoder_checkpoint()
         backends = [b for b in self.cfg.backends if b in ("analytic", "torch") and (b != "torch" or ckpt)]
         if not backends:  # (it said "done" and the report "the step did not run")
             raise NotAvailable("no footprint model among the backends: the table scores analytic and torch footprints")
@@ -249,7 +263,8 @@ class Demo:
             table[rv.object] = {}
             for b in backends:
                 opts = {"supersample": self.cfg.analytic_supersample} if b == "analytic" else {}
-                source, _ = make_source(b, rv, checkpoint=ckpt, calibrate=False, **opts)  # the model's own footprints
+                source, _ = make_source(b, rv, checkpoint=ckpt, calibrate=False, device=self.device,
+                                        **opts)  # the model's own footprints
                 table[rv.object][b] = summarise(footprint_metrics(np.asarray(source(px), np.float32), gt))
         return {"metrics": table, "backends": backends, "pixels": self.cfg.footprint_pixels}
 

@@ -34,8 +34,6 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from sssphase_core.errors import InputError
 from sssphase_core.reporting.demo import Demo, DemoConfig, NotAvailable
 from sssphase_core.store.files import write_text
@@ -113,7 +111,7 @@ class PaperRepro(Demo):
                  progress: Callable[[str, int, int, str], None] | None = None):
         super().__init__(out, config, client=None, fresh=fresh, log=log, progress=progress)
         self.cfg: ReproConfig = config
-        self.capture, self.device, self.budget_s = capture, device, float(budget_s)
+        self.capture, self.device, self.budget_s = capture, device, float(budget_s)  # (device: Demo's, the models')
         self.t0 = time.perf_counter()
 
     # --- budget ------------------------------------------------------------------------------------
@@ -231,36 +229,12 @@ class PaperRepro(Demo):
         return {"patches_s": round(rate, 1), "gflop_per_patch": round(flops / 1e9, 2),
                 "mfu": None if peak is None else round(flops * rate / peak, 4)}
 
-    def _decoder_checkpoint(self) -> str | None:
-        d = self.results.get("decoder", {})
-        return d.get("checkpoint") if d.get("status") == "done" else None
-
     def footprints(self) -> dict[str, Any]:
-        """Table 1: the unseen objects' footprints against the simulator's exact ones."""
-        self._need("test_sessions")
-        from sssphase_core.learning.data import sample_pixels
-        from sssphase_core.learning.evaluation import footprint_metrics, summarise
-        from sssphase_core.relight import load_view, make_source
-        from sssphase_core.store.session import Session
-
-        ckpt = self._decoder_checkpoint()
-        backends = ["analytic"] + (["torch"] if ckpt else [])
-        table: dict[str, dict[str, dict[str, float]]] = {}
-        for path in self.results["test_sessions"]["sessions"]:
-            rv = load_view(Session.open(path), self.cfg.test_view)
-            if rv.sim is None:
-                raise NotAvailable(f"{rv.object} is not a simulated session: Table 1 needs the simulator's exact footprints")
-            px = sample_pixels(rv.proj.mask, self.cfg.footprint_pixels, self.cfg.seed)
-            gt = rv.scene().footprints(px)
-            table[rv.object] = {}
-            for b in backends:
-                opts = {"supersample": self.cfg.analytic_supersample} if b == "analytic" else {}
-                source, _ = make_source(b, rv, checkpoint=ckpt, calibrate=False, device=self.device, **opts)
-                table[rv.object][b] = summarise(footprint_metrics(np.asarray(source(px), np.float32), gt))
+        """Table 1: the unseen objects' footprints against the simulator's exact ones (the demo's step), and
+        whether LPIPS could be computed."""
         from sssphase_core.learning import lpips
 
-        return {"metrics": table, "backends": backends, "pixels": self.cfg.footprint_pixels,
-                "lpips": lpips.available()[1] or "computed"}
+        return {**super().footprints(), "lpips": lpips.available()[1] or "computed"}
 
     def knn(self) -> dict[str, Any]:
         """Table 2: kNN accuracy per object (view-level leave-one-out) of both encoders."""
@@ -282,28 +256,10 @@ class PaperRepro(Demo):
             raise NotAvailable("no pretrained encoder to evaluate")
         return out
 
-    def relight(self) -> dict[str, Any]:
-        self._need("test_sessions")
-        from sssphase_core.relight import load_view
-        from sssphase_core.relight.evaluation import evaluate_view
-        from sssphase_core.store.session import Session
-
-        ckpt = self._decoder_checkpoint()
-        rows, skipped = [], {}
-        for path in self.results["test_sessions"]["sessions"]:
-            rv = load_view(Session.open(path), self.cfg.test_view)
-            for b in self.cfg.backends:
-                if b in ("torch", "blend") and ckpt is None:
-                    skipped[b] = "no decoder checkpoint"
-                    continue
-                if self.left_s() <= RELIGHT_MIN_S:  # a 1080p relight takes tens of seconds: none is started at the end
-                    skipped[f"{rv.object}/{b}"] = "the budget was spent"
-                    continue
-                opts = {"supersample": self.cfg.analytic_supersample} if b == "analytic" else {}
-                t0 = time.perf_counter()
-                rows += evaluate_view(rv, b, self.report_dir / "img", checkpoint=ckpt, device=self.device, **opts)
-                self.log(f"  relit {rv.object} with {b} in {time.perf_counter() - t0:.1f} s")
-        return {"rows": rows, "skipped": skipped}
+    def _may_relight(self) -> str | None:
+        if self.left_s() <= RELIGHT_MIN_S:  # a 1080p relight takes tens of seconds: none is started at the end
+            return "the budget was spent"
+        return None
 
     # --- report ------------------------------------------------------------------------------------
 
