@@ -38,6 +38,9 @@ SeedOpt = Annotated[int, typer.Option(min=0, max=MAX_SEED)]
 EpochsOpt = Annotated[int, typer.Option(min=1, max=100_000)]
 PixelsOpt = Annotated[int, typer.Option(min=1)]
 CkptEveryOpt = Annotated[int, typer.Option(min=0, help="Steps between mid-epoch checkpoints (0: epoch ends only).")]
+TimeLimitOpt = Annotated[float | None, typer.Option(
+    "--time-limit", min=0.001, help="Seconds this run may train: it stops at the last epoch end that fits (its "
+    "schedule stays sized to --epochs; rerun to continue).")]
 ResultOpt = Annotated[Path | None, typer.Option(help="JSON output (a .md table is written next to it).")]
 EncoderOpt = Annotated[Path | None, typer.Option("--encoder", help="Pretraining checkpoint (run folder or .pt).")]
 EndToEndOpt = Annotated[bool, typer.Option("--end-to-end", help="No --encoder: train encoder and decoder together "
@@ -123,6 +126,7 @@ def train_pretrain(
     knn_monitor: Annotated[int, typer.Option(min=0, help="Training patches in the per-epoch kNN monitor (0: off).")] = 2000,
     seed: SeedOpt = 0,
     ckpt_every: CkptEveryOpt = 50,
+    time_limit: TimeLimitOpt = None,
     device: str = "auto",
     deterministic: DeterministicOpt = False,
     resume: Annotated[bool, typer.Option(help="Continue from out/last.pt when present.")] = True,
@@ -135,8 +139,8 @@ def train_pretrain(
     opts = PretrainOptions(
         out=out, preset=preset, objects=objects, views=views, n_views=n_views, rig=rig, pixels_per_view=pixels_per_view,
         epochs=epochs, batch_size=batch_size, lr=lr, warmup_epochs=warmup_epochs, augment=augment,
-        fix_pred_lr=fix_pred_lr, knn_monitor=knn_monitor, seed=seed, ckpt_every=ckpt_every, device=device,
-        deterministic=deterministic, resume=resume, cache=cache, sessions=sessions)
+        fix_pred_lr=fix_pred_lr, knn_monitor=knn_monitor, seed=seed, ckpt_every=ckpt_every, time_limit=time_limit,
+        device=device, deterministic=deterministic, resume=resume, cache=cache, sessions=sessions)
     run_pretrain(opts, _report(), config_file=run_config_file(ctx))
 
 
@@ -163,6 +167,7 @@ def train_decoder(
     capture_model: CaptureModelOpt = True,
     seed: SeedOpt = 0,
     ckpt_every: CkptEveryOpt = 50,
+    time_limit: TimeLimitOpt = None,
     device: str = "auto",
     deterministic: DeterministicOpt = True,
     resume: bool = True,
@@ -179,8 +184,8 @@ def train_decoder(
         out=out, objects=objects, views=views, val_views=val_views, n_views=n_views, rig=rig,
         pixels_per_view=pixels_per_view, noisy_targets=noisy_targets, epochs=epochs, batch_size=batch_size, lr=lr,
         head=head, aux_classes=aux_classes, learn_gain=learn_gain, capture_model=capture_model, seed=seed,
-        ckpt_every=ckpt_every, device=device, deterministic=deterministic, resume=resume, cache=cache,
-        sessions=sessions, check_sessions=check_sessions)
+        ckpt_every=ckpt_every, time_limit=time_limit, device=device, deterministic=deterministic, resume=resume,
+        cache=cache, sessions=sessions, check_sessions=check_sessions)
     run_decoder(opts, _report(), config_file=run_config_file(ctx))
 
 

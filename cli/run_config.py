@@ -89,7 +89,7 @@ def _same(now: Any, saved: Any, is_path: bool) -> bool:
 
 
 #: Options a resumed run may change: how long and where it runs, not what it learns from.
-RESUMABLE = {"epochs", "device", "deterministic", "ckpt_every", "cache", "out"}
+RESUMABLE = {"epochs", "time_limit", "device", "deterministic", "ckpt_every", "cache", "out"}
 
 
 def check_run_config(ctx: typer.Context, *args: Any, **kwargs: Any) -> None:

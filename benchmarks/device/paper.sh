@@ -18,11 +18,13 @@ python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upg
 export PYTHONPATH=/tmp/site PYTHONUNBUFFERED=1
 python3 -m pip install -q --no-deps --no-build-isolation --no-index . || exit 1
 nvidia-smi -L
-python3 -m sssphase_cli repro paper --device cuda --budget "$budget" --out /tmp/repro 2>&1 | grep -v "━" | tail -80
+# its own deadline (the report is rewritten after every step), so that what it wrote comes back even if it overruns
+timeout -k 10 -s INT $((budget + 110)) python3 -m sssphase_cli repro paper --device cuda --budget "$budget" --out /tmp/repro 2>&1 \
+  | grep -v "━" | tail -80
 cp /tmp/repro/report.md /tmp/repro/report.json "$out/" 2>/dev/null
 for d in /tmp/repro/runs/*/; do cp "$d/metrics.jsonl" "$out/$(basename "$d")_metrics.jsonl" 2>/dev/null; done
 if [ "$2" != repro ]; then
   python3 -m pytest -q -p no:cacheprovider -o addopts="" tests/sim/test_sim_accel.py 2>&1 | tail -3
-  python3 -m sssphase_cli bench sim --device cuda --out "$out/sim.json" 2>&1 | tail -20
+  timeout -k 5 -s INT "${SIM_S:-300}" python3 -m sssphase_cli bench sim --device cuda --out "$out/sim.json" 2>&1 | tail -20
 fi
 ls -la "$out"

@@ -48,6 +48,7 @@ class TrainOptions(ViewOptions):
     batch_size: int = 64
     lr: float = 0.05
     ckpt_every: int = 50
+    time_limit: float | None = None  # seconds this call may train (LoopConfig.time_limit_s)
     device: str = "auto"
     deterministic: bool = False
     resume: bool = True
@@ -148,7 +149,8 @@ def run_pretrain(opts: PretrainOptions, report: Report = Report(), *,
                    f"{opts.epochs}: the learning rate rises for the whole run, to about {opts.epochs / opts.warmup_epochs:.2g}"
                    " x --lr, and never decays")
     cfg = PretrainConfig(epochs=opts.epochs, batch_size=opts.batch_size, seed=opts.seed, ckpt_every=opts.ckpt_every,
-                         device=opts.device, preset=opts.preset, deterministic=opts.deterministic, lr=opts.lr,
+                         time_limit_s=opts.time_limit, device=opts.device, preset=opts.preset,
+                         deterministic=opts.deterministic, lr=opts.lr,
                          warmup_epochs=opts.warmup_epochs, fix_pred_lr=opts.fix_pred_lr, augment=opts.augment,
                          knn_monitor=opts.knn_monitor)
     _header(report, f"pretraining {report.style(opts.preset, 'strong')} on {len(ds)} patches of {', '.join(names)}",
@@ -156,11 +158,20 @@ def run_pretrain(opts: PretrainOptions, report: Report = Report(), *,
     with report.training() as progress:
         path = pretrain(cfg, ds, opts.out, resume=opts.resume, progress=progress)
     result = TrainResult(path, read_rows(opts.out / METRICS))
+    _say_if_stopped(result, opts, report)
     for line in final_lines(opts.out / METRICS, ("loss", "knn_acc", "eff_rank"), "knn_acc"):
         report.say(line)
     _knn_trail(opts.out, result, len(names), report)
     report.say(f"{report.style('done', 'done')}: {path}")
     return result
+
+
+def _say_if_stopped(result: TrainResult, opts: TrainOptions, report: Report) -> None:
+    """Say when ``--time-limit`` ended the run before its last epoch (a rerun continues it)."""
+    done = max((int(r["epoch"]) for r in result.rows if "epoch" in r), default=0)
+    if opts.time_limit is not None and done < opts.epochs:
+        report.say(f"{report.style('note:', 'note')} stopped after epoch {done} of {opts.epochs}: another would pass "
+                   f"--time-limit {opts.time_limit:g} s (rerun the command to continue from {opts.out / 'last.pt'})")
 
 
 def _knn_trail(out: Path, result: TrainResult, n_objects: int, report: Report) -> None:
@@ -233,7 +244,8 @@ def run_decoder(opts: DecoderOptions, report: Report = Report(), *,
     check_batch(opts.batch_size, ds, "training footprints")
     check_aux_classes(opts.aux_classes, ds)
     cfg = DecoderConfig(epochs=opts.epochs, batch_size=opts.batch_size, seed=opts.seed, ckpt_every=opts.ckpt_every,
-                        device=opts.device, lr=opts.lr, deterministic=opts.deterministic, head=opts.head,
+                        time_limit_s=opts.time_limit, device=opts.device, lr=opts.lr, deterministic=opts.deterministic,
+                        head=opts.head,
                         aux_classes=opts.aux_classes, preset=opts.preset, learn_gain=opts.learn_gain,
                         capture_model=opts.capture_model)
     what = f"encoder and decoder end-to-end ({opts.preset})" if opts.end_to_end else "the decoder"
@@ -241,6 +253,7 @@ def run_decoder(opts: DecoderOptions, report: Report = Report(), *,
     with report.training() as progress:
         path = train_decoder(cfg, opts.encoder, ds, opts.out, val=val, resume=opts.resume, progress=progress)
     result = TrainResult(path, read_rows(opts.out / METRICS))
+    _say_if_stopped(result, opts, report)
     if val is not None:
         result.figures.append(_validation_plot(opts.out))
         report.say(f"validation error against run time: {result.figures[-1]}")

@@ -136,9 +136,11 @@ class PaperRepro(Demo):
             self.write_report()  # what is finished is on disk even if the run is stopped from outside
         return result
 
-    def _epochs(self, stage: int, patches: int, most: int) -> int:
-        """Epochs for training stage ``stage`` (0: pretrain psp, 1: imagenet, 2: decoder) in its share of the time
-        left, at the throughput a pretraining of this run reached (before any: :data:`PLANNED_RATE`)."""
+    def _plan(self, stage: int, patches: int, most: int) -> tuple[int, float]:
+        """(epochs, seconds) for training stage ``stage`` (0: pretrain psp, 1: imagenet, 2: decoder): its share of
+        the time left, and the epochs that fit in it at the throughput a pretraining of this run reached (before
+        any: :data:`PLANNED_RATE`). The seconds also bound the training loop (``time_limit_s``): the rate is a
+        guess (the decoder ran at 0.63 of pretraining's patches/s on the H200), the deadline is kept."""
         from sssphase_core.compute import compute_device
 
         kind = compute_device(self.device).type
@@ -147,7 +149,12 @@ class PaperRepro(Demo):
         rate = min(measured) if measured else PLANNED_RATE.get((kind if kind == "cuda" else "cpu", self.cfg.model), 100.0)
         shares = self.cfg.train_shares[stage:]
         seconds = max(0.0, self.left_s() - self.cfg.eval_reserve_s) * shares[0] / sum(shares)
-        return epochs_within(seconds, patches, rate, most)
+        return epochs_within(seconds, patches, rate, most), seconds
+
+    @staticmethod
+    def _time_left(deadline: float) -> float:
+        """Seconds until ``deadline`` (a perf_counter time), at least one: the loop always runs one epoch."""
+        return max(1.0, deadline - time.perf_counter())
 
     # --- steps -------------------------------------------------------------------------------------
 
@@ -181,16 +188,16 @@ class PaperRepro(Demo):
         from sssphase_core.learning.backends import get_backend
         from sssphase_core.learning.training import PretrainConfig
 
-        c = self.cfg
+        c, t0 = self.cfg, time.perf_counter()
         views = self.train_views(footprints=False)
         patches = sum(len(v.pixels) for v in views)
-        epochs = self._epochs(stage, patches, c.pretrain_epochs)
+        epochs, seconds = self._plan(stage, patches, c.pretrain_epochs)
         cfg = PretrainConfig(epochs=epochs, batch_size=min(c.pretrain_batch, patches), seed=c.seed, preset=c.model,
-                             augment=augment, warmup_epochs=min(1.0, epochs / 2), device=self.device, knn_monitor=0)
+                             augment=augment, warmup_epochs=min(1.0, epochs / 2), device=self.device, knn_monitor=0,
+                             time_limit_s=self._time_left(t0 + seconds))
         run = self.out / "runs" / f"pretrain_{augment}"
         path = get_backend("torch").pretrain(views, run, config=cfg, progress=self.progress)
-        return {"checkpoint": str(path), "epochs": epochs, "patches": patches, "batch": cfg.batch_size,
-                **self._throughput(run, "pretrain", cfg.batch_size)}
+        return {"checkpoint": str(path), **self._trained(run, "pretrain", epochs, patches, cfg.batch_size)}
 
     def pretrain_psp(self) -> dict[str, Any]:
         return self._pretrain("psp", 0)
@@ -203,30 +210,33 @@ class PaperRepro(Demo):
         from sssphase_core.learning.backends import get_backend
         from sssphase_core.learning.training import DecoderConfig
 
-        c = self.cfg
+        c, t0 = self.cfg, time.perf_counter()
         views = self.train_views()
         patches = sum(len(v.pixels) for v in views)
-        epochs = self._epochs(2, patches, c.decoder_epochs)
-        cfg = DecoderConfig(epochs=epochs, batch_size=min(c.decoder_batch, patches), seed=c.seed, device=self.device)
+        epochs, seconds = self._plan(2, patches, c.decoder_epochs)
+        cfg = DecoderConfig(epochs=epochs, batch_size=min(c.decoder_batch, patches), seed=c.seed, device=self.device,
+                            time_limit_s=self._time_left(t0 + seconds))
         run = self.out / "runs" / "decoder"
         path = get_backend("torch").fit(views, run, encoder=self.results["pretrain_psp"]["checkpoint"], config=cfg,
                                         progress=self.progress)
-        return {"checkpoint": str(path), "epochs": epochs, "patches": patches, "batch": cfg.batch_size,
-                **self._throughput(run, "decoder", cfg.batch_size)}
+        return {"checkpoint": str(path), **self._trained(run, "decoder", epochs, patches, cfg.batch_size)}
 
-    def _throughput(self, run: Path, stage: str, batch: int) -> dict[str, Any]:
-        """The training loop's patches/s (all its time) and the model FLOPs utilisation against the device's
-        datasheet bf16 peak (:mod:`sssphase_core.learning.flops`)."""
+    def _trained(self, run: Path, stage: str, planned: int, patches: int, batch: int) -> dict[str, Any]:
+        """What a training stage did: the epochs it ran (of those planned: the time limit may end it early),
+        the loop's patches/s (all its time) and the model FLOPs utilisation against the device's datasheet bf16
+        peak (:mod:`sssphase_core.learning.flops`)."""
         from sssphase_core.learning.flops import datasheet_peak, training_flops_per_patch
         from sssphase_core.learning.runlog import METRICS, read_rows
 
         rows = read_rows(run / METRICS)
+        out: dict[str, Any] = {"epochs": int(rows[-1]["epoch"]) if rows else 0, "planned_epochs": planned,
+                               "patches": patches, "batch": batch}
         if not rows or not rows[-1].get("wall_s"):
-            return {}
+            return out
         rate = int(rows[-1]["step"]) * batch / float(rows[-1]["wall_s"])
         flops = training_flops_per_patch(self.cfg.model, stage)
         peak = datasheet_peak(self.environment()["device"])
-        return {"patches_s": round(rate, 1), "gflop_per_patch": round(flops / 1e9, 2),
+        return {**out, "patches_s": round(rate, 1), "gflop_per_patch": round(flops / 1e9, 2),
                 "mfu": None if peak is None else round(flops * rate / peak, 4)}
 
     def footprints(self) -> dict[str, Any]:

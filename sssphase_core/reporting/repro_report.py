@@ -28,6 +28,9 @@ def _step_rows(data: dict[str, Any]) -> list[list[Any]]:
     rows = []
     for name, r in data["steps"].items():
         extra = ", ".join(f"{k} {r[k]}" for k in ("epochs", "patches", "batch", "patches_s", "gflop_per_patch") if k in r)
+        if r.get("planned_epochs", r.get("epochs")) != r.get("epochs"):  # the step's time limit ended it early
+            extra = extra.replace(f"epochs {r['epochs']}", f"epochs {r['epochs']} (of {r['planned_epochs']} planned: "
+                                  "its time share was spent)", 1)
         if r.get("mfu") is not None:
             extra += f", MFU {r['mfu']:.1%} (of the datasheet's bf16 peak)"
         status = r.get("status", "?") + (" (an earlier run)" if r.get("resumed") else "")

@@ -71,6 +71,22 @@ def test_run_interrupted_mid_epoch_resumes_to_the_same_state(pretrained, dataset
     assert a["loop"]["epoch"] == b["loop"]["epoch"] == 2
 
 
+def test_a_time_limit_ends_the_run_at_an_epoch_end_and_a_rerun_continues_it_exactly(pretrained, dataset, tiny, tmp_path):
+    """``time_limit_s`` stops after the epoch at which another would pass it (here: after the first, whatever
+    this machine's speed), with that epoch's checkpoint; the rerun without a limit ends where the uninterrupted
+    run did, weights equal."""
+    out = tmp_path / "run"
+    pretrain(dataclasses.replace(PRE, time_limit_s=1e-3), dataset, out, preset=tiny, progress=False)
+    assert load_checkpoint(out)["loop"]["epoch"] == 1
+    assert [json.loads(line)["epoch"] for line in (out / METRICS).read_text().splitlines()] == [1]
+    pretrain(PRE, dataset, out, preset=tiny, progress=False)
+    a, b = load_checkpoint(pretrained), load_checkpoint(out)
+    assert b["loop"]["epoch"] == 2 and states_equal(a["model"], b["model"])
+    roomy = tmp_path / "roomy"  # a limit that is not reached changes nothing
+    pretrain(dataclasses.replace(PRE, time_limit_s=3600.0), dataset, roomy, preset=tiny, progress=False)
+    assert states_equal(a["model"], load_checkpoint(roomy)["model"])
+
+
 def test_prefetching_batches_on_a_worker_thread_changes_nothing_and_resumes_exactly(pretrained, dataset, tiny, tmp_path):
     """The worker thread builds the same batches in the same order: weights equal to the plain loop's, also
     after an interrupt that leaves a batch in flight; every epoch logs the time it waited for data."""

@@ -92,6 +92,10 @@ class LoopConfig:
     prefetch: bool | None = None  # build the next batch on a worker thread during the step (None: off the CPU)
     stacks_on_device: bool | None = None  # crop patches on the device (None: on CUDA when the stacks fit)
     deterministic: bool = True  # CUDA: deterministic kernels, so a resumed run ends bit-identical (CPU: always are)
+    #: seconds this call may train: it ends at the first epoch end after which one more epoch (at this call's
+    #: mean epoch time) would pass them; None: every epoch. The checkpoint is the last finished epoch's, so a
+    #: rerun with ``resume`` continues; the run's own schedule (sized to ``epochs``) is left as it is.
+    time_limit_s: float | None = None
 
 
 #: ``stacks_on_device=None`` moves the PSP view stacks to a CUDA device when they take at most this share
@@ -208,6 +212,17 @@ class Loop:
             "learning rate" + (f" (the last good checkpoint is kept in {kept}, which --resume continues from)"
                                if kept.exists() else " (no checkpoint was written yet)"))
 
+    def _out_of_time(self, elapsed: float, epochs_run: int) -> bool:
+        """Whether another epoch would end past ``time_limit_s`` (every rank agrees: rank 0's clock decides)."""
+        limit = self.cfg.time_limit_s
+        if limit is None or self.epoch >= self.cfg.epochs:
+            return False
+        stop = torch.tensor([float(elapsed + elapsed / epochs_run > limit)])
+        if self.d.world > 1:
+            stop = stop.to(self.d.device)
+            dist.broadcast(stop, 0)
+        return bool(stop.item())
+
     def _load(self, idx: np.ndarray) -> dict[str, torch.Tensor]:
         return {k: v.to(self.d.device, non_blocking=True) for k, v in self.dataset.batch(idx).items()}
 
@@ -223,7 +238,7 @@ class Loop:
         An interrupt (Ctrl-C) between steps loses only the steps since the last checkpoint. With
         ``prefetch`` the next batch is built on a worker thread while the device runs the step; each
         epoch's row records ``data_wait_s``, the time the loop waited for batches."""
-        steps_run = 0
+        steps_run, started, epochs_run = 0, time.perf_counter(), 0
         report = progress if callable(progress) and self.d.main else None
         runlog = RunLog(self.out_dir, resume_step=self.global_step, enabled=self.d.main)
         with contextlib.ExitStack() as cleanup:  # left in reverse: pending batch, device stacks, run log
@@ -274,6 +289,7 @@ class Loop:
                 runlog.epoch(row)  # before the checkpoint: an interrupt between the two loses no row (it is rewritten)
                 save()
                 self.keep_if_best()
+                epochs_run += 1
                 collapse = row.get("collapsed", 0.0)
                 if collapse:
                     raise TrainingCollapsed(
@@ -282,6 +298,8 @@ class Loop:
                         f"{row['eff_rank']:.1f}; lower the learning rate or lengthen the warmup "
                         f"(checkpoint kept in {self.out_dir / CHECKPOINT})"
                     )
+                if self._out_of_time(time.perf_counter() - started, epochs_run):
+                    break
         if self.d.world > 1:
             dist.barrier()  # every rank returns once rank 0 has written the final checkpoint
 
