@@ -194,3 +194,22 @@ def test_a_decoder_of_another_footprint_size_is_refused_before_any_work(session,
     with pytest.raises(InputError, match=why):
         geometry_session(session, backend="torch", checkpoint=ckpt, out=tmp_path / "geo")
     assert not (tmp_path / "relit").exists() or not any((tmp_path / "relit").glob("*.png"))
+
+
+@pytest.mark.parametrize("box", [(slice(40, 90), slice(70, 150)), (slice(0, 30), slice(150, 200))])
+def test_ssim_of_the_mask_is_the_whole_images_ssim_at_its_pixels(box):
+    """relight_metrics computes SSIM only around the mask (a fraction of a 1080p image): the value is the one of
+    the whole image's SSIM map averaged over the mask, inside the image and where the mask meets its border."""
+    import kornia
+    import torch
+
+    from sssphase_core.relight.evaluation import SSIM_WINDOW, relight_metrics
+
+    rng = np.random.default_rng(3)
+    mask = np.zeros((120, 200), bool)
+    mask[box] = rng.random(mask[box].shape) > 0.3
+    a = rng.random((120, 200, 3))
+    b = a + 0.1 * rng.standard_normal(a.shape)
+    ta, tb = (torch.as_tensor(x, dtype=torch.float32).permute(2, 0, 1)[None] for x in (a, b))
+    whole = kornia.metrics.ssim(ta, tb, window_size=SSIM_WINDOW, max_val=1.0)[0].mean(0).numpy()
+    assert relight_metrics(a, b, mask)["ssim"] == pytest.approx(float(whole[mask].mean()), abs=1e-6)
