@@ -136,7 +136,7 @@ def bench_relight(
     out: Annotated[Path, typer.Option("--out", help="JSON output (.md and .png written next to it).")] = Path("bench_relight.json"),
     objects: Annotated[str, typer.Option(help="Comma-separated simulated objects.")] = "soap",
     checkpoint: CheckpointOpt = None,
-    backends: Annotated[str, typer.Option(help="Comma-separated backends.")] = "none,analytic,exact,torch",
+    backends: Annotated[str, typer.Option(help="Comma-separated backends (torch and blend need --checkpoint).")] = "none,analytic,exact,torch,blend",
     radii: Annotated[str, typer.Option(help="Footprint truncation radii (px).")] = "4,8",
     chunks: Annotated[str, typer.Option(help="Chunk sizes besides the default 1024.")] = "256,4096",
     repeats: int = 3,
@@ -233,7 +233,7 @@ def bench_stability(
     out: Annotated[Path, typer.Option("--out", help="JSON output (.md written next to it).")] = Path("bench_stability.json"),
     cases: Annotated[str, typer.Option(help="Comma-separated cases (default: all).")] = "",
     checkpoint: CheckpointOpt = None,
-    backends: Annotated[str, typer.Option(help="Comma-separated backends.")] = "none,analytic,exact,torch",
+    backends: Annotated[str, typer.Option(help="Comma-separated backends (torch and blend need --checkpoint).")] = "none,analytic,exact,torch,blend",
 ) -> None:
     """Extreme materials, saturation, low light and grazing views: no NaN/inf, error per case."""
     from sssphase_core.bench import stability_bench

@@ -35,20 +35,23 @@ class SimView:
     scene: Any
     proj: Projection
     psp: np.ndarray  # (8, H, W, 3) noisy PSP captures
-    white: np.ndarray  # noise-free image under full white
+    white: np.ndarray  # the image under full white: noise-free, or captured (``sim_view(white_exposure=...)``)
     patch: int
     references: dict[str, np.ndarray]  # pattern name -> projector pattern
     captured: dict[str, np.ndarray]  # pattern name -> noise-free render
     sim: dict | None = None
     session: object | None = None
     saturation: float | None = None  # the PSP frames' clipping level (linear units)
-    white_saturation: float | None = None  # None: the noise-free white does not clip
+    white_saturation: float | None = None  # None: the white does not clip (noise-free)
     psp_patterns: np.ndarray | None = None  # (8, Hp, Wp) projector images of ``psp``
 
 
 def sim_view(obj: Any, view: int = 0, *, n_views: int = 4, seed: int = 0, rig: str = "cpu", exposure: float = 1.0,
-             patterns: dict[str, np.ndarray] | None = None) -> SimView:
-    """Simulate one view: noisy PSP inputs (at ``exposure``), exact correspondences, references."""
+             patterns: dict[str, np.ndarray] | None = None, white_exposure: float | None = None) -> SimView:
+    """Simulate one view: noisy PSP inputs (at ``exposure``), exact correspondences, references.
+    ``white_exposure``: the white frame captured through the sensor at this exposure, as a session captures
+    it (its noise and clipping: what ``none`` and the energy repairs read in a lab); None: its noise-free
+    render."""
     from sssphase_core.processing.patterns import paper_inputs, psp_config_for
     from sssphase_core.sim import SimScene, rig_preset
 
@@ -67,13 +70,14 @@ def sim_view(obj: Any, view: int = 0, *, n_views: int = 4, seed: int = 0, rig: s
     # the sensor's DN per unit at that exposure): only clipping and noise change with it.
     inputs = paper_inputs(wp, hp, period=psp_config_for(wp, hp).period)
     psp = scene.capture(inputs, rng, exposure=exposure)
+    white = images[0] if white_exposure is None else scene.sense(images[:1], rng, white_exposure)[0]
     valid = scene.mask & np.isfinite(scene.proj_xy).all(axis=-1)
     proj = Projection(scene.proj_xy[..., 0], scene.proj_xy[..., 1], valid, (wp, hp), cfg.projector.gamma, cfg.projector.black)
     name = scene.obj.name
-    return SimView(name, view, scene, proj, np.asarray(psp, np.float32), images[0], cfg.patch, dict(pats),
-                   dict(zip(names, images[1:], strict=True)),
+    return SimView(name, view, scene, proj, np.asarray(psp, np.float32), np.asarray(white, np.float32), cfg.patch,
+                   dict(pats), dict(zip(names, images[1:], strict=True)),
                    {"object": name, "preset": rig, "n_views": n_views, "seed": seed}, None, cfg.sensor.saturation(exposure),
-                   None, inputs)
+                   None if white_exposure is None else cfg.sensor.saturation(white_exposure), inputs)
 
 
 def source_for(backend: str, sv: SimView, checkpoint: Path | str | None) -> tuple[Callable, int]:

@@ -1,9 +1,11 @@
 """`sss bench stability`: relighting under extreme materials, exposures and geometry.
 
-Each case is a simulated view (noisy PSP inputs, exact correspondences) relit under a checkerboard
-with the ``none``, ``analytic`` and ``exact`` (the simulator's footprint) backends, plus ``torch`` with a
-checkpoint. Checked: no NaN/inf in the inputs, the predicted footprints or the relit images; the
-error (PSNR against the simulator's noise-free render) is reported per case and backend.
+Each case is a simulated view (noisy PSP inputs and a noisy white frame, as a session captures them;
+exact correspondences) relit under a checkerboard the way ``sss relight`` does it (the backend's
+footprints, calibrated to the view's own fringes for a model: :func:`~sssphase_core.relight.pipeline.relight_view`)
+with ``none``, ``analytic`` and ``exact`` (the simulator's footprints), plus ``torch`` and ``blend`` with a
+checkpoint. Checked: no NaN/inf in the inputs, the footprints or the relit images; the error (PSNR
+against the simulator's noise-free render) is reported per case and backend.
 """
 
 from __future__ import annotations
@@ -15,10 +17,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
 from sssphase_core.bench.output import Table, machine_info, write_bench_report
-from sssphase_core.bench.relight_bench import InMemorySource, SimView, sim_view, source_for
-from sssphase_core.relight import emitted_light, lit_pixels, relight
+from sssphase_core.bench.relight_bench import SimView, sim_view, source_for
+from sssphase_core.relight import emitted_light, lit_pixels
 from sssphase_core.relight.evaluation import relight_metrics
 
 SPHERE_RADIUS = 22.0  # mm: small objects keep the sweep quick
@@ -35,6 +38,7 @@ class Case:
     tilt_deg: float | None = None  # a flat slab tilted this much away from the camera (None: a sphere)
     exposure: float = 1.0
     gain: float = 1.0  # pattern values are scaled by this (very low light)
+    white_exposure: float | None = None  # the white frame's exposure (None: ``exposure``, one exposure for the view)
     extra: dict[str, Any] = field(default_factory=dict)
 
 
@@ -45,7 +49,8 @@ CASES = (
     Case("albedo1", "albedo 1 (no absorption)", albedo=(1.0, 1.0, 1.0)),
     Case("aniso10", "10:1 anisotropic footprints (slab at 84 deg: cos 0.1)", tilt_deg=84.3),
     Case("grazing", "grazing view beyond the clamp (slab at 88 deg)", tilt_deg=88.0),
-    Case("saturated", "PSP inputs saturated (exposure x8)", exposure=8.0),
+    # (a white frame clipped as well leaves no energy to relight with: every backend at ~13 dB)
+    Case("saturated", "PSP inputs saturated (exposure x8, the white frame at x1)", exposure=8.0, white_exposure=1.0),
     Case("lowlight", "very low light (exposure 1/200, pattern at 5 %)", exposure=0.005, gain=0.05),
 )
 
@@ -68,32 +73,49 @@ def case_object(case: Case):
     return SimObject(case.name, "test", case.description, 45.0, sdf, uniform(mat))
 
 
+class _FiniteCheck:
+    """A footprint source that notes whether every footprint it gave was finite."""
+
+    def __init__(self, source: Callable) -> None:
+        self.source, self.finite = source, True
+
+    def __call__(self, pixels: np.ndarray) -> Any:
+        out = self.source(pixels)
+        self.finite &= bool(torch.isfinite(out).all()) if torch.is_tensor(out) else bool(np.isfinite(out).all())
+        return out
+
+
 def run_case(case: Case, backends: Sequence[str], checkpoint: Path | str | None = None) -> list[dict[str, Any]]:
     """Relit error and finiteness checks of one case for each backend."""
     from sssphase_core.processing.patterns import checkerboard
+    from sssphase_core.relight.backends import MODEL_FREE, make_sources
+    from sssphase_core.relight.pipeline import relight_view
     from sssphase_core.sim import rig_preset
 
     projector = rig_preset("cpu").projector
     hp, wp = projector.height, projector.width
     pattern = checkerboard(wp, hp, 16) * np.float32(case.gain)
-    sv: SimView = sim_view(case_object(case), exposure=case.exposure, patterns={"checkerboard": pattern})
+    sv: SimView = sim_view(case_object(case), exposure=case.exposure, patterns={"checkerboard": pattern},
+                           white_exposure=case.white_exposure or case.exposure)
     pixels, _ = lit_pixels(sv.proj, emitted_light(pattern[None], sv.proj.gamma))
     rows = []
     for backend in backends:
         t0 = time.perf_counter()
-        source, patch = source_for(backend, sv, checkpoint)
-        cached = InMemorySource(source, pixels, sv.proj.shape)
-        out = relight(cached, sv.proj, pattern[None], patch, white=sv.white)[0]
+        pairs = [source_for(backend, sv, None)] if backend == "exact" else make_sources(backend, sv, checkpoint=checkpoint)
+        checked = [(_FiniteCheck(src), k) for src, k in pairs]
+        (source, patch), *also = checked
+        images, _ = relight_view(source, patch, sv, [pattern], calibrate=backend not in MODEL_FREE, also=also)
+        out = images[0]
         seconds = time.perf_counter() - t0
         ref = sv.captured["checkerboard"]
-        finite = {"psp": bool(np.isfinite(sv.psp).all()), "footprints": bool(np.isfinite(cached.fps).all()),
+        finite = {"psp": bool(np.isfinite(sv.psp).all()), "footprints": all(c.finite for c, _ in checked),
                   "relit": bool(np.isfinite(out).all()), "reference": bool(np.isfinite(ref).all())}
         mask = sv.proj.mask
         nan = {"mse": float("nan"), "psnr": float("nan"), "ssim": float("nan")}
         met = relight_metrics(out, ref, mask) if mask.any() else nan
         peak = float(ref[mask].max()) if mask.any() else 0.0
         rel = relight_metrics(out, ref, mask, data_range=peak) if peak > 0 else nan
-        model = getattr(source, "backend", None)  # a decoder: how many pixels it gave the analytic model
+        model = getattr(pairs[0][0], "backend", None)  # a decoder: how many pixels it gave the analytic model
         handed = model.beyond_domain / model.predicted if getattr(model, "predicted", 0) else None
         rows.append({"case": case.name, "description": case.description, "backend": backend, "valid_pixels": int(mask.sum()),
                      "lit_pixels": len(pixels), "ref_peak": peak,
@@ -107,16 +129,18 @@ def run_case(case: Case, backends: Sequence[str], checkpoint: Path | str | None 
     return rows
 
 
-def run(out: Path, *, cases: Sequence[str] | None = None, backends: Sequence[str] = ("none", "analytic", "exact", "torch"),
+def run(out: Path, *, cases: Sequence[str] | None = None,
+        backends: Sequence[str] = ("none", "analytic", "exact", "torch", "blend"),
         checkpoint: Path | str | None = None, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
     """All (or the named) cases; writes ``out`` (JSON) and ``out.md``. Returns the result."""
     from sssphase_core.errors import InputError
+    from sssphase_core.relight.choices import uses_decoder
 
     chosen = [c for c in CASES if cases is None or c.name in cases]
     unknown = set(cases or ()) - {c.name for c in CASES}
     if unknown:
         raise InputError(f"unknown stability cases {sorted(unknown)}; choose from {', '.join(c.name for c in CASES)}")
-    use = [b for b in backends if b != "torch" or checkpoint is not None]
+    use = [b for b in backends if not uses_decoder(b) or checkpoint is not None]
     rows: list[dict[str, Any]] = []
     for case in chosen:
         if progress:
@@ -124,7 +148,8 @@ def run(out: Path, *, cases: Sequence[str] | None = None, backends: Sequence[str
         rows += run_case(case, use, checkpoint)
     bad = [f"{r['case']}/{r['backend']}" for r in rows if not r["finite"]]
     note = ("PSNR: peak 1.0 (linear camera units), PSNR@peak: peak = the reference's maximum; against the "
-            "noise-free render, on the valid mask. "
+            "noise-free render, on the valid mask; relit as `sss relight` does (a model calibrated to the view's own "
+            "fringes; the white frame captured with its noise). "
             + (f"NON-FINITE values in: {', '.join(bad)}." if bad else "No NaN/inf anywhere."))
     note += (" vs best: PSNR minus the better of none and analytic in the same case (the models that need no "
              "training), where both ran; to analytic: the decoder's pixels beyond its training widths, given the "

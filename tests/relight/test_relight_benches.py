@@ -76,3 +76,20 @@ def test_bench_geometry_scores_a_backend_against_the_exact_points(sim_daemon, tm
 
     with pytest.raises(InputError, match="no exact points"):
         geometry_bench.run([Session.open(s.path)], tmp_path / "geo2.json", ("exact",))
+
+
+def test_the_stability_cases_capture_their_white_frame_as_a_session_does():
+    """The white frame goes through the sensor at the case's exposure (its noise and clipping, what `none` and
+    the energy repairs read in a lab), not the noise-free render; the saturated case's white at x1 stays unclipped."""
+    case = next(c for c in stability_bench.CASES if c.name == "saturated")
+    obj = stability_bench.case_object(case)
+    render = relight_bench.sim_view(obj)
+    captured = relight_bench.sim_view(obj, white_exposure=1.0)
+    m = render.proj.mask
+    np.testing.assert_array_equal(captured.psp, render.psp)  # the same PSP frames: only the white differs
+    noise = (captured.white - render.white)[m]
+    assert 1e-4 < np.std(noise) < 0.05 * render.white[m].mean() and abs(np.mean(noise)) < 0.01 * render.white[m].mean()
+    assert render.white_saturation is None and captured.white_saturation is not None
+    assert captured.white[m].max() < captured.white_saturation  # x1: nothing clipped
+    clipped = relight_bench.sim_view(obj, white_exposure=case.exposure)
+    assert (clipped.white[m] >= 0.99 * clipped.white_saturation).mean() > 0.5  # what x8 would have done to it
