@@ -5,8 +5,24 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
 
 from sssphase_core.relight.engine import FootprintSource, footprint_array
+
+
+def to_float16(a: np.ndarray) -> np.ndarray:
+    """``a`` rounded to float16 (torch's conversion: the same bits as numpy's, ~40x faster on footprints, whose
+    tails are mostly float16 subnormals, numpy's slow path: 1.2 s against 0.03 s per 1,024 1080p footprints)."""
+    return torch.from_numpy(np.ascontiguousarray(a, np.float32)).half().numpy()
+
+
+def from_float16(a: np.ndarray) -> np.ndarray:
+    """float16 ``a`` as float32 (torch's conversion, for the same reason as :func:`to_float16`)."""
+    return torch.from_numpy(np.ascontiguousarray(a)).float().numpy()
+
+
+#: The footprints a cache holds in memory at most (bytes of float16).
+CACHE_BYTES = 2 * 2**30
 
 
 class FootprintCache:
@@ -24,7 +40,7 @@ class FootprintCache:
     FORMAT = 2
 
     def __init__(self, source: FootprintSource, path: Path | str, shape: tuple[int, int], patch: int,
-                 max_bytes: int = 2 * 2**30):
+                 max_bytes: int = CACHE_BYTES):
         self.source, self.path, self.shape, self.patch = source, Path(path), shape, patch
         self.max_rows = max(0, int(max_bytes) // (patch * patch * 3 * 2))
         self.slot = np.full(shape[0] * shape[1], -1, np.int64)
@@ -62,11 +78,12 @@ class FootprintCache:
         pos = self.slot[flat]
         miss = pos < 0
         out = np.empty((len(pixels), self.patch, self.patch, 3), np.float32)
-        out[~miss] = self.data[pos[~miss]]
+        if (~miss).any():
+            out[~miss] = from_float16(self.data[pos[~miss]])
         if miss.any():
             fp = self.source(pixels[miss])
-            fp = footprint_array(fp).astype(np.float16)  # as the cache holds them: a relight is the same whether its footprints
-            out[miss] = fp  # were computed now or read back (sss view's next pattern = sss relight's)
+            fp = to_float16(footprint_array(fp))  # as the cache holds them: a relight is the same whether its footprints
+            out[miss] = from_float16(fp)  # were computed now or read back (sss view's next pattern = sss relight's)
             keep = min(len(fp), self.max_rows - self.size)
             self.uncached += len(fp) - keep
             if keep > 0:
