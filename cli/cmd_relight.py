@@ -246,6 +246,28 @@ def bench_stability(
         raise typer.Exit(1)
 
 
+def bench_relight_cache(
+    session: Annotated[Path, typer.Argument(help="A session view with reference patterns or any named one.")],
+    out: Annotated[Path, typer.Option("--out", help="JSON output (.md written next to it).")] = Path("bench_relight_cache.json"),
+    backend: Annotated[str, typer.Option(help="A model backend: analytic, torch or blend.")] = "analytic",
+    checkpoint: CheckpointOpt = None,
+    view: Annotated[int, typer.Option(min=0, help="The view to relight.")] = 0,
+    first: Annotated[str, typer.Option(help="The first relight's pattern (computes the footprints).")] = "checkerboard",
+    new: Annotated[str, typer.Option(help="The later pattern, from the cache and from scratch.")] = "stripes_y",
+) -> None:
+    """A new pattern relit from a view's cached eigen-footprints against the full relight: seconds, peak RSS,
+    agreement (three `sss relight` processes)."""
+    from sssphase_core.bench import relight_cache_bench
+    from sssphase_core.errors import InputError
+
+    if backend not in ("analytic", "torch", "blend"):
+        raise InputError(f"--backend {backend}: the eigen-footprint cache is kept for the model backends "
+                         "(analytic, torch, blend)")
+    with console.status("three relights (cold, cached, full)"):
+        relight_cache_bench.run(session, out, backend=backend, checkpoint=checkpoint, view=view, first=first, new=new)
+    console.print(out.with_suffix(".md").read_text())
+
+
 def bench_gap(
     sessions: Annotated[list[Path], typer.Argument(help="Simulated sessions (or folders of them) captured with a --reference.")],
     checkpoint: CheckpointOpt = None,
@@ -306,6 +328,7 @@ def register(groups: dict[str, typer.Typer]) -> None:
     groups["eval"].command("relight")(eval_relight)
     groups["bench"].command("relight")(bench_relight)
     groups["bench"].command("stability")(bench_stability)
+    groups["bench"].command("relight-cache")(bench_relight_cache)
     groups["bench"].command("store")(bench_store)
     groups["bench"].command("geometry")(bench_geometry)
     groups["bench"].command("gap")(bench_gap)

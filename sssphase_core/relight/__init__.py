@@ -20,6 +20,7 @@ One job per module, imports flowing one way (down this list; the ``layers`` cont
   :mod:`~sssphase_core.relight.backends`: the source a backend name gives a view (:func:`make_source`);
 * :mod:`~sssphase_core.relight.calibration`: the view calibration (:func:`fit_view_mix`,
   :func:`local_mixture`); :mod:`~sssphase_core.relight.cache`: :class:`FootprintCache`;
+  :mod:`~sssphase_core.relight.lowrank`: a view's footprints as eigen-footprints, a new pattern in seconds;
 * :mod:`~sssphase_core.relight.transport`: the captured light transport (:class:`DotTransport`);
 * :mod:`~sssphase_core.relight.sources`: where footprints come from (no scattering, a model, crops);
 * :mod:`~sssphase_core.relight.views`: a session view as relighting reads it (:func:`load_view`);

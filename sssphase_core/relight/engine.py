@@ -161,6 +161,27 @@ class Splatter:
         return img.permute(2, 0, 1, 3).contiguous().cpu().numpy()
 
 
+def pattern_stack(patterns: np.ndarray | Sequence[np.ndarray], proj: Projection) -> np.ndarray:
+    """Projector patterns as one (P, Hp, Wp[, 3]) array (mono and colour together: all RGB); a pattern of
+    another size than the projector's is refused."""
+    if isinstance(patterns, np.ndarray):
+        pats = patterns
+    else:
+        listed = [np.asarray(p, np.float32) for p in patterns]
+        if any(p.ndim == 3 for p in listed):  # mono and colour patterns together: all as RGB
+            listed = [np.repeat(p[..., None], 3, axis=-1) if p.ndim == 2 else p for p in listed]
+        pats = np.stack(listed)
+    if pats.ndim == 2:
+        pats = pats[None]
+    wp, hp = proj.projector_size
+    if pats.shape[1:3] != (hp, wp):
+        raise InputError(
+            f"pattern size {pats.shape[2]}x{pats.shape[1]} does not match the projector's {wp}x{hp} "
+            "(resize it explicitly first, e.g. `sss relight --resize`)"
+        )
+    return pats
+
+
 def crop_footprints(fp: torch.Tensor, radius: int) -> torch.Tensor:
     """Truncate (N, K, K, 3) footprints to the central (2 radius + 1)^2 window."""
     half = fp.shape[1] // 2
@@ -192,21 +213,7 @@ def relight(
     kernel (see :class:`Splatter`). Non-finite footprint values are set to 0 with a warning.
     ``progress(done, total)`` is called after each chunk.
     """
-    if isinstance(patterns, np.ndarray):
-        pats = patterns
-    else:
-        listed = [np.asarray(p, np.float32) for p in patterns]
-        if any(p.ndim == 3 for p in listed):  # mono and colour patterns together: all as RGB
-            listed = [np.repeat(p[..., None], 3, axis=-1) if p.ndim == 2 else p for p in listed]
-        pats = np.stack(listed)
-    if pats.ndim == 2:
-        pats = pats[None]
-    wp, hp = proj.projector_size
-    if pats.shape[1:3] != (hp, wp):
-        raise InputError(
-            f"pattern size {pats.shape[2]}x{pats.shape[1]} does not match the projector's {wp}x{hp} "
-            "(resize it explicitly first, e.g. `sss relight --resize`)"
-        )
+    pats = pattern_stack(patterns, proj)
     if chunk < 1:
         raise InputError("chunk must be >= 1")
     light = emitted_light(pats, proj.gamma) * np.float32(1.0 - proj.black)

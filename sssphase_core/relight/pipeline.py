@@ -1,5 +1,5 @@
 """The one call that relights a view (:func:`relight_view`): the user's patterns and the view calibration
-in one footprint pass, blends included."""
+in one footprint pass, blends included; and its fast twin from cached eigen-footprints (:func:`relight_lowrank`)."""
 
 from __future__ import annotations
 
@@ -10,13 +10,15 @@ import numpy as np
 from sssphase_core.errors import InputError
 from sssphase_core.relight.calibration import local_mixture, model_inputs
 from sssphase_core.relight.engine import FootprintSource, relight
+from sssphase_core.relight.lowrank import LowRankFootprints
 from sssphase_core.relight.sources import no_scattering_source
 from sssphase_core.relight.views import RelightView
 
 
 def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns: list[np.ndarray], *,
                  calibrate: bool, also: Sequence[tuple[FootprintSource, int]] = (), chunk: int = 2048,
-                 device: str = "cpu", progress: Callable[[int, int], None] | None = None
+                 device: str = "cpu", progress: Callable[[int, int], None] | None = None,
+                 calibration: list[tuple[np.ndarray, np.ndarray]] | None = None
                  ) -> tuple[np.ndarray, np.ndarray | None]:
     """Relight a view under ``patterns`` (P of (Hp, Wp[, 3])) with an uncalibrated ``source``
     (``make_source(..., calibrate=False)``) -> ((P, H, W, 3) images, view-wide per-colour mix (3,) or None).
@@ -30,6 +32,9 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     ``also``: more (source, patch) pairs blended in by the same fit: the images are
     ``sum_i mix_i * source_i + (1 - sum_i mix_i) * none``, each ``mix_i`` refined per pixel too, and the
     view-wide mix returned is (1 + len(also), 3). Blending needs ``calibrate``.
+
+    ``calibration``: a list that receives the fit's (per-pixel weights (S, H, W, 3), view-wide weights (S, 3)),
+    which relight any other pattern the same way (:func:`mix_images`).
     """
     calibrate = calibrate and rv.psp_patterns is not None
     if also and not calibrate:
@@ -45,7 +50,24 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     none = relight(no_scattering_source(rv.white), rv.proj, every, 1, white=rv.white)
     # each source's weight refined pixel by pixel where the view's own fringes say so
     weights, view_weights = local_mixture(rv, [r[n:] for r in relits], none[n:], psp, lost)
-    images = none[:n].copy()
+    if calibration is not None:
+        calibration.append((weights, view_weights))
+    return mix_images(none[:n], [r[:n] for r in relits], weights), (view_weights[0] if not also else view_weights)
+
+
+def mix_images(none: np.ndarray, relits: Sequence[np.ndarray], weights: np.ndarray) -> np.ndarray:
+    """The calibrated images ``none + sum_i weights_i * (relit_i - none)``: (P, H, W, 3) each, ``weights``
+    (S, H, W, 3) for the S ``relits``."""
+    images = none.copy()
     for weight, relit in zip(weights, relits, strict=True):
-        images += weight * (relit[:n] - none[:n])
-    return images, (view_weights[0] if not also else view_weights)
+        images += weight * (relit - none)
+    return images
+
+
+def relight_lowrank(rv: RelightView, members: Sequence[LowRankFootprints], weights: np.ndarray,
+                    patterns: list[np.ndarray]) -> np.ndarray:
+    """:func:`relight_view`'s calibrated images under new ``patterns`` from its eigen-footprints (one
+    :class:`~sssphase_core.relight.lowrank.LowRankFootprints` per source) and its calibration's per-pixel
+    ``weights`` (S, H, W, 3), with no footprint computed -> (P, H, W, 3)."""
+    none = relight(no_scattering_source(rv.white), rv.proj, patterns, 1, white=rv.white)
+    return mix_images(none, [m.relight(rv.proj, patterns, white=rv.white) for m in members], weights)

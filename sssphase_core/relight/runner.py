@@ -119,6 +119,13 @@ def cache_path(out: Path, session: Session, rv: RelightView, member: str, checkp
     return out / "cache" / f"{rv.object}_v{rv.view}_{view_tag(session, rv.view)}_{member}_{tag}.npz"
 
 
+def lowrank_path(out: Path, session: Session, rv: RelightView, backend: str, checkpoint: Path | str | None) -> Path:
+    """The eigen-footprint cache of a view relit with ``backend`` (all its members and its calibration), named
+    as :func:`cache_path` names footprint caches."""
+    tag = model_tag(checkpoint if uses_decoder(backend) else None)
+    return out / "cache" / f"{rv.object}_v{rv.view}_{view_tag(session, rv.view)}_{backend}_{tag}_lowrank.npz"
+
+
 def parse_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
     """``png``, ``exr`` or both (``"png,exr"`` or a sequence), each once, checked (EXR needs its bindings)."""
     items = formats.split(",") if isinstance(formats, str) else list(formats)
@@ -310,24 +317,56 @@ def relight_session(session: Path | str | Session, patterns: Sequence[str], *, b
 def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: str, checkpoint: Path | None,
                  out: Path, *, chunk: int, device: str, cache: bool, say: Narrator) -> tuple[np.ndarray, np.ndarray | None]:
     """One view relit (its footprints cached unless the source is the captured transport), its calibration
-    and denoising told, its caches saved -> (images (P, H, W, 3), calibration weights or None)."""
+    and denoising told, its caches saved -> (images (P, H, W, 3), calibration weights or None).
+
+    A model's relight also keeps the view's eigen-footprints and calibration (:mod:`~sssphase_core.relight.lowrank`);
+    with them cached, later patterns are relit from those alone (seconds at 1080p, where the footprints
+    themselves outgrow any cache)."""
+    from sssphase_core.processing.projector import emitted_light
     from sssphase_core.relight.backends import domain_line, make_sources
-    from sssphase_core.relight.cache import FootprintCache
-    from sssphase_core.relight.pipeline import relight_view
+    from sssphase_core.relight.cache import CACHE_BYTES, FootprintCache
+    from sssphase_core.relight.engine import lit_pixels
+    from sssphase_core.relight.lowrank import LowRankTap, load_lowrank, save_lowrank
+    from sssphase_core.relight.pipeline import relight_lowrank, relight_view
     from sssphase_core.relight.transport import DotTransport
 
+    fast = lowrank_path(out, s, rv, backend, checkpoint)
+    saved = load_lowrank(fast, rv.proj.shape) if cache and backend not in MODEL_FREE else None
+    if saved is not None:
+        members, weights, view_weights = saved
+        with say.status(f"{rv.object} view {rv.view}: {backend} from its eigen-footprints"):
+            relit = relight_lowrank(rv, members, weights, pats)
+        mix = view_weights[0] if len(members) == 1 else view_weights
+        say.say(mix_line(rv, backend, mix))
+        say.say(f"{rv.object} view {rv.view}: relit from its cached eigen-footprints ({fast.name}: rank "
+                f"{'/'.join(str(m.rank) for m in members)}, {max(m.residual for m in members):.1e} of the footprints' "
+                "energy left out); --no-cache computes the footprints again")
+        return relit, mix
     sources: list[tuple[FootprintSource, int]] = make_sources(backend, rv, checkpoint=checkpoint, device=device)
     models = [src for src, _ in sources]
     members = BLENDS.get(backend, (backend,))
     cached = cache and not isinstance(sources[0][0], DotTransport)  # the measured transport is read, not predicted
-    if cached:
+    taps, valid = [], None
+    if cached and backend not in MODEL_FREE and rv.psp_patterns is not None:  # calibrated: the PSP patterns are relit too
+        valid = lit_pixels(rv.proj, emitted_light(rv.psp_patterns, rv.proj.gamma))[0]  # what any pattern can light
+    # The footprints themselves are kept when they all fit (the eigen-footprints serve later patterns either way;
+    # at 1080p and K = 90 they are ~10 GB, and a partial cache cost a third of the first relight and 2 GB more)
+    n_pixels = len(valid) if valid is not None else int(rv.proj.mask.sum())
+    keep = cached and all(n_pixels * k * k * 3 * 2 <= CACHE_BYTES for _, k in sources)
+    if keep:
         sources = [(FootprintCache(src, cache_path(out, s, rv, m, checkpoint), rv.proj.shape, k), k)
                    for (src, k), m in zip(sources, members, strict=True)]
+    caches = [src for src, _ in sources]
+    if valid is not None:
+        taps = [LowRankTap(src, valid, rv.proj.shape) for src in caches]
+    if taps:
+        sources = [(tap, k) for tap, (_, k) in zip(taps, sources, strict=True)]
     (source, patch), *also = sources
+    calibration: list[tuple[np.ndarray, np.ndarray]] = []
     with say.bar():
         progress = say.task(f"{rv.object} view {rv.view}: {backend}")
         relit, mix = relight_view(source, patch, rv, pats, calibrate=backend not in MODEL_FREE, also=also, chunk=chunk,
-                                  device=device, progress=progress)
+                                  device=device, progress=progress, calibration=calibration)
     if mix is not None:
         say.say(mix_line(rv, backend, mix))
     for model, member in zip(models, members, strict=True):
@@ -336,11 +375,17 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
             say.say(line)
     if isinstance(source, DotTransport) and source.fit:  # its noise mask, chosen on the view's fringe captures
         say.say(denoise_line(rv, source))
-    for cache_file, _ in sources if cached else ():
+    for cache_file in caches if keep else ():
         cache_file.save()  # type: ignore[attr-defined]
         if cache_file.uncached:  # type: ignore[attr-defined]
             say.say(f"cache: {cache_file.uncached:,} footprints beyond its memory budget were not kept "  # type: ignore[attr-defined]
                     "(later patterns recompute them)")
+    if taps and calibration and all(tap.covers(valid) for tap in taps):  # every pixel went by: any pattern can be relit
+        save_lowrank(fast, [tap.result() for tap in taps], *calibration[0])
+        if not keep:
+            size = n_pixels * max(k for _, k in sources) ** 2 * 3 * 2 / 2**30
+            say.say(f"cache: the view's {n_pixels:,} footprints ({size:.1f} GiB in float16) are more than the cache "
+                    f"holds ({CACHE_BYTES / 2**30:.0f} GiB): later patterns are relit from its eigen-footprints alone")
     return relit, mix
 
 

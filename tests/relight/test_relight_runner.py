@@ -213,3 +213,39 @@ def test_ssim_of_the_mask_is_the_whole_images_ssim_at_its_pixels(box):
     ta, tb = (torch.as_tensor(x, dtype=torch.float32).permute(2, 0, 1)[None] for x in (a, b))
     whole = kornia.metrics.ssim(ta, tb, window_size=SSIM_WINDOW, max_val=1.0)[0].mean(0).numpy()
     assert relight_metrics(a, b, mask)["ssim"] == pytest.approx(float(whole[mask].mean()), abs=1e-6)
+
+
+def test_later_patterns_are_relit_from_the_views_cached_eigen_footprints(session, tmp_path):
+    """A model's relight keeps the view's eigen-footprints and calibration; the next `sss relight` of the same
+    view relights any pattern from them alone, close to the full relight, and says so; --no-cache does not."""
+    first = relight_session(session, ["checkerboard"], backend="analytic", out=tmp_path, formats="exr")
+    assert len(list((tmp_path / "cache").glob("soap_v0_*_analytic_*_lowrank.npz"))) == 1
+    said = Recorder()
+    fast = relight_session(session, ["checkerboard", "stripes_x"], backend="analytic", out=tmp_path, formats="exr",
+                           narrator=said)
+    assert "relit from its cached eigen-footprints" in said.text() and said.tasks == []  # no footprint pass
+    full = relight_session(session, ["checkerboard", "stripes_x"], backend="analytic", out=tmp_path / "full",
+                           formats="exr", cache=False)
+    np.testing.assert_allclose(fast.mixes[0], first.mixes[0])  # the calibration that was fitted, not a new one
+    from sssphase_core.store.exr import read_exr
+
+    for a, b in zip(fast.images, full.images, strict=True):
+        x, y = read_exr(a.paths[0]), read_exr(b.paths[0])
+        assert 10 * np.log10(y.max() ** 2 / np.mean((x - y) ** 2)) > 55  # PSNR at the image's peak
+
+
+def test_bench_relight_cache_runs_the_three_relights_as_processes(session, tmp_path):
+    """`sss bench relight-cache`: cold, cached and full relights, each an `sss relight` process with its own
+    seconds and peak RSS; the cached one used the eigen-footprints and agrees with the full one."""
+    import json
+
+    from sssphase_core.bench import relight_cache_bench
+
+    res = relight_cache_bench.run(session, tmp_path / "rc.json", backend="analytic")
+    steps = {r["step"]: r for r in res["rows"]}
+    assert list(steps) == ["cold", "cached", "full"]
+    assert all(r["seconds"] > 0 and r["peak_rss_mib"] > 50 and r["returncode"] == 0 for r in steps.values())
+    assert "--no-cache" in steps["full"]["command"] and "eigen-footprints" in steps["cached"]["output"]
+    assert res["agreement"]["psnr_at_peak"] > 55 and res["speedup"] == steps["full"]["seconds"] / steps["cached"]["seconds"]
+    assert json.loads((tmp_path / "rc.json").read_text())["agreement"] == res["agreement"]
+    assert "| cached | stripes_y |" in (tmp_path / "rc.md").read_text()

@@ -1,0 +1,80 @@
+"""Eigen-footprints (relight.lowrank): a view's footprints as a few basis images per colour, so that a new
+pattern is relit by r filters instead of a splat of every footprint; and `sss relight`'s fast path on them."""
+
+import numpy as np
+import pytest
+
+from sssphase_core.relight import relight
+from sssphase_core.relight.lowrank import LowRankFootprints, LowRankTap, fit_basis, load_lowrank, save_lowrank
+
+K = 9
+
+
+def _rank3_source(proj, seed=0):
+    """Footprints that are per-pixel mixtures of three Gaussian images per colour (rank 3), off-centre ones
+    too (a mirrored kernel would show), seeded per pixel so that every call gives the same ones."""
+    d = np.arange(K) - K // 2
+    yy, xx = np.meshgrid(d, d, indexing="ij")
+    bases = np.stack([np.exp(-(xx**2 + yy**2) / 2.0), np.exp(-((xx - 2) ** 2 + yy**2) / 4.0),
+                      np.exp(-(xx**2 + (yy + 1) ** 2) / 9.0)]).astype(np.float32)
+    width = proj.mask.shape[1]
+
+    def source(pixels):
+        flat = pixels[:, 0] * width + pixels[:, 1]
+        a = np.stack([np.random.default_rng([seed, int(f)]).random((3, 3)) for f in flat]).astype(np.float32)  # (n, colour, basis)
+        return np.einsum("ncb,byx->nyxc", a, bases) * np.float32(0.01)
+
+    return source
+
+
+def test_relit_from_eigen_footprints_equals_the_splat_when_they_span_the_footprints(tmp_path, make_projection):
+    proj = make_projection(black=0.002)
+    source = _rank3_source(proj)
+    valid = np.argwhere(proj.mask)
+    tap = LowRankTap(source, valid, proj.mask.shape, sample=64)
+    rng = np.random.default_rng(1)
+    patterns = rng.random((2, 50, 60)).astype(np.float32)
+    white = rng.random((*proj.mask.shape, 3)).astype(np.float32)
+    direct = relight(tap, proj, patterns, K, white=white)  # the pass collects every lit pixel's coefficients
+    assert tap.covers(valid) and tap.basis.shape == (3, 3, K, K)  # three components found, no more
+    low = tap.result()
+    assert low.rank == 3 and low.residual < 1e-7
+    fast = low.relight(proj, patterns, white=white)
+    np.testing.assert_allclose(fast, direct, atol=1e-6 * np.abs(direct).max())
+    save_lowrank(tmp_path / "v.npz", [low], np.ones((1, *proj.mask.shape, 3)), np.ones((1, 3)))
+    (back,), weights, view_weights = load_lowrank(tmp_path / "v.npz", proj.mask.shape)
+    np.testing.assert_allclose(back.relight(proj, patterns, white=white), fast, atol=1e-3 * np.abs(direct).max())  # float16
+    assert weights.shape == (1, *proj.mask.shape, 3) and view_weights.shape == (1, 3)
+
+
+def test_a_basis_of_fewer_components_says_how_much_it_leaves_out(make_projection):
+    rng = np.random.default_rng(2)
+    sample = rng.random((40, K, K, 3)).astype(np.float32)  # noise: no few components hold it
+    basis = fit_basis(sample, max_rank=5)
+    assert basis.shape == (3, 5, K, K)
+    flat = basis.reshape(3, 5, -1)
+    np.testing.assert_allclose(flat[0] @ flat[0].T, np.eye(5), atol=1e-5)  # orthonormal
+    proj = make_projection()
+    valid = np.argwhere(proj.mask)
+    table = rng.random((*proj.mask.shape, K, K, 3)).astype(np.float32)
+    tap = LowRankTap(lambda px: table[px[:, 0], px[:, 1]], valid, proj.mask.shape, sample=40)
+    tap(valid)
+    fp = table[valid[:, 0], valid[:, 1]].reshape(len(valid), -1, 3).astype(np.float64)
+    b = tap.basis.reshape(3, tap.basis.shape[1], -1).astype(np.float64)
+    kept = sum(np.square(fp[..., c] @ b[c].T).sum() for c in range(3))
+    # (measured on every RESIDUAL_STRIDE-th footprint as they go by: an estimate of the whole's)
+    assert tap.result().residual == pytest.approx(1 - kept / np.square(fp).sum(), rel=0.05)
+    assert tap.result().residual > 0.05  # and it is large: noise is not low-rank
+
+
+@pytest.mark.parametrize("damage", ["garbage", "other view", "missing"])
+def test_a_damaged_or_foreign_eigen_footprint_file_is_not_read(tmp_path, damage, make_projection):
+    proj = make_projection()
+    path = tmp_path / "v.npz"
+    low = LowRankFootprints(np.zeros((3, 2, K, K), np.float32), np.argwhere(proj.mask), np.zeros((proj.mask.sum(), 3, 2)),
+                            proj.mask.shape, 0.0)
+    if damage == "garbage":
+        path.write_bytes(b"not a zip")
+    elif damage == "other view":
+        save_lowrank(path, [low], np.zeros((1, *proj.mask.shape, 3)), np.zeros((1, 3)))
+    assert load_lowrank(path, (proj.mask.shape[0] + 1, proj.mask.shape[1]) if damage == "other view" else proj.mask.shape) is None
