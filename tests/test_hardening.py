@@ -402,7 +402,9 @@ def test_closed_rigs_are_freed_and_open_rigs_are_limited(sim_daemon):
     for _ in range(40):
         cycle()
     grown = _rss_mb(pid) - settled
-    assert grown < 40, (settled, grown)  # one sim rig holds ~6 MB: 40 leaked rigs would be ~240 MB
+    # one sim rig holds ~6 MB: 40 leaked rigs would be ~240 MB; the allocator's own growth after the settling cycles
+    # reached 46 MB in one full-suite run (the worker's earlier tests decide its pools), so the bar is 100 MB
+    assert grown < 100, (settled, grown)
     opened = []
     try:
         with pytest.raises(DaemonError) as err:

@@ -792,7 +792,9 @@ def test_footprints_cached_for_one_session_are_never_read_for_another(tmp_path):
         image.unlink()
     fresh, shared = relit("b", "fresh"), relit("b", "shared")
     np.testing.assert_array_equal(shared, fresh)
-    assert len(list((tmp_path / "shared" / "cache").glob("obj_v0_*_analytic_*.npz"))) == 2
+    cached = sorted(p.name for p in (tmp_path / "shared" / "cache").glob("obj_v0_*_analytic_*.npz"))
+    eigen = [n for n in cached if n.endswith("_lowrank.npz")]  # the eigen-footprints are per session's view too
+    assert len(cached) == 4 and len(eigen) == 2 and len({n.split("_")[2] for n in eigen}) == 2
 
 
 def test_frames_a_camera_demosaiced_itself_drop_the_silhouettes_bleed_when_the_layout_is_given(tmp_path):

@@ -113,3 +113,20 @@ def test_epochs_fit_the_time_left():
     assert epochs_within(100.0, 1000, 50.0, 20) == 5
     assert epochs_within(0.0, 1000, 50.0, 20) == 1  # at least one
     assert epochs_within(1e6, 1000, 50.0, 20) == 20  # at most the preset's
+
+
+def test_a_relight_starts_only_if_the_longest_one_so_far_fits(tmp_path):
+    """The relight step notes how long each relight took and starts the next only if the longest fits in what
+    the budget has left (a fixed 20 s reserve let a 1080p relight of four backends run past the H200 call)."""
+    from sssphase_core.reporting.repro import PRESETS, RELIGHT_MIN_S, PaperRepro
+
+    repro = PaperRepro(tmp_path, PRESETS["tiny"], capture=lambda requests: [], device="cpu", budget_s=1000.0,
+                       log=lambda line: None)
+    assert repro._may_relight() is None  # plenty left
+    repro._relight_started -= 300.0  # that relight took 300 s
+    repro.budget_s = repro.spent_s() + 200.0  # 200 s left: the next would not fit
+    why = repro._may_relight()
+    assert why is not None and "a relight takes up to 300 s" in why
+    repro._relight_started = None
+    repro.budget_s, repro._longest_relight = repro.spent_s() + RELIGHT_MIN_S - 1, 0.0
+    assert repro._may_relight() is not None  # under the fixed reserve
