@@ -327,28 +327,20 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
     from sssphase_core.relight.cache import CACHE_BYTES, FootprintCache
     from sssphase_core.relight.engine import lit_pixels
     from sssphase_core.relight.lowrank import LowRankTap, load_lowrank, save_lowrank
-    from sssphase_core.relight.pipeline import relight_lowrank, relight_view
+    from sssphase_core.relight.pipeline import relight_view
     from sssphase_core.relight.transport import DotTransport
 
     fast = lowrank_path(out, s, rv, backend, checkpoint)
     saved = load_lowrank(fast, rv.proj.shape) if cache and backend not in MODEL_FREE else None
     if saved is not None:
-        members, weights, view_weights = saved
-        with say.status(f"{rv.object} view {rv.view}: {backend} from its eigen-footprints"):
-            relit = relight_lowrank(rv, members, weights, pats)
-        mix = view_weights[0] if len(members) == 1 else view_weights
-        say.say(mix_line(rv, backend, mix))
-        say.say(f"{rv.object} view {rv.view}: relit from its cached eigen-footprints ({fast.name}: rank "
-                f"{'/'.join(str(m.rank) for m in members)}, {max(m.residual for m in members):.1e} of the footprints' "
-                "energy left out); --no-cache computes the footprints again")
-        return relit, mix
+        return _relight_cached(rv, pats, backend, fast, saved, say)
     sources: list[tuple[FootprintSource, int]] = make_sources(backend, rv, checkpoint=checkpoint, device=device)
     models = [src for src, _ in sources]
     members = BLENDS.get(backend, (backend,))
     cached = cache and not isinstance(sources[0][0], DotTransport)  # the measured transport is read, not predicted
-    taps, valid = [], None
-    if cached and backend not in MODEL_FREE and rv.psp_patterns is not None:  # calibrated: the PSP patterns are relit too
-        valid = lit_pixels(rv.proj, emitted_light(rv.psp_patterns, rv.proj.gamma))[0]  # what any pattern can light
+    valid = None  # the pixels any pattern can light: those the view calibration's PSP patterns light
+    if cached and backend not in MODEL_FREE and rv.psp_patterns is not None:
+        valid = lit_pixels(rv.proj, emitted_light(rv.psp_patterns, rv.proj.gamma))[0]
     # The footprints themselves are kept when they all fit (the eigen-footprints serve later patterns either way;
     # at 1080p and K = 90 they are ~10 GB, and a partial cache cost a third of the first relight and 2 GB more)
     n_pixels = len(valid) if valid is not None else int(rv.proj.mask.sum())
@@ -357,8 +349,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
         sources = [(FootprintCache(src, cache_path(out, s, rv, m, checkpoint), rv.proj.shape, k), k)
                    for (src, k), m in zip(sources, members, strict=True)]
     caches = [src for src, _ in sources]
-    if valid is not None:
-        taps = [LowRankTap(src, valid, rv.proj.shape) for src in caches]
+    taps = [LowRankTap(src, valid, rv.proj.shape) for src in caches] if valid is not None else []
     if taps:
         sources = [(tap, k) for tap, (_, k) in zip(taps, sources, strict=True)]
     (source, patch), *also = sources
@@ -386,6 +377,22 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
             size = n_pixels * max(k for _, k in sources) ** 2 * 3 * 2 / 2**30
             say.say(f"cache: the view's {n_pixels:,} footprints ({size:.1f} GiB in float16) are more than the cache "
                     f"holds ({CACHE_BYTES / 2**30:.0f} GiB): later patterns are relit from its eigen-footprints alone")
+    return relit, mix
+
+
+def _relight_cached(rv: RelightView, pats: list[np.ndarray], backend: str, path: Path, saved: tuple[Any, ...],
+                    say: Narrator) -> tuple[np.ndarray, np.ndarray]:
+    """A view relit from its cached eigen-footprints and calibration (``saved``: :func:`load_lowrank`'s), told."""
+    from sssphase_core.relight.pipeline import relight_lowrank
+
+    members, weights, view_weights = saved
+    with say.status(f"{rv.object} view {rv.view}: {backend} from its eigen-footprints"):
+        relit = relight_lowrank(rv, members, weights, pats)
+    mix = view_weights[0] if len(members) == 1 else view_weights
+    say.say(mix_line(rv, backend, mix))
+    say.say(f"{rv.object} view {rv.view}: relit from its cached eigen-footprints ({path.name}: rank "
+            f"{'/'.join(str(m.rank) for m in members)}, {max(m.residual for m in members):.1e} of the footprints' "
+            "energy left out); --no-cache computes the footprints again")
     return relit, mix
 
 
