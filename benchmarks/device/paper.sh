@@ -9,7 +9,8 @@
 #   --python-version 3.12 --implementation cp --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64
 #   --platform manylinux2014_x86_64 --platform manylinux_2_26_x86_64 -d .whl NAME==VERSION   (31 MB in all)
 # Usage: benchmarks/device/paper.sh [BUDGET_S] [repro|all]   (repro first, then the tests and `sss bench sim`;
-#   "repro": the repro alone). One call: timeout_s = BUDGET_S + about 120 (install, relight overrun).
+#   "repro": the repro alone). One call: timeout_s = BUDGET_S + about 150 (install ~20 s; the repro's own deadline
+#   is BUDGET_S + 110, so that its report comes back). Next lent GPU: `paper.sh 420 repro`, timeout_s 570.
 set -o pipefail
 budget=${1:-300}
 out=${OUT:-/tmp/out}
