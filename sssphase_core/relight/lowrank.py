@@ -5,7 +5,7 @@ Relighting splats one K x K footprint per lit pixel ``p``, scaled by the light i
 SVD of a sample of the view's own footprints), ``f_p = sum_k a_pk B_k``, the sum becomes r convolutions:
 ``I = sum_k (L a_k) * B_k``, each a 2-D filter over the image (OpenCV's ``filter2D``, DFT-based for large
 kernels). A 1080p view at K = 90 has ~10 GB of float16 footprints, more than any cache holds, and its full
-splat takes minutes on 2 cores; its coefficients take (N, 3, r) values (~40 MB at r = 23) and a new
+splat takes minutes on 2 cores; its coefficients take (N, 3, r) values (~25 MB in float16 at r = 23) and a new
 pattern is r x 3 filters. The footprints are smooth, so few components keep them: the 1080p crab's analytic
 footprints need 23 for 5e-6 of their energy left out, and relight within 88 dB (PSNR at the image's peak)
 of the full splat, 17.5x faster (``sss bench relight-cache``, docs/benchmarks/paper-scale.md).
