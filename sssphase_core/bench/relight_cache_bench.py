@@ -53,7 +53,7 @@ def run(session: Path, out: Path, *, backend: str = "analytic", checkpoint: Path
     from sssphase_core.store.session import Session
 
     s = Session.open(session)
-    obj = s.manifest.get("object", Path(session).name)
+    obj = s.name
     work = Path(work) if work is not None else Path(out).with_suffix("") / "work"
     cached_dir, full_dir = work / "cached", work / "full"
     common = ["--backend", backend, "--views", str(view), "--format", "exr"] + (

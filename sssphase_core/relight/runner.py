@@ -344,7 +344,8 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
     # The footprints themselves are kept when they all fit (the eigen-footprints serve later patterns either way;
     # at 1080p and K = 90 they are ~10 GB, and a partial cache cost a third of the first relight and 2 GB more)
     n_pixels = len(valid) if valid is not None else int(rv.proj.mask.sum())
-    keep = cached and all(n_pixels * k * k * 3 * 2 <= CACHE_BYTES for _, k in sources)
+    footprint_bytes = n_pixels * max(k for _, k in sources) ** 2 * 3 * 2  # float16
+    keep = cached and footprint_bytes <= CACHE_BYTES
     if keep:
         sources = [(FootprintCache(src, cache_path(out, s, rv, m, checkpoint), rv.proj.shape, k), k)
                    for (src, k), m in zip(sources, members, strict=True)]
@@ -374,8 +375,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
     if taps and calibration and all(tap.covers(valid) for tap in taps):  # every pixel went by: any pattern can be relit
         save_lowrank(fast, [tap.result() for tap in taps], *calibration[0])
         if not keep:
-            size = n_pixels * max(k for _, k in sources) ** 2 * 3 * 2 / 2**30
-            say.say(f"cache: the view's {n_pixels:,} footprints ({size:.1f} GiB in float16) are more than the cache "
+            say.say(f"cache: the view's {n_pixels:,} footprints ({footprint_bytes / 2**30:.1f} GiB in float16) are more than the cache "
                     f"holds ({CACHE_BYTES / 2**30:.0f} GiB): later patterns are relit from its eigen-footprints alone")
     return relit, mix
 
