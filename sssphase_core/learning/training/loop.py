@@ -3,6 +3,7 @@ every ``ckpt_every`` steps and epoch, metrics, progress callbacks and DDP under 
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import math
 import os
@@ -62,7 +63,15 @@ def init_distributed(device: str = "auto") -> Dist:
         dev = torch.device("cpu")
     if world > 1 and not dist.is_initialized():
         dist.init_process_group("nccl" if use_cuda else "gloo")
+        # left to the interpreter's teardown, gloo's threads can abort the process ("terminate called without an
+        # active exception": a torchrun test's rank exited -6 once, with both cores busy)
+        atexit.register(_destroy_process_group)
     return Dist(rank, world, dev)
+
+
+def _destroy_process_group() -> None:
+    if dist.is_initialized():
+        dist.destroy_process_group()
 
 
 def all_mean(values: dict[str, float], d: Dist) -> dict[str, float]:
