@@ -58,6 +58,10 @@ CaptureModelOpt = Annotated[bool, typer.Option(help="Compare each predicted foot
                                                "camera's Bayer sampling and demosaicing), so the decoder predicts the "
                                                "light entering at the pixel (--no-capture-model: the crops are the "
                                                "targets, blurred by both).")]
+CameraAugmentOpt = Annotated[float, typer.Option(min=0.0, max=1.0, help="Show the decoder each PSP patch as "
+                                                 "another camera would have recorded it, each step with this "
+                                                 "probability: Bayer resampling and demosaicing, lens blur, noise, a "
+                                                 "response error on the fringes (0: as captured).")]
 CheckSessionsOpt = Annotated[list[Path] | None, typer.Option(
     "--check-sessions", help="Sessions with reference captures (e.g. captured with --reference checkerboard) on "
     "which the trained model is relit against the none and analytic baselines; repeatable. Default: --sessions.")]
@@ -165,6 +169,7 @@ def train_decoder(
     aux_classes: AuxClassesOpt = 0,
     learn_gain: LearnGainOpt = False,
     capture_model: CaptureModelOpt = True,
+    camera_augment: CameraAugmentOpt = 0.0,
     seed: SeedOpt = 0,
     ckpt_every: CkptEveryOpt = 50,
     time_limit: TimeLimitOpt = None,
@@ -183,7 +188,8 @@ def train_decoder(
         encoder=encoder, end_to_end=end_to_end, preset=preset, preset_given=given in ("COMMANDLINE", "ENVIRONMENT"),
         out=out, objects=objects, views=views, val_views=val_views, n_views=n_views, rig=rig,
         pixels_per_view=pixels_per_view, noisy_targets=noisy_targets, epochs=epochs, batch_size=batch_size, lr=lr,
-        head=head, aux_classes=aux_classes, learn_gain=learn_gain, capture_model=capture_model, seed=seed,
+        head=head, aux_classes=aux_classes, learn_gain=learn_gain, capture_model=capture_model,
+        camera_augment=camera_augment, seed=seed,
         ckpt_every=ckpt_every, time_limit=time_limit, device=device, deterministic=deterministic, resume=resume,
         cache=cache, sessions=sessions, check_sessions=check_sessions)
     run_decoder(opts, _report(), config_file=run_config_file(ctx))

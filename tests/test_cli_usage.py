@@ -187,6 +187,9 @@ def test_an_eof_error_that_escapes_a_command_is_one_line_not_aborted(monkeypatch
     (["train", "decoder", "--encoder", "e", "--sessions", "s", "--pixels-per-view", "0"],
      "error: Invalid value for '--pixels-per-view': Input should be greater than or equal to 1 "
      "(see 'sss train decoder --help')"),
+    (["train", "decoder", "--encoder", "e", "--sessions", "s", "--camera-augment", "1.5"],
+     "error: Invalid value for '--camera-augment': Input should be less than or equal to 1 "
+     "(see 'sss train decoder --help')"),
     (["relight"], "error: Missing argument 'session'. (see 'sss relight --help')"),
     (["no-such-command"], "error: No such command 'no-such-command'. (see 'sss --help')"),
 ])

@@ -10,6 +10,10 @@ by the 8 images; only the per-pixel noise of the phase jitter is drawn independe
   Gaussian blur with sigma sampled in [0.1, 1], intensity scaling, phase jitter, salt & pepper.
 * ``imagenet``: the SimSiam/ImageNet baseline (crop 0.2-1, colour jitter 0.4/0.4/0.4/0.1 p 0.8,
   blur, horizontal flip), applied to the whole stack at once.
+* ``camera`` (decoder training, :class:`CameraAugment`): another camera's view of the same light: Bayer
+  resampling and demosaicing in a random phase, lens blur, shot and read noise, a response-curve error on
+  the fringes. Each keeps the light's meaning (no gains, no geometry), since the footprint target stays
+  the one the training camera recorded.
 """
 
 from __future__ import annotations
@@ -20,6 +24,8 @@ import kornia.augmentation as KA
 import kornia.enhance as KE
 import torch
 from kornia.filters import gaussian_blur2d
+
+from sssphase_core.learning.camera import rebayer
 
 N_IMAGES = 8
 
@@ -152,3 +158,63 @@ def two_views(x: torch.Tensor, kind: str = "psp", cfg: AugmentConfig = AugmentCo
     if kind == "imagenet":
         return imagenet(x), imagenet(x)
     raise ValueError(f"unknown augmentation kind {kind!r} (psp or imagenet)")
+
+
+@dataclass(frozen=True)
+class CameraAugment:
+    """Decoder-input augmentation: the PSP patch as another camera would have recorded it, so that one
+    checkpoint serves Bayer, three-chip and rendered frames. Each step is applied to a patch with probability
+    ``p`` and draws its parameters once per patch, shared by its 8 images."""
+
+    p: float = 0.5
+    blur_sigma: tuple[float, float] = (0.3, 1.0)  # px, a lens's
+    photons: tuple[float, float] = (2e3, 3e4)  # photo-electrons per unit of signal (shot noise)
+    read_noise: tuple[float, float] = (0.0, 2e-3)  # in signal units
+    gamma: tuple[float, float] = (0.8, 1.25)  # response-curve exponent error on the fringes
+
+
+def random_bayer(x: torch.Tensor, p: float) -> torch.Tensor:
+    """(B, 24, K, K) -> (B, 24, K, K): with probability ``p`` per patch, each image sampled on a Bayer mosaic of
+    a random phase and demosaiced again, by Malvar-He-Cutler or bilinear interpolation (chosen per patch).
+    From a three-chip camera's frames this is a Bayer camera's; from a Bayer camera's, a second pipeline."""
+    b, _, k, _ = x.shape
+    chosen = _chance(b, p, x)
+    if not bool(chosen.any()):
+        return x
+    phase = torch.randint(0, 4, (b,), device=x.device).repeat_interleave(N_IMAGES)
+    malvar = _chance(b, 0.5, x).repeat_interleave(N_IMAGES)
+    rgb = x.reshape(b * N_IMAGES, 3, k, k)
+    out = torch.where(malvar.view(-1, 1, 1, 1), rebayer(rgb, phase, "malvar"), rebayer(rgb, phase, "bilinear"))
+    return torch.where(_per_sample(chosen), out.reshape(b, 3 * N_IMAGES, k, k), x)
+
+
+def sensor_noise(x: torch.Tensor, photons: tuple[float, float], read: tuple[float, float], p: float) -> torch.Tensor:
+    """Shot noise (variance ``x / photons``) and read noise (std ``read``), both drawn per patch, with
+    probability ``p`` per patch; independent per value."""
+    b = x.shape[0]
+    n_ph = _per_sample(torch.exp(_uniform(b, *(float(torch.log(torch.tensor(v))) for v in photons), x)))
+    sd = torch.sqrt(x.clamp_min(0) / n_ph + _per_sample(_uniform(b, *read, x)) ** 2)
+    return torch.where(_per_sample(_chance(b, p, x)), x + sd * torch.randn_like(x), x)
+
+
+def fringe_gamma(x: torch.Tensor, gamma: tuple[float, float], p: float) -> torch.Tensor:
+    """A response-curve error on the fringes: each pixel's 4 shifts (per orientation and colour) divided by
+    their mean, raised to an exponent drawn per patch in ``gamma`` and rescaled to keep that mean, with
+    probability ``p`` per patch. The modulation and the fringe's shape change; the offset, which is the
+    footprint's energy, does not."""
+    b, _, k, _ = x.shape
+    s = x.view(b, 2, N_IMAGES // 2, 3, k, k).clamp_min(0)
+    mean = s.mean(dim=2, keepdim=True)
+    g = _uniform(b, *gamma, x).view(b, 1, 1, 1, 1, 1)
+    curved = (s / mean.clamp_min(1e-8)) ** g
+    out = (curved * (mean / curved.mean(dim=2, keepdim=True).clamp_min(1e-8))).view_as(x)
+    return torch.where(_per_sample(_chance(b, p, x)), out, x)
+
+
+def camera(x: torch.Tensor, cfg: CameraAugment = CameraAugment()) -> torch.Tensor:
+    """(B, 24, K, K) PSP patches -> the same light through a randomised camera (:class:`CameraAugment`):
+    response-curve error, lens blur, Bayer resampling and demosaicing, then noise."""
+    x = fringe_gamma(x.float(), cfg.gamma, cfg.p)
+    x = gaussian_blur(x, cfg.blur_sigma, cfg.p)
+    x = random_bayer(x, cfg.p)
+    return sensor_noise(x, cfg.photons, cfg.read_noise, cfg.p)

@@ -150,6 +150,15 @@ def through_camera(footprints: torch.Tensor, codes: torch.Tensor | np.ndarray) -
     return out
 
 
+def rebayer(images: torch.Tensor, phase: int | torch.Tensor, method: str = "malvar", *,
+            median: bool = False) -> torch.Tensor:
+    """(B, 3, H, W) full-colour images as a Bayer camera would record them (:func:`bayer_demosaic`), their
+    borders mirrored by 2 px first (a mirror keeps each pixel's Bayer parity), so that the interpolators'
+    zeros outside leave no dark rim -> (B, 3, H, W)."""
+    padded = nn.functional.pad(images.float(), (2, 2, 2, 2), mode="reflect")
+    return bayer_demosaic(padded, phase, method, median=median)[..., 2:-2, 2:-2].to(images.dtype)
+
+
 #: :func:`shift_subpixel` moves by at most this many px (its 5 x 5 kernel); dot offsets are clipped to 1.5.
 MAX_SHIFT = 2.0
 

@@ -82,6 +82,7 @@ class DecoderOptions(TrainOptions):
     aux_classes: int = 0
     learn_gain: bool = False
     capture_model: bool = True
+    camera_augment: float = 0.0
     deterministic: bool = True
     check_sessions: Sequence[Path] | None = None
 
@@ -247,7 +248,7 @@ def run_decoder(opts: DecoderOptions, report: Report = Report(), *,
                         time_limit_s=opts.time_limit, device=opts.device, lr=opts.lr, deterministic=opts.deterministic,
                         head=opts.head,
                         aux_classes=opts.aux_classes, preset=opts.preset, learn_gain=opts.learn_gain,
-                        capture_model=opts.capture_model)
+                        capture_model=opts.capture_model, camera_augment=opts.camera_augment)
     what = f"encoder and decoder end-to-end ({opts.preset})" if opts.end_to_end else "the decoder"
     _header(report, f"training {what} on {len(ds)} footprints of {', '.join(names)}", opts.out, config_file, resuming)
     with report.training() as progress:

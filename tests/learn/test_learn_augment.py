@@ -81,3 +81,62 @@ def test_two_views_are_deterministic_under_a_seed_and_differ_from_each_other():
     assert torch.equal(a1, b1) and torch.equal(a2, b2)
     assert not torch.allclose(a1, a2)
     assert a1.shape == a2.shape == x.shape
+
+
+def fringes(b: int = 4, k: int = 16, offset: float = 0.4, amp: float = 0.3) -> torch.Tensor:
+    """(B, 24, K, K) 4-step fringes, x then y orientation, of one colour each: offset + amp cos(phase + shift)."""
+    yy, xx = torch.meshgrid(torch.arange(k).float(), torch.arange(k).float(), indexing="ij")
+    imgs = []
+    for phase in (2 * torch.pi * xx / 6, 2 * torch.pi * yy / 6):
+        for s in range(4):
+            img = offset + amp * torch.cos(phase + s * torch.pi / 2)
+            imgs.append(torch.stack([img, 0.5 * img, 0.25 * img]))
+    return torch.cat(imgs).expand(b, 24, k, k).contiguous()
+
+
+def modulation(x: torch.Tensor) -> torch.Tensor:
+    """(B, 2, 3, K, K) B/A of each orientation and colour."""
+    s = x.view(x.shape[0], 2, 4, 3, *x.shape[-2:])
+    return 0.5 * torch.hypot(s[:, :, 0] - s[:, :, 2], s[:, :, 1] - s[:, :, 3]) / s.mean(dim=2)
+
+
+def test_camera_steps_keep_flat_light_and_the_fringe_offset():
+    torch.manual_seed(0)
+    flat = torch.rand(3, 1, 3, 1, 1).expand(3, 8, 3, 12, 12).reshape(3, 24, 12, 12).contiguous()
+    # demosaicing a flat colour gives it back (both interpolators, every phase)
+    assert torch.allclose(A.random_bayer(flat, 1.0), flat, atol=1e-5)
+    assert torch.equal(A.random_bayer(flat, 0.0), flat)
+    x = fringes()
+    curved = A.fringe_gamma(x, (0.7, 0.7), 1.0)
+    s0, s1 = x.view(4, 2, 4, 3, 16, 16), curved.view(4, 2, 4, 3, 16, 16)
+    assert torch.allclose(s1.mean(dim=2), s0.mean(dim=2), atol=1e-5)  # the offset (the energy) is kept
+    assert (modulation(curved) < modulation(x) - 0.05).all()  # an exponent < 1 flattens the fringes
+    assert torch.allclose(A.fringe_gamma(x, (1.0, 1.0), 1.0), x, atol=1e-5)
+    # the Bayer resampling of fringes lowers the colours' modulation somewhere, never raising the offset's mean
+    re = A.random_bayer(x, 1.0)
+    assert not torch.allclose(re, x, atol=1e-3)
+    assert abs(float(re.mean() - x.mean())) < 0.01 * float(x.mean())
+
+
+def test_sensor_noise_has_the_shot_and_read_variance_it_draws():
+    torch.manual_seed(0)
+    x = torch.full((64, 24, 32, 32), 0.5)
+    noisy = A.sensor_noise(x, (1e3, 1e3), (0.01, 0.01), 1.0)
+    var = float((noisy - x).var())
+    assert abs(var - (0.5 / 1e3 + 0.01**2)) < 0.03 * (0.5 / 1e3 + 0.01**2)
+    assert abs(float((noisy - x).mean())) < 1e-3
+    assert torch.equal(A.sensor_noise(x, (1e3, 1e3), (0.01, 0.01), 0.0), x)
+
+
+def test_the_camera_augmentation_is_seeded_per_patch_and_finite_on_dark_and_bright_patches():
+    x = fringes(b=8)
+    x[0] = 0.0  # a patch off the surface
+    x[1] *= 50.0  # a specular highlight's
+    torch.manual_seed(3)
+    a = A.camera(x)
+    torch.manual_seed(3)
+    assert torch.equal(a, A.camera(x))
+    assert torch.isfinite(a).all() and a.shape == x.shape
+    assert float(a[0].abs().max()) < 0.02  # dark stays dark: only read noise
+    changed = (a - x).flatten(1).abs().amax(dim=1) > 1e-3
+    assert 0 < int(changed.sum()) <= 8  # drawn per patch

@@ -13,6 +13,7 @@ from sssphase_core.learning.camera import (
     as_captured,
     bayer_demosaic,
     crop_codes,
+    rebayer,
     shift_subpixel,
     through_camera,
 )
@@ -185,3 +186,16 @@ def test_the_capture_model_is_deterministic_where_training_asks_for_it():
     finally:
         torch.use_deterministic_algorithms(previous)
     assert torch.equal(grads[0], grads[1]) and grads[0].abs().sum() > 0
+
+
+
+@pytest.mark.parametrize("phase, layout", [(0, "RGGB"), (2, "GBRG")])
+def test_rebayer_is_the_isps_development_of_the_mosaic_without_a_dark_rim(phase, layout):
+    """Full-colour frames through :func:`rebayer` equal the ISP's development of their mosaic (colour-demosaicing's
+    Malvar) away from the border, and its mirrored border keeps the frame's brightness there."""
+    rng = np.random.default_rng(1)
+    frames = rng.random((8, 30, 34, 3)).astype(np.float32)
+    seen = rebayer(torch.from_numpy(frames).permute(0, 3, 1, 2), phase).permute(0, 2, 3, 1).numpy()
+    developed = isp.through_camera(frames, demosaic="malvar", layout=layout)
+    np.testing.assert_allclose(seen[:, 2:-2, 2:-2], developed[:, 2:-2, 2:-2], atol=2e-6)
+    assert abs(float(seen[:, :2].mean() / frames[:, :2].mean()) - 1) < 0.05

@@ -243,13 +243,15 @@ def test_decoder_training_keeps_the_encoder_frozen(pretrained, dataset, tmp_path
     assert not enc.training and not dec.training
 
 
-def test_decoder_resume_is_exact(pretrained, dataset, tmp_path):
-    cfg = DecoderConfig(epochs=1, batch_size=16, ckpt_every=2)
+@pytest.mark.parametrize("camera_augment", [0.0, 0.5])
+def test_decoder_resume_is_exact(pretrained, dataset, tmp_path, camera_augment):
+    cfg = DecoderConfig(epochs=1, batch_size=16, ckpt_every=2, camera_augment=camera_augment)
     train_decoder(cfg, pretrained, dataset, tmp_path / "a", progress=False)
     with pytest.raises(KeyboardInterrupt):
         train_decoder(cfg, pretrained, dataset, tmp_path / "b", progress=interrupt_after(5))
     train_decoder(cfg, pretrained, dataset, tmp_path / "b", progress=False)
     assert states_equal(load_checkpoint(tmp_path / "a")["decoder"], load_checkpoint(tmp_path / "b")["decoder"])
+    assert load_checkpoint(tmp_path / "b")["config"]["camera_augment"] == camera_augment  # the run records it
 
 
 def test_a_decoder_is_not_resumed_on_an_encoder_that_changed_since(pretrained, dataset, tmp_path):

@@ -11,6 +11,7 @@ import torch
 from torch import nn
 
 from sssphase_core.errors import DataError, InputError
+from sssphase_core.learning import augment
 from sssphase_core.learning.camera import as_captured
 from sssphase_core.learning.data import PatchDataset
 from sssphase_core.learning.domain import training_domain
@@ -52,6 +53,9 @@ class DecoderConfig(LoopConfig):
     # lit the surface, then Bayer sampling and demosaicing: learning.camera.as_captured), so the decoder
     # predicts the light entering at the pixel, before the sensor; False: the crops themselves are the targets
     capture_model: bool = True
+    # Probability per patch of each step of the camera augmentation of the decoder's input (augment.camera:
+    # Bayer resampling and demosaicing, lens blur, noise, fringe response error); 0: the patches as captured
+    camera_augment: float = 0.0
 
 
 def check_aux_classes(n: int, dataset: PatchDataset | None = None) -> None:
@@ -192,8 +196,11 @@ def train_decoder(
     def step(batch: dict[str, torch.Tensor], gstep: int) -> dict[str, float]:
         dec.train()
         enc.train(cfg.end_to_end)  # a frozen encoder never leaves eval mode: BN statistics and dropout stay fixed
+        psp = batch["psp"]
+        if cfg.camera_augment > 0:  # another camera's view of the same light; the target stays what it is
+            psp = augment.camera(psp, augment.CameraAugment(p=cfg.camera_augment))
         with autocast_for(d, cfg.amp):
-            pred, logits = net(batch["psp"])
+            pred, logits = net(psp)
         if cfg.capture_model:  # the light entering at the pixel, recorded as its target crop was
             pred = as_captured(pred.float(), batch["camera"].to(pred.device), batch["offset"].to(pred.device))
         loss, terms = loss_fn(pred, batch["footprint"])
