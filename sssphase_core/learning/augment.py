@@ -18,6 +18,7 @@ by the 8 images; only the per-pixel noise of the phase jitter is drawn independe
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import kornia.augmentation as KA
@@ -162,9 +163,10 @@ def two_views(x: torch.Tensor, kind: str = "psp", cfg: AugmentConfig = AugmentCo
 
 @dataclass(frozen=True)
 class CameraAugment:
-    """Decoder-input augmentation: the PSP patch as another camera would have recorded it, so that one
-    checkpoint serves Bayer, three-chip and rendered frames. Each step is applied to a patch with probability
-    ``p`` and draws its parameters once per patch, shared by its 8 images."""
+    """Decoder-input augmentation: the PSP patch as another camera would have recorded it, for a decoder that
+    must relight frames of a camera it was not trained on (measured in docs/benchmarks/three-chip.md: it helps a
+    decoder trained on full-colour frames relight Bayer ones, and costs it on its own camera). Each step is
+    applied to a patch with probability ``p`` and draws its parameters once per patch, shared by its 8 images."""
 
     p: float = 0.5
     blur_sigma: tuple[float, float] = (0.3, 1.0)  # px, a lens's
@@ -192,7 +194,7 @@ def sensor_noise(x: torch.Tensor, photons: tuple[float, float], read: tuple[floa
     """Shot noise (variance ``x / photons``) and read noise (std ``read``), both drawn per patch, with
     probability ``p`` per patch; independent per value."""
     b = x.shape[0]
-    n_ph = _per_sample(torch.exp(_uniform(b, *(float(torch.log(torch.tensor(v))) for v in photons), x)))
+    n_ph = _per_sample(torch.exp(_uniform(b, math.log(photons[0]), math.log(photons[1]), x)))  # log-uniform
     sd = torch.sqrt(x.clamp_min(0) / n_ph + _per_sample(_uniform(b, *read, x)) ** 2)
     return torch.where(_per_sample(_chance(b, p, x)), x + sd * torch.randn_like(x), x)
 
@@ -203,11 +205,11 @@ def fringe_gamma(x: torch.Tensor, gamma: tuple[float, float], p: float) -> torch
     probability ``p`` per patch. The modulation and the fringe's shape change; the offset, which is the
     footprint's energy, does not."""
     b, _, k, _ = x.shape
-    s = x.view(b, 2, N_IMAGES // 2, 3, k, k).clamp_min(0)
+    s = x.reshape(b, 2, N_IMAGES // 2, 3, k, k).clamp_min(0)
     mean = s.mean(dim=2, keepdim=True)
     g = _uniform(b, *gamma, x).view(b, 1, 1, 1, 1, 1)
     curved = (s / mean.clamp_min(1e-8)) ** g
-    out = (curved * (mean / curved.mean(dim=2, keepdim=True).clamp_min(1e-8))).view_as(x)
+    out = (curved * (mean / curved.mean(dim=2, keepdim=True).clamp_min(1e-8))).reshape(x.shape)
     return torch.where(_per_sample(_chance(b, p, x)), out, x)
 
 
