@@ -40,3 +40,15 @@ def test_a_row_reports_an_exact_footprint_as_exact(mix):
     assert line == f"| same | 1.00 / 1.00 / 1.00 | {top} / {top} / {top} | 0.00 / 0.00 / 0.00 | 0.50 / 0.60 / 0.70 |"
     worse = ci.row("wide", f + 0.01, f, mix)
     assert float(worse.split("|")[3].split("/")[0]) == pytest.approx(40.0, abs=0.01)  # MSE 1e-4
+
+
+def test_detail_of_a_delta_footprint():
+    f = np.zeros((4, 9, 9, 3))
+    f[:, 4, 4] = 1.0
+    cells = [c.strip() for c in ci.detail("delta", f, f).strip("|").split("|")]
+    assert cells[0] == "delta"
+    assert cells[1] == "1.000 / 1.000 / 1.000" and all(c == "0.000 / 0.000 / 0.000" for c in cells[2:7])  # all at r < 0.5
+    assert cells[7:10] == ["1.000 / 1.000 / 1.000"] * 3  # a delta passes every period
+    assert cells[10] == "0.000 / 0.000 / 0.000"
+    moved = np.roll(f, 1, axis=2)
+    assert ci.detail("moved", moved, f).strip(" |").endswith("1.000 / 1.000 / 1.000")
