@@ -186,8 +186,13 @@ def random_bayer(x: torch.Tensor, p: float) -> torch.Tensor:
     phase = torch.randint(0, 4, (b,), device=x.device).repeat_interleave(N_IMAGES)
     malvar = _chance(b, 0.5, x).repeat_interleave(N_IMAGES)
     rgb = x.reshape(b * N_IMAGES, 3, k, k)
-    out = torch.where(malvar.view(-1, 1, 1, 1), rebayer(rgb, phase, "malvar"), rebayer(rgb, phase, "bilinear"))
-    return torch.where(_per_sample(chosen), out.reshape(b, 3 * N_IMAGES, k, k), x)
+    out = rgb.clone()
+    chosen_images = chosen.repeat_interleave(N_IMAGES)
+    for method, use in (("malvar", malvar), ("bilinear", ~malvar)):  # only the chosen images, each by its method
+        sel = chosen_images & use
+        if bool(sel.any()):
+            out[sel] = rebayer(rgb[sel], phase[sel], method)
+    return out.reshape(x.shape)
 
 
 def sensor_noise(x: torch.Tensor, photons: tuple[float, float], read: tuple[float, float], p: float) -> torch.Tensor:
