@@ -1,0 +1,143 @@
+"""What a captured view's own light transport says about per-pixel footprints (issue 42, item 1).
+
+    python benchmarks/transport_footprints.py SESSION [CHECKPOINT ...] [--pixels 400] [--renders DIR]
+
+For view 0 of a session captured or imported with dot grids (its ``transport/`` arrays: one crop per projector
+dot), the footprint of each camera pixel as the transport gives it: the crops of the dots whose light enters
+through that pixel (each dot to the decoded pixel nearest to it, as the transport stores it), denoised as
+``sss relight --backend measured`` reads them, summed. Prints:
+
+* how the per-pixel training crops (``footprints/crops``: the dot at each pixel's *rounded* projector coordinate)
+  cover the dots: pixels, distinct dots among them, dots of the transport that no pixel's crop holds;
+* each source's share of the footprint energy per ring about the pixel, on ``--pixels`` interior pixels (3 px
+  inside the mask) that have transport: the transport's, the analytic model's and each decoder's (uncalibrated,
+  normalised to unit energy);
+* with reference patterns in the session, PSNR of the view relit from the transport's per-pixel footprints and
+  from the training crops (uncalibrated, each splatted with the pattern at its decoded point, as a model's are)
+  against the reference captures, or against ``DIR/OBJECT_clean_ref__PATTERN.exr`` with ``--renders``
+  (`mitsuba_render.py`'s noise-free renders).
+
+Prints Markdown.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+from scipy.ndimage import binary_erosion
+
+from sssphase_core.relight.backends import make_source
+from sssphase_core.relight.engine import relight
+from sssphase_core.relight.views import load_view
+from sssphase_core.store.session import Session
+
+RINGS = ((0, 0.5), (0.5, 1.5), (1.5, 3), (3, 6), (6, 10), (10, 1e9))  # px from the crop centre
+
+
+def per_pixel_transport(rv) -> tuple[np.ndarray, np.ndarray]:
+    """(pixels (N, 2) yx, footprints (N, K, K, 3) float32): each dot's transport crop, denoised as the
+    ``measured`` backend reads it (the noise mask that relights the view's own fringes best), summed into its
+    pixel."""
+    transport, _ = make_source("measured", rv)
+    pixels = np.asarray(transport.pixels, np.int64)
+    return sum_into_pixels(pixels, transport.crops_at(np.arange(len(pixels))), rv.proj.shape[1])
+
+
+def sum_into_pixels(pixels: np.ndarray, crops: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """(distinct pixels (M, 2) yx in row-major order, (M, K, K, C) float32 sums of the ``crops`` (N, K, K, C) that
+    share each of ``pixels`` (N, 2) yx) in an image ``width`` px wide."""
+    key = np.asarray(pixels, np.int64) @ np.array([width, 1])
+    unique, inverse = np.unique(key, return_inverse=True)
+    out = np.zeros((len(unique), *np.shape(crops)[1:]), np.float32)
+    np.add.at(out, inverse.ravel(), np.asarray(crops, np.float32))
+    return np.stack([unique // width, unique % width], axis=1), out
+
+
+def ring_shares(footprints: np.ndarray) -> np.ndarray:
+    """(len(RINGS),) mean share of each (N, K, K, 3) footprint's energy (values below 0 as 0) per ring."""
+    k = footprints.shape[1]
+    d = np.arange(k) - k // 2
+    r = np.hypot(d[:, None], d[None, :])
+    f = footprints.clip(0).sum(axis=-1)
+    e = np.maximum(f.sum(axis=(1, 2)), 1e-12)
+    return np.array([(f[:, (r >= lo) & (r < hi)].sum(axis=1) / e).mean() for lo, hi in RINGS])
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("session", type=Path)
+    ap.add_argument("checkpoints", type=Path, nargs="*")
+    ap.add_argument("--pixels", type=int, default=400)
+    ap.add_argument("--renders", type=Path, default=None)
+    args = ap.parse_args()
+    rv = load_view(Session.open(args.session), 0)
+    arrays = rv.session.arrays(0)
+    if "transport/crops" not in arrays:
+        raise SystemExit(f"{args.session}: view 0 has no captured transport (capture or import it with dot grids)")
+    px, fp = per_pixel_transport(rv)
+    if "footprints/pixels" in arrays:
+        train_px = np.asarray(rv.session.load(0, "footprints/pixels"), np.int64)
+        rx = np.floor(rv.proj.xp[train_px[:, 0], train_px[:, 1]] + 0.5).astype(np.int64)
+        ry = np.floor(rv.proj.yp[train_px[:, 0], train_px[:, 1]] + 0.5).astype(np.int64)
+        dots = np.asarray(rv.session.load(0, "transport/dots"), np.int64)
+        rounded = set(zip(rx.tolist(), ry.tolist(), strict=True))
+        missed = sum((x, y) not in rounded for x, y in dots.tolist())
+        print(f"{rv.object}: {len(train_px):,} pixels with training crops hold {len(rounded):,} distinct dots; "
+              f"{missed:,} of the transport's {len(dots):,} dots are in no pixel's crop\n")
+    inner = binary_erosion(rv.proj.mask, iterations=3)[px[:, 0], px[:, 1]] & (fp.sum(axis=(1, 2)) > 0).all(axis=-1)
+    pick = np.flatnonzero(inner)
+    pick = np.sort(np.random.default_rng(0).choice(pick, min(args.pixels, len(pick)), replace=False))
+    rows = [("the transport, each dot's crop in its pixel", fp[pick])]
+    analytic, _ = make_source("analytic", rv, calibrate=False)
+    rows.append(("analytic", np.asarray(analytic(px[pick]), np.float32)))
+    for ck in args.checkpoints:
+        src, _ = make_source("torch", rv, checkpoint=ck, calibrate=False)
+        out = src(px[pick])
+        rows.append((str(ck), np.asarray(out.detach().cpu().numpy() if hasattr(out, "detach") else out, np.float32)))
+    print(f"Energy share per ring about the pixel ({len(pick)} interior pixels):\n")
+    print("| footprints | " + " | ".join(f"{lo:g}-{hi:g} px" if hi < 1e9 else f"> {lo:g} px" for lo, hi in RINGS) + " |")
+    print("|---|" + "---|" * len(RINGS))
+    for name, f in rows:
+        print(f"| {name} | " + " | ".join(f"{x:.3f}" for x in ring_shares(f)) + " |")
+    names = sorted(rv.references)
+    if not names:
+        return
+    has = np.zeros(rv.proj.shape, bool)
+    has[px[:, 0], px[:, 1]] = True
+    index = np.full(rv.proj.shape, -1, np.int64)
+    index[px[:, 0], px[:, 1]] = np.arange(len(px))
+
+    def transport_source(pixels: np.ndarray) -> np.ndarray:  # pixels without a dot of their own: no light enters
+        pixels = np.asarray(pixels, np.int64)
+        out = np.zeros((len(pixels), *fp.shape[1:]), np.float32)
+        i = index[pixels[:, 0], pixels[:, 1]]
+        out[i >= 0] = fp[i[i >= 0]]
+        return out
+
+    pats = [rv.references[n] for n in names]
+    sources = [("the transport's per-pixel footprints", transport_source, fp.shape[1])]
+    if "footprints/pixels" in arrays:  # what decoder training reads, splatted as footprints
+        from sssphase_core.relight.sources import nearest_measured_source
+
+        crops = rv.session.read(0, "footprints/crops")
+        sources.append(("the training crops", nearest_measured_source(train_px, crops, rv.white), int(crops.shape[1])))
+    m = rv.proj.mask
+    if args.renders is not None:
+        from sssphase_core.store.exr import read_exr
+
+        truths, what = [read_exr(args.renders / f"{rv.object}_clean_ref__{n}.exr") for n in names], "noise-free renders"
+    else:
+        truths, what = [rv.captured[n] for n in names], "reference captures"
+    print(f"\nRelit as footprints, uncalibrated, against the {what} (PSNR, dB, decoded mask):\n")
+    print("| footprints | " + " | ".join(names) + " |")
+    print("|---|" + "---|" * len(names))
+    for label, source, k in sources:
+        relit = relight(source, rv.proj, pats, k, white=rv.white)
+        cells = [f"{10 * np.log10(1 / np.mean((img[m] - t[m]) ** 2)):.2f}" for img, t in zip(relit, truths, strict=True)]
+        print(f"| {label} | " + " | ".join(cells) + " |")
+
+
+if __name__ == "__main__":
+    main()

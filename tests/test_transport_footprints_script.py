@@ -1,0 +1,36 @@
+"""The transport-footprints benchmark (benchmarks/transport_footprints.py) measures what it says."""
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+
+_spec = importlib.util.spec_from_file_location(
+    "transport_footprints", Path(__file__).resolve().parents[1] / "benchmarks" / "transport_footprints.py")
+tf = importlib.util.module_from_spec(_spec)
+_spec.loader.exec_module(tf)
+
+
+def test_dots_seen_by_one_pixel_add_up_in_its_footprint():
+    rng = np.random.default_rng(0)
+    crops = rng.random((4, 5, 5, 3)).astype(np.float32)
+    pixels = np.array([[2, 7], [0, 1], [2, 7], [1, 0]])
+    px, sums = tf.sum_into_pixels(pixels, crops, width=10)
+    assert px.tolist() == [[0, 1], [1, 0], [2, 7]]  # row-major, each pixel once
+    np.testing.assert_allclose(sums[2], crops[0] + crops[2], rtol=1e-6)
+    np.testing.assert_array_equal(sums[0], crops[1])
+    assert np.isclose(sums.sum(), crops.sum(), rtol=1e-6)  # no light lost or added
+
+
+def test_ring_shares_place_a_delta_in_the_centre_and_a_ring_where_it_lies():
+    f = np.zeros((2, 21, 21, 3), np.float32)
+    f[0, 10, 10] = 1.0
+    f[1, 10, 10 + 4] = f[1, 10, 10 - 4] = 0.5  # 4 px from the centre: the 3-6 px ring
+    f[1, 0, 0] = -1.0  # negative values count as no light
+    delta = np.zeros(len(tf.RINGS))
+    delta[0] = 1.0
+    np.testing.assert_allclose(tf.ring_shares(f[:1]), delta)
+    ring = np.zeros(len(tf.RINGS))
+    ring[3] = 1.0
+    np.testing.assert_allclose(tf.ring_shares(f[1:]), ring)
+    np.testing.assert_allclose(tf.ring_shares(f).sum(), 1.0, rtol=1e-6)
