@@ -259,6 +259,44 @@ def mixed_with_no_scattering(source: FootprintSource, mix: np.ndarray, white: np
     return mixed
 
 
+#: Bounds of :func:`exit_gain` (a pixel that a model relights 4x too bright or too dark under white is left at the bound).
+EXIT_GAIN_RANGE = (0.25, 4.0)
+
+
+def records_every_colour(rv: RelightView) -> bool:
+    """Whether the view's camera measured every colour at every pixel (a three-chip camera, rendered or imported
+    full-colour frames): no Bayer pipeline is recorded. Demosaiced frames interpolate two colours of three, so
+    their white cannot tell a pixel's texture from the demosaicer's. A view built elsewhere (the benchmarks'
+    ``SimView``) may say so itself (``every_colour``)."""
+    said = getattr(rv, "every_colour", None)
+    return bool(said) if said is not None else not getattr(rv, "camera_isp", None)
+
+
+def exit_gain(rv: RelightView, relit_white: np.ndarray) -> np.ndarray:
+    """(H, W, 3) float32 gain per pixel and colour that makes a model's relighting of the view under full white
+    return the view's own white capture: the captured white over ``relit_white`` (H, W, 3), the model's relighting
+    under a pattern of 1s, on the decoded mask where the white is usable (:func:`white_usable`) and the relit
+    white above the noise floor; 1 elsewhere; clipped to :data:`EXIT_GAIN_RANGE`. For views whose camera
+    recorded every colour (:func:`records_every_colour`).
+
+    A model gives each pixel the energy of its own captured light and spreads it by its footprint, so what
+    the camera sees at that point only (pigment, surface grain: the texture of the exit) is spread over the
+    neighbours and lost where it was. The gain puts it back where light leaves the surface. It is linear in
+    the pattern (one map per model and view) and leaves exact footprints as they are (gain 1 up to the
+    capture's noise)."""
+    seen = np.asarray(relit_white, np.float32)
+    white = np.asarray(rv.white, np.float32)
+    ok = (rv.proj.mask & white_usable(white, rv.white_saturation))[..., None] & np.isfinite(seen) & (seen > WHITE_FLOOR)
+    gain = np.where(ok, white / np.where(ok, seen, 1.0), 1.0)
+    return np.clip(gain, *EXIT_GAIN_RANGE).astype(np.float32)
+
+
+def white_pattern(rv: RelightView) -> np.ndarray:
+    """(Hp, Wp) the full-white projector pattern (what the view's white capture was lit by)."""
+    wp, hp = rv.proj.projector_size
+    return np.ones((hp, wp), np.float32)
+
+
 def model_inputs(rv: RelightView) -> tuple[np.ndarray, np.ndarray]:
     """The view's PSP stack for a model backend, clipped samples repaired (:func:`psp.declip`), and the
     (H, W) bool map of pixels whose clipped fringes could not be repaired (made once per view)."""

@@ -170,13 +170,19 @@ class LowRankTap:
         return LowRankFootprints(self.basis, pixels, coef, self.shape, max(residual, 0.0))
 
 
+#: The eigen-footprint file's format. 2: its calibration weights are fitted on white-consistent images
+#: (``calibration.exit_gain``) where the view records every colour; files of earlier versions are not read.
+LOWRANK_FORMAT = 2
+
+
 def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np.ndarray,
                  view_weights: np.ndarray) -> None:
     """One view's fast relight: each member's eigen-footprints and the view calibration's weights (S, H, W, 3)
     (float16) and view-wide ones (S, 3), written atomically."""
     from sssphase_core.store.files import atomic_path
 
-    arrays: dict[str, np.ndarray] = {"members": np.asarray(len(members)), "weights": weights.astype(np.float16),
+    arrays: dict[str, np.ndarray] = {"format": np.asarray(LOWRANK_FORMAT), "members": np.asarray(len(members)),
+                                     "weights": weights.astype(np.float16),
                                      "view_weights": np.asarray(view_weights, np.float32)}
     for i, m in enumerate(members):
         arrays.update(m.arrays(f"m{i}_"))
@@ -187,7 +193,7 @@ def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np
 def load_lowrank(path: Path | str, shape: tuple[int, int]
                  ) -> tuple[list[LowRankFootprints], np.ndarray, np.ndarray] | None:
     """:func:`save_lowrank`'s file for a view of ``shape`` -> (members, weights, view weights); None when it is
-    missing, damaged or of another view (a cache only saves time)."""
+    missing, damaged, of another view or of another format (:data:`LOWRANK_FORMAT`; a cache only saves time)."""
     import zipfile
 
     path = Path(path)
@@ -195,6 +201,8 @@ def load_lowrank(path: Path | str, shape: tuple[int, int]
         return None
     try:
         with np.load(path, allow_pickle=False) as z:
+            if int(z["format"]) != LOWRANK_FORMAT:
+                return None
             n = int(z["members"])
             members = [LowRankFootprints.from_arrays(z, f"m{i}_") for i in range(n)]
             weights, view_weights = np.asarray(z["weights"], np.float32), np.asarray(z["view_weights"], np.float32)

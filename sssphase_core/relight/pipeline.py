@@ -8,7 +8,13 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from sssphase_core.errors import InputError
-from sssphase_core.relight.calibration import local_mixture, model_inputs
+from sssphase_core.relight.calibration import (
+    exit_gain,
+    local_mixture,
+    model_inputs,
+    records_every_colour,
+    white_pattern,
+)
 from sssphase_core.relight.engine import FootprintSource, relight
 from sssphase_core.relight.lowrank import LowRankFootprints
 from sssphase_core.relight.sources import no_scattering_source
@@ -23,11 +29,12 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     """Relight a view under ``patterns`` (P of (Hp, Wp[, 3])) with an uncalibrated ``source``
     (``make_source(..., calibrate=False)``) -> ((P, H, W, 3) images, view-wide per-colour mix (3,) or None).
 
-    With ``calibrate`` (and the view's PSP patterns known) the view calibration of :func:`fit_view_mix`
-    rides on the same footprint pass: the 8 PSP patterns are splatted beside the user's, and since
-    relighting is linear in the footprints the mixed source's images are ``mix * model + (1 - mix) *
-    none``, with the mix refined per pixel (:func:`local_mixture`). One pass instead of two (each
-    footprint is predicted once).
+    With ``calibrate`` (and the view's PSP patterns known) each model's images are first made consistent with
+    the view's white capture where its camera recorded every colour (:func:`white_consistent`; the white
+    pattern rides on the same pass), and the view calibration of :func:`fit_view_mix` rides on it too: the 8
+    PSP patterns are splatted beside the user's, and since relighting is linear in the footprints the mixed
+    source's images are ``mix * model + (1 - mix) * none``, with the mix refined per pixel
+    (:func:`local_mixture`). One pass instead of two (each footprint is predicted once).
 
     ``also``: more (source, patch) pairs blended in by the same fit: the images are
     ``sum_i mix_i * source_i + (1 - sum_i mix_i) * none``, each ``mix_i`` refined per pixel too, and the
@@ -42,10 +49,13 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
                          "patterns of its PSP captures, and calibration on)")
     n = len(patterns)
     every = list(patterns) + (list(rv.psp_patterns) if calibrate else [])
-    relits = [relight(src, rv.proj, every, k, white=rv.white, chunk=chunk, device=device, progress=progress)
-              for src, k in ((source, patch), *also)]
+    exit_texture = calibrate and records_every_colour(rv)
+    relits = [relight(src, rv.proj, every + [white_pattern(rv)] * exit_texture, k, white=rv.white, chunk=chunk,
+                      device=device, progress=progress) for src, k in ((source, patch), *also)]
     if not calibrate:
         return relits[0], None
+    if exit_texture:
+        relits = [white_consistent(rv, r) for r in relits]
     psp, lost = model_inputs(rv)
     none = relight(no_scattering_source(rv.white), rv.proj, every, 1, white=rv.white)
     # each source's weight refined pixel by pixel where the view's own fringes say so
@@ -53,6 +63,15 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     if calibration is not None:
         calibration.append((weights, view_weights))
     return mix_images(none[:n], [r[:n] for r in relits], weights), (view_weights[0] if not also else view_weights)
+
+
+def white_consistent(rv: RelightView, relit: np.ndarray) -> np.ndarray:
+    """A model's images (P + 1, H, W, 3), the last one relit under full white, -> the first P times the
+    model's :func:`~sssphase_core.relight.calibration.exit_gain` (in place): relit under white, the model
+    returns the view's white capture."""
+    images = relit[:-1]
+    images *= exit_gain(rv, relit[-1])
+    return images
 
 
 def mix_images(none: np.ndarray, relits: Sequence[np.ndarray], weights: np.ndarray) -> np.ndarray:
@@ -70,4 +89,7 @@ def relight_lowrank(rv: RelightView, members: Sequence[LowRankFootprints], weigh
     :class:`~sssphase_core.relight.lowrank.LowRankFootprints` per source) and its calibration's per-pixel
     ``weights`` (S, H, W, 3), with no footprint computed -> (P, H, W, 3)."""
     none = relight(no_scattering_source(rv.white), rv.proj, patterns, 1, white=rv.white)
-    return mix_images(none, [m.relight(rv.proj, patterns, white=rv.white) for m in members], weights)
+    if not records_every_colour(rv):
+        return mix_images(none, [m.relight(rv.proj, patterns, white=rv.white) for m in members], weights)
+    every = list(patterns) + [white_pattern(rv)]
+    return mix_images(none, [white_consistent(rv, m.relight(rv.proj, every, white=rv.white)) for m in members], weights)

@@ -67,7 +67,7 @@ def test_a_basis_of_fewer_components_says_how_much_it_leaves_out(make_projection
     assert tap.result().residual > 0.05  # and it is large: noise is not low-rank
 
 
-@pytest.mark.parametrize("damage", ["garbage", "other view", "missing"])
+@pytest.mark.parametrize("damage", ["garbage", "other view", "missing", "earlier format"])
 def test_a_damaged_or_foreign_eigen_footprint_file_is_not_read(tmp_path, damage, make_projection):
     proj = make_projection()
     path = tmp_path / "v.npz"
@@ -77,4 +77,10 @@ def test_a_damaged_or_foreign_eigen_footprint_file_is_not_read(tmp_path, damage,
         path.write_bytes(b"not a zip")
     elif damage == "other view":
         save_lowrank(path, [low], np.zeros((1, *proj.mask.shape, 3)), np.zeros((1, 3)))
+    elif damage == "earlier format":  # weights fitted before white-consistent relighting: not this version's
+        save_lowrank(path, [low], np.zeros((1, *proj.mask.shape, 3)), np.zeros((1, 3)))
+        assert load_lowrank(path, proj.mask.shape) is not None
+        with np.load(path) as z:
+            old = {k: z[k] for k in z.files if k != "format"}
+        np.savez(path, **old)
     assert load_lowrank(path, (proj.mask.shape[0] + 1, proj.mask.shape[1]) if damage == "other view" else proj.mask.shape) is None

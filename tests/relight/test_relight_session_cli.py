@@ -312,6 +312,41 @@ def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
     assert none_mix is None and plain.shape == fused.shape
 
 
+def test_a_full_colour_view_relit_under_white_returns_its_white_capture(session):
+    """Where the camera measured every colour, a model's images are made consistent with the view's white capture
+    (`exit_gain`): relit under full white, the calibrated model returns the white itself, whatever its weights, and
+    exact footprints need no gain. A demosaiced view's images stay as the model relights them."""
+    from sssphase_core.relight import make_source, relight, relight_view
+    from sssphase_core.relight.calibration import (
+        EXIT_GAIN_RANGE,
+        exit_gain,
+        records_every_colour,
+        white_pattern,
+        white_usable,
+    )
+
+    rv = load_view(Session.open(session), 1)
+    raw, k = make_source("analytic", rv, calibrate=False, patch=SMALL_PATCH)
+    pats = [white_pattern(rv), rv.references["checkerboard"]]
+    assert not records_every_colour(rv)  # a Bayer camera's session
+    demosaiced, _ = relight_view(raw, k, rv, pats, calibrate=True)
+    rv.camera_isp = None  # the same frames, as a camera that measures every colour would record them
+    assert records_every_colour(rv)
+    full, _ = relight_view(raw, k, rv, pats, calibrate=True)
+    gain = exit_gain(rv, relight(raw, rv.proj, pats[:1], k, white=rv.white)[0])
+    lo, hi = EXIT_GAIN_RANGE
+    ok = rv.proj.mask & white_usable(rv.white, rv.white_saturation) & ((gain > lo) & (gain < hi)).all(axis=-1)
+    assert ok.mean() > 0.5 * rv.proj.mask.mean()
+    np.testing.assert_allclose(full[0][ok], rv.white[ok], rtol=1e-3, atol=1e-5)
+    assert np.abs(demosaiced[0][ok] - rv.white[ok]).max() > 10 * np.abs(full[0][ok] - rv.white[ok]).max()
+    assert not np.allclose(full[1], demosaiced[1])  # the gain carries over to every pattern
+    exact, ke = make_source("exact", rv, calibrate=False)
+    exact_gain = exit_gain(rv, relight(exact, rv.proj, pats[:1], ke, white=rv.white)[0])[rv.proj.mask]
+    assert np.abs(np.median(exact_gain, axis=0) - 1).max() < 0.05  # the capture's noise and demosaicing only
+    spread = lambda g: np.subtract(*np.percentile(g, [90, 10], axis=0))  # noqa: E731
+    assert (spread(exact_gain) < spread(gain[rv.proj.mask])).all()  # a model's energy errors need more
+
+
 def test_geometry_cli_writes_both_maps_and_scores_them(session, tmp_path):
     res = runner.invoke(app, ["geometry", str(session), "--backend", "exact", "--views", "1", "--out", str(tmp_path)])
     assert res.exit_code == 0, res.output
