@@ -104,8 +104,11 @@ def _frame_mean(page) -> float:
 
 
 def _frame_green(page) -> np.ndarray:
-    """The green channel of the frame the page shows, as the page has it (H, W)."""
-    values = page.evaluate("""(() => { const img = document.getElementById('live-image');
+    """The green channel of the frame the page shows, as the page has it (H, W). A live frame may be loading when
+    asked (its naturalWidth reads 0 until it is decoded): the page's image is read once it is whole, in the same
+    task, so no later frame replaces it in between."""
+    values = page.evaluate("""(async () => { const img = document.getElementById('live-image');
+        for (let i = 0; i < 500 && !(img.complete && img.naturalWidth > 0); i++) await new Promise(r => setTimeout(r, 10));
         const c = document.createElement('canvas'); c.width = img.naturalWidth; c.height = img.naturalHeight;
         const g = c.getContext('2d'); g.drawImage(img, 0, 0); const d = g.getImageData(0, 0, c.width, c.height).data;
         const out = []; for (let i = 1; i < d.length; i += 4) out.push(d[i]); return [c.height, c.width, out]; })()""")
