@@ -52,6 +52,11 @@ def radius(f: np.ndarray) -> np.ndarray:
     return np.sqrt((f * r2).sum(axis=(1, 2)) / np.maximum(f.sum(axis=(1, 2)), 1e-12))
 
 
+def three(v: np.ndarray, fmt: str) -> str:
+    """Three per-colour values as ``R / G / B``."""
+    return " / ".join(format(float(x), fmt) for x in v)
+
+
 RINGS = ((0, 0.5), (0.5, 1.5), (1.5, 3), (3, 6), (6, 10), (10, 64))  # px from the crop centre
 PERIODS = (8.0, 11.0, 16.0)  # px, fringe periods for the MTF
 
@@ -70,9 +75,6 @@ def detail(name: str, f: np.ndarray, exact: np.ndarray) -> str:
     cen = [np.median(np.abs((g * d[ax]).sum(axis=(1, 2)) / e - (ge * d[ax]).sum(axis=(1, 2)) / ee), axis=0)
            for ax in ((None, slice(None), None, None), (None, None, slice(None), None))]
 
-    def three(v: np.ndarray, fmt: str) -> str:
-        return " / ".join(format(float(x), fmt) for x in v)
-
     return (f"| {name} | " + " | ".join(three(v, ".3f") for v in shares) + " | "
             + " | ".join(three(v, ".3f") for v in mtf) + f" | {three(np.maximum(*cen), '.3f')} |")
 
@@ -81,9 +83,6 @@ def row(name: str, f: np.ndarray, exact: np.ndarray, mix: np.ndarray) -> str:
     ratio = np.median(radius(f) / radius(exact), axis=0)
     mse = np.maximum(((f - exact) ** 2).mean(axis=(0, 1, 2)), MSE_FLOOR)  # identical footprints: the floor's PSNR
     l1 = np.median(np.abs(f - exact).sum(axis=(1, 2)) / np.maximum(exact.sum(axis=(1, 2)), 1e-12), axis=0)
-
-    def three(v: np.ndarray, fmt: str) -> str:
-        return " / ".join(format(float(x), fmt) for x in v)
 
     weights = " | ".join(three(m, ".2f") for m in np.atleast_2d(mix))
     return f"| {name} | {three(ratio, '.2f')} | {three(-10 * np.log10(mse), '.1f')} | {three(l1, '.2f')} | {weights} |"

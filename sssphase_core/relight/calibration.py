@@ -291,12 +291,6 @@ def exit_gain(rv: RelightView, relit_white: np.ndarray) -> np.ndarray:
     return np.clip(gain, *EXIT_GAIN_RANGE).astype(np.float32)
 
 
-def white_pattern(rv: RelightView) -> np.ndarray:
-    """(Hp, Wp) the full-white projector pattern (what the view's white capture was lit by)."""
-    wp, hp = rv.proj.projector_size
-    return np.ones((hp, wp), np.float32)
-
-
 def model_inputs(rv: RelightView) -> tuple[np.ndarray, np.ndarray]:
     """The view's PSP stack for a model backend, clipped samples repaired (:func:`psp.declip`), and the
     (H, W) bool map of pixels whose clipped fringes could not be repaired (made once per view)."""

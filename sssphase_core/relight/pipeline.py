@@ -8,13 +8,8 @@ from collections.abc import Callable, Sequence
 import numpy as np
 
 from sssphase_core.errors import InputError
-from sssphase_core.relight.calibration import (
-    exit_gain,
-    local_mixture,
-    model_inputs,
-    records_every_colour,
-    white_pattern,
-)
+from sssphase_core.processing.patterns import white as full_white
+from sssphase_core.relight.calibration import exit_gain, local_mixture, model_inputs, records_every_colour
 from sssphase_core.relight.engine import FootprintSource, relight
 from sssphase_core.relight.lowrank import LowRankFootprints
 from sssphase_core.relight.sources import no_scattering_source
@@ -49,12 +44,12 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
                          "patterns of its PSP captures, and calibration on)")
     n = len(patterns)
     every = list(patterns) + (list(rv.psp_patterns) if calibrate else [])
-    exit_texture = calibrate and records_every_colour(rv)
-    relits = [relight(src, rv.proj, every + [white_pattern(rv)] * exit_texture, k, white=rv.white, chunk=chunk,
-                      device=device, progress=progress) for src, k in ((source, patch), *also)]
+    under_white = exit_pattern(rv) if calibrate else []
+    relits = [relight(src, rv.proj, every + under_white, k, white=rv.white, chunk=chunk, device=device,
+                      progress=progress) for src, k in ((source, patch), *also)]
     if not calibrate:
         return relits[0], None
-    if exit_texture:
+    if under_white:
         relits = [white_consistent(rv, r) for r in relits]
     psp, lost = model_inputs(rv)
     none = relight(no_scattering_source(rv.white), rv.proj, every, 1, white=rv.white)
@@ -63,6 +58,13 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     if calibration is not None:
         calibration.append((weights, view_weights))
     return mix_images(none[:n], [r[:n] for r in relits], weights), (view_weights[0] if not also else view_weights)
+
+
+def exit_pattern(rv: RelightView) -> list[np.ndarray]:
+    """``[the full-white pattern]`` for a view whose models are made white-consistent (its camera recorded every
+    colour: :func:`~sssphase_core.relight.calibration.records_every_colour`), else ``[]``: relit last beside the
+    other patterns, it gives :func:`white_consistent` the model's white."""
+    return [full_white(*rv.proj.projector_size)] if records_every_colour(rv) else []
 
 
 def white_consistent(rv: RelightView, relit: np.ndarray) -> np.ndarray:
@@ -89,7 +91,6 @@ def relight_lowrank(rv: RelightView, members: Sequence[LowRankFootprints], weigh
     :class:`~sssphase_core.relight.lowrank.LowRankFootprints` per source) and its calibration's per-pixel
     ``weights`` (S, H, W, 3), with no footprint computed -> (P, H, W, 3)."""
     none = relight(no_scattering_source(rv.white), rv.proj, patterns, 1, white=rv.white)
-    if not records_every_colour(rv):
-        return mix_images(none, [m.relight(rv.proj, patterns, white=rv.white) for m in members], weights)
-    every = list(patterns) + [white_pattern(rv)]
-    return mix_images(none, [white_consistent(rv, m.relight(rv.proj, every, white=rv.white)) for m in members], weights)
+    under_white = exit_pattern(rv)
+    relits = [m.relight(rv.proj, list(patterns) + under_white, white=rv.white) for m in members]
+    return mix_images(none, [white_consistent(rv, r) for r in relits] if under_white else relits, weights)

@@ -316,18 +316,18 @@ def test_a_full_colour_view_relit_under_white_returns_its_white_capture(session)
     """Where the camera measured every colour, a model's images are made consistent with the view's white capture
     (`exit_gain`): relit under full white, the calibrated model returns the white itself, whatever its weights, and
     exact footprints need no gain. A demosaiced view's images stay as the model relights them."""
+    from sssphase_core.processing.patterns import white
     from sssphase_core.relight import make_source, relight, relight_view
     from sssphase_core.relight.calibration import (
         EXIT_GAIN_RANGE,
         exit_gain,
         records_every_colour,
-        white_pattern,
         white_usable,
     )
 
     rv = load_view(Session.open(session), 1)
     raw, k = make_source("analytic", rv, calibrate=False, patch=SMALL_PATCH)
-    pats = [white_pattern(rv), rv.references["checkerboard"]]
+    pats = [white(*rv.proj.projector_size), rv.references["checkerboard"]]
     assert not records_every_colour(rv)  # a Bayer camera's session
     demosaiced, _ = relight_view(raw, k, rv, pats, calibrate=True)
     rv.camera_isp = None  # the same frames, as a camera that measures every colour would record them
