@@ -9,6 +9,7 @@ Mitsuba is not a dependency of sssphase; install it beside it, by hand (the ``mi
     python benchmarks/mitsuba_render.py OUT NAME --shape SHAPE --medium MEDIUM [--scale S] [--g G] \
         [--train | --test] [--spp N] [--seed N]
     sss import OUT/NAME --object NAME --projector 256x192 --out SESSIONS
+    python benchmarks/mitsuba_render.py OUT NAME --converged [--spp 128] [--groups 8]   # after --test
 
 The scene: the rig's pinhole camera at the origin looking along +z, its projector (Mitsuba's ``projector``
 emitter, a textured point light) 150 mm to the right and verged on the turntable centre 400 mm away, one
@@ -31,6 +32,14 @@ shot noise of 6000 photons per unit, Gaussian read noise 7e-4; no colour filter 
 folder: the noise-free references (``NAME_clean_ref__PATTERN.exr``, for `benchmarks/standin_score.py`),
 the exact projector coordinates of every camera pixel's surface point with its incidence angle
 (``NAME_geometry.npz``: xp, yp, theta, mask) and what was rendered (``NAME.json``).
+
+The ``clean`` references share the frames' random numbers, so they hold the same fixed Monte-Carlo pattern as
+the captures, fireflies included (one pixel of a 32-spp apple is 19x the white level): a model that copies the
+captures' pattern is scored as if it were physics. ``--converged`` (after ``--test`` of the same OUT and NAME:
+the object, medium and exposure come from its ``NAME.json``) renders the reference patterns alone, without
+camera noise, ``--groups`` times at ``--spp`` samples with random numbers of their own, and keeps each pixel's
+mean of the groups without its highest and lowest (a trimmed mean: a firefly falls in one group). It writes
+``NAME_converged_ref__PATTERN.exr``, the truth to score against (`standin_score.py --truth converged`).
 """
 
 from __future__ import annotations
@@ -207,9 +216,14 @@ def main() -> None:
     kind = ap.add_mutually_exclusive_group(required=True)
     kind.add_argument("--train", action="store_true", help="with dot grids (footprints)")
     kind.add_argument("--test", action="store_true", help="with reference patterns")
+    kind.add_argument("--converged", action="store_true",
+                      help="after --test: its reference patterns with independent random numbers, at --spp")
     ap.add_argument("--spp", type=int, default=64)
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--groups", type=int, default=8, help="--converged: independent renders per pattern (>= 3)")
     args = ap.parse_args()
+    if args.converged and args.groups < 3:
+        raise SystemExit("--groups must be at least 3 (the trimmed mean drops the highest and the lowest)")
     if not -0.95 < args.g < 0.95 or not args.scale > 0:
         raise SystemExit("--g must be in (-0.95, 0.95) and --scale > 0")
 
@@ -220,6 +234,9 @@ def main() -> None:
 
     mi = set_variant()
     rig = rig_preset("cpu")
+    if args.converged:
+        converged_references(mi, args, rig)
+        return
     folder = args.out / args.name
     folder.mkdir(parents=True, exist_ok=False)
     scene, facts = build_scene(mi, args, rig, args.out)
@@ -254,6 +271,54 @@ def main() -> None:
                                "seconds": round(time.time() - t0, 1), "gain": gain, "mitsuba": mi.__version__,
                                "llvm": os.environ.get("DRJIT_LIBLLVM_PATH", "")})
     (args.out / f"{args.name}.json").write_text(json.dumps(facts, indent=1) + "\n")
+
+
+#: the converged references' sampler seed, apart from every frame's (the object's shape keeps the test render's)
+INDEPENDENT_SEED = 7919
+
+
+def converged_references(mi, args: argparse.Namespace, rig) -> None:  # noqa: ANN001
+    """The reference patterns of the ``--test`` render ``OUT/NAME`` (its object, medium and exposure, from
+    ``NAME.json``) without camera noise: per pixel the trimmed mean of ``args.groups`` renders of ``args.spp``
+    samples, each seeded apart from the frames and from the others. Prints each pattern's own noise floor: the
+    PSNR (data range 1) of the trimmed means of the two halves of the groups against each other."""
+    from scipy.stats import trim_mean
+
+    from sssphase_core.processing.patterns import capture_plan
+    from sssphase_core.processing.projector import emitted_light
+    from sssphase_core.store.exr import write_exr
+
+    record = args.out / f"{args.name}.json"
+    if not record.is_file():
+        raise SystemExit(f"{record}: no record of a --test render of {args.name} in {args.out}; render it first")
+    facts = json.loads(record.read_text())
+    if not facts.get("test"):
+        raise SystemExit(f"{record}: {args.name} was not rendered with --test (no reference patterns)")
+    for key in ("shape", "medium", "scale", "g", "seed"):  # the same object: its mesh and medium
+        setattr(args, key, facts[key])
+    scene, _ = build_scene(mi, args, rig, args.out)
+    params = mi.traverse(scene)
+    plan = capture_plan(rig.projector.width, rig.projector.height, footprints=False, dot_spacing=20,
+                        references=REFERENCES, gamma=rig.projector.gamma)
+    t0 = time.time()
+    seeds = [facts["seed"] + INDEPENDENT_SEED + i for i in range(args.groups)]
+    floors = {}
+    for f in (f for f in plan.frames if f.key.startswith("ref/")):
+        light = BLACK + (1 - BLACK) * emitted_light(f.pattern()[None], rig.projector.gamma)[0]
+        params["projector.irradiance.data"] = mi.TensorXf(np.ascontiguousarray(light, dtype=np.float32))
+        params.update()
+        groups = np.stack([facts["gain"] * np.asarray(mi.render(scene, seed=s, spp=args.spp), dtype=np.float32)
+                           for s in seeds])
+        cut = 1 / args.groups  # one group of each end
+        img = trim_mean(groups, cut, axis=0)
+        a, b = (trim_mean(g, 1 / len(g) if len(g) >= 3 else 0.0, axis=0) for g in np.array_split(groups, 2))
+        floors[f.key] = round(float(10 * np.log10(1 / np.mean((a - b) ** 2))), 2)
+        write_exr(args.out / f"{args.name}_converged_{f.key.replace('/', '__')}.exr", img.astype(np.float32))
+        print(f"{args.name}: {f.key}, {args.groups} x {args.spp} spp ({time.time() - t0:.0f} s); its halves "
+              f"agree to {floors[f.key]} dB", flush=True)
+    facts["converged"] = {"spp": args.spp, "groups": args.groups, "seeds": seeds, "halves_psnr_db": floors,
+                          "seconds": round(time.time() - t0, 1)}
+    record.write_text(json.dumps(facts, indent=1) + "\n")
 
 
 if __name__ == "__main__":

@@ -1,11 +1,14 @@
 """Score relit images and projector correspondences of stand-in renders against their noise-free truth.
 
-    python benchmarks/standin_score.py relight RENDERS SESSIONS RELIT BACKEND[,BACKEND...]
+    python benchmarks/standin_score.py relight RENDERS SESSIONS RELIT BACKEND[,BACKEND...] [--truth converged]
     python benchmarks/standin_score.py geometry RENDERS OBJECT GEOMETRY_NPZ [GEOMETRY_NPZ ...]
 
 ``relight``: PSNR of ``RELIT/OBJECT_v0_PATTERN_BACKEND.exr`` (``sss relight --format exr``) against
 ``RENDERS/OBJECT_clean_ref__PATTERN.exr`` on the view's decoded mask, and >= 2 px inside it, for every
-session under SESSIONS. ``geometry``: the decoded and the geometry-corrected projector x, y of
+session under SESSIONS; with ``--truth converged`` against ``OBJECT_converged_ref__PATTERN.exr`` (`mitsuba_render.py
+--converged`: random numbers of their own, so the captures' fixed Monte-Carlo pattern is not in the truth), on the
+mask and on its quiet pixels: those where the clean reference is within :data:`QUIET` of the converged one in every
+colour (the captures' fireflies, shared by the clean references and by every relit image, dominate the mask's error). ``geometry``: the decoded and the geometry-corrected projector x, y of
 ``sss geometry``'s ``correspondence_for_geometry.npz`` against ``RENDERS/OBJECT_geometry.npz``
 (``standin_volumetric.py``, ``mitsuba_render.py``), median signed error by incidence angle.
 """
@@ -18,12 +21,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+#: a pixel is quiet when the same-seed clean reference is this close to the converged one in every colour
+QUIET = 0.01
+
 
 def psnr(a: np.ndarray, b: np.ndarray, where: np.ndarray) -> float:
     return float(10 * np.log10(1.0 / np.mean((a[where] - b[where]) ** 2)))
 
 
-def relight(renders: Path, sessions: Path, relit: Path, backends: list[str]) -> None:
+def relight(renders: Path, sessions: Path, relit: Path, backends: list[str], truth: str = "clean") -> None:
     from sssphase_core.relight import load_view
     from sssphase_core.store.exr import read_exr
     from sssphase_core.store.session import find_sessions
@@ -34,13 +40,18 @@ def relight(renders: Path, sessions: Path, relit: Path, backends: list[str]) -> 
         mask = load_view(s, 0).proj.mask
         inner = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
         for pattern in ("checkerboard", "stripes_x", "stripes_y"):
-            if not (renders / f"{s.name}_clean_ref__{pattern}.exr").exists():  # stripes_y: mitsuba_render.py's
+            reference = renders / f"{s.name}_{truth}_ref__{pattern}.exr"
+            if not reference.exists():  # stripes_y: mitsuba_render.py's; converged: where rendered
                 continue
-            truth = read_exr(renders / f"{s.name}_clean_ref__{pattern}.exr")
+            truth_img = read_exr(reference)
+            second = inner
+            if truth == "converged":  # the mask's quiet pixels instead of its inner ones
+                clean = read_exr(renders / f"{s.name}_clean_ref__{pattern}.exr")
+                second = mask & (np.abs(clean - truth_img).max(axis=-1) <= QUIET)
             cells = []
             for b in backends:
                 img = read_exr(relit / f"{s.name}_v0_{pattern}_{b}.exr")
-                cells.append(f"{psnr(img, truth, mask):.2f} / {psnr(img, truth, inner):.2f}")
+                cells.append(f"{psnr(img, truth_img, mask):.2f} / {psnr(img, truth_img, second):.2f}")
             print(f"| {s.name} | {pattern} | " + " | ".join(cells) + " |")
 
 
@@ -63,8 +74,13 @@ def geometry(renders: Path, name: str, files: list[Path]) -> None:
 
 if __name__ == "__main__":
     a = sys.argv[1:]
+    truth = "clean"
+    if len(a) >= 2 and a[-2] == "--truth":
+        if a[-1] not in ("clean", "converged"):
+            sys.exit(f"--truth must be clean or converged, got {a[-1]!r}")
+        truth, a = a[-1], a[:-2]
     if len(a) >= 5 and a[0] == "relight":
-        relight(Path(a[1]), Path(a[2]), Path(a[3]), a[4].split(","))
+        relight(Path(a[1]), Path(a[2]), Path(a[3]), a[4].split(","), truth)
     elif len(a) >= 4 and a[0] == "geometry":
         geometry(Path(a[1]), a[2], [Path(p) for p in a[3:]])
     else:

@@ -45,3 +45,17 @@ def test_grey_extinction_keeps_each_channels_measured_absorption(name):
     assert sigma_t == pytest.approx(1.5 * max(np.mean(sigma_s / 0.5 + sigma_a), 1.02 * sigma_a.max()))
     assert np.allclose(sigma_t * (1 - np.asarray(albedo)), 1.5 * sigma_a)
     assert all(0 < a < 1 for a in albedo)
+
+
+def test_converged_references_need_the_test_render_they_converge(tmp_path):
+    """The converged references take the object, medium and exposure of an earlier --test render; without its
+    record, or from a --train one (no reference patterns), the script says so before building any scene."""
+    import argparse
+    import json
+
+    args = argparse.Namespace(out=tmp_path, name="egg", spp=4, groups=3)
+    with pytest.raises(SystemExit, match="no record of a --test render of egg"):
+        mr.converged_references(None, args, None)
+    (tmp_path / "egg.json").write_text(json.dumps({"test": False, "train": True}))
+    with pytest.raises(SystemExit, match="not rendered with --test"):
+        mr.converged_references(None, args, None)
