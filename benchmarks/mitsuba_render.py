@@ -7,7 +7,7 @@ Mitsuba is not a dependency of sssphase; install it beside it, by hand (the ``mi
     export DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM-15.so.1   # else the slower scalar variant
 
     python benchmarks/mitsuba_render.py OUT NAME --shape SHAPE --medium MEDIUM [--scale S] [--g G] \
-        [--train | --test] [--spp N] [--seed N]
+        [--train | --test] [--spp N] [--seed N] [--groups G]
     sss import OUT/NAME --object NAME --projector 256x192 --out SESSIONS
     python benchmarks/mitsuba_render.py OUT NAME --converged [--spp 128] [--groups 8]   # after --test
 
@@ -40,6 +40,10 @@ the object, medium and exposure come from its ``NAME.json``) renders the referen
 camera noise, ``--groups`` times at ``--spp`` samples with random numbers of their own, and keeps each pixel's
 mean of the groups without its highest and lowest (a trimmed mean: a firefly falls in one group). It writes
 ``NAME_converged_ref__PATTERN.exr``, the truth to score against (`standin_score.py --truth converged`).
+
+``--groups G`` (G >= 3) with ``--train`` or ``--test`` renders every frame G times, each with random numbers of its
+own (the same G seeds for every frame), and keeps their trimmed mean: captures, and clean references, without the
+fixed pattern's fireflies, at G times the cost.
 """
 
 from __future__ import annotations
@@ -220,9 +224,13 @@ def main() -> None:
                       help="after --test: its reference patterns with independent random numbers, at --spp")
     ap.add_argument("--spp", type=int, default=64)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--groups", type=int, default=8, help="--converged: independent renders per pattern (>= 3)")
+    ap.add_argument("--groups", type=int, default=None,
+                    help="renders per frame, each with its own random numbers, trimmed-mean combined (>= 3; "
+                         "--converged: 8 by default; else 1 by default: one render)")
     args = ap.parse_args()
-    if args.converged and args.groups < 3:
+    if args.groups is None:
+        args.groups = 8 if args.converged else 1
+    if args.groups < 3 and (args.converged or args.groups != 1):
         raise SystemExit("--groups must be at least 3 (the trimmed mean drops the highest and the lowest)")
     if not -0.95 < args.g < 0.95 or not args.scale > 0:
         raise SystemExit("--g must be in (-0.95, 0.95) and --scale > 0")
@@ -251,7 +259,9 @@ def main() -> None:
         light = BLACK + (1 - BLACK) * emitted_light(pattern[None], rig.projector.gamma)[0]
         params[key] = mi.TensorXf(np.ascontiguousarray(light, dtype=np.float32))
         params.update()
-        return np.asarray(mi.render(scene, seed=args.seed, spp=args.spp), dtype=np.float32)
+        return trimmed([np.asarray(mi.render(scene, seed=s, spp=args.spp), dtype=np.float32) for s in seeds])
+
+    seeds = [args.seed] if args.groups == 1 else [args.seed + INDEPENDENT_SEED * 2 + i for i in range(args.groups)]
 
     t0 = time.time()
     white = render(next(f for f in plan.frames if f.key == "white").pattern())
@@ -277,13 +287,20 @@ def main() -> None:
 INDEPENDENT_SEED = 7919
 
 
+def trimmed(renders: list[np.ndarray]) -> np.ndarray:
+    """Per pixel, the mean of ``renders`` without the highest and the lowest (a plain mean of fewer than 3):
+    a firefly falls in one render."""
+    from scipy.stats import trim_mean
+
+    stack = np.stack(renders)
+    return trim_mean(stack, 1 / len(stack), axis=0) if len(stack) >= 3 else stack.mean(axis=0)
+
+
 def converged_references(mi, args: argparse.Namespace, rig) -> None:  # noqa: ANN001
     """The reference patterns of the ``--test`` render ``OUT/NAME`` (its object, medium and exposure, from
     ``NAME.json``) without camera noise: per pixel the trimmed mean of ``args.groups`` renders of ``args.spp``
     samples, each seeded apart from the frames and from the others. Prints each pattern's own noise floor: the
     PSNR (data range 1) of the trimmed means of the two halves of the groups against each other."""
-    from scipy.stats import trim_mean
-
     from sssphase_core.processing.patterns import capture_plan
     from sssphase_core.processing.projector import emitted_light
     from sssphase_core.store.exr import write_exr
@@ -307,11 +324,9 @@ def converged_references(mi, args: argparse.Namespace, rig) -> None:  # noqa: AN
         light = BLACK + (1 - BLACK) * emitted_light(f.pattern()[None], rig.projector.gamma)[0]
         params["projector.irradiance.data"] = mi.TensorXf(np.ascontiguousarray(light, dtype=np.float32))
         params.update()
-        groups = np.stack([facts["gain"] * np.asarray(mi.render(scene, seed=s, spp=args.spp), dtype=np.float32)
-                           for s in seeds])
-        cut = 1 / args.groups  # one group of each end
-        img = trim_mean(groups, cut, axis=0)
-        a, b = (trim_mean(g, 1 / len(g) if len(g) >= 3 else 0.0, axis=0) for g in np.array_split(groups, 2))
+        groups = [facts["gain"] * np.asarray(mi.render(scene, seed=s, spp=args.spp), dtype=np.float32) for s in seeds]
+        img = trimmed(groups)
+        a, b = (trimmed(list(g)) for g in np.array_split(np.stack(groups), 2))
         floors[f.key] = round(float(10 * np.log10(1 / np.mean((a - b) ** 2))), 2)
         write_exr(args.out / f"{args.name}_converged_{f.key.replace('/', '__')}.exr", img.astype(np.float32))
         print(f"{args.name}: {f.key}, {args.groups} x {args.spp} spp ({time.time() - t0:.0f} s); its halves "

@@ -59,3 +59,20 @@ def test_converged_references_need_the_test_render_they_converge(tmp_path):
     (tmp_path / "egg.json").write_text(json.dumps({"test": False, "train": True}))
     with pytest.raises(SystemExit, match="not rendered with --test"):
         mr.converged_references(None, args, None)
+
+
+@pytest.mark.parametrize("extra", [["--test", "--groups", "2"], ["--converged", "--groups", "1"]])
+def test_groups_below_three_are_refused_before_any_render(monkeypatch, tmp_path, extra):
+    """A trimmed mean drops each pixel's highest and lowest render, so it needs 3 (one render, the default for the
+    capture plan, needs none)."""
+    monkeypatch.setattr("sys.argv", ["mitsuba_render.py", str(tmp_path), "egg", *extra])
+    with pytest.raises(SystemExit, match="--groups must be at least 3"):
+        mr.main()
+
+
+def test_the_trimmed_mean_leaves_out_one_firefly():
+    renders = [np.full((2, 2, 3), 0.1, np.float32) for _ in range(4)]
+    renders[2][0, 0] = 19.0  # a firefly in one render
+    out = mr.trimmed(renders)
+    assert np.allclose(out, 0.1)
+    assert np.allclose(mr.trimmed(renders[:2]), np.mean(renders[:2], axis=0))  # fewer than 3: the plain mean
