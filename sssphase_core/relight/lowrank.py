@@ -171,8 +171,9 @@ class LowRankTap:
 
 
 #: The eigen-footprint file's format. 2: its calibration weights are fitted on white-consistent images
-#: (``calibration.exit_gain``) where the view records every colour; files of earlier versions are not read.
-LOWRANK_FORMAT = 2
+#: (``calibration.exit_gain``) where the view records every colour; 3: that white is the nine-capture one
+#: (``calibration.exit_white``). Files of earlier formats are not read.
+LOWRANK_FORMAT = 3
 
 
 def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np.ndarray,

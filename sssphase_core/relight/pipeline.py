@@ -9,7 +9,13 @@ import numpy as np
 
 from sssphase_core.errors import InputError
 from sssphase_core.processing.patterns import white as full_white
-from sssphase_core.relight.calibration import exit_gain, local_mixture, model_inputs, records_every_colour
+from sssphase_core.relight.calibration import (
+    exit_gain,
+    exit_white,
+    local_mixture,
+    model_inputs,
+    records_every_colour,
+)
 from sssphase_core.relight.engine import FootprintSource, relight
 from sssphase_core.relight.lowrank import LowRankFootprints
 from sssphase_core.relight.sources import no_scattering_source
@@ -25,8 +31,8 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     (``make_source(..., calibrate=False)``) -> ((P, H, W, 3) images, view-wide per-colour mix (3,) or None).
 
     With ``calibrate`` (and the view's PSP patterns known) each model's images are first made consistent with
-    the view's white capture where its camera recorded every colour (:func:`white_consistent`; the white
-    pattern rides on the same pass), and the view calibration of :func:`fit_view_mix` rides on it too: the 8
+    the view's white (the white capture and the PSP frames' offset) where its camera recorded every colour
+    (:func:`white_consistent`; the white pattern rides on the same pass), and the view calibration of :func:`fit_view_mix` rides on it too: the 8
     PSP patterns are splatted beside the user's, and since relighting is linear in the footprints the mixed
     source's images are ``mix * model + (1 - mix) * none``, with the mix refined per pixel
     (:func:`local_mixture`). One pass instead of two (each footprint is predicted once).
@@ -52,7 +58,7 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     if under_white:
         relits = [white_consistent(rv, r) for r in relits]
     psp, lost = model_inputs(rv)
-    none = relight(no_scattering_source(rv.white), rv.proj, every, 1, white=rv.white)
+    none = relight(no_scattering_source(mixing_white(rv)), rv.proj, every, 1, white=rv.white)
     # each source's weight refined pixel by pixel where the view's own fringes say so
     weights, view_weights = local_mixture(rv, [r[n:] for r in relits], none[n:], psp, lost)
     if calibration is not None:
@@ -67,10 +73,17 @@ def exit_pattern(rv: RelightView) -> list[np.ndarray]:
     return [full_white(*rv.proj.projector_size)] if records_every_colour(rv) else []
 
 
+def mixing_white(rv: RelightView) -> np.ndarray:
+    """(H, W, 3) the white of the no-scattering term the calibration mixes each model with: the white the models
+    are made consistent with (:func:`~sssphase_core.relight.calibration.exit_white`) where they are, so that a
+    calibrated model relit under white returns it whatever its weights; else the white capture."""
+    return exit_white(rv) if records_every_colour(rv) else rv.white
+
+
 def white_consistent(rv: RelightView, relit: np.ndarray) -> np.ndarray:
     """A model's images (P + 1, H, W, 3), the last one relit under full white, -> the first P times the
     model's :func:`~sssphase_core.relight.calibration.exit_gain` (in place): relit under white, the model
-    returns the view's white capture."""
+    returns the view's nine-capture white (:func:`~sssphase_core.relight.calibration.exit_white`)."""
     images = relit[:-1]
     images *= exit_gain(rv, relit[-1])
     return images
@@ -90,7 +103,7 @@ def relight_lowrank(rv: RelightView, members: Sequence[LowRankFootprints], weigh
     """:func:`relight_view`'s calibrated images under new ``patterns`` from its eigen-footprints (one
     :class:`~sssphase_core.relight.lowrank.LowRankFootprints` per source) and its calibration's per-pixel
     ``weights`` (S, H, W, 3), with no footprint computed -> (P, H, W, 3)."""
-    none = relight(no_scattering_source(rv.white), rv.proj, patterns, 1, white=rv.white)
+    none = relight(no_scattering_source(mixing_white(rv)), rv.proj, patterns, 1, white=rv.white)
     under_white = exit_pattern(rv)
     relits = [m.relight(rv.proj, list(patterns) + under_white, white=rv.white) for m in members]
     return mix_images(none, [white_consistent(rv, r) for r in relits] if under_white else relits, weights)

@@ -313,14 +313,16 @@ def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
 
 
 def test_a_full_colour_view_relit_under_white_returns_its_white_capture(session):
-    """Where the camera measured every colour, a model's images are made consistent with the view's white capture
-    (`exit_gain`): relit under full white, the calibrated model returns the white itself, whatever its weights, and
-    exact footprints need no gain. A demosaiced view's images stay as the model relights them."""
+    """Where the camera measured every colour, a model's images are made consistent with the view's white
+    (`exit_gain`; the nine-capture white of `exit_white`): relit under full white, the calibrated model returns that
+    white, whatever its weights, and exact footprints need no gain. A demosaiced view's images stay as the model
+    relights them."""
     from sssphase_core.processing.patterns import white
     from sssphase_core.relight import make_source, relight, relight_view
     from sssphase_core.relight.calibration import (
         EXIT_GAIN_RANGE,
         exit_gain,
+        exit_white,
         records_every_colour,
         white_usable,
     )
@@ -337,8 +339,9 @@ def test_a_full_colour_view_relit_under_white_returns_its_white_capture(session)
     lo, hi = EXIT_GAIN_RANGE
     ok = rv.proj.mask & white_usable(rv.white, rv.white_saturation) & ((gain > lo) & (gain < hi)).all(axis=-1)
     assert ok.mean() > 0.5 * rv.proj.mask.mean()
-    np.testing.assert_allclose(full[0][ok], rv.white[ok], rtol=1e-3, atol=1e-5)
-    assert np.abs(demosaiced[0][ok] - rv.white[ok]).max() > 10 * np.abs(full[0][ok] - rv.white[ok]).max()
+    white = exit_white(rv)
+    np.testing.assert_allclose(full[0][ok], white[ok], rtol=1e-3, atol=1e-5)
+    assert np.abs(demosaiced[0][ok] - white[ok]).max() > 10 * np.abs(full[0][ok] - white[ok]).max()
     assert not np.allclose(full[1], demosaiced[1])  # the gain carries over to every pattern
     exact, ke = make_source("exact", rv, calibrate=False)
     exact_gain = exit_gain(rv, relight(exact, rv.proj, pats[:1], ke, white=rv.white)[0])[rv.proj.mask]
