@@ -32,10 +32,10 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
 
     With ``calibrate`` (and the view's PSP patterns known) each model's images are first made consistent with
     the view's white (the white capture and the PSP frames' offset) where its camera recorded every colour
-    (:func:`white_consistent`; the white pattern rides on the same pass), and the view calibration of :func:`fit_view_mix` rides on it too: the 8
-    PSP patterns are splatted beside the user's, and since relighting is linear in the footprints the mixed
-    source's images are ``mix * model + (1 - mix) * none``, with the mix refined per pixel
-    (:func:`local_mixture`). One pass instead of two (each footprint is predicted once).
+    (:func:`white_consistent`; the white pattern rides on the same pass), and the view calibration of
+    :func:`fit_view_mix` rides on it too: the 8 PSP patterns are splatted beside the user's, and since relighting
+    is linear in the footprints the mixed source's images are ``mix * model + (1 - mix) * none``, with the mix
+    refined per pixel (:func:`local_mixture`). One pass instead of two (each footprint is predicted once).
 
     ``also``: more (source, patch) pairs blended in by the same fit: the images are
     ``sum_i mix_i * source_i + (1 - sum_i mix_i) * none``, each ``mix_i`` refined per pixel too, and the
