@@ -236,7 +236,6 @@ def main() -> None:
         raise SystemExit("--g must be in (-0.95, 0.95) and --scale > 0")
 
     from sssphase_core.processing.patterns import capture_plan
-    from sssphase_core.processing.projector import emitted_light
     from sssphase_core.sim.rig import rig_preset
     from sssphase_core.store.exr import write_exr
 
@@ -249,19 +248,15 @@ def main() -> None:
     folder.mkdir(parents=True, exist_ok=False)
     scene, facts = build_scene(mi, args, rig, args.out)
     params = mi.traverse(scene)
-    key = "projector.irradiance.data"
     refs = ("white", "black") + (REFERENCES if args.test else ())
     plan = capture_plan(rig.projector.width, rig.projector.height, footprints=args.train, dot_spacing=20,
                         references=refs, gamma=rig.projector.gamma)
     rng = np.random.default_rng(args.seed + 1000)
 
-    def render(pattern: np.ndarray) -> np.ndarray:
-        light = BLACK + (1 - BLACK) * emitted_light(pattern[None], rig.projector.gamma)[0]
-        params[key] = mi.TensorXf(np.ascontiguousarray(light, dtype=np.float32))
-        params.update()
-        return trimmed([np.asarray(mi.render(scene, seed=s, spp=args.spp), dtype=np.float32) for s in seeds])
+    seeds = [args.seed] if args.groups == 1 else [args.seed + FRAME_GROUP_SEED + i for i in range(args.groups)]
 
-    seeds = [args.seed] if args.groups == 1 else [args.seed + INDEPENDENT_SEED * 2 + i for i in range(args.groups)]
+    def render(pattern: np.ndarray) -> np.ndarray:
+        return trimmed(renders_under(mi, scene, params, pattern, rig.projector.gamma, seeds, args.spp))
 
     t0 = time.time()
     white = render(next(f for f in plan.frames if f.key == "white").pattern())
@@ -283,8 +278,23 @@ def main() -> None:
     (args.out / f"{args.name}.json").write_text(json.dumps(facts, indent=1) + "\n")
 
 
-#: the converged references' sampler seed, apart from every frame's (the object's shape keeps the test render's)
+#: the converged references' sampler seeds start this far from the test render's (the object's shape keeps its seed)
 INDEPENDENT_SEED = 7919
+#: with --groups, the frames' seeds start this far from --seed: apart from the single-render frames' and the
+#: converged references'
+FRAME_GROUP_SEED = 2 * INDEPENDENT_SEED
+
+
+def renders_under(mi, scene, params, pattern: np.ndarray, gamma, seeds: list[int], spp: int  # noqa: ANN001
+                  ) -> list[np.ndarray]:
+    """The scene's camera image with the projector showing ``pattern`` (its emitted light, black level included),
+    one (H, W, 3) float32 render of ``spp`` samples per seed in ``seeds``."""
+    from sssphase_core.processing.projector import emitted_light
+
+    light = BLACK + (1 - BLACK) * emitted_light(pattern[None], gamma)[0]
+    params["projector.irradiance.data"] = mi.TensorXf(np.ascontiguousarray(light, dtype=np.float32))
+    params.update()
+    return [np.asarray(mi.render(scene, seed=s, spp=spp), dtype=np.float32) for s in seeds]
 
 
 def trimmed(renders: list[np.ndarray]) -> np.ndarray:
@@ -302,7 +312,6 @@ def converged_references(mi, args: argparse.Namespace, rig) -> None:  # noqa: AN
     samples, each seeded apart from the frames and from the others. Prints each pattern's own noise floor: the
     PSNR (data range 1) of the trimmed means of the two halves of the groups against each other."""
     from sssphase_core.processing.patterns import capture_plan
-    from sssphase_core.processing.projector import emitted_light
     from sssphase_core.store.exr import write_exr
 
     record = args.out / f"{args.name}.json"
@@ -321,10 +330,8 @@ def converged_references(mi, args: argparse.Namespace, rig) -> None:  # noqa: AN
     seeds = [facts["seed"] + INDEPENDENT_SEED + i for i in range(args.groups)]
     floors = {}
     for f in (f for f in plan.frames if f.key.startswith("ref/")):
-        light = BLACK + (1 - BLACK) * emitted_light(f.pattern()[None], rig.projector.gamma)[0]
-        params["projector.irradiance.data"] = mi.TensorXf(np.ascontiguousarray(light, dtype=np.float32))
-        params.update()
-        groups = [facts["gain"] * np.asarray(mi.render(scene, seed=s, spp=args.spp), dtype=np.float32) for s in seeds]
+        groups = [facts["gain"] * r for r in renders_under(mi, scene, params, f.pattern(), rig.projector.gamma, seeds,
+                                                            args.spp)]
         img = trimmed(groups)
         a, b = (trimmed(list(g)) for g in np.array_split(np.stack(groups), 2))
         floors[f.key] = round(float(10 * np.log10(1 / np.mean((a - b) ** 2))), 2)

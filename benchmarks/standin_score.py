@@ -8,7 +8,8 @@
 session under SESSIONS; with ``--truth converged`` against ``OBJECT_converged_ref__PATTERN.exr`` (`mitsuba_render.py
 --converged`: random numbers of their own, so the captures' fixed Monte-Carlo pattern is not in the truth), on the
 mask and on its quiet pixels: those where the clean reference is within :data:`QUIET` of the converged one in every
-colour (the captures' fireflies, shared by the clean references and by every relit image, dominate the mask's error). ``geometry``: the decoded and the geometry-corrected projector x, y of
+colour (the captures' fireflies, shared by the clean references and by every relit image, dominate the mask's error).
+``geometry``: the decoded and the geometry-corrected projector x, y of
 ``sss geometry``'s ``correspondence_for_geometry.npz`` against ``RENDERS/OBJECT_geometry.npz``
 (``standin_volumetric.py``, ``mitsuba_render.py``), median signed error by incidence angle.
 """

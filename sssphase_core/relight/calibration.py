@@ -285,7 +285,15 @@ def exit_white(rv: RelightView) -> np.ndarray:
     median ratio over the pixels where both are usable, averaged by inverse shot-noise variance
     (:data:`PSP_WHITE_WEIGHT`). A pixel's texture is in both, so it stays, and the capture's noise falls by about
     sqrt(5). The white capture alone where the fringes clipped beyond repair, off the decoded mask, where the white
-    is unusable, or when too few pixels give a ratio."""
+    is unusable, or when too few pixels give a ratio. Made once per view (every model's gain and the calibration's
+    no-scattering term read it)."""
+    cached = getattr(rv, "_exit_white", None)  # views built elsewhere (the benchmarks' SimView) have no cache yet
+    if cached is None:
+        cached = rv._exit_white = _nine_capture_white(rv)
+    return cached
+
+
+def _nine_capture_white(rv: RelightView) -> np.ndarray:
     white = np.asarray(rv.white, np.float32)
     psp, lost = model_inputs(rv)
     ok = rv.proj.mask & white_usable(white, rv.white_saturation) & ~lost
