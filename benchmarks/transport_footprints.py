@@ -65,12 +65,25 @@ def ring_shares(footprints: np.ndarray) -> np.ndarray:
     return np.array([(f[:, (r >= lo) & (r < hi)].sum(axis=1) / e).mean() for lo, hi in RINGS])
 
 
+def signed_ring_shares(footprints: np.ndarray) -> np.ndarray:
+    """(len(RINGS),) share per ring of the (N, K, K, 3) footprints' summed energy, negative values included: the
+    zero-mean noise of captured crops cancels in the sums, where clipping each crop keeps its positive half."""
+    k = footprints.shape[1]
+    d = np.arange(k) - k // 2
+    r = np.hypot(d[:, None], d[None, :])
+    f = np.asarray(footprints, np.float64).sum(axis=(0, -1))  # (K, K)
+    return np.array([f[(r >= lo) & (r < hi)].sum() for lo, hi in RINGS]) / max(float(f.sum()), 1e-12)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("session", type=Path)
     ap.add_argument("checkpoints", type=Path, nargs="*")
     ap.add_argument("--pixels", type=int, default=400)
     ap.add_argument("--renders", type=Path, default=None)
+    ap.add_argument("--signed", action="store_true",
+                    help="shares of the summed energy with negative values kept (noise cancels), on pixels that also "
+                         "have training crops, with rows for those crops as they are and clipped at 0")
     args = ap.parse_args()
     rv = load_view(Session.open(args.session), 0)
     arrays = rv.session.arrays(0)
@@ -87,20 +100,32 @@ def main() -> None:
         print(f"{rv.object}: {len(train_px):,} pixels with training crops hold {len(rounded):,} distinct dots; "
               f"{missed:,} of the transport's {len(dots):,} dots are in no pixel's crop\n")
     inner = binary_erosion(rv.proj.mask, iterations=3)[px[:, 0], px[:, 1]] & (fp.sum(axis=(1, 2)) > 0).all(axis=-1)
+    crop_row = None
+    if args.signed and "footprints/pixels" in arrays:  # the training crops' own row: pixels that have both
+        crop_row = np.full(rv.proj.shape, -1, np.int64)
+        crop_row[train_px[:, 0], train_px[:, 1]] = np.arange(len(train_px))
+        inner &= crop_row[px[:, 0], px[:, 1]] >= 0
     pick = np.flatnonzero(inner)
     pick = np.sort(np.random.default_rng(0).choice(pick, min(args.pixels, len(pick)), replace=False))
     rows = [("the transport, each dot's crop in its pixel", fp[pick])]
+    if crop_row is not None:
+        rows_at = crop_row[px[pick, 0], px[pick, 1]]
+        order = np.argsort(rows_at)  # a chunked array reads in increasing order
+        crops = np.empty((len(pick), *fp.shape[1:]), np.float32)
+        crops[order] = np.asarray(rv.session.read(0, "footprints/crops")[rows_at[order]], np.float32)
+        rows += [("the training crops", crops), ("the training crops, each clipped at 0", crops.clip(0))]
     analytic, _ = make_source("analytic", rv, calibrate=False)
     rows.append(("analytic", np.asarray(analytic(px[pick]), np.float32)))
     for ck in args.checkpoints:
         src, _ = make_source("torch", rv, checkpoint=ck, calibrate=False)
         out = src(px[pick])
         rows.append((str(ck), np.asarray(out.detach().cpu().numpy() if hasattr(out, "detach") else out, np.float32)))
-    print(f"Energy share per ring about the pixel ({len(pick)} interior pixels):\n")
+    shares = signed_ring_shares if args.signed else ring_shares
+    print(f"Energy share per ring about the pixel ({len(pick)} interior pixels{', signed sums' if args.signed else ''}):\n")
     print("| footprints | " + " | ".join(f"{lo:g}-{hi:g} px" if hi < 1e9 else f"> {lo:g} px" for lo, hi in RINGS) + " |")
     print("|---|" + "---|" * len(RINGS))
     for name, f in rows:
-        print(f"| {name} | " + " | ".join(f"{x:.3f}" for x in ring_shares(f)) + " |")
+        print(f"| {name} | " + " | ".join(f"{x:.3f}" for x in shares(f)) + " |")
     names = sorted(rv.references)
     if not names:
         return

@@ -12,7 +12,7 @@ from torch import nn
 
 from sssphase_core.errors import DataError, InputError
 from sssphase_core.learning import augment
-from sssphase_core.learning.camera import as_captured
+from sssphase_core.learning.camera import NO_CAMERA, as_captured
 from sssphase_core.learning.data import PatchDataset
 from sssphase_core.learning.domain import training_domain
 from sssphase_core.learning.losses import LOG_EPS, SBHLoss, noise_floor
@@ -163,10 +163,10 @@ def train_decoder(
     loop = Loop(cfg, dataset, out_dir, d, "decoder", best=("val_loss", "min") if val is not None else None)
 
     @functools.cache
-    def first_footprints() -> torch.Tensor:
-        """Footprints of a seeded sample, the same on every rank (shape prior and noise floor); read once."""
+    def first_batch() -> dict[str, torch.Tensor]:
+        """A seeded sample, the same on every rank (shape prior and noise floor); read once."""
         first = np.random.default_rng(cfg.seed).permutation(len(dataset))[:PRIOR_SAMPLES]
-        return dataset.batch(np.sort(first))["footprint"]
+        return dataset.batch(np.sort(first))
 
     ckpt = resume_state(out_dir, resume, "decoder", p)
     if ckpt is not None:
@@ -186,9 +186,10 @@ def train_decoder(
         if d.main:
             start_fresh(out_dir)
         if cfg.head == "reciprocal":
-            dec.init_shape_prior(first_footprints().to(d.device))
+            sample = first_batch()
+            dec.init_shape_prior(sample["footprint"].to(d.device), demosaiced=bool((sample["camera"] != NO_CAMERA).any()))
     if cfg.log_eps is None:  # recorded in the checkpoint's config, so a resumed run uses the same value
-        cfg = replace(cfg, log_eps=max(LOG_EPS, noise_floor(first_footprints())))
+        cfg = replace(cfg, log_eps=max(LOG_EPS, noise_floor(first_batch()["footprint"])))
     loss_fn = SBHLoss(log_eps=cfg.log_eps)
     # the footprint widths it learns from: the torch backend hands pixels beyond them to the analytic model
     domain = training_domain(dataset.views, dataset.patch, seed=cfg.seed).to_dict() if d.main else None
