@@ -140,7 +140,7 @@ class Decoder(nn.Module):
         linear in the light: their zero-mean noise averages out of the mean, which is taken before clipping.
         The mean of clipped crops keeps the noise's positive half as a tail (on Mitsuba renders half of the
         prior's energy beyond 3 px where the crops hold 11 %), and the head's SBH loss, led by its gradient
-        term, hardly moves a flat pedestal: decoders kept much of it (lab workflow: 0.4-0.8 dB of relighting on
+        term, hardly moves a flat pedestal: decoders kept much of it (lab workflow: 0.2-0.8 dB of relighting on
         two of three unseen objects). ``demosaiced`` crops (a Bayer camera's) ring around sharp light: their
         mean has negative lobes near the centre, which as a log-prior would be holes, so each crop is clipped
         before the mean there, as before."""
