@@ -333,7 +333,7 @@ def converged_references(mi, args: argparse.Namespace, rig) -> None:  # noqa: AN
         groups = [facts["gain"] * r for r in renders_under(mi, scene, params, f.pattern(), rig.projector.gamma, seeds,
                                                             args.spp)]
         img = trimmed(groups)
-        a, b = (trimmed(list(g)) for g in np.array_split(np.stack(groups), 2))
+        a, b = (trimmed(g) for g in np.array_split(groups, 2))
         floors[f.key] = round(float(10 * np.log10(1 / np.mean((a - b) ** 2))), 2)
         write_exr(args.out / f"{args.name}_converged_{f.key.replace('/', '__')}.exr", img.astype(np.float32))
         print(f"{args.name}: {f.key}, {args.groups} x {args.spp} spp ({time.time() - t0:.0f} s); its halves "

@@ -163,10 +163,12 @@ def train_decoder(
     loop = Loop(cfg, dataset, out_dir, d, "decoder", best=("val_loss", "min") if val is not None else None)
 
     @functools.cache
-    def first_batch() -> dict[str, torch.Tensor]:
-        """A seeded sample, the same on every rank (shape prior and noise floor); read once."""
+    def first_footprints() -> tuple[torch.Tensor, bool]:
+        """Footprints of a seeded sample, the same on every rank (shape prior and noise floor), and whether a
+        Bayer camera demosaiced any of them; read once (their PSP patches are not kept)."""
         first = np.random.default_rng(cfg.seed).permutation(len(dataset))[:PRIOR_SAMPLES]
-        return dataset.batch(np.sort(first))
+        batch = dataset.batch(np.sort(first))
+        return batch["footprint"], bool((batch["camera"] != NO_CAMERA).any())
 
     ckpt = resume_state(out_dir, resume, "decoder", p)
     if ckpt is not None:
@@ -186,10 +188,10 @@ def train_decoder(
         if d.main:
             start_fresh(out_dir)
         if cfg.head == "reciprocal":
-            sample = first_batch()
-            dec.init_shape_prior(sample["footprint"].to(d.device), demosaiced=bool((sample["camera"] != NO_CAMERA).any()))
+            footprints, demosaiced = first_footprints()
+            dec.init_shape_prior(footprints.to(d.device), demosaiced=demosaiced)
     if cfg.log_eps is None:  # recorded in the checkpoint's config, so a resumed run uses the same value
-        cfg = replace(cfg, log_eps=max(LOG_EPS, noise_floor(first_batch()["footprint"])))
+        cfg = replace(cfg, log_eps=max(LOG_EPS, noise_floor(first_footprints()[0])))
     loss_fn = SBHLoss(log_eps=cfg.log_eps)
     # the footprint widths it learns from: the torch backend hands pixels beyond them to the analytic model
     domain = training_domain(dataset.views, dataset.patch, seed=cfg.seed).to_dict() if d.main else None
