@@ -121,7 +121,9 @@ def import_images(
     """Import frames from another rig (named by plan key, '/' as '__' or folders; see SESSION_FORMAT.md)."""
     from sssphase_core.capture import import_folder
     from sssphase_core.processing.patterns import parse_projector_size
+    from sssphase_core.store.session import check_output_folder
 
+    check_output_folder(out)  # before any frame is read: a file, a broken link or a session's own folder
     session = import_folder(folder, out, object_name, parse_projector_size(projector), patch=patch, gamma=gamma,
                             encoding=encoding, bayer=bayer, demosaic=demosaic)
     rig = session.manifest["rig"]

@@ -83,7 +83,18 @@ def test_a_truncated_pattern_is_one_line(tmp_path):
                              ({"gamma": float("nan")}, r"plan.gamma .* must be a number in \[0.05, 20\], got nan"),
                              ({"gamma": 0}, "plan.gamma"), ({"gamma": "2.2"}, "plan.gamma"),
                              ({"frames": [{"key": 1}]}, "plan.frames must be a list of frames"),
-                             ([], "plan is not a table"))),
+                             ([], "plan is not a table"),
+                             ({"frames": [{"key": "ref/checkerboard", "kind": "ref", "params": {}}]},
+                              "plan frame 'ref/checkerboard': ref frame needs width"))),
+    # a rig or camera record of the wrong type was an internal error in relight, geometry and eval, though
+    # validate said ok; a huge crop size asked for 75 GiB
+    *(({"format": "sssphase-session", "format_version": 1, "object": "o", "n_views": 0, "views": {}, "rig": rig}, expected)
+      for rig, expected in ((None, "rig must be a table"), ({"options": "x"}, "rig.options must be a table"),
+                            ({"projector_black": "x"}, r"rig.projector_black must be null or a number in \[0, 0.999\]"),
+                            ({"patch": 100000}, "rig.patch .* from 9 to 256, got 100000"))),
+    ({"format": "sssphase-session", "format_version": 1, "object": "o", "n_views": 1,
+      "views": {"0": {"status": "complete", "arrays": {}, "camera_isp": {"bayer": "XXXX"}}}},
+     "view 0: camera_isp.bayer must be one of RGGB"),
 ])
 def test_damaged_manifests_are_one_line_errors(tmp_path, manifest, expected):
     import json

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import warnings
@@ -303,6 +304,47 @@ def test_an_empty_npy_frame_is_one_line_naming_it(tmp_path):
     folder = _float_frames(tmp_path / "f", 1.0)
     (folder / "black.npy").write_bytes(b"")  # numpy: EOFError, which click turned into a bare "Aborted"
     _one_line_error(_sss_import(folder, tmp_path / "s"), f"{folder / 'black.npy'}: empty or truncated .npy file")
+
+
+@pytest.mark.parametrize(("white", "expected"), [
+    ("gif", "white.gif: .gif is not a frame format the importer reads"),  # said "missing: white"
+    ("pages", "white.tif holds 2 images (a multi-page or animated file)"),  # only the first page was imported
+    ("bool", "white.npy holds bool values, not an image"),
+    ("int8", "white.npy holds signed int8 codes"),  # -128 / 127 would be negative light
+    ("cut", "white.npy: empty or truncated .npy file (the header promises more data than it holds)"),
+])
+def test_white_captures_the_importer_would_misread_are_refused_naming_them(tmp_path, white, expected):
+    """Found by hand: each of these imported without a word (or with a misleading one)."""
+    from PIL import Image
+
+    folder = _float_frames(tmp_path / "f", 1.0)
+    light = np.load(folder / "white.npy")
+    (folder / "white.npy").unlink()
+    codes = (np.clip(light, 0, 1) * 255).astype(np.uint8)
+    if white == "gif":
+        Image.fromarray(codes).save(folder / "white.gif")
+    elif white == "pages":
+        Image.fromarray(codes).save(folder / "white.tif", save_all=True, append_images=[Image.fromarray(codes)])
+    elif white == "bool":
+        np.save(folder / "white.npy", light > 0.1)
+    elif white == "int8":
+        np.save(folder / "white.npy", codes.astype(np.int8) // 2)
+    else:
+        np.save(folder / "white.npy", light)
+        data = (folder / "white.npy").read_bytes()
+        (folder / "white.npy").write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError, match=re.escape(expected)):
+        import_folder(folder, tmp_path / "s", "o", (W, H), patch=K)
+    assert not (tmp_path / "s" / "o").exists()
+
+
+def test_an_out_folder_that_is_a_broken_link_is_one_line(tmp_path):
+    """It said "cannot create the session folder ...: File exists"."""
+    folder = _float_frames(tmp_path / "f", 1.0)
+    (tmp_path / "gone").symlink_to(tmp_path / "nowhere")
+    _one_line_error(_sss_import(folder, tmp_path / "gone"), f"--out {tmp_path / 'gone'} is a broken symbolic link")
+    (tmp_path / "loop").symlink_to(tmp_path / "loop")
+    _one_line_error(_sss_import(folder, tmp_path / "loop"), f"--out {tmp_path / 'loop'} is a symbolic link loop")
 
 
 def test_an_empty_npy_pattern_or_reference_is_one_line_naming_it(tmp_path):

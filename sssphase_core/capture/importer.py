@@ -50,6 +50,14 @@ class _ImportedFrame:
     header: dict[str, Any] = field(default_factory=dict)
 
 
+#: Image files an importer does not read; one named as a frame is refused by name (it was "missing").
+OTHER_IMAGE_SUFFIXES = (".gif", ".bmp", ".ppm", ".pgm", ".pfm", ".hdr", ".jp2", ".jxl", ".heic", ".dng", ".raw")
+
+
+def _is_frame_key(key: str) -> bool:
+    return bool(PSP_KEY_RE.match(key) or DOTS_KEY_RE.match(key) or OTHER_KEY_RE.match(key))
+
+
 def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
     """Frame files of one view by plan key: ``psp__x__p20__s0.png`` or ``psp/x/p20/s0.png`` (the layout
     `sss patterns` writes) are both ``psp/x/p20/s0``. Files of other types are ignored; an image whose
@@ -61,6 +69,10 @@ def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
         if strict and path.suffix.lower() in LOSSY_SUFFIXES and not rel.parts[0].startswith("view_"):
             raise InputError(f"{path}: {path.suffix} frames are lossy (8 x 8 blocks, halved colour resolution), which "
                              "corrupts fringes: save the camera's frames as PNG, TIFF, EXR or .npy")
+        if (strict and path.suffix.lower() in OTHER_IMAGE_SUFFIXES and not rel.parts[0].startswith("view_")
+                and _is_frame_key(rel.with_suffix("").as_posix().replace("__", "/"))):  # said "missing: white"
+            raise InputError(f"{path}: {path.suffix} is not a frame format the importer reads: save it as PNG, TIFF, "
+                             "EXR or .npy")
         if path.suffix.lower() not in IMAGE_SUFFIXES or rel.parts[0].startswith("view_"):
             continue
         if not path.is_file():
@@ -73,7 +85,7 @@ def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
                     raise InputError(f"{path} is not a regular file (a FIFO or a device): frames must be image files")
             continue
         key = rel.with_suffix("").as_posix().replace("__", "/")
-        if not (PSP_KEY_RE.match(key) or DOTS_KEY_RE.match(key) or OTHER_KEY_RE.match(key)):
+        if not _is_frame_key(key):
             if not strict:
                 continue
             raise InputError(f"{path}: {key!r} is no frame name (expected psp__<x|y>__p<period>__s<n>, white, black, "

@@ -28,6 +28,8 @@ def emitted_light(patterns: np.ndarray, gamma: float) -> np.ndarray:
 def sample_projector(light: np.ndarray, xp: np.ndarray, yp: np.ndarray) -> np.ndarray:
     """Bilinear lookup of emitted light (P, Hp, Wp, C) at projector points -> (N, P, C); 0 outside."""
     _, hp, wp, channels = light.shape
+    xp = np.where(np.isfinite(xp), xp, -2.0)  # undecoded points (NaN): outside, without an invalid integer cast
+    yp = np.where(np.isfinite(yp), yp, -2.0)
     x0 = np.floor(xp).astype(np.int64)
     y0 = np.floor(yp).astype(np.int64)
     fx = (xp - x0).astype(np.float32)[:, None, None]

@@ -172,8 +172,25 @@ class LowRankTap:
 
 #: The eigen-footprint file's format. 2: its calibration weights are fitted on white-consistent images
 #: (``calibration.exit_gain``) where the view records every colour; 3: that white is the nine-capture one
-#: (``calibration.exit_white``). Files of earlier formats are not read.
-LOWRANK_FORMAT = 3
+#: (``calibration.exit_white``); 4: a digest of its arrays, so a damaged or edited file is recomputed instead of
+#: relighting wrong. Files of earlier formats are not read.
+LOWRANK_FORMAT = 4
+#: More members than any blend has: a file claiming more is damaged (and is not looped over).
+MAX_MEMBERS = 8
+
+
+def _digest(arrays: dict[str, np.ndarray]) -> str:
+    """SHA-256 of ``arrays`` (name, dtype, shape and bytes of each, in name order) but their ``digest``."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for name in sorted(arrays):
+        if name == "digest":
+            continue
+        a = np.ascontiguousarray(arrays[name])
+        h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
 
 
 def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np.ndarray,
@@ -187,6 +204,7 @@ def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np
                                      "view_weights": np.asarray(view_weights, np.float32)}
     for i, m in enumerate(members):
         arrays.update(m.arrays(f"m{i}_"))
+    arrays["digest"] = np.asarray(_digest(arrays))
     with atomic_path(Path(path), ".npz") as tmp:
         np.savez(tmp, **arrays)
 
@@ -204,10 +222,18 @@ def load_lowrank(path: Path | str, shape: tuple[int, int]
         with np.load(path, allow_pickle=False) as z:
             if int(z["format"]) != LOWRANK_FORMAT:
                 return None
-            n = int(z["members"])
-            members = [LowRankFootprints.from_arrays(z, f"m{i}_") for i in range(n)]
-            weights, view_weights = np.asarray(z["weights"], np.float32), np.asarray(z["view_weights"], np.float32)
+            arrays = {name: z[name] for name in z.files}
     except (OSError, ValueError, KeyError, EOFError, TypeError, zipfile.BadZipFile):
+        return None
+    try:
+        if str(arrays["digest"]) != _digest(arrays):  # damaged or edited since it was written: recompute
+            return None
+        n = int(arrays["members"])
+        if not 1 <= n <= MAX_MEMBERS:
+            return None
+        members = [LowRankFootprints.from_arrays(arrays, f"m{i}_") for i in range(n)]
+        weights, view_weights = np.asarray(arrays["weights"], np.float32), np.asarray(arrays["view_weights"], np.float32)
+    except (ValueError, KeyError, TypeError):
         return None
     if (any(m is None or m.shape != tuple(shape) for m in members) or weights.shape != (n, *shape, 3)
             or view_weights.shape != (n, 3) or not np.isfinite(weights).all()):

@@ -74,11 +74,13 @@ def read_exr(path: Path | str) -> np.ndarray:
 
     OpenEXR = _openexr()
     try:
-        with native_stderr_silenced(), OpenEXR.File(str(path), separate_channels=True) as f:  # R, G, B apart
+        with native_stderr_silenced((1, 2)), OpenEXR.File(str(path), separate_channels=True) as f:  # R, G, B apart
             parts = [{name: _in_display_window(np.asarray(ch.pixels), part.header) for name, ch in part.channels.items()}
                      for part in f.parts]
     except (OSError, RuntimeError, ValueError, KeyError):  # the library prints its own lines; one of ours instead
         raise DataError(f"cannot read EXR {path} (damaged, truncated or not an EXR file)") from None
+    if not any(parts):  # a cut-short file: the library reads no pixel and says so only on its own output
+        raise DataError(f"cannot read EXR {path} (damaged or truncated: no pixel data could be read)")
     for channels in parts:
         if {"R", "G", "B"} <= set(channels):
             return np.stack([channels[c] for c in "RGB"], axis=-1).astype(np.float32, copy=False)

@@ -54,7 +54,8 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
     The size must match the projector unless ``resize`` is ``fit``, ``fill`` or ``stretch`` (see
     :func:`_resized`; ``True`` means ``stretch``). Palette and CMYK images are read as RGB, an alpha
     channel as opacity over black (transparent = no light, with a warning), 16-bit images divided by
-    65535; multi-frame files and signed or 32-bit integer images are refused. ``hint`` ends the size-mismatch error (what the user can do).
+    65535 (wider integer types too, when their values fit 16 bits); multi-frame files and integer values below 0 or
+    above 65535 are refused. ``hint`` ends the size-mismatch error (what the user can do).
     """
     from PIL import Image
 
@@ -129,11 +130,18 @@ def _over_black(img: object, path: Path) -> object:
     grey = img.mode == "LA"  # type: ignore[attr-defined]
     rgba = np.asarray(img.convert("RGBA"), np.float32)  # type: ignore[attr-defined]
     alpha = rgba[..., 3:] / 255.0
-    if (alpha < 1).any():
-        warnings.warn(f"pattern {path}: {float((alpha < 1).mean()):.0%} of its pixels are transparent: they are "
-                      "projected as their colour times their opacity (transparent = no light)", UserWarning, stacklevel=3)
+    _warn_not_opaque(path, alpha)
     rgb = np.round(rgba[..., :3] * alpha).astype(np.uint8)
     return Image.fromarray(rgb[..., 0], "L") if grey else Image.fromarray(rgb, "RGB")
+
+
+def _warn_not_opaque(path: Path, alpha: np.ndarray) -> None:
+    """Warn when any value of a pattern's ``alpha`` (opacity in [0, 1]) is below 1."""
+    if (alpha < 1).any():
+        clear = float((alpha <= 0).mean())
+        warnings.warn(f"pattern {path}: {float((alpha < 1).mean()):.0%} of its pixels are not fully opaque "
+                      f"({clear:.0%} fully transparent): they are projected as their colour times their opacity "
+                      "(transparent = no light)", UserWarning, stacklevel=4)
 
 
 def _png_16_bit_colour(path: Path) -> bool:
@@ -142,7 +150,8 @@ def _png_16_bit_colour(path: Path) -> bool:
         return False
     with open(path, "rb") as f:
         head = f.read(26)
-    return head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" and head[24] == 16 and head[25] in (2, 6)
+    return (len(head) == 26 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" and head[24] == 16
+            and head[25] in (2, 6))
 
 
 def _read_array_pattern(path: Path, projector_size: tuple[int, int], mode: str, hint: str) -> np.ndarray:
@@ -153,16 +162,21 @@ def _read_array_pattern(path: Path, projector_size: tuple[int, int], mode: str, 
 
     wp, hp = projector_size
     shape = frame_shape(path)
-    if len(shape) not in (2, 3) or (len(shape) == 3 and shape[2] not in (1, 3)) or 0 in shape:
+    channels = (1, 3) if path.suffix.lower() == ".npy" else (1, 3, 4)  # an image's fourth channel: its alpha
+    if len(shape) not in (2, 3) or (len(shape) == 3 and shape[2] not in channels) or 0 in shape:
         raise InputError(f"pattern {path} must be an (H, W) or (H, W, 3) image, got shape {shape}")
     if shape[0] * shape[1] > max(4 * wp * hp, 1 << 22):
         raise InputError(f"pattern {path} is {shape[1]}x{shape[0]}, far larger than the {wp}x{hp} projector: "
                          "refused without reading it (scale it down first)")
-    arr = _read_pixels(path)
+    arr = _read_pixels(path, alpha=True)
     if arr.dtype.kind not in "fu":
         raise InputError(f"pattern {path} must be an (H, W) or (H, W, 3) array of floats in [0, 1] or unsigned "
                          f"integers, got {arr.dtype} of shape {arr.shape}")
     data = np.asarray(arr, np.float64)
+    if data.ndim == 3 and data.shape[2] == 4 and path.suffix.lower() != ".npy":  # an image's alpha: opacity over black
+        alpha = data[..., 3:] / (np.iinfo(arr.dtype).max if arr.dtype.kind == "u" else 1.0)
+        _warn_not_opaque(path, alpha)
+        data = data[..., :3] * np.clip(alpha, 0, 1)
     if data.ndim == 3:
         data = data[..., 0] if data.shape[2] == 1 else data
     if arr.dtype.kind == "u":
@@ -218,10 +232,14 @@ def _load_npy(path: Path, **kwargs) -> np.ndarray:
     raises EOFError (which click would turn into a bare "Aborted"), raises ValueError: every caller
     reports it as an InputError naming the file."""
     try:
-        return np.load(path, allow_pickle=False, **kwargs)
+        with warnings.catch_warnings(), np.errstate(over="ignore"):
+            warnings.simplefilter("ignore", RuntimeWarning)  # a header's absurd shape overflows numpy's size product
+            return np.load(path, allow_pickle=False, **kwargs)
     except EOFError:
         raise ValueError("empty or truncated .npy file") from None
     except ValueError as exc:
+        if "mmap length" in str(exc) or "EOF" in str(exc):  # cut short after its header
+            raise ValueError("empty or truncated .npy file (the header promises more data than it holds)") from None
         if "pickle" in str(exc).lower() or "python objects" in str(exc).lower():  # numpy invites unsafe loading: never
             raise ValueError("not a numeric .npy array (pickled data, or not a .npy file at all; never loaded)") from None
         raise
@@ -277,26 +295,34 @@ def stores_integers(path: Path) -> bool:
 
 
 @contextlib.contextmanager
-def native_stderr_silenced() -> Iterator[None]:
-    """Native libraries' writes to file descriptor 2 (not Python's) dropped for the block: the error they
-    describe is reported once, as one line, by the caller."""
-    try:
-        saved = os.dup(2)
-    except OSError:  # no stderr to silence
-        yield
-        return
+def native_stderr_silenced(fds: tuple[int, ...] = (2,)) -> Iterator[None]:
+    """Native libraries' writes to file descriptors ``fds`` (default stderr; not Python's) dropped for the
+    block: the error they describe is reported once, as one line, by the caller. (OpenEXR prints some of
+    its warnings on stdout: pass ``(1, 2)``.)"""
+    import sys
+
+    for stream in (sys.stdout, sys.stderr):  # Python's own pending output goes out first
+        with contextlib.suppress(AttributeError, OSError, ValueError):
+            stream.flush()
+    saved: list[tuple[int, int]] = []
     try:
         with open(os.devnull, "wb") as null:
-            os.dup2(null.fileno(), 2)
+            for fd in fds:
+                try:
+                    saved.append((fd, os.dup(fd)))
+                except OSError:  # no such stream to silence
+                    continue
+                os.dup2(null.fileno(), fd)
             yield
     finally:
-        os.dup2(saved, 2)
-        os.close(saved)
+        for fd, copy in saved:
+            os.dup2(copy, fd)
+            os.close(copy)
 
 
-def _read_pixels(path: Path) -> np.ndarray:
+def _read_pixels(path: Path, *, alpha: bool = False) -> np.ndarray:
     """A frame file's pixels as stored (RGB order, integer codes not scaled): ``.npy`` (never
-    unpickled), ``.exr``, or any PNG/TIFF that OpenCV decodes."""
+    unpickled), ``.exr``, or any PNG/TIFF that OpenCV decodes (RGBA with ``alpha``, else its alpha dropped)."""
     if path.suffix.lower() == ".npy":
         try:
             return _load_npy(path)
@@ -312,8 +338,9 @@ def _read_pixels(path: Path) -> np.ndarray:
         arr = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if arr is None:
         raise InputError(f"cannot read image {path} (damaged, truncated or not an image)")
-    if arr.ndim == 3:
-        arr = cv2.cvtColor(arr[..., :3], cv2.COLOR_BGR2RGB) if arr.shape[2] >= 3 else arr
+    if arr.ndim == 3 and arr.shape[2] >= 3:  # BGR(A) -> RGB(A) by indexing: any depth (cvtColor refuses float64)
+        order = [2, 1, 0, 3] if alpha and arr.shape[2] == 4 else [2, 1, 0]
+        arr = np.ascontiguousarray(arr[..., order])
     return arr
 
 
@@ -365,9 +392,19 @@ def read_frame(path: Path, *, finite: bool = True, encoding: str = "linear") -> 
     if len(shape) >= 2 and shape[0] * shape[1] > MAX_FRAME_PIXELS:
         raise InputError(f"{path} is {shape[1]}x{shape[0]}: larger than any camera frame this importer takes "
                          f"({MAX_FRAME_PIXELS // 2**20} MP)")
+    if path.suffix.lower() in (".tif", ".tiff", ".png") and not _pil_cannot_decode(path):
+        from PIL import Image
+
+        pages = 1
+        with contextlib.suppress(OSError, ValueError, SyntaxError), Image.open(path) as img:  # unreadable: said below
+            pages = int(getattr(img, "n_frames", 1))
+        if pages > 1:  # only the first page was imported, without a word
+            raise InputError(f"{path} holds {pages} images (a multi-page or animated file): give one image file per frame")
     arr = _read_pixels(path)
-    if arr.dtype.kind not in "fiub":
+    if arr.dtype.kind not in "fiu":
         raise InputError(f"{path} holds {arr.dtype} values, not an image")
+    if arr.dtype.kind == "i" and arr.dtype.itemsize <= 2:  # divided by its top code, -128 would be negative light
+        raise InputError(f"{path} holds signed {arr.dtype} codes: give a camera's unsigned 8- or 16-bit codes, or floats")
     if arr.dtype.kind in "iu" and (arr.dtype.itemsize <= 2 or path.suffix.lower() != ".npy"):
         arr = arr.astype(np.float32) / np.iinfo(arr.dtype).max  # a camera's codes, as a 16-bit PNG's
         if encoding == "auto":

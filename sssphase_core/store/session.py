@@ -72,7 +72,10 @@ def manifest_problem(manifest: dict[str, Any]) -> str | None:
                     and isinstance(meta.get("dtype"), str) and isinstance(meta.get("checksum"), str)
                     and isinstance(meta.get("chunks", 0), int)):
                 return f"view {key}: array {name} lacks its shape, dtype or checksum"
-    problem = plan_problem(manifest.get("plan", {}))
+        problem = camera_isp_problem(entry.get("camera_isp"))
+        if problem:
+            return f"view {key}: {problem}"
+    problem = plan_problem(manifest.get("plan", {})) or rig_problem(manifest.get("rig", {}))
     if problem:
         return problem
     try:  # the object names output files and folders: it must not lead out of them
@@ -336,6 +339,58 @@ def clip_levels(frames: list[dict], saturation: float | None) -> tuple[float | N
     return level("psp"), level("white")
 
 
+def _number(value: Any, low: float = 0.0, high: float = float("inf")) -> bool:
+    """Whether ``value`` is a finite real number (not a bool) in [low, high]."""
+    import math
+
+    return (isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+            and low <= value <= high)
+
+
+#: The rig's numbers a manifest may leave null, with their ranges: what relighting and training read.
+RIG_NUMBERS = {"projector_black": (0.0, 0.999), "black_level": (0.0, float("inf")), "saturation": (1e-6, float("inf")),
+               "white_scale": (1e-12, float("inf")), "gamma": (0.05, 20.0)}
+
+
+def camera_isp_problem(isp: Any) -> str | None:
+    """What makes a view's ``camera_isp`` record (how a Bayer camera's frames were demosaiced) unusable, or None."""
+    from sssphase_core.processing.isp import BAYER_LAYOUTS
+
+    if isp is None:
+        return None
+    if not isinstance(isp, dict):
+        return f"camera_isp must be a table or null, got {isp!r}"
+    if "bayer" in isp and isp["bayer"] not in BAYER_LAYOUTS:
+        return f"camera_isp.bayer must be one of {', '.join(BAYER_LAYOUTS)}, got {isp['bayer']!r}"
+    if "demosaic" in isp and not isinstance(isp["demosaic"], str):
+        return f"camera_isp.demosaic must be a name, got {isp['demosaic']!r}"
+    if "median" in isp and not isinstance(isp["median"], bool):
+        return f"camera_isp.median must be true or false, got {isp['median']!r}"
+    return None
+
+
+def rig_problem(rig: Any) -> str | None:
+    """What makes a manifest's rig record unusable (a number of the wrong type or range, a footprint crop size
+    beyond :data:`~sssphase_core.processing.footprints.PATCH_RANGE`, options that are not a table), or None."""
+    from sssphase_core.processing.footprints import PATCH_RANGE
+
+    if not isinstance(rig, dict):
+        return f"rig must be a table, got {rig!r}"
+    if not isinstance(rig.get("options", {}), dict):
+        return f"rig.options must be a table, got {rig['options']!r}"
+    for name, (low, high) in RIG_NUMBERS.items():
+        if rig.get(name) is not None and not _number(rig[name], low, high):
+            return f"rig.{name} must be null or a number in [{low:g}, {high:g}], got {rig[name]!r}"
+    patch = rig.get("patch")
+    if patch is not None and not (isinstance(patch, int) and not isinstance(patch, bool)
+                                  and PATCH_RANGE[0] <= patch <= PATCH_RANGE[1]):
+        return f"rig.patch (the footprint crop size) must be a whole number from {PATCH_RANGE[0]} to {PATCH_RANGE[1]}, got {patch!r}"
+    for name in ("camera", "projector"):
+        if rig.get(name) is not None and not isinstance(rig[name], str):
+            return f"rig.{name} must be a device name, got {rig[name]!r}"
+    return camera_isp_problem({k: rig[k] for k in ("bayer", "median") if rig.get(k) is not None})
+
+
 def plan_problem(plan: Any) -> str | None:
     """What makes a manifest's capture plan unusable (its projector size, gamma or frames of the wrong type
     or range: a manifest edited by hand or by another program), or None."""
@@ -359,6 +414,12 @@ def plan_problem(plan: Any) -> str | None:
             isinstance(f, dict) and isinstance(f.get("key"), str) and isinstance(f.get("kind"), str)
             and isinstance(f.get("params", {}), dict) for f in frames):
         return "plan.frames must be a list of frames, each with a key, a kind and params"
+    from sssphase_core.processing.patterns import frame_params_problem
+
+    for f in frames:  # what each frame's pattern is drawn from (a reference relit under it, a plan resumed)
+        problem = frame_params_problem(f["kind"], f.get("params", {}))
+        if problem:
+            return f"plan frame {f['key']!r}: {problem}"
     return None
 
 
@@ -565,7 +626,11 @@ class Session:
 def session_around(path: Path | str) -> Path | None:
     """The session folder that ``path`` is, or lies inside (a folder with a session manifest), else None:
     outputs must not be written into a session's own folders."""
-    for folder in (Path(path).resolve(), *Path(path).resolve().parents):
+    try:
+        real = Path(path).resolve()
+    except (OSError, RuntimeError) as exc:  # a symbolic link loop on the way
+        raise InputError(f"{path} cannot be followed: {exc}") from None
+    for folder in (real, *real.parents):
         if (folder / MANIFEST).is_file():
             return folder
     return None
@@ -582,6 +647,14 @@ def refuse_inside_session(path: Path | str, what: str = "--out") -> None:
 def check_output_folder(path: Path | str, what: str = "--out") -> None:
     """Refuse an output folder that is an existing file, or lies inside a session (:func:`refuse_inside_session`),
     in one line before any work."""
+    if Path(path).is_symlink() and not Path(path).exists():  # it said "File exists" when asked to make the folder
+        try:
+            os.stat(path)
+            kind = "a symbolic link that cannot be followed"
+        except OSError as exc:
+            kind = ("a symbolic link loop" if exc.errno == errno.ELOOP else
+                    f"a broken symbolic link (to {os.readlink(path)}, which does not exist)")
+        raise InputError(f"{what} {path} is {kind}: give a folder")
     if Path(path).exists() and not Path(path).is_dir():
         raise InputError(f"{what} {path} is a file: give a folder")
     refuse_inside_session(path, what)

@@ -229,7 +229,7 @@ def test_transparency_animations_and_wide_integers_are_not_misread_in_patterns(t
     alpha = np.zeros((6, 8), np.uint8)
     alpha[:, :4] = 255  # left half opaque, right half transparent
     Image.fromarray(np.dstack([np.full((6, 8, 3), 200, np.uint8), alpha]), "RGBA").save(tmp_path / "rgba.png")
-    with pytest.warns(UserWarning, match="50% of its pixels are transparent"):
+    with pytest.warns(UserWarning, match=r"50% of its pixels are not fully opaque \(50% fully transparent\)"):
         got = read_pattern(tmp_path / "rgba.png", (8, 6))
     assert got[:, :4] == pytest.approx(200 / 255) and (got[:, 4:] == 0).all()  # no light where transparent
     Image.fromarray(np.dstack([np.full((6, 8), 255, np.uint8), alpha]), "LA").save(tmp_path / "la.png")
@@ -334,6 +334,35 @@ def test_float_tiff_and_exr_patterns_are_read_as_their_values(tmp_path):
     (tmp_path / "bad.tiff").write_bytes(b"II*\x00\x08\x00\x00\x00\x01\x00\x00\x01\x04\x00")  # a damaged directory
     with pytest.raises(InputError, match="a TIFF header without an image size"):
         read_pattern(tmp_path / "bad.tiff", (40, 34))
+
+
+def test_sixteen_bit_alpha_float64_tiffs_and_cut_files_are_read_as_their_eight_bit_kin(tmp_path):
+    """Found by hand: a 16-bit RGBA PNG relit as full white where its alpha said transparent (8-bit ones
+    were composited); a float64 TIFF and a PNG cut within its header were internal errors; a cut EXR
+    printed the library's own line, then blamed its channels."""
+    import cv2
+
+    from sssphase_core.errors import DataError
+    from sssphase_core.store.exr import write_exr
+
+    bgra = np.zeros((6, 8, 4), np.uint16)
+    bgra[..., :3] = 65535
+    bgra[:, :4, 3] = 65535  # left half opaque, right half transparent
+    cv2.imwrite(str(tmp_path / "rgba16.png"), bgra)
+    with pytest.warns(UserWarning, match=r"50% of its pixels are not fully opaque \(50% fully transparent\)"):
+        got = read_pattern(tmp_path / "rgba16.png", (8, 6))
+    assert (got[:, :4] == 1).all() and (got[:, 4:] == 0).all()
+    rgb = np.random.default_rng(2).random((6, 8, 3))
+    cv2.imwrite(str(tmp_path / "f64.tif"), rgb[..., ::-1])
+    np.testing.assert_allclose(read_pattern(tmp_path / "f64.tif", (8, 6)), rgb, atol=1e-6)
+    (tmp_path / "cut.png").write_bytes((tmp_path / "rgba16.png").read_bytes()[:20])
+    with pytest.raises(InputError, match="cannot read pattern"):
+        read_pattern(tmp_path / "cut.png", (8, 6))
+    write_exr(tmp_path / "whole.exr", np.random.default_rng(3).random((64, 80, 3)).astype(np.float32))
+    data = (tmp_path / "whole.exr").read_bytes()
+    (tmp_path / "cut.exr").write_bytes(data[: len(data) // 3])
+    with pytest.raises(DataError, match="damaged or truncated"):
+        read_pattern(tmp_path / "cut.exr", (80, 64))
 
 
 def test_a_full_disk_leaves_no_half_written_image_under_its_name(tmp_path):

@@ -67,7 +67,7 @@ def test_a_basis_of_fewer_components_says_how_much_it_leaves_out(make_projection
     assert tap.result().residual > 0.05  # and it is large: noise is not low-rank
 
 
-@pytest.mark.parametrize("damage", ["garbage", "other view", "missing", "earlier format"])
+@pytest.mark.parametrize("damage", ["garbage", "other view", "missing", "earlier format", "members", "basis"])
 def test_a_damaged_or_foreign_eigen_footprint_file_is_not_read(tmp_path, damage, make_projection):
     proj = make_projection()
     path = tmp_path / "v.npz"
@@ -83,4 +83,13 @@ def test_a_damaged_or_foreign_eigen_footprint_file_is_not_read(tmp_path, damage,
         with np.load(path) as z:
             old = {k: z[k] for k in z.files if k != "format"}
         np.savez(path, **old)
+    elif damage in ("members", "basis"):  # edited or damaged after it was written: a claim of 10^9 members once hung
+        save_lowrank(path, [low], np.zeros((1, *proj.mask.shape, 3)), np.zeros((1, 3)))
+        with np.load(path) as z:
+            edited = {k: z[k] for k in z.files}
+        if damage == "members":
+            edited["members"] = np.asarray(10**9)
+        else:  # same shapes, other values: only the digest tells
+            edited["m0_basis"] = np.ones_like(edited["m0_basis"])
+        np.savez(path, **edited)
     assert load_lowrank(path, (proj.mask.shape[0] + 1, proj.mask.shape[1]) if damage == "other view" else proj.mask.shape) is None
