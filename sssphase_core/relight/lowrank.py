@@ -189,7 +189,7 @@ def _digest(arrays: dict[str, np.ndarray]) -> str:
             continue
         a = np.ascontiguousarray(arrays[name])
         h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
-        h.update(a.tobytes())
+        h.update(memoryview(a).cast("B") if a.size and a.dtype.kind != "U" else a.tobytes())  # no copy
     return h.hexdigest()
 
 
