@@ -62,6 +62,16 @@ def _load(ctx: typer.Context, param: Any, value: Path | None) -> Path | None:
     unknown = sorted(set(options) - known)
     if unknown:
         raise InputError(f"--config {path}: unknown option(s) {', '.join(unknown)} for `sss {command}`")
+    folder = path.parent
+    recorded = options.get("out")
+    if (isinstance(recorded, str) and any((folder / name).is_file() for name in ("last.pt", "best.pt"))
+            and Path(recorded).resolve() != folder.resolve()):
+        # a run folder copied or moved: its recorded --out is the original, which continuing it would overwrite
+        import warnings
+
+        warnings.warn(f"--config {value}: this run was recorded at {recorded}; it continues here, in {folder} "
+                      "(pass --out to choose another folder)", UserWarning, stacklevel=2)
+        options = {**options, "out": str(folder)}
     ctx.default_map = {**(ctx.default_map or {}), **options}
     return path
 

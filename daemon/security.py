@@ -120,6 +120,8 @@ def endpoint_problem(endpoint: str) -> str | None:
         folder = Path(endpoint[6:]).parent
         if not folder.is_dir():
             return f"{endpoint}: the folder {folder} does not exist"
+    elif not endpoint.startswith("ipc://"):  # was called "not loopback/ipc", with advice about keys
+        return f"{endpoint}: the daemon listens on tcp://HOST:PORT or ipc://PATH endpoints only"
     return None
 
 
@@ -217,19 +219,26 @@ def check_key_dir(directory: Path) -> None:
                                   f"run 'chmod -R go-rwx {directory}'")
 
 
-def server_keys(directory: Path) -> tuple[bytes, bytes]:
-    import zmq.auth
+def _key_folder(directory: Path) -> None:
+    """Refuse a key folder that is missing or not a folder (its key files were each called unreadable)."""
+    if not Path(directory).is_dir():
+        raise KeyFileError(f"--curve-dir {directory}: no such folder: make the keys with `sss daemon keys --dir "
+                           f"{directory}`")
 
+
+def server_keys(directory: Path) -> tuple[bytes, bytes]:
+    _key_folder(directory)
     check_key_dir(directory)
-    public, secret = zmq.auth.load_certificate(directory / f"{SERVER_CERT}.key_secret")
+    public, secret = _certificate(directory / f"{SERVER_CERT}.key_secret")
     if secret is None:
-        raise ValueError(f"no server secret key in {directory}")
+        raise KeyFileError(f"{directory / f'{SERVER_CERT}.key_secret'} holds no server secret key: make the keys again "
+                           "(`sss daemon keys`)")
     return public, secret
 
 
 def client_keys(directory: Path) -> tuple[bytes, bytes, bytes]:
     """(client public, client secret, server public) for a CURVE client."""
-
+    _key_folder(directory)
     check_key_dir(directory)
     public, secret = _certificate(directory / f"{CLIENT_CERT}.key_secret")
     server_public, _ = _certificate(directory / f"{SERVER_CERT}.key")

@@ -68,6 +68,8 @@ def test_calibration_request_resolves_and_checks_the_target(tmp_path, monkeypatc
     (tmp_path / "script.py").write_text("print('x')\n")
     with pytest.raises(InputError, match="exists and is not a rig file"):
         CalibrationRequest(out=tmp_path / "script.py")
+    with pytest.raises(InputError, match="script.py is a file, not a folder"):  # was "File exists" after the capture
+        CalibrationRequest(out=tmp_path / "script.py" / "rig.toml")
     real = tmp_path / "real.toml"
     real.write_text('[devices]\ncamera = "x:cam"\nprojector = "x:proj"\n')
     with pytest.raises(InputError, match="works on sim rigs only"):

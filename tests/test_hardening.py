@@ -113,6 +113,15 @@ def test_damaged_manifests_are_one_line_errors(tmp_path, manifest, expected):
     assert res.returncode == 2 and "Traceback" not in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
 
 
+def test_a_file_given_as_a_session_is_called_a_file(tmp_path):
+    from sssphase_core.errors import DataError
+    from sssphase_core.store.session import Session
+
+    (tmp_path / "passwd").write_text("root:x:0:0\n")
+    with pytest.raises(DataError, match="passwd is a file, not a session folder"):  # was "manifest.json is corrupt"
+        Session.open(tmp_path / "passwd")
+
+
 def test_a_symlinked_session_folder_is_not_written_through(tmp_path):
     from sssphase_core.store.session import Session
 
@@ -265,7 +274,7 @@ def test_a_daemon_that_exits_at_start_says_why_not_only_see_the_log(tmp_path):
                    runtime=tmp_path / "rt", env_extra={"SSS_LOG_DIR": str(tmp_path / "log")})
     out = (res.stdout + res.stderr).strip()
     assert res.returncode == 2 and len(out.splitlines()) == 1, out
-    assert "the daemon exited with status 2: sssphase daemon: Invalid certificate file" in out, out
+    assert "the daemon exited with status 2: sssphase daemon: " in out and "not a readable CURVE key file" in out, out
 
 
 def _socket_is_replaceable(path: Path) -> bool:
@@ -292,6 +301,7 @@ def test_an_abstract_ipc_socket_is_not_local():
 @pytest.mark.parametrize("endpoint", [
     "tcp://0.0.0.0%1@127.0.0.1:5609",  # ZeroMQ binds 0.0.0.0 here while a URL parser reads 127.0.0.1
     "tcp://127.0.0.1:5605/", "tcp://127.0.0.1:5606?x", "tcp://user@127.0.0.1:5607", "tcp://127.0.0.1:0", "tcp://127.0.0.1",
+    "bogus://x",  # was told it is "not loopback/ipc" and to make keys
 ])
 def test_an_endpoint_zeromq_could_read_another_way_is_refused_before_binding(endpoint, tmp_path):
     from sssphase_daemon import security
@@ -320,6 +330,8 @@ def test_loopback_endpoints_and_the_check_of_what_was_bound():
 def test_a_curve_key_folder_others_can_read_is_refused(tmp_path):
     from sssphase_daemon import security
 
+    with pytest.raises(security.KeyFileError, match="no such folder: make the keys with `sss daemon keys --dir"):
+        security.server_keys(tmp_path / "missing")  # was zmq's "Invalid certificate file: .../server.key_secret"
     keys = security.generate_keys(tmp_path / "keys")
     security.server_keys(keys)  # private: fine
     keys.chmod(0o755)

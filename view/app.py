@@ -104,6 +104,24 @@ def _problem(message: str, status: int = 400) -> JSONResponse:
     return JSONResponse({"error": message}, status_code=status)
 
 
+def _finite(value: Any) -> Any:
+    """``value`` with every NaN or infinite float as None (JSON has neither: a pixel off the object, whose
+    projector point is NaN, was a 500)."""
+    if isinstance(value, float):
+        return value if np.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    if isinstance(value, np.generic):
+        return _finite(value.item())
+    return value
+
+
+def _json(payload: Any) -> JSONResponse:
+    return JSONResponse(_finite(payload))
+
+
 def guarded(handler: Any) -> Any:
     """A route that answers only with the token; an :class:`SssError` becomes one message for the page."""
     async def route(request: Request) -> Response:
@@ -230,7 +248,7 @@ async def session_pixel(request: Request, state: ViewState) -> Response:
                 "footprints_png": base64.b64encode(_mosaic([probe.footprints[n] for n in names], log=True)).decode()
                 if names else None}
 
-    return JSONResponse(await asyncio.to_thread(run))
+    return _json(await asyncio.to_thread(run))
 
 
 # --- relighting --------------------------------------------------------------------------------------------
@@ -241,7 +259,11 @@ def _upload_path(state: ViewState, name: str) -> Path:
 
     folder = state.out / "uploads"
     path = folder / name
-    if path.parent != folder or not path.is_file():  # names the server gave, nothing else
+    try:
+        given = path.parent == folder and path.is_file()  # names the server gave, nothing else
+    except (OSError, ValueError):  # a NUL byte, an overlong name
+        given = False
+    if not given:
         raise InputError(f"no uploaded pattern {name!r}")
     return path
 
@@ -278,26 +300,39 @@ class _Notes(Narrator):
 async def relight(request: Request, state: ViewState) -> Response:
     """Relight one session view under a named or uploaded pattern with ``sss relight``'s runner; the
     footprints are cached in the output folder, so the next pattern costs only the splat."""
+    from sssphase_core.processing.patterns import REFERENCE_NAMES
     from sssphase_core.relight.runner import relight_session
 
     try:
         args = await request.json()
-    except json.JSONDecodeError:
+    except (json.JSONDecodeError, RecursionError, UnicodeDecodeError):
         return _problem("the request body must be JSON")
     if not isinstance(args, dict):
         return _problem("the request body must be a JSON object")
     pattern = str(args.get("pattern", ""))
     backend = str(args.get("backend", "auto"))
-    try:
-        view = int(args.get("view", 0))
-    except (TypeError, ValueError):
+    view = args.get("view", 0)
+    if isinstance(view, bool) or not isinstance(view, int):
         return _problem("view must be a whole number")
 
     notes = _Notes()
 
+    def pattern_spec(s: Any) -> str:
+        """An uploaded pattern's file, or a pattern's name: the view's own references and the named ones. Never
+        a path the page gives: any image the server can read would be relit and served."""
+        from sssphase_core.errors import InputError
+
+        if pattern.startswith("upload_"):
+            return str(_upload_path(state, pattern))
+        own = [k[4:] for k in s.arrays(view) if k.startswith("ref/")] if view in s.views() else []
+        if pattern in (*REFERENCE_NAMES, *own):
+            return pattern
+        raise InputError(f"pattern {pattern!r} is neither an uploaded pattern nor one of "
+                         f"{', '.join(sorted({*REFERENCE_NAMES, *own}))}")
+
     def run() -> tuple[Any, float]:
         s = _session(state, str(args.get("session", "")))
-        spec = str(_upload_path(state, pattern)) if pattern.startswith("upload_") else pattern
+        spec = pattern_spec(s)
         t0 = time.perf_counter()
         result = relight_session(s, [spec], backend=backend, checkpoint=state.checkpoint, out=state.out / "relit",
                                  views=[view], formats=("png", "exr"), cache=True, resize=str(args.get("resize", "")),
@@ -307,16 +342,20 @@ async def relight(request: Request, state: ViewState) -> Response:
     result, seconds = await asyncio.to_thread(run)
     (item,) = result.images
     files = {("display" if p.stem.endswith("_display") else p.suffix[1:]): f"/api/files/relit/{p.name}" for p in item.paths}
-    return JSONResponse({"backend": result.backend, "pattern": item.pattern, "files": files, "metrics": item.metrics,
-                         "figure": f"/api/files/relit/{item.figure.name}" if item.figure else None,
-                         "seconds": seconds, "clipped": item.clipped, "notes": notes.lines})
+    return _json({"backend": result.backend, "pattern": item.pattern, "files": files, "metrics": item.metrics,
+                  "figure": f"/api/files/relit/{item.figure.name}" if item.figure else None,
+                  "seconds": seconds, "clipped": item.clipped, "notes": notes.lines})
 
 
 async def files(request: Request, state: ViewState) -> Response:
     """A file the view wrote (relit images and figures), by its name in the view's output folder."""
     root = (state.out / "relit").resolve()
-    path = (root / request.path_params["name"]).resolve()
-    if path.parent != root or not path.is_file():
+    try:
+        path = (root / request.path_params["name"]).resolve()
+        found = path.parent == root and path.is_file()
+    except (OSError, ValueError):  # a NUL byte, a name longer than the file system takes
+        found = False
+    if not found:
         return _problem("no such file", 404)
     return FileResponse(path, filename=path.name)
 

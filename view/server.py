@@ -25,6 +25,17 @@ def check_host(host: str, allow_remote: bool) -> None:
                          "--allow-remote to serve it there anyway (the token is still required)")
 
 
+def check_inputs(sessions: Path | None, checkpoint: Path | None) -> None:
+    """Refuse, before serving, a ``--sessions`` folder that is not one and a ``--checkpoint`` that does not load
+    (they served an empty list, or failed at the first relight)."""
+    if sessions is not None and not Path(sessions).is_dir():
+        raise InputError(f"--sessions {sessions}: no such folder")
+    if checkpoint is not None:
+        from sssphase_core.learning.training import load_checkpoint, resolve_checkpoint
+
+        load_checkpoint(resolve_checkpoint(checkpoint))
+
+
 def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = None, checkpoint: Path | None = None,
           out: Path = Path("view_out"), rig: LiveRig | None = None, allow_remote: bool = False,
           on_ready: Callable[[str], None] | None = None) -> None:
@@ -32,6 +43,7 @@ def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = Non
     import uvicorn
 
     check_host(host, allow_remote)
+    check_inputs(sessions, checkpoint)
     try:
         Path(out).mkdir(parents=True, exist_ok=True)  # refused now, not at the first relight
     except OSError as exc:

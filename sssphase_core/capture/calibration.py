@@ -191,6 +191,9 @@ class CalibrationRequest:
         target = self.target
         if target.is_dir():
             raise InputError(f"--out {target} is a folder: give the rig file to write (e.g. {target / 'rig.toml'})")
+        blocking = next((p for p in target.parents if p.exists() and not p.is_dir()), None)
+        if blocking is not None:  # said only after the whole capture and fit: "File exists"
+            raise InputError(f"--out {target}: {blocking} is a file, not a folder")
         if target.exists() and target != self.rig:  # rewriting another file (a script, an image) would destroy it
             try:
                 RigSpec.from_toml(target)

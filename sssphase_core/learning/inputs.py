@@ -100,12 +100,13 @@ def parse_ints(text: str, option: str = "--views") -> list[int]:
         raise InputError(f"{option} expects comma-separated integers, got {text!r}") from exc
 
 
-def chosen_views(views: str | Sequence[int] | None, sim_default: str, sessions: Path | None) -> list[int] | None:
+def chosen_views(views: str | Sequence[int] | None, sim_default: str, sessions: Path | None,
+                 option: str = "--views") -> list[int] | None:
     """The views given (each once: a view named twice trained twice as often), else every complete view of the
-    sessions (None), else the simulator's default views."""
+    sessions (None), else the simulator's default views. ``option``: the flag that gave them, for its errors."""
     if views is not None:
-        return list(dict.fromkeys(parse_ints(views) if isinstance(views, str) else [int(v) for v in views]))
-    return None if sessions is not None else parse_ints(sim_default)
+        return list(dict.fromkeys(parse_ints(views, option) if isinstance(views, str) else [int(v) for v in views]))
+    return None if sessions is not None else parse_ints(sim_default, option)
 
 
 def used_views(views: str | Sequence[int] | None, vds: Sequence[ViewData]) -> str:
@@ -168,7 +169,7 @@ def decoder_view_choice(names: Sequence[str], views: str | Sequence[int] | None,
     """The training and held-out views of a decoder run: as given; else with ``sessions`` each session's last
     view held out when it has two or more (``held_out_split``), else the simulator's views 0-2 and 3.
     A view list per object is a dict; ``[]``: no validation."""
-    train_views, held = chosen_views(views, "0,1,2", sessions), chosen_views(val_views, "3", sessions)
+    train_views, held = chosen_views(views, "0,1,2", sessions), chosen_views(val_views, "3", sessions, "--val-views")
     if sessions is not None and held is None:
         from sssphase_core.learning.data import held_out_split
 

@@ -38,10 +38,30 @@ def tensorboard_available() -> bool:
 
 
 def read_rows(path: Path) -> list[dict[str, Any]]:
-    """The epoch rows of a ``metrics.jsonl`` (none when the file does not exist)."""
+    """The epoch rows of a ``metrics.jsonl`` (none when the file does not exist). A line that is not an epoch's
+    row (damaged, edited: not a JSON object, or an ``epoch`` that is not a whole number) is left out with a warning naming it: a
+    resumed run crashed on it after training its epoch, and again on every rerun."""
+    import warnings
+
     if not path.exists():
         return []
-    return [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
+    rows, bad = [], []
+    for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            row = json.loads(line)
+        except (json.JSONDecodeError, RecursionError):
+            row = None
+        epoch = row.get("epoch", 0) if isinstance(row, dict) else None
+        if isinstance(epoch, int) and not isinstance(epoch, bool):
+            rows.append(row)
+        else:
+            bad.append(number)
+    if bad:
+        warnings.warn(f"{path}: line{'s' if len(bad) > 1 else ''} {', '.join(map(str, bad[:5]))}"
+                      f"{' ...' if len(bad) > 5 else ''} not an epoch's row (damaged?): left out", UserWarning, stacklevel=2)
+    return rows
 
 
 class RunLog:

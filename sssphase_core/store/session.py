@@ -483,6 +483,8 @@ class Session:
     @classmethod
     def open(cls, path: Path | str) -> Session:
         path = Path(path)
+        if path.is_file():  # was "PATH/manifest.json is corrupt: ... Not a directory"
+            raise DataError(f"{path} is a file, not a session folder")
         try:
             from sssphase_core.store.files import check_nesting, read_input_text
 

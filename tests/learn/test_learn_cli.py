@@ -151,6 +151,24 @@ def test_a_run_resumed_with_other_data_or_model_options_is_refused(tmp_path):
     assert (run / "config.toml").read_text() == saved
 
 
+def test_a_copied_run_continued_with_its_config_stays_in_the_copy(tmp_path):
+    """A run folder copied, then continued with `--config COPY`, trained into the original: its config.toml
+    records the original's --out. It now continues in the copy, with a warning; --out still chooses."""
+    from sssphase_core.learning.training import save_checkpoint
+
+    original, copy = tmp_path / "dec", tmp_path / "copy"
+    save_checkpoint(original / "last.pt", {"kind": "decoder", "preset": {}, "encoder": {}})
+    (original / "config.toml").write_text(f'command = "train decoder"\n[options]\nend_to_end = true\n'
+                                          f'pixels_per_view = 50\nepochs = 1\nout = "{original}"\n')
+    import shutil
+
+    shutil.copytree(original, copy)
+    before = {p.name: p.read_bytes() for p in original.iterdir()}
+    with pytest.warns(UserWarning, match=f"this run was recorded at {original}; it continues here, in {copy}"):
+        runner.invoke(app, ["train", "decoder", "--config", str(copy), "--pixels-per-view", "60"])
+    assert {p.name: p.read_bytes() for p in original.iterdir()} == before
+
+
 @pytest.mark.parametrize("config", [None, "garbage [[[", 'command = "train decoder"\noptions = 5\n'])
 def test_a_run_whose_options_are_unknown_is_not_resumed_with_new_ones(config, tmp_path):
     """A checkpoint without a readable config.toml (the demo's runs, a damaged file) resumed with any options:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 
 import numpy as np
 import pytest
@@ -403,6 +404,38 @@ def test_a_checkpoint_whose_weights_do_not_fit_its_preset_is_refused(pretrained,
         load_encoder(tmp_path / "cut.pt")
 
 
+@pytest.mark.parametrize(("edit", "expected"), [
+    ({"stem": -1}, "stem must be a whole number from 1 to 16384, got -1"),  # was torch's "negative dimension"
+    ({"patch": 0}, "patch must be a whole number from 9 to 256, got 0"),
+    ({"patch": 10**6}, "patch must be a whole number from 9 to 256, got 1000000"),  # asked for 12 TB
+    ({"stem": "x"}, "stem must be a whole number"),
+    ({"stages": [8, 8]}, "stages must be 3 channel widths"),
+    ({"dropout": 2.0}, "dropout must be a number in [0, 1)"),
+])
+def test_a_checkpoint_whose_preset_was_edited_is_refused_before_any_tensor(pretrained, tmp_path, edit, expected):
+    from sssphase_core.errors import DataError
+    from sssphase_core.learning.training import load_encoder
+
+    ckpt = load_checkpoint(pretrained)
+    ckpt["preset"] = {**ckpt["preset"], **edit}
+    torch.save(ckpt, tmp_path / "edited.pt")
+    with pytest.raises(DataError, match="its model preset cannot be read") as err:
+        load_encoder(tmp_path / "edited.pt")
+    assert expected in str(err.value)
+
+
+def test_a_decoder_checkpoint_whose_config_was_edited_is_refused(pretrained, tmp_path):
+    from sssphase_core.errors import DataError
+    from sssphase_core.learning.training import load_decoder
+
+    ckpt = {**load_checkpoint(pretrained), "kind": "decoder", "decoder": {}}  # its config is read before its weights
+    for config, expected in (({"head": "reciprocal", "aux_classes": "abc"}, "aux_classes 'abc'"),
+                             ([1, 2], "its config is a list, not a table")):
+        torch.save({**ckpt, "config": config}, tmp_path / "edited.pt")
+        with pytest.raises(DataError, match=re.escape(expected)):  # were an internal ValueError, and "weights do not fit"
+            load_decoder(tmp_path / "edited.pt")
+
+
 def test_the_energy_gain_stays_at_one_unless_asked(pretrained, dataset, tmp_path):
     for learn, moved in ((False, False), (True, True)):
         out = tmp_path / f"gain_{learn}"
@@ -423,6 +456,16 @@ def test_an_epoch_row_written_again_after_a_resume_replaces_the_first(tmp_path):
     log.close()
     assert [(r["epoch"], r["loss"]) for r in read_rows(tmp_path / METRICS)] == [(1, 3.0), (2, 1.5), (3, 1.0)]
     assert (tmp_path / "metrics.csv").read_text().count("\n") == 4  # header + three rows
+
+
+def test_damaged_rows_of_a_runs_metrics_are_left_out_with_a_warning_not_a_crash_after_the_epoch(tmp_path):
+    """A resumed run crashed on a damaged line after training its epoch (and again on every rerun)."""
+    from sssphase_core.learning.runlog import RunLog, read_rows
+
+    (tmp_path / METRICS).write_text('{"epoch": 1, "step": 10, "loss": 3.0}\ngarbage{{{\n{"epoch": "x"}\n[1, 2]\n')
+    with pytest.warns(UserWarning, match=r"lines 2, 3, 4 not an epoch's row"):
+        RunLog(tmp_path, enabled=True).epoch({"epoch": 2, "step": 20, "loss": 2.0})
+    assert [r["epoch"] for r in read_rows(tmp_path / METRICS)] == [1, 2]  # rewritten without them
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

@@ -66,6 +66,10 @@ def test_names_and_views_are_parsed_once_each_and_echoed_as_given():
     assert chosen_views("1,1,0", "0,1,2,3", None) == [1, 0]
     assert chosen_views(None, "0,1,2,3", None) == [0, 1, 2, 3]  # the simulator's default
     assert chosen_views(None, "0,1,2,3", "sessions") is None  # every complete view of the sessions
+    from sssphase_core.learning.inputs import decoder_view_choice
+
+    with pytest.raises(InputError, match="--val-views expects comma-separated integers, got 'abc'"):  # said --views
+        decoder_view_choice(["apple"], "0", "abc", None)
     assert chosen_views([2, 2], "0", None) == [2]
 
 

@@ -93,6 +93,51 @@ def test_every_route_needs_the_token(served):
         websocket.create_connection(base.replace("http", "ws") + "/ws/live?token=wrong", timeout=10)
 
 
+def test_a_missing_sessions_folder_or_a_checkpoint_that_does_not_load_is_refused_before_serving(tmp_path):
+    """Both served: an empty session list, and an error at the first relight."""
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(tmp_path / "rt")}
+    (tmp_path / "bad.pt").write_text("not a checkpoint")
+    for args, expected in ((["--sessions", str(tmp_path / "none")], "--sessions"),
+                           (["--checkpoint", str(tmp_path / "bad.pt")], "not a checkpoint file")):
+        done = _sss("view", "--port", "0", "--out", str(tmp_path / "out"), *args, env=env, timeout=60)
+        out = done.stdout + done.stderr
+        assert done.returncode == 2 and expected in out and len(out.strip().splitlines()) == 1, out
+
+
+def _post(url: str, token: str, body: bytes) -> tuple[int, dict]:
+    request = urllib.request.Request(url, data=body, method="POST",
+                                     headers={"X-Token": token, "Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(request, timeout=60) as response:
+            return response.status, json.loads(response.read())
+    except urllib.error.HTTPError as exc:
+        return exc.code, json.loads(exc.read())
+
+
+def test_requests_the_page_never_sends_are_answered_not_crashed_on(served, tmp_path):
+    """Found by hand (each was a 500 with a traceback in the server's log, or worse): a click off the object
+    (its projector point is NaN, which JSON has not), a NUL byte or an overlong file name, a view of Infinity,
+    a body nested 100,000 deep; and a pattern given as a path on the server, which was read, relit and served."""
+    base, token = served["base"], served["token"]
+    name = json.loads(_get(base + "/api/state", token)[1])["sessions"][0]["name"]
+    status, body = _get(base + f"/api/sessions/{name}/0/pixel?x=0&y=0", token)
+    assert status == 200 and json.loads(body)["valid"] is False and None in json.loads(body)["projector"]
+    assert _get(base + "/api/files/relit/%00", token)[0] == 404
+    assert _get(base + "/api/files/relit/" + "a" * 5000, token)[0] == 404
+    assert _post(base + "/api/relight", token, b'{"session": "%s", "view": Infinity}' % name.encode())[0] == 400
+    assert _post(base + "/api/relight", token, b'{"session": "%s", "view": true}' % name.encode())[0] == 400
+    assert _post(base + "/api/relight", token, b'{"a":' + b"[" * 100_000 + b"]" * 100_000 + b"}")[0] == 400
+    secret = tmp_path / "secret.png"
+    import cv2
+
+    cv2.imwrite(str(secret), np.full((192, 256), 255, np.uint8))  # any image the server can read
+    status, answer = _post(base + "/api/relight", token, json.dumps(
+        {"session": name, "view": 0, "pattern": str(secret), "backend": "none"}).encode())
+    assert status == 400 and "is neither an uploaded pattern nor one of" in answer["error"]
+    assert not list((served["root"] / "out").rglob("*secret*"))
+    assert _get(base + "/api/state", token)[0] == 200  # still serving
+
+
 def _set(page, element: str, value) -> None:
     page.evaluate(f"(() => {{ const e = document.getElementById({json.dumps(element)}); "
                   f"if (e.type === 'checkbox') e.checked = {json.dumps(value)}; else e.value = {json.dumps(value)}; "

@@ -32,6 +32,30 @@ class ModelPreset:
     decoder: tuple[int, int, int, int]
     attention: int
 
+    def __post_init__(self) -> None:
+        """Refuse sizes no network can have (a checkpoint's preset edited or damaged: a negative width was an
+        internal error, a patch of 10^6 asked for 12 TB) before any tensor is made."""
+        from sssphase_core.processing.footprints import PATCH_RANGE
+
+        def whole(name: str, value: object, low: int, high: int) -> None:
+            if isinstance(value, bool) or not isinstance(value, int) or not low <= value <= high:
+                raise InputError(f"{name} must be a whole number from {low} to {high}, got {value!r}")
+
+        if not isinstance(self.name, str):
+            raise InputError(f"name must be a string, got {self.name!r}")
+        whole("patch", self.patch, *PATCH_RANGE)
+        whole("in_channels", self.in_channels, 1, 256)
+        for name in ("stem", "bottleneck", "proj_hidden", "proj_dim", "pred_hidden", "attention"):
+            whole(name, getattr(self, name), 1, MAX_WIDTH)
+        for name, count in (("stages", 3), ("decoder", 4)):
+            widths = getattr(self, name)
+            if not isinstance(widths, tuple) or len(widths) != count:
+                raise InputError(f"{name} must be {count} channel widths, got {widths!r}")
+            for w in widths:
+                whole(f"each of {name}", w, 1, MAX_WIDTH)
+        if isinstance(self.dropout, bool) or not isinstance(self.dropout, int | float) or not 0 <= self.dropout < 1:
+            raise InputError(f"dropout must be a number in [0, 1), got {self.dropout!r}")
+
     @property
     def padded(self) -> int:
         return -(-self.patch // 16) * 16
@@ -45,9 +69,15 @@ class ModelPreset:
 
     @classmethod
     def from_dict(cls, data: dict) -> ModelPreset:
+        missing = [f.name for f in fields(cls) if f.name not in data]
+        if missing:
+            raise InputError(f"it lacks {', '.join(missing)}")
         kw = {f.name: data[f.name] for f in fields(cls)}
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in kw.items()})
 
+
+#: The widest layer a preset may ask for (the paper's widest is 2,048).
+MAX_WIDTH = 16384
 
 PRESETS: dict[str, ModelPreset] = {
     "paper": ModelPreset(

@@ -44,6 +44,8 @@ def load_checkpoint(path: Path | str, *, mmap: bool = False) -> dict:
                         "loaded (only tensors, numbers and dicts)") from None
     except Exception as exc:
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        if "PytorchStreamReader" in reason or "miniz" in reason or "zip archive" in reason:  # torch's words for a cut file
+            reason = "the file is damaged or truncated (its zip archive cannot be read)"
         raise DataError(f"cannot read checkpoint {path}: {reason}") from None
     missing = [k for k in ("kind", "preset", "encoder") if not isinstance(ckpt, dict) or k not in ckpt]
     if missing or ckpt.get("kind") not in ("pretrain", "decoder"):
@@ -104,9 +106,15 @@ def decoder_modules(ckpt: dict, path: Path | str) -> tuple[Encoder, Decoder]:
     if "decoder" not in ckpt:
         raise DataError(f"{path} is a pretraining checkpoint; train a decoder with `sss train decoder`")
     preset = _preset_of(ckpt, path)
-    cfg = ckpt.get("config") if isinstance(ckpt.get("config"), dict) else {}  # old checkpoints: the direct head
+    if ckpt.get("config") is not None and not isinstance(ckpt.get("config"), dict):
+        raise DataError(f"{path}: its config is a {type(ckpt['config']).__name__}, not a table: the checkpoint is damaged")
+    cfg = ckpt.get("config") or {}  # old checkpoints: the direct head
+    classes, head = cfg.get("aux_classes", 0), cfg.get("head", "direct")
+    if isinstance(classes, bool) or not isinstance(classes, int) or not 0 <= classes <= 1 << 16 or not isinstance(head, str):
+        raise DataError(f"{path}: its config cannot be read (aux_classes {classes!r}, head {head!r}): the checkpoint is "
+                        "damaged; take another one or train again")
     enc = Encoder(preset)
-    dec = Decoder(preset, n_classes=int(cfg.get("aux_classes", 0)), head=cfg.get("head", "direct"))
+    dec = Decoder(preset, n_classes=classes, head=head)
     _load_weights(enc, ckpt["encoder"], path, "encoder")
     _load_weights(dec, ckpt["decoder"], path, "decoder")
     # decoders trained before the capture model (their config has no capture_model) read the fringe
