@@ -62,6 +62,9 @@ def _load(ctx: typer.Context, param: Any, value: Path | None) -> Path | None:
     unknown = sorted(set(options) - known)
     if unknown:
         raise InputError(f"--config {path}: unknown option(s) {', '.join(unknown)} for `sss {command}`")
+    for name in _number_options(ctx):  # a number option reads true as 1: `batch_size = true` ran with a batch of 1
+        if isinstance(options.get(name), bool):
+            raise InputError(f"--config {path}: {name} must be a number, got {str(options[name]).lower()}")
     folder = path.parent
     recorded = options.get("out")
     if (isinstance(recorded, str) and any((folder / name).is_file() for name in ("last.pt", "best.pt"))
@@ -74,6 +77,23 @@ def _load(ctx: typer.Context, param: Any, value: Path | None) -> Path | None:
         options = {**options, "out": str(folder)}
     ctx.default_map = {**(ctx.default_map or {}), **options}
     return path
+
+
+def _number_options(ctx: typer.Context) -> list[str]:
+    """The running command's options annotated ``int`` or ``float`` (optional or not), from its function."""
+    import types
+    import typing
+
+    try:
+        hints = typing.get_type_hints(ctx.command.callback, include_extras=False)  # type: ignore[arg-type]
+    except Exception:  # noqa: BLE001  (a command without readable hints: nothing to check)
+        return []
+    out = []
+    for name, hint in hints.items():
+        args = typing.get_args(hint) if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union else (hint,)
+        if any(a in (int, float) for a in args):
+            out.append(name)
+    return out
 
 
 ConfigOpt = Annotated[Path | None, typer.Option(

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import AbstractContextManager
 from dataclasses import dataclass
@@ -134,6 +135,9 @@ def load_views(names: Sequence[str], views: list[int] | dict[str, list[int]] | N
     """The training or evaluation data: views of captured sessions (``opts.sessions``; ``views`` None: every
     complete view, or a list per object) or else rendered by the simulator; says where they came from."""
     if opts.sessions is not None:
+        if opts.rig != ViewOptions.rig:  # it was ignored without a word
+            warnings.warn(f"--rig {opts.rig} chooses the simulated rig; the data come from --sessions {opts.sessions}, "
+                          "captured with their own rig: --rig is not used", UserWarning, stacklevel=2)
         return _session_views(names, views, opts, footprints=footprints, role=role, report=report)
     wanted = sorted({v for vs in (views.values() if isinstance(views, dict) else [views or []]) for v in vs})
     if wanted and wanted[-1] >= opts.n_views:  # view 0 was simulated before "view must be in [0, 1)"

@@ -309,3 +309,13 @@ def test_sss_bench_learn_prints_and_writes_the_tables_learn_bench_returns(monkey
     assert "Speeds" in res.output and "| lite |" in res.output
     assert json.loads((tmp_path / "b.json").read_text())["results"] == {"lite": {"batch": 64, "seen": "cpu"}}
     assert "| lite |" in (tmp_path / "b.md").read_text()
+
+
+def test_a_rig_preset_beside_sessions_is_said_to_be_unused(tmp_path):
+    """`--rig paper --sessions DIR` trained on the sessions at their own size, and --rig was ignored without a word."""
+    from sssphase_core.errors import SssError
+    from sssphase_core.learning.inputs import ViewOptions, load_views
+
+    with pytest.warns(UserWarning, match="--rig paper chooses the simulated rig.*--rig is not used"), \
+            pytest.raises(SssError):  # (no sessions there: the data then fail as they would have)
+        load_views(["apple"], None, ViewOptions(rig="paper", sessions=tmp_path / "none"), footprints=False)

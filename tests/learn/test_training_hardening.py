@@ -63,6 +63,14 @@ def test_a_warmup_saved_as_nan_is_refused_when_the_config_is_repeated(tmp_path):
     assert not (tmp_path / "run").exists() and not (tmp_path / "cache").exists()
 
 
+def test_a_boolean_where_a_config_wants_a_number_is_refused(tmp_path):
+    (tmp_path / "config.toml").write_text('command = "train pretrain"\n[options]\nbatch_size = true\n')
+    with pytest.raises(InputError, match="batch_size must be a number, got true"):  # it ran with a batch of 1
+        runner.invoke(app, ["train", "pretrain", "--config", str(tmp_path), "--out", str(tmp_path / "run"),
+                            "--cache", str(tmp_path / "cache")], catch_exceptions=False)
+    assert not (tmp_path / "run").exists()
+
+
 def test_the_library_refuses_what_the_cli_refuses(dataset, tiny, tmp_path):
     """TorchBackend.pretrain/fit call these loops directly: same checks, before the run folder is made."""
     from sssphase_core.learning.training import DecoderConfig, PretrainConfig, pretrain, train_decoder
