@@ -20,6 +20,18 @@ def test_the_new_file_replaces_the_old_only_when_the_block_succeeds(tmp_path):
     assert sorted(p.name for p in path.parent.iterdir()) == ["state.json"]
 
 
+def test_an_error_writing_the_temporary_names_the_file_asked_for():
+    """`sss eval knn --out /proc/x.json` said "/proc/.x.json.30213-78fb61.tmp: No such file or directory"."""
+    from pathlib import Path
+
+    if not Path("/proc/self").exists():
+        pytest.skip("needs /proc, a folder no file can be created in whoever runs this")
+    path = Path("/proc") / "sssphase-result.json"
+    with pytest.raises(OSError) as err, atomic_path(path) as tmp:
+        tmp.write_text("x")
+    assert err.value.filename == str(path), err.value
+
+
 def test_a_suffix_keeps_numpy_from_renaming_the_temporary(tmp_path):
     path = tmp_path / "cache.npz"
     with atomic_path(path, ".npz") as tmp:

@@ -30,6 +30,10 @@ def atomic_path(path: Path | str, suffix: str = "") -> Iterator[Path]:
         sync(tmp)
         os.replace(tmp, path)
         sync(path.parent)
+    except OSError as exc:  # an error about the temporary file names the file the user asked for
+        if exc.filename is not None and str(exc.filename) == str(tmp) and exc.errno is not None:
+            raise type(exc)(exc.errno, exc.strerror, str(path)) from None
+        raise
     finally:
         with contextlib.suppress(OSError):
             tmp.unlink()
