@@ -507,7 +507,7 @@ def test_the_captures_choose_the_noise_mask_that_keeps_faint_wide_tails(tmp_path
     args = (rv, s.load(0, "transport/pixels"), s.load(0, "transport/dots"), s.read(0, "transport/crops"), info["noise"])
     chosen, tight = denoised_transport(*args, DENOISE_SMOOTHING), denoised_transport(*args, (1.0,))
     assert chosen.smoothing == 2.0 and chosen.fit[2.0] > chosen.fit[1.0] + 1, chosen.fit
-    m, ref = rv.proj.mask, clean["ref/checkerboard"]
+    m, ref = rv.proj.mask, clean["ref/checkerboard"] * np.float32(s.manifest["rig"]["frame_scale"])  # in the session's units
     err = {t.smoothing: np.mean((relight(t, rv.proj, [rv.references["checkerboard"]], k)[0][m] - ref[m]) ** 2)
            for t in (chosen, tight)}
     assert err[2.0] < 0.7 * err[1.0], err  # > 1.5 dB better against the noise-free reference
@@ -980,6 +980,30 @@ def test_an_import_warns_when_a_reference_capture_does_not_follow_its_pattern(tm
                                          r"--projector right \(64x48\)"):
         other = import_folder(tmp_path / "other", tmp_path / "s", "other", (W, H), patch=K)
     assert other.manifest["views"]["0"]["reference_match"]["checkerboard"] < -0.5
+    assert right.manifest["views"]["0"]["reference_brightness"]["checkerboard"] == pytest.approx(1.0, abs=0.05)
+    np.save(tmp_path / "right" / "ref__checkerboard.npy", 2 * images["ref/checkerboard"])  # twice the exposure
+    with pytest.warns(UserWarning, match=r"reference capture checkerboard \((1\.[89]|2\.[01])\dx\) holds another amount of light"):
+        twice = import_folder(tmp_path / "right", tmp_path / "s", "twice", (W, H), patch=K)  # scored 12.6 dB in silence
+    assert twice.manifest["views"]["0"]["reference_brightness"]["checkerboard"] == pytest.approx(2.0, abs=0.15)
+
+
+def test_frames_too_faint_for_the_decoder_are_scaled_if_float_and_warned_of_if_integer(tmp_path):
+    """A render at 0.12 x camera units lost 80% of its object to the decoder's thresholds, in silence (float frames
+    with a white level in [0.1, 10] were left as they were); so does a camera exposed far too short."""
+    ref = import_folder(_float_frames(tmp_path / "unit", 1.0), tmp_path / "s", "unit", (W, H), patch=K)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # scaled, decoded like camera units, no warning
+        dim = import_folder(_float_frames(tmp_path / "dim", 0.12), tmp_path / "s", "dim", (W, H), patch=K)
+    assert dim.manifest["rig"]["frame_scale"] == pytest.approx(1 / (0.8 * 0.12), rel=1e-3)
+    np.testing.assert_array_equal(dim.load(0, "corr/mask"), ref.load(0, "corr/mask"))
+    plan = [f for f in capture_plan(W, H, references=("white", "black")) if f.key.startswith(("psp/", "white", "black"))]
+    short = tmp_path / "short"
+    short.mkdir()
+    ramp = np.linspace(0.005, 0.1, W, dtype=np.float32)[None, :, None]  # exposure x albedo, across the view
+    for f, img in zip(plan, _camera(np.stack([f.pattern() for f in plan])), strict=True):
+        _write(short, f.key, img * ramp, nested=False)  # 16-bit codes, white far below the top code on the left
+    with pytest.warns(UserWarning, match=r"\d+% of the pixels holding light were dropped as too faint for the decoder"):
+        import_folder(short, tmp_path / "s", "short", (W, H), patch=K)
 
 
 def test_a_dropped_or_copied_fringe_frame_is_refused_and_shifts_out_of_order_are_named(tmp_path):

@@ -39,7 +39,7 @@ GAMMA_RANGE = (0.3, 5.0)
 #: Float frames (EXR, float TIFF, ``.npy``) have no clipping level: their units are the renderer's or
 #: the pipeline's. When the white capture's 99.9th percentile lies outside this range the frames are
 #: scaled to put it at 1, since the decoder's thresholds and the models work in camera units.
-LINEAR_RANGE = (0.1, 10.0)
+LINEAR_RANGE = (0.5, 2.0)  # (0.1-10 kept a render at 0.12 x camera units: 80% of its object fell below the decoder's thresholds)
 MIN_FRAME_SIDE = 16
 
 
@@ -412,6 +412,13 @@ def _nothing_decoded(vdir: Path, coverage: dict[str, int], clipped: float = 0.0)
 #: Shares of a view's decoded pixels beyond which an import warns: mapped outside the projector (a wrong
 #: --projector), or at an integer file's top code (clipped light, underestimated).
 OUTSIDE_WARN, CLIPPED_WARN = 0.2, 0.01
+#: A pixel holds light above this share of the white's level (measured: 0-1% of those decode as too faint on every
+#: Mitsuba and demo view, 80% on a 16-bit capture exposed at 0.12); a warning when more than DIM_WARN of them decode as
+#: too faint (LOW_MODULATION, SHADOW).
+DIM_LIT, DIM_WARN = 0.05, 0.2
+#: A reference capture's light over what the white and its pattern give (:func:`reference_match`) outside this
+#: range is warned of (Mitsuba renders' references: 0.99-1.00; twice the exposure: 1.9).
+REFERENCE_BRIGHTNESS = (0.67, 1.5)
 #: Warn when more than this share of the decodable pixels failed to unwrap (frames out of order, wrong periods).
 UNWRAP_WARN = 0.2
 
@@ -420,12 +427,15 @@ UNWRAP_WARN = 0.2
 REFERENCE_MATCH_WARN = 0.3
 
 
-def reference_match(proc: ViewProcessor, frames: list[dict[str, Any]], gamma: float) -> dict[str, float]:
+def reference_match(proc: ViewProcessor, frames: list[dict[str, Any]], gamma: float,
+                    brightness: dict[str, float] | None = None) -> dict[str, float]:
     """Per reference capture of a decoded view: the correlation, over decoded pixels, between its light (above
     black, relative to the white's) and the light its pattern sends to each pixel's decoded projector point.
 
     Scattering blurs but keeps it high (the demo's and the stand-ins' references: see the tests); a pattern
-    made for another projector size (a wrong ``--projector``) or another image gives about 0.
+    made for another projector size (a wrong ``--projector``) or another image gives about 0. ``brightness``,
+    when given, gets each capture's mean light over the mean its pattern sends: scattering moves light but
+    keeps its sum, so about 1 (a correlation cannot see a reference of another exposure or units).
     """
     from sssphase_core.processing.patterns import PlannedFrame
     from sssphase_core.processing.projector import emitted_light
@@ -448,7 +458,25 @@ def reference_match(proc: ViewProcessor, frames: list[dict[str, Any]], gamma: fl
         sent = light[iy, ix]
         if seen.std() > 0 and sent.std() > 0:
             found[name] = float(np.corrcoef(seen, sent)[0, 1])
+        if brightness is not None and sent.mean() > 0:
+            brightness[name] = float(seen.mean() / sent.mean())
     return found
+
+
+def _warn_dim_view(vdir: Path, white: np.ndarray, reason: np.ndarray) -> None:
+    """One line when many well-lit pixels were dropped as too faint (the decoder's thresholds are in camera units:
+    frames exposed far below their top code, or a render in its own units, lose most of their object quietly)."""
+    from sssphase_core.processing.psp import Reason
+
+    grey = np.asarray(white, np.float32).reshape(*reason.shape, -1).mean(-1)
+    level = float(np.percentile(grey, 99.9))
+    lit = grey > DIM_LIT * level
+    faint = lit & np.isin(reason, (int(Reason.LOW_MODULATION), int(Reason.SHADOW)))
+    if lit.any() and faint.sum() > DIM_WARN * lit.sum():
+        warnings.warn(f"{vdir}: {100 * faint.sum() / lit.sum():.0f}% of the pixels holding light were dropped as too faint "
+                      f"for the decoder (fringe modulation or light below its thresholds, in camera units where white "
+                      f"is about 1; this white's level is {level:.3g}): expose the camera longer, or scale a render's "
+                      "frames so that its white is about 1", stacklevel=3)
 
 
 def _warn_suspect_view(vdir: Path, coverage: dict[str, int], size: tuple[int, int], fringes_clipped: float,
@@ -677,9 +705,19 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 _warn_suspect_view(vdir, info["coverage"], (w, h), top / max(1, fringe_values),
                                    proc.images["white"], proc.corr.mask, scale if stores_integers(files["white"]) else None,
                                    share, gamma, encoding)
+                _warn_dim_view(vdir, proc.images["white"], np.asarray(proc.corr.reason))
                 info["fringe_mean_share"] = round(share, 4) if np.isfinite(share) else None
-                match = reference_match(proc, frames, gamma)
+                bright: dict[str, float] = {}
+                match = reference_match(proc, frames, gamma, bright)
                 info["reference_match"] = {k: round(v, 3) for k, v in match.items()}
+                info["reference_brightness"] = {k: round(v, 3) for k, v in bright.items()}
+                off = {ref: b for ref, b in bright.items() if not REFERENCE_BRIGHTNESS[0] <= b <= REFERENCE_BRIGHTNESS[1]}
+                if off:  # relit against it, every model scored 12-13 dB
+                    warnings.warn(f"{vdir}: the reference capture{'s' if len(off) > 1 else ''} "
+                                  f"{', '.join(f'{ref} ({b:.2f}x)' for ref, b in off.items())} hold{'' if len(off) > 1 else 's'} "
+                                  "another amount of light than the white capture and the pattern give at the decoded "
+                                  "points (1.00x): another exposure, gain or units than the white and the fringes?",
+                                  UserWarning, stacklevel=2)
                 astray = {ref: r for ref, r in match.items() if r < REFERENCE_MATCH_WARN}
                 if astray:
                     warnings.warn(f"{vdir}: the reference capture{'s' if len(astray) > 1 else ''} "
