@@ -3,6 +3,7 @@ evaluates and trains like a captured one; hostile folders are refused before any
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import re
@@ -985,6 +986,19 @@ def test_an_import_warns_when_a_reference_capture_does_not_follow_its_pattern(tm
     with pytest.warns(UserWarning, match=r"reference capture checkerboard \((1\.[89]|2\.[01])\dx\) holds another amount of light"):
         twice = import_folder(tmp_path / "right", tmp_path / "s", "twice", (W, H), patch=K)  # scored 12.6 dB in silence
     assert twice.manifest["views"]["0"]["reference_brightness"]["checkerboard"] == pytest.approx(2.0, abs=0.15)
+
+
+def test_fireflies_setting_the_white_captures_level_are_named(tmp_path):
+    """A render's white with 0.2% of its pixels at 1000 was refused as "the fringe set's mean is 0.0004x the white
+    capture's level": the fringes were named, not the white's fireflies. They are now said first."""
+    folder = _float_frames(tmp_path / "f", 1.0)
+    white = np.load(folder / "white.npy")
+    rng = np.random.default_rng(0)
+    white.reshape(-1, 3)[rng.choice(H * W, max(3, H * W // 500), replace=False)] = 1000.0
+    np.save(folder / "white.npy", white)
+    with pytest.warns(UserWarning, match=r"white.npy: its level .* is set by isolated bright pixels"), \
+            contextlib.suppress(InputError):  # (what follows from that level, as before)
+        import_folder(folder, tmp_path / "s", "fireflies", (W, H), patch=K)
 
 
 def test_frames_too_faint_for_the_decoder_are_scaled_if_float_and_warned_of_if_integer(tmp_path):

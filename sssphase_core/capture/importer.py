@@ -185,6 +185,12 @@ class FrameLoader:
         raise InputError(f"{path} is {shape[1]}x{shape[0]}, the other frames {self.shape[1]}x{self.shape[0]}")
 
 
+#: A white capture whose 99.9th percentile is above this many times that of its 3 x 3 median holds fireflies
+#: (:func:`white_levels` warns). Specular highlights give 1.05-3.7 on the Mitsuba renders' whites; 80 fireflies at
+#: 1000 in a 256 x 192 white, 2,600.
+FIREFLY_RATIO = 8.0
+
+
 def _check_fringe_level(path: Path, image: np.ndarray, white_level: float, *, mean: bool = False) -> None:
     """Refuse fringe frames (or a set's mean, ``mean``) in other units or exposure than the view's white."""
     level = float(np.percentile(image, 99.9))
@@ -197,12 +203,27 @@ def _check_fringe_level(path: Path, image: np.ndarray, white_level: float, *, me
                          "one exposure and units")
 
 
+def _median_level(image: np.ndarray) -> float:
+    """The 99.9th percentile of an (H, W[, C]) image's 3 x 3 median (per colour): its level without isolated pixels."""
+    import cv2
+
+    img = np.ascontiguousarray(image, np.float32)
+    return float(np.percentile(cv2.medianBlur(img, 3) if img.ndim == 2 or img.shape[-1] in (1, 3, 4) else img, 99.9))
+
+
 def white_levels(whites: Iterable[Path], encoding: str = "linear") -> list[float]:
     """Each white capture's level (its 99.9th percentile, file units); one line naming a white capture that
     holds no light (black, negative, denormal) instead of a view where nothing decodes."""
     levels = []
     for path in whites:
-        level = float(np.percentile(read_imported(path, encoding)[0], 99.9))
+        white = read_imported(path, encoding)[0]
+        level = float(np.percentile(white, 99.9))
+        robust = _median_level(white)
+        if level > FIREFLY_RATIO * robust:  # a refusal that followed named the fringes, not the white's fireflies
+            warnings.warn(f"{path}: its level (99.9th percentile {level:.3g}) is set by isolated bright pixels, "
+                          f"{level / robust:.0f}x its 3 x 3 median's ({robust:.3g}): a renderer's fireflies? every frame "
+                          "is compared with and scaled by this level: repair them, or render with more samples",
+                          UserWarning, stacklevel=2)
         if not level >= MIN_WHITE_LEVEL:
             raise InputError(f"{path}: the white capture holds no light (99.9th percentile {level:.3g}): it must be a "
                              "linear image of the object under the projector's full white")
@@ -502,7 +523,9 @@ def _warn_suspect_view(vdir: Path, coverage: dict[str, int], size: tuple[int, in
                       "order they were projected, and the periods in the file names the projected ones?", stacklevel=3)
     if outside > OUTSIDE_WARN * (valid + outside):
         warnings.warn(f"{vdir}: {100 * outside / (valid + outside):.0f}% of the decoded pixels map outside the "
-                      f"{size[0]}x{size[1]} projector: is --projector right?", stacklevel=3)
+                      f"{size[0]}x{size[1]} projector: is --projector right? (else the fringes' conventions: shifts "
+                      "numbered the other way or from another phase origin, x and y swapped; `sss patterns` writes the "
+                      "frames a renderer should project)", stacklevel=3)
     if fringes_clipped > CLIPPED_WARN:
         warnings.warn(f"{vdir}: {100 * fringes_clipped:.1f}% of the fringe frames' values sit at the files' top code "
                       "(clipped): their light and modulation are underestimated; capture with a shorter exposure",
@@ -723,7 +746,9 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                     warnings.warn(f"{vdir}: the reference capture{'s' if len(astray) > 1 else ''} "
                                   f"{', '.join(f'{ref} (correlation {r:.2f})' for ref, r in astray.items())} do"
                                   f"{'' if len(astray) > 1 else 'es'} not follow the pattern at the decoded points: is "
-                                  f"--projector right ({w}x{h})? the patterns are made at that size", UserWarning, stacklevel=2)
+                                  f"--projector right ({w}x{h})? the patterns are made at that size (else the decoded "
+                                  "points are wrong: see the fringes' conventions in `sss patterns`)", UserWarning,
+                                  stacklevel=2)
             except BaseException:
                 writer.abort()
                 raise
