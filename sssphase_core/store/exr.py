@@ -82,8 +82,9 @@ def read_exr(path: Path | str) -> np.ndarray:
     if not any(parts):  # a cut-short file: the library reads no pixel and says so only on its own output
         raise DataError(f"cannot read EXR {path} (damaged or truncated: no pixel data could be read)")
     for channels in parts:
-        if {"R", "G", "B"} <= set(channels):
-            return np.stack([channels[c] for c in "RGB"], axis=-1).astype(np.float32, copy=False)
+        for names in ("RGB", "rgb"):  # (some writers name them in lower case)
+            if set(names) <= set(channels):
+                return np.stack([channels[c] for c in names], axis=-1).astype(np.float32, copy=False)
         layer = _colour_layer(path, channels)
         if layer is not None:
             return np.stack([channels[f"{layer}{c}"] for c in "RGB"], axis=-1).astype(np.float32, copy=False)

@@ -326,6 +326,10 @@ def test_float_tiff_and_exr_patterns_are_read_as_their_values(tmp_path):
     with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}, {"RGBA": rgba}) as f:
         f.write(str(tmp_path / "rgba.exr"))
     np.testing.assert_array_equal(read_pattern(tmp_path / "rgba.exr", (40, 34)), rgb)
+    with OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                      {c: np.ascontiguousarray(rgb[..., i]) for i, c in enumerate("rgb")}) as f:
+        f.write(str(tmp_path / "lower.exr"))  # channels named in lower case (some writers): refused before
+    np.testing.assert_array_equal(read_pattern(tmp_path / "lower.exr", (40, 34)), rgb)
     write_exr(tmp_path / "hdr.exr", rgb * 4)
     with pytest.raises(InputError, match="finite values in"):
         read_pattern(tmp_path / "hdr.exr", (40, 34))
