@@ -757,6 +757,24 @@ def test_an_import_warns_of_a_wrong_projector_size_and_of_clipped_light(tmp_path
         import_folder(clipped, tmp_path / "s", "clipped", (W, H), patch=K)
 
 
+def test_an_icc_profile_of_linear_light_is_read_as_linear(tmp_path):
+    """Any ICC profile was taken for sRGB: a 16-bit render tagged with a linear profile lost 74% of its pixels."""
+    import io
+
+    from PIL import Image, ImageCms
+
+    from sssphase_core.store.imageio import declared_encoding
+
+    codes = np.full((8, 8, 3), 30000, np.uint16)
+    for name, profile, expected in (("linear", ImageCms.createProfile("XYZ"), "linear"),
+                                    ("srgb", ImageCms.createProfile("sRGB"), "srgb")):
+        buffer = io.BytesIO(ImageCms.ImageCmsProfile(profile).tobytes())
+        path = tmp_path / f"{name}.png"
+        Image.fromarray(codes[..., 0]).save(path, icc_profile=buffer.getvalue())
+        encoding, why = declared_encoding(path)
+        assert encoding == expected and "ICC colour profile" in why, (name, encoding, why)
+
+
 def _srgb_codes(light: np.ndarray) -> np.ndarray:
     """Linear light in [0, 1] -> 8-bit sRGB codes (IEC 61966-2-1), as a renderer's PNG output holds them."""
     v = np.clip(light, 0, 1)

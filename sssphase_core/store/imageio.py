@@ -344,6 +344,28 @@ def _read_pixels(path: Path, *, alpha: bool = False) -> np.ndarray:
     return arr
 
 
+#: Words in an ICC profile's description that name linear light (scene-linear working spaces).
+LINEAR_ICC_WORDS = ("linear", "acescg", "aces2065")
+
+
+def _icc_encoding(icc: bytes) -> tuple[str, str]:
+    """``(encoding, why)`` of an ICC profile: linear for an XYZ profile or one whose description names linear
+    light (a linear profile was read as sRGB, and 74% of a render's pixels were lost), else sRGB (assumed: the
+    profile's tone curves are not read)."""
+    import io
+
+    try:
+        from PIL import ImageCms
+
+        profile = ImageCms.ImageCmsProfile(io.BytesIO(icc)).profile
+        space, description = str(profile.xcolor_space).strip(), str(profile.profile_description or "")
+    except Exception:  # noqa: BLE001  (no littlecms, or a damaged profile: as before)
+        return "srgb", "its ICC colour profile (assumed sRGB)"
+    if space == "XYZ" or any(w in description.lower() for w in LINEAR_ICC_WORDS):
+        return "linear", f"its ICC colour profile ({description.strip() or space}: linear light)"
+    return "srgb", f"its ICC colour profile ({description.strip() or 'unnamed'}, assumed sRGB)"
+
+
 def declared_encoding(path: Path) -> tuple[str, str]:
     """``(encoding, why)``: how an integer frame file says its codes map to light, from its header:
     ``"srgb"`` for a PNG with an sRGB chunk or an ICC profile and for JPEG data (whatever the file's
@@ -363,7 +385,7 @@ def declared_encoding(path: Path) -> tuple[str, str]:
     if "srgb" in info:
         return "srgb", "its sRGB chunk"
     if info.get("icc_profile"):
-        return "srgb", "its ICC colour profile"
+        return _icc_encoding(info["icc_profile"])
     g = info.get("gamma")
     if isinstance(g, (int, float)) and 0.05 <= g <= 20.0:
         return ("linear", f"its gAMA chunk ({g:g})") if abs(g - 1.0) <= 0.01 else (f"gamma {1.0 / g:.4g}", f"its gAMA chunk ({g:g})")
