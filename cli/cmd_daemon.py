@@ -92,8 +92,8 @@ def daemon_start(
 
     args = [*(["--endpoint", endpoint] if endpoint else []), *(["--preview", preview] if preview else []),
             *(["--curve-dir", str(curve_dir)] if curve_dir else [])]
-    if curve_dir is not None and not curve_dir.is_dir():  # said only by the daemon, after it was spawned
-        raise InputError(f"--curve-dir {curve_dir}: no such folder: make the keys with `sss daemon keys --dir {curve_dir}`")
+    if curve_dir is not None:  # said only by the daemon, after it was spawned
+        security.check_key_folder(curve_dir)
     for what in (e for e in (endpoint, preview) if e):
         problem = security.endpoint_problem(what)
         if problem:

@@ -15,6 +15,7 @@ the command line override them (``sss train pretrain --config runs/a/config.toml
 from __future__ import annotations
 
 import tomllib
+import warnings
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -70,8 +71,6 @@ def _load(ctx: typer.Context, param: Any, value: Path | None) -> Path | None:
     if (isinstance(recorded, str) and any((folder / name).is_file() for name in ("last.pt", "best.pt"))
             and Path(recorded).resolve() != folder.resolve()):
         # a run folder copied or moved: its recorded --out is the original, which continuing it would overwrite
-        import warnings
-
         warnings.warn(f"--config {value}: this run was recorded at {recorded}; it continues here, in {folder} "
                       "(pass --out to choose another folder)", UserWarning, stacklevel=2)
         options = {**options, "out": str(folder)}

@@ -219,7 +219,7 @@ def check_key_dir(directory: Path) -> None:
                                   f"run 'chmod -R go-rwx {directory}'")
 
 
-def _key_folder(directory: Path) -> None:
+def check_key_folder(directory: Path) -> None:
     """Refuse a key folder that is missing or not a folder (its key files were each called unreadable)."""
     if not Path(directory).is_dir():
         raise KeyFileError(f"--curve-dir {directory}: no such folder: make the keys with `sss daemon keys --dir "
@@ -227,7 +227,7 @@ def _key_folder(directory: Path) -> None:
 
 
 def server_keys(directory: Path) -> tuple[bytes, bytes]:
-    _key_folder(directory)
+    check_key_folder(directory)
     check_key_dir(directory)
     public, secret = _certificate(directory / f"{SERVER_CERT}.key_secret")
     if secret is None:
@@ -238,7 +238,7 @@ def server_keys(directory: Path) -> tuple[bytes, bytes]:
 
 def client_keys(directory: Path) -> tuple[bytes, bytes, bytes]:
     """(client public, client secret, server public) for a CURVE client."""
-    _key_folder(directory)
+    check_key_folder(directory)
     check_key_dir(directory)
     public, secret = _certificate(directory / f"{CLIENT_CERT}.key_secret")
     server_public, _ = _certificate(directory / f"{SERVER_CERT}.key")

@@ -31,9 +31,9 @@ def check_inputs(sessions: Path | None, checkpoint: Path | None) -> None:
     if sessions is not None and not Path(sessions).is_dir():
         raise InputError(f"--sessions {sessions}: no such folder")
     if checkpoint is not None:
-        from sssphase_core.learning.training import load_checkpoint, resolve_checkpoint
+        from sssphase_core.learning.training import load_checkpoint
 
-        load_checkpoint(resolve_checkpoint(checkpoint))
+        load_checkpoint(checkpoint, mmap=True)  # a run folder resolved, its tensors mapped, not read
 
 
 def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = None, checkpoint: Path | None = None,

@@ -15,6 +15,7 @@ from __future__ import annotations
 import csv
 import json
 import math
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -41,8 +42,6 @@ def read_rows(path: Path) -> list[dict[str, Any]]:
     """The epoch rows of a ``metrics.jsonl`` (none when the file does not exist). A line that is not an epoch's
     row (damaged, edited: not a JSON object, or an ``epoch`` that is not a whole number) is left out with a warning naming it: a
     resumed run crashed on it after training its epoch, and again on every rerun."""
-    import warnings
-
     if not path.exists():
         return []
     rows, bad = [], []

@@ -180,17 +180,14 @@ MAX_MEMBERS = 8
 
 
 def _digest(arrays: dict[str, np.ndarray]) -> str:
-    """SHA-256 of ``arrays`` (name, dtype, shape and bytes of each, in name order) but their ``digest``."""
+    """SHA-256 over ``arrays`` (name, dtype, shape and :func:`~sssphase_core.store.session.array_checksum` of each,
+    in name order) but their ``digest``."""
     import hashlib
 
-    h = hashlib.sha256()
-    for name in sorted(arrays):
-        if name == "digest":
-            continue
-        a = np.ascontiguousarray(arrays[name])
-        h.update(f"{name}|{a.dtype.str}|{a.shape}|".encode())
-        h.update(memoryview(a).cast("B") if a.size and a.dtype.kind != "U" else a.tobytes())  # no copy
-    return h.hexdigest()
+    from sssphase_core.store.session import array_checksum
+
+    return hashlib.sha256("".join(f"{name}|{np.asarray(a).dtype.str}|{np.shape(a)}|{array_checksum(np.asarray(a))}\n"
+                                  for name, a in sorted(arrays.items()) if name != "digest").encode()).hexdigest()
 
 
 def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np.ndarray,

@@ -246,7 +246,8 @@ def _load_npy(path: Path, **kwargs) -> np.ndarray:
 
 
 def frame_shape(path: Path) -> tuple[int, ...]:
-    """The pixel shape a frame file declares, read from its header only (no pixel is decoded)."""
+    """The pixel shape a frame file declares, read from its header only (no pixel is decoded); a file of several
+    images (a multi-page TIFF, an animation) is refused."""
     from sssphase_core.store.files import check_input_file
 
     check_input_file(path, "frame")  # a FIFO would block the read for ever
@@ -267,9 +268,12 @@ def frame_shape(path: Path) -> tuple[int, ...]:
 
         Image.MAX_IMAGE_PIXELS = None  # our own limit below, on the header's size
         with Image.open(path) as img:
-            return (img.size[1], img.size[0])
+            (width, height), pages = img.size, int(getattr(img, "n_frames", 1))
     except (OSError, ValueError, SyntaxError, KeyError) as exc:
         raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
+    if pages > 1:  # only the first page was read, without a word
+        raise InputError(f"{path} holds {pages} images (a multi-page or animated file): give one image per file")
+    return (height, width)
 
 
 def stores_integers(path: Path) -> bool:
@@ -414,14 +418,6 @@ def read_frame(path: Path, *, finite: bool = True, encoding: str = "linear") -> 
     if len(shape) >= 2 and shape[0] * shape[1] > MAX_FRAME_PIXELS:
         raise InputError(f"{path} is {shape[1]}x{shape[0]}: larger than any camera frame this importer takes "
                          f"({MAX_FRAME_PIXELS // 2**20} MP)")
-    if path.suffix.lower() in (".tif", ".tiff", ".png") and not _pil_cannot_decode(path):
-        from PIL import Image
-
-        pages = 1
-        with contextlib.suppress(OSError, ValueError, SyntaxError), Image.open(path) as img:  # unreadable: said below
-            pages = int(getattr(img, "n_frames", 1))
-        if pages > 1:  # only the first page was imported, without a word
-            raise InputError(f"{path} holds {pages} images (a multi-page or animated file): give one image file per frame")
     arr = _read_pixels(path)
     if arr.dtype.kind not in "fiu":
         raise InputError(f"{path} holds {arr.dtype} values, not an image")
