@@ -13,6 +13,15 @@ decoder's extrapolation. Measured on the demo's training pixels, the widths' 99.
 Only the wide side is guarded. At the narrow end (no scattering, a black object) the analytic model is
 further from the truth than the decoder (``delta``: 50.9 against 58.7 dB), and the view calibration already
 mixes the decoder with no scattering there.
+
+**The tail.** Within the domain a decoder still learns a footprint only as far out as its training crops
+hold light at most pixels: the SBH loss's L1, log and gradient terms fit the *median* of their targets, and
+where the crops' light is fainter than their noise, or comes in rare bright samples (a path tracer's
+Monte-Carlo grain; shot noise at a few photons), that median is 0 while the mean, the light, is not. A
+decoder trained on Mitsuba renders learned almost no light beyond 10 px, where the analytic model puts 2 % of
+a skin's red energy (5 % at 6-10 px), and relit that skin 1 dB below the analytic model. :func:`tail_radius` records, per colour, the first ring at which the
+training crops' median falls to 0, and the torch backend takes the footprint from that ring outwards from the
+analytic model (:func:`with_physics_tail`), keeping the decoder's energy.
 """
 
 from __future__ import annotations
@@ -35,6 +44,8 @@ WIDTH_QUANTILE, WIDTH_MARGIN = 0.995, 2.0
 MAX_DOMAIN_PIXELS = 50_000
 #: The projector black level the training widths are read with (sessions record theirs only per view).
 DOMAIN_BLACK = 0.002
+#: The largest tail radius a checkpoint may record (a 256 px patch's corner ring, plus one).
+MAX_TAIL_RADIUS = 182
 
 
 @dataclass(frozen=True)
@@ -45,9 +56,15 @@ class WidthDomain:
     limit: tuple[float, float, float]
     quantile: float = WIDTH_QUANTILE
     pixels: int = 0
+    #: per colour, the first ring (px) whose light the decoder did not learn (:func:`tail_radius`); None: a
+    #: checkpoint from before it was recorded, whose footprints are the decoder's out to the patch's corners
+    tail_radius: tuple[int, int, int] | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"width_limit_px": list(self.limit), "quantile": self.quantile, "pixels": self.pixels}
+        out: dict[str, Any] = {"width_limit_px": list(self.limit), "quantile": self.quantile, "pixels": self.pixels}
+        if self.tail_radius is not None:
+            out["tail_radius_px"] = list(self.tail_radius)
+        return out
 
     @classmethod
     def from_dict(cls, d: object) -> WidthDomain | None:
@@ -60,7 +77,14 @@ class WidthDomain:
             limit = np.full(1, np.nan)
         if limit.shape != (3,) or not np.isfinite(limit).all() or (limit <= 0).any():
             raise DataError(f"the checkpoint's training domain is damaged: width limits {d['width_limit_px']!r}")
-        return cls(tuple(float(x) for x in limit), float(d.get("quantile", WIDTH_QUANTILE)), int(d.get("pixels", 0)))  # type: ignore[arg-type]
+        tail = d.get("tail_radius_px")
+        if tail is not None:
+            ok = isinstance(tail, list) and len(tail) == 3 and all(type(r) is int and 1 <= r <= MAX_TAIL_RADIUS for r in tail)
+            if not ok:
+                raise DataError(f"the checkpoint's training domain is damaged: tail radii {tail!r}")
+            tail = tuple(tail)
+        return cls(tuple(float(x) for x in limit), float(d.get("quantile", WIDTH_QUANTILE)), int(d.get("pixels", 0)),  # type: ignore[arg-type]
+                   tail)
 
 
 def pixel_widths(patches: np.ndarray, patch: int, black: float = DOMAIN_BLACK) -> dict[str, np.ndarray]:
@@ -87,6 +111,40 @@ def training_domain(views: Sequence[ViewData], patch: int, *, seed: int = 0, bla
         w = w[np.random.default_rng(seed).choice(len(w), MAX_DOMAIN_PIXELS, replace=False)]
     limit = np.quantile(w, WIDTH_QUANTILE, axis=0) * WIDTH_MARGIN
     return WidthDomain(tuple(float(x) for x in limit), WIDTH_QUANTILE, len(w))  # type: ignore[arg-type]
+
+
+def _rings(patch: int) -> np.ndarray:
+    """(K, K) int: each pixel's distance from the centre pixel ``K // 2``, rounded."""
+    off = np.arange(patch) - patch // 2
+    return np.rint(np.hypot(off[:, None], off[None, :])).astype(np.int64)
+
+
+def tail_radius(footprints: np.ndarray) -> tuple[int, int, int]:
+    """Per colour, the first ring (px from the centre) at which the median over (N, 3, K, K) training
+    ``footprints``, each divided by its colour's energy, is not positive: from there out the SBH loss taught
+    the decoder no light. A ring beyond the patch (``K // 2`` times sqrt 2, rounded, plus 1) where the median
+    stays positive to the corners (noise-free footprints)."""
+    fp = np.asarray(footprints, np.float64)
+    rings = _rings(fp.shape[-1])
+    out = []
+    for c in range(3):
+        energy = fp[:, c].sum(axis=(1, 2))
+        lit = fp[energy > 0, c] / energy[energy > 0, None, None]
+        r = 0
+        while r <= rings.max() and len(lit) and np.median(lit[:, rings == r]) > 0:
+            r += 1
+        out.append(max(r, 1))
+    return tuple(out)  # type: ignore[return-value]
+
+
+def with_physics_tail(footprints: np.ndarray, physics: np.ndarray, radius: Sequence[int]) -> np.ndarray:
+    """(N, K, K, 3) decoder ``footprints`` whose rings from ``radius`` (3,) px outwards, per colour, are the
+    ``physics`` footprints' (the analytic model's, (N, K, K, 3)), each colour scaled back to the decoder's
+    energy -> (N, K, K, 3)."""
+    far = _rings(footprints.shape[1])[:, :, None] >= np.asarray(radius)[None, None, :]  # (K, K, 3)
+    out = np.where(far[None], physics, footprints)
+    own, now = footprints.sum(axis=(1, 2), keepdims=True), out.sum(axis=(1, 2), keepdims=True)
+    return (out * np.where(now > 0, own / np.where(now > 0, now, 1.0), 1.0)).astype(footprints.dtype)
 
 
 def beyond(domain: WidthDomain, widths: np.ndarray) -> np.ndarray:

@@ -86,15 +86,23 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
 
 
 def domain_line(rv: RelightView, name: str, source: FootprintSource) -> str | None:
-    """One line when the decoder behind ``source`` handed pixels beyond its training widths to the analytic
-    model (:mod:`sssphase_core.learning.domain`); None otherwise."""
+    """One line when the decoder behind ``source`` handed pixels beyond its training widths, or its footprints'
+    rings beyond the radius its training crops held light to, to the analytic model
+    (:mod:`sssphase_core.learning.domain`); None otherwise."""
     backend = getattr(source, "backend", None)
     far, total = getattr(backend, "beyond_domain", 0), getattr(backend, "predicted", 0)
-    if not far or not total:
+    tail = getattr(backend, "tail_applied", None)
+    if not total or not (far or tail):
         return None
-    limit = "/".join(f"{x:.1f}" for x in backend.domain.limit)  # type: ignore[union-attr]
-    return (f"{rv.object} view {rv.view}: {name}: {far:,} of {total:,} pixels ({far / total:.1%}) have footprints wider "
-            f"than the decoder was trained on (R/G/B {limit} px): the analytic model's footprints there")
+    said = []
+    if far:
+        limit = "/".join(f"{x:.1f}" for x in backend.domain.limit)  # type: ignore[union-attr]
+        said.append(f"{far:,} of {total:,} pixels ({far / total:.1%}) have footprints wider than the decoder was "
+                    f"trained on (R/G/B {limit} px): the analytic model's footprints there")
+    if tail:
+        said.append(f"footprints from {'/'.join(str(r) for r in tail)} px out (R/G/B) are the analytic model's: its "
+                    "training crops' median held no light there")
+    return f"{rv.object} view {rv.view}: {name}: " + "; ".join(said)
 
 
 def make_sources(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",

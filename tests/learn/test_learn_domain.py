@@ -3,6 +3,8 @@ backend gives the analytic model's footprints to pixels far beyond that (not the
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -11,7 +13,15 @@ from sssphase_core.errors import DataError
 from sssphase_core.learning.backends import get_backend
 from sssphase_core.learning.backends.analytic_backend import AnalyticBackend
 from sssphase_core.learning.data import psp_patches
-from sssphase_core.learning.domain import WIDTH_MARGIN, WidthDomain, beyond, pixel_widths, training_domain
+from sssphase_core.learning.domain import (
+    WIDTH_MARGIN,
+    WidthDomain,
+    beyond,
+    pixel_widths,
+    tail_radius,
+    training_domain,
+    with_physics_tail,
+)
 
 
 def _washed_out(psp: np.ndarray, contrast: float) -> np.ndarray:
@@ -35,7 +45,7 @@ def test_the_checkpoint_records_the_widths_its_training_pixels_reach(decoder_run
     views = synthetic[0]
     domain = WidthDomain.from_dict(torch.load(decoder_run, weights_only=False, map_location="cpu")["domain"])
     assert domain is not None and domain.pixels == sum(len(v.pixels) for v in views)
-    assert domain == training_domain(views, 16)
+    assert replace(domain, tail_radius=None) == training_domain(views, 16)
     widths = np.concatenate([pixel_widths(psp_patches(v.psp, v.pixels, 5), 16)["widths"] for v in views])
     assert (widths.max(axis=0) * 0.5 < np.asarray(domain.limit)).all()  # beyond the bulk, by the margin
     assert np.allclose(np.asarray(domain.limit), np.quantile(widths, domain.quantile, axis=0) * WIDTH_MARGIN)
@@ -98,3 +108,90 @@ def test_relighting_says_how_many_pixels_the_analytic_model_took_over(decoder_ru
     n = len(v.pixels) + 16
     assert line is not None and line.startswith(f"a view 0: torch: 16 of {n} pixels") and "analytic model" in line
     assert "/".join(f"{x:.1f}" for x in be.domain.limit) in line
+
+
+def _rings(k: int) -> np.ndarray:
+    off = np.arange(k) - k // 2
+    return np.hypot(off[:, None], off[None, :])
+
+
+def test_the_tail_radius_is_where_the_crops_hold_no_light_at_most_pixels_though_their_mean_does():
+    """Crops of a wide footprint counted in photons (Poisson): far out most pixels count none, so the SBH loss's
+    median-fitting terms teach no light there, while the light is there on average."""
+    k, n, w = 32, 600, 4.0
+    rng = np.random.default_rng(0)
+    profile = np.exp(-_rings(k) / w)
+    profile /= profile.sum()
+    photons = np.array([500.0, 2e3, 8e3])  # per footprint: the dimmer the colour, the nearer its radius
+    counts = rng.poisson(photons[None, :, None, None] * profile[None, None], size=(n, 3, k, k))
+    radius = tail_radius(counts / photons[None, :, None, None])
+    assert radius[0] < radius[1] < radius[2] <= np.rint(_rings(k).max())
+    for c, r in enumerate(radius):
+        mean_count = photons[c] * profile[np.rint(_rings(k)) == r].mean()
+        assert 0.1 < mean_count < 1.5  # about ln 2: a Poisson count's median is 0 below it
+        assert counts[:, c, np.rint(_rings(k)) >= r].mean() > 0  # the light the decoder would not learn
+    exact = np.broadcast_to(profile, (4, 3, k, k))
+    assert tail_radius(exact) == (np.rint(_rings(k).max()) + 1,) * 3  # noise-free: no tail to hand over
+
+
+def test_a_physics_tail_replaces_the_rings_beyond_each_colours_radius_and_keeps_the_decoders_energy():
+    rng = np.random.default_rng(1)
+    k = 16
+    decoder = rng.uniform(0.0, 1.0, (5, k, k, 3)).astype(np.float32)
+    physics = rng.uniform(0.0, 1.0, (5, k, k, 3)).astype(np.float32)
+    radius = (2, 4, 12)
+    out = with_physics_tail(decoder, physics, radius)
+    assert np.allclose(out.sum(axis=(1, 2)), decoder.sum(axis=(1, 2)), rtol=1e-5)
+    rings = np.rint(_rings(k))
+    for c, r in enumerate(radius):
+        near, far = rings < r, rings >= r
+        scale = out[:, near, c] / decoder[:, near, c]  # one factor per footprint and colour
+        assert np.allclose(scale, scale[:, :1], rtol=1e-5)
+        assert np.allclose(out[:, far, c], physics[:, far, c] * scale[:, :1], rtol=1e-5)
+
+
+def test_the_checkpoint_records_its_tail_and_the_backend_takes_the_rings_beyond_it_from_the_analytic_model(
+        decoder_run, synthetic, tmp_path):
+    ckpt = torch.load(decoder_run, weights_only=False, map_location="cpu")
+    recorded = WidthDomain.from_dict(ckpt["domain"]).tail_radius
+    assert recorded is not None and all(1 <= r <= np.rint(_rings(16).max()) + 1 for r in recorded)
+    ckpt["domain"]["tail_radius_px"] = [2, 3, 5]
+    torch.save(ckpt, tmp_path / "tail.pt")
+    v = synthetic[0][0]
+    patches = psp_patches(v.psp, v.pixels, 16)
+    tailed = get_backend("torch", checkpoint=tmp_path / "tail.pt", black=0.0)
+    out = tailed.predict_footprints(patches)
+    assert tailed.beyond_domain == 0
+    plain = get_backend("torch", checkpoint=decoder_run, guard=False).predict_footprints(patches)
+    est = pixel_widths(patches, 16, 0.0)
+    physics = AnalyticBackend(patch=16, black=0.0).render(est["energy"], est["axes"])
+    assert np.allclose(out, with_physics_tail(plain, physics, (2, 3, 5)), rtol=1e-4, atol=1e-8)
+    assert not np.allclose(out, plain, rtol=1e-3, atol=1e-6)
+    # without the record (a checkpoint from before it), or unguarded, the decoder's own footprints
+    ckpt["domain"].pop("tail_radius_px")
+    torch.save(ckpt, tmp_path / "before.pt")
+    assert np.array_equal(get_backend("torch", checkpoint=tmp_path / "before.pt").predict_footprints(patches), plain)
+    assert np.array_equal(get_backend("torch", checkpoint=tmp_path / "tail.pt", guard=False).predict_footprints(patches), plain)
+
+
+@pytest.mark.parametrize("tail", [[1, 2], [0, 2, 3], [1.5, 2, 3], "far", [True, 2, 3], [2, 3, 10**6]])
+def test_a_damaged_tail_radius_is_one_clear_line(tail):
+    with pytest.raises(DataError, match="training domain is damaged: tail radii"):
+        WidthDomain.from_dict({"width_limit_px": [1.0, 1.0, 1.0], "tail_radius_px": tail})
+
+
+def test_relighting_says_from_which_ring_out_the_footprints_are_the_analytic_models(decoder_run, synthetic, tmp_path):
+    from types import SimpleNamespace
+
+    from sssphase_core.relight.backends import domain_line
+
+    ckpt = torch.load(decoder_run, weights_only=False, map_location="cpu")
+    ckpt["domain"]["tail_radius_px"] = [4, 4, 6]
+    torch.save(ckpt, tmp_path / "tail.pt")
+    v = synthetic[0][0]
+    be = get_backend("torch", checkpoint=tmp_path / "tail.pt", black=0.0)
+    source, rv = SimpleNamespace(backend=be), SimpleNamespace(object="a", view=0)
+    assert domain_line(rv, "torch", source) is None  # nothing predicted yet
+    be.predict_footprints((v.psp, v.pixels))
+    line = domain_line(rv, "torch", source)
+    assert line is not None and line.startswith("a view 0: torch: footprints from 4/4/6 px out") and "wider" not in line

@@ -12,7 +12,7 @@ from sssphase_core.compute import compute_device
 from sssphase_core.errors import InputError
 from sssphase_core.learning.backends.base import Query, as_patches
 from sssphase_core.learning.data import PatchDataset, ViewData
-from sssphase_core.learning.domain import WidthDomain, beyond, pixel_widths
+from sssphase_core.learning.domain import WidthDomain, beyond, pixel_widths, with_physics_tail
 from sssphase_core.learning.models import ModelPreset, get_preset
 from sssphase_core.learning.training import (
     DecoderConfig,
@@ -30,8 +30,10 @@ class TorchBackend:
     """``checkpoint``: a decoder checkpoint (``sss train decoder``) used by ``predict_footprints``.
 
     Pixels whose footprint is wider than any the decoder was trained on (:mod:`sssphase_core.learning.domain`,
-    recorded in the checkpoint) get the analytic model's footprints (with projector ``black`` level) unless
-    ``guard`` is False; ``beyond_domain`` / ``predicted`` count them and all pixels predicted so far."""
+    recorded in the checkpoint) get the analytic model's footprints (with projector ``black`` level), and the
+    others the analytic model's tail beyond the radius the training crops held light to (where the checkpoint
+    records it), unless ``guard`` is False; ``beyond_domain`` / ``predicted`` count the former and all pixels
+    predicted so far."""
 
     name = "torch"
 
@@ -44,6 +46,7 @@ class TorchBackend:
         self.domain: WidthDomain | None = None
         self.patch = 0
         self.beyond_domain = self.predicted = 0
+        self.tail_applied: tuple[int, int, int] | None = None  # the tail radii once a footprint took them
         if checkpoint is not None:
             self.load(checkpoint)
 
@@ -87,7 +90,8 @@ class TorchBackend:
             raise InputError("the torch backend has no decoder checkpoint: pass checkpoint=... or call fit()")
         patches = as_patches(query, self.patch)
         far = np.zeros(len(patches), bool)
-        if self.guard and self.domain is not None and len(patches):
+        guarded = self.guard and self.domain is not None and len(patches)
+        if guarded:
             est = pixel_widths(patches, self.patch, self.black)
             far = beyond(self.domain, est["widths"])
         out = np.zeros((len(patches), self.patch, self.patch, 3), np.float32)
@@ -96,11 +100,17 @@ class TorchBackend:
             x = torch.as_tensor(patches[near[i : i + self.batch_size]], device=self.device)
             pred, _ = FootprintNet(self.encoder, self.decoder)(x)
             out[near[i : i + self.batch_size]] = pred.float().permute(0, 2, 3, 1).cpu().numpy()
-        if far.any():  # beyond what the decoder learned: the physics, which reads the width at any scale
+        tail = self.domain.tail_radius if guarded else None  # type: ignore[union-attr]
+        if far.any() or (tail is not None and len(near)):
+            # beyond what the decoder learned: the physics, which reads the width at any scale
             from sssphase_core.learning.backends.analytic_backend import AnalyticBackend
 
             fallback = AnalyticBackend(patch=self.patch, black=self.black)
             out[far] = fallback.render(est["energy"][far], est["axes"][far])
+            if tail is not None and min(tail) <= int(np.rint(np.hypot(self.patch // 2, self.patch // 2))):
+                physics = fallback.render(est["energy"][near], est["axes"][near])
+                out[near] = with_physics_tail(out[near], physics, tail)
+                self.tail_applied = tail
         self.beyond_domain += int(far.sum())
         self.predicted += len(patches)
         return out

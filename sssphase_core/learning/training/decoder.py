@@ -14,7 +14,7 @@ from sssphase_core.errors import DataError, InputError
 from sssphase_core.learning import augment
 from sssphase_core.learning.camera import NO_CAMERA, as_captured
 from sssphase_core.learning.data import PatchDataset
-from sssphase_core.learning.domain import training_domain
+from sssphase_core.learning.domain import tail_radius, training_domain
 from sssphase_core.learning.losses import LOG_EPS, SBHLoss, noise_floor
 from sssphase_core.learning.metrics import MSE_FLOOR, psnr
 from sssphase_core.learning.models import Decoder, Encoder, ModelPreset, get_preset
@@ -193,8 +193,12 @@ def train_decoder(
     if cfg.log_eps is None:  # recorded in the checkpoint's config, so a resumed run uses the same value
         cfg = replace(cfg, log_eps=max(LOG_EPS, noise_floor(first_footprints()[0])))
     loss_fn = SBHLoss(log_eps=cfg.log_eps)
-    # the footprint widths it learns from: the torch backend hands pixels beyond them to the analytic model
-    domain = training_domain(dataset.views, dataset.patch, seed=cfg.seed).to_dict() if d.main else None
+    # the footprint widths it learns from, and how far out its targets hold light: the torch backend hands pixels
+    # beyond those widths, and each footprint's rings beyond that radius, to the analytic model
+    domain = None
+    if d.main:
+        domain = replace(training_domain(dataset.views, dataset.patch, seed=cfg.seed),
+                         tail_radius=tail_radius(first_footprints()[0].cpu().numpy())).to_dict()
 
     def step(batch: dict[str, torch.Tensor], gstep: int) -> dict[str, float]:
         dec.train()
