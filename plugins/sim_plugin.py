@@ -62,8 +62,17 @@ def _number(options: Mapping[str, Any], name: str, default: float, lo: float, hi
     if isinstance(value, bool) or not isinstance(value, int | float) or (kind is int and value != int(value)):
         raise InputError(f"sim option {name} must be {'an integer' if kind is int else 'a number'}, got {value!r}")
     if not lo <= value <= hi:  # NaN fails too
-        raise InputError(f"sim option {name} must be in [{lo:g}, {hi:g}], got {value!r}")
+        shown = f"[{int(lo):,}, {int(hi):,}]" if kind is int else f"[{lo:g}, {hi:g}]"
+        raise InputError(f"sim option {name} must be in {shown}, got {value!r}")
     return kind(value)
+
+
+def _flag(options: Mapping[str, Any], name: str) -> bool:
+    """Option ``name`` as true or false (a string such as "false" had counted as true)."""
+    value = options.get(name, False)
+    if not isinstance(value, bool):
+        raise InputError(f"sim option {name} must be true or false, got {value!r}")
+    return value
 
 
 def _transport_factory(device: Any):
@@ -94,7 +103,7 @@ class SimRigState:
         self.view = _number(options, "view", 0, 0, 2**31, int) % self.n_views
         self.latency_ns = int(_number(options, "latency_s", 1 / 60, 0.0, 60.0, float) * 1e9)
         self.frame_period_ns = int(_number(options, "frame_period_s", 1 / 30, 1e-6, 60.0, float) * 1e9)
-        self.realtime = bool(options.get("realtime", False))
+        self.realtime = _flag(options, "realtime")
         self.transport_factory = _transport_factory(options.get("device", "cpu"))
         self.sensor = None  # the camera's sensor on the same device (sim_accel.DeviceSensor), where it applies
         if self.transport_factory is not None:
@@ -194,14 +203,15 @@ class SimCamera:
         self.bench = bench
         self.exposure = 1.0
         self.gain = 1.0
-        self.raw = bool(options.get("raw", False))
+        self.raw = _flag(options, "raw")
         if self.raw and bench.rig.sensor.three_chip:
             raise DeviceError("a three-chip sim camera (demosaic none) has no raw Bayer frames: leave out the raw option")
-        self.fail_at = int(options.get("fail_at_frame", -1))
-        self.disconnect_at = int(options.get("disconnect_at_frame", -1))  # gone from that grab on (unplugged)
-        self.delay_s = float(options.get("grab_delay_s", 0.0))
-        self.stall_at = int(options.get("stall_at_frame", -1))  # that grab never returns (a hung camera)
-        self.garbage_at = int(options.get("garbage_at_frame", -1))  # that frame is not a frame of this camera
+        fault = lambda name: _number(options, name, -1, -1, 2**31, int)  # noqa: E731  # a frame number, -1: never
+        self.fail_at = fault("fail_at_frame")
+        self.disconnect_at = fault("disconnect_at_frame")  # gone from that grab on (unplugged)
+        self.delay_s = _number(options, "grab_delay_s", 0.0, 0.0, 3600.0, float)
+        self.stall_at = fault("stall_at_frame")  # that grab never returns (a hung camera)
+        self.garbage_at = fault("garbage_at_frame")  # that frame is not a frame of this camera
         self.sequence = 0
         w, h = bench.rig.camera.width, bench.rig.camera.height
         #: how long a frame may take to render (the daemon's deadline is no shorter): 10 s at the CPU preset's

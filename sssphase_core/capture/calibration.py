@@ -138,25 +138,35 @@ def capture_ramp(client: Any, rig: Any, levels: tuple[float, ...] = RAMP_LEVELS,
 
 
 def rig_file_with_response(text: str, response: ProjectorResponse) -> str:
-    """A rig file's text with its ``[projector]`` table replaced by ``response`` (everything else, comments
-    included, kept as it was)."""
+    """A rig file's text with its ``[projector]`` table replaced by ``response``: everything else, comments
+    included, kept as it was where a line edit can do it; where it cannot (a quoted ``["projector"]`` header,
+    dotted ``projector.gamma`` keys) the whole file is written again from its parsed tables, without comments,
+    rather than left with two projector tables or without a table it had."""
     import re
+    import tomllib
 
     import tomli_w
 
     note = "# projector response fitted by `sss calibrate projector` (gamma, black: used for patterns and relighting)"
-    header = re.compile(r"^\s*\[\s*([A-Za-z0-9_.\-]+)\s*\]\s*(#.*)?$")  # a table header, not an array line
+    header = re.compile(r"^\s*(\[\[?)\s*([A-Za-z0-9_.\-\"' ]+?)\s*\]\]?\s*(#.*)?$")  # [table] or [[array]]
     out, skipping = [], False
     for line in text.splitlines():
         match = header.match(line)
         if match:
-            skipping = match.group(1) == "projector"
+            skipping = match.group(1) == "[" and match.group(2) == "projector"
         if not skipping and line.strip() != note:
             out.append(line)
     while out and not out[-1].strip():
         out.pop()
-    table = tomli_w.dumps({"projector": response.to_table()})
-    return "\n".join(out) + ("\n\n" if out else "") + note + "\n" + table
+    table = {"projector": response.to_table()}
+    edited = "\n".join(out) + ("\n\n" if out else "") + note + "\n" + tomli_w.dumps(table)
+    wanted = {**{k: v for k, v in tomllib.loads(text).items() if k != "projector"}, **table}
+    try:
+        if tomllib.loads(edited) == wanted:
+            return edited
+    except tomllib.TOMLDecodeError:
+        pass
+    return note + "\n" + tomli_w.dumps(wanted)
 
 
 def correspondence_error(session: Any, view: int = 0) -> float:
@@ -259,9 +269,11 @@ def _check_response(client: Any, req: CalibrationRequest, fitted: ProjectorRespo
 
 
 def write_rig_response(req: CalibrationRequest, fitted: ProjectorResponse) -> Path:
-    """Write ``fitted`` as the ``[projector]`` table of ``req.target`` (a new file: the sim rig's devices too)."""
+    """Write ``fitted`` as the ``[projector]`` table of ``req.target`` (a new file: a copy of ``req.rig``, or the sim
+    rig's devices)."""
     target, spec = req.target, req.spec
-    text = target.read_text() if target.exists() else ""
+    source = target if target.exists() else req.rig  # a new --out: a copy of the whole rig file, calibrated
+    text = source.read_text() if source is not None else ""
     if not text and req.rig is None:
         import tomli_w
 

@@ -59,14 +59,35 @@ def _keeping_rig_open(client: ClientLike) -> Iterator[None]:
         thread.join()
 
 
+#: The shortest relative HDR exposure: a thousandth of the base exposure (a daemon refuses exposures under a
+#: microsecond, which 1e-9 of a second-long base gave, after the session was begun).
+MIN_BRACKET = 1e-3
+
+
 def check_brackets(exposures: tuple[float, ...]) -> None:
-    """HDR brackets: none, or 2 to ``MAX_BRACKETS`` distinct finite relative exposures in (0, 256]."""
+    """HDR brackets: none, or 2 to ``MAX_BRACKETS`` distinct finite relative exposures in [``MIN_BRACKET``, 256]."""
     if not exposures:
         return
-    ok = all(isinstance(e, int | float) and 0 < e <= 256 for e in exposures)  # NaN fails too
+    ok = all(isinstance(e, int | float) and MIN_BRACKET <= e <= 256 for e in exposures)  # NaN fails too
     if not ok or not 2 <= len(exposures) <= MAX_BRACKETS or len(set(exposures)) != len(exposures):
         shown = ", ".join(f"{e:g}" for e in exposures[:MAX_BRACKETS + 1]) + (", ..." if len(exposures) > MAX_BRACKETS + 1 else "")
-        raise InputError(f"HDR exposures must be 2 to {MAX_BRACKETS} distinct numbers in (0, 256], got {len(exposures)}: {shown}")
+        raise InputError(f"HDR exposures must be 2 to {MAX_BRACKETS} distinct numbers in [{MIN_BRACKET:g}, 256], got "
+                         f"{len(exposures)}: {shown}")
+
+
+#: The sim rig options `sss capture` sets from its own options (--object, --preset, --seed, --views).
+CAPTURE_FLAGS = {"object": "--object", "preset": "--preset", "seed": "--seed", "n_views": "--views"}
+
+
+def check_rig_leaves_capture_options(rig_options: dict[str, Any], own: dict[str, Any]) -> None:
+    """A rig file's ``[options]`` may repeat what the capture sets (``own``: :data:`CAPTURE_FLAGS`), not change it,
+    and may not set ``view`` (the turntable's): its value had won, and a session named apple held an orange."""
+    clash = [k for k in CAPTURE_FLAGS if k in rig_options and rig_options[k] != own[k]]
+    if clash or "view" in rig_options:
+        said = [f"{k} = {rig_options[k]!r} (the capture's {CAPTURE_FLAGS[k]} gives {own[k]!r})" for k in clash]
+        said += ["view (the turntable sets it)"] if "view" in rig_options else []
+        raise InputError(f"the rig file's [options] set {'; '.join(said)}: `sss capture` sets these itself; remove "
+                         "them from the rig file")
 
 
 def run_capture(client: ClientLike, req: CaptureRequest, rig: RigSpec | None = None, *,
@@ -79,8 +100,9 @@ def run_capture(client: ClientLike, req: CaptureRequest, rig: RigSpec | None = N
     rig = rig or RigSpec()
     options = dict(rig.options)
     if rig.is_sim:
-        options = {"object": req.object, "preset": req.preset, "seed": req.seed, "n_views": req.views, **options,
-                   **req.sim_options}
+        own = {"object": req.object, "preset": req.preset, "seed": req.seed, "n_views": req.views}
+        check_rig_leaves_capture_options(options, own)
+        options = {**own, **options, **req.sim_options}
         if req.transport is not None:
             options["transport"] = req.transport
     with _capture_lock(Path(req.out), req.object):

@@ -25,6 +25,11 @@ def dot_spacing_for(patch: int) -> int:
     return max(2, round(DOT_SPACING_PER_PATCH * patch))
 
 
+#: The tables of a rig file, and the keys of its [projector] table (what `sss calibrate projector` writes).
+RIG_TABLES = ("devices", "processing", "projector", "options")
+PROJECTOR_KEYS = frozenset({"gamma", "black", "gamma_rgb", "black_rgb", "levels", "response_rgb", "rms", "pixels"})
+
+
 @dataclass
 class RigSpec:
     """Which devices to use and their options (``--rig RIG.toml``; default: the sim rig)."""
@@ -57,9 +62,16 @@ class RigSpec:
         except OSError as exc:
             raise InputError(f"cannot read rig file {path}: {exc}") from None
         dev, proc, resp = cfg.get("devices", {}), cfg.get("processing", {}), cfg.get("projector", {})
-        for table in ("devices", "processing", "projector", "options"):
+        for table in RIG_TABLES:
             if not isinstance(cfg.get(table, {}), dict):
                 raise InputError(f"{path}: {table} must be a [{table}] table, got {type(cfg[table]).__name__}")
+        unknown = sorted(set(cfg) - set(RIG_TABLES))  # a misspelt [projecter] was ignored: patterns for 2.2
+        if unknown:
+            raise InputError(f"{path}: unknown rig file tables {', '.join(f'[{t}]' for t in unknown)} (a rig file has "
+                             f"{', '.join(f'[{t}]' for t in RIG_TABLES)})")
+        unknown = sorted(set(resp) - PROJECTOR_KEYS)
+        if unknown:
+            raise InputError(f"{path}: unknown [projector] keys {', '.join(unknown)} (known: {', '.join(sorted(PROJECTOR_KEYS))})")
         if "camera" not in dev or "projector" not in dev:
             raise InputError(f"{path}: [devices] needs camera and projector ids (see `sss devices`)")
         bad = [k for k, v in dev.items() if k not in ("camera", "projector", "turntable", "trigger") or not isinstance(v, str)]
@@ -88,7 +100,16 @@ class RigSpec:
                              f"(a white at 2,300 DN: 2300), got {proc['white_scale']:g}, below one DN: its inverse?")
         if "median" in proc and not isinstance(proc["median"], bool):
             raise InputError(f"{path}: [processing] median must be true or false, got {proc['median']!r}")
+        for key, (lo, hi) in (("gamma_rgb", (0.3, 5.0)), ("black_rgb", (0.0, 0.5))):  # per colour, as fitted
+            v = resp.get(key)
+            if v is not None and not (isinstance(v, list) and len(v) == 3 and all(
+                    isinstance(x, int | float) and not isinstance(x, bool) and lo <= x <= hi for x in v)):
+                raise InputError(f"{path}: [projector] {key} must be three numbers in [{lo:g}, {hi:g}], got {v!r}")
         gamma, black = resp.get("gamma"), resp.get("black")
+        if gamma is None and "gamma_rgb" in resp:  # the colours' mean, as `sss calibrate projector` writes it
+            gamma = sum(resp["gamma_rgb"]) / 3
+        if black is None and "black_rgb" in resp:
+            black = min(sum(resp["black_rgb"]) / 3, 0.499)
         if gamma is not None and not (isinstance(gamma, int | float) and not isinstance(gamma, bool) and 0.3 <= gamma <= 5):
             raise InputError(f"{path}: [projector] gamma must be a number in [0.3, 5], got {gamma!r}")
         if black is not None and not (isinstance(black, int | float) and not isinstance(black, bool) and 0 <= black < 0.5):

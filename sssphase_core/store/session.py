@@ -388,6 +388,13 @@ def rig_problem(rig: Any) -> str | None:
     for name in ("camera", "projector"):
         if rig.get(name) is not None and not isinstance(rig[name], str):
             return f"rig.{name} must be a device name, got {rig[name]!r}"
+    if str(rig.get("camera", "")).startswith("sim:") and rig.get("options"):  # the sim rig relight and geometry rebuild
+        from sssphase_core.sim import rig_from_options
+
+        try:
+            rig_from_options(rig["options"])
+        except InputError as exc:
+            return f"rig.options: {exc}"
     return camera_isp_problem({k: rig[k] for k in ("bayer", "median") if rig.get(k) is not None})
 
 

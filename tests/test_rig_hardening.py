@@ -1,0 +1,163 @@
+"""Rig files and sim rig options that had been taken without a word (a session named apple holding an orange,
+a misspelt table ignored, "false" read as true) or broken by `sss calibrate projector`, now refused or kept."""
+
+from __future__ import annotations
+
+import tomllib
+
+import pytest
+
+from sssphase_core.capture.calibration import (
+    RAMP_LEVELS,
+    CalibrationRequest,
+    ProjectorResponse,
+    rig_file_with_response,
+    write_rig_response,
+)
+from sssphase_core.capture.engine import check_brackets, run_capture
+from sssphase_core.capture.plan import CaptureRequest, RigSpec
+from sssphase_core.errors import InputError
+from sssphase_core.store.session import rig_problem
+
+DEVICES = '[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\nturntable = "sim:turntable0"\n'
+FIT = ProjectorResponse(2.4, 0.003, (2.38, 2.4, 2.42), (0.003, 0.003, 0.003), RAMP_LEVELS,
+                        tuple(tuple(v ** 2.4 for v in RAMP_LEVELS) for _ in range(3)), 0.004, 1000)
+
+
+class _NoDaemon:
+    def call(self, *args, **kwargs):
+        raise AssertionError("the daemon was asked before the rig file was checked")
+
+
+@pytest.mark.parametrize(("options", "said"), [
+    ('object = "orange"\n', "object = 'orange' (the capture's --object gives 'apple')"),
+    ("seed = 7\n", "seed = 7 (the capture's --seed gives 0)"),
+    ("n_views = 2\n", "n_views = 2 (the capture's --views gives 3)"),
+    ("view = 1\n", "view (the turntable sets it)"),
+])
+def test_rig_options_may_not_change_what_the_capture_sets(tmp_path, options, said):
+    (tmp_path / "rig.toml").write_text(DEVICES + "[options]\n" + options)
+    rig = RigSpec.from_toml(tmp_path / "rig.toml")
+    with pytest.raises(InputError, match="the rig file's \\[options\\] set") as err:
+        run_capture(_NoDaemon(), CaptureRequest("apple", views=3, out=tmp_path / "s"), rig)
+    assert said in str(err.value) and not (tmp_path / "s").exists()
+
+
+def test_rig_options_may_repeat_what_the_capture_sets(tmp_path):
+    (tmp_path / "rig.toml").write_text(DEVICES + '[options]\nobject = "apple"\nn_views = 3\n')
+    with pytest.raises(AssertionError, match="the daemon was asked"):  # past the check, to the daemon
+        run_capture(_NoDaemon(), CaptureRequest("apple", views=3, out=tmp_path / "s"), RigSpec.from_toml(tmp_path / "rig.toml"))
+
+
+@pytest.mark.parametrize(("text", "message"), [
+    (DEVICES + "[projecter]\ngamma = 2.6\n", r"unknown rig file tables \[projecter\]"),
+    (DEVICES + "[wat]\nx = 1\n", r"unknown rig file tables \[wat\]"),
+    (DEVICES + "[projector]\nfoo = 3\n", r"unknown \[projector\] keys foo"),
+    (DEVICES + '[projector]\ngamma_rgb = "x"\n', r"\[projector\] gamma_rgb must be three numbers in \[0.3, 5\]"),
+    (DEVICES + "[projector]\nblack_rgb = [0.1, 0.2]\n", r"\[projector\] black_rgb must be three numbers"),
+])
+def test_misspelt_or_mistyped_rig_tables_are_refused(tmp_path, text, message):
+    (tmp_path / "rig.toml").write_text(text)
+    with pytest.raises(InputError, match=message):
+        RigSpec.from_toml(tmp_path / "rig.toml")
+
+
+def test_per_colour_gammas_without_their_mean_give_it(tmp_path):
+    (tmp_path / "rig.toml").write_text(DEVICES + "[projector]\ngamma_rgb = [2.5, 2.6, 2.7]\nblack_rgb = [0.01, 0.02, 0.03]\n")
+    rig = RigSpec.from_toml(tmp_path / "rig.toml")
+    assert rig.gamma == pytest.approx(2.6) and rig.projector_black == pytest.approx(0.02)
+
+
+@pytest.mark.parametrize("text", [
+    DEVICES + '# keep\n["projector"]\ngamma = 2.3\n',  # a quoted header: the old table was kept beside the new one
+    'projector.gamma = 2.3\n' + DEVICES,  # a dotted key
+    DEVICES + '# keep\n[projector]\ngamma = 2.3\n[[extra]]\nname = "keepme"\n[options]\nread_noise = 3\n',  # [[arrays]]
+])
+def test_calibration_leaves_a_valid_rig_file_with_every_other_table(text):
+    before = tomllib.loads(text)
+    after = tomllib.loads(rig_file_with_response(text, FIT))  # was: "Cannot declare ('projector',) twice", or [[extra]] lost
+    assert after["projector"]["gamma"] == 2.4 and after["devices"] == before["devices"]
+    assert {k: v for k, v in after.items() if k != "projector"} == {k: v for k, v in before.items() if k != "projector"}
+
+
+def test_calibration_into_a_new_file_copies_the_whole_rig(tmp_path):
+    (tmp_path / "a.toml").write_text(DEVICES + "# my rig\n[options]\nread_noise = 3\n[processing]\nmedian = false\n")
+    req = CalibrationRequest(rig=tmp_path / "a.toml", out=tmp_path / "new.toml")
+    write_rig_response(req, FIT)
+    text = (tmp_path / "new.toml").read_text()
+    rig = RigSpec.from_toml(tmp_path / "new.toml")  # was: only [projector], "[devices] needs camera and projector ids"
+    assert rig.camera == "sim:camera0" and rig.options == {"read_noise": 3} and rig.median is False
+    assert rig.gamma == 2.4 and "# my rig" in text
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    ({"raw": "false"}, "sim option raw must be true or false, got 'false'"),
+    ({"realtime": "no"}, "sim option realtime must be true or false"),
+    ({"fail_at_frame": "x"}, "sim option fail_at_frame must be an integer, got 'x'"),
+    ({"grab_delay_s": float("nan")}, r"sim option grab_delay_s must be in \[0, 3600\]"),
+    ({"grab_delay_s": -1}, r"sim option grab_delay_s must be in \[0, 3600\]"),
+    ({"seed": -5}, r"sim option seed must be in \[0, 9,223,372,036,854,775,807\], got -5"),
+])
+def test_sim_options_of_the_wrong_type_are_one_line_naming_the_option(options, message):
+    from sssphase_plugins import sim_plugin
+
+    with pytest.raises(InputError, match=message):
+        bench = sim_plugin.SimRigState({"object": "apple", **options})
+        sim_plugin.SimCamera(bench, options)
+
+
+def test_hdr_brackets_the_daemon_would_refuse_are_refused_before_the_session_is_begun():
+    with pytest.raises(InputError, match=r"in \[0.001, 256\], got 2: 1e-09, 1"):
+        check_brackets((1e-9, 1.0))
+    check_brackets((0.001, 1.0))
+
+
+def test_a_sim_rig_record_the_simulator_cannot_rebuild_is_a_damaged_manifest():
+    rig = {"camera": "sim:camera0", "projector": "sim:projector0", "options": {"preset": "nope"}}
+    assert rig_problem(rig) == "rig.options: unknown rig preset 'nope'; choose one of cpu, paper"
+    assert rig_problem({**rig, "options": {"preset": "cpu"}}) is None
+    assert rig_problem({**rig, "camera": "uvc:0"}) is None  # another plugin's options are its own
+
+
+def test_the_gap_bench_on_a_view_without_references_is_one_line():
+    from types import SimpleNamespace
+
+    from sssphase_core.bench.gap_bench import decompose
+
+    with pytest.raises(InputError, match="apple view 0 has no reference captures"):  # was "need at least one array"
+        decompose(SimpleNamespace(object="apple", view=0, references={}), "analytic", None)
+
+
+def test_a_demo_or_repro_whose_sessions_failed_does_not_end_as_a_success(tmp_path):
+    from types import SimpleNamespace
+
+    from sssphase_core.errors import DataError
+    from sssphase_core.reporting.demo import USERS_PATH, Demo
+
+    done = {"status": "done"}
+    run = SimpleNamespace(results={n: done for n in USERS_PATH})
+    Demo.raise_unless_done(run, USERS_PATH, tmp_path / "report.md")
+    run.results["train_sessions"] = {"status": "not available", "reason": "did not answer within 0 s"}
+    with pytest.raises(DataError, match="steps train_sessions did not run"):
+        Demo.raise_unless_done(run, USERS_PATH, tmp_path / "report.md")
+
+
+def test_a_failed_daemon_bench_ends_its_daemon(monkeypatch):
+    from sssphase_daemon import bench
+
+    started = []
+
+    def spawn(**kwargs):
+        started.append(spawned(**kwargs))
+        return started[-1]
+
+    def broken(client, n):
+        raise RuntimeError("the run failed")
+
+    spawned = bench.spawn_daemon
+    monkeypatch.setattr(bench, "spawn_daemon", spawn)
+    monkeypatch.setattr(bench, "through_daemon", broken)
+    monkeypatch.setenv("SSS_RUNTIME_DIR", "/tmp")  # run_bench sets its own; restored after the test
+    with pytest.raises(RuntimeError, match="the run failed"):
+        bench.run_bench(5)
+    assert len(started) == 1 and started[0].poll() is not None  # was left running under init, out of `sss daemon stop`'s reach
