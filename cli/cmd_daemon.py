@@ -186,6 +186,8 @@ def daemon_keys(
     from sssphase_core.errors import InputError
     from sssphase_daemon import security
 
+    if directory is not None and directory.exists() and not directory.is_dir():  # was "[Errno 17] File exists"
+        raise InputError(f"--dir {directory} is a file: give a folder for the keys")
     try:
         path = security.generate_keys(directory, overwrite=overwrite)
     except FileExistsError as exc:
@@ -196,7 +198,7 @@ def daemon_keys(
 
 def bench_daemon(
     out: Annotated[Path, typer.Option(help="JSON result file (a Markdown table is printed and written next to it)")],
-    frames: Annotated[int, typer.Option(help="frames per throughput run")] = 200,
+    frames: Annotated[int, typer.Option(min=1, max=100_000, help="frames per throughput run")] = 200,
     md: Annotated[Path | None, typer.Option(help="Markdown table file (default: next to --out)")] = None,
 ) -> None:
     """Daemon frame throughput vs bare pyzmq PUSH/PULL (tcp, ipc), one sim view's capture time, peak memory."""

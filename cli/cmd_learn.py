@@ -295,7 +295,7 @@ def viz_footprints(
 def bench_learn(
     out: Annotated[Path, typer.Option(help="JSON output.")] = Path("bench_learn.json"),
     md: Annotated[Path | None, typer.Option(help="Markdown table output.")] = None,
-    repeats: int = 3,
+    repeats: Annotated[int, typer.Option(min=1, help="Timed runs of each measurement.")] = 3,
     device: str = "cpu",
 ) -> None:
     """Throughput (patches/s) of the lite and paper presets, inference and training, ratio to paper."""

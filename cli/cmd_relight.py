@@ -10,6 +10,8 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from sssphase_core.errors import InputError
+
 console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
 
 BackendOpt = Annotated[str, typer.Option("--backend", help="torch, analytic, blend (torch and analytic weighted by how well they relight the view's own fringe captures; needs --checkpoint), measured (the session's captured dot-grid footprints), none, or exact (simulated sessions only: the simulator's ground truth, for evaluation).")]
@@ -132,6 +134,14 @@ def eval_relight(
                       calibrate=calibrate, narrator=_Narrator())
 
 
+def _names(text: str, option: str) -> tuple[str, ...]:
+    """Comma-separated names, each once; one line when they name nothing (``,`` had run every case, or none)."""
+    names = tuple(dict.fromkeys(t.strip() for t in text.split(",") if t.strip()))
+    if not names:
+        raise InputError(f"{option} {text!r} names nothing: give comma-separated names")
+    return names
+
+
 def bench_relight(
     out: Annotated[Path, typer.Option("--out", help="JSON output (.md and .png written next to it).")] = Path("bench_relight.json"),
     objects: Annotated[str, typer.Option(help="Comma-separated simulated objects.")] = "soap",
@@ -139,15 +149,19 @@ def bench_relight(
     backends: Annotated[str, typer.Option(help="Comma-separated backends (torch and blend need --checkpoint).")] = "none,analytic,exact,torch,blend",
     radii: Annotated[str, typer.Option(help="Footprint truncation radii (px).")] = "4,8",
     chunks: Annotated[str, typer.Option(help="Chunk sizes besides the default 1024.")] = "256,4096",
-    repeats: int = 3,
+    repeats: Annotated[int, typer.Option(min=1, help="Timed runs of each configuration.")] = 3,
 ) -> None:
     """Relit PSNR against run time per backend, radius, chunk and precision; cost vs lit fraction; splat FLOP/s."""
     from sssphase_core.bench import relight_bench
+    from sssphase_core.learning.inputs import parse_ints
 
-    ints = lambda t: tuple(int(x) for x in t.split(",") if x.strip())  # noqa: E731
+    chosen = _names(backends, "--backends")
+    if checkpoint is None and not set(chosen) - {"torch", "blend"}:
+        raise InputError(f"--backends {backends} needs --checkpoint (a decoder run): nothing else is left to measure")
+    radii_px, chunk_sizes = tuple(parse_ints(radii, "--radii")), tuple(parse_ints(chunks, "--chunks"))
     with console.status("benchmarking") as st:
         res = relight_bench.run(out, objects=tuple(o for o in objects.split(",") if o), checkpoint=checkpoint,
-                                backends=tuple(b for b in backends.split(",") if b), radii=ints(radii), chunks=ints(chunks),
+                                backends=chosen, radii=radii_px, chunks=chunk_sizes,
                                 repeats=repeats, progress=lambda m: st.update(m))
     console.print(out.with_suffix(".md").read_text())
     console.print(f"wrote {out}, {out.with_suffix('.md')} and {res['figure']}")
@@ -223,7 +237,7 @@ def bench_geometry(
     from sssphase_core.store.session import find_sessions
 
     with console.status("scoring correspondences for geometry") as st:
-        geometry_bench.run(find_sessions(sessions), out, tuple(b.strip() for b in backends.split(",") if b.strip()),
+        geometry_bench.run(find_sessions(sessions), out, _names(backends, "--backends"),
                            checkpoint, progress=lambda m: st.update(m))
     console.print(out.with_suffix(".md").read_text())
     console.print(f"wrote {out} and {out.with_suffix('.md')}")
@@ -239,8 +253,8 @@ def bench_stability(
     from sssphase_core.bench import stability_bench
 
     with console.status("stability sweep") as st:
-        res = stability_bench.run(out, cases=[c for c in cases.split(",") if c] or None, checkpoint=checkpoint,
-                                  backends=tuple(b for b in backends.split(",") if b), progress=lambda m: st.update(m))
+        res = stability_bench.run(out, cases=list(_names(cases, "--cases")) if cases else None, checkpoint=checkpoint,
+                                  backends=_names(backends, "--backends"), progress=lambda m: st.update(m))
     console.print(out.with_suffix(".md").read_text())
     if res["non_finite"]:
         raise typer.Exit(1)
@@ -306,11 +320,13 @@ def demo(
     from them, relight unseen objects, evaluate, report (resumable)."""
     from sssphase_cli.progress import step_bar
     from sssphase_core.reporting.demo import run_demo
+    from sssphase_core.store.session import check_output_folder
     from sssphase_daemon.client import local_client
 
     def log(message: str) -> None:
         console.print(message, markup=False, highlight=False)
 
+    check_output_folder(out)  # before a daemon is started for it
     with local_client(on_start=lambda pid: log(f"started a local daemon (pid {pid})"),
                       on_stop=lambda pid: log(f"stopped the local daemon (pid {pid})"),
                       on_left=lambda pid: log(f"left the local daemon (pid {pid}) running: another client is using it "

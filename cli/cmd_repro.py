@@ -86,6 +86,8 @@ def repro_paper(
         raise InputError(f"unknown repro preset {preset!r}; choose one of {', '.join(PRESETS)}")
     if workers < 0:
         raise InputError(f"--workers must be 0 (automatic) or more, got {workers}")
+    if not timeout > 0:  # 0 failed every capture, and the run still said it had finished
+        raise InputError(f"--timeout must be a positive number of seconds, got {timeout:g}")
     if train_views is not None and train_views < 2:
         raise InputError(f"--train-views must be at least 2 (kNN leaves one view out), got {train_views}")
     cfg = PRESETS[preset]

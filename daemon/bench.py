@@ -188,14 +188,19 @@ def run_bench(n: int = 200) -> tuple[dict[str, Any], str]:
             bare = bare_pyzmq(transport, n, tmp)
             endpoint = None if transport == "ipc" else "tcp://127.0.0.1:*"
             proc = spawn_daemon(endpoint=endpoint)
-            state = security.read_state()
-            with DaemonClient(state.endpoint, state.token) as client:
-                daemon = through_daemon(client, n)
-                if transport == "ipc":
-                    result["sim_view_capture_s"] = sim_view_time(client, tmp)
-                result[f"daemon_peak_rss_mb_{transport}"] = _peak_rss_mb(proc.pid)
-                client.call("shutdown")
-            proc.wait(10)
+            try:  # a failed or interrupted run ends its daemon: its runtime folder goes with the temporary one
+                state = security.read_state()
+                with DaemonClient(state.endpoint, state.token) as client:
+                    daemon = through_daemon(client, n)
+                    if transport == "ipc":
+                        result["sim_view_capture_s"] = sim_view_time(client, tmp)
+                    result[f"daemon_peak_rss_mb_{transport}"] = _peak_rss_mb(proc.pid)
+                    client.call("shutdown")
+                proc.wait(10)
+            finally:
+                if proc.poll() is None:
+                    proc.kill()
+                    proc.wait(10)
             result["runs"][transport] = {"bare": bare, "daemon": daemon, "ratio": daemon["gb_per_s"] / bare["gb_per_s"]}
     result["client_peak_rss_mb"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
     return result, markdown(result)

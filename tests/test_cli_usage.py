@@ -47,6 +47,15 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["import", "f", "--object", "o", "--projector", "19x10x1"], "projector size must look like 1920x1080"),
         (["bench", "gpu", "--device", "nonsense"], "unknown device 'nonsense': use auto, cpu, cuda or cuda:N"),
         (["patterns", "--projector", "64x48", "--out", "/proc/version/x"], "/proc/version/x: Not a directory"),
+        (["bench", "relight", "--radii", "-4,abc", "--backends", "none"], "--radii expects comma-separated integers"),
+        (["bench", "relight", "--backends", "torch"], "--backends torch needs --checkpoint"),  # had measured nothing
+        (["bench", "stability", "--cases", ","], "--cases ',' names nothing"),  # had run every case
+        (["bench", "learn", "--repeats", "0"], "--repeats"),  # had averaged nothing into NaN
+        (["bench", "daemon", "--frames", "0", "--out", "d.json"], "--frames"),  # had left its daemon running
+        (["bench", "psp", "--out", "/proc/version/x.json", "--quick"], "/proc/version is a file"),  # after the work
+        (["repro", "paper", "--preset", "tiny", "--timeout", "0"], "--timeout must be a positive number of seconds"),
+        (["demo", "--out", "/proc/version"], "--out /proc/version is a file: give a folder"),  # every step had failed
+        (["daemon", "keys", "--dir", "/proc/version"], "--dir /proc/version is a file"),  # was "[Errno 17] File exists"
     ],
 )
 def test_usage_errors_are_one_message_not_a_traceback(args: list[str], expected: str) -> None:
@@ -144,7 +153,7 @@ def test_sigterm_says_interrupted_like_ctrl_c(tmp_path) -> None:
         *((["capture", "--object", "apple", "--hdr-exposures", v],
            f"--hdr-exposures takes comma-separated numbers, e.g. 0.25,1,4,16; got {v!r}") for v in ("", ",", "1,,2")),
         (["capture", "--object", "apple", "--hdr-exposures", ",".join(["1"] * 1000)],
-         "HDR exposures must be 2 to 8 distinct numbers in (0, 256], got 1000: 1, 1, 1, 1, 1, 1, 1, 1, 1, ..."),
+         "HDR exposures must be 2 to 8 distinct numbers in [0.001, 256], got 1000: 1, 1, 1, 1, 1, 1, 1, 1, 1, ..."),
         (["capture", "--object", "apple", "--reference", " .png"],
          "--reference ' .png': the file name ' ' cannot name a capture: use letters, digits, '_', '-', '.' "
          "(it is stored as ref/<name>)"),

@@ -83,6 +83,11 @@ def decompose(rv: Any, backend: str, checkpoint: Path | str | None, calibrate: b
     from sssphase_core.relight import emitted_light, lit_pixels, make_source, relight
 
     names = sorted(rv.references)
+    if not names:  # was "internal error: need at least one array to stack"
+        from sssphase_core.errors import InputError
+
+        raise InputError(f"{rv.object} view {rv.view} has no reference captures to compare relit images with: capture "
+                         "it with --reference checkerboard (the gap bench needs simulated sessions with references)")
     pats = [rv.references[n] for n in names]
     pixels, _ = lit_pixels(rv.proj, emitted_light(np.stack(pats), rv.proj.gamma))
     model_src, k = make_source(backend, rv, checkpoint=checkpoint, calibrate=calibrate)

@@ -69,6 +69,8 @@ PRESETS = {
 }
 
 STEPS = ("train_sessions", "test_sessions", "pretrain", "decoder", "relight", "footprints", "knn", "pca", "report")
+#: The steps of the user's path: a demo without any of them failed, whatever its report shows
+USERS_PATH = ("train_sessions", "test_sessions", "pretrain", "decoder", "relight")
 
 
 class NotAvailable(Exception):
@@ -106,6 +108,15 @@ class Demo:
             if randomise_rig else "") + ("; a three-chip camera (no colour filter array)" if three_chip else "")
         self.results: dict[str, dict[str, Any]] = {}
         self.device = "cpu"  # where the models relight and embed (sss repro paper: the GPU)
+
+    def raise_unless_done(self, names: tuple[str, ...], report: Path) -> None:
+        """A DataError naming the steps of ``names`` that failed (each one's reason was logged; a step left out by
+        the run's budget is not a failure), so that a run whose sessions or models failed does not exit as a success."""
+        missing = [n for n in names if self.results.get(n, {}).get("status") != "done"
+                   and not self.results.get(n, {}).get("skipped")]
+        if missing:
+            raise DataError(f"steps {', '.join(missing)} did not run (their reasons are above): {report} lacks what "
+                            "they make")
 
     def _done(self, name: str) -> dict[str, Any] | None:
         path = self.steps_dir / f"{name}.json"
@@ -342,11 +353,15 @@ def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool 
 
         if transport not in TRANSPORTS:
             raise InputError(f"unknown transport model {transport!r}; choose one of {', '.join(TRANSPORTS)}")
+    from sssphase_core.store.session import check_output_folder
+
+    check_output_folder(out)  # a file, or a session's folder: refused before a step runs (each step had failed)
     t0 = time.perf_counter()
     demo = Demo(Path(out), PRESETS[preset], client, fresh=fresh, log=log, progress=progress, transport=transport,
                 randomise_rig=randomise_rig, three_chip=three_chip)
     path = demo.run()
     log(f"demo finished in {time.perf_counter() - t0:.1f} s")
+    demo.raise_unless_done(USERS_PATH, path)
     return path
 
 

@@ -129,7 +129,7 @@ class PaperRepro(Demo):
 
     def step(self, name: str, fn: Callable[[], dict[str, Any]]) -> dict[str, Any]:
         if name != "report" and self._done(name) is None and self.left_s() <= 0:
-            result = {"status": "not available", "seconds": 0.0,
+            result = {"status": "not available", "seconds": 0.0, "skipped": "budget",
                       "reason": f"not run: the budget of {self.budget_s:.0f} s was spent ({self.spent_s():.0f} s)"}
             self.results[name] = result
             self.log(f"[{name}] {result['reason']}")
@@ -335,8 +335,12 @@ def run_repro(out: Path | str, capture: Capture, *, preset: str = "paper", devic
 
     check_device(device)
     config = replace(PRESETS[preset], **overrides)
+    from sssphase_core.store.session import check_output_folder
+
+    check_output_folder(out)
     repro = PaperRepro(Path(out), config, capture, device=device, budget_s=budget_s, fresh=fresh, log=log, progress=progress)
     repro.report_dir = Path(out)
     path = repro.run()
     log(f"repro finished in {repro.spent_s():.1f} s of a {budget_s:.0f} s budget")
+    repro.raise_unless_done(("train_sessions", "test_sessions"), path)  # later steps may be left to the budget
     return path
