@@ -63,9 +63,12 @@ def _load(ctx: typer.Context, param: Any, value: Path | None) -> Path | None:
     unknown = sorted(set(options) - known)
     if unknown:
         raise InputError(f"--config {path}: unknown option(s) {', '.join(unknown)} for `sss {command}`")
-    for name in _number_options(ctx):  # a number option reads true as 1: `batch_size = true` ran with a batch of 1
-        if isinstance(options.get(name), bool):
-            raise InputError(f"--config {path}: {name} must be a number, got {str(options[name]).lower()}")
+    kinds = _option_kinds(ctx)
+    for name, value in options.items():  # checked here, in the file's terms (click said "Invalid value for '--epochs'")
+        expected = kinds.get(name)
+        if expected and not _is_kind(value, expected):
+            shown = str(value).lower() if isinstance(value, bool) else repr(value)
+            raise InputError(f"--config {path}: {name} must be {expected}, got {shown}")
     folder = path.parent
     recorded = options.get("out")
     if (isinstance(recorded, str) and any((folder / name).is_file() for name in ("last.pt", "best.pt"))
@@ -78,21 +81,50 @@ def _load(ctx: typer.Context, param: Any, value: Path | None) -> Path | None:
     return path
 
 
-def _number_options(ctx: typer.Context) -> list[str]:
-    """The running command's options annotated ``int`` or ``float`` (optional or not), from its function."""
+def _option_kinds(ctx: typer.Context) -> dict[str, str]:
+    """What each option of the running command takes in a config file, from its function's type hints:
+    ``"a number"``, ``"a whole number"``, ``"true or false"``, ``"a string"`` (text and paths) or ``"a list of
+    strings"``; options of another type are left out (nothing to check)."""
     import types
     import typing
 
     try:
         hints = typing.get_type_hints(ctx.command.callback, include_extras=False)  # type: ignore[arg-type]
     except Exception:  # noqa: BLE001  (a command without readable hints: nothing to check)
-        return []
-    out = []
+        return {}
+    out = {}
     for name, hint in hints.items():
-        args = typing.get_args(hint) if isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union else (hint,)
-        if any(a in (int, float) for a in args):
-            out.append(name)
+        union = isinstance(hint, types.UnionType) or typing.get_origin(hint) is typing.Union
+        args = [a for a in (typing.get_args(hint) if union else (hint,)) if a is not type(None)]
+        if len(args) != 1:
+            continue
+        arg = args[0]
+        if arg is bool:
+            out[name] = "true or false"
+        elif arg is int:
+            out[name] = "a whole number"
+        elif arg is float:
+            out[name] = "a number"
+        elif arg in (str, Path):
+            out[name] = "a string"
+        elif typing.get_origin(arg) is list and typing.get_args(arg) in ((str,), (Path,)):
+            out[name] = "a list of strings"
     return out
+
+
+def _is_kind(value: Any, kind: str) -> bool:
+    """Whether a TOML ``value`` is what :func:`_option_kinds` says (a bool is no number: true ran as a batch of 1)."""
+    if kind == "true or false":
+        return isinstance(value, bool)
+    if isinstance(value, bool):
+        return False
+    if kind == "a whole number":
+        return isinstance(value, int)
+    if kind == "a number":
+        return isinstance(value, int | float)
+    if kind == "a string":
+        return isinstance(value, str)
+    return isinstance(value, list) and all(isinstance(v, str) for v in value)
 
 
 ConfigOpt = Annotated[Path | None, typer.Option(

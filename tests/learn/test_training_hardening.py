@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import math
+import re
 
 import numpy as np
 import pytest
@@ -65,9 +66,26 @@ def test_a_warmup_saved_as_nan_is_refused_when_the_config_is_repeated(tmp_path):
 
 def test_a_boolean_where_a_config_wants_a_number_is_refused(tmp_path):
     (tmp_path / "config.toml").write_text('command = "train pretrain"\n[options]\nbatch_size = true\n')
-    with pytest.raises(InputError, match="batch_size must be a number, got true"):  # it ran with a batch of 1
+    with pytest.raises(InputError, match="batch_size must be a whole number, got true"):  # it ran with a batch of 1
         runner.invoke(app, ["train", "pretrain", "--config", str(tmp_path), "--out", str(tmp_path / "run"),
                             "--cache", str(tmp_path / "cache")], catch_exceptions=False)
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(("line", "message"), [
+    ('epochs = "three"', "epochs must be a whole number, got 'three'"),  # was "Invalid value for '--epochs'"
+    ("epochs = 1.5", "epochs must be a whole number, got 1.5"),
+    ('sessions = ["/x"]', "sessions must be a string, got ['/x']"),  # was "Input is not a valid path for <class ...>"
+    ('objects = ["apple"]', "objects must be a string, got ['apple']"),  # was read as the session "['apple']"
+    ('check_sessions = "/x"', "check_sessions must be a list of strings, got '/x'"),  # was "Value must be an iterable."
+    ('lr = "fast"', "lr must be a number, got 'fast'"),
+    ("end_to_end = 1", "end_to_end must be true or false, got 1"),
+])
+def test_a_config_value_of_the_wrong_type_is_named_in_the_files_terms(tmp_path, line, message):
+    (tmp_path / "config.toml").write_text(f'command = "train decoder"\n[options]\n{line}\n')
+    with pytest.raises(InputError, match=f"--config {tmp_path}/config.toml: " + re.escape(message)):
+        runner.invoke(app, ["train", "decoder", "--config", str(tmp_path), "--out", str(tmp_path / "run")],
+                      catch_exceptions=False)
     assert not (tmp_path / "run").exists()
 
 
