@@ -319,14 +319,13 @@ def demo(
     """The user's path on the simulated rig: capture sessions through the daemon, pretrain and fit the decoder
     from them, relight unseen objects, evaluate, report (resumable)."""
     from sssphase_cli.progress import step_bar
-    from sssphase_core.reporting.demo import run_demo
-    from sssphase_core.store.session import check_output_folder
+    from sssphase_core.reporting.demo import check_demo_options, run_demo
     from sssphase_daemon.client import local_client
 
     def log(message: str) -> None:
         console.print(message, markup=False, highlight=False)
 
-    check_output_folder(out)  # before a daemon is started for it
+    check_demo_options(out, preset, transport)  # before a daemon is started for them
     with local_client(on_start=lambda pid: log(f"started a local daemon (pid {pid})"),
                       on_stop=lambda pid: log(f"stopped the local daemon (pid {pid})"),
                       on_left=lambda pid: log(f"left the local daemon (pid {pid}) running: another client is using it "

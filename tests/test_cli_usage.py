@@ -56,6 +56,10 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["repro", "paper", "--preset", "tiny", "--timeout", "0"], "--timeout must be a positive number of seconds"),
         (["demo", "--out", "/proc/version"], "--out /proc/version is a file: give a folder"),  # every step had failed
         (["daemon", "keys", "--dir", "/proc/version"], "--dir /proc/version is a file"),  # was "[Errno 17] File exists"
+        (["capture", "--object", "nosuchthing", "--views", "1"], "unknown object 'nosuchthing'; the catalogue has"),
+        (["demo", "--preset", "bogus"], "unknown demo preset 'bogus'"),  # had started a daemon first
+        (["demo", "--transport", "bogus"], "unknown transport model 'bogus'"),
+        (["capture", "--object", "a" * 300], "(300 characters)"),  # the name is not echoed whole
     ],
 )
 def test_usage_errors_are_one_message_not_a_traceback(args: list[str], expected: str) -> None:

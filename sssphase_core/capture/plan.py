@@ -193,11 +193,15 @@ class CaptureRequest:
             raise InputError(f"--seed must be 0 to {MAX_SEED} (2**63 - 1, what the sim rig takes), got {self.seed}")
 
     def _check_rig(self, rig: RigSpec, randomise_rig: bool) -> None:
-        if rig.is_sim:  # an unknown preset or transport model is one line, before a daemon starts
-            from sssphase_core.sim import MAX_VIEWS, rig_from_options
+        if rig.is_sim:  # an unknown object, preset or transport model is one line, before a daemon starts
+            from sssphase_core.capture.engine import check_rig_leaves_capture_options
+            from sssphase_core.sim import MAX_VIEWS, get_object, rig_from_options
 
             if self.views > MAX_VIEWS:
                 raise InputError(f"--views: the sim rig's turntable takes at most {MAX_VIEWS} views, got {self.views}")
+            check_rig_leaves_capture_options(rig.options, {"object": self.object, "preset": self.preset,
+                                                           "seed": self.seed, "n_views": self.views})
+            get_object(str(rig.options.get("object", self.object)))
             rig_from_options({"preset": self.preset, **rig.options, **self.sim_options,
                               **({"transport": self.transport} if self.transport else {})})
         elif self.transport is not None or randomise_rig:

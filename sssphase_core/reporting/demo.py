@@ -339,13 +339,9 @@ class Demo:
         (self.steps_dir / "report.json").unlink(missing_ok=True)
 
 
-def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool = False,
-             log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None,
-             transport: str | None = None, randomise_rig: bool = False, three_chip: bool = False) -> Path:
-    """Run (or resume) the demo into ``out`` with a daemon ``client``; returns the report's path.
-    ``progress``: the training loops' step callback (``training.StepProgress``); ``transport``: the
-    sim rig's light-transport model (:data:`sssphase_core.sim.TRANSPORTS`; None: burley); ``randomise_rig``:
-    domain randomisation of the training captures; ``three_chip``: a three-chip sim camera (see :class:`Demo`)."""
+def check_demo_options(out: Path | str, preset: str, transport: str | None) -> None:
+    """Refuse an unknown preset or transport model, and an ``out`` that is a file or lies in a session (each step
+    had failed there), in one line before a daemon is started for the demo."""
     if preset not in PRESETS:
         raise InputError(f"unknown demo preset {preset!r}; choose one of {', '.join(PRESETS)}")
     if transport is not None:
@@ -355,7 +351,17 @@ def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool 
             raise InputError(f"unknown transport model {transport!r}; choose one of {', '.join(TRANSPORTS)}")
     from sssphase_core.store.session import check_output_folder
 
-    check_output_folder(out)  # a file, or a session's folder: refused before a step runs (each step had failed)
+    check_output_folder(out)
+
+
+def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool = False,
+             log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None,
+             transport: str | None = None, randomise_rig: bool = False, three_chip: bool = False) -> Path:
+    """Run (or resume) the demo into ``out`` with a daemon ``client``; returns the report's path.
+    ``progress``: the training loops' step callback (``training.StepProgress``); ``transport``: the
+    sim rig's light-transport model (:data:`sssphase_core.sim.TRANSPORTS`; None: burley); ``randomise_rig``:
+    domain randomisation of the training captures; ``three_chip``: a three-chip sim camera (see :class:`Demo`)."""
+    check_demo_options(out, preset, transport)
     t0 = time.perf_counter()
     demo = Demo(Path(out), PRESETS[preset], client, fresh=fresh, log=log, progress=progress, transport=transport,
                 randomise_rig=randomise_rig, three_chip=three_chip)

@@ -42,7 +42,8 @@ FAULT_HOOK: Callable[[str], None] | None = None
 def check_object_name(name: str) -> str:
     """Refuse names that could escape the session root (``../``, separators, absolute paths)."""
     if not isinstance(name, str) or not NAME_RE.fullmatch(name) or name in (".", ".."):  # fullmatch: "$" allows "\n"
-        raise InputError(f"object name {name!r} is not allowed: use letters, digits, '_', '-', '.', starting with a "
+        shown = repr(name) if not isinstance(name, str) or len(name) <= 80 else repr(name[:80]) + f"... ({len(name)} characters)"
+        raise InputError(f"object name {shown} is not allowed: use letters, digits, '_', '-', '.', starting with a "
                          "letter or digit (no path separators, no '..', at most 64 characters)")
     return name
 
