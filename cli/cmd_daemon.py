@@ -34,6 +34,14 @@ def _orphan() -> int | None:
     return pid if pid and security.read_state() is None and security.is_daemon_process(pid) else None
 
 
+def _unanswering() -> int | None:
+    """The pid of the daemon the state file names when it runs but did not answer (stopped, or hung), else None."""
+    from sssphase_daemon import security
+
+    state = security.read_state()
+    return state.pid if state is not None and security.is_daemon_process(state.pid) else None
+
+
 def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] = False) -> None:
     """List devices with their stable IDs (asks the running daemon, else discovers locally)."""
     from dataclasses import asdict
@@ -46,8 +54,11 @@ def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] 
     else:
         from sssphase_plugins.manager import discover_devices
 
+        hung = _unanswering()
         infos, errors = discover_devices()
-        devs, where = [asdict(d) for d in infos], "local discovery (no daemon running)"
+        devs, where = [asdict(d) for d in infos], ("local discovery (no daemon running)" if hung is None else
+                                                   f"local discovery: the daemon (pid {hung}) does not answer and may "
+                                                   "hold these devices; `sss daemon stop` ends it")
     if as_json:
         console.print_json(json.dumps({"devices": devs, "errors": errors}))
         return
@@ -163,8 +174,9 @@ def daemon_status() -> None:
     """Show the daemon's endpoint, rigs and jobs."""
     client = _client()
     if client is None:
-        orphan = _orphan()
-        console.print("no daemon running" if orphan is None else
+        orphan, hung = _orphan(), _unanswering()
+        console.print(f"the daemon (pid {hung}) runs but does not answer (stopped or hung): `sss daemon stop` ends it"
+                      if hung is not None else "no daemon running" if orphan is None else
                       f"a daemon (pid {orphan}) serves the default socket but its state file is gone, so nothing can "
                       "talk to it: `sss daemon stop` ends it")
         sys.exit(1)  # typer.Exit's code is dropped by cli.main

@@ -267,6 +267,32 @@ def test_a_daemon_whose_state_file_was_deleted_is_found_by_status_and_ended_by_s
             os.kill(pid, 9)
 
 
+def test_a_daemon_that_does_not_answer_is_named_by_status_not_called_absent(tmp_path):
+    """`status` said "no daemon running" of a stopped (SIGSTOP) daemon that held the socket and its devices."""
+    import signal
+
+    from sssphase_daemon import security
+
+    runtime = tmp_path / "rt"
+    started = _run_cli("daemon", "start", runtime=runtime, env_extra={"SSS_LOG_DIR": str(tmp_path / "log")})
+    assert started.returncode == 0, started.stdout + started.stderr
+    pid = int(started.stdout.split("pid ")[1].split(")")[0])
+    try:
+        os.kill(pid, signal.SIGSTOP)
+        status = _run_cli("daemon", "status", runtime=runtime, env_extra={})
+        assert status.returncode == 1 and f"the daemon (pid {pid}) runs but does not answer" in status.stdout, \
+            status.stdout + status.stderr
+    finally:
+        os.kill(pid, signal.SIGCONT)
+        _run_cli("daemon", "stop", runtime=runtime, env_extra={})
+        for _ in range(200):
+            if not security.is_daemon_process(pid):
+                break
+            time.sleep(0.05)
+        if security.is_daemon_process(pid):
+            os.kill(pid, 9)
+
+
 def test_a_daemon_that_exits_at_start_says_why_not_only_see_the_log(tmp_path):
     """`sss daemon start` said "the daemon exited with status 2 (see daemon.log)"; the reason was in the log."""
     (tmp_path / "keys").mkdir(mode=0o700)
