@@ -277,6 +277,8 @@ def bench_relight_cache(
     if backend not in ("analytic", "torch", "blend"):
         raise InputError(f"--backend {backend}: the eigen-footprint cache is kept for the model backends "
                          "(analytic, torch, blend)")
+    if first == new:  # the "new" pattern would be the one the first relight made: nothing new to time
+        raise InputError(f"--new {new} is the --first pattern: give another pattern to relight from the cache")
     with console.status("three relights (cold, cached, full)"):
         relight_cache_bench.run(session, out, backend=backend, checkpoint=checkpoint, view=view, first=first, new=new)
     console.print(out.with_suffix(".md").read_text())

@@ -58,6 +58,9 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["daemon", "keys", "--dir", "/proc/version"], "--dir /proc/version is a file"),  # was "[Errno 17] File exists"
         (["capture", "--object", "nosuchthing", "--views", "1"], "unknown object 'nosuchthing'; the catalogue has"),
         (["demo", "--preset", "bogus"], "unknown demo preset 'bogus'"),  # had started a daemon first
+        (["eval", "knn", "--checkpoint", "psp="], "--checkpoint takes NAME=PATH"),  # had loaded ./last.pt
+        (["eval", "knn", "--checkpoint", "psp=/", "--checkpoint", "psp=/tmp"], "the name 'psp' is given twice"),
+        (["bench", "relight-cache", "s", "--first", "checkerboard", "--new", "checkerboard"], "--new checkerboard is the --first"),
         (["demo", "--transport", "bogus"], "unknown transport model 'bogus'"),
         (["capture", "--object", "a" * 300], "(300 characters)"),  # the name is not echoed whole
     ],

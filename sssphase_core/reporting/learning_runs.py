@@ -340,10 +340,13 @@ def named_checkpoints(items: Sequence[str]) -> dict[str, str]:
 
     pairs = [c.split("=", 1) if "=" in c else (Path(c).stem if Path(c).suffix else Path(c).name, c) for c in items]
     names_given = [n for n, _ in pairs]
-    for (name, _), item in zip(pairs, items, strict=True):
-        if not NAME_RE.fullmatch(name) or names_given.count(name) > 1:
+    for (name, path), item in zip(pairs, items, strict=True):
+        if names_given.count(name) > 1:
+            raise InputError(f"--checkpoint takes NAME=PATH (or PATH) with a distinct name for each run: the name "
+                             f"{name!r} is given twice")
+        if not NAME_RE.fullmatch(name) or not path:  # "psp=" had loaded ./last.pt
             raise InputError(f"--checkpoint takes NAME=PATH (or PATH) with a distinct name of letters, digits, '_', "
-                             f"'-', '.', got {item!r}")
+                             f"'-', '.' and a path, got {item!r}")
     runs = dict(pairs)
     missing = [path for path in runs.values() if not Path(path).exists()]
     if missing:
@@ -382,6 +385,7 @@ def evaluate_knn(opts: KnnOptions, report: Report = Report()) -> Evaluation:
     if opts.label not in ("object", "material"):
         raise InputError(f"--label must be object or material, got {opts.label!r}")
     ks = parse_ints(opts.k, "--k") if isinstance(opts.k, str) else [int(k) for k in opts.k]
+    ks = list(dict.fromkeys(ks))  # each once: "5,5" printed its sweep row twice
     if not ks or min(ks) < 1:
         raise InputError(f"--k needs one or more positive integers, got {opts.k!r}")
     vds = load_views(names, chosen_views(opts.views, "0,1,2,3", opts.sessions), opts, footprints=False, report=report)
@@ -425,8 +429,11 @@ def _footprint_backends(opts: FootprintOptions) -> dict[str, Any]:
     from sssphase_core.store.session import NAME_RE
 
     others = [item.partition("=") for item in opts.compare or []]
-    for (name, sep, _), item in zip(others, opts.compare or [], strict=True):  # NAME names output files
-        if not sep or not NAME_RE.fullmatch(name) or name in ("torch", opts.baseline) or [o[0] for o in others].count(name) > 1:
+    for (name, sep, path), item in zip(others, opts.compare or [], strict=True):  # NAME names output files
+        if [o[0] for o in others].count(name) > 1:
+            raise InputError(f"--compare takes NAME=PATH with a new name for each decoder: the name {name!r} is given "
+                             "twice")
+        if not sep or not path or not NAME_RE.fullmatch(name) or name in ("torch", opts.baseline):
             raise InputError(f"--compare takes NAME=PATH with a new name of letters, digits, '_', '-', '.', got {item!r}")
     backends = {"torch": get_backend("torch", checkpoint=opts.checkpoint)}
     backends.update({name: get_backend("torch", checkpoint=path) for name, _, path in others})
