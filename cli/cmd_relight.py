@@ -136,7 +136,9 @@ def eval_relight(
 
 def _names(text: str, option: str) -> tuple[str, ...]:
     """Comma-separated names, each once; one line when they name nothing (``,`` had run every case, or none)."""
-    names = tuple(dict.fromkeys(t.strip() for t in text.split(",") if t.strip()))
+    from sssphase_core.learning.inputs import parse_names
+
+    names = tuple(parse_names(text, ()))
     if not names:
         raise InputError(f"{option} {text!r} names nothing: give comma-separated names")
     return names

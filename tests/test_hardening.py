@@ -242,14 +242,30 @@ def test_a_second_daemon_never_takes_the_socket_of_one_that_lost_its_state_file(
     assert _socket_is_replaceable(sock_path)
 
 
+def _start_daemon(tmp_path: Path) -> tuple[Path, int]:
+    """A daemon of the test's own (`sss daemon start` in its runtime folder) -> (runtime folder, pid)."""
+    runtime = tmp_path / "rt"
+    started = _run_cli("daemon", "start", runtime=runtime, env_extra={"SSS_LOG_DIR": str(tmp_path / "log")})
+    assert started.returncode == 0, started.stdout + started.stderr
+    return runtime, int(started.stdout.split("pid ")[1].split(")")[0])
+
+
+def _ended(pid: int) -> bool:
+    """Whether the daemon ``pid`` has exited within 10 s."""
+    from sssphase_daemon import security
+
+    for _ in range(200):
+        if not security.is_daemon_process(pid):
+            return True
+        time.sleep(0.05)
+    return False
+
+
 def test_a_daemon_whose_state_file_was_deleted_is_found_by_status_and_ended_by_stop(tmp_path):
     """`status` and `stop` said "no daemon running" while it served the default socket."""
     from sssphase_daemon import security
 
-    runtime = tmp_path / "rt"
-    started = _run_cli("daemon", "start", runtime=runtime, env_extra={"SSS_LOG_DIR": str(tmp_path / "log")})
-    assert started.returncode == 0, started.stdout + started.stderr
-    pid = int(started.stdout.split("pid ")[1].split(")")[0])
+    runtime, pid = _start_daemon(tmp_path)
     try:
         (runtime / "daemon.json").unlink()
         status = _run_cli("daemon", "status", runtime=runtime, env_extra={})
@@ -257,11 +273,7 @@ def test_a_daemon_whose_state_file_was_deleted_is_found_by_status_and_ended_by_s
             in status.stdout, status.stdout + status.stderr
         stop = _run_cli("daemon", "stop", runtime=runtime, env_extra={})
         assert stop.returncode == 0 and f"daemon (pid {pid}) had no state file; sent SIGTERM" in stop.stdout, stop.stdout
-        for _ in range(200):
-            if not security.is_daemon_process(pid):
-                break
-            time.sleep(0.05)
-        assert not security.is_daemon_process(pid)
+        assert _ended(pid)
     finally:
         if security.is_daemon_process(pid):
             os.kill(pid, 9)
@@ -273,10 +285,7 @@ def test_a_daemon_that_does_not_answer_is_named_by_status_not_called_absent(tmp_
 
     from sssphase_daemon import security
 
-    runtime = tmp_path / "rt"
-    started = _run_cli("daemon", "start", runtime=runtime, env_extra={"SSS_LOG_DIR": str(tmp_path / "log")})
-    assert started.returncode == 0, started.stdout + started.stderr
-    pid = int(started.stdout.split("pid ")[1].split(")")[0])
+    runtime, pid = _start_daemon(tmp_path)
     try:
         os.kill(pid, signal.SIGSTOP)
         status = _run_cli("daemon", "status", runtime=runtime, env_extra={})
@@ -285,11 +294,7 @@ def test_a_daemon_that_does_not_answer_is_named_by_status_not_called_absent(tmp_
     finally:
         os.kill(pid, signal.SIGCONT)
         _run_cli("daemon", "stop", runtime=runtime, env_extra={})
-        for _ in range(200):
-            if not security.is_daemon_process(pid):
-                break
-            time.sleep(0.05)
-        if security.is_daemon_process(pid):
+        if not _ended(pid) and security.is_daemon_process(pid):
             os.kill(pid, 9)
 
 

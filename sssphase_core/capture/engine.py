@@ -100,9 +100,8 @@ def run_capture(client: ClientLike, req: CaptureRequest, rig: RigSpec | None = N
     rig = rig or RigSpec()
     options = dict(rig.options)
     if rig.is_sim:
-        own = {"object": req.object, "preset": req.preset, "seed": req.seed, "n_views": req.views}
-        check_rig_leaves_capture_options(options, own)
-        options = {**own, **options, **req.sim_options}
+        check_rig_leaves_capture_options(options, req.own_sim_options)
+        options = {**req.own_sim_options, **options, **req.sim_options}
         if req.transport is not None:
             options["transport"] = req.transport
     with _capture_lock(Path(req.out), req.object):

@@ -109,7 +109,7 @@ class RigSpec:
         if gamma is None and "gamma_rgb" in resp:  # the colours' mean, as `sss calibrate projector` writes it
             gamma = sum(resp["gamma_rgb"]) / 3
         if black is None and "black_rgb" in resp:
-            black = min(sum(resp["black_rgb"]) / 3, 0.499)
+            black = sum(resp["black_rgb"]) / 3
         if gamma is not None and not (isinstance(gamma, int | float) and not isinstance(gamma, bool) and 0.3 <= gamma <= 5):
             raise InputError(f"{path}: [projector] gamma must be a number in [0.3, 5], got {gamma!r}")
         if black is not None and not (isinstance(black, int | float) and not isinstance(black, bool) and 0 <= black < 0.5):
@@ -192,6 +192,11 @@ class CaptureRequest:
         if not 0 <= self.seed <= MAX_SEED:
             raise InputError(f"--seed must be 0 to {MAX_SEED} (2**63 - 1, what the sim rig takes), got {self.seed}")
 
+    @property
+    def own_sim_options(self) -> dict[str, Any]:
+        """The sim rig options this capture sets itself (``engine.CAPTURE_FLAGS``: a rig file may only repeat them)."""
+        return {"object": self.object, "preset": self.preset, "seed": self.seed, "n_views": self.views}
+
     def _check_rig(self, rig: RigSpec, randomise_rig: bool) -> None:
         if rig.is_sim:  # an unknown object, preset or transport model is one line, before a daemon starts
             from sssphase_core.capture.engine import check_rig_leaves_capture_options
@@ -199,8 +204,7 @@ class CaptureRequest:
 
             if self.views > MAX_VIEWS:
                 raise InputError(f"--views: the sim rig's turntable takes at most {MAX_VIEWS} views, got {self.views}")
-            check_rig_leaves_capture_options(rig.options, {"object": self.object, "preset": self.preset,
-                                                           "seed": self.seed, "n_views": self.views})
+            check_rig_leaves_capture_options(rig.options, self.own_sim_options)
             get_object(str(rig.options.get("object", self.object)))
             rig_from_options({"preset": self.preset, **rig.options, **self.sim_options,
                               **({"transport": self.transport} if self.transport else {})})

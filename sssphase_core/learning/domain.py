@@ -137,6 +137,11 @@ def tail_radius(footprints: np.ndarray) -> tuple[int, int, int]:
     return tuple(out)  # type: ignore[return-value]
 
 
+def cuts_tail(radius: Sequence[int], patch: int) -> bool:
+    """Whether tail radii (3,) leave any ring of a ``patch`` x ``patch`` footprint to the physics."""
+    return min(radius) <= int(_rings(patch).max())
+
+
 def with_physics_tail(footprints: np.ndarray, physics: np.ndarray, radius: Sequence[int]) -> np.ndarray:
     """(N, K, K, 3) decoder ``footprints`` whose rings from ``radius`` (3,) px outwards, per colour, are the
     ``physics`` footprints' (the analytic model's, (N, K, K, 3)), each colour scaled back to the decoder's

@@ -12,7 +12,7 @@ from sssphase_core.compute import compute_device
 from sssphase_core.errors import InputError
 from sssphase_core.learning.backends.base import Query, as_patches
 from sssphase_core.learning.data import PatchDataset, ViewData
-from sssphase_core.learning.domain import WidthDomain, beyond, pixel_widths, with_physics_tail
+from sssphase_core.learning.domain import WidthDomain, beyond, cuts_tail, pixel_widths, with_physics_tail
 from sssphase_core.learning.models import ModelPreset, get_preset
 from sssphase_core.learning.training import (
     DecoderConfig,
@@ -101,13 +101,14 @@ class TorchBackend:
             pred, _ = FootprintNet(self.encoder, self.decoder)(x)
             out[near[i : i + self.batch_size]] = pred.float().permute(0, 2, 3, 1).cpu().numpy()
         tail = self.domain.tail_radius if guarded else None  # type: ignore[union-attr]
-        if far.any() or (tail is not None and len(near)):
+        tail = tail if tail is not None and cuts_tail(tail, self.patch) and len(near) else None
+        if far.any() or tail is not None:
             # beyond what the decoder learned: the physics, which reads the width at any scale
             from sssphase_core.learning.backends.analytic_backend import AnalyticBackend
 
             fallback = AnalyticBackend(patch=self.patch, black=self.black)
             out[far] = fallback.render(est["energy"][far], est["axes"][far])
-            if tail is not None and min(tail) <= int(np.rint(np.hypot(self.patch // 2, self.patch // 2))):
+            if tail is not None:
                 physics = fallback.render(est["energy"][near], est["axes"][near])
                 out[near] = with_physics_tail(out[near], physics, tail)
                 self.tail_applied = tail
