@@ -127,6 +127,8 @@ def train_pretrain(
     warmup_epochs: Annotated[float, typer.Option(help="Epochs of linear learning-rate warmup (>= 0), then cosine decay.")] = 2.0,
     augment: Annotated[str, typer.Option(help="psp (weak/strong PSP set) or imagenet (baseline).")] = "psp",
     fix_pred_lr: Annotated[bool, typer.Option(help="Keep the predictor at the base lr (no schedule).")] = True,
+    decorrelate: Annotated[float, typer.Option(help="Weight of the projections' decorrelation term against "
+                                               "dimensional collapse (>= 0; 0: SimSiam alone).")] = 1.0,
     knn_monitor: Annotated[int, typer.Option(min=0, help="Training patches in the per-epoch kNN monitor (0: off).")] = 2000,
     seed: SeedOpt = 0,
     ckpt_every: CkptEveryOpt = 50,
@@ -143,7 +145,7 @@ def train_pretrain(
     opts = PretrainOptions(
         out=out, preset=preset, objects=objects, views=views, n_views=n_views, rig=rig, pixels_per_view=pixels_per_view,
         epochs=epochs, batch_size=batch_size, lr=lr, warmup_epochs=warmup_epochs, augment=augment,
-        fix_pred_lr=fix_pred_lr, knn_monitor=knn_monitor, seed=seed, ckpt_every=ckpt_every, time_limit=time_limit,
+        fix_pred_lr=fix_pred_lr, decorrelate=decorrelate, knn_monitor=knn_monitor, seed=seed, ckpt_every=ckpt_every, time_limit=time_limit,
         device=device, deterministic=deterministic, resume=resume, cache=cache, sessions=sessions)
     run_pretrain(opts, _report(), config_file=run_config_file(ctx))
 

@@ -63,6 +63,7 @@ class PretrainOptions(TrainOptions):
     augment: str = "psp"
     fix_pred_lr: bool = True
     knn_monitor: int = 2000
+    decorrelate: float = 1.0
 
 
 @dataclass(kw_only=True)
@@ -134,7 +135,7 @@ def run_pretrain(opts: PretrainOptions, report: Report = Report(), *,
     from sssphase_core.sim import TRAIN_OBJECTS
 
     check_lr(opts.lr)
-    check_pretrain_options(opts.batch_size, opts.warmup_epochs, opts.augment)
+    check_pretrain_options(opts.batch_size, opts.warmup_epochs, opts.augment, opts.decorrelate)
     p = get_preset(opts.preset)
     resuming = check_run_out(opts.out, "pretrain", opts.resume, config_file)
     names = parse_names(opts.objects, () if opts.sessions else TRAIN_OBJECTS)
@@ -153,7 +154,7 @@ def run_pretrain(opts: PretrainOptions, report: Report = Report(), *,
                          time_limit_s=opts.time_limit, device=opts.device, preset=opts.preset,
                          deterministic=opts.deterministic, lr=opts.lr,
                          warmup_epochs=opts.warmup_epochs, fix_pred_lr=opts.fix_pred_lr, augment=opts.augment,
-                         knn_monitor=opts.knn_monitor)
+                         knn_monitor=opts.knn_monitor, decorrelate=opts.decorrelate)
     _header(report, f"pretraining {report.style(opts.preset, 'strong')} on {len(ds)} patches of {', '.join(names)}",
             opts.out, config_file, resuming)
     with report.training() as progress:

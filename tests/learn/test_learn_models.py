@@ -51,6 +51,37 @@ def test_simsiam_loss_is_symmetric_negative_cosine(tiny):
     assert m.projector[-1].affine is False
 
 
+def test_decorrelation_loss_measures_how_much_the_features_move_together():
+    from sssphase_core.learning.models.simsiam import decorrelation_loss
+
+    g = torch.Generator().manual_seed(0)
+    independent = torch.randn(4096, 16, generator=g)
+    assert float(decorrelation_loss(independent)) < 0.01  # ~1/B for a finite batch
+    collapsed = torch.randn(4096, 1, generator=g) * torch.linspace(0.5, 3.0, 16)  # rank one: every pair at |r| = 1
+    assert float(decorrelation_loss(collapsed)) == pytest.approx(1.0, abs=1e-4)
+    # features 8-15 are 0-7 rescaled and offset: 16 of the 240 ordered pairs at r = 1, whatever the scale
+    half = torch.cat([independent[:, :8], independent[:, :8] * 7.0 + 3.0], dim=1)
+    assert float(decorrelation_loss(half)) == pytest.approx(16 / 240, abs=0.01)
+    assert decorrelation_loss(independent.half()).dtype == torch.float32  # computed in float32 under autocast
+
+
+def test_decorrelation_term_is_added_to_simsiam_and_reaches_the_encoder(tiny):
+    x1, x2 = torch.randn(8, 24, 16, 16), torch.randn(8, 24, 16, 16)
+    torch.manual_seed(0)
+    plain = SimSiam(tiny).train()
+    torch.manual_seed(0)
+    regular = SimSiam(tiny).train()
+    torch.manual_seed(1)  # the same dropout draws in both
+    a = plain(x1, x2)
+    torch.manual_seed(1)
+    b = regular(x1, x2, decorrelate=2.0)
+    assert "decorrelation" not in a and 0 < float(b["decorrelation"]) <= 1
+    assert float(b["loss"]) == pytest.approx(float(a["loss"]) + 2.0 * float(b["decorrelation"]), rel=1e-5)
+    b["decorrelation"].backward()
+    assert any(q.grad is not None and q.grad.abs().sum() > 0 for q in regular.encoder.parameters())
+    assert all(q.grad is None for q in regular.predictor.parameters())  # it acts on the projections only
+
+
 def test_preset_roundtrip_and_unknown_name(tiny):
     assert get_preset(tiny.to_dict()) == tiny
     with pytest.raises(InputError, match="lite"):

@@ -95,7 +95,9 @@ def test_the_library_refuses_what_the_cli_refuses(dataset, tiny, tmp_path):
 
     for cfg, match in [(PretrainConfig(batch_size=1), "--batch-size must be at least 2"),
                        (PretrainConfig(warmup_epochs=float("nan")), "--warmup-epochs must be a finite number"),
-                       (PretrainConfig(warmup_epochs=-1.0), "--warmup-epochs must be a finite number")]:
+                       (PretrainConfig(warmup_epochs=-1.0), "--warmup-epochs must be a finite number"),
+                       (PretrainConfig(decorrelate=-1.0), "--decorrelate must be a finite number >= 0, got -1.0"),
+                       (PretrainConfig(decorrelate=float("inf")), "--decorrelate must be a finite number >= 0")]:
         with pytest.raises(InputError, match=match):
             pretrain(cfg, dataset, tmp_path / "pre", preset=tiny, progress=False)
     with pytest.raises(InputError, match="--aux-classes must be 0"):

@@ -56,6 +56,9 @@ class PretrainConfig(LoopConfig):
     monitor_samples: int = 2048
     knn_monitor: int = 2000  # training patches in the end-of-epoch kNN monitor (view-level leave-one-out; 0: off)
     knn_k: int = 20
+    # weight of the projections' decorrelation term (VICReg's covariance term) against SimSiam's dimensional collapse;
+    # 0: SimSiam alone. At the demo's budget it took the kNN from 79-87% to 94-97% over four seeds (learning.md)
+    decorrelate: float = 1.0
 
 
 #: SimSiam's projector and predictor normalise over the batch (BatchNorm1d): a batch of one has nothing to
@@ -67,10 +70,14 @@ MIN_PRETRAIN_BATCH = 2
 AUGMENT_KINDS = ("psp", "imagenet")
 
 
-def check_pretrain_options(batch_size: int, warmup_epochs: float, augment: str = "psp") -> None:
+def check_pretrain_options(batch_size: int, warmup_epochs: float, augment: str = "psp",
+                           decorrelate: float = 0.0) -> None:
     """Refuse, before any work, a batch too small for SimSiam's BatchNorm, a warmup that is not a finite
-    number >= 0 (NaN or infinity cannot count steps; a negative one would mean none) and an unknown
-    augmentation set."""
+    number >= 0 (NaN or infinity cannot count steps; a negative one would mean none), an unknown
+    augmentation set and a decorrelation weight that is not a finite number >= 0 (a negative one rewards
+    collapse)."""
+    if not (math.isfinite(decorrelate) and decorrelate >= 0):
+        raise InputError(f"--decorrelate must be a finite number >= 0, got {decorrelate}")
     if augment not in AUGMENT_KINDS:
         raise InputError(f"--augment must be one of {', '.join(AUGMENT_KINDS)}, got {augment!r}")
     if batch_size < MIN_PRETRAIN_BATCH:
@@ -149,7 +156,7 @@ def pretrain(
     progress: StepProgress | bool | None = None,
 ) -> Path:
     """SimSiam pretraining of the encoder; returns the checkpoint path (``out_dir/last.pt``)."""
-    check_pretrain_options(cfg.batch_size, cfg.warmup_epochs, cfg.augment)
+    check_pretrain_options(cfg.batch_size, cfg.warmup_epochs, cfg.augment, cfg.decorrelate)
     out_dir = Path(out_dir)
     d = init_distributed(cfg.device)
     p = preset or get_preset(cfg.preset)
@@ -182,7 +189,7 @@ def pretrain(
         model.train()
         x1, x2 = augment.two_views(batch["psp"], cfg.augment)
         with autocast_for(d, cfg.amp):
-            out = net(x1, x2)
+            out = net(x1, x2, cfg.decorrelate)
         opt.zero_grad(set_to_none=True)
         out["loss"].backward()
         opt.step()
@@ -190,7 +197,10 @@ def pretrain(
         if sum(len(t) for t in monitor["z"]) < cfg.monitor_samples:
             monitor["z"].append(out["projection"].float().cpu())
             monitor["y"].append(out["embedding"].float().cpu())
-        return {"loss": float(out["loss"].detach()), "lr": lr}
+        values = {"loss": float(out["loss"].detach()), "lr": lr}
+        if "decorrelation" in out:
+            values["decorrelation"] = float(out["decorrelation"].detach())
+        return values
 
     knn_idx = knn_monitor_indices(dataset, cfg.knn_monitor, cfg.seed)
     # the baseline measured in the same run: the monitor on the encoder before any step (its random initialisation),
