@@ -214,9 +214,10 @@ class SimCamera:
         self.garbage_at = fault("garbage_at_frame")  # that frame is not a frame of this camera
         self.sequence = 0
         w, h = bench.rig.camera.width, bench.rig.camera.height
-        #: how long a frame may take to render (the daemon's deadline is no shorter): 10 s at the CPU preset's
-        #: 256 x 192, in proportion at larger cameras (a batch of 1080p frames takes minutes on 2 cores)
-        self.frame_timeout_s = 10.0 * max(1.0, w * h / (256 * 192))
+        #: how long a frame may take to render (the daemon's deadline is no shorter): 30 s at the CPU preset's
+        #: 256 x 192, in proportion at larger cameras (a batch of 1080p frames takes minutes on 2 cores). A view's
+        #: first grab builds its scene and renders a batch of patterns: over 10 s on a loaded 2-core machine
+        self.frame_timeout_s = 30.0 * max(1.0, w * h / (256 * 192))
 
     def configure(self, *, exposure: float | None = None, gain: float | None = None,
                   pixel_format: str | None = None) -> None:

@@ -40,7 +40,8 @@ def test_a_stalled_camera_fails_the_capture_at_its_timeout_and_the_daemon_still_
                       str(tmp_path / "s"), env=env)
         out = res.stdout + res.stderr
         assert res.returncode != 0 and "Traceback" not in out, out
-        assert "sim:camera0 (grab" in out and "did not answer within 12 s" in out, out
+        # the deadline is the client's --timeout, but no shorter than the sim camera's own frame time (30 s)
+        assert "sim:camera0 (grab" in out and "did not answer within 30 s" in out, out
         from sssphase_core.store.session import Session
 
         assert Session.open(tmp_path / "s" / "star").status(0) == "complete"  # the complete view is kept
