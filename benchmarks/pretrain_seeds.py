@@ -21,7 +21,7 @@ import torch
 from sssphase_core.learning.backends import get_backend
 from sssphase_core.learning.data import session_views
 from sssphase_core.learning.evaluation import knn_of_views
-from sssphase_core.learning.training import PretrainConfig, load_encoder
+from sssphase_core.learning.training import load_encoder
 from sssphase_core.reporting.demo import PRESETS
 
 
@@ -38,8 +38,7 @@ def main() -> None:
                           footprints=False, seed=c.seed)
     for weight in (float(w) for w in args.decorrelate.split(",")):
         for seed in (int(s) for s in args.seeds.split(",")):
-            cfg = PretrainConfig(epochs=c.pretrain_epochs, batch_size=c.pretrain_batch, seed=seed, preset=c.model,
-                                 warmup_epochs=min(1.0, c.pretrain_epochs / 2), device="cpu", decorrelate=weight)
+            cfg = c.pretrain_config(seed=seed, decorrelate=weight)
             run = args.out / f"seed{seed}_decorrelate{weight:g}"
             t0 = time.perf_counter()
             path = get_backend("torch").pretrain(views, run, config=cfg, progress=False)

@@ -56,6 +56,14 @@ class DemoConfig:
     model: str = "lite"
     seed: int = 0
 
+    def pretrain_config(self, **changes: Any):  # noqa: ANN201  (PretrainConfig: torch is imported lazily)
+        """The demo's pretraining recipe (``PretrainConfig``), with ``changes`` (e.g. another seed)."""
+        from sssphase_core.learning.training import PretrainConfig
+
+        return PretrainConfig(**{"epochs": self.pretrain_epochs, "batch_size": self.pretrain_batch, "seed": self.seed,
+                                 "preset": self.model, "warmup_epochs": min(1.0, self.pretrain_epochs / 2),
+                                 "device": "cpu", **changes})
+
 
 PRESETS = {
     # Under 5 minutes on 2 CPU cores: 10 footprint views captured through the daemon (~10 s each),
@@ -193,13 +201,9 @@ class Demo:
 
     def pretrain(self) -> dict[str, Any]:
         from sssphase_core.learning.backends import get_backend
-        from sssphase_core.learning.training import PretrainConfig
 
-        c = self.cfg
-        cfg = PretrainConfig(epochs=c.pretrain_epochs, batch_size=c.pretrain_batch, seed=c.seed, preset=c.model,
-                             warmup_epochs=min(1.0, c.pretrain_epochs / 2), device="cpu")
-        path = get_backend("torch").pretrain(self.train_views(footprints=False), self.out / "runs" / "pretrain", config=cfg,
-                                             progress=self.progress)
+        path = get_backend("torch").pretrain(self.train_views(footprints=False), self.out / "runs" / "pretrain",
+                                             config=self.cfg.pretrain_config(), progress=self.progress)
         return {"checkpoint": str(path)}
 
     def decoder(self) -> dict[str, Any]:
