@@ -62,6 +62,21 @@ def test_a_truncated_pattern_is_one_line(tmp_path):
         read_pattern(ok, (256, 192))
 
 
+def test_array_patterns_of_integers_wider_than_16_bits_are_refused_not_relit_black(tmp_path):
+    """A uint32 or uint64 .npy was divided by 2^32 - 1 or 2^64 - 1: a 0-255 checkerboard relit as black,
+    without a word. 8- and 16-bit ones keep their scale."""
+    from sssphase_core.relight import read_pattern
+
+    checker = (np.indices((192, 256)).sum(axis=0) // 16 % 2).astype(np.float64)
+    for dtype, top in ((np.uint8, 255), (np.uint16, 65535)):
+        np.save(tmp_path / "ok.npy", (checker * top).astype(dtype))
+        assert np.array_equal(read_pattern(tmp_path / "ok.npy", (256, 192)), checker.astype(np.float32))
+    for dtype, top in ((np.uint32, 255), (np.uint64, 70000)):
+        np.save(tmp_path / "wide.npy", (checker * top).astype(dtype))
+        with pytest.raises(InputError, match=rf"holds {np.dtype(dtype).name} integers \(from 0 to {top}\).*uint8"):
+            read_pattern(tmp_path / "wide.npy", (256, 192))
+
+
 @pytest.mark.parametrize(("manifest", "expected"), [
     ([], "not a version-1"),
     (None, "not a version-1"),
@@ -85,7 +100,16 @@ def test_a_truncated_pattern_is_one_line(tmp_path):
                              ({"frames": [{"key": 1}]}, "plan.frames must be a list of frames"),
                              ([], "plan is not a table"),
                              ({"frames": [{"key": "ref/checkerboard", "kind": "ref", "params": {}}]},
-                              "plan frame 'ref/checkerboard': ref frame needs width"))),
+                              "plan frame 'ref/checkerboard': ref frame needs width"),
+                             # a plan frame's exposure "x", or a reference narrower than the projector, were internal
+                             # errors in relight, eval relight and report (ValueError: could not convert string to
+                             # float; all input arrays must have the same shape) where validate said ok
+                             *(({"frames": [{"key": "white", "kind": "white", "exposure": e,
+                                             "params": {"width": 8, "height": 6}}]},
+                                "plan frame 'white': exposure must be a positive number") for e in ("x", 0, -1, None)),
+                             ({"projector": [8, 6], "frames": [{"key": "ref/checkerboard", "kind": "ref", "params": {
+                                 "name": "checkerboard", "square": 2, "width": 4, "height": 6}}]},
+                              r"plan frame 'ref/checkerboard' is 4x6, but the projector \(plan.projector\) is 8x6"))),
     # a rig or camera record of the wrong type was an internal error in relight, geometry and eval, though
     # validate said ok; a huge crop size asked for 75 GiB
     *(({"format": "sssphase-session", "format_version": 1, "object": "o", "n_views": 0, "views": {}, "rig": rig}, expected)
@@ -971,9 +995,16 @@ def test_resuming_with_other_rig_settings_is_refused(sim_daemon, tmp_path):
     req = CaptureRequest("leaf", views=1, out=tmp_path)
     run_capture(sim_daemon, req)
     assert run_capture(sim_daemon, CaptureRequest("leaf", views=1, out=tmp_path, resume=True)).views() == [0]
+    session = tmp_path / "leaf"
+    (session / ".view_001.partial").mkdir()  # a view an interrupted capture left
+    before = {p: p.read_bytes() if p.is_file() else None for p in sorted(session.rglob("*"))}
     for changed in ({"seed": 7}, {"transport": "directional_dipole"}):
         with pytest.raises(InputError, match=r"was captured with other rig settings \(options differ\)"):
             run_capture(sim_daemon, CaptureRequest("leaf", views=1, out=tmp_path, resume=True, **changed))
+    with pytest.raises(InputError, match="was captured with a different plan or view count"):
+        run_capture(sim_daemon, CaptureRequest("leaf", views=2, out=tmp_path, resume=True))
+    # a refused resume writes nothing: the manifest gained a "resumed" entry and the partial view was deleted
+    assert {p: p.read_bytes() if p.is_file() else None for p in sorted(session.rglob("*"))} == before
 
 
 def test_relight_eval_geometry_and_report_never_write_into_a_session(intact_session, tmp_path):

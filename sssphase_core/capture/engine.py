@@ -173,6 +173,22 @@ def _locked(path: Path, session: Path, attempts: int = 10) -> Any:
     raise InputError(f"could not lock {path}: it keeps being removed (another capture of {session}?)")
 
 
+def _check_resumable(session: Session, digest: str, n_views: int, rig_record: dict[str, Any]) -> None:
+    """Refuse to resume ``session`` with another capture plan, view count or rig (before anything of it changes)."""
+    if session.manifest.get("plan_digest") != digest or session.manifest.get("n_views") != n_views:
+        raise InputError(f"{session.path} was captured with a different plan or view count: resume with the same options")
+    from sssphase_core.sim.rig import COMPUTE_OPTIONS, FAULT_OPTIONS
+
+    before, now = (json.loads(json.dumps(r, default=str)) for r in (session.manifest.get("rig", {}), rig_record))
+    for r in (before, now):  # a fault injected into the sim devices (a camera that fails, then comes back), or the
+        if isinstance(r.get("options"), dict):  # sim computing on a GPU, is no other rig
+            r["options"] = {k: v for k, v in r["options"].items() if k not in FAULT_OPTIONS | COMPUTE_OPTIONS}
+    changed = sorted({k for k in set(before) | set(now) if before.get(k) != now.get(k)})
+    if changed:  # the new views would be captured on another rig (another seed, transport, camera) than the first
+        raise InputError(f"{session.path} was captured with other rig settings ({', '.join(changed)} differ): "
+                         "resume with the same --rig, --seed, --transport and --preset, or capture into a new --out")
+
+
 def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, options: dict[str, Any],
                    opened: dict[str, Any], progress: Progress | None,
                    ask_move: Callable[[int, float], None] | None) -> Session:
@@ -190,22 +206,12 @@ def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, option
         raise InputError("footprints need the crop size: set [processing] patch in the rig file")
     plan, frames, spacing = build_frames(req, size, rig.patch or 32, rig.gamma)
     digest = plan_digest(frames)
-    session = Session.create(req.out, req.object, resume=req.resume, n_views=req.views, plan_digest=digest,
-                             rig={**asdict(rig), "options": options}, devices=opened["devices"],
+    rig_record = {**asdict(rig), "options": options}
+    session = Session.create(req.out, req.object, resume=req.resume,
+                             check_resume=lambda s: _check_resumable(s, digest, req.views, rig_record),
+                             n_views=req.views, plan_digest=digest, rig=rig_record, devices=opened["devices"],
                              plugins=opened["plugins"], software={"sssphase": __version__},
                              plan=json.loads(plan.to_json()), reference_files=list(dict.fromkeys(f["params"]["file"] for f in frames if f["kind"] == "image")))
-    if session.manifest.get("plan_digest") != digest or session.manifest.get("n_views") != req.views:
-        raise InputError(f"{session.path} was captured with a different plan or view count: resume with the same options")
-    from sssphase_core.sim.rig import COMPUTE_OPTIONS, FAULT_OPTIONS
-
-    before, now = (json.loads(json.dumps(r, default=str)) for r in (session.manifest.get("rig", {}), {**asdict(rig), "options": options}))
-    for r in (before, now):  # a fault injected into the sim devices (a camera that fails, then comes back), or the
-        if isinstance(r.get("options"), dict):  # sim computing on a GPU, is no other rig
-            r["options"] = {k: v for k, v in r["options"].items() if k not in FAULT_OPTIONS | COMPUTE_OPTIONS}
-    changed = sorted({k for k in set(before) | set(now) if before.get(k) != now.get(k)})
-    if changed:  # the new views would be captured on another rig (another seed, transport, camera) than the first
-        raise InputError(f"{session.path} was captured with other rig settings ({', '.join(changed)} differ): "
-                         "resume with the same --rig, --seed, --transport and --preset, or capture into a new --out")
     n_dots = len({f["key"] for f in frames if f["kind"] == "dots"})  # dot-grid images kept (one per bracket set)
     for view in range(req.views):
         if session.status(view) == "complete":

@@ -156,8 +156,8 @@ def _png_16_bit_colour(path: Path) -> bool:
 
 def _read_array_pattern(path: Path, projector_size: tuple[int, int], mode: str, hint: str) -> np.ndarray:
     """A pattern stored as an array (``.npy``, ``.exr``, float TIFF): (Hp, Wp) or (Hp, Wp, 3), float values
-    in [0, 1] or unsigned integers (divided by their type's maximum); the shape is checked from the
-    header before the pixels are read."""
+    in [0, 1] or 8- or 16-bit unsigned integers (divided by their type's maximum; wider ones are refused); the
+    shape is checked from the header before the pixels are read."""
     from PIL import Image
 
     wp, hp = projector_size
@@ -172,6 +172,9 @@ def _read_array_pattern(path: Path, projector_size: tuple[int, int], mode: str, 
     if arr.dtype.kind not in "fu":
         raise InputError(f"pattern {path} must be an (H, W) or (H, W, 3) array of floats in [0, 1] or unsigned "
                          f"integers, got {arr.dtype} of shape {arr.shape}")
+    if arr.dtype.kind == "u" and arr.dtype.itemsize > 2:  # divided by 2^32 - 1 or 2^64 - 1, 0..255 relit as black
+        raise InputError(f"pattern {path} holds {arr.dtype} integers (from {int(arr.min())} to {int(arr.max())}), whose "
+                         "scale is unknown: give uint8 (0-255), uint16 (0-65535) or floats in [0, 1]")
     data = np.asarray(arr, np.float64)
     if data.ndim == 3 and data.shape[2] == 4 and path.suffix.lower() != ".npy":  # an image's alpha: opacity over black
         alpha = data[..., 3:] / (np.iinfo(arr.dtype).max if arr.dtype.kind == "u" else 1.0)

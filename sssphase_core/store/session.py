@@ -424,10 +424,18 @@ def plan_problem(plan: Any) -> str | None:
         return "plan.frames must be a list of frames, each with a key, a kind and params"
     from sssphase_core.processing.patterns import frame_params_problem
 
+    size = plan.get("projector")
     for f in frames:  # what each frame's pattern is drawn from (a reference relit under it, a plan resumed)
         problem = frame_params_problem(f["kind"], f.get("params", {}))
         if problem:
             return f"plan frame {f['key']!r}: {problem}"
+        exposure = f.get("exposure", 1.0)  # where the frame clips: relighting and training read it
+        if isinstance(exposure, bool) or not isinstance(exposure, (int, float)) or not (math.isfinite(exposure) and exposure > 0):
+            return f"plan frame {f['key']!r}: exposure must be a positive number, got {exposure!r}"
+        params = f.get("params", {})
+        if size is not None and [params.get("width"), params.get("height")] != size:  # every frame fills the projector
+            return (f"plan frame {f['key']!r} is {params.get('width')}x{params.get('height')}, but the projector "
+                    f"(plan.projector) is {size[0]}x{size[1]}")
     return None
 
 
@@ -455,8 +463,10 @@ class Session:
         return not complete and not extra
 
     @classmethod
-    def create(cls, root: Path, name: str, *, resume: bool = False, **info: Any) -> Session:
-        """New session ``root/name``; with ``resume`` reopen an existing one (its partial views dropped)."""
+    def create(cls, root: Path, name: str, *, resume: bool = False,
+               check_resume: Callable[[Session], None] | None = None, **info: Any) -> Session:
+        """New session ``root/name``; with ``resume`` reopen an existing one (its partial views dropped), once
+        ``check_resume(session)`` (which raises to refuse it) has passed: a refused resume changes nothing."""
         path = Path(root) / check_object_name(name)
         refuse_inside_session(root, "--out")  # a session inside another's folders, which validate then lists
         if Path(root).exists() and not Path(root).is_dir():
@@ -473,6 +483,8 @@ class Session:
             if not resume:
                 raise InputError(f"session {path} already exists: pass --resume to continue it or choose --out")
             session = cls.open(path)
+            if check_resume is not None:
+                check_resume(session)
             for partial in path.glob(".view_*.partial"):
                 shutil.rmtree(partial, ignore_errors=True)
             session.manifest.update({k: v for k, v in info.items() if k not in session.manifest})
