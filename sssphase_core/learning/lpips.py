@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import pickle
 from pathlib import Path
 
 import numpy as np
@@ -54,9 +55,9 @@ def find_weights() -> tuple[Path, Path]:
 
 
 def available() -> tuple[bool, str]:
-    """Whether LPIPS can be computed here, and if not, precisely why."""
+    """Whether LPIPS can be computed here (its weights found and loaded), and if not, precisely why."""
     try:
-        find_weights()
+        load()
     except InputError as exc:
         return False, str(exc)
     return True, ""
@@ -110,8 +111,9 @@ def load() -> LPIPS:
         try:
             _MODEL = LPIPS(torch.load(alexnet, map_location="cpu", weights_only=True),
                            torch.load(linear, map_location="cpu", weights_only=True))
-        except (RuntimeError, KeyError, OSError) as exc:
-            raise InputError(f"LPIPS weights {alexnet} / {linear} are not the expected files: {exc}") from None
+        except (RuntimeError, KeyError, OSError, ValueError, TypeError, pickle.UnpicklingError, EOFError) as exc:
+            first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+            raise InputError(f"LPIPS weights {alexnet} / {linear} are not the expected files ({first})") from None
     return _MODEL
 
 

@@ -73,3 +73,19 @@ def test_a_weight_file_of_another_kind_is_one_clear_error(local_weights):
     torch.save({"something": torch.zeros(3)}, local_weights / lpips.LINEAR_FILE)
     with pytest.raises(InputError, match="not the expected files"):
         lpips.load()
+
+
+def test_weight_files_that_are_not_torch_files_skip_lpips_saying_why(local_weights):
+    """Text in place of the weights (torch's unpickler fails before any key is read): LPIPS is skipped with the
+    reason, before any image is scored, instead of failing the evaluation after the relighting."""
+    from sssphase_core.relight.evaluation import lpips_note, relight_metrics
+
+    (local_weights / lpips.ALEXNET_FILE).write_text("garbage\n")
+    with pytest.raises(InputError, match="not the expected files") as info:
+        lpips.load()
+    assert "\n" not in str(info.value)
+    ok, why = lpips.available()
+    assert not ok and "not the expected files" in why and lpips.ALEXNET_FILE in why
+    assert lpips_note().startswith("LPIPS skipped: ")
+    img = np.random.default_rng(0).random((40, 48, 3)).astype(np.float32)
+    assert "lpips" not in relight_metrics(img, img, np.ones((40, 48), bool))
