@@ -144,7 +144,10 @@ def load_views(names: Sequence[str], views: list[int] | dict[str, list[int]] | N
         raise InputError(f"views {','.join(map(str, wanted))} need --n-views above {wanted[-1]} (the turntable's views "
                          f"per object; it is {opts.n_views}): pass --views within 0..{opts.n_views - 1} or raise --n-views")
     from sssphase_core.learning.data import simulate_views
+    from sssphase_core.store.session import check_output_folder
 
+    if opts.cache is not None:
+        check_output_folder(opts.cache, "--cache")  # a folder of its own, never a file or a session's folder
     with report.busy(f"simulating {len(names)} object(s) x {len(views or [])} view(s) (cached in {opts.cache})"):
         vds = simulate_views(names, views, n_views=opts.n_views, rig=opts.rig, pixels_per_view=opts.pixels_per_view,
                              footprints=footprints, noisy_footprints=noisy, seed=opts.seed, cache_dir=opts.cache)

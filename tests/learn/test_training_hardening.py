@@ -198,3 +198,22 @@ def test_figure_and_evaluation_options_are_refused_before_any_work(one_and_three
         runner.invoke(app, ["eval", "footprints", "--checkpoint", str(ckpt), "--sessions", str(root), "--baseline", "torch",
                             "--out", str(tmp_path / "fp.json")], catch_exceptions=False)
     assert parse_names("apple, apple,pear,apple", ()) == ["apple", "pear"]
+
+
+@pytest.mark.parametrize("command", [["train", "pretrain"], ["train", "decoder", "--end-to-end"]])
+def test_a_cache_folder_inside_a_session_or_on_a_file_is_refused_before_any_simulation(command, tmp_path):
+    """``--cache`` is written to like ``--out``: it wrote simulated views into a session folder (which then held a
+    file its manifest does not list), and an existing file gave "File exists" without naming the option."""
+    from sssphase_core.store.session import Session
+
+    session = Session.create(tmp_path / "sessions", "apple", n_views=1)
+    afile = tmp_path / "afile"
+    afile.write_text("mine\n")
+    for cache, expected in ((session.path, "--cache .* would write into the session"),
+                            (session.path / "deeper", "--cache .* would write into the session"),
+                            (afile, "--cache .*afile is a file: give a folder")):
+        with pytest.raises(InputError, match=expected):
+            runner.invoke(app, [*command, "--objects", "apple", "--n-views", "1", "--views", "0", "--epochs", "1",
+                                "--cache", str(cache), "--out", str(tmp_path / "run")], catch_exceptions=False)
+        assert not (tmp_path / "run").exists()
+    assert sorted(p.name for p in session.path.iterdir()) == ["manifest.json"] and afile.read_text() == "mine\n"
