@@ -50,6 +50,9 @@ def decode_folder(folder: Path, out: Path, *, projector: str | None = None, min_
     if bayer is not None:
         bayer = check_layout(bayer.upper())
     check_output_folder(out)
+    frames_dir, out_dir = folder.resolve(), out.resolve()
+    if out_dir == frames_dir or frames_dir in out_dir.parents:  # the maps among the frames: a later read or import fails
+        raise InputError(f"--out {out} would write among the frames of {folder}: choose a folder outside it")
     view = read_psp_folder(folder, projector, saturation=saturation, progress=progress)
     if view.scale != 1.0 and report is not None:
         report(f"float frames at level {view.level:.3g} (99.9th percentile) scaled to 1 (the decoder's thresholds are "

@@ -101,12 +101,28 @@ def test_decode_reads_exr_in_the_patterns_folder_layout_and_never_calls_float_li
 
 
 def test_decode_reports_missing_frames_as_one_line(tmp_path):
-    (tmp_path / "plan.json").write_text(json.dumps({"projector": [32, 24], "gamma": 2.2,
-                                                    "psp": {"period": 8, "n_shifts": 4, "unwrap_periods": [40]}}))
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "plan.json").write_text(json.dumps({"projector": [32, 24], "gamma": 2.2,
+                                                  "psp": {"period": 8, "n_shifts": 4, "unwrap_periods": [40]}}))
     from sssphase_core.errors import DataError
 
     with pytest.raises(DataError, match="psp/x/p40/s0"):
-        runner.invoke(_app(), ["decode", str(tmp_path), "--out", str(tmp_path / "o")], catch_exceptions=False)
+        runner.invoke(_app(), ["decode", str(frames), "--out", str(tmp_path / "o")], catch_exceptions=False)
+
+
+@pytest.mark.parametrize("inside", [".", "decoded"])
+def test_decode_refuses_to_write_among_its_frames(tmp_path, inside):
+    """Its maps (xp.npy, mask.npy, ...) written into the frames folder were read back as frames: a later
+    `sss import` of the folder failed on them ("'mask' is no frame name")."""
+    from sssphase_core.errors import InputError
+
+    frames = tmp_path / "frames"
+    _run("patterns", "--projector", "32x24", "--out", str(frames))
+    before = sorted(p.relative_to(frames) for p in frames.rglob("*"))
+    with pytest.raises(InputError, match="would write among the frames of"):
+        runner.invoke(_app(), ["decode", str(frames), "--out", str(frames / inside)], catch_exceptions=False)
+    assert sorted(p.relative_to(frames) for p in frames.rglob("*")) == before
 
 
 @pytest.mark.slow
@@ -128,8 +144,8 @@ def test_decode_names_the_odd_frame_ignores_other_images_and_refuses_nan_thresho
     pat_dir = tmp_path / "patterns"
     _run("patterns", "--projector", "64x48", "--out", str(pat_dir))
     Image.fromarray(np.zeros((8, 8), np.uint8)).save(tmp_path / "patterns" / "holiday.png")  # not a frame: skipped
-    _run("decode", str(pat_dir), "--out", str(pat_dir))  # its own figures in the folder do not trip a rerun
-    _run("decode", str(pat_dir), "--out", str(pat_dir))
+    _run("decode", str(pat_dir), "--out", str(tmp_path / "dec"))  # a rerun into the same folder replaces its maps
+    _run("decode", str(pat_dir), "--out", str(tmp_path / "dec"))
     with pytest.raises(InputError, match="min_modulation must be a finite number"):
         runner.invoke(_app(), ["decode", str(pat_dir), "--out", str(tmp_path / "o"), "--min-modulation", "nan"],
                       catch_exceptions=False)
@@ -200,10 +216,12 @@ def test_decode_names_a_broken_plan_json_in_one_line(tmp_path, text, expected):
     """A hand-edited plan.json was an internal error (KeyError, JSONDecodeError ...) or decoded nothing."""
     from sssphase_core.errors import InputError
 
-    (tmp_path / "plan.json").write_text(text)
-    res = runner.invoke(_app(), ["decode", str(tmp_path), "--out", str(tmp_path / "out")])
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    (frames / "plan.json").write_text(text)
+    res = runner.invoke(_app(), ["decode", str(frames), "--out", str(tmp_path / "out")])
     assert isinstance(res.exception, InputError) and expected in str(res.exception), res.output
-    assert str(tmp_path / "plan.json") in str(res.exception)
+    assert str(frames / "plan.json") in str(res.exception)
 
 
 def test_decode_refuses_frames_smaller_than_a_camera_frame_as_import_does(tmp_path):
