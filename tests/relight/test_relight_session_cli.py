@@ -519,3 +519,26 @@ def test_outputs_of_another_session_of_the_same_object_are_not_replaced(session,
     (out / "sources.json").write_text('{"sand_rake": "/x"')  # truncated
     res = runner.invoke(app, ["relight", str(session), "--pattern", "white", *args])
     assert res.exit_code != 0 and "sources.json cannot be read" in str(res.exception)
+
+
+def test_objects_whose_output_names_can_coincide_are_refused_one_out(session, tmp_path):
+    """Outputs are OBJECT_v<view>_PATTERN_BACKEND: objects a and a_v0_b relit under the patterns b_v0_c and c wrote
+    the same file into one --out, the second replacing the first without a word."""
+    import json
+    import shutil
+
+    from sssphase_core.errors import InputError
+
+    twin = tmp_path / "others" / f"{session.name}_v1_white"
+    shutil.copytree(session, twin)
+    manifest = json.loads((twin / "manifest.json").read_text())
+    (twin / "manifest.json").write_text(json.dumps({**manifest, "object": twin.name}))
+    out = tmp_path / "o"
+    args = ["--views", "1", "--backend", "none", "--out", str(out)]
+    assert runner.invoke(app, ["relight", str(session), "--pattern", "white", *args]).exit_code == 0
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    res = runner.invoke(app, ["relight", str(twin), "--pattern", "black", *args])
+    assert isinstance(res.exception, InputError), res.output
+    assert f"objects '{session.name}' and '{twin.name}', whose file names" in str(res.exception)
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    assert runner.invoke(app, ["relight", str(twin), "--pattern", "black", *args[:-1], str(tmp_path / "o2")]).exit_code == 0
