@@ -49,6 +49,21 @@ def test_a_huge_pattern_is_refused_from_its_header(tmp_path):
         read_pattern(bomb, (256, 192), resize=True)
 
 
+def test_a_4k_image_is_a_pattern_with_resize_and_refused_once_without(tmp_path):
+    """A 3840 x 2160 screen image for the 256 x 192 projector was refused even with --resize, in a message that
+    said itself twice ("cannot read pattern X: pattern X is ...")."""
+    from PIL import Image
+
+    from sssphase_core.relight import read_pattern
+
+    Image.fromarray((np.indices((2160, 3840)).sum(axis=0) // 64 % 2 * 255).astype(np.uint8)).save(tmp_path / "4k.png")
+    with pytest.raises(InputError) as info:
+        read_pattern(tmp_path / "4k.png", (256, 192))
+    assert str(info.value).count("4k.png") == 1 and "or pass --resize" in str(info.value)
+    fitted = read_pattern(tmp_path / "4k.png", (256, 192), resize="fit")
+    assert fitted.shape == (192, 256) and fitted.min() == 0 and fitted.max() == 1
+
+
 def test_a_truncated_pattern_is_one_line(tmp_path):
     from sssphase_core.relight import read_pattern
 

@@ -76,12 +76,14 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
     try:
         img = Image.open(path)  # reads the header only: the size is checked before any pixel is decoded
         w, h = img.size
-        if w * h > max(4 * wp * hp, 1 << 22):
+        if w * h > _max_pattern_pixels(wp, hp, mode):
             raise InputError(f"pattern {path} is {w}x{h}, far larger than the {wp}x{hp} projector: refused "
-                             "without decoding it (scale it down first)")
+                             f"without decoding it (scale it down first{'' if mode else ', or pass --resize'})")
         with warnings.catch_warnings():
             warnings.simplefilter("error", Image.DecompressionBombWarning)
             img.load()
+    except InputError:
+        raise
     except (Image.DecompressionBombError, Image.DecompressionBombWarning):
         raise InputError(f"pattern {path} is far larger than the {wp}x{hp} projector: refused without decoding it "
                          "(scale it down first)") from None
@@ -120,6 +122,13 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
         if np.allclose(arr, arr[..., :1]):
             arr = arr[..., 0]
     return np.clip(arr, 0, 1)
+
+
+def _max_pattern_pixels(wp: int, hp: int, resize: str) -> int:
+    """The most pixels a pattern file for a ``wp`` x ``hp`` projector may have before it is decoded: 4x the
+    projector (at least 4 MP) for a pattern used as it is; with ``resize``, a camera or screen image up to
+    64 MP (8K x 8K), which is scaled to the projector (a decompression bomb stays refused from its header)."""
+    return max(4 * wp * hp, 1 << 22) if not resize else max(4 * wp * hp, 1 << 26)
 
 
 def _over_black(img: object, path: Path) -> object:
@@ -165,7 +174,7 @@ def _read_array_pattern(path: Path, projector_size: tuple[int, int], mode: str, 
     channels = (1, 3) if path.suffix.lower() == ".npy" else (1, 3, 4)  # an image's fourth channel: its alpha
     if len(shape) not in (2, 3) or (len(shape) == 3 and shape[2] not in channels) or 0 in shape:
         raise InputError(f"pattern {path} must be an (H, W) or (H, W, 3) image, got shape {shape}")
-    if shape[0] * shape[1] > max(4 * wp * hp, 1 << 22):
+    if shape[0] * shape[1] > _max_pattern_pixels(wp, hp, ""):  # arrays are read whole, in float64
         raise InputError(f"pattern {path} is {shape[1]}x{shape[0]}, far larger than the {wp}x{hp} projector: "
                          "refused without reading it (scale it down first)")
     arr = _read_pixels(path, alpha=True)
