@@ -64,6 +64,17 @@ def test_a_4k_image_is_a_pattern_with_resize_and_refused_once_without(tmp_path):
     assert fitted.shape == (192, 256) and fitted.min() == 0 and fitted.max() == 1
 
 
+def test_float_patterns_a_rounding_above_one_are_clipped_and_others_named_with_their_digits(tmp_path):
+    """1.0000001 (float32 arithmetic on 1.0) was refused as "got 1 to 1"."""
+    from sssphase_core.relight import read_pattern
+
+    np.save(tmp_path / "round.npy", np.full((192, 256), 1.0000001, np.float32))
+    assert read_pattern(tmp_path / "round.npy", (256, 192)).max() == 1.0
+    np.save(tmp_path / "over.npy", np.full((192, 256), 1.0001, np.float64))
+    with pytest.raises(InputError, match=r"must hold finite values in \[0, 1\], got 1.0001 to 1.0001"):
+        read_pattern(tmp_path / "over.npy", (256, 192))
+
+
 def test_a_truncated_pattern_is_one_line(tmp_path):
     from sssphase_core.relight import read_pattern
 
@@ -669,6 +680,26 @@ def test_a_damaged_array_is_one_error_naming_it_wherever_it_is_read(intact_sessi
     with pytest.raises(DataError, match=r"array (psp|white|corr/xp|corr/mask) of view 0 .* is (damaged|missing)"):
         load_view(Session.open(copy), 0)
     assert any("view 0: array" in p for p in Session.open(copy).validate())
+
+
+def test_a_damaged_check_session_is_refused_before_the_training(intact_session, tmp_path):
+    """`sss train decoder ... --check-sessions S` with a truncated chunk in S trained fully, then stopped on the
+    damage."""
+    from sssphase_core.errors import DataError
+
+    copy = tmp_path / "check" / "leaf"
+    shutil.copytree(intact_session, copy)
+    DAMAGE["chunk truncated"](copy / "view_000")
+    from typer.testing import CliRunner
+
+    from sssphase_cli.main import app
+
+    with pytest.raises(DataError, match=r"--check-sessions: session .*leaf is damaged \(view 0: array psp"):
+        CliRunner().invoke(app, ["train", "decoder", "--end-to-end", "--objects", "star", "--views", "0",
+                                    "--val-views", "", "--pixels-per-view", "4", "--batch-size", "2", "--epochs", "1",
+                                    "--cache", str(tmp_path / "cache"), "--out", str(tmp_path / "run"),
+                                    "--check-sessions", str(copy)], catch_exceptions=False)
+    assert not (tmp_path / "run").exists() and not (tmp_path / "cache").exists()
 
 
 #: The attacker of the next test, in a process of its own (its threads would otherwise hold the test's GIL,

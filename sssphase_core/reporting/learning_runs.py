@@ -235,10 +235,14 @@ def run_decoder(opts: DecoderOptions, report: Report = Report(), *,
     resuming = check_run_out(opts.out, "decoder", opts.resume, config_file)
     names = parse_names(opts.objects, () if opts.sessions else TRAIN_OBJECTS)
     choice = decoder_view_choice(names, opts.views, opts.val_views, opts.sessions)
-    if opts.check_sessions:  # a typo here was found only after the whole training
+    if opts.check_sessions:  # a typo, or a damaged chunk, here was found only after the whole training
         from sssphase_core.store.session import find_sessions
 
-        find_sessions(opts.check_sessions)
+        for s in find_sessions(opts.check_sessions):
+            damage = [p for p in s.validate() if "not captured completely" not in p]
+            if damage:
+                raise DataError(f"--check-sessions: session {s.path} is damaged ({damage[0]}; `sss validate {s.path}` "
+                                "lists every problem): repair or leave it out before the training")
     train_vds, val_vds = training_data_from_sessions(names, opts, choice, noisy=opts.noisy_targets, report=report)
     names = names or view_objects([*train_vds, *val_vds])
     ds = PatchDataset(train_vds, patch, names, with_targets=True)

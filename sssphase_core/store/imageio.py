@@ -47,6 +47,11 @@ def _resized(img, size: tuple[int, int], mode: str):
     return canvas
 
 
+#: Float patterns may leave [0, 1] by this much (float32 rounding of 1.0 in an image editor's arithmetic); they
+#: are clipped to it.
+FLOAT_SLACK = 1e-6
+
+
 def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: str | bool = "",
                  hint: str = "pass --resize fit, fill or stretch") -> np.ndarray:
     """A pattern image file -> float32 values in [0, 1], (Hp, Wp) or (Hp, Wp, 3).
@@ -114,8 +119,8 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
         scale = 255.0
     if arr.dtype.kind == "f" and not np.isfinite(arr).all():  # a single-channel float TIFF (Pillow's mode F)
         raise InputError(f"pattern {path} must hold finite values in [0, 1]: it has NaN or inf")
-    if arr.dtype.kind == "f" and (arr.min() < 0 or arr.max() > 1):
-        raise InputError(f"pattern {path} must hold finite values in [0, 1], got {arr.min():.3g} to {arr.max():.3g}")
+    if arr.dtype.kind == "f" and (arr.min() < -FLOAT_SLACK or arr.max() > 1 + FLOAT_SLACK):
+        raise InputError(f"pattern {path} must hold finite values in [0, 1], got {arr.min():.7g} to {arr.max():.7g}")
     arr = arr.astype(np.float32) / scale
     if arr.ndim == 3:
         arr = arr[..., :3]
@@ -195,8 +200,8 @@ def _read_array_pattern(path: Path, projector_size: tuple[int, int], mode: str, 
         data = data / np.iinfo(arr.dtype).max
     elif not np.isfinite(data).all():
         raise InputError(f"pattern {path} must hold finite values in [0, 1]: it has NaN or inf")
-    elif data.min() < 0 or data.max() > 1:
-        raise InputError(f"pattern {path} must hold finite values in [0, 1], got {data.min():.3g} to {data.max():.3g}")
+    elif data.min() < -FLOAT_SLACK or data.max() > 1 + FLOAT_SLACK:
+        raise InputError(f"pattern {path} must hold finite values in [0, 1], got {data.min():.7g} to {data.max():.7g}")
     data = data.astype(np.float32)
     if data.shape[:2] != (hp, wp):
         if not mode:

@@ -602,8 +602,10 @@ class Session:
         expected = meta.get("chunks")  # older sessions: not recorded
         if expected is not None:
             found = _stored_chunks(folder)
-            if found != expected:  # zarr would read a missing chunk as zeros
+            if found < expected:  # zarr would read a missing chunk as zeros
                 raise DamagedArray(where, f"damaged ({expected - found} of {expected} chunks missing)")
+            if found > expected:  # written again with other chunks: not the array the manifest describes
+                raise DamagedArray(where, f"damaged ({found} chunks stored where the manifest says {expected})")
         return CheckedArray(array, where)
 
     def load(self, view: int, name: str) -> np.ndarray:
