@@ -729,7 +729,7 @@ def claim_output(out: Path | str, sessions: Iterable[Session]) -> None:
         if known.get(obj, here) != here and _has_outputs(out, obj):
             raise InputError(f"--out {out} holds outputs of {obj!r} from another session ({known[obj]}); this session "
                              f"({here}) would overwrite them: choose another --out")
-    names = sorted({*known, *claims})
+    names = sorted({*claims, *(k for k in known if _has_outputs(out, k))})  # a record whose outputs are gone is no clash
     for obj in names:  # OBJECT_v<view>_PATTERN_...: objects a and a_v0_b name a's pattern b_v0_c and a_v0_b's c alike
         prefix = re.compile(re.escape(obj) + r"_v\d+_")
         clash = next((other for other in names if other != obj and prefix.match(other)), None)
