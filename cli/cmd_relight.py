@@ -207,7 +207,10 @@ def report(
 
     for ckpt in (pretrain, None if any(map(uses_decoder, checked)) else decoder):
         if ckpt is not None:
-            load_checkpoint(ckpt)  # raises DataError naming what the file is
+            kind = load_checkpoint(ckpt).get("kind")  # raises DataError naming what the file is
+            if ckpt == pretrain and kind not in (None, "pretrain"):  # its options were tabled as pretraining's
+                raise InputError(f"--pretrain {ckpt} is a {kind} checkpoint: give the run of `sss train pretrain`"
+                                 + (" (and this one as --decoder)" if kind == "decoder" else ""))
     path = run_report(out, find_sessions(sessions), train_sessions=train_sessions, pretrain=pretrain,
                       decoder=decoder, view=view, backends=backends,
                       log=lambda m: console.print(m, markup=False, highlight=False))

@@ -217,3 +217,15 @@ def test_a_cache_folder_inside_a_session_or_on_a_file_is_refused_before_any_simu
                                 "--cache", str(cache), "--out", str(tmp_path / "run")], catch_exceptions=False)
         assert not (tmp_path / "run").exists()
     assert sorted(p.name for p in session.path.iterdir()) == ["manifest.json"] and afile.read_text() == "mine\n"
+
+
+def test_report_refuses_a_decoder_run_given_as_its_pretraining(tiny, tmp_path):
+    """`sss report S --pretrain DECODER_RUN` was accepted, and its configuration table listed the decoder's
+    learning rate and epochs as pretraining's."""
+    ckpt = tmp_path / "dec.pt"
+    _decoder_checkpoint(ckpt, tiny)
+    with pytest.raises(InputError, match=r"--pretrain .*dec.pt is a decoder checkpoint: give the run of `sss train "
+                                         r"pretrain` \(and this one as --decoder\)"):
+        runner.invoke(app, ["report", str(tmp_path / "sessions"), "--pretrain", str(ckpt), "--backend", "none",
+                            "--out", str(tmp_path / "report")], catch_exceptions=False)
+    assert not (tmp_path / "report").exists()
