@@ -153,6 +153,13 @@ def resize_note(path: str, size: tuple[int, int], mode: str) -> tuple[str, str] 
     return line, warning
 
 
+#: The longest file name most file systems take, in bytes.
+NAME_BYTES = 255
+#: Bytes an output file adds after the pattern's name: _<backend>_display.png, _<backend>_compare.png (backends
+#: of at most 12 characters).
+OUTPUT_SUFFIX_BYTES = 26
+
+
 def resolve_patterns(specs: Sequence[str], rv: RelightView, resize: str = "",
                      narrator: Narrator | None = None) -> tuple[list[str], list[np.ndarray]]:
     """``(names, patterns)`` of the patterns ``specs`` names, in the projector's size: an image file (read,
@@ -182,6 +189,13 @@ def resolve_patterns(specs: Sequence[str], rv: RelightView, resize: str = "",
     if twins:  # each pattern's name is its output file's
         raise InputError(f"--pattern: two patterns would both be written as {twins[0]!r}: "
                          "rename one (the output files are named by the pattern)")
+    # OBJECT_vN_PATTERN_BACKEND_display.png must fit a file name (255 bytes): refused here, not after the footprints
+    room = NAME_BYTES - len(f"{rv.object}_v{rv.view}_".encode()) - OUTPUT_SUFFIX_BYTES
+    long = next((n for n in names if len(n.encode()) > room), None)
+    if long is not None:
+        raise InputError(f"--pattern {long[:40]}...: a pattern named with {len(long.encode())} bytes makes its output "
+                         f"file names longer than a file name may be ({NAME_BYTES} bytes): rename the file to at most "
+                         f"{max(room, 1)} bytes")
     return names, pats
 
 

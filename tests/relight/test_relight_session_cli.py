@@ -542,3 +542,19 @@ def test_objects_whose_output_names_can_coincide_are_refused_one_out(session, tm
     assert f"objects '{session.name}' and '{twin.name}', whose file names" in str(res.exception)
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
     assert runner.invoke(app, ["relight", str(twin), "--pattern", "black", *args[:-1], str(tmp_path / "o2")]).exit_code == 0
+
+
+def test_a_pattern_whose_name_cannot_make_a_file_name_is_refused_before_the_relighting(session, tmp_path):
+    """A 250-character pattern file name passed every check and failed when its relit image was written, after the
+    footprints ("could not write ... is the name too long")."""
+    from PIL import Image
+
+    from sssphase_core.errors import InputError
+
+    long = tmp_path / ("p" * 240 + ".png")
+    Image.fromarray(np.zeros((192, 256), np.uint8)).save(long)
+    res = runner.invoke(app, ["relight", str(session), "--pattern", str(long), "--views", "1", "--backend", "none",
+                              "--out", str(tmp_path / "o")])
+    assert isinstance(res.exception, InputError), res.output
+    assert "makes its output file names longer than a file name may be (255 bytes)" in str(res.exception)
+    assert not (tmp_path / "o").exists() or not list((tmp_path / "o").rglob("*.png"))
