@@ -101,6 +101,9 @@ class LPIPS(nn.Module):
 
 
 _MODEL: LPIPS | None = None
+#: weight files found unusable, and why: :func:`available` asks once per scored image, and the files are not
+#: read again
+_UNUSABLE: dict[tuple[Path, Path], str] = {}
 
 
 def load() -> LPIPS:
@@ -108,12 +111,15 @@ def load() -> LPIPS:
     global _MODEL
     if _MODEL is None:
         alexnet, linear = find_weights()
+        if (alexnet, linear) in _UNUSABLE:
+            raise InputError(_UNUSABLE[alexnet, linear])
         try:
             _MODEL = LPIPS(torch.load(alexnet, map_location="cpu", weights_only=True),
                            torch.load(linear, map_location="cpu", weights_only=True))
         except (RuntimeError, KeyError, OSError, ValueError, TypeError, pickle.UnpicklingError, EOFError) as exc:
             first = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
-            raise InputError(f"LPIPS weights {alexnet} / {linear} are not the expected files ({first})") from None
+            _UNUSABLE[alexnet, linear] = f"LPIPS weights {alexnet} / {linear} are not the expected files ({first})"
+            raise InputError(_UNUSABLE[alexnet, linear]) from None
     return _MODEL
 
 
