@@ -65,14 +65,18 @@ class Narrator:
         yield
 
 
-def choose_views(session: Session, views: str | Sequence[int] | None = None) -> list[int]:
+def choose_views(session: Session, views: str | Sequence[int] | None = None, say: Narrator | None = None) -> list[int]:
     """The complete views ``views`` names (comma-separated text or numbers; empty or None: all), each once,
-    checked before any is relit."""
+    checked before any is relit; with all views, ``say`` is told which incomplete ones are left out."""
     if not views:
+        states = {int(v): session.status(int(v)) for v in session.manifest["views"]}
+        left = ", ".join(f"view {v}: {st}" for v, st in sorted(states.items()) if st != "complete")
         if not session.views():  # a capture that was interrupted: nothing to relight, and saying nothing misleads
-            states = ", ".join(f"view {v}: {session.status(int(v))}" for v in sorted(session.manifest["views"], key=int))
-            raise InputError(f"session {session.path} has no complete view ({states or 'no views'}); "
+            raise InputError(f"session {session.path} has no complete view ({left or 'no views'}); "
                              f"`sss validate {session.path}` says more, `sss capture ... --resume` completes it")
+        if left and say is not None:
+            say.say(f"{session.name}: left out, not complete ({left}); `sss capture ... --resume` completes them",
+                    warning="left out")
         return session.views()
     try:
         numbers = [int(v) for v in views.split(",") if v.strip()] if isinstance(views, str) else [int(v) for v in views]
@@ -312,7 +316,7 @@ def relight_session(session: Path | str | Session, patterns: Sequence[str], *, b
     s = session if isinstance(session, Session) else Session.open(session)
     check_decoder_fits(ckpt, [backend], [s])
     result, pats = RelightResult(backend, ckpt), []
-    for v in choose_views(s, views):
+    for v in choose_views(s, views, say):
         rv = load_view(s, v)
         if not pats:
             result.patterns, pats = resolve_patterns(patterns, rv, resize, say)
@@ -491,7 +495,7 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
     from sssphase_core.relight.geometry import ENTRY_CENTRED, geometric_correspondence
 
     done = []
-    for v in choose_views(s, views):
+    for v in choose_views(s, views, say):
         rv = load_view(s, v)
         source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device)
         with say.status(f"{rv.object} view {v}: predicting the scattering shift ({backend})"):
@@ -570,7 +574,7 @@ def _eval_views(found: Sequence[Session], views: str | Sequence[int] | None, bac
     ``asked`` for, refused) where a view holds no dot-grid footprints."""
     bare = []  # views without the dot-grid crops `measured` relights with
     for s in found:
-        for v in choose_views(s, views):
+        for v in choose_views(s, views, say):
             if not has_references(s.arrays(v)):
                 raise InputError(f"{s.name} view {v} has no reference captures to evaluate against (capture with "
                                  "--reference checkerboard ...)")

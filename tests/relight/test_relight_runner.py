@@ -146,6 +146,24 @@ def test_choose_views_takes_text_or_numbers_each_once():
         choose_views(s)
 
 
+def test_all_views_says_which_incomplete_ones_it_leaves_out():
+    class Lines:
+        def __init__(self):
+            self.lines = []
+
+        def say(self, text, warning=""):
+            self.lines.append(text)
+
+    s, said = FakeSession(), Lines()
+    s.name = "apple"
+    assert choose_views(s, "", said) == [0, 2]
+    assert said.lines == ["apple: left out, not complete (view 1: capturing); `sss capture ... --resume` completes them"]
+    said.lines.clear()
+    assert choose_views(s, "0,2", said) == [0, 2] and said.lines == []  # views named: nothing left out unasked
+    s.status = lambda v: "complete"
+    assert choose_views(s, "", said) == [0, 2] and said.lines == []
+
+
 def test_small_helpers(tmp_path):
     from PIL import Image
 
