@@ -25,6 +25,7 @@ from sssphase_core.learning.inputs import RunConfigFile
 
 CONFIG = "config.toml"
 NOT_SAVED = {"config", "resume"}  # how to run, not what the run is
+SIMULATION_ONLY = ("rig", "n_views", "cache")  # options of simulated data, left out of a run on --sessions
 
 
 def _command_name(ctx: typer.Context) -> str:
@@ -166,6 +167,9 @@ def save_run_config(ctx: typer.Context, out: Path, *, resuming: bool = False, wr
     import tomli_w
 
     options = {k: _toml_value(v) for k, v in ctx.params.items() if k not in NOT_SAVED and v is not None}
+    if options.get("sessions") is not None:  # captured data: the simulator's options shaped nothing
+        for k in SIMULATION_ONLY:
+            options.pop(k, None)
     saved_path = out / CONFIG
     if resuming:
         from sssphase_core.errors import InputError

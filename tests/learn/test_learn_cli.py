@@ -308,3 +308,19 @@ def test_eval_knn_columns_have_distinct_plain_names(args):
     out = (res.stdout + res.stderr).strip()
     assert res.returncode == 2 and len(out.splitlines()) == 1, out
     assert "--checkpoint takes NAME=PATH (or PATH) with a distinct name" in out, out
+
+
+def test_a_run_on_sessions_records_no_simulator_options(tmp_path):
+    """`--rig paper --sessions DIR` warned that --rig is not used, then recorded `rig = "paper"` in config.toml,
+    which then said the run was trained on the paper rig. The simulator's options are left out of a run on
+    sessions, and kept for one on the simulator."""
+    import tomllib
+    from types import SimpleNamespace
+
+    from sssphase_cli.run_config import save_run_config
+
+    sim = {"rig": "paper", "n_views": 4, "cache": tmp_path / "cache", "epochs": 2, "sessions": None}
+    saved = lambda params: tomllib.loads(save_run_config(SimpleNamespace(params=params, parent=None), tmp_path)  # noqa: E731
+                                         .read_text())["options"]
+    assert saved(sim) == {"rig": "paper", "n_views": 4, "cache": str(tmp_path / "cache"), "epochs": 2}
+    assert saved({**sim, "sessions": tmp_path / "s"}) == {"epochs": 2, "sessions": str(tmp_path / "s")}
