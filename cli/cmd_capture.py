@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import sys
+from contextlib import ExitStack
 from pathlib import Path
 from typing import Annotated
 
@@ -60,13 +61,16 @@ def capture(
 
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     try:
-        with _local_daemon(timeout) as client, Progress(*columns, console=console) as bar:
+        with _local_daemon(timeout) as client, ExitStack() as stack:
             tasks: dict[int, int] = {}
+            bars: list[Progress] = []  # drawn at the first frame: a capture refused before it leaves no empty line
 
             def progress(view: int, done: int, total: int) -> None:
+                if not bars:
+                    bars.append(stack.enter_context(Progress(*columns, console=console)))
                 if view not in tasks:
-                    tasks[view] = bar.add_task(f"view {view + 1}/{views}", total=total)
-                bar.update(tasks[view], completed=done)
+                    tasks[view] = bars[0].add_task(f"view {view + 1}/{views}", total=total)
+                bars[0].update(tasks[view], completed=done)
 
             session = run_capture(client, req, spec, progress=progress, ask_move=None if spec.turntable else ask_move)
     except KeyboardInterrupt:

@@ -122,6 +122,10 @@ def test_daemon_sigkill_mid_capture_then_resume_is_byte_identical(reference, dae
     assert resumed.keys() == expected.keys()
     for name, arr in expected.items():
         assert arr.dtype == resumed[name].dtype and arr.tobytes() == resumed[name].tobytes(), name
+    other = subprocess.run([*args, "--resume", "--seed", "7"], capture_output=True, text=True, timeout=120,
+                           env={**os.environ, "SSS_RUNTIME_DIR": str(runtime)})
+    assert other.returncode == 2 and "was captured with other rig settings" in other.stderr, other.stderr
+    assert "" not in other.stdout.splitlines()  # no empty progress display before the one-line refusal
 
 
 def test_ctrl_c_leaves_a_resumable_session(daemon_factory, tmp_path, sss):
