@@ -55,6 +55,7 @@ class DemoConfig:
     footprint_pixels: int = 200
     model: str = "lite"
     seed: int = 0
+    dot_stride: int = 1  # dot grids every S-th shift: footprint crops for 1/S^2 of the pixels, from 1/S^2 of the frames
 
     def pretrain_config(self, **changes: Any):  # noqa: ANN201  (PretrainConfig: torch is imported lazily)
         """The demo's pretraining recipe (``PretrainConfig``), with ``changes`` (e.g. another seed)."""
@@ -73,7 +74,7 @@ PRESETS = {
                        pretrain_epochs=2, pretrain_batch=32, decoder_epochs=3),
     "tiny": DemoConfig(("apple", "star"), ("sand_rake",), pixels_per_view=8, pretrain_epochs=1, pretrain_batch=32,
                        decoder_epochs=1, decoder_batch=16, backends=("none", "torch", "exact"), pca_stride=4,
-                       footprint_pixels=32),
+                       footprint_pixels=32, dot_stride=4),  # 8 pixels a view need no full dot grid
 }
 
 STEPS = ("train_sessions", "test_sessions", "pretrain", "decoder", "relight", "footprints", "knn", "pca", "report")
@@ -180,8 +181,8 @@ class Demo:
 
     def train_sessions(self) -> dict[str, Any]:
         root = self.out / "sessions" / "train"
-        paths = [self._capture(o, root, self.cfg.train_views, footprints=True, randomised=self.randomise_rig)
-                 for o in self.cfg.train_objects]
+        paths = [self._capture(o, root, self.cfg.train_views, footprints=True, randomised=self.randomise_rig,
+                               dot_stride=self.cfg.dot_stride) for o in self.cfg.train_objects]
         return {"root": str(root), "sessions": paths}
 
     def test_sessions(self) -> dict[str, Any]:
