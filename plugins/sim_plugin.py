@@ -16,7 +16,8 @@ the preset's, for calibration), ``transport`` (``burley`` or ``directional_dipol
 light transport on a torch device, ``sssphase_core.sim_accel``; the same images), and fault injection for tests: ``fail_at_frame``
 (the camera raises at that grab), ``disconnect_at_frame`` (the camera is gone from that grab on, as an
 unplugged USB camera: every later call raises until the rig is opened again), ``stall_at_frame`` (that grab
-never returns), ``garbage_at_frame`` (that frame is half as tall and NaN) and ``grab_delay_s`` (slow frames). Options nobody reads are refused
+never returns), ``garbage_at_frame`` (that frame is half as tall and NaN), ``grab_delay_s`` (slow frames) and
+``frame_timeout_s`` (how long the camera declares a frame may take: the daemon waits no less for a grab). Options nobody reads are refused
 by name (``check_options``).
 The ``sim:bench-camera`` streams one fixed frame (``shape``, ``dtype``) for throughput benchmarks.
 
@@ -217,7 +218,8 @@ class SimCamera:
         #: how long a frame may take to render (the daemon's deadline is no shorter): 30 s at the CPU preset's
         #: 256 x 192, in proportion at larger cameras (a batch of 1080p frames takes minutes on 2 cores). A view's
         #: first grab builds its scene and renders a batch of patterns: over 10 s on a loaded 2-core machine
-        self.frame_timeout_s = 30.0 * max(1.0, w * h / (256 * 192))
+        self.frame_timeout_s = _number(options, "frame_timeout_s", 30.0 * max(1.0, w * h / (256 * 192)), 1.0, 86400.0,
+                                       float)
 
     def configure(self, *, exposure: float | None = None, gain: float | None = None,
                   pixel_format: str | None = None) -> None:

@@ -172,14 +172,15 @@ SENSOR_OPTIONS: dict[str, tuple[float, float]] = {"lens_blur": (0.0, 5.0), "read
 DEMOSAIC_METHODS = ("malvar", "opencv")
 #: every rig option of the sim device plugin (``sssphase_plugins.sim_plugin``'s docstring says what each does)
 #: The sim devices' fault injection (tests): options that change when a capture fails, not what it captures.
-FAULT_OPTIONS = frozenset({"fail_at_frame", "disconnect_at_frame", "stall_at_frame", "garbage_at_frame", "grab_delay_s"})
+FAULT_OPTIONS = frozenset({"fail_at_frame", "disconnect_at_frame", "stall_at_frame", "garbage_at_frame", "grab_delay_s",
+                           "frame_timeout_s"})
 #: Options that change where the sim computes, not what it captures (``device``: the light transport on a
 #: torch device, ``sssphase_core.sim_accel``): a session resumes across them.
 COMPUTE_OPTIONS = frozenset({"device"})
 SIM_RIG_OPTIONS = frozenset({"object", "preset", "seed", "n_views", "view", "latency_s", "frame_period_s", "realtime",
                              "projector_gamma", "projector_black", "transport", "demosaic", "raw", "fail_at_frame",
                              "disconnect_at_frame", "stall_at_frame", "garbage_at_frame",
-                             "grab_delay_s", "shape", "dtype", *SENSOR_OPTIONS, *COMPUTE_OPTIONS})
+                             "grab_delay_s", "frame_timeout_s", "shape", "dtype", *SENSOR_OPTIONS, *COMPUTE_OPTIONS})
 
 
 def _option(options: Mapping[str, Any], name: str, lo: float, hi: float) -> float | None:

@@ -32,16 +32,17 @@ def test_a_stalled_camera_fails_the_capture_at_its_timeout_and_the_daemon_still_
     env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime), "COLUMNS": "200"}
     rig = tmp_path / "stall.toml"
     rig.write_text('[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\nturntable = "sim:turntable0"\n'
-                   '[options]\nobject = "star"\nn_views = 2\nstall_at_frame = 30\n')  # view 0 has 26 frames
+                   '[options]\nobject = "star"\nn_views = 2\nstall_at_frame = 30\n'  # view 0 has 26 frames
+                   'frame_timeout_s = 10\n')  # the camera's own frame time (30 s by default at this size)
     try:
         started, _ = _sss("daemon", "start", env=env)  # a daemon of its own: the capture leaves it running
         assert started.returncode == 0, started.stdout + started.stderr
-        res, _ = _sss("capture", "--rig", str(rig), "--object", "star", "--views", "2", "--timeout", "12", "--out",
+        res, _ = _sss("capture", "--rig", str(rig), "--object", "star", "--views", "2", "--timeout", "4", "--out",
                       str(tmp_path / "s"), env=env)
         out = res.stdout + res.stderr
         assert res.returncode != 0 and "Traceback" not in out, out
-        # the deadline is the client's --timeout, but no shorter than the sim camera's own frame time (30 s)
-        assert "sim:camera0 (grab" in out and "did not answer within 30 s" in out, out
+        # the deadline is the client's --timeout, but no shorter than the sim camera's own frame time
+        assert "sim:camera0 (grab" in out and "did not answer within 10 s" in out, out
         from sssphase_core.store.session import Session
 
         assert Session.open(tmp_path / "s" / "star").status(0) == "complete"  # the complete view is kept
