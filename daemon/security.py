@@ -38,11 +38,12 @@ def _private(path: Path) -> bool:
     return st.st_uid == os.getuid() and not st.st_mode & 0o077
 
 
-def _private_dir(path: Path) -> Path:
+def _private_dir(path: Path, holds: str = "the daemon's socket and token",
+                 or_else: str = " or point SSS_RUNTIME_DIR at a private folder") -> Path:
     path.mkdir(parents=True, exist_ok=True, mode=0o700)
     if not _private(path):
-        raise PrivateDirError(f"{path} must be owned by you with mode 0700 (it holds the daemon's socket and token): "
-                              f"run 'chmod 700 {path}' or point SSS_RUNTIME_DIR at a private folder")
+        raise PrivateDirError(f"{path} must be owned by you with mode 0700 (it holds {holds}): "
+                              f"run 'chmod 700 {path}'{or_else}")
     return path
 
 
@@ -198,14 +199,17 @@ def generate_keys(directory: Path | None = None, *, overwrite: bool = False) -> 
     """Create server and client CURVE key pairs and authorise the client (``sss daemon keys``)."""
     import zmq.auth
 
-    directory = _private_dir(directory or curve_dir())
+    directory = _private_dir(directory or curve_dir(), "CURVE keys", "")
     if (directory / f"{SERVER_CERT}.key_secret").exists() and not overwrite:
         raise FileExistsError(f"keys already exist in {directory} (pass --overwrite to replace them)")
+    authorized = _private_dir(directory / AUTHORIZED, "the authorised clients' keys", "")
+    written = [directory / f"{n}{ext}" for n in (SERVER_CERT, CLIENT_CERT) for ext in (".key", ".key_secret")]
+    for path in (*written, authorized / f"{CLIENT_CERT}.key"):  # a link there is replaced, never written through
+        path.unlink(missing_ok=True)  # (the secret key went into whatever file the link named)
     for name in (SERVER_CERT, CLIENT_CERT):
         zmq.auth.create_certificates(directory, name)
     for secret in directory.glob("*.key_secret"):
         secret.chmod(0o600)
-    authorized = _private_dir(directory / AUTHORIZED)
     (authorized / f"{CLIENT_CERT}.key").write_bytes((directory / f"{CLIENT_CERT}.key").read_bytes())
     return directory
 

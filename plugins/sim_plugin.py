@@ -326,7 +326,11 @@ class BenchCamera:
 
     def __init__(self, options: Mapping[str, Any]) -> None:
         self.info = DeviceInfo(BENCH_CAMERA_ID, "camera", PLUGIN, "fixed-frame benchmark camera", "bench-camera")
-        shape = tuple(int(s) for s in options.get("shape", (1080, 1920, 3)))
+        given = options.get("shape", (1080, 1920, 3))
+        if not isinstance(given, list | tuple) or not all(isinstance(s, int) and not isinstance(s, bool) for s in given):
+            raise InputError(f"bench camera shape must be a list of 1 to 3 integers ([H, W] or [H, W, C]), "
+                             f"got {str(given)[:40]!r}")
+        shape = tuple(given)
         rng = np.random.default_rng(int(options.get("seed", 0)))
         try:
             dtype = np.dtype(str(options.get("dtype", "uint16")))

@@ -161,3 +161,56 @@ def test_a_failed_daemon_bench_ends_its_daemon(monkeypatch):
     with pytest.raises(RuntimeError, match="the run failed"):
         bench.run_bench(5)
     assert len(started) == 1 and started[0].poll() is not None  # was left running under init, out of `sss daemon stop`'s reach
+
+
+def test_calibration_never_writes_one_rig_s_fit_into_another_rig_s_file(tmp_path, monkeypatch):
+    """`sss calibrate projector` (the sim rig) in a folder holding a real rig's rig.toml replaced that rig's measured
+    gamma and black with the simulator's, exit 0; `--rig sim.toml --out real.toml` did the same."""
+    monkeypatch.chdir(tmp_path)
+    real = '[devices]\ncamera = "oak:18443010D1D5E41200"\nprojector = "lcr4500:LCR00123"\n[projector]\ngamma = 2.31\n'
+    (tmp_path / "rig.toml").write_text(real)
+    (tmp_path / "sim.toml").write_text(DEVICES)
+    for req in ({}, {"rig": tmp_path / "sim.toml", "out": tmp_path / "rig.toml"}):
+        with pytest.raises(InputError, match=r"rig.toml is the rig file of other devices \(camera oak:18443010D1D5E41200"
+                                             r".*pass --rig .*rig.toml to calibrate that rig"):
+            CalibrationRequest(**req)
+    assert (tmp_path / "rig.toml").read_text() == real
+    req = CalibrationRequest(rig=tmp_path / "rig.toml")  # the rig itself, calibrated in place
+    assert req.target == tmp_path / "rig.toml"
+
+
+def test_calibrating_through_a_link_rewrites_the_file_it_names_and_keeps_its_mode(tmp_path):
+    """`--rig link.toml` replaced the link by a new file (mode 644): the rig file it named kept the old response
+    and captures with it went on with the old gamma; a private (600) rig file became world-readable."""
+    private = tmp_path / "priv.toml"
+    private.write_text(DEVICES)
+    private.chmod(0o600)
+    (tmp_path / "link.toml").symlink_to(private)
+    write_rig_response(CalibrationRequest(rig=tmp_path / "link.toml"), FIT)
+    assert (tmp_path / "link.toml").is_symlink() and RigSpec.from_toml(private).gamma == 2.4
+    assert private.stat().st_mode & 0o777 == 0o600
+
+
+def test_new_keys_replace_links_in_the_key_folder_instead_of_writing_through_them(tmp_path):
+    """`sss daemon keys --overwrite` with server.key_secret a link to another file wrote the CURVE secret key into
+    that file (its contents gone)."""
+    from sssphase_daemon import security
+
+    keys = tmp_path / "k"
+    keys.mkdir(mode=0o700)
+    precious = tmp_path / "precious.txt"
+    precious.write_text("hello\n")
+    for name in ("server.key_secret", "client.key", "client.key_secret", "server.key"):
+        (keys / name).symlink_to(precious)
+    security.generate_keys(keys, overwrite=True)
+    assert precious.read_text() == "hello\n"
+    assert not any(p.is_symlink() for p in keys.iterdir()) and "secret-key" in (keys / "server.key_secret").read_text()
+
+
+@pytest.mark.parametrize("shape", ["abc", 5, [2, "x"], [2.5, 3], [True, 2]])
+def test_a_bench_camera_shape_that_is_not_a_list_of_integers_is_one_line(shape):
+    """`shape = "abc"` in a rig file was "daemon: ValueError: invalid literal for int()" (5: "TypeError")."""
+    from sssphase_plugins import sim_plugin
+
+    with pytest.raises(InputError, match="bench camera shape must be a list of 1 to 3 integers"):
+        sim_plugin.BenchCamera({"shape": shape})

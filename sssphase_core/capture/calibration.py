@@ -198,18 +198,24 @@ class CalibrationRequest:
 
         self.spec = RigSpec.from_toml(self.rig) if self.rig else RigSpec()
         self.target = self.out or self.rig or Path("rig.toml")
+        if self.target.is_symlink():  # the file the link names is calibrated (the link was replaced by a copy)
+            self.target = self.target.resolve()
         target = self.target
         if target.is_dir():
             raise InputError(f"--out {target} is a folder: give the rig file to write (e.g. {target / 'rig.toml'})")
         blocking = next((p for p in target.parents if p.exists() and not p.is_dir()), None)
         if blocking is not None:  # said only after the whole capture and fit: "File exists"
             raise InputError(f"--out {target}: {blocking} is a file, not a folder")
-        if target.exists() and target != self.rig:  # rewriting another file (a script, an image) would destroy it
-            try:
-                RigSpec.from_toml(target)
+        if target.exists() and (self.rig is None or target.resolve() != self.rig.resolve()):
+            try:  # rewriting another file (a script, an image) would destroy it
+                other = RigSpec.from_toml(target)
             except InputError:
                 raise InputError(f"--out {target} exists and is not a rig file: choose a new file, or the rig file "
                                  "itself") from None
+            if (other.camera, other.projector) != (self.spec.camera, self.spec.projector):  # its gamma is not ours
+                raise InputError(f"{target} is the rig file of other devices (camera {other.camera}, projector "
+                                 f"{other.projector}) than the ones calibrated ({self.spec.camera}, "
+                                 f"{self.spec.projector}): pass --rig {target} to calibrate that rig, or another --out")
         if self.check and not self.spec.is_sim:
             raise InputError("--check needs the simulator's exact correspondences: it works on sim rigs only")
 
@@ -280,5 +286,8 @@ def write_rig_response(req: CalibrationRequest, fitted: ProjectorResponse) -> Pa
         text = tomli_w.dumps({"devices": {"camera": spec.camera, "projector": spec.projector},
                               **({"options": spec.options} if spec.options else {})})
     target.parent.mkdir(parents=True, exist_ok=True)
+    mode = target.stat().st_mode & 0o7777 if target.exists() else None
     write_text(target, rig_file_with_response(text, fitted))
+    if mode is not None:  # a private rig file stays private
+        target.chmod(mode)
     return target
