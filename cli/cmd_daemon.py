@@ -174,11 +174,15 @@ def daemon_status() -> None:
     """Show the daemon's endpoint, rigs and jobs."""
     client = _client()
     if client is None:
+        from sssphase_daemon import security
+
         orphan, hung = _orphan(), _unanswering()
+        state = security.state_path()
+        lost = "unreadable (damaged or not a daemon's)" if state.exists() else "gone"
         console.print(f"the daemon (pid {hung}) runs but does not answer (stopped or hung): `sss daemon stop` ends it"
                       if hung is not None else "no daemon running" if orphan is None else
-                      f"a daemon (pid {orphan}) serves the default socket but its state file is gone, so nothing can "
-                      "talk to it: `sss daemon stop` ends it")
+                      f"a daemon (pid {orphan}) serves the default socket but its state file {state} is {lost}, so "
+                      "nothing can talk to it: `sss daemon stop` ends it")
         sys.exit(1)  # typer.Exit's code is dropped by cli.main
     with client:
         hello, status = client.call("hello"), client.call("status")

@@ -317,10 +317,14 @@ def test_a_daemon_whose_state_file_was_deleted_is_found_by_status_and_ended_by_s
 
     runtime, pid = _start_daemon(tmp_path)
     try:
+        (runtime / "daemon.json").write_text("[1, 2")  # damaged: it was called gone
+        status = _run_cli("daemon", "status", runtime=runtime, env_extra={})
+        assert status.returncode == 1 and f"its state file {runtime / 'daemon.json'} is unreadable (damaged or not " \
+            "a daemon's)" in status.stdout, status.stdout + status.stderr
         (runtime / "daemon.json").unlink()
         status = _run_cli("daemon", "status", runtime=runtime, env_extra={})
-        assert status.returncode == 1 and f"a daemon (pid {pid}) serves the default socket but its state file is gone" \
-            in status.stdout, status.stdout + status.stderr
+        assert status.returncode == 1 and f"a daemon (pid {pid}) serves the default socket but its state file " \
+            f"{runtime / 'daemon.json'} is gone" in status.stdout, status.stdout + status.stderr
         stop = _run_cli("daemon", "stop", runtime=runtime, env_extra={})
         assert stop.returncode == 0 and f"daemon (pid {pid}) had no state file; sent SIGTERM" in stop.stdout, stop.stdout
         assert _ended(pid)
