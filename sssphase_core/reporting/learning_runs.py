@@ -374,6 +374,10 @@ def _check_knn_data(vds: Sequence[Any], label: str, ks: Sequence[int]) -> None:
     for v in vds:  # leave-one-view-out: the patches of one view index are the queries, the others the database
         per_view[v.view] = per_view.get(v.view, 0) + len(v.pixels)
     database = n_patches - max(per_view.values())
+    if len(per_view) < 2:  # nothing to leave one view out of: the database is empty whatever --k
+        raise InputError(f"kNN leaves one view out: the views read are all view {next(iter(per_view))}, so no patch has "
+                         "another view to be compared with; evaluate sessions of two or more views (`sss capture "
+                         "--views 2`) or pass --views with two views")
     if max(ks) >= database:  # (it was clamped to the database in silence and reported as given)
         raise InputError(f"--k {max(ks)} is not smaller than the {database} patches of the smallest leave-one-view-out "
                          f"database ({n_patches} read, {max(per_view.values())} of them in one view): every patch would "

@@ -227,6 +227,9 @@ def test_evaluate_knn_returns_the_results_and_tables_it_measured(synthetic, tiny
     with pytest.raises(InputError, match=r"--k 16 is not smaller than the 16 patches .*\(32 read, 16 of them in one view\)"):
         evaluate_knn(KnnOptions(checkpoints=[str(tmp_path / "enc.pt")], sessions=root, pixels_per_view=8, k="16"),
                      said.report())
+    with pytest.raises(InputError, match="the views read are all view 0, so no patch has another view"):  # was: lower --k
+        evaluate_knn(KnnOptions(checkpoints=[str(tmp_path / "enc.pt")], sessions=root, pixels_per_view=8, k="1",
+                                views="0"), said.report())
     with pytest.raises(InputError, match="needs two or more objects to tell apart; the views read hold only three"):
         evaluate_knn(KnnOptions(checkpoints=[str(tmp_path / "enc.pt")], sessions=root / "three", pixels_per_view=8,
                                 k="1"), said.report())
