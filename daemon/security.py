@@ -40,6 +40,9 @@ def _private(path: Path) -> bool:
 
 def _private_dir(path: Path, holds: str = "the daemon's socket and token",
                  or_else: str = " or point SSS_RUNTIME_DIR at a private folder") -> Path:
+    blocking = next((p for p in (path, *path.parents) if p.exists() and not p.is_dir()), None)
+    if blocking is not None:  # was only "[Errno 17] File exists"
+        raise PrivateDirError(f"{path} must be a folder (it holds {holds}), but {blocking} is a file")
     path.mkdir(parents=True, exist_ok=True, mode=0o700)
     if not _private(path):
         raise PrivateDirError(f"{path} must be owned by you with mode 0700 (it holds {holds}): "
@@ -50,7 +53,11 @@ def _private_dir(path: Path, holds: str = "the daemon's socket and token",
 def runtime_dir() -> Path:
     """``$SSS_RUNTIME_DIR``, else ``$XDG_RUNTIME_DIR/sssphase``, else a per-user folder in the temp dir."""
     if os.environ.get("SSS_RUNTIME_DIR"):
-        return _private_dir(Path(os.environ["SSS_RUNTIME_DIR"]))
+        given = Path(os.environ["SSS_RUNTIME_DIR"])
+        if not given.is_absolute():  # each process would find it under its own working folder: daemons unseen
+            raise PrivateDirError(f"SSS_RUNTIME_DIR must be an absolute path, got {given}: a relative one names "
+                                  "another folder from every working folder")
+        return _private_dir(given)
     if os.environ.get("XDG_RUNTIME_DIR"):
         return _private_dir(Path(os.environ["XDG_RUNTIME_DIR"]) / "sssphase")
     return _private_dir(Path(tempfile.gettempdir()) / f"sssphase-{os.getuid()}")

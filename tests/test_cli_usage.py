@@ -323,3 +323,19 @@ def test_daemon_endpoints_that_cannot_be_bound_are_one_line_before_starting(endp
     res = _sss("daemon", "start", "--endpoint", endpoint)
     out = (res.stdout + res.stderr).strip()
     assert res.returncode == 2 and len(out.splitlines()) == 1 and expected in out, out
+
+
+@pytest.mark.parametrize("runtime", ["relative_rt", "{tmp}/afile", "{tmp}/afile/rt"])
+def test_a_runtime_folder_that_is_relative_or_a_file_is_one_message(runtime, tmp_path) -> None:
+    """A relative SSS_RUNTIME_DIR named another folder from every working folder (`status` elsewhere said "no
+    daemon running" and made the folder there); a file there was "[Errno 17] File exists"."""
+    (tmp_path / "afile").write_text("x")
+    env = {k: v for k, v in os.environ.items() if k != "SSS_DEBUG"} | {
+        "SSS_RUNTIME_DIR": runtime.format(tmp=tmp_path), "COLUMNS": "200"}
+    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "daemon", "status"], capture_output=True,
+                         text=True, timeout=120, env=env, cwd=tmp_path)
+    out = (res.stdout + res.stderr).strip()
+    assert res.returncode == 2 and len(out.splitlines()) == 1, out
+    assert ("must be an absolute path, got relative_rt" if runtime == "relative_rt" else
+            f"but {tmp_path / 'afile'} is a file") in out, out
+    assert not (tmp_path / "relative_rt").exists()
