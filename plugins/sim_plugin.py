@@ -201,6 +201,10 @@ def _bench(shared: dict[str, Any], options: Mapping[str, Any]) -> SimRigState:
 class SimCamera:
     def __init__(self, bench: SimRigState, options: Mapping[str, Any]) -> None:
         self.info = DeviceInfo(CAMERA_ID, "camera", PLUGIN, "simulated camera", "camera0")
+        theirs = sorted({"shape", "dtype"} & set(options))  # accepted, ignored and recorded in the session as if used
+        if theirs:
+            raise InputError(f"sim option {', '.join(theirs)} is the sim:bench-camera's: {CAMERA_ID} renders the rig "
+                             "preset's frames (choose their size with the preset)")
         self.bench = bench
         self.exposure = 1.0
         self.gain = 1.0

@@ -97,6 +97,8 @@ def test_calibration_into_a_new_file_copies_the_whole_rig(tmp_path):
     ({"grab_delay_s": float("nan")}, r"sim option grab_delay_s must be in \[0, 3600\]"),
     ({"grab_delay_s": -1}, r"sim option grab_delay_s must be in \[0, 3600\]"),
     ({"seed": -5}, r"sim option seed must be in \[0, 9,223,372,036,854,775,807\], got -5"),
+    ({"shape": [100000, 100000]}, "sim option shape is the sim:bench-camera's: sim:camera0 renders"),  # was recorded
+    ({"dtype": "complex64"}, "sim option dtype is the sim:bench-camera's"),
 ])
 def test_sim_options_of_the_wrong_type_are_one_line_naming_the_option(options, message):
     from sssphase_plugins import sim_plugin
