@@ -885,6 +885,9 @@ def test_frames_a_camera_demosaiced_itself_drop_the_silhouettes_bleed_when_the_l
         import_folder(folder, tmp_path / "s", "bad", (W, H), bayer="RGGB", demosaic="ahd")
     with pytest.raises(InputError, match=r"unknown Bayer layout 'RGBG'"):
         import_folder(folder, tmp_path / "s", "bad", (W, H), bayer="RGBG")
+    with pytest.raises(InputError, match=r"--demosaic malvar says how .* --bayer none says there were none"):
+        import_folder(folder, tmp_path / "s", "bad", (W, H), bayer="none", demosaic="malvar")  # was ignored
+    assert not (tmp_path / "s" / "bad").exists()
 
 
 def test_the_bayer_layout_a_camera_demosaiced_from_is_read_from_the_frames_noise(tmp_path):

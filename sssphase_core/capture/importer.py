@@ -601,6 +601,9 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     if demosaic not in IMPORT_DEMOSAIC:
         raise InputError(f"--demosaic must be one of {', '.join(IMPORT_DEMOSAIC)}, got {demosaic!r}")
     auto_bayer = bayer is not None and bayer.lower() == "auto"
+    if (bayer is None or bayer.lower() == "none") and demosaic != "other":  # it was ignored without a word
+        raise InputError(f"--demosaic {demosaic} says how the camera demosaiced Bayer frames, and --bayer none says "
+                         "there were none: name the layout with --bayer (or auto), or leave --demosaic out")
     if bayer is not None and bayer.lower() not in ("auto", "none"):
         from sssphase_core.processing.isp import check_layout
 
