@@ -374,7 +374,7 @@ def _check_knn_data(vds: Sequence[Any], label: str, ks: Sequence[int]) -> None:
     for v in vds:  # leave-one-view-out: the patches of one view index are the queries, the others the database
         per_view[v.view] = per_view.get(v.view, 0) + len(v.pixels)
     database = n_patches - max(per_view.values())
-    if len(per_view) < 2:  # nothing to leave one view out of: the database is empty whatever --k
+    if len(per_view) == 1:  # nothing to leave one view out of: the database is empty whatever --k
         raise InputError(f"kNN leaves one view out: the views read are all view {next(iter(per_view))}, so no patch has "
                          "another view to be compared with; evaluate sessions of two or more views (`sss capture "
                          "--views 2`) or pass --views with two views")
