@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from sssphase_core.errors import DataError, InputError
-from sssphase_core.store.files import write_text
+from sssphase_core.store.files import atomic_path
 
 RAMP_LEVELS = tuple(float(v) for v in np.round(np.linspace(0.0, 1.0, 17), 4))
 FIT_RANGE = (0.1, 1.0)  # values whose response is fitted (below, r is at the noise floor)
@@ -287,7 +287,8 @@ def write_rig_response(req: CalibrationRequest, fitted: ProjectorResponse) -> Pa
                               **({"options": spec.options} if spec.options else {})})
     target.parent.mkdir(parents=True, exist_ok=True)
     mode = target.stat().st_mode & 0o7777 if target.exists() else None
-    write_text(target, rig_file_with_response(text, fitted))
-    if mode is not None:  # a private rig file stays private
-        target.chmod(mode)
+    with atomic_path(target) as tmp:
+        tmp.write_text(rig_file_with_response(text, fitted))
+        if mode is not None:  # a private rig file stays private, from the moment it replaces the old one
+            tmp.chmod(mode)
     return target
