@@ -17,6 +17,7 @@ import dataclasses
 import hashlib
 import hmac
 import json
+import os
 import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass, field
@@ -38,6 +39,7 @@ from sssphase_view.live import LiveRig, LiveSettings
 
 STATIC = Path(__file__).with_name("static")
 MAX_UPLOAD_BYTES = 32 << 20
+MAX_UPLOADS = 20  # uploads kept in ``--out``; the least recently used go first, with the images relit under them
 IMAGE_MAGIC = {b"\x89PNG": ".png", b"\xff\xd8\xff": ".jpg", b"II*\x00": ".tif", b"MM\x00*": ".tif", b"BM": ".bmp",
                b"v/1\x01": ".exr"}
 
@@ -264,8 +266,19 @@ def _upload_path(state: ViewState, name: str) -> Path:
     except (OSError, ValueError):  # a NUL byte, an overlong name
         given = False
     if not given:
-        raise InputError(f"no uploaded pattern {name!r}")
+        raise InputError(f"no uploaded pattern {name!r} (the view keeps the last {MAX_UPLOADS}: upload it again)")
+    os.utime(path)  # used: kept longest
     return path
+
+
+def _forget_old_uploads(state: ViewState) -> None:
+    """Keep the ``MAX_UPLOADS`` most recently used uploads; remove the others and the images relit under them,
+    so that a long session of new patterns does not fill ``--out`` (each upload may be 32 MB)."""
+    uploads = sorted((state.out / "uploads").glob("upload_*"), key=lambda p: p.stat().st_mtime, reverse=True)
+    for old in uploads[MAX_UPLOADS:]:
+        for relit in (state.out / "relit").glob(f"*_{old.stem}_*"):
+            relit.unlink(missing_ok=True)
+        old.unlink(missing_ok=True)
 
 
 async def upload(request: Request, state: ViewState) -> Response:
@@ -282,6 +295,7 @@ async def upload(request: Request, state: ViewState) -> Response:
     folder.mkdir(parents=True, exist_ok=True)
     name = f"upload_{hashlib.sha256(body).hexdigest()[:12]}{suffix}"
     write_bytes(folder / name, bytes(body))
+    _forget_old_uploads(state)
     return JSONResponse({"name": name})
 
 

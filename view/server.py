@@ -29,7 +29,8 @@ def check_inputs(sessions: Path | None, checkpoint: Path | None) -> None:
     """Refuse, before serving, a ``--sessions`` folder that is not one and a ``--checkpoint`` that does not load
     (they served an empty list, or failed at the first relight)."""
     if sessions is not None and not Path(sessions).is_dir():
-        raise InputError(f"--sessions {sessions}: no such folder")
+        what = "a file, not a folder of sessions" if Path(sessions).exists() else "no such folder"
+        raise InputError(f"--sessions {sessions}: {what}")
     if checkpoint is not None:
         from sssphase_core.learning.training import load_checkpoint
 

@@ -97,7 +97,8 @@ def test_a_missing_sessions_folder_or_a_checkpoint_that_does_not_load_is_refused
     """Both served: an empty session list, and an error at the first relight."""
     env = {**os.environ, "SSS_RUNTIME_DIR": str(tmp_path / "rt")}
     (tmp_path / "bad.pt").write_text("not a checkpoint")
-    for args, expected in ((["--sessions", str(tmp_path / "none")], "--sessions"),
+    for args, expected in ((["--sessions", str(tmp_path / "none")], "no such folder"),
+                           (["--sessions", str(tmp_path / "bad.pt")], "a file, not a folder of sessions"),
                            (["--checkpoint", str(tmp_path / "bad.pt")], "not a checkpoint file")):
         done = _sss("view", "--port", "0", "--out", str(tmp_path / "out"), *args, env=env, timeout=60)
         out = done.stdout + done.stderr
@@ -353,3 +354,37 @@ def test_hostile_input_is_one_message_on_the_page_and_the_server_keeps_serving(s
     assert _get(served["base"] + "/api/state", served["token"])[0] == 200  # still serving
     outside = [p for p in served["root"].parent.iterdir() if p.name == "etc"]
     assert not outside and {p.name for p in (served["root"] / "out").iterdir()} <= {"relit", "uploads"}
+
+
+def test_the_view_keeps_the_most_recently_used_uploads_and_forgets_the_rest(served):
+    """Each upload may be 32 MB: a long session of new patterns must not fill ``--out``. The uploads used last
+    stay (with their relit images); the others go, and relighting one of them says to upload it again."""
+    import cv2
+
+    from sssphase_view.app import MAX_UPLOADS
+
+    base, token = served["base"], served["token"]
+    name = json.loads(_get(base + "/api/state", token)[1])["sessions"][0]["name"]
+
+    def upload(i: int) -> str:
+        png = cv2.imencode(".png", np.full((192, 256), i, np.uint8))[1].tobytes()
+        request = urllib.request.Request(base + "/api/upload", data=png, method="POST", headers={"X-Token": token})
+        with urllib.request.urlopen(request, timeout=60) as response:
+            return json.loads(response.read())["name"]
+
+    def relight(pattern: str) -> tuple[int, dict]:
+        return _post(base + "/api/relight", token, json.dumps(
+            {"session": name, "view": 0, "pattern": pattern, "backend": "none", "resize": "fit"}).encode())
+
+    first, second = upload(1), upload(2)
+    assert relight(first)[0] == 200 and relight(second)[0] == 200
+    relit = served["root"] / "out" / "relit"
+    assert list(relit.glob(f"*_{Path(second).stem}_*"))
+    time.sleep(0.05)
+    relight(first)  # used again: kept longer than the second
+    later = [upload(10 + i) for i in range(MAX_UPLOADS - 1)]
+    kept = {p.name for p in (served["root"] / "out" / "uploads").iterdir()}
+    assert len(kept) == MAX_UPLOADS and first in kept and second not in kept and set(later) <= kept
+    assert not list(relit.glob(f"*_{Path(second).stem}_*")) and list(relit.glob(f"*_{Path(first).stem}_*"))
+    status, answer = relight(second)
+    assert status == 400 and "upload it again" in answer["error"]
