@@ -55,11 +55,12 @@ def bench_psp(
     """PSP decoding speed against OpenCV, accuracy against exact correspondences, error vs run time."""
     from rich.progress import Progress, SpinnerColumn, TextColumn, TimeElapsedColumn
 
-    from sssphase_core.bench import psp_bench
-    from sssphase_core.bench.output import write_bench_report
     from sssphase_core.store.results import check_result_paths
 
-    check_result_paths(out, md)  # before the minutes of work, not after
+    check_result_paths(out, md)  # before the minutes of work (and torch's import), not after
+    from sssphase_core.bench import psp_bench
+    from sssphase_core.bench.output import write_bench_report
+
     with Progress(SpinnerColumn(), TextColumn("{task.description}"), TimeElapsedColumn()) as bar:
         task = bar.add_task("bench psp", total=None)
         result, tables = psp_bench.run(quick=quick, progress=lambda msg: bar.update(task, description=msg))

@@ -154,13 +154,13 @@ def bench_relight(
     repeats: Annotated[int, typer.Option(min=1, help="Timed runs of each configuration.")] = 3,
 ) -> None:
     """Relit PSNR against run time per backend, radius, chunk and precision; cost vs lit fraction; splat FLOP/s."""
-    from sssphase_core.bench import relight_bench
     from sssphase_core.learning.inputs import parse_ints
 
     chosen = _names(backends, "--backends")
     if checkpoint is None and not set(chosen) - {"torch", "blend"}:
         raise InputError(f"--backends {backends} needs --checkpoint (a decoder run): nothing else is left to measure")
     radii_px, chunk_sizes = tuple(parse_ints(radii, "--radii")), tuple(parse_ints(chunks, "--chunks"))
+    from sssphase_core.bench import relight_bench  # torch: after the options are read
     with console.status("benchmarking") as st:
         res = relight_bench.run(out, objects=tuple(o for o in objects.split(",") if o), checkpoint=checkpoint,
                                 backends=chosen, radii=radii_px, chunks=chunk_sizes,
@@ -255,11 +255,12 @@ def bench_stability(
     backends: Annotated[str, typer.Option(help="Comma-separated backends (torch and blend need --checkpoint).")] = "none,analytic,exact,torch,blend",
 ) -> None:
     """Extreme materials, saturation, low light and grazing views: no NaN/inf, error per case."""
-    from sssphase_core.bench import stability_bench
+    chosen_cases, chosen = list(_names(cases, "--cases")) if cases else None, _names(backends, "--backends")
+    from sssphase_core.bench import stability_bench  # torch: after the options are read
 
     with console.status("stability sweep") as st:
-        res = stability_bench.run(out, cases=list(_names(cases, "--cases")) if cases else None, checkpoint=checkpoint,
-                                  backends=_names(backends, "--backends"), progress=lambda m: st.update(m))
+        res = stability_bench.run(out, cases=chosen_cases, checkpoint=checkpoint, backends=chosen,
+                                  progress=lambda m: st.update(m))
     console.print(out.with_suffix(".md").read_text())
     if res["non_finite"]:
         raise typer.Exit(1)

@@ -42,13 +42,16 @@ def test_a_command_still_loads_the_plugins():
 
 
 def test_usage_errors_are_answered_before_torch_is_imported():
-    """A refused relight, geometry, evaluation or benchmark request answers in well under a second: the checks
+    """A refused relight, geometry, evaluation, training or benchmark request answers in well under a second: the checks
     run before the modules that import torch (2 s on its own) are loaded."""
     for argv in (["eval", "relight", "s", "--backend", "blend", "--checkpoint", "/nonexistent/ck.pt"],
                  ["geometry", "no_session", "--device", "nonsense"],
                  ["relight", "no_session", "--pattern", "checkerboard", "--format", "tiff"],
                  ["eval", "knn", "--checkpoint", "root=/", "--n-views", "1"],
-                 ["bench", "gpu", "--device", "nonsense"]):
+                 ["bench", "gpu", "--device", "nonsense"],
+                 ["train", "pretrain", "--warmup-epochs", "nan", "--out", "/nonexistent/run"],
+                 ["train", "decoder", "--end-to-end", "--aux-classes", "1", "--out", "/nonexistent/run"],
+                 ["train", "decoder", "--encoder", "/nonexistent/pre", "--head", "nonsense", "--out", "/nonexistent/run"]):
         _, probe = _probe(argv)
         assert "torch" not in probe and "CODE=2" in probe, (argv, probe)
     _, probe = _probe(["eval", "relight", "/nonexistent/sessions", "--backend", "torch", "--checkpoint", __file__])

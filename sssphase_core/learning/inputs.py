@@ -213,6 +213,43 @@ def check_lr(lr: float) -> None:
         raise InputError(f"--lr must be at most {MAX_LR:g}, got {lr:g} (defaults: 0.05 for pretraining, 1e-3 for the decoder)")
 
 
+#: SimSiam's projector and predictor normalise over the batch (BatchNorm1d): a batch of one has nothing to
+#: normalise over (torch refuses it in training mode). The loop only takes whole batches, so none is smaller.
+MIN_PRETRAIN_BATCH = 2
+
+#: SimSiam's augmentation sets (``augment.two_views``): the paper's PSP weak/strong pair, or ImageNet's
+AUGMENT_KINDS = ("psp", "imagenet")
+
+#: the decoder's output heads (``models.decoder.Decoder``)
+DECODER_HEADS = ("reciprocal", "direct")
+
+
+def check_pretrain_options(batch_size: int, warmup_epochs: float, augment: str = "psp",
+                           decorrelate: float = 0.0) -> None:
+    """Refuse, before any work (and before torch is imported), a batch too small for SimSiam's BatchNorm, a
+    warmup that is not a finite number >= 0 (NaN or infinity cannot count steps; a negative one would mean
+    none), an unknown augmentation set and a decorrelation weight that is not a finite number >= 0 (a
+    negative one rewards collapse)."""
+    if not (math.isfinite(decorrelate) and decorrelate >= 0):
+        raise InputError(f"--decorrelate must be a finite number >= 0, got {decorrelate}")
+    if augment not in AUGMENT_KINDS:
+        raise InputError(f"--augment must be one of {', '.join(AUGMENT_KINDS)}, got {augment!r}")
+    if batch_size < MIN_PRETRAIN_BATCH:
+        raise InputError(f"--batch-size must be at least {MIN_PRETRAIN_BATCH} for pretraining, got {batch_size}: "
+                         "SimSiam's projector and predictor normalise over the batch (BatchNorm)")
+    if not (math.isfinite(warmup_epochs) and warmup_epochs >= 0):
+        raise InputError(f"--warmup-epochs must be a finite number >= 0, got {warmup_epochs}")
+
+
+def check_aux_class_count(n: int) -> None:
+    """``n`` (``--aux-classes``) is 0 (no auxiliary head) or a number of the simulator's material classes >= 2."""
+    from sssphase_core.sim.materials import MATERIAL_NAMES  # what material labels index
+
+    if n != 0 and not 2 <= n <= len(MATERIAL_NAMES):
+        raise InputError(f"--aux-classes must be 0 (no auxiliary material head) or a number of material classes from 2 "
+                         f"to {len(MATERIAL_NAMES)} (the simulator's materials, which label the data), got {n}")
+
+
 def check_batch(batch_size: int, ds: PatchDataset, what: str) -> None:
     """Before the run's folder is written: at least one whole batch (the loop drops a last, partial one)."""
     if len(ds) < batch_size:

@@ -7,16 +7,19 @@ import json
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from sssphase_core.capture.psp_folder import FrameProgress, PspFolder, read_psp_folder
 from sssphase_core.errors import InputError
 from sssphase_core.processing.patterns import psp_key
-from sssphase_core.processing.psp import Correspondence, Reason, decode_camera, wrapped_phase
 from sssphase_core.reporting import figures as fig
 from sssphase_core.store.files import write_text
 from sssphase_core.store.session import check_output_folder
+
+if TYPE_CHECKING:
+    from sssphase_core.processing.psp import Correspondence
 
 #: The arrays of a decoded folder, each ``<name>.npy``.
 DECODED_ARRAYS = ("xp", "yp", "mask", "reason", "modulation", "offset", "modulation_ratio")
@@ -57,6 +60,8 @@ def decode_folder(folder: Path, out: Path, *, projector: str | None = None, min_
     if view.scale != 1.0 and report is not None:
         report(f"float frames at level {view.level:.3g} (99.9th percentile) scaled to 1 (the decoder's thresholds are "
                "in camera units)")
+    from sssphase_core.processing.psp import decode_camera  # torch: after the folder and options are checked
+
     corr = decode_camera(view.frames, view.config, view.size, bayer=bayer, min_modulation=min_modulation,
                          saturation=view.saturation)
     out.mkdir(parents=True, exist_ok=True)
@@ -72,6 +77,8 @@ def decode_folder(folder: Path, out: Path, *, projector: str | None = None, min_
 
 def _figures(out: Path, view: PspFolder, corr: Correspondence) -> None:
     """The wrapped phase per orientation, the decoded maps, the mask, the reasons and the modulation as PNGs."""
+    from sssphase_core.processing.psp import Reason, wrapped_phase
+
     config = view.config
     for o in ("x", "y"):
         stack = [view.frames[psp_key(o, config.period, n)] for n in range(config.n_shifts)]

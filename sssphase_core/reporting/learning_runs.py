@@ -18,11 +18,14 @@ from typing import Any
 
 from sssphase_core.errors import DataError, InputError
 from sssphase_core.learning.inputs import (
+    DECODER_HEADS,
     Report,
     RunConfigFile,
     ViewOptions,
+    check_aux_class_count,
     check_batch,
     check_lr,
+    check_pretrain_options,
     check_run_out,
     chosen_views,
     decoder_view_choice,
@@ -127,15 +130,14 @@ def run_pretrain(opts: PretrainOptions, report: Report = Report(), *,
                  config_file: RunConfigFile | None = None) -> TrainResult:
     """SimSiam pretraining of the encoder on PSP patches of the training objects (resumable); draws
     ``knn_vs_time.png`` when the kNN monitor ran."""
+    check_lr(opts.lr)  # before torch is imported (2 s): a mistyped option is answered at once
+    check_pretrain_options(opts.batch_size, opts.warmup_epochs, opts.augment, opts.decorrelate)
     from sssphase_core.learning.data import PatchDataset
     from sssphase_core.learning.models import get_preset
     from sssphase_core.learning.runlog import read_rows
     from sssphase_core.learning.training import METRICS, PretrainConfig, knn_monitor_indices, pretrain
-    from sssphase_core.learning.training.pretrain import check_pretrain_options
     from sssphase_core.sim import TRAIN_OBJECTS
 
-    check_lr(opts.lr)
-    check_pretrain_options(opts.batch_size, opts.warmup_epochs, opts.augment, opts.decorrelate)
     p = get_preset(opts.preset)
     resuming = check_run_out(opts.out, "pretrain", opts.resume, config_file)
     names = parse_names(opts.objects, () if opts.sessions else TRAIN_OBJECTS)
@@ -203,21 +205,20 @@ def _knn_trail(out: Path, result: TrainResult, n_objects: int, report: Report) -
 
 
 def _check_decoder_options(opts: DecoderOptions) -> int:
-    """Refuse, before any data is read, what no decoder run can be; the run's patch size."""
-    from sssphase_core.learning.models.decoder import HEADS
-    from sssphase_core.learning.training import decoder_patch
-    from sssphase_core.learning.training.decoder import check_aux_classes
-
+    """Refuse, before any data is read (and all but the encoder's preset before torch is imported), what no
+    decoder run can be; the run's patch size."""
     check_lr(opts.lr)
-    check_aux_classes(opts.aux_classes)
-    if opts.head not in HEADS:
-        raise InputError(f"unknown decoder head {opts.head!r}; choose one of {', '.join(HEADS)}")
+    check_aux_class_count(opts.aux_classes)
+    if opts.head not in DECODER_HEADS:
+        raise InputError(f"unknown decoder head {opts.head!r}; choose one of {', '.join(DECODER_HEADS)}")
     if (opts.encoder is None) == (not opts.end_to_end):
         raise InputError("give either --encoder PATH (a pretraining run; the paper's method) or --end-to-end (the "
                          "supervised baseline without SSL), not both or neither")
     if opts.encoder is not None and opts.preset_given:
         raise InputError("--preset sets the model of an --end-to-end run; with --encoder the decoder takes the encoder's "
                          "preset (it was ignored, and config.toml recorded the wrong one)")
+    from sssphase_core.learning.training import decoder_patch
+
     return decoder_patch(None if opts.end_to_end else opts.encoder, opts.preset)
 
 
@@ -225,13 +226,13 @@ def run_decoder(opts: DecoderOptions, report: Report = Report(), *,
                 config_file: RunConfigFile | None = None) -> TrainResult:
     """Fit the footprint decoder with the SBH loss on the frozen encoder, or end-to-end (resumable); then
     relight the ``check_sessions`` (default: ``sessions``) against the none and analytic baselines."""
+    patch = _check_decoder_options(opts)
     from sssphase_core.learning.data import PatchDataset
     from sssphase_core.learning.runlog import read_rows
     from sssphase_core.learning.training import METRICS, DecoderConfig, train_decoder
     from sssphase_core.learning.training.decoder import check_aux_classes
     from sssphase_core.sim import TRAIN_OBJECTS
 
-    patch = _check_decoder_options(opts)
     resuming = check_run_out(opts.out, "decoder", opts.resume, config_file)
     names = parse_names(opts.objects, () if opts.sessions else TRAIN_OBJECTS)
     choice = decoder_view_choice(names, opts.views, opts.val_views, opts.sessions)

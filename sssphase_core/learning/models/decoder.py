@@ -7,6 +7,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from sssphase_core.errors import InputError
+from sssphase_core.learning.inputs import DECODER_HEADS
 from sssphase_core.learning.models.encoder import NEG_SLOPE, PreActBlock
 from sssphase_core.learning.models.physics import (
     RadialProfile,
@@ -60,7 +61,7 @@ class UpStage(nn.Module):
         return self.block(torch.cat([up, self.gate(up, skip)], dim=1))
 
 
-HEADS = ("reciprocal", "direct")
+HEADS = DECODER_HEADS
 OFF_SURFACE = -30.0  # log-shape off the lit surface (e^-30: nothing, yet finite gradients)
 
 

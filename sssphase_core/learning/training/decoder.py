@@ -15,6 +15,7 @@ from sssphase_core.learning import augment
 from sssphase_core.learning.camera import NO_CAMERA, as_captured
 from sssphase_core.learning.data import PatchDataset
 from sssphase_core.learning.domain import tail_radius, training_domain
+from sssphase_core.learning.inputs import check_aux_class_count
 from sssphase_core.learning.losses import LOG_EPS, SBHLoss, noise_floor
 from sssphase_core.learning.metrics import MSE_FLOOR, psnr
 from sssphase_core.learning.models import Decoder, Encoder, ModelPreset, get_preset
@@ -61,14 +62,8 @@ class DecoderConfig(LoopConfig):
 def check_aux_classes(n: int, dataset: PatchDataset | None = None) -> None:
     """``n`` (``--aux-classes``) is 0 (no auxiliary head) or a number of material classes >= 2 that covers
     every material label of ``dataset``, which must have some (else the head would never train)."""
-    from sssphase_core.sim.materials import MATERIAL_NAMES  # what material labels index
-
-    if n == 0:
-        return
-    if not 2 <= n <= len(MATERIAL_NAMES):
-        raise InputError(f"--aux-classes must be 0 (no auxiliary material head) or a number of material classes from 2 "
-                         f"to {len(MATERIAL_NAMES)} (the simulator's materials, which label the data), got {n}")
-    if dataset is None:
+    check_aux_class_count(n)
+    if n == 0 or dataset is None:
         return
     labels = dataset.labels("material")
     known = labels[labels >= 0]

@@ -10,9 +10,10 @@ import numpy as np
 import torch
 from torch import nn
 
-from sssphase_core.errors import DataError, InputError
+from sssphase_core.errors import DataError
 from sssphase_core.learning import augment
 from sssphase_core.learning.data import PatchDataset
+from sssphase_core.learning.inputs import check_pretrain_options
 from sssphase_core.learning.models import Encoder, ModelPreset, SimSiam, get_preset
 from sssphase_core.learning.training.checkpoints import CHECKPOINT, save_checkpoint
 from sssphase_core.learning.training.loop import (
@@ -59,32 +60,6 @@ class PretrainConfig(LoopConfig):
     # weight of the projections' decorrelation term (VICReg's covariance term) against SimSiam's dimensional collapse;
     # 0: SimSiam alone. At the demo's budget it took the kNN from 79-87% to 94-97% over four seeds (learning.md)
     decorrelate: float = 1.0
-
-
-#: SimSiam's projector and predictor normalise over the batch (BatchNorm1d): a batch of one has nothing to
-#: normalise over (torch refuses it in training mode). The loop only takes whole batches, so none is smaller.
-MIN_PRETRAIN_BATCH = 2
-
-
-#: SimSiam's augmentation sets (``augment.two_views``): the paper's PSP weak/strong pair, or ImageNet's
-AUGMENT_KINDS = ("psp", "imagenet")
-
-
-def check_pretrain_options(batch_size: int, warmup_epochs: float, augment: str = "psp",
-                           decorrelate: float = 0.0) -> None:
-    """Refuse, before any work, a batch too small for SimSiam's BatchNorm, a warmup that is not a finite
-    number >= 0 (NaN or infinity cannot count steps; a negative one would mean none), an unknown
-    augmentation set and a decorrelation weight that is not a finite number >= 0 (a negative one rewards
-    collapse)."""
-    if not (math.isfinite(decorrelate) and decorrelate >= 0):
-        raise InputError(f"--decorrelate must be a finite number >= 0, got {decorrelate}")
-    if augment not in AUGMENT_KINDS:
-        raise InputError(f"--augment must be one of {', '.join(AUGMENT_KINDS)}, got {augment!r}")
-    if batch_size < MIN_PRETRAIN_BATCH:
-        raise InputError(f"--batch-size must be at least {MIN_PRETRAIN_BATCH} for pretraining, got {batch_size}: "
-                         "SimSiam's projector and predictor normalise over the batch (BatchNorm)")
-    if not (math.isfinite(warmup_epochs) and warmup_epochs >= 0):
-        raise InputError(f"--warmup-epochs must be a finite number >= 0, got {warmup_epochs}")
 
 
 def warmup_cosine(opt: torch.optim.Optimizer, total: int, warmup: int, base_lr: float,
