@@ -202,11 +202,12 @@ def report(
             check_checkpoint_file(ckpt)
     checked = [b for b in backends if b != "torch" or decoder is not None]
     check_backends(checked, decoder)  # loads the decoder when a backend runs it
-    from sssphase_core.learning.training.checkpoints import load_checkpoint
     from sssphase_core.reporting.demo import run_report
 
     for ckpt in (pretrain, None if any(map(uses_decoder, checked)) else decoder):
         if ckpt is not None:
+            from sssphase_core.learning.training.checkpoints import load_checkpoint  # torch: only now
+
             kind = load_checkpoint(ckpt).get("kind")  # raises DataError naming what the file is
             if ckpt == pretrain and kind not in (None, "pretrain"):  # its options were tabled as pretraining's
                 raise InputError(f"--pretrain {ckpt} is a {kind} checkpoint: give the run of `sss train pretrain`"

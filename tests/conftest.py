@@ -9,13 +9,22 @@ from pathlib import Path
 
 import pytest
 
-# pytest-xdist runs one worker per core: each worker's torch (and the `sss` processes it starts) gets its
+# pytest-xdist runs a worker per core (and one more, below): each worker's torch (and the `sss` processes it starts) gets its
 # share of the cores instead of all of them, so that parallel tests do not oversubscribe the machine.
 _workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
 if _workers > 1:
     _share = str(max(1, (os.cpu_count() or 1) // _workers))
     for _var in ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS"):
         os.environ.setdefault(_var, _share)
+
+
+def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
+    """``-n auto``: one worker more than the cores. A third of the suite's CPU time is in the workers and the
+    rest in the `sss` processes and daemons they start; while a worker waits on one (or on a timeout a test
+    provokes), the extra worker keeps the cores busy (2 cores: 86% busy with 2 workers, 99% with 3; the suite
+    838 s -> 793 s)."""
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    return cores + 1
 
 
 @pytest.fixture(scope="session", autouse=True)

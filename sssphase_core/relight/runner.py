@@ -491,11 +491,12 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
     if checkpoint is not None:
         checkpoint = resolve_checkpoint(checkpoint)
         check_decoder_fits(Path(checkpoint), [backend], [s])
-    from sssphase_core.relight.backends import make_source
+    chosen = choose_views(s, views, say)
+    from sssphase_core.relight.backends import make_source  # torch: once the views are known
     from sssphase_core.relight.geometry import ENTRY_CENTRED, geometric_correspondence
 
     done = []
-    for v in choose_views(s, views, say):
+    for v in chosen:
         rv = load_view(s, v)
         source, patch = make_source(backend, rv, checkpoint=checkpoint, device=device)
         with say.status(f"{rv.object} view {v}: predicting the scattering shift ({backend})"):
