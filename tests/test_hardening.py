@@ -619,6 +619,7 @@ def test_a_stale_state_file_whose_pid_was_reused_does_not_block_a_new_daemon(tmp
         shutil.rmtree(runtime, ignore_errors=True)
 
 
+@pytest.mark.slow
 def test_a_stopped_daemon_leaves_its_runtime_folder_empty(tmp_path, _private_log_dir):
     """Control and preview sockets, job streams and the state file go; the log lives in the log folder."""
     runtime = Path(tempfile.mkdtemp(prefix="sssr", dir="/tmp"))

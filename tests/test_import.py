@@ -130,6 +130,7 @@ def _float_frames(folder: Path, scale: float, keys: tuple[str, ...] = ("psp/", "
     return folder
 
 
+@pytest.mark.slow
 def test_a_noisy_capture_that_fills_the_frame_is_denoised_by_its_own_noise_floor(tmp_path):
     """Every crop's ring lies in another dot's cell when the surface fills the view (here every pixel):
     the transport's noise floor is read inside the crops' own cells (it read 0, and nothing was denoised:
@@ -477,6 +478,7 @@ def test_sss_report_writes_only_where_it_may_and_stops_at_damaged_data(handmade,
     assert res.returncode == 2 and "damaged" in res.stderr and "Traceback" not in res.stderr
 
 
+@pytest.mark.slow
 def test_the_captures_choose_the_noise_mask_that_keeps_faint_wide_tails(tmp_path):
     """A frame-filling wide scatterer with shot noise and a clean black frame (as a renderer writes): a
     1 px noise mask drops the faint tails that add up over many dots, a 2 px mask keeps them. The view's

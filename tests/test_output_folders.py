@@ -132,6 +132,7 @@ def test_a_black_frame_as_bright_as_the_white_is_refused(tmp_path):
     assert not (tmp_path / "s" / "obj").exists()
 
 
+@pytest.mark.slow
 def test_a_second_sim_into_one_folder_leaves_none_of_the_first_behind(tmp_path):
     assert _sss("sim", "--object", "apple", "--views", "2", "--out", str(tmp_path), "--no-decode").returncode == 0
     assert (tmp_path / "view1").is_dir()

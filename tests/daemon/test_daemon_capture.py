@@ -382,6 +382,7 @@ def test_every_documented_sim_rig_option_is_known_and_options_of_other_plugins_p
     assert RigSpec.from_toml(tmp_path / "rig.toml").options["serial"] == "/dev/ttyACM0"  # not a sim-only rig
 
 
+@pytest.mark.slow
 def test_a_view_where_nothing_decodes_is_kept_with_a_warning(runtime_dir, sss, tmp_path):
     """A rig whose camera sees no fringes (here the sim's benchmark camera, which never looks at the projector)
     gave a session that said "1/1 views complete" and validated, without a word."""

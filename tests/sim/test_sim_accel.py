@@ -71,6 +71,7 @@ def test_the_sim_option_device_is_checked_before_any_work():
     assert SimRigState({"object": "star", "device": "auto", "demosaic": "none"}).sensor is None  # three-chip: numpy
 
 
+@pytest.mark.slow
 def test_a_capture_on_the_device_equals_the_numpy_capture(sim_daemon, tmp_path):
     """`sss capture --device`: the daemon renders the frames and the client the ground-truth references on the
     device (torch on the CPU here): the same noise-free renders within float tolerance, captures that agree to
@@ -115,6 +116,7 @@ def test_sparse_patterns_are_looked_up_only_where_they_reach_with_the_same_value
     np.testing.assert_array_equal(sparse, np.nan_to_num(dense))
 
 
+@pytest.mark.slow
 def test_bench_sim_times_the_plan_and_compares_the_paths(tmp_path):
     """`sss bench sim` (the plumbing, on the CPU preset with torch on the CPU): every frame kind timed, the numpy
     baseline measured in the same run, and both paths' footprints and images compared."""
