@@ -46,6 +46,7 @@ def repro(tmp_path_factory):
     return out, done.stdout
 
 
+@pytest.mark.slow
 def test_repro_runs_every_step_and_reports_beside_the_paper(repro):
     out, stdout = repro
     data = json.loads((out / "report.json").read_text())

@@ -252,6 +252,7 @@ def test_later_patterns_are_relit_from_the_views_cached_eigen_footprints(session
         assert 10 * np.log10(y.max() ** 2 / np.mean((x - y) ** 2)) > 55  # PSNR at the image's peak
 
 
+@pytest.mark.slow
 def test_bench_relight_cache_runs_the_three_relights_as_processes(session, tmp_path):
     """`sss bench relight-cache`: cold, cached and full relights, each an `sss relight` process with its own
     seconds and peak RSS; the cached one used the eigen-footprints and agrees with the full one."""
