@@ -267,7 +267,8 @@ def _upload_path(state: ViewState, name: str) -> Path:
         given = False
     if not given:
         raise InputError(f"no uploaded pattern {name!r} (the view keeps the last {MAX_UPLOADS}: upload it again)")
-    os.utime(path)  # used: kept longest
+    with contextlib.suppress(OSError):  # removed meanwhile: the pattern reader names it
+        os.utime(path)  # used: kept longest
     return path
 
 
