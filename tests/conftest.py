@@ -9,8 +9,9 @@ from pathlib import Path
 
 import pytest
 
-# pytest-xdist runs a worker per core (and one more, below): each worker's torch (and the `sss` processes it starts) gets its
-# share of the cores instead of all of them, so that parallel tests do not oversubscribe the machine.
+# pytest-xdist runs a worker per core (and one more, below): each worker's torch (and the `sss` processes it
+# starts) gets its share of the cores instead of all of them, so that parallel tests do not oversubscribe the
+# machine.
 _workers = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
 if _workers > 1:
     _share = str(max(1, (os.cpu_count() or 1) // _workers))
@@ -21,8 +22,8 @@ if _workers > 1:
 def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     """``-n auto``: one worker more than the cores. A third of the suite's CPU time is in the workers and the
     rest in the `sss` processes and daemons they start; while a worker waits on one (or on a timeout a test
-    provokes), the extra worker keeps the cores busy (2 cores: 86% busy with 2 workers, 99% with 3; the suite
-    838 s -> 793 s)."""
+    provokes), the extra worker keeps the cores busy (2 cores: 86% busy with 2 workers, 99% with 3; fresh-clone
+    runs 838 s and 822 s)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return cores + 1
 
@@ -60,8 +61,8 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     * Tests that use a module- or class-scoped fixture of their own module (a capture, a trained demo)
       share one worker (``xdist_group``), so the fixture is built once instead of once per worker.
     * Tests marked ``slow`` run first, then the groups (each one unit of work, its fixture and all its tests),
-      then the rest: the long units do not start last on one worker while the others idle (the suite's last
-      minute ran at 39% of the cores when a group came last).
+      then the rest, so that the long units do not start last on one worker while the others idle
+      (``--no-loadscope-reorder`` in pyproject.toml keeps this order: xdist's own put every group first).
     """
     for item in items:
         info = getattr(item, "_fixtureinfo", None)
