@@ -61,7 +61,6 @@ class UpStage(nn.Module):
         return self.block(torch.cat([up, self.gate(up, skip)], dim=1))
 
 
-HEADS = DECODER_HEADS
 OFF_SURFACE = -30.0  # log-shape off the lit surface (e^-30: nothing, yet finite gradients)
 
 
@@ -95,8 +94,8 @@ class Decoder(nn.Module):
     def __init__(self, preset: ModelPreset | str, out_scale: float = 0.05, n_classes: int = 0,
                  head: str = "reciprocal") -> None:
         super().__init__()
-        if head not in HEADS:
-            raise InputError(f"unknown decoder head {head!r}; choose one of {', '.join(HEADS)}")
+        if head not in DECODER_HEADS:
+            raise InputError(f"unknown decoder head {head!r}; choose one of {', '.join(DECODER_HEADS)}")
         p = get_preset(preset)
         self.preset, self.head_kind = p, head
         skips = (*reversed(p.stages), p.stem)
