@@ -157,7 +157,7 @@ def _symmetric_pad(x: torch.Tensor, n: int) -> torch.Tensor:
 
 def malvar_rggb(mosaic: torch.Tensor) -> torch.Tensor:
     """RGGB mosaics (P, H, W) -> RGB (P, H, W, 3), Malvar-He-Cutler 2004 with mirrored borders: what
-    ``processing.isp.demosaic(method="malvar")`` (colour-demosaicing) gives, on the device."""
+    ``processing.isp.demosaic(method="malvar")`` gives, on the device."""
     kernels = torch.tensor([MALVAR_KERNELS[k] for k in ("green", "row", "col", "cross")],
                            dtype=mosaic.dtype, device=mosaic.device)[:, None] / 8
     filtered = torch.nn.functional.conv2d(_symmetric_pad(mosaic, 2)[:, None], kernels)  # (P, 4, H, W); kernels symmetric

@@ -16,7 +16,7 @@ recorded (:func:`as_captured`) before the loss: the network predicts the light e
 centre, before the sensor, which is what relighting splats.
 
 Modelled: Bayer sampling in the crop's own phase, the per-plane 3x3 median (the paper's ISP) and two
-linear demosaicers, Malvar-He-Cutler 2004 (``malvar``, what colour-demosaicing computes) and bilinear
+linear demosaicers, Malvar-He-Cutler 2004 (``malvar``, what ``processing.isp.malvar`` computes) and bilinear
 (``bilinear``; it stands for OpenCV's edge-aware ``opencv``, which is not linear). Outside the crop the
 footprint counts as zero.
 """
@@ -36,7 +36,7 @@ NO_CAMERA = -1
 DEMOSAIC_MODELS = {"malvar": "malvar", "opencv": "bilinear"}
 _METHODS = ("malvar", "bilinear")
 
-_MALVAR = MALVAR_KERNELS  # Malvar-He-Cutler 2004 (processing.isp), what colour-demosaicing computes
+_MALVAR = MALVAR_KERNELS  # Malvar-He-Cutler 2004 (processing.isp), what ``isp.malvar`` computes
 _BILINEAR = {
     "green": [[0, 0, 0, 0, 0], [0, 0, 2, 0, 0], [0, 2, 0, 2, 0], [0, 0, 2, 0, 0], [0, 0, 0, 0, 0]],
     "row": [[0, 0, 0, 0, 0], [0, 0, 0, 0, 0], [0, 4, 0, 4, 0], [0, 0, 0, 0, 0], [0, 0, 0, 0, 0]],

@@ -1,14 +1,12 @@
 """Camera raw processing, the paper's chain: 3x3 median per RGGB plane, Malvar-He-Cutler demosaicing,
 black level and scaling to linear camera units; plus HDR merging of exposure brackets.
 
-numpy at module level only; OpenCV and colour-demosaicing are imported inside the functions.
+numpy at module level only; OpenCV is imported inside the functions.
 Bayer layouts: RGGB (R at (even row, even col), B at (odd, odd)) and its shifts GRBG, GBRG, BGGR,
 developed by re-phasing the mosaic to RGGB (one reflected row and/or column) and cutting it back.
 """
 
 from __future__ import annotations
-
-import warnings
 
 import numpy as np
 
@@ -115,22 +113,33 @@ MALVAR_KERNELS: dict[str, list[list[float]]] = {
 MALVAR_KERNELS["col"] = [list(r) for r in zip(*MALVAR_KERNELS["row"], strict=True)]
 
 
+def malvar(raw: np.ndarray) -> np.ndarray:
+    """RGGB mosaic (H, W) -> RGB (H, W, 3) float64, Malvar-He-Cutler 2004: each missing colour is the 5 x 5
+    linear filter of :data:`MALVAR_KERNELS` for its site (OpenCV ``filter2D`` in float64, borders mirrored with the
+    edge sample repeated, ``d c b a | a b c d``); measured samples are kept."""
+    import cv2
+
+    mosaic = np.ascontiguousarray(raw, np.float64)
+    # the kernels are symmetric, so filter2D's correlation is the convolution; BORDER_REFLECT: d c b a | a b c d
+    green, row, col, cross = (cv2.filter2D(mosaic, cv2.CV_64F, np.array(MALVAR_KERNELS[k], np.float64) / 8,
+                                           borderType=cv2.BORDER_REFLECT) for k in ("green", "row", "col", "cross"))
+    rgb = np.empty(mosaic.shape + (3,), np.float64)
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
+    # red sites (even, even); green in red rows (even, odd); green in blue rows (odd, even); blue sites (odd, odd)
+    for (dy, dx), red, grn, blu in (((0, 0), mosaic, green, cross), ((0, 1), row, mosaic, col),
+                                    ((1, 0), col, mosaic, row), ((1, 1), cross, green, mosaic)):
+        r[dy::2, dx::2], g[dy::2, dx::2], b[dy::2, dx::2] = red[dy::2, dx::2], grn[dy::2, dx::2], blu[dy::2, dx::2]
+    return rgb
+
+
 def demosaic(raw: np.ndarray, method: str = "malvar") -> np.ndarray:
     """RGGB mosaic (H, W) -> RGB (H, W, 3) float32 in the mosaic's units.
 
-    ``malvar``: Malvar-He-Cutler 2004 via colour-demosaicing (falls back to OpenCV's edge-aware
-    demosaicing if that package is missing); ``opencv``: OpenCV's edge-aware (``COLOR_Bayer*_EA``).
+    ``malvar``: Malvar-He-Cutler 2004 (:func:`malvar`); ``opencv``: OpenCV's edge-aware (``COLOR_Bayer*_EA``).
     """
     raw = _check_mosaic(raw)
     if method == "malvar":
-        try:
-            with warnings.catch_warnings():  # the package imports deprecated scipy namespaces
-                warnings.simplefilter("ignore", DeprecationWarning)
-                from colour_demosaicing import demosaicing_CFA_Bayer_Malvar2004
-        except ImportError:  # pragma: no cover - colour-demosaicing is a declared dependency
-            method = "opencv"
-        else:
-            return demosaicing_CFA_Bayer_Malvar2004(raw.astype(np.float64), "RGGB").astype(np.float32)
+        return malvar(raw).astype(np.float32)
     if method == "opencv":
         import cv2
 

@@ -28,7 +28,7 @@ def _crop(img: np.ndarray, p: tuple[int, int], k: int) -> np.ndarray:
 @pytest.mark.parametrize("median", [False, True])
 def test_a_crop_through_the_camera_is_the_crop_of_the_camera_image(layout, median):
     """Crops of an image, passed through their camera at their own Bayer phase, equal the crops of the whole
-    image developed by the ISP (Malvar via colour-demosaicing, the per-plane median via OpenCV)."""
+    image developed by the ISP (Malvar and the per-plane median, both via OpenCV)."""
     rng = np.random.default_rng(0)
     img = rng.random((40, 46, 3)).astype(np.float32)
     developed = isp.through_camera(img, demosaic="malvar", median=median, layout=layout)
@@ -191,7 +191,7 @@ def test_the_capture_model_is_deterministic_where_training_asks_for_it():
 
 @pytest.mark.parametrize("phase, layout", [(0, "RGGB"), (2, "GBRG")])
 def test_rebayer_is_the_isps_development_of_the_mosaic_without_a_dark_rim(phase, layout):
-    """Full-colour frames through :func:`rebayer` equal the ISP's development of their mosaic (colour-demosaicing's
+    """Full-colour frames through :func:`rebayer` equal the ISP's development of their mosaic (its
     Malvar) away from the border, and its mirrored border keeps the frame's brightness there."""
     rng = np.random.default_rng(1)
     frames = rng.random((8, 30, 34, 3)).astype(np.float32)

@@ -141,7 +141,7 @@ def test_bench_sim_times_the_plan_and_compares_the_paths(tmp_path):
 @pytest.mark.parametrize("device", DEVICES)
 def test_the_device_isp_equals_the_cameras(device):
     """Median per Bayer plane and Malvar demosaicing on the device give what processing.isp gives (OpenCV's median
-    and colour-demosaicing's Malvar), borders included."""
+    and Malvar), borders included."""
     from sssphase_core.processing.isp import demosaic, develop, median3_bayer
     from sssphase_core.sim_accel import DeviceSensor, malvar_rggb, median3_rggb
 

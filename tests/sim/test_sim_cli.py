@@ -19,7 +19,7 @@ from sssphase_core.errors import UnknownObjectError
 def test_sim_and_isp_never_import_torch():
     code = ("import sys, numpy as np, sssphase_core.sim, sssphase_core.bench.sim_bench\n"
             "from sssphase_core.processing import isp\n"
-            "isp.develop(np.zeros((8, 8), np.uint16), 0, 1.0)  # loads OpenCV and colour-demosaicing\n"
+            "isp.develop(np.zeros((8, 8), np.uint16), 0, 1.0)  # loads OpenCV\n"
             "assert 'torch' not in sys.modules")
     subprocess.run([sys.executable, "-c", code], check=True)
 

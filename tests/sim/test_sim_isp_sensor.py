@@ -23,6 +23,22 @@ def test_demosaic_recovers_a_smooth_image(method, tol):
     assert np.abs(out - img)[4:-4, 4:-4].max() < tol  # colour order right, interpolation smooth
 
 
+@pytest.mark.parametrize("shape", [(2, 2), (2, 6), (6, 4), (192, 256)])
+def test_malvar_is_colour_demosaicings_malvar_bit_for_bit(shape):
+    """Our OpenCV Malvar-He-Cutler (no 1.7 s import of colour-science in every process that develops a frame)
+    against colour-demosaicing's, the reference (a development dependency): equal in float64, borders and
+    frames narrower than the 5 x 5 kernels included."""
+    import warnings
+
+    with warnings.catch_warnings():  # the package imports deprecated scipy namespaces
+        warnings.simplefilter("ignore", DeprecationWarning)
+        from colour_demosaicing import demosaicing_CFA_Bayer_Malvar2004
+
+    raw = np.random.default_rng(sum(shape)).random(shape) * 4095.0
+    np.testing.assert_array_equal(isp.malvar(raw), demosaicing_CFA_Bayer_Malvar2004(raw, "RGGB"))
+    assert isp.demosaic(raw.astype(np.uint16)).dtype == np.float32
+
+
 def test_bayer_mosaic_is_rggb():
     img = np.zeros((4, 4, 3))
     img[..., 0], img[..., 1], img[..., 2] = 1.0, 2.0, 3.0
