@@ -45,6 +45,8 @@ ResizeOpt = Annotated[str, typer.Option("--resize", help="Bring patterns of anot
 ChunkOpt = Annotated[int, typer.Option(min=1, help="Pixels per footprint/splat chunk.")]
 DeviceOpt = Annotated[str, typer.Option(help="cpu or cuda.")]
 CacheOpt = Annotated[bool, typer.Option(help="Keep predicted footprints in OUT/cache (float16) for later patterns.")]
+EvalCacheOpt = Annotated[bool, typer.Option(help="Keep the models' footprints in OUT/cache (float16) for the next evaluation; "
+                                            "start from those `sss train decoder --check-sessions` kept for the same view and checkpoint.")]
 FormatOpt = Annotated[str, typer.Option("--format", help="png (16-bit linear, clips at 1.0), exr (float32 "
                                         "linear, unclipped) or png,exr.")]
 CalibrateOpt = Annotated[bool, typer.Option(help="Mix a model's footprints with no scattering by the weight that relights "
@@ -126,12 +128,13 @@ def eval_relight(
     out: EvalOutOpt = Path("eval_relight"),
     device: str = "cpu",
     calibrate: CalibrateOpt = True,
+    cache: EvalCacheOpt = True,
 ) -> None:
     """Relight every reference pattern of the sessions and tabulate MSE / PSNR / SSIM over objects and views."""
     from sssphase_core.relight.runner import evaluate_sessions
 
     evaluate_sessions(sessions, backend=backend, checkpoint=checkpoint, views=views, out=out, device=device,
-                      calibrate=calibrate, narrator=_Narrator())
+                      calibrate=calibrate, cache=cache, narrator=_Narrator())
 
 
 def _names(text: str, option: str) -> tuple[str, ...]:

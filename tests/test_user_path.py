@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 import tempfile
@@ -44,11 +45,17 @@ def test_capture_train_from_sessions_relight_and_beat_no_scattering(tmp_path):
     assert f"validation (held out): captured sessions under {train}: apple view 1; star view 1" in out, out
     assert "final (epoch 2): val_loss" in out and "relit PSNR on soap view 0" in out
     assert "worse than the none baseline" not in out, out
+    checked = float(re.search(r"relit PSNR on soap view 0: torch ([0-9.]+) dB", out).group(1))
     _sss("eval", "relight", str(test), "--backend", "none,torch", "--checkpoint", str(dec), "--out", str(tmp_path / "ev"),
          env=env)
     rows = json.loads((tmp_path / "ev" / "relight_eval.json").read_text())["aggregate"]
     psnr = {r["backend"]: r["psnr"] for r in rows}
     assert psnr["torch"] > psnr["none"] + 2, psnr
+    # The evaluation read the footprints the training's check cached for this view and checkpoint: its cache is
+    # that very file (linked; a footprint computed again would have replaced it) and its PSNR the check's.
+    (kept,) = (dec / "check" / "cache").glob("soap_v0_*_torch_*.npz")
+    assert (tmp_path / "ev" / "cache" / kept.name).stat().st_ino == kept.stat().st_ino
+    assert round(psnr["torch"], 2) == checked, (psnr, checked)
 
 
 @pytest.mark.slow

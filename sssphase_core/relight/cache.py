@@ -1,23 +1,34 @@
-"""A compressed cache of a source's footprints, keyed by pixel (:class:`FootprintCache`)."""
+"""A compressed cache of a source's footprints, keyed by pixel (:class:`FootprintCache`), and where a view's
+caches are kept (:func:`cache_path`; torch is imported only when footprints are converted)."""
 
 from __future__ import annotations
 
+import hashlib
+import json
+import os
+import shutil
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
-from sssphase_core.relight.engine import FootprintSource, footprint_array
+if TYPE_CHECKING:
+    from sssphase_core.relight.engine import FootprintSource
+    from sssphase_core.store.session import Session
 
 
 def to_float16(a: np.ndarray) -> np.ndarray:
     """``a`` rounded to float16 (torch's conversion: the same bits as numpy's, ~40x faster on footprints, whose
     tails are mostly float16 subnormals, numpy's slow path: 1.2 s against 0.03 s per 1,024 1080p footprints)."""
+    import torch
+
     return torch.from_numpy(np.ascontiguousarray(a, np.float32)).half().numpy()
 
 
 def from_float16(a: np.ndarray) -> np.ndarray:
     """float16 ``a`` as float32 (torch's conversion, for the same reason as :func:`to_float16`)."""
+    import torch
+
     return torch.from_numpy(np.ascontiguousarray(a)).float().numpy()
 
 
@@ -81,6 +92,8 @@ class FootprintCache:
         if (~miss).any():
             out[~miss] = from_float16(self.data[pos[~miss]])
         if miss.any():
+            from sssphase_core.relight.engine import footprint_array
+
             fp = self.source(pixels[miss])
             fp = to_float16(footprint_array(fp))  # as the cache holds them: a relight is the same whether its footprints
             out[miss] = from_float16(fp)  # were computed now or read back (sss view's next pattern = sss relight's)
@@ -111,3 +124,50 @@ class FootprintCache:
             np.savez_compressed(tmp, data=self.data[: self.size], index=index, shape=np.asarray(self.shape),
                                 format=np.asarray(self.FORMAT))
         self._dirty = False
+
+
+# --- where a view's footprints are cached ------------------------------------------------------------
+
+def model_tag(checkpoint: Path | str | None) -> str:
+    """Short digest of the checkpoint path and modification time: a retrained model gets a new cache."""
+    key = "none" if checkpoint is None else f"{Path(checkpoint).resolve()}:{Path(checkpoint).stat().st_mtime_ns}"
+    return hashlib.sha256(key.encode()).hexdigest()[:10]
+
+
+def view_tag(session: Session, view: int) -> str:
+    """Short digest of a view's array checksums (the manifest's): footprints cached for one session's view
+    are never read for another session's (the same object name imported again, another session relit into
+    the same output folder)."""
+    arrays = session.manifest.get("views", {}).get(str(view), {}).get("arrays", {})
+    key = json.dumps({name: a.get("checksum") for name, a in sorted(arrays.items())}, sort_keys=True)
+    return hashlib.sha256(f"{session.path.resolve()}:{key}".encode()).hexdigest()[:10]
+
+
+def cache_path(out: Path, session: Session, rv: Any, member: str, checkpoint: Path | str | None) -> Path:
+    """The footprint cache of backend ``member`` for a view: named by object, view, the view's arrays and
+    (for the decoder) the checkpoint, so that nothing stale or foreign is read."""
+    tag = model_tag(checkpoint if member == "torch" else None)
+    return out / "cache" / f"{rv.object}_v{rv.view}_{view_tag(session, rv.view)}_{member}_{tag}.npz"
+
+
+#: The folder of a decoder run where ``sss train decoder --check-sessions`` relights its check sessions: the
+#: footprints cached there start the caches of ``sss eval relight`` and ``sss relight`` with that run's checkpoint.
+CHECK_FOLDER = "check"
+
+
+def seed_cache(path: Path, checkpoint: Path | str | None) -> None:
+    """Start the footprint cache file ``path`` (``OUT/cache/<name>``, :func:`cache_path`) from the file of the same
+    name in the checkpoint's run's :data:`CHECK_FOLDER` when ``path`` has none yet: the name holds the session
+    view's arrays and the checkpoint file's path and time, so an equal name is the same footprints (the training's
+    check relit that view with that checkpoint). Linked where the file system allows (both are only ever
+    replaced whole, never written in place), else copied."""
+    if checkpoint is None or path.exists():
+        return
+    seed = Path(checkpoint).parent / CHECK_FOLDER / "cache" / path.name
+    if not seed.is_file():
+        return
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        os.link(seed, path)
+    except OSError:  # another file system, or one without hard links
+        shutil.copyfile(seed, path)

@@ -122,11 +122,12 @@ def comparison_figure(reference: np.ndarray, relit: np.ndarray, mask: np.ndarray
 
 
 def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Path | str | None = None,
-                  chunk: int = 2048, device: str = "cpu", write: bool = True,
+                  chunk: int = 2048, device: str = "cpu", write: bool = True, cache: bool = False,
                   progress: Callable[[int, int], None] | None = None, **options: object) -> list[dict[str, Any]]:
     """Relight a :class:`~sssphase_core.relight.views.RelightView` under all its reference patterns in one
     pass with ``backend`` (``options`` go to the model backend); metrics per pattern (and figures /
-    images under ``out_dir`` if ``write``)."""
+    images under ``out_dir`` if ``write``). ``cache``: a model's footprints are kept in ``out_dir/cache`` as
+    ``sss relight`` keeps them (:func:`footprint_caches`), and read back by the next evaluation of the view."""
     from sssphase_core.relight.backends import MODEL_FREE, make_sources
     from sssphase_core.relight.pipeline import relight_view
 
@@ -136,9 +137,15 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     names = sorted(rv.references)
     t0 = time.perf_counter()
     calibrate = bool(options.pop("calibrate", True)) and backend not in MODEL_FREE
-    (source, patch), *also = make_sources(backend, rv, checkpoint=checkpoint, device=device, **options)
+    sources = make_sources(backend, rv, checkpoint=checkpoint, device=device, **options)
+    caches = footprint_caches(rv, backend, sources, Path(out_dir), checkpoint) if cache and not options else []
+    if caches:
+        sources = [(c, k) for c, (_, k) in zip(caches, sources, strict=True)]
+    (source, patch), *also = sources
     relit, mix = relight_view(source, patch, rv, [rv.references[n] for n in names], calibrate=calibrate, also=also,
                               chunk=chunk, device=device, progress=progress)
+    for c in caches:
+        c.save()
     seconds = time.perf_counter() - t0
     rows = []
     out = Path(out_dir)
@@ -173,6 +180,27 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
                                                   title=f"{rv.object} view {rv.view}, {name}, {backend}", metrics=met))
         rows.append(row)
     return rows
+
+
+def footprint_caches(rv: Any, backend: str, sources: Sequence[tuple[Any, int]], out: Path,
+                     checkpoint: Path | str | None) -> list[Any]:
+    """Each of a model backend's (uncalibrated) sources in a :class:`~sssphase_core.relight.cache.FootprintCache`
+    at ``out/cache`` (named as ``sss relight`` names them; started from the checkpoint run's check, where it
+    relit this view: :func:`~sssphase_core.relight.cache.seed_cache`); [] for data sources and where the view's
+    footprints would not fit the cache's memory budget."""
+    from sssphase_core.relight.cache import CACHE_BYTES, FootprintCache, cache_path, seed_cache
+    from sssphase_core.relight.choices import BLENDS, MODEL_FREE
+
+    if backend in MODEL_FREE or getattr(rv, "session", None) is None:
+        return []
+    if int(rv.proj.mask.sum()) * max(k for _, k in sources) ** 2 * 3 * 2 > CACHE_BYTES:  # float16
+        return []
+    caches = []
+    for (src, k), member in zip(sources, BLENDS.get(backend, (backend,)), strict=True):
+        path = cache_path(out, rv.session, rv, member, checkpoint)
+        seed_cache(path, checkpoint)
+        caches.append(FootprintCache(src, path, rv.proj.shape, k))
+    return caches
 
 
 def _captured_reference(rv: Any, name: str) -> np.ndarray | None:
@@ -247,8 +275,10 @@ def baseline_check(sessions: Sequence[Any], checkpoint: Path | str, out_dir: Pat
     ``views`` restricts the views of each session (e.g. held-out ones); at most ``max_views`` views are
     relit in all. Sessions without reference captures give an empty result (``views == []``).
     """
+    from sssphase_core.learning.runlog import resolve_checkpoint
     from sssphase_core.relight.views import load_view
 
+    checkpoint = resolve_checkpoint(checkpoint)  # the file, as `sss eval relight` names it: their caches share names
     picked = []
     for session in sessions:
         for v in session.views():
@@ -260,9 +290,9 @@ def baseline_check(sessions: Sequence[Any], checkpoint: Path | str, out_dir: Pat
         rv = load_view(session, v)
         if not rv.references:
             continue
-        for backend in ("torch", *BASELINES):
+        for backend in ("torch", *BASELINES):  # footprints cached: `sss eval relight` of this run reads them
             rows += evaluate_view(rv, backend, out_dir, checkpoint=checkpoint if backend == "torch" else None,
-                                  device=device, write=False)
+                                  device=device, write=False, cache=True)
     mean = {b: float(np.mean([r["psnr"] for r in rows if r["backend"] == b])) for b in ("torch", *BASELINES)} if rows else {}
     losing = [b for b in BASELINES if mean and mean["torch"] < mean[b]]
     return {"rows": rows, "mean_psnr": mean, "losing_to": losing,

@@ -10,8 +10,6 @@ neither rich nor typer; the CLI's narrator draws with them.
 
 from __future__ import annotations
 
-import hashlib
-import json
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -21,6 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sssphase_core.errors import InputError
+from sssphase_core.relight.cache import cache_path, model_tag, seed_cache, view_tag
 from sssphase_core.relight.choices import BLENDS, MODEL_FREE, check_backends, uses_decoder
 from sssphase_core.relight.evaluation import (
     aggregate,
@@ -99,28 +98,6 @@ def same_pattern(pattern: np.ndarray, reference: np.ndarray) -> bool:
     if a.ndim != b.ndim:
         a, b = (x if x.ndim == 3 else np.repeat(x[..., None], 3, axis=-1) for x in (a, b))
     return a.shape == b.shape and bool(np.abs(a - b).max(initial=0.0) <= 1 / 255)
-
-
-def model_tag(checkpoint: Path | str | None) -> str:
-    """Short digest of the checkpoint path and modification time: a retrained model gets a new cache."""
-    key = "none" if checkpoint is None else f"{Path(checkpoint).resolve()}:{Path(checkpoint).stat().st_mtime_ns}"
-    return hashlib.sha256(key.encode()).hexdigest()[:10]
-
-
-def view_tag(session: Session, view: int) -> str:
-    """Short digest of a view's array checksums (the manifest's): footprints cached for one session's view
-    are never read for another session's (the same object name imported again, another session relit into
-    the same output folder)."""
-    arrays = session.manifest.get("views", {}).get(str(view), {}).get("arrays", {})
-    key = json.dumps({name: a.get("checksum") for name, a in sorted(arrays.items())}, sort_keys=True)
-    return hashlib.sha256(f"{session.path.resolve()}:{key}".encode()).hexdigest()[:10]
-
-
-def cache_path(out: Path, session: Session, rv: RelightView, member: str, checkpoint: Path | str | None) -> Path:
-    """The footprint cache of backend ``member`` for a view: named by object, view, the view's arrays and
-    (for the decoder) the checkpoint, so that nothing stale or foreign is read."""
-    tag = model_tag(checkpoint if member == "torch" else None)
-    return out / "cache" / f"{rv.object}_v{rv.view}_{view_tag(session, rv.view)}_{member}_{tag}.npz"
 
 
 def lowrank_path(out: Path, session: Session, rv: RelightView, backend: str, checkpoint: Path | str | None) -> Path:
@@ -365,8 +342,10 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
     footprint_bytes = n_pixels * max(k for _, k in sources) ** 2 * 3 * 2  # float16
     keep = cached and footprint_bytes <= CACHE_BYTES
     if keep:
-        sources = [(FootprintCache(src, cache_path(out, s, rv, m, checkpoint), rv.proj.shape, k), k)
-                   for (src, k), m in zip(sources, members, strict=True)]
+        paths = [cache_path(out, s, rv, m, checkpoint) for m in members]
+        for path in paths:
+            seed_cache(path, checkpoint)
+        sources = [(FootprintCache(src, path, rv.proj.shape, k), k) for (src, k), path in zip(sources, paths, strict=True)]
     caches = [src for src, _ in sources]
     taps = [LowRankTap(src, valid, rv.proj.shape) for src in caches] if valid is not None else []
     if taps:
@@ -591,11 +570,12 @@ def _eval_views(found: Sequence[Session], views: str | Sequence[int] | None, bac
 
 def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BACKENDS, checkpoint: Path | str | None = None,
                       views: str | Sequence[int] | None = "", out: Path | str = Path("eval_relight"), device: str = "cpu",
-                      calibrate: bool = True, narrator: Narrator | None = None) -> EvaluationResult:
+                      calibrate: bool = True, cache: bool = True, narrator: Narrator | None = None) -> EvaluationResult:
     """Relight every reference pattern of the sessions (folders, or folders holding sessions) with each of
     ``backend``'s comma-separated backends and tabulate MSE / PSNR / SSIM over objects and views: figures
     and images in ``out``, ``relight_eval.json`` and ``.md``. The default backends leave ``measured`` out
-    where a view holds no dot-grid footprints."""
+    where a view holds no dot-grid footprints. Model footprints are cached in ``out/cache`` (``cache``),
+    started from those the checkpoint's training cached when its check relit the same view."""
     from sssphase_core.compute import check_device
     from sssphase_core.store.results import write_report
     from sssphase_core.store.session import by_object, check_output_folder, claim_output, find_sessions
@@ -618,7 +598,7 @@ def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BAC
                 rv = load_view(s, v)
                 for b in backends:
                     rows += evaluate_view(rv, b, out, checkpoint=checkpoint, device=device, calibrate=calibrate,
-                                          progress=say.task(f"{rv.object} view {v}: {b}"))
+                                          cache=cache, progress=say.task(f"{rv.object} view {v}: {b}"))
     tables = [metrics_table(rows), metrics_table(rows, by=("object", "backend"), title="Relighting per object")]
     result = EvaluationResult(rows, backends, tables, out / "relight_eval.json", out / "relight_eval.md")
     write_report({"rows": rows, "aggregate": aggregate(rows), "lpips": lpips_note()}, tables, result.json, md=result.md,

@@ -288,6 +288,7 @@ def check_against_baselines(run: Path, roots: Sequence[Path], views: list[int] |
     """Relight the views of ``roots`` with reference captures by the run's model and the none/analytic
     baselines (``relight.evaluation.baseline_check``; None: no ``roots``); says the mean PSNRs and warns when
     the model loses to a baseline."""
+    from sssphase_core.relight.cache import CHECK_FOLDER
     from sssphase_core.relight.evaluation import baseline_check
     from sssphase_core.store.session import find_sessions
 
@@ -299,7 +300,7 @@ def check_against_baselines(run: Path, roots: Sequence[Path], views: list[int] |
 
         device = str(init_distributed(device).device)
     with report.busy("relighting held-out views against the none and analytic baselines"):
-        res = baseline_check(find_sessions(roots), run, run / "check", views=views, device=device)
+        res = baseline_check(find_sessions(roots), run, run / CHECK_FOLDER, views=views, device=device)
     if not res["views"]:
         report.say(f"{report.style('not checked:', 'note')} no view of {', '.join(map(str, roots))} has reference "
                    "captures (capture one with --reference checkerboard and pass it as --check-sessions)")
