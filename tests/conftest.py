@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import sys
 import tempfile
 from pathlib import Path
 
@@ -26,6 +27,22 @@ def pytest_xdist_auto_num_workers(config: pytest.Config) -> int:
     runs 838 s and 822 s)."""
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
     return cores + 1
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Byte-compile our packages once, before the workers start, where the environment forbids Python to write
+    bytecode (``PYTHONDONTWRITEBYTECODE``, as on the build machine): otherwise each of the ~400 `sss` processes and
+    daemons the suite starts compiles our modules from source again (0.2 s of CPU each, measured on
+    `sss relight` refusing a missing session: 1.0 -> 0.8 s). Python reads the files it finds either way."""
+    if hasattr(config, "workerinput") or not sys.dont_write_bytecode:
+        return
+    import compileall
+    import importlib.util
+
+    for package in ("sssphase_core", "sssphase_cli", "sssphase_daemon", "sssphase_plugins", "sssphase_view"):
+        spec = importlib.util.find_spec(package)
+        if spec is not None and spec.origin is not None:
+            compileall.compile_dir(Path(spec.origin).parent, quiet=1)
 
 
 @pytest.fixture(scope="session", autouse=True)
