@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from sssphase_core.learning.data import psp_patches
-from sssphase_core.learning.models import Decoder, Encoder
+from sssphase_core.learning.models import Decoder, Encoder, get_preset
 from sssphase_core.learning.models.physics import (
     N_FEATURES,
     RadialProfile,
@@ -187,3 +187,17 @@ def test_ring_average_keeps_only_angular_detail():
     out = ring(x)
     torch.testing.assert_close(ring(out), out, rtol=0, atol=1e-5)  # a projection
     assert out.abs().sum() > 0.5 * x.abs().sum()  # most of a random map is angular
+
+
+def test_ring_average_is_the_averaging_matrix_it_replaces_and_old_checkpoints_load():
+    """Ring means by a (K*K, R) product gathered back to the pixels equal the (K*K, K*K) averaging matrix earlier
+    decoders multiplied by (and saved: a checkpoint holding it still loads, the matrix dropped)."""
+    ring = RingAverage(32)
+    member = torch.nn.functional.one_hot(ring.ring).float()
+    matrix = member @ torch.diag(1.0 / member.sum(0)) @ member.T  # what earlier decoders kept as `average`
+    x = torch.randn(4, 3, 32, 32)
+    torch.testing.assert_close(ring(x), (x.flatten(2) - x.flatten(2) @ matrix).view(x.shape), rtol=0, atol=1e-6)
+    assert not any("average" in k for k in ring.state_dict())  # derived from K: not saved
+    lite = get_preset("lite")
+    old = {**Decoder(lite).state_dict(), "angular.average": matrix}
+    Decoder(lite).load_state_dict(old)  # strict: only the matrix is dropped

@@ -268,3 +268,34 @@ def test_bench_relight_cache_runs_the_three_relights_as_processes(session, tmp_p
     assert res["agreement"]["psnr_at_peak"] > 55 and res["speedup"] == steps["full"]["seconds"] / steps["cached"]["seconds"]
     assert json.loads((tmp_path / "rc.json").read_text())["agreement"] == res["agreement"]
     assert "| cached | stripes_y |" in (tmp_path / "rc.md").read_text()
+
+
+def test_an_evaluation_starts_from_the_footprints_the_trainings_check_kept(session, tmp_path):
+    """`sss train decoder --check-sessions` relights the check views with the run's checkpoint (``baseline_check``
+    into the run's check/); an evaluation of the same view with that checkpoint reads those footprints instead of
+    predicting them again, and keeps its own for the next one; ``cache=False`` keeps none."""
+    import dataclasses
+
+    import torch
+
+    from sssphase_core.learning.models import Decoder, Encoder, get_preset
+    from sssphase_core.learning.training import save_checkpoint
+    from sssphase_core.relight.cache import CHECK_FOLDER
+    from sssphase_core.relight.evaluation import baseline_check
+
+    small = dataclasses.replace(get_preset("lite"), name="lite-small", stem=8, stages=(8, 12, 16), bottleneck=32,
+                                proj_hidden=32, proj_dim=32, pred_hidden=8, decoder=(16, 12, 8, 8), attention=4)
+    torch.manual_seed(0)
+    run = tmp_path / "run"
+    run.mkdir()
+    save_checkpoint(run / "best.pt", {"kind": "decoder", "preset": small.to_dict(), "config": {"head": "reciprocal"},
+                                      "encoder": Encoder(small).state_dict(), "decoder": Decoder(small, head="reciprocal").state_dict()})
+    checked = baseline_check([Session.open(session)], run, run / CHECK_FOLDER)
+    (kept,) = (run / CHECK_FOLDER / "cache").glob("soap_v0_*_torch_*.npz")
+    res = evaluate_sessions([session], backend="torch", checkpoint=run, out=tmp_path / "ev")
+    # the same file (linked): a footprint predicted again would have had the cache rewritten
+    assert (tmp_path / "ev" / "cache" / kept.name).stat().st_ino == kept.stat().st_ino
+    (row,) = res.rows
+    assert row["psnr"] == pytest.approx(next(r["psnr"] for r in checked["rows"] if r["backend"] == "torch"), abs=1e-9)
+    evaluate_sessions([session], backend="torch", checkpoint=run, out=tmp_path / "none", cache=False)
+    assert not (tmp_path / "none" / "cache").exists()
