@@ -110,7 +110,8 @@ def test_the_demo_captures_each_training_object_on_its_own_rig(sim_daemon, tmp_p
     from sssphase_core.reporting.demo import Demo, DemoConfig
     from sssphase_core.store.session import Session
 
-    cfg = DemoConfig(("star", "shovel"), ("sand_rake",), train_views=1, dot_stride=4)
+    # one dot grid a view (the largest stride the plan takes): what is checked is what the sessions record
+    cfg = DemoConfig(("star", "shovel"), ("sand_rake",), train_views=1, dot_stride=20)
     demo = Demo(tmp_path, cfg, sim_daemon, log=lambda _: None, randomise_rig=True)
     assert "randomised rig" in demo.report_rig  # the report says what the model was trained on
     demo.train_sessions()
