@@ -14,6 +14,7 @@ import importlib
 import importlib.metadata
 import importlib.util
 import os
+import weakref
 from dataclasses import dataclass
 from typing import Any
 
@@ -92,10 +93,26 @@ def get_plugin_manager(*, refresh: bool = False) -> PluginManager:
     return _manager
 
 
+#: Per plugin manager: the (version, project) of each plugin loaded from a distribution, keyed by id(plugin), and
+#: how many such plugins there were when it was read (reading a distribution's metadata parses its METADATA file,
+#: our README included, each time: 6 ms per `plugins` request of the daemon, 40% of a malformed-request fuzz's CPU).
+_DISTRIBUTIONS: weakref.WeakKeyDictionary[PluginManager, tuple[int, dict[int, tuple[str, str]]]] = weakref.WeakKeyDictionary()
+
+
+def _distributions(pm: PluginManager) -> dict[int, tuple[str, str]]:
+    """id(plugin) -> (version, project) of the plugins ``pm`` loaded from distributions, read once per manager
+    (again when a plugin is registered from another distribution)."""
+    pairs = pm.list_plugin_distinfo()
+    count, known = _DISTRIBUTIONS.get(pm, (-1, {}))
+    if count != len(pairs):
+        known = {id(p): (str(dist.version), f"{dist.project_name}") for p, dist in pairs}
+        _DISTRIBUTIONS[pm] = (len(pairs), known)
+    return known
+
+
 def _plugin_version(pm: PluginManager, plugin: object) -> tuple[str, str]:
-    for p, dist in pm.list_plugin_distinfo():
-        if p is plugin:
-            return str(dist.version), f"{dist.project_name}"
+    if id(plugin) in (known := _distributions(pm)):
+        return known[id(plugin)]
     version = getattr(plugin, "__version__", None)
     module = getattr(plugin, "__name__", type(plugin).__name__)
     if version is None and module.startswith(("sssphase_plugins.", "sssphase_core.")):  # ours: the package's
