@@ -147,6 +147,7 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     for c in caches:
         c.save()
     seconds = time.perf_counter() - t0
+    read = sum(c.hits for c in caches) / max(1, sum(c.hits + c.misses for c in caches))  # footprints not predicted now
     rows = []
     out = Path(out_dir)
     exposure = display_scale(rv.white) if write else None  # one display exposure per view, shared by its patterns
@@ -161,6 +162,8 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
         row = {"object": rv.object, "view": rv.view, "pattern": name, "backend": backend, **met,
                "psnr_interior": interior_psnr(compared, rv.captured[name], rv.proj.mask),
                "seconds": seconds / len(names), "lit_pixels": int(rv.proj.mask.sum())}
+        if caches:  # its seconds are the model's run time only for the footprints it predicted now
+            row["footprints_from_cache"] = round(read, 4)
         if mix is not None:  # a model calibrated to the view: its weight against no scattering, per colour
             row["mix"] = np.asarray(mix, float).round(4).tolist()  # (3,), or (members, 3) for a blend
         if getattr(source, "fit", None):  # the captured transport's noise mask, chosen on the view's fringe captures

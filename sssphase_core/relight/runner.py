@@ -604,6 +604,11 @@ def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BAC
     write_report({"rows": rows, "aggregate": aggregate(rows), "lpips": lpips_note()}, tables, result.json, md=result.md,
                  title="Relighting against reference captures")
     say.say(tables[0].markdown())
+    for r in dict.fromkeys((r["object"], r["view"], r["backend"], r["footprints_from_cache"]) for r in rows
+                           if r.get("footprints_from_cache")):
+        say.say(f"{r[0]} view {r[1]}: {r[2]} read {r[3]:.0%} of its footprints from {out / 'cache'} (kept by an earlier "
+                "evaluation, relight or training check of this view and checkpoint): its seconds are not the model's "
+                "run time (--no-cache predicts them all)")
     if calibrate:  # a model relit without the view calibration is worth a word: it scores several dB lower
         for obj, view, b in dict.fromkeys((r["object"], r["view"], r["backend"]) for r in rows
                                           if r["backend"] not in MODEL_FREE and "mix" not in r):

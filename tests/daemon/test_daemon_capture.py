@@ -387,7 +387,8 @@ def test_a_view_where_nothing_decodes_is_kept_with_a_warning(runtime_dir, sss, t
     """A rig whose camera sees no fringes (here the sim's benchmark camera, which never looks at the projector)
     gave a session that said "1/1 views complete" and validated, without a word."""
     rig = tmp_path / "rig.toml"
-    rig.write_text('[devices]\ncamera = "sim:bench-camera"\nprojector = "sim:projector0"\nturntable = "sim:turntable0"\n')
+    rig.write_text('[devices]\ncamera = "sim:bench-camera"\nprojector = "sim:projector0"\nturntable = "sim:turntable0"\n'
+                   '[options]\nshape = [192, 256, 3]\n')  # the sim camera's frame size, not the bench camera's 1080p
     res = sss("capture", "--object", "apple", "--views", "1", "--rig", str(rig), "--out", str(tmp_path / "s"))
     assert res.returncode == 0, res.stderr
     assert "view 0: no camera pixel decoded (low modulation" in res.stderr and "Traceback" not in res.stderr

@@ -293,10 +293,12 @@ def test_an_evaluation_starts_from_the_footprints_the_trainings_check_kept(sessi
                                       "encoder": Encoder(small).state_dict(), "decoder": Decoder(small, head="reciprocal").state_dict()})
     checked = baseline_check([Session.open(session)], run, run / CHECK_FOLDER)
     (kept,) = (run / CHECK_FOLDER / "cache").glob("soap_v0_*_torch_*.npz")
-    res = evaluate_sessions([session], backend="torch", checkpoint=run, out=tmp_path / "ev")
+    said = Recorder()
+    res = evaluate_sessions([session], backend="torch", checkpoint=run, out=tmp_path / "ev", narrator=said)
     # the same file (linked): a footprint predicted again would have had the cache rewritten
     assert (tmp_path / "ev" / "cache" / kept.name).stat().st_ino == kept.stat().st_ino
     (row,) = res.rows
     assert row["psnr"] == pytest.approx(next(r["psnr"] for r in checked["rows"] if r["backend"] == "torch"), abs=1e-9)
+    assert row["footprints_from_cache"] == 1.0 and "torch read 100% of its footprints" in said.text()
     evaluate_sessions([session], backend="analytic", out=tmp_path / "none", cache=False)  # a model: else kept
     assert not (tmp_path / "none" / "cache").exists()
