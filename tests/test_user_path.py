@@ -65,11 +65,11 @@ def test_the_compact_footprint_store_is_a_quarter_of_float32_and_relights_the_sa
     from sssphase_core.bench import store_bench
     from sssphase_core.capture import CaptureRequest, run_capture
 
-    s = run_capture(sim_daemon, CaptureRequest("leaf", views=1, footprints=True, keep_dots=True,
+    s = run_capture(sim_daemon, CaptureRequest("sand_rake", views=1, footprints=True, keep_dots=True,
                                                 references=("checkerboard",), out=tmp_path / "s"))
     assert s.manifest["views"]["0"]["transport"]["noise_dropped"]
     row = store_bench.run([s], tmp_path / "store.json")["rows"][0]
     assert row["store"]["bytes"] < 0.25 * row["raw_float32_bytes"]
     # no worse than every value in float32 (the store's zeros also tighten the noise mask read from it)
     assert row["store"]["psnr"] > row["float32"]["psnr"] - 0.1
-    assert (tmp_path / "store.md").read_text().count("| leaf |") == 1
+    assert (tmp_path / "store.md").read_text().count("| sand_rake |") == 1

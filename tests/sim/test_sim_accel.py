@@ -127,7 +127,7 @@ def test_bench_sim_times_the_plan_and_compares_the_paths(tmp_path):
     from sssphase_cli.main import app
 
     out = tmp_path / "sim.json"
-    result = CliRunner().invoke(app, ["bench", "sim", "--device", "cpu", "--preset", "cpu", "--object", "star",
+    result = CliRunner().invoke(app, ["bench", "sim", "--device", "cpu", "--preset", "cpu", "--object", "sand_rake",
                                       "--out", str(out)])
     assert result.exit_code == 0, result.output
     r = json.loads(out.read_text())
