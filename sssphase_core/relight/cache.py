@@ -171,3 +171,20 @@ def seed_cache(path: Path, checkpoint: Path | str | None) -> None:
         os.link(seed, path)
     except OSError:  # another file system, or one without hard links
         shutil.copyfile(seed, path)
+
+
+def footprint_bytes(n_pixels: int, patch: int) -> int:
+    """The float16 bytes of ``n_pixels`` footprints of K = ``patch`` (what a cache of a view would hold)."""
+    return n_pixels * patch**2 * 3 * 2
+
+
+def view_caches(out: Path, rv: Any, sources: list[tuple[Any, int]], members: tuple[str, ...],
+                checkpoint: Path | str | None) -> list[FootprintCache]:
+    """Each (source, K) of a view's backend ``members`` wrapped in its :class:`FootprintCache` at ``out/cache``
+    (:func:`cache_path`), started from the checkpoint run's check where it relit the view (:func:`seed_cache`)."""
+    caches = []
+    for (src, k), member in zip(sources, members, strict=True):
+        path = cache_path(out, rv.session, rv, member, checkpoint)
+        seed_cache(path, checkpoint)
+        caches.append(FootprintCache(src, path, rv.proj.shape, k))
+    return caches

@@ -191,19 +191,14 @@ def footprint_caches(rv: Any, backend: str, sources: Sequence[tuple[Any, int]], 
     at ``out/cache`` (named as ``sss relight`` names them; started from the checkpoint run's check, where it
     relit this view: :func:`~sssphase_core.relight.cache.seed_cache`); [] for data sources and where the view's
     footprints would not fit the cache's memory budget."""
-    from sssphase_core.relight.cache import CACHE_BYTES, FootprintCache, cache_path, seed_cache
+    from sssphase_core.relight.cache import CACHE_BYTES, footprint_bytes, view_caches
     from sssphase_core.relight.choices import BLENDS, MODEL_FREE
 
     if backend in MODEL_FREE or getattr(rv, "session", None) is None:
         return []
-    if int(rv.proj.mask.sum()) * max(k for _, k in sources) ** 2 * 3 * 2 > CACHE_BYTES:  # float16
+    if footprint_bytes(int(rv.proj.mask.sum()), max(k for _, k in sources)) > CACHE_BYTES:
         return []
-    caches = []
-    for (src, k), member in zip(sources, BLENDS.get(backend, (backend,)), strict=True):
-        path = cache_path(out, rv.session, rv, member, checkpoint)
-        seed_cache(path, checkpoint)
-        caches.append(FootprintCache(src, path, rv.proj.shape, k))
-    return caches
+    return view_caches(out, rv, list(sources), BLENDS.get(backend, (backend,)), checkpoint)
 
 
 def _captured_reference(rv: Any, name: str) -> np.ndarray | None:

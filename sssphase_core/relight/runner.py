@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sssphase_core.errors import InputError
-from sssphase_core.relight.cache import cache_path, model_tag, seed_cache, view_tag
+from sssphase_core.relight.cache import footprint_bytes, model_tag, view_caches, view_tag
 from sssphase_core.relight.choices import BLENDS, MODEL_FREE, check_backends, uses_decoder
 from sssphase_core.relight.evaluation import (
     aggregate,
@@ -319,7 +319,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
     themselves outgrow any cache)."""
     from sssphase_core.processing.projector import emitted_light
     from sssphase_core.relight.backends import domain_line, make_sources
-    from sssphase_core.relight.cache import CACHE_BYTES, FootprintCache
+    from sssphase_core.relight.cache import CACHE_BYTES
     from sssphase_core.relight.engine import lit_pixels
     from sssphase_core.relight.lowrank import LowRankTap, load_lowrank, save_lowrank
     from sssphase_core.relight.pipeline import relight_view
@@ -339,13 +339,10 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
     # The footprints themselves are kept when they all fit (the eigen-footprints serve later patterns either way;
     # at 1080p and K = 90 they are ~10 GB, and a partial cache cost a third of the first relight and 2 GB more)
     n_pixels = len(valid) if valid is not None else int(rv.proj.mask.sum())
-    footprint_bytes = n_pixels * max(k for _, k in sources) ** 2 * 3 * 2  # float16
-    keep = cached and footprint_bytes <= CACHE_BYTES
+    size = footprint_bytes(n_pixels, max(k for _, k in sources))
+    keep = cached and size <= CACHE_BYTES
     if keep:
-        paths = [cache_path(out, s, rv, m, checkpoint) for m in members]
-        for path in paths:
-            seed_cache(path, checkpoint)
-        sources = [(FootprintCache(src, path, rv.proj.shape, k), k) for (src, k), path in zip(sources, paths, strict=True)]
+        sources = [(c, k) for c, (_, k) in zip(view_caches(out, rv, sources, members, checkpoint), sources, strict=True)]
     caches = [src for src, _ in sources]
     taps = [LowRankTap(src, valid, rv.proj.shape) for src in caches] if valid is not None else []
     if taps:
@@ -372,7 +369,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
     if taps and calibration and all(tap.covers(valid) for tap in taps):  # every pixel went by: any pattern can be relit
         save_lowrank(fast, [tap.result() for tap in taps], *calibration[0])
         if not keep:
-            say.say(f"cache: the view's {n_pixels:,} footprints ({footprint_bytes / 2**30:.1f} GiB in float16) are more than the cache "
+            say.say(f"cache: the view's {n_pixels:,} footprints ({size / 2**30:.1f} GiB in float16) are more than the cache "
                     f"holds ({CACHE_BYTES / 2**30:.0f} GiB): later patterns are relit from its eigen-footprints alone")
     return relit, mix
 

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 
 from sssphase_core.errors import InputError
+from sssphase_core.relight.cache import cache_path
 from sssphase_core.relight.runner import (
     EVAL_BACKENDS,
     Narrator,
-    cache_path,
     choose_views,
     evaluate_sessions,
     geometry_session,
