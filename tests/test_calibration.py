@@ -5,12 +5,11 @@ from __future__ import annotations
 
 import os
 import re
-import subprocess
-import sys
 import tomllib
 
 import numpy as np
 import pytest
+from sss_process import run_sss
 
 from sssphase_core.capture.calibration import RAMP_LEVELS, fit_response, rig_file_with_response
 from sssphase_core.errors import DataError
@@ -60,8 +59,7 @@ def test_calibrating_a_linear_projector_restores_the_nominal_correspondence_erro
     rig = tmp_path / "rig.toml"
     rig.write_text("# a DLP projector in linear mode\n[devices]\ncamera = \"sim:camera0\"\nprojector = \"sim:projector0\"\n\n"
                    "[options]\nprojector_gamma = 1.0\nprojector_black = 0.004\n")
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "calibrate", "projector", "--rig", str(rig), "--check"],
-                         capture_output=True, text=True, timeout=600, env={**os.environ, "COLUMNS": "200"})
+    res = run_sss(["calibrate", "projector", "--rig", str(rig), "--check"], timeout=600, env={**os.environ, "COLUMNS": "200"})
     assert res.returncode == 0, res.stdout + res.stderr
     cfg = tomllib.loads(rig.read_text())
     assert cfg["projector"]["gamma"] == pytest.approx(1.0, abs=0.02) and cfg["projector"]["black"] == pytest.approx(0.004, abs=1e-3)

@@ -11,13 +11,13 @@ import subprocess
 import sys
 
 import pytest
+from sss_process import run_sss
 
 
 def _sss(*args: str) -> subprocess.CompletedProcess[str]:
     env = {k: v for k, v in os.environ.items() if k != "SSS_DEBUG"}
     env["COLUMNS"] = "200"
-    return subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True,
-                          timeout=120, env=env)
+    return run_sss(args, env=env)
 
 
 @pytest.mark.parametrize(
@@ -81,8 +81,7 @@ def test_a_runtime_folder_others_can_read_is_one_message(tmp_path) -> None:
     shared.mkdir(mode=0o755)
     shared.chmod(0o755)
     env = {k: v for k, v in os.environ.items() if k != "SSS_DEBUG"} | {"SSS_RUNTIME_DIR": str(shared), "COLUMNS": "200"}
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "daemon", "status"], capture_output=True,
-                         text=True, timeout=120, env=env)
+    res = run_sss(["daemon", "status"], timeout=120, env=env)
     out = res.stdout + res.stderr
     assert res.returncode == 2 and "Traceback" not in out and "internal error" not in out, out
     assert "must be owned by you with mode 0700" in out and f"chmod 700 {shared}" in out, out
@@ -332,8 +331,7 @@ def test_a_runtime_folder_that_is_relative_or_a_file_is_one_message(runtime, tmp
     (tmp_path / "afile").write_text("x")
     env = {k: v for k, v in os.environ.items() if k != "SSS_DEBUG"} | {
         "SSS_RUNTIME_DIR": runtime.format(tmp=tmp_path), "COLUMNS": "200"}
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "daemon", "status"], capture_output=True,
-                         text=True, timeout=120, env=env, cwd=tmp_path)
+    res = run_sss(["daemon", "status"], timeout=120, env=env, cwd=tmp_path)
     out = (res.stdout + res.stderr).strip()
     assert res.returncode == 2 and len(out.splitlines()) == 1, out
     assert ("must be an absolute path, got relative_rt" if runtime == "relative_rt" else

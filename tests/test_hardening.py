@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sss_process import run_sss
 
 from sssphase_core.errors import InputError
 from sssphase_core.store.session import check_object_name
@@ -148,8 +149,6 @@ def test_array_patterns_of_integers_wider_than_16_bits_are_refused_not_relit_bla
 ])
 def test_damaged_manifests_are_one_line_errors(tmp_path, manifest, expected):
     import json
-    import subprocess
-    import sys
 
     from sssphase_core.errors import DataError
     from sssphase_core.store.session import Session
@@ -158,8 +157,7 @@ def test_damaged_manifests_are_one_line_errors(tmp_path, manifest, expected):
     (tmp_path / "s" / "manifest.json").write_text(json.dumps(manifest))
     with pytest.raises(DataError, match=expected):
         Session.open(tmp_path / "s")
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "validate", str(tmp_path / "s")],
-                         capture_output=True, text=True, timeout=60)
+    res = run_sss(["validate", str(tmp_path / "s")], timeout=60)
     assert res.returncode == 2 and "Traceback" not in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
 
 
@@ -187,7 +185,6 @@ def test_daemon_stop_never_signals_a_process_that_reused_the_pid(tmp_path):
     import dataclasses
     import os
     import subprocess
-    import sys
     import time
 
     from sssphase_daemon import security
@@ -201,8 +198,7 @@ def test_daemon_stop_never_signals_a_process_that_reused_the_pid(tmp_path):
                                      version="0", started=time.time())
         security.write_state(state, runtime / "daemon.json")
         assert dataclasses.asdict(security.read_state(runtime / "daemon.json"))["pid"] == sleeper.pid
-        res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "daemon", "stop"], capture_output=True,
-                             text=True, timeout=60, env=env)
+        res = run_sss(["daemon", "stop"], timeout=60, env=env)
         assert res.returncode == 0, res.stdout + res.stderr
         assert "not a sssphase daemon" in res.stdout
         time.sleep(0.2)
@@ -371,8 +367,7 @@ def _socket_is_replaceable(path: Path) -> bool:
 def _run_cli(*args: str, runtime: Path, env_extra: dict[str, str]) -> subprocess.CompletedProcess[str]:
     env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime), "COLUMNS": "200", **env_extra}
     env.pop("SSS_DEBUG", None)
-    return subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True,
-                          timeout=60, env=env)
+    return run_sss([*args], timeout=60, env=env)
 
 
 def test_an_abstract_ipc_socket_is_not_local():
@@ -479,8 +474,7 @@ def test_a_bit_flip_in_a_chunk_is_an_error_naming_the_array(sim_daemon, tmp_path
     chunk.write_bytes(bytes(raw))
     with pytest.raises(DataError, match="array psp of view 0 .* is damaged"):
         load_view(s, 0)
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "relight", str(s.path), "--pattern", "checkerboard",
-                          "--backend", "none", "--out", str(tmp_path / "r")], capture_output=True, text=True, timeout=120)
+    res = run_sss(["relight", str(s.path), "--pattern", "checkerboard", "--backend", "none", "--out", str(tmp_path / "r")], timeout=120)
     assert res.returncode == 2 and "psp" in res.stderr and "Traceback" not in res.stderr, res.stderr
 
 
@@ -607,12 +601,11 @@ def test_a_stale_state_file_whose_pid_was_reused_does_not_block_a_new_daemon(tmp
         security.write_state(security.DaemonState(endpoint=f"ipc://{runtime}/old.sock", token="t" * 32, pid=sleeper.pid,
                                                   version="0", started=time.time()), runtime / "daemon.json")
         env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
-        sss = [sys.executable, "-m", "sssphase_cli.main"]
-        status = subprocess.run([*sss, "daemon", "status"], capture_output=True, text=True, timeout=60, env=env)
+        status = run_sss(["daemon", "status"], timeout=60, env=env)
         assert "no daemon running" in status.stdout
-        start = subprocess.run([*sss, "daemon", "start"], capture_output=True, text=True, timeout=60, env=env)
+        start = run_sss(["daemon", "start"], timeout=60, env=env)
         assert start.returncode == 0 and "daemon started" in start.stdout, start.stdout + start.stderr
-        stop = subprocess.run([*sss, "daemon", "stop"], capture_output=True, text=True, timeout=60, env=env)
+        stop = run_sss(["daemon", "stop"], timeout=60, env=env)
         assert stop.returncode == 0 and "stopped" in stop.stdout, stop.stdout + stop.stderr
         assert sleeper.poll() is None
     finally:
@@ -625,21 +618,18 @@ def test_a_stopped_daemon_leaves_its_runtime_folder_empty(tmp_path, _private_log
     """Control and preview sockets, job streams and the state file go; the log lives in the log folder."""
     runtime = Path(tempfile.mkdtemp(prefix="sssr", dir="/tmp"))
     env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
-    sss = [sys.executable, "-m", "sssphase_cli.main"]
     try:
-        start = subprocess.run([*sss, "daemon", "start", "--preview", f"ipc://{runtime}/preview.sock"],
-                               capture_output=True, text=True, timeout=60, env=env)
+        start = run_sss(["daemon", "start", "--preview", f"ipc://{runtime}/preview.sock"], timeout=60, env=env)
         assert start.returncode == 0, start.stdout + start.stderr
         assert {p.name for p in runtime.iterdir()} >= {"daemon.json", "control.sock", "preview.sock"}
-        cap = subprocess.run([*sss, "capture", "--object", "leaf", "--views", "1", "--out", str(tmp_path)],
-                             capture_output=True, text=True, timeout=300, env=env)
+        cap = run_sss(["capture", "--object", "leaf", "--views", "1", "--out", str(tmp_path)], timeout=300, env=env)
         assert cap.returncode == 0, cap.stdout + cap.stderr
-        stop = subprocess.run([*sss, "daemon", "stop"], capture_output=True, text=True, timeout=60, env=env)
+        stop = run_sss(["daemon", "stop"], timeout=60, env=env)
         assert stop.returncode == 0 and "stopped" in stop.stdout, stop.stdout + stop.stderr
         assert sorted(p.name for p in runtime.iterdir()) == []
         assert (_private_log_dir / "daemon.log").is_file()
     finally:
-        subprocess.run([*sss, "daemon", "stop"], capture_output=True, timeout=60, env=env)
+        run_sss(["daemon", "stop"], timeout=60, env=env)
         shutil.rmtree(runtime, ignore_errors=True)
 
 
@@ -823,8 +813,6 @@ def test_devices_a_process_cannot_use_are_refused_by_name():
 def test_two_references_that_would_share_a_key_are_refused_before_a_daemon_starts(tmp_path):
     """`--reference a/x.png --reference b/x.png` (or a file named like a pattern) would store both captures
     as ref/x and keep one: refused in one line, no daemon started, nothing written."""
-    import subprocess
-    import sys
 
     from PIL import Image
 
@@ -835,8 +823,7 @@ def test_two_references_that_would_share_a_key_are_refused_before_a_daemon_start
                            (["checkerboard", "checkerboard.png"], "a file named like the pattern 'checkerboard'"),
                            (["white.png"], "a file named like the pattern 'white'")):  # it overwrote the white's truth
         args = [a for r in refs for a in ("--reference", str(tmp_path / r) if r.endswith(".png") else r)]
-        res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "capture", "--object", "soap", "--views", "1",
-                              *args, "--out", str(tmp_path / "out")], capture_output=True, text=True, timeout=120)
+        res = run_sss(["capture", "--object", "soap", "--views", "1", *args, "--out", str(tmp_path / "out")], timeout=120)
         out = res.stdout + res.stderr
         assert res.returncode == 2 and expected in out and "Traceback" not in out, out
         assert "started a local one" not in out and not (tmp_path / "out").exists(), out
@@ -920,8 +907,7 @@ def test_a_file_left_in_an_array_folder_is_not_a_chunk(intact_session, tmp_path)
 
 def _cli(*args: str) -> subprocess.CompletedProcess[str]:
     env = {k: v for k, v in os.environ.items() if k != "SSS_DEBUG"}
-    return subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True,
-                          timeout=300, env={**env, "COLUMNS": "300"})
+    return run_sss([*args], timeout=300, env={**env, "COLUMNS": "300"})
 
 
 def _one_line(res: subprocess.CompletedProcess[str], expected: str) -> None:
@@ -1208,8 +1194,7 @@ def test_special_files_and_foreign_bytes_where_a_file_is_expected_are_one_line_w
     ]
     for args, expected in cases:
         t0 = time.monotonic()
-        res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True,
-                             cwd=tmp_path, env=env, timeout=60)
+        res = run_sss([*args], cwd=tmp_path, env=env, timeout=60)
         out = res.stdout + res.stderr
         assert res.returncode != 0 and expected in out and "Traceback" not in out, (args, out)
         assert len(out.strip().splitlines()) == 1 and time.monotonic() - t0 < 30, (args, out)

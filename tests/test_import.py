@@ -8,7 +8,6 @@ import json
 import os
 import re
 import subprocess
-import sys
 import warnings
 from pathlib import Path
 
@@ -16,6 +15,7 @@ import cv2
 import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
+from sss_process import run_sss
 
 from sssphase_core.capture import import_folder
 from sssphase_core.errors import DataError, InputError
@@ -90,14 +90,12 @@ def test_imported_frames_relight_and_evaluate_like_a_capture(frames, tmp_path):
     rv = load_view(s, 0)
     np.testing.assert_array_equal(rv.psp_patterns, np.stack([plan[k].pattern() for k in rv.session.manifest["views"]["0"]["psp_keys"]]))
     out = tmp_path / "ev"
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "eval", "relight", str(s.path), "--backend",
-                          "none,measured", "--out", str(out)], capture_output=True, text=True, timeout=300)
+    res = run_sss(["eval", "relight", str(s.path), "--backend", "none,measured", "--out", str(out)], timeout=300)
     assert res.returncode == 0, res.stdout + res.stderr
     psnr = {a["backend"]: a["psnr"] for a in json.loads((out / "relight_eval.json").read_text())["aggregate"]}
     assert psnr["measured"] > psnr["none"] + 3, psnr  # the captured transport explains the blur
-    relit = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "relight", str(s.path), "--pattern", "checkerboard",
-                            "--backend", "measured", "--format", "png,exr", "--out", str(tmp_path / "r")],
-                           capture_output=True, text=True, timeout=300)
+    relit = run_sss(["relight", str(s.path), "--pattern", "checkerboard", "--backend", "measured", "--format", "png,exr",
+                     "--out", str(tmp_path / "r")], timeout=300)
     assert relit.returncode == 0 and "PSNR" in relit.stdout, relit.stdout + relit.stderr
     from sssphase_core.store.exr import read_exr
 
@@ -143,8 +141,7 @@ def test_a_noisy_capture_that_fills_the_frame_is_denoised_by_its_own_noise_floor
     s = import_folder(folder, tmp_path / "sessions", "noisy", (W, H), patch=K)
     assert s.manifest["views"]["0"]["transport"]["noise"] == pytest.approx(sigma, rel=0.2)
     out = tmp_path / "ev"
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "eval", "relight", str(s.path), "--backend",
-                          "none,measured", "--out", str(out)], capture_output=True, text=True, timeout=300)
+    res = run_sss(["eval", "relight", str(s.path), "--backend", "none,measured", "--out", str(out)], timeout=300)
     assert res.returncode == 0, res.stdout + res.stderr
     data = json.loads((out / "relight_eval.json").read_text())
     psnr = {a["backend"]: a["psnr"] for a in data["aggregate"]}
@@ -152,8 +149,8 @@ def test_a_noisy_capture_that_fills_the_frame_is_denoised_by_its_own_noise_floor
     (row,) = [r for r in data["rows"] if r["backend"] == "measured"]  # the noise mask the view's own fringes chose
     fit = row["denoise_fit_psnr"]
     assert set(fit) == {"1.0", "2.0"} and fit[str(row["denoise_smoothing"])] == max(fit.values()), row
-    relit = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "relight", str(s.path), "--pattern", "checkerboard",
-                            "--backend", "measured", "--out", str(tmp_path / "r")], capture_output=True, text=True, timeout=300)
+    relit = run_sss(["relight", str(s.path), "--pattern", "checkerboard", "--backend", "measured",
+                     "--out", str(tmp_path / "r")], timeout=300)
     assert f"captured transport denoised with the {row['denoise_smoothing']:g} px noise mask" in relit.stdout, relit.stdout
 
 
@@ -277,9 +274,7 @@ def test_a_pickled_npy_is_refused(tmp_path):
 
 
 def _sss_import(folder: Path, out: Path, *options: str) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "sssphase_cli.main", "import", str(folder), "--object", "o",
-                           "--projector", f"{W}x{H}", "--out", str(out), *options], capture_output=True, text=True,
-                          timeout=120)
+    return run_sss(["import", str(folder), "--object", "o", "--projector", f"{W}x{H}", "--out", str(out), *options], timeout=120)
 
 
 def _one_line_error(res: subprocess.CompletedProcess[str], expected: str) -> None:
@@ -355,8 +350,7 @@ def test_an_empty_npy_pattern_or_reference_is_one_line_naming_it(tmp_path):
     zero.write_bytes(b"")
     for args in (["relight", str(s.path), "--pattern", str(zero), "--backend", "none", "--out", str(tmp_path / "r")],
                  ["capture", "--object", "apple", "--reference", str(zero), "--out", str(tmp_path / "c")]):
-        res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True,
-                             timeout=120)
+        res = run_sss([*args], timeout=120)
         _one_line_error(res, f"{zero}: empty or truncated .npy file")  # not click's bare "Aborted"
     assert not (tmp_path / "c").exists()  # refused before a daemon was started for it
 
@@ -368,8 +362,7 @@ def test_report_refuses_unknown_backends_and_foreign_decoders_in_one_line(tmp_pa
     for options, expected in ((["--backend", "bogus"], "unknown backend 'bogus'; available: analytic"),
                               (["--backend", "torch", "--decoder", str(evil)], f"{evil} is not a checkpoint file"),
                               (["--pretrain", str(evil)], f"{evil} is not a checkpoint file")):
-        res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "report", str(s.path), *options, "--out",
-                              str(tmp_path / "rep")], capture_output=True, text=True, timeout=300)
+        res = run_sss(["report", str(s.path), *options, "--out", str(tmp_path / "rep")], timeout=300)
         _one_line_error(res, expected)  # was exit 0, "done", with the problem only inside the page
         assert not (tmp_path / "rep").exists()
 
@@ -378,8 +371,7 @@ def test_a_session_exports_to_exr_bit_exactly(handmade, tmp_path):
     from sssphase_core.store.exr import read_exr
 
     s = _copy(handmade, tmp_path / "sessions")
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "export", str(s.path), "--out", str(tmp_path / "x")],
-                         capture_output=True, text=True, timeout=120)
+    res = run_sss(["export", str(s.path), "--out", str(tmp_path / "x")], timeout=120)
     assert res.returncode == 0, res.stdout + res.stderr
     view = tmp_path / "x" / "handmade" / "view_000"
     psp = s.load(0, "psp")
@@ -412,9 +404,8 @@ def test_a_session_exports_to_exr_bit_exactly(handmade, tmp_path):
 def test_viz_footprints_shows_the_captured_crops_next_to_a_model(handmade, tmp_path):
     s = _copy(handmade, tmp_path / "sessions")
     out = tmp_path / "fp.png"
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "viz", "footprints", str(s.path), "--backend",
-                          "captured,analytic,none", "--pixels", "3", "--out", str(out)], capture_output=True, text=True,
-                         timeout=120)
+    res = run_sss(["viz", "footprints", str(s.path), "--backend", "captured,analytic,none", "--pixels", "3",
+                   "--out", str(out)], timeout=120)
     assert res.returncode == 0, res.stdout + res.stderr
     assert out.is_file() and (tmp_path / "fp_profiles.png").is_file() and "captured, analytic, none at 3 pixels" in res.stdout
 
@@ -430,8 +421,7 @@ def test_viz_footprints_shows_the_captured_crops_next_to_a_model(handmade, tmp_p
 
 def test_sss_report_on_a_users_own_session(handmade, tmp_path):
     s = _copy(handmade, tmp_path / "sessions")
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "report", str(tmp_path / "sessions"), "--backend",
-                          "none,measured", "--out", str(tmp_path / "rep")], capture_output=True, text=True, timeout=300)
+    res = run_sss(["report", str(tmp_path / "sessions"), "--backend", "none,measured", "--out", str(tmp_path / "rep")], timeout=300)
     assert res.returncode == 0, res.stdout + res.stderr
     page = (tmp_path / "rep" / "index.html").read_text()
     assert "<h1>sssphase report</h1>" in page and "Captured sessions" in page
@@ -442,8 +432,7 @@ def test_sss_report_on_a_users_own_session(handmade, tmp_path):
     assert "pretrain_epochs" not in config and "none given" in config  # not the demo's built-in settings
     assert [p.name for p in (tmp_path / "rep" / "img").glob("*compare.png")]
     assert "[relight] done" in res.stdout
-    bad = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "report", str(s.path), "--view", "3", "--out",
-                          str(tmp_path / "r2")], capture_output=True, text=True, timeout=120)
+    bad = run_sss(["report", str(s.path), "--view", "3", "--out", str(tmp_path / "r2")], timeout=120)
     assert bad.returncode == 2 and "view 3 is not complete" in bad.stderr and "Traceback" not in bad.stderr
 
 
@@ -455,8 +444,7 @@ def test_sss_report_writes_only_where_it_may_and_stops_at_damaged_data(handmade,
     s = _copy(handmade, tmp_path / "sessions")
 
     def report(*args: str) -> subprocess.CompletedProcess[str]:
-        return subprocess.run([sys.executable, "-m", "sssphase_cli.main", "report", *args, "--backend", "none"],
-                              capture_output=True, text=True, timeout=300)
+        return run_sss(["report", *args, "--backend", "none"], timeout=300)
 
     site = tmp_path / "site"
     site.mkdir()
@@ -939,12 +927,10 @@ def test_an_import_without_dot_grids_evaluates_without_measured_and_a_black_abov
         np.save(folder / (f.key.replace("/", "__") + ".npy"), img)
     s = import_folder(folder, tmp_path / "s", "obj", (W, H), patch=K)
     out = tmp_path / "ev"
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "eval", "relight", str(s.path), "--out", str(out)],
-                         capture_output=True, text=True, timeout=300)
+    res = run_sss(["eval", "relight", str(s.path), "--out", str(out)], timeout=300)
     assert res.returncode == 0 and "measured left out: obj view 0 holds no dot-grid footprints" in res.stdout, res.stdout + res.stderr
     assert {r["backend"] for r in json.loads((out / "relight_eval.json").read_text())["rows"]} == {"none", "analytic"}
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "eval", "relight", str(s.path), "--backend",
-                          "none,measured", "--out", str(tmp_path / "ev2")], capture_output=True, text=True, timeout=300)
+    res = run_sss(["eval", "relight", str(s.path), "--backend", "none,measured", "--out", str(tmp_path / "ev2")], timeout=300)
     _one_line_error(res, "--backend measured: obj view 0 has no captured footprints (capture with --footprints)")
     assert not (tmp_path / "ev2").exists() or not any((tmp_path / "ev2").iterdir())
     np.save(folder / "black.npy", np.full((H, W, 3), 0.75, np.float32))

@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sss_process import run_sss
 
 from sssphase_core.capture import import_folder
 from sssphase_core.errors import InputError
@@ -20,8 +21,7 @@ W, H = 64, 48
 
 
 def _sss(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True,
-                          timeout=300, cwd=cwd)
+    return run_sss([*args], timeout=300, cwd=cwd)
 
 
 def _one_line(res: subprocess.CompletedProcess[str], expected: str) -> None:

@@ -5,11 +5,10 @@ from __future__ import annotations
 
 import json
 import math
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from sss_process import run_sss
 
 from sssphase_core.capture import CaptureRequest, RigSpec
 from sssphase_core.errors import InputError
@@ -40,8 +39,7 @@ def test_device_on_a_rig_file_or_unknown_is_one_line(tmp_path):
 def repro(tmp_path_factory):
     """`sss repro paper --preset tiny --device cpu --workers 2` as a user runs it (a subprocess)."""
     out = tmp_path_factory.mktemp("repro") / "run"
-    done = subprocess.run([sys.executable, "-m", "sssphase_cli", "repro", "paper", "--preset", "tiny", "--device", "cpu",
-                           "--workers", "2", "--out", str(out)], capture_output=True, text=True, timeout=600)
+    done = run_sss(["repro", "paper", "--preset", "tiny", "--device", "cpu", "--workers", "2", "--out", str(out)], timeout=600)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     return out, done.stdout
 

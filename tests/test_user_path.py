@@ -10,17 +10,15 @@ from __future__ import annotations
 import json
 import os
 import re
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import pytest
+from sss_process import run_sss
 
 
 def _sss(*args: str, env: dict[str, str]) -> str:
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True,
-                         timeout=600, env=env)
+    res = run_sss([*args], timeout=600, env=env)
     assert res.returncode == 0, f"sss {' '.join(args)}:\n{res.stdout}\n{res.stderr}"
     return res.stdout
 

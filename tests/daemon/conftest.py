@@ -5,11 +5,11 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import pytest
+from sss_process import run_sss as run_sss_process
 
 from sssphase_daemon import security
 from sssphase_daemon.client import DaemonClient, spawn_daemon
@@ -60,10 +60,8 @@ def daemon(runtime_dir):
 
 
 def run_sss(*args: str, env: dict[str, str] | None = None, timeout: float = 120) -> subprocess.CompletedProcess:
-    """Run the `sss` CLI in a subprocess (the same interpreter), capturing its output."""
-    code = "from sssphase_cli.main import main; main()"
-    return subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=timeout,
-                          env={**os.environ, **(env or {})}, cwd=REPO)
+    """Run the `sss` CLI in a process of its own (``tests/sss_process.py``), capturing its output."""
+    return run_sss_process(args, env={**os.environ, **(env or {})}, cwd=REPO, timeout=timeout)
 
 
 def _own_runtime_daemon(*args: str) -> tuple[subprocess.Popen, DaemonClient, Path]:

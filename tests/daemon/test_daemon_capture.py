@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sss_process import run_sss
 
 from sssphase_core.capture import DEFAULT_HDR, CaptureRequest, RigSpec, import_folder, run_capture
 from sssphase_core.errors import DataError, InputError
@@ -59,8 +60,7 @@ def reference(runtime_dir, tmp_path_factory):
     """An uninterrupted capture through the CLI, with no daemon running (so it starts one)."""
     out = tmp_path_factory.mktemp("ref")
     runtime = Path(tempfile.mkdtemp(prefix="sssr", dir="/tmp"))  # no daemon has ever run here
-    cmd = [sys.executable, "-c", "from sssphase_cli.main import main; main()", *CAPTURE, "--out", str(out)]
-    done = subprocess.run(cmd, capture_output=True, text=True, timeout=240, env={**os.environ, "SSS_RUNTIME_DIR": str(runtime)})
+    done = run_sss([*CAPTURE, "--out", str(out)], timeout=240, env={**os.environ, "SSS_RUNTIME_DIR": str(runtime)})
     shutil.rmtree(runtime, ignore_errors=True)
     assert done.returncode == 0, done.stderr + done.stdout
     return out, done.stdout, Session.open(out / OBJECT)

@@ -6,12 +6,12 @@ from __future__ import annotations
 import os
 import shutil
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 
 import pytest
+from sss_process import run_sss
 
 from sssphase_daemon import protocol, security
 from sssphase_daemon.client import DaemonClient, DaemonError, spawn_daemon
@@ -22,8 +22,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 def _sss(*args: str, env: dict[str, str], timeout: float = 120) -> tuple[subprocess.CompletedProcess[str], float]:
     t0 = time.monotonic()
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True, env=env,
-                         cwd=REPO, timeout=timeout)
+    res = run_sss([*args], env=env, cwd=REPO, timeout=timeout)
     return res, time.monotonic() - t0
 
 

@@ -7,12 +7,12 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+from sss_process import run_sss
 
 pylon = pytest.importorskip("pypylon.pylon", reason="pypylon (extra basler) is not installed")
 cv2 = pytest.importorskip("cv2")
@@ -49,8 +49,7 @@ def test_discovery_lists_the_emulated_cameras_by_serial(emulator, monkeypatch):
 
 def test_sss_devices_lists_both_emulated_cameras(tmp_path):
     env = {**os.environ, "PYLON_CAMEMU": "2", "SSS_RUNTIME_DIR": str(tmp_path)}  # no daemon there: local discovery
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "devices", "--json"], capture_output=True,
-                         text=True, env=env, timeout=120)
+    res = run_sss(["devices", "--json"], env=env, timeout=120)
     assert res.returncode == 0, res.stderr
     assert "basler:0815-0000" in res.stdout and "basler:0815-0001" in res.stdout
 
@@ -219,8 +218,7 @@ median = false
 
 
 def _sss(*args: str, env: dict[str, str]) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True,
-                          env=env, cwd=REPO, timeout=300)
+    return run_sss([*args], env=env, cwd=REPO, timeout=300)
 
 
 @pytest.mark.slow

@@ -6,6 +6,7 @@ import importlib
 import json
 
 import pytest
+from sss_process import run_sss
 from typer.testing import CliRunner
 
 app = importlib.import_module("sssphase_cli.main").app  # the installed `sss` app (cli/ folder)
@@ -271,12 +272,9 @@ def test_compare_names_that_are_not_plain_or_new_are_refused_first(item, tmp_pat
     (["train", "pretrain", "--epochs", "100000000000000000000"], "Invalid value for '--epochs'"),  # it started a run
 ])
 def test_bad_sample_counts_and_learning_rates_are_refused_before_any_work(args, expected, tmp_path):
-    import subprocess
-    import sys
 
     out_args = ["--out", str(tmp_path / "run")] if args[0] == "train" else []
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args, *out_args, "--cache", str(tmp_path / "cache")],
-                         capture_output=True, text=True, timeout=120, cwd=tmp_path)
+    res = run_sss([*args, *out_args, "--cache", str(tmp_path / "cache")], timeout=120, cwd=tmp_path)
     out = res.stdout + res.stderr
     assert res.returncode == 2 and "Traceback" not in out and "internal error" not in out, out
     assert [line for line in out.splitlines() if expected in line] == [out.strip().splitlines()[-1]], out
@@ -286,12 +284,9 @@ def test_bad_sample_counts_and_learning_rates_are_refused_before_any_work(args, 
 def test_a_config_is_recognised_whatever_the_program_is_called(tmp_path):
     """`python -m sssphase_cli.main train decoder --config RUN` reads RUN's config like `sss` does (the command
     name was taken from the program's path, so every config was 'of another command')."""
-    import subprocess
-    import sys
 
     (tmp_path / "config.toml").write_text('command = "train decoder"\n[options]\nepochs = 2\n')
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "train", "decoder", "--config", str(tmp_path),
-                          "--out", str(tmp_path / "o")], capture_output=True, text=True, timeout=120)
+    res = run_sss(["train", "decoder", "--config", str(tmp_path), "--out", str(tmp_path / "o")], timeout=120)
     assert res.returncode == 2 and "give either --encoder PATH" in res.stderr, res.stderr  # past the config
 
 
@@ -300,11 +295,8 @@ def test_a_config_is_recognised_whatever_the_program_is_called(tmp_path):
                                   ["--checkpoint", "../x=a.pt"]])
 def test_eval_knn_columns_have_distinct_plain_names(args):
     """Two checkpoints of one name dropped a column silently; '../x' was taken as a column name."""
-    import subprocess
-    import sys
 
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "eval", "knn", *args], capture_output=True,
-                         text=True, timeout=120)
+    res = run_sss(["eval", "knn", *args], timeout=120)
     out = (res.stdout + res.stderr).strip()
     assert res.returncode == 2 and len(out.splitlines()) == 1, out
     assert "--checkpoint takes NAME=PATH (or PATH) with a distinct name" in out, out

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 from PIL import Image
+from sss_process import run_sss
 from typer.testing import CliRunner
 
 runner = CliRunner()
@@ -164,12 +165,9 @@ def test_decode_names_the_odd_frame_ignores_other_images_and_refuses_nan_thresho
     ("--projector", "3x2", "a 3x2 projector is smaller than one fringe period (4 px): PSP needs a few periods across it"),
 ])
 def test_patterns_refuses_bad_fringe_options_in_one_line(tmp_path, option, value, expected):
-    import subprocess
-    import sys
 
     args = [option, value] if option == "--projector" else ["--projector", "64x48", option, value]
-    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "patterns", "--out", str(tmp_path / "p"), *args],
-                         capture_output=True, text=True, timeout=60)
+    res = run_sss(["patterns", "--out", str(tmp_path / "p"), *args], timeout=60)
     out = res.stdout + res.stderr
     assert res.returncode == 2 and "Traceback" not in out and "internal error" not in out, out
     assert out.strip().splitlines() == [f"error: {expected}"], out

@@ -19,6 +19,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from sss_process import run_sss
 
 pytest.importorskip("starlette")
 pytest.importorskip("websocket", reason="websocket-client (dev extra) drives the browser")
@@ -32,8 +33,7 @@ REPO = Path(__file__).resolve().parents[2]
 
 
 def _sss(*args: str, env: dict[str, str], timeout: float = 300) -> subprocess.CompletedProcess[str]:
-    return subprocess.run([sys.executable, "-m", "sssphase_cli.main", *args], capture_output=True, text=True, env=env,
-                          cwd=REPO, timeout=timeout)
+    return run_sss([*args], env=env, cwd=REPO, timeout=timeout)
 
 
 @pytest.fixture(scope="module")
