@@ -394,3 +394,17 @@ for fmt in ("exr", "png"):
     assert res.stdout.count("refused") == 2, res.stdout + res.stderr
     assert "could not write" in res.stdout
     assert sorted(p.name for p in tmp_path.iterdir()) == [], list(tmp_path.iterdir())  # nothing, not even temporaries
+
+
+def test_write_npz_is_an_npz_numpy_reads_back_bit_for_bit_and_compressed(tmp_path):
+    from sssphase_core.relight.cache import write_npz
+
+    rng = np.random.default_rng(0)
+    data = np.zeros((64, 16, 16, 3), np.float16)
+    data[:, 6:10, 6:10] = rng.random((64, 4, 4, 3)).astype(np.float16)  # footprints: a core, zeros around it
+    write_npz(tmp_path / "c.npz", data=data, index=np.arange(64), shape=np.asarray((8, 8)))
+    with np.load(tmp_path / "c.npz", allow_pickle=False) as z:
+        assert sorted(z.files) == ["data", "index", "shape"]
+        assert z["data"].dtype == np.float16 and np.array_equal(z["data"], data)
+        assert np.array_equal(z["index"], np.arange(64)) and z["shape"].tolist() == [8, 8]
+    assert (tmp_path / "c.npz").stat().st_size < data.nbytes / 4
