@@ -37,6 +37,7 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["eval", "relight", "s", "--backend", "none,torch"], "the torch backend needs --checkpoint"),
         (["eval", "relight", "s", "--backend", "none,nonsense"], "unknown backend 'nonsense'; available: analytic, blend"),
         (["eval", "relight", "s", "--backend", "blend", "--checkpoint", "/nonexistent/ck.pt"], "no checkpoint at /nonexistent/ck.pt"),
+        (["eval", "relight", "s", "--checkpoint", "/nonexistent/run"], "no checkpoint at /nonexistent/run"),  # was a note
         (["eval", "relight", "/nonexistent/sessions", "--backend", "none"], "/nonexistent/sessions does not exist"),
         (["eval", "knn", "--checkpoint", "/nonexistent/enc.pt"], "no checkpoint at /nonexistent/enc.pt"),  # before simulating
         (["eval", "knn", "--checkpoint", "root=/", "--n-views", "1"], "views 0,1,2,3 need --n-views above 3"),

@@ -1168,7 +1168,8 @@ def test_nan_in_a_reference_capture_is_refused_not_scored_as_zero(intact_session
 def test_eval_relight_says_when_its_checkpoint_is_not_used(intact_session, tmp_path):
     """`sss eval relight S --checkpoint RUN` with the default backends evaluated no model, without a word."""
     ckpt = tmp_path / "run.pt"
-    ckpt.write_bytes(b"")  # never read: no listed backend runs a decoder
+    ckpt.write_bytes(b"PK\x03\x04" + bytes(60))  # what torch.save writes begins so; never loaded: no listed backend
+    # runs a decoder (an empty file or none at all is refused: test_cli_usage)
     res = _cli("eval", "relight", str(intact_session), "--checkpoint", str(ckpt), "--backend", "none", "--out",
                str(tmp_path / "e"))
     assert res.returncode == 0, res.stdout + res.stderr
