@@ -3,9 +3,9 @@
 Each call is a new process running the installed entry module (``python -m sssphase_cli.main``) with the
 given arguments, environment and folder; its exit code, stdout and stderr come back as a
 :class:`subprocess.CompletedProcess`. The process is forked from a server (this file run as a script, one
-per test process) that has already imported the *third-party* packages every `sss` process imports: a
-fresh interpreter spends 0.5 s of CPU on numpy, typer, rich, zmq and pluggy and 2.3 s more where torch is
-imported, ~300 times a run of the suite. Our own packages are imported by each process from scratch, as a
+per test process) that has already imported the *third-party* packages `sss` processes import (``PRELOAD``): a
+fresh interpreter spends ~0.5 s of CPU on numpy, scipy, OpenCV, typer, zmq and the rest, and 2.3 s more where
+torch is imported, ~300 times a run of the suite. Our own packages are imported by each process from scratch, as a
 user's `sss` does. The child's ``sys.path`` is a fresh ``python -m``'s, its environment is exactly ``env``,
 it exits as the interpreter does (threads joined, ``atexit`` run, streams flushed) and a signal ends it as it
 ends any process.
