@@ -140,8 +140,8 @@ def _server_path() -> str:
         path = os.path.join(tempfile.mkdtemp(prefix="sssz", dir="/tmp"), "s")  # an AF_UNIX path is short
         proc = subprocess.Popen([sys.executable, __file__, path], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
                                 text=True)
-        if proc.stdout is None or proc.stdout.readline().strip() != "ready":
-            raise RuntimeError("the sss fork server did not start")
+        if "ready\n" not in iter(proc.stdout.readline, ""):  # (lines a preloaded package may print come first)
+            raise RuntimeError(f"the sss fork server did not start (exit code {proc.wait()})")
         _server = (proc, path)
     return _server[1]
 
