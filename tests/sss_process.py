@@ -16,10 +16,12 @@ theirs with :mod:`subprocess`. ``SSS_TEST_FRESH_PROCESS=1`` makes every call a f
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import json
 import os
 import select
+import shutil
 import signal
 import socket
 import subprocess
@@ -39,7 +41,6 @@ ENTRY = "sssphase_cli.main"
 
 def _child(request: dict) -> None:
     """In the forked child: become ``python -m sssphase_cli.main ARGS``; never returns."""
-    import atexit
     import runpy
     import threading
     import traceback
@@ -130,6 +131,14 @@ _server: tuple[subprocess.Popen, str] | None = None
 _fresh_sys_path: list[str] | None = None
 
 
+def _stop_server(proc: subprocess.Popen, folder: str) -> None:
+    """End the server (its stdin closes) and remove its socket's folder."""
+    with contextlib.suppress(OSError, subprocess.TimeoutExpired):
+        proc.stdin.close()
+        proc.wait(10)
+    shutil.rmtree(folder, ignore_errors=True)
+
+
 def _server_path() -> str:
     """The socket of this test process's server, started on first use."""
     global _server, _fresh_sys_path
@@ -143,6 +152,7 @@ def _server_path() -> str:
         if "ready\n" not in iter(proc.stdout.readline, ""):  # (lines a preloaded package may print come first)
             raise RuntimeError(f"the sss fork server did not start (exit code {proc.wait()})")
         _server = (proc, path)
+        atexit.register(_stop_server, proc, os.path.dirname(path))
     return _server[1]
 
 
