@@ -39,6 +39,9 @@ ENTRY = "sssphase_cli.main"
 
 # --- the server (a fresh interpreter running this file) -------------------------------------------------
 
+#: the server's ``sys.path`` after this file's folder: a fresh ``python -m``'s after the current folder
+_INTERPRETER_PATH = sys.path[1:]
+
 def _child(request: dict) -> None:
     """In the forked child: become ``python -m sssphase_cli.main ARGS``; never returns."""
     import runpy
@@ -55,7 +58,7 @@ def _child(request: dict) -> None:
         os.dup2(f, fd)
         os.close(f)
     extra = [p for p in request["env"].get("PYTHONPATH", "").split(os.pathsep) if p]
-    sys.path[:] = [request["cwd"], *extra, *request["sys_path"]]
+    sys.path[:] = [request["cwd"], *extra, *_INTERPRETER_PATH]
     sys.argv = [ENTRY, *request["argv"]]
     code: object = 0
     try:
@@ -128,7 +131,6 @@ def serve(path: str) -> None:
 # --- the client (the test process) ----------------------------------------------------------------------
 
 _server: tuple[subprocess.Popen, str] | None = None
-_fresh_sys_path: list[str] | None = None
 
 
 def _stop_server(proc: subprocess.Popen, folder: str) -> None:
@@ -140,15 +142,14 @@ def _stop_server(proc: subprocess.Popen, folder: str) -> None:
 
 
 def _server_path() -> str:
-    """The socket of this test process's server, started on first use."""
-    global _server, _fresh_sys_path
+    """The socket of this test process's server, started on first use (without PYTHONPATH: its ``sys.path``
+    after this file's folder is a fresh interpreter's, which each child is given)."""
+    global _server
     if _server is None or _server[0].poll() is not None:
-        out = subprocess.run([sys.executable, "-c", "import json, sys; print(json.dumps(sys.path[1:]))"],
-                             capture_output=True, text=True, check=True, env={**os.environ, "PYTHONPATH": ""})
-        _fresh_sys_path = json.loads(out.stdout)
         path = os.path.join(tempfile.mkdtemp(prefix="sssz", dir="/tmp"), "s")  # an AF_UNIX path is short
+        env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
         proc = subprocess.Popen([sys.executable, __file__, path], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                text=True)
+                                text=True, env=env)
         if "ready\n" not in iter(proc.stdout.readline, ""):  # (lines a preloaded package may print come first)
             raise RuntimeError(f"the sss fork server did not start (exit code {proc.wait()})")
         _server = (proc, path)
@@ -187,10 +188,9 @@ def run_sss(args: Sequence[str | os.PathLike[str]], *, env: Mapping[str, str] | 
         files = {name: Path(tmp) / name for name in ("stdin", "stdout", "stderr")}
         for name, path in files.items():
             path.write_text(input if name == "stdin" and input else "")
-        request = {"argv": argv, "env": env, "cwd": cwd, "sys_path": None, **{n: str(p) for n, p in files.items()}}
+        request = {"argv": argv, "env": env, "cwd": cwd, **{n: str(p) for n, p in files.items()}}
         with socket.socket(socket.AF_UNIX, socket.SOCK_STREAM) as conn:
             conn.connect(_server_path())
-            request["sys_path"] = _fresh_sys_path
             conn.sendall(json.dumps(request).encode() + b"\n")
             answers = _Lines(conn)
             pid = json.loads(answers.next())["pid"]

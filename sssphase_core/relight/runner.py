@@ -531,14 +531,15 @@ class EvaluationResult:
 
 def _eval_backends(backend: str, checkpoint: Path | str | None, say: Narrator) -> tuple[list[str], Path | None]:
     """The backends ``backend`` lists, each once, checked (and the checkpoint resolved) before any work."""
-    from sssphase_core.learning.runlog import check_checkpoint_file
+    from sssphase_core.learning.runlog import check_checkpoint_file, resolve_checkpoint
 
     backends = list(dict.fromkeys(b.strip() for b in backend.split(",") if b.strip()))  # each once
     if not backends:
         raise InputError(f"--backend names no backend (got {backend!r}): give e.g. none,analytic,torch")
-    if checkpoint is not None:  # a run folder: its best.pt when it has one; a path that is none is refused even
-        checkpoint = check_checkpoint_file(checkpoint)  # where no backend reads it (a typo is not "unused")
+    if checkpoint is not None:
+        checkpoint = resolve_checkpoint(checkpoint)  # a run folder: its best.pt when it has one
         if not any(map(uses_decoder, backends)):  # (the model was silently not evaluated, the checkpoint not read)
+            check_checkpoint_file(checkpoint)  # a typo is refused, not "unused" (check_backends checks a used one)
             say.say(f"note: --checkpoint is read only by torch and blend, which --backend {','.join(backends)} "
                     "does not list: add them to evaluate the model")
     check_backends(backends, checkpoint)
