@@ -39,7 +39,9 @@ captures' pattern is scored as if it were physics. ``--converged`` (after ``--te
 the object, medium and exposure come from its ``NAME.json``) renders the reference patterns alone, without
 camera noise, ``--groups`` times at ``--spp`` samples with random numbers of their own, and keeps each pixel's
 mean of the groups without its highest and lowest (a trimmed mean: a firefly falls in one group). It writes
-``NAME_converged_ref__PATTERN.exr``, the truth to score against (`standin_score.py --truth converged`).
+``NAME_converged_ref__PATTERN.exr``, the truth to score against (`standin_score.py --truth converged`), and the
+trimmed means of its two halves of groups (``NAME_converged_half{0,1}_ref__PATTERN.exr``: their difference is the
+reference's own noise).
 
 ``--groups G`` (G >= 3) with ``--train`` or ``--test`` renders every frame G times, each with random numbers of its
 own (the same G seeds for every frame), and keeps their trimmed mean: captures, and clean references, without the
@@ -336,6 +338,8 @@ def converged_references(mi, args: argparse.Namespace, rig) -> None:  # noqa: AN
         a, b = (trimmed(g) for g in np.array_split(groups, 2))
         floors[f.key] = round(float(10 * np.log10(1 / np.mean((a - b) ** 2))), 2)
         write_exr(args.out / f"{args.name}_converged_{f.key.replace('/', '__')}.exr", img.astype(np.float32))
+        for i, half in enumerate((a, b)):  # their difference measures the converged reference's own noise
+            write_exr(args.out / f"{args.name}_converged_half{i}_{f.key.replace('/', '__')}.exr", half.astype(np.float32))
         print(f"{args.name}: {f.key}, {args.groups} x {args.spp} spp ({time.time() - t0:.0f} s); its halves "
               f"agree to {floors[f.key]} dB", flush=True)
     facts["converged"] = {"spp": args.spp, "groups": args.groups, "seeds": seeds, "halves_psnr_db": floors,

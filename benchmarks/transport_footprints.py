@@ -15,7 +15,12 @@ through that pixel (each dot to the decoded pixel nearest to it, as the transpor
 * with reference patterns in the session, PSNR of the view relit from the transport's per-pixel footprints and
   from the training crops (uncalibrated, each splatted with the pattern at its decoded point, as a model's are)
   against the reference captures, or against ``DIR/OBJECT_clean_ref__PATTERN.exr`` with ``--renders``
-  (`mitsuba_render.py`'s noise-free renders).
+  (`mitsuba_render.py`'s noise-free renders);
+* with ``--calibrated``: what any per-pixel footprint model could reach through ``sss relight``'s own pipeline
+  (:func:`~sssphase_core.relight.pipeline.relight_view`: the white-consistent gain and the view calibration on the
+  view's fringes): the transport's per-pixel footprints treated as a model's, beside the analytic model, no
+  scattering, the dot transport as ``sss relight --backend measured`` uses it, and each checkpoint's torch and
+  blend, with each one's margin over the analytic model (the bar of issue 42, item 1).
 
 Prints Markdown.
 """
@@ -81,6 +86,9 @@ def main() -> None:
     ap.add_argument("checkpoints", type=Path, nargs="*")
     ap.add_argument("--pixels", type=int, default=400)
     ap.add_argument("--renders", type=Path, default=None)
+    ap.add_argument("--calibrated", action="store_true",
+                    help="also relight every source through sss relight's pipeline (white-consistent gain, view "
+                         "calibration) and print each one's PSNR and its margin over the analytic model")
     ap.add_argument("--signed", action="store_true",
                     help="shares of the summed energy with negative values kept (noise cancels), on pixels that also "
                          "have training crops, with rows for those crops as they are and clipped at 0")
@@ -162,6 +170,73 @@ def main() -> None:
         relit = relight(source, rv.proj, pats, k, white=rv.white)
         cells = [f"{10 * np.log10(1 / np.mean((img[m] - t[m]) ** 2)):.2f}" for img, t in zip(relit, truths, strict=True)]
         print(f"| {label} | " + " | ".join(cells) + " |")
+    if args.calibrated:
+        calibrated_table(rv, transport_source, fp.shape[1], pats, names, truths, args.checkpoints, args.renders)
+
+
+def calibrated_table(rv, transport_source, k: int, pats: list[np.ndarray], names: list[str],
+                     truths: list[np.ndarray], checkpoints: list[Path], renders: Path | None) -> None:
+    """PSNR of the view relit through ``sss relight``'s pipeline from each source, and its margin over the
+    analytic model's: the transport's per-pixel footprints calibrated as a model's are the headroom of any
+    per-pixel footprint model on this view. Scored on the decoded mask against ``truths``, and where
+    ``renders`` holds converged references (`mitsuba_render.py --converged`: random numbers of their own), on the
+    quiet pixels against those too (the clean references share the captures' fixed Monte-Carlo pattern, and so
+    does the transport: against them, copying that pattern scores as physics)."""
+    from sssphase_core.relight.backends import make_sources
+    from sssphase_core.relight.pipeline import relight_view
+    from sssphase_core.store.exr import read_exr
+
+    m = rv.proj.mask
+    images: list[tuple[str, np.ndarray]] = []
+    none, k1 = make_source("none", rv)
+    images.append(("none", relight(none, rv.proj, pats, k1, white=rv.white)))
+    measured, km = make_source("measured", rv)  # model-free: relit as it is, as sss relight does
+    images.append(("measured (the dot transport, sss relight --backend measured)",
+                   relight(measured, rv.proj, pats, km, white=rv.white)))
+    (analytic, ka), = make_sources("analytic", rv)
+    images.append(("analytic", relight_view(analytic, ka, rv, pats, calibrate=True)[0]))
+    images.append(("the transport's per-pixel footprints, calibrated as a model's",
+                   relight_view(transport_source, k, rv, pats, calibrate=True)[0]))
+    images.append(("the transport's per-pixel footprints blended with the analytic model",
+                   relight_view(transport_source, k, rv, pats, calibrate=True, also=[(analytic, ka)])[0]))
+    for ck in checkpoints:
+        (torch_src, kt), *rest = make_sources("blend", rv, checkpoint=ck)
+        images.append((f"torch {ck}", relight_view(torch_src, kt, rv, pats, calibrate=True)[0]))
+        images.append((f"blend {ck}", relight_view(torch_src, kt, rv, pats, calibrate=True, also=rest)[0]))
+    # (what, truths, where, the truth's own noise: its mean squared error per pattern, estimated)
+    scorings = [("the decoded mask, against the references above", truths, [m] * len(names), None)]
+    converged = [renders / f"{rv.object}_converged_ref__{n}.exr" for n in names] if renders is not None else []
+    if converged and all(f.is_file() for f in converged):
+        conv = [read_exr(f) for f in converged]
+        quiet = [m & (np.abs(t - c).max(axis=-1) <= 0.01) for t, c in zip(truths, conv, strict=True)]
+        halves = [[renders / f"{rv.object}_converged_half{i}_ref__{n}.exr" for i in (0, 1)] for n in names]
+        noise = None
+        if all(f.is_file() for pair in halves for f in pair):  # the mean of two halves: a quarter of their difference
+            noise = [float(np.mean((read_exr(a)[q] - read_exr(b)[q]) ** 2)) / 4 for (a, b), q in zip(halves, quiet,
+                                                                                                   strict=True)]
+        shares = ", ".join(f"{q.sum() / m.sum():.0%}" for q in quiet)
+        scorings.append((f"the quiet pixels ({shares} of the mask), against the converged references", conv, quiet,
+                         noise))
+    for what, truth, where, noise in scorings:
+        mses = [(label, [float(np.mean((img[w] - t[w]) ** 2)) for img, t, w in zip(imgs, truth, where, strict=True)])
+                for label, imgs in images]
+        base = dict(mses)["analytic"]
+        print(f"\nRelit through sss relight's pipeline (calibrated; white-consistent where the camera records every "
+              f"colour), PSNR (dB) on {what}, and the margin over the analytic model"
+              + ("; then the same without the converged reference's own noise (PSNR "
+                 + ", ".join(f"{10 * np.log10(1 / x):.1f}" for x in noise) + " dB), subtracted from every mean "
+                 "squared error" if noise else "") + ":\n")
+        print("| source | " + " | ".join(names) + " |")
+        print("|---|" + "---|" * len(names))
+        for label, cells in mses:
+            out = []
+            for i, (e, b) in enumerate(zip(cells, base, strict=True)):
+                cell = f"{10 * np.log10(1 / e):.2f} ({10 * np.log10(b / e):+.2f})"
+                if noise:
+                    cell += f"; {10 * np.log10(1 / max(e - noise[i], 1e-12)):.2f} " \
+                            f"({10 * np.log10(max(b - noise[i], 1e-12) / max(e - noise[i], 1e-12)):+.2f})"
+                out.append(cell)
+            print(f"| {label} | " + " | ".join(out) + " |")
 
 
 if __name__ == "__main__":
