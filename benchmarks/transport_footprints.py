@@ -174,6 +174,21 @@ def main() -> None:
         calibrated_table(rv, transport_source, fp.shape[1], pats, names, truths, args.checkpoints, args.renders)
 
 
+def reference_noise(half0: np.ndarray, half1: np.ndarray, where: np.ndarray) -> float:
+    """The mean squared error of a reference that is the mean of two independent halves (H, W, 3) on ``where``
+    (H, W): a quarter of the halves' mean squared difference (exact for means; the converged references' trimmed
+    means differ from it by ~10%)."""
+    return float(np.mean((half0[where] - half1[where]) ** 2)) / 4
+
+
+def noise_corrected(mse: float, base_mse: float, noise: float) -> tuple[float, float]:
+    """(PSNR, margin over the base in dB) of an image whose mean squared error against a noisy reference is
+    ``mse``, once the reference's own ``noise`` (its mean squared error, independent of the image's) is taken out
+    of it and of the base's ``base_mse``: a noisy truth adds the same error to every image and pulls margins to 0."""
+    e, b = max(mse - noise, 1e-12), max(base_mse - noise, 1e-12)
+    return 10 * float(np.log10(1 / e)), 10 * float(np.log10(b / e))
+
+
 def calibrated_table(rv, transport_source, k: int, pats: list[np.ndarray], names: list[str],
                      truths: list[np.ndarray], checkpoints: list[Path], renders: Path | None) -> None:
     """PSNR of the view relit through ``sss relight``'s pipeline from each source, and its margin over the
@@ -212,8 +227,7 @@ def calibrated_table(rv, transport_source, k: int, pats: list[np.ndarray], names
         halves = [[renders / f"{rv.object}_converged_half{i}_ref__{n}.exr" for i in (0, 1)] for n in names]
         noise = None
         if all(f.is_file() for pair in halves for f in pair):  # the mean of two halves: a quarter of their difference
-            noise = [float(np.mean((read_exr(a)[q] - read_exr(b)[q]) ** 2)) / 4 for (a, b), q in zip(halves, quiet,
-                                                                                                   strict=True)]
+            noise = [reference_noise(read_exr(a), read_exr(b), q) for (a, b), q in zip(halves, quiet, strict=True)]
         shares = ", ".join(f"{q.sum() / m.sum():.0%}" for q in quiet)
         scorings.append((f"the quiet pixels ({shares} of the mask), against the converged references", conv, quiet,
                          noise))
@@ -233,8 +247,8 @@ def calibrated_table(rv, transport_source, k: int, pats: list[np.ndarray], names
             for i, (e, b) in enumerate(zip(cells, base, strict=True)):
                 cell = f"{10 * np.log10(1 / e):.2f} ({10 * np.log10(b / e):+.2f})"
                 if noise:
-                    cell += f"; {10 * np.log10(1 / max(e - noise[i], 1e-12)):.2f} " \
-                            f"({10 * np.log10(max(b - noise[i], 1e-12) / max(e - noise[i], 1e-12)):+.2f})"
+                    psnr, margin = noise_corrected(e, b, noise[i])
+                    cell += f"; {psnr:.2f} ({margin:+.2f})"
                 out.append(cell)
             print(f"| {label} | " + " | ".join(out) + " |")
 

@@ -44,3 +44,20 @@ def test_signed_ring_shares_let_zero_mean_noise_cancel():
     signed = tf.signed_ring_shares(f)
     assert signed[0] > 0.97 and abs(signed[1:]).max() < 0.02
     assert tf.ring_shares(f)[0] < 0.6  # clipped per crop, the noise's positive half is a tail
+
+
+def test_a_noisy_reference_is_taken_out_of_the_margins_it_compresses():
+    rng = np.random.default_rng(0)
+    truth = rng.random((200, 200, 3)).astype(np.float64)
+    halves = [truth + rng.normal(0, 0.02, truth.shape) for _ in range(2)]
+    reference = (halves[0] + halves[1]) / 2  # noise variance 0.02**2 / 2
+    where = np.ones(truth.shape[:2], bool)
+    noise = tf.reference_noise(halves[0], halves[1], where)
+    assert np.isclose(noise, 0.02**2 / 2, rtol=0.03)
+    good = truth + rng.normal(0, 0.005, truth.shape)  # true margin: 20 log10(0.02 / 0.005) = 12.04 dB
+    base = truth + rng.normal(0, 0.02, truth.shape)
+    mse = lambda img: float(np.mean((img - reference) ** 2))  # noqa: E731
+    raw_margin = 10 * np.log10(mse(base) / mse(good))
+    psnr, margin = tf.noise_corrected(mse(good), mse(base), noise)
+    assert raw_margin < 5  # the reference's noise hides most of it
+    assert abs(margin - 12.04) < 0.6 and abs(psnr - 10 * np.log10(1 / 0.005**2)) < 0.6
