@@ -142,12 +142,7 @@ def main() -> None:
     index = np.full(rv.proj.shape, -1, np.int64)
     index[px[:, 0], px[:, 1]] = np.arange(len(px))
 
-    def transport_source(pixels: np.ndarray) -> np.ndarray:  # pixels without a dot of their own: no light enters
-        pixels = np.asarray(pixels, np.int64)
-        out = np.zeros((len(pixels), *fp.shape[1:]), np.float32)
-        i = index[pixels[:, 0], pixels[:, 1]]
-        out[i >= 0] = fp[i[i >= 0]]
-        return out
+    transport_source = per_pixel_source(fp, index)
 
     pats = [rv.references[n] for n in names]
     sources = [("the transport's per-pixel footprints", transport_source, fp.shape[1])]
@@ -171,7 +166,46 @@ def main() -> None:
         cells = [f"{10 * np.log10(1 / np.mean((img[m] - t[m]) ** 2)):.2f}" for img, t in zip(relit, truths, strict=True)]
         print(f"| {label} | " + " | ".join(cells) + " |")
     if args.calibrated:
-        calibrated_table(rv, transport_source, fp.shape[1], pats, names, truths, args.checkpoints, args.renders)
+        variants = [("the transport's per-pixel footprints", transport_source),
+                    ("the same, each averaged over rings about its pixel", per_pixel_source(ring_averaged(fp), index)),
+                    ("the view's mean transport shape, times each pixel's energy",
+                     per_pixel_source(mean_shape(fp), index))]
+        calibrated_table(rv, variants, fp.shape[1], pats, names, truths, args.checkpoints, args.renders)
+
+
+def per_pixel_source(fp: np.ndarray, index: np.ndarray):  # noqa: ANN201
+    """A footprint source giving the pixel at (y, x) the footprint ``fp[index[y, x]]`` ((M, K, K, C) footprints,
+    (H, W) row index, -1 where a pixel has none: no light enters there)."""
+    def source(pixels: np.ndarray) -> np.ndarray:
+        pixels = np.asarray(pixels, np.int64)
+        out = np.zeros((len(pixels), *fp.shape[1:]), np.float32)
+        i = index[pixels[:, 0], pixels[:, 1]]
+        out[i >= 0] = fp[i[i >= 0]]
+        return out
+
+    return source
+
+
+def ring_averaged(fp: np.ndarray) -> np.ndarray:
+    """(N, K, K, C) footprints, each replaced by its own mean over the 1-px rings about its centre (its energy per
+    ring kept, its angular detail dropped)."""
+    n, k, _, c = fp.shape
+    d = np.arange(k) - k // 2
+    ring = np.rint(np.hypot(d[:, None], d[None, :])).astype(np.int64).ravel()  # (K*K,)
+    onehot = np.zeros((k * k, ring.max() + 1), np.float32)
+    onehot[np.arange(k * k), ring] = 1
+    flat = np.asarray(fp, np.float32).reshape(n, k * k, c).transpose(0, 2, 1)  # (N, C, K*K)
+    means = (flat @ onehot) / onehot.sum(axis=0)  # (N, C, rings)
+    return (means @ onehot.T).transpose(0, 2, 1).reshape(n, k, k, c)
+
+
+def mean_shape(fp: np.ndarray) -> np.ndarray:
+    """(N, K, K, C) footprints, each replaced by the mean normalised shape of those with light in every colour,
+    times its own energy per colour: what is left when footprints differ between pixels only in energy."""
+    energy = np.asarray(fp, np.float64).sum(axis=(1, 2))  # (N, C)
+    lit = (energy > 0).all(axis=1)
+    shape = (fp[lit] / energy[lit][:, None, None, :]).mean(axis=0)  # (K, K, C), each colour summing to 1
+    return (shape[None] * np.maximum(energy, 0)[:, None, None, :]).astype(np.float32)
 
 
 def reference_noise(half0: np.ndarray, half1: np.ndarray, where: np.ndarray) -> float:
@@ -189,11 +223,12 @@ def noise_corrected(mse: float, base_mse: float, noise: float) -> tuple[float, f
     return 10 * float(np.log10(1 / e)), 10 * float(np.log10(b / e))
 
 
-def calibrated_table(rv, transport_source, k: int, pats: list[np.ndarray], names: list[str],
+def calibrated_table(rv, variants: list[tuple[str, object]], k: int, pats: list[np.ndarray], names: list[str],
                      truths: list[np.ndarray], checkpoints: list[Path], renders: Path | None) -> None:
     """PSNR of the view relit through ``sss relight``'s pipeline from each source, and its margin over the
-    analytic model's: the transport's per-pixel footprints calibrated as a model's are the headroom of any
-    per-pixel footprint model on this view. Scored on the decoded mask against ``truths``, and where
+    analytic model's: the transport's per-pixel footprints (the first of ``variants``: (label, source) pairs of
+    patch ``k``) calibrated as a model's are the headroom of any per-pixel footprint model on this view; the
+    others say what of them it takes (a radial profile per pixel, one shape for the view). Scored on the decoded mask against ``truths``, and where
     ``renders`` holds converged references (`mitsuba_render.py --converged`: random numbers of their own), on the
     quiet pixels against those too (the clean references share the captures' fixed Monte-Carlo pattern, and so
     does the transport: against them, copying that pattern scores as physics)."""
@@ -210,10 +245,10 @@ def calibrated_table(rv, transport_source, k: int, pats: list[np.ndarray], names
                    relight(measured, rv.proj, pats, km, white=rv.white)))
     (analytic, ka), = make_sources("analytic", rv)
     images.append(("analytic", relight_view(analytic, ka, rv, pats, calibrate=True)[0]))
-    images.append(("the transport's per-pixel footprints, calibrated as a model's",
-                   relight_view(transport_source, k, rv, pats, calibrate=True)[0]))
-    images.append(("the transport's per-pixel footprints blended with the analytic model",
-                   relight_view(transport_source, k, rv, pats, calibrate=True, also=[(analytic, ka)])[0]))
+    for label, source in variants:
+        images.append((f"{label}, calibrated as a model's", relight_view(source, k, rv, pats, calibrate=True)[0]))
+    images.append((f"{variants[0][0]}, blended with the analytic model",
+                   relight_view(variants[0][1], k, rv, pats, calibrate=True, also=[(analytic, ka)])[0]))
     for ck in checkpoints:
         (torch_src, kt), *rest = make_sources("blend", rv, checkpoint=ck)
         images.append((f"torch {ck}", relight_view(torch_src, kt, rv, pats, calibrate=True)[0]))

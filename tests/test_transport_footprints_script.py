@@ -61,3 +61,26 @@ def test_a_noisy_reference_is_taken_out_of_the_margins_it_compresses():
     psnr, margin = tf.noise_corrected(mse(good), mse(base), noise)
     assert raw_margin < 5  # the reference's noise hides most of it
     assert abs(margin - 12.04) < 0.6 and abs(psnr - 10 * np.log10(1 / 0.005**2)) < 0.6
+
+
+def test_ring_averaging_keeps_each_rings_energy_and_drops_the_angle():
+    rng = np.random.default_rng(1)
+    f = rng.random((3, 11, 11, 3)).astype(np.float32)
+    avg = tf.ring_averaged(f)
+    d = np.arange(11) - 5
+    ring = np.rint(np.hypot(d[:, None], d[None, :]))
+    for r in (0, 1, 3, 5):
+        sel = ring == r
+        np.testing.assert_allclose(avg[:, sel].sum(axis=1), f[:, sel].sum(axis=1), rtol=1e-5)
+        assert np.ptp(avg[:, sel], axis=1).max() < 1e-6  # one value per ring
+    np.testing.assert_allclose(avg[:, 5, 7], avg[:, 7, 5], rtol=1e-6)  # symmetric under a quarter turn
+
+
+def test_one_shape_for_the_view_keeps_each_pixels_energy():
+    rng = np.random.default_rng(2)
+    f = rng.random((5, 7, 7, 3)).astype(np.float32)
+    one = tf.mean_shape(f)
+    np.testing.assert_allclose(one.sum(axis=(1, 2)), f.sum(axis=(1, 2)), rtol=1e-5)
+    shapes = one / one.sum(axis=(1, 2), keepdims=True)
+    np.testing.assert_allclose(shapes, np.broadcast_to(shapes[:1], shapes.shape), rtol=1e-5, atol=1e-7)
+    assert not np.allclose(one, f)
