@@ -137,8 +137,6 @@ def main() -> None:
     names = sorted(rv.references)
     if not names:
         return
-    has = np.zeros(rv.proj.shape, bool)
-    has[px[:, 0], px[:, 1]] = True
     index = np.full(rv.proj.shape, -1, np.int64)
     index[px[:, 0], px[:, 1]] = np.arange(len(px))
 
