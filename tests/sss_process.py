@@ -32,8 +32,8 @@ from pathlib import Path
 
 #: imported once by the server: third-party packages only (the threads numpy's, scipy's and OpenCV's libraries
 #: start on import are fork-safe; matplotlib's backend is chosen later, in the child)
-PRELOAD = ("numpy", "scipy.ndimage", "torch", "cv2", "PIL.Image", "zarr", "matplotlib", "typer", "rich.console",
-           "pydantic", "zmq", "pluggy")
+PRELOAD = ("numpy", "scipy.ndimage", "torch", "torch.utils.tensorboard", "cv2", "PIL.Image", "zarr", "matplotlib",
+           "matplotlib.pyplot", "typer", "rich.console", "pydantic", "zmq", "pluggy")
 ENTRY = "sssphase_cli.main"
 
 
