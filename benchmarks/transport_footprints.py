@@ -20,7 +20,9 @@ through that pixel (each dot to the decoded pixel nearest to it, as the transpor
   (:func:`~sssphase_core.relight.pipeline.relight_view`: the white-consistent gain and the view calibration on the
   view's fringes): the transport's per-pixel footprints treated as a model's, beside the analytic model, no
   scattering, the dot transport as ``sss relight --backend measured`` uses it, and each checkpoint's torch and
-  blend, with each one's margin over the analytic model (the bar of issue 42, item 1).
+  blend, with each one's margin over the analytic model (the bar of issue 42, item 1); and the same footprints
+  with each dot shared among the camera pixels it overlaps (:func:`pixel_area_transport`: light entering each
+  pixel's area, what a per-pixel model is asked for), averaged over rings, or one shape per view.
 
 Prints Markdown.
 """
@@ -58,6 +60,49 @@ def sum_into_pixels(pixels: np.ndarray, crops: np.ndarray, width: int) -> tuple[
     out = np.zeros((len(unique), *np.shape(crops)[1:]), np.float32)
     np.add.at(out, inverse.ravel(), np.asarray(crops, np.float32))
     return np.stack([unique // width, unique % width], axis=1), out
+
+
+def pixel_area_transport(rv) -> tuple[np.ndarray, np.ndarray]:
+    """(pixels (M, 2) yx, footprints (M, K, K, 3) float32): the light that enters each camera pixel's *area*: every
+    dot's crop (denoised as ``sss relight --backend measured`` reads it) shared among the 4 camera pixels nearest to
+    where the dot lit the surface (its projector point through the local inverse Jacobian, bilinear weights: the
+    share of the dot that overlaps each pixel) and re-centred on each. Unlike :func:`per_pixel_transport` (each dot
+    whole in one pixel) its footprints change smoothly between neighbours, as a per-pixel model's can."""
+    from sssphase_core.processing.footprints import dot_offsets
+
+    transport, _ = make_source("measured", rv)
+    centre = np.asarray(transport.pixels, np.int64)
+    dots = np.asarray(rv.session.load(rv.view, "transport/dots"), np.float64)  # (N, 2) projector (x, y)
+    where = centre + dot_offsets(rv.proj.xp, rv.proj.yp, rv.proj.mask, centre, dots=dots).astype(np.float64)
+    return spread_over_pixels(where, transport.crops_at(np.arange(len(centre))), centre, rv.proj.shape)
+
+
+def spread_over_pixels(where: np.ndarray, crops: np.ndarray, centre: np.ndarray,
+                       shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Crops (N, K, K, C), each centred on pixel ``centre`` (N, 2) yx, of light that entered at ``where`` (N, 2)
+    (y, x) camera px, shared among the 4 pixels nearest to ``where`` by bilinear weights and re-centred on each
+    (an integer shift, zero from outside) -> :func:`sum_into_pixels` of them (pixels inside ``shape`` (H, W))."""
+    crops = np.asarray(crops, np.float32)
+    k = crops.shape[1]
+    top = np.floor(where).astype(np.int64)
+    frac = where - top
+    pixels, parts = [], []
+    for oy in (0, 1):
+        for ox in (0, 1):
+            weight = ((frac[:, 0] if oy else 1 - frac[:, 0]) * (frac[:, 1] if ox else 1 - frac[:, 1])).astype(np.float32)
+            to = top + [oy, ox]
+            inside = (to >= 0).all(axis=1) & (to[:, 0] < shape[0]) & (to[:, 1] < shape[1]) & (weight > 0)
+            step = to - centre  # the receiving pixel relative to the crop's centre
+            for sy, sx in np.unique(step[inside], axis=0):
+                sel = inside & (step[:, 0] == sy) & (step[:, 1] == sx)
+                moved = np.zeros((int(sel.sum()), k, k, crops.shape[3]), np.float32)  # moved[i] = crop[i + step]
+                y0, y1, x0, x1 = max(0, sy), min(k, k + sy), max(0, sx), min(k, k + sx)
+                moved[:, y0 - sy:y1 - sy, x0 - sx:x1 - sx] = crops[sel, y0:y1, x0:x1]
+                pixels.append(to[sel])
+                parts.append(moved * weight[sel, None, None, None])
+    if not pixels:
+        return np.zeros((0, 2), np.int64), np.zeros((0, *crops.shape[1:]), np.float32)
+    return sum_into_pixels(np.concatenate(pixels), np.concatenate(parts), shape[1])
 
 
 def ring_shares(footprints: np.ndarray) -> np.ndarray:
@@ -164,10 +209,18 @@ def main() -> None:
         cells = [f"{10 * np.log10(1 / np.mean((img[m] - t[m]) ** 2)):.2f}" for img, t in zip(relit, truths, strict=True)]
         print(f"| {label} | " + " | ".join(cells) + " |")
     if args.calibrated:
+        area_px, area_fp = pixel_area_transport(rv)
+        area_index = np.full(rv.proj.shape, -1, np.int64)
+        area_index[area_px[:, 0], area_px[:, 1]] = np.arange(len(area_px))
         variants = [("the transport's per-pixel footprints", transport_source),
                     ("the same, each averaged over rings about its pixel", per_pixel_source(ring_averaged(fp), index)),
                     ("the view's mean transport shape, times each pixel's energy",
-                     per_pixel_source(mean_shape(fp), index))]
+                     per_pixel_source(mean_shape(fp), index)),
+                    ("the transport shared among the pixels each dot overlaps", per_pixel_source(area_fp, area_index)),
+                    ("the shared transport, each averaged over rings about its pixel",
+                     per_pixel_source(ring_averaged(area_fp), area_index)),
+                    ("the shared transport's mean shape, times each pixel's energy",
+                     per_pixel_source(mean_shape(area_fp), area_index))]
         calibrated_table(rv, variants, fp.shape[1], pats, names, truths, args.checkpoints, args.renders)
 
 

@@ -84,3 +84,30 @@ def test_one_shape_for_the_view_keeps_each_pixels_energy():
     shapes = one / one.sum(axis=(1, 2), keepdims=True)
     np.testing.assert_allclose(shapes, np.broadcast_to(shapes[:1], shapes.shape), rtol=1e-5, atol=1e-7)
     assert not np.allclose(one, f)
+
+
+def test_a_dot_between_pixels_is_shared_by_overlap_and_recentred_on_each():
+    k = 7
+    crop = np.zeros((1, k, k, 1), np.float32)
+    crop[0, 3, 3] = 1.0  # light where the crop's centre pixel (5, 5) is
+    crop[0, 3, 4] = 2.0  # and one pixel to its right
+    # the dot lit the surface a quarter of a pixel below and half a pixel right of pixel (5, 5)
+    px, fp = tf.spread_over_pixels(np.array([[5.25, 5.5]]), crop, np.array([[5, 5]]), (10, 10))
+    assert px.tolist() == [[5, 5], [5, 6], [6, 5], [6, 6]]
+    weights = {(5, 5): 0.75 * 0.5, (5, 6): 0.75 * 0.5, (6, 5): 0.25 * 0.5, (6, 6): 0.25 * 0.5}
+    for (y, x), f in zip(px.tolist(), fp, strict=True):
+        expect = np.zeros((k, k), np.float32)  # the same light, in the frame of pixel (y, x)
+        expect[3 - (y - 5), 3 - (x - 5)] = 1.0
+        expect[3 - (y - 5), 4 - (x - 5)] = 2.0
+        np.testing.assert_allclose(f[..., 0], weights[(y, x)] * expect, atol=1e-7)
+    assert np.isclose(fp.sum(), crop.sum(), rtol=1e-6)  # nothing lost inside the image
+
+
+def test_a_dot_on_a_pixel_centre_stays_whole_in_that_pixel_and_light_off_the_image_is_dropped():
+    crop = np.random.default_rng(1).random((2, 5, 5, 3)).astype(np.float32)
+    px, fp = tf.spread_over_pixels(np.array([[2.0, 3.0], [0.0, -0.5]]), crop, np.array([[2, 3], [0, 0]]), (4, 6))
+    assert px.tolist() == [[0, 0], [2, 3]]
+    np.testing.assert_allclose(fp[1], crop[0], rtol=1e-6)
+    shifted = np.zeros_like(crop[1])  # half of the second dot falls off the image's left edge
+    shifted[:, :] = 0.5 * crop[1]
+    np.testing.assert_allclose(fp[0], shifted, rtol=1e-6)

@@ -210,20 +210,26 @@ def jacobian_area(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray | None = Non
 MAX_DOT_OFFSET = 1.5
 
 
-def dot_offsets(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray, pixels: np.ndarray, smooth: int = 5) -> np.ndarray:
+def dot_offsets(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray, pixels: np.ndarray, smooth: int = 5,
+                dots: np.ndarray | None = None) -> np.ndarray:
     """(N, 2) float32 (dy, dx) camera px: where the dot whose crop is pixel ``pixels[i]``'s footprint lit the
     surface, relative to that pixel's centre. The crop comes from the dot at the pixel's rounded projector
     coordinate, so its light enters ``J^-1 (round(p) - p)`` away (J = d(xp, yp)/d(x, y), each element averaged
     over ``smooth x smooth`` valid pixels); measured on the demo's diffuse star, the crops' 5 x 5 centroids
-    follow it with slope 1.0-1.1 (correlation 0.80). Clipped to :data:`MAX_DOT_OFFSET`; 0 where J is unknown."""
+    follow it with slope 1.0-1.1 (correlation 0.80). ``dots``: (N, 2) projector (x, y) of other dots to place
+    (``J^-1 (dot - p)``; default: each pixel's rounded coordinate). Clipped to :data:`MAX_DOT_OFFSET`; 0 where J
+    is unknown."""
     px = np.asarray(pixels, np.int64).reshape(-1, 2)
     valid = valid & np.isfinite(xp) & np.isfinite(yp)
     if not len(px) or min(xp.shape) < 2:
         return np.zeros((len(px), 2), np.float32)
     jac = [[_valid_mean(_valid_deriv(a, valid, axis), smooth)[px[:, 0], px[:, 1]] for axis in (1, 0)] for a in (xp, yp)]
     (a, b), (c, d) = jac  # [[dxp/dx, dxp/dy], [dyp/dx, dyp/dy]] at the pixels
-    ex = np.round(xp[px[:, 0], px[:, 1]]) - xp[px[:, 0], px[:, 1]]
-    ey = np.round(yp[px[:, 0], px[:, 1]]) - yp[px[:, 0], px[:, 1]]
+    at_x, at_y = xp[px[:, 0], px[:, 1]], yp[px[:, 0], px[:, 1]]
+    to = np.round(np.stack([at_x, at_y], axis=1)) if dots is None else np.asarray(dots, np.float64).reshape(-1, 2)
+    if len(to) != len(px):
+        raise InputError(f"{len(to)} dots for {len(px)} pixels")
+    ex, ey = to[:, 0] - at_x, to[:, 1] - at_y
     det = a * d - b * c
     with np.errstate(divide="ignore", invalid="ignore"):
         dx, dy = (d * ex - b * ey) / det, (a * ey - c * ex) / det

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from sssphase_core.errors import InputError
 from sssphase_core.learning.camera import (
     NO_CAMERA,
     CaptureModel,
@@ -127,6 +128,12 @@ def test_dot_offsets_of_an_affine_correspondence():
         np.testing.assert_allclose([dx, dy], np.linalg.solve(jac, err), atol=1e-5)
         # the dot's projector pixel is where the pixel plus its offset maps to
         np.testing.assert_allclose(jac @ [x + dx, y + dy] + [0.37, -0.21], np.round([xp[y, x], yp[y, x]]), atol=1e-5)
+    dots = np.array([[18.6, 8.2], [28.9, 11.9], [45.8, 16.0]])  # any projector points near them: J^-1 (dot - p)
+    placed = dot_offsets(xp, yp, valid, pixels, dots=dots)
+    for (y, x), (dy, dx), dot in zip(pixels, placed, dots, strict=True):
+        np.testing.assert_allclose(jac @ [x + dx, y + dy] + [0.37, -0.21], dot, atol=1e-5)
+    with pytest.raises(InputError, match="2 dots for 3 pixels"):
+        dot_offsets(xp, yp, valid, pixels, dots=dots[:2])
     flat = np.zeros_like(xp)  # a singular correspondence: no offset can be read, none is made up
     assert np.isfinite(dot_offsets(flat, flat, valid, pixels)).all()
     grazing = dot_offsets(xp * 1e-3, yp, valid, pixels)
