@@ -266,6 +266,26 @@ def reference_noise(half0: np.ndarray, half1: np.ndarray, where: np.ndarray) -> 
     return float(np.mean((half0[where] - half1[where]) ** 2)) / 4
 
 
+#: Pixels whose two converged halves (or clean and converged render) differ by more than this, in any colour, are
+#: left out of a scoring: a firefly there outweighs every model's error.
+CALM = 0.01
+
+
+def steady_white(white: np.ndarray, tolerance: float = 0.1) -> np.ndarray:
+    """(H, W) bool: the white capture (H, W, 3) is within ``tolerance`` (relative, with a floor of 0.01) of its own
+    3 x 3 median in every colour: no Monte-Carlo firefly there for the white-consistent gain to pass to every model.
+    Chosen from the inputs and the converged halves only, so that no source's error picks its own pixels."""
+    from scipy.ndimage import median_filter
+
+    med = np.stack([median_filter(white[..., c], 3) for c in range(white.shape[-1])], axis=-1)
+    return (np.abs(white - med) / np.maximum(med, 0.01)).max(axis=-1) <= tolerance
+
+
+def shares(wheres: list[np.ndarray], mask: np.ndarray) -> str:
+    """Each selection's share of ``mask``, as "82%, 83%"."""
+    return ", ".join(f"{w.sum() / mask.sum():.0%}" for w in wheres)
+
+
 def noise_corrected(mse: float, base_mse: float, noise: float) -> tuple[float, float]:
     """(PSNR, margin over the base in dB) of an image whose mean squared error against a noisy reference is
     ``mse``, once the reference's own ``noise`` (its mean squared error, independent of the image's) is taken out
@@ -280,9 +300,12 @@ def calibrated_table(rv, variants: list[tuple[str, object]], k: int, pats: list[
     analytic model's: the transport's per-pixel footprints (the first of ``variants``: (label, source) pairs of
     patch ``k``) calibrated as a model's are the headroom of any per-pixel footprint model on this view; the
     others say what of them it takes (a radial profile per pixel, one shape for the view). Scored on the decoded mask against ``truths``, and where
-    ``renders`` holds converged references (`mitsuba_render.py --converged`: random numbers of their own), on the
-    quiet pixels against those too (the clean references share the captures' fixed Monte-Carlo pattern, and so
-    does the transport: against them, copying that pattern scores as physics)."""
+    ``renders`` holds converged references and their halves (`mitsuba_render.py --converged`: random numbers of their
+    own), against those too, their own noise subtracted, beside the clean render itself (the ceiling of any model of
+    these captures). The clean references share every capture's fixed Monte-Carlo pattern, and so does the
+    transport: against them, copying that pattern scores as physics. So the pixels are chosen from the converged
+    halves and the white capture only (``calm``); the ``quiet`` pixels (where the clean renders agree with the
+    converged ones) are printed too, to show how a selection made with the clean renders favours the transport."""
     from sssphase_core.relight.backends import make_sources
     from sssphase_core.relight.pipeline import relight_view
     from sssphase_core.store.exr import read_exr
@@ -307,19 +330,23 @@ def calibrated_table(rv, variants: list[tuple[str, object]], k: int, pats: list[
     # (what, truths, where, the truth's own noise: its mean squared error per pattern, estimated)
     scorings = [("the decoded mask, against the references above", truths, [m] * len(names), None)]
     converged = [renders / f"{rv.object}_converged_ref__{n}.exr" for n in names] if renders is not None else []
-    if converged and all(f.is_file() for f in converged):
+    halves = [[renders / f"{rv.object}_converged_half{i}_ref__{n}.exr" for i in (0, 1)] for n in names]
+    if converged and all(f.is_file() for f in [*converged, *(f for pair in halves for f in pair)]):
         conv = [read_exr(f) for f in converged]
-        quiet = [m & (np.abs(t - c).max(axis=-1) <= 0.01) for t, c in zip(truths, conv, strict=True)]
-        halves = [[renders / f"{rv.object}_converged_half{i}_ref__{n}.exr" for i in (0, 1)] for n in names]
-        noise = None
-        if all(f.is_file() for pair in halves for f in pair):  # the mean of two halves: a quarter of their difference
-            noise = [reference_noise(read_exr(a), read_exr(b), q) for (a, b), q in zip(halves, quiet, strict=True)]
-        shares = ", ".join(f"{q.sum() / m.sum():.0%}" for q in quiet)
-        scorings.append((f"the quiet pixels ({shares} of the mask), against the converged references", conv, quiet,
-                         noise))
+        pairs = [(read_exr(a), read_exr(b)) for a, b in halves]
+        # the renders the captures share their Monte-Carlo pattern with: the ceiling of any model of these captures
+        images.append(("the clean render itself (every capture's Monte-Carlo pattern, no camera noise)", truths))
+        calm = [m & steady_white(rv.white) & (np.abs(a - b).max(axis=-1) <= CALM) for a, b in pairs]
+        quiet = [m & (np.abs(t - c).max(axis=-1) <= CALM) for t, c in zip(truths, conv, strict=True)]
+        for what, where in ((f"the calm pixels ({shares(calm, m)} of the mask: the converged halves agree, the white "
+                             "capture has no firefly), against the converged references", calm),
+                            (f"the quiet pixels ({shares(quiet, m)} of the mask: the clean renders agree with the "
+                             "converged ones, so biased toward every source that shares the clean renders' "
+                             "Monte-Carlo pattern), against the converged references", quiet)):
+            scorings.append((what, conv, where, [reference_noise(a, b, w) for (a, b), w in zip(pairs, where, strict=True)]))
     for what, truth, where, noise in scorings:
         mses = [(label, [float(np.mean((img[w] - t[w]) ** 2)) for img, t, w in zip(imgs, truth, where, strict=True)])
-                for label, imgs in images]
+                for label, imgs in images if imgs is not truth]  # the clean render is not scored against itself
         base = dict(mses)["analytic"]
         print(f"\nRelit through sss relight's pipeline (calibrated; white-consistent where the camera records every "
               f"colour), PSNR (dB) on {what}, and the margin over the analytic model"
@@ -332,7 +359,9 @@ def calibrated_table(rv, variants: list[tuple[str, object]], k: int, pats: list[
             out = []
             for i, (e, b) in enumerate(zip(cells, base, strict=True)):
                 cell = f"{10 * np.log10(1 / e):.2f} ({10 * np.log10(b / e):+.2f})"
-                if noise:
+                if noise and e <= noise[i]:
+                    cell += "; within the reference's own noise"
+                elif noise:
                     psnr, margin = noise_corrected(e, b, noise[i])
                     cell += f"; {psnr:.2f} ({margin:+.2f})"
                 out.append(cell)

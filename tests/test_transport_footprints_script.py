@@ -111,3 +111,14 @@ def test_a_dot_on_a_pixel_centre_stays_whole_in_that_pixel_and_light_off_the_ima
     shifted = np.zeros_like(crop[1])  # half of the second dot falls off the image's left edge
     shifted[:, :] = 0.5 * crop[1]
     np.testing.assert_allclose(fp[0], shifted, rtol=1e-6)
+
+
+def test_a_firefly_in_the_white_capture_leaves_only_its_own_pixel_out():
+    yy, xx = np.mgrid[:20, :30]
+    white = np.repeat((0.3 + 0.01 * xx + 0.005 * yy)[..., None], 3, axis=-1).astype(np.float32)  # smooth shading
+    white[5, 7, 1] *= 3.0  # one colour of one pixel: a Monte-Carlo firefly
+    white[12:, :, :] = 0.0  # dark: the floor keeps zero and near-zero pixels steady
+    white[15, 3] = 0.0008  # within 0.1 of the 0.01 floor of a dark neighbourhood
+    steady = tf.steady_white(white)
+    assert not steady[5, 7]
+    assert steady.sum() == steady.size - 1
