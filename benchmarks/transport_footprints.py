@@ -330,7 +330,7 @@ def calibrated_table(rv, variants: list[tuple[str, object]], k: int, pats: list[
     # (what, truths, where, the truth's own noise: its mean squared error per pattern, estimated)
     scorings = [("the decoded mask, against the references above", truths, [m] * len(names), None)]
     converged = [renders / f"{rv.object}_converged_ref__{n}.exr" for n in names] if renders is not None else []
-    halves = [[renders / f"{rv.object}_converged_half{i}_ref__{n}.exr" for i in (0, 1)] for n in names]
+    halves = [[renders / f"{rv.object}_converged_half{i}_ref__{n}.exr" for i in (0, 1)] for n in names] if converged else []
     if converged and all(f.is_file() for f in [*converged, *(f for pair in halves for f in pair)]):
         conv = [read_exr(f) for f in converged]
         pairs = [(read_exr(a), read_exr(b)) for a, b in halves]
