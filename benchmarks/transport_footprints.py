@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 from scipy.ndimage import binary_erosion
 
+from sssphase_core.errors import SssError
 from sssphase_core.relight.backends import make_source
 from sssphase_core.relight.engine import relight
 from sssphase_core.relight.views import load_view
@@ -138,7 +139,10 @@ def main() -> None:
                     help="shares of the summed energy with negative values kept (noise cancels), on pixels that also "
                          "have training crops, with rows for those crops as they are and clipped at 0")
     args = ap.parse_args()
-    rv = load_view(Session.open(args.session), 0)
+    try:
+        rv = load_view(Session.open(args.session), 0)
+    except SssError as e:  # a wrong folder: one line, as `sss` gives it
+        raise SystemExit(f"error: {e}") from None
     arrays = rv.session.arrays(0)
     if "transport/crops" not in arrays:
         raise SystemExit(f"{args.session}: view 0 has no captured transport (capture or import it with dot grids)")
