@@ -16,13 +16,15 @@ through that pixel (each dot to the decoded pixel nearest to it, as the transpor
   from the training crops (uncalibrated, each splatted with the pattern at its decoded point, as a model's are)
   against the reference captures, or against ``DIR/OBJECT_clean_ref__PATTERN.exr`` with ``--renders``
   (`mitsuba_render.py`'s noise-free renders);
-* with ``--calibrated``: what any per-pixel footprint model could reach through ``sss relight``'s own pipeline
+* with ``--calibrated``: each source relit through ``sss relight``'s own pipeline
   (:func:`~sssphase_core.relight.pipeline.relight_view`: the white-consistent gain and the view calibration on the
   view's fringes): the transport's per-pixel footprints treated as a model's, beside the analytic model, no
   scattering, the dot transport as ``sss relight --backend measured`` uses it, and each checkpoint's torch and
   blend, with each one's margin over the analytic model (the bar of issue 42, item 1); and the same footprints
   with each dot shared among the camera pixels it overlaps (:func:`pixel_area_transport`: light entering each
-  pixel's area, what a per-pixel model is asked for), averaged over rings, or one shape per view.
+  pixel's area, what a per-pixel model is asked for), averaged over rings, or one shape per view. With converged
+  references in ``--renders`` also against those, on pixels chosen independently of the sources, beside the clean
+  render itself: the ceiling of any model of these captures (:func:`calibrated_table`).
 
 Prints Markdown.
 """
@@ -44,13 +46,11 @@ from sssphase_core.store.session import Session
 RINGS = ((0, 0.5), (0.5, 1.5), (1.5, 3), (3, 6), (6, 10), (10, 1e9))  # px from the crop centre
 
 
-def per_pixel_transport(rv) -> tuple[np.ndarray, np.ndarray]:
-    """(pixels (N, 2) yx, footprints (N, K, K, 3) float32): each dot's transport crop, denoised as the
-    ``measured`` backend reads it (the noise mask that relights the view's own fringes best), summed into its
-    pixel."""
-    transport, _ = make_source("measured", rv)
-    pixels = np.asarray(transport.pixels, np.int64)
-    return sum_into_pixels(pixels, transport.crops_at(np.arange(len(pixels))), rv.proj.shape[1])
+def per_pixel_transport(transport, crops: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
+    """(pixels (N, 2) yx, footprints (N, K, K, 3) float32): each dot's transport crop (``crops``, every row of the
+    ``measured`` source ``transport``, denoised as it reads them: the noise mask that relights the view's own
+    fringes best), summed into its pixel, in an image ``width`` px wide."""
+    return sum_into_pixels(np.asarray(transport.pixels, np.int64), crops, width)
 
 
 def sum_into_pixels(pixels: np.ndarray, crops: np.ndarray, width: int) -> tuple[np.ndarray, np.ndarray]:
@@ -63,19 +63,18 @@ def sum_into_pixels(pixels: np.ndarray, crops: np.ndarray, width: int) -> tuple[
     return np.stack([unique // width, unique % width], axis=1), out
 
 
-def pixel_area_transport(rv) -> tuple[np.ndarray, np.ndarray]:
+def pixel_area_transport(rv, transport, crops: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(pixels (M, 2) yx, footprints (M, K, K, 3) float32): the light that enters each camera pixel's *area*: every
-    dot's crop (denoised as ``sss relight --backend measured`` reads it) shared among the 4 camera pixels nearest to
+    dot's crop (``crops`` of the ``measured`` source ``transport``, as for :func:`per_pixel_transport`) shared among the 4 camera pixels nearest to
     where the dot lit the surface (its projector point through the local inverse Jacobian, bilinear weights: the
     share of the dot that overlaps each pixel) and re-centred on each. Unlike :func:`per_pixel_transport` (each dot
     whole in one pixel) its footprints change smoothly between neighbours, as a per-pixel model's can."""
     from sssphase_core.processing.footprints import dot_offsets
 
-    transport, _ = make_source("measured", rv)
     centre = np.asarray(transport.pixels, np.int64)
     dots = np.asarray(rv.session.load(rv.view, "transport/dots"), np.float64)  # (N, 2) projector (x, y)
     where = centre + dot_offsets(rv.proj.xp, rv.proj.yp, rv.proj.mask, centre, dots=dots).astype(np.float64)
-    return spread_over_pixels(where, transport.crops_at(np.arange(len(centre))), centre, rv.proj.shape)
+    return spread_over_pixels(where, crops, centre, rv.proj.shape)
 
 
 def spread_over_pixels(where: np.ndarray, crops: np.ndarray, centre: np.ndarray,
@@ -146,7 +145,9 @@ def main() -> None:
     arrays = rv.session.arrays(0)
     if "transport/crops" not in arrays:
         raise SystemExit(f"{args.session}: view 0 has no captured transport (capture or import it with dot grids)")
-    px, fp = per_pixel_transport(rv)
+    transport, _ = make_source("measured", rv)  # built (denoised) once, its crops read once
+    crops_all = transport.crops_at(np.arange(len(transport.pixels)))
+    px, fp = per_pixel_transport(transport, crops_all, rv.proj.shape[1])
     if "footprints/pixels" in arrays:
         train_px = np.asarray(rv.session.load(0, "footprints/pixels"), np.int64)
         rx = np.floor(rv.proj.xp[train_px[:, 0], train_px[:, 1]] + 0.5).astype(np.int64)
@@ -213,7 +214,7 @@ def main() -> None:
         cells = [f"{10 * np.log10(1 / np.mean((img[m] - t[m]) ** 2)):.2f}" for img, t in zip(relit, truths, strict=True)]
         print(f"| {label} | " + " | ".join(cells) + " |")
     if args.calibrated:
-        area_px, area_fp = pixel_area_transport(rv)
+        area_px, area_fp = pixel_area_transport(rv, transport, crops_all)
         area_index = np.full(rv.proj.shape, -1, np.int64)
         area_index[area_px[:, 0], area_px[:, 1]] = np.arange(len(area_px))
         variants = [("the transport's per-pixel footprints", transport_source),
@@ -225,7 +226,7 @@ def main() -> None:
                      per_pixel_source(ring_averaged(area_fp), area_index)),
                     ("the shared transport's mean shape, times each pixel's energy",
                      per_pixel_source(mean_shape(area_fp), area_index))]
-        calibrated_table(rv, variants, fp.shape[1], pats, names, truths, args.checkpoints, args.renders)
+        calibrated_table(rv, variants, fp.shape[1], pats, names, truths, args.checkpoints, args.renders, transport)
 
 
 def per_pixel_source(fp: np.ndarray, index: np.ndarray):  # noqa: ANN201
@@ -299,11 +300,12 @@ def noise_corrected(mse: float, base_mse: float, noise: float) -> tuple[float, f
 
 
 def calibrated_table(rv, variants: list[tuple[str, object]], k: int, pats: list[np.ndarray], names: list[str],
-                     truths: list[np.ndarray], checkpoints: list[Path], renders: Path | None) -> None:
+                     truths: list[np.ndarray], checkpoints: list[Path], renders: Path | None, measured) -> None:
     """PSNR of the view relit through ``sss relight``'s pipeline from each source, and its margin over the
     analytic model's: the transport's per-pixel footprints (the first of ``variants``: (label, source) pairs of
-    patch ``k``) calibrated as a model's are the headroom of any per-pixel footprint model on this view; the
-    others say what of them it takes (a radial profile per pixel, one shape for the view). Scored on the decoded mask against ``truths``, and where
+    patch ``k``) calibrated as a model's, and what of them others keep (a radial profile per pixel, one shape for
+    the view), beside no scattering, ``measured`` (the view's ``measured`` source, relit as `sss relight` does) and
+    each checkpoint's torch and blend. Scored on the decoded mask against ``truths``, and where
     ``renders`` holds converged references and their halves (`mitsuba_render.py --converged`: random numbers of their
     own), against those too, their own noise subtracted, beside the clean render itself (the ceiling of any model of
     these captures). The clean references share every capture's fixed Monte-Carlo pattern, and so does the
@@ -318,9 +320,8 @@ def calibrated_table(rv, variants: list[tuple[str, object]], k: int, pats: list[
     images: list[tuple[str, np.ndarray]] = []
     none, k1 = make_source("none", rv)
     images.append(("none", relight(none, rv.proj, pats, k1, white=rv.white)))
-    measured, km = make_source("measured", rv)  # model-free: relit as it is, as sss relight does
-    images.append(("measured (the dot transport, sss relight --backend measured)",
-                   relight(measured, rv.proj, pats, km, white=rv.white)))
+    images.append(("measured (the dot transport, sss relight --backend measured)",  # model-free: relit as it is
+                   relight(measured, rv.proj, pats, k, white=rv.white)))
     (analytic, ka), = make_sources("analytic", rv)
     images.append(("analytic", relight_view(analytic, ka, rv, pats, calibrate=True)[0]))
     for label, source in variants:
@@ -340,7 +341,8 @@ def calibrated_table(rv, variants: list[tuple[str, object]], k: int, pats: list[
         pairs = [(read_exr(a), read_exr(b)) for a, b in halves]
         # the renders the captures share their Monte-Carlo pattern with: the ceiling of any model of these captures
         images.append(("the clean render itself (every capture's Monte-Carlo pattern, no camera noise)", truths))
-        calm = [m & steady_white(rv.white) & (np.abs(a - b).max(axis=-1) <= CALM) for a, b in pairs]
+        steady = m & steady_white(rv.white)
+        calm = [steady & (np.abs(a - b).max(axis=-1) <= CALM) for a, b in pairs]
         quiet = [m & (np.abs(t - c).max(axis=-1) <= CALM) for t, c in zip(truths, conv, strict=True)]
         for what, where in ((f"the calm pixels ({shares(calm, m)} of the mask: the converged halves agree, the white "
                              "capture has no firefly), against the converged references", calm),
