@@ -18,6 +18,7 @@ from sssphase_core.capture.plan import CaptureRequest, RigSpec
 from sssphase_core.capture.processing import ViewProcessor
 from sssphase_core.errors import InputError
 from sssphase_core.processing.footprints import PATCH_RANGE
+from sssphase_core.processing.patterns import MAX_SHIFTS
 from sssphase_core.store.imageio import (
     ENCODINGS,
     IMAGE_SUFFIXES,
@@ -33,7 +34,6 @@ from sssphase_core.store.session import Session, check_object_name
 PSP_KEY_RE = re.compile(r"^psp/([xy])/p([0-9]{1,5}(?:\.[0-9]{1,6})?)/s([0-9]{1,2})$")
 DOTS_KEY_RE = re.compile(r"^dots/([0-9]{1,3})_([0-9]{1,3})$")
 OTHER_KEY_RE = re.compile(r"^(white|black|(ref|pattern)/[A-Za-z0-9][A-Za-z0-9_.-]{0,63})$")
-MAX_SHIFTS = 32
 #: Projector gammas an import takes: the range a rig file's ``[projector] gamma`` and the sim rig accept.
 GAMMA_RANGE = (0.3, 5.0)
 #: Float frames (EXR, float TIFF, ``.npy``) have no clipping level: their units are the renderer's or
@@ -251,7 +251,7 @@ def check_not_negative(path: Path, image: np.ndarray, white_level: float) -> Non
     read wrongly. Noise around zero passes."""
     far = np.count_nonzero(image < -NEGATIVE_LIMIT * white_level)
     if far > NEGATIVE_SHARE * image.size:
-        raise InputError(f"{path}: {100 * far / image.size:.2g}% of its values are below -{NEGATIVE_LIMIT:g} x the white "
+        raise InputError(f"{path}: {100 * far / image.size:.3g}% of its values are below -{NEGATIVE_LIMIT:g} x the white "
                          f"level (down to {float(image.min()):.3g}, white {white_level:.3g}): frames must be linear "
                          "light, at most noise below zero")
 
@@ -417,7 +417,7 @@ def check_dots_light(vdir: Path, dot_sum: np.ndarray, n_dots: int, white: np.nda
 CLIPPED_SHARE = 0.25
 
 
-def _nothing_decoded(vdir: Path, coverage: dict[str, int], clipped: float = 0.0) -> str:
+def nothing_decoded(vdir: Path, coverage: dict[str, int], clipped: float = 0.0) -> str:
     """One line for a view where no camera pixel decoded, with the reasons' shares; ``clipped``: the share of
     the fringe frames' values at an integer file's top code."""
     if clipped > CLIPPED_SHARE:
@@ -720,7 +720,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                     info["dots_light_share"] = round(check_dots_light(vdir, dot_sum, n_dots, proc.images["white"],
                                                                       proc.images["black"]), 4)
                 if not info["coverage"].get("VALID"):
-                    raise InputError(_nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values)))
+                    raise InputError(nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values)))
                 check_white_above_black(vdir, proc.images["white"], proc.images["black"], level * scale)
                 share = fringe_mean_share(_input_sets(proc, config), proc.images["white"], proc.images["black"],
                                           proc.corr.mask)

@@ -10,9 +10,10 @@ from pathlib import Path
 
 import numpy as np
 
-from sssphase_core.capture.importer import GAMMA_RANGE, MAX_SHIFTS
+from sssphase_core.capture.importer import GAMMA_RANGE
 from sssphase_core.errors import InputError
 from sssphase_core.processing.patterns import (
+    MAX_SHIFTS,
     PSPConfig,
     capture_plan,
     parse_projector_size,

@@ -45,6 +45,8 @@ def psp_from_plan(plan: dict[str, Any], path: Path) -> PSPConfig:
                          orientations=tuple(psp.get("orientations", ("x", "y"))))
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(f"{path}: its psp configuration is incomplete or of the wrong type ({type(exc).__name__}: {exc})") from None
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
 
 
 class _OneCamera(FrameLoader):

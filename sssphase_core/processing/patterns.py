@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import math
+import numbers
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal
@@ -28,6 +29,8 @@ REFERENCE_NAMES = ("white", "black", "checkerboard", "stripes_x", "stripes_y")
 
 
 MAX_SIDE = 16384  # largest projector side a plan or a frame spec may name
+MAX_SHIFTS = 32  # most phase shifts per fringe set a plan, an import or the decoder takes
+MAX_UNWRAP_LEVELS = 16  # most unwrapping periods (a 16384 px side needs 4 at MAX_PERIOD_RATIO)
 
 
 def _check_size(width: int, height: int) -> None:
@@ -175,11 +178,21 @@ class PSPConfig:
     orientations: tuple[str, ...] = ORIENTATIONS
 
     def __post_init__(self) -> None:
-        if not self.period > 0:
-            raise InputError(f"fringe period must be positive, got {self.period}")
+        if isinstance(self.period, bool) or not isinstance(self.period, numbers.Real) or not 0 < self.period < math.inf:
+            raise InputError(f"fringe period must be a positive number, got {self.period!r}")
+        if isinstance(self.n_shifts, bool) or not isinstance(self.n_shifts, numbers.Integral):
+            raise InputError(f"the number of phase shifts must be an integer, got {self.n_shifts!r}")
         if self.n_shifts < 3:
             raise InputError(f"phase shifting needs at least 3 shifts, got {self.n_shifts}")
+        if self.n_shifts > MAX_SHIFTS:
+            raise InputError(f"phase shifting takes at most {MAX_SHIFTS} shifts, got {self.n_shifts}")
+        if len(self.unwrap_periods) > MAX_UNWRAP_LEVELS:
+            raise InputError(f"at most {MAX_UNWRAP_LEVELS} unwrapping periods, got {len(self.unwrap_periods)}")
+        if not all(isinstance(p, numbers.Real) and not isinstance(p, bool) for p in self.unwrap_periods):
+            raise InputError(f"unwrap periods must be numbers, got {list(self.unwrap_periods)[:4]}")
         periods = tuple(sorted((float(p) for p in self.unwrap_periods), reverse=True))
+        if not all(math.isfinite(p) for p in periods):
+            raise InputError(f"unwrap periods must be finite, got {self.unwrap_periods}")
         if any(p <= self.period for p in periods) or len(set(periods)) != len(periods):
             raise InputError(f"unwrap periods must be distinct and longer than {self.period}, got {self.unwrap_periods}")
         object.__setattr__(self, "unwrap_periods", periods)

@@ -4,6 +4,7 @@ as maps (``.npy``), viewable figures and ``decode.json``."""
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -11,6 +12,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from sssphase_core.capture.importer import nothing_decoded
 from sssphase_core.capture.psp_folder import FrameProgress, PspFolder, read_psp_folder
 from sssphase_core.errors import InputError
 from sssphase_core.processing.patterns import psp_key
@@ -45,11 +47,16 @@ def decode_folder(folder: Path, out: Path, *, projector: str | None = None, min_
     ``out``: ``xp, yp, mask, reason, modulation, offset, modulation_ratio`` as ``.npy``, their figures and
     the wrapped phases as PNGs, and ``decode.json`` (projector size, PSP configuration, coverage).
     ``bayer``: the frames were demosaiced from a sensor of that layout (silhouette pixels only demosaicing lit
-    are dropped). ``report(line)`` is told when float frames were scaled to camera units."""
+    are dropped). ``report(line)`` is told when float frames were scaled to camera units. Where no pixel
+    decodes, the maps and figures are written and an :class:`InputError` says why."""
     from sssphase_core.processing.isp import check_layout
 
     if not folder.is_dir():
         raise InputError(f"{folder} is not a folder")
+    if not (math.isfinite(min_modulation) and min_modulation >= 0):  # before the frames are read
+        raise InputError(f"--min-modulation must be a finite number >= 0, got {min_modulation!r}")
+    if saturation is not None and not (math.isfinite(saturation) and saturation > 0):
+        raise InputError(f"--saturation must be a positive finite level in the frames' units, got {saturation!r}")
     if bayer is not None:
         bayer = check_layout(bayer.upper())
     check_output_folder(out)
@@ -72,6 +79,8 @@ def decode_folder(folder: Path, out: Path, *, projector: str | None = None, min_
     summary = {"projector": list(view.size), "psp": {"period": config.period, "n_shifts": config.n_shifts,
                "unwrap_periods": list(config.unwrap_periods)}, "coverage": coverage}
     write_text(out / "decode.json", json.dumps(summary, indent=1) + "\n")
+    if not coverage.get("VALID"):  # the maps and figures stay: they show why
+        raise InputError(f"{nothing_decoded(folder, coverage)} (the maps and figures in {out} show where)")
     return DecodedFolder(out, corr, coverage)
 
 

@@ -94,7 +94,9 @@ def test_decode_reads_exr_in_the_patterns_folder_layout_and_never_calls_float_li
         Image.fromarray(np.round(np.clip(light, 0, 1) * 255).astype(np.uint8)).save(png_dir / f"{key}.png")
     for folder in (exr_dir, png_dir):
         (folder / "plan.json").write_text((pat_dir / "plan.json").read_text())
-        _run("decode", str(folder), "--out", str(tmp_path / f"out_{folder.name}"))
+    _run("decode", str(exr_dir), "--out", str(tmp_path / "out_exr"))
+    res = runner.invoke(_app(), ["decode", str(png_dir), "--out", str(tmp_path / "out_png")])
+    assert "no camera pixel decoded (100% saturated)" in str(res.exception), res.output
     xp, mask = (np.load(tmp_path / "out_exr" / f"{n}.npy") for n in ("xp", "mask"))
     assert mask.all() and np.abs(xp - np.mgrid[:60, :80][1]).max() < 0.15
     coverage = json.loads((tmp_path / "out_png" / "decode.json").read_text())["coverage"]
@@ -147,7 +149,7 @@ def test_decode_names_the_odd_frame_ignores_other_images_and_refuses_nan_thresho
     Image.fromarray(np.zeros((8, 8), np.uint8)).save(tmp_path / "patterns" / "holiday.png")  # not a frame: skipped
     _run("decode", str(pat_dir), "--out", str(tmp_path / "dec"))  # a rerun into the same folder replaces its maps
     _run("decode", str(pat_dir), "--out", str(tmp_path / "dec"))
-    with pytest.raises(InputError, match="min_modulation must be a finite number"):
+    with pytest.raises(InputError, match="--min-modulation must be a finite number"):
         runner.invoke(_app(), ["decode", str(pat_dir), "--out", str(tmp_path / "o"), "--min-modulation", "nan"],
                       catch_exceptions=False)
     odd = next((pat_dir / "psp" / "y").rglob("s2.png"))
@@ -209,6 +211,13 @@ def test_decode_with_bayer_drops_the_silhouette_pixels_only_demosaicing_lit(tmp_
     ('{"projector": [64, 48, 3]}', "plan.projector must be [width, height]"),
     ('{"projector": [-64, 48]}', "plan.projector must be [width, height]"),
     ('{"projector": [80, 60], "psp": {"period": 11, "n_shifts": 4}}', "its psp configuration is incomplete"),
+    # a billion shifts built a billion frame names before anything was refused (hours, or out of memory)
+    ('{"projector": [80, 60], "psp": {"period": 11, "n_shifts": 1000000000, "unwrap_periods": [88]}}',
+     "phase shifting takes at most 32 shifts, got 1000000000"),
+    ('{"projector": [80, 60], "psp": {"period": 11, "n_shifts": 4.5, "unwrap_periods": [88]}}',
+     "the number of phase shifts must be an integer, got 4.5"),
+    (json.dumps({"projector": [80, 60], "psp": {"period": 11, "n_shifts": 4, "unwrap_periods": list(range(12, 112, 5))}}),
+     "at most 16 unwrapping periods, got 20"),
 ])
 def test_decode_names_a_broken_plan_json_in_one_line(tmp_path, text, expected):
     """A hand-edited plan.json was an internal error (KeyError, JSONDecodeError ...) or decoded nothing."""
@@ -249,3 +258,22 @@ def test_decode_without_a_plan_reads_the_shift_count_from_the_names_and_scales_f
     yy, xx = np.mgrid[:60, :80]
     assert mask.all() and np.abs(xp - xx).max() < 0.15 and np.abs(yp - yy).max() < 0.15
     assert json.loads((out_dir / "decode.json").read_text())["psp"]["n_shifts"] == 5
+
+
+def test_decode_where_nothing_decodes_keeps_its_figures_and_says_why(tmp_path):
+    """Frames with no fringe left (all at one level) decoded "0 of N pixels" with exit code 0, where
+    `sss import` refuses the same frames; a threshold above every modulation likewise."""
+    pat_dir = tmp_path / "patterns"
+    _run("patterns", "--projector", "80x60", "--out", str(pat_dir))
+    for name in ("flat", "lit"):
+        (tmp_path / name).mkdir()
+    for key, light in _captures_of(pat_dir, 1.0):
+        np.save(tmp_path / "flat" / (key.replace("/", "__") + ".npy"), np.full_like(light, 0.5))
+        np.save(tmp_path / "lit" / (key.replace("/", "__") + ".npy"), light)
+    for folder, extra in ((tmp_path / "flat", []), (tmp_path / "lit", ["--min-modulation", "1e9"])):
+        out = tmp_path / f"out_{folder.name}"
+        done = run_sss(["decode", str(folder), "--projector", "80x60", "--out", str(out), *extra])
+        assert done.returncode == 2 and "Traceback" not in done.stderr, done.stdout + done.stderr
+        line = done.stderr.strip().splitlines()[-1]
+        assert "no camera pixel decoded (100% low modulation)" in line and f"figures in {out}" in line, line
+        assert (out / "reason.png").is_file() and (out / "decode.json").is_file()
