@@ -951,6 +951,40 @@ def test_eval_counts_a_session_once_and_refuses_two_sessions_of_one_object(intac
     assert not (tmp_path / "e").exists()
 
 
+@pytest.mark.parametrize("status", [None, "[bold red]done[/]\x1b[2J", ["complete"]])
+def test_a_view_status_a_manifest_should_not_hold_is_named_as_unknown(intact_session, tmp_path, status):
+    """A hand-edited status (null, terminal markup and control characters, a list) was printed as it was:
+    "view 0: None"."""
+    import json
+
+    copy = tmp_path / "leaf"
+    shutil.copytree(intact_session, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["views"]["0"]["status"] = status
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    _one_line(_cli("relight", str(copy), "--pattern", "checkerboard", "--backend", "none", "--out", str(tmp_path / "r")),
+              f"session {copy} has no complete view (view 0: an unknown status)")
+    res = _cli("validate", str(copy))
+    assert res.returncode != 0 and "view 0: an unknown status (not captured completely" in res.stdout + res.stderr
+
+
+def test_an_export_stopped_by_damage_leaves_the_earlier_export_whole(intact_session, tmp_path):
+    """A damaged array stopped `sss export` half-way through a view, leaving a folder of some of its files
+    that looked complete."""
+    copy = tmp_path / "sessions" / "leaf"
+    shutil.copytree(intact_session, copy)
+    out = tmp_path / "export"
+    assert _cli("export", str(copy), "--out", str(out)).returncode == 0
+    before = {p: p.read_bytes() for p in sorted((out / "leaf").rglob("*")) if p.is_file()}
+    DAMAGE["chunk truncated"](copy / "view_000")
+    _one_line(_cli("export", str(copy), "--out", str(out)), "array psp of view 0")
+    assert {p: p.read_bytes() for p in sorted((out / "leaf").rglob("*")) if p.is_file()} == before
+    assert sorted(p.name for p in (out / "leaf").iterdir()) == ["view_000"]  # no temporary folder left
+    shutil.rmtree(out)
+    _one_line(_cli("export", str(copy), "--out", str(out)), "array psp of view 0")
+    assert not (out / "leaf" / "view_000").exists()
+
+
 def test_export_never_writes_into_a_session(intact_session, tmp_path):
     """`sss export S --out <the folder holding S>` put its EXRs inside the session's array folders."""
     copy = tmp_path / "sessions" / "leaf"

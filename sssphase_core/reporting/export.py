@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from sssphase_core.store.exr import write_exr
-from sssphase_core.store.files import write_text
+from sssphase_core.store.files import atomic_folder, write_text
 from sssphase_core.store.session import Session, view_dir_name
 
 
@@ -73,8 +73,12 @@ def _psp_keys(session: Session) -> list[str] | None:
 
 
 def export_session(session: Session, out: Path, views: list[int] | None = None) -> list[Path]:
-    """Export ``views`` (default: all complete views) of ``session`` to ``out/<object>/view_NNN``."""
+    """Export ``views`` (default: all complete views) of ``session`` to ``out/<object>/view_NNN``, each view's
+    folder whole or not at all (a damaged array leaves an earlier export of that view as it was)."""
     written: list[Path] = []
     for view in views if views is not None else session.views():
-        written += export_view(session, view, Path(out) / session.name / view_dir_name(view))
+        final = Path(out) / session.name / view_dir_name(view)
+        with atomic_folder(final) as tmp:
+            files = export_view(session, view, tmp)
+        written += [final / f.relative_to(tmp) for f in files]
     return written

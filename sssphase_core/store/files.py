@@ -39,6 +39,31 @@ def atomic_path(path: Path | str, suffix: str = "") -> Iterator[Path]:
             tmp.unlink()
 
 
+@contextlib.contextmanager
+def atomic_folder(path: Path | str) -> Iterator[Path]:
+    """:func:`atomic_path` for a folder: a temporary folder beside ``path`` to fill; it replaces ``path`` (a
+    folder from before is removed) when the block ends without error, its files on the disk first, and is
+    removed when the block raises, ``path`` as it was. A crash between the two renames leaves the old folder
+    under a ``.old`` name beside it, not a half-written one under ``path``."""
+    import shutil
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tag = f"{os.getpid()}-{secrets.token_hex(3)}"
+    tmp, old = (path.with_name(f".{path.name[:40]}.{tag}.{end}") for end in ("tmp", "old"))
+    tmp.mkdir()
+    try:
+        yield tmp
+        sync_tree(tmp)
+        if path.is_dir() and not path.is_symlink():
+            os.replace(path, old)
+        os.replace(tmp, path)
+        sync(path.parent)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        shutil.rmtree(old, ignore_errors=True)
+
+
 def sync(path: Path | str) -> None:
     """Flush a file's data, or a folder's entries, to the disk (``fsync``). File systems that cannot
     (some network and FUSE mounts answer EINVAL) are left as they are."""

@@ -36,6 +36,8 @@ MANIFEST = "manifest.json"
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
 ARRAY_RE = re.compile(r"^[a-z][a-z0-9_]*(/[A-Za-z0-9][A-Za-z0-9_.-]*){0,2}$")
 REQUIRED = ("psp", "white", "black", "corr/xp", "corr/yp", "corr/mask", "corr/reason")
+#: The states a view passes through in a manifest (``complete``: every array written and checked).
+VIEW_STATES = ("pending", "capturing", "interrupted", "complete")
 FAULT_HOOK: Callable[[str], None] | None = None
 
 
@@ -536,7 +538,10 @@ class Session:
         self.save()
 
     def status(self, view: int) -> str:
-        return self.manifest["views"].get(str(view), {}).get("status", "pending")
+        """``pending``, ``capturing``, ``interrupted`` or ``complete``; anything else a manifest holds is named as
+        such (it is printed in messages: no markup or control characters from a file reach the terminal)."""
+        status = self.manifest["views"].get(str(view), {}).get("status", "pending")
+        return status if status in VIEW_STATES else "an unknown status"
 
     def views(self) -> list[int]:
         """Complete views, in order."""
