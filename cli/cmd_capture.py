@@ -144,7 +144,7 @@ def import_images(
                       "--encoding linear reads the codes as light)")
     scale = rig.get("frame_scale", 1.0)
     if scale != 1.0:
-        console.print(f"float frames far from camera units: scaled by {scale:.4g}, which puts the white capture's "
+        console.print(f"frames in linear units far from the camera's (float, or integers wider than 16 bits): scaled by {scale:.4g}, which puts the white capture's "
                       "99.9th percentile at 1 (the rig's frame_scale in the manifest)")
     console.print(f"imported {len(session.views())} view(s) into {session.path}")
 

@@ -222,6 +222,8 @@ class CaptureRequest:
         reference_keys(self.references)
         for ref in self.references:
             if ref not in REFERENCE_NAMES:  # an unreadable file or values outside [0, 1]: one line before a daemon starts
+                if not Path(ref).exists():  # a misspelt name, most likely
+                    raise InputError(f"--reference {ref!r} is neither an image file nor one of {', '.join(REFERENCE_NAMES)}")
                 h, w = frame_shape(Path(ref))[:2]
                 if w * h > MAX_FRAME_PIXELS:
                     raise InputError(f"--reference {ref} is {w}x{h}: larger than any projector (scale it down first)")

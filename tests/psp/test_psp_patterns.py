@@ -149,6 +149,14 @@ def test_unknown_reference_rejected():
         capture_plan(32, 24, references=["zebra"])
 
 
+def test_a_capture_reference_that_is_no_file_lists_the_named_patterns(tmp_path):
+    """`sss capture --reference checkerbaord` said only "cannot read checkerbaord: No such file"."""
+    from sssphase_core.capture import CaptureRequest, RigSpec
+
+    with pytest.raises(InputError, match="'checkerbaord' is neither an image file nor one of white, black, checkerboard"):
+        CaptureRequest.from_options("apple", RigSpec(), references=["checkerbaord"], out=tmp_path / "s")
+
+
 def test_checkerboard_and_stripes():
     cb = checkerboard(8, 6, 2)
     assert cb[0, 0] == 1 and cb[0, 2] == 0 and cb[2, 0] == 0 and cb[2, 2] == 1
