@@ -23,6 +23,7 @@ if that fails the grab raises a :class:`DeviceError`.
 from __future__ import annotations
 
 import datetime
+import os
 import time
 from collections.abc import Callable, Iterator, Mapping
 from typing import Any
@@ -38,7 +39,16 @@ PLUGIN = "oak"
 EXPOSURE_TOLERANCE = 0.05
 
 
+#: Set (unless the user set them) before depthai is imported: its telemetry looks up a server's address on
+#: every import (a DNS query seen with strace on depthai 3.12 without an OAK attached; gone with
+#: ``DEPTHAI_TELEMETRY=0``), and its start-up notifications are fetched from the web. The daemon makes no
+#: connection beyond the rig: discovery still broadcasts on the local network for OAK PoE cameras.
+DEPTHAI_OFFLINE = {"DEPTHAI_TELEMETRY": "0", "DEPTHAI_DISABLE_STARTUP_NOTIFICATIONS": "1"}
+
+
 def _dai():
+    for name, value in DEPTHAI_OFFLINE.items():
+        os.environ.setdefault(name, value)
     return optional_import("depthai", "depthai", "depthai")
 
 

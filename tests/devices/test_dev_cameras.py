@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 from dev_fakes import FakeCapture, FakeDepthai
@@ -113,3 +117,14 @@ def test_oak_real_depthai_without_device():
     pytest.importorskip("depthai")
     with pytest.raises(DeviceNotFound, match="no device found: depthai sees no OAK"):
         oak_camera.OakProvider().discover()
+
+
+def test_depthai_is_imported_with_its_telemetry_off_unless_the_user_set_it(tmp_path):
+    """depthai 3 looks up its telemetry server on import (a DNS query): the plugin turns that off first."""
+    pytest.importorskip("depthai")
+    code = ("import os\nfrom sssphase_plugins import oak_camera\ntry:\n    oak_camera.OakProvider().discover()\n"
+            "except Exception:\n    pass\nprint(os.environ['DEPTHAI_TELEMETRY'], os.environ['DEPTHAI_DISABLE_STARTUP_NOTIFICATIONS'])")
+    env = {k: v for k, v in os.environ.items() if not k.startswith("DEPTHAI_")} | {"HOME": str(tmp_path)}
+    for preset, expected in (({}, ["0", "1"]), ({"DEPTHAI_TELEMETRY": "1"}, ["1", "1"])):
+        done = subprocess.run([sys.executable, "-c", code], env=env | preset, capture_output=True, text=True, timeout=120)
+        assert done.stdout.split()[-2:] == expected, done.stdout + done.stderr
