@@ -43,10 +43,10 @@ def psp_from_plan(plan: dict[str, Any], path: Path) -> PSPConfig:
     try:
         return PSPConfig(period=psp["period"], n_shifts=psp["n_shifts"], unwrap_periods=tuple(psp["unwrap_periods"]),
                          orientations=tuple(psp.get("orientations", ("x", "y"))))
+    except InputError as exc:  # (a ValueError too) a value out of its range: named as it is
+        raise InputError(f"{path}: {exc}") from None
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(f"{path}: its psp configuration is incomplete or of the wrong type ({type(exc).__name__}: {exc})") from None
-    except InputError as exc:
-        raise InputError(f"{path}: {exc}") from None
 
 
 class _OneCamera(FrameLoader):

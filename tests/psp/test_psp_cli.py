@@ -213,11 +213,11 @@ def test_decode_with_bayer_drops_the_silhouette_pixels_only_demosaicing_lit(tmp_
     ('{"projector": [80, 60], "psp": {"period": 11, "n_shifts": 4}}', "its psp configuration is incomplete"),
     # a billion shifts built a billion frame names before anything was refused (hours, or out of memory)
     ('{"projector": [80, 60], "psp": {"period": 11, "n_shifts": 1000000000, "unwrap_periods": [88]}}',
-     "phase shifting takes at most 32 shifts, got 1000000000"),
+     "plan.json: phase shifting takes at most 32 shifts, got 1000000000"),
     ('{"projector": [80, 60], "psp": {"period": 11, "n_shifts": 4.5, "unwrap_periods": [88]}}',
-     "the number of phase shifts must be an integer, got 4.5"),
+     "plan.json: the number of phase shifts must be an integer, got 4.5"),
     (json.dumps({"projector": [80, 60], "psp": {"period": 11, "n_shifts": 4, "unwrap_periods": list(range(12, 112, 5))}}),
-     "at most 16 unwrapping periods, got 20"),
+     "plan.json: at most 16 unwrapping periods, got 20"),
 ])
 def test_decode_names_a_broken_plan_json_in_one_line(tmp_path, text, expected):
     """A hand-edited plan.json was an internal error (KeyError, JSONDecodeError ...) or decoded nothing."""
