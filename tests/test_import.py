@@ -1133,3 +1133,14 @@ def test_frames_too_large_for_the_memory_are_refused_from_their_headers(tmp_path
     with pytest.raises(InputError, match=r"its 26 frames of 2400x1800 need about 4\.\d GiB to import, more than the 2\.0 GiB free"):
         import_folder(folder, tmp_path / "s", "big", (W, H))
     assert time.monotonic() - t0 < 2 and not (tmp_path / "s" / "big").exists()
+
+
+def test_frame_names_with_more_unwrapping_periods_than_any_plan_are_refused_naming_the_folder(tmp_path):
+    for o in "xy":
+        for period in (11, *range(20, 200, 10)):  # 18 unwrapping periods: a plan has at most 16
+            for shift in range(4):
+                np.save(tmp_path / f"psp__{o}__p{period}__s{shift}.npy", np.zeros((4, 4, 3), np.float32))
+    for name in ("white", "black"):
+        np.save(tmp_path / f"{name}.npy", np.zeros((4, 4, 3), np.float32))
+    with pytest.raises(InputError, match=f"{tmp_path}: its PSP frame names: at most 16 unwrapping periods, got 18"):
+        import_folder(tmp_path, tmp_path / "s", "o", (W, H), patch=K)

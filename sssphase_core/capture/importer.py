@@ -119,7 +119,10 @@ def psp_config_from_names(vdir: Path, keys: Iterable[str]) -> Any:
             raise InputError(f"{vdir}: the {o} orientation has no PSP frames at period {periods[0]:g}")
     if periods[0] <= 0:
         raise InputError(f"{vdir}: a PSP period must be positive")
-    return PSPConfig(period=periods[0], n_shifts=n, unwrap_periods=tuple(periods[1:]))
+    try:
+        return PSPConfig(period=periods[0], n_shifts=n, unwrap_periods=tuple(periods[1:]))
+    except InputError as exc:  # e.g. more unwrapping periods than any plan has
+        raise InputError(f"{vdir}: its PSP frame names: {exc}") from None
 
 
 #: The smallest white level (99.9th percentile of a white capture, file units) taken for light: below it
