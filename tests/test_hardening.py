@@ -50,6 +50,34 @@ def test_a_huge_pattern_is_refused_from_its_header(tmp_path):
         read_pattern(bomb, (256, 192), resize=True)
 
 
+def _tiff_header_only(path: Path, width: int, height: int) -> None:
+    """A little-endian 8-bit grey TIFF that claims ``width x height`` and holds no pixels."""
+    entries = [(256, 4, width), (257, 4, height), (258, 3, 8), (259, 3, 1), (262, 3, 1), (273, 4, 8 + 2 + 9 * 12 + 4),
+               (277, 3, 1), (278, 4, height), (279, 4, width * height)]
+    ifd = struct.pack("<H", len(entries)) + b"".join(struct.pack("<HHII", tag, kind, 1, value) for tag, kind, value in entries) + struct.pack("<I", 0)
+    path.write_bytes(b"II*\0" + struct.pack("<I", 8) + ifd + bytes(64))
+
+
+def test_a_tiff_bomb_is_one_line_wherever_it_is_read_and_pillows_guard_stays_on(intact_session, tmp_path):
+    """A 60000 x 60000 TIFF header raised Pillow's DecompressionBombError through `sss relight` ("internal
+    error") and the view's relight (a 500), unless a frame's size had been read before: that switched Pillow's
+    guard off for the whole process."""
+    from PIL import Image
+
+    from sssphase_core.relight import read_pattern
+    from sssphase_core.store.imageio import frame_shape, stores_integers
+
+    bomb = tmp_path / "bomb.tif"
+    _tiff_header_only(bomb, 60000, 60000)
+    for read in (lambda: read_pattern(bomb, (256, 192)), lambda: read_pattern(bomb, (256, 192), resize="fit"),
+                 lambda: frame_shape(bomb), lambda: stores_integers(bomb)):
+        with pytest.raises(InputError, match="refused without decoding it"):
+            read()
+    assert Image.MAX_IMAGE_PIXELS == 89478485  # Pillow's default guard, still on
+    _one_line(_cli("relight", str(intact_session), "--pattern", str(bomb), "--backend", "none", "--out",
+                   str(tmp_path / "r")), "far larger than the 256x192 projector: refused without decoding it")
+
+
 def test_a_4k_image_is_a_pattern_with_resize_and_refused_once_without(tmp_path):
     """A 3840 x 2160 screen image for the 256 x 192 projector was refused even with --resize, in a message that
     said itself twice ("cannot read pattern X: pattern X is ...")."""

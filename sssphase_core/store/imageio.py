@@ -240,6 +240,8 @@ def _pil_cannot_decode(path: Path) -> bool:
             warnings.simplefilter("ignore")  # a damaged TIFF directory: the header reader below says so
             with Image.open(path):
                 return False
+    except Image.DecompressionBombError:  # Pillow reads it; the caller refuses its size
+        return False
     except UnidentifiedImageError:
         return _tiff_directory(path) is not None
 
@@ -260,6 +262,16 @@ def _load_npy(path: Path, **kwargs) -> np.ndarray:
         if "pickle" in str(exc).lower() or "python objects" in str(exc).lower():  # numpy invites unsafe loading: never
             raise ValueError("not a numeric .npy array (pickled data, or not a .npy file at all; never loaded)") from None
         raise
+
+
+def _far_too_large(path: Path) -> InputError:
+    """The line for an image whose header declares more pixels than Pillow's decompression-bomb guard takes
+    (2 x ``Image.MAX_IMAGE_PIXELS``, 179 MP by default; every frame and pattern limit here is below it)."""
+    from PIL import Image
+
+    limit = 2 * (Image.MAX_IMAGE_PIXELS or 0) / 1e6
+    return InputError(f"{path} declares an image of over {limit:.0f} MP, far larger than any camera frame or pattern: "
+                      "refused without decoding it")
 
 
 def frame_shape(path: Path) -> tuple[int, ...]:
@@ -283,9 +295,14 @@ def frame_shape(path: Path) -> tuple[int, ...]:
             return (int(tags[257]), int(tags[256])) + ((channels,) if channels > 1 else ())
         from PIL import Image
 
-        Image.MAX_IMAGE_PIXELS = None  # our own limit below, on the header's size
-        with Image.open(path) as img:
-            (width, height), pages = img.size, int(getattr(img, "n_frames", 1))
+        try:
+            with warnings.catch_warnings(), Image.open(path) as img:
+                warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # the callers' own limits, on the size
+                (width, height), pages = img.size, int(getattr(img, "n_frames", 1))
+        except Image.DecompressionBombError:  # (Pillow's guard, left on for the whole process)
+            raise _far_too_large(path) from None
+    except InputError:
+        raise
     except (OSError, ValueError, SyntaxError, KeyError) as exc:
         raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
     if pages > 1:  # only the first page was read, without a word
@@ -311,6 +328,8 @@ def stores_integers(path: Path) -> bool:
             return 3 not in (formats if isinstance(formats, tuple) else (formats,))
         with Image.open(path) as img:
             return img.mode != "F"
+    except Image.DecompressionBombError:
+        raise _far_too_large(path) from None
     except (OSError, ValueError, SyntaxError) as exc:
         raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
 
@@ -399,6 +418,8 @@ def declared_encoding(path: Path) -> tuple[str, str]:
     try:
         with Image.open(path) as img:
             fmt, info = img.format, dict(img.info)
+    except Image.DecompressionBombError:
+        raise _far_too_large(path) from None
     except (OSError, ValueError, SyntaxError) as exc:
         raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
     if fmt == "JPEG":
