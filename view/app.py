@@ -20,25 +20,33 @@ import json
 import os
 import time
 from collections.abc import AsyncIterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from starlette.applications import Starlette
-from starlette.requests import Request
+from starlette.middleware import Middleware
+from starlette.middleware.trustedhost import TrustedHostMiddleware
+from starlette.requests import ClientDisconnect, Request
 from starlette.responses import FileResponse, HTMLResponse, JSONResponse, Response
 from starlette.routing import Route, WebSocketRoute
 from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from sssphase_core.capture.live import LIVE_PATTERNS
-from sssphase_core.errors import SssError
+from sssphase_core.errors import InputError, SssError
 from sssphase_core.relight.runner import Narrator
 from sssphase_core.store.files import write_bytes
 from sssphase_view.live import LiveRig, LiveSettings
 
 STATIC = Path(__file__).with_name("static")
 MAX_UPLOAD_BYTES = 32 << 20
+MAX_REQUEST_BYTES = 64 << 10  # a relight request is ~100 bytes; larger JSON bodies are refused while they stream
+MAX_MESSAGE_CHARS = 4096  # a live-settings message is ~100 characters
+MAX_PENDING_RELIGHTS = 4  # relights run one at a time on a thread of their own; more waiting are refused (429)
+MAX_LIVE_SOCKETS = 4  # live streams at once (each waits on the rig in a thread of the shared pool)
+MAX_VIEW_DIGITS = 9  # a view number in a URL (a 5000-digit one was a 500 in the router, before the token check)
 MAX_UPLOADS = 20  # uploads kept in ``--out``; the least recently used go first, with the images relit under them
 IMAGE_MAGIC = {b"\x89PNG": ".png", b"\xff\xd8\xff": ".jpg", b"II*\x00": ".tif", b"MM\x00*": ".tif", b"BM": ".bmp",
                b"v/1\x01": ".exr"}
@@ -56,6 +64,11 @@ class ViewState:
     live: LiveRig = field(default_factory=LiveRig)
     settings: LiveSettings = field(default_factory=LiveSettings)
     probes: dict[tuple[str, int], Any] = field(default_factory=dict)  # the clicked view and its model sources
+    #: relights run here, one at a time, so that they never queue the page's light requests (state, maps,
+    #: pixels) behind them in the shared thread pool
+    relights: ThreadPoolExecutor = field(default_factory=lambda: ThreadPoolExecutor(1, thread_name_prefix="relight"))
+    pending_relights: int = 0
+    live_sockets: int = 0
 
 
 def _png(image: np.ndarray) -> bytes:
@@ -131,10 +144,41 @@ def guarded(handler: Any) -> Any:
         if not _authorised(state, request.headers.get("x-token") or request.query_params.get("token")):
             return _problem("a valid token is required: open the URL `sss view` printed", 403)
         try:
-            return await handler(request, state)
+            response = await handler(request, state)
         except SssError as exc:
-            return _problem(str(exc))
+            response = _problem(str(exc), getattr(exc, "status", 400))
+        except ClientDisconnect:  # the page went away mid-body: nobody to answer
+            response = Response(status_code=499)
+        response.headers["X-Content-Type-Options"] = "nosniff"
+        return response
     return route
+
+
+def view_number(request: Request) -> int:
+    """The ``{view}`` path parameter as a view number (digits only, at most :data:`MAX_VIEW_DIGITS`)."""
+    from sssphase_core.errors import InputError
+
+    text = request.path_params["view"]
+    if not (text.isascii() and text.isdigit() and len(text) <= MAX_VIEW_DIGITS):
+        raise InputError(f"the view must be a view number, got {text[:20]!r}")
+    return int(text)
+
+
+class BodyTooLarge(InputError):
+    status = 413
+
+
+async def read_json(request: Request) -> Any:
+    """The request's JSON body, at most :data:`MAX_REQUEST_BYTES` (refused while it streams, not after)."""
+    body = bytearray()
+    async for chunk in request.stream():
+        body += chunk
+        if len(body) > MAX_REQUEST_BYTES:
+            raise BodyTooLarge(f"the request body is larger than {MAX_REQUEST_BYTES >> 10} kB")
+    try:
+        return json.loads(bytes(body))
+    except (ValueError, RecursionError):  # (JSONDecodeError, UnicodeDecodeError, a 5000-digit integer)
+        raise InputError("the request body must be JSON") from None
 
 
 # --- pages and sessions --------------------------------------------------------------------------------
@@ -146,12 +190,29 @@ async def index(request: Request, state: ViewState) -> Response:
     return HTMLResponse(html, headers={"Cache-Control": "no-store", "Referrer-Policy": "no-referrer"})
 
 
-def _sessions(state: ViewState) -> dict[str, Any]:
-    from sssphase_core.store.session import find_sessions
+def _scan(state: ViewState) -> tuple[dict[str, Any], dict[str, str]]:
+    """The sessions under ``--sessions`` by name, and the folders that could not be opened (folder name ->
+    why): one damaged or foreign folder does not hide the others. Two sessions of one object are named by
+    their folders (``soap``, ``soap2``), so that neither hides the other."""
+    from sssphase_core.store.session import MANIFEST, Session
 
-    if state.sessions is None or not state.sessions.exists():
-        return {}
-    return {s.name: s for s in find_sessions([state.sessions])}
+    if state.sessions is None or not state.sessions.is_dir():
+        return {}, {}
+    folders = [state.sessions] if (state.sessions / MANIFEST).exists() else \
+        sorted(m.parent for m in state.sessions.glob(f"*/{MANIFEST}"))
+    opened, damaged = [], {}
+    for folder in folders:
+        try:
+            opened.append(Session.open(folder))
+        except (SssError, OSError) as exc:
+            damaged[folder.name] = str(exc)
+    names = [s.name for s in opened]
+    found = {(s.name if names.count(s.name) == 1 else s.path.name): s for s in opened}
+    return found, damaged
+
+
+def _sessions(state: ViewState) -> dict[str, Any]:
+    return _scan(state)[0]
 
 
 def _session(state: ViewState, name: str) -> Any:
@@ -167,7 +228,8 @@ async def api_state(request: Request, state: ViewState) -> Response:
     from sssphase_core.relight.choices import BLENDS, MODEL_FREE  # none, exact, measured; blend
 
     sessions = []
-    for name, s in (await asyncio.to_thread(_sessions, state)).items():
+    found, damaged = await asyncio.to_thread(_scan, state)
+    for name, s in found.items():
         views = []
         for v in s.views():
             arrays = s.arrays(v)
@@ -175,7 +237,7 @@ async def api_state(request: Request, state: ViewState) -> Response:
                           "crops": "transport/crops" in arrays or "footprints/crops" in arrays, "simulated": "gt/proj_xy" in arrays})
         sessions.append({"name": name, "object": s.objects[0] if s.objects else name, "views": views})
     backends = ["analytic", *MODEL_FREE, *BLENDS, "torch"]  # (the page leaves out those that need a decoder without one)
-    return JSONResponse({"sessions": sessions, "patterns": [*LIVE_PATTERNS, "psp"], "backends": backends,
+    return JSONResponse({"sessions": sessions, "damaged": damaged, "patterns": [*LIVE_PATTERNS, "psp"], "backends": backends,
                          "checkpoint": str(state.checkpoint) if state.checkpoint else None,
                          "relight_patterns": ["checkerboard", "stripes_x", "stripes_y"]})
 
@@ -190,7 +252,7 @@ async def session_map(request: Request, state: ViewState) -> Response:
 
     def render() -> tuple[bytes, float, float]:
         s = _session(state, request.path_params["name"])
-        view = int(request.path_params["view"])
+        view = view_number(request)
         if view not in s.views():
             from sssphase_core.errors import InputError
 
@@ -235,10 +297,10 @@ async def session_pixel(request: Request, state: ViewState) -> Response:
 
     def run() -> dict[str, Any]:
         s = _session(state, request.path_params["name"])
-        view = int(request.path_params["view"])
+        view = view_number(request)
         if view not in s.views():
             raise InputError(f"{s.name} has no complete view {view} (has {s.views()})")
-        key = (s.name, view)
+        key = (str(s.path), view)
         if key not in state.probes:  # the view and its model sources, kept for the next click
             state.probes.clear()
             state.probes[key] = (load_view(s, view), {})
@@ -318,10 +380,7 @@ async def relight(request: Request, state: ViewState) -> Response:
     from sssphase_core.processing.patterns import REFERENCE_NAMES
     from sssphase_core.relight.runner import relight_session
 
-    try:
-        args = await request.json()
-    except (json.JSONDecodeError, RecursionError, UnicodeDecodeError):
-        return _problem("the request body must be JSON")
+    args = await read_json(request)
     if not isinstance(args, dict):
         return _problem("the request body must be a JSON object")
     pattern = str(args.get("pattern", ""))
@@ -354,7 +413,13 @@ async def relight(request: Request, state: ViewState) -> Response:
                                  narrator=notes)
         return result, time.perf_counter() - t0
 
-    result, seconds = await asyncio.to_thread(run)
+    if state.pending_relights >= MAX_PENDING_RELIGHTS:
+        return _problem(f"{state.pending_relights} relights are waiting: try again when they have finished", 429)
+    state.pending_relights += 1  # (the event loop's thread alone counts)
+    try:
+        result, seconds = await asyncio.get_running_loop().run_in_executor(state.relights, run)
+    finally:
+        state.pending_relights -= 1
     (item,) = result.images
     files = {("display" if p.stem.endswith("_display") else p.suffix[1:]): f"/api/files/relit/{p.name}" for p in item.paths}
     return _json({"backend": result.backend, "pattern": item.pattern, "files": files, "metrics": item.metrics,
@@ -403,7 +468,11 @@ async def live_socket(websocket: WebSocket) -> None:
     if not _authorised(state, websocket.query_params.get("token")):
         await websocket.close(code=4403)
         return
+    if state.live_sockets >= MAX_LIVE_SOCKETS:
+        await websocket.close(code=1013, reason=f"{MAX_LIVE_SOCKETS} live views are open already")  # try again later
+        return
     await websocket.accept()
+    state.live_sockets += 1
     settings = state.settings
     receiving = asyncio.create_task(_receive_settings(websocket, settings, state))
     last = time.perf_counter()
@@ -433,16 +502,24 @@ async def live_socket(websocket: WebSocket) -> None:
         pass
     finally:
         receiving.cancel()
+        state.live_sockets -= 1
 
 
 async def _receive_settings(websocket: WebSocket, settings: LiveSettings, state: ViewState) -> None:
     while True:
         try:
-            message = json.loads(await websocket.receive_text())
-        except (json.JSONDecodeError, TypeError):
-            continue
-        except WebSocketDisconnect:
+            received = await websocket.receive()
+        except (WebSocketDisconnect, RuntimeError):
             return
+        if received.get("type") == "websocket.disconnect":
+            return
+        text = received.get("text")  # a binary frame, or a message far longer than a setting: ignored
+        if not isinstance(text, str) or len(text) > MAX_MESSAGE_CHARS:
+            continue
+        try:
+            message = json.loads(text)
+        except (ValueError, RecursionError, TypeError):  # not JSON, nested too deep, a 5000-digit number
+            continue
         if not isinstance(message, dict):
             continue
         if "exposure" in message and isinstance(message["exposure"], int | float) and 1e-3 <= message["exposure"] <= 1e3:
@@ -472,13 +549,14 @@ def _decode_message(decoded: Any, white: np.ndarray, seconds: float) -> dict[str
             "mask_png": base64.b64encode(_png(mask_rgb)).decode(), "modulation_png": base64.b64encode(modulation).decode()}
 
 
-def build_app(state: ViewState) -> Starlette:
-    """The ASGI application serving ``state``."""
+def build_app(state: ViewState, *, hosts: list[str] | None = None) -> Starlette:
+    """The ASGI application serving ``state``; with ``hosts``, requests naming another host (``Host:``) are
+    refused, which keeps a web page that re-points its own name at 127.0.0.1 (DNS rebinding) off the view."""
     routes = [
         Route("/", guarded(index)),
         Route("/api/state", guarded(api_state)),
-        Route("/api/sessions/{name}/{view:int}/map/{kind}.png", guarded(session_map)),
-        Route("/api/sessions/{name}/{view:int}/pixel", guarded(session_pixel)),
+        Route("/api/sessions/{name}/{view}/map/{kind}.png", guarded(session_map)),
+        Route("/api/sessions/{name}/{view}/pixel", guarded(session_pixel)),
         Route("/api/live/pixel", guarded(live_pixel)),
         Route("/api/upload", guarded(upload), methods=["POST"]),
         Route("/api/relight", guarded(relight), methods=["POST"]),
@@ -488,8 +566,10 @@ def build_app(state: ViewState) -> Starlette:
     @contextlib.asynccontextmanager
     async def lifespan(app: Starlette) -> AsyncIterator[None]:
         yield
+        state.relights.shutdown(wait=False, cancel_futures=True)
         await asyncio.to_thread(state.live.close)  # the rig closed, the daemon this started stopped
 
-    app = Starlette(routes=routes, lifespan=lifespan)
+    middleware = [Middleware(TrustedHostMiddleware, allowed_hosts=hosts)] if hosts else []
+    app = Starlette(routes=routes, lifespan=lifespan, middleware=middleware)
     app.state.view = state
     return app

@@ -63,7 +63,9 @@ def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = Non
     bound = sock.getsockname()[1]
     shown = f"[{host}]" if ":" in host else host
     url = f"http://{shown}:{bound}/?token={state.token}"
-    config = uvicorn.Config(build_app(state), log_level="warning", ws="websockets-sansio", lifespan="on")
+    # On loopback the page is reached as 127.0.0.1 or localhost only (IPv6 hosts: Starlette's check cannot parse them)
+    hosts = sorted({host, "127.0.0.1", "localhost"}) if not allow_remote and ":" not in host else None
+    config = uvicorn.Config(build_app(state, hosts=hosts), log_level="warning", ws="websockets-sansio", lifespan="on")
     server = uvicorn.Server(config)
     if on_ready is not None:
         on_ready(url)

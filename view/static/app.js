@@ -270,5 +270,7 @@ $("relight-button").onclick = async () => {
     views($("relight-session"), $("relight-view"));
     showMap();
     connectLive();
+    const damaged = Object.entries(info.damaged || {});
+    if (damaged.length) say(`left out (cannot be opened): ${damaged.map(([name, why]) => `${name}: ${why}`).join("; ")}`);
   } catch (e) { say(e.message); }
 })();
