@@ -324,7 +324,7 @@ def _upload_path(state: ViewState, name: str) -> Path:
     folder = state.out / "uploads"
     path = folder / name
     try:
-        given = path.parent == folder and path.is_file()  # names the server gave, nothing else
+        given = path.parent == folder and path.is_file() and not path.is_symlink()  # names the server gave, nothing else
     except (OSError, ValueError):  # a NUL byte, an overlong name
         given = False
     if not given:

@@ -444,3 +444,11 @@ def test_the_view_keeps_the_most_recently_used_uploads_and_forgets_the_rest(serv
     assert not list(relit.glob(f"*_{Path(second).stem}_*")) and list(relit.glob(f"*_{Path(first).stem}_*"))
     status, answer = relight(second)
     assert status == 400 and "upload it again" in answer["error"]
+    planted = served["root"] / "out" / "uploads" / "upload_planted000.png"  # a link to an image outside --out
+    cv2.imwrite(str(served["root"] / "outside.png"), np.full((192, 256), 255, np.uint8))
+    planted.symlink_to(served["root"] / "outside.png")
+    try:
+        status, answer = relight(planted.name)
+        assert status == 400 and "no uploaded pattern" in answer["error"]
+    finally:
+        planted.unlink()
