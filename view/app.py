@@ -156,8 +156,6 @@ def guarded(handler: Any) -> Any:
 
 def view_number(request: Request) -> int:
     """The ``{view}`` path parameter as a view number (digits only, at most :data:`MAX_VIEW_DIGITS`)."""
-    from sssphase_core.errors import InputError
-
     text = request.path_params["view"]
     if not (text.isascii() and text.isdigit() and len(text) <= MAX_VIEW_DIGITS):
         raise InputError(f"the view must be a view number, got {text[:20]!r}")
@@ -216,8 +214,6 @@ def _sessions(state: ViewState) -> dict[str, Any]:
 
 
 def _session(state: ViewState, name: str) -> Any:
-    from sssphase_core.errors import InputError
-
     found = _sessions(state)
     if name not in found:  # names only: '../x' or an absolute path is never a path here
         raise InputError(f"no session {name!r} under {state.sessions} (known: {', '.join(found) or 'none'})")
@@ -254,8 +250,6 @@ async def session_map(request: Request, state: ViewState) -> Response:
         s = _session(state, request.path_params["name"])
         view = view_number(request)
         if view not in s.views():
-            from sssphase_core.errors import InputError
-
             raise InputError(f"{s.name} has no complete view {view} (has {s.views()})")
         mask = s.load(view, "corr/mask").astype(bool)
         if kind == "white":
@@ -286,7 +280,6 @@ def _mosaic(tiles: list[np.ndarray], log: bool) -> bytes:
 
 async def session_pixel(request: Request, state: ViewState) -> Response:
     """A clicked pixel: its PSP patch (the 8 frames) and its footprints from every source, log scale."""
-    from sssphase_core.errors import InputError
     from sssphase_core.relight.probe import probe_pixel
     from sssphase_core.relight.views import load_view
 
@@ -319,8 +312,6 @@ async def session_pixel(request: Request, state: ViewState) -> Response:
 
 
 def _upload_path(state: ViewState, name: str) -> Path:
-    from sssphase_core.errors import InputError
-
     folder = state.out / "uploads"
     path = folder / name
     try:
@@ -394,8 +385,6 @@ async def relight(request: Request, state: ViewState) -> Response:
     def pattern_spec(s: Any) -> str:
         """An uploaded pattern's file, or a pattern's name: the view's own references and the named ones. Never
         a path the page gives: any image the server can read would be relit and served."""
-        from sssphase_core.errors import InputError
-
         if pattern.startswith("upload_"):
             return str(_upload_path(state, pattern))
         own = [k[4:] for k in s.arrays(view) if k.startswith("ref/")] if view in s.views() else []
