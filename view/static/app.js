@@ -270,7 +270,7 @@ $("relight-button").onclick = async () => {
     views($("relight-session"), $("relight-view"));
     showMap();
     connectLive();
-    const damaged = Object.entries(info.damaged || {});
-    if (damaged.length) say(`left out (cannot be opened): ${damaged.map(([name, why]) => `${name}: ${why}`).join("; ")}`);
+    const damaged = Object.entries(info.damaged || {});  // listed beside the sessions, not as a passing message
+    $("damaged").textContent = damaged.length ? `left out, cannot be opened:\n${damaged.map(([name, why]) => `${name}: ${why}`).join("\n")}` : "";
   } catch (e) { say(e.message); }
 })();
