@@ -13,6 +13,55 @@ from sssphase_core.errors import InputError
 from sssphase_view.app import ViewState, build_app
 from sssphase_view.live import LiveRig
 
+#: Seconds a connection may take to send a whole request line and headers (its first request, or the next on a
+#: kept-alive connection). uvicorn has no such limit: connections that never finished a request were held until
+#: the client closed them, and ~20,000 of them (the file-descriptor limit) kept the page from being served.
+REQUEST_HEAD_S = 10.0
+
+
+def _head_deadline_protocol() -> type:
+    """uvicorn's h11 protocol with :data:`REQUEST_HEAD_S`: the connection is closed when no request head has
+    arrived by then (uvicorn 0.54's hooks: ``handle_events`` makes ``scope`` for each request head, including a
+    websocket upgrade's, before handing the connection over; ``on_response_complete`` ends a request)."""
+    from uvicorn.protocols.http.h11_impl import H11Protocol
+
+    class HeadDeadline(H11Protocol):
+        _deadline = None
+
+        def _arm(self) -> None:
+            self._disarm()
+            self._deadline = self.loop.call_later(REQUEST_HEAD_S, self._expire)
+
+        def _disarm(self) -> None:
+            if self._deadline is not None:
+                self._deadline.cancel()
+                self._deadline = None
+
+        def _expire(self) -> None:
+            if not self.transport.is_closing():
+                self.transport.close()
+
+        def connection_made(self, transport):  # type: ignore[no-untyped-def]
+            super().connection_made(transport)
+            self._arm()
+
+        def connection_lost(self, exc):  # type: ignore[no-untyped-def]
+            self._disarm()
+            super().connection_lost(exc)
+
+        def handle_events(self) -> None:
+            before = self.scope
+            super().handle_events()
+            if self.scope is not before:  # a request head arrived (a websocket's too: handed over, not timed)
+                self._disarm()
+
+        def on_response_complete(self) -> None:
+            super().on_response_complete()
+            if not self.transport.is_closing():
+                self._arm()  # the next request's head, on a kept-alive connection
+
+    return HeadDeadline
+
 
 def check_host(host: str, allow_remote: bool) -> None:
     """Loopback only unless ``allow_remote`` (the token still guards every route then)."""
@@ -65,7 +114,8 @@ def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = Non
     url = f"http://{shown}:{bound}/?token={state.token}"
     # On loopback the page is reached as 127.0.0.1 or localhost only (IPv6 hosts: Starlette's check cannot parse them)
     hosts = sorted({host, "127.0.0.1", "localhost"}) if not allow_remote and ":" not in host else None
-    config = uvicorn.Config(build_app(state, hosts=hosts), log_level="warning", ws="websockets-sansio", lifespan="on")
+    config = uvicorn.Config(build_app(state, hosts=hosts), log_level="warning", ws="websockets-sansio", lifespan="on",
+                            http=_head_deadline_protocol())
     server = uvicorn.Server(config)
     if on_ready is not None:
         on_ready(url)

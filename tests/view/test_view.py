@@ -195,6 +195,33 @@ def test_oversized_numbers_and_bodies_binary_messages_and_a_damaged_session_are_
         damaged.rmdir()
 
 
+def test_connections_that_never_finish_a_request_are_closed_and_a_live_stream_is_not(served):
+    """Connections that never sent a whole request head were held until the client closed them: ~20,000 of them
+    (the file-descriptor limit) kept the page from being served, without the token."""
+    import socket
+
+    import websocket
+
+    from sssphase_view.server import REQUEST_HEAD_S
+
+    base, token = served["base"], served["token"]
+    host, port = base.removeprefix("http://").split(":")
+    idle = socket.create_connection((host, int(port)), timeout=REQUEST_HEAD_S * 3)
+    slow = socket.create_connection((host, int(port)), timeout=REQUEST_HEAD_S * 3)
+    slow.sendall(b"GET /api/state HTTP/1.1\r\nHost: 127.0.0.1\r\n")  # the head never ends
+    ws = websocket.create_connection(base.replace("http", "ws") + f"/ws/live?token={token}", timeout=60)
+    try:
+        started = time.monotonic()
+        assert idle.recv(1) == b"" and slow.recv(1) == b""  # closed by the server
+        assert REQUEST_HEAD_S - 1 < time.monotonic() - started < REQUEST_HEAD_S * 2
+        ws.recv()  # the live stream, older than the deadline, still streams
+        assert _get(base + "/api/state", token)[0] == 200
+    finally:
+        for s in (idle, slow):
+            s.close()
+        ws.close()
+
+
 def _set(page, element: str, value) -> None:
     page.evaluate(f"(() => {{ const e = document.getElementById({json.dumps(element)}); "
                   f"if (e.type === 'checkbox') e.checked = {json.dumps(value)}; else e.value = {json.dumps(value)}; "
