@@ -133,7 +133,7 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
 
     if not rv.references:
         raise InputError(f"{rv.object} view {rv.view} has no reference captures to evaluate against "
-                         "(capture with --reference checkerboard ...)")
+                         "(capture with --reference checkerboard ..., or import ref__<name> frames)")
     names = sorted(rv.references)
     t0 = time.perf_counter()
     calibrate = bool(options.pop("calibrate", True)) and backend not in MODEL_FREE

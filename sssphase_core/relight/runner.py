@@ -555,7 +555,7 @@ def _eval_views(found: Sequence[Session], views: str | Sequence[int] | None, bac
         for v in choose_views(s, views, say):
             if not has_references(s.arrays(v)):
                 raise InputError(f"{s.name} view {v} has no reference captures to evaluate against (capture with "
-                                 "--reference checkerboard ...)")
+                                 "--reference checkerboard ..., or import ref__<name> frames)")
             if not has_captured_transport(s.arrays(v)):
                 bare.append(f"{s.name} view {v}")
     if "measured" in backends and bare:
