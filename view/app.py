@@ -166,13 +166,20 @@ class BodyTooLarge(InputError):
     status = 413
 
 
-async def read_json(request: Request) -> Any:
-    """The request's JSON body, at most :data:`MAX_REQUEST_BYTES` (refused while it streams, not after)."""
+async def read_body(request: Request, limit: int, too_large: str) -> bytearray:
+    """The request's body, refused (:class:`BodyTooLarge`, 413, saying ``too_large``) as soon as it streams past
+    ``limit`` bytes, not once it is all in memory."""
     body = bytearray()
     async for chunk in request.stream():
         body += chunk
-        if len(body) > MAX_REQUEST_BYTES:
-            raise BodyTooLarge(f"the request body is larger than {MAX_REQUEST_BYTES >> 10} kB")
+        if len(body) > limit:
+            raise BodyTooLarge(too_large)
+    return body
+
+
+async def read_json(request: Request) -> Any:
+    """The request's JSON body, at most :data:`MAX_REQUEST_BYTES`."""
+    body = await read_body(request, MAX_REQUEST_BYTES, f"the request body is larger than {MAX_REQUEST_BYTES >> 10} kB")
     try:
         return json.loads(bytes(body))
     except (ValueError, RecursionError):  # (JSONDecodeError, UnicodeDecodeError, a 5000-digit integer)
@@ -192,14 +199,12 @@ def _scan(state: ViewState) -> tuple[dict[str, Any], dict[str, str]]:
     """The sessions under ``--sessions`` by name, and the folders that could not be opened (folder name ->
     why): one damaged or foreign folder does not hide the others. Two sessions of one object are named by
     their folders (``soap``, ``soap2``), so that neither hides the other."""
-    from sssphase_core.store.session import MANIFEST, Session
+    from sssphase_core.store.session import Session, session_folders
 
     if state.sessions is None or not state.sessions.is_dir():
         return {}, {}
-    folders = [state.sessions] if (state.sessions / MANIFEST).exists() else \
-        sorted(m.parent for m in state.sessions.glob(f"*/{MANIFEST}"))
     opened, damaged = [], {}
-    for folder in folders:
+    for folder in session_folders(state.sessions):
         try:
             opened.append(Session.open(folder))
         except (SssError, OSError) as exc:
@@ -337,11 +342,7 @@ def _forget_old_uploads(state: ViewState) -> None:
 
 async def upload(request: Request, state: ViewState) -> Response:
     """An image body (PNG, JPEG, TIFF, BMP, EXR) -> its name for ``/api/relight``; checked by the pattern reader."""
-    body = bytearray()
-    async for chunk in request.stream():
-        body += chunk
-        if len(body) > MAX_UPLOAD_BYTES:
-            return _problem(f"the upload is larger than {MAX_UPLOAD_BYTES >> 20} MB", 413)
+    body = await read_body(request, MAX_UPLOAD_BYTES, f"the upload is larger than {MAX_UPLOAD_BYTES >> 20} MB")
     suffix = next((ext for magic, ext in IMAGE_MAGIC.items() if body.startswith(magic)), None)
     if suffix is None:
         return _problem("not an image: upload a PNG, JPEG, TIFF, BMP or EXR file")

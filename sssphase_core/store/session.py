@@ -689,10 +689,16 @@ def check_output_folder(path: Path | str, what: str = "--out") -> None:
     refuse_inside_session(path, what)
 
 
+def session_folders(root: Path | str) -> list[Path]:
+    """The session folders a folder holds, unopened: the folder itself when it is a session, else every folder
+    directly under it with a manifest, by name (possibly none)."""
+    root = Path(root)
+    return [root] if (root / MANIFEST).exists() else sorted(m.parent for m in root.glob(f"*/{MANIFEST}"))
+
+
 def sessions_at(root: Path | str) -> list[Session]:
-    """The sessions a folder holds: the folder itself when it is a session, else every session folder
-    directly under it (possibly none)."""
-    return [Session.open(root)] if (Path(root) / MANIFEST).exists() else list_sessions(root)
+    """The sessions a folder holds (:func:`session_folders`), opened."""
+    return [Session.open(folder) for folder in session_folders(root)]
 
 
 #: the file in an output folder that names the session each object's outputs there came from
