@@ -2,7 +2,8 @@
 
 Per view, into ``OUT/<object>/view_NNN/``: every image array (H, W[, C]) as ``<name>.exr`` (``/`` in
 array names becomes ``_``), every stack (N, H, W, C) as ``<name>/NN.exr`` (the PSP frames with their plan
-key, e.g. ``psp/x/p11/s0``, in the EXR header field ``sssphase_key`` and in ``psp/keys.csv``), the footprint crops
+key, e.g. ``psp/x/p11/s0``, in the EXR header field ``sssphase_key`` and in ``psp/keys.csv``; the unwrapping
+frames, when kept, likewise in ``unwrap/``), the footprint crops
 (N, K, K, 3) as one mosaic ``footprints_crops.exr`` (tile ``i`` at row ``i // cols``, column
 ``i % cols``) with ``footprints_pixels.csv`` giving each tile's camera pixel (row, col), and the captured
 transport's crops (one per projector dot) likewise as ``transport_crops.exr`` beside ``transport_dots.csv``
@@ -48,7 +49,8 @@ def export_view(session: Session, view: int, out: Path) -> list[Path]:
         elif shape[:2] == (height, width):
             written.append(write_exr(stem.with_name(stem.name + ".exr"), np.asarray(arr, np.float32)))
         elif len(shape) >= 3 and shape[1:3] == (height, width):
-            keys = _psp_keys(session) if name == "psp" else None
+            keys = session.manifest["views"].get(str(view), {}).get(f"{name}_keys") or (
+                _psp_keys(session) if name == "psp" else None)  # (the manifest's psp_keys, unwrap_keys)
             keys = keys if keys and len(keys) == shape[0] else None
             for i in range(shape[0]):
                 attributes = {"sssphase_key": keys[i]} if keys else None
