@@ -114,7 +114,8 @@ def import_images(
     gamma: Annotated[float, typer.Option(help="the projector's gamma (pattern value -> light)")] = 2.2,
     patch: Annotated[int, typer.Option(help="footprint crop size K for dot-grid frames")] = 32,
     encoding: Annotated[str, typer.Option(help="how 8/16-bit files map codes to light: auto (their sRGB / ICC / gAMA "
-                                               "tag, else linear), linear (a camera's raw codes) or srgb; float "
+                                               "tag; untagged: sRGB where the fringes average half the white's light "
+                                               "only as sRGB codes, else linear), linear (a camera's raw codes) or srgb; float "
                                                "files are linear")] = "auto",
     bayer: Annotated[str, typer.Option(help="the camera demosaiced its Bayer frames of this layout (RGGB, GRBG, GBRG, "
                                             "BGGR): silhouette pixels only demosaicing lit are dropped; auto: the layout "

@@ -771,7 +771,7 @@ def _srgb_codes(light: np.ndarray) -> np.ndarray:
     return np.round(255 * np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)).astype(np.uint8)
 
 
-def test_srgb_encoded_frames_are_decoded_to_light_by_their_tag_or_flagged_by_their_fringes(tmp_path):
+def test_srgb_encoded_frames_are_decoded_to_light_by_their_tag_or_told_by_their_fringes(tmp_path):
     """A renderer's or a webcam's 8-bit PNGs hold sRGB codes, which were read as light: the fringe offset
     (the footprints' energy) came out ~1.4x too bright against the white. Tagged files are decoded; untagged
     ones are named by their fringes' mean (0.5 of the white's light in linear frames, whatever the transport)."""
@@ -800,12 +800,23 @@ def test_srgb_encoded_frames_are_decoded_to_light_by_their_tag_or_flagged_by_the
     floats = import_folder(linear, tmp_path / "s", "floats", (W, H), patch=K, encoding="srgb")  # .npy floats: light
     assert floats.manifest["rig"]["frame_encoding"] == "linear"
     np.testing.assert_array_equal(floats.load(0, "white"), ref.load(0, "white"))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # untagged sRGB codes are told by their fringes' mean: decoded, no warning
+        guessed = import_folder(untagged, tmp_path / "s", "untagged", (W, H), patch=K)
+    assert guessed.manifest["rig"]["frame_encoding"] == "srgb", guessed.manifest["rig"]
+    assert re.search(r"no colour tag; its fringes average 0\.[45]\d of the white's light read as sRGB codes, 0\.[67]\d "
+                     r"read as linear ones", guessed.manifest["rig"]["frame_encoding_from"]), guessed.manifest["rig"]
+    np.testing.assert_array_equal(guessed.load(0, "white"), dec.load(0, "white"))
     with pytest.warns(UserWarning, match=r"the fringe frames average 0\.[67]\d of the white capture's light .* "
                                          r"import with --encoding srgb"):
-        raw = import_folder(untagged, tmp_path / "s", "untagged", (W, H), patch=K)
+        raw = import_folder(untagged, tmp_path / "s", "raw", (W, H), patch=K, encoding="linear")
     assert raw.manifest["rig"]["frame_encoding"] == "linear"
-    forced = import_folder(untagged, tmp_path / "s", "forced", (W, H), patch=K, encoding="srgb")
-    np.testing.assert_array_equal(forced.load(0, "white"), dec.load(0, "white"))
+    plain = tmp_path / "plain"  # untagged codes of linear light stay linear
+    plain.mkdir()
+    for f in linear.glob("*.npy"):
+        Image.fromarray(np.round(255 * np.clip(np.load(f), 0, 1)).astype(np.uint8)).save(plain / f"{f.stem}.png")
+    kept = import_folder(plain, tmp_path / "s", "plain", (W, H), patch=K)
+    assert kept.manifest["rig"]["frame_encoding"] == "linear" and kept.manifest["rig"]["frame_encoding_from"] == "no colour tag"
     (untagged / "white.png").unlink()  # one tagged file among untagged ones
     Image.fromarray(_srgb_codes(np.load(linear / "white.npy"))).save(untagged / "white.png", pnginfo=srgb_chunk)
     with pytest.raises(InputError, match=r"is (srgb|linear) \(.*\) but .* is (linear|srgb) .*give --encoding"):

@@ -24,6 +24,7 @@ from sssphase_core.store.imageio import (
     IMAGE_SUFFIXES,
     LOSSY_SUFFIXES,
     declared_encoding,
+    decode_codes,
     frame_shape,
     read_frame,
     read_pattern,
@@ -305,6 +306,31 @@ def fringe_mean_share(sets: Iterable[np.ndarray], white: np.ndarray, black: np.n
     return float(np.median(np.concatenate(shares)))
 
 
+def untagged_encoding(files: dict[str, Path]) -> tuple[str, str] | None:
+    """``(encoding, why)`` for integer frame files without a colour tag, from one view's fringes (``files`` by
+    plan key): ``"srgb"`` when read as linear codes the first fringe set averages a share of the white's light
+    (:func:`fringe_mean_share`, on the lit, unclipped pixels) outside :data:`FRINGE_MEAN_TOLERANCE` of
+    :data:`FRINGE_MEAN_SHARE` and read as sRGB codes within it and nearer (a renderer's or a webcam's PNGs,
+    saved without their sRGB chunk); ``None`` (keep them linear) otherwise."""
+    sets = sorted({k.rsplit("/", 1)[0] for k in files if k.startswith("psp/")})
+    if not sets:
+        return None
+    codes = [read_frame(files[k], finite=False) for k in sorted(k for k in files if k.startswith(sets[0] + "/"))]
+    white, black = read_frame(files["white"], finite=False), read_frame(files["black"], finite=False)
+    lit = (white - black).sum(-1)
+    unclipped = (white < 0.999).all(-1) & (np.max(codes, axis=0) < 0.999).all(-1)
+    keep = unclipped & np.isfinite(lit) & (lit > 0.2 * float(np.percentile(lit, 99)))
+    if not keep.any():
+        return None
+    shares = {enc: fringe_mean_share([np.stack([decode_codes(c, enc) for c in codes])], decode_codes(white, enc),
+                                     decode_codes(black, enc), keep) for enc in ("linear", "srgb")}
+    off = {enc: abs(share - FRINGE_MEAN_SHARE) for enc, share in shares.items()}
+    if not (off["linear"] > FRINGE_MEAN_TOLERANCE >= off["srgb"]) or off["srgb"] >= off["linear"]:
+        return None
+    return "srgb", (f"no colour tag; its fringes average {shares['srgb']:.2f} of the white's light read as sRGB codes, "
+                    f"{shares['linear']:.2f} read as linear ones, where light gives {FRINGE_MEAN_SHARE:.2f}")
+
+
 #: The projector's light (white less black, colours summed; its 99.9th percentile) must reach this share of
 #: the white capture's level (three colours): a black frame as bright as the white one (a copy, the wrong
 #: file, lights left on) decoded without a word.
@@ -575,7 +601,8 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     ``black.png``, ``ref__checkerboard.png``, optionally ``dots__{sx}_{sy}.png``); PNG/TIFF (8/16-bit),
     ``.npy``, float TIFF or EXR; float frames far from camera units are rescaled (:func:`frame_scale`,
     recorded as the rig's ``frame_scale``); integer codes are decoded to light by ``encoding``
-    (:func:`frames_encoding`: ``auto`` reads the files' sRGB / ICC / gAMA tags; recorded as the rig's
+    (:func:`frames_encoding`: ``auto`` reads the files' sRGB / ICC / gAMA tags, and untagged files' fringes,
+    :func:`untagged_encoding`; recorded as the rig's
     ``frame_encoding``). ``bayer``: the frames were demosaiced from a Bayer sensor of that layout (by
     ``demosaic``, :data:`IMPORT_DEMOSAIC`), recorded as each view's ``camera_isp``: silhouette pixels that only
     demosaicing lit are dropped (``psp.demosaic_bleed``), and with a known method the view calibration compares
@@ -651,6 +678,8 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
         check_view_memory(vdir, files)
     encoding, encoding_tag = frames_encoding((p for _, files in views for k, p in files.items()
                                               if not k.startswith("pattern/")), encoding)
+    if encoding_tag == "no colour tag":  # asked auto, and no file says: the fringes tell sRGB codes from light
+        encoding, encoding_tag = untagged_encoding(views[0][1]) or (encoding, encoding_tag)
     levels = white_levels((files["white"] for _, files in views), encoding)
     if max(levels) > VIEW_LEVEL_RATIO * min(levels):
         hi, lo = int(np.argmax(levels)), int(np.argmin(levels))
