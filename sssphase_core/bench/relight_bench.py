@@ -44,7 +44,6 @@ class SimView:
     saturation: float | None = None  # the PSP frames' clipping level (linear units)
     white_saturation: float | None = None  # None: the white does not clip (noise-free)
     psp_patterns: np.ndarray | None = None  # (8, Hp, Wp) projector images of ``psp``
-    every_colour: bool = False  # the camera sees R, G and B at every pixel (three-chip): nothing demosaiced
 
 
 def sim_view(obj: Any, view: int = 0, *, n_views: int = 4, seed: int = 0, rig: str = "cpu", exposure: float = 1.0,
@@ -78,7 +77,7 @@ def sim_view(obj: Any, view: int = 0, *, n_views: int = 4, seed: int = 0, rig: s
     return SimView(name, view, scene, proj, np.asarray(psp, np.float32), np.asarray(white, np.float32), cfg.patch,
                    dict(pats), dict(zip(names, images[1:], strict=True)),
                    {"object": name, "preset": rig, "n_views": n_views, "seed": seed}, None, cfg.sensor.saturation(exposure),
-                   None if white_exposure is None else cfg.sensor.saturation(white_exposure), inputs, cfg.sensor.three_chip)
+                   None if white_exposure is None else cfg.sensor.saturation(white_exposure), inputs)
 
 
 def source_for(backend: str, sv: SimView, checkpoint: Path | str | None) -> tuple[Callable, int]:

@@ -173,8 +173,9 @@ class LowRankTap:
 #: The eigen-footprint file's format. 2: its calibration weights are fitted on white-consistent images
 #: (``calibration.exit_gain``) where the view records every colour; 3: that white is the nine-capture one
 #: (``calibration.exit_white``); 4: a digest of its arrays, so a damaged or edited file is recomputed instead of
-#: relighting wrong. Files of earlier formats are not read.
-LOWRANK_FORMAT = 4
+#: relighting wrong; 5: every view's weights are fitted on white-consistent images, a Bayer camera's too. Files of
+#: earlier formats are not read.
+LOWRANK_FORMAT = 5
 #: More members than any blend has: a file claiming more is damaged (and is not looped over).
 MAX_MEMBERS = 8
 

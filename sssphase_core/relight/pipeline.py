@@ -14,7 +14,6 @@ from sssphase_core.relight.calibration import (
     exit_white,
     local_mixture,
     model_inputs,
-    records_every_colour,
 )
 from sssphase_core.relight.engine import FootprintSource, relight
 from sssphase_core.relight.lowrank import LowRankFootprints
@@ -31,8 +30,8 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     (``make_source(..., calibrate=False)``) -> ((P, H, W, 3) images, view-wide per-colour mix (3,) or None).
 
     With ``calibrate`` (and the view's PSP patterns known) each model's images are first made consistent with
-    the view's white (the white capture and the PSP frames' offset) where its camera recorded every colour
-    (:func:`white_consistent`; the white pattern rides on the same pass), and the view calibration of
+    the view's white (the white capture and the PSP frames' offset: :func:`white_consistent`; the white pattern
+    rides on the same pass), and the view calibration of
     :func:`fit_view_mix` rides on it too: the 8 PSP patterns are splatted beside the user's, and since relighting
     is linear in the footprints the mixed source's images are ``mix * model + (1 - mix) * none``, with the mix
     refined per pixel (:func:`local_mixture`). One pass instead of two (each footprint is predicted once).
@@ -50,15 +49,14 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
                          "patterns of its PSP captures, and calibration on)")
     n = len(patterns)
     every = list(patterns) + (list(rv.psp_patterns) if calibrate else [])
-    under_white = exit_pattern(rv) if calibrate else []
+    under_white = [full_white(*rv.proj.projector_size)] if calibrate else []  # (white_consistent reads it)
     relits = [relight(src, rv.proj, every + under_white, k, white=rv.white, chunk=chunk, device=device,
                       progress=progress) for src, k in ((source, patch), *also)]
     if not calibrate:
         return relits[0], None
-    if under_white:
-        relits = [white_consistent(rv, r) for r in relits]
+    relits = [white_consistent(rv, r) for r in relits]
     psp, lost = model_inputs(rv)
-    none = relight(no_scattering_source(mixing_white(rv)), rv.proj, every, 1, white=rv.white)
+    none = relight(no_scattering_source(exit_white(rv)), rv.proj, every, 1, white=rv.white)
     # each source's weight refined pixel by pixel where the view's own fringes say so
     weights, view_weights = local_mixture(rv, [r[n:] for r in relits], none[n:], psp, lost)
     if calibration is not None:
@@ -66,24 +64,11 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     return mix_images(none[:n], [r[:n] for r in relits], weights), (view_weights[0] if not also else view_weights)
 
 
-def exit_pattern(rv: RelightView) -> list[np.ndarray]:
-    """``[the full-white pattern]`` for a view whose models are made white-consistent (its camera recorded every
-    colour: :func:`~sssphase_core.relight.calibration.records_every_colour`), else ``[]``: relit last beside the
-    other patterns, it gives :func:`white_consistent` the model's white."""
-    return [full_white(*rv.proj.projector_size)] if records_every_colour(rv) else []
-
-
-def mixing_white(rv: RelightView) -> np.ndarray:
-    """(H, W, 3) the white of the no-scattering term the calibration mixes each model with: the white the models
-    are made consistent with (:func:`~sssphase_core.relight.calibration.exit_white`) where they are, so that a
-    calibrated model relit under white returns it whatever its weights; else the white capture."""
-    return exit_white(rv) if records_every_colour(rv) else rv.white
-
-
 def white_consistent(rv: RelightView, relit: np.ndarray) -> np.ndarray:
     """A model's images (P + 1, H, W, 3), the last one relit under full white, -> the first P times the
     model's :func:`~sssphase_core.relight.calibration.exit_gain` (in place): relit under white, the model
-    returns the view's nine-capture white (:func:`~sssphase_core.relight.calibration.exit_white`)."""
+    returns the view's nine-capture white (:func:`~sssphase_core.relight.calibration.exit_white`) as far as that
+    white stands above its noise."""
     images = relit[:-1]
     images *= exit_gain(rv, relit[-1])
     return images
@@ -103,7 +88,7 @@ def relight_lowrank(rv: RelightView, members: Sequence[LowRankFootprints], weigh
     """:func:`relight_view`'s calibrated images under new ``patterns`` from its eigen-footprints (one
     :class:`~sssphase_core.relight.lowrank.LowRankFootprints` per source) and its calibration's per-pixel
     ``weights`` (S, H, W, 3), with no footprint computed -> (P, H, W, 3)."""
-    none = relight(no_scattering_source(mixing_white(rv)), rv.proj, patterns, 1, white=rv.white)
-    under_white = exit_pattern(rv)
+    none = relight(no_scattering_source(exit_white(rv)), rv.proj, patterns, 1, white=rv.white)
+    under_white = [full_white(*rv.proj.projector_size)]
     relits = [m.relight(rv.proj, list(patterns) + under_white, white=rv.white) for m in members]
-    return mix_images(none, [white_consistent(rv, r) for r in relits] if under_white else relits, weights)
+    return mix_images(none, [white_consistent(rv, r) for r in relits], weights)

@@ -35,7 +35,8 @@ class RelightView:
     camera_isp: dict | None = None  # the camera pipeline that made its captures, when known (view info)
     _camera: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
     _model_inputs: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
-    _exit_white: np.ndarray | None = field(default=None, repr=False, compare=False)
+    _exit_white: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
+    _noise_model: np.ndarray | None = field(default=None, repr=False, compare=False)
 
     @cached_property
     def psp_patterns(self) -> np.ndarray | None:

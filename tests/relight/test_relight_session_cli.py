@@ -282,9 +282,12 @@ def test_a_blend_is_weighted_per_pixel_by_each_materials_own_source():
 
 def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
     """`relight_view` fits the calibration on the same pass as the user's patterns: the view-wide mix of the
-    calibrated source, refined per pixel (`local_mixture`), with each footprint predicted once."""
+    white-consistent model (`white_consistent`, the white pattern on the same pass) against no scattering,
+    refined per pixel (`local_mixture`), with each footprint predicted once."""
+    from sssphase_core.processing.patterns import white
     from sssphase_core.relight import make_source, relight, relight_view
-    from sssphase_core.relight.calibration import local_mixture, model_inputs
+    from sssphase_core.relight.calibration import exit_white, local_mixture, model_inputs
+    from sssphase_core.relight.pipeline import white_consistent
     from sssphase_core.relight.sources import no_scattering_source
 
     rv = load_view(Session.open(session), 1)
@@ -297,14 +300,13 @@ def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
 
     pats = [rv.references["checkerboard"], rv.references["stripes_x"]]
     fused, mix = relight_view(counted, k, rv, pats, calibrate=True)
-    mixed, _ = make_source("analytic", rv, patch=SMALL_PATCH)
-    np.testing.assert_allclose(mix, mixed.mix, atol=1e-6)
     assert sum(calls) <= rv.proj.mask.sum()  # one footprint per lit pixel: no second pass
     every = pats + list(rv.psp_patterns)
-    model, none = (relight(src, rv.proj, every, kk, white=rv.white) for src, kk in ((raw, k), (no_scattering_source(rv.white), 1)))
+    model = white_consistent(rv, relight(raw, rv.proj, every + [white(*rv.proj.projector_size)], k, white=rv.white))
+    none = relight(no_scattering_source(exit_white(rv)), rv.proj, every, 1, white=rv.white)
     psp, lost = model_inputs(rv)
     (weight,), (view_weight,) = local_mixture(rv, [model[2:]], none[2:], psp, lost)
-    np.testing.assert_array_equal(view_weight, mix)
+    np.testing.assert_allclose(view_weight, mix, atol=1e-6)
     np.testing.assert_allclose(fused, none[:2] + weight * (model[:2] - none[:2]), rtol=1e-4, atol=1e-6)
     inside = rv.proj.mask & (weight > 0).all(axis=-1) & (weight < 1).all(axis=-1)
     assert np.abs(np.median(weight[inside], axis=0) - mix).max() < 0.1  # one material: near the view's weight
@@ -312,37 +314,32 @@ def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
     assert none_mix is None and plain.shape == fused.shape
 
 
-def test_a_full_colour_view_relit_under_white_returns_its_white_capture(session):
-    """Where the camera measured every colour, a model's images are made consistent with the view's white
-    (`exit_gain`; the nine-capture white of `exit_white`): relit under full white, the calibrated model returns that
-    white, whatever its weights, and exact footprints need no gain. A demosaiced view's images stay as the model
-    relights them."""
+def test_a_view_relit_under_white_returns_its_white_capture_a_bayer_cameras_too(session):
+    """A model's images are made consistent with the view's white (`exit_gain`; the nine-capture white of
+    `exit_white`): relit under full white, the calibrated model returns that white, whatever its weights, as far as
+    it stands above its noise (`noise_shrinkage`: nearly all of it here), and exact footprints need no gain. A Bayer
+    camera's views were left as the model relit them: with the nine-capture white they too relight better made
+    consistent (analytic +1.3 to +4.7 dB on five sim objects)."""
     from sssphase_core.processing.patterns import white
     from sssphase_core.relight import make_source, relight, relight_view
-    from sssphase_core.relight.calibration import (
-        EXIT_GAIN_RANGE,
-        exit_gain,
-        exit_white,
-        records_every_colour,
-        white_usable,
-    )
+    from sssphase_core.relight.calibration import EXIT_GAIN_RANGE, exit_gain, exit_white, white_usable
 
     rv = load_view(Session.open(session), 1)
+    assert rv.camera_isp and rv.camera_isp["bayer"]  # a Bayer camera's session
     raw, k = make_source("analytic", rv, calibrate=False, patch=SMALL_PATCH)
     pats = [white(*rv.proj.projector_size), rv.references["checkerboard"]]
-    assert not records_every_colour(rv)  # a Bayer camera's session
-    demosaiced, _ = relight_view(raw, k, rv, pats, calibrate=True)
-    rv.camera_isp = None  # the same frames, as a camera that measures every colour would record them
-    assert records_every_colour(rv)
+    plain, _ = relight_view(raw, k, rv, pats, calibrate=False)
     full, _ = relight_view(raw, k, rv, pats, calibrate=True)
     gain = exit_gain(rv, relight(raw, rv.proj, pats[:1], k, white=rv.white)[0])
     lo, hi = EXIT_GAIN_RANGE
     ok = rv.proj.mask & white_usable(rv.white, rv.white_saturation) & ((gain > lo) & (gain < hi)).all(axis=-1)
     assert ok.mean() > 0.5 * rv.proj.mask.mean()
     white = exit_white(rv)
-    np.testing.assert_allclose(full[0][ok], white[ok], rtol=1e-3, atol=1e-5)
-    assert np.abs(demosaiced[0][ok] - white[ok]).max() > 10 * np.abs(full[0][ok] - white[ok]).max()
-    assert not np.allclose(full[1], demosaiced[1])  # the gain carries over to every pattern
+    # under white the calibration's no-scattering term is that white, and the model's share of the image is moved a
+    # share `keep` of the way from its own white to it: what is left is (1 - keep) of the way at most
+    left, whole = np.abs(full[0][ok] - white[ok]), np.abs(plain[0][ok] - white[ok])
+    share = np.percentile(left / np.maximum(whole, 1e-6), [50, 99])  # (a few pixels' gains reach EXIT_GAIN_RANGE)
+    assert share[0] < 0.02 and share[1] < 0.05, share
     exact, ke = make_source("exact", rv, calibrate=False)
     exact_gain = exit_gain(rv, relight(exact, rv.proj, pats[:1], ke, white=rv.white)[0])[rv.proj.mask]
     assert np.abs(np.median(exact_gain, axis=0) - 1).max() < 0.05  # the capture's noise and demosaicing only
@@ -391,16 +388,19 @@ def test_a_blend_relights_the_fringe_captures_at_least_as_well_as_each_member(se
     """Blending two sources by the view calibration: its images are the sum weighted pixel by pixel
     (`local_mixture`), and since each member's own calibration is a feasible blend, the blend fits the
     view's captures no worse."""
+    from sssphase_core.processing.patterns import white
     from sssphase_core.relight import make_source, model_inputs, no_scattering_source, relight, relight_view
-    from sssphase_core.relight.calibration import local_mixture
+    from sssphase_core.relight.calibration import exit_white, local_mixture
+    from sssphase_core.relight.pipeline import white_consistent
 
     rv = load_view(Session.open(session), 1)
     members = [make_source("analytic", rv, calibrate=False, patch=SMALL_PATCH), make_source("exact", rv, calibrate=False)]
     pats = list(rv.psp_patterns)  # relit under its own fringe patterns: the fitted quantity
     blend, mix = relight_view(*members[0], rv, pats, calibrate=True, also=members[1:])
     assert mix.shape == (2, 3) and (mix >= 0).all() and (mix.sum(0) <= 1 + 1e-6).all()
-    none = relight(no_scattering_source(rv.white), rv.proj, pats, 1, white=rv.white)
-    relits = [relight(src, rv.proj, pats, k, white=rv.white) for src, k in members]
+    none = relight(no_scattering_source(exit_white(rv)), rv.proj, pats, 1, white=rv.white)
+    relits = [white_consistent(rv, relight(src, rv.proj, pats + [white(*rv.proj.projector_size)], k, white=rv.white))
+              for src, k in members]
     psp, lost = model_inputs(rv)
     weights, view_weights = local_mixture(rv, relits, none, psp, lost)
     np.testing.assert_allclose(view_weights, mix, atol=1e-5)
