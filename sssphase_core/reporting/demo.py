@@ -49,7 +49,7 @@ class DemoConfig:
     decoder_epochs: int = 3
     decoder_batch: int = 32
     references: tuple[str, ...] = ("checkerboard", "stripes_x")
-    backends: tuple[str, ...] = ("none", "analytic", "torch", "exact")
+    backends: tuple[str, ...] = ("none", "analytic", "torch", "blend", "exact")  # blend: `sss relight`'s default with a decoder
     analytic_supersample: int = 2
     pca_stride: int = 2
     footprint_pixels: int = 200

@@ -117,7 +117,9 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
     parts.append(f"<p class='note'>PSNR in dB with peak 1.0 (linear camera units: a white Lambertian reference reads 1.0), "
                  f"SSIM (11 px Gaussian window), both on the object mask, mean over the view's reference patterns. "
                  f"{_esc(lpips_note())}. <code>exact</code> splats the simulator's exact footprints (ground truth no lab has); <code>measured</code> splats the session's captured light transport (one crop per projector dot); "
-                 f"<code>none</code> keeps each pixel's own light (no scattering)."
+                 f"<code>none</code> keeps each pixel's own light (no scattering); <code>blend</code> weighs torch and "
+                 f"analytic pixel by pixel by how well they relight the view's own fringe captures (<code>sss relight</code>'s "
+                 f"default with a decoder)."
                  + (f" <code>analytic</code> integrates each footprint pixel at {int(result['analytic_supersample'])}"
                     f" × {int(result['analytic_supersample'])} points here (<code>sss relight</code> and <code>sss eval "
                     "relight</code>: 4 × 4), so their figures for it can differ slightly."
@@ -125,8 +127,8 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
     for name, why in result.get("skipped", {}).items():
         parts.append(_not_available(f"relighting with the {name} backend", {"reason": why}))
     if "torch" in means:
-        beats = {b: means["torch"]["psnr"] > means[b]["psnr"] for b in ("none", "analytic") if b in means}
-        txt = ", ".join(f"{'beats' if ok else 'does NOT beat'} {b}" for b, ok in beats.items())
+        margins = {b: means["torch"]["psnr"] - means[b]["psnr"] for b in ("none", "analytic") if b in means}
+        txt = ", ".join(f"{'beats' if d > 0 else 'does NOT beat'} {b} ({d:+.2f} dB)" for b, d in margins.items())
         parts.append(f"<p>Torch backend (mean PSNR {means['torch']['psnr']:.2f} dB) {txt}.</p>")
     plot = error_vs_runtime_plot(rows, out / "img" / "error_vs_runtime.png")
     parts.append("<h3>Error against run time</h3>")
