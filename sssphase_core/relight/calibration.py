@@ -355,7 +355,7 @@ def exit_gain(rv: RelightView, relit_white: np.ndarray) -> np.ndarray:
     lost on the three-chip demo against the nine-capture white); in low light the nine-capture white's noise is
     the gain's power too (`sss bench stability` lowlight: the decoder 69.2 -> 65.0 dB unshrunk, 68.8 shrunk). Every
     view, its camera's demosaicing or not: with the nine-capture white a Bayer camera's views relight better with it
-    too (analytic +1.3 to +4.7 dB against the render on five sim objects, the demo's blend +1.0 / +1.2 dB inside the
+    too (analytic +1.3 to +4.7 dB against the render on five sim objects, the demo's blend +1.0 / +1.3 dB inside the
     silhouette); with the white capture alone it cost them (demo crab 32.3 -> 24.7 dB)."""
     seen = np.asarray(relit_white, np.float32)
     white = np.asarray(rv.white, np.float32)
