@@ -315,7 +315,10 @@ def untagged_encoding(files: dict[str, Path]) -> tuple[str, str] | None:
     sets = sorted({k.rsplit("/", 1)[0] for k in files if k.startswith("psp/")})
     if not sets:
         return None
-    codes = [read_frame(files[k], finite=False) for k in sorted(k for k in files if k.startswith(sets[0] + "/"))]
+    keys = [*sorted(k for k in files if k.startswith(sets[0] + "/")), "white", "black"]
+    if not all(stores_integers(files[k]) for k in keys):  # float frames are light: nothing to tell
+        return None
+    codes = [read_frame(files[k], finite=False) for k in keys[:-2]]
     white, black = read_frame(files["white"], finite=False), read_frame(files["black"], finite=False)
     lit = (white - black).sum(-1)
     unclipped = (white < 0.999).all(-1) & (np.max(codes, axis=0) < 0.999).all(-1)
