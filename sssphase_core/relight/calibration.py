@@ -294,13 +294,13 @@ def noise_model(rv: RelightView) -> np.ndarray:
     light on the decoded pixels where no frame nears its clipping level; both at least 0. Made once per view."""
     cached = getattr(rv, "_noise_model", None)
     if cached is None:
-        psp = np.asarray(rv.psp, np.float32)
-        m = rv.proj.mask & np.isfinite(psp).all(axis=(0, -1))
+        psp = np.asarray(rv.psp, np.float32)[:, rv.proj.mask]  # (8, n, 3): the decoded pixels only
+        m = np.isfinite(psp).all(axis=(0, -1))
         if rv.saturation is not None:
             m &= (psp < SATURATION_MARGIN * rv.saturation).all(axis=(0, -1))
         cached = np.zeros((2, 3))
         if m.sum() >= MIN_RATIO_PIXELS:
-            v, light = fringe_noise_variance(psp)[m].astype(np.float64), psp.mean(axis=0)[m].astype(np.float64)
+            v, light = fringe_noise_variance(psp[:, m]).astype(np.float64), psp[:, m].mean(axis=0).astype(np.float64)
             for c in range(3):
                 design = np.stack([np.ones_like(light[:, c]), light[:, c]], axis=1)
                 a, b = np.linalg.lstsq(design, v[:, c], rcond=None)[0]
@@ -324,20 +324,21 @@ def _white_and_variance(rv: RelightView) -> tuple[np.ndarray, np.ndarray]:
     white = np.asarray(rv.white, np.float32)
     psp, lost = model_inputs(rv)
     a, b = noise_model(rv).astype(np.float32)
-    alone = a + b * np.maximum(white, 0)  # the white capture's own
+    alone = np.maximum(white, 0.0) * b  # the white capture's own variance (a + b L), made in place: 1080p frames
+    alone += a
     ok = rv.proj.mask & white_usable(white, rv.white_saturation) & ~lost
     if ok.sum() < MIN_RATIO_PIXELS:
         return white, alone
-    light = np.asarray(psp, np.float32).mean(axis=0)
+    light = np.asarray(psp, np.float32)[:, ok].mean(axis=0)  # (n, 3): the decoded pixels only
     offset = 2.0 * light
-    ratio = np.median(offset[ok] / white[ok], axis=0)  # (3,): the projector's black and gamma, per colour
+    ratio = np.median(offset / white[ok], axis=0)  # (3,): the projector's black and gamma, per colour
     if not (np.isfinite(ratio).all() and (ratio > 0).all()):
         return white, alone
-    both = (white + PSP_WHITE_WEIGHT * offset / ratio) / (1 + PSP_WHITE_WEIGHT)
+    both, variance = white.copy(), alone.copy()
+    both[ok] = (white[ok] + PSP_WHITE_WEIGHT * offset / ratio) / (1 + PSP_WHITE_WEIGHT)
     offset_variance = 0.5 * (a + b * np.maximum(light, 0)) / ratio ** 2  # 4 x a mean of 8 frames' variance
-    both_variance = (alone + PSP_WHITE_WEIGHT ** 2 * offset_variance) / (1 + PSP_WHITE_WEIGHT) ** 2
-    return (np.where(ok[..., None], both, white).astype(np.float32),
-            np.where(ok[..., None], both_variance, alone).astype(np.float32))
+    variance[ok] = (alone[ok] + PSP_WHITE_WEIGHT ** 2 * offset_variance) / (1 + PSP_WHITE_WEIGHT) ** 2
+    return both, variance
 
 
 def exit_gain(rv: RelightView, relit_white: np.ndarray) -> np.ndarray:
@@ -357,23 +358,27 @@ def exit_gain(rv: RelightView, relit_white: np.ndarray) -> np.ndarray:
     view, its camera's demosaicing or not: with the nine-capture white a Bayer camera's views relight better with it
     too (analytic +1.3 to +4.7 dB against the render on five sim objects, the demo's blend +1.0 / +1.3 dB inside the
     silhouette); with the white capture alone it cost them (demo crab 32.3 -> 24.7 dB)."""
-    seen = np.asarray(relit_white, np.float32)
     white = np.asarray(rv.white, np.float32)
-    ok = (rv.proj.mask & white_usable(white, rv.white_saturation))[..., None] & np.isfinite(seen) & (seen > WHITE_FLOOR)
+    inside = rv.proj.mask & white_usable(white, rv.white_saturation)  # (the rest keeps gain 1: work on these only)
+    seen = np.asarray(relit_white, np.float32)[inside]  # (n, 3)
+    ok = np.isfinite(seen) & (seen > WHITE_FLOOR)
     seen = np.where(ok, seen, 1.0)
-    departure = np.where(ok, np.clip(exit_white(rv) / seen, *EXIT_GAIN_RANGE) - 1.0, 0.0).astype(np.float32)
-    keep = noise_shrinkage(departure, np.where(ok, exit_white_variance(rv) / (seen * seen), 0.0), ok)
-    return np.clip(1.0 + keep.astype(np.float32) * departure, *EXIT_GAIN_RANGE).astype(np.float32)
+    departure = np.where(ok, np.clip(exit_white(rv)[inside] / seen, *EXIT_GAIN_RANGE) - 1.0, 0.0).astype(np.float32)
+    keep = noise_shrinkage(departure, np.where(ok, exit_white_variance(rv)[inside] / (seen * seen), 0.0), ok)
+    gain = np.ones(white.shape, np.float32)
+    gain[inside] = np.clip(1.0 + keep.astype(np.float32) * departure, *EXIT_GAIN_RANGE)
+    return gain
 
 
 def noise_shrinkage(departure: np.ndarray, noise: np.ndarray, ok: np.ndarray) -> np.ndarray:
     """(3,) the share of a gain's departure from 1 to keep, per colour: ``1 - noise / power`` clipped to [0, 1]
     (James-Stein), ``power`` the departure's mean square and ``noise`` its noise variance's mean, both over ``ok``.
-    ``departure``, ``noise``, ``ok``: (H, W, 3). A departure no larger than its noise is dropped, one far above it
-    kept whole (0.93-1.0 on the sim rig's captures at their exposure)."""
-    n = np.maximum(np.count_nonzero(ok, axis=(0, 1)), 1)
-    power = (np.where(ok, departure, 0.0).astype(np.float64) ** 2).sum(axis=(0, 1)) / n
-    mean_noise = np.where(ok, noise, 0.0).sum(axis=(0, 1), dtype=np.float64) / n
+    ``departure``, ``noise``, ``ok``: (..., 3), e.g. (H, W, 3) or (n, 3). A departure no larger than its noise is
+    dropped, one far above it kept whole (0.93-1.0 on the sim rig's captures at their exposure)."""
+    axes = tuple(range(np.ndim(ok) - 1))
+    n = np.maximum(np.count_nonzero(ok, axis=axes), 1)
+    power = (np.where(ok, departure, 0.0).astype(np.float64) ** 2).sum(axis=axes) / n
+    mean_noise = np.where(ok, noise, 0.0).sum(axis=axes, dtype=np.float64) / n
     return np.clip(1.0 - mean_noise / np.maximum(power, 1e-30), 0.0, 1.0)
 
 

@@ -173,7 +173,8 @@ class LowRankTap:
 #: The eigen-footprint file's format. 2: its calibration weights are fitted on white-consistent images
 #: (``calibration.exit_gain``) where the view records every colour; 3: that white is the nine-capture one
 #: (``calibration.exit_white``); 4: a digest of its arrays, so a damaged or edited file is recomputed instead of
-#: relighting wrong; 5: every view's weights are fitted on white-consistent images, a Bayer camera's too. Files of
+#: relighting wrong; 5: every view's weights are fitted on white-consistent images, a Bayer camera's too, and each
+#: member's gain and the no-scattering term's white are kept (a new pattern needs neither computed again). Files of
 #: earlier formats are not read.
 LOWRANK_FORMAT = 5
 #: More members than any blend has: a file claiming more is damaged (and is not looped over).
@@ -191,15 +192,20 @@ def _digest(arrays: dict[str, np.ndarray]) -> str:
                                   for name, a in sorted(arrays.items()) if name != "digest").encode()).hexdigest()
 
 
-def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np.ndarray,
-                 view_weights: np.ndarray) -> None:
-    """One view's fast relight: each member's eigen-footprints and the view calibration's weights (S, H, W, 3)
-    (float16) and view-wide ones (S, 3), written atomically."""
+def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np.ndarray, view_weights: np.ndarray,
+                 gains: np.ndarray, white: np.ndarray, mask: np.ndarray) -> None:
+    """One view's fast relight: each member's eigen-footprints, the view calibration's weights (S, H, W, 3) (float16)
+    and view-wide ones (S, 3), each member's white-consistent gain ``gains`` (S, H, W, 3) and the no-scattering
+    term's white ``white`` (H, W, 3) (``calibration.exit_gain``, ``exit_white``; both kept at the view's ``mask``
+    (H, W) pixels, where they differ from 1 and from the white capture), written atomically."""
     from sssphase_core.store.files import atomic_path
 
+    mask = np.asarray(mask, bool)
     arrays: dict[str, np.ndarray] = {"format": np.asarray(LOWRANK_FORMAT), "members": np.asarray(len(members)),
                                      "weights": weights.astype(np.float16),
-                                     "view_weights": np.asarray(view_weights, np.float32)}
+                                     "view_weights": np.asarray(view_weights, np.float32),
+                                     "gains": np.asarray(gains, np.float32)[:, mask],
+                                     "white": np.asarray(white, np.float32)[mask]}
     for i, m in enumerate(members):
         arrays.update(m.arrays(f"m{i}_"))
     arrays["digest"] = np.asarray(_digest(arrays))
@@ -207,13 +213,16 @@ def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np
         np.savez(tmp, **arrays)
 
 
-def load_lowrank(path: Path | str, shape: tuple[int, int]
-                 ) -> tuple[list[LowRankFootprints], np.ndarray, np.ndarray] | None:
-    """:func:`save_lowrank`'s file for a view of ``shape`` -> (members, weights, view weights); None when it is
-    missing, damaged, of another view or of another format (:data:`LOWRANK_FORMAT`; a cache only saves time)."""
+def load_lowrank(path: Path | str, mask: np.ndarray
+                 ) -> tuple[list[LowRankFootprints], np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+    """:func:`save_lowrank`'s file for a view of decoded ``mask`` (H, W) -> (members, weights, view weights, gains
+    (S, n, 3) and white (n, 3) at the mask's n pixels); None when it is missing, damaged, of another view or of
+    another format (:data:`LOWRANK_FORMAT`; a cache only saves time)."""
     import zipfile
 
     path = Path(path)
+    mask = np.asarray(mask, bool)
+    shape, lit = mask.shape, int(mask.sum())
     if not path.exists():
         return None
     try:
@@ -231,9 +240,11 @@ def load_lowrank(path: Path | str, shape: tuple[int, int]
             return None
         members = [LowRankFootprints.from_arrays(arrays, f"m{i}_") for i in range(n)]
         weights, view_weights = np.asarray(arrays["weights"], np.float32), np.asarray(arrays["view_weights"], np.float32)
+        gains, white = np.asarray(arrays["gains"], np.float32), np.asarray(arrays["white"], np.float32)
     except (ValueError, KeyError, TypeError):
         return None
     if (any(m is None or m.shape != tuple(shape) for m in members) or weights.shape != (n, *shape, 3)
-            or view_weights.shape != (n, 3) or not np.isfinite(weights).all()):
+            or view_weights.shape != (n, 3) or gains.shape != (n, lit, 3) or white.shape != (lit, 3)
+            or not (np.isfinite(weights).all() and np.isfinite(gains).all() and np.isfinite(white).all())):
         return None
-    return members, weights, view_weights  # type: ignore[return-value]
+    return members, weights, view_weights, gains, white  # type: ignore[return-value]

@@ -40,8 +40,9 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     ``sum_i mix_i * source_i + (1 - sum_i mix_i) * none``, each ``mix_i`` refined per pixel too, and the
     view-wide mix returned is (1 + len(also), 3). Blending needs ``calibrate``.
 
-    ``calibration``: a list that receives the fit's (per-pixel weights (S, H, W, 3), view-wide weights (S, 3)),
-    which relight any other pattern the same way (:func:`mix_images`).
+    ``calibration``: a list that receives the fit's (per-pixel weights (S, H, W, 3), view-wide weights (S, 3), each
+    source's gain (S, H, W, 3), the no-scattering term's white (H, W, 3)), which relight any other pattern the same
+    way (:func:`relight_lowrank`).
     """
     calibrate = calibrate and rv.psp_patterns is not None
     if also and not calibrate:
@@ -54,24 +55,25 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
                       progress=progress) for src, k in ((source, patch), *also)]
     if not calibrate:
         return relits[0], None
-    relits = [white_consistent(rv, r) for r in relits]
+    relits, gains = zip(*(white_consistent(rv, r) for r in relits), strict=True)
     psp, lost = model_inputs(rv)
     none = relight(no_scattering_source(exit_white(rv)), rv.proj, every, 1, white=rv.white)
     # each source's weight refined pixel by pixel where the view's own fringes say so
     weights, view_weights = local_mixture(rv, [r[n:] for r in relits], none[n:], psp, lost)
     if calibration is not None:
-        calibration.append((weights, view_weights))
+        calibration.append((weights, view_weights, np.stack(gains), exit_white(rv)))
     return mix_images(none[:n], [r[:n] for r in relits], weights), (view_weights[0] if not also else view_weights)
 
 
-def white_consistent(rv: RelightView, relit: np.ndarray) -> np.ndarray:
-    """A model's images (P + 1, H, W, 3), the last one relit under full white, -> the first P times the
-    model's :func:`~sssphase_core.relight.calibration.exit_gain` (in place): relit under white, the model
-    returns the view's nine-capture white (:func:`~sssphase_core.relight.calibration.exit_white`) as far as that
-    white stands above its noise."""
+def white_consistent(rv: RelightView, relit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A model's images (P + 1, H, W, 3), the last one relit under full white -> (the first P times the model's
+    :func:`~sssphase_core.relight.calibration.exit_gain` (in place), that gain (H, W, 3)): relit under white, the
+    model returns the view's nine-capture white (:func:`~sssphase_core.relight.calibration.exit_white`) as far as
+    that white stands above its noise."""
+    gain = exit_gain(rv, relit[-1])
     images = relit[:-1]
-    images *= exit_gain(rv, relit[-1])
-    return images
+    images *= gain
+    return images, gain
 
 
 def mix_images(none: np.ndarray, relits: Sequence[np.ndarray], weights: np.ndarray) -> np.ndarray:
@@ -83,12 +85,19 @@ def mix_images(none: np.ndarray, relits: Sequence[np.ndarray], weights: np.ndarr
     return images
 
 
-def relight_lowrank(rv: RelightView, members: Sequence[LowRankFootprints], weights: np.ndarray,
-                    patterns: list[np.ndarray]) -> np.ndarray:
+def relight_lowrank(rv: RelightView, members: Sequence[LowRankFootprints], weights: np.ndarray, gains: np.ndarray,
+                    white: np.ndarray, patterns: list[np.ndarray]) -> np.ndarray:
     """:func:`relight_view`'s calibrated images under new ``patterns`` from its eigen-footprints (one
-    :class:`~sssphase_core.relight.lowrank.LowRankFootprints` per source) and its calibration's per-pixel
-    ``weights`` (S, H, W, 3), with no footprint computed -> (P, H, W, 3)."""
-    none = relight(no_scattering_source(exit_white(rv)), rv.proj, patterns, 1, white=rv.white)
-    under_white = [full_white(*rv.proj.projector_size)]
-    relits = [m.relight(rv.proj, list(patterns) + under_white, white=rv.white) for m in members]
-    return mix_images(none, [white_consistent(rv, r) for r in relits], weights)
+    :class:`~sssphase_core.relight.lowrank.LowRankFootprints` per source), its calibration's per-pixel ``weights``
+    (S, H, W, 3), each source's gain ``gains`` (S, n, 3) and the no-scattering term's ``white`` (n, 3) at the view's
+    n decoded pixels (:func:`~sssphase_core.relight.lowrank.load_lowrank`), with no footprint computed -> (P, H, W, 3)."""
+    mask = rv.proj.mask
+    none_white = np.array(rv.white, np.float32)
+    none_white[mask] = white
+    none = relight(no_scattering_source(none_white), rv.proj, patterns, 1, white=rv.white)
+    relits = []
+    for member, gain in zip(members, gains, strict=True):
+        images = member.relight(rv.proj, list(patterns), white=rv.white)
+        images[:, mask] *= gain
+        relits.append(images)
+    return mix_images(none, relits, weights)

@@ -326,7 +326,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
     from sssphase_core.relight.transport import DotTransport
 
     fast = lowrank_path(out, s, rv, backend, checkpoint)
-    saved = load_lowrank(fast, rv.proj.shape) if cache and backend not in MODEL_FREE else None
+    saved = load_lowrank(fast, rv.proj.mask) if cache and backend not in MODEL_FREE else None
     if saved is not None:
         return _relight_cached(rv, pats, backend, fast, saved, say)
     sources: list[tuple[FootprintSource, int]] = make_sources(backend, rv, checkpoint=checkpoint, device=device)
@@ -367,7 +367,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
             say.say(f"cache: {cache_file.uncached:,} footprints beyond its memory budget were not kept "  # type: ignore[attr-defined]
                     "(later patterns recompute them)")
     if taps and calibration and all(tap.covers(valid) for tap in taps):  # every pixel went by: any pattern can be relit
-        save_lowrank(fast, [tap.result() for tap in taps], *calibration[0])
+        save_lowrank(fast, [tap.result() for tap in taps], *calibration[0], rv.proj.mask)
         if not keep:
             say.say(f"cache: the view's {n_pixels:,} footprints ({size / 2**30:.1f} GiB in float16) are more than the cache "
                     f"holds ({CACHE_BYTES / 2**30:.0f} GiB): later patterns are relit from its eigen-footprints alone")
@@ -379,9 +379,9 @@ def _relight_cached(rv: RelightView, pats: list[np.ndarray], backend: str, path:
     """A view relit from its cached eigen-footprints and calibration (``saved``: :func:`load_lowrank`'s), told."""
     from sssphase_core.relight.pipeline import relight_lowrank
 
-    members, weights, view_weights = saved
+    members, weights, view_weights, gains, white = saved
     with say.status(f"{rv.object} view {rv.view}: {backend} from its eigen-footprints"):
-        relit = relight_lowrank(rv, members, weights, pats)
+        relit = relight_lowrank(rv, members, weights, gains, white, pats)
     mix = view_weights[0] if len(members) == 1 else view_weights
     say.say(mix_line(rv, backend, mix))
     say.say(f"{rv.object} view {rv.view}: relit from its cached eigen-footprints ({path.name}: rank "

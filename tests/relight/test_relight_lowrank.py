@@ -41,10 +41,15 @@ def test_relit_from_eigen_footprints_equals_the_splat_when_they_span_the_footpri
     assert low.rank == 3 and low.residual < 1e-7
     fast = low.relight(proj, patterns, white=white)
     np.testing.assert_allclose(fast, direct, atol=1e-6 * np.abs(direct).max())
-    save_lowrank(tmp_path / "v.npz", [low], np.ones((1, *proj.mask.shape, 3)), np.ones((1, 3)))
-    (back,), weights, view_weights = load_lowrank(tmp_path / "v.npz", proj.mask.shape)
+    gains = rng.uniform(0.5, 2.0, (1, *proj.mask.shape, 3)).astype(np.float32)
+    save_lowrank(tmp_path / "v.npz", [low], np.ones((1, *proj.mask.shape, 3)), np.ones((1, 3)), gains, white, proj.mask)
+    (back,), weights, view_weights, kept_gains, kept_white = load_lowrank(tmp_path / "v.npz", proj.mask)
     np.testing.assert_allclose(back.relight(proj, patterns, white=white), fast, atol=1e-3 * np.abs(direct).max())  # float16
     assert weights.shape == (1, *proj.mask.shape, 3) and view_weights.shape == (1, 3)
+    n = int(proj.mask.sum())  # the gains and the white are kept at the decoded pixels, as they were
+    assert kept_gains.shape == (1, n, 3) and kept_white.shape == (n, 3)
+    np.testing.assert_array_equal(kept_gains[0], gains[0][proj.mask])
+    np.testing.assert_array_equal(kept_white, white[proj.mask])
 
 
 def test_a_basis_of_fewer_components_says_how_much_it_leaves_out(make_projection):
@@ -67,6 +72,12 @@ def test_a_basis_of_fewer_components_says_how_much_it_leaves_out(make_projection
     assert tap.result().residual > 0.05  # and it is large: noise is not low-rank
 
 
+def _calibration(proj) -> tuple[np.ndarray, ...]:
+    """Zero weights, unit gains and a white of ones for a view of ``proj``: ``save_lowrank``'s calibration arguments."""
+    shape = (*proj.mask.shape, 3)
+    return np.zeros((1, *shape)), np.zeros((1, 3)), np.ones((1, *shape)), np.ones(shape), proj.mask
+
+
 @pytest.mark.parametrize("damage", ["garbage", "other view", "missing", "earlier format", "members", "basis"])
 def test_a_damaged_or_foreign_eigen_footprint_file_is_not_read(tmp_path, damage, make_projection):
     proj = make_projection()
@@ -76,15 +87,15 @@ def test_a_damaged_or_foreign_eigen_footprint_file_is_not_read(tmp_path, damage,
     if damage == "garbage":
         path.write_bytes(b"not a zip")
     elif damage == "other view":
-        save_lowrank(path, [low], np.zeros((1, *proj.mask.shape, 3)), np.zeros((1, 3)))
+        save_lowrank(path, [low], *_calibration(proj))
     elif damage == "earlier format":  # weights fitted before white-consistent relighting: not this version's
-        save_lowrank(path, [low], np.zeros((1, *proj.mask.shape, 3)), np.zeros((1, 3)))
-        assert load_lowrank(path, proj.mask.shape) is not None
+        save_lowrank(path, [low], *_calibration(proj))
+        assert load_lowrank(path, proj.mask) is not None
         with np.load(path) as z:
             old = {k: z[k] for k in z.files if k != "format"}
         np.savez(path, **old)
     elif damage in ("members", "basis"):  # edited or damaged after it was written: a claim of 10^9 members once hung
-        save_lowrank(path, [low], np.zeros((1, *proj.mask.shape, 3)), np.zeros((1, 3)))
+        save_lowrank(path, [low], *_calibration(proj))
         with np.load(path) as z:
             edited = {k: z[k] for k in z.files}
         if damage == "members":
@@ -92,4 +103,5 @@ def test_a_damaged_or_foreign_eigen_footprint_file_is_not_read(tmp_path, damage,
         else:  # same shapes, other values: only the digest tells
             edited["m0_basis"] = np.ones_like(edited["m0_basis"])
         np.savez(path, **edited)
-    assert load_lowrank(path, (proj.mask.shape[0] + 1, proj.mask.shape[1]) if damage == "other view" else proj.mask.shape) is None
+    other = np.zeros((proj.mask.shape[0] + 1, proj.mask.shape[1]), bool)  # a view of another size
+    assert load_lowrank(path, other if damage == "other view" else proj.mask) is None

@@ -302,7 +302,7 @@ def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
     fused, mix = relight_view(counted, k, rv, pats, calibrate=True)
     assert sum(calls) <= rv.proj.mask.sum()  # one footprint per lit pixel: no second pass
     every = pats + list(rv.psp_patterns)
-    model = white_consistent(rv, relight(raw, rv.proj, every + [white(*rv.proj.projector_size)], k, white=rv.white))
+    model = white_consistent(rv, relight(raw, rv.proj, every + [white(*rv.proj.projector_size)], k, white=rv.white))[0]
     none = relight(no_scattering_source(exit_white(rv)), rv.proj, every, 1, white=rv.white)
     psp, lost = model_inputs(rv)
     (weight,), (view_weight,) = local_mixture(rv, [model[2:]], none[2:], psp, lost)
@@ -399,7 +399,7 @@ def test_a_blend_relights_the_fringe_captures_at_least_as_well_as_each_member(se
     blend, mix = relight_view(*members[0], rv, pats, calibrate=True, also=members[1:])
     assert mix.shape == (2, 3) and (mix >= 0).all() and (mix.sum(0) <= 1 + 1e-6).all()
     none = relight(no_scattering_source(exit_white(rv)), rv.proj, pats, 1, white=rv.white)
-    relits = [white_consistent(rv, relight(src, rv.proj, pats + [white(*rv.proj.projector_size)], k, white=rv.white))
+    relits = [white_consistent(rv, relight(src, rv.proj, pats + [white(*rv.proj.projector_size)], k, white=rv.white))[0]
               for src, k in members]
     psp, lost = model_inputs(rv)
     weights, view_weights = local_mixture(rv, relits, none, psp, lost)
