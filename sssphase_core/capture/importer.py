@@ -320,9 +320,8 @@ def untagged_encoding(files: dict[str, Path]) -> tuple[str, str] | None:
         return None
     codes = [read_frame(files[k], finite=False) for k in keys[:-2]]
     white, black = read_frame(files["white"], finite=False), read_frame(files["black"], finite=False)
-    lit = (white - black).sum(-1)
     unclipped = (white < 0.999).all(-1) & (np.max(codes, axis=0) < 0.999).all(-1)
-    keep = unclipped & np.isfinite(lit) & (lit > 0.2 * float(np.percentile(lit, 99)))
+    keep = unclipped & _lit(white, black)[1]
     if not keep.any():
         return None
     shares = {enc: fringe_mean_share([np.stack([decode_codes(c, enc) for c in codes])], decode_codes(white, enc),

@@ -300,7 +300,8 @@ def noise_model(rv: RelightView) -> np.ndarray:
             m &= (psp < SATURATION_MARGIN * rv.saturation).all(axis=(0, -1))
         cached = np.zeros((2, 3))
         if m.sum() >= MIN_RATIO_PIXELS:
-            v, light = fringe_noise_variance(psp[:, m]).astype(np.float64), psp[:, m].mean(axis=0).astype(np.float64)
+            psp = psp[:, m]  # (and unclipped)
+            v, light = fringe_noise_variance(psp).astype(np.float64), psp.mean(axis=0).astype(np.float64)
             for c in range(3):
                 design = np.stack([np.ones_like(light[:, c]), light[:, c]], axis=1)
                 a, b = np.linalg.lstsq(design, v[:, c], rcond=None)[0]
