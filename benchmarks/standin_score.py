@@ -7,8 +7,10 @@
 ``RENDERS/OBJECT_clean_ref__PATTERN.exr`` on the view's decoded mask, and >= 2 px inside it, for every
 session under SESSIONS; with ``--truth converged`` against ``OBJECT_converged_ref__PATTERN.exr`` (`mitsuba_render.py
 --converged`: random numbers of their own, so the captures' fixed Monte-Carlo pattern is not in the truth), on the
-mask and on its quiet pixels: those where the clean reference is within :data:`QUIET` of the converged one in every
-colour (the captures' fireflies, shared by the clean references and by every relit image, dominate the mask's error).
+mask and on its calm pixels: chosen from the converged halves and the inputs only (the halves agree within 0.01 in
+every colour, the white capture has no firefly: `transport_footprints.py`'s selection), so that no source's error
+picks its own pixels; there each figure is followed by its margin over the analytic model (where scored) with the
+converged reference's own noise taken out (a quarter of its halves' mean squared difference).
 ``geometry``: the decoded and the geometry-corrected projector x, y of
 ``sss geometry``'s ``correspondence_for_geometry.npz`` against ``RENDERS/OBJECT_geometry.npz``
 (``standin_volumetric.py``, ``mitsuba_render.py``), median signed error by incidence angle.
@@ -22,15 +24,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-#: a pixel is quiet when the same-seed clean reference is this close to the converged one in every colour
-QUIET = 0.01
-
 
 def psnr(a: np.ndarray, b: np.ndarray, where: np.ndarray) -> float:
     return float(10 * np.log10(1.0 / np.mean((a[where] - b[where]) ** 2)))
 
 
 def relight(renders: Path, sessions: Path, relit: Path, backends: list[str], truth: str = "clean") -> None:
+    from transport_footprints import CALM, noise_corrected, reference_noise, steady_white
+
     from sssphase_core.relight import load_view
     from sssphase_core.store.exr import read_exr
     from sssphase_core.store.session import find_sessions
@@ -38,22 +39,31 @@ def relight(renders: Path, sessions: Path, relit: Path, backends: list[str], tru
     print("| object | pattern | " + " | ".join(backends) + " |")
     print("|---|---|" + "---|" * len(backends))
     for s in find_sessions([sessions]):
-        mask = load_view(s, 0).proj.mask
+        rv = load_view(s, 0)
+        mask = rv.proj.mask
         inner = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
         for pattern in ("checkerboard", "stripes_x", "stripes_y"):
             reference = renders / f"{s.name}_{truth}_ref__{pattern}.exr"
             if not reference.exists():  # stripes_y: mitsuba_render.py's; converged: where rendered
                 continue
             truth_img = read_exr(reference)
-            second = inner
-            if truth == "converged":  # the mask's quiet pixels instead of its inner ones
-                clean = read_exr(renders / f"{s.name}_clean_ref__{pattern}.exr")
-                second = mask & (np.abs(clean - truth_img).max(axis=-1) <= QUIET)
+            imgs = {b: read_exr(relit / f"{s.name}_v0_{pattern}_{b}.exr") for b in backends}
+            if truth != "converged":
+                cells = [f"{psnr(imgs[b], truth_img, mask):.2f} / {psnr(imgs[b], truth_img, inner):.2f}" for b in backends]
+                print(f"| {s.name} | {pattern} | " + " | ".join(cells) + " |")
+                continue
+            halves = [read_exr(renders / f"{s.name}_converged_half{i}_ref__{pattern}.exr") for i in (0, 1)]
+            calm = mask & steady_white(rv.white) & (np.abs(halves[0] - halves[1]).max(axis=-1) <= CALM)
+            noise = reference_noise(*halves, calm)
+            mse = {b: float(np.mean((imgs[b][calm] - truth_img[calm]) ** 2)) for b in backends}
             cells = []
             for b in backends:
-                img = read_exr(relit / f"{s.name}_v0_{pattern}_{b}.exr")
-                cells.append(f"{psnr(img, truth_img, mask):.2f} / {psnr(img, truth_img, second):.2f}")
-            print(f"| {s.name} | {pattern} | " + " | ".join(cells) + " |")
+                cell = f"{psnr(imgs[b], truth_img, mask):.2f} / {psnr(imgs[b], truth_img, calm):.2f}"
+                if "analytic" in mse:
+                    cell += " ({:+.2f})".format(noise_corrected(mse[b], mse["analytic"], noise)[1])
+                cells.append(cell)
+            print(f"| {s.name} | {pattern} ({calm.sum() / mask.sum():.0%} calm, reference noise "
+                  f"{10 * np.log10(1 / noise):.1f} dB) | " + " | ".join(cells) + " |")
 
 
 def geometry(renders: Path, name: str, files: list[Path]) -> None:
