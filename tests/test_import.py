@@ -21,6 +21,7 @@ from sssphase_core.capture import import_folder
 from sssphase_core.errors import DataError, InputError
 from sssphase_core.processing.patterns import capture_plan
 from sssphase_core.processing.projector import emitted_light
+from sssphase_core.relight.views import load_view
 from sssphase_core.store.session import Session
 
 W, H, SPACING, K = 64, 48, 8, 16
@@ -250,6 +251,8 @@ def test_frames_where_nothing_decodes_or_too_small_are_refused_naming_why(tmp_pa
     ("dots__a_b.png", "no frame name"),
     ("psp__x__p16__s99999999.png", "no frame name"),
     ("psp__x__p16__s7.png", "shifts"),
+    ("psp_x_p16_s0.png", "no frame name"),  # a misspelt frame is refused, not skipped with the thumbnails
+    ("White_old.png", "no frame name"),
 ])
 def test_hostile_frame_names_are_refused_before_any_work(frames, tmp_path, name, expected):
     folder = tmp_path / "f"
@@ -260,6 +263,22 @@ def test_hostile_frame_names_are_refused_before_any_work(frames, tmp_path, name,
     with pytest.raises(InputError, match=expected):
         import_folder(folder, tmp_path / "sessions", "hostile", (W, H))
     assert not (tmp_path / "sessions" / "hostile").exists()
+
+
+def test_images_beside_the_frames_are_skipped_with_one_warning_naming_them(tmp_path):
+    """A lab's folder holds more than frames: a thumbnail, a mask, a phone photo of the rig. They refused the
+    whole import ("'thumbnail' is no frame name"); now they are skipped, named in one warning, and the session is
+    the one the frames alone give."""
+    alone = import_folder(_float_frames(tmp_path / "alone", 1.0), tmp_path / "s", "alone", (W, H), patch=K)
+    folder = _float_frames(tmp_path / "f", 1.0)
+    cv2.imwrite(str(folder / "thumbnail.png"), np.zeros((8, 8, 3), np.uint8))
+    (folder / "IMG_0001.jpg").write_bytes(b"\xff\xd8 not even a JPEG")
+    np.save(folder / "mask.npy", np.ones((H, W), bool))
+    with pytest.warns(UserWarning, match=r"skipped 3 images whose name is no frame's \(IMG_0001.jpg, mask.npy, "
+                                         r"thumbnail.png\)"):
+        with_others = import_folder(folder, tmp_path / "s", "others", (W, H), patch=K)
+    a, b = load_view(alone, 0), load_view(with_others, 0)
+    assert np.array_equal(a.proj.mask, b.proj.mask) and np.array_equal(a.white, b.white)
 
 
 def test_a_pickled_npy_is_refused(tmp_path):

@@ -59,14 +59,31 @@ def _is_frame_key(key: str) -> bool:
     return bool(PSP_KEY_RE.match(key) or DOTS_KEY_RE.match(key) or OTHER_KEY_RE.match(key))
 
 
+#: The first word of every frame name: an image whose name starts with one but is no frame name is a misspelt
+#: frame (refused, naming it); any other image beside the frames (a thumbnail, a mask, a photo of the rig) is skipped.
+FRAME_WORDS = frozenset({"psp", "dots", "white", "black", "ref", "pattern"})
+
+
+def _meant_as_frame(rel: Path) -> bool:
+    """Whether an image at ``rel`` (relative to its view folder) was meant as a frame: its name's (or in the
+    ``psp/x/p20/s0.png`` layout its top folder's) first word, up to ``_``, ``-``, ``.`` or a space, is a frame's."""
+    return re.split(r"[_\-. ]", rel.parts[0], maxsplit=1)[0].lower() in FRAME_WORDS
+
+
 def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
     """Frame files of one view by plan key: ``psp__x__p20__s0.png`` or ``psp/x/p20/s0.png`` (the layout
-    `sss patterns` writes) are both ``psp/x/p20/s0``. Files of other types are ignored; an image whose
-    name is no plan key is refused, naming it (``strict=False``: skipped, for readers that want only
-    some keys, e.g. `sss decode` in a folder that also holds its own outputs)."""
+    `sss patterns` writes) are both ``psp/x/p20/s0``. Files of other types are ignored, and so are images
+    whose names are not meant as frames (a thumbnail, a mask: one warning names them); an image whose name
+    starts like a frame's but is no plan key is refused, naming it (``strict=False``: skipped, for readers
+    that want only some keys, e.g. `sss decode` in a folder that also holds its own outputs)."""
     files: dict[str, Path] = {}
+    others: list[str] = []
     for path in sorted(vdir.rglob("*")):
         rel = path.relative_to(vdir)
+        if (strict and path.suffix.lower() in (*IMAGE_SUFFIXES, *LOSSY_SUFFIXES, *OTHER_IMAGE_SUFFIXES)
+                and not rel.parts[0].startswith("view_") and not _meant_as_frame(rel)):
+            others.append(rel.as_posix())  # beside the frames, not one of them
+            continue
         if strict and path.suffix.lower() in LOSSY_SUFFIXES and not rel.parts[0].startswith("view_"):
             raise InputError(f"{path}: {path.suffix} frames are lossy (8 x 8 blocks, halved colour resolution), which "
                              "corrupts fringes: save the camera's frames as PNG, TIFF, EXR or .npy")
@@ -96,6 +113,10 @@ def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
         if key in files:
             raise InputError(f"{path} and {files[key]} are both frame {key!r}")
         files[key] = path
+    if others and files:
+        warnings.warn(f"{vdir}: skipped {len(others)} image{'s' if len(others) > 1 else ''} whose name is no frame's "
+                      f"({', '.join(others[:3])}{', ...' if len(others) > 3 else ''}); frames are named psp__<x|y>__"
+                      "p<period>__s<n>, white, black, ref__<name>, pattern__<name> or dots__<sx>_<sy>", stacklevel=3)
     return files
 
 
