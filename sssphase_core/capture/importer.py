@@ -243,15 +243,16 @@ def white_levels(whites: Iterable[Path], encoding: str = "linear") -> list[float
     for path in whites:
         white = read_imported(path, encoding)[0]
         level = float(np.percentile(white, 99.9))
-        robust = _median_level(white)
-        if level > FIREFLY_RATIO * robust:  # a refusal that followed named the fringes, not the white's fireflies
-            warnings.warn(f"{path}: its level (99.9th percentile {level:.3g}) is set by isolated bright pixels, "
-                          f"{level / robust:.0f}x its 3 x 3 median's ({robust:.3g}): a renderer's fireflies? every frame "
-                          "is compared with and scaled by this level: repair them, or render with more samples",
-                          UserWarning, stacklevel=2)
         if not level >= MIN_WHITE_LEVEL:
             raise InputError(f"{path}: the white capture holds no light (99.9th percentile {level:.3g}): it must be a "
                              "linear image of the object under the projector's full white")
+        robust = _median_level(white)
+        if level > FIREFLY_RATIO * max(robust, 0.0):  # a refusal that followed named the fringes, not the fireflies
+            times = f"{level / robust:.0f}x its 3 x 3 median's" if robust > 0 else "its 3 x 3 median's being"
+            warnings.warn(f"{path}: its level (99.9th percentile {level:.3g}) is set by isolated bright pixels, "
+                          f"{times} ({robust:.3g}): a renderer's fireflies? every frame "
+                          "is compared with and scaled by this level: repair them, or render with more samples",
+                          UserWarning, stacklevel=2)
         levels.append(level)
     return levels
 
