@@ -27,7 +27,7 @@ from sssphase_core.store.session import Session
 
 def modulation(psp: np.ndarray) -> np.ndarray:
     """(8, H, W, 3) PSP frames (4 shifts of x, then of y) -> (H, W, 3) the mean of the two orientations' amplitudes."""
-    return 0.5 * (np.hypot(psp[0] - psp[2], psp[1] - psp[3]) + np.hypot(psp[4] - psp[6], psp[5] - psp[7]))
+    return 0.25 * (np.hypot(psp[0] - psp[2], psp[1] - psp[3]) + np.hypot(psp[4] - psp[6], psp[5] - psp[7]))
 
 
 def main(paths: list[str]) -> None:
