@@ -9,7 +9,7 @@ Mitsuba is not a dependency of sssphase; install it beside it, by hand (the ``mi
     python benchmarks/mitsuba_render.py OUT NAME --shape SHAPE --medium MEDIUM [--scale S] [--g G] \
         [--train | --test] [--spp N] [--seed N] [--groups G]
     sss import OUT/NAME --object NAME --projector 256x192 --out SESSIONS
-    python benchmarks/mitsuba_render.py OUT NAME --converged [--spp 128] [--groups 8]   # after --test
+    python benchmarks/mitsuba_render.py OUT NAME --converged [--spp N] [--groups 8]   # after --test
 
 The scene: the rig's pinhole camera at the origin looking along +z, its projector (Mitsuba's ``projector``
 emitter, a textured point light) 150 mm to the right and verged on the turntable centre 400 mm away, one
@@ -37,7 +37,8 @@ The ``clean`` references share the frames' random numbers, so they hold the same
 the captures, fireflies included (one pixel of a 32-spp apple is 19x the white level): a model that copies the
 captures' pattern is scored as if it were physics. ``--converged`` (after ``--test`` of the same OUT and NAME:
 the object, medium and exposure come from its ``NAME.json``) renders the reference patterns alone, without
-camera noise, ``--groups`` times at ``--spp`` samples with random numbers of their own, and keeps each pixel's
+camera noise, ``--groups`` times at ``--spp`` samples (by default 4 x the ``--test`` render's samples in all) with
+random numbers of their own, and keeps each pixel's
 mean of the groups without its highest and lowest (a trimmed mean: a firefly falls in one group). It writes
 ``NAME_converged_ref__PATTERN.exr``, the truth to score against (`standin_score.py --truth converged`), and the
 trimmed means of its two halves of groups (``NAME_converged_half{0,1}_ref__PATTERN.exr``: their difference is the
@@ -224,7 +225,9 @@ def main() -> None:
     kind.add_argument("--test", action="store_true", help="with reference patterns")
     kind.add_argument("--converged", action="store_true",
                       help="after --test: its reference patterns with independent random numbers, at --spp")
-    ap.add_argument("--spp", type=int, default=64)
+    ap.add_argument("--spp", type=int, default=None,
+                    help="samples per pixel (default 64; --converged: per group, by default enough for "
+                         f"{CONVERGED_OVER} x the --test render's samples over the groups)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--groups", type=int, default=None,
                     help="renders per frame, each with its own random numbers, trimmed-mean combined (>= 3; "
@@ -232,6 +235,8 @@ def main() -> None:
     args = ap.parse_args()
     if args.groups is None:
         args.groups = 8 if args.converged else 1
+    if args.spp is None and not args.converged:  # (--converged: from the --test render's record)
+        args.spp = 64
     if args.groups < 3 and (args.converged or args.groups != 1):
         raise SystemExit("--groups must be at least 3 (the trimmed mean drops the highest and the lowest)")
     if not -0.95 < args.g < 0.95 or not args.scale > 0:
@@ -308,6 +313,23 @@ def trimmed(renders: list[np.ndarray]) -> np.ndarray:
     return trim_mean(stack, 1 / len(stack), axis=0) if len(stack) >= 3 else stack.mean(axis=0)
 
 
+#: --converged renders this many times the --test render's samples per pixel by default (over all its groups)
+CONVERGED_OVER = 4
+
+
+def converged_spp(facts: dict, groups: int, spp: int | None) -> int:
+    """Samples per pixel of each of ``groups`` converged renders: ``spp`` as given, else enough for
+    :data:`CONVERGED_OVER` x the ``--test`` render's (``facts``: its record; its spp times its groups), at least 64.
+    A truth with fewer samples than the captures ranks models by its own noise: said in one line."""
+    captured = int(facts.get("spp", 64)) * int(facts.get("groups", 1))
+    if spp is None:
+        return max(64, -(-CONVERGED_OVER * captured // groups))
+    if spp * groups < 2 * captured:
+        print(f"note: {groups} x {spp} spp is less than twice the {captured} spp of the captures: the references' own "
+              "noise will weigh on every score (the default takes CONVERGED_OVER x)", flush=True)
+    return spp
+
+
 def converged_references(mi, args: argparse.Namespace, rig) -> None:  # noqa: ANN001
     """The reference patterns of the ``--test`` render ``OUT/NAME`` (its object, medium and exposure, from
     ``NAME.json``) without camera noise: per pixel the trimmed mean of ``args.groups`` renders of ``args.spp``
@@ -324,6 +346,7 @@ def converged_references(mi, args: argparse.Namespace, rig) -> None:  # noqa: AN
         raise SystemExit(f"{record}: {args.name} was not rendered with --test (no reference patterns)")
     for key in ("shape", "medium", "scale", "g", "seed"):  # the same object: its mesh and medium
         setattr(args, key, facts[key])
+    args.spp = converged_spp(facts, args.groups, args.spp)
     scene, _ = build_scene(mi, args, rig, args.out)
     params = mi.traverse(scene)
     plan = capture_plan(rig.projector.width, rig.projector.height, footprints=False, dot_spacing=20,

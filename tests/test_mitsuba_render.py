@@ -76,3 +76,13 @@ def test_the_trimmed_mean_leaves_out_one_firefly():
     out = mr.trimmed(renders)
     assert np.allclose(out, 0.1)
     assert np.allclose(mr.trimmed(renders[:2]), np.mean(renders[:2], axis=0))  # fewer than 3: the plain mean
+
+
+def test_converged_references_outsample_the_captures_by_default(capsys):
+    """--converged without --spp rendered 8 x 64 spp whatever the captures had: below a 1,024-spp test render, whose
+    own Monte-Carlo error then outweighed the truth's. By default it now takes 4 x the captures' samples."""
+    assert mr.converged_spp({"spp": 1024}, 8, None) == 512
+    assert mr.converged_spp({"spp": 64, "groups": 5}, 8, None) == 160
+    assert mr.converged_spp({"spp": 32}, 8, None) == 64  # at least 64 per group
+    assert mr.converged_spp({"spp": 1024}, 8, 64) == 64 and "less than twice the 1024 spp" in capsys.readouterr().out
+    assert mr.converged_spp({"spp": 64}, 8, 128) == 128 and capsys.readouterr().out == ""
