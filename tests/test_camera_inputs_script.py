@@ -1,15 +1,11 @@
 """The camera-inputs benchmark (benchmarks/camera_inputs.py) measures what it says."""
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
+from benchmark_script import load_benchmark
 
-_spec = importlib.util.spec_from_file_location(
-    "camera_inputs", Path(__file__).resolve().parents[1] / "benchmarks" / "camera_inputs.py")
-ci = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(ci)
+ci = load_benchmark("camera_inputs")
 
 
 def test_the_radius_of_a_gaussian_footprint_is_its_second_moment():

@@ -1,14 +1,10 @@
 """The exit-texture diagnostic (benchmarks/exit_texture_slope.py) reads fringe modulation as the PSP frames hold it."""
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
+from benchmark_script import load_benchmark
 
-_spec = importlib.util.spec_from_file_location(
-    "exit_texture_slope", Path(__file__).resolve().parents[1] / "benchmarks" / "exit_texture_slope.py")
-script = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(script)
+script = load_benchmark("exit_texture_slope")
 
 
 def test_modulation_is_the_fringes_amplitude_whatever_their_phase_and_offset():

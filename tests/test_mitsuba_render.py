@@ -2,16 +2,13 @@
 interior medium is the side the normals point away from), and its grey extinction keeps each colour's measured
 absorption. (Mitsuba itself is not installed by the suite.)"""
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
 import pytest
+from benchmark_script import load_benchmark
 
-_spec = importlib.util.spec_from_file_location(
-    "mitsuba_render", Path(__file__).resolve().parents[1] / "benchmarks" / "mitsuba_render.py")
-mr = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(mr)
+mr = load_benchmark("mitsuba_render")
 
 
 def _read_obj(path: Path) -> tuple[np.ndarray, np.ndarray]:

@@ -1,15 +1,11 @@
 """The volumetric Monte Carlo stand-in renderer (benchmarks/standin_volumetric.py) obeys the physics it claims."""
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import pytest
+from benchmark_script import load_benchmark
 
-_spec = importlib.util.spec_from_file_location(
-    "standin_volumetric", Path(__file__).resolve().parents[1] / "benchmarks" / "standin_volumetric.py")
-mc = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(mc)
+mc = load_benchmark("standin_volumetric")
 
 XS = np.arange(-mc.RADIUS, mc.RADIUS + 1)
 

@@ -1,14 +1,10 @@
 """The transport-footprints benchmark (benchmarks/transport_footprints.py) measures what it says."""
 
-import importlib.util
-from pathlib import Path
 
 import numpy as np
+from benchmark_script import load_benchmark
 
-_spec = importlib.util.spec_from_file_location(
-    "transport_footprints", Path(__file__).resolve().parents[1] / "benchmarks" / "transport_footprints.py")
-tf = importlib.util.module_from_spec(_spec)
-_spec.loader.exec_module(tf)
+tf = load_benchmark("transport_footprints")
 
 
 def test_dots_seen_by_one_pixel_add_up_in_its_footprint():
