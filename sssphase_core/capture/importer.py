@@ -53,6 +53,8 @@ class _ImportedFrame:
 
 #: Image files an importer does not read; one named as a frame is refused by name (it was "missing").
 OTHER_IMAGE_SUFFIXES = (".gif", ".bmp", ".ppm", ".pgm", ".pfm", ".hdr", ".jp2", ".jxl", ".heic", ".dng", ".raw")
+#: Every image suffix a folder of frames may hold: what the importer reads, refuses as lossy, or does not read.
+ANY_IMAGE_SUFFIXES = frozenset((*IMAGE_SUFFIXES, *LOSSY_SUFFIXES, *OTHER_IMAGE_SUFFIXES))
 
 
 def _is_frame_key(key: str) -> bool:
@@ -80,18 +82,20 @@ def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
     others: list[str] = []
     for path in sorted(vdir.rglob("*")):
         rel = path.relative_to(vdir)
-        if (strict and path.suffix.lower() in (*IMAGE_SUFFIXES, *LOSSY_SUFFIXES, *OTHER_IMAGE_SUFFIXES)
-                and not rel.parts[0].startswith("view_") and not _meant_as_frame(rel)):
+        suffix = path.suffix.lower()
+        if rel.parts[0].startswith("view_"):  # another view's folder (the import reads it as its own view)
+            continue
+        if strict and suffix in ANY_IMAGE_SUFFIXES and not _meant_as_frame(rel):
             others.append(rel.as_posix())  # beside the frames, not one of them
             continue
-        if strict and path.suffix.lower() in LOSSY_SUFFIXES and not rel.parts[0].startswith("view_"):
+        if strict and suffix in LOSSY_SUFFIXES:
             raise InputError(f"{path}: {path.suffix} frames are lossy (8 x 8 blocks, halved colour resolution), which "
                              "corrupts fringes: save the camera's frames as PNG, TIFF, EXR or .npy")
-        if (strict and path.suffix.lower() in OTHER_IMAGE_SUFFIXES and not rel.parts[0].startswith("view_")
+        if (strict and suffix in OTHER_IMAGE_SUFFIXES
                 and _is_frame_key(rel.with_suffix("").as_posix().replace("__", "/"))):  # said "missing: white"
             raise InputError(f"{path}: {path.suffix} is not a frame format the importer reads: save it as PNG, TIFF, "
                              "EXR or .npy")
-        if path.suffix.lower() not in IMAGE_SUFFIXES or rel.parts[0].startswith("view_"):
+        if suffix not in IMAGE_SUFFIXES:
             continue
         if not path.is_file():
             if strict:  # said "missing: white" for a white.png that cannot be read
