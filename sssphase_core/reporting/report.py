@@ -58,6 +58,20 @@ def _not_available(step: str, result: dict[str, Any] | None) -> str:
     return f"<div class='na'><b>{_esc(step)}: not available</b> &mdash; {_esc(reason)}</div>"
 
 
+#: Each built-in backend's colour in the report's plots (a blend beside torch was drawn in torch's blue).
+BACKEND_COLOURS = {"none": "tab:gray", "analytic": "tab:orange", "measured": "tab:olive", "exact": "tab:green",
+                   "torch": "tab:blue", "blend": "tab:purple"}
+
+
+def backend_colours(backends: list[str]) -> dict[str, str]:
+    """A colour per backend, in order: the built-ins' own (:data:`BACKEND_COLOURS`), any other a colour none of
+    them has (matplotlib's cycle would start again at torch's blue)."""
+    spare = ("tab:red", "tab:brown", "tab:pink", "tab:cyan")  # none of the built-ins'
+    others = [b for b in backends if b not in BACKEND_COLOURS]
+    extra = {b: spare[i % len(spare)] for i, b in enumerate(others)}
+    return {b: BACKEND_COLOURS.get(b) or extra[b] for b in backends}
+
+
 def error_vs_runtime_plot(rows: Sequence[dict[str, Any]], path: Path) -> Path:
     """Relit PSNR against run time, one point per (object, pattern, backend)."""
     import matplotlib
@@ -66,10 +80,10 @@ def error_vs_runtime_plot(rows: Sequence[dict[str, Any]], path: Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4), constrained_layout=True)
-    colours = {"none": "tab:gray", "analytic": "tab:orange", "measured": "tab:olive", "exact": "tab:green", "torch": "tab:blue"}
-    for backend in dict.fromkeys(r["backend"] for r in rows):
+    colours = backend_colours(list(dict.fromkeys(r["backend"] for r in rows)))
+    for backend in colours:
         rs = [r for r in rows if r["backend"] == backend]
-        ax.scatter([max(r["seconds"], 1e-4) for r in rs], [r["psnr"] for r in rs], label=backend, color=colours.get(backend))
+        ax.scatter([max(r["seconds"], 1e-4) for r in rs], [r["psnr"] for r in rs], label=backend, color=colours[backend])
     ax.set_xscale("log")
     ax.set_xlabel("run time per relit image (s): footprints + splat")
     ax.set_ylabel("PSNR vs noise-free GT (dB)")

@@ -84,3 +84,12 @@ def test_the_report_says_how_finely_its_analytic_footprints_were_integrated(tmp_
     page = _relight_section({"rows": rows, "skipped": {}, "analytic_supersample": 2}, tmp_path)
     assert "integrates each footprint pixel at 2 × 2 points here" in page
     assert "integrates" not in _relight_section({"rows": rows[:2], "skipped": {}, "analytic_supersample": 2}, tmp_path)
+
+
+def test_every_backend_in_the_error_against_run_time_plot_has_a_colour_of_its_own():
+    """The blend was drawn in the torch backend's blue (matplotlib's cycle restarted for a backend without a colour)."""
+    from sssphase_core.reporting.report import backend_colours
+
+    names = ["none", "analytic", "torch", "blend", "exact", "measured", "plugin_a", "plugin_b"]
+    colours = backend_colours(names)
+    assert list(colours) == names and len(set(colours.values())) == len(names)
