@@ -30,7 +30,7 @@ def capture(
     out: Annotated[Path, typer.Option(help="session root folder")] = Path("sessions"),
     seed: Annotated[int, typer.Option(help="sim noise seed")] = 0,
     preset: Annotated[str, typer.Option(help="sim rig preset: cpu or paper")] = "cpu",
-    transport: Annotated[str | None, typer.Option(help="sim light transport: burley (radially symmetric footprints) or directional_dipole (skewed by the incidence direction)")] = None,
+    transport: Annotated[str | None, typer.Option(help="sim light transport: burley (radially symmetric footprints), directional_dipole (skewed by the incidence direction) or radiative (random-walk profiles, no diffusion approximation; a --rig file sets its anisotropy)")] = None,
     randomise_rig: Annotated[bool, typer.Option(help="sim rig: draw projector gamma and black, lens blur, read noise, exposure, demosaicing and transport model (domain randomisation; reproducible from --seed and the object's name)")] = False,
     dot_spacing: Annotated[int | None, typer.Option(help="dot-grid spacing in projector pixels")] = None,
     keep_dots: Annotated[bool, typer.Option(help="keep the raw dot-grid frames")] = False,

@@ -324,7 +324,7 @@ def demo(
     out: Annotated[Path, typer.Option("--out", help="Demo folder (resumable: finished steps are skipped).")] = Path("demo"),
     preset: Annotated[str, typer.Option(help="lite (minutes on 2 CPU cores) or tiny (tests).")] = "lite",
     fresh: Annotated[bool, typer.Option("--fresh", help="Redo every step.")] = False,
-    transport: Annotated[str | None, typer.Option(help="sim light transport: burley (default) or directional_dipole (footprints skewed by the incidence direction).")] = None,
+    transport: Annotated[str | None, typer.Option(help="sim light transport: burley (default), directional_dipole (footprints skewed by the incidence direction) or radiative (random-walk profiles, no diffusion approximation).")] = None,
     randomise_rig: Annotated[bool, typer.Option(help="Capture each training object on its own randomised sim rig (projector response, lens blur, noise, exposure, demosaicing, transport model); the unseen objects on the nominal rig.")] = False,
     three_chip: Annotated[bool, typer.Option("--three-chip", help="Capture every object with a three-chip sim camera (every pixel sees R, G and B: nothing is demosaiced; the sim option demosaic = \"none\").")] = False,
 ) -> None:

@@ -23,6 +23,7 @@ from sssphase_core.sim.objects import (
     get_object,
 )
 from sssphase_core.sim.rig import (
+    ANISOTROPY_RANGE,
     MAX_VIEWS,
     RANDOMISED_RANGES,
     TRANSPORTS,
@@ -45,6 +46,7 @@ __all__ = [
     "JENSEN_2001",
     "MATERIALS",
     "MATERIAL_NAMES",
+    "ANISOTROPY_RANGE",
     "MAX_VIEWS",
     "TRAIN_OBJECTS",
     "UNSEEN_OBJECTS",

@@ -58,15 +58,19 @@ class ProjectorModel(Pinhole):
 
 
 #: Light-transport models of the simulator: Christensen-Burley normalized diffusion (radially
-#: symmetric footprints) and the directional dipole (footprints skewed by the incidence direction).
-TRANSPORTS = ("burley", "directional_dipole")
+#: symmetric footprints), the directional dipole (footprints skewed by the incidence direction) and
+#: radiative transfer (random-walk profiles, :mod:`sssphase_core.sim.radiative`: no diffusion approximation).
+TRANSPORTS = ("burley", "directional_dipole", "radiative")
+#: The phase function's mean cosine g of the radiative transport (the range its table covers).
+ANISOTROPY_RANGE = (0.0, 0.85)
 
 
 @dataclass(frozen=True)
 class RigConfig:
     """Everything fixed about the rig. ``sss_scale`` multiplies all scattering distances so that
     footprints fit the ``patch``; ``reference_distance`` is where a white target reads 1.0;
-    ``transport`` is one of :data:`TRANSPORTS`."""
+    ``transport`` is one of :data:`TRANSPORTS`; ``anisotropy`` the mean cosine g of the media's
+    Henyey-Greenstein phase function (the radiative transport's; the diffusion models have none)."""
 
     name: str
     camera: Pinhole
@@ -77,10 +81,14 @@ class RigConfig:
     reference_distance: float = 400.0
     sss_scale: float = 1.0
     transport: str = "burley"
+    anisotropy: float = 0.0
 
     def __post_init__(self) -> None:
         if self.transport not in TRANSPORTS:
             raise InputError(f"unknown transport model {self.transport!r}; choose one of {', '.join(TRANSPORTS)}")
+        if not ANISOTROPY_RANGE[0] <= self.anisotropy <= ANISOTROPY_RANGE[1]:  # NaN fails too
+            raise InputError(f"anisotropy (the phase function's mean cosine) must be in [{ANISOTROPY_RANGE[0]:g}, "
+                             f"{ANISOTROPY_RANGE[1]:g}], got {self.anisotropy!r}")
 
     def view_angle(self, view: int, n_views: int) -> float:
         """Turntable angle in degrees of view ``view`` out of ``n_views``."""
@@ -160,9 +168,11 @@ def rig_preset(name: str = "cpu") -> RigConfig:
     raise InputError(f"unknown rig preset {name!r}; choose one of {', '.join(PRESETS)}")
 
 
-def with_transport(rig: RigConfig, transport: str | None) -> RigConfig:
-    """``rig`` with light-transport model ``transport`` (None keeps the rig's)."""
-    return rig if transport is None else replace(rig, transport=str(transport))
+def with_transport(rig: RigConfig, transport: str | None, anisotropy: float | None = None) -> RigConfig:
+    """``rig`` with light-transport model ``transport`` and phase-function ``anisotropy`` (None keeps the rig's)."""
+    if transport is not None:
+        rig = replace(rig, transport=str(transport))
+    return rig if anisotropy is None else replace(rig, anisotropy=float(anisotropy))
 
 
 #: Sim rig options that change the camera (``SensorConfig`` fields): name -> (low, high) of the
@@ -178,7 +188,7 @@ FAULT_OPTIONS = frozenset({"fail_at_frame", "disconnect_at_frame", "stall_at_fra
 #: torch device, ``sssphase_core.sim_accel``): a session resumes across them.
 COMPUTE_OPTIONS = frozenset({"device"})
 SIM_RIG_OPTIONS = frozenset({"object", "preset", "seed", "n_views", "view", "latency_s", "frame_period_s", "realtime",
-                             "projector_gamma", "projector_black", "transport", "demosaic", "raw", "fail_at_frame",
+                             "projector_gamma", "projector_black", "transport", "anisotropy", "demosaic", "raw", "fail_at_frame",
                              "disconnect_at_frame", "stall_at_frame", "garbage_at_frame",
                              "grab_delay_s", "frame_timeout_s", "shape", "dtype", *SENSOR_OPTIONS, *COMPUTE_OPTIONS})
 
@@ -206,12 +216,13 @@ def with_camera(rig: RigConfig, options: Mapping[str, Any]) -> RigConfig:
 
 def rig_from_options(options: Mapping[str, Any]) -> RigConfig:
     """The sim rig a session or daemon was given: ``preset`` (default cpu), then the optional
-    ``projector_gamma`` / ``projector_black``, ``transport`` and camera options (:func:`with_camera`)
-    (the sim plugin's options)."""
+    ``projector_gamma`` / ``projector_black``, ``transport``, ``anisotropy`` and camera options
+    (:func:`with_camera`) (the sim plugin's options)."""
     rig = rig_preset(str(options.get("preset", "cpu")))
     rig = with_projector_response(rig, _option(options, "projector_gamma", 0.3, 5.0),
                                   _option(options, "projector_black", 0.0, 0.2))
-    return with_camera(with_transport(rig, options.get("transport")), options)
+    rig = with_transport(rig, options.get("transport"), _option(options, "anisotropy", *ANISOTROPY_RANGE))
+    return with_camera(rig, options)
 
 
 #: Ranges of :func:`randomised_rig_options`: what differs between labs, projectors and cameras.
@@ -221,13 +232,14 @@ RANDOMISED_RANGES: dict[str, tuple[float, float]] = {
     "lens_blur": (0.0, 1.0),
     "read_noise": (1.0, 12.0),
     "white_fraction": (0.3, 0.85),
+    "anisotropy": ANISOTROPY_RANGE,  # the radiative transport's media: isotropic to strongly forward (skin, milk)
 }
 
 
 def randomised_rig_options(seed: int, salt: str = "") -> dict[str, Any]:
     """Domain randomisation: sim rig options drawn from :data:`RANDOMISED_RANGES` (uniform), a
-    demosaicing method and a light-transport model, reproducibly from ``seed`` and ``salt`` (e.g. the
-    object's name: each object gets its own rig). Sessions captured with different draws teach a
+    demosaicing method and a light-transport model (``anisotropy`` matters to the radiative one only),
+    reproducibly from ``seed`` and ``salt`` (e.g. the object's name: each object gets its own rig). Sessions captured with different draws teach a
     model several rigs and profile families instead of one."""
     import zlib
 

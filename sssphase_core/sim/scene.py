@@ -13,7 +13,13 @@ from sssphase_core.sim.materials import burley_scale
 from sssphase_core.sim.objects import SimObject, get_object
 from sssphase_core.sim.rig import RigConfig, rig_preset
 from sssphase_core.sim.sensor import develop, expose
-from sssphase_core.sim.transport import DirectionalMaps, DirectionalTransport, SurfaceMaps, Transport
+from sssphase_core.sim.transport import (
+    DirectionalMaps,
+    DirectionalTransport,
+    RadiativeTransport,
+    SurfaceMaps,
+    Transport,
+)
 
 #: |cos| between the view ray and the normal is clamped here, bounding cell areas at grazing angles.
 COS_VIEW_MIN = 0.1
@@ -55,9 +61,9 @@ class SimScene:
     (off the surface, outside the projector image, back-facing or in shadow); ``material`` (int16
     index into ``sssphase_core.sim.MATERIAL_NAMES``, -1 off the surface), ``albedo``, ``mfp`` (scaled, mm);
     ``light_dir`` (direction the projector light travels), ``cos_in`` and ``cos_view`` (incidence and
-    viewing cosines). ``rig.transport`` picks the light-transport model (``burley`` or
-    ``directional_dipole``); ``transport_factory(maps, patch)`` builds the Burley one elsewhere than
-    numpy (``sssphase_core.sim_accel.transport_factory``: on a GPU; same footprints and images).
+    viewing cosines). ``rig.transport`` picks the light-transport model (``burley``,
+    ``directional_dipole`` or ``radiative``, the last with the rig's phase-function ``anisotropy``);
+    ``transport_factory(maps, patch)`` builds the Burley one elsewhere than numpy (``sssphase_core.sim_accel.transport_factory``: on a GPU; same footprints and images).
     """
 
     def __init__(self, obj: SimObject | str, rig: RigConfig | None = None, view: int = 0, n_views: int = 4, seed: int = 0,
@@ -71,6 +77,8 @@ class SimScene:
         if self.rig.transport == DirectionalTransport.name:
             directional = DirectionalMaps(self.normals, self.light_dir, self.cos_in, self.cos_view, self.mfp)
             self.transport: Transport = DirectionalTransport(maps, self.rig.patch, directional)
+        elif self.rig.transport == RadiativeTransport.name:
+            self.transport = RadiativeTransport(maps, self.rig.patch, self.mfp, self.rig.anisotropy)
         else:
             self.transport = (transport_factory or Transport)(maps, self.rig.patch)
         self._unit_white: np.ndarray | None = None

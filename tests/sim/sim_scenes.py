@@ -14,12 +14,12 @@ def custom_object(sdf, material: Material, radius: float = 50.0, name: str = "te
     return SimObject(name, "test", "made for a test", radius, sdf, uniform(material))
 
 
-def slab_scene(material: Material, tilt_deg: float = 0.0, transport: str = "burley") -> SimScene:
+def slab_scene(material: Material, tilt_deg: float = 0.0, transport: str = "burley", anisotropy: float = 0.0) -> SimScene:
     """A flat square slab facing the camera (optionally turned about y), filling most of the view."""
     obj = custom_object(lambda p: g.round_box(p, (0, 0, 0), (40, 40, 3), 1.0), material, radius=57.0)
     obj = SimObject(obj.name, obj.split, obj.description, obj.radius, obj.natural_sdf, obj.natural_shade,
                     tuple(tuple(row) for row in g.rotation_y(np.deg2rad(tilt_deg))))
-    return SimScene(obj, rig=with_transport(rig_preset("cpu"), transport))
+    return SimScene(obj, rig=with_transport(rig_preset("cpu"), transport, anisotropy))
 
 
 def centre_pixel(scene: SimScene) -> tuple[int, int]:

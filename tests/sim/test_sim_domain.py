@@ -8,6 +8,7 @@ import pytest
 
 from sssphase_core.errors import InputError
 from sssphase_core.sim import (
+    ANISOTROPY_RANGE,
     RANDOMISED_RANGES,
     TRANSPORTS,
     SimScene,
@@ -28,7 +29,11 @@ def test_draws_are_reproducible_within_their_ranges_and_differ_between_objects()
         assert rig.sensor.lens_blur == d["lens_blur"] and rig.sensor.white_fraction == d["white_fraction"]
         assert rig.projector.gamma == d["projector_gamma"] and rig.transport == d["transport"]
     assert len({d["projector_gamma"] for d in draws}) == len(draws)
-    assert len({d["transport"] for d in draws}) == 2 and len({d["demosaic"] for d in draws}) == 2
+    assert len({d["transport"] for d in draws}) >= 2 and len({d["demosaic"] for d in draws}) == 2
+    assert all(rig_from_options(d).anisotropy == d["anisotropy"] for d in draws)
+    more = [randomised_rig_options(0, name)["transport"] for name in ("orange", "shovel", "crab", "leaf", "lego", "hand")]
+    assert set(more + [d["transport"] for d in draws]) == set(TRANSPORTS)  # radiative transfer among them
+    assert ANISOTROPY_RANGE == RANDOMISED_RANGES["anisotropy"]
 
 
 @pytest.mark.parametrize(("option", "value"), [("lens_blur", -1.0), ("read_noise", float("nan")),
