@@ -2,6 +2,7 @@
 
     python benchmarks/standin_score.py relight RENDERS SESSIONS RELIT BACKEND[,BACKEND...] [--truth converged]
     python benchmarks/standin_score.py geometry RENDERS OBJECT GEOMETRY_NPZ [GEOMETRY_NPZ ...]
+    python benchmarks/standin_score.py edges RENDERS SESSIONS RELIT BACKEND[,BACKEND...]
 
 ``relight``: PSNR of ``RELIT/OBJECT_v0_PATTERN_BACKEND.exr`` (``sss relight --format exr``) against
 ``RENDERS/OBJECT_clean_ref__PATTERN.exr`` on the view's decoded mask, and >= 2 px inside it, for every
@@ -14,6 +15,9 @@ converged reference's own noise taken out (a quarter of its halves' mean squared
 ``geometry``: the decoded and the geometry-corrected projector x, y of
 ``sss geometry``'s ``correspondence_for_geometry.npz`` against ``RENDERS/OBJECT_geometry.npz``
 (``standin_volumetric.py``, ``mitsuba_render.py``), median signed error by incidence angle.
+``edges``: where the relit error lies across the patterns' edges: on the calm pixels within 2 projector pixels of an
+edge (by their decoded projector coordinate, the bright side positive), the mean over the white of the converged
+reference and of each backend's image, and the RMS of each one's error over the white, in quarter-pixel bins.
 """
 
 from __future__ import annotations
@@ -66,6 +70,65 @@ def relight(renders: Path, sessions: Path, relit: Path, backends: list[str], tru
                   f"{10 * np.log10(1 / noise):.1f} dB) | " + " | ".join(cells) + " |")
 
 
+EDGE_BINS = np.arange(-2.0, 2.01, 0.25)  # signed distance to a pattern edge, projector px (bright side positive)
+
+
+def edge_distance(pattern: np.ndarray, coord: np.ndarray, across: np.ndarray, axis: int, where: np.ndarray) -> np.ndarray:
+    """(H, W) signed distance (projector px, NaN beyond 3) of each pixel's decoded projector coordinate ``coord`` along
+    ``axis`` (1: x, 0: y) to the nearest edge of the (Hp, Wp) ``pattern`` along that axis, positive on its bright side;
+    ``across``: the other coordinate (which row or column of the pattern the pixel sees). Projector pixel i spans
+    [i - 0.5, i + 0.5]."""
+    steps = np.abs(np.diff(pattern, axis=axis)).max(axis=1 - axis) > 0.5
+    dist = np.full(coord.shape, np.nan)
+    c = np.where(where, coord, -99.0)
+    other = np.clip(np.round(np.nan_to_num(across)).astype(int), 0, pattern.shape[1 - axis] - 1)
+    for e in np.flatnonzero(steps) + 1:  # between projector pixels e - 1 and e
+        d = c - (e - 0.5)
+        near = where & (np.abs(d) < 3) & ~(np.abs(dist) <= np.abs(d))
+        o = other[near]
+        after, before = (pattern[o, e], pattern[o, e - 1]) if axis == 1 else (pattern[e, o], pattern[e - 1, o])
+        dist[near] = np.where(after > before, d[near], -d[near])
+    return dist
+
+
+def edges(renders: Path, sessions: Path, relit: Path, backends: list[str]) -> None:
+    from transport_footprints import CALM, steady_white
+
+    from sssphase_core.relight import load_view
+    from sssphase_core.store.exr import read_exr
+    from sssphase_core.store.session import find_sessions
+
+    for s in find_sessions([sessions]):
+        rv = load_view(s, 0)
+        white = rv.white.mean(axis=-1)
+        for name in ("checkerboard", "stripes_x", "stripes_y"):
+            reference = renders / f"{s.name}_converged_ref__{name}.exr"
+            if name not in rv.references or not reference.exists():
+                continue
+            pattern = np.asarray(rv.references[name], np.float32)
+            pattern = pattern.mean(axis=-1) if pattern.ndim == 3 else pattern
+            halves = [read_exr(renders / f"{s.name}_converged_half{i}_ref__{name}.exr") for i in (0, 1)]
+            calm = rv.proj.mask & steady_white(rv.white) & (np.abs(halves[0] - halves[1]).max(axis=-1) <= CALM)
+            images = {"truth": read_exr(reference).mean(axis=-1)}
+            images |= {b: read_exr(relit / f"{s.name}_v0_{name}_{b}.exr").mean(axis=-1) for b in backends}
+            for axis, coord, across in ((1, rv.proj.xp, rv.proj.yp), (0, rv.proj.yp, rv.proj.xp)):
+                dist = edge_distance(pattern, coord, across, axis, calm & np.isfinite(coord))
+                sel = np.isfinite(dist)
+                if sel.sum() < 100:
+                    continue
+                idx = np.digitize(dist[sel], EDGE_BINS)
+                print(f"{s.name} {name}, edges along {'xy'[1 - axis]} ({sel.sum()} calm px), by distance (projector px, "
+                      "bright side +): mean over the white, then RMS error over the white")
+                print(f"  {'':10s} " + " ".join(f"{b:+5.2f}" for b in EDGE_BINS[:-1]))
+                for label, img in images.items():
+                    ratio = img[sel] / white[sel]
+                    print(f"  {label[:10]:10s} " + " ".join(f"{ratio[idx == j].mean():5.2f}" for j in range(1, len(EDGE_BINS))))
+                for label, img in list(images.items())[1:]:
+                    err = (img[sel] - images["truth"][sel]) / white[sel]
+                    print(f"  {label[:10]:10s} " + " ".join(f"{np.sqrt(np.mean(err[idx == j] ** 2)):5.3f}"
+                                                         for j in range(1, len(EDGE_BINS))))
+
+
 def geometry(renders: Path, name: str, files: list[Path]) -> None:
     exact = np.load(renders / f"{name}_geometry.npz")
     theta = exact["theta"]
@@ -92,6 +155,8 @@ if __name__ == "__main__":
         truth, a = a[-1], a[:-2]
     if len(a) >= 5 and a[0] == "relight":
         relight(Path(a[1]), Path(a[2]), Path(a[3]), a[4].split(","), truth)
+    elif len(a) >= 5 and a[0] == "edges":
+        edges(Path(a[1]), Path(a[2]), Path(a[3]), a[4].split(","))
     elif len(a) >= 4 and a[0] == "geometry":
         geometry(Path(a[1]), a[2], [Path(p) for p in a[3:]])
     else:

@@ -1,0 +1,19 @@
+"""The stand-in scorer's edge profile (benchmarks/standin_score.py edges) measures distance to the patterns' edges."""
+
+import numpy as np
+from benchmark_script import load_benchmark
+
+script = load_benchmark("standin_score")
+
+
+def test_edge_distance_is_signed_toward_the_bright_side_whichever_way_the_edge_steps():
+    pattern = np.zeros((20, 30), np.float32)
+    pattern[:, 10:20] = 1.0  # bright columns 10-19: edges between 9|10 (dark to bright) and 19|20 (bright to dark)
+    xp = np.array([[8.0, 9.0, 9.4, 9.6, 10.0, 12.0, 18.0, 19.6, 20.4, 25.0]], np.float32)
+    yp = np.full_like(xp, 5.0)
+    d = script.edge_distance(pattern, xp, yp, 1, np.ones(xp.shape, bool))
+    np.testing.assert_allclose(d[0, :9], [-1.5, -0.5, -0.1, 0.1, 0.5, 2.5, 1.5, -0.1, -0.9], atol=1e-6)  # the nearer edge
+    assert np.isnan(d[0, 9])  # 3 px or more from every edge
+    stripes = pattern.T.copy()  # the same steps along y
+    d_y = script.edge_distance(stripes, yp.T * 0 + xp.T, xp.T * 0 + 5.0, 0, np.ones(xp.T.shape, bool))
+    np.testing.assert_allclose(d_y.T, d, equal_nan=True)
