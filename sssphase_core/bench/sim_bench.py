@@ -9,7 +9,7 @@ import numpy as np
 import scipy.sparse
 
 from sssphase_core.sim.materials import MATERIALS, dropped_fraction
-from sssphase_core.sim.rig import pixel_pitch_mm, rig_preset
+from sssphase_core.sim.rig import TRANSPORTS, pixel_pitch_mm, rig_preset, with_transport
 from sssphase_core.sim.scene import SimScene
 
 
@@ -20,13 +20,15 @@ def _psp_and_white(width: int, height: int) -> np.ndarray:
     return np.concatenate([pats, np.ones((1, height, width), np.float32)])
 
 
-def render_speed(preset: str, object_name: str = "apple", max_pixels: int | None = None, seed: int = 0) -> dict:
-    """Time one view's 8 PSP + white render (as a scene's first render, without the footprint cache).
+def render_speed(preset: str, object_name: str = "apple", max_pixels: int | None = None, seed: int = 0,
+                 transport: str | None = None) -> dict:
+    """Time one view's 8 PSP + white render (as a scene's first render, without the footprint cache), with the
+    rig's light transport or ``transport`` (:data:`sssphase_core.sim.TRANSPORTS`).
 
     With ``max_pixels``, random subsets of ``max_pixels / 2`` and ``max_pixels`` lit pixels are
     rendered and the time is extrapolated linearly (fixed + per-pixel cost) to the whole view.
     """
-    rig = rig_preset(preset)
+    rig = with_transport(rig_preset(preset), transport)
     t0 = time.perf_counter()
     scene = SimScene(object_name, rig=rig)
     build_s = time.perf_counter() - t0
@@ -52,6 +54,7 @@ def render_speed(preset: str, object_name: str = "apple", max_pixels: int | None
     return {
         "preset": preset,
         "object": object_name,
+        "transport": rig.transport,
         "resolution": [rig.camera.width, rig.camera.height],
         "patch": rig.patch,
         "frames": len(pats),
@@ -132,6 +135,7 @@ def simulator_speed(paper_pixels: int | None = 20000, object_name: str = "apple"
     """
     return {
         "cpu": render_speed("cpu", object_name),
+        "cpu_transports": {t: render_speed("cpu", object_name, transport=t) for t in TRANSPORTS},
         "cpu_cached": cached_render_speed(object_name),
         "paper": render_speed("paper", object_name, max_pixels=paper_pixels),
         "scatter": scatter_strategies(object_name),
