@@ -34,7 +34,8 @@ def sim(
     views: int = typer.Option(2, "--views", min=1, help="turntable views, 360/views degrees apart"),
     out: Path = typer.Option(..., "--out", help="output folder (created)"),
     preset: str = typer.Option("cpu", "--preset", help="rig preset: cpu (256x192, K=32) or paper (1080p, K=90)"),
-    transport: str = typer.Option("burley", "--transport", help="sim light transport: burley (radially symmetric footprints) or directional_dipole (skewed by the incidence direction)"),
+    transport: str = typer.Option("burley", "--transport", help="sim light transport: burley (radially symmetric footprints), directional_dipole (skewed by the incidence direction) or radiative (random-walk profiles, no diffusion approximation)"),
+    anisotropy: float | None = typer.Option(None, "--anisotropy", help="--transport radiative: the media's phase-function mean cosine g in [0, 0.85] (default 0, isotropic)"),
     seed: int = typer.Option(0, "--seed", help="sensor noise seed"),
     n_footprints: int = typer.Option(6, "--footprints", min=1, max=24, help="footprints in the montage"),
     decode: bool = typer.Option(True, "--decode/--no-decode", help="also capture the unwrapping set and decode it"),
@@ -48,7 +49,7 @@ def sim(
     from sssphase_core.reporting.sim_views import run_sim
 
     with _SimBar(object_name) as bar:
-        result = run_sim(object_name, views, out, preset=preset, transport=transport, seed=seed,
+        result = run_sim(object_name, views, out, preset=preset, transport=transport, anisotropy=anisotropy, seed=seed,
                          n_footprints=n_footprints, decode=decode, progress=bar, report=bar.print)
     typer.echo(f"wrote {views} view(s) of {result.name} to {out}")
 

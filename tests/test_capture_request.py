@@ -22,6 +22,8 @@ def test_from_options_builds_the_request_and_draws_a_randomised_rig_once(tmp_pat
     again = CaptureRequest.from_options("apple", RigSpec(), out=tmp_path, seed=3, randomise_rig=True)
     assert again.sim_options == req.sim_options  # reproducible from the seed and the name
     assert CaptureRequest.from_options("apple", RigSpec(), hdr_exposures="0.5,2", out=tmp_path).hdr == (0.5, 2.0)
+    radiative = CaptureRequest.from_options("apple", RigSpec(), out=tmp_path, transport="radiative", anisotropy=0.4)
+    assert radiative.transport == "radiative" and radiative.sim_options == {"anisotropy": 0.4}
 
 
 @pytest.mark.parametrize(("kwargs", "expected"), [
@@ -29,6 +31,8 @@ def test_from_options_builds_the_request_and_draws_a_randomised_rig_once(tmp_pat
     ({"seed": -1}, "--seed must be 0 to 9223372036854775807"),
     ({"views": 10**6}, "turntable takes at most"),
     ({"transport": "nonsense"}, "nonsense"),
+    ({"anisotropy": 0.5}, "give it with --transport radiative"),  # a phase function for a diffusion model: no effect
+    ({"transport": "radiative", "anisotropy": -0.1}, "anisotropy must be a number in .0, 0.85., got -0.1"),
     ({"hdr_exposures": "1,,2"}, "--hdr-exposures takes comma-separated numbers"),
     ({"hdr_exposures": "1"}, "HDR exposures must be 2 to 8 distinct numbers"),
     ({"dot_spacing": 0}, "dot"),

@@ -63,6 +63,9 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["eval", "knn", "--checkpoint", "psp=/", "--checkpoint", "psp=/tmp"], "the name 'psp' is given twice"),
         (["bench", "relight-cache", "s", "--first", "checkerboard", "--new", "checkerboard"], "--new checkerboard is the --first"),
         (["demo", "--transport", "bogus"], "unknown transport model 'bogus'"),
+        (["capture", "--object", "soap", "--views", "1", "--anisotropy", "0.5"], "give it with --transport radiative"),
+        (["capture", "--object", "soap", "--transport", "radiative", "--anisotropy", "0.9"], "anisotropy must be a number in [0, 0.85]"),
+        (["sim", "--object", "soap", "--out", "x", "--anisotropy", "0.5"], "give it with --transport radiative"),
         (["capture", "--object", "a" * 300], "(300 characters)"),  # the name is not echoed whole
     ],
 )

@@ -186,7 +186,7 @@ def _check_resumable(session: Session, digest: str, n_views: int, rig_record: di
     changed = sorted({k for k in set(before) | set(now) if before.get(k) != now.get(k)})
     if changed:  # the new views would be captured on another rig (another seed, transport, camera) than the first
         raise InputError(f"{session.path} was captured with other rig settings ({', '.join(changed)} differ): "
-                         "resume with the same --rig, --seed, --transport and --preset, or capture into a new --out")
+                         "resume with the same --rig, --seed, --transport, --anisotropy and --preset, or capture into a new --out")
 
 
 def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, options: dict[str, Any],

@@ -150,13 +150,14 @@ class CaptureRequest:
                      references: tuple[str, ...] | list[str] = (), hdr: bool = False, hdr_exposures: str | None = None,
                      keep_dots: bool = False, keep_unwrap: bool = False, resume: bool = False, out: Path = Path("sessions"),
                      seed: int = 0, preset: str = "cpu", dot_spacing: int | None = None, transport: str | None = None,
-                     randomise_rig: bool = False, dot_stride: int = 1, device: str = "cpu",
+                     randomise_rig: bool = False, dot_stride: int = 1, device: str = "cpu", anisotropy: float | None = None,
                      on_drawn: Callable[[dict[str, Any]], None] | None = None) -> CaptureRequest:
         """A request from `sss capture`'s options (and a form's: the same names), checked for ``rig`` as
         :meth:`validate` checks it, in the order the options are given. ``hdr_exposures``: comma-separated
         relative exposures (implies ``hdr``; ``hdr``: :data:`DEFAULT_HDR`). ``randomise_rig`` draws the sim rig's
         physics and camera from ``seed`` and the object's name (:func:`sim.randomised_rig_options`), told to
-        ``on_drawn`` as soon as drawn. ``device``: where the sim rig renders (``cuda``: on the GPU, the same images)."""
+        ``on_drawn`` as soon as drawn. ``device``: where the sim rig renders (``cuda``: on the GPU, the same images); ``anisotropy``: the radiative
+        transport's phase-function mean cosine g."""
         req = cls(object_name, views, footprints, tuple(references), (), keep_dots, keep_unwrap, resume, out, seed,
                   preset, dot_spacing, transport, dot_stride=dot_stride)
         req._check_counts()
@@ -166,6 +167,11 @@ class CaptureRequest:
             req.sim_options = randomised_rig_options(seed, object_name)
         if req.sim_options and on_drawn is not None:
             on_drawn(req.sim_options)
+        if anisotropy is not None:  # the radiative transport's media: refused for a model that has no phase function
+            if not rig.is_sim or (transport or rig.options.get("transport")) != "radiative":
+                raise InputError("--anisotropy is the phase function of the sim rig's radiative transport: give it with "
+                                 "--transport radiative")
+            req.sim_options = {**req.sim_options, "anisotropy": anisotropy}
         if device != "cpu":  # the sim's light transport on a torch device (sssphase_core.sim_accel)
             if not rig.is_sim:
                 raise InputError("--device places the simulator's rendering: it applies to the sim rig only")

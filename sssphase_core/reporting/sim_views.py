@@ -37,8 +37,9 @@ class SimRun:
 
 def run_sim(object_name: str, views: int, out: Path, *, preset: str = "cpu", transport: str = "burley", seed: int = 0,
             n_footprints: int = 6, decode: bool = True, progress: SimProgress | None = None,
-            report: Callable[[str], None] | None = None) -> SimRun:
-    """Simulate ``views`` turntable views of ``object_name`` on the ``preset`` rig into ``out`` (an earlier run's
+            report: Callable[[str], None] | None = None, anisotropy: float | None = None) -> SimRun:
+    """Simulate ``views`` turntable views of ``object_name`` on the ``preset`` rig with light transport ``transport``
+    (``anisotropy``: the radiative transport's phase-function g) into ``out`` (an earlier run's
     view folders there are replaced). With ``decode`` the whole PSP plan is captured with sensor noise and
     decoded, and ``report(line)`` tells each view's decoded share and error."""
     from sssphase_core.sim.materials import MATERIALS, dropped_fraction
@@ -49,7 +50,10 @@ def run_sim(object_name: str, views: int, out: Path, *, preset: str = "cpu", tra
     if not 0 <= seed <= MAX_SEED:
         raise InputError(f"--seed must be 0 to {MAX_SEED} (2**63 - 1), got {seed}")
     obj = simlib.get_object(object_name)
-    rig = simlib.rig_from_options({"preset": preset, "transport": transport})
+    if anisotropy is not None and transport != "radiative":
+        raise InputError("--anisotropy is the phase function of the radiative transport: give it with --transport radiative")
+    rig = simlib.rig_from_options({"preset": preset, "transport": transport,
+                                   **({"anisotropy": anisotropy} if anisotropy is not None else {})})
     check_output_folder(out)
     if (out / "scene.json").is_file():  # an earlier `sss sim` here: its view folders go, none is left beside these
         for old in (p for p in out.iterdir() if p.is_dir() and not p.is_symlink() and re.fullmatch(r"view[0-9]+", p.name)):
