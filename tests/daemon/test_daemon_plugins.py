@@ -229,6 +229,8 @@ def test_the_transport_model_is_a_sim_option():
     state = sim_plugin.SimRigState({"object": "soap", "transport": "directional_dipole"})
     assert state.rig.transport == "directional_dipole" and state.scene.transport.name == "directional_dipole"
     assert sim_plugin.SimRigState({"object": "soap"}).scene.transport.name == "burley"
+    radiative = sim_plugin.SimRigState({"object": "soap", "transport": "radiative", "anisotropy": 0.6}).scene.transport
+    assert radiative.name == "radiative" and radiative.profiles.g == 0.6
     from sssphase_core.errors import InputError
 
     with pytest.raises(InputError, match="unknown transport model"):

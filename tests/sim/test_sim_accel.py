@@ -45,12 +45,13 @@ def test_a_dot_frame_lights_only_its_dots_on_the_device():
     assert (a[0].sum(-1) > 0).mean() < 0.5  # most of the image stays (near) black
 
 
-def test_directional_dipole_stays_on_the_cpu_whatever_the_device():
+@pytest.mark.parametrize("transport", ["directional_dipole", "radiative"])
+def test_the_other_transports_stay_on_the_cpu_whatever_the_device(transport):
     from sssphase_core.sim.rig import with_transport
 
-    rig = with_transport(rig_preset("cpu"), "directional_dipole")
+    rig = with_transport(rig_preset("cpu"), transport)
     scene = SimScene("star", rig=rig, transport_factory=transport_factory("cpu"))
-    assert not isinstance(scene.transport, TorchTransport)
+    assert not isinstance(scene.transport, TorchTransport) and scene.transport.name == transport
 
 
 def test_the_sim_option_device_is_checked_before_any_work():
