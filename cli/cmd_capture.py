@@ -44,18 +44,16 @@ def capture(
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
     from sssphase_core.capture import CaptureRequest, RigSpec, run_capture
+    from sssphase_core.errors import InputError
 
     if not 0 < timeout <= MAX_TIMEOUT_S:  # NaN fails too
-        from sssphase_core.errors import InputError
-
         raise InputError(f"--timeout must be a number of seconds in (0, {MAX_TIMEOUT_S}], got {timeout}")
     spec = RigSpec.from_toml(rig) if rig else RigSpec()
     req = CaptureRequest.from_options(
         object_name, spec, views=views, footprints=footprints, references=reference or (), hdr=hdr,
         hdr_exposures=hdr_exposures, keep_dots=keep_dots, keep_unwrap=keep_unwrap, resume=resume, out=out, seed=seed,
         preset=preset, dot_spacing=dot_spacing, transport=transport, randomise_rig=randomise_rig, dot_stride=dot_stride,
-        anisotropy=anisotropy,
-        device=device, on_drawn=lambda drawn: console.print("randomised sim rig: " + ", ".join(
+        anisotropy=anisotropy, device=device, on_drawn=lambda drawn: console.print("randomised sim rig: " + ", ".join(
             f"{k} {v}" for k, v in drawn.items() if k != "transport" or not transport)))
 
     def ask_move(view: int, angle: float) -> None:
