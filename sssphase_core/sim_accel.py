@@ -13,8 +13,9 @@ too for the presets' cameras: 0.43 s per 1080p frame on the CPU was the cost of 
 
 ``sssphase_core.sim`` itself never imports torch (a daemon serving the CPU sim stays free of it): the sim
 device plugin hands :func:`transport_factory` to :class:`~sssphase_core.sim.scene.SimScene` when its rig
-option ``device`` names one. The directional dipole stays on the CPU (its near-field quadrature is not
-ported): a scene with that transport renders as before whatever the device.
+option ``device`` names one. The directional dipole and the radiative transport stay on the CPU (the
+dipole's near-field quadrature and the radiative table lookup are not ported): a scene with either renders as
+before whatever the device.
 """
 
 from __future__ import annotations
