@@ -197,18 +197,32 @@ class ProfileTable:
     def cdf(self, absorption_index: np.ndarray, r: np.ndarray) -> np.ndarray:
         """Normalised CDF at radius ``r`` (N, ...) l' for rows ``absorption_index`` (N,) (fractional, from
         :meth:`index`) -> (N, ...) float32."""
-        q = (np.log(np.asarray(r, np.float32) + np.float32(LOOKUP_EPS)) - _Q0) / _DQ
-        q = np.clip(q, 0, LOOKUP_POINTS - 1.001)
-        i0 = q.astype(np.int32)
-        t = q - i0
-        a = np.asarray(absorption_index, np.float32).reshape(-1, *([1] * (np.ndim(r) - 1)))
+        return self.lookup(self.rows(absorption_index), r)
+
+    def rows(self, absorption_index: np.ndarray) -> np.ndarray:
+        """(N, LOOKUP_POINTS) float32: each medium's CDF over the lookup grid, blended between the table's rows
+        (made once per pixel and colour; :meth:`lookup` reads it at any radius)."""
+        a = np.asarray(absorption_index, np.float32).ravel()
         j0 = np.minimum(a.astype(np.int32), len(self.table) - 2)
-        u = a - j0
-        flat = self.table.ravel()
-        base = j0 * LOOKUP_POINTS + i0
-        lo = flat[base] + t * (flat[base + 1] - flat[base])
-        hi = flat[base + LOOKUP_POINTS] + t * (flat[base + LOOKUP_POINTS + 1] - flat[base + LOOKUP_POINTS])
-        return lo + u * (hi - lo)
+        u = (a - j0)[:, None]
+        lo = self.table[j0]
+        return lo + u * (self.table[j0 + 1] - lo)
+
+    @staticmethod
+    def lookup(rows: np.ndarray, r: np.ndarray) -> np.ndarray:
+        """``rows`` (N, LOOKUP_POINTS) from :meth:`rows` at radius ``r`` (N, ...) l' -> (N, ...) float32 (linear in
+        log(r + LOOKUP_EPS); 1 beyond the table's reach)."""
+        q = np.log(np.asarray(r, np.float32) + np.float32(LOOKUP_EPS))
+        q -= np.float32(_Q0)
+        q *= np.float32(1 / _DQ)
+        np.clip(q, 0, LOOKUP_POINTS - 1.001, out=q)
+        i0 = q.astype(np.int32)
+        q -= i0  # the fraction between grid points
+        i0 += (np.arange(len(rows), dtype=np.int32) * LOOKUP_POINTS).reshape(-1, *([1] * (np.ndim(r) - 1)))
+        flat = rows.ravel()
+        lo = flat[i0]
+        lo += q * (flat[i0 + 1] - lo)
+        return lo
 
     def index(self, alpha: np.ndarray) -> np.ndarray:
         """Fractional row of reduced albedos ``alpha`` (...,), clamped to the table's range."""

@@ -374,9 +374,10 @@ class RadiativeTransport(Transport):
         energy = e[:, None] * m.albedo[y, x].astype(np.float32)  # (N, 3)
         out = np.empty((3, len(index), k, k), np.float32)
         for c in range(3):
-            inv, row = self.inv_path[y, x, c][:, None, None], self.row[y, x, c]
-            ring = self.profiles.cdf(row, hi_r * inv) - self.profiles.cdf(row, lo_r * inv)
+            inv, rows = self.inv_path[y, x, c][:, None, None], self.profiles.rows(self.row[y, x, c])
+            ring = self.profiles.lookup(rows, hi_r * inv)
+            ring -= self.profiles.lookup(rows, lo_r * inv)
             out[c] = ring * (energy[:, c, None, None] * 2 * hh / (2 * np.pi * r))
-            out[c, :, half, half] = self.profiles.cdf(row, r0[:, 0, 0] * inv[:, 0, 0]) * energy[:, c]
+            out[c, :, half, half] = self.profiles.lookup(rows, r0[:, 0, 0] * inv[:, 0, 0]) * energy[:, c]
         out[:, :, half, half] += (e * m.rho_s[y, x])[None]
         return out
