@@ -13,9 +13,9 @@ too for the presets' cameras: 0.43 s per 1080p frame on the CPU was the cost of 
 
 ``sssphase_core.sim`` itself never imports torch (a daemon serving the CPU sim stays free of it): the sim
 device plugin hands :func:`transport_factory` to :class:`~sssphase_core.sim.scene.SimScene` when its rig
-option ``device`` names one. The directional dipole and the radiative transport stay on the CPU (the
-dipole's near-field quadrature and the radiative table lookup are not ported): a scene with either renders as
-before whatever the device.
+option ``device`` names one; the radiative transport's table lookup runs there too
+(:class:`TorchRadiativeTransport`). The directional dipole stays on the CPU (its near-field quadrature is not
+ported): a scene with that transport renders as before whatever the device.
 """
 
 from __future__ import annotations
@@ -27,8 +27,9 @@ import torch
 
 from sssphase_core.compute import compute_device
 from sssphase_core.processing.isp import MALVAR_KERNELS
+from sssphase_core.sim.radiative import LOOKUP_EPS, LOOKUP_POINTS, LOOKUP_START, LOOKUP_STEP
 from sssphase_core.sim.sensor import SensorConfig
-from sssphase_core.sim.transport import FAR, NEAR, RATE_CAP, SurfaceMaps, Transport
+from sssphase_core.sim.transport import FAR, NEAR, RATE_CAP, SurfaceMaps, Transport, radiative_media
 
 #: Footprint entries per chunk on the device (its temporaries: ~16 bytes each).
 DEVICE_CHUNK_ENTRIES = 32_000_000
@@ -138,13 +139,73 @@ class TorchTransport(Transport):
         return img.permute(2, 0, 1, 3).contiguous().cpu().numpy()
 
 
+class TorchRadiativeTransport(TorchTransport):
+    """:class:`~sssphase_core.sim.transport.RadiativeTransport` on ``device``: the same media, table and rings (its
+    lookup linear in log radius between the blended rows), the splatting :class:`TorchTransport`'s."""
+
+    name = "radiative"
+
+    def __init__(self, maps: SurfaceMaps, patch: int, mfp: np.ndarray, anisotropy: float = 0.0,
+                 device: str | torch.device = "cuda"):
+        super().__init__(maps, patch, device)
+        self.profiles, inv_path, row = radiative_media(maps, mfp, anisotropy)
+        dev = self.device
+        self._table = torch.as_tensor(self.profiles.table, device=dev)  # (A, LOOKUP_POINTS)
+        self._inv_path = torch.as_tensor(inv_path.reshape(-1, 3), device=dev)
+        self._row = torch.as_tensor(row.reshape(-1, 3), device=dev)
+
+    def _rows(self, index: torch.Tensor) -> torch.Tensor:
+        j0 = torch.clamp(index.to(torch.int64), max=len(self._table) - 2)
+        u = (index - j0)[:, None]
+        lo = self._table[j0]
+        return lo + u * (self._table[j0 + 1] - lo)
+
+    @staticmethod
+    def _lookup(rows: torch.Tensor, r: torch.Tensor) -> torch.Tensor:
+        q = torch.clamp((torch.log(r + LOOKUP_EPS) - LOOKUP_START) * (1 / LOOKUP_STEP), 0, LOOKUP_POINTS - 1.001)
+        i0 = q.to(torch.int64)
+        frac = q - i0
+        lo = torch.gather(rows, 1, i0)
+        return lo + frac * (torch.gather(rows, 1, i0 + 1) - lo)
+
+    def _device_compute(self, index: np.ndarray) -> torch.Tensor:
+        """The CPU path's ``RadiativeTransport._compute`` on the device -> (3, N, K*K) float32."""
+        m, k, half, dev = self.maps, self.k, self.half, self.device
+        y, x = np.divmod(index, self.w)
+        idx = torch.as_tensor(index, device=dev)
+        corner = torch.as_tensor(y * self.wpad + x, device=dev)
+        window = self._padded[corner[:, None] + self._toffsets[None, :]]  # (N, K*K, 3)
+        r = torch.linalg.vector_norm(window - self._points[idx][:, None, :], dim=-1)
+        centre = half * k + half
+        r[:, centre] = 1.0  # the pixel itself gets the disc term below
+        e = torch.as_tensor(m.irradiance.reshape(-1)[index].astype(np.float32), device=dev)
+        ap = torch.as_tensor(m.area.reshape(-1)[index].astype(np.float32), device=dev)
+        hh, r0 = (torch.sqrt(ap) / 2)[:, None], torch.sqrt(ap / np.pi)[:, None]
+        lo_r, hi_r = torch.maximum(r - hh, r0), torch.maximum(r + hh, r0)
+        energy = e[:, None] * torch.as_tensor(m.albedo.reshape(-1, 3)[index].astype(np.float32), device=dev)
+        out = torch.empty((3, len(index), k * k), dtype=torch.float32, device=dev)
+        for c in range(3):
+            inv, rows = self._inv_path[idx, c][:, None], self._rows(self._row[idx, c])
+            ring = self._lookup(rows, hi_r * inv) - self._lookup(rows, lo_r * inv)
+            out[c] = ring * (energy[:, c, None] * 2 * hh / (2 * np.pi * r))
+            out[c, :, centre] = self._lookup(rows, r0 * inv)[:, 0] * energy[:, c]
+        rho = torch.as_tensor(m.rho_s.reshape(-1)[index].astype(np.float32), device=dev)
+        out[:, :, centre] += (e * rho)[None]
+        return out
+
+
 def transport_factory(device: str | torch.device) -> Callable[[SurfaceMaps, int], Transport]:
-    """What :class:`~sssphase_core.sim.scene.SimScene` builds its Burley transport with on ``device``."""
+    """What :class:`~sssphase_core.sim.scene.SimScene` builds its Burley transport with on ``device``; its
+    ``radiative`` attribute builds the radiative one there (``(maps, patch, mfp, anisotropy)``)."""
     dev = compute_device(device)
 
     def make(maps: SurfaceMaps, patch: int) -> Transport:
         return TorchTransport(maps, patch, dev)
 
+    def make_radiative(maps: SurfaceMaps, patch: int, mfp: np.ndarray, anisotropy: float = 0.0) -> Transport:
+        return TorchRadiativeTransport(maps, patch, mfp, anisotropy, dev)
+
+    make.radiative = make_radiative  # type: ignore[attr-defined]
     return make
 
 

@@ -213,8 +213,8 @@ class ProfileTable:
         """``rows`` (N, LOOKUP_POINTS) from :meth:`rows` at radius ``r`` (N, ...) l' -> (N, ...) float32 (linear in
         log(r + LOOKUP_EPS); 1 beyond the table's reach)."""
         q = np.log(np.asarray(r, np.float32) + np.float32(LOOKUP_EPS))
-        q -= np.float32(_Q0)
-        q *= np.float32(1 / _DQ)
+        q -= np.float32(LOOKUP_START)
+        q *= np.float32(1 / LOOKUP_STEP)
         np.clip(q, 0, LOOKUP_POINTS - 1.001, out=q)
         i0 = q.astype(np.int32)
         q -= i0  # the fraction between grid points
@@ -231,8 +231,9 @@ class ProfileTable:
         return np.clip(x, 0, len(self.table) - 1).astype(np.float32)
 
 
-_Q0 = float(np.log(LOOKUP_EPS))
-_DQ = float((np.log(TABLE_REACH + LOOKUP_EPS) - _Q0) / (LOOKUP_POINTS - 1))
+#: The lookup grid: log(r + LOOKUP_EPS) from LOOKUP_START in steps of LOOKUP_STEP (LOOKUP_POINTS of them).
+LOOKUP_START = float(np.log(LOOKUP_EPS))
+LOOKUP_STEP = float((np.log(TABLE_REACH + LOOKUP_EPS) - LOOKUP_START) / (LOOKUP_POINTS - 1))
 
 
 @lru_cache(maxsize=8)
@@ -244,7 +245,7 @@ def _table_at(g: float, path: str) -> ProfileTable:
     w = (g - gs[i]) / (gs[i + 1] - gs[i])
     rows = (1 - w) * cdf[i] + w * cdf[i + 1]  # (A, R)
     total = rows[:, -1].copy()
-    grid = np.exp(_Q0 + _DQ * np.arange(LOOKUP_POINTS)) - LOOKUP_EPS
+    grid = np.exp(LOOKUP_START + LOOKUP_STEP * np.arange(LOOKUP_POINTS)) - LOOKUP_EPS
     table = np.stack([np.interp(grid, radii, row / row[-1]) for row in rows]).astype(np.float32)
     log_a = np.log(data["absorption"])
     return ProfileTable(g, table, (float(log_a[0]), float(log_a[1] - log_a[0])), total)

@@ -63,7 +63,8 @@ class SimScene:
     ``light_dir`` (direction the projector light travels), ``cos_in`` and ``cos_view`` (incidence and
     viewing cosines). ``rig.transport`` picks the light-transport model (``burley``,
     ``directional_dipole`` or ``radiative``, the last with the rig's phase-function ``anisotropy``);
-    ``transport_factory(maps, patch)`` builds the Burley one elsewhere than numpy (``sssphase_core.sim_accel.transport_factory``: on a GPU; same footprints and images).
+    ``transport_factory(maps, patch)`` builds the Burley one elsewhere than numpy, and its ``radiative`` attribute
+    the radiative one (``sssphase_core.sim_accel.transport_factory``: on a GPU; same footprints and images).
     """
 
     def __init__(self, obj: SimObject | str, rig: RigConfig | None = None, view: int = 0, n_views: int = 4, seed: int = 0,
@@ -77,8 +78,9 @@ class SimScene:
         if self.rig.transport == DirectionalTransport.name:
             directional = DirectionalMaps(self.normals, self.light_dir, self.cos_in, self.cos_view, self.mfp)
             self.transport: Transport = DirectionalTransport(maps, self.rig.patch, directional)
-        elif self.rig.transport == RadiativeTransport.name:
-            self.transport = RadiativeTransport(maps, self.rig.patch, self.mfp, self.rig.anisotropy)
+        elif self.rig.transport == RadiativeTransport.name:  # on the factory's device where it offers one
+            make = getattr(transport_factory, "radiative", RadiativeTransport)
+            self.transport = make(maps, self.rig.patch, self.mfp, self.rig.anisotropy)
         else:
             self.transport = (transport_factory or Transport)(maps, self.rig.patch)
         self._unit_white: np.ndarray | None = None

@@ -333,6 +333,20 @@ def _surface_derivatives(points: np.ndarray, mask: np.ndarray) -> tuple[np.ndarr
     return out[0], out[1]
 
 
+def radiative_media(maps: SurfaceMaps, mfp: np.ndarray, anisotropy: float):  # noqa: ANN201
+    """``(profiles, inv_path, row)``: the radiative transport's :class:`~sssphase_core.sim.radiative.ProfileTable` at
+    mean cosine ``anisotropy``, and per pixel and colour (H, W, 3) 1 / l' (mm^-1) and the table's fractional row, from
+    the maps' albedo and the diffuse mean free path ``mfp`` (H, W, 3) mm (NaN off the surface)."""
+    from sssphase_core.sim import radiative
+
+    profiles = radiative.ProfileTable.at(anisotropy)
+    on = maps.mask[..., None]
+    reduced_s, sigma_a = dipole.coefficients(np.where(on, np.nan_to_num(maps.albedo), 0.5),
+                                             np.where(on, np.nan_to_num(mfp), 1.0), dipole.ETA)
+    reduced_t = reduced_s + sigma_a
+    return profiles, reduced_t.astype(np.float32), profiles.index(reduced_s / reduced_t)
+
+
 class RadiativeTransport(Transport):
     """Footprints from radiative transfer (:mod:`sssphase_core.sim.radiative`): the exit profile of a random walk
     in a semi-infinite medium of the entry pixel's material, with a Henyey-Greenstein phase function of mean
@@ -346,16 +360,8 @@ class RadiativeTransport(Transport):
     name = "radiative"
 
     def __init__(self, maps: SurfaceMaps, patch: int, mfp: np.ndarray, anisotropy: float = 0.0):
-        from sssphase_core.sim import radiative
-
         super().__init__(maps, patch)
-        self.profiles = profiles = radiative.ProfileTable.at(anisotropy)
-        on = maps.mask[..., None]
-        reduced_s, sigma_a = dipole.coefficients(np.where(on, np.nan_to_num(maps.albedo), 0.5),
-                                                 np.where(on, np.nan_to_num(mfp), 1.0), dipole.ETA)
-        reduced_t = reduced_s + sigma_a
-        self.inv_path = reduced_t.astype(np.float32)  # (H, W, 3) 1 / l', mm^-1
-        self.row = profiles.index(reduced_s / reduced_t)  # (H, W, 3) the table's fractional row
+        self.profiles, self.inv_path, self.row = radiative_media(maps, mfp, anisotropy)
 
     def _compute(self, index: np.ndarray) -> np.ndarray:
         m, k, half = self.maps, self.k, self.half

@@ -45,13 +45,29 @@ def test_a_dot_frame_lights_only_its_dots_on_the_device():
     assert (a[0].sum(-1) > 0).mean() < 0.5  # most of the image stays (near) black
 
 
-@pytest.mark.parametrize("transport", ["directional_dipole", "radiative"])
-def test_the_other_transports_stay_on_the_cpu_whatever_the_device(transport):
+def test_directional_dipole_stays_on_the_cpu_whatever_the_device():
     from sssphase_core.sim.rig import with_transport
 
-    rig = with_transport(rig_preset("cpu"), transport)
+    rig = with_transport(rig_preset("cpu"), "directional_dipole")
     scene = SimScene("star", rig=rig, transport_factory=transport_factory("cpu"))
-    assert not isinstance(scene.transport, TorchTransport) and scene.transport.name == transport
+    assert not isinstance(scene.transport, TorchTransport) and scene.transport.name == "directional_dipole"
+
+
+@pytest.mark.parametrize("device", DEVICES)
+@pytest.mark.parametrize(("obj", "g"), [("soap", 0.0), ("crab", 0.7)])
+def test_the_radiative_transport_on_a_device_renders_what_numpy_renders(obj, g, device):
+    from sssphase_core.sim.rig import with_transport
+    from sssphase_core.sim_accel import TorchRadiativeTransport
+
+    rig = with_transport(rig_preset("cpu"), "radiative", g)
+    cpu, dev = SimScene(obj, rig=rig), SimScene(obj, rig=rig, transport_factory=transport_factory(device))
+    assert isinstance(dev.transport, TorchRadiativeTransport) and not isinstance(cpu.transport, TorchTransport)
+    patterns = np.random.default_rng(0).uniform(0, 1, (3, 192, 256)).astype(np.float32)
+    a, b = cpu.render(patterns), dev.render(patterns)
+    assert a.max() > 0.1 and np.abs(a - b).max() <= 1e-5 * a.max()
+    pixels = np.argwhere(cpu.lit)[::97]
+    fa, fb = cpu.footprints(pixels), dev.footprints(pixels)
+    assert np.abs(fa - fb).max() <= 1e-5 * fa.max()
 
 
 def test_the_sim_option_device_is_checked_before_any_work():

@@ -61,7 +61,7 @@ def test_the_table_interpolates_between_its_media():
     c = mid.cdf(row, r)
     assert np.all(np.diff(c, axis=1) > 0) and np.all((c > 0) & (c <= 1))
     assert c[0, 0] < c[2, 0]  # the more absorbing medium keeps its light closer to the entry point
-    grid = np.exp(radiative._Q0 + radiative._DQ * np.array([100, 400, 700])) - radiative.LOOKUP_EPS
+    grid = np.exp(radiative.LOOKUP_START + radiative.LOOKUP_STEP * np.array([100, 400, 700])) - radiative.LOOKUP_EPS
     on_grid = mid.cdf(np.array([2.0, 7.0, 11.0]), np.tile(grid.astype(np.float32), (3, 1)))  # rows and radii exact
     np.testing.assert_allclose(on_grid, mid.table[[2, 7, 11]][:, [100, 400, 700]], rtol=1e-4)
     halfway = mid.cdf(np.array([7.5]), grid[None, :1].astype(np.float32))[0, 0]
