@@ -101,6 +101,7 @@ def bench_sim(
     preset: str = typer.Option("paper", help="sim rig preset (`sss rigs`): paper = 1920x1080, K = 90"),
     object_name: str = typer.Option("soap", "--object", help="sim object (`sss objects`)"),
     md: Path | None = typer.Option(None, help="Markdown output (default: next to --out)"),
+    transport: str = typer.Option("burley", help="light transport: burley or radiative (the ones ported to the device)"),
 ) -> None:
     """The simulator on a GPU: one view's whole capture plan rendered there, against its numpy path in the same
     run; the sensor per frame; the two paths' footprints and images compared."""
@@ -108,16 +109,20 @@ def bench_sim(
 
     from sssphase_cli.output import write_result
     from sssphase_core.compute import check_device
+    from sssphase_core.errors import InputError
     from sssphase_core.sim import get_object, rig_preset
 
     check_device(device)
     rig_preset(preset)
     get_object(object_name)  # unknown names are one line before any work
+    if transport not in ("burley", "radiative"):
+        raise InputError(f"--transport {transport!r}: the device path renders burley or radiative (the directional "
+                         "dipole stays on the CPU)")
     from sssphase_core.bench.sim_accel_bench import markdown, run
 
     console = Console(soft_wrap=True)
     with console.status("sss bench sim") as status:
-        result = run(device=device, preset=preset, object_name=object_name,
+        result = run(device=device, preset=preset, object_name=object_name, transport=transport,
                      progress=lambda stage: status.update(f"sss bench sim: {stage}"))
     write_result(console, out, md, result, markdown(result))
 

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 
 from sssphase_core.bench.sim_bench import render_speed
-from sssphase_core.sim.rig import rig_preset
+from sssphase_core.sim.rig import rig_preset, with_transport
 from sssphase_core.sim.scene import SimScene
 
 #: Frames rendered together, as the sim device plugin batches a 1080p plan (RENDER_BATCH_BYTES).
@@ -26,11 +26,13 @@ def _sync(device: Any) -> None:
 
 
 def run(*, device: str, preset: str = "paper", object_name: str = "soap", cpu_pixels: int = 20000,
-        compare_pixels: int = 256, dot_sample: int = 200, progress: Callable[[str], None] | None = None) -> dict[str, Any]:
+        compare_pixels: int = 256, dot_sample: int = 200, progress: Callable[[str], None] | None = None,
+        transport: str = "burley") -> dict[str, Any]:
     """The benchmark's result: the plan's render time on ``device``, the sensor there and in numpy (PSP, unwrapping, white/black and the dot
     grids, noise-free; ``dot_sample`` dot frames rendered and the rest extrapolated: they cost the same each),
     the numpy path's time for the same view (extrapolated from ``cpu_pixels`` lit pixels), one frame through
-    the sensor, and the largest differences between the paths."""
+    the sensor, and the largest differences between the paths, with light transport ``transport`` (burley or
+    radiative: the ported ones)."""
     from sssphase_core.capture.plan import dot_spacing_for
     from sssphase_core.compute import compute_device
     from sssphase_core.processing.patterns import capture_plan
@@ -38,7 +40,7 @@ def run(*, device: str, preset: str = "paper", object_name: str = "soap", cpu_pi
 
     say = progress or (lambda _m: None)
     dev = compute_device(device)
-    rig = rig_preset(preset)
+    rig = with_transport(rig_preset(preset), transport)
     w, h = rig.projector.width, rig.projector.height
     plan = capture_plan(w, h, footprints=True, dot_spacing=dot_spacing_for(rig.patch), references=("white", "black"))
     say(f"tracing {object_name} at {rig.camera.width}x{rig.camera.height}")
@@ -71,7 +73,7 @@ def run(*, device: str, preset: str = "paper", object_name: str = "soap", cpu_pi
     render_s = psp_s + dots_s
 
     say("the numpy path on the same view (extrapolated)")
-    cpu = render_speed(preset, object_name, max_pixels=cpu_pixels)
+    cpu = render_speed(preset, object_name, max_pixels=cpu_pixels, transport=transport)
     say("one frame through the sensor (CPU)")
     rng = np.random.default_rng(0)
     scene.sense(first[:1], rng)  # the first call imports the ISP's packages
@@ -100,7 +102,7 @@ def run(*, device: str, preset: str = "paper", object_name: str = "soap", cpu_pi
     light = cpu_scene.emitted(np.stack([f.pattern() for f in frames[:2]]), pixels=src)
     ia = cpu_scene.transport.splat(src, np.ascontiguousarray(light))
     ib = scene.transport.splat(src, np.ascontiguousarray(light))
-    return {"device": str(dev), "preset": preset, "object": object_name, "camera": f"{rig.camera.width}x{rig.camera.height}",
+    return {"device": str(dev), "preset": preset, "object": object_name, "transport": rig.transport, "camera": f"{rig.camera.width}x{rig.camera.height}",
             "patch": rig.patch, "frames": len(frames), "dot_frames": n_dots, "dot_frames_rendered": sampled,
             "lit_pixels": int(len(lit)), "trace_s": trace_s, "render_s": render_s, "render_psp_s": psp_s,
             "render_dots_s": dots_s, "numpy_psp_white_s": cpu["render_s"], "numpy_psp_white_frames": cpu["frames"],
@@ -114,7 +116,7 @@ def markdown(r: dict[str, Any]) -> str:
     cpu_per = r["numpy_psp_white_s"] / r["numpy_psp_white_frames"]
     return "\n".join([
         f"`sss bench sim` on {r['device']}: {r['object']} at the `{r['preset']}` preset ({r['camera']}, K = {r['patch']}, "
-        f"{r['lit_pixels']:,} lit pixels)", "",
+        f"{r['lit_pixels']:,} lit pixels), {r.get('transport', 'burley')} transport", "",
         "| what | seconds |", "|---|---|",
         f"| trace the view (CPU) | {r['trace_s']:.1f} |",
         f"| render the whole plan, noise-free: {r['frames']:,} frames ({r['dot_frames']:,} dot grids) | {r['render_s']:.1f} |",

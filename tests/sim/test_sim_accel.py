@@ -153,6 +153,12 @@ def test_bench_sim_times_the_plan_and_compares_the_paths(tmp_path):
     assert r["device_sense_frame_s"] > 0
     assert r["footprint_max_rel_diff"] < 1e-6 and r["image_max_rel_diff"] < 1e-5
     assert "the numpy path" in out.with_suffix(".md").read_text()
+    radiative = CliRunner().invoke(app, ["bench", "sim", "--device", "cpu", "--preset", "cpu", "--object", "sand_rake",
+                                         "--transport", "radiative", "--out", str(tmp_path / "rad.json")])
+    assert radiative.exit_code == 0, radiative.output
+    r = json.loads((tmp_path / "rad.json").read_text())
+    assert r["transport"] == "radiative" and r["footprint_max_rel_diff"] < 1e-5 and r["image_max_rel_diff"] < 1e-5
+    assert "radiative transport" in (tmp_path / "rad.md").read_text()
 
 
 @pytest.mark.parametrize("device", DEVICES)
