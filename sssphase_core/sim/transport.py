@@ -41,6 +41,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from sssphase_core.sim import dipole
 from sssphase_core.sim.materials import burley_cdf
+from sssphase_core.sim.radiative import ProfileTable
 
 #: Footprint entries evaluated per chunk (bounds the temporary memory to ~100 MB).
 CHUNK_ENTRIES = 1_000_000
@@ -333,13 +334,11 @@ def _surface_derivatives(points: np.ndarray, mask: np.ndarray) -> tuple[np.ndarr
     return out[0], out[1]
 
 
-def radiative_media(maps: SurfaceMaps, mfp: np.ndarray, anisotropy: float):  # noqa: ANN201
+def radiative_media(maps: SurfaceMaps, mfp: np.ndarray, anisotropy: float) -> tuple[ProfileTable, np.ndarray, np.ndarray]:
     """``(profiles, inv_path, row)``: the radiative transport's :class:`~sssphase_core.sim.radiative.ProfileTable` at
     mean cosine ``anisotropy``, and per pixel and colour (H, W, 3) 1 / l' (mm^-1) and the table's fractional row, from
     the maps' albedo and the diffuse mean free path ``mfp`` (H, W, 3) mm (NaN off the surface)."""
-    from sssphase_core.sim import radiative
-
-    profiles = radiative.ProfileTable.at(anisotropy)
+    profiles = ProfileTable.at(anisotropy)
     on = maps.mask[..., None]
     reduced_s, sigma_a = dipole.coefficients(np.where(on, np.nan_to_num(maps.albedo), 0.5),
                                              np.where(on, np.nan_to_num(mfp), 1.0), dipole.ETA)
