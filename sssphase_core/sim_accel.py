@@ -64,17 +64,23 @@ class TorchTransport(Transport):
     def _compute(self, index: np.ndarray) -> np.ndarray:
         return self._device_compute(index).reshape(3, len(index), self.k, self.k).cpu().numpy()
 
+    def _distances(self, index: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, int]:
+        """``(idx (N,), r (N, K*K), centre)``: the pixels' flat indices on the device, the 3D distance from each to
+        every cell of its window (the pixel itself set to 1: it gets the disc term), and the window's centre cell."""
+        y, x = np.divmod(index, self.w)
+        idx = torch.as_tensor(index, device=self.device)
+        corner = torch.as_tensor(y * self.wpad + x, device=self.device)
+        window = self._padded[corner[:, None] + self._toffsets[None, :]]  # (N, K*K, 3)
+        r = torch.linalg.vector_norm(window - self._points[idx][:, None, :], dim=-1)
+        centre = self.half * self.k + self.half
+        r[:, centre] = 1.0
+        return idx, r, centre
+
     def _device_compute(self, index: np.ndarray) -> torch.Tensor:
         """The CPU path's ``Transport._compute`` on the device -> (3, N, K*K) float32."""
         m, k, half, dev = self.maps, self.k, self.half, self.device
         n = len(index)
-        y, x = np.divmod(index, self.w)
-        idx = torch.as_tensor(index, device=dev)
-        corner = torch.as_tensor(y * self.wpad + x, device=dev)
-        window = self._padded[corner[:, None] + self._toffsets[None, :]]  # (N, K*K, 3)
-        r = torch.linalg.vector_norm(window - self._points[idx][:, None, :], dim=-1)
-        centre = half * k + half
-        r[:, centre] = 1.0  # the pixel itself gets the disc term below
+        _, r, centre = self._distances(index)
         inv_r = 1.0 / r
 
         f64 = torch.float64
@@ -170,14 +176,8 @@ class TorchRadiativeTransport(TorchTransport):
 
     def _device_compute(self, index: np.ndarray) -> torch.Tensor:
         """The CPU path's ``RadiativeTransport._compute`` on the device -> (3, N, K*K) float32."""
-        m, k, half, dev = self.maps, self.k, self.half, self.device
-        y, x = np.divmod(index, self.w)
-        idx = torch.as_tensor(index, device=dev)
-        corner = torch.as_tensor(y * self.wpad + x, device=dev)
-        window = self._padded[corner[:, None] + self._toffsets[None, :]]  # (N, K*K, 3)
-        r = torch.linalg.vector_norm(window - self._points[idx][:, None, :], dim=-1)
-        centre = half * k + half
-        r[:, centre] = 1.0  # the pixel itself gets the disc term below
+        m, k, dev = self.maps, self.k, self.device
+        idx, r, centre = self._distances(index)
         e = torch.as_tensor(m.irradiance.reshape(-1)[index].astype(np.float32), device=dev)
         ap = torch.as_tensor(m.area.reshape(-1)[index].astype(np.float32), device=dev)
         hh, r0 = (torch.sqrt(ap) / 2)[:, None], torch.sqrt(ap / np.pi)[:, None]
