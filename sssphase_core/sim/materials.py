@@ -46,12 +46,18 @@ JENSEN_2001: dict[str, tuple[tuple[float, float, float], tuple[float, float, flo
 }
 
 
+def dipole_boundary(eta: float = ETA) -> float:
+    """The classical dipole's boundary term A = (1 + F_dr) / (1 - F_dr), F_dr the diffuse Fresnel reflectance of
+    relative index ``eta`` (Jensen et al. 2001's fit)."""
+    f_dr = -1.440 / eta**2 + 0.710 / eta + 0.668 + 0.0636 * eta
+    return (1 + f_dr) / (1 - f_dr)
+
+
 def jensen_diffuse_reflectance(sigma_s_prime: np.ndarray, sigma_a: np.ndarray, eta: float = ETA) -> np.ndarray:
     """Total diffuse reflectance R_d of the dipole model (Jensen et al. 2001, eq. 5 integrated)."""
     sp, sa = np.asarray(sigma_s_prime, np.float64), np.asarray(sigma_a, np.float64)
     alpha = sp / (sp + sa)
-    f_dr = -1.440 / eta**2 + 0.710 / eta + 0.668 + 0.0636 * eta
-    a = (1 + f_dr) / (1 - f_dr)
+    a = dipole_boundary(eta)
     root = np.sqrt(3 * (1 - alpha))
     return alpha / 2 * (1 + np.exp(-4 / 3 * a * root)) * np.exp(-root)
 

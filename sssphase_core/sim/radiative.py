@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from sssphase_core.sim.dipole import fresnel_reflectance
+from sssphase_core.sim.materials import dipole_boundary
 
 #: The walk is followed exactly within this many reduced mean free paths of the entry point (radius
 #: and depth); the profile is tabulated from it out to :data:`MC_RADIUS`.
@@ -121,9 +122,7 @@ def simulate(alpha: float, g: float, eta: float, radii: np.ndarray, photons: int
 def dipole_profile(r: np.ndarray, alpha: float, eta: float) -> np.ndarray:
     """The classical dipole's diffuse reflectance per unit area R_d(r) (Jensen et al. 2001, eq. 4) at ``r`` l'."""
     sigma_tr = np.sqrt(3 * (1 - alpha))
-    f_dr = -1.440 / eta**2 + 0.710 / eta + 0.668 + 0.0636 * eta
-    a = (1 + f_dr) / (1 - f_dr)
-    zr, zv = 1.0, 1.0 + 4 / 3 * a
+    zr, zv = 1.0, 1.0 + 4 / 3 * dipole_boundary(eta)
     dr, dv = np.sqrt(r * r + zr * zr), np.sqrt(r * r + zv * zv)
     return alpha / (4 * np.pi) * (zr * (sigma_tr * dr + 1) * np.exp(-sigma_tr * dr) / dr**3
                                   + zv * (sigma_tr * dv + 1) * np.exp(-sigma_tr * dv) / dv**3)

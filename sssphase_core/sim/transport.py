@@ -130,16 +130,21 @@ class Transport:
             return out
         return self._compute(index)
 
-    def _compute(self, index: np.ndarray) -> np.ndarray:
-        m, k = self.maps, self.k
+    def _distances(self, index: np.ndarray) -> tuple[tuple[np.ndarray, np.ndarray], np.ndarray]:
+        """``((y, x), r)``: the pixels' rows and columns and the 3D distance (N, K, K) float32 from each to every
+        cell of its window (the pixel itself set to 1: it gets the disc term)."""
         y, x = np.divmod(index, self.w)
-        yx = (y, x)
-        r2 = np.zeros((len(index), k, k), np.float32)
-        for plane, win in zip(m.points.transpose(2, 0, 1), self._windows, strict=True):
-            d = win[y, x] - plane[yx][:, None, None]
+        r2 = np.zeros((len(index), self.k, self.k), np.float32)
+        for plane, win in zip(self.maps.points.transpose(2, 0, 1), self._windows, strict=True):
+            d = win[y, x] - plane[y, x][:, None, None]
             r2 += d * d
         r = np.sqrt(r2)
-        r[:, self.half, self.half] = 1.0  # the pixel itself gets the disc term below
+        r[:, self.half, self.half] = 1.0
+        return (y, x), r
+
+    def _compute(self, index: np.ndarray) -> np.ndarray:
+        m, k = self.maps, self.k
+        yx, r = self._distances(index)
         inv_r = 1.0 / r
 
         e = m.irradiance[yx].astype(np.float64)
@@ -364,13 +369,7 @@ class RadiativeTransport(Transport):
 
     def _compute(self, index: np.ndarray) -> np.ndarray:
         m, k, half = self.maps, self.k, self.half
-        y, x = np.divmod(index, self.w)
-        r2 = np.zeros((len(index), k, k), np.float32)
-        for plane, win in zip(m.points.transpose(2, 0, 1), self._windows, strict=True):
-            d = win[y, x] - plane[y, x][:, None, None]
-            r2 += d * d
-        r = np.sqrt(r2)
-        r[:, half, half] = 1.0  # the pixel itself gets the disc term below
+        (y, x), r = self._distances(index)
         e = m.irradiance[y, x].astype(np.float32)
         ap = m.area[y, x].astype(np.float32)
         hh = (np.sqrt(ap) / 2)[:, None, None]  # half ring width
