@@ -156,8 +156,8 @@ class CaptureRequest:
         :meth:`validate` checks it, in the order the options are given. ``hdr_exposures``: comma-separated
         relative exposures (implies ``hdr``; ``hdr``: :data:`DEFAULT_HDR`). ``randomise_rig`` draws the sim rig's
         physics and camera from ``seed`` and the object's name (:func:`sim.randomised_rig_options`), told to
-        ``on_drawn`` as soon as drawn. ``device``: where the sim rig renders (``cuda``: on the GPU, the same images); ``anisotropy``: the radiative
-        transport's phase-function mean cosine g."""
+        ``on_drawn`` as soon as drawn. ``device``: where the sim rig renders (``cuda``: on the GPU, the same images);
+        ``anisotropy``: the radiative transport's phase-function mean cosine g."""
         req = cls(object_name, views, footprints, tuple(references), (), keep_dots, keep_unwrap, resume, out, seed,
                   preset, dot_spacing, transport, dot_stride=dot_stride)
         req._check_counts()
@@ -167,11 +167,11 @@ class CaptureRequest:
             req.sim_options = randomised_rig_options(seed, object_name)
         if req.sim_options and on_drawn is not None:
             on_drawn(req.sim_options)
-        if anisotropy is not None:  # the radiative transport's media: refused for a model that has no phase function
-            if not rig.is_sim or (transport or rig.options.get("transport")) != "radiative":
-                raise InputError("--anisotropy is the phase function of the sim rig's radiative transport: give it with "
-                                 "--transport radiative")
-            req.sim_options = {**req.sim_options, "anisotropy": anisotropy}
+        if anisotropy is not None:  # the radiative transport's media (refused for any other model, or a real rig)
+            from sssphase_core.sim.rig import anisotropy_option
+
+            model = (transport or rig.options.get("transport")) if rig.is_sim else None
+            req.sim_options = {**req.sim_options, **anisotropy_option(model, anisotropy)}
         if device != "cpu":  # the sim's light transport on a torch device (sssphase_core.sim_accel)
             if not rig.is_sim:
                 raise InputError("--device places the simulator's rendering: it applies to the sim rig only")

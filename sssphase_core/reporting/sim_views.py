@@ -50,10 +50,8 @@ def run_sim(object_name: str, views: int, out: Path, *, preset: str = "cpu", tra
     if not 0 <= seed <= MAX_SEED:
         raise InputError(f"--seed must be 0 to {MAX_SEED} (2**63 - 1), got {seed}")
     obj = simlib.get_object(object_name)
-    if anisotropy is not None and transport != "radiative":
-        raise InputError("--anisotropy is the phase function of the radiative transport: give it with --transport radiative")
     rig = simlib.rig_from_options({"preset": preset, "transport": transport,
-                                   **({"anisotropy": anisotropy} if anisotropy is not None else {})})
+                                   **simlib.anisotropy_option(transport, anisotropy)})
     check_output_folder(out)
     if (out / "scene.json").is_file():  # an earlier `sss sim` here: its view folders go, none is left beside these
         for old in (p for p in out.iterdir() if p.is_dir() and not p.is_symlink() and re.fullmatch(r"view[0-9]+", p.name)):

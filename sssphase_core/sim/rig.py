@@ -168,6 +168,17 @@ def rig_preset(name: str = "cpu") -> RigConfig:
     raise InputError(f"unknown rig preset {name!r}; choose one of {', '.join(PRESETS)}")
 
 
+def anisotropy_option(transport: str | None, anisotropy: float | None) -> dict[str, float]:
+    """The rig option ``{"anisotropy": g}`` of a ``--anisotropy`` given with light-transport model ``transport``
+    ({} when none is given), refused in one line with a model that has no phase function (any but radiative)."""
+    if anisotropy is None:
+        return {}
+    if transport != "radiative":
+        raise InputError("--anisotropy is the phase function of the sim rig's radiative transport: give it with "
+                         "--transport radiative")
+    return {"anisotropy": anisotropy}
+
+
 def with_transport(rig: RigConfig, transport: str | None, anisotropy: float | None = None) -> RigConfig:
     """``rig`` with light-transport model ``transport`` and phase-function ``anisotropy`` (None keeps the rig's)."""
     if transport is not None:
