@@ -33,8 +33,19 @@ def psnr(a: np.ndarray, b: np.ndarray, where: np.ndarray) -> float:
     return float(10 * np.log10(1.0 / np.mean((a[where] - b[where]) ** 2)))
 
 
+def converged_halves(renders: Path, name: str, pattern: str, rv) -> tuple[list[np.ndarray], np.ndarray]:  # noqa: ANN001
+    """The converged reference's two halves under ``pattern`` and the view's calm pixels (H, W): decoded, a steady
+    white, and the halves within CALM of each other in every colour."""
+    from transport_footprints import CALM, steady_white
+
+    from sssphase_core.store.exr import read_exr
+
+    halves = [read_exr(renders / f"{name}_converged_half{i}_ref__{pattern}.exr") for i in (0, 1)]
+    return halves, rv.proj.mask & steady_white(rv.white) & (np.abs(halves[0] - halves[1]).max(axis=-1) <= CALM)
+
+
 def relight(renders: Path, sessions: Path, relit: Path, backends: list[str], truth: str = "clean") -> None:
-    from transport_footprints import CALM, noise_corrected, reference_noise, steady_white
+    from transport_footprints import noise_corrected, reference_noise
 
     from sssphase_core.relight import load_view
     from sssphase_core.store.exr import read_exr
@@ -56,8 +67,7 @@ def relight(renders: Path, sessions: Path, relit: Path, backends: list[str], tru
                 cells = [f"{psnr(imgs[b], truth_img, mask):.2f} / {psnr(imgs[b], truth_img, inner):.2f}" for b in backends]
                 print(f"| {s.name} | {pattern} | " + " | ".join(cells) + " |")
                 continue
-            halves = [read_exr(renders / f"{s.name}_converged_half{i}_ref__{pattern}.exr") for i in (0, 1)]
-            calm = mask & steady_white(rv.white) & (np.abs(halves[0] - halves[1]).max(axis=-1) <= CALM)
+            halves, calm = converged_halves(renders, s.name, pattern, rv)
             noise = reference_noise(*halves, calm)
             mse = {b: float(np.mean((imgs[b][calm] - truth_img[calm]) ** 2)) for b in backends}
             cells = []
@@ -92,8 +102,6 @@ def edge_distance(pattern: np.ndarray, coord: np.ndarray, across: np.ndarray, ax
 
 
 def edges(renders: Path, sessions: Path, relit: Path, backends: list[str]) -> None:
-    from transport_footprints import CALM, steady_white
-
     from sssphase_core.relight import load_view
     from sssphase_core.store.exr import read_exr
     from sssphase_core.store.session import find_sessions
@@ -107,8 +115,7 @@ def edges(renders: Path, sessions: Path, relit: Path, backends: list[str]) -> No
                 continue
             pattern = np.asarray(rv.references[name], np.float32)
             pattern = pattern.mean(axis=-1) if pattern.ndim == 3 else pattern
-            halves = [read_exr(renders / f"{s.name}_converged_half{i}_ref__{name}.exr") for i in (0, 1)]
-            calm = rv.proj.mask & steady_white(rv.white) & (np.abs(halves[0] - halves[1]).max(axis=-1) <= CALM)
+            calm = converged_halves(renders, s.name, name, rv)[1]
             images = {"truth": read_exr(reference).mean(axis=-1)}
             images |= {b: read_exr(relit / f"{s.name}_v0_{name}_{b}.exr").mean(axis=-1) for b in backends}
             for axis, coord, across in ((1, rv.proj.xp, rv.proj.yp), (0, rv.proj.yp, rv.proj.xp)):
