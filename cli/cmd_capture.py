@@ -92,7 +92,7 @@ def _local_daemon(timeout: float):
 
 
 def validate(session: Annotated[Path, typer.Argument(help="session folder")]) -> None:
-    """Check a session: every view complete, every array present and matching its checksum."""
+    """Check a session: every view complete, every array present and matching its checksum, and the images finite linear light."""
     from sssphase_core.errors import DataError
     from sssphase_core.store.session import Session
 
@@ -103,7 +103,7 @@ def validate(session: Annotated[Path, typer.Argument(help="session folder")]) ->
             console.print(f"[red]{escape(p)}[/]")
         raise DataError(f"{session}: {len(problems)} problem(s)")
     n = sum(len(s.arrays(v)) for v in s.views())
-    console.print(f"[green]ok[/] {session}: {len(s.views())} views, {n} arrays, checksums match")
+    console.print(f"[green]ok[/] {session}: {len(s.views())} views, {n} arrays, checksums match, images are finite light")
 
 
 def import_images(

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import re
 import shutil
 import struct
 import subprocess
@@ -641,6 +642,31 @@ def test_a_stale_state_file_whose_pid_was_reused_does_not_block_a_new_daemon(tmp
         shutil.rmtree(runtime, ignore_errors=True)
 
 
+def test_daemon_stop_refuses_to_end_a_daemon_another_command_is_using(monkeypatch):
+    """`sss daemon stop` stopped whatever daemon the user's socket led to, mid-capture of another command, which
+    then failed ("stopped answering mid-stream"). While a rig is open it is refused, naming the use; --force stops it."""
+    from sssphase_daemon.client import DaemonClient
+
+    runtime = Path(tempfile.mkdtemp(prefix="sssu", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
+    monkeypatch.setenv("SSS_RUNTIME_DIR", str(runtime))
+    try:
+        start = run_sss(["daemon", "start"], timeout=60, env=env)
+        assert start.returncode == 0, start.stdout + start.stderr
+        with DaemonClient.from_state(timeout_s=30) as other:  # another command's capture: a rig open
+            other.call("open_rig", camera="sim:camera0", projector="sim:projector0", options={"object": "apple"})
+            stop = run_sss(["daemon", "stop"], timeout=60, env=env)
+            assert stop.returncode == 2 and re.search(r"the daemon \(pid \d+\) is in use: 1 rig\(s\) open; stopping it "
+                                                      r"ends that capture: .*`sss daemon stop --force`", stop.stderr), stop.stderr
+            assert other.ping()  # still serving the other command
+            forced = run_sss(["daemon", "stop", "--force"], timeout=60, env=env)
+            assert forced.returncode == 0 and "stopped" in forced.stdout, forced.stdout + forced.stderr
+        assert "no daemon running" in run_sss(["daemon", "status"], timeout=60, env=env).stdout
+    finally:
+        run_sss(["daemon", "stop", "--force"], timeout=60, env=env)
+        shutil.rmtree(runtime, ignore_errors=True)
+
+
 @pytest.mark.slow
 def test_a_stopped_daemon_leaves_its_runtime_folder_empty(tmp_path, _private_log_dir):
     """Control and preview sockets, job streams and the state file go; the log lives in the log folder."""
@@ -703,7 +729,10 @@ def test_a_damaged_array_is_one_error_naming_it_wherever_it_is_read(intact_sessi
     DAMAGE[damage](copy / "view_000")
     with pytest.raises(DataError, match=r"array (psp|white|corr/xp|corr/mask) of view 0 .* is (damaged|missing)"):
         load_view(Session.open(copy), 0)
-    assert any("view 0: array" in p for p in Session.open(copy).validate())
+    problems = Session.open(copy).validate()
+    assert any("view 0: array" in p for p in problems)
+    if damage == "dtype changed":  # named as what it is, not as a chunk failing its checksum
+        assert "view 0: array corr/mask is damaged (its metadata says <f8 where the manifest says |b1)" in problems, problems
 
 
 def test_a_damaged_check_session_is_refused_before_the_training(intact_session, tmp_path):
@@ -913,10 +942,57 @@ def test_non_finite_or_impossible_values_in_a_view_are_one_error(intact_session,
     for key, array in data.items():
         writer.write(key, array)
     writer.commit(info)
-    assert not Session.open(copy).validate()  # intact, as its writer meant it
+    problems = Session.open(copy).validate()  # intact, as its writer meant it: checksums match
+    if name in ("white", "psp"):  # but no capture makes such light, and `sss validate` says so
+        assert len(problems) == 1 and re.fullmatch(rf"view 0: array {name} holds \d+ NaN or infinite values; images must "
+                                                   r"be finite", problems[0]), problems
+    else:
+        assert not problems
     expected = "projector coordinates far outside" if edit.endswith("projector") else "NaN or infinite values"
     with pytest.raises(DataError, match=f"view 0 of .*: {name} (holds|is) .*{expected}"):
         load_view(Session.open(copy), 0)
+
+
+@pytest.mark.parametrize(("name", "change", "expected"), [
+    ("white", lambda a: np.full_like(a, 1e38), r"white holds values up to 1e\+38: images are linear light"),
+    ("psp", lambda a: -a, r"psp: \d+(\.\d+)?% of its values are below -0.25 x the white level"),
+    ("ref/checkerboard", lambda a: a - 1, r"ref/checkerboard: \d+(\.\d+)?% of its values are below"),
+])
+def test_intact_arrays_that_hold_no_capture_s_light_are_named_by_validate_and_refused_by_relight(
+        intact_session, tmp_path, name, change, expected):
+    """A session another program wrote, its checksums matching: a white of 1e38 failed relighting with
+    "internal error: LinAlgError" and negated fringes relit an almost black image with exit 0, while
+    `sss validate` said ok. Validate names them, and relighting refuses them in one line (a simulated
+    session's reference is scored against its render, ``gt/render/``: relighting does not read ``ref/``)."""
+    from sssphase_core.errors import DataError
+    from sssphase_core.relight import load_view
+    from sssphase_core.store.session import Session
+
+    copy = tmp_path / "leaf"
+    shutil.copytree(intact_session, copy)
+    s = Session.open(copy)
+    info = {k: v for k, v in s.manifest["views"]["0"].items() if k not in ("status", "arrays", "completed")}
+    data = {n: np.array(s.load(0, n)) for n in s.arrays(0)}
+    data[name] = change(data[name]).astype(data[name].dtype)
+    writer = s.begin_view(0)
+    for key, array in data.items():
+        writer.write(key, array)
+    writer.commit(info)
+    problems = Session.open(copy).validate()
+    assert len(problems) == 1 and re.match(rf"view 0: (array )?{expected}", problems[0]), problems
+    if name.startswith("ref/"):
+        assert f"gt/render/{name.removeprefix('ref/')}" in data
+        return
+    with pytest.raises(DataError, match=rf"view 0 of .*: {expected}"):
+        load_view(Session.open(copy), 0)
+    if name == "psp":  # and training reads no such fringes either
+        from sssphase_core.learning.data import session_views
+
+        with pytest.raises(DataError, match=rf"session .*leaf view 0: {expected}.*leave it out \(--views\)"):
+            session_views(copy, None, None, pixels_per_view=16, footprints=False)
+    result = run_sss(["relight", str(copy), "--pattern", "checkerboard", "--out", str(tmp_path / "r")], timeout=120)
+    assert result.returncode == 2 and re.search(expected, result.stderr) and "Traceback" not in result.stderr, result.stderr
+    assert not (tmp_path / "r").exists() or not any((tmp_path / "r").iterdir())
 
 
 def test_a_file_left_in_an_array_folder_is_not_a_chunk(intact_session, tmp_path):
@@ -1250,7 +1326,8 @@ def test_nan_in_a_reference_capture_is_refused_not_scored_as_zero(intact_session
     for name, data in arrays.items():
         w.write(name, data)
     w.commit({k: v for k, v in entry.items() if k not in ("arrays", "status", "completed")})
-    assert Session.open(copy).validate() == []  # stored as written
+    assert Session.open(copy).validate() == ["view 0: array ref/checkerboard holds 60 NaN or infinite values; images "
+                                             "must be finite"]  # stored as written, but not light
     with pytest.raises(DataError, match=r"ref/checkerboard holds 60 NaN or infinite values"):
         evaluate_view(load_view(Session.open(copy), 0), "none", tmp_path / "img")
 

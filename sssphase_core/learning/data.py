@@ -24,6 +24,7 @@ import numpy as np
 import torch
 
 from sssphase_core.errors import DataError, InputError
+from sssphase_core.store.light import light_problem, white_level
 
 N_PSP = 8
 
@@ -382,9 +383,12 @@ def session_views(
                 raise DataError(f"session {s.path} has no complete view {view} (its views: "
                                 f"{', '.join(map(str, s.views())) or 'none'}; choose among those)")
             psp = repaired_psp(s, view)
-            if not np.isfinite(psp).all():  # it surfaced as a NaN loss blamed on the learning rate
-                raise DataError(f"session {s.path} view {view}: psp holds {int((~np.isfinite(psp)).sum()):,} NaN or "
-                                "infinite values: re-capture or re-import the view, or leave it out (--views)")
+            # NaN surfaced as a NaN loss blamed on the learning rate; huge or negated frames train on no light
+            level = white_level(s.load(view, "white")) if "white" in s.arrays(view) else None
+            problem = light_problem("psp", psp, level)
+            if problem:
+                raise DataError(f"session {s.path} view {view}: {problem}: re-capture or re-import the view, or leave it "
+                                "out (--views)")
             rng_seed = view_seed(seed, name, view)
             fp = None
             if footprints:

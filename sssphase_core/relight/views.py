@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from sssphase_core.errors import DataError, InputError
+from sssphase_core.store.light import light_problem, white_level
 
 if TYPE_CHECKING:
     from sssphase_core.relight.engine import Projection
@@ -130,17 +131,16 @@ def load_view(session: object, view: int) -> RelightView:
             references[name] = PlannedFrame(f["key"], f["kind"], f["params"], 1.0).pattern()
     for name in (a.removeprefix("pattern/") for a in arrays if a.startswith("pattern/")):
         references.setdefault(name, load(f"pattern/{name}").astype(np.float32))  # the user's own pattern files
+    stored: dict[str, str] = {}  # reference name -> the array it was read from
     for name in list(references):
-        gt = f"gt/render/{name}"
-        if gt in arrays:
-            captured[name] = load(gt).astype(np.float32)
-        elif f"ref/{name}" in arrays:
-            captured[name] = load(f"ref/{name}").astype(np.float32)
+        stored[name] = next((a for a in (f"gt/render/{name}", f"ref/{name}") if a in arrays), "")
+        if stored[name]:
+            captured[name] = load(stored[name]).astype(np.float32)
         else:
             references.pop(name)
     _check_view_shapes(where, mask, {}, {f"reference {n}": c for n, c in captured.items()})
     _check_finite(where, mask, {"corr/xp": xp, "corr/yp": yp},
-                  {"psp": psp, "white": white, **{f"reference {n}": c for n, c in captured.items()}})
+                  {"psp": psp, "white": white, **{stored[n]: c for n, c in captured.items()}})
     for name, coord, side in (("corr/xp", xp, wp), ("corr/yp", yp, hp)):
         if mask.any() and not (np.abs(coord[mask] - side / 2) <= 1.5 * side).all():  # a decoded point lies on the projector
             raise DataError(f"{where}: {name} holds projector coordinates far outside the projector's 0 to {side} px")
@@ -162,13 +162,19 @@ def _check_view_shapes(where: str, mask: np.ndarray, maps: dict[str, np.ndarray]
 
 
 def _check_finite(where: str, mask: np.ndarray, maps: dict[str, np.ndarray], images: dict[str, np.ndarray]) -> None:
-    """One clear error for NaN or inf where relighting reads (a session written by another program: our
-    writers refuse them): anywhere in ``images``, on the decoded ``mask`` in ``maps``."""
-    for name, array in {**maps, **images}.items():
-        bad = ~np.isfinite(array[mask] if name in maps else array)
+    """One clear error for values no capture makes where relighting reads (a session written by another program:
+    our writers refuse them): NaN or inf on the decoded ``mask`` in ``maps``; in ``images`` (light, the white
+    among them) whatever :func:`~sssphase_core.store.light.light_problem` finds: NaN or inf, huge values, or
+    frames far below zero."""
+    for name, array in maps.items():
+        bad = ~np.isfinite(array[mask])
         if bad.any():
-            raise DataError(f"{where}: {name} holds {int(bad.sum())} NaN or infinite values"
-                            f"{' on the decoded pixels' if name in maps else ''}; images must be finite")
+            raise DataError(f"{where}: {name} holds {int(bad.sum())} NaN or infinite values on the decoded pixels")
+    level = white_level(images["white"]) if "white" in images else None
+    for name, array in images.items():
+        problem = light_problem(name, array, level)
+        if problem:
+            raise DataError(f"{where}: {problem}")
 
 
 def session_patch(manifest: dict) -> int:

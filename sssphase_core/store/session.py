@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from sssphase_core.errors import DataError, InputError
+from sssphase_core.store.light import holds_light, light_problem, white_level
 
 FORMAT = "sssphase-session"
 FORMAT_VERSION = 1
@@ -604,6 +605,8 @@ class Session:
         meta = self.manifest["views"][str(view)]["arrays"][name]
         if meta.get("shape") is not None and list(array.shape) != list(meta["shape"]):
             raise DamagedArray(where, f"damaged (shape {tuple(array.shape)} where the manifest says {tuple(meta['shape'])})")
+        if meta.get("dtype") is not None and array.dtype.str != meta["dtype"]:  # its chunks would not decode
+            raise DamagedArray(where, f"damaged (its metadata says {array.dtype.str} where the manifest says {meta['dtype']})")
         expected = meta.get("chunks")  # older sessions: not recorded
         if expected is not None:
             found = _stored_chunks(folder)
@@ -623,7 +626,9 @@ class Session:
 
     # ---- checking --------------------------------------------------------------------------
     def validate(self, *, expected_views: int | None = None) -> list[str]:
-        """Problems found (empty when the session is complete and intact); reads every array."""
+        """Problems found (empty when the session is complete and intact); reads every array. Intact arrays of light
+        (and footprint crops) are also held to :func:`~sssphase_core.store.light.light_problem`: what the readers refuse,
+        a session another program wrote with matching checksums may hold."""
         problems = []
         n = expected_views if expected_views is not None else int(self.manifest.get("n_views", 0))
         for v in range(n):
@@ -633,7 +638,8 @@ class Session:
             for name in REQUIRED:
                 if name not in entry.get("arrays", {}):
                     problems.append(f"view {v}: required array {name} missing from the manifest")
-            for name, meta in entry.get("arrays", {}).items():
+            level = None  # the view's white level, for the other images' test (the white is read first)
+            for name, meta in sorted(entry.get("arrays", {}).items(), key=lambda item: item[0] != "white"):
                 try:
                     data = self.load(v, name)
                 except DamagedArray as exc:  # a chunk failed its CRC32C, chunks or files are gone, the shape differs
@@ -649,6 +655,12 @@ class Session:
                                     f"{tuple(meta['shape'])} {meta['dtype']}")
                 elif array_checksum(data) != meta["checksum"]:
                     problems.append(f"view {v}: array {name} is corrupt (checksum mismatch)")
+                elif holds_light(name) or name == "footprints/crops":  # intact: what its writer wrote, but is it light?
+                    if name == "white":
+                        level = white_level(data)
+                    problem = light_problem(f"array {name}", data, level if holds_light(name) else None)
+                    if problem:
+                        problems.append(f"view {v}: {problem}")
         return problems
 
 
