@@ -594,7 +594,8 @@ def test_a_path_tracers_stray_nan_and_inf_samples_are_repaired_and_a_broken_file
         img[ys, xs, cs] = np.float32([np.nan, np.inf])
         return img
 
-    s = import_folder(_perturbed(frames, tmp_path / "stray", stray), tmp_path / "s", "stray", (W, H), patch=K)
+    with pytest.warns(UserWarning, match=r"\d+ NaN or infinite values .* were repaired from their neighbours"):
+        s = import_folder(_perturbed(frames, tmp_path / "stray", stray), tmp_path / "s", "stray", (W, H), patch=K)
     assert s.manifest["views"]["0"]["nonfinite_repaired"] == 2 * len(list(frames.rglob("*.*")))
     np.testing.assert_allclose(s.load(0, "corr/xp")[8:-8, 8:-8], clean.load(0, "corr/xp")[8:-8, 8:-8], atol=0.1)
     out = {**_relit_psnr([s], tmp_path), "clean": clean_psnr}
@@ -672,12 +673,14 @@ def test_16_bit_npy_frames_import_like_16_bit_pngs(frames, tmp_path):
     ("white", lambda img: img * 0, "the white capture holds no light (99.9th percentile 0)"),
     ("white", lambda img: -img, "the white capture holds no light (99.9th percentile -"),
     ("white", lambda img: img * np.float32(1e-44), "the white capture holds no light"),  # denormal: 1/level overflows
-    ("psp__x__p18__s1", lambda img: img - np.float32(0.6), "of its values are below -0.25 x the white level"),
-    ("black", lambda img: img - np.float32(0.5), "100% of its values are below -0.25 x the white level"),  # not 1e+02%
+    ("psp__x__p18__s1", lambda img: img - np.float32(0.6), "of its values are below -0.25 x the white capture's level"),
+    ("black", lambda img: img - np.float32(0.5), "100% of its values are below -0.25 x the white capture's level"),  # not 1e+02%
+    ("black", lambda img: img + np.float32(2.0), "the black capture is brighter than the white one (99.9th percentiles 2"),
 ])
 def test_frames_without_light_or_far_below_zero_are_refused_naming_them(tmp_path, frame, change, expected):
     """A black, negative or denormal white capture, a frame with a black level subtracted twice: imported
-    without a word, they relit at 3.9-10.4 dB where "none" read 18.4. Noise around zero still imports."""
+    without a word, they relit at 3.9-10.4 dB where "none" read 18.4. A black brighter than the white (the two
+    swapped) is named as such, in the file's units. Noise around zero still imports."""
     folder = _float_frames(tmp_path / "f", 1.0)
     path = folder / f"{frame}.npy"
     np.save(path, change(np.load(path)))
@@ -848,6 +851,27 @@ def test_srgb_encoded_frames_are_decoded_to_light_by_their_tag_or_told_by_their_
     with pytest.raises(InputError, match=r"white\.png holds JPEG data, which is lossy"):  # whatever its name says
         import_folder(untagged, tmp_path / "s", "jpeg", (W, H), patch=K, encoding="linear")
     assert not (tmp_path / "s" / "mixed").exists() and not (tmp_path / "s" / "jpeg").exists()
+
+
+def test_frames_of_two_bit_depths_are_refused_before_anything_is_written(tmp_path):
+    """8-bit sRGB codes beside 16-bit linear ones (two pipelines' files in one folder) were decoded by one
+    encoding into a session that relit 9 dB worse, with only a hint to re-import with the other encoding."""
+    from PIL import Image
+
+    linear = _float_frames(tmp_path / "linear", 1.0)
+    mixed = tmp_path / "mixed"
+    mixed.mkdir()
+    for f in linear.glob("*.npy"):
+        light = np.clip(np.load(f), 0, 1)
+        if f.stem.startswith("psp__y"):  # one orientation's frames from another pipeline: 16-bit linear codes
+            cv2.imwrite(str(mixed / f"{f.stem}.png"), np.round(light * 65535).astype(np.uint16)[..., ::-1])
+        else:
+            Image.fromarray(_srgb_codes(light)).save(mixed / f"{f.stem}.png")
+    for encoding in ("auto", "srgb", "linear"):
+        with pytest.raises(InputError, match=r"holds (8|16)-bit codes but .*psp__.* holds (16|8)-bit ones: an import's "
+                                             r"frames come from one camera pipeline"):
+            import_folder(mixed, tmp_path / "s", "mixed", (W, H), patch=K, encoding=encoding)
+    assert not (tmp_path / "s" / "mixed").exists()
 
 
 def test_footprints_cached_for_one_session_are_never_read_for_another(tmp_path):

@@ -23,6 +23,7 @@ from sssphase_core.store.imageio import (
     ENCODINGS,
     IMAGE_SUFFIXES,
     LOSSY_SUFFIXES,
+    code_depth,
     declared_encoding,
     decode_codes,
     frame_shape,
@@ -30,6 +31,7 @@ from sssphase_core.store.imageio import (
     read_pattern,
     stores_integers,
 )
+from sssphase_core.store.light import NEGATIVE_LIMIT, NEGATIVE_SHARE
 from sssphase_core.store.session import Session, check_object_name
 
 PSP_KEY_RE = re.compile(r"^psp/([xy])/p([0-9]{1,5}(?:\.[0-9]{1,6})?)/s([0-9]{1,2})$")
@@ -154,9 +156,6 @@ def psp_config_from_names(vdir: Path, keys: Iterable[str]) -> Any:
 #: The smallest white level (99.9th percentile of a white capture, file units) taken for light: below it
 #: (denormal floats) rescaling to camera units would overflow float32.
 MIN_WHITE_LEVEL = 1e-30
-#: A frame may hold values below zero (noise around a subtracted black level), but not many far below:
-#: at most this share of its pixels below ``-NEGATIVE_LIMIT x`` the white level.
-NEGATIVE_LIMIT, NEGATIVE_SHARE = 0.25, 1e-3  # (Malvar's overshoot at a sharp edge reaches -0.15 x white)
 
 
 def read_imported(path: Path, encoding: str = "linear") -> tuple[np.ndarray, int]:
@@ -275,15 +274,26 @@ def frame_scale(whites: Iterable[Path], levels: Iterable[float]) -> float:
     return 1.0 if LINEAR_RANGE[0] <= level <= LINEAR_RANGE[1] else 1.0 / level
 
 
-def check_not_negative(path: Path, image: np.ndarray, white_level: float) -> None:
-    """Refuse a frame with many values far below zero (:data:`NEGATIVE_LIMIT` of the view's white level,
-    in more than :data:`NEGATIVE_SHARE` of its values): a black level subtracted twice, a signed format
-    read wrongly. Noise around zero passes."""
+def check_not_negative(path: Path, image: np.ndarray, white_level: float, scale: float = 1.0) -> None:
+    """Refuse a frame with many values far below zero (:data:`~sssphase_core.store.light.NEGATIVE_LIMIT` of the
+    view's white level, in more than :data:`~sssphase_core.store.light.NEGATIVE_SHARE` of its values): a black
+    level subtracted twice, a signed format read wrongly. Noise around zero passes. ``image`` and ``white_level``
+    are in camera units, the file's values times ``scale`` (the message gives the file's)."""
     far = np.count_nonzero(image < -NEGATIVE_LIMIT * white_level)
     if far > NEGATIVE_SHARE * image.size:
         raise InputError(f"{path}: {100 * far / image.size:.3g}% of its values are below -{NEGATIVE_LIMIT:g} x the white "
-                         f"level (down to {float(image.min()):.3g}, white {white_level:.3g}): frames must be linear "
-                         "light, at most noise below zero")
+                         f"capture's level (down to {float(image.min()) / scale:.3g}, the white's level "
+                         f"{white_level / scale:.3g}): frames must be linear light, at most noise below zero")
+
+
+def check_black_below_white(path: Path, black: np.ndarray, white_level: float, scale: float = 1.0) -> None:
+    """Refuse a black capture brighter than the view's white (99.9th percentiles; camera units, the file's values
+    times ``scale``): the two files swapped, or the black taken with the projector on."""
+    level = float(np.percentile(black, 99.9))
+    if level > white_level:
+        raise InputError(f"{path}: the black capture is brighter than the white one (99.9th percentiles "
+                         f"{level / scale:.3g} and {white_level / scale:.3g}): are white and black swapped? black is "
+                         "the scene under the projector's black, white under its full white")
 
 
 def frames_encoding(files: Iterable[Path], encoding: str = "auto") -> tuple[str, str]:
@@ -294,10 +304,18 @@ def frames_encoding(files: Iterable[Path], encoding: str = "auto") -> tuple[str,
     if encoding not in ENCODINGS:
         raise InputError(f"--encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
     seen: dict[str, tuple[Path, str]] = {}
+    depths: dict[int, Path] = {}
     integers = False
     for path in files:
         if stores_integers(path):
             integers = True
+            depth = code_depth(path)
+            if depth is not None and depths and depth not in depths:
+                (other, first), = depths.items()
+                raise InputError(f"{first} holds {other}-bit codes but {path} holds {depth}-bit ones: an import's frames "
+                                 "come from one camera pipeline (the same bit depth and encoding); re-save them alike")
+            if depth is not None:
+                depths[depth] = path
             enc, why = declared_encoding(path)
             if why == "JPEG data":  # whatever the file's name says
                 raise InputError(f"{path} holds JPEG data, which is lossy (8 x 8 blocks, halved colour resolution) and "
@@ -752,7 +770,9 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                     if key.startswith("psp/") and stores_integers(files[key]):  # read as code / top code
                         top += int(np.count_nonzero(image >= 0.999 * scale))
                         fringe_values += image.size
-                    check_not_negative(files[key], image, level * scale)
+                    if key == "black":
+                        check_black_below_white(files[key], image, level * scale, scale)
+                    check_not_negative(files[key], image, level * scale, scale)
                     if key.startswith("psp/"):  # (after the size checks: sets are summed)
                         _check_fringe_level(files[key], image, level * scale)
                         set_key = key.rsplit("/", 1)[0]
@@ -773,6 +793,10 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 if auto_bayer and detected is None:
                     detected = _detect_bayer(proc, config, demosaic)
                 info = {**proc.finish(), "nonfinite_repaired": loader.repaired}
+                if loader.repaired:  # `sss decode` refuses them: say what the import did instead
+                    warnings.warn(f"{vdir}: {loader.repaired} NaN or infinite values (a renderer's stray samples?) were "
+                                  "repaired from their neighbours (recorded as the view's nonfinite_repaired)",
+                                  UserWarning, stacklevel=2)
                 if auto_bayer:
                     info["bayer_detected"] = detected
                 check_opposite_shifts(vdir, pair_sums, proc.images["white"], proc.images["black"])

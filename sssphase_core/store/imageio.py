@@ -334,6 +334,29 @@ def stores_integers(path: Path) -> bool:
         raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}") from None
 
 
+def code_depth(path: Path) -> int | None:
+    """Bits per sample of a frame file's integer codes (1, 8 or 16), or None for float data; from the header
+    only. Frames of one capture come out of one camera pipeline: a view mixing 8- and 16-bit files was put
+    together from two, whose codes mean different light."""
+    if not stores_integers(path):
+        return None
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        dtype = _load_npy(path, mmap_mode="r").dtype
+        return 1 if dtype.kind == "b" else 8 * dtype.itemsize
+    with open(path, "rb") as f:
+        head = f.read(26)
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) == 26:  # IHDR: bit depth, colour type (3: palette of 8-bit colours)
+        return 8 if head[25] == 3 else int(head[24])
+    bits = (_tiff_directory(path) or {}).get(258)  # BitsPerSample
+    if bits is not None:
+        return int(bits[0] if isinstance(bits, tuple) else bits)  # type: ignore[arg-type]
+    from PIL import Image
+
+    with Image.open(path) as img:
+        return 16 if img.mode.startswith("I;16") else 1 if img.mode == "1" else 8
+
+
 @contextlib.contextmanager
 def native_stderr_silenced(fds: tuple[int, ...] = (2,)) -> Iterator[None]:
     """Native libraries' writes to file descriptors ``fds`` (default stderr; not Python's) dropped for the
