@@ -13,7 +13,7 @@ import scipy.sparse
 import torch
 
 from sssphase_core.compute import compute_device
-from sssphase_core.errors import InputError
+from sssphase_core.errors import DataError, InputError
 from sssphase_core.processing.projector import emitted_light, sample_projector
 
 #: Produces the (N, K, K, 3) footprints of camera pixels given as (N, 2) int (y, x).
@@ -190,6 +190,12 @@ def crop_footprints(fp: torch.Tensor, radius: int) -> torch.Tensor:
     return fp[:, half - radius : half + radius + 1, half - radius : half + radius + 1]
 
 
+#: The share of lit pixels whose footprints may hold NaN or inf (set to 0 with a warning) before the source is
+#: taken for broken: a checkpoint of finite weights that overflow gave 24% of all footprint values non-finite and
+#: relit a labelled "torch" image with exit 0.
+BROKEN_SOURCE_SHARE = 0.01
+
+
 def relight(
     source: FootprintSource,
     proj: Projection,
@@ -210,7 +216,8 @@ def relight(
     level's contribution; without it the black level is ignored. ``dtype`` is the precision the
     footprints and the light are rounded to (accumulation is always float32). ``radius`` truncates
     footprints to the central (2 radius + 1)^2 window (cheaper splats). ``method`` picks the splat
-    kernel (see :class:`Splatter`). Non-finite footprint values are set to 0 with a warning.
+    kernel (see :class:`Splatter`). Non-finite footprint values are set to 0 with a warning, and a source whose
+    footprints are non-finite for more than :data:`BROKEN_SOURCE_SHARE` of the pixels is refused (DataError).
     ``progress(done, total)`` is called after each chunk.
     """
     pats = pattern_stack(patterns, proj)
@@ -226,7 +233,7 @@ def relight(
     h, w = proj.shape
     k = patch if radius is None or radius >= patch // 2 else 2 * radius + 1
     splat = Splatter(h, w, k, light.shape[0], device=device, method=method)
-    total, n_bad = len(pixels), 0
+    total, n_bad, bad_pixels = len(pixels), 0, 0
     for start in range(0, total, chunk):
         sl = slice(start, min(start + chunk, total))
         fp = fetch(sl)
@@ -237,6 +244,11 @@ def relight(
         bad = ~torch.isfinite(fp)
         if bad.any():  # a backend's NaN/inf must not spread over the whole canvas
             n_bad += int(bad.sum())
+            bad_pixels += int(bad.flatten(1).any(1).sum())
+            if bad_pixels > BROKEN_SOURCE_SHARE * total:
+                raise DataError(f"the footprint source gave non-finite footprints for more than {BROKEN_SOURCE_SHARE:.0%} "
+                                f"of the {total} lit pixels ({bad_pixels} so far): the model is broken (a checkpoint whose "
+                                "weights overflow?), and nothing it relit can be used")
             fp = torch.where(bad, torch.zeros((), dtype=fp.dtype, device=fp.device), fp)
         fp = fp.to(dtype)
         splat.add(pixels[sl], fp, torch.as_tensor(c[sl], device=device).to(dtype))

@@ -263,6 +263,20 @@ def test_non_finite_footprints_are_zeroed_with_a_warning(scene):
     assert np.isfinite(out).all()
 
 
+def test_a_source_whose_footprints_are_mostly_not_finite_is_refused(scene):
+    """A checkpoint of finite weights that overflow made 24% of the footprint values inf, and relit an image
+    labelled with its backend, exit 0, after a warning. Beyond 1% of the pixels the source is refused."""
+    from sssphase_core.errors import DataError
+
+    proj, k, fps, pats = scene
+    ys, xs = np.nonzero(proj.mask)
+    broken = fps.copy()
+    n = len(ys) // 50 + 2  # just over 2% of the lit pixels
+    broken[ys[:n], xs[:n], k // 2, k // 2, 0] = np.inf
+    with pytest.raises(DataError, match=rf"non-finite footprints for more than 1% of the {len(ys)} lit pixels"):
+        relight(lambda px: broken[px[:, 0], px[:, 1]], proj, pats, k, chunk=max(1, len(ys) // 10))
+
+
 def test_nearest_measured_source_rescales_the_nearest_captured_footprint():
     from sssphase_core.relight import nearest_measured_source
 
