@@ -153,6 +153,9 @@ def resolve_patterns(specs: Sequence[str], rv: RelightView, resize: str = "",
     names, pats = [], []
     for p in specs:
         if Path(p).is_file():  # (a folder named like a pattern does not hide the pattern)
+            if any(ord(ch) < 32 or ord(ch) == 127 for ch in Path(p).stem):
+                raise InputError(f"--pattern {p!r}: its file name holds a control character (a newline, a tab), which "
+                                 "would reach the output files' names: rename the file")
             names.append(Path(p).stem)
             pats.append(read_pattern(p, (wp, hp), resize=resize))
             note = resize_note(p, (wp, hp), resize)

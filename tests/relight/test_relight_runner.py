@@ -1,6 +1,7 @@
 """The session runner that `sss relight`, `sss geometry` and `sss eval relight` call (and a notebook or web
 view can call the same way): results returned, narration through a narrator, outputs written."""
 
+import cv2
 import numpy as np
 import pytest
 
@@ -92,7 +93,11 @@ def test_relight_session_checks_its_input_before_any_work(session, tmp_path):
         relight_session(session, ["checkerboard"], backend="torch", out=tmp_path / "c")
     with pytest.raises(InputError, match="has no complete view 3"):
         relight_session(session, ["checkerboard"], backend="none", views="0,3", out=tmp_path / "d")
-    assert not any((tmp_path / n).exists() and any((tmp_path / n).glob("*.png")) for n in "abcd")
+    odd = tmp_path / "we ird\nname.png"  # a newline in a pattern's file name would be in its outputs' names
+    cv2.imwrite(str(odd), np.zeros((8, 8), np.uint8))
+    with pytest.raises(InputError, match=r"its file name holds a control character .*: rename the file"):
+        relight_session(session, [str(odd)], backend="none", out=tmp_path / "e")
+    assert not any((tmp_path / n).exists() and any((tmp_path / n).glob("*.png")) for n in "abcde")
 
 
 def test_geometry_session_writes_and_scores_the_corrected_points(session, tmp_path):
