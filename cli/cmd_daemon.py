@@ -132,8 +132,12 @@ def daemon_start(
                   f"log: {security.log_dir() / 'daemon.log'}")
 
 
-def daemon_stop() -> None:
-    """Stop the running daemon."""
+def daemon_stop(
+    force: Annotated[bool, typer.Option("--force", help="stop it even while it has a rig open or a capture running "
+                                                        "(another command's, which then fails)")] = False,
+) -> None:
+    """Stop the running daemon (refused while another command uses it, unless --force)."""
+    from sssphase_core.errors import InputError
     from sssphase_daemon import security
 
     client = _client()
@@ -159,7 +163,13 @@ def daemon_stop() -> None:
         console.print("no daemon running")
         return
     with client:
-        pid = client.call("hello")["pid"]
+        pid, status = client.call("hello")["pid"], client.call("status")
+        running = [j for j in status.get("jobs", []) if j.get("state") == "running"]
+        if (status.get("rigs") or running) and not force:  # another command's capture: stopping it would fail that one
+            use = [f"{len(status['rigs'])} rig(s) open"] if status.get("rigs") else []
+            use += [f"job {j['job']} running ({j['sent']}/{j['total']} frames)" for j in running]
+            raise InputError(f"the daemon (pid {pid}) is in use: {', '.join(use)}; stopping it ends that capture: "
+                             "wait for it (`sss daemon status`), or `sss daemon stop --force`")
         client.call("shutdown")
     deadline = time.monotonic() + 20.0  # return once it has gone, so that `start` right after works
     while security.is_daemon_process(pid) and time.monotonic() < deadline:

@@ -119,7 +119,7 @@ def run_bench(*, frames: int = 40, patterns: int = 5, paper: bool = False,
                 result["live_paper"] = _live_figures(view.live(max(6, frames // 8), {"pattern": "checkerboard"}))
             finally:
                 view.close()
-        _sss(["daemon", "stop"], env)
+        _sss(["daemon", "stop", "--force"], env)  # its own daemon (a private runtime folder)
     return result, markdown(result)
 
 

@@ -480,7 +480,7 @@ def test_clients_started_together_with_no_daemon_all_get_the_same_one(monkeypatc
         for p in procs:
             if p.poll() is None:
                 p.kill()
-        subprocess.run([sys.executable, "-m", "sssphase_cli.main", "daemon", "stop"], env=env, capture_output=True,
+        subprocess.run([sys.executable, "-m", "sssphase_cli.main", "daemon", "stop", "--force"], env=env, capture_output=True,
                        timeout=60)
         shutil.rmtree(runtime, ignore_errors=True)
 
