@@ -35,6 +35,8 @@ def install_commands(files: list[Path], dest: Path) -> list[list[str]]:
 def install_rules(dest: Path, *, dry_run: bool, is_root: bool, run: Callable[[list[str]], int],
                   have_udevadm: bool, echo: Callable[[str], None]) -> int:
     """Install the rules (or say what would be done); returns the exit code."""
+    if dest.exists() and not dest.is_dir():
+        raise InputError(f"--rules-dir {dest} is a file: give the folder udev reads rules from (default {RULES_DIR})")
     commands = install_commands(rules_files(), dest)
     if dry_run or not is_root:
         echo("dry run, nothing changed; these commands install the rules:" if dry_run

@@ -138,6 +138,9 @@ def load_views(names: Sequence[str], views: list[int] | dict[str, list[int]] | N
         if opts.rig != ViewOptions.rig:  # it was ignored without a word
             warnings.warn(f"--rig {opts.rig} chooses the simulated rig; the data come from --sessions {opts.sessions}, "
                           "captured with their own rig: --rig is not used", UserWarning, stacklevel=2)
+        if opts.cache is not None and Path(opts.cache) != Path(ViewOptions.cache):
+            warnings.warn(f"--cache {opts.cache} holds simulated views; the data come from --sessions {opts.sessions}: "
+                          "--cache is not used", UserWarning, stacklevel=2)
         return _session_views(names, views, opts, footprints=footprints, role=role, report=report)
     wanted = sorted({v for vs in (views.values() if isinstance(views, dict) else [views or []]) for v in vs})
     if wanted and wanted[-1] >= opts.n_views:  # view 0 was simulated before "view must be in [0, 1)"

@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import re
 
+import pytest
 import typer
 from typer.testing import CliRunner
 
 from sssphase_cli import cmd_udev
+from sssphase_core.errors import InputError
 from sssphase_plugins import basler_camera
 
 
@@ -62,3 +64,14 @@ def test_cli_dry_run(tmp_path):
     assert result.exit_code == 0, result.output
     assert "dry run" in result.output and "udevadm control --reload-rules" in result.output
     assert not list(tmp_path.iterdir())
+
+
+def test_a_rules_dir_that_is_a_file_is_one_line_and_left_alone(tmp_path):
+    """`--rules-dir FILE` failed as "FILE: File exists" (from the folder's creation), naming no option."""
+    afile = tmp_path / "afile"
+    afile.write_text("mine")
+    for dry_run in (True, False):
+        with pytest.raises(InputError, match=rf"--rules-dir {afile} is a file: give the folder udev reads rules from"):
+            cmd_udev.install_rules(afile, dry_run=dry_run, is_root=True, run=lambda cmd: 0, have_udevadm=True,
+                                   echo=lambda line: None)
+    assert afile.read_text() == "mine"

@@ -322,3 +322,6 @@ def test_a_rig_preset_beside_sessions_is_said_to_be_unused(tmp_path):
     with pytest.warns(UserWarning, match="--rig paper chooses the simulated rig.*--rig is not used"), \
             pytest.raises(SssError):  # (no sessions there: the data then fail as they would have)
         load_views(["apple"], None, ViewOptions(rig="paper", sessions=tmp_path / "none"), footprints=False)
+    with pytest.warns(UserWarning, match=r"--cache .* holds simulated views; the data come from --sessions .*: --cache is "
+                                         "not used"), pytest.raises(SssError):  # (it was ignored without a word)
+        load_views(["apple"], None, ViewOptions(cache=tmp_path / "c", sessions=tmp_path / "none"), footprints=False)
