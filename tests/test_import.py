@@ -968,6 +968,13 @@ def test_the_bayer_layout_a_camera_demosaiced_from_is_read_from_the_frames_noise
             assert info["camera_isp"] is None
     psp = np.stack([light[i] for i in range(8)])
     assert detect_bayer_layout([psp[:4], psp[4:]], light[-2], inside)[0] is None  # noise-free: nothing to read
+    # a noise-free render whose camera pixel spans 1.5 projector pixels: each set's residual alternates along its
+    # own fringes (columns for x, rows for y), which summed over the sets looked like a layout (correlation 1.00)
+    aliased = psp.copy()
+    aliased[0] += (1 + 0.8 * (-1) ** xx)[..., None] * np.float32([0.02, 0.01, 0.004]) * inside[..., None]
+    aliased[4] += (1 + 0.8 * (-1) ** yy)[..., None] * np.float32([0.004, 0.01, 0.02]) * inside[..., None]
+    layout, why = detect_bayer_layout([aliased[:4], aliased[4:]], light[-2], inside)
+    assert layout is None and why.startswith("the 2 x 2 sites' residual differs between the fringe sets"), why
 
 
 def test_an_import_without_dot_grids_evaluates_without_measured_and_a_black_above_the_fringes_is_refused(tmp_path):

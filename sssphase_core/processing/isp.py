@@ -34,6 +34,9 @@ def check_layout(layout: str) -> str:
 #: edge-aware demosaicing mixes the sites' noise: 0.3-0.7, declined, and the import says so) and beats the
 #: next by ``BAYER_MARGIN``.
 BAYER_SITE_SPREAD, BAYER_MIN_CORR, BAYER_MARGIN, BAYER_MIN_PIXELS = 0.15, 0.8, 0.2, 400
+#: ... and the sites' pattern of each fringe set correlates with the others' by at least this much (Malvar's frames
+#: 0.80 in the import tests; a noise-free render whose fringes alias along each set's direction: 0.00).
+BAYER_SETS_AGREE = 0.5
 
 
 def detect_bayer_layout(fringe_sets: list[np.ndarray], white: np.ndarray, mask: np.ndarray) -> tuple[str | None, str]:
@@ -50,7 +53,7 @@ def detect_bayer_layout(fringe_sets: list[np.ndarray], white: np.ndarray, mask: 
     residuals = [s[0] + s[len(s) // 2] - s[1] - s[1 + len(s) // 2] for s in fringe_sets if len(s) >= 4 and len(s) % 2 == 0]
     if not residuals:
         return None, "needs fringe sets of an even number of shifts"
-    site_noise, site_white = np.zeros((2, 2)), np.zeros((2, 2, 3))
+    site_noise, site_white = np.zeros((len(residuals), 2, 2)), np.zeros((2, 2, 3))  # per fringe set
     for i in range(2):
         for j in range(2):
             sel = np.zeros(mask.shape, bool)
@@ -58,8 +61,9 @@ def detect_bayer_layout(fringe_sets: list[np.ndarray], white: np.ndarray, mask: 
             sel &= mask
             if sel.sum() < BAYER_MIN_PIXELS:
                 return None, f"too few decoded pixels ({int(mask.sum())})"
-            site_noise[i, j] = sum(float(np.mean(np.asarray(r, np.float64)[sel] ** 2)) for r in residuals)
+            site_noise[:, i, j] = [float(np.mean(np.asarray(r, np.float64)[sel] ** 2)) for r in residuals]
             site_white[i, j] = np.asarray(white, np.float64)[sel].mean(axis=0)
+    each, site_noise = site_noise, site_noise.sum(axis=0)
     if not site_noise.mean() > 0:
         return None, "the frames hold no noise to read a layout from"
     spread = float(np.abs(site_noise / site_noise.mean() - 1).max())
@@ -78,6 +82,13 @@ def detect_bayer_layout(fringe_sets: list[np.ndarray], white: np.ndarray, mask: 
     if not corr[best] >= BAYER_MIN_CORR or corr[best] - corr[second] < BAYER_MARGIN:
         return None, (f"the 2 x 2 sites' noise varies (spread {spread:.2f}) but matches no layout clearly "
                       f"({best} {corr[best]:.2f}, {second} {corr[second]:.2f})")
+    # A sensor's pattern is the same in every fringe set; a residual that is not noise (the fringes aliased by a
+    # camera pixel of 1.5 projector pixels: a render without noise) varies along each set's own fringe direction
+    agree = min(float(np.corrcoef(a.ravel(), b.ravel())[0, 1]) for a, b in zip(each, each[1:], strict=False)) \
+        if len(each) > 1 else 1.0
+    if not agree >= BAYER_SETS_AGREE:
+        return None, (f"the 2 x 2 sites' residual differs between the fringe sets (correlation {agree:.2f}): the fringes' "
+                      "own structure, not a colour filter array's noise")
     return best, f"the noise of its 2 x 2 sites follows {best}'s colours (correlation {corr[best]:.2f}, spread {spread:.2f})"
 
 
