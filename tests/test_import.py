@@ -1058,17 +1058,25 @@ def test_an_import_warns_when_a_reference_capture_does_not_follow_its_pattern(tm
     assert twice.manifest["views"]["0"]["reference_brightness"]["checkerboard"] == pytest.approx(2.0, abs=0.15)
 
 
-def test_fireflies_setting_the_white_captures_level_are_named(tmp_path):
+def test_fireflies_setting_the_white_captures_level_are_named_and_left_out_of_it(tmp_path):
     """A render's white with 0.2% of its pixels at 1000 was refused as "the fringe set's mean is 0.0004x the white
-    capture's level": the fringes were named, not the white's fireflies. They are now said first."""
+    capture's level": the fringes were named, not the white's fireflies. They were then said first, and a render
+    with 0.1% fireflies in every frame still scaled its frames by them (1/50) and decoded nothing. The level is
+    now its 3 x 3 median's, and the view imports as without them."""
+    clean = import_folder(_float_frames(tmp_path / "c", 1.0), tmp_path / "s", "clean", (W, H), patch=K)
     folder = _float_frames(tmp_path / "f", 1.0)
-    white = np.load(folder / "white.npy")
     rng = np.random.default_rng(0)
-    white.reshape(-1, 3)[rng.choice(H * W, max(3, H * W // 500), replace=False)] = 1000.0
-    np.save(folder / "white.npy", white)
-    with pytest.warns(UserWarning, match=r"white.npy: its level .* is set by isolated bright pixels"), \
-            contextlib.suppress(InputError):  # (what follows from that level, as before)
-        import_folder(folder, tmp_path / "s", "fireflies", (W, H), patch=K)
+    for path in folder.glob("*.npy"):  # every frame, as a path tracer's
+        image = np.load(path)
+        image.reshape(-1, 3)[rng.choice(H * W, max(3, H * W // 500), replace=False)] = 1000.0 if path.stem == "white" \
+            else 100.0 * image.max()
+        np.save(path, image)
+    with pytest.warns(UserWarning, match=r"white.npy: its level .* is set by isolated bright pixels, \d+x its 3 x 3 "
+                                         r"median's .*scaled by the median's level instead"):
+        s = import_folder(folder, tmp_path / "s", "fireflies", (W, H), patch=K)
+    assert s.manifest["rig"]["frame_scale"] == clean.manifest["rig"]["frame_scale"]
+    both = s.load(0, "corr/mask") & clean.load(0, "corr/mask")
+    assert both.sum() >= 0.95 * clean.load(0, "corr/mask").sum()
 
 
 def test_frames_too_faint_for_the_decoder_are_scaled_if_float_and_warned_of_if_integer(tmp_path):

@@ -223,6 +223,8 @@ def _check_fringe_level(path: Path, image: np.ndarray, white_level: float, *, me
     """Refuse fringe frames (or a set's mean, ``mean``) in other units or exposure than the view's white."""
     level = float(np.percentile(image, 99.9))
     if not mean and level > FRINGE_ABOVE_WHITE * white_level:
+        level = _median_level(image)  # a path tracer's fireflies set the percentile: its level without them
+    if not mean and level > FRINGE_ABOVE_WHITE * white_level:
         raise InputError(f"{path}: {level / white_level:.3g}x brighter than the white capture (99.9th percentiles "
                          f"{level:.3g} and {white_level:.3g}): a view's frames must share one exposure and units")
     if mean and level < SET_BELOW_WHITE * white_level:
@@ -252,10 +254,15 @@ def white_levels(whites: Iterable[Path], encoding: str = "linear") -> list[float
         robust = _median_level(white)
         if level > FIREFLY_RATIO * max(robust, 0.0):  # a refusal that followed named the fringes, not the fireflies
             times = f"{level / robust:.0f}x its 3 x 3 median's" if robust > 0 else "its 3 x 3 median's being"
+            use = robust >= MIN_WHITE_LEVEL
             warnings.warn(f"{path}: its level (99.9th percentile {level:.3g}) is set by isolated bright pixels, "
-                          f"{times} ({robust:.3g}): a renderer's fireflies? every frame "
-                          "is compared with and scaled by this level: repair them, or render with more samples",
-                          UserWarning, stacklevel=2)
+                          f"{times} ({robust:.3g}): a renderer's fireflies? "
+                          + ("the frames are compared with and scaled by the median's level instead; render with more "
+                             "samples to be rid of them" if use else
+                             "every frame is compared with and scaled by this level: repair them, or render with more "
+                             "samples"), UserWarning, stacklevel=2)
+            if use:  # 0.1% of the pixels at 100x the light set the 99.9th percentile: scaled by it, nothing decoded
+                level = robust
         levels.append(level)
     return levels
 
@@ -287,9 +294,9 @@ def check_not_negative(path: Path, image: np.ndarray, white_level: float, scale:
 
 
 def check_black_below_white(path: Path, black: np.ndarray, white_level: float, scale: float = 1.0) -> None:
-    """Refuse a black capture brighter than the view's white (99.9th percentiles; camera units, the file's values
-    times ``scale``): the two files swapped, or the black taken with the projector on."""
-    level = float(np.percentile(black, 99.9))
+    """Refuse a black capture brighter than the view's white (99.9th percentiles, the black's of its 3 x 3 median;
+    camera units, the file's values times ``scale``): the two files swapped, or the black taken with the projector on."""
+    level = _median_level(black)  # (a path tracer's fireflies are no light of the projector's)
     if level > white_level:
         raise InputError(f"{path}: the black capture is brighter than the white one (99.9th percentiles "
                          f"{level / scale:.3g} and {white_level / scale:.3g}): are white and black swapped? black is "
