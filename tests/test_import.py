@@ -3,7 +3,6 @@ evaluates and trains like a captured one; hostile folders are refused before any
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import re
@@ -1213,3 +1212,31 @@ def test_frame_names_with_more_unwrapping_periods_than_any_plan_are_refused_nami
         np.save(tmp_path / f"{name}.npy", np.zeros((4, 4, 3), np.float32))
     with pytest.raises(InputError, match=f"{tmp_path}: its PSP frame names: at most 16 unwrapping periods, got 18"):
         import_folder(tmp_path, tmp_path / "s", "o", (W, H), patch=K)
+
+
+def test_a_view_whose_lit_pixels_mostly_did_not_decode_is_said_to_be_scored_on_the_rest(frames, handmade, tmp_path):
+    """A render whose object scattered too widely for the fringes decoded the wall only: relit black where the
+    object was, and scored 65 dB "on the object mask" without a word. The share of the lit pixels that decoded is
+    now recorded with each score and warned of below 90%."""
+    from typer.testing import CliRunner
+
+    from sssphase_cli.main import app
+    from sssphase_core.relight.views import DECODED_SHARE_WARN
+
+    def washed(img: np.ndarray) -> np.ndarray:  # the left half's fringes blurred away; its light (the white) stays
+        img[:, : W // 2] = gaussian_filter(img, (12, 12, 0), mode="nearest")[:, : W // 2]
+        return img
+
+    lost = import_folder(_perturbed(frames, tmp_path / "washed", washed), tmp_path / "s", "washed", (W, H), patch=K)
+    assert load_view(handmade, 0).decoded_share >= DECODED_SHARE_WARN > load_view(lost, 0).decoded_share
+    for session, warned in ((handmade, False), (lost, True)):
+        out = tmp_path / f"ev_{session.name}"
+        with warnings.catch_warnings(record=True) as caught:  # (the CLI prints them as "warning: ...")
+            warnings.simplefilter("always")
+            res = CliRunner().invoke(app, ["eval", "relight", str(session.path), "--backend", "none", "--out", str(out)])
+        assert res.exit_code == 0, res.output
+        said = [w for w in caught if re.search(r"only \d+% of the pixels the projector lights decoded; the others stay "
+                                               r"black", str(w.message))]
+        assert bool(said) == warned, [str(w.message) for w in caught]
+        rows = json.loads((out / "relight_eval.json").read_text())["rows"]
+        assert all((r["decoded_share"] < DECODED_SHARE_WARN) == warned for r in rows), rows

@@ -9,6 +9,7 @@ this machine, and otherwise reported as skipped with what is missing (:func:`lpi
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,7 @@ import numpy as np
 from sssphase_core.errors import InputError
 from sssphase_core.learning.metrics import psnr
 from sssphase_core.processing.colour import display_scale
+from sssphase_core.relight.views import DECODED_SHARE_WARN
 from sssphase_core.store.files import save_figure
 
 METRICS = ("mse", "psnr", "ssim", "lpips")
@@ -135,6 +137,8 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
         raise InputError(f"{rv.object} view {rv.view} has no reference captures to evaluate against "
                          "(capture with --reference checkerboard ..., or import ref__<name> frames)")
     names = sorted(rv.references)
+    if (lost := rv.decoded_warning()) is not None:
+        warnings.warn(lost, UserWarning, stacklevel=2)
     t0 = time.perf_counter()
     calibrate = bool(options.pop("calibrate", True)) and backend not in MODEL_FREE
     sources = make_sources(backend, rv, checkpoint=checkpoint, device=device, **options)
@@ -161,7 +165,8 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
         met = relight_metrics(compared, rv.captured[name], rv.proj.mask)
         row = {"object": rv.object, "view": rv.view, "pattern": name, "backend": backend, **met,
                "psnr_interior": interior_psnr(compared, rv.captured[name], rv.proj.mask),
-               "seconds": seconds / len(names), "lit_pixels": int(rv.proj.mask.sum())}
+               "seconds": seconds / len(names), "lit_pixels": int(rv.proj.mask.sum()),
+               "decoded_share": round(rv.decoded_share, 4)}
         if caches:  # its seconds are the model's run time only for the footprints it predicted now
             row["footprints_from_cache"] = round(read, 4)
         if mix is not None:  # a model calibrated to the view: its weight against no scattering, per colour
@@ -249,7 +254,9 @@ def metrics_table(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend"
     body = [[*(a[k] for k in by), a["psnr"], *([a["psnr_interior"]] if interior else []), *([a["psnr_capture"]] if both else []),
              *([a["psnr_camera"]] if camera else []),
              a["ssim"], *([a["lpips"]] if with_lpips else []), a["mse"], a["seconds"], a["n"]] for a in agg]
-    note = ("Mean over objects and views; PSNR peak 1.0 (linear camera units), on the object mask"
+    note = ("Mean over objects and views; PSNR peak 1.0 (linear camera units), on the decoded mask (every pixel whose "
+            "fringes decoded: the object and any background the projector lights; a view where less than "
+            f"{DECODED_SHARE_WARN:.0%} of the lit pixels decoded is warned of)"
             + (f" ('inside': less the {SILHOUETTE_PX} px next to the silhouette, where the camera mixes object and "
                "background)" if interior else "")
             + ("; simulated sessions are scored against the noise-free render and, in 'vs capture', against the "

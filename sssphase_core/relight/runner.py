@@ -399,6 +399,8 @@ def write_relit(rv: RelightView, relit: np.ndarray, names: Sequence[str], pats: 
     against the view's reference capture when it was relit under that very pattern."""
     say = narrator or Narrator()
     exposure = display_scale(rv.white)
+    if (lost := rv.decoded_warning()) is not None:
+        say.say(f"warning: {lost}", warning="warning:")
     written = []
     for name, pat, img in zip(names, pats, relit, strict=True):
         stem = out / f"{rv.object}_v{rv.view}_{name}_{backend}"

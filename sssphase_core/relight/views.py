@@ -16,6 +16,10 @@ if TYPE_CHECKING:
     from sssphase_core.relight.engine import Projection
 
 
+#: :meth:`RelightView.decoded_warning` warns when less than this share of the lit pixels decoded.
+DECODED_SHARE_WARN = 0.9  # (99.7-100% on the Mitsuba and demo views; 67-86% where an object or most of one was lost)
+
+
 @dataclass
 class RelightView:
     """What relighting one view of a session needs, plus its references when it has any."""
@@ -38,6 +42,29 @@ class RelightView:
     _model_inputs: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
     _exit_white: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
     _noise_model: np.ndarray | None = field(default=None, repr=False, compare=False)
+
+    @cached_property
+    def decoded_share(self) -> float:
+        """The share of the pixels the projector lights (white less black, colours summed, above a fifth of its 99th
+        percentile) that decoded, i.e. that relighting gives light and every score is made on: an object whose
+        fringes did not decode (too wide a scattering for the fringes' period, too dim) is black in the relit
+        images and left out of the scores, which then hold only what did decode (a background wall)."""
+        white = np.asarray(self.white, np.float64)
+        arrays = self.session.arrays(self.view) if self.session is not None else ()  # type: ignore[attr-defined]
+        if "black" in arrays:
+            white = white - np.asarray(self.session.load(self.view, "black"), np.float64)  # type: ignore[attr-defined]
+        light = white.reshape(*white.shape[:2], -1).sum(-1)
+        lit = light > 0.2 * float(np.percentile(light, 99))
+        return float((lit & self.proj.mask).sum() / lit.sum()) if lit.any() else 1.0
+
+    def decoded_warning(self) -> str | None:
+        """A line when less than :data:`DECODED_SHARE_WARN` of the lit pixels decoded (:attr:`decoded_share`)."""
+        if self.decoded_share >= DECODED_SHARE_WARN:
+            return None
+        return (f"{self.object} view {self.view}: only {self.decoded_share:.0%} of the pixels the projector lights "
+                "decoded; the others stay black in the relit images and out of every score, which is then made on "
+                "those pixels only (`sss decode` shows why the rest were dropped: fringes too fine for the scattering, "
+                "too dim)")
 
     @cached_property
     def psp_patterns(self) -> np.ndarray | None:
