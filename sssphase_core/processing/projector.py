@@ -2,8 +2,9 @@
 
 A pattern value v in [0, 1] makes the projector emit ``black + (1 - black) * v**gamma``; a camera
 pixel receives the emitted light of the projector point it sees, looked up bilinearly in the
-emitted (linear) domain, and nothing outside the projector image. Keeping this in one place is
-what makes relighting with exact footprints reproduce the simulator's renders.
+emitted (linear) domain, and nothing outside the projector image; relighting averages it over a camera
+pixel's footprint where that spans several projector pixels (:func:`area_sample_projector`). Keeping this in one
+place is what makes relighting with exact footprints reproduce the simulator's renders.
 """
 
 from __future__ import annotations
@@ -23,6 +24,39 @@ def emitted_light(patterns: np.ndarray, gamma: float) -> np.ndarray:
     if not np.isfinite(pats).all():
         raise InputError("patterns contain NaN or inf values")
     return np.clip(pats, 0.0, 1.0) ** np.float32(gamma)
+
+
+def area_sample_projector(light: np.ndarray, xp: np.ndarray, yp: np.ndarray, wx: np.ndarray, wy: np.ndarray) -> np.ndarray:
+    """Mean emitted light (P, Hp, Wp, C) over boxes ``wx`` x ``wy`` projector px (N,) centred at projector points
+    (N,) -> (N, P, C), 0 outside the projector: what a camera pixel records whose footprint on the projector is that
+    box (a camera coarser than the projector integrates several projector pixels). Exact for the projector's square
+    pixels: their summed-area table is bilinear within each pixel, so it is read bilinearly at the box's corners.
+    With widths of 1 it is :func:`sample_projector`."""
+    n_pat, hp, wp, channels = light.shape
+    ok = np.isfinite(xp) & np.isfinite(yp)
+    xp, yp = np.where(ok, xp, -1e6), np.where(ok, yp, -1e6)  # undecoded points: far outside, no light
+    half_x, half_y = np.asarray(wx, np.float64) / 2, np.asarray(wy, np.float64) / 2
+
+    def corner(coord: np.ndarray, side: int) -> tuple[np.ndarray, np.ndarray]:  # pixel edge k lies at k - 0.5
+        u = np.clip(coord + 0.5, 0.0, float(side))
+        i = np.minimum(np.floor(u).astype(np.int64), side - 1)
+        return i, (u - i)[:, None]
+
+    xs = [corner(xp - half_x, wp), corner(xp + half_x, wp)]
+    ys = [corner(yp - half_y, hp), corner(yp + half_y, hp)]
+    area = (4 * half_x * half_y)[:, None]
+    out = np.empty((len(xp), n_pat, channels), np.float32)
+    table = np.zeros((hp + 1, wp + 1, channels))
+    for k in range(n_pat):  # one float64 table at a time: 1080p patterns would take GBs at once
+        table[1:, 1:] = np.asarray(light[k], np.float64).cumsum(0).cumsum(1)
+        total = np.zeros((len(xp), channels))
+        for (iy, fy), sy in zip(ys, (-1, 1), strict=True):
+            for (ix, fx), sx in zip(xs, (-1, 1), strict=True):
+                at = ((1 - fy) * ((1 - fx) * table[iy, ix] + fx * table[iy, ix + 1])
+                      + fy * ((1 - fx) * table[iy + 1, ix] + fx * table[iy + 1, ix + 1]))
+                total += sx * sy * at
+        out[:, k] = total / area
+    return out
 
 
 def sample_projector(light: np.ndarray, xp: np.ndarray, yp: np.ndarray) -> np.ndarray:

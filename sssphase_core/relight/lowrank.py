@@ -20,8 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-from sssphase_core.processing.projector import emitted_light, sample_projector
-from sssphase_core.relight.engine import FootprintSource, Projection, footprint_array, pattern_stack
+from sssphase_core.processing.projector import emitted_light
+from sssphase_core.relight.engine import (
+    FootprintSource,
+    Projection,
+    footprint_array,
+    pattern_stack,
+    received_light,
+)
 
 #: Footprints sampled from the view to find its basis, the largest rank, and the share of their energy
 #: (sum of squares) the basis may leave out.
@@ -84,7 +90,7 @@ class LowRankFootprints:
         pats = pattern_stack(patterns, proj)
         light = emitted_light(pats, proj.gamma) * np.float32(1.0 - proj.black)
         ys, xs = self.pixels[:, 0], self.pixels[:, 1]
-        received = sample_projector(light, proj.xp[ys, xs], proj.yp[ys, xs])  # (N, P, 3)
+        received = received_light(proj, light, ys, xs)  # (N, P, 3)
         h, w = self.shape
         k = self.basis.shape[-1]
         anchor = k - 1 - k // 2  # filter2D correlates: the flipped kernel's centre

@@ -150,7 +150,8 @@ def load_view(session: object, view: int) -> RelightView:
         raise DataError(f"{where}: psp holds {psp.shape[0] if psp.ndim == 4 else 'no'} frames where the paper's "
                         "inputs are 8 (4 shifts x 2 orientations)")
     black = session.projector_black(view, white, mask)  # type: ignore[attr-defined]
-    proj = Projection(xp, yp, mask, (int(wp), int(hp)), float(plan.get("gamma", 2.2)), black)
+    # a camera's pixels integrate the light over their area; our simulator's pinhole samples it at a point
+    proj = Projection(xp, yp, mask, (int(wp), int(hp)), float(plan.get("gamma", 2.2)), black, pixel_area=sim is None)
     references, captured = {}, {}
     for f in plan.get("frames", []):
         if f["kind"] == "ref" and f["key"] not in (f"ref/{n}" for n in references):

@@ -422,3 +422,42 @@ def test_write_npz_is_an_npz_numpy_reads_back_bit_for_bit_and_compressed(tmp_pat
         assert z["data"].dtype == np.float16 and np.array_equal(z["data"], data)
         assert np.array_equal(z["index"], np.arange(64)) and z["shape"].tolist() == [8, 8]
     assert (tmp_path / "c.npz").stat().st_size < data.nbytes / 4
+
+
+def test_the_mean_over_a_box_of_projector_pixels_is_exact_and_one_pixel_wide_it_is_the_bilinear_lookup():
+    from sssphase_core.processing.projector import area_sample_projector
+
+    rng = np.random.default_rng(3)
+    light = rng.random((2, 30, 40, 3)).astype(np.float32)
+    xp, yp = rng.uniform(-2, 42, 400), rng.uniform(-2, 32, 400)  # some outside the projector: no light there
+    np.testing.assert_allclose(area_sample_projector(light, xp, yp, np.ones(400), np.ones(400)),
+                               sample_projector(light, xp, yp), atol=1e-6)
+    got = area_sample_projector(light, np.array([10.0, 0.0]), np.array([12.0, 0.0]), np.array([3.0, 2.0]),
+                                np.array([3.0, 2.0]))
+    np.testing.assert_allclose(got[0], light[:, 11:14, 9:12].mean(axis=(1, 2)), rtol=1e-5)  # a 3 x 3 block
+    corner = light[:, 0, 0] + 0.5 * light[:, 0, 1] + 0.5 * light[:, 1, 0] + 0.25 * light[:, 1, 1]
+    np.testing.assert_allclose(got[1], corner / 4, rtol=1e-5)  # [-1, 1] x [-1, 1]: a quarter of it is off the projector
+
+
+def test_a_camera_coarser_than_the_projector_receives_the_mean_of_the_pixels_it_sees():
+    """A 192 x 144 camera seeing a 640 x 360 projector (2-3 projector px per camera px) relit a plain wall at 24 dB
+    from the light at each pixel's point; a camera pixel records the mean over its footprint (a session of our
+    simulator, whose pinhole samples a point, keeps the lookup)."""
+    from dataclasses import replace
+
+    from sssphase_core.relight.engine import Projection
+
+    h, w, s = 20, 24, 3  # each camera pixel sees s x s projector pixels
+    yy, xx = np.mgrid[:h, :w].astype(np.float32)
+    proj = Projection(s * xx + 1, s * yy + 1, np.ones((h, w), bool), (s * w, s * h), gamma=1.0, pixel_area=True)
+    pats = np.random.default_rng(4).random((2, s * h, s * w)).astype(np.float32)
+    relit = relight(no_scattering_source(np.ones((h, w, 3), np.float32)), proj, pats, 1)
+    truth = pats.reshape(2, h, s, w, s).mean(axis=(2, 4))  # what the camera records of a white wall
+    np.testing.assert_allclose(relit[..., 0], truth, atol=1e-5)
+    pinhole = relight(no_scattering_source(np.ones((h, w, 3), np.float32)), replace(proj, pixel_area=False), pats, 1)
+    assert np.abs(pinhole[..., 0] - truth).max() > 0.1  # our simulator's camera: the light at the decoded point
+    near = Projection(1.2 * xx + 1, 1.2 * yy + 1, np.ones((h, w), bool), (s * w, s * h), gamma=1.0,
+                      pixel_area=True)  # 1.2 px: a lookup
+    looked_up = relight(no_scattering_source(np.ones((h, w, 3), np.float32)), near, pats, 1)
+    np.testing.assert_allclose(looked_up[..., 0].reshape(2, -1).T, sample_projector(
+        pats[..., None].repeat(3, -1), near.xp.ravel(), near.yp.ravel())[..., 0], atol=1e-6)
