@@ -168,7 +168,8 @@ def test_frames_where_nothing_decodes_or_too_small_are_refused_naming_why(tmp_pa
     flat = _float_frames(tmp_path / "flat", 1.0)
     for f in flat.glob("psp__*"):
         np.save(f, np.full((H, W, 3), 0.4, np.float32))  # no fringes: every pixel has zero modulation
-    with pytest.raises(InputError, match=r"no camera pixel decoded \(100% low modulation\)"):
+    with pytest.raises(InputError, match=r"no camera pixel decoded \(100% low modulation\): .*; lit pixels without "
+                                         r"fringes: the finest period \(\d+ projector px\) may be too fine"):
         import_folder(flat, tmp_path / "s", "flat", (W, H), patch=K)
     # 8-bit frames of a camera exposed far too long: every fringe clipped at the top code, which the
     # decoder sees as no modulation; the line says clipped, not "low modulation ... above the noise"
@@ -1216,8 +1217,9 @@ def test_frame_names_with_more_unwrapping_periods_than_any_plan_are_refused_nami
 
 def test_a_view_whose_lit_pixels_mostly_did_not_decode_is_said_to_be_scored_on_the_rest(frames, handmade, tmp_path):
     """A render whose object scattered too widely for the fringes decoded the wall only: relit black where the
-    object was, and scored 65 dB "on the object mask" without a word. The share of the lit pixels that decoded is
-    now recorded with each score and warned of below 90%."""
+    object was, and scored 65 dB "on the object mask" without a word, after an import that advised a longer
+    exposure. The import now names the fringes' period, and the share of the lit pixels that decoded is recorded
+    with each score and warned of below 90%."""
     from typer.testing import CliRunner
 
     from sssphase_cli.main import app
@@ -1227,7 +1229,9 @@ def test_a_view_whose_lit_pixels_mostly_did_not_decode_is_said_to_be_scored_on_t
         img[:, : W // 2] = gaussian_filter(img, (12, 12, 0), mode="nearest")[:, : W // 2]
         return img
 
-    lost = import_folder(_perturbed(frames, tmp_path / "washed", washed), tmp_path / "s", "washed", (W, H), patch=K)
+    with pytest.warns(UserWarning, match=r"\d+% of the pixels holding light were dropped: well exposed .* their fringes "
+                                         r"show too little modulation: the finest period \(\d+ projector px\) may be too fine"):
+        lost = import_folder(_perturbed(frames, tmp_path / "washed", washed), tmp_path / "s", "washed", (W, H), patch=K)
     assert load_view(handmade, 0).decoded_share >= DECODED_SHARE_WARN > load_view(lost, 0).decoded_share
     for session, warned in ((handmade, False), (lost, True)):
         out = tmp_path / f"ev_{session.name}"

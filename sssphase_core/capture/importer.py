@@ -499,17 +499,21 @@ def check_dots_light(vdir: Path, dot_sum: np.ndarray, n_dots: int, white: np.nda
 CLIPPED_SHARE = 0.25
 
 
-def nothing_decoded(vdir: Path, coverage: dict[str, int], clipped: float = 0.0) -> str:
+def nothing_decoded(vdir: Path, coverage: dict[str, int], clipped: float = 0.0, period: float | None = None) -> str:
     """One line for a view where no camera pixel decoded, with the reasons' shares; ``clipped``: the share of
-    the fringe frames' values at an integer file's top code."""
+    the fringe frames' values at an integer file's top code; ``period``: the finest fringes' (projector px)."""
     if clipped > CLIPPED_SHARE:
         return (f"{vdir}: no camera pixel decoded: {100 * clipped:.0f}% of the fringe frames' values sit at the files' "
                 "top code (the camera clipped them, so no fringe is left): capture with a shorter exposure")
     total = max(1, sum(coverage.values()))
     reasons = ", ".join(f"{100 * n / total:.0f}% {name.lower().replace('_', ' ')}"
                         for name, n in sorted(coverage.items(), key=lambda kv: -kv[1]) if n)
+    fine = coverage.get("LOW_MODULATION", 0) >= 0.2 * total  # lit (not shadow) pixels whose fringes are gone
     return (f"{vdir}: no camera pixel decoded ({reasons}): the frames must be linear images of the patterns "
-            "their names give (`sss patterns` writes them), with fringes above the noise")
+            "their names give (`sss patterns` writes them), with fringes above the noise"
+            + (f"; lit pixels without fringes: the finest period ({period:g} projector px) may be too fine for the "
+               "object's scattering or the camera's resolution (`sss patterns --period` makes coarser ones)"
+               if fine and period else ""))
 
 
 #: Shares of a view's decoded pixels beyond which an import warns: mapped outside the projector (a wrong
@@ -566,20 +570,32 @@ def reference_match(proc: ViewProcessor, frames: list[dict[str, Any]], gamma: fl
     return found
 
 
-def _warn_dim_view(vdir: Path, white: np.ndarray, reason: np.ndarray) -> None:
+#: A white level (camera units) at or above which a view's dropped pixels are not for want of exposure.
+EXPOSED_LEVEL = 0.3
+
+
+def _warn_dim_view(vdir: Path, white: np.ndarray, reason: np.ndarray, period: float | None = None) -> None:
     """One line when many well-lit pixels were dropped as too faint (the decoder's thresholds are in camera units:
-    frames exposed far below their top code, or a render in its own units, lose most of their object quietly)."""
+    frames exposed far below their top code, or a render in its own units, lose most of their object quietly), or
+    when, well exposed, they lost their fringes (the finest ``period``, projector px, too fine for the scattering)."""
     from sssphase_core.processing.psp import Reason
 
     grey = np.asarray(white, np.float32).reshape(*reason.shape, -1).mean(-1)
     level = float(np.percentile(grey, 99.9))
     lit = grey > DIM_LIT * level
     faint = lit & np.isin(reason, (int(Reason.LOW_MODULATION), int(Reason.SHADOW)))
-    if lit.any() and faint.sum() > DIM_WARN * lit.sum():
-        warnings.warn(f"{vdir}: {100 * faint.sum() / lit.sum():.0f}% of the pixels holding light were dropped as too faint "
-                      f"for the decoder (fringe modulation or light below its thresholds, in camera units where white "
-                      f"is about 1; this white's level is {level:.3g}): expose the camera longer, or scale a render's "
-                      "frames so that its white is about 1", stacklevel=3)
+    if not (lit.any() and faint.sum() > DIM_WARN * lit.sum()):
+        return
+    share = f"{vdir}: {100 * faint.sum() / lit.sum():.0f}% of the pixels holding light were dropped"
+    if level >= EXPOSED_LEVEL and period:  # exposed as a camera should be: the fringes, not the light, are missing
+        warnings.warn(f"{share}: well exposed (this white's level is {level:.3g}), their fringes show too little "
+                      f"modulation: the finest period ({period:g} projector px) may be too fine for the object's "
+                      "scattering or the camera's resolution (`sss patterns --period` makes coarser ones; relighting "
+                      "and scores leave those pixels out)", stacklevel=3)
+        return
+    warnings.warn(f"{share} as too faint for the decoder (fringe modulation or light below its thresholds, in camera "
+                  f"units where white is about 1; this white's level is {level:.3g}): expose the camera longer, or scale "
+                  "a render's frames so that its white is about 1", stacklevel=3)
 
 
 def _warn_suspect_view(vdir: Path, coverage: dict[str, int], size: tuple[int, int], fringes_clipped: float,
@@ -811,7 +827,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                     info["dots_light_share"] = round(check_dots_light(vdir, dot_sum, n_dots, proc.images["white"],
                                                                       proc.images["black"]), 4)
                 if not info["coverage"].get("VALID"):
-                    raise InputError(nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values)))
+                    raise InputError(nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values), config.period))
                 check_white_above_black(vdir, proc.images["white"], proc.images["black"], level * scale)
                 share = fringe_mean_share(_input_sets(proc, config), proc.images["white"], proc.images["black"],
                                           proc.corr.mask)
@@ -822,7 +838,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 _warn_suspect_view(vdir, info["coverage"], (w, h), top / max(1, fringe_values),
                                    proc.images["white"], proc.corr.mask, scale if stores_integers(files["white"]) else None,
                                    share, gamma, encoding)
-                _warn_dim_view(vdir, proc.images["white"], np.asarray(proc.corr.reason))
+                _warn_dim_view(vdir, proc.images["white"], np.asarray(proc.corr.reason), config.period)
                 info["fringe_mean_share"] = round(share, 4) if np.isfinite(share) else None
                 bright: dict[str, float] = {}
                 match = reference_match(proc, frames, gamma, bright)
