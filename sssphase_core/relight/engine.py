@@ -72,8 +72,9 @@ AREA_SAMPLING_WIDTH = 1.5
 def pixel_footprint_widths(proj: Projection) -> tuple[np.ndarray, np.ndarray]:
     """(H, W) each: the widths along the projector's x and y (projector px) of the box with the second moments of
     each camera pixel's footprint on the projector, ``hypot`` of the decoded points' derivatives along the camera's
-    x and y (central differences within the mask, one-sided at its edge), median-filtered over 3 x 3 pixels against
-    the decoding's noise; the view's median where a pixel has no decoded neighbour, 1 where none has."""
+    x and y (the smaller of the two one-sided differences within the mask: where the surface meets a wall behind
+    it the points jump on one side only), median-filtered over 3 x 3 pixels against the decoding's noise; the
+    view's median where a pixel has no decoded neighbour, 1 where none has."""
     import cv2
 
     m = proj.mask & np.isfinite(proj.xp) & np.isfinite(proj.yp)
@@ -87,7 +88,8 @@ def pixel_footprint_widths(proj: Projection) -> tuple[np.ndarray, np.ndarray]:
         ok_f[tuple(edge)] = False
         edge[axis] = 0
         ok_b[tuple(edge)] = False
-        return np.where(ok_f & ok_b, (fwd + bwd) / 2, np.where(ok_f, fwd, np.where(ok_b, bwd, np.nan)))
+        both = np.where(np.abs(fwd) <= np.abs(bwd), fwd, bwd)  # the smaller side: a depth edge jumps on one only
+        return np.where(ok_f & ok_b, both, np.where(ok_f, fwd, np.where(ok_b, bwd, np.nan)))
 
     widths = []
     for v in (proj.xp, proj.yp):
