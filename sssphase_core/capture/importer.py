@@ -31,7 +31,7 @@ from sssphase_core.store.imageio import (
     read_pattern,
     stores_integers,
 )
-from sssphase_core.store.light import NEGATIVE_LIMIT, NEGATIVE_SHARE
+from sssphase_core.store.light import NEGATIVE_LIMIT, far_below_zero
 from sssphase_core.store.session import Session, check_object_name
 
 PSP_KEY_RE = re.compile(r"^psp/([xy])/p([0-9]{1,5}(?:\.[0-9]{1,6})?)/s([0-9]{1,2})$")
@@ -286,9 +286,9 @@ def check_not_negative(path: Path, image: np.ndarray, white_level: float, scale:
     view's white level, in more than :data:`~sssphase_core.store.light.NEGATIVE_SHARE` of its values): a black
     level subtracted twice, a signed format read wrongly. Noise around zero passes. ``image`` and ``white_level``
     are in camera units, the file's values times ``scale`` (the message gives the file's)."""
-    far = np.count_nonzero(image < -NEGATIVE_LIMIT * white_level)
-    if far > NEGATIVE_SHARE * image.size:
-        raise InputError(f"{path}: {100 * far / image.size:.3g}% of its values are below -{NEGATIVE_LIMIT:g} x the white "
+    far = far_below_zero(image, white_level)
+    if far:
+        raise InputError(f"{path}: {100 * far:.3g}% of its values are below -{NEGATIVE_LIMIT:g} x the white "
                          f"capture's level (down to {float(image.min()) / scale:.3g}, the white's level "
                          f"{white_level / scale:.3g}): frames must be linear light, at most noise below zero")
 
@@ -311,24 +311,21 @@ def frames_encoding(files: Iterable[Path], encoding: str = "auto") -> tuple[str,
     if encoding not in ENCODINGS:
         raise InputError(f"--encoding must be one of {', '.join(ENCODINGS)}, got {encoding!r}")
     seen: dict[str, tuple[Path, str]] = {}
-    depths: dict[int, Path] = {}
-    integers = False
+    depths: dict[int, Path] = {}  # bit depth -> a file of it: one depth per import
     for path in files:
-        if stores_integers(path):
-            integers = True
-            depth = code_depth(path)
-            if depth is not None and depths and depth not in depths:
+        depth = code_depth(path)  # None: float data, nothing to decode
+        if depth is not None:
+            if depths and depth not in depths:
                 (other, first), = depths.items()
                 raise InputError(f"{first} holds {other}-bit codes but {path} holds {depth}-bit ones: an import's frames "
                                  "come from one camera pipeline (the same bit depth and encoding); re-save them alike")
-            if depth is not None:
-                depths[depth] = path
+            depths[depth] = path
             enc, why = declared_encoding(path)
             if why == "JPEG data":  # whatever the file's name says
                 raise InputError(f"{path} holds JPEG data, which is lossy (8 x 8 blocks, halved colour resolution) and "
                                  "corrupts fringes: save the camera's frames as PNG, TIFF, EXR or .npy")
             seen.setdefault(enc, (path, why))
-    if not integers:  # nothing to decode, whatever was asked
+    if not depths:  # no integer codes: nothing to decode, whatever was asked
         return "linear", "float frames"
     if encoding != "auto":
         return encoding, f"as --encoding {encoding} asked"

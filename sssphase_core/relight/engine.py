@@ -6,6 +6,7 @@ from __future__ import annotations
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Protocol, runtime_checkable
 
 import numpy as np
@@ -62,6 +63,11 @@ class Projection:
     def shape(self) -> tuple[int, int]:
         return self.mask.shape
 
+    @cached_property
+    def footprint_widths(self) -> tuple[np.ndarray, np.ndarray]:
+        """:func:`pixel_footprint_widths`, made once per view (every relight of it reads them)."""
+        return pixel_footprint_widths(self)
+
 
 #: A camera pixel whose footprint on the projector is wider than this (projector px, either axis) receives the mean
 #: of the light over it (:func:`received_light`); narrower ones the bilinear lookup, which is that mean over one
@@ -109,7 +115,7 @@ def received_light(proj: Projection, light: np.ndarray, ys: np.ndarray, xs: np.n
     xp, yp = proj.xp[ys, xs], proj.yp[ys, xs]
     received = sample_projector(light, xp, yp)
     if proj.pixel_area and len(ys):
-        wx, wy = (w[ys, xs] for w in pixel_footprint_widths(proj))
+        wx, wy = (w[ys, xs] for w in proj.footprint_widths)
         wide = np.maximum(wx, wy) > AREA_SAMPLING_WIDTH
         if wide.any():
             received[wide] = area_sample_projector(light, xp[wide], yp[wide], np.maximum(wx[wide], 1.0),

@@ -9,7 +9,6 @@ this machine, and otherwise reported as skipped with what is missing (:func:`lpi
 from __future__ import annotations
 
 import time
-import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -137,8 +136,6 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
         raise InputError(f"{rv.object} view {rv.view} has no reference captures to evaluate against "
                          "(capture with --reference checkerboard ..., or import ref__<name> frames)")
     names = sorted(rv.references)
-    if (lost := rv.decoded_warning()) is not None:
-        warnings.warn(lost, UserWarning, stacklevel=2)
     t0 = time.perf_counter()
     calibrate = bool(options.pop("calibrate", True)) and backend not in MODEL_FREE
     sources = make_sources(backend, rv, checkpoint=checkpoint, device=device, **options)

@@ -10,6 +10,7 @@ neither rich nor typer; the CLI's narrator draws with them.
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -599,6 +600,8 @@ def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BAC
         for s in found:
             for v in choose_views(s, views):
                 rv = load_view(s, v)
+                if (lost := rv.decoded_warning()) is not None:  # once per view, not per backend
+                    warnings.warn(lost, UserWarning, stacklevel=2)
                 for b in backends:
                     rows += evaluate_view(rv, b, out, checkpoint=checkpoint, device=device, calibrate=calibrate,
                                           cache=cache, progress=say.task(f"{rv.object} view {v}: {b}"))

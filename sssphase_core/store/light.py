@@ -28,6 +28,14 @@ def white_level(white: np.ndarray) -> float:
     return float(np.percentile(finite, 99.9)) if finite.size else 0.0
 
 
+def far_below_zero(image: np.ndarray, level: float) -> float:
+    """The share of ``image``'s values below ``-NEGATIVE_LIMIT x level`` when it exceeds :data:`NEGATIVE_SHARE`
+    (a black level subtracted twice, a signed format read wrongly), else 0: noise around zero passes."""
+    x = np.asarray(image)
+    share = np.count_nonzero(x < -NEGATIVE_LIMIT * level) / max(x.size, 1)
+    return float(share) if share > NEGATIVE_SHARE else 0.0
+
+
 def light_problem(name: str, image: np.ndarray, level: float | None = None) -> str | None:
     """What is wrong with an image of light named ``name`` (one clause to follow its name), or None: NaN or
     infinite values, magnitudes beyond :data:`MAX_LIGHT`, or, given the view's white ``level``
@@ -41,10 +49,9 @@ def light_problem(name: str, image: np.ndarray, level: float | None = None) -> s
         return (f"{name} holds values up to {top:.3g}: images are linear light in the camera's units (a white surface "
                 f"under full white near 1), at most {MAX_LIGHT:.0g}")
     if level is not None:
-        limit = NEGATIVE_LIMIT * max(level, LEVEL_FLOOR)
-        far = int(np.count_nonzero(x < -limit))
-        if far > NEGATIVE_SHARE * x.size:
-            return (f"{name}: {100 * far / x.size:.3g}% of its values are below -{NEGATIVE_LIMIT:g} x the white level "
+        far = far_below_zero(x, max(level, LEVEL_FLOOR))
+        if far:
+            return (f"{name}: {100 * far:.3g}% of its values are below -{NEGATIVE_LIMIT:g} x the white level "
                     f"(down to {float(x.min()):.3g}, white {level:.3g}): frames must be linear light, at most noise "
                     "below zero")
     return None
