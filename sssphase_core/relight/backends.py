@@ -87,7 +87,7 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
 
 def domain_line(rv: RelightView, name: str, source: FootprintSource) -> str | None:
     """One line when the decoder behind ``source`` handed pixels beyond its training widths, or its footprints'
-    rings beyond the radius its training crops held light to, to the analytic model
+    rings beyond the radius its training crops held light above their noise to, to the analytic model
     (:mod:`sssphase_core.learning.domain`); None otherwise."""
     backend = getattr(source, "backend", None)
     far, total = getattr(backend, "beyond_domain", 0), getattr(backend, "predicted", 0)
@@ -101,7 +101,7 @@ def domain_line(rv: RelightView, name: str, source: FootprintSource) -> str | No
                     f"trained on (R/G/B {limit} px): the analytic model's footprints there")
     if tail:
         said.append(f"footprints from {'/'.join(str(r) for r in tail)} px out (R/G/B) are the analytic model's: its "
-                    "training crops' median held no light there")
+                    "training crops' median light was below their noise there")
     return f"{rv.object} view {rv.view}: {name}: " + "; ".join(said)
 
 

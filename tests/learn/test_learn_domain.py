@@ -17,11 +17,13 @@ from sssphase_core.learning.domain import (
     WIDTH_MARGIN,
     WidthDomain,
     beyond,
+    cuts_tail,
     pixel_widths,
     tail_radius,
     training_domain,
     with_physics_tail,
 )
+from sssphase_core.learning.losses import noise_floor
 
 
 def _washed_out(psp: np.ndarray, contrast: float) -> np.ndarray:
@@ -58,7 +60,13 @@ def test_pixels_beyond_the_training_widths_get_the_analytic_footprints_and_the_o
     plain = get_backend("torch", checkpoint=decoder_run, guard=False)
     own = guarded.predict_footprints((v.psp, v.pixels))
     assert guarded.beyond_domain == 0 and guarded.predicted == len(v.pixels)
-    assert np.array_equal(own, plain.predict_footprints((v.psp, v.pixels)))
+    decoders = plain.predict_footprints((v.psp, v.pixels))
+    tail = guarded.domain.tail_radius
+    if cuts_tail(tail, 16):  # the rings beyond the recorded tail are the physics' (the test below)
+        near = psp_patches(v.psp, v.pixels, 16)
+        est = pixel_widths(near, 16, 0.0)
+        decoders = with_physics_tail(decoders, AnalyticBackend(patch=16, black=0.0).render(est["energy"], est["axes"]), tail)
+    assert np.allclose(own, decoders, rtol=1e-5, atol=1e-8)
 
     wide = _washed_out(v.psp, 0.02)
     patches = psp_patches(wide, v.pixels, 16)
@@ -92,13 +100,16 @@ def test_a_damaged_domain_is_one_clear_line(limits):
         WidthDomain.from_dict({"width_limit_px": limits})
 
 
-def test_relighting_says_how_many_pixels_the_analytic_model_took_over(decoder_run, synthetic):
+def test_relighting_says_how_many_pixels_the_analytic_model_took_over(decoder_run, synthetic, tmp_path):
     from types import SimpleNamespace
 
     from sssphase_core.relight.backends import domain_line
 
+    ckpt = torch.load(decoder_run, weights_only=False, map_location="cpu")
+    tail = ckpt["domain"].pop("tail_radius_px")
+    torch.save(ckpt, tmp_path / "untailed.pt")
     v = synthetic[0][0]
-    be = get_backend("torch", checkpoint=decoder_run, black=0.0)
+    be = get_backend("torch", checkpoint=tmp_path / "untailed.pt", black=0.0)
     source = SimpleNamespace(backend=be)
     rv = SimpleNamespace(object="a", view=0)
     be.predict_footprints((v.psp, v.pixels))
@@ -108,6 +119,12 @@ def test_relighting_says_how_many_pixels_the_analytic_model_took_over(decoder_ru
     n = len(v.pixels) + 16
     assert line is not None and line.startswith(f"a view 0: torch: 16 of {n} pixels") and "analytic model" in line
     assert "/".join(f"{x:.1f}" for x in be.domain.limit) in line
+    tailed = get_backend("torch", checkpoint=decoder_run, black=0.0)  # its recorded tail (noisy crops: inside the patch)
+    tailed.predict_footprints((v.psp, v.pixels))
+    line = domain_line(rv, "torch", SimpleNamespace(backend=tailed))
+    radii = "/".join(str(r) for r in tail)
+    assert line == (f"a view 0: torch: footprints from {radii} px out (R/G/B) are the analytic model's: its training "
+                    "crops' median light was below their noise there")
 
 
 def _rings(k: int) -> np.ndarray:
@@ -132,6 +149,30 @@ def test_the_tail_radius_is_where_the_crops_hold_no_light_at_most_pixels_though_
         assert counts[:, c, np.rint(_rings(k)) >= r].mean() > 0  # the light the decoder would not learn
     exact = np.broadcast_to(profile, (4, 3, k, k))
     assert tail_radius(exact) == (np.rint(_rings(k).max()) + 1,) * 3  # noise-free: no tail to hand over
+
+
+def test_under_gaussian_noise_the_tail_radius_is_where_the_light_falls_below_the_noise():
+    """Symmetric noise keeps each ring's median at its light however faint (the old rule, median > 0, ran to the
+    patch's corners); the loss learns light there only from many crops' average, so the radius is the first ring
+    whose median light is not above the crops' noise floor."""
+    k, n, w = 32, 800, 1.5
+    rng = np.random.default_rng(2)
+    profile = np.exp(-_rings(k) / w)
+    energy = np.array([1.0, 0.5, 0.2])  # the dimmer the colour, the nearer its radius
+    light = energy[None, :, None, None] * profile[None, None] / profile.sum() * np.ones((n, 3, 1, 1))
+    sigma = 1e-3
+    crops = light + rng.normal(0.0, sigma, light.shape)
+    noise = noise_floor(torch.as_tensor(crops, dtype=torch.float32))
+    assert 0.8 * sigma < noise < 1.2 * sigma
+    assert min(tail_radius(crops)) > 8  # the median alone: light taught out to faint rings
+    radius = tail_radius(crops, noise)
+    rings = np.rint(_rings(k))
+    for c, r in enumerate(radius):
+        ring_light = light[0, c][rings == r].mean()
+        inner = light[0, c][rings == r - 1].mean()
+        assert ring_light < 1.5 * noise and inner > 0.5 * noise  # at the noise, give or take a ring's spread
+    assert radius[0] > radius[1] > radius[2]
+    assert tail_radius(light, 0.0) == (np.rint(_rings(k).max()) + 1,) * 3  # noise-free: no tail to hand over
 
 
 def test_a_physics_tail_replaces_the_rings_beyond_each_colours_radius_and_keeps_the_decoders_energy():

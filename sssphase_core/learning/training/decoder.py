@@ -185,15 +185,16 @@ def train_decoder(
         if cfg.head == "reciprocal":
             footprints, demosaiced = first_footprints()
             dec.init_shape_prior(footprints.to(d.device), demosaiced=demosaiced)
+    noise = noise_floor(first_footprints()[0])  # the camera's, in the training footprints
     if cfg.log_eps is None:  # recorded in the checkpoint's config, so a resumed run uses the same value
-        cfg = replace(cfg, log_eps=max(LOG_EPS, noise_floor(first_footprints()[0])))
+        cfg = replace(cfg, log_eps=max(LOG_EPS, noise))
     loss_fn = SBHLoss(log_eps=cfg.log_eps)
-    # the footprint widths it learns from, and how far out its targets hold light: the torch backend hands pixels
-    # beyond those widths, and each footprint's rings beyond that radius, to the analytic model
+    # the footprint widths it learns from, and how far out its targets hold light above their noise: the torch
+    # backend hands pixels beyond those widths, and each footprint's rings beyond that radius, to the analytic model
     domain = None
     if d.main:
         domain = replace(training_domain(dataset.views, dataset.patch, seed=cfg.seed),
-                         tail_radius=tail_radius(first_footprints()[0].cpu().numpy())).to_dict()
+                         tail_radius=tail_radius(first_footprints()[0].cpu().numpy(), noise)).to_dict()
 
     def step(batch: dict[str, torch.Tensor], gstep: int) -> dict[str, float]:
         dec.train()
