@@ -3,6 +3,7 @@
     python benchmarks/standin_score.py relight RENDERS SESSIONS RELIT BACKEND[,BACKEND...] [--truth converged]
     python benchmarks/standin_score.py geometry RENDERS OBJECT GEOMETRY_NPZ [GEOMETRY_NPZ ...]
     python benchmarks/standin_score.py edges RENDERS SESSIONS RELIT BACKEND[,BACKEND...]
+    python benchmarks/standin_score.py regions RENDERS SESSIONS RELIT BACKEND[,BACKEND...]
 
 ``relight``: PSNR of ``RELIT/OBJECT_v0_PATTERN_BACKEND.exr`` (``sss relight --format exr``) against
 ``RENDERS/OBJECT_clean_ref__PATTERN.exr`` on the view's decoded mask, and >= 2 px inside it, for every
@@ -18,6 +19,10 @@ converged reference's own noise taken out (a quarter of its halves' mean squared
 ``edges``: where the relit error lies across the patterns' edges: on the calm pixels within 2 projector pixels of an
 edge (by their decoded projector coordinate, the bright side positive), the mean over the white of the converged
 reference and of each backend's image, and the RMS of each one's error over the white, in quarter-pixel bins.
+``regions``: where on the view the relit error lies, against the converged reference: PSNR on the object (the render's
+own object mask in ``RENDERS/OBJECT_geometry.npz``, for evaluation only) and on the calm pixels by signed distance to
+its silhouette (:data:`REGIONS`: the background beyond 3 px, the 3 px either side of the silhouette, 3-12 px inside,
+deeper), each followed by its margin over the analytic model where scored.
 """
 
 from __future__ import annotations
@@ -136,6 +141,46 @@ def edges(renders: Path, sessions: Path, relit: Path, backends: list[str]) -> No
                                                          for j in range(1, len(EDGE_BINS))))
 
 
+#: Signed distance to the object's silhouette (px, inside positive): (label, low, high], for ``regions``.
+REGIONS = (("background", -np.inf, -3.0), ("silhouette ±3 px", -3.0, 3.0), ("3-12 px inside", 3.0, 12.0),
+           ("> 12 px inside", 12.0, np.inf))
+
+
+def silhouette_distance(inside: np.ndarray) -> np.ndarray:
+    """(H, W) signed distance (px) of each pixel to the boundary of the bool mask ``inside``: positive inside."""
+    mask = inside.astype(np.uint8)
+    return cv2.distanceTransform(mask, cv2.DIST_L2, 5) - cv2.distanceTransform(1 - mask, cv2.DIST_L2, 5)
+
+
+def regions(renders: Path, sessions: Path, relit: Path, backends: list[str]) -> None:
+    from sssphase_core.relight import load_view
+    from sssphase_core.store.exr import read_exr
+    from sssphase_core.store.session import find_sessions
+
+    print("| object | pattern | region | pixels | " + " | ".join(backends) + " |")
+    print("|---|---|---|---|" + "---|" * len(backends))
+    for s in find_sessions([sessions]):
+        rv = load_view(s, 0)
+        inside = np.load(renders / f"{s.name}_geometry.npz")["object"].astype(bool)
+        signed = silhouette_distance(inside)
+        for name in ("checkerboard", "stripes_x", "stripes_y"):
+            reference = renders / f"{s.name}_converged_ref__{name}.exr"
+            if not reference.exists():
+                continue
+            truth = read_exr(reference)
+            calm = converged_halves(renders, s.name, name, rv)[1]
+            imgs = {b: read_exr(relit / f"{s.name}_v0_{name}_{b}.exr") for b in backends}
+            wheres = [("object", rv.proj.mask & inside)]
+            wheres += [(f"calm, {label}", calm & (signed > lo) & (signed <= hi)) for label, lo, hi in REGIONS]
+            for label, where in wheres:
+                if not where.any():
+                    continue
+                scores = {b: psnr(imgs[b], truth, where) for b in backends}
+                cells = [f"{v:.2f}" + (f" ({v - scores['analytic']:+.2f})" if "analytic" in scores else "")
+                         for v in scores.values()]
+                print(f"| {s.name} | {name} | {label} | {int(where.sum())} | " + " | ".join(cells) + " |")
+
+
 def geometry(renders: Path, name: str, files: list[Path]) -> None:
     exact = np.load(renders / f"{name}_geometry.npz")
     theta = exact["theta"]
@@ -164,6 +209,8 @@ if __name__ == "__main__":
         relight(Path(a[1]), Path(a[2]), Path(a[3]), a[4].split(","), truth)
     elif len(a) >= 5 and a[0] == "edges":
         edges(Path(a[1]), Path(a[2]), Path(a[3]), a[4].split(","))
+    elif len(a) >= 5 and a[0] == "regions":
+        regions(Path(a[1]), Path(a[2]), Path(a[3]), a[4].split(","))
     elif len(a) >= 4 and a[0] == "geometry":
         geometry(Path(a[1]), a[2], [Path(p) for p in a[3:]])
     else:

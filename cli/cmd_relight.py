@@ -34,7 +34,8 @@ RelightBackendOpt = Annotated[str, typer.Option("--backend", help="auto (blend w
                                                 "analytic, blend (torch and analytic weighted pixel by pixel by how well they "
                                                 "relight the view's own fringe captures; needs --checkpoint), measured (the "
                                                 "session's captured light transport), none, or exact (simulated sessions "
-                                                "only: the simulator's ground truth, for evaluation).")]
+                                                "only: the simulator's ground truth, for evaluation); comma-separated for "
+                                                "several, each written beside the others.")]
 GeometryBackendOpt = Annotated[str, typer.Option("--backend", help="torch (with --checkpoint), analytic, or exact (simulated sessions: the simulator's footprints, evaluation only).")]
 EvalBackendOpt = Annotated[str, typer.Option("--backend", help="Comma-separated backends (none, analytic, torch, blend, measured, exact); by default measured only where the views hold dot-grid footprints.")]
 OutOpt = Annotated[Path, typer.Option("--out", help="Output folder.")]
@@ -92,10 +93,11 @@ def relight_cmd(
     image_format: FormatOpt = "png",
 ) -> None:
     """Relight a captured object under new projector patterns (several patterns share one footprint pass)."""
-    from sssphase_core.relight.runner import relight_session
+    from sssphase_core.relight.runner import relight_backends, relight_session
 
-    relight_session(session, pattern, backend=backend, checkpoint=checkpoint, out=out, views=views, resize=resize,
-                    chunk=chunk, device=device, cache=cache, formats=image_format, narrator=_Narrator())
+    for name in relight_backends(backend, checkpoint):  # every name checked before any work
+        relight_session(session, pattern, backend=name, checkpoint=checkpoint, out=out, views=views, resize=resize,
+                        chunk=chunk, device=device, cache=cache, formats=image_format, narrator=_Narrator())
 
 
 def geometry_cmd(

@@ -1,4 +1,5 @@
-"""The stand-in scorer's edge profile (benchmarks/standin_score.py edges) measures distance to the patterns' edges."""
+"""The stand-in scorer's edge profile (benchmarks/standin_score.py edges) measures distance to the patterns' edges, and its
+regions (``regions``) the distance to the object's silhouette."""
 
 import numpy as np
 from benchmark_script import load_benchmark
@@ -17,3 +18,14 @@ def test_edge_distance_is_signed_toward_the_bright_side_whichever_way_the_edge_s
     stripes = pattern.T.copy()  # the same steps along y
     d_y = script.edge_distance(stripes, yp.T * 0 + xp.T, xp.T * 0 + 5.0, 0, np.ones(xp.T.shape, bool))
     np.testing.assert_allclose(d_y.T, d, equal_nan=True)
+
+
+def test_silhouette_distance_is_positive_inside_negative_outside_and_grows_away_from_the_edge():
+    inside = np.zeros((40, 40), bool)
+    inside[10:30, 10:30] = True
+    d = script.silhouette_distance(inside)
+    assert (d[inside] > 0).all() and (d[~inside] < 0).all()
+    assert abs(d[20, 10] - 1.0) < 0.1 and abs(d[20, 9] + 1.0) < 0.1  # the pixels either side of the edge
+    assert abs(d[20, 19] - 10.0) < 0.5 and abs(d[20, 0] + 10.0) < 0.5  # 10 px in, 10 px out
+    labels = [label for label, lo, hi in script.REGIONS if lo < d[20, 25] <= hi]
+    assert labels == ["3-12 px inside"]  # 6 px from the right edge

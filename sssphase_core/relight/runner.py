@@ -244,6 +244,19 @@ def resolve_backend(backend: str, checkpoint: Path | str | None, narrator: Narra
     return backend, None if checkpoint is None else Path(checkpoint)
 
 
+def relight_backends(backend: str, checkpoint: Path | str | None) -> list[str]:
+    """The backends of ``sss relight --backend`` (comma-separated; ``auto`` alone), each known and runnable with
+    ``checkpoint``, refused before any work, in order and once each."""
+    from sssphase_core.learning.runlog import resolve_checkpoint
+
+    names = list(dict.fromkeys(b.strip() for b in backend.split(",") if b.strip())) or ["auto"]
+    if len(names) > 1:
+        if "auto" in names:
+            raise InputError("--backend auto chooses one backend; name the ones to run instead (e.g. analytic,blend)")
+        check_backends(names, None if checkpoint is None else resolve_checkpoint(checkpoint))
+    return names
+
+
 def check_decoder_fits(checkpoint: Path | None, backends: Sequence[str], sessions: Sequence[Session]) -> None:
     """Refuse a decoder whose footprint size is not the sessions' crop size before any work (as training
     does): a paper-preset decoder (K = 90) on a CPU-preset session (K = 32) ran for minutes up to 5.4 GB."""

@@ -558,3 +558,20 @@ def test_a_pattern_whose_name_cannot_make_a_file_name_is_refused_before_the_reli
     assert isinstance(res.exception, InputError), res.output
     assert "makes its output file names longer than a file name may be (255 bytes)" in str(res.exception)
     assert not (tmp_path / "o").exists() or not list((tmp_path / "o").rglob("*.png"))
+
+
+def test_several_backends_are_relit_in_one_command_and_a_bad_name_is_refused_before_any(session, tmp_path):
+    out = tmp_path / "relit"
+    res = runner.invoke(app, ["relight", str(session), "--pattern", "checkerboard", "--views", "1",
+                              "--backend", "none,exact", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    relit = {b: (out / f"sand_rake_v1_checkerboard_{b}.png") for b in ("none", "exact")}
+    assert all(f.exists() for f in relit.values())
+    assert relit["none"].read_bytes() != relit["exact"].read_bytes()
+    assert res.output.count("PSNR") == 2  # each scored against the view's reference
+    for backend, said in (("none,bogus", "unknown backend 'bogus'"), ("auto,none", "--backend auto chooses one backend"),
+                          ("none,torch", "torch backend needs --checkpoint")):
+        bad = tmp_path / backend.replace(",", "_")
+        res = runner.invoke(app, ["relight", str(session), "--pattern", "checkerboard", "--backend", backend, "--out", str(bad)])
+        assert res.exit_code != 0 and said in str(res.exception), (backend, res.exception)
+        assert not bad.exists() or not any(bad.rglob("*.png"))  # nothing relit before the refusal
