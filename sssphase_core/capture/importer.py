@@ -31,7 +31,7 @@ from sssphase_core.store.imageio import (
     read_pattern,
     stores_integers,
 )
-from sssphase_core.store.light import NEGATIVE_LIMIT, far_below_zero
+from sssphase_core.store.light import NEGATIVE_LIMIT, far_below_zero, projector_light
 from sssphase_core.store.session import Session, check_object_name
 
 PSP_KEY_RE = re.compile(r"^psp/([xy])/p([0-9]{1,5}(?:\.[0-9]{1,6})?)/s([0-9]{1,2})$")
@@ -369,7 +369,7 @@ def untagged_encoding(files: dict[str, Path]) -> tuple[str, str] | None:
     codes = [read_frame(files[k], finite=False) for k in keys[:-2]]
     white, black = read_frame(files["white"], finite=False), read_frame(files["black"], finite=False)
     unclipped = (white < 0.999).all(-1) & (np.max(codes, axis=0) < 0.999).all(-1)
-    keep = unclipped & _lit(white, black)[1]
+    keep = unclipped & projector_light(white, black)[1]
     if not keep.any():
         return None
     shares = {enc: fringe_mean_share([np.stack([decode_codes(c, enc) for c in codes])], decode_codes(white, enc),
@@ -396,13 +396,6 @@ def check_white_above_black(vdir: Path, white: np.ndarray, black: np.ndarray, wh
                          "under the projector's black, white under its full white")
 
 
-def _lit(white: np.ndarray, black: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(light, lit)``: the projector's light (white less black, colours summed, float64) and where it is
-    above a fifth of its 99th percentile, both (H, W)."""
-    light = (np.asarray(white, np.float64) - black).reshape(*white.shape[:2], -1).sum(-1)
-    return light, light > 0.2 * float(np.percentile(light, 99))
-
-
 #: Opposite shifts of a fringe set (n and n + N/2) sum to the same light at every pixel, whatever the transport,
 #: the projector's gamma or the exposure: a pair of a set whose sum differs from another pair's by more than this
 #: share of the larger holds a dropped, constant or foreign frame.
@@ -412,7 +405,7 @@ PAIR_SUM_TOLERANCE = 0.25
 def check_opposite_shifts(vdir: Path, pair_sums: dict[str, list[np.ndarray]], white: np.ndarray, black: np.ndarray) -> None:
     """Refuse a fringe set whose opposite-shift pairs do not hold the same light (:data:`PAIR_SUM_TOLERANCE`).
     ``pair_sums``: set key (``psp/x/p20``) -> per pair n (0 <= n < N/2) the sum of frames n and n + N/2, (H, W, C)."""
-    light, lit = _lit(white, black)
+    light, lit = projector_light(white, black)
     if not lit.any():
         return
     for set_key, sums in pair_sums.items():
@@ -475,7 +468,7 @@ def check_dot_frames(vdir: Path, files: dict[str, Path]) -> int:
 def check_dots_light(vdir: Path, dot_sum: np.ndarray, n_dots: int, white: np.ndarray, black: np.ndarray) -> float:
     """The dot frames' light (summed, above black) as a share of the white's (median over lit pixels), refused
     or warned about beyond :data:`DOTS_LIGHT_REFUSE` / :data:`DOTS_LIGHT_WARN`; returned for the view's record."""
-    light, lit = _lit(white, black)
+    light, lit = projector_light(white, black)
     if not lit.any():
         return float("nan")
     share = float(np.median((dot_sum - n_dots * np.asarray(black, np.float64)).reshape(*lit.shape, -1).sum(-1)[lit]

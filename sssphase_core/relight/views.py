@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from sssphase_core.errors import DataError, InputError
-from sssphase_core.store.light import light_problem, white_level
+from sssphase_core.store.light import light_problem, projector_light, white_level
 
 if TYPE_CHECKING:
     from sssphase_core.relight.engine import Projection
@@ -49,12 +49,9 @@ class RelightView:
         percentile) that decoded, i.e. that relighting gives light and every score is made on: an object whose
         fringes did not decode (too wide a scattering for the fringes' period, too dim) is black in the relit
         images and left out of the scores, which then hold only what did decode (a background wall)."""
-        white = np.asarray(self.white, np.float64)
         arrays = self.session.arrays(self.view) if self.session is not None else ()  # type: ignore[attr-defined]
-        if "black" in arrays:
-            white = white - np.asarray(self.session.load(self.view, "black"), np.float64)  # type: ignore[attr-defined]
-        light = white.reshape(*white.shape[:2], -1).sum(-1)
-        lit = light > 0.2 * float(np.percentile(light, 99))
+        black = self.session.load(self.view, "black") if "black" in arrays else None  # type: ignore[attr-defined]
+        lit = projector_light(self.white, black)[1]
         return float((lit & self.proj.mask).sum() / lit.sum()) if lit.any() else 1.0
 
     def decoded_warning(self) -> str | None:

@@ -57,6 +57,14 @@ def light_problem(name: str, image: np.ndarray, level: float | None = None) -> s
     return None
 
 
+def projector_light(white: np.ndarray, black: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(light, lit)``: the projector's light in a view (white less black, colours summed, float64; the white alone
+    without a black) and where it is above a fifth of its 99th percentile, both (H, W)."""
+    w = np.asarray(white, np.float64)
+    light = (w - (0.0 if black is None else np.asarray(black, np.float64))).reshape(*w.shape[:2], -1).sum(-1)
+    return light, light > 0.2 * float(np.percentile(light, 99))
+
+
 def holds_light(array_name: str) -> bool:
     """Whether a view's array of that name holds light (:data:`LIGHT_ARRAYS`)."""
     return any(array_name == a or (a.endswith("/") and array_name.startswith(a)) for a in LIGHT_ARRAYS)
