@@ -93,10 +93,13 @@ def relight_cmd(
     image_format: FormatOpt = "png",
 ) -> None:
     """Relight a captured object under new projector patterns (several patterns share one footprint pass)."""
+    from sssphase_core.relight.choices import uses_decoder
     from sssphase_core.relight.runner import relight_backends, relight_session
 
-    for name in relight_backends(backend, checkpoint):  # every name checked before any work
-        relight_session(session, pattern, backend=name, checkpoint=checkpoint, out=out, views=views, resize=resize,
+    names = relight_backends(backend, checkpoint)  # every name checked before any work
+    for name in names:  # (a listed backend without the decoder is not told that the checkpoint is unused)
+        own = checkpoint if len(names) == 1 or uses_decoder(name) else None
+        relight_session(session, pattern, backend=name, checkpoint=own, out=out, views=views, resize=resize,
                         chunk=chunk, device=device, cache=cache, formats=image_format, narrator=_Narrator())
 
 

@@ -569,6 +569,10 @@ def test_several_backends_are_relit_in_one_command_and_a_bad_name_is_refused_bef
     assert all(f.exists() for f in relit.values())
     assert relit["none"].read_bytes() != relit["exact"].read_bytes()
     assert res.output.count("PSNR") == 2  # each scored against the view's reference
+    res = runner.invoke(app, ["relight", str(session), "--pattern", "checkerboard", "--views", "1", "--backend",
+                              "none,exact", "--checkpoint", str(tmp_path / "unused.pt"), "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert "not used" not in res.output  # listed with others, a backend without the decoder is not told so
     for backend, said in (("none,bogus", "unknown backend 'bogus'"), ("auto,none", "--backend auto chooses one backend"),
                           ("none,torch", "torch backend needs --checkpoint")):
         bad = tmp_path / backend.replace(",", "_")
