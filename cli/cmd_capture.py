@@ -32,6 +32,7 @@ def capture(
     preset: Annotated[str, typer.Option(help="sim rig preset: cpu or paper")] = "cpu",
     transport: Annotated[str | None, typer.Option(help="sim light transport: burley (radially symmetric footprints), directional_dipole (skewed by the incidence direction) or radiative (random-walk profiles, no diffusion approximation)")] = None,
     anisotropy: Annotated[float | None, typer.Option(help="sim rig, --transport radiative: the media's phase-function mean cosine g in [0, 0.85] (0 isotropic, default; skin and milk scatter forward)")] = None,
+    backdrop: Annotated[float | None, typer.Option(help="sim rig: a matte grey wall this many mm (60 to 1000) behind the turntable centre, facing the camera (default: the object floats in the dark)")] = None,
     randomise_rig: Annotated[bool, typer.Option(help="sim rig: draw projector gamma and black, lens blur, read noise, exposure, demosaicing and transport model (domain randomisation; reproducible from --seed and the object's name)")] = False,
     dot_spacing: Annotated[int | None, typer.Option(help="dot-grid spacing in projector pixels")] = None,
     keep_dots: Annotated[bool, typer.Option(help="keep the raw dot-grid frames")] = False,
@@ -53,7 +54,7 @@ def capture(
         object_name, spec, views=views, footprints=footprints, references=reference or (), hdr=hdr,
         hdr_exposures=hdr_exposures, keep_dots=keep_dots, keep_unwrap=keep_unwrap, resume=resume, out=out, seed=seed,
         preset=preset, dot_spacing=dot_spacing, transport=transport, randomise_rig=randomise_rig, dot_stride=dot_stride,
-        anisotropy=anisotropy, device=device, on_drawn=lambda drawn: console.print("randomised sim rig: " + ", ".join(
+        anisotropy=anisotropy, backdrop=backdrop, device=device, on_drawn=lambda drawn: console.print("randomised sim rig: " + ", ".join(
             f"{k} {v}" for k, v in drawn.items() if k != "transport" or not transport)))
 
     def ask_move(view: int, angle: float) -> None:

@@ -36,6 +36,7 @@ def sim(
     preset: str = typer.Option("cpu", "--preset", help="rig preset: cpu (256x192, K=32) or paper (1080p, K=90)"),
     transport: str = typer.Option("burley", "--transport", help="sim light transport: burley (radially symmetric footprints), directional_dipole (skewed by the incidence direction) or radiative (random-walk profiles, no diffusion approximation)"),
     anisotropy: float | None = typer.Option(None, "--anisotropy", help="--transport radiative: the media's phase-function mean cosine g in [0, 0.85] (default 0, isotropic)"),
+    backdrop: float | None = typer.Option(None, "--backdrop", help="a matte grey wall this many mm (60 to 1000) behind the turntable centre, facing the camera (default: the object floats in the dark)"),
     seed: int = typer.Option(0, "--seed", help="sensor noise seed"),
     n_footprints: int = typer.Option(6, "--footprints", min=1, max=24, help="footprints in the montage"),
     decode: bool = typer.Option(True, "--decode/--no-decode", help="also capture the unwrapping set and decode it"),
@@ -50,7 +51,7 @@ def sim(
 
     with _SimBar(object_name) as bar:
         result = run_sim(object_name, views, out, preset=preset, transport=transport, anisotropy=anisotropy, seed=seed,
-                         n_footprints=n_footprints, decode=decode, progress=bar, report=bar.print)
+                         backdrop=backdrop, n_footprints=n_footprints, decode=decode, progress=bar, report=bar.print)
     typer.echo(f"wrote {views} view(s) of {result.name} to {out}")
 
 

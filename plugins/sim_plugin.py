@@ -9,7 +9,8 @@ a real rig); frames carry a sequence number, a device-clock timestamp (simulated
 Rig options (all optional): ``object`` (catalogue name, default "apple"), ``preset`` ("cpu"|"paper"),
 ``seed``, ``n_views``, ``view``, ``latency_s`` (projector), ``frame_period_s``, ``realtime`` (sleep
 for the simulated times), ``projector_gamma`` / ``projector_black`` (a projector response other than
-the preset's, for calibration), ``transport`` (``burley``, ``directional_dipole`` or ``radiative``; ``anisotropy``, the radiative media's phase-function g), the camera's
+the preset's, for calibration), ``transport`` (``burley``, ``directional_dipole`` or ``radiative``; ``anisotropy``, the radiative media's phase-function g),
+``backdrop`` (mm: a matte grey wall that far behind the turntable centre, facing the camera), the camera's
 ``lens_blur`` (px), ``read_noise`` (e-), ``white_fraction`` (exposure) and ``demosaic`` (``malvar`` or
 ``opencv``, or ``none`` for a three-chip camera without a colour filter array; see ``sim.rig.with_camera``),
 ``raw`` (Bayer frames; not for a three-chip camera), ``device`` (``cpu``, or ``cuda[:N]``/``auto``: the

@@ -24,6 +24,7 @@ def test_from_options_builds_the_request_and_draws_a_randomised_rig_once(tmp_pat
     assert CaptureRequest.from_options("apple", RigSpec(), hdr_exposures="0.5,2", out=tmp_path).hdr == (0.5, 2.0)
     radiative = CaptureRequest.from_options("apple", RigSpec(), out=tmp_path, transport="radiative", anisotropy=0.4)
     assert radiative.transport == "radiative" and radiative.sim_options == {"anisotropy": 0.4}
+    assert CaptureRequest.from_options("apple", RigSpec(), out=tmp_path, backdrop=80).sim_options == {"backdrop": 80}
 
 
 @pytest.mark.parametrize(("kwargs", "expected"), [
@@ -33,6 +34,8 @@ def test_from_options_builds_the_request_and_draws_a_randomised_rig_once(tmp_pat
     ({"transport": "nonsense"}, "nonsense"),
     ({"anisotropy": 0.5}, "give it with --transport radiative"),  # a phase function for a diffusion model: no effect
     ({"transport": "radiative", "anisotropy": -0.1}, "anisotropy must be a number in .0, 0.85., got -0.1"),
+    ({"backdrop": 40.0}, r"backdrop must be a number in \[60, 1000\], got 40.0"),  # inside the object's reach
+    ({"backdrop": float("nan")}, "backdrop must be a number"),
     ({"hdr_exposures": "1,,2"}, "--hdr-exposures takes comma-separated numbers"),
     ({"hdr_exposures": "1"}, "HDR exposures must be 2 to 8 distinct numbers"),
     ({"dot_spacing": 0}, "dot"),
@@ -53,6 +56,8 @@ def test_validate_checks_a_request_made_directly(tmp_path):
     with pytest.raises(InputError, match="--randomise-rig changes the simulator"):
         CaptureRequest.from_options("apple", RigSpec(camera="x:cam", projector="x:proj"), out=tmp_path,
                                     randomise_rig=True)
+    with pytest.raises(InputError, match="--backdrop puts a wall behind the simulator's objects"):
+        CaptureRequest.from_options("apple", RigSpec(camera="x:cam", projector="x:proj"), out=tmp_path, backdrop=80)
 
 
 def test_parse_exposures():

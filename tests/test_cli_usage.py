@@ -65,6 +65,7 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["demo", "--transport", "bogus"], "unknown transport model 'bogus'"),
         (["capture", "--object", "soap", "--views", "1", "--anisotropy", "0.5"], "give it with --transport radiative"),
         (["capture", "--object", "soap", "--transport", "radiative", "--anisotropy", "0.9"], "anisotropy must be a number in [0, 0.85]"),
+        (["capture", "--object", "soap", "--views", "1", "--backdrop", "30"], "backdrop must be a number in [60, 1000]"),
         (["sim", "--object", "soap", "--out", "x", "--anisotropy", "0.5"], "give it with --transport radiative"),
         (["capture", "--object", "a" * 300], "(300 characters)"),  # the name is not echoed whole
     ],

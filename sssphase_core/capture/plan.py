@@ -151,13 +151,15 @@ class CaptureRequest:
                      keep_dots: bool = False, keep_unwrap: bool = False, resume: bool = False, out: Path = Path("sessions"),
                      seed: int = 0, preset: str = "cpu", dot_spacing: int | None = None, transport: str | None = None,
                      randomise_rig: bool = False, dot_stride: int = 1, device: str = "cpu", anisotropy: float | None = None,
+                     backdrop: float | None = None,
                      on_drawn: Callable[[dict[str, Any]], None] | None = None) -> CaptureRequest:
         """A request from `sss capture`'s options (and a form's: the same names), checked for ``rig`` as
         :meth:`validate` checks it, in the order the options are given. ``hdr_exposures``: comma-separated
         relative exposures (implies ``hdr``; ``hdr``: :data:`DEFAULT_HDR`). ``randomise_rig`` draws the sim rig's
         physics and camera from ``seed`` and the object's name (:func:`sim.randomised_rig_options`), told to
         ``on_drawn`` as soon as drawn. ``device``: where the sim rig renders (``cuda``: on the GPU, the same images);
-        ``anisotropy``: the radiative transport's phase-function mean cosine g."""
+        ``anisotropy``: the radiative transport's phase-function mean cosine g; ``backdrop``: a matte grey wall that
+        many mm behind the sim rig's turntable centre (``sim.RigConfig.backdrop``)."""
         req = cls(object_name, views, footprints, tuple(references), (), keep_dots, keep_unwrap, resume, out, seed,
                   preset, dot_spacing, transport, dot_stride=dot_stride)
         req._check_counts()
@@ -172,6 +174,10 @@ class CaptureRequest:
 
             model = (transport or rig.options.get("transport")) if rig.is_sim else None
             req.sim_options = {**req.sim_options, **anisotropy_option(model, anisotropy)}
+        if backdrop is not None:  # a wall behind the sim's objects
+            if not rig.is_sim:
+                raise InputError("--backdrop puts a wall behind the simulator's objects: it applies to the sim rig only")
+            req.sim_options = {**req.sim_options, "backdrop": backdrop}
         if device != "cpu":  # the sim's light transport on a torch device (sssphase_core.sim_accel)
             if not rig.is_sim:
                 raise InputError("--device places the simulator's rendering: it applies to the sim rig only")

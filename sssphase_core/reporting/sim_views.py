@@ -37,9 +37,11 @@ class SimRun:
 
 def run_sim(object_name: str, views: int, out: Path, *, preset: str = "cpu", transport: str = "burley", seed: int = 0,
             n_footprints: int = 6, decode: bool = True, progress: SimProgress | None = None,
-            report: Callable[[str], None] | None = None, anisotropy: float | None = None) -> SimRun:
+            report: Callable[[str], None] | None = None, anisotropy: float | None = None,
+            backdrop: float | None = None) -> SimRun:
     """Simulate ``views`` turntable views of ``object_name`` on the ``preset`` rig with light transport ``transport``
-    (``anisotropy``: the radiative transport's phase-function g) into ``out`` (an earlier run's
+    (``anisotropy``: the radiative transport's phase-function g; ``backdrop``: a grey wall that many mm behind the
+    turntable centre) into ``out`` (an earlier run's
     view folders there are replaced). With ``decode`` the whole PSP plan is captured with sensor noise and
     decoded, and ``report(line)`` tells each view's decoded share and error."""
     from sssphase_core.sim.materials import MATERIALS, dropped_fraction
@@ -51,7 +53,8 @@ def run_sim(object_name: str, views: int, out: Path, *, preset: str = "cpu", tra
         raise InputError(f"--seed must be 0 to {MAX_SEED} (2**63 - 1), got {seed}")
     obj = simlib.get_object(object_name)
     rig = simlib.rig_from_options({"preset": preset, "transport": transport,
-                                   **simlib.anisotropy_option(transport, anisotropy)})
+                                   **simlib.anisotropy_option(transport, anisotropy),
+                                   **({"backdrop": backdrop} if backdrop is not None else {})})
     check_output_folder(out)
     if (out / "scene.json").is_file():  # an earlier `sss sim` here: its view folders go, none is left beside these
         for old in (p for p in out.iterdir() if p.is_dir() and not p.is_symlink() and re.fullmatch(r"view[0-9]+", p.name)):
@@ -100,15 +103,15 @@ def _write_view(scene: Any, vdir: Path, keyed: dict[str, np.ndarray], white: np.
     rig, view, period = scene.rig, scene.view, config.period
     wp, hp = rig.projector.width, rig.projector.height
     vdir.mkdir(exist_ok=True)
-    white_level = float(np.percentile(white[scene.mask], 99)) if scene.mask.any() else 1.0
+    white_level = float(np.percentile(white[scene.object_mask], 99)) if scene.object_mask.any() else 1.0
     what = f"{scene.obj.name}, view {view}"
     for key, name in shown.items():
         fig.image_figure(vdir / f"{name}.png", tonemap(keyed[key], white_level),
                          f"{what}: {name.replace('_', ' ')} (tone-mapped, 99th pct of white = 90%)")
     fig.image_figure(vdir / "white.png", tonemap(white, white_level), f"{what}: white (tone-mapped)")
     decoded = decode_view(keyed, config, scene, vdir, what) if decode else {}
-    fig.label_figure(vdir / "mask.png", scene.mask.astype(np.int16), {0: "background", 1: "object"},
-                     f"{what}: object mask")
+    fig.label_figure(vdir / "mask.png", scene.mask.astype(np.int16) + (scene.mask & ~scene.object_mask),
+                     {0: "background", 1: "object", 2: "backdrop"}, f"{what}: object mask")
     for axis, name in enumerate(("x", "y")):
         coord = scene.proj_xy[..., axis]
         fig.value_figure(vdir / f"proj_{name}.png", coord, f"{what}: exact projector {name}", units="projector px",
@@ -118,13 +121,13 @@ def _write_view(scene: Any, vdir: Path, keyed: dict[str, np.ndarray], white: np.
                          cmap="twilight", vmin=0, vmax=1)
     material = np.where(scene.mask, scene.material, -1)
     fig.label_figure(vdir / "material.png", material, dict(enumerate(simlib.MATERIAL_NAMES)), f"{what}: materials")
-    pixels = spread_pixels(scene.lit, n_footprints)
+    pixels = spread_pixels(scene.lit & scene.object_mask, n_footprints)
     fps = scene.footprints(pixels)
     peak = max(float(fps.mean(axis=-1).max()), 1e-30)
     fig.panels_figure(vdir / "footprints.png", [np.log10(np.maximum(f.mean(axis=-1), 1e-30) / peak) for f in fps],
                       [f"({y}, {x})" for y, x in pixels], f"{what}: exact footprints at pixels (row, col), mean of RGB",
                       units="log10 intensity / brightest peak", vmin=-4, vmax=0)
-    return {"view": view, "angle_deg": scene.angle, "mask_pixels": int(scene.mask.sum()),
+    return {"view": view, "angle_deg": scene.angle, "mask_pixels": int(scene.object_mask.sum()),
             "lit_pixels": int(scene.lit.sum()), "footprint_pixels_yx": pixels.tolist(), "decode": decoded}
 
 
@@ -137,7 +140,7 @@ def decode_view(frames: dict, config, scene, vdir: Path, what: str) -> dict:
     corr = decode_camera(frames, config, (wp, hp), bayer="RGGB")  # the sim sensor's layout, as a capture decodes
     with atomic_path(vdir / "decoded.npz", ".npz") as tmp:
         np.savez_compressed(tmp, xp=corr.xp, yp=corr.yp, mask=corr.mask, reason=corr.reason)
-    lit = scene.mask & np.isfinite(scene.proj_xy[..., 0])  # exact correspondence exists (not shadowed)
+    lit = scene.object_mask & np.isfinite(scene.proj_xy[..., 0])  # exact correspondence exists (not shadowed)
     on_object = corr.mask & lit
     err = np.hypot(corr.xp - scene.proj_xy[..., 0], corr.yp - scene.proj_xy[..., 1])[on_object]
     for name, values, size in (("x", corr.xp, wp), ("y", corr.yp, hp)):
@@ -152,7 +155,7 @@ def decode_view(frames: dict, config, scene, vdir: Path, what: str) -> dict:
                      units="error (projector px)", cmap="magma", vmin=0, vmax=0.5)
     return {
         "valid_fraction": float(on_object.sum() / max(lit.sum(), 1)),
-        "valid_in_shadow": int((corr.mask & scene.mask & ~lit).sum()),  # lit only through scattering
+        "valid_in_shadow": int((corr.mask & scene.object_mask & ~lit).sum()),  # lit only through scattering
         "median_error_px": float(np.median(err)) if err.size else float("nan"),
         "p99_error_px": float(np.percentile(err, 99)) if err.size else float("nan"),
         "reasons": {r.name: int((corr.reason[scene.mask] == r).sum()) for r in Reason},

@@ -159,6 +159,8 @@ _ALL = (
     from_jensen("chicken_fat", "chicken2"),
     from_jensen("potato", "potato"),
     from_jensen("skimmilk", "skimmilk"),
+    # a matte grey wall behind the turntable (``RigConfig.backdrop``): opaque, its light leaves where it enters
+    invented("backdrop", (0.35, 0.35, 0.33), (0.01, 0.01, 0.01), 0.0),
 )
 
 #: Global material label names; a material map stores indices into this tuple.

@@ -63,6 +63,8 @@ class ProjectorModel(Pinhole):
 TRANSPORTS = ("burley", "directional_dipole", "radiative")
 #: The phase function's mean cosine g of the radiative transport (the range its table covers).
 ANISOTROPY_RANGE = (0.0, 0.85)
+#: Accepted backdrop distances (mm behind the turntable centre): beyond the catalogue's 55 mm bounding spheres.
+BACKDROP_RANGE = (60.0, 1000.0)
 
 
 @dataclass(frozen=True)
@@ -82,10 +84,16 @@ class RigConfig:
     sss_scale: float = 1.0
     transport: str = "burley"
     anisotropy: float = 0.0
+    #: distance (mm) behind the turntable centre of a matte grey wall facing the camera (``backdrop`` material);
+    #: None: the objects float in the dark
+    backdrop: float | None = None
 
     def __post_init__(self) -> None:
         if self.transport not in TRANSPORTS:
             raise InputError(f"unknown transport model {self.transport!r}; choose one of {', '.join(TRANSPORTS)}")
+        if self.backdrop is not None and not BACKDROP_RANGE[0] <= self.backdrop <= BACKDROP_RANGE[1]:  # NaN fails too
+            raise InputError(f"the backdrop must be {BACKDROP_RANGE[0]:g} to {BACKDROP_RANGE[1]:g} mm behind the turntable "
+                             f"centre (behind any catalogue object), got {self.backdrop!r}")
         if not ANISOTROPY_RANGE[0] <= self.anisotropy <= ANISOTROPY_RANGE[1]:  # NaN fails too
             raise InputError(f"anisotropy (the phase function's mean cosine) must be in [{ANISOTROPY_RANGE[0]:g}, "
                              f"{ANISOTROPY_RANGE[1]:g}], got {self.anisotropy!r}")
@@ -199,7 +207,7 @@ FAULT_OPTIONS = frozenset({"fail_at_frame", "disconnect_at_frame", "stall_at_fra
 #: torch device, ``sssphase_core.sim_accel``): a session resumes across them.
 COMPUTE_OPTIONS = frozenset({"device"})
 SIM_RIG_OPTIONS = frozenset({"object", "preset", "seed", "n_views", "view", "latency_s", "frame_period_s", "realtime",
-                             "projector_gamma", "projector_black", "transport", "anisotropy", "demosaic", "raw", "fail_at_frame",
+                             "projector_gamma", "projector_black", "transport", "anisotropy", "backdrop", "demosaic", "raw", "fail_at_frame",
                              "disconnect_at_frame", "stall_at_frame", "garbage_at_frame",
                              "grab_delay_s", "frame_timeout_s", "shape", "dtype", *SENSOR_OPTIONS, *COMPUTE_OPTIONS})
 
@@ -227,12 +235,14 @@ def with_camera(rig: RigConfig, options: Mapping[str, Any]) -> RigConfig:
 
 def rig_from_options(options: Mapping[str, Any]) -> RigConfig:
     """The sim rig a session or daemon was given: ``preset`` (default cpu), then the optional
-    ``projector_gamma`` / ``projector_black``, ``transport``, ``anisotropy`` and camera options
+    ``projector_gamma`` / ``projector_black``, ``transport``, ``anisotropy``, ``backdrop`` and camera options
     (:func:`with_camera`) (the sim plugin's options)."""
     rig = rig_preset(str(options.get("preset", "cpu")))
     rig = with_projector_response(rig, _option(options, "projector_gamma", 0.3, 5.0),
                                   _option(options, "projector_black", 0.0, 0.2))
     rig = with_transport(rig, options.get("transport"), _option(options, "anisotropy", *ANISOTROPY_RANGE))
+    if (backdrop := _option(options, "backdrop", *BACKDROP_RANGE)) is not None:
+        rig = replace(rig, backdrop=backdrop)
     return with_camera(rig, options)
 
 

@@ -9,8 +9,8 @@ import numpy as np
 from sssphase_core.errors import InputError
 from sssphase_core.processing.projector import sample_projector
 from sssphase_core.sim import geometry as g
-from sssphase_core.sim.materials import burley_scale
-from sssphase_core.sim.objects import SimObject, get_object
+from sssphase_core.sim.materials import MATERIALS, burley_scale
+from sssphase_core.sim.objects import MaterialSample, SimObject, get_object, uniform
 from sssphase_core.sim.rig import RigConfig, rig_preset
 from sssphase_core.sim.sensor import develop, expose
 from sssphase_core.sim.transport import (
@@ -55,7 +55,8 @@ class SimScene:
     """Object ``obj`` (a :class:`SimObject` or catalogue name) on the turntable at view ``view`` of
     ``n_views`` (angle 360 * view / n_views about the camera's y axis through the turntable centre).
 
-    Attributes (all (H, W, ...) camera maps): ``mask``; ``points`` and ``normals`` (camera space,
+    Attributes (all (H, W, ...) camera maps): ``mask`` (a surface: the object, or the rig's ``backdrop`` where
+    it has one), ``object_mask`` (the object); ``points`` and ``normals`` (camera space,
     NaN off the surface); ``area`` (mm^2 per pixel); ``irradiance`` E_p; ``lit`` (receives projector
     light); ``proj_xy`` exact projector (x, y), NaN where the pixel gets no projector light
     (off the surface, outside the projector image, back-facing or in shadow); ``material`` (int16
@@ -104,6 +105,17 @@ class SimScene:
         n_obj = g.sdf_normals(self.obj.sdf, p_obj)
         p_cam = p_obj @ turn.T + centre
         n_cam = n_obj @ turn.T
+        on_object = np.ones(len(sel), bool)
+        if rig.backdrop is not None:  # the rays that miss the object meet the wall z = centre z + backdrop
+            wall = np.setdiff1d(np.arange(len(rays)), sel)
+            wall = wall[rays[wall, 2] > 0]
+            pw = rays[wall] * ((centre[2] + rig.backdrop) / rays[wall, 2])[:, None]
+            sel = np.concatenate([sel, wall])
+            p_cam = np.concatenate([p_cam, pw])
+            n_cam = np.concatenate([n_cam, np.broadcast_to([0.0, 0.0, -1.0], pw.shape)])
+            p_obj = np.concatenate([p_obj, (pw - centre) @ turn])
+            n_obj = np.concatenate([n_obj, np.broadcast_to([0.0, 0.0, -1.0], pw.shape) @ turn])
+            on_object = np.concatenate([on_object, np.zeros(len(wall), bool)])
 
         cos_view = np.maximum(np.abs(np.einsum("ij,ij->i", n_cam, rays[sel])), COS_VIEW_MIN)
         area = p_cam[:, 2] ** 2 * rays[sel, 2] / (cam.fx * cam.fy * cos_view)
@@ -122,7 +134,7 @@ class SimScene:
         lit[lit] &= ~self._shadowed(p_obj[lit], n_obj[lit], to_light[lit] @ turn)
         e = np.where(lit, cos_in * (rig.reference_distance / dist) ** 2, 0.0)
 
-        mat = self.obj.shade(p_obj)
+        mat = self._shade(p_obj, on_object)
         mfp = mat.mfp * rig.sss_scale
         rate = burley_scale(mat.albedo) / mfp
 
@@ -133,6 +145,7 @@ class SimScene:
 
         nan = np.nan
         self.mask = to_map(np.ones(len(sel), bool), False)
+        self.object_mask = to_map(on_object, False)
         self.points = to_map(p_cam.astype(np.float32), nan)
         self.normals = to_map(n_cam.astype(np.float32), nan)
         self.area = to_map(area.astype(np.float32), nan)
@@ -149,11 +162,21 @@ class SimScene:
         self.cos_view = to_map(cos_view.astype(np.float32), nan)
 
     def _shadowed(self, p_obj: np.ndarray, n_obj: np.ndarray, light_obj: np.ndarray) -> np.ndarray:
-        """Shadow rays toward the projector (object space), sphere-traced out of the bounding sphere."""
+        """Shadow rays toward the projector (object space), sphere-traced through the object's bounding sphere
+        (from the surface for the object's own points, from where they enter it for the backdrop's)."""
         origins = p_obj + SHADOW_OFFSET * n_obj
-        _, t1, _ = g.ray_sphere(origins, light_obj, self.obj.radius)
-        _, blocked = g.sphere_trace(self.obj.sdf, origins, light_obj, np.full(len(p_obj), SHADOW_OFFSET), t1)
-        return blocked
+        t0, t1, meets = g.ray_sphere(origins, light_obj, self.obj.radius)
+        t0 = np.maximum(t0, SHADOW_OFFSET)
+        return g.sphere_trace(self.obj.sdf, origins, light_obj, np.where(meets, t0, np.inf), t1)[1]
+
+    def _shade(self, p_obj: np.ndarray, on_object: np.ndarray) -> MaterialSample:
+        """Materials of the (N, 3) object-space surface points: the object's, the backdrop's off it."""
+        mat = self.obj.shade(p_obj[on_object])
+        if on_object.all():
+            return mat
+        wall = uniform(MATERIALS["backdrop"])(p_obj[~on_object])
+        return MaterialSample(*(np.concatenate([a, b]) for a, b in zip(
+            (mat.albedo, mat.mfp, mat.rho_s, mat.label), (wall.albedo, wall.mfp, wall.rho_s, wall.label), strict=True)))
 
     # --- light transport -----------------------------------------------------------------------
 

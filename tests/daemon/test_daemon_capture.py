@@ -362,7 +362,7 @@ def test_a_colour_reference_file_is_captured_and_evaluated_with_the_named_ones(d
 @pytest.mark.parametrize("extra, message", [
     ("[projector]\ngamma = true\n", r"\[projector\] gamma must be a number"),  # true was read as gamma 1.0
     ("[projector]\nblack = false\n", r"\[projector\] black must be a number"),
-    ("[options]\nwidth = 0\nheight = 0\n", r"unknown sim rig \[options\] height, width \(known: anisotropy, demosaic"),
+    ("[options]\nwidth = 0\nheight = 0\n", r"unknown sim rig \[options\] height, width \(known: anisotropy, backdrop, demosaic"),
     ("[options]\nread_nosie = 4\n", r"unknown sim rig \[options\] read_nosie"),  # a typo ran with the default
 ])
 def test_rig_file_values_the_capture_would_have_ignored_or_misread_are_refused(tmp_path, extra, message):

@@ -180,3 +180,43 @@ def test_irradiance_follows_incidence_and_distance(apple):
     expected = cos_in * (apple.rig.reference_distance / dist) ** 2
     np.testing.assert_allclose(apple.irradiance[lit], expected, rtol=1e-4)
     assert (apple.irradiance[apple.mask & ~lit] == 0).all() and (apple.irradiance[lit] > 0).all()
+
+
+def test_backdrop_is_an_opaque_wall_the_object_shadows(apple):
+    from dataclasses import replace
+
+    scene = SimScene("apple", rig=replace(apple.rig, backdrop=80.0))
+    wall = scene.mask & ~scene.object_mask
+    assert (scene.object_mask == apple.mask).all() and wall.sum() > apple.mask.sum()
+    assert np.allclose(scene.points[wall][:, 2], apple.rig.turntable_centre[2] + 80.0)
+    white = scene.render(np.ones((1,) + scene.shape_projector, np.float32))[0]
+    alone = apple.render(np.ones((1,) + apple.shape_projector, np.float32))[0]
+    assert np.allclose(white[apple.mask], alone[apple.mask], rtol=1e-5, atol=1e-7)  # no light crosses the gap
+    # the wall's light leaves where it enters: its footprints are deltas of albedo times irradiance
+    ys, xs = np.nonzero(wall & scene.lit)
+    pick = np.linspace(0, len(ys) - 1, 40).astype(int)
+    fp = scene.footprints(np.stack([ys[pick], xs[pick]], 1))
+    k = fp.shape[1] // 2
+    expected = np.asarray(MATERIALS["backdrop"].albedo)[None] * scene.irradiance[ys[pick], xs[pick], None]
+    assert np.allclose(fp[:, k, k], expected, rtol=1e-4) and np.allclose(fp.sum(axis=(1, 2)), fp[:, k, k])
+    # the object shadows the wall: wall points inside the projector's image that get no light, and stay dark
+    proj = scene.rig.projector
+    xy = proj.project(proj.to_projector(scene.points[wall]))
+    framed = (xy[:, 0] > 0) & (xy[:, 0] < proj.width - 1) & (xy[:, 1] > 0) & (xy[:, 1] < proj.height - 1)
+    shadow = np.zeros_like(wall)
+    shadow[wall] = framed & ~scene.lit[wall]
+    assert shadow.sum() > 100
+    assert np.median(white[shadow]) < 0.05 * np.median(white[wall & scene.lit])
+
+
+def test_backdrop_distance_is_checked():
+    from dataclasses import replace
+
+    from sssphase_core.sim import rig_from_options, rig_preset
+
+    assert rig_from_options({"backdrop": 120}).backdrop == 120.0
+    for bad in (10.0, float("nan"), 5000.0):
+        with pytest.raises(InputError, match="backdrop"):
+            replace(rig_preset("cpu"), backdrop=bad)
+        with pytest.raises(InputError, match="sim option backdrop must be a number in"):
+            rig_from_options({"backdrop": bad})
