@@ -10,7 +10,8 @@ Rig options (all optional): ``object`` (catalogue name, default "apple"), ``pres
 ``seed``, ``n_views``, ``view``, ``latency_s`` (projector), ``frame_period_s``, ``realtime`` (sleep
 for the simulated times), ``projector_gamma`` / ``projector_black`` (a projector response other than
 the preset's, for calibration), ``transport`` (``burley``, ``directional_dipole`` or ``radiative``; ``anisotropy``, the radiative media's phase-function g),
-``backdrop`` (mm: a matte grey wall that far behind the turntable centre, facing the camera), the camera's
+``backdrop`` (mm: a matte grey wall that far behind the turntable centre, facing the camera), ``mfp_skew`` (the
+objects' red mean free paths times it, their blue ones over it: materials of other spectral shapes), the camera's
 ``lens_blur`` (px), ``read_noise`` (e-), ``white_fraction`` (exposure) and ``demosaic`` (``malvar`` or
 ``opencv``, or ``none`` for a three-chip camera without a colour filter array; see ``sim.rig.with_camera``),
 ``raw`` (Bayer frames; not for a three-chip camera), ``device`` (``cpu``, or ``cuda[:N]``/``auto``: the

@@ -65,6 +65,8 @@ TRANSPORTS = ("burley", "directional_dipole", "radiative")
 ANISOTROPY_RANGE = (0.0, 0.85)
 #: Accepted backdrop distances (mm behind the turntable centre): beyond the catalogue's 55 mm bounding spheres.
 BACKDROP_RANGE = (60.0, 1000.0)
+#: Accepted spectral skews of the objects' mean free paths (``RigConfig.mfp_skew``).
+MFP_SKEW_RANGE = (0.25, 4.0)
 
 
 @dataclass(frozen=True)
@@ -87,6 +89,9 @@ class RigConfig:
     #: distance (mm) behind the turntable centre of a matte grey wall facing the camera (``backdrop`` material);
     #: None: the objects float in the dark
     backdrop: float | None = None
+    #: the objects' red mean free paths times this and their blue ones divided by it (green kept): materials of
+    #: another spectral shape than the catalogue's (skin's red reaches ~2-3 x its blue)
+    mfp_skew: float = 1.0
 
     def __post_init__(self) -> None:
         if self.transport not in TRANSPORTS:
@@ -94,6 +99,8 @@ class RigConfig:
         if self.backdrop is not None and not BACKDROP_RANGE[0] <= self.backdrop <= BACKDROP_RANGE[1]:  # NaN fails too
             raise InputError(f"the backdrop must be {BACKDROP_RANGE[0]:g} to {BACKDROP_RANGE[1]:g} mm behind the turntable "
                              f"centre (behind any catalogue object), got {self.backdrop!r}")
+        if not MFP_SKEW_RANGE[0] <= self.mfp_skew <= MFP_SKEW_RANGE[1]:  # NaN fails too
+            raise InputError(f"mfp_skew must be in [{MFP_SKEW_RANGE[0]:g}, {MFP_SKEW_RANGE[1]:g}], got {self.mfp_skew!r}")
         if not ANISOTROPY_RANGE[0] <= self.anisotropy <= ANISOTROPY_RANGE[1]:  # NaN fails too
             raise InputError(f"anisotropy (the phase function's mean cosine) must be in [{ANISOTROPY_RANGE[0]:g}, "
                              f"{ANISOTROPY_RANGE[1]:g}], got {self.anisotropy!r}")
@@ -207,7 +214,7 @@ FAULT_OPTIONS = frozenset({"fail_at_frame", "disconnect_at_frame", "stall_at_fra
 #: torch device, ``sssphase_core.sim_accel``): a session resumes across them.
 COMPUTE_OPTIONS = frozenset({"device"})
 SIM_RIG_OPTIONS = frozenset({"object", "preset", "seed", "n_views", "view", "latency_s", "frame_period_s", "realtime",
-                             "projector_gamma", "projector_black", "transport", "anisotropy", "backdrop", "demosaic", "raw", "fail_at_frame",
+                             "projector_gamma", "projector_black", "transport", "anisotropy", "backdrop", "mfp_skew", "demosaic", "raw", "fail_at_frame",
                              "disconnect_at_frame", "stall_at_frame", "garbage_at_frame",
                              "grab_delay_s", "frame_timeout_s", "shape", "dtype", *SENSOR_OPTIONS, *COMPUTE_OPTIONS})
 
@@ -243,6 +250,8 @@ def rig_from_options(options: Mapping[str, Any]) -> RigConfig:
     rig = with_transport(rig, options.get("transport"), _option(options, "anisotropy", *ANISOTROPY_RANGE))
     if (backdrop := _option(options, "backdrop", *BACKDROP_RANGE)) is not None:
         rig = replace(rig, backdrop=backdrop)
+    if (skew := _option(options, "mfp_skew", *MFP_SKEW_RANGE)) is not None:
+        rig = replace(rig, mfp_skew=skew)
     return with_camera(rig, options)
 
 

@@ -135,7 +135,8 @@ class SimScene:
         e = np.where(lit, cos_in * (rig.reference_distance / dist) ** 2, 0.0)
 
         mat = self._shade(p_obj, on_object)
-        mfp = mat.mfp * rig.sss_scale
+        skew = np.array([rig.mfp_skew, 1.0, 1.0 / rig.mfp_skew])
+        mfp = mat.mfp * rig.sss_scale * np.where(on_object[:, None], skew, 1.0)
         rate = burley_scale(mat.albedo) / mfp
 
         def to_map(values: np.ndarray, fill: float) -> np.ndarray:

@@ -220,3 +220,23 @@ def test_backdrop_distance_is_checked():
             replace(rig_preset("cpu"), backdrop=bad)
         with pytest.raises(InputError, match="sim option backdrop must be a number in"):
             rig_from_options({"backdrop": bad})
+
+
+def test_mfp_skew_stretches_red_and_shrinks_blue_scattering(apple):
+    from dataclasses import replace
+
+    from sssphase_core.sim import rig_from_options
+
+    skewed = SimScene("apple", rig=replace(apple.rig, mfp_skew=2.0))
+    m = apple.mask
+    assert np.allclose(skewed.mfp[m], apple.mfp[m] * np.array([2.0, 1.0, 0.5]), rtol=1e-5)
+    assert np.allclose(skewed.albedo[m], apple.albedo[m])
+    pix = np.argwhere(apple.lit)[::500]
+    wide, nominal = skewed.footprints(pix), apple.footprints(pix)
+    k = nominal.shape[1] // 2
+    share = lambda fp: fp[:, k, k] / fp.sum(axis=(1, 2))  # noqa: E731  # the light that stays in its pixel
+    assert (share(wide)[:, 0] <= share(nominal)[:, 0] + 1e-6).all() and (share(wide)[:, 2] >= share(nominal)[:, 2] - 1e-6).all()
+    assert rig_from_options({"mfp_skew": 0.5}).mfp_skew == 0.5
+    for bad in (0.1, float("nan"), 10.0):
+        with pytest.raises(InputError, match="mfp_skew"):
+            rig_from_options({"mfp_skew": bad})
