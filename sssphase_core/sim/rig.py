@@ -90,7 +90,7 @@ class RigConfig:
     #: None: the objects float in the dark
     backdrop: float | None = None
     #: the objects' red mean free paths times this and their blue ones divided by it (green kept): materials of
-    #: another spectral shape than the catalogue's (skin's red reaches ~2-3 x its blue)
+    #: another spectral shape than the catalogue's
     mfp_skew: float = 1.0
 
     def __post_init__(self) -> None:
