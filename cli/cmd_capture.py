@@ -57,9 +57,6 @@ def capture(
         anisotropy=anisotropy, backdrop=backdrop, device=device, on_drawn=lambda drawn: console.print("randomised sim rig: " + ", ".join(
             f"{k} {v}" for k, v in drawn.items() if k != "transport" or not transport)))
 
-    def ask_move(view: int, angle: float) -> None:
-        typer.confirm(f"turn the object to view {view} ({angle:.0f} deg) and press enter", default=True)
-
     columns = (TextColumn("{task.description}"), BarColumn(), MofNCompleteColumn(), TimeRemainingColumn())
     try:
         with _local_daemon(timeout) as client, ExitStack() as stack:
@@ -73,12 +70,17 @@ def capture(
                     tasks[view] = bars[0].add_task(f"view {view + 1}/{views}", total=total)
                 bars[0].update(tasks[view], completed=done)
 
-            session = run_capture(client, req, spec, progress=progress, ask_move=None if spec.turntable else ask_move)
+            session = run_capture(client, req, spec, progress=progress, ask_move=None if spec.turntable else _ask_move)
     except KeyboardInterrupt:
         # cli.main ignores the exit code typer returns for Ctrl-C, so leave with it here
         Console(stderr=True, soft_wrap=True).print("[yellow]interrupted[/]: complete views are kept; rerun with --resume to continue")
         sys.exit(130)
     console.print(f"session {session.path}: {len(session.views())}/{views} views complete")
+
+
+def _ask_move(view: int, angle: float) -> None:
+    """A rig without a turntable: the user turns the object."""
+    typer.confirm(f"turn the object to view {view} ({angle:.0f} deg) and press enter", default=True)
 
 
 def _local_daemon(timeout: float):

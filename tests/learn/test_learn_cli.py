@@ -253,7 +253,7 @@ def test_compare_names_that_are_not_plain_or_new_are_refused_first(item, tmp_pat
     (["train", "pretrain", "--warmup-epochs", "-1"], "error: --warmup-epochs must be a finite number >= 0, got -1.0"),
     # -1 silently meant no auxiliary head; 1 is a one-class "classification" that never learns anything
     (["train", "decoder", "--end-to-end", "--aux-classes", "-1"],
-     "error: --aux-classes must be 0 (no auxiliary material head) or a number of material classes from 2 to 24"),
+     "error: --aux-classes must be 0 (no auxiliary material head) or a number of material classes from 2 to 25"),
     (["train", "decoder", "--end-to-end", "--aux-classes", "1"], "the simulator's materials, which label the data), got 1"),
     (["train", "decoder", "--end-to-end", "--aux-classes", "1000000000000"], "got 1000000000000"),  # was: out of memory
     (["train", "pretrain", "--lr", "1e12"], "error: --lr must be at most 10, got 1e+12"),  # a silent no-op run (decoder)
