@@ -107,8 +107,7 @@ class SimScene:
         n_cam = n_obj @ turn.T
         on_object = np.ones(len(sel), bool)
         if rig.backdrop is not None:  # the rays that miss the object meet the wall z = centre z + backdrop
-            wall = np.setdiff1d(np.arange(len(rays)), sel)
-            wall = wall[rays[wall, 2] > 0]
+            wall = np.setdiff1d(np.arange(len(rays)), sel)  # (every pinhole ray runs along +z)
             pw = rays[wall] * ((centre[2] + rig.backdrop) / rays[wall, 2])[:, None]
             sel = np.concatenate([sel, wall])
             p_cam = np.concatenate([p_cam, pw])
@@ -171,13 +170,18 @@ class SimScene:
         return g.sphere_trace(self.obj.sdf, origins, light_obj, np.where(meets, t0, np.inf), t1)[1]
 
     def _shade(self, p_obj: np.ndarray, on_object: np.ndarray) -> MaterialSample:
-        """Materials of the (N, 3) object-space surface points: the object's, the backdrop's off it."""
-        mat = self.obj.shade(p_obj[on_object])
+        """Materials of the (N, 3) object-space surface points: the object's where ``on_object`` (N,), the
+        backdrop's elsewhere."""
         if on_object.all():
-            return mat
-        wall = uniform(MATERIALS["backdrop"])(p_obj[~on_object])
-        return MaterialSample(*(np.concatenate([a, b]) for a, b in zip(
-            (mat.albedo, mat.mfp, mat.rho_s, mat.label), (wall.albedo, wall.mfp, wall.rho_s, wall.label), strict=True)))
+            return self.obj.shade(p_obj)
+        parts = ((on_object, self.obj.shade(p_obj[on_object])), (~on_object, uniform(MATERIALS["backdrop"])(p_obj[~on_object])))
+        fields = {}
+        for name in ("albedo", "mfp", "rho_s", "label"):
+            like = getattr(parts[0][1], name)
+            fields[name] = np.empty((len(p_obj),) + like.shape[1:], like.dtype)
+            for where, sample in parts:
+                fields[name][where] = getattr(sample, name)
+        return MaterialSample(**fields)
 
     # --- light transport -----------------------------------------------------------------------
 
