@@ -50,6 +50,9 @@ EvalCacheOpt = Annotated[bool, typer.Option(help="Keep the models' footprints in
                                             "start from those `sss train decoder --check-sessions` kept for the same view and checkpoint.")]
 FormatOpt = Annotated[str, typer.Option("--format", help="png (16-bit linear, clips at 1.0), exr (float32 "
                                         "linear, unclipped) or png,exr.")]
+WidenOpt = Annotated[float | None, typer.Option(min=1.01, max=4.0, help="Let the view calibration also widen each model's "
+                                               "footprints: each is blended, by the view's own fringes, with itself "
+                                               "stretched this many times (e.g. 1.3; default: it can only narrow them).")]
 CalibrateOpt = Annotated[bool, typer.Option(help="Mix a model's footprints with no scattering by the weight that relights "
                                             "the view's own fringe captures best (--no-calibrate: the model alone).")]
 
@@ -91,6 +94,7 @@ def relight_cmd(
     device: DeviceOpt = "cpu",
     cache: CacheOpt = True,
     image_format: FormatOpt = "png",
+    widen: WidenOpt = None,
 ) -> None:
     """Relight a captured object under new projector patterns (several patterns share one footprint pass)."""
     from sssphase_core.relight.choices import uses_decoder
@@ -100,7 +104,7 @@ def relight_cmd(
     for name in names:  # (a listed backend without the decoder is not told that the checkpoint is unused)
         own = checkpoint if len(names) == 1 or uses_decoder(name) else None
         relight_session(session, pattern, backend=name, checkpoint=own, out=out, views=views, resize=resize,
-                        chunk=chunk, device=device, cache=cache, formats=image_format, narrator=_Narrator())
+                        chunk=chunk, device=device, cache=cache, formats=image_format, widen=widen, narrator=_Narrator())
 
 
 def geometry_cmd(
@@ -134,12 +138,13 @@ def eval_relight(
     device: str = "cpu",
     calibrate: CalibrateOpt = True,
     cache: EvalCacheOpt = True,
+    widen: WidenOpt = None,
 ) -> None:
     """Relight every reference pattern of the sessions and tabulate MSE / PSNR / SSIM over objects and views."""
     from sssphase_core.relight.runner import evaluate_sessions
 
     evaluate_sessions(sessions, backend=backend, checkpoint=checkpoint, views=views, out=out, device=device,
-                      calibrate=calibrate, cache=cache, narrator=_Narrator())
+                      calibrate=calibrate, cache=cache, widen=widen, narrator=_Narrator())
 
 
 def _names(text: str, option: str) -> tuple[str, ...]:

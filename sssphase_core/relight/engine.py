@@ -273,8 +273,11 @@ def relight(
     radius: int | None = None,
     method: str = "auto",
     progress: Callable[[int, int], None] | None = None,
+    variants: Sequence[Callable[[torch.Tensor], torch.Tensor]] = (),
 ) -> np.ndarray:
-    """Relight one view under P projector patterns in one fused, chunked pass -> (P, H, W, 3) float32.
+    """Relight one view under P projector patterns in one fused, chunked pass -> (P, H, W, 3) float32, or with
+    ``variants`` (V, P, H, W, 3): the footprints as the source gives them, then each variant's transform of them
+    ((n, K, K, 3) -> (n, K, K, 3), e.g. :func:`widened`), all splatted from one call of the source per chunk.
 
     ``white`` (the image under a full-white pattern, linear units) supplies the projector black
     level's contribution; without it the black level is ignored. ``dtype`` is the precision the
@@ -296,7 +299,7 @@ def relight(
         fetch = lambda sl: source(pixels[sl])  # noqa: E731
     h, w = proj.shape
     k = patch if radius is None or radius >= patch // 2 else 2 * radius + 1
-    splat = Splatter(h, w, k, light.shape[0], device=device, method=method)
+    splats = [Splatter(h, w, k, light.shape[0], device=device, method=method) for _ in range(1 + len(variants))]
     total, n_bad, bad_pixels = len(pixels), 0, 0
     for start in range(0, total, chunk):
         sl = slice(start, min(start + chunk, total))
@@ -314,13 +317,32 @@ def relight(
                                 f"of the {total} lit pixels ({bad_pixels} so far): the model is broken (a checkpoint whose "
                                 "weights overflow?), and nothing it relit can be used")
             fp = torch.where(bad, torch.zeros((), dtype=fp.dtype, device=fp.device), fp)
-        fp = fp.to(dtype)
-        splat.add(pixels[sl], fp, torch.as_tensor(c[sl], device=device).to(dtype))
+        light_sl = torch.as_tensor(c[sl], device=device).to(dtype)
+        splats[0].add(pixels[sl], fp.to(dtype), light_sl)
+        for splat, variant in zip(splats[1:], variants, strict=True):
+            splat.add(pixels[sl], variant(fp).to(dtype), light_sl)
         if progress is not None:
             progress(sl.stop, total)
     if n_bad:
         warnings.warn(f"{n_bad} non-finite footprint values from the footprint source were set to 0", RuntimeWarning, stacklevel=2)
-    out = splat.result()
+    outs = [splat.result() for splat in splats]
     if white is not None and proj.black > 0:
-        out += np.float32(proj.black) * np.asarray(white, np.float32)[None]
-    return out
+        for out in outs:
+            out += np.float32(proj.black) * np.asarray(white, np.float32)[None]
+    return np.stack(outs) if variants else outs[0]
+
+
+def widened(footprints: torch.Tensor, factor: float) -> torch.Tensor:
+    """(N, K, K, 3) footprints stretched radially about their centre pixel ``K // 2`` by ``factor`` (bilinear
+    resampling; light beyond the window is lost), each colour's energy kept -> (N, K, K, 3). Linear in the footprints
+    up to that energy rescaling."""
+    f = footprints.float().permute(0, 3, 1, 2)  # (N, 3, K, K)
+    n, _, k, _ = f.shape
+    at = (torch.arange(k, dtype=torch.float32, device=f.device) - k // 2) / float(factor) + k // 2
+    g = at / (k - 1) * 2 - 1  # grid_sample's [-1, 1] over pixel centres (align_corners)
+    gy, gx = torch.meshgrid(g, g, indexing="ij")
+    grid = torch.stack([gx, gy], dim=-1)[None].expand(n, k, k, 2)
+    out = torch.nn.functional.grid_sample(f, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
+    had, has = f.sum(dim=(2, 3), keepdim=True), out.sum(dim=(2, 3), keepdim=True)
+    out = out * torch.where(has > 0, had / torch.where(has > 0, has, torch.ones_like(has)), torch.ones_like(has))
+    return out.permute(0, 2, 3, 1).to(footprints.dtype)

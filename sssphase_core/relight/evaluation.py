@@ -138,13 +138,14 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     names = sorted(rv.references)
     t0 = time.perf_counter()
     calibrate = bool(options.pop("calibrate", True)) and backend not in MODEL_FREE
+    widen = options.pop("widen", None)  # relight_view's: the calibration may widen the footprints too
     sources = make_sources(backend, rv, checkpoint=checkpoint, device=device, **options)
     caches = footprint_caches(rv, backend, sources, Path(out_dir), checkpoint) if cache and not options else []
     if caches:
         sources = [(c, k) for c, (_, k) in zip(caches, sources, strict=True)]
     (source, patch), *also = sources
     relit, mix = relight_view(source, patch, rv, [rv.references[n] for n in names], calibrate=calibrate, also=also,
-                              chunk=chunk, device=device, progress=progress)
+                              chunk=chunk, device=device, progress=progress, widen=widen if calibrate else None)
     for c in caches:
         c.save()
     seconds = time.perf_counter() - t0

@@ -3,6 +3,7 @@ in one footprint pass, blends included; and its fast twin from cached eigen-foot
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -15,16 +16,19 @@ from sssphase_core.relight.calibration import (
     local_mixture,
     model_inputs,
 )
-from sssphase_core.relight.engine import FootprintSource, relight
+from sssphase_core.relight.engine import FootprintSource, relight, widened
 from sssphase_core.relight.lowrank import LowRankFootprints
 from sssphase_core.relight.sources import no_scattering_source
 from sssphase_core.relight.views import RelightView
+
+#: The largest stretch :func:`relight_view` gives each model's twin (``widen``).
+WIDEN_MAX = 4.0
 
 
 def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns: list[np.ndarray], *,
                  calibrate: bool, also: Sequence[tuple[FootprintSource, int]] = (), chunk: int = 2048,
                  device: str = "cpu", progress: Callable[[int, int], None] | None = None,
-                 calibration: list[tuple[np.ndarray, np.ndarray]] | None = None
+                 calibration: list[tuple[np.ndarray, np.ndarray]] | None = None, widen: float | None = None
                  ) -> tuple[np.ndarray, np.ndarray | None]:
     """Relight a view under ``patterns`` (P of (Hp, Wp[, 3])) with an uncalibrated ``source``
     (``make_source(..., calibrate=False)``) -> ((P, H, W, 3) images, view-wide per-colour mix (3,) or None).
@@ -42,27 +46,40 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
 
     ``calibration``: a list that receives the fit's (per-pixel weights (S, H, W, 3), view-wide weights (S, 3), each
     source's gain (S, H, W, 3), the no-scattering term's white (H, W, 3)), which relight any other pattern the same
-    way (:func:`relight_lowrank`).
+    way (:func:`relight_lowrank`); not filled with ``widen``.
+
+    ``widen`` (> 1, with ``calibrate``): each source's footprints stretched by that factor
+    (:func:`~sssphase_core.relight.engine.widened`, splatted in the same pass) join the fit as one more member beside
+    it, so that the view's fringes can widen a model's footprints where they ask for it, not only narrow them toward
+    no scattering; the view-wide mix returned gives each source its own and its stretched twin's weights together.
     """
     calibrate = calibrate and rv.psp_patterns is not None
     if also and not calibrate:
         raise InputError(f"{rv.object} view {rv.view}: blending sources needs the view calibration (the projector "
                          "patterns of its PSP captures, and calibration on)")
+    if widen is not None and not (1.0 < widen <= WIDEN_MAX):
+        raise InputError(f"widen {widen}: the stretch of each model's twin must be above 1 and at most {WIDEN_MAX:g}")
     n = len(patterns)
     every = list(patterns) + (list(rv.psp_patterns) if calibrate else [])
     under_white = [full_white(*rv.proj.projector_size)] if calibrate else []  # (white_consistent reads it)
+    twins = (functools.partial(widened, factor=float(widen)),) if calibrate and widen else ()
     relits = [relight(src, rv.proj, every + under_white, k, white=rv.white, chunk=chunk, device=device,
-                      progress=progress) for src, k in ((source, patch), *also)]
+                      progress=progress, variants=twins) for src, k in ((source, patch), *also)]
     if not calibrate:
         return relits[0], None
+    if twins:  # each source's images, then its stretched twin's: members of the fit in that order
+        relits = [member for pair in relits for member in pair]
     relits, gains = zip(*(white_consistent(rv, r) for r in relits), strict=True)
     psp, lost = model_inputs(rv)
     none = relight(no_scattering_source(exit_white(rv)), rv.proj, every, 1, white=rv.white)
     # each source's weight refined pixel by pixel where the view's own fringes say so
     weights, view_weights = local_mixture(rv, [r[n:] for r in relits], none[n:], psp, lost)
-    if calibration is not None:
+    if calibration is not None and not twins:
         calibration.append((weights, view_weights, np.stack(gains), exit_white(rv)))
-    return mix_images(none[:n], [r[:n] for r in relits], weights), (view_weights[0] if not also else view_weights)
+    images = mix_images(none[:n], [r[:n] for r in relits], weights)
+    if twins:
+        view_weights = view_weights.reshape(-1, 2, 3).sum(axis=1)
+    return images, (view_weights[0] if not also else view_weights)
 
 
 def white_consistent(rv: RelightView, relit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

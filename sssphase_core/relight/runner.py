@@ -227,6 +227,12 @@ class RelightResult:
     mixes: dict[int, np.ndarray | None] = field(default_factory=dict)
 
 
+def widen_line(widen: float) -> str:
+    """The line that says the view calibration may widen the models' footprints (``--widen``)."""
+    return (f"calibration: each model's footprints also join the view's fit stretched {widen:g} x, so that its fringes "
+            "can widen them as well as narrow them (--widen)")
+
+
 def resolve_backend(backend: str, checkpoint: Path | str | None, narrator: Narrator | None = None
                     ) -> tuple[str, Path | None]:
     """``(backend, checkpoint)`` checked before any work: a run folder's best checkpoint, ``auto`` as the
@@ -294,13 +300,13 @@ def _check_relight_options(out: Path, patterns: Sequence[str], resize: str, form
 def relight_session(session: Path | str | Session, patterns: Sequence[str], *, backend: str = "auto",
                     checkpoint: Path | str | None = None, out: Path | str = Path("relit"),
                     views: str | Sequence[int] | None = "", resize: str = "", chunk: int = 1024, device: str = "cpu",
-                    cache: bool = True, formats: str | Sequence[str] = "png",
+                    cache: bool = True, formats: str | Sequence[str] = "png", widen: float | None = None,
                     narrator: Narrator | None = None) -> RelightResult:
     """Relight a session's views under ``patterns`` (image files, the session's reference names or named
     patterns) with ``backend`` (``auto``: blend with a ``checkpoint``, else analytic) and write the images
     to ``out`` as ``<object>_v<view>_<pattern>_<backend>.png`` / ``.exr`` (``formats``), with a comparison
     figure and scores wherever the view holds a reference capture of the same pattern. Model footprints
-    are cached in ``out/cache`` (``cache``) for later patterns."""
+    are cached in ``out/cache`` (``cache``) for later patterns. ``widen``: :func:`relight_view`'s."""
     from sssphase_core.store.session import claim_output
 
     out, say = Path(out), narrator or Narrator()
@@ -320,20 +326,23 @@ def relight_session(session: Path | str | Session, patterns: Sequence[str], *, b
                                                  " (no --checkpoint: the analytic model; a trained decoder blends in)"))
             if ckpt is not None and uses_decoder(backend):
                 say.say(f"decoder: {ckpt}")
+            if widen and backend not in MODEL_FREE:
+                say.say(widen_line(widen))
         relit, result.mixes[v] = _relight_one(s, rv, pats, backend, ckpt, out, chunk=chunk, device=device,
-                                              cache=cache, say=say)
+                                              cache=cache, say=say, widen=widen)
         result.images += write_relit(rv, relit, result.patterns, pats, out, backend, chosen_formats, say)
     return result
 
 
 def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: str, checkpoint: Path | None,
-                 out: Path, *, chunk: int, device: str, cache: bool, say: Narrator) -> tuple[np.ndarray, np.ndarray | None]:
+                 out: Path, *, chunk: int, device: str, cache: bool, say: Narrator, widen: float | None = None
+                 ) -> tuple[np.ndarray, np.ndarray | None]:
     """One view relit (its footprints cached unless the source is the captured transport), its calibration
     and denoising told, its caches saved -> (images (P, H, W, 3), calibration weights or None).
 
     A model's relight also keeps the view's eigen-footprints and calibration (:mod:`~sssphase_core.relight.lowrank`);
     with them cached, later patterns are relit from those alone (seconds at 1080p, where the footprints
-    themselves outgrow any cache)."""
+    themselves outgrow any cache); not with ``widen``, whose calibration has twice the members."""
     from sssphase_core.processing.projector import emitted_light
     from sssphase_core.relight.backends import domain_line, make_sources
     from sssphase_core.relight.cache import CACHE_BYTES
@@ -343,7 +352,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
     from sssphase_core.relight.transport import DotTransport
 
     fast = lowrank_path(out, s, rv, backend, checkpoint)
-    saved = load_lowrank(fast, rv.proj.mask) if cache and backend not in MODEL_FREE else None
+    saved = load_lowrank(fast, rv.proj.mask) if cache and backend not in MODEL_FREE and not widen else None
     if saved is not None:
         return _relight_cached(rv, pats, backend, fast, saved, say)
     sources: list[tuple[FootprintSource, int]] = make_sources(backend, rv, checkpoint=checkpoint, device=device)
@@ -369,7 +378,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
     with say.bar():
         progress = say.task(f"{rv.object} view {rv.view}: {backend}")
         relit, mix = relight_view(source, patch, rv, pats, calibrate=backend not in MODEL_FREE, also=also, chunk=chunk,
-                                  device=device, progress=progress, calibration=calibration)
+                                  device=device, progress=progress, calibration=calibration, widen=widen)
     if mix is not None:
         say.say(mix_line(rv, backend, mix))
     for model, member in zip(models, members, strict=True):
@@ -587,7 +596,8 @@ def _eval_views(found: Sequence[Session], views: str | Sequence[int] | None, bac
 
 def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BACKENDS, checkpoint: Path | str | None = None,
                       views: str | Sequence[int] | None = "", out: Path | str = Path("eval_relight"), device: str = "cpu",
-                      calibrate: bool = True, cache: bool = True, narrator: Narrator | None = None) -> EvaluationResult:
+                      calibrate: bool = True, cache: bool = True, widen: float | None = None,
+                      narrator: Narrator | None = None) -> EvaluationResult:
     """Relight every reference pattern of the sessions (folders, or folders holding sessions) with each of
     ``backend``'s comma-separated backends and tabulate MSE / PSNR / SSIM over objects and views: figures
     and images in ``out``, ``relight_eval.json`` and ``.md``. The default backends leave ``measured`` out
@@ -608,6 +618,8 @@ def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BAC
     claim_output(out, found)  # figures are named by object: another session's of the same object are not replaced
     if checkpoint is not None and any(uses_decoder(b) for b in backends):
         say.say(f"torch backend: {checkpoint}")
+    if widen and calibrate:
+        say.say(widen_line(widen))
     rows: list[dict[str, Any]] = []
     with say.bar():
         for s in found:
@@ -617,10 +629,11 @@ def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BAC
                     warnings.warn(lost, UserWarning, stacklevel=2)
                 for b in backends:
                     rows += evaluate_view(rv, b, out, checkpoint=checkpoint, device=device, calibrate=calibrate,
-                                          cache=cache, progress=say.task(f"{rv.object} view {v}: {b}"))
+                                          cache=cache, widen=widen, progress=say.task(f"{rv.object} view {v}: {b}"))
     tables = [metrics_table(rows), metrics_table(rows, by=("object", "backend"), title="Relighting per object")]
     result = EvaluationResult(rows, backends, tables, out / "relight_eval.json", out / "relight_eval.md")
-    write_report({"rows": rows, "aggregate": aggregate(rows), "lpips": lpips_note()}, tables, result.json, md=result.md,
+    write_report({"rows": rows, "aggregate": aggregate(rows), "lpips": lpips_note(), "widen": widen if calibrate else None},
+                 tables, result.json, md=result.md,
                  title="Relighting against reference captures")
     say.say(tables[0].markdown())
     for r in dict.fromkeys((r["object"], r["view"], r["backend"], r["footprints_from_cache"]) for r in rows

@@ -461,3 +461,37 @@ def test_a_camera_coarser_than_the_projector_receives_the_mean_of_the_pixels_it_
     looked_up = relight(no_scattering_source(np.ones((h, w, 3), np.float32)), near, pats, 1)
     np.testing.assert_allclose(looked_up[..., 0].reshape(2, -1).T, sample_projector(
         pats[..., None].repeat(3, -1), near.xp.ravel(), near.yp.ravel())[..., 0], atol=1e-6)
+
+
+def test_variants_are_splatted_from_one_call_of_the_source_each_as_its_own_relight(scene):
+    from sssphase_core.relight.engine import widened
+
+    proj, k, fps, pats = scene
+    calls = []
+
+    def src(px):
+        calls.append(len(px))
+        return fps[px[:, 0], px[:, 1]]
+
+    both = relight(src, proj, pats, k, chunk=100, variants=(lambda f: widened(f, 1.5),))
+    assert both.shape == (2, len(pats), *proj.shape, 3) and sum(calls) <= proj.mask.sum()
+    np.testing.assert_allclose(both[0], relight(lambda px: fps[px[:, 0], px[:, 1]], proj, pats, k), rtol=1e-5, atol=1e-7)
+    stretched = lambda px: widened(torch.from_numpy(fps[px[:, 0], px[:, 1]]), 1.5).numpy()  # noqa: E731
+    np.testing.assert_allclose(both[1], relight(stretched, proj, pats, k), rtol=1e-5, atol=1e-7)
+
+
+def test_widened_footprints_keep_their_energy_and_spread_by_the_factor():
+    from sssphase_core.relight.engine import widened
+
+    k = 31
+    off = torch.arange(k, dtype=torch.float32) - k // 2
+    r2 = off[:, None] ** 2 + off[None, :] ** 2
+    sigma = torch.tensor([1.5, 2.0, 2.5])
+    fp = torch.exp(-r2[None, :, :, None] / (2 * sigma ** 2))  # (1, K, K, 3) Gaussians
+    np.testing.assert_allclose(widened(fp, 1.0), fp, atol=1e-6)  # factor 1: the footprints themselves
+    for factor in (1.3, 2.0, 0.7):
+        out = widened(fp, factor)
+        np.testing.assert_allclose(out.sum(dim=(1, 2)), fp.sum(dim=(1, 2)), rtol=1e-5)  # energy per colour kept
+        spread = (out * r2[None, :, :, None]).sum(dim=(1, 2)) / out.sum(dim=(1, 2))
+        np.testing.assert_allclose(spread.sqrt() / (2 ** 0.5 * sigma), factor, rtol=0.08)  # rms radius x factor
+    assert widened(torch.zeros(2, 5, 5, 3), 1.5).abs().sum() == 0 and torch.isfinite(widened(torch.zeros(2, 5, 5, 3), 1.5)).all()

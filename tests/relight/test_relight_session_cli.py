@@ -579,3 +579,51 @@ def test_several_backends_are_relit_in_one_command_and_a_bad_name_is_refused_bef
         res = runner.invoke(app, ["relight", str(session), "--pattern", "checkerboard", "--backend", backend, "--out", str(bad)])
         assert res.exit_code != 0 and said in str(res.exception), (backend, res.exception)
         assert not bad.exists() or not any(bad.rglob("*.png"))  # nothing relit before the refusal
+
+
+def test_the_calibration_widens_footprints_that_are_too_narrow_when_told_to(session):
+    """`relight_view(widen=S)`: each model's footprints, stretched S times in the same pass, join the fit, so the view's
+    fringes can widen a model, not only narrow it toward no scattering. The exact footprints made too narrow relight
+    the sand rake closer to its render with it; the mix returned is still one row per source; the factor is checked."""
+    import torch
+
+    from sssphase_core.errors import InputError
+    from sssphase_core.relight import make_source, relight_view
+    from sssphase_core.relight.engine import widened
+
+    rv = load_view(Session.open(session), 1)
+    exact, k = make_source("exact", rv)
+    calls = []
+
+    def narrow(pixels):
+        calls.append(len(pixels))
+        return widened(torch.as_tensor(np.asarray(exact(pixels), np.float32)), 0.5)
+
+    pats = [rv.references["checkerboard"], rv.references["stripes_x"]]
+    truth = [rv.captured["checkerboard"], rv.captured["stripes_x"]]
+    one_sided, mix = relight_view(narrow, k, rv, pats, calibrate=True)
+    calls.clear()
+    two_sided, mix2 = relight_view(narrow, k, rv, pats, calibrate=True, widen=2.0)
+    assert sum(calls) <= rv.proj.mask.sum()  # the twin is splatted from the same footprints
+    assert mix.shape == mix2.shape == (3,) and (mix2 > 0).all()
+    score = lambda imgs: np.mean([relight_metrics(i, t, rv.proj.mask)["psnr"] for i, t in zip(imgs, truth, strict=True)])  # noqa: E731
+    assert score(two_sided) > score(one_sided) + 0.5
+    for bad in (1.0, 0.8, 5.0):
+        with pytest.raises(InputError, match="widen"):
+            relight_view(narrow, k, rv, pats, calibrate=True, widen=bad)
+
+
+def test_relight_with_widen_says_so_and_keeps_no_eigen_footprints_of_another_calibration(session, tmp_path):
+    """`sss relight --widen`: one line says the calibration may widen the footprints; an eigen-footprint cache made
+    without it is not used, and none is kept with it (its calibration has twice the members)."""
+    base = ["relight", str(session), "--views", "1", "--pattern", "checkerboard", "--backend", "analytic", "--out", str(tmp_path)]
+    plain = runner.invoke(app, base)
+    assert plain.exit_code == 0, plain.output
+    assert list((tmp_path / "cache").glob("*_lowrank.npz")) and "stretched" not in plain.output
+    first = (tmp_path / "sand_rake_v1_checkerboard_analytic.png").read_bytes()
+    wide = runner.invoke(app, [*base, "--widen", "1.5"])
+    assert wide.exit_code == 0, wide.output
+    assert "stretched 1.5 x" in wide.output and "eigen-footprints" not in wide.output  # not relit from the cache
+    assert (tmp_path / "sand_rake_v1_checkerboard_analytic.png").read_bytes() != first
+    bad = runner.invoke(app, [*base, "--widen", "0.9"])
+    assert bad.exit_code != 0 and "--widen" in bad.output and "Traceback" not in bad.output
