@@ -16,7 +16,9 @@ truth, or from the other model:
 Every source goes through ``sss relight``'s own pipeline (:func:`~sssphase_core.relight.pipeline.relight_view`,
 calibrated as ``sss relight`` calibrates, and uncalibrated); PSNR (dB) against the simulator's render of each
 reference pattern on the decoded mask / >= 2 px inside it, averaged over the patterns, then the margin over the
-analytic model. Prints Markdown.
+analytic model. Prints Markdown. (`sss bench gap` swaps a model's parts for the truth's too, on the images relit
+without the white-consistent gain and its per-pixel fit; this script goes through ``sss relight``'s own pipeline and
+sets two models' ring profiles and angular detail against each other.)
 """
 
 from __future__ import annotations
@@ -27,34 +29,19 @@ from pathlib import Path
 
 import numpy as np
 
+from sssphase_core.bench.gap_bench import hybrid, ring_average
+
 Hybrid = Callable[[dict[str, np.ndarray]], np.ndarray]
-
-
-def ring_index(k: int) -> np.ndarray:
-    """(K, K) int: each pixel's distance from the centre pixel ``K // 2``, rounded."""
-    off = np.arange(k) - k // 2
-    return np.rint(np.hypot(off[:, None], off[None, :])).astype(np.int64)
-
-
-def ring_mean(fp: np.ndarray) -> np.ndarray:
-    """(N, K, K, 3) footprints with each 1 px ring's pixels replaced by the ring's mean light (the radial profile)."""
-    rings = ring_index(fp.shape[1])
-    out = np.empty_like(fp)
-    for r in range(int(rings.max()) + 1):
-        sel = rings == r
-        out[:, sel] = fp[:, sel].mean(axis=1, keepdims=True)
-    return out
 
 
 def with_energy(fp: np.ndarray, of: np.ndarray) -> np.ndarray:
     """(N, K, K, 3) ``fp`` scaled per footprint and colour to the energy of ``of`` (N, K, K, 3)."""
-    have, want = fp.sum(axis=(1, 2), keepdims=True), of.sum(axis=(1, 2), keepdims=True)
-    return fp * np.where(have > 0, want / np.where(have > 0, have, 1.0), 0.0)
+    return hybrid("energy", of, fp)
 
 
 def with_profile(fp: np.ndarray, of: np.ndarray) -> np.ndarray:
     """(N, K, K, 3) ``fp``'s angular detail on the ring profile of ``of``: ``fp`` times ``of``'s ring means over its own."""
-    mine, theirs = ring_mean(fp), ring_mean(of)
+    mine, theirs = ring_average(fp), ring_average(of)
     return fp * np.where(mine > 0, theirs / np.where(mine > 0, mine, 1.0), 0.0)
 
 

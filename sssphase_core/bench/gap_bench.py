@@ -35,7 +35,7 @@ from sssphase_core.relight.evaluation import SILHOUETTE_PX, edge_band
 HYBRIDS = ("energy", "shape", "centre", "angular")
 
 
-def _ring_average(fps: np.ndarray) -> np.ndarray:
+def ring_average(fps: np.ndarray) -> np.ndarray:
     """(N, K, K, 3) -> the same with each ring of integer radius around the centre replaced by its mean."""
     k = fps.shape[1]
     d = np.arange(k) - k // 2
@@ -69,7 +69,7 @@ def hybrid(name: str, model: np.ndarray, exact: np.ndarray, white: np.ndarray | 
         out[:, c : c + 1, c : c + 1] = ee * frac
         return out
     if name == "angular":
-        return _ring_average(exact)
+        return ring_average(exact)
     raise ValueError(name)
 
 

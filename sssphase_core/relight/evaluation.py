@@ -145,7 +145,7 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
         sources = [(c, k) for c, (_, k) in zip(caches, sources, strict=True)]
     (source, patch), *also = sources
     relit, mix = relight_view(source, patch, rv, [rv.references[n] for n in names], calibrate=calibrate, also=also,
-                              chunk=chunk, device=device, progress=progress, widen=widen if calibrate else None)
+                              chunk=chunk, device=device, progress=progress, widen=widen)
     for c in caches:
         c.save()
     seconds = time.perf_counter() - t0
