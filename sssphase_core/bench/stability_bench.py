@@ -89,6 +89,7 @@ def run_case(case: Case, backends: Sequence[str], checkpoint: Path | str | None 
     """Relit error and finiteness checks of one case for each backend."""
     from sssphase_core.processing.patterns import checkerboard
     from sssphase_core.relight.backends import MODEL_FREE, make_sources
+    from sssphase_core.relight.choices import widen_for
     from sssphase_core.relight.pipeline import relight_view
     from sssphase_core.sim import rig_preset
 
@@ -104,7 +105,9 @@ def run_case(case: Case, backends: Sequence[str], checkpoint: Path | str | None 
         pairs = [source_for(backend, sv, None)] if backend == "exact" else make_sources(backend, sv, checkpoint=checkpoint)
         checked = [(_FiniteCheck(src), k) for src, k in pairs]
         (source, patch), *also = checked
-        images, _ = relight_view(source, patch, sv, [pattern], calibrate=backend not in MODEL_FREE, also=also)
+        calibrate = backend not in MODEL_FREE  # and widened as `sss relight` widens the backend by default
+        images, _ = relight_view(source, patch, sv, [pattern], calibrate=calibrate, also=also,
+                                 widen=widen_for(backend, None) if calibrate else None)
         out = images[0]
         seconds = time.perf_counter() - t0
         ref = sv.captured["checkerboard"]

@@ -32,6 +32,22 @@ def check_backends(names: Sequence[str], checkpoint: Path | str | None) -> None:
         load_decoder(checkpoint)  # raises DataError naming what the file is, or weights that are not finite
 
 
+#: The stretch of each model's twin in the view calibration (``relight_view``'s ``widen``) for backends that run the
+#: decoder, unless the user gives one (``--widen``; 1: none). A decoder's footprint widths are a prediction, too narrow
+#: on materials wider than its training objects' (the simulator's unseen hand: its red 1.5 dB below the analytic
+#: model's, +0.5 above it with the twin), and the calibration without the twin can only narrow them; the analytic
+#: model's widths are fitted to the view's own fringes. Measured in docs/benchmarks/relighting.md.
+DECODER_WIDEN = 1.3
+
+
+def widen_for(backend: str, widen: float | None) -> float | None:
+    """The stretch of the calibration's twins for ``backend``: ``widen`` as given (1: none), or by default
+    :data:`DECODER_WIDEN` for backends that run the decoder and none for the others."""
+    if widen is None:
+        return DECODER_WIDEN if uses_decoder(backend) else None
+    return None if widen == 1 else float(widen)
+
+
 def uses_decoder(name: str) -> bool:
     """Whether backend ``name`` runs the decoder (``torch``, or a blend with it): it needs a checkpoint."""
     return name == "torch" or "torch" in BLENDS.get(name, ())

@@ -332,10 +332,10 @@ def relight(
     return np.stack(outs) if variants else outs[0]
 
 
-def widened(footprints: torch.Tensor, factor: float) -> torch.Tensor:
+def stretched(footprints: torch.Tensor, factor: float) -> torch.Tensor:
     """(N, K, K, 3) footprints stretched radially about their centre pixel ``K // 2`` by ``factor`` (bilinear
-    resampling; light beyond the window is lost), each colour's energy kept -> (N, K, K, 3). Linear in the footprints
-    up to that energy rescaling."""
+    resampling; light beyond the window is lost) -> (N, K, K, 3): linear in the footprints, so eigen-footprints
+    stretch as the footprints they span do (:meth:`~sssphase_core.relight.lowrank.LowRankFootprints.widened`)."""
     f = footprints.float().permute(0, 3, 1, 2)  # (N, 3, K, K)
     n, _, k, _ = f.shape
     at = (torch.arange(k, dtype=torch.float32, device=f.device) - k // 2) / float(factor) + k // 2
@@ -343,6 +343,12 @@ def widened(footprints: torch.Tensor, factor: float) -> torch.Tensor:
     gy, gx = torch.meshgrid(g, g, indexing="ij")
     grid = torch.stack([gx, gy], dim=-1)[None].expand(n, k, k, 2)
     out = torch.nn.functional.grid_sample(f, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
-    had, has = f.sum(dim=(2, 3), keepdim=True), out.sum(dim=(2, 3), keepdim=True)
+    return out.permute(0, 2, 3, 1)
+
+
+def widened(footprints: torch.Tensor, factor: float) -> torch.Tensor:
+    """(N, K, K, 3) footprints :func:`stretched` by ``factor``, each colour's energy kept -> (N, K, K, 3)."""
+    out = stretched(footprints, factor)
+    had, has = footprints.float().sum(dim=(1, 2), keepdim=True), out.sum(dim=(1, 2), keepdim=True)
     out = out * torch.where(has > 0, had / torch.where(has > 0, has, torch.ones_like(has)), torch.ones_like(has))
-    return out.permute(0, 2, 3, 1).to(footprints.dtype)
+    return out.to(footprints.dtype)

@@ -130,6 +130,7 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     images under ``out_dir`` if ``write``). ``cache``: a model's footprints are kept in ``out_dir/cache`` as
     ``sss relight`` keeps them (:func:`footprint_caches`), and read back by the next evaluation of the view."""
     from sssphase_core.relight.backends import MODEL_FREE, make_sources
+    from sssphase_core.relight.choices import widen_for
     from sssphase_core.relight.pipeline import relight_view
 
     if not rv.references:
@@ -138,7 +139,8 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     names = sorted(rv.references)
     t0 = time.perf_counter()
     calibrate = bool(options.pop("calibrate", True)) and backend not in MODEL_FREE
-    widen = options.pop("widen", None)  # relight_view's: the calibration may widen the footprints too
+    # relight_view's: the calibration may widen the footprints too (by default as `sss relight` does for the backend)
+    widen = widen_for(backend, options.pop("widen", None)) if calibrate else None
     sources = make_sources(backend, rv, checkpoint=checkpoint, device=device, **options)
     caches = footprint_caches(rv, backend, sources, Path(out_dir), checkpoint) if cache and not options else []
     if caches:

@@ -27,6 +27,7 @@ from sssphase_core.relight.engine import (
     footprint_array,
     pattern_stack,
     received_light,
+    stretched,
 )
 
 #: Footprints sampled from the view to find its basis, the largest rank, and the share of their energy
@@ -106,6 +107,20 @@ class LowRankFootprints:
             out += np.float32(proj.black) * np.asarray(white, np.float32)[None]
         return out
 
+    def widened(self, factor: float) -> LowRankFootprints:
+        """These footprints as :func:`~sssphase_core.relight.engine.widened` makes them (stretched ``factor`` x about
+        their pixel, each colour's energy kept): stretching is linear, so their eigen-footprints are the stretched
+        ``basis`` and each pixel's coefficients are scaled by its colours' energy before over after."""
+        import torch
+
+        k = self.basis.shape[-1]
+        flat = torch.from_numpy(np.ascontiguousarray(self.basis.transpose(1, 2, 3, 0)))  # (r, K, K, 3): one per component
+        basis = np.ascontiguousarray(stretched(flat, factor).numpy().transpose(3, 0, 1, 2), np.float32)  # (3, r, K, K)
+        had = np.einsum("ncr,cr->nc", self.coefficients, self.basis.reshape(3, -1, k * k).sum(-1))
+        has = np.einsum("ncr,cr->nc", self.coefficients, basis.reshape(3, -1, k * k).sum(-1))
+        scale = np.where(has > 0, had / np.where(has > 0, has, 1.0), 1.0).astype(np.float32)
+        return LowRankFootprints(basis, self.pixels, self.coefficients * scale[..., None], self.shape, self.residual)
+
     def arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
         """The arrays that :meth:`from_arrays` reads back (coefficients as float16)."""
         return {f"{prefix}basis": self.basis, f"{prefix}pixels": self.pixels.astype(np.int32),
@@ -180,9 +195,11 @@ class LowRankTap:
 #: (``calibration.exit_gain``) where the view records every colour; 3: that white is the nine-capture one
 #: (``calibration.exit_white``); 4: a digest of its arrays, so a damaged or edited file is recomputed instead of
 #: relighting wrong; 5: every view's weights are fitted on white-consistent images, a Bayer camera's too, and each
-#: member's gain and the no-scattering term's white are kept (a new pattern needs neither computed again). Files of
+#: member's gain and the no-scattering term's white are kept (a new pattern needs neither computed again); 6: the
+#: stretch of the calibration's twins (``relight_view``'s ``widen``, 0 for none) is kept, and the twins' weights and
+#: gains beside their members' (their eigen-footprints are the members' :meth:`LowRankFootprints.widened`). Files of
 #: earlier formats are not read.
-LOWRANK_FORMAT = 5
+LOWRANK_FORMAT = 6
 #: More members than any blend has: a file claiming more is damaged (and is not looped over).
 MAX_MEMBERS = 8
 
@@ -199,15 +216,17 @@ def _digest(arrays: dict[str, np.ndarray]) -> str:
 
 
 def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np.ndarray, view_weights: np.ndarray,
-                 gains: np.ndarray, white: np.ndarray, mask: np.ndarray) -> None:
+                 gains: np.ndarray, white: np.ndarray, mask: np.ndarray, widen: float | None = None) -> None:
     """One view's fast relight: each member's eigen-footprints, the view calibration's weights (S, H, W, 3) (float16)
     and view-wide ones (S, 3), each member's white-consistent gain ``gains`` (S, H, W, 3) and the no-scattering
     term's white ``white`` (H, W, 3) (``calibration.exit_gain``, ``exit_white``; both kept at the view's ``mask``
-    (H, W) pixels, where they differ from 1 and from the white capture), written atomically."""
+    (H, W) pixels, where they differ from 1 and from the white capture), written atomically. With ``widen`` the
+    calibration's S = 2 x len(members) members are each member and its twin stretched ``widen`` x, in that order."""
     from sssphase_core.store.files import atomic_path
 
     mask = np.asarray(mask, bool)
     arrays: dict[str, np.ndarray] = {"format": np.asarray(LOWRANK_FORMAT), "members": np.asarray(len(members)),
+                                     "widen": np.asarray(float(widen or 0.0)),
                                      "weights": weights.astype(np.float16),
                                      "view_weights": np.asarray(view_weights, np.float32),
                                      "gains": np.asarray(gains, np.float32)[:, mask],
@@ -219,11 +238,12 @@ def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np
         np.savez(tmp, **arrays)
 
 
-def load_lowrank(path: Path | str, mask: np.ndarray
+def load_lowrank(path: Path | str, mask: np.ndarray, widen: float | None = None
                  ) -> tuple[list[LowRankFootprints], np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
-    """:func:`save_lowrank`'s file for a view of decoded ``mask`` (H, W) -> (members, weights, view weights, gains
-    (S, n, 3) and white (n, 3) at the mask's n pixels); None when it is missing, damaged, of another view or of
-    another format (:data:`LOWRANK_FORMAT`; a cache only saves time)."""
+    """:func:`save_lowrank`'s file for a view of decoded ``mask`` (H, W) -> (the calibration's S members (with
+    ``widen``, each member followed by its stretched twin), weights, view weights, gains (S, n, 3) and white (n, 3)
+    at the mask's n pixels); None when it is missing, damaged, of another view, of another stretch or of another
+    format (:data:`LOWRANK_FORMAT`; a cache only saves time)."""
     import zipfile
 
     path = Path(path)
@@ -241,10 +261,13 @@ def load_lowrank(path: Path | str, mask: np.ndarray
     try:
         if str(arrays["digest"]) != _digest(arrays):  # damaged or edited since it was written: recompute
             return None
-        n = int(arrays["members"])
-        if not 1 <= n <= MAX_MEMBERS:
+        n, stretch = int(arrays["members"]), float(arrays["widen"])
+        if not 1 <= n <= MAX_MEMBERS or stretch != float(widen or 0.0):
             return None
         members = [LowRankFootprints.from_arrays(arrays, f"m{i}_") for i in range(n)]
+        if stretch and all(m is not None for m in members):
+            members = [x for m in members for x in (m, m.widened(stretch))]  # type: ignore[union-attr]
+            n *= 2
         weights, view_weights = np.asarray(arrays["weights"], np.float32), np.asarray(arrays["view_weights"], np.float32)
         gains, white = np.asarray(arrays["gains"], np.float32), np.asarray(arrays["white"], np.float32)
     except (ValueError, KeyError, TypeError):

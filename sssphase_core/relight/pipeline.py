@@ -46,7 +46,7 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
 
     ``calibration``: a list that receives the fit's (per-pixel weights (S, H, W, 3), view-wide weights (S, 3), each
     source's gain (S, H, W, 3), the no-scattering term's white (H, W, 3)), which relight any other pattern the same
-    way (:func:`relight_lowrank`); not filled with ``widen``.
+    way (:func:`relight_lowrank`); with ``widen``, each source's twin is a member after it.
 
     ``widen`` (> 1, with ``calibrate``): each source's footprints stretched by that factor
     (:func:`~sssphase_core.relight.engine.widened`, splatted in the same pass) join the fit as one more member beside
@@ -74,7 +74,7 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     none = relight(no_scattering_source(exit_white(rv)), rv.proj, every, 1, white=rv.white)
     # each source's weight refined pixel by pixel where the view's own fringes say so
     weights, view_weights = local_mixture(rv, [r[n:] for r in relits], none[n:], psp, lost)
-    if calibration is not None and not twins:
+    if calibration is not None:
         calibration.append((weights, view_weights, np.stack(gains), exit_white(rv)))
     images = mix_images(none[:n], [r[:n] for r in relits], weights)
     if twins:

@@ -21,7 +21,7 @@ import numpy as np
 
 from sssphase_core.errors import InputError
 from sssphase_core.relight.cache import footprint_bytes, model_tag, view_caches, view_tag
-from sssphase_core.relight.choices import BLENDS, MODEL_FREE, check_backends, uses_decoder
+from sssphase_core.relight.choices import BLENDS, MODEL_FREE, check_backends, uses_decoder, widen_for
 from sssphase_core.relight.evaluation import (
     aggregate,
     comparison_figure,
@@ -101,10 +101,11 @@ def same_pattern(pattern: np.ndarray, reference: np.ndarray) -> bool:
     return a.shape == b.shape and bool(np.abs(a - b).max(initial=0.0) <= 1 / 255)
 
 
-def lowrank_path(out: Path, session: Session, rv: RelightView, backend: str, checkpoint: Path | str | None) -> Path:
-    """The eigen-footprint cache of a view relit with ``backend`` (all its members and its calibration), named
-    as :func:`cache_path` names footprint caches."""
-    tag = model_tag(checkpoint if uses_decoder(backend) else None)
+def lowrank_path(out: Path, session: Session, rv: RelightView, backend: str, checkpoint: Path | str | None,
+                 widen: float | None = None) -> Path:
+    """The eigen-footprint cache of a view relit with ``backend`` (all its members and its calibration, whose twins
+    are stretched ``widen`` x), named as :func:`cache_path` names footprint caches."""
+    tag = model_tag(checkpoint if uses_decoder(backend) else None) + (f"_w{widen:g}" if widen else "")
     return out / "cache" / f"{rv.object}_v{rv.view}_{view_tag(session, rv.view)}_{backend}_{tag}_lowrank.npz"
 
 
@@ -227,10 +228,18 @@ class RelightResult:
     mixes: dict[int, np.ndarray | None] = field(default_factory=dict)
 
 
-def widen_line(widen: float) -> str:
-    """The line that says the view calibration may widen the models' footprints (``--widen``)."""
-    return (f"calibration: each model's footprints also join the view's fit stretched {widen:g} x, so that its fringes "
-            "can widen them as well as narrow them (--widen)")
+def widen_line(widths: dict[str, float | None]) -> str | None:
+    """The line that says for which backends (``widths``: each one's :func:`~sssphase_core.relight.choices.widen_for`)
+    the view calibration may widen the models' footprints, or None where it may for none."""
+    by: dict[float, list[str]] = {}
+    for backend, widen in widths.items():
+        if widen:
+            by.setdefault(widen, []).append(backend)
+    if not by:
+        return None
+    return "; ".join(f"calibration ({', '.join(names)}): each model's footprints also join the view's fit stretched "
+                     f"{widen:g} x, so that its fringes can widen them as well as narrow them" for widen, names in by.items()
+                     ) + " (--widen 1: only narrow them)"
 
 
 def resolve_backend(backend: str, checkpoint: Path | str | None, narrator: Narrator | None = None
@@ -306,13 +315,15 @@ def relight_session(session: Path | str | Session, patterns: Sequence[str], *, b
     patterns) with ``backend`` (``auto``: blend with a ``checkpoint``, else analytic) and write the images
     to ``out`` as ``<object>_v<view>_<pattern>_<backend>.png`` / ``.exr`` (``formats``), with a comparison
     figure and scores wherever the view holds a reference capture of the same pattern. Model footprints
-    are cached in ``out/cache`` (``cache``) for later patterns. ``widen``: :func:`relight_view`'s."""
+    are cached in ``out/cache`` (``cache``) for later patterns. ``widen``: :func:`relight_view`'s, by default
+    :func:`~sssphase_core.relight.choices.widen_for` the backend (1: none)."""
     from sssphase_core.store.session import claim_output
 
     out, say = Path(out), narrator or Narrator()
     chosen_formats = _check_relight_options(out, patterns, resize, formats, device)
     auto = backend == "auto"
     backend, ckpt = resolve_backend(backend, checkpoint, say)
+    widen = widen_for(backend, widen) if backend not in MODEL_FREE else None
     s = session if isinstance(session, Session) else Session.open(session)
     check_decoder_fits(ckpt, [backend], [s])
     result, pats = RelightResult(backend, ckpt), []
@@ -326,8 +337,8 @@ def relight_session(session: Path | str | Session, patterns: Sequence[str], *, b
                                                  " (no --checkpoint: the analytic model; a trained decoder blends in)"))
             if ckpt is not None and uses_decoder(backend):
                 say.say(f"decoder: {ckpt}")
-            if widen and backend not in MODEL_FREE:
-                say.say(widen_line(widen))
+            if line := widen_line({backend: widen}):
+                say.say(line)
         relit, result.mixes[v] = _relight_one(s, rv, pats, backend, ckpt, out, chunk=chunk, device=device,
                                               cache=cache, say=say, widen=widen)
         result.images += write_relit(rv, relit, result.patterns, pats, out, backend, chosen_formats, say)
@@ -342,7 +353,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
 
     A model's relight also keeps the view's eigen-footprints and calibration (:mod:`~sssphase_core.relight.lowrank`);
     with them cached, later patterns are relit from those alone (seconds at 1080p, where the footprints
-    themselves outgrow any cache); not with ``widen``, whose calibration has twice the members."""
+    themselves outgrow any cache); with ``widen``, the twins' eigen-footprints are the members' stretched."""
     from sssphase_core.processing.projector import emitted_light
     from sssphase_core.relight.backends import domain_line, make_sources
     from sssphase_core.relight.cache import CACHE_BYTES
@@ -351,8 +362,8 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
     from sssphase_core.relight.pipeline import relight_view
     from sssphase_core.relight.transport import DotTransport
 
-    fast = lowrank_path(out, s, rv, backend, checkpoint)
-    saved = load_lowrank(fast, rv.proj.mask) if cache and backend not in MODEL_FREE and not widen else None
+    fast = lowrank_path(out, s, rv, backend, checkpoint, widen)
+    saved = load_lowrank(fast, rv.proj.mask, widen) if cache and backend not in MODEL_FREE else None
     if saved is not None:
         return _relight_cached(rv, pats, backend, fast, saved, say)
     sources: list[tuple[FootprintSource, int]] = make_sources(backend, rv, checkpoint=checkpoint, device=device)
@@ -393,7 +404,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
             say.say(f"cache: {cache_file.uncached:,} footprints beyond its memory budget were not kept "  # type: ignore[attr-defined]
                     "(later patterns recompute them)")
     if taps and calibration and all(tap.covers(valid) for tap in taps):  # every pixel went by: any pattern can be relit
-        save_lowrank(fast, [tap.result() for tap in taps], *calibration[0], rv.proj.mask)
+        save_lowrank(fast, [tap.result() for tap in taps], *calibration[0], rv.proj.mask, widen=widen)
         if not keep:
             say.say(f"cache: the view's {n_pixels:,} footprints ({size / 2**30:.1f} GiB in float16) are more than the cache "
                     f"holds ({CACHE_BYTES / 2**30:.0f} GiB): later patterns are relit from its eigen-footprints alone")
@@ -408,10 +419,12 @@ def _relight_cached(rv: RelightView, pats: list[np.ndarray], backend: str, path:
     members, weights, view_weights, gains, white = saved
     with say.status(f"{rv.object} view {rv.view}: {backend} from its eigen-footprints"):
         relit = relight_lowrank(rv, members, weights, gains, white, pats)
-    mix = view_weights[0] if len(members) == 1 else view_weights
+    twins = len(members) // len(BLENDS.get(backend, (backend,)))  # 2 where each member has its stretched twin
+    view_weights = view_weights.reshape(-1, twins, 3).sum(axis=1)  # as relight_view gives them: a model's and its twin's
+    mix = view_weights[0] if len(view_weights) == 1 else view_weights
     say.say(mix_line(rv, backend, mix))
     say.say(f"{rv.object} view {rv.view}: relit from its cached eigen-footprints ({path.name}: rank "
-            f"{'/'.join(str(m.rank) for m in members)}, {max(m.residual for m in members):.1e} of the footprints' "
+            f"{'/'.join(str(m.rank) for m in members[::twins])}, {max(m.residual for m in members):.1e} of the footprints' "
             "energy left out); --no-cache computes the footprints again")
     return relit, mix
 
@@ -618,8 +631,9 @@ def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BAC
     claim_output(out, found)  # figures are named by object: another session's of the same object are not replaced
     if checkpoint is not None and any(uses_decoder(b) for b in backends):
         say.say(f"torch backend: {checkpoint}")
-    if widen and calibrate:
-        say.say(widen_line(widen))
+    widths = {b: widen_for(b, widen) if calibrate and b not in MODEL_FREE else None for b in backends}
+    if line := widen_line(widths):
+        say.say(line)
     rows: list[dict[str, Any]] = []
     with say.bar():
         for s in found:
@@ -632,7 +646,7 @@ def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BAC
                                           cache=cache, widen=widen, progress=say.task(f"{rv.object} view {v}: {b}"))
     tables = [metrics_table(rows), metrics_table(rows, by=("object", "backend"), title="Relighting per object")]
     result = EvaluationResult(rows, backends, tables, out / "relight_eval.json", out / "relight_eval.md")
-    write_report({"rows": rows, "aggregate": aggregate(rows), "lpips": lpips_note(), "widen": widen if calibrate else None},
+    write_report({"rows": rows, "aggregate": aggregate(rows), "lpips": lpips_note(), "widen": widths},
                  tables, result.json, md=result.md,
                  title="Relighting against reference captures")
     say.say(tables[0].markdown())

@@ -52,6 +52,39 @@ def test_relit_from_eigen_footprints_equals_the_splat_when_they_span_the_footpri
     np.testing.assert_array_equal(kept_white, white[proj.mask])
 
 
+def test_widened_eigen_footprints_relight_as_the_widened_footprints_and_are_kept_with_their_stretch(tmp_path, make_projection):
+    """The view calibration's twin (``relight_view(widen=S)``) from the cache: the eigen-footprints stretched, each
+    pixel's coefficients rescaled to keep its colours' energy, relight as the splat of the widened footprints; the
+    file keeps the stretch, gives each member its twin after it, and is not read for another stretch."""
+    import torch
+
+    from sssphase_core.relight.engine import widened
+
+    proj = make_projection(black=0.002)
+    source = _rank3_source(proj)
+    valid = np.argwhere(proj.mask)
+    tap = LowRankTap(source, valid, proj.mask.shape, sample=64)
+    rng = np.random.default_rng(3)
+    patterns = rng.random((2, 50, 60)).astype(np.float32)
+    white = rng.random((*proj.mask.shape, 3)).astype(np.float32)
+    plain, wide = relight(tap, proj, patterns, K, white=white, variants=(lambda f: widened(f, 1.4),))
+    low = tap.result()
+    twin = low.widened(1.4)
+    np.testing.assert_allclose(twin.relight(proj, patterns, white=white), wide, atol=2e-6 * np.abs(wide).max())
+    assert np.abs(wide - plain).max() > 0.05 * np.abs(plain).max()  # the stretch is not lost on the way
+    direct = widened(torch.from_numpy(source(valid[:5])), 1.4).numpy()  # a twin's footprint, rebuilt from the coefficients
+    rebuilt = np.einsum("ncr,cryx->nyxc", twin.coefficients[:5], twin.basis)
+    np.testing.assert_allclose(rebuilt, direct, atol=1e-6 * np.abs(direct).max())
+    ones = np.ones((2, *proj.mask.shape, 3), np.float32)
+    save_lowrank(tmp_path / "w.npz", [low], ones, np.ones((2, 3)), ones, white, proj.mask, widen=1.4)
+    members, weights, view_weights, gains, _ = load_lowrank(tmp_path / "w.npz", proj.mask, widen=1.4)
+    assert len(members) == 2 and weights.shape[0] == view_weights.shape[0] == gains.shape[0] == 2
+    np.testing.assert_allclose(members[1].relight(proj, patterns, white=white), wide, atol=1e-3 * np.abs(wide).max())
+    assert load_lowrank(tmp_path / "w.npz", proj.mask) is None and load_lowrank(tmp_path / "w.npz", proj.mask, widen=1.3) is None
+    save_lowrank(tmp_path / "p.npz", [low], ones[:1], np.ones((1, 3)), ones[:1], white, proj.mask)
+    assert load_lowrank(tmp_path / "p.npz", proj.mask, widen=1.4) is None and load_lowrank(tmp_path / "p.npz", proj.mask)
+
+
 def test_a_basis_of_fewer_components_says_how_much_it_leaves_out(make_projection):
     rng = np.random.default_rng(2)
     sample = rng.random((40, K, K, 3)).astype(np.float32)  # noise: no few components hold it

@@ -307,3 +307,60 @@ def test_an_evaluation_starts_from_the_footprints_the_trainings_check_kept(sessi
     assert row["footprints_from_cache"] == 1.0 and "torch read 100% of its footprints" in said.text()
     evaluate_sessions([session], backend="analytic", out=tmp_path / "none", cache=False)  # a model: else kept
     assert not (tmp_path / "none" / "cache").exists()
+
+
+def _tiny_decoder(run):
+    """A decoder checkpoint of a small untrained model (its footprints are some footprints: enough for the plumbing)."""
+    import dataclasses
+
+    import torch
+
+    from sssphase_core.learning.models import Decoder, Encoder, get_preset
+    from sssphase_core.learning.training import save_checkpoint
+
+    small = dataclasses.replace(get_preset("lite"), name="lite-small", stem=8, stages=(8, 12, 16), bottleneck=32,
+                                proj_hidden=32, proj_dim=32, pred_hidden=8, decoder=(16, 12, 8, 8), attention=4)
+    torch.manual_seed(0)
+    run.mkdir()
+    save_checkpoint(run / "best.pt", {"kind": "decoder", "preset": small.to_dict(), "config": {"head": "reciprocal"},
+                                      "encoder": Encoder(small).state_dict(), "decoder": Decoder(small, head="reciprocal").state_dict()})
+    return run
+
+
+@pytest.mark.slow
+def test_the_decoders_calibration_widens_by_default_and_the_analytic_models_does_not(session, tmp_path):
+    """By default (``widen=None``) a backend that runs the decoder gets the calibration's stretched twins
+    (:data:`~sssphase_core.relight.choices.DECODER_WIDEN`), said once, and keeps its eigen-footprints under that
+    stretch; ``widen=1`` turns them off; the analytic model has none unless asked; an evaluation records each
+    backend's stretch and relights as `sss relight` does."""
+    from sssphase_core.relight.choices import DECODER_WIDEN, widen_for
+
+    assert widen_for("torch", None) == widen_for("blend", None) == DECODER_WIDEN
+    assert widen_for("analytic", None) is None and widen_for("torch", 1.0) is None and widen_for("analytic", 1.5) == 1.5
+    run = _tiny_decoder(tmp_path / "run")
+    out = tmp_path / "w"  # one folder: the decoder's footprints are predicted once and read back from its cache after
+    said = Recorder()
+    wide = relight_session(session, ["checkerboard"], backend="torch", checkpoint=run, out=out, narrator=said, formats="exr")
+    assert said.text().count(f"stretched {DECODER_WIDEN:g} x") == 1
+    assert len(list((out / "cache").glob(f"soap_v0_*_torch_*_w{DECODER_WIDEN:g}_lowrank.npz"))) == 1
+    from sssphase_core.store.exr import read_exr
+
+    x = read_exr(wide.images[0].paths[0])
+    said = Recorder()
+    plain = relight_session(session, ["checkerboard"], backend="torch", checkpoint=run, out=out, narrator=said,
+                            widen=1.0, formats="exr")
+    assert "stretched" not in said.text() and "eigen-footprints" not in said.text()  # not the widened relight's
+    assert len([p for p in (out / "cache").glob("soap_v0_*_torch_*_lowrank.npz") if "_w" not in p.name]) == 1
+    assert np.abs(x - read_exr(plain.images[0].paths[0])).max() > 1e-4  # the twins took part in the fit
+    said = Recorder()
+    res = evaluate_sessions([session], backend="analytic,torch", checkpoint=run, out=out, narrator=said)
+    import json
+
+    assert json.loads(res.json.read_text())["widen"] == {"analytic": None, "torch": DECODER_WIDEN}
+    assert "calibration (torch): each model's footprints also join" in said.text()
+    from sssphase_core.relight import load_view
+    from sssphase_core.relight.evaluation import relight_metrics
+
+    rv = load_view(Session.open(session), 0)  # the evaluation relit as `sss relight` did: the same score
+    row = next(r for r in res.rows if r["backend"] == "torch")
+    assert row["psnr"] == pytest.approx(relight_metrics(x, rv.captured["checkerboard"], rv.proj.mask)["psnr"], abs=0.05)

@@ -613,17 +613,32 @@ def test_the_calibration_widens_footprints_that_are_too_narrow_when_told_to(sess
             relight_view(narrow, k, rv, pats, calibrate=True, widen=bad)
 
 
-def test_relight_with_widen_says_so_and_keeps_no_eigen_footprints_of_another_calibration(session, tmp_path):
-    """`sss relight --widen`: one line says the calibration may widen the footprints; an eigen-footprint cache made
-    without it is not used, and none is kept with it (its calibration has twice the members)."""
-    base = ["relight", str(session), "--views", "1", "--pattern", "checkerboard", "--backend", "analytic", "--out", str(tmp_path)]
-    plain = runner.invoke(app, base)
+def test_relight_with_widen_says_so_and_keeps_eigen_footprints_of_its_own_calibration(session, tmp_path):
+    """`sss relight --widen S`: one line says the calibration may widen the footprints; the eigen-footprints of a
+    relight without it are not used with it; a widened relight keeps its own (named with the stretch), from which the
+    next pattern is relit close to the full widened relight; `--widen 1` is the plain calibration (the analytic
+    model's default: the decoder's is in test_relight_runner); a stretch below 1 is one line."""
+    from sssphase_core.store.exr import read_exr
+
+    base = ["relight", str(session), "--views", "1", "--backend", "analytic", "--format", "exr"]
+    plain = runner.invoke(app, [*base, "--pattern", "checkerboard", "--out", str(tmp_path)])
     assert plain.exit_code == 0, plain.output
     assert list((tmp_path / "cache").glob("*_lowrank.npz")) and "stretched" not in plain.output
-    first = (tmp_path / "sand_rake_v1_checkerboard_analytic.png").read_bytes()
-    wide = runner.invoke(app, [*base, "--widen", "1.5"])
+    first = read_exr(tmp_path / "sand_rake_v1_checkerboard_analytic.exr")
+    wide = runner.invoke(app, [*base, "--pattern", "checkerboard", "--out", str(tmp_path), "--widen", "1.5"])
     assert wide.exit_code == 0, wide.output
-    assert "stretched 1.5 x" in wide.output and "eigen-footprints" not in wide.output  # not relit from the cache
-    assert (tmp_path / "sand_rake_v1_checkerboard_analytic.png").read_bytes() != first
-    bad = runner.invoke(app, [*base, "--widen", "0.9"])
+    assert "stretched 1.5 x" in wide.output and "eigen-footprints" not in wide.output  # not relit from the plain cache
+    assert np.abs(read_exr(tmp_path / "sand_rake_v1_checkerboard_analytic.exr") - first).max() > 1e-4
+    assert len(list((tmp_path / "cache").glob("*_analytic_*_w1.5_lowrank.npz"))) == 1
+    again = runner.invoke(app, [*base, "--pattern", "stripes_x", "--out", str(tmp_path), "--widen", "1.5"])
+    assert again.exit_code == 0 and "relit from its cached eigen-footprints" in again.output, again.output
+    full = runner.invoke(app, [*base, "--pattern", "stripes_x", "--out", str(tmp_path / "full"), "--widen", "1.5", "--no-cache"])
+    assert full.exit_code == 0, full.output
+    x, y = (read_exr(d / "sand_rake_v1_stripes_x_analytic.exr") for d in (tmp_path, tmp_path / "full"))
+    assert 10 * np.log10(y.max() ** 2 / np.mean((x - y) ** 2)) > 55  # PSNR at the image's peak
+    off = runner.invoke(app, [*base, "--pattern", "checkerboard", "--out", str(tmp_path), "--widen", "1"])
+    assert off.exit_code == 0 and "stretched" not in off.output and "eigen-footprints" in off.output, off.output
+    x = read_exr(tmp_path / "sand_rake_v1_checkerboard_analytic.exr")  # from the plain relight's eigen-footprints
+    assert 10 * np.log10(first.max() ** 2 / np.mean((x - first) ** 2)) > 55
+    bad = runner.invoke(app, [*base, "--pattern", "checkerboard", "--out", str(tmp_path), "--widen", "0.9"])
     assert bad.exit_code != 0 and "--widen" in bad.output and "Traceback" not in bad.output
