@@ -887,10 +887,12 @@ def test_two_references_that_would_share_a_key_are_refused_before_a_daemon_start
 
 
 @pytest.mark.parametrize(("array", "cut"), [("white", (slice(None, -4), slice(None))), ("corr/xp", (slice(None), slice(3, None))),
-                                            ("psp", (slice(1, None),)), ("ref/checkerboard", (slice(None), slice(None, -1)))])
+                                            ("psp", (slice(1, None),)), ("ref/checkerboard", (slice(None), slice(None, -1))),
+                                            ("white", (Ellipsis, 0)), ("corr/mask", (slice(None, 10), slice(None, 10)))])
 def test_a_view_whose_arrays_disagree_on_the_camera_size_is_one_error(intact_session, tmp_path, array, cut):
     """Arrays intact and as the manifest says, but not of one camera (one replaced by hand, rewritten
-    whole): relighting names the array and the sizes instead of failing inside numpy."""
+    whole, a grey white without its colour axis): relighting names the array and the sizes, in one order, instead
+    of failing inside numpy, and `sss validate` names the odd one out (it said "ok")."""
     from sssphase_core.errors import DataError
     from sssphase_core.relight import load_view
     from sssphase_core.store.session import Session
@@ -904,6 +906,9 @@ def test_a_view_whose_arrays_disagree_on_the_camera_size_is_one_error(intact_ses
     for name, value in data.items():
         writer.write(name, value[cut] if name == array else value)
     writer.commit(info)
+    problems = Session.open(copy).validate()
+    assert len(problems) == 1 and re.fullmatch(rf"view 0: array {array} is \(.*\) where the view's other arrays ask for "
+                                               r"\(.*\): the view's arrays do not belong together", problems[0]), problems
     if array == "ref/checkerboard":  # a sim session is scored on its render, and on its capture beside it
         from sssphase_core.relight.evaluation import _captured_reference
 
@@ -911,9 +916,10 @@ def test_a_view_whose_arrays_disagree_on_the_camera_size_is_one_error(intact_ses
         with pytest.raises(DataError, match=r"view 0 of .*: ref/checkerboard is 192x255x3 where the view's white"):
             _captured_reference(rv, "checkerboard")
         return
-    with pytest.raises(DataError, match=r"view 0 of .*: (psp|white|corr/xp) (is|holds) "):
+    with pytest.raises(DataError, match=r"view 0 of .*: (psp|white|corr/xp|corr/yp) (is|holds) ") as raised:
         load_view(Session.open(copy), 0)
-    assert not Session.open(copy).validate()  # every array is intact: only their sizes disagree
+    if array == "white" and cut == (Ellipsis, 0):
+        assert "white is 192x256 where the decoded mask asks for 192x256x3 (height x width x colour)" in str(raised.value)
 
 
 @pytest.mark.parametrize("edit", ["white inf", "psp nan", "xp nan on the mask", "xp far off the projector"])
@@ -946,6 +952,8 @@ def test_non_finite_or_impossible_values_in_a_view_are_one_error(intact_session,
     if name in ("white", "psp"):  # but no capture makes such light, and `sss validate` says so
         assert len(problems) == 1 and re.fullmatch(rf"view 0: array {name} holds \d+ NaN or infinite values; images must "
                                                    r"be finite", problems[0]), problems
+    elif edit == "xp nan on the mask":  # nor a projector point, where the view decoded
+        assert problems == ["view 0: array corr/xp holds 1 NaN or infinite values on the decoded pixels"]
     else:
         assert not problems
     expected = "projector coordinates far outside" if edit.endswith("projector") else "NaN or infinite values"

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import subprocess
 import warnings
 from pathlib import Path
@@ -116,6 +117,47 @@ def test_a_failed_import_leaves_nothing_behind(frames, tmp_path):
     with pytest.raises(InputError, match="dots__0_0"):
         import_folder(bad, tmp_path / "sessions", "again", (W, H), patch=K)
     assert not (tmp_path / "sessions" / "again").exists()
+
+
+def test_an_import_killed_midway_is_replaced_by_the_next_import_of_its_folder_and_says_how(handmade, frames, tmp_path):
+    """A killed `sss import` (no cleanup ran) left its session unfinished, and every way on named a fix that does not
+    apply (`--resume`, which import has not; `sss capture ... --resume`) or refused the name ("already exists"). The
+    unfinished import is now named as one, and importing the same folder again replaces it; another folder's import
+    is still refused the name."""
+    from sssphase_core.relight.runner import choose_views
+
+    s = _copy(handmade, tmp_path / "sessions")
+    manifest = json.loads((s.path / "manifest.json").read_text())
+    manifest["views"]["0"]["status"] = "capturing"  # as a SIGKILL mid-view leaves it
+    (s.path / "manifest.json").write_text(json.dumps(manifest))
+    s = Session.open(s.path)
+    assert s.validate()[0] == "view 0: capturing (not imported completely; run the import again)"
+    with pytest.raises(InputError, match=r"`sss import` of its folder again completes it"):
+        choose_views(s, "")
+    other = tmp_path / "other"
+    shutil.copytree(frames, other)
+    with pytest.raises(InputError, match="already exists"):
+        import_folder(other, tmp_path / "sessions", "handmade", (W, H), patch=K)
+    with pytest.warns(UserWarning, match="an unfinished import of .* is replaced"):
+        again = import_folder(frames, tmp_path / "sessions", "handmade", (W, H), patch=K)
+    assert again.views() == [0] and not again.validate()
+
+
+def test_a_full_disk_during_an_import_leaves_nothing_and_names_the_imports_own_fix(frames, tmp_path, monkeypatch):
+    """The disk filling midway said "free some space and rerun with --resume", an option `sss import` has not."""
+    import errno
+
+    import sssphase_core.store.session as store
+
+    def full(name):
+        if name == "psp":
+            raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(store, "FAULT_HOOK", full)
+    with pytest.raises(DataError, match=r"disk full while writing psp of view 0 in .*: free some space and run the "
+                                        r"import again$"):
+        import_folder(frames, tmp_path / "sessions", "full", (W, H), patch=K)
+    assert not (tmp_path / "sessions" / "full").exists()
 
 
 def _float_frames(folder: Path, scale: float, keys: tuple[str, ...] = ("psp/", "white", "black")) -> Path:

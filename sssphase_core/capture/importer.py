@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import re
+import shutil
 import warnings
 from collections.abc import Iterable
 from dataclasses import asdict, dataclass, field
@@ -671,8 +672,6 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     image as ``pattern__<name>.png``. A view where nothing decodes is refused; a failed import leaves
     nothing behind.
     """
-    import shutil
-
     from sssphase_core.processing.patterns import (
         REFERENCE_NAMES,
         CapturePlan,
@@ -748,7 +747,7 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     scale = frame_scale([files["white"] for _, files in views], levels)
     path = Path(root) / name
     if path.exists():
-        raise InputError(f"{path} already exists: import into another --out or choose another --object")
+        _replace_unfinished_import(path, folder)
     frames: list[dict[str, Any]] = []
     given = {k for _, files in views for k in files if k.startswith("pattern/")}  # the projected images the user gives
     for key in sorted({k for _, files in views for k in files if k.startswith("ref/")}):
@@ -854,6 +853,34 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 raise
             writer.commit({"source": str(vdir), **info})
     except BaseException:
-        shutil.rmtree(session.path, ignore_errors=True)  # nothing half-imported blocks the name
+        _remove(session.path)  # nothing half-imported blocks the name
         raise
     return session
+
+
+def _replace_unfinished_import(path: Path, folder: Path) -> None:
+    """Refuse to import over ``path``, unless it is an unfinished import of the same ``folder`` (a killed `sss import`:
+    its frames are still in that folder, so nothing is lost), which is removed with a warning."""
+    try:
+        old = Session.open(path)
+        unfinished = old.imported and len(old.views()) < int(old.manifest.get("n_views", 0))
+        same = str(old.manifest.get("imported_from")) == str(Path(folder).resolve())
+    except Exception:  # not a session, or a damaged one: nothing to decide from; refused below
+        unfinished = same = False
+    if not (unfinished and same):
+        raise InputError(f"{path} already exists: import into another --out or choose another --object")
+    warnings.warn(f"{path}: an unfinished import of {folder} (interrupted before it completed) is replaced",
+                  UserWarning, stacklevel=3)
+    _remove(path)
+
+
+def _remove(path: Path, tries: int = 20) -> None:
+    """Remove a session folder; a chunk a writer's thread was still flushing may land after the first pass (seen on a
+    full disk), so it is tried again for up to a second."""
+    import time
+
+    for _ in range(tries):
+        shutil.rmtree(path, ignore_errors=True)
+        if not path.exists():
+            return
+        time.sleep(0.05)

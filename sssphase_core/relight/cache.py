@@ -7,6 +7,7 @@ import hashlib
 import json
 import os
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -64,7 +65,8 @@ class FootprintCache:
 
     def _load(self) -> None:
         """Take the file's footprints when it is a cache of this view and patch; anything else (another
-        format, a damaged or foreign file) is ignored and rewritten: a cache only saves time."""
+        format, a damaged or foreign file) is ignored and rewritten, and footprints that are not finite are
+        computed again: a cache only saves time."""
         import zipfile
 
         try:
@@ -81,6 +83,11 @@ class FootprintCache:
         index = index[: len(data)].astype(np.int64)
         if len(index) and (index.min() < 0 or index.max() >= len(self.slot) or len(np.unique(index)) != len(index)):
             return
+        finite = np.concatenate([np.isfinite(data[i:i + 4096]).reshape(len(data[i:i + 4096]), -1).all(axis=1)
+                                 for i in range(0, len(data), 4096)]) if len(data) else np.ones(0, bool)
+        if not finite.all():  # damaged rows, or a model's own non-finite ones: asked of the model again (it answers for them)
+            data, index = data[finite], index[finite]
+            self._dirty = True
         self.data, self.size = data, len(data)
         self.slot[index] = np.arange(self.size)
 
@@ -182,6 +189,18 @@ def seed_cache(path: Path, checkpoint: Path | str | None) -> None:
         os.link(seed, path)
     except OSError:  # another file system, or one without hard links
         shutil.copyfile(seed, path)
+
+
+def kept(save: Callable[[], None], path: Path) -> str | None:
+    """Run a cache's ``save`` (of the file ``path``) -> None, or the line that says it was not kept: a cache only
+    saves time, so a file system that refuses it (full, read-only, a file where its folder goes) costs the next
+    relight its time, not this one its images."""
+    try:
+        save()
+    except OSError as exc:
+        return (f"cache: {path} was not kept ({exc.strerror or exc}): later relights compute its footprints again "
+                "(--no-cache keeps none)")
+    return None
 
 
 def footprint_bytes(n_pixels: int, patch: int) -> int:

@@ -9,6 +9,7 @@ this machine, and otherwise reported as skipped with what is missing (:func:`lpi
 from __future__ import annotations
 
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
@@ -148,8 +149,12 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     (source, patch), *also = sources
     relit, mix = relight_view(source, patch, rv, [rv.references[n] for n in names], calibrate=calibrate, also=also,
                               chunk=chunk, device=device, progress=progress, widen=widen)
+    from sssphase_core.relight.cache import kept
+
     for c in caches:
-        c.save()
+        if (line := kept(c.save, c.path)) is not None:
+            warnings.warn(line, UserWarning, stacklevel=2)
+            break
     seconds = time.perf_counter() - t0
     read = sum(c.hits for c in caches) / max(1, sum(c.hits + c.misses for c in caches))  # footprints not predicted now
     rows = []

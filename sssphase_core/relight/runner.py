@@ -20,7 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sssphase_core.errors import InputError
-from sssphase_core.relight.cache import footprint_bytes, model_tag, view_caches, view_tag
+from sssphase_core.relight.cache import footprint_bytes, kept, model_tag, view_caches, view_tag
 from sssphase_core.relight.choices import BLENDS, MODEL_FREE, check_backends, uses_decoder, widen_for
 from sssphase_core.relight.evaluation import (
     aggregate,
@@ -73,10 +73,9 @@ def choose_views(session: Session, views: str | Sequence[int] | None = None, say
         left = ", ".join(f"view {v}: {st}" for v, st in sorted(states.items()) if st != "complete")
         if not session.views():  # a capture that was interrupted: nothing to relight, and saying nothing misleads
             raise InputError(f"session {session.path} has no complete view ({left or 'no views'}); "
-                             f"`sss validate {session.path}` says more, `sss capture ... --resume` completes it")
+                             f"`sss validate {session.path}` says more, {session.completes_it()}")
         if left and say is not None:
-            say.say(f"{session.name}: left out, not complete ({left}); `sss capture ... --resume` completes them",
-                    warning="left out")
+            say.say(f"{session.name}: left out, not complete ({left}); {session.completes_it()}", warning="left out")
         return session.views()
     try:
         numbers = [int(v) for v in views.split(",") if v.strip()] if isinstance(views, str) else [int(v) for v in views]
@@ -399,13 +398,17 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
     if isinstance(source, DotTransport) and source.fit:  # its noise mask, chosen on the view's fringe captures
         say.say(denoise_line(rv, source))
     for cache_file in caches if keep else ():
-        cache_file.save()  # type: ignore[attr-defined]
+        if (line := kept(cache_file.save, cache_file.path)) is not None:  # type: ignore[attr-defined]
+            say.say(line, "was not kept")
+            break
         if cache_file.uncached:  # type: ignore[attr-defined]
             say.say(f"cache: {cache_file.uncached:,} footprints beyond its memory budget were not kept "  # type: ignore[attr-defined]
                     "(later patterns recompute them)")
     if taps and calibration and all(tap.covers(valid) for tap in taps):  # every pixel went by: any pattern can be relit
-        save_lowrank(fast, [tap.result() for tap in taps], *calibration[0], rv.proj.mask, widen=widen)
-        if not keep:
+        line = kept(lambda: save_lowrank(fast, [tap.result() for tap in taps], *calibration[0], rv.proj.mask, widen=widen), fast)
+        if line is not None:
+            say.say(line, "was not kept")
+        elif not keep:
             say.say(f"cache: the view's {n_pixels:,} footprints ({size / 2**30:.1f} GiB in float16) are more than the cache "
                     f"holds ({CACHE_BYTES / 2**30:.0f} GiB): later patterns are relit from its eigen-footprints alone")
     return relit, mix

@@ -180,10 +180,11 @@ def _check_view_shapes(where: str, mask: np.ndarray, maps: dict[str, np.ndarray]
     hand): ``maps`` (H, W) like ``mask``; ``images`` (..., H, W, 3)."""
     h, w = mask.shape
     for name, array in {**maps, **images}.items():
-        ok = array.shape == (h, w) if name in maps else array.shape[-3:] == (h, w, 3)
-        if not ok:
-            raise DataError(f"{where}: {name} is {'x'.join(map(str, array.shape))} but the decoded mask is {w}x{h} "
-                            "(width x height): the view's arrays do not belong together")
+        want = (h, w) if name in maps else (h, w, 3)
+        if (array.shape if name in maps else array.shape[-3:]) != want:
+            raise DataError(f"{where}: {name} is {'x'.join(map(str, array.shape))} where the decoded mask asks for "
+                            f"{'x'.join(map(str, want))} (height x width{' x colour' if len(want) == 3 else ''}): the "
+                            "view's arrays do not belong together")
 
 
 def _check_finite(where: str, mask: np.ndarray, maps: dict[str, np.ndarray], images: dict[str, np.ndarray]) -> None:

@@ -180,8 +180,9 @@ class ViewWriter:
         except OSError as exc:
             self.abort()
             if exc.errno == errno.ENOSPC:
+                again = "run the import again" if self.session.imported else "rerun with --resume"
                 raise DataError(f"disk full while writing {name} of view {self.view} in {self.session.path}: "
-                                "free some space and rerun with --resume") from exc
+                                f"free some space and {again}") from exc
             raise DataError(f"cannot write {name} of view {self.view}: {exc}") from exc
         self.arrays[name] = {"shape": list(data.shape), "dtype": np.dtype(data.dtype).str, "checksum": array_checksum(data),
                              "chunks": _chunk_count(data.shape, _chunks(data.shape, np.dtype(data.dtype).itemsize))}
@@ -538,6 +539,17 @@ class Session:
         self.manifest["views"][str(view)] = entry
         self.save()
 
+    @property
+    def imported(self) -> bool:
+        """Whether ``sss import`` made the session (from a folder of frames) rather than ``sss capture``."""
+        return bool(self.manifest.get("rig", {}).get("imported"))
+
+    def completes_it(self) -> str:
+        """How a user completes this session's unfinished views: ``sss capture ... --resume``, or for an import
+        (which has no --resume: its frames are still in their folder) the import run again."""
+        return ("`sss import` of its folder again completes it (it replaces an unfinished import)" if self.imported
+                else "`sss capture ... --resume` completes it")
+
     def status(self, view: int) -> str:
         """``pending``, ``capturing``, ``interrupted`` or ``complete``; anything else a manifest holds is named as
         such (it is printed in messages: no markup or control characters from a file reach the terminal)."""
@@ -633,11 +645,13 @@ class Session:
         n = expected_views if expected_views is not None else int(self.manifest.get("n_views", 0))
         for v in range(n):
             if self.status(v) != "complete":
-                problems.append(f"view {v}: {self.status(v)} (not captured completely; rerun with --resume)")
+                problems.append(f"view {v}: {self.status(v)} (not " + ("imported completely; run the import again)"
+                                                                        if self.imported else "captured completely; rerun with --resume)"))
         for v, entry in self.iter_views():
             for name in REQUIRED:
                 if name not in entry.get("arrays", {}):
                     problems.append(f"view {v}: required array {name} missing from the manifest")
+            before = len(problems)
             level = None  # the view's white level, for the other images' test (the white is read first)
             for name, meta in sorted(entry.get("arrays", {}).items(), key=lambda item: item[0] != "white"):
                 try:
@@ -661,7 +675,49 @@ class Session:
                     problem = light_problem(f"array {name}", data, level if holds_light(name) else None)
                     if problem:
                         problems.append(f"view {v}: {problem}")
+            if len(problems) == before:  # every array intact: do they belong together?
+                problems += [f"view {v}: {p}" for p in self._view_consistency(v, entry.get("arrays", {}))]
         return problems
+
+    def _view_consistency(self, v: int, arrays: dict[str, dict]) -> list[str]:
+        """What the readers would refuse in a view whose arrays are each intact: sizes that disagree with the decoded
+        mask's (H, W) (maps (H, W), images (H, W, 3), the PSP stack (8, H, W, 3)), projector coordinates that are not
+        finite on the decoded pixels, footprint pixels outside the image or not one per crop."""
+        import collections
+
+        def size(name: str, shape: tuple[int, ...]) -> tuple[int, ...] | None:  # the (H, W) an array is laid out on
+            return shape[1:3] if name == "psp" else shape[:2] if name.startswith("corr/") or holds_light(name) else None
+
+        sizes = [size(name, tuple(meta["shape"])) for name, meta in arrays.items()]
+        votes = collections.Counter(x for x in sizes if x is not None and len(x) == 2)
+        if "corr/mask" not in arrays or not votes:
+            return []
+        h, w = votes.most_common(1)[0][0]  # the size most of the view's arrays share: the odd ones out are named
+        out = []
+        for name, meta in sorted(arrays.items()):
+            shape = tuple(meta["shape"])
+            want = ((h, w) if name.startswith("corr/") else (8, h, w, 3) if name == "psp"
+                    else (h, w, 3) if holds_light(name) else None)
+            if want is not None and shape != want:
+                out.append(f"array {name} is {shape} where the view's other arrays ask for {want} (height, width"
+                           f"{', colour' if len(want) > 2 else ''}): the view's arrays do not belong together")
+        if out:
+            return out
+        mask = np.asarray(self.load(v, "corr/mask"), bool)
+        for name in ("corr/xp", "corr/yp"):
+            if name in arrays and (bad := int((~np.isfinite(np.asarray(self.load(v, name))[mask])).sum())):
+                out.append(f"array {name} holds {bad} NaN or infinite values on the decoded pixels")
+        if "footprints/pixels" in arrays:
+            px, crops = tuple(arrays["footprints/pixels"]["shape"]), tuple(arrays.get("footprints/crops", {}).get("shape", ()))
+            if len(px) != 2 or px[1] != 2:
+                out.append(f"array footprints/pixels is {px}, not (N, 2) pixels")
+            else:
+                pixels = np.asarray(self.load(v, "footprints/pixels"), np.int64)
+                if len(pixels) and not ((pixels >= 0).all() and (pixels[:, 0] < h).all() and (pixels[:, 1] < w).all()):
+                    out.append(f"array footprints/pixels holds pixels outside the {w}x{h} image")
+                if crops and crops[0] != len(pixels):
+                    out.append(f"array footprints/crops holds {crops[0]} crops for {len(pixels)} footprint pixels")
+        return out
 
 
 def session_around(path: Path | str) -> Path | None:

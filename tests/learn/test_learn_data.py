@@ -186,3 +186,27 @@ def test_training_refuses_two_sessions_of_one_object(tmp_path):
         Session.create(tmp_path / day, "wax").path.rename(tmp_path / "all" / f"wax_{day}")
     with pytest.raises(InputError, match="two sessions hold the object 'wax'.*training would read one of them only"):
         session_views(tmp_path / "all")
+
+
+@pytest.mark.parametrize("damage", ["fewer crops", "pixels outside"])
+def test_validate_names_footprint_crops_that_do_not_match_their_pixels(one_and_three_sessions, tmp_path, damage):
+    """Intact arrays (checksums as written) whose crops and pixels disagree: training refused them as 'damaged
+    (index out of bounds ...); `sss validate` lists the damage' while `sss validate` said ok."""
+    from sssphase_core.store.session import Session
+
+    one_and_three_sessions(tmp_path, footprints=True)
+    s = Session.open(tmp_path / "one")
+    data = {name: np.array(s.load(0, name)) for name in s.arrays(0)}
+    if damage == "fewer crops":
+        data["footprints/crops"] = data["footprints/crops"][:10]
+    else:
+        data["footprints/pixels"][0] = (-1, 5)
+    writer = s.begin_view(0)
+    for name, array in data.items():
+        writer.write(name, array)
+    writer.commit()
+    problems = Session.open(tmp_path / "one").validate()
+    n = len(data["footprints/pixels"])
+    expected = (f"view 0: array footprints/crops holds 10 crops for {n} footprint pixels" if damage == "fewer crops"
+                else "view 0: array footprints/pixels holds pixels outside the 48x48 image")
+    assert [p for p in problems if "required array" not in p] == [expected], problems  # (synthetic: no white, ...)

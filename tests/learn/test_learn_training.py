@@ -395,6 +395,7 @@ class _Pickled:  # torch.save pickles this; weights_only loading must refuse it
     ({"kind": "pretrain", "encoder": {}}, "without preset"),
     (_Pickled(), "pickled Python objects"),
     (b"PK\x03\x04truncated", "cannot read checkpoint"),
+    ("zip", "it is a zip archive, but not one torch saved"),  # said "[enforce fail at inline_container.cc:180] ..."
     (b"# a text file\n", "not a checkpoint file"),
     (b"\x89PNG\r\n\x1a\n" + bytes(64), "not a checkpoint file"),  # another program's file (torch says "101")
 ])
@@ -407,6 +408,11 @@ def test_bad_checkpoints_are_refused_with_one_clear_line(tmp_path, content, expe
         path.write_bytes(b"")
     elif isinstance(content, bytes):
         path.write_bytes(content)
+    elif content == "zip":
+        import zipfile
+
+        with zipfile.ZipFile(path, "w") as z:
+            z.writestr("hello.txt", "hi")
     else:
         torch.save(content, path)
     with pytest.raises(DataError) as err:

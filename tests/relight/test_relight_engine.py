@@ -128,6 +128,37 @@ def test_a_damaged_footprint_cache_is_ignored_and_rewritten(tmp_path, scene, dam
     assert FootprintCache(src, path, proj.shape, k).size == len(parts["data"])
 
 
+def test_non_finite_footprints_in_a_cache_are_computed_again_not_blamed_on_the_model(tmp_path, scene):
+    """A cache file whose footprints were damaged to NaN/inf (an edit, a bad disk) is not a broken model: those
+    footprints are asked of the source again, the relight is the one without the damage, and the file is rewritten
+    with them mended (the engine's "the model is broken" refusal is left for a model's own non-finite output)."""
+    proj, k, fps, pats = scene
+    calls = []
+
+    def src(px):
+        calls.append(len(px))
+        return fps[px[:, 0], px[:, 1]]
+
+    path = tmp_path / "fp.npz"
+    cache = FootprintCache(src, path, proj.shape, k)
+    first = relight(cache, proj, pats[:1], k)
+    cache.save()
+    with np.load(path) as z:
+        parts = {name: z[name] for name in z.files}
+    parts["data"] = parts["data"].copy()
+    parts["data"][: len(parts["data"]) * 3 // 4] = np.nan  # most of them: past the engine's broken-source share
+    parts["data"][-1, 0, 0, 0] = np.inf
+    np.savez(path, **parts)
+    calls.clear()
+    again = FootprintCache(src, path, proj.shape, k)
+    np.testing.assert_array_equal(relight(again, proj, pats[:1], k), first)
+    bad = len(parts["data"]) * 3 // 4 + 1
+    assert sum(calls) == bad and again.hits == len(parts["data"]) - bad
+    again.save()
+    with np.load(path) as z:
+        assert np.isfinite(z["data"]).all() and len(z["data"]) == len(parts["data"])
+
+
 def test_footprint_cache_stays_within_its_memory_budget(tmp_path, scene):
     proj, k, fps, pats = scene
     calls = []

@@ -135,6 +135,8 @@ class FakeSession:
     def status(self, v):
         return "complete" if v != 1 else "capturing"
 
+    imported, completes_it = Session.imported, Session.completes_it  # a capture's: its manifest names no import
+
 
 def test_choose_views_takes_text_or_numbers_each_once():
     s = FakeSession()
@@ -162,7 +164,7 @@ def test_all_views_says_which_incomplete_ones_it_leaves_out():
     s, said = FakeSession(), Lines()
     s.name = "apple"
     assert choose_views(s, "", said) == [0, 2]
-    assert said.lines == ["apple: left out, not complete (view 1: capturing); `sss capture ... --resume` completes them"]
+    assert said.lines == ["apple: left out, not complete (view 1: capturing); `sss capture ... --resume` completes it"]
     said.lines.clear()
     assert choose_views(s, "0,2", said) == [0, 2] and said.lines == []  # views named: nothing left out unasked
     s.status = lambda v: "complete"

@@ -642,3 +642,17 @@ def test_relight_with_widen_says_so_and_keeps_eigen_footprints_of_its_own_calibr
     assert 10 * np.log10(first.max() ** 2 / np.mean((x - first) ** 2)) > 55
     bad = runner.invoke(app, [*base, "--pattern", "checkerboard", "--out", str(tmp_path), "--widen", "0.9"])
     assert bad.exit_code != 0 and "--widen" in bad.output and "Traceback" not in bad.output
+
+
+def test_a_cache_the_file_system_refuses_costs_its_time_not_the_images(session, tmp_path):
+    """`OUT/cache` that cannot be written (here a file where its folder goes; a full disk alike) was one raw OS error
+    after the work, and no image: the images are written, and one line per cache file says it was not kept."""
+    out = tmp_path / "o"
+    out.mkdir()
+    (out / "cache").write_text("a file where the cache folder goes")
+    res = runner.invoke(app, ["relight", str(session), "--views", "1", "--pattern", "checkerboard", "--backend", "analytic",
+                              "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    assert (out / "sand_rake_v1_checkerboard_analytic.png").is_file()
+    assert res.output.count("was not kept") == 2 and "--no-cache keeps none" in res.output  # the footprints, the eigen-footprints
+    assert (out / "cache").read_text() == "a file where the cache folder goes"

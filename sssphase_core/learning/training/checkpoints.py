@@ -46,6 +46,8 @@ def load_checkpoint(path: Path | str, *, mmap: bool = False) -> dict:
         reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
         if "PytorchStreamReader" in reason or "miniz" in reason or "zip archive" in reason:  # torch's words for a cut file
             reason = "the file is damaged or truncated (its zip archive cannot be read)"
+        elif "inline_container" in reason or "not in a subdirectory" in reason:  # a zip, but not torch's layout
+            reason = "it is a zip archive, but not one torch saved (no checkpoint inside)"
         raise DataError(f"cannot read checkpoint {path}: {reason}") from None
     missing = [k for k in ("kind", "preset", "encoder") if not isinstance(ckpt, dict) or k not in ckpt]
     if missing or ckpt.get("kind") not in ("pretrain", "decoder"):

@@ -163,6 +163,7 @@ def train_decoder(
         Bayer camera demosaiced any of them; read once (their PSP patches are not kept)."""
         first = np.random.default_rng(cfg.seed).permutation(len(dataset))[:PRIOR_SAMPLES]
         batch = dataset.batch(np.sort(first))
+        loop.check_finite(batch)  # a NaN crop here would make every prediction NaN: named as the data's, not the rate's
         return batch["footprint"], bool((batch["camera"] != NO_CAMERA).any())
 
     ckpt = resume_state(out_dir, resume, "decoder", p)

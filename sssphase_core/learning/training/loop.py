@@ -202,9 +202,8 @@ class Loop:
                 shutil.copyfile(self.out_dir / CHECKPOINT, tmp)
             self._new_best = False
 
-    def _diverged(self, batch: dict[str, torch.Tensor], loss: float) -> None:
-        """Raise for a non-finite loss: DataError naming the views when the batch itself holds NaN/inf (the
-        footprint crops, say), else TrainingDiverged (the learning rate)."""
+    def check_finite(self, batch: dict[str, torch.Tensor]) -> None:
+        """Raise DataError naming the views whose crops in ``batch`` (its psp and footprint) hold NaN/inf."""
         bad = torch.zeros(len(batch["object"]), dtype=torch.bool)
         for key in ("psp", "footprint"):
             if key in batch:
@@ -215,6 +214,11 @@ class Loop:
             raise DataError(f"the {self.kind} training data hold NaN or infinite values ("
                             f"{', '.join(f'{o} view {v}' for o, v in where)}; psp or footprint crops): re-capture or "
                             "leave those views out")
+
+    def _diverged(self, batch: dict[str, torch.Tensor], loss: float) -> None:
+        """Raise for a non-finite loss: DataError naming the views when the batch itself holds NaN/inf (the
+        footprint crops, say: :meth:`check_finite`), else TrainingDiverged (the learning rate)."""
+        self.check_finite(batch)
         kept = self.out_dir / CHECKPOINT
         raise TrainingDiverged(
             f"the {self.kind} loss became {loss} at epoch {self.epoch + 1}, step {self.step_in_epoch + 1}; lower the "
