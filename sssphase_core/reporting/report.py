@@ -14,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from sssphase_core.relight.choices import DECODER_WIDEN
 from sssphase_core.store.files import save_figure, write_text
 
 STYLE = """
@@ -133,7 +134,9 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
                  f"{_esc(lpips_note())}. <code>exact</code> splats the simulator's exact footprints (ground truth no lab has); <code>measured</code> splats the session's captured light transport (one crop per projector dot); "
                  f"<code>none</code> keeps each pixel's own light (no scattering); <code>blend</code> weighs torch and "
                  f"analytic pixel by pixel by how well they relight the view's own fringe captures (<code>sss relight</code>'s "
-                 f"default with a decoder)."
+                 f"default with a decoder); for <code>torch</code> and <code>blend</code> that fit may also widen the "
+                 f"models' footprints (each joins it stretched {DECODER_WIDEN:g} ×, <code>sss relight --widen</code>'s default "
+                 f"for them)."
                  + (f" <code>analytic</code> integrates each footprint pixel at {int(result['analytic_supersample'])}"
                     f" × {int(result['analytic_supersample'])} points here (<code>sss relight</code> and <code>sss eval "
                     "relight</code>: 4 × 4), so their figures for it can differ slightly."
