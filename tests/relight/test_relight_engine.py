@@ -94,6 +94,17 @@ def test_footprint_cache_skips_the_source_for_cached_pixels(tmp_path, scene):
     np.testing.assert_allclose(direct, first, rtol=2e-3, atol=1e-4)  # (float16 storage: close to the source's own)
 
 
+def _cached_once(src, path, scene):
+    """Relight ``scene``'s first pattern through a fresh cache of ``src`` at ``path`` and save it -> (the image, the
+    file's arrays)."""
+    proj, k, _, pats = scene
+    cache = FootprintCache(src, path, proj.shape, k)
+    first = relight(cache, proj, pats[:1], k)
+    cache.save()
+    with np.load(path) as z:
+        return first, {name: z[name] for name in z.files}
+
+
 @pytest.mark.parametrize("damage", ["truncated", "index_out_of_range", "negative_index", "object_array", "not_npz"])
 def test_a_damaged_footprint_cache_is_ignored_and_rewritten(tmp_path, scene, damage):
     """The cache only saves time: a damaged or foreign file (truncated, indices off the view, pickled
@@ -104,11 +115,7 @@ def test_a_damaged_footprint_cache_is_ignored_and_rewritten(tmp_path, scene, dam
         return fps[px[:, 0], px[:, 1]]
 
     path = tmp_path / "fp.npz"
-    cache = FootprintCache(src, path, proj.shape, k)
-    first = relight(cache, proj, pats[:1], k)
-    cache.save()
-    with np.load(path) as z:
-        parts = {name: z[name] for name in z.files}
+    first, parts = _cached_once(src, path, scene)
     if damage == "truncated":
         path.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
     elif damage == "not_npz":
@@ -140,11 +147,7 @@ def test_non_finite_footprints_in_a_cache_are_computed_again_not_blamed_on_the_m
         return fps[px[:, 0], px[:, 1]]
 
     path = tmp_path / "fp.npz"
-    cache = FootprintCache(src, path, proj.shape, k)
-    first = relight(cache, proj, pats[:1], k)
-    cache.save()
-    with np.load(path) as z:
-        parts = {name: z[name] for name in z.files}
+    first, parts = _cached_once(src, path, scene)
     parts["data"] = parts["data"].copy()
     parts["data"][: len(parts["data"]) * 3 // 4] = np.nan  # most of them: past the engine's broken-source share
     parts["data"][-1, 0, 0, 0] = np.inf

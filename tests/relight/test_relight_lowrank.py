@@ -27,21 +27,26 @@ def _rank3_source(proj, seed=0):
     return source
 
 
-def test_relit_from_eigen_footprints_equals_the_splat_when_they_span_the_footprints(tmp_path, make_projection):
+def _tapped_view(make_projection, seed):
+    """A toy view with rank-3 footprints, a tap on them over every decoded pixel, two random patterns and a white."""
     proj = make_projection(black=0.002)
     source = _rank3_source(proj)
     valid = np.argwhere(proj.mask)
-    tap = LowRankTap(source, valid, proj.mask.shape, sample=64)
-    rng = np.random.default_rng(1)
+    rng = np.random.default_rng(seed)
     patterns = rng.random((2, 50, 60)).astype(np.float32)
     white = rng.random((*proj.mask.shape, 3)).astype(np.float32)
+    return proj, source, valid, LowRankTap(source, valid, proj.mask.shape, sample=64), patterns, white
+
+
+def test_relit_from_eigen_footprints_equals_the_splat_when_they_span_the_footprints(tmp_path, make_projection):
+    proj, source, valid, tap, patterns, white = _tapped_view(make_projection, seed=1)
     direct = relight(tap, proj, patterns, K, white=white)  # the pass collects every lit pixel's coefficients
     assert tap.covers(valid) and tap.basis.shape == (3, 3, K, K)  # three components found, no more
     low = tap.result()
     assert low.rank == 3 and low.residual < 1e-7
     fast = low.relight(proj, patterns, white=white)
     np.testing.assert_allclose(fast, direct, atol=1e-6 * np.abs(direct).max())
-    gains = rng.uniform(0.5, 2.0, (1, *proj.mask.shape, 3)).astype(np.float32)
+    gains = np.random.default_rng(2).uniform(0.5, 2.0, (1, *proj.mask.shape, 3)).astype(np.float32)
     save_lowrank(tmp_path / "v.npz", [low], np.ones((1, *proj.mask.shape, 3)), np.ones((1, 3)), gains, white, proj.mask)
     (back,), weights, view_weights, kept_gains, kept_white = load_lowrank(tmp_path / "v.npz", proj.mask)
     np.testing.assert_allclose(back.relight(proj, patterns, white=white), fast, atol=1e-3 * np.abs(direct).max())  # float16
@@ -60,13 +65,7 @@ def test_widened_eigen_footprints_relight_as_the_widened_footprints_and_are_kept
 
     from sssphase_core.relight.engine import widened
 
-    proj = make_projection(black=0.002)
-    source = _rank3_source(proj)
-    valid = np.argwhere(proj.mask)
-    tap = LowRankTap(source, valid, proj.mask.shape, sample=64)
-    rng = np.random.default_rng(3)
-    patterns = rng.random((2, 50, 60)).astype(np.float32)
-    white = rng.random((*proj.mask.shape, 3)).astype(np.float32)
+    proj, source, valid, tap, patterns, white = _tapped_view(make_projection, seed=3)
     plain, wide = relight(tap, proj, patterns, K, white=white, variants=(lambda f: widened(f, 1.4),))
     low = tap.result()
     twin = low.widened(1.4)
