@@ -184,11 +184,14 @@ def resolve_patterns(specs: Sequence[str], rv: RelightView, resize: str = "",
     return names, pats
 
 
-def mix_line(rv: RelightView, backend: str, mix: np.ndarray) -> str:
-    """The line that tells a view's calibration: each member's view-wide weights against no scattering."""
+def mix_line(rv: RelightView, backend: str, mix: np.ndarray, stretched: np.ndarray | None = None) -> str:
+    """The line that tells a view's calibration: each member's view-wide weights against no scattering, and of those
+    the share its stretched twin took (``stretched``, the same shape as ``mix``, where the calibration had twins)."""
     rows = np.atleast_2d(mix)
+    twins = np.atleast_2d(stretched) if stretched is not None else [None] * len(rows)
     weights = "; ".join(f"{m} R G B {' '.join(f'{x:.2f}' for x in row)}"
-                        for m, row in zip(BLENDS.get(backend, (backend,)), rows, strict=True))
+                        + (f" (stretched {' '.join(f'{x:.2f}' for x in twin)})" if twin is not None else "")
+                        for m, row, twin in zip(BLENDS.get(backend, (backend,)), rows, twins, strict=True))
     return (f"{rv.object} view {rv.view}: {backend} footprints calibrated to the view's fringe captures "
             f"(view-wide weights against no scattering: {weights}{'; refined pixel by pixel' if len(rows) == 1 else ''})")
 
@@ -389,8 +392,9 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
         progress = say.task(f"{rv.object} view {rv.view}: {backend}")
         relit, mix = relight_view(source, patch, rv, pats, calibrate=backend not in MODEL_FREE, also=also, chunk=chunk,
                                   device=device, progress=progress, calibration=calibration, widen=widen)
-    if mix is not None:
-        say.say(mix_line(rv, backend, mix))
+    if mix is not None:  # with twins, the calibration's own view-wide weights are each model's, then its twin's
+        twins = np.asarray(calibration[0][1]).reshape(-1, 2, 3)[:, 1] if widen and calibration else None
+        say.say(mix_line(rv, backend, mix, twins if twins is None or len(twins) > 1 else twins[0]))
     for model, member in zip(models, members, strict=True):
         line = domain_line(rv, member, model)
         if line:
@@ -423,9 +427,11 @@ def _relight_cached(rv: RelightView, pats: list[np.ndarray], backend: str, path:
     with say.status(f"{rv.object} view {rv.view}: {backend} from its eigen-footprints"):
         relit = relight_lowrank(rv, members, weights, gains, white, pats)
     twins = len(members) // len(BLENDS.get(backend, (backend,)))  # 2 where each member has its stretched twin
-    view_weights = view_weights.reshape(-1, twins, 3).sum(axis=1)  # as relight_view gives them: a model's and its twin's
+    pairs = view_weights.reshape(-1, twins, 3)
+    view_weights = pairs.sum(axis=1)  # as relight_view gives them: a model's and its twin's
     mix = view_weights[0] if len(view_weights) == 1 else view_weights
-    say.say(mix_line(rv, backend, mix))
+    stretched = (pairs[:, 1] if len(pairs) > 1 else pairs[0, 1]) if twins == 2 else None
+    say.say(mix_line(rv, backend, mix, stretched))
     say.say(f"{rv.object} view {rv.view}: relit from its cached eigen-footprints ({path.name}: rank "
             f"{'/'.join(str(m.rank) for m in members[::twins])}, {max(m.residual for m in members):.1e} of the footprints' "
             "energy left out); --no-cache computes the footprints again")

@@ -632,6 +632,8 @@ def test_relight_with_widen_says_so_and_keeps_eigen_footprints_of_its_own_calibr
     assert len(list((tmp_path / "cache").glob("*_analytic_*_w1.5_lowrank.npz"))) == 1
     again = runner.invoke(app, [*base, "--pattern", "stripes_x", "--out", str(tmp_path), "--widen", "1.5"])
     assert again.exit_code == 0 and "relit from its cached eigen-footprints" in again.output, again.output
+    told = [line for out in (wide.output, again.output) for line in out.splitlines() if "calibrated to the view" in line]
+    assert len(told) == 2 and told[0] == told[1] and "(stretched " in told[0]  # the twin's share, cached or not
     full = runner.invoke(app, [*base, "--pattern", "stripes_x", "--out", str(tmp_path / "full"), "--widen", "1.5", "--no-cache"])
     assert full.exit_code == 0, full.output
     x, y = (read_exr(d / "sand_rake_v1_stripes_x_analytic.exr") for d in (tmp_path, tmp_path / "full"))
