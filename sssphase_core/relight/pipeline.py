@@ -77,9 +77,18 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     if calibration is not None:
         calibration.append((weights, view_weights, np.stack(gains), exit_white(rv)))
     images = mix_images(none[:n], [r[:n] for r in relits], weights)
-    if twins:
-        view_weights = view_weights.reshape(-1, 2, 3).sum(axis=1)
+    view_weights = split_twins(view_weights, bool(twins))[0]
     return images, (view_weights[0] if not also else view_weights)
+
+
+def split_twins(view_weights: np.ndarray, twinned: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """A calibration's view-wide weights (S, 3), each source followed by its stretched twin where ``twinned``
+    (:func:`relight_view`'s ``widen``) -> (each source's weight with its twin's (S or S / 2, 3), the twins' own
+    share of it (S / 2, 3), or None without twins)."""
+    if not twinned:
+        return view_weights, None
+    pairs = np.asarray(view_weights).reshape(-1, 2, 3)
+    return pairs.sum(axis=1), pairs[:, 1]
 
 
 def white_consistent(rv: RelightView, relit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

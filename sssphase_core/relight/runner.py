@@ -361,7 +361,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
     from sssphase_core.relight.cache import CACHE_BYTES
     from sssphase_core.relight.engine import lit_pixels
     from sssphase_core.relight.lowrank import LowRankTap, load_lowrank, save_lowrank
-    from sssphase_core.relight.pipeline import relight_view
+    from sssphase_core.relight.pipeline import relight_view, split_twins
     from sssphase_core.relight.transport import DotTransport
 
     fast = lowrank_path(out, s, rv, backend, checkpoint, widen)
@@ -392,9 +392,9 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
         progress = say.task(f"{rv.object} view {rv.view}: {backend}")
         relit, mix = relight_view(source, patch, rv, pats, calibrate=backend not in MODEL_FREE, also=also, chunk=chunk,
                                   device=device, progress=progress, calibration=calibration, widen=widen)
-    if mix is not None:  # with twins, the calibration's own view-wide weights are each model's, then its twin's
-        twins = np.asarray(calibration[0][1]).reshape(-1, 2, 3)[:, 1] if widen and calibration else None
-        say.say(mix_line(rv, backend, mix, twins if twins is None or len(twins) > 1 else twins[0]))
+    if mix is not None:  # with twins, the calibration's own view-wide weights say the twins' share
+        twins = split_twins(calibration[0][1], bool(widen))[1] if calibration else None
+        say.say(mix_line(rv, backend, mix, twins))
     for model, member in zip(models, members, strict=True):
         line = domain_line(rv, member, model)
         if line:
@@ -421,16 +421,14 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
 def _relight_cached(rv: RelightView, pats: list[np.ndarray], backend: str, path: Path, saved: tuple[Any, ...],
                     say: Narrator) -> tuple[np.ndarray, np.ndarray]:
     """A view relit from its cached eigen-footprints and calibration (``saved``: :func:`load_lowrank`'s), told."""
-    from sssphase_core.relight.pipeline import relight_lowrank
+    from sssphase_core.relight.pipeline import relight_lowrank, split_twins
 
     members, weights, view_weights, gains, white = saved
     with say.status(f"{rv.object} view {rv.view}: {backend} from its eigen-footprints"):
         relit = relight_lowrank(rv, members, weights, gains, white, pats)
     twins = len(members) // len(BLENDS.get(backend, (backend,)))  # 2 where each member has its stretched twin
-    pairs = view_weights.reshape(-1, twins, 3)
-    view_weights = pairs.sum(axis=1)  # as relight_view gives them: a model's and its twin's
+    view_weights, stretched = split_twins(view_weights, twins == 2)  # as relight_view gives them
     mix = view_weights[0] if len(view_weights) == 1 else view_weights
-    stretched = (pairs[:, 1] if len(pairs) > 1 else pairs[0, 1]) if twins == 2 else None
     say.say(mix_line(rv, backend, mix, stretched))
     say.say(f"{rv.object} view {rv.view}: relit from its cached eigen-footprints ({path.name}: rank "
             f"{'/'.join(str(m.rank) for m in members[::twins])}, {max(m.residual for m in members):.1e} of the footprints' "

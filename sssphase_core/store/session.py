@@ -180,9 +180,8 @@ class ViewWriter:
         except OSError as exc:
             self.abort()
             if exc.errno == errno.ENOSPC:
-                again = "run the import again" if self.session.imported else "rerun with --resume"
                 raise DataError(f"disk full while writing {name} of view {self.view} in {self.session.path}: "
-                                f"free some space and {again}") from exc
+                                f"free some space and {self.session.rerun}") from exc
             raise DataError(f"cannot write {name} of view {self.view}: {exc}") from exc
         self.arrays[name] = {"shape": list(data.shape), "dtype": np.dtype(data.dtype).str, "checksum": array_checksum(data),
                              "chunks": _chunk_count(data.shape, _chunks(data.shape, np.dtype(data.dtype).itemsize))}
@@ -544,6 +543,12 @@ class Session:
         """Whether ``sss import`` made the session (from a folder of frames) rather than ``sss capture``."""
         return bool(self.manifest.get("rig", {}).get("imported"))
 
+    @property
+    def rerun(self) -> str:
+        """What completes an unfinished view: ``rerun with --resume``, or for an import (which has no --resume)
+        ``run the import again``."""
+        return "run the import again" if self.imported else "rerun with --resume"
+
     def completes_it(self) -> str:
         """How a user completes this session's unfinished views: ``sss capture ... --resume``, or for an import
         (which has no --resume: its frames are still in their folder) the import run again."""
@@ -645,13 +650,13 @@ class Session:
         n = expected_views if expected_views is not None else int(self.manifest.get("n_views", 0))
         for v in range(n):
             if self.status(v) != "complete":
-                problems.append(f"view {v}: {self.status(v)} (not " + ("imported completely; run the import again)"
-                                                                        if self.imported else "captured completely; rerun with --resume)"))
+                problems.append(f"view {v}: {self.status(v)} (not {'imported' if self.imported else 'captured'} "
+                                f"completely; {self.rerun})")
         for v, entry in self.iter_views():
             for name in REQUIRED:
                 if name not in entry.get("arrays", {}):
                     problems.append(f"view {v}: required array {name} missing from the manifest")
-            before = len(problems)
+            before, read = len(problems), {}
             level = None  # the view's white level, for the other images' test (the white is read first)
             for name, meta in sorted(entry.get("arrays", {}).items(), key=lambda item: item[0] != "white"):
                 try:
@@ -664,6 +669,8 @@ class Session:
                 except Exception as exc:
                     problems.append(f"view {v}: array {name} missing or unreadable ({type(exc).__name__}: {str(exc)[:80]})")
                     continue
+                if name in CONSISTENCY_ARRAYS:
+                    read[name] = data
                 if list(data.shape) != meta["shape"] or data.dtype.str != meta["dtype"]:
                     problems.append(f"view {v}: array {name} is {data.shape} {data.dtype.str}, manifest says "
                                     f"{tuple(meta['shape'])} {meta['dtype']}")
@@ -676,48 +683,54 @@ class Session:
                     if problem:
                         problems.append(f"view {v}: {problem}")
             if len(problems) == before:  # every array intact: do they belong together?
-                problems += [f"view {v}: {p}" for p in self._view_consistency(v, entry.get("arrays", {}))]
+                problems += [f"view {v}: {p}" for p in view_consistency(entry.get("arrays", {}), read)]
         return problems
 
-    def _view_consistency(self, v: int, arrays: dict[str, dict]) -> list[str]:
-        """What the readers would refuse in a view whose arrays are each intact: sizes that disagree with the decoded
-        mask's (H, W) (maps (H, W), images (H, W, 3), the PSP stack (8, H, W, 3)), projector coordinates that are not
-        finite on the decoded pixels, footprint pixels outside the image or not one per crop."""
-        import collections
 
-        def size(name: str, shape: tuple[int, ...]) -> tuple[int, ...] | None:  # the (H, W) an array is laid out on
-            return shape[1:3] if name == "psp" else shape[:2] if name.startswith("corr/") or holds_light(name) else None
+#: The arrays :func:`view_consistency` reads (small: maps and pixel lists).
+CONSISTENCY_ARRAYS = ("corr/mask", "corr/xp", "corr/yp", "footprints/pixels")
 
-        sizes = [size(name, tuple(meta["shape"])) for name, meta in arrays.items()]
-        votes = collections.Counter(x for x in sizes if x is not None and len(x) == 2)
-        if "corr/mask" not in arrays or not votes:
-            return []
-        h, w = votes.most_common(1)[0][0]  # the size most of the view's arrays share: the odd ones out are named
-        out = []
-        for name, meta in sorted(arrays.items()):
-            shape = tuple(meta["shape"])
-            want = ((h, w) if name.startswith("corr/") else (8, h, w, 3) if name == "psp"
-                    else (h, w, 3) if holds_light(name) else None)
-            if want is not None and shape != want:
-                out.append(f"array {name} is {shape} where the view's other arrays ask for {want} (height, width"
-                           f"{', colour' if len(want) > 2 else ''}): the view's arrays do not belong together")
-        if out:
-            return out
-        mask = np.asarray(self.load(v, "corr/mask"), bool)
-        for name in ("corr/xp", "corr/yp"):
-            if name in arrays and (bad := int((~np.isfinite(np.asarray(self.load(v, name))[mask])).sum())):
-                out.append(f"array {name} holds {bad} NaN or infinite values on the decoded pixels")
-        if "footprints/pixels" in arrays:
-            px, crops = tuple(arrays["footprints/pixels"]["shape"]), tuple(arrays.get("footprints/crops", {}).get("shape", ()))
-            if len(px) != 2 or px[1] != 2:
-                out.append(f"array footprints/pixels is {px}, not (N, 2) pixels")
-            else:
-                pixels = np.asarray(self.load(v, "footprints/pixels"), np.int64)
-                if len(pixels) and not ((pixels >= 0).all() and (pixels[:, 0] < h).all() and (pixels[:, 1] < w).all()):
-                    out.append(f"array footprints/pixels holds pixels outside the {w}x{h} image")
-                if crops and crops[0] != len(pixels):
-                    out.append(f"array footprints/crops holds {crops[0]} crops for {len(pixels)} footprint pixels")
+
+def view_consistency(arrays: dict[str, dict], read: dict[str, np.ndarray]) -> list[str]:
+    """What the readers would refuse in a view whose arrays are each intact: sizes that disagree with the decoded
+    mask's (H, W) (maps (H, W), images (H, W, 3), the PSP stack (8, H, W, 3)), projector coordinates that are not
+    finite on the decoded pixels, footprint pixels outside the image or not one per crop. ``arrays``: the view's
+    manifest entries; ``read``: its :data:`CONSISTENCY_ARRAYS` as :meth:`Session.validate` read them."""
+    import collections
+
+    def size(name: str, shape: tuple[int, ...]) -> tuple[int, ...] | None:  # the (H, W) an array is laid out on
+        return shape[1:3] if name == "psp" else shape[:2] if name.startswith("corr/") or holds_light(name) else None
+
+    sizes = [size(name, tuple(meta["shape"])) for name, meta in arrays.items()]
+    votes = collections.Counter(x for x in sizes if x is not None and len(x) == 2)
+    if "corr/mask" not in arrays or not votes:
+        return []
+    h, w = votes.most_common(1)[0][0]  # the size most of the view's arrays share: the odd ones out are named
+    out = []
+    for name, meta in sorted(arrays.items()):
+        shape = tuple(meta["shape"])
+        want = ((h, w) if name.startswith("corr/") else (8, h, w, 3) if name == "psp"
+                else (h, w, 3) if holds_light(name) else None)
+        if want is not None and shape != want:
+            out.append(f"array {name} is {shape} where the view's other arrays ask for {want} (height, width"
+                       f"{', colour' if len(want) > 2 else ''}): the view's arrays do not belong together")
+    if out:
         return out
+    mask = np.asarray(read["corr/mask"], bool)
+    for name in ("corr/xp", "corr/yp"):
+        if name in read and (bad := int((~np.isfinite(np.asarray(read[name])[mask])).sum())):
+            out.append(f"array {name} holds {bad} NaN or infinite values on the decoded pixels")
+    if "footprints/pixels" in arrays:
+        px, crops = tuple(arrays["footprints/pixels"]["shape"]), tuple(arrays.get("footprints/crops", {}).get("shape", ()))
+        if len(px) != 2 or px[1] != 2:
+            out.append(f"array footprints/pixels is {px}, not (N, 2) pixels")
+        else:
+            pixels = np.asarray(read["footprints/pixels"], np.int64)
+            if len(pixels) and not ((pixels >= 0).all() and (pixels[:, 0] < h).all() and (pixels[:, 1] < w).all()):
+                out.append(f"array footprints/pixels holds pixels outside the {w}x{h} image")
+            if crops and crops[0] != len(pixels):
+                out.append(f"array footprints/crops holds {crops[0]} crops for {len(pixels)} footprint pixels")
+    return out
 
 
 def session_around(path: Path | str) -> Path | None:
