@@ -32,16 +32,17 @@ def check_backends(names: Sequence[str], checkpoint: Path | str | None) -> None:
         load_decoder(checkpoint)  # raises DataError naming what the file is, or weights that are not finite
 
 
-#: The stretch of each model's twin in the view calibration (``relight_view``'s ``widen``) for backends that run the
-#: decoder, unless the user gives one (``--widen``; 1: none). A decoder's footprint widths are a prediction, too narrow
-#: on materials wider than its training objects' (the simulator's unseen hand: its red 1.5 dB below the analytic
-#: model's, +0.5 above it with the twin), and the calibration without the twin can only narrow them; the analytic
-#: model's widths are fitted to the view's own fringes. Measured in docs/benchmarks/relighting.md.
+#: The stretch, along x and apart along y, of each model's footprints in the view calibration (``relight_view``'s
+#: ``widen``) for backends that run the decoder, unless the user gives one (``--widen``; 1: none). A decoder's
+#: footprint widths are a prediction, too narrow on materials wider than its training objects' (the simulator's unseen
+#: hand: 1.5 dB below the analytic model's; an independent path tracer's skin: a quarter too narrow), and the
+#: calibration of the footprints as they are can only narrow them; the analytic model's widths (one per axis) are
+#: fitted to the view's own fringes. Measured in docs/benchmarks/relighting.md.
 DECODER_WIDEN = 1.3
 
 
 def widen_for(backend: str, widen: float | None) -> float | None:
-    """The stretch of the calibration's twins for ``backend``: ``widen`` as given (1: none), or by default
+    """The stretch of the calibration's members for ``backend``: ``widen`` as given (1: none), or by default
     :data:`DECODER_WIDEN` for backends that run the decoder and none for the others."""
     if widen is None:
         return DECODER_WIDEN if uses_decoder(backend) else None

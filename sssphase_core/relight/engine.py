@@ -274,10 +274,12 @@ def relight(
     method: str = "auto",
     progress: Callable[[int, int], None] | None = None,
     variants: Sequence[Callable[[torch.Tensor], torch.Tensor]] = (),
+    plain: bool = True,
 ) -> np.ndarray:
     """Relight one view under P projector patterns in one fused, chunked pass -> (P, H, W, 3) float32, or with
-    ``variants`` (V, P, H, W, 3): the footprints as the source gives them, then each variant's transform of them
-    ((n, K, K, 3) -> (n, K, K, 3), e.g. :func:`widened`), all splatted from one call of the source per chunk.
+    ``variants`` (V, P, H, W, 3): the footprints as the source gives them (unless not ``plain``: then only the
+    variants), then each variant's transform of them ((n, K, K, 3) -> (n, K, K, 3), e.g. :func:`widened`), all
+    splatted from one call of the source per chunk.
 
     ``white`` (the image under a full-white pattern, linear units) supplies the projector black
     level's contribution; without it the black level is ignored. ``dtype`` is the precision the
@@ -299,7 +301,10 @@ def relight(
         fetch = lambda sl: source(pixels[sl])  # noqa: E731
     h, w = proj.shape
     k = patch if radius is None or radius >= patch // 2 else 2 * radius + 1
-    splats = [Splatter(h, w, k, light.shape[0], device=device, method=method) for _ in range(1 + len(variants))]
+    if not (plain or variants):
+        raise ValueError("relight: nothing to splat (plain=False and no variants)")
+    transforms = ([lambda f: f] if plain else []) + list(variants)
+    splats = [Splatter(h, w, k, light.shape[0], device=device, method=method) for _ in transforms]
     total, n_bad, bad_pixels = len(pixels), 0, 0
     for start in range(0, total, chunk):
         sl = slice(start, min(start + chunk, total))
@@ -318,9 +323,8 @@ def relight(
                                 "weights overflow?), and nothing it relit can be used")
             fp = torch.where(bad, torch.zeros((), dtype=fp.dtype, device=fp.device), fp)
         light_sl = torch.as_tensor(c[sl], device=device).to(dtype)
-        splats[0].add(pixels[sl], fp.to(dtype), light_sl)
-        for splat, variant in zip(splats[1:], variants, strict=True):
-            splat.add(pixels[sl], variant(fp).to(dtype), light_sl)
+        for splat, transform in zip(splats, transforms, strict=True):
+            splat.add(pixels[sl], transform(fp).to(dtype), light_sl)
         if progress is not None:
             progress(sl.stop, total)
     if n_bad:
@@ -332,23 +336,32 @@ def relight(
     return np.stack(outs) if variants else outs[0]
 
 
-def stretched(footprints: torch.Tensor, factor: float) -> torch.Tensor:
-    """(N, K, K, 3) footprints stretched radially about their centre pixel ``K // 2`` by ``factor`` (bilinear
-    resampling; light beyond the window is lost) -> (N, K, K, 3): linear in the footprints, so eigen-footprints
-    stretch as the footprints they span do (:meth:`~sssphase_core.relight.lowrank.LowRankFootprints.widened`)."""
+def stretched(footprints: torch.Tensor, factor: float | tuple[float, float]) -> torch.Tensor:
+    """(N, K, K, 3) footprints stretched about their centre pixel ``K // 2`` by ``factor`` (one for both axes, or
+    ``(along x, along y)``; bilinear resampling; light beyond the window is lost) -> (N, K, K, 3): linear in the
+    footprints, so eigen-footprints stretch as the footprints they span do
+    (:meth:`~sssphase_core.relight.lowrank.LowRankFootprints.widened`)."""
+    fx, fy = (factor, factor) if np.isscalar(factor) else factor
     f = footprints.float().permute(0, 3, 1, 2)  # (N, 3, K, K)
     n, _, k, _ = f.shape
-    at = (torch.arange(k, dtype=torch.float32, device=f.device) - k // 2) / float(factor) + k // 2
-    g = at / (k - 1) * 2 - 1  # grid_sample's [-1, 1] over pixel centres (align_corners)
-    gy, gx = torch.meshgrid(g, g, indexing="ij")
-    grid = torch.stack([gx, gy], dim=-1)[None].expand(n, k, k, 2)
+    centred = torch.arange(k, dtype=torch.float32, device=f.device) - k // 2
+    gx, gy = ((centred / float(s) + k // 2) / (k - 1) * 2 - 1 for s in (fx, fy))  # grid_sample's [-1, 1] (align_corners)
+    grid = torch.stack(torch.meshgrid(gx, gy, indexing="xy"), dim=-1)[None].expand(n, k, k, 2)  # (.., (x, y))
     out = torch.nn.functional.grid_sample(f, grid, mode="bilinear", padding_mode="zeros", align_corners=True)
     return out.permute(0, 2, 3, 1)
 
 
-def widened(footprints: torch.Tensor, factor: float) -> torch.Tensor:
-    """(N, K, K, 3) footprints :func:`stretched` by ``factor``, each colour's energy kept -> (N, K, K, 3)."""
+def widened(footprints: torch.Tensor, factor: float | tuple[float, float]) -> torch.Tensor:
+    """(N, K, K, 3) footprints :func:`stretched` by ``factor`` (both axes, or ``(along x, along y)``), each colour's
+    energy kept -> (N, K, K, 3)."""
     out = stretched(footprints, factor)
     had, has = footprints.float().sum(dim=(1, 2), keepdim=True), out.sum(dim=(1, 2), keepdim=True)
     out = out * torch.where(has > 0, had / torch.where(has > 0, has, torch.ones_like(has)), torch.ones_like(has))
     return out.to(footprints.dtype)
+
+
+def axis_stretches(factor: float) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The two stretches ``((factor, 1), (1, factor))`` (along x, along y) of a model's footprints that the view
+    calibration weighs in place of the footprints themselves (``relight_view``'s ``widen``): each fringe orientation
+    measures the footprints' width across it, so the fit can widen them along either axis or both (half each)."""
+    return (float(factor), 1.0), (1.0, float(factor))

@@ -24,6 +24,7 @@ from sssphase_core.processing.projector import emitted_light
 from sssphase_core.relight.engine import (
     FootprintSource,
     Projection,
+    axis_stretches,
     footprint_array,
     pattern_stack,
     received_light,
@@ -107,9 +108,9 @@ class LowRankFootprints:
             out += np.float32(proj.black) * np.asarray(white, np.float32)[None]
         return out
 
-    def widened(self, factor: float) -> LowRankFootprints:
+    def widened(self, factor: float | tuple[float, float]) -> LowRankFootprints:
         """These footprints as :func:`~sssphase_core.relight.engine.widened` makes them (stretched ``factor`` x about
-        their pixel, each colour's energy kept): stretching is linear, so their eigen-footprints are the stretched
+        their pixel, on both axes or ``(along x, along y)``, each colour's energy kept): stretching is linear, so their eigen-footprints are the stretched
         ``basis`` and each pixel's coefficients are scaled by its colours' energy before over after."""
         import torch
 
@@ -197,9 +198,11 @@ class LowRankTap:
 #: relighting wrong; 5: every view's weights are fitted on white-consistent images, a Bayer camera's too, and each
 #: member's gain and the no-scattering term's white are kept (a new pattern needs neither computed again); 6: the
 #: stretch of the calibration's twins (``relight_view``'s ``widen``, 0 for none) is kept, and the twins' weights and
-#: gains beside their members' (their eigen-footprints are the members' :meth:`LowRankFootprints.widened`). Files of
-#: earlier formats are not read.
-LOWRANK_FORMAT = 6
+#: gains beside their members' (their eigen-footprints are the members' :meth:`LowRankFootprints.widened`); 7: with a
+#: stretch, the calibration's members are each model's footprints stretched along x and along y
+#: (:func:`~sssphase_core.relight.engine.axis_stretches`), the model's own not among them. Files of earlier formats
+#: are not read.
+LOWRANK_FORMAT = 7
 #: More members than any blend has: a file claiming more is damaged (and is not looped over).
 MAX_MEMBERS = 8
 
@@ -221,7 +224,7 @@ def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np
     and view-wide ones (S, 3), each member's white-consistent gain ``gains`` (S, H, W, 3) and the no-scattering
     term's white ``white`` (H, W, 3) (``calibration.exit_gain``, ``exit_white``; both kept at the view's ``mask``
     (H, W) pixels, where they differ from 1 and from the white capture), written atomically. With ``widen`` the
-    calibration's S = 2 x len(members) members are each member and its twin stretched ``widen`` x, in that order."""
+    calibration's S = 2 x len(members) members are each member stretched ``widen`` x along x, then along y."""
     from sssphase_core.store.files import atomic_path
 
     mask = np.asarray(mask, bool)
@@ -241,7 +244,7 @@ def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np
 def load_lowrank(path: Path | str, mask: np.ndarray, widen: float | None = None
                  ) -> tuple[list[LowRankFootprints], np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """:func:`save_lowrank`'s file for a view of decoded ``mask`` (H, W) -> (the calibration's S members (with
-    ``widen``, each member followed by its stretched twin), weights, view weights, gains (S, n, 3) and white (n, 3)
+    ``widen``, each member stretched along x, then along y), weights, view weights, gains (S, n, 3) and white (n, 3)
     at the mask's n pixels); None when it is missing, damaged, of another view, of another stretch or of another
     format (:data:`LOWRANK_FORMAT`; a cache only saves time)."""
     import zipfile
@@ -266,7 +269,7 @@ def load_lowrank(path: Path | str, mask: np.ndarray, widen: float | None = None
             return None
         members = [LowRankFootprints.from_arrays(arrays, f"m{i}_") for i in range(n)]
         if stretch and all(m is not None for m in members):
-            members = [x for m in members for x in (m, m.widened(stretch))]  # type: ignore[union-attr]
+            members = [m.widened(s) for m in members for s in axis_stretches(stretch)]  # type: ignore[union-attr]
             n *= 2
         weights, view_weights = np.asarray(arrays["weights"], np.float32), np.asarray(arrays["view_weights"], np.float32)
         gains, white = np.asarray(arrays["gains"], np.float32), np.asarray(arrays["white"], np.float32)

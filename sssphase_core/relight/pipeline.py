@@ -16,12 +16,12 @@ from sssphase_core.relight.calibration import (
     local_mixture,
     model_inputs,
 )
-from sssphase_core.relight.engine import FootprintSource, relight, widened
+from sssphase_core.relight.engine import FootprintSource, axis_stretches, relight, widened
 from sssphase_core.relight.lowrank import LowRankFootprints
 from sssphase_core.relight.sources import no_scattering_source
 from sssphase_core.relight.views import RelightView
 
-#: The largest stretch :func:`relight_view` gives each model's twin (``widen``).
+#: The largest stretch :func:`relight_view` gives a model's footprints (``widen``).
 WIDEN_MAX = 4.0
 
 
@@ -46,28 +46,29 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
 
     ``calibration``: a list that receives the fit's (per-pixel weights (S, H, W, 3), view-wide weights (S, 3), each
     source's gain (S, H, W, 3), the no-scattering term's white (H, W, 3)), which relight any other pattern the same
-    way (:func:`relight_lowrank`); with ``widen``, each source's twin is a member after it.
+    way (:func:`relight_lowrank`); with ``widen``, each source is two members, stretched along x, then along y.
 
-    ``widen`` (> 1, with ``calibrate``): each source's footprints stretched by that factor
-    (:func:`~sssphase_core.relight.engine.widened`, splatted in the same pass) join the fit as one more member beside
-    it, so that the view's fringes can widen a model's footprints where they ask for it, not only narrow them toward
-    no scattering; the view-wide mix returned gives each source its own and its stretched twin's weights together.
+    ``widen`` (> 1, with ``calibrate``): each source's footprints join the fit not as they are but stretched by that
+    factor along x and, as a second member, along y (:func:`~sssphase_core.relight.engine.axis_stretches`,
+    :func:`~sssphase_core.relight.engine.widened`, splatted in the same pass), so that the view's two fringe
+    orientations can widen a model's footprints along either axis or both, as well as narrow them toward no
+    scattering; the view-wide mix returned gives each source its two members' weights together.
     """
     calibrate = calibrate and rv.psp_patterns is not None
     if also and not calibrate:
         raise InputError(f"{rv.object} view {rv.view}: blending sources needs the view calibration (the projector "
                          "patterns of its PSP captures, and calibration on)")
     if widen is not None and not (1.0 < widen <= WIDEN_MAX):
-        raise InputError(f"widen {widen}: the stretch of each model's twin must be above 1 and at most {WIDEN_MAX:g}")
+        raise InputError(f"widen {widen}: the stretch of each model's footprints must be above 1 and at most {WIDEN_MAX:g}")
     n = len(patterns)
     every = list(patterns) + (list(rv.psp_patterns) if calibrate else [])
     under_white = [full_white(*rv.proj.projector_size)] if calibrate else []  # (white_consistent reads it)
-    twins = (functools.partial(widened, factor=float(widen)),) if calibrate and widen else ()
+    stretches = tuple(functools.partial(widened, factor=s) for s in axis_stretches(widen)) if calibrate and widen else ()
     relits = [relight(src, rv.proj, every + under_white, k, white=rv.white, chunk=chunk, device=device,
-                      progress=progress, variants=twins) for src, k in ((source, patch), *also)]
+                      progress=progress, variants=stretches, plain=not stretches) for src, k in ((source, patch), *also)]
     if not calibrate:
         return relits[0], None
-    if twins:  # each source's images, then its stretched twin's: members of the fit in that order
+    if stretches:  # each source's images stretched along x, then along y: members of the fit in that order
         relits = [member for pair in relits for member in pair]
     relits, gains = zip(*(white_consistent(rv, r) for r in relits), strict=True)
     psp, lost = model_inputs(rv)
@@ -77,18 +78,18 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     if calibration is not None:
         calibration.append((weights, view_weights, np.stack(gains), exit_white(rv)))
     images = mix_images(none[:n], [r[:n] for r in relits], weights)
-    view_weights = split_twins(view_weights, bool(twins))[0]
+    view_weights = split_stretches(view_weights, bool(stretches))[0]
     return images, (view_weights[0] if not also else view_weights)
 
 
-def split_twins(view_weights: np.ndarray, twinned: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """A calibration's view-wide weights (S, 3), each source followed by its stretched twin where ``twinned``
-    (:func:`relight_view`'s ``widen``) -> (each source's weight with its twin's (S or S / 2, 3), the twins' own
-    share of it (S / 2, 3), or None without twins)."""
-    if not twinned:
+def split_stretches(view_weights: np.ndarray, stretched: bool) -> tuple[np.ndarray, np.ndarray | None]:
+    """A calibration's view-wide weights (S, 3), each source as its two members stretched along x and along y where
+    ``stretched`` (:func:`relight_view`'s ``widen``) -> (each source's weight (S or S / 2, 3), the share of it stretched
+    along x (S / 2, 3), or None unstretched)."""
+    if not stretched:
         return view_weights, None
     pairs = np.asarray(view_weights).reshape(-1, 2, 3)
-    return pairs.sum(axis=1), pairs[:, 1]
+    return pairs.sum(axis=1), pairs[:, 0]
 
 
 def white_consistent(rv: RelightView, relit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

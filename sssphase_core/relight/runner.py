@@ -102,8 +102,8 @@ def same_pattern(pattern: np.ndarray, reference: np.ndarray) -> bool:
 
 def lowrank_path(out: Path, session: Session, rv: RelightView, backend: str, checkpoint: Path | str | None,
                  widen: float | None = None) -> Path:
-    """The eigen-footprint cache of a view relit with ``backend`` (all its members and its calibration, whose twins
-    are stretched ``widen`` x), named as :func:`cache_path` names footprint caches."""
+    """The eigen-footprint cache of a view relit with ``backend`` (all its members and its calibration, whose members
+    are stretched ``widen`` x along x and along y), named as :func:`cache_path` names footprint caches."""
     tag = model_tag(checkpoint if uses_decoder(backend) else None) + (f"_w{widen:g}" if widen else "")
     return out / "cache" / f"{rv.object}_v{rv.view}_{view_tag(session, rv.view)}_{backend}_{tag}_lowrank.npz"
 
@@ -185,13 +185,14 @@ def resolve_patterns(specs: Sequence[str], rv: RelightView, resize: str = "",
 
 
 def mix_line(rv: RelightView, backend: str, mix: np.ndarray, stretched: np.ndarray | None = None) -> str:
-    """The line that tells a view's calibration: each member's view-wide weights against no scattering, and of those
-    the share its stretched twin took (``stretched``, the same shape as ``mix``, where the calibration had twins)."""
+    """The line that tells a view's calibration: each model's view-wide weights against no scattering, and how they
+    split between its footprints stretched along x and along y (``stretched``: the x share, the same shape as ``mix``,
+    where the calibration stretched them: ``relight_view``'s ``widen``)."""
     rows = np.atleast_2d(mix)
-    twins = np.atleast_2d(stretched) if stretched is not None else [None] * len(rows)
-    weights = "; ".join(f"{m} R G B {' '.join(f'{x:.2f}' for x in row)}"
-                        + (f" (stretched {' '.join(f'{x:.2f}' for x in twin)})" if twin is not None else "")
-                        for m, row, twin in zip(BLENDS.get(backend, (backend,)), rows, twins, strict=True))
+    along_x = np.atleast_2d(stretched) if stretched is not None else [None] * len(rows)
+    f = lambda v: " ".join(f"{x:.2f}" for x in v)  # noqa: E731
+    weights = "; ".join(f"{m} R G B {f(row)}" + (f" (stretched along x {f(x)}, along y {f(row - x)})" if x is not None else "")
+                        for m, row, x in zip(BLENDS.get(backend, (backend,)), rows, along_x, strict=True))
     return (f"{rv.object} view {rv.view}: {backend} footprints calibrated to the view's fringe captures "
             f"(view-wide weights against no scattering: {weights}{'; refined pixel by pixel' if len(rows) == 1 else ''})")
 
@@ -239,9 +240,9 @@ def widen_line(widths: dict[str, float | None]) -> str | None:
             by.setdefault(widen, []).append(backend)
     if not by:
         return None
-    return "; ".join(f"calibration ({', '.join(names)}): each model's footprints also join the view's fit stretched "
-                     f"{widen:g} x, so that its fringes can widen them as well as narrow them" for widen, names in by.items()
-                     ) + " (--widen 1: only narrow them)"
+    return "; ".join(f"calibration ({', '.join(names)}): each model's footprints join the view's fit stretched {widen:g} x "
+                     "along x and, apart, along y, so that its fringes can widen them along either axis or both as well as "
+                     "narrow them" for widen, names in by.items()) + " (--widen 1: the footprints as they are, only narrowed)"
 
 
 def resolve_backend(backend: str, checkpoint: Path | str | None, narrator: Narrator | None = None
@@ -355,13 +356,13 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
 
     A model's relight also keeps the view's eigen-footprints and calibration (:mod:`~sssphase_core.relight.lowrank`);
     with them cached, later patterns are relit from those alone (seconds at 1080p, where the footprints
-    themselves outgrow any cache); with ``widen``, the twins' eigen-footprints are the members' stretched."""
+    themselves outgrow any cache); with ``widen``, the calibration's eigen-footprints are the models' stretched along x and along y."""
     from sssphase_core.processing.projector import emitted_light
     from sssphase_core.relight.backends import domain_line, make_sources
     from sssphase_core.relight.cache import CACHE_BYTES
     from sssphase_core.relight.engine import lit_pixels
     from sssphase_core.relight.lowrank import LowRankTap, load_lowrank, save_lowrank
-    from sssphase_core.relight.pipeline import relight_view, split_twins
+    from sssphase_core.relight.pipeline import relight_view, split_stretches
     from sssphase_core.relight.transport import DotTransport
 
     fast = lowrank_path(out, s, rv, backend, checkpoint, widen)
@@ -392,9 +393,9 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
         progress = say.task(f"{rv.object} view {rv.view}: {backend}")
         relit, mix = relight_view(source, patch, rv, pats, calibrate=backend not in MODEL_FREE, also=also, chunk=chunk,
                                   device=device, progress=progress, calibration=calibration, widen=widen)
-    if mix is not None:  # with twins, the calibration's own view-wide weights say the twins' share
-        twins = split_twins(calibration[0][1], bool(widen))[1] if calibration else None
-        say.say(mix_line(rv, backend, mix, twins))
+    if mix is not None:  # stretched, the calibration's own view-wide weights say how they split between x and y
+        along_x = split_stretches(calibration[0][1], bool(widen))[1] if calibration else None
+        say.say(mix_line(rv, backend, mix, along_x))
     for model, member in zip(models, members, strict=True):
         line = domain_line(rv, member, model)
         if line:
@@ -421,17 +422,17 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
 def _relight_cached(rv: RelightView, pats: list[np.ndarray], backend: str, path: Path, saved: tuple[Any, ...],
                     say: Narrator) -> tuple[np.ndarray, np.ndarray]:
     """A view relit from its cached eigen-footprints and calibration (``saved``: :func:`load_lowrank`'s), told."""
-    from sssphase_core.relight.pipeline import relight_lowrank, split_twins
+    from sssphase_core.relight.pipeline import relight_lowrank, split_stretches
 
     members, weights, view_weights, gains, white = saved
     with say.status(f"{rv.object} view {rv.view}: {backend} from its eigen-footprints"):
         relit = relight_lowrank(rv, members, weights, gains, white, pats)
-    twins = len(members) // len(BLENDS.get(backend, (backend,)))  # 2 where each member has its stretched twin
-    view_weights, stretched = split_twins(view_weights, twins == 2)  # as relight_view gives them
+    per_model = len(members) // len(BLENDS.get(backend, (backend,)))  # 2 where each model is stretched along x and y
+    view_weights, stretched = split_stretches(view_weights, per_model == 2)  # as relight_view gives them
     mix = view_weights[0] if len(view_weights) == 1 else view_weights
     say.say(mix_line(rv, backend, mix, stretched))
     say.say(f"{rv.object} view {rv.view}: relit from its cached eigen-footprints ({path.name}: rank "
-            f"{'/'.join(str(m.rank) for m in members[::twins])}, {max(m.residual for m in members):.1e} of the footprints' "
+            f"{'/'.join(str(m.rank) for m in members[::per_model])}, {max(m.residual for m in members):.1e} of the footprints' "
             "energy left out); --no-cache computes the footprints again")
     return relit, mix
 

@@ -529,3 +529,36 @@ def test_widened_footprints_keep_their_energy_and_spread_by_the_factor():
         spread = (out * r2[None, :, :, None]).sum(dim=(1, 2)) / out.sum(dim=(1, 2))
         np.testing.assert_allclose(spread.sqrt() / (2 ** 0.5 * sigma), factor, rtol=0.08)  # rms radius x factor
     assert widened(torch.zeros(2, 5, 5, 3), 1.5).abs().sum() == 0 and torch.isfinite(widened(torch.zeros(2, 5, 5, 3), 1.5)).all()
+
+
+def test_footprints_stretched_along_one_axis_widen_only_along_it():
+    """``widened(f, (sx, sy))``: x is the footprint's second (column) axis; one factor is both; the calibration's two
+    members (``axis_stretches``) are x, then y."""
+    from sssphase_core.relight.engine import axis_stretches, widened
+
+    k = 31
+    off = torch.arange(k, dtype=torch.float32) - k // 2
+    sigma = torch.tensor([1.5, 2.0, 2.5])
+    fp = torch.exp(-(off[:, None, None] ** 2 + off[None, :, None] ** 2) / (2 * sigma ** 2))[None]  # (1, K, K, 3)
+    rms = lambda f, axis: ((f * (off ** 2).reshape((k, 1) if axis == "y" else (1, k))[None, :, :, None]).sum(dim=(1, 2))  # noqa: E731
+                           / f.sum(dim=(1, 2))).sqrt() / sigma
+    assert axis_stretches(1.4) == ((1.4, 1.0), (1.0, 1.4))
+    np.testing.assert_allclose(widened(fp, (1.4, 1.4)), widened(fp, 1.4), atol=1e-7)
+    along_x, along_y = (widened(fp, s) for s in axis_stretches(1.4))
+    for out, wide, narrow in ((along_x, "x", "y"), (along_y, "y", "x")):
+        np.testing.assert_allclose(out.sum(dim=(1, 2)), fp.sum(dim=(1, 2)), rtol=1e-5)
+        np.testing.assert_allclose(rms(out, wide), 1.4, rtol=0.06)
+        np.testing.assert_allclose(rms(out, narrow), 1.0, rtol=0.03)
+
+
+def test_a_relight_of_variants_only_leaves_the_plain_footprints_out(scene):
+    from sssphase_core.relight.engine import widened
+
+    proj, k, fps, pats = scene
+    src = lambda px: fps[px[:, 0], px[:, 1]]  # noqa: E731
+    both = relight(src, proj, pats, k, variants=(lambda f: widened(f, (1.5, 1.0)),))
+    only = relight(src, proj, pats, k, variants=(lambda f: widened(f, (1.5, 1.0)),), plain=False)
+    assert only.shape == (1, *both.shape[1:])
+    np.testing.assert_allclose(only[0], both[1], rtol=1e-6, atol=1e-8)
+    with pytest.raises(ValueError, match="nothing to splat"):
+        relight(src, proj, pats, k, plain=False)

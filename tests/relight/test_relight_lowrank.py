@@ -58,27 +58,34 @@ def test_relit_from_eigen_footprints_equals_the_splat_when_they_span_the_footpri
 
 
 def test_widened_eigen_footprints_relight_as_the_widened_footprints_and_are_kept_with_their_stretch(tmp_path, make_projection):
-    """The view calibration's twin (``relight_view(widen=S)``) from the cache: the eigen-footprints stretched, each
-    pixel's coefficients rescaled to keep its colours' energy, relight as the splat of the widened footprints; the
-    file keeps the stretch, gives each member its twin after it, and is not read for another stretch."""
+    """The view calibration's stretched members (``relight_view(widen=S)``: along x, along y) from the cache: the
+    eigen-footprints stretched, each pixel's coefficients rescaled to keep its colours' energy, relight as the splat
+    of the widened footprints; the file keeps the stretch, gives each model its two members in that order, and is not
+    read for another stretch."""
+    import functools
+
     import torch
 
-    from sssphase_core.relight.engine import widened
+    from sssphase_core.relight.engine import axis_stretches, widened
 
     proj, source, valid, tap, patterns, white = _tapped_view(make_projection, seed=3)
-    plain, wide = relight(tap, proj, patterns, K, white=white, variants=(lambda f: widened(f, 1.4),))
+    stretches = axis_stretches(1.4)
+    plain, *wides = relight(tap, proj, patterns, K, white=white, variants=[functools.partial(widened, factor=s) for s in stretches])
     low = tap.result()
-    twin = low.widened(1.4)
-    np.testing.assert_allclose(twin.relight(proj, patterns, white=white), wide, atol=2e-6 * np.abs(wide).max())
-    assert np.abs(wide - plain).max() > 0.05 * np.abs(plain).max()  # the stretch is not lost on the way
-    direct = widened(torch.from_numpy(source(valid[:5])), 1.4).numpy()  # a twin's footprint, rebuilt from the coefficients
-    rebuilt = np.einsum("ncr,cryx->nyxc", twin.coefficients[:5], twin.basis)
-    np.testing.assert_allclose(rebuilt, direct, atol=1e-6 * np.abs(direct).max())
+    assert np.abs(wides[0] - wides[1]).max() > 0.05 * np.abs(plain).max()  # x and y are stretched apart
+    for stretch, wide in zip(stretches, wides, strict=True):
+        member = low.widened(stretch)
+        np.testing.assert_allclose(member.relight(proj, patterns, white=white), wide, atol=2e-6 * np.abs(wide).max())
+        assert np.abs(wide - plain).max() > 0.05 * np.abs(plain).max()  # the stretch is not lost on the way
+        direct = widened(torch.from_numpy(source(valid[:5])), stretch).numpy()  # rebuilt from the coefficients
+        rebuilt = np.einsum("ncr,cryx->nyxc", member.coefficients[:5], member.basis)
+        np.testing.assert_allclose(rebuilt, direct, atol=1e-6 * np.abs(direct).max())
     ones = np.ones((2, *proj.mask.shape, 3), np.float32)
     save_lowrank(tmp_path / "w.npz", [low], ones, np.ones((2, 3)), ones, white, proj.mask, widen=1.4)
     members, weights, view_weights, gains, _ = load_lowrank(tmp_path / "w.npz", proj.mask, widen=1.4)
     assert len(members) == 2 and weights.shape[0] == view_weights.shape[0] == gains.shape[0] == 2
-    np.testing.assert_allclose(members[1].relight(proj, patterns, white=white), wide, atol=1e-3 * np.abs(wide).max())
+    for member, wide in zip(members, wides, strict=True):
+        np.testing.assert_allclose(member.relight(proj, patterns, white=white), wide, atol=1e-3 * np.abs(wide).max())
     assert load_lowrank(tmp_path / "w.npz", proj.mask) is None and load_lowrank(tmp_path / "w.npz", proj.mask, widen=1.3) is None
     save_lowrank(tmp_path / "p.npz", [low], ones[:1], np.ones((1, 3)), ones[:1], white, proj.mask)
     assert load_lowrank(tmp_path / "p.npz", proj.mask, widen=1.4) is None and load_lowrank(tmp_path / "p.npz", proj.mask)

@@ -331,7 +331,7 @@ def _tiny_decoder(run):
 
 @pytest.mark.slow
 def test_the_decoders_calibration_widens_by_default_and_the_analytic_models_does_not(session, tmp_path):
-    """By default (``widen=None``) a backend that runs the decoder gets the calibration's stretched twins
+    """By default (``widen=None``) a backend that runs the decoder has its footprints stretched in the calibration
     (:data:`~sssphase_core.relight.choices.DECODER_WIDEN`), said once, and keeps its eigen-footprints under that
     stretch; ``widen=1`` turns them off; the analytic model has none unless asked; an evaluation records each
     backend's stretch and relights as `sss relight` does."""
@@ -353,13 +353,13 @@ def test_the_decoders_calibration_widens_by_default_and_the_analytic_models_does
                             widen=1.0, formats="exr")
     assert "stretched" not in said.text() and "eigen-footprints" not in said.text()  # not the widened relight's
     assert len([p for p in (out / "cache").glob("soap_v0_*_torch_*_lowrank.npz") if "_w" not in p.name]) == 1
-    assert np.abs(x - read_exr(plain.images[0].paths[0])).max() > 1e-4  # the twins took part in the fit
+    assert np.abs(x - read_exr(plain.images[0].paths[0])).max() > 1e-4  # the stretched footprints took the place of the plain ones
     said = Recorder()
     res = evaluate_sessions([session], backend="analytic,torch", checkpoint=run, out=out, narrator=said)
     import json
 
     assert json.loads(res.json.read_text())["widen"] == {"analytic": None, "torch": DECODER_WIDEN}
-    assert "calibration (torch): each model's footprints also join" in said.text()
+    assert "calibration (torch): each model's footprints join the view's fit stretched" in said.text()
     from sssphase_core.relight import load_view
     from sssphase_core.relight.evaluation import relight_metrics
 

@@ -582,8 +582,8 @@ def test_several_backends_are_relit_in_one_command_and_a_bad_name_is_refused_bef
 
 
 def test_the_calibration_widens_footprints_that_are_too_narrow_when_told_to(session):
-    """`relight_view(widen=S)`: each model's footprints, stretched S times in the same pass, join the fit, so the view's
-    fringes can widen a model, not only narrow it toward no scattering. The exact footprints made too narrow relight
+    """`relight_view(widen=S)`: each model's footprints, stretched S times along x and apart along y in the same pass,
+    join the fit, so the view's fringes can widen a model, not only narrow it toward no scattering. The exact footprints made too narrow relight
     the sand rake closer to its render with it; the mix returned is still one row per source; the factor is checked."""
     import torch
 
@@ -604,7 +604,7 @@ def test_the_calibration_widens_footprints_that_are_too_narrow_when_told_to(sess
     one_sided, mix = relight_view(narrow, k, rv, pats, calibrate=True)
     calls.clear()
     two_sided, mix2 = relight_view(narrow, k, rv, pats, calibrate=True, widen=2.0)
-    assert sum(calls) <= rv.proj.mask.sum()  # the twin is splatted from the same footprints
+    assert sum(calls) <= rv.proj.mask.sum()  # the stretched members are splatted from the same footprints
     assert mix.shape == mix2.shape == (3,) and (mix2 > 0).all()
     score = lambda imgs: np.mean([relight_metrics(i, t, rv.proj.mask)["psnr"] for i, t in zip(imgs, truth, strict=True)])  # noqa: E731
     assert score(two_sided) > score(one_sided) + 0.5
@@ -633,7 +633,7 @@ def test_relight_with_widen_says_so_and_keeps_eigen_footprints_of_its_own_calibr
     again = runner.invoke(app, [*base, "--pattern", "stripes_x", "--out", str(tmp_path), "--widen", "1.5"])
     assert again.exit_code == 0 and "relit from its cached eigen-footprints" in again.output, again.output
     told = [line for out in (wide.output, again.output) for line in out.splitlines() if "calibrated to the view" in line]
-    assert len(told) == 2 and told[0] == told[1] and "(stretched " in told[0]  # the twin's share, cached or not
+    assert len(told) == 2 and told[0] == told[1] and "(stretched along x " in told[0]  # how x and y split, cached or not
     full = runner.invoke(app, [*base, "--pattern", "stripes_x", "--out", str(tmp_path / "full"), "--widen", "1.5", "--no-cache"])
     assert full.exit_code == 0, full.output
     x, y = (read_exr(d / "sand_rake_v1_stripes_x_analytic.exr") for d in (tmp_path, tmp_path / "full"))
