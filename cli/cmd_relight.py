@@ -51,8 +51,8 @@ EvalCacheOpt = Annotated[bool, typer.Option(help="Keep the models' footprints in
 FormatOpt = Annotated[str, typer.Option("--format", help="png (16-bit linear, clips at 1.0), exr (float32 "
                                         "linear, unclipped) or png,exr.")]
 WidenOpt = Annotated[float | None, typer.Option(min=1.0, max=4.0, help="Let the view calibration also widen each model's "
-                                               "footprints: they join its fit stretched this many times along x and, "
-                                               "apart, along y, and the view's own fringes weigh the two (default: 1.3 "
+                                               "footprints: they join its fit stretched this many times along x, along "
+                                               "y and along both, and the view's own fringes weigh the three (default: 1.3 "
                                                "for backends that run the decoder, 1 for the others; 1: the footprints "
                                                "as they are, only narrowed).")]
 CalibrateOpt = Annotated[bool, typer.Option(help="Mix a model's footprints with no scattering by the weight that relights "

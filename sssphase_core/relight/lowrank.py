@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from sssphase_core.processing.projector import emitted_light
+from sssphase_core.relight.choices import STRETCH_AXES
 from sssphase_core.relight.engine import (
     FootprintSource,
     Projection,
@@ -199,7 +200,7 @@ class LowRankTap:
 #: member's gain and the no-scattering term's white are kept (a new pattern needs neither computed again); 6: the
 #: stretch of the calibration's twins (``relight_view``'s ``widen``, 0 for none) is kept, and the twins' weights and
 #: gains beside their members' (their eigen-footprints are the members' :meth:`LowRankFootprints.widened`); 7: with a
-#: stretch, the calibration's members are each model's footprints stretched along x and along y
+#: stretch, the calibration's members are each model's footprints stretched along x, y and both
 #: (:func:`~sssphase_core.relight.engine.axis_stretches`), the model's own not among them. Files of earlier formats
 #: are not read.
 LOWRANK_FORMAT = 7
@@ -224,7 +225,7 @@ def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np
     and view-wide ones (S, 3), each member's white-consistent gain ``gains`` (S, H, W, 3) and the no-scattering
     term's white ``white`` (H, W, 3) (``calibration.exit_gain``, ``exit_white``; both kept at the view's ``mask``
     (H, W) pixels, where they differ from 1 and from the white capture), written atomically. With ``widen`` the
-    calibration's S = 2 x len(members) members are each member stretched ``widen`` x along x, then along y."""
+    calibration's S = 3 x len(members) members are each member stretched ``widen`` x along x, y and both."""
     from sssphase_core.store.files import atomic_path
 
     mask = np.asarray(mask, bool)
@@ -244,7 +245,7 @@ def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np
 def load_lowrank(path: Path | str, mask: np.ndarray, widen: float | None = None
                  ) -> tuple[list[LowRankFootprints], np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """:func:`save_lowrank`'s file for a view of decoded ``mask`` (H, W) -> (the calibration's S members (with
-    ``widen``, each member stretched along x, then along y), weights, view weights, gains (S, n, 3) and white (n, 3)
+    ``widen``, each member stretched along x, y and both), weights, view weights, gains (S, n, 3) and white (n, 3)
     at the mask's n pixels); None when it is missing, damaged, of another view, of another stretch or of another
     format (:data:`LOWRANK_FORMAT`; a cache only saves time)."""
     import zipfile
@@ -270,7 +271,7 @@ def load_lowrank(path: Path | str, mask: np.ndarray, widen: float | None = None
         members = [LowRankFootprints.from_arrays(arrays, f"m{i}_") for i in range(n)]
         if stretch and all(m is not None for m in members):
             members = [m.widened(s) for m in members for s in axis_stretches(stretch)]  # type: ignore[union-attr]
-            n *= 2
+            n *= len(STRETCH_AXES)
         weights, view_weights = np.asarray(arrays["weights"], np.float32), np.asarray(arrays["view_weights"], np.float32)
         gains, white = np.asarray(arrays["gains"], np.float32), np.asarray(arrays["white"], np.float32)
     except (ValueError, KeyError, TypeError):

@@ -16,6 +16,7 @@ from sssphase_core.relight.calibration import (
     local_mixture,
     model_inputs,
 )
+from sssphase_core.relight.choices import STRETCH_AXES
 from sssphase_core.relight.engine import FootprintSource, axis_stretches, relight, widened
 from sssphase_core.relight.lowrank import LowRankFootprints
 from sssphase_core.relight.sources import no_scattering_source
@@ -46,13 +47,13 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
 
     ``calibration``: a list that receives the fit's (per-pixel weights (S, H, W, 3), view-wide weights (S, 3), each
     source's gain (S, H, W, 3), the no-scattering term's white (H, W, 3)), which relight any other pattern the same
-    way (:func:`relight_lowrank`); with ``widen``, each source is two members, stretched along x, then along y.
+    way (:func:`relight_lowrank`); with ``widen``, each source is three members, stretched along x, y and both.
 
     ``widen`` (> 1, with ``calibrate``): each source's footprints join the fit not as they are but stretched by that
-    factor along x and, as a second member, along y (:func:`~sssphase_core.relight.engine.axis_stretches`,
+    factor along x, along y and along both, as three members (:func:`~sssphase_core.relight.engine.axis_stretches`,
     :func:`~sssphase_core.relight.engine.widened`, splatted in the same pass), so that the view's two fringe
     orientations can widen a model's footprints along either axis or both, as well as narrow them toward no
-    scattering; the view-wide mix returned gives each source its two members' weights together.
+    scattering; the view-wide mix returned gives each source its members' weights together.
     """
     calibrate = calibrate and rv.psp_patterns is not None
     if also and not calibrate:
@@ -68,8 +69,8 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
                       progress=progress, variants=stretches, plain=not stretches) for src, k in ((source, patch), *also)]
     if not calibrate:
         return relits[0], None
-    if stretches:  # each source's images stretched along x, then along y: members of the fit in that order
-        relits = [member for pair in relits for member in pair]
+    if stretches:  # each source's images stretched along x, y and both: members of the fit in that order
+        relits = [member for members in relits for member in members]
     relits, gains = zip(*(white_consistent(rv, r) for r in relits), strict=True)
     psp, lost = model_inputs(rv)
     none = relight(no_scattering_source(exit_white(rv)), rv.proj, every, 1, white=rv.white)
@@ -83,13 +84,13 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
 
 
 def split_stretches(view_weights: np.ndarray, stretched: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """A calibration's view-wide weights (S, 3), each source as its two members stretched along x and along y where
-    ``stretched`` (:func:`relight_view`'s ``widen``) -> (each source's weight (S or S / 2, 3), the share of it stretched
-    along x (S / 2, 3), or None unstretched)."""
+    """A calibration's view-wide weights (S, 3), each source as its members stretched along x, y and both where
+    ``stretched`` (:func:`relight_view`'s ``widen``) -> (each source's weight (S or S / 3, 3), each member's share of
+    it (S / 3, 3 axes, 3 colours), or None unstretched)."""
     if not stretched:
         return view_weights, None
-    pairs = np.asarray(view_weights).reshape(-1, 2, 3)
-    return pairs.sum(axis=1), pairs[:, 0]
+    members = np.asarray(view_weights).reshape(-1, len(STRETCH_AXES), 3)
+    return members.sum(axis=1), members
 
 
 def white_consistent(rv: RelightView, relit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -21,7 +21,14 @@ import numpy as np
 
 from sssphase_core.errors import InputError
 from sssphase_core.relight.cache import footprint_bytes, kept, model_tag, view_caches, view_tag
-from sssphase_core.relight.choices import BLENDS, MODEL_FREE, check_backends, uses_decoder, widen_for
+from sssphase_core.relight.choices import (
+    BLENDS,
+    MODEL_FREE,
+    STRETCH_AXES,
+    check_backends,
+    uses_decoder,
+    widen_for,
+)
 from sssphase_core.relight.evaluation import (
     aggregate,
     comparison_figure,
@@ -103,7 +110,7 @@ def same_pattern(pattern: np.ndarray, reference: np.ndarray) -> bool:
 def lowrank_path(out: Path, session: Session, rv: RelightView, backend: str, checkpoint: Path | str | None,
                  widen: float | None = None) -> Path:
     """The eigen-footprint cache of a view relit with ``backend`` (all its members and its calibration, whose members
-    are stretched ``widen`` x along x and along y), named as :func:`cache_path` names footprint caches."""
+    are stretched ``widen`` x along x, y and both), named as :func:`cache_path` names footprint caches."""
     tag = model_tag(checkpoint if uses_decoder(backend) else None) + (f"_w{widen:g}" if widen else "")
     return out / "cache" / f"{rv.object}_v{rv.view}_{view_tag(session, rv.view)}_{backend}_{tag}_lowrank.npz"
 
@@ -186,13 +193,14 @@ def resolve_patterns(specs: Sequence[str], rv: RelightView, resize: str = "",
 
 def mix_line(rv: RelightView, backend: str, mix: np.ndarray, stretched: np.ndarray | None = None) -> str:
     """The line that tells a view's calibration: each model's view-wide weights against no scattering, and how they
-    split between its footprints stretched along x and along y (``stretched``: the x share, the same shape as ``mix``,
-    where the calibration stretched them: ``relight_view``'s ``widen``)."""
+    split between its footprints stretched along x, y and both (``stretched``: (models, 3 axes, 3 colours), where the
+    calibration stretched them: ``relight_view``'s ``widen``)."""
     rows = np.atleast_2d(mix)
-    along_x = np.atleast_2d(stretched) if stretched is not None else [None] * len(rows)
+    shares = np.reshape(stretched, (len(rows), len(STRETCH_AXES), 3)) if stretched is not None else [None] * len(rows)
     f = lambda v: " ".join(f"{x:.2f}" for x in v)  # noqa: E731
-    weights = "; ".join(f"{m} R G B {f(row)}" + (f" (stretched along x {f(x)}, along y {f(row - x)})" if x is not None else "")
-                        for m, row, x in zip(BLENDS.get(backend, (backend,)), rows, along_x, strict=True))
+    weights = "; ".join(f"{m} R G B {f(row)}" + (" (stretched along " + ", ".join(f"{a} {f(s)}" for a, s in zip(
+        STRETCH_AXES, share, strict=True)) + ")" if share is not None else "")
+                        for m, row, share in zip(BLENDS.get(backend, (backend,)), rows, shares, strict=True))
     return (f"{rv.object} view {rv.view}: {backend} footprints calibrated to the view's fringe captures "
             f"(view-wide weights against no scattering: {weights}{'; refined pixel by pixel' if len(rows) == 1 else ''})")
 
@@ -241,8 +249,8 @@ def widen_line(widths: dict[str, float | None]) -> str | None:
     if not by:
         return None
     return "; ".join(f"calibration ({', '.join(names)}): each model's footprints join the view's fit stretched {widen:g} x "
-                     "along x and, apart, along y, so that its fringes can widen them along either axis or both as well as "
-                     "narrow them" for widen, names in by.items()) + " (--widen 1: the footprints as they are, only narrowed)"
+                     "along x, along y and along both, so that its fringes can widen them along either axis or both as well "
+                     "as narrow them" for widen, names in by.items()) + " (--widen 1: the footprints as they are, only narrowed)"
 
 
 def resolve_backend(backend: str, checkpoint: Path | str | None, narrator: Narrator | None = None
@@ -356,7 +364,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
 
     A model's relight also keeps the view's eigen-footprints and calibration (:mod:`~sssphase_core.relight.lowrank`);
     with them cached, later patterns are relit from those alone (seconds at 1080p, where the footprints
-    themselves outgrow any cache); with ``widen``, the calibration's eigen-footprints are the models' stretched along x and along y."""
+    themselves outgrow any cache); with ``widen``, the calibration's eigen-footprints are the models' stretched along x, y and both."""
     from sssphase_core.processing.projector import emitted_light
     from sssphase_core.relight.backends import domain_line, make_sources
     from sssphase_core.relight.cache import CACHE_BYTES
@@ -393,9 +401,9 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
         progress = say.task(f"{rv.object} view {rv.view}: {backend}")
         relit, mix = relight_view(source, patch, rv, pats, calibrate=backend not in MODEL_FREE, also=also, chunk=chunk,
                                   device=device, progress=progress, calibration=calibration, widen=widen)
-    if mix is not None:  # stretched, the calibration's own view-wide weights say how they split between x and y
-        along_x = split_stretches(calibration[0][1], bool(widen))[1] if calibration else None
-        say.say(mix_line(rv, backend, mix, along_x))
+    if mix is not None:  # stretched, the calibration's own view-wide weights say how they split between the axes
+        shares = split_stretches(calibration[0][1], bool(widen))[1] if calibration else None
+        say.say(mix_line(rv, backend, mix, shares))
     for model, member in zip(models, members, strict=True):
         line = domain_line(rv, member, model)
         if line:
@@ -427,8 +435,8 @@ def _relight_cached(rv: RelightView, pats: list[np.ndarray], backend: str, path:
     members, weights, view_weights, gains, white = saved
     with say.status(f"{rv.object} view {rv.view}: {backend} from its eigen-footprints"):
         relit = relight_lowrank(rv, members, weights, gains, white, pats)
-    per_model = len(members) // len(BLENDS.get(backend, (backend,)))  # 2 where each model is stretched along x and y
-    view_weights, stretched = split_stretches(view_weights, per_model == 2)  # as relight_view gives them
+    per_model = len(members) // len(BLENDS.get(backend, (backend,)))  # 3 where each model is stretched (x, y, both)
+    view_weights, stretched = split_stretches(view_weights, per_model == len(STRETCH_AXES))  # as relight_view gives them
     mix = view_weights[0] if len(view_weights) == 1 else view_weights
     say.say(mix_line(rv, backend, mix, stretched))
     say.say(f"{rv.object} view {rv.view}: relit from its cached eigen-footprints ({path.name}: rank "

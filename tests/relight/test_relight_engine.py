@@ -532,8 +532,8 @@ def test_widened_footprints_keep_their_energy_and_spread_by_the_factor():
 
 
 def test_footprints_stretched_along_one_axis_widen_only_along_it():
-    """``widened(f, (sx, sy))``: x is the footprint's second (column) axis; one factor is both; the calibration's two
-    members (``axis_stretches``) are x, then y."""
+    """``widened(f, (sx, sy))``: x is the footprint's second (column) axis; one factor is both; the calibration's
+    members (``axis_stretches``) are stretched along x, y and both."""
     from sssphase_core.relight.engine import axis_stretches, widened
 
     k = 31
@@ -542,9 +542,9 @@ def test_footprints_stretched_along_one_axis_widen_only_along_it():
     fp = torch.exp(-(off[:, None, None] ** 2 + off[None, :, None] ** 2) / (2 * sigma ** 2))[None]  # (1, K, K, 3)
     rms = lambda f, axis: ((f * (off ** 2).reshape((k, 1) if axis == "y" else (1, k))[None, :, :, None]).sum(dim=(1, 2))  # noqa: E731
                            / f.sum(dim=(1, 2))).sqrt() / sigma
-    assert axis_stretches(1.4) == ((1.4, 1.0), (1.0, 1.4))
+    assert axis_stretches(1.4) == ((1.4, 1.0), (1.0, 1.4), (1.4, 1.4))
     np.testing.assert_allclose(widened(fp, (1.4, 1.4)), widened(fp, 1.4), atol=1e-7)
-    along_x, along_y = (widened(fp, s) for s in axis_stretches(1.4))
+    along_x, along_y, _ = (widened(fp, s) for s in axis_stretches(1.4))
     for out, wide, narrow in ((along_x, "x", "y"), (along_y, "y", "x")):
         np.testing.assert_allclose(out.sum(dim=(1, 2)), fp.sum(dim=(1, 2)), rtol=1e-5)
         np.testing.assert_allclose(rms(out, wide), 1.4, rtol=0.06)

@@ -58,10 +58,10 @@ def test_relit_from_eigen_footprints_equals_the_splat_when_they_span_the_footpri
 
 
 def test_widened_eigen_footprints_relight_as_the_widened_footprints_and_are_kept_with_their_stretch(tmp_path, make_projection):
-    """The view calibration's stretched members (``relight_view(widen=S)``: along x, along y) from the cache: the
+    """The view calibration's stretched members (``relight_view(widen=S)``: along x, y and both) from the cache: the
     eigen-footprints stretched, each pixel's coefficients rescaled to keep its colours' energy, relight as the splat
-    of the widened footprints; the file keeps the stretch, gives each model its two members in that order, and is not
-    read for another stretch."""
+    of the widened footprints; the file keeps the stretch, gives each model its three members in that order, and is
+    not read for another stretch."""
     import functools
 
     import torch
@@ -72,7 +72,7 @@ def test_widened_eigen_footprints_relight_as_the_widened_footprints_and_are_kept
     stretches = axis_stretches(1.4)
     plain, *wides = relight(tap, proj, patterns, K, white=white, variants=[functools.partial(widened, factor=s) for s in stretches])
     low = tap.result()
-    assert np.abs(wides[0] - wides[1]).max() > 0.05 * np.abs(plain).max()  # x and y are stretched apart
+    assert len(wides) == 3 and np.abs(wides[0] - wides[1]).max() > 0.05 * np.abs(plain).max()  # x and y apart
     for stretch, wide in zip(stretches, wides, strict=True):
         member = low.widened(stretch)
         np.testing.assert_allclose(member.relight(proj, patterns, white=white), wide, atol=2e-6 * np.abs(wide).max())
@@ -80,10 +80,10 @@ def test_widened_eigen_footprints_relight_as_the_widened_footprints_and_are_kept
         direct = widened(torch.from_numpy(source(valid[:5])), stretch).numpy()  # rebuilt from the coefficients
         rebuilt = np.einsum("ncr,cryx->nyxc", member.coefficients[:5], member.basis)
         np.testing.assert_allclose(rebuilt, direct, atol=1e-6 * np.abs(direct).max())
-    ones = np.ones((2, *proj.mask.shape, 3), np.float32)
-    save_lowrank(tmp_path / "w.npz", [low], ones, np.ones((2, 3)), ones, white, proj.mask, widen=1.4)
+    ones = np.ones((3, *proj.mask.shape, 3), np.float32)
+    save_lowrank(tmp_path / "w.npz", [low], ones, np.ones((3, 3)), ones, white, proj.mask, widen=1.4)
     members, weights, view_weights, gains, _ = load_lowrank(tmp_path / "w.npz", proj.mask, widen=1.4)
-    assert len(members) == 2 and weights.shape[0] == view_weights.shape[0] == gains.shape[0] == 2
+    assert len(members) == 3 and weights.shape[0] == view_weights.shape[0] == gains.shape[0] == 3
     for member, wide in zip(members, wides, strict=True):
         np.testing.assert_allclose(member.relight(proj, patterns, white=white), wide, atol=1e-3 * np.abs(wide).max())
     assert load_lowrank(tmp_path / "w.npz", proj.mask) is None and load_lowrank(tmp_path / "w.npz", proj.mask, widen=1.3) is None
