@@ -50,7 +50,14 @@ EvalCacheOpt = Annotated[bool, typer.Option(help="Keep the models' footprints in
                                             "start from those `sss train decoder --check-sessions` kept for the same view and checkpoint.")]
 FormatOpt = Annotated[str, typer.Option("--format", help="png (16-bit linear, clips at 1.0), exr (float32 "
                                         "linear, unclipped) or png,exr.")]
-WidenOpt = Annotated[float | None, typer.Option(min=1.0, max=4.0, help="Let the view calibration also widen each model's "
+def _widen_range(value: float | None) -> float | None:
+    """Refuse a stretch that is not a number from 1 to 4 in words that say so (NaN fails typer's bounds as 'above 4')."""
+    if value is not None and not 1.0 <= value <= 4.0:
+        raise typer.BadParameter(f"{value:g} is not a stretch from 1 to 4 (1: the footprints as they are)")
+    return value
+
+
+WidenOpt = Annotated[float | None, typer.Option(callback=_widen_range, help="Let the view calibration also widen each model's "
                                                "footprints: they join its fit stretched this many times along x, along "
                                                "y and along both, and the view's own fringes weigh the three (default: 1.3 "
                                                "for backends that run the decoder, 1 for the others; 1: the footprints "
