@@ -361,9 +361,10 @@ def widened(footprints: torch.Tensor, factor: float | tuple[float, float]) -> to
 
 
 def axis_stretches(factor: float) -> tuple[tuple[float, float], ...]:
-    """The stretches ``(factor, 1), (1, factor), (factor, factor)`` (along x, along y, both: :data:`~sssphase_core.relight.choices.STRETCH_AXES`) of
-    a model's footprints that the view calibration weighs in place of the footprints themselves (``relight_view``'s
-    ``widen``): each fringe orientation measures the footprints' width across it, so the fit can widen them along
-    either axis or both, and narrow any of them toward no scattering."""
+    """The stretches ``(factor, 1), (1, factor), (factor, factor)`` (along x, along y, both:
+    :data:`~sssphase_core.relight.choices.STRETCH_AXES`) of a model's footprints that the view calibration weighs in
+    place of the footprints themselves (``relight_view``'s ``widen``): each fringe orientation measures the footprints'
+    width across it, so the fit can widen them along either axis or both, and narrow any of them toward no
+    scattering."""
     f = float(factor)
     return (f, 1.0), (1.0, f), (f, f)

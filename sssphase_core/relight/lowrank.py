@@ -21,7 +21,6 @@ from pathlib import Path
 import numpy as np
 
 from sssphase_core.processing.projector import emitted_light
-from sssphase_core.relight.choices import STRETCH_AXES
 from sssphase_core.relight.engine import (
     FootprintSource,
     Projection,
@@ -111,8 +110,9 @@ class LowRankFootprints:
 
     def widened(self, factor: float | tuple[float, float]) -> LowRankFootprints:
         """These footprints as :func:`~sssphase_core.relight.engine.widened` makes them (stretched ``factor`` x about
-        their pixel, on both axes or ``(along x, along y)``, each colour's energy kept): stretching is linear, so their eigen-footprints are the stretched
-        ``basis`` and each pixel's coefficients are scaled by its colours' energy before over after."""
+        their pixel, on both axes or ``(along x, along y)``, each colour's energy kept): stretching is linear, so their
+        eigen-footprints are the stretched ``basis`` and each pixel's coefficients are scaled by its colours' energy
+        before over after."""
         import torch
 
         k = self.basis.shape[-1]
@@ -271,7 +271,7 @@ def load_lowrank(path: Path | str, mask: np.ndarray, widen: float | None = None
         members = [LowRankFootprints.from_arrays(arrays, f"m{i}_") for i in range(n)]
         if stretch and all(m is not None for m in members):
             members = [m.widened(s) for m in members for s in axis_stretches(stretch)]  # type: ignore[union-attr]
-            n *= len(STRETCH_AXES)
+            n = len(members)
         weights, view_weights = np.asarray(arrays["weights"], np.float32), np.asarray(arrays["view_weights"], np.float32)
         gains, white = np.asarray(arrays["gains"], np.float32), np.asarray(arrays["white"], np.float32)
     except (ValueError, KeyError, TypeError):
