@@ -200,10 +200,10 @@ class LowRankTap:
 #: member's gain and the no-scattering term's white are kept (a new pattern needs neither computed again); 6: the
 #: stretch of the calibration's twins (``relight_view``'s ``widen``, 0 for none) is kept, and the twins' weights and
 #: gains beside their members' (their eigen-footprints are the members' :meth:`LowRankFootprints.widened`); 7: with a
-#: stretch, the calibration's members are each model's footprints stretched along x, y and both
-#: (:func:`~sssphase_core.relight.engine.axis_stretches`), the model's own not among them. Files of earlier formats
+#: stretch, every model's footprints stretched along x, y and both; 8: only the first model's
+#: (:func:`~sssphase_core.relight.engine.axis_stretches`), its own not among them, then the others' as they are. Files of earlier formats
 #: are not read.
-LOWRANK_FORMAT = 7
+LOWRANK_FORMAT = 8
 #: More members than any blend has: a file claiming more is damaged (and is not looped over).
 MAX_MEMBERS = 8
 
@@ -225,7 +225,8 @@ def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np
     and view-wide ones (S, 3), each member's white-consistent gain ``gains`` (S, H, W, 3) and the no-scattering
     term's white ``white`` (H, W, 3) (``calibration.exit_gain``, ``exit_white``; both kept at the view's ``mask``
     (H, W) pixels, where they differ from 1 and from the white capture), written atomically. With ``widen`` the
-    calibration's S = 3 x len(members) members are each member stretched ``widen`` x along x, y and both."""
+    calibration's S = len(members) + 2 members are the first member stretched ``widen`` x along x, y and both, then
+    the others."""
     from sssphase_core.store.files import atomic_path
 
     mask = np.asarray(mask, bool)
@@ -245,7 +246,7 @@ def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np
 def load_lowrank(path: Path | str, mask: np.ndarray, widen: float | None = None
                  ) -> tuple[list[LowRankFootprints], np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """:func:`save_lowrank`'s file for a view of decoded ``mask`` (H, W) -> (the calibration's S members (with
-    ``widen``, each member stretched along x, y and both), weights, view weights, gains (S, n, 3) and white (n, 3)
+    ``widen``, the first member stretched along x, y and both, then the others), weights, view weights, gains (S, n, 3) and white (n, 3)
     at the mask's n pixels); None when it is missing, damaged, of another view, of another stretch or of another
     format (:data:`LOWRANK_FORMAT`; a cache only saves time)."""
     import zipfile
@@ -270,7 +271,7 @@ def load_lowrank(path: Path | str, mask: np.ndarray, widen: float | None = None
             return None
         members = [LowRankFootprints.from_arrays(arrays, f"m{i}_") for i in range(n)]
         if stretch and all(m is not None for m in members):
-            members = [m.widened(s) for m in members for s in axis_stretches(stretch)]  # type: ignore[union-attr]
+            members = [members[0].widened(s) for s in axis_stretches(stretch)] + members[1:]  # type: ignore[union-attr]
             n = len(members)
         weights, view_weights = np.asarray(arrays["weights"], np.float32), np.asarray(arrays["view_weights"], np.float32)
         gains, white = np.asarray(arrays["gains"], np.float32), np.asarray(arrays["white"], np.float32)

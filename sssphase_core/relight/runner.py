@@ -193,10 +193,10 @@ def resolve_patterns(specs: Sequence[str], rv: RelightView, resize: str = "",
 
 def mix_line(rv: RelightView, backend: str, mix: np.ndarray, stretched: np.ndarray | None = None) -> str:
     """The line that tells a view's calibration: each model's view-wide weights against no scattering, and how they
-    split between its footprints stretched along x, y and both (``stretched``: (models, 3 axes, 3 colours), where the
-    calibration stretched them: ``relight_view``'s ``widen``)."""
+    split between its footprints stretched along x, y and both (``stretched``: (3 axes, 3 colours) for the first
+    model, where the calibration stretched it: ``relight_view``'s ``widen``)."""
     rows = np.atleast_2d(mix)
-    shares = np.reshape(stretched, (len(rows), len(STRETCH_AXES), 3)) if stretched is not None else [None] * len(rows)
+    shares = [None] * len(rows) if stretched is None else [np.reshape(stretched, (len(STRETCH_AXES), 3))] + [None] * (len(rows) - 1)
     f = lambda v: " ".join(f"{x:.2f}" for x in v)  # noqa: E731
     weights = "; ".join(f"{m} R G B {f(row)}" + (" (stretched along " + ", ".join(f"{a} {f(s)}" for a, s in zip(
         STRETCH_AXES, share, strict=True)) + ")" if share is not None else "")
@@ -248,9 +248,13 @@ def widen_line(widths: dict[str, float | None]) -> str | None:
             by.setdefault(widen, []).append(backend)
     if not by:
         return None
-    return "; ".join(f"calibration ({', '.join(names)}): each model's footprints join the view's fit stretched {widen:g} x "
-                     "along x, along y and along both, so that its fringes can widen them along either axis or both as well "
-                     "as narrow them" for widen, names in by.items()) + " (--widen 1: the footprints as they are, only narrowed)"
+    def stretched_models(names: list[str]) -> str:  # the first model of each backend: the one stretched
+        return " and ".join(sorted({BLENDS.get(n, (n,))[0] for n in names}))
+
+    return "; ".join(f"calibration ({', '.join(names)}): the {stretched_models(names)} footprints join the view's fit "
+                     f"stretched {widen:g} x along x, along y and along both (a blend's other models as they are), so that "
+                     "its fringes can widen them along either axis or both as well as narrow them" for widen, names in by.items()
+                     ) + " (--widen 1: the footprints as they are, only narrowed)"
 
 
 def resolve_backend(backend: str, checkpoint: Path | str | None, narrator: Narrator | None = None
@@ -435,12 +439,13 @@ def _relight_cached(rv: RelightView, pats: list[np.ndarray], backend: str, path:
     members, weights, view_weights, gains, white = saved
     with say.status(f"{rv.object} view {rv.view}: {backend} from its eigen-footprints"):
         relit = relight_lowrank(rv, members, weights, gains, white, pats)
-    per_model = len(members) // len(BLENDS.get(backend, (backend,)))  # 3 where each model is stretched (x, y, both)
-    view_weights, stretched = split_stretches(view_weights, per_model == len(STRETCH_AXES))  # as relight_view gives them
+    models = len(BLENDS.get(backend, (backend,)))
+    widened = len(members) == models + len(STRETCH_AXES) - 1  # the first model as three stretched members
+    view_weights, stretched = split_stretches(view_weights, widened)  # as relight_view gives them
     mix = view_weights[0] if len(view_weights) == 1 else view_weights
     say.say(mix_line(rv, backend, mix, stretched))
     say.say(f"{rv.object} view {rv.view}: relit from its cached eigen-footprints ({path.name}: rank "
-            f"{'/'.join(str(m.rank) for m in members[::per_model])}, {max(m.residual for m in members):.1e} of the footprints' "
+            f"{'/'.join(str(m.rank) for m in (members[:1] + members[len(STRETCH_AXES):] if widened else members))}, {max(m.residual for m in members):.1e} of the footprints' "
             "energy left out); --no-cache computes the footprints again")
     return relit, mix
 

@@ -144,3 +144,16 @@ def test_a_damaged_or_foreign_eigen_footprint_file_is_not_read(tmp_path, damage,
         np.savez(path, **edited)
     other = np.zeros((proj.mask.shape[0] + 1, proj.mask.shape[1]), bool)  # a view of another size
     assert load_lowrank(path, other if damage == "other view" else proj.mask) is None
+
+
+def test_a_blend_stretches_its_first_model_only_and_its_weights_split_per_model():
+    """``relight_view(widen=S)`` with ``also``: the first source is three stretched members (x, y, both), the others one
+    each; ``split_stretches`` gives one weight per model and the first model's split."""
+    from sssphase_core.relight.pipeline import split_stretches
+
+    weights = np.array([[0.1, 0.2, 0.0], [0.3, 0.0, 0.1], [0.0, 0.1, 0.1], [0.4, 0.5, 0.6]], np.float32)
+    per_model, shares = split_stretches(weights, True)
+    np.testing.assert_allclose(per_model, [[0.4, 0.3, 0.2], [0.4, 0.5, 0.6]], atol=1e-6)
+    np.testing.assert_array_equal(shares, weights[:3])
+    unstretched, none = split_stretches(weights[:2], False)
+    assert none is None and unstretched.shape == (2, 3)

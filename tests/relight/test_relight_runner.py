@@ -359,7 +359,7 @@ def test_the_decoders_calibration_widens_by_default_and_the_analytic_models_does
     import json
 
     assert json.loads(res.json.read_text())["widen"] == {"analytic": None, "torch": DECODER_WIDEN}
-    assert "calibration (torch): each model's footprints join the view's fit stretched" in said.text()
+    assert "calibration (torch): the torch footprints join the view's fit stretched" in said.text()
     from sssphase_core.relight import load_view
     from sssphase_core.relight.evaluation import relight_metrics
 
