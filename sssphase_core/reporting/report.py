@@ -135,7 +135,7 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
                  f"<code>none</code> keeps each pixel's own light (no scattering); <code>blend</code> weighs torch and "
                  f"analytic pixel by pixel by how well they relight the view's own fringe captures (<code>sss relight</code>'s "
                  f"default with a decoder); for <code>torch</code> and <code>blend</code> that fit may also widen the "
-                 f"models' footprints (each joins it stretched {DECODER_WIDEN:g} × along x, y and both, <code>sss relight --widen</code>'s default "
+                 f"decoder's footprints (they join it stretched {DECODER_WIDEN:g} × along x, y and both, <code>sss relight --widen</code>'s default "
                  f"for them)."
                  + (f" <code>analytic</code> integrates each footprint pixel at {int(result['analytic_supersample'])}"
                     f" × {int(result['analytic_supersample'])} points here (<code>sss relight</code> and <code>sss eval "
