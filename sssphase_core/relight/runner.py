@@ -380,7 +380,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
     fast = lowrank_path(out, s, rv, backend, checkpoint, widen)
     saved = load_lowrank(fast, rv.proj.mask, widen) if cache and backend not in MODEL_FREE else None
     if saved is not None:
-        return _relight_cached(rv, pats, backend, fast, saved, say)
+        return _relight_cached(rv, pats, backend, fast, saved, say, widened=bool(widen))
     sources: list[tuple[FootprintSource, int]] = make_sources(backend, rv, checkpoint=checkpoint, device=device)
     models = [src for src, _ in sources]
     members = BLENDS.get(backend, (backend,))
@@ -432,20 +432,20 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
 
 
 def _relight_cached(rv: RelightView, pats: list[np.ndarray], backend: str, path: Path, saved: tuple[Any, ...],
-                    say: Narrator) -> tuple[np.ndarray, np.ndarray]:
-    """A view relit from its cached eigen-footprints and calibration (``saved``: :func:`load_lowrank`'s), told."""
+                    say: Narrator, *, widened: bool) -> tuple[np.ndarray, np.ndarray]:
+    """A view relit from its cached eigen-footprints and calibration (``saved``: :func:`load_lowrank`'s, its first
+    model as three stretched members where ``widened``), told."""
     from sssphase_core.relight.pipeline import relight_lowrank, split_stretches
 
     members, weights, view_weights, gains, white = saved
     with say.status(f"{rv.object} view {rv.view}: {backend} from its eigen-footprints"):
         relit = relight_lowrank(rv, members, weights, gains, white, pats)
-    models = len(BLENDS.get(backend, (backend,)))
-    widened = len(members) == models + len(STRETCH_AXES) - 1  # the first model as three stretched members
     view_weights, stretched = split_stretches(view_weights, widened)  # as relight_view gives them
+    models = members[:1] + members[len(STRETCH_AXES):] if widened else members  # one per model (stretches share a rank)
     mix = view_weights[0] if len(view_weights) == 1 else view_weights
     say.say(mix_line(rv, backend, mix, stretched))
     say.say(f"{rv.object} view {rv.view}: relit from its cached eigen-footprints ({path.name}: rank "
-            f"{'/'.join(str(m.rank) for m in (members[:1] + members[len(STRETCH_AXES):] if widened else members))}, {max(m.residual for m in members):.1e} of the footprints' "
+            f"{'/'.join(str(m.rank) for m in models)}, {max(m.residual for m in members):.1e} of the footprints' "
             "energy left out); --no-cache computes the footprints again")
     return relit, mix
 
