@@ -13,6 +13,8 @@ mask and on its calm pixels: chosen from the converged halves and the inputs onl
 every colour, the white capture has no firefly: `transport_footprints.py`'s selection), so that no source's error
 picks its own pixels; there each figure is followed by its margin over the analytic model (where scored) with the
 converged reference's own noise taken out (a quarter of its halves' mean squared difference).
+Every truth is read in the renderer's units and multiplied by the rig's ``frame_scale`` (where `sss import` rescaled
+the frames) before it is compared, since relit images are in the session's units.
 ``geometry``: the decoded and the geometry-corrected projector x, y of
 ``sss geometry``'s ``correspondence_for_geometry.npz`` against ``RENDERS/OBJECT_geometry.npz``
 (``standin_volumetric.py``, ``mitsuba_render.py``), median signed error by incidence angle.
@@ -38,14 +40,20 @@ def psnr(a: np.ndarray, b: np.ndarray, where: np.ndarray) -> float:
     return float(10 * np.log10(1.0 / np.mean((a[where] - b[where]) ** 2)))
 
 
-def converged_halves(renders: Path, name: str, pattern: str, rv) -> tuple[list[np.ndarray], np.ndarray]:  # noqa: ANN001
-    """The converged reference's two halves under ``pattern`` and the view's calm pixels (H, W): decoded, a steady
-    white, and the halves within CALM of each other in every colour."""
+def session_scale(session) -> float:  # noqa: ANN001
+    """The factor `sss import` scaled the renders' frames by (the rig's ``frame_scale``): relit images are in the
+    session's units, so every truth read from the render folder is multiplied by it before it is compared."""
+    return float(session.manifest["rig"].get("frame_scale", 1.0))
+
+
+def converged_halves(renders: Path, name: str, pattern: str, rv, scale: float = 1.0) -> tuple[list[np.ndarray], np.ndarray]:  # noqa: ANN001
+    """The converged reference's two halves under ``pattern`` (in the session's units: times ``scale``) and the view's
+    calm pixels (H, W): decoded, a steady white, and the halves within CALM of each other in every colour."""
     from transport_footprints import CALM, steady_white
 
     from sssphase_core.store.exr import read_exr
 
-    halves = [read_exr(renders / f"{name}_converged_half{i}_ref__{pattern}.exr") for i in (0, 1)]
+    halves = [read_exr(renders / f"{name}_converged_half{i}_ref__{pattern}.exr") * scale for i in (0, 1)]
     return halves, rv.proj.mask & steady_white(rv.white) & (np.abs(halves[0] - halves[1]).max(axis=-1) <= CALM)
 
 
@@ -60,19 +68,20 @@ def relight(renders: Path, sessions: Path, relit: Path, backends: list[str], tru
     print("|---|---|" + "---|" * len(backends))
     for s in find_sessions([sessions]):
         rv = load_view(s, 0)
+        scale = session_scale(s)
         mask = rv.proj.mask
         inner = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
         for pattern in ("checkerboard", "stripes_x", "stripes_y"):
             reference = renders / f"{s.name}_{truth}_ref__{pattern}.exr"
             if not reference.exists():  # stripes_y: mitsuba_render.py's; converged: where rendered
                 continue
-            truth_img = read_exr(reference)
+            truth_img = read_exr(reference) * scale
             imgs = {b: read_exr(relit / f"{s.name}_v0_{pattern}_{b}.exr") for b in backends}
             if truth != "converged":
                 cells = [f"{psnr(imgs[b], truth_img, mask):.2f} / {psnr(imgs[b], truth_img, inner):.2f}" for b in backends]
                 print(f"| {s.name} | {pattern} | " + " | ".join(cells) + " |")
                 continue
-            halves, calm = converged_halves(renders, s.name, pattern, rv)
+            halves, calm = converged_halves(renders, s.name, pattern, rv, scale)
             noise = reference_noise(*halves, calm)
             mse = {b: float(np.mean((imgs[b][calm] - truth_img[calm]) ** 2)) for b in backends}
             cells = []
@@ -112,7 +121,7 @@ def edges(renders: Path, sessions: Path, relit: Path, backends: list[str]) -> No
     from sssphase_core.store.session import find_sessions
 
     for s in find_sessions([sessions]):
-        rv = load_view(s, 0)
+        rv, scale = load_view(s, 0), session_scale(s)
         white = rv.white.mean(axis=-1)
         for name in ("checkerboard", "stripes_x", "stripes_y"):
             reference = renders / f"{s.name}_converged_ref__{name}.exr"
@@ -120,8 +129,8 @@ def edges(renders: Path, sessions: Path, relit: Path, backends: list[str]) -> No
                 continue
             pattern = np.asarray(rv.references[name], np.float32)
             pattern = pattern.mean(axis=-1) if pattern.ndim == 3 else pattern
-            calm = converged_halves(renders, s.name, name, rv)[1]
-            images = {"truth": read_exr(reference).mean(axis=-1)}
+            calm = converged_halves(renders, s.name, name, rv, scale)[1]
+            images = {"truth": read_exr(reference).mean(axis=-1) * scale}
             images |= {b: read_exr(relit / f"{s.name}_v0_{name}_{b}.exr").mean(axis=-1) for b in backends}
             for axis, coord, across in ((1, rv.proj.xp, rv.proj.yp), (0, rv.proj.yp, rv.proj.xp)):
                 dist = edge_distance(pattern, coord, across, axis, calm & np.isfinite(coord))
@@ -160,15 +169,15 @@ def regions(renders: Path, sessions: Path, relit: Path, backends: list[str]) -> 
     print("| object | pattern | region | pixels | " + " | ".join(backends) + " |")
     print("|---|---|---|---|" + "---|" * len(backends))
     for s in find_sessions([sessions]):
-        rv = load_view(s, 0)
+        rv, scale = load_view(s, 0), session_scale(s)
         inside = np.load(renders / f"{s.name}_geometry.npz")["object"].astype(bool)
         signed = silhouette_distance(inside)
         for name in ("checkerboard", "stripes_x", "stripes_y"):
             reference = renders / f"{s.name}_converged_ref__{name}.exr"
             if not reference.exists():
                 continue
-            truth = read_exr(reference)
-            calm = converged_halves(renders, s.name, name, rv)[1]
+            truth = read_exr(reference) * scale
+            calm = converged_halves(renders, s.name, name, rv, scale)[1]
             imgs = {b: read_exr(relit / f"{s.name}_v0_{name}_{b}.exr") for b in backends}
             wheres = [("object", rv.proj.mask & inside)]
             wheres += [(f"calm, {label}", calm & (signed > lo) & (signed <= hi)) for label, lo, hi in REGIONS]

@@ -1,5 +1,5 @@
 """The stand-in scorer's edge profile (benchmarks/standin_score.py edges) measures distance to the patterns' edges, and its
-regions (``regions``) the distance to the object's silhouette."""
+regions (``regions``) the distance to the object's silhouette; every truth is compared in the session's units."""
 
 import numpy as np
 from benchmark_script import load_benchmark
@@ -29,3 +29,12 @@ def test_silhouette_distance_is_positive_inside_negative_outside_and_grows_away_
     assert abs(d[20, 19] - 10.0) < 0.5 and abs(d[20, 0] + 10.0) < 0.5  # 10 px in, 10 px out
     labels = [label for label, lo, hi in script.REGIONS if lo < d[20, 25] <= hi]
     assert labels == ["3-12 px inside"]  # 6 px from the right edge
+
+
+def test_truth_is_put_in_the_sessions_units_by_the_frame_scale_that_the_import_recorded():
+    class Imported:  # what the scorer reads of a session: its manifest's rig
+        def __init__(self, rig: dict) -> None:
+            self.manifest = {"rig": rig}
+
+    assert script.session_scale(Imported({"frame_scale": 2.75, "imported": True})) == 2.75
+    assert script.session_scale(Imported({"imported": True})) == 1.0  # sessions from before it was recorded
