@@ -39,6 +39,8 @@ def check_backends(names: Sequence[str], checkpoint: Path | str | None) -> None:
 #: calibration of the footprints as they are can only narrow them; the analytic model's widths (one per axis) are
 #: fitted to the view's own fringes. Measured in docs/benchmarks/relighting.md.
 DECODER_WIDEN = 1.3
+#: The largest stretch of a model's footprints in the view calibration (``relight_view``'s ``widen``, ``--widen``).
+WIDEN_MAX = 4.0
 #: The axes a model's footprints are stretched along in the view calibration, in the order of its members
 #: (:func:`~sssphase_core.relight.engine.axis_stretches`).
 STRETCH_AXES = ("x", "y", "both")

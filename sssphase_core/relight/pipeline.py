@@ -16,14 +16,11 @@ from sssphase_core.relight.calibration import (
     local_mixture,
     model_inputs,
 )
-from sssphase_core.relight.choices import STRETCH_AXES
+from sssphase_core.relight.choices import STRETCH_AXES, WIDEN_MAX
 from sssphase_core.relight.engine import FootprintSource, axis_stretches, relight, widened
 from sssphase_core.relight.lowrank import LowRankFootprints
 from sssphase_core.relight.sources import no_scattering_source
 from sssphase_core.relight.views import RelightView
-
-#: The largest stretch :func:`relight_view` gives a model's footprints (``widen``).
-WIDEN_MAX = 4.0
 
 
 def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns: list[np.ndarray], *,
