@@ -1008,6 +1008,14 @@ def test_the_bayer_layout_a_camera_demosaiced_from_is_read_from_the_frames_noise
         else:
             assert info["bayer_detected"].startswith("none: the noise is alike at every 2 x 2 site"), info["bayer_detected"]
             assert info["camera_isp"] is None
+    # a path tracer's firefly (one sample 10^4 times the light) in one frame: still no layout, still GRBG
+    for frames, want in ((noisy, None), (through_camera(noisy, demosaic="malvar", median=False, layout="GRBG"), "GRBG")):
+        fired = frames[:8].copy()
+        fired[1, h // 2 + 1, w // 2] = 1e4
+        layout, why = detect_bayer_layout([fired[:4], fired[4:]], frames[-2], inside)
+        assert layout == want, why
+        if want is None:
+            assert why.startswith("the noise is alike at every 2 x 2 site"), why
     psp = np.stack([light[i] for i in range(8)])
     assert detect_bayer_layout([psp[:4], psp[4:]], light[-2], inside)[0] is None  # noise-free: nothing to read
     # a noise-free render whose camera pixel spans 1.5 projector pixels: each set's residual alternates along its

@@ -37,6 +37,9 @@ BAYER_SITE_SPREAD, BAYER_MIN_CORR, BAYER_MARGIN, BAYER_MIN_PIXELS = 0.15, 0.8, 0
 #: ... and the sites' pattern of each fringe set correlates with the others' by at least this much (Malvar's frames
 #: 0.80 in the import tests; a noise-free render whose fringes alias along each set's direction: 0.00).
 BAYER_SETS_AGREE = 0.5
+#: The residual's squares are capped at this quantile over the mask before each site's mean: a path tracer's stray
+#: sample (a firefly 10^4 times the light) made a render's sites differ by 3 and the import suggest ``--bayer``.
+BAYER_CAP_QUANTILE = 0.999
 
 
 def detect_bayer_layout(fringe_sets: list[np.ndarray], white: np.ndarray, mask: np.ndarray) -> tuple[str | None, str]:
@@ -53,6 +56,10 @@ def detect_bayer_layout(fringe_sets: list[np.ndarray], white: np.ndarray, mask: 
     residuals = [s[0] + s[len(s) // 2] - s[1] - s[1 + len(s) // 2] for s in fringe_sets if len(s) >= 4 and len(s) % 2 == 0]
     if not residuals:
         return None, "needs fringe sets of an even number of shifts"
+    squares = [(np.asarray(r, np.float64) ** 2).mean(axis=-1) if np.ndim(r) == 3 else np.asarray(r, np.float64) ** 2
+               for r in residuals]
+    if mask.any():  # a renderer's firefly would outweigh every other pixel of its site: capped with the brightest 0.1%
+        squares = [np.minimum(q, np.quantile(q[mask], BAYER_CAP_QUANTILE)) for q in squares]
     site_noise, site_white = np.zeros((len(residuals), 2, 2)), np.zeros((2, 2, 3))  # per fringe set
     for i in range(2):
         for j in range(2):
@@ -61,7 +68,7 @@ def detect_bayer_layout(fringe_sets: list[np.ndarray], white: np.ndarray, mask: 
             sel &= mask
             if sel.sum() < BAYER_MIN_PIXELS:
                 return None, f"too few decoded pixels ({int(mask.sum())})"
-            site_noise[:, i, j] = [float(np.mean(np.asarray(r, np.float64)[sel] ** 2)) for r in residuals]
+            site_noise[:, i, j] = [float(np.mean(q[sel])) for q in squares]
             site_white[i, j] = np.asarray(white, np.float64)[sel].mean(axis=0)
     each, site_noise = site_noise, site_noise.sum(axis=0)
     if not site_noise.mean() > 0:
