@@ -321,8 +321,10 @@ def bench_gap(
     backend: Annotated[str, typer.Option(help="The model backend whose gap to the exact footprints is decomposed.")] = "torch",
     views: Annotated[str, typer.Option(help="Comma-separated views (default: all).")] = "",
     out: Annotated[Path, typer.Option("--out", help="JSON output (.md written next to it).")] = Path("bench_gap.json"),
-    calibrate: Annotated[bool, typer.Option(help="The model as relighting uses it, mixed with no scattering by its "
-                                            "view calibration (--no-calibrate: the model alone).")] = True,
+    calibrate: Annotated[bool, typer.Option(help="The model's footprints mixed with no scattering by its view-wide "
+                                            "calibration weight (footprints, not images: without the widening, per-pixel "
+                                            "weights and white-consistent gain `sss relight` adds; --no-calibrate: the "
+                                            "model alone).")] = True,
 ) -> None:
     """What separates a model's relighting from the exact footprints': energy, shape, centre, angular detail,
     silhouettes (simulated sessions; the exact footprints serve evaluation only)."""

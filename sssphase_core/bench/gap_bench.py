@@ -17,6 +17,11 @@ at a time:
 Errors are MSE against the noise-free render of each reference pattern on the object mask; a hybrid's
 *share* is (MSE(hybrid) - MSE(exact)) / (MSE(model) - MSE(exact)). Shares need not add to 1 (the terms
 interact), but the largest one says what to attack first.
+
+The model's footprints are calibrated as footprints (``calibrate``: mixed with no scattering by the view-wide weight,
+:func:`~sssphase_core.relight.make_source`), not as ``sss relight`` calibrates its images (the widened members, the
+per-pixel weights and the white-consistent gain of :func:`~sssphase_core.relight.pipeline.relight_view`): each
+hybrid needs one footprint per pixel.
 """
 
 from __future__ import annotations
