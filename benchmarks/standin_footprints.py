@@ -1,11 +1,13 @@
 """A decoder's and the analytic model's footprints against a volumetric stand-in's true ones, pixel by pixel.
 
-    python benchmarks/standin_footprints.py RENDERS SESSIONS NAME MATERIAL MM_PER_PX CHECKPOINT [PIXELS]
+    python benchmarks/standin_footprints.py shapes RENDERS SESSIONS NAME MATERIAL MM_PER_PX CHECKPOINT [PIXELS]
+    python benchmarks/standin_footprints.py relit RENDERS SESSIONS NAME MATERIAL MM_PER_PX CHECKPOINT
 
 RENDERS, NAME, MATERIAL, MM_PER_PX: as given to ``standin_volumetric.py`` (its cached kernels and
 ``NAME_geometry.npz`` are read: evaluation only); SESSIONS: where ``sss import`` put the session;
-CHECKPOINT: a decoder (``sss train decoder``'s run folder). On PIXELS (default 300) seeded pixels at least
-10 px inside the decoded mask, prints per colour, for the truth (the stand-in's kernel at the pixel's
+CHECKPOINT: a decoder (``sss train decoder``'s run folder).
+
+``shapes``: on PIXELS (default 300) seeded pixels at least 10 px inside the decoded mask, prints per colour, for the truth (the stand-in's kernel at the pixel's
 incidence angle, turned along its azimuth), the torch backend (as ``sss relight`` runs it, and its decoder
 alone, ``guard=False``) and the analytic model:
 
@@ -16,6 +18,13 @@ alone, ``guard=False``) and the analytic model:
 - the modulation each footprint gives the finest fringes (period 11 projector px, in camera px by the
   decoded map's local density) over the truth's: below 1, the footprint is wider than the truth for the
   fringes that the view calibration fits on.
+
+``relit``: relit PSNR (dB, whole mask / >= 2 px inside) against the render's noise-free references, every source
+calibrated to the view as ``sss relight`` does (:func:`~sssphase_core.relight.pipeline.relight_view`; the decoder
+widened by its default), of: the true footprints (each pixel's kernel times the texture its light enters through,
+in the session's units) placed at the decoded points; the same re-centred on their centroid (the decoded point
+already carries a leaning footprint's shift); the decoder; the decoder's shapes with the true energies and the true
+shapes with the decoder's energies; the analytic model.
 """
 
 from __future__ import annotations
@@ -109,8 +118,85 @@ def main(renders: Path, sessions: Path, name: str, material: str, mm_per_px: flo
               f" | {(var / t_var).round(1)} | {corr:.2f} | {np.median(mx / tx, 0).round(3)} {np.median(my / ty, 0).round(3)}")
 
 
+def shifted_to_centroid(fp: np.ndarray) -> np.ndarray:
+    """(N, K, K, 3) footprints moved (bilinearly, colours together) so that their centroid is the centre pixel K // 2,
+    each colour's energy kept."""
+    import torch
+
+    k = fp.shape[1]
+    off = np.arange(k) - k // 2
+    w = fp.sum(-1)
+    total = np.where(w.sum((1, 2)) > 0, w.sum((1, 2)), 1.0)
+    mx, my = (w * off[None, None, :]).sum((1, 2)) / total, (w * off[None, :, None]).sum((1, 2)) / total
+    gy, gx = torch.meshgrid(torch.arange(float(k)), torch.arange(float(k)), indexing="ij")
+    sx = (gx[None] + torch.from_numpy(mx.astype(np.float32))[:, None, None]) / (k - 1) * 2 - 1
+    sy = (gy[None] + torch.from_numpy(my.astype(np.float32))[:, None, None]) / (k - 1) * 2 - 1
+    x = torch.from_numpy(np.ascontiguousarray(fp.transpose(0, 3, 1, 2), np.float32))
+    out = torch.nn.functional.grid_sample(x, torch.stack([sx, sy], -1), mode="bilinear", align_corners=True)
+    out = out.numpy().transpose(0, 2, 3, 1)
+    now = out.sum(axis=(1, 2), keepdims=True)
+    return (out * np.where(now > 0, fp.sum(axis=(1, 2), keepdims=True) / np.where(now > 0, now, 1.0), 1.0)).astype(np.float32)
+
+
+def with_energy(shape_of, energy_of):  # noqa: ANN001, ANN201
+    """A footprint source with ``shape_of``'s shapes and ``energy_of``'s energy per colour."""
+    def source(pixels: np.ndarray) -> np.ndarray:
+        a, b = np.asarray(shape_of(pixels), np.float32), np.asarray(energy_of(pixels), np.float32)
+        ea = a.sum(axis=(1, 2), keepdims=True)
+        return a / np.where(ea > 0, ea, 1.0) * b.sum(axis=(1, 2), keepdims=True)
+    return source
+
+
+def relit(renders: Path, sessions: Path, name: str, material: str, mm_per_px: float, checkpoint: str) -> None:
+    from standin_score import session_scale
+
+    from sssphase_core.processing.patterns import reference_pattern
+    from sssphase_core.relight import load_view, make_source
+    from sssphase_core.relight.choices import DECODER_WIDEN
+    from sssphase_core.relight.pipeline import relight_view
+    from sssphase_core.store.exr import read_exr
+    from sssphase_core.store.session import find_sessions
+
+    session = next(s for s in find_sessions([sessions]) if s.name == name)
+    rv, scale = load_view(session, 0), session_scale(session)
+    geo = np.load(renders / f"{name}_geometry.npz")
+    if "texture" not in geo.files:
+        sys.exit(f"{renders / name}_geometry.npz holds no texture: render it again with this version of standin_volumetric.py")
+    table, theta, azimuth, texture = kernels(renders, material, mm_per_px, 0.0), geo["theta"], geo["azimuth"], geo["texture"]
+    k = 2 * RADIUS + 2
+
+    def truth(pixels: np.ndarray) -> np.ndarray:
+        out = np.zeros((len(pixels), k, k, 3), np.float32)
+        ok = np.isfinite(theta[pixels[:, 0], pixels[:, 1]])
+        if ok.any():
+            y, x = pixels[ok, 0], pixels[ok, 1]
+            kern = per_pixel_kernels(table, theta[y, x], azimuth[y, x]).transpose(0, 2, 3, 1)
+            out[ok, 1:, 1:] = kern * texture[y, x][:, None, None, :] * scale
+        return out
+
+    decoder = make_source("torch", rv, checkpoint=checkpoint, calibrate=False)[0]
+    sources = {"true footprints": (truth, None), "true, re-centred": (lambda p: shifted_to_centroid(truth(p)), None),
+               "torch": (decoder, DECODER_WIDEN), "torch shapes, true energy": (with_energy(decoder, truth), DECODER_WIDEN),
+               "true shapes, torch energy": (with_energy(truth, decoder), None),
+               "analytic": (make_source("analytic", rv, calibrate=False)[0], None)}
+    names = ("checkerboard", "stripes_x")
+    wp, hp = rv.proj.projector_size
+    refs = [read_exr(renders / f"{name}_clean_ref__{n}.exr") * scale for n in names]
+    mask = rv.proj.mask
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+    print(f"{name}: relit as sss relight calibrates, PSNR whole mask / >= 2 px inside, {' | '.join(names)}")
+    for label, (source, widen) in sources.items():
+        images, _ = relight_view(source, k, rv, [reference_pattern(n, wp, hp) for n in names], calibrate=True, widen=widen)
+        cells = [f"{10 * np.log10(1 / np.mean((im[m] - r[m]) ** 2)):.2f}" for im, r in zip(images, refs, strict=True)
+                 for m in (mask, inner)]
+        print(f"  {label:26s} " + " | ".join(f"{cells[i]} / {cells[i + 1]}" for i in range(0, len(cells), 2)))
+
+
 if __name__ == "__main__":
     a = sys.argv[1:]
-    if len(a) not in (6, 7):
+    if len(a) in (7, 8) and a[0] == "shapes":
+        main(Path(a[1]), Path(a[2]), a[3], a[4], float(a[5]), a[6], *(int(v) for v in a[7:]))
+    elif len(a) == 7 and a[0] == "relit":
+        relit(Path(a[1]), Path(a[2]), a[3], a[4], float(a[5]), a[6])
+    else:
         sys.exit(__doc__)
-    main(Path(a[0]), Path(a[1]), a[2], a[3], float(a[4]), a[5], *(int(v) for v in a[6:]))

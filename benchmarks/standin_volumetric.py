@@ -20,7 +20,8 @@ pixels get no light. Kernels are laid flat in the image (no foreshortening) and 
 look along each normal. Shot and read noise as the first stand-in (``standin_render.py``), float EXR
 named by plan key. Kernels are cached per material, scale and phase function in OUT/kernels_*.npz; the
 noise-free reference images and the exact projector coordinates of every lit pixel
-(``NAME_geometry.npz``: xp, yp, theta, azimuth) are written beside the folder.
+(``NAME_geometry.npz``: xp, yp, theta, azimuth, and the colour texture the entering light is multiplied by) are
+written beside the folder.
 
     python benchmarks/standin_volumetric.py OUT NAME MATERIAL MM_PER_PX SEED [G [TILT]]
     sss import OUT/NAME --object NAME --projector 256x192 --out SESSIONS
@@ -208,7 +209,7 @@ def main(out: Path, name: str, material: str, mm_per_px: float, seed: int, g: fl
     wt = torch.from_numpy(np.ascontiguousarray(weights.transpose(1, 2, 3, 0).reshape(3, k * k, -1)))
     del weights
     np.savez_compressed(out / f"{name}_geometry.npz", xp=np.where(lit, mapx, np.nan), yp=np.where(lit, mapy, np.nan),
-                        theta=np.where(lit, theta, np.nan), azimuth=np.where(lit, azimuth, np.nan))
+                        theta=np.where(lit, theta, np.nan), azimuth=np.where(lit, azimuth, np.nan), texture=texture)
 
     def render(pattern: np.ndarray) -> np.ndarray:
         light = emitted_light(pattern[None], 2.2)[0]
