@@ -119,37 +119,26 @@ def main(renders: Path, sessions: Path, name: str, material: str, mm_per_px: flo
 
 
 def shifted_to_centroid(fp: np.ndarray) -> np.ndarray:
-    """(N, K, K, 3) footprints moved (bilinearly, colours together) so that their centroid is the centre pixel K // 2,
-    each colour's energy kept."""
+    """(N, K, K, 3) footprints moved (:func:`~sssphase_core.learning.camera.shift_subpixel`, colours together) so
+    that their centroid is the centre pixel K // 2, each colour's energy kept."""
     import torch
 
-    k = fp.shape[1]
-    off = np.arange(k) - k // 2
+    from sssphase_core.learning.camera import shift_subpixel
+
+    off = np.arange(fp.shape[1]) - fp.shape[1] // 2
     w = fp.sum(-1)
     total = np.where(w.sum((1, 2)) > 0, w.sum((1, 2)), 1.0)
-    mx, my = (w * off[None, None, :]).sum((1, 2)) / total, (w * off[None, :, None]).sum((1, 2)) / total
-    gy, gx = torch.meshgrid(torch.arange(float(k)), torch.arange(float(k)), indexing="ij")
-    sx = (gx[None] + torch.from_numpy(mx.astype(np.float32))[:, None, None]) / (k - 1) * 2 - 1
-    sy = (gy[None] + torch.from_numpy(my.astype(np.float32))[:, None, None]) / (k - 1) * 2 - 1
+    centroid = np.stack([(w * off[None, :, None]).sum((1, 2)), (w * off[None, None, :]).sum((1, 2))], 1) / total[:, None]
     x = torch.from_numpy(np.ascontiguousarray(fp.transpose(0, 3, 1, 2), np.float32))
-    out = torch.nn.functional.grid_sample(x, torch.stack([sx, sy], -1), mode="bilinear", align_corners=True)
-    out = out.numpy().transpose(0, 2, 3, 1)
+    out = shift_subpixel(x, -centroid).numpy().transpose(0, 2, 3, 1)
     now = out.sum(axis=(1, 2), keepdims=True)
     return (out * np.where(now > 0, fp.sum(axis=(1, 2), keepdims=True) / np.where(now > 0, now, 1.0), 1.0)).astype(np.float32)
-
-
-def with_energy(shape_of, energy_of):  # noqa: ANN001, ANN201
-    """A footprint source with ``shape_of``'s shapes and ``energy_of``'s energy per colour."""
-    def source(pixels: np.ndarray) -> np.ndarray:
-        a, b = np.asarray(shape_of(pixels), np.float32), np.asarray(energy_of(pixels), np.float32)
-        ea = a.sum(axis=(1, 2), keepdims=True)
-        return a / np.where(ea > 0, ea, 1.0) * b.sum(axis=(1, 2), keepdims=True)
-    return source
 
 
 def relit(renders: Path, sessions: Path, name: str, material: str, mm_per_px: float, checkpoint: str) -> None:
     from standin_score import session_scale
 
+    from sssphase_core.bench.gap_bench import hybrid
     from sssphase_core.processing.patterns import reference_pattern
     from sssphase_core.relight import load_view, make_source
     from sssphase_core.relight.choices import DECODER_WIDEN
@@ -176,8 +165,9 @@ def relit(renders: Path, sessions: Path, name: str, material: str, mm_per_px: fl
 
     decoder = make_source("torch", rv, checkpoint=checkpoint, calibrate=False)[0]
     sources = {"true footprints": (truth, None), "true, re-centred": (lambda p: shifted_to_centroid(truth(p)), None),
-               "torch": (decoder, DECODER_WIDEN), "torch shapes, true energy": (with_energy(decoder, truth), DECODER_WIDEN),
-               "true shapes, torch energy": (with_energy(truth, decoder), None),
+               "torch": (decoder, DECODER_WIDEN),
+               "torch shapes, true energy": (lambda p: hybrid("shape", np.asarray(decoder(p)), truth(p)), DECODER_WIDEN),
+               "true shapes, torch energy": (lambda p: hybrid("energy", np.asarray(decoder(p)), truth(p)), None),
                "analytic": (make_source("analytic", rv, calibrate=False)[0], None)}
     names = ("checkerboard", "stripes_x")
     wp, hp = rv.proj.projector_size

@@ -56,8 +56,7 @@ def detect_bayer_layout(fringe_sets: list[np.ndarray], white: np.ndarray, mask: 
     residuals = [s[0] + s[len(s) // 2] - s[1] - s[1 + len(s) // 2] for s in fringe_sets if len(s) >= 4 and len(s) % 2 == 0]
     if not residuals:
         return None, "needs fringe sets of an even number of shifts"
-    squares = [(np.asarray(r, np.float64) ** 2).mean(axis=-1) if np.ndim(r) == 3 else np.asarray(r, np.float64) ** 2
-               for r in residuals]
+    squares = [(np.asarray(r, np.float64) ** 2).mean(axis=-1) for r in residuals]  # (H, W): colours averaged
     if mask.any():  # a renderer's firefly would outweigh every other pixel of its site: capped with the brightest 0.1%
         squares = [np.minimum(q, np.quantile(q[mask], BAYER_CAP_QUANTILE)) for q in squares]
     site_noise, site_white = np.zeros((len(residuals), 2, 2)), np.zeros((2, 2, 3))  # per fringe set
