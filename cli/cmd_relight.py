@@ -52,9 +52,11 @@ FormatOpt = Annotated[str, typer.Option("--format", help="png (16-bit linear, cl
                                         "linear, unclipped) or png,exr.")]
 def _widen_range(value: float | None) -> float | None:
     """Refuse a stretch that is not a number from 1 to 4 in words that say so (NaN fails typer's bounds as 'above 4')."""
+    if value is None:
+        return None
     from sssphase_core.relight.choices import WIDEN_MAX
 
-    if value is not None and not 1.0 <= value <= WIDEN_MAX:
+    if not 1.0 <= value <= WIDEN_MAX:
         raise typer.BadParameter(f"{value:g} is not a stretch from 1 to {WIDEN_MAX:g} (1: the footprints as they are)")
     return value
 
