@@ -1,5 +1,5 @@
 """How a dot-grid crop records a footprint, as differentiable torch functions (function + module, kornia
-style): the dot's offset from the pixel (:func:`shift_subpixel`), then the camera's colour pipeline (Bayer
+style): the camera pixels the dot lit (:func:`spread_dot`), then the camera's colour pipeline (Bayer
 sampling, the optional 3x3 median per Bayer plane, linear demosaicing: :func:`through_camera`).
 
 Captured footprints are crops of demosaiced frames. A pixel measures one colour; the other two are
@@ -10,9 +10,9 @@ centre share 0.73 -> 0.32, the blue one 0.76 -> 1.17). A decoder fitted to such 
 average over positions, a blurred footprint, while relighting treats its footprints as the light that
 reaches the sensor (a relit image is passed through the camera only when it is compared with captures).
 And the crop of a pixel is lit by the dot at its rounded projector coordinate, whose light enters up to a
-pixel or more away (:func:`sssphase_core.processing.footprints.dot_offsets`): averaged over crops, a
-further blur. Decoder training therefore passes each predicted footprint through the way its target was
-recorded (:func:`as_captured`) before the loss: the network predicts the light entering at the pixel's
+pixel or more away, over as many camera pixels as the projector pixel covers there
+(:func:`sssphase_core.processing.footprints.dot_kernels`): a further blur that follows the fringes'
+density. Decoder training therefore passes each predicted footprint through the way its target was recorded (:func:`as_captured`) before the loss: the network predicts the light entering at the pixel's
 centre, before the sensor, which is what relighting splats.
 
 Modelled: Bayer sampling in the crop's own phase, the per-plane 3x3 median (the paper's ISP) and two
@@ -190,17 +190,32 @@ def shift_subpixel(footprints: torch.Tensor, offsets: torch.Tensor | np.ndarray)
     return out.view(b, c, h, w)
 
 
+def spread_dot(footprints: torch.Tensor, kernels: torch.Tensor | np.ndarray) -> torch.Tensor:
+    """(B, C, K, K) footprints of light entering at a pixel, summed over the pixels a dot lit: ``kernels`` (B, k,
+    k), k odd, the dot's weight on the camera pixel at each offset from the crop's centre
+    (:func:`sssphase_core.processing.footprints.dot_kernels`), each pixel's footprint taken as the centre's
+    moved there; zero from outside -> (B, C, K, K). Differentiable; one grouped convolution."""
+    ker = torch.as_tensor(kernels, dtype=footprints.dtype, device=footprints.device)
+    if ker.ndim != 3 or len(ker) != len(footprints) or ker.shape[1] != ker.shape[2] or ker.shape[1] % 2 != 1:
+        raise InputError(f"dot kernels must be (B, k, k) with k odd for {len(footprints)} footprints, got "
+                         f"{tuple(ker.shape)}")
+    b, c, h, w = footprints.shape
+    weight = ker.flip(1, 2).repeat_interleave(c, dim=0)[:, None]  # (B C, 1, k, k); conv2d correlates
+    out = nn.functional.conv2d(footprints.reshape(1, b * c, h, w), weight, padding=ker.shape[1] // 2, groups=b * c)
+    return out.view(b, c, h, w)
+
+
 def as_captured(footprints: torch.Tensor, codes: torch.Tensor | np.ndarray,
-                offsets: torch.Tensor | np.ndarray | None = None) -> torch.Tensor:
+                dots: torch.Tensor | np.ndarray | None = None) -> torch.Tensor:
     """(B, 3, K, K) footprints of light entering at each pixel's centre as their dot-grid crops recorded
-    them: moved to where the crop's dot lit the surface (``offsets`` (B, 2), :func:`shift_subpixel`), then
-    through the crop's camera (``codes`` (B,), :func:`through_camera`)."""
-    moved = footprints if offsets is None else shift_subpixel(footprints, offsets)
-    return through_camera(moved, codes)
+    them: summed over the camera pixels the crop's dot lit (``dots`` (B, k, k) kernels, :func:`spread_dot`),
+    then through the crop's camera (``codes`` (B,), :func:`through_camera`)."""
+    spread = footprints if dots is None else spread_dot(footprints, dots)
+    return through_camera(spread, codes)
 
 
 class CaptureModel(nn.Module):
-    """:func:`as_captured` as a module: ``forward(footprints (B, 3, K, K), codes (B,), offsets (B, 2))``."""
+    """:func:`as_captured` as a module: ``forward(footprints (B, 3, K, K), codes (B,), dots (B, k, k))``."""
 
-    def forward(self, footprints: torch.Tensor, codes: torch.Tensor, offsets: torch.Tensor | None = None) -> torch.Tensor:
-        return as_captured(footprints, codes, offsets)
+    def forward(self, footprints: torch.Tensor, codes: torch.Tensor, dots: torch.Tensor | None = None) -> torch.Tensor:
+        return as_captured(footprints, codes, dots)

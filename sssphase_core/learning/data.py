@@ -40,7 +40,7 @@ class ViewData:
     materials: np.ndarray  # (N,) int material label, -1 unknown
     footprints: object | None = None  # (N, K, K, 3) array-like or None
     isp: dict | None = None  # the camera pipeline that made the footprint crops (a session view's camera_isp)
-    offsets: np.ndarray | None = None  # (N, 2) (dy, dx) px: where each crop's dot lit the surface (None: at the pixel)
+    dots: np.ndarray | None = None  # (N, k, k): the camera pixels each crop's dot lit (None: the pixel alone)
 
     def __post_init__(self) -> None:
         if self.psp.ndim != 4 or self.psp.shape[0] != N_PSP or self.psp.shape[-1] != 3:
@@ -97,8 +97,8 @@ def psp_patches(psp: np.ndarray, pixels: np.ndarray, k: int, chunk: int = 4096) 
 class PatchDataset(torch.utils.data.Dataset):
     """Patches of several views; items are dicts of tensors (``psp``, ``object``, ``material``, ``view``
     and, when ``with_targets``, ``footprint`` (3, K, K), ``camera``, the code of the camera that recorded
-    it (:func:`sssphase_core.learning.camera.crop_codes`), and ``offset`` (2,), where its dot lit the surface
-    (:func:`sssphase_core.processing.footprints.dot_offsets`). ``batch(indices)`` builds a batch at once."""
+    it (:func:`sssphase_core.learning.camera.crop_codes`), and ``dot`` (k, k), the camera pixels its dot lit
+    (:func:`sssphase_core.processing.footprints.dot_kernels`). ``batch(indices)`` builds a batch at once."""
 
     def __init__(self, views: Sequence[ViewData], patch: int, classes: Sequence[str], *, with_targets: bool = False) -> None:
         if not views:
@@ -130,12 +130,16 @@ class PatchDataset(torch.utils.data.Dataset):
             "material": np.concatenate([np.asarray(v.materials, np.int64) for v in self.views]),
             "view": np.repeat([v.view for v in self.views], counts),
         }
-        if with_targets:  # each crop's camera and dot offset, through which decoder training passes its prediction
+        if with_targets:  # each crop's camera and dot, through which decoder training passes its prediction
             from sssphase_core.learning.camera import crop_codes
+            from sssphase_core.processing.footprints import DOT_KERNEL_RADIUS
 
             self.camera = np.concatenate([crop_codes(v.isp, v.pixels, patch) for v in self.views])
-            self.dot_offsets = np.concatenate([np.zeros((len(v.pixels), 2), np.float32) if v.offsets is None
-                                           else np.asarray(v.offsets, np.float32).reshape(-1, 2) for v in self.views])
+            side = 2 * DOT_KERNEL_RADIUS + 1
+            alone = np.zeros((side, side), np.float32)
+            alone[DOT_KERNEL_RADIUS, DOT_KERNEL_RADIUS] = 1.0
+            self.dots = np.concatenate([np.broadcast_to(alone, (len(v.pixels), side, side)) if v.dots is None
+                                        else np.asarray(v.dots, np.float32).reshape(-1, side, side) for v in self.views])
 
     def __len__(self) -> int:
         return int(self.offsets[-1])
@@ -167,7 +171,7 @@ class PatchDataset(torch.utils.data.Dataset):
         out["psp"] = torch.empty(len(idx), 3 * N_PSP, self.patch, self.patch, device=self._crop_from[0].device)
         if self.with_targets:
             out["footprint"] = torch.empty(len(idx), 3, self.patch, self.patch)
-            out["camera"], out["offset"] = torch.as_tensor(self.camera[idx]), torch.as_tensor(self.dot_offsets[idx])
+            out["camera"], out["dot"] = torch.as_tensor(self.camera[idx]), torch.as_tensor(self.dots[idx])
         for vid in np.unique(vids):
             sel = np.nonzero(vids == vid)[0]
             local = idx[sel] - self.offsets[vid]
@@ -410,15 +414,15 @@ def session_views(
                 pixels = sample_pixels(s.load(view, "corr/mask").astype(bool), pixels_per_view, rng_seed)
             labels = s.load(view, "gt/labels") if "gt/labels" in s.arrays(view) else None
             mats = labels[pixels[:, 0], pixels[:, 1]].astype(np.int64) if labels is not None else np.full(len(pixels), -1)
-            isp, offsets = None, None
-            if footprints:  # how the crops were recorded: the camera's pipeline, and where each one's dot landed
-                from sssphase_core.processing.footprints import dot_offsets
+            isp, dots = None, None
+            if footprints:  # how the crops were recorded: the camera's pipeline, and the pixels each one's dot lit
+                from sssphase_core.processing.footprints import dot_kernels
 
                 isp = s.manifest.get("views", {}).get(str(view), {}).get("camera_isp")
                 if {"corr/xp", "corr/yp", "corr/mask"} <= set(s.arrays(view)):  # else: crops centred on their pixels
                     xp, yp = (s.load(view, k).astype(np.float64) for k in ("corr/xp", "corr/yp"))
-                    offsets = dot_offsets(xp, yp, s.load(view, "corr/mask").astype(bool), pixels)
-            out.append(ViewData(name, int(view), psp, pixels, mats, fp, isp, offsets))
+                    dots = dot_kernels(xp, yp, s.load(view, "corr/mask").astype(bool), pixels)
+            out.append(ViewData(name, int(view), psp, pixels, mats, fp, isp, dots))
     return out
 
 

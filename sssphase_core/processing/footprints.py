@@ -210,6 +210,14 @@ def jacobian_area(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray | None = Non
 MAX_DOT_OFFSET = 1.5
 
 
+def _local_jacobian(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray, px: np.ndarray,
+                    smooth: int) -> np.ndarray:
+    """(N, 2, 2) J = d(xp, yp)/d(x, y) = [[dxp/dx, dxp/dy], [dyp/dx, dyp/dy]] at pixels ``px`` (N, 2) yx, each
+    element averaged over ``smooth x smooth`` valid pixels (NaN where no neighbour is valid)."""
+    rows = [[_valid_mean(_valid_deriv(a, valid, axis), smooth)[px[:, 0], px[:, 1]] for axis in (1, 0)] for a in (xp, yp)]
+    return np.asarray(rows, np.float64).transpose(2, 0, 1).reshape(-1, 2, 2)
+
+
 def dot_offsets(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray, pixels: np.ndarray, smooth: int = 5,
                 dots: np.ndarray | None = None) -> np.ndarray:
     """(N, 2) float32 (dy, dx) camera px: where the dot whose crop is pixel ``pixels[i]``'s footprint lit the
@@ -218,13 +226,14 @@ def dot_offsets(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray, pixels: np.nd
     over ``smooth x smooth`` valid pixels); measured on the demo's diffuse star, the crops' 5 x 5 centroids
     follow it with slope 1.0-1.1 (correlation 0.80). ``dots``: (N, 2) projector (x, y) of other dots to place
     (``J^-1 (dot - p)``; default: each pixel's rounded coordinate). Clipped to :data:`MAX_DOT_OFFSET`; 0 where J
-    is unknown."""
+    is unknown. Where the dot's whole image matters (its size and shape, not only its place), see
+    :func:`dot_kernels`."""
     px = np.asarray(pixels, np.int64).reshape(-1, 2)
     valid = valid & np.isfinite(xp) & np.isfinite(yp)
     if not len(px) or min(xp.shape) < 2:
         return np.zeros((len(px), 2), np.float32)
-    jac = [[_valid_mean(_valid_deriv(a, valid, axis), smooth)[px[:, 0], px[:, 1]] for axis in (1, 0)] for a in (xp, yp)]
-    (a, b), (c, d) = jac  # [[dxp/dx, dxp/dy], [dyp/dx, dyp/dy]] at the pixels
+    jac = _local_jacobian(xp, yp, valid, px, smooth)
+    (a, b), (c, d) = jac[:, 0].T, jac[:, 1].T
     at_x, at_y = xp[px[:, 0], px[:, 1]], yp[px[:, 0], px[:, 1]]
     to = np.round(np.stack([at_x, at_y], axis=1)) if dots is None else np.asarray(dots, np.float64).reshape(-1, 2)
     if len(to) != len(px):
@@ -236,6 +245,48 @@ def dot_offsets(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray, pixels: np.nd
     out = np.stack([dy, dx], axis=1)
     out = np.where(np.isfinite(out), out, 0.0)
     return np.clip(out, -MAX_DOT_OFFSET, MAX_DOT_OFFSET).astype(np.float32)
+
+
+#: :func:`dot_kernels` spans camera offsets -R..R: a dot lights 2 projector px of tent a side, so R = 3 holds it
+#: whole where the projector is magnified up to ~2x on the camera (J's smaller singular value >= 0.5).
+DOT_KERNEL_RADIUS = 3
+
+
+def dot_kernels(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray, pixels: np.ndarray, smooth: int = 5,
+                radius: int = DOT_KERNEL_RADIUS) -> np.ndarray:
+    """(N, 2R+1, 2R+1) float32: the image of the dot whose crop is pixel ``pixels[i]``'s footprint, as weights
+    on the camera pixels at offsets (dy, dx) in -R..R from it, summing to 1.
+
+    A dot is one projector pixel; relighting (and the simulator) give a camera pixel the projector's light
+    looked up bilinearly at its projector coordinate, so the dot at q lights the camera pixel at offset d with
+    ``tent(J d - e)`` (J = d(xp, yp)/d(x, y) as in :func:`dot_offsets`, ``e = q - p`` the dot's projector
+    offset from the pixel's own coordinate, tent(u) = prod max(0, 1 - |u_i|)), and the crop holds the sum of
+    those pixels' footprints. Where the projector is magnified on the camera (a singular value of J below 1,
+    fringes wide apart) the dot spans several pixels, where it is sheared, a slanted patch: a shape that
+    follows the fringes' density and that a decoder fitted to the crops would otherwise learn as part of every
+    footprint. With J the identity the weights are the bilinear move of :func:`dot_offsets`. J unknown: the
+    identity. Measured on noise-free simulator crops (the apple, 215 pixels, exact correspondences): the exact
+    footprints through these kernels are 4.2% (median relative L2) from the crops, through the bilinear move
+    18%, and 49% where J's smaller singular value is below 0.6."""
+    px = np.asarray(pixels, np.int64).reshape(-1, 2)
+    side = 2 * radius + 1
+    valid = valid & np.isfinite(xp) & np.isfinite(yp)
+    if not len(px):
+        return np.zeros((0, side, side), np.float32)
+    jac = (_local_jacobian(xp, yp, valid, px, smooth) if min(xp.shape) >= 2
+           else np.full((len(px), 2, 2), np.nan))
+    jac = np.where(np.isfinite(jac).all(axis=(1, 2))[:, None, None], jac, np.eye(2))
+    at = np.stack([xp[px[:, 0], px[:, 1]], yp[px[:, 0], px[:, 1]]], axis=1).astype(np.float64)
+    e = np.where(np.isfinite(at), np.round(at) - at, 0.0)  # (N, 2) projector (x, y)
+    d = np.arange(-radius, radius + 1, dtype=np.float64)
+    dy, dx = np.meshgrid(d, d, indexing="ij")
+    offsets = np.stack([dx.ravel(), dy.ravel()], axis=1)  # (M, 2) camera (x, y)
+    u = np.einsum("nij,mj->nmi", jac, offsets) - e[:, None, :]  # (N, M, 2) projector px from the dot
+    w = np.clip(1 - np.abs(u[..., 0]), 0, None) * np.clip(1 - np.abs(u[..., 1]), 0, None)
+    total = w.sum(axis=1, keepdims=True)
+    centre = (offsets == 0).all(axis=1).astype(np.float64)
+    w = np.where(total > 1e-9, w / np.maximum(total, 1e-9), centre)  # (no weight at all: the pixel itself)
+    return w.reshape(-1, side, side).astype(np.float32)
 
 
 def dark_reference(black: np.ndarray, white: np.ndarray, *, window: int = 7, floor: float = 0.02) -> np.ndarray:

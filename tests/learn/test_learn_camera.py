@@ -16,6 +16,7 @@ from sssphase_core.learning.camera import (
     crop_codes,
     rebayer,
     shift_subpixel,
+    spread_dot,
     through_camera,
 )
 from sssphase_core.processing import isp
@@ -58,7 +59,7 @@ def test_views_without_a_bayer_pipeline_are_left_alone():
         codes = crop_codes(isp_record, np.array([[5, 5], [6, 7], [9, 2]]), 8)
         assert (codes == NO_CAMERA).all()
         assert through_camera(fp, codes) is fp
-    assert as_captured(fp, np.full(3, NO_CAMERA), np.zeros((3, 2))) is fp
+    assert as_captured(fp, np.full(3, NO_CAMERA)) is fp
 
 
 def test_shift_subpixel_moves_a_dot_bilinearly_and_keeps_its_light():
@@ -71,20 +72,31 @@ def test_shift_subpixel_moves_a_dot_bilinearly_and_keeps_its_light():
     assert shift_subpixel(dot, torch.zeros(1, 2)) is dot
 
 
+def _dots(n: int, jac: np.ndarray) -> torch.Tensor:
+    """(n, 7, 7) dot kernels of n pixels under an affine correspondence of Jacobian ``jac`` [[dxp/dx, dxp/dy],
+    [dyp/dx, dyp/dy]]: their projector coordinates, and so their dots' offsets, differ from pixel to pixel."""
+    from sssphase_core.processing.footprints import dot_kernels
+
+    yy, xx = np.mgrid[:60, :60].astype(np.float64)
+    xp, yp = jac[0, 0] * xx + jac[0, 1] * yy + 0.37, jac[1, 0] * xx + jac[1, 1] * yy - 0.21
+    pixels = np.array([[8 + (5 * i) % 44, 8 + (7 * i) % 44] for i in range(n)])
+    return torch.as_tensor(dot_kernels(xp, yp, np.ones(xp.shape, bool), pixels))
+
+
 def test_the_capture_model_is_differentiable():
     fp = torch.rand(4, 3, 10, 10, requires_grad=True)
     codes = crop_codes({"bayer": "RGGB", "demosaic": "opencv", "median": True}, np.array([[5, 5], [5, 6], [6, 5], [6, 6]]), 10)
-    offsets = torch.tensor([[0.3, -0.2], [0.0, 0.0], [-1.0, 0.4], [0.2, 0.2]])
-    out = as_captured(fp, codes, offsets)
-    assert torch.equal(CaptureModel()(fp, torch.as_tensor(codes), offsets), out)  # the module form
+    dots = _dots(4, np.array([[0.6, 0.1], [0.0, 1.0]]))
+    out = as_captured(fp, codes, dots)
+    assert torch.equal(CaptureModel()(fp, torch.as_tensor(codes), dots), out)  # the module form
     out.square().sum().backward()
     assert fp.grad is not None and torch.isfinite(fp.grad).all() and fp.grad.abs().sum() > 0
 
 
 def test_fitting_through_the_capture_model_recovers_the_footprint_the_crops_blur():
-    """Crops of one footprint recorded at the four Bayer phases and random dot offsets: their mean is a blurred
-    footprint (the red centre share drops from 0.44 to 0.17; the dim blue one rises from 0.11 to 0.31 with
-    Malvar's lobes), while a footprint fitted through the capture model is the true one."""
+    """Crops of one footprint recorded at the four Bayer phases by dots of varied offsets, the projector magnified
+    1.4 x along x on the camera: their mean is a blurred footprint (the red centre share drops to under 3/4 of
+    the true one), while a footprint fitted through the capture model is the true one."""
     k = 12
     r2 = (np.mgrid[:k, :k] - k // 2).astype(np.float32) ** 2
     true = np.stack([np.exp(-(r2[0] + r2[1]) / (2 * s * s)) for s in (0.6, 0.8, 1.2)], 0)
@@ -94,14 +106,14 @@ def test_fitting_through_the_capture_model_recovers_the_footprint_the_crops_blur
     n = 64
     pixels = rng.integers(20, 60, size=(n, 2))
     codes = crop_codes({"bayer": "RGGB", "demosaic": "malvar", "median": False}, pixels, k)
-    offsets = torch.tensor(rng.uniform(-0.6, 0.6, size=(n, 2)), dtype=torch.float32)
-    crops = as_captured(true.expand(n, -1, -1, -1).contiguous(), codes, offsets)
+    dots = _dots(n, np.array([[0.7, 0.0], [0.0, 1.1]]))
+    crops = as_captured(true.expand(n, -1, -1, -1).contiguous(), codes, dots)
     logits = torch.zeros(3, k * k, requires_grad=True)
     opt = torch.optim.Adam([logits], lr=0.05)
     energy = true.sum(dim=(1, 2))
     for _ in range(400):
         fit = torch.softmax(logits, dim=-1).view(3, k, k) * energy[:, None, None]
-        loss = (as_captured(fit.expand(n, -1, -1, -1), codes, offsets) - crops).square().mean()
+        loss = (as_captured(fit.expand(n, -1, -1, -1), codes, dots) - crops).square().mean()
         opt.zero_grad()
         loss.backward()
         opt.step()
@@ -112,6 +124,80 @@ def test_fitting_through_the_capture_model_recovers_the_footprint_the_crops_blur
     assert share(mean_crop)[0] < 0.75 * share(true)[0]  # what a decoder fitted to the crops themselves learns
     np.testing.assert_allclose(share(fit), share(true), atol=0.03)
     assert float((fit - true).abs().sum()) < 0.25 * float((mean_crop - true).abs().sum())
+
+
+def test_dot_kernels_are_the_bilinear_move_where_the_projector_meets_the_camera_one_to_one():
+    """J the identity: the dot lights the four pixels around it as :func:`shift_subpixel` moves a one-pixel box."""
+    from sssphase_core.processing.footprints import dot_kernels, dot_offsets
+
+    yy, xx = np.mgrid[:30, :30].astype(np.float64)
+    xp, yp = xx + 0.3, yy - 0.45  # each pixel's dot (its rounded coordinate) 0.3 px left of it and 0.45 px below
+    valid, pixels = np.ones(xp.shape, bool), np.array([[10, 12], [20, 5]])
+    ker = torch.as_tensor(dot_kernels(xp, yp, valid, pixels))
+    box = torch.zeros(2, 1, 7, 7)
+    box[:, 0, 3, 3] = 1.0
+    moved = shift_subpixel(box, dot_offsets(xp, yp, valid, pixels))[:, 0]
+    torch.testing.assert_close(ker, moved, atol=1e-6, rtol=0)
+
+
+def test_dot_kernels_cover_the_pixels_a_magnified_sheared_dot_lights():
+    """Where one projector pixel covers 2 camera pixels along x (fringes twice as far apart) and is sheared, the dot
+    spreads over them, its weights sum to 1, its centroid is where :func:`dot_offsets` puts the dot, and its
+    spread along x is twice the identity's; a singular or unknown correspondence gives the pixel itself."""
+    from sssphase_core.processing.footprints import dot_kernels, dot_offsets
+
+    yy, xx = np.mgrid[:40, :40].astype(np.float64)
+    jac = np.array([[0.5, 0.15], [0.0, 1.0]])
+    xp, yp = jac[0, 0] * xx + jac[0, 1] * yy + 0.37, jac[1, 1] * yy - 0.21
+    valid, pixels = np.ones(xp.shape, bool), np.array([[10, 12], [15, 20], [22, 31], [30, 7]])
+    ker = dot_kernels(xp, yp, valid, pixels)
+    assert ker.shape == (4, 7, 7) and (ker >= 0).all()
+    np.testing.assert_allclose(ker.sum(axis=(1, 2)), 1.0, atol=1e-6)
+    d = np.arange(-3, 4)
+    cy, cx = (ker * d[None, :, None]).sum(axis=(1, 2)), (ker * d[None, None, :]).sum(axis=(1, 2))
+    np.testing.assert_allclose(np.stack([cy, cx], 1), dot_offsets(xp, yp, valid, pixels), atol=0.02)
+    var_x = (ker * (d[None, None, :] - cx[:, None, None]) ** 2).sum(axis=(1, 2))
+    var_y = (ker * (d[None, :, None] - cy[:, None, None]) ** 2).sum(axis=(1, 2))
+    # a unit tent's variance is 1/6 projector px^2, (1/6)/0.5^2 = 2/3 camera px^2 along x; sampling adds some
+    assert (var_x > 0.55).all() and (var_y < 0.35).all()
+    centre_only = np.zeros((7, 7), np.float32)
+    centre_only[3, 3] = 1.0
+    flat = np.zeros_like(xp)  # singular: no dot can be placed, the pixel's own light
+    assert np.isfinite(dot_kernels(flat, flat, valid, pixels)).all()
+    unknown = dot_kernels(np.full_like(xp, np.nan), np.full_like(yp, np.nan), valid, pixels)
+    np.testing.assert_array_equal(unknown, np.broadcast_to(centre_only, unknown.shape))
+    with pytest.raises(InputError, match="dot kernels"):
+        spread_dot(torch.zeros(2, 3, 9, 9), torch.zeros(2, 4, 4))
+
+
+def test_dot_kernels_explain_the_simulators_dot_crops():
+    """Noise-free simulator crops against its exact footprints: summed over the pixels each dot lit they match the
+    crops far better than moved bilinearly, above all where the projector is magnified on the camera."""
+    from sssphase_core.processing.footprints import DotGridExtractor, dot_kernels, dot_offsets
+    from sssphase_core.processing.patterns import dot_grid
+    from sssphase_core.sim.scene import SimScene
+
+    scene = SimScene("soap")
+    hp, wp = scene.shape_projector
+    xp, yp = scene.proj_xy[..., 0], scene.proj_xy[..., 1]
+    valid = scene.object_mask & np.isfinite(xp) & np.isfinite(yp)
+    xp, yp = np.where(valid, xp, np.nan), np.where(valid, yp, np.nan)
+    extractor = DotGridExtractor(xp, yp, valid, 20, scene.rig.patch)
+    shifts = [(0, 0), (10, 10)]
+    frames = scene.render(np.stack([dot_grid(wp, hp, 20, sx, sy) for sx, sy in shifts]))
+    for (sx, sy), frame in zip(shifts, frames - np.float32(scene.rig.projector.black) * scene.unit_white(), strict=True):
+        extractor.add(sx, sy, frame)
+    pixels, crops = extractor.result()
+    exact = torch.as_tensor(scene.footprints(pixels)).permute(0, 3, 1, 2)
+    target = torch.as_tensor(crops).permute(0, 3, 1, 2)
+
+    def error(pred: torch.Tensor) -> np.ndarray:
+        return ((pred - target).square().sum(dim=(1, 2, 3)).sqrt() / target.square().sum(dim=(1, 2, 3)).sqrt()).numpy()
+
+    spread = error(spread_dot(exact, dot_kernels(xp, yp, valid, pixels)))
+    moved = error(shift_subpixel(exact, dot_offsets(xp, yp, valid, pixels)))
+    assert len(pixels) > 30
+    assert np.median(spread) < 0.6 * np.median(moved) and np.median(spread) < 0.2
 
 
 def test_dot_offsets_of_an_affine_correspondence():
@@ -181,14 +267,14 @@ def test_the_capture_model_is_deterministic_where_training_asks_for_it():
     device = "cuda" if torch.cuda.is_available() else "cpu"
     rng = np.random.default_rng(3)
     codes = crop_codes({"bayer": "RGGB", "demosaic": "malvar", "median": True}, rng.integers(0, 50, (16, 2)), 12)
-    offsets = torch.tensor(rng.uniform(-1.5, 1.5, (16, 2)), dtype=torch.float32)
+    dots = _dots(16, np.array([[0.5, 0.2], [-0.1, 0.9]]))
     grads = []
     previous = torch.are_deterministic_algorithms_enabled()
     torch.use_deterministic_algorithms(True)
     try:
         for _ in range(2):
             fp = torch.rand(16, 3, 12, 12, generator=torch.Generator().manual_seed(0)).to(device).requires_grad_()
-            as_captured(fp, torch.as_tensor(codes, device=device), offsets.to(device)).pow(2).sum().backward()
+            as_captured(fp, torch.as_tensor(codes, device=device), dots.to(device)).pow(2).sum().backward()
             grads.append(fp.grad.cpu())
     finally:
         torch.use_deterministic_algorithms(previous)

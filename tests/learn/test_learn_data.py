@@ -132,7 +132,8 @@ def test_session_views_stream_footprints_from_the_store(synthetic, tmp_path, mon
     assert isinstance(lazy.footprints, data.Rows)
     lazy_batch = PatchDataset([lazy], 16, ["obj"], with_targets=True).batch(np.array([3, 0]))
     assert torch.equal(lazy_batch["footprint"], b["footprint"])
-    assert (b["camera"] == -1).all() and not b["offset"].any()  # no camera record, no correspondences: crops as they are
+    assert (b["camera"] == -1).all()  # no camera record, no correspondences: crops as they are, each its own pixel's
+    assert torch.equal(b["dot"].sum(dim=(1, 2)), torch.ones(2)) and torch.equal(b["dot"][:, 3, 3], torch.ones(2))
     (plain,) = session_views(tmp_path, pixels_per_view=None)
     assert len(plain.pixels) == mask.sum() and plain.footprints is None
     with pytest.raises(DataError, match="no session"):
@@ -140,11 +141,11 @@ def test_session_views_stream_footprints_from_the_store(synthetic, tmp_path, mon
 
 
 def test_footprint_batches_say_how_each_crop_was_recorded(synthetic, tmp_path):
-    """A captured view's crops come with their camera (Bayer phase of each crop) and where each one's dot lit the
-    surface, read from the view's correspondences: what decoder training passes its predictions through."""
+    """A captured view's crops come with their camera (Bayer phase of each crop) and the camera pixels each one's dot
+    lit, read from the view's correspondences: what decoder training passes its predictions through."""
     from sssphase_core.learning.camera import crop_codes
     from sssphase_core.learning.data import session_views
-    from sssphase_core.processing.footprints import dot_offsets
+    from sssphase_core.processing.footprints import dot_kernels
     from sssphase_core.store.session import Session
 
     v = synthetic[0][0]
@@ -162,8 +163,8 @@ def test_footprint_batches_say_how_each_crop_was_recorded(synthetic, tmp_path):
     assert vd.isp == isp_record
     b = PatchDataset([vd], 16, ["obj"], with_targets=True).batch(np.arange(12))
     np.testing.assert_array_equal(b["camera"].numpy(), crop_codes(isp_record, vd.pixels, 16))
-    np.testing.assert_allclose(b["offset"].numpy(), dot_offsets(xp, yp, np.ones((h, w), bool), vd.pixels), atol=1e-6)
-    assert b["offset"].abs().max() > 0.05  # off-integer correspondences: the dots light the surface off the pixels
+    np.testing.assert_allclose(b["dot"].numpy(), dot_kernels(xp, yp, np.ones((h, w), bool), vd.pixels), atol=1e-6)
+    assert b["dot"][:, 3, 3].max() < 0.9  # off-integer correspondences: the dots light pixels beside the crop's own
 
 
 def test_a_stack_padded_once_gives_the_same_patches():

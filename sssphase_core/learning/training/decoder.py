@@ -50,8 +50,8 @@ class DecoderConfig(LoopConfig):
     val_samples: int = 512
     end_to_end: bool = False  # set when no encoder checkpoint is given: the supervised U-Net baseline (no SSL)
     preset: str = "lite"  # sizes an end-to-end model; a frozen encoder brings its own (recorded either way)
-    # Compare each predicted footprint with its captured crop as the crop recorded it (moved to where its dot
-    # lit the surface, then Bayer sampling and demosaicing: learning.camera.as_captured), so the decoder
+    # Compare each predicted footprint with its captured crop as the crop recorded it (summed over the camera
+    # pixels its dot lit, then Bayer sampling and demosaicing: learning.camera.as_captured), so the decoder
     # predicts the light entering at the pixel, before the sensor; False: the crops themselves are the targets
     capture_model: bool = True
     # Probability per patch of each step of the camera augmentation of the decoder's input (augment.camera:
@@ -107,7 +107,7 @@ def validate_decoder(enc: Encoder, dec: Decoder, dataset: PatchDataset, n: int, 
         b = dataset.batch(idx[i : i + batch_size])
         pred, _ = net(b["psp"].to(device))
         if capture_model:
-            pred = as_captured(pred, b["camera"].to(device), b["offset"].to(device))
+            pred = as_captured(pred, b["camera"].to(device), b["dot"].to(device))
         target = b["footprint"].to(device)
         sums["val_loss"] += float(loss_fn(pred, target)[0]) * len(target)
         sums["val_mse"] += float(((pred.float() - target) ** 2).mean()) * len(target)
@@ -206,7 +206,7 @@ def train_decoder(
         with autocast_for(d, cfg.amp):
             pred, logits = net(psp)
         if cfg.capture_model:  # the light entering at the pixel, recorded as its target crop was
-            pred = as_captured(pred.float(), batch["camera"].to(pred.device), batch["offset"].to(pred.device))
+            pred = as_captured(pred.float(), batch["camera"].to(pred.device), batch["dot"].to(pred.device))
         loss, terms = loss_fn(pred, batch["footprint"])
         if logits is not None:
             known = batch["material"] >= 0
