@@ -12,7 +12,8 @@ reaches the sensor (a relit image is passed through the camera only when it is c
 And the crop of a pixel is lit by the dot at its rounded projector coordinate, whose light enters up to a
 pixel or more away, over as many camera pixels as the projector pixel covers there
 (:func:`sssphase_core.processing.footprints.dot_kernels`): a further blur that follows the fringes'
-density. Decoder training therefore passes each predicted footprint through the way its target was recorded (:func:`as_captured`) before the loss: the network predicts the light entering at the pixel's
+density. Decoder training therefore passes each predicted footprint through the way its target was
+recorded (:func:`as_captured`) before the loss: the network predicts the light entering at the pixel's
 centre, before the sensor, which is what relighting splats.
 
 Modelled: Bayer sampling in the crop's own phase, the per-plane 3x3 median (the paper's ISP) and two
@@ -183,10 +184,16 @@ def shift_subpixel(footprints: torch.Tensor, offsets: torch.Tensor | np.ndarray)
         raise InputError(f"{len(off)} offsets for {len(footprints)} footprints")
     if not bool(off.any()):
         return footprints
-    b, c, h, w = footprints.shape
     kernel = _bilinear_taps(off[:, 0])[:, :, None] * _bilinear_taps(off[:, 1])[:, None, :]  # (B, 5, 5)
-    weight = kernel.to(footprints.dtype).repeat_interleave(c, dim=0)[:, None]  # (B C, 1, 5, 5)
-    out = nn.functional.conv2d(footprints.reshape(1, b * c, h, w), weight, padding=2, groups=b * c)
+    return _correlate_each(footprints, kernel.to(footprints.dtype))
+
+
+def _correlate_each(footprints: torch.Tensor, weights: torch.Tensor) -> torch.Tensor:
+    """(B, C, K, K) footprints, each correlated with its own (B, k, k) weights (k odd, zero padding) -> (B, C, K,
+    K): one grouped convolution, deterministic on every device."""
+    b, c, h, w = footprints.shape
+    weight = weights.repeat_interleave(c, dim=0)[:, None]  # (B C, 1, k, k)
+    out = nn.functional.conv2d(footprints.reshape(1, b * c, h, w), weight, padding=weights.shape[1] // 2, groups=b * c)
     return out.view(b, c, h, w)
 
 
@@ -199,10 +206,7 @@ def spread_dot(footprints: torch.Tensor, kernels: torch.Tensor | np.ndarray) -> 
     if ker.ndim != 3 or len(ker) != len(footprints) or ker.shape[1] != ker.shape[2] or ker.shape[1] % 2 != 1:
         raise InputError(f"dot kernels must be (B, k, k) with k odd for {len(footprints)} footprints, got "
                          f"{tuple(ker.shape)}")
-    b, c, h, w = footprints.shape
-    weight = ker.flip(1, 2).repeat_interleave(c, dim=0)[:, None]  # (B C, 1, k, k); conv2d correlates
-    out = nn.functional.conv2d(footprints.reshape(1, b * c, h, w), weight, padding=ker.shape[1] // 2, groups=b * c)
-    return out.view(b, c, h, w)
+    return _correlate_each(footprints, ker.flip(1, 2))  # the lit pixel at offset d adds the footprint moved by d
 
 
 def as_captured(footprints: torch.Tensor, codes: torch.Tensor | np.ndarray,
