@@ -31,17 +31,26 @@ def main() -> None:
     ap.add_argument("--seeds", default="0,1,2,3")
     ap.add_argument("--decorrelate", default="0,1")
     ap.add_argument("--out", type=Path, default=Path("pretrain_seeds"))
+    ap.add_argument("--pixels-per-view", type=int, default=None, help="training patches per view (default: the demo's)")
+    ap.add_argument("--epochs", type=int, default=None, help="default: the demo's")
+    ap.add_argument("--warmup-epochs", type=float, default=None, help="default: the demo's")
+    ap.add_argument("--lr", type=float, default=None, help="default: the demo's")
     args = ap.parse_args()
     torch.set_num_threads(1)
     c = PRESETS["lite"]
     views = session_views(args.demo / "sessions" / "train", c.train_objects, pixels_per_view=c.pixels_per_view,
-                          footprints=False, seed=c.seed)
+                          footprints=False, seed=c.seed)  # the demo's kNN patches
+    train = views if args.pixels_per_view is None else session_views(
+        args.demo / "sessions" / "train", c.train_objects, pixels_per_view=args.pixels_per_view, footprints=False,
+        seed=c.seed)
+    changes = {k: v for k, v in (("epochs", args.epochs), ("warmup_epochs", args.warmup_epochs), ("lr", args.lr))
+               if v is not None}
     for weight in (float(w) for w in args.decorrelate.split(",")):
         for seed in (int(s) for s in args.seeds.split(",")):
-            cfg = c.pretrain_config(seed=seed, decorrelate=weight)
+            cfg = c.pretrain_config(seed=seed, decorrelate=weight, **changes)
             run = args.out / f"seed{seed}_decorrelate{weight:g}"
             t0 = time.perf_counter()
-            path = get_backend("torch").pretrain(views, run, config=cfg, progress=False)
+            path = get_backend("torch").pretrain(train, run, config=cfg, progress=False)
             knn = knn_of_views(load_encoder(path), views, list(c.train_objects), ks=(20,))[20]
             rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
             print(json.dumps({"seed": seed, "decorrelate": weight, "knn": round(100 * knn["overall"], 1),

@@ -7,7 +7,8 @@ by the 8 images; only the per-pixel noise of the phase jitter is drawn independe
 
 * ``weak``: random resized crop (side 80/90 of the patch, resized back) + slight brightness/contrast.
 * ``strong`` (the paper's PSP set, applied after ``weak``): PSP flip, phase-shift permutation,
-  Gaussian blur with sigma sampled in [0.1, 1], intensity scaling, phase jitter, salt & pepper.
+  Gaussian blur with sigma sampled in [0.1, 1], intensity scaling, phase jitter, salt & pepper; and ours, the
+  fringes moved by a random phase (:func:`phase_shift`, exact for four-step PSP).
 * ``imagenet``: the SimSiam/ImageNet baseline (crop 0.2-1, colour jitter 0.4/0.4/0.4/0.1 p 0.8,
   blur, horizontal flip), applied to the whole stack at once.
 * ``camera`` (decoder training, :class:`CameraAugment`): another camera's view of the same light: Bayer
@@ -44,6 +45,7 @@ class AugmentConfig:
     flip_p: float = 0.4
     permute_p: float = 0.4
     intensity: tuple[float, float] = (0.7, 1.3)
+    phase_shift_p: float = 1.0  # ours (not the paper's): exact, see :func:`phase_shift`
 
 
 def _uniform(b: int, lo: float, hi: float, like: torch.Tensor) -> torch.Tensor:
@@ -96,6 +98,26 @@ def permute_shifts(x: torch.Tensor, p: float) -> torch.Tensor:
     return x.view(b, N_IMAGES, 3, h, w).gather(1, idx).view(b, 3 * N_IMAGES, h, w)
 
 
+def phase_shift(x: torch.Tensor, p: float) -> torch.Tensor:
+    """With probability ``p`` per patch, the patch as the projector's fringes shifted by a further phase, drawn in
+    [0, 2 pi) per orientation and shared by the three colours and all pixels.
+
+    Four shifts I_k hold, per pixel and colour, the offset A, the fringe's cosine and sine parts C and S and an
+    alternating remainder R: I_k = A + (-1)^k R + (C, S, -C, -S)_k. Rotating (C, S) by the drawn angle is exactly
+    the capture of fringes moved by it (R, the part no sinusoid explains, is kept), so the encoder learns that a
+    pixel's place on the fringe, which differs between views of the same material, says nothing about it."""
+    b, _, h, w = x.shape
+    y = x.view(b, 2, 4, 3, h, w)
+    i0, i1, i2, i3 = y.unbind(2)
+    a, r = (i0 + i1 + i2 + i3) / 4, (i0 - i1 + i2 - i3) / 4
+    c, s = (i0 - i2) / 2, (i1 - i3) / 2
+    angle = torch.rand(b, 2, 1, 1, 1, device=x.device, dtype=x.dtype) * (2 * math.pi)
+    cos, sin = torch.cos(angle), torch.sin(angle)
+    c, s = c * cos - s * sin, c * sin + s * cos
+    out = torch.stack([a + r + c, a - r + s, a + r - c, a - r - s], dim=2).reshape(x.shape)
+    return torch.where(_per_sample(_chance(b, p, x)), out, x)
+
+
 def gaussian_blur(x: torch.Tensor, sigma: tuple[float, float], p: float = 1.0) -> torch.Tensor:
     """Gaussian blur with an isotropic sigma drawn per patch in ``sigma``; kernel covers +-3 sigma."""
     b = x.shape[0]
@@ -122,6 +144,7 @@ def salt_and_pepper(x: torch.Tensor, p: float, amount: float) -> torch.Tensor:
 def strong(x: torch.Tensor, cfg: AugmentConfig = AugmentConfig()) -> torch.Tensor:
     b = x.shape[0]
     x = permute_shifts(psp_flip(x, cfg.flip_p), cfg.permute_p)
+    x = phase_shift(x, cfg.phase_shift_p)
     x = gaussian_blur(x, cfg.blur_sigma)
     x = x * _per_sample(_uniform(b, *cfg.intensity, x))
     x = x + cfg.phase_jitter * torch.randn_like(x)

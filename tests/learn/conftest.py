@@ -11,7 +11,8 @@ from sssphase_core.learning.data import PatchDataset
 from sssphase_core.learning.models.presets import ModelPreset
 
 TINY = ModelPreset(name="tiny", patch=16, in_channels=24, stem=8, stages=(8, 12, 16), bottleneck=32, dropout=0.2,
-                   proj_hidden=32, proj_dim=32, pred_hidden=8, decoder=(16, 12, 8, 8), attention=4)
+                   proj_hidden=32, proj_dim=32, pred_hidden=8, decoder=(16, 12, 8, 8), attention=4,
+                   scale_invariant=True)
 
 
 @pytest.fixture(scope="session", autouse=True)

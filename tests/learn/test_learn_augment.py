@@ -140,3 +140,31 @@ def test_the_camera_augmentation_is_seeded_per_patch_and_finite_on_dark_and_brig
     assert float(a[0].abs().max()) < 0.02  # dark stays dark: only read noise
     changed = (a - x).flatten(1).abs().amax(dim=1) > 1e-3
     assert 0 < int(changed.sum()) <= 8  # drawn per patch
+
+
+def test_phase_shift_moves_the_fringes_and_keeps_what_a_pixel_is():
+    """Offset, amplitude and the non-sinusoidal remainder stay per pixel and colour; the phase moves by one
+    angle per orientation and patch, shared by every pixel and colour."""
+    import math
+
+    b, k = 5, 8
+    g = torch.Generator().manual_seed(0)
+    phi = torch.rand(b, 2, 1, 3, k, k, generator=g) * 2 * math.pi
+    amp, off = 0.3 * torch.rand(b, 2, 1, 3, k, k, generator=g), 0.5 + torch.rand(b, 2, 1, 3, k, k, generator=g)
+    rest = 0.01 * torch.rand(b, 2, 1, 3, k, k, generator=g)  # a response curve's harmonic: no sinusoid's part
+    shift = torch.arange(4).view(1, 1, 4, 1, 1, 1)
+    x = (off + rest * (-1) ** shift + amp * torch.cos(phi - shift * math.pi / 2)).reshape(b, 24, k, k)
+
+    def parts(t: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        i0, i1, i2, i3 = t.view(b, 2, 4, 3, k, k).unbind(2)
+        return (i0 + i1 + i2 + i3) / 4, (i0 - i1 + i2 - i3) / 4, torch.atan2(i1 - i3, i0 - i2), torch.hypot(i0 - i2, i1 - i3) / 2
+
+    torch.manual_seed(1)
+    y = A.phase_shift(x, p=1.0)
+    (a0, r0, p0, m0), (a1, r1, p1, m1) = parts(x), parts(y)
+    assert torch.allclose(a1, a0, atol=1e-6) and torch.allclose(r1, r0, atol=1e-6) and torch.allclose(m1, m0, atol=1e-5)
+    moved = torch.remainder(p1 - p0, 2 * math.pi)  # (b, 2, 3, k, k): one angle per patch and orientation
+    flat = moved.flatten(2)
+    spread = torch.minimum(flat - flat[..., :1], 2 * math.pi - (flat - flat[..., :1])).abs()
+    assert float(spread.max()) < 1e-3 and float(moved.std()) > 0.5  # shared within a patch, different between them
+    assert torch.equal(A.phase_shift(x, p=0.0), x)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -102,3 +104,37 @@ def test_auxiliary_material_head(tiny):
     x = torch.randn(2, 24, 16, 16)
     fp, logits = dec(*enc.features(x), x)
     assert fp.shape == (2, 3, 16, 16) and logits.shape == (2, 5)
+
+
+@pytest.mark.parametrize("head", ["reciprocal", "direct"])
+def test_scale_invariant_encoder_reads_the_light_whatever_its_level(tiny, head, monkeypatch):
+    """s times the light: the same features, s times the footprint (both heads); a raw-level encoder differs."""
+    monkeypatch.setattr("sssphase_core.learning.models.encoder.LEVEL_FLOOR", 0.0)  # exact (the floor: below)
+    torch.manual_seed(0)
+    enc, dec = Encoder(tiny).eval(), Decoder(tiny, head=head).eval()
+    x = 0.2 + 0.1 * torch.rand(3, 24, 16, 16)  # lit patches, far above the level floor
+    with torch.no_grad():
+        fp = dec(*enc.features(x), x)
+        for s in (0.05, 8.0):
+            assert torch.allclose(enc(s * x), enc(x), rtol=1e-3, atol=1e-4)
+            assert torch.allclose(dec(*enc.features(s * x), s * x), s * fp, rtol=1e-3, atol=1e-7)
+        raw = Encoder(dataclasses.replace(tiny, scale_invariant=False)).eval()
+        assert not torch.allclose(raw(8.0 * x), raw(x), rtol=1e-2, atol=1e-3)
+
+
+def test_patch_level_leaves_a_dark_patch_dark():
+    from sssphase_core.learning.models.encoder import LEVEL_FLOOR, patch_level
+
+    dark = torch.full((1, 24, 16, 16), 1e-5)
+    assert float((dark / patch_level(dark)).max()) < 0.02  # its noise is not raised to a lit patch's level
+    negative = torch.full((1, 24, 16, 16), -0.01)  # a dark frame minus its black level
+    assert float(patch_level(negative)) == pytest.approx(LEVEL_FLOOR)
+
+
+def test_presets_of_older_checkpoints_read_raw_levels(tiny):
+    old = tiny.to_dict()
+    old.pop("scale_invariant")  # checkpoints made before the field existed
+    assert get_preset(old).scale_invariant is False
+    assert get_preset("lite").scale_invariant and get_preset("paper").scale_invariant
+    with pytest.raises(InputError, match="scale_invariant"):
+        get_preset({**old, "scale_invariant": "yes"})

@@ -198,17 +198,22 @@ def test_predictor_keeps_the_base_lr_by_default_while_the_rest_decays(pretrained
 
 
 def test_the_decorrelation_term_is_logged_and_keeps_the_projections_apart(pretrained, dataset, tiny, tmp_path):
-    """The default run adds the decorrelation term (logged per epoch); a run without it ends with projections whose
-    features move together more, measured on the same patches."""
+    """The default run adds the decorrelation term (logged per epoch); runs without it end with projections whose
+    features move together more, measured on the same patches (the mean over three seeds: one tiny run can go
+    either way)."""
     from sssphase_core.learning.models import SimSiam
     from sssphase_core.learning.models.simsiam import decorrelation_loss
 
     assert PRE.decorrelate > 0
     rows = [json.loads(line) for line in (pretrained / METRICS).read_text().splitlines()]
     assert all(0 < r["decorrelation"] < 1 for r in rows)
-    plain = pretrain(PretrainConfig(epochs=2, batch_size=16, ckpt_every=0, warmup_epochs=1, decorrelate=0.0), dataset,
-                     tmp_path / "plain", preset=tiny, progress=False).parent
-    assert "decorrelation" not in json.loads((plain / METRICS).read_text().splitlines()[-1])
+
+    def run(seed, weight):
+        cfg = PretrainConfig(epochs=2, batch_size=16, ckpt_every=0, warmup_epochs=1, decorrelate=weight, seed=seed)
+        return pretrain(cfg, dataset, tmp_path / f"s{seed}_w{weight}", preset=tiny, progress=False).parent
+
+    plain = [run(seed, 0.0) for seed in (0, 1, 2)]
+    assert "decorrelation" not in json.loads((plain[0] / METRICS).read_text().splitlines()[-1])
 
     def correlation_of(run):
         model = SimSiam(tiny)
@@ -216,7 +221,8 @@ def test_the_decorrelation_term_is_logged_and_keeps_the_projections_apart(pretra
         with torch.no_grad():
             return float(decorrelation_loss(model.eval().projector(model.encoder(dataset.batch(range(len(dataset)))["psp"]))))
 
-    assert correlation_of(pretrained) < 0.8 * correlation_of(plain)  # 0.15 against 0.22 (seed 0; 0.13-0.17, 0.22-0.34 over seeds 0-2)
+    with_term = np.mean([correlation_of(r) for r in (pretrained, run(1, PRE.decorrelate), run(2, PRE.decorrelate))])
+    assert with_term < 0.8 * np.mean([correlation_of(r) for r in plain])  # 0.17 against 0.29 (seeds 0-2)
 
 
 def test_collapse_statistics():

@@ -8,7 +8,7 @@ from torch import nn
 
 from sssphase_core.errors import InputError
 from sssphase_core.learning.inputs import DECODER_HEADS
-from sssphase_core.learning.models.encoder import NEG_SLOPE, PreActBlock
+from sssphase_core.learning.models.encoder import NEG_SLOPE, PreActBlock, patch_level
 from sssphase_core.learning.models.physics import (
     RadialProfile,
     RingAverage,
@@ -85,7 +85,9 @@ class Decoder(nn.Module):
       comes from brightness-free features, so it carries over to unseen materials (measured in
       the docs' learning and relighting pages).
     * ``direct`` (the paper's): ``softplus(conv) * out_scale``; ``out_scale`` (footprints peak near
-      0.04 in linear camera units) keeps the conv on O(1) values, bias -4 starts at ~1e-3 (a tail).
+      0.04 in linear camera units) keeps the conv on O(1) values, bias -4 starts at ~1e-3 (a tail). Behind a
+      ``scale_invariant`` encoder it is also multiplied by the patch's level, so that s times the light gives s
+      times the footprint.
 
     ``n_classes`` > 0 adds the auxiliary material-classification head on the pooled embedding
     (``forward`` then returns (footprint, logits)).
@@ -168,6 +170,10 @@ class Decoder(nn.Module):
         pooled = bottleneck.mean(dim=(2, 3))
         if self.head_kind == "direct":
             out = F.softplus(raw) * self.out_scale
+            if self.preset.scale_invariant:  # the encoder saw the patch at unit level: give the footprint its level
+                if psp is None:
+                    raise InputError("a scale-invariant encoder's direct head needs the PSP patches (their level)")
+                out = out * patch_level(psp).to(out.dtype)
         else:
             if psp is None:
                 raise InputError("the reciprocal decoder head needs the PSP patches (its energy comes from them)")

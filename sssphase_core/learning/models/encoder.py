@@ -9,6 +9,16 @@ from torch import nn
 from sssphase_core.learning.models.presets import ModelPreset, get_preset
 
 NEG_SLOPE = 0.1
+#: added to a patch's mean level before dividing by it (camera units, a white reference reads 1): a patch of
+#: almost no light is left almost as dark as it is instead of having its noise raised to the level of a lit one
+LEVEL_FLOOR = 1e-3
+
+
+def patch_level(x: torch.Tensor) -> torch.Tensor:
+    """(B, C, K, K) patches -> (B, 1, 1, 1): each patch's mean over its channels and pixels (clipped at 0) plus
+    :data:`LEVEL_FLOOR`. A PSP patch lit by s times the light is s times the patch, so ``x / patch_level(x)`` does
+    not change with exposure, projector power or the object's distance."""
+    return x.float().mean(dim=(1, 2, 3), keepdim=True).clamp_min(0) + LEVEL_FLOOR
 
 
 class PreActBlock(nn.Module):
@@ -32,7 +42,8 @@ class PreActBlock(nn.Module):
 class Encoder(nn.Module):
     """Maps a (B, 24, K, K) PSP patch to a (B, D) embedding; ``features`` also returns the skips.
 
-    The patch is zero-padded to ``preset.padded`` (paper: 90 -> 96), then:
+    With ``preset.scale_invariant`` the patch is first divided by its :func:`patch_level`. It is zero-padded to
+    ``preset.padded`` (paper: 90 -> 96), then:
     stem conv3x3 + BN + LeakyReLU(0.1) at full size; three stages of PixelUnshuffle(2) and a
     pre-activation block (paper: 512->256 @48, 1024->384 @24, 1536->512 @12); max-pool by 2;
     a bottleneck block with dropout (512->1024 @6); global average pooling.
@@ -61,6 +72,8 @@ class Encoder(nn.Module):
 
     def features(self, x: torch.Tensor) -> tuple[torch.Tensor, list[torch.Tensor]]:
         """(bottleneck map (B, D, P/16, P/16), skips [stem @P, stage1 @P/2, stage2 @P/4, stage3 @P/8])."""
+        if self.preset.scale_invariant:
+            x = x / patch_level(x).to(x.dtype)
         h = self.stem(self.pad(x))
         skips = [h]
         for stage in self.stages:

@@ -31,6 +31,9 @@ class ModelPreset:
     pred_hidden: int
     decoder: tuple[int, int, int, int]
     attention: int
+    #: the encoder divides each patch by its mean level (:func:`~sssphase_core.learning.models.encoder.patch_level`)
+    #: so that its features do not change with the light's level; False in checkpoints made before it existed
+    scale_invariant: bool = False
 
     def __post_init__(self) -> None:
         """Refuse sizes no network can have (a checkpoint's preset edited or damaged: a negative width was an
@@ -53,6 +56,8 @@ class ModelPreset:
                 raise InputError(f"{name} must be {count} channel widths, got {widths!r}")
             for w in widths:
                 whole(f"each of {name}", w, 1, MAX_WIDTH)
+        if not isinstance(self.scale_invariant, bool):
+            raise InputError(f"scale_invariant must be true or false, got {self.scale_invariant!r}")
         if isinstance(self.dropout, bool) or not isinstance(self.dropout, int | float) or not 0 <= self.dropout < 1:
             raise InputError(f"dropout must be a number in [0, 1), got {self.dropout!r}")
 
@@ -69,10 +74,11 @@ class ModelPreset:
 
     @classmethod
     def from_dict(cls, data: dict) -> ModelPreset:
-        missing = [f.name for f in fields(cls) if f.name not in data]
+        optional = {"scale_invariant"}  # added later: absent in older checkpoints, whose encoders read raw levels
+        missing = [f.name for f in fields(cls) if f.name not in data and f.name not in optional]
         if missing:
             raise InputError(f"it lacks {', '.join(missing)}")
-        kw = {f.name: data[f.name] for f in fields(cls)}
+        kw = {f.name: data[f.name] for f in fields(cls) if f.name in data}
         return cls(**{k: tuple(v) if isinstance(v, list) else v for k, v in kw.items()})
 
 
@@ -83,12 +89,12 @@ PRESETS: dict[str, ModelPreset] = {
     "paper": ModelPreset(
         name="paper", patch=90, in_channels=24, stem=128, stages=(256, 384, 512), bottleneck=1024,
         dropout=0.2, proj_hidden=2048, proj_dim=2048, pred_hidden=512,
-        decoder=(512, 384, 256, 128), attention=64,
+        decoder=(512, 384, 256, 128), attention=64, scale_invariant=True,
     ),
     "lite": ModelPreset(
         name="lite", patch=32, in_channels=24, stem=16, stages=(32, 48, 64), bottleneck=128,
         dropout=0.2, proj_hidden=256, proj_dim=256, pred_hidden=64,
-        decoder=(64, 48, 32, 16), attention=8,
+        decoder=(64, 48, 32, 16), attention=8, scale_invariant=True,
     ),
 }
 
