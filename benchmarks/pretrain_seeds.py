@@ -35,6 +35,7 @@ def main() -> None:
     ap.add_argument("--epochs", type=int, default=None, help="default: the demo's")
     ap.add_argument("--warmup-epochs", type=float, default=None, help="default: the demo's")
     ap.add_argument("--lr", type=float, default=None, help="default: the demo's")
+    ap.add_argument("--no-phase-shift", action="store_true", help="the strong view without the fringes' phase move")
     args = ap.parse_args()
     torch.set_num_threads(1)
     c = PRESETS["lite"]
@@ -44,7 +45,7 @@ def main() -> None:
         args.demo / "sessions" / "train", c.train_objects, pixels_per_view=args.pixels_per_view, footprints=False,
         seed=c.seed)
     changes = {k: v for k, v in (("epochs", args.epochs), ("warmup_epochs", args.warmup_epochs), ("lr", args.lr))
-               if v is not None}
+               if v is not None} | ({"phase_shift": False} if args.no_phase_shift else {})
     for weight in (float(w) for w in args.decorrelate.split(",")):
         for seed in (int(s) for s in args.seeds.split(",")):
             cfg = c.pretrain_config(seed=seed, decorrelate=weight, **changes)

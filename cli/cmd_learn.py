@@ -129,6 +129,8 @@ def train_pretrain(
     fix_pred_lr: Annotated[bool, typer.Option(help="Keep the predictor at the base lr (no schedule).")] = True,
     decorrelate: Annotated[float, typer.Option(help="Weight of the projections' decorrelation term against "
                                                "dimensional collapse (>= 0; 0: SimSiam alone).")] = 1.0,
+    phase_shift: Annotated[bool, typer.Option(help="The psp strong view also moves the fringes by a random phase "
+                                              "(ours; --no-phase-shift: the paper's set alone).")] = True,
     knn_monitor: Annotated[int, typer.Option(min=0, help="Training patches in the per-epoch kNN monitor (0: off).")] = 2000,
     seed: SeedOpt = 0,
     ckpt_every: CkptEveryOpt = 50,
@@ -145,7 +147,7 @@ def train_pretrain(
     opts = PretrainOptions(
         out=out, preset=preset, objects=objects, views=views, n_views=n_views, rig=rig, pixels_per_view=pixels_per_view,
         epochs=epochs, batch_size=batch_size, lr=lr, warmup_epochs=warmup_epochs, augment=augment,
-        fix_pred_lr=fix_pred_lr, decorrelate=decorrelate, knn_monitor=knn_monitor, seed=seed, ckpt_every=ckpt_every, time_limit=time_limit,
+        fix_pred_lr=fix_pred_lr, decorrelate=decorrelate, phase_shift=phase_shift, knn_monitor=knn_monitor, seed=seed, ckpt_every=ckpt_every, time_limit=time_limit,
         device=device, deterministic=deterministic, resume=resume, cache=cache, sessions=sessions)
     run_pretrain(opts, _report(), config_file=run_config_file(ctx))
 

@@ -67,6 +67,7 @@ class PretrainOptions(TrainOptions):
     fix_pred_lr: bool = True
     knn_monitor: int = 2000
     decorrelate: float = 1.0
+    phase_shift: bool = True
 
 
 @dataclass(kw_only=True)
@@ -156,7 +157,7 @@ def run_pretrain(opts: PretrainOptions, report: Report = Report(), *,
                          time_limit_s=opts.time_limit, device=opts.device, preset=opts.preset,
                          deterministic=opts.deterministic, lr=opts.lr,
                          warmup_epochs=opts.warmup_epochs, fix_pred_lr=opts.fix_pred_lr, augment=opts.augment,
-                         knn_monitor=opts.knn_monitor, decorrelate=opts.decorrelate)
+                         knn_monitor=opts.knn_monitor, decorrelate=opts.decorrelate, phase_shift=opts.phase_shift)
     _header(report, f"pretraining {report.style(opts.preset, 'strong')} on {len(ds)} patches of {', '.join(names)}",
             opts.out, config_file, resuming)
     with report.training() as progress:

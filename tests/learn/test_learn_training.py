@@ -539,3 +539,29 @@ def test_deterministic_kernels_are_asked_of_cuda_for_the_run_only():
     with pytest.raises(KeyboardInterrupt), deterministic_kernels(torch.device("cuda"), True):
         raise KeyboardInterrupt  # an interrupted run leaves the process as it found it
     assert not torch.are_deterministic_algorithms_enabled()
+
+
+@pytest.mark.parametrize("moved", [True, False])
+def test_the_fringe_phase_move_is_on_by_default_and_can_be_left_out(dataset, tiny, tmp_path, monkeypatch, moved):
+    """``PretrainConfig.phase_shift`` (``--no-phase-shift``) decides whether the strong view moves the fringes."""
+    from sssphase_core.learning import augment
+
+    calls, original = [], augment.phase_shift
+    monkeypatch.setattr(augment, "phase_shift", lambda x, p: calls.append(p) or original(x, p))
+    cfg = PretrainConfig(epochs=1, batch_size=64, ckpt_every=0, warmup_epochs=0, knn_monitor=0, **({} if moved else {"phase_shift": False}))
+    pretrain(cfg, dataset, tmp_path / "run", preset=tiny, progress=False)
+    assert calls and set(calls) == ({1.0} if moved else {0.0})
+
+
+def test_the_cli_passes_no_phase_shift_to_the_run(tmp_path, monkeypatch):
+    import importlib
+
+    from typer.testing import CliRunner
+
+    app = importlib.import_module("sssphase_cli.main").app  # the installed `sss` app (cli/ folder)
+
+    seen = []
+    monkeypatch.setattr("sssphase_core.reporting.learning_runs.run_pretrain", lambda opts, *a, **k: seen.append(opts))
+    for flag, expected in (([], True), (["--no-phase-shift"], False)):
+        result = CliRunner().invoke(app, ["train", "pretrain", "--out", str(tmp_path / "pre"), *flag], catch_exceptions=False)
+        assert result.exit_code == 0 and seen.pop().phase_shift is expected
