@@ -18,6 +18,7 @@ import numpy as np
 
 from sssphase_core.learning.data import PatchDataset, session_views
 from sssphase_core.learning.evaluation import knn_leave_one_view_out
+from sssphase_core.learning.models import get_preset
 from sssphase_core.reporting.demo import PRESETS
 
 
@@ -31,7 +32,7 @@ def pixel_cues(psp: np.ndarray, pixels: np.ndarray) -> np.ndarray:
 
     b = 0.5 * (modulation(s[:4]) + modulation(s[4:]))
     chroma = offset / np.maximum(offset.sum(axis=1, keepdims=True), 1e-9)
-    return np.concatenate([chroma, b / np.maximum(offset, 1e-6)], axis=1)
+    return np.concatenate([chroma, b / np.maximum(offset, 1e-6)], axis=1)  # float64: psp.modulation_ratio rounds to float32
 
 
 def main() -> None:
@@ -41,7 +42,7 @@ def main() -> None:
     c = PRESETS["lite"]
     objects = list(c.train_objects)
     views = session_views(args.demo / "sessions" / "train", objects, pixels_per_view=c.pixels_per_view, seed=c.seed)
-    labels = PatchDataset(views, 32, objects)
+    labels = PatchDataset(views, get_preset(c.model).patch, objects)
     obj, view = labels.labels("object"), labels.labels("view")
     cues = np.concatenate([pixel_cues(v.psp, v.pixels) for v in views])
     cues = (cues - cues.mean(axis=0)) / cues.std(axis=0)

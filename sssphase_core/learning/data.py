@@ -132,12 +132,11 @@ class PatchDataset(torch.utils.data.Dataset):
         }
         if with_targets:  # each crop's camera and dot, through which decoder training passes its prediction
             from sssphase_core.learning.camera import crop_codes
-            from sssphase_core.processing.footprints import DOT_KERNEL_RADIUS
+            from sssphase_core.processing.footprints import pixel_alone_kernel
 
             self.camera = np.concatenate([crop_codes(v.isp, v.pixels, patch) for v in self.views])
-            side = 2 * DOT_KERNEL_RADIUS + 1
-            alone = np.zeros((side, side), np.float32)
-            alone[DOT_KERNEL_RADIUS, DOT_KERNEL_RADIUS] = 1.0
+            alone = pixel_alone_kernel()
+            side = len(alone)
             self.dots = np.concatenate([np.broadcast_to(alone, (len(v.pixels), side, side)) if v.dots is None
                                         else np.asarray(v.dots, np.float32).reshape(-1, side, side) for v in self.views])
 

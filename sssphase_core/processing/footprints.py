@@ -252,6 +252,14 @@ def dot_offsets(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray, pixels: np.nd
 DOT_KERNEL_RADIUS = 3
 
 
+def pixel_alone_kernel(radius: int = DOT_KERNEL_RADIUS) -> np.ndarray:
+    """(2R+1, 2R+1) float32: a dot that lit only the crop's own pixel (weight 1 at the centre), as
+    :func:`dot_kernels` gives where nothing is known about the dot's image."""
+    kernel = np.zeros((2 * radius + 1, 2 * radius + 1), np.float32)
+    kernel[radius, radius] = 1.0
+    return kernel
+
+
 def dot_kernels(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray, pixels: np.ndarray, smooth: int = 5,
                 radius: int = DOT_KERNEL_RADIUS) -> np.ndarray:
     """(N, 2R+1, 2R+1) float32: the image of the dot whose crop is pixel ``pixels[i]``'s footprint, as weights
@@ -284,7 +292,7 @@ def dot_kernels(xp: np.ndarray, yp: np.ndarray, valid: np.ndarray, pixels: np.nd
     u = np.einsum("nij,mj->nmi", jac, offsets) - e[:, None, :]  # (N, M, 2) projector px from the dot
     w = np.clip(1 - np.abs(u[..., 0]), 0, None) * np.clip(1 - np.abs(u[..., 1]), 0, None)
     total = w.sum(axis=1, keepdims=True)
-    centre = (offsets == 0).all(axis=1).astype(np.float64)
+    centre = pixel_alone_kernel(radius).ravel().astype(np.float64)
     w = np.where(total > 1e-9, w / np.maximum(total, 1e-9), centre)  # (no weight at all: the pixel itself)
     return w.reshape(-1, side, side).astype(np.float32)
 

@@ -161,12 +161,12 @@ def pretrain(
     warmup = max(1, round(cfg.warmup_epochs * loop.steps_per_epoch))
     schedule = warmup_cosine(opt, loop.total_steps, warmup, cfg.lr, start=loop.global_step)
     monitor: dict[str, list[torch.Tensor]] = {"z": [], "y": []}
-    views_cfg = augment.AugmentConfig(phase_shift_p=1.0 if cfg.phase_shift else 0.0)
+    augment_cfg = augment.AugmentConfig(phase_shift_p=1.0 if cfg.phase_shift else 0.0)
 
     def step(batch: dict[str, torch.Tensor], gstep: int) -> dict[str, float]:
         lr = opt.param_groups[0]["lr"]  # the backbone's (group 0): the scheduled one
         model.train()
-        x1, x2 = augment.two_views(batch["psp"], cfg.augment, views_cfg)
+        x1, x2 = augment.two_views(batch["psp"], cfg.augment, augment_cfg)
         with autocast_for(d, cfg.amp):
             out = net(x1, x2, cfg.decorrelate)
         opt.zero_grad(set_to_none=True)
