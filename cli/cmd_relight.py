@@ -350,7 +350,7 @@ def demo(
     preset: Annotated[str, typer.Option(help="lite (minutes on 2 CPU cores) or tiny (tests).")] = "lite",
     fresh: Annotated[bool, typer.Option("--fresh", help="Redo every step.")] = False,
     transport: Annotated[str | None, typer.Option(help="sim light transport: burley (default), directional_dipole (footprints skewed by the incidence direction) or radiative (random-walk profiles, no diffusion approximation).")] = None,
-    randomise_rig: Annotated[bool, typer.Option(help="Capture each training object on its own randomised sim rig (projector response, lens blur, noise, exposure, demosaicing, transport model); the unseen objects on the nominal rig.")] = False,
+    training_rigs: Annotated[str, typer.Option(help="The training objects' sim rigs: nominal, camera (each object its own randomised camera and projector: response, lens blur, noise, exposure, demosaicing) or randomised (the transport model drawn too); the unseen objects always on the nominal rig.")] = "nominal",
     three_chip: Annotated[bool, typer.Option("--three-chip", help="Capture every object with a three-chip sim camera (every pixel sees R, G and B: nothing is demosaiced; the sim option demosaic = \"none\").")] = False,
 ) -> None:
     """The user's path on the simulated rig: capture sessions through the daemon, pretrain and fit the decoder
@@ -362,14 +362,14 @@ def demo(
     def log(message: str) -> None:
         console.print(message, markup=False, highlight=False)
 
-    check_demo_options(out, preset, transport)  # before a daemon is started for them
+    check_demo_options(out, preset, transport, training_rigs)  # before a daemon is started for them
     with local_client(on_start=lambda pid: log(f"started a local daemon (pid {pid})"),
                       on_stop=lambda pid: log(f"stopped the local daemon (pid {pid})"),
                       on_left=lambda pid: log(f"left the local daemon (pid {pid}) running: another client is using it "
                                               "(`sss daemon stop` ends it)")) as client:
         with step_bar(console) as progress:
             report = run_demo(out, client, preset=preset, fresh=fresh, log=log, progress=progress, transport=transport,
-                              randomise_rig=randomise_rig, three_chip=three_chip)
+                              training_rigs=training_rigs, three_chip=three_chip)
     console.print(f"[green]report[/]: {report}")
 
 

@@ -63,6 +63,7 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["eval", "knn", "--checkpoint", "psp=/", "--checkpoint", "psp=/tmp"], "the name 'psp' is given twice"),
         (["bench", "relight-cache", "s", "--first", "checkerboard", "--new", "checkerboard"], "--new checkerboard is the --first"),
         (["demo", "--transport", "bogus"], "unknown transport model 'bogus'"),
+        (["demo", "--training-rigs", "lab"], "unknown training rigs 'lab'; choose one of nominal, camera, randomised"),
         (["capture", "--object", "soap", "--views", "1", "--anisotropy", "0.5"], "give it with --transport radiative"),
         (["capture", "--object", "soap", "--transport", "radiative", "--anisotropy", "0.9"], "anisotropy must be a number in [0, 0.85]"),
         (["capture", "--object", "soap", "--views", "1", "--backdrop", "30"], "backdrop must be a number in [60, 1000]"),

@@ -80,6 +80,12 @@ PRESETS = {
 STEPS = ("train_sessions", "test_sessions", "pretrain", "decoder", "relight", "footprints", "knn", "pca", "report")
 #: The steps of the user's path: a demo without any of them failed, whatever its report shows
 USERS_PATH = ("train_sessions", "test_sessions", "pretrain", "decoder", "relight")
+#: The rigs the demo's training objects are captured on (the unseen ones: always the nominal rig).
+TRAINING_RIGS = ("nominal", "camera", "randomised")
+_RIGS_STAMP = {"nominal": "", "camera": ", training cameras randomised", "randomised": ", training rigs randomised"}
+_RIGS_REPORT = {"nominal": "", "camera": "; every training object captured by its own randomised camera and projector "
+                "(sim.randomised_rig_options, what=\"camera\")",
+                "randomised": "; every training object captured on its own randomised rig (sim.randomised_rig_options)"}
 
 
 class NotAvailable(Exception):
@@ -91,30 +97,32 @@ class Demo:
 
     def __init__(self, out: Path, config: DemoConfig, client: Any, *, fresh: bool = False,
                  log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None,
-                 transport: str | None = None, randomise_rig: bool = False, three_chip: bool = False):
+                 transport: str | None = None, training_rigs: str = "nominal", three_chip: bool = False):
         """``client``: a daemon client (``sssphase_daemon.client``; anything with ``call`` and ``capture``);
         ``progress``: the training loops' step callback (``training.StepProgress``); ``transport``:
-        the sim rig's light-transport model (None: burley); ``randomise_rig``: every training object is
-        captured on its own randomised rig (``sim.randomised_rig_options``: projector response, lens,
-        noise, exposure, demosaicing and transport model), the unseen objects on the nominal one;
-        ``three_chip``: every object is captured by a three-chip sim camera (nothing demosaiced). All
-        are fixed for a demo folder."""
+        the sim rig's light-transport model (None: burley); ``training_rigs`` (:data:`TRAINING_RIGS`): each
+        training object captured on the nominal rig (the default), by its own randomised camera and projector
+        (``sim.randomised_rig_options(..., what="camera")``: projector response, lens blur, noise, exposure,
+        demosaicing), or on its own randomised rig (the transport model drawn too); the unseen objects always on
+        the nominal one (docs/benchmarks/standins.md measures the three); ``three_chip``: every object is
+        captured by a three-chip sim camera (nothing demosaiced). All are fixed for a demo folder."""
         self.out, self.cfg, self.client, self.fresh, self.log = Path(out), config, client, fresh, log
         self.progress = progress
         self.report_dir = self.out / "report"  # index.html and img/
         self.steps_dir = self.out / "steps"
         self.steps_dir.mkdir(parents=True, exist_ok=True)
-        self.transport, self.randomise_rig, self.three_chip = transport or "burley", randomise_rig, three_chip
-        physics = (self.transport + (", training rigs randomised" if randomise_rig else "")
-                   + (", three-chip camera" if three_chip else ""))
+        if training_rigs not in TRAINING_RIGS:
+            raise InputError(f"unknown training rigs {training_rigs!r}; choose one of {', '.join(TRAINING_RIGS)}")
+        self.transport, self.training_rigs, self.three_chip = transport or "burley", training_rigs, three_chip
+        physics = (self.transport + _RIGS_STAMP[training_rigs] + (", three-chip camera" if three_chip else ""))
         stamp = self.steps_dir / "transport.txt"
         if stamp.exists() and not fresh and stamp.read_text().strip() != physics:
             raise InputError(f"{self.out} was made with the simulator's {stamp.read_text().strip()!r} physics, this run "
                              f"asks for {physics!r}: use another --out, or --fresh")
         write_text(stamp, physics)
-        self.report_rig = f"Simulated rig (CPU preset), {self.transport.replace('_', ' ')} transport" + (
-            "; every training object captured on its own randomised rig (sim.randomised_rig_options)"
-            if randomise_rig else "") + ("; a three-chip camera (no colour filter array)" if three_chip else "")
+        self.report_rig = (f"Simulated rig (CPU preset), {self.transport.replace('_', ' ')} transport"
+                           + _RIGS_REPORT[training_rigs]
+                           + ("; a three-chip camera (no colour filter array)" if three_chip else ""))
         self.results: dict[str, dict[str, Any]] = {}
         self.device = "cpu"  # where the models relight and embed (sss repro paper: the GPU)
 
@@ -163,15 +171,17 @@ class Demo:
 
     # --- steps -------------------------------------------------------------------------------
 
-    def _capture(self, obj: str, root: Path, views: int, *, randomised: bool = False, **kw: Any) -> str:
+    def _capture(self, obj: str, root: Path, views: int, *, rigs: str = "nominal", **kw: Any) -> str:
         from sssphase_core.capture import CaptureRequest, run_capture
 
         physics: dict[str, Any] = {"transport": self.transport}
-        if randomised:
+        if rigs != "nominal":
             from sssphase_core.sim import randomised_rig_options
 
-            physics = {"transport": None, "sim_options": randomised_rig_options(self.cfg.seed, obj)}
-            self.log(f"  {obj}: randomised rig " + ", ".join(f"{k} {v}" for k, v in physics["sim_options"].items()))
+            drawn = randomised_rig_options(self.cfg.seed, obj, what="rig" if rigs == "randomised" else "camera")
+            physics = {"transport": None if rigs == "randomised" else self.transport, "sim_options": drawn}
+            self.log(f"  {obj}: randomised {'rig' if rigs == 'randomised' else 'camera'} "
+                     + ", ".join(f"{k} {v}" for k, v in drawn.items()))
         if self.three_chip:
             physics["sim_options"] = {**physics.get("sim_options", {}), "demosaic": "none"}
         req = CaptureRequest(obj, views=views, resume=True, out=root, seed=self.cfg.seed, **physics, **kw)
@@ -181,7 +191,7 @@ class Demo:
 
     def train_sessions(self) -> dict[str, Any]:
         root = self.out / "sessions" / "train"
-        paths = [self._capture(o, root, self.cfg.train_views, footprints=True, randomised=self.randomise_rig,
+        paths = [self._capture(o, root, self.cfg.train_views, footprints=True, rigs=self.training_rigs,
                                dot_stride=self.cfg.dot_stride) for o in self.cfg.train_objects]
         return {"root": str(root), "sessions": paths}
 
@@ -344,7 +354,7 @@ class Demo:
         (self.steps_dir / "report.json").unlink(missing_ok=True)
 
 
-def check_demo_options(out: Path | str, preset: str, transport: str | None) -> None:
+def check_demo_options(out: Path | str, preset: str, transport: str | None, training_rigs: str = "nominal") -> None:
     """Refuse an unknown preset or transport model, and an ``out`` that is a file or lies in a session (each step
     had failed there), in one line before a daemon is started for the demo."""
     if preset not in PRESETS:
@@ -354,6 +364,8 @@ def check_demo_options(out: Path | str, preset: str, transport: str | None) -> N
 
         if transport not in TRANSPORTS:
             raise InputError(f"unknown transport model {transport!r}; choose one of {', '.join(TRANSPORTS)}")
+    if training_rigs not in TRAINING_RIGS:
+        raise InputError(f"unknown training rigs {training_rigs!r}; choose one of {', '.join(TRAINING_RIGS)}")
     from sssphase_core.store.session import check_output_folder
 
     check_output_folder(out)
@@ -361,15 +373,15 @@ def check_demo_options(out: Path | str, preset: str, transport: str | None) -> N
 
 def run_demo(out: Path | str, client: Any, *, preset: str = "lite", fresh: bool = False,
              log: Callable[[str], None] = print, progress: Callable[[str, int, int, str], None] | None = None,
-             transport: str | None = None, randomise_rig: bool = False, three_chip: bool = False) -> Path:
+             transport: str | None = None, training_rigs: str = "nominal", three_chip: bool = False) -> Path:
     """Run (or resume) the demo into ``out`` with a daemon ``client``; returns the report's path.
     ``progress``: the training loops' step callback (``training.StepProgress``); ``transport``: the
-    sim rig's light-transport model (:data:`sssphase_core.sim.TRANSPORTS`; None: burley); ``randomise_rig``:
-    domain randomisation of the training captures; ``three_chip``: a three-chip sim camera (see :class:`Demo`)."""
-    check_demo_options(out, preset, transport)
+    sim rig's light-transport model (:data:`sssphase_core.sim.TRANSPORTS`; None: burley); ``training_rigs``:
+    the training captures' rigs (:data:`TRAINING_RIGS`); ``three_chip``: a three-chip sim camera (see :class:`Demo`)."""
+    check_demo_options(out, preset, transport, training_rigs)
     t0 = time.perf_counter()
     demo = Demo(Path(out), PRESETS[preset], client, fresh=fresh, log=log, progress=progress, transport=transport,
-                randomise_rig=randomise_rig, three_chip=three_chip)
+                training_rigs=training_rigs, three_chip=three_chip)
     path = demo.run()
     log(f"demo finished in {time.perf_counter() - t0:.1f} s")
     demo.raise_unless_done(USERS_PATH, path)

@@ -266,17 +266,27 @@ RANDOMISED_RANGES: dict[str, tuple[float, float]] = {
 }
 
 
-def randomised_rig_options(seed: int, salt: str = "") -> dict[str, Any]:
+#: What :func:`randomised_rig_options` can draw: the camera and projector alone, or the light transport too.
+RANDOMISED_PARTS = ("camera", "rig")
+_TRANSPORT_KEYS = ("transport", "anisotropy")
+
+
+def randomised_rig_options(seed: int, salt: str = "", what: str = "rig") -> dict[str, Any]:
     """Domain randomisation: sim rig options drawn from :data:`RANDOMISED_RANGES` (uniform), a
     demosaicing method and a light-transport model (``anisotropy`` matters to the radiative one only),
     reproducibly from ``seed`` and ``salt`` (e.g. the object's name: each object gets its own rig). Sessions captured with different draws teach a
-    model several rigs and profile families instead of one."""
+    model several rigs and profile families instead of one. ``what="camera"`` keeps the same draw's projector
+    response, lens blur, read noise, exposure and demosaicing and leaves the transport out (the rig's own)."""
     import zlib
 
+    if what not in RANDOMISED_PARTS:
+        raise ValueError(f"unknown randomisation {what!r} ({' or '.join(RANDOMISED_PARTS)})")
     rng = np.random.default_rng([int(seed), zlib.crc32(salt.encode()), 0x5EED])
     out: dict[str, Any] = {k: round(float(rng.uniform(lo, hi)), 4) for k, (lo, hi) in RANDOMISED_RANGES.items()}
     out["demosaic"] = DEMOSAIC_METHODS[int(rng.integers(len(DEMOSAIC_METHODS)))]
     out["transport"] = TRANSPORTS[int(rng.integers(len(TRANSPORTS)))]
+    if what == "camera":
+        out = {k: v for k, v in out.items() if k not in _TRANSPORT_KEYS}
     return out
 
 

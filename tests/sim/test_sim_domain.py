@@ -36,6 +36,13 @@ def test_draws_are_reproducible_within_their_ranges_and_differ_between_objects()
     assert ANISOTROPY_RANGE == RANDOMISED_RANGES["anisotropy"]
 
 
+def test_a_camera_draw_is_the_rig_draw_without_its_transport():
+    full, camera = randomised_rig_options(4, "pear"), randomised_rig_options(4, "pear", what="camera")
+    assert camera == {k: v for k, v in full.items() if k not in ("transport", "anisotropy")}
+    with pytest.raises(ValueError, match="unknown randomisation 'lens'"):
+        randomised_rig_options(4, "pear", what="lens")
+
+
 @pytest.mark.parametrize(("option", "value"), [("lens_blur", -1.0), ("read_noise", float("nan")),
                                                ("white_fraction", 2.0), ("demosaic", "nearest"),
                                                ("projector_gamma", "2.2")])
@@ -110,19 +117,26 @@ def test_a_randomised_capture_records_its_rig_and_evaluation_rebuilds_it(sim_dae
 
 
 @pytest.mark.slow
-def test_the_demo_captures_each_training_object_on_its_own_rig(sim_daemon, tmp_path):
-    """`sss demo --randomise-rig`: training sessions carry their draws, and the folder remembers it."""
+@pytest.mark.parametrize("rigs", ["camera", "randomised"])
+def test_the_demo_captures_each_training_object_on_its_own_rig(sim_daemon, tmp_path, rigs):
+    """`sss demo --training-rigs camera` (each training object its own camera and projector) and `randomised` (the
+    transport too): training sessions carry their draws, and the folder remembers it."""
     from sssphase_core.reporting.demo import Demo, DemoConfig
     from sssphase_core.store.session import Session
 
     # one dot grid a view (the largest stride the plan takes): what is checked is what the sessions record
     cfg = DemoConfig(("star", "shovel"), ("sand_rake",), train_views=1, dot_stride=20)
-    demo = Demo(tmp_path, cfg, sim_daemon, log=lambda _: None, randomise_rig=True)
-    assert "randomised rig" in demo.report_rig  # the report says what the model was trained on
+    demo = Demo(tmp_path, cfg, sim_daemon, log=lambda _: None, training_rigs=rigs)
+    assert ("randomised camera" if rigs == "camera" else "randomised rig") in demo.report_rig  # what it trained on
     demo.train_sessions()
+    camera_keys = [k for k in RANDOMISED_RANGES if k != "anisotropy"] + ["demosaic"]
     for obj in cfg.train_objects:
         options = Session.open(tmp_path / "sessions" / "train" / obj).manifest["rig"]["options"]
-        assert {k: options[k] for k in RANDOMISED_RANGES} == {k: randomised_rig_options(0, obj)[k] for k in RANDOMISED_RANGES}
-        assert options["transport"] == randomised_rig_options(0, obj)["transport"]
-    with pytest.raises(InputError, match="training rigs randomised"):
+        full = randomised_rig_options(0, obj)  # the camera draw is the full draw's camera
+        assert {k: options[k] for k in camera_keys} == {k: full[k] for k in camera_keys}
+        if rigs == "randomised":
+            assert options["transport"] == full["transport"] and options["anisotropy"] == full["anisotropy"]
+        else:
+            assert options["transport"] == "burley" and "anisotropy" not in options
+    with pytest.raises(InputError, match=f"training {'cameras' if rigs == 'camera' else 'rigs'} randomised"):
         Demo(tmp_path, cfg, sim_daemon, log=lambda _: None)  # resuming it as a nominal demo would mix the two
