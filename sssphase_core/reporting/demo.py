@@ -355,7 +355,7 @@ class Demo:
 
 
 def check_demo_options(out: Path | str, preset: str, transport: str | None, training_rigs: str = "nominal") -> None:
-    """Refuse an unknown preset or transport model, and an ``out`` that is a file or lies in a session (each step
+    """Refuse an unknown preset, transport model or training rigs, and an ``out`` that is a file or lies in a session (each step
     had failed there), in one line before a daemon is started for the demo."""
     if preset not in PRESETS:
         raise InputError(f"unknown demo preset {preset!r}; choose one of {', '.join(PRESETS)}")
