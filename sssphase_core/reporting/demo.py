@@ -80,9 +80,9 @@ PRESETS = {
 STEPS = ("train_sessions", "test_sessions", "pretrain", "decoder", "relight", "footprints", "knn", "pca", "report")
 #: The steps of the user's path: a demo without any of them failed, whatever its report shows
 USERS_PATH = ("train_sessions", "test_sessions", "pretrain", "decoder", "relight")
-#: The rigs the demo's training objects are captured on (the unseen ones: always the nominal rig).
-TRAINING_RIGS = ("nominal", "camera", "randomised")
 _RIGS_STAMP = {"nominal": "", "camera": ", training cameras randomised", "randomised": ", training rigs randomised"}
+#: The rigs the demo's training objects are captured on (the unseen ones: always the nominal rig).
+TRAINING_RIGS = tuple(_RIGS_STAMP)
 _RIGS_REPORT = {"nominal": "", "camera": "; every training object captured by its own randomised camera and projector "
                 "(sim.randomised_rig_options, what=\"camera\")",
                 "randomised": "; every training object captured on its own randomised rig (sim.randomised_rig_options)"}
@@ -111,8 +111,7 @@ class Demo:
         self.report_dir = self.out / "report"  # index.html and img/
         self.steps_dir = self.out / "steps"
         self.steps_dir.mkdir(parents=True, exist_ok=True)
-        if training_rigs not in TRAINING_RIGS:
-            raise InputError(f"unknown training rigs {training_rigs!r}; choose one of {', '.join(TRAINING_RIGS)}")
+        _check_training_rigs(training_rigs)
         self.transport, self.training_rigs, self.three_chip = transport or "burley", training_rigs, three_chip
         physics = (self.transport + _RIGS_STAMP[training_rigs] + (", three-chip camera" if three_chip else ""))
         stamp = self.steps_dir / "transport.txt"
@@ -178,10 +177,10 @@ class Demo:
         if rigs != "nominal":
             from sssphase_core.sim import randomised_rig_options
 
-            drawn = randomised_rig_options(self.cfg.seed, obj, what="rig" if rigs == "randomised" else "camera")
-            physics = {"transport": None if rigs == "randomised" else self.transport, "sim_options": drawn}
-            self.log(f"  {obj}: randomised {'rig' if rigs == 'randomised' else 'camera'} "
-                     + ", ".join(f"{k} {v}" for k, v in drawn.items()))
+            what = "rig" if rigs == "randomised" else "camera"  # a drawn rig brings its own transport model
+            drawn = randomised_rig_options(self.cfg.seed, obj, what=what)
+            physics = {"transport": None if what == "rig" else self.transport, "sim_options": drawn}
+            self.log(f"  {obj}: randomised {what} " + ", ".join(f"{k} {v}" for k, v in drawn.items()))
         if self.three_chip:
             physics["sim_options"] = {**physics.get("sim_options", {}), "demosaic": "none"}
         req = CaptureRequest(obj, views=views, resume=True, out=root, seed=self.cfg.seed, **physics, **kw)
@@ -354,6 +353,11 @@ class Demo:
         (self.steps_dir / "report.json").unlink(missing_ok=True)
 
 
+def _check_training_rigs(training_rigs: str) -> None:
+    if training_rigs not in TRAINING_RIGS:
+        raise InputError(f"unknown training rigs {training_rigs!r}; choose one of {', '.join(TRAINING_RIGS)}")
+
+
 def check_demo_options(out: Path | str, preset: str, transport: str | None, training_rigs: str = "nominal") -> None:
     """Refuse an unknown preset, transport model or training rigs, and an ``out`` that is a file or lies in a session (each step
     had failed there), in one line before a daemon is started for the demo."""
@@ -364,8 +368,7 @@ def check_demo_options(out: Path | str, preset: str, transport: str | None, trai
 
         if transport not in TRANSPORTS:
             raise InputError(f"unknown transport model {transport!r}; choose one of {', '.join(TRANSPORTS)}")
-    if training_rigs not in TRAINING_RIGS:
-        raise InputError(f"unknown training rigs {training_rigs!r}; choose one of {', '.join(TRAINING_RIGS)}")
+    _check_training_rigs(training_rigs)
     from sssphase_core.store.session import check_output_folder
 
     check_output_folder(out)
