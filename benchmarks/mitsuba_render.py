@@ -115,20 +115,30 @@ def sphere_obj(path: Path, radii: tuple[float, float, float], lumps: int, seed: 
     path.write_text("\n".join(lines) + "\n")
 
 
-def object_dict(mi, shape: str, medium: dict, out: Path, name: str, seed: int) -> dict:  # noqa: ANN001
+def object_dict(mi, shape: str, medium: dict, out: Path, name: str, seed: int, shrink: float = 0.0,  # noqa: ANN001
+                exterior: dict | None = None) -> dict:
+    """The object's boundary (null BSDF) holding ``medium``; ``shrink`` mm less in every semi-axis (a coated
+    object's core, whose ``exterior`` is the coat's medium)."""
     T = mi.ScalarTransform4f
     at = T().translate(list(CENTRE))
-    base = {"bsdf": {"type": "null"}, "interior": medium}
+    base = {"bsdf": {"type": "null"}, "interior": medium} | ({"exterior": exterior} if exterior else {})
     if shape == "sphere":
-        return {"type": "sphere", "to_world": at.scale(42.0), **base}
+        return {"type": "sphere", "to_world": at.scale(42.0 - shrink), **base}
     if shape == "box":
-        return {"type": "cube", "to_world": at.rotate([0, 1, 0], 35).rotate([1, 0, 0], 25).scale(30.0), **base}
-    mesh = out / f"{name}_{shape}.obj"
+        return {"type": "cube", "to_world": at.rotate([0, 1, 0], 35).rotate([1, 0, 0], 25).scale(30.0 - shrink), **base}
+    mesh = out / f"{name}_{shape}{'_core' if shrink else ''}.obj"
     if shape == "ellipsoid":
-        sphere_obj(mesh, (58.0, 36.0, 40.0), 0, seed)
+        sphere_obj(mesh, (58.0 - shrink, 36.0 - shrink, 40.0 - shrink), 0, seed)
         return {"type": "obj", "filename": str(mesh), "to_world": at.rotate([0, 0, 1], 25), **base}
-    sphere_obj(mesh, (45.0, 45.0, 45.0), 4, seed)
+    sphere_obj(mesh, (45.0 - shrink, 45.0 - shrink, 45.0 - shrink), 4, seed)
     return {"type": "obj", "filename": str(mesh), "to_world": at, **base}
+
+
+def medium_dict(name: str, scale: float, g: float) -> dict:
+    """Mitsuba's homogeneous medium of Jensen et al.'s ``name`` times ``scale``, Henyey-Greenstein ``g``."""
+    sigma_t, albedo = medium_coefficients(name, scale, g)
+    return {"type": "homogeneous", "sigma_t": sigma_t, "scale": 1.0, "albedo": {"type": "rgb", "value": albedo},
+            "phase": {"type": "hg", "g": g} if g else {"type": "isotropic"}}
 
 
 def build_scene(mi, args: argparse.Namespace, rig, out: Path):  # noqa: ANN001, ANN201
@@ -137,9 +147,14 @@ def build_scene(mi, args: argparse.Namespace, rig, out: Path):  # noqa: ANN001, 
     fov_cam = float(np.degrees(2 * np.arctan(cam.height / 2 / cam.fy)))
     fov_proj = float(np.degrees(2 * np.arctan(proj.width / 2 / proj.fx)))
     sigma_t, albedo = medium_coefficients(args.medium, args.scale, args.g)
-    medium = {"type": "homogeneous", "sigma_t": sigma_t, "scale": 1.0,
-              "albedo": {"type": "rgb", "value": albedo},
-              "phase": {"type": "hg", "g": args.g} if args.g else {"type": "isotropic"}}
+    medium = medium_dict(args.medium, args.scale, args.g)
+    coat = getattr(args, "coat", None)
+    if coat:  # a layered object: the coat's medium fills the shape, the core (--medium) a copy --coat-mm smaller
+        shell = medium_dict(coat, args.coat_scale, 0.0)
+        objects = {"object": object_dict(mi, args.shape, shell, out, args.name, args.seed),
+                   "core": object_dict(mi, args.shape, medium, out, args.name, args.seed, args.coat_mm, shell)}
+    else:
+        objects = {"object": object_dict(mi, args.shape, medium, out, args.name, args.seed)}
     blank = np.zeros((proj.height, proj.width, 3), np.float32)
     d_proj = float(np.linalg.norm(np.asarray(CENTRE) - proj.centre))
     scene = mi.load_dict({
@@ -155,7 +170,7 @@ def build_scene(mi, args: argparse.Namespace, rig, out: Path):  # noqa: ANN001, 
                       "to_world": T().look_at(origin=[float(v) for v in proj.centre], target=list(CENTRE), up=[0, -1, 0])},
         "wall": {"type": "rectangle", "to_world": T().translate([0, 0, WALL_Z]).rotate([0, 1, 0], 180).scale(260),
                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.35, 0.35, 0.33]}}},
-        "object": object_dict(mi, args.shape, medium, out, args.name, args.seed),
+        **objects,
     })
     return scene, {"sigma_t_per_mm": sigma_t, "albedo": albedo, "fov_camera_deg": fov_cam, "fov_projector_deg": fov_proj}
 
@@ -220,6 +235,10 @@ def main() -> None:
     ap.add_argument("--medium", choices=sorted(MEDIA), default="skin2")
     ap.add_argument("--scale", type=float, default=1.0, help="multiplies the medium's coefficients (>1: denser)")
     ap.add_argument("--g", type=float, default=0.0, help="Henyey-Greenstein mean cosine")
+    ap.add_argument("--coat", choices=sorted(MEDIA), default=None,
+                    help="a layered object: this medium (isotropic) in a shell --coat-mm thick around the --medium core")
+    ap.add_argument("--coat-scale", type=float, default=1.0, help="multiplies the coat's coefficients")
+    ap.add_argument("--coat-mm", type=float, default=0.5, help="the coat's thickness (mm)")
     kind = ap.add_mutually_exclusive_group(required=True)
     kind.add_argument("--train", action="store_true", help="with dot grids (footprints)")
     kind.add_argument("--test", action="store_true", help="with reference patterns")
@@ -241,6 +260,8 @@ def main() -> None:
         raise SystemExit("--groups must be at least 3 (the trimmed mean drops the highest and the lowest)")
     if not -0.95 < args.g < 0.95 or not args.scale > 0:
         raise SystemExit("--g must be in (-0.95, 0.95) and --scale > 0")
+    if args.coat and not (args.coat_scale > 0 and 0 < args.coat_mm < 25):
+        raise SystemExit("--coat-scale must be > 0 and --coat-mm in (0, 25)")
 
     from sssphase_core.processing.patterns import capture_plan
     from sssphase_core.sim.rig import rig_preset
@@ -344,8 +365,8 @@ def converged_references(mi, args: argparse.Namespace, rig) -> None:  # noqa: AN
     facts = json.loads(record.read_text())
     if not facts.get("test"):
         raise SystemExit(f"{record}: {args.name} was not rendered with --test (no reference patterns)")
-    for key in ("shape", "medium", "scale", "g", "seed"):  # the same object: its mesh and medium
-        setattr(args, key, facts[key])
+    for key in ("shape", "medium", "scale", "g", "seed", "coat", "coat_scale", "coat_mm"):  # the same object
+        setattr(args, key, facts.get(key))
     args.spp = converged_spp(facts, args.groups, args.spp)
     scene, _ = build_scene(mi, args, rig, args.out)
     params = mi.traverse(scene)

@@ -214,13 +214,18 @@ if __name__ == "__main__":
         if a[-1] not in ("clean", "converged"):
             sys.exit(f"--truth must be clean or converged, got {a[-1]!r}")
         truth, a = a[-1], a[:-2]
-    if len(a) >= 5 and a[0] == "relight":
-        relight(Path(a[1]), Path(a[2]), Path(a[3]), a[4].split(","), truth)
-    elif len(a) >= 5 and a[0] == "edges":
-        edges(Path(a[1]), Path(a[2]), Path(a[3]), a[4].split(","))
-    elif len(a) >= 5 and a[0] == "regions":
-        regions(Path(a[1]), Path(a[2]), Path(a[3]), a[4].split(","))
-    elif len(a) >= 4 and a[0] == "geometry":
-        geometry(Path(a[1]), a[2], [Path(p) for p in a[3:]])
-    else:
-        sys.exit(__doc__)
+    from sssphase_core.errors import SssError
+
+    try:
+        if len(a) >= 5 and a[0] == "relight":
+            relight(Path(a[1]), Path(a[2]), Path(a[3]), a[4].split(","), truth)
+        elif len(a) >= 5 and a[0] == "edges":
+            edges(Path(a[1]), Path(a[2]), Path(a[3]), a[4].split(","))
+        elif len(a) >= 5 and a[0] == "regions":
+            regions(Path(a[1]), Path(a[2]), Path(a[3]), a[4].split(","))
+        elif len(a) >= 4 and a[0] == "geometry":
+            geometry(Path(a[1]), a[2], [Path(p) for p in a[3:]])
+        else:
+            sys.exit(__doc__)
+    except (SssError, FileNotFoundError) as e:  # a relit image not written yet, a render not there: one line
+        sys.exit(f"error: {e}")

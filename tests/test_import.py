@@ -763,6 +763,7 @@ def test_renderers_multi_layer_exr_frames_are_read_by_their_colour_layer(tmp_pat
     the colour layer is read; a file with several unnamed colour layers is refused naming them."""
     import OpenEXR
 
+    from sssphase_core.store.exr import read_exr
     from sssphase_core.store.imageio import read_frame
 
     rng = np.random.default_rng(0)
@@ -794,6 +795,8 @@ def test_renderers_multi_layer_exr_frames_are_read_by_their_colour_layer(tmp_pat
     (tmp_path / "cut.exr").write_bytes((tmp_path / "white.exr").read_bytes()[:400])
     with pytest.raises(DataError, match=r"cannot read EXR .*cut.exr \(damaged, truncated or not an EXR file\)$"):
         read_frame(tmp_path / "cut.exr")
+    with pytest.raises(DataError, match=r"cannot read EXR .*gone.exr: no such file$"):  # not "damaged": not there
+        read_exr(tmp_path / "gone.exr")
 
 
 def test_an_import_warns_of_a_wrong_projector_size_and_of_clipped_light(tmp_path):

@@ -83,3 +83,20 @@ def test_converged_references_outsample_the_captures_by_default(capsys):
     assert mr.converged_spp({"spp": 32}, 8, None) == 64  # at least 64 per group
     assert mr.converged_spp({"spp": 1024}, 8, 64) == 64 and "less than twice the 1024 spp" in capsys.readouterr().out
     assert mr.converged_spp({"spp": 64}, 8, 128) == 128 and capsys.readouterr().out == ""
+
+
+def test_a_coat_is_a_medium_of_its_own():
+    """A layered object's coat is Jensen et al.'s medium scaled as asked (isotropic), beside the core's."""
+    coat = mr.medium_dict("wholemilk", 2.0, 0.0)
+    sigma_t, albedo = mr.medium_coefficients("wholemilk", 2.0, 0.0)
+    assert coat["sigma_t"] == pytest.approx(sigma_t) and coat["albedo"]["value"] == albedo
+    assert coat["phase"] == {"type": "isotropic"}
+    assert mr.medium_dict("apple", 1.0, 0.5)["phase"] == {"type": "hg", "g": 0.5}
+
+
+@pytest.mark.parametrize("extra", [["--coat-mm", "0"], ["--coat-mm", "30"], ["--coat-scale", "-1"]])
+def test_a_coat_thinner_than_nothing_or_past_the_core_is_refused(monkeypatch, tmp_path, extra):
+    monkeypatch.setattr("sys.argv", ["mitsuba_render.py", str(tmp_path), "egg", "--test", "--coat", "marble", *extra])
+    with pytest.raises(SystemExit, match="--coat-mm in"):
+        mr.main()
+    assert not (tmp_path / "egg").exists()

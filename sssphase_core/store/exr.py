@@ -72,6 +72,8 @@ def read_exr(path: Path | str) -> np.ndarray:
     channels (depth only, luminance/chroma) or that cannot be decoded are refused in one line."""
     from sssphase_core.store.imageio import native_stderr_silenced
 
+    if not Path(path).is_file():  # not "damaged": not there (or a folder)
+        raise DataError(f"cannot read EXR {path}: no such file")
     OpenEXR = _openexr()
     try:
         with native_stderr_silenced((1, 2)), OpenEXR.File(str(path), separate_channels=True) as f:  # R, G, B apart
