@@ -146,11 +146,9 @@ def build_scene(mi, args: argparse.Namespace, rig, out: Path):  # noqa: ANN001, 
     cam, proj = rig.camera, rig.projector
     fov_cam = float(np.degrees(2 * np.arctan(cam.height / 2 / cam.fy)))
     fov_proj = float(np.degrees(2 * np.arctan(proj.width / 2 / proj.fx)))
-    sigma_t, albedo = medium_coefficients(args.medium, args.scale, args.g)
     medium = medium_dict(args.medium, args.scale, args.g)
-    coat = getattr(args, "coat", None)
-    if coat:  # a layered object: the coat's medium fills the shape, the core (--medium) a copy --coat-mm smaller
-        shell = medium_dict(coat, args.coat_scale, 0.0)
+    if args.coat:  # a layered object: the coat's medium fills the shape, the core (--medium) a copy --coat-mm smaller
+        shell = medium_dict(args.coat, args.coat_scale, 0.0)
         objects = {"object": object_dict(mi, args.shape, shell, out, args.name, args.seed),
                    "core": object_dict(mi, args.shape, medium, out, args.name, args.seed, args.coat_mm, shell)}
     else:
@@ -172,7 +170,7 @@ def build_scene(mi, args: argparse.Namespace, rig, out: Path):  # noqa: ANN001, 
                  "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.35, 0.35, 0.33]}}},
         **objects,
     })
-    return scene, {"sigma_t_per_mm": sigma_t, "albedo": albedo, "fov_camera_deg": fov_cam, "fov_projector_deg": fov_proj}
+    return scene, {"sigma_t_per_mm": medium["sigma_t"], "albedo": medium["albedo"]["value"], "fov_camera_deg": fov_cam, "fov_projector_deg": fov_proj}
 
 
 def exact_geometry(mi, scene, rig) -> dict[str, np.ndarray]:  # noqa: ANN001

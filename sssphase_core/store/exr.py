@@ -70,10 +70,11 @@ def read_exr(path: Path | str) -> np.ndarray:
     colour: R, G, B (alpha dropped), or a renderer's colour layer (:func:`_colour_layer`), in the first part
     that holds one (multi-part files keep depth or normals in parts of their own). Files without light
     channels (depth only, luminance/chroma) or that cannot be decoded are refused in one line."""
+    from sssphase_core.store.files import check_input_file
     from sssphase_core.store.imageio import native_stderr_silenced
 
-    if not Path(path).is_file():  # not "damaged": not there (or a folder)
-        raise DataError(f"cannot read EXR {path}: no such file")
+    if not check_input_file(path, "EXR").is_file():  # (a FIFO or a device refused by name) not "damaged": not there
+        raise DataError(f"cannot read EXR {path}: {'a folder, not a file' if Path(path).is_dir() else 'no such file'}")
     OpenEXR = _openexr()
     try:
         with native_stderr_silenced((1, 2)), OpenEXR.File(str(path), separate_channels=True) as f:  # R, G, B apart
