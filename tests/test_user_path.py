@@ -30,7 +30,7 @@ def test_capture_train_from_sessions_relight_and_beat_no_scattering(tmp_path):
     train, test = tmp_path / "sessions", tmp_path / "test_sessions"
     for obj in ("apple", "star"):  # every other dot shift: crops for a quarter of the pixels, as a lab trains
         _sss("capture", "--object", obj, "--views", "2", "--footprints", "--dot-stride", "2", "--out", str(train), env=env)
-    _sss("capture", "--object", "soap", "--views", "1", "--reference", "checkerboard", "--out", str(test), env=env)
+    _sss("capture", "--object", "sand_rake", "--views", "1", "--reference", "checkerboard", "--out", str(test), env=env)
     pre, dec = tmp_path / "runs" / "pre", tmp_path / "runs" / "dec"
     # No --views: what was captured is used (2 views each), the decoder holding each session's last view out.
     out = _sss("train", "pretrain", "--sessions", str(train), "--out", str(pre), "--pixels-per-view", "150",
@@ -41,9 +41,9 @@ def test_capture_train_from_sessions_relight_and_beat_no_scattering(tmp_path):
                "--out", str(dec), "--pixels-per-view", "300", "--epochs", "2", "--check-sessions", str(test), env=env)
     assert f"data: captured sessions under {train}: apple view 0; star view 0" in out, out
     assert f"validation (held out): captured sessions under {train}: apple view 1; star view 1" in out, out
-    assert "final (epoch 2): val_loss" in out and "relit PSNR on soap view 0" in out
+    assert "final (epoch 2): val_loss" in out and "relit PSNR on sand_rake view 0" in out
     assert "worse than the none baseline" not in out, out
-    checked = float(re.search(r"relit PSNR on soap view 0: torch ([0-9.]+) dB", out).group(1))
+    checked = float(re.search(r"relit PSNR on sand_rake view 0: torch ([0-9.]+) dB", out).group(1))
     _sss("eval", "relight", str(test), "--backend", "none,torch", "--checkpoint", str(dec), "--out", str(tmp_path / "ev"),
          env=env)
     rows = json.loads((tmp_path / "ev" / "relight_eval.json").read_text())["aggregate"]
@@ -51,7 +51,7 @@ def test_capture_train_from_sessions_relight_and_beat_no_scattering(tmp_path):
     assert psnr["torch"] > psnr["none"] + 2, psnr
     # The evaluation read the footprints the training's check cached for this view and checkpoint: its cache is
     # that very file (linked; a footprint computed again would have replaced it) and its PSNR the check's.
-    (kept,) = (dec / "check" / "cache").glob("soap_v0_*_torch_*.npz")
+    (kept,) = (dec / "check" / "cache").glob("sand_rake_v0_*_torch_*.npz")
     assert (tmp_path / "ev" / "cache" / kept.name).stat().st_ino == kept.stat().st_ino
     assert round(psnr["torch"], 2) == checked, (psnr, checked)
 

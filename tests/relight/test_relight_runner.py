@@ -40,10 +40,10 @@ class Recorder(Narrator):
 
 @pytest.fixture(scope="module")
 def session(tmp_path_factory, sim_daemon):
-    """One view of the soap with a checkerboard reference, captured through the daemon."""
+    """One view of the sand rake (the smallest unseen object) with a checkerboard reference, captured through the daemon."""
     from sssphase_core.capture import CaptureRequest, run_capture
 
-    req = CaptureRequest("soap", views=1, references=("checkerboard",), out=tmp_path_factory.mktemp("s"))
+    req = CaptureRequest("sand_rake", views=1, references=("checkerboard",), out=tmp_path_factory.mktemp("s"))
     return run_capture(sim_daemon, req).path
 
 
@@ -55,16 +55,16 @@ def test_relight_session_returns_what_it_wrote_and_scores_a_reference(session, t
     by_name = {im.pattern: im for im in res.images}
     assert set(by_name) == {"checkerboard", "white"}
     for im in res.images:
-        assert im.view == 0 and im.object == "soap"
-        assert [p.name for p in im.paths] == [f"soap_v0_{im.pattern}_none.png", f"soap_v0_{im.pattern}_none_display.png"]
+        assert im.view == 0 and im.object == "sand_rake"
+        assert [p.name for p in im.paths] == [f"sand_rake_v0_{im.pattern}_none.png", f"sand_rake_v0_{im.pattern}_none_display.png"]
         assert all(p.exists() for p in im.paths) and 0.0 <= im.clipped <= 1.0
     board = by_name["checkerboard"]
     assert board.metrics is not None and board.metrics["psnr"] > 15 and board.figure.exists()
     assert by_name["white"].metrics is None  # no reference capture of the white pattern
-    assert said.tasks == ["soap view 0: none"] and said.progress[-1][1] == said.progress[-1][2]
+    assert said.tasks == ["sand_rake view 0: none"] and said.progress[-1][1] == said.progress[-1][2]
     lines = [t for t, _ in said.lines]
     assert lines[0].startswith("wrote ") and f"PSNR {board.metrics['psnr']:.2f} dB" in lines[0]
-    assert len(list((tmp_path / "cache").glob("soap_v0_*_none_*.npz"))) == 1  # the footprints, for later patterns
+    assert len(list((tmp_path / "cache").glob("sand_rake_v0_*_none_*.npz"))) == 1  # the footprints, for later patterns
 
 
 def test_auto_is_the_analytic_model_calibrated_to_the_view_and_cached(session, tmp_path):
@@ -103,7 +103,7 @@ def test_relight_session_checks_its_input_before_any_work(session, tmp_path):
 def test_geometry_session_writes_and_scores_the_corrected_points(session, tmp_path):
     said = Recorder()
     (geo,) = geometry_session(session, backend="exact", out=tmp_path, narrator=said)
-    assert geo.path == tmp_path / "soap" / "view_000" / "correspondence_for_geometry.npz" and geo.path.exists()
+    assert geo.path == tmp_path / "sand_rake" / "view_000" / "correspondence_for_geometry.npz" and geo.path.exists()
     data = np.load(geo.path)
     assert set(data.files) == {"xp", "yp", "xp_decoded", "yp_decoded", "shift_x", "shift_y", "mask"}
     assert np.isfinite(geo.shift).all() and geo.period > 0
@@ -117,11 +117,11 @@ def test_evaluate_sessions_tabulates_and_writes_its_record(session, tmp_path):
     said = Recorder()
     res = evaluate_sessions([session], backend="none", out=tmp_path, narrator=said)
     assert res.backends == ["none"] and res.json.exists() and res.md.exists()
-    assert [(r["object"], r["view"], r["pattern"], r["backend"]) for r in res.rows] == [("soap", 0, "checkerboard", "none")]
-    assert np.isfinite(res.rows[0]["psnr"]) and said.tasks == ["soap view 0: none"]
+    assert [(r["object"], r["view"], r["pattern"], r["backend"]) for r in res.rows] == [("sand_rake", 0, "checkerboard", "none")]
+    assert np.isfinite(res.rows[0]["psnr"]) and said.tasks == ["sand_rake view 0: none"]
     assert said.lines[-1] == (f"wrote {res.json} and {res.md}", "")
     assert res.tables[0].markdown() in said.text()
-    with pytest.raises(InputError, match="--backend measured: soap view 0 has no captured footprints"):
+    with pytest.raises(InputError, match="--backend measured: sand_rake view 0 has no captured footprints"):
         evaluate_sessions([session], backend="none,measured", out=tmp_path / "m")
 
 
@@ -211,7 +211,7 @@ def test_a_decoder_of_another_footprint_size_is_refused_before_any_work(session,
     ckpt = tmp_path / "dec.pt"
     save_checkpoint(ckpt, {"kind": "decoder", "preset": small.to_dict(), "config": {"head": "reciprocal"},
                            "encoder": Encoder(small).state_dict(), "decoder": Decoder(small, head="reciprocal").state_dict()})
-    why = r"dec\.pt is a lite48 decoder \(48x48 footprints\) but soap was captured with 32x32 crops"
+    why = r"dec\.pt is a lite48 decoder \(48x48 footprints\) but sand_rake was captured with 32x32 crops"
     with pytest.raises(InputError, match=why):
         relight_session(session, ["checkerboard"], backend="blend", checkpoint=ckpt, out=tmp_path / "relit")
     with pytest.raises(InputError, match=why):
@@ -244,7 +244,7 @@ def test_later_patterns_are_relit_from_the_views_cached_eigen_footprints(session
     """A model's relight keeps the view's eigen-footprints and calibration; the next `sss relight` of the same
     view relights any pattern from them alone, close to the full relight, and says so; --no-cache does not."""
     first = relight_session(session, ["checkerboard"], backend="analytic", out=tmp_path, formats="exr")
-    assert len(list((tmp_path / "cache").glob("soap_v0_*_analytic_*_lowrank.npz"))) == 1
+    assert len(list((tmp_path / "cache").glob("sand_rake_v0_*_analytic_*_lowrank.npz"))) == 1
     said = Recorder()
     fast = relight_session(session, ["checkerboard", "stripes_x"], backend="analytic", out=tmp_path, formats="exr",
                            narrator=said)
@@ -299,7 +299,7 @@ def test_an_evaluation_starts_from_the_footprints_the_trainings_check_kept(sessi
     save_checkpoint(run / "best.pt", {"kind": "decoder", "preset": small.to_dict(), "config": {"head": "reciprocal"},
                                       "encoder": Encoder(small).state_dict(), "decoder": Decoder(small, head="reciprocal").state_dict()})
     checked = baseline_check([Session.open(session)], run, run / CHECK_FOLDER)
-    (kept,) = (run / CHECK_FOLDER / "cache").glob("soap_v0_*_torch_*.npz")
+    (kept,) = (run / CHECK_FOLDER / "cache").glob("sand_rake_v0_*_torch_*.npz")
     said = Recorder()
     res = evaluate_sessions([session], backend="torch", checkpoint=run, out=tmp_path / "ev", narrator=said)
     # the same file (linked): a footprint predicted again would have had the cache rewritten
@@ -344,7 +344,7 @@ def test_the_decoders_calibration_widens_by_default_and_the_analytic_models_does
     said = Recorder()
     wide = relight_session(session, ["checkerboard"], backend="torch", checkpoint=run, out=out, narrator=said, formats="exr")
     assert said.text().count(f"stretched {DECODER_WIDEN:g} x") == 1
-    assert len(list((out / "cache").glob(f"soap_v0_*_torch_*_w{DECODER_WIDEN:g}_lowrank.npz"))) == 1
+    assert len(list((out / "cache").glob(f"sand_rake_v0_*_torch_*_w{DECODER_WIDEN:g}_lowrank.npz"))) == 1
     from sssphase_core.store.exr import read_exr
 
     x = read_exr(wide.images[0].paths[0])
@@ -352,7 +352,7 @@ def test_the_decoders_calibration_widens_by_default_and_the_analytic_models_does
     plain = relight_session(session, ["checkerboard"], backend="torch", checkpoint=run, out=out, narrator=said,
                             widen=1.0, formats="exr")
     assert "stretched" not in said.text() and "eigen-footprints" not in said.text()  # not the widened relight's
-    assert len([p for p in (out / "cache").glob("soap_v0_*_torch_*_lowrank.npz") if "_w" not in p.name]) == 1
+    assert len([p for p in (out / "cache").glob("sand_rake_v0_*_torch_*_lowrank.npz") if "_w" not in p.name]) == 1
     assert np.abs(x - read_exr(plain.images[0].paths[0])).max() > 1e-4  # the stretched footprints took the place of the plain ones
     said = Recorder()
     res = evaluate_sessions([session], backend="analytic,torch", checkpoint=run, out=out, narrator=said)
