@@ -715,6 +715,9 @@ def test_16_bit_npy_frames_import_like_16_bit_pngs(frames, tmp_path):
     ("white", lambda img: img * 0, "the white capture holds no light (99.9th percentile 0)"),
     ("white", lambda img: -img, "the white capture holds no light (99.9th percentile -"),
     ("white", lambda img: img * np.float32(1e-44), "the white capture holds no light"),  # denormal: 1/level overflows
+    # negated over a lit backdrop's noise: its level is that noise's, and the black was blamed for being below it
+    ("white", lambda img: np.where(np.arange(img.shape[1])[:, None] < 8, np.float32(0.05), -img),
+     "of its values are below -0.25 x the white capture's level"),
     ("psp__x__p18__s1", lambda img: img - np.float32(0.6), "of its values are below -0.25 x the white capture's level"),
     ("black", lambda img: img - np.float32(0.5), "100% of its values are below -0.25 x the white capture's level"),  # not 1e+02%
     ("black", lambda img: img + np.float32(2.0), "the black capture is brighter than the white one (99.9th percentiles 2"),
@@ -734,6 +737,24 @@ def test_frames_without_light_or_far_below_zero_are_refused_naming_them(tmp_path
     for p in noisy.glob("*.npy"):  # read noise of 2% of white around zero in every frame: not refused
         np.save(p, np.load(p) + rng.normal(0, 0.02, (H, W, 3)).astype(np.float32))
     assert import_folder(noisy, tmp_path / "s", "noisy", (W, H), patch=K).views() == [0]
+
+
+def test_grey_frames_import_as_colour_and_one_grey_frame_among_colour_ones_is_refused(tmp_path):
+    """A mono camera's frames (one channel) import as grey light in every colour; one grey file among a colour
+    camera's (an export gone wrong) was repeated into RGB without a word, its view's colours decoded from mixed
+    frames."""
+    grey = _float_frames(tmp_path / "grey", 1.0)
+    for p in grey.glob("*.npy"):
+        np.save(p, np.load(p).mean(-1))
+    s = import_folder(grey, tmp_path / "s", "grey", (W, H), patch=K)
+    white = np.asarray(s.load(0, "white"))
+    assert white.shape[-1] == 3 and np.array_equal(white[..., 0], white[..., 2]) and white.max() > 0.2
+    mixed = _float_frames(tmp_path / "mixed", 1.0)
+    one = mixed / "psp__x__p18__s1.npy"
+    np.save(one, np.load(one).mean(-1))
+    with pytest.raises(InputError, match=rf"{one} is a grey image, the other frames \(.*\) colour: one camera"):
+        import_folder(mixed, tmp_path / "s", "mixed", (W, H), patch=K)
+    assert not (tmp_path / "s" / "mixed").exists()
 
 
 def test_frames_beside_view_folders_are_refused_not_left_out(tmp_path):

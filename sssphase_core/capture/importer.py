@@ -159,18 +159,22 @@ def psp_config_from_names(vdir: Path, keys: Iterable[str]) -> Any:
 MIN_WHITE_LEVEL = 1e-30
 
 
-def read_imported(path: Path, encoding: str = "linear") -> tuple[np.ndarray, int]:
-    """``(frame, n)``: a frame file as :func:`read_frame` reads it (integer codes decoded by ``encoding``),
+def read_imported(path: Path, encoding: str = "linear", *, keep_grey: bool = False) -> tuple[np.ndarray, int]:
+    """``(frame, n)``: a frame file as :func:`read_frame` reads it (integer codes decoded by ``encoding``, a grey
+    file (H, W) with ``keep_grey``),
     with up to ``isp.NONFINITE_LIMIT`` of its values NaN / inf (a path tracer's degenerate samples) repaired
     from their neighbours, ``n`` of them; more is refused in one line."""
     from sssphase_core.processing.isp import NONFINITE_LIMIT, repair_nonfinite
 
-    image = read_frame(path, finite=False, encoding=encoding)
+    image = read_frame(path, finite=False, encoding=encoding, keep_grey=keep_grey)
     bad = int(np.count_nonzero(~np.isfinite(image)))
     if bad > NONFINITE_LIMIT * image.size:
         raise InputError(f"{path}: {bad} of its {image.size} values are NaN or infinite (more than the "
                          f"{NONFINITE_LIMIT:.1%} a path tracer's stray samples make): the file or its renderer is broken")
-    return repair_nonfinite(image) if bad else (image, 0)
+    if not bad:
+        return image, 0
+    repaired, n = repair_nonfinite(image[..., None] if image.ndim == 2 else image)
+    return repaired.reshape(image.shape), n
 
 
 #: A fringe frame's level (99.9th percentile) may exceed the white capture's by this factor at most (noise,
@@ -183,22 +187,31 @@ class FrameLoader:
     """One view's frame files read in turn, the one reader of `sss import` and `sss decode`: each file decoded to
     light by ``encoding`` (:func:`read_frame`), with a few NaN / inf values repaired (:func:`read_imported`;
     ``repair=False``: refused, as `sss decode` does), times ``scale``, and refused unless every frame has the first's
-    size and that size is a camera frame's (at least ``MIN_FRAME_SIDE`` a side). ``repaired`` counts the values
-    repaired so far."""
+    size and that size is a camera frame's (at least ``MIN_FRAME_SIDE`` a side), and unless all are colour or all
+    grey (one camera takes a view's frames; a grey file among colour ones is an export gone wrong). Frames come
+    back (H, W, 3), a grey one repeated. ``repaired`` counts the values repaired so far."""
 
     def __init__(self, encoding: str = "linear", scale: float = 1.0, *, repair: bool = True) -> None:
         self.encoding, self.scale, self.repair = encoding, scale, repair
         self.first: Path | None = None
         self.shape: tuple[int, ...] | None = None
+        self.grey: bool | None = None
         self.repaired = 0
 
     def read(self, path: Path) -> np.ndarray:
         if self.repair:
-            image, repaired = read_imported(path, self.encoding)
+            image, repaired = read_imported(path, self.encoding, keep_grey=True)
             self.repaired += repaired
         else:
-            image = read_frame(path, encoding=self.encoding)
-        image = image * np.float32(self.scale)  # (times 1: the same values)
+            image = read_frame(path, encoding=self.encoding, keep_grey=True)
+        grey = image.ndim == 2
+        if self.grey is not None and grey != self.grey:
+            kind = ("grey", "colour") if grey else ("colour", "grey")
+            first = self.first.name if self.first is not None else "the first"
+            raise InputError(f"{path} is a {kind[0]} image, the other frames ({first} ...) {kind[1]}: one camera "
+                             "takes a view's frames, so write them all colour or all grey")
+        self.grey = grey
+        image = (np.repeat(image[..., None], 3, axis=-1) if grey else image) * np.float32(self.scale)
         if self.shape is not None and image.shape != self.shape:
             self.refuse_size(path, image.shape)
         if self.first is None:
@@ -252,6 +265,7 @@ def white_levels(whites: Iterable[Path], encoding: str = "linear") -> list[float
         if not level >= MIN_WHITE_LEVEL:
             raise InputError(f"{path}: the white capture holds no light (99.9th percentile {level:.3g}): it must be a "
                              "linear image of the object under the projector's full white")
+        check_not_negative(path, white, level)  # a negated white: its noise sets the level, the black gets the blame
         robust = _median_level(white)
         if level > FIREFLY_RATIO * max(robust, 0.0):  # a refusal that followed named the fringes, not the fireflies
             times = f"{level / robust:.0f}x its 3 x 3 median's" if robust > 0 else "its 3 x 3 median's being"

@@ -470,8 +470,8 @@ def decode_codes(values: np.ndarray, encoding: str) -> np.ndarray:
     raise ValueError(f"unknown encoding {encoding!r}")
 
 
-def read_frame(path: Path, *, finite: bool = True, encoding: str = "linear") -> np.ndarray:
-    """A linear image as float32 RGB: 8/16-bit integers (PNG, TIFF, ``.npy``) divided by the top code and
+def read_frame(path: Path, *, finite: bool = True, encoding: str = "linear", keep_grey: bool = False) -> np.ndarray:
+    """A linear image as float32 RGB (H, W, 3) (a grey file's one channel repeated; ``keep_grey``: kept (H, W)): 8/16-bit integers (PNG, TIFF, ``.npy``) divided by the top code and
     decoded by ``encoding`` (:func:`decode_codes`; ``"auto"``: the file's own tag, :func:`declared_encoding`),
     float ``.npy`` / ``.exr`` / TIFF and wider integer ``.npy`` as stored. Frames larger than ``MAX_FRAME_PIXELS`` are refused from their header.
     NaN / inf values are refused unless ``finite`` is False (the importer repairs a few: ``isp.repair_nonfinite``)."""
@@ -500,4 +500,4 @@ def read_frame(path: Path, *, finite: bool = True, encoding: str = "linear") -> 
         raise InputError(f"{path} has shape {arr.shape}: expected (H, W) or (H, W, 3)")
     if finite and not np.isfinite(arr).all():
         raise InputError(f"{path} holds NaN or infinite values")
-    return np.repeat(arr[..., None], 3, axis=-1) if arr.ndim == 2 else arr
+    return np.repeat(arr[..., None], 3, axis=-1) if arr.ndim == 2 and not keep_grey else arr
