@@ -143,7 +143,7 @@ FILE_SYSTEM_ERRORS = {errno.ENOTDIR, errno.EISDIR, errno.EACCES, errno.EPERM, er
 
 #: what an interrupted command leaves, and how to go on (by its first word)
 INTERRUPTED = {
-    "import": "nothing was imported; rerun the command to import",  # all or nothing: the half-written session is removed
+    "import": "the views imported so far are kept; the same command again continues from them",
     "capture": "the views captured so far are kept; rerun with --resume to continue",
     "train": "training continues from its last checkpoint when the command is rerun",
     "demo": "work done so far is kept; rerun the command to resume",

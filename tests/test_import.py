@@ -119,11 +119,11 @@ def test_a_failed_import_leaves_nothing_behind(frames, tmp_path):
     assert not (tmp_path / "sessions" / "again").exists()
 
 
-def test_an_import_killed_midway_is_replaced_by_the_next_import_of_its_folder_and_says_how(handmade, frames, tmp_path):
+def test_an_import_killed_midway_is_completed_by_the_next_import_of_its_folder_and_says_how(handmade, frames, tmp_path):
     """A killed `sss import` (no cleanup ran) left its session unfinished, and every way on named a fix that does not
     apply (`--resume`, which import has not; `sss capture ... --resume`) or refused the name ("already exists"). The
-    unfinished import is now named as one, and importing the same folder again replaces it; another folder's import
-    is still refused the name."""
+    unfinished import is now named as one, and importing the same folder again completes it (the view it was in is
+    redone); another folder's import is still refused the name."""
     from sssphase_core.relight.runner import choose_views
 
     s = _copy(handmade, tmp_path / "sessions")
@@ -138,9 +138,47 @@ def test_an_import_killed_midway_is_replaced_by_the_next_import_of_its_folder_an
     shutil.copytree(frames, other)
     with pytest.raises(InputError, match="already exists"):
         import_folder(other, tmp_path / "sessions", "handmade", (W, H), patch=K)
-    with pytest.warns(UserWarning, match="an unfinished import of .* is replaced"):
+    with pytest.warns(UserWarning, match="continuing the unfinished import of .*: none of its views was complete"):
         again = import_folder(frames, tmp_path / "sessions", "handmade", (W, H), patch=K)
     assert again.views() == [0] and not again.validate()
+
+
+def test_an_interrupted_import_keeps_its_complete_views_and_the_same_import_continues_from_them(frames, tmp_path,
+                                                                                                monkeypatch):
+    """Ctrl-C (or SIGTERM) in the second view of two removed the whole import, the first view's work with it (hours at
+    1080p with dot grids). The complete view now stays; the same import again continues from it without reading it
+    again, and an import of the folder with other settings starts afresh and says so."""
+    import shutil
+
+    import sssphase_core.capture.importer as importer
+
+    multi = tmp_path / "multi"
+    for v in (0, 1):
+        shutil.copytree(frames, multi / f"view_00{v}")
+    read = importer.FrameLoader.read
+
+    def interrupted_in_view_1(self, path):
+        if "view_001" in str(path):
+            raise KeyboardInterrupt
+        return read(self, path)
+
+    for name in ("same", "other"):
+        monkeypatch.setattr(importer.FrameLoader, "read", interrupted_in_view_1)
+        with pytest.raises(KeyboardInterrupt):
+            import_folder(multi, tmp_path / "s", name, (W, H), patch=K)
+        s = Session.open(tmp_path / "s" / name)
+        assert s.views() == [0] and s.status(1) == "interrupted" and not list(s.path.glob(".view_*"))
+        monkeypatch.setattr(importer.FrameLoader, "read", read)
+    def completed(session_name):  # when view 0 was written
+        return Session.open(tmp_path / "s" / session_name).manifest["views"]["0"]["completed"]
+
+    before = {name: completed(name) for name in ("same", "other")}
+    with pytest.warns(UserWarning, match=r"continuing the unfinished import of .*: view 0 already imported is kept"):
+        again = import_folder(multi, tmp_path / "s", "same", (W, H), patch=K)
+    assert again.views() == [0, 1] and not again.validate() and completed("same") == before["same"]
+    with pytest.warns(UserWarning, match=r"an unfinished import of .* with other settings .* is replaced"):
+        other = import_folder(multi, tmp_path / "s", "other", (W, H), patch=K, gamma=2.0)
+    assert other.views() == [0, 1] and other.manifest["plan"]["gamma"] == 2.0 and completed("other") > before["other"]
 
 
 def test_a_full_disk_during_an_import_leaves_nothing_and_names_the_imports_own_fix(frames, tmp_path, monkeypatch):

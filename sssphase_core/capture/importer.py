@@ -684,7 +684,8 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     shows it (:func:`isp.detect_bayer_layout`, the reason in the view's ``bayer_detected``), else none;
     ``None`` or ``"none"``: none. A reference that is not a named pattern needs its projected
     image as ``pattern__<name>.png``. A view where nothing decodes is refused; a failed import leaves
-    nothing behind.
+    nothing behind; an interrupted one (Ctrl-C, SIGTERM) keeps its complete views, and the same import run again
+    continues from them (after a SIGKILL too: the view it was in is redone).
     """
     from sssphase_core.processing.patterns import (
         REFERENCE_NAMES,
@@ -760,8 +761,6 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                          "together)")
     scale = frame_scale([files["white"] for _, files in views], levels)
     path = Path(root) / name
-    if path.exists():
-        _replace_unfinished_import(path, folder)
     frames: list[dict[str, Any]] = []
     given = {k for _, files in views for k in files if k.startswith("pattern/")}  # the projected images the user gives
     for key in sorted({k for _, files in views for k in files if k.startswith("ref/")}):
@@ -772,12 +771,21 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                        "exposure": 1.0})
     psp_frames = json.loads(capture_plan(w, h, psp=configs[0], gamma=gamma).to_json())["frames"]  # as a capture lists them
     plan_json = {"projector": [w, h], "gamma": float(gamma), "psp": asdict(configs[0]), "frames": psp_frames + frames}
-    session = Session.create(root, name, n_views=len(view_dirs), imported_from=str(folder.resolve()),
-                             rig={"camera": "import", "projector_size": [w, h], "patch": patch, "imported": True,
-                                  "frame_scale": scale, "frame_encoding": encoding, "frame_encoding_from": encoding_tag},
-                             plan=plan_json, software={"sssphase": __version__})
+    settings = {"n_views": len(view_dirs), "imported_from": str(folder.resolve()),
+                "rig": {"camera": "import", "projector_size": [w, h], "patch": patch, "imported": True,
+                        "frame_scale": scale, "frame_encoding": encoding, "frame_encoding_from": encoding_tag},
+                "plan": plan_json, "import_options": {"bayer": str(bayer).lower(), "demosaic": demosaic}}
+    resume = path.exists() and _continues_unfinished_import(path, folder, settings)
+    session = Session.create(root, name, resume=resume, **settings, software={"sssphase": __version__})
+    done = set(session.views())
+    if resume:
+        kept = (f"view{'s' if len(done) > 1 else ''} {', '.join(map(str, sorted(done)))} already imported "
+                f"{'are' if len(done) > 1 else 'is'} kept") if done else "none of its views was complete"
+        warnings.warn(f"{path}: continuing the unfinished import of {folder}: {kept}", UserWarning, stacklevel=2)
     try:
         for view, ((vdir, files), config, level) in enumerate(zip(views, configs, levels, strict=True)):
+            if view in done:
+                continue
             spacing = max(1, check_dot_frames(vdir, files))
             plan = CapturePlan(w, h, config, (), gamma)
             writer = session.begin_view(view)
@@ -864,28 +872,38 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                                   stacklevel=2)
             except BaseException:
                 writer.abort()
+                session.set_view(view, {"status": "interrupted"})
                 raise
             writer.commit({"source": str(vdir), **info})
+    except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the complete views stay, and the same import continues from them
+        if not session.views():
+            _remove(session.path)
+        raise
     except BaseException:
-        _remove(session.path)  # nothing half-imported blocks the name
+        _remove(session.path)  # a failed import leaves nothing behind, and nothing half-imported blocks the name
         raise
     return session
 
 
-def _replace_unfinished_import(path: Path, folder: Path) -> None:
-    """Refuse to import over ``path``, unless it is an unfinished import of the same ``folder`` (a killed `sss import`:
-    its frames are still in that folder, so nothing is lost), which is removed with a warning."""
+def _continues_unfinished_import(path: Path, folder: Path, settings: dict[str, Any]) -> bool:
+    """Whether an import into the existing session ``path`` continues it: an unfinished import of the same ``folder``
+    (interrupted, or killed mid-view) made with the same ``settings`` (the manifest entries an import writes: views,
+    rig, plan and options, so its views and the new ones are alike) keeps its complete views. Made otherwise, it is
+    removed with a warning (its frames are still in ``folder``: nothing is lost); anything else at ``path`` is refused."""
     try:
         old = Session.open(path)
         unfinished = old.imported and len(old.views()) < int(old.manifest.get("n_views", 0))
-        same = str(old.manifest.get("imported_from")) == str(Path(folder).resolve())
+        same = str(old.manifest.get("imported_from")) == settings["imported_from"]
     except Exception:  # not a session, or a damaged one: nothing to decide from; refused below
         unfinished = same = False
     if not (unfinished and same):
         raise InputError(f"{path} already exists: import into another --out or choose another --object")
-    warnings.warn(f"{path}: an unfinished import of {folder} (interrupted before it completed) is replaced",
+    if all(old.manifest.get(k) == json.loads(json.dumps(v)) for k, v in settings.items()):
+        return True
+    warnings.warn(f"{path}: an unfinished import of {folder} with other settings (options, frames or units) is replaced",
                   UserWarning, stacklevel=3)
     _remove(path)
+    return False
 
 
 def _remove(path: Path, tries: int = 20) -> None:
