@@ -146,6 +146,7 @@ INTERRUPTED = {
     "import": "the views imported so far are kept; the same command again continues from them",
     "capture": "the views captured so far are kept; rerun with --resume to continue",
     "train": "training continues from its last checkpoint when the command is rerun",
+    "relight": "the footprints computed so far are kept in --out's cache; the same command again computes only the rest",
     "demo": "work done so far is kept; rerun the command to resume",
     "patterns": "the patterns written so far are kept in --out; rerun into a new or emptied folder",
     "": "outputs written so far are kept; rerun the command to redo the rest",

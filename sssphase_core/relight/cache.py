@@ -7,7 +7,8 @@ import hashlib
 import json
 import os
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -189,6 +190,18 @@ def seed_cache(path: Path, checkpoint: Path | str | None) -> None:
         os.link(seed, path)
     except OSError:  # another file system, or one without hard links
         shutil.copyfile(seed, path)
+
+
+@contextmanager
+def saved_if_interrupted(caches: Iterable[FootprintCache]) -> Iterator[None]:
+    """Save the ``caches``' footprints computed so far when the block is interrupted (Ctrl-C, SIGTERM), so that the
+    same relight run again computes only the rest (a 1080p view through a decoder on a CPU takes tens of minutes)."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        for cache in caches:
+            kept(cache.save, cache.path)
+        raise
 
 
 def kept(save: Callable[[], None], path: Path) -> str | None:

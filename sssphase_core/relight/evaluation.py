@@ -131,7 +131,7 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     images under ``out_dir`` if ``write``). ``cache``: a model's footprints are kept in ``out_dir/cache`` as
     ``sss relight`` keeps them (:func:`footprint_caches`), and read back by the next evaluation of the view."""
     from sssphase_core.relight.backends import MODEL_FREE, make_sources
-    from sssphase_core.relight.cache import kept
+    from sssphase_core.relight.cache import kept, saved_if_interrupted
     from sssphase_core.relight.choices import widen_for
     from sssphase_core.relight.pipeline import relight_view
 
@@ -148,8 +148,9 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     if caches:
         sources = [(c, k) for c, (_, k) in zip(caches, sources, strict=True)]
     (source, patch), *also = sources
-    relit, mix = relight_view(source, patch, rv, [rv.references[n] for n in names], calibrate=calibrate, also=also,
-                              chunk=chunk, device=device, progress=progress, widen=widen)
+    with saved_if_interrupted(caches):
+        relit, mix = relight_view(source, patch, rv, [rv.references[n] for n in names], calibrate=calibrate, also=also,
+                                  chunk=chunk, device=device, progress=progress, widen=widen)
     for c in caches:
         if (line := kept(c.save, c.path)) is not None:
             warnings.warn(line, UserWarning, stacklevel=2)

@@ -20,7 +20,14 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sssphase_core.errors import InputError
-from sssphase_core.relight.cache import footprint_bytes, kept, model_tag, view_caches, view_tag
+from sssphase_core.relight.cache import (
+    footprint_bytes,
+    kept,
+    model_tag,
+    saved_if_interrupted,
+    view_caches,
+    view_tag,
+)
 from sssphase_core.relight.choices import (
     BLENDS,
     MODEL_FREE,
@@ -401,7 +408,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
         sources = [(tap, k) for tap, (_, k) in zip(taps, sources, strict=True)]
     (source, patch), *also = sources
     calibration: list[tuple[np.ndarray, np.ndarray]] = []
-    with say.bar():
+    with say.bar(), saved_if_interrupted(caches if keep else ()):  # type: ignore[arg-type]
         progress = say.task(f"{rv.object} view {rv.view}: {backend}")
         relit, mix = relight_view(source, patch, rv, pats, calibrate=backend not in MODEL_FREE, also=also, chunk=chunk,
                                   device=device, progress=progress, calibration=calibration, widen=widen)
