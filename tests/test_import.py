@@ -119,11 +119,11 @@ def test_a_failed_import_leaves_nothing_behind(frames, tmp_path):
     assert not (tmp_path / "sessions" / "again").exists()
 
 
-def test_an_import_killed_midway_is_completed_by_the_next_import_of_its_folder_and_says_how(handmade, frames, tmp_path):
+def test_an_import_killed_midway_is_replaced_by_the_next_import_of_its_folder_and_says_how(handmade, frames, tmp_path):
     """A killed `sss import` (no cleanup ran) left its session unfinished, and every way on named a fix that does not
     apply (`--resume`, which import has not; `sss capture ... --resume`) or refused the name ("already exists"). The
-    unfinished import is now named as one, and importing the same folder again completes it (the view it was in is
-    redone); another folder's import is still refused the name."""
+    unfinished import is now named as one, and importing the same folder again replaces it (it had no complete view
+    to keep); another folder's import is still refused the name."""
     from sssphase_core.relight.runner import choose_views
 
     s = _copy(handmade, tmp_path / "sessions")
@@ -138,7 +138,7 @@ def test_an_import_killed_midway_is_completed_by_the_next_import_of_its_folder_a
     shutil.copytree(frames, other)
     with pytest.raises(InputError, match="already exists"):
         import_folder(other, tmp_path / "sessions", "handmade", (W, H), patch=K)
-    with pytest.warns(UserWarning, match="continuing the unfinished import of .*: none of its views was complete"):
+    with pytest.warns(UserWarning, match="an unfinished import of .* is replaced: none of its views was complete"):
         again = import_folder(frames, tmp_path / "sessions", "handmade", (W, H), patch=K)
     assert again.views() == [0] and not again.validate()
 
@@ -176,7 +176,7 @@ def test_an_interrupted_import_keeps_its_complete_views_and_the_same_import_cont
     with pytest.warns(UserWarning, match=r"continuing the unfinished import of .*: view 0 already imported is kept"):
         again = import_folder(multi, tmp_path / "s", "same", (W, H), patch=K)
     assert again.views() == [0, 1] and not again.validate() and completed("same") == before["same"]
-    with pytest.warns(UserWarning, match=r"an unfinished import of .* with other settings .* is replaced"):
+    with pytest.warns(UserWarning, match=r"an unfinished import of .* is replaced: it was made with other settings"):
         other = import_folder(multi, tmp_path / "s", "other", (W, H), patch=K, gamma=2.0)
     assert other.views() == [0, 1] and other.manifest["plan"]["gamma"] == 2.0 and completed("other") > before["other"]
 

@@ -778,10 +778,10 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
     resume = path.exists() and _continues_unfinished_import(path, folder, settings)
     session = Session.create(root, name, resume=resume, **settings, software={"sssphase": __version__})
     done = set(session.views())
-    if resume:
-        kept = (f"view{'s' if len(done) > 1 else ''} {', '.join(map(str, sorted(done)))} already imported "
-                f"{'are' if len(done) > 1 else 'is'} kept") if done else "none of its views was complete"
-        warnings.warn(f"{path}: continuing the unfinished import of {folder}: {kept}", UserWarning, stacklevel=2)
+    if done:
+        warnings.warn(f"{path}: continuing the unfinished import of {folder}: view{'s' if len(done) > 1 else ''} "
+                      f"{', '.join(map(str, sorted(done)))} already imported {'are' if len(done) > 1 else 'is'} kept",
+                      UserWarning, stacklevel=2)
     try:
         for view, ((vdir, files), config, level) in enumerate(zip(views, configs, levels, strict=True)):
             if view in done:
@@ -888,8 +888,9 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
 def _continues_unfinished_import(path: Path, folder: Path, settings: dict[str, Any]) -> bool:
     """Whether an import into the existing session ``path`` continues it: an unfinished import of the same ``folder``
     (interrupted, or killed mid-view) made with the same ``settings`` (the manifest entries an import writes: views,
-    rig, plan and options, so its views and the new ones are alike) keeps its complete views. Made otherwise, it is
-    removed with a warning (its frames are still in ``folder``: nothing is lost); anything else at ``path`` is refused."""
+    rig, plan and options, so its views and the new ones are alike) keeps its complete views. Made otherwise, or with
+    no complete view, it is removed with a warning (its frames are still in ``folder``: nothing is lost); anything
+    else at ``path`` is refused."""
     try:
         old = Session.open(path)
         unfinished = old.imported and len(old.views()) < int(old.manifest.get("n_views", 0))
@@ -898,10 +899,13 @@ def _continues_unfinished_import(path: Path, folder: Path, settings: dict[str, A
         unfinished = same = False
     if not (unfinished and same):
         raise InputError(f"{path} already exists: import into another --out or choose another --object")
-    if all(old.manifest.get(k) == json.loads(json.dumps(v)) for k, v in settings.items()):
+    if not old.views():
+        why = "none of its views was complete"
+    elif all(old.manifest.get(k) == json.loads(json.dumps(v)) for k, v in settings.items()):
         return True
-    warnings.warn(f"{path}: an unfinished import of {folder} with other settings (options, frames or units) is replaced",
-                  UserWarning, stacklevel=3)
+    else:
+        why = "it was made with other settings (options, frames or units)"
+    warnings.warn(f"{path}: an unfinished import of {folder} is replaced: {why}", UserWarning, stacklevel=3)
     _remove(path)
     return False
 
