@@ -195,7 +195,7 @@ class FrameLoader:
         self.encoding, self.scale, self.repair = encoding, scale, repair
         self.first: Path | None = None
         self.shape: tuple[int, ...] | None = None
-        self.grey: bool | None = None
+        self.grey = False  # whether the first frame was grey (set with ``first``)
         self.repaired = 0
 
     def read(self, path: Path) -> np.ndarray:
@@ -205,17 +205,15 @@ class FrameLoader:
         else:
             image = read_frame(path, encoding=self.encoding, keep_grey=True)
         grey = image.ndim == 2
-        if self.grey is not None and grey != self.grey:
+        if self.first is not None and grey != self.grey:
             kind = ("grey", "colour") if grey else ("colour", "grey")
-            first = self.first.name if self.first is not None else "the first"
-            raise InputError(f"{path} is a {kind[0]} image, the other frames ({first} ...) {kind[1]}: one camera "
-                             "takes a view's frames, so write them all colour or all grey")
-        self.grey = grey
+            raise InputError(f"{path} is a {kind[0]} image, the other frames ({self.first.name} ...) {kind[1]}: one "
+                             "camera takes a view's frames, so write them all colour or all grey")
         image = (np.repeat(image[..., None], 3, axis=-1) if grey else image) * np.float32(self.scale)
         if self.shape is not None and image.shape != self.shape:
             self.refuse_size(path, image.shape)
         if self.first is None:
-            self.first, self.shape = path, image.shape
+            self.first, self.shape, self.grey = path, image.shape, grey
         if min(image.shape[:2]) < MIN_FRAME_SIDE:
             raise InputError(f"{path} is {image.shape[1]}x{image.shape[0]}: smaller than a camera frame "
                              f"(at least {MIN_FRAME_SIDE} px a side)")

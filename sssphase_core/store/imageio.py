@@ -471,9 +471,10 @@ def decode_codes(values: np.ndarray, encoding: str) -> np.ndarray:
 
 
 def read_frame(path: Path, *, finite: bool = True, encoding: str = "linear", keep_grey: bool = False) -> np.ndarray:
-    """A linear image as float32 RGB (H, W, 3) (a grey file's one channel repeated; ``keep_grey``: kept (H, W)): 8/16-bit integers (PNG, TIFF, ``.npy``) divided by the top code and
-    decoded by ``encoding`` (:func:`decode_codes`; ``"auto"``: the file's own tag, :func:`declared_encoding`),
-    float ``.npy`` / ``.exr`` / TIFF and wider integer ``.npy`` as stored. Frames larger than ``MAX_FRAME_PIXELS`` are refused from their header.
+    """A linear image as float32 RGB (H, W, 3) (a grey file's one channel repeated; ``keep_grey``: kept (H, W)):
+    8/16-bit integers (PNG, TIFF, ``.npy``) divided by the top code and decoded by ``encoding``
+    (:func:`decode_codes`; ``"auto"``: the file's own tag, :func:`declared_encoding`), float ``.npy`` / ``.exr`` / TIFF
+    and wider integer ``.npy`` as stored. Frames larger than ``MAX_FRAME_PIXELS`` are refused from their header.
     NaN / inf values are refused unless ``finite`` is False (the importer repairs a few: ``isp.repair_nonfinite``)."""
     shape = frame_shape(path)
     if len(shape) >= 2 and shape[0] * shape[1] > MAX_FRAME_PIXELS:
