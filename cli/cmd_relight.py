@@ -63,7 +63,8 @@ def _widen_range(value: float | None) -> float | None:
 
 WidenOpt = Annotated[float | None, typer.Option(callback=_widen_range, help="Let the view calibration also widen the model's "
                                                "footprints (a blend's decoder's): they join its fit stretched this many times along x, along "
-                                               "y and along both, and the view's own fringes weigh the three (default: 1.3 "
+                                               "y and along both, and softened at their own width, and the view's own "
+                                               "fringes weigh the four (default: 1.3 "
                                                "for backends that run the decoder, 1 for the others; 1: the footprints "
                                                "as they are, only narrowed).")]
 CalibrateOpt = Annotated[bool, typer.Option(help="Mix a model's footprints with no scattering by the weight that relights "

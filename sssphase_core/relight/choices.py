@@ -32,18 +32,18 @@ def check_backends(names: Sequence[str], checkpoint: Path | str | None) -> None:
         load_decoder(checkpoint)  # raises DataError naming what the file is, or weights that are not finite
 
 
-#: The stretch, along x, y and both, of each model's footprints in the view calibration (``relight_view``'s
-#: ``widen``) for backends that run the decoder, unless the user gives one (``--widen``; 1: none). A decoder's
-#: footprint widths are a prediction, too narrow on materials wider than its training objects' (the simulator's unseen
-#: hand: 1.5 dB below the analytic model's; an independent path tracer's skin: a quarter too narrow), and the
-#: calibration of the footprints as they are can only narrow them; the analytic model's widths (one per axis) are
-#: fitted to the view's own fringes. Measured in docs/benchmarks/relighting.md.
+#: The stretch, along x, y and both (beside the footprints softened), of each model's footprints in the view
+#: calibration (``relight_view``'s ``widen``) for backends that run the decoder, unless the user gives one
+#: (``--widen``; 1: none). A decoder's footprint widths are a prediction, too narrow on materials wider than its
+#: training objects' (the simulator's unseen hand: 1.5 dB below the analytic model's; an independent path tracer's
+#: skin: a quarter too narrow), and the calibration of the footprints as they are can only narrow them; the analytic
+#: model's widths (one per axis) are fitted to the view's own fringes. Measured in docs/benchmarks/relighting.md.
 DECODER_WIDEN = 1.3
 #: The largest stretch of a model's footprints in the view calibration (``relight_view``'s ``widen``, ``--widen``).
 WIDEN_MAX = 4.0
-#: The axes a model's footprints are stretched along in the view calibration, in the order of its members
-#: (:func:`~sssphase_core.relight.engine.axis_stretches`).
-STRETCH_AXES = ("x", "y", "both")
+#: A widened model's members in the view calibration, in their order (:func:`~sssphase_core.relight.engine.member_maps`):
+#: its footprints stretched along x, along y and along both, and softened at their own width.
+WIDEN_MEMBERS = ("x", "y", "both", "soft")
 
 
 def widen_for(backend: str, widen: float | None) -> float | None:

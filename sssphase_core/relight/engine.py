@@ -3,6 +3,7 @@ chunk by chunk, for several patterns per footprint pass (:func:`relight`, :class
 
 from __future__ import annotations
 
+import functools
 import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -351,20 +352,57 @@ def stretched(footprints: torch.Tensor, factor: float | tuple[float, float]) -> 
     return out.permute(0, 2, 3, 1)
 
 
-def widened(footprints: torch.Tensor, factor: float | tuple[float, float]) -> torch.Tensor:
-    """(N, K, K, 3) footprints :func:`stretched` by ``factor`` (both axes, or ``(along x, along y)``), each colour's
-    energy kept -> (N, K, K, 3)."""
-    out = stretched(footprints, factor)
-    had, has = footprints.float().sum(dim=(1, 2), keepdim=True), out.sum(dim=(1, 2), keepdim=True)
-    out = out * torch.where(has > 0, had / torch.where(has > 0, has, torch.ones_like(has)), torch.ones_like(has))
+#: The one-pixel box a softened footprint is convolved with, per axis: the mean of the bilinear weights of a shift
+#: drawn uniformly over one pixel (centre 1 - E|u| = 3/4, each neighbour E|u| / 2 = 1/8, u in [-1/2, 1/2]).
+SOFTEN_TAPS = (0.125, 0.75, 0.125)
+
+
+def softened(footprints: torch.Tensor) -> torch.Tensor:
+    """(N, K, K, 3) footprints convolved with a one-pixel box along both axes (:data:`SOFTEN_TAPS`; zero beyond the
+    window) -> (N, K, K, 3): each footprint as if its pixel's light were spread over the pixel about its centre, its
+    core softer at the same width; linear in the footprints (eigen-footprints soften as the footprints they span do)."""
+    f = footprints.float().permute(0, 3, 1, 2)  # (N, 3, K, K)
+    taps = torch.tensor(SOFTEN_TAPS, dtype=torch.float32, device=f.device)
+    kernel = (taps[:, None] * taps[None, :])[None, None].expand(f.shape[1], 1, 3, 3)
+    return torch.nn.functional.conv2d(f, kernel, padding=1, groups=f.shape[1]).permute(0, 2, 3, 1)
+
+
+def energy_kept(footprints: torch.Tensor, changed: torch.Tensor) -> torch.Tensor:
+    """``changed`` (N, K, K, 3), made from ``footprints`` (N, K, K, 3), scaled so that each footprint keeps each
+    colour's energy (where it has any left) -> (N, K, K, 3) in ``footprints``' dtype."""
+    had, has = footprints.float().sum(dim=(1, 2), keepdim=True), changed.sum(dim=(1, 2), keepdim=True)
+    out = changed * torch.where(has > 0, had / torch.where(has > 0, has, torch.ones_like(has)), torch.ones_like(has))
     return out.to(footprints.dtype)
 
 
+def widened(footprints: torch.Tensor, factor: float | tuple[float, float]) -> torch.Tensor:
+    """(N, K, K, 3) footprints :func:`stretched` by ``factor`` (both axes, or ``(along x, along y)``), each colour's
+    energy kept -> (N, K, K, 3)."""
+    return energy_kept(footprints, stretched(footprints, factor))
+
+
 def axis_stretches(factor: float) -> tuple[tuple[float, float], ...]:
-    """The stretches ``(factor, 1), (1, factor), (factor, factor)`` (along x, along y, both:
-    :data:`~sssphase_core.relight.choices.STRETCH_AXES`) of a model's footprints that the view calibration weighs in
-    place of the footprints themselves (``relight_view``'s ``widen``): each fringe orientation measures the footprints'
-    width across it, so the fit can widen them along either axis or both, and narrow any of them toward no
-    scattering."""
+    """The stretches ``(factor, 1), (1, factor), (factor, factor)`` (along x, along y, both) of a model's footprints
+    among the members the view calibration weighs in place of the footprints themselves (:func:`member_maps`): each
+    fringe orientation measures the footprints' width across it, so the fit can widen them along either axis or both,
+    and narrow any of them toward no scattering."""
     f = float(factor)
     return (f, 1.0), (1.0, f), (f, f)
+
+
+def member_maps(factor: float) -> tuple[Callable[[torch.Tensor], torch.Tensor], ...]:
+    """The linear maps (N, K, K, 3) -> (N, K, K, 3), energy not yet kept, that make a model's members in the view
+    calibration (``relight_view``'s ``widen``; named by :data:`~sssphase_core.relight.choices.WIDEN_MEMBERS`): its
+    footprints stretched by ``factor`` along x, along y and along both (:func:`axis_stretches`), and :func:`softened`
+    at their own width, so that the view's fringes can also give a footprint a softer core than the model predicts
+    (a decoder trained on our simulator's sharp-cored footprints: measured in docs/benchmarks/relighting.md)."""
+    return (*(functools.partial(stretched, factor=s) for s in axis_stretches(factor)), softened)
+
+
+def calibration_members(factor: float) -> tuple[Callable[[torch.Tensor], torch.Tensor], ...]:
+    """:func:`member_maps` with each footprint's energy per colour kept: what the calibration splats."""
+    return tuple(functools.partial(_kept, change=m) for m in member_maps(factor))
+
+
+def _kept(footprints: torch.Tensor, change: Callable[[torch.Tensor], torch.Tensor]) -> torch.Tensor:
+    return energy_kept(footprints, change(footprints))

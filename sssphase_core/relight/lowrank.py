@@ -16,7 +16,9 @@ calibration's PSP patterns light every pixel); :class:`LowRankFootprints` holds 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -24,12 +26,15 @@ from sssphase_core.processing.projector import emitted_light
 from sssphase_core.relight.engine import (
     FootprintSource,
     Projection,
-    axis_stretches,
     footprint_array,
+    member_maps,
     pattern_stack,
     received_light,
     stretched,
 )
+
+if TYPE_CHECKING:
+    import torch
 
 #: Footprints sampled from the view to find its basis, the largest rank, and the share of their energy
 #: (sum of squares) the basis may leave out.
@@ -110,14 +115,18 @@ class LowRankFootprints:
 
     def widened(self, factor: float | tuple[float, float]) -> LowRankFootprints:
         """These footprints as :func:`~sssphase_core.relight.engine.widened` makes them (stretched ``factor`` x about
-        their pixel, on both axes or ``(along x, along y)``, each colour's energy kept): stretching is linear, so their
-        eigen-footprints are the stretched ``basis`` and each pixel's coefficients are scaled by its colours' energy
-        before over after."""
+        their pixel, on both axes or ``(along x, along y)``, each colour's energy kept)."""
+        return self.mapped(lambda f: stretched(f, factor))
+
+    def mapped(self, change: Callable[[torch.Tensor], torch.Tensor]) -> LowRankFootprints:
+        """These footprints through a linear ``change`` ((N, K, K, 3) -> (N, K, K, 3): a stretch, a softening), each
+        colour's energy kept: their eigen-footprints are the changed ``basis`` and each pixel's coefficients are scaled
+        by its colours' energy before over after."""
         import torch
 
         k = self.basis.shape[-1]
         flat = torch.from_numpy(np.ascontiguousarray(self.basis.transpose(1, 2, 3, 0)))  # (r, K, K, 3): one per component
-        basis = np.ascontiguousarray(stretched(flat, factor).numpy().transpose(3, 0, 1, 2), np.float32)  # (3, r, K, K)
+        basis = np.ascontiguousarray(change(flat).numpy().transpose(3, 0, 1, 2), np.float32)  # (3, r, K, K)
         had = np.einsum("ncr,cr->nc", self.coefficients, self.basis.reshape(3, -1, k * k).sum(-1))
         has = np.einsum("ncr,cr->nc", self.coefficients, basis.reshape(3, -1, k * k).sum(-1))
         scale = np.where(has > 0, had / np.where(has > 0, has, 1.0), 1.0).astype(np.float32)
@@ -201,9 +210,10 @@ class LowRankTap:
 #: stretch of the calibration's twins (``relight_view``'s ``widen``, 0 for none) is kept, and the twins' weights and
 #: gains beside their members' (their eigen-footprints are the members' :meth:`LowRankFootprints.widened`); 7: with a
 #: stretch, every model's footprints stretched along x, y and both; 8: only the first model's
-#: (:func:`~sssphase_core.relight.engine.axis_stretches`), its own not among them, then the others' as they are. Files of earlier formats
-#: are not read.
-LOWRANK_FORMAT = 8
+#: (:func:`~sssphase_core.relight.engine.axis_stretches`), its own not among them, then the others' as they are; 9: the
+#: first model's members are its footprints stretched along x, y and both and softened
+#: (:func:`~sssphase_core.relight.engine.member_maps`). Files of earlier formats are not read.
+LOWRANK_FORMAT = 9
 #: More members than any blend has: a file claiming more is damaged (and is not looped over).
 MAX_MEMBERS = 8
 
@@ -225,8 +235,8 @@ def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np
     and view-wide ones (S, 3), each member's white-consistent gain ``gains`` (S, H, W, 3) and the no-scattering
     term's white ``white`` (H, W, 3) (``calibration.exit_gain``, ``exit_white``; both kept at the view's ``mask``
     (H, W) pixels, where they differ from 1 and from the white capture), written atomically. With ``widen`` the
-    calibration's S = len(members) + 2 members are the first member stretched ``widen`` x along x, y and both, then
-    the others."""
+    calibration's S = len(members) + 3 members are the first member's (:func:`~sssphase_core.relight.engine.member_maps`:
+    stretched ``widen`` x along x, y and both, softened), then the others."""
     from sssphase_core.store.files import atomic_path
 
     mask = np.asarray(mask, bool)
@@ -246,7 +256,7 @@ def save_lowrank(path: Path | str, members: list[LowRankFootprints], weights: np
 def load_lowrank(path: Path | str, mask: np.ndarray, widen: float | None = None
                  ) -> tuple[list[LowRankFootprints], np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
     """:func:`save_lowrank`'s file for a view of decoded ``mask`` (H, W) -> (the calibration's S members (with
-    ``widen``, the first member stretched along x, y and both, then the others), weights, view weights, gains (S, n, 3) and white (n, 3)
+    ``widen``, the first member's calibration members, then the others), weights, view weights, gains (S, n, 3) and white (n, 3)
     at the mask's n pixels); None when it is missing, damaged, of another view, of another stretch or of another
     format (:data:`LOWRANK_FORMAT`; a cache only saves time)."""
     import zipfile
@@ -271,7 +281,7 @@ def load_lowrank(path: Path | str, mask: np.ndarray, widen: float | None = None
             return None
         members = [LowRankFootprints.from_arrays(arrays, f"m{i}_") for i in range(n)]
         if stretch and all(m is not None for m in members):
-            members = [members[0].widened(s) for s in axis_stretches(stretch)] + members[1:]  # type: ignore[union-attr]
+            members = [members[0].mapped(m) for m in member_maps(stretch)] + members[1:]  # type: ignore[union-attr]
             n = len(members)
         weights, view_weights = np.asarray(arrays["weights"], np.float32), np.asarray(arrays["view_weights"], np.float32)
         gains, white = np.asarray(arrays["gains"], np.float32), np.asarray(arrays["white"], np.float32)

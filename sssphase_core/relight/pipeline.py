@@ -3,7 +3,6 @@ in one footprint pass, blends included; and its fast twin from cached eigen-foot
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -16,8 +15,8 @@ from sssphase_core.relight.calibration import (
     local_mixture,
     model_inputs,
 )
-from sssphase_core.relight.choices import STRETCH_AXES, WIDEN_MAX
-from sssphase_core.relight.engine import FootprintSource, axis_stretches, relight, widened
+from sssphase_core.relight.choices import WIDEN_MAX, WIDEN_MEMBERS
+from sssphase_core.relight.engine import FootprintSource, calibration_members, relight
 from sssphase_core.relight.lowrank import LowRankFootprints
 from sssphase_core.relight.sources import no_scattering_source
 from sssphase_core.relight.views import RelightView
@@ -44,13 +43,13 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
 
     ``calibration``: a list that receives the fit's (per-pixel weights (S, H, W, 3), view-wide weights (S, 3), each
     source's gain (S, H, W, 3), the no-scattering term's white (H, W, 3)), which relight any other pattern the same
-    way (:func:`relight_lowrank`); with ``widen``, ``source`` is three members, stretched along x, y and both.
+    way (:func:`relight_lowrank`); with ``widen``, ``source`` is four members (stretched along x, y and both, softened).
 
-    ``widen`` (> 1, with ``calibrate``): ``source``'s footprints join the fit not as they are but stretched by that
-    factor along x, along y and along both, as three members (:func:`~sssphase_core.relight.engine.axis_stretches`,
-    :func:`~sssphase_core.relight.engine.widened`, splatted in the same pass), so that the view's two fringe
-    orientations can widen them along either axis or both, as well as narrow them toward no scattering; the view-wide
-    mix returned gives it its members' weights together. The ``also`` sources join as they are (a blend stretches its
+    ``widen`` (> 1, with ``calibrate``): ``source``'s footprints join the fit not as they are but as four members
+    (:func:`~sssphase_core.relight.engine.calibration_members`, splatted in the same pass): stretched by that factor
+    along x, along y and along both, so that the view's two fringe orientations can widen them along either axis or
+    both, and softened at their own width (a core softer than the model's); any of them narrows toward no scattering.
+    The view-wide mix returned gives the members' weights together. The ``also`` sources join as they are (a blend stretches its
     decoder, whose widths are a prediction, and not the analytic model, whose widths the same fringes fit: stretched
     too, it cost volumetric stand-ins 1.1 to 1.4 dB).
     """
@@ -63,13 +62,13 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     n = len(patterns)
     every = list(patterns) + (list(rv.psp_patterns) if calibrate else [])
     under_white = [full_white(*rv.proj.projector_size)] if calibrate else []  # (white_consistent reads it)
-    stretches = tuple(functools.partial(widened, factor=s) for s in axis_stretches(widen)) if calibrate and widen else ()
+    stretches = calibration_members(widen) if calibrate and widen else ()
     relits = [relight(src, rv.proj, every + under_white, k, white=rv.white, chunk=chunk, device=device, progress=progress,
                       variants=stretches if i == 0 else (), plain=not (stretches and i == 0))
               for i, (src, k) in enumerate(((source, patch), *also))]
     if not calibrate:
         return relits[0], None
-    if stretches:  # the source's images stretched along x, y and both, then the others': members of the fit in that order
+    if stretches:  # the source's members' images (stretched along x, y and both, softened), then the others': in that order
         relits = [*relits[0], *relits[1:]]
     relits, gains = zip(*(white_consistent(rv, r) for r in relits), strict=True)
     psp, lost = model_inputs(rv)
@@ -84,14 +83,14 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
 
 
 def split_stretches(view_weights: np.ndarray, stretched: bool) -> tuple[np.ndarray, np.ndarray | None]:
-    """A calibration's view-wide weights (S, 3), the first source as its members stretched along x, y and both where
-    ``stretched`` (:func:`relight_view`'s ``widen``), each other source one member -> (each source's weight (M, 3),
-    each of the first source's members' share of it (3 axes, 3 colours), or None unstretched)."""
+    """A calibration's view-wide weights (S, 3), the first source as its members (stretched along x, y and both,
+    softened) where ``stretched`` (:func:`relight_view`'s ``widen``), each other source one member -> (each source's
+    weight (M, 3), each of the first source's members' share of it (4 members, 3 colours), or None unstretched)."""
     if not stretched:
         return view_weights, None
     weights = np.asarray(view_weights)
-    first = weights[: len(STRETCH_AXES)]
-    return np.concatenate([first.sum(axis=0, keepdims=True), weights[len(STRETCH_AXES):]]), first
+    first = weights[: len(WIDEN_MEMBERS)]
+    return np.concatenate([first.sum(axis=0, keepdims=True), weights[len(WIDEN_MEMBERS):]]), first
 
 
 def white_consistent(rv: RelightView, relit: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

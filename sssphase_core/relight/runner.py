@@ -31,7 +31,7 @@ from sssphase_core.relight.cache import (
 from sssphase_core.relight.choices import (
     BLENDS,
     MODEL_FREE,
-    STRETCH_AXES,
+    WIDEN_MEMBERS,
     check_backends,
     uses_decoder,
     widen_for,
@@ -117,7 +117,7 @@ def same_pattern(pattern: np.ndarray, reference: np.ndarray) -> bool:
 def lowrank_path(out: Path, session: Session, rv: RelightView, backend: str, checkpoint: Path | str | None,
                  widen: float | None = None) -> Path:
     """The eigen-footprint cache of a view relit with ``backend`` (all its members and its calibration, whose members
-    are stretched ``widen`` x along x, y and both), named as :func:`cache_path` names footprint caches."""
+    are stretched ``widen`` x along x, y and both, and softened), named as :func:`cache_path` names footprint caches."""
     tag = model_tag(checkpoint if uses_decoder(backend) else None) + (f"_w{widen:g}" if widen else "")
     return out / "cache" / f"{rv.object}_v{rv.view}_{view_tag(session, rv.view)}_{backend}_{tag}_lowrank.npz"
 
@@ -200,13 +200,14 @@ def resolve_patterns(specs: Sequence[str], rv: RelightView, resize: str = "",
 
 def mix_line(rv: RelightView, backend: str, mix: np.ndarray, stretched: np.ndarray | None = None) -> str:
     """The line that tells a view's calibration: each model's view-wide weights against no scattering, and how they
-    split between its footprints stretched along x, y and both (``stretched``: (3 axes, 3 colours) for the first
-    model, where the calibration stretched it: ``relight_view``'s ``widen``)."""
+    split between its members (``stretched``: (4 members, 3 colours) for the first model where the calibration widened
+    it, ``relight_view``'s ``widen``: its footprints stretched along x, y and both, and softened)."""
     rows = np.atleast_2d(mix)
-    shares = [None] * len(rows) if stretched is None else [np.reshape(stretched, (len(STRETCH_AXES), 3))] + [None] * (len(rows) - 1)
+    shares = [None] * len(rows) if stretched is None else [np.reshape(stretched, (len(WIDEN_MEMBERS), 3))] + [None] * (len(rows) - 1)
     f = lambda v: " ".join(f"{x:.2f}" for x in v)  # noqa: E731
-    weights = "; ".join(f"{m} R G B {f(row)}" + (" (stretched along " + ", ".join(f"{a} {f(s)}" for a, s in zip(
-        STRETCH_AXES, share, strict=True)) + ")" if share is not None else "")
+    split = lambda s: ("stretched along " + ", ".join(f"{a} {f(v)}" for a, v in zip(WIDEN_MEMBERS[:-1], s[:-1], strict=True))  # noqa: E731
+                       + f"; softened {f(s[-1])}")
+    weights = "; ".join(f"{m} R G B {f(row)}" + (f" ({split(share)})" if share is not None else "")
                         for m, row, share in zip(BLENDS.get(backend, (backend,)), rows, shares, strict=True))
     return (f"{rv.object} view {rv.view}: {backend} footprints calibrated to the view's fringe captures "
             f"(view-wide weights against no scattering: {weights}{'; refined pixel by pixel' if len(rows) == 1 else ''})")
@@ -259,8 +260,9 @@ def widen_line(widths: dict[str, float | None]) -> str | None:
         return " and ".join(sorted({BLENDS.get(n, (n,))[0] for n in names}))
 
     return "; ".join(f"calibration ({', '.join(names)}): the {stretched_models(names)} footprints join the view's fit "
-                     f"stretched {widen:g} x along x, along y and along both (a blend's other models as they are), so that "
-                     "its fringes can widen them along either axis or both as well as narrow them" for widen, names in by.items()
+                     f"stretched {widen:g} x along x, along y and along both, and softened (a blend's other models as they "
+                     "are), so that its fringes can widen them along either axis or both, soften their core, as well as "
+                     "narrow them" for widen, names in by.items()
                      ) + " (--widen 1: the footprints as they are, only narrowed)"
 
 
@@ -375,7 +377,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
 
     A model's relight also keeps the view's eigen-footprints and calibration (:mod:`~sssphase_core.relight.lowrank`);
     with them cached, later patterns are relit from those alone (seconds at 1080p, where the footprints
-    themselves outgrow any cache); with ``widen``, the calibration's eigen-footprints are the models' stretched along x, y and both."""
+    themselves outgrow any cache); with ``widen``, the calibration's eigen-footprints are the first model's members (stretched along x, y and both, softened)."""
     from sssphase_core.processing.projector import emitted_light
     from sssphase_core.relight.backends import domain_line, make_sources
     from sssphase_core.relight.cache import CACHE_BYTES
@@ -412,7 +414,7 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
         progress = say.task(f"{rv.object} view {rv.view}: {backend}")
         relit, mix = relight_view(source, patch, rv, pats, calibrate=backend not in MODEL_FREE, also=also, chunk=chunk,
                                   device=device, progress=progress, calibration=calibration, widen=widen)
-    if mix is not None:  # stretched, the calibration's own view-wide weights say how they split between the axes
+    if mix is not None:  # widened, the calibration's own view-wide weights say how they split between its members
         shares = split_stretches(calibration[0][1], bool(widen))[1] if calibration else None
         say.say(mix_line(rv, backend, mix, shares))
     for model, member in zip(models, members, strict=True):
@@ -441,14 +443,14 @@ def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: s
 def _relight_cached(rv: RelightView, pats: list[np.ndarray], backend: str, path: Path, saved: tuple[Any, ...],
                     say: Narrator, *, widened: bool) -> tuple[np.ndarray, np.ndarray]:
     """A view relit from its cached eigen-footprints and calibration (``saved``: :func:`load_lowrank`'s, its first
-    model as three stretched members where ``widened``), told."""
+    model as its calibration members where ``widened``), told."""
     from sssphase_core.relight.pipeline import relight_lowrank, split_stretches
 
     members, weights, view_weights, gains, white = saved
     with say.status(f"{rv.object} view {rv.view}: {backend} from its eigen-footprints"):
         relit = relight_lowrank(rv, members, weights, gains, white, pats)
     view_weights, stretched = split_stretches(view_weights, widened)  # as relight_view gives them
-    models = members[:1] + members[len(STRETCH_AXES):] if widened else members  # one per model (stretches share a rank)
+    models = members[:1] + members[len(WIDEN_MEMBERS):] if widened else members  # one per model (its members share a rank)
     mix = view_weights[0] if len(view_weights) == 1 else view_weights
     say.say(mix_line(rv, backend, mix, stretched))
     say.say(f"{rv.object} view {rv.view}: relit from its cached eigen-footprints ({path.name}: rank "

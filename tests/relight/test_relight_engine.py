@@ -551,6 +551,33 @@ def test_footprints_stretched_along_one_axis_widen_only_along_it():
         np.testing.assert_allclose(rms(out, narrow), 1.0, rtol=0.03)
 
 
+def test_softened_footprints_keep_their_width_and_energy_and_lose_their_sharp_core():
+    """``softened``: the one-pixel box (1/8, 3/4, 1/8 per axis); a delta becomes the box itself, a wide footprint
+    barely changes, a footprint's rms radius grows by the box's own (1/4 px^2 per axis) and no more; the calibration's
+    fourth member is it, energy kept."""
+    from sssphase_core.relight.engine import calibration_members, softened
+
+    k = 31
+    delta = torch.zeros(1, k, k, 3)
+    delta[0, k // 2, k // 2] = 1.0
+    box = softened(delta)[0, :, :, 0]
+    taps = torch.tensor([0.125, 0.75, 0.125])
+    np.testing.assert_allclose(box[k // 2 - 1 : k // 2 + 2, k // 2 - 1 : k // 2 + 2], taps[:, None] * taps[None, :], atol=1e-7)
+    assert float(box.sum()) == pytest.approx(1.0) and float(box[k // 2, k // 2]) == pytest.approx(0.5625)
+    off = torch.arange(k, dtype=torch.float32) - k // 2
+    r2 = off[:, None] ** 2 + off[None, :] ** 2
+    sigma = torch.tensor([0.7, 1.5, 3.0])
+    fp = torch.exp(-r2[None, :, :, None] / (2 * sigma ** 2))
+    out = softened(fp)
+    var = lambda f: (f * r2[None, :, :, None]).sum(dim=(1, 2)) / f.sum(dim=(1, 2))  # noqa: E731  (x and y together)
+    np.testing.assert_allclose(var(out) - var(fp), 0.5, rtol=0.02)  # 2 axes x 1/4 px^2: the box's variance added
+    peak = (out / fp)[0, k // 2, k // 2]
+    assert float(peak[2]) > 0.95 and float(peak[0]) < 0.75  # the 3 px footprint hardly moves, the 0.7 px one loses its core
+    soft = calibration_members(1.3)[-1](fp * 2)
+    np.testing.assert_allclose(soft.sum(dim=(1, 2)), (fp * 2).sum(dim=(1, 2)), rtol=1e-5)
+    np.testing.assert_allclose(soft, softened(fp * 2) * (fp.sum(dim=(1, 2)) / softened(fp).sum(dim=(1, 2)))[:, None, None], rtol=1e-5)
+
+
 def test_a_relight_of_variants_only_leaves_the_plain_footprints_out(scene):
     from sssphase_core.relight.engine import widened
 

@@ -58,32 +58,29 @@ def test_relit_from_eigen_footprints_equals_the_splat_when_they_span_the_footpri
 
 
 def test_widened_eigen_footprints_relight_as_the_widened_footprints_and_are_kept_with_their_stretch(tmp_path, make_projection):
-    """The view calibration's stretched members (``relight_view(widen=S)``: along x, y and both) from the cache: the
-    eigen-footprints stretched, each pixel's coefficients rescaled to keep its colours' energy, relight as the splat
-    of the widened footprints; the file keeps the stretch, gives each model its three members in that order, and is
-    not read for another stretch."""
-    import functools
-
+    """The view calibration's members (``relight_view(widen=S)``: stretched along x, y and both, and softened) from
+    the cache: the eigen-footprints mapped, each pixel's coefficients rescaled to keep its colours' energy, relight as
+    the splat of the mapped footprints; the file keeps the stretch, gives each model its four members in that order,
+    and is not read for another stretch."""
     import torch
 
-    from sssphase_core.relight.engine import axis_stretches, widened
+    from sssphase_core.relight.engine import calibration_members, member_maps
 
     proj, source, valid, tap, patterns, white = _tapped_view(make_projection, seed=3)
-    stretches = axis_stretches(1.4)
-    plain, *wides = relight(tap, proj, patterns, K, white=white, variants=[functools.partial(widened, factor=s) for s in stretches])
+    plain, *wides = relight(tap, proj, patterns, K, white=white, variants=calibration_members(1.4))
     low = tap.result()
-    assert len(wides) == 3 and np.abs(wides[0] - wides[1]).max() > 0.05 * np.abs(plain).max()  # x and y apart
-    for stretch, wide in zip(stretches, wides, strict=True):
-        member = low.widened(stretch)
+    assert len(wides) == 4 and np.abs(wides[0] - wides[1]).max() > 0.05 * np.abs(plain).max()  # x and y apart
+    for change, kept, wide in zip(member_maps(1.4), calibration_members(1.4), wides, strict=True):
+        member = low.mapped(change)
         np.testing.assert_allclose(member.relight(proj, patterns, white=white), wide, atol=2e-6 * np.abs(wide).max())
-        assert np.abs(wide - plain).max() > 0.05 * np.abs(plain).max()  # the stretch is not lost on the way
-        direct = widened(torch.from_numpy(source(valid[:5])), stretch).numpy()  # rebuilt from the coefficients
+        assert np.abs(wide - plain).max() > 0.02 * np.abs(plain).max()  # the change is not lost on the way
+        direct = kept(torch.from_numpy(source(valid[:5]))).numpy()  # rebuilt from the coefficients
         rebuilt = np.einsum("ncr,cryx->nyxc", member.coefficients[:5], member.basis)
         np.testing.assert_allclose(rebuilt, direct, atol=1e-6 * np.abs(direct).max())
-    ones = np.ones((3, *proj.mask.shape, 3), np.float32)
-    save_lowrank(tmp_path / "w.npz", [low], ones, np.ones((3, 3)), ones, white, proj.mask, widen=1.4)
+    ones = np.ones((4, *proj.mask.shape, 3), np.float32)
+    save_lowrank(tmp_path / "w.npz", [low], ones, np.ones((4, 3)), ones, white, proj.mask, widen=1.4)
     members, weights, view_weights, gains, _ = load_lowrank(tmp_path / "w.npz", proj.mask, widen=1.4)
-    assert len(members) == 3 and weights.shape[0] == view_weights.shape[0] == gains.shape[0] == 3
+    assert len(members) == 4 and weights.shape[0] == view_weights.shape[0] == gains.shape[0] == 4
     for member, wide in zip(members, wides, strict=True):
         np.testing.assert_allclose(member.relight(proj, patterns, white=white), wide, atol=1e-3 * np.abs(wide).max())
     assert load_lowrank(tmp_path / "w.npz", proj.mask) is None and load_lowrank(tmp_path / "w.npz", proj.mask, widen=1.3) is None
@@ -147,13 +144,13 @@ def test_a_damaged_or_foreign_eigen_footprint_file_is_not_read(tmp_path, damage,
 
 
 def test_a_blend_stretches_its_first_model_only_and_its_weights_split_per_model():
-    """``relight_view(widen=S)`` with ``also``: the first source is three stretched members (x, y, both), the others one
-    each; ``split_stretches`` gives one weight per model and the first model's split."""
+    """``relight_view(widen=S)`` with ``also``: the first source is four members (stretched along x, y and both,
+    softened), the others one each; ``split_stretches`` gives one weight per model and the first model's split."""
     from sssphase_core.relight.pipeline import split_stretches
 
-    weights = np.array([[0.1, 0.2, 0.0], [0.3, 0.0, 0.1], [0.0, 0.1, 0.1], [0.4, 0.5, 0.6]], np.float32)
+    weights = np.array([[0.1, 0.2, 0.0], [0.3, 0.0, 0.1], [0.0, 0.1, 0.1], [0.1, 0.0, 0.2], [0.4, 0.5, 0.6]], np.float32)
     per_model, shares = split_stretches(weights, True)
-    np.testing.assert_allclose(per_model, [[0.4, 0.3, 0.2], [0.4, 0.5, 0.6]], atol=1e-6)
-    np.testing.assert_array_equal(shares, weights[:3])
+    np.testing.assert_allclose(per_model, [[0.5, 0.3, 0.4], [0.4, 0.5, 0.6]], atol=1e-6)
+    np.testing.assert_array_equal(shares, weights[:4])
     unstretched, none = split_stretches(weights[:2], False)
     assert none is None and unstretched.shape == (2, 3)
