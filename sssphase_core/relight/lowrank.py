@@ -30,7 +30,6 @@ from sssphase_core.relight.engine import (
     member_maps,
     pattern_stack,
     received_light,
-    stretched,
 )
 
 if TYPE_CHECKING:
@@ -112,11 +111,6 @@ class LowRankFootprints:
         if white is not None and proj.black > 0:
             out += np.float32(proj.black) * np.asarray(white, np.float32)[None]
         return out
-
-    def widened(self, factor: float | tuple[float, float]) -> LowRankFootprints:
-        """These footprints as :func:`~sssphase_core.relight.engine.widened` makes them (stretched ``factor`` x about
-        their pixel, on both axes or ``(along x, along y)``, each colour's energy kept)."""
-        return self.mapped(lambda f: stretched(f, factor))
 
     def mapped(self, change: Callable[[torch.Tensor], torch.Tensor]) -> LowRankFootprints:
         """These footprints through a linear ``change`` ((N, K, K, 3) -> (N, K, K, 3): a stretch, a softening), each
@@ -208,7 +202,7 @@ class LowRankTap:
 #: relighting wrong; 5: every view's weights are fitted on white-consistent images, a Bayer camera's too, and each
 #: member's gain and the no-scattering term's white are kept (a new pattern needs neither computed again); 6: the
 #: stretch of the calibration's twins (``relight_view``'s ``widen``, 0 for none) is kept, and the twins' weights and
-#: gains beside their members' (their eigen-footprints are the members' :meth:`LowRankFootprints.widened`); 7: with a
+#: gains beside their members' (their eigen-footprints are the members' :meth:`LowRankFootprints.mapped`); 7: with a
 #: stretch, every model's footprints stretched along x, y and both; 8: only the first model's
 #: (:func:`~sssphase_core.relight.engine.axis_stretches`), its own not among them, then the others' as they are; 9: the
 #: first model's members are its footprints stretched along x, y and both and softened
