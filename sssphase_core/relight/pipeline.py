@@ -62,13 +62,13 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     n = len(patterns)
     every = list(patterns) + (list(rv.psp_patterns) if calibrate else [])
     under_white = [full_white(*rv.proj.projector_size)] if calibrate else []  # (white_consistent reads it)
-    stretches = calibration_members(widen) if calibrate and widen else ()
+    members = calibration_members(widen) if calibrate and widen else ()
     relits = [relight(src, rv.proj, every + under_white, k, white=rv.white, chunk=chunk, device=device, progress=progress,
-                      variants=stretches if i == 0 else (), plain=not (stretches and i == 0))
+                      variants=members if i == 0 else (), plain=not (members and i == 0))
               for i, (src, k) in enumerate(((source, patch), *also))]
     if not calibrate:
         return relits[0], None
-    if stretches:  # the source's members' images (stretched along x, y and both, softened), then the others': in that order
+    if members:  # the source's members' images (stretched along x, y and both, softened), then the others': in that order
         relits = [*relits[0], *relits[1:]]
     relits, gains = zip(*(white_consistent(rv, r) for r in relits), strict=True)
     psp, lost = model_inputs(rv)
@@ -78,7 +78,7 @@ def relight_view(source: FootprintSource, patch: int, rv: RelightView, patterns:
     if calibration is not None:
         calibration.append((weights, view_weights, np.stack(gains), exit_white(rv)))
     images = mix_images(none[:n], [r[:n] for r in relits], weights)
-    view_weights = split_stretches(view_weights, bool(stretches))[0]
+    view_weights = split_stretches(view_weights, bool(members))[0]
     return images, (view_weights[0] if not also else view_weights)
 
 
