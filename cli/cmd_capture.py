@@ -39,7 +39,7 @@ def capture(
     keep_unwrap: Annotated[bool, typer.Option(help="keep the unwrapping frames (default: only the decoded result)")] = False,
     timeout: Annotated[float, typer.Option(help="seconds without an answer before the daemon counts as gone, or a device call (a frame: raise it for exposures that long) as stalled")] = 10.0,
     dot_stride: Annotated[int, typer.Option(help="capture every S-th dot shift along x and y: footprints for 1/S^2 of the pixels from 1/S^2 of the dot frames (enough to train a decoder; the measured backend needs 1)")] = 1,
-    device: Annotated[str, typer.Option(help="sim rig: where it renders (cpu, or cuda / cuda:N / auto: the light transport on a GPU, the same images; 1080p in seconds)")] = "cpu",
+    device: Annotated[str, typer.Option(help="sim rig: where it renders (cpu, or cuda / cuda:N: the light transport on a GPU, the same images, 1080p in seconds; auto: the GPU where torch sees one, else cpu)")] = "cpu",
 ) -> None:
     """Capture a session through the daemon (starting a local sim daemon if none runs)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn

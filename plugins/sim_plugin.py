@@ -14,8 +14,8 @@ the preset's, for calibration), ``transport`` (``burley``, ``directional_dipole`
 objects' red mean free paths times it, their blue ones over it: materials of other spectral shapes), the camera's
 ``lens_blur`` (px), ``read_noise`` (e-), ``white_fraction`` (exposure) and ``demosaic`` (``malvar`` or
 ``opencv``, or ``none`` for a three-chip camera without a colour filter array; see ``sim.rig.with_camera``),
-``raw`` (Bayer frames; not for a three-chip camera), ``device`` (``cpu``, or ``cuda[:N]``/``auto``: the
-light transport on a torch device, ``sssphase_core.sim_accel``; the same images), and fault injection for tests: ``fail_at_frame``
+``raw`` (Bayer frames; not for a three-chip camera), ``device`` (``cpu``, or ``cuda[:N]``: the light transport
+on a GPU, ``sssphase_core.sim_accel``, the same images; ``auto``: the GPU where torch sees one, else ``cpu``), and fault injection for tests: ``fail_at_frame``
 (the camera raises at that grab), ``disconnect_at_frame`` (the camera is gone from that grab on, as an
 unplugged USB camera: every later call raises until the rig is opened again), ``stall_at_frame`` (that grab
 never returns), ``garbage_at_frame`` (that frame is half as tall and NaN), ``grab_delay_s`` (slow frames) and
@@ -80,13 +80,13 @@ def _flag(options: Mapping[str, Any], name: str) -> bool:
 
 def _transport_factory(device: Any):
     """The rig option ``device``: where the light transport computes (``cpu``: numpy, no torch imported;
-    ``cuda[:N]`` or ``auto``: torch, ``sssphase_core.sim_accel``); a device this process cannot use is refused."""
+    ``cuda[:N]``: torch, ``sssphase_core.sim_accel``; ``auto``: a GPU torch sees, else numpy); a device this
+    process cannot use is refused. None: the numpy path."""
     if not isinstance(device, str):
         raise InputError(f"sim option device must be a string (cpu, cuda, cuda:N or auto), got {device!r}")
-    from sssphase_core.compute import check_device
+    from sssphase_core.compute import renders_on_torch
 
-    check_device(device)
-    if device.partition(":")[0] == "cpu":
+    if not renders_on_torch(device):
         return None
     from sssphase_core.sim_accel import transport_factory
 

@@ -290,13 +290,14 @@ def write_sim_ground_truth(writer: ViewWriter, req: CaptureRequest, view: int, f
     footprints are left to ``SimScene.footprints``: they would double the session's size).
     ``options``: the sim rig's options (a projector response other than the preset's, the transport model, the
     ``device`` it renders on)."""
+    from sssphase_core.compute import renders_on_torch
     from sssphase_core.processing.patterns import PlannedFrame
     from sssphase_core.sim import SimScene, rig_from_options
 
     rig = rig_from_options({"preset": req.preset, **(options or {})})
     device = str((options or {}).get("device", "cpu"))
     factory = None
-    if device.partition(":")[0] != "cpu":  # renders on the GPU the daemon renders on: numpy took ~50 s per 1080p view
+    if renders_on_torch(device):  # renders on the GPU the daemon renders on: numpy took ~50 s per 1080p view
         from sssphase_core.sim_accel import transport_factory
 
         factory = transport_factory(device)
