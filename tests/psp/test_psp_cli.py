@@ -138,6 +138,8 @@ def test_bench_psp_quick_smoke(tmp_path):
     assert [r["noise"] for r in data["synthetic"]] == [0.0, 0.01, 0.04]
     assert data["synthetic"][0]["median_px"] < 0.01  # noise-free synthetic fringes decode exactly
     assert {r["n_shifts"] for r in data["tradeoff"]} == {3, 4}
+    (bias,) = data["scattering_bias"]  # quick: the soap under Burley transport only
+    assert bias["transport"] == "burley" and abs(bias["corrected_bias_x"]) < abs(bias["decoded_bias_x"])
     assert "OpenCV" in md.read_text()
 
 
