@@ -108,6 +108,7 @@ class RadialProfile(nn.Module):
         super().__init__()
         knots = [kn for kn in KNOTS if kn <= patch] + ([float(patch)] if patch > KNOTS[-1] else [])
         self.register_buffer("knots", torch.tensor(knots))
+        self.reach = float(knots[-1])  # the last knot as a number: reading the buffer would wait on a GPU each step
         dy, dx = _offsets(patch)
         self.register_buffer("dy", dy)
         self.register_buffer("dx", dx)
@@ -124,7 +125,7 @@ class RadialProfile(nn.Module):
         values, stretch = out[..., :-2], out[..., -2:].clamp(-3.0, 3.0)
         sx, sy = torch.exp(stretch[..., 0])[..., None, None], torch.exp(stretch[..., 1])[..., None, None]
         r2 = (self.dx / sx) ** 2 + (self.dy / sy) ** 2  # sqrt has an infinite slope at the centre
-        r = torch.sqrt(r2.clamp_min(1e-12)).clamp_max(float(self.knots[-1]))  # (B, 3, K, K)
+        r = torch.sqrt(r2.clamp_min(1e-12)).clamp_max(self.reach)  # (B, 3, K, K)
         j = (torch.searchsorted(self.knots, r.flatten(2).contiguous(), right=True) - 1).clamp(0, len(self.knots) - 2)
         j = j.view(r.shape)
         k0, k1 = self.knots[j], self.knots[j + 1]
