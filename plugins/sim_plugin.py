@@ -15,8 +15,8 @@ objects' red mean free paths times it, their blue ones over it: materials of oth
 ``lens_blur`` (px), ``read_noise`` (e-), ``white_fraction`` (exposure) and ``demosaic`` (``malvar`` or
 ``opencv``, or ``none`` for a three-chip camera without a colour filter array; see ``sim.rig.with_camera``),
 ``raw`` (Bayer frames; not for a three-chip camera), ``device`` (``cpu``, or ``cuda[:N]``: the light transport
-on a GPU, ``sssphase_core.sim_accel``, the same images; ``auto``: the GPU where torch sees one, else ``cpu``), and fault injection for tests: ``fail_at_frame``
-(the camera raises at that grab), ``disconnect_at_frame`` (the camera is gone from that grab on, as an
+on a GPU, ``sssphase_core.sim_accel``, the same images; ``auto``: the GPU where torch sees one, else ``cpu``),
+and fault injection for tests: ``fail_at_frame`` (the camera raises at that grab), ``disconnect_at_frame`` (the camera is gone from that grab on, as an
 unplugged USB camera: every later call raises until the rig is opened again), ``stall_at_frame`` (that grab
 never returns), ``garbage_at_frame`` (that frame is half as tall and NaN), ``grab_delay_s`` (slow frames) and
 ``frame_timeout_s`` (how long the camera declares a frame may take: the daemon waits no less for a grab). Options nobody reads are refused

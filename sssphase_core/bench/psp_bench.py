@@ -307,10 +307,10 @@ def bench_sim_objects(objects: tuple[str, ...], exposures: tuple[float, ...], pr
 
 def bench_scattering_bias(objects: tuple[str, ...], progress: Progress,
                           transports: tuple[str, ...] | None = None) -> list[dict[str, Any]]:
-    """Per transport model (``transports``, default every one) and object: bias of the decoded correspondence along the baseline (x) and
-    across it (y) against ``SimScene.proj_xy``, from noise-free and from noisy (nominal exposure)
-    fringes, and what is left once the scattering shift predicted from the exact footprints is
-    removed (:func:`sssphase_core.relight.geometry.geometric_correspondence`)."""
+    """Per transport model (``transports``; default every one) and object: bias of the decoded correspondence
+    along the baseline (x) and across it (y) against ``SimScene.proj_xy``, from noise-free and from noisy
+    (nominal exposure) fringes, and what is left once the scattering shift predicted from the exact footprints
+    is removed (:func:`sssphase_core.relight.geometry.geometric_correspondence`)."""
     from sssphase_core.relight.engine import Projection
     from sssphase_core.relight.geometry import geometric_correspondence
     from sssphase_core.sim import TRANSPORTS, SimScene, rig_preset, with_transport
