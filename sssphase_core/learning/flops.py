@@ -25,15 +25,13 @@ def training_flops_per_patch(preset: str, stage: str, batch: int = 2) -> float:
     p = get_preset(preset)
     x = torch.empty(batch, 24, p.patch, p.patch, device="meta")
     if stage == "pretrain":
-        model = SimSiam(p).to("meta").train()
+        simsiam = SimSiam(p).to("meta").train()
+        loss = lambda: simsiam(x, x.flip(-1))["loss"]  # noqa: E731
     else:
-        model = FootprintNet(Encoder(p).eval().requires_grad_(False), Decoder(p).train()).to("meta")
+        net = FootprintNet(Encoder(p).eval().requires_grad_(False), Decoder(p).train()).to("meta")
+        loss = lambda: net(x)[0].float().sum()  # noqa: E731
     with FlopCounterMode(display=False) as counter:
-        if stage == "pretrain":
-            model(x, x.flip(-1))["loss"].backward()
-        else:
-            pred, _ = model(x)
-            pred.float().sum().backward()
+        loss().backward()
     return counter.get_total_flops() / batch
 
 
