@@ -140,6 +140,22 @@ def test_a_second_sim_into_one_folder_leaves_none_of_the_first_behind(tmp_path):
     assert not (tmp_path / "view1").exists() and json.loads((tmp_path / "scene.json").read_text())["object"]["name"] == "pear"
 
 
+def test_sss_sim_removes_only_what_an_earlier_sim_wrote(tmp_path):
+    """A scene.json beside folders named view0, view1 made `sss sim` delete those folders whole (a user's files
+    in them too), whoever wrote them."""
+    (tmp_path / "view1").mkdir()
+    (tmp_path / "view1" / "notes.txt").write_text("mine")
+    (tmp_path / "scene.json").write_text('{"mine": 1}')
+    _one_line(_sss("sim", "--object", "pear", "--views", "1", "--out", str(tmp_path), "--no-decode"),
+              f"--out {tmp_path} holds a scene.json that sss sim did not write: give another folder")
+    assert (tmp_path / "scene.json").read_text() == '{"mine": 1}' and not (tmp_path / "view0").exists()
+    (tmp_path / "scene.json").unlink()
+    assert _sss("sim", "--object", "pear", "--views", "2", "--out", str(tmp_path), "--no-decode").returncode == 0
+    assert _sss("sim", "--object", "pear", "--views", "1", "--out", str(tmp_path), "--no-decode").returncode == 0
+    assert [p.name for p in (tmp_path / "view1").iterdir()] == ["notes.txt"]  # the earlier run's figures went
+    assert (tmp_path / "view1" / "notes.txt").read_text() == "mine"
+
+
 def test_patterns_are_read_at_their_depth_and_checked_whatever_their_format(tmp_path):
     """A 16-bit colour PNG was read at 8 bits by Pillow; a single-channel float TIFF skipped the range and
     NaN checks (7.0 became 1 in silence)."""

@@ -4,9 +4,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import re
-import shutil
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,7 +42,7 @@ def run_sim(object_name: str, views: int, out: Path, *, preset: str = "cpu", tra
     """Simulate ``views`` turntable views of ``object_name`` on the ``preset`` rig with light transport ``transport``
     (``anisotropy``: the radiative transport's phase-function g; ``backdrop``: a grey wall that many mm behind the
     turntable centre) into ``out`` (an earlier run's
-    view folders there are replaced). With ``decode`` the whole PSP plan is captured with sensor noise and
+    figures there are removed: :func:`remove_earlier_sim`). With ``decode`` the whole PSP plan is captured with sensor noise and
     decoded, and ``report(line)`` tells each view's decoded share and error."""
     from sssphase_core.sim.materials import MATERIALS, dropped_fraction
     from sssphase_core.sim.rig import pixel_pitch_mm
@@ -56,9 +56,7 @@ def run_sim(object_name: str, views: int, out: Path, *, preset: str = "cpu", tra
                                    **simlib.anisotropy_option(transport, anisotropy),
                                    **({"backdrop": backdrop} if backdrop is not None else {})})
     check_output_folder(out)
-    if (out / "scene.json").is_file():  # an earlier `sss sim` here: its view folders go, none is left beside these
-        for old in (p for p in out.iterdir() if p.is_dir() and not p.is_symlink() and re.fullmatch(r"view[0-9]+", p.name)):
-            shutil.rmtree(old)
+    remove_earlier_sim(out)
     out.mkdir(parents=True, exist_ok=True)
     wp, hp = rig.projector.width, rig.projector.height
     config = psp_config_for(wp, hp)
@@ -95,6 +93,33 @@ def run_sim(object_name: str, views: int, out: Path, *, preset: str = "cpu", tra
     }
     write_text(out / "scene.json", json.dumps(info, indent=2))
     return SimRun(out, obj.name, info)
+
+
+#: the files :func:`_write_view` writes in a view folder (and nothing else there is ours)
+VIEW_FILES = re.compile(r"(psp_[xy]_s[0-9]+|white|mask|proj_[xy]|phase_[xy]|material|footprints|decoded_[xy]|reason"
+                        r"|decode_error)\.png|decoded\.npz")
+
+
+def remove_earlier_sim(out: Path) -> None:
+    """An earlier `sss sim` in ``out``: its view folders' files go, so none is left beside a new run's; a file it
+    did not write stays, with its folder. A ``scene.json`` that `sss sim` did not write is refused (it would be
+    overwritten), in one line before any work."""
+    scene = out / "scene.json"
+    if not scene.exists():
+        return
+    try:
+        info = json.loads(scene.read_text())
+        ours = isinstance(info, dict) and {"object", "rig", "images", "views"} <= info.keys()
+    except (OSError, UnicodeDecodeError, ValueError):
+        ours = False
+    if not ours:
+        raise InputError(f"--out {out} holds a scene.json that sss sim did not write: give another folder")
+    for folder in (p for p in out.iterdir() if p.is_dir() and not p.is_symlink() and re.fullmatch(r"view[0-9]+", p.name)):
+        for f in folder.iterdir():
+            if f.is_file() and not f.is_symlink() and VIEW_FILES.fullmatch(f.name):
+                f.unlink()
+        with contextlib.suppress(OSError):  # a file of the user's keeps its folder
+            folder.rmdir()
 
 
 def _write_view(scene: Any, vdir: Path, keyed: dict[str, np.ndarray], white: np.ndarray, shown: dict[str, str],

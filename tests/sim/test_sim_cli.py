@@ -14,6 +14,7 @@ from typer.testing import CliRunner
 
 from sssphase_cli import cmd_sim
 from sssphase_core.errors import UnknownObjectError
+from sssphase_core.reporting.sim_views import VIEW_FILES
 
 
 def test_sim_and_isp_never_import_torch():
@@ -47,6 +48,7 @@ def test_sim_command_writes_viewable_pngs(app, tmp_path):
         names = {p.stem for p in vdir.glob("*.png")}
         expected = {f"psp_{o}_s{n}" for o in "xy" for n in range(4)} | {"white", "mask", "proj_x", "proj_y", "material", "footprints"}
         assert expected <= names
+        assert all(VIEW_FILES.fullmatch(f.name) for f in vdir.iterdir())  # a later run here removes them all
         psp = np.asarray(Image.open(vdir / "psp_x_s0.png").convert("L")).astype(float)
         assert psp.shape[1] >= 400  # the 256x192 frame enlarged into a titled figure
         h, w = psp.shape
