@@ -5,6 +5,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import re
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -436,6 +438,23 @@ def test_a_checkpoint_whose_weights_do_not_fit_its_preset_is_refused(pretrained,
     torch.save(ckpt, tmp_path / "cut.pt")
     with pytest.raises(DataError, match="do not fit"):
         load_encoder(tmp_path / "cut.pt")
+
+
+def test_a_preset_for_a_huge_model_without_its_weights_is_refused_before_any_memory(pretrained, tmp_path):
+    """Widths within the preset's limits (16,384) but weights of the lite model: the encoder was built first and
+    asked for 38 GB. Under a 3 GB address-space limit the checkpoint is now refused by the shape of its weights."""
+    ckpt = load_checkpoint(pretrained)
+    ckpt["preset"] = {**ckpt["preset"], "stem": 16384, "stages": [16384] * 3, "bottleneck": 16384}
+    torch.save({**ckpt, "kind": "decoder", "decoder": {}}, tmp_path / "huge.pt")
+    code = ("import resource, sys\n"
+            "resource.setrlimit(resource.RLIMIT_AS, (3 << 30, 3 << 30))\n"
+            "from sssphase_core.learning.training import load_decoder\n"
+            "from sssphase_core.errors import DataError\n"
+            "try:\n    load_decoder(sys.argv[1])\nexcept DataError as exc:\n    print(exc)\n")
+    done = subprocess.run([sys.executable, "-c", code, str(tmp_path / "huge.pt")], capture_output=True, text=True,
+                          timeout=120)
+    assert done.returncode == 0 and "Traceback" not in done.stderr, done.stderr[-1500:]
+    assert "the encoder weights do not fit the checkpoint's preset (stem" in done.stdout and "16384x24" in done.stdout
 
 
 @pytest.mark.parametrize(("edit", "expected"), [

@@ -3,7 +3,9 @@ last checkpoint, and the encoder and decoder they hold."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import torch
 from torch import nn
@@ -12,6 +14,8 @@ from sssphase_core.errors import DataError, SssError
 from sssphase_core.learning.models import Decoder, Encoder, ModelPreset, get_preset
 from sssphase_core.learning.runlog import BEST, CHECKPOINT, check_checkpoint_file, resolve_checkpoint  # noqa: F401  (the run folder's layout)
 from sssphase_core.store.files import atomic_path
+
+M = TypeVar("M", bound=nn.Module)
 
 
 def save_checkpoint(path: Path, payload: dict) -> None:
@@ -57,6 +61,31 @@ def load_checkpoint(path: Path | str, *, mmap: bool = False) -> dict:
     return ckpt
 
 
+def _built(make: Callable[[], M], state: object, path: Path | str, what: str) -> M:
+    """``make()`` with ``state`` loaded. The module is first built on the meta device (no memory) and ``state``'s
+    names and shapes are checked against it, so a checkpoint whose preset asks for a huge model but holds no
+    such weights is refused before any memory is taken (it asked for 38 GB); weights that do not fit, or that are
+    not all finite (NaN or infinite: every prediction would be NaN, silently zeroed downstream), are refused
+    naming the file."""
+    with torch.device("meta"):
+        expected = {name: tuple(t.shape) for name, t in make().state_dict().items()}
+    held = ({name: tuple(t.shape) for name, t in state.items() if isinstance(t, torch.Tensor)}
+            if isinstance(state, dict) else {})
+    if held != expected:
+        missing = [n for n in expected if n not in held]
+        wrong = [n for n in expected if n in held and held[n] != expected[n]]
+        extra = [n for n in state if n not in expected] if isinstance(state, dict) else []
+        why = ("it holds no weights" if not held else
+               f"{wrong[0]} is {'x'.join(map(str, held[wrong[0]]))}, the preset's {'x'.join(map(str, expected[wrong[0]]))}"
+               if wrong else f"{len(missing)} missing, first {missing[0]}" if missing else
+               f"{len(extra)} not the preset's, first {extra[0]}")
+        raise DataError(f"{path}: the {what} weights do not fit the checkpoint's preset ({why}): the checkpoint is "
+                        "damaged or not a sssphase one; take another one or train again")
+    module = make()
+    _load_weights(module, state, path, what)
+    return module
+
+
 def _load_weights(module: nn.Module, state: object, path: Path | str, what: str) -> None:
     """Load ``state`` into ``module``; weights that do not fit, or that are not all finite (NaN or infinite:
     every prediction would be NaN, silently zeroed downstream), are refused naming the file."""
@@ -76,8 +105,8 @@ def _load_weights(module: nn.Module, state: object, path: Path | str, what: str)
 def load_encoder(path: Path | str) -> Encoder:
     """The frozen encoder (eval mode) of a pretraining or decoder checkpoint."""
     ckpt = load_checkpoint(path)
-    enc = Encoder(_preset_of(ckpt, path))
-    _load_weights(enc, ckpt["encoder"], path, "encoder")
+    preset = _preset_of(ckpt, path)
+    enc = _built(lambda: Encoder(preset), ckpt["encoder"], path, "encoder")
     return enc.eval().requires_grad_(False)
 
 
@@ -115,10 +144,8 @@ def decoder_modules(ckpt: dict, path: Path | str) -> tuple[Encoder, Decoder]:
     if isinstance(classes, bool) or not isinstance(classes, int) or not 0 <= classes <= 1 << 16 or not isinstance(head, str):
         raise DataError(f"{path}: its config cannot be read (aux_classes {classes!r}, head {head!r}): the checkpoint is "
                         "damaged; take another one or train again")
-    enc = Encoder(preset)
-    dec = Decoder(preset, n_classes=classes, head=head)
-    _load_weights(enc, ckpt["encoder"], path, "encoder")
-    _load_weights(dec, ckpt["decoder"], path, "decoder")
+    enc = _built(lambda: Encoder(preset), ckpt["encoder"], path, "encoder")
+    dec = _built(lambda: Decoder(preset, n_classes=classes, head=head), ckpt["decoder"], path, "decoder")
     # decoders trained before the capture model (their config has no capture_model) read the fringe
     # modulation over an odd 5 x 5 window: run them as trained
     dec.even_window = "capture_model" in cfg
