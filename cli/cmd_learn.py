@@ -77,15 +77,20 @@ def _report() -> Report:
                   style=lambda text, kind: f"[{STYLES[kind]}]{text}[/]")
 
 
-def _png_out(out: Path, example: str) -> None:
+def _png_out(out: Path, example: str, *also: Path) -> None:
     """Refuse a figure's ``--out`` that is no .png file name (a folder became FOLDER.png and 'x.txt' failed after
-    all the work) or that lies inside a session, before any work."""
+    all the work), that lies inside a session, or that (or a companion figure in ``also``) would replace a file
+    sssphase did not write, before any work."""
     from sssphase_core.errors import InputError
+    from sssphase_core.store.files import ours_to_replace
     from sssphase_core.store.session import refuse_inside_session
 
     if out.is_dir() or out.suffix.lower() != ".png":
         raise InputError(f"--out {out}: give a .png file name (e.g. {out / example if out.is_dir() else out.with_suffix('.png')})")
     refuse_inside_session(out.parent, f"--out {out}: its folder")
+    ours_to_replace(out, "--out")
+    for path in also:
+        ours_to_replace(path, f"--out {out}: its companion figure")
 
 
 def _check_result_file(out: Path | None) -> None:
@@ -288,9 +293,9 @@ def viz_footprints(
     out: Annotated[Path, typer.Option(help="PNG output (profiles in <out>_profiles.png).")] = Path("footprints.png"),
 ) -> None:
     """Footprints at a few pixels, one row per source (log scale), and their centre-row profiles."""
-    from sssphase_core.reporting.learning_runs import footprint_figures
+    from sssphase_core.reporting.learning_runs import footprint_figures, profiles_path
 
-    _png_out(out, "footprints.png")
+    _png_out(out, "footprints.png", profiles_path(out))
     fig = footprint_figures(session, view, backend, out=out, pixels=pixels, checkpoint=checkpoint, report=_report())
     console.print(f"wrote {fig.figure} and {fig.profiles} ({', '.join(fig.rows)} at {len(fig.pixels)} pixels of "
                   f"{fig.session} view {view})")

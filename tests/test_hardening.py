@@ -1247,6 +1247,24 @@ def test_viz_footprints_says_what_it_writes_and_what_it_leaves_out(intact_sessio
     res = _cli("viz", "footprints", str(intact_session), "--pixels", "2", "--out", str(tmp_path / "f.png"))
     assert res.returncode == 0 and "has no captured footprints: that row is left out" in res.stdout, res.stdout + res.stderr
     assert (tmp_path / "f.png").exists() and (tmp_path / "f_profiles.png").exists()
+    res = _cli("viz", "footprints", str(intact_session), "--pixels", "2", "--out", str(tmp_path / "f.png"))
+    assert res.returncode == 0, res.stdout + res.stderr  # its own figures are replaced
+
+
+def test_a_figure_never_replaces_a_file_sssphase_did_not_write(intact_session, tmp_path):
+    """`--out photo.png` replaced the user's image with the figure, and wrote photo_profiles.png beside it
+    whatever was there."""
+    from PIL import Image
+
+    Image.new("RGB", (8, 8), (200, 10, 10)).save(tmp_path / "photo.png")
+    (tmp_path / "f_profiles.png").write_text("mine")
+    before = {p.name: p.read_bytes() for p in tmp_path.iterdir()}
+    _one_line(_cli("viz", "footprints", str(intact_session), "--out", str(tmp_path / "photo.png")),
+              f"--out {tmp_path / 'photo.png'} exists and is not a figure sssphase wrote: give another name or remove it")
+    _one_line(_cli("viz", "footprints", str(intact_session), "--out", str(tmp_path / "f.png")),
+              f"--out {tmp_path / 'f.png'}: its companion figure {tmp_path / 'f_profiles.png'} exists and is not a figure "
+              "sssphase wrote")
+    assert {p.name: p.read_bytes() for p in tmp_path.iterdir()} == before
 
 
 def test_a_lock_file_removed_between_open_and_lock_is_opened_again(tmp_path, monkeypatch):

@@ -544,6 +544,11 @@ class FootprintFigures:
     session: str
 
 
+def profiles_path(out: Path) -> Path:
+    """The centre-row profiles' figure beside :func:`footprint_figures`' ``out``: ``<out>_profiles.png``."""
+    return out.with_name(out.stem + "_profiles.png")
+
+
 def footprint_figures(session: Path | str, view: int, rows: str | Sequence[str], *, out: Path, pixels: int = 6,
                       checkpoint: Path | str | None = None, report: Report = Report()) -> FootprintFigures:
     """Footprints at ``pixels`` pixels spread over a session view's object, one row per source (``captured``:
@@ -587,7 +592,7 @@ def _draw_footprints(out: Path, luminance: dict[str, Any], rows: list[str], chos
     grid_figure(out, grid, rows, titles, f"{where}: footprints at pixels (row, col), mean of RGB",
                 units=f"log10 intensity / {rows[0]} peak", vmin=-4, vmax=0.3)
     k = next(iter(luminance.values())).shape[1]
-    profiles = out.with_name(out.stem + "_profiles.png")
+    profiles = profiles_path(out)
     profiles_figure(profiles, {name: lum[:, k // 2, :] for name, lum in luminance.items()}, titles,
                     f"{where}: centre-row profiles", xlabel="offset (camera px)", ylabel="linear camera units")
     return profiles

@@ -104,12 +104,40 @@ def write_bytes(path: Path | str, data: bytes) -> Path:
     return path
 
 
+#: the PNG ``Software`` text of every figure sssphase writes (:func:`save_figure`, :func:`ours_to_replace`)
+FIGURE_SOFTWARE = "sssphase"
+
+
 def save_figure(fig: object, path: Path | str, **kwargs: object) -> Path:
-    """``fig.savefig(path, ...)`` through :func:`atomic_path` (the format from ``path``'s suffix)."""
+    """``fig.savefig(path, ...)`` through :func:`atomic_path` (the format from ``path``'s suffix); a PNG says
+    :data:`FIGURE_SOFTWARE` in its ``Software`` text, so a later run knows the file as its own."""
     path = Path(path)
+    if path.suffix.lower() == ".png":
+        kwargs = {"metadata": {"Software": FIGURE_SOFTWARE}, **kwargs}
     with atomic_path(path, path.suffix) as tmp:
         fig.savefig(tmp, format=path.suffix.lstrip(".") or None, **kwargs)  # type: ignore[attr-defined]
     return path
+
+
+def ours_to_replace(path: Path | str, what: str) -> None:
+    """Refuse, in one line before any work, to replace a file at ``path`` that is not a figure sssphase wrote
+    (:func:`save_figure`): a user's image named as an output would be lost."""
+    from sssphase_core.errors import InputError
+
+    path = Path(path)
+    if not path.exists() and not path.is_symlink():
+        return
+    ours = False
+    if path.is_file() and not path.is_symlink():
+        try:
+            from PIL import Image
+
+            with Image.open(path) as im:
+                ours = getattr(im, "text", {}).get("Software") == FIGURE_SOFTWARE
+        except (OSError, ValueError, SyntaxError):  # not an image PIL reads
+            ours = False
+    if not ours:
+        raise InputError(f"{what} {path} exists and is not a figure sssphase wrote: give another name or remove it")
 
 
 def check_input_file(path: Path | str, what: str, max_bytes: int | None = None) -> Path:
