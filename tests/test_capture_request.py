@@ -97,3 +97,18 @@ def test_write_rig_response_writes_a_sim_rig_file_with_the_fit(tmp_path):
     target = write_rig_response(CalibrationRequest(out=tmp_path / "rigs" / "r.toml"), fitted)
     spec = RigSpec.from_toml(target)
     assert spec.is_sim and spec.gamma == pytest.approx(2.0, abs=0.05)
+
+
+def test_dot_spacings_under_half_the_footprints_default_are_warned_about(tmp_path):
+    """--dot-spacing 1 captured footprints of one pixel's light (each crop keeps its dot's Voronoi cell) without a word."""
+    import warnings
+
+    from sssphase_core.capture.plan import build_frames, dot_spacing_for
+
+    assert dot_spacing_for(32) == 20
+    with pytest.warns(UserWarning, match=r"--dot-spacing 9 is under half the 20 px that 32 px footprints .* within 4.5 projector px"):
+        build_frames(CaptureRequest.from_options("apple", RigSpec(), footprints=True, dot_spacing=9, out=tmp_path), (64, 48), 32)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        build_frames(CaptureRequest.from_options("apple", RigSpec(), footprints=True, dot_spacing=10, out=tmp_path), (64, 48), 32)
+        build_frames(CaptureRequest.from_options("apple", RigSpec(), dot_spacing=1, out=tmp_path), (64, 48), 32)  # no dots

@@ -295,6 +295,12 @@ def build_frames(req: CaptureRequest, size: tuple[int, int], patch: int,
     named = [r for r in req.references if r in REFERENCE_NAMES]
     files = [Path(r) for r in req.references if r not in REFERENCE_NAMES]
     spacing = dot_spacing_for(patch) if req.dot_spacing is None else req.dot_spacing
+    if req.footprints and spacing < dot_spacing_for(patch) / 2:
+        import warnings
+
+        warnings.warn(f"--dot-spacing {spacing} is under half the {dot_spacing_for(patch)} px that {patch} px footprints "
+                      f"are spaced by default: each footprint keeps only the light within {spacing / 2:g} projector px "
+                      "of its dot (farther light is a neighbouring dot's), so its wider scattering is cut off", stacklevel=2)
     plan = capture_plan(*size, footprints=req.footprints, dot_spacing=spacing,
                         references=("white", "black", *named), hdr_exposures=req.hdr,
                         gamma=DEFAULT_GAMMA if gamma is None else gamma, dot_stride=req.dot_stride)
