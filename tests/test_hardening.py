@@ -171,6 +171,8 @@ def test_array_patterns_of_integers_wider_than_16_bits_are_refused_not_relit_bla
     *(({"format": "sssphase-session", "format_version": 1, "object": "o", "n_views": 0, "views": {}, "rig": rig}, expected)
       for rig, expected in ((None, "rig must be a table"), ({"options": "x"}, "rig.options must be a table"),
                             ({"projector_black": "x"}, r"rig.projector_black must be null or a number in \[0, 0.999\]"),
+                            ({"saturation": float("inf")},  # "in [1e-06, inf], got inf"
+                             r"rig.saturation must be null or a number at least 1e-06 \(finite\), got inf"),
                             ({"patch": 100000}, "rig.patch .* from 9 to 256, got 100000"))),
     ({"format": "sssphase-session", "format_version": 1, "object": "o", "n_views": 1,
       "views": {"0": {"status": "complete", "arrays": {}, "camera_isp": {"bayer": "XXXX"}}}},

@@ -384,7 +384,8 @@ def rig_problem(rig: Any) -> str | None:
         return f"rig.options must be a table, got {rig['options']!r}"
     for name, (low, high) in RIG_NUMBERS.items():
         if rig.get(name) is not None and not _number(rig[name], low, high):
-            return f"rig.{name} must be null or a number in [{low:g}, {high:g}], got {rig[name]!r}"
+            span = f"in [{low:g}, {high:g}]" if high < float("inf") else f"at least {low:g} (finite)"
+            return f"rig.{name} must be null or a number {span}, got {rig[name]!r}"
     patch = rig.get("patch")
     if patch is not None and not (isinstance(patch, int) and not isinstance(patch, bool)
                                   and PATCH_RANGE[0] <= patch <= PATCH_RANGE[1]):
@@ -647,6 +648,9 @@ class Session:
         (and footprint crops) are also held to :func:`~sssphase_core.store.light.light_problem`: what the readers refuse,
         a session another program wrote with matching checksums may hold."""
         problems = []
+        if "projector" not in self.manifest.get("plan", {}):  # what relighting reads first (relight.views.load_view)
+            problems.append("the manifest has no capture plan (plan.projector): the patterns its frames were captured "
+                            "under are unknown, so it cannot be relit")
         n = expected_views if expected_views is not None else int(self.manifest.get("n_views", 0))
         for v in range(n):
             if self.status(v) != "complete":

@@ -191,6 +191,15 @@ def test_validate_reports_corrupt_and_missing_arrays(reference, tmp_path, sss):
     problems = Session.open(other).validate()
     assert any("corr/xp is damaged (1 of" in p and "chunks missing" in p for p in problems), problems
     assert any("white is damaged (shape" in p and "(10, 10, 3)" in p for p in problems), problems
+    # a manifest without its plan's projector passed validate and was refused by relight
+    planless = tmp_path / "planless" / OBJECT
+    shutil.copytree(reference[0] / OBJECT, planless)
+    meta = json.loads((planless / "manifest.json").read_text())
+    meta["plan"] = {}
+    (planless / "manifest.json").write_text(json.dumps(meta))
+    assert Session.open(planless).validate() == [
+        "the manifest has no capture plan (plan.projector): the patterns its frames were captured under are unknown, "
+        "so it cannot be relit"]
 
 
 @pytest.mark.slow
