@@ -153,9 +153,55 @@ INTERRUPTED = {
 }
 
 
+def _path_flags() -> set[str]:
+    """The flags of every command's options whose value is a path (a ``Path`` or ``Path | None`` parameter)."""
+    import inspect
+    import pathlib
+    import typing
+
+    from typer.models import ArgumentInfo, ParameterInfo
+
+    def is_path(hint: object) -> bool:
+        return hint is pathlib.Path or pathlib.Path in typing.get_args(hint)
+
+    flags = set()
+    for group in groups.values():
+        for info in group.registered_commands:
+            try:
+                hints = typing.get_type_hints(info.callback, include_extras=True)
+            except Exception:  # noqa: BLE001 - a command whose hints do not resolve: its options are not checked
+                continue
+            for name, param in inspect.signature(info.callback).parameters.items():
+                hint, meta = hints.get(name), [param.default]
+                if typing.get_origin(hint) is typing.Annotated:
+                    hint, *extra = typing.get_args(hint)
+                    meta += extra
+                infos = [m for m in meta if isinstance(m, ParameterInfo)]
+                if not is_path(hint) or any(isinstance(i, ArgumentInfo) for i in infos):
+                    continue
+                decls = [d for i in infos for d in (getattr(i, "param_decls", None) or ()) if d.startswith("--")]
+                flags.update(decls or [f"--{name.replace('_', '-')}"])
+    return flags
+
+
+def _empty_path_option(argv: list[str]) -> str | None:
+    """The first path option given an empty value (``--out ""`` or ``--out=``): a ``Path("")`` is the current
+    folder, where the command would write or read in silence."""
+    if not any(a == "" or a.endswith("=") for a in argv):
+        return None
+    flags = _path_flags()
+    for i, arg in enumerate(argv):
+        if (arg in flags and i + 1 < len(argv) and argv[i + 1] == "") or (arg.endswith("=") and arg[:-1] in flags):
+            return arg.removesuffix("=")
+    return None
+
+
 def main() -> None:
     """Run the CLI; user-facing errors are printed as one clear message, never a traceback."""
     signal.signal(signal.SIGTERM, _interrupt_on_sigterm)
+    if (flag := _empty_path_option(sys.argv[1:])) is not None:
+        err_console.print(f"[bold red]error:[/] {flag} is empty: give a path (an empty one would be the current folder)")
+        sys.exit(2)
     if not os.environ.get("SSS_DEBUG"):
         warnings.showwarning = _one_line_warning
         # zarr decodes chunks on a background asyncio loop: when one chunk is damaged, its sibling tasks

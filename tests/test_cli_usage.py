@@ -237,6 +237,12 @@ def test_click_usage_errors_are_one_line_naming_where_help_is(args: list[str], e
      "error: unknown device 'tpu': use auto, cpu, cuda or cuda:N"),
     (["eval", "relight", "no_session", "--backend", "none", "--device", "tpu"],
      "error: unknown device 'tpu': use auto, cpu, cuda or cuda:N"),
+    # an empty path was the current folder: relight and export wrote their images, cache and sources.json there
+    *(([*cmd, flag, ""], f"error: {flag.removesuffix('=')} is empty: give a path (an empty one would be the current folder)")
+      for cmd, flag in ((["relight", "no_session", "--pattern", "checkerboard"], "--out"),
+                        (["export", "no_session"], "--out"), (["eval", "relight", "no_session"], "--checkpoint"))),
+    (["relight", "no_session", "--pattern", "checkerboard", "--out="],
+     "error: --out is empty: give a path (an empty one would be the current folder)"),
 ])
 def test_relight_options_are_checked_before_the_session_is_read(args: list[str], expected: str) -> None:
     """One line, before any progress bar is drawn (an empty one preceded the device error)."""
