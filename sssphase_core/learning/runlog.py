@@ -119,9 +119,10 @@ def check_checkpoint_file(path: Path | str) -> Path:
     is missing, empty or not a file ``torch.save`` wrote (checked without importing torch)."""
     from sssphase_core.store.files import check_input_file
 
-    path = resolve_checkpoint(path)
+    folder, path = Path(path).is_dir(), resolve_checkpoint(path)
     if not path.exists():
-        raise DataError(f"no checkpoint at {path}")
+        raise DataError(f"no checkpoint in the run folder {path.parent} (neither {BEST} nor {CHECKPOINT}): has "
+                        "training written one there?" if folder else f"no checkpoint at {path}")
     check_input_file(path, "checkpoint")  # a FIFO or a device would block torch.load
     if path.is_file() and path.stat().st_size == 0:
         raise DataError(f"cannot read checkpoint {path}: the file is empty")

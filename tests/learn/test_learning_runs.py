@@ -136,6 +136,15 @@ def test_named_checkpoints_are_plain_distinct_and_present(tmp_path):
         named_checkpoints([str(tmp_path / "missing.pt")])
 
 
+def test_an_empty_run_folder_names_both_checkpoints_it_looked_for(tmp_path):
+    """It said "no checkpoint at RUN/last.pt" though a run folder's best.pt is what is loaded first."""
+    from sssphase_core.errors import DataError
+    from sssphase_core.learning.runlog import check_checkpoint_file
+
+    with pytest.raises(DataError, match=rf"^no checkpoint in the run folder {tmp_path} \(neither best.pt nor last.pt\)"):
+        check_checkpoint_file(tmp_path)
+
+
 def test_run_pretrain_checks_the_config_before_the_data_and_saves_it_before_training(synthetic, tmp_path):
     from sssphase_core.reporting.learning_runs import PretrainOptions, run_pretrain
 
