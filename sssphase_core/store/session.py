@@ -323,6 +323,8 @@ class CheckedArray:
             return read()
         except Exception as exc:  # zarr/numcodecs raise several types for a checksum or decoding failure
             reason = str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__
+            if "checksum" in reason.lower():  # zarr's words end in both checksums as raw bytes
+                reason = "a chunk's CRC32C checksum does not match its data"
             raise DamagedArray(self.where, f"damaged ({reason})", checksum=True) from None
 
     def __array__(self, dtype: Any = None, copy: Any = None) -> np.ndarray:
@@ -666,8 +668,9 @@ class Session:
                 try:
                     data = self.load(v, name)
                 except DamagedArray as exc:  # a chunk failed its CRC32C, chunks or files are gone, the shape differs
-                    what = f"corrupt (a chunk fails its checksum: {exc.detail.removeprefix('damaged (')[:-1]})" \
-                        if exc.checksum else exc.detail
+                    inner = exc.detail.removeprefix("damaged (")[:-1]
+                    what = (f"corrupt ({inner if 'CRC32C' in inner else f'a chunk does not decode: {inner}'})"
+                            if exc.checksum else exc.detail)
                     problems.append(f"view {v}: array {name} is {what}")
                     continue
                 except Exception as exc:
