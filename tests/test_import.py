@@ -278,6 +278,13 @@ def test_frames_where_nothing_decodes_or_too_small_are_refused_naming_why(tmp_pa
         make(folder / "white.npy")  # said "missing: white"
         with pytest.raises(InputError, match=why):
             import_folder(folder, tmp_path / "s", name, (W, H), patch=K)
+    from sssphase_core.capture.psp_folder import read_psp_folder
+
+    fifo = sorted((tmp_path / "fifo").glob("psp__x__*.npy"))[1]
+    fifo.unlink()
+    os.mkfifo(fifo)  # `sss decode` skipped it and said "PSP frames x, period P have shifts [0, 2, 3]"
+    with pytest.raises(InputError, match=rf"{fifo.name} is not a regular file \(a FIFO or a device\)"):
+        read_psp_folder(tmp_path / "fifo", f"{W}x{H}")
     for gain, why in ((100.0, r"psp__x__p\S+\.npy: \d+(\.\d)?x brighter than the white capture"),
                       (0.01, r"the fringe set's mean is 0.0\d*x the white capture's level")):
         mixed = tmp_path / f"mixed{gain:g}"  # fringes in other units than the white: imported with VALID pixels

@@ -101,7 +101,8 @@ def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
         if suffix not in IMAGE_SUFFIXES:
             continue
         if not path.is_file():
-            if strict:  # said "missing: white" for a white.png that cannot be read
+            # said "missing: white" for a white.png that cannot be read (`sss decode`: "shifts [0, 2, 3]" for a FIFO)
+            if strict or _is_frame_key(rel.with_suffix("").as_posix().replace("__", "/")):
                 if path.is_dir():
                     raise InputError(f"{path} is a folder, not a frame file")
                 if path.is_symlink() and not path.exists():
