@@ -212,8 +212,9 @@ def main() -> None:
         if rc == 130:  # typer turns KeyboardInterrupt (Ctrl-C, or SIGTERM above) into exit code 130
             raise KeyboardInterrupt
         sys.exit(rc if isinstance(rc, int) else 0)
-    except SssError as exc:
-        err_console.print(f"[bold red]error:[/] {escape(str(exc))}")
+    except SssError as exc:  # one line: a path holding a newline is shown with it escaped
+        text = str(exc).replace("\r", "\\r").replace("\n", "\\n")
+        err_console.print(f"[bold red]error:[/] {escape(text)}")
         sys.exit(2)
     except KeyboardInterrupt:
         err_console.print(f"[yellow]interrupted[/] ({INTERRUPTED.get(sys.argv[1] if len(sys.argv) > 1 else '', INTERRUPTED[''])})")

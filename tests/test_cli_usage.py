@@ -349,3 +349,12 @@ def test_a_runtime_folder_that_is_relative_or_a_file_is_one_message(runtime, tmp
     assert ("must be an absolute path, got relative_rt" if runtime == "relative_rt" else
             f"but {tmp_path / 'afile'} is a file") in out, out
     assert not (tmp_path / "relative_rt").exists()
+
+
+def test_an_error_naming_a_path_with_a_newline_stays_one_line(tmp_path) -> None:
+    """The path was printed raw, so the error ran over two lines."""
+    folder = tmp_path / "nl\nx"
+    folder.mkdir()
+    res = _sss("relight", str(folder), "--pattern", "checkerboard", "--out", str(tmp_path / "o"))
+    assert res.returncode == 2
+    assert res.stderr.strip().splitlines() == [f"error: {tmp_path}/nl\\nx is not a session (no manifest.json)"], res.stderr
