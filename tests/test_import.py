@@ -1363,3 +1363,19 @@ def test_a_view_whose_lit_pixels_mostly_did_not_decode_is_said_to_be_scored_on_t
         assert bool(said) == warned, [str(w.message) for w in caught]
         rows = json.loads((out / "relight_eval.json").read_text())["rows"]
         assert all((r["decoded_share"] < DECODED_SHARE_WARN) == warned for r in rows), rows
+
+
+def test_psp_frame_names_are_checked_period_first_then_orientations_then_shifts(tmp_path):
+    from sssphase_core.capture.importer import psp_config_from_names
+
+    def keys(orientations, period, shifts=range(4)):
+        return [f"psp/{o}/p{period}/s{n}" for o in orientations for n in shifts]
+
+    cases = ((keys("x", 0), "a PSP period must be positive, got 0 in the frame names"),  # said "the y orientation ..."
+             (keys("x", 20), "the y orientation has no PSP frames at period 20"),
+             (keys("x", 20) + keys("y", 20, (0, 2, 3)), "PSP frames y, period 20 have shifts [0, 2, 3]"))
+    for names, expected in cases:
+        with pytest.raises(InputError, match=re.escape(f"{tmp_path}: {expected}")):
+            psp_config_from_names(tmp_path, names)
+    config = psp_config_from_names(tmp_path, keys("xy", 20) + keys("xy", 200))
+    assert (config.period, config.n_shifts, config.unwrap_periods) == (20, 4, (200,))

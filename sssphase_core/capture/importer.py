@@ -144,11 +144,11 @@ def psp_config_from_names(vdir: Path, keys: Iterable[str]) -> Any:
             raise InputError(f"{vdir}: PSP frames {o}, period {period:g} have shifts {sorted(shifts)[:8]}; every set "
                              f"needs shifts 0..N-1 with 3 <= N <= {MAX_SHIFTS}")
     periods = sorted({p for _, p in sets})
+    if periods[0] <= 0:  # before the orientations: "the y orientation has no PSP frames at period 0" misled
+        raise InputError(f"{vdir}: a PSP period must be positive, got {periods[0]:g} in the frame names")
     for o in ("x", "y"):
         if (o, periods[0]) not in sets:
             raise InputError(f"{vdir}: the {o} orientation has no PSP frames at period {periods[0]:g}")
-    if periods[0] <= 0:
-        raise InputError(f"{vdir}: a PSP period must be positive")
     try:
         return PSPConfig(period=periods[0], n_shifts=n, unwrap_periods=tuple(periods[1:]))
     except InputError as exc:  # e.g. more unwrapping periods than any plan has
