@@ -1379,3 +1379,14 @@ def test_psp_frame_names_are_checked_period_first_then_orientations_then_shifts(
             psp_config_from_names(tmp_path, names)
     config = psp_config_from_names(tmp_path, keys("xy", 20) + keys("xy", 200))
     assert (config.period, config.n_shifts, config.unwrap_periods) == (20, 4, (200,))
+
+
+def test_a_reference_name_outside_its_characters_says_which_are_allowed(tmp_path):
+    from sssphase_core.capture.importer import frame_files
+
+    for name in ("ref__sp ace.npy", "ref__ünï.npy"):
+        np.save(tmp_path / name, np.zeros((2, 2), np.float32))
+        with pytest.raises(InputError, match=r"is no frame name .*pattern__<name> \(a name of ASCII letters, digits, '_', "
+                                             r"'\.' and '-', at most 64\)"):
+            frame_files(tmp_path)
+        (tmp_path / name).unlink()

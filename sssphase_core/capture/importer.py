@@ -115,7 +115,8 @@ def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
             if not strict:
                 continue
             raise InputError(f"{path}: {key!r} is no frame name (expected psp__<x|y>__p<period>__s<n>, white, black, "
-                             "ref__<name>, pattern__<name> or dots__<sx>_<sy>; see SESSION_FORMAT.md)")
+                             "ref__<name>, pattern__<name> (a name of ASCII letters, digits, '_', '.' and '-', at most "
+                             "64) or dots__<sx>_<sy>; see SESSION_FORMAT.md)")
         if m := PSP_KEY_RE.match(key):  # one spelling per frame: p20.0 -> p20, s01 -> s1 (the capture plan's)
             key = f"psp/{m.group(1)}/p{float(m.group(2)):g}/s{int(m.group(3))}"
         if key in files:
