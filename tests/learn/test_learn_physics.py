@@ -192,7 +192,7 @@ def test_ring_average_keeps_only_angular_detail():
     assert out.abs().sum() > 0.5 * x.abs().sum()  # most of a random map is angular
 
 
-def test_ring_average_is_the_averaging_matrix_it_replaces_and_old_checkpoints_load():
+def test_ring_average_is_the_averaging_matrix_it_replaces_and_old_checkpoints_load(tmp_path):
     """Ring means by a (K*K, R) product gathered back to the pixels equal the (K*K, K*K) averaging matrix earlier
     decoders multiplied by (and saved: a checkpoint holding it still loads, the matrix dropped)."""
     ring = RingAverage(32)
@@ -204,3 +204,9 @@ def test_ring_average_is_the_averaging_matrix_it_replaces_and_old_checkpoints_lo
     lite = get_preset("lite")
     old = {**Decoder(lite).state_dict(), "angular.average": matrix}
     Decoder(lite).load_state_dict(old)  # strict: only the matrix is dropped
+    from sssphase_core.learning.models import Encoder
+    from sssphase_core.learning.training import load_decoder
+
+    torch.save({"kind": "decoder", "preset": lite.to_dict(), "encoder": Encoder(lite).state_dict(), "decoder": old,
+                "config": {"head": "reciprocal"}}, tmp_path / "old.pt")  # checked on the meta device first, then loaded
+    assert isinstance(load_decoder(tmp_path / "old.pt")[1], Decoder)

@@ -14,6 +14,8 @@ never saw, where features that also see colour and brightness latch on to the tr
 
 from __future__ import annotations
 
+import math
+
 import torch
 from torch import nn
 
@@ -147,7 +149,8 @@ class RingAverage(nn.Module):
         super().__init__()
         dy, dx = _offsets(patch)
         ring = torch.sqrt(dy**2 + dx**2).round().long().flatten()
-        member = torch.nn.functional.one_hot(ring).float()  # (K*K, R)
+        rings = round(math.sqrt(2) * (patch // 2)) + 1  # the corner's ring and those inside (no read of `ring`: a
+        member = torch.nn.functional.one_hot(ring, rings).float()  # (K*K, R)  model on the meta device builds too)
         self.register_buffer("ring", ring, persistent=False)  # (K*K,) each pixel's ring
         self.register_buffer("weights", member / member.sum(0), persistent=False)  # (K*K, R): a column averages a ring
 

@@ -71,14 +71,12 @@ def _built(make: Callable[[], M], state: object, path: Path | str, what: str) ->
         expected = {name: tuple(t.shape) for name, t in make().state_dict().items()}
     held = ({name: tuple(t.shape) for name, t in state.items() if isinstance(t, torch.Tensor)}
             if isinstance(state, dict) else {})
-    if held != expected:
-        missing = [n for n in expected if n not in held]
-        wrong = [n for n in expected if n in held and held[n] != expected[n]]
-        extra = [n for n in state if n not in expected] if isinstance(state, dict) else []
+    missing = [n for n in expected if n not in held]
+    wrong = [n for n in expected if n in held and held[n] != expected[n]]
+    if missing or wrong:  # (names beyond the preset's are left to load_state_dict: older checkpoints' are dropped)
         why = ("it holds no weights" if not held else
                f"{wrong[0]} is {'x'.join(map(str, held[wrong[0]]))}, the preset's {'x'.join(map(str, expected[wrong[0]]))}"
-               if wrong else f"{len(missing)} missing, first {missing[0]}" if missing else
-               f"{len(extra)} not the preset's, first {extra[0]}")
+               if wrong else f"{len(missing)} missing, first {missing[0]}")
         raise DataError(f"{path}: the {what} weights do not fit the checkpoint's preset ({why}): the checkpoint is "
                         "damaged or not a sssphase one; take another one or train again")
     module = make()
