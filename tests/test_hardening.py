@@ -1458,3 +1458,12 @@ def test_every_socket_the_daemon_binds_drops_a_peer_that_never_completes_its_han
         for bound in sockets:
             bound.sock.close(linger=0)
         ctx.term()
+
+
+def test_a_refused_geometry_run_leaves_no_output_folder_behind(intact_session, tmp_path):
+    """A view the session lacks, or the decoder without a checkpoint, left OUT/sources.json behind."""
+    for args, expected in ((["--views", "7"], "has no complete view 7"),
+                           (["--backend", "torch"], "the torch backend needs --checkpoint")):
+        out = tmp_path / args[-1]
+        _one_line(_cli("geometry", str(intact_session), *args, "--out", str(out)), expected)
+        assert not out.exists()

@@ -33,6 +33,7 @@ from sssphase_core.relight.choices import (
     MODEL_FREE,
     WIDEN_MEMBERS,
     check_backends,
+    needs_checkpoint,
     uses_decoder,
     widen_for,
 )
@@ -530,15 +531,16 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
     _check_geometry_backend(backend)
     s = session if isinstance(session, Session) else Session.open(session)
     refuse_inside_session(out / s.name, what=f"--out {out}: its folder")  # written as OUT/<object>/view_NNN: OUT must not hold the session itself
-    claim_output(out, [s])
     period = finest_psp_period(s.manifest.get("plan", {}))
     if period is None:
         raise InputError(f"{session if not isinstance(session, Session) else session.path}: its capture plan has no "
                          "PSP frames, so the fringe period is unknown")
+    needs_checkpoint(backend, checkpoint)
     if checkpoint is not None:
         checkpoint = resolve_checkpoint(checkpoint)
         check_decoder_fits(Path(checkpoint), [backend], [s])
     chosen = choose_views(s, views, say)
+    claim_output(out, [s])  # once the input is known good: a refused run leaves no folder of its own behind
     from sssphase_core.relight.backends import make_source  # torch: once the views are known
     from sssphase_core.relight.geometry import ENTRY_CENTRED, geometric_correspondence
 
