@@ -199,6 +199,17 @@ def _check_frames(frames: Any) -> list[dict[str, Any]]:
     return frames
 
 
+def _check_pattern_sizes(frames: list[dict[str, Any]], projector: Any) -> None:
+    """Refuse, with the request, a frame whose pattern is not the projector's size: it was rendered in the job
+    before the projector refused it (a 16384 x 16384 pattern kept 1 GB of the daemon's memory per request)."""
+    w, h = projector.resolution
+    for f in frames:
+        shape = f["image"]["shape"] if f["kind"] == "image" else (f["params"]["height"], f["params"]["width"])
+        if (int(shape[1]), int(shape[0])) != (w, h):
+            raise ProtocolError(protocol.BAD_ARGS, f"frame {f['name'][:60]!r} is {shape[1]}x{shape[0]}, but the projector "
+                                                   f"{projector.info.id} shows {w}x{h}")
+
+
 def _check_frame(job: Job, name: str, frame: Any, first: tuple[tuple[int, ...], str] | None) -> tuple[tuple[int, ...], str]:
     """A frame a driver delivered, checked before it is sent: an array of numbers of the job's first frame's
     shape and type, finite where it is float (a corrupted transfer is a device error naming the frame, not
@@ -609,6 +620,7 @@ class Daemon:
         frames = _check_frames(args.get("frames"))
         if "projector" not in rig.devices:
             raise ProtocolError(protocol.BAD_ARGS, "capture needs a rig with a projector (use 'stream' otherwise)")
+        _check_pattern_sizes(frames, rig.devices["projector"])
 
         def run(job: Job) -> Iterator[tuple[str, Any]]:
             camera, projector, trigger = rig.devices["camera"], rig.devices["projector"], rig.devices.get("trigger")

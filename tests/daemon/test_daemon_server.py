@@ -192,6 +192,23 @@ def test_a_frame_may_set_the_camera_gain_and_an_absurd_one_is_bad_args(daemon):
     client.call("close_rig", rig=rig)
 
 
+def test_a_pattern_of_another_size_than_the_projector_is_bad_args_before_it_is_rendered(daemon):
+    """A 16384 x 16384 white was rendered in the job before the projector refused it, and the daemon kept the
+    gigabyte: the request is refused, naming both sizes, and nothing runs."""
+    _, client = daemon
+    rig = client.call("open_rig", camera="sim:camera0", projector="sim:projector0", options={"object": "star"})["rig"]
+    jobs = len(client.call("status")["jobs"])
+    big = {"name": "big", "kind": "white", "params": {"width": 16384, "height": 16384}}
+    image = {"name": "img", "kind": "image", "image": {"dtype": "<f4", "shape": [4, 4], "data": bytes(64)}}
+    for frame, size in ((big, "16384x16384"), (image, "4x4")):
+        with pytest.raises(DaemonError, match=rf"frame '{frame['name']}' is {size}, but the projector sim:projector0 "
+                                               r"shows 256x192") as exc:
+            client.call("capture", rig=rig, frames=[frame])
+        assert exc.value.code == protocol.BAD_ARGS
+    assert len(client.call("status")["jobs"]) == jobs
+    client.call("close_rig", rig=rig)
+
+
 def test_devices_of_the_wrong_kind_absurd_exposures_and_angles_are_bad_args_and_hold_no_rig(daemon):
     """A projector id given as the camera opened a rig that then failed with an AttributeError (an
     `internal` error, a traceback in the log) and kept its slot: 16 such tries locked captures out."""
