@@ -24,11 +24,11 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+from urllib.parse import urlsplit
 
 import numpy as np
 from starlette.applications import Starlette
 from starlette.middleware import Middleware
-from starlette.middleware.trustedhost import TrustedHostMiddleware
 from starlette.requests import ClientDisconnect, Request
 from starlette.responses import FileResponse, HTMLResponse, JSONResponse, Response
 from starlette.routing import Route, WebSocketRoute
@@ -539,6 +539,55 @@ def _decode_message(decoded: Any, white: np.ndarray, seconds: float) -> dict[str
             "mask_png": base64.b64encode(_png(mask_rgb)).decode(), "modulation_png": base64.b64encode(modulation).decode()}
 
 
+def _hostname(netloc: str) -> str:
+    """The host of a ``Host:`` value (``127.0.0.1:8000``, ``[::1]:8000``, ``localhost``), lower case, IPv6 without
+    its brackets; "" when it does not parse."""
+    try:
+        return urlsplit("//" + netloc).hostname or ""
+    except ValueError:  # e.g. an unclosed bracket
+        return ""
+
+
+class Guard:
+    """ASGI middleware in front of every route: a request whose ``Host:`` names none of ``hosts`` (None: any) is
+    refused (a web page that re-points its own name at 127.0.0.1, DNS rebinding; Starlette's TrustedHostMiddleware
+    cannot parse an IPv6 ``Host:``, so a view on ::1 went unchecked), and so is a websocket opened by a page of
+    another origin (its ``Origin:`` naming another host and port than its ``Host:``). Every HTTP answer, the
+    framework's own 404 and 405 too, says ``nosniff``."""
+
+    def __init__(self, app: Any, hosts: list[str] | None = None) -> None:
+        self.app, self.hosts = app, None if hosts is None else {h.lower().strip("[]") for h in hosts}
+
+    async def __call__(self, scope: dict, receive: Any, send: Any) -> None:
+        if scope["type"] not in ("http", "websocket"):
+            return await self.app(scope, receive, send)
+        headers = {k.decode("latin-1").lower(): v.decode("latin-1") for k, v in scope.get("headers", [])}
+        host = headers.get("host", "")
+        refused = self.hosts is not None and _hostname(host) not in self.hosts
+        if scope["type"] == "websocket":
+            origin = headers.get("origin")
+            if origin is not None and origin != "null":
+                try:
+                    refused |= urlsplit(origin).netloc.lower() != host.lower()
+                except ValueError:
+                    refused = True
+            if refused:
+                return await send({"type": "websocket.close", "code": 1008})  # before accept: answered 403
+            return await self.app(scope, receive, send)
+        if refused:
+            return await Response("Invalid host header", 400, headers={"X-Content-Type-Options": "nosniff"})(
+                scope, receive, send)
+
+        async def nosniff(message: dict) -> None:
+            if message["type"] == "http.response.start":
+                names = {k.lower() for k, _ in message.get("headers", [])}
+                if b"x-content-type-options" not in names:
+                    message = {**message, "headers": [*message.get("headers", []), (b"x-content-type-options", b"nosniff")]}
+            await send(message)
+
+        await self.app(scope, receive, nosniff)
+
+
 def build_app(state: ViewState, *, hosts: list[str] | None = None) -> Starlette:
     """The ASGI application serving ``state``; with ``hosts``, requests naming another host (``Host:``) are
     refused, which keeps a web page that re-points its own name at 127.0.0.1 (DNS rebinding) off the view."""
@@ -559,7 +608,6 @@ def build_app(state: ViewState, *, hosts: list[str] | None = None) -> Starlette:
         state.relights.shutdown(wait=False, cancel_futures=True)
         await asyncio.to_thread(state.live.close)  # the rig closed, the daemon this started stopped
 
-    middleware = [Middleware(TrustedHostMiddleware, allowed_hosts=hosts)] if hosts else []
-    app = Starlette(routes=routes, lifespan=lifespan, middleware=middleware)
+    app = Starlette(routes=routes, lifespan=lifespan, middleware=[Middleware(Guard, hosts=hosts)])
     app.state.view = state
     return app

@@ -112,8 +112,8 @@ def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = Non
     bound = sock.getsockname()[1]
     shown = f"[{host}]" if ":" in host else host
     url = f"http://{shown}:{bound}/?token={state.token}"
-    # On loopback the page is reached as 127.0.0.1 or localhost only (IPv6 hosts: Starlette's check cannot parse them)
-    hosts = sorted({host, "127.0.0.1", "localhost"}) if not allow_remote and ":" not in host else None
+    # On loopback the page is reached by its own address or as localhost only (sssphase_view.app.Guard)
+    hosts = sorted({host, "127.0.0.1", "localhost"}) if not allow_remote else None
     config = uvicorn.Config(build_app(state, hosts=hosts), log_level="warning", ws="websockets-sansio", lifespan="on",
                             http=_head_deadline_protocol())
     server = uvicorn.Server(config)
