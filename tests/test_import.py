@@ -1390,3 +1390,21 @@ def test_a_reference_name_outside_its_characters_says_which_are_allowed(tmp_path
                                              r"'\.' and '-', at most 64\)"):
             frame_files(tmp_path)
         (tmp_path / name).unlink()
+
+
+def test_a_white_of_another_exposure_than_the_fringes_is_refused_not_repaired_as_fireflies(tmp_path):
+    """A white rendered at twice the fringes' scale: every lit value lay above the brightest any pattern gives,
+    and 17,304 of them were "repaired" from their neighbours (towards 0) with exit 0."""
+    from sssphase_core.errors import DataError
+
+    folder = _float_frames(tmp_path / "frames", 1.0)
+    np.save(folder / "white.npy", np.load(folder / "white.npy") * np.float32(2))
+    with pytest.raises(DataError, match=r"frame white: [\d,]+ of its values \(\d+% of the lit ones\) are brighter than "
+                                        r"full white could make them .* another exposure or other units"):
+        import_folder(folder, tmp_path / "s", "twice", (W, H), patch=K)
+    firefly = _float_frames(tmp_path / "firefly", 1.0)  # a few stray samples are still repaired, not refused
+    frame = np.load(firefly / "white.npy")
+    frame[5, 7] *= 50
+    np.save(firefly / "white.npy", frame)
+    session = import_folder(firefly, tmp_path / "s", "firefly", (W, H), patch=K)
+    assert session.manifest["views"]["0"]["outliers_repaired"] >= 1

@@ -362,7 +362,7 @@ def fringe_mean_share(sets: Iterable[np.ndarray], white: np.ndarray, black: np.n
     decoded pixels (``mask``, (H, W)) lit above a fifth of their median white; NaN when none is. ``sets``: each
     (N, H, W, C) or (N, H, W) the shifts of one fringe set."""
     lit = (white - black).reshape(*white.shape[:2], -1).sum(-1)
-    keep = mask & (lit > 0.2 * float(np.median(lit[mask]))) if mask.any() else mask
+    keep = mask & (lit > max(0.2 * float(np.median(lit[mask])), 0.0)) if mask.any() else mask  # (> 0: no division by 0)
     if not keep.any():
         return float("nan")
     shares = [((np.mean(s, axis=0) - black).reshape(*white.shape[:2], -1).sum(-1)[keep] / lit[keep]) for s in sets]

@@ -12,6 +12,10 @@ from sssphase_core.capture.plan import CaptureRequest, RigSpec
 from sssphase_core.errors import DataError
 from sssphase_core.store.session import ViewWriter
 
+#: The share of a frame's lit values that may lie above the brightest any pattern gives and still be stray samples
+#: (a path tracer's fireflies, cosmic rays: a few values in 10^5); beyond it the frame is of another exposure.
+OUTLIER_MAX_SHARE = 0.02
+
 
 class FrameLike(Protocol):
     name: str
@@ -140,6 +144,7 @@ class ViewProcessor:
         self.camera_isp = camera_isp
         self.bound: np.ndarray | None = None  # (H, W, 1) the brightest value any pattern can give (once decoded)
         self.outliers = 0  # values above it, repaired
+        self.lit_values = 0  # values of the pixels the white lights (the share of outliers a frame may hold is of these)
         self.hot: np.ndarray | None = None  # (H, W, C) what hot pixels add to every frame (once decoded)
 
     def _develop(self, data: np.ndarray, exposure: float, meta: Mapping[str, Any]) -> np.ndarray:
@@ -171,7 +176,7 @@ class ViewProcessor:
         elif key.startswith("dots/"):
             self._add_dots(key, image)
         else:  # repaired with the others at the decode, or as it comes after it
-            self.images[key] = image if self.bound is None else self._repaired(image)
+            self.images[key] = image if self.bound is None else self._repaired(image, key)
 
     def _merge(self, bracket: list[tuple[float, np.ndarray]]) -> np.ndarray:
         from sssphase_core.processing import isp
@@ -208,19 +213,29 @@ class ViewProcessor:
             hot = hot_pixel_offsets(self.images["black"], [self.images["white"], *means])
             self.hot = hot if hot.any() else None
         # the bound from the frames as they came: a hot pixel's is higher by its offset, nowhere else
-        self.bound = outlier_bound(robust_white(self.images["white"], list(sets.values())))
+        white = robust_white(self.images["white"], list(sets.values()))
+        self.bound = outlier_bound(white)
+        brightest = white.max(axis=-1)
+        self.lit_values = int((brightest > 0.1 * max(float(np.percentile(brightest, 99.9)), 0.0)).sum()) * white.shape[-1]
         for frames in (self.psp, self.images):
             for key, image in frames.items():
-                frames[key] = self._repaired(image)
+                frames[key] = self._repaired(image, key)
 
-    def _repaired(self, image: np.ndarray) -> np.ndarray:
-        """``image`` less the hot pixels' offsets, its values above ``self.bound`` replaced
-        (``isp.repair_outliers``, counted)."""
+    def _repaired(self, image: np.ndarray, key: str | None = None) -> np.ndarray:
+        """``image`` (the frame ``key``) less the hot pixels' offsets, its values above ``self.bound`` replaced
+        (``isp.repair_outliers``, counted). A frame (not a dot grid) with more than :data:`OUTLIER_MAX_SHARE` of
+        its lit values above the bound is refused: that is another exposure or units than the other frames'
+        (a white rendered at twice the fringes' scale had 17,304 values "repaired" towards 0 in silence)."""
         from sssphase_core.processing.isp import repair_outliers
 
         if self.hot is not None:
             image = image - self.hot
         image, n = repair_outliers(image, self.bound)  # type: ignore[arg-type]
+        if key is not None and n > OUTLIER_MAX_SHARE * max(self.lit_values, 1):
+            raise DataError(f"frame {key}: {n:,} of its values ({n / max(self.lit_values, 1):.0%} of the lit ones) are "
+                            "brighter than full white could make them (from the white capture and the fringe sets): "
+                            "not stray samples but another exposure or other units than the other frames; give every "
+                            "frame the same exposure and units")
         self.outliers += n
         return image
 
