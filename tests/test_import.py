@@ -851,6 +851,30 @@ def test_renderers_multi_layer_exr_frames_are_read_by_their_colour_layer(tmp_pat
              OpenEXR.Part({**header, "name": "beauty"}, {"RGB": rgb})]
     OpenEXR.File(parts).write(str(tmp_path / "parts.exr"))
     np.testing.assert_array_equal(read_frame(tmp_path / "parts.exr"), rgb)
+    # an AOV part with colour written before the beauty (Arnold, Nuke) was read as the image
+    parts = [OpenEXR.Part({**header, "name": "diffuse_direct"}, {"RGB": rgb * np.float32(0.6)}),
+             OpenEXR.Part({**header, "name": "beauty"}, {"RGB": rgb})]
+    OpenEXR.File(parts).write(str(tmp_path / "aov_first.exr"))
+    np.testing.assert_array_equal(read_frame(tmp_path / "aov_first.exr"), rgb)
+    parts = [OpenEXR.Part({**header, "name": n}, {"RGB": rgb}) for n in ("left", "right")]
+    OpenEXR.File(parts).write(str(tmp_path / "two_parts.exr"))
+    with pytest.raises(DataError, match=r"holds an image in several parts \(left, right\): .* name its part beauty"):
+        read_frame(tmp_path / "two_parts.exr")
+    # lower-case layer channels (Houdini's C.r) and a grey channel beside alpha or depth were refused
+    for name, channels in (("lower", {f"C.{c}": np.ascontiguousarray(rgb[..., i]) for i, c in enumerate("rgb")}
+                                     | {"C.a": np.ones((H, W), np.float32)}),
+                           ("grey_alpha", {"Y": np.ascontiguousarray(rgb[..., 0]), "A": np.ones((H, W), np.float32)})):
+        with OpenEXR.File(header, channels) as f:
+            f.write(str(tmp_path / f"{name}.exr"))
+        np.testing.assert_array_equal(read_exr(tmp_path / f"{name}.exr"), rgb if name == "lower" else rgb[..., 0])
+    # half floats that overflowed (values above 65504 became +inf) were "repaired" as a renderer's stray samples
+    with np.errstate(over="ignore"):
+        bright = (rgb * np.float32(7e4)).astype(np.float16)
+    with OpenEXR.File(header, {"RGB": bright}) as f:
+        f.write(str(tmp_path / "half.exr"))
+    with pytest.raises(DataError, match=r"values are \+inf in half floats whose others reach 65\d+: values above 65504 "
+                                        r"overflowed; write float32"):
+        read_exr(tmp_path / "half.exr")
     # no light channels: depth alone, or luminance/chroma, were read as an image
     for name, channels, why in (("depth", {"Z": rgb[..., 0]}, r"its channels: Z\)"),
                                 ("yc", {"Y": rgb[..., 0], "RY": rgb[..., 1], "BY": rgb[..., 2]}, "luminance/chroma")):

@@ -65,11 +65,20 @@ def write_exr(path: Path | str, image: np.ndarray, *, attributes: dict[str, str]
 GREY_CHANNELS = ("Y", "L", "I")
 
 
+#: Words in a part's or a layer's name that mark the rendered image among others (AOVs: depth, albedo ...).
+BEAUTY_WORDS = ("beauty", "combined", "rgba", "main", "image")
+#: Half floats end at 65504: +inf in a half channel whose finite values reach this far is overflow, not a stray
+#: sample (a renderer's units: write float32 or scale the render down).
+HALF_OVERFLOW_NEAR = 1024.0
+
+
 def read_exr(path: Path | str) -> np.ndarray:
     """An EXR file's image -> float32 (H, W) for a grey channel (:data:`GREY_CHANNELS`), (H, W, 3) for its
-    colour: R, G, B (alpha dropped), or a renderer's colour layer (:func:`_colour_layer`), in the first part
-    that holds one (multi-part files keep depth or normals in parts of their own). Files without light
-    channels (depth only, luminance/chroma) or that cannot be decoded are refused in one line."""
+    colour: R, G, B (either case; alpha, depth and other channels dropped), or a renderer's colour layer
+    (:func:`_colour_layer`). A multi-part file's image is the part that holds one, or among several the part
+    named as the beauty (:data:`BEAUTY_WORDS`: an AOV written first is not the image); several unnamed are
+    refused. Files without light channels (depth only, luminance/chroma), half floats that overflowed, or files
+    that cannot be decoded are refused in one line."""
     from sssphase_core.store.files import check_input_file
     from sssphase_core.store.imageio import native_stderr_silenced
 
@@ -80,23 +89,47 @@ def read_exr(path: Path | str) -> np.ndarray:
         with native_stderr_silenced((1, 2)), OpenEXR.File(str(path), separate_channels=True) as f:  # R, G, B apart
             parts = [{name: _in_display_window(np.asarray(ch.pixels), part.header) for name, ch in part.channels.items()}
                      for part in f.parts]
+            names = [str(part.name() if callable(getattr(part, "name", None)) else "") for part in f.parts]
     except (OSError, RuntimeError, ValueError, KeyError):  # the library prints its own lines; one of ours instead
         raise DataError(f"cannot read EXR {path} (damaged, truncated or not an EXR file)") from None
     if not any(parts):  # a cut-short file: the library reads no pixel and says so only on its own output
         raise DataError(f"cannot read EXR {path} (damaged or truncated: no pixel data could be read)")
-    for channels in parts:
-        for names in ("RGB", "rgb"):  # (some writers name them in lower case)
-            if set(names) <= set(channels):
-                return np.stack([channels[c] for c in names], axis=-1).astype(np.float32, copy=False)
-        layer = _colour_layer(path, channels)
-        if layer is not None:
-            return np.stack([channels[f"{layer}{c}"] for c in "RGB"], axis=-1).astype(np.float32, copy=False)
-        grey = [name for name in channels if name.rsplit(".", 1)[-1] in GREY_CHANNELS]
-        if len(channels) == 1 and grey:
-            return channels[grey[0]].astype(np.float32, copy=False)
-    names = ", ".join(sorted({name for channels in parts for name in channels})) or "none"
-    raise DataError(f"EXR {path} holds no image light as R, G, B or one grey channel (Y) (its channels: {names}"
+    found = [(name, image) for name, channels in zip(names, parts, strict=True)
+             if (image := _light(path, channels)) is not None]
+    if len(found) > 1:
+        named = [f for f in found if any(w in f[0].lower() for w in BEAUTY_WORDS)]
+        if len(named) != 1:
+            raise DataError(f"EXR {path} holds an image in several parts ({', '.join(n or '(unnamed)' for n, _ in found)}): "
+                            "write the rendered image alone, or name its part beauty or combined")
+        found = named
+    if found:
+        return _no_half_overflow(path, found[0][1])
+    listed = ", ".join(sorted({name for channels in parts for name in channels})) or "none"
+    raise DataError(f"EXR {path} holds no image light as R, G, B or one grey channel (Y) (its channels: {listed}"
                     + ("; luminance/chroma: write RGB" if any("RY" in c or "BY" in c for c in parts) else "") + ")")
+
+
+def _light(path: Path | str, channels: dict[str, np.ndarray]) -> np.ndarray | None:
+    """One part's image: its colour (:func:`_colour_layer`) as (H, W, 3), else its one grey channel as (H, W)
+    (beside alpha, depth or normals), else None; channels keep their type (half floats are checked after)."""
+    layer = _colour_layer(path, channels)
+    if layer is not None:
+        return np.stack([channels[name] for name in layer], axis=-1)
+    grey = [name for name in channels if name.rsplit(".", 1)[-1] in GREY_CHANNELS]
+    chroma = any(name.rsplit(".", 1)[-1] in ("RY", "BY") for name in channels)  # luminance/chroma: not grey light
+    return channels[grey[0]] if len(grey) == 1 and not chroma else None
+
+
+def _no_half_overflow(path: Path | str, image: np.ndarray) -> np.ndarray:
+    """``image`` as float32; +inf in half floats whose finite values come near their end is refused as overflow
+    (it was taken for a renderer's stray samples and "repaired", or the file called broken)."""
+    if image.dtype == np.float16 and np.isposinf(image).any():
+        finite = image[np.isfinite(image)]
+        if finite.size and float(finite.max()) >= HALF_OVERFLOW_NEAR:
+            raise DataError(f"EXR {path}: {int(np.isposinf(image).sum())} values are +inf in half floats whose others "
+                            f"reach {float(finite.max()):.0f}: values above 65504 overflowed; write float32 (full "
+                            "float) channels, or scale the render down")
+    return image.astype(np.float32, copy=False)
 
 
 def _windows(header: dict) -> tuple[tuple[int, int, int, int], tuple[int, int, int, int]]:
@@ -120,19 +153,27 @@ def _in_display_window(pixels: np.ndarray, header: dict) -> np.ndarray:
     return out
 
 
-def _colour_layer(path: Path | str, channels: dict[str, np.ndarray]) -> str | None:
-    """The prefix (``"ViewLayer.Combined."``, ``""``) of the image's colour in a file with more channels than
-    R, G, B, A: the one layer with R, G and B, else the one named combined / beauty (renderers' multi-layer
-    files also hold depth, normals, albedo ...); None when no layer has R, G and B. Ambiguous files are refused."""
-    layers = sorted({name[:-1] for name in channels if name.endswith(("R", "G", "B"))
-                     if all(f"{name[:-1]}{c}" in channels for c in "RGB") and (name[:-1] == "" or name[:-1].endswith("."))})
+def _colour_layer(path: Path | str, channels: dict[str, np.ndarray]) -> tuple[str, str, str] | None:
+    """The channel names (R, G, B) of the image's colour in one part: ``R, G, B`` (or ``r, g, b``), else a
+    renderer's layer (``ViewLayer.Combined.R``, ``C.r``): the one layer with the three, else the one named as the
+    beauty (:data:`BEAUTY_WORDS`; multi-layer files also hold depth, normals, albedo ...); None when no layer
+    has them. Ambiguous files are refused."""
+    layers: dict[str, tuple[str, str, str]] = {}
+    for name in channels:
+        prefix, last = name[:-1], name[-1:]
+        if (prefix == "" or prefix.endswith(".")) and last in "RGBrgb" and last:
+            names = tuple(prefix + c for c in ("RGB" if last.isupper() else "rgb"))
+            if all(n in channels for n in names):
+                layers.setdefault(prefix, names)  # type: ignore[arg-type]
+    if "" in layers:  # the file's own R, G, B before any layer's
+        return layers[""]
     if len(layers) > 1:
-        named = [lay for lay in layers if any(w in lay.lower() for w in ("combined", "beauty"))]
+        named = [lay for lay in layers if any(w in lay.lower() for w in BEAUTY_WORDS)]
         if len(named) != 1:
-            raise DataError(f"EXR {path} holds several colour layers ({', '.join(lay.rstrip('.') or '(unnamed)' for lay in layers)}): "
+            raise DataError(f"EXR {path} holds several colour layers ({', '.join(lay.rstrip('.') or '(unnamed)' for lay in sorted(layers))}): "
                             "write the image's colour alone, or as a layer named Combined or Beauty")
-        layers = named
-    return layers[0] if layers else None
+        return layers[named[0]]
+    return next(iter(layers.values()), None)
 
 
 def exr_size(path: Path | str) -> tuple[int, int]:
