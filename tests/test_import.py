@@ -1432,3 +1432,22 @@ def test_a_white_of_another_exposure_than_the_fringes_is_refused_not_repaired_as
     np.save(firefly / "white.npy", frame)
     session = import_folder(firefly, tmp_path / "s", "firefly", (W, H), patch=K)
     assert session.manifest["views"]["0"]["outliers_repaired"] >= 1
+
+
+def test_a_plan_json_beside_the_frames_must_agree_with_the_import(tmp_path):
+    """The plan `sss patterns` wrote for a 320x240 projector, beside frames imported as another size, was ignored."""
+    import json
+
+    folder = _float_frames(tmp_path / "frames", 1.0)
+    plan = json.loads(capture_plan(W, H, references=("white", "black")).to_json())
+    (folder / "plan.json").write_text(json.dumps(plan))
+    assert import_folder(folder, tmp_path / "s", "same", (W, H), patch=K).views() == [0]
+    for edit, expected in (({"projector": [W * 2, H * 2], "frames": []}, rf"is the plan of a {W * 2}x{H * 2} projector, but --projector "
+                                                          rf"says {W}x{H}"),
+                           ({"gamma": 1.0}, r"made its patterns for a projector gamma of 1, but --gamma says 2.2: pass "
+                                            r"--gamma 1"),
+                           ({"psp": {**plan["psp"], "period": plan["psp"]["period"] + 1}}, r"plans PSP period .* but the "
+                                                                                           r"frame names say period")):
+        (folder / "plan.json").write_text(json.dumps({**plan, **edit}))
+        with pytest.raises(InputError, match=expected):
+            import_folder(folder, tmp_path / "s", "other", (W, H), patch=K)

@@ -664,6 +664,33 @@ def _detect_bayer(proc: ViewProcessor, config: Any, demosaic: str) -> str:
     return f"{layout}: {why}" if layout else f"none: {why}"
 
 
+def check_plan_file(folder: Path, size: tuple[int, int], gamma: float, config: Any) -> None:
+    """Refuse an import whose options or frame names disagree with the ``plan.json`` beside its frames (as `sss
+    patterns` writes it): the projector size, its gamma, the PSP periods and shifts (a plan of a 320x240
+    projector beside frames imported as 256x192 was ignored in silence). No plan.json: nothing to check."""
+    from sssphase_core.capture.psp_folder import psp_from_plan, read_plan
+
+    path = folder / "plan.json"
+    if not path.is_file():
+        return
+    plan = read_plan(path)
+    if tuple(plan["projector"]) != tuple(size):
+        raise InputError(f"{path} is the plan of a {plan['projector'][0]}x{plan['projector'][1]} projector, but "
+                         f"--projector says {size[0]}x{size[1]}: give the size its patterns were made for")
+    if "gamma" in plan and abs(float(plan["gamma"]) - gamma) > 1e-6:
+        raise InputError(f"{path} made its patterns for a projector gamma of {float(plan['gamma']):g}, but --gamma says "
+                         f"{gamma:g}: pass --gamma {float(plan['gamma']):g}")
+    if plan.get("psp"):
+        planned = psp_from_plan(plan, path)
+        said = (planned.period, planned.n_shifts, tuple(sorted(planned.unwrap_periods)))
+        named = (config.period, config.n_shifts, tuple(sorted(config.unwrap_periods)))
+        if said != named:
+            raise InputError(f"{path} plans PSP period {said[0]:g}, {said[1]} shifts, unwrapping periods "
+                             f"{', '.join(f'{v:g}' for v in said[2]) or 'none'}, but the frame names say period "
+                             f"{named[0]:g}, {named[1]} shifts, unwrapping {', '.join(f'{v:g}' for v in named[2]) or 'none'}: "
+                             "are these frames of that plan?")
+
+
 def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int, int], *, patch: int = 32,
                   gamma: float = 2.2, encoding: str = "auto", bayer: str | None = "auto",
                   demosaic: str = "other") -> Session:
@@ -747,6 +774,8 @@ def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int
                 raise InputError(f"{files[key]}: reference {ref!r} is no named pattern ({', '.join(REFERENCE_NAMES)}), so "
                                  f"the image projected for it is needed as pattern__{ref}.png to relight and evaluate it")
     configs = [psp_config_from_names(vdir, files) for vdir, files in views]
+    for (vdir, _), config in zip(views, configs, strict=True):
+        check_plan_file(vdir if (vdir / "plan.json").is_file() else folder, (w, h), gamma, config)
     for vdir, files in views:
         check_view_memory(vdir, files)
     encoding, encoding_tag = frames_encoding((p for _, files in views for k, p in files.items()
