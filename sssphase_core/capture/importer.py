@@ -75,18 +75,51 @@ def _meant_as_frame(rel: Path) -> bool:
     return re.split(r"[_\-. ]", rel.parts[0], maxsplit=1)[0].lower() in FRAME_WORDS
 
 
+def exported_names(vdir: Path) -> dict[Path, str]:
+    """Frame keys of a view folder `sss export` wrote (so that it imports again): each stack's files by the
+    ``keys.csv`` beside them (``psp/00.exr,psp/x/p11/s0``; the unwrapping and dot frames likewise), and its
+    ``ref_<name>.exr`` / ``pattern_<name>.exr`` (arrays ``ref/<name>``, ``/`` written as ``_``) once any stack's
+    keys are there; {} for any other folder. A keys.csv naming no frame, or a file outside its folder, is refused."""
+    names: dict[Path, str] = {}
+    for table in sorted(vdir.glob("*/keys.csv")):
+        try:
+            rows = table.read_text().splitlines()[1:]
+        except (OSError, UnicodeDecodeError) as exc:
+            raise InputError(f"{table}: cannot be read ({exc})") from None
+        for row in rows:
+            file, _, key = row.partition(",")
+            if not re.fullmatch(r"[0-9]{2,6}\.exr", file) or not _is_frame_key(key):
+                raise InputError(f"{table}: {row[:80]!r} is no 'NN.exr,<frame key>' row (as sss export writes them)")
+            names[table.parent / file] = key
+    if names:
+        for path in vdir.iterdir():
+            kind, _, rest = path.stem.partition("_")
+            if path.suffix == ".exr" and kind in ("ref", "pattern") and _is_frame_key(f"{kind}/{rest}"):
+                names[path] = f"{kind}/{rest}"
+    return names
+
+
 def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
     """Frame files of one view by plan key: ``psp__x__p20__s0.png`` or ``psp/x/p20/s0.png`` (the layout
     `sss patterns` writes) are both ``psp/x/p20/s0``. Files of other types are ignored, and so are images
     whose names are not meant as frames (a thumbnail, a mask: one warning names them); an image whose name
     starts like a frame's but is no plan key is refused, naming it (``strict=False``: skipped, for readers
-    that want only some keys, e.g. `sss decode` in a folder that also holds its own outputs)."""
+    that want only some keys, e.g. `sss decode` in a folder that also holds its own outputs). A view folder
+    `sss export` wrote is read by its keys (:func:`exported_names`)."""
     files: dict[str, Path] = {}
     others: list[str] = []
+    exported = exported_names(vdir)
     for path in sorted(vdir.rglob("*")):
         rel = path.relative_to(vdir)
         suffix = path.suffix.lower()
         if rel.parts[0].startswith("view_"):  # another view's folder (the import reads it as its own view)
+            continue
+        if path in exported:  # a view `sss export` wrote: its stacks' files named by their keys.csv
+            if not path.is_file():
+                raise InputError(f"{path} is not a regular file: frames must be image files")
+            if exported[path] in files:
+                raise InputError(f"{path} and {files[exported[path]]} are both frame {exported[path]!r}")
+            files[exported[path]] = path
             continue
         if strict and suffix in ANY_IMAGE_SUFFIXES and not _meant_as_frame(rel):
             others.append(rel.as_posix())  # beside the frames, not one of them
