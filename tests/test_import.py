@@ -1451,3 +1451,15 @@ def test_a_plan_json_beside_the_frames_must_agree_with_the_import(tmp_path):
         (folder / "plan.json").write_text(json.dumps({**plan, **edit}))
         with pytest.raises(InputError, match=expected):
             import_folder(folder, tmp_path / "s", "other", (W, H), patch=K)
+
+
+def test_a_renderers_frame_number_after_a_frame_name_is_pointed_out(tmp_path):
+    """Blender writes white0001.exr: it was refused as no frame name, without saying why."""
+    from sssphase_core.capture.importer import frame_files
+
+    for name, frame in (("white0001.npy", "white"), ("black_0001.npy", "black"), ("psp__x__p20__s0.0042.npy", "psp/x/p20/s0")):
+        np.save(tmp_path / name, np.zeros((2, 2), np.float32))
+        with pytest.raises(InputError, match=rf"is no frame name .*: without the renderer's frame number \d+ it would be "
+                                             rf"frame '{re.escape(frame)}'"):
+            frame_files(tmp_path)
+        (tmp_path / name).unlink()

@@ -72,7 +72,8 @@ FRAME_WORDS = frozenset({"psp", "dots", "white", "black", "ref", "pattern"})
 def _meant_as_frame(rel: Path) -> bool:
     """Whether an image at ``rel`` (relative to its view folder) was meant as a frame: its name's (or in the
     ``psp/x/p20/s0.png`` layout its top folder's) first word, up to ``_``, ``-``, ``.`` or a space, is a frame's."""
-    return re.split(r"[_\-. ]", rel.parts[0], maxsplit=1)[0].lower() in FRAME_WORDS
+    first = re.split(r"[_\-. ]", rel.parts[0], maxsplit=1)[0].lower()
+    return first in FRAME_WORDS or first.rstrip("0123456789") in FRAME_WORDS  # white0001: a renderer's frame number
 
 
 def exported_names(vdir: Path) -> dict[Path, str]:
@@ -147,9 +148,12 @@ def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
         if not _is_frame_key(key):
             if not strict:
                 continue
+            numbered = re.fullmatch(r"(.+?)[_.-]?([0-9]{3,6})", key)  # a renderer's frame number: white0001, black_0001
+            hint = (f": without the renderer's frame number {numbered.group(2)} it would be frame {numbered.group(1)!r}"
+                    if numbered and _is_frame_key(numbered.group(1)) else "")
             raise InputError(f"{path}: {key!r} is no frame name (expected psp__<x|y>__p<period>__s<n>, white, black, "
                              "ref__<name>, pattern__<name> (a name of ASCII letters, digits, '_', '.' and '-', at most "
-                             "64) or dots__<sx>_<sy>; see SESSION_FORMAT.md)")
+                             f"64) or dots__<sx>_<sy>; see SESSION_FORMAT.md){hint}")
         if m := PSP_KEY_RE.match(key):  # one spelling per frame: p20.0 -> p20, s01 -> s1 (the capture plan's)
             key = f"psp/{m.group(1)}/p{float(m.group(2)):g}/s{int(m.group(3))}"
         if key in files:
