@@ -204,6 +204,7 @@ def test_validate_reports_corrupt_and_missing_arrays(reference, tmp_path, sss):
 
 
 @pytest.mark.slow
+@pytest.mark.filterwarnings("ignore:--dot-spacing")  # sparse dots for speed: their crops cut short
 def test_footprints_stream_into_crops_and_raw_dots_on_request(daemon, tmp_path):
     _, client = daemon
     req = CaptureRequest("pear", views=1, footprints=True, dot_spacing=8, keep_dots=True, out=tmp_path)
@@ -220,6 +221,7 @@ def test_footprints_stream_into_crops_and_raw_dots_on_request(daemon, tmp_path):
 
 
 @pytest.mark.slow
+@pytest.mark.filterwarnings("ignore:--dot-spacing")  # sparse dots for speed: their crops cut short
 def test_raw_dots_are_kept_once_per_dot_grid_with_exposure_brackets(daemon, tmp_path):
     _, client = daemon  # each dot grid is captured at 2 exposures and merged: one kept frame per grid
     s = run_capture(client, CaptureRequest("pear", views=1, footprints=True, dot_spacing=4, keep_dots=True,
