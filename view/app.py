@@ -458,8 +458,9 @@ async def live_socket(websocket: WebSocket) -> None:
     if not _authorised(state, websocket.query_params.get("token")):
         await websocket.close(code=4403)
         return
-    if state.live_sockets >= MAX_LIVE_SOCKETS:
-        await websocket.close(code=1013, reason=f"{MAX_LIVE_SOCKETS} live views are open already")  # try again later
+    if state.live_sockets >= MAX_LIVE_SOCKETS:  # accepted to be closed with the reason (before accept: a bare 403)
+        await websocket.accept()
+        await websocket.close(code=1013, reason=f"{MAX_LIVE_SOCKETS} live views are open already: close one")
         return
     await websocket.accept()
     state.live_sockets += 1

@@ -72,7 +72,10 @@ function connectLive() {
   socket.binaryType = "blob";
   let header = null;
   socket.onopen = () => { state.socket = socket; sendSettings(); $("status").textContent = "live"; };
-  socket.onclose = () => { $("status").textContent = "live view closed"; state.socket = null; };
+  socket.onclose = (event) => {  // the server says why where it can (e.g. the live views already open)
+    $("status").textContent = event.reason ? `live view closed: ${event.reason}` : "live view closed";
+    state.socket = null;
+  };
   socket.onmessage = (event) => {
     if (typeof event.data !== "string") {
       const old = $("live-image").src, shown = header;
