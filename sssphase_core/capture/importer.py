@@ -566,8 +566,8 @@ OUTSIDE_WARN, CLIPPED_WARN = 0.2, 0.01
 #: too faint (LOW_MODULATION, SHADOW).
 DIM_LIT, DIM_WARN = 0.05, 0.2
 #: A reference capture's light over what the white and its pattern give (:func:`reference_match`) outside this
-#: range is warned of (Mitsuba renders' references: 0.99-1.00; half the exposure: 0.5; one brighter than full white
-#: could make it, twice the exposure, is refused before: capture.processing.OUTLIER_MAX_SHARE).
+#: range is warned of (Mitsuba renders' references: 0.99-1.00; twice the exposure: 1.9, half: 0.5; far brighter than
+#: full white could make it is refused before: capture.processing.OUTLIER_MAX_SHARE).
 REFERENCE_BRIGHTNESS = (0.67, 1.5)
 #: Warn when more than this share of the decodable pixels failed to unwrap (frames out of order, wrong periods).
 UNWRAP_WARN = 0.2

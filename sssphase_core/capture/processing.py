@@ -13,8 +13,10 @@ from sssphase_core.errors import DataError
 from sssphase_core.store.session import ViewWriter
 
 #: The share of a frame's lit values that may lie above the brightest any pattern gives and still be stray samples
-#: (a path tracer's fireflies, cosmic rays: a few values in 10^5); beyond it the frame is of another exposure.
-OUTLIER_MAX_SHARE = 0.02
+#: (a path tracer's fireflies, cosmic rays: a few values in 10^5; a render at a few samples per pixel, whose noise is
+#: heavy-tailed, more); beyond it the frame is of another exposure or units (a white at twice the fringes' scale:
+#: 84% of its lit values, at 4x 100%; a checkerboard reference at 4x 53%).
+OUTLIER_MAX_SHARE = 0.2
 
 
 class FrameLike(Protocol):
