@@ -133,16 +133,10 @@ def test_a_black_frame_as_bright_as_the_white_is_refused(tmp_path):
 
 
 @pytest.mark.slow
-def test_a_second_sim_into_one_folder_leaves_none_of_the_first_behind(tmp_path):
-    assert _sss("sim", "--object", "apple", "--views", "2", "--out", str(tmp_path), "--no-decode").returncode == 0
-    assert (tmp_path / "view1").is_dir()
-    assert _sss("sim", "--object", "pear", "--views", "1", "--out", str(tmp_path), "--no-decode").returncode == 0
-    assert not (tmp_path / "view1").exists() and json.loads((tmp_path / "scene.json").read_text())["object"]["name"] == "pear"
-
-
 def test_sss_sim_removes_only_what_an_earlier_sim_wrote(tmp_path):
-    """A scene.json beside folders named view0, view1 made `sss sim` delete those folders whole (a user's files
-    in them too), whoever wrote them."""
+    """A second `sss sim` into one folder leaves none of the first's figures behind; but a scene.json beside
+    folders named view0, view1 made it delete those folders whole (a user's files in them too), whoever wrote
+    them."""
     (tmp_path / "view1").mkdir()
     (tmp_path / "view1" / "notes.txt").write_text("mine")
     (tmp_path / "scene.json").write_text('{"mine": 1}')
@@ -150,10 +144,15 @@ def test_sss_sim_removes_only_what_an_earlier_sim_wrote(tmp_path):
               f"--out {tmp_path} holds a scene.json that sss sim did not write: give another folder")
     assert (tmp_path / "scene.json").read_text() == '{"mine": 1}' and not (tmp_path / "view0").exists()
     (tmp_path / "scene.json").unlink()
-    assert _sss("sim", "--object", "pear", "--views", "2", "--out", str(tmp_path), "--no-decode").returncode == 0
+    assert _sss("sim", "--object", "apple", "--views", "2", "--out", str(tmp_path), "--no-decode").returncode == 0
+    assert (tmp_path / "view1" / "white.png").is_file()
     assert _sss("sim", "--object", "pear", "--views", "1", "--out", str(tmp_path), "--no-decode").returncode == 0
     assert [p.name for p in (tmp_path / "view1").iterdir()] == ["notes.txt"]  # the earlier run's figures went
     assert (tmp_path / "view1" / "notes.txt").read_text() == "mine"
+    assert json.loads((tmp_path / "scene.json").read_text())["object"]["name"] == "pear"
+    (tmp_path / "view1" / "notes.txt").unlink()  # none of the first run is left beside the second's
+    assert _sss("sim", "--object", "pear", "--views", "1", "--out", str(tmp_path), "--no-decode").returncode == 0
+    assert not (tmp_path / "view1").exists()
 
 
 def test_patterns_are_read_at_their_depth_and_checked_whatever_their_format(tmp_path):
