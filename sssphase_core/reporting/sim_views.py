@@ -104,13 +104,15 @@ def remove_earlier_sim(out: Path) -> None:
     """An earlier `sss sim` in ``out``: its view folders' files go, so none is left beside a new run's; a file it
     did not write stays, with its folder. A ``scene.json`` that `sss sim` did not write is refused (it would be
     overwritten), in one line before any work."""
+    from sssphase_core.store.files import read_json_input
+
     scene = out / "scene.json"
-    if not scene.exists():
+    if not scene.exists() and not scene.is_symlink():
         return
-    try:
-        info = json.loads(scene.read_text())
+    try:  # bounded in size, a FIFO refused: read_json_input
+        info = read_json_input(scene, "the scene record")
         ours = isinstance(info, dict) and {"object", "rig", "images", "views"} <= info.keys()
-    except (OSError, UnicodeDecodeError, ValueError):
+    except (OSError, InputError):
         ours = False
     if not ours:
         raise InputError(f"--out {out} holds a scene.json that sss sim did not write: give another folder")

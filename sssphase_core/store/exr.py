@@ -161,7 +161,7 @@ def _colour_layer(path: Path | str, channels: dict[str, np.ndarray]) -> tuple[st
     layers: dict[str, tuple[str, str, str]] = {}
     for name in channels:
         prefix, last = name[:-1], name[-1:]
-        if (prefix == "" or prefix.endswith(".")) and last in "RGBrgb" and last:
+        if (prefix == "" or prefix.endswith(".")) and last in ("R", "G", "B", "r", "g", "b"):
             names = tuple(prefix + c for c in ("RGB" if last.isupper() else "rgb"))
             if all(n in channels for n in names):
                 layers.setdefault(prefix, names)  # type: ignore[arg-type]
