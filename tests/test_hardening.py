@@ -757,6 +757,25 @@ def test_a_damaged_check_session_is_refused_before_the_training(intact_session, 
     assert not (tmp_path / "run").exists() and not (tmp_path / "cache").exists()
 
 
+def test_sss_report_stops_on_a_damaged_reference_and_keeps_the_earlier_report(intact_session, tmp_path):
+    """A damaged reference capture was a "skipped" backend: `sss report` exited 0 and replaced the earlier report."""
+    from typer.testing import CliRunner
+
+    from sssphase_cli.main import app
+    from sssphase_core.errors import DataError
+
+    copy, out = tmp_path / "leaf", tmp_path / "report"
+    shutil.copytree(intact_session, copy)
+    args = ["report", str(copy), "--out", str(out), "--backend", "none"]
+    assert CliRunner().invoke(app, args).exit_code == 0
+    before = (out / "index.html").read_bytes()
+    chunk = _chunk_files(copy / "view_000", "ref/checkerboard")[0]
+    chunk.write_bytes(chunk.read_bytes()[:10])
+    with pytest.raises(DataError, match=r"array ref/checkerboard of view 0 .* is damaged"):
+        CliRunner().invoke(app, args, catch_exceptions=False)
+    assert (out / "index.html").read_bytes() == before
+
+
 #: The attacker of the next test, in a process of its own (its threads would otherwise hold the test's GIL,
 #: and the good client's ping would wait for them, not for the daemon).
 _REOPENING_ATTACKER = """

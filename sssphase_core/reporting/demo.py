@@ -258,8 +258,12 @@ class Demo:
                 try:
                     opts = {"supersample": self.cfg.analytic_supersample} if b == "analytic" else {}
                     rows += evaluate_view(rv, b, img_dir, checkpoint=ckpt, device=self.device, **opts)
+                except DamagedArray:  # damage stops the run in one line (see `step`), never a "skipped" backend
+                    raise
                 except (NotAvailable, SssError) as exc:  # e.g. no captured transport for `measured`
                     skipped[b] = str(exc)
+                    self.log(f"  {rv.object} with {b}: skipped ({exc})")
+                    continue
                 self.log(f"  relit {rv.object} with {b}")
         for r in rows:
             r["figure"] = str(Path(r["figure"]).relative_to(self.report_dir))
