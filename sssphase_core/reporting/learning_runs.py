@@ -455,6 +455,19 @@ def _footprint_backends(opts: FootprintOptions) -> dict[str, Any]:
     return backends
 
 
+def _check_footprint_size(backends: dict[str, Any], opts: FootprintOptions, vds: Sequence[Any]) -> None:
+    """Each decoder predicts footprints of its preset's size; the sessions' crops are their rig's patch (a
+    mismatch was an internal size error in the metrics)."""
+    sizes = {v.footprints.shape[1] for v in vds if v.footprints is not None and len(v.footprints)}
+    for name, be in backends.items():
+        for size in sizes - {be.patch}:
+            flag = "--checkpoint" if name == "torch" else f"--compare {name}"
+            where = f"the sessions under {opts.sessions}" if opts.sessions else f"the simulated rig ({opts.rig} preset)"
+            raise InputError(f"{flag} predicts {be.patch}px footprints (preset {be.encoder.preset.name}); {where} "
+                             f"hold {size}px footprint crops (the rig's patch): evaluate a decoder trained on "
+                             f"{size}px patches of this rig")
+
+
 def evaluate_footprints(opts: FootprintOptions, report: Report = Report()) -> Evaluation:
     """MSE, PSNR (data range 1) and SSIM (data range = GT peak) per object and backend, like the paper's
     Table 1; with ``plots``, one profile plot per object and backend (its brightest footprint)."""
@@ -470,6 +483,7 @@ def evaluate_footprints(opts: FootprintOptions, report: Report = Report()) -> Ev
     names = parse_names(opts.objects, () if opts.sessions else UNSEEN_OBJECTS)
     backends = _footprint_backends(opts)
     vds = load_views(names, chosen_views(opts.views, "0", opts.sessions), opts, footprints=True, report=report)
+    _check_footprint_size(backends, opts, vds)
     names = names or view_objects(vds)
     if opts.baseline:
         analytic = opts.baseline == "analytic"

@@ -264,6 +264,13 @@ def test_evaluate_footprints_measures_each_backend_and_plots_it(synthetic, tiny,
     assert said.lines[1].startswith("LPIPS") and ev.payload["note"].endswith(said.lines[1] + ".")
     assert sorted(p.name for p in (tmp_path / "plots").iterdir()) == ["three_again.png", "three_torch.png"]
     assert "again PSNR" in ev.markdown()
+    from dataclasses import replace
+
+    _decoder_checkpoint(tmp_path / "dec24.pt", replace(tiny, patch=24))  # the sessions' crops are 16 px: an internal
+    with pytest.raises(InputError, match=r"--compare wide predicts 24px footprints \(preset tiny\); the sessions under "
+                                         r".* hold 16px footprint crops"):  # size error in the metrics before
+        evaluate_footprints(FootprintOptions(checkpoint=tmp_path / "dec.pt", compare=[f"wide={tmp_path / 'dec24.pt'}"],
+                                             baseline="", pixels_per_view=4, sessions=root))
 
 
 def test_pca_figure_draws_every_session_view_and_returns_them(synthetic, tiny, tmp_path):
