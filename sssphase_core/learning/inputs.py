@@ -260,17 +260,24 @@ def check_batch(batch_size: int, ds: PatchDataset, what: str) -> None:
                          "--pixels-per-view / views")
 
 
-def check_run_out(out: Path, kind: str, resume: bool, config_file: RunConfigFile | None = None) -> bool:
+def check_run_out(out: Path, kind: str, resume: bool, config_file: RunConfigFile | None = None,
+                  epochs: int | None = None) -> bool:
     """Before any data is read: refuse an ``out`` that is a session or holds sessions or another kind of run,
-    or (``config_file.check``) a run resumed with options that shaped it changed. True when the run will
-    resume from ``out``."""
+    a run resumed with fewer ``epochs`` than it has trained (it trained nothing and its config.toml then said
+    the wrong number), or (``config_file.check``) one resumed with options that shaped it changed. True when
+    the run will resume from ``out``."""
     from sssphase_core.learning.training import check_run_folder
     from sssphase_core.store.session import MANIFEST, check_output_folder
 
     check_output_folder(out)  # not inside a session (a view folder)
     if out.is_dir() and any((child / MANIFEST).is_file() for child in out.iterdir() if child.is_dir()):
         raise InputError(f"--out {out} holds sessions: give the run a folder of its own (e.g. runs/{kind})")
-    resuming = check_run_folder(out, kind) is not None and resume
+    ckpt = check_run_folder(out, kind)
+    resuming = ckpt is not None and resume
+    done = int((ckpt or {}).get("loop", {}).get("epoch", 0)) if resuming else 0
+    if epochs is not None and done > epochs:
+        raise InputError(f"{out} holds a run that has trained {done} epochs: --epochs {epochs} would train none; "
+                         f"pass --epochs above {done} to continue it, or --no-resume or another --out for a new run")
     if config_file is not None:
         config_file.check(out, resuming)
     return resuming

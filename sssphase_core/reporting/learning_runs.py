@@ -16,6 +16,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from sssphase_core.compute import check_device
 from sssphase_core.errors import DataError, InputError
 from sssphase_core.learning.inputs import (
     DECODER_HEADS,
@@ -140,7 +141,8 @@ def run_pretrain(opts: PretrainOptions, report: Report = Report(), *,
     from sssphase_core.sim import TRAIN_OBJECTS
 
     p = get_preset(opts.preset)
-    resuming = check_run_out(opts.out, "pretrain", opts.resume, config_file)
+    check_device(opts.device)  # before anything is written: a refused run left --device in config.toml
+    resuming = check_run_out(opts.out, "pretrain", opts.resume, config_file, opts.epochs)
     names = parse_names(opts.objects, () if opts.sessions else TRAIN_OBJECTS)
     vds = load_views(names, chosen_views(opts.views, "0,1,2,3", opts.sessions), opts, footprints=False, report=report)
     names = names or view_objects(vds)
@@ -234,7 +236,8 @@ def run_decoder(opts: DecoderOptions, report: Report = Report(), *,
     from sssphase_core.learning.training.decoder import check_aux_classes
     from sssphase_core.sim import TRAIN_OBJECTS
 
-    resuming = check_run_out(opts.out, "decoder", opts.resume, config_file)
+    check_device(opts.device)  # before anything is written: a refused run left --device in config.toml
+    resuming = check_run_out(opts.out, "decoder", opts.resume, config_file, opts.epochs)
     names = parse_names(opts.objects, () if opts.sessions else TRAIN_OBJECTS)
     choice = decoder_view_choice(names, opts.views, opts.val_views, opts.sessions)
     if opts.check_sessions:  # a typo, or a damaged chunk, here was found only after the whole training

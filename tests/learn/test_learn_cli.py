@@ -152,6 +152,24 @@ def test_a_run_resumed_with_other_data_or_model_options_is_refused(tmp_path):
     assert (run / "config.toml").read_text() == saved
 
 
+@pytest.mark.parametrize(("args", "expected"), [
+    (["--device", "tpu"], "unknown device 'tpu'"),  # it was saved in config.toml, then refused
+    (["--epochs", "2"], r"has trained 3 epochs: --epochs 2 would train none; pass --epochs above 3"),  # trained none,
+])  # and config.toml said 2
+def test_a_refused_run_leaves_the_finished_run_s_config_as_it_was(args, expected, tmp_path):
+    from sssphase_core.errors import InputError
+    from sssphase_core.learning.training import save_checkpoint
+
+    run = tmp_path / "dec"
+    save_checkpoint(run / "last.pt", {"kind": "decoder", "preset": {}, "encoder": {}, "loop": {"epoch": 3}})
+    (run / "config.toml").write_text('command = "train decoder"\n[options]\nend_to_end = true\npixels_per_view = 50\n'
+                                     'epochs = 3\n')
+    saved = (run / "config.toml").read_text()
+    with pytest.raises(InputError, match=expected):
+        runner.invoke(app, ["train", "decoder", "--config", str(run), "--out", str(run), *args], catch_exceptions=False)
+    assert (run / "config.toml").read_text() == saved
+
+
 def test_a_copied_run_continued_with_its_config_stays_in_the_copy(tmp_path):
     """A run folder copied, then continued with `--config COPY`, trained into the original: its config.toml
     records the original's --out. It now continues in the copy, with a warning; --out still chooses."""
