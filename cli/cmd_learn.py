@@ -305,9 +305,14 @@ def bench_learn(
     out: Annotated[Path, typer.Option(help="JSON output.")] = Path("bench_learn.json"),
     md: Annotated[Path | None, typer.Option(help="Markdown table output.")] = None,
     repeats: Annotated[int, typer.Option(min=1, help="Timed runs of each measurement.")] = 3,
-    device: str = "cpu",
+    device: Annotated[str, typer.Option(help="cpu, cuda or cuda:N (auto: CUDA when torch sees one)")] = "cpu",
 ) -> None:
     """Throughput (patches/s) of the lite and paper presets, inference and training, ratio to paper."""
+    from sssphase_core.bench.output import check_result_paths
+    from sssphase_core.compute import check_device
+
+    check_device(device)  # one line before any work (it was torch's own error after the timing began)
+    check_result_paths(out, md)
     from sssphase_core.bench.learn_bench import learn_bench
     from sssphase_core.bench.output import machine_info, write_bench_report
 

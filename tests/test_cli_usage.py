@@ -52,6 +52,7 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["bench", "relight", "--backends", "torch"], "--backends torch needs --checkpoint"),  # had measured nothing
         (["bench", "stability", "--cases", ","], "--cases ',' names nothing"),  # had run every case
         (["bench", "learn", "--repeats", "0"], "--repeats"),  # had averaged nothing into NaN
+        (["bench", "learn", "--device", "tpu"], "unknown device 'tpu': use auto"),  # was torch's internal error
         (["bench", "daemon", "--frames", "0", "--out", "d.json"], "--frames"),  # had left its daemon running
         (["bench", "psp", "--out", "/proc/version/x.json", "--quick"], "/proc/version is a file"),  # after the work
         (["repro", "paper", "--preset", "tiny", "--timeout", "0"], "--timeout must be a positive number of seconds"),
