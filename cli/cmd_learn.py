@@ -7,7 +7,6 @@ Each train/eval command parses its options and calls one runner of
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Annotated
 
@@ -105,11 +104,9 @@ def _write(out: Path | None, payload: dict, markdown: str) -> None:
     _check_result_file(out)
     console.print(markdown)
     if out is not None:
-        out.parent.mkdir(parents=True, exist_ok=True)
-        from sssphase_core.store.files import write_text
+        from sssphase_core.store.results import write_result_files
 
-        write_text(out, json.dumps(payload, indent=2))
-        write_text(out.with_suffix(".md"), markdown + "\n")
+        write_result_files(payload, out, out.with_suffix(".md"), markdown)
         console.print(f"wrote {out} and {out.with_suffix('.md')}")
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import re
 import shutil
@@ -1188,6 +1189,26 @@ def test_result_files_never_land_inside_a_session_or_on_their_markdown_twin(inta
         check_result_paths(tmp_path / "afile" / "sub" / "k.json", tmp_path / "afile" / "sub" / "k.md")
     check_result_paths(tmp_path / "ok.json", tmp_path / "ok.md")
     check_result_paths(tmp_path / "new" / "deeper" / "ok.json")
+
+
+def test_a_result_replaces_only_a_result_sssphase_wrote(tmp_path):
+    """`sss bench ... --out notes.json` replaced the user's notes.json, and the notes.md beside it."""
+    from sssphase_core.bench.output import Table, check_result_paths, write_bench_report
+
+    table = Table("t", ["case", "value"], [["a", 1.0]])
+    write_bench_report({"x": float("nan")}, [table], tmp_path / "r.json", tmp_path / "r.md", title="t")
+    assert json.loads((tmp_path / "r.json").read_text()) == {"x": None, "written_by": "sssphase"}
+    write_bench_report({"x": 2}, [table], tmp_path / "r.json", tmp_path / "r.md")  # its own result: replaced
+    assert json.loads((tmp_path / "r.json").read_text())["x"] == 2
+    (tmp_path / "notes.md").write_text("# my notes\n")
+    for mine, expected in [("notes.json", r"notes.json exists and is not a result sssphase wrote"),
+                           ("other.json", r"notes.md \(the Markdown table of --out .*other.json\) exists and is not")]:
+        (tmp_path / "notes.json").write_text('{"mine": 1}')
+        with pytest.raises(InputError, match=expected):
+            check_result_paths(tmp_path / mine, tmp_path / "notes.md")
+    assert (tmp_path / "notes.md").read_text() == "# my notes\n"
+    _one_line(_cli("bench", "learn", "--out", str(tmp_path / "notes.json")), "exists and is not a result")  # before the timing
+    assert (tmp_path / "notes.json").read_text() == '{"mine": 1}'
 
 
 @pytest.mark.parametrize("image", [{"shape": [4, 4], "data": b"\0" * 16},  # no dtype
