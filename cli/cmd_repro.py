@@ -80,10 +80,9 @@ def repro_paper(
     augmentations), fit the decoder, evaluate, and report beside the paper's numbers, within --budget seconds."""
     from sssphase_cli.progress import step_bar
     from sssphase_core.errors import InputError
-    from sssphase_core.reporting.repro import PRESETS, run_repro
+    from sssphase_core.reporting.repro import PRESETS, check_repro_options, run_repro
 
-    if preset not in PRESETS:
-        raise InputError(f"unknown repro preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    check_repro_options(out, preset, device, budget)  # before the progress display (it left a blank line)
     if workers < 0:
         raise InputError(f"--workers must be 0 (automatic) or more, got {workers}")
     if not timeout > 0:  # 0 failed every capture, and the run still said it had finished

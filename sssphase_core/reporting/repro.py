@@ -322,22 +322,27 @@ class PaperRepro(Demo):
         return self.report_dir / "report.md"
 
 
+def check_repro_options(out: Path | str, preset: str, device: str, budget_s: float) -> None:
+    """Refuse, in one line before any work, an unknown preset or device, a budget that is no positive number
+    of seconds, or an ``out`` that cannot hold the run."""
+    if preset not in PRESETS:
+        raise InputError(f"unknown repro preset {preset!r}; choose one of {', '.join(PRESETS)}")
+    if not (math.isfinite(budget_s) and budget_s > 0):
+        raise InputError(f"--budget must be a positive number of seconds, got {budget_s:g}")
+    from sssphase_core.compute import check_device
+    from sssphase_core.store.session import check_output_folder
+
+    check_device(device)
+    check_output_folder(out)
+
+
 def run_repro(out: Path | str, capture: Capture, *, preset: str = "paper", device: str = "auto", budget_s: float = 480.0,
               fresh: bool = False, log: Callable[[str], None] = print,
               progress: Callable[[str, int, int, str], None] | None = None, **overrides: Any) -> Path:
     """Run (or resume) ``sss repro paper`` into ``out``; returns the report's path. ``overrides``: fields of the
     preset's :class:`ReproConfig` (objects, views, sizes)."""
-    if preset not in PRESETS:
-        raise InputError(f"unknown repro preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    if not (math.isfinite(budget_s) and budget_s > 0):
-        raise InputError(f"--budget must be a positive number of seconds, got {budget_s}")
-    from sssphase_core.compute import check_device
-
-    check_device(device)
+    check_repro_options(out, preset, device, budget_s)
     config = replace(PRESETS[preset], **overrides)
-    from sssphase_core.store.session import check_output_folder
-
-    check_output_folder(out)
     repro = PaperRepro(Path(out), config, capture, device=device, budget_s=budget_s, fresh=fresh, log=log, progress=progress)
     repro.report_dir = Path(out)
     path = repro.run()
