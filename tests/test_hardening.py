@@ -1191,6 +1191,17 @@ def test_result_files_never_land_inside_a_session_or_on_their_markdown_twin(inta
     check_result_paths(tmp_path / "new" / "deeper" / "ok.json")
 
 
+def test_a_view_folder_given_for_sessions_names_its_session(intact_session):
+    """`--sessions S/leaf/view_000` (or `sss eval relight` on it) said only "no sessions under ..."."""
+    from sssphase_core.store.session import find_sessions
+
+    view = intact_session / "view_000"
+    with pytest.raises(InputError, match=f"{view} is inside the session {intact_session.resolve()}: name the session"):
+        find_sessions([view])
+    _one_line(_cli("train", "decoder", "--end-to-end", "--sessions", str(view)),
+              f"no complete session views under {view}; {view} is inside the session")
+
+
 def test_a_result_replaces_only_a_result_sssphase_wrote(tmp_path):
     """`sss bench ... --out notes.json` replaced the user's notes.json, and the notes.md beside it."""
     from sssphase_core.bench.output import Table, check_result_paths, write_bench_report

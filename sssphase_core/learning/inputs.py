@@ -168,8 +168,10 @@ def _session_views(names: Sequence[str], views: Any, opts: ViewOptions, *, footp
         vds = session_views(sessions, names or None, views or None, pixels_per_view=opts.pixels_per_view, footprints=footprints,
                             seed=opts.seed)
     if not vds:
+        from sssphase_core.store.session import inside_session_hint
+
         why = "" if sessions.is_dir() else " (a file, not a folder)" if sessions.exists() else " (no such folder)"
-        raise InputError(f"no complete session views under {opts.sessions}{why}")
+        raise InputError(f"no complete session views under {opts.sessions}{why}{inside_session_hint([sessions])}")
     report.say(f"{role}: captured sessions under {opts.sessions}: {describe_views(vds)}")
     return vds
 

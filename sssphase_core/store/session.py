@@ -869,8 +869,18 @@ def find_sessions(paths: Iterable[Path | str]) -> list[Session]:
                         {m.parent.parent for p in paths for m in Path(p).glob(f"*/*/{MANIFEST}")})
         hint = (f"; folders of sessions below it: {', '.join(str(d) for d in deeper[:6])}"
                 f"{' ...' if len(deeper) > 6 else ''} (name one: sessions are read one folder down only)") if deeper else ""
-        raise InputError(f"no sessions under {', '.join(map(str, paths))}{hint}")
+        raise InputError(f"no sessions under {', '.join(map(str, paths))}{hint or inside_session_hint(paths)}")
     return found
+
+
+def inside_session_hint(paths: Iterable[Path | str]) -> str:
+    """``"; X is inside the session S: name S or the folder holding it"`` for the first path that lies inside
+    a session (a view folder given where sessions are read), else ``""``."""
+    for p in paths:
+        inside = session_around(p)
+        if inside is not None and Path(p).resolve() != Path(inside).resolve():
+            return f"; {p} is inside the session {inside}: name the session, or the folder holding it"
+    return ""
 
 
 def list_sessions(root: Path | str) -> list[Session]:
