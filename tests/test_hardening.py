@@ -1189,6 +1189,10 @@ def test_result_files_never_land_inside_a_session_or_on_their_markdown_twin(inta
         check_result_paths(tmp_path / "afile" / "sub" / "k.json", tmp_path / "afile" / "sub" / "k.md")
     check_result_paths(tmp_path / "ok.json", tmp_path / "ok.md")
     check_result_paths(tmp_path / "new" / "deeper" / "ok.json")
+    if os.geteuid() != 0:  # (root may write anywhere)
+        (tmp_path / "ro").mkdir(mode=0o555)
+        with pytest.raises(InputError, match=r"ro/sub/k.json: this user may not write in .*ro$"):
+            check_result_paths(tmp_path / "ro" / "sub" / "k.json")
 
 
 def test_a_view_folder_given_for_sessions_names_its_session(intact_session):

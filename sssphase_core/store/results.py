@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -72,6 +73,8 @@ def check_result_paths(out: Path | str, md: Path | str | None = None) -> None:
         above = next((a for a in path.parents if a.exists()), None)  # "afile: File exists" came after all the work
         if above is not None and not above.is_dir():
             raise InputError(f"--out {path}: {above} is a file, so no folder can be made there")
+        if above is not None and not os.access(above, os.W_OK | os.X_OK):  # "Permission denied" came after the work
+            raise InputError(f"--out {path}: this user may not write in {above}")
         if (path.exists() or path.is_symlink()) and not is_our_result(path):
             which = "" if path == Path(out) else f" (the Markdown table of --out {out})"
             raise InputError(f"--out: {path}{which} exists and is not a result sssphase wrote: give another name or "
