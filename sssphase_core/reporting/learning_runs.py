@@ -238,6 +238,12 @@ def run_decoder(opts: DecoderOptions, report: Report = Report(), *,
 
     check_device(opts.device)  # before anything is written: a refused run left --device in config.toml
     resuming = check_run_out(opts.out, "decoder", opts.resume, config_file, opts.epochs)
+    if opts.encoder is not None:
+        from sssphase_core.learning.training import load_checkpoint
+
+        if load_checkpoint(opts.encoder, mmap=True).get("kind") == "decoder":  # it was taken without a word
+            report.say(f"{report.style('note:', 'note')} --encoder {opts.encoder} is a decoder run: its encoder is "
+                       "used, frozen; the paper's method starts from a pretraining run (`sss train pretrain`)")
     names = parse_names(opts.objects, () if opts.sessions else TRAIN_OBJECTS)
     choice = decoder_view_choice(names, opts.views, opts.val_views, opts.sessions)
     if opts.check_sessions:  # a typo, or a damaged chunk, here was found only after the whole training

@@ -211,6 +211,19 @@ def test_run_decoder_refuses_bad_options_before_any_data(changes, expected, tmp_
     assert said.lines == [] and not (tmp_path / "dec").exists()
 
 
+def test_a_decoder_run_given_as_encoder_is_said(synthetic, tiny, tmp_path):
+    """A decoder run's checkpoint as --encoder trained on its encoder without a word."""
+    from sssphase_core.reporting.learning_runs import DecoderOptions, run_decoder
+
+    root = synthetic_sessions(tmp_path / "sessions", synthetic, footprints=True)
+    _decoder_checkpoint(tmp_path / "dec.pt", tiny)
+    said = Said()
+    run_decoder(DecoderOptions(out=tmp_path / "run", encoder=tmp_path / "dec.pt", sessions=root, pixels_per_view=8,
+                               batch_size=8, epochs=1), said.report())
+    assert any(f"--encoder {tmp_path / 'dec.pt'} is a decoder run: its encoder is used, frozen" in line
+               for line in said.lines), said.lines
+
+
 def test_check_against_baselines_without_sessions_says_so():
     from sssphase_core.reporting.learning_runs import check_against_baselines
 
