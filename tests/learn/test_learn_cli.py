@@ -135,6 +135,30 @@ def test_a_run_folder_of_another_kind_or_a_session_is_never_overwritten(tmp_path
     assert sorted(p.name for p in session.iterdir()) == ["manifest.json"]
 
 
+def test_a_folder_of_the_user_s_files_is_no_run_folder(tmp_path):
+    """`--out ~/notes` (or a received config.toml's out) deleted the tb/ folder and best.pt it held, and replaced
+    metrics.csv: a folder without a run of this kind keeps its files; a run stopped before its first checkpoint
+    (its config.toml says what it was) starts over."""
+    from sssphase_core.errors import DataError
+    from sssphase_core.learning.training import check_run_folder, save_checkpoint
+
+    notes = tmp_path / "notes"
+    (notes / "tb").mkdir(parents=True)
+    (notes / "tb" / "events.1").write_text("logs")
+    (notes / "best.pt").write_text("mine")
+    before = {p.relative_to(notes): p.read_bytes() for p in notes.rglob("*") if p.is_file()}
+    with pytest.raises(DataError, match=r"notes holds best.pt, tb but no decoder run of sssphase .*give a new or empty"):
+        runner.invoke(app, ["train", "decoder", "--end-to-end", "--out", str(notes), "--no-resume"], catch_exceptions=False)
+    assert {p.relative_to(notes): p.read_bytes() for p in notes.rglob("*") if p.is_file()} == before
+    (notes / "config.toml").write_text('command = "train pretrain"\n[options]\n')  # another kind's config: still refused
+    with pytest.raises(DataError, match="no decoder run of sssphase"):
+        check_run_folder(notes, "decoder")
+    assert check_run_folder(notes, "pretrain") is None  # a pretraining run stopped before its first checkpoint
+    (notes / "config.toml").unlink()
+    save_checkpoint(notes / "best.pt", {"kind": "decoder", "preset": {}, "encoder": {}})  # a decoder run's best.pt: its own
+    assert check_run_folder(notes, "decoder") is None
+
+
 def test_a_run_resumed_with_other_data_or_model_options_is_refused(tmp_path):
     """config.toml says what the run is: resuming it with an option that shaped it changed (here the pixels
     per view) is refused before any data is read; the epochs may grow."""

@@ -332,11 +332,41 @@ def check_run_folder(out_dir: Path, kind: str) -> dict | None:
         raise DataError(f"{out_dir} is a session folder: choose another output folder for the run")
     path = out_dir / CHECKPOINT
     if not path.exists():
+        _refuse_files_of_another(out_dir, kind)
         return None
     ckpt = load_checkpoint(path, mmap=True)  # mapped: only the kind is looked at, no tensor is read
     if ckpt.get("kind") != kind:
         raise DataError(f"{path} holds a {ckpt.get('kind')} run, not {kind}; choose another output folder")
     return ckpt
+
+
+#: What a run writes beside its checkpoint, and a new run in the same folder replaces (:func:`start_fresh`).
+RUN_FILES = (METRICS, METRICS_CSV, BEST, TB_DIR, "knn_vs_time.png", "error_vs_time.png")
+
+
+def _refuse_files_of_another(out_dir: Path, kind: str) -> None:
+    """Refuse a folder without this kind's checkpoint that holds files a run replaces (:data:`RUN_FILES`),
+    unless it is a run of this kind that stopped before its first checkpoint (its ``config.toml`` says so,
+    or its best.pt is of this kind): ``--out ~/notes`` deleted a tb/ folder and a best.pt of the user's."""
+    found = [name for name in RUN_FILES if (out_dir / name).exists() or (out_dir / name).is_symlink()]
+    if not found or _run_of_kind(out_dir, kind):
+        return
+    raise DataError(f"{out_dir} holds {', '.join(found)} but no {kind} run of sssphase (no {CHECKPOINT}, no "
+                    f"config.toml of `sss train {kind}`): a new run would replace them; give a new or empty folder")
+
+
+def _run_of_kind(out_dir: Path, kind: str) -> bool:
+    from sssphase_core.store.files import read_toml_input
+
+    try:
+        if read_toml_input(out_dir / "config.toml", "the run's options").get("command") == f"train {kind}":
+            return True
+    except (OSError, SssError, ValueError):
+        pass
+    try:
+        return (out_dir / BEST).is_file() and load_checkpoint(out_dir / BEST, mmap=True).get("kind") == kind
+    except (OSError, SssError):
+        return False
 
 
 def resume_state(out_dir: Path, resume: bool, kind: str, preset: ModelPreset | None = None) -> dict | None:
@@ -352,6 +382,8 @@ def resume_state(out_dir: Path, resume: bool, kind: str, preset: ModelPreset | N
 
 def start_fresh(out_dir: Path) -> None:
     """A new run in a used folder: the old run's metrics and best checkpoint must not mix with it."""
-    for name in (METRICS, METRICS_CSV, BEST, "knn_vs_time.png", "error_vs_time.png"):  # the old run's figures too
-        (out_dir / name).unlink(missing_ok=True)
-    shutil.rmtree(out_dir / TB_DIR, ignore_errors=True)
+    for name in RUN_FILES:  # the old run's figures too (check_run_folder refused a folder of the user's files)
+        if name == TB_DIR and (out_dir / name).is_dir() and not (out_dir / name).is_symlink():
+            shutil.rmtree(out_dir / TB_DIR, ignore_errors=True)
+        else:
+            (out_dir / name).unlink(missing_ok=True)
