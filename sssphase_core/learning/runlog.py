@@ -130,4 +130,23 @@ def check_checkpoint_file(path: Path | str) -> Path:
         with open(path, "rb") as f:
             if f.read(4) != b"PK\x03\x04":  # what torch.save writes (torch's own error for others: "101")
                 raise DataError(f"{path} is not a checkpoint file (not written by torch.save)")
+        _check_stored_members(path)
     return path
+
+
+def _check_stored_members(path: Path) -> None:
+    """torch.save stores its members uncompressed; a compressed member (a 5 MB deflate bomb unpacked to
+    gigabytes in torch.load) or one declared longer than the file is refused before torch reads it."""
+    import zipfile
+
+    try:
+        with zipfile.ZipFile(path) as z:
+            members = z.infolist()
+    except (zipfile.BadZipFile, OSError, ValueError):
+        return  # (a cut file: load_checkpoint says so in torch's terms)
+    size = path.stat().st_size
+    for m in members:
+        if m.compress_type != zipfile.ZIP_STORED or m.file_size > size:
+            raise DataError(f"{path} is not a checkpoint torch.save wrote: its member {m.filename[:80]!r} is "
+                            f"{'compressed' if m.compress_type != zipfile.ZIP_STORED else 'declared longer than the file'} "
+                            f"({m.file_size:,} bytes unpacked)")

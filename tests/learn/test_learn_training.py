@@ -404,6 +404,7 @@ class _Pickled:  # torch.save pickles this; weights_only loading must refuse it
     (_Pickled(), "pickled Python objects"),
     (b"PK\x03\x04truncated", "cannot read checkpoint"),
     ("zip", "it is a zip archive, but not one torch saved"),  # said "[enforce fail at inline_container.cc:180] ..."
+    ("bomb", "its member 'archive/data.pkl' is compressed"),  # 64 MB unpacked from 64 kB (gigabytes from 5 MB)
     (b"# a text file\n", "not a checkpoint file"),
     (b"\x89PNG\r\n\x1a\n" + bytes(64), "not a checkpoint file"),  # another program's file (torch says "101")
 ])
@@ -421,6 +422,12 @@ def test_bad_checkpoints_are_refused_with_one_clear_line(tmp_path, content, expe
 
         with zipfile.ZipFile(path, "w") as z:
             z.writestr("hello.txt", "hi")
+    elif content == "bomb":
+        import zipfile
+
+        with zipfile.ZipFile(path, "w", zipfile.ZIP_DEFLATED) as z:
+            z.writestr("archive/data.pkl", bytes(64 << 20))
+            z.writestr("archive/version", "3\n")
     else:
         torch.save(content, path)
     with pytest.raises(DataError) as err:
