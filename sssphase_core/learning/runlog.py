@@ -38,12 +38,19 @@ def tensorboard_available() -> bool:
     return True
 
 
+#: The most a run's metrics.jsonl may hold (about 500 bytes per epoch: half a million epochs).
+MAX_METRICS_BYTES = 256 << 20
+
+
 def read_rows(path: Path) -> list[dict[str, Any]]:
     """The epoch rows of a ``metrics.jsonl`` (none when the file does not exist). A line that is not an epoch's
     row (damaged, edited: not a JSON object, or an ``epoch`` that is not a whole number) is left out with a warning naming it: a
     resumed run crashed on it after training its epoch, and again on every rerun."""
-    if not path.exists():
+    if not path.exists() and not path.is_symlink():
         return []
+    from sssphase_core.store.files import check_input_file
+
+    check_input_file(path, "the run's metrics", MAX_METRICS_BYTES)  # a link to /dev/zero, a FIFO: refused by name
     rows, bad = [], []
     for number, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
         if not line.strip():

@@ -591,3 +591,18 @@ def test_the_cli_passes_no_phase_shift_to_the_run(tmp_path, monkeypatch):
     for flag, expected in (([], True), (["--no-phase-shift"], False)):
         result = CliRunner().invoke(app, ["train", "pretrain", "--out", str(tmp_path / "pre"), *flag], catch_exceptions=False)
         assert result.exit_code == 0 and seen.pop().phase_shift is expected
+
+
+@pytest.mark.parametrize("kind", ["device", "fifo"])
+def test_a_runs_metrics_that_is_no_file_is_refused_by_name(tmp_path, kind):
+    """A received run folder whose metrics.jsonl links to /dev/zero read it without end (4 GB in seconds); a
+    FIFO hung the resumed run."""
+    import os
+
+    from sssphase_core.errors import InputError
+    from sssphase_core.learning.runlog import read_rows
+
+    path = tmp_path / METRICS
+    os.symlink("/dev/zero", path) if kind == "device" else os.mkfifo(path)
+    with pytest.raises(InputError, match=f"the run's metrics {path} is a {'device' if kind == 'device' else 'FIFO'}"):
+        read_rows(path)
