@@ -710,7 +710,47 @@ DAMAGE = {
         "name": "regular", "configuration": {"chunk_shape": [10, 10]}}),
     "dtype changed": lambda v: _set_meta(v / "corr" / "mask" / "zarr.json", data_type="float64"),
     "chunk missing": lambda v: _chunk_files(v, "white")[0].unlink(),  # zarr would read it as zeros
+    # hostile files of a few bytes that read without end, hung or allocated gigabytes:
+    "metadata a link to /dev/zero": lambda v: _replace_by_link(v / "white" / "zarr.json", "/dev/zero"),
+    "metadata a FIFO": lambda v: ((v / "white" / "zarr.json").unlink(), os.mkfifo(v / "white" / "zarr.json")),
+    "chunk a sparse 10 GB file": lambda v: os.truncate(_chunk_files(v, "white")[0], 10 << 30),
+    "chunk a link to /dev/zero": lambda v: _replace_by_link(_chunk_files(v, "psp")[0], "/dev/zero"),
+    "gzip codec (a bomb)": lambda v: _set_meta(v / "white" / "zarr.json", codecs=[
+        {"name": "bytes", "configuration": {"endian": "little"}}, {"name": "gzip", "configuration": {"level": 1}}]),
+    "chunks of 12 GB": lambda v: _set_meta(v / "corr" / "xp" / "zarr.json", chunk_grid={
+        "name": "regular", "configuration": {"chunk_shape": [60000, 50000]}}),
+    "30000 x 30000 frame": lambda v: _set_shape(v, "white", [30000, 30000, 3]),
 }
+
+
+#: What the reader says of the hostile files (the other damage is named by the tests' common pattern).
+DAMAGE_DETAIL = {
+    "metadata a link to /dev/zero": "is a device, not a file",
+    "metadata a FIFO": "is a FIFO, not a file",
+    "chunk a sparse 10 GB file": "bytes for a chunk of",
+    "chunk a link to /dev/zero": "is not a regular file",
+    "gzip codec (a bomb)": "its codecs are bytes, gzip; sssphase writes bytes, blosc, crc32c",
+    "chunks of 12 GB": "MiB each, more than the 1024 MiB sssphase writes",
+    "30000 x 30000 frame": "laid out on 30000x30000 pixels, more than any camera frame",
+}
+
+
+def _replace_by_link(path: Path, target: str) -> None:
+    path.unlink()
+    path.symlink_to(target)
+
+
+def _set_shape(view: Path, array: str, shape: list[int]) -> None:
+    """The array's shape in its metadata and the session's manifest (chunk count left out, as older sessions)."""
+    import json
+
+    _set_meta(view / array / "zarr.json", shape=shape)
+    manifest = view.parent / "manifest.json"
+    m = json.loads(manifest.read_text())
+    meta = m["views"][view.name.removeprefix("view_").lstrip("0") or "0"]["arrays"][array]
+    meta["shape"] = shape
+    meta.pop("chunks", None)
+    manifest.write_text(json.dumps(m))
 
 
 @pytest.fixture(scope="module")
@@ -719,6 +759,19 @@ def intact_session(sim_daemon, tmp_path_factory):
 
     return run_capture(sim_daemon, CaptureRequest("leaf", views=1, references=("checkerboard",),
                                                   out=tmp_path_factory.mktemp("intact"))).path
+
+
+@contextlib.contextmanager
+def _at_most_gib(gib: int):
+    """Address space capped (a reader that allocates gigabytes fails instead of swapping the machine)."""
+    import resource
+
+    soft, hard = resource.getrlimit(resource.RLIMIT_AS)
+    resource.setrlimit(resource.RLIMIT_AS, (gib << 30, hard))
+    try:
+        yield
+    finally:
+        resource.setrlimit(resource.RLIMIT_AS, (soft, hard))
 
 
 @pytest.mark.parametrize("damage", sorted(DAMAGE))
@@ -730,8 +783,10 @@ def test_a_damaged_array_is_one_error_naming_it_wherever_it_is_read(intact_sessi
     copy = tmp_path / "leaf"
     shutil.copytree(intact_session, copy)
     DAMAGE[damage](copy / "view_000")
-    with pytest.raises(DataError, match=r"array (psp|white|corr/xp|corr/mask) of view 0 .* is (damaged|missing)"):
-        load_view(Session.open(copy), 0)
+    with pytest.raises(DataError, match=r"array (psp|white|corr/xp|corr/mask) of view 0 .* is (damaged|missing)") as exc:
+        with _at_most_gib(2):
+            load_view(Session.open(copy), 0)
+    assert DAMAGE_DETAIL.get(damage, "") in str(exc.value)
     problems = Session.open(copy).validate()
     assert any("view 0: array" in p for p in problems)
     if damage == "dtype changed":  # named as what it is, not as a chunk failing its checksum

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 
 from sssphase_core.errors import DataError, InputError
+from sssphase_core.store.imageio import MAX_FRAME_PIXELS
 from sssphase_core.store.light import holds_light, light_problem, white_level
 
 FORMAT = "sssphase-session"
@@ -137,6 +138,76 @@ def _codec(dtype: np.dtype) -> list:
 
 def _chunk_count(shape: tuple[int, ...], chunks: tuple[int, ...]) -> int:
     return int(np.prod([-(-n // c) for n, c in zip(shape, chunks, strict=True)])) if all(shape) else 0
+
+
+#: The codecs of a session array, in order: sssphase writes ``bytes``, ``blosc`` and ``crc32c`` (earlier versions
+#: without the checksum). Others (a gzip stream unpacking a 3 MB chunk to gigabytes) are not read.
+ARRAY_CODECS = ("bytes", "blosc", "crc32c")
+
+#: The largest chunk sssphase writes is a few frames of a 1080p view (tens of MB); a chunk declared larger
+#: than this is refused before it is allocated.
+MAX_CHUNK_BYTES = 1 << 30
+
+
+def _check_array_metadata(folder: Path, where: str) -> int:
+    """Refuse an array's ``zarr.json`` that is no regular file of at most 1 MiB (a link to /dev/zero was read
+    without end, a FIFO hung), that names codecs sssphase does not write, or chunks over :data:`MAX_CHUNK_BYTES`;
+    the chunks' size in bytes."""
+    from sssphase_core.store.files import read_json_input
+
+    try:
+        meta = read_json_input(folder / "zarr.json", "its metadata", 1 << 20)
+    except FileNotFoundError:
+        raise DamagedArray(where, "missing or unreadable (no zarr.json)") from None
+    except InputError as exc:
+        raise DamagedArray(where, f"missing or unreadable ({str(exc).replace(str(folder), '').strip()[:160]})") from None
+    try:
+        codecs = [c["name"] if isinstance(c, dict) else c for c in meta["codecs"]]
+        chunk = [int(n) for n in meta["chunk_grid"]["configuration"]["chunk_shape"]]
+        itemsize = np.dtype(str(meta["data_type"])).itemsize
+    except (KeyError, TypeError, ValueError):
+        raise DamagedArray(where, "missing or unreadable (its zarr.json is not a zarr v3 array's)") from None
+    if not codecs or codecs[0] != "bytes" or any(c not in ARRAY_CODECS for c in codecs) or len(set(codecs)) != len(codecs):
+        raise DamagedArray(where, f"damaged (its codecs are {', '.join(map(str, codecs))[:120]}; sssphase writes "
+                                  f"{', '.join(ARRAY_CODECS)})")
+    nbytes = float(np.prod(chunk, dtype=np.float64)) * itemsize
+    if any(n <= 0 for n in chunk) or nbytes > MAX_CHUNK_BYTES:
+        raise DamagedArray(where, f"damaged (chunks of {'x'.join(map(str, chunk))} {meta['data_type']}: "
+                                  f"{nbytes / 2**20:,.0f} MiB each, more than the {MAX_CHUNK_BYTES >> 20} MiB sssphase writes)")
+    return int(nbytes)
+
+
+def _check_chunk_files(folder: Path, where: str, chunk_bytes: int) -> None:
+    """Refuse a chunk file longer than its chunk could compress to (a 10 GB sparse file was read whole), or one
+    that is no regular file (a link to /dev/zero)."""
+    import stat
+
+    root = folder / "c"
+    files = [root] if root.is_file() or (root.is_symlink() and not root.is_dir()) else (
+        [p for p in root.rglob("*") if all(part.isdigit() for part in p.relative_to(root).parts)] if root.is_dir() else [])
+    limit = chunk_bytes + (chunk_bytes >> 6) + (1 << 16)  # blosc's worst case: 16 bytes a block over the data
+    for p in files:
+        try:
+            st = os.stat(p)
+        except OSError:
+            continue  # (a broken link: zarr says it is missing)
+        if stat.S_ISDIR(st.st_mode):
+            continue
+        if not stat.S_ISREG(st.st_mode) or st.st_size > limit:
+            what = "not a regular file" if not stat.S_ISREG(st.st_mode) else f"{st.st_size:,} bytes for a chunk of {chunk_bytes:,}"
+            raise DamagedArray(where, f"damaged (chunk {p.relative_to(folder)} is {what})")
+
+
+def _free_memory() -> int | None:
+    """Bytes of memory available to this process (Linux ``MemAvailable``), None where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
 
 
 def _stored_chunks(folder: Path) -> int:
@@ -618,10 +689,16 @@ class Session:
             raise DataError(f"view {view} of {self.path} has no array {name!r} (has: {', '.join(self.arrays(view))})")
         where = f"array {name} of view {view} of {self.path}"
         folder = self.path / view_dir_name(view) / name
+        frame = _frame_size(name, tuple(self.manifest["views"][str(view)]["arrays"][name].get("shape") or ()))
+        if frame is not None and frame[0] * frame[1] > MAX_FRAME_PIXELS:  # 30000 x 30000 of zeros was allocated
+            raise DamagedArray(where, f"damaged (laid out on {frame[1]}x{frame[0]} pixels, more than any camera frame "
+                                      f"sssphase reads: {MAX_FRAME_PIXELS >> 20} MP)")
+        chunk_bytes = _check_array_metadata(folder, where)
         try:
             array = zarr.open_array(str(folder), mode="r")
         except Exception as exc:  # missing or unreadable metadata
             raise DamagedArray(where, f"missing or unreadable ({type(exc).__name__})") from None
+        _check_chunk_files(folder, where, chunk_bytes)
         meta = self.manifest["views"][str(view)]["arrays"][name]
         if meta.get("shape") is not None and list(array.shape) != list(meta["shape"]):
             raise DamagedArray(where, f"damaged (shape {tuple(array.shape)} where the manifest says {tuple(meta['shape'])})")
@@ -637,8 +714,13 @@ class Session:
         return CheckedArray(array, where)
 
     def load(self, view: int, name: str) -> np.ndarray:
-        """The whole array as numpy."""
-        return np.asarray(self.read(view, name)[...])
+        """The whole array as numpy (refused, naming it, when it is larger than the memory this machine has free)."""
+        array = self.read(view, name)
+        need, free = int(np.prod(array.shape, dtype=np.float64) * array.dtype.itemsize), _free_memory()
+        if free is not None and need > free:
+            raise DataError(f"{array.where} is {need / 2**30:.1f} GiB ({'x'.join(map(str, array.shape))} {array.dtype}), "
+                            f"more than the {free / 2**30:.1f} GiB of memory free: it is not read whole")
+        return np.asarray(array[...])
 
     def iter_views(self) -> Iterator[tuple[int, dict[str, Any]]]:
         for v in self.views():
@@ -694,6 +776,11 @@ class Session:
         return problems
 
 
+def _frame_size(name: str, shape: tuple[int, ...]) -> tuple[int, ...] | None:
+    """The (H, W) camera frame an array is laid out on (the PSP stack, decoded maps, images of light), else None."""
+    return shape[1:3] if name == "psp" else shape[:2] if name.startswith("corr/") or holds_light(name) else None
+
+
 #: The arrays :func:`view_consistency` reads (small: maps and pixel lists).
 CONSISTENCY_ARRAYS = ("corr/mask", "corr/xp", "corr/yp", "footprints/pixels")
 
@@ -705,10 +792,7 @@ def view_consistency(arrays: dict[str, dict], read: dict[str, np.ndarray]) -> li
     manifest entries; ``read``: its :data:`CONSISTENCY_ARRAYS` as :meth:`Session.validate` read them."""
     import collections
 
-    def size(name: str, shape: tuple[int, ...]) -> tuple[int, ...] | None:  # the (H, W) an array is laid out on
-        return shape[1:3] if name == "psp" else shape[:2] if name.startswith("corr/") or holds_light(name) else None
-
-    sizes = [size(name, tuple(meta["shape"])) for name, meta in arrays.items()]
+    sizes = [_frame_size(name, tuple(meta["shape"])) for name, meta in arrays.items()]
     votes = collections.Counter(x for x in sizes if x is not None and len(x) == 2)
     if "corr/mask" not in arrays or not votes:
         return []
