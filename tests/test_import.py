@@ -1330,6 +1330,27 @@ def test_exr_frames_are_placed_by_their_display_window(tmp_path):
         assert np.array_equal(got[..., 1], want)
 
 
+def test_an_exr_whose_data_window_is_over_the_frame_limit_is_refused_before_decoding(tmp_path, monkeypatch):
+    """The size check read the display window, the library decoded the whole data window: a 5 MB file with a
+    20000 x 20000 data window behind a 256 x 192 display took 5 GB, then relit and exited 0. (The limit is
+    lowered here so that the file stays small.)"""
+    import OpenEXR
+
+    from sssphase_core.errors import DataError
+    from sssphase_core.store import imageio
+    from sssphase_core.store.exr import exr_size, read_exr
+
+    monkeypatch.setattr(imageio, "MAX_FRAME_PIXELS", 1000)
+    path = tmp_path / "overscan.exr"
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage,
+              "dataWindow": ((0, 0), (39, 29)), "displayWindow": ((0, 0), (29, 19))}  # 1200 px behind 600
+    with OpenEXR.File(header, {c: np.zeros((30, 40), np.float32) for c in "RGB"}) as f:
+        f.write(str(path))
+    for read in (read_exr, exr_size):
+        with pytest.raises(DataError, match=r"declares a 40x30 pixel window, over 0 MP: .*refused before decoding it"):
+            read(path)
+
+
 def test_frames_too_large_for_the_memory_are_refused_from_their_headers(tmp_path, monkeypatch):
     """Frames that compress to almost nothing (constant 2400x1800 PNGs, 33 kB each) but decode to 52 MB each:
     the view's frames are held as float32 until it is processed, so more than the free memory ended in the
