@@ -51,6 +51,12 @@ DEFAULT_DEADLINE_S = 600.0
 MAX_DEADLINE_S = 86400.0
 
 
+
+def _exception_line(exc: BaseException) -> str:
+    """``RuntimeError: grab exploded`` (``MemoryError: (no message)`` when it says nothing), on one line."""
+    text = " ".join(str(exc).split())[:300]
+    return f"{type(exc).__name__}: {text or '(no message)'}"
+
 class DeviceStalled(DeviceError):
     """A device call did not return within the job's deadline: the rig is closed and dropped."""
 
@@ -520,6 +526,7 @@ class Daemon:
                 raise ProtocolError(protocol.BUSY, f"{len(self.rigs)} rigs are open (at most {MAX_OPEN_RIGS}): close one first")
         shared: dict[str, Any] = {}
         devices: dict[str, Any] = {}
+        device_id = "the rig"
         try:
             for kind, device_id in wanted.items():
                 try:
@@ -537,6 +544,9 @@ class Daemon:
             _close_all(devices)
             if isinstance(exc, SssError):
                 raise ProtocolError(protocol.BAD_ARGS, str(exc)) from None
+            if isinstance(exc, Exception) and not isinstance(exc, ProtocolError):  # a driver's own error: name it
+                log.exception("open_rig: the plugin of %s failed", device_id)
+                raise ProtocolError(protocol.DEVICE, f"{device_id} (open): {_exception_line(exc)}") from None
             raise
         if "trigger" in devices and not isinstance(devices["camera"], TriggeredCamera):
             for d in devices.values():
@@ -687,10 +697,16 @@ class Daemon:
             job.state, job.error = "failed", {"code": protocol.BAD_ARGS, "message": str(exc)}
         except SystemExit as exc:  # a plugin's sys.exit() ended the job's thread: the job hung "running" for ever
             log.exception("job %s: a device plugin called sys.exit(%s)", job.id, exc.code)
-            job.state, job.error = "failed", {"code": protocol.DEVICE, "message": f"a device plugin called sys.exit({exc.code!r})"}
-        except Exception as exc:
+            job.state, job.error = "failed", {"code": protocol.DEVICE,
+                                              "message": f"{job.doing}: a device plugin called sys.exit({exc.code!r})"}
+        except Exception as exc:  # a driver's own error (or ours): named with the device call under way
             log.exception("job %s failed", job.id)
-            job.state, job.error = "failed", {"code": protocol.INTERNAL, "message": f"{type(exc).__name__}: {exc}"}
+            job.state, job.error = "failed", {"code": protocol.DEVICE if job.doing != "the rig" else protocol.INTERNAL,
+                                              "message": f"{job.doing}: {_exception_line(exc)}"}
+        except BaseException as exc:  # noqa: BLE001  (a driver's KeyboardInterrupt or asyncio's CancelledError
+            # ended the job's thread without an end message: the capture waited for ever, the daemon never stopped)
+            log.exception("job %s: a device plugin raised %s", job.id, type(exc).__name__)
+            job.state, job.error = "failed", {"code": protocol.DEVICE, "message": f"{job.doing}: {_exception_line(exc)}"}
         try:
             if job.state != "cancelled":
                 sender.send_end(protocol.end_header(job.id, job.sent, job.error),

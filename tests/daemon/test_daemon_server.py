@@ -342,6 +342,12 @@ class Camera:
         pass
 
     def grab(self, timeout_s=5.0):
+        if self.info.id == "exiting:cancel":  # an asyncio driver's error: a BaseException, not an Exception
+            import asyncio
+
+            raise asyncio.CancelledError()
+        if self.info.id == "exiting:raise":
+            raise RuntimeError("grab exploded")
         sys.exit(4)
 
     def stream(self, count):
@@ -355,11 +361,14 @@ class Provider:
     kind = "camera"
 
     def discover(self):
-        return [DeviceInfo(f"exiting:{n}", "camera", "exiting", n, n) for n in ("open", "grab", "junk")]
+        return [DeviceInfo(f"exiting:{n}", "camera", "exiting", n, n)
+                for n in ("open", "grab", "junk", "cancel", "raise", "openraise")]
 
     def open(self, device_id, options, shared):
         if device_id == "exiting:open":
             sys.exit(3)
+        if device_id == "exiting:openraise":
+            raise RuntimeError("open exploded")
         return 7 if device_id == "exiting:junk" else Camera(device_id)
 
 
@@ -383,8 +392,17 @@ def test_a_plugin_that_exits_or_returns_no_driver_fails_its_request_not_the_daem
     with pytest.raises(DaemonError, match="open.. of the plugin of exiting:junk returned int, not a camera driver"):
         client.call("open_rig", camera="exiting:junk")
     rig = client.call("open_rig", camera="exiting:grab")["rig"]
-    with pytest.raises(DaemonError, match=r"a device plugin called sys.exit\(4\)"):
+    with pytest.raises(DaemonError, match=r"exiting:grab \(stream\): a device plugin called sys.exit\(4\)"):
         list(client.stream(rig, 2))
+    # a driver's own errors name the device and the call (they said "RuntimeError: open exploded" alone), and a
+    # BaseException that is no Exception (asyncio's CancelledError) ended the job's thread: the client waited for
+    # ever and the daemon could not be stopped
+    with pytest.raises(DaemonError, match=r"exiting:openraise \(open\): RuntimeError: open exploded"):
+        client.call("open_rig", camera="exiting:openraise")
+    for name, said in (("raise", "RuntimeError: grab exploded"), ("cancel", "CancelledError: \\(no message\\)")):
+        rig = client.call("open_rig", camera=f"exiting:{name}")["rig"]
+        with pytest.raises(DaemonError, match=f"exiting:{name} \\(stream\\): {said}"):
+            list(client.stream(rig, 2))
     assert proc.poll() is None and client.ping(timeout_s=2.0)
 
 
