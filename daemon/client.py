@@ -147,6 +147,9 @@ class DaemonClient:
         except DaemonError as exc:
             raise DaemonError(exc.code, f"the capture job vanished from the daemon ({exc})") from None
         if state["state"] != "running":
+            error = state.get("error")
+            if isinstance(error, dict) and error.get("message"):  # the daemon's own words (a stalled device named)
+                raise DaemonError(str(error.get("code", protocol.INTERNAL)), str(error["message"]))
             raise DaemonError(protocol.INTERNAL, f"the job ended ({state['state']}) but its stream did not finish")
 
     def _heartbeat(self, job_id: str, stop: threading.Event) -> None:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -548,3 +549,18 @@ def test_the_daemon_a_capture_starts_for_itself_is_told_to_exit_when_unused(tmp_
     with pytest.raises(KeyboardInterrupt), client_module.local_client():
         pass
     assert asked == [("--exit-when-idle", str(client_module.LOCAL_DAEMON_IDLE_S))]
+
+
+def test_a_job_found_ended_in_a_quiet_stream_is_reported_in_the_daemon_s_words(monkeypatch):
+    """The client's check of a quiet stream and the daemon's device deadline fired together (2 runs in 8): the
+    user read "the job ended (failed) but its stream did not finish" where the daemon named the stalled device."""
+    from sssphase_daemon.client import DaemonClient, DaemonError
+
+    client = DaemonClient("ipc:///nonexistent/sss.sock", "token", timeout_s=1.0)
+    said = "cam0 (grab psp/x/p18/s0) did not answer within 5 s (stalled or disconnected)"
+    monkeypatch.setattr(client, "call", lambda *a, **k: {"state": "failed", "error": {"code": "device", "message": said}})
+    with pytest.raises(DaemonError, match=re.escape(said)):
+        client._check_job("j1")
+    monkeypatch.setattr(client, "call", lambda *a, **k: {"state": "failed", "error": None})
+    with pytest.raises(DaemonError, match=r"the job ended \(failed\) but its stream did not finish"):
+        client._check_job("j1")
