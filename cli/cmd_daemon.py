@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import signal
@@ -159,6 +160,8 @@ def daemon_stop(
             except ProcessLookupError:
                 security.state_path().unlink(missing_ok=True)
                 console.print("no daemon running (removed a stale state file)")
+                return
+            _wait_or_kill(state.pid, force, 5.0)
             return
         console.print("no daemon running")
         return
@@ -171,13 +174,32 @@ def daemon_stop(
             raise InputError(f"the daemon (pid {pid}) is in use: {', '.join(use)}; stopping it ends that capture: "
                              "wait for it (`sss daemon status`), or `sss daemon stop --force`")
         client.call("shutdown")
-    deadline = time.monotonic() + 20.0  # return once it has gone, so that `start` right after works
+    if _wait_or_kill(pid, force, 20.0):  # return once it has gone, so that `start` right after works
+        console.print(f"daemon (pid {pid}) stopped")
+
+
+def _wait_or_kill(pid: int, force: bool, seconds: float) -> bool:
+    """Wait up to ``seconds`` for the daemon ``pid`` to end; with ``force`` then SIGKILL it (a device plugin hung
+    in a call that no signal interrupts kept it alive for ever). True when it has gone."""
+    from sssphase_daemon import security
+
+    deadline = time.monotonic() + seconds
     while security.is_daemon_process(pid) and time.monotonic() < deadline:
         time.sleep(0.05)
-    if security.is_daemon_process(pid):
-        console.print(f"daemon (pid {pid}) asked to stop; it is still shutting down")
-        return
-    console.print(f"daemon (pid {pid}) stopped")
+    if not security.is_daemon_process(pid):
+        return True
+    if not force:
+        console.print(f"daemon (pid {pid}) asked to stop; it has not ended after {seconds:g} s (a device call may hang): "
+                      "`sss daemon stop --force` kills it")
+        return False
+    with contextlib.suppress(ProcessLookupError):
+        os.kill(pid, signal.SIGKILL)
+    deadline = time.monotonic() + 5.0
+    while security.is_daemon_process(pid) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    security.state_path().unlink(missing_ok=True)  # (a killed daemon leaves its state file)
+    console.print(f"daemon (pid {pid}) did not end within {seconds:g} s: killed (SIGKILL)")
+    return False
 
 
 def daemon_status() -> None:
@@ -189,7 +211,8 @@ def daemon_status() -> None:
         orphan, hung = _orphan(), _unanswering()
         state = security.state_path()
         lost = "unreadable (damaged or not a daemon's)" if state.exists() else "gone"
-        console.print(f"the daemon (pid {hung}) runs but does not answer (stopped or hung): `sss daemon stop` ends it"
+        console.print(f"the daemon (pid {hung}) runs but does not answer (stopped, or hung in a device call): `sss daemon stop` "
+                      "asks it to end, `sss daemon stop --force` kills it"
                       if hung is not None else "no daemon running" if orphan is None else
                       f"a daemon (pid {orphan}) serves the default socket but its state file {state} is {lost}, so "
                       "nothing can talk to it: `sss daemon stop` ends it")

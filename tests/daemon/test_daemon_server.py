@@ -564,3 +564,38 @@ def test_a_job_found_ended_in_a_quiet_stream_is_reported_in_the_daemon_s_words(m
     monkeypatch.setattr(client, "call", lambda *a, **k: {"state": "failed", "error": None})
     with pytest.raises(DaemonError, match=r"the job ended \(failed\) but its stream did not finish"):
         client._check_job("j1")
+
+
+HANGING_PLUGIN = """
+import os, time
+from sssphase_plugins.api import hookimpl
+
+
+@hookimpl
+def sssphase_cameras():
+    while os.path.exists(os.environ["SSS_TEST_HANG_FLAG"]):  # a driver stuck in a USB call
+        time.sleep(0.05)
+    return []
+"""
+
+
+def test_stop_force_kills_a_daemon_that_a_hung_plugin_holds(daemon_factory, tmp_path, monkeypatch):
+    """A plugin hook that never returns held the daemon's main thread: `sss daemon stop --force` sent SIGTERM,
+    said so and left it running for ever (only kill -9 ended it)."""
+    from sss_process import run_sss
+
+    from sssphase_daemon.client import DaemonUnavailable
+
+    flag = tmp_path / "hang"
+    (tmp_path / "hanging_plugin.py").write_text(HANGING_PLUGIN)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("SSS_PLUGINS", "hanging_plugin")
+    monkeypatch.setenv("SSS_TEST_HANG_FLAG", str(flag))
+    proc, client, runtime = daemon_factory()
+    flag.touch()
+    with pytest.raises(DaemonUnavailable):
+        client.call("open_rig", camera="sim:camera0", timeout_s=1.0)
+    res = run_sss(["daemon", "stop", "--force"], env={**os.environ, "SSS_RUNTIME_DIR": str(runtime)})
+    out = res.stdout + res.stderr
+    assert proc.wait(10) is not None, out
+    assert "killed (SIGKILL)" in out, out
