@@ -52,6 +52,27 @@ MAX_DEADLINE_S = 86400.0
 
 
 
+#: Seconds an ``open_rig`` may take (a camera's boot, a USB enumeration) before the client is told which device
+#: hangs; the daemon serves other requests meanwhile.
+OPEN_TIMEOUT_S = float(os.environ.get("SSS_OPEN_TIMEOUT_S", "25"))
+
+
+def _error_reply(rid: Any, exc: BaseException) -> bytes:
+    """The protocol's error reply for what a handler raised (a plugin's sys.exit() is logged: it ended the daemon
+    without a line in its log)."""
+    if isinstance(exc, ProtocolError):
+        return protocol.reply_error(rid, exc.code, str(exc))
+    if isinstance(exc, DeviceError):
+        return protocol.reply_error(rid, protocol.DEVICE, str(exc))
+    if isinstance(exc, (KeyError, ValueError, TypeError)):
+        return protocol.reply_error(rid, protocol.BAD_ARGS, f"{type(exc).__name__}: {exc}"[:500])
+    if isinstance(exc, SystemExit):
+        log.exception("a device plugin called sys.exit(%s)", exc.code)
+        return protocol.reply_error(rid, protocol.DEVICE, f"a device plugin called sys.exit({exc.code!r})")
+    log.exception("handler failed")
+    return protocol.reply_error(rid, protocol.INTERNAL, _exception_line(exc)[:500])
+
+
 def _exception_line(exc: BaseException) -> str:
     """``RuntimeError: grab exploded`` (``MemoryError: (no message)`` when it says nothing), on one line."""
     text = " ".join(str(exc).split())[:300]
@@ -317,6 +338,7 @@ class Daemon:
         # at a time (plugins need not be thread-safe); its replies wait here for the main thread to send
         self.discovery_lock = threading.Lock()
         self.discovery_waiters: list[tuple[bytes, list[bytes], Any]] | None = None
+        self.opening = 0  # open_rig requests being answered from their threads
         self.replies: queue.SimpleQueue[list[bytes]] = queue.SimpleQueue()
         self.running = True
         self.started = time.time()
@@ -343,7 +365,7 @@ class Daemon:
         poller.register(self.control, zmq.POLLIN)
         try:
             while self.running:
-                if poller.poll(200 if self.discovery_waiters is None else 20):
+                if poller.poll(200 if self.discovery_waiters is None and not self.opening else 20):
                     frames = self.control.recv_multipart(copy=False)
                     self._handle([f.bytes for f in frames], fd=frames[-1].get(zmq.SRCFD) if self.guard else None)
                 self._send_replies()
@@ -428,20 +450,15 @@ class Daemon:
             if req.op == "devices":  # answered when discovery is done; the control socket keeps serving
                 self._discover_for(identity, envelope, rid)
                 return
+            if req.op == "open_rig":  # a plugin may hang in open(): answered from a thread, with a deadline
+                self._open_in_thread(identity, envelope, rid, req.args)
+                return
             result = self.handlers[req.op](identity, req.args)
             reply = protocol.reply_ok(rid, result)
-        except ProtocolError as exc:
-            reply = protocol.reply_error(rid, exc.code, str(exc))
-        except DeviceError as exc:
-            reply = protocol.reply_error(rid, protocol.DEVICE, str(exc))
-        except (KeyError, ValueError, TypeError) as exc:
-            reply = protocol.reply_error(rid, protocol.BAD_ARGS, f"{type(exc).__name__}: {exc}"[:500])
-        except SystemExit as exc:  # a device plugin's sys.exit() ended the daemon without a line in its log
-            log.exception("a device plugin called sys.exit(%s)", exc.code)
-            reply = protocol.reply_error(rid, protocol.DEVICE, f"a device plugin called sys.exit({exc.code!r})")
         except Exception as exc:  # the daemon keeps serving whatever a handler does
-            log.exception("handler failed")
-            reply = protocol.reply_error(rid, protocol.INTERNAL, f"{type(exc).__name__}: {exc}"[:500])
+            reply = _error_reply(rid, exc)
+        except SystemExit as exc:
+            reply = _error_reply(rid, exc)
         try:
             self.control.send_multipart([identity, *envelope, reply], flags=zmq.NOBLOCK)
         except zmq.ZMQError:
@@ -469,6 +486,50 @@ class Daemon:
         with self.discovery_lock:
             devices, errors = manager.discover_devices(self.pm)
         return {"devices": [asdict(d) for d in devices], "errors": errors}
+
+    def _open_in_thread(self, identity: bytes, envelope: list[bytes], rid: Any, args: dict) -> None:
+        """Answer ``open_rig`` from a thread of its own: a plugin that hung in its hook or in open() held the main
+        thread, so no client was answered and the daemon could not be stopped. Past :data:`OPEN_TIMEOUT_S` the
+        client is told which device hangs; a rig opened after that is closed again."""
+        answered, guard = [False], threading.Lock()
+        doing = {"what": "the rig"}
+
+        def answer(reply: bytes) -> bool:
+            with guard:
+                if answered[0]:
+                    return False
+                answered[0] = True
+            self.replies.put([identity, *envelope, reply])
+            return True
+
+        def work() -> None:
+            opened: dict | None = None
+            try:
+                opened = self._open_rig(identity, args, doing)
+                reply = protocol.reply_ok(rid, opened)
+            except BaseException as exc:  # noqa: BLE001  (a plugin's sys.exit() or CancelledError too)
+                reply = _error_reply(rid, exc)
+            finally:
+                with self.lock:
+                    self.opening -= 1
+            if not answer(reply) and opened is not None:  # the client was told it hung: nobody holds this rig
+                with self.lock:
+                    late = self.rigs.pop(opened["rig"], None)
+                if late is not None:
+                    late.close()
+
+        def late() -> None:
+            if answer(protocol.reply_error(rid, protocol.DEVICE, f"{doing['what']} did not return within "
+                                           f"{OPEN_TIMEOUT_S:g} s: its plugin hangs (the daemon keeps serving other "
+                                           "devices; check the device, or restart the daemon)")):
+                log.error("open_rig: %s did not return within %g s", doing["what"], OPEN_TIMEOUT_S)
+
+        with self.lock:
+            self.opening += 1
+        timer = threading.Timer(OPEN_TIMEOUT_S, late)
+        timer.daemon = True
+        timer.start()
+        threading.Thread(target=lambda: (work(), timer.cancel()), name="sss-open-rig", daemon=True).start()
 
     def _discover_for(self, identity: bytes, envelope: list[bytes], rid: Any) -> None:
         """Answer a ``devices`` request from a discovery thread: a slow plugin (a USB bus that takes
@@ -516,7 +577,9 @@ class Daemon:
                     "clients": sum(self._alive(c) for c in self.last_seen),
                     "heavy_modules": [m for m in HEAVY_MODULES if m in sys.modules]}
 
-    def _open_rig(self, client: bytes, args: dict) -> dict:
+    def _open_rig(self, client: bytes, args: dict, doing: dict[str, str] | None = None) -> dict:
+        """Open the devices ``args`` names as one rig of ``client``; ``doing["what"]``: the call under way."""
+        doing = {} if doing is None else doing
         options = args.get("options", {})
         wanted = {k: args[k] for k in ("camera", "projector", "trigger", "turntable") if args.get(k)}
         if "camera" not in wanted or not isinstance(options, dict) or not all(isinstance(v, str) for v in wanted.values()):
@@ -529,11 +592,17 @@ class Daemon:
         device_id = "the rig"
         try:
             for kind, device_id in wanted.items():
+                doing["what"] = f"the plugins' hooks (finding {device_id})"
+                if not self.discovery_lock.acquire(timeout=0.8 * OPEN_TIMEOUT_S):  # not while discovery asks the plugins
+                    raise ProtocolError(protocol.DEVICE, f"finding {device_id}: another request's device discovery has "
+                                        f"not returned for {0.8 * OPEN_TIMEOUT_S:g} s (a plugin hangs): restart the daemon")
                 try:
-                    with self.discovery_lock:  # not while a discovery thread asks the same plugins
-                        provider = manager.find_provider(device_id, self.pm, kind=kind)
+                    provider = manager.find_provider(device_id, self.pm, kind=kind)
                 except KeyError as exc:
                     raise ProtocolError(protocol.NOT_FOUND, str(exc.args[0])) from None
+                finally:
+                    self.discovery_lock.release()
+                doing["what"] = f"{device_id} (open)"
                 driver = provider.open(device_id, options, shared)
                 if not (callable(getattr(driver, "close", None)) and hasattr(driver, "info")):
                     _close_all(devices)  # (an AttributeError on 'close' named no plugin, and left the others open)

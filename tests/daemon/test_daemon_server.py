@@ -579,23 +579,45 @@ def sssphase_cameras():
 """
 
 
-def test_stop_force_kills_a_daemon_that_a_hung_plugin_holds(daemon_factory, tmp_path, monkeypatch):
-    """A plugin hook that never returns held the daemon's main thread: `sss daemon stop --force` sent SIGTERM,
-    said so and left it running for ever (only kill -9 ended it)."""
+def test_a_plugin_hung_in_its_hook_holds_only_its_own_request(daemon_factory, tmp_path, monkeypatch):
+    """A plugin hook that never returned held the daemon's main thread: no client was answered, `sss daemon
+    stop --force` sent SIGTERM and left it running for ever. open_rig is now answered from a thread, with a
+    deadline (SSS_OPEN_TIMEOUT_S) that names what hangs; the daemon keeps answering and stops."""
     from sss_process import run_sss
 
-    from sssphase_daemon.client import DaemonUnavailable
+    from sssphase_daemon.client import DaemonError
 
     flag = tmp_path / "hang"
     (tmp_path / "hanging_plugin.py").write_text(HANGING_PLUGIN)
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
     monkeypatch.setenv("SSS_PLUGINS", "hanging_plugin")
     monkeypatch.setenv("SSS_TEST_HANG_FLAG", str(flag))
+    monkeypatch.setenv("SSS_OPEN_TIMEOUT_S", "1.5")
     proc, client, runtime = daemon_factory()
     flag.touch()
-    with pytest.raises(DaemonUnavailable):
-        client.call("open_rig", camera="sim:camera0", timeout_s=1.0)
+    with pytest.raises(DaemonError, match=r"the plugins' hooks \(finding sim:camera0\) did not return within 1.5 s"):
+        client.call("open_rig", camera="sim:camera0", timeout_s=5.0)
+    assert client.ping(timeout_s=2.0)  # the daemon answers meanwhile
+    with pytest.raises(DaemonError, match=r"finding sim:camera0: another request's device discovery has not returned"):
+        client.call("open_rig", camera="sim:camera0", timeout_s=5.0)
     res = run_sss(["daemon", "stop", "--force"], env={**os.environ, "SSS_RUNTIME_DIR": str(runtime)})
-    out = res.stdout + res.stderr
-    assert proc.wait(10) is not None, out
-    assert "killed (SIGKILL)" in out, out
+    assert proc.wait(10) is not None and "stopped" in res.stdout, res.stdout + res.stderr
+
+
+def test_stop_force_kills_a_daemon_that_ignores_sigterm(tmp_path, monkeypatch):
+    """A daemon that SIGTERM does not end (a device call no signal interrupts) was left running for ever."""
+    import subprocess
+    import sys
+
+    from sssphase_cli import cmd_daemon
+    from sssphase_daemon import security
+
+    proc = subprocess.Popen([sys.executable, "-c", "import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); "
+                             "print('ready', flush=True); time.sleep(60)"], stdout=subprocess.PIPE, text=True)
+    assert proc.stdout.readline().strip() == "ready"
+    monkeypatch.setattr(security, "is_daemon_process", lambda pid: proc.poll() is None)
+    monkeypatch.setattr(security, "state_path", lambda: tmp_path / "daemon.json")
+    os.kill(proc.pid, signal.SIGTERM)  # ignored
+    assert cmd_daemon._wait_or_kill(proc.pid, False, 0.3) is False and proc.poll() is None
+    assert cmd_daemon._wait_or_kill(proc.pid, True, 0.3) is False
+    assert proc.wait(5) == -signal.SIGKILL
