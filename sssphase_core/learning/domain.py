@@ -86,8 +86,12 @@ class WidthDomain:
             if not ok:
                 raise DataError(f"the checkpoint's training domain is damaged: tail radii {tail!r}")
             tail = tuple(tail)
-        return cls(tuple(float(x) for x in limit), float(d.get("quantile", WIDTH_QUANTILE)), int(d.get("pixels", 0)),  # type: ignore[arg-type]
-                   tail)
+        quantile, pixels = d.get("quantile", WIDTH_QUANTILE), d.get("pixels", 0)
+        if isinstance(quantile, bool) or not isinstance(quantile, int | float) or not 0 <= quantile <= 1:
+            raise DataError(f"the checkpoint's training domain is damaged: quantile {quantile!r}")  # was internal
+        if isinstance(pixels, bool) or not isinstance(pixels, int) or pixels < 0:
+            raise DataError(f"the checkpoint's training domain is damaged: pixels {pixels!r}")
+        return cls(tuple(float(x) for x in limit), float(quantile), pixels, tail)  # type: ignore[arg-type]
 
 
 def pixel_widths(patches: np.ndarray, patch: int, black: float = DOMAIN_BLACK) -> dict[str, np.ndarray]:

@@ -236,3 +236,11 @@ def test_relighting_says_from_which_ring_out_the_footprints_are_the_analytic_mod
     be.predict_footprints((v.psp, v.pixels))
     line = domain_line(rv, "torch", source)
     assert line is not None and line.startswith("a view 0: torch: footprints from 4/4/6 px out") and "wider" not in line
+
+
+@pytest.mark.parametrize(("field", "value"), [("quantile", "abc"), ("quantile", 7.0), ("pixels", [1, 2]), ("pixels", -1),
+                                              ("pixels", 2.5)])
+def test_a_damaged_domain_record_is_one_clear_line_not_an_internal_error(field, value):
+    """A checkpoint whose domain said quantile 'abc' or pixels [1, 2] ended relighting in an internal ValueError."""
+    with pytest.raises(DataError, match=f"training domain is damaged: {field}"):
+        WidthDomain.from_dict({"width_limit_px": [1.0, 1.0, 1.0], field: value})
