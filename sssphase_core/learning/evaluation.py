@@ -98,6 +98,13 @@ def knn_of_views(encoder: torch.nn.Module, views: Sequence, objects: Sequence[st
     emb = np.concatenate([embed_pixels(encoder, v.psp, v.pixels, device=device) for v in views])
     labels = ds.labels(label)
     keep = labels >= 0
+    if class_names is not None and keep.any() and int(labels[keep].max()) >= len(class_names):
+        from sssphase_core.errors import DataError
+
+        bad = sorted({v.object for v in views for m in [v.materials] if m.size and int(m.max()) >= len(class_names)})
+        raise DataError(f"the material labels (gt/labels) of {', '.join(bad) or 'the views'} reach "
+                        f"{int(labels[keep].max())}, past the {len(class_names)} known materials: the sessions' labels "
+                        "are damaged (kNN by --label object needs none)")
     out = {}
     for k in ks:
         res = knn_leave_one_view_out(emb[keep], labels[keep], ds.labels("view")[keep], k=k, vote=vote,

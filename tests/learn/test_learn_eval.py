@@ -140,6 +140,13 @@ def test_knn_of_views_is_the_leave_one_view_out_table_of_every_pixel(synthetic, 
     assert set(materials["per_class"]) <= {"m0", "m1", "m2", "m3"} and 0 <= materials["overall"] <= 1
     with pytest.raises(InputError, match="object or material"):
         knn_of_views(enc, views, ["a", "b"], label="view")
+    from dataclasses import replace
+
+    from sssphase_core.errors import DataError
+
+    damaged = [replace(views[0], materials=np.full(len(views[0].pixels), 30000)), *views[1:]]  # was an IndexError
+    with pytest.raises(DataError, match=r"material labels \(gt/labels\) of a reach 30000, past the 4 known materials"):
+        knn_of_views(enc, damaged, ["a", "b"], label="material", material_names=["m0", "m1", "m2", "m3"])
 
 
 def test_knn_and_footprint_tables_are_built_in_core():
