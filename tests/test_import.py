@@ -1488,3 +1488,81 @@ def test_a_renderers_frame_number_after_a_frame_name_is_pointed_out(tmp_path):
                                              rf"frame '{re.escape(frame)}'"):
             frame_files(tmp_path)
         (tmp_path / name).unlink()
+
+
+@pytest.mark.parametrize(("record", "expected"), [
+    ({"denoise_smoothing": ["abc", "abc"]}, r"transport record is damaged \(denoise_smoothing"),  # internal ValueError
+    ({"denoise_smoothing": [float("nan"), -5.0]}, r"transport record is damaged \(denoise_smoothing"),  # a -5 px mask
+    ({"denoise_smoothing": [1.0 + i / 100 for i in range(300)]}, "1 to 16 mask widths"),  # minutes of denoising
+    ([1], r"transport record is damaged \(not a table\)"),  # internal AttributeError
+    ({"noise_dropped": True, "denoise_smoothing": [1.0, 2.0], "noise": "x"}, r"damaged \(noise x\)"),
+])
+def test_a_damaged_transport_record_is_one_line(handmade, tmp_path, record, expected):
+    import json
+
+    from sssphase_core.errors import DataError
+    from sssphase_core.relight import load_view
+    from sssphase_core.relight.backends import make_source
+
+    s = _copy(handmade, tmp_path)
+    manifest = json.loads((s.path / "manifest.json").read_text())
+    manifest["views"]["0"]["transport"] = record
+    (s.path / "manifest.json").write_text(json.dumps(manifest))
+    with pytest.raises(DataError, match=expected):
+        make_source("measured", load_view(Session.open(s.path), 0))
+
+
+def test_transport_indices_outside_the_image_or_projector_are_refused(handmade):
+    """A dot of 10^6 was an internal IndexError; a dot of -1 lit the projector's last column without a word."""
+    from sssphase_core.errors import DataError
+    from sssphase_core.relight import load_view
+    from sssphase_core.relight.backends import _check_transport
+
+    rv = load_view(handmade, 0)
+    pixels, dots, crops = handmade.load(0, "transport/pixels"), handmade.load(0, "transport/dots"), handmade.read(0, "transport/crops")
+    _check_transport(rv, pixels, dots, crops)  # as captured
+    for name, a, b, said in (("dots", pixels, np.full_like(dots, 10**6), "holds positions outside the .* projector"),
+                             ("dots", pixels, -dots - 1, "holds positions outside the .* projector"),
+                             ("pixels", pixels - 10**4, dots, "holds positions outside the .* camera image"),
+                             ("pixels", pixels[:-1], dots, f"not {len(crops)} whole-number pairs")):
+        with pytest.raises(DataError, match=f"transport/{name} (is .*)?{said}"):
+            _check_transport(rv, a, b, crops)
+
+
+def _rewritten(session: Session, root: Path, name: str, change) -> Session:
+    """A copy of ``session`` whose view-0 array ``name`` is ``change(array)``, written as sssphase writes arrays and
+    recorded in the manifest with its checksum: intact, as another program could write it."""
+    import json
+    import shutil
+
+    from sssphase_core.store.session import _chunk_count, _chunks, _zarr_write, array_checksum
+
+    s = _copy(session, root)
+    data = np.ascontiguousarray(change(s.load(0, name)))
+    shutil.rmtree(s.path / "view_000" / name)
+    _zarr_write(s.path / "view_000" / name, data)
+    manifest = json.loads((s.path / "manifest.json").read_text())
+    manifest["views"]["0"]["arrays"][name] = {"shape": list(data.shape), "dtype": data.dtype.str,
+                                              "checksum": array_checksum(data),
+                                              "chunks": _chunk_count(data.shape, _chunks(data.shape, data.dtype.itemsize))}
+    (s.path / "manifest.json").write_text(json.dumps(manifest))
+    return Session.open(s.path)
+
+
+def test_crops_of_no_light_are_refused_where_they_are_read(handmade, tmp_path):
+    """Crops of -60000 (intact, checksums matching) relit at 16 dB with exit 0 and trained a decoder to a loss of
+    1e10; `sss validate` said ok."""
+    from sssphase_core.errors import DataError
+    from sssphase_core.learning.data import session_views
+    from sssphase_core.relight import load_view
+    from sssphase_core.relight.backends import make_source
+
+    negative = lambda a: np.full_like(a, -60000)  # noqa: E731
+    transport = _rewritten(handmade, tmp_path / "t", "transport/crops", negative)
+    with pytest.raises(DataError, match="transport/crops: .*below -0.25 x the white level"):
+        make_source("measured", load_view(transport, 0))
+    assert any("array transport/crops" in p for p in transport.validate())
+    crops = _rewritten(handmade, tmp_path / "f", "footprints/crops", negative)
+    with pytest.raises(DataError, match="footprints/crops: .*below -0.25 x the white level"):
+        session_views(crops.path, footprints=True)
+    assert any("array footprints/crops" in p for p in crops.validate())

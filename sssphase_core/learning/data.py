@@ -409,6 +409,11 @@ def session_views(
                 pixels, fp = all_px[idx], Rows(s.read(view, "footprints/crops"), idx)
                 if fp.nbytes <= ROWS_IN_MEMORY_BYTES:  # one sorted read, instead of whole chunks per batch
                     fp = np.asarray(fp)
+                    # crops of -60000 trained to a loss of 1e10 and exited 0: held to the frames' test of light
+                    problem = light_problem("footprints/crops", fp, level)
+                    if problem:
+                        raise DataError(f"session {s.path} view {view}: {problem}: re-capture or re-import the view, "
+                                        "or leave it out (--views)")
             else:
                 pixels = sample_pixels(s.load(view, "corr/mask").astype(bool), pixels_per_view, rng_seed)
             labels = s.load(view, "gt/labels") if "gt/labels" in s.arrays(view) else None

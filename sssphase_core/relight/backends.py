@@ -4,11 +4,12 @@ in :mod:`~sssphase_core.relight.choices` (no torch), re-exported here."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 
 import numpy as np
 
-from sssphase_core.errors import InputError
+from sssphase_core.errors import DataError, InputError
 from sssphase_core.relight.calibration import (
     energy_from_white,
     fit_view_mix,
@@ -42,18 +43,29 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
 
             crops = rv.session.read(rv.view, "transport/crops")  # type: ignore[attr-defined]
             info = rv.session.manifest["views"][str(rv.view)].get("transport", {})  # type: ignore[attr-defined]
-            smoothings = [float(x) for x in info.get("denoise_smoothing", [1.0])]
+            smoothings, stored_noise = _transport_record(rv, info)
             if info.get("noise_dropped") and len(smoothings) == 1:  # zeroed with one mask at capture: as stored
                 noise = 0.0
             elif info.get("noise_dropped"):  # the union of several masks stored: the view's own captures choose
-                noise = float(info.get("noise", 0.0))
+                noise = stored_noise
             else:
                 noise = crop_noise(np.asarray(crops[: min(len(crops), 512)], np.float32)) if len(crops) else 0.0
             pixels, dots = rv.session.load(rv.view, "transport/pixels"), rv.session.load(rv.view, "transport/dots")  # type: ignore[attr-defined]
+            _check_transport(rv, pixels, dots, crops)
+            from sssphase_core.store.light import light_problem, white_level
+
+            sample = np.asarray(crops[: min(len(crops), 4096)], np.float32)  # (crops of -60000 relit at 16 dB, exit 0)
+            problem = light_problem("transport/crops", sample, white_level(rv.white))
+            if problem:
+                raise DataError(f"{rv.object} view {rv.view}: {problem}: the session's captured transport is damaged")
             return denoised_transport(rv, pixels, dots, crops, noise, smoothings), int(crops.shape[1])
         if "footprints/crops" not in arrays:
             raise InputError(f"{rv.object} view {rv.view} has no captured footprints: capture with --footprints")
-        stride = int(rv.session.manifest["views"][str(rv.view)].get("footprints", {}).get("dot_stride", 1))  # type: ignore[attr-defined]
+        record = rv.session.manifest["views"][str(rv.view)].get("footprints", {})  # type: ignore[attr-defined]
+        stride = record.get("dot_stride", 1) if isinstance(record, dict) else None
+        if isinstance(stride, bool) or not isinstance(stride, int) or stride < 1:  # (was an internal error)
+            raise DataError(f"{rv.object} view {rv.view}: the manifest's footprints record is damaged (dot_stride "
+                            f"{str(stride)[:40] if isinstance(record, dict) else 'missing: the record is no table'})")
         if stride > 1:
             raise InputError(f"{rv.object} view {rv.view} was captured with --dot-stride {stride}: its dot grids give "
                              f"footprints to 1/{stride * stride} of the pixels, too few to relight with (they train a "
@@ -83,6 +95,47 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
         source = mixed_with_no_scattering(source, fit_view_mix(source, k, rv, psp, lost), rv.white)
     source.backend = backend  # type: ignore[attr-defined]  # what it did, for the narration (domain_line)
     return source, k
+
+
+#: Most denoising masks a view's transport record may name (the capture stores one to three).
+MAX_SMOOTHINGS = 16
+
+
+def _transport_record(rv: RelightView, info: object) -> tuple[list[float], float]:
+    """The manifest's record of a view's captured transport -> (denoising smoothings px, stored noise); a record
+    of the wrong types (a hostile or damaged manifest: internal errors, a "-5 px noise mask" used) is refused."""
+    def damaged(what: str) -> DataError:
+        return DataError(f"{rv.object} view {rv.view}: the manifest's transport record is damaged ({what})")
+
+    if not isinstance(info, dict):
+        raise damaged("not a table")
+    smoothings = info.get("denoise_smoothing", [1.0])
+    if (not isinstance(smoothings, list) or not 1 <= len(smoothings) <= MAX_SMOOTHINGS
+            or not all(isinstance(x, int | float) and not isinstance(x, bool) and math.isfinite(x) and 0 < x <= 1e3
+                       for x in smoothings)):
+        raise damaged(f"denoise_smoothing {str(smoothings)[:60]}: 1 to {MAX_SMOOTHINGS} mask widths in (0, 1000] px")
+    noise = info.get("noise", 0.0)
+    if isinstance(noise, bool) or not isinstance(noise, int | float) or not (math.isfinite(noise) and noise >= 0):
+        raise damaged(f"noise {str(noise)[:40]}")
+    return [float(x) for x in smoothings], float(noise)
+
+
+def _check_transport(rv: RelightView, pixels: np.ndarray, dots: np.ndarray, crops: object) -> None:
+    """The transport arrays' indices: camera pixels (y, x) inside the image, projector dots (x, y) inside the
+    projector, one per crop (a dot of -1 lit the last column without a word; one of 10^6 was an internal error)."""
+    h, w = rv.white.shape[:2]
+    wp, hp = (int(v) for v in rv.plan["projector"])  # (checked when the view was loaded)
+    n = len(crops)  # type: ignore[arg-type]
+    for name, a, (hy, wx), order in (("pixels", pixels, (h, w), "yx"), ("dots", dots, (hp, wp), "xy")):
+        a = np.asarray(a)
+        if a.ndim != 2 or a.shape[1] != 2 or len(a) != n or not np.issubdtype(a.dtype, np.integer):
+            raise DataError(f"{rv.object} view {rv.view}: transport/{name} is {a.shape} {a.dtype}, not {n} whole-number "
+                            "pairs (one per crop): the session is damaged")
+        y, x = (a[:, 0], a[:, 1]) if order == "yx" else (a[:, 1], a[:, 0])
+        if len(a) and not ((y >= 0) & (y < hy) & (x >= 0) & (x < wx)).all():
+            where = "camera image" if name == "pixels" else "projector"
+            raise DataError(f"{rv.object} view {rv.view}: transport/{name} holds positions outside the {wx}x{hy} "
+                            f"{where}: the session is damaged")
 
 
 def domain_line(rv: RelightView, name: str, source: FootprintSource) -> str | None:

@@ -765,10 +765,10 @@ class Session:
                                     f"{tuple(meta['shape'])} {meta['dtype']}")
                 elif array_checksum(data) != meta["checksum"]:
                     problems.append(f"view {v}: array {name} is corrupt (checksum mismatch)")
-                elif holds_light(name) or name == "footprints/crops":  # intact: what its writer wrote, but is it light?
+                elif holds_light(name) or name in ("footprints/crops", "transport/crops"):  # intact, but is it light?
                     if name == "white":
                         level = white_level(data)
-                    problem = light_problem(f"array {name}", data, level if holds_light(name) else None)
+                    problem = light_problem(f"array {name}", data, level)  # (crops: in the white's units too)
                     if problem:
                         problems.append(f"view {v}: {problem}")
             if len(problems) == before:  # every array intact: do they belong together?
