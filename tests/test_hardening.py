@@ -152,6 +152,7 @@ def test_array_patterns_of_integers_wider_than_16_bits_are_refused_not_relit_bla
       for plan, expected in (({"projector": "160x120"}, r"plan.projector must be \[width, height\]"),
                              ({"projector": [0, 120]}, "plan.projector must be"),
                              ({"projector": [160.5, 120]}, "plan.projector must be"),
+                             ({"projector": [16384, 16384]}, r"plan.projector 16384x16384 is larger than any projector \(at most 64 MP\)"),
                              ({"gamma": float("nan")}, r"plan.gamma .* must be a number in \[0.05, 20\], got nan"),
                              ({"gamma": 0}, "plan.gamma"), ({"gamma": "2.2"}, "plan.gamma"),
                              ({"frames": [{"key": 1}]}, "plan.frames must be a list of frames"),

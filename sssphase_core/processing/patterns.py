@@ -29,6 +29,7 @@ REFERENCE_NAMES = ("white", "black", "checkerboard", "stripes_x", "stripes_y")
 
 
 MAX_SIDE = 16384  # largest projector side a plan or a frame spec may name
+MAX_PROJECTOR_PIXELS = 1 << 26  # and most pixels (64 MP; an 8K projector has 33 MP): 16384 x 16384 took 4 GB a frame
 MAX_SHIFTS = 32  # most phase shifts per fringe set a plan, an import or the decoder takes
 MAX_UNWRAP_LEVELS = 16  # most unwrapping periods (a 16384 px side needs 4 at MAX_PERIOD_RATIO)
 
@@ -38,6 +39,9 @@ def _check_size(width: int, height: int) -> None:
         raise InputError(f"projector size must be positive, got {width}x{height}")
     if max(int(width), int(height)) > MAX_SIDE:
         raise InputError(f"projector size {width}x{height} is larger than any projector (at most {MAX_SIDE} px a side)")
+    if int(width) * int(height) > MAX_PROJECTOR_PIXELS:
+        raise InputError(f"projector size {width}x{height} is larger than any projector (at most "
+                         f"{MAX_PROJECTOR_PIXELS >> 20} MP)")
 
 
 def parse_projector_size(text: str) -> tuple[int, int]:

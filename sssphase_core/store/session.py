@@ -481,7 +481,7 @@ def plan_problem(plan: Any) -> str | None:
     or range: a manifest edited by hand or by another program), or None."""
     import math
 
-    from sssphase_core.processing.patterns import MAX_SIDE
+    from sssphase_core.processing.patterns import MAX_PROJECTOR_PIXELS, MAX_SIDE
 
     if not isinstance(plan, dict):
         return "plan is not a table"
@@ -490,6 +490,9 @@ def plan_problem(plan: Any) -> str | None:
         if not (isinstance(size, list) and len(size) == 2
                 and all(isinstance(d, int) and not isinstance(d, bool) and 1 <= d <= MAX_SIDE for d in size)):
             return f"plan.projector must be [width, height] in whole pixels, 1 to {MAX_SIDE}, got {size!r}"
+        if size[0] * size[1] > MAX_PROJECTOR_PIXELS:  # every relit pattern is one (16384 x 16384: 4 GB a frame)
+            return (f"plan.projector {size[0]}x{size[1]} is larger than any projector (at most "
+                    f"{MAX_PROJECTOR_PIXELS >> 20} MP)")
     if "gamma" in plan:
         gamma = plan["gamma"]
         if isinstance(gamma, bool) or not isinstance(gamma, (int, float)) or not (math.isfinite(gamma) and 0.05 <= gamma <= 20):
