@@ -97,7 +97,7 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
     if getattr(img, "n_frames", 1) > 1:  # only the first frame was used, without a word
         raise InputError(f"pattern {path} holds {img.n_frames} frames (an animation or a multi-page file): give one "
                          "image file per pattern")
-    if img.mode in ("LA", "RGBA", "PA") or (img.mode == "P" and "transparency" in img.info):
+    if img.mode in ("LA", "RGBA", "PA") or (img.mode in ("P", "L", "RGB") and "transparency" in img.info):  # (tRNS)
         img = _over_black(img, path)
     if img.mode == "1":
         img = img.convert("L")

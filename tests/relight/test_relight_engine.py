@@ -270,6 +270,11 @@ def test_transparency_animations_and_wide_integers_are_not_misread_in_patterns(t
     with pytest.warns(UserWarning, match="transparent"):
         got = read_pattern(tmp_path / "la.png", (8, 6))
     assert got.ndim == 2 and (got[:, :4] == 1).all() and (got[:, 4:] == 0).all()
+    checker = np.where(alpha > 0, 0, 255).astype(np.uint8)  # a colour key (tRNS) marks white as transparent
+    for mode, image, key in (("RGB", np.dstack([checker] * 3), (255, 255, 255)), ("L", checker, 255)):
+        Image.fromarray(image, mode).save(tmp_path / f"key_{mode}.png", transparency=key)  # was projected opaque
+        with pytest.warns(UserWarning, match=r"50% fully transparent"):
+            assert (read_pattern(tmp_path / f"key_{mode}.png", (8, 6)) == 0).all()  # black, and no light where keyed
     Image.fromarray(np.dstack([np.full((6, 8, 3), 9, np.uint8), np.full((6, 8), 255, np.uint8)]), "RGBA").save(tmp_path / "opaque.png")
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # opaque: no warning
