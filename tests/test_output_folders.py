@@ -100,6 +100,22 @@ def test_an_out_that_is_a_file_is_one_line(session, tmp_path, command):
     assert (tmp_path / "afile").read_text() == "mine\n"
 
 
+@pytest.mark.parametrize(("command", "mine"), [
+    (["relight", "{session}", "--pattern", "checkerboard", "--views", "0", "--out", "{out}"],
+     "obj_v0_checkerboard_analytic.png"),
+    (["export", "{session}", "--out", "{out}"], "obj/view_000/white.exr"),
+])
+def test_files_of_the_user_s_named_as_outputs_are_never_replaced(session, tmp_path, command, mine):
+    """`sss relight` replaced a file of the user's named as its output (obj_v0_checkerboard_analytic.png), and
+    `sss export` the folder obj/view_000 that held the user's white.exr."""
+    out = tmp_path / "out"
+    (out / mine).parent.mkdir(parents=True)
+    (out / mine).write_text("mine\n")
+    _one_line(_sss(*[a.format(session=session, out=out) for a in command]),
+              f"--out {out} holds files named as the outputs of 'obj' (obj/ or obj_v<view>_...) that no sssphase")
+    assert (out / mine).read_text() == "mine\n" and not (out / "sources.json").exists()
+
+
 @pytest.mark.parametrize(("command", "expected"), [
     (["relight", "{session}", "--pattern", "checkerboard", "--views", " , "], "--views ' , ' names no view"),
     (["geometry", "{session}", "--backend", "analytic", "--views", ","], "--views ',' names no view"),

@@ -912,6 +912,10 @@ def claim_output(out: Path | str, sessions: Iterable[Session]) -> None:
         known = {str(k): v for k, v in data.items()}
     claims = {s.name: str(s.path.resolve()) for s in sessions}
     for obj, here in claims.items():
+        if obj not in known and _has_outputs(out, obj):  # files of these names that no command of ours recorded
+            raise InputError(f"--out {out} holds files named as the outputs of {obj!r} ({obj}/ or {obj}_v<view>_...) that "
+                             f"no sssphase command wrote there (its {OUTPUT_SOURCES} does not name them): they would be "
+                             "replaced; choose another --out")
         if known.get(obj, here) != here and _has_outputs(out, obj):
             raise InputError(f"--out {out} holds outputs of {obj!r} from another session ({known[obj]}); this session "
                              f"({here}) would overwrite them: choose another --out")
