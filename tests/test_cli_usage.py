@@ -53,6 +53,7 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["bench", "stability", "--cases", ","], "--cases ',' names nothing"),  # had run every case
         (["bench", "learn", "--repeats", "0"], "--repeats"),  # had averaged nothing into NaN
         (["bench", "learn", "--device", "tpu"], "unknown device 'tpu': use auto"),  # was torch's internal error
+        (["capture", "--object", "leaf", "--hdr-exposures", "0.001,64"], "HDR exposures 0.001 and 64 are 64000x apart"),
         (["repro", "paper", "--preset", "tiny", "--budget", "0"], "--budget must be a positive number of seconds, got 0"),
         (["train", "decoder", "--end-to-end", "--device", "tpu"], "unknown device 'tpu'"),  # after the data was read
         (["bench", "daemon", "--frames", "0", "--out", "d.json"], "--frames"),  # had left its daemon running

@@ -64,6 +64,10 @@ def _keeping_rig_open(client: ClientLike) -> Iterator[None]:
 MIN_BRACKET = 1e-3
 
 
+#: The widest step between neighbouring HDR exposures (0.001,1 merges well; 0.01,256 and 0.001,64 did not).
+MAX_BRACKET_STEP = 1024
+
+
 def check_brackets(exposures: tuple[float, ...]) -> None:
     """HDR brackets: none, or 2 to ``MAX_BRACKETS`` distinct finite relative exposures in [``MIN_BRACKET``, 256]."""
     if not exposures:
@@ -73,6 +77,12 @@ def check_brackets(exposures: tuple[float, ...]) -> None:
         shown = ", ".join(f"{e:g}" for e in exposures[:MAX_BRACKETS + 1]) + (", ..." if len(exposures) > MAX_BRACKETS + 1 else "")
         raise InputError(f"HDR exposures must be 2 to {MAX_BRACKETS} distinct numbers in [{MIN_BRACKET:g}, 256], got "
                          f"{len(exposures)}: {shown}")
+    ordered = sorted(exposures)
+    for short, long in zip(ordered, ordered[1:]):
+        if long / short > MAX_BRACKET_STEP:  # 0.001,64: where the long frame clips only the short one's noise is left
+            raise InputError(f"HDR exposures {short:g} and {long:g} are {long / short:.0f}x apart: where the longer clips, "
+                             f"the merge has only the shorter frame's noise, scaled {long / short:.0f}x (a session of "
+                             f"noise); put brackets at most {MAX_BRACKET_STEP}x apart (add ones between)")
 
 
 #: The sim rig options `sss capture` sets from its own options (--object, --preset, --seed, --views).
