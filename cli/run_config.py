@@ -65,10 +65,10 @@ def _load(ctx: typer.Context, param: Any, value: Path | None) -> Path | None:
     if unknown:
         raise InputError(f"--config {path}: unknown option(s) {', '.join(unknown)} for `sss {command}`")
     kinds = _option_kinds(ctx)
-    for name, value in options.items():  # checked here, in the file's terms (click said "Invalid value for '--epochs'")
+    for name, option in options.items():  # checked here, in the file's terms (click said "Invalid value for '--epochs'")
         expected = kinds.get(name)
-        if expected and not _is_kind(value, expected):
-            shown = str(value).lower() if isinstance(value, bool) else repr(value)
+        if expected and not _is_kind(option, expected):
+            shown = str(option).lower() if isinstance(option, bool) else repr(option)
             raise InputError(f"--config {path}: {name} must be {expected}, got {shown}")
     folder = path.parent
     recorded = options.get("out")

@@ -207,7 +207,7 @@ def test_a_copied_run_continued_with_its_config_stays_in_the_copy(tmp_path):
 
     shutil.copytree(original, copy)
     before = {p.name: p.read_bytes() for p in original.iterdir()}
-    with pytest.warns(UserWarning, match=f"this run was recorded at {original}; it continues here, in {copy}"):
+    with pytest.warns(UserWarning, match=f"--config {copy}: this run was recorded at {original}; it continues here, in {copy}"):
         runner.invoke(app, ["train", "decoder", "--config", str(copy), "--pixels-per-view", "60"])
     assert {p.name: p.read_bytes() for p in original.iterdir()} == before
 
