@@ -22,7 +22,7 @@ import sys
 import threading
 import time
 import uuid
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -587,6 +587,9 @@ class Daemon:
         with self.lock:
             if len(self.rigs) >= MAX_OPEN_RIGS:
                 raise ProtocolError(protocol.BUSY, f"{len(self.rigs)} rigs are open (at most {MAX_OPEN_RIGS}): close one first")
+            stale = self._claim_devices(wanted.values())
+        for rig in stale:
+            rig.close()
         shared: dict[str, Any] = {}
         devices: dict[str, Any] = {}
         device_id = "the rig"
@@ -636,6 +639,27 @@ class Daemon:
         with self.lock:
             self.rigs[rig.id] = rig
         return reply
+
+    def _claim_devices(self, ids: Iterable[str]) -> list[Rig]:
+        """Refuse a device another open rig holds (two captures drove one camera's exposure and grabs: brackets
+        of both mixed without a word); a rig whose client is gone and that runs no job is stale: taken out and
+        returned to be closed. Simulated devices (``sim:``) are virtual and may be shared. Holds ``self.lock``."""
+        stale: list[Rig] = []
+        for device_id in ids:
+            if device_id.partition(":")[0] == "sim":
+                continue
+            holder = next((r for r in self.rigs.values() if r not in stale
+                           and any(d.info.id == device_id for d in r.devices.values())), None)
+            if holder is None:
+                continue
+            running = any(j.rig is holder and j.state == "running" for j in self.jobs.values())
+            if running or self._alive(holder.owner):
+                raise ProtocolError(protocol.BUSY, f"{device_id} is in use by rig {holder.id} of another client"
+                                    f"{' (a capture is running)' if running else ''}: wait until it closes the rig, "
+                                    "or stop that command")
+            stale.append(holder)
+            del self.rigs[holder.id]
+        return stale
 
     def _get_rig(self, args: dict) -> Rig:
         rig = self.rigs.get(args.get("rig"))  # type: ignore[arg-type]

@@ -621,3 +621,19 @@ def test_stop_force_kills_a_daemon_that_ignores_sigterm(tmp_path, monkeypatch):
     assert cmd_daemon._wait_or_kill(proc.pid, False, 0.3) is False and proc.poll() is None
     assert cmd_daemon._wait_or_kill(proc.pid, True, 0.3) is False
     assert proc.wait(5) == -signal.SIGKILL
+
+
+def test_a_device_is_held_by_one_rig_at_a_time(daemon_factory):
+    """Two captures opened the same (emulated Basler) camera in two rigs and drove its exposure and grabs
+    together; a second rig now waits for the first to close, and a rig whose client is gone is taken over."""
+    from sssphase_daemon.client import DaemonClient, DaemonError
+
+    proc, first, runtime = daemon_factory()
+    held = first.call("open_rig", camera="example:testpattern0")["rig"]
+    with DaemonClient(first.endpoint, first.token, timeout_s=5.0) as second:
+        with pytest.raises(DaemonError, match=rf"example:testpattern0 is in use by rig {held} of another client"):
+            second.call("open_rig", camera="example:testpattern0")
+        assert second.call("open_rig", camera="sim:camera0")["rig"]  # simulated devices are shared
+        assert second.call("open_rig", camera="sim:camera0")["rig"]
+        first.call("close_rig", rig=held)
+        assert second.call("open_rig", camera="example:testpattern0")["rig"] != held
