@@ -170,14 +170,57 @@ def _say(errors: dict[str, str], plugin: str, text: str) -> None:
     errors[plugin] = f"{errors[plugin]}; {text}" if plugin in errors else text
 
 
+#: Seconds a plugin's hooks, or one provider's discover(), may take before it is reported as hung and left out
+#: (``sss devices`` waited for ever on a plugin stuck in a USB call).
+DISCOVERY_TIMEOUT_S = float(os.environ.get("SSS_DISCOVERY_TIMEOUT_S", "30"))
+
+
+class _Hung(Exception):
+    pass
+
+
+def _within(seconds: float, fn: Any) -> Any:
+    """``fn()`` run in a daemon thread: its value, or what it raised; :class:`_Hung` when it has not returned
+    within ``seconds`` (the thread is left behind: a plugin's call cannot be interrupted)."""
+    import threading
+
+    box: dict[str, Any] = {}
+
+    def run() -> None:
+        try:
+            box["value"] = fn()
+        except BaseException as exc:  # noqa: BLE001  (handed to the caller, sys.exit() too)
+            box["error"] = exc
+
+    thread = threading.Thread(target=run, name="sss-discover", daemon=True)
+    thread.start()
+    thread.join(seconds)
+    if thread.is_alive():
+        raise _Hung()
+    if "error" in box:
+        raise box["error"]
+    return box["value"]
+
+
 def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo], dict[str, str]]:
-    """Run discovery on every provider (this may do device I/O). Returns devices and errors by plugin."""
+    """Run discovery on every provider (this may do device I/O). Returns devices and errors by plugin; a plugin
+    whose hooks or discover() do not return within :data:`DISCOVERY_TIMEOUT_S` is reported as hung, left out."""
     pm = pm or get_plugin_manager()
     found: dict[str, tuple[str, DeviceInfo]] = {}  # id -> (plugin, device): one entry per id
     errors: dict[str, str] = {}
-    for plugin, provider in device_providers(pm):
+    try:
+        providers = _within(DISCOVERY_TIMEOUT_S, lambda: device_providers(pm))
+    except _Hung:
+        return [], {**pm.load_errors, "plugins": f"a plugin's hook did not return within {DISCOVERY_TIMEOUT_S:g} s "
+                                                 "(it hangs): no device could be listed; disable it (SSS_PLUGINS, "
+                                                 "or uninstall it) and try again"}
+    for plugin, provider in providers:
         try:
-            devices = _discover(provider)
+            devices = _within(DISCOVERY_TIMEOUT_S, lambda provider=provider: _discover(provider))
+        except _Hung:
+            errors[plugin] = (f"discovery of {getattr(provider, 'kind', 'device')}s did not return within "
+                              f"{DISCOVERY_TIMEOUT_S:g} s (the plugin hangs): its devices are left out")
+            continue
         except DeviceNotFound as exc:  # an absent device is an answer, not a failure
             errors[plugin] = str(exc).strip()
             continue

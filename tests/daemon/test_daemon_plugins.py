@@ -235,3 +235,43 @@ def test_the_transport_model_is_a_sim_option():
 
     with pytest.raises(InputError, match="unknown transport model"):
         sim_plugin.SimRigState({"object": "soap", "transport": "dipole!"})
+
+
+HANGS = """
+import threading
+from sssphase_plugins.hookspecs import hookimpl
+RELEASE = threading.Event()
+class P:
+    kind = "camera"
+    def discover(self):
+        RELEASE.wait()  # a USB call that never returns
+        return []
+    def open(self, device_id, options, shared):
+        raise NotImplementedError
+@hookimpl
+def sssphase_cameras():
+    if HOOK_HANGS:
+        RELEASE.wait()
+    return [P()]
+HOOK_HANGS = False
+"""
+
+
+def test_a_plugin_that_hangs_in_discovery_is_named_and_left_out(tmp_path, monkeypatch):
+    """`sss devices` without a daemon waited for ever on a plugin stuck in discover() or in its hook."""
+    import sys
+
+    (tmp_path / "acme_hangs.py").write_text(textwrap.dedent(HANGS))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv(manager.ENV_PLUGINS, "acme_hangs")
+    monkeypatch.setattr(manager, "DISCOVERY_TIMEOUT_S", 0.5)
+    pm = manager.build_plugin_manager()
+    try:
+        devices, errors = manager.discover_devices(pm)
+        assert sim_plugin.CAMERA_ID in {d.id for d in devices}  # the others are listed
+        assert "discovery of cameras did not return within 0.5 s (the plugin hangs)" in errors["acme_hangs"]
+        sys.modules["acme_hangs"].HOOK_HANGS = True
+        devices, errors = manager.discover_devices(pm)
+        assert devices == [] and "a plugin's hook did not return within 0.5 s" in errors["plugins"]
+    finally:
+        sys.modules["acme_hangs"].RELEASE.set()
