@@ -6,6 +6,7 @@ is marked so and aborted, never half-written. The client is anything with ``call
 from __future__ import annotations
 
 import contextlib
+import itertools
 import json
 import os
 import warnings
@@ -78,7 +79,7 @@ def check_brackets(exposures: tuple[float, ...]) -> None:
         raise InputError(f"HDR exposures must be 2 to {MAX_BRACKETS} distinct numbers in [{MIN_BRACKET:g}, 256], got "
                          f"{len(exposures)}: {shown}")
     ordered = sorted(exposures)
-    for short, long in zip(ordered, ordered[1:]):
+    for short, long in itertools.pairwise(ordered):
         if long / short > MAX_BRACKET_STEP:  # 0.001,64: where the long frame clips only the short one's noise is left
             raise InputError(f"HDR exposures {short:g} and {long:g} are {long / short:.0f}x apart: where the longer clips, "
                              f"the merge has only the shorter frame's noise, scaled {long / short:.0f}x (a session of "
