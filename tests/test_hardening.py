@@ -1577,3 +1577,18 @@ def test_a_refused_geometry_run_leaves_no_output_folder_behind(intact_session, t
         out = tmp_path / args[-1]
         _one_line(_cli("geometry", str(intact_session), *args, "--out", str(out)), expected)
         assert not out.exists()
+
+
+def test_validate_holds_clean_renders_and_complex_frames_to_the_test_of_light(intact_session, tmp_path):
+    """`sss validate` said ok of NaN in gt/render/* and of a complex64 psp, which relighting then refused or relit
+    from the real part."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_import import _rewritten
+
+    from sssphase_core.store.session import Session
+
+    session = Session.open(intact_session)
+    nan = _rewritten(session, tmp_path / "nan", "gt/render/checkerboard", lambda a: np.full_like(a, np.nan))
+    assert any("array gt/render/checkerboard holds" in p and "NaN" in p for p in nan.validate()), nan.validate()
+    complex_psp = _rewritten(session, tmp_path / "complex", "psp", lambda a: a.astype(np.complex64))
+    assert any("array psp holds complex64 values" in p for p in complex_psp.validate()), complex_psp.validate()

@@ -18,7 +18,7 @@ LEVEL_FLOOR = 0.02
 #: the images overflow float32 (the view calibration's least squares failed to converge on a white of 1e38).
 MAX_LIGHT = 1e6
 #: The arrays of a view that hold light (by name or prefix): the PSP frames, white, black and reference captures.
-LIGHT_ARRAYS = ("psp", "white", "black", "ref/")
+LIGHT_ARRAYS = ("psp", "white", "black", "ref/", "gt/render/")  # (gt/render/: a simulated session's clean references)
 
 
 def white_level(white: np.ndarray) -> float:
@@ -41,6 +41,8 @@ def light_problem(name: str, image: np.ndarray, level: float | None = None) -> s
     infinite values, magnitudes beyond :data:`MAX_LIGHT`, or, given the view's white ``level``
     (:func:`white_level`), more than :data:`NEGATIVE_SHARE` of its values below ``-NEGATIVE_LIMIT x`` that level."""
     x = np.asarray(image)
+    if x.dtype.kind not in "fiub":  # complex light was relit from its real part without a word
+        return f"{name} holds {x.dtype} values; images are real numbers of light"
     bad = int(np.count_nonzero(~np.isfinite(x)))
     if bad:
         return f"{name} holds {bad} NaN or infinite values; images must be finite"
