@@ -109,7 +109,7 @@ class DaemonClient:
             msg = protocol.unpack(self.sock.recv(), self.max_bytes)
             if isinstance(msg, dict) and msg.get("id") == rid:
                 return msg
-        raise DaemonUnavailable(f"the daemon at {self.endpoint} did not answer within {timeout_s:g} s")
+        raise DaemonUnavailable(self._gone_words(f"did not answer within {timeout_s:g} s"))
 
     def call(self, op: str, timeout_s: float | None = None, **args: Any) -> dict[str, Any]:
         """Send a request and return its result; raise :class:`DaemonError` on an error reply."""
@@ -143,7 +143,7 @@ class DaemonClient:
         try:
             state = self.call("job", timeout_s=2.0, job=job_id)
         except DaemonUnavailable:
-            raise DaemonUnavailable(f"the daemon at {self.endpoint} stopped answering mid-stream") from None
+            raise DaemonUnavailable(self._gone_words()) from None
         except DaemonError as exc:
             raise DaemonError(exc.code, f"the capture job vanished from the daemon ({exc})") from None
         if state["state"] != "running":
@@ -151,6 +151,18 @@ class DaemonClient:
             if isinstance(error, dict) and error.get("message"):  # the daemon's own words (a stalled device named)
                 raise DaemonError(str(error.get("code", protocol.INTERNAL)), str(error["message"]))
             raise DaemonError(protocol.INTERNAL, f"the job ended ({state['state']}) but its stream did not finish")
+
+    def _gone_words(self, quiet: str = "stopped answering mid-stream") -> str:
+        """What to say of a daemon that went ``quiet``: that it exited, when its state file names a process that
+        is gone (a device plugin that called abort() took it down), else that it went quiet."""
+        try:
+            state = security.read_state()
+        except Exception:  # noqa: BLE001  (a damaged state file: nothing more can be told)
+            state = None
+        if state is not None and state.endpoint == self.endpoint and not security.is_daemon_process(state.pid):
+            return (f"the daemon (pid {state.pid}) at {self.endpoint} has exited (killed, or crashed by a device "
+                    f"plugin: its log is {security.log_dir() / 'daemon.log'})")
+        return f"the daemon at {self.endpoint} {quiet}"
 
     def _heartbeat(self, job_id: str, stop: threading.Event) -> None:
         """Heartbeat the job from a thread with its own socket, so slow frame processing never starves it."""

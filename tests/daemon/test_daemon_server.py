@@ -349,6 +349,10 @@ class Camera:
             raise asyncio.CancelledError()
         if self.info.id == "exiting:raise":
             raise RuntimeError("grab exploded")
+        if self.info.id == "exiting:abort":  # a driver's C library that aborts: the daemon dies with it
+            import os
+
+            os.abort()
         sys.exit(4)
 
     def stream(self, count):
@@ -363,7 +367,7 @@ class Provider:
 
     def discover(self):
         return [DeviceInfo(f"exiting:{n}", "camera", "exiting", n, n)
-                for n in ("open", "grab", "junk", "cancel", "raise", "openraise")]
+                for n in ("open", "grab", "junk", "cancel", "raise", "openraise", "abort")]
 
     def open(self, device_id, options, shared):
         if device_id == "exiting:open":
@@ -637,3 +641,20 @@ def test_a_device_is_held_by_one_rig_at_a_time(daemon_factory):
         assert second.call("open_rig", camera="sim:camera0")["rig"]
         first.call("close_rig", rig=held)
         assert second.call("open_rig", camera="example:testpattern0")["rig"] != held
+
+
+def test_a_daemon_that_a_plugin_crashed_is_said_to_have_exited(daemon_factory, tmp_path, monkeypatch):
+    """A plugin that called abort() took the daemon down mid-capture; the client said only that it "stopped
+    answering mid-stream"."""
+    from sssphase_daemon.client import DaemonUnavailable
+
+    (tmp_path / "exiting_plugin.py").write_text(EXITING_PLUGIN)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("SSS_PLUGINS", "exiting_plugin")
+    proc, client, runtime = daemon_factory()
+    monkeypatch.setenv("SSS_RUNTIME_DIR", str(runtime))  # where the client finds the daemon's state file
+    rig = client.call("open_rig", camera="exiting:abort")["rig"]
+    with pytest.raises(DaemonUnavailable, match=rf"the daemon \(pid {proc.pid}\) at .* has exited \(killed, or "
+                                                 "crashed by a device plugin: its log is"):
+        list(client.stream(rig, 2))
+    assert proc.wait(5) == -signal.SIGABRT
