@@ -50,8 +50,6 @@ FRAME_KINDS = ("psp", "white", "black", "level", "dots", "ref", "image")
 DEFAULT_DEADLINE_S = 600.0
 MAX_DEADLINE_S = 86400.0
 
-
-
 #: Seconds an ``open_rig`` may take (a camera's boot, a USB enumeration) before the client is told which device
 #: hangs; the daemon serves other requests meanwhile.
 OPEN_TIMEOUT_S = float(os.environ.get("SSS_OPEN_TIMEOUT_S", "25"))
@@ -77,6 +75,7 @@ def _exception_line(exc: BaseException) -> str:
     """``RuntimeError: grab exploded`` (``MemoryError: (no message)`` when it says nothing), on one line."""
     text = " ".join(str(exc).split())[:300]
     return f"{type(exc).__name__}: {text or '(no message)'}"
+
 
 class DeviceStalled(DeviceError):
     """A device call did not return within the job's deadline: the rig is closed and dropped."""

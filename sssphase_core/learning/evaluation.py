@@ -101,7 +101,7 @@ def knn_of_views(encoder: torch.nn.Module, views: Sequence, objects: Sequence[st
     if class_names is not None and keep.any() and int(labels[keep].max()) >= len(class_names):
         from sssphase_core.errors import DataError
 
-        bad = sorted({v.object for v in views for m in [v.materials] if m.size and int(m.max()) >= len(class_names)})
+        bad = sorted({v.object for v in views if v.materials.size and int(v.materials.max()) >= len(class_names)})
         raise DataError(f"the material labels (gt/labels) of {', '.join(bad) or 'the views'} reach "
                         f"{int(labels[keep].max())}, past the {len(class_names)} known materials: the sessions' labels "
                         "are damaged (kNN by --label object needs none)")

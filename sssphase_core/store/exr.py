@@ -181,20 +181,13 @@ def _colour_layer(path: Path | str, channels: dict[str, np.ndarray]) -> tuple[st
 def exr_size(path: Path | str) -> tuple[int, int]:
     """(height, width) of an EXR image (its display window, as :func:`read_exr` returns it) from its header
     alone (nothing is decoded); windows larger than any frame are refused (:func:`_check_windows`)."""
-    from sssphase_core.store.imageio import native_stderr_silenced
 
-    OpenEXR = _openexr()
-    _check_windows(path, OpenEXR)
-    try:
-        with native_stderr_silenced():
-            _, (x0, y0, x1, y1) = _windows(OpenEXR.File(str(path), header_only=True).header())
-    except (OSError, RuntimeError, ValueError, KeyError):
-        raise DataError(f"cannot read EXR {path} (damaged, truncated or not an EXR file)") from None
+    _, (x0, y0, x1, y1) = _windows(_check_windows(path, _openexr())[0])
     return y1 - y0 + 1, x1 - x0 + 1
 
 
-def _check_windows(path: Path | str, OpenEXR: Any) -> None:
-    """Refuse, from the headers alone, a part whose data or display window is over
+def _check_windows(path: Path | str, OpenEXR: Any) -> list[dict]:
+    """The headers of the file's parts, refused from them alone when a part's data or display window is over
     :data:`~sssphase_core.store.imageio.MAX_FRAME_PIXELS`: the library decodes the whole data window (a 5 MB
     file with a 20000 x 20000 data window behind a 256 x 192 display took 5 GB) before it is cropped."""
     from sssphase_core.store.imageio import MAX_FRAME_PIXELS, native_stderr_silenced
@@ -203,6 +196,8 @@ def _check_windows(path: Path | str, OpenEXR: Any) -> None:
         with native_stderr_silenced():
             headers = [part.header for part in OpenEXR.File(str(path), header_only=True).parts]
         windows = [w for h in headers for w in _windows(h)]
+        if not headers:
+            raise ValueError("no parts")
     except (OSError, RuntimeError, ValueError, KeyError, TypeError):
         raise DataError(f"cannot read EXR {path} (damaged, truncated or not an EXR file)") from None
     for x0, y0, x1, y1 in windows:
@@ -210,3 +205,4 @@ def _check_windows(path: Path | str, OpenEXR: Any) -> None:
         if w <= 0 or h <= 0 or w * h > MAX_FRAME_PIXELS:
             raise DataError(f"EXR {path} declares a {w}x{h} pixel window, {'empty' if w <= 0 or h <= 0 else f'over {MAX_FRAME_PIXELS >> 20} MP'}"
                             ": far larger than any camera frame or pattern; refused before decoding it")
+    return headers

@@ -177,46 +177,34 @@ def _check_array_metadata(folder: Path, where: str) -> int:
     return int(nbytes)
 
 
-def _check_chunk_files(folder: Path, where: str, chunk_bytes: int) -> None:
-    """Refuse a chunk file longer than its chunk could compress to (a 10 GB sparse file was read whole), or one
-    that is no regular file (a link to /dev/zero)."""
+def _checked_chunk_files(folder: Path, where: str, chunk_bytes: int) -> int:
+    """How many chunk files (:func:`_chunk_files`) an array folder holds, each checked: one longer than its chunk
+    could compress to (a 10 GB sparse file was read whole), or that is no regular file (a link to /dev/zero), is
+    refused; a broken link is not counted (a missing chunk)."""
     import stat
 
-    root = folder / "c"
-    files = [root] if root.is_file() or (root.is_symlink() and not root.is_dir()) else (
-        [p for p in root.rglob("*") if all(part.isdigit() for part in p.relative_to(root).parts)] if root.is_dir() else [])
     limit = chunk_bytes + (chunk_bytes >> 6) + (1 << 16)  # blosc's worst case: 16 bytes a block over the data
-    for p in files:
+    found = 0
+    for p in _chunk_files(folder):
         try:
             st = os.stat(p)
         except OSError:
-            continue  # (a broken link: zarr says it is missing)
-        if stat.S_ISDIR(st.st_mode):
-            continue
+            continue  # (a broken link)
         if not stat.S_ISREG(st.st_mode) or st.st_size > limit:
             what = "not a regular file" if not stat.S_ISREG(st.st_mode) else f"{st.st_size:,} bytes for a chunk of {chunk_bytes:,}"
             raise DamagedArray(where, f"damaged (chunk {p.relative_to(folder)} is {what})")
+        found += 1
+    return found
 
 
-def _free_memory() -> int | None:
-    """Bytes of memory available to this process (Linux ``MemAvailable``), None where unknown."""
-    try:
-        with open("/proc/meminfo") as f:
-            for line in f:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except (OSError, ValueError, IndexError):
-        pass
-    return None
-
-
-def _stored_chunks(folder: Path) -> int:
-    """How many chunk files an array folder holds: zarr's ``c/<i>/<j>/...`` keys only, so that a file that
-    something else left there (``.DS_Store``, ``notes.txt``) is not counted as a chunk."""
+def _chunk_files(folder: Path) -> list[Path]:
+    """An array folder's chunk files (links and other non-folders included, for :func:`_check_chunk_files`):
+    zarr's ``c/<i>/<j>/...`` keys only, so that a file that something else left there (``.DS_Store``,
+    ``notes.txt``) is not counted as a chunk."""
     root = folder / "c"
-    if root.is_file():  # a 0-d array's one chunk
-        return 1
-    return sum(1 for p in root.rglob("*") if p.is_file() and all(part.isdigit() for part in p.relative_to(root).parts))
+    if not root.is_dir():
+        return [root] if root.exists() or root.is_symlink() else []  # a 0-d array's one chunk
+    return [p for p in root.rglob("*") if not p.is_dir() and all(part.isdigit() for part in p.relative_to(root).parts)]
 
 
 def _zarr_write(path: Path, data: np.ndarray) -> None:
@@ -701,7 +689,7 @@ class Session:
             array = zarr.open_array(str(folder), mode="r")
         except Exception as exc:  # missing or unreadable metadata
             raise DamagedArray(where, f"missing or unreadable ({type(exc).__name__})") from None
-        _check_chunk_files(folder, where, chunk_bytes)
+        found = _checked_chunk_files(folder, where, chunk_bytes)  # (one walk of the chunk files: checked, counted)
         meta = self.manifest["views"][str(view)]["arrays"][name]
         if meta.get("shape") is not None and list(array.shape) != list(meta["shape"]):
             raise DamagedArray(where, f"damaged (shape {tuple(array.shape)} where the manifest says {tuple(meta['shape'])})")
@@ -709,7 +697,6 @@ class Session:
             raise DamagedArray(where, f"damaged (its metadata says {array.dtype.str} where the manifest says {meta['dtype']})")
         expected = meta.get("chunks")  # older sessions: not recorded
         if expected is not None:
-            found = _stored_chunks(folder)
             if found < expected:  # zarr would read a missing chunk as zeros
                 raise DamagedArray(where, f"damaged ({expected - found} of {expected} chunks missing)")
             if found > expected:  # written again with other chunks: not the array the manifest describes
@@ -719,7 +706,9 @@ class Session:
     def load(self, view: int, name: str) -> np.ndarray:
         """The whole array as numpy (refused, naming it, when it is larger than the memory this machine has free)."""
         array = self.read(view, name)
-        need, free = int(np.prod(array.shape, dtype=np.float64) * array.dtype.itemsize), _free_memory()
+        from sssphase_core.compute import available_memory
+
+        need, free = int(np.prod(array.shape, dtype=np.float64) * array.dtype.itemsize), available_memory()
         if free is not None and need > free:
             raise DataError(f"{array.where} is {need / 2**30:.1f} GiB ({'x'.join(map(str, array.shape))} {array.dtype}), "
                             f"more than the {free / 2**30:.1f} GiB of memory free: it is not read whole")
