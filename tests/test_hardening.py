@@ -764,11 +764,17 @@ def intact_session(sim_daemon, tmp_path_factory):
 
 @contextlib.contextmanager
 def _at_most_gib(gib: int):
-    """Address space capped (a reader that allocates gigabytes fails instead of swapping the machine)."""
+    """Address space capped at what this process holds now plus `gib` GiB (a reader that allocates gigabytes
+    fails instead of swapping the machine). Relative, not absolute: an xdist worker that has run many tests
+    already holds more than 2 GiB of address space (torch's threads and libraries), and a cap below that
+    leaves no memory free to any read."""
     import resource
 
+    from sssphase_core.compute import _address_space_used
+
     soft, hard = resource.getrlimit(resource.RLIMIT_AS)
-    resource.setrlimit(resource.RLIMIT_AS, (gib << 30, hard))
+    cap = _address_space_used() + (gib << 30)
+    resource.setrlimit(resource.RLIMIT_AS, (cap if hard == resource.RLIM_INFINITY else min(cap, hard), hard))
     try:
         yield
     finally:
