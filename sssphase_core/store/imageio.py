@@ -58,7 +58,8 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
 
     The size must match the projector unless ``resize`` is ``fit``, ``fill`` or ``stretch`` (see
     :func:`_resized`; ``True`` means ``stretch``). Palette and CMYK images are read as RGB, an alpha
-    channel as opacity over black (transparent = no light, with a warning), 16-bit images divided by
+    channel as opacity over black (transparent = no light, with a warning), an EXIF orientation tag applied as
+    image viewers apply it (with a warning), 16-bit images divided by
     65535 (wider integer types too, when their values fit 16 bits); multi-frame files and integer values below 0 or
     above 65535 are refused. ``hint`` ends the size-mismatch error (what the user can do).
     """
@@ -97,6 +98,7 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
     if getattr(img, "n_frames", 1) > 1:  # only the first frame was used, without a word
         raise InputError(f"pattern {path} holds {img.n_frames} frames (an animation or a multi-page file): give one "
                          "image file per pattern")
+    img = _as_viewers_show_it(img, path)
     if img.mode in ("LA", "RGBA", "PA") or (img.mode in ("P", "L", "RGB") and "transparency" in img.info):  # (tRNS)
         img = _over_black(img, path)
     if img.mode == "1":
@@ -127,6 +129,29 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
         if np.allclose(arr, arr[..., :1]):
             arr = arr[..., 0]
     return np.clip(arr, 0, 1)
+
+
+#: What each EXIF orientation (tag 274) asks of the stored pixels before they are shown.
+EXIF_ORIENTATIONS = {2: "mirrored left-right", 3: "rotated 180°", 4: "mirrored top-bottom",
+                     5: "mirrored left-right and rotated 90° counter-clockwise", 6: "rotated 90° clockwise", 7: "mirrored left-right and rotated 90° clockwise",
+                     8: "rotated 90° counter-clockwise"}
+
+
+def _as_viewers_show_it(img: object, path: Path) -> object:
+    """A pattern image turned as its EXIF orientation tag asks (a phone's photo stored sideways, tagged "rotate
+    90°"), with a warning: every image viewer shows it turned, and that is the pattern its user chose; the
+    projector's pixels are then the shown image's."""
+    from PIL import ImageOps
+
+    try:
+        orientation = img.getexif().get(274, 1)  # type: ignore[attr-defined]
+    except Exception:  # noqa: BLE001  (a damaged EXIF block: the pixels as stored)
+        return img
+    if orientation not in EXIF_ORIENTATIONS:
+        return img
+    warnings.warn(f"pattern {path}: its EXIF orientation tag says the stored image is shown {EXIF_ORIENTATIONS[orientation]}: "
+                  "it is projected as image viewers show it", UserWarning, stacklevel=3)
+    return ImageOps.exif_transpose(img)
 
 
 def _max_pattern_pixels(wp: int, hp: int, resize: str) -> int:

@@ -291,6 +291,28 @@ def test_transparency_animations_and_wide_integers_are_not_misread_in_patterns(t
         read_pattern(tmp_path / "neg.tif", (8, 6))
 
 
+def test_a_pattern_tagged_with_an_exif_orientation_is_projected_as_viewers_show_it(tmp_path):
+    """A phone's photo is stored sideways with an EXIF tag saying "rotate 90° clockwise": it was read as stored
+    (relit sideways, or refused for its size) where every image viewer shows it upright."""
+    from PIL import Image
+
+    shown = np.zeros((6, 8), np.uint8)
+    shown[0, :3] = 255  # a bar along the top left: where the user sees it
+    stored = np.rot90(shown, k=1)  # what the camera wrote (8 tall, 6 wide); tag 6 turns it back clockwise
+    exif = Image.Exif()
+    exif[274] = 6
+    for name in ("photo.jpg", "photo.png"):
+        Image.fromarray(np.ascontiguousarray(stored)).save(tmp_path / name, exif=exif.tobytes(), quality=100)
+        with pytest.warns(UserWarning, match="EXIF orientation tag says the stored image is shown rotated 90° clockwise"):
+            got = read_pattern(tmp_path / name, (8, 6))
+        assert got.shape == (6, 8)
+        assert np.abs(got - shown / 255.0).max() < 0.1  # (JPEG's loss, on a bar of 3 pixels)
+    Image.fromarray(shown).save(tmp_path / "plain.png")  # no tag: as stored, without a word
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert (read_pattern(tmp_path / "plain.png", (8, 6)) == shown / 255.0).all()
+
+
 def test_non_finite_footprints_are_zeroed_with_a_warning(scene):
     proj, k, fps, pats = scene
     bad = fps.copy()
