@@ -111,10 +111,19 @@ def _interrupt_on_sigterm(signum: int, frame: object) -> None:
     raise KeyboardInterrupt  # `kill PID` says "interrupted" and keeps work done, as Ctrl-C does
 
 
+#: The warnings this command has shown, as (text, category).
+_WARNED: set[tuple[str, type[Warning]]] = set()
+
+
 def _one_line_warning(message: Warning | str, category: type[Warning], filename: str, lineno: int,
                       file: object = None, line: str | None = None) -> None:
-    """A warning as one line, without the source line that Python prints under it (SSS_DEBUG=1 keeps that)."""
+    """A warning as one line, without the source line that Python prints under it (SSS_DEBUG=1 keeps that),
+    and once per command: Python's own once-per-place rule forgets what it showed whenever any code changes the
+    warning filters (each backend of ``sss relight`` re-read a half-transparent pattern and said so again)."""
     text = " ".join(str(message).split())
+    if (text, category) in _WARNED:
+        return
+    _WARNED.add((text, category))
     err_console.print(f"[yellow]warning:[/] {escape(text)}" + ("" if category is UserWarning else f" ({category.__name__})"))
 
 

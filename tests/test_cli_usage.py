@@ -267,11 +267,14 @@ def test_a_warning_that_escapes_a_command_is_one_line_without_its_source(monkeyp
     def noisy(standalone_mode: bool = False) -> int:
         np.float32(3e38) * np.float32(10)  # overflow: a RuntimeWarning
         warnings.warn("two\nlines", stacklevel=1)
+        for _ in range(2):  # the same warning again (each backend of `sss relight` re-read a pattern): shown once
+            warnings.warn("two lines", stacklevel=1)
         return 0
 
     monkeypatch.delenv("SSS_DEBUG", raising=False)
     monkeypatch.setattr(cli_main, "app", noisy)
     monkeypatch.setattr(warnings, "showwarning", warnings.showwarning)  # restored after the test
+    monkeypatch.setattr(cli_main, "_WARNED", set())
     with warnings.catch_warnings():
         warnings.simplefilter("always")
         with pytest.raises(SystemExit) as done:
