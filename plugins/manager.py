@@ -54,6 +54,20 @@ def _error_text(exc: BaseException) -> str:
     return f"{type(exc).__name__}: {exc}".strip()
 
 
+def _registration_error(pm: PluginManager, exc: BaseException) -> str:
+    """One line for a plugin that could not be registered. pluggy's own words for a module registered twice end
+    with the repr of every plugin, one module path after another over many lines."""
+    first = str(exc).split("\n", 1)[0]
+    if isinstance(exc, ValueError) and first.startswith("Plugin already registered under a different name: "):
+        module = first.split("=", 1)[-1]
+        other = next((n for n, p in pm.list_name_plugin() if p is not None and repr(p) == module), None)
+        return (f"its module is already loaded as plugin {other!r}: two entry points (or {ENV_PLUGINS} entries) "
+                "name one module; remove one")
+    if isinstance(exc, ValueError) and first.startswith("Plugin name already registered: "):
+        return "another plugin is registered under this name: rename one of the two entry points"
+    return _error_text(exc)
+
+
 def _register_checked(pm: PluginManager, name: str, load: Any) -> None:
     """Register one plugin, isolating its failure (import error, unknown hook) under its name."""
     try:
@@ -63,7 +77,7 @@ def _register_checked(pm: PluginManager, name: str, load: Any) -> None:
         plugin = pm.get_plugin(name)
         if plugin is not None:
             pm.unregister(plugin)
-        pm.load_errors[name] = _error_text(exc)
+        pm.load_errors[name] = _registration_error(pm, exc)
 
 
 def build_plugin_manager() -> PluginManager:

@@ -109,6 +109,16 @@ def test_broken_plugins_are_named_and_do_not_take_others_down(plugin_dir):
         manager.find_provider(sim_plugin.PROJECTOR_ID, pm, kind="camera")
 
 
+def test_one_module_registered_under_two_names_is_one_line_naming_the_first(monkeypatch):
+    """pluggy's words ended with the repr of every registered plugin, over many lines of module paths."""
+    monkeypatch.setenv(manager.ENV_PLUGINS, "sssphase_plugins.sim_plugin")  # the built-in `sim`, named again
+    records = {r.name: r for r in manager.plugin_records(manager.build_plugin_manager())}
+    twice = records["sssphase_plugins.sim_plugin"]
+    assert not twice.ok and records["sim"].ok
+    assert twice.source == ("its module is already loaded as plugin 'sim': two entry points (or SSS_PLUGINS entries) "
+                            "name one module; remove one")
+
+
 CLONES = {  # two plugins that report the sim's camera, and one id that two plugins other than its own report
     "acme_clone": """
 from sssphase_plugins.hookspecs import hookimpl
