@@ -1038,8 +1038,9 @@ def test_non_finite_or_impossible_values_in_a_view_are_one_error(intact_session,
                                                    r"be finite", problems[0]), problems
     elif edit == "xp nan on the mask":  # nor a projector point, where the view decoded
         assert problems == ["view 0: array corr/xp holds 1 NaN or infinite values on the decoded pixels"]
-    else:
-        assert not problems
+    else:  # a finite coordinate of 1e9 passed `sss validate`, and relighting refused it
+        wp = s.manifest["plan"]["projector"][0]
+        assert problems == [f"view 0: array corr/xp holds projector coordinates far outside the projector's 0 to {wp} px"]
     expected = "projector coordinates far outside" if edit.endswith("projector") else "NaN or infinite values"
     with pytest.raises(DataError, match=f"view 0 of .*: {name} (holds|is) .*{expected}"):
         load_view(Session.open(copy), 0)

@@ -11,6 +11,7 @@ import numpy as np
 
 from sssphase_core.errors import DataError, InputError
 from sssphase_core.store.light import light_problem, projector_light, white_level
+from sssphase_core.store.session import coordinates_problem
 
 if TYPE_CHECKING:
     from sssphase_core.relight.engine import Projection
@@ -167,8 +168,8 @@ def load_view(session: object, view: int) -> RelightView:
     _check_finite(where, mask, {"corr/xp": xp, "corr/yp": yp},
                   {"psp": psp, "white": white, **{stored[n]: c for n, c in captured.items()}})
     for name, coord, side in (("corr/xp", xp, wp), ("corr/yp", yp, hp)):
-        if mask.any() and not (np.abs(coord[mask] - side / 2) <= 1.5 * side).all():  # a decoded point lies on the projector
-            raise DataError(f"{where}: {name} holds projector coordinates far outside the projector's 0 to {side} px")
+        if problem := coordinates_problem(name, coord, mask, side):
+            raise DataError(f"{where}: {problem}")
     psp_clip, white_clip = session.clip_levels()  # type: ignore[attr-defined]
     return RelightView(str(m.get("object")), view, proj, psp, white, patch,
                        references, captured, sim, session, psp_clip, white_clip, plan,

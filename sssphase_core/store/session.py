@@ -727,6 +727,7 @@ class Session:
         if "projector" not in self.manifest.get("plan", {}):  # what relighting reads first (relight.views.load_view)
             problems.append("the manifest has no capture plan (plan.projector): the patterns its frames were captured "
                             "under are unknown, so it cannot be relit")
+        projector = _projector_size(self.manifest)
         n = expected_views if expected_views is not None else int(self.manifest.get("n_views", 0))
         for v in range(n):
             if self.status(v) != "complete":
@@ -764,8 +765,18 @@ class Session:
                     if problem:
                         problems.append(f"view {v}: {problem}")
             if len(problems) == before:  # every array intact: do they belong together?
-                problems += [f"view {v}: {p}" for p in view_consistency(entry.get("arrays", {}), read)]
+                problems += [f"view {v}: {p}" for p in view_consistency(entry.get("arrays", {}), read, projector)]
         return problems
+
+
+def _projector_size(manifest: dict) -> tuple[int, int] | None:
+    """The capture plan's projector (width, height), or None where the manifest gives none that is usable (said
+    elsewhere)."""
+    size = manifest.get("plan", {}).get("projector")
+    if (isinstance(size, (list, tuple)) and len(size) == 2 and all(isinstance(x, int) and not isinstance(x, bool) and x > 0
+                                                                      for x in size)):
+        return int(size[0]), int(size[1])
+    return None
 
 
 def _frame_size(name: str, shape: tuple[int, ...]) -> tuple[int, ...] | None:
@@ -777,11 +788,22 @@ def _frame_size(name: str, shape: tuple[int, ...]) -> tuple[int, ...] | None:
 CONSISTENCY_ARRAYS = ("corr/mask", "corr/xp", "corr/yp", "footprints/pixels")
 
 
-def view_consistency(arrays: dict[str, dict], read: dict[str, np.ndarray]) -> list[str]:
+def coordinates_problem(name: str, coord: np.ndarray, mask: np.ndarray, side: int) -> str | None:
+    """What is wrong with decoded projector coordinates ``coord`` (H, W) on the ``mask``-ed pixels of a projector
+    ``side`` px across (``corr/xp``: its width, ``corr/yp``: its height), else None: a decoded point lies on the
+    projector, give or take a projector's width (a coordinate of 1e30 is finite and still no point of it)."""
+    if mask.any() and not (np.abs(coord[mask] - side / 2) <= 1.5 * side).all():
+        return f"{name} holds projector coordinates far outside the projector's 0 to {side} px"
+    return None
+
+
+def view_consistency(arrays: dict[str, dict], read: dict[str, np.ndarray],
+                     projector: tuple[int, int] | None = None) -> list[str]:
     """What the readers would refuse in a view whose arrays are each intact: sizes that disagree with the decoded
     mask's (H, W) (maps (H, W), images (H, W, 3), the PSP stack (8, H, W, 3)), projector coordinates that are not
-    finite on the decoded pixels, footprint pixels outside the image or not one per crop. ``arrays``: the view's
-    manifest entries; ``read``: its :data:`CONSISTENCY_ARRAYS` as :meth:`Session.validate` read them."""
+    finite on the decoded pixels or (given the ``projector``'s (width, height)) far off it, footprint pixels outside
+    the image or not one per crop. ``arrays``: the view's manifest entries; ``read``: its
+    :data:`CONSISTENCY_ARRAYS` as :meth:`Session.validate` read them."""
     import collections
 
     sizes = [_frame_size(name, tuple(meta["shape"])) for name, meta in arrays.items()]
@@ -800,9 +822,13 @@ def view_consistency(arrays: dict[str, dict], read: dict[str, np.ndarray]) -> li
     if out:
         return out
     mask = np.asarray(read["corr/mask"], bool)
-    for name in ("corr/xp", "corr/yp"):
-        if name in read and (bad := int((~np.isfinite(np.asarray(read[name])[mask])).sum())):
+    for i, name in enumerate(("corr/xp", "corr/yp")):
+        if name not in read:
+            continue
+        if bad := int((~np.isfinite(np.asarray(read[name])[mask])).sum()):
             out.append(f"array {name} holds {bad} NaN or infinite values on the decoded pixels")
+        elif projector is not None and (problem := coordinates_problem(name, np.asarray(read[name]), mask, projector[i])):
+            out.append(f"array {problem}")
     if "footprints/pixels" in arrays:
         px, crops = tuple(arrays["footprints/pixels"]["shape"]), tuple(arrays.get("footprints/crops", {}).get("shape", ()))
         if len(px) != 2 or px[1] != 2:
