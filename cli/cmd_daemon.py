@@ -116,8 +116,9 @@ def daemon_start(
         problem = security.ipc_path_problem(what)
         if problem:
             raise InputError(problem)
-    if endpoint and preview and endpoint == preview:
-        raise InputError(f"--preview {preview} is the control endpoint: give the preview its own endpoint")
+    problem = security.endpoint_collision(endpoint or security.default_endpoint(), preview, security.state_path())
+    if problem:
+        raise InputError(problem)
     if _client() is not None:
         raise InputError("a daemon is already running (`sss daemon status`)")
     problem = None if endpoint else security.ipc_path_problem(security.default_endpoint())  # (a given one: above)

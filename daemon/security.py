@@ -58,7 +58,7 @@ def runtime_dir() -> Path:
             raise PrivateDirError(f"SSS_RUNTIME_DIR must be an absolute path, got {given}: a relative one names "
                                   "another folder from every working folder")
         return _private_dir(given)
-    if os.environ.get("XDG_RUNTIME_DIR"):
+    if os.environ.get("XDG_RUNTIME_DIR") and Path(os.environ["XDG_RUNTIME_DIR"]).is_absolute():  # (XDG: ignore a relative one)
         return _private_dir(Path(os.environ["XDG_RUNTIME_DIR"]) / "sssphase")
     return _private_dir(Path(tempfile.gettempdir()) / f"sssphase-{os.getuid()}")
 
@@ -68,8 +68,13 @@ def log_dir() -> Path:
     ``~/.local/state/sssphase``. Not the runtime folder, which holds only live sockets and the state file
     and is left empty when the daemon stops."""
     if os.environ.get("SSS_LOG_DIR"):
-        return _private_dir(Path(os.environ["SSS_LOG_DIR"]))
-    state_home = os.environ.get("XDG_STATE_HOME") or str(Path.home() / ".local" / "state")
+        given = Path(os.environ["SSS_LOG_DIR"])
+        if not given.is_absolute():
+            raise PrivateDirError(f"SSS_LOG_DIR must be an absolute path, got {given}: a relative one names "
+                                  "another folder from every working folder")
+        return _private_dir(given, "the daemon's log", " or point SSS_LOG_DIR at a private folder")
+    state_home = os.environ.get("XDG_STATE_HOME", "")
+    state_home = state_home if Path(state_home).is_absolute() else str(Path.home() / ".local" / "state")
     return _private_dir(Path(state_home) / "sssphase")
 
 
@@ -110,6 +115,9 @@ def check_bound_locally(bound: str) -> None:
                               "loopback or ipc only (`sss daemon keys`, --curve-dir)")
 
 
+IPC_PATH_MAX = 107  # bytes in a Unix socket path (sun_path holds 108 with its NUL)
+
+
 def endpoint_problem(endpoint: str) -> str | None:
     """What makes an endpoint unusable before binding it (ZeroMQ takes port 99999 as 99999 - 65536, and
     a missing folder or a bad port only shows as a traceback in the daemon's log), or None."""
@@ -125,11 +133,36 @@ def endpoint_problem(endpoint: str) -> str | None:
         if parts[1] != "*" and not 1 <= int(parts[1]) <= 65535:
             return f"{endpoint}: the port must be a number from 1 to 65535, got {int(parts[1])}"
     elif endpoint.startswith("ipc://") and not endpoint[6:].startswith("@"):
+        if not endpoint[6:] or endpoint[6:] == "*" or not Path(endpoint[6:]).is_absolute():
+            return (f"{endpoint}: give an absolute socket path, ipc:///PATH (a relative one is relative to the "
+                    "daemon's folder, where clients elsewhere cannot find it)")
+        if any(c in endpoint for c in "\n\r\0"):
+            return f"{endpoint!r}: a socket path cannot hold a line break or NUL"
         folder = Path(endpoint[6:]).parent
         if not folder.is_dir():
             return f"{endpoint}: the folder {folder} does not exist"
+        longest = max(len(os.fsencode(endpoint[6:])), len(os.fsencode(stream_endpoint(endpoint, "9" * 6 + "-" + "f" * 8))) - 6)
+        if longest > IPC_PATH_MAX:  # each job's frame stream is a socket beside the control socket
+            return (f"{endpoint}: a socket path in {folder} would be {longest} bytes, and Linux allows {IPC_PATH_MAX} "
+                    "(job streams add 'stream-<job>.sock' there): choose a shorter folder")
     elif not endpoint.startswith("ipc://"):  # was called "not loopback/ipc", with advice about keys
         return f"{endpoint}: the daemon listens on tcp://HOST:PORT or ipc://PATH endpoints only"
+    return None
+
+
+def endpoint_collision(control: str, preview: str | None, state_file: Path | None) -> str | None:
+    """Why the control endpoint, the preview endpoint and the state file would land on one another, or None
+    (binding a second socket on a path unlinks the first; ``./x`` and ``x`` are one path)."""
+    def where(endpoint: str | None) -> str | None:
+        if endpoint and endpoint.startswith("ipc://") and not endpoint[6:].startswith("@"):
+            return os.path.abspath(endpoint[6:])
+        return endpoint
+
+    if preview and where(preview) == where(control):
+        return f"--preview {preview} is the control endpoint {control}: give the preview its own endpoint"
+    for name, endpoint in (("control endpoint", control), ("preview", preview)):
+        if state_file is not None and where(endpoint) == os.path.abspath(state_file):
+            return f"the {name} {endpoint} is the state file {state_file}: give each its own path"
     return None
 
 
@@ -187,6 +220,18 @@ def write_state(state: DaemonState, path: Path | None = None) -> Path:
     with atomic_path(path) as tmp, os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "w") as f:
         json.dump(asdict(state), f)
     return path
+
+
+def state_file_problem(path: Path) -> str | None:
+    """Why the daemon must not write (and at exit delete) its state file at ``path``, or None: something that
+    is not a daemon's state file sits there, or its folder is missing."""
+    if path.is_symlink() or (path.exists() and not path.is_file()):
+        return f"{path} exists and is not a file: refusing to replace it (choose another --state-file)"
+    if path.exists() and path.stat().st_size and read_state(path) is None:
+        return f"{path} exists and is not a daemon state file: refusing to replace it (choose another --state-file)"
+    if not path.parent.is_dir():
+        return f"--state-file {path}: the folder {path.parent} does not exist"
+    return None
 
 
 def read_state(path: Path | None = None) -> DaemonState | None:

@@ -281,6 +281,19 @@ class Daemon:
         for what in (e for e in (self.endpoint, preview) if e):
             if (problem := security.endpoint_problem(what)) is not None:
                 raise ValueError(problem)
+        problem = security.endpoint_collision(self.endpoint, preview, state_file)
+        if problem:
+            raise ValueError(problem)
+        running = security.read_state(state_file) if state_file is not None else None
+        if running is not None and running.pid != os.getpid() and security.is_daemon_process(running.pid):
+            raise PermissionError(f"another daemon (pid {running.pid}) is serving {running.endpoint}; stop it first")
+        for what in (e for e in (self.endpoint, preview) if e):  # `sss daemon start` checks these too; systemd not
+            problem = security.ipc_path_problem(what)  # (ZeroMQ would unlink a user's file at an ipc path)
+            if problem:
+                raise PermissionError(problem)
+        problem = security.state_file_problem(state_file) if state_file is not None else None
+        if problem:
+            raise PermissionError(problem)
         self.curve: tuple[bytes, bytes] | None = None
         self.curve_dir = curve_dir.resolve() if curve_dir is not None else None
         self.ctx = zmq.Context()
@@ -295,9 +308,6 @@ class Daemon:
             self.auth = ThreadAuthenticator(self.ctx)
             self.auth.start()
             self.auth.configure_curve(domain="*", location=str(curve_dir / security.AUTHORIZED))
-        running = security.read_state(state_file) if state_file is not None else None
-        if running is not None and running.pid != os.getpid() and security.is_daemon_process(running.pid):
-            raise PermissionError(f"another daemon (pid {running.pid}) is serving {running.endpoint}; stop it first")
         self.token = token or security.new_token()
         if self.auth is None:  # frame streams authenticate with the token (ZeroMQ PLAIN), so no other local
             from zmq.auth.thread import (
@@ -317,9 +327,6 @@ class Daemon:
         self.control.setsockopt(zmq.MAXMSGSIZE, max_message_bytes + 4096)
         self.control.setsockopt(zmq.ROUTER_MANDATORY, 0)
         configure_curve_server(self.control, self.curve)
-        problem = security.ipc_path_problem(self.endpoint)
-        if problem:
-            raise PermissionError(problem)
         if preview and not security.is_local(preview) and self.curve is None:
             raise PermissionError(f"the preview {preview} is not loopback/ipc: like the control socket it needs CURVE "
                                   "keys (`sss daemon keys`, --curve-dir)")

@@ -391,6 +391,50 @@ def test_a_daemon_that_exits_at_start_says_why_not_only_see_the_log(tmp_path):
     assert "the daemon exited with status 2: sssphase daemon: " in out and "not a readable CURVE key file" in out, out
 
 
+@pytest.mark.parametrize("flag", ["--preview", "--state-file"])
+def test_the_daemon_run_by_systemd_never_replaces_a_users_file_given_as_preview_or_state_file(tmp_path, flag):
+    notes = tmp_path / "notes.txt"
+    notes.write_text("keep me")
+    given = f"ipc://{notes}" if flag == "--preview" else str(notes)
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(tmp_path / "rt")}
+    res = subprocess.run([sys.executable, "-m", "sssphase_daemon", "--endpoint", f"ipc://{tmp_path}/c.sock",
+                          *(["--state-file", str(tmp_path / "d.json")] if flag == "--preview" else []), flag, given,
+                          "--exit-when-idle", "1"], capture_output=True, text=True, timeout=60, env=env)
+    assert res.returncode == 2 and "refusing to replace" in res.stderr, res.stderr
+    assert notes.read_text() == "keep me"
+
+
+@pytest.mark.parametrize(("args", "expected"), [
+    (["--endpoint", "ipc://relative.sock"], "absolute socket path"),
+    (["--endpoint", "ipc://*"], "absolute socket path"),
+    (["--endpoint", "ipc://{t}/c.sock", "--preview", "ipc://{t}/./c.sock"], "is the control endpoint"),
+    (["--endpoint", "ipc://{t}/d.json"], "is the state file"),
+    (["--endpoint", "ipc://{t}/" + "x" * 90 + "/c.sock"], "Linux allows 107"),
+])
+def test_endpoints_a_client_could_not_reach_or_that_land_on_each_other_are_refused_at_start(tmp_path, args, expected):
+    (tmp_path / ("x" * 90)).mkdir()
+    res = _daemon_main(*(a.format(t=tmp_path) for a in args), runtime=tmp_path)
+    assert res.returncode == 2 and expected in res.stderr, res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1, res.stderr
+
+
+def test_relative_runtime_and_log_folders_are_not_taken_from_the_environment(tmp_path, monkeypatch):
+    from sssphase_daemon import security
+
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.delenv("SSS_RUNTIME_DIR", raising=False)
+    monkeypatch.setenv("XDG_RUNTIME_DIR", "rel")
+    assert security.runtime_dir().is_absolute() and not (tmp_path / "rel").exists()
+    monkeypatch.setenv("SSS_LOG_DIR", "logs")
+    with pytest.raises(security.PrivateDirError, match="SSS_LOG_DIR must be an absolute path"):
+        security.log_dir()
+    (tmp_path / "logfile").write_text("")
+    monkeypatch.setenv("SSS_LOG_DIR", str(tmp_path / "logfile"))
+    with pytest.raises(security.PrivateDirError, match="the daemon's log") as err:
+        security.log_dir()
+    assert "SSS_RUNTIME_DIR" not in str(err.value)
+
+
 def _socket_is_replaceable(path: Path) -> bool:
     from sssphase_daemon import security
 
