@@ -154,6 +154,24 @@ def _same(now: Any, saved: Any, is_path: bool) -> bool:
 RESUMABLE = {"epochs", "time_limit", "device", "deterministic", "ckpt_every", "cache", "out"}
 
 
+def _refuse_a_foreign_config(path: Path, command: str) -> None:
+    """Refuse to replace a ``config.toml`` that is not this command's run options (``--out ~/project`` replaced
+    the user's own config.toml)."""
+    from sssphase_core.errors import InputError
+    from sssphase_core.learning.training.loop import CHECKPOINT
+    from sssphase_core.store.files import read_toml_input
+
+    if not (path.exists() or path.is_symlink()) or (path.parent / CHECKPOINT).is_file():  # a run's own (damaged) file
+        return
+    try:
+        saved = read_toml_input(path, "the run's saved options") if path.is_file() and not path.is_symlink() else {}
+    except (OSError, InputError):
+        saved = {}
+    if saved.get("command") != command or not isinstance(saved.get("options"), dict):
+        raise InputError(f"{path} is not the options file of a `sss {command}` run: refusing to replace it; "
+                         "give a new or empty --out")
+
+
 def check_run_config(ctx: typer.Context, *args: Any, **kwargs: Any) -> None:
     """:func:`save_run_config`'s check alone (before any data is read)."""
     save_run_config(ctx, *args, write=False, **kwargs)
@@ -192,6 +210,7 @@ def save_run_config(ctx: typer.Context, out: Path, *, resuming: bool = False, wr
             raise InputError(f"{out} holds a run made with --{k.replace('_', '-')} {saved.get(k)!r}, not {options.get(k)!r}"
                              f"{f' (and {len(changed) - 1} more)' if len(changed) > 1 else ''}: resume it with its own "
                              f"options (--config {out}), or pass --no-resume or another --out")
+    _refuse_a_foreign_config(saved_path, _command_name(ctx))
     if not write:
         return saved_path
     from sssphase_core.store.files import atomic_path

@@ -159,6 +159,20 @@ def test_a_folder_of_the_user_s_files_is_no_run_folder(tmp_path):
     assert check_run_folder(notes, "decoder") is None
 
 
+@pytest.mark.parametrize("text", ["[tool.mine]\nkeep = 1\n", 'command = "train pretrain"\n[options]\n', "not toml ["])
+def test_a_config_toml_that_is_not_this_commands_run_options_is_never_replaced(tmp_path, text):
+    """`--out ~/project` replaced the project's own config.toml (it is not among the run files checked above)."""
+    from sssphase_core.errors import InputError
+
+    project = tmp_path / "project"
+    project.mkdir()
+    (project / "config.toml").write_text(text)
+    with pytest.raises(InputError, match="is not the options file of a `sss train decoder` run: refusing to replace"):
+        runner.invoke(app, ["train", "decoder", "--end-to-end", "--out", str(project), "--no-resume"],
+                      catch_exceptions=False)
+    assert (project / "config.toml").read_text() == text and sorted(p.name for p in project.iterdir()) == ["config.toml"]
+
+
 def test_a_run_resumed_with_other_data_or_model_options_is_refused(tmp_path):
     """config.toml says what the run is: resuming it with an option that shaped it changed (here the pixels
     per view) is refused before any data is read; the epochs may grow."""
