@@ -163,7 +163,8 @@ INTERRUPTED = {
 
 
 def _path_flags() -> set[str]:
-    """The flags of every command's options whose value is a path (a ``Path`` or ``Path | None`` parameter)."""
+    """The flags of every command's options whose value is a path (a ``Path`` or ``Path | None`` parameter),
+    in every group and sub-group."""
     import inspect
     import pathlib
     import typing
@@ -173,23 +174,28 @@ def _path_flags() -> set[str]:
     def is_path(hint: object) -> bool:
         return hint is pathlib.Path or pathlib.Path in typing.get_args(hint)
 
-    flags = set()
-    for group in groups.values():
-        for info in group.registered_commands:
-            try:
-                hints = typing.get_type_hints(info.callback, include_extras=True)
-            except Exception:  # noqa: BLE001 - a command whose hints do not resolve: its options are not checked
+    flags: set[str] = set()
+    typers, commands = [app], []
+    while typers:  # every group and sub-group (`sss daemon keys`, `sss udev install`)
+        group = typers.pop()
+        commands += group.registered_commands
+        typers += [g.typer_instance for g in group.registered_groups if g.typer_instance is not None]
+    for info in commands:
+        try:
+            hints = typing.get_type_hints(info.callback, include_extras=True)
+        except Exception:  # noqa: BLE001 - a command whose hints do not resolve: its options are not checked
+            continue
+        for name, param in inspect.signature(info.callback).parameters.items():
+            hint, meta = hints.get(name), [param.default]
+            if typing.get_origin(hint) is typing.Annotated:
+                hint, *extra = typing.get_args(hint)
+                meta += extra
+            infos = [m for m in meta if isinstance(m, ParameterInfo)]
+            if not is_path(hint) or any(isinstance(i, ArgumentInfo) for i in infos):
                 continue
-            for name, param in inspect.signature(info.callback).parameters.items():
-                hint, meta = hints.get(name), [param.default]
-                if typing.get_origin(hint) is typing.Annotated:
-                    hint, *extra = typing.get_args(hint)
-                    meta += extra
-                infos = [m for m in meta if isinstance(m, ParameterInfo)]
-                if not is_path(hint) or any(isinstance(i, ArgumentInfo) for i in infos):
-                    continue
-                decls = [d for i in infos for d in (getattr(i, "param_decls", None) or ()) if d.startswith("--")]
-                flags.update(decls or [f"--{name.replace('_', '-')}"])
+            decls = [d for i in infos for d in (*(getattr(i, "param_decls", None) or ()), i.default)  # typer.Option("--dir")
+                     if isinstance(d, str) and d.startswith("--")]
+            flags.update(decls or [f"--{name.replace('_', '-')}"])
     return flags
 
 

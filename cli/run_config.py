@@ -84,8 +84,8 @@ def _load(ctx: typer.Context, param: Any, value: Path | None) -> Path | None:
 
 def _option_kinds(ctx: typer.Context) -> dict[str, str]:
     """What each option of the running command takes in a config file, from its function's type hints:
-    ``"a number"``, ``"a whole number"``, ``"true or false"``, ``"a string"`` (text and paths) or ``"a list of
-    strings"``; options of another type are left out (nothing to check)."""
+    ``"a number"``, ``"a whole number"``, ``"true or false"``, ``"a string"``, ``"a path (not empty)"`` (an empty
+    one is the current folder) or a list of strings or paths; options of another type are left out."""
     import types
     import typing
 
@@ -106,10 +106,14 @@ def _option_kinds(ctx: typer.Context) -> dict[str, str]:
             out[name] = "a whole number"
         elif arg is float:
             out[name] = "a number"
-        elif arg in (str, Path):
+        elif arg is str:
             out[name] = "a string"
-        elif typing.get_origin(arg) is list and typing.get_args(arg) in ((str,), (Path,)):
+        elif arg is Path:
+            out[name] = "a path (not empty)"
+        elif typing.get_origin(arg) is list and typing.get_args(arg) == (str,):
             out[name] = "a list of strings"
+        elif typing.get_origin(arg) is list and typing.get_args(arg) == (Path,):
+            out[name] = "a list of paths (none empty)"
     return out
 
 
@@ -125,7 +129,9 @@ def _is_kind(value: Any, kind: str) -> bool:
         return isinstance(value, int | float)
     if kind == "a string":
         return isinstance(value, str)
-    return isinstance(value, list) and all(isinstance(v, str) for v in value)
+    if kind == "a path (not empty)":
+        return isinstance(value, str) and value != ""
+    return isinstance(value, list) and all(isinstance(v, str) and (v or "path" not in kind) for v in value)
 
 
 ConfigOpt = Annotated[Path | None, typer.Option(

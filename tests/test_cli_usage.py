@@ -244,7 +244,8 @@ def test_click_usage_errors_are_one_line_naming_where_help_is(args: list[str], e
     # an empty path was the current folder: relight and export wrote their images, cache and sources.json there
     *(([*cmd, flag, ""], f"error: {flag.removesuffix('=')} is empty: give a path (an empty one would be the current folder)")
       for cmd, flag in ((["relight", "no_session", "--pattern", "checkerboard"], "--out"),
-                        (["export", "no_session"], "--out"), (["eval", "relight", "no_session"], "--checkpoint"))),
+                        (["export", "no_session"], "--out"), (["eval", "relight", "no_session"], "--checkpoint"),
+                        (["daemon", "keys"], "--dir"), (["udev", "install"], "--rules-dir"))),  # (groups in groups)
     (["relight", "no_session", "--pattern", "checkerboard", "--out="],
      "error: --out is empty: give a path (an empty one would be the current folder)"),
 ])

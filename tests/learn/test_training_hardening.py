@@ -75,9 +75,13 @@ def test_a_boolean_where_a_config_wants_a_number_is_refused(tmp_path):
 @pytest.mark.parametrize(("line", "message"), [
     ('epochs = "three"', "epochs must be a whole number, got 'three'"),  # was "Invalid value for '--epochs'"
     ("epochs = 1.5", "epochs must be a whole number, got 1.5"),
-    ('sessions = ["/x"]', "sessions must be a string, got ['/x']"),  # was "Input is not a valid path for <class ...>"
+    ('sessions = ["/x"]', "sessions must be a path (not empty), got ['/x']"),  # was "Input is not a valid path for ..."
+    ('sessions = ""', "sessions must be a path (not empty), got ''"),  # was the current folder, read in silence
+    ('out = ""', "out must be a path (not empty), got ''"),  # the run was written into the current folder
+    ('cache = ""', "cache must be a path (not empty), got ''"),
+    ('check_sessions = ["/x", ""]', "check_sessions must be a list of paths (none empty), got ['/x', '']"),
     ('objects = ["apple"]', "objects must be a string, got ['apple']"),  # was read as the session "['apple']"
-    ('check_sessions = "/x"', "check_sessions must be a list of strings, got '/x'"),  # was "Value must be an iterable."
+    ('check_sessions = "/x"', "check_sessions must be a list of paths (none empty), got '/x'"),  # was "Value must be an iterable."
     ('lr = "fast"', "lr must be a number, got 'fast'"),
     ("end_to_end = 1", "end_to_end must be true or false, got 1"),
 ])
