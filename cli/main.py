@@ -213,6 +213,25 @@ def _empty_path_option(argv: list[str]) -> str | None:
 
 def main() -> None:
     """Run the CLI; user-facing errors are printed as one clear message, never a traceback."""
+    try:
+        _run()
+    except SystemExit as done:
+        _leave_hung_plugins_behind(done.code)
+        raise
+
+
+def _leave_hung_plugins_behind(code: object) -> None:
+    """Exit at once when a plugin's discovery thread still hangs: the interpreter's teardown under a native call
+    still running in it crashed (`sss devices` printed its table, then died of SIGSEGV or abort in depthai)."""
+    import threading
+
+    if any(t.is_alive() and t.name == "sss-discover" for t in threading.enumerate()):
+        sys.stdout.flush()
+        sys.stderr.flush()
+        os._exit(code if isinstance(code, int) else (0 if code is None else 1))
+
+
+def _run() -> None:
     signal.signal(signal.SIGTERM, _interrupt_on_sigterm)
     if (flag := _empty_path_option(sys.argv[1:])) is not None:
         err_console.print(f"[bold red]error:[/] {flag} is empty: give a path (an empty one would be the current folder)")

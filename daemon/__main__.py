@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import signal
 import sys
 from pathlib import Path
@@ -36,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
     except zmq.ZMQError as exc:  # a bind that failed: address in use, no such interface, ...
         print(f"sssphase daemon: cannot listen: {exc}", file=sys.stderr)
         return 2
-    except (PermissionError, OSError, ValueError) as exc:
+    except (PermissionError, OSError, ValueError) as exc:  # (InputError is a ValueError: SSS_OPEN_TIMEOUT_S=abc)
         print(f"sssphase daemon: {exc}", file=sys.stderr)
         return 2
 
@@ -48,6 +49,11 @@ def main(argv: list[str] | None = None) -> int:
     path = daemon.write_state()
     logging.getLogger("sssphase.daemon").info("serving on %s (state in %s)", daemon.endpoint, path)
     daemon.serve_forever()
+    import threading
+
+    if any(t.is_alive() and t.name == "sss-discover" for t in threading.enumerate()):  # a plugin hangs in native
+        logging.shutdown()  # code: the interpreter's teardown would crash under it (SIGSEGV, abort)
+        os._exit(0)
     return 0
 
 

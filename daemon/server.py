@@ -52,7 +52,8 @@ MAX_DEADLINE_S = 86400.0
 
 #: Seconds an ``open_rig`` may take (a camera's boot, a USB enumeration) before the client is told which device
 #: hangs; the daemon serves other requests meanwhile.
-OPEN_TIMEOUT_S = float(os.environ.get("SSS_OPEN_TIMEOUT_S", "25"))
+#: ``$SSS_OPEN_TIMEOUT_S`` overrides it (read when the daemon starts).
+OPEN_TIMEOUT_S = 25.0
 
 
 def _error_reply(rid: Any, exc: BaseException) -> bytes:
@@ -275,7 +276,11 @@ class Daemon:
                  exit_when_idle_s: float | None = None) -> None:
         """``exit_when_idle_s``: stop once no rig is open, no job runs and no client has been heard from for this
         long (a daemon a capture started for itself: a capture interrupted or killed left it running for ever)."""
+        from sssphase_core.settings import env_seconds
+
         self.exit_when_idle_s = exit_when_idle_s
+        self.open_timeout_s = env_seconds("SSS_OPEN_TIMEOUT_S", OPEN_TIMEOUT_S)  # checked before anything is bound
+        manager.discovery_timeout_s()  # (SSS_DISCOVERY_TIMEOUT_S too: said at start, not at the first `sss devices`)
         self.started_at = time.monotonic()
         self.endpoint = endpoint or security.default_endpoint()
         for what in (e for e in (self.endpoint, preview) if e):
@@ -495,7 +500,7 @@ class Daemon:
 
     def _open_in_thread(self, identity: bytes, envelope: list[bytes], rid: Any, args: dict) -> None:
         """Answer ``open_rig`` from a thread of its own: a plugin that hung in its hook or in open() held the main
-        thread, so no client was answered and the daemon could not be stopped. Past :data:`OPEN_TIMEOUT_S` the
+        thread, so no client was answered and the daemon could not be stopped. Past ``open_timeout_s`` the
         client is told which device hangs; a rig opened after that is closed again."""
         answered, guard = [False], threading.Lock()
         doing = {"what": "the rig"}
@@ -526,13 +531,13 @@ class Daemon:
 
         def late() -> None:
             if answer(protocol.reply_error(rid, protocol.DEVICE, f"{doing['what']} did not return within "
-                                           f"{OPEN_TIMEOUT_S:g} s: its plugin hangs (the daemon keeps serving other "
+                                           f"{self.open_timeout_s:g} s: its plugin hangs (the daemon keeps serving other "
                                            "devices; check the device, or restart the daemon)")):
-                log.error("open_rig: %s did not return within %g s", doing["what"], OPEN_TIMEOUT_S)
+                log.error("open_rig: %s did not return within %g s", doing["what"], self.open_timeout_s)
 
         with self.lock:
             self.opening += 1
-        timer = threading.Timer(OPEN_TIMEOUT_S, late)
+        timer = threading.Timer(self.open_timeout_s, late)
         timer.daemon = True
         timer.start()
         threading.Thread(target=lambda: (work(), timer.cancel()), name="sss-open-rig", daemon=True).start()
@@ -602,9 +607,9 @@ class Daemon:
         try:
             for kind, device_id in wanted.items():
                 doing["what"] = f"the plugins' hooks (finding {device_id})"
-                if not self.discovery_lock.acquire(timeout=0.8 * OPEN_TIMEOUT_S):  # not while discovery asks the plugins
+                if not self.discovery_lock.acquire(timeout=0.8 * self.open_timeout_s):  # not while discovery asks the plugins
                     raise ProtocolError(protocol.DEVICE, f"finding {device_id}: another request's device discovery has "
-                                        f"not returned for {0.8 * OPEN_TIMEOUT_S:g} s (a plugin hangs): restart the daemon")
+                                        f"not returned for {0.8 * self.open_timeout_s:g} s (a plugin hangs): restart the daemon")
                 try:
                     provider = manager.find_provider(device_id, self.pm, kind=kind)
                 except KeyError as exc:

@@ -186,7 +186,14 @@ def _say(errors: dict[str, str], plugin: str, text: str) -> None:
 
 #: Seconds a plugin's hooks, or one provider's discover(), may take before it is reported as hung and left out
 #: (``sss devices`` waited for ever on a plugin stuck in a USB call).
-DISCOVERY_TIMEOUT_S = float(os.environ.get("SSS_DISCOVERY_TIMEOUT_S", "30"))
+#: None: ``$SSS_DISCOVERY_TIMEOUT_S``, else 30 (read when discovery runs: a bad value is one line naming it).
+DISCOVERY_TIMEOUT_S: float | None = None
+
+
+def discovery_timeout_s() -> float:
+    from sssphase_core.settings import env_seconds
+
+    return DISCOVERY_TIMEOUT_S if DISCOVERY_TIMEOUT_S is not None else env_seconds("SSS_DISCOVERY_TIMEOUT_S", 30.0)
 
 
 class _Hung(Exception):
@@ -218,22 +225,23 @@ def _within(seconds: float, fn: Any) -> Any:
 
 def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo], dict[str, str]]:
     """Run discovery on every provider (this may do device I/O). Returns devices and errors by plugin; a plugin
-    whose hooks or discover() do not return within :data:`DISCOVERY_TIMEOUT_S` is reported as hung, left out."""
+    whose hooks or discover() do not return within :func:`discovery_timeout_s` is reported as hung, left out."""
+    timeout = discovery_timeout_s()
     pm = pm or get_plugin_manager()
     found: dict[str, tuple[str, DeviceInfo]] = {}  # id -> (plugin, device): one entry per id
     errors: dict[str, str] = {}
     try:
-        providers = _within(DISCOVERY_TIMEOUT_S, lambda: device_providers(pm))
+        providers = _within(timeout, lambda: device_providers(pm))
     except _Hung:
-        return [], {**pm.load_errors, "plugins": f"a plugin's hook did not return within {DISCOVERY_TIMEOUT_S:g} s "
+        return [], {**pm.load_errors, "plugins": f"a plugin's hook did not return within {timeout:g} s "
                                                  "(it hangs): no device could be listed; disable it (SSS_PLUGINS, "
                                                  "or uninstall it) and try again"}
     for plugin, provider in providers:
         try:
-            devices = _within(DISCOVERY_TIMEOUT_S, lambda provider=provider: _discover(provider))
+            devices = _within(timeout, lambda provider=provider: _discover(provider))
         except _Hung:
             errors[plugin] = (f"discovery of {getattr(provider, 'kind', 'device')}s did not return within "
-                              f"{DISCOVERY_TIMEOUT_S:g} s (the plugin hangs): its devices are left out")
+                              f"{timeout:g} s (the plugin hangs): its devices are left out")
             continue
         except DeviceNotFound as exc:  # an absent device is an answer, not a failure
             errors[plugin] = str(exc).strip()

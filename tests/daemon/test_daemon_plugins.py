@@ -267,6 +267,43 @@ HOOK_HANGS = False
 """
 
 
+def test_sss_devices_exits_cleanly_past_a_plugin_still_hanging_in_discovery(tmp_path):
+    """The table was printed, then the interpreter's teardown crashed under the hung thread (SIGSEGV/abort)."""
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "acme_hangs.py").write_text(textwrap.dedent(HANGS))
+    env = {**os.environ, manager.ENV_PLUGINS: "acme_hangs", "PYTHONPATH": str(tmp_path),
+           "SSS_DISCOVERY_TIMEOUT_S": "0.05", "SSS_RUNTIME_DIR": str(tmp_path / "rt")}
+    res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", "devices"], capture_output=True, text=True,
+                         timeout=120, env=env)
+    assert res.returncode == 0, res.stderr[-500:]
+    assert "did not return within 0.05 s" in res.stdout + res.stderr
+
+
+@pytest.mark.parametrize("value", ["abc", "nan", "0", "-1", "inf", "1e999"])
+def test_a_bad_timeout_in_the_environment_is_one_line_naming_it(tmp_path, value):
+    """SSS_DISCOVERY_TIMEOUT_S=abc was an internal ValueError raised while importing the plugin manager (every
+    command); 0 or nan timed every plugin out; SSS_OPEN_TIMEOUT_S=abc ended the daemon with a traceback."""
+    import os
+    import subprocess
+    import sys
+
+    from sss_process import run_sss
+
+    env = {**os.environ, "SSS_DISCOVERY_TIMEOUT_S": value, "SSS_RUNTIME_DIR": str(tmp_path / "rt")}
+    res = run_sss(["devices"], env=env, timeout=120)
+    assert res.returncode == 2 and (res.stdout + res.stderr).strip().splitlines() == [
+        f"error: SSS_DISCOVERY_TIMEOUT_S={value!r}: give a number of seconds above 0 and at most 86400 (or unset it "
+        "for the default, 30)"], res.stdout + res.stderr
+    env = {**os.environ, "SSS_OPEN_TIMEOUT_S": value, "SSS_RUNTIME_DIR": str(tmp_path / "rt")}
+    res = subprocess.run([sys.executable, "-m", "sssphase_daemon", "--endpoint", f"ipc://{tmp_path}/c.sock",
+                          "--state-file", str(tmp_path / "d.json")], capture_output=True, text=True, timeout=60, env=env)
+    assert res.returncode == 2 and f"SSS_OPEN_TIMEOUT_S={value!r}" in res.stderr, res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1, res.stderr
+
+
 def test_a_plugin_that_hangs_in_discovery_is_named_and_left_out(tmp_path, monkeypatch):
     """`sss devices` without a daemon waited for ever on a plugin stuck in discover() or in its hook."""
     import sys

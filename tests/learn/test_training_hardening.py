@@ -233,3 +233,18 @@ def test_report_refuses_a_decoder_run_given_as_its_pretraining(tiny, tmp_path):
         runner.invoke(app, ["report", str(tmp_path / "sessions"), "--pretrain", str(ckpt), "--backend", "none",
                             "--out", str(tmp_path / "report")], catch_exceptions=False)
     assert not (tmp_path / "report").exists()
+
+
+@pytest.mark.parametrize(("env", "message"), [
+    ({"WORLD_SIZE": "two"}, "WORLD_SIZE='two': give a whole number >= 1"),  # was an internal ValueError
+    ({"WORLD_SIZE": "0"}, "WORLD_SIZE='0': give a whole number >= 1"),
+    ({"WORLD_SIZE": "2", "RANK": "-1"}, "RANK='-1': give a whole number >= 0"),
+    ({"WORLD_SIZE": "2", "RANK": "2"}, "RANK=2 is not below WORLD_SIZE=2"),
+])
+def test_torchrun_variables_that_are_not_a_process_group_are_one_line_naming_them(monkeypatch, env, message):
+    from sssphase_core.learning.training.loop import init_distributed
+
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    with pytest.raises(InputError, match=re.escape(message)):
+        init_distributed("cpu")

@@ -20,7 +20,7 @@ import torch.distributed as dist
 from torch import nn
 
 from sssphase_core.compute import compute_device
-from sssphase_core.errors import DataError, SssError
+from sssphase_core.errors import DataError, InputError, SssError
 from sssphase_core.learning.data import PatchDataset
 from sssphase_core.learning.models import ModelPreset, get_preset
 from sssphase_core.learning.runlog import METRICS, METRICS_CSV, TB_DIR, RunLog
@@ -50,13 +50,17 @@ class Dist:
 def init_distributed(device: str = "auto") -> Dist:
     """Join the torchrun process group when WORLD_SIZE > 1 (gloo on CPU, NCCL on CUDA)."""
     use_cuda = compute_device(device).type == "cuda"
-    world = int(os.environ.get("WORLD_SIZE", "1"))
-    rank = int(os.environ.get("RANK", "0"))
+    from sssphase_core.settings import env_count
+
+    world = env_count("WORLD_SIZE", 1, minimum=1)
+    rank = env_count("RANK", 0)
+    if rank >= world:
+        raise InputError(f"RANK={rank} is not below WORLD_SIZE={world} (torchrun sets both; unset them to run alone)")
     if use_cuda:
         # cuBLAS reads its workspace size once per process: deterministic kernels (LoopConfig.deterministic)
         # need this one set before the first matrix product
         os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
-        local = int(os.environ.get("LOCAL_RANK", "0"))
+        local = env_count("LOCAL_RANK", 0)
         torch.cuda.set_device(local)
         dev = torch.device("cuda", local)
     else:
