@@ -17,7 +17,7 @@ from sssphase_core.capture.psp_folder import FrameProgress, PspFolder, read_psp_
 from sssphase_core.errors import InputError
 from sssphase_core.processing.patterns import psp_key
 from sssphase_core.reporting import figures as fig
-from sssphase_core.store.files import write_text
+from sssphase_core.store.files import atomic_path, write_text
 from sssphase_core.store.session import check_output_folder
 
 if TYPE_CHECKING:
@@ -25,6 +25,35 @@ if TYPE_CHECKING:
 
 #: The arrays of a decoded folder, each ``<name>.npy``.
 DECODED_ARRAYS = ("xp", "yp", "mask", "reason", "modulation", "offset", "modulation_ratio")
+#: The figures of a decoded folder (:func:`_figures`).
+DECODED_FIGURES = ("phase_x", "phase_y", "xp", "yp", "mask", "reason", "modulation")
+SUMMARY = "decode.json"
+
+
+def decoded_files() -> list[str]:
+    """Every name :func:`decode_folder` writes in its ``out`` folder."""
+    return [*(f"{n}.npy" for n in DECODED_ARRAYS), *(f"{n}.png" for n in DECODED_FIGURES), SUMMARY]
+
+
+def check_decode_folder(out: Path) -> None:
+    """Refuse, before any work, an ``out`` that holds files of these names not written by ``sss decode`` (a
+    user's ``mask.png`` or ``xp.npy`` was replaced): ``out`` must be new, hold none of them, or be a decoded
+    folder (its ``decode.json`` says so, also one a stopped decode left)."""
+    taken = [n for n in decoded_files() if (out / n).exists() or (out / n).is_symlink()]
+    if not taken:
+        return
+    try:
+        summary = json.loads((out / SUMMARY).read_text()) if not (out / SUMMARY).is_symlink() else None
+    except (OSError, ValueError):
+        summary = None
+    ours = isinstance(summary, dict) and (summary.get("written_by") == "sss decode"
+                                          or {"projector", "psp", "coverage"} <= summary.keys())  # (before 0.x: no tag)
+    if ours and not any(
+            (out / n).is_symlink() or not (out / n).is_file() for n in taken):
+        return
+    shown = ", ".join(taken[:3]) + (f" and {len(taken) - 3} more" if len(taken) > 3 else "")
+    raise InputError(f"--out {out} holds {shown}, which sss decode did not write (no decode.json of it): "
+                     "give a new or empty folder")
 
 
 @dataclass
@@ -63,6 +92,7 @@ def decode_folder(folder: Path, out: Path, *, projector: str | None = None, min_
     frames_dir, out_dir = folder.resolve(), out.resolve()
     if out_dir == frames_dir or frames_dir in out_dir.parents:  # the maps among the frames: a later read or import fails
         raise InputError(f"--out {out} would write among the frames of {folder}: choose a folder outside it")
+    check_decode_folder(out)
     view = read_psp_folder(folder, projector, saturation=saturation, progress=progress)
     if view.scale != 1.0 and report is not None:
         report(f"float frames at level {view.level:.3g} (99.9th percentile) scaled to 1 (the decoder's thresholds are "
@@ -72,13 +102,17 @@ def decode_folder(folder: Path, out: Path, *, projector: str | None = None, min_
     corr = decode_camera(view.frames, view.config, view.size, bayer=bayer, min_modulation=min_modulation,
                          saturation=view.saturation)
     out.mkdir(parents=True, exist_ok=True)
+    # first: the folder is ours (a rerun may replace it) and says that it is not whole until the end
+    write_text(out / SUMMARY, json.dumps({"written_by": "sss decode", "complete": False}) + "\n")
     for name in DECODED_ARRAYS:
-        np.save(out / f"{name}.npy", getattr(corr, name))
+        with atomic_path(out / f"{name}.npy", ".npy") as tmp:  # (a full disk leaves no half array)
+            np.save(tmp, getattr(corr, name))
     _figures(out, view, corr)
     config, coverage = view.config, corr.coverage()
-    summary = {"projector": list(view.size), "psp": {"period": config.period, "n_shifts": config.n_shifts,
-               "unwrap_periods": list(config.unwrap_periods)}, "coverage": coverage}
-    write_text(out / "decode.json", json.dumps(summary, indent=1) + "\n")
+    summary = {"written_by": "sss decode", "complete": True, "projector": list(view.size),
+               "psp": {"period": config.period, "n_shifts": config.n_shifts,
+                       "unwrap_periods": list(config.unwrap_periods)}, "coverage": coverage}
+    write_text(out / SUMMARY, json.dumps(summary, indent=1) + "\n")
     if not coverage.get("VALID"):  # the maps and figures stay: they show why
         raise InputError(f"{nothing_decoded(folder, coverage)} (the maps and figures in {out} show where)")
     return DecodedFolder(out, corr, coverage)

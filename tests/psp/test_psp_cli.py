@@ -68,6 +68,24 @@ def test_decode_folder_of_captures(tmp_path):
     for png in ("phase_x", "phase_y", "xp", "yp", "mask", "reason", "modulation"):
         assert (out_dir / f"{png}.png").is_file()
     assert json.loads((out_dir / "decode.json").read_text())["coverage"]["VALID"] == 80 * 60
+    _run("decode", str(cap_dir), "--out", str(out_dir))  # its own folder: decoded again in place
+    # a folder of the user's that holds these names is not written to, and a symlink is not written through
+    from sssphase_core.errors import InputError
+
+    mine, target = tmp_path / "mine", tmp_path / "target.npy"
+    mine.mkdir()
+    (mine / "mask.png").write_bytes(b"my mask")
+    target.write_bytes(b"keep")
+    (mine / "xp.npy").symlink_to(target)
+    with pytest.raises(InputError, match=r"--out .*mine holds xp.npy, mask.png, which sss decode did not write"):
+        runner.invoke(_app(), ["decode", str(cap_dir), "--out", str(mine)], catch_exceptions=False)
+    assert (mine / "mask.png").read_bytes() == b"my mask" and target.read_bytes() == b"keep"
+    assert sorted(p.name for p in mine.iterdir()) == ["mask.png", "xp.npy"]
+    (out_dir / "xp.npy").unlink()
+    (out_dir / "xp.npy").symlink_to(target)  # in a decoded folder too
+    with pytest.raises(InputError, match="which sss decode did not write"):
+        runner.invoke(_app(), ["decode", str(cap_dir), "--out", str(out_dir)], catch_exceptions=False)
+    assert target.read_bytes() == b"keep"
 
 
 def _captures_of(pat_dir, scale: float):
