@@ -1276,6 +1276,25 @@ def test_a_truncated_frame_is_one_line_without_the_native_librarys_own(tmp_path)
     assert res.stderr == "" and "damaged, truncated or not an image" in res.stdout, (res.stdout, res.stderr)
 
 
+@pytest.mark.parametrize("cut", [4, 8, 30])
+def test_a_tiff_frame_cut_within_its_header_is_one_line_wherever_it_is_read(tmp_path, cut):
+    """`sss decode` on a folder with a 16-bit TIFF cut short was an internal UnidentifiedImageError (or a
+    struct.error) from the bit-depth check."""
+    from PIL import Image
+
+    from sssphase_core.errors import InputError
+    from sssphase_core.store import imageio
+
+    whole = tmp_path / "whole.tif"
+    Image.fromarray(np.arange(64 * 48, dtype=np.uint16).reshape(48, 64)).save(whole)
+    cut_file = tmp_path / "cut.tif"
+    cut_file.write_bytes(whole.read_bytes()[:cut])
+    assert imageio.code_depth(whole) == 16
+    for read in (imageio.code_depth, imageio.read_frame):
+        with pytest.raises(InputError, match=f"cannot read {cut_file}"):
+            read(cut_file)
+
+
 def test_result_files_never_land_inside_a_session_or_on_their_markdown_twin(intact_session, tmp_path):
     """`sss eval knn --out S/apple/manifest.json` replaced the session's manifest; `--out x.md` wrote the JSON
     and then the Markdown over it."""

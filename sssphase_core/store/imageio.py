@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import os
+import struct
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
@@ -248,9 +249,12 @@ def _tiff_directory(path: Path) -> dict[int, object] | None:
         head = f.read(8)
         if head[:4] not in (b"II*\0", b"MM\0*"):
             return None
-        ifd = TiffImagePlugin.ImageFileDirectory_v2(head)
-        f.seek(ifd.next)
-        ifd.load(f)
+        try:
+            ifd = TiffImagePlugin.ImageFileDirectory_v2(head)
+            f.seek(ifd.next)
+            ifd.load(f)
+        except struct.error as exc:  # (the callers report ValueError as an unreadable file)
+            raise ValueError(f"its TIFF header is cut short ({exc})") from None
         return dict(ifd)
 
 
@@ -365,6 +369,14 @@ def code_depth(path: Path) -> int | None:
     together from two, whose codes mean different light."""
     if not stores_integers(path):
         return None
+    try:
+        return _code_depth(path)
+    except (OSError, ValueError, SyntaxError) as exc:  # a file cut short: the header is not all there
+        raise InputError(f"cannot read {path}: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__} "
+                         "(a damaged or truncated file?)") from None
+
+
+def _code_depth(path: Path) -> int:
     suffix = path.suffix.lower()
     if suffix == ".npy":
         dtype = _load_npy(path, mmap_mode="r").dtype
