@@ -1454,7 +1454,7 @@ def test_a_lock_file_removed_between_open_and_lock_is_opened_again(tmp_path, mon
     locked it held a lock on nothing, and a third capture could lock a new file at the same path."""
     import builtins
 
-    from sssphase_core.capture import engine
+    from sssphase_core.store import locks
 
     path, opened = tmp_path / ".leaf.lock", []
 
@@ -1466,8 +1466,8 @@ def test_a_lock_file_removed_between_open_and_lock_is_opened_again(tmp_path, mon
             Path(file).write_text("pid 1")
         return handle
 
-    monkeypatch.setattr(engine, "open", racing_open, raising=False)
-    handle = engine._locked(path, tmp_path / "leaf")
+    monkeypatch.setattr(locks, "open", racing_open, raising=False)
+    handle = locks._locked(path, tmp_path / "leaf")
     try:
         assert len(opened) == 2 and opened[0].closed
         assert os.fstat(handle.fileno()).st_ino == os.stat(path).st_ino
@@ -1480,12 +1480,12 @@ def test_a_session_being_captured_is_not_captured_into_by_a_second_process(sim_d
     from sssphase_core.capture import CaptureRequest, run_capture
 
     holder = subprocess.Popen([sys.executable, "-c", (
-        "import sys, time\nfrom pathlib import Path\nfrom sssphase_core.capture.engine import _capture_lock\n"
-        f"with _capture_lock(Path({str(tmp_path)!r}), 'leaf'):\n    print('held', flush=True)\n    time.sleep(60)\n")],
+        "import sys, time\nfrom pathlib import Path\nfrom sssphase_core.store.locks import session_lock\n"
+        f"with session_lock(Path({str(tmp_path)!r}), 'leaf'):\n    print('held', flush=True)\n    time.sleep(60)\n")],
         stdout=subprocess.PIPE, text=True)
     try:
         assert holder.stdout.readline().strip() == "held"
-        with pytest.raises(InputError, match=rf"session {tmp_path}/leaf is being captured by pid {holder.pid}"):
+        with pytest.raises(InputError, match=rf"session {tmp_path}/leaf is being written by pid {holder.pid}"):
             run_capture(sim_daemon, CaptureRequest("leaf", views=1, out=tmp_path, resume=True))
         assert not (tmp_path / "leaf").exists()
     finally:
@@ -1493,6 +1493,28 @@ def test_a_session_being_captured_is_not_captured_into_by_a_second_process(sim_d
         holder.wait()
     assert run_capture(sim_daemon, CaptureRequest("leaf", views=1, out=tmp_path)).views() == [0]  # lock freed
     assert sorted(p.name for p in tmp_path.iterdir()) == ["leaf"]  # and no lock file left beside the session
+
+
+def test_a_session_being_imported_is_not_imported_into_by_a_second_process(tmp_path):
+    """Two `sss import` into one --object at once: the second removed the first's folder as a failed import of
+    its own, and both reported success over a damaged session."""
+    from sssphase_core.capture.importer import import_folder
+
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time\nfrom pathlib import Path\nfrom sssphase_core.store.locks import session_lock\n"
+        f"with session_lock(Path({str(tmp_path / 'sessions')!r}), 'leaf'):\n    print('held', flush=True)\n"
+        "    time.sleep(60)\n")], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(InputError, match=rf"session {tmp_path}/sessions/leaf is being written by pid {holder.pid}"):
+            import_folder(frames, tmp_path / "sessions", "leaf", (64, 48))
+    finally:
+        holder.kill()
+        holder.wait()
+    with pytest.raises(InputError, match="no frame|no image|holds no"):  # the lock freed: the folder is looked at
+        import_folder(frames, tmp_path / "sessions", "leaf", (64, 48))
 
 
 def test_a_session_left_without_any_view_by_a_failed_capture_does_not_block_the_next_one(tmp_path):

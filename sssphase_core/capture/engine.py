@@ -8,7 +8,6 @@ from __future__ import annotations
 import contextlib
 import itertools
 import json
-import os
 import warnings
 from collections.abc import Callable, Iterable, Iterator
 from dataclasses import asdict
@@ -19,6 +18,7 @@ from sssphase_core import __version__
 from sssphase_core.capture.plan import CaptureRequest, RigSpec, build_frames, plan_digest
 from sssphase_core.capture.processing import FrameLike, ViewProcessor, write_sim_ground_truth
 from sssphase_core.errors import InputError
+from sssphase_core.store.locks import session_lock
 from sssphase_core.store.session import Session, check_object_name
 
 Progress = Callable[[int, int, int], None]  # (view, frames done, frames total)
@@ -115,7 +115,7 @@ def run_capture(client: ClientLike, req: CaptureRequest, rig: RigSpec | None = N
         options = {**req.own_sim_options, **options, **req.sim_options}
         if req.transport is not None:
             options["transport"] = req.transport
-    with _capture_lock(Path(req.out), req.object):
+    with session_lock(Path(req.out), req.object):
         opened = client.call("open_rig", camera=rig.camera, projector=rig.projector, turntable=rig.turntable,
                              trigger=rig.trigger, options=options)
         try:
@@ -125,63 +125,6 @@ def run_capture(client: ClientLike, req: CaptureRequest, rig: RigSpec | None = N
                 client.call("close_rig", timeout_s=2.0, rig=opened["rig"])
             except Exception:  # the daemon may be gone (that is what the caller is told about)
                 pass
-
-
-@contextlib.contextmanager
-def _capture_lock(out: Path, name: str) -> Iterator[None]:
-    """One capture per session at a time: an exclusive lock on ``out/.<name>.lock`` (beside the session
-    folder, so that it is taken before a resume drops partial views; removed by its holder when done).
-    Two captures into one folder lost a view from the manifest while both reported success."""
-    path = out / f".{name}.lock"
-    created = [d for d in (out, *out.parents) if not d.exists()]  # deepest first: removed again if left empty
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise InputError(f"cannot create the session folder {out / name}: {exc.strerror or exc}") from None
-    handle = _locked(path, out / name)
-    try:
-        handle.seek(0)
-        handle.truncate()
-        handle.write(f"pid {os.getpid()}")
-        handle.flush()
-        try:
-            yield
-        finally:
-            path.unlink(missing_ok=True)  # nothing left beside the sessions once done
-    finally:
-        handle.close()  # releases the lock
-        for d in created:  # a capture refused before it wrote anything leaves no empty folders behind
-            try:
-                d.rmdir()
-            except OSError:  # not empty (the session, or another's files): kept
-                break
-
-
-def _locked(path: Path, session: Path, attempts: int = 10) -> Any:
-    """The lock file ``path`` opened and exclusively locked. A file its holder removed between our open and
-    our lock is no lock at all (a third capture would create and lock a new one): then it is opened again."""
-    import fcntl
-
-    for _ in range(attempts):
-        try:
-            handle = open(path, "a+")  # noqa: SIM115 - held for the whole capture
-        except OSError as exc:
-            raise InputError(f"cannot create the lock file {path}: {exc.strerror or exc}") from None
-        try:
-            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            handle.seek(0)
-            holder = handle.read().strip() or "another process"
-            handle.close()
-            raise InputError(f"session {session} is being captured by {holder}: wait for it, or capture into "
-                             "another --out") from None
-        try:
-            if os.stat(path).st_ino == os.fstat(handle.fileno()).st_ino:
-                return handle
-        except FileNotFoundError:
-            pass
-        handle.close()  # the holder removed it as we opened it: try the path again
-    raise InputError(f"could not lock {path}: it keeps being removed (another capture of {session}?)")
 
 
 def _check_resumable(session: Session, digest: str, n_views: int, rig_record: dict[str, Any]) -> None:

@@ -33,6 +33,7 @@ from sssphase_core.store.imageio import (
     stores_integers,
 )
 from sssphase_core.store.light import NEGATIVE_LIMIT, far_below_zero, projector_light
+from sssphase_core.store.locks import session_lock
 from sssphase_core.store.session import Session, check_object_name
 
 PSP_KEY_RE = re.compile(r"^psp/([xy])/p([0-9]{1,5}(?:\.[0-9]{1,6})?)/s([0-9]{1,2})$")
@@ -732,6 +733,16 @@ def check_plan_file(folder: Path, size: tuple[int, int], gamma: float, config: A
 def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int, int], *, patch: int = 32,
                   gamma: float = 2.2, encoding: str = "auto", bayer: str | None = "auto",
                   demosaic: str = "other") -> Session:
+    """:func:`_import_folder` holding the session's lock (:func:`~sssphase_core.store.locks.session_lock`): a
+    second import (or capture) into the same session is refused while this one runs."""
+    with session_lock(Path(root), check_object_name(name)):
+        return _import_folder(folder, root, name, projector_size, patch=patch, gamma=gamma, encoding=encoding,
+                              bayer=bayer, demosaic=demosaic)
+
+
+def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int, int], *, patch: int = 32,
+                   gamma: float = 2.2, encoding: str = "auto", bayer: str | None = "auto",
+                   demosaic: str = "other") -> Session:
     """Import frames captured by another rig into a session, processed by the capture engine's
     :class:`ViewProcessor` exactly like a capture.
 

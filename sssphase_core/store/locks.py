@@ -1,0 +1,69 @@
+"""The lock that lets one process at a time write a session (a capture or an import)."""
+
+from __future__ import annotations
+
+import contextlib
+import os
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+from sssphase_core.errors import InputError
+
+
+@contextlib.contextmanager
+def session_lock(out: Path, name: str) -> Iterator[None]:
+    """One capture or import per session at a time: an exclusive lock on ``out/.<name>.lock`` (beside the
+    session folder, so that it is taken before a resume drops partial views; removed by its holder when done).
+    Two captures into one folder lost a view from the manifest while both reported success; two imports left
+    a damaged session."""
+    path = out / f".{name}.lock"
+    created = [d for d in (out, *out.parents) if not d.exists()]  # deepest first: removed again if left empty
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise InputError(f"cannot create the session folder {out / name}: {exc.strerror or exc}") from None
+    handle = _locked(path, out / name)
+    try:
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"pid {os.getpid()}")
+        handle.flush()
+        try:
+            yield
+        finally:
+            path.unlink(missing_ok=True)  # nothing left beside the sessions once done
+    finally:
+        handle.close()  # releases the lock
+        for d in created:  # a capture refused before it wrote anything leaves no empty folders behind
+            try:
+                d.rmdir()
+            except OSError:  # not empty (the session, or another's files): kept
+                break
+
+
+def _locked(path: Path, session: Path, attempts: int = 10) -> Any:
+    """The lock file ``path`` opened and exclusively locked. A file its holder removed between our open and
+    our lock is no lock at all (a third capture would create and lock a new one): then it is opened again."""
+    import fcntl
+
+    for _ in range(attempts):
+        try:
+            handle = open(path, "a+")  # noqa: SIM115 - held for the whole capture
+        except OSError as exc:
+            raise InputError(f"cannot create the lock file {path}: {exc.strerror or exc}") from None
+        try:
+            fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            handle.seek(0)
+            holder = handle.read().strip() or "another process"
+            handle.close()
+            raise InputError(f"session {session} is being written by {holder} (a capture or an import): wait for "
+                             "it, or write another --object or --out") from None
+        try:
+            if os.stat(path).st_ino == os.fstat(handle.fileno()).st_ino:
+                return handle
+        except FileNotFoundError:
+            pass
+        handle.close()  # the holder removed it as we opened it: try the path again
+    raise InputError(f"could not lock {path}: it keeps being removed (another capture or import of {session}?)")
