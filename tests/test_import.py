@@ -300,6 +300,13 @@ def test_frames_where_nothing_decodes_or_too_small_are_refused_naming_why(tmp_pa
             (named / view / f.name).write_bytes(f.read_bytes())
     with pytest.raises(InputError, match=r"view_abc is no view folder: name view folders view_NNN"):
         import_folder(named, tmp_path / "s", "named", (W, H), patch=K)
+    (named / "view_abc").rename(named / "view_001")
+    for other, why in (("View_002", "is no view folder"), ("view-002", "is no view folder"),
+                       ("view 002", "is no view folder"), ("extra_view", "holds frames but is no view folder")):
+        (named / "view_001").rename(named / other)  # (each was left out in silence)
+        with pytest.raises(InputError, match=rf"{other} {why}: name (view folders view_NNN|it view_NNN)"):
+            import_folder(named, tmp_path / "s", "named", (W, H), patch=K)
+        (named / other).rename(named / "view_001")
     odd = tmp_path / "odd"  # one fringe frame of another size: summing its set was a broadcasting error
     odd.mkdir()
     for f in flat.glob("*.npy"):

@@ -796,8 +796,16 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
     view_dirs = sorted((p for p in folder.glob("view_*") if p.is_dir()),  # view_2 before view_10
                        key=lambda p: (int(p.name[5:]) if p.name[5:].isdigit() else float("inf"), p.name)) or [folder]
     odd = [p.name for p in view_dirs if p != folder and not p.name[5:].isdigit()]
-    if odd:  # it was imported as the next view, renumbered in silence
-        raise InputError(f"{folder / odd[0]} is no view folder: name view folders view_NNN (NNN a number), or move it out")
+    near = sorted(p.name for p in folder.iterdir() if p.is_dir() and re.fullmatch(r"(?i)view[\W_]*\d+", p.name)
+                  and not re.fullmatch(r"view_\d+", p.name))  # View_001, view-001, 'view 001': left out in silence
+    if odd or near:  # (a view_x was imported as the next view, renumbered in silence)
+        raise InputError(f"{folder / (odd or near)[0]} is no view folder: name view folders view_NNN (NNN a number), "
+                         "or move it out")
+    if view_dirs != [folder]:  # another folder that holds frames beside the views was left out in silence
+        stray = sorted(p.name for p in folder.iterdir() if p.is_dir() and p not in view_dirs
+                       and frame_files(p, strict=False))
+        if stray:
+            raise InputError(f"{folder / stray[0]} holds frames but is no view folder: name it view_NNN, or move it out")
     numbers = [int(p.name[5:]) for p in view_dirs if p != folder]
     if numbers and numbers != list(range(len(numbers))):  # sessions number views 0..N-1
         as_views = "view 0" if len(numbers) == 1 else f"views 0 to {len(numbers) - 1} in that order"
