@@ -85,8 +85,8 @@ def repro_paper(
     check_repro_options(out, preset, device, budget)  # before the progress display (it left a blank line)
     if workers < 0:
         raise InputError(f"--workers must be 0 (automatic) or more, got {workers}")
-    if not timeout > 0:  # 0 failed every capture, and the run still said it had finished
-        raise InputError(f"--timeout must be a positive number of seconds, got {timeout:g}")
+    if not 0 < timeout <= 86400:  # 0 failed every capture, and the run still said it had finished; inf overflowed
+        raise InputError(f"--timeout must be a number of seconds in (0, 86400], got {timeout:g}")
     if train_views is not None and train_views < 2:
         raise InputError(f"--train-views must be at least 2 (kNN leaves one view out), got {train_views}")
     cfg = PRESETS[preset]

@@ -54,11 +54,13 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["bench", "learn", "--repeats", "0"], "--repeats"),  # had averaged nothing into NaN
         (["bench", "learn", "--device", "tpu"], "unknown device 'tpu': use auto"),  # was torch's internal error
         (["capture", "--object", "leaf", "--hdr-exposures", "0.001,64"], "HDR exposures 0.001 and 64 are 64000x apart"),
-        (["repro", "paper", "--preset", "tiny", "--budget", "0"], "--budget must be a positive number of seconds, got 0"),
+        (["repro", "paper", "--preset", "tiny", "--budget", "0"], "--budget must be a number of seconds in (0, 2.592e+06], got 0"),
+        (["repro", "paper", "--preset", "tiny", "--budget", "1e308"], "--budget must be a number of seconds in"),  # overflowed
+        (["repro", "paper", "--preset", "tiny", "--timeout", "inf"], "--timeout must be a number of seconds in"),
         (["train", "decoder", "--end-to-end", "--device", "tpu"], "unknown device 'tpu'"),  # after the data was read
         (["bench", "daemon", "--frames", "0", "--out", "d.json"], "--frames"),  # had left its daemon running
         (["bench", "psp", "--out", "/proc/version/x.json", "--quick"], "/proc/version is a file"),  # after the work
-        (["repro", "paper", "--preset", "tiny", "--timeout", "0"], "--timeout must be a positive number of seconds"),
+        (["repro", "paper", "--preset", "tiny", "--timeout", "0"], "--timeout must be a number of seconds in (0, 86400]"),
         (["demo", "--out", "/proc/version"], "--out /proc/version is a file: give a folder"),  # every step had failed
         (["daemon", "keys", "--dir", "/proc/version"], "--dir /proc/version is a file"),  # was "[Errno 17] File exists"
         (["capture", "--object", "nosuchthing", "--views", "1"], "unknown object 'nosuchthing'; the catalogue has"),

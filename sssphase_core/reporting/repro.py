@@ -322,13 +322,16 @@ class PaperRepro(Demo):
         return self.report_dir / "report.md"
 
 
+MAX_BUDGET_S = 30 * 86400.0  # a month
+
+
 def check_repro_options(out: Path | str, preset: str, device: str, budget_s: float) -> None:
     """Refuse, in one line before any work, an unknown preset or device, a budget that is no positive number
     of seconds, or an ``out`` that cannot hold the run."""
     if preset not in PRESETS:
         raise InputError(f"unknown repro preset {preset!r}; choose one of {', '.join(PRESETS)}")
-    if not (math.isfinite(budget_s) and budget_s > 0):
-        raise InputError(f"--budget must be a positive number of seconds, got {budget_s:g}")
+    if not (math.isfinite(budget_s) and 0 < budget_s <= MAX_BUDGET_S):  # (1e308 overflowed a timer after the report)
+        raise InputError(f"--budget must be a number of seconds in (0, {MAX_BUDGET_S:g}], got {budget_s:g}")
     from sssphase_core.compute import check_device
     from sssphase_core.store.session import check_output_folder
 
