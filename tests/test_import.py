@@ -378,7 +378,7 @@ def test_images_beside_the_frames_are_skipped_with_one_warning_naming_them(tmp_p
 def test_a_pickled_npy_is_refused(tmp_path):
     folder = tmp_path / "f"
     folder.mkdir()
-    for key in ("black", *(f"psp__{o}__p16__s{n}" for o in "xy" for n in range(4))):
+    for key in ("black", *(f"psp__{o}__p{p}__s{n}" for o in "xy" for p in (16, 64) for n in range(4))):
         np.save(folder / f"{key}.npy", np.zeros((H, W, 3), np.float32))
     np.save(folder / "white.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
     with pytest.raises(InputError, match="white.npy") as err:
@@ -1573,3 +1573,18 @@ def test_crops_of_no_light_are_refused_where_they_are_read(handmade, tmp_path):
     with pytest.raises(DataError, match="footprints/crops: .*below -0.25 x the white level"):
         session_views(crops.path, footprints=True)
     assert any("array footprints/crops" in p for p in crops.validate())
+
+
+def test_an_imported_session_exports_and_imports_again_and_an_export_without_unwrapping_frames_says_why_not(tmp_path):
+    """The docs promise that an export imports again; an imported session kept no unwrapping frames, so its
+    export did not, and the error blamed --projector."""
+    from sssphase_core.reporting.export import export_session
+
+    session = import_folder(_float_frames(tmp_path / "frames", 1.0), tmp_path / "s", "o", (W, H), patch=K)
+    assert "unwrap" in session.arrays(0)
+    export_session(session, tmp_path / "e")
+    again = import_folder(tmp_path / "e" / "o", tmp_path / "s2", "o", (W, H), patch=K)
+    assert np.array_equal(np.asarray(again.read(0, "corr/mask")), np.asarray(session.read(0, "corr/mask")))
+    shutil.rmtree(tmp_path / "e" / "o" / "view_000" / "unwrap")  # as a session captured without --keep-unwrap
+    with pytest.raises(InputError, match=r"PSP frames of one period \(\d+ px\) and none of a longer period to unwrap"):
+        import_folder(tmp_path / "e" / "o", tmp_path / "s3", "o", (W, H), patch=K)

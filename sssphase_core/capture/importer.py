@@ -77,6 +77,11 @@ def _meant_as_frame(rel: Path) -> bool:
     return first in FRAME_WORDS or first.rstrip("0123456789") in FRAME_WORDS  # white0001: a renderer's frame number
 
 
+#: The arrays `sss export` writes beside the frames (``corr_xp.exr``, ``footprints_crops.exr`` ...): an import
+#: of the export skips them without a word, as the docs say.
+EXPORTED_MAPS = ("corr", "footprints", "transport", "gt")
+
+
 def exported_names(vdir: Path) -> dict[Path, str]:
     """Frame keys of a view folder `sss export` wrote (so that it imports again): each stack's files by the
     ``keys.csv`` beside them (``psp/00.exr,psp/x/p11/s0``; the unwrapping and dot frames likewise), and its
@@ -124,7 +129,8 @@ def frame_files(vdir: Path, *, strict: bool = True) -> dict[str, Path]:
             files[exported[path]] = path
             continue
         if strict and suffix in ANY_IMAGE_SUFFIXES and not _meant_as_frame(rel):
-            others.append(rel.as_posix())  # beside the frames, not one of them
+            if not (exported and rel.parts[0].split("_")[0] in EXPORTED_MAPS):  # (an export's maps: skipped as said)
+                others.append(rel.as_posix())  # beside the frames, not one of them
             continue
         if strict and suffix in LOSSY_SUFFIXES:
             raise InputError(f"{path}: {path.suffix} frames are lossy (8 x 8 blocks, halved colour resolution), which "
@@ -814,7 +820,8 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
     if view_dirs != [folder] and frame_files(folder, strict=False):  # one view's frames would be left out
         raise InputError(f"{folder} holds frames beside its view_NNN folders: move them into a view folder of their "
                          "own (e.g. view_000) or import them separately")
-    req = CaptureRequest(check_object_name(name), views=len(view_dirs), out=Path(root))
+    # the unwrapping frames are kept: the session is then whole without the folder (`sss export` of it imports again)
+    req = CaptureRequest(check_object_name(name), views=len(view_dirs), out=Path(root), keep_unwrap=True)
     views = [(vdir, frame_files(vdir)) for vdir in view_dirs]  # refuse bad names before writing anything
     for (vdir, files) in views:
         if not files:
@@ -831,6 +838,11 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                 raise InputError(f"{files[key]}: reference {ref!r} is no named pattern ({', '.join(REFERENCE_NAMES)}), so "
                                  f"the image projected for it is needed as pattern__{ref}.png to relight and evaluate it")
     configs = [psp_config_from_names(vdir, files) for vdir, files in views]
+    for (vdir, _), config in zip(views, configs, strict=True):
+        if not config.unwrap_periods and config.period < max(w, h):  # (it decoded nothing, "is --projector right?")
+            raise InputError(f"{vdir}: PSP frames of one period ({config.period:g} px) and none of a longer period to "
+                             f"unwrap them, which a {w}x{h} projector needs (an `sss export` of a session captured "
+                             "without --keep-unwrap holds only the 8 decoded-from frames: it does not import again)")
     for (vdir, _), config in zip(views, configs, strict=True):
         check_plan_file(vdir if (vdir / "plan.json").is_file() else folder, (w, h), gamma, config)
     for vdir, files in views:

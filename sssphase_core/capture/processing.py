@@ -281,8 +281,8 @@ class ViewProcessor:
                                 "hot_pixels": 0 if self.hot is None else int((self.hot > 0).any(axis=-1).sum())}
         if n != 4:
             info["psp_from_shifts"] = n  # `psp` holds the 4-step images their first harmonic gives (psp.four_step)
-        if self.req.keep_unwrap:
-            unwrap = [k for k in self.psp if k not in order]
+        unwrap = [k for k in self.psp if k not in order]
+        if self.req.keep_unwrap and unwrap:
             w.write("unwrap", np.stack([self.psp[k] for k in unwrap]))
             info["unwrap_keys"] = unwrap
         for name in ("xp", "yp", "mask", "reason", "modulation", "offset"):
