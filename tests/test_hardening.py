@@ -1266,6 +1266,23 @@ def test_export_never_writes_into_a_session(intact_session, tmp_path):
     assert sorted(p for p in copy.rglob("*")) == before
 
 
+def test_exporting_again_never_deletes_a_users_file_in_the_export(intact_session, tmp_path):
+    """A re-export replaces each view's folder whole: notes.txt, or a tool's PNG saved beside the maps, was
+    deleted without a word. They are named, before anything is written, and kept."""
+    out = tmp_path / "export"
+    assert _cli("export", str(intact_session), "--out", str(out)).returncode == 0
+    view = next((out / intact_session.name).glob("view_*"))
+    first = {p: p.stat().st_mtime_ns for p in view.rglob("*.exr")}
+    for name in ("notes.txt", "psp/contrast.png"):
+        mine = view / name
+        mine.write_text("mine")
+        _one_line(_cli("export", str(intact_session), "--out", str(out)), f"{mine} is no file sss export writes")
+        assert mine.read_text() == "mine" and {p: p.stat().st_mtime_ns for p in view.rglob("*.exr")} == first
+        mine.unlink()
+    assert _cli("export", str(intact_session), "--out", str(out)).returncode == 0  # its own files are replaced
+    assert sorted(p.relative_to(view) for p in view.rglob("*.exr")) == sorted(p.relative_to(view) for p in first)
+
+
 def test_a_truncated_frame_is_one_line_without_the_native_librarys_own(tmp_path):
     """libpng printed "libpng error: Read Error" on stderr (file descriptor 2, past Python) before ours."""
     import cv2

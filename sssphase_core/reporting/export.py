@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sssphase_core.errors import InputError
 from sssphase_core.store.exr import write_exr
 from sssphase_core.store.files import atomic_folder, write_text
 from sssphase_core.store.session import Session, view_dir_name
@@ -66,6 +67,23 @@ def export_view(session: Session, view: int, out: Path) -> list[Path]:
     return written
 
 
+EXPORTED_SUFFIXES = (".exr", ".csv")
+
+
+def refuse_foreign_files(folder: Path) -> None:
+    """InputError naming a file in an earlier export's view ``folder`` that no export writes (a user's notes,
+    a tool's output saved beside the maps): replacing the folder would delete it."""
+    if not folder.is_dir() or folder.is_symlink():
+        if folder.exists() or folder.is_symlink():
+            raise InputError(f"{folder} is not a folder an export wrote (a file or a link): move it, or choose another --out")
+        return
+    for path in sorted(folder.rglob("*")):
+        if path.is_symlink() or (path.is_file() and path.suffix.lower() not in EXPORTED_SUFFIXES) or not (
+                path.is_file() or path.is_dir()):
+            raise InputError(f"{path} is no file sss export writes: exporting again replaces {folder} whole and would "
+                             "delete it; move it out, or choose another --out")
+
+
 def _psp_keys(session: Session) -> list[str] | None:
     """The plan keys (``psp/x/p11/s0`` ...) of a session's ``psp`` stack, in its order."""
     from sssphase_core.relight.views import paper_input_frames
@@ -78,7 +96,10 @@ def export_session(session: Session, out: Path, views: list[int] | None = None) 
     """Export ``views`` (default: all complete views) of ``session`` to ``out/<object>/view_NNN``, each view's
     folder whole or not at all (a damaged array leaves an earlier export of that view as it was)."""
     written: list[Path] = []
-    for view in views if views is not None else session.views():
+    chosen = views if views is not None else session.views()
+    for view in chosen:  # before any view is written: a re-export replaces each view's folder whole
+        refuse_foreign_files(Path(out) / session.name / view_dir_name(view))
+    for view in chosen:
         final = Path(out) / session.name / view_dir_name(view)
         with atomic_folder(final) as tmp:
             files = export_view(session, view, tmp)
