@@ -289,6 +289,11 @@ def server_keys(directory: Path) -> tuple[bytes, bytes]:
     if secret is None:
         raise KeyFileError(f"{directory / f'{SERVER_CERT}.key_secret'} holds no server secret key: make the keys again "
                            "(`sss daemon keys`)")
+    authorized = directory / AUTHORIZED
+    if not (authorized.is_dir() and any(authorized.glob("*.key"))):  # every client would wait out its timeout
+        raise KeyFileError(f"{authorized} holds no client's public key (*.key), so the daemon would refuse every "
+                           f"connection: copy each client's client.key there (`sss daemon keys` authorises the "
+                           "client key it makes there)")
     return public, secret
 
 

@@ -499,6 +499,14 @@ def test_a_curve_key_folder_others_can_read_is_refused(tmp_path):
     (keys / security.AUTHORIZED).chmod(0o777)  # anyone could authorise their own key
     with pytest.raises(security.PrivateDirError, match="authorized_clients"):
         security.client_keys(keys)
+    (keys / security.AUTHORIZED).chmod(0o700)
+    (keys / security.AUTHORIZED / f"{security.CLIENT_CERT}.key").unlink()  # a daemon refusing every client: each
+    with pytest.raises(security.KeyFileError, match="holds no client's public key"):  # waited 20 s in silence
+        security.server_keys(keys)
+    shutil.rmtree(keys / security.AUTHORIZED)
+    with pytest.raises(security.KeyFileError, match="authorized_clients holds no client's public key"):
+        security.server_keys(keys)
+    security.client_keys(keys)  # a client needs no authorised keys of its own
 
 
 def test_a_curve_daemon_started_by_the_cli_is_found_and_used_by_the_cli(tmp_path):
