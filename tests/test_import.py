@@ -8,6 +8,7 @@ import os
 import re
 import shutil
 import subprocess
+import time
 import warnings
 from pathlib import Path
 
@@ -162,7 +163,7 @@ def test_an_interrupted_import_keeps_its_complete_views_and_the_same_import_cont
             raise KeyboardInterrupt
         return read(self, path)
 
-    for name in ("same", "other"):
+    for name in ("same", "other", "edited"):
         monkeypatch.setattr(importer.FrameLoader, "read", interrupted_in_view_1)
         with pytest.raises(KeyboardInterrupt):
             import_folder(multi, tmp_path / "s", name, (W, H), patch=K)
@@ -172,13 +173,19 @@ def test_an_interrupted_import_keeps_its_complete_views_and_the_same_import_cont
     def completed(session_name):  # when view 0 was written
         return Session.open(tmp_path / "s" / session_name).manifest["views"]["0"]["completed"]
 
-    before = {name: completed(name) for name in ("same", "other")}
+    before = {name: completed(name) for name in ("same", "other", "edited")}
     with pytest.warns(UserWarning, match=r"continuing the unfinished import of .*: view 0 already imported is kept"):
         again = import_folder(multi, tmp_path / "s", "same", (W, H), patch=K)
     assert again.views() == [0, 1] and not again.validate() and completed("same") == before["same"]
     with pytest.warns(UserWarning, match=r"an unfinished import of .* is replaced: it was made with other settings"):
         other = import_folder(multi, tmp_path / "s", "other", (W, H), patch=K, gamma=2.0)
     assert other.views() == [0, 1] and other.manifest["plan"]["gamma"] == 2.0 and completed("other") > before["other"]
+    white = next(multi.glob("view_000/white.*"))  # view 0's frames replaced after it was imported: it was kept,
+    white.write_bytes(white.read_bytes())  # decoded from the old ones
+    os.utime(white, ns=(time.time_ns(), time.time_ns() + 10**9))
+    with pytest.warns(UserWarning, match=r"an unfinished import of .* is replaced: it was made with other settings"):
+        edited = import_folder(multi, tmp_path / "s", "edited", (W, H), patch=K)
+    assert edited.views() == [0, 1] and completed("edited") > before["edited"]
 
 
 def test_a_full_disk_during_an_import_leaves_nothing_and_names_the_imports_own_fix(frames, tmp_path, monkeypatch):

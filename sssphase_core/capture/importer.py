@@ -872,7 +872,8 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
     settings = {"n_views": len(view_dirs), "imported_from": str(folder.resolve()),
                 "rig": {"camera": "import", "projector_size": [w, h], "patch": patch, "imported": True,
                         "frame_scale": scale, "frame_encoding": encoding, "frame_encoding_from": encoding_tag},
-                "plan": plan_json, "import_options": {"bayer": str(bayer).lower(), "demosaic": demosaic}}
+                "plan": plan_json, "import_options": {"bayer": str(bayer).lower(), "demosaic": demosaic},
+                "imported_frames": [frames_fingerprint(files) for _, files in views]}  # frames replaced: not resumed
     resume = path.exists() and _continues_unfinished_import(path, folder, settings)
     session = Session.create(root, name, resume=resume, **settings, software={"sssphase": __version__})
     done = set(session.views())
@@ -981,6 +982,18 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
         _remove(session.path)  # a failed import leaves nothing behind, and nothing half-imported blocks the name
         raise
     return session
+
+
+def frames_fingerprint(files: dict[str, Path]) -> str:
+    """A short digest of one view's frame files (key, size, modification time): an unfinished import whose frames
+    were replaced or edited since is made again, not continued with views decoded from the old frames."""
+    import hashlib
+
+    digest = hashlib.sha256()
+    for key in sorted(files):
+        stat = files[key].stat()
+        digest.update(f"{key}\0{stat.st_size}\0{stat.st_mtime_ns}\n".encode())
+    return digest.hexdigest()[:16]
 
 
 def _continues_unfinished_import(path: Path, folder: Path, settings: dict[str, Any]) -> bool:
