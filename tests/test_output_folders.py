@@ -67,6 +67,27 @@ def test_patterns_never_overwrite_a_folder_of_frames(tmp_path):
               f"--period 1e+06 is longer than the {W}x{H} projector: the fringes need at least one period across it")
 
 
+def test_interrupted_patterns_leave_no_half_set_and_run_again(tmp_path):
+    """Ctrl-C while `sss patterns` wrote left PNGs and no plan.json: the next run was refused ("already holds
+    white.png") until the user found and deleted them. The half set is removed; the user's own file stays."""
+    from sssphase_core.capture.pattern_files import write_patterns
+
+    def stop_at_the_third(done, total):
+        if done == 3:
+            raise KeyboardInterrupt
+
+    for out in (tmp_path / "new" / "patterns", tmp_path / "mine"):
+        if out.name == "mine":
+            out.mkdir()
+            (out / "notes.txt").write_text("mine")
+        before = _digest(tmp_path)
+        with pytest.raises(KeyboardInterrupt):
+            write_patterns(out, f"{W}x{H}", progress=stop_at_the_third)
+        assert _digest(tmp_path) == before and (out.name == "mine") == (tmp_path / out.relative_to(tmp_path).parts[0]).exists()
+        written = write_patterns(out, f"{W}x{H}")
+        assert (out / "plan.json").is_file() and len(list(out.rglob("*.png"))) == written.patterns
+
+
 @pytest.mark.parametrize("command", [
     ["import", "{frames}", "--object", "o2", "--projector", f"{W}x{H}", "--out", "{inside}"],
     ["capture", "--object", "apple", "--views", "1", "--out", "{inside}"],

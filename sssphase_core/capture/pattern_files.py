@@ -3,6 +3,7 @@ for a rig this software does not drive (its captures come back through `sss impo
 
 from __future__ import annotations
 
+import contextlib
 import math
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
@@ -83,12 +84,28 @@ def write_patterns(out: Path, projector: str, *, footprints: bool = False, dot_s
                          "(nothing was written)")
     from PIL import Image
 
+    made = [d for d in (out, *out.parents) if not d.exists()][::-1]  # folders this call creates, outermost first
     out.mkdir(parents=True, exist_ok=True)
-    for done, frame in enumerate(unique, 1):
-        path = out / f"{frame.key}.png"
-        path.parent.mkdir(parents=True, exist_ok=True)
-        Image.fromarray(np.round(np.clip(frame.pattern(), 0, 1) * 255).astype(np.uint8)).save(path)
-        if progress is not None:
-            progress(done, len(unique))
-    write_text(out / "plan.json", plan.to_json() + "\n")
+    written: list[Path] = []
+    try:
+        for done, frame in enumerate(unique, 1):
+            path = out / f"{frame.key}.png"
+            for folder in (path.parent, *path.parent.parents):
+                if folder == out.parent:
+                    break
+                if not folder.exists():
+                    made.append(folder)
+            path.parent.mkdir(parents=True, exist_ok=True)
+            written.append(path)
+            Image.fromarray(np.round(np.clip(frame.pattern(), 0, 1) * 255).astype(np.uint8)).save(path)
+            if progress is not None:
+                progress(done, len(unique))
+        write_text(out / "plan.json", plan.to_json() + "\n")
+    except BaseException:  # Ctrl-C, a full disk: a half set (refused by the next run) is removed, nothing else
+        for path in written:
+            path.unlink(missing_ok=True)
+        for folder in sorted(set(made), key=lambda d: len(d.parts), reverse=True):
+            with contextlib.suppress(OSError):
+                folder.rmdir()  # only if empty
+        raise
     return WrittenPatterns(out, len(unique), len(plan))
