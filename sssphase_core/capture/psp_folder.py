@@ -11,7 +11,13 @@ from typing import Any
 
 import numpy as np
 
-from sssphase_core.capture.importer import FrameLoader, frame_files, frame_scale, psp_config_from_names
+from sssphase_core.capture.importer import (
+    FrameLoader,
+    frame_files,
+    frame_scale,
+    frames_encoding,
+    psp_config_from_names,
+)
 from sssphase_core.errors import DataError, InputError
 from sssphase_core.processing.patterns import PSPConfig, parse_projector_size, psp_config_for, psp_key
 from sssphase_core.store.imageio import stores_integers
@@ -101,6 +107,7 @@ def read_psp_folder(folder: Path, projector: str | None = None, *, saturation: f
     if missing:
         raise DataError(f"frame {missing[0]!r} not found in {folder} (expected {missing[0].replace('/', '__')}.png/.tif/"
                         f".exr/.npy or {missing[0]}.*; {len(missing)} of {len(keys)} PSP frames missing)")
+    frames_encoding([files[key] for key in keys])  # one bit depth and colour tag, no JPEG: as `sss import` refuses
     integers = any(stores_integers(files[key]) for key in keys)
     if saturation is None and integers:
         saturation = 0.99  # integer files clip at their top code; EXR and float files do not clip

@@ -86,6 +86,12 @@ def test_decode_folder_of_captures(tmp_path):
     with pytest.raises(InputError, match="which sss decode did not write"):
         runner.invoke(_app(), ["decode", str(cap_dir), "--out", str(out_dir)], catch_exceptions=False)
     assert target.read_bytes() == b"keep"
+    # one frame re-saved at 8 bits among 16-bit ones: another pipeline's frame, decoded in silence; refused as
+    odd = sorted(cap_dir.glob("psp__y__*__s1.png"))[0]  # `sss import` refuses it
+    Image.fromarray((np.asarray(Image.open(odd)) >> 8).astype(np.uint8)).save(odd)
+    with pytest.raises(InputError, match=rf"holds 16-bit codes but .*{odd.name} holds 8-bit ones"):
+        runner.invoke(_app(), ["decode", str(cap_dir), "--out", str(tmp_path / "mixed")], catch_exceptions=False)
+    assert not (tmp_path / "mixed").exists()
 
 
 def _captures_of(pat_dir, scale: float):
