@@ -55,6 +55,12 @@ def test_rig_options_may_repeat_what_the_capture_sets(tmp_path):
     (DEVICES + "[projector]\nfoo = 3\n", r"unknown \[projector\] keys foo"),
     (DEVICES + '[projector]\ngamma_rgb = "x"\n', r"\[projector\] gamma_rgb must be three numbers in \[0.3, 5\]"),
     (DEVICES + "[projector]\nblack_rgb = [0.1, 0.2]\n", r"\[projector\] black_rgb must be three numbers"),
+    # the fit's record (it went into every session's manifest whatever it held)
+    (DEVICES + "[projector]\nlevels = [0, 0.5, 0.2]\n", r"\[projector\] levels must be the ramp's grey levels, increasing"),
+    (DEVICES + "[projector]\nlevels = [0, 1]\nresponse_rgb = [[0, 1], [0, 1], [0]]\n",
+     r"\[projector\] response_rgb must be three lists of finite numbers, one per level"),
+    (DEVICES + "[projector]\nrms = inf\n", r"\[projector\] rms must be a finite number >= 0, got inf"),
+    (DEVICES + '[projector]\npixels = "all"\n', r"\[projector\] pixels must be a whole number >= 0, got 'all'"),
 ])
 def test_misspelt_or_mistyped_rig_tables_are_refused(tmp_path, text, message):
     (tmp_path / "rig.toml").write_text(text)
