@@ -475,6 +475,27 @@ def test_an_empty_npy_pattern_or_reference_is_one_line_naming_it(tmp_path):
     assert not (tmp_path / "c").exists()  # refused before a daemon was started for it
 
 
+@pytest.mark.parametrize("array", [np.float32(1.0), np.ones(W, np.float32), np.ones((0, W), np.float32)],
+                         ids=["0-d", "1-d", "empty"])
+def test_an_npy_frame_without_an_image_shape_is_one_line_wherever_it_is_read(tmp_path, array):
+    """A 0-d .npy frame (np.save of a scalar) was an internal error (IndexError) in sss import and sss decode."""
+    folder = _float_frames(tmp_path / "f", 1.0)
+    np.save(folder / "white.npy", array)
+    said = f"{folder / 'white.npy'} has shape {array.shape}: expected (H, W) or (H, W, 3)"
+    _one_line_error(_sss_import(folder, tmp_path / "s"), said)
+    np.save(folder / "white.npy", np.load(tmp_path / "f" / "black.npy"))
+    odd = sorted(folder.glob("psp__*.npy"))[0]
+    np.save(odd, array)
+    said = f"{odd} has shape {array.shape}: expected (H, W) or (H, W, 3)"
+    res = run_sss(["decode", str(folder), "--projector", f"{W}x{H}", "--out", str(tmp_path / "d")])
+    out = res.stdout + res.stderr  # (after its progress bar: the frames before it were read)
+    assert res.returncode == 2 and "Traceback" not in out and out.strip().splitlines()[-1] == f"error: {said}", out
+    _one_line_error(run_sss(["relight", str(import_folder(_float_frames(tmp_path / "g", 1.0), tmp_path / "t", "o",
+                                                           (W, H)).path), "--pattern", str(odd), "--out",
+                             str(tmp_path / "r")]), said)
+    assert not (tmp_path / "s").exists() and not (tmp_path / "r").exists()
+
+
 def test_report_refuses_unknown_backends_and_foreign_decoders_in_one_line(tmp_path):
     s = import_folder(_float_frames(tmp_path / "f", 1.0), tmp_path / "sessions", "plain", (W, H))
     evil = tmp_path / "evil.pt"

@@ -311,7 +311,10 @@ def frame_shape(path: Path) -> tuple[int, ...]:
     check_input_file(path, "frame")  # a FIFO would block the read for ever
     try:
         if path.suffix.lower() == ".npy":
-            return tuple(_load_npy(path, mmap_mode="r").shape)
+            shape = tuple(_load_npy(path, mmap_mode="r").shape)
+            if len(shape) < 2 or 0 in shape:  # no image size to read (a 0-d array was an IndexError in every caller)
+                raise InputError(f"{path} has shape {shape}: expected (H, W) or (H, W, 3)")
+            return shape
         if path.suffix.lower() == ".exr":
             from sssphase_core.store import exr
 
