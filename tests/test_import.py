@@ -1457,7 +1457,10 @@ def test_psp_frame_names_are_checked_period_first_then_orientations_then_shifts(
 
     cases = ((keys("x", 0), "a PSP period must be positive, got 0 in the frame names"),  # said "the y orientation ..."
              (keys("x", 20), "the y orientation has no PSP frames at period 20"),
-             (keys("x", 20) + keys("y", 20, (0, 2, 3)), "PSP frames y, period 20 have shifts [0, 2, 3]"))
+             (keys("x", 20) + keys("y", 20, (0, 2, 3)), "PSP frames y, period 20 have shifts [0, 2, 3]"),
+             (keys("xy", 20) + keys("x", 200, range(5)) + keys("y", 200),  # a stray s4: "period 20 have shifts
+              "PSP frames x, period 20 have 4 shifts but x, period 200 has 5 (up to s4): every set shares one shift "
+              "count"))  # [0, 1, 2, 3]; every set needs shifts 0..N-1", which they have
     for names, expected in cases:
         with pytest.raises(InputError, match=re.escape(f"{tmp_path}: {expected}")):
             psp_config_from_names(tmp_path, names)

@@ -183,11 +183,16 @@ def psp_config_from_names(vdir: Path, keys: Iterable[str]) -> Any:
             sets.setdefault((m.group(1), float(m.group(2))), set()).add(int(m.group(3)))
     if not sets:
         raise InputError(f"{vdir}: no psp__<x|y>__p<period>__s<n> frames")
-    n = max(len(v) for v in sets.values())
     for (o, period), shifts in sorted(sets.items()):
-        if shifts != set(range(n)) or not 3 <= n <= MAX_SHIFTS:
+        if shifts != set(range(len(shifts))) or not 3 <= len(shifts) <= MAX_SHIFTS:
             raise InputError(f"{vdir}: PSP frames {o}, period {period:g} have shifts {sorted(shifts)[:8]}; every set "
                              f"needs shifts 0..N-1 with 3 <= N <= {MAX_SHIFTS}")
+    most = max(sorted(sets.items()), key=lambda item: len(item[1]))
+    n = len(most[1])
+    for (o, period), shifts in sorted(sets.items()):  # each set complete, but of another count: a stray or lost frame
+        if len(shifts) != n:
+            raise InputError(f"{vdir}: PSP frames {o}, period {period:g} have {len(shifts)} shifts but {most[0][0]}, "
+                             f"period {most[0][1]:g} has {n} (up to s{n - 1}): every set shares one shift count")
     periods = sorted({p for _, p in sets})
     if periods[0] <= 0:  # before the orientations: "the y orientation has no PSP frames at period 0" misled
         raise InputError(f"{vdir}: a PSP period must be positive, got {periods[0]:g} in the frame names")
