@@ -374,7 +374,8 @@ def test_numpy_patterns_are_read_checked_and_resized(tmp_path):
                                ("bright", np.full((34, 40), 2.0), "finite values in"),
                                ("4d", np.zeros((2, 2, 2, 2), np.float32), "must be an"),
                                ("signed", np.zeros((34, 40), np.int16), "must be an"),
-                               ("empty", np.zeros((0, 40), np.float32), "must be an")]:
+                               ("empty", np.zeros((0, 40), np.float32), r"has shape \(0, 40\): expected \(H, W\)"),
+                               ("scalar", np.float32(0.5), r"has shape \(\): expected \(H, W\) or \(H, W, 3\)")]:
         np.save(tmp_path / f"{name}.npy", bad)
         with pytest.raises(InputError, match=message):
             read_pattern(tmp_path / f"{name}.npy", (40, 34))
