@@ -84,18 +84,14 @@ def write_patterns(out: Path, projector: str, *, footprints: bool = False, dot_s
                          "(nothing was written)")
     from PIL import Image
 
-    made = [d for d in (out, *out.parents) if not d.exists()][::-1]  # folders this call creates, outermost first
-    out.mkdir(parents=True, exist_ok=True)
+    made: list[Path] = []  # the folders this call creates, and the files it writes: what an interruption removes
     written: list[Path] = []
     try:
         for done, frame in enumerate(unique, 1):
             path = out / f"{frame.key}.png"
-            for folder in (path.parent, *path.parent.parents):
-                if folder == out.parent:
-                    break
-                if not folder.exists():
-                    made.append(folder)
-            path.parent.mkdir(parents=True, exist_ok=True)
+            if not path.parent.is_dir():
+                made += [d for d in (path.parent, *path.parent.parents) if not d.exists()]
+                path.parent.mkdir(parents=True)
             written.append(path)
             Image.fromarray(np.round(np.clip(frame.pattern(), 0, 1) * 255).astype(np.uint8)).save(path)
             if progress is not None:
@@ -104,7 +100,7 @@ def write_patterns(out: Path, projector: str, *, footprints: bool = False, dot_s
     except BaseException:  # Ctrl-C, a full disk: a half set (refused by the next run) is removed, nothing else
         for path in written:
             path.unlink(missing_ok=True)
-        for folder in sorted(set(made), key=lambda d: len(d.parts), reverse=True):
+        for folder in sorted(made, key=lambda d: len(d.parts), reverse=True):  # innermost first
             with contextlib.suppress(OSError):
                 folder.rmdir()  # only if empty
         raise

@@ -30,27 +30,29 @@ RIG_TABLES = ("devices", "processing", "projector", "options")
 PROJECTOR_KEYS = frozenset({"gamma", "black", "gamma_rgb", "black_rgb", "levels", "response_rgb", "rms", "pixels"})
 
 
+def _numbers(v: Any, lo: float, hi: float) -> bool:
+    """Whether ``v`` is a list of numbers (not booleans) in [lo, hi] (NaN and inf outside any range)."""
+    return isinstance(v, list) and all(isinstance(x, int | float) and not isinstance(x, bool) and lo <= x <= hi
+                                       for x in v)
+
+
 def _check_fit_record(path: Path, resp: dict[str, Any]) -> None:
     """The record of the fit that `sss calibrate projector` keeps beside gamma and black (``levels``: the ramp's
     grey levels in [0, 1], ``response_rgb``: the light measured at each per colour, ``rms``: the fit's error,
     ``pixels``: how many it used), checked as a rig file's other values are: read by people and tools, not
     by capture, so a damaged one is named rather than carried into every session's manifest."""
-    def numbers(v: Any, lo: float, hi: float) -> bool:
-        return isinstance(v, list) and all(isinstance(x, int | float) and not isinstance(x, bool) and lo <= x <= hi
-                                           for x in v)
-
     levels = resp.get("levels")
-    if levels is not None and not (numbers(levels, 0.0, 1.0) and len(levels) >= 2
+    if levels is not None and not (_numbers(levels, 0.0, 1.0) and len(levels) >= 2
                                    and all(a < b for a, b in zip(levels, levels[1:], strict=False))):
         raise InputError(f"{path}: [projector] levels must be the ramp's grey levels, increasing numbers in [0, 1], "
                          f"got {levels!r}")
     response = resp.get("response_rgb")
     if response is not None and not (isinstance(response, list) and len(response) == 3 and all(
-            numbers(r, -1e12, 1e12) and len(r) == len(levels or r) for r in response)):
+            _numbers(r, -1e12, 1e12) and len(r) == len(levels or r) for r in response)):
         raise InputError(f"{path}: [projector] response_rgb must be three lists of finite numbers, one per "
                          f"level, got {response!r}"[:300])
     rms, pixels = resp.get("rms"), resp.get("pixels")
-    if rms is not None and not numbers([rms], 0.0, 1e12):
+    if rms is not None and not _numbers([rms], 0.0, 1e12):
         raise InputError(f"{path}: [projector] rms must be a finite number >= 0, got {rms!r}")
     if pixels is not None and (isinstance(pixels, bool) or not isinstance(pixels, int) or pixels < 0):
         raise InputError(f"{path}: [projector] pixels must be a whole number >= 0, got {pixels!r}")
@@ -128,8 +130,7 @@ class RigSpec:
             raise InputError(f"{path}: [processing] median must be true or false, got {proc['median']!r}")
         for key, (lo, hi) in (("gamma_rgb", (0.3, 5.0)), ("black_rgb", (0.0, 0.5))):  # per colour, as fitted
             v = resp.get(key)
-            if v is not None and not (isinstance(v, list) and len(v) == 3 and all(
-                    isinstance(x, int | float) and not isinstance(x, bool) and lo <= x <= hi for x in v)):
+            if v is not None and not (_numbers(v, lo, hi) and len(v) == 3):
                 raise InputError(f"{path}: [projector] {key} must be three numbers in [{lo:g}, {hi:g}], got {v!r}")
         _check_fit_record(path, resp)
         gamma, black = resp.get("gamma"), resp.get("black")

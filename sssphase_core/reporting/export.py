@@ -23,6 +23,9 @@ from sssphase_core.store.exr import write_exr
 from sssphase_core.store.files import atomic_folder, write_text
 from sssphase_core.store.session import Session, view_dir_name
 
+#: What an export writes into a view's folder (EXR images, CSV keys and pixel lists): anything else is the user's.
+EXPORTED_SUFFIXES = (".exr", ".csv")
+
 
 def footprint_mosaic(crops: np.ndarray) -> tuple[np.ndarray, int]:
     """(N, K, K, C) -> (rows*K, cols*K, C) tiles in row-major order (empty tiles NaN), and cols."""
@@ -67,9 +70,6 @@ def export_view(session: Session, view: int, out: Path) -> list[Path]:
     return written
 
 
-EXPORTED_SUFFIXES = (".exr", ".csv")
-
-
 def refuse_foreign_files(folder: Path) -> None:
     """InputError naming a file in an earlier export's view ``folder`` that no export writes (a user's notes,
     a tool's output saved beside the maps): replacing the folder would delete it."""
@@ -78,8 +78,7 @@ def refuse_foreign_files(folder: Path) -> None:
             raise InputError(f"{folder} is not a folder an export wrote (a file or a link): move it, or choose another --out")
         return
     for path in sorted(folder.rglob("*")):
-        if path.is_symlink() or (path.is_file() and path.suffix.lower() not in EXPORTED_SUFFIXES) or not (
-                path.is_file() or path.is_dir()):
+        if path.is_symlink() or not (path.is_dir() or (path.is_file() and path.suffix.lower() in EXPORTED_SUFFIXES)):
             raise InputError(f"{path} is no file sss export writes: exporting again replaces {folder} whole and would "
                              "delete it; move it out, or choose another --out")
 
