@@ -84,7 +84,8 @@ def write_patterns(out: Path, projector: str, *, footprints: bool = False, dot_s
                          "(nothing was written)")
     from PIL import Image
 
-    made: list[Path] = []  # the folders this call creates, and the files it writes: what an interruption removes
+    made = [d for d in (out, *out.parents) if not d.exists()]  # the folders this call creates, and the files it
+    out.mkdir(parents=True, exist_ok=True)  # writes: what an interruption removes
     written: list[Path] = []
     try:
         for done, frame in enumerate(unique, 1):
