@@ -57,26 +57,36 @@ def knn_leave_one_view_out(embeddings: np.ndarray, labels: np.ndarray, views: np
                            vote: str = "majority", class_names: Sequence[str] | None = None) -> dict:
     """View-level leave-one-out: all patches of one view are queries, the other views the database.
 
-    Returns overall accuracy (over all held-out patches), mean per-view accuracy, per-view and
-    per-class accuracy (keys are ``class_names`` when given) and the predictions.
+    A query whose class has no patch in its fold's database (an object seen in only one view) cannot be
+    classified by any embedding: it is left out of every score and counted in ``unscored`` ({class: patches}).
+    Returns overall accuracy (over the scored held-out patches), mean per-view accuracy, per-view and
+    per-class accuracy (keys are ``class_names`` when given), ``unscored`` and every patch's prediction.
     """
     emb = torch.nn.functional.normalize(torch.as_tensor(embeddings, dtype=torch.float32), dim=1)
     lab = torch.as_tensor(labels, dtype=torch.long)
-    views = np.asarray(views)
+    labels, views = np.asarray(labels), np.asarray(views)
     uniq = np.unique(views)
     if len(uniq) < 2:
         raise InputError("view-level leave-one-out needs patches from at least two views")
     n_classes = int(lab.max()) + 1
     pred = torch.empty_like(lab)
+    scored = np.zeros(len(labels), bool)
     for v in uniq:
-        q = torch.as_tensor(views == v)
-        pred[q] = knn_predict(emb[q], emb[~q], lab[~q], n_classes, k, vote)
-    correct = (pred == lab).numpy()
+        q = views == v
+        pred[torch.as_tensor(q)] = knn_predict(emb[q], emb[~q], lab[~q], n_classes, k, vote)
+        scored[q] = np.isin(labels[q], labels[~q])
     name = (lambda c: class_names[c]) if class_names is not None else (lambda c: int(c))
-    per_view = {int(v): float(correct[views == v].mean()) for v in uniq}
-    per_class = {name(c): float(correct[labels == c].mean()) for c in np.unique(labels)}
-    return {"overall": float(correct.mean()), "mean_per_view": float(np.mean(list(per_view.values()))),
-            "per_view": per_view, "per_class": per_class, "k": k, "vote": vote, "pred": pred.numpy()}
+    unscored = {name(c): int(np.count_nonzero(~scored & (labels == c))) for c in np.unique(labels[~scored])}
+    if len(np.unique(labels[scored])) < 2:  # one scored class: each fold's vote is all but always right
+        raise InputError("view-level leave-one-out scores only classes seen in two or more views and needs two of them "
+                         f"to tell apart; these patches have {len(np.unique(labels[scored]))}")
+    correct = (pred.numpy() == labels) & scored
+    per_view = {int(v): float(correct[views == v].sum() / scored[views == v].sum())
+                for v in uniq if scored[views == v].any()}
+    per_class = {name(c): float(correct[labels == c].mean()) for c in np.unique(labels[scored])}
+    return {"overall": float(correct.sum() / scored.sum()), "mean_per_view": float(np.mean(list(per_view.values()))),
+            "per_view": per_view, "per_class": per_class, "unscored": unscored, "k": k, "vote": vote,
+            "pred": pred.numpy()}
 
 
 def knn_of_views(encoder: torch.nn.Module, views: Sequence, objects: Sequence[str], *, label: str = "object",
@@ -205,11 +215,16 @@ def knn_tables(results: dict[str, dict], *, label: str, ks: Sequence[int], vote:
     """The paper's Table 2 from :func:`knn_of_views` results per run (``{run: result at ks[0]}``, each with
     ``overall_by_k``): accuracy (%) per class, overall and mean per view; with several k, overall against k."""
     runs = list(results)
-    classes = sorted({c for r in results.values() for c in r["per_class"]}, key=str)
+    unscored = sorted({c for r in results.values() for c in r.get("unscored", {})}, key=str)
+    classes = sorted({c for r in results.values() for c in r["per_class"]} | set(unscored), key=str)
     pct = lambda v: f"{100 * v:.2f}"  # noqa: E731
+    note = (f"n/a: {', '.join(map(str, unscored))} in one view only; leaving that view out leaves no patch of its "
+            f"{label} to match, so {'it is' if len(unscored) == 1 else 'they are'} left out of every score"
+            if unscored else "")
     main = Table(f"kNN accuracy (%), k={ks[0]}, {vote} vote, view-level leave-one-out over views {views}",
-                 [label.capitalize(), *runs])
-    main.rows += [[c, *(pct(r["per_class"].get(c, float("nan"))) for r in results.values())] for c in classes]
+                 [label.capitalize(), *runs], note=note)
+    main.rows += [[c, *("n/a" if c not in r["per_class"] else pct(r["per_class"][c]) for r in results.values())]
+                  for c in classes]
     main.rows.append(["**overall**", *(pct(r["overall"]) for r in results.values())])
     main.rows.append(["**mean per view**", *(pct(r["mean_per_view"]) for r in results.values())])
     tables = [main]

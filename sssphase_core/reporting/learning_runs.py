@@ -149,8 +149,9 @@ def run_pretrain(opts: PretrainOptions, report: Report = Report(), *,
     ds = PatchDataset(vds, p.patch, names)
     check_batch(opts.batch_size, ds, "training patches")
     if opts.knn_monitor and knn_monitor_indices(ds, opts.knn_monitor, opts.seed) is None:
-        report.say("note: the kNN monitor is off: it needs two views (leave one view out) and two objects (a "
-                   "one-object vote is always right)")
+        report.say(f"{report.style('note:', 'note')} the kNN monitor is off: it leaves one view out, so it needs two "
+                   "objects each seen in two or more views (an object's only view left out leaves nothing of it to "
+                   "match, and a one-object vote is always right)")
     if opts.warmup_epochs >= opts.epochs:
         report.say(f"{report.style('note:', 'note')} --warmup-epochs {opts.warmup_epochs:g} is not shorter than --epochs "
                    f"{opts.epochs}: the learning rate rises for the whole run, to about {opts.epochs / opts.warmup_epochs:.2g}"
@@ -376,12 +377,18 @@ def _check_knn_data(vds: Sequence[Any], label: str, ks: Sequence[int]) -> None:
     import numpy as np
 
     n_patches = sum(len(v.pixels) for v in vds)
-    classes = (set(v.object for v in vds) if label == "object"
-               else {int(m) for v in vds for m in np.unique(v.materials) if m >= 0})
+    seen = {(c, v.view) for v in vds
+            for c in ([v.object] if label == "object" else [int(m) for m in np.unique(v.materials) if m >= 0])}
+    classes = {c for c, _ in seen}
     if len(classes) < 2:  # every patch would get the one label: 100% that measures nothing
         raise InputError(f"kNN by {label} needs two or more {label}s to tell apart; the views read hold "
                          + (f"only {', '.join(map(str, sorted(classes)))}" if classes else "no material labels (sessions "
                             "without ground truth: use --label object)"))
+    scored = sorted({c for c in classes if sum(1 for cc, _ in seen if cc == c) > 1}, key=str)
+    if len(scored) < 2 and len({v for _, v in seen}) > 1:  # the held-out view of a one-view class has none of it to match
+        raise InputError(f"kNN leaves one view out, so it scores only {label}s seen in two or more views, and needs two "
+                         f"of them to tell apart; of the views read, {' and '.join(map(str, scored)) or 'none'} has two or more: capture "
+                         "more views (`sss capture --views 2`) or pass --views with views every object has")
     per_view: dict[int, int] = {}
     for v in vds:  # leave-one-view-out: the patches of one view index are the queries, the others the database
         per_view[v.view] = per_view.get(v.view, 0) + len(v.pixels)

@@ -174,6 +174,9 @@ def _knn_section(result: dict[str, Any]) -> str:
     if start is not None:
         note += (" Initial encoder: the same table for the encoder pretraining started from (its seeded random "
                  "initialisation), the baseline measured in the same run.")
+    if result.get("unscored"):
+        note += (f" Not scored: {', '.join(map(str, result['unscored']))}, in one view only (leaving that view out "
+                 "leaves nothing of it to match).")
     return html_table(header, rows) + f"<p class='note'>{note}</p>"
 
 

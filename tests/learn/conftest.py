@@ -51,6 +51,6 @@ def pretrained(dataset, tiny, tmp_path_factory):
 
 @pytest.fixture
 def one_and_three_sessions(synthetic):
-    """``make(root, footprints=False)``: sessions 'one' (view 0) and 'three' (views 0, 2, 5) made of a synthetic
-    view (with its footprint crops when asked), under ``root``."""
-    return lambda root, footprints=False: synthetic_sessions(root, synthetic, footprints)
+    """``make(root, footprints=False, views_of=None)``: sessions 'one' (view 0) and 'three' (views 0, 2, 5) (or
+    ``views_of``: {name: views}) made of a synthetic view (with its footprint crops when asked), under ``root``."""
+    return lambda root, footprints=False, views_of=None: synthetic_sessions(root, synthetic, footprints, views_of)

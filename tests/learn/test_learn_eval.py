@@ -46,6 +46,18 @@ def test_knn_never_uses_patches_of_the_held_out_view():
     assert res["overall"] < 1.0
 
 
+def test_an_object_seen_in_one_view_is_left_out_of_the_scores_not_counted_wrong():
+    # z is only in view 0: leaving view 0 out leaves no z to match, whatever the embedding
+    emb, labels, views = clusters()
+    views = np.where(labels == 2, 0, views)
+    res = knn_leave_one_view_out(emb, labels, views, k=5, class_names=["x", "y", "z"])
+    assert res["unscored"] == {"z": int((labels == 2).sum())} and set(res["per_class"]) == {"x", "y"}
+    assert res["overall"] == 1.0 and res["mean_per_view"] == 1.0  # z's patches neither counted wrong nor right
+    for one_view_each in (labels, np.where(labels == 2, views, labels)):  # no class, or one, in two or more views
+        with pytest.raises(InputError, match="scores only classes seen in two or more views and needs two"):
+            knn_leave_one_view_out(emb, labels, one_view_each, k=5)
+
+
 def test_overall_and_mean_per_view_accuracy_differ_with_unequal_views():
     emb, labels, views = clusters(noise=2.0, seed=1)
     views = np.where(np.arange(len(views)) < 40, 0, 1 + views % 3)
@@ -156,7 +168,10 @@ def test_knn_and_footprint_tables_are_built_in_core():
     other = {**run, "per_class": {"apple": 0.25}, "overall": 0.125}
     main, by_k = knn_tables({"psp": run, "imagenet": other}, label="object", ks=[5, 1], vote="majority", views="0,1")
     assert main.columns == ["Object", "psp", "imagenet"]
-    assert main.rows[0] == ["apple", "50.00", "25.00"] and main.rows[1][2] == "nan"  # star unseen by the second run
+    assert main.rows[0] == ["apple", "50.00", "25.00"] and main.rows[1][2] == "n/a"  # star unseen by the second run
+    assert not main.note
+    one_view = knn_tables({"psp": {**run, "unscored": {"soap": 40}}}, label="object", ks=[5], vote="majority", views="0,1")[0]
+    assert one_view.rows[1] == ["soap", "n/a"] and "soap in one view only" in one_view.note
     assert main.rows[2] == ["**overall**", "75.00", "12.50"] and by_k.rows == [[5, "75.00", "75.00"], [1, "80.00", "80.00"]]
     assert knn_tables({"psp": run}, label="material", ks=[5], vote="weighted", views="0")[0].columns[0] == "Material"
     res = {"soap": {"torch": {"mse": 2e-5, "psnr": 47.0, "ssim": 0.9912}, "analytic": {"mse": 1e-4, "psnr": 40.0, "ssim": 0.5}}}

@@ -165,6 +165,8 @@ def test_knn_monitor_is_logged_every_epoch_and_measures_the_right_patches(pretra
     assert knn_monitor_indices(one_view, 100, seed=0) is None  # leave-one-view-out needs two views
     one_object = PatchDataset([v for v in dataset.views if v.object == "a"], 16, ["a", "b"])
     assert knn_monitor_indices(one_object, 100, seed=0) is None  # a one-class vote is always right (it read 100%)
+    crossed = PatchDataset([v for v in dataset.views if (v.object, v.view) in (("a", 0), ("b", 1))], 16, ["a", "b"])
+    assert knn_monitor_indices(crossed, 100, seed=0) is None  # two views, two objects, but no object in both views
 
 
 def test_knn_monitor_starts_from_the_initial_encoder_measured_in_the_same_run(pretrained, dataset, tiny, tmp_path):

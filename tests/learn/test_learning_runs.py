@@ -148,7 +148,7 @@ def test_an_empty_run_folder_names_both_checkpoints_it_looked_for(tmp_path):
 def test_run_pretrain_checks_the_config_before_the_data_and_saves_it_before_training(synthetic, tmp_path):
     from sssphase_core.reporting.learning_runs import PretrainOptions, run_pretrain
 
-    root = synthetic_sessions(tmp_path / "sessions", synthetic)
+    root = synthetic_sessions(tmp_path / "sessions", synthetic, views_of={"one": [0, 2], "three": [0, 2, 5]})
     out = tmp_path / "run"
     calls: list[tuple[str, bool]] = []
 
@@ -172,17 +172,31 @@ def test_run_pretrain_checks_the_config_before_the_data_and_saves_it_before_trai
     assert result.checkpoint == out / "last.pt" and result.checkpoint.exists()
     assert [r["epoch"] for r in result.rows] == [1] and 0 <= result.rows[0]["knn_acc"] <= 1
     assert result.figures == [out / "knn_vs_time.png"] and result.figures[0].exists()
-    assert said.lines[0] == f"data: captured sessions under {root}: one view 0; three view 0,2,5"
+    assert said.lines[0] == f"data: captured sessions under {root}: one view 0,2; three view 0,2,5"
     assert said.lines[1].startswith("<note>note:</note> --warmup-epochs 1 is not shorter than --epochs 1")
-    assert said.lines[2] == (f"pretraining <strong>lite</strong> on 32 patches of one, three -> {out} "
+    assert said.lines[2] == (f"pretraining <strong>lite</strong> on 40 patches of one, three -> {out} "
                              f"(options in {out / 'options.toml'})")
     first = result.rows[0]
+    assert not any("monitor is off" in line for line in said.lines)
     trail = next(line for line in said.lines if line.startswith("kNN monitor"))
     assert trail == (f"kNN monitor (% per epoch, training patches): initial encoder {100 * first['knn_initial']:.1f} -> "
                      f"{100 * first['knn_acc']:.1f}; plot {out / 'knn_vs_time.png'}")
     below = [line for line in said.lines if "never raised the kNN monitor above" in line]
     assert len(below) == (first["knn_acc"] < first["knn_initial"])  # said exactly when training lost to the start
     assert said.lines[-1] == f"<done>done</done>: {out / 'last.pt'}"
+
+
+def test_the_knn_monitor_is_off_and_says_so_when_only_one_object_has_two_views(synthetic, tmp_path):
+    """'one' (view 0) left out had nothing of it to match: the monitor scored it 0% at every epoch."""
+    from sssphase_core.reporting.learning_runs import PretrainOptions, run_pretrain
+
+    said = Said()
+    result = run_pretrain(PretrainOptions(out=tmp_path / "run", sessions=synthetic_sessions(tmp_path / "s", synthetic),
+                                          pixels_per_view=8, batch_size=8, epochs=1, knn_monitor=16, device="cpu"),
+                          said.report())
+    assert "knn_acc" not in result.rows[0]
+    assert any("the kNN monitor is off: it leaves one view out, so it needs two objects each seen in two or more views"
+               in line for line in said.lines), said.lines
 
 
 def test_run_pretrain_refuses_a_batch_larger_than_the_data_before_the_run_folder(synthetic, tmp_path):
@@ -235,7 +249,7 @@ def test_check_against_baselines_without_sessions_says_so():
 def test_evaluate_knn_returns_the_results_and_tables_it_measured(synthetic, tiny, tmp_path):
     from sssphase_core.reporting.learning_runs import KnnOptions, evaluate_knn
 
-    root = synthetic_sessions(tmp_path / "sessions", synthetic)
+    root = synthetic_sessions(tmp_path / "sessions", synthetic, views_of={"one": [0], "two": [0, 2], "three": [0, 2, 5]})
     _decoder_checkpoint(tmp_path / "enc.pt", tiny)
     said = Said()
     ev = evaluate_knn(KnnOptions(checkpoints=[f"fresh={tmp_path / 'enc.pt'}"], sessions=root, pixels_per_view=8, k="1,3"),
@@ -244,10 +258,13 @@ def test_evaluate_knn_returns_the_results_and_tables_it_measured(synthetic, tiny
     assert ev.payload["k"] == 1 and ev.payload["views"] == "0,2,5" and ev.payload["label"] == "object"
     assert set(res["overall_by_k"]) == {1, 3} and res["overall_by_k"][1] == res["overall"]
     assert 0 <= res["overall"] <= 1
-    assert said.statuses == [f"reading sessions under {root}", "embedding 32 patches with fresh"]
+    assert said.statuses == [f"reading sessions under {root}", "embedding 48 patches with fresh"]
     assert "| three |" in ev.markdown() and "against k" in ev.markdown()
-    with pytest.raises(InputError, match=r"--k 16 is not smaller than the 16 patches .*\(32 read, 16 of them in one view\)"):
-        evaluate_knn(KnnOptions(checkpoints=[str(tmp_path / "enc.pt")], sessions=root, pixels_per_view=8, k="16"),
+    # 'one' is in view 0 only: leaving view 0 out leaves none of it to match, so it is not scored (it read 0%)
+    assert set(res["per_class"]) == {"two", "three"} and res["unscored"] == {"one": 8}
+    assert "| one | n/a |" in ev.markdown() and "one in one view only" in ev.markdown()
+    with pytest.raises(InputError, match=r"--k 24 is not smaller than the 24 patches .*\(48 read, 24 of them in one view\)"):
+        evaluate_knn(KnnOptions(checkpoints=[str(tmp_path / "enc.pt")], sessions=root, pixels_per_view=8, k="24"),
                      said.report())
     with pytest.raises(InputError, match="the views read are all view 0, so no patch has another view"):  # was: lower --k
         evaluate_knn(KnnOptions(checkpoints=[str(tmp_path / "enc.pt")], sessions=root, pixels_per_view=8, k="1",
@@ -255,6 +272,11 @@ def test_evaluate_knn_returns_the_results_and_tables_it_measured(synthetic, tiny
     with pytest.raises(InputError, match="needs two or more objects to tell apart; the views read hold only three"):
         evaluate_knn(KnnOptions(checkpoints=[str(tmp_path / "enc.pt")], sessions=root / "three", pixels_per_view=8,
                                 k="1"), said.report())
+    lone = synthetic_sessions(tmp_path / "lone", synthetic)  # 'one' in view 0, 'three' in views 0, 2, 5
+    with pytest.raises(InputError, match="scores only objects seen in two or more views, and needs two of them to tell "
+                                         "apart; of the views read, three has two or more"):
+        evaluate_knn(KnnOptions(checkpoints=[str(tmp_path / "enc.pt")], sessions=lone, pixels_per_view=8, k="1"),
+                     said.report())
 
 
 def test_evaluate_footprints_measures_each_backend_and_plots_it(synthetic, tiny, tmp_path):

@@ -156,6 +156,7 @@ def test_eval_knn_reads_a_session_folder_given_as_sessions(one_and_three_session
                                   "--pixels-per-view", "8", "--k", "1", "--label", label, "--out", str(tmp_path / "knn.json")])
         assert isinstance(res.exception, InputError) and why in str(res.exception), res.output
     assert not (tmp_path / "knn.json").exists()
+    root = one_and_three_sessions(tmp_path / "both", views_of={"two": [0, 2], "three": [0, 2, 5]})
     res = runner.invoke(app, ["eval", "knn", "--checkpoint", f"fresh={ckpt}", "--sessions", str(root),
                               "--pixels-per-view", "8", "--k", "1", "--out", str(tmp_path / "knn.json")],
                         catch_exceptions=False)
@@ -175,10 +176,11 @@ def test_a_batch_or_k_larger_than_the_data_is_refused_before_the_run_folder_is_w
     ckpt = tmp_path / "enc.pt"
     _decoder_checkpoint(ckpt, tiny)
     # a k the smallest leave-one-view-out database cannot give was clamped to it and reported as given
-    with pytest.raises(InputError, match=r"--k 16 is not smaller than the 16 patches of the smallest leave-one-view-out "
-                                         r"database \(32 read, 16 of them in one view\)"):
-        runner.invoke(app, ["eval", "knn", "--checkpoint", str(ckpt), "--sessions", str(root), "--pixels-per-view", "8",
-                            "--k", "5,16", "--out", str(tmp_path / "knn.json")], catch_exceptions=False)
+    both = one_and_three_sessions(tmp_path / "both", views_of={"two": [0, 2], "three": [0, 2, 5]})
+    with pytest.raises(InputError, match=r"--k 24 is not smaller than the 24 patches of the smallest leave-one-view-out "
+                                         r"database \(40 read, 16 of them in one view\)"):
+        runner.invoke(app, ["eval", "knn", "--checkpoint", str(ckpt), "--sessions", str(both), "--pixels-per-view", "8",
+                            "--k", "5,24", "--out", str(tmp_path / "knn.json")], catch_exceptions=False)
     assert not (tmp_path / "knn.json").exists()
 
 

@@ -86,6 +86,17 @@ def test_the_report_says_how_finely_its_analytic_footprints_were_integrated(tmp_
     assert "integrates" not in _relight_section({"rows": rows[:2], "skipped": {}, "analytic_supersample": 2}, tmp_path)
 
 
+def test_the_reports_knn_table_names_the_objects_it_could_not_score():
+    """An object of one view has nothing of it left when that view is left out: it read 0% and pulled the overall
+    figure down; it is now left out of the scores, and the report says which and why."""
+    from sssphase_core.reporting.report import _knn_section
+
+    result = {"per_class": {"apple": 0.9, "star": 0.8}, "overall": 0.85, "mean_per_view": 0.85, "k": 20, "vote": "majority"}
+    assert "Not scored" not in _knn_section(result)
+    page = _knn_section({**result, "unscored": {"pear": 40, "soap": 40}})
+    assert "Not scored: pear, soap, in one view only" in page and ">pear<" not in page
+
+
 def test_every_backend_in_the_error_against_run_time_plot_has_a_colour_of_its_own():
     """The blend was drawn in the torch backend's blue (matplotlib's cycle restarted for a backend without a colour)."""
     from sssphase_core.reporting.report import backend_colours
