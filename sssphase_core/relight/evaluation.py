@@ -142,7 +142,8 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     t0 = time.perf_counter()
     calibrate = bool(options.pop("calibrate", True)) and backend not in MODEL_FREE
     # relight_view's: the calibration may widen the footprints too (by default as `sss relight` does for the backend)
-    widen = widen_for(backend, options.pop("widen", None)) if calibrate else None
+    asked_widen = options.pop("widen", None)  # never a backend's option (it was passed on without the calibration)
+    widen = widen_for(backend, asked_widen) if calibrate else None
     sources = make_sources(backend, rv, checkpoint=checkpoint, device=device, **options)
     caches = footprint_caches(rv, backend, sources, Path(out_dir), checkpoint) if cache and not options else []
     if caches:
@@ -274,6 +275,26 @@ def metrics_table(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend"
 
 
 BASELINES = ("none", "analytic")
+
+
+def training_overlap(checkpoint: Path | str, views: Sequence[tuple[str, int]], *, held_out: bool = True) -> str | None:
+    """The note for an evaluation of ``views`` ((object, view)) with decoder ``checkpoint`` that scores views it was
+    trained on (and, with ``held_out``, other views of its training objects); None when it scores only unseen
+    objects (or the checkpoint predates the record)."""
+    from sssphase_core.learning.training.checkpoints import seen_in_training
+
+    fitted, others = seen_in_training(checkpoint, sorted(set(views)))
+    others = others if held_out else []
+    if not fitted and not others:
+        return None
+    parts = []
+    if fitted:
+        parts.append(f"the decoder was trained on {', '.join(fitted)}: the torch and blend figures there measure how "
+                     "it fits what it saw, not relighting of unseen data")
+    if others:
+        parts.append(f"{', '.join(others)} {'is another view' if len(others) == 1 else 'are other views'} of its "
+                     "training objects, not unseen objects")
+    return "note: " + "; ".join(parts)
 
 
 def baseline_check(sessions: Sequence[Any], checkpoint: Path | str, out_dir: Path | str, *,

@@ -655,6 +655,13 @@ def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BAC
     out, say = Path(out), narrator or Narrator()
     check_output_folder(out)
     backends, checkpoint = _eval_backends(backend, checkpoint, say)
+    if not calibrate:  # both act through the view calibration (a blend failed at its first view, --widen did nothing)
+        if blends := [b for b in backends if b in BLENDS]:
+            raise InputError(f"--no-calibrate: {', '.join(blends)} weights its members by the view calibration, so it "
+                             "needs it: leave out --no-calibrate or that backend")
+        if widen is not None and widen != 1:
+            raise InputError(f"--widen {widen:g} stretches footprints within the view calibration, which "
+                             "--no-calibrate turns off: give one or the other")
     check_device(device)  # one line before any progress is drawn
     found = find_sessions(list(sessions))  # a missing folder is one line before any progress is drawn
     by_object(found, purpose="their results would share names; evaluate them with separate --out folders")
@@ -678,8 +685,15 @@ def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BAC
                                           cache=cache, widen=widen, progress=say.task(f"{rv.object} view {v}: {b}"))
     tables = [metrics_table(rows), metrics_table(rows, by=("object", "backend"), title="Relighting per object")]
     result = EvaluationResult(rows, backends, tables, out / "relight_eval.json", out / "relight_eval.md")
-    write_report({"rows": rows, "aggregate": aggregate(rows), "lpips": lpips_note(), "widen": widths},
-                 tables, result.json, md=result.md,
+    seen = None  # views the decoder was trained on, or of its training objects, scored here
+    if checkpoint is not None and any(uses_decoder(b) for b in backends):
+        from sssphase_core.relight.evaluation import training_overlap
+
+        seen = training_overlap(checkpoint, [(r["object"], r["view"]) for r in rows])
+        if seen:  # in the Markdown file as on the screen
+            tables[0].note = f"{tables[0].note}\n\n{seen}".strip()
+    write_report({"rows": rows, "aggregate": aggregate(rows), "lpips": lpips_note(), "widen": widths,
+                  "training_overlap": seen}, tables, result.json, md=result.md,
                  title="Relighting against reference captures")
     say.say(tables[0].markdown())
     for r in dict.fromkeys((r["object"], r["view"], r["backend"], r["footprints_from_cache"]) for r in rows

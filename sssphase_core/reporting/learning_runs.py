@@ -319,6 +319,10 @@ def check_against_baselines(run: Path, roots: Sequence[Path], views: list[int] |
     where = ", ".join(f"{o} view {v}" for o, v in res["views"])
     figures = ", ".join(f"{b} {psnr:.2f} dB" for b, psnr in res["mean_psnr"].items())
     report.say(f"relit PSNR on {where}: {figures}")
+    from sssphase_core.relight.evaluation import training_overlap
+
+    if seen := training_overlap(run, res["views"], held_out=views is None):  # held-out views: what `views` asked for
+        report.say(seen)
     for b in res["losing_to"]:
         report.say(f"{report.style('warning:', 'warning')} the model relights worse than the {b} baseline "
                    f"({res['mean_psnr']['torch']:.2f} < {res['mean_psnr'][b]:.2f} dB): prefer the baseline, or train on more data")

@@ -276,6 +276,26 @@ def test_decoder_training_keeps_the_encoder_frozen(pretrained, dataset, tmp_path
     assert not enc.training and not dec.training
 
 
+def test_a_decoder_records_what_it_was_trained_on_and_evaluations_say_when_they_score_it(pretrained, dataset, tmp_path):
+    """`sss eval relight` and the training check scored a decoder on the very views it was fitted on as if they were
+    unseen objects, without a word."""
+    from sssphase_core.learning.data import PatchDataset
+    from sssphase_core.learning.training.checkpoints import trained_views
+    from sssphase_core.relight.evaluation import training_overlap
+
+    view_0 = PatchDataset([v for v in dataset.views if v.view == 0], dataset.patch, dataset.classes, with_targets=True)
+    train_decoder(DecoderConfig(epochs=1, batch_size=16, ckpt_every=0), pretrained, view_0, tmp_path / "dec",
+                  progress=False)
+    assert trained_views(tmp_path / "dec") == {"a": [0], "b": [0]}
+    note = training_overlap(tmp_path / "dec", [("a", 0), ("a", 1), ("c", 0), ("a", 0)])
+    assert note == ("note: the decoder was trained on a view 0: the torch and blend figures there measure how it fits "
+                    "what it saw, not relighting of unseen data; a view 1 is another view of its training objects, not "
+                    "unseen objects")
+    assert training_overlap(tmp_path / "dec", [("a", 1)], held_out=False) is None  # the held-out views it was asked for
+    assert training_overlap(tmp_path / "dec", [("c", 0), ("d", 1)]) is None  # unseen objects: nothing to say
+    _, _ = load_decoder(tmp_path / "dec")  # the record is plain data: the checkpoint still loads weights-only
+
+
 @pytest.mark.parametrize("camera_augment", [0.0, 0.5])
 def test_decoder_resume_is_exact(pretrained, dataset, tmp_path, camera_augment):
     cfg = DecoderConfig(epochs=1, batch_size=16, ckpt_every=2, camera_augment=camera_augment)

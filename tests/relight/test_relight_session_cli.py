@@ -659,3 +659,32 @@ def test_a_cache_the_file_system_refuses_costs_its_time_not_the_images(session, 
     assert (out / "sand_rake_v1_checkerboard_analytic.png").is_file()
     assert res.output.count("was not kept") == 2 and "--no-cache keeps none" in res.output  # the footprints, the eigen-footprints
     assert (out / "cache").read_text() == "a file where the cache folder goes"
+
+
+def test_eval_relight_says_when_it_scores_views_the_decoder_was_trained_on(session, tmp_path):
+    """A decoder scored on the views it was fitted on read as relighting of unseen objects, without a word. (With
+    --no-calibrate the decoder itself was an internal error: the calibration's --widen was passed to the backend.)"""
+    import torch
+
+    from sssphase_core.learning.models import Decoder, Encoder, get_preset
+    from sssphase_core.learning.training import save_checkpoint
+
+    preset = get_preset("lite")
+    torch.manual_seed(0)
+    save_checkpoint(tmp_path / "dec.pt", {"kind": "decoder", "preset": preset.to_dict(), "config": {"head": "reciprocal"},
+                                          "encoder": Encoder(preset).state_dict(),
+                                          "decoder": Decoder(preset, head="reciprocal").state_dict(),
+                                          "trained_on": {"sand_rake": [1], "apple": [0, 1]}})
+    res = runner.invoke(app, ["eval", "relight", str(session), "--views", "1", "--backend", "torch", "--checkpoint",
+                              str(tmp_path / "dec.pt"), "--no-calibrate", "--out", str(tmp_path / "e")])
+    assert res.exit_code == 0, res.output
+    said = "the decoder was trained on sand_rake view 1: the torch and blend figures there measure how it fits"
+    assert said in res.output and said in (tmp_path / "e" / "relight_eval.md").read_text()
+    assert said in json.loads((tmp_path / "e" / "relight_eval.json").read_text())["training_overlap"]
+    for extra, said in ((["--backend", "blend"], "--no-calibrate: blend weights its members by the view calibration"),
+                        (["--backend", "torch", "--widen", "1.5"], "--widen 1.5 stretches footprints within the view "
+                                                                      "calibration, which --no-calibrate turns off")):
+        res = runner.invoke(app, ["eval", "relight", str(session), "--views", "1", *extra, "--checkpoint",
+                                  str(tmp_path / "dec.pt"), "--no-calibrate", "--out", str(tmp_path / "refused")])
+        assert res.exit_code != 0 and said in str(res.exception), res.output  # before any work (a blend: at its view)
+        assert not (tmp_path / "refused").exists()

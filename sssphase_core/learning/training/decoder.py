@@ -225,12 +225,16 @@ def train_decoder(
         return validate_decoder(enc, dec, val, cfg.val_samples, cfg.batch_size, d.device, cfg.log_eps or LOG_EPS,
                                 cfg.capture_model)
 
+    trained_on: dict[str, list[int]] = {}  # what its footprints were fitted on: evaluations say when they score it
+    for v in dataset.views:
+        trained_on[v.object] = sorted({*trained_on.get(v.object, []), int(v.view)})
+
     def save() -> None:
         if d.main:
             save_checkpoint(out_dir / CHECKPOINT, {
                 "kind": "decoder", "preset": p.to_dict(), "config": config_dict(cfg),
                 "encoder": enc.state_dict(), "decoder": dec.state_dict(),
-                "optimizer": opt.state_dict(), "loop": loop.state(), "domain": domain,
+                "optimizer": opt.state_dict(), "loop": loop.state(), "domain": domain, "trained_on": trained_on,
             })
 
     loop.run(step, end_epoch, save, progress=progress)
