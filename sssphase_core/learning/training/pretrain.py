@@ -88,12 +88,13 @@ def knn_monitor_indices(dataset: PatchDataset, n: int, seed: int) -> np.ndarray 
     """A fixed, seeded subset of the training patches for the kNN monitor (None: off, or nothing to monitor:
     fewer than two objects seen in two or more views (leaving out the only view of an object leaves nothing of it
     to match, and a one-class vote is always right))."""
-    objects, views = dataset.labels("object").astype(np.int64), dataset.labels("view").astype(np.int64)
-    span = int(views.max(initial=0)) + 1
-    object_of_each_view = np.unique(objects * span + views) // span  # one entry per (object, view) pair
-    if n <= 0 or np.count_nonzero(np.bincount(object_of_each_view) > 1) < 2:
+    if n <= 0:
         return None
-    return np.sort(np.random.default_rng(seed + 7).permutation(len(dataset))[:n])
+    idx = np.sort(np.random.default_rng(seed + 7).permutation(len(dataset))[:n])
+    objects, views = dataset.labels("object")[idx].astype(np.int64), dataset.labels("view")[idx].astype(np.int64)
+    span = int(views.max(initial=0)) + 1
+    object_of_each_view = np.unique(objects * span + views) // span  # one entry per (object, view) pair of the subset
+    return idx if np.count_nonzero(np.bincount(object_of_each_view) > 1) >= 2 else None
 
 
 @torch.no_grad()
