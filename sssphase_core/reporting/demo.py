@@ -267,7 +267,11 @@ class Demo:
                 self.log(f"  relit {rv.object} with {b}")
         for r in rows:
             r["figure"] = str(Path(r["figure"]).relative_to(self.report_dir))
-        return {"rows": rows, "skipped": skipped, "analytic_supersample": self.cfg.analytic_supersample}
+        from sssphase_core.relight.evaluation import training_overlap
+
+        seen = training_overlap(ckpt, [(r["object"], r["view"]) for r in rows]) if ckpt is not None else None
+        return {"rows": rows, "skipped": skipped, "analytic_supersample": self.cfg.analytic_supersample,
+                "training_overlap": seen}
 
     def footprints(self) -> dict[str, Any]:
         """The paper's Table 1: footprint MSE / PSNR / SSIM on sampled pixels of the unseen objects."""

@@ -111,6 +111,8 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
     body.append(["mean"] + [v for b in backends for v in (means[b]["psnr"], means[b]["ssim"])])
     parts.append("<h3>Relit images against the ground truth (paper-style table)</h3>")
     parts.append(html_table(cols, body))
+    if result.get("training_overlap"):  # views the decoder was trained on: not unseen objects
+        parts.append(f"<p class='note'>{_esc(result['training_overlap'])}</p>")
     for key, heading, note in (
             ("psnr_interior", "Relit images against the ground truth, away from the silhouette",
              "PSNR on the object mask less the 2 px next to its edge: there a camera mixes object and background "

@@ -84,6 +84,10 @@ def test_the_report_says_how_finely_its_analytic_footprints_were_integrated(tmp_
     page = _relight_section({"rows": rows, "skipped": {}, "analytic_supersample": 2}, tmp_path)
     assert "integrates each footprint pixel at 2 × 2 points here" in page
     assert "integrates" not in _relight_section({"rows": rows[:2], "skipped": {}, "analytic_supersample": 2}, tmp_path)
+    seen = "note: the decoder was trained on crab view 0: the torch and blend figures there measure how it fits"
+    assert seen in _relight_section({"rows": rows, "skipped": {}, "analytic_supersample": 2, "training_overlap": seen},
+                                    tmp_path)
+    assert "trained on" not in page  # (a decoder of unseen objects, or none)
 
 
 def test_the_reports_knn_table_names_the_objects_it_could_not_score():
