@@ -53,6 +53,15 @@ def knn_predict(query: torch.Tensor, db: torch.Tensor, db_labels: torch.Tensor, 
     return torch.cat(preds)
 
 
+def scorable_classes(labels: np.ndarray, views: np.ndarray) -> np.ndarray:
+    """The classes of ``labels`` (N,) non-negative ints with patches in two or more of ``views`` (N,): the only
+    ones view-level leave-one-out can score (an object's only view left out leaves nothing of it to match)."""
+    labels, views = np.asarray(labels, np.int64), np.asarray(views, np.int64)
+    span = int(views.max(initial=0)) + 1
+    class_of_each_view = np.unique(labels * span + views) // span  # one entry per (class, view) pair
+    return np.flatnonzero(np.bincount(class_of_each_view) > 1)
+
+
 def knn_leave_one_view_out(embeddings: np.ndarray, labels: np.ndarray, views: np.ndarray, *, k: int = 20,
                            vote: str = "majority", class_names: Sequence[str] | None = None) -> dict:
     """View-level leave-one-out: all patches of one view are queries, the other views the database.
@@ -70,11 +79,10 @@ def knn_leave_one_view_out(embeddings: np.ndarray, labels: np.ndarray, views: np
         raise InputError("view-level leave-one-out needs patches from at least two views")
     n_classes = int(lab.max()) + 1
     pred = torch.empty_like(lab)
-    scored = np.zeros(len(labels), bool)
     for v in uniq:
         q = views == v
         pred[torch.as_tensor(q)] = knn_predict(emb[q], emb[~q], lab[~q], n_classes, k, vote)
-        scored[q] = np.isin(labels[q], labels[~q])
+    scored = np.isin(labels, scorable_classes(labels, views))
     name = (lambda c: class_names[c]) if class_names is not None else (lambda c: int(c))
     unscored = {name(c): int(np.count_nonzero(~scored & (labels == c))) for c in np.unique(labels[~scored])}
     if len(np.unique(labels[scored])) < 2:  # one scored class: each fold's vote is all but always right

@@ -281,10 +281,11 @@ def training_overlap(checkpoint: Path | str, views: Sequence[tuple[str, int]], *
     """The note for an evaluation of ``views`` ((object, view)) with decoder ``checkpoint`` that scores views it was
     trained on (and, with ``held_out``, other views of its training objects); None when it scores only unseen
     objects (or the checkpoint predates the record)."""
-    from sssphase_core.learning.training.checkpoints import seen_in_training
+    from sssphase_core.learning.training.checkpoints import trained_views
 
-    fitted, others = seen_in_training(checkpoint, sorted(set(views)))
-    others = others if held_out else []
+    trained, views = trained_views(checkpoint), sorted(set(views))
+    fitted = [f"{o} view {v}" for o, v in views if v in trained.get(o, ())]
+    others = [f"{o} view {v}" for o, v in views if held_out and o in trained and v not in trained[o]]
     if not fitted and not others:
         return None
     parts = []

@@ -3,7 +3,7 @@ last checkpoint, and the encoder and decoder they hold."""
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
 
@@ -128,15 +128,6 @@ def trained_views(path: Path | str) -> dict[str, list[int]]:
         return {}
     return {str(o): [int(v) for v in views] for o, views in record.items()
             if isinstance(o, str) and isinstance(views, list) and all(type(v) is int for v in views)}
-
-
-def seen_in_training(path: Path | str, views: Sequence[tuple[str, int]]) -> tuple[list[str], list[str]]:
-    """Of ``views`` ((object, view) pairs evaluated with decoder ``path``): those it was trained on, and those of
-    its training objects that it was not, each as "object view N"."""
-    trained = trained_views(path)
-    fitted = [f"{o} view {v}" for o, v in views if v in trained.get(o, ())]
-    held_out = [f"{o} view {v}" for o, v in views if o in trained and v not in trained[o]]
-    return fitted, held_out
 
 
 def decoder_patch(encoder_ckpt: Path | str | None, preset: str | ModelPreset) -> int:

@@ -225,9 +225,8 @@ def train_decoder(
         return validate_decoder(enc, dec, val, cfg.val_samples, cfg.batch_size, d.device, cfg.log_eps or LOG_EPS,
                                 cfg.capture_model)
 
-    trained_on: dict[str, list[int]] = {}  # what its footprints were fitted on: evaluations say when they score it
-    for v in dataset.views:
-        trained_on[v.object] = sorted({*trained_on.get(v.object, []), int(v.view)})
+    # what its footprints were fitted on ({object: views}): evaluations say when they score it
+    trained_on = {o: sorted({int(v.view) for v in dataset.views if v.object == o}) for o in {v.object for v in dataset.views}}
 
     def save() -> None:
         if d.main:

@@ -90,11 +90,10 @@ def knn_monitor_indices(dataset: PatchDataset, n: int, seed: int) -> np.ndarray 
     to match, and a one-class vote is always right))."""
     if n <= 0:
         return None
+    from sssphase_core.learning.evaluation import scorable_classes
+
     idx = np.sort(np.random.default_rng(seed + 7).permutation(len(dataset))[:n])
-    objects, views = dataset.labels("object")[idx].astype(np.int64), dataset.labels("view")[idx].astype(np.int64)
-    span = int(views.max(initial=0)) + 1
-    object_of_each_view = np.unique(objects * span + views) // span  # one entry per (object, view) pair of the subset
-    return idx if np.count_nonzero(np.bincount(object_of_each_view) > 1) >= 2 else None
+    return idx if len(scorable_classes(dataset.labels("object")[idx], dataset.labels("view")[idx])) >= 2 else None
 
 
 @torch.no_grad()
