@@ -54,6 +54,15 @@ def widen_for(backend: str, widen: float | None) -> float | None:
     return None if widen == 1 else float(widen)
 
 
+def unused_widen_note(backends: Sequence[str], widen: float | None) -> str | None:
+    """The note that ``--widen`` has no effect, where it is given and every one of ``backends`` is data, not a model
+    (:data:`MODEL_FREE`: never calibrated, so nothing is stretched); None otherwise."""
+    if widen is None or any(b not in MODEL_FREE for b in backends):
+        return None
+    return (f"note: --widen is not used by --backend {','.join(backends)} (its footprints are data, not a model: "
+            "the view calibration that stretches them does not run)")
+
+
 def uses_decoder(name: str) -> bool:
     """Whether backend ``name`` runs the decoder (``torch``, or a blend with it): it needs a checkpoint."""
     return name == "torch" or "torch" in BLENDS.get(name, ())

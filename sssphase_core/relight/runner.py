@@ -34,6 +34,7 @@ from sssphase_core.relight.choices import (
     WIDEN_MEMBERS,
     check_backends,
     needs_checkpoint,
+    unused_widen_note,
     uses_decoder,
     widen_for,
 )
@@ -348,6 +349,8 @@ def relight_session(session: Path | str | Session, patterns: Sequence[str], *, b
     chosen_formats = _check_relight_options(out, patterns, resize, formats, device)
     auto = backend == "auto"
     backend, ckpt = resolve_backend(backend, checkpoint, say)
+    if note := unused_widen_note([backend], widen):
+        say.say(note)
     widen = widen_for(backend, widen) if backend not in MODEL_FREE else None
     s = session if isinstance(session, Session) else Session.open(session)
     check_decoder_fits(ckpt, [backend], [s])
@@ -662,6 +665,8 @@ def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BAC
         if widen is not None and widen != 1:
             raise InputError(f"--widen {widen:g} stretches footprints within the view calibration, which "
                              "--no-calibrate turns off: give one or the other")
+    if note := unused_widen_note(backends, widen):
+        say.say(note)
     check_device(device)  # one line before any progress is drawn
     found = find_sessions(list(sessions))  # a missing folder is one line before any progress is drawn
     by_object(found, purpose="their results would share names; evaluate them with separate --out folders")

@@ -100,6 +100,27 @@ def test_relight_session_checks_its_input_before_any_work(session, tmp_path):
     assert not any((tmp_path / n).exists() and any((tmp_path / n).glob("*.png")) for n in "abcde")
 
 
+def test_options_a_backend_does_not_use_are_noted_not_silently_dropped(session, tmp_path):
+    """--checkpoint and --widen with backends that are data, not a model (never calibrated): one note each, and the
+    images are those of the run without them."""
+    run = _tiny_decoder(tmp_path / "run")
+    said = Recorder()
+    res = relight_session(session, ["checkerboard"], backend="none", widen=2.0, checkpoint=run, out=tmp_path / "a",
+                          narrator=said)
+    notes = [t for t, _ in said.lines if t.startswith("note:")]
+    assert notes == ["note: --checkpoint is not used by --backend none",
+                     "note: --widen is not used by --backend none (its footprints are data, not a model: the view "
+                     "calibration that stretches them does not run)"]
+    plain = relight_session(session, ["checkerboard"], backend="none", out=tmp_path / "b")
+    assert res.images[0].metrics == plain.images[0].metrics
+    said = Recorder()
+    evaluate_sessions([session], backend="none", widen=2.0, out=tmp_path / "c", narrator=said)
+    assert "note: --widen is not used by --backend none" in said.text()
+    said = Recorder()  # one backend of several that uses it: the widening line names it, no note
+    evaluate_sessions([session], backend="none,analytic", widen=2.0, out=tmp_path / "d", narrator=said)
+    assert "is not used" not in said.text() and "calibration (analytic): the analytic footprints join" in said.text()
+
+
 def test_geometry_session_writes_and_scores_the_corrected_points(session, tmp_path):
     said = Recorder()
     (geo,) = geometry_session(session, backend="exact", out=tmp_path, narrator=said)
