@@ -128,19 +128,26 @@ def geometry_cmd(
     out: OutOpt = Path("geometry"),
     views: ViewsOpt = "",
     device: DeviceOpt = "cpu",
+    calibration: Annotated[Path | None, typer.Option(help="The rig's camera-projector calibration, an OpenCV YAML, XML "
+                                                     "or JSON file (cam_K, cam_kc, proj_K, proj_kc, R, T as "
+                                                     "projector-camera calibration writes them, or K1, D1, K2, D2, R, "
+                                                     "T), to triangulate 3D points (default: a simulated session's "
+                                                     "own rig).")] = None,
 ) -> None:
     """Projector points for 3D: the decoded correspondences minus the shift that subsurface scattering
-    gives them (light re-emerges displaced), predicted from the backend's footprints.
+    gives them (light re-emerges displaced), predicted from the backend's footprints, and the 3D points.
 
     Writes OUT/<object>/view_NNN/correspondence_for_geometry.npz: xp, yp (for triangulation), the
     decoded xp_decoded, yp_decoded (where light re-emerges: what relighting uses), shift_x, shift_y
-    and mask. On a simulated session both maps are also scored against the exact correspondences.
+    and mask. With a calibration (a simulated session has its own), also points and points_decoded
+    (H x W x 3, the calibration's unit) and points.ply, the corrected points coloured by the white
+    capture. On a simulated session both are also scored against the exact ones.
     Only footprints that carry the skew of oblique incidence remove the bias along the baseline; the
     analytic model's are radially symmetric and correct silhouettes and material edges only."""
     from sssphase_core.relight.runner import geometry_session
 
     geometry_session(session, backend=backend, checkpoint=checkpoint, out=out, views=views, device=device,
-                     narrator=_Narrator())
+                     calibration=calibration, narrator=_Narrator())
 
 
 def eval_relight(

@@ -577,6 +577,32 @@ def test_sss_report_on_a_users_own_session(handmade, tmp_path):
     assert bad.returncode == 2 and "view 3 is not complete" in bad.stderr and "Traceback" not in bad.stderr
 
 
+def test_geometry_of_an_imported_session_triangulates_only_with_the_rigs_calibration(handmade, tmp_path):
+    """Without --calibration, `sss geometry` says how to get points and writes none; with a calibration file of
+    another rig (the simulated one's, for this hand-made camera = projector mapping) it writes them and says that
+    the rays miss each other, with the question to ask."""
+    from sssphase_core.sim import rig_preset, stereo_calibration
+
+    res = run_sss(["geometry", str(handmade.path), "--out", str(tmp_path / "g")], timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "note: no points triangulated: give --calibration FILE" in res.stdout
+    folder = tmp_path / "g" / "handmade" / "view_000"
+    assert "points" not in np.load(folder / "correspondence_for_geometry.npz").files and not (folder / "points.ply").exists()
+    c = stereo_calibration(rig_preset("cpu"))
+    calibration = tmp_path / "calibration.yml"
+    fs = cv2.FileStorage(str(calibration), cv2.FILE_STORAGE_WRITE)
+    for name, value in (("cam_K", c.camera_matrix), ("proj_K", c.projector_matrix), ("R", c.rotation), ("T", c.translation)):
+        fs.write(name, value)
+    fs.release()
+    res = run_sss(["geometry", str(handmade.path), "--calibration", str(calibration), "--out", str(tmp_path / "h")], timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "rays miss each other by" in res.stdout and "is the calibration this rig's" in res.stdout, res.stdout
+    assert (tmp_path / "h" / "handmade" / "view_000" / "points.ply").exists() and "the calibration's unit" in res.stdout
+    bad = run_sss(["geometry", str(handmade.path), "--calibration", str(tmp_path), "--out", str(tmp_path / "i")], timeout=120)
+    assert bad.returncode == 2 and "a folder, not a calibration file" in bad.stderr and "Traceback" not in bad.stderr
+    assert not (tmp_path / "i").exists()  # refused before any work
+
+
 def test_sss_report_writes_only_where_it_may_and_stops_at_damaged_data(handmade, tmp_path):
     """It replaced a user's own index.html and a demo folder's step records (a resumed demo then kept the
     report's rows), merged two sessions of one object, and reported a damaged session as "done"."""

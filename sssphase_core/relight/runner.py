@@ -51,6 +51,7 @@ from sssphase_core.relight.views import finest_psp_period, has_captured_transpor
 from sssphase_core.store.session import Session
 
 if TYPE_CHECKING:  # the work's modules import torch: loaded once the checks have passed
+    from sssphase_core.processing.triangulation import StereoCalibration, Triangulated
     from sssphase_core.relight.engine import FootprintSource
     from sssphase_core.relight.transport import DotTransport
     from sssphase_core.relight.views import RelightView
@@ -501,6 +502,15 @@ class GeometryView:
     shift: tuple[float, float]
     period: float
     exact: tuple[float, float, float, float] | None = None
+    #: the triangulated points (``points.ply``) and how many it holds, where a stereo calibration was known
+    cloud: Path | None = None
+    n_points: int = 0
+    unit: str = ""
+    #: the corrected points' median reprojection error in the projector (px): how well the calibration fits
+    reprojection: float = float("nan")
+    #: on simulated sessions, the decoded and corrected 3D points' median distance and depth (z) bias to the
+    #: exact ones, in the calibration's unit (mm): decoded, its bias, for geometry, its bias
+    exact_3d: tuple[float, float, float, float] | None = None
 
 
 def _check_geometry_backend(backend: str) -> None:
@@ -519,11 +529,13 @@ def _check_geometry_backend(backend: str) -> None:
 
 def geometry_session(session: Path | str | Session, *, backend: str = "analytic", checkpoint: Path | str | None = None,
                      out: Path | str = Path("geometry"), views: str | Sequence[int] | None = "", device: str = "cpu",
-                     narrator: Narrator | None = None) -> list[GeometryView]:
+                     calibration: Path | str | None = None, narrator: Narrator | None = None) -> list[GeometryView]:
     """Projector points for 3D of a session's views: the decoded correspondences minus the scattering shift
     predicted from ``backend``'s footprints, written as ``out/<object>/view_NNN/correspondence_for_geometry.npz``
     (xp, yp, xp_decoded, yp_decoded, shift_x, shift_y, mask); scored against the exact points on simulated
-    sessions."""
+    sessions. With a stereo ``calibration`` (an OpenCV file, :func:`~sssphase_core.processing.triangulation.read_calibration`;
+    a simulated session's own rig by default) both are triangulated: ``points`` and ``points_decoded`` (H, W, 3) in the
+    npz, and the corrected ones as ``points.ply`` beside it, coloured by the white capture."""
     from sssphase_core.compute import check_device
     from sssphase_core.learning.runlog import resolve_checkpoint
     from sssphase_core.store.session import check_output_folder, claim_output, refuse_inside_session
@@ -542,7 +554,9 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
     if checkpoint is not None:
         checkpoint = resolve_checkpoint(checkpoint)
         check_decoder_fits(Path(checkpoint), [backend], [s])
+    stereo, said = _stereo_calibration(s, calibration)
     chosen = choose_views(s, views, say)
+    say.say(said)  # once the input is known good: a refused run says only why
     claim_output(out, [s])  # once the input is known good: a refused run leaves no folder of its own behind
     from sssphase_core.relight.backends import make_source  # torch: once the views are known
     from sssphase_core.relight.geometry import ENTRY_CENTRED, geometric_correspondence
@@ -554,13 +568,34 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
         with say.status(f"{rv.object} view {v}: predicting the scattering shift ({backend})"):
             geo = geometric_correspondence(source, rv.proj, patch, period,
                                            centred_on="entry" if backend in ENTRY_CENTRED else "decoded")
-        done.append(_write_geometry(s, rv, geo, out, period))
+        done.append(_write_geometry(s, rv, geo, out, period, stereo, say))
         say.say(_geometry_line(done[-1]))
+        if line := _points_line(done[-1]):
+            say.say(line)
     return done
 
 
-def _write_geometry(s: Session, rv: RelightView, geo: Any, out: Path, period: float) -> GeometryView:
-    """Write one view's correspondences for geometry and score them (simulated sessions)."""
+def _stereo_calibration(s: Session, calibration: Path | str | None) -> tuple[StereoCalibration | None, str]:
+    """The stereo calibration to triangulate ``s``'s views with (the file given, else a simulated session's own
+    rig, exact, else None) and the line that says which."""
+    from sssphase_core.processing.triangulation import read_calibration
+
+    if calibration is not None:
+        return read_calibration(calibration), f"triangulating with the calibration in {calibration}"
+    rig = s.manifest.get("rig", {})
+    if str(rig.get("camera", "")).startswith("sim:"):
+        from sssphase_core.sim import rig_from_options, stereo_calibration
+
+        return stereo_calibration(rig_from_options(rig.get("options", {}))), ("triangulating with the simulated rig's "
+                                                                              "exact calibration")
+    return None, ("note: no points triangulated: give --calibration FILE, the rig's camera-projector calibration (an "
+                  "OpenCV YAML, XML or JSON file with cam_K, cam_kc, proj_K, proj_kc, R, T), for 3D points and points.ply")
+
+
+def _write_geometry(s: Session, rv: RelightView, geo: Any, out: Path, period: float, stereo: StereoCalibration | None,
+                    say: Narrator) -> GeometryView:
+    """Write one view's correspondences for geometry (and, with ``stereo``, their 3D points) and score them
+    (simulated sessions)."""
     from sssphase_core.store.session import view_dir_name
 
     shift_x, shift_y = rv.proj.xp - geo.xp, rv.proj.yp - geo.yp
@@ -569,11 +604,22 @@ def _write_geometry(s: Session, rv: RelightView, geo: Any, out: Path, period: fl
     path = folder / "correspondence_for_geometry.npz"
     from sssphase_core.store.files import atomic_path
 
-    with atomic_path(path, ".npz") as tmp:
-        np.savez_compressed(tmp, xp=geo.xp, yp=geo.yp, xp_decoded=rv.proj.xp, yp_decoded=rv.proj.yp,
-                            shift_x=shift_x, shift_y=shift_y, mask=rv.proj.mask)
     m = rv.proj.mask
+    arrays = {"xp": geo.xp, "yp": geo.yp, "xp_decoded": rv.proj.xp, "yp_decoded": rv.proj.yp, "shift_x": shift_x,
+              "shift_y": shift_y, "mask": m}
+    corrected = None
+    if stereo is not None:
+        corrected, arrays["points_decoded"] = _triangulated(stereo, rv, geo, say)
+        arrays["points"] = corrected.points
+    with atomic_path(path, ".npz") as tmp:
+        np.savez_compressed(tmp, **arrays)
     done = GeometryView(rv.object, rv.view, path, (float(np.nanmedian(shift_x[m])), float(np.nanmedian(shift_y[m]))), period)
+    if stereo is not None:
+        from sssphase_core.store.pointcloud import write_point_cloud
+
+        assert corrected is not None
+        done.cloud, done.unit, done.reprojection = folder / "points.ply", stereo.unit or "the calibration's unit", corrected.reprojection
+        done.n_points = write_point_cloud(done.cloud, arrays["points"], rv.white)
     if rv.sim is not None and "gt/proj_xy" in s.arrays(rv.view):  # evaluation only: the simulator's exact points
         gt = np.asarray(s.load(rv.view, "gt/proj_xy"), np.float32)
         ok = m & np.isfinite(gt[..., 0])
@@ -581,7 +627,50 @@ def _write_geometry(s: Session, rv: RelightView, geo: Any, out: Path, period: fl
         for xp, yp in ((rv.proj.xp, rv.proj.yp), (geo.xp, geo.yp)):
             scores += [float(np.median(np.hypot(xp - gt[..., 0], yp - gt[..., 1])[ok])), float(np.median((xp - gt[..., 0])[ok]))]
         done.exact = (scores[0], scores[1], scores[2], scores[3])
+        if stereo is not None:
+            done.exact_3d = _scored_points(stereo, gt, ok, arrays["points_decoded"], arrays["points"])
     return done
+
+
+#: A median reprojection error (projector px) above which triangulated points are said to come from a calibration
+#: of another rig, or a pose inverted (X_c = R X_p + T: 1.0 px on the simulated soap) or the devices' matrices swapped
+#: (0.9 px): a calibrated rig's is a fraction of a pixel (the simulated rig's exact one 0.02, its focal length 5% off 0.35).
+MAX_REPROJECTION_PX = 0.75
+
+
+def _triangulated(stereo: StereoCalibration, rv: RelightView, geo: Any, say: Narrator) -> tuple[Triangulated, np.ndarray]:
+    """The corrected correspondences of a view triangulated and the decoded ones' points (H, W, 3); a calibration
+    whose rays mostly meet behind the devices, or miss each other by more than :data:`MAX_REPROJECTION_PX`, is asked
+    about in one warning."""
+    from sssphase_core.processing.triangulation import triangulate
+
+    corrected = triangulate(stereo, geo.xp, geo.yp, rv.proj.mask)
+    decoded = triangulate(stereo, rv.proj.xp, rv.proj.yp, rv.proj.mask)
+    lit = int(rv.proj.mask.sum())
+    if corrected.behind > 0.5 * lit or corrected.reprojection > MAX_REPROJECTION_PX:
+        wrong = (f"{corrected.behind} of {lit} pixels' rays meet behind the camera or the projector"
+                 if corrected.behind > 0.5 * lit else
+                 f"the camera's and the projector's rays miss each other by {corrected.reprojection:.1f} projector px (median)")
+        say.say(f"{rv.object} view {rv.view}: {wrong}: is the calibration this rig's, with the projector's pose as "
+                "X_p = R X_c + T?", warning=wrong)
+    return corrected, decoded.points
+
+
+def _scored_points(stereo: StereoCalibration, gt: np.ndarray, ok: np.ndarray, decoded: np.ndarray,
+                   corrected: np.ndarray) -> tuple[float, float, float, float] | None:
+    """Median distance and median depth (z) error of the decoded and corrected points to the exact correspondences'
+    points (the calibration's unit), or None where no pixel has all three."""
+    from sssphase_core.processing.triangulation import triangulate
+
+    exact = triangulate(stereo, gt[..., 0], gt[..., 1], ok).points
+    both = ok & np.isfinite(exact).all(-1) & np.isfinite(decoded).all(-1) & np.isfinite(corrected).all(-1)
+    if not both.any():
+        return None
+    scores: list[float] = []
+    for points in (decoded, corrected):
+        error = points[both] - exact[both]
+        scores += [float(np.median(np.linalg.norm(error, axis=-1))), float(np.median(error[:, 2]))]
+    return scores[0], scores[1], scores[2], scores[3]
 
 
 def _geometry_line(g: GeometryView) -> str:
@@ -590,6 +679,17 @@ def _geometry_line(g: GeometryView) -> str:
     if g.exact is not None:
         line += (f"; against the exact points: decoded {g.exact[0]:.3f} px (bias x {g.exact[1]:+.3f}), "
                  f"for geometry {g.exact[2]:.3f} px (bias x {g.exact[3]:+.3f})")
+    return line
+
+
+def _points_line(g: GeometryView) -> str | None:
+    if g.cloud is None:
+        return None
+    line = (f"wrote {g.cloud}: {g.n_points} points (the corrected correspondences triangulated, {g.unit}; "
+            f"median reprojection error {g.reprojection:.3f} projector px)")
+    if g.exact_3d is not None:
+        line += (f"; against the exact surface: decoded {g.exact_3d[0]:.3f} (depth bias {g.exact_3d[1]:+.3f}), "
+                 f"for geometry {g.exact_3d[2]:.3f} (depth bias {g.exact_3d[3]:+.3f}) {g.unit}")
     return line
 
 

@@ -35,6 +35,7 @@ from sssphase_core.sim.rig import (
     randomised_rig_options,
     rig_from_options,
     rig_preset,
+    stereo_calibration,
     with_projector_response,
     with_transport,
 )
@@ -68,6 +69,7 @@ __all__ = [
     "randomised_rig_options",
     "rig_from_options",
     "rig_preset",
+    "stereo_calibration",
     "with_projector_response",
     "with_transport",
 ]

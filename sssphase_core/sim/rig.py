@@ -5,12 +5,15 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field, replace
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from sssphase_core.errors import InputError
 from sssphase_core.sim.sensor import THREE_CHIP, SensorConfig
+
+if TYPE_CHECKING:
+    from sssphase_core.processing.triangulation import StereoCalibration
 
 Matrix3 = tuple[tuple[float, float, float], tuple[float, float, float], tuple[float, float, float]]
 
@@ -301,3 +304,14 @@ def pixel_pitch_mm(rig: RigConfig) -> float:
     """Camera pixel size on a fronto-parallel surface at the turntable centre (mm)."""
     return rig.turntable_centre[2] / rig.camera.fx
 
+
+
+def stereo_calibration(rig: RigConfig) -> StereoCalibration:
+    """The rig's exact camera-projector calibration (ideal lenses, mm): what a lab's stereo calibration estimates."""
+    from sssphase_core.processing.triangulation import StereoCalibration
+
+    def matrix(p: Pinhole) -> np.ndarray:
+        return np.array([[p.fx, 0.0, p.cx], [0.0, p.fy, p.cy], [0.0, 0.0, 1.0]])
+
+    return StereoCalibration(matrix(rig.camera), np.zeros(0), matrix(rig.projector), np.zeros(0),
+                             np.asarray(rig.projector.rotation, np.float64), np.asarray(rig.projector.translation, np.float64), unit="mm")

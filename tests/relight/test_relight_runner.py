@@ -126,10 +126,27 @@ def test_geometry_session_writes_and_scores_the_corrected_points(session, tmp_pa
     (geo,) = geometry_session(session, backend="exact", out=tmp_path, narrator=said)
     assert geo.path == tmp_path / "sand_rake" / "view_000" / "correspondence_for_geometry.npz" and geo.path.exists()
     data = np.load(geo.path)
-    assert set(data.files) == {"xp", "yp", "xp_decoded", "yp_decoded", "shift_x", "shift_y", "mask"}
+    assert set(data.files) == {"xp", "yp", "xp_decoded", "yp_decoded", "shift_x", "shift_y", "mask", "points",
+                               "points_decoded"}
     assert np.isfinite(geo.shift).all() and geo.period > 0
     assert geo.exact is not None and geo.exact[2] <= geo.exact[0] + 1e-3  # the exact footprints never make it worse
-    assert said.lines[-1][0].startswith(f"wrote {geo.path}: median shift") and "against the exact points" in said.lines[-1][0]
+    lines = [t for t, _ in said.lines]
+    assert lines[0] == "triangulating with the simulated rig's exact calibration"
+    assert lines[-2].startswith(f"wrote {geo.path}: median shift") and "against the exact points" in lines[-2]
+    # the 3D points: the corrected correspondences triangulated with the rig's own calibration, in mm
+    points = data["points"]
+    assert points.shape == (*data["mask"].shape, 3) and np.isnan(points[~data["mask"]]).all()
+    assert 300 < np.nanmedian(points[..., 2]) < 500  # the turntable is 400 mm from the camera
+    assert geo.reprojection < 0.1 and geo.exact_3d is not None and geo.exact_3d[0] < 0.5  # mm, at 400 mm
+    assert abs(geo.exact_3d[3]) <= abs(geo.exact_3d[1]) + 5e-3  # the exact footprints take the depth bias out, not in
+    assert lines[-1].startswith(f"wrote {geo.cloud}: {geo.n_points} points") and "against the exact surface" in lines[-1]
+    import trimesh
+
+    cloud = trimesh.load(geo.cloud)  # a PLY any point-cloud tool reads: the finite points, each with a colour
+    finite = np.isfinite(points).all(-1)
+    assert len(cloud.vertices) == geo.n_points == finite.sum()
+    np.testing.assert_allclose(np.asarray(cloud.vertices), points[finite], atol=1e-4)
+    assert np.asarray(cloud.colors)[:, :3].std() > 0  # coloured by the white capture, not one grey
     with pytest.raises(InputError, match="without scattering there is no shift"):
         geometry_session(session, backend="none", out=tmp_path / "g")
 

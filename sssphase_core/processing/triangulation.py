@@ -1,0 +1,205 @@
+"""Camera-projector triangulation: a stereo calibration (each device's pinhole and lens distortion, the projector's
+pose) read from an OpenCV file (:func:`read_calibration`), and 3D points from camera -> projector correspondences
+(:func:`triangulate`). Pixel centres are at integer coordinates on both devices, as OpenCV and the decoded maps
+(``corr/xp``, ``corr/yp``) have them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sssphase_core.errors import InputError
+
+#: The names each quantity may have in a calibration file: Moreno & Taubin's projector-camera calibration
+#: (``cam_K``, ``cam_kc``, ``proj_K``, ``proj_kc``, ``R``, ``T``), OpenCV's ``stereoCalibrate`` outputs as samples save them
+#: (``K1``/``D1``/``K2``/``D2``, ``M1``/``M2``, ``cameraMatrix1``...), or these long names.
+CALIBRATION_KEYS: dict[str, tuple[str, ...]] = {
+    "camera_matrix": ("camera_matrix", "cam_K", "K1", "M1", "cameraMatrix1"),
+    "camera_distortion": ("camera_distortion", "cam_kc", "D1", "distCoeffs1"),
+    "projector_matrix": ("projector_matrix", "proj_K", "K2", "M2", "cameraMatrix2"),
+    "projector_distortion": ("projector_distortion", "proj_kc", "D2", "distCoeffs2"),
+    "rotation": ("rotation", "R"),
+    "translation": ("translation", "T"),
+}
+#: Distortion vectors OpenCV reads: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]] (none: an ideal lens).
+DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
+
+
+@dataclass(frozen=True)
+class StereoCalibration:
+    """A camera and a projector as a stereo pair: 3 x 3 intrinsic matrices (pixels), OpenCV distortion vectors
+    and the projector's pose, ``X_p = rotation @ X_c + translation`` (the points come out in the translation's
+    unit, mm for the simulated rig). Checked on construction."""
+
+    camera_matrix: np.ndarray
+    camera_distortion: np.ndarray
+    projector_matrix: np.ndarray
+    projector_distortion: np.ndarray
+    rotation: np.ndarray
+    translation: np.ndarray
+    #: the translation's unit, where known (a calibration file does not say)
+    unit: str = ""
+
+    def __post_init__(self) -> None:
+        for name in ("camera_matrix", "projector_matrix"):
+            k = getattr(self, name)
+            if k.shape != (3, 3) or not np.isfinite(k).all() or k[0, 0] <= 0 or k[1, 1] <= 0:
+                raise InputError(f"{name} must be a finite 3x3 matrix with positive focal lengths, got {_shown(k)}")
+        for name in ("camera_distortion", "projector_distortion"):
+            d = getattr(self, name)
+            if d.size not in DISTORTION_LENGTHS or not np.isfinite(d).all():
+                raise InputError(f"{name} must be {', '.join(map(str, DISTORTION_LENGTHS[1:]))} finite coefficients "
+                                 f"(OpenCV's order), got {_shown(d)}")
+        r, t = self.rotation, self.translation
+        if r.shape != (3, 3) or not np.isfinite(r).all() or np.abs(r.T @ r - np.eye(3)).max() > 1e-3 or np.linalg.det(r) < 0:
+            raise InputError(f"rotation must be a 3x3 rotation matrix or a Rodrigues vector, got {_shown(r)}")
+        if t.shape != (3,) or not np.isfinite(t).all() or not np.linalg.norm(t) > 0:
+            raise InputError(f"translation must be 3 finite values, not all zero (the baseline), got {_shown(t)}")
+
+    @property
+    def baseline(self) -> float:
+        """Distance between the camera's and the projector's centres (the translation's unit)."""
+        return float(np.linalg.norm(self.translation))
+
+
+def _shown(a: np.ndarray) -> str:
+    text = np.array2string(np.asarray(a), precision=4, separator=", ", threshold=12).replace("\n", "")
+    return f"{text} (shape {'x'.join(map(str, np.shape(a))) or 'scalar'})"
+
+
+def calibration_from_arrays(values: dict[str, np.ndarray]) -> StereoCalibration:
+    """A :class:`StereoCalibration` from arrays named by :data:`CALIBRATION_KEYS` (any of each one's names);
+    a rotation may be a Rodrigues vector, a distortion vector a row or a column."""
+    import cv2
+
+    found: dict[str, np.ndarray] = {}
+    for field, names in CALIBRATION_KEYS.items():
+        name = next((n for n in names if n in values), None)
+        if name is None:
+            if field.endswith("distortion"):
+                found[field] = np.zeros(0)
+                continue
+            raise InputError(f"no {field.replace('_', ' ')} (one of {', '.join(names)})")
+        found[field] = np.asarray(values[name], np.float64)
+    for field in ("camera_distortion", "projector_distortion", "translation"):
+        found[field] = found[field].reshape(-1)
+    if found["rotation"].size == 3 and np.isfinite(found["rotation"]).all():
+        found["rotation"] = cv2.Rodrigues(found["rotation"].reshape(3, 1))[0]
+    return StereoCalibration(**found)
+
+
+def read_calibration(path: Path | str) -> StereoCalibration:
+    """The stereo calibration in an OpenCV FileStorage file (YAML, XML or JSON), as projector-camera calibration
+    tools write it (:data:`CALIBRATION_KEYS`); missing distortion is an ideal lens. Refused in one line naming the
+    file and what is wrong."""
+    import cv2
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"--calibration {path}: " + ("a folder, not a calibration file" if path.is_dir() else "no such file"))
+    if path.stat().st_size == 0:
+        raise InputError(f"{path} is empty: give the rig's calibration file (YAML, XML or JSON)")
+    try:
+        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError) as exc:  # (a parse error surfaces as SystemError from the constructor)
+        cause = exc.__cause__ if isinstance(exc, SystemError) and exc.__cause__ is not None else exc
+        where = str(getattr(cause, "func", ""))  # OpenCV puts the file's line and the problem here
+        said = f": line {where[len(str(path)):].lstrip('(').split(')', 1)[0]}, {where.split(': ', 1)[1][:100]}" if (
+            where.startswith(str(path) + "(") and ": " in where) else ""
+        raise InputError(f"{path}: not an OpenCV calibration file (YAML, XML or JSON){said}") from None
+    try:
+        if not storage.isOpened():
+            raise InputError(f"{path}: not an OpenCV calibration file (YAML, XML or JSON)")
+        values = {}
+        for names in CALIBRATION_KEYS.values():
+            for name in names:
+                node = storage.getNode(name)
+                if not node.empty():
+                    values[name] = _node_array(node, f"{path}: {name}")
+        return calibration_from_arrays(values)
+    except InputError as exc:
+        message = str(exc)
+        raise InputError(message if message.startswith(str(path)) else f"{path}: {message}") from None
+    finally:
+        storage.release()
+
+
+def _node_array(node, where: str) -> np.ndarray:  # noqa: ANN001 (cv2.FileNode)
+    """A FileStorage node as an array: an OpenCV matrix, a (nested) list of numbers or a number."""
+    if node.isSeq():
+        if node.size() > max(DISTORTION_LENGTHS):  # (each value is read one by one: a huge list would take minutes)
+            raise InputError(f"{where} holds {node.size()} values where a calibration's have at most "
+                             f"{max(DISTORTION_LENGTHS)}")
+        try:
+            return np.array([_node_array(node.at(i), where) for i in range(node.size())], np.float64)
+        except ValueError:  # rows of different lengths
+            raise InputError(f"{where} is a list of rows of different lengths") from None
+    if node.isMap():
+        import cv2
+
+        not_a_matrix = f"{where} is not a matrix (an !!opencv-matrix of rows, cols, dt, data)"
+        sizes = node.getNode("sizes")  # an n-d matrix (a vector written by OpenCV), else rows and cols
+        dims = ([sizes.at(i) for i in range(min(sizes.size(), 4))] if sizes.isSeq() else [sizes] if not sizes.empty()
+                else [node.getNode("rows"), node.getNode("cols")])
+        if not dims or not all(d.isInt() for d in dims):
+            raise InputError(not_a_matrix)
+        shape = [int(d.real()) for d in dims]
+        if not 0 < np.prod(np.asarray(shape, np.float64)) <= max(DISTORTION_LENGTHS):  # (OpenCV would allocate it)
+            raise InputError(f"{where} is a {' x '.join(map(str, shape))} matrix where a calibration's have at "
+                             f"most {max(DISTORTION_LENGTHS)} values")
+        try:
+            value = node.mat()
+        except cv2.error:
+            raise InputError(not_a_matrix) from None
+        if value is None:
+            raise InputError(not_a_matrix)
+        return np.asarray(value, np.float64)
+    if node.isInt() or node.isReal():
+        return np.asarray(node.real(), np.float64)
+    raise InputError(f"{where} is not a matrix, a list of numbers or a number")
+
+
+@dataclass(frozen=True)
+class Triangulated:
+    """Points (H, W, 3) in the camera's frame (the calibration's unit), NaN where none; ``behind``: the pixels
+    whose rays met behind the camera or the projector (or never: parallel), left out."""
+
+    points: np.ndarray
+    behind: int
+    #: the median distance (projector px) between each point projected into the projector and its decoded projector
+    #: point: how far the two rays miss each other (NaN without points); a few px or more: not this rig's calibration
+    reprojection: float = float("nan")
+
+
+def triangulate(calib: StereoCalibration, xp: np.ndarray, yp: np.ndarray, mask: np.ndarray) -> Triangulated:
+    """Each camera pixel of ``mask`` (H, W) with its projector point (``xp``, ``yp``: (H, W) projector px) ->
+    the 3D point where the two rays meet (linear triangulation of the undistorted points, OpenCV's
+    ``triangulatePoints``), (H, W, 3) float32 in the camera's frame."""
+    import cv2
+
+    h, w = mask.shape
+    ok = mask & np.isfinite(xp) & np.isfinite(yp)
+    rows, cols = np.nonzero(ok)
+    points = np.full((h, w, 3), np.nan, np.float32)
+    if not len(rows):
+        return Triangulated(points, 0)
+    cam = np.stack([cols, rows], -1).astype(np.float64).reshape(-1, 1, 2)
+    proj = np.stack([xp[ok], yp[ok]], -1).astype(np.float64).reshape(-1, 1, 2)
+    cam_n = cv2.undistortPoints(cam, calib.camera_matrix, calib.camera_distortion).reshape(-1, 2)
+    proj_n = cv2.undistortPoints(proj, calib.projector_matrix, calib.projector_distortion).reshape(-1, 2)
+    pose = np.hstack([calib.rotation, calib.translation[:, None]])
+    homogeneous = cv2.triangulatePoints(np.eye(3, 4), pose, cam_n.T, proj_n.T)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xyz = (homogeneous[:3] / homogeneous[3]).T
+    depth_projector = xyz @ calib.rotation[2] + calib.translation[2]
+    front = np.isfinite(xyz).all(1) & (xyz[:, 2] > 0) & (depth_projector > 0)
+    points[rows[front], cols[front]] = xyz[front]
+    if not front.any():
+        return Triangulated(points, int((~front).sum()))
+    rvec = cv2.Rodrigues(calib.rotation)[0]
+    seen, _ = cv2.projectPoints(xyz[front].reshape(-1, 1, 3), rvec, calib.translation, calib.projector_matrix,
+                                calib.projector_distortion)
+    miss = np.linalg.norm(seen.reshape(-1, 2) - proj.reshape(-1, 2)[front], axis=1)
+    return Triangulated(points, int((~front).sum()), float(np.median(miss)))

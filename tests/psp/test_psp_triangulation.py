@@ -1,0 +1,133 @@
+"""Camera-projector triangulation: calibration files as calibration tools write them, and 3D points from
+correspondences, against the simulator's own surface and against points projected through distorting lenses."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from sssphase_core.errors import InputError
+from sssphase_core.processing.triangulation import StereoCalibration, read_calibration, triangulate
+from sssphase_core.sim import SimScene, rig_preset, stereo_calibration
+
+
+def test_the_simulated_rigs_exact_correspondences_triangulate_to_its_surface():
+    """The rig's calibration and the exact projector points give the scene's own surface points (camera frame, mm):
+    the pixel-centre and pose conventions of both devices agree with OpenCV's."""
+    rig = rig_preset("cpu")
+    scene = SimScene("soap", rig=rig, view=1, n_views=4)
+    xy = scene.proj_xy
+    lit = np.isfinite(xy[..., 0])
+    res = triangulate(stereo_calibration(rig), xy[..., 0], xy[..., 1], lit)
+    assert res.behind == 0 and res.reprojection < 1e-3
+    assert np.isnan(res.points[~lit]).all() and np.isfinite(res.points[lit]).all()
+    error = np.linalg.norm(res.points[lit] - scene.points[lit], axis=-1)
+    assert np.median(error) < 1e-4 and error.max() < 1e-3, error.max()
+
+
+def _distorting_rig() -> StereoCalibration:
+    base = stereo_calibration(rig_preset("cpu"))
+    return StereoCalibration(base.camera_matrix, np.array([-0.21, 0.08, 0.001, -0.002, 0.0]), base.projector_matrix,
+                             np.array([0.05, -0.02, 0.0, 0.0]), base.rotation, base.translation)
+
+
+def test_points_seen_through_distorting_lenses_are_recovered():
+    """Camera pixels (integer centres) back-projected through the camera's lens distortion to random depths, those
+    points projected through the projector's distortion, and the pair triangulated: the points come back, so the
+    distortion is undone on both sides (and ignoring it would have cost over half a millimetre)."""
+    calib = _distorting_rig()
+    h, w, step = 192, 256, 8
+    rows, cols = (a.ravel() for a in np.mgrid[0:h:step, 0:w:step])
+    depth = np.random.default_rng(0).uniform(350, 450, len(rows))
+    direction = cv2.undistortPoints(np.column_stack([cols, rows]).astype(np.float64).reshape(-1, 1, 2),
+                                    calib.camera_matrix, calib.camera_distortion).reshape(-1, 2)
+    truth = np.column_stack([direction * depth[:, None], depth])
+    proj, _ = cv2.projectPoints(truth, cv2.Rodrigues(calib.rotation)[0], calib.translation, calib.projector_matrix,
+                                calib.projector_distortion)
+    xp, yp = (np.full((h, w), np.nan, np.float32) for _ in range(2))
+    mask = np.zeros((h, w), bool)
+    xp[rows, cols], yp[rows, cols], mask[rows, cols] = proj[:, 0, 0], proj[:, 0, 1], True
+    res = triangulate(calib, xp, yp, mask)
+    assert res.behind == 0 and res.reprojection < 0.01
+    error = np.linalg.norm(res.points[rows, cols] - truth, axis=-1)
+    assert np.median(error) < 0.01 and error.max() < 0.1, (np.median(error), error.max())  # float32 projector points
+    ideal = StereoCalibration(calib.camera_matrix, np.zeros(0), calib.projector_matrix, np.zeros(0), calib.rotation,
+                              calib.translation)
+    assert np.median(np.linalg.norm(triangulate(ideal, xp, yp, mask).points[rows, cols] - truth, axis=-1)) > 0.5
+
+
+def test_a_calibration_of_another_pose_misses_and_one_that_puts_points_behind_counts_them():
+    rig = rig_preset("cpu")
+    scene = SimScene("soap", rig=rig, view=0, n_views=4)
+    xy, lit = scene.proj_xy, np.isfinite(scene.proj_xy[..., 0])
+    c = stereo_calibration(rig)
+    inverted = StereoCalibration(c.camera_matrix, c.camera_distortion, c.projector_matrix, c.projector_distortion,
+                                 c.rotation.T, -c.rotation.T @ c.translation)  # the camera's pose in the projector's frame
+    assert triangulate(inverted, xy[..., 0], xy[..., 1], lit).reprojection > 0.75
+    mirrored = StereoCalibration(c.camera_matrix, c.camera_distortion, c.projector_matrix, c.projector_distortion,
+                                 c.rotation, -c.translation)
+    res = triangulate(mirrored, xy[..., 0], xy[..., 1], lit)
+    assert res.behind == lit.sum() and np.isnan(res.points).all()
+
+
+def test_calibration_files_are_read_in_the_names_calibration_tools_write(tmp_path):
+    """Moreno & Taubin's YAML (cam_K, cam_kc, proj_K, proj_kc, R, T), OpenCV-sample JSON (K1, D1, K2, D2) with a
+    Rodrigues rotation, and XML; distortion left out is an ideal lens."""
+    c = stereo_calibration(rig_preset("cpu"))
+    yml = tmp_path / "calibration.yml"
+    fs = cv2.FileStorage(str(yml), cv2.FILE_STORAGE_WRITE)
+    for name, value in (("cam_K", c.camera_matrix), ("cam_kc", np.zeros((1, 5))), ("proj_K", c.projector_matrix),
+                        ("proj_kc", np.zeros((1, 5))), ("R", c.rotation), ("T", c.translation.reshape(3, 1))):
+        fs.write(name, value)
+    fs.write("stereo_error", 0.3)
+    fs.release()
+    js = tmp_path / "stereo.json"
+    js.write_text(json.dumps({"K1": c.camera_matrix.tolist(), "D1": [[0, 0, 0, 0, 0]], "K2": c.projector_matrix.tolist(),
+                              "R": cv2.Rodrigues(c.rotation)[0].ravel().tolist(), "T": c.translation.tolist()}))
+    xml = tmp_path / "stereo.xml"
+    fs = cv2.FileStorage(str(xml), cv2.FILE_STORAGE_WRITE)
+    for name, value in (("M1", c.camera_matrix), ("M2", c.projector_matrix), ("R", c.rotation), ("T", c.translation)):
+        fs.write(name, value)
+    fs.release()
+    for path in (yml, js, xml):
+        read = read_calibration(path)
+        for field in ("camera_matrix", "projector_matrix", "rotation", "translation"):
+            np.testing.assert_allclose(getattr(read, field), getattr(c, field), atol=1e-9, err_msg=f"{path.name} {field}")
+        assert not read.camera_distortion.any() and read.baseline == pytest.approx(c.baseline)
+
+
+@pytest.mark.parametrize(("content", "message"), [
+    ("", "is empty"),
+    ("cam_K: [1, 2\n", r"not an OpenCV calibration file \(YAML, XML or JSON\): line 1, Missing , between"),
+    ('{"R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "T": [1, 0, 0]}', "no camera matrix"),
+    ('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "K2": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], '
+     '"R": [[1, 0, 0], [0, 1, 0]], "T": [1, 0, 0]}', "rotation must be a 3x3 rotation matrix"),
+    ('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "K2": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], '
+     '"R": [[2, 0, 0], [0, 1, 0], [0, 0, 1]], "T": [1, 0, 0]}', "rotation must be a 3x3 rotation matrix"),
+    ('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "K2": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], '
+     '"R": [[1, 0, 0], [0, 1, 0], [0, 0]], "T": [1, 0, 0]}', "list of rows of different lengths"),
+    ('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "K2": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], '
+     '"R": "eye", "T": [1, 0, 0]}', "R is not a matrix"),
+    ('{"R": [' + ", ".join(["1"] * 100000) + "]}", "R holds 100000 values where a calibration's have at most 14"),
+    ("%YAML:1.0\n---\nR: !!opencv-matrix\n   rows: 100000\n   cols: 100000\n   dt: d\n   data: [ 1. ]\n",
+     "R is a 100000 x 100000 matrix where a calibration's have at most 14 values"),  # (OpenCV would allocate 80 GB)
+    ("%YAML:1.0\n---\nR: !!opencv-matrix\n   rows: 3\n   cols: 3\n   dt: q\n   data: [ 1. ]\n", "R is not a matrix"),
+    ("%YAML:1.0\n---\nR:\n   a: 1\n", "R is not a matrix"),
+    ('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "K2": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], '
+     '"R": [0, 0, 0], "T": [0, 0, 0]}', "translation must be 3 finite values, not all zero"),
+    ('{"K1": [[-600, 0, 128], [0, 600, 96], [0, 0, 1]], "K2": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], '
+     '"R": [0, 0, 0], "T": [1, 0, 0]}', "camera_matrix must be a finite 3x3 matrix with positive focal lengths"),
+    ('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "D1": [0.1, 0.2, 0.3], "K2": [[600, 0, 128], [0, 600, 96], '
+     '[0, 0, 1]], "R": [0, 0, 0], "T": [1, 0, 0]}', "camera_distortion must be 4, 5, 8, 12, 14 finite coefficients"),
+])
+def test_a_calibration_file_that_cannot_be_used_is_refused_naming_the_file_and_the_problem(tmp_path, content, message):
+    path = tmp_path / ("c.json" if content.startswith("{") else "c.yml")
+    path.write_text(content)
+    with pytest.raises(InputError, match=message) as err:
+        read_calibration(path)
+    assert str(err.value).startswith(str(path)) and "\n" not in str(err.value)
+    with pytest.raises(InputError, match="no such file"):
+        read_calibration(tmp_path / "missing.yml")
