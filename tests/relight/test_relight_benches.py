@@ -64,7 +64,8 @@ def test_bench_geometry_scores_a_backend_against_the_exact_points(sim_daemon, tm
     assert set(rows) == {"exact"} and rows["exact"]["transport"] == "burley" and rows["exact"]["seconds"] > 0
     assert rows["exact"]["corrected_px"] < rows["exact"]["decoded_px"]
     assert json.loads((tmp_path / "geo.json").read_text())["rows"] == result["rows"]
-    assert "| star | burley | exact |" in (tmp_path / "geo.md").read_text()
+    assert (tmp_path / "geo.md").read_text().count("| star | burley | exact |") == 2  # projector px, and in 3D
+    assert 0 < rows["exact"]["decoded_mm"] < 0.5 and rows["exact"]["reprojection_px"] < 0.1  # mm at 400 mm
     gt = next((s.path / "view_000").glob("gt"))
     import shutil
 
