@@ -205,6 +205,43 @@ def calibrate_projector(
     console.print(f"wrote the {escape('[projector]')} table of {req.target}: capture with `sss capture --rig {req.target}`")
 
 
+def calibrate_stereo(
+    session: Annotated[Path, typer.Argument(help="A session of a printed checkerboard, one pose per view (`sss capture "
+                                            "--object board --views 10`: without a turntable it asks for each move).",
+                                            metavar="SESSION")],
+    board: Annotated[str, typer.Option(help="The board's inner corners, COLSxROWS (a board of 10 x 7 squares: 9x6).")],
+    square: Annotated[float, typer.Option(help="The side of one square, in the unit the 3D points are to have (mm).")],
+    out: Annotated[Path, typer.Option(help="Calibration file to write (.yml, .yaml, .xml or .json), for `sss geometry "
+                                      "--calibration`.")] = Path("calibration.yml"),
+    views: Annotated[str, typer.Option(help="Comma-separated views (default: all).")] = "",
+) -> None:
+    """Calibrate the camera and the projector as a stereo pair from a session of a checkerboard: corners in the white
+    capture, their projector points through local homographies of the decoded correspondences (Moreno and Taubin)."""
+    from sssphase_core.capture.stereo_calibration import calibrate_stereo, parse_board, write_calibration
+    from sssphase_core.errors import InputError
+    from sssphase_core.relight.runner import choose_views
+    from sssphase_core.store.session import Session
+
+    corners = parse_board(board)
+    if out.suffix.lower() not in (".yml", ".yaml", ".xml", ".json"):
+        raise InputError(f"--out {out}: name a .yml, .yaml, .xml or .json file (OpenCV writes the format its suffix names)")
+    if out.is_dir():
+        raise InputError(f"--out {out} is a folder: name the calibration file to write")
+    s = Session.open(session)
+    chosen = choose_views(s, views)
+    with console.status(f"finding the board in {len(chosen)} views") as status:
+        result = calibrate_stereo(s, corners, square, chosen, progress=lambda done, total: status.update(
+            f"finding the board: view {done} of {total}"))
+    for v, why in result.skipped.items():
+        console.print(f"view {v} left out: {why}")
+    c = result.calibration
+    console.print(f"calibrated from {len(result.views)} views: RMS reprojection error camera {result.camera_rms:.3f} px, "
+                  f"projector {result.projector_rms:.3f} px, the pair {result.stereo_rms:.3f} px; focal length camera "
+                  f"{c.camera_matrix[0, 0]:.1f} px, projector {c.projector_matrix[0, 0]:.1f} px; baseline {c.baseline:.1f} "
+                  "(the square's unit)")
+    console.print(f"wrote {write_calibration(out, result)}: triangulate with `sss geometry SESSION --calibration {out}`")
+
+
 def _print_response(fitted) -> None:
     table = Table(title=f"projector response ({fitted.pixels} camera pixels; fit rms {fitted.rms:.4f} in relative light)")
     for col in ("colour", "gamma", "black (relative to white)"):
@@ -246,4 +283,5 @@ def register(groups: dict[str, typer.Typer]) -> None:
     root.command("import")(import_images)
     root.command("export")(export)
     groups["calibrate"].command("projector")(calibrate_projector)
+    groups["calibrate"].command("stereo")(calibrate_stereo)
     groups["bench"].command("capture")(bench_capture)

@@ -71,3 +71,83 @@ def test_calibrating_a_linear_projector_restores_the_nominal_correspondence_erro
 
     session = run_capture(sim_daemon, CaptureRequest("leaf", views=1, out=tmp_path / "s"), RigSpec.from_toml(rig))
     assert session.manifest["plan"]["gamma"] == pytest.approx(cfg["projector"]["gamma"])
+
+
+# --- `sss calibrate stereo`: the camera and the projector as a stereo pair, from a session of a checkerboard ---------
+
+
+@pytest.fixture(scope="module")
+def board_session(sim_daemon, tmp_path_factory):
+    """The simulated checkerboard in its 12 hand-held poses, captured through the daemon (the user's path)."""
+    from sssphase_core.capture import CaptureRequest, run_capture
+
+    return run_capture(sim_daemon, CaptureRequest("calibration_board", views=12, out=tmp_path_factory.mktemp("board")))
+
+
+def test_a_checkerboard_session_calibrates_the_rig_and_its_points_land_on_the_surface(board_session, tmp_path):
+    """`sss calibrate stereo` recovers the simulated rig's focal lengths to 2%, principal points to 5 px, the
+    projector's pose to half a degree and its baseline to 3%, and `sss geometry --calibration` with the file it wrote
+    puts the board's points within 2% of their distance from the exact surface."""
+    import cv2
+
+    from sssphase_core.processing.triangulation import read_calibration
+    from sssphase_core.sim import rig_preset, stereo_calibration
+
+    out = tmp_path / "calibration.yml"
+    res = run_sss(["calibrate", "stereo", str(board_session.path), "--board", "6x4", "--square", "9", "--out", str(out)],
+                  timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "calibrated from 12 views" in res.stdout and f"wrote {out}" in res.stdout
+    rms = [float(v) for v in re.findall(r"(\d+\.\d+) px", res.stdout)[:3]]
+    assert all(0 < v < 1 for v in rms), res.stdout  # camera, projector, the pair
+    got, exact = read_calibration(out), stereo_calibration(rig_preset("cpu"))
+    for k_got, k_exact in ((got.camera_matrix, exact.camera_matrix), (got.projector_matrix, exact.projector_matrix)):
+        assert k_got[0, 0] == pytest.approx(k_exact[0, 0], rel=0.02) and k_got[0, 0] == pytest.approx(k_got[1, 1])
+        assert np.abs(k_got[:2, 2] - k_exact[:2, 2]).max() < 5
+    assert np.degrees(np.linalg.norm(cv2.Rodrigues(got.rotation @ exact.rotation.T)[0])) < 0.5
+    assert got.baseline == pytest.approx(exact.baseline, rel=0.03)
+    res = run_sss(["geometry", str(board_session.path), "--views", "0", "--calibration", str(out), "--out",
+                   str(tmp_path / "g")], timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
+    error, bias = (float(v) for v in re.search(r"for geometry (\d+\.\d+) \(depth bias ([-+]\d+\.\d+)\) mm", res.stdout).groups())
+    assert error < 8 and abs(bias) < 8, res.stdout  # mm at 400 mm: the calibration's own error, not the decoding's
+
+
+@pytest.mark.parametrize(("args", "expected"), [
+    (["--board", "9x6", "--square", "9"], r"found in 0 view\(s\) where a calibration needs at least 3 \(no 9x6 board "
+                                          r"found in the white capture: views 0, 1, 2, .*\); check --board"),
+    (["--board", "6x4", "--square", "9", "--views", "0,1"], "found in 2 view.* needs at least 3: capture more poses"),
+    (["--board", "6", "--square", "9"], "--board must be COLSxROWS inner corners"),
+    (["--board", "6x4", "--square", "0"], "--square must be the board's square side, a positive length"),
+    (["--board", "6x4", "--square", "nan"], "--square must be the board's square side, a positive length"),
+    (["--board", "6x4", "--square", "9", "--out", "calibration.txt"], "name a .yml, .yaml, .xml or .json file"),
+])
+def test_a_stereo_calibration_that_cannot_be_made_is_one_line_and_writes_nothing(board_session, tmp_path, args, expected):
+    out = ["--out", str(tmp_path / "c.yml")] if "--out" not in args else []
+    res = run_sss(["calibrate", "stereo", str(board_session.path), *args, *out], cwd=tmp_path, timeout=120)
+    assert res.returncode != 0 and re.search(expected, res.stderr), res.stderr
+    assert "Traceback" not in res.stderr and len(res.stderr.strip().splitlines()) == 1
+    assert not list(tmp_path.iterdir())
+
+
+def test_each_corners_projector_point_is_read_to_a_tenth_of_a_pixel(board_session):
+    """The local homographies give each camera corner's projector point within a tenth of a projector pixel of the
+    simulator's exact one (interpolated at the corner), where the nearest decoded pixel is off by up to half a pixel's
+    worth of projector coordinates."""
+    import cv2
+
+    from sssphase_core.capture.stereo_calibration import board_corners, projector_corners
+
+    s = board_session
+    white, mask = np.asarray(s.load(0, "white"), np.float32), np.asarray(s.load(0, "corr/mask")).astype(bool)
+    xp, yp = (np.asarray(s.load(0, name), np.float32) for name in ("corr/xp", "corr/yp"))
+    camera = board_corners(white, mask, (6, 4))
+    assert camera is not None and camera.shape == (24, 2)
+    got = projector_corners(camera, xp, yp, mask, 6)
+    gt = np.asarray(s.load(0, "gt/proj_xy"), np.float32)
+    exact = np.array([[cv2.getRectSubPix(np.ascontiguousarray(gt[..., k]), (1, 1), (float(u), float(v)))[0, 0]
+                       for k in (0, 1)] for u, v in camera])
+    assert np.median(np.linalg.norm(got - exact, axis=1)) < 0.1
+    nearest = np.column_stack([xp[np.round(camera[:, 1]).astype(int), np.round(camera[:, 0]).astype(int)],
+                               yp[np.round(camera[:, 1]).astype(int), np.round(camera[:, 0]).astype(int)]])
+    assert np.median(np.linalg.norm(nearest - exact, axis=1)) > 2 * np.median(np.linalg.norm(got - exact, axis=1))

@@ -627,8 +627,11 @@ def _write_geometry(s: Session, rv: RelightView, geo: Any, out: Path, period: fl
         for xp, yp in ((rv.proj.xp, rv.proj.yp), (geo.xp, geo.yp)):
             scores += [float(np.median(np.hypot(xp - gt[..., 0], yp - gt[..., 1])[ok])), float(np.median((xp - gt[..., 0])[ok]))]
         done.exact = (scores[0], scores[1], scores[2], scores[3])
-        if stereo is not None:
-            done.exact_3d = _scored_points(stereo, gt, ok, arrays["points_decoded"], arrays["points"])
+        if stereo is not None:  # the truth is the simulated rig's, whichever calibration made the points
+            from sssphase_core.sim import rig_from_options, stereo_calibration
+
+            exact = stereo_calibration(rig_from_options(rv.sim["options"]))
+            done.exact_3d = _scored_points(exact, gt, ok, arrays["points_decoded"], arrays["points"])
     return done
 
 
@@ -656,13 +659,13 @@ def _triangulated(stereo: StereoCalibration, rv: RelightView, geo: Any, say: Nar
     return corrected, decoded.points
 
 
-def _scored_points(stereo: StereoCalibration, gt: np.ndarray, ok: np.ndarray, decoded: np.ndarray,
+def _scored_points(exact_rig: StereoCalibration, gt: np.ndarray, ok: np.ndarray, decoded: np.ndarray,
                    corrected: np.ndarray) -> tuple[float, float, float, float] | None:
-    """Median distance and median depth (z) error of the decoded and corrected points to the exact correspondences'
-    points (the calibration's unit), or None where no pixel has all three."""
+    """Median distance and median depth (z) error of the decoded and corrected points to the surface the exact
+    correspondences give with the simulated rig's exact calibration (mm), or None where no pixel has all three."""
     from sssphase_core.processing.triangulation import triangulate
 
-    exact = triangulate(stereo, gt[..., 0], gt[..., 1], ok).points
+    exact = triangulate(exact_rig, gt[..., 0], gt[..., 1], ok).points
     both = ok & np.isfinite(exact).all(-1) & np.isfinite(decoded).all(-1) & np.isfinite(corrected).all(-1)
     if not both.any():
         return None
@@ -689,7 +692,7 @@ def _points_line(g: GeometryView) -> str | None:
             f"median reprojection error {g.reprojection:.3f} projector px)")
     if g.exact_3d is not None:
         line += (f"; against the exact surface: decoded {g.exact_3d[0]:.3f} (depth bias {g.exact_3d[1]:+.3f}), "
-                 f"for geometry {g.exact_3d[2]:.3f} (depth bias {g.exact_3d[3]:+.3f}) {g.unit}")
+                 f"for geometry {g.exact_3d[2]:.3f} (depth bias {g.exact_3d[3]:+.3f}) mm")
     return line
 
 

@@ -14,6 +14,7 @@ catalogue), ``transport`` (footprints, splatting), ``sensor`` (noise, Bayer, bit
 from sssphase_core.errors import UnknownObjectError
 from sssphase_core.sim.materials import JENSEN_2001, MATERIAL_NAMES, MATERIALS, Material
 from sssphase_core.sim.objects import (
+    CALIBRATION_OBJECTS,
     CATALOGUE,
     EXTRA_OBJECTS,
     TRAIN_OBJECTS,
@@ -44,6 +45,7 @@ from sssphase_core.sim.sensor import SensorConfig
 
 __all__ = [
     "CATALOGUE",
+    "CALIBRATION_OBJECTS",
     "EXTRA_OBJECTS",
     "JENSEN_2001",
     "MATERIALS",

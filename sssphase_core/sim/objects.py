@@ -54,6 +54,17 @@ class SimObject:
     natural_sdf: Callable[[np.ndarray], np.ndarray]
     natural_shade: Callable[[np.ndarray], MaterialSample]
     pose: tuple[tuple[float, ...], ...] = ((1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0))
+    #: a target held by hand rather than turned by the turntable: per view (cycled), its tilt about x and its turn
+    #: about y (degrees)
+    hand_poses: tuple[tuple[float, float], ...] = ()
+
+    def orientation(self, angle: float, view: int) -> np.ndarray:
+        """The object -> camera rotation (3, 3) of a view: the turntable's at ``angle`` degrees, or a hand-held
+        target's own pose for that view."""
+        if not self.hand_poses:
+            return g.rotation_y(np.deg2rad(angle))
+        tilt, turn = self.hand_poses[view % len(self.hand_poses)]
+        return g.rotation_y(np.deg2rad(turn)) @ g.rotation_x(np.deg2rad(tilt))
 
     def _natural(self, p: np.ndarray) -> np.ndarray:
         return p @ np.asarray(self.pose)  # row vectors: q = R^T p
@@ -262,6 +273,35 @@ def _milk_sdf(p):
     return g.cylinder_y(p, (0, 0, 0), 36.0, 22.0) - 2.0
 
 
+# --- a calibration target --------------------------------------------------------------------------
+
+#: The simulated checkerboard: squares (columns, rows), their side (mm); its inner corners, the pattern
+#: `sss calibrate stereo --board 6x4 --square 9` looks for, are one fewer each way.
+BOARD_SQUARES, BOARD_SQUARE_MM = (7, 5), 9.0
+#: Its poses, one per view (cycled): tilt about x and turn about y (degrees), as a hand holds a board to calibrate.
+BOARD_POSES = ((0.0, 0.0), (-40.0, 0.0), (40.0, 0.0), (0.0, -45.0), (0.0, 40.0), (-35.0, -35.0), (35.0, 35.0),
+               (30.0, -40.0), (-30.0, 35.0), (-20.0, -15.0), (20.0, 15.0), (45.0, -10.0))
+
+
+def _board_sdf(p):
+    return g.round_box(p, (0, 0, 0), (35.0, 26.0, 1.5), 0.5)
+
+
+def _board_shade(p):
+    """Printed on its front (the face toward -z, the camera at view 0): black squares on white; the back is grey, so
+    that a board seen from behind is not found mirrored."""
+    (cols, rows), side = BOARD_SQUARES, BOARD_SQUARE_MM
+    i, j = np.floor(p[:, 0] / side + cols / 2), np.floor(p[:, 1] / side + rows / 2)
+    on_grid = (i >= 0) & (i < cols) & (j >= 0) & (j < rows)
+    black = on_grid & ((i + j) % 2 == 0) & (p[:, 2] < 0)
+    albedo = np.where(black[:, None], 0.04, np.where((p[:, 2] < 0)[:, None], 0.82, 0.35))
+    paper = M["backdrop"]  # opaque: its light leaves where it enters
+    n = len(p)
+    return MaterialSample(np.repeat(albedo, 3, axis=1) if albedo.shape[1] == 1 else albedo,
+                          np.tile(np.asarray(paper.mfp, np.float64), (n, 1)), np.full(n, paper.rho_s),
+                          np.full(n, paper.label, np.int16))
+
+
 def _build() -> dict[str, SimObject]:
     objs = [
         SimObject("apple", "train", "apple with red and yellow sides and a stem (Jensen apple)", 46, _apple_sdf, _apple_shade),
@@ -289,6 +329,9 @@ def _build() -> dict[str, SimObject]:
                   _pose(g.rotation_x(deg(20)))),
         SimObject("milk", "extra", "puck of skim milk, as in a thin dish (Jensen skimmilk)", 46, _milk_sdf,
                   uniform(M["skimmilk"]), _pose(g.rotation_x(deg(-30)))),
+        SimObject("calibration_board", "calibration", "printed checkerboard, 7 x 5 squares of 9 mm, held in 12 poses "
+                  "(views) for `sss calibrate stereo --board 6x4 --square 9`", 46, _board_sdf, _board_shade,
+                  hand_poses=BOARD_POSES),
     ]
     return {o.name: o for o in objs}
 
@@ -297,6 +340,7 @@ CATALOGUE: dict[str, SimObject] = _build()
 TRAIN_OBJECTS = ("apple", "pear", "orange", "star", "shovel")
 UNSEEN_OBJECTS = ("crab", "hand", "tangerine", "sand_rake", "soap", "leaf", "lego")
 EXTRA_OBJECTS = ("chicken", "potato", "milk")  # measured materials, outside the paper's splits
+CALIBRATION_OBJECTS = ("calibration_board",)  # targets to calibrate the rig with (`sss calibrate stereo`)
 
 
 def get_object(name: str) -> SimObject:
@@ -306,7 +350,8 @@ def get_object(name: str) -> SimObject:
     except KeyError:
         raise UnknownObjectError(
             f"unknown object {name!r}; the catalogue has: training {', '.join(TRAIN_OBJECTS)}; "
-            f"unseen {', '.join(UNSEEN_OBJECTS)}; extra (measured materials) {', '.join(EXTRA_OBJECTS)}"
+            f"unseen {', '.join(UNSEEN_OBJECTS)}; extra (measured materials) {', '.join(EXTRA_OBJECTS)}; "
+            "calibration_board (a checkerboard)"
         ) from None
 
 

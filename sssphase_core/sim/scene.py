@@ -91,7 +91,7 @@ class SimScene:
     def _trace(self) -> None:
         cam, proj, rig = self.rig.camera, self.rig.projector, self.rig
         h, w = cam.height, cam.width
-        turn = g.rotation_y(np.deg2rad(self.angle))  # object -> camera orientation
+        turn = self.obj.orientation(self.angle, self.view)  # object -> camera: the turntable's, or a hand-held target's
         centre = np.asarray(rig.turntable_centre, np.float64)
         rays = cam.rays().reshape(-1, 3)
         origin = -centre @ turn  # camera centre in object space (R^T (0 - C))

@@ -7,6 +7,7 @@ import pytest
 
 from sssphase_core.errors import InputError, UnknownObjectError
 from sssphase_core.sim import (
+    CALIBRATION_OBJECTS,
     CATALOGUE,
     EXTRA_OBJECTS,
     MATERIALS,
@@ -28,13 +29,13 @@ from sssphase_core.sim.materials import (
 def test_catalogue_has_the_papers_objects():
     assert TRAIN_OBJECTS == ("apple", "pear", "orange", "star", "shovel")
     assert UNSEEN_OBJECTS == ("crab", "hand", "tangerine", "sand_rake", "soap", "leaf", "lego")
-    assert set(CATALOGUE) == set(TRAIN_OBJECTS + UNSEEN_OBJECTS + EXTRA_OBJECTS)
+    assert set(CATALOGUE) == set(TRAIN_OBJECTS + UNSEEN_OBJECTS + EXTRA_OBJECTS + CALIBRATION_OBJECTS)
     with pytest.raises(UnknownObjectError) as err:
         get_object("banana")
     assert all(name in str(err.value) for name in CATALOGUE)
 
 
-@pytest.mark.parametrize("name", TRAIN_OBJECTS + UNSEEN_OBJECTS + EXTRA_OBJECTS)
+@pytest.mark.parametrize("name", TRAIN_OBJECTS + UNSEEN_OBJECTS + EXTRA_OBJECTS + CALIBRATION_OBJECTS)
 def test_every_object_fits_the_view_and_is_lit(name):
     scene = SimScene(name)
     mask = scene.mask

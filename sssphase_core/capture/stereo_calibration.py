@@ -1,0 +1,183 @@
+"""Camera-projector calibration from a session of a printed checkerboard (``sss calibrate stereo``).
+
+Each view of the session holds the board at another pose (a turntable, or the hand between views: `sss capture`
+asks for the move when the rig has no turntable). Per view, the board's inner corners are found in the white
+capture (OpenCV's ``findChessboardCorners``, refined to a fraction of a pixel), and each corner's projector point
+is read through a *local homography* fitted from the camera pixels around it to their decoded projector points
+(Moreno and Taubin 2012: the board is flat, so near a corner the two images are related by a homography, and
+fitting one over a window averages the decoding's noise). The camera and the projector are then calibrated as two
+cameras (``calibrateCamera``) and as a pair (``stereoCalibrate``, intrinsics fixed), and the result written in
+the names :func:`~sssphase_core.processing.triangulation.read_calibration` reads.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from sssphase_core.errors import DataError, InputError
+from sssphase_core.processing.triangulation import StereoCalibration
+from sssphase_core.store.files import atomic_path
+
+#: Half the side (camera px) of the window around a corner whose decoded points its local homography is fitted to,
+#: at least; a larger board square widens it to 0.4 of the square's side.
+HOMOGRAPHY_HALF_WINDOW = 5
+#: Views a calibration needs at the least (three poses fix a camera's intrinsics; more make them firm).
+MIN_VIEWS = 3
+
+
+#: What each device's calibration estimates: square pixels, a principal point, and one radial distortion term (k1).
+#: On the simulated board (12 poses, 256 x 192) freeing the aspect ratio put the projector's focal lengths 4% apart,
+#: and with no distortion term at all both principal points landed 10-28 px off; k1 alone brings both focal lengths
+#: within 1% and the principal points within 3 px.
+LENS_MODEL = cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
+
+
+@dataclass
+class BoardView:
+    """One view's board: ``camera`` and ``projector`` (N, 2) corner points, row by row."""
+
+    view: int
+    camera: np.ndarray
+    projector: np.ndarray
+
+
+@dataclass
+class StereoResult:
+    """A stereo calibration and how well it fits: RMS reprojection errors (px) of the camera's, the projector's and
+    the pair's calibration, the views used and those left out with why."""
+
+    calibration: StereoCalibration
+    camera_rms: float
+    projector_rms: float
+    stereo_rms: float
+    views: list[int]
+    skipped: dict[int, str] = field(default_factory=dict)
+
+
+def parse_board(text: str) -> tuple[int, int]:
+    """``COLSxROWS`` inner corners (e.g. ``9x6``: a board of 10 x 7 squares), each at least 2."""
+    try:
+        cols, rows = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise InputError(f"--board must be COLSxROWS inner corners, e.g. 9x6 (a board of 10 x 7 squares), got {text!r}") from None
+    if not (2 <= cols <= 100 and 2 <= rows <= 100):
+        raise InputError(f"--board {text}: a board has 2 to 100 inner corners each way")
+    return cols, rows
+
+
+def board_corners(white: np.ndarray, mask: np.ndarray, board: tuple[int, int]) -> np.ndarray | None:
+    """The board's inner corners (N, 2) in the white capture (H, W, 3), refined to a fraction of a pixel, row by row;
+    None where the whole board is not seen."""
+    grey = np.nan_to_num(white.astype(np.float32).mean(axis=-1))
+    level = np.percentile(grey[mask], 99) if mask.any() else grey.max()
+    image = np.round(255 * np.clip(grey / max(float(level), 1e-9), 0, 1)).astype(np.uint8)
+    found, corners = cv2.findChessboardCorners(image, board, flags=cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE)
+    if not found:
+        return None
+    criteria = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-3)
+    refined = cv2.cornerSubPix(image, corners, (3, 3), (-1, -1), criteria)
+    return refined.reshape(-1, 2).astype(np.float64)
+
+
+def projector_corners(camera: np.ndarray, xp: np.ndarray, yp: np.ndarray, mask: np.ndarray,
+                      half: int) -> np.ndarray | None:
+    """Each camera corner's projector point (N, 2) through a homography fitted (robustly) to the decoded points of the
+    pixels within ``half`` px of it; None if a corner has too few decoded pixels around it."""
+    h, w = mask.shape
+    out = np.empty_like(camera)
+    for k, (u, v) in enumerate(camera):
+        r0, r1 = max(0, int(round(v)) - half), min(h, int(round(v)) + half + 1)
+        c0, c1 = max(0, int(round(u)) - half), min(w, int(round(u)) + half + 1)
+        rows, cols = np.nonzero(mask[r0:r1, c0:c1] & np.isfinite(xp[r0:r1, c0:c1]) & np.isfinite(yp[r0:r1, c0:c1]))
+        if len(rows) < 12:
+            return None
+        rows, cols = rows + r0, cols + c0
+        src = np.column_stack([cols, rows]).astype(np.float64)
+        dst = np.column_stack([xp[rows, cols], yp[rows, cols]]).astype(np.float64)
+        homography, _ = cv2.findHomography(src, dst, cv2.RANSAC, 1.0)
+        if homography is None:
+            return None
+        out[k] = cv2.perspectiveTransform(np.array([[[u, v]]]), homography)[0, 0]
+    return out
+
+
+def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views: Sequence[int] | None = None,
+                     progress: Any = None) -> StereoResult:
+    """Calibrate the camera and the projector from ``session``'s views of a checkerboard of ``board`` inner corners
+    (columns, rows) and ``square`` side (its unit is the result's); refused in one line where fewer than
+    :data:`MIN_VIEWS` views show the whole board."""
+    if not square > 0 or not np.isfinite(square):
+        raise InputError(f"--square must be the board's square side, a positive length (mm), got {square!r}")
+    chosen = list(views) if views else session.views()
+    projector = tuple(int(v) for v in session.manifest.get("plan", {}).get("projector", ()))
+    if len(projector) != 2:
+        raise DataError(f"{session.path}: its capture plan names no projector size")
+    found: list[BoardView] = []
+    skipped: dict[int, str] = {}
+    size = None
+    for i, v in enumerate(chosen):
+        white = np.asarray(session.load(v, "white"), np.float32)
+        mask = np.asarray(session.load(v, "corr/mask")).astype(bool)
+        size = (white.shape[1], white.shape[0])
+        camera = board_corners(white, mask, board)
+        if camera is None:
+            skipped[v] = f"no {board[0]}x{board[1]} board found in the white capture"
+        else:
+            spacing = float(np.median(np.linalg.norm(np.diff(camera.reshape(board[1], board[0], 2), axis=1), axis=-1)))
+            half = max(HOMOGRAPHY_HALF_WINDOW, int(0.4 * spacing))
+            xp, yp = (np.asarray(session.load(v, name), np.float32) for name in ("corr/xp", "corr/yp"))
+            points = projector_corners(camera, xp, yp, mask, half)
+            if points is None:
+                skipped[v] = "too few decoded pixels around a corner (the projector's light does not reach the board?)"
+            else:
+                found.append(BoardView(v, camera, points))
+        if progress:
+            progress(i + 1, len(chosen))
+    if len(found) < MIN_VIEWS:
+        by_reason: dict[str, list[int]] = {}
+        for v, reason in skipped.items():
+            by_reason.setdefault(reason, []).append(v)
+        why = "; ".join(f"{reason}: view{'s' if len(vs) > 1 else ''} {', '.join(map(str, vs))}"
+                        for reason, vs in by_reason.items())
+        raise DataError(f"{session.path}: the board was found in {len(found)} view(s) where a calibration needs at least "
+                        f"{MIN_VIEWS}" + (f" ({why}); check --board (inner corners, e.g. 9x6 for 10 x 7 squares)" if why
+                                          else ": capture more poses of it"))
+    grid = np.zeros((board[0] * board[1], 3), np.float32)
+    grid[:, :2] = np.mgrid[0 : board[0], 0 : board[1]].T.reshape(-1, 2) * square
+    objects = [grid] * len(found)
+    cams = [b.camera.astype(np.float32).reshape(-1, 1, 2) for b in found]
+    projs = [b.projector.astype(np.float32).reshape(-1, 1, 2) for b in found]
+    square_pixels = lambda wh: np.array([[1.0, 0, wh[0] / 2], [0, 1.0, wh[1] / 2], [0, 0, 1]])  # noqa: E731 (fx/fy = 1)
+    cam_rms, k_cam, d_cam, _, _ = cv2.calibrateCamera(objects, cams, size, square_pixels(size), None, flags=LENS_MODEL)
+    proj_rms, k_proj, d_proj, _, _ = cv2.calibrateCamera(objects, projs, projector, square_pixels(projector), None,
+                                                         flags=LENS_MODEL)
+    stereo_rms, k_cam, d_cam, k_proj, d_proj, rotation, translation, _, _ = cv2.stereoCalibrate(
+        objects, cams, projs, k_cam, d_cam, k_proj, d_proj, size, flags=cv2.CALIB_FIX_INTRINSIC)
+    calibration = StereoCalibration(k_cam, d_cam.reshape(-1), k_proj, d_proj.reshape(-1), rotation, translation.reshape(-1))
+    return StereoResult(calibration, float(cam_rms), float(proj_rms), float(stereo_rms), [b.view for b in found], skipped)
+
+
+def write_calibration(path: Path | str, result: StereoResult) -> Path:
+    """Write ``result`` as an OpenCV YAML file in the names projector-camera calibration tools use (cam_K, cam_kc,
+    proj_K, proj_kc, R, T, and the RMS errors cam_error, proj_error, stereo_error), atomically."""
+    path = Path(path)
+    c = result.calibration
+    with atomic_path(path, ".yml") as tmp:
+        storage = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+        try:
+            for name, value in (("cam_K", c.camera_matrix), ("cam_kc", c.camera_distortion.reshape(1, -1)),
+                                ("proj_K", c.projector_matrix), ("proj_kc", c.projector_distortion.reshape(1, -1)),
+                                ("R", c.rotation), ("T", c.translation.reshape(3, 1))):
+                storage.write(name, np.asarray(value, np.float64))
+            for name, value in (("cam_error", result.camera_rms), ("proj_error", result.projector_rms),
+                                ("stereo_error", result.stereo_rms)):
+                storage.write(name, float(value))
+        finally:
+            storage.release()
+    return path
