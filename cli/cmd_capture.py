@@ -217,7 +217,14 @@ def calibrate_stereo(
 ) -> None:
     """Calibrate the camera and the projector as a stereo pair from a session of a checkerboard: corners in the white
     capture, their projector points through local homographies of the decoded correspondences (Moreno and Taubin)."""
-    from sssphase_core.capture.stereo_calibration import calibrate_stereo, parse_board, write_calibration
+    import numpy as np
+
+    from sssphase_core.capture.stereo_calibration import (
+        MORE_POSES,
+        calibrate_stereo,
+        parse_board,
+        write_calibration,
+    )
     from sssphase_core.errors import InputError
     from sssphase_core.relight.runner import choose_views
     from sssphase_core.store.session import Session
@@ -237,8 +244,13 @@ def calibrate_stereo(
     c = result.calibration
     console.print(f"calibrated from {len(result.views)} views: RMS reprojection error camera {result.camera_rms:.3f} px, "
                   f"projector {result.projector_rms:.3f} px, the pair {result.stereo_rms:.3f} px; focal length camera "
-                  f"{c.camera_matrix[0, 0]:.1f} px, projector {c.projector_matrix[0, 0]:.1f} px; baseline {c.baseline:.1f} "
-                  "(the square's unit)")
+                  f"{c.camera_matrix[0, 0]:.1f} px (+-{100 * result.uncertainty['camera'][0]:.1f}%), projector "
+                  f"{c.projector_matrix[0, 0]:.1f} px (+-{100 * result.uncertainty['projector'][0]:.1f}%); baseline "
+                  f"{c.baseline:.1f} (the square's unit)")
+    sizes = {"camera": tuple(np.asarray(s.load(result.views[0], "white")).shape[1::-1]),
+             "projector": tuple(s.manifest["plan"]["projector"])}
+    if shaky := result.shaky(sizes):
+        console.print(f"[yellow]warning[/]: the poses leave the calibration uncertain ({'; '.join(shaky)}): {MORE_POSES}")
     console.print(f"wrote {write_calibration(out, result)}: triangulate with `sss geometry SESSION --calibration {out}`")
 
 

@@ -29,6 +29,14 @@ from sssphase_core.store.files import atomic_path
 HOMOGRAPHY_HALF_WINDOW = 5
 #: Views a calibration needs at the least (three poses fix a camera's intrinsics; more make them firm).
 MIN_VIEWS = 3
+#: Focal lengths (in image widths) a calibration may come out with: fields of view from about 150 to 6 degrees.
+#: Poses that do not pin the focal length down give any value (three views of one pose: 13.7 widths).
+FOCAL_RANGE = (0.15, 10.0)
+#: The uncertainty (OpenCV's standard deviations) above which a calibration is written with a warning: the focal
+#: length's relative one, and the principal point's as a share of the image's larger side. The simulated board's 12
+#: poses: 3.2-3.3% and 1.5% (its focal lengths came out within 0.8%); three of its mildest poses: 14% and 4%.
+MAX_FOCAL_SD, MAX_CENTRE_SD = 0.05, 0.05
+MORE_POSES = "capture the board in more poses, tilted and turned by 30 to 45 degrees, filling more of the view"
 
 
 #: What each device's calibration estimates: square pixels, a principal point, and one radial distortion term (k1).
@@ -58,6 +66,16 @@ class StereoResult:
     stereo_rms: float
     views: list[int]
     skipped: dict[int, str] = field(default_factory=dict)
+    #: per device, OpenCV's estimate of the calibration's own uncertainty: the focal length's standard deviation
+    #: relative to it, and the principal point's (px)
+    uncertainty: dict[str, tuple[float, float]] = field(default_factory=dict)
+
+    def shaky(self, size: dict[str, tuple[int, int]]) -> list[str]:
+        """The devices whose focal length is uncertain by more than :data:`MAX_FOCAL_SD`, or whose principal point
+        by more than :data:`MAX_CENTRE_SD` of the image (``size``: each device's (W, H)), with their figures."""
+        return [f"{name}: focal length +-{100 * f:.1f}%, principal point +-{c:.1f} px"
+                for name, (f, c) in self.uncertainty.items()
+                if f > MAX_FOCAL_SD or c > MAX_CENTRE_SD * max(size[name])]
 
 
 def parse_board(text: str) -> tuple[int, int]:
@@ -85,10 +103,16 @@ def board_corners(white: np.ndarray, mask: np.ndarray, board: tuple[int, int]) -
     return refined.reshape(-1, 2).astype(np.float64)
 
 
+#: Why a view's corners got no projector points (:func:`projector_corners`).
+TOO_FEW_DECODED = "too few decoded pixels around a corner (does the projector's light reach the whole board?)"
+NOT_FLAT = "the decoded points around a corner fit no homography (is the board flat, and lit only by the projector?)"
+
+
 def projector_corners(camera: np.ndarray, xp: np.ndarray, yp: np.ndarray, mask: np.ndarray,
-                      half: int) -> np.ndarray | None:
-    """Each camera corner's projector point (N, 2) through a homography fitted (robustly) to the decoded points of the
-    pixels within ``half`` px of it; None if a corner has too few decoded pixels around it."""
+                      half: int) -> np.ndarray | str:
+    """Each camera corner's projector point (N, 2) through a homography fitted (robustly: RANSAC, 1 projector px) to
+    the decoded points of the pixels within ``half`` px of it, or why not (:data:`TOO_FEW_DECODED`, :data:`NOT_FLAT`:
+    fewer than half of them fit one)."""
     h, w = mask.shape
     out = np.empty_like(camera)
     for k, (u, v) in enumerate(camera):
@@ -96,13 +120,13 @@ def projector_corners(camera: np.ndarray, xp: np.ndarray, yp: np.ndarray, mask: 
         c0, c1 = max(0, int(round(u)) - half), min(w, int(round(u)) + half + 1)
         rows, cols = np.nonzero(mask[r0:r1, c0:c1] & np.isfinite(xp[r0:r1, c0:c1]) & np.isfinite(yp[r0:r1, c0:c1]))
         if len(rows) < 12:
-            return None
+            return TOO_FEW_DECODED
         rows, cols = rows + r0, cols + c0
         src = np.column_stack([cols, rows]).astype(np.float64)
         dst = np.column_stack([xp[rows, cols], yp[rows, cols]]).astype(np.float64)
-        homography, _ = cv2.findHomography(src, dst, cv2.RANSAC, 1.0)
-        if homography is None:
-            return None
+        homography, inliers = cv2.findHomography(src, dst, cv2.RANSAC, 1.0)
+        if homography is None or inliers.sum() < len(src) / 2:
+            return NOT_FLAT
         out[k] = cv2.perspectiveTransform(np.array([[[u, v]]]), homography)[0, 0]
     return out
 
@@ -133,8 +157,8 @@ def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views:
             half = max(HOMOGRAPHY_HALF_WINDOW, int(0.4 * spacing))
             xp, yp = (np.asarray(session.load(v, name), np.float32) for name in ("corr/xp", "corr/yp"))
             points = projector_corners(camera, xp, yp, mask, half)
-            if points is None:
-                skipped[v] = "too few decoded pixels around a corner (the projector's light does not reach the board?)"
+            if isinstance(points, str):
+                skipped[v] = points
             else:
                 found.append(BoardView(v, camera, points))
         if progress:
@@ -145,22 +169,38 @@ def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views:
             by_reason.setdefault(reason, []).append(v)
         why = "; ".join(f"{reason}: view{'s' if len(vs) > 1 else ''} {', '.join(map(str, vs))}"
                         for reason, vs in by_reason.items())
+        hint = ("; check --board (inner corners, e.g. 9x6 for 10 x 7 squares)" if any(r.startswith("no ") for r in by_reason)
+                else "")
         raise DataError(f"{session.path}: the board was found in {len(found)} view(s) where a calibration needs at least "
-                        f"{MIN_VIEWS}" + (f" ({why}); check --board (inner corners, e.g. 9x6 for 10 x 7 squares)" if why
-                                          else ": capture more poses of it"))
+                        f"{MIN_VIEWS}" + (f" ({why}){hint}" if why else ": capture more poses of it"))
     grid = np.zeros((board[0] * board[1], 3), np.float32)
     grid[:, :2] = np.mgrid[0 : board[0], 0 : board[1]].T.reshape(-1, 2) * square
     objects = [grid] * len(found)
     cams = [b.camera.astype(np.float32).reshape(-1, 1, 2) for b in found]
     projs = [b.projector.astype(np.float32).reshape(-1, 1, 2) for b in found]
     square_pixels = lambda wh: np.array([[1.0, 0, wh[0] / 2], [0, 1.0, wh[1] / 2], [0, 0, 1]])  # noqa: E731 (fx/fy = 1)
-    cam_rms, k_cam, d_cam, _, _ = cv2.calibrateCamera(objects, cams, size, square_pixels(size), None, flags=LENS_MODEL)
-    proj_rms, k_proj, d_proj, _, _ = cv2.calibrateCamera(objects, projs, projector, square_pixels(projector), None,
-                                                         flags=LENS_MODEL)
-    stereo_rms, k_cam, d_cam, k_proj, d_proj, rotation, translation, _, _ = cv2.stereoCalibrate(
-        objects, cams, projs, k_cam, d_cam, k_proj, d_proj, size, flags=cv2.CALIB_FIX_INTRINSIC)
-    calibration = StereoCalibration(k_cam, d_cam.reshape(-1), k_proj, d_proj.reshape(-1), rotation, translation.reshape(-1))
-    return StereoResult(calibration, float(cam_rms), float(proj_rms), float(stereo_rms), [b.view for b in found], skipped)
+    try:
+        cam_rms, k_cam, d_cam, _, _, sd_cam, _, _ = cv2.calibrateCameraExtended(
+            objects, cams, size, square_pixels(size), None, flags=LENS_MODEL)
+        proj_rms, k_proj, d_proj, _, _, sd_proj, _, _ = cv2.calibrateCameraExtended(
+            objects, projs, projector, square_pixels(projector), None, flags=LENS_MODEL)
+        stereo_rms, k_cam, d_cam, k_proj, d_proj, rotation, translation, _, _ = cv2.stereoCalibrate(
+            objects, cams, projs, k_cam, d_cam, k_proj, d_proj, size, flags=cv2.CALIB_FIX_INTRINSIC)
+        calibration = StereoCalibration(k_cam, d_cam.reshape(-1), k_proj, d_proj.reshape(-1), rotation,
+                                        translation.reshape(-1))
+    except (cv2.error, InputError) as exc:  # degenerate poses: OpenCV's solver fails, or returns no rotation
+        said = str(exc).strip().splitlines()[-1][:160]
+        raise DataError(f"{session.path}: the views {', '.join(map(str, (b.view for b in found)))} do not calibrate "
+                        f"({said}): {MORE_POSES}") from None
+    uncertainty = {name: (float(sd.ravel()[1] / k[1, 1]), float(np.hypot(*sd.ravel()[2:4])))
+                   for name, k, sd in (("camera", k_cam, sd_cam), ("projector", k_proj, sd_proj))}
+    for name, k, wh in (("camera", k_cam, size), ("projector", k_proj, projector)):
+        if not FOCAL_RANGE[0] * max(wh) <= k[1, 1] <= FOCAL_RANGE[1] * max(wh):
+            raise DataError(f"{session.path}: the {name}'s focal length came out {k[1, 1]:.0f} px, a field of view no lens "
+                            f"of a {wh[0]}x{wh[1]} {name} has: the views {', '.join(str(b.view) for b in found)} do not "
+                            f"pin it down; {MORE_POSES}")
+    return StereoResult(calibration, float(cam_rms), float(proj_rms), float(stereo_rms), [b.view for b in found], skipped,
+                        uncertainty)
 
 
 def write_calibration(path: Path | str, result: StereoResult) -> Path:
