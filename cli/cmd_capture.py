@@ -217,8 +217,6 @@ def calibrate_stereo(
 ) -> None:
     """Calibrate the camera and the projector as a stereo pair from a session of a checkerboard: corners in the white
     capture, their projector points through local homographies of the decoded correspondences (Moreno and Taubin)."""
-    import numpy as np
-
     from sssphase_core.capture.stereo_calibration import (
         MORE_POSES,
         calibrate_stereo,
@@ -247,9 +245,7 @@ def calibrate_stereo(
                   f"{c.camera_matrix[0, 0]:.1f} px (+-{100 * result.uncertainty['camera'][0]:.1f}%), projector "
                   f"{c.projector_matrix[0, 0]:.1f} px (+-{100 * result.uncertainty['projector'][0]:.1f}%); baseline "
                   f"{c.baseline:.1f} (the square's unit)")
-    sizes = {"camera": tuple(np.asarray(s.load(result.views[0], "white")).shape[1::-1]),
-             "projector": tuple(s.manifest["plan"]["projector"])}
-    if shaky := result.shaky(sizes):
+    if shaky := result.shaky():
         console.print(f"[yellow]warning[/]: the poses leave the calibration uncertain ({'; '.join(shaky)}): {MORE_POSES}")
     console.print(f"wrote {write_calibration(out, result)}: triangulate with `sss geometry SESSION --calibration {out}`")
 

@@ -69,13 +69,15 @@ class StereoResult:
     #: per device, OpenCV's estimate of the calibration's own uncertainty: the focal length's standard deviation
     #: relative to it, and the principal point's (px)
     uncertainty: dict[str, tuple[float, float]] = field(default_factory=dict)
+    #: per device, its image size (W, H)
+    sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
 
-    def shaky(self, size: dict[str, tuple[int, int]]) -> list[str]:
+    def shaky(self) -> list[str]:
         """The devices whose focal length is uncertain by more than :data:`MAX_FOCAL_SD`, or whose principal point
-        by more than :data:`MAX_CENTRE_SD` of the image (``size``: each device's (W, H)), with their figures."""
+        by more than :data:`MAX_CENTRE_SD` of the image's larger side, with their figures."""
         return [f"{name}: focal length +-{100 * f:.1f}%, principal point +-{c:.1f} px"
                 for name, (f, c) in self.uncertainty.items()
-                if f > MAX_FOCAL_SD or c > MAX_CENTRE_SD * max(size[name])]
+                if f > MAX_FOCAL_SD or c > MAX_CENTRE_SD * max(self.sizes[name])]
 
 
 def parse_board(text: str) -> tuple[int, int]:
@@ -200,15 +202,16 @@ def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views:
                             f"of a {wh[0]}x{wh[1]} {name} has: the views {', '.join(str(b.view) for b in found)} do not "
                             f"pin it down; {MORE_POSES}")
     return StereoResult(calibration, float(cam_rms), float(proj_rms), float(stereo_rms), [b.view for b in found], skipped,
-                        uncertainty)
+                        uncertainty, {"camera": size, "projector": projector})
 
 
 def write_calibration(path: Path | str, result: StereoResult) -> Path:
-    """Write ``result`` as an OpenCV YAML file in the names projector-camera calibration tools use (cam_K, cam_kc,
-    proj_K, proj_kc, R, T, and the RMS errors cam_error, proj_error, stereo_error), atomically."""
+    """Write ``result`` as an OpenCV YAML, XML or JSON file (``path``'s suffix says which) in the names
+    projector-camera calibration tools use (cam_K, cam_kc, proj_K, proj_kc, R, T, and the RMS errors cam_error,
+    proj_error, stereo_error), atomically."""
     path = Path(path)
     c = result.calibration
-    with atomic_path(path, ".yml") as tmp:
+    with atomic_path(path, path.suffix) as tmp:  # (OpenCV writes the format the suffix names)
         storage = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
         try:
             for name, value in (("cam_K", c.camera_matrix), ("cam_kc", c.camera_distortion.reshape(1, -1)),
