@@ -219,6 +219,7 @@ def calibrate_stereo(
     capture, their projector points through local homographies of the decoded correspondences (Moreno and Taubin)."""
     from sssphase_core.capture.stereo_calibration import (
         MORE_POSES,
+        against_simulated_rig,
         calibrate_stereo,
         parse_board,
         write_calibration,
@@ -245,6 +246,8 @@ def calibrate_stereo(
                   f"{c.camera_matrix[0, 0]:.1f} px (+-{100 * result.uncertainty['camera'][0]:.1f}%), projector "
                   f"{c.projector_matrix[0, 0]:.1f} px (+-{100 * result.uncertainty['projector'][0]:.1f}%); baseline "
                   f"{c.baseline:.1f} (the square's unit)")
+    if line := against_simulated_rig(s, c):
+        console.print(line)
     if shaky := result.shaky():
         console.print(f"[yellow]warning[/]: the poses leave the calibration uncertain ({'; '.join(shaky)}): {MORE_POSES}")
     console.print(f"wrote {write_calibration(out, result)}: triangulate with `sss geometry SESSION --calibration {out}`")

@@ -98,6 +98,7 @@ def test_a_checkerboard_session_calibrates_the_rig_and_its_points_land_on_the_su
                   timeout=120)
     assert res.returncode == 0, res.stdout + res.stderr
     assert "calibrated from 12 views" in res.stdout and f"wrote {out}" in res.stdout
+    assert "against the simulated rig's exact calibration: camera focal length" in res.stdout
     rms = [float(v) for v in re.findall(r"(\d+\.\d+) px", res.stdout)[:3]]
     assert all(0 < v < 1 for v in rms), res.stdout  # camera, projector, the pair
     got, exact = read_calibration(out), stereo_calibration(rig_preset("cpu"))

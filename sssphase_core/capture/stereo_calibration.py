@@ -205,6 +205,26 @@ def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views:
                         uncertainty, {"camera": size, "projector": projector})
 
 
+def against_simulated_rig(session: Any, calibration: StereoCalibration) -> str | None:
+    """One line comparing ``calibration`` with a simulated session's exact rig (evaluation only), or None for a session
+    of another rig: each device's focal length (%) and principal point (px), the pose's rotation (degrees) and the
+    baseline (%)."""
+    rig = session.manifest.get("rig", {})
+    if not str(rig.get("camera", "")).startswith("sim:"):
+        return None
+    from sssphase_core.sim import rig_from_options, stereo_calibration
+
+    exact = stereo_calibration(rig_from_options(rig.get("options", {})))
+    parts = []
+    for name, got, want in (("camera", calibration.camera_matrix, exact.camera_matrix),
+                            ("projector", calibration.projector_matrix, exact.projector_matrix)):
+        parts.append(f"{name} focal length {100 * (got[1, 1] / want[1, 1] - 1):+.1f}%, principal point "
+                     f"{np.hypot(*(got[:2, 2] - want[:2, 2])):.1f} px off")
+    turn = np.degrees(np.linalg.norm(cv2.Rodrigues(calibration.rotation @ exact.rotation.T)[0]))
+    return (f"against the simulated rig's exact calibration: {'; '.join(parts)}; the projector's pose turned {turn:.2f} "
+            f"degrees, its baseline {100 * (calibration.baseline / exact.baseline - 1):+.1f}%")
+
+
 def write_calibration(path: Path | str, result: StereoResult) -> Path:
     """Write ``result`` as an OpenCV YAML, XML or JSON file (``path``'s suffix says which) in the names
     projector-camera calibration tools use (cam_K, cam_kc, proj_K, proj_kc, R, T, and the RMS errors cam_error,
