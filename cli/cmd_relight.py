@@ -141,7 +141,8 @@ def geometry_cmd(
     decoded xp_decoded, yp_decoded (where light re-emerges: what relighting uses), shift_x, shift_y
     and mask. With a calibration (a simulated session has its own), also points and points_decoded
     (H x W x 3, the calibration's unit) and points.ply, the corrected points coloured by the white
-    capture. On a simulated session both are also scored against the exact ones.
+    capture; shift.png shows the shift (and in depth, with a calibration). On a simulated session both
+    are also scored against the exact ones.
     Only footprints that carry the skew of oblique incidence remove the bias along the baseline; the
     analytic model's are radially symmetric and correct silhouettes and material edges only."""
     from sssphase_core.relight.runner import geometry_session

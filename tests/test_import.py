@@ -588,6 +588,7 @@ def test_geometry_of_an_imported_session_triangulates_only_with_the_rigs_calibra
     assert "note: no points triangulated: give --calibration FILE" in res.stdout
     folder = tmp_path / "g" / "handmade" / "view_000"
     assert "points" not in np.load(folder / "correspondence_for_geometry.npz").files and not (folder / "points.ply").exists()
+    assert cv2.imread(str(folder / "shift.png")) is not None  # the shift along the baseline, without depth
     c = stereo_calibration(rig_preset("cpu"))
     calibration = tmp_path / "calibration.yml"
     fs = cv2.FileStorage(str(calibration), cv2.FILE_STORAGE_WRITE)

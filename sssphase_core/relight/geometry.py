@@ -31,6 +31,7 @@ correction's sign (hand: bias +0.110 px decoded, +0.130 relit-fringe correction,
 from __future__ import annotations
 
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
@@ -141,3 +142,36 @@ def geometric_correspondence(source: FootprintSource, proj: Projection, patch: i
     decoded_x, decoded_y = proj.xp.astype(np.float32), proj.yp.astype(np.float32)
     return replace(proj, xp=np.where(np.isfinite(bx), decoded_x - bx, decoded_x).astype(np.float32),
                    yp=np.where(np.isfinite(by), decoded_y - by, decoded_y).astype(np.float32))
+
+
+def shift_figure(white: np.ndarray, shift_x: np.ndarray, mask: np.ndarray, path: Path | str, *, title: str = "",
+                 depth: np.ndarray | None = None, unit: str = "") -> Path:
+    """The view's white capture | the scattering shift along the baseline (projector px) | with ``depth`` (H, W: the
+    decoded points' depth minus the corrected ones', in ``unit``) how far behind the surface scattering put each
+    point (PNG, diverging colour bars centred on 0)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sssphase_core.processing.colour import display_scale, srgb
+    from sssphase_core.store.files import save_figure
+
+    panels = [("shift along the baseline (x)", shift_x, "projector px")]
+    if depth is not None:
+        panels.append(("depth: decoded - corrected", depth, f"{unit} (+: behind the surface)"))
+    fig, axes = plt.subplots(1, 1 + len(panels), figsize=(3.6 * (1 + len(panels)), 3.2), constrained_layout=True)
+    axes[0].imshow(srgb(np.nan_to_num(white) / display_scale(white, mask)), interpolation="nearest")
+    axes[0].set_title("white capture", fontsize=9)
+    for ax, (name, values, label) in zip(axes[1:], panels, strict=True):
+        shown = mask & np.isfinite(values)
+        vmax = float(max(np.percentile(np.abs(values[shown]), 99) if shown.any() else 0.0, 1e-6))
+        im = ax.imshow(np.where(shown, values, np.nan), cmap="coolwarm", vmin=-vmax, vmax=vmax, interpolation="nearest")
+        ax.set_title(name, fontsize=9)
+        fig.colorbar(im, ax=ax, fraction=0.046, pad=0.02, label=label)
+    for ax in axes:
+        ax.set_axis_off()
+    fig.suptitle(title, fontsize=10)
+    save_figure(fig, path, dpi=90)
+    plt.close(fig)
+    return Path(path)

@@ -506,6 +506,8 @@ class GeometryView:
     cloud: Path | None = None
     n_points: int = 0
     unit: str = ""
+    #: the view's figure of the shift (``shift.png``): along the baseline, and in depth where points were made
+    figure: Path | None = None
     #: the corrected points' median reprojection error in the projector (px): how well the calibration fits
     reprojection: float = float("nan")
     #: on simulated sessions, the decoded and corrected 3D points' median distance and depth (z) bias to the
@@ -620,6 +622,11 @@ def _write_geometry(s: Session, rv: RelightView, geo: Any, out: Path, period: fl
         assert corrected is not None
         done.cloud, done.unit, done.reprojection = folder / "points.ply", stereo.unit or "the calibration's unit", corrected.reprojection
         done.n_points = write_point_cloud(done.cloud, arrays["points"], rv.white)
+    from sssphase_core.relight.geometry import shift_figure
+
+    done.figure = shift_figure(rv.white, shift_x, m, folder / "shift.png", title=f"{rv.object} view {rv.view}: what "
+                               "scattering does to the decoded points", unit=done.unit,
+                               depth=None if stereo is None else (arrays["points_decoded"] - arrays["points"])[..., 2])
     if rv.sim is not None and "gt/proj_xy" in s.arrays(rv.view):  # evaluation only: the simulator's exact points
         gt = np.asarray(s.load(rv.view, "gt/proj_xy"), np.float32)
         ok = m & np.isfinite(gt[..., 0])

@@ -147,6 +147,7 @@ def test_geometry_session_writes_and_scores_the_corrected_points(session, tmp_pa
     assert len(cloud.vertices) == geo.n_points == finite.sum()
     np.testing.assert_allclose(np.asarray(cloud.vertices), points[finite], atol=1e-4)
     assert np.asarray(cloud.colors)[:, :3].std() > 0  # coloured by the white capture, not one grey
+    assert geo.figure == geo.path.parent / "shift.png" and cv2.imread(str(geo.figure)).shape[1] > 800  # three panels
     with pytest.raises(InputError, match="without scattering there is no shift"):
         geometry_session(session, backend="none", out=tmp_path / "g")
 
