@@ -209,12 +209,11 @@ def against_simulated_rig(session: Any, calibration: StereoCalibration) -> str |
     """One line comparing ``calibration`` with a simulated session's exact rig (evaluation only), or None for a session
     of another rig: each device's focal length (%) and principal point (px), the pose's rotation (degrees) and the
     baseline (%)."""
-    rig = session.manifest.get("rig", {})
-    if not str(rig.get("camera", "")).startswith("sim:"):
-        return None
-    from sssphase_core.sim import rig_from_options, stereo_calibration
+    from sssphase_core.sim import session_rig_calibration
 
-    exact = stereo_calibration(rig_from_options(rig.get("options", {})))
+    exact = session_rig_calibration(session.manifest.get("rig", {}))
+    if exact is None:
+        return None
     parts = []
     for name, got, want in (("camera", calibration.camera_matrix, exact.camera_matrix),
                             ("projector", calibration.projector_matrix, exact.projector_matrix)):

@@ -8,6 +8,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from sssphase_core.errors import InputError
@@ -74,8 +75,6 @@ def _shown(a: np.ndarray) -> str:
 def calibration_from_arrays(values: dict[str, np.ndarray]) -> StereoCalibration:
     """A :class:`StereoCalibration` from arrays named by :data:`CALIBRATION_KEYS` (any of each one's names);
     a rotation may be a Rodrigues vector, a distortion vector a row or a column."""
-    import cv2
-
     found: dict[str, np.ndarray] = {}
     for field, names in CALIBRATION_KEYS.items():
         name = next((n for n in names if n in values), None)
@@ -96,8 +95,6 @@ def read_calibration(path: Path | str) -> StereoCalibration:
     """The stereo calibration in an OpenCV FileStorage file (YAML, XML or JSON), as projector-camera calibration
     tools write it (:data:`CALIBRATION_KEYS`); missing distortion is an ideal lens. Refused in one line naming the
     file and what is wrong."""
-    import cv2
-
     path = Path(path)
     if not path.is_file():
         raise InputError(f"--calibration {path}: " + ("a folder, not a calibration file" if path.is_dir() else "no such file"))
@@ -139,8 +136,6 @@ def _node_array(node, where: str) -> np.ndarray:  # noqa: ANN001 (cv2.FileNode)
         except ValueError:  # rows of different lengths
             raise InputError(f"{where} is a list of rows of different lengths") from None
     if node.isMap():
-        import cv2
-
         not_a_matrix = f"{where} is not a matrix (an !!opencv-matrix of rows, cols, dt, data)"
         sizes = node.getNode("sizes")  # an n-d matrix (a vector written by OpenCV), else rows and cols
         dims = ([sizes.at(i) for i in range(min(sizes.size(), 4))] if sizes.isSeq() else [sizes] if not sizes.empty()
@@ -179,8 +174,6 @@ def triangulate(calib: StereoCalibration, xp: np.ndarray, yp: np.ndarray, mask: 
     """Each camera pixel of ``mask`` (H, W) with its projector point (``xp``, ``yp``: (H, W) projector px) ->
     the 3D point where the two rays meet (linear triangulation of the undistorted points, OpenCV's
     ``triangulatePoints``), (H, W, 3) float32 in the camera's frame."""
-    import cv2
-
     h, w = mask.shape
     ok = mask & np.isfinite(xp) & np.isfinite(yp)
     rows, cols = np.nonzero(ok)

@@ -556,7 +556,10 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
     if checkpoint is not None:
         checkpoint = resolve_checkpoint(checkpoint)
         check_decoder_fits(Path(checkpoint), [backend], [s])
-    stereo, said = _stereo_calibration(s, calibration)
+    from sssphase_core.sim import session_rig_calibration
+
+    exact_rig = session_rig_calibration(s.manifest.get("rig", {}))  # a simulated session's: evaluation, and the default
+    stereo, said = _stereo_calibration(calibration, exact_rig)
     chosen = choose_views(s, views, say)
     say.say(said)  # once the input is known good: a refused run says only why
     claim_output(out, [s])  # once the input is known good: a refused run leaves no folder of its own behind
@@ -570,34 +573,31 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
         with say.status(f"{rv.object} view {v}: predicting the scattering shift ({backend})"):
             geo = geometric_correspondence(source, rv.proj, patch, period,
                                            centred_on="entry" if backend in ENTRY_CENTRED else "decoded")
-        done.append(_write_geometry(s, rv, geo, out, period, stereo, say))
+        done.append(_write_geometry(s, rv, geo, out, period, stereo, exact_rig, say))
         say.say(_geometry_line(done[-1]))
         if line := _points_line(done[-1]):
             say.say(line)
     return done
 
 
-def _stereo_calibration(s: Session, calibration: Path | str | None) -> tuple[StereoCalibration | None, str]:
-    """The stereo calibration to triangulate ``s``'s views with (the file given, else a simulated session's own
-    rig, exact, else None) and the line that says which."""
+def _stereo_calibration(calibration: Path | str | None, exact_rig: StereoCalibration | None
+                        ) -> tuple[StereoCalibration | None, str]:
+    """The stereo calibration to triangulate with (the file given, else a simulated session's ``exact_rig``, else
+    None) and the line that says which."""
     from sssphase_core.processing.triangulation import read_calibration
 
     if calibration is not None:
         return read_calibration(calibration), f"triangulating with the calibration in {calibration}"
-    rig = s.manifest.get("rig", {})
-    if str(rig.get("camera", "")).startswith("sim:"):
-        from sssphase_core.sim import rig_from_options, stereo_calibration
-
-        return stereo_calibration(rig_from_options(rig.get("options", {}))), ("triangulating with the simulated rig's "
-                                                                              "exact calibration")
+    if exact_rig is not None:
+        return exact_rig, "triangulating with the simulated rig's exact calibration"
     return None, ("note: no points triangulated: give --calibration FILE, the rig's camera-projector calibration (an "
                   "OpenCV YAML, XML or JSON file with cam_K, cam_kc, proj_K, proj_kc, R, T), for 3D points and points.ply")
 
 
 def _write_geometry(s: Session, rv: RelightView, geo: Any, out: Path, period: float, stereo: StereoCalibration | None,
-                    say: Narrator) -> GeometryView:
+                    exact_rig: StereoCalibration | None, say: Narrator) -> GeometryView:
     """Write one view's correspondences for geometry (and, with ``stereo``, their 3D points) and score them
-    (simulated sessions)."""
+    (simulated sessions: against the exact points, and their 3D points against ``exact_rig``'s surface)."""
     from sssphase_core.store.session import view_dir_name
 
     shift_x, shift_y = rv.proj.xp - geo.xp, rv.proj.yp - geo.yp
@@ -616,10 +616,9 @@ def _write_geometry(s: Session, rv: RelightView, geo: Any, out: Path, period: fl
     with atomic_path(path, ".npz") as tmp:
         np.savez_compressed(tmp, **arrays)
     done = GeometryView(rv.object, rv.view, path, (float(np.nanmedian(shift_x[m])), float(np.nanmedian(shift_y[m]))), period)
-    if stereo is not None:
+    if stereo is not None and corrected is not None:
         from sssphase_core.store.pointcloud import write_point_cloud
 
-        assert corrected is not None
         done.cloud, done.unit, done.reprojection = folder / "points.ply", stereo.unit or "the calibration's unit", corrected.reprojection
         done.n_points = write_point_cloud(done.cloud, arrays["points"], rv.white)
     from sssphase_core.relight.geometry import shift_figure
@@ -634,11 +633,8 @@ def _write_geometry(s: Session, rv: RelightView, geo: Any, out: Path, period: fl
         for xp, yp in ((rv.proj.xp, rv.proj.yp), (geo.xp, geo.yp)):
             scores += [float(np.median(np.hypot(xp - gt[..., 0], yp - gt[..., 1])[ok])), float(np.median((xp - gt[..., 0])[ok]))]
         done.exact = (scores[0], scores[1], scores[2], scores[3])
-        if stereo is not None:  # the truth is the simulated rig's, whichever calibration made the points
-            from sssphase_core.sim import rig_from_options, stereo_calibration
-
-            exact = stereo_calibration(rig_from_options(rv.sim["options"]))
-            done.exact_3d = _scored_points(exact, gt, ok, arrays["points_decoded"], arrays["points"])
+        if stereo is not None and exact_rig is not None:  # the truth is the rig's, whichever calibration made the points
+            done.exact_3d = _scored_points(exact_rig, gt, ok, arrays["points_decoded"], arrays["points"])
     return done
 
 

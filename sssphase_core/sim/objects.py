@@ -297,8 +297,7 @@ def _board_shade(p):
     albedo = np.where(black[:, None], 0.04, np.where((p[:, 2] < 0)[:, None], 0.82, 0.35))
     paper = M["backdrop"]  # opaque: its light leaves where it enters
     n = len(p)
-    return MaterialSample(np.repeat(albedo, 3, axis=1) if albedo.shape[1] == 1 else albedo,
-                          np.tile(np.asarray(paper.mfp, np.float64), (n, 1)), np.full(n, paper.rho_s),
+    return MaterialSample(np.repeat(albedo, 3, axis=1), np.tile(np.asarray(paper.mfp, np.float64), (n, 1)), np.full(n, paper.rho_s),
                           np.full(n, paper.label, np.int16))
 
 
@@ -351,7 +350,7 @@ def get_object(name: str) -> SimObject:
         raise UnknownObjectError(
             f"unknown object {name!r}; the catalogue has: training {', '.join(TRAIN_OBJECTS)}; "
             f"unseen {', '.join(UNSEEN_OBJECTS)}; extra (measured materials) {', '.join(EXTRA_OBJECTS)}; "
-            "calibration_board (a checkerboard)"
+            f"calibration {', '.join(CALIBRATION_OBJECTS)}"
         ) from None
 
 

@@ -305,7 +305,6 @@ def pixel_pitch_mm(rig: RigConfig) -> float:
     return rig.turntable_centre[2] / rig.camera.fx
 
 
-
 def stereo_calibration(rig: RigConfig) -> StereoCalibration:
     """The rig's exact camera-projector calibration (ideal lenses, mm): what a lab's stereo calibration estimates."""
     from sssphase_core.processing.triangulation import StereoCalibration
@@ -314,4 +313,13 @@ def stereo_calibration(rig: RigConfig) -> StereoCalibration:
         return np.array([[p.fx, 0.0, p.cx], [0.0, p.fy, p.cy], [0.0, 0.0, 1.0]])
 
     return StereoCalibration(matrix(rig.camera), np.zeros(0), matrix(rig.projector), np.zeros(0),
-                             np.asarray(rig.projector.rotation, np.float64), np.asarray(rig.projector.translation, np.float64), unit="mm")
+                             np.asarray(rig.projector.rotation, np.float64),
+                             np.asarray(rig.projector.translation, np.float64), unit="mm")
+
+
+def session_rig_calibration(rig_record: Mapping[str, Any]) -> StereoCalibration | None:
+    """The exact calibration of the rig a session records (its manifest's ``rig``) where that is the simulated one,
+    else None."""
+    if not str(rig_record.get("camera", "")).startswith("sim:"):
+        return None
+    return stereo_calibration(rig_from_options(rig_record.get("options", {})))
