@@ -20,6 +20,10 @@ def view(
     port: Annotated[int, typer.Option(min=0, max=65535, help="port (0: a free one)")] = 8765,
     allow_remote: Annotated[bool, typer.Option("--allow-remote", help="listen off loopback (the token is still required)")] = False,
     open_browser: Annotated[bool, typer.Option("--open", help="open the page in the default browser")] = False,
+    calibration: Annotated[Path | None, typer.Option(help="the rig's camera-projector calibration (OpenCV YAML, XML or "
+                                                     "JSON, as `sss calibrate stereo` writes it) for the depth and "
+                                                     "surface maps of sessions and live decode; a simulated rig has its "
+                                                     "own")] = None,
 ) -> None:
     """Serve the live view, live decode, sessions and relighting on a local web page; prints its URL with
     the token every request needs. A local daemon is started for the live view when none runs."""
@@ -42,7 +46,7 @@ def view(
             webbrowser.open(url)
 
     serve(host=host, port=port, sessions=sessions, checkpoint=checkpoint, out=out, rig=LiveRig(spec),
-          allow_remote=allow_remote, on_ready=ready)
+          allow_remote=allow_remote, calibration=calibration, on_ready=ready)
 
 
 def bench_view(

@@ -604,6 +604,54 @@ def test_geometry_of_an_imported_session_triangulates_only_with_the_rigs_calibra
     assert not (tmp_path / "i").exists()  # refused before any work
 
 
+def test_sss_views_depth_of_an_imported_session_and_its_live_decode_need_the_rigs_calibration(handmade):
+    """`sss view`'s depth and surface maps: an imported session has no calibration of its own, so without
+    --calibration the map is refused in one line saying how to get one, and the live decode of a rig that is not
+    simulated carries that line instead of a depth map; with a calibration they are the points it triangulates.
+    The hand-made frames map each camera pixel to the same projector pixel, which a projector whose principal
+    point lies 40 px right of the camera's, 60 mm to the camera's right, sees as a wall at fx * 60 / 40 mm (the
+    edge pixels' projector points, 0.54 px off, within 1.4%)."""
+    pytest.importorskip("starlette")
+    from sssphase_core.capture.live import LiveDecode
+    from sssphase_core.capture.plan import RigSpec
+    from sssphase_core.processing.triangulation import StereoCalibration
+    from sssphase_view.app import ViewState, _decode_message, session_map_png
+    from sssphase_view.live import LiveRig
+
+    state = ViewState(token="t", out=handmade.path.parent / "view_out", sessions=handmade.path.parent,
+                      live=LiveRig(RigSpec("usb:cam", "hdmi:proj", None)))
+    with pytest.raises(InputError, match=r"^no camera-projector calibration for depth: start sss view with --calibration FILE"):
+        session_map_png(state, "handmade", 0, "depth")
+    with pytest.raises(InputError, match="unknown map 'points'; choose .*depth, surface"):
+        session_map_png(state, "handmade", 0, "points")
+    fx = 80.0
+    camera = np.array([[fx, 0, (W - 1) / 2], [0, fx, (H - 1) / 2], [0, 0, 1]])
+    projector = camera + np.array([[0, 0, 40.0], [0, 0, 0], [0, 0, 0]])
+    state.calibration = StereoCalibration(camera, np.zeros(0), projector, np.zeros(0), np.eye(3), np.array([-60.0, 0, 0]))
+    state.calibration_path = Path("rig.yml")
+    png, lo, hi, unit = session_map_png(state, "handmade", 0, "depth")
+    assert lo == pytest.approx(fx * 60 / 40, rel=0.015) and hi == pytest.approx(fx * 60 / 40, rel=0.015), (lo, hi)
+    assert unit.startswith("the calibration unit from the camera (calibration rig.yml, reprojection 0.0")
+    image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    assert image.shape == (H, W, 3)
+    png, _, _, unit = session_map_png(state, "handmade", 0, "surface")
+    grey = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
+    inner = grey[8:-8, 8:-8]
+    assert unit.startswith("surface lit from above left") and inner.min() == inner.max() > 150  # a flat wall, lit evenly
+
+    mask = handmade.load(0, "corr/mask").astype(bool)
+    xp, yp = (np.where(mask, handmade.load(0, f"corr/{k}"), np.nan).astype(np.float32) for k in ("xp", "yp"))
+    decoded = LiveDecode(mask, np.ones((H, W), np.float32), np.zeros((H, W), np.uint8), 0.01, {}, xp, yp)
+    white = np.full((H, W, 3), 0.5, np.float32)
+    message = _decode_message(decoded, white, 0.1, state)
+    assert message["depth_range"][0] == pytest.approx(fx * 60 / 40, rel=0.015) and message["surface_png"]
+    state.calibration = None
+    message = _decode_message(decoded, white, 0.1, state)
+    assert "depth_png" not in message and message["depth_note"].startswith("no camera-projector calibration")
+    state.live = LiveRig()  # the simulated rig: its exact calibration
+    assert "depth_png" in _decode_message(decoded, white, 0.1, state)
+
+
 def test_sss_report_writes_only_where_it_may_and_stops_at_damaged_data(handmade, tmp_path):
     """It replaced a user's own index.html and a demo folder's step records (a resumed demo then kept the
     report's rows), merged two sessions of one object, and reported a damaged session as "done"."""

@@ -36,6 +36,7 @@ from starlette.websockets import WebSocket, WebSocketDisconnect
 
 from sssphase_core.capture.live import LIVE_PATTERNS
 from sssphase_core.errors import InputError, SssError
+from sssphase_core.processing.triangulation import StereoCalibration
 from sssphase_core.relight.runner import Narrator
 from sssphase_core.store.files import write_bytes
 from sssphase_view.live import LiveRig, LiveSettings
@@ -62,6 +63,10 @@ class ViewState:
     sessions: Path | None = None
     checkpoint: Path | None = None
     live: LiveRig = field(default_factory=LiveRig)
+    #: ``--calibration``'s camera-projector calibration (depth and surface maps of any session and the live decode;
+    #: without one, a simulated rig's exact calibration serves its own sessions and live decode), and its file
+    calibration: StereoCalibration | None = None
+    calibration_path: Path | None = None
     settings: LiveSettings = field(default_factory=LiveSettings)
     probes: dict[tuple[str, int], Any] = field(default_factory=dict)  # the clicked view and its model sources
     #: relights run here, one at a time, so that they never queue the page's light requests (state, maps,
@@ -243,31 +248,77 @@ async def api_state(request: Request, state: ViewState) -> Response:
                          "relight_patterns": ["checkerboard", "stripes_x", "stripes_y"]})
 
 
+#: A session view's maps and their colour bar's unit; ``depth`` and ``surface`` are triangulated (their unit says how).
+MAP_UNITS = {"modulation": "camera units (fringe amplitude B)", "xp": "projector px", "yp": "projector px",
+             "mask": "valid (1) / not (0)", "white": "linear camera units", "depth": "", "surface": ""}
+
+
+def stereo_for(state: ViewState, rig_record: dict[str, Any]) -> tuple[StereoCalibration, str]:
+    """The calibration a view of the rig ``rig_record`` (a session manifest's ``rig``) is triangulated with:
+    ``--calibration``'s, else a simulated rig's exact one -> (calibration, which it is); neither: one line saying
+    how to get one."""
+    from sssphase_core.sim import session_rig_calibration
+
+    if state.calibration is not None:
+        return state.calibration, f"calibration {state.calibration_path.name if state.calibration_path else 'given'}"
+    exact = session_rig_calibration(rig_record)
+    if exact is not None:
+        return exact, "the simulated rig's exact calibration"
+    raise InputError("no camera-projector calibration for depth: start sss view with --calibration FILE (an OpenCV "
+                     "file as `sss calibrate stereo` writes it)")
+
+
+def geometry_maps(kinds: tuple[str, ...], stereo: StereoCalibration, which: str, xp: np.ndarray, yp: np.ndarray,
+                  mask: np.ndarray) -> dict[str, tuple[bytes, float, float, str]]:
+    """Decoded correspondences (``xp``, ``yp``: (H, W) projector px, ``mask``) triangulated once with ``stereo`` ->
+    per kind (PNG, colour bar low, high, unit): ``depth``, each point's distance along the camera's axis,
+    colour-mapped; ``surface``, the points lit from above left (grey, dark grey where none). The unit says which
+    calibration and its median reprojection error (a few px or more: not this rig's calibration)."""
+    from sssphase_core.processing.triangulation import shaded, triangulate
+
+    points = triangulate(stereo, xp, yp, mask)
+    fit = f"{which}, reprojection {points.reprojection:.2f} px" if np.isfinite(points.reprojection) else which
+    maps = {}
+    if "depth" in kinds:
+        png, lo, hi = colour_map(points.points[..., 2], mask)
+        maps["depth"] = png, lo, hi, (f"{stereo.unit or 'the calibration unit'} from the camera ({fit}; the decoded "
+                                      "points: sss geometry takes the scattering's shift out)")
+    if "surface" in kinds:
+        shade = shaded(points.points)
+        grey = np.where(np.isfinite(shade), 40 + 215 * np.nan_to_num(shade), 24).astype(np.uint8)
+        maps["surface"] = _png(np.repeat(grey[..., None], 3, -1)), 0.0, 1.0, f"surface lit from above left ({fit})"
+    return maps
+
+
+def session_map_png(state: ViewState, name: str, view: int, kind: str) -> tuple[bytes, float, float, str]:
+    """A session view's map ``kind`` (:data:`MAP_UNITS`) as a PNG -> (png, colour bar low, high, unit)."""
+    if kind not in MAP_UNITS:
+        raise InputError(f"unknown map {kind!r}; choose {', '.join(MAP_UNITS)}")
+    s = _session(state, name)
+    if view not in s.views():
+        raise InputError(f"{s.name} has no complete view {view} (has {s.views()})")
+    mask = s.load(view, "corr/mask").astype(bool)
+    if kind == "white":
+        from sssphase_core.processing.colour import display_scale
+
+        white = np.asarray(s.load(view, "white"), np.float32)
+        scale = display_scale(white, mask)
+        return _png(display(white / scale)), 0.0, scale, MAP_UNITS[kind]
+    if kind == "mask":
+        return (*colour_map(mask.astype(np.float32), np.ones_like(mask), 0.0, 1.0), MAP_UNITS[kind])
+    if kind in ("depth", "surface"):
+        stereo, which = stereo_for(state, s.manifest.get("rig", {}))
+        xp, yp = (np.asarray(s.load(view, f"corr/{k}"), np.float64) for k in ("xp", "yp"))
+        return geometry_maps((kind,), stereo, which, xp, yp, mask)[kind]
+    return (*colour_map(np.asarray(s.load(view, f"corr/{kind}"), np.float32), mask), MAP_UNITS[kind])
+
+
 async def session_map(request: Request, state: ViewState) -> Response:
     """A view's decoded map as a PNG; its colour bar's range and unit in headers."""
-    kind = request.path_params["kind"]
-    units = {"modulation": "camera units (fringe amplitude B)", "xp": "projector px", "yp": "projector px",
-             "mask": "valid (1) / not (0)", "white": "linear camera units"}
-    if kind not in units:
-        return _problem(f"unknown map {kind!r}; choose {', '.join(units)}")
-
-    def render() -> tuple[bytes, float, float]:
-        s = _session(state, request.path_params["name"])
-        view = view_number(request)
-        if view not in s.views():
-            raise InputError(f"{s.name} has no complete view {view} (has {s.views()})")
-        mask = s.load(view, "corr/mask").astype(bool)
-        if kind == "white":
-            white = np.asarray(s.load(view, "white"), np.float32)
-            from sssphase_core.processing.colour import display_scale
-
-            return _png(display(white / display_scale(white, mask))), 0.0, display_scale(white, mask)
-        if kind == "mask":
-            return colour_map(mask.astype(np.float32), np.ones_like(mask), 0.0, 1.0)
-        return colour_map(np.asarray(s.load(view, f"corr/{kind}"), np.float32), mask)
-
-    png, lo, hi = await asyncio.to_thread(render)
-    return Response(png, media_type="image/png", headers={"X-Range": f"{lo:.6g},{hi:.6g}", "X-Unit": units[kind]})
+    png, lo, hi, unit = await asyncio.to_thread(session_map_png, state, request.path_params["name"], view_number(request),
+                                                request.path_params["kind"])
+    return Response(png, media_type="image/png", headers={"X-Range": f"{lo:.6g},{hi:.6g}",
+                                                                 "X-Unit": unit.encode("ascii", "replace").decode()})
 
 
 def _mosaic(tiles: list[np.ndarray], log: bool) -> bytes:
@@ -473,7 +524,8 @@ async def live_socket(websocket: WebSocket) -> None:
                 asked = dataclasses.replace(settings)  # what this frame is taken with (the page may change it meanwhile)
                 if asked.decode:
                     decoded, white, seconds = await asyncio.to_thread(state.live.decode, asked)
-                    await websocket.send_text(json.dumps(_decode_message(decoded, white, seconds)))
+                    message = await asyncio.to_thread(_decode_message, decoded, white, seconds, state)
+                    await websocket.send_text(json.dumps(_finite(message)))
                     continue
                 frame = await asyncio.to_thread(state.live.frame, asked)
             except SssError as exc:
@@ -526,7 +578,9 @@ async def _receive_settings(websocket: WebSocket, settings: LiveSettings, state:
             settings.decode = bool(message["decode"])
 
 
-def _decode_message(decoded: Any, white: np.ndarray, seconds: float) -> dict[str, Any]:
+def _decode_message(decoded: Any, white: np.ndarray, seconds: float, state: ViewState) -> dict[str, Any]:
+    """One live decode for the page: the mask over the white image, the modulation, the reason counts and, where a
+    calibration is known (:func:`stereo_for` of the live rig), the depth and surface maps of the decoded points."""
     from sssphase_core.processing.colour import display_scale
     from sssphase_core.processing.psp import Reason
 
@@ -535,9 +589,20 @@ def _decode_message(decoded: Any, white: np.ndarray, seconds: float) -> dict[str
     mask_rgb = display(white / display_scale(white))
     mask_rgb[~decoded.mask] = (mask_rgb[~decoded.mask] * 0.25).astype(np.uint8)
     reasons = {r.name: int((decoded.reason == r).sum()) for r in Reason}
-    return {"type": "decode", "seconds": seconds, "valid": float(decoded.mask.mean()), "threshold": decoded.threshold,
-            "modulation_range": [lo, hi], "reasons": reasons,
-            "mask_png": base64.b64encode(_png(mask_rgb)).decode(), "modulation_png": base64.b64encode(modulation).decode()}
+    message = {"type": "decode", "seconds": seconds, "valid": float(decoded.mask.mean()), "threshold": decoded.threshold,
+               "modulation_range": [lo, hi], "reasons": reasons,
+               "mask_png": base64.b64encode(_png(mask_rgb)).decode(), "modulation_png": base64.b64encode(modulation).decode()}
+    rig = state.live.rig
+    try:
+        stereo, which = stereo_for(state, {"camera": rig.camera, "options": rig.options})
+    except InputError as exc:
+        return {**message, "depth_note": str(exc)}
+    if not decoded.mask.any():
+        return {**message, "depth_note": "nothing decoded: no depth"}
+    for kind, (png, lo, hi, unit) in geometry_maps(("depth", "surface"), stereo, which, decoded.xp, decoded.yp,
+                                                  decoded.mask).items():
+        message.update({f"{kind}_png": base64.b64encode(png).decode(), f"{kind}_range": [lo, hi], f"{kind}_unit": unit})
+    return message
 
 
 def _hostname(netloc: str) -> str:

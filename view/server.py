@@ -88,18 +88,24 @@ def check_inputs(sessions: Path | None, checkpoint: Path | None) -> None:
 
 def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = None, checkpoint: Path | None = None,
           out: Path = Path("view_out"), rig: LiveRig | None = None, allow_remote: bool = False,
-          on_ready: Callable[[str], None] | None = None) -> None:
-    """Run the view until interrupted; ``on_ready(url)`` gets the URL with its token once it listens."""
+          calibration: Path | None = None, on_ready: Callable[[str], None] | None = None) -> None:
+    """Run the view until interrupted; ``on_ready(url)`` gets the URL with its token once it listens. A
+    ``calibration`` file (the rig's camera-projector calibration) is read before serving."""
     import uvicorn
 
     check_host(host, allow_remote)
     check_inputs(sessions, checkpoint)
+    stereo = None
+    if calibration is not None:
+        from sssphase_core.processing.triangulation import read_calibration
+
+        stereo = read_calibration(calibration)  # a file that does not read is refused now, not at the first depth map
     try:
         Path(out).mkdir(parents=True, exist_ok=True)  # refused now, not at the first relight
     except OSError as exc:
         raise InputError(f"--out {out}: {exc.strerror}") from None
     state = ViewState(token=secrets.token_urlsafe(24), out=Path(out), sessions=sessions, checkpoint=checkpoint,
-                      live=rig or LiveRig())
+                      live=rig or LiveRig(), calibration=stereo, calibration_path=calibration)
     family = socket.AF_INET6 if ":" in host else socket.AF_INET
     sock = socket.socket(family, socket.SOCK_STREAM)
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)

@@ -107,14 +107,17 @@ def develop_live(frame: Any, rig: RigSpec) -> np.ndarray:
 @dataclass
 class LiveDecode:
     """One PSP set decoded: ``mask`` (H, W) bool, ``modulation`` (H, W) fringe amplitude B, ``reason`` (H, W)
-    uint8 codes (:class:`~sssphase_core.processing.psp.Reason`), the ``threshold`` under which B fails, and
-    per-reason pixel counts."""
+    uint8 codes (:class:`~sssphase_core.processing.psp.Reason`), the ``threshold`` under which B fails,
+    per-reason pixel counts, and the projector point of each pixel (``xp``, ``yp``: (H, W) projector px, NaN
+    outside ``mask``) for depth."""
 
     mask: np.ndarray
     modulation: np.ndarray
     reason: np.ndarray
     threshold: float
     coverage: dict[str, int]
+    xp: np.ndarray
+    yp: np.ndarray
 
 
 def decode_set(images: dict[str, np.ndarray], projector_size: tuple[int, int], bayer: str | None = None) -> LiveDecode:
@@ -126,4 +129,5 @@ def decode_set(images: dict[str, np.ndarray], projector_size: tuple[int, int], b
     corr = psp.decode_camera(images, plan.psp, projector_size, bayer=bayer)  # (every fringe set: the unwrapping ladder too)
     threshold = 0.01  # psp.decode's min_modulation
     return LiveDecode(corr.mask.copy(), corr.modulation.astype(np.float32), corr.reason.astype(np.uint8), threshold,
-                      corr.coverage())
+                      corr.coverage(), np.where(corr.mask, corr.xp, np.nan).astype(np.float32),
+                      np.where(corr.mask, corr.yp, np.nan).astype(np.float32))

@@ -199,3 +199,23 @@ def triangulate(calib: StereoCalibration, xp: np.ndarray, yp: np.ndarray, mask: 
                                 calib.projector_matrix, calib.projector_distortion)
     miss = np.linalg.norm(seen.reshape(-1, 2) - proj.reshape(-1, 2)[sample], axis=1)
     return Triangulated(points, int((~front).sum()), float(np.median(miss)))
+
+
+def shaded(points: np.ndarray, light: tuple[float, float, float] = (-0.5, -0.6, -1.0)) -> np.ndarray:
+    """Points (H, W, 3) in the camera's frame (NaN where none) -> (H, W) float32 in [0, 1], NaN where a pixel or a
+    neighbour has none: the surface as a matte grey object lit by a distant light from ``light`` (the camera's frame,
+    x right, y down, z forward; by default above left of the camera), ``max(0, n . l)`` with the normal n (the cross
+    product of the central differences along the rows and columns) turned toward the camera. How a scan's shape,
+    noise, ripples and holes are judged by eye."""
+    p = np.asarray(points, np.float64)
+    du = np.full_like(p, np.nan)
+    dv = np.full_like(p, np.nan)
+    du[:, 1:-1] = p[:, 2:] - p[:, :-2]
+    dv[1:-1] = p[2:] - p[:-2]
+    normal = np.cross(du, dv)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+        normal *= -np.sign((normal * p).sum(-1, keepdims=True))  # toward the camera, at the origin
+    toward = np.asarray(light, np.float64) / np.linalg.norm(light)
+    lit = np.clip(normal @ toward, 0.0, 1.0)
+    return np.where(np.isfinite(lit), lit, np.nan).astype(np.float32)

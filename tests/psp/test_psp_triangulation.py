@@ -131,3 +131,35 @@ def test_a_calibration_file_that_cannot_be_used_is_refused_naming_the_file_and_t
     assert str(err.value).startswith(str(path)) and "\n" not in str(err.value)
     with pytest.raises(InputError, match="no such file"):
         read_calibration(tmp_path / "missing.yml")
+
+
+def test_the_shaded_surface_follows_the_normals_and_leaves_holes_and_degenerate_points_out():
+    """A plane facing the light is lit fully, one turned away not at all; a sphere is brightest where its normal
+    meets the light; a hole takes its neighbours with it, and points that all coincide (no normal) are left out,
+    without a warning."""
+    from sssphase_core.processing.triangulation import shaded
+
+    rows, cols = np.mgrid[0:40, 0:50].astype(np.float64)
+    light = np.array([-0.5, -0.6, -1.0]) / np.linalg.norm([-0.5, -0.6, -1.0])
+    facing = np.stack([cols, rows, 400 + 0 * cols], -1)  # a plane at z = 400, its normal toward the camera
+    lit = shaded(facing)
+    inner = lit[1:-1, 1:-1]
+    assert np.isnan(lit[0]).all() and np.isnan(lit[:, -1]).all()  # no central difference at the border
+    np.testing.assert_allclose(inner, -light[2], atol=1e-6)  # n = (0, 0, -1)
+    assert np.nanmax(shaded(facing, light=(0, 0, 1))) == 0  # lit from behind: dark
+    # a sphere of radius 30 at z = 200: its brightest point is where the normal is the light direction
+    u, v = np.mgrid[-1:1:301j, -1:1:301j]
+    inside = u**2 + v**2 < 0.95
+    z = 200 - 30 * np.sqrt(np.clip(1 - u**2 - v**2, 0, None))
+    sphere = np.where(inside[..., None], np.stack([30 * u, 30 * v, z], -1), np.nan)
+    s = shaded(sphere)
+    peak = np.unravel_index(np.nanargmax(s), s.shape)
+    np.testing.assert_allclose([u[peak], v[peak]], light[:2], atol=0.02)  # (-0.5, -0.6)/|l|: up and left
+    assert np.nanmax(s) > 0.999 and np.isnan(s[~inside]).all()
+    holed = facing.copy()
+    holed[20, 25] = np.nan
+    hole = np.isnan(shaded(holed))
+    assert hole[19:22, 24:27].sum() == 5 and hole[1:-1, 1:-1].sum() == 5  # the pixel and its four neighbours
+    with np.errstate(all="raise"):
+        flat = shaded(np.full((5, 5, 3), 7.0))
+    assert np.isnan(flat).all()

@@ -94,12 +94,14 @@ def test_every_route_needs_the_token(served):
 
 
 def test_a_missing_sessions_folder_or_a_checkpoint_that_does_not_load_is_refused_before_serving(tmp_path):
-    """Both served: an empty session list, and an error at the first relight."""
+    """Both served: an empty session list, and an error at the first relight; a calibration file is read first too."""
     env = {**os.environ, "SSS_RUNTIME_DIR": str(tmp_path / "rt")}
     (tmp_path / "bad.pt").write_text("not a checkpoint")
     for args, expected in ((["--sessions", str(tmp_path / "none")], "no such folder"),
                            (["--sessions", str(tmp_path / "bad.pt")], "a file, not a folder of sessions"),
-                           (["--checkpoint", str(tmp_path / "bad.pt")], "not a checkpoint file")):
+                           (["--checkpoint", str(tmp_path / "bad.pt")], "not a checkpoint file"),
+                           (["--calibration", str(tmp_path / "bad.pt")], "not an OpenCV calibration file"),
+                           (["--calibration", str(tmp_path / "none.yml")], "no such file")):
         done = _sss("view", "--port", "0", "--out", str(tmp_path / "out"), *args, env=env, timeout=60)
         out = done.stdout + done.stderr
         assert done.returncode == 2 and expected in out and len(out.strip().splitlines()) == 1, out
@@ -311,6 +313,12 @@ def test_live_decode_shows_where_the_object_decodes(page):
         reasons = page.evaluate("document.getElementById('reasons').textContent")
         assert "VALID" in reasons and "LOW_MODULATION" in reasons
         assert page.evaluate("document.getElementById('decode-mask').naturalWidth") == 256
+        # the simulated rig's exact calibration: the decoded points' depth (the star stands ~400 mm from the camera)
+        page.wait_for("document.getElementById('decode-depth').naturalWidth === 256", 30)
+        lo, hi = (float(v) for v in page.evaluate("document.getElementById('depth-range').textContent").split(" … "))
+        assert 350 < lo < hi < 450, (lo, hi)
+        assert page.evaluate("document.getElementById('depth-unit').textContent").startswith("mm from the camera (the simulated")
+        assert page.evaluate("document.getElementById('decode-surface').naturalWidth") == 256
     finally:
         _set(page, "decode", False)
 
@@ -322,6 +330,12 @@ def test_a_sessions_maps_have_their_colour_bar_and_unit(page):
     page.wait_for("document.getElementById('map-image').naturalWidth === 256", 30)
     lo, hi = (float(v) for v in page.evaluate("document.getElementById('map-range').textContent").split(" … "))
     assert 0 <= lo < hi
+    _set(page, "map", "depth")  # triangulated with the simulated rig's exact calibration
+    page.wait_for("document.getElementById('map-unit').textContent.startsWith('mm from the camera')", 30)
+    lo, hi = (float(v) for v in page.evaluate("document.getElementById('map-range').textContent").split(" … "))
+    assert 350 < lo < hi < 450, (lo, hi)
+    _set(page, "map", "modulation")
+    page.wait_for("document.getElementById('map-unit').textContent.includes('fringe amplitude')", 30)
     # a click on the object: its PSP patch and footprints side by side (analytic, and exact: a simulated session)
     page.evaluate("state.probe = null; (() => { const img = document.getElementById('map-image'); "
                   "const r = img.getBoundingClientRect(); img.dispatchEvent(new MouseEvent('click', "

@@ -64,6 +64,7 @@ function sendSettings() {
     psp_frame: Number($("psp-frame").value), decode: $("decode").checked,
   }));
   $("decode-panel").hidden = !$("decode").checked;
+  if (!$("decode").checked) $("depth-panel").hidden = true;
 }
 
 function connectLive() {
@@ -104,6 +105,14 @@ function connectLive() {
       $("modulation-range").textContent = message.modulation_range.map((v) => v.toPrecision(3)).join(" … ");
       $("threshold").textContent = message.threshold;
       $("reasons").innerHTML = Object.entries(message.reasons).map(([k, v]) => `<tr><td>${k}</td><td>${v}</td></tr>`).join("");
+      $("depth-panel").hidden = false;  // the depth and surface maps where a calibration is known, else why not
+      for (const kind of ["depth", "surface"]) {
+        $("decode-" + kind).hidden = !message[kind + "_png"];
+        if (message[kind + "_png"]) $("decode-" + kind).src = "data:image/png;base64," + message[kind + "_png"];
+      }
+      $("depth-range").textContent = message.depth_range ? message.depth_range.map((v) => v.toPrecision(4)).join(" … ") : "";
+      $("depth-unit").textContent = message.depth_unit || "";
+      $("depth-note").textContent = message.depth_note || "";
       state.decodes = (state.decodes || 0) + 1;
     }
   };
@@ -153,9 +162,9 @@ async function showMap() {
     const blob = await response.blob();
     if (!current()) return;
     $("map-image").src = URL.createObjectURL(blob);
-    $("map-range").textContent = response.headers.get("X-Range").replace(",", " … ");
+    $("map-range").textContent = kind === "surface" ? "" : response.headers.get("X-Range").replace(",", " … ");
     $("map-unit").textContent = response.headers.get("X-Unit");
-    $("map-bar").hidden = kind === "white";  // an sRGB image, not a colour-mapped one
+    $("map-bar").hidden = kind === "white" || kind === "surface";  // images, not colour-mapped values
     say("");
   } catch (e) { if (current()) say(e.message); }
 }
