@@ -631,7 +631,7 @@ def test_sss_views_depth_of_an_imported_session_and_its_live_decode_need_the_rig
     state.calibration_path = Path("rig.yml")
     png, lo, hi, unit = session_map_png(state, "handmade", 0, "depth")
     assert lo == pytest.approx(fx * 60 / 40, rel=0.015) and hi == pytest.approx(fx * 60 / 40, rel=0.015), (lo, hi)
-    assert unit.startswith("the calibration unit from the camera (calibration rig.yml, reprojection 0.0")
+    assert unit.startswith("calibration units from the camera (calibration rig.yml, reprojection 0.0")
     image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
     assert image.shape == (H, W, 3)
     png, _, _, unit = session_map_png(state, "handmade", 0, "surface")

@@ -281,7 +281,7 @@ def geometry_maps(kinds: tuple[str, ...], stereo: StereoCalibration, which: str,
     maps = {}
     if "depth" in kinds:
         png, lo, hi = colour_map(points.points[..., 2], mask)
-        maps["depth"] = png, lo, hi, (f"{stereo.unit or 'the calibration unit'} from the camera ({fit}; the decoded "
+        maps["depth"] = png, lo, hi, (f"{stereo.unit or 'calibration units'} from the camera ({fit}; the decoded "
                                       "points: sss geometry takes the scattering's shift out)")
     if "surface" in kinds:
         shade = shaded(points.points)
