@@ -214,6 +214,7 @@ def calibrate_stereo(
     out: Annotated[Path, typer.Option(help="Calibration file to write (.yml, .yaml, .xml or .json), for `sss geometry "
                                       "--calibration`.")] = Path("calibration.yml"),
     views: Annotated[str, typer.Option(help="Comma-separated views (default: all).")] = "",
+    unit: Annotated[str, typer.Option(help="The unit of --square, written into the file for the points it gives.")] = "mm",
 ) -> None:
     """Calibrate the camera and the projector as a stereo pair from a session of a checkerboard: corners in the white
     capture, their projector points through local homographies of the decoded correspondences (Moreno and Taubin)."""
@@ -237,7 +238,7 @@ def calibrate_stereo(
     chosen = choose_views(s, views)
     with console.status(f"finding the board in {len(chosen)} views") as status:
         result = calibrate_stereo(s, corners, square, chosen, progress=lambda done, total: status.update(
-            f"finding the board: view {done} of {total}"))
+            f"finding the board: view {done} of {total}"), unit=unit)
     for v, why in result.skipped.items():
         console.print(f"view {v} left out: {why}")
     c = result.calibration
@@ -245,7 +246,7 @@ def calibrate_stereo(
                   f"projector {result.projector_rms:.3f} px, the pair {result.stereo_rms:.3f} px; focal length camera "
                   f"{c.camera_matrix[0, 0]:.1f} px (+-{100 * result.uncertainty['camera'][0]:.1f}%), projector "
                   f"{c.projector_matrix[0, 0]:.1f} px (+-{100 * result.uncertainty['projector'][0]:.1f}%); baseline "
-                  f"{c.baseline:.1f} (the square's unit)")
+                  f"{c.baseline:.1f} {c.unit}")
     if line := against_simulated_rig(s, c):
         console.print(line)
     if shaky := result.shaky():

@@ -102,6 +102,7 @@ def test_a_checkerboard_session_calibrates_the_rig_and_its_points_land_on_the_su
     rms = [float(v) for v in re.findall(r"(\d+\.\d+) px", res.stdout)[:3]]
     assert all(0 < v < 1 for v in rms), res.stdout  # camera, projector, the pair
     got, exact = read_calibration(out), stereo_calibration(rig_preset("cpu"))
+    assert got.unit == "mm" and "baseline 149" in res.stdout and re.search(r"baseline \d+\.\d mm", res.stdout)
     for k_got, k_exact in ((got.camera_matrix, exact.camera_matrix), (got.projector_matrix, exact.projector_matrix)):
         assert k_got[0, 0] == pytest.approx(k_exact[0, 0], rel=0.02) and k_got[0, 0] == pytest.approx(k_got[1, 1])
         assert np.abs(k_got[:2, 2] - k_exact[:2, 2]).max() < 5
@@ -112,6 +113,7 @@ def test_a_checkerboard_session_calibrates_the_rig_and_its_points_land_on_the_su
     assert res.returncode == 0, res.stdout + res.stderr
     error, bias = (float(v) for v in re.search(r"for geometry (\d+\.\d+) \(depth bias ([-+]\d+\.\d+)\) mm", res.stdout).groups())
     assert error < 8 and abs(bias) < 8, res.stdout  # mm at 400 mm: the calibration's own error, not the decoding's
+    assert "the calibration's unit" not in res.stdout  # the file says mm
 
 
 @pytest.mark.parametrize(("args", "expected"), [
@@ -122,6 +124,7 @@ def test_a_checkerboard_session_calibrates_the_rig_and_its_points_land_on_the_su
     (["--board", "6x4", "--square", "0"], "--square must be the board's square side, a positive length"),
     (["--board", "6x4", "--square", "nan"], "--square must be the board's square side, a positive length"),
     (["--board", "6x4", "--square", "9", "--out", "calibration.txt"], "name a .yml, .yaml, .xml or .json file"),
+    (["--board", "6x4", "--square", "9", "--unit", "m m"], "--unit must be a length unit's short name"),
 ])
 def test_a_stereo_calibration_that_cannot_be_made_is_one_line_and_writes_nothing(board_session, tmp_path, args, expected):
     out = ["--out", str(tmp_path / "c.yml")] if "--out" not in args else []

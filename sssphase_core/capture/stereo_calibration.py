@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from sssphase_core.errors import DataError, InputError
-from sssphase_core.processing.triangulation import StereoCalibration
+from sssphase_core.processing.triangulation import StereoCalibration, check_unit
 from sssphase_core.store.files import atomic_path
 
 #: Half the side (camera px) of the window around a corner whose decoded points its local homography is fitted to,
@@ -134,12 +134,13 @@ def projector_corners(camera: np.ndarray, xp: np.ndarray, yp: np.ndarray, mask: 
 
 
 def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views: Sequence[int] | None = None,
-                     progress: Any = None) -> StereoResult:
+                     progress: Any = None, unit: str = "mm") -> StereoResult:
     """Calibrate the camera and the projector from ``session``'s views of a checkerboard of ``board`` inner corners
-    (columns, rows) and ``square`` side (its unit is the result's); refused in one line where fewer than
+    (columns, rows) and ``square`` side, in ``unit`` (the result's); refused in one line where fewer than
     :data:`MIN_VIEWS` views show the whole board."""
     if not square > 0 or not np.isfinite(square):
         raise InputError(f"--square must be the board's square side, a positive length (mm), got {square!r}")
+    check_unit(unit, "--unit")
     chosen = list(views) if views else session.views()
     projector = tuple(int(v) for v in session.manifest.get("plan", {}).get("projector", ()))
     if len(projector) != 2:
@@ -189,7 +190,7 @@ def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views:
         stereo_rms, k_cam, d_cam, k_proj, d_proj, rotation, translation, _, _ = cv2.stereoCalibrate(
             objects, cams, projs, k_cam, d_cam, k_proj, d_proj, size, flags=cv2.CALIB_FIX_INTRINSIC)
         calibration = StereoCalibration(k_cam, d_cam.reshape(-1), k_proj, d_proj.reshape(-1), rotation,
-                                        translation.reshape(-1))
+                                        translation.reshape(-1), unit=unit)
     except (cv2.error, InputError) as exc:  # degenerate poses: OpenCV's solver fails, or returns no rotation
         said = str(exc).strip().splitlines()[-1][:160]
         raise DataError(f"{session.path}: the views {', '.join(map(str, (b.view for b in found)))} do not calibrate "
@@ -227,7 +228,7 @@ def against_simulated_rig(session: Any, calibration: StereoCalibration) -> str |
 def write_calibration(path: Path | str, result: StereoResult) -> Path:
     """Write ``result`` as an OpenCV YAML, XML or JSON file (``path``'s suffix says which) in the names
     projector-camera calibration tools use (cam_K, cam_kc, proj_K, proj_kc, R, T, and the RMS errors cam_error,
-    proj_error, stereo_error), atomically."""
+    proj_error, stereo_error) and the translation's ``unit``, atomically."""
     path = Path(path)
     c = result.calibration
     with atomic_path(path, path.suffix) as tmp:  # (OpenCV writes the format the suffix names)
@@ -240,6 +241,8 @@ def write_calibration(path: Path | str, result: StereoResult) -> Path:
             for name, value in (("cam_error", result.camera_rms), ("proj_error", result.projector_rms),
                                 ("stereo_error", result.stereo_rms)):
                 storage.write(name, float(value))
+            if c.unit:
+                storage.write("unit", c.unit)
         finally:
             storage.release()
     return path

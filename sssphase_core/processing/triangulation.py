@@ -5,7 +5,8 @@ pose) read from an OpenCV file (:func:`read_calibration`), and 3D points from ca
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import re
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -26,6 +27,8 @@ CALIBRATION_KEYS: dict[str, tuple[str, ...]] = {
 }
 #: How many of a view's points (evenly spread) its median reprojection error is measured on.
 REPROJECTION_SAMPLE = 20_000
+#: A calibration's length unit: a short word (mm, cm, m, in, um).
+UNIT_PATTERN = re.compile(r"[A-Za-z\u00b5]{1,8}")
 #: Distortion vectors OpenCV reads: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]] (none: an ideal lens).
 DISTORTION_LENGTHS = (0, 4, 5, 8, 12, 14)
 
@@ -65,6 +68,13 @@ class StereoCalibration:
     def baseline(self) -> float:
         """Distance between the camera's and the projector's centres (the translation's unit)."""
         return float(np.linalg.norm(self.translation))
+
+
+def check_unit(unit: str, where: str) -> str:
+    """``unit`` if it is a length unit's short name (:data:`UNIT_PATTERN`), else refused in one line."""
+    if not isinstance(unit, str) or not UNIT_PATTERN.fullmatch(unit):
+        raise InputError(f"{where} must be a length unit's short name (mm, cm, m, in), got {str(unit)[:20]!r}")
+    return unit
 
 
 def _shown(a: np.ndarray) -> str:
@@ -117,7 +127,11 @@ def read_calibration(path: Path | str) -> StereoCalibration:
                 node = storage.getNode(name)
                 if not node.empty():
                     values[name] = _node_array(node, f"{path}: {name}")
-        return calibration_from_arrays(values)
+        calibration = calibration_from_arrays(values)
+        unit = storage.getNode("unit")  # (sss calibrate stereo writes it; other tools' files do not say)
+        if unit.empty():
+            return calibration
+        return replace(calibration, unit=check_unit(unit.string() if unit.isString() else "", "unit"))
     except InputError as exc:
         message = str(exc)
         raise InputError(message if message.startswith(str(path)) else f"{path}: {message}") from None

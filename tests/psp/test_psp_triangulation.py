@@ -122,6 +122,11 @@ def test_calibration_files_are_read_in_the_names_calibration_tools_write(tmp_pat
      '"R": [0, 0, 0], "T": [1, 0, 0]}', "camera_matrix must be a finite 3x3 matrix with positive focal lengths"),
     ('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "D1": [0.1, 0.2, 0.3], "K2": [[600, 0, 128], [0, 600, 96], '
      '[0, 0, 1]], "R": [0, 0, 0], "T": [1, 0, 0]}', "camera_distortion must be 4, 5, 8, 12, 14 finite coefficients"),
+    pytest.param('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "K2": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], '
+                 '"R": [0, 0, 0], "T": [1, 0, 0], "unit": "' + "m" * 100 + '"}', "unit must be a length unit's short name",
+                 id="a 100-letter unit"),
+    ('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "K2": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], '
+     '"R": [0, 0, 0], "T": [1, 0, 0], "unit": 3}', "unit must be a length unit's short name"),
 ])
 def test_a_calibration_file_that_cannot_be_used_is_refused_naming_the_file_and_the_problem(tmp_path, content, message):
     path = tmp_path / ("c.json" if content.startswith("{") else "c.yml")
