@@ -29,7 +29,7 @@ def _progress():
 EVAL_BACKENDS = "none,analytic,measured"
 
 SessionArg = Annotated[Path, typer.Argument(help="Session folder (one object).")]
-PatternOpt = Annotated[list[str], typer.Option("--pattern", help="Pattern image (PNG/TIFF, float TIFF/EXR or a .npy array of values in [0, 1]) or a named pattern (checkerboard, stripes_x, ...); repeat.")]
+PatternOpt = Annotated[list[str], typer.Option("--pattern", help="Pattern image (PNG/TIFF, float TIFF/EXR or a .npy array of values in [0, 1]) or a named pattern (checkerboard, stripes_x, ...); repeat. A video (MP4, MOV, AVI, MKV, WebM) or an animated GIF/PNG is relit frame by frame, on its own.")]
 RelightBackendOpt = Annotated[str, typer.Option("--backend", help="auto (blend with --checkpoint, else analytic), torch, "
                                                 "analytic, blend (torch and analytic weighted pixel by pixel by how well they "
                                                 "relight the view's own fringe captures; needs --checkpoint), measured (the "
@@ -110,15 +110,24 @@ def relight_cmd(
     image_format: FormatOpt = "png",
     widen: WidenOpt = None,
 ) -> None:
-    """Relight a captured object under new projector patterns (several patterns share one footprint pass)."""
+    """Relight a captured object under new projector patterns (several patterns share one footprint pass), or under
+    every frame of a video or an animated image (frames and an MP4 per view; an interrupted run resumes)."""
+    from sssphase_core.errors import InputError
     from sssphase_core.relight.choices import uses_decoder
     from sssphase_core.relight.runner import relight_backends, relight_session
+    from sssphase_core.relight.sequence import relight_sequence
+    from sssphase_core.store.pattern_sequences import is_sequence
 
     names = relight_backends(backend, checkpoint)  # every name checked before any work
+    sequences = [p for p in pattern if is_sequence(p)]
+    if sequences and len(pattern) > 1:
+        raise InputError(f"--pattern {sequences[0]} is a sequence of frames (a video or an animated image): relight it "
+                         "on its own, one --pattern per run")
     for name in names:  # (a listed backend without the decoder is not told that the checkpoint is unused)
         own = checkpoint if len(names) == 1 or uses_decoder(name) else None
-        relight_session(session, pattern, backend=name, checkpoint=own, out=out, views=views, resize=resize,
-                        chunk=chunk, device=device, cache=cache, formats=image_format, widen=widen, narrator=_Narrator())
+        run = relight_sequence if sequences else relight_session
+        run(session, sequences[0] if sequences else pattern, backend=name, checkpoint=own, out=out, views=views,
+            resize=resize, chunk=chunk, device=device, cache=cache, formats=image_format, widen=widen, narrator=_Narrator())
 
 
 def geometry_cmd(

@@ -1,0 +1,173 @@
+"""Pattern sequences: a video (MP4, MOV, AVI, MKV, WebM; read with OpenCV's FFmpeg) or an animated image (GIF,
+APNG, multi-page TIFF; Pillow) as a projector plays it, one pattern per frame.
+
+:func:`open_sequence` reads the header only (frame size and count, frame rate) and refuses, before any frame is
+decoded, a file that is not a sequence, far larger than the projector, or longer than :data:`MAX_FRAMES`;
+:meth:`PatternSequence.frames` then decodes one frame at a time, each as :func:`~sssphase_core.store.imageio.read_pattern`
+reads a still: values in [0, 1] (8-bit codes / 255), brought to the projector's size by ``resize``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from sssphase_core.errors import InputError
+
+#: File suffixes read as videos (OpenCV's FFmpeg backend).
+VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov", ".avi", ".mkv", ".webm", ".mpg", ".mpeg")
+#: Suffixes of images that may hold several frames (Pillow).
+ANIMATED_SUFFIXES = (".gif", ".png", ".apng", ".tif", ".tiff", ".webp")
+#: The longest sequence relit (an hour at 25 frames/s).
+MAX_FRAMES = 90_000
+#: The frame rate written where a file gives none.
+DEFAULT_FPS = 25.0
+
+
+@dataclass
+class PatternSequence:
+    """A sequence file's header: ``count`` frames of ``size`` (W, H) at ``fps``, and how they are brought to the
+    projector's ``projector_size`` (``resize``: fit, fill, stretch or "" for none)."""
+
+    path: Path
+    count: int
+    fps: float
+    size: tuple[int, int]
+    projector_size: tuple[int, int]
+    resize: str = ""
+    video: bool = True
+
+    @property
+    def name(self) -> str:
+        return self.path.stem
+
+    def frames(self, start: int = 0) -> Iterator[tuple[int, np.ndarray]]:
+        """``(index, pattern)`` from frame ``start`` on, each (Hp, Wp, 3) float32 in [0, 1]; a frame that does not
+        decode ends the sequence early (a video's header may count more frames than it holds)."""
+        read = self._video_frames if self.video else self._image_frames
+        for index, rgb in read(start):
+            yield index, self._fitted(rgb)
+
+    def _video_frames(self, start: int) -> Iterator[tuple[int, np.ndarray]]:
+        import cv2
+
+        capture = cv2.VideoCapture(str(self.path))
+        try:
+            for index in range(self.count):
+                ok = capture.grab()
+                if not ok:
+                    return
+                if index < start:
+                    continue
+                ok, bgr = capture.retrieve()
+                if not ok or bgr is None:
+                    return
+                yield index, np.ascontiguousarray(bgr[..., ::-1]) if bgr.ndim == 3 else np.repeat(bgr[..., None], 3, -1)
+        finally:
+            capture.release()
+
+    def _image_frames(self, start: int) -> Iterator[tuple[int, np.ndarray]]:
+        from PIL import Image, ImageSequence
+
+        with Image.open(self.path) as img:
+            for index, frame in enumerate(ImageSequence.Iterator(img)):
+                if index >= self.count:
+                    return
+                if index >= start:
+                    yield index, np.asarray(frame.convert("RGB"))
+
+    def _fitted(self, rgb: np.ndarray) -> np.ndarray:
+        """An 8-bit RGB frame (H, W, 3) -> the projector's pattern (Hp, Wp, 3) float32 in [0, 1]."""
+        from PIL import Image
+
+        from sssphase_core.store.imageio import _resized
+
+        if rgb.shape[1::-1] != self.projector_size:
+            rgb = np.asarray(_resized(Image.fromarray(rgb), self.projector_size, self.resize))
+        return rgb.astype(np.float32) / 255.0
+
+
+def is_sequence(path: Path | str) -> bool:
+    """Whether ``path`` is a file to be read as a sequence: a video by its suffix, or an image holding more than
+    one frame (an animated GIF or PNG, a multi-page TIFF); a still image is not."""
+    path = Path(path)
+    if not path.is_file():
+        return False
+    suffix = path.suffix.lower()
+    if suffix in VIDEO_SUFFIXES:
+        return True
+    if suffix not in ANIMATED_SUFFIXES:
+        return False
+    from PIL import Image
+
+    try:
+        with Image.open(path) as img:  # the header (and, for a GIF, a scan of its frames' headers)
+            return getattr(img, "n_frames", 1) > 1
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError):
+        return False  # read as a still, which says what is wrong with it
+
+
+def open_sequence(path: Path | str, projector_size: tuple[int, int], resize: str = "") -> PatternSequence:
+    """The header of the sequence at ``path`` checked against a ``projector_size`` (W, H) projector: frames of the
+    projector's size unless ``resize``, at most 64 MP with it (4x the projector without); 1 to :data:`MAX_FRAMES`
+    frames. Refused in one line naming the file and the problem."""
+    from sssphase_core.store.files import check_input_file
+    from sssphase_core.store.imageio import RESIZE_MODES, _max_pattern_pixels
+
+    path = Path(path)
+    check_input_file(path, "pattern")
+    if resize and resize not in RESIZE_MODES:
+        raise InputError(f"--resize must be one of {', '.join(RESIZE_MODES)}, got {resize!r}")
+    video = path.suffix.lower() in VIDEO_SUFFIXES
+    count, fps, size = _video_header(path) if video else _image_header(path)
+    wp, hp = projector_size
+    if count < 1:
+        raise InputError(f"--pattern {path}: no frame could be read from it")
+    if count > MAX_FRAMES:
+        raise InputError(f"--pattern {path} holds {count:,} frames, more than the {MAX_FRAMES:,} relit at once: cut it "
+                         "into parts")
+    if size[0] * size[1] > _max_pattern_pixels(wp, hp, resize):
+        raise InputError(f"--pattern {path}: its frames are {size[0]}x{size[1]}, far larger than the {wp}x{hp} projector: "
+                         f"refused without decoding them (scale it down first{'' if resize else ', or pass --resize'})")
+    if size != (wp, hp) and not resize:
+        raise InputError(f"--pattern {path}: its frames are {size[0]}x{size[1]} but the projector is {wp}x{hp} "
+                         "(pass --resize fit, fill or stretch)")
+    if not (np.isfinite(fps) and 0.1 <= fps <= 1000):
+        fps = DEFAULT_FPS
+    return PatternSequence(path, count, float(fps), size, (wp, hp), resize, video)
+
+
+def _video_header(path: Path) -> tuple[int, float, tuple[int, int]]:
+    import cv2
+
+    from sssphase_core.store.imageio import native_stderr_silenced
+
+    with native_stderr_silenced():  # FFmpeg's own complaints about a damaged file; the line below says it
+        capture = cv2.VideoCapture(str(path))
+    try:
+        if not capture.isOpened():
+            raise InputError(f"--pattern {path}: not a video OpenCV's FFmpeg can read")
+        count = int(capture.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        size = (int(capture.get(cv2.CAP_PROP_FRAME_WIDTH)), int(capture.get(cv2.CAP_PROP_FRAME_HEIGHT)))
+        fps = float(capture.get(cv2.CAP_PROP_FPS) or 0.0)
+    finally:
+        capture.release()
+    if size[0] < 1 or size[1] < 1:
+        raise InputError(f"--pattern {path}: not a video OpenCV's FFmpeg can read (no frame size)")
+    return count, fps, size
+
+
+def _image_header(path: Path) -> tuple[int, float, tuple[int, int]]:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as img:
+            count, size = int(getattr(img, "n_frames", 1)), img.size
+            duration = img.info.get("duration")  # ms per frame (GIF, APNG)
+    except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
+        raise InputError(f"cannot read pattern {path}: {exc}") from None
+    fps = 1000.0 / duration if isinstance(duration, int | float) and duration > 0 else DEFAULT_FPS
+    return count, fps, size

@@ -1,0 +1,159 @@
+"""Relighting under a pattern sequence (`sss relight SESSION --pattern clip.mp4`): every frame relit as a still of
+it is, written as it comes, joined into a video; an interrupted run resumes; sequences that cannot be used are
+refused before any work."""
+
+from __future__ import annotations
+
+import os
+
+import cv2
+import numpy as np
+import pytest
+from sss_process import run_sss
+
+from sssphase_core.errors import InputError
+from sssphase_core.relight.runner import Narrator, relight_session
+from sssphase_core.relight.sequence import relight_sequence
+from sssphase_core.store.pattern_sequences import is_sequence, open_sequence
+
+W, H, FRAMES = 256, 192, 6
+
+
+class Recorder(Narrator):
+    def __init__(self):
+        self.lines = []
+
+    def say(self, text, warning=""):
+        self.lines.append(text)
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory, sim_daemon):
+    from sssphase_core.capture import CaptureRequest, run_capture
+
+    return run_capture(sim_daemon, CaptureRequest("sand_rake", views=1, out=tmp_path_factory.mktemp("s"))).path
+
+
+def _clip(path, frames=FRAMES, size=(W, H), fps=12.0):
+    """A bar sweeping across the projector and a rising red wash, as MPEG-4."""
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), fps, size)
+    for i in range(frames):
+        frame = np.zeros((size[1], size[0], 3), np.uint8)
+        x = i * size[0] // frames
+        frame[:, x : x + size[0] // 5] = 255
+        frame[..., 2] = np.maximum(frame[..., 2], 40 * i)
+        writer.write(frame)
+    writer.release()
+    return path
+
+
+def _video_frames(path):
+    capture = cv2.VideoCapture(str(path))
+    frames = []
+    while True:
+        ok, frame = capture.read()
+        if not ok:
+            return frames, capture.get(cv2.CAP_PROP_FPS)
+        frames.append(frame)
+
+
+def test_every_frame_is_relit_as_the_still_of_it_and_joined_into_a_video(session, tmp_path):
+    clip = _clip(tmp_path / "clip.mp4")
+    said = Recorder()
+    res = relight_sequence(session, clip, backend="analytic", out=tmp_path / "out", narrator=said)
+    folder = tmp_path / "out" / "sand_rake_v0_clip_analytic"
+    assert res.patterns == ["clip"] and len(res.images) == FRAMES
+    assert sorted(p.name for p in folder.glob("*_display.png")) == [
+        f"sand_rake_v0_clip-{i:06d}_analytic_display.png" for i in range(FRAMES)]
+    frames, fps = _video_frames(tmp_path / "out" / "sand_rake_v0_clip_analytic.mp4")
+    assert len(frames) == FRAMES and fps == pytest.approx(12.0) and frames[0].shape == (H, W, 3)
+    assert f"wrote {FRAMES} frames to" in said.lines[-1]
+    # the video's frame 3 as a still, relit from the same cache (the sequence's later frames come from it) and
+    # from scratch: the same image, and within the eigen-footprints' error of it
+    capture = cv2.VideoCapture(str(clip))
+    for _ in range(4):
+        ok, still = capture.read()
+    cv2.imwrite(str(tmp_path / "still.png"), still)
+    relight_session(session, [str(tmp_path / "still.png")], backend="analytic", out=tmp_path / "out")
+    relight_session(session, [str(tmp_path / "still.png")], backend="analytic", out=tmp_path / "fresh", cache=False)
+    ours = cv2.imread(str(folder / "sand_rake_v0_clip-000003_analytic.png"), cv2.IMREAD_UNCHANGED)
+    cached = cv2.imread(str(tmp_path / "out" / "sand_rake_v0_still_analytic.png"), cv2.IMREAD_UNCHANGED)
+    fresh = cv2.imread(str(tmp_path / "fresh" / "sand_rake_v0_still_analytic.png"), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(ours, cached)
+    assert ours.max() > 1000 and np.abs(ours.astype(float) - fresh).max() < 0.01 * 65535
+    # the bar moves: consecutive frames differ
+    assert np.abs(frames[1].astype(int) - frames[4]).mean() > 1
+
+
+def test_an_interrupted_sequence_resumes_and_other_settings_are_not_mixed_in(session, tmp_path):
+    clip = _clip(tmp_path / "clip.mp4")
+    out = tmp_path / "out"
+    relight_sequence(session, clip, backend="none", out=out)
+    folder = out / "sand_rake_v0_clip_none"
+    kept = folder / "sand_rake_v0_clip-000000_none_display.png"
+    before = kept.stat().st_mtime_ns
+    for i in (2, 5):  # as a run stopped before these frames were written leaves them
+        for suffix in ("", "_display"):
+            (folder / f"sand_rake_v0_clip-{i:06d}_none{suffix}.png").unlink()
+    said = Recorder()
+    relight_sequence(session, clip, backend="none", out=out, narrator=said)
+    assert f"4 of {FRAMES} frames already relit" in said.lines[1]
+    assert len(list(folder.glob("*_display.png"))) == FRAMES and kept.stat().st_mtime_ns == before
+    with pytest.raises(InputError, match=r"holds frames relit with other settings \(formats differ\)"):
+        relight_sequence(session, clip, backend="none", out=out, formats="png,exr")
+    foreign = out / "sand_rake_v0_clip_analytic"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("mine")
+    with pytest.raises(InputError, match="holds files that no relight of this sequence wrote"):
+        relight_sequence(session, clip, backend="analytic", out=out)
+    assert (foreign / "notes.txt").read_text() == "mine"
+
+
+def test_an_animated_image_is_a_sequence_and_a_still_is_not(tmp_path):
+    from PIL import Image
+
+    frames = [Image.fromarray(np.full((H, W, 3), v, np.uint8)) for v in (0, 128, 255)]
+    frames[0].save(tmp_path / "pulse.gif", save_all=True, append_images=frames[1:], duration=200, loop=0)
+    frames[0].save(tmp_path / "still.png")
+    assert is_sequence(tmp_path / "pulse.gif") and not is_sequence(tmp_path / "still.png")
+    assert not is_sequence(tmp_path / "none.mp4")  # no such file: read as a pattern name, which says so
+    seq = open_sequence(tmp_path / "pulse.gif", (W, H))
+    assert (seq.count, seq.fps, seq.video) == (3, 5.0, False)
+    got = list(seq.frames(start=1))
+    assert [i for i, _ in got] == [1, 2] and got[0][1].shape == (H, W, 3)
+    np.testing.assert_allclose([g.mean() for _, g in got], [128 / 255, 1.0], atol=1e-6)
+
+
+def test_sequences_that_cannot_be_used_are_refused_from_their_header(tmp_path):
+    (tmp_path / "noise.mp4").write_bytes(os.urandom(5000))
+    with pytest.raises(InputError, match="noise.mp4: not a video OpenCV's FFmpeg can read"):
+        open_sequence(tmp_path / "noise.mp4", (W, H))
+    wide = _clip(tmp_path / "wide.mp4", frames=2, size=(640, 360))
+    with pytest.raises(InputError, match=r"its frames are 640x360 but the projector is 256x192 \(pass --resize"):
+        open_sequence(wide, (W, H))
+    (_, first), _ = open_sequence(wide, (W, H), "fit").frames()
+    assert first.shape == (H, W, 3) and first[:20].max() == 0 and first[40:150, :40].min() > 0.9  # 16:9 inside 4:3
+    # a GIF whose header claims 9000 x 9000 frames (a few hundred bytes): refused before a frame is decoded
+    from PIL import Image
+
+    frames = [Image.new("L", (8, 8), v) for v in (0, 255)]
+    frames[0].save(tmp_path / "bomb.gif", save_all=True, append_images=frames[1:])
+    data = bytearray((tmp_path / "bomb.gif").read_bytes())
+    data[6:10] = (9000).to_bytes(2, "little") * 2  # the logical screen's width and height
+    (tmp_path / "bomb.gif").write_bytes(bytes(data))
+    assert is_sequence(tmp_path / "bomb.gif")
+    with pytest.raises(InputError, match="its frames are 9000x9000, far larger than the 256x192 projector: refused"):
+        open_sequence(tmp_path / "bomb.gif", (W, H), "fit")
+
+
+def test_the_cli_relights_a_video_on_its_own_and_says_what_it_cannot_do(session, tmp_path):
+    clip = _clip(tmp_path / "clip.mp4", frames=3)
+    res = run_sss(["relight", str(session), "--pattern", str(clip), "--out", str(tmp_path / "out")], timeout=180)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert "clip.mp4: 3 frames of 256x192 at 12 frames/s; backend analytic" in res.stdout
+    assert (tmp_path / "out" / "sand_rake_v0_clip_analytic.mp4").is_file()
+    for args, expected in ((["--pattern", "checkerboard"], "is a sequence of frames (a video or an animated image): relight it on its own"),
+                           (["--no-cache"], "leave out --no-cache")):
+        res = run_sss(["relight", str(session), "--pattern", str(clip), *args, "--out", str(tmp_path / "o2")], timeout=120)
+        assert res.returncode == 2 and expected in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
+        assert not (tmp_path / "o2" / "sand_rake_v0_clip_analytic").exists()
