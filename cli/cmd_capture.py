@@ -215,6 +215,9 @@ def calibrate_stereo(
                                       "--calibration`.")] = Path("calibration.yml"),
     views: Annotated[str, typer.Option(help="Comma-separated views (default: all).")] = "",
     unit: Annotated[str, typer.Option(help="The unit of --square, written into the file for the points it gives.")] = "mm",
+    lens: Annotated[str, typer.Option(help="Distortion terms to estimate for each device: k1 (one radial term, square "
+                                      "pixels), radial (k1, k2, k3) or full (k1, k2, p1, p2, k3 and fx, fy apart); more "
+                                      "terms need more and wider poses.")] = "k1",
 ) -> None:
     """Calibrate the camera and the projector as a stereo pair from a session of a checkerboard: corners in the white
     capture, their projector points through local homographies of the decoded correspondences (Moreno and Taubin)."""
@@ -238,7 +241,7 @@ def calibrate_stereo(
     chosen = choose_views(s, views)
     with console.status(f"finding the board in {len(chosen)} views") as status:
         result = calibrate_stereo(s, corners, square, chosen, progress=lambda done, total: status.update(
-            f"finding the board: view {done} of {total}"), unit=unit)
+            f"finding the board: view {done} of {total}"), unit=unit, lens=lens)
     for v, why in result.skipped.items():
         console.print(f"view {v} left out: {why}")
     c = result.calibration

@@ -125,6 +125,7 @@ def test_a_checkerboard_session_calibrates_the_rig_and_its_points_land_on_the_su
     (["--board", "6x4", "--square", "nan"], "--square must be the board's square side, a positive length"),
     (["--board", "6x4", "--square", "9", "--out", "calibration.txt"], "name a .yml, .yaml, .xml or .json file"),
     (["--board", "6x4", "--square", "9", "--unit", "m m"], "--unit must be a length unit's short name"),
+    (["--board", "6x4", "--square", "9", "--lens", "fisheye"], "--lens must be one of k1, radial, full"),
 ])
 def test_a_stereo_calibration_that_cannot_be_made_is_one_line_and_writes_nothing(board_session, tmp_path, args, expected):
     out = ["--out", str(tmp_path / "c.yml")] if "--out" not in args else []
@@ -174,3 +175,23 @@ def test_poses_that_do_not_pin_the_lenses_down_are_warned_about_or_refused(board
     assert read_calibration(tmp_path / "c.json").camera_matrix[0, 0] > 0
     with pytest.raises(DataError, match="a field of view no lens of a 256x192 camera has"):
         calibrate_stereo(board_session, (6, 4), 9.0, [0, 0, 0])
+
+
+def test_the_lens_model_frees_the_terms_it_names_and_more_terms_cost_accuracy_on_a_small_board(board_session):
+    """`--lens radial` estimates k1, k2, k3 and keeps square pixels and no tangential terms; `--lens full` frees all
+    five and the focal lengths apart. The simulated lenses have no distortion, so every freed term only adds
+    variance: on its 12 small poses radial stays within 2% and 5 px, full lets the projector's principal point go
+    tens of pixels astray (what docs/benchmarks/calibration.md reports)."""
+    from sssphase_core.capture.stereo_calibration import calibrate_stereo
+    from sssphase_core.sim import rig_preset, stereo_calibration
+
+    exact = stereo_calibration(rig_preset("cpu"))
+    got = {lens: calibrate_stereo(board_session, (6, 4), 9.0, lens=lens).calibration for lens in ("k1", "radial", "full")}
+    for lens, c in got.items():
+        d = c.projector_distortion
+        assert (d[1] != 0) == (lens != "k1") and (d[2:4] != 0).any() == (lens == "full") and (d[4] != 0) == (lens != "k1"), (lens, d)
+        assert (c.camera_matrix[0, 0] == c.camera_matrix[1, 1]) == (lens != "full")
+    for lens in ("k1", "radial"):
+        k = got[lens].projector_matrix
+        assert k[1, 1] == pytest.approx(exact.projector_matrix[1, 1], rel=0.02) and np.abs(k[:2, 2] - exact.projector_matrix[:2, 2]).max() < 5
+    assert np.abs(got["full"].projector_matrix[:2, 2] - exact.projector_matrix[:2, 2]).max() > 10

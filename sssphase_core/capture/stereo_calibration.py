@@ -44,6 +44,10 @@ MORE_POSES = "capture the board in more poses, tilted and turned by 30 to 45 deg
 #: and with no distortion term at all both principal points landed 10-28 px off; k1 alone brings both focal lengths
 #: within 1% and the principal points within 3 px.
 LENS_MODEL = cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_ZERO_TANGENT_DIST | cv2.CALIB_FIX_K2 | cv2.CALIB_FIX_K3
+#: The lens models ``--lens`` names: that one (``k1``), three radial terms (``radial``: k1, k2, k3), or OpenCV's whole
+#: five-term model with free focal lengths along x and y (``full``: k1, k2, p1, p2, k3). More terms need more poses,
+#: wider ones and a larger view of the board (see docs/benchmarks/calibration.md for the simulated board's figures).
+LENS_MODELS = {"k1": LENS_MODEL, "radial": cv2.CALIB_FIX_ASPECT_RATIO | cv2.CALIB_ZERO_TANGENT_DIST, "full": 0}
 
 
 @dataclass
@@ -134,10 +138,12 @@ def projector_corners(camera: np.ndarray, xp: np.ndarray, yp: np.ndarray, mask: 
 
 
 def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views: Sequence[int] | None = None,
-                     progress: Any = None, unit: str = "mm") -> StereoResult:
+                     progress: Any = None, unit: str = "mm", lens: str = "k1") -> StereoResult:
     """Calibrate the camera and the projector from ``session``'s views of a checkerboard of ``board`` inner corners
-    (columns, rows) and ``square`` side, in ``unit`` (the result's); refused in one line where fewer than
-    :data:`MIN_VIEWS` views show the whole board."""
+    (columns, rows) and ``square`` side, in ``unit`` (the result's), each device's lens as ``lens``
+    (:data:`LENS_MODELS`); refused in one line where fewer than :data:`MIN_VIEWS` views show the whole board."""
+    if lens not in LENS_MODELS:
+        raise InputError(f"--lens must be one of {', '.join(LENS_MODELS)} (the distortion terms to estimate), got {lens!r}")
     if not square > 0 or not np.isfinite(square):
         raise InputError(f"--square must be the board's square side, a positive length (mm), got {square!r}")
     check_unit(unit, "--unit")
@@ -184,9 +190,9 @@ def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views:
     square_pixels = lambda wh: np.array([[1.0, 0, wh[0] / 2], [0, 1.0, wh[1] / 2], [0, 0, 1]])  # noqa: E731 (fx/fy = 1)
     try:
         cam_rms, k_cam, d_cam, _, _, sd_cam, _, _ = cv2.calibrateCameraExtended(
-            objects, cams, size, square_pixels(size), None, flags=LENS_MODEL)
+            objects, cams, size, square_pixels(size), None, flags=LENS_MODELS[lens])
         proj_rms, k_proj, d_proj, _, _, sd_proj, _, _ = cv2.calibrateCameraExtended(
-            objects, projs, projector, square_pixels(projector), None, flags=LENS_MODEL)
+            objects, projs, projector, square_pixels(projector), None, flags=LENS_MODELS[lens])
         stereo_rms, k_cam, d_cam, k_proj, d_proj, rotation, translation, _, _ = cv2.stereoCalibrate(
             objects, cams, projs, k_cam, d_cam, k_proj, d_proj, size, flags=cv2.CALIB_FIX_INTRINSIC)
         calibration = StereoCalibration(k_cam, d_cam.reshape(-1), k_proj, d_proj.reshape(-1), rotation,
@@ -195,7 +201,7 @@ def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views:
         said = str(exc).strip().splitlines()[-1][:160]
         raise DataError(f"{session.path}: the views {', '.join(map(str, (b.view for b in found)))} do not calibrate "
                         f"({said}): {MORE_POSES}") from None
-    uncertainty = {name: (float(sd.ravel()[1] / k[1, 1]), float(np.hypot(*sd.ravel()[2:4])))
+    uncertainty = {name: (float(max(sd.ravel()[0] / k[0, 0], sd.ravel()[1] / k[1, 1])), float(np.hypot(*sd.ravel()[2:4])))
                    for name, k, sd in (("camera", k_cam, sd_cam), ("projector", k_proj, sd_proj))}
     for name, k, wh in (("camera", k_cam, size), ("projector", k_proj, projector)):
         if not FOCAL_RANGE[0] * max(wh) <= k[1, 1] <= FOCAL_RANGE[1] * max(wh):
