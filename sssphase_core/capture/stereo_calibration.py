@@ -137,16 +137,10 @@ def projector_corners(camera: np.ndarray, xp: np.ndarray, yp: np.ndarray, mask: 
     return out
 
 
-def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views: Sequence[int] | None = None,
-                     progress: Any = None, unit: str = "mm", lens: str = "k1") -> StereoResult:
-    """Calibrate the camera and the projector from ``session``'s views of a checkerboard of ``board`` inner corners
-    (columns, rows) and ``square`` side, in ``unit`` (the result's), each device's lens as ``lens``
-    (:data:`LENS_MODELS`); refused in one line where fewer than :data:`MIN_VIEWS` views show the whole board."""
-    if lens not in LENS_MODELS:
-        raise InputError(f"--lens must be one of {', '.join(LENS_MODELS)} (the distortion terms to estimate), got {lens!r}")
-    if not square > 0 or not np.isfinite(square):
-        raise InputError(f"--square must be the board's square side, a positive length (mm), got {square!r}")
-    check_unit(unit, "--unit")
+def find_boards(session: Any, board: tuple[int, int], views: Sequence[int] | None = None, progress: Any = None
+                ) -> tuple[list[BoardView], dict[int, str], tuple[int, int], tuple[int, int]]:
+    """The views of ``session`` (``views``, default all) where the whole ``board`` is seen, with each corner in the
+    camera and the projector -> (those views, the others with why not, the camera's and the projector's size)."""
     chosen = list(views) if views else session.views()
     projector = tuple(int(v) for v in session.manifest.get("plan", {}).get("projector", ()))
     if len(projector) != 2:
@@ -172,7 +166,12 @@ def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views:
                 found.append(BoardView(v, camera, points))
         if progress:
             progress(i + 1, len(chosen))
-    if len(found) < MIN_VIEWS:
+    return found, skipped, size or (0, 0), projector  # type: ignore[return-value]
+
+
+def require_boards(session: Any, found: list[BoardView], skipped: dict[int, str], needed: int) -> None:
+    """Refuse, in one line giving each left-out view's reason, fewer than ``needed`` views with the board."""
+    if len(found) < needed:
         by_reason: dict[str, list[int]] = {}
         for v, reason in skipped.items():
             by_reason.setdefault(reason, []).append(v)
@@ -181,7 +180,21 @@ def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views:
         hint = ("; check --board (inner corners, e.g. 9x6 for 10 x 7 squares)" if any(r.startswith("no ") for r in by_reason)
                 else "")
         raise DataError(f"{session.path}: the board was found in {len(found)} view(s) where a calibration needs at least "
-                        f"{MIN_VIEWS}" + (f" ({why}){hint}" if why else ": capture more poses of it"))
+                        f"{needed}" + (f" ({why}){hint}" if why else ": capture more poses of it"))
+
+
+def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views: Sequence[int] | None = None,
+                     progress: Any = None, unit: str = "mm", lens: str = "k1") -> StereoResult:
+    """Calibrate the camera and the projector from ``session``'s views of a checkerboard of ``board`` inner corners
+    (columns, rows) and ``square`` side, in ``unit`` (the result's), each device's lens as ``lens``
+    (:data:`LENS_MODELS`); refused in one line where fewer than :data:`MIN_VIEWS` views show the whole board."""
+    if lens not in LENS_MODELS:
+        raise InputError(f"--lens must be one of {', '.join(LENS_MODELS)} (the distortion terms to estimate), got {lens!r}")
+    if not square > 0 or not np.isfinite(square):
+        raise InputError(f"--square must be the board's square side, a positive length (mm), got {square!r}")
+    check_unit(unit, "--unit")
+    found, skipped, size, projector = find_boards(session, board, views, progress)
+    require_boards(session, found, skipped, MIN_VIEWS)
     grid = np.zeros((board[0] * board[1], 3), np.float32)
     grid[:, :2] = np.mgrid[0 : board[0], 0 : board[1]].T.reshape(-1, 2) * square
     objects = [grid] * len(found)
@@ -231,24 +244,43 @@ def against_simulated_rig(session: Any, calibration: StereoCalibration) -> str |
             f"degrees, its baseline {100 * (calibration.baseline / exact.baseline - 1):+.1f}%")
 
 
-def write_calibration(path: Path | str, result: StereoResult) -> Path:
-    """Write ``result`` as an OpenCV YAML, XML or JSON file (``path``'s suffix says which) in the names
-    projector-camera calibration tools use (cam_K, cam_kc, proj_K, proj_kc, R, T, and the RMS errors cam_error,
-    proj_error, stereo_error) and the translation's ``unit``, atomically."""
+def write_calibration(path: Path | str, calibration: StereoCalibration, errors: dict[str, float] | None = None) -> Path:
+    """Write ``calibration`` as an OpenCV YAML, XML or JSON file (``path``'s suffix says which) in the names
+    projector-camera calibration tools use (cam_K, cam_kc, proj_K, proj_kc, R, T), its ``unit``, its turntable axis
+    where it has one (turntable_axis, turntable_point) and ``errors`` (e.g. the RMS errors cam_error, proj_error,
+    stereo_error), atomically."""
     path = Path(path)
-    c = result.calibration
+    c = calibration
     with atomic_path(path, path.suffix) as tmp:  # (OpenCV writes the format the suffix names)
         storage = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
         try:
             for name, value in (("cam_K", c.camera_matrix), ("cam_kc", c.camera_distortion.reshape(1, -1)),
                                 ("proj_K", c.projector_matrix), ("proj_kc", c.projector_distortion.reshape(1, -1)),
                                 ("R", c.rotation), ("T", c.translation.reshape(3, 1))):
-                storage.write(name, np.asarray(value, np.float64))
-            for name, value in (("cam_error", result.camera_rms), ("proj_error", result.projector_rms),
-                                ("stereo_error", result.stereo_rms)):
+                if value.size:  # (no distortion vector: an ideal lens)
+                    storage.write(name, np.asarray(value, np.float64))
+            if c.turntable_axis is not None and c.turntable_point is not None:
+                storage.write("turntable_axis", np.asarray(c.turntable_axis, np.float64).reshape(3, 1))
+                storage.write("turntable_point", np.asarray(c.turntable_point, np.float64).reshape(3, 1))
+            for name, value in (errors or {}).items():
                 storage.write(name, float(value))
             if c.unit:
                 storage.write("unit", c.unit)
         finally:
             storage.release()
     return path
+
+
+def read_errors(path: Path | str) -> dict[str, float]:
+    """The RMS errors a calibration file records (cam_error, proj_error, stereo_error), those it has."""
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        nodes = {name: storage.getNode(name) for name in ("cam_error", "proj_error", "stereo_error")}
+        return {name: float(node.real()) for name, node in nodes.items() if node.isReal() or node.isInt()}
+    finally:
+        storage.release()
+
+
+def stereo_errors(result: StereoResult) -> dict[str, float]:
+    """A stereo calibration's RMS errors by the names calibration files give them."""
+    return {"cam_error": result.camera_rms, "proj_error": result.projector_rms, "stereo_error": result.stereo_rms}

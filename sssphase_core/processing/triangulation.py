@@ -47,6 +47,10 @@ class StereoCalibration:
     translation: np.ndarray
     #: the translation's unit, where known (a calibration file does not say)
     unit: str = ""
+    #: the turntable's axis in the camera's frame, where calibrated: its direction (3,) (a unit vector; a view at
+    #: angle a is the view at 0 turned by a about it, right-handed) and a point on it (3,), the translation's unit
+    turntable_axis: np.ndarray | None = None
+    turntable_point: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         for name in ("camera_matrix", "projector_matrix"):
@@ -63,6 +67,14 @@ class StereoCalibration:
             raise InputError(f"rotation must be a 3x3 rotation matrix or a Rodrigues vector, got {_shown(r)}")
         if t.shape != (3,) or not np.isfinite(t).all() or not np.linalg.norm(t) > 0:
             raise InputError(f"translation must be 3 finite values, not all zero (the baseline), got {_shown(t)}")
+        if (self.turntable_axis is None) != (self.turntable_point is None):
+            raise InputError("a turntable needs both its turntable_axis and a turntable_point on it")
+        if self.turntable_axis is not None:
+            a, q = np.asarray(self.turntable_axis, np.float64), np.asarray(self.turntable_point, np.float64)
+            if a.shape != (3,) or not np.isfinite(a).all() or abs(np.linalg.norm(a) - 1) > 1e-3:
+                raise InputError(f"turntable_axis must be a unit vector of 3 values, got {_shown(a)}")
+            if q.shape != (3,) or not np.isfinite(q).all():
+                raise InputError(f"turntable_point must be 3 finite values, got {_shown(q)}")
 
     @property
     def baseline(self) -> float:
@@ -128,6 +140,10 @@ def read_calibration(path: Path | str) -> StereoCalibration:
                 if not node.empty():
                     values[name] = _node_array(node, f"{path}: {name}")
         calibration = calibration_from_arrays(values)
+        axis, point = (storage.getNode(name) for name in ("turntable_axis", "turntable_point"))
+        if not (axis.empty() and point.empty()):
+            calibration = replace(calibration, turntable_axis=None if axis.empty() else _node_array(axis, f"{path}: turntable_axis").reshape(-1),
+                                  turntable_point=None if point.empty() else _node_array(point, f"{path}: turntable_point").reshape(-1))
         unit = storage.getNode("unit")  # (sss calibrate stereo writes it; other tools' files do not say)
         if unit.empty():
             return calibration
@@ -157,6 +173,8 @@ def _node_array(node, where: str) -> np.ndarray:  # noqa: ANN001 (cv2.FileNode)
         if not dims or not all(d.isInt() for d in dims):
             raise InputError(not_a_matrix)
         shape = [int(d.real()) for d in dims]
+        if min(shape) == 0 and max(shape) <= 1:  # an empty vector (0 x 1, 1 x 0): no distortion, an ideal lens
+            return np.zeros(0)
         if not 0 < np.prod(np.asarray(shape, np.float64)) <= max(DISTORTION_LENGTHS):  # (OpenCV would allocate it)
             raise InputError(f"{where} is a {' x '.join(map(str, shape))} matrix where a calibration's have at "
                              f"most {max(DISTORTION_LENGTHS)} values")
@@ -184,6 +202,25 @@ class Triangulated:
     reprojection: float = float("nan")
 
 
+def triangulate_points(calib: StereoCalibration, camera: np.ndarray, projector: np.ndarray) -> np.ndarray:
+    """Camera points (N, 2) and their projector points (N, 2), px -> the 3D points where their rays meet (N, 3),
+    float64 in the camera's frame (inf or NaN where the rays are parallel)."""
+    cam_n = cv2.undistortPoints(np.asarray(camera, np.float64).reshape(-1, 1, 2), calib.camera_matrix,
+                                calib.camera_distortion).reshape(-1, 2)
+    proj_n = cv2.undistortPoints(np.asarray(projector, np.float64).reshape(-1, 1, 2), calib.projector_matrix,
+                                 calib.projector_distortion).reshape(-1, 2)
+    pose = np.hstack([calib.rotation, calib.translation[:, None]])
+    homogeneous = cv2.triangulatePoints(np.eye(3, 4), pose, cam_n.T, proj_n.T)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return (homogeneous[:3] / homogeneous[3]).T
+
+
+def turned(points: np.ndarray, axis: np.ndarray, point: np.ndarray, degrees: float) -> np.ndarray:
+    """Points (..., 3) turned by ``degrees`` about the line through ``point`` along the unit ``axis`` (right-handed)."""
+    rotation = cv2.Rodrigues(np.asarray(axis, np.float64) * np.deg2rad(degrees))[0]
+    return (np.asarray(points, np.float64) - point) @ rotation.T + point
+
+
 def triangulate(calib: StereoCalibration, xp: np.ndarray, yp: np.ndarray, mask: np.ndarray) -> Triangulated:
     """Each camera pixel of ``mask`` (H, W) with its projector point (``xp``, ``yp``: (H, W) projector px) ->
     the 3D point where the two rays meet (linear triangulation of the undistorted points, OpenCV's
@@ -194,14 +231,8 @@ def triangulate(calib: StereoCalibration, xp: np.ndarray, yp: np.ndarray, mask: 
     points = np.full((h, w, 3), np.nan, np.float32)
     if not len(rows):
         return Triangulated(points, 0)
-    cam = np.stack([cols, rows], -1).astype(np.float64).reshape(-1, 1, 2)
     proj = np.stack([xp[ok], yp[ok]], -1).astype(np.float64).reshape(-1, 1, 2)
-    cam_n = cv2.undistortPoints(cam, calib.camera_matrix, calib.camera_distortion).reshape(-1, 2)
-    proj_n = cv2.undistortPoints(proj, calib.projector_matrix, calib.projector_distortion).reshape(-1, 2)
-    pose = np.hstack([calib.rotation, calib.translation[:, None]])
-    homogeneous = cv2.triangulatePoints(np.eye(3, 4), pose, cam_n.T, proj_n.T)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xyz = (homogeneous[:3] / homogeneous[3]).T
+    xyz = triangulate_points(calib, np.stack([cols, rows], -1), proj)
     depth_projector = xyz @ calib.rotation[2] + calib.translation[2]
     front = np.isfinite(xyz).all(1) & (xyz[:, 2] > 0) & (depth_projector > 0)
     points[rows[front], cols[front]] = xyz[front]

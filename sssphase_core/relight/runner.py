@@ -577,6 +577,17 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
         say.say(_geometry_line(done[-1]))
         if line := _points_line(done[-1]):
             say.say(line)
+    if stereo is not None and len(done) > 1:  # a turntable's views: one cloud in the turntable's frame at 0 degrees
+        from sssphase_core.relight.merged_points import merge_note, merge_views, merged_line, recorded_angles
+
+        views = [d.view for d in done]
+        if note := merge_note(stereo, views, recorded_angles(s, views)):
+            say.say(note)
+        else:
+            clouds = {d.view: (np.load(d.path)["points"], np.asarray(s.load(d.view, "white"), np.float32)) for d in done}
+            merged = merge_views(s, clouds, stereo, out, exact_rig)
+            if merged is not None:
+                say.say(merged_line(merged, stereo.unit or "the calibration's unit"))
     return done
 
 

@@ -301,6 +301,18 @@ def _board_shade(p):
                           np.full(n, paper.label, np.int16))
 
 
+#: Where the turntable board stands: its centre 25 mm from the turntable's axis, toward the camera at view 0 (mm).
+TURNTABLE_BOARD_OFFSET = np.array([0.0, 0.0, -25.0])
+
+
+def _turntable_board_sdf(p):
+    return _board_sdf(p - TURNTABLE_BOARD_OFFSET)
+
+
+def _turntable_board_shade(p):
+    return _board_shade(p - TURNTABLE_BOARD_OFFSET)
+
+
 def _build() -> dict[str, SimObject]:
     objs = [
         SimObject("apple", "train", "apple with red and yellow sides and a stem (Jensen apple)", 46, _apple_sdf, _apple_shade),
@@ -331,6 +343,10 @@ def _build() -> dict[str, SimObject]:
         SimObject("calibration_board", "calibration", "printed checkerboard, 7 x 5 squares of 9 mm, held in 12 poses "
                   "(views) for `sss calibrate stereo --board 6x4 --square 9`", 46, _board_sdf, _board_shade,
                   hand_poses=BOARD_POSES),
+        SimObject("turntable_board", "calibration", "the same checkerboard standing on the turntable, 25 mm off its "
+                  "axis and leaning back 20 degrees, for `sss calibrate turntable` (its front faces the camera at "
+                  "view 0; `--views 12` shows it in 5)", 50, _turntable_board_sdf, _turntable_board_shade,
+                  _pose(g.rotation_x(deg(-20)))),
     ]
     return {o.name: o for o in objs}
 
@@ -339,7 +355,7 @@ CATALOGUE: dict[str, SimObject] = _build()
 TRAIN_OBJECTS = ("apple", "pear", "orange", "star", "shovel")
 UNSEEN_OBJECTS = ("crab", "hand", "tangerine", "sand_rake", "soap", "leaf", "lego")
 EXTRA_OBJECTS = ("chicken", "potato", "milk")  # measured materials, outside the paper's splits
-CALIBRATION_OBJECTS = ("calibration_board",)  # targets to calibrate the rig with (`sss calibrate stereo`)
+CALIBRATION_OBJECTS = ("calibration_board", "turntable_board")  # targets to calibrate the rig with (`sss calibrate ...`)
 
 
 def get_object(name: str) -> SimObject:

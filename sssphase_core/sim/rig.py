@@ -306,15 +306,19 @@ def pixel_pitch_mm(rig: RigConfig) -> float:
 
 
 def stereo_calibration(rig: RigConfig) -> StereoCalibration:
-    """The rig's exact camera-projector calibration (ideal lenses, mm): what a lab's stereo calibration estimates."""
+    """The rig's exact camera-projector calibration (ideal lenses, mm) and turntable axis: what a lab's stereo and
+    turntable calibrations estimate."""
     from sssphase_core.processing.triangulation import StereoCalibration
 
     def matrix(p: Pinhole) -> np.ndarray:
         return np.array([[p.fx, 0.0, p.cx], [0.0, p.fy, p.cy], [0.0, 0.0, 1.0]])
 
+    # the turntable turns the object by +angle about the camera's y axis through its centre (SimScene)
     return StereoCalibration(matrix(rig.camera), np.zeros(0), matrix(rig.projector), np.zeros(0),
                              np.asarray(rig.projector.rotation, np.float64),
-                             np.asarray(rig.projector.translation, np.float64), unit="mm")
+                             np.asarray(rig.projector.translation, np.float64), unit="mm",
+                             turntable_axis=np.array([0.0, 1.0, 0.0]),
+                             turntable_point=np.asarray(rig.turntable_centre, np.float64))
 
 
 def session_rig_calibration(rig_record: Mapping[str, Any]) -> StereoCalibration | None:

@@ -127,6 +127,11 @@ def test_calibration_files_are_read_in_the_names_calibration_tools_write(tmp_pat
                  id="a 100-letter unit"),
     ('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "K2": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], '
      '"R": [0, 0, 0], "T": [1, 0, 0], "unit": 3}', "unit must be a length unit's short name"),
+    ('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "K2": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], '
+     '"R": [0, 0, 0], "T": [1, 0, 0], "turntable_axis": [0, 1, 0]}', "a turntable needs both its turntable_axis and a turntable_point"),
+    ('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "K2": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], '
+     '"R": [0, 0, 0], "T": [1, 0, 0], "turntable_axis": [0, 2, 0], "turntable_point": [0, 0, 400]}',
+     "turntable_axis must be a unit vector of 3 values"),
 ])
 def test_a_calibration_file_that_cannot_be_used_is_refused_naming_the_file_and_the_problem(tmp_path, content, message):
     path = tmp_path / ("c.json" if content.startswith("{") else "c.yml")
@@ -168,3 +173,23 @@ def test_the_shaded_surface_follows_the_normals_and_leaves_holes_and_degenerate_
     with np.errstate(all="raise"):
         flat = shaded(np.full((5, 5, 3), 7.0))
     assert np.isnan(flat).all()
+
+
+def test_a_calibration_written_with_ideal_lenses_and_a_turntable_reads_back_the_same(tmp_path):
+    """No distortion vector is written for an ideal lens (OpenCV wrote an empty one as a 1 x 0 matrix, which was read
+    as a damaged file); such a matrix from another tool reads as an ideal lens too."""
+    from sssphase_core.capture.stereo_calibration import write_calibration
+
+    c = stereo_calibration(rig_preset("cpu"))
+    for suffix in (".yml", ".xml", ".json"):
+        path = write_calibration(tmp_path / f"c{suffix}", c)
+        got = read_calibration(path)
+        assert got.camera_distortion.size == 0 and got.unit == "mm"
+        np.testing.assert_allclose(got.turntable_axis, c.turntable_axis)
+        np.testing.assert_allclose(got.turntable_point, c.turntable_point)
+    fs = cv2.FileStorage(str(tmp_path / "empty.yml"), cv2.FILE_STORAGE_WRITE)
+    for name, value in (("cam_K", c.camera_matrix), ("cam_kc", np.zeros((1, 0))), ("proj_K", c.projector_matrix),
+                        ("R", c.rotation), ("T", c.translation)):
+        fs.write(name, value)
+    fs.release()
+    assert read_calibration(tmp_path / "empty.yml").camera_distortion.size == 0

@@ -1,0 +1,113 @@
+"""The turntable's axis, from a checkerboard standing on it (``sss calibrate turntable``).
+
+Each view that sees the whole board gives its corners in 3D: the camera corners and their projector points (the
+local homographies of :mod:`~sssphase_core.capture.stereo_calibration`) triangulated with the rig's stereo
+calibration. The board's motion from the first such view to each other one is a rigid turn (Kabsch), all about one
+line: its direction is the turns' common axis, oriented so that the session's recorded turntable angles turn about it
+right-handed, and a point on it solves ``(I - R_v) p = t_v`` for every view at once. What it is checked by: the
+board's own turn in each view against the angle the turntable recorded, how far the axis carries the first view's
+corners onto each other view's (RMS), and, given the squares' size, the triangulated squares against it (the stereo
+calibration's scale). ``sss geometry`` then turns every view's points into the frame of the turntable at 0 degrees
+and merges them into one cloud.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from sssphase_core.capture.stereo_calibration import find_boards, require_boards
+from sssphase_core.errors import DataError, InputError
+from sssphase_core.processing.triangulation import StereoCalibration, triangulate_points, turned
+
+#: Views with the whole board that an axis needs (two turns, so that one bad view shows).
+MIN_TURNTABLE_VIEWS = 3
+#: The largest difference (degrees) between the board's turn and the recorded angle before it is warned of (the
+#: simulated board: 0.05 with the rig's exact stereo calibration, 1.1 with one calibrated from its checkerboard; a
+#: turntable stepping 15 degrees where the session says 30 is off by 15).
+MAX_TURN_ERROR = 2.0
+#: The largest relative difference between the triangulated squares and ``--square`` before it is warned of.
+MAX_SCALE_ERROR = 0.02
+
+
+@dataclass
+class TurntableResult:
+    """A turntable axis fitted to the board's views: the calibration with it, the views used (the first the
+    reference) and left out with why, each view's board turn minus its recorded angle (degrees), the RMS distance
+    (the calibration's unit) between the reference corners turned by the recorded angles and each view's own, and the
+    triangulated squares' median side where ``square`` was given."""
+
+    calibration: StereoCalibration
+    views: list[int]
+    skipped: dict[int, str] = field(default_factory=dict)
+    turn_error: dict[int, float] = field(default_factory=dict)
+    rms: float = float("nan")
+    square: float | None = None
+
+
+def _kabsch(a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The rotation R and translation t that best carry points ``a`` (N, 3) onto ``b``: b ~ R a + t."""
+    ca, cb = a.mean(0), b.mean(0)
+    u, _, vt = np.linalg.svd((a - ca).T @ (b - cb))
+    d = np.sign(np.linalg.det(vt.T @ u.T))
+    rotation = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    return rotation, cb - rotation @ ca
+
+
+def _vee(r: np.ndarray) -> np.ndarray:
+    """2 sin(angle) * axis of the rotation ``r``."""
+    return np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]])
+
+
+def _wrapped(degrees: float) -> float:
+    return (degrees + 180.0) % 360.0 - 180.0
+
+
+def calibrate_turntable(session: Any, board: tuple[int, int], stereo: StereoCalibration, *,
+                        square: float | None = None, views: Sequence[int] | None = None,
+                        progress: Any = None) -> TurntableResult:
+    """The turntable axis of ``session``'s views of a ``board`` (inner corners) standing on it, triangulated with
+    ``stereo``; refused in one line where fewer than :data:`MIN_TURNTABLE_VIEWS` views show the whole board, where
+    the session recorded no turntable angles, or where the views do not turn about one axis."""
+    if square is not None and not (np.isfinite(square) and square > 0):
+        raise InputError(f"--square must be the board's square side, a positive length, got {square!r}")
+    found, skipped, _, _ = find_boards(session, board, views, progress)
+    require_boards(session, found, skipped, MIN_TURNTABLE_VIEWS)
+    records = session.manifest.get("views", {})
+    angles = {}
+    for b in found:
+        angle = records.get(str(b.view), {}).get("angle")
+        if isinstance(angle, bool) or not isinstance(angle, int | float) or not np.isfinite(angle):
+            raise DataError(f"{session.path}: view {b.view} recorded no turntable angle (captured without a turntable?)")
+        angles[b.view] = float(angle)
+    points = {b.view: triangulate_points(stereo, b.camera, b.projector) for b in found}
+    bad = [v for v, p in points.items() if not np.isfinite(p).all() or (p[:, 2] <= 0).any()]
+    if bad:
+        raise DataError(f"{session.path}: the board's corners in view{'s' if len(bad) > 1 else ''} "
+                        f"{', '.join(map(str, bad))} do not triangulate in front of the camera: is the calibration this rig's?")
+    ref, others = found[0].view, [b.view for b in found[1:]]
+    motions = {v: _kabsch(points[ref], points[v]) for v in others}
+    recorded = {v: _wrapped(angles[v] - angles[ref]) for v in others}
+    direction = sum((np.sign(recorded[v]) or 1.0) * _vee(motions[v][0]) for v in others)
+    if not np.linalg.norm(direction) > 1e-3:
+        raise DataError(f"{session.path}: the board does not turn between views {ref}, {', '.join(map(str, others))} "
+                        "(or turns both ways about as much): capture it at several turntable angles")
+    axis = direction / np.linalg.norm(direction)
+    turns = {v: float(np.degrees(np.arctan2(_vee(r) @ axis / 2, (np.trace(r) - 1) / 2))) for v, (r, _) in motions.items()}
+    # a point on the axis: (I - R_v) p = t_v for every view at once, then the one nearest the board's centre
+    lhs = np.concatenate([np.eye(3) - motions[v][0] for v in others])
+    rhs = np.concatenate([motions[v][1] for v in others])
+    point = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
+    centre = points[ref].mean(0)
+    point = point + axis * ((centre - point) @ axis)
+    moved = {v: turned(points[ref], axis, point, recorded[v]) for v in others}
+    rms = float(np.sqrt(np.mean([np.sum((moved[v] - points[v]) ** 2, axis=1).mean() for v in others])))
+    side = None
+    if square is not None:
+        grid = points[ref].reshape(board[1], board[0], 3)
+        side = float(np.median(np.concatenate([np.linalg.norm(np.diff(grid, axis=a), axis=-1).ravel() for a in (0, 1)])))
+    calibration = replace(stereo, turntable_axis=axis, turntable_point=point)
+    return TurntableResult(calibration, [ref, *others], skipped, {v: turns[v] - recorded[v] for v in others}, rms, side)
