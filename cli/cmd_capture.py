@@ -275,11 +275,7 @@ def calibrate_turntable(
     """Find the turntable's axis from a checkerboard standing on it: each view's corners triangulated, the board's
     turns fitted to one axis; `sss geometry` then merges a session's views into one point cloud."""
     from sssphase_core.capture.stereo_calibration import parse_board, read_errors, write_calibration
-    from sssphase_core.capture.turntable_calibration import (
-        MAX_SCALE_ERROR,
-        MAX_TURN_ERROR,
-        calibrate_turntable,
-    )
+    from sssphase_core.capture.turntable_calibration import calibrate_turntable, turntable_report
     from sssphase_core.errors import InputError
     from sssphase_core.processing.triangulation import read_calibration
     from sssphase_core.relight.runner import choose_views
@@ -296,47 +292,10 @@ def calibrate_turntable(
     with console.status(f"finding the board in {len(chosen)} views") as status:
         result = calibrate_turntable(s, corners, stereo, square=square, views=chosen, progress=lambda done, total:
                                      status.update(f"finding the board: view {done} of {total}"))
-    by_reason: dict[str, list[int]] = {}
-    for v, why in result.skipped.items():
-        by_reason.setdefault(why, []).append(v)
-    for why, left in by_reason.items():  # (most of a turn shows the board edge-on or from behind: one line each)
-        console.print(f"left out: view{'s' if len(left) > 1 else ''} {', '.join(map(str, left))}: {why}")
-    c, unit = result.calibration, result.calibration.unit or "calibration units"
-    axis, point = c.turntable_axis, c.turntable_point
-    worst = max(result.turn_error.values(), key=abs)
-    console.print(f"turntable axis from {len(result.views)} views ({', '.join(map(str, result.views))}): direction "
-                  f"({', '.join(f'{x:.4f}' for x in axis)}) through ({', '.join(f'{x:.1f}' for x in point)}) {unit}; "
-                  f"the board's turns differ from the recorded angles by at most {abs(worst):.2f} degrees; the first "
-                  f"view's corners turned by the recorded angles land {result.rms:.2f} {unit} (RMS) from each view's own")
-    if abs(worst) > MAX_TURN_ERROR:
-        console.print(f"[yellow]warning[/]: a view's board turned {worst:+.2f} degrees from its recorded angle: does the "
-                      "turntable step by what the session records, and did the board stay put?")
-    if result.square is not None and square is not None:
-        off = result.square / square - 1
-        console.print(f"the board's squares measure {result.square:.3f} {unit} (given {square:g}, {100 * off:+.1f}%)")
-        if abs(off) > MAX_SCALE_ERROR:
-            console.print(f"[yellow]warning[/]: the triangulated squares are {100 * off:+.1f}% off --square: is the "
-                          "calibration this rig's, and --square this board's?")
-    if line := _against_exact_turntable(s, c):
-        console.print(line)
-    console.print(f"wrote {write_calibration(target, c, errors)}: `sss geometry SESSION --calibration {target}` merges "
-                  "a session's views")
-
-
-def _against_exact_turntable(s, c) -> str | None:  # noqa: ANN001
-    """On a simulated session, the fitted axis against the rig's (evaluation only)."""
-    import numpy as np
-
-    from sssphase_core.sim import session_rig_calibration
-
-    exact = session_rig_calibration(s.manifest.get("rig", {}))
-    if exact is None:
-        return None
-    tilt = np.degrees(np.arccos(np.clip(abs(c.turntable_axis @ exact.turntable_axis), -1, 1)))
-    offset = exact.turntable_point - c.turntable_point
-    miss = np.linalg.norm(offset - exact.turntable_axis * (offset @ exact.turntable_axis))
-    return (f"against the simulated rig's turntable: the axis tilted {tilt:.2f} degrees, passing {miss:.2f} mm from the "
-            "true one")
+    for text, warning in turntable_report(result, s, square):
+        console.print(text.replace(warning, f"[yellow]{warning}[/]", 1) if warning else text)
+    console.print(f"wrote {write_calibration(target, result.calibration, errors)}: `sss geometry SESSION --calibration "
+                  f"{target}` merges a session's views")
 
 
 def _print_response(fitted) -> None:

@@ -111,3 +111,47 @@ def calibrate_turntable(session: Any, board: tuple[int, int], stereo: StereoCali
         side = float(np.median(np.concatenate([np.linalg.norm(np.diff(grid, axis=a), axis=-1).ravel() for a in (0, 1)])))
     calibration = replace(stereo, turntable_axis=axis, turntable_point=point)
     return TurntableResult(calibration, [ref, *others], skipped, {v: turns[v] - recorded[v] for v in others}, rms, side)
+
+
+def turntable_report(result: TurntableResult, session: Any, square: float | None = None) -> list[tuple[str, str]]:
+    """What ``sss calibrate turntable`` says of ``result``: (line, the part of it that warns, or "")."""
+    lines: list[tuple[str, str]] = []
+    by_reason: dict[str, list[int]] = {}
+    for v, why in result.skipped.items():
+        by_reason.setdefault(why, []).append(v)
+    for why, left in by_reason.items():  # (most of a turn shows the board edge-on or from behind: one line each)
+        lines.append((f"left out: view{'s' if len(left) > 1 else ''} {', '.join(map(str, left))}: {why}", ""))
+    c, unit = result.calibration, result.calibration.unit or "calibration units"
+    axis, point = c.turntable_axis, c.turntable_point
+    assert axis is not None and point is not None
+    worst = max(result.turn_error.values(), key=abs)
+    lines.append((f"turntable axis from {len(result.views)} views ({', '.join(map(str, result.views))}): direction "
+                  f"({', '.join(f'{x:.4f}' for x in axis)}) through ({', '.join(f'{x:.1f}' for x in point)}) {unit}; the "
+                  f"board's turns differ from the recorded angles by at most {abs(worst):.2f} degrees; the first view's "
+                  f"corners turned by the recorded angles land {result.rms:.2f} {unit} (RMS) from each view's own", ""))
+    if abs(worst) > MAX_TURN_ERROR:
+        lines.append((f"warning: a view's board turned {worst:+.2f} degrees from its recorded angle: does the turntable "
+                      "step by what the session records, and did the board stay put?", "warning"))
+    if result.square is not None and square is not None:
+        off = result.square / square - 1
+        lines.append((f"the board's squares measure {result.square:.3f} {unit} (given {square:g}, {100 * off:+.1f}%)", ""))
+        if abs(off) > MAX_SCALE_ERROR:
+            lines.append((f"warning: the triangulated squares are {100 * off:+.1f}% off --square: is the calibration "
+                          "this rig's, and --square this board's?", "warning"))
+    if (line := against_simulated_turntable(session, c)) is not None:
+        lines.append((line, ""))
+    return lines
+
+
+def against_simulated_turntable(session: Any, calibration: StereoCalibration) -> str | None:
+    """On a simulated session, the fitted axis against the rig's own (evaluation only); None otherwise."""
+    from sssphase_core.sim import session_rig_calibration
+
+    exact = session_rig_calibration(session.manifest.get("rig", {}))
+    if exact is None or exact.turntable_axis is None or calibration.turntable_axis is None:
+        return None
+    tilt = np.degrees(np.arccos(np.clip(abs(calibration.turntable_axis @ exact.turntable_axis), -1, 1)))
+    offset = exact.turntable_point - calibration.turntable_point
+    miss = np.linalg.norm(offset - exact.turntable_axis * (offset @ exact.turntable_axis))
+    return (f"against the simulated rig's turntable: the axis tilted {tilt:.2f} degrees, passing {miss:.2f} mm from the "
+            "true one")
