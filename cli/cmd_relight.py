@@ -29,7 +29,7 @@ def _progress():
 EVAL_BACKENDS = "none,analytic,measured"
 
 SessionArg = Annotated[Path, typer.Argument(help="Session folder (one object).")]
-PatternOpt = Annotated[list[str], typer.Option("--pattern", help="Pattern image (PNG/TIFF, float TIFF/EXR or a .npy array of values in [0, 1]) or a named pattern (checkerboard, stripes_x, ...); repeat. A video (MP4, MOV, AVI, MKV, WebM) or an animated GIF/PNG is relit frame by frame, on its own.")]
+PatternOpt = Annotated[list[str], typer.Option("--pattern", help="Pattern image (PNG/TIFF, float TIFF/EXR or a .npy array of values in [0, 1]) or a named pattern (checkerboard, stripes_x, ...); repeat. A video (MP4, MOV, AVI, MKV, WebM), an animated GIF/PNG or a folder of images is relit frame by frame, on its own.")]
 RelightBackendOpt = Annotated[str, typer.Option("--backend", help="auto (blend with --checkpoint, else analytic), torch, "
                                                 "analytic, blend (torch and analytic weighted pixel by pixel by how well they "
                                                 "relight the view's own fringe captures; needs --checkpoint), measured (the "
@@ -116,13 +116,14 @@ def relight_cmd(
     from sssphase_core.relight.choices import uses_decoder
     from sssphase_core.relight.runner import relight_backends, relight_session
     from sssphase_core.relight.sequence import relight_sequence
+    from sssphase_core.processing.patterns import REFERENCE_NAMES
     from sssphase_core.store.pattern_sequences import is_sequence
 
     names = relight_backends(backend, checkpoint)  # every name checked before any work
-    sequences = [p for p in pattern if is_sequence(p)]
+    sequences = [p for p in pattern if p not in REFERENCE_NAMES and is_sequence(p)]  # (a folder named like a named pattern does not hide it)
     if sequences and len(pattern) > 1:
-        raise InputError(f"--pattern {sequences[0]} is a sequence of frames (a video or an animated image): relight it "
-                         "on its own, one --pattern per run")
+        raise InputError(f"--pattern {sequences[0]} is a sequence of frames (a video, an animated image or a folder of "
+                         "images): relight it on its own, one --pattern per run")
     for name in names:  # (a listed backend without the decoder is not told that the checkpoint is unused)
         own = checkpoint if len(names) == 1 or uses_decoder(name) else None
         run = relight_sequence if sequences else relight_session

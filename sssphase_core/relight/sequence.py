@@ -1,5 +1,5 @@
-"""Relighting under a pattern sequence: a video or an animated image played by the projector, relit frame by frame
-(``sss relight SESSION --pattern clip.mp4``).
+"""Relighting under a pattern sequence: a video, an animated image or a folder of images played by the projector,
+relit frame by frame (``sss relight SESSION --pattern clip.mp4``).
 
 A view's first frames compute its footprints as any relight does and keep its eigen-footprints
 (:mod:`~sssphase_core.relight.lowrank`); every later frame is relit from those alone, a few filters per colour, so
@@ -62,11 +62,12 @@ def frame_name(sequence: PatternSequence, index: int) -> str:
 
 def _record(session: Session, view: int, sequence: PatternSequence, backend: str, checkpoint: Path | None,
             widen: float | None, formats: tuple[str, ...]) -> dict:
-    stat = sequence.path.stat()
+    stats = [f.stat() for f in (sequence.files if sequence.files is not None else [sequence.path])]
     return {"written_by": "sssphase", "session": str(session.path.resolve()), "view": view, "backend": backend,
             "checkpoint": str(checkpoint.resolve()) if checkpoint else None, "widen": widen, "formats": list(formats),
-            "pattern": {"file": str(sequence.path.resolve()), "bytes": stat.st_size, "mtime_ns": stat.st_mtime_ns,
-                        "frames": sequence.count, "resize": sequence.resize}}
+            "pattern": {"file": str(sequence.path.resolve()), "bytes": sum(st.st_size for st in stats),
+                        "mtime_ns": max(st.st_mtime_ns for st in stats), "frames": sequence.count,
+                        "resize": sequence.resize}}
 
 
 def _claim_folder(folder: Path, record: dict) -> None:

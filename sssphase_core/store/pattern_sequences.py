@@ -1,5 +1,6 @@
-"""Pattern sequences: a video (MP4, MOV, AVI, MKV, WebM; read with OpenCV's FFmpeg) or an animated image (GIF,
-APNG, multi-page TIFF; Pillow) as a projector plays it, one pattern per frame.
+"""Pattern sequences: a video (MP4, MOV, AVI, MKV, WebM; read with OpenCV's FFmpeg), an animated image (GIF, APNG,
+multi-page TIFF; Pillow) or a folder of pattern images (their names' natural order), as a projector plays it, one
+pattern per frame.
 
 :func:`open_sequence` reads the header only (frame size and count, frame rate) and refuses, before any frame is
 decoded, a file that is not a sequence, far larger than the projector, or longer than :data:`MAX_FRAMES`;
@@ -12,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -23,8 +25,10 @@ VIDEO_SUFFIXES = (".mp4", ".m4v", ".mov", ".avi", ".mkv", ".webm", ".mpg", ".mpe
 ANIMATED_SUFFIXES = (".gif", ".png", ".apng", ".tif", ".tiff", ".webp")
 #: The longest sequence relit (an hour at 25 frames/s).
 MAX_FRAMES = 90_000
-#: The frame rate written where a file gives none.
+#: The frame rate written where a file gives none (a folder of images).
 DEFAULT_FPS = 25.0
+#: The files of a folder sequence that are frames (read as ``sss relight`` reads a still pattern); others are ignored.
+FOLDER_SUFFIXES = (".png", ".tif", ".tiff", ".exr", ".npy", ".jpg", ".jpeg", ".bmp")
 
 
 @dataclass
@@ -39,6 +43,8 @@ class PatternSequence:
     projector_size: tuple[int, int]
     resize: str = ""
     video: bool = True
+    #: a folder sequence's frame files, in order (None: a video or an animated image)
+    files: list[Path] | None = None
 
     @property
     def name(self) -> str:
@@ -47,9 +53,20 @@ class PatternSequence:
     def frames(self, start: int = 0) -> Iterator[tuple[int, np.ndarray]]:
         """``(index, pattern)`` from frame ``start`` on, each (Hp, Wp, 3) float32 in [0, 1]; a frame that does not
         decode ends the sequence early (a video's header may count more frames than it holds)."""
+        if self.files is not None:
+            yield from self._folder_frames(start)
+            return
         read = self._video_frames if self.video else self._image_frames
         for index, rgb in read(start):
             yield index, self._fitted(rgb)
+
+    def _folder_frames(self, start: int) -> Iterator[tuple[int, np.ndarray]]:
+        from sssphase_core.store.imageio import read_pattern
+
+        for index, path in enumerate(self.files or []):
+            if index >= start:
+                pattern = read_pattern(path, self.projector_size, resize=self.resize)
+                yield index, np.repeat(pattern[..., None], 3, -1) if pattern.ndim == 2 else pattern
 
     def _video_frames(self, start: int) -> Iterator[tuple[int, np.ndarray]]:
         import cv2
@@ -86,6 +103,9 @@ class PatternSequence:
         from sssphase_core.store.imageio import _resized
 
         if rgb.shape[1::-1] != self.projector_size:
+            if not self.resize:  # (a stream whose frames change size part-way; the header's were checked)
+                raise InputError(f"--pattern {self.path}: a frame is {rgb.shape[1]}x{rgb.shape[0]} but the projector is "
+                                 f"{self.projector_size[0]}x{self.projector_size[1]} (pass --resize fit, fill or stretch)")
             rgb = np.asarray(_resized(Image.fromarray(rgb), self.projector_size, self.resize))
         return rgb.astype(np.float32) / 255.0
 
@@ -94,6 +114,8 @@ def is_sequence(path: Path | str) -> bool:
     """Whether ``path`` is a file to be read as a sequence: a video by its suffix, or an image holding more than
     one frame (an animated GIF or PNG, a multi-page TIFF); a still image is not."""
     path = Path(path)
+    if path.is_dir():
+        return bool(folder_frames(path))
     if not path.is_file():
         return False
     suffix = path.suffix.lower()
@@ -110,6 +132,22 @@ def is_sequence(path: Path | str) -> bool:
         return False  # read as a still, which says what is wrong with it
 
 
+def folder_frames(folder: Path) -> list[Path]:
+    """A folder's frame files (:data:`FOLDER_SUFFIXES`, not hidden) in their names' natural order (frame2 before
+    frame10)."""
+    import re
+
+    def natural(p: Path) -> list[Any]:
+        return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", p.name)]
+
+    try:
+        files = [p for p in folder.iterdir() if p.suffix.lower() in FOLDER_SUFFIXES and not p.name.startswith(".")
+                 and p.is_file()]
+    except OSError:
+        return []
+    return sorted(files, key=natural)
+
+
 def open_sequence(path: Path | str, projector_size: tuple[int, int], resize: str = "") -> PatternSequence:
     """The header of the sequence at ``path`` checked against a ``projector_size`` (W, H) projector: frames of the
     projector's size unless ``resize``, at most 64 MP with it (4x the projector without); 1 to :data:`MAX_FRAMES`
@@ -118,9 +156,11 @@ def open_sequence(path: Path | str, projector_size: tuple[int, int], resize: str
     from sssphase_core.store.imageio import RESIZE_MODES, _max_pattern_pixels
 
     path = Path(path)
-    check_input_file(path, "pattern")
     if resize and resize not in RESIZE_MODES:
         raise InputError(f"--resize must be one of {', '.join(RESIZE_MODES)}, got {resize!r}")
+    if path.is_dir():
+        return _open_folder(path, projector_size, resize)
+    check_input_file(path, "pattern")
     video = path.suffix.lower() in VIDEO_SUFFIXES
     count, fps, size = _video_header(path) if video else _image_header(path)
     wp, hp = projector_size
@@ -171,3 +211,19 @@ def _image_header(path: Path) -> tuple[int, float, tuple[int, int]]:
         raise InputError(f"cannot read pattern {path}: {exc}") from None
     fps = 1000.0 / duration if isinstance(duration, int | float) and duration > 0 else DEFAULT_FPS
     return count, fps, size
+
+
+def _open_folder(folder: Path, projector_size: tuple[int, int], resize: str) -> PatternSequence:
+    """A folder of pattern images as a sequence; its first frame read now, so that a frame size or format the others
+    share is refused before any work."""
+    from sssphase_core.store.imageio import read_pattern
+
+    files = folder_frames(folder)
+    if not files:
+        raise InputError(f"--pattern {folder}: a folder with no pattern images ({', '.join(FOLDER_SUFFIXES)})")
+    if len(files) > MAX_FRAMES:
+        raise InputError(f"--pattern {folder} holds {len(files):,} frames, more than the {MAX_FRAMES:,} relit at once: "
+                         "split it")
+    first = read_pattern(files[0], projector_size, resize=resize)
+    return PatternSequence(folder, len(files), DEFAULT_FPS, (first.shape[1], first.shape[0]), projector_size, resize,
+                           video=False, files=files)

@@ -152,8 +152,41 @@ def test_the_cli_relights_a_video_on_its_own_and_says_what_it_cannot_do(session,
     assert res.returncode == 0, res.stdout + res.stderr
     assert "clip.mp4: 3 frames of 256x192 at 12 frames/s; backend analytic" in res.stdout
     assert (tmp_path / "out" / "sand_rake_v0_clip_analytic.mp4").is_file()
-    for args, expected in ((["--pattern", "checkerboard"], "is a sequence of frames (a video or an animated image): relight it on its own"),
+    for args, expected in ((["--pattern", "checkerboard"], "is a sequence of frames (a video, an animated image or a folder of images): relight it on its own"),
                            (["--no-cache"], "leave out --no-cache")):
         res = run_sss(["relight", str(session), "--pattern", str(clip), *args, "--out", str(tmp_path / "o2")], timeout=120)
         assert res.returncode == 2 and expected in res.stderr and len(res.stderr.strip().splitlines()) == 1, res.stderr
         assert not (tmp_path / "o2" / "sand_rake_v0_clip_analytic").exists()
+
+
+def test_a_folder_of_pattern_images_is_relit_in_its_names_natural_order(session, tmp_path):
+    """frame2 before frame10, 16-bit PNG and EXR frames read as stills are, other files ignored; a frame of another
+    size is refused by name; a folder named like a named pattern does not hide it."""
+    import cv2
+
+    from sssphase_core.store.exr import write_exr
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    levels = {2: 0.25, 10: 1.0, 1: 0.0}
+    for i, level in levels.items():
+        cv2.imwrite(str(folder / f"frame{i}.png"), np.full((H, W), round(level * 65535), np.uint16))
+    write_exr(folder / "frame11.exr", np.full((H, W, 3), 0.5, np.float32))
+    (folder / "notes.txt").write_text("not a frame")
+    (folder / ".thumb.png").write_bytes(b"")
+    seq = open_sequence(folder, (W, H))
+    assert [p.name for p in seq.files] == ["frame1.png", "frame2.png", "frame10.png", "frame11.exr"]
+    np.testing.assert_allclose([f.mean() for _, f in seq.frames()], [0.0, 0.25, 1.0, 0.5], atol=1e-4)
+    res = relight_sequence(session, folder, backend="none", out=tmp_path / "out")
+    means = [cv2.imread(str(tmp_path / "out" / "sand_rake_v0_frames_none" / f"sand_rake_v0_frames-{i:06d}_none.png"),
+                        cv2.IMREAD_UNCHANGED).mean() for i in range(4)]
+    assert len(res.images) == 4 and means[0] < means[1] < means[3] < means[2]  # the light follows the frames' order
+    cv2.imwrite(str(folder / "frame12.png"), np.zeros((10, 10), np.uint8))
+    with pytest.raises(InputError, match=r"frame12.png is 10x10 but the projector is 256x192"):
+        list(open_sequence(folder, (W, H)).frames())
+    (tmp_path / "named").mkdir()
+    (tmp_path / "named" / "checkerboard").mkdir()
+    cv2.imwrite(str(tmp_path / "named" / "checkerboard" / "a.png"), np.zeros((H, W), np.uint8))
+    res = run_sss(["relight", str(session), "--pattern", "checkerboard", "--backend", "none", "--out",
+                   str(tmp_path / "o3")], cwd=tmp_path / "named", timeout=120)
+    assert res.returncode == 0 and (tmp_path / "o3" / "sand_rake_v0_checkerboard_none.png").is_file(), res.stdout + res.stderr
