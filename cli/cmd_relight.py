@@ -113,10 +113,10 @@ def relight_cmd(
     """Relight a captured object under new projector patterns (several patterns share one footprint pass), or under
     every frame of a video or an animated image (frames and an MP4 per view; an interrupted run resumes)."""
     from sssphase_core.errors import InputError
+    from sssphase_core.processing.patterns import REFERENCE_NAMES
     from sssphase_core.relight.choices import uses_decoder
     from sssphase_core.relight.runner import relight_backends, relight_session
     from sssphase_core.relight.sequence import relight_sequence
-    from sssphase_core.processing.patterns import REFERENCE_NAMES
     from sssphase_core.store.pattern_sequences import is_sequence
 
     names = relight_backends(backend, checkpoint)  # every name checked before any work
