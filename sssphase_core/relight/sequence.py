@@ -22,6 +22,8 @@ import numpy as np
 from sssphase_core.errors import InputError
 from sssphase_core.relight.choices import MODEL_FREE, uses_decoder, widen_for
 from sssphase_core.relight.runner import (
+    NAME_BYTES,
+    OUTPUT_SUFFIX_BYTES,
     Narrator,
     RelightResult,
     _check_relight_options,
@@ -53,6 +55,20 @@ class _Quiet(Narrator):
         if warning and text not in self.warned:
             self.warned.add(text)
             self.outer.say(text, warning)
+
+
+def check_sequence_name(sequence: PatternSequence, rv: RelightView) -> None:
+    """Refuse a sequence whose name would make its output files' names unusable: a control character, or longer
+    than a file name may be with the object, view, frame number and backend around it."""
+    name = sequence.name
+    if any(ord(ch) < 32 or ord(ch) == 127 for ch in name):
+        raise InputError(f"--pattern {str(sequence.path)!r}: its name holds a control character (a newline, a tab), which "
+                         "would reach the output files' names: rename it")
+    room = NAME_BYTES - len(f"{rv.object}_v{rv.view}_".encode()) - len("-000000".encode()) - OUTPUT_SUFFIX_BYTES
+    if len(name.encode()) > room:
+        raise InputError(f"--pattern {name[:40]}...: a sequence named with {len(name.encode())} bytes makes its output "
+                         f"file names longer than a file name may be ({NAME_BYTES} bytes): rename it to at most "
+                         f"{max(room, 1)} bytes")
 
 
 def frame_name(sequence: PatternSequence, index: int) -> str:
@@ -165,6 +181,7 @@ def relight_sequence(session: Path | str | Session, pattern: Path | str, *, back
     for v in choose_views(s, views, say):
         rv = load_view(s, v)
         sequence = open_sequence(pattern, rv.proj.projector_size, resize)
+        check_sequence_name(sequence, rv)
         if not result.patterns:
             claim_output(out, [s])
             say.say(f"{sequence.path.name}: {sequence.count:,} frames of {sequence.size[0]}x{sequence.size[1]} at "

@@ -190,3 +190,12 @@ def test_a_folder_of_pattern_images_is_relit_in_its_names_natural_order(session,
     res = run_sss(["relight", str(session), "--pattern", "checkerboard", "--backend", "none", "--out",
                    str(tmp_path / "o3")], cwd=tmp_path / "named", timeout=120)
     assert res.returncode == 0 and (tmp_path / "o3" / "sand_rake_v0_checkerboard_none.png").is_file(), res.stdout + res.stderr
+
+
+def test_a_sequence_whose_name_cannot_name_files_is_refused_before_any_output(session, tmp_path):
+    clip = _clip(tmp_path / "clip.mp4", frames=2)
+    for name, expected in (("bad\nname.mp4", "holds a control character"), ("x" * 240 + ".mp4", "rename it to at most")):
+        (tmp_path / name).write_bytes(clip.read_bytes())
+        with pytest.raises(InputError, match=expected):
+            relight_sequence(session, tmp_path / name, backend="none", out=tmp_path / "out")
+        assert not (tmp_path / "out").exists()
