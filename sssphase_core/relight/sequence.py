@@ -64,7 +64,7 @@ def check_sequence_name(sequence: PatternSequence, rv: RelightView) -> None:
     if any(ord(ch) < 32 or ord(ch) == 127 for ch in name):
         raise InputError(f"--pattern {str(sequence.path)!r}: its name holds a control character (a newline, a tab), which "
                          "would reach the output files' names: rename it")
-    room = NAME_BYTES - len(f"{rv.object}_v{rv.view}_".encode()) - len("-000000".encode()) - OUTPUT_SUFFIX_BYTES
+    room = NAME_BYTES - len(f"{rv.object}_v{rv.view}_".encode()) - len(b"-000000") - OUTPUT_SUFFIX_BYTES
     if len(name.encode()) > room:
         raise InputError(f"--pattern {name[:40]}...: a sequence named with {len(name.encode())} bytes makes its output "
                          f"file names longer than a file name may be ({NAME_BYTES} bytes): rename it to at most "
