@@ -282,10 +282,11 @@ def calibrate_turntable(
     from sssphase_core.store.session import Session
 
     corners = parse_board(board)
+    stereo = read_calibration(calibration)  # (a folder or a missing file: said of --calibration)
     target = out or calibration
     if target.suffix.lower() not in (".yml", ".yaml", ".xml", ".json"):
-        raise InputError(f"--out {target}: name a .yml, .yaml, .xml or .json file (OpenCV writes the format its suffix names)")
-    stereo = read_calibration(calibration)
+        raise InputError(f"{'--out' if out else '--calibration'} {target}: name a .yml, .yaml, .xml or .json file (OpenCV "
+                         "writes the format its suffix names)")
     errors = read_errors(calibration)
     s = Session.open(session)
     chosen = choose_views(s, views)
