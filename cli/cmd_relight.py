@@ -320,9 +320,10 @@ def bench_relight_cache(
     view: Annotated[int, typer.Option(min=0, help="The view to relight.")] = 0,
     first: Annotated[str, typer.Option(help="The first relight's pattern (computes the footprints).")] = "checkerboard",
     new: Annotated[str, typer.Option(help="The later pattern, from the cache and from scratch.")] = "stripes_y",
+    frames: Annotated[int, typer.Option(min=2, max=10_000, help="Frames of the clip relit as a sequence.")] = 100,
 ) -> None:
     """A new pattern relit from a view's cached eigen-footprints against the full relight: seconds, peak RSS,
-    agreement (three `sss relight` processes)."""
+    agreement (three `sss relight` processes); and a clip relit as a sequence, its cost per frame."""
     from sssphase_core.bench import relight_cache_bench
     from sssphase_core.errors import InputError
 
@@ -331,8 +332,9 @@ def bench_relight_cache(
                          "(analytic, torch, blend)")
     if first == new:  # the "new" pattern would be the one the first relight made: nothing new to time
         raise InputError(f"--new {new} is the --first pattern: give another pattern to relight from the cache")
-    with console.status("three relights (cold, cached, full)"):
-        relight_cache_bench.run(session, out, backend=backend, checkpoint=checkpoint, view=view, first=first, new=new)
+    with console.status("four relights (cold, cached, full, a sequence)"):
+        relight_cache_bench.run(session, out, backend=backend, checkpoint=checkpoint, view=view, first=first, new=new,
+                                frames=frames)
     console.print(out.with_suffix(".md").read_text())
 
 

@@ -306,9 +306,10 @@ def test_bench_relight_cache_runs_the_three_relights_as_processes(session, tmp_p
 
     from sssphase_core.bench import relight_cache_bench
 
-    res = relight_cache_bench.run(session, tmp_path / "rc.json", backend="analytic")
+    res = relight_cache_bench.run(session, tmp_path / "rc.json", backend="analytic", frames=8)
     steps = {r["step"]: r for r in res["rows"]}
-    assert list(steps) == ["cold", "cached", "full"]
+    assert list(steps) == ["cold", "cached", "full", "sequence"]
+    assert "wrote 8 frames to" in steps["sequence"]["output"] and np.isfinite(res["seconds_per_frame"])  # (8: too few to time)
     assert all(r["seconds"] > 0 and r["peak_rss_mib"] > 50 and r["returncode"] == 0 for r in steps.values())
     assert "--no-cache" in steps["full"]["command"] and "eigen-footprints" in steps["cached"]["output"]
     assert res["agreement"]["psnr_at_peak"] > 55 and res["speedup"] == steps["full"]["seconds"] / steps["cached"]["seconds"]
