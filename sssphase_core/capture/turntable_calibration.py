@@ -31,6 +31,8 @@ MIN_TURNTABLE_VIEWS = 3
 MAX_TURN_ERROR = 2.0
 #: The largest relative difference between the triangulated squares and ``--square`` before it is warned of.
 MAX_SCALE_ERROR = 0.02
+#: The least span of turntable angles (degrees) the board's views must cover.
+MIN_TURN_SPAN = 10.0
 
 
 @dataclass
@@ -88,21 +90,9 @@ def calibrate_turntable(session: Any, board: tuple[int, int], stereo: StereoCali
     if bad:
         raise DataError(f"{session.path}: the board's corners in view{'s' if len(bad) > 1 else ''} "
                         f"{', '.join(map(str, bad))} do not triangulate in front of the camera: is the calibration this rig's?")
+    axis, point, turns = fit_axis(points, angles, where=str(session.path))
     ref, others = found[0].view, [b.view for b in found[1:]]
-    motions = {v: _kabsch(points[ref], points[v]) for v in others}
     recorded = {v: _wrapped(angles[v] - angles[ref]) for v in others}
-    direction = sum((np.sign(recorded[v]) or 1.0) * _vee(motions[v][0]) for v in others)
-    if not np.linalg.norm(direction) > 1e-3:
-        raise DataError(f"{session.path}: the board does not turn between views {ref}, {', '.join(map(str, others))} "
-                        "(or turns both ways about as much): capture it at several turntable angles")
-    axis = direction / np.linalg.norm(direction)
-    turns = {v: float(np.degrees(np.arctan2(_vee(r) @ axis / 2, (np.trace(r) - 1) / 2))) for v, (r, _) in motions.items()}
-    # a point on the axis: (I - R_v) p = t_v for every view at once, then the one nearest the board's centre
-    lhs = np.concatenate([np.eye(3) - motions[v][0] for v in others])
-    rhs = np.concatenate([motions[v][1] for v in others])
-    point = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
-    centre = points[ref].mean(0)
-    point = point + axis * ((centre - point) @ axis)
     moved = {v: turned(points[ref], axis, point, recorded[v]) for v in others}
     rms = float(np.sqrt(np.mean([np.sum((moved[v] - points[v]) ** 2, axis=1).mean() for v in others])))
     side = None
@@ -111,6 +101,35 @@ def calibrate_turntable(session: Any, board: tuple[int, int], stereo: StereoCali
         side = float(np.median(np.concatenate([np.linalg.norm(np.diff(grid, axis=a), axis=-1).ravel() for a in (0, 1)])))
     calibration = replace(stereo, turntable_axis=axis, turntable_point=point)
     return TurntableResult(calibration, [ref, *others], skipped, {v: turns[v] - recorded[v] for v in others}, rms, side)
+
+
+def fit_axis(points: dict[int, np.ndarray], angles: dict[int, float], where: str = "the views"
+             ) -> tuple[np.ndarray, np.ndarray, dict[int, float]]:
+    """The axis a rigid object turned about between views: ``points`` (N, 3) of the same N features per view (the
+    first view the reference) and each view's recorded turntable ``angles`` (degrees) -> (unit direction (3,), the
+    point on the axis nearest the reference points' centre (3,), each other view's own turn from the reference about
+    it, degrees). The direction is oriented so that the recorded angles turn about it right-handed. Refused where the
+    views span less than :data:`MIN_TURN_SPAN` degrees (the axis of a small turn is lost in the points' noise)."""
+    views = list(points)
+    ref, others = views[0], views[1:]
+    recorded = {v: _wrapped(angles[v] - angles[ref]) for v in others}
+    span = max((abs(d) for d in recorded.values()), default=0.0)
+    if span < MIN_TURN_SPAN:
+        raise DataError(f"{where}: the views with the board span {span:.1f} degrees of the turntable: the axis of so small "
+                        f"a turn is lost in the corners' noise; capture the board over at least {MIN_TURN_SPAN:g} degrees")
+    motions = {v: _kabsch(points[ref], points[v]) for v in others}
+    direction = sum((np.sign(recorded[v]) or 1.0) * _vee(motions[v][0]) for v in others)
+    if not np.linalg.norm(direction) > 1e-3:
+        raise DataError(f"{where}: the board does not turn between views {', '.join(map(str, views))} (or turns both "
+                        "ways about as much): capture it at several turntable angles")
+    axis = direction / np.linalg.norm(direction)
+    turns = {v: float(np.degrees(np.arctan2(_vee(r) @ axis / 2, (np.trace(r) - 1) / 2))) for v, (r, _) in motions.items()}
+    # a point on the axis: (I - R_v) p = t_v for every view at once, then the one nearest the reference's centre
+    lhs = np.concatenate([np.eye(3) - motions[v][0] for v in others])
+    rhs = np.concatenate([motions[v][1] for v in others])
+    point = np.linalg.lstsq(lhs, rhs, rcond=None)[0]
+    centre = points[ref].mean(0)
+    return axis, point + axis * ((centre - point) @ axis), turns
 
 
 def turntable_report(result: TurntableResult, session: Any, square: float | None = None) -> list[tuple[str, str]]:
