@@ -612,10 +612,12 @@ def test_sss_views_depth_of_an_imported_session_and_its_live_decode_need_the_rig
     point lies 40 px right of the camera's, 60 mm to the camera's right, sees as a wall at fx * 60 / 40 mm (the
     edge pixels' projector points, 0.54 px off, within 1.4%)."""
     pytest.importorskip("starlette")
+    import base64
+
     from sssphase_core.capture.live import LiveDecode
     from sssphase_core.capture.plan import RigSpec
     from sssphase_core.processing.triangulation import StereoCalibration
-    from sssphase_view.app import ViewState, _decode_message, session_map_png
+    from sssphase_view.app import ViewState, _decode_message, session_map_png, session_points
     from sssphase_view.live import LiveRig
 
     state = ViewState(token="t", out=handmade.path.parent / "view_out", sessions=handmade.path.parent,
@@ -624,6 +626,8 @@ def test_sss_views_depth_of_an_imported_session_and_its_live_decode_need_the_rig
         session_map_png(state, "handmade", 0, "depth")
     with pytest.raises(InputError, match="unknown map 'points'; choose .*depth, surface"):
         session_map_png(state, "handmade", 0, "points")
+    with pytest.raises(InputError, match="^no camera-projector calibration for depth"):
+        session_points(state, "handmade", 0)
     fx = 80.0
     camera = np.array([[fx, 0, (W - 1) / 2], [0, fx, (H - 1) / 2], [0, 0, 1]])
     projector = camera + np.array([[0, 0, 40.0], [0, 0, 0], [0, 0, 0]])
@@ -638,6 +642,10 @@ def test_sss_views_depth_of_an_imported_session_and_its_live_decode_need_the_rig
     grey = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_GRAYSCALE)
     inner = grey[8:-8, 8:-8]
     assert unit.startswith("surface lit from above left") and inner.min() == inner.max() > 150  # a flat wall, lit evenly
+    cloud = session_points(state, "handmade", 0, max_points=500)
+    xyz = np.frombuffer(base64.b64decode(cloud["xyz"]), np.float32).reshape(-1, 3)
+    assert cloud["count"] == len(xyz) == 500 and cloud["views"] == [0] and "view 0; calibration rig.yml" in cloud["which"]
+    assert np.median(xyz[:, 2]) == pytest.approx(fx * 60 / 40, rel=0.01)  # the wall, at the depth above
 
     mask = handmade.load(0, "corr/mask").astype(bool)
     xp, yp = (np.where(mask, handmade.load(0, f"corr/{k}"), np.nan).astype(np.float32) for k in ("xp", "yp"))

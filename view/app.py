@@ -313,6 +313,51 @@ def session_map_png(state: ViewState, name: str, view: int, kind: str) -> tuple[
     return (*colour_map(np.asarray(s.load(view, f"corr/{kind}"), np.float32), mask), MAP_UNITS[kind])
 
 
+#: The most points the page's 3D view is sent (evenly subsampled beyond).
+MAX_CLOUD_POINTS = 60_000
+
+
+def session_points(state: ViewState, name: str, view: int, max_points: int = MAX_CLOUD_POINTS) -> dict[str, Any]:
+    """A session view's decoded points for the page's 3D view: triangulated with :func:`stereo_for`'s calibration,
+    coloured by the white capture; where the calibration has a turntable axis and the session several views with
+    recorded angles, every view's points turned into the frame of the turntable at 0 degrees. -> {"count", "views",
+    "unit", "which", "xyz" (base64 float32 (N, 3)), "rgb" (base64 uint8 (N, 3))}."""
+    from sssphase_core.processing.colour import display_scale, srgb
+    from sssphase_core.processing.triangulation import triangulate, turned
+    from sssphase_core.relight.merged_points import recorded_angles
+
+    s = _session(state, name)
+    if view not in s.views():
+        raise InputError(f"{s.name} has no complete view {view} (has {s.views()})")
+    stereo, which = stereo_for(state, s.manifest.get("rig", {}))
+    angles = recorded_angles(s, s.views()) if stereo.turntable_axis is not None and len(s.views()) > 1 else None
+    chosen = s.views() if angles is not None else [view]
+    xyz, rgb = [], []
+    for v in chosen:
+        mask = s.load(v, "corr/mask").astype(bool)
+        xp, yp = (np.asarray(s.load(v, f"corr/{k}"), np.float64) for k in ("xp", "yp"))
+        points = triangulate(stereo, xp, yp, mask).points.astype(np.float64)
+        if angles is not None:
+            points = turned(points, stereo.turntable_axis, stereo.turntable_point, -angles[v])  # type: ignore[arg-type]
+        white = np.asarray(s.load(v, "white"), np.float32)
+        keep = np.isfinite(points).all(-1)
+        xyz.append(points[keep])
+        rgb.append((srgb(np.clip(white / display_scale(white, mask), 0, 1))[keep] * 255 + 0.5).astype(np.uint8))
+    points, colours = np.concatenate(xyz).astype(np.float32), np.concatenate(rgb)
+    if len(points) > max_points:
+        pick = np.linspace(0, len(points) - 1, max_points).astype(int)
+        points, colours = points[pick], colours[pick]
+    merged = f"views {', '.join(map(str, chosen))} merged by the turntable's axis" if angles is not None else f"view {view}"
+    return {"count": len(points), "views": chosen, "unit": stereo.unit or "calibration units",
+            "which": f"{merged}; {which}; the decoded points (sss geometry takes the scattering's shift out)",
+            "xyz": base64.b64encode(points.tobytes()).decode(), "rgb": base64.b64encode(colours.tobytes()).decode()}
+
+
+async def session_cloud(request: Request, state: ViewState) -> Response:
+    """A view's (or a turntable session's merged) 3D points for the page's 3D view."""
+    return _json(await asyncio.to_thread(session_points, state, request.path_params["name"], view_number(request)))
+
+
 async def session_map(request: Request, state: ViewState) -> Response:
     """A view's decoded map as a PNG; its colour bar's range and unit in headers."""
     png, lo, hi, unit = await asyncio.to_thread(session_map_png, state, request.path_params["name"], view_number(request),
@@ -662,6 +707,7 @@ def build_app(state: ViewState, *, hosts: list[str] | None = None) -> Starlette:
         Route("/api/state", guarded(api_state)),
         Route("/api/sessions/{name}/{view}/map/{kind}.png", guarded(session_map)),
         Route("/api/sessions/{name}/{view}/pixel", guarded(session_pixel)),
+        Route("/api/sessions/{name}/{view}/points", guarded(session_cloud)),
         Route("/api/live/pixel", guarded(live_pixel)),
         Route("/api/upload", guarded(upload), methods=["POST"]),
         Route("/api/relight", guarded(relight), methods=["POST"]),

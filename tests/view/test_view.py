@@ -325,8 +325,22 @@ def test_live_decode_shows_where_the_object_decodes(page):
 
 def test_a_sessions_maps_have_their_colour_bar_and_unit(page):
     page.evaluate("document.querySelector('nav button[data-tab=sessions]').click()")
+    # the 3D view: the view's points drawn on the canvas, turned by a drag
+    _set(page, "map", "points")
+    cloud = page.wait_for("state.cloud", 30)
+    assert cloud["count"] > 1000 and cloud["views"] == [0], cloud
+    lit = """(() => { const c = document.getElementById('map-canvas'), d = c.getContext('2d').getImageData(0, 0, c.width,
+        c.height).data; let n = 0, h = 0; for (let i = 0; i < d.length; i += 4) if (d[i] + d[i + 1] + d[i + 2] > 30) { n++;
+        h = (h * 31 + i) % 1000003; } return [n, h]; })()"""
+    before = page.evaluate(lit)
+    assert before[0] > 1000 and page.evaluate("document.getElementById('map-image').hidden")
+    page.evaluate("""(() => { const c = document.getElementById('map-canvas'), r = c.getBoundingClientRect();
+        const ev = (t, x, y) => c.dispatchEvent(new PointerEvent(t, {clientX: r.left + x, clientY: r.top + y, pointerId: 1}));
+        ev('pointerdown', 300, 200); for (let i = 1; i <= 5; i++) ev('pointermove', 300 + 20 * i, 200); ev('pointerup', 400, 200); })()""")
+    assert page.evaluate("cloud.draws") >= 6 and page.evaluate(lit) != before  # turned: other pixels lit
     _set(page, "map", "modulation")
     page.wait_for("document.getElementById('map-unit').textContent.includes('fringe amplitude')", 30)
+    assert page.evaluate("document.getElementById('map-canvas').hidden")
     page.wait_for("document.getElementById('map-image').naturalWidth === 256", 30)
     lo, hi = (float(v) for v in page.evaluate("document.getElementById('map-range').textContent").split(" … "))
     assert 0 <= lo < hi

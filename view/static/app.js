@@ -153,11 +153,86 @@ function views(sessionSelect, viewSelect) {
   fill(viewSelect, session ? session.views.map((v) => v.view) : []);
 }
 
+// --- 3D points: the view's (or a turntable session's merged) decoded points, turned by dragging -------------------
+const cloud = { xyz: null, rgb: null, count: 0, yaw: 0, pitch: 0, zoom: 1, centre: [0, 0, 0], radius: 1, draws: 0 };
+
+function decoded(b64, Type) {
+  const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+  return new Type(bytes.buffer);
+}
+
+function loadCloud(answer) {
+  cloud.xyz = decoded(answer.xyz, Float32Array);
+  cloud.rgb = decoded(answer.rgb, Uint8Array);
+  cloud.count = answer.count;
+  const lo = [Infinity, Infinity, Infinity], hi = [-Infinity, -Infinity, -Infinity];
+  for (let i = 0; i < cloud.count; i++) {
+    for (let k = 0; k < 3; k++) { const v = cloud.xyz[3 * i + k]; if (v < lo[k]) lo[k] = v; if (v > hi[k]) hi[k] = v; }
+  }
+  cloud.centre = lo.map((l, k) => (l + hi[k]) / 2);
+  cloud.radius = Math.max(1e-9, Math.hypot(hi[0] - lo[0], hi[1] - lo[1], hi[2] - lo[2]) / 2);
+  cloud.yaw = cloud.pitch = 0;
+  cloud.zoom = 1;
+}
+
+function drawCloud() {
+  const canvas = $("map-canvas"), g = canvas.getContext("2d"), W = canvas.width, H = canvas.height;
+  const image = g.createImageData(W, H), depth = new Float32Array(W * H).fill(Infinity);
+  for (let i = 3; i < image.data.length; i += 4) image.data[i] = 255;
+  const [cx, cy, cz] = cloud.centre, s = cloud.zoom * 0.45 * Math.min(W, H) / cloud.radius;
+  const cyaw = Math.cos(cloud.yaw), syaw = Math.sin(cloud.yaw), cpit = Math.cos(cloud.pitch), spit = Math.sin(cloud.pitch);
+  for (let i = 0; i < cloud.count; i++) {
+    const x = cloud.xyz[3 * i] - cx, y = cloud.xyz[3 * i + 1] - cy, z = cloud.xyz[3 * i + 2] - cz;
+    const x1 = cyaw * x + syaw * z, z1 = -syaw * x + cyaw * z;  // turned about the vertical, then tilted
+    const y2 = cpit * y - spit * z1, z2 = spit * y + cpit * z1;
+    const u = Math.round(W / 2 + s * x1), v = Math.round(H / 2 + s * y2);
+    for (let dv = 0; dv < 2; dv++) for (let du = 0; du < 2; du++) {  // 2 x 2 px points, nearest in front
+      const uu = u + du, vv = v + dv;
+      if (uu < 0 || vv < 0 || uu >= W || vv >= H || z2 >= depth[vv * W + uu]) continue;
+      depth[vv * W + uu] = z2;
+      const o = 4 * (vv * W + uu), near = 1 - 0.5 * Math.min(1, Math.max(0, (z2 + cloud.radius) / (2 * cloud.radius)));
+      image.data[o] = near * cloud.rgb[3 * i]; image.data[o + 1] = near * cloud.rgb[3 * i + 1];
+      image.data[o + 2] = near * cloud.rgb[3 * i + 2];  // the far side darker: depth at a glance
+    }
+  }
+  g.putImageData(image, 0, 0);
+  cloud.draws += 1;
+}
+
+{
+  const canvas = $("map-canvas");
+  let last = null;
+  canvas.onpointerdown = (e) => { last = [e.clientX, e.clientY]; canvas.setPointerCapture(e.pointerId); };
+  canvas.onpointerup = () => { last = null; };
+  canvas.onpointermove = (e) => {
+    if (!last || !cloud.count) return;
+    cloud.yaw += 0.01 * (e.clientX - last[0]);
+    cloud.pitch = Math.max(-1.5, Math.min(1.5, cloud.pitch - 0.01 * (e.clientY - last[1])));
+    last = [e.clientX, e.clientY];
+    drawCloud();
+  };
+  canvas.onwheel = (e) => { e.preventDefault(); cloud.zoom *= Math.exp(-0.001 * e.deltaY); if (cloud.count) drawCloud(); };
+}
+
+async function showCloud(name, view, current) {
+  const answer = await (await api(`/api/sessions/${encodeURIComponent(name)}/${view}/points`)).json();
+  if (!current()) return;
+  loadCloud(answer);
+  drawCloud();
+  $("map-range").textContent = `${answer.count} points, ${answer.unit}`;
+  $("map-unit").textContent = `(${answer.which}; drag to turn, wheel to zoom)`;
+  state.cloud = { count: answer.count, views: answer.views };
+}
+
 async function showMap() {
   const name = $("session").value, view = $("session-view").value, kind = $("map").value;
   if (!name) return;
   const current = ticket("map");
+  $("map-image").hidden = kind === "points";
+  $("map-canvas").hidden = kind !== "points";
+  $("map-bar").hidden = kind === "points";
   try {
+    if (kind === "points") { await showCloud(name, view, current); if (current()) say(""); return; }
     const response = await api(`/api/sessions/${encodeURIComponent(name)}/${view}/map/${kind}.png`);
     const blob = await response.blob();
     if (!current()) return;
