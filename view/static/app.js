@@ -231,6 +231,7 @@ async function showMap() {
   $("map-image").hidden = kind === "points";
   $("map-canvas").hidden = kind !== "points";
   $("map-bar").hidden = kind === "points";
+  $("map-hint").hidden = kind === "points";
   try {
     if (kind === "points") { await showCloud(name, view, current); if (current()) say(""); return; }
     const response = await api(`/api/sessions/${encodeURIComponent(name)}/${view}/map/${kind}.png`);
