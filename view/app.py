@@ -323,7 +323,7 @@ def session_points(state: ViewState, name: str, view: int, max_points: int = MAX
     recorded angles, every view's points turned into the frame of the turntable at 0 degrees. -> {"count", "views",
     "unit", "which", "xyz" (base64 float32 (N, 3)), "rgb" (base64 uint8 (N, 3))}."""
     from sssphase_core.processing.colour import display_scale, srgb
-    from sssphase_core.processing.triangulation import triangulate, turned
+    from sssphase_core.processing.triangulation import triangulate_points, turned
     from sssphase_core.relight.merged_points import recorded_angles
 
     s = _session(state, name)
@@ -333,20 +333,21 @@ def session_points(state: ViewState, name: str, view: int, max_points: int = MAX
     angles = recorded_angles(s, s.views()) if stereo.turntable_axis is not None and len(s.views()) > 1 else None
     chosen = s.views() if angles is not None else [view]
     xyz, rgb = [], []
-    for v in chosen:
-        mask = s.load(v, "corr/mask").astype(bool)
+    for v in chosen:  # each view's share of the points picked evenly first, then triangulated (1080p: 2 M pixels a view)
         xp, yp = (np.asarray(s.load(v, f"corr/{k}"), np.float64) for k in ("xp", "yp"))
-        points = triangulate(stereo, xp, yp, mask).points.astype(np.float64)
+        mask = s.load(v, "corr/mask").astype(bool) & np.isfinite(xp) & np.isfinite(yp)
+        rows, cols = np.nonzero(mask)
+        pick = np.linspace(0, len(rows) - 1, min(len(rows), max_points // len(chosen))).astype(int)
+        rows, cols = rows[pick], cols[pick]
+        points = triangulate_points(stereo, np.stack([cols, rows], -1), np.stack([xp[rows, cols], yp[rows, cols]], -1))
+        with np.errstate(invalid="ignore"):
+            keep = np.isfinite(points).all(-1) & (points[:, 2] > 0)  # (rays that meet behind the camera: none)
         if angles is not None:
             points = turned(points, stereo.turntable_axis, stereo.turntable_point, -angles[v])  # type: ignore[arg-type]
         white = np.asarray(s.load(v, "white"), np.float32)
-        keep = np.isfinite(points).all(-1)
         xyz.append(points[keep])
-        rgb.append((srgb(np.clip(white / display_scale(white, mask), 0, 1))[keep] * 255 + 0.5).astype(np.uint8))
+        rgb.append((srgb(np.clip(white[rows, cols] / display_scale(white, mask), 0, 1))[keep] * 255 + 0.5).astype(np.uint8))
     points, colours = np.concatenate(xyz).astype(np.float32), np.concatenate(rgb)
-    if len(points) > max_points:
-        pick = np.linspace(0, len(points) - 1, max_points).astype(int)
-        points, colours = points[pick], colours[pick]
     merged = f"views {', '.join(map(str, chosen))} merged by the turntable's axis" if angles is not None else f"view {view}"
     return {"count": len(points), "views": chosen, "unit": stereo.unit or "calibration units",
             "which": f"{merged}; {which}; the decoded points (sss geometry takes the scattering's shift out)",
