@@ -66,13 +66,25 @@ def sweep_clip(path: Path, size: tuple[int, int], frames: int, fps: float = 25.0
 def run(session: Path, out: Path, *, backend: str = "analytic", checkpoint: Path | None = None, view: int = 0,
         first: str = "checkerboard", new: str = "stripes_y", work: Path | None = None, frames: int = 100) -> dict[str, Any]:
     """The four relights of ``session``'s ``view`` (patterns ``first``, then ``new``, then a clip of ``frames``); writes
-    ``out`` (JSON) and its Markdown twin. ``work``: where the relit images and caches go (default: next to ``out``)."""
+    ``out`` (JSON) and its Markdown twin. ``work``: where the relit images and caches go (default: a temporary folder,
+    removed afterwards: a 100-frame clip's PNGs are tens of MB beside a benchmark's report)."""
+    import tempfile
+
+    if work is not None:
+        return _run(session, out, backend=backend, checkpoint=checkpoint, view=view, first=first, new=new,
+                    work=Path(work), frames=frames)
+    with tempfile.TemporaryDirectory(prefix="sss-bench-relight-cache-") as scratch:
+        return _run(session, out, backend=backend, checkpoint=checkpoint, view=view, first=first, new=new,
+                    work=Path(scratch), frames=frames)
+
+
+def _run(session: Path, out: Path, *, backend: str, checkpoint: Path | None, view: int, first: str, new: str,
+         work: Path, frames: int) -> dict[str, Any]:
     from sssphase_core.errors import InputError
     from sssphase_core.store.session import Session
 
     s = Session.open(session)
     obj = s.name
-    work = Path(work) if work is not None else Path(out).with_suffix("") / "work"
     cached_dir, full_dir = work / "cached", work / "full"
     common = ["--backend", backend, "--views", str(view), "--format", "exr"] + (
         ["--checkpoint", str(checkpoint)] if checkpoint is not None else [])
