@@ -143,6 +143,9 @@ def geometry_cmd(
                                                      "projector-camera calibration writes them, or K1, D1, K2, D2, R, "
                                                      "T), to triangulate 3D points (default: a simulated session's "
                                                      "own rig).")] = None,
+    crop_radius: Annotated[float | None, typer.Option(help="Merge only the points within this distance of the "
+                                                      "turntable's axis (the calibration's unit): a wall or a rig behind "
+                                                      "the object is left out of points_merged.ply.")] = None,
 ) -> None:
     """Projector points for 3D: the decoded correspondences minus the shift that subsurface scattering
     gives them (light re-emerges displaced), predicted from the backend's footprints, and the 3D points.
@@ -158,7 +161,7 @@ def geometry_cmd(
     from sssphase_core.relight.runner import geometry_session
 
     geometry_session(session, backend=backend, checkpoint=checkpoint, out=out, views=views, device=device,
-                     calibration=calibration, narrator=_Narrator())
+                     calibration=calibration, crop_radius=crop_radius, narrator=_Narrator())
 
 
 def eval_relight(

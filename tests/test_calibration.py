@@ -261,8 +261,8 @@ def test_a_board_that_does_not_turn_about_one_axis_is_warned_of_and_too_few_view
 
 def test_geometry_merges_a_turntable_sessions_views_into_one_cloud(sim_daemon, exact_stereo_file, tmp_path):
     """Two views of the soap, 180 degrees apart, turned back by the simulated turntable's axis: one cloud whose views
-    lie on the exact surface of the turntable at 0 degrees; a calibration without an axis keeps the views apart and
-    says how to get one."""
+    lie on the exact surface of the turntable at 0 degrees, cropped to a cylinder about the axis with --crop-radius;
+    a calibration without an axis keeps the views apart and says how to get one."""
     import trimesh
 
     from sssphase_core.capture import CaptureRequest, run_capture
@@ -282,6 +282,11 @@ def test_geometry_merges_a_turntable_sessions_views_into_one_cloud(sim_daemon, e
     assert np.median(np.asarray(cloud.vertices[: len(singles[0].vertices)]), 0) == pytest.approx(
         np.median(singles[0].vertices, 0), abs=1e-3)  # view 0 is where it was
     assert np.linalg.norm(np.median(cloud.vertices, 0)[[0, 2]] - centre[[0, 2]]) < 15  # around the axis
+    res = run_sss(["geometry", str(s.path), "--backend", "exact", "--crop-radius", "30", "--out", str(tmp_path / "c")],
+                  timeout=180)
+    assert res.returncode == 0 and "(mm, within 30 of its axis)" in res.stdout, res.stdout + res.stderr
+    cropped = np.asarray(trimesh.load(tmp_path / "c" / "soap" / "points_merged.ply").vertices)
+    assert 0 < len(cropped) < len(cloud.vertices) and np.hypot(cropped[:, 0], cropped[:, 2] - 400).max() <= 30 + 1e-3
     res = run_sss(["geometry", str(s.path), "--backend", "exact", "--calibration", str(exact_stereo_file), "--out",
                    str(tmp_path / "h")], timeout=180)
     assert res.returncode == 0 and "the calibration has no turntable axis (`sss calibrate turntable` adds one" in res.stdout

@@ -32,6 +32,8 @@ class MergedCloud:
     #: the median distance from each view's points to the nearest of the view before it (by angle) where the two
     #: overlap (within :data:`OVERLAP_SPACINGS` point spacings): how well the views agree, without a truth
     agreement: float = float("nan")
+    #: the merged points' largest distance from the axis, where cropped
+    crop_radius: float | None = None
 
 
 def recorded_angles(s: Session, views: list[int]) -> dict[int, float] | None:
@@ -47,11 +49,12 @@ def recorded_angles(s: Session, views: list[int]) -> dict[int, float] | None:
 
 
 def merge_views(s: Session, clouds: dict[int, tuple[np.ndarray, np.ndarray]], stereo: StereoCalibration, out: Path,
-                exact_rig: StereoCalibration | None = None) -> MergedCloud | None:
+                exact_rig: StereoCalibration | None = None, crop_radius: float | None = None) -> MergedCloud | None:
     """``clouds``: per view its points (H, W, 3, camera frame) and white capture (H, W, 3); turned into the frame of
     the turntable at 0 degrees with ``stereo``'s axis and written as ``out/<object>/points_merged.ply``. None where
     the calibration has no turntable or a view recorded no angle. ``exact_rig`` (simulated sessions): each view's
-    exact surface turned the same way by the rig's own axis, to score the merge against (evaluation only)."""
+    exact surface turned the same way by the rig's own axis, to score the merge against (evaluation only).
+    ``crop_radius``: only the points within that distance of the axis (a wall or the rig behind the object left out)."""
     from sssphase_core.store.pointcloud import write_point_cloud
 
     angles = recorded_angles(s, list(clouds))
@@ -59,10 +62,17 @@ def merge_views(s: Session, clouds: dict[int, tuple[np.ndarray, np.ndarray]], st
         return None
     axis, point = stereo.turntable_axis, stereo.turntable_point
     merged = {v: turned(points, axis, point, -angles[v]) for v, (points, _) in clouds.items()}
+    if crop_radius is not None:  # (the distance to the axis is the same before and after the turn)
+        for v, p in merged.items():
+            offset = p - point
+            with np.errstate(invalid="ignore"):
+                far = np.linalg.norm(offset - (offset @ axis)[..., None] * axis, axis=-1) > crop_radius
+            merged[v] = np.where(far[..., None], np.nan, p)
     xyz = np.concatenate([p.reshape(-1, 3) for p in merged.values()])
     colour = np.concatenate([white.reshape(-1, 3) for _, white in clouds.values()])
     path = out / s.name / "points_merged.ply"
-    done = MergedCloud(path, list(clouds), write_point_cloud(path, xyz, colour), agreement=_agreement(merged, angles))
+    done = MergedCloud(path, list(clouds), write_point_cloud(path, xyz, colour), agreement=_agreement(merged, angles),
+                       crop_radius=crop_radius)
     if exact_rig is not None and exact_rig.turntable_axis is not None:
         done.exact = {v: _exact_distance(s, v, merged[v], exact_rig, -angles[v]) for v in clouds}
     return done
@@ -102,7 +112,7 @@ def _exact_distance(s: Session, view: int, merged: np.ndarray, exact_rig: Stereo
 
 def merged_line(done: MergedCloud, unit: str) -> str:
     line = (f"wrote {done.path}: {done.n_points} points of views {', '.join(map(str, done.views))} turned into the frame "
-            f"of the turntable at 0 degrees ({unit})")
+            f"of the turntable at 0 degrees ({unit}{f', within {done.crop_radius:g} of its axis' if done.crop_radius else ''})")
     if np.isfinite(done.agreement):
         line += f"; neighbouring views agree to {done.agreement:.3f} (median distance where they overlap)"
     if done.exact:

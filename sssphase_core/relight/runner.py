@@ -531,13 +531,16 @@ def _check_geometry_backend(backend: str) -> None:
 
 def geometry_session(session: Path | str | Session, *, backend: str = "analytic", checkpoint: Path | str | None = None,
                      out: Path | str = Path("geometry"), views: str | Sequence[int] | None = "", device: str = "cpu",
-                     calibration: Path | str | None = None, narrator: Narrator | None = None) -> list[GeometryView]:
+                     calibration: Path | str | None = None, crop_radius: float | None = None,
+                     narrator: Narrator | None = None) -> list[GeometryView]:
     """Projector points for 3D of a session's views: the decoded correspondences minus the scattering shift
     predicted from ``backend``'s footprints, written as ``out/<object>/view_NNN/correspondence_for_geometry.npz``
     (xp, yp, xp_decoded, yp_decoded, shift_x, shift_y, mask); scored against the exact points on simulated
     sessions. With a stereo ``calibration`` (an OpenCV file, :func:`~sssphase_core.processing.triangulation.read_calibration`;
     a simulated session's own rig by default) both are triangulated: ``points`` and ``points_decoded`` (H, W, 3) in the
-    npz, and the corrected ones as ``points.ply`` beside it, coloured by the white capture."""
+    npz, and the corrected ones as ``points.ply`` beside it, coloured by the white capture. With a turntable axis in the
+    calibration, the views together as ``out/<object>/points_merged.ply`` (only the points within ``crop_radius`` of the
+    axis, where given)."""
     from sssphase_core.compute import check_device
     from sssphase_core.learning.runlog import resolve_checkpoint
     from sssphase_core.store.session import check_output_folder, claim_output, refuse_inside_session
@@ -545,6 +548,8 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
     out, say = Path(out), narrator or Narrator()
     check_output_folder(out)
     check_device(device)  # an unknown device is refused here too, not ignored by the model-free backends
+    if crop_radius is not None and not (np.isfinite(crop_radius) and crop_radius > 0):
+        raise InputError(f"--crop-radius must be a positive distance from the turntable's axis, got {crop_radius!r}")
     _check_geometry_backend(backend)
     s = session if isinstance(session, Session) else Session.open(session)
     refuse_inside_session(out / s.name, what=f"--out {out}: its folder")  # written as OUT/<object>/view_NNN: OUT must not hold the session itself
@@ -585,7 +590,7 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
             say.say(note)
         else:
             clouds = {d.view: (np.load(d.path)["points"], np.asarray(s.load(d.view, "white"), np.float32)) for d in done}
-            merged = merge_views(s, clouds, stereo, out, exact_rig)
+            merged = merge_views(s, clouds, stereo, out, exact_rig, crop_radius=crop_radius)
             if merged is not None:
                 say.say(merged_line(merged, stereo.unit or "the calibration's unit"))
     return done
