@@ -282,12 +282,19 @@ def test_geometry_merges_a_turntable_sessions_views_into_one_cloud(sim_daemon, e
     assert np.median(np.asarray(cloud.vertices[: len(singles[0].vertices)]), 0) == pytest.approx(
         np.median(singles[0].vertices, 0), abs=1e-3)  # view 0 is where it was
     assert np.linalg.norm(np.median(cloud.vertices, 0)[[0, 2]] - centre[[0, 2]]) < 15  # around the axis
-    res = run_sss(["geometry", str(s.path), "--backend", "exact", "--crop-radius", "30", "--out", str(tmp_path / "c")],
-                  timeout=180)
-    assert res.returncode == 0 and "(mm, within 30 of its axis)" in res.stdout, res.stdout + res.stderr
-    cropped = np.asarray(trimesh.load(tmp_path / "c" / "soap" / "points_merged.ply").vertices)
-    assert 0 < len(cropped) < len(cloud.vertices) and np.hypot(cropped[:, 0], cropped[:, 2] - 400).max() <= 30 + 1e-3
-    res = run_sss(["geometry", str(s.path), "--backend", "exact", "--calibration", str(exact_stereo_file), "--out",
-                   str(tmp_path / "h")], timeout=180)
-    assert res.returncode == 0 and "the calibration has no turntable axis (`sss calibrate turntable` adds one" in res.stdout
-    assert not (tmp_path / "h" / "soap" / "points_merged.ply").exists()
+    # cropped to 30 mm about the axis, and a calibration without an axis: the merge's own functions, in process
+    from sssphase_core.processing.triangulation import read_calibration
+    from sssphase_core.relight.merged_points import merge_note, merge_views, merged_line, recorded_angles
+    from sssphase_core.sim import session_rig_calibration
+
+    exact = session_rig_calibration(s.manifest["rig"])
+    clouds = {v: (np.load(tmp_path / "g" / "soap" / f"view_00{v}" / "correspondence_for_geometry.npz")["points"],
+                  np.asarray(s.load(v, "white"))) for v in (0, 1)}
+    cropped = merge_views(s, clouds, exact, tmp_path / "c", crop_radius=30.0)
+    assert "(mm, within 30 of its axis)" in merged_line(cropped, "mm")
+    kept = np.asarray(trimesh.load(cropped.path).vertices)
+    assert 0 < len(kept) == cropped.n_points < len(cloud.vertices) and np.hypot(kept[:, 0], kept[:, 2] - 400).max() <= 30 + 1e-3
+    no_axis = read_calibration(exact_stereo_file)
+    assert "the calibration has no turntable axis (`sss calibrate turntable` adds one" in merge_note(
+        no_axis, [0, 1], recorded_angles(s, [0, 1]))
+    assert merge_views(s, clouds, no_axis, tmp_path / "h") is None and not (tmp_path / "h").exists()

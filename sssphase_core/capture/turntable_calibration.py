@@ -81,7 +81,8 @@ def calibrate_turntable(session: Any, board: tuple[int, int], stereo: StereoCali
     records = session.manifest.get("views", {})
     angles = {}
     for b in found:
-        angle = records.get(str(b.view), {}).get("angle")
+        record = records.get(str(b.view)) if isinstance(records, dict) else None
+        angle = record.get("angle") if isinstance(record, dict) else None
         if isinstance(angle, bool) or not isinstance(angle, int | float) or not np.isfinite(angle):
             raise DataError(f"{session.path}: view {b.view} recorded no turntable angle (captured without a turntable?)")
         angles[b.view] = float(angle)
