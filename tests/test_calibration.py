@@ -298,3 +298,29 @@ def test_geometry_merges_a_turntable_sessions_views_into_one_cloud(sim_daemon, e
     assert "the calibration has no turntable axis (`sss calibrate turntable` adds one" in merge_note(
         no_axis, [0, 1], recorded_angles(s, [0, 1]))
     assert merge_views(s, clouds, no_axis, tmp_path / "h") is None and not (tmp_path / "h").exists()
+
+
+def test_another_tools_calibration_file_is_not_rewritten_in_place(turntable_session, tmp_path):
+    """A file with entries `sss` does not write (another tool's K1/K2 names, an image size) would lose them if the
+    axis were added in place: refused in one line, the file as it was; with --out the axis goes to the new file."""
+    import cv2
+
+    from sssphase_core.processing.triangulation import read_calibration
+    from sssphase_core.sim import rig_preset, stereo_calibration
+
+    c = stereo_calibration(rig_preset("cpu"))
+    theirs = tmp_path / "theirs.yml"
+    fs = cv2.FileStorage(str(theirs), cv2.FILE_STORAGE_WRITE)
+    for name, value in (("K1", c.camera_matrix), ("K2", c.projector_matrix), ("R", c.rotation), ("T", c.translation)):
+        fs.write(name, value)
+    fs.write("image_width", 256)
+    fs.release()
+    before = theirs.read_bytes()
+    res = run_sss(["calibrate", "turntable", str(turntable_session.path), "--board", "6x4", "--calibration", str(theirs)],
+                  timeout=120)
+    assert res.returncode == 2 and "holds entries sss does not write (K1, K2, image_width): give --out" in res.stderr
+    assert len(res.stderr.strip().splitlines()) == 1 and theirs.read_bytes() == before
+    res = run_sss(["calibrate", "turntable", str(turntable_session.path), "--board", "6x4", "--calibration", str(theirs),
+                   "--out", str(tmp_path / "ours.yml")], timeout=120)
+    assert res.returncode == 0 and read_calibration(tmp_path / "ours.yml").turntable_axis is not None, res.stdout + res.stderr
+    assert theirs.read_bytes() == before

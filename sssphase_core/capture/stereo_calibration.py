@@ -281,6 +281,21 @@ def read_errors(path: Path | str) -> dict[str, float]:
         storage.release()
 
 
+#: The entries :func:`write_calibration` writes: a file holding others (another tool's names, image sizes, notes) is
+#: not rewritten in place.
+WRITTEN_KEYS = frozenset({"cam_K", "cam_kc", "proj_K", "proj_kc", "R", "T", "unit", "cam_error", "proj_error",
+                          "stereo_error", "turntable_axis", "turntable_point"})
+
+
+def foreign_keys(path: Path | str) -> list[str]:
+    """The top-level entries of a calibration file that :func:`write_calibration` would not write back."""
+    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        return sorted(set(storage.root().keys()) - WRITTEN_KEYS)
+    finally:
+        storage.release()
+
+
 def stereo_errors(result: StereoResult) -> dict[str, float]:
     """A stereo calibration's RMS errors by the names calibration files give them."""
     return {"cam_error": result.camera_rms, "proj_error": result.projector_rms, "stereo_error": result.stereo_rms}
