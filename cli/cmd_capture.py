@@ -226,7 +226,6 @@ def calibrate_stereo(
         against_simulated_rig,
         calibrate_stereo,
         parse_board,
-        stereo_errors,
         write_calibration,
     )
     from sssphase_core.errors import InputError
@@ -255,7 +254,7 @@ def calibrate_stereo(
         console.print(line)
     if shaky := result.shaky():
         console.print(f"[yellow]warning[/]: the poses leave the calibration uncertain ({'; '.join(shaky)}): {MORE_POSES}")
-    console.print(f"wrote {write_calibration(out, result.calibration, stereo_errors(result))}: triangulate with "
+    console.print(f"wrote {write_calibration(out, result.calibration, result.errors)}: triangulate with "
                   f"`sss geometry SESSION --calibration {out}`")
 
 
@@ -274,12 +273,7 @@ def calibrate_turntable(
 ) -> None:
     """Find the turntable's axis from a checkerboard standing on it: each view's corners triangulated, the board's
     turns fitted to one axis; `sss geometry` then merges a session's views into one point cloud."""
-    from sssphase_core.capture.stereo_calibration import (
-        foreign_keys,
-        parse_board,
-        read_errors,
-        write_calibration,
-    )
+    from sssphase_core.capture.stereo_calibration import calibration_entries, parse_board, write_calibration
     from sssphase_core.capture.turntable_calibration import calibrate_turntable, turntable_report
     from sssphase_core.errors import InputError
     from sssphase_core.processing.triangulation import read_calibration
@@ -292,10 +286,10 @@ def calibrate_turntable(
     if target.suffix.lower() not in (".yml", ".yaml", ".xml", ".json"):
         raise InputError(f"{'--out' if out else '--calibration'} {target}: name a .yml, .yaml, .xml or .json file (OpenCV "
                          "writes the format its suffix names)")
-    if out is None and (others := foreign_keys(calibration)):  # rewritten in place, they would be lost
+    errors, others = calibration_entries(calibration)
+    if out is None and others:  # rewritten in place, they would be lost
         raise InputError(f"--calibration {calibration} holds entries sss does not write ({', '.join(others[:6])}): give "
                          "--out FILE for the calibration with the turntable's axis, and the file stays as it is")
-    errors = read_errors(calibration)
     s = Session.open(session)
     chosen = choose_views(s, views)
     with console.status(f"finding the board in {len(chosen)} views") as status:

@@ -323,8 +323,8 @@ def session_points(state: ViewState, name: str, view: int, max_points: int = MAX
     recorded angles, every view's points turned into the frame of the turntable at 0 degrees. -> {"count", "views",
     "unit", "which", "xyz" (base64 float32 (N, 3)), "rgb" (base64 uint8 (N, 3))}."""
     from sssphase_core.processing.colour import display_scale, srgb
-    from sssphase_core.processing.triangulation import triangulate_points, turned
-    from sssphase_core.relight.merged_points import recorded_angles
+    from sssphase_core.processing.triangulation import triangulate_points
+    from sssphase_core.relight.merged_points import recorded_angles, to_turntable_frame
 
     s = _session(state, name)
     if view not in s.views():
@@ -343,7 +343,7 @@ def session_points(state: ViewState, name: str, view: int, max_points: int = MAX
         with np.errstate(invalid="ignore"):
             keep = np.isfinite(points).all(-1) & (points[:, 2] > 0)  # (rays that meet behind the camera: none)
         if angles is not None:
-            points = turned(points, stereo.turntable_axis, stereo.turntable_point, -angles[v])  # type: ignore[arg-type]
+            points = to_turntable_frame(points, stereo, angles[v])
         white = np.asarray(s.load(v, "white"), np.float32)
         xyz.append(points[keep])
         rgb.append((srgb(np.clip(white[rows, cols] / display_scale(white, mask), 0, 1))[keep] * 255 + 0.5).astype(np.uint8))

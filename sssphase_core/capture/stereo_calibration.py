@@ -76,6 +76,11 @@ class StereoResult:
     #: per device, its image size (W, H)
     sizes: dict[str, tuple[int, int]] = field(default_factory=dict)
 
+    @property
+    def errors(self) -> dict[str, float]:
+        """The RMS errors by the names calibration files give them (:data:`ERROR_KEYS`)."""
+        return dict(zip(ERROR_KEYS, (self.camera_rms, self.projector_rms, self.stereo_rms), strict=True))
+
     def shaky(self) -> list[str]:
         """The devices whose focal length is uncertain by more than :data:`MAX_FOCAL_SD`, or whose principal point
         by more than :data:`MAX_CENTRE_SD` of the image's larger side, with their figures."""
@@ -271,31 +276,21 @@ def write_calibration(path: Path | str, calibration: StereoCalibration, errors: 
     return path
 
 
-def read_errors(path: Path | str) -> dict[str, float]:
-    """The RMS errors a calibration file records (cam_error, proj_error, stereo_error), those it has."""
-    storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    try:
-        nodes = {name: storage.getNode(name) for name in ("cam_error", "proj_error", "stereo_error")}
-        return {name: float(node.real()) for name, node in nodes.items() if node.isReal() or node.isInt()}
-    finally:
-        storage.release()
-
-
+#: The RMS errors a calibration file records (:attr:`StereoResult.errors`).
+ERROR_KEYS = ("cam_error", "proj_error", "stereo_error")
 #: The entries :func:`write_calibration` writes: a file holding others (another tool's names, image sizes, notes) is
 #: not rewritten in place.
-WRITTEN_KEYS = frozenset({"cam_K", "cam_kc", "proj_K", "proj_kc", "R", "T", "unit", "cam_error", "proj_error",
-                          "stereo_error", "turntable_axis", "turntable_point"})
+WRITTEN_KEYS = frozenset({"cam_K", "cam_kc", "proj_K", "proj_kc", "R", "T", "unit", "turntable_axis", "turntable_point",
+                          *ERROR_KEYS})
 
 
-def foreign_keys(path: Path | str) -> list[str]:
-    """The top-level entries of a calibration file that :func:`write_calibration` would not write back."""
+def calibration_entries(path: Path | str) -> tuple[dict[str, float], list[str]]:
+    """A calibration file's recorded RMS errors (:data:`ERROR_KEYS`, those it has) and its top-level entries that
+    :func:`write_calibration` would not write back (another tool's names, notes), in one read."""
     storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     try:
-        return sorted(set(storage.root().keys()) - WRITTEN_KEYS)
+        nodes = {name: storage.getNode(name) for name in ERROR_KEYS}
+        errors = {name: float(node.real()) for name, node in nodes.items() if node.isReal() or node.isInt()}
+        return errors, sorted(set(storage.root().keys()) - WRITTEN_KEYS)
     finally:
         storage.release()
-
-
-def stereo_errors(result: StereoResult) -> dict[str, float]:
-    """A stereo calibration's RMS errors by the names calibration files give them."""
-    return {"cam_error": result.camera_rms, "proj_error": result.projector_rms, "stereo_error": result.stereo_rms}

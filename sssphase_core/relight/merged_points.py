@@ -48,6 +48,12 @@ def recorded_angles(s: Session, views: list[int]) -> dict[int, float] | None:
     return angles
 
 
+def to_turntable_frame(points: np.ndarray, stereo: StereoCalibration, angle: float) -> np.ndarray:
+    """Points (..., 3) of a view recorded at turntable ``angle`` (degrees), camera frame -> where they are with the
+    turntable at 0 degrees (turned back by ``angle`` about ``stereo``'s axis)."""
+    return turned(points, stereo.turntable_axis, stereo.turntable_point, -angle)  # type: ignore[arg-type]
+
+
 def merge_views(s: Session, clouds: dict[int, tuple[np.ndarray, np.ndarray]], stereo: StereoCalibration, out: Path,
                 exact_rig: StereoCalibration | None = None, crop_radius: float | None = None) -> MergedCloud | None:
     """``clouds``: per view its points (H, W, 3, camera frame) and white capture (H, W, 3); turned into the frame of
@@ -61,7 +67,7 @@ def merge_views(s: Session, clouds: dict[int, tuple[np.ndarray, np.ndarray]], st
     if stereo.turntable_axis is None or stereo.turntable_point is None or angles is None:
         return None
     axis, point = stereo.turntable_axis, stereo.turntable_point
-    merged = {v: turned(points, axis, point, -angles[v]) for v, (points, _) in clouds.items()}
+    merged = {v: to_turntable_frame(points, stereo, angles[v]) for v, (points, _) in clouds.items()}
     if crop_radius is not None:  # (the distance to the axis is the same before and after the turn)
         for v, p in merged.items():
             offset = p - point
@@ -74,7 +80,7 @@ def merge_views(s: Session, clouds: dict[int, tuple[np.ndarray, np.ndarray]], st
     done = MergedCloud(path, list(clouds), write_point_cloud(path, xyz, colour), agreement=_agreement(merged, angles),
                        crop_radius=crop_radius)
     if exact_rig is not None and exact_rig.turntable_axis is not None:
-        done.exact = {v: _exact_distance(s, v, merged[v], exact_rig, -angles[v]) for v in clouds}
+        done.exact = {v: _exact_distance(s, v, merged[v], exact_rig, angles[v]) for v in clouds}
     return done
 
 
@@ -98,14 +104,14 @@ def _agreement(merged: dict[int, np.ndarray], angles: dict[int, float]) -> float
     return float(np.median(near)) if near.size else float("nan")
 
 
-def _exact_distance(s: Session, view: int, merged: np.ndarray, exact_rig: StereoCalibration, degrees: float) -> float:
+def _exact_distance(s: Session, view: int, merged: np.ndarray, exact_rig: StereoCalibration, angle: float) -> float:
     """The median distance of a view's merged points to its exact surface turned by the rig's own axis."""
     if "gt/proj_xy" not in s.arrays(view):
         return float("nan")
     gt = np.asarray(s.load(view, "gt/proj_xy"), np.float64)
     ok = np.isfinite(gt[..., 0]) & np.isfinite(merged).all(-1)
     exact = triangulate(exact_rig, gt[..., 0], gt[..., 1], ok).points
-    truth = turned(exact, exact_rig.turntable_axis, exact_rig.turntable_point, degrees)  # type: ignore[arg-type]
+    truth = to_turntable_frame(exact, exact_rig, angle)
     distance = np.linalg.norm(merged - truth, axis=-1)[ok & np.isfinite(truth).all(-1)]
     return float(np.median(distance)) if distance.size else float("nan")
 

@@ -316,7 +316,7 @@ def check_decoder_fits(checkpoint: Path | None, backends: Sequence[str], session
                              f"that size")
 
 
-def _check_relight_options(out: Path, patterns: Sequence[str], resize: str, formats: str | Sequence[str],
+def check_relight_options(out: Path, patterns: Sequence[str], resize: str, formats: str | Sequence[str],
                            device: str) -> tuple[str, ...]:
     """The options of :func:`relight_session` checked, in the order the CLI always checked them."""
     from sssphase_core.compute import check_device
@@ -347,7 +347,7 @@ def relight_session(session: Path | str | Session, patterns: Sequence[str], *, b
     from sssphase_core.store.session import claim_output
 
     out, say = Path(out), narrator or Narrator()
-    chosen_formats = _check_relight_options(out, patterns, resize, formats, device)
+    chosen_formats = check_relight_options(out, patterns, resize, formats, device)
     auto = backend == "auto"
     backend, ckpt = resolve_backend(backend, checkpoint, say)
     if note := unused_widen_note([backend], widen):
@@ -368,13 +368,13 @@ def relight_session(session: Path | str | Session, patterns: Sequence[str], *, b
                 say.say(f"decoder: {ckpt}")
             if line := widen_line({backend: widen}):
                 say.say(line)
-        relit, result.mixes[v] = _relight_one(s, rv, pats, backend, ckpt, out, chunk=chunk, device=device,
+        relit, result.mixes[v] = relight_one(s, rv, pats, backend, ckpt, out, chunk=chunk, device=device,
                                               cache=cache, say=say, widen=widen)
         result.images += write_relit(rv, relit, result.patterns, pats, out, backend, chosen_formats, say)
     return result
 
 
-def _relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: str, checkpoint: Path | None,
+def relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: str, checkpoint: Path | None,
                  out: Path, *, chunk: int, device: str, cache: bool, say: Narrator, widen: float | None = None
                  ) -> tuple[np.ndarray, np.ndarray | None]:
     """One view relit (its footprints cached unless the source is the captured transport), its calibration

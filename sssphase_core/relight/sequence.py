@@ -26,10 +26,10 @@ from sssphase_core.relight.runner import (
     OUTPUT_SUFFIX_BYTES,
     Narrator,
     RelightResult,
-    _check_relight_options,
-    _relight_one,
     check_decoder_fits,
+    check_relight_options,
     choose_views,
+    relight_one,
     resolve_backend,
     widen_line,
     write_relit,
@@ -169,7 +169,7 @@ def relight_sequence(session: Path | str | Session, pattern: Path | str, *, back
     from sssphase_core.store.session import claim_output
 
     out, say = Path(out), narrator or Narrator()
-    chosen_formats = _check_relight_options(out, [str(pattern)], resize, formats, device)
+    chosen_formats = check_relight_options(out, [str(pattern)], resize, formats, device)
     backend, ckpt = resolve_backend(backend, checkpoint, say)
     if not cache and backend not in MODEL_FREE:
         raise InputError("a pattern sequence is relit from the view's eigen-footprints, computed on its first frames and "
@@ -216,7 +216,7 @@ def _relight_view_sequence(s: Session, rv: RelightView, sequence: PatternSequenc
     def relight(frames: list[tuple[int, np.ndarray]], told: Narrator) -> None:
         nonlocal count
         names, pats = [frame_name(sequence, i) for i, _ in frames], [p for _, p in frames]
-        relit, result.mixes[rv.view] = _relight_one(s, rv, pats, backend, ckpt, out, chunk=chunk, device=device,
+        relit, result.mixes[rv.view] = relight_one(s, rv, pats, backend, ckpt, out, chunk=chunk, device=device,
                                                     cache=cache, say=told, widen=widen)
         result.images.extend(write_relit(rv, relit, names, pats, folder, backend, formats, quiet))
         count += len(frames)
