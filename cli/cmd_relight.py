@@ -146,6 +146,10 @@ def geometry_cmd(
     crop_radius: Annotated[float | None, typer.Option(help="Merge only the points within this distance of the "
                                                       "turntable's axis (the calibration's unit): a wall or a rig behind "
                                                       "the object is left out of points_merged.ply.")] = None,
+    refine_axis: Annotated[bool, typer.Option("--refine-axis", help="Refine the turntable's axis from the views' own "
+                                              "overlaps before merging (a point-to-plane ICP that moves only the axis); "
+                                              "where they pin it down, the merge is about it and "
+                                              "OUT/<object>/calibration_refined.yml is written with it.")] = False,
 ) -> None:
     """Projector points for 3D: the decoded correspondences minus the shift that subsurface scattering
     gives them (light re-emerges displaced), predicted from the backend's footprints, and the 3D points.
@@ -161,7 +165,7 @@ def geometry_cmd(
     from sssphase_core.relight.runner import geometry_session
 
     geometry_session(session, backend=backend, checkpoint=checkpoint, out=out, views=views, device=device,
-                     calibration=calibration, crop_radius=crop_radius, narrator=_Narrator())
+                     calibration=calibration, crop_radius=crop_radius, refine_axis=refine_axis, narrator=_Narrator())
 
 
 def eval_relight(

@@ -259,24 +259,31 @@ def test_a_board_that_does_not_turn_about_one_axis_is_warned_of_and_too_few_view
     assert len(res.stderr.strip().splitlines()) == 1 and not (tmp_path / "u.yml").exists()
 
 
-def test_geometry_merges_a_turntable_sessions_views_into_one_cloud(sim_daemon, exact_stereo_file, tmp_path):
+@pytest.fixture(scope="module")
+def soap_turntable(sim_daemon, tmp_path_factory):
+    """The soap on the turntable, four views 90 degrees apart."""
+    from sssphase_core.capture import CaptureRequest, run_capture
+
+    return run_capture(sim_daemon, CaptureRequest("soap", views=4, out=tmp_path_factory.mktemp("soap")))
+
+
+def test_geometry_merges_a_turntable_sessions_views_into_one_cloud(soap_turntable, exact_stereo_file, tmp_path):
     """Two views of the soap, 180 degrees apart, turned back by the simulated turntable's axis: one cloud whose views
     lie on the exact surface of the turntable at 0 degrees, cropped to a cylinder about the axis with --crop-radius;
     a calibration without an axis keeps the views apart and says how to get one."""
     import trimesh
 
-    from sssphase_core.capture import CaptureRequest, run_capture
-
-    s = run_capture(sim_daemon, CaptureRequest("soap", views=2, out=tmp_path / "s"))
-    res = run_sss(["geometry", str(s.path), "--backend", "exact", "--out", str(tmp_path / "g")], timeout=180)
+    s = soap_turntable
+    res = run_sss(["geometry", str(s.path), "--backend", "exact", "--views", "0,2", "--out", str(tmp_path / "g")],
+                  timeout=180)
     assert res.returncode == 0, res.stdout + res.stderr
-    m = re.search(r"wrote (\S+points_merged\.ply): (\d+) points of views 0, 1 turned into the frame of the turntable "
+    m = re.search(r"wrote (\S+points_merged\.ply): (\d+) points of views 0, 2 turned into the frame of the turntable "
                   r"at 0 degrees \(mm\).*against the exact surface: median (\d+\.\d+) mm", res.stdout)
     assert m and float(m.group(3)) < 0.2, res.stdout
     cloud = trimesh.load(m.group(1))
-    singles = [trimesh.load(tmp_path / "g" / "soap" / f"view_00{v}" / "points.ply") for v in (0, 1)]
+    singles = [trimesh.load(tmp_path / "g" / "soap" / f"view_00{v}" / "points.ply") for v in (0, 2)]
     assert len(cloud.vertices) == int(m.group(2)) == sum(len(c.vertices) for c in singles)
-    # view 1 (180 degrees) turned back: its points face the other way, on the far side of the axis from view 0's
+    # view 2 (180 degrees) turned back: its points face the other way, on the far side of the axis from view 0's
     centre = np.array([0.0, 0.0, 400.0])
     assert (np.median(singles[1].vertices[:, 2]) < 400) and np.median(cloud.vertices[len(singles[0].vertices):, 2]) > 400
     assert np.median(np.asarray(cloud.vertices[: len(singles[0].vertices)]), 0) == pytest.approx(
@@ -289,15 +296,54 @@ def test_geometry_merges_a_turntable_sessions_views_into_one_cloud(sim_daemon, e
 
     exact = session_rig_calibration(s.manifest["rig"])
     clouds = {v: (np.load(tmp_path / "g" / "soap" / f"view_00{v}" / "correspondence_for_geometry.npz")["points"],
-                  np.asarray(s.load(v, "white"))) for v in (0, 1)}
+                  np.asarray(s.load(v, "white"))) for v in (0, 2)}
     cropped = merge_views(s, clouds, exact, tmp_path / "c", crop_radius=30.0)
     assert "(mm, within 30 of its axis)" in merged_line(cropped, "mm")
     kept = np.asarray(trimesh.load(cropped.path).vertices)
     assert 0 < len(kept) == cropped.n_points < len(cloud.vertices) and np.hypot(kept[:, 0], kept[:, 2] - 400).max() <= 30 + 1e-3
     no_axis = read_calibration(exact_stereo_file)
     assert "the calibration has no turntable axis (`sss calibrate turntable` adds one" in merge_note(
-        no_axis, [0, 1], recorded_angles(s, [0, 1]))
+        no_axis, [0, 2], recorded_angles(s, [0, 2]))
     assert merge_views(s, clouds, no_axis, tmp_path / "h") is None and not (tmp_path / "h").exists()
+
+
+def test_geometry_refines_an_axis_that_is_off_from_the_views_overlaps(soap_turntable, tmp_path):
+    """The soap's views 90 degrees apart, merged about an axis turned 3 degrees and moved 8 mm: --refine-axis brings
+    the merge back onto the exact surface and writes the calibration with the refined axis (its recorded errors kept);
+    without it, one line says the views agree poorly. Views half a turn apart do not pin an axis down: it is kept."""
+    from dataclasses import replace
+
+    import cv2
+
+    from sssphase_core.capture.stereo_calibration import calibration_entries, write_calibration
+    from sssphase_core.processing.triangulation import read_calibration
+    from sssphase_core.relight.merged_points import merge_views, refinement_lines
+    from sssphase_core.sim import session_rig_calibration
+
+    s = soap_turntable
+    exact = session_rig_calibration(s.manifest["rig"])
+    axis = cv2.Rodrigues(np.array([0.0, 0.0, np.deg2rad(3.0)]))[0] @ exact.turntable_axis
+    wrong = write_calibration(tmp_path / "wrong.yml", replace(exact, turntable_axis=axis,
+                              turntable_point=exact.turntable_point + [8.0, 0.0, 0.0]), {"stereo_error": 0.25})
+    res = run_sss(["geometry", str(s.path), "--backend", "exact", "--views", "0,1,2", "--calibration", str(wrong),
+                   "--out", str(tmp_path / "g"), "--refine-axis"], timeout=180)
+    assert res.returncode == 0, res.stdout + res.stderr
+    assert re.search(r"axis refined from the views' overlaps \(\d+ point pairs, \d+ rounds\): turned 3\.\d+ degrees "
+                     r"and moved 8\.\d+ mm from the calibration's", res.stdout), res.stdout
+    near = float(re.search(r"against the exact surface: median (\d+\.\d+) mm", res.stdout).group(1))
+    clouds = {v: (np.load(tmp_path / "g" / "soap" / f"view_00{v}" / "correspondence_for_geometry.npz")["points"],
+                  np.asarray(s.load(v, "white"))) for v in (0, 1, 2)}
+    plain = merge_views(s, clouds, read_calibration(wrong), tmp_path / "p", exact)  # not refined: said, and off
+    assert "--refine-axis fits it to the views' overlaps" in " ".join(refinement_lines(plain, "mm"))
+    assert np.median(list(plain.exact.values())) > 5 and near < 0.5, (plain.exact, near)
+    written = tmp_path / "g" / "soap" / "calibration_refined.yml"
+    refined = read_calibration(written)
+    assert np.degrees(np.arccos(abs(refined.turntable_axis @ exact.turntable_axis))) < 0.2
+    assert calibration_entries(written)[0] == {"stereo_error": 0.25} and np.allclose(refined.rotation, exact.rotation)
+    # views 0 and 2 (half a turn apart) overlap only at their silhouettes: the axis is not taken, nor written
+    opposite = merge_views(s, {v: clouds[v] for v in (0, 2)}, read_calibration(wrong), tmp_path / "o", refine=True)
+    assert "the calibration's axis was kept" in " ".join(refinement_lines(opposite, "mm"))
+    assert opposite.refined_calibration is None and not (tmp_path / "o" / "soap" / "calibration_refined.yml").exists()
 
 
 def test_another_tools_calibration_file_is_not_rewritten_in_place(turntable_session, tmp_path):

@@ -532,7 +532,7 @@ def _check_geometry_backend(backend: str) -> None:
 def geometry_session(session: Path | str | Session, *, backend: str = "analytic", checkpoint: Path | str | None = None,
                      out: Path | str = Path("geometry"), views: str | Sequence[int] | None = "", device: str = "cpu",
                      calibration: Path | str | None = None, crop_radius: float | None = None,
-                     narrator: Narrator | None = None) -> list[GeometryView]:
+                     refine_axis: bool = False, narrator: Narrator | None = None) -> list[GeometryView]:
     """Projector points for 3D of a session's views: the decoded correspondences minus the scattering shift
     predicted from ``backend``'s footprints, written as ``out/<object>/view_NNN/correspondence_for_geometry.npz``
     (xp, yp, xp_decoded, yp_decoded, shift_x, shift_y, mask); scored against the exact points on simulated
@@ -540,7 +540,7 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
     a simulated session's own rig by default) both are triangulated: ``points`` and ``points_decoded`` (H, W, 3) in the
     npz, and the corrected ones as ``points.ply`` beside it, coloured by the white capture. With a turntable axis in the
     calibration, the views together as ``out/<object>/points_merged.ply`` (only the points within ``crop_radius`` of the
-    axis, where given)."""
+    axis, where given; about the axis refined from the views' overlaps with ``refine_axis``)."""
     from sssphase_core.compute import check_device
     from sssphase_core.learning.runlog import resolve_checkpoint
     from sssphase_core.store.session import check_output_folder, claim_output, refuse_inside_session
@@ -583,17 +583,34 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
         if line := _points_line(done[-1]):
             say.say(line)
     if stereo is not None and len(done) > 1:  # a turntable's views: one cloud in the turntable's frame at 0 degrees
-        from sssphase_core.relight.merged_points import merge_note, merge_views, merged_line, recorded_angles
+        from sssphase_core.relight.merged_points import (
+            merge_note,
+            merge_views,
+            merged_line,
+            recorded_angles,
+            refinement_lines,
+        )
 
         views = [d.view for d in done]
         if note := merge_note(stereo, views, recorded_angles(s, views)):
             say.say(note)
         else:
             clouds = {d.view: (np.load(d.path)["points"], np.asarray(s.load(d.view, "white"), np.float32)) for d in done}
-            merged = merge_views(s, clouds, stereo, out, exact_rig, crop_radius=crop_radius)
+            with say.status(f"{s.name}: merging the views{' (refining the axis)' if refine_axis else ''}"):
+                merged = merge_views(s, clouds, stereo, out, exact_rig, crop_radius=crop_radius, refine=refine_axis,
+                                     errors=_recorded_errors(calibration))
             if merged is not None:
-                say.say(merged_line(merged, stereo.unit or "the calibration's unit"))
+                notes, line = refinement_lines(merged, stereo.unit), merged_line(merged, stereo.unit or "the calibration's unit")
+                for said_line in [*notes, line] if merged.refinement is not None else [line, *notes]:  # (a hint after)
+                    say.say(said_line)
     return done
+
+
+def _recorded_errors(calibration: Path | str | None) -> dict[str, float] | None:
+    """The RMS errors a calibration file recorded (kept where the geometry writes it again), or None."""
+    from sssphase_core.capture.stereo_calibration import calibration_entries
+
+    return calibration_entries(calibration)[0] if calibration is not None else None
 
 
 def _stereo_calibration(calibration: Path | str | None, exact_rig: StereoCalibration | None
