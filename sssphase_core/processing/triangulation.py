@@ -53,6 +53,10 @@ class StereoCalibration:
     turntable_point: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        with np.errstate(all="ignore"):  # (a huge entry overflows the checks' products: it is refused, not warned of)
+            self._check()
+
+    def _check(self) -> None:
         for name in ("camera_matrix", "projector_matrix"):
             k = getattr(self, name)
             if k.shape != (3, 3) or not np.isfinite(k).all() or k[0, 0] <= 0 or k[1, 1] <= 0:

@@ -197,9 +197,20 @@ def relight_sequence(session: Path | str | Session, pattern: Path | str, *, back
 def _relight_view_sequence(s: Session, rv: RelightView, sequence: PatternSequence, backend: str, ckpt: Path | None,
                            out: Path, formats: tuple[str, ...], *, chunk: int, device: str, cache: bool,
                            widen: float | None, say: Narrator, result: RelightResult) -> None:
-    """One view's frames relit (those not already in its folder) and its video written."""
-    stem = f"{rv.object}_v{rv.view}_{sequence.name}_{backend}"
-    folder = out / stem
+    """One view's frames relit (those not already in its folder) and its video written, the folder locked meanwhile
+    (two runs into one folder would relight the same frames and write the video twice at once)."""
+    from sssphase_core.store.locks import folder_lock
+
+    folder = out / f"{rv.object}_v{rv.view}_{sequence.name}_{backend}"
+    with folder_lock(folder, f"{folder} is being relit by {{holder}} (another `sss relight` of this sequence): wait for "
+                             "it, or choose another --out"):
+        _relight_frames(s, rv, sequence, backend, ckpt, out, folder, formats, chunk=chunk, device=device, cache=cache,
+                        widen=widen, say=say, result=result)
+
+
+def _relight_frames(s: Session, rv: RelightView, sequence: PatternSequence, backend: str, ckpt: Path | None,
+                    out: Path, folder: Path, formats: tuple[str, ...], *, chunk: int, device: str, cache: bool,
+                    widen: float | None, say: Narrator, result: RelightResult) -> None:
     _claim_folder(folder, _record(s, rv.view, sequence, backend, ckpt, widen, formats))
     done = _done(folder, rv, sequence, backend)
     if done:
@@ -234,5 +245,5 @@ def _relight_view_sequence(s: Session, rv: RelightView, sequence: PatternSequenc
     displays = sorted(folder.glob(f"{rv.object}_v{rv.view}_{sequence.name}-*_{backend}_display.png"))
     if not displays:
         raise InputError(f"--pattern {sequence.path}: no frame could be decoded")
-    video = write_video(displays, out / f"{stem}.mp4", sequence.fps)
+    video = write_video(displays, out / f"{folder.name}.mp4", sequence.fps)
     say.say(f"wrote {len(displays):,} frames to {folder} and the video {video} ({sequence.fps:g} frames/s)")

@@ -1,4 +1,5 @@
-"""The lock that lets one process at a time write a session (a capture or an import)."""
+"""The locks that let one process at a time write a session (a capture or an import) or an output folder (a
+relit pattern sequence)."""
 
 from __future__ import annotations
 
@@ -23,7 +24,8 @@ def session_lock(out: Path, name: str) -> Iterator[None]:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"cannot create the session folder {out / name}: {exc.strerror or exc}") from None
-    handle = _locked(path, out / name)
+    handle = _locked(path, f"session {out / name} is being written by {{holder}} (a capture or an import): wait for "
+                           "it, or write another --object or --out")
     try:
         handle.seek(0)
         handle.truncate()
@@ -42,9 +44,30 @@ def session_lock(out: Path, name: str) -> Iterator[None]:
                 break
 
 
-def _locked(path: Path, session: Path, attempts: int = 10) -> Any:
-    """The lock file ``path`` opened and exclusively locked. A file its holder removed between our open and
-    our lock is no lock at all (a third capture would create and lock a new one): then it is opened again."""
+@contextlib.contextmanager
+def folder_lock(folder: Path, busy: str) -> Iterator[None]:
+    """One writer of ``folder`` at a time: an exclusive lock on ``.<folder name>.lock`` beside it (removed by its
+    holder when done); a second writer is refused with ``busy`` (``{holder}``: the holder's pid), not mixed in."""
+    path = folder.parent / f".{folder.name}.lock"
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    handle = _locked(path, busy)
+    try:
+        handle.seek(0)
+        handle.truncate()
+        handle.write(f"pid {os.getpid()}")
+        handle.flush()
+        try:
+            yield
+        finally:
+            path.unlink(missing_ok=True)
+    finally:
+        handle.close()
+
+
+def _locked(path: Path, busy: str, attempts: int = 10) -> Any:
+    """The lock file ``path`` opened and exclusively locked; held elsewhere, refused with ``busy`` (its ``{holder}``
+    filled in). A file its holder removed between our open and our lock is no lock at all (a third writer would
+    create and lock a new one): then it is opened again."""
     import fcntl
 
     for _ in range(attempts):
@@ -58,12 +81,11 @@ def _locked(path: Path, session: Path, attempts: int = 10) -> Any:
             handle.seek(0)
             holder = handle.read().strip() or "another process"
             handle.close()
-            raise InputError(f"session {session} is being written by {holder} (a capture or an import): wait for "
-                             "it, or write another --object or --out") from None
+            raise InputError(busy.replace("{holder}", holder)) from None  # (not format: a path may hold braces)
         try:
             if os.stat(path).st_ino == os.fstat(handle.fileno()).st_ino:
                 return handle
         except FileNotFoundError:
             pass
         handle.close()  # the holder removed it as we opened it: try the path again
-    raise InputError(f"could not lock {path}: it keeps being removed (another capture or import of {session}?)")
+    raise InputError(f"could not lock {path}: it keeps being removed (another process writing there?)")

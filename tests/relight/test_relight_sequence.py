@@ -109,6 +109,31 @@ def test_an_interrupted_sequence_resumes_and_other_settings_are_not_mixed_in(ses
     assert (foreign / "notes.txt").read_text() == "mine"
 
 
+def test_a_sequence_being_relit_is_not_relit_into_by_a_second_process(session, tmp_path):
+    """Two relights of one sequence into one folder at once would relight the same frames and write its video
+    twice at once: the second is refused while the first holds the folder, and nothing is left of the lock after."""
+    import subprocess
+    import sys
+
+    clip = _clip(tmp_path / "clip{1}.mp4", frames=2)  # (braces in the name: the message is not a format string)
+    out = tmp_path / "out"
+    folder = out / "sand_rake_v0_clip{1}_none"
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import time\nfrom pathlib import Path\nfrom sssphase_core.store.locks import folder_lock\n"
+        f"with folder_lock(Path({str(folder)!r}), 'busy {{holder}}'):\n    print('held', flush=True)\n    time.sleep(60)\n")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        with pytest.raises(InputError, match=rf"is being relit by pid {holder.pid} \(another `sss relight` of this"):
+            relight_sequence(session, clip, backend="none", out=out)
+        assert not folder.exists()
+    finally:
+        holder.kill()
+        holder.wait()
+    relight_sequence(session, clip, backend="none", out=out)  # the lock freed
+    assert len(list(folder.glob("*_display.png"))) == 2 and not list(out.glob(".*.lock"))
+
+
 def test_an_animated_image_is_a_sequence_and_a_still_is_not(tmp_path):
     from PIL import Image
 
