@@ -12,7 +12,7 @@ import pytest
 from sss_process import run_sss
 
 from sssphase_core.capture.calibration import RAMP_LEVELS, fit_response, rig_file_with_response
-from sssphase_core.errors import DataError
+from sssphase_core.errors import DataError, InputError
 
 
 def _ramp(gammas, black, *, noise=0.0, seed=0, levels=RAMP_LEVELS):
@@ -305,6 +305,36 @@ def test_geometry_merges_a_turntable_sessions_views_into_one_cloud(soap_turntabl
     assert "the calibration has no turntable axis (`sss calibrate turntable` adds one" in merge_note(
         no_axis, [0, 2], recorded_angles(s, [0, 2]))
     assert merge_views(s, clouds, no_axis, tmp_path / "h") is None and not (tmp_path / "h").exists()
+
+
+def test_the_views_3d_points_merge_a_turntable_session_and_crop_about_its_axis(soap_turntable):
+    """`sss view`'s 3D points of a turntable session: every view's decoded points turned into the frame of the
+    turntable at 0 degrees about the simulated rig's axis (the merged cloud lies around the axis, not in front of the
+    camera), and with a crop radius only those within it; a radius without a turntable axis is one line."""
+    pytest.importorskip("starlette")
+    import base64
+    from dataclasses import replace
+
+    from sssphase_core.sim import session_rig_calibration
+    from sssphase_view.app import ViewState, session_points
+    from sssphase_view.live import LiveRig
+
+    s = soap_turntable
+    state = ViewState(token="t", out=s.path.parent / "view_out", sessions=s.path.parent, live=LiveRig())
+    whole = session_points(state, s.name, 1)
+    xyz = np.frombuffer(base64.b64decode(whole["xyz"]), np.float32).reshape(-1, 3)
+    assert whole["views"] == [0, 1, 2, 3] and "views 0, 1, 2, 3 merged by the turntable's axis" in whole["which"]
+    around = np.hypot(xyz[:, 0], xyz[:, 2] - 400)  # the simulated turntable turns about x = 0, z = 400 mm
+    assert np.median(around) < 40 and np.median(xyz[:, 2]) == pytest.approx(400, abs=10)
+    cropped = session_points(state, s.name, 1, radius=20.0)
+    kept = np.frombuffer(base64.b64decode(cropped["xyz"]), np.float32).reshape(-1, 3)
+    assert 0 < cropped["count"] < whole["count"] and np.hypot(kept[:, 0], kept[:, 2] - 400).max() <= 20 + 1e-3
+    assert "within 20 of its axis" in cropped["which"]
+    with pytest.raises(InputError, match="the crop radius must be a positive distance"):
+        session_points(state, s.name, 1, radius=-5.0)
+    state.calibration = replace(session_rig_calibration(s.manifest["rig"]), turntable_axis=None, turntable_point=None)
+    with pytest.raises(InputError, match="a crop radius needs the calibration's turntable axis"):
+        session_points(state, s.name, 1, radius=20.0)
 
 
 def test_geometry_refines_an_axis_that_is_off_from_the_views_overlaps(soap_turntable, tmp_path):

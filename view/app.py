@@ -315,13 +315,17 @@ def session_map_png(state: ViewState, name: str, view: int, kind: str) -> tuple[
 
 #: The most points the page's 3D view is sent (evenly subsampled beyond).
 MAX_CLOUD_POINTS = 60_000
+#: Cropped about the turntable's axis, each view's points are picked from this many times its share.
+CROP_OVERSAMPLE = 4
 
 
-def session_points(state: ViewState, name: str, view: int, max_points: int = MAX_CLOUD_POINTS) -> dict[str, Any]:
+def session_points(state: ViewState, name: str, view: int, max_points: int = MAX_CLOUD_POINTS,
+                   radius: float | None = None) -> dict[str, Any]:
     """A session view's decoded points for the page's 3D view: triangulated with :func:`stereo_for`'s calibration,
     coloured by the white capture; where the calibration has a turntable axis and the session several views with
-    recorded angles, every view's points turned into the frame of the turntable at 0 degrees. -> {"count", "views",
-    "unit", "which", "xyz" (base64 float32 (N, 3)), "rgb" (base64 uint8 (N, 3))}."""
+    recorded angles, every view's points turned into the frame of the turntable at 0 degrees; ``radius``: only the
+    points within that distance of the turntable's axis (a wall behind the object left out, as ``sss geometry
+    --crop-radius``). -> {"count", "views", "unit", "which", "xyz" (base64 float32 (N, 3)), "rgb" (base64 uint8 (N, 3))}."""
     from sssphase_core.processing.colour import display_scale, srgb
     from sssphase_core.processing.triangulation import triangulate_points
     from sssphase_core.relight.merged_points import recorded_angles, to_turntable_frame
@@ -330,6 +334,9 @@ def session_points(state: ViewState, name: str, view: int, max_points: int = MAX
     if view not in s.views():
         raise InputError(f"{s.name} has no complete view {view} (has {s.views()})")
     stereo, which = stereo_for(state, s.manifest.get("rig", {}))
+    if radius is not None and (stereo.turntable_axis is None or not (np.isfinite(radius) and radius > 0)):
+        raise InputError("a crop radius needs the calibration's turntable axis (sss calibrate turntable)"
+                         if stereo.turntable_axis is None else f"the crop radius must be a positive distance, got {radius!r}")
     angles = recorded_angles(s, s.views()) if stereo.turntable_axis is not None and len(s.views()) > 1 else None
     chosen = s.views() if angles is not None else [view]
     xyz, rgb = [], []
@@ -337,11 +344,22 @@ def session_points(state: ViewState, name: str, view: int, max_points: int = MAX
         xp, yp = (np.asarray(s.load(v, f"corr/{k}"), np.float64) for k in ("xp", "yp"))
         mask = s.load(v, "corr/mask").astype(bool) & np.isfinite(xp) & np.isfinite(yp)
         rows, cols = np.nonzero(mask)
-        pick = np.linspace(0, len(rows) - 1, min(len(rows), max_points // len(chosen))).astype(int)
+        share = max_points // len(chosen)
+        # cropped, most of a view may be wall: its share is then picked from the points left (four times as many
+        # triangulated first)
+        pick = np.linspace(0, len(rows) - 1, min(len(rows), share * (CROP_OVERSAMPLE if radius else 1))).astype(int)
         rows, cols = rows[pick], cols[pick]
         points = triangulate_points(stereo, np.stack([cols, rows], -1), np.stack([xp[rows, cols], yp[rows, cols]], -1))
         with np.errstate(invalid="ignore"):
             keep = np.isfinite(points).all(-1) & (points[:, 2] > 0)  # (rays that meet behind the camera: none)
+            if radius is not None:  # (the distance to the axis is the same before and after the turn)
+                offset = points - stereo.turntable_point
+                axis = stereo.turntable_axis
+                keep &= np.linalg.norm(offset - (offset @ axis)[:, None] * axis, axis=-1) <= radius
+        kept = np.flatnonzero(keep)
+        if len(kept) > share:  # (cropped: the view's share, evenly, of the points within the radius)
+            keep[:] = False
+            keep[kept[np.linspace(0, len(kept) - 1, share).astype(int)]] = True
         if angles is not None:
             points = to_turntable_frame(points, stereo, angles[v])
         white = np.asarray(s.load(v, "white"), np.float32)
@@ -349,6 +367,8 @@ def session_points(state: ViewState, name: str, view: int, max_points: int = MAX
         rgb.append((srgb(np.clip(white[rows, cols] / display_scale(white, mask), 0, 1))[keep] * 255 + 0.5).astype(np.uint8))
     points, colours = np.concatenate(xyz).astype(np.float32), np.concatenate(rgb)
     merged = f"views {', '.join(map(str, chosen))} merged by the turntable's axis" if angles is not None else f"view {view}"
+    if radius is not None:
+        merged += f", within {radius:g} of its axis"
     return {"count": len(points), "views": chosen, "unit": stereo.unit or "calibration units",
             "which": f"{merged}; {which}; the decoded points (sss geometry takes the scattering's shift out)",
             "xyz": base64.b64encode(points.tobytes()).decode(), "rgb": base64.b64encode(colours.tobytes()).decode()}
@@ -356,7 +376,13 @@ def session_points(state: ViewState, name: str, view: int, max_points: int = MAX
 
 async def session_cloud(request: Request, state: ViewState) -> Response:
     """A view's (or a turntable session's merged) 3D points for the page's 3D view."""
-    return _json(await asyncio.to_thread(session_points, state, request.path_params["name"], view_number(request)))
+    radius = request.query_params.get("radius", "")
+    try:
+        crop = float(radius) if radius.strip() else None
+    except ValueError:
+        raise InputError(f"the crop radius must be a number, got {radius[:40]!r}") from None
+    return _json(await asyncio.to_thread(session_points, state, request.path_params["name"], view_number(request),
+                                         radius=crop))
 
 
 async def session_map(request: Request, state: ViewState) -> Response:

@@ -127,6 +127,9 @@ def test_requests_the_page_never_sends_are_answered_not_crashed_on(served, tmp_p
     assert status == 200 and json.loads(body)["valid"] is False and None in json.loads(body)["projector"]
     assert _get(base + "/api/files/relit/%00", token)[0] == 404
     assert _get(base + "/api/files/relit/" + "a" * 5000, token)[0] == 404
+    for radius in ("abc", "nan", "-1", "1e999"):  # a crop radius the page's number box would not send
+        status, body = _get(base + f"/api/sessions/{name}/0/points?radius={radius}", token)
+        assert status == 400 and "crop radius" in json.loads(body)["error"], (radius, body)
     assert _post(base + "/api/relight", token, b'{"session": "%s", "view": Infinity}' % name.encode())[0] == 400
     assert _post(base + "/api/relight", token, b'{"session": "%s", "view": true}' % name.encode())[0] == 400
     assert _post(base + "/api/relight", token, b'{"a":' + b"[" * 30_000 + b"]" * 30_000 + b"}")[0] == 400  # (< 64 kB)
@@ -338,6 +341,11 @@ def test_a_sessions_maps_have_their_colour_bar_and_unit(page):
         const ev = (t, x, y) => c.dispatchEvent(new PointerEvent(t, {clientX: r.left + x, clientY: r.top + y, pointerId: 1}));
         ev('pointerdown', 300, 200); for (let i = 1; i <= 5; i++) ev('pointermove', 300 + 20 * i, 200); ev('pointerup', 400, 200); })()""")
     assert page.evaluate("cloud.draws") >= 6 and page.evaluate(lit) != before  # turned: other pixels lit
+    page.evaluate("state.cloud = null")
+    _set(page, "crop", "5")  # only the points within 5 mm of the simulated turntable's axis
+    cropped = page.wait_for("state.cloud", 30)
+    assert 0 < cropped["count"] < cloud["count"] and "within 5 of its axis" in cropped["which"], cropped
+    _set(page, "crop", "")
     _set(page, "map", "modulation")
     page.wait_for("document.getElementById('map-unit').textContent.includes('fringe amplitude')", 30)
     assert page.evaluate("document.getElementById('map-canvas').hidden")

@@ -215,13 +215,15 @@ function drawCloud() {
 }
 
 async function showCloud(name, view, current) {
-  const answer = await (await api(`/api/sessions/${encodeURIComponent(name)}/${view}/points`)).json();
+  const radius = $("crop").value.trim();
+  const query = radius ? `?radius=${encodeURIComponent(radius)}` : "";
+  const answer = await (await api(`/api/sessions/${encodeURIComponent(name)}/${view}/points${query}`)).json();
   if (!current()) return;
   loadCloud(answer);
   drawCloud();
   $("map-range").textContent = `${answer.count} points, ${answer.unit}`;
   $("map-unit").textContent = `(${answer.which}; drag to turn, wheel to zoom)`;
-  state.cloud = { count: answer.count, views: answer.views };
+  state.cloud = { count: answer.count, views: answer.views, which: answer.which };
 }
 
 async function showMap() {
@@ -232,6 +234,7 @@ async function showMap() {
   $("map-canvas").hidden = kind !== "points";
   $("map-bar").hidden = kind === "points";
   $("map-hint").hidden = kind === "points";
+  $("crop").hidden = $("crop-label").hidden = kind !== "points";
   try {
     if (kind === "points") { await showCloud(name, view, current); if (current()) say(""); return; }
     const response = await api(`/api/sessions/${encodeURIComponent(name)}/${view}/map/${kind}.png`);
@@ -267,6 +270,7 @@ $("map-image").onclick = async (event) => {
 $("session").onchange = () => { views($("session"), $("session-view")); showMap(); };
 $("session-view").onchange = showMap;
 $("map").onchange = showMap;
+$("crop").onchange = showMap;
 
 // --- relight ------------------------------------------------------------------------------------------------
 $("relight-session").onchange = () => views($("relight-session"), $("relight-view"));
