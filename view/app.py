@@ -18,6 +18,8 @@ import hashlib
 import hmac
 import json
 import os
+import secrets
+import shutil
 import time
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
@@ -39,6 +41,7 @@ from sssphase_core.errors import InputError, SssError
 from sssphase_core.processing.triangulation import StereoCalibration
 from sssphase_core.relight.runner import Narrator
 from sssphase_core.store.files import write_bytes
+from sssphase_view.jobs import SequenceJob, forget_old_jobs, run_sequence_job
 from sssphase_view.live import LiveRig, LiveSettings
 
 STATIC = Path(__file__).with_name("static")
@@ -51,6 +54,9 @@ MAX_VIEW_DIGITS = 9  # a view number in a URL (a 5000-digit one was a 500 in the
 MAX_UPLOADS = 20  # uploads kept in ``--out``; the least recently used go first, with the images relit under them
 IMAGE_MAGIC = {b"\x89PNG": ".png", b"\xff\xd8\xff": ".jpg", b"II*\x00": ".tif", b"MM\x00*": ".tif", b"BM": ".bmp",
                b"v/1\x01": ".exr"}
+#: Uploads that may be pattern sequences, by their first bytes: GIF, Matroska/WebM; MP4/MOV (``ftyp`` at byte 4) and
+#: AVI (``RIFF....AVI ``) are told by :func:`_upload_suffix`.
+SEQUENCE_MAGIC = {b"GIF87a": ".gif", b"GIF89a": ".gif", b"\x1aE\xdf\xa3": ".mkv"}
 
 
 @dataclass
@@ -73,6 +79,8 @@ class ViewState:
     #: pixels) behind them in the shared thread pool
     relights: ThreadPoolExecutor = field(default_factory=lambda: ThreadPoolExecutor(1, thread_name_prefix="relight"))
     pending_relights: int = 0
+    #: pattern sequences relit in the background (by job id), their progress polled by the page
+    jobs: dict[str, SequenceJob] = field(default_factory=dict)
     live_sockets: int = 0
 
 
@@ -459,22 +467,42 @@ def _forget_old_uploads(state: ViewState) -> None:
     uploads = sorted((state.out / "uploads").glob("upload_*"), key=lambda p: p.stat().st_mtime, reverse=True)
     for old in uploads[MAX_UPLOADS:]:
         for relit in (state.out / "relit").glob(f"*_{old.stem}_*"):
-            relit.unlink(missing_ok=True)
+            if relit.is_dir() and not relit.is_symlink():  # a sequence's frames
+                shutil.rmtree(relit, ignore_errors=True)
+            else:
+                relit.unlink(missing_ok=True)
         old.unlink(missing_ok=True)
 
 
+def _upload_suffix(body: bytes) -> str | None:
+    """The file suffix an upload's first bytes say it is (an image, or a video or animated image), or None."""
+    for magic, suffix in (*IMAGE_MAGIC.items(), *SEQUENCE_MAGIC.items()):
+        if body.startswith(magic):
+            return suffix
+    if body[4:8] == b"ftyp":
+        return ".mp4"
+    if body[:4] == b"RIFF" and body[8:12] == b"AVI ":
+        return ".avi"
+    return None
+
+
 async def upload(request: Request, state: ViewState) -> Response:
-    """An image body (PNG, JPEG, TIFF, BMP, EXR) -> its name for ``/api/relight``; checked by the pattern reader."""
-    body = await read_body(request, MAX_UPLOAD_BYTES, f"the upload is larger than {MAX_UPLOAD_BYTES >> 20} MB")
-    suffix = next((ext for magic, ext in IMAGE_MAGIC.items() if body.startswith(magic)), None)
+    """An image body (PNG, JPEG, TIFF, BMP, EXR) or a pattern sequence (a video: MP4, MOV, MKV, WebM, AVI; an animated
+    GIF, PNG or TIFF) -> its name for ``/api/relight`` and whether it is a sequence; checked by the pattern reader."""
+    from sssphase_core.store.pattern_sequences import is_sequence
+
+    body = await read_body(request, MAX_UPLOAD_BYTES, f"the upload is larger than {MAX_UPLOAD_BYTES >> 20} MB (a "
+                           "longer video: sss relight SESSION --pattern FILE)")
+    suffix = _upload_suffix(body)
     if suffix is None:
-        return _problem("not an image: upload a PNG, JPEG, TIFF, BMP or EXR file")
+        return _problem("not an image or a video: upload a PNG, JPEG, TIFF, BMP or EXR image, or an MP4, MOV, MKV, "
+                        "WebM, AVI or animated GIF")
     folder = state.out / "uploads"
     folder.mkdir(parents=True, exist_ok=True)
     name = f"upload_{hashlib.sha256(body).hexdigest()[:12]}{suffix}"
     write_bytes(folder / name, bytes(body))
     _forget_old_uploads(state)
-    return JSONResponse({"name": name})
+    return JSONResponse({"name": name, "sequence": await asyncio.to_thread(is_sequence, folder / name)})
 
 
 class _Notes(Narrator):
@@ -504,6 +532,12 @@ async def relight(request: Request, state: ViewState) -> Response:
     if isinstance(view, bool) or not isinstance(view, int):
         return _problem("view must be a whole number")
 
+    if pattern.startswith("upload_"):
+        from sssphase_core.store.pattern_sequences import is_sequence
+
+        path = _upload_path(state, pattern)
+        if await asyncio.to_thread(is_sequence, path):
+            return _start_sequence(state, str(args.get("session", "")), view, path, backend, str(args.get("resize", "")))
     notes = _Notes()
 
     def pattern_spec(s: Any) -> str:
@@ -538,6 +572,48 @@ async def relight(request: Request, state: ViewState) -> Response:
     return _json({"backend": result.backend, "pattern": item.pattern, "files": files, "metrics": item.metrics,
                   "figure": f"/api/files/relit/{item.figure.name}" if item.figure else None,
                   "seconds": seconds, "clipped": item.clipped, "notes": notes.lines})
+
+
+def _start_sequence(state: ViewState, session: str, view: int, path: Path, backend: str, resize: str) -> Response:
+    """Relight every frame of an uploaded sequence in the background, as ``sss relight --pattern`` does (frames,
+    video, resumable): answered at once with the job's id, whose progress and frames ``/api/relight/jobs/{id}``
+    gives."""
+    from sssphase_core.relight.sequence import relight_sequence
+
+    waiting = state.pending_relights + sum(not job.finished for job in state.jobs.values())
+    if waiting >= MAX_PENDING_RELIGHTS:
+        return _problem(f"{waiting} relights are waiting: try again when they have finished", 429)
+    job = SequenceJob(secrets.token_hex(8))
+    state.jobs[job.id] = job
+    forget_old_jobs(state.jobs)
+
+    def relight(narrator: Narrator) -> Any:
+        return relight_sequence(_session(state, session), path, backend=backend, checkpoint=state.checkpoint,
+                                out=state.out / "relit", views=[view], resize=resize, narrator=narrator)
+
+    state.relights.submit(run_sequence_job, job, relight, view, "/api/files/relit")
+    return JSONResponse({"job": job.id}, status_code=202)
+
+
+async def relight_job(request: Request, state: ViewState) -> Response:
+    """A sequence relight's progress; once done, its frames' and video's URLs."""
+    job = state.jobs.get(request.path_params["job"])
+    if job is None:
+        return _problem("no such relight (the view keeps the last 20)", 404)
+    return _json(dataclasses.asdict(job))
+
+
+async def sequence_file(request: Request, state: ViewState) -> Response:
+    """A frame of a relit sequence, by its folder's and its own name in the view's output folder."""
+    root = (state.out / "relit").resolve()
+    try:
+        path = (root / request.path_params["folder"] / request.path_params["name"]).resolve()
+        found = path.parent.parent == root and path.is_file()
+    except (OSError, ValueError):  # a NUL byte, a name longer than the file system takes
+        found = False
+    if not found:
+        return _problem("no such file", 404)
+    return FileResponse(path, filename=path.name)
 
 
 async def files(request: Request, state: ViewState) -> Response:
@@ -738,7 +814,9 @@ def build_app(state: ViewState, *, hosts: list[str] | None = None) -> Starlette:
         Route("/api/live/pixel", guarded(live_pixel)),
         Route("/api/upload", guarded(upload), methods=["POST"]),
         Route("/api/relight", guarded(relight), methods=["POST"]),
+        Route("/api/relight/jobs/{job}", guarded(relight_job)),
         Route("/api/files/relit/{name}", guarded(files)),
+        Route("/api/files/relit/{folder}/{name}", guarded(sequence_file)),
         WebSocketRoute("/ws/live", live_socket),
     ]
     @contextlib.asynccontextmanager

@@ -241,13 +241,17 @@ class RelitImage:
 @dataclass
 class RelightResult:
     """What :func:`relight_session` did: the backend it ran (``auto`` resolved), the decoder it read, the
-    patterns' names, every image written and each view's calibration weights (None: not calibrated)."""
+    patterns' names, every image written and each view's calibration weights (None: not calibrated); a pattern
+    sequence's (:func:`~sssphase_core.relight.sequence.relight_sequence`) video per view (its frames in the folder of
+    the same name) and frame rate."""
 
     backend: str
     checkpoint: Path | None
     patterns: list[str] = field(default_factory=list)
     images: list[RelitImage] = field(default_factory=list)
     mixes: dict[int, np.ndarray | None] = field(default_factory=dict)
+    videos: dict[int, Path] = field(default_factory=dict)
+    fps: float | None = None
 
 
 def widen_line(widths: dict[str, float | None]) -> str | None:

@@ -246,4 +246,5 @@ def _relight_frames(s: Session, rv: RelightView, sequence: PatternSequence, back
     if not displays:
         raise InputError(f"--pattern {sequence.path}: no frame could be decoded")
     video = write_video(displays, out / f"{folder.name}.mp4", sequence.fps)
+    result.videos[rv.view], result.fps = video, sequence.fps
     say.say(f"wrote {len(displays):,} frames to {folder} and the video {video} ({sequence.fps:g} frames/s)")

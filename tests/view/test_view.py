@@ -426,6 +426,64 @@ def test_relighting_an_uploaded_pattern_gives_the_image_sss_relight_writes(serve
     page.screenshot(tmp_path / "relight.png")
 
 
+def test_a_video_uploaded_on_the_page_is_relit_frame_by_frame_and_played(served, page, tmp_path):
+    """A video uploaded to the relight tab: every frame relit in the background by `sss relight --pattern`'s own
+    runner while the page follows its progress, then played as a flipbook at the video's frame rate, its MP4
+    offered; each frame is the one `sss relight` writes. A file that only looks like a video fails in one line."""
+    import cv2
+
+    base, token = served["base"], served["token"]
+    clip = tmp_path / "sweep.mp4"
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"mp4v"), 8.0, (256, 192))
+    for i in range(4):  # a bar sweeping across the projector
+        frame = np.zeros((192, 256, 3), np.uint8)
+        frame[:, 64 * i : 64 * (i + 1)] = 255
+        writer.write(frame)
+    writer.release()
+    page.evaluate("document.querySelector('nav button[data-tab=relight]').click()")
+    page.wait_for("document.getElementById('backend').options.length > 0", 30)  # (the page has its backends)
+    _set(page, "backend", "none")
+    page.evaluate("state.uploaded = null")
+    page.set_file("#upload", clip)
+    page.wait_for("state.uploaded", 30)
+    assert "a sequence: every frame is relit" in page.evaluate("document.getElementById('relight-info').textContent")
+    result = _relight_on_page(page)
+    assert isinstance(result, dict) and result["sequence"]["status"] == "done", result
+    job = result["sequence"]
+    assert len(job["frames"]) == job["total"] == 4 and job["fps"] == pytest.approx(8.0), job
+    page.wait_for("state.frame >= 6", 10)  # played: the frames follow each other, round again
+    assert page.evaluate("document.getElementById('relit-image').src").split("?")[0].endswith("_none_display.png")
+    assert "video (MP4" in page.evaluate("document.getElementById('downloads').textContent")
+    status, video = _get(base + job["video"], token)
+    assert status == 200 and video[4:8] == b"ftyp"
+    done = _sss("relight", str(served["root"] / "sessions" / "star"), "--pattern", str(clip), "--backend", "none",
+                "--out", str(tmp_path / "cli"), env=served["env"])
+    assert done.returncode == 0, done.stdout + done.stderr
+    for i, url in enumerate(job["frames"]):
+        status, png = _get(base + url, token)
+        cli = tmp_path / "cli" / "star_v0_sweep_none" / f"star_v0_sweep-{i:06d}_none_display.png"
+        assert status == 200 and np.array_equal(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED),
+                                                cv2.imread(str(cli), cv2.IMREAD_UNCHANGED)), i
+    folder = job["frames"][0].split("/")[-2]
+    assert _get(base + f"/api/files/relit/{folder}/..%2F..%2Fuploads", token)[0] == 404
+    assert _get(base + "/api/files/relit/uploads/" + Path(job["frames"][0]).name, token)[0] == 404
+    assert _get(base + "/api/relight/jobs/nope", token)[0] == 404
+    # a file that starts like an MP4 and is not one: accepted as a sequence, its relight fails in one line
+    request = urllib.request.Request(base + "/api/upload", data=b"\0\0\0\x18ftypisom" + os.urandom(4096),
+                                     method="POST", headers={"X-Token": token})
+    with urllib.request.urlopen(request, timeout=60) as response:
+        fake = json.loads(response.read())
+    status, answer = _post(base + "/api/relight", token, json.dumps(
+        {"session": "star", "view": 0, "pattern": fake["name"], "backend": "none"}).encode())
+    assert status == 202 and answer["job"]
+    deadline = time.monotonic() + 60
+    while (state := json.loads(_get(base + f"/api/relight/jobs/{answer['job']}", token)[1]))["status"] not in ("done", "failed"):
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+    assert state["status"] == "failed" and "\n" not in state["error"] and "Traceback" not in state["error"], state
+    page.screenshot(tmp_path / "relight_sequence.png")
+
+
 def _answer_the_next_one_late(page, url_part: str, delay_ms: int = 1500) -> None:
     """The page's next request whose URL contains ``url_part`` is answered ``delay_ms`` late (then
     ``window.lateAnswered`` turns true); the others at once, as before."""

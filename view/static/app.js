@@ -282,11 +282,11 @@ const uploadPattern = async (body, label) => {
   $("relight-info").textContent = `uploading ${label} …`;
   try {
     const response = await api("/api/upload", { method: "POST", body });
-    const name = (await response.json()).name;
+    const answer = await response.json();
     if (!current()) return;
-    state.uploaded = name;
+    state.uploaded = answer.name;
     say("");
-    $("relight-info").textContent = `pattern: ${label}`;
+    $("relight-info").textContent = `pattern: ${label}${answer.sequence ? " (a sequence: every frame is relit)" : ""}`;
   } catch (e) {
     if (!current()) return;
     $("relight-info").textContent = "";
@@ -317,8 +317,44 @@ $("upload").onchange = () => {
   }, "image/png");
 })();
 
+// a relit sequence plays as a flipbook of its display frames, at the sequence's frame rate
+function playFrames(frames, fps) {
+  clearInterval(state.flipbook);
+  const urls = frames.map((u) => `${u}?token=${encodeURIComponent(TOKEN)}`);
+  for (const url of urls) new Image().src = url;  // loaded ahead, so that the frames follow each other smoothly
+  state.frame = 0;
+  const show = () => { $("relit-image").src = urls[state.frame % urls.length]; state.frame += 1; };
+  show();
+  state.flipbook = setInterval(show, 1000 / Math.min(Math.max(fps || 25, 1), 60));
+}
+
+async function followJob(id, current) {
+  for (;;) {
+    const job = await (await api(`/api/relight/jobs/${id}`)).json();
+    if (!current()) return null;
+    if (job.status === "failed") throw new Error(job.error);
+    if (job.status === "done") return job;
+    $("relight-info").textContent = job.total ? `${job.step}: ${job.done} of ${job.total} …`
+      : "relighting (the first frame computes the view's footprints) …";
+    await new Promise((resolve) => setTimeout(resolve, 500));
+  }
+}
+
+async function relightSequence(answer, current) {
+  const job = await followJob(answer.job, current);
+  if (!job) return;
+  playFrames(job.frames, job.fps);
+  $("relight-info").textContent = `${job.frames.length} frames at ${job.fps} frames/s: ${job.seconds.toFixed(1)} s`;
+  $("relight-notes").textContent = job.notes.join("\n");
+  $("downloads").innerHTML = job.video ? `<a href="${job.video}?token=${encodeURIComponent(TOKEN)}" download>video (MP4, MPEG-4 Part 2)</a>` : "";
+  $("compare-image").hidden = true;
+  state.relit = { sequence: job };
+  say("");
+}
+
 $("relight-button").onclick = async () => {
   const pattern = state.uploaded || $("relight-pattern").value;
+  clearInterval(state.flipbook);
   say("");
   $("relight-info").textContent = "relighting (the first pattern of a view computes its footprints) …";
   $("relight-notes").textContent = "";
@@ -330,6 +366,7 @@ $("relight-button").onclick = async () => {
                              backend: $("backend").value, pattern, resize: "fit" }),
     });
     const result = await response.json();
+    if (result.job) { await relightSequence(result, current); return; }
     const png = await (await api(result.files.display || result.files.png)).blob();
     const figure = result.figure ? await (await api(result.figure)).blob() : null;
     if (!current()) return;
