@@ -150,6 +150,9 @@ def geometry_cmd(
                                               "overlaps before merging (a point-to-plane ICP that moves only the axis); "
                                               "where they pin it down, the merge is about it and "
                                               "OUT/<object>/calibration_refined.yml is written with it.")] = False,
+    mesh: Annotated[bool, typer.Option("--mesh", help="Also write each view's points as a range-image mesh, "
+                                       "mesh.ply (neighbouring pixels joined into triangles, depth steps left "
+                                       "open).")] = False,
 ) -> None:
     """Projector points for 3D: the decoded correspondences minus the shift that subsurface scattering
     gives them (light re-emerges displaced), predicted from the backend's footprints, and the 3D points.
@@ -165,7 +168,8 @@ def geometry_cmd(
     from sssphase_core.relight.runner import geometry_session
 
     geometry_session(session, backend=backend, checkpoint=checkpoint, out=out, views=views, device=device,
-                     calibration=calibration, crop_radius=crop_radius, refine_axis=refine_axis, narrator=_Narrator())
+                     calibration=calibration, crop_radius=crop_radius, refine_axis=refine_axis, mesh=mesh,
+                     narrator=_Narrator())
 
 
 def eval_relight(

@@ -274,9 +274,12 @@ def test_geometry_merges_a_turntable_sessions_views_into_one_cloud(soap_turntabl
     import trimesh
 
     s = soap_turntable
-    res = run_sss(["geometry", str(s.path), "--backend", "exact", "--views", "0,2", "--out", str(tmp_path / "g")],
-                  timeout=180)
+    res = run_sss(["geometry", str(s.path), "--backend", "exact", "--views", "0,2", "--out", str(tmp_path / "g"),
+                   "--mesh"], timeout=180)
     assert res.returncode == 0, res.stdout + res.stderr
+    mesh = trimesh.load(tmp_path / "g" / "soap" / "view_000" / "mesh.ply", process=False)  # each view's points joined
+    faces = int(re.search(r"mesh\.ply: (\d+) triangles joining neighbouring pixels", res.stdout).group(1))
+    assert len(mesh.faces) == faces > 1000 and (np.einsum("fc,fc->f", mesh.face_normals, mesh.triangles_center) < 0).all()
     m = re.search(r"wrote (\S+points_merged\.ply): (\d+) points of views 0, 2 turned into the frame of the turntable "
                   r"at 0 degrees \(mm\).*against the exact surface: median (\d+\.\d+) mm", res.stdout)
     assert m and float(m.group(3)) < 0.2, res.stdout

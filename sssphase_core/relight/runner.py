@@ -514,6 +514,9 @@ class GeometryView:
     figure: Path | None = None
     #: the corrected points' median reprojection error in the projector (px): how well the calibration fits
     reprojection: float = float("nan")
+    #: the view's range-image mesh (``mesh.ply``, ``mesh=True``) and its triangles
+    mesh: Path | None = None
+    n_faces: int = 0
     #: on simulated sessions, the decoded and corrected 3D points' median distance and depth (z) bias to the
     #: exact ones, in the calibration's unit (mm): decoded, its bias, for geometry, its bias
     exact_3d: tuple[float, float, float, float] | None = None
@@ -536,7 +539,7 @@ def _check_geometry_backend(backend: str) -> None:
 def geometry_session(session: Path | str | Session, *, backend: str = "analytic", checkpoint: Path | str | None = None,
                      out: Path | str = Path("geometry"), views: str | Sequence[int] | None = "", device: str = "cpu",
                      calibration: Path | str | None = None, crop_radius: float | None = None,
-                     refine_axis: bool = False, narrator: Narrator | None = None) -> list[GeometryView]:
+                     refine_axis: bool = False, mesh: bool = False, narrator: Narrator | None = None) -> list[GeometryView]:
     """Projector points for 3D of a session's views: the decoded correspondences minus the scattering shift
     predicted from ``backend``'s footprints, written as ``out/<object>/view_NNN/correspondence_for_geometry.npz``
     (xp, yp, xp_decoded, yp_decoded, shift_x, shift_y, mask); scored against the exact points on simulated
@@ -544,7 +547,8 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
     a simulated session's own rig by default) both are triangulated: ``points`` and ``points_decoded`` (H, W, 3) in the
     npz, and the corrected ones as ``points.ply`` beside it, coloured by the white capture. With a turntable axis in the
     calibration, the views together as ``out/<object>/points_merged.ply`` (only the points within ``crop_radius`` of the
-    axis, where given; about the axis refined from the views' overlaps with ``refine_axis``)."""
+    axis, where given; about the axis refined from the views' overlaps with ``refine_axis``). ``mesh``: each view's
+    points also as a range-image mesh, ``mesh.ply`` (neighbouring pixels joined, depth steps left open)."""
     from sssphase_core.compute import check_device
     from sssphase_core.learning.runlog import resolve_checkpoint
     from sssphase_core.store.session import check_output_folder, claim_output, refuse_inside_session
@@ -582,10 +586,12 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
         with say.status(f"{rv.object} view {v}: predicting the scattering shift ({backend})"):
             geo = geometric_correspondence(source, rv.proj, patch, period,
                                            centred_on="entry" if backend in ENTRY_CENTRED else "decoded")
-        done.append(_write_geometry(s, rv, geo, out, period, stereo, exact_rig, say))
+        done.append(_write_geometry(s, rv, geo, out, period, stereo, exact_rig, say, mesh))
         say.say(_geometry_line(done[-1]))
         if line := _points_line(done[-1]):
             say.say(line)
+    if mesh and stereo is None:
+        say.say("note: no mesh written: meshing joins the 3D points, which need --calibration")
     if stereo is not None and len(done) > 1:  # a turntable's views: one cloud in the turntable's frame at 0 degrees
         from sssphase_core.relight.merged_points import (
             merge_note,
@@ -632,7 +638,7 @@ def _stereo_calibration(calibration: Path | str | None, exact_rig: StereoCalibra
 
 
 def _write_geometry(s: Session, rv: RelightView, geo: Any, out: Path, period: float, stereo: StereoCalibration | None,
-                    exact_rig: StereoCalibration | None, say: Narrator) -> GeometryView:
+                    exact_rig: StereoCalibration | None, say: Narrator, mesh: bool = False) -> GeometryView:
     """Write one view's correspondences for geometry (and, with ``stereo``, their 3D points) and score them
     (simulated sessions: against the exact points, and their 3D points against ``exact_rig``'s surface)."""
     from sssphase_core.store.session import view_dir_name
@@ -658,6 +664,11 @@ def _write_geometry(s: Session, rv: RelightView, geo: Any, out: Path, period: fl
 
         done.cloud, done.unit, done.reprojection = folder / "points.ply", stereo.unit or "the calibration's unit", corrected.reprojection
         done.n_points = write_point_cloud(done.cloud, arrays["points"], rv.white)
+        if mesh:
+            from sssphase_core.store.pointcloud import write_range_mesh
+
+            done.mesh = folder / "mesh.ply"
+            _, done.n_faces = write_range_mesh(done.mesh, arrays["points"], rv.white)
     from sssphase_core.relight.geometry import shift_figure
 
     done.figure = shift_figure(rv.white, shift_x, m, folder / "shift.png", title=f"{rv.object} view {rv.view}: what "
@@ -733,6 +744,8 @@ def _points_line(g: GeometryView) -> str | None:
     if g.exact_3d is not None:
         line += (f"; against the exact surface: decoded {g.exact_3d[0]:.3f} (depth bias {g.exact_3d[1]:+.3f}), "
                  f"for geometry {g.exact_3d[2]:.3f} (depth bias {g.exact_3d[3]:+.3f}) mm")
+    if g.mesh is not None:
+        line += f"; and {g.mesh}: {g.n_faces} triangles joining neighbouring pixels"
     return line
 
 
