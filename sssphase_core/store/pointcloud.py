@@ -9,7 +9,6 @@ import numpy as np
 
 from sssphase_core.store.files import atomic_path
 
-
 #: Neighbouring pixels are joined into triangles only where their points lie within this many of the view's median
 #: neighbour spacings of each other: a depth step (an occluding edge, the object in front of a wall) is no surface.
 MESH_EDGE_SPACINGS = 4.0
