@@ -280,6 +280,9 @@ def test_geometry_merges_a_turntable_sessions_views_into_one_cloud(soap_turntabl
     mesh = trimesh.load(tmp_path / "g" / "soap" / "view_000" / "mesh.ply", process=False)  # each view's points joined
     faces = int(re.search(r"mesh\.ply: (\d+) triangles joining neighbouring pixels", res.stdout).group(1))
     assert len(mesh.faces) == faces > 1000 and (np.einsum("fc,fc->f", mesh.face_normals, mesh.triangles_center) < 0).all()
+    both = trimesh.load(tmp_path / "g" / "soap" / "mesh_merged.ply", process=False)  # the views' meshes turned into one
+    view_2 = trimesh.load(tmp_path / "g" / "soap" / "view_002" / "mesh.ply", process=False)
+    assert len(both.faces) == len(mesh.faces) + len(view_2.faces) and f"mesh_merged.ply: their meshes, {len(both.faces)} triangles" in res.stdout
     m = re.search(r"wrote (\S+points_merged\.ply): (\d+) points of views 0, 2 turned into the frame of the turntable "
                   r"at 0 degrees \(mm\).*against the exact surface: median (\d+\.\d+) mm", res.stdout)
     assert m and float(m.group(3)) < 0.2, res.stdout

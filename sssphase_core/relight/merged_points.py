@@ -45,6 +45,9 @@ class MergedCloud:
     agreement_before: float = float("nan")
     #: the calibration with the refined axis, where it was written
     refined_calibration: Path | None = None
+    #: the views' range-image meshes turned the same way (``mesh=True``), and their triangles
+    mesh: Path | None = None
+    n_faces: int = 0
 
 
 def recorded_angles(s: Session, views: list[int]) -> dict[int, float] | None:
@@ -67,7 +70,7 @@ def to_turntable_frame(points: np.ndarray, stereo: StereoCalibration, angle: flo
 
 def merge_views(s: Session, clouds: dict[int, tuple[np.ndarray, np.ndarray]], stereo: StereoCalibration, out: Path,
                 exact_rig: StereoCalibration | None = None, crop_radius: float | None = None, refine: bool = False,
-                errors: dict[str, float] | None = None) -> MergedCloud | None:
+                errors: dict[str, float] | None = None, mesh: bool = False) -> MergedCloud | None:
     """``clouds``: per view its points (H, W, 3, camera frame) and white capture (H, W, 3); turned into the frame of
     the turntable at 0 degrees with ``stereo``'s axis and written as ``out/<object>/points_merged.ply``. None where
     the calibration has no turntable or a view recorded no angle. ``exact_rig`` (simulated sessions): each view's
@@ -76,7 +79,8 @@ def merge_views(s: Session, clouds: dict[int, tuple[np.ndarray, np.ndarray]], st
     ``refine``: the axis refined from the views' overlaps first (:func:`~sssphase_core.processing.axis_refinement.
     refine_axis`); where the views pin it down, the merge is about it and the calibration with it is written as
     ``out/<object>/calibration_refined.yml`` (keeping ``errors``, the stereo calibration's recorded RMS errors); where
-    they do not, the calibration's axis stands."""
+    they do not, the calibration's axis stands. ``mesh``: each view's range-image mesh turned the same way, together
+    as ``out/<object>/mesh_merged.ply``."""
     from sssphase_core.store.pointcloud import write_point_cloud
 
     angles = recorded_angles(s, list(clouds))
@@ -113,6 +117,11 @@ def merge_views(s: Session, clouds: dict[int, tuple[np.ndarray, np.ndarray]], st
         from sssphase_core.capture.stereo_calibration import write_calibration
 
         done.refined_calibration = write_calibration(out / s.name / "calibration_refined.yml", stereo, errors)
+    if mesh:
+        from sssphase_core.store.pointcloud import write_range_meshes
+
+        done.mesh = out / s.name / "mesh_merged.ply"
+        done.n_faces = write_range_meshes(done.mesh, [(merged[v], white) for v, (_, white) in clouds.items()])[1]
     if exact_rig is not None and exact_rig.turntable_axis is not None:
         done.exact = {v: _exact_distance(s, v, merged[v], exact_rig, angles[v]) for v in clouds}
     return done
@@ -159,6 +168,8 @@ def merged_line(done: MergedCloud, unit: str) -> str:
     if np.isfinite(done.agreement):
         line += f"; neighbouring views agree to {done.agreement:.3f} (median distance where they overlap"
         line += f", {done.agreement_before:.3f} about the calibration's axis)" if np.isfinite(done.agreement_before) else ")"
+    if done.mesh is not None:
+        line += f"; and {done.mesh}: their meshes, {done.n_faces} triangles"
     if done.exact:
         worst = max(done.exact, key=lambda v: done.exact[v])  # type: ignore[index]
         line += (f"; against the exact surface: median {np.nanmedian(list(done.exact.values())):.3f} mm over the views, "

@@ -67,13 +67,26 @@ def write_range_mesh(path: Path | str, points: np.ndarray, colour: np.ndarray | 
     """Write an organised cloud (H, W, 3) as a binary PLY mesh: its finite points (coloured as
     :func:`write_point_cloud` colours them) and the triangles :func:`range_mesh_faces` joins them by. Returns how many
     points and triangles it holds."""
+    return write_range_meshes(path, [(points, colour)])
+
+
+def write_range_meshes(path: Path | str, parts: list[tuple[np.ndarray, np.ndarray | None]]) -> tuple[int, int]:
+    """Several organised clouds (each (H, W, 3) with its colour, in one frame: a turntable's views turned into one)
+    as one PLY mesh, each meshed on its own pixel grid (:func:`range_mesh_faces`); the colours share one exposure.
+    Returns how many points and triangles it holds."""
     import trimesh
 
-    keep = np.isfinite(points).all(-1)
-    xyz = points[keep].astype(np.float32)
-    faces = range_mesh_faces(points)
-    mesh = trimesh.Trimesh(xyz, faces, vertex_colors=_colours(None if colour is None else np.asarray(colour)[keep], len(xyz)),
-                           process=False)
+    xyz, faces, linear, grey, offset = [], [], [], False, 0
+    for points, colour in parts:
+        keep = np.isfinite(points).all(-1)
+        xyz.append(points[keep].astype(np.float32))
+        faces.append(range_mesh_faces(points) + offset)
+        linear.append(np.zeros((int(keep.sum()), 3), np.float32) if colour is None else np.asarray(colour, np.float32)[keep])
+        grey |= colour is None
+        offset += int(keep.sum())
+    vertices, triangles = np.concatenate(xyz), np.concatenate(faces)
+    mesh = trimesh.Trimesh(vertices, triangles, vertex_colors=_colours(None if grey else np.concatenate(linear),
+                                                                        len(vertices)), process=False)
     with atomic_path(path, ".ply") as tmp:
         mesh.export(tmp, file_type="ply")
-    return len(xyz), len(faces)
+    return len(vertices), len(triangles)
