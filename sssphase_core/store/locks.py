@@ -18,25 +18,16 @@ def session_lock(out: Path, name: str) -> Iterator[None]:
     session folder, so that it is taken before a resume drops partial views; removed by its holder when done).
     Two captures into one folder lost a view from the manifest while both reported success; two imports left
     a damaged session."""
-    path = out / f".{name}.lock"
     created = [d for d in (out, *out.parents) if not d.exists()]  # deepest first: removed again if left empty
     try:
         out.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise InputError(f"cannot create the session folder {out / name}: {exc.strerror or exc}") from None
-    handle = _locked(path, f"session {out / name} is being written by {{holder}} (a capture or an import): wait for "
-                           "it, or write another --object or --out")
     try:
-        handle.seek(0)
-        handle.truncate()
-        handle.write(f"pid {os.getpid()}")
-        handle.flush()
-        try:
+        with _held(out / f".{name}.lock", f"session {out / name} is being written by {{holder}} (a capture or an "
+                   "import): wait for it, or write another --object or --out"):
             yield
-        finally:
-            path.unlink(missing_ok=True)  # nothing left beside the sessions once done
     finally:
-        handle.close()  # releases the lock
         for d in created:  # a capture refused before it wrote anything leaves no empty folders behind
             try:
                 d.rmdir()
@@ -48,8 +39,15 @@ def session_lock(out: Path, name: str) -> Iterator[None]:
 def folder_lock(folder: Path, busy: str) -> Iterator[None]:
     """One writer of ``folder`` at a time: an exclusive lock on ``.<folder name>.lock`` beside it (removed by its
     holder when done); a second writer is refused with ``busy`` (``{holder}``: the holder's pid), not mixed in."""
-    path = folder.parent / f".{folder.name}.lock"
     folder.parent.mkdir(parents=True, exist_ok=True)
+    with _held(folder.parent / f".{folder.name}.lock", busy):
+        yield
+
+
+@contextlib.contextmanager
+def _held(path: Path, busy: str) -> Iterator[None]:
+    """The lock file ``path`` held (its holder's pid written in it) while the block runs, then removed: nothing is
+    left beside the folder once done."""
     handle = _locked(path, busy)
     try:
         handle.seek(0)
@@ -61,7 +59,7 @@ def folder_lock(folder: Path, busy: str) -> Iterator[None]:
         finally:
             path.unlink(missing_ok=True)
     finally:
-        handle.close()
+        handle.close()  # releases the lock
 
 
 def _locked(path: Path, busy: str, attempts: int = 10) -> Any:
