@@ -380,6 +380,9 @@ def test_geometry_refines_an_axis_that_is_off_from_the_views_overlaps(soap_turnt
     opposite = merge_views(s, {v: clouds[v] for v in (0, 2)}, read_calibration(wrong), tmp_path / "o", refine=True)
     assert "the calibration's axis was kept" in " ".join(refinement_lines(opposite, "mm"))
     assert opposite.refined_calibration is None and not (tmp_path / "o" / "soap" / "calibration_refined.yml").exists()
+    (tmp_path / "g" / "soap" / "calibration_refined.yml").rename(tmp_path / "o" / "soap" / "calibration_refined.yml")
+    merge_views(s, {v: clouds[v] for v in (0, 2)}, read_calibration(wrong), tmp_path / "o", refine=True)
+    assert not (tmp_path / "o" / "soap" / "calibration_refined.yml").exists()  # an earlier run's axis is not this one's
 
 
 def test_another_tools_calibration_file_is_not_rewritten_in_place(turntable_session, tmp_path):

@@ -583,10 +583,11 @@ def test_geometry_of_an_imported_session_triangulates_only_with_the_rigs_calibra
     the rays miss each other, with the question to ask."""
     from sssphase_core.sim import rig_preset, stereo_calibration
 
-    res = run_sss(["geometry", str(handmade.path), "--out", str(tmp_path / "g"), "--mesh"], timeout=120)
+    res = run_sss(["geometry", str(handmade.path), "--out", str(tmp_path / "g"), "--mesh", "--refine-axis"], timeout=120)
     assert res.returncode == 0, res.stdout + res.stderr
     assert "note: no points triangulated: give --calibration FILE" in res.stdout
     assert "note: no mesh written: meshing joins the 3D points, which need --calibration" in res.stdout
+    assert "note: the axis was not refined: that needs the 3D points of two or more turntable views" in res.stdout
     folder = tmp_path / "g" / "handmade" / "view_000"
     assert "points" not in np.load(folder / "correspondence_for_geometry.npz").files and not (folder / "points.ply").exists()
     assert cv2.imread(str(folder / "shift.png")) is not None  # the shift along the baseline, without depth

@@ -113,10 +113,13 @@ def merge_views(s: Session, clouds: dict[int, tuple[np.ndarray, np.ndarray]], st
     path = out / s.name / "points_merged.ply"
     done = MergedCloud(path, list(clouds), write_point_cloud(path, xyz, colour), agreement=agreement,
                        crop_radius=crop_radius, spacing=spacing, refinement=refinement, agreement_before=before)
+    refined = out / s.name / "calibration_refined.yml"
     if used:
         from sssphase_core.capture.stereo_calibration import write_calibration
 
-        done.refined_calibration = write_calibration(out / s.name / "calibration_refined.yml", stereo, errors)
+        done.refined_calibration = write_calibration(refined, stereo, errors)
+    elif refine:
+        refined.unlink(missing_ok=True)  # an earlier run's axis is not this run's answer
     if mesh:
         from sssphase_core.store.pointcloud import write_range_meshes
 

@@ -592,6 +592,8 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
             say.say(line)
     if mesh and stereo is None:
         say.say("note: no mesh written: meshing joins the 3D points, which need --calibration")
+    if refine_axis and (stereo is None or len(done) < 2):
+        say.say("note: the axis was not refined: that needs the 3D points of two or more turntable views")
     if stereo is not None and len(done) > 1:  # a turntable's views: one cloud in the turntable's frame at 0 degrees
         from sssphase_core.relight.merged_points import (
             merge_note,
