@@ -24,6 +24,9 @@ from sssphase_core.processing.triangulation import turned
 
 #: Points of each view that take part in a round (evenly drawn from its valid points).
 SAMPLE = 4000
+#: Points of each view that the others are paired with (evenly picked beyond: a 1080p view's 2 M would make each
+#: round's search trees take seconds).
+TREE_POINTS = 50_000
 #: The most rounds (pairing, then fitting); most refinements settle in 5-15.
 MAX_ROUNDS = 40
 #: The pairing distance in the first round and the last, in median point spacings; it halves each round between.
@@ -114,7 +117,8 @@ def refine_axis(clouds: dict[int, np.ndarray], angles: dict[int, float], axis: n
         p = np.asarray(clouds[v], np.float64)
         n = surface_normals(p)
         ok = np.isfinite(p).all(-1) & np.isfinite(n).all(-1)
-        valid[v], normals[v] = p[ok], n[ok]
+        picked = np.linspace(0, int(ok.sum()) - 1, min(int(ok.sum()), TREE_POINTS)).astype(int)
+        valid[v], normals[v] = p[ok][picked], n[ok][picked]
         drawn[v] = rng.choice(len(valid[v]), min(sample, len(valid[v])), replace=False) if len(valid[v]) else []
     pairs = [(b, a) for b, a in zip(order, order[1:] + order[:1], strict=True) if b != a]
     every = np.concatenate([valid[v] for v in order]) if order else np.zeros((0, 3))
