@@ -117,8 +117,10 @@ def refine_axis(clouds: dict[int, np.ndarray], angles: dict[int, float], axis: n
         p = np.asarray(clouds[v], np.float64)
         n = surface_normals(p)
         ok = np.isfinite(p).all(-1) & np.isfinite(n).all(-1)
-        picked = np.linspace(0, int(ok.sum()) - 1, min(int(ok.sum()), TREE_POINTS)).astype(int)
-        valid[v], normals[v] = p[ok][picked], n[ok][picked]
+        valid[v], normals[v] = p[ok], n[ok]
+        if len(valid[v]) > TREE_POINTS:
+            picked = np.round(np.linspace(0, len(valid[v]) - 1, TREE_POINTS)).astype(int)
+            valid[v], normals[v] = valid[v][picked], normals[v][picked]
         drawn[v] = rng.choice(len(valid[v]), min(sample, len(valid[v])), replace=False) if len(valid[v]) else []
     pairs = [(b, a) for b, a in zip(order, order[1:] + order[:1], strict=True) if b != a]
     every = np.concatenate([valid[v] for v in order]) if order else np.zeros((0, 3))
