@@ -41,7 +41,7 @@ from sssphase_core.errors import InputError, SssError
 from sssphase_core.processing.triangulation import StereoCalibration
 from sssphase_core.relight.runner import Narrator
 from sssphase_core.store.files import write_bytes
-from sssphase_view.jobs import SequenceJob, forget_old_jobs, run_sequence_job
+from sssphase_view.jobs import SequenceJob, Stopped, forget_old_jobs, run_sequence_job
 from sssphase_view.live import LiveRig, LiveSettings
 
 STATIC = Path(__file__).with_name("static")
@@ -588,8 +588,13 @@ def _start_sequence(state: ViewState, session: str, view: int, path: Path, backe
     forget_old_jobs(state.jobs)
 
     def relight(narrator: Narrator) -> Any:
-        return relight_sequence(_session(state, session), path, backend=backend, checkpoint=state.checkpoint,
-                                out=state.out / "relit", views=[view], resize=resize, narrator=narrator)
+        try:
+            return relight_sequence(_session(state, session), path, backend=backend, checkpoint=state.checkpoint,
+                                    out=state.out / "relit", views=[view], resize=resize, narrator=narrator)
+        except SssError as exc:  # said as the page says it: the upload, not the server's path to it
+            if isinstance(exc, Stopped):
+                raise
+            raise InputError(str(exc).replace(f"--pattern {path}", "the upload").replace(str(path), "the upload")) from None
 
     state.relights.submit(run_sequence_job, job, relight, view, "/api/files/relit")
     return JSONResponse({"job": job.id}, status_code=202)
@@ -601,6 +606,15 @@ async def relight_job(request: Request, state: ViewState) -> Response:
     if job is None:
         return _problem("no such relight (the view keeps the last 20)", 404)
     return _json(dataclasses.asdict(job))
+
+
+async def stop_job(request: Request, state: ViewState) -> Response:
+    """Ask a sequence relight to stop (at its next progress report; the frames relit so far are kept)."""
+    job = state.jobs.get(request.path_params["job"])
+    if job is None:
+        return _problem("no such relight (the view keeps the last 20)", 404)
+    job.stop = not job.finished
+    return _json({"stopping": job.stop, "status": job.status})
 
 
 async def sequence_file(request: Request, state: ViewState) -> Response:
@@ -815,6 +829,7 @@ def build_app(state: ViewState, *, hosts: list[str] | None = None) -> Starlette:
         Route("/api/upload", guarded(upload), methods=["POST"]),
         Route("/api/relight", guarded(relight), methods=["POST"]),
         Route("/api/relight/jobs/{job}", guarded(relight_job)),
+        Route("/api/relight/jobs/{job}/stop", guarded(stop_job), methods=["POST"]),
         Route("/api/files/relit/{name}", guarded(files)),
         Route("/api/files/relit/{folder}/{name}", guarded(sequence_file)),
         WebSocketRoute("/ws/live", live_socket),

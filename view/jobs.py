@@ -20,7 +20,7 @@ MAX_JOBS = 20
 
 @dataclass
 class SequenceJob:
-    """A sequence relit for the page: ``status`` waiting, running, done or failed (``error`` says why), the
+    """A sequence relit for the page: ``status`` waiting, running, done, failed or stopped (``error`` says why), the
     ``step`` under way (the first frame's footprints, then the frames) and its count ``done`` of ``total``, and once
     done the URLs of its display ``frames`` (in order), its ``video`` and ``fps``."""
 
@@ -35,10 +35,12 @@ class SequenceJob:
     error: str = ""
     notes: list[str] = field(default_factory=list)
     seconds: float = 0.0
+    #: asked to stop (the page's stop button): the relight stops at its next progress report, its frames kept
+    stop: bool = False
 
     @property
     def finished(self) -> bool:
-        return self.status in ("done", "failed")
+        return self.status in ("done", "failed", "stopped")
 
 
 class JobNotes(Narrator):
@@ -54,7 +56,14 @@ class JobNotes(Narrator):
     def task(self, label: str) -> Any:
         def progress(done: int, total: int) -> None:
             self.job.step, self.job.done, self.job.total = label, done, total
+            if self.job.stop:
+                raise Stopped(f"stopped at {done} of {total} ({label}): the frames relit so far are kept, and relighting "
+                              "the same video again relights only the rest")
         return progress
+
+
+class Stopped(SssError):
+    """A sequence relight the page asked to stop."""
 
 
 def run_sequence_job(job: SequenceJob, relight: Any, view: int, files_url: str) -> None:
@@ -72,6 +81,8 @@ def run_sequence_job(job: SequenceJob, relight: Any, view: int, files_url: str) 
         job.done = job.total = len(frames)
         job.fps = result.fps or job.fps
         job.status = "done"
+    except Stopped as exc:
+        job.error, job.status = str(exc), "stopped"
     except SssError as exc:
         job.error, job.status = str(exc), "failed"
     except Exception as exc:  # noqa: BLE001 (the page gets one line; the log keeps the stack)

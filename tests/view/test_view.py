@@ -481,6 +481,25 @@ def test_a_video_uploaded_on_the_page_is_relit_frame_by_frame_and_played(served,
         assert time.monotonic() < deadline
         time.sleep(0.2)
     assert state["status"] == "failed" and "\n" not in state["error"] and "Traceback" not in state["error"], state
+    assert state["error"].startswith("the upload: ") and "uploads/" not in state["error"], state  # not the server's path
+    # a relight asked to stop stops at its next progress report (here in the first frame's footprints), said so
+    writer = cv2.VideoWriter(str(tmp_path / "long.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 8.0, (256, 192))
+    for i in range(30):
+        writer.write(np.full((192, 256, 3), 8 * i, np.uint8))
+    writer.release()
+    request = urllib.request.Request(base + "/api/upload", data=(tmp_path / "long.mp4").read_bytes(), method="POST",
+                                     headers={"X-Token": token})
+    with urllib.request.urlopen(request, timeout=60) as response:
+        long = json.loads(response.read())
+    status, answer = _post(base + "/api/relight", token, json.dumps(
+        {"session": "star", "view": 0, "pattern": long["name"], "backend": "analytic"}).encode())
+    assert status == 202 and _post(base + f"/api/relight/jobs/{answer['job']}/stop", token, b"")[1]["stopping"]
+    deadline = time.monotonic() + 120
+    while (state := json.loads(_get(base + f"/api/relight/jobs/{answer['job']}", token)[1]))["status"] not in (
+            "done", "failed", "stopped"):
+        assert time.monotonic() < deadline
+        time.sleep(0.2)
+    assert state["status"] == "stopped" and state["error"].startswith("stopped at "), state
     page.screenshot(tmp_path / "relight_sequence.png")
 
 

@@ -332,7 +332,7 @@ async function followJob(id, current) {
   for (;;) {
     const job = await (await api(`/api/relight/jobs/${id}`)).json();
     if (!current()) return null;
-    if (job.status === "failed") throw new Error(job.error);
+    if (job.status === "failed" || job.status === "stopped") throw new Error(job.error);
     if (job.status === "done") return job;
     $("relight-info").textContent = job.total ? `${job.step}: ${job.done} of ${job.total} …`
       : "relighting (the first frame computes the view's footprints) …";
@@ -341,7 +341,10 @@ async function followJob(id, current) {
 }
 
 async function relightSequence(answer, current) {
-  const job = await followJob(answer.job, current);
+  state.job = answer.job;
+  $("relight-stop").hidden = false;
+  let job;
+  try { job = await followJob(answer.job, current); } finally { $("relight-stop").hidden = true; }
   if (!job) return;
   playFrames(job.frames, job.fps);
   $("relight-info").textContent = `${job.frames.length} frames at ${job.fps} frames/s: ${job.seconds.toFixed(1)} s`;
@@ -351,6 +354,10 @@ async function relightSequence(answer, current) {
   state.relit = { sequence: job };
   say("");
 }
+
+$("relight-stop").onclick = () => {
+  if (state.job) api(`/api/relight/jobs/${state.job}/stop`, { method: "POST" }).catch((e) => say(e.message));
+};
 
 $("relight-button").onclick = async () => {
   const pattern = state.uploaded || $("relight-pattern").value;
