@@ -324,6 +324,7 @@ function playFrames(frames, fps) {
   for (const url of urls) new Image().src = url;  // loaded ahead, so that the frames follow each other smoothly
   state.frame = 0;
   const show = () => { $("relit-image").src = urls[state.frame % urls.length]; state.frame += 1; };
+  $("relit-image").hidden = false;
   show();
   state.flipbook = setInterval(show, 1000 / Math.min(Math.max(fps || 25, 1), 60));
 }
@@ -378,6 +379,7 @@ $("relight-button").onclick = async () => {
     const figure = result.figure ? await (await api(result.figure)).blob() : null;
     if (!current()) return;
     $("relit-image").src = URL.createObjectURL(png);
+    $("relit-image").hidden = false;  // (no empty frame before the first relight)
     const metrics = result.metrics ? ` · PSNR ${result.metrics.psnr.toFixed(2)} dB, SSIM ${result.metrics.ssim.toFixed(3)}` : "";
     $("relight-info").textContent = `${result.backend}, ${result.pattern}: ${result.seconds.toFixed(2)} s${metrics}`;
     $("relight-notes").textContent = (result.notes || []).join("\n");
