@@ -452,6 +452,12 @@ def test_a_video_uploaded_on_the_page_is_relit_frame_by_frame_and_played(served,
     job = result["sequence"]
     assert len(job["frames"]) == job["total"] == 4 and job["fps"] == pytest.approx(8.0), job
     page.wait_for("state.frame >= 6", 10)  # played: the frames follow each other, round again
+    page.evaluate("document.getElementById('relit-image').click()")  # paused on the frame it shows
+    paused = page.evaluate("[state.frame, document.getElementById('relit-frame').textContent]")
+    time.sleep(0.5)
+    assert page.evaluate("state.frame") == paused[0] and "(paused: click to play)" in paused[1], paused
+    page.evaluate("document.getElementById('relit-image').click()")
+    page.wait_for(f"state.frame >= {paused[0] + 2}", 10)  # and played again
     assert page.evaluate("document.getElementById('relit-image').src").split("?")[0].endswith("_none_display.png")
     assert "video (MP4" in page.evaluate("document.getElementById('downloads').textContent")
     status, video = _get(base + job["video"], token)

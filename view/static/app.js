@@ -317,16 +317,25 @@ $("upload").onchange = () => {
   }, "image/png");
 })();
 
-// a relit sequence plays as a flipbook of its display frames, at the sequence's frame rate
+// a relit sequence plays as a flipbook of its display frames, at the sequence's frame rate; a click on the image
+// pauses it (and plays it again), the caption says which frame is shown
 function playFrames(frames, fps) {
   clearInterval(state.flipbook);
   const urls = frames.map((u) => `${u}?token=${encodeURIComponent(TOKEN)}`);
   for (const url of urls) new Image().src = url;  // loaded ahead, so that the frames follow each other smoothly
   state.frame = 0;
-  const show = () => { $("relit-image").src = urls[state.frame % urls.length]; state.frame += 1; };
+  const show = () => {
+    $("relit-image").src = urls[state.frame % urls.length];
+    $("relit-frame").textContent = `frame ${state.frame % urls.length + 1} of ${urls.length}${state.flipbook ? "" : " (paused: click to play)"}`;
+    state.frame += 1;
+  };
+  const play = () => { state.flipbook = setInterval(show, 1000 / Math.min(Math.max(fps || 25, 1), 60)); };
   $("relit-image").hidden = false;
+  $("relit-image").onclick = () => {
+    if (state.flipbook) { clearInterval(state.flipbook); state.flipbook = null; state.frame -= 1; show(); } else play();
+  };
+  play();
   show();
-  state.flipbook = setInterval(show, 1000 / Math.min(Math.max(fps || 25, 1), 60));
 }
 
 async function followJob(id, current) {
@@ -363,6 +372,9 @@ $("relight-stop").onclick = () => {
 $("relight-button").onclick = async () => {
   const pattern = state.uploaded || $("relight-pattern").value;
   clearInterval(state.flipbook);
+  state.flipbook = null;
+  $("relit-image").onclick = null;
+  $("relit-frame").textContent = "";
   say("");
   $("relight-info").textContent = "relighting (the first pattern of a view computes its footprints) …";
   $("relight-notes").textContent = "";
