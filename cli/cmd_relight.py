@@ -305,6 +305,27 @@ def bench_geometry(
     console.print(f"wrote {out} and {out.with_suffix('.md')}")
 
 
+def bench_axis(
+    sessions: Annotated[list[Path], typer.Argument(help="Simulated turntable sessions (`sss capture --object soap --views 4`).")],
+    out: Annotated[Path, typer.Option("--out", help="JSON output (.md written next to it).")] = Path("bench_axis.json"),
+    tilt: Annotated[float, typer.Option(help="Degrees the axis is turned by (about the camera's axis).")] = 3.0,
+    move: Annotated[float, typer.Option(help="How far the axis is moved along x (the calibration's unit).")] = 8.0,
+    backends: Annotated[str, typer.Option(help="Comma-separated backends whose scattering shift is taken out of the "
+                                          "points (as sss geometry --backend).")] = "exact,analytic",
+    views: ViewsOpt = "",
+) -> None:
+    """The turntable's axis refined from the views' overlaps (`sss geometry --refine-axis`) against the merge about
+    the rig's own axis and one turned and moved, scored against the simulator's exact surface."""
+    from sssphase_core.bench import axis_bench
+    from sssphase_core.store.session import find_sessions
+
+    with console.status("refining turntable axes") as st:
+        axis_bench.run(find_sessions(sessions), out, tilt, move, _names(backends, "--backends"), views=views,
+                       progress=lambda m: st.update(m))
+    console.print(out.with_suffix(".md").read_text())
+    console.print(f"wrote {out} and {out.with_suffix('.md')}")
+
+
 def bench_stability(
     out: Annotated[Path, typer.Option("--out", help="JSON output (.md written next to it).")] = Path("bench_stability.json"),
     cases: Annotated[str, typer.Option(help="Comma-separated cases (default: all).")] = "",
@@ -415,5 +436,6 @@ def register(groups: dict[str, typer.Typer]) -> None:
     groups["bench"].command("relight-cache")(bench_relight_cache)
     groups["bench"].command("store")(bench_store)
     groups["bench"].command("geometry")(bench_geometry)
+    groups["bench"].command("axis")(bench_axis)
     groups["bench"].command("gap")(bench_gap)
     groups["root"].command("report")(report)

@@ -385,6 +385,21 @@ def test_geometry_refines_an_axis_that_is_off_from_the_views_overlaps(soap_turnt
     assert not (tmp_path / "o" / "soap" / "calibration_refined.yml").exists()  # an earlier run's axis is not this one's
 
 
+def test_bench_axis_scores_the_refinement_against_the_axis_as_given(soap_turntable, tmp_path):
+    """`sss bench axis`: the merge about the rig's own axis and about one turned and moved, each without and with the
+    refinement, against the exact surface; the axis gone astray is brought back to a tenth of a millimetre."""
+    from sssphase_core.bench import axis_bench
+
+    result = axis_bench.run([soap_turntable], tmp_path / "axis.json", tilt=3.0, move=8.0, backends=("exact",), views="0,1,2")
+    own, astray = result["rows"]
+    assert own["axis_given"] == "the rig's own" and astray["axis_given"] == "turned 3 deg, moved 8"
+    assert astray["given_mm"] > 5 and astray["taken"] and astray["refined_mm"] < 0.2 and astray["refined_shift"] < 0.2
+    assert own["given_mm"] < 0.1 and own["refined_mm"] < 0.2  # an axis already right stays near it
+    assert (tmp_path / "axis.md").read_text().count("| soap | exact |") == 2
+    with pytest.raises(InputError, match="--tilt must be 0 to 30 degrees"):
+        axis_bench.run([soap_turntable], tmp_path / "x.json", tilt=float("nan"))
+
+
 def test_another_tools_calibration_file_is_not_rewritten_in_place(turntable_session, tmp_path):
     """A file with entries `sss` does not write (another tool's K1/K2 names, an image size) would lose them if the
     axis were added in place: refused in one line, the file as it was; with --out the axis goes to the new file."""
