@@ -335,7 +335,7 @@ def session_points(state: ViewState, name: str, view: int, max_points: int = MAX
     points within that distance of the turntable's axis (a wall behind the object left out, as ``sss geometry
     --crop-radius``). -> {"count", "views", "unit", "which", "xyz" (base64 float32 (N, 3)), "rgb" (base64 uint8 (N, 3))}."""
     from sssphase_core.processing.colour import display_scale, srgb
-    from sssphase_core.processing.triangulation import triangulate_points
+    from sssphase_core.processing.triangulation import distance_to_axis, triangulate_points
     from sssphase_core.relight.merged_points import recorded_angles, to_turntable_frame
 
     s = _session(state, name)
@@ -361,9 +361,7 @@ def session_points(state: ViewState, name: str, view: int, max_points: int = MAX
         with np.errstate(invalid="ignore"):
             keep = np.isfinite(points).all(-1) & (points[:, 2] > 0)  # (rays that meet behind the camera: none)
             if radius is not None:  # (the distance to the axis is the same before and after the turn)
-                offset = points - stereo.turntable_point
-                axis = stereo.turntable_axis
-                keep &= np.linalg.norm(offset - (offset @ axis)[:, None] * axis, axis=-1) <= radius
+                keep &= distance_to_axis(points, stereo.turntable_axis, stereo.turntable_point) <= radius
         kept = np.flatnonzero(keep)
         if len(kept) > share:  # (cropped: the view's share, evenly, of the points within the radius)
             keep[:] = False

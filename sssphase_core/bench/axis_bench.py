@@ -24,13 +24,6 @@ from sssphase_core.bench.output import Table, machine_info, write_bench_report
 from sssphase_core.errors import InputError
 
 
-def _off(axis: np.ndarray, point: np.ndarray, true_axis: np.ndarray, true_point: np.ndarray) -> tuple[float, float]:
-    """Degrees between two axes, and the distance of the first from the true one's point (perpendicular to it)."""
-    offset = point - true_point
-    return (float(np.degrees(np.arccos(np.clip(abs(axis @ true_axis), -1.0, 1.0)))),
-            float(np.linalg.norm(offset - (offset @ true_axis) * true_axis)))
-
-
 def run(sessions: list[Any], out: Path, tilt: float = 3.0, move: float = 8.0, backends: tuple[str, ...] = ("exact",),
         views: str = "", progress: Any = None) -> dict[str, Any]:
     """Score the axis refinement on every simulated turntable session of ``sessions``; writes JSON and Markdown."""
@@ -77,6 +70,7 @@ def run(sessions: list[Any], out: Path, tilt: float = 3.0, move: float = 8.0, ba
 def _session_rows(s: Any, rig: Any, starts: dict[str, Any], backend: str, views: str, progress: Any) -> list[dict]:
     """One session's rows for one backend: its views' points made once, merged about each start without and with
     the refinement."""
+    from sssphase_core.processing.triangulation import axes_apart
     from sssphase_core.relight.merged_points import merge_views
     from sssphase_core.relight.runner import geometry_session
 
@@ -94,7 +88,7 @@ def _session_rows(s: Any, rig: Any, starts: dict[str, Any], backend: str, views:
             refined = merge_views(s, clouds, start, Path(tmp) / "refined", rig, refine=True)
             seconds = time.perf_counter() - t0
             r = refined.refinement
-            tilt_off, shift_off = _off(r.axis, r.point, rig.turntable_axis, rig.turntable_point)
+            tilt_off, shift_off = axes_apart(r.axis, r.point, rig.turntable_axis, rig.turntable_point)
             rows.append({"object": s.name, "backend": backend, "views": list(clouds), "axis_given": name,
                          "given_mm": float(np.nanmedian(list(given.exact.values()))),
                          "refined_mm": float(np.nanmedian(list(refined.exact.values()))),

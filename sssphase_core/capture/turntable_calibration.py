@@ -21,7 +21,7 @@ import numpy as np
 
 from sssphase_core.capture.stereo_calibration import find_boards, require_boards
 from sssphase_core.errors import DataError, InputError
-from sssphase_core.processing.triangulation import StereoCalibration, triangulate_points, turned
+from sssphase_core.processing.triangulation import StereoCalibration, axes_apart, triangulate_points, turned
 
 #: Views with the whole board that an axis needs (two turns, so that one bad view shows).
 MIN_TURNTABLE_VIEWS = 3
@@ -170,8 +170,7 @@ def against_simulated_turntable(session: Any, calibration: StereoCalibration) ->
     exact = session_rig_calibration(session.manifest.get("rig", {}))
     if exact is None or exact.turntable_axis is None or calibration.turntable_axis is None:
         return None
-    tilt = np.degrees(np.arccos(np.clip(abs(calibration.turntable_axis @ exact.turntable_axis), -1, 1)))
-    offset = exact.turntable_point - calibration.turntable_point
-    miss = np.linalg.norm(offset - exact.turntable_axis * (offset @ exact.turntable_axis))
+    tilt, miss = axes_apart(calibration.turntable_axis, calibration.turntable_point, exact.turntable_axis,
+                            exact.turntable_point)
     return (f"against the simulated rig's turntable: the axis tilted {tilt:.2f} degrees, passing {miss:.2f} mm from the "
             "true one")

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sssphase_core.processing.triangulation import turned
+from sssphase_core.processing.triangulation import axes_apart, turned
 
 #: Points of each view that take part in a round (evenly drawn from its valid points).
 SAMPLE = 4000
@@ -180,14 +180,14 @@ def refine_axis(clouds: dict[int, np.ndarray], angles: dict[int, float], axis: n
     if n_pairs < MIN_PAIRS:
         return _kept(axis0, point0, f"the views overlap in only {n_pairs} point pairs (at least {MIN_PAIRS} needed)")
     a, p = line(x)
-    tilt, shift = _apart(a, p, axis0, point0)
+    tilt, shift = axes_apart(a, p, axis0, point0)
     # Restarted a little off the result and without the pull toward the given axis: an axis the views pin down comes
     # back to it; one they do not (an object nearly symmetric about it) stays off or slides elsewhere.
     probe = np.tan(np.deg2rad(PROBE_TILT))
     slide_tilt, slide_shift = 0.0, 0.0
     for nudge in ([probe, 0, PROBE_SHIFT * spacing, 0], [0, probe, 0, PROBE_SHIFT * spacing]):
         again = line(fit(x + np.array(nudge), 4 * PROBE_SHIFT * spacing, with_prior=False)[0])
-        apart = _apart(*again, a, p)
+        apart = axes_apart(*again, a, p)
         slide_tilt, slide_shift = max(slide_tilt, apart[0]), max(slide_shift, apart[1])
     done = AxisRefinement(a, p, tilt, shift, rounds, n_pairs, rms_before,
                           _rms(residuals(x, matched(x, LAST_REACH * spacing), with_prior=False)), slide_tilt,
@@ -197,14 +197,6 @@ def refine_axis(clouds: dict[int, np.ndarray], angles: dict[int, float], axis: n
                         f"calibration is off by ({MAX_TILT:g} degrees, half the object's size): the views "
                         "overlap too little or the object is too symmetric about the axis to place it")
     return done
-
-
-def _apart(axis: np.ndarray, point: np.ndarray, axis0: np.ndarray, point0: np.ndarray) -> tuple[float, float]:
-    """The angle (degrees) between two axes and the distance of the first from the second's ``point0``,
-    perpendicular to ``axis0``."""
-    offset = point - point0
-    return (float(np.degrees(np.arccos(np.clip(abs(axis @ axis0), -1.0, 1.0)))),
-            float(np.linalg.norm(offset - (offset @ axis0) * axis0)))
 
 
 def _kept(axis: np.ndarray, point: np.ndarray, why: str) -> AxisRefinement:

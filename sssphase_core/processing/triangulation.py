@@ -219,6 +219,20 @@ def triangulate_points(calib: StereoCalibration, camera: np.ndarray, projector: 
         return (homogeneous[:3] / homogeneous[3]).T
 
 
+def distance_to_axis(points: np.ndarray, axis: np.ndarray, point: np.ndarray) -> np.ndarray:
+    """The distance (...) of points (..., 3) from the line through ``point`` along the unit ``axis``."""
+    offset = np.asarray(points, np.float64) - point
+    with np.errstate(invalid="ignore"):
+        return np.linalg.norm(offset - (offset @ axis)[..., None] * axis, axis=-1)
+
+
+def axes_apart(axis: np.ndarray, point: np.ndarray, axis0: np.ndarray, point0: np.ndarray) -> tuple[float, float]:
+    """The angle (degrees) between two lines, each a unit axis through a point, and the distance of the first's
+    ``point`` from the second line."""
+    return (float(np.degrees(np.arccos(np.clip(abs(axis @ axis0), -1.0, 1.0)))),
+            float(distance_to_axis(point, axis0, point0)))
+
+
 def turned(points: np.ndarray, axis: np.ndarray, point: np.ndarray, degrees: float) -> np.ndarray:
     """Points (..., 3) turned by ``degrees`` about the line through ``point`` along the unit ``axis`` (right-handed)."""
     rotation = cv2.Rodrigues(np.asarray(axis, np.float64) * np.deg2rad(degrees))[0]

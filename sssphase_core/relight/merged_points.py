@@ -11,7 +11,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sssphase_core.processing.axis_refinement import AxisRefinement, refine_axis
-from sssphase_core.processing.triangulation import StereoCalibration, triangulate, turned
+from sssphase_core.processing.triangulation import StereoCalibration, distance_to_axis, triangulate, turned
 
 if TYPE_CHECKING:
     from sssphase_core.store.session import Session
@@ -88,11 +88,8 @@ def merge_views(s: Session, clouds: dict[int, tuple[np.ndarray, np.ndarray]], st
         return None
     points = {v: np.asarray(p, np.float64) for v, (p, _) in clouds.items()}
     if crop_radius is not None:  # (the distance to the axis is the same in every view's frame)
-        axis, point = stereo.turntable_axis, stereo.turntable_point
         for v, p in points.items():
-            offset = p - point
-            with np.errstate(invalid="ignore"):
-                far = np.linalg.norm(offset - (offset @ axis)[..., None] * axis, axis=-1) > crop_radius
+            far = distance_to_axis(p, stereo.turntable_axis, stereo.turntable_point) > crop_radius
             points[v] = np.where(far[..., None], np.nan, p)
     merged = {v: to_turntable_frame(p, stereo, angles[v]) for v, p in points.items()}
     agreement, spacing = _agreement(merged, angles)
