@@ -114,18 +114,64 @@ def test_epochs_fit_the_time_left():
     assert epochs_within(1e6, 1000, 50.0, 20) == 20  # at most the preset's
 
 
-def test_a_relight_starts_only_if_the_longest_one_so_far_fits(tmp_path):
-    """The relight step notes how long each relight took and starts the next only if the longest fits in what
-    the budget has left (a fixed 20 s reserve let a 1080p relight of four backends run past the H200 call)."""
-    from sssphase_core.reporting.repro import PRESETS, RELIGHT_MIN_S, PaperRepro
+def test_a_relight_starts_only_if_its_estimate_fits(tmp_path):
+    """Each relight is estimated before it starts: from a finished relight with the same backend (per lit pixel),
+    else from its model's seconds per footprint in the footprints step (a blend: both models), else from the
+    longest relight so far. On the H200 a 1080p torch relight was let start after the relight with no
+    scattering, and the call's deadline cut it off with nothing kept."""
+    from sssphase_core.reporting.repro import PRESETS, RELIGHT_MIN_S, RELIGHT_OVER_FOOTPRINTS, PaperRepro
 
     repro = PaperRepro(tmp_path, PRESETS["tiny"], capture=lambda requests: [], device="cpu", budget_s=1000.0,
                        log=lambda line: None)
-    assert repro._may_relight() is None  # plenty left
-    repro._relight_started -= 300.0  # that relight took 300 s
-    repro.budget_s = repro.spent_s() + 200.0  # 200 s left: the next would not fit
-    why = repro._may_relight()
-    assert why is not None and "a relight takes up to 300 s" in why
-    repro._relight_started = None
-    repro.budget_s, repro._longest_relight = repro.spent_s() + RELIGHT_MIN_S - 1, 0.0
-    assert repro._may_relight() is not None  # under the fixed reserve
+    assert repro.relight_estimate_s("torch", 100_000) == RELIGHT_MIN_S  # nothing known yet
+    repro.results["footprints"] = {"status": "done", "metrics": {}, "pixels": 256,
+                                   "seconds_per_pixel": {"torch": 1e-3, "analytic": 2e-4}}
+    assert repro.relight_estimate_s("torch", 100_000) == pytest.approx(RELIGHT_OVER_FOOTPRINTS * 100.0)
+    assert repro.relight_estimate_s("blend", 100_000) == pytest.approx(RELIGHT_OVER_FOOTPRINTS * 120.0)
+    rows = [{"seconds": 40.0, "lit_pixels": 50_000, "psnr": 30.0, "ssim": 0.9, "object": "crab", "pattern": p,
+             "backend": "torch"} for p in ("checkerboard", "stripes_x")]
+    repro._relight_progress({"crab/torch": rows}, {})
+    assert repro.relight_estimate_s("torch", 100_000) == pytest.approx(160.0)  # 80 s for 50,000 pixels, measured
+    assert repro.relight_estimate_s("none", 100_000) == pytest.approx(80.0)  # no model: the longest so far
+    assert repro._may_relight("torch", 100_000) is None  # plenty left
+    repro.budget_s = repro.spent_s() + 100.0
+    why = repro._may_relight("torch", 100_000)
+    assert why is not None and "with torch of 100,000 pixels would take about 160 s" in why
+    md = (tmp_path / "report" / "report.md").read_text()  # the finished relight is in the report at once
+    assert "| crab | checkerboard | torch | 30.00 |" in md and "did not finish" in md
+    assert "Seconds per footprint (the slowest object" in md and "torch 1.00 ms, analytic 0.20 ms" in md
+
+
+@pytest.mark.slow
+def test_a_stopped_relight_step_keeps_what_it_relit_and_resumes(repro, tmp_path):
+    """Each object x backend is kept as it finishes: a rerun relights only the rest, and a decoder trained
+    again makes its own relights stale, not the model-free ones."""
+    import shutil
+
+    from sssphase_core.reporting.repro import run_repro
+
+    src, _ = repro
+    out = tmp_path / "run"
+    shutil.copytree(src, out)
+    done = json.loads((out / "steps" / "relight.json").read_text())
+    (out / "steps" / "relight.json").unlink()  # as if the step had been stopped after two of its relights
+    kept = {f"sand_rake/{b}": [r for r in done["rows"] if r["backend"] == b] for b in ("none", "analytic")}
+    kept["sand_rake/none"][0]["psnr"] = 123.0  # marks the row that must come back unrelit
+    (out / "steps" / "relight_partial.json").write_text(json.dumps({"decoder": "another decoder", "units": kept}))
+    logs: list[str] = []
+    run_repro(out, lambda reqs: pytest.fail("nothing is captured again"), preset="tiny", device="cpu", log=logs.append)
+    assert any("2 relight(s) kept from an earlier run: sand_rake/none, sand_rake/analytic" in m for m in logs)
+    relit = [m for m in logs if m.startswith("  relit ")]
+    assert len(relit) == 1 and "relit sand_rake with torch" in relit[0]
+    rows = json.loads((out / "steps" / "relight.json").read_text())["rows"]
+    assert [r["backend"] for r in rows] == [r["backend"] for r in done["rows"]]  # the configured order
+    assert 123.0 in [r["psnr"] for r in rows]
+    partial = json.loads((out / "steps" / "relight_partial.json").read_text())
+    assert set(partial["units"]) == {"sand_rake/none", "sand_rake/analytic", "sand_rake/torch"}
+    partial["decoder"] = "a decoder trained since"  # a torch relight of another decoder is not reused ...
+    (out / "steps" / "relight_partial.json").write_text(json.dumps(partial))
+    (out / "steps" / "relight.json").unlink()
+    logs.clear()
+    run_repro(out, lambda reqs: pytest.fail("nothing is captured again"), preset="tiny", device="cpu", log=logs.append)
+    assert [m for m in logs if m.startswith("  relit ")] == [m for m in logs if "relit sand_rake with torch" in m]
+    assert sum(m.startswith("  relit ") for m in logs) == 1  # ... the model-free ones are

@@ -36,6 +36,9 @@ from sssphase_core.errors import DataError, InputError, SssError
 from sssphase_core.store.files import write_text
 from sssphase_core.store.session import DamagedArray
 
+#: The footprints step times its models on the pixels after these (the first call loads a model, warms a device).
+WARM_UP_PIXELS = 8
+
 
 @dataclass(frozen=True)
 class DemoConfig:
@@ -232,11 +235,53 @@ class Demo:
         d = self.results.get("decoder", {})
         return d.get("checkpoint") if d.get("status") == "done" else None
 
-    def _may_relight(self) -> str | None:
-        """Why no further relight may start (None: it may); the demo has no budget."""
+    def _may_relight(self, backend: str, pixels: int) -> str | None:
+        """Why no further relight (of ``pixels`` lit pixels with ``backend``) may start (None: it may); the demo
+        has no budget."""
         return None
 
+    # The relights finished so far, one file for the step: a run stopped in the middle of the relight step (a
+    # 1080p view takes minutes per backend) keeps them, and the next run relights only the rest.
+    RELIT_SO_FAR = "relight_partial.json"
+
+    def _model_identity(self, ckpt: str | None) -> str | None:
+        """What a decoder's relights were made with: its checkpoint's path, size and modification time (a decoder
+        trained again makes them stale)."""
+        if ckpt is None or not Path(ckpt).exists():
+            return None
+        st = Path(ckpt).stat()
+        return f"{ckpt}:{st.st_size}:{st.st_mtime_ns}"
+
+    def _relit_so_far(self, ckpt: str | None) -> dict[str, list[dict[str, Any]]]:
+        """``{"object/backend": rows}`` of the relights an earlier, stopped run finished (none with ``fresh``;
+        a decoder backend's only if the decoder is the same)."""
+        from sssphase_core.relight.choices import uses_decoder
+
+        path = self.steps_dir / self.RELIT_SO_FAR
+        if self.fresh or not path.exists():
+            return {}
+        try:
+            kept = json.loads(path.read_text())
+            units = dict(kept["units"])
+        except (ValueError, KeyError, TypeError):  # a damaged file of this run's own: relight again
+            return {}
+        same = kept.get("decoder") == self._model_identity(ckpt)
+        return {k: rows for k, rows in units.items() if same or not uses_decoder(k.rsplit("/", 1)[-1])}
+
+    def _keep_relit(self, ckpt: str | None, units: dict[str, list[dict[str, Any]]], skipped: dict[str, str]) -> None:
+        """Save the relights finished so far (atomically) and show them as the step's progress."""
+        write_text(self.steps_dir / self.RELIT_SO_FAR,
+                   json.dumps({"decoder": self._model_identity(ckpt), "units": units}, indent=1, default=str))
+        self._relight_progress(units, skipped)
+
+    def _relight_progress(self, units: dict[str, list[dict[str, Any]]], skipped: dict[str, str]) -> None:
+        """Called with the relights kept so far (``{"object/backend": rows}``) as each one finishes (``sss repro
+        paper`` rewrites its report with them and times the next from them)."""
+
     def relight(self) -> dict[str, Any]:
+        """Relight every unseen object under its reference patterns with every backend, scored against the
+        references. Each object × backend is kept as it finishes (:attr:`RELIT_SO_FAR`), so that a stopped run
+        resumes after the last one."""
         self._need("test_sessions")
         from sssphase_core.relight import load_view
         from sssphase_core.relight.choices import uses_decoder
@@ -244,29 +289,45 @@ class Demo:
         from sssphase_core.store.session import Session
 
         img_dir = self.report_dir / "img"
-        rows, skipped = [], {}
+        skipped: dict[str, str] = {}
         ckpt = self._decoder_checkpoint()
+        units = self._relit_so_far(ckpt)
+        if units:
+            self.log(f"  {len(units)} relight(s) kept from an earlier run: " + ", ".join(units))
+            self._relight_progress(units, skipped)
+        order: list[str] = []  # the report's: object by object, the backends as configured
         for path in self.results["test_sessions"]["sessions"]:
-            rv = load_view(Session.open(path), self.cfg.test_view)
+            session = Session.open(path)
+            rv = None  # loaded only if one of its relights is left (a 1080p view takes a while)
             for b in self.cfg.backends:
+                key = f"{session.name}/{b}"
+                order.append(key)
+                if key in units:
+                    continue
                 if uses_decoder(b) and ckpt is None:
                     skipped[b] = "no decoder checkpoint (the decoder step is not available)"
                     continue
-                if (why := self._may_relight()) is not None:
-                    skipped[f"{rv.object}/{b}"] = why
+                rv = rv if rv is not None else load_view(session, self.cfg.test_view)
+                if (why := self._may_relight(b, int(rv.proj.mask.sum()))) is not None:
+                    skipped[key] = why
                     continue
+                t0 = time.perf_counter()
                 try:
                     opts = {"supersample": self.cfg.analytic_supersample} if b == "analytic" else {}
-                    rows += evaluate_view(rv, b, img_dir, checkpoint=ckpt, device=self.device, **opts)
+                    rows = evaluate_view(rv, b, img_dir, checkpoint=ckpt, device=self.device, **opts)
                 except DamagedArray:  # damage stops the run in one line (see `step`), never a "skipped" backend
                     raise
                 except (NotAvailable, SssError) as exc:  # e.g. no captured transport for `measured`
                     skipped[b] = str(exc)
                     self.log(f"  {rv.object} with {b}: skipped ({exc})")
                     continue
-                self.log(f"  relit {rv.object} with {b}")
-        for r in rows:
-            r["figure"] = str(Path(r["figure"]).relative_to(self.report_dir))
+                for r in rows:
+                    r["figure"] = str(Path(r["figure"]).relative_to(self.report_dir))
+                    r["unit_seconds"] = round(time.perf_counter() - t0, 2)  # its patterns' relight, scoring, figures
+                units[key] = rows
+                self._keep_relit(ckpt, units, skipped)
+                self.log(f"  relit {rv.object} with {b} in {rows[0]['unit_seconds']:.1f} s")
+        rows = [r for key in order for r in units.get(key, [])]
         from sssphase_core.relight.evaluation import training_overlap
 
         seen = training_overlap(ckpt, [(r["object"], r["view"]) for r in rows]) if ckpt is not None else None
@@ -286,6 +347,7 @@ class Demo:
         if not backends:  # (it said "done" and the report "the step did not run")
             raise NotAvailable("no footprint model among the backends: the table scores analytic and torch footprints")
         table: dict[str, dict[str, dict[str, float]]] = {}
+        rate: dict[str, list[float]] = {}
         for path in self.results["test_sessions"]["sessions"]:
             rv = load_view(Session.open(path), self.cfg.test_view)
             if rv.sim is None:
@@ -298,8 +360,14 @@ class Demo:
                 opts = {"supersample": self.cfg.analytic_supersample} if b == "analytic" else {}
                 source, _ = make_source(b, rv, checkpoint=ckpt, calibrate=False, device=self.device,
                                         **opts)  # the model's own footprints
-                table[rv.object][b] = summarise(footprint_metrics(np.asarray(source(px), np.float32), gt))
-        return {"metrics": table, "backends": backends, "pixels": self.cfg.footprint_pixels}
+                first = np.asarray(source(px[:WARM_UP_PIXELS]), np.float32)  # (loading, a device's first call)
+                t0 = time.perf_counter()
+                rest = np.asarray(source(px[WARM_UP_PIXELS:]), np.float32)
+                rate.setdefault(b, []).append((time.perf_counter() - t0) / max(1, len(px) - WARM_UP_PIXELS))
+                table[rv.object][b] = summarise(footprint_metrics(np.concatenate([first, rest]), gt))
+        # the slowest object's seconds per footprint after a warm-up: what a relight of a whole view costs
+        return {"metrics": table, "backends": backends, "pixels": self.cfg.footprint_pixels,
+                "seconds_per_pixel": {b: max(v) for b, v in rate.items()}}
 
     def knn(self) -> dict[str, Any]:
         self._need("pretrain")

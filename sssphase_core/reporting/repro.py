@@ -83,9 +83,14 @@ PRESETS = {
                         footprint_pixels=16, model="lite", rig_preset="cpu", dot_stride=4, eval_reserve_s=0.0),
 }
 
-#: A relight is started only with at least this many seconds of the budget left, or as many as the longest
-#: relight of this run took (a 1080p view with four backends outgrew a fixed reserve on the H200).
+#: A relight is started only with at least this many seconds of the budget left, or as many as it is estimated
+#: to take (a 1080p view with four backends outgrew a fixed reserve on the H200, and a 1080p torch relight the
+#: time of the relight with no scattering before it).
 RELIGHT_MIN_S = 20.0
+#: A whole relight's seconds per lit pixel over its model's seconds per footprint in the footprints step (the
+#: splat, the white-consistent calibration and the scoring besides the footprints): 1.35 for the analytic
+#: model on a 1080p crab on 2 cores (130 s for 182,018 pixels at 0.53 ms per footprint).
+RELIGHT_OVER_FOOTPRINTS = 1.5
 
 STEPS = ("train_sessions", "test_sessions", "pretrain_psp", "pretrain_imagenet", "decoder", "footprints", "knn",
          "relight", "report")
@@ -114,8 +119,7 @@ class PaperRepro(Demo):
         self.cfg: ReproConfig = config
         self.capture, self.device, self.budget_s = capture, device, float(budget_s)  # (device: Demo's, the models')
         self.t0 = time.perf_counter()
-        self._relight_started: float | None = None
-        self._longest_relight = 0.0
+        self._relit: dict[str, list[dict[str, Any]]] = {}  # the relights finished so far, "object/backend": rows
 
     # --- budget ------------------------------------------------------------------------------------
 
@@ -269,16 +273,41 @@ class PaperRepro(Demo):
             raise NotAvailable("no pretrained encoder to evaluate")
         return out
 
-    def _may_relight(self) -> str | None:
-        """Called before each relight: the previous one's seconds are noted, and a relight starts only if the
-        longest so far (at least :data:`RELIGHT_MIN_S`) fits in what is left of the budget."""
-        now = time.perf_counter()
-        if self._relight_started is not None:
-            self._longest_relight = max(self._longest_relight, now - self._relight_started)
-        self._relight_started = now
-        need = max(RELIGHT_MIN_S, self._longest_relight)
+    def _relight_progress(self, units: dict[str, list[dict[str, Any]]], skipped: dict[str, str]) -> None:
+        """The relights finished so far go into the report at once (a run stopped from outside keeps them) and
+        time the next ones (:meth:`relight_estimate_s`)."""
+        self._relit = dict(units)
+        self.results["relight"] = {"status": "running", "rows": [r for rows in units.values() for r in rows],
+                                   "skipped": dict(skipped),
+                                   "seconds": sum(float(rows[0].get("unit_seconds", 0.0)) for rows in units.values() if rows)}
+        self.write_report()
+
+    def relight_estimate_s(self, backend: str, pixels: int) -> float:
+        """Seconds a relight of a view with ``pixels`` lit pixels will take with ``backend``: per lit pixel, as
+        long as the slowest relight with it so far; before any, :data:`RELIGHT_OVER_FOOTPRINTS` times the seconds
+        per footprint of its model(s) in the footprints step (a blend runs both); else the longest relight so far.
+        At least :data:`RELIGHT_MIN_S`."""
+        def unit_s(rows: list[dict[str, Any]]) -> float:  # the relight's, the scoring's and the figures' seconds
+            return float(rows[0].get("unit_seconds") or sum(float(r["seconds"]) for r in rows))
+
+        same = [unit_s(rows) / max(1, int(rows[0]["lit_pixels"])) for key, rows in self._relit.items()
+                if key.rsplit("/", 1)[-1] == backend and rows]
+        per_footprint = self.results.get("footprints", {}).get("seconds_per_pixel") or {}
+        models = ("torch", "analytic") if backend == "blend" else (backend,)
+        if same:
+            guess = max(same) * pixels
+        elif all(m in per_footprint for m in models):
+            guess = RELIGHT_OVER_FOOTPRINTS * sum(float(per_footprint[m]) for m in models) * pixels
+        else:
+            guess = max((unit_s(rows) for rows in self._relit.values() if rows), default=0.0)
+        return max(RELIGHT_MIN_S, guess)
+
+    def _may_relight(self, backend: str, pixels: int) -> str | None:
+        """A relight starts only if its estimate (:meth:`relight_estimate_s`) fits in what is left of the budget."""
+        need = self.relight_estimate_s(backend, pixels)
         if self.left_s() <= need:
-            return f"the budget was spent ({max(self.left_s(), 0):.0f} s left, a relight takes up to {need:.0f} s)"
+            return (f"the budget was spent ({max(self.left_s(), 0):.0f} s left, a relight with {backend} of "
+                    f"{pixels:,} pixels would take about {need:.0f} s)")
         return None
 
     # --- report ------------------------------------------------------------------------------------

@@ -61,6 +61,9 @@ def repro_markdown(data: dict[str, Any]) -> str:
                 t.add([obj, "paper", f"{p['mse']:.2e}", f"{p['psnr']:.2f}", f"{p['ssim']:.2f}", f"{p['lpips']:.3f}"])
         out += [t.markdown(), "", f"{fp['pixels']} sampled pixels per object; LPIPS: {fp.get('lpips')}. SSIM with the "
                 "footprint's own peak as data range (see `sss eval footprints`).", ""]
+        if rates := fp.get("seconds_per_pixel"):
+            out += ["Seconds per footprint (the slowest object, after a warm-up; they time the relights below): "
+                    + ", ".join(f"{b} {1e3 * float(v):.2f} ms" for b, v in rates.items()) + ".", ""]
     else:
         out += [f"Not available: {fp.get('reason', 'not run yet')}", ""]
 
@@ -81,11 +84,14 @@ def repro_markdown(data: dict[str, Any]) -> str:
 
     rel = steps.get("relight", {})
     out += ["## Relighting unseen objects against their reference captures", ""]
-    if rel.get("status") == "done" and rel.get("rows"):
+    if rel.get("status") in ("done", "running") and rel.get("rows"):
         t = _Rows(["object", "pattern", "backend", "PSNR (dB)", "SSIM", "s per pattern"])
         for r in rel["rows"]:
             t.add([r["object"], r["pattern"], r["backend"], f"{r['psnr']:.2f}", f"{r['ssim']:.3f}", f"{r['seconds']:.1f}"])
         out += [t.markdown(), ""]
+        if rel["status"] == "running":
+            out += ["The relight step did not finish (it was running when this report was written, or stopped): the "
+                    "relights above are kept, and a rerun relights only the rest.", ""]
         if rel.get("skipped"):
             out += ["Skipped: " + "; ".join(f"{k}: {v}" for k, v in rel["skipped"].items()), ""]
     else:
