@@ -280,6 +280,43 @@ def test_a_blend_is_weighted_per_pixel_by_each_materials_own_source():
         np.testing.assert_allclose(view[:, c], want, atol=1e-4)
 
 
+def test_the_local_mixture_works_on_the_fitted_pixels_box_only(monkeypatch):
+    """Only the fitted pixels' box is worked on (a 1080p view is mostly background): the weights of a small object
+    in a large frame, wherever it lies (at the frame's corners too), equal those fitted over the whole frame, and
+    are the view-wide weights away from it; for one source and for three."""
+    from types import SimpleNamespace
+
+    from sssphase_core.relight import calibration
+    from sssphase_core.relight.calibration import local_mixture
+
+    rng = np.random.default_rng(2)
+    h, w = 24, 30
+    none = rng.random((8, h, w, 3)).astype(np.float32)
+    sources = [(none + 0.2 * rng.standard_normal((8, h, w, 3))).astype(np.float32) for _ in range(3)]
+    captured = np.where(np.arange(w)[None, None, :, None] < 12, sources[0], 0.5 * sources[1] + 0.5 * none)
+    mask = np.zeros((h, w), bool)
+    mask[3:-3, 3:-3] = True
+    for y, x in ((120, 200), (0, 0), (176, 270)):  # inside, at the top-left corner, at the bottom-right one
+        def framed(a, y=y, x=x):
+            out = np.full((a.shape[0], 200, 300, *a.shape[3:]), 0.3, a.dtype)  # background: unfitted, any value
+            out[:, y:y + h, x:x + w] = a
+            return out
+        big = np.zeros((200, 300), bool)
+        big[y:y + h, x:x + w] = mask
+        rv = SimpleNamespace(proj=SimpleNamespace(mask=big), camera_isp=None)
+        for s in (1, 3):
+            args = ([framed(a) for a in sources[:s]], framed(none), framed(captured), None)
+            weights, view = local_mixture(rv, *args)
+            with monkeypatch.context() as patched:
+                patched.setattr(calibration, "LOCAL_MIX_REACH", 10**6)  # the box: the whole frame
+                whole, whole_view = local_mixture(rv, *args)
+            np.testing.assert_array_equal(view, whole_view)
+            np.testing.assert_allclose(weights, whole, atol=1e-6)
+            far = np.ones((200, 300), bool)
+            far[max(0, y - 10):y + h + 10, max(0, x - 10):x + w + 10] = False
+            np.testing.assert_array_equal(weights[:, far], np.broadcast_to(view[:, None], (s, int(far.sum()), 3)))
+
+
 def test_relighting_with_the_view_calibration_takes_one_footprint_pass(session):
     """`relight_view` fits the calibration on the same pass as the user's patterns: the view-wide mix of the
     white-consistent model (`white_consistent`, the white pattern on the same pass) against no scattering,
