@@ -10,7 +10,10 @@
 #   --platform manylinux2014_x86_64 --platform manylinux_2_26_x86_64 -d .whl NAME==VERSION   (31 MB in all)
 # Usage: benchmarks/device/paper.sh [BUDGET_S] [repro|all]   (repro first, then the tests and `sss bench sim`;
 #   "repro": the repro alone). One call: timeout_s = BUDGET_S + about 150 (install ~20 s; the repro's own deadline
-#   is BUDGET_S + 110, so that its report comes back). Next lent GPU: `paper.sh 420 repro`, timeout_s 570.
+#   is BUDGET_S + 110, so that its report comes back). Next lent GPU: `paper.sh 420 repro`, timeout_s 570; then at
+#   once, while the machine is warm (it keeps /tmp/repro for about 30 s): `paper.sh 120 repro`, timeout_s 260, which
+#   skips the finished steps and relights what is left (each relight is kept as it finishes; on 2026-12-04 the
+#   first call's budget ended in the torch relight of the 1080p crab).
 set -o pipefail
 budget=${1:-300}
 out=${OUT:-/tmp/out}
