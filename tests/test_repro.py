@@ -175,3 +175,24 @@ def test_a_stopped_relight_step_keeps_what_it_relit_and_resumes(repro, tmp_path)
     run_repro(out, lambda reqs: pytest.fail("nothing is captured again"), preset="tiny", device="cpu", log=logs.append)
     assert [m for m in logs if m.startswith("  relit ")] == [m for m in logs if "relit sand_rake with torch" in m]
     assert sum(m.startswith("  relit ") for m in logs) == 1  # ... the model-free ones are
+
+
+def test_a_damaged_or_foreign_relight_record_is_relit_not_read(tmp_path):
+    """The kept relights are reused only when every row holds what the report reads; otherwise they are done
+    again, with one line saying so."""
+    from sssphase_core.reporting.demo import ROW_KEYS
+    from sssphase_core.reporting.repro import PRESETS, PaperRepro
+
+    logs: list[str] = []
+    repro = PaperRepro(tmp_path, PRESETS["tiny"], capture=lambda requests: [], device="cpu", budget_s=10.0,
+                       log=logs.append)
+    path = repro.steps_dir / repro.RELIT_SO_FAR
+    good = dict.fromkeys(ROW_KEYS, 1.0)
+    path.write_text(json.dumps({"decoder": None, "units": {"crab/none": [good]}}))
+    assert repro._relit_so_far(None) == {"crab/none": [good]}
+    for bad in ("{not json", json.dumps({"units": {"crab/none": [{"psnr": 30.0}]}}), json.dumps({"units": ["crab"]}),
+                json.dumps({"units": {"crab/none": []}}), json.dumps([1, 2])):
+        path.write_text(bad)
+        logs.clear()
+        assert repro._relit_so_far(None) == {}
+        assert len(logs) == 1 and "is unreadable: its relights are done again" in logs[0]

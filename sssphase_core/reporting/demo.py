@@ -36,6 +36,8 @@ from sssphase_core.errors import DataError, InputError, SssError
 from sssphase_core.store.files import write_text
 from sssphase_core.store.session import DamagedArray
 
+#: What a kept relight row must hold to be reused (the report reads these).
+ROW_KEYS = frozenset({"object", "view", "pattern", "backend", "psnr", "ssim", "seconds", "lit_pixels", "figure"})
 #: The footprints step times its models on the pixels after these (the first call loads a model, warms a device).
 WARM_UP_PIXELS = 8
 
@@ -262,8 +264,11 @@ class Demo:
             return {}
         try:
             kept = json.loads(path.read_text())
-            units = dict(kept["units"])
-        except (ValueError, KeyError, TypeError):  # a damaged file of this run's own: relight again
+            units = {str(k): list(rows) for k, rows in kept["units"].items()}
+            if not all(rows and all(isinstance(r, dict) and ROW_KEYS <= r.keys() for r in rows) for rows in units.values()):
+                raise ValueError("rows lack the report's keys")
+        except (ValueError, KeyError, TypeError, AttributeError):  # damaged, or of another version: relight again
+            self.log(f"  {path} is unreadable: its relights are done again")
             return {}
         same = kept.get("decoder") == self._model_identity(ckpt)
         return {k: rows for k, rows in units.items() if same or not uses_decoder(k.rsplit("/", 1)[-1])}
