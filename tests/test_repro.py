@@ -177,6 +177,33 @@ def test_a_stopped_relight_step_keeps_what_it_relit_and_resumes(repro, tmp_path)
     assert sum(m.startswith("  relit ") for m in logs) == 1  # ... the model-free ones are
 
 
+@pytest.mark.slow
+def test_relights_the_budget_left_out_are_done_by_the_next_run(repro, tmp_path, monkeypatch):
+    """A relight step whose budget left relights out is "partial", not done: the next run (a budget of its own)
+    relights only those, keeping the others, and then it is done."""
+    import shutil
+
+    from sssphase_core.reporting.repro import BUDGET_SPENT, PaperRepro, run_repro
+
+    src, _ = repro
+    out = tmp_path / "run"
+    shutil.copytree(src, out)
+    for name in ("relight.json", "relight_partial.json"):
+        (out / "steps" / name).unlink(missing_ok=True)
+    with monkeypatch.context() as patched:  # this run's budget has no room for the torch relight
+        patched.setattr(PaperRepro, "_may_relight", lambda self, b, n: f"{BUDGET_SPENT} (test)" if b == "torch" else None)
+        run_repro(out, lambda reqs: pytest.fail("nothing is captured again"), preset="tiny", device="cpu", log=lambda m: None)
+    step = json.loads((out / "steps" / "relight.json").read_text())
+    assert step["status"] == "partial" and "sand_rake/torch left to the budget" in step["reason"]
+    assert {r["backend"] for r in step["rows"]} == {"none", "analytic"}
+    assert "Not all relit: sand_rake/torch left to the budget" in (out / "report.md").read_text()
+    logs: list[str] = []
+    run_repro(out, lambda reqs: pytest.fail("nothing is captured again"), preset="tiny", device="cpu", log=logs.append)
+    assert [m for m in logs if m.startswith("  relit ")] == [m for m in logs if "relit sand_rake with torch" in m] != []
+    step = json.loads((out / "steps" / "relight.json").read_text())
+    assert step["status"] == "done" and {r["backend"] for r in step["rows"]} == {"none", "analytic", "torch"}
+
+
 def test_a_damaged_or_foreign_relight_record_is_relit_not_read(tmp_path):
     """The kept relights are reused only when every row holds what the report reads; otherwise they are done
     again, with one line saying so."""

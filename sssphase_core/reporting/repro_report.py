@@ -84,7 +84,7 @@ def repro_markdown(data: dict[str, Any]) -> str:
 
     rel = steps.get("relight", {})
     out += ["## Relighting unseen objects against their reference captures", ""]
-    if rel.get("status") in ("done", "running") and rel.get("rows"):
+    if rel.get("status") in ("done", "running", "partial") and rel.get("rows"):
         t = _Rows(["object", "pattern", "backend", "PSNR (dB)", "SSIM", "s per pattern"])
         for r in rel["rows"]:
             t.add([r["object"], r["pattern"], r["backend"], f"{r['psnr']:.2f}", f"{r['ssim']:.3f}", f"{r['seconds']:.1f}"])
@@ -92,6 +92,8 @@ def repro_markdown(data: dict[str, Any]) -> str:
         if rel["status"] == "running":
             out += ["The relight step did not finish (it was running when this report was written, or stopped): the "
                     "relights above are kept, and a rerun relights only the rest.", ""]
+        elif rel["status"] == "partial":
+            out += [f"Not all relit: {rel.get('reason')} (the relights above are kept).", ""]
         if rel.get("skipped"):
             out += ["Skipped: " + "; ".join(f"{k}: {v}" for k, v in rel["skipped"].items()), ""]
     else:
