@@ -36,9 +36,16 @@ def backend_source(backend: object, psp: np.ndarray, chunk: int = 256) -> Footpr
     k = int(backend.patch)  # type: ignore[attr-defined]
     size = int(getattr(backend, "input_patch", k))
     stack = pad_for_patches(to_channels_first(np.asarray(psp, np.float32)), size)
+    as_tensors = bool(getattr(backend, "accepts_tensors", False))
+    if as_tensors:  # the stack goes to the model's device once and patches are cropped there (a 1080p view's
+        stack = stack.to(getattr(backend, "device", "cpu"))  # K = 90 patches are 141 GB to crop and copy)
+
+    def patches(pixels: np.ndarray) -> np.ndarray | torch.Tensor:
+        crops = crop_patches(stack, pixels, size, padded=True)
+        return crops if as_tensors else crops.numpy()
 
     def source(pixels: np.ndarray) -> np.ndarray | torch.Tensor:
-        parts = [backend.predict_footprints(crop_patches(stack, pixels[i:i + chunk], size, padded=True).numpy())  # type: ignore[attr-defined]
+        parts = [backend.predict_footprints(patches(pixels[i:i + chunk]))  # type: ignore[attr-defined]
                  for i in range(0, len(pixels), chunk)]
         if not parts:
             return np.zeros((0, k, k, 3), np.float32)

@@ -82,6 +82,32 @@ def test_pixels_beyond_the_training_widths_get_the_analytic_footprints_and_the_o
     assert np.median(centre(out)) < np.median(centre(own))
 
 
+def test_patches_as_tensors_give_the_footprints_of_the_same_patches_as_arrays(decoder_run, synthetic):
+    """The relight crops a view's patches on the model's device and hands them over as tensors: the same
+    footprints as from arrays, the guard's widths read from each patch's centre window, beyond the domain too;
+    a tensor of the wrong shape is one clear line."""
+    from sssphase_core.errors import InputError
+    from sssphase_core.learning.backends.torch_backend import GUARD_WINDOW, _centre_window
+    from sssphase_core.relight.sources import backend_source
+
+    v = synthetic[0][0]
+    for contrast in (1.0, 0.02):  # inside the domain; beyond it (the analytic model's footprints)
+        psp = v.psp if contrast == 1.0 else _washed_out(v.psp, contrast)
+        arrays = get_backend("torch", checkpoint=decoder_run, black=0.0)
+        tensors = get_backend("torch", checkpoint=decoder_run, black=0.0)
+        patches = psp_patches(psp, v.pixels, 16)
+        want = arrays.predict_footprints(patches)
+        got = tensors.predict_footprints(torch.from_numpy(patches))
+        np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)  # (float rounding: another memory layout)
+        for window in (_centre_window(patches, GUARD_WINDOW), _centre_window(torch.from_numpy(patches), GUARD_WINDOW)):
+            for key, value in pixel_widths(patches, 16, 0.0).items():  # what the guard reads of the whole patches
+                np.testing.assert_array_equal(pixel_widths(window, 16, 0.0)[key], value)
+        assert tensors.beyond_domain == arrays.beyond_domain == (0 if contrast == 1.0 else len(v.pixels))
+        np.testing.assert_allclose(backend_source(tensors, psp, chunk=7)(v.pixels), want, rtol=1e-5, atol=1e-9)
+    with pytest.raises(InputError, match=r"PSP patches must be \(N, 24, K, K\)"):
+        tensors.predict_footprints(torch.zeros((2, 8, 16, 16)))
+
+
 def test_a_checkpoint_from_before_the_domain_uses_the_decoder_everywhere(decoder_run, synthetic, tmp_path):
     old = torch.load(decoder_run, weights_only=False, map_location="cpu")
     old.pop("domain")

@@ -36,6 +36,9 @@ class TorchBackend:
     predicted so far."""
 
     name = "torch"
+    #: ``predict_footprints`` takes (N, 24, K, K) tensors on its device too: the relight crops them there from the
+    #: view's stack (:func:`~sssphase_core.relight.sources.backend_source`), not on the host.
+    accepts_tensors = True
 
     def __init__(self, checkpoint: Path | str | None = None, *, device: str = "cpu", batch_size: int = 128,
                  black: float = 0.002, guard: bool = True) -> None:
@@ -88,16 +91,22 @@ class TorchBackend:
     def predict_footprints(self, query: Query) -> np.ndarray:
         if self.decoder is None:
             raise InputError("the torch backend has no decoder checkpoint: pass checkpoint=... or call fit()")
-        patches = as_patches(query, self.patch)
+        patches = _tensor_patches(query) if torch.is_tensor(query) else as_patches(query, self.patch)
         far = np.zeros(len(patches), bool)
         guarded = self.guard and self.domain is not None and len(patches)
         if guarded:
-            est = pixel_widths(patches, self.patch, self.black)
+            est = pixel_widths(_centre_window(patches, GUARD_WINDOW), self.patch, self.black)
             far = beyond(self.domain, est["widths"])
         out = np.zeros((len(patches), self.patch, self.patch, 3), np.float32)
         near = np.flatnonzero(~far)
         for i in range(0, len(near), self.batch_size):
-            x = torch.as_tensor(patches[near[i : i + self.batch_size]], device=self.device)
+            if len(near) == len(patches):  # (the usual case: a slice, no copy)
+                batch = patches[i : i + self.batch_size]
+            elif torch.is_tensor(patches):
+                batch = patches.index_select(0, torch.as_tensor(near[i : i + self.batch_size], device=patches.device))
+            else:
+                batch = patches[near[i : i + self.batch_size]]
+            x = torch.as_tensor(batch, device=self.device)
             pred, _ = FootprintNet(self.encoder, self.decoder)(x)
             out[near[i : i + self.batch_size]] = pred.float().permute(0, 2, 3, 1).cpu().numpy()
         tail = self.domain.tail_radius if guarded else None  # type: ignore[union-attr]
@@ -115,3 +124,25 @@ class TorchBackend:
         self.beyond_domain += int(far.sum())
         self.predicted += len(patches)
         return out
+
+
+#: The window around each pixel the guard's width estimate reads (the analytic model's, 5 x 5).
+GUARD_WINDOW = 5
+
+
+def _tensor_patches(query: torch.Tensor) -> torch.Tensor:
+    """A tensor query: (N, 24, K, K) float32 patches on any device, as they are."""
+    if query.ndim != 4 or query.shape[1] != 24 or query.shape[2] != query.shape[3]:
+        raise InputError(f"PSP patches must be (N, 24, K, K), got {tuple(query.shape)}")
+    return query.float()
+
+
+def _centre_window(patches: np.ndarray | torch.Tensor, size: int) -> np.ndarray:
+    """(N, 24, size, size) numpy: the window of ``size`` around each patch's centre pixel (K // 2) -- all the
+    guard's estimate reads, so a device's patches are not copied to the host whole."""
+    k = patches.shape[-1]
+    if k < size:
+        return np.asarray(patches)  # (refused by the estimate, naming the sizes)
+    c, h = k // 2, size // 2
+    win = patches[:, :, c - h:c + h + 1, c - h:c + h + 1]
+    return win.cpu().numpy() if torch.is_tensor(win) else np.asarray(win)
