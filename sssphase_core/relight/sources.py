@@ -30,7 +30,8 @@ def backend_source(backend: object, psp: np.ndarray, chunk: int = 256) -> Footpr
     cropped from the view's stack padded once (a 1080p stack is 200 MB) and given to
     ``predict_footprints`` ``chunk`` at a time (a K = 90 patch is 0.8 MB, and backends work on copies).
     S is the backend's ``input_patch`` where it reads less than its footprint's K x K (the analytic model:
-    a 5 x 5 window; cropping K = 90 patches for it took 160 of the 323 s of a 1080p relight), else K."""
+    a 5 x 5 window; cropping K = 90 patches for it took 160 of the 323 s of a 1080p relight), else K. A backend
+    that ``accepts_tensors`` (torch) gets them as tensors cropped on its ``device``, the stack moved there once."""
     from sssphase_core.learning.data import crop_patches, pad_for_patches, to_channels_first
 
     k = int(backend.patch)  # type: ignore[attr-defined]

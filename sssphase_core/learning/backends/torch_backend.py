@@ -88,7 +88,7 @@ class TorchBackend:
         return path
 
     @torch.no_grad()
-    def predict_footprints(self, query: Query) -> np.ndarray:
+    def predict_footprints(self, query: Query | torch.Tensor) -> np.ndarray:
         if self.decoder is None:
             raise InputError("the torch backend has no decoder checkpoint: pass checkpoint=... or call fit()")
         patches = _tensor_patches(query) if torch.is_tensor(query) else as_patches(query, self.patch)
