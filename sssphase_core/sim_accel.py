@@ -35,6 +35,10 @@ from sssphase_core.sim.transport import FAR, NEAR, RATE_CAP, SurfaceMaps, Transp
 DEVICE_CHUNK_ENTRIES = 32_000_000
 #: Splat products (entries x patterns x 3) per ``index_put_`` call.
 SPLAT_ENTRIES = 256_000_000
+#: A source's footprint costs about this many times its splat under one pattern (the CPU: 2). A batch whose sources
+#: are lit by m of its P patterns on average is splatted pattern by pattern (each source recomputed m times, each
+#: splatted under its own) when ``m (R + 1) < R + P``: a batch of dot grids, each source lit by one of them.
+COMPUTE_OVER_SPLAT = 2.0
 
 
 def _burley_cdf(r: torch.Tensor, s: torch.Tensor) -> torch.Tensor:
@@ -126,9 +130,32 @@ class TorchTransport(Transport):
         light: np.ndarray,
         progress: Callable[[int, int], None] | None = None,
     ) -> np.ndarray:
-        """sum_p F_p(q - p) * light_p for sources (N,) flat index and light (N, P, 3) -> (P, H, W, 3)."""
-        n_pat, kk, dev = light.shape[1], self.k * self.k, self.device
+        """sum_p F_p(q - p) * light_p for sources (N,) flat index and light (N, P, 3) -> (P, H, W, 3). Where each
+        source is lit by few of the patterns (dot grids: one of a batch's), each pattern splats only its own."""
+        n_pat, dev = light.shape[1], self.device
+        lit = (light > 0).any(axis=2)  # (N, P)
+        per_source = float(lit.sum(axis=1).mean()) if len(lit) else 0.0
+        if per_source * (COMPUTE_OVER_SPLAT + 1) < COMPUTE_OVER_SPLAT + n_pat:
+            planes = torch.zeros((n_pat, self.hpad * self.wpad, 3), dtype=torch.float32, device=dev)
+            done, total = 0, int(lit.sum())
+            for p in range(n_pat):
+                mine = np.flatnonzero(lit[:, p])
+                self._splat_into(planes[p], sources[mine], light[mine, p : p + 1],
+                                 None if progress is None else lambda n, _t, d=done: progress(d + n, total))
+                done += len(mine)
+            img = planes.reshape(n_pat, self.hpad, self.wpad, 3)[:, self.half : self.half + self.h,
+                                                                   self.half : self.half + self.w]
+            return img.contiguous().cpu().numpy()
         canvas = torch.zeros((self.hpad * self.wpad, n_pat * 3), dtype=torch.float32, device=dev)
+        self._splat_into(canvas, sources, light, progress)
+        img = canvas.reshape(self.hpad, self.wpad, n_pat, 3)[self.half : self.half + self.h, self.half : self.half + self.w]
+        return img.permute(2, 0, 1, 3).contiguous().cpu().numpy()
+
+
+    def _splat_into(self, canvas: torch.Tensor, sources: np.ndarray, light: np.ndarray,
+                    progress: Callable[[int, int], None] | None) -> None:
+        """Accumulate sources (N,) under light (N, P, 3) into ``canvas`` (padded H * W, P * 3), in chunks."""
+        n_pat, kk, dev = light.shape[1], self.k * self.k, self.device
         step = max(1, min(self.chunk_size(), SPLAT_ENTRIES // (kk * n_pat * 3)))
         for start in range(0, len(sources), step):
             src = sources[start : start + step]
@@ -141,8 +168,6 @@ class TorchTransport(Transport):
             canvas.index_put_((rows,), vals.reshape(-1, n_pat * 3), accumulate=True)
             if progress is not None:
                 progress(min(start + step, len(sources)), len(sources))
-        img = canvas.reshape(self.hpad, self.wpad, n_pat, 3)[self.half : self.half + self.h, self.half : self.half + self.w]
-        return img.permute(2, 0, 1, 3).contiguous().cpu().numpy()
 
 
 class TorchRadiativeTransport(TorchTransport):

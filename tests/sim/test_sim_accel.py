@@ -49,6 +49,41 @@ def test_a_dot_frame_lights_only_its_dots_on_the_device():
     assert (a[0].sum(-1) > 0).mean() < 0.5  # most of the image stays (near) black
 
 
+@pytest.mark.parametrize("device", DEVICES)
+def test_a_batch_of_dot_grids_splats_each_source_only_under_its_own_grid(device, monkeypatch):
+    """A batch of dot frames lights each source under one of its patterns: it is splatted pattern by pattern, and
+    renders what numpy renders and what the every-pattern splat renders, frame for frame; a batch with a full-white
+    pattern among the dots too."""
+    from sssphase_core import sim_accel
+    from sssphase_core.processing.patterns import dot_grid
+
+    rig = rig_preset("cpu")
+    cpu = SimScene("apple", rig=rig)
+    dev = SimScene("apple", rig=rig, transport_factory=transport_factory(device))
+    dots = np.stack([dot_grid(256, 192, 20, i, j) for i, j in ((0, 0), (7, 3), (13, 11), (19, 19))])
+    dev.unit_white()  # (the first render would add the unit white's pattern to the batch)
+    calls: list[int] = []  # the patterns of each splat
+    splat_into = sim_accel.TorchTransport._splat_into
+
+    def counted(self, canvas, src, light, progress):
+        calls.append(light.shape[1])
+        return splat_into(self, canvas, src, light, progress)
+
+    monkeypatch.setattr(sim_accel.TorchTransport, "_splat_into", counted)
+    for patterns in (dots, np.concatenate([dots, np.ones((1, 192, 256), np.float32)])):
+        calls.clear()
+        b = dev.render(patterns)
+        assert calls == [1] * len(patterns)  # one pattern at a time
+        a = cpu.render(patterns)
+        assert np.abs(a - b).max() <= 1e-5 * a.max()
+        with monkeypatch.context() as every:
+            every.setattr(sim_accel, "COMPUTE_OVER_SPLAT", 1e9)  # every source under every pattern
+            calls.clear()
+            dense = dev.render(patterns)
+        assert calls == [len(patterns)]
+        assert np.abs(dense - b).max() <= 1e-5 * a.max()  # (float32 sums in another order)
+
+
 def test_directional_dipole_stays_on_the_cpu_whatever_the_device():
     from sssphase_core.sim.rig import with_transport
 
