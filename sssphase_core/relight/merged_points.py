@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sssphase_core.processing.axis_refinement import AxisRefinement, refine_axis
+from sssphase_core.processing.axis_refinement import AxisRefinement, median_spacing, refine_axis
 from sssphase_core.processing.triangulation import StereoCalibration, distance_to_axis, triangulate, turned
 
 if TYPE_CHECKING:
@@ -141,7 +141,7 @@ def _agreement(merged: dict[int, np.ndarray], angles: dict[int, float]) -> tuple
         if before == after or len(a) < 2 or len(b) < 1:
             continue
         tree = cKDTree(a)
-        spacing = float(np.median(tree.query(a, k=2)[0][:, 1]))
+        spacing = median_spacing(a, tree)
         spacings.append(spacing)
         distance = tree.query(b, distance_upper_bound=OVERLAP_SPACINGS * spacing)[0]
         found.append(distance[np.isfinite(distance)])
