@@ -5,7 +5,8 @@ A backend turns PSP observations into per-pixel footprints. ``predict_footprints
 (N, K, K, 3) float32 footprints in linear camera units. ``pretrain``/``fit`` train whatever the
 backend learns (no-ops for a physics baseline). A backend that reads only a small window of each patch
 may say so with an ``input_patch`` attribute (S < K; e.g. the analytic model's 5): relighting then gives it
-(N, 24, S, S) patches. This module does not import torch.
+(N, 24, S, S) patches. One that sets ``accepts_tensors = True`` is given them as torch tensors cropped on its
+``device`` (the torch backend: a 1080p view's patches are not built on the host). This module does not import torch.
 """
 
 from __future__ import annotations
