@@ -267,7 +267,11 @@ def _frame_green(page) -> np.ndarray:
 
 def test_live_frames_arrive_and_follow_the_exposure_and_the_pattern(page, tmp_path):
     page.wait_for("Number(document.getElementById('frame-count').textContent) > 3", 60)
-    assert page.evaluate("document.getElementById('live-image').naturalWidth") == 256
+    # the count rises as the next frame starts loading (its naturalWidth reads 0 until it is decoded): read the
+    # width once the image is whole, in the same task, as _frame_green does
+    assert page.evaluate("""(async () => { const img = document.getElementById('live-image');
+        for (let i = 0; i < 500 && !(img.complete && img.naturalWidth > 0); i++) await new Promise(r => setTimeout(r, 10));
+        return img.naturalWidth; })()""") == 256
     assert float(page.evaluate("document.getElementById('fps').textContent")) > 0
     assert float(page.evaluate("document.getElementById('latency').textContent")) >= 0
     _set(page, "pattern", "white")
