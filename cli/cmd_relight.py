@@ -45,6 +45,9 @@ ResizeOpt = Annotated[str, typer.Option("--resize", help="Bring patterns of anot
                                         "(keep the aspect ratio, pad with black), fill (keep it, crop) or stretch.")]
 ChunkOpt = Annotated[int, typer.Option(min=1, help="Pixels per footprint/splat chunk.")]
 DeviceOpt = Annotated[str, typer.Option(help="cpu or cuda.")]
+PrecisionOpt = Annotated[str, typer.Option(help="The decoder's inference: auto (bf16 where the device computes it "
+                                           "natively: CUDA GPUs from Ampere, CPUs with AVX512-BF16 or AMX; else "
+                                           "fp32), fp32 or bf16.")]
 CacheOpt = Annotated[bool, typer.Option(help="Keep predicted footprints in OUT/cache (float16) for later patterns.")]
 EvalCacheOpt = Annotated[bool, typer.Option(help="Keep the models' footprints in OUT/cache (float16) for the next evaluation; "
                                             "start from those `sss train decoder --check-sessions` kept for the same view and checkpoint.")]
@@ -109,6 +112,7 @@ def relight_cmd(
     cache: CacheOpt = True,
     image_format: FormatOpt = "png",
     widen: WidenOpt = None,
+    precision: PrecisionOpt = "auto",
 ) -> None:
     """Relight a captured object under new projector patterns (several patterns share one footprint pass), or under
     every frame of a video or an animated image (frames and an MP4 per view; an interrupted run resumes)."""
@@ -128,7 +132,8 @@ def relight_cmd(
         own = checkpoint if len(names) == 1 or uses_decoder(name) else None
         run = relight_sequence if sequences else relight_session
         run(session, sequences[0] if sequences else pattern, backend=name, checkpoint=own, out=out, views=views,
-            resize=resize, chunk=chunk, device=device, cache=cache, formats=image_format, widen=widen, narrator=_Narrator())
+            resize=resize, chunk=chunk, device=device, cache=cache, formats=image_format, widen=widen, narrator=_Narrator(),
+            precision=precision)
 
 
 def geometry_cmd(
@@ -182,12 +187,13 @@ def eval_relight(
     calibrate: CalibrateOpt = True,
     cache: EvalCacheOpt = True,
     widen: WidenOpt = None,
+    precision: PrecisionOpt = "auto",
 ) -> None:
     """Relight every reference pattern of the sessions and tabulate MSE / PSNR / SSIM over objects and views."""
     from sssphase_core.relight.runner import evaluate_sessions
 
     evaluate_sessions(sessions, backend=backend, checkpoint=checkpoint, views=views, out=out, device=device,
-                      calibrate=calibrate, cache=cache, widen=widen, narrator=_Narrator())
+                      calibrate=calibrate, cache=cache, widen=widen, narrator=_Narrator(), precision=precision)
 
 
 def _names(text: str, option: str) -> tuple[str, ...]:

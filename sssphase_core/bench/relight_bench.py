@@ -3,8 +3,8 @@
 Everything runs on simulated views, so the reference is the simulator's noise-free render under
 the same pattern. Backends: ``none`` (no scattering), ``analytic`` (physics baseline from the PSP
 modulation), ``exact`` (the simulator's exact footprints: the upper bound, ground truth no lab has), ``torch`` when a decoder
-checkpoint is given. Swept: footprint truncation radius, chunk size and precision (fp32, bf16).
-Times are the footprint time (network / model / simulator, measured once per backend) plus the splat.
+checkpoint is given. Swept: footprint truncation radius, chunk size and the splat's precision (fp32, bf16), and
+for the decoder its inference's precision (fp32, bf16). Times are the footprint time (network / model / simulator, measured once per backend) plus the splat.
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ import torch
 
 from sssphase_core.bench.output import Table, machine_info, median_seconds, write_bench_report
 from sssphase_core.relight import Projection, emitted_light, lit_pixels, make_source, relight
+from sssphase_core.relight.choices import BLENDS
 from sssphase_core.relight.evaluation import relight_metrics
 from sssphase_core.store.files import save_figure
 
@@ -80,11 +81,12 @@ def sim_view(obj: Any, view: int = 0, *, n_views: int = 4, seed: int = 0, rig: s
                    None if white_exposure is None else cfg.sensor.saturation(white_exposure), inputs)
 
 
-def source_for(backend: str, sv: SimView, checkpoint: Path | str | None) -> tuple[Callable, int]:
-    """The footprint source of ``backend`` for a simulated view (``exact``: the simulator's footprints)."""
+def source_for(backend: str, sv: SimView, checkpoint: Path | str | None, precision: str = "auto") -> tuple[Callable, int]:
+    """The footprint source of ``backend`` for a simulated view (``exact``: the simulator's footprints), a decoder's
+    inferring in ``precision``."""
     if backend == "exact":
         return sv.scene.footprints, sv.patch
-    return make_source(backend, sv, checkpoint=checkpoint)  # type: ignore[arg-type]
+    return make_source(backend, sv, checkpoint=checkpoint, precision=precision)  # type: ignore[arg-type]
 
 
 class InMemorySource:
@@ -110,18 +112,24 @@ def work_precision(sv: SimView, backends: Sequence[str], *, checkpoint: Path | s
                    progress: Progress | None = None) -> list[dict[str, Any]]:
     """Relit PSNR (mean over the reference patterns) and run time per backend and configuration.
 
-    ``seconds`` = footprint time (once per backend, float32) + the configuration's splat time."""
+    ``seconds`` = footprint time (once per backend, and for the decoder once per inference precision: ``inference``)
+    + the configuration's splat time. The decoder's bf16 inference is relit with the default splat only."""
     names = sorted(sv.references)
     pats = [sv.references[n] for n in names]
     pixels, _ = lit_pixels(sv.proj, emitted_light(np.stack(pats), sv.proj.gamma))
     rows = []
-    for backend in backends:
+    runs = [(b, inference) for b in backends for inference in (("fp32", "bf16") if b == "torch" else ("-",))]
+    for backend, inference in runs:
+        if backend in BLENDS:  # several models weighed by the view calibration: relit as `sss relight` does, once
+            rows.append(blend_row(sv, backend, pats, names, checkpoint, len(pixels), default_chunk, progress))
+            continue
         if progress:
-            progress(f"{sv.object}: {backend} footprints of {len(pixels)} lit pixels")
-        source, patch = source_for(backend, sv, checkpoint)
+            progress(f"{sv.object}: {backend} footprints of {len(pixels)} lit pixels"
+                     + (f" ({inference} inference)" if inference != "-" else ""))
+        source, patch = source_for(backend, sv, checkpoint, "fp32" if inference == "-" else inference)
         cached = InMemorySource(source, pixels, sv.proj.shape)
         configs = [("fp32", default_chunk, None)]
-        if backend != "none":
+        if backend != "none" and inference in ("-", "fp32"):
             configs += [("fp32", default_chunk, r) for r in radii if r < patch // 2]
             configs += [("fp32", c, None) for c in chunks if c != default_chunk]
             configs += [(d, default_chunk, None) for d in dtypes if d != "fp32"]
@@ -133,12 +141,36 @@ def work_precision(sv: SimView, backends: Sequence[str], *, checkpoint: Path | s
                           dtype=torch.bfloat16 if dtype == "bf16" else torch.float32)
             splat = time.perf_counter() - t0
             mets = [relight_metrics(o, sv.captured[n], sv.proj.mask) for o, n in zip(out, names, strict=True)]
-            rows.append({"object": sv.object, "backend": backend, "dtype": dtype, "chunk": chunk,
+            rows.append({"object": sv.object, "backend": backend, "inference": inference, "dtype": dtype, "chunk": chunk,
                          "radius": radius if radius is not None else patch // 2, "seconds": cached.seconds + splat,
                          "footprint_seconds": cached.seconds, "splat_seconds": splat, "lit_pixels": len(pixels),
                          "psnr": float(np.mean([m["psnr"] for m in mets])), "ssim": float(np.mean([m["ssim"] for m in mets])),
                          "finite": bool(np.isfinite(out).all())})
     return rows
+
+
+def blend_row(sv: SimView, backend: str, pats: list[np.ndarray], names: list[str], checkpoint: Path | str | None,
+              lit: int, chunk: int, progress: Progress | None = None) -> dict[str, Any]:
+    """One row for a blend (:data:`~sssphase_core.relight.choices.BLENDS`): its members' footprints predicted and
+    weighed by the view calibration in one pass (:func:`~sssphase_core.relight.pipeline.relight_view`, widened as
+    ``sss relight`` widens it), timed whole; the splat settings are not swept (its members' rows sweep them)."""
+    from sssphase_core.relight.backends import make_sources
+    from sssphase_core.relight.choices import widen_for
+    from sssphase_core.relight.pipeline import relight_view
+
+    if progress:
+        progress(f"{sv.object}: {backend} (its members' footprints and the view calibration)")
+    t0 = time.perf_counter()
+    (source, patch), *also = make_sources(backend, sv, checkpoint=checkpoint)  # type: ignore[arg-type]
+    out, _ = relight_view(source, patch, sv, pats, calibrate=True, also=also, chunk=chunk,  # type: ignore[arg-type]
+                          widen=widen_for(backend, None))
+    seconds = time.perf_counter() - t0
+    decoder = getattr(source, "backend", None)
+    mets = [relight_metrics(o, sv.captured[n], sv.proj.mask) for o, n in zip(out, names, strict=True)]
+    return {"object": sv.object, "backend": backend, "inference": getattr(decoder, "precision", "-"), "dtype": "fp32",
+            "chunk": chunk, "radius": patch // 2, "seconds": seconds, "footprint_seconds": seconds, "splat_seconds": 0.0,
+            "lit_pixels": lit, "psnr": float(np.mean([m["psnr"] for m in mets])),
+            "ssim": float(np.mean([m["ssim"] for m in mets])), "finite": bool(np.isfinite(out).all())}
 
 
 def lit_fraction_patterns(width: int, height: int) -> dict[str, np.ndarray]:
@@ -199,12 +231,13 @@ def plot(rows: list[dict[str, Any]], lit: list[dict[str, Any]], path: Path) -> P
     import matplotlib.pyplot as plt
 
     fig, (a, b) = plt.subplots(1, 2, figsize=(11, 4), constrained_layout=True)
-    colours = {"none": "tab:gray", "analytic": "tab:orange", "exact": "tab:green", "torch": "tab:blue"}
+    colours = {"none": "tab:gray", "analytic": "tab:orange", "exact": "tab:green", "torch": "tab:blue", "blend": "tab:purple"}
     for backend in dict.fromkeys(r["backend"] for r in rows):
         rs = [r for r in rows if r["backend"] == backend]
         a.scatter([r["seconds"] for r in rs], [r["psnr"] for r in rs], label=backend, color=colours.get(backend))
         for r in rs:
-            a.annotate(f"{r['dtype']} c{r['chunk']} r{r['radius']}", (r["seconds"], r["psnr"]), fontsize=6, alpha=0.7)
+            net = f"net {r['inference']} " if r.get("inference", "-") != "-" else ""
+            a.annotate(f"{net}{r['dtype']} c{r['chunk']} r{r['radius']}", (r["seconds"], r["psnr"]), fontsize=6, alpha=0.7)
     a.set_xscale("log")
     a.set_xlabel("run time (s, footprints + splat)")
     a.set_ylabel("relit PSNR vs noise-free reference (dB)")
@@ -228,7 +261,7 @@ def run(out: Path, *, objects: Sequence[str] = ("soap",), checkpoint: Path | str
         progress: Progress | None = None) -> dict[str, Any]:
     """The whole benchmark; writes ``out`` (JSON), ``out.md`` and ``out.png``. Returns the result."""
     out = Path(out)
-    use = [b for b in backends if b != "torch" or checkpoint is not None]
+    use = [b for b in backends if (b != "torch" and b not in BLENDS) or checkpoint is not None]
     rows: list[dict[str, Any]] = []
     views = []
     for obj in objects:
@@ -250,10 +283,13 @@ def run(out: Path, *, objects: Sequence[str] = ("soap",), checkpoint: Path | str
     figure = plot(rows, lit, out.with_suffix(".png"))
     skipped = [b for b in backends if b not in use]
     tables = [
-        Table("Work-precision: relit PSNR against run time", ["object", "backend", "dtype", "chunk", "radius", "PSNR (dB)", "SSIM", "time (s)"],
-              [[r["object"], r["backend"], r["dtype"], r["chunk"], r["radius"], r["psnr"], r["ssim"], r["seconds"]] for r in rows],
+        Table("Work-precision: relit PSNR against run time", ["object", "backend", "inference", "dtype", "chunk", "radius",
+                                                              "PSNR (dB)", "SSIM", "footprints (s)", "time (s)"],
+              [[r["object"], r["backend"], r["inference"], r["dtype"], r["chunk"], r["radius"], r["psnr"], r["ssim"],
+                r["footprint_seconds"], r["seconds"]] for r in rows],
               note="PSNR (peak 1.0, linear camera units) on the object mask, mean over the checkerboard and stripe patterns. "
-              "Time = footprints (once per backend) + splat; `exact` footprints come from the simulator's cache "
+              "Time = footprints (once per backend; the decoder's once per inference precision, bf16 relit with the "
+              "default splat only) + splat; `dtype` is the splat's precision; `exact` footprints come from the simulator's cache "
               "(filled when the references were rendered), so its time is lookup + splat."
               + (f" Skipped: {', '.join(skipped)} (no --checkpoint)." if skipped else "")),
         Table("Cost against lit valid pixels (exact footprints)", ["pattern", "lit pixels", "lit fraction", "time (s)", "time fraction"],

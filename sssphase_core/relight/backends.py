@@ -25,10 +25,10 @@ from sssphase_core.relight.views import RelightView
 
 
 def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",
-                calibrate: bool = True, **options: object) -> tuple[FootprintSource, int]:
+                calibrate: bool = True, precision: str = "auto", **options: object) -> tuple[FootprintSource, int]:
     """The footprint source of backend ``name`` for a view -> (source, patch size); ``options`` go to
-    the model backend (e.g. ``supersample`` for ``analytic``). A model backend's footprints are
-    ``calibrate``-d to the view (:func:`fit_view_mix`) unless told not to."""
+    the model backend (e.g. ``supersample`` for ``analytic``), ``precision`` to the decoder (``torch``). A model
+    backend's footprints are ``calibrate``-d to the view (:func:`fit_view_mix`) unless told not to."""
     if name == "none":
         return no_scattering_source(rv.white), 1
     if name == "exact":  # ground truth for evaluation only: no lab has these
@@ -80,7 +80,8 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
 
     if name == "torch":
         needs_checkpoint(name, checkpoint)
-        backend = get_backend("torch", checkpoint=checkpoint, device=device, **{"black": rv.proj.black, **options})
+        backend = get_backend("torch", checkpoint=checkpoint, device=device, precision=precision,
+                              **{"black": rv.proj.black, **options})
     elif name == "analytic":
         backend = get_backend("analytic", **{"patch": rv.patch, "black": rv.proj.black, **options})
     else:
@@ -159,13 +160,14 @@ def domain_line(rv: RelightView, name: str, source: FootprintSource) -> str | No
 
 
 def make_sources(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",
-                 **options: object) -> list[tuple[FootprintSource, int]]:
+                 precision: str = "auto", **options: object) -> list[tuple[FootprintSource, int]]:
     """The uncalibrated (source, patch) pairs of backend ``name``: its own, or for a blend
     (:data:`BLENDS`: ``blend`` = the decoder and the analytic model, weighted per view and colour by how
     well they relight the view's own fringe captures) each member's; ``options`` go to the analytic
-    member of a blend."""
+    member of a blend, ``precision`` to its decoder."""
     if name not in BLENDS:
-        return [make_source(name, rv, checkpoint=checkpoint, device=device, calibrate=False, **options)]
+        return [make_source(name, rv, checkpoint=checkpoint, device=device, calibrate=False, precision=precision,
+                            **options)]
     needs_checkpoint(name, checkpoint)
-    return [make_source(m, rv, checkpoint=checkpoint, device=device, calibrate=False,
+    return [make_source(m, rv, checkpoint=checkpoint, device=device, calibrate=False, precision=precision,
                         **(options if m == "analytic" else {})) for m in BLENDS[name]]

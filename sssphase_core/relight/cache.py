@@ -153,6 +153,12 @@ def model_tag(checkpoint: Path | str | None) -> str:
     return hashlib.sha256(key.encode()).hexdigest()[:10]
 
 
+def precision_tag(precision: str) -> str:
+    """What a decoder's inference precision adds to its caches' names: nothing for float32 (the names caches had
+    before bf16 inference), ``_bf16`` for bf16."""
+    return "" if precision == "fp32" else f"_{precision}"
+
+
 def view_tag(session: Session, view: int) -> str:
     """Short digest of a view's array checksums (the manifest's): footprints cached for one session's view
     are never read for another session's (the same object name imported again, another session relit into
@@ -162,10 +168,11 @@ def view_tag(session: Session, view: int) -> str:
     return hashlib.sha256(f"{session.path.resolve()}:{key}".encode()).hexdigest()[:10]
 
 
-def cache_path(out: Path, session: Session, rv: Any, member: str, checkpoint: Path | str | None) -> Path:
+def cache_path(out: Path, session: Session, rv: Any, member: str, checkpoint: Path | str | None,
+               precision: str = "fp32") -> Path:
     """The footprint cache of backend ``member`` for a view: named by object, view, the view's arrays and
-    (for the decoder) the checkpoint, so that nothing stale or foreign is read."""
-    tag = model_tag(checkpoint if member == "torch" else None)
+    (for the decoder) the checkpoint and its inference ``precision``, so that nothing stale or foreign is read."""
+    tag = model_tag(checkpoint if member == "torch" else None) + precision_tag(precision if member == "torch" else "fp32")
     return out / "cache" / f"{rv.object}_v{rv.view}_{view_tag(session, rv.view)}_{member}_{tag}.npz"
 
 
@@ -227,7 +234,8 @@ def view_caches(out: Path, rv: Any, sources: list[tuple[Any, int]], members: tup
     (:func:`cache_path`), started from the checkpoint run's check where it relit the view (:func:`seed_cache`)."""
     caches = []
     for (src, k), member in zip(sources, members, strict=True):
-        path = cache_path(out, rv.session, rv, member, checkpoint)
+        precision = getattr(getattr(src, "backend", None), "precision", "fp32")  # the decoder's (make_source's source)
+        path = cache_path(out, rv.session, rv, member, checkpoint, precision)
         seed_cache(path, checkpoint)
         caches.append(FootprintCache(src, path, rv.proj.shape, k))
     return caches

@@ -125,7 +125,8 @@ def comparison_figure(reference: np.ndarray, relit: np.ndarray, mask: np.ndarray
 
 def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Path | str | None = None,
                   chunk: int = 2048, device: str = "cpu", write: bool = True, cache: bool = False,
-                  progress: Callable[[int, int], None] | None = None, **options: object) -> list[dict[str, Any]]:
+                  progress: Callable[[int, int], None] | None = None, precision: str = "auto",
+                  **options: object) -> list[dict[str, Any]]:
     """Relight a :class:`~sssphase_core.relight.views.RelightView` under all its reference patterns in one
     pass with ``backend`` (``options`` go to the model backend); metrics per pattern (and figures /
     images under ``out_dir`` if ``write``). ``cache``: a model's footprints are kept in ``out_dir/cache`` as
@@ -144,7 +145,8 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
     # relight_view's: the calibration may widen the footprints too (by default as `sss relight` does for the backend)
     asked_widen = options.pop("widen", None)  # never a backend's option (it was passed on without the calibration)
     widen = widen_for(backend, asked_widen) if calibrate else None
-    sources = make_sources(backend, rv, checkpoint=checkpoint, device=device, **options)
+    sources = make_sources(backend, rv, checkpoint=checkpoint, device=device, precision=precision, **options)
+    decoders = [m for m in (getattr(src, "backend", None) for src, _ in sources) if getattr(m, "name", "") == "torch"]
     caches = footprint_caches(rv, backend, sources, Path(out_dir), checkpoint) if cache and not options else []
     if caches:
         sources = [(c, k) for c, (_, k) in zip(caches, sources, strict=True)]
@@ -173,6 +175,8 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
                "psnr_interior": interior_psnr(compared, rv.captured[name], rv.proj.mask),
                "seconds": seconds / len(names), "lit_pixels": int(rv.proj.mask.sum()),
                "decoded_share": round(rv.decoded_share, 4)}
+        if decoders:  # the decoder's inference: float32, or bf16 (--precision)
+            row["precision"] = decoders[0].precision
         if caches:  # its seconds are the model's run time only for the footprints it predicted now
             row["footprints_from_cache"] = round(read, 4)
         if mix is not None:  # a model calibrated to the view: its weight against no scattering, per colour

@@ -24,6 +24,7 @@ from sssphase_core.relight.cache import (
     footprint_bytes,
     kept,
     model_tag,
+    precision_tag,
     saved_if_interrupted,
     view_caches,
     view_tag,
@@ -118,10 +119,13 @@ def same_pattern(pattern: np.ndarray, reference: np.ndarray) -> bool:
 
 
 def lowrank_path(out: Path, session: Session, rv: RelightView, backend: str, checkpoint: Path | str | None,
-                 widen: float | None = None) -> Path:
+                 widen: float | None = None, precision: str = "fp32") -> Path:
     """The eigen-footprint cache of a view relit with ``backend`` (all its members and its calibration, whose members
-    are stretched ``widen`` x along x, y and both, and softened), named as :func:`cache_path` names footprint caches."""
-    tag = model_tag(checkpoint if uses_decoder(backend) else None) + (f"_w{widen:g}" if widen else "")
+    are stretched ``widen`` x along x, y and both, and softened; its decoder inferring in ``precision``), named as
+    :func:`cache_path` names footprint caches."""
+    decoder = uses_decoder(backend)
+    tag = (model_tag(checkpoint if decoder else None) + precision_tag(precision if decoder else "fp32")
+           + (f"_w{widen:g}" if widen else ""))
     return out / "cache" / f"{rv.object}_v{rv.view}_{view_tag(session, rv.view)}_{backend}_{tag}_lowrank.npz"
 
 
@@ -321,9 +325,9 @@ def check_decoder_fits(checkpoint: Path | None, backends: Sequence[str], session
 
 
 def check_relight_options(out: Path, patterns: Sequence[str], resize: str, formats: str | Sequence[str],
-                           device: str) -> tuple[str, ...]:
+                           device: str, precision: str = "auto") -> tuple[str, ...]:
     """The options of :func:`relight_session` checked, in the order the CLI always checked them."""
-    from sssphase_core.compute import check_device
+    from sssphase_core.compute import check_device, check_precision
     from sssphase_core.store.imageio import RESIZE_MODES
     from sssphase_core.store.session import check_output_folder
 
@@ -334,6 +338,7 @@ def check_relight_options(out: Path, patterns: Sequence[str], resize: str, forma
     if any(not p.strip() for p in patterns):
         raise InputError("--pattern is empty: give an image file or a named pattern (checkerboard, stripes_x, ...)")
     check_device(device)  # one line before any progress is drawn
+    check_precision(precision)
     return chosen
 
 
@@ -341,17 +346,18 @@ def relight_session(session: Path | str | Session, patterns: Sequence[str], *, b
                     checkpoint: Path | str | None = None, out: Path | str = Path("relit"),
                     views: str | Sequence[int] | None = "", resize: str = "", chunk: int = 1024, device: str = "cpu",
                     cache: bool = True, formats: str | Sequence[str] = "png", widen: float | None = None,
-                    narrator: Narrator | None = None) -> RelightResult:
+                    narrator: Narrator | None = None, precision: str = "auto") -> RelightResult:
     """Relight a session's views under ``patterns`` (image files, the session's reference names or named
     patterns) with ``backend`` (``auto``: blend with a ``checkpoint``, else analytic) and write the images
     to ``out`` as ``<object>_v<view>_<pattern>_<backend>.png`` / ``.exr`` (``formats``), with a comparison
     figure and scores wherever the view holds a reference capture of the same pattern. Model footprints
     are cached in ``out/cache`` (``cache``) for later patterns. ``widen``: :func:`relight_view`'s, by default
-    :func:`~sssphase_core.relight.choices.widen_for` the backend (1: none)."""
+    :func:`~sssphase_core.relight.choices.widen_for` the backend (1: none). ``precision``: the decoder's inference
+    (:func:`~sssphase_core.compute.inference_precision`)."""
     from sssphase_core.store.session import claim_output
 
     out, say = Path(out), narrator or Narrator()
-    chosen_formats = check_relight_options(out, patterns, resize, formats, device)
+    chosen_formats = check_relight_options(out, patterns, resize, formats, device, precision)
     auto = backend == "auto"
     backend, ckpt = resolve_backend(backend, checkpoint, say)
     if note := unused_widen_note([backend], widen):
@@ -369,24 +375,28 @@ def relight_session(session: Path | str | Session, patterns: Sequence[str], *, b
                 say.say(f"backend: {backend}" + ("" if ckpt is not None else
                                                  " (no --checkpoint: the analytic model; a trained decoder blends in)"))
             if ckpt is not None and uses_decoder(backend):
-                say.say(f"decoder: {ckpt}")
+                from sssphase_core.compute import inference_precision
+
+                precision = inference_precision(device, precision)
+                say.say(f"decoder: {ckpt} ({precision} inference)")
             if line := widen_line({backend: widen}):
                 say.say(line)
         relit, result.mixes[v] = relight_one(s, rv, pats, backend, ckpt, out, chunk=chunk, device=device,
-                                              cache=cache, say=say, widen=widen)
+                                              cache=cache, say=say, widen=widen, precision=precision)
         result.images += write_relit(rv, relit, result.patterns, pats, out, backend, chosen_formats, say)
     return result
 
 
 def relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: str, checkpoint: Path | None,
-                 out: Path, *, chunk: int, device: str, cache: bool, say: Narrator, widen: float | None = None
-                 ) -> tuple[np.ndarray, np.ndarray | None]:
+                 out: Path, *, chunk: int, device: str, cache: bool, say: Narrator, widen: float | None = None,
+                 precision: str = "auto") -> tuple[np.ndarray, np.ndarray | None]:
     """One view relit (its footprints cached unless the source is the captured transport), its calibration
     and denoising told, its caches saved -> (images (P, H, W, 3), calibration weights or None).
 
     A model's relight also keeps the view's eigen-footprints and calibration (:mod:`~sssphase_core.relight.lowrank`);
     with them cached, later patterns are relit from those alone (seconds at 1080p, where the footprints
     themselves outgrow any cache); with ``widen``, the calibration's eigen-footprints are the first model's members (stretched along x, y and both, softened)."""
+    from sssphase_core.compute import inference_precision
     from sssphase_core.processing.projector import emitted_light
     from sssphase_core.relight.backends import domain_line, make_sources
     from sssphase_core.relight.cache import CACHE_BYTES
@@ -395,11 +405,13 @@ def relight_one(s: Session, rv: RelightView, pats: list[np.ndarray], backend: st
     from sssphase_core.relight.pipeline import relight_view, split_stretches
     from sssphase_core.relight.transport import DotTransport
 
-    fast = lowrank_path(out, s, rv, backend, checkpoint, widen)
+    precision = inference_precision(device, precision) if uses_decoder(backend) else "fp32"
+    fast = lowrank_path(out, s, rv, backend, checkpoint, widen, precision)
     saved = load_lowrank(fast, rv.proj.mask, widen) if cache and backend not in MODEL_FREE else None
     if saved is not None:
         return _relight_cached(rv, pats, backend, fast, saved, say, widened=bool(widen))
-    sources: list[tuple[FootprintSource, int]] = make_sources(backend, rv, checkpoint=checkpoint, device=device)
+    sources: list[tuple[FootprintSource, int]] = make_sources(backend, rv, checkpoint=checkpoint, device=device,
+                                                              precision=precision)
     models = [src for src, _ in sources]
     members = BLENDS.get(backend, (backend,))
     cached = cache and not isinstance(sources[0][0], DotTransport)  # the measured transport is read, not predicted
@@ -803,13 +815,14 @@ def _eval_views(found: Sequence[Session], views: str | Sequence[int] | None, bac
 def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BACKENDS, checkpoint: Path | str | None = None,
                       views: str | Sequence[int] | None = "", out: Path | str = Path("eval_relight"), device: str = "cpu",
                       calibrate: bool = True, cache: bool = True, widen: float | None = None,
-                      narrator: Narrator | None = None) -> EvaluationResult:
+                      narrator: Narrator | None = None, precision: str = "auto") -> EvaluationResult:
     """Relight every reference pattern of the sessions (folders, or folders holding sessions) with each of
     ``backend``'s comma-separated backends and tabulate MSE / PSNR / SSIM over objects and views: figures
     and images in ``out``, ``relight_eval.json`` and ``.md``. The default backends leave ``measured`` out
     where a view holds no dot-grid footprints. Model footprints are cached in ``out/cache`` (``cache``),
-    started from those the checkpoint's training cached when its check relit the same view."""
-    from sssphase_core.compute import check_device
+    started from those the checkpoint's training cached when its check relit the same view. ``precision``: the
+    decoder's inference (:func:`~sssphase_core.compute.inference_precision`)."""
+    from sssphase_core.compute import check_device, check_precision, inference_precision
     from sssphase_core.store.results import write_report
     from sssphase_core.store.session import by_object, check_output_folder, claim_output, find_sessions
 
@@ -826,13 +839,15 @@ def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BAC
     if note := unused_widen_note(backends, widen):
         say.say(note)
     check_device(device)  # one line before any progress is drawn
+    check_precision(precision)
     found = find_sessions(list(sessions))  # a missing folder is one line before any progress is drawn
     by_object(found, purpose="their results would share names; evaluate them with separate --out folders")
     check_decoder_fits(checkpoint, backends, found)
     _eval_views(found, views, backends, backend != EVAL_BACKENDS, say)
     claim_output(out, found)  # figures are named by object: another session's of the same object are not replaced
     if checkpoint is not None and any(uses_decoder(b) for b in backends):
-        say.say(f"torch backend: {checkpoint}")
+        precision = inference_precision(device, precision)
+        say.say(f"torch backend: {checkpoint} ({precision} inference)")
     widths = {b: widen_for(b, widen) if calibrate and b not in MODEL_FREE else None for b in backends}
     if line := widen_line(widths):
         say.say(line)
@@ -845,7 +860,8 @@ def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BAC
                     warnings.warn(lost, UserWarning, stacklevel=2)
                 for b in backends:
                     rows += evaluate_view(rv, b, out, checkpoint=checkpoint, device=device, calibrate=calibrate,
-                                          cache=cache, widen=widen, progress=say.task(f"{rv.object} view {v}: {b}"))
+                                          cache=cache, widen=widen, precision=precision,
+                                          progress=say.task(f"{rv.object} view {v}: {b}"))
     tables = [metrics_table(rows), metrics_table(rows, by=("object", "backend"), title="Relighting per object")]
     result = EvaluationResult(rows, backends, tables, out / "relight_eval.json", out / "relight_eval.md")
     seen = None  # views the decoder was trained on, or of its training objects, scored here

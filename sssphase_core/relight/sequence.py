@@ -162,14 +162,14 @@ def relight_sequence(session: Path | str | Session, pattern: Path | str, *, back
                      checkpoint: Path | str | None = None, out: Path | str = Path("relit"),
                      views: str | list[int] | None = "", resize: str = "", chunk: int = 1024, device: str = "cpu",
                      cache: bool = True, formats: str = "png", widen: float | None = None,
-                     narrator: Narrator | None = None) -> RelightResult:
+                     narrator: Narrator | None = None, precision: str = "auto") -> RelightResult:
     """Relight a session's views under every frame of the sequence ``pattern`` (a video or an animated image) with
     ``backend`` (as :func:`~sssphase_core.relight.runner.relight_session`), writing each view's frames and its video.
     ``cache``: a model backend's later frames come from the view's eigen-footprints, which need it."""
     from sssphase_core.store.session import claim_output
 
     out, say = Path(out), narrator or Narrator()
-    chosen_formats = check_relight_options(out, [str(pattern)], resize, formats, device)
+    chosen_formats = check_relight_options(out, [str(pattern)], resize, formats, device, precision)
     backend, ckpt = resolve_backend(backend, checkpoint, say)
     if not cache and backend not in MODEL_FREE:
         raise InputError("a pattern sequence is relit from the view's eigen-footprints, computed on its first frames and "
@@ -190,13 +190,13 @@ def relight_sequence(session: Path | str | Session, pattern: Path | str, *, back
                 say.say(line)
         result.patterns = [sequence.name]
         _relight_view_sequence(s, rv, sequence, backend, ckpt, out, chosen_formats, chunk=chunk, device=device,
-                               cache=cache, widen=widen, say=say, result=result)
+                               cache=cache, widen=widen, say=say, result=result, precision=precision)
     return result
 
 
 def _relight_view_sequence(s: Session, rv: RelightView, sequence: PatternSequence, backend: str, ckpt: Path | None,
                            out: Path, formats: tuple[str, ...], *, chunk: int, device: str, cache: bool,
-                           widen: float | None, say: Narrator, result: RelightResult) -> None:
+                           widen: float | None, say: Narrator, result: RelightResult, precision: str) -> None:
     """One view's frames relit (those not already in its folder) and its video written, the folder locked meanwhile
     (two runs into one folder would relight the same frames and write the video twice at once)."""
     from sssphase_core.store.locks import folder_lock
@@ -205,12 +205,12 @@ def _relight_view_sequence(s: Session, rv: RelightView, sequence: PatternSequenc
     with folder_lock(folder, f"{folder} is being relit by {{holder}} (another `sss relight` of this sequence): wait for "
                              "it, or choose another --out"):
         _relight_frames(s, rv, sequence, backend, ckpt, out, folder, formats, chunk=chunk, device=device, cache=cache,
-                        widen=widen, say=say, result=result)
+                        widen=widen, say=say, result=result, precision=precision)
 
 
 def _relight_frames(s: Session, rv: RelightView, sequence: PatternSequence, backend: str, ckpt: Path | None,
                     out: Path, folder: Path, formats: tuple[str, ...], *, chunk: int, device: str, cache: bool,
-                    widen: float | None, say: Narrator, result: RelightResult) -> None:
+                    widen: float | None, say: Narrator, result: RelightResult, precision: str) -> None:
     _claim_folder(folder, _record(s, rv.view, sequence, backend, ckpt, widen, formats))
     done = _done(folder, rv, sequence, backend)
     if done:
@@ -228,7 +228,7 @@ def _relight_frames(s: Session, rv: RelightView, sequence: PatternSequence, back
         nonlocal count
         names, pats = [frame_name(sequence, i) for i, _ in frames], [p for _, p in frames]
         relit, result.mixes[rv.view] = relight_one(s, rv, pats, backend, ckpt, out, chunk=chunk, device=device,
-                                                    cache=cache, say=told, widen=widen)
+                                                    cache=cache, say=told, widen=widen, precision=precision)
         result.images.extend(write_relit(rv, relit, names, pats, folder, backend, formats, quiet))
         count += len(frames)
 

@@ -184,3 +184,32 @@ def test_torch_backend_fits_and_predicts(dataset, tiny, tmp_path, synthetic):
     assert a.shape == (5, 16, 16, 3) and np.allclose(a, b, atol=1e-6)
     with pytest.raises(InputError, match="N, 24, K, K"):
         be.predict_footprints(np.zeros((2, 8, 16, 16), np.float32))
+
+
+def test_auto_precision_is_bf16_only_where_the_cpu_computes_it_natively(monkeypatch, tmp_path, synthetic, tiny):
+    """``auto``: bf16 on a CPU with AVX512-BF16 or AMX, float32 on one without (emulated bf16 is slower); the
+    backend's footprints under bf16 are float32's within bf16's rounding."""
+    import torch
+
+    from sssphase_core.compute import inference_precision
+    from sssphase_core.learning.backends.torch_backend import TorchBackend
+    from sssphase_core.learning.training import DecoderConfig, PretrainConfig
+
+    for avx512_bf16, amx, said in ((False, False, "fp32"), (True, False, "bf16"), (False, True, "bf16")):
+        monkeypatch.setattr(torch.cpu, "_is_avx512_bf16_supported", lambda v=avx512_bf16: v)
+        monkeypatch.setattr(torch.cpu, "_is_amx_tile_supported", lambda v=amx: v)
+        assert inference_precision("cpu") == said
+        assert TorchBackend(precision="auto").precision == said
+    assert inference_precision("cpu", "fp32") == "fp32" and inference_precision("cpu", "bf16") == "bf16"
+    with pytest.raises(InputError, match="unknown precision 'half'"):
+        TorchBackend(precision="half")
+    views = synthetic[0]
+    be = get_backend("torch")
+    enc = be.pretrain(views, tmp_path / "pre", config=PretrainConfig(epochs=1, batch_size=16, ckpt_every=0), preset=tiny,
+                      progress=False)
+    path = be.fit(views, tmp_path / "dec", encoder=enc, config=DecoderConfig(epochs=1, batch_size=16, ckpt_every=0),
+                  progress=False)
+    query = (views[0].psp, views[0].pixels[:16])
+    fp32 = TorchBackend(path, precision="fp32").predict_footprints(query)
+    bf16 = TorchBackend(path, precision="bf16").predict_footprints(query)
+    assert bf16.dtype == np.float32 and 0 < np.abs(bf16 - fp32).mean() < 0.02 * np.abs(fp32).mean()

@@ -125,3 +125,26 @@ def test_in_low_light_the_white_consistent_gain_is_shrunk_to_what_stands_above_t
     assert max(kept) < 0.8 and shrunk > whole + 0.5, (kept, shrunk, whole)
     _, kept = relit("albedo1", True)
     assert min(kept) > 0.9, kept
+
+
+def test_work_precision_times_the_decoders_inference_in_each_precision_and_relights_a_blend(tmp_path):
+    """The decoder's footprints are timed in float32 and bf16 inference, each relit; a blend (decoder + analytic,
+    weighed by the view calibration) is relit as `sss relight` relights it (`sss bench relight`'s default backends
+    with --checkpoint had stopped at it: 'unknown model backend blend')."""
+    import torch
+
+    from sssphase_core.learning.models import Decoder, Encoder, ModelPreset
+    from sssphase_core.learning.training import save_checkpoint
+
+    small = ModelPreset(name="tiny", patch=16, in_channels=24, stem=8, stages=(8, 12, 16), bottleneck=32, dropout=0.2,
+                        proj_hidden=32, proj_dim=32, pred_hidden=8, decoder=(16, 12, 8, 8), attention=4, scale_invariant=True)
+    torch.manual_seed(0)
+    save_checkpoint(tmp_path / "dec.pt", {"kind": "decoder", "preset": small.to_dict(), "config": {"head": "direct"},
+                                          "encoder": Encoder(small).state_dict(),
+                                          "decoder": Decoder(small, head="direct").state_dict()})
+    sv = relight_bench.sim_view(stability_bench.case_object(stability_bench.CASES[0]))
+    rows = relight_bench.work_precision(sv, ["torch", "blend"], checkpoint=tmp_path / "dec.pt", radii=(), chunks=(),
+                                        dtypes=())
+    assert [(r["backend"], r["inference"]) for r in rows] == [("torch", "fp32"), ("torch", "bf16"), ("blend", rows[2]["inference"])]
+    assert rows[2]["inference"] in ("fp32", "bf16") and all(r["finite"] and np.isfinite(r["psnr"]) for r in rows)
+    assert abs(rows[0]["psnr"] - rows[1]["psnr"]) < 0.05 and rows[0]["footprint_seconds"] != rows[1]["footprint_seconds"]

@@ -725,3 +725,35 @@ def test_eval_relight_says_when_it_scores_views_the_decoder_was_trained_on(sessi
                                   str(tmp_path / "dec.pt"), "--no-calibrate", "--out", str(tmp_path / "refused")])
         assert res.exit_code != 0 and said in str(res.exception), res.output  # before any work (a blend: at its view)
         assert not (tmp_path / "refused").exists()
+
+
+def test_the_decoder_infers_in_the_precision_asked_each_with_its_own_cache(session, tmp_path):
+    """bf16 inference (``auto`` where the device computes it natively) against float32: the footprints differ by
+    bf16's rounding, the relit images by far less than a hundredth of a dB, and neither run reads the other's cache."""
+    import torch
+
+    from sssphase_core.learning.models import Decoder, Encoder, get_preset
+    from sssphase_core.learning.training import save_checkpoint
+
+    preset = get_preset("lite")
+    torch.manual_seed(0)
+    save_checkpoint(tmp_path / "dec.pt", {"kind": "decoder", "preset": preset.to_dict(), "config": {"head": "direct"},
+                                          "encoder": Encoder(preset).state_dict(),
+                                          "decoder": Decoder(preset, head="direct").state_dict()})
+    rows = {}
+    for precision in ("bf16", "fp32"):
+        res = runner.invoke(app, ["eval", "relight", str(session), "--views", "1", "--backend", "torch", "--checkpoint",
+                                  str(tmp_path / "dec.pt"), "--out", str(tmp_path / "e"), "--precision", precision])
+        assert res.exit_code == 0 and f"({precision} inference)" in res.output, res.output
+        rows[precision] = json.loads((tmp_path / "e" / "relight_eval.json").read_text())["rows"]
+        assert {r["precision"] for r in rows[precision]} == {precision}
+    caches = sorted((tmp_path / "e" / "cache").glob("sand_rake_v1_*_torch_*.npz"))
+    assert [p.name.endswith("_bf16.npz") for p in caches] == [False, True], caches
+    fp32, bf16 = (np.load(p)["data"].astype(np.float32) for p in caches)
+    assert 0 < np.abs(bf16 - fp32).mean() < 0.02 * np.abs(fp32).mean()  # computed again, not read from the bf16 cache
+    for a, b in zip(rows["bf16"], rows["fp32"], strict=True):
+        assert abs(a["psnr"] - b["psnr"]) < 0.01, (a["psnr"], b["psnr"])
+    res = runner.invoke(app, ["eval", "relight", str(session), "--backend", "torch", "--checkpoint", str(tmp_path / "dec.pt"),
+                              "--precision", "fp16", "--out", str(tmp_path / "half")])
+    assert res.exit_code != 0 and "unknown precision 'fp16': use auto, fp32, bf16" in str(res.exception), res.output
+    assert not (tmp_path / "half").exists()

@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sssphase_core.compute import compute_device
+from sssphase_core.compute import compute_device, inference_precision
 from sssphase_core.errors import InputError
 from sssphase_core.learning.backends.base import Query, as_patches
 from sssphase_core.learning.data import PatchDataset, ViewData
@@ -33,7 +33,9 @@ class TorchBackend:
     recorded in the checkpoint) get the analytic model's footprints (with projector ``black`` level), and the
     others the analytic model's tail beyond the radius the training crops held light to (where the checkpoint
     records it), unless ``guard`` is False; ``beyond_domain`` / ``predicted`` count the former and all pixels
-    predicted so far."""
+    predicted so far. ``precision`` (``auto``, ``fp32``, ``bf16``): the decoder's inference under bf16 autocast, or not;
+    ``auto`` is bf16 where the device computes it natively (:func:`~sssphase_core.compute.inference_precision`), as the
+    decoder trains on a GPU; ``self.precision`` is the one used."""
 
     name = "torch"
     #: ``predict_footprints`` takes (N, 24, K, K) tensors on its device too: the relight crops them there from the
@@ -41,8 +43,9 @@ class TorchBackend:
     accepts_tensors = True
 
     def __init__(self, checkpoint: Path | str | None = None, *, device: str = "cpu", batch_size: int = 128,
-                 black: float = 0.002, guard: bool = True) -> None:
+                 black: float = 0.002, guard: bool = True, precision: str = "auto") -> None:
         self.device, self.batch_size = compute_device(device), batch_size
+        self.precision = inference_precision(self.device, precision)
         self.black, self.guard = float(black), bool(guard)
         self.checkpoint: Path | None = None
         self.encoder = self.decoder = None
@@ -107,7 +110,8 @@ class TorchBackend:
             else:
                 batch = patches[near[i : i + self.batch_size]]
             x = torch.as_tensor(batch, device=self.device)
-            pred, _ = FootprintNet(self.encoder, self.decoder)(x)
+            with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
+                pred, _ = FootprintNet(self.encoder, self.decoder)(x)
             out[near[i : i + self.batch_size]] = pred.float().permute(0, 2, 3, 1).cpu().numpy()
         tail = self.domain.tail_radius if guarded else None  # type: ignore[union-attr]
         tail = tail if tail is not None and cuts_tail(tail, self.patch) and len(near) else None
