@@ -730,12 +730,15 @@ def test_eval_relight_says_when_it_scores_views_the_decoder_was_trained_on(sessi
 def test_the_decoder_infers_in_the_precision_asked_each_with_its_own_cache(session, tmp_path):
     """bf16 inference (``auto`` where the device computes it natively) against float32: the footprints differ by
     bf16's rounding, the relit images by far less than a hundredth of a dB, and neither run reads the other's cache."""
+    import dataclasses
+
     import torch
 
     from sssphase_core.learning.models import Decoder, Encoder, get_preset
     from sssphase_core.learning.training import save_checkpoint
 
-    preset = get_preset("lite")
+    preset = dataclasses.replace(get_preset("lite"), name="lite-small", stem=8, stages=(8, 12, 16), bottleneck=32,
+                                 proj_hidden=32, proj_dim=32, pred_hidden=8, decoder=(16, 12, 8, 8), attention=4)
     torch.manual_seed(0)
     save_checkpoint(tmp_path / "dec.pt", {"kind": "decoder", "preset": preset.to_dict(), "config": {"head": "direct"},
                                           "encoder": Encoder(preset).state_dict(),
@@ -743,7 +746,8 @@ def test_the_decoder_infers_in_the_precision_asked_each_with_its_own_cache(sessi
     rows = {}
     for precision in ("bf16", "fp32"):
         res = runner.invoke(app, ["eval", "relight", str(session), "--views", "1", "--backend", "torch", "--checkpoint",
-                                  str(tmp_path / "dec.pt"), "--out", str(tmp_path / "e"), "--precision", precision])
+                                  str(tmp_path / "dec.pt"), "--out", str(tmp_path / "e"), "--precision", precision,
+                                  "--no-calibrate"])  # (the model's own footprints: what the precision changes)
         assert res.exit_code == 0 and f"({precision} inference)" in res.output, res.output
         rows[precision] = json.loads((tmp_path / "e" / "relight_eval.json").read_text())["rows"]
         assert {r["precision"] for r in rows[precision]} == {precision}
