@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 from pathlib import Path
 
 import pytest
@@ -61,10 +62,15 @@ def test_repro_runs_every_step_and_reports_beside_the_paper(repro):
         assert set(knn[aug]["per_class"]) == {"apple", "star"} and 0 <= knn[aug]["overall"] <= 1
     table1 = steps["footprints"]["metrics"]["sand_rake"]
     assert set(table1) == {"analytic", "torch"} and all(math.isfinite(m["psnr"]) for m in table1.values())
+    from sssphase_core.compute import inference_precision
+
+    said = inference_precision("cpu")  # the decoder's (auto): bf16 where this CPU computes it natively
+    assert steps["footprints"]["inference"] == {"torch": said}
     assert {r["backend"] for r in steps["relight"]["rows"]} == {"none", "analytic", "torch"}
     md = (out / "report.md").read_text()
     assert "| apple | " in md and "99.60" in md and "99.95" in md  # the paper's Table 2 beside ours (apple, star)
     assert "Where the budget went" in md and "Scaled down to fit" in md and "1/16 of them (stride 4)" in md
+    assert re.search(rf"torch [0-9.]+ ms \({said} inference\)", md), md  # the decoder's seconds per footprint, in that precision
     assert "## Table 1: footprints of unseen objects" in stdout and "report.md" in stdout  # printed at the end
 
 

@@ -353,6 +353,7 @@ class Demo:
             raise NotAvailable("no footprint model among the backends: the table scores analytic and torch footprints")
         table: dict[str, dict[str, dict[str, float]]] = {}
         rate: dict[str, list[float]] = {}
+        inference: dict[str, str] = {}  # the decoder's precision (bf16 where the device computes it natively)
         for path in self.results["test_sessions"]["sessions"]:
             rv = load_view(Session.open(path), self.cfg.test_view)
             if rv.sim is None:
@@ -365,6 +366,8 @@ class Demo:
                 opts = {"supersample": self.cfg.analytic_supersample} if b == "analytic" else {}
                 source, _ = make_source(b, rv, checkpoint=ckpt, calibrate=False, device=self.device,
                                         **opts)  # the model's own footprints
+                if (precision := getattr(getattr(source, "backend", None), "precision", None)) is not None:
+                    inference[b] = precision
                 first = np.asarray(source(px[:WARM_UP_PIXELS]), np.float32)  # (loading, a device's first call)
                 t0 = time.perf_counter()
                 rest = np.asarray(source(px[WARM_UP_PIXELS:]), np.float32)
@@ -372,7 +375,7 @@ class Demo:
                 table[rv.object][b] = summarise(footprint_metrics(np.concatenate([first, rest]), gt))
         # the slowest object's seconds per footprint after a warm-up: what a relight of a whole view costs
         return {"metrics": table, "backends": backends, "pixels": self.cfg.footprint_pixels,
-                "seconds_per_pixel": {b: max(v) for b, v in rate.items()}}
+                "seconds_per_pixel": {b: max(v) for b, v in rate.items()}, "inference": inference}
 
     def knn(self) -> dict[str, Any]:
         self._need("pretrain")

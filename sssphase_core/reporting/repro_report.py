@@ -62,8 +62,10 @@ def repro_markdown(data: dict[str, Any]) -> str:
         out += [t.markdown(), "", f"{fp['pixels']} sampled pixels per object; LPIPS: {fp.get('lpips')}. SSIM with the "
                 "footprint's own peak as data range (see `sss eval footprints`).", ""]
         if rates := fp.get("seconds_per_pixel"):
+            inference = fp.get("inference") or {}  # (absent from reports before bf16 inference: float32)
             out += ["Seconds per footprint (the slowest object, after a warm-up; they time the relights below): "
-                    + ", ".join(f"{b} {1e3 * float(v):.2f} ms" for b, v in rates.items()) + ".", ""]
+                    + ", ".join(f"{b} {1e3 * float(v):.2f} ms" + (f" ({inference[b]} inference)" if b in inference else "")
+                                for b, v in rates.items()) + ".", ""]
     else:
         out += [f"Not available: {fp.get('reason', 'not run yet')}", ""]
 
