@@ -63,8 +63,8 @@ def check_precision(name: str) -> None:
 
 def inference_precision(device: str | torch.device, name: str = "auto") -> str:
     """The precision a decoder infers in on ``device``: ``fp32`` or ``bf16`` as asked, and for ``auto`` bf16 where
-    the device computes it natively (a CUDA GPU with bf16, Ampere or later; a CPU with AVX512-BF16 or AMX: a trained
-    decoder's footprints within 0.005 dB PSNR of float32's, in half the time on such a CPU), else fp32 (emulated
+    the device computes it natively (a CUDA GPU with bf16, Ampere or later; a CPU with AVX512-BF16 or AMX: on one, a
+    trained decoder's footprints within 0.005 dB PSNR of float32's, 1.5 to 2 times as fast), else fp32 (emulated
     bf16 is slower than float32)."""
     import torch
 
