@@ -244,6 +244,8 @@ def eval_footprints(
     out: ResultOpt = None,
     cache: CacheOpt = DEFAULT_CACHE,
     sessions: SessionsOpt = None,
+    precision: Annotated[str, typer.Option(help="The decoders' inference: auto (bf16 where the device computes it "
+                                                "natively), fp32 or bf16.")] = "auto",
 ) -> None:
     """MSE, PSNR (data range 1) and SSIM (data range = GT peak) per object, like the paper's Table 1."""
     from sssphase_core.reporting.learning_runs import FootprintOptions, evaluate_footprints
@@ -251,7 +253,8 @@ def eval_footprints(
     _check_result_file(out)
     result = evaluate_footprints(FootprintOptions(
         checkpoint=checkpoint, objects=objects, views=views, n_views=n_views, rig=rig, pixels_per_view=pixels_per_view,
-        baseline=baseline, compare=compare, seed=seed, plots=plots, cache=cache, sessions=sessions), _report())
+        baseline=baseline, compare=compare, seed=seed, plots=plots, cache=cache, sessions=sessions, precision=precision),
+        _report())
     _write(out, result.payload, result.markdown())
 
 

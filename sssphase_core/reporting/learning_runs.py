@@ -445,7 +445,7 @@ def evaluate_knn(opts: KnnOptions, report: Report = Report()) -> Evaluation:
 @dataclass(kw_only=True)
 class FootprintOptions(ViewOptions):
     """``sss eval footprints``'s options: the decoder ``checkpoint``, ``compare`` (``NAME=PATH`` decoder runs),
-    a ``baseline`` backend ('' for none) and a folder of profile ``plots``."""
+    a ``baseline`` backend ('' for none), a folder of profile ``plots`` and the decoders' inference ``precision``."""
 
     checkpoint: Path
     pixels_per_view: int = 500
@@ -453,6 +453,7 @@ class FootprintOptions(ViewOptions):
     compare: Sequence[str] | None = None
     seed: int = 2
     plots: Path | None = None
+    precision: str = "auto"
 
 
 def _footprint_backends(opts: FootprintOptions) -> dict[str, Any]:
@@ -467,8 +468,8 @@ def _footprint_backends(opts: FootprintOptions) -> dict[str, Any]:
                              "twice")
         if not sep or not path or not NAME_RE.fullmatch(name) or name in ("torch", opts.baseline):
             raise InputError(f"--compare takes NAME=PATH with a new name of letters, digits, '_', '-', '.', got {item!r}")
-    backends = {"torch": get_backend("torch", checkpoint=opts.checkpoint)}
-    backends.update({name: get_backend("torch", checkpoint=path) for name, _, path in others})
+    backends = {"torch": get_backend("torch", checkpoint=opts.checkpoint, precision=opts.precision)}
+    backends.update({name: get_backend("torch", checkpoint=path, precision=opts.precision) for name, _, path in others})
     if opts.baseline == "torch":  # the model itself (it said "pass checkpoint=... or call fit()" after reading the data)
         raise InputError("--baseline torch is the model --checkpoint gives; compare another decoder with --compare "
                          "NAME=RUN, or choose a baseline that is no decoder (analytic, or '' for none)")
@@ -512,10 +513,11 @@ def evaluate_footprints(opts: FootprintOptions, report: Report = Report()) -> Ev
     report.say(lpips_note())
     results = {obj: _object_footprints(obj, [v for v in vds if v.object == obj], backends, opts.plots, report)
                for obj in names}
+    precision = backends["torch"].precision
     note = ("PSNR: data range 1 (white reference = 1.0); SSIM: 11x11 Gaussian window, data range = each GT footprint's peak; "
-            f"{lpips_note()}.")
+            f"the decoders inferred in {precision}; {lpips_note()}.")
     used = used_views(opts.views, vds)
-    return Evaluation({"objects": names, "views": used, "results": results, "note": note},
+    return Evaluation({"objects": names, "views": used, "results": results, "note": note, "precision": precision},
                       [footprint_table(results, views=used, note=note)])
 
 

@@ -99,7 +99,10 @@ def test_train_eval_viz_on_the_simulator(tmp_path):
     invoke("train", "decoder", "--end-to-end", "--out", str(e2e), "--epochs", "1", "--batch-size", "32",
            "--views", "0", "--val-views", "", "--objects", "star", "--pixels-per-view", "64", "--cache", cache)
     invoke("eval", "footprints", "--checkpoint", str(dec), "--compare", f"unet={e2e}", "--objects", "soap", "--views", "0",
-           "--pixels-per-view", "16", "--plots", str(tmp_path / "plots"), "--out", str(tmp_path / "fp.json"), "--cache", cache)
+           "--pixels-per-view", "16", "--plots", str(tmp_path / "plots"), "--out", str(tmp_path / "fp.json"), "--cache", cache,
+           "--precision", "fp32")
+    assert json.loads((tmp_path / "fp.json").read_text())["precision"] == "fp32"
+    assert "the decoders inferred in fp32" in (tmp_path / "fp.md").read_text()
     fp = json.loads((tmp_path / "fp.json").read_text())["results"]["soap"]
     assert {"torch", "unet", "analytic"} == fp.keys() and min(r["psnr"] for r in fp.values()) > 0
     assert "unet PSNR" in (tmp_path / "fp.md").read_text()
@@ -278,6 +281,15 @@ def test_a_preset_typed_beside_an_encoder_is_refused_not_recorded(tmp_path):
         runner.invoke(app, ["train", "decoder", "--encoder", str(tmp_path / "pre"), "--preset", "paper", "--out",
                             str(tmp_path / "d")], catch_exceptions=False)
     assert not (tmp_path / "d").exists()
+
+
+def test_an_unknown_precision_is_refused_before_the_checkpoint_is_read(tmp_path):
+    from sssphase_core.errors import InputError
+
+    with pytest.raises(InputError, match="unknown precision 'half': use auto, fp32, bf16"):
+        runner.invoke(app, ["eval", "footprints", "--checkpoint", str(tmp_path / "none.pt"), "--precision", "half",
+                            "--out", str(tmp_path / "o.json")], catch_exceptions=False)
+    assert not (tmp_path / "o.json").exists()
 
 
 @pytest.mark.parametrize("item", ["../../x=run", "/abs=run", "a/b=run", "torch=run", "norun"])
