@@ -203,8 +203,10 @@ def write_report(out: Path | str, results: dict[str, dict[str, Any]], config: di
         bs = fpr["backends"]
         cols = ["object"] + [f"{b} {m}" for b in bs for m in ("MSE x1e-5", "PSNR", "SSIM")]
         body = [[o] + [v for b in bs for v in (1e5 * m[b]["mse"], m[b]["psnr"], m[b]["ssim"])] for o, m in fpr["metrics"].items()]
+        inference = "".join(f"; the {_esc(b)} decoder inferred in {_esc(v)}" for b, v in (fpr.get("inference") or {}).items())
         sections.append(html_table(cols, body) + f"<p class='note'>{fpr['pixels']} sampled valid pixels per unseen object, "
-                        "against the simulator's exact footprints; PSNR peak 1.0, SSIM data range = each footprint's peak.</p>")
+                        "against the simulator's exact footprints; PSNR peak 1.0, SSIM data range = each footprint's peak"
+                        f"{inference}.</p>")
     else:
         sections.append(_not_available("footprint table", fpr))
     sections.append("<h2>kNN classification of the embeddings</h2>")

@@ -40,6 +40,9 @@ def test_demo_runs_every_step_and_resumes(demo):
     knn = json.loads((out / "steps" / "knn.json").read_text())  # beside the pretrained encoder's, the one it started from
     assert 0 <= knn["initial"]["overall"] <= 1 and knn["initial"]["per_class"].keys() == knn["per_class"].keys()
     assert "initial encoder (%)" in page
+    from sssphase_core.compute import inference_precision
+
+    assert f"the torch decoder inferred in {inference_precision('cpu')}" in page  # Table 1's note: bf16 or float32
     for backend in ("none", "torch", "exact"):
         assert f"sand_rake_v0_checkerboard_{backend}_compare.png" in page
     again: list[str] = []
