@@ -247,12 +247,11 @@ class Demo:
     RELIT_SO_FAR = "relight_partial.json"
 
     def _model_identity(self, ckpt: str | None) -> str | None:
-        """What a decoder's relights were made with: its checkpoint's path, size and modification time (a decoder
-        trained again makes them stale)."""
-        if ckpt is None or not Path(ckpt).exists():
-            return None
-        st = Path(ckpt).stat()
-        return f"{ckpt}:{st.st_size}:{st.st_mtime_ns}"
+        """What a decoder's relights were made with: the footprint caches' tag of its checkpoint (path and
+        modification time: a decoder trained again makes them stale)."""
+        from sssphase_core.relight.cache import model_tag
+
+        return model_tag(ckpt) if ckpt is not None and Path(ckpt).exists() else None
 
     def _relit_so_far(self, ckpt: str | None) -> dict[str, list[dict[str, Any]]]:
         """``{"object/backend": rows}`` of the relights an earlier, stopped run finished (none with ``fresh``;

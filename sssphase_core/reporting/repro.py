@@ -304,7 +304,9 @@ class PaperRepro(Demo):
         same = [unit_s(rows) / max(1, int(rows[0]["lit_pixels"])) for key, rows in self._relit.items()
                 if key.rsplit("/", 1)[-1] == backend and rows]
         per_footprint = self.results.get("footprints", {}).get("seconds_per_pixel") or {}
-        models = ("torch", "analytic") if backend == "blend" else (backend,)
+        from sssphase_core.relight.choices import BLENDS
+
+        models = BLENDS.get(backend, (backend,))
         if same:
             guess = max(same) * pixels
         elif all(m in per_footprint for m in models):
