@@ -38,6 +38,8 @@ import numpy as np
 from sssphase_core.errors import DataError
 
 if TYPE_CHECKING:
+    import torch
+
     from sssphase_core.learning.data import ViewData
 
 #: The quantile of the training pixels' widths (per colour) that bounds the domain, and the margin beyond it
@@ -148,14 +150,23 @@ def cuts_tail(radius: Sequence[int], patch: int) -> bool:
     return min(radius) <= int(_rings(patch).max())
 
 
-def with_physics_tail(footprints: np.ndarray, physics: np.ndarray, radius: Sequence[int]) -> np.ndarray:
+def with_physics_tail(footprints: np.ndarray | torch.Tensor, physics: np.ndarray | torch.Tensor,
+                      radius: Sequence[int]) -> np.ndarray | torch.Tensor:
     """(N, K, K, 3) decoder ``footprints`` whose rings from ``radius`` (3,) px outwards, per colour, are the
     ``physics`` footprints' (the analytic model's, (N, K, K, 3)), each colour scaled back to the decoder's
-    energy -> (N, K, K, 3)."""
-    far = _rings(footprints.shape[1])[:, :, None] >= np.asarray(radius)[None, None, :]  # (K, K, 3)
-    out = np.where(far[None], physics, footprints)
-    own, now = footprints.sum(axis=(1, 2), keepdims=True), out.sum(axis=(1, 2), keepdims=True)
-    return (out * np.where(now > 0, own / np.where(now > 0, now, 1.0), 1.0)).astype(footprints.dtype)
+    energy -> (N, K, K, 3): NumPy for NumPy, a tensor on the footprints' device for tensors."""
+    import torch
+
+    if not torch.is_tensor(footprints):
+        dtype = np.asarray(footprints).dtype
+        out = with_physics_tail(torch.from_numpy(np.asarray(footprints, np.float32)),
+                                torch.from_numpy(np.asarray(physics, np.float32)), radius)
+        return out.numpy().astype(dtype, copy=False)  # type: ignore[union-attr]
+    rings = torch.from_numpy(_rings(footprints.shape[1])).to(footprints.device)
+    far = rings[:, :, None] >= torch.as_tensor(list(radius), device=footprints.device)[None, None, :]  # (K, K, 3)
+    out = torch.where(far[None], physics.to(footprints.dtype), footprints)
+    own, now = footprints.sum(dim=(1, 2), keepdim=True), out.sum(dim=(1, 2), keepdim=True)
+    return out * torch.where(now > 0, own / torch.where(now > 0, now, torch.ones_like(now)), torch.ones_like(now))
 
 
 def beyond(domain: WidthDomain, widths: np.ndarray) -> np.ndarray:

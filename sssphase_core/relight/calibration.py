@@ -274,12 +274,17 @@ def mixed_with_no_scattering(source: FootprintSource, mix: np.ndarray, white: np
     img = np.asarray(white, np.float32)
     weight = np.asarray(mix, np.float32)
 
-    def mixed(pixels: np.ndarray) -> np.ndarray:
+    def mixed(pixels: np.ndarray) -> np.ndarray | torch.Tensor:
         out = source(pixels)
-        out = footprint_array(out, writable=True)
+        delta = (1 - weight) * np.nan_to_num(img[pixels[:, 0], pixels[:, 1]])  # (n, 3)
         c = out.shape[1] // 2
+        if torch.is_tensor(out):  # a model's footprints on its device stay there
+            out = out.float() * torch.as_tensor(weight, device=out.device)
+            out[:, c, c] += torch.as_tensor(delta, device=out.device)
+            return out
+        out = footprint_array(out, writable=True)
         out *= weight
-        out[:, c, c] += (1 - weight) * np.nan_to_num(img[pixels[:, 0], pixels[:, 1]])
+        out[:, c, c] += delta
         return out
 
     mixed.mix = weight  # type: ignore[attr-defined]
@@ -448,9 +453,17 @@ def energy_from_white(source: FootprintSource, where: np.ndarray, white: np.ndar
         pick = where[pixels[:, 0], pixels[:, 1]]
         if not pick.any():
             return out
+        target = img[pixels[pick, 0], pixels[pick, 1]]
+        if torch.is_tensor(out):  # a model's footprints on its device stay there
+            out = out.float().clone()
+            rows = torch.as_tensor(np.flatnonzero(pick), device=out.device)
+            energy = out[rows].sum(dim=(1, 2))  # (n, 3)
+            gain = torch.where(energy > WHITE_FLOOR, torch.as_tensor(target, device=out.device)
+                               / energy.clamp_min(WHITE_FLOOR), torch.ones_like(energy))
+            out[rows] *= gain[:, None, None, :]
+            return out
         out = footprint_array(out, writable=True)
         energy = out[pick].sum(axis=(1, 2))  # (n, 3)
-        target = img[pixels[pick, 0], pixels[pick, 1]]
         gain = np.where(energy > WHITE_FLOOR, target / np.maximum(energy, WHITE_FLOOR), 1.0)
         out[pick] *= gain[:, None, None, :].astype(np.float32)
         return out

@@ -340,6 +340,7 @@ def footprints_at(rv: Any, pixels: np.ndarray, backends: Sequence[str], *, check
     """Each backend's footprints at camera ``pixels`` (N, 2) yx of a view -> {backend: (N, K, K, 3)},
     all centre-cropped or zero-padded to the largest K among them (``captured``: the session's own crops)."""
     from sssphase_core.relight.backends import make_source
+    from sssphase_core.relight.engine import footprint_array
 
     out: dict[str, np.ndarray] = {}
     for name in backends:
@@ -354,7 +355,7 @@ def footprints_at(rv: Any, pixels: np.ndarray, backends: Sequence[str], *, check
         else:
             source, _ = make_source(name, rv, checkpoint=checkpoint, device=device, calibrate=False)  # the model's own
             fps = source(np.asarray(pixels, np.int64))
-            out[name] = np.asarray(fps.detach().cpu() if hasattr(fps, "detach") else fps, np.float32)
+            out[name] = footprint_array(fps)
     k = max(f.shape[1] for f in out.values())
     for name, f in out.items():
         pad = (k - f.shape[1]) // 2

@@ -30,6 +30,7 @@ def probe_pixel(rv: object, pixel: tuple[int, int], *, checkpoint: Path | str | 
     """``rv`` a :class:`~sssphase_core.relight.views.RelightView`; ``sources`` caches the model sources
     made for it (name -> footprint source), so that the next pixel costs one footprint each."""
     from sssphase_core.relight.backends import make_source
+    from sssphase_core.relight.engine import footprint_array
 
     y, x = (int(v) for v in pixel)
     h, w = rv.proj.shape  # type: ignore[attr-defined]
@@ -58,7 +59,7 @@ def probe_pixel(rv: object, pixel: tuple[int, int], *, checkpoint: Path | str | 
         if name not in cache:
             cache[name] = make_source(name, rv, checkpoint=checkpoint, calibrate=False)  # type: ignore[arg-type]
         source, size = cache[name]  # type: ignore[misc]
-        fp = np.asarray(source(np.array([[y, x]])), np.float32)[0]
+        fp = footprint_array(source(np.array([[y, x]])))[0]
         out.footprints[name] = _centre(fp, size, k)
     return out
 

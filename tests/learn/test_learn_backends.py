@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
 from sssphase_core.bench.synthetic import synthetic_views
 from sssphase_core.errors import InputError
@@ -83,6 +84,25 @@ def test_the_mirrored_quadrant_render_is_the_render_rule_over_the_whole_patch(k)
     fp = AnalyticBackend(patch=k, supersample=3).render(np.ones((2, 3)), widths)
     ref = _render_directly(widths, k, 3)
     assert fp.dtype == np.float32 and np.abs(fp - ref).max() < 2e-6
+
+
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA device"))])
+def test_tensors_render_on_their_device_the_footprints_arrays_render(device):
+    """The torch backend renders the analytic tail where its footprints are (a GPU's): tensors in give a tensor on
+    the widths' device, the same footprints as NumPy's within float32, chunked or not, either profile."""
+    from sssphase_core.learning.backends.analytic_backend import render_footprints
+
+    rng = np.random.default_rng(3)
+    energy, widths = rng.uniform(0.1, 2, (11, 3)), rng.uniform(0.05, 12, (11, 3, 2))
+    for profile in ("burley", "exponential"):
+        be = AnalyticBackend(patch=31, profile=profile, chunk=4)
+        want = be.render(energy, widths)
+        got = be.render(torch.as_tensor(energy, device=device), torch.as_tensor(widths, device=device))
+        assert isinstance(want, np.ndarray) and torch.is_tensor(got) and got.device.type == device
+        np.testing.assert_allclose(got.cpu().numpy(), want, rtol=2e-5, atol=1e-7 * want.max())
+        whole = render_footprints(torch.as_tensor(energy), torch.as_tensor(widths), 31, profile=profile, chunk=64)
+        np.testing.assert_allclose(whole.numpy(), want, rtol=1e-6, atol=1e-9)
 
 
 def test_a_query_of_pixels_reads_only_the_window_the_estimate_needs(flat_scene):

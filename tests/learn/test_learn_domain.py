@@ -99,14 +99,38 @@ def test_patches_as_tensors_give_the_footprints_of_the_same_patches_as_arrays(de
         patches = psp_patches(psp, v.pixels, 16)
         want = arrays.predict_footprints(patches)
         got = tensors.predict_footprints(torch.from_numpy(patches))
+        assert isinstance(want, np.ndarray) and torch.is_tensor(got) and got.device == tensors.device  # stays there
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)  # (float rounding: another memory layout)
         for window in (_centre_window(patches, GUARD_WINDOW), _centre_window(torch.from_numpy(patches), GUARD_WINDOW)):
             for key, value in pixel_widths(patches, 16, 0.0).items():  # what the guard reads of the whole patches
                 np.testing.assert_array_equal(pixel_widths(window, 16, 0.0)[key], value)
         assert tensors.beyond_domain == arrays.beyond_domain == (0 if contrast == 1.0 else len(v.pixels))
         np.testing.assert_allclose(backend_source(tensors, psp, chunk=7)(v.pixels), want, rtol=1e-5, atol=1e-9)
+    for be in (arrays, tensors):  # a tail from 3 / 4 / 5 px out: the physics' rings rendered on the model's device
+        be.domain = replace(be.domain, tail_radius=(3, 4, 5))
+    want = arrays.predict_footprints(psp_patches(v.psp, v.pixels, 16))
+    got = tensors.predict_footprints(torch.from_numpy(psp_patches(v.psp, v.pixels, 16)))
+    assert tensors.tail_applied == arrays.tail_applied == (3, 4, 5)
+    np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)
     with pytest.raises(InputError, match=r"PSP patches must be \(N, 24, K, K\)"):
         tensors.predict_footprints(torch.zeros((2, 8, 16, 16)))
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_on_a_gpu_the_footprints_and_their_analytic_parts_stay_on_it(decoder_run, synthetic):
+    """On CUDA the decoder's footprints, the analytic model's beyond the domain and its tail are made on the GPU
+    and handed on there: the CPU's footprints within float32 (TF32 convolutions off)."""
+    v = synthetic[0][0]
+    torch.backends.cudnn.allow_tf32 = False
+    for contrast in (1.0, 0.02):
+        patches = psp_patches(v.psp if contrast == 1.0 else _washed_out(v.psp, contrast), v.pixels, 16)
+        cpu, gpu = (get_backend("torch", checkpoint=decoder_run, black=0.0, precision="fp32", device=d) for d in ("cpu", "cuda"))
+        for be in (cpu, gpu):
+            be.domain = replace(be.domain, tail_radius=(3, 4, 5))
+        want = cpu.predict_footprints(patches)
+        got = gpu.predict_footprints(torch.from_numpy(patches).cuda())
+        assert got.is_cuda and gpu.beyond_domain == cpu.beyond_domain and gpu.tail_applied == (3, 4, 5)
+        np.testing.assert_allclose(got.cpu().numpy(), want, rtol=1e-4, atol=1e-7)
 
 
 def test_a_checkpoint_from_before_the_domain_uses_the_decoder_everywhere(decoder_run, synthetic, tmp_path):

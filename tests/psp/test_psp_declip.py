@@ -85,21 +85,49 @@ def test_bad_stacks_are_refused_in_one_line():
         declip(np.zeros((8, 5, 5, 3), np.float32), 0.0)
 
 
-def test_energy_from_white_rescales_only_the_chosen_pixels():
+@pytest.mark.parametrize("as_tensor", [False, True])
+def test_energy_from_white_rescales_only_the_chosen_pixels(as_tensor):
+    """NumPy footprints, or a model's tensors (which stay tensors: on a GPU they stay on it)."""
+    import torch
+
     white = np.full((6, 6, 3), 0.4, np.float32)
     white[..., 2] = 0.1
     fp = np.zeros((1, 5, 5, 3), np.float32)
     fp[0, 1:4, 1:4] = 0.01  # energy 0.09 per colour
 
     def source(px):
-        return np.repeat(fp, len(px), axis=0)
+        out = np.repeat(fp, len(px), axis=0)
+        return torch.from_numpy(out) if as_tensor else out
 
     where = np.zeros((6, 6), bool)
     where[2, 3] = True
     out = energy_from_white(source, where, white)(np.array([[2, 3], [1, 1]]))
+    assert torch.is_tensor(out) == as_tensor
+    out = np.asarray(out)
     np.testing.assert_allclose(out[0].sum(axis=(0, 1)), [0.4, 0.4, 0.1], rtol=1e-5)
     np.testing.assert_allclose(out[0] / out[0].max(axis=(0, 1)), fp[0] / fp[0].max(axis=(0, 1)), rtol=1e-5)  # same shape
     np.testing.assert_array_equal(out[1], fp[0])
+
+
+@pytest.mark.parametrize("as_tensor", [False, True])
+def test_a_model_mixed_with_no_scattering_is_the_weighted_sum_per_colour(as_tensor):
+    """``mix * model + (1 - mix) * delta * white``, for NumPy footprints and for a model's tensors alike."""
+    import torch
+
+    from sssphase_core.relight.calibration import mixed_with_no_scattering
+
+    white = np.random.default_rng(0).uniform(0.1, 0.9, (6, 6, 3)).astype(np.float32)
+    white[0, 0, 1] = np.nan  # a lost white value adds no light
+    fp = np.random.default_rng(1).uniform(0, 0.01, (2, 5, 5, 3)).astype(np.float32)
+    px = np.array([[2, 3], [0, 0]])
+    mix = np.array([1.0, 0.25, 0.0], np.float32)
+    kept = fp.copy()
+    out = mixed_with_no_scattering(lambda p: torch.from_numpy(fp.copy()) if as_tensor else fp, mix, white)(px)
+    assert torch.is_tensor(out) == as_tensor
+    want = fp * mix
+    want[:, 2, 2] += (1 - mix) * np.nan_to_num(white[px[:, 0], px[:, 1]])
+    np.testing.assert_allclose(np.asarray(out), want, rtol=1e-6)
+    np.testing.assert_array_equal(fp, kept)  # a source's own array (a cache's) is not changed
 
 
 def test_clip_levels_follow_the_exposures_of_the_plan():

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import numpy as np
+import torch
 
 from sssphase_core.errors import InputError
 from sssphase_core.learning.backends.base import Query, as_patches
@@ -41,16 +42,59 @@ _MTF = {
 }
 
 
-def _burley(r: np.ndarray) -> np.ndarray:
+def _burley(r: torch.Tensor) -> torch.Tensor:
     """e^{-r} + e^{-r/3} over r, with one exponential (e^{-r} = (e^{-r/3})^3)."""
-    t = np.exp(-r / 3)
+    t = torch.exp(-r / 3)
     return (t * t * t + t) / r
 
 
 _PROFILE = {
     "burley": _burley,
-    "exponential": lambda r: np.exp(-r),
+    "exponential": lambda r: torch.exp(-r),
 }
+
+
+def render_footprints(energy: torch.Tensor, widths: torch.Tensor, patch: int, *, profile: str = "burley",
+                      supersample: int = 4, chunk: int = 256) -> torch.Tensor:
+    """(N, K, K, 3) float32 footprints on the ``widths``' device: the radial ``profile`` stretched by ``widths``
+    (N, 3, 2) = (d_x, d_y) px per colour, pixel-integrated, each colour summing to its ``energy`` (N, 3).
+
+    A pixel's integral is its ``supersample``^2 sub-pixel samples' sum where the profile changes across it
+    (within :data:`NEAR_PIXELS` pixel diagonals of the pole, in width-scaled units: the core, and the whole thin
+    line of a strongly anisotropic footprint), and its centre's value elsewhere, where the profile is smooth over
+    the pixel (6.0x faster than supersampling every pixel, footprints within 0.2% of their energy, L1, median).
+    The profile stretched along the camera axes, and the sub-pixel samples placed symmetrically in each pixel,
+    make every pixel's value a function of |offset| along each axis: one quadrant of (K // 2 + 1)^2 pixels is
+    integrated, in float32, and mirrored (3.8x fewer values at K = 90). ``chunk`` footprints at a time, at most
+    :data:`RENDER_STEP_BYTES` of temporaries. In torch on any device: on 2 CPU cores 1.7x faster than the same
+    arithmetic in NumPy (0.25 against 0.43 ms a K = 90 footprint)."""
+    k, s, dev = int(patch), int(supersample), widths.device
+    half = k // 2
+    quad = torch.arange(half + 1, dtype=torch.float32, device=dev)  # |offset| of the quadrant's pixels
+    mirror = (torch.arange(k, device=dev) - half).abs()  # each of the K offsets' place in the quadrant
+    sub = (torch.arange(s, dtype=torch.float32, device=dev) + 0.5) / s - 0.5
+    pole = 1.0 / (s * _MEAN_INV_R)
+    out = torch.empty((len(widths), k, k, 3), dtype=torch.float32, device=dev)
+    step = max(1, min(int(chunk), RENDER_STEP_BYTES // (3 * k * k * 4 * 4)))  # (n, 3, K, K) float32 temporaries
+    for i in range(0, len(widths), step):
+        w = widths[i : i + step].to(torch.float32)
+        dx, dy = w[:, :, 0, None, None], w[:, :, 1, None, None]
+        rho = torch.hypot(quad[None, None, :, None] / dy, quad[None, None, None, :] / dx)  # (n, 3, Q, Q) at centres
+        near = rho < NEAR_PIXELS * torch.hypot(1 / dx, 1 / dy)
+        prof = _PROFILE[profile](rho.clamp_min(1e-30)) * float(s * s)  # (the pole is near)
+        idx = near.nonzero(as_tuple=True)
+        dxs, dys = w[idx[0], idx[1], 0][:, None, None], w[idx[0], idx[1], 1][:, None, None]
+        r = torch.hypot((quad[idx[2]][:, None, None] + sub[None, :, None]) / dys,
+                        (quad[idx[3]][:, None, None] + sub[None, None, :]) / dxs)
+        # An odd supersample puts a sample on the 1/r pole: give it the square's mean 1/r instead,
+        # (1/a) * 4 ln(1 + sqrt 2) for a sub-pixel of side a = 1/s (in width-scaled units).
+        r = torch.maximum(r, pole / torch.sqrt(dxs * dys))
+        prof[idx] = _PROFILE[profile](r).sum(dim=(1, 2))
+        full = prof[:, :, mirror][:, :, :, mirror]  # (n, 3, K, K)
+        full /= full.sum(dim=(2, 3), keepdim=True, dtype=torch.float64).to(torch.float32)
+        full *= energy[i : i + step].to(device=dev, dtype=torch.float32)[:, :, None, None]
+        out[i : i + step] = full.permute(0, 2, 3, 1)
+    return out
 
 
 class AnalyticBackend:
@@ -105,41 +149,14 @@ class AnalyticBackend:
         d2 = np.where(ok[:, None, None], d2, iso)
         return np.sqrt(np.clip(d2, 1e-4, (self.patch / 2) ** 2))
 
-    def render(self, energy: np.ndarray, widths: np.ndarray) -> np.ndarray:
-        """(N, K, K, 3) footprints: the profile stretched by ``widths``, pixel-integrated, summing to ``energy``.
-
-        A pixel's integral is its ``supersample``^2 sub-pixel samples' sum where the profile changes across it
-        (within :data:`NEAR_PIXELS` pixel diagonals of the pole, in width-scaled units: the core, and the
-        whole thin line of a strongly anisotropic footprint), and its centre's value elsewhere, where the
-        profile is smooth over the pixel (6.0x faster than supersampling every pixel, footprints within 0.2%
-        of their energy, L1, median). The profile stretched along the camera axes, and the sub-pixel samples
-        placed symmetrically in each pixel, make every pixel's value a function of |offset| along each axis:
-        one quadrant of (K // 2 + 1)^2 pixels is integrated, in float32, and mirrored (3.8x fewer values at
-        K = 90)."""
-        k, s = self.patch, self.supersample
-        half = k // 2
-        quad = np.arange(half + 1, dtype=np.float32)  # |offset| of the quadrant's pixels
-        mirror = np.abs(np.arange(k) - half)  # each of the K offsets' place in the quadrant
-        sub = ((np.arange(s) + 0.5) / s - 0.5).astype(np.float32)
-        out = np.empty((len(energy), k, k, 3), np.float32)
-        step = max(1, min(self.chunk, RENDER_STEP_BYTES // (3 * k * k * 4 * 4)))  # (n, 3, K, K) float32 temporaries
-        for i in range(0, len(energy), step):
-            w = np.asarray(widths[i : i + step], np.float32)
-            dx, dy = w[:, :, 0][:, :, None, None], w[:, :, 1][:, :, None, None]
-            rho = np.hypot(quad[None, None, :, None] / dy, quad[None, None, None, :] / dx)  # (n, 3, Q, Q) at pixel centres
-            near = rho < NEAR_PIXELS * np.hypot(1 / dx, 1 / dy)
-            prof = _PROFILE[self.profile](np.maximum(rho, np.float32(1e-30))) * np.float32(s * s)  # (the pole is near)
-            idx = np.nonzero(near)
-            dxs, dys = w[idx[0], idx[1], 0][:, None, None], w[idx[0], idx[1], 1][:, None, None]
-            r = np.hypot((quad[idx[2]][:, None, None] + sub[None, :, None]) / dys, (quad[idx[3]][:, None, None] + sub[None, None, :]) / dxs)
-            # An odd supersample puts a sample on the 1/r pole: give it the square's mean 1/r instead,
-            # (1/a) * 4 ln(1 + sqrt 2) for a sub-pixel of side a = 1/s (in width-scaled units).
-            r = np.maximum(r, np.float32(1.0 / (s * _MEAN_INV_R)) / np.sqrt(dxs * dys))
-            prof[idx] = _PROFILE[self.profile](r).sum(axis=(1, 2))
-            full = prof[:, :, mirror][:, :, :, mirror]  # (n, 3, K, K)
-            full /= full.sum(axis=(2, 3), keepdims=True, dtype=np.float64).astype(np.float32)
-            out[i : i + step] = (full * np.asarray(energy[i : i + step], np.float32)[:, :, None, None]).transpose(0, 2, 3, 1)
-        return out
+    def render(self, energy: np.ndarray | torch.Tensor, widths: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
+        """(N, K, K, 3) footprints of ``energy`` (N, 3) and ``widths`` (N, 3, 2) (:func:`render_footprints`):
+        NumPy for NumPy, a tensor on the widths' device for tensors (the torch backend's tail stays there)."""
+        if torch.is_tensor(widths):
+            return render_footprints(torch.as_tensor(energy, device=widths.device), widths, self.patch,
+                                     profile=self.profile, supersample=self.supersample, chunk=self.chunk)
+        return render_footprints(torch.from_numpy(np.asarray(energy, np.float32)), torch.from_numpy(np.asarray(widths, np.float32)),
+                                 self.patch, profile=self.profile, supersample=self.supersample, chunk=self.chunk).numpy()
 
     def predict_footprints(self, query: Query) -> np.ndarray:
         # a (psp, pixels) query is cropped to the window the estimate reads, not to K x K (8,100 values per image

@@ -91,43 +91,50 @@ class TorchBackend:
         return path
 
     @torch.no_grad()
-    def predict_footprints(self, query: Query | torch.Tensor) -> np.ndarray:
+    def predict_footprints(self, query: Query | torch.Tensor) -> np.ndarray | torch.Tensor:
+        """(N, K, K, 3) float32 footprints: NumPy for a ``(psp, pixels)`` query or NumPy patches, a tensor on the
+        backend's device for tensor patches (the relight's: the footprints, the analytic model's beyond the domain
+        and its tail included, stay on the device)."""
         if self.decoder is None:
             raise InputError("the torch backend has no decoder checkpoint: pass checkpoint=... or call fit()")
-        patches = _tensor_patches(query) if torch.is_tensor(query) else as_patches(query, self.patch)
+        as_tensor = torch.is_tensor(query)
+        patches = _tensor_patches(query) if as_tensor else as_patches(query, self.patch)
         far = np.zeros(len(patches), bool)
         guarded = self.guard and self.domain is not None and len(patches)
         if guarded:
             est = pixel_widths(_centre_window(patches, GUARD_WINDOW), self.patch, self.black)
             far = beyond(self.domain, est["widths"])
-        out = np.zeros((len(patches), self.patch, self.patch, 3), np.float32)
+        out = torch.zeros((len(patches), self.patch, self.patch, 3), dtype=torch.float32, device=self.device)
         near = np.flatnonzero(~far)
         for i in range(0, len(near), self.batch_size):
+            rows = torch.as_tensor(near[i : i + self.batch_size], device=self.device)
             if len(near) == len(patches):  # (the usual case: a slice, no copy)
                 batch = patches[i : i + self.batch_size]
             elif torch.is_tensor(patches):
-                batch = patches.index_select(0, torch.as_tensor(near[i : i + self.batch_size], device=patches.device))
+                batch = patches.index_select(0, rows.to(patches.device))
             else:
                 batch = patches[near[i : i + self.batch_size]]
             x = torch.as_tensor(batch, device=self.device)
             with torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=self.precision == "bf16"):
                 pred, _ = FootprintNet(self.encoder, self.decoder)(x)
-            out[near[i : i + self.batch_size]] = pred.float().permute(0, 2, 3, 1).cpu().numpy()
+            out[rows] = pred.float().permute(0, 2, 3, 1)
         tail = self.domain.tail_radius if guarded else None  # type: ignore[union-attr]
         tail = tail if tail is not None and cuts_tail(tail, self.patch) and len(near) else None
         if far.any() or tail is not None:
-            # beyond what the decoder learned: the physics, which reads the width at any scale
-            from sssphase_core.learning.backends.analytic_backend import AnalyticBackend
+            # beyond what the decoder learned: the physics, which reads the width at any scale, rendered on the device
+            from sssphase_core.learning.backends.analytic_backend import render_footprints
 
-            fallback = AnalyticBackend(patch=self.patch, black=self.black)
-            out[far] = fallback.render(est["energy"][far], est["axes"][far])
+            energy = torch.as_tensor(est["energy"], dtype=torch.float32, device=self.device)
+            axes = torch.as_tensor(est["axes"], dtype=torch.float32, device=self.device)
+            cut = torch.as_tensor(np.flatnonzero(far), device=self.device)
+            out[cut] = render_footprints(energy[cut], axes[cut], self.patch)
             if tail is not None:
-                physics = fallback.render(est["energy"][near], est["axes"][near])
-                out[near] = with_physics_tail(out[near], physics, tail)
+                rows = torch.as_tensor(near, device=self.device)
+                out[rows] = with_physics_tail(out[rows], render_footprints(energy[rows], axes[rows], self.patch), tail)  # type: ignore[assignment]
                 self.tail_applied = tail
         self.beyond_domain += int(far.sum())
         self.predicted += len(patches)
-        return out
+        return out if as_tensor else out.cpu().numpy()
 
 
 #: The window around each pixel the guard's width estimate reads (the analytic model's, 5 x 5).
