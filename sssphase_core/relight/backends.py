@@ -27,7 +27,8 @@ from sssphase_core.relight.views import RelightView
 def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = None, device: str = "cpu",
                 calibrate: bool = True, precision: str = "auto", **options: object) -> tuple[FootprintSource, int]:
     """The footprint source of backend ``name`` for a view -> (source, patch size); ``options`` go to
-    the model backend (e.g. ``supersample`` for ``analytic``), ``precision`` to the decoder (``torch``). A model
+    the model backend (e.g. ``supersample`` for ``analytic``), ``precision`` to the decoder (``torch``), ``device``
+    to both (the analytic model renders its footprints there). A model
     backend's footprints are ``calibrate``-d to the view (:func:`fit_view_mix`) unless told not to."""
     if name == "none":
         return no_scattering_source(rv.white), 1
@@ -83,7 +84,7 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
         backend = get_backend("torch", checkpoint=checkpoint, device=device, precision=precision,
                               **{"black": rv.proj.black, **options})
     elif name == "analytic":
-        backend = get_backend("analytic", **{"patch": rv.patch, "black": rv.proj.black, **options})
+        backend = get_backend("analytic", **{"patch": rv.patch, "black": rv.proj.black, "device": device, **options})
     else:
         backend = get_backend(name, **options)
     psp, lost = model_inputs(rv)

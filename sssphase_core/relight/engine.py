@@ -314,8 +314,10 @@ def relight(
         if fp.shape[1:] != (patch, patch, 3):
             raise InputError(f"the footprint source returned {tuple(fp.shape[1:])} footprints, expected ({patch}, {patch}, 3)")
         fp = crop_footprints(fp.to(device=device), radius if radius is not None else patch)
-        bad = ~torch.isfinite(fp)
-        if bad.any():  # a backend's NaN/inf must not spread over the whole canvas
+        # a backend's NaN/inf must not spread over the whole canvas; any of them makes the sum non-finite (one
+        # reduction: 4 ms a 1,024 K = 90 footprints on 2 cores, where a mask of every value took 66)
+        bad = ~torch.isfinite(fp) if not torch.isfinite(fp.sum()) else None
+        if bad is not None and bad.any():  # (finite values whose sum overflowed: the mask finds none)
             n_bad += int(bad.sum())
             bad_pixels += int(bad.flatten(1).any(1).sum())
             if bad_pixels > BROKEN_SOURCE_SHARE * total:

@@ -50,6 +50,8 @@ def backend_source(backend: object, psp: np.ndarray, chunk: int = 256) -> Footpr
                  for i in range(0, len(pixels), chunk)]
         if not parts:
             return np.zeros((0, k, k, 3), np.float32)
+        if len(parts) == 1:  # (a backend's footprints are its own new array: no copy)
+            return parts[0]
         if torch.is_tensor(parts[0]):
             return torch.cat(parts)
         return np.concatenate(parts)

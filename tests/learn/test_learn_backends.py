@@ -122,6 +122,27 @@ def test_a_query_of_pixels_reads_only_the_window_the_estimate_needs(flat_scene):
         be.estimate(psp_patches(psp, pixels[:2], 4))
 
 
+@pytest.mark.parametrize("device", ["cpu", pytest.param("cuda", marks=pytest.mark.skipif(
+    not torch.cuda.is_available(), reason="needs a CUDA device"))])
+def test_the_analytic_model_gives_tensor_patches_footprints_on_its_device(flat_scene, device):
+    """Tensor patches (the relight's, cut on a GPU) give a tensor on the backend's device: the footprints of the same
+    patches as arrays. On the CPU the relight keeps NumPy; on a GPU it hands the model windows cut there."""
+    from sssphase_core.relight.sources import backend_source
+
+    views, _ = flat_scene
+    psp, pixels = views[0].psp, np.concatenate([views[0].pixels, [[0, 0], [63, 63]]])
+    be = AnalyticBackend(patch=32, device=device)
+    want = be.predict_footprints((psp, pixels))
+    for size in (5, 32):  # the window the estimate reads, or whole patches
+        got = be.predict_footprints(torch.as_tensor(psp_patches(psp, pixels, size), device=device))
+        assert torch.is_tensor(got) and got.device.type == device
+        np.testing.assert_allclose(got.cpu().numpy(), want, rtol=1e-6, atol=1e-9)
+    assert be.accepts_tensors == (device != "cpu")
+    relit = backend_source(be, psp, chunk=7)(pixels)
+    assert torch.is_tensor(relit) == (device != "cpu")
+    np.testing.assert_allclose(relit.cpu().numpy() if torch.is_tensor(relit) else relit, want, rtol=1e-6, atol=1e-9)
+
+
 @pytest.mark.parametrize("supersample", [1, 2, 3, 8])
 def test_burley_render_is_finite_at_any_supersampling(supersample):
     """Odd supersampling puts a sample on the profile's 1/r pole (it used to give NaN)."""

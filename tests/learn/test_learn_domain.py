@@ -87,7 +87,8 @@ def test_patches_as_tensors_give_the_footprints_of_the_same_patches_as_arrays(de
     footprints as from arrays, the guard's widths read from each patch's centre window, beyond the domain too;
     a tensor of the wrong shape is one clear line."""
     from sssphase_core.errors import InputError
-    from sssphase_core.learning.backends.torch_backend import GUARD_WINDOW, _centre_window
+    from sssphase_core.learning.backends.base import centre_window
+    from sssphase_core.learning.backends.torch_backend import GUARD_WINDOW
     from sssphase_core.relight.sources import backend_source
 
     v = synthetic[0][0]
@@ -101,7 +102,7 @@ def test_patches_as_tensors_give_the_footprints_of_the_same_patches_as_arrays(de
         got = tensors.predict_footprints(torch.from_numpy(patches))
         assert isinstance(want, np.ndarray) and torch.is_tensor(got) and got.device == tensors.device  # stays there
         np.testing.assert_allclose(got, want, rtol=1e-5, atol=1e-9)  # (float rounding: another memory layout)
-        for window in (_centre_window(patches, GUARD_WINDOW), _centre_window(torch.from_numpy(patches), GUARD_WINDOW)):
+        for window in (centre_window(patches, GUARD_WINDOW), centre_window(torch.from_numpy(patches), GUARD_WINDOW)):
             for key, value in pixel_widths(patches, 16, 0.0).items():  # what the guard reads of the whole patches
                 np.testing.assert_array_equal(pixel_widths(window, 16, 0.0)[key], value)
         assert tensors.beyond_domain == arrays.beyond_domain == (0 if contrast == 1.0 else len(v.pixels))

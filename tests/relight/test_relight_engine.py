@@ -322,6 +322,12 @@ def test_non_finite_footprints_are_zeroed_with_a_warning(scene):
     with pytest.warns(RuntimeWarning, match="2 non-finite"):
         out = relight(lambda px: bad[px[:, 0], px[:, 1]], proj, pats, k)
     assert np.isfinite(out).all()
+    huge = fps.copy()  # finite values whose sum overflows float32 (the check's first reduction): kept, no warning
+    huge[ys[0], xs[0], 0, 0, 0] = huge[ys[0], xs[0], k - 1, k - 1, 0] = 3e38
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        out = relight(lambda px: huge[px[:, 0], px[:, 1]], proj, pats, k)
+    assert np.nanmax(out) > 1e37
 
 
 def test_a_source_whose_footprints_are_mostly_not_finite_is_refused(scene):

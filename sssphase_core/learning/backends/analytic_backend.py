@@ -22,8 +22,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from sssphase_core.compute import compute_device
 from sssphase_core.errors import InputError
-from sssphase_core.learning.backends.base import Query, as_patches
+from sssphase_core.learning.backends.base import Query, as_patches, centre_window
 
 if TYPE_CHECKING:
     from sssphase_core.learning.data import ViewData
@@ -72,6 +73,7 @@ def render_footprints(energy: torch.Tensor, widths: torch.Tensor, patch: int, *,
     half = k // 2
     quad = torch.arange(half + 1, dtype=torch.float32, device=dev)  # |offset| of the quadrant's pixels
     mirror = (torch.arange(k, device=dev) - half).abs()  # each of the K offsets' place in the quadrant
+    count = torch.bincount(mirror, minlength=half + 1).to(torch.float64)  # how many of the K offsets each one is
     sub = (torch.arange(s, dtype=torch.float32, device=dev) + 0.5) / s - 0.5
     pole = 1.0 / (s * _MEAN_INV_R)
     out = torch.empty((len(widths), k, k, 3), dtype=torch.float32, device=dev)
@@ -90,23 +92,27 @@ def render_footprints(energy: torch.Tensor, widths: torch.Tensor, patch: int, *,
         # (1/a) * 4 ln(1 + sqrt 2) for a sub-pixel of side a = 1/s (in width-scaled units).
         r = torch.maximum(r, pole / torch.sqrt(dxs * dys))
         prof[idx] = _PROFILE[profile](r).sum(dim=(1, 2))
-        full = prof[:, :, mirror][:, :, :, mirror]  # (n, 3, K, K)
-        full /= full.sum(dim=(2, 3), keepdim=True, dtype=torch.float64).to(torch.float32)
-        full *= energy[i : i + step].to(device=dev, dtype=torch.float32)[:, :, None, None]
-        out[i : i + step] = full.permute(0, 2, 3, 1)
+        total = (prof.to(torch.float64) @ count) @ count  # (n, 3): the whole K x K footprint's sum, from its quadrant
+        prof *= (energy[i : i + step].to(device=dev, dtype=torch.float64) / total).to(torch.float32)[:, :, None, None]
+        out[i : i + step] = prof.permute(0, 2, 3, 1)[:, mirror][:, :, mirror]  # mirrored: (n, K, K, 3)
     return out
 
 
 class AnalyticBackend:
+    """``device``: where the footprints are rendered (the estimate reads a 5 x 5 window per pixel, on the host). On
+    a GPU the relight hands it tensor windows cut there and gets its footprints there (``accepts_tensors``)."""
+
     name = "analytic"
 
     def __init__(self, patch: int = 32, black: float = 0.002, profile: str = "burley", window: int = 2,
-                 supersample: int = 4, chunk: int = 256) -> None:
+                 supersample: int = 4, chunk: int = 256, device: str | torch.device = "cpu") -> None:
         if profile not in _MTF:
             raise ValueError(f"unknown profile {profile!r} ({', '.join(_MTF)})")
         self.patch, self.black, self.profile, self.window = patch, black, profile, window
         self.input_patch = 2 * window + 1  # the PSP window around each pixel that :meth:`estimate` reads
         self.supersample, self.chunk = supersample, chunk
+        self.device = compute_device(device)
+        self.accepts_tensors = self.device.type != "cpu"  # (on the CPU NumPy in, NumPy out, as before)
 
     def pretrain(self, views: Sequence[ViewData], out_dir: Path, **options: object) -> None:
         """Nothing to learn."""
@@ -151,15 +157,24 @@ class AnalyticBackend:
 
     def render(self, energy: np.ndarray | torch.Tensor, widths: np.ndarray | torch.Tensor) -> np.ndarray | torch.Tensor:
         """(N, K, K, 3) footprints of ``energy`` (N, 3) and ``widths`` (N, 3, 2) (:func:`render_footprints`):
-        NumPy for NumPy, a tensor on the widths' device for tensors (the torch backend's tail stays there)."""
+        a tensor on the widths' device for tensors, NumPy for NumPy (rendered on the backend's device)."""
         if torch.is_tensor(widths):
             return render_footprints(torch.as_tensor(energy, device=widths.device), widths, self.patch,
                                      profile=self.profile, supersample=self.supersample, chunk=self.chunk)
-        return render_footprints(torch.from_numpy(np.asarray(energy, np.float32)), torch.from_numpy(np.asarray(widths, np.float32)),
-                                 self.patch, profile=self.profile, supersample=self.supersample, chunk=self.chunk).numpy()
+        out = render_footprints(torch.as_tensor(np.asarray(energy, np.float32), device=self.device),
+                                torch.as_tensor(np.asarray(widths, np.float32), device=self.device),
+                                self.patch, profile=self.profile, supersample=self.supersample, chunk=self.chunk)
+        return out.cpu().numpy()
 
-    def predict_footprints(self, query: Query) -> np.ndarray:
+    def predict_footprints(self, query: Query | torch.Tensor) -> np.ndarray | torch.Tensor:
+        """(N, K, K, 3) footprints: NumPy for a ``(psp, pixels)`` query or NumPy patches, a tensor on the backend's
+        device for tensor patches (N, 24, S, S), S >= 5 (the relight's on a GPU: windows cut there)."""
+        if torch.is_tensor(query):
+            est = self.estimate(centre_window(query, self.input_patch))
+            return self.render(torch.as_tensor(est["energy"], device=self.device),
+                               torch.as_tensor(est["widths"], device=self.device))
         # a (psp, pixels) query is cropped to the window the estimate reads, not to K x K (8,100 values per image
         # at K = 90 for the 25 it reads)
         est = self.estimate(as_patches(query, self.input_patch if isinstance(query, tuple) else self.patch))
         return self.render(est["energy"], est["widths"])
+

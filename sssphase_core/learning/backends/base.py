@@ -6,7 +6,8 @@ A backend turns PSP observations into per-pixel footprints. ``predict_footprints
 backend learns (no-ops for a physics baseline). A backend that reads only a small window of each patch
 may say so with an ``input_patch`` attribute (S < K; e.g. the analytic model's 5): relighting then gives it
 (N, 24, S, S) patches. One that sets ``accepts_tensors = True`` is given them as torch tensors cropped on its
-``device`` (the torch backend: a 1080p view's patches are not built on the host). This module does not import torch.
+``device`` (the torch backend: a 1080p view's patches are not built on the host) and returns their footprints as a
+tensor there (a GPU relight's footprints stay on the GPU). This module does not import torch.
 """
 
 from __future__ import annotations
@@ -48,3 +49,16 @@ def as_patches(query: Query, patch: int) -> np.ndarray:
     if q.ndim != 4 or q.shape[1] != 24 or q.shape[2] != q.shape[3]:
         raise InputError(f"PSP patches must be (N, 24, K, K), got {q.shape}")
     return q
+
+
+def centre_window(patches: object, size: int) -> np.ndarray:
+    """(N, C, size, size) NumPy: the window of ``size`` around each (N, C, K, K) patch's centre pixel (K // 2), of
+    NumPy patches or of torch tensors on any device (only the window is copied to the host); patches smaller than
+    ``size`` as they are (an estimate refuses them, naming the sizes)."""
+    k = patches.shape[-1]  # type: ignore[attr-defined]
+    if k < size:
+        win = patches
+    else:
+        c, h = k // 2, size // 2
+        win = patches[:, :, c - h:c + h + 1, c - h:c + h + 1]  # type: ignore[index]
+    return win.cpu().numpy() if hasattr(win, "cpu") else np.asarray(win)

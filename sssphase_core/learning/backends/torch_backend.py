@@ -10,7 +10,7 @@ import torch
 
 from sssphase_core.compute import compute_device, inference_precision
 from sssphase_core.errors import InputError
-from sssphase_core.learning.backends.base import Query, as_patches
+from sssphase_core.learning.backends.base import Query, as_patches, centre_window
 from sssphase_core.learning.data import PatchDataset, ViewData
 from sssphase_core.learning.domain import WidthDomain, beyond, cuts_tail, pixel_widths, with_physics_tail
 from sssphase_core.learning.models import ModelPreset, get_preset
@@ -102,7 +102,7 @@ class TorchBackend:
         far = np.zeros(len(patches), bool)
         guarded = self.guard and self.domain is not None and len(patches)
         if guarded:
-            est = pixel_widths(_centre_window(patches, GUARD_WINDOW), self.patch, self.black)
+            est = pixel_widths(centre_window(patches, GUARD_WINDOW), self.patch, self.black)
             far = beyond(self.domain, est["widths"])
         out = torch.zeros((len(patches), self.patch, self.patch, 3), dtype=torch.float32, device=self.device)
         near = np.flatnonzero(~far)
@@ -146,14 +146,3 @@ def _tensor_patches(query: torch.Tensor) -> torch.Tensor:
     if query.ndim != 4 or query.shape[1] != 24 or query.shape[2] != query.shape[3]:
         raise InputError(f"PSP patches must be (N, 24, K, K), got {tuple(query.shape)}")
     return query.float()
-
-
-def _centre_window(patches: np.ndarray | torch.Tensor, size: int) -> np.ndarray:
-    """(N, 24, size, size) numpy: the window of ``size`` around each patch's centre pixel (K // 2) -- all the
-    guard's estimate reads, so a device's patches are not copied to the host whole."""
-    k = patches.shape[-1]
-    if k < size:
-        return np.asarray(patches)  # (refused by the estimate, naming the sizes)
-    c, h = k // 2, size // 2
-    win = patches[:, :, c - h:c + h + 1, c - h:c + h + 1]
-    return win.cpu().numpy() if torch.is_tensor(win) else np.asarray(win)
