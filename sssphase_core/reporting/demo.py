@@ -344,6 +344,7 @@ class Demo:
         from sssphase_core.learning.data import sample_pixels
         from sssphase_core.learning.evaluation import footprint_metrics, summarise
         from sssphase_core.relight import load_view, make_source
+        from sssphase_core.relight.engine import footprint_array
         from sssphase_core.store.session import Session
 
         ckpt = self._decoder_checkpoint()
@@ -367,9 +368,9 @@ class Demo:
                                         **opts)  # the model's own footprints
                 if (precision := getattr(getattr(source, "backend", None), "precision", None)) is not None:
                     inference[b] = precision
-                first = np.asarray(source(px[:WARM_UP_PIXELS]), np.float32)  # (loading, a device's first call)
+                first = footprint_array(source(px[:WARM_UP_PIXELS]))  # (loading, a device's first call)
                 t0 = time.perf_counter()
-                rest = np.asarray(source(px[WARM_UP_PIXELS:]), np.float32)
+                rest = footprint_array(source(px[WARM_UP_PIXELS:]))  # (on the host: a GPU's work is done)
                 rate.setdefault(b, []).append((time.perf_counter() - t0) / max(1, len(px) - WARM_UP_PIXELS))
                 table[rv.object][b] = summarise(footprint_metrics(np.concatenate([first, rest]), gt))
         # the slowest object's seconds per footprint after a warm-up: what a relight of a whole view costs

@@ -54,6 +54,31 @@ def test_demo_runs_every_step_and_resumes(demo):
     assert "resumed: skipped" in resumed and "sand_rake_v0_checkerboard_torch_compare.png" in resumed
 
 
+def test_the_footprints_step_reads_a_devices_footprints_without_numpy(demo, monkeypatch):
+    """On a GPU (`sss repro paper --device cuda`) the decoder's footprints arrive as tensors on the device, which NumPy
+    cannot read (``np.asarray`` of a CUDA tensor is a TypeError). Emulated on the CPU: tensors refuse NumPy's implicit
+    conversion as CUDA ones do; Table 1's step scores the same footprints as the demo's run did."""
+    import torch
+
+    from sssphase_core.reporting.demo import PRESETS, Demo
+
+    out, _, _, client = demo
+    again = Demo(out, PRESETS["tiny"], client, log=lambda line: None)
+    for name in ("test_sessions", "decoder"):
+        again.results[name] = json.loads((out / "steps" / f"{name}.json").read_text())
+
+    def refuse(self, *args, **kwargs):
+        raise TypeError(f"can't convert {self.device} device type tensor to numpy (as a cuda:0 tensor)")
+
+    monkeypatch.setattr(torch.Tensor, "__array__", refuse)
+    got = again.footprints()
+    want = json.loads((out / "steps" / "footprints.json").read_text())
+    assert got["backends"] == want["backends"] and "torch" in got["backends"]
+    for obj, rows in want["metrics"].items():
+        for backend, row in rows.items():
+            assert got["metrics"][obj][backend] == pytest.approx(row, rel=1e-6), (obj, backend)
+
+
 @pytest.mark.slow
 def test_report_renders_with_its_images_in_headless_chromium(demo, tmp_path):
     if not CHROMIUM.exists() or shutil.which(str(CHROMIUM)) is None:

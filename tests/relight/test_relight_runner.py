@@ -441,3 +441,38 @@ def test_an_interrupted_relight_keeps_the_footprints_computed_so_far_and_the_nex
     np.testing.assert_array_equal(read_exr(again.images[0].paths[0]), read_exr(whole.images[0].paths[0]))
     with np.load(kept) as z:
         assert len(z["index"]) == lit
+
+
+def test_footprints_a_device_keeps_reach_every_consumer_without_numpy_reading_them(session, tmp_path, monkeypatch):
+    """On a GPU the decoder's footprints, the analytic model's beyond its training widths and its tail among them, stay
+    tensors on the device, and NumPy cannot read those (``np.asarray`` of a CUDA tensor is a TypeError). Emulated on the
+    CPU: tensors refuse NumPy's implicit conversion as CUDA ones do. The relight (cached or not), the evaluation, the
+    geometry, the probe and ``footprints_at`` take them through ``footprint_array``."""
+    import torch
+
+    from sssphase_core.relight import load_view
+    from sssphase_core.relight.evaluation import footprints_at
+    from sssphase_core.relight.probe import probe_pixel
+
+    run = _tiny_decoder(tmp_path / "run")
+    ckpt = torch.load(run / "best.pt", weights_only=False)
+    ckpt["domain"] = {"width_limit_px": [1.0, 1.0, 1.0], "tail_radius_px": [3, 4, 5]}  # some pixels beyond, a tail
+    torch.save(ckpt, run / "best.pt")
+
+    def refuse(self, *args, **kwargs):
+        raise TypeError(f"can't convert {self.device} device type tensor to numpy (as a cuda:0 tensor)")
+
+    monkeypatch.setattr(torch.Tensor, "__array__", refuse)
+    with pytest.raises(TypeError, match="as a cuda:0 tensor"):
+        np.asarray(torch.zeros(2))
+    said = Recorder()
+    res = relight_session(session, ["checkerboard"], backend="torch", checkpoint=run, out=tmp_path / "r", narrator=said)
+    assert res.backend == "torch" and "analytic model" in said.text()  # (the guard's line: its parts ran)
+    (row,) = evaluate_sessions([session], backend="torch", checkpoint=run, out=tmp_path / "ev", cache=False).rows
+    assert np.isfinite(row["psnr"])
+    geometry_session(session, backend="torch", checkpoint=run, out=tmp_path / "geo")
+    rv = load_view(Session.open(session), 0)
+    ys, xs = np.nonzero(rv.proj.mask)
+    fps = footprints_at(rv, np.stack([ys[:3], xs[:3]], 1), ["torch", "analytic"], checkpoint=run)
+    assert all(isinstance(f, np.ndarray) and f.shape[0] == 3 for f in fps.values())
+    assert "torch" in probe_pixel(rv, (int(ys[0]), int(xs[0])), checkpoint=run).footprints
