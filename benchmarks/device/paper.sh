@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # The prepared GPU check of issue 41, run from the repository root on a lent GPU machine (device `run`, with
 # `.whl` carried: the wheels of the dependencies that machine's image lacks, see the device README):
-#   the simulator's CUDA tests, `sss bench sim` (1080p render on the GPU against numpy), and
+#   the simulator's and the relight footprints' CUDA tests, `sss bench sim` (1080p render on the GPU against numpy), and
 #   `sss repro paper --budget BUDGET` (Tables 1-2 at the paper's scale); reports land in $OUT.
 # The wheels (here, once; `.whl/` is ignored by git): for each of pyzmq==27.3.0 kornia==0.9.0 kornia_rs==0.2.0
 #   colour-demosaicing==0.2.7 colour-science==0.4.7 donfig==0.8.1.post1 google-crc32c==1.9.0 numcodecs==0.16.6
@@ -29,6 +29,9 @@ cp /tmp/repro/report.md /tmp/repro/report.json "$out/" 2>/dev/null
 for d in /tmp/repro/runs/*/; do cp "$d/metrics.jsonl" "$out/$(basename "$d")_metrics.jsonl" 2>/dev/null; done
 if [ "$2" != repro ]; then
   python3 -m pytest -q -p no:cacheprovider -o addopts="" tests/sim/test_sim_accel.py 2>&1 | tail -3
+  # the footprints a GPU relight keeps on the device: the analytic render, the decoder's guard and tail (CUDA tests)
+  python3 -m pytest -q -p no:cacheprovider -o addopts="" -k "device or gpu" tests/learn/test_learn_backends.py \
+    tests/learn/test_learn_domain.py 2>&1 | tail -3
   timeout -k 5 -s INT "${SIM_S:-300}" python3 -m sssphase_cli bench sim --device cuda --out "$out/sim.json" 2>&1 | tail -20
 fi
 ls -la "$out"
