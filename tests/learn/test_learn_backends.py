@@ -143,6 +143,19 @@ def test_the_analytic_model_gives_tensor_patches_footprints_on_its_device(flat_s
     np.testing.assert_allclose(relit.cpu().numpy() if torch.is_tensor(relit) else relit, want, rtol=1e-6, atol=1e-9)
 
 
+@pytest.mark.parametrize("k", [5, 90])
+def test_the_render_is_finite_and_keeps_the_energy_at_extreme_widths(k):
+    """Widths from a thousandth of a pixel (a sharp, nearly black object) to far beyond the patch, each axis alone
+    (a line) or both, and energies from 0 to 1e4: finite footprints that sum to their energy (float32)."""
+    ws = np.array([1e-3, 1e-2, 0.3, 5.0, 45.0, 1e3, 1e6], np.float32)
+    wx, wy = (a.ravel() for a in np.meshgrid(ws, ws))
+    widths = np.repeat(np.stack([wx, wy], -1)[:, None], 3, axis=1)  # (49, 3, 2)
+    for e in (0.0, 1e-30, 1.0, 1e4):
+        fp = AnalyticBackend(patch=k).render(np.full((len(widths), 3), e, np.float32), widths)
+        assert np.isfinite(fp).all() and (fp >= 0).all()
+        np.testing.assert_allclose(fp.sum(axis=(1, 2), dtype=np.float64), e, rtol=1e-5, atol=0)
+
+
 @pytest.mark.parametrize("supersample", [1, 2, 3, 8])
 def test_burley_render_is_finite_at_any_supersampling(supersample):
     """Odd supersampling puts a sample on the profile's 1/r pole (it used to give NaN)."""
