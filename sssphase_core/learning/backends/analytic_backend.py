@@ -67,8 +67,8 @@ def render_footprints(energy: torch.Tensor, widths: torch.Tensor, patch: int, *,
     The profile stretched along the camera axes, and the sub-pixel samples placed symmetrically in each pixel,
     make every pixel's value a function of |offset| along each axis: one quadrant of (K // 2 + 1)^2 pixels is
     integrated, in float32, and mirrored (3.8x fewer values at K = 90). ``chunk`` footprints at a time, at most
-    :data:`RENDER_STEP_BYTES` of temporaries. In torch on any device: on 2 CPU cores 1.7x faster than the same
-    arithmetic in NumPy (0.25 against 0.43 ms a K = 90 footprint)."""
+    :data:`RENDER_STEP_BYTES` of temporaries. In torch on any device: on 2 CPU cores 0.10 ms a K = 90 footprint,
+    against 0.47 for the NumPy render it replaced."""
     k, s, dev = int(patch), int(supersample), widths.device
     half = k // 2
     quad = torch.arange(half + 1, dtype=torch.float32, device=dev)  # |offset| of the quadrant's pixels
@@ -189,4 +189,3 @@ class AnalyticBackend:
         # at K = 90 for the 25 it reads)
         est = self.estimate(as_patches(query, self.input_patch if isinstance(query, tuple) else self.patch))
         return self.render(est["energy"], est["widths"])
-
