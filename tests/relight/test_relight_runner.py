@@ -443,6 +443,7 @@ def test_an_interrupted_relight_keeps_the_footprints_computed_so_far_and_the_nex
         assert len(z["index"]) == lit
 
 
+@pytest.mark.slow
 def test_footprints_a_device_keeps_reach_every_consumer_without_numpy_reading_them(session, tmp_path, monkeypatch):
     """On a GPU the decoder's footprints, the analytic model's beyond its training widths and its tail among them, stay
     tensors on the device, and NumPy cannot read those (``np.asarray`` of a CUDA tensor is a TypeError). Emulated on the
