@@ -18,9 +18,9 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING
 
 import numpy as np
+import torch
 
 from sssphase_core.processing.projector import emitted_light
 from sssphase_core.relight.engine import (
@@ -31,9 +31,6 @@ from sssphase_core.relight.engine import (
     pattern_stack,
     received_light,
 )
-
-if TYPE_CHECKING:
-    import torch
 
 #: Footprints sampled from the view to find its basis, the largest rank, and the share of their energy
 #: (sum of squares) the basis may leave out.
@@ -165,24 +162,45 @@ class LowRankTap:
         self.parts: list[tuple[np.ndarray, np.ndarray]] = []  # (pixels (n, 2), coefficients (n, 3, r)) per call
         self.count, self.energy, self.kept = 0, 0.0, 0.0
 
-    def __call__(self, pixels: np.ndarray) -> np.ndarray:
-        out = footprint_array(self.source(pixels))
+    def __call__(self, pixels: np.ndarray) -> np.ndarray | torch.Tensor:
+        out = self.source(pixels)  # a model's tensor on its device is projected there and handed on as it is
         flat = pixels[:, 0].astype(np.int64) * self.shape[1] + pixels[:, 1]
         new = self.slot[flat] < 0
         if new.any():
-            fp = out if new.all() else out[new]
-            if not np.isfinite(fp).all():  # (the splat zeroes them and warns: the coefficients do the same)
-                fp = np.nan_to_num(fp, nan=0.0, posinf=0.0, neginf=0.0)
-            n, k = len(fp), fp.shape[1]
-            flat_fp = fp.reshape(n, k * k, 3)
-            coef = np.stack([flat_fp[..., c] @ self.basis[c].reshape(-1, k * k).T for c in range(3)], axis=1)  # (n, 3, r)
-            every = slice(None, None, RESIDUAL_STRIDE)  # the residual measured on a share of them, in float64
-            self.energy += float(np.square(flat_fp[every], dtype=np.float64).sum())
-            self.kept += float(np.square(coef[every], dtype=np.float64).sum())  # (orthonormal basis: |projection|^2)
-            self.slot[flat[new]] = self.count + np.arange(n)
-            self.parts.append((pixels[new].astype(np.int64), coef.astype(np.float32, copy=False)))
-            self.count += n
+            coef, energy, kept = (self._project_tensor if torch.is_tensor(out) else self._project)(out, new)
+            self.energy, self.kept = self.energy + energy, self.kept + kept
+            self.slot[flat[new]] = self.count + np.arange(len(coef))
+            self.parts.append((pixels[new].astype(np.int64), coef))
+            self.count += len(coef)
         return out
+
+    def _project(self, out: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """The ``new`` rows' coefficients (n, 3, r) on the basis, and the squared energy of every
+        :data:`RESIDUAL_STRIDE`-th one and of its projection (float64)."""
+        out = footprint_array(out)
+        fp = out if new.all() else out[new]
+        if not np.isfinite(fp).all():  # (the splat zeroes them and warns: the coefficients do the same)
+            fp = np.nan_to_num(fp, nan=0.0, posinf=0.0, neginf=0.0)
+        n, k = len(fp), fp.shape[1]
+        flat_fp = fp.reshape(n, k * k, 3)
+        coef = np.stack([flat_fp[..., c] @ self.basis[c].reshape(-1, k * k).T for c in range(3)], axis=1)  # (n, 3, r)
+        every = slice(None, None, RESIDUAL_STRIDE)  # the residual measured on a share of them, in float64
+        energy = float(np.square(flat_fp[every], dtype=np.float64).sum())
+        kept = float(np.square(coef[every], dtype=np.float64).sum())  # (orthonormal basis: |projection|^2)
+        return coef.astype(np.float32, copy=False), energy, kept
+
+    def _project_tensor(self, out: torch.Tensor, new: np.ndarray) -> tuple[np.ndarray, float, float]:
+        """:meth:`_project` on the footprints' device (a GPU relight's footprints are not copied to the host)."""
+        fp = out.float() if new.all() else out.float()[torch.as_tensor(np.flatnonzero(new), device=out.device)]
+        if not torch.isfinite(fp.sum()):
+            fp = torch.nan_to_num(fp, nan=0.0, posinf=0.0, neginf=0.0)
+        n, k = len(fp), fp.shape[1]
+        basis = torch.as_tensor(self.basis, device=fp.device).reshape(3, -1, k * k)  # (3, r, K^2)
+        flat_fp = fp.reshape(n, k * k, 3)
+        coef = torch.stack([flat_fp[..., c] @ basis[c].T for c in range(3)], dim=1)  # (n, 3, r)
+        energy = float(flat_fp[::RESIDUAL_STRIDE].double().square().sum())
+        kept = float(coef[::RESIDUAL_STRIDE].double().square().sum())
+        return coef.cpu().numpy(), energy, kept
 
     def covers(self, pixels: np.ndarray) -> bool:
         """Whether every one of ``pixels`` (N, 2) went by (then any pattern can be relit from the taps)."""

@@ -57,6 +57,31 @@ def test_relit_from_eigen_footprints_equals_the_splat_when_they_span_the_footpri
     np.testing.assert_array_equal(kept_white, white[proj.mask])
 
 
+def test_a_models_tensors_are_projected_where_they_are_and_handed_on_as_they_are(make_projection):
+    """A GPU relight's footprints are tensors on the device: the tap projects them there and passes them on as
+    tensors (not copied to the host and back); the same coefficients and residual as from arrays, a NaN zeroed alike."""
+    import torch
+
+    proj = make_projection(black=0.002)
+    arrays = _rank3_source(proj)
+    valid = np.argwhere(proj.mask)
+
+    def damaged(px):  # (one non-finite value: the splat zeroes it, the coefficients too)
+        out = arrays(px)
+        out[px[:, 0] * proj.mask.shape[1] + px[:, 1] == valid[5, 0] * proj.mask.shape[1] + valid[5, 1], 0, 0, 0] = np.nan
+        return out
+
+    taps = [LowRankTap(lambda px, f=f: f(damaged(px)), valid, proj.mask.shape, sample=64) for f in (np.asarray, torch.from_numpy)]
+    for tap in taps:
+        for chunk in (valid[:7], valid[5:40], valid):  # repeated pixels: each kept once
+            out = tap(chunk)
+            assert torch.is_tensor(out) == (tap is taps[1])
+    want, got = taps[0].result(), taps[1].result()
+    np.testing.assert_array_equal(got.pixels, want.pixels)
+    np.testing.assert_allclose(got.coefficients, want.coefficients, rtol=1e-5, atol=1e-5 * np.abs(want.coefficients).max())
+    assert np.isfinite(got.coefficients).all() and got.residual == pytest.approx(want.residual, abs=1e-7)  # (rank 3: ~0 either way)
+
+
 def test_widened_eigen_footprints_relight_as_the_widened_footprints_and_are_kept_with_their_stretch(tmp_path, make_projection):
     """The view calibration's members (``relight_view(widen=S)``: stretched along x, y and both, and softened) from
     the cache: the eigen-footprints mapped, each pixel's coefficients rescaled to keep its colours' energy, relight as

@@ -448,7 +448,8 @@ def test_footprints_a_device_keeps_reach_every_consumer_without_numpy_reading_th
     """On a GPU the decoder's footprints, the analytic model's beyond its training widths and its tail among them, stay
     tensors on the device, and NumPy cannot read those (``np.asarray`` of a CUDA tensor is a TypeError). Emulated on the
     CPU: tensors refuse NumPy's implicit conversion as CUDA ones do. The relight (cached or not), the evaluation, the
-    geometry, the probe and ``footprints_at`` take them through ``footprint_array``."""
+    geometry, the probe and ``footprints_at`` take them through ``footprint_array``, and the eigen-footprints of a view
+    whose footprints the cache cannot hold are projected on the device."""
     import torch
 
     from sssphase_core.relight import load_view
@@ -467,9 +468,13 @@ def test_footprints_a_device_keeps_reach_every_consumer_without_numpy_reading_th
     with pytest.raises(TypeError, match="as a cuda:0 tensor"):
         np.asarray(torch.zeros(2))
     said = Recorder()
-    res = relight_session(session, ["checkerboard"], backend="torch", checkpoint=run, out=tmp_path / "r", narrator=said)
+    with monkeypatch.context() as m:  # footprints beyond the cache's budget (a 1080p view's): only eigen-footprints kept,
+        m.setattr("sssphase_core.relight.cache.CACHE_BYTES", 0)  # projected where the footprints are
+        res = relight_session(session, ["checkerboard"], backend="torch", checkpoint=run, out=tmp_path / "r", narrator=said)
     assert res.backend == "torch" and "analytic model" in said.text()  # (the guard's line: its parts ran)
-    (row,) = evaluate_sessions([session], backend="torch", checkpoint=run, out=tmp_path / "ev", cache=False).rows
+    assert "relit from its eigen-footprints alone" in said.text()
+    assert [f.name.endswith("_lowrank.npz") for f in (tmp_path / "r" / "cache").iterdir()] == [True]  # (no footprints)
+    (row,) = evaluate_sessions([session], backend="torch", checkpoint=run, out=tmp_path / "ev").rows  # (cached)
     assert np.isfinite(row["psnr"])
     geometry_session(session, backend="torch", checkpoint=run, out=tmp_path / "geo")
     rv = load_view(Session.open(session), 0)
