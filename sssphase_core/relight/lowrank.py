@@ -161,6 +161,7 @@ class LowRankTap:
         self.slot = np.full(self.shape[0] * self.shape[1], -1, np.int64)
         self.parts: list[tuple[np.ndarray, np.ndarray]] = []  # (pixels (n, 2), coefficients (n, 3, r)) per call
         self.count, self.energy, self.kept = 0, 0.0, 0.0
+        self._device_basis: torch.Tensor | None = None  # the basis on the footprints' device, for tensors
 
     def __call__(self, pixels: np.ndarray) -> np.ndarray | torch.Tensor:
         out = self.source(pixels)  # a model's tensor on its device is projected there and handed on as it is
@@ -195,7 +196,9 @@ class LowRankTap:
         if not torch.isfinite(fp.sum()):
             fp = torch.nan_to_num(fp, nan=0.0, posinf=0.0, neginf=0.0)
         n, k = len(fp), fp.shape[1]
-        basis = torch.as_tensor(self.basis, device=fp.device).reshape(3, -1, k * k)  # (3, r, K^2)
+        if self._device_basis is None or self._device_basis.device != fp.device:  # (moved there once)
+            self._device_basis = torch.as_tensor(self.basis, device=fp.device).reshape(3, -1, k * k)  # (3, r, K^2)
+        basis = self._device_basis
         flat_fp = fp.reshape(n, k * k, 3)
         coef = torch.stack([flat_fp[..., c] @ basis[c].T for c in range(3)], dim=1)  # (n, 3, r)
         energy = float(flat_fp[::RESIDUAL_STRIDE].double().square().sum())
