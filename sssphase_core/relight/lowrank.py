@@ -168,7 +168,8 @@ class LowRankTap:
         flat = pixels[:, 0].astype(np.int64) * self.shape[1] + pixels[:, 1]
         new = self.slot[flat] < 0
         if new.any():
-            coef, energy, kept = (self._project_tensor if torch.is_tensor(out) else self._project)(out, new)
+            on_device = torch.is_tensor(out) and out.device.type != "cpu"  # (on the CPU NumPy's products are 3x faster)
+            coef, energy, kept = (self._project_tensor if on_device else self._project)(out, new)
             self.energy, self.kept = self.energy + energy, self.kept + kept
             self.slot[flat[new]] = self.count + np.arange(len(coef))
             self.parts.append((pixels[new].astype(np.int64), coef))
@@ -191,7 +192,8 @@ class LowRankTap:
         return coef.astype(np.float32, copy=False), energy, kept
 
     def _project_tensor(self, out: torch.Tensor, new: np.ndarray) -> tuple[np.ndarray, float, float]:
-        """:meth:`_project` on the footprints' device (a GPU relight's footprints are not copied to the host)."""
+        """:meth:`_project` on the footprints' device (a GPU relight's footprints are not copied to the host; on the
+        CPU, NumPy's strided products take a third of torch's time: 38 against 116 ms for 1,024 K = 90 footprints)."""
         fp = out.float() if new.all() else out.float()[torch.as_tensor(np.flatnonzero(new), device=out.device)]
         if not torch.isfinite(fp.sum()):
             fp = torch.nan_to_num(fp, nan=0.0, posinf=0.0, neginf=0.0)

@@ -80,6 +80,11 @@ def test_a_models_tensors_are_projected_where_they_are_and_handed_on_as_they_are
     np.testing.assert_array_equal(got.pixels, want.pixels)
     np.testing.assert_allclose(got.coefficients, want.coefficients, rtol=1e-5, atol=1e-5 * np.abs(want.coefficients).max())
     assert np.isfinite(got.coefficients).all() and got.residual == pytest.approx(want.residual, abs=1e-7)  # (rank 3: ~0 either way)
+    new = np.ones(40, bool)  # the device's projection itself (a CPU tensor takes NumPy's faster path): the same
+    on_device = taps[1]._project_tensor(torch.from_numpy(damaged(valid[:40])), new)
+    on_host = taps[0]._project(damaged(valid[:40]), new)
+    np.testing.assert_allclose(on_device[0], on_host[0], rtol=1e-5, atol=1e-5 * np.abs(on_host[0]).max())
+    assert on_device[1:] == pytest.approx(on_host[1:], rel=1e-6)
 
 
 def test_widened_eigen_footprints_relight_as_the_widened_footprints_and_are_kept_with_their_stretch(tmp_path, make_projection):
