@@ -44,7 +44,9 @@ ViewsOpt = Annotated[str, typer.Option(help="Comma-separated views (default: all
 ResizeOpt = Annotated[str, typer.Option("--resize", help="Bring patterns of another size to the projector's: fit "
                                         "(keep the aspect ratio, pad with black), fill (keep it, crop) or stretch.")]
 ChunkOpt = Annotated[int, typer.Option(min=1, help="Pixels per footprint/splat chunk.")]
-DeviceOpt = Annotated[str, typer.Option(help="cpu, cuda or cuda:N: where the models compute their footprints (the decoder, the analytic model and its parts of the decoder's) and the splat runs; on a GPU the footprints stay there.")]
+DeviceOpt = Annotated[str, typer.Option(help="cpu, cuda or cuda:N: where the models compute their footprints (the "
+                                        "decoder, the analytic model and its parts of the decoder's) and the splat "
+                                        "runs; on a GPU the footprints stay there.")]
 PrecisionOpt = Annotated[str, typer.Option(help="The decoder's inference: auto (bf16 where the device computes it "
                                            "natively: CUDA GPUs from Ampere, CPUs with AVX512-BF16 or AMX; else "
                                            "fp32), fp32 or bf16.")]

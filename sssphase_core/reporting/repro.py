@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Any
 
 from sssphase_core.errors import InputError
+from sssphase_core.relight.choices import BLENDS
 from sssphase_core.reporting.demo import Demo, DemoConfig, NotAvailable
 from sssphase_core.store.files import write_text
 
@@ -305,8 +306,6 @@ class PaperRepro(Demo):
         same = [unit_s(rows) / max(1, int(rows[0]["lit_pixels"])) for key, rows in self._relit.items()
                 if key.rsplit("/", 1)[-1] == backend and rows]
         per_footprint = self.results.get("footprints", {}).get("seconds_per_pixel") or {}
-        from sssphase_core.relight.choices import BLENDS
-
         models = BLENDS.get(backend, (backend,))
         if same:
             guess = max(same) * pixels
