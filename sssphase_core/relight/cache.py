@@ -168,12 +168,19 @@ def view_tag(session: Session, view: int) -> str:
     return hashlib.sha256(f"{session.path.resolve()}:{key}".encode()).hexdigest()[:10]
 
 
+def cache_stem(session: Session, rv: Any, backend: str, checkpoint: Path | str | None, precision: str,
+               decoder: bool) -> str:
+    """The name every cache of a view relit by ``backend`` starts with: object, view, the view's arrays and, when
+    the backend has a ``decoder``, the checkpoint and its inference ``precision``."""
+    tag = model_tag(checkpoint if decoder else None) + precision_tag(precision if decoder else "fp32")
+    return f"{rv.object}_v{rv.view}_{view_tag(session, rv.view)}_{backend}_{tag}"
+
+
 def cache_path(out: Path, session: Session, rv: Any, member: str, checkpoint: Path | str | None,
                precision: str = "fp32") -> Path:
-    """The footprint cache of backend ``member`` for a view: named by object, view, the view's arrays and
-    (for the decoder) the checkpoint and its inference ``precision``, so that nothing stale or foreign is read."""
-    tag = model_tag(checkpoint if member == "torch" else None) + precision_tag(precision if member == "torch" else "fp32")
-    return out / "cache" / f"{rv.object}_v{rv.view}_{view_tag(session, rv.view)}_{member}_{tag}.npz"
+    """The footprint cache of backend ``member`` for a view (:func:`cache_stem`), so that nothing stale or foreign
+    is read."""
+    return out / "cache" / f"{cache_stem(session, rv, member, checkpoint, precision, member == 'torch')}.npz"
 
 
 #: The folder of a decoder run where ``sss train decoder --check-sessions`` relights its check sessions: the

@@ -21,13 +21,11 @@ import numpy as np
 
 from sssphase_core.errors import InputError
 from sssphase_core.relight.cache import (
+    cache_stem,
     footprint_bytes,
     kept,
-    model_tag,
-    precision_tag,
     saved_if_interrupted,
     view_caches,
-    view_tag,
 )
 from sssphase_core.relight.choices import (
     BLENDS,
@@ -123,10 +121,8 @@ def lowrank_path(out: Path, session: Session, rv: RelightView, backend: str, che
     """The eigen-footprint cache of a view relit with ``backend`` (all its members and its calibration, whose members
     are stretched ``widen`` x along x, y and both, and softened; its decoder inferring in ``precision``), named as
     :func:`cache_path` names footprint caches."""
-    decoder = uses_decoder(backend)
-    tag = (model_tag(checkpoint if decoder else None) + precision_tag(precision if decoder else "fp32")
-           + (f"_w{widen:g}" if widen else ""))
-    return out / "cache" / f"{rv.object}_v{rv.view}_{view_tag(session, rv.view)}_{backend}_{tag}_lowrank.npz"
+    stem = cache_stem(session, rv, backend, checkpoint, precision, uses_decoder(backend))
+    return out / "cache" / f"{stem}{f'_w{widen:g}' if widen else ''}_lowrank.npz"
 
 
 def parse_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
