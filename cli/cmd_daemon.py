@@ -280,6 +280,25 @@ def bench_basler(
     write_result(console, out, md, result, markdown)
 
 
+def bench_soak(
+    out: Annotated[Path, typer.Option(help="JSON result file, every cycle's sample in it (a Markdown table is printed "
+                                           "and written next to it)")] = Path("benchmarks/soak.json"),
+    cycles: Annotated[int, typer.Option(min=1, max=1_000_000, help="cycles after the warm-up")] = 300,
+    capture_every: Annotated[int, typer.Option(min=0, help="capture one sim view every N cycles (0: never)")] = 50,
+    frames: Annotated[int, typer.Option(min=1, max=10_000, help="frames the well-behaved client streams per cycle")] = 20,
+    md: Annotated[Path | None, typer.Option(help="Markdown table file (default: next to --out)")] = None,
+) -> None:
+    """A daemon under a lab's use, compressed: clients streaming, clients crashing mid-stream, malformed requests,
+    captures; its rigs, jobs, descriptors, threads and memory when idle after a warm-up against after the cycles."""
+    from sssphase_cli.output import write_result
+    from sssphase_cli.progress import LazyBar
+    from sssphase_daemon.soak import markdown, run_soak
+
+    with LazyBar("sss bench soak: cycles") as bar:
+        result = run_soak(cycles, frames=frames, capture_every=capture_every, progress=bar)
+    write_result(console, out, md, result, markdown(result))
+
+
 def register(groups: dict[str, typer.Typer]) -> None:
     root = groups["root"]
     root.command("devices")(devices)
@@ -290,3 +309,4 @@ def register(groups: dict[str, typer.Typer]) -> None:
     groups["daemon"].command("keys")(daemon_keys)
     groups["bench"].command("daemon")(bench_daemon)
     groups["bench"].command("basler")(bench_basler)
+    groups["bench"].command("soak")(bench_soak)

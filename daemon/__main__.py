@@ -28,8 +28,9 @@ def main(argv: list[str] | None = None) -> int:
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(levelname)s %(message)s")
     import zmq
 
-    from sssphase_daemon.server import Daemon
+    from sssphase_daemon.server import Daemon, limit_malloc_arenas
 
+    limit_malloc_arenas()  # before the daemon's threads start
     try:
         daemon = Daemon(args.endpoint, curve_dir=args.curve_dir, preview=args.preview,
                         client_timeout_s=args.client_timeout, max_message_bytes=args.max_message_bytes,

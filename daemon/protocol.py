@@ -31,6 +31,7 @@ OPS = (
 # error codes
 BAD_MESSAGE, BAD_VERSION, UNAUTHENTICATED, UNKNOWN_OP, BAD_ARGS = "bad_message", "bad_version", "unauthenticated", "unknown_op", "bad_args"
 DEVICE, BUSY, NOT_FOUND, INTERNAL = "device", "busy", "not_found", "internal"
+CLIENT_TIMEOUT = "client_timeout"  # a job cancelled because its client's heartbeats stopped
 
 
 class ProtocolError(Exception):

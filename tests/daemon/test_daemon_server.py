@@ -153,6 +153,14 @@ def test_client_killed_mid_stream_does_not_stall_the_daemon(daemon):
             break
         time.sleep(0.2)
     assert jobs and jobs[-1]["state"] == "cancelled" and jobs[-1]["sent"] < 100000
+    assert jobs[-1]["error"]["code"] == protocol.CLIENT_TIMEOUT  # (a client that was only slow is told why)
+    assert re.match(r"the daemon cancelled the capture: no heartbeat from its client for \d+\.\d s \(the daemon's "
+                    r"--client-timeout is 4 s\)$", jobs[-1]["error"]["message"])
+    # the dead client's rig goes with its job (it stayed open for five minutes: sixteen such filled the daemon)
+    deadline = time.monotonic() + 5
+    while jobs[-1]["rig"] in {r["rig"] for r in client.call("status")["rigs"]} and time.monotonic() < deadline:
+        time.sleep(0.1)
+    assert jobs[-1]["rig"] not in {r["rig"] for r in client.call("status")["rigs"]}
     rig = client.call("open_rig", camera="sim:bench-camera", options={"shape": [64, 64, 3]})["rig"]
     assert len(list(client.stream(rig, 20))) == 20
 
@@ -474,6 +482,48 @@ def test_a_client_cannot_start_more_jobs_or_open_more_rigs_than_the_daemon_holds
     with pytest.raises(DaemonError, match=f"{MAX_OPEN_RIGS} rigs are open"):
         client.call("open_rig", camera="sim:bench-camera", options={"shape": [4, 4, 3]})
     assert client.ping(timeout_s=2.0)
+
+
+def test_rigs_of_clients_gone_silent_make_room_for_new_ones_and_their_clients_are_told_why(daemon_factory):
+    """Sixteen clients that opened a rig and then died between captures (no job running) held every rig slot for
+    five minutes: every later `sss capture` was refused with "16 rigs are open: close one first", which no user could
+    do. At the limit, the rig of the client silent longest is taken back; that client, back, is told why."""
+    from sssphase_daemon.server import MAX_OPEN_RIGS
+
+    proc, client, _ = daemon_factory("--client-timeout", "0.5")
+    gone = []
+    for _ in range(MAX_OPEN_RIGS):
+        with DaemonClient(client.endpoint, client.token, timeout_s=5.0) as dead:
+            gone.append(dead.call("open_rig", camera="sim:bench-camera", options={"shape": [4, 4, 3]})["rig"])
+    time.sleep(1.0)  # silent for longer than the client timeout
+    new = client.call("open_rig", camera="sim:bench-camera", options={"shape": [4, 4, 3]})["rig"]
+    rigs = {r["rig"] for r in client.call("status")["rigs"]}
+    assert new in rigs and gone[0] not in rigs and set(gone[1:]) <= rigs  # only the oldest taken back
+    with pytest.raises(DaemonError, match=r"the daemon closed it \(16 rigs were open and its client had been silent "
+                                          r"for \d+ s\); open the rig again"):
+        client.call("close_rig", rig=gone[0])
+    with pytest.raises(DaemonError, match=r"no open rig 'nosuchrig'$"):  # (a rig it never had: no reason made up)
+        client.call("close_rig", rig="nosuchrig")
+
+
+def test_sss_bench_soak_shows_a_daemon_ending_idle_where_it_started(tmp_path):
+    """Clients that crashed mid-stream (a notebook killed) left their rigs open for five minutes; the sixteenth
+    filled the daemon and every later client was refused. Through `sss bench soak`: streaming clients, crashing
+    ones, malformed requests and a capture; no client meets an error and the idle daemon after the cycles holds no
+    rig, job, descriptor or thread more than after the warm-up."""
+    from sss_process import run_sss
+
+    out = tmp_path / "soak.json"
+    res = run_sss(["bench", "soak", "--cycles", "20", "--capture-every", "10", "--frames", "5", "--out", str(out)],
+                  timeout=300)
+    assert res.returncode == 0, res.stderr
+    r = json.loads(out.read_text())
+    assert r["errors"] == [] and r["captures"] == 2 and r["streamed_frames"] == 20 * 5
+    assert all(s["malformed_answered"] for s in r["samples"])
+    warm, after = r["idle_warm"], r["idle_after"]
+    assert after["rigs"] == after["jobs_running"] == 0 and after["waited_s"] < 10
+    assert after["fds"] <= warm["fds"] + 2 and after["threads"] <= warm["threads"] + 1  # (20 leaked would show)
+    assert "| open rigs | 0 | 0 | +0 |" in (tmp_path / "soak.md").read_text()
 
 
 def test_an_interrupt_while_a_local_daemon_starts_stops_it(runtime_dir, monkeypatch):
