@@ -44,7 +44,7 @@ def export_view(session: Session, view: int, out: Path) -> list[Path]:
     height, width = session.read(view, "white").shape[:2]
     written: list[Path] = []
     for name in session.arrays(view):
-        arr = session.read(view, name)
+        arr = session.load(view, name)  # whole: held to its checksum (an export must not launder a changed array)
         stem = out / name.replace("/", "_")
         shape = tuple(arr.shape)
         if name.endswith("/crops") and len(shape) == 4:  # footprints/crops; transport/crops (one per projector dot)

@@ -353,18 +353,30 @@ class DamagedArray(DataError):
         self.detail, self.checksum = detail, checksum
 
 
-class CheckedArray:
-    """A read-only zarr array whose reads fail with a :class:`DataError` naming it when a chunk is damaged."""
+def _whole(index: Any) -> bool:
+    """Whether an index (``...``, ``:``, ``()``, or a tuple of those) selects a whole array."""
+    parts = index if isinstance(index, tuple) else (index,)
+    return all(p is Ellipsis or p == slice(None) for p in parts)
 
-    def __init__(self, array: Any, where: str) -> None:
-        self.array, self.where = array, where
+
+class CheckedArray:
+    """A read-only zarr array whose reads fail with a :class:`DataError` naming it when a chunk is damaged, and
+    whose whole reads are held to the manifest's ``checksum`` too (data rewritten with valid chunks: another
+    program's write, an array folder linked to another session's)."""
+
+    def __init__(self, array: Any, where: str, checksum: str | None = None) -> None:
+        self.array, self.where, self.checksum = array, where, checksum
         self.shape, self.dtype, self.ndim = array.shape, array.dtype, array.ndim
 
     def __len__(self) -> int:
         return int(self.shape[0])
 
     def __getitem__(self, index: Any) -> np.ndarray:
-        return self._checked(lambda: self.array[index])
+        data = self._checked(lambda: self.array[index])
+        if self.checksum and _whole(index) and array_checksum(data) != self.checksum:
+            raise DamagedArray(self.where, "corrupt (its data do not match the manifest's checksum: changed since "
+                                           "they were written)")
+        return data
 
     @property
     def oindex(self) -> Any:
@@ -701,7 +713,7 @@ class Session:
                 raise DamagedArray(where, f"damaged ({expected - found} of {expected} chunks missing)")
             if found > expected:  # written again with other chunks: not the array the manifest describes
                 raise DamagedArray(where, f"damaged ({found} chunks stored where the manifest says {expected})")
-        return CheckedArray(array, where)
+        return CheckedArray(array, where, meta.get("checksum"))
 
     def load(self, view: int, name: str) -> np.ndarray:
         """The whole array as numpy (refused, naming it, when it is larger than the memory this machine has free)."""
@@ -745,7 +757,7 @@ class Session:
                 except DamagedArray as exc:  # a chunk failed its CRC32C, chunks or files are gone, the shape differs
                     inner = exc.detail.removeprefix("damaged (")[:-1]
                     what = (f"corrupt ({inner if 'CRC32C' in inner else f'a chunk does not decode: {inner}'})"
-                            if exc.checksum else exc.detail)
+                            if exc.checksum else exc.detail)  # (the checksum: "corrupt (its data do not match ...)")
                     problems.append(f"view {v}: array {name} is {what}")
                     continue
                 except Exception as exc:
@@ -756,8 +768,6 @@ class Session:
                 if list(data.shape) != meta["shape"] or data.dtype.str != meta["dtype"]:
                     problems.append(f"view {v}: array {name} is {data.shape} {data.dtype.str}, manifest says "
                                     f"{tuple(meta['shape'])} {meta['dtype']}")
-                elif array_checksum(data) != meta["checksum"]:
-                    problems.append(f"view {v}: array {name} is corrupt (checksum mismatch)")
                 elif holds_light(name) or name in ("footprints/crops", "transport/crops"):  # intact, but is it light?
                     if name == "white":
                         level = white_level(data)

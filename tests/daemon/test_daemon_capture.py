@@ -203,6 +203,29 @@ def test_validate_reports_corrupt_and_missing_arrays(reference, tmp_path, sss):
         "so it cannot be relit"]
 
 
+def test_an_array_rewritten_with_valid_chunks_is_refused_by_every_reader_not_only_validate(reference, tmp_path, sss):
+    """Data changed through zarr (its chunks' CRCs valid, the manifest's checksum not) was caught by `sss validate`
+    only: relight and evaluation scored it, and `sss export` wrote it out, where an import laundered it into a
+    session that validated. Every whole read is held to the manifest's checksum."""
+    import zarr
+
+    shutil.copytree(reference[0] / OBJECT, tmp_path / OBJECT)
+    white = zarr.open_array(str(tmp_path / OBJECT / "view_000" / "white"), mode="r+")
+    data = white[:]
+    data[:, : data.shape[1] // 2] *= 0.5
+    white[:] = data
+    said = "array white of view 0 of {} is corrupt (its data do not match the manifest's checksum: changed since they were written)"
+    assert "view 0: array white is corrupt (its data do not match the manifest's checksum" in "\n".join(
+        Session.open(tmp_path / OBJECT).validate())
+    for args in (("relight", str(tmp_path / OBJECT), "--pattern", "checkerboard", "--backend", "analytic",
+                  "--out", str(tmp_path / "relit")),
+                 ("export", str(tmp_path / OBJECT), "--out", str(tmp_path / "exported"))):
+        done = sss(*args)
+        assert done.returncode != 0 and "Traceback" not in done.stderr, done.stderr
+        assert said.format(tmp_path / OBJECT) in " ".join(done.stderr.split()), done.stderr
+    assert not list((tmp_path / "exported").rglob("white*"))  # nothing of it written out
+
+
 @pytest.mark.slow
 @pytest.mark.filterwarnings("ignore:--dot-spacing")  # sparse dots for speed: their crops cut short
 def test_footprints_stream_into_crops_and_raw_dots_on_request(daemon, tmp_path):
