@@ -1024,6 +1024,53 @@ def test_an_import_warns_of_a_wrong_projector_size_and_of_clipped_light(tmp_path
         import_folder(clipped, tmp_path / "s", "clipped", (W, H), patch=K)
 
 
+def test_fringes_of_another_convention_warn_and_x_frames_copied_as_y_are_refused(tmp_path):
+    """A rig whose shifts are numbered from another phase origin (its s0 our s1) or the other way (s1 and s3
+    swapped) moves every decoded point by a quarter of the coarsest period, or mirrors it: the first imported without
+    a word (14% of the points outside the projector here, 15.5% on a crab; the warning needed 20%); a folder whose y
+    fringe frames were copies of the x ones decoded every y from x. The clean frames warn of nothing."""
+    import warnings
+
+    w, h = 256, 192  # the cpu rig's projector and periods (the hand-made rig's unwrap fails instead: refused)
+    good = tmp_path / "good"
+    good.mkdir()
+    plan = [f for f in capture_plan(w, h, references=("white", "black")) if f.key.startswith(("psp/", "white", "black"))]
+    lit = np.zeros((h, w, 1), np.float32)  # an object in the middle of the view, the background unlit: shifted by
+    lit[int(0.3 * h):int(0.7 * h), int(0.3 * w):int(0.7 * w)] = 1  # the origin, 14% of it maps outside (20% warned)
+    for f, img in zip(plan, _camera(np.stack([f.pattern() for f in plan])), strict=True):
+        np.save(good / (f.key.replace("/", "__") + ".npy"), img * lit + (0.0 if f.key == "black" else 1e-3))
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        import_folder(good, tmp_path / "s", "good", (w, h), patch=K)
+    assert not [w for w in said if "outside" in str(w.message)], [str(w.message) for w in said]
+
+    def renamed(name: str, shifts: dict[int, int]) -> Path:
+        folder = tmp_path / name
+        folder.mkdir()
+        for f in good.iterdir():
+            stem = f.stem
+            if stem.startswith("psp__"):
+                head, shift = stem.rsplit("__s", 1)
+                stem = f"{head}__s{shifts[int(shift)]}"
+            (folder / f"{stem}.npy").write_bytes(f.read_bytes())
+        return folder
+
+    for name, shifts in (("origin", {0: 1, 1: 2, 2: 3, 3: 0}), ("reversed", {0: 0, 1: 3, 2: 2, 3: 1})):
+        with pytest.warns(UserWarning, match=r"% of the decoded pixels map outside the 256x192 projector: is --projector "
+                                             r"right\? \(else the fringes' conventions: shifts numbered the other way"):
+            import_folder(renamed(name, shifts), tmp_path / "s", name, (w, h), patch=K)
+    copied = tmp_path / "copied"
+    copied.mkdir()
+    for f in good.iterdir():
+        if not f.stem.startswith("psp__y__"):
+            (copied / f.name).write_bytes(f.read_bytes())
+            if f.stem.startswith("psp__x__"):
+                (copied / f.name.replace("psp__x__", "psp__y__")).write_bytes(f.read_bytes())
+    with pytest.raises(InputError, match=r"the y fringe frames \(psp__y__\*\) hold the same images as the x ones"):
+        import_folder(copied, tmp_path / "s", "copied", (w, h), patch=K)
+    assert not (tmp_path / "s" / "copied").exists()
+
+
 def test_an_icc_profile_of_linear_light_is_read_as_linear(tmp_path):
     """Any ICC profile was taken for sRGB: a 16-bit render tagged with a linear profile lost 74% of its pixels."""
     import io

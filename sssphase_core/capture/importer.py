@@ -571,8 +571,11 @@ def nothing_decoded(vdir: Path, coverage: dict[str, int], clipped: float = 0.0, 
 
 
 #: Shares of a view's decoded pixels beyond which an import warns: mapped outside the projector (a wrong
-#: --projector), or at an integer file's top code (clipped light, underestimated).
-OUTSIDE_WARN, CLIPPED_WARN = 0.2, 0.01
+#: --projector, or fringes of another convention: shifts numbered from another phase origin moved every point by
+#: a quarter of the coarsest period and put 15.5% outside, shifts numbered the other way 13%, x and y swapped 3.4%;
+#: 361 views of simulated captures and imports: at most 0.08%), or at an integer file's top code (clipped light,
+#: underestimated).
+OUTSIDE_WARN, CLIPPED_WARN = 0.02, 0.01
 #: A pixel holds light above this share of the white's level (measured: 0-1% of those decode as too faint on every
 #: Mitsuba and demo view, 80% on a 16-bit capture exposed at 0.12); a warning when more than DIM_WARN of them decode as
 #: too faint (LOW_MODULATION, SHADOW).
@@ -693,6 +696,18 @@ def _warn_suspect_view(vdir: Path, coverage: dict[str, int], size: tuple[int, in
 #: How a camera that demosaics its own Bayer frames did it, for ``sss import --demosaic``: the methods
 #: ``isp.demosaic`` reproduces, or ``other`` (unknown: only the silhouette's bleed is dropped).
 IMPORT_DEMOSAIC = ("malvar", "opencv", "other")
+
+
+def check_distinct_orientations(vdir: Path, sets: list[np.ndarray]) -> None:
+    """Refuse a view whose y fringe frames are its x ones (``sets``: one (N, H, W, C) set per orientation): vertical
+    and horizontal fringes cannot give the same images, and a folder of the x frames copied as the y ones decoded
+    every pixel's y from its x without a word."""
+    if len(sets) == 2 and sets[0].shape == sets[1].shape:
+        scale = float(np.abs(sets[0]).max(initial=0.0))
+        if scale > 0 and float(np.abs(sets[0] - sets[1]).max(initial=0.0)) <= 1e-6 * scale:
+            raise InputError(f"{vdir}: the y fringe frames (psp__y__*) hold the same images as the x ones (psp__x__*): "
+                             "vertical and horizontal fringes cannot; write each orientation's own frames (`sss "
+                             "patterns` names them)")
 
 
 def _input_sets(proc: ViewProcessor, config: Any) -> list[np.ndarray]:
@@ -943,6 +958,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                                                                       proc.images["black"]), 4)
                 if not info["coverage"].get("VALID"):
                     raise InputError(nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values), config.period))
+                check_distinct_orientations(vdir, _input_sets(proc, config))  # (fringes decoded: they are not flat)
                 check_white_above_black(vdir, proc.images["white"], proc.images["black"], level * scale)
                 share = fringe_mean_share(_input_sets(proc, config), proc.images["white"], proc.images["black"],
                                           proc.corr.mask)
