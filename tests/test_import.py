@@ -902,6 +902,14 @@ def test_frames_without_light_or_far_below_zero_are_refused_naming_them(tmp_path
     for p in noisy.glob("*.npy"):  # read noise of 2% of white around zero in every frame: not refused
         np.save(p, np.load(p) + rng.normal(0, 0.02, (H, W, 3)).astype(np.float32))
     assert import_folder(noisy, tmp_path / "s", "noisy", (W, H), patch=K).views() == [0]
+    # white and black swapped, float frames with noise around zero: the white's negative values were named first
+    swapped = _float_frames(tmp_path / "w", 1.0)
+    white, black = np.load(swapped / "white.npy"), np.load(swapped / "black.npy")
+    np.save(swapped / "white.npy", black + rng.normal(0, 0.02, black.shape).astype(np.float32))
+    np.save(swapped / "black.npy", white)
+    with pytest.raises(InputError, match=r"black.npy: the black capture is brighter than the white one .* are white "
+                                         r"and black swapped\?"):
+        import_folder(swapped, tmp_path / "s", "swapped", (W, H), patch=K)
 
 
 def test_grey_frames_import_as_colour_and_one_grey_frame_among_colour_ones_is_refused(tmp_path):
@@ -1069,6 +1077,30 @@ def test_fringes_of_another_convention_warn_and_x_frames_copied_as_y_are_refused
     with pytest.raises(InputError, match=r"the y fringe frames \(psp__y__\*\) hold the same images as the x ones"):
         import_folder(copied, tmp_path / "s", "copied", (w, h), patch=K)
     assert not (tmp_path / "s" / "copied").exists()
+
+
+def test_a_few_decoded_pixels_without_white_light_do_not_upset_the_reference_checks():
+    """A float white among 16-bit frames left 6 of 5,803 decoded pixels with white <= 0; each reference's light was
+    divided by the white floored at 1e-6 there, and the import warned that a faithful reference held "27x another
+    amount of light" and did not follow its pattern (correlation 0.02, "is --projector right?")."""
+    from types import SimpleNamespace
+
+    from sssphase_core.capture.importer import reference_match
+
+    h, w = 40, 60
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    pattern = np.kron((np.indices((h // 10, w // 10)).sum(0) % 2), np.ones((10, 10))).astype(np.float32)
+    white = np.full((h, w, 3), 0.6, np.float32)
+    black = np.full((h, w, 3), 0.01, np.float32)
+    sent = emitted_light(pattern[None], 2.2)[0]
+    ref = black + (white - black) * sent
+    white[[3, 17, 29], [5, 40, 11]] = black[0, 0] - 1e-4  # decoded, but no white light above black
+    proc = SimpleNamespace(corr=SimpleNamespace(mask=np.ones((h, w), bool), xp=xx, yp=yy),
+                           images={"white": white, "black": black, "ref/checkers": ref},
+                           patterns={"ref/checkers": pattern})
+    bright: dict[str, float] = {}
+    match = reference_match(proc, [{"name": "ref/checkers", "kind": "image"}], 2.2, bright)
+    assert match["checkers"] > 0.99 and bright["checkers"] == pytest.approx(1.0, abs=0.01), (match, bright)
 
 
 def test_an_icc_profile_of_linear_light_is_read_as_linear(tmp_path):

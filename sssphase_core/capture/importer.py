@@ -3,6 +3,7 @@ capture (`sss import`)."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import re
 import shutil
@@ -304,17 +305,25 @@ def _median_level(image: np.ndarray) -> float:
     return float(np.percentile(cv2.medianBlur(img, 3) if img.ndim == 2 or img.shape[-1] in (1, 3, 4) else img, 99.9))
 
 
-def white_levels(whites: Iterable[Path], encoding: str = "linear") -> list[float]:
+def white_levels(whites: Iterable[Path], encoding: str = "linear", blacks: Iterable[Path | None] = ()) -> list[float]:
     """Each white capture's level (its 99.9th percentile, file units); one line naming a white capture that
-    holds no light (black, negative, denormal) instead of a view where nothing decodes."""
+    holds no light (black, negative, denormal) instead of a view where nothing decodes, or, when the view's black
+    (``blacks``, one per white) holds far more light, one saying that the two look swapped."""
     levels = []
-    for path in whites:
+    for path, black in itertools.zip_longest(whites, blacks):
         white = read_imported(path, encoding)[0]
         level = float(np.percentile(white, 99.9))
-        if not level >= MIN_WHITE_LEVEL:
-            raise InputError(f"{path}: the white capture holds no light (99.9th percentile {level:.3g}): it must be a "
-                             "linear image of the object under the projector's full white")
-        check_not_negative(path, white, level)  # a negated white: its noise sets the level, the black gets the blame
+        try:
+            if not level >= MIN_WHITE_LEVEL:
+                raise InputError(f"{path}: the white capture holds no light (99.9th percentile {level:.3g}): it must be "
+                                 "a linear image of the object under the projector's full white")
+            check_not_negative(path, white, level)  # a negated white: its noise sets the level, the black gets the blame
+        except InputError:
+            dark = read_imported(black, encoding)[0] if black is not None else None
+            # the black holds more light than the white holds in magnitude (not a negated white): swapped
+            if dark is not None and _median_level(dark) > float(np.percentile(np.abs(white), 99.9)):
+                check_black_below_white(black, dark, max(level, 0.0))  # (noise around zero in the white)
+            raise
         robust = _median_level(white)
         if level > FIREFLY_RATIO * max(robust, 0.0):  # a refusal that followed named the fringes, not the fireflies
             times = f"{level / robust:.0f}x its 3 x 3 median's" if robust > 0 else "its 3 x 3 median's being"
@@ -588,6 +597,9 @@ REFERENCE_BRIGHTNESS = (0.67, 1.5)
 UNWRAP_WARN = 0.2
 
 
+#: Decoded pixels whose white (above black) is below this share of the view's median white are left out of the
+#: reference checks (:func:`reference_match`).
+WHITE_SHARE_FOR_REFERENCE = 0.05
 #: Below this correlation between a reference capture and its pattern at the decoded points, an import warns.
 REFERENCE_MATCH_WARN = 0.3
 
@@ -605,8 +617,13 @@ def reference_match(proc: ViewProcessor, frames: list[dict[str, Any]], gamma: fl
     from sssphase_core.processing.patterns import PlannedFrame
     from sssphase_core.processing.projector import emitted_light
 
-    m = proc.corr.mask
-    white = np.maximum((proc.images["white"] - proc.images["black"])[m].mean(-1), 1e-6)
+    m = proc.corr.mask.copy()
+    lit = (proc.images["white"] - proc.images["black"]).mean(-1)
+    # decoded pixels whose white is (nearly) black: a ratio to it is noise over noise (6 such pixels of 5,803, their
+    # ratios up to 3e4, made a reference 27x too bright and uncorrelated with its pattern)
+    if m.any():
+        m &= lit > WHITE_SHARE_FOR_REFERENCE * float(np.median(lit[m]))
+    white = lit[m]
     found = {}
     for f in frames:
         name = f["name"].removeprefix("ref/")
@@ -871,7 +888,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                                               if not k.startswith("pattern/")), encoding)
     if encoding_tag == "no colour tag":  # asked auto, and no file says: the fringes tell sRGB codes from light
         encoding, encoding_tag = untagged_encoding(views[0][1]) or (encoding, encoding_tag)
-    levels = white_levels((files["white"] for _, files in views), encoding)
+    levels = white_levels((files["white"] for _, files in views), encoding, (files.get("black") for _, files in views))
     if max(levels) > VIEW_LEVEL_RATIO * min(levels):
         hi, lo = int(np.argmax(levels)), int(np.argmin(levels))
         raise InputError(f"{views[hi][1]['white']} is {max(levels) / min(levels):.3g}x as bright as {views[lo][1]['white']} "
