@@ -497,6 +497,8 @@ def write_relit(rv: RelightView, relit: np.ndarray, names: Sequence[str], pats: 
             item.figure = comparison_figure(rv.captured[name], img, rv.proj.mask, stem.with_name(stem.name + "_compare.png"),
                                             title=f"{rv.object} view {rv.view}, {name}", metrics=item.metrics)
             line += f"  (vs reference: PSNR {item.metrics['psnr']:.2f} dB, SSIM {item.metrics['ssim']:.3f})"
+        else:  # an earlier run's comparison for another pattern of this name would contradict the image beside it
+            stem.with_name(stem.name + "_compare.png").unlink(missing_ok=True)
         say.say(line)
         written.append(item)
     return written

@@ -475,6 +475,11 @@ def test_a_pattern_is_scored_against_a_reference_only_when_it_is_that_pattern(se
         scored = "vs reference" in res.output
         assert scored == (name == "checkerboard"), res.output
         assert any((folder / "out").glob("*_compare.png")) == scored
+    # the stripes relit as "checkerboard" into the folder of the scored one: the comparison of the checkerboard stayed
+    # beside the stripes' image, contradicting it
+    res = runner.invoke(app, ["relight", str(session), "--pattern", str(tmp_path / "liar" / "checkerboard.png"),
+                              "--backend", "none", "--views", "1", "--out", str(tmp_path / "honest" / "out")])
+    assert res.exit_code == 0 and not any((tmp_path / "honest" / "out").glob("*_compare.png")), res.output
 
 
 def test_relight_without_a_backend_takes_the_analytic_model_until_a_decoder_is_given(session, tmp_path):
