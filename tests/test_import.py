@@ -1103,6 +1103,27 @@ def test_a_few_decoded_pixels_without_white_light_do_not_upset_the_reference_che
     assert match["checkers"] > 0.99 and bright["checkers"] == pytest.approx(1.0, abs=0.01), (match, bright)
 
 
+def test_frames_with_a_transparent_alpha_channel_import_and_say_it_is_ignored(tmp_path):
+    """RGBA frames whose alpha is 0 everywhere imported without a word (a pattern's alpha is warned of)."""
+    import warnings
+
+    linear = _float_frames(tmp_path / "linear", 1.0)
+    for alpha, name in ((0, "clear"), (65535, "opaque")):
+        folder = tmp_path / name
+        folder.mkdir()
+        for f in linear.glob("*.npy"):
+            codes = np.round(np.clip(np.load(f), 0, 1) * 65535).astype(np.uint16)
+            bgra = np.concatenate([codes[..., ::-1], np.full((H, W, 1), alpha, np.uint16)], -1)
+            cv2.imwrite(str(folder / f"{f.stem}.png"), bgra)
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            session = import_folder(folder, tmp_path / "s", name, (W, H), patch=K)
+        told = [str(w.message) for w in said if "alpha channel" in str(w.message)]
+        assert bool(told) == (alpha == 0) and session.views() == [0], told
+        if told:
+            assert "below full opacity at 100% of the pixels (transparent at 100%)" in told[0]
+
+
 def test_an_icc_profile_of_linear_light_is_read_as_linear(tmp_path):
     """Any ICC profile was taken for sRGB: a 16-bit render tagged with a linear profile lost 74% of its pixels."""
     import io

@@ -510,6 +510,17 @@ def decode_codes(values: np.ndarray, encoding: str) -> np.ndarray:
     raise ValueError(f"unknown encoding {encoding!r}")
 
 
+def _warn_frame_alpha(path: Path, alpha: np.ndarray) -> None:
+    """Warn when a frame's alpha channel is not fully opaque: a camera records no opacity, and the colour is read
+    as it is (a transparent frame imported without a word)."""
+    top = np.iinfo(alpha.dtype).max if alpha.dtype.kind in "iu" else 1.0
+    below = alpha < top
+    if below.any():
+        warnings.warn(f"{path}: its alpha channel is below full opacity at {float(below.mean()):.0%} of the pixels "
+                      f"(transparent at {float((alpha <= 0).mean()):.0%}): a camera frame has no opacity, so the alpha "
+                      "is ignored and the colour read as it is; save the frames without alpha", UserWarning, stacklevel=3)
+
+
 def read_frame(path: Path, *, finite: bool = True, encoding: str = "linear", keep_grey: bool = False) -> np.ndarray:
     """A linear image as float32 RGB (H, W, 3) (a grey file's one channel repeated; ``keep_grey``: kept (H, W)):
     8/16-bit integers (PNG, TIFF, ``.npy``) divided by the top code and decoded by ``encoding``
@@ -520,7 +531,10 @@ def read_frame(path: Path, *, finite: bool = True, encoding: str = "linear", kee
     if len(shape) >= 2 and shape[0] * shape[1] > MAX_FRAME_PIXELS:
         raise InputError(f"{path} is {shape[1]}x{shape[0]}: larger than any camera frame this importer takes "
                          f"({MAX_FRAME_PIXELS // 2**20} MP)")
-    arr = _read_pixels(path)
+    arr = _read_pixels(path, alpha=True)
+    if arr.ndim == 3 and arr.shape[2] == 4 and path.suffix.lower() != ".npy":  # a camera frame's alpha: dropped, told
+        _warn_frame_alpha(path, arr[..., 3])
+        arr = arr[..., :3]
     if arr.dtype.kind not in "fiu":
         raise InputError(f"{path} holds {arr.dtype} values, not an image")
     if arr.dtype.kind == "i" and arr.dtype.itemsize <= 2:  # divided by its top code, -128 would be negative light
