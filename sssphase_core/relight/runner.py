@@ -170,7 +170,11 @@ def resolve_patterns(specs: Sequence[str], rv: RelightView, resize: str = "",
     wp, hp = rv.proj.projector_size
     names, pats = [], []
     for p in specs:
-        if Path(p).is_file():  # (a folder named like a pattern does not hide the pattern)
+        named = (p in rv.references or p in REFERENCE_NAMES) and p == Path(p).name  # a bare name, as `sss patterns` says
+        if named and Path(p).exists():  # a file or folder of that name here does not hide the pattern
+            say.say(f"--pattern {p}: the named pattern, not {'the folder' if Path(p).is_dir() else 'the file'} {p} in "
+                    f"this folder (give ./{p} for that)")
+        if Path(p).is_file() and not named:
             if any(ord(ch) < 32 or ord(ch) == 127 for ch in Path(p).stem):
                 raise InputError(f"--pattern {p!r}: its file name holds a control character (a newline, a tab), which "
                                  "would reach the output files' names: rename the file")
@@ -185,6 +189,11 @@ def resolve_patterns(specs: Sequence[str], rv: RelightView, resize: str = "",
         elif p in REFERENCE_NAMES:
             names.append(p)
             pats.append(reference_pattern(p, wp, hp))
+        elif Path(p).is_dir():  # (one with images is relit as a sequence before this)
+            from sssphase_core.store.pattern_sequences import FOLDER_SUFFIXES
+
+            raise InputError(f"--pattern {p!r} is a folder with no pattern images in it ({', '.join(FOLDER_SUFFIXES)}: "
+                             "a folder of them is relit as the frames of a sequence)")
         else:
             raise InputError(f"--pattern {p!r} is neither an image file nor one of {', '.join(REFERENCE_NAMES)}")
     twins = sorted({n for n in names if names.count(n) > 1})

@@ -224,6 +224,14 @@ def _open_folder(folder: Path, projector_size: tuple[int, int], resize: str) -> 
     if len(files) > MAX_FRAMES:
         raise InputError(f"--pattern {folder} holds {len(files):,} frames, more than the {MAX_FRAMES:,} relit at once: "
                          "split it")
+    from sssphase_core.store.imageio import frame_shape
+
+    sizes = {f: frame_shape(f)[:2] for f in files}  # from the headers: a frame of another size refused before any work
+    other = next((f for f in files if sizes[f] != sizes[files[0]]), None)
+    if other is not None:
+        (h0, w0), (h1, w1) = sizes[files[0]], sizes[other]
+        raise InputError(f"--pattern {folder}: {other.name} is {w1}x{h1} but {files[0].name} is {w0}x{h0}: the frames of "
+                         "a sequence share one size")
     first = read_pattern(files[0], projector_size, resize=resize)
     return PatternSequence(folder, len(files), DEFAULT_FPS, (first.shape[1], first.shape[0]), projector_size, resize,
                            video=False, files=files)

@@ -207,14 +207,23 @@ def test_a_folder_of_pattern_images_is_relit_in_its_names_natural_order(session,
                         cv2.IMREAD_UNCHANGED).mean() for i in range(4)]
     assert len(res.images) == 4 and means[0] < means[1] < means[3] < means[2]  # the light follows the frames' order
     cv2.imwrite(str(folder / "frame12.png"), np.zeros((10, 10), np.uint8))
-    with pytest.raises(InputError, match=r"frame12.png is 10x10 but the projector is 256x192"):
-        list(open_sequence(folder, (W, H)).frames())
+    with pytest.raises(InputError, match=r"frame12.png is 10x10 but frame1.png is 256x192: the frames of a sequence "
+                                         r"share one size"):  # from the headers, before a frame is relit
+        open_sequence(folder, (W, H))
     (tmp_path / "named").mkdir()
     (tmp_path / "named" / "checkerboard").mkdir()
     cv2.imwrite(str(tmp_path / "named" / "checkerboard" / "a.png"), np.zeros((H, W), np.uint8))
-    res = run_sss(["relight", str(session), "--pattern", "checkerboard", "--backend", "none", "--out",
-                   str(tmp_path / "o3")], cwd=tmp_path / "named", timeout=120)
+    (tmp_path / "named" / "stripes_x").write_text("a note, not an image")  # was "cannot identify image file"
+    res = run_sss(["relight", str(session), "--pattern", "checkerboard", "--pattern", "stripes_x", "--backend", "none",
+                   "--out", str(tmp_path / "o3")], cwd=tmp_path / "named", timeout=120)
     assert res.returncode == 0 and (tmp_path / "o3" / "sand_rake_v0_checkerboard_none.png").is_file(), res.stdout + res.stderr
+    assert (tmp_path / "o3" / "sand_rake_v0_stripes_x_none.png").is_file()
+    assert "--pattern stripes_x: the named pattern, not the file stripes_x in this folder (give ./stripes_x for that)" in \
+        " ".join(res.stdout.split())
+    (tmp_path / "named" / "empty").mkdir()
+    res = run_sss(["relight", str(session), "--pattern", "empty", "--backend", "none", "--out", str(tmp_path / "o4")],
+                  cwd=tmp_path / "named", timeout=120)
+    assert res.returncode == 2 and "--pattern 'empty' is a folder with no pattern images in it" in res.stderr, res.stderr
 
 
 def test_a_sequence_whose_name_cannot_name_files_is_refused_before_any_output(session, tmp_path):
