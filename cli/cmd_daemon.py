@@ -40,7 +40,7 @@ def _unanswering() -> int | None:
     from sssphase_daemon import security
 
     state = security.read_state()
-    return state.pid if state is not None and security.is_daemon_process(state.pid) else None
+    return state.pid if state is not None and security.is_daemon_process(state.pid, state.started) else None
 
 
 def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] = False) -> None:
@@ -141,6 +141,7 @@ def daemon_stop(
     """Stop the running daemon (refused while another command uses it, unless --force)."""
     from sssphase_core.errors import InputError
     from sssphase_daemon import security
+    from sssphase_daemon.client import rigs_in_use
 
     client = _client()
     if client is None:
@@ -150,16 +151,16 @@ def daemon_stop(
             console.print(f"daemon (pid {orphan}) had no state file; sent SIGTERM")
             return
         if state is not None:
-            if not security.is_daemon_process(state.pid):  # the pid may belong to another program by now
-                security.state_path().unlink(missing_ok=True)
-                console.print(f"no daemon running (the state file named pid {state.pid}, which is not a sssphase "
-                              "daemon; removed the stale state file)")
+            if not security.is_daemon_process(state.pid, state.started):  # the pid may be another program's by now
+                _forget_stale(state)
+                console.print(f"no daemon running (the state file named pid {state.pid}, which is not the sssphase "
+                              "daemon that wrote it; removed the stale state file)")
                 return
             try:
                 os.kill(state.pid, signal.SIGTERM)
                 console.print(f"daemon (pid {state.pid}) did not answer; sent SIGTERM")
             except ProcessLookupError:
-                security.state_path().unlink(missing_ok=True)
+                _forget_stale(state)
                 console.print("no daemon running (removed a stale state file)")
                 return
             _wait_or_kill(state.pid, force, 5.0)
@@ -169,14 +170,25 @@ def daemon_stop(
     with client:
         pid, status = client.call("hello")["pid"], client.call("status")
         running = [j for j in status.get("jobs", []) if j.get("state") == "running"]
-        if (status.get("rigs") or running) and not force:  # another command's capture: stopping it would fail that one
-            use = [f"{len(status['rigs'])} rig(s) open"] if status.get("rigs") else []
+        rigs = rigs_in_use(status)  # (a rig whose client is gone holds nothing up)
+        if (rigs or running) and not force:  # another command's capture: stopping it would fail that one
+            use = [f"{len(rigs)} rig(s) open"] if rigs else []
             use += [f"job {j['job']} running ({j['sent']}/{j['total']} frames)" for j in running]
             raise InputError(f"the daemon (pid {pid}) is in use: {', '.join(use)}; stopping it ends that capture: "
                              "wait for it (`sss daemon status`), or `sss daemon stop --force`")
         client.call("shutdown")
     if _wait_or_kill(pid, force, 20.0):  # return once it has gone, so that `start` right after works
         console.print(f"daemon (pid {pid}) stopped")
+
+
+def _forget_stale(state: object) -> None:
+    """Remove the state file of a daemon that is gone, and its ipc socket file when nothing listens there."""
+    from sssphase_daemon import security
+
+    security.state_path().unlink(missing_ok=True)
+    path = str(getattr(state, "endpoint", "")).removeprefix("ipc://")
+    if path and os.path.exists(path) and security.socket_listener(Path(path)) is None:
+        security.remove_ipc_socket(f"ipc://{path}")
 
 
 def _wait_or_kill(pid: int, force: bool, seconds: float) -> bool:

@@ -347,11 +347,17 @@ def _start_lock() -> Iterator[None]:
         os.close(fd)  # (closing releases the lock)
 
 
+def rigs_in_use(status: dict[str, Any]) -> list[dict[str, Any]]:
+    """The open rigs of a daemon's ``status`` that a client still uses: its client heard from within the client
+    timeout (a rig whose client is gone is closed by the daemon later, and holds nothing up)."""
+    return [r for r in status.get("rigs", []) if r.get("client_alive", True)]
+
+
 def _used_by_others(client: DaemonClient) -> bool:
-    """Whether the daemon has an open rig or a running job (this client closes its own rigs first)."""
+    """Whether the daemon has an open rig of a live client or a running job (this client closes its own rigs first)."""
     try:
         with DaemonClient(client.endpoint, client.token, curve_dir=client.curve_dir, timeout_s=2.0) as probe:
             status = probe.call("status", timeout_s=2.0)
     except (DaemonUnavailable, DaemonError, zmq.ZMQError):
         return False
-    return bool(status.get("rigs")) or any(j.get("state") == "running" for j in status.get("jobs", []))
+    return bool(rigs_in_use(status)) or any(j.get("state") == "running" for j in status.get("jobs", []))

@@ -324,15 +324,32 @@ def _certificate(path: Path) -> tuple[bytes, bytes | None]:
                            "again (`sss daemon keys`) or copy them intact") from None
 
 
-def is_daemon_process(pid: int) -> bool:
+def process_start_time(pid: int) -> float | None:
+    """When process ``pid`` started (seconds since the epoch, from /proc; None where that cannot be told)."""
+    try:
+        stat_line = Path(f"/proc/{int(pid)}/stat").read_text()
+        ticks = int(stat_line[stat_line.rindex(")") + 2:].split()[19])  # field 22, starttime (after the command's name)
+        boot = next(float(line.split()[1]) for line in Path("/proc/stat").read_text().splitlines()
+                    if line.startswith("btime "))
+        return boot + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, StopIteration):
+        return None
+
+
+def is_daemon_process(pid: int, started: float | None = None) -> bool:
     """Whether ``pid`` runs ``python -m sssphase_daemon`` (read from /proc; False where that cannot be
-    told), so that a stale state file never makes us signal an unrelated process that reused the pid."""
+    told), so that a stale state file never makes us signal an unrelated process that reused the pid; with
+    ``started`` (the state file's start time), also that the process started before it (another daemon that reused
+    the pid of one killed started after)."""
     try:
         argv = Path(f"/proc/{int(pid)}/cmdline").read_bytes().split(b"\0")
     except (OSError, ValueError):
         return False
-    return any(arg == b"sssphase_daemon" or arg.endswith(b"/sssphase_daemon") or b"sssphase_daemon/__main__" in arg
-               for arg in argv)
+    if not any(arg == b"sssphase_daemon" or arg.endswith(b"/sssphase_daemon") or b"sssphase_daemon/__main__" in arg
+               for arg in argv):
+        return False
+    begun = process_start_time(pid) if started is not None else None
+    return begun is None or begun <= float(started) + 2.0  # (the clock ticks' rounding)
 
 
 def ipc_path_problem(endpoint: str) -> str | None:

@@ -640,7 +640,8 @@ class Daemon:
     def _status(self, client: bytes, args: dict) -> dict:
         with self.lock:
             return {"pid": os.getpid(), "uptime_s": time.time() - self.started, "endpoint": self.endpoint,
-                    "rigs": [{"rig": r.id, "devices": {k: d.info.id for k, d in r.devices.items()}} for r in self.rigs.values()],
+                    "rigs": [{"rig": r.id, "devices": {k: d.info.id for k, d in r.devices.items()},
+                              "client_alive": self._alive(r.owner)} for r in self.rigs.values()],
                     "jobs": [j.summary() for j in self.jobs.values()],
                     "clients": sum(self._alive(c) for c in self.last_seen),
                     "heavy_modules": [m for m in HEAVY_MODULES if m in sys.modules]}

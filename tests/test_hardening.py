@@ -234,7 +234,7 @@ def test_daemon_stop_never_signals_a_process_that_reused_the_pid(tmp_path):
         assert dataclasses.asdict(security.read_state(runtime / "daemon.json"))["pid"] == sleeper.pid
         res = run_sss(["daemon", "stop"], timeout=60, env=env)
         assert res.returncode == 0, res.stdout + res.stderr
-        assert "not a sssphase daemon" in res.stdout
+        assert "not the sssphase daemon that wrote it" in res.stdout
         time.sleep(0.2)
         assert sleeper.poll() is None  # still alive: never signalled
         assert not (runtime / "daemon.json").exists()
@@ -721,6 +721,35 @@ def test_daemon_stop_refuses_to_end_a_daemon_another_command_is_using(monkeypatc
         assert "no daemon running" in run_sss(["daemon", "status"], timeout=60, env=env).stdout
     finally:
         run_sss(["daemon", "stop", "--force"], timeout=60, env=env)
+        shutil.rmtree(runtime, ignore_errors=True)
+
+
+def test_daemon_stop_is_not_held_up_by_the_rig_of_a_client_that_is_gone(monkeypatch):
+    """A script that opened a rig and exited blocked `sss daemon stop` ("1 rig(s) open; stopping it ends that
+    capture") for the five minutes the daemon keeps such a rig, though no capture ran and no client was there."""
+    import time
+
+    from sssphase_daemon import security
+    from sssphase_daemon.client import DaemonClient, spawn_daemon
+
+    runtime = Path(tempfile.mkdtemp(prefix="sssg", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
+    monkeypatch.setenv("SSS_RUNTIME_DIR", str(runtime))
+    proc = spawn_daemon(extra_args=("--client-timeout", "0.5"))
+    try:
+        # (a state file whose daemon was killed, its pid now another daemon's, started later: not signalled)
+        state = security.read_state()
+        assert security.is_daemon_process(state.pid, state.started)
+        assert not security.is_daemon_process(state.pid, state.started - 3600)
+        with DaemonClient.from_state(timeout_s=30) as gone:
+            gone.call("open_rig", camera="sim:bench-camera", options={"shape": [8, 8, 3]})
+        time.sleep(1.0)  # silent for longer than the client timeout
+        stop = run_sss(["daemon", "stop"], timeout=60, env=env)
+        assert stop.returncode == 0 and "stopped" in stop.stdout, stop.stdout + stop.stderr
+        proc.wait(20)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
         shutil.rmtree(runtime, ignore_errors=True)
 
 
