@@ -11,7 +11,8 @@ and returns what it made (a checkpoint and the run's figures, or the evaluation'
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -126,6 +127,24 @@ def final_lines(metrics: Path, names: Sequence[str], monitored: str) -> list[str
 def _header(report: Report, text: str, out: Path, config_file: RunConfigFile | None, resuming: bool) -> None:
     saved = f" (options in {config_file.save(out, resuming)})" if config_file is not None else ""
     report.say(f"{text} -> {out}{saved}")
+    if resuming:  # (a resumed run said nothing: only a progress bar that did not start at 0 told)
+        from sssphase_core.learning.training import CHECKPOINT, load_checkpoint
+
+        loop = load_checkpoint(out / CHECKPOINT, mmap=True).get("loop", {})
+        report.say(f"{report.style('note:', 'note')} resuming from {out / CHECKPOINT}: epoch {int(loop.get('epoch', 0)) + 1}"
+                   f", after {int(loop.get('step_in_epoch', 0))} of its steps (--no-resume starts again)")
+
+
+@contextmanager
+def _saying_where_it_stopped(report: Report) -> Iterator[None]:
+    """Say where a training asked to stop (Ctrl-C, SIGTERM) saved its checkpoint, then let the interrupt go on."""
+    from sssphase_core.learning.training import TrainingStopped
+
+    try:
+        yield
+    except TrainingStopped as stopped:
+        report.say(f"{report.style('note:', 'note')} {stopped}: the same command continues from it")
+        raise
 
 
 def run_pretrain(opts: PretrainOptions, report: Report = Report(), *,
@@ -163,7 +182,7 @@ def run_pretrain(opts: PretrainOptions, report: Report = Report(), *,
                          knn_monitor=opts.knn_monitor, decorrelate=opts.decorrelate, phase_shift=opts.phase_shift)
     _header(report, f"pretraining {report.style(opts.preset, 'strong')} on {len(ds)} patches of {', '.join(names)}",
             opts.out, config_file, resuming)
-    with report.training() as progress:
+    with _saying_where_it_stopped(report), report.training() as progress:
         path = pretrain(cfg, ds, opts.out, resume=opts.resume, progress=progress)
     result = TrainResult(path, read_rows(opts.out / METRICS))
     _say_if_stopped(result, opts, report)
@@ -242,9 +261,15 @@ def run_decoder(opts: DecoderOptions, report: Report = Report(), *,
     if opts.encoder is not None:
         from sssphase_core.learning.training import load_checkpoint
 
-        if load_checkpoint(opts.encoder, mmap=True).get("kind") == "decoder":  # it was taken without a word
+        encoder = load_checkpoint(opts.encoder, mmap=True)
+        if encoder.get("kind") == "decoder":  # it was taken without a word
             report.say(f"{report.style('note:', 'note')} --encoder {opts.encoder} is a decoder run: its encoder is "
                        "used, frozen; the paper's method starts from a pretraining run (`sss train pretrain`)")
+        done, planned = int(encoder.get("loop", {}).get("epoch", 0)), int(encoder.get("config", {}).get("epochs", 0))
+        if encoder.get("kind") == "pretrain" and done < planned:  # an interrupted pretraining's last.pt, taken in silence
+            report.say(f"{report.style('warning:', 'warning')} --encoder {opts.encoder} is from an unfinished "
+                       f"pretraining ({done} of its {planned} epochs done): the same `sss train pretrain` command finishes it; "
+                       "the decoder learns from the encoder it is given")
     names = parse_names(opts.objects, () if opts.sessions else TRAIN_OBJECTS)
     choice = decoder_view_choice(names, opts.views, opts.val_views, opts.sessions)
     if opts.check_sessions:  # a typo, or a damaged chunk, here was found only after the whole training
@@ -268,7 +293,7 @@ def run_decoder(opts: DecoderOptions, report: Report = Report(), *,
                         capture_model=opts.capture_model, camera_augment=opts.camera_augment)
     what = f"encoder and decoder end-to-end ({opts.preset})" if opts.end_to_end else "the decoder"
     _header(report, f"training {what} on {len(ds)} footprints of {', '.join(names)}", opts.out, config_file, resuming)
-    with report.training() as progress:
+    with _saying_where_it_stopped(report), report.training() as progress:
         path = train_decoder(cfg, opts.encoder, ds, opts.out, val=val, resume=opts.resume, progress=progress)
     result = TrainResult(path, read_rows(opts.out / METRICS))
     _say_if_stopped(result, opts, report)

@@ -82,8 +82,9 @@ def test_train_eval_viz_on_the_simulator(tmp_path):
     elsewhere.mkdir()
     with pytest.MonkeyPatch.context() as mp:
         mp.chdir(elsewhere)
-        invoke("train", "pretrain", "--config", "../pre", "--epochs", "2")
+        resumed = invoke("train", "pretrain", "--config", "../pre", "--epochs", "2")
     assert [json.loads(r)["epoch"] for r in (pre / "metrics.jsonl").read_text().splitlines()] == [1, 2]
+    assert f"resuming from {pre / 'last.pt'}: epoch 2, after 0 of its steps" in " ".join(resumed.output.split())
     assert not list(elsewhere.iterdir())
     invoke("eval", "knn", "--checkpoint", f"psp={pre}", "--k", "5,1", "--seed", "0", "--out", str(tmp_path / "knn.json"), *common)
     knn = json.loads((tmp_path / "knn.json").read_text())
@@ -91,8 +92,17 @@ def test_train_eval_viz_on_the_simulator(tmp_path):
     assert knn["k"] == 5 and psp["k"] == 5 and 0 <= psp["overall"] <= 1 and psp["overall_by_k"]["5"] == psp["overall"]
     assert set(psp["overall_by_k"]) == {"5", "1"}
     assert "| star |" in (tmp_path / "knn.md").read_text() and "against k" in (tmp_path / "knn.md").read_text()
-    invoke("train", "decoder", "--encoder", str(pre), "--out", str(dec), "--epochs", "1", "--batch-size", "32",
-           "--views", "0", "--val-views", "1", "--objects", "star", "--pixels-per-view", "64", "--cache", cache)
+    import torch
+
+    from sssphase_core.learning.training import save_checkpoint
+
+    unfinished = torch.load(pre / "last.pt", weights_only=False)  # (as a pretraining stopped after 2 of 3 epochs)
+    unfinished["config"]["epochs"] = 3
+    save_checkpoint(tmp_path / "unfinished" / "last.pt", unfinished)
+    fitted = invoke("train", "decoder", "--encoder", str(tmp_path / "unfinished"), "--out", str(dec), "--epochs", "1",
+                    "--batch-size", "32", "--views", "0", "--val-views", "1", "--objects", "star", "--pixels-per-view",
+                    "64", "--cache", cache)
+    assert "is from an unfinished pretraining (2 of its 3 epochs done)" in " ".join(fitted.output.split())
     assert (dec / "error_vs_time.png").exists()
     assert {"step/loss", "step/lr", "epoch/val_loss", "epoch/val_psnr"} <= _tensorboard_scalars(dec / "tb").keys()
     e2e = tmp_path / "e2e"  # the supervised U-Net baseline: no SSL, encoder trained with the decoder

@@ -74,6 +74,34 @@ def test_run_interrupted_mid_epoch_resumes_to_the_same_state(pretrained, dataset
     assert a["loop"]["epoch"] == b["loop"]["epoch"] == 2
 
 
+def test_ctrl_c_saves_a_checkpoint_at_the_step_it_came_and_the_rerun_ends_where_one_run_does(pretrained, dataset, tiny,
+                                                                                            tmp_path):
+    """Ctrl-C lost every step since the last checkpoint (all of them before the first: `sss train pretrain` stopped
+    at step 13 said it would continue from its checkpoint, and started again from zero). Now the loop saves at the
+    step the signal came, stops, and puts back the process's own handler."""
+    import signal
+
+    from sssphase_core.learning.training import TrainingStopped
+
+    asked: list[int] = []
+
+    def ctrl_c_after(kind: str, done: int, total: int, info: str) -> None:
+        if done == 7 and not asked:
+            asked.append(done)
+            signal.raise_signal(signal.SIGINT)  # as the terminal sends it
+
+    handler = signal.getsignal(signal.SIGINT)
+    out = tmp_path / "run"
+    with pytest.raises(TrainingStopped, match=r"stopped at step 7 of \d+; saved .*last.pt"):
+        pretrain(PRE, dataset, out, preset=tiny, progress=ctrl_c_after)
+    assert signal.getsignal(signal.SIGINT) is handler
+    mid = load_checkpoint(out)["loop"]
+    assert (mid["epoch"], mid["step_in_epoch"]) == (0, 7)  # (the last periodic checkpoint was step 6)
+    pretrain(PRE, dataset, out, preset=tiny, progress=False)
+    a, b = load_checkpoint(pretrained), load_checkpoint(out)
+    assert b["loop"]["epoch"] == 2 and states_equal(a["model"], b["model"])
+
+
 def test_a_time_limit_ends_the_run_at_an_epoch_end_and_a_rerun_continues_it_exactly(pretrained, dataset, tiny, tmp_path):
     """``time_limit_s`` stops after the epoch at which another would pass it (here: after the first, whatever
     this machine's speed), with that epoch's checkpoint; the rerun without a limit ends where the uninterrupted

@@ -45,6 +45,7 @@ from sssphase_core.learning.training.loop import (
     StepProgress,
     TrainingCollapsed,
     TrainingDiverged,
+    TrainingStopped,
     check_run_folder,
     init_distributed,
 )
@@ -61,7 +62,7 @@ from sssphase_core.learning.training.pretrain import (
 
 __all__ = [
     "BEST", "CHECKPOINT", "METRICS", "METRICS_CSV", "PRIOR_SAMPLES", "TB_DIR", "DecoderConfig", "Dist", "FootprintNet",
-    "Loop", "LoopConfig", "PretrainConfig", "StepProgress", "TrainingCollapsed", "TrainingDiverged",
+    "Loop", "LoopConfig", "PretrainConfig", "StepProgress", "TrainingCollapsed", "TrainingDiverged", "TrainingStopped",
     "check_run_folder", "decoder_modules", "decoder_patch", "effective_rank", "init_distributed", "initial_encoder", "knn_monitor", "knn_monitor_indices", "load_checkpoint", "load_decoder",
     "load_encoder", "pretrain", "projection_std", "resolve_checkpoint", "save_checkpoint", "train_decoder",
     "validate_decoder", "warmup_cosine",

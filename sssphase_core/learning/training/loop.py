@@ -8,6 +8,8 @@ import contextlib
 import math
 import os
 import shutil
+import signal
+import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
@@ -30,6 +32,14 @@ from sssphase_core.store.files import atomic_path
 
 class TrainingCollapsed(SssError):
     """SimSiam's representation collapsed (constant embeddings); training was stopped."""
+
+
+class TrainingStopped(KeyboardInterrupt):
+    """Training stopped between two steps when asked (Ctrl-C, SIGTERM), after saving a checkpoint at that step."""
+
+    def __init__(self, step: int, total: int, checkpoint: Path) -> None:
+        super().__init__(f"stopped at step {step} of {total}; saved {checkpoint}")
+        self.step, self.total, self.checkpoint = step, total, checkpoint
 
 
 class TrainingDiverged(SssError):
@@ -125,6 +135,35 @@ def place_stacks(dataset: PatchDataset, device: torch.device, wanted: bool | Non
         return False
     dataset.place(device)
     return True
+
+
+@contextlib.contextmanager
+def stop_between_steps(enabled: bool) -> Iterator[threading.Event]:
+    """While training: the first Ctrl-C or SIGTERM only sets the event the loop checks after each step, so that it
+    saves a checkpoint at that step before it stops (an interrupt lost every step since the last checkpoint: all of
+    them before the first); a second one interrupts at once. A plain event where signals cannot be taken (not the
+    main thread) or must not be (several processes: each would stop at another step)."""
+    asked = threading.Event()
+    if not enabled or threading.current_thread() is not threading.main_thread():
+        yield asked
+        return
+    kinds = (signal.SIGINT, signal.SIGTERM)
+    before = {k: signal.getsignal(k) for k in kinds}
+
+    def ask(signum: int, frame: object) -> None:
+        if asked.is_set():  # the second: at once
+            for k in kinds:
+                signal.signal(k, before[k])
+            raise KeyboardInterrupt
+        asked.set()
+
+    for k in kinds:
+        signal.signal(k, ask)
+    try:
+        yield asked
+    finally:
+        for k in kinds:
+            signal.signal(k, before[k])
 
 
 @contextlib.contextmanager
@@ -260,6 +299,7 @@ class Loop:
         runlog = RunLog(self.out_dir, resume_step=self.global_step, enabled=self.d.main)
         with contextlib.ExitStack() as cleanup:  # left in reverse: pending batch, device stacks, run log
             cleanup.enter_context(contextlib.closing(runlog))
+            stop = cleanup.enter_context(stop_between_steps(self.d.world == 1))
             cleanup.enter_context(deterministic_kernels(self.d.device, self.cfg.deterministic))
             if place_stacks(self.dataset, self.d.device, self.cfg.stacks_on_device):
                 cleanup.callback(self.dataset.place, None)  # the caller's dataset crops on the host again
@@ -291,6 +331,10 @@ class Loop:
                     if report is not None:
                         report(self.kind, self.global_step, self.total_steps,
                                f"epoch {self.epoch + 1}/{self.cfg.epochs} loss {self.sums['loss'] / self.step_in_epoch:.4f}")
+                    if stop.is_set() and self.step_in_epoch < self.steps_per_epoch:  # (an epoch's end saves below)
+                        self.wall_s += time.perf_counter() - t0
+                        save()
+                        raise TrainingStopped(self.global_step, self.total_steps, self.out_dir / CHECKPOINT)
                     if self.cfg.ckpt_every and steps_run % self.cfg.ckpt_every == 0 and self.step_in_epoch < self.steps_per_epoch:
                         self.wall_s += time.perf_counter() - t0
                         t0 = time.perf_counter()
@@ -315,6 +359,8 @@ class Loop:
                         f"{row['eff_rank']:.1f}; lower the learning rate or lengthen the warmup "
                         f"(checkpoint kept in {self.out_dir / CHECKPOINT})"
                     )
+                if stop.is_set() and self.epoch < self.cfg.epochs:  # asked at the epoch's last step: saved above
+                    raise TrainingStopped(self.global_step, self.total_steps, self.out_dir / CHECKPOINT)
                 if self._out_of_time(time.perf_counter() - started, epochs_run):
                     break
         if self.d.world > 1:
