@@ -72,6 +72,15 @@ def _error_reply(rid: Any, exc: BaseException) -> bytes:
     return protocol.reply_error(rid, protocol.INTERNAL, _exception_line(exc)[:500])
 
 
+def _id_arg(args: dict, name: str) -> str | None:
+    """A request's ``rig`` or ``job`` id: a string, or absent (None); anything else is refused naming the argument
+    (a list was "bad_args: TypeError: unhashable type: 'list'")."""
+    value = args.get(name)
+    if value is not None and not isinstance(value, str):
+        raise ProtocolError(protocol.BAD_ARGS, f"{name} must be a {name} id (a string), not {type(value).__name__}")
+    return value
+
+
 def _exception_line(exc: BaseException) -> str:
     """``RuntimeError: grab exploded`` (``MemoryError: (no message)`` when it says nothing), on one line."""
     text = " ".join(str(exc).split())[:300]
@@ -544,7 +553,7 @@ class Daemon:
         return {"time": time.time()}
 
     def _heartbeat(self, client: bytes, args: dict) -> dict:
-        job = self.jobs.get(args.get("job"))  # type: ignore[arg-type]
+        job = self.jobs.get(_id_arg(args, "job"))
         if job is not None:
             job.last_beat = time.monotonic()
         return {"time": time.time(), "job": job.state if job else None}
@@ -729,9 +738,9 @@ class Daemon:
         return stale
 
     def _get_rig(self, args: dict) -> Rig:
-        rig = self.rigs.get(args.get("rig"))  # type: ignore[arg-type]
+        rig = self.rigs.get(_id_arg(args, "rig"))
         if rig is None:
-            why = self.closed_rigs.get(args.get("rig"))  # type: ignore[arg-type]
+            why = self.closed_rigs.get(_id_arg(args, "rig"))
             raise ProtocolError(protocol.NOT_FOUND, f"no open rig {str(args.get('rig'))[:40]!r}"
                                 + (f": the daemon closed it ({why}); open the rig again" if why else ""))
         return rig
@@ -932,13 +941,13 @@ class Daemon:
             stop.set()
 
     def _job(self, client: bytes, args: dict) -> dict:
-        job = self.jobs.get(args.get("job"))  # type: ignore[arg-type]
+        job = self.jobs.get(_id_arg(args, "job"))
         if job is None:
             raise ProtocolError(protocol.NOT_FOUND, f"no job {str(args.get('job'))[:40]!r}")
         return job.summary()
 
     def _cancel(self, client: bytes, args: dict) -> dict:
-        job = self.jobs.get(args.get("job"))  # type: ignore[arg-type]
+        job = self.jobs.get(_id_arg(args, "job"))
         if job is not None:
             job.cancel.set()
         return {"cancelled": job is not None}

@@ -337,7 +337,7 @@ class BenchCamera:
             raise InputError(f"bench camera shape must be a list of 1 to 3 integers ([H, W] or [H, W, C]), "
                              f"got {str(given)[:40]!r}")
         shape = tuple(given)
-        rng = np.random.default_rng(int(options.get("seed", 0)))
+        rng = np.random.default_rng(_number(options, "seed", 0, 0, 2**63 - 1, int))  # (-1 was a device error)
         try:
             dtype = np.dtype(str(options.get("dtype", "uint16")))
         except TypeError:
@@ -347,7 +347,8 @@ class BenchCamera:
         if not (1 <= len(shape) <= 3 and all(s > 0 for s in shape)) or np.prod(shape, dtype=np.float64) * 8 > MAX_FRAME_BYTES:
             raise InputError(f"bench camera shape {shape} is not a frame of at most {MAX_FRAME_BYTES >> 20} MiB "
                              "(refused before allocating it)")
-        self.data = rng.integers(0, 65535, size=shape, dtype=np.uint16).astype(dtype)
+        top = min(65535, int(np.finfo(dtype).max) if dtype.kind == "f" else int(np.iinfo(dtype).max) if dtype.kind in "iu" else 1)
+        self.data = rng.integers(0, top, size=shape, dtype=np.uint16, endpoint=True).astype(dtype)  # (float16: finite)
         self.sequence = 0
 
     def configure(self, *, exposure: float | None = None, gain: float | None = None,

@@ -222,3 +222,16 @@ def test_a_bench_camera_shape_that_is_not_a_list_of_integers_is_one_line(shape):
 
     with pytest.raises(InputError, match="bench camera shape must be a list of 1 to 3 integers"):
         sim_plugin.BenchCamera({"shape": shape})
+
+
+def test_a_bench_camera_seed_out_of_range_is_one_line_and_its_float16_frames_are_finite():
+    """``seed: -1`` was a device error with a traceback in the daemon's log; ``dtype: float16`` opened, and its frames
+    (codes up to 65535, above float16's largest 65504) held inf, so every job on it failed as a corrupted transfer."""
+    import numpy as np
+
+    from sssphase_plugins import sim_plugin
+
+    with pytest.raises(InputError, match=r"sim option seed must be in \[0, "):
+        sim_plugin.BenchCamera({"seed": -1})
+    frame = sim_plugin.BenchCamera({"shape": [256, 256, 3], "dtype": "float16"}).data
+    assert np.isfinite(frame).all() and frame.max() > 6e4

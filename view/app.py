@@ -723,19 +723,25 @@ async def _receive_settings(websocket: WebSocket, settings: LiveSettings, state:
             message = json.loads(text)
         except (ValueError, RecursionError, TypeError):  # not JSON, nested too deep, a 5000-digit number
             continue
-        if not isinstance(message, dict):
-            continue
-        if "exposure" in message and isinstance(message["exposure"], int | float) and 1e-3 <= message["exposure"] <= 1e3:
-            settings.exposure = float(message["exposure"])
-        if message.get("pattern") in (*LIVE_PATTERNS, "psp"):
-            settings.pattern = message["pattern"]
-        if "gain" in message and (message["gain"] is None or (isinstance(message["gain"], int | float)
-                                                               and 0 <= message["gain"] <= 1e3)):
-            settings.gain = None if message["gain"] is None else float(message["gain"])
-        if isinstance(message.get("psp_frame"), int):
-            settings.psp_frame = message["psp_frame"]
-        if "decode" in message:
-            settings.decode = bool(message["decode"])
+        if isinstance(message, dict):
+            apply_live_message(settings, message)
+
+
+def apply_live_message(settings: LiveSettings, message: dict[str, Any]) -> None:
+    """Take what the page asks of the live view (``exposure``, ``pattern``, ``gain``, ``psp_frame``, ``decode``)
+    into ``settings``; a value of the wrong type or out of range is ignored, as garbage is."""
+    exposure = message.get("exposure")
+    if isinstance(exposure, int | float) and not isinstance(exposure, bool) and 1e-3 <= exposure <= 1e3:
+        settings.exposure = float(exposure)
+    if message.get("pattern") in (*LIVE_PATTERNS, "psp"):
+        settings.pattern = message["pattern"]
+    gain = message.get("gain", ...)
+    if gain is None or (isinstance(gain, int | float) and not isinstance(gain, bool) and 0 <= gain <= 1e3):
+        settings.gain = None if gain is None else float(gain)
+    if isinstance(message.get("psp_frame"), int) and not isinstance(message["psp_frame"], bool):
+        settings.psp_frame = message["psp_frame"]
+    if isinstance(message.get("decode"), bool):  # ("no" was true, as any non-empty string is)
+        settings.decode = message["decode"]
 
 
 def _decode_message(decoded: Any, white: np.ndarray, seconds: float, state: ViewState) -> dict[str, Any]:

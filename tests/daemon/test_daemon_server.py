@@ -484,6 +484,16 @@ def test_a_client_cannot_start_more_jobs_or_open_more_rigs_than_the_daemon_holds
     assert client.ping(timeout_s=2.0)
 
 
+def test_a_rig_or_job_id_of_the_wrong_type_is_refused_naming_it(daemon):
+    """A list as ``job`` or ``rig`` was answered "bad_args: TypeError: unhashable type: 'list'"."""
+    _, client = daemon
+    for op, name in (("heartbeat", "job"), ("job", "job"), ("cancel", "job"), ("close_rig", "rig"), ("stream", "rig")):
+        with pytest.raises(DaemonError, match=rf"{name} must be a {name} id \(a string\), not list") as err:
+            client.call(op, **{name: [1, 2]}, count=1)
+        assert err.value.code == protocol.BAD_ARGS
+    assert client.ping()
+
+
 def test_rigs_of_clients_gone_silent_make_room_for_new_ones_and_their_clients_are_told_why(daemon_factory):
     """Sixteen clients that opened a rig and then died between captures (no job running) held every rig slot for
     five minutes: every later `sss capture` was refused with "16 rigs are open: close one first", which no user could

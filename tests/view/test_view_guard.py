@@ -58,3 +58,20 @@ def test_a_websocket_from_a_page_of_another_origin_is_refused_and_every_answer_s
     assert not _call(hosts, "websocket", "evil.example:8000", "http://evil.example:8000")[0]  # rebinding, same origin
     reached, sent = _call(hosts, "http", "127.0.0.1:8000")  # the framework's own 404
     assert reached and (b"x-content-type-options", b"nosniff") in sent[0]["headers"]
+
+
+def test_live_settings_take_only_values_of_their_type_and_range():
+    """``{"decode": "no"}`` turned live decode on (any non-empty string is true); ``true`` as an exposure or a
+    frame number was taken as 1."""
+    from sssphase_view.app import apply_live_message
+    from sssphase_view.live import LiveSettings
+
+    settings = LiveSettings()
+    for garbage in ({"decode": "no"}, {"decode": 1}, {"exposure": True}, {"exposure": 1e9}, {"psp_frame": True},
+                    {"pattern": "../etc"}, {"gain": "high"}, {"gain": -1}):
+        apply_live_message(settings, garbage)
+    assert settings == LiveSettings()
+    apply_live_message(settings, {"decode": True, "exposure": 2, "psp_frame": 3, "pattern": "psp", "gain": 0.5})
+    assert (settings.decode, settings.exposure, settings.psp_frame, settings.pattern, settings.gain) == (True, 2.0, 3, "psp", 0.5)
+    apply_live_message(settings, {"decode": False, "gain": None})
+    assert settings.decode is False and settings.gain is None
