@@ -192,8 +192,12 @@ def eval_relight(
     precision: PrecisionOpt = "auto",
 ) -> None:
     """Relight every reference pattern of the sessions and tabulate MSE / PSNR / SSIM over objects and views."""
+    from sssphase_core.errors import InputError
     from sssphase_core.relight.runner import evaluate_sessions
 
+    if out.suffix.lower() in (".json", ".md") and not out.is_dir():  # (it made a folder named X.json)
+        raise InputError(f"--out {out}: sss eval relight writes a folder (its figures, relight_eval.json and "
+                         f"relight_eval.md): give a folder name, e.g. {out.with_suffix('')}")
     evaluate_sessions(sessions, backend=backend, checkpoint=checkpoint, views=views, out=out, device=device,
                       calibrate=calibrate, cache=cache, widen=widen, narrator=_Narrator(), precision=precision)
 

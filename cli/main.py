@@ -152,7 +152,7 @@ FILE_SYSTEM_ERRORS = {errno.ENOTDIR, errno.EISDIR, errno.EACCES, errno.EPERM, er
 
 #: what an interrupted command leaves, and how to go on (by its first word)
 INTERRUPTED = {
-    "import": "the views imported so far are kept; the same command again continues from them",
+    "import": "the views imported completely so far (if any) are kept; the same command again continues from them",
     "capture": "the views captured so far are kept; rerun with --resume to continue",
     "train": "training continues from its last checkpoint when the command is rerun",
     "relight": "the footprints computed so far are kept in --out's cache; the same command again computes only the rest",

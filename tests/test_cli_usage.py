@@ -67,6 +67,8 @@ def _sss(*args: str) -> subprocess.CompletedProcess[str]:
         (["demo", "--preset", "bogus"], "unknown demo preset 'bogus'"),  # had started a daemon first
         (["eval", "knn", "--checkpoint", "psp="], "--checkpoint takes NAME=PATH"),  # had loaded ./last.pt
         (["eval", "knn", "--checkpoint", "psp=/", "--checkpoint", "psp=/tmp"], "the name 'psp' is given twice"),
+        (["eval", "relight", "s", "--out", "ev/imp.json"], "--out ev/imp.json: sss eval relight writes a folder"),  # it
+        # made a folder named imp.json
         (["bench", "relight-cache", "s", "--first", "checkerboard", "--new", "checkerboard"], "--new checkerboard is the --first"),
         (["demo", "--transport", "bogus"], "unknown transport model 'bogus'"),
         (["demo", "--training-rigs", "lab"], "unknown training rigs 'lab'; choose one of nominal, camera, randomised"),

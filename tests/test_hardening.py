@@ -808,6 +808,7 @@ DAMAGE = {
 
 #: What the reader says of the hostile files (the other damage is named by the tests' common pattern).
 DAMAGE_DETAIL = {
+    "metadata not json": "(its metadata zarr.json is not valid JSON",  # (was "/zarr.json": the folder cut from its path)
     "metadata a link to /dev/zero": "is a device, not a file",
     "metadata a FIFO": "is a FIFO, not a file",
     "chunk a sparse 10 GB file": "bytes for a chunk of",

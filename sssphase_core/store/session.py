@@ -160,7 +160,8 @@ def _check_array_metadata(folder: Path, where: str) -> int:
     except FileNotFoundError:
         raise DamagedArray(where, "missing or unreadable (no zarr.json)") from None
     except InputError as exc:
-        raise DamagedArray(where, f"missing or unreadable ({str(exc).replace(str(folder), '').strip()[:160]})") from None
+        said = str(exc).replace(str(folder / "zarr.json"), "zarr.json")  # (its folder is in ``where``)
+        raise DamagedArray(where, f"missing or unreadable ({said.strip()[:160]})") from None
     try:
         codecs = [c["name"] if isinstance(c, dict) else c for c in meta["codecs"]]
         chunk = [int(n) for n in meta["chunk_grid"]["configuration"]["chunk_shape"]]
@@ -692,6 +693,9 @@ class Session:
             raise DataError(f"view {view} of {self.path} has no array {name!r} (has: {', '.join(self.arrays(view))})")
         where = f"array {name} of view {view} of {self.path}"
         folder = self.path / view_dir_name(view) / name
+        if not folder.parent.is_dir():  # (each of its arrays was said to be missing, never the folder)
+            raise DamagedArray(f"view {view} of {self.path}", f"missing its folder {view_dir_name(view)} (renamed or "
+                                                               "deleted?)")
         frame = _frame_size(name, tuple(self.manifest["views"][str(view)]["arrays"][name].get("shape") or ()))
         if frame is not None and frame[0] * frame[1] > MAX_FRAME_PIXELS:  # 30000 x 30000 of zeros was allocated
             raise DamagedArray(where, f"damaged (laid out on {frame[1]}x{frame[0]} pixels, more than any camera frame "
@@ -746,6 +750,10 @@ class Session:
                 problems.append(f"view {v}: {self.status(v)} (not {'imported' if self.imported else 'captured'} "
                                 f"completely; {self.rerun})")
         for v, entry in self.iter_views():
+            if not (self.path / view_dir_name(v)).is_dir():
+                problems.append(f"view {v}: its folder {view_dir_name(v)} is missing (renamed or deleted?): the manifest "
+                                f"lists {len(entry.get('arrays', {}))} arrays there")
+                continue
             for name in REQUIRED:
                 if name not in entry.get("arrays", {}):
                     problems.append(f"view {v}: required array {name} missing from the manifest")

@@ -203,6 +203,20 @@ def test_validate_reports_corrupt_and_missing_arrays(reference, tmp_path, sss):
         "so it cannot be relit"]
 
 
+def test_a_view_folder_renamed_away_is_named_once_not_as_every_array_missing(reference, tmp_path, sss):
+    """`sss validate` listed eleven "array X is missing or unreadable (no zarr.json)" lines and relight one of them,
+    never that the view's folder was gone."""
+    shutil.copytree(reference[0] / OBJECT, tmp_path / OBJECT)
+    (tmp_path / OBJECT / "view_000").rename(tmp_path / OBJECT / "view_007")
+    problems = Session.open(tmp_path / OBJECT).validate()
+    assert [p for p in problems if p.startswith("view 0:")] == [
+        f"view 0: its folder view_000 is missing (renamed or deleted?): the manifest lists "
+        f"{len(Session.open(tmp_path / OBJECT).arrays(0))} arrays there"], problems
+    done = sss("relight", str(tmp_path / OBJECT), "--pattern", "checkerboard", "--views", "0", "--backend", "none",
+               "--out", str(tmp_path / "relit"))
+    assert done.returncode != 0 and "is missing its folder view_000 (renamed or deleted?)" in " ".join(done.stderr.split())
+
+
 def test_an_array_rewritten_with_valid_chunks_is_refused_by_every_reader_not_only_validate(reference, tmp_path, sss):
     """Data changed through zarr (its chunks' CRCs valid, the manifest's checksum not) was caught by `sss validate`
     only: relight and evaluation scored it, and `sss export` wrote it out, where an import laundered it into a
