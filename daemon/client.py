@@ -315,8 +315,9 @@ def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | N
             if on_left is not None:
                 on_left(started.pid)
         elif started is not None:
+            gone = started.poll() is not None  # (killed meanwhile: "stopped the local daemon" was said of it)
             _stop(started)
-            if on_stop is not None:
+            if on_stop is not None and not gone:
                 on_stop(started.pid)
 
 

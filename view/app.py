@@ -553,9 +553,15 @@ async def relight(request: Request, state: ViewState) -> Response:
         s = _session(state, str(args.get("session", "")))
         spec = pattern_spec(s)
         t0 = time.perf_counter()
-        result = relight_session(s, [spec], backend=backend, checkpoint=state.checkpoint, out=state.out / "relit",
-                                 views=[view], formats=("png", "exr"), cache=True, resize=str(args.get("resize", "")),
-                                 narrator=notes)
+        try:
+            result = relight_session(s, [spec], backend=backend, checkpoint=state.checkpoint, out=state.out / "relit",
+                                     views=[view], formats=("png", "exr"), cache=True,
+                                     resize=str(args.get("resize", "")), narrator=notes)
+        except SssError as exc:  # said as the page says it: the upload, not the server's path to it
+            if not pattern.startswith("upload_"):
+                raise
+            raise InputError(str(exc).replace(f"--pattern {spec!r}", "the upload").replace(f"--pattern {spec}", "the upload")
+                             .replace(spec, "the upload")) from None
         return result, time.perf_counter() - t0
 
     if state.pending_relights >= MAX_PENDING_RELIGHTS:

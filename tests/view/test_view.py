@@ -608,6 +608,14 @@ def test_the_view_keeps_the_most_recently_used_uploads_and_forgets_the_rest(serv
     kept = {p.name for p in (served["root"] / "out" / "uploads").iterdir()}
     assert len(kept) == MAX_UPLOADS and first in kept and second not in kept and set(later) <= kept
     assert not list(relit.glob(f"*_{Path(second).stem}_*")) and list(relit.glob(f"*_{Path(first).stem}_*"))
+    # a still upload that cannot be relit is named as the page names it, not by the server's path to it
+    png = cv2.imencode(".png", np.zeros((10, 12), np.uint8))[1].tobytes()
+    request = urllib.request.Request(base + "/api/upload", data=png, method="POST", headers={"X-Token": token})
+    with urllib.request.urlopen(request, timeout=60) as response:
+        small = json.loads(response.read())["name"]
+    status, said = _post(base + "/api/relight", token, json.dumps(
+        {"session": name, "view": 0, "pattern": small, "backend": "none"}).encode())
+    assert status == 400 and "the upload" in said["error"] and "uploads" not in said["error"], said
     status, answer = relight(second)
     assert status == 400 and "upload it again" in answer["error"]
     planted = served["root"] / "out" / "uploads" / "upload_planted000.png"  # a link to an image outside --out
