@@ -131,8 +131,9 @@ def _header(report: Report, text: str, out: Path, config_file: RunConfigFile | N
         from sssphase_core.learning.training import CHECKPOINT, load_checkpoint
 
         loop = load_checkpoint(out / CHECKPOINT, mmap=True).get("loop", {})
-        report.say(f"{report.style('note:', 'note')} resuming from {out / CHECKPOINT}: epoch {int(loop.get('epoch', 0)) + 1}"
-                   f", after {int(loop.get('step_in_epoch', 0))} of its steps (--no-resume starts again)")
+        done, into = int(loop.get("epoch", 0)), int(loop.get("step_in_epoch", 0))
+        report.say(f"{report.style('note:', 'note')} resuming from {out / CHECKPOINT}: {done} epoch{'s' * (done != 1)} "
+                   f"done, {into} step{'s' * (into != 1)} into the next (--no-resume starts again)")
 
 
 @contextmanager

@@ -84,7 +84,7 @@ def test_train_eval_viz_on_the_simulator(tmp_path):
         mp.chdir(elsewhere)
         resumed = invoke("train", "pretrain", "--config", "../pre", "--epochs", "2")
     assert [json.loads(r)["epoch"] for r in (pre / "metrics.jsonl").read_text().splitlines()] == [1, 2]
-    assert f"resuming from {pre / 'last.pt'}: epoch 2, after 0 of its steps" in " ".join(resumed.output.split())
+    assert f"resuming from {pre / 'last.pt'}: 1 epoch done, 0 steps into the next" in " ".join(resumed.output.split())
     assert not list(elsewhere.iterdir())
     invoke("eval", "knn", "--checkpoint", f"psp={pre}", "--k", "5,1", "--seed", "0", "--out", str(tmp_path / "knn.json"), *common)
     knn = json.loads((tmp_path / "knn.json").read_text())
