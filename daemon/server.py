@@ -156,6 +156,18 @@ def _return_freed_memory() -> None:
         trim(0)
 
 
+def _close_without_waiting(rig: Rig) -> None:
+    """Close a rig the main thread took back: at once when no device call of it is under way, else (a device that
+    hangs, its cancelled job's call still holding the rig) in the background, so that the daemon keeps serving."""
+    if rig.lock.acquire(blocking=False):
+        try:
+            rig.close()
+        finally:
+            rig.lock.release()
+    else:
+        threading.Thread(target=rig.close, name=f"sss-close-{rig.id}", daemon=True).start()
+
+
 def _close_all(devices: dict[str, Any]) -> None:
     """Close every driver, each whatever the others do (a failing close must not leave the rest open)."""
     for driver in devices.values():
@@ -473,9 +485,10 @@ class Daemon:
                 if rid in busy:
                     continue
                 if not self._alive(rig.owner, self.rig_idle_s):
-                    self._forget_rig(rig, f"its client was silent for {self.rig_idle_s:g} s").close()
+                    _close_without_waiting(self._forget_rig(rig, f"its client was silent for {self.rig_idle_s:g} s"))
                 elif rig.orphaned and not self._alive(rig.owner):
-                    self._forget_rig(rig, f"its client stopped heartbeating its capture for {self.client_timeout:g} s").close()
+                    _close_without_waiting(self._forget_rig(
+                        rig, f"its client stopped heartbeating its capture for {self.client_timeout:g} s"))
             finished = [j for j in self.jobs.values() if j.state != "running" and j.cancel.is_set()]
             for job in sorted(finished, key=lambda j: j.started)[:-64]:
                 del self.jobs[job.id]

@@ -31,6 +31,7 @@ exposure only adds sensor noise to the cached image of the pattern on screen.
 
 from __future__ import annotations
 
+import threading
 import time
 import zlib
 from collections.abc import Callable, Iterator, Mapping
@@ -218,6 +219,7 @@ class SimCamera:
         self.disconnect_at = fault("disconnect_at_frame")  # gone from that grab on (unplugged)
         self.delay_s = _number(options, "grab_delay_s", 0.0, 0.0, 3600.0, float)
         self.stall_at = fault("stall_at_frame")  # that grab never returns (a hung camera)
+        self.grabbing = threading.Lock()  # as a driver does, close waits for a grab in flight (for ever, when it hangs)
         self.garbage_at = fault("garbage_at_frame")  # that frame is not a frame of this camera
         self.sequence = 0
         w, h = bench.rig.camera.width, bench.rig.camera.height
@@ -243,6 +245,10 @@ class SimCamera:
             self.raw = pixel_format == "bayer16"
 
     def grab(self, timeout_s: float = 5.0) -> Frame:
+        with self.grabbing:
+            return self._grab()
+
+    def _grab(self) -> Frame:
         if 0 <= self.disconnect_at <= self.sequence:
             raise DeviceError(f"{self.info.id}: the camera is disconnected (simulated at frame {self.disconnect_at}): "
                               "reconnect it and resume the capture")
@@ -276,7 +282,8 @@ class SimCamera:
         return self.grab(timeout_s)
 
     def close(self) -> None:
-        pass
+        with self.grabbing:
+            pass
 
 
 class SimProjector:

@@ -142,3 +142,43 @@ def test_a_corrupted_frame_an_unknown_option_and_an_absurd_size_are_one_line_eac
                     options={"objekt": "star", "grab_delay": 1, "basler": {"gain": 0}})  # tables: other plugins'
     with pytest.raises(DaemonError, match=r"bench camera shape \(1000000, 1000000\) is not a frame of at most 1024 MiB"):
         client.call("open_rig", camera="sim:bench-camera", options={"shape": [1000000, 1000000]})
+
+
+STALLED_CLIENT = """
+import os, sys
+from sssphase_daemon.client import DaemonClient
+client = DaemonClient(sys.argv[1], sys.argv[2], timeout_s=30, heartbeat_s=0.1)
+rig = client.call("open_rig", camera="sim:camera0", projector="sim:projector0",
+                  options={"object": "star", "stall_at_frame": 2})["rig"]
+frames = client.stream(rig, 100, deadline_s=3600)
+next(frames), next(frames)  # frame 2 hangs in the camera
+print(rig, flush=True)
+os._exit(0)
+"""
+
+
+def test_the_rig_of_a_client_that_died_while_its_camera_hung_is_taken_back_without_stalling_the_daemon(monkeypatch):
+    """A crashed client's rig is closed once its job is cancelled; when that job's device call still hangs, the
+    close must not hold the daemon's main thread (it serves every request) waiting on the device."""
+    runtime = Path(tempfile.mkdtemp(prefix="ssst", dir="/tmp"))
+    monkeypatch.setenv("SSS_RUNTIME_DIR", str(runtime))
+    proc = spawn_daemon(extra_args=("--client-timeout", "0.5"))
+    try:
+        state = security.read_state()
+        crashed = subprocess.run([os.sys.executable, "-c", STALLED_CLIENT, state.endpoint, state.token],
+                                 capture_output=True, text=True, timeout=120)
+        rig = crashed.stdout.strip()
+        assert crashed.returncode == 0 and rig, crashed.stderr
+        with DaemonClient(state.endpoint, state.token, timeout_s=5.0) as client:
+            deadline = time.monotonic() + 10
+            while rig in {r["rig"] for r in client.call("status")["rigs"]} and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert rig not in {r["rig"] for r in client.call("status")["rigs"]}
+            t0 = time.monotonic()
+            assert client.ping(timeout_s=2.0) and time.monotonic() - t0 < 1.0
+            client.call("shutdown")
+        assert proc.wait(15) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        shutil.rmtree(runtime, ignore_errors=True)
