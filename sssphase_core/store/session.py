@@ -357,7 +357,7 @@ class DamagedArray(DataError):
 def _whole(index: Any) -> bool:
     """Whether an index (``...``, ``:``, ``()``, or a tuple of those) selects a whole array."""
     parts = index if isinstance(index, tuple) else (index,)
-    return all(p is Ellipsis or p == slice(None) for p in parts)
+    return all(p is Ellipsis or (isinstance(p, slice) and p == slice(None)) for p in parts)  # (an index array too)
 
 
 class CheckedArray:

@@ -238,6 +238,15 @@ def test_an_array_rewritten_with_valid_chunks_is_refused_by_every_reader_not_onl
         assert done.returncode != 0 and "Traceback" not in done.stderr, done.stderr
         assert said.format(tmp_path / OBJECT) in " ".join(done.stderr.split()), done.stderr
     assert not list((tmp_path / "exported").rglob("white*"))  # nothing of it written out
+    array = Session.open(tmp_path / OBJECT).read(0, "white")  # parts of it are read as they are (their chunks' CRCs)
+    assert array[0].shape == data.shape[1:] and array[(slice(0, 3), ...)].shape[0] == 3
+    assert array.oindex[np.array([0, 2])].shape == (2, *data.shape[1:])
+    from sssphase_core.store.session import _whole
+
+    assert not _whole(np.array([0, 2])) and not _whole((np.ones(3, bool), slice(None)))  # (was "ambiguous truth value")
+    for whole in (..., slice(None), (slice(None), ...), ()):
+        with pytest.raises(DataError, match="do not match the manifest's checksum"):
+            array[whole]
 
 
 @pytest.mark.slow

@@ -9,6 +9,7 @@ import math
 import os
 import shutil
 import signal
+import sys
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -156,6 +157,9 @@ def stop_between_steps(enabled: bool) -> Iterator[threading.Event]:
                 signal.signal(k, before[k])
             raise KeyboardInterrupt
         asked.set()
+        with contextlib.suppress(OSError, ValueError):  # (a closed stderr)
+            sys.stderr.write("\nstopping after this step to save a checkpoint there (again to stop at once)\n")
+            sys.stderr.flush()
 
     for k in kinds:
         signal.signal(k, ask)
