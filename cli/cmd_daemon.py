@@ -10,12 +10,15 @@ import signal
 import sys
 import time
 from pathlib import Path
-from typing import Annotated
+from typing import TYPE_CHECKING, Annotated
 
 import typer
 from rich.console import Console
 from rich.markup import escape
 from rich.table import Table
+
+if TYPE_CHECKING:
+    from sssphase_daemon.security import DaemonState
 
 console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
 
@@ -181,14 +184,13 @@ def daemon_stop(
         console.print(f"daemon (pid {pid}) stopped")
 
 
-def _forget_stale(state: object) -> None:
+def _forget_stale(state: DaemonState) -> None:
     """Remove the state file of a daemon that is gone, and its ipc socket file when nothing listens there."""
     from sssphase_daemon import security
 
     security.state_path().unlink(missing_ok=True)
-    path = str(getattr(state, "endpoint", "")).removeprefix("ipc://")
-    if path and os.path.exists(path) and security.socket_listener(Path(path)) is None:
-        security.remove_ipc_socket(f"ipc://{path}")
+    if security.ipc_path_problem(state.endpoint) is None:  # (a socket nothing listens on, or none: only sockets go)
+        security.remove_ipc_socket(state.endpoint)
 
 
 def _wait_or_kill(pid: int, force: bool, seconds: float) -> bool:

@@ -503,6 +503,14 @@ async def upload(request: Request, state: ViewState) -> Response:
     return JSONResponse({"name": name, "sequence": await asyncio.to_thread(is_sequence, folder / name)})
 
 
+def _said_of_the_upload(exc: SssError, path: Path | str) -> InputError:
+    """``exc`` said as the page says it: "the upload", not the server's path to the uploaded file."""
+    text = str(exc)
+    for said in (f"--pattern {str(path)!r}", f"--pattern {path}", str(path)):
+        text = text.replace(said, "the upload")
+    return InputError(text)
+
+
 class _Notes(Narrator):
     """The lines ``sss relight`` would print for one relight (its calibration weights, the pixels a decoder
     gave the analytic model, ...), kept for the page; the files it wrote are listed on the page already."""
@@ -557,11 +565,10 @@ async def relight(request: Request, state: ViewState) -> Response:
             result = relight_session(s, [spec], backend=backend, checkpoint=state.checkpoint, out=state.out / "relit",
                                      views=[view], formats=("png", "exr"), cache=True,
                                      resize=str(args.get("resize", "")), narrator=notes)
-        except SssError as exc:  # said as the page says it: the upload, not the server's path to it
+        except SssError as exc:
             if not pattern.startswith("upload_"):
                 raise
-            raise InputError(str(exc).replace(f"--pattern {spec!r}", "the upload").replace(f"--pattern {spec}", "the upload")
-                             .replace(spec, "the upload")) from None
+            raise _said_of_the_upload(exc, spec) from None
         return result, time.perf_counter() - t0
 
     if state.pending_relights >= MAX_PENDING_RELIGHTS:
@@ -595,10 +602,10 @@ def _start_sequence(state: ViewState, session: str, view: int, path: Path, backe
         try:
             return relight_sequence(_session(state, session), path, backend=backend, checkpoint=state.checkpoint,
                                     out=state.out / "relit", views=[view], resize=resize, narrator=narrator)
-        except SssError as exc:  # said as the page says it: the upload, not the server's path to it
+        except SssError as exc:
             if isinstance(exc, Stopped):
                 raise
-            raise InputError(str(exc).replace(f"--pattern {path}", "the upload").replace(str(path), "the upload")) from None
+            raise _said_of_the_upload(exc, path) from None
 
     state.relights.submit(run_sequence_job, job, relight, view, "/api/files/relit")
     return JSONResponse({"job": job.id}, status_code=202)

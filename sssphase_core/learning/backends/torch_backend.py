@@ -106,10 +106,11 @@ class TorchBackend:
             far = beyond(self.domain, est["widths"])
         out = torch.zeros((len(patches), self.patch, self.patch, 3), dtype=torch.float32, device=self.device)
         near = np.flatnonzero(~far)
+        every = len(near) == len(patches)  # (the usual case: slices, no index copies)
         for i in range(0, len(near), self.batch_size):
-            rows = torch.as_tensor(near[i : i + self.batch_size], device=self.device)
-            if len(near) == len(patches):  # (the usual case: a slice, no copy)
-                batch = patches[i : i + self.batch_size]
+            rows = slice(i, i + self.batch_size) if every else torch.as_tensor(near[i : i + self.batch_size], device=self.device)
+            if every:
+                batch = patches[rows]
             elif torch.is_tensor(patches):
                 batch = patches.index_select(0, rows.to(patches.device))
             else:
