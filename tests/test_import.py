@@ -1036,7 +1036,8 @@ def test_fringes_of_another_convention_warn_and_x_frames_copied_as_y_are_refused
     """A rig whose shifts are numbered from another phase origin (its s0 our s1) or the other way (s1 and s3
     swapped) moves every decoded point by a quarter of the coarsest period, or mirrors it: the first imported without
     a word (14% of the points outside the projector here, 15.5% on a crab; the warning needed 20%); a folder whose y
-    fringe frames were copies of the x ones decoded every y from x. The clean frames warn of nothing."""
+    fringe frames were copies of the x ones decoded every y from x; x and y swapped decoded every point inside the
+    projector, in silence. The clean frames warn of nothing."""
     import warnings
 
     w, h = 256, 192  # the cpu rig's projector and periods (the hand-made rig's unwrap fails instead: refused)
@@ -1050,7 +1051,7 @@ def test_fringes_of_another_convention_warn_and_x_frames_copied_as_y_are_refused
     with warnings.catch_warnings(record=True) as said:
         warnings.simplefilter("always")
         import_folder(good, tmp_path / "s", "good", (w, h), patch=K)
-    assert not [w for w in said if "outside" in str(w.message)], [str(w.message) for w in said]
+    assert not [w for w in said if "outside" in str(w.message) or "swapped" in str(w.message)], [str(w.message) for w in said]
 
     def renamed(name: str, shifts: dict[int, int]) -> Path:
         folder = tmp_path / name
@@ -1067,6 +1068,18 @@ def test_fringes_of_another_convention_warn_and_x_frames_copied_as_y_are_refused
         with pytest.warns(UserWarning, match=r"% of the decoded pixels map outside the 256x192 projector: is --projector "
                                              r"right\? \(else the fringes' conventions: shifts numbered the other way"):
             import_folder(renamed(name, shifts), tmp_path / "s", name, (w, h), patch=K)
+    swapped = tmp_path / "swapped"  # every point still inside the projector, a checkerboard would still match
+    swapped.mkdir()
+    for f in good.iterdir():
+        other = {"psp__x__": "psp__y__", "psp__y__": "psp__x__"}.get(f.name[:8], f.name[:8])
+        (swapped / (other + f.name[8:])).write_bytes(f.read_bytes())
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        import_folder(swapped, tmp_path / "s", "swapped", (w, h), patch=K)
+    said = [str(w.message) for w in said]
+    assert any("the x fringes' projector columns change down the camera's rows" in m and "are the psp__x and psp__y "
+               "frames swapped?" in m for m in said), said
+    assert not any("outside" in m for m in said), said
     copied = tmp_path / "copied"
     copied.mkdir()
     for f in good.iterdir():
@@ -1789,6 +1802,27 @@ def test_crops_of_no_light_are_refused_where_they_are_read(handmade, tmp_path):
     with pytest.raises(DataError, match="footprints/crops: .*below -0.25 x the white level"):
         session_views(crops.path, footprints=True)
     assert any("array footprints/crops" in p for p in crops.validate())
+
+
+def test_a_square_view_with_as_many_unwrapping_frames_as_rows_exports_each_frame(tmp_path):
+    """A 16 x 16 view kept 16 unwrapping frames, (16, 16, 16, 3): their first two sizes are the view's, and
+    `sss export` took the stack for one image and failed ("cannot write an array of shape (16, 16, 16, 3)")."""
+    from sssphase_core.reporting.export import export_session
+    from sssphase_core.store.exr import read_exr
+
+    rng = np.random.default_rng(0)
+    session = Session.create(tmp_path / "s", "square")
+    writer = session.begin_view(0)
+    writer.write("white", rng.random((16, 16, 3), dtype=np.float32))
+    writer.write("corr/xp", rng.random((16, 16), dtype=np.float32))
+    stack = rng.random((16, 16, 16, 3), dtype=np.float32)
+    writer.write("unwrap", stack)
+    writer.commit()
+    export_session(Session.open(session.path), tmp_path / "e")
+    frames = sorted((tmp_path / "e" / "square" / "view_000" / "unwrap").glob("*.exr"))
+    assert len(frames) == 16
+    assert np.array_equal(read_exr(frames[5]), stack[5])
+    assert read_exr(tmp_path / "e" / "square" / "view_000" / "corr_xp.exr").shape[:2] == (16, 16)
 
 
 def test_an_imported_session_exports_and_imports_again_and_an_export_without_unwrapping_frames_says_why_not(tmp_path):

@@ -39,6 +39,12 @@ def footprint_mosaic(crops: np.ndarray) -> tuple[np.ndarray, int]:
     return mosaic, cols
 
 
+def _is_image(shape: tuple[int, ...], height: int, width: int) -> bool:
+    """Whether an array of ``shape`` is one (H, W) or (H, W, C) image of the view rather than a stack of them
+    ((N, H, W[, C]): a 16x16 view's 16 unwrapping frames are (16, 16, 16, 3), whose first two sizes are H, W)."""
+    return shape[:2] == (height, width) and (len(shape) == 2 or (len(shape) == 3 and shape[2] <= 4))
+
+
 def export_view(session: Session, view: int, out: Path) -> list[Path]:
     """Write one view's arrays under ``out`` (see the module docstring); returns the files written."""
     height, width = session.read(view, "white").shape[:2]
@@ -50,7 +56,7 @@ def export_view(session: Session, view: int, out: Path) -> list[Path]:
         if name.endswith("/crops") and len(shape) == 4:  # footprints/crops; transport/crops (one per projector dot)
             mosaic, cols = footprint_mosaic(np.asarray(arr, np.float32))
             written.append(write_exr(stem.with_name(stem.name + ".exr"), mosaic, attributes={"tile_columns": str(cols)}))
-        elif shape[:2] == (height, width):
+        elif _is_image(shape, height, width):
             written.append(write_exr(stem.with_name(stem.name + ".exr"), np.asarray(arr, np.float32)))
         elif len(shape) >= 3 and shape[1:3] == (height, width):
             keys = session.manifest["views"].get(str(view), {}).get(f"{name}_keys") or (
