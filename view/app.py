@@ -17,16 +17,16 @@ import dataclasses
 import hashlib
 import hmac
 import json
-import os
 import secrets
 import shutil
 import time
+import warnings
 from collections.abc import AsyncIterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-from urllib.parse import urlsplit
+from urllib.parse import quote, urlsplit
 
 import numpy as np
 from starlette.applications import Starlette
@@ -46,6 +46,9 @@ from sssphase_view.live import LiveRig, LiveSettings
 
 STATIC = Path(__file__).with_name("static")
 MAX_UPLOAD_BYTES = 32 << 20
+#: The most frames of an uploaded video the page relights (6 minutes at 25 frames/s; ~10 minutes of work at the CPU
+#: preset, hours at 1080p): 32 MB of video held 30,000 frames; `sss relight` takes longer ones
+MAX_UPLOAD_FRAMES = 9_000
 MAX_REQUEST_BYTES = 64 << 10  # a relight request is ~100 bytes; larger JSON bodies are refused while they stream
 MAX_MESSAGE_CHARS = 4096  # a live-settings message is ~100 characters
 MAX_PENDING_RELIGHTS = 4  # relights run one at a time on a thread of their own; more waiting are refused (429)
@@ -82,6 +85,29 @@ class ViewState:
     #: pattern sequences relit in the background (by job id), their progress polled by the page
     jobs: dict[str, SequenceJob] = field(default_factory=dict)
     live_sockets: int = 0
+    #: when each upload was last used (its file's time is its sequence relight's record: never touched)
+    upload_used: dict[str, float] = field(default_factory=dict)
+    #: set at the first Ctrl-C (or SIGTERM): the relight under way stops at its next step, as every sequence does
+    closing: bool = False
+
+    def stop_work(self) -> None:
+        """Stop the relights under way at their next progress report (the server is closing)."""
+        self.closing = True
+        for job in self.jobs.values():
+            job.stop = not job.finished
+
+
+def relit_folder(state: ViewState, session: Any) -> Path:
+    """The folder one session's relit images go to, ``OUT/relit/<name>-<hash of its path>``: two sessions of one
+    object name their outputs alike (``OBJECT_vVIEW_PATTERN_BACKEND``), so each has its own."""
+    path = str(Path(session.path).resolve())
+    stem = "".join(ch if ch.isascii() and (ch.isalnum() or ch in "-_.") else "_" for ch in session.name)[:40].strip(".")
+    return state.out / "relit" / f"{stem or 'session'}-{hashlib.sha256(path.encode()).hexdigest()[:8]}"
+
+
+def files_url(state: ViewState, path: Path) -> str:
+    """The URL ``/api/files`` serves a file under ``OUT/relit`` by."""
+    return "/api/files/relit/" + quote(path.relative_to(state.out / "relit").as_posix())
 
 
 def _png(image: np.ndarray) -> bytes:
@@ -454,17 +480,24 @@ def _upload_path(state: ViewState, name: str) -> Path:
         given = False
     if not given:
         raise InputError(f"no uploaded pattern {name!r} (the view keeps the last {MAX_UPLOADS}: upload it again)")
-    with contextlib.suppress(OSError):  # removed meanwhile: the pattern reader names it
-        os.utime(path)  # used: kept longest
+    state.upload_used[name] = time.time()  # used: kept longest (the file's own time is left alone: a sequence's record)
     return path
 
 
 def _forget_old_uploads(state: ViewState) -> None:
     """Keep the ``MAX_UPLOADS`` most recently used uploads; remove the others and the images relit under them,
-    so that a long session of new patterns does not fill ``--out`` (each upload may be 32 MB)."""
-    uploads = sorted((state.out / "uploads").glob("upload_*"), key=lambda p: p.stat().st_mtime, reverse=True)
-    for old in uploads[MAX_UPLOADS:]:
-        for relit in (state.out / "relit").glob(f"*_{old.stem}_*"):
+    so that a long session of new patterns does not fill ``--out`` (each upload may be 32 MB). An upload a
+    sequence relight is still relighting is kept, with its frames."""
+    def used(path: Path) -> float:
+        with contextlib.suppress(OSError):
+            return state.upload_used.get(path.name, path.stat().st_mtime)
+        return 0.0
+
+    busy = {job.upload for job in state.jobs.values() if not job.finished}
+    uploads = sorted((state.out / "uploads").glob("upload_*"), key=used, reverse=True)
+    for old in (p for p in uploads[MAX_UPLOADS:] if p.name not in busy):
+        state.upload_used.pop(old.name, None)
+        for relit in (state.out / "relit").glob(f"*/*_{old.stem}_*"):
             if relit.is_dir() and not relit.is_symlink():  # a sequence's frames
                 shutil.rmtree(relit, ignore_errors=True)
             else:
@@ -498,7 +531,9 @@ async def upload(request: Request, state: ViewState) -> Response:
     folder = state.out / "uploads"
     folder.mkdir(parents=True, exist_ok=True)
     name = f"upload_{hashlib.sha256(body).hexdigest()[:12]}{suffix}"
-    write_bytes(folder / name, bytes(body))
+    if not (folder / name).is_file():  # the same bytes again: the file stays as it was (a sequence's record holds it)
+        write_bytes(folder / name, bytes(body))
+    state.upload_used[name] = time.time()
     _forget_old_uploads(state)
     return JSONResponse({"name": name, "sequence": await asyncio.to_thread(is_sequence, folder / name)})
 
@@ -511,16 +546,29 @@ def _said_of_the_upload(exc: SssError, path: Path | str) -> InputError:
     return InputError(text)
 
 
+class _Closing(KeyboardInterrupt):
+    """A relight stopped because the view is closing (a KeyboardInterrupt, so that the footprints computed so far
+    are kept in the cache, as at a Ctrl-C of ``sss relight``)."""
+
+
 class _Notes(Narrator):
     """The lines ``sss relight`` would print for one relight (its calibration weights, the pixels a decoder
-    gave the analytic model, ...), kept for the page; the files it wrote are listed on the page already."""
+    gave the analytic model, ...), kept for the page; the files it wrote are listed on the page already.
+    Its progress stops the relight when the view closes (``state.closing``)."""
 
-    def __init__(self) -> None:
+    def __init__(self, state: ViewState) -> None:
         self.lines: list[str] = []
+        self.state = state
 
     def say(self, text: str, warning: str = "") -> None:
         if not text.startswith("wrote "):
             self.lines.append(text)
+
+    def task(self, label: str) -> Any:
+        def progress(done: int, total: int) -> None:
+            if self.state.closing:
+                raise _Closing
+        return progress
 
 
 async def relight(request: Request, state: ViewState) -> Response:
@@ -544,7 +592,7 @@ async def relight(request: Request, state: ViewState) -> Response:
         path = _upload_path(state, pattern)
         if await asyncio.to_thread(is_sequence, path):
             return _start_sequence(state, str(args.get("session", "")), view, path, backend, str(args.get("resize", "")))
-    notes = _Notes()
+    notes = _Notes(state)
 
     def pattern_spec(s: Any) -> str:
         """An uploaded pattern's file, or a pattern's name: the view's own references and the named ones. Never
@@ -562,13 +610,21 @@ async def relight(request: Request, state: ViewState) -> Response:
         spec = pattern_spec(s)
         t0 = time.perf_counter()
         try:
-            result = relight_session(s, [spec], backend=backend, checkpoint=state.checkpoint, out=state.out / "relit",
-                                     views=[view], formats=("png", "exr"), cache=True,
-                                     resize=str(args.get("resize", "")), narrator=notes)
+            with warnings.catch_warnings(record=True) as warned:  # (a transparent upload, a sideways photo): the page's
+                warnings.simplefilter("always")
+                result = relight_session(s, [spec], backend=backend, checkpoint=state.checkpoint,
+                                         out=relit_folder(state, s), views=[view], formats=("png", "exr"), cache=True,
+                                         resize=str(args.get("resize", "")), narrator=notes)
+        except _Closing:
+            raise InputError("stopped: the view is closing (the footprints computed so far are kept for the next "
+                             "relight)") from None
         except SssError as exc:
             if not pattern.startswith("upload_"):
                 raise
             raise _said_of_the_upload(exc, spec) from None
+        notes.lines[:0] = [str(w.message) for w in warned]
+        if pattern.startswith("upload_"):  # the server's path to the upload is "the upload" on the page
+            notes.lines = [str(_said_of_the_upload(InputError(line), spec)) for line in notes.lines]
         return result, time.perf_counter() - t0
 
     if state.pending_relights >= MAX_PENDING_RELIGHTS:
@@ -579,9 +635,9 @@ async def relight(request: Request, state: ViewState) -> Response:
     finally:
         state.pending_relights -= 1
     (item,) = result.images
-    files = {("display" if p.stem.endswith("_display") else p.suffix[1:]): f"/api/files/relit/{p.name}" for p in item.paths}
+    files = {("display" if p.stem.endswith("_display") else p.suffix[1:]): files_url(state, p) for p in item.paths}
     return _json({"backend": result.backend, "pattern": item.pattern, "files": files, "metrics": item.metrics,
-                  "figure": f"/api/files/relit/{item.figure.name}" if item.figure else None,
+                  "figure": files_url(state, item.figure) if item.figure else None,
                   "seconds": seconds, "clipped": item.clipped, "notes": notes.lines})
 
 
@@ -594,20 +650,22 @@ def _start_sequence(state: ViewState, session: str, view: int, path: Path, backe
     waiting = state.pending_relights + sum(not job.finished for job in state.jobs.values())
     if waiting >= MAX_PENDING_RELIGHTS:
         return _problem(f"{waiting} relights are waiting: try again when they have finished", 429)
-    job = SequenceJob(secrets.token_hex(8))
+    s = _session(state, session)
+    job = SequenceJob(secrets.token_hex(8), upload=path.name)
     state.jobs[job.id] = job
     forget_old_jobs(state.jobs)
+    out = relit_folder(state, s)
 
     def relight(narrator: Narrator) -> Any:
         try:
-            return relight_sequence(_session(state, session), path, backend=backend, checkpoint=state.checkpoint,
-                                    out=state.out / "relit", views=[view], resize=resize, narrator=narrator)
+            return relight_sequence(s, path, backend=backend, checkpoint=state.checkpoint, out=out, views=[view],
+                                    resize=resize, narrator=narrator, max_frames=MAX_UPLOAD_FRAMES)
         except SssError as exc:
             if isinstance(exc, Stopped):
                 raise
             raise _said_of_the_upload(exc, path) from None
 
-    state.relights.submit(run_sequence_job, job, relight, view, "/api/files/relit")
+    state.relights.submit(run_sequence_job, job, relight, view, files_url(state, out))
     return JSONResponse({"job": job.id}, status_code=202)
 
 
@@ -628,26 +686,19 @@ async def stop_job(request: Request, state: ViewState) -> Response:
     return _json({"stopping": job.stop, "status": job.status})
 
 
-async def sequence_file(request: Request, state: ViewState) -> Response:
-    """A frame of a relit sequence, by its folder's and its own name in the view's output folder."""
-    root = (state.out / "relit").resolve()
-    try:
-        path = (root / request.path_params["folder"] / request.path_params["name"]).resolve()
-        found = path.parent.parent == root and path.is_file()
-    except (OSError, ValueError):  # a NUL byte, a name longer than the file system takes
-        found = False
-    if not found:
-        return _problem("no such file", 404)
-    return FileResponse(path, filename=path.name)
+#: What ``/api/files`` serves from ``OUT/relit``: relit images, figures and videos (not the footprint caches).
+SERVED_SUFFIXES = (".png", ".exr", ".mp4")
 
 
 async def files(request: Request, state: ViewState) -> Response:
-    """A file the view wrote (relit images and figures), by its name in the view's output folder."""
+    """A file the view wrote: ``relit/<session>/<name>`` (relit images, figures, a sequence's video) or
+    ``relit/<session>/<sequence>/<frame>``, inside the view's output folder, never through a link out of it."""
     root = (state.out / "relit").resolve()
     try:
-        path = (root / request.path_params["name"]).resolve()
-        found = path.parent == root and path.is_file()
-    except (OSError, ValueError):  # a NUL byte, a name longer than the file system takes
+        path = (root / request.path_params["path"]).resolve()
+        depth = len(path.relative_to(root).parts)
+        found = depth in (2, 3) and path.suffix in SERVED_SUFFIXES and path.is_file()
+    except (OSError, ValueError):  # outside the folder, a NUL byte, a name longer than the file system takes
         found = False
     if not found:
         return _problem("no such file", 404)
@@ -847,13 +898,13 @@ def build_app(state: ViewState, *, hosts: list[str] | None = None) -> Starlette:
         Route("/api/relight", guarded(relight), methods=["POST"]),
         Route("/api/relight/jobs/{job}", guarded(relight_job)),
         Route("/api/relight/jobs/{job}/stop", guarded(stop_job), methods=["POST"]),
-        Route("/api/files/relit/{name}", guarded(files)),
-        Route("/api/files/relit/{folder}/{name}", guarded(sequence_file)),
+        Route("/api/files/relit/{path:path}", guarded(files)),
         WebSocketRoute("/ws/live", live_socket),
     ]
     @contextlib.asynccontextmanager
     async def lifespan(app: Starlette) -> AsyncIterator[None]:
         yield
+        state.stop_work()  # (a server stopped otherwise than by a signal: the relight thread must not outlive it)
         state.relights.shutdown(wait=False, cancel_futures=True)
         await asyncio.to_thread(state.live.close)  # the rig closed, the daemon this started stopped
 

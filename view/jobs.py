@@ -25,6 +25,7 @@ class SequenceJob:
     done the URLs of its display ``frames`` (in order), its ``video`` and ``fps``."""
 
     id: str
+    upload: str = ""  # the uploaded sequence's name (kept while the job runs)
     status: str = "waiting"
     step: str = ""
     done: int = 0

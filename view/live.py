@@ -11,6 +11,7 @@ from __future__ import annotations
 import contextlib
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -82,12 +83,35 @@ class LiveRig:
             if self.rig_id is not None and self.client is not None:
                 with contextlib.suppress(Exception):
                     self.client.call("close_rig", timeout_s=2.0, rig=self.rig_id)
-            self.rig_id = None
+            self._forget()
+
+    def _forget(self) -> None:
+        """Drop the client and its rig: the next frame connects and opens the rig again."""
+        self.rig_id, self.client = None, None
+        with contextlib.suppress(Exception):  # (a daemon this started and that is gone: nothing left to stop)
             self._stack.close()
+        self._stack = contextlib.ExitStack()
+
+    @contextlib.contextmanager
+    def _reconnecting(self) -> Iterator[None]:
+        """Forget the daemon when a call shows it gone, restarted (its token changed) or its rig closed, so that the
+        next frame connects anew: without this the live view showed "missing or wrong token" until restarted."""
+        from sssphase_daemon import protocol
+        from sssphase_daemon.client import DaemonError, DaemonUnavailable
+
+        try:
+            yield
+        except DaemonUnavailable:
+            self._forget()
+            raise
+        except DaemonError as exc:
+            if exc.code in (protocol.UNAUTHENTICATED, protocol.NOT_FOUND, protocol.CLIENT_TIMEOUT):
+                self._forget()
+            raise
 
     def frame(self, settings: LiveSettings) -> LiveFrame:
         """Project ``settings``' pattern and take one frame through the daemon."""
-        with self.lock:
+        with self.lock, self._reconnecting():
             self.open()
             spec = pattern_spec(settings.pattern, self.projector_size, exposure=settings.exposure,
                                 psp_frame=settings.psp_frame, image=settings.image, gain=settings.gain)
@@ -102,7 +126,7 @@ class LiveRig:
 
     def decode(self, settings: LiveSettings) -> tuple[LiveDecode, np.ndarray, float]:
         """Capture one PSP set (and white, black) and decode it -> (decode, white image, seconds)."""
-        with self.lock:
+        with self.lock, self._reconnecting():
             self.open()
             t0 = time.perf_counter()
             specs = [{**s, "exposure": float(settings.exposure), **({} if settings.gain is None else {"gain": settings.gain})}

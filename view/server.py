@@ -8,6 +8,7 @@ import secrets
 import socket
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from sssphase_core.errors import InputError
 from sssphase_view.app import ViewState, build_app
@@ -122,7 +123,12 @@ def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = Non
     hosts = sorted({host, "127.0.0.1", "localhost"}) if not allow_remote else None
     config = uvicorn.Config(build_app(state, hosts=hosts), log_level="warning", ws="websockets-sansio", lifespan="on",
                             http=_head_deadline_protocol())
-    server = uvicorn.Server(config)
+    class Server(uvicorn.Server):
+        def handle_exit(self, sig: int, frame: Any) -> None:
+            state.stop_work()  # at once: uvicorn waits for the requests under way, a relight's among them
+            super().handle_exit(sig, frame)
+
+    server = Server(config)
     if on_ready is not None:
         on_ready(url)
     server.run(sockets=[sock])

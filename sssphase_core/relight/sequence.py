@@ -35,7 +35,7 @@ from sssphase_core.relight.runner import (
     write_relit,
 )
 from sssphase_core.relight.views import RelightView, load_view
-from sssphase_core.store.pattern_sequences import PatternSequence, open_sequence
+from sssphase_core.store.pattern_sequences import MAX_FRAMES, PatternSequence, open_sequence
 from sssphase_core.store.session import Session
 
 #: The relit frames held in memory at once (float32; at least one frame, at most :data:`MAX_CHUNK_FRAMES`: an
@@ -162,10 +162,12 @@ def relight_sequence(session: Path | str | Session, pattern: Path | str, *, back
                      checkpoint: Path | str | None = None, out: Path | str = Path("relit"),
                      views: str | list[int] | None = "", resize: str = "", chunk: int = 1024, device: str = "cpu",
                      cache: bool = True, formats: str = "png", widen: float | None = None,
-                     narrator: Narrator | None = None, precision: str = "auto") -> RelightResult:
+                     narrator: Narrator | None = None, precision: str = "auto",
+                     max_frames: int | None = None) -> RelightResult:
     """Relight a session's views under every frame of the sequence ``pattern`` (a video or an animated image) with
     ``backend`` (as :func:`~sssphase_core.relight.runner.relight_session`), writing each view's frames and its video.
-    ``cache``: a model backend's later frames come from the view's eigen-footprints, which need it."""
+    ``cache``: a model backend's later frames come from the view's eigen-footprints, which need it. ``max_frames``:
+    a front end's own limit below :data:`~sssphase_core.store.pattern_sequences.MAX_FRAMES` (a web page's upload)."""
     from sssphase_core.store.session import claim_output
 
     out, say = Path(out), narrator or Narrator()
@@ -181,6 +183,9 @@ def relight_sequence(session: Path | str | Session, pattern: Path | str, *, back
     for v in choose_views(s, views, say):
         rv = load_view(s, v)
         sequence = open_sequence(pattern, rv.proj.projector_size, resize)
+        if max_frames is not None and sequence.count > max_frames:
+            raise InputError(f"--pattern {pattern} holds {sequence.count:,} frames, more than the {max_frames:,} relit "
+                             f"here: `sss relight SESSION --pattern FILE` takes up to {MAX_FRAMES:,}")
         check_sequence_name(sequence, rv)
         if not result.patterns:
             claim_output(out, [s])

@@ -162,24 +162,37 @@ def _max_pattern_pixels(wp: int, hp: int, resize: str) -> int:
     return max(4 * wp * hp, 1 << 22) if not resize else max(4 * wp * hp, 1 << 26)
 
 
+#: The most pixels a pattern read whole as an array (16-bit colour PNG, EXR, float TIFF, ``.npy``) may have with a
+#: resize: an 8K UHD frame (33 MP) fits; its float32 copy is ~400 MB (8-bit images go through Pillow: 64 MP).
+ARRAY_RESIZE_PIXELS = 36_000_000
+
+
+def _max_array_pixels(wp: int, hp: int, resize: str) -> int:
+    """:func:`_max_pattern_pixels` for a pattern read whole as an array (16-bit and float images, ``.npy``)."""
+    return _max_pattern_pixels(wp, hp, "") if not resize else max(4 * wp * hp, ARRAY_RESIZE_PIXELS)
+
+
 def _over_black(img: object, path: Path) -> object:
     """An image with an alpha channel as the light it asks for: transparent pixels give no light (the colour
-    times its opacity, i.e. composited over black); warns when any pixel is not opaque. Grey stays grey."""
-    from PIL import Image
+    times its opacity, i.e. composited over black, by Pillow in 8 bits: an 8K RGBA image cost 3.5 GB as float32);
+    warns when any pixel is not opaque. Grey stays grey."""
+    from PIL import Image, ImageChops
 
     grey = img.mode == "LA"  # type: ignore[attr-defined]
-    rgba = np.asarray(img.convert("RGBA"), np.float32)  # type: ignore[attr-defined]
-    alpha = rgba[..., 3:] / 255.0
-    _warn_not_opaque(path, alpha)
-    rgb = np.round(rgba[..., :3] * alpha).astype(np.uint8)
-    return Image.fromarray(rgb[..., 0], "L") if grey else Image.fromarray(rgb, "RGB")
+    rgba = img.convert("RGBA")  # type: ignore[attr-defined]
+    counts = rgba.getchannel("A").histogram()  # opacity codes 0..255
+    total = sum(counts)
+    _warn_not_opaque(path, 1 - counts[255] / total, counts[0] / total)
+    *colour, alpha = rgba.split()
+    del rgba
+    colour = [ImageChops.multiply(c, alpha) for c in colour[:1 if grey else 3]]  # c * a / 255, rounded
+    return colour[0] if grey else Image.merge("RGB", colour)
 
 
-def _warn_not_opaque(path: Path, alpha: np.ndarray) -> None:
-    """Warn when any value of a pattern's ``alpha`` (opacity in [0, 1]) is below 1."""
-    if (alpha < 1).any():
-        clear = float((alpha <= 0).mean())
-        warnings.warn(f"pattern {path}: {float((alpha < 1).mean()):.0%} of its pixels are not fully opaque "
+def _warn_not_opaque(path: Path, not_opaque: float, clear: float) -> None:
+    """Warn when a share ``not_opaque`` of a pattern's pixels (``clear`` of them fully transparent) is not opaque."""
+    if not_opaque > 0:
+        warnings.warn(f"pattern {path}: {not_opaque:.0%} of its pixels are not fully opaque "
                       f"({clear:.0%} fully transparent): they are projected as their colour times their opacity "
                       "(transparent = no light)", UserWarning, stacklevel=4)
 
@@ -205,9 +218,10 @@ def _read_array_pattern(path: Path, projector_size: tuple[int, int], mode: str, 
     channels = (1, 3) if path.suffix.lower() == ".npy" else (1, 3, 4)  # an image's fourth channel: its alpha
     if len(shape) not in (2, 3) or (len(shape) == 3 and shape[2] not in channels) or 0 in shape:
         raise InputError(f"pattern {path} must be an (H, W) or (H, W, 3) image, got shape {shape}")
-    if shape[0] * shape[1] > _max_pattern_pixels(wp, hp, ""):  # arrays are read whole, in float64
+    if shape[0] * shape[1] > _max_array_pixels(wp, hp, mode):  # arrays are read whole, in float32
         raise InputError(f"pattern {path} is {shape[1]}x{shape[0]}, far larger than the {wp}x{hp} projector: "
-                         "refused without reading it (scale it down first)")
+                         "refused without reading it (scale it down first"
+                         f"{f'; 16-bit, float and array patterns are read whole: {ARRAY_RESIZE_PIXELS / 1e6:.0f} MP at most' if mode else ''})")
     arr = _read_pixels(path, alpha=True)
     if arr.dtype.kind not in "fu":
         raise InputError(f"pattern {path} must be an (H, W) or (H, W, 3) array of floats in [0, 1] or unsigned "
@@ -215,10 +229,10 @@ def _read_array_pattern(path: Path, projector_size: tuple[int, int], mode: str, 
     if arr.dtype.kind == "u" and arr.dtype.itemsize > 2:  # divided by 2^32 - 1 or 2^64 - 1, 0..255 relit as black
         raise InputError(f"pattern {path} holds {arr.dtype} integers (from {int(arr.min())} to {int(arr.max())}), whose "
                          "scale is unknown: give uint8 (0-255), uint16 (0-65535) or floats in [0, 1]")
-    data = np.asarray(arr, np.float64)
+    data = np.asarray(arr, np.float64 if arr.dtype == np.float64 else np.float32)  # (16-bit codes exact in float32)
     if data.ndim == 3 and data.shape[2] == 4 and path.suffix.lower() != ".npy":  # an image's alpha: opacity over black
         alpha = data[..., 3:] / (np.iinfo(arr.dtype).max if arr.dtype.kind == "u" else 1.0)
-        _warn_not_opaque(path, alpha)
+        _warn_not_opaque(path, float((alpha < 1).mean()), float((alpha <= 0).mean()))
         data = data[..., :3] * np.clip(alpha, 0, 1)
     if data.ndim == 3:
         data = data[..., 0] if data.shape[2] == 1 else data

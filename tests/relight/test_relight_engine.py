@@ -2,6 +2,7 @@
 
 import warnings
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -289,6 +290,39 @@ def test_transparency_animations_and_wide_integers_are_not_misread_in_patterns(t
     Image.fromarray(np.full((6, 8), -5, np.int32)).save(tmp_path / "neg.tif")
     with pytest.raises(InputError, match="from -5 to -5"):
         read_pattern(tmp_path / "neg.tif", (8, 6))
+
+
+def test_a_large_rgba_image_is_composited_in_eight_bits_and_a_large_16_bit_one_is_resized_like_an_eight_bit_one(tmp_path):
+    """A 250 kB 8000 x 8000 RGBA PNG (within the 64 MP a resize takes) was composited over black as float32: 3.5 GB
+    of memory; a 3000 x 2000 16-bit PNG was refused as "far larger than the projector" with --resize fit, where the
+    same image in 8 bits was relit."""
+    import json
+    import subprocess
+    import sys
+
+    from PIL import Image
+
+    rgba = np.zeros((8000, 8000, 4), np.uint8)
+    rgba[:, :4000] = (200, 100, 50, 255)  # the left half opaque, the right half transparent
+    Image.fromarray(rgba, "RGBA").save(tmp_path / "big.png")
+    del rgba
+    script = ("import resource, warnings, numpy as np; from sssphase_core.store.imageio import read_pattern; "
+              "warnings.simplefilter('ignore'); "
+              f"p = read_pattern({str(tmp_path / 'big.png')!r}, (256, 192), resize='stretch'); "
+              "print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss >> 10, p[:, :120].mean((0, 1)).tolist(), "
+              "float(p[:, 136:].max()))")
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    peak_mb, left, right = done.stdout.split(" ", 1)[0], *done.stdout.split(" ", 1)[1].rsplit(" ", 1)
+    assert int(peak_mb) < 1000, f"reading the 8K RGBA pattern peaked at {peak_mb} MB"
+    assert json.loads(left) == pytest.approx([200 / 255, 100 / 255, 50 / 255], abs=1e-5) and float(right) == 0.0  # no light where clear
+    wide = np.zeros((2000, 3000, 3), np.uint16)
+    wide[:, :1500] = 65535
+    cv2.imwrite(str(tmp_path / "wide16.png"), wide)
+    got = read_pattern(tmp_path / "wide16.png", (256, 192), resize="fit")
+    assert got.shape[:2] == (192, 256) and np.allclose(got[96, 10], 1.0) and not got[96, 250].any()
+    with pytest.raises(InputError, match="far larger than the 256x192 projector"):
+        read_pattern(tmp_path / "wide16.png", (256, 192))  # as it is, 4 MP at most: refused from its header
 
 
 def test_a_pattern_tagged_with_an_exif_orientation_is_projected_as_viewers_show_it(tmp_path):

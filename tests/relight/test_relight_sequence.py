@@ -233,3 +233,14 @@ def test_a_sequence_whose_name_cannot_name_files_is_refused_before_any_output(se
         with pytest.raises(InputError, match=expected):
             relight_sequence(session, tmp_path / name, backend="none", out=tmp_path / "out")
         assert not (tmp_path / "out").exists()
+
+
+def test_a_front_ends_own_frame_limit_refuses_a_longer_sequence_before_any_output(session, tmp_path):
+    """`sss view` relights an uploaded video only up to its own limit (32 MB of video held 30,000 frames, ~50 minutes
+    of work at the CPU preset): a longer one is refused before any frame, pointing at `sss relight`."""
+    clip = _clip(tmp_path / "clip.mp4", frames=4)
+    with pytest.raises(InputError, match=r"holds 4 frames, more than the 3 relit here: `sss relight SESSION --pattern "
+                                         r"FILE` takes up to 90,000"):
+        relight_sequence(session, clip, backend="none", out=tmp_path / "out", max_frames=3)
+    assert not (tmp_path / "out").exists()
+    assert len(relight_sequence(session, clip, backend="none", out=tmp_path / "out", max_frames=4).patterns) == 1

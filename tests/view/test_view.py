@@ -397,16 +397,18 @@ def test_relighting_an_uploaded_pattern_gives_the_image_sss_relight_writes(serve
     assert status == 200
     (tmp_path / "page.exr").write_bytes(exr)
     session = served["root"] / "sessions" / "star"
-    relit = served["root"] / "out" / "relit"  # sss relight into the view's folder: its footprint cache serves both
+    slot = result["files"]["exr"].split("/")[-2]  # the session's own folder (OUT/relit/<name>-<hash of its path>)
+    relit = served["root"] / "out" / "relit" / slot  # sss relight into the view's folder: its footprint cache serves both
     done = _sss("relight", str(session), "--pattern", str(pattern), "--backend", "exact", "--resize", "fit",
                 "--format", "exr", "--out", str(relit), env=served["env"])
     assert done.returncode == 0, done.stdout + done.stderr
     cli_exr = relit / "star_v0_blocks_exact.exr"
     np.testing.assert_array_equal(read_exr(tmp_path / "page.exr"), read_exr(cli_exr))  # bit-identical
-    # the view's own reference pattern: relit beside its capture, with scores
-    page.evaluate("state.uploaded = null")
+    # the view's own reference pattern, chosen after the upload (which the relight took again): relit beside its
+    # capture, with scores
     _set(page, "relight-pattern", "checkerboard")
     scored = _relight_on_page(page)
+    assert scored["pattern"] == "checkerboard" and not page.evaluate("state.uploaded"), scored["pattern"]
     assert scored["metrics"]["psnr"] > 20 and scored["figure"] and scored["backend"] == "exact"
     page.wait_for("!document.getElementById('compare-image').hidden && "
                   "document.getElementById('compare-image').naturalWidth > 0", 30)
@@ -474,6 +476,12 @@ def test_a_video_uploaded_on_the_page_is_relit_frame_by_frame_and_played(served,
         cli = tmp_path / "cli" / "star_v0_sweep_none" / f"star_v0_sweep-{i:06d}_none_display.png"
         assert status == 200 and np.array_equal(cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_UNCHANGED),
                                                 cv2.imread(str(cli), cv2.IMREAD_UNCHANGED)), i
+    # the same video again (uploaded again, the same bytes): its frames are there, nothing is relit or refused
+    request = urllib.request.Request(base + "/api/upload", data=clip.read_bytes(), method="POST", headers={"X-Token": token})
+    with urllib.request.urlopen(request, timeout=60) as response:
+        assert json.loads(response.read())["name"] == page.evaluate("state.uploaded")
+    again = _relight_on_page(page)
+    assert isinstance(again, dict) and again["sequence"]["frames"] == job["frames"], again
     folder = job["frames"][0].split("/")[-2]
     assert _get(base + f"/api/files/relit/{folder}/..%2F..%2Fuploads", token)[0] == 404
     assert _get(base + "/api/files/relit/uploads/" + Path(job["frames"][0]).name, token)[0] == 404
@@ -601,13 +609,13 @@ def test_the_view_keeps_the_most_recently_used_uploads_and_forgets_the_rest(serv
     first, second = upload(1), upload(2)
     assert relight(first)[0] == 200 and relight(second)[0] == 200
     relit = served["root"] / "out" / "relit"
-    assert list(relit.glob(f"*_{Path(second).stem}_*"))
+    assert list(relit.glob(f"*/*_{Path(second).stem}_*"))
     time.sleep(0.05)
     relight(first)  # used again: kept longer than the second
     later = [upload(10 + i) for i in range(MAX_UPLOADS - 1)]
     kept = {p.name for p in (served["root"] / "out" / "uploads").iterdir()}
     assert len(kept) == MAX_UPLOADS and first in kept and second not in kept and set(later) <= kept
-    assert not list(relit.glob(f"*_{Path(second).stem}_*")) and list(relit.glob(f"*_{Path(first).stem}_*"))
+    assert not list(relit.glob(f"*/*_{Path(second).stem}_*")) and list(relit.glob(f"*/*_{Path(first).stem}_*"))
     # a still upload that cannot be relit is named as the page names it, not by the server's path to it
     png = cv2.imencode(".png", np.zeros((10, 12), np.uint8))[1].tobytes()
     request = urllib.request.Request(base + "/api/upload", data=png, method="POST", headers={"X-Token": token})
@@ -626,3 +634,24 @@ def test_the_view_keeps_the_most_recently_used_uploads_and_forgets_the_rest(serv
         assert status == 400 and "no uploaded pattern" in answer["error"]
     finally:
         planted.unlink()
+
+
+def test_two_sessions_of_one_object_are_each_relit_into_a_folder_of_their_own(served):
+    """Both sessions of one object (a re-capture, a copy) are listed by their folders, but their relit images went to
+    one folder, where the second session was refused ("holds outputs of 'star' from another session")."""
+    import shutil
+
+    base, token = served["base"], served["token"]
+    copy = served["root"] / "sessions" / "star_again"
+    shutil.copytree(served["root"] / "sessions" / "star", copy)
+    try:
+        names = {s["name"] for s in json.loads(_get(base + "/api/state", token)[1])["sessions"]}
+        assert {"star", "star_again"} <= names, names
+        answers = [_post(base + "/api/relight", token, json.dumps(
+            {"session": name, "view": 0, "pattern": "checkerboard", "backend": "none"}).encode()) for name in
+            ("star", "star_again")]
+        assert [status for status, _ in answers] == [200, 200], answers
+        (one, two) = (answer["files"]["exr"] for _, answer in answers)
+        assert one.split("/")[-2] != two.split("/")[-2] and _get(base + two, token)[0] == 200, (one, two)
+    finally:
+        shutil.rmtree(copy)

@@ -58,6 +58,9 @@ function drawHistogram(histogram) {
 
 function sendSettings() {
   if (!state.socket || state.socket.readyState !== WebSocket.OPEN) return;
+  const exposure = Number($("exposure").value), frame = Number($("psp-frame").value);
+  if (!(exposure >= 0.001 && exposure <= 1000)) { say("exposure must be between 0.001 and 1000 (times the rig's): not sent"); return; }
+  if (!Number.isInteger(frame) || frame < 0) { say("the PSP frame is a whole number from 0: not sent"); return; }
   state.socket.send(JSON.stringify({
     pattern: $("pattern").value, exposure: Number($("exposure").value),
     gain: $("gain").value === "" ? null : Number($("gain").value),
@@ -74,8 +77,11 @@ function connectLive() {
   let header = null;
   socket.onopen = () => { state.socket = socket; sendSettings(); $("status").textContent = "live"; };
   socket.onclose = (event) => {  // the server says why where it can (e.g. the live views already open)
-    $("status").textContent = event.reason ? `live view closed: ${event.reason}` : "live view closed";
     state.socket = null;
+    const again = ![1000, 1013, 4403].includes(event.code);  // dropped (the server restarted, the network): try again
+    $("status").textContent = (event.reason ? `live view closed: ${event.reason}` : "live view closed") +
+      (again ? " (connecting again …)" : "");
+    if (again) setTimeout(connectLive, 2000);
   };
   socket.onmessage = (event) => {
     if (typeof event.data !== "string") {
@@ -84,6 +90,9 @@ function connectLive() {
       $("live-image").src = URL.createObjectURL(event.data);
       if (old.startsWith("blob:")) URL.revokeObjectURL(old);
       if (header) {
+        if (state.liveError && $("message").textContent === state.liveError) say("");  // frames again: the error is over
+        state.liveError = null;
+        $("status").textContent = `live: ${header.pattern}, exposure ${header.exposure}`;  // (what this frame was taken with)
         state.frames += 1;
         $("frame-count").textContent = state.frames;
         $("fps").textContent = header.fps.toFixed(1);
@@ -96,8 +105,13 @@ function connectLive() {
     }
     const message = JSON.parse(event.data);
     if (message.type === "frame") { header = message; return; }
-    if (message.type === "error") { say(message.message); return; }
-    if (message.type === "decode") {
+    if (message.type === "error") {
+      state.liveError = `live: ${message.message}`;
+      say(state.liveError);
+      $("status").textContent = "live: no frame (see the message)";
+      return;
+    }
+    if (message.type === "decode" && $("decode").checked) {  // (one asked before the box was unticked: not shown)
       $("decode-mask").src = "data:image/png;base64," + message.mask_png;
       $("decode-modulation").src = "data:image/png;base64," + message.modulation_png;
       $("decode-seconds").textContent = message.seconds.toFixed(2);
@@ -274,6 +288,11 @@ $("crop").onchange = showMap;
 
 // --- relight ------------------------------------------------------------------------------------------------
 $("relight-session").onchange = () => views($("relight-session"), $("relight-view"));
+$("relight-pattern").onchange = () => {  // a named pattern chosen after an upload: that pattern, not the upload
+  state.uploaded = null;
+  $("upload").value = "";
+  $("relight-info").textContent = `pattern: ${$("relight-pattern").value}`;
+};
 
 // only the latest upload (file or drawing) sets the pattern or says what went wrong
 const uploadPattern = async (body, label) => {
@@ -404,7 +423,13 @@ $("relight-button").onclick = async () => {
     } else { $("compare-image").hidden = true; }
     state.relit = result;
     say("");
-  } catch (e) { if (current()) { $("relight-info").textContent = ""; say(e.message); } }
+  } catch (e) {
+    if (!current()) return;
+    $("relight-info").textContent = "";
+    $("relit-image").hidden = $("compare-image").hidden = true;  // not the last relight's image beside this error
+    $("downloads").innerHTML = "";
+    say(e.message);
+  }
 };
 
 // --- start ---------------------------------------------------------------------------------------------------

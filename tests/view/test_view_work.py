@@ -1,0 +1,160 @@
+"""The view's work outside the browser: uploads kept while a sequence relights them, the relight stopped when the
+view closes (Ctrl-C), each session's own output folder, and the live rig connecting again to a restarted daemon."""
+
+from __future__ import annotations
+
+import os
+import re
+import shutil
+import signal
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from sss_process import run_sss
+
+pytest.importorskip("starlette")
+
+from sssphase_core.errors import SssError  # noqa: E402
+from sssphase_view.app import MAX_UPLOADS, ViewState, _Closing, _forget_old_uploads, _Notes, relit_folder  # noqa: E402
+from sssphase_view.jobs import SequenceJob  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def test_an_upload_a_sequence_still_relights_is_kept_and_the_least_recently_used_others_go(tmp_path):
+    """Uploading new patterns removed the oldest upload with the frames relit under it while its sequence relight
+    still ran (and its "frames relit so far are kept" was then untrue); using an upload no longer touches its file,
+    whose time a sequence's record holds (touched, the same video could never be relit again)."""
+    state = ViewState(token="t", out=tmp_path)
+    uploads = tmp_path / "uploads"
+    uploads.mkdir()
+    names = [f"upload_{i:012x}.png" for i in range(MAX_UPLOADS + 3)]
+    for i, name in enumerate(names):
+        (uploads / name).write_bytes(b"x")
+        os.utime(uploads / name, (1000 + i, 1000 + i))  # the first the oldest
+        state.upload_used[name] = 1000.0 + i
+    frames = tmp_path / "relit" / "star-0123abcd" / f"star_v0_{Path(names[0]).stem}_analytic"
+    frames.mkdir(parents=True)
+    (frames / "frame.png").write_bytes(b"x")
+    state.jobs["j"] = SequenceJob("j", upload=names[0], status="running")
+    state.upload_used[names[1]] = 5000.0  # used last
+    mtime = (uploads / names[1]).stat().st_mtime_ns
+    _forget_old_uploads(state)
+    kept = sorted(p.name for p in uploads.iterdir())
+    assert names[0] in kept and frames.is_dir(), "the running sequence's upload and frames were removed"
+    assert names[1] in kept and (uploads / names[1]).stat().st_mtime_ns == mtime
+    assert not {names[2], names[3]} & set(kept) and len(kept) == MAX_UPLOADS + 1  # the two least recently used
+    state.jobs["j"].status = "done"
+    _forget_old_uploads(state)
+    assert names[0] not in {p.name for p in uploads.iterdir()} and not frames.exists()
+
+
+def test_a_closing_view_stops_its_relight_at_the_next_step_and_each_session_has_its_folder(tmp_path):
+    """A relight asked for by the page ran to its end after Ctrl-C (the server waited for it, silent: 51 s for a first
+    1080p relight); two sessions of one object wrote into one folder, where the second was refused."""
+    state = ViewState(token="t", out=tmp_path)
+    progress = _Notes(state).task("star view 0: analytic")
+    progress(1, 10)  # (not closing: goes on)
+    state.jobs["j"] = SequenceJob("j", status="running")
+    state.stop_work()
+    with pytest.raises(_Closing):
+        progress(2, 10)
+    assert state.jobs["j"].stop
+
+    class Found:
+        def __init__(self, path: Path, name: str) -> None:
+            self.path, self.name = path, name
+
+    one, two = Found(tmp_path / "a" / "star", "star"), Found(tmp_path / "b" / "star", "star")
+    odd = Found(tmp_path / "c" / "x", "söap #?%&<i>/../x")
+    folders = {relit_folder(state, s) for s in (one, two, odd)}
+    assert len(folders) == 3 and all(f.parent == tmp_path / "relit" for f in folders)
+    assert all(re.fullmatch(r"[A-Za-z0-9_.-]+-[0-9a-f]{8}", f.name) for f in folders), folders
+    assert relit_folder(state, one) == relit_folder(state, Found(tmp_path / "a" / "star", "star"))  # the same again
+
+
+@pytest.mark.slow
+def test_ctrl_c_stops_a_sequence_the_view_is_relighting_and_the_view_exits(tmp_path):
+    """Ctrl-C while the page's video relit left a silent process relighting every frame to the end (119 s for a
+    3,000-frame clip, hours for a long one at 1080p); it now stops at the next frame and the view exits."""
+    import cv2
+
+    runtime = Path(tempfile.mkdtemp(prefix="sssw", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime), "COLUMNS": "200"}
+    done = run_sss(["capture", "--object", "star", "--views", "1", "--out", str(tmp_path / "sessions")], env=env,
+                   cwd=REPO, timeout=300)
+    assert done.returncode == 0, done.stdout + done.stderr
+    clip = tmp_path / "long.mp4"
+    writer = cv2.VideoWriter(str(clip), cv2.VideoWriter_fourcc(*"mp4v"), 25.0, (256, 192))
+    for i in range(2000):
+        writer.write(np.full((192, 256, 3), i % 256, np.uint8))
+    writer.release()
+    proc = subprocess.Popen([sys.executable, "-m", "sssphase_cli.main", "view", "--port", "0", "--sessions",
+                             str(tmp_path / "sessions"), "--out", str(tmp_path / "out")], stdout=subprocess.PIPE,
+                            stderr=subprocess.STDOUT, text=True, env=env, cwd=REPO)
+    try:
+        url = None
+        while url is None:
+            line = proc.stdout.readline()
+            assert line, "sss view exited"
+            url = (m.group(1) if (m := re.search(r"(http://127\.0\.0\.1:\d+)/\?token=(\S+)", line)) else None)
+            token = m.group(2) if m else None
+        import json
+        import urllib.request
+
+        def call(path: str, data: bytes | None = None) -> dict:
+            request = urllib.request.Request(url + path, data=data, method="POST" if data is not None else "GET",
+                                             headers={"X-Token": token})
+            with urllib.request.urlopen(request, timeout=60) as response:
+                return json.loads(response.read())
+
+        name = call("/api/upload", clip.read_bytes())["name"]
+        job = call("/api/relight", json.dumps({"session": "star", "view": 0, "pattern": name,
+                                               "backend": "none"}).encode())["job"]
+        deadline = time.monotonic() + 120
+        while call(f"/api/relight/jobs/{job}")["done"] < 20:  # frames relit, many more to come
+            assert time.monotonic() < deadline
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGINT)
+        asked = time.monotonic()
+        out, _ = proc.communicate(timeout=60)
+        took = time.monotonic() - asked
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        run_sss(["daemon", "stop"], env=env, cwd=REPO)
+        shutil.rmtree(runtime, ignore_errors=True)
+    assert "Traceback" not in out, out
+    frames = list((tmp_path / "out" / "relit").rglob("star_v0_upload_*-*_none_display.png"))
+    assert 20 <= len(frames) < 1000 and took < 15, (len(frames), took)  # stopped soon, the frames relit so far kept
+
+
+@pytest.mark.slow
+def test_the_live_rig_connects_again_to_a_restarted_daemon(tmp_path, monkeypatch):
+    """After the daemon died and another started, every live frame failed with "missing or wrong token" until
+    `sss view` was restarted; the first frame after the restart fails, the next one connects to the new daemon."""
+    from sssphase_view.live import LiveRig, LiveSettings
+
+    runtime = Path(tempfile.mkdtemp(prefix="sssr", dir="/tmp"))
+    monkeypatch.setenv("SSS_RUNTIME_DIR", str(runtime))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
+    rig = LiveRig()
+    try:
+        assert run_sss(["daemon", "start"], env=env, cwd=REPO).returncode == 0
+        first = rig.frame(LiveSettings())
+        stopped = run_sss(["daemon", "stop", "--force"], env=env, cwd=REPO)
+        assert stopped.returncode == 0, stopped.stdout + stopped.stderr
+        assert run_sss(["daemon", "start"], env=env, cwd=REPO).returncode == 0  # another daemon, another token
+        with pytest.raises(SssError):
+            rig.frame(LiveSettings())
+        again = rig.frame(LiveSettings())
+        assert again.image.shape == first.image.shape and again.sequence == first.sequence + 1
+    finally:
+        rig.close()
+        run_sss(["daemon", "stop", "--force"], env=env, cwd=REPO)
+        shutil.rmtree(runtime, ignore_errors=True)
