@@ -18,7 +18,11 @@ def view(
     out: Annotated[Path, typer.Option(help="where relit images, their footprint caches and uploads go")] = Path("view_out"),
     host: Annotated[str, typer.Option(help="address to listen on (loopback unless --allow-remote)")] = "127.0.0.1",
     port: Annotated[int, typer.Option(min=0, max=65535, help="port (0: a free one)")] = 8765,
-    allow_remote: Annotated[bool, typer.Option("--allow-remote", help="listen off loopback (the token is still required)")] = False,
+    allow_remote: Annotated[bool, typer.Option("--allow-remote", help="listen off loopback (over HTTPS: --tls-cert and "
+                                               "--tls-key; the token is still required)")] = False,
+    tls_cert: Annotated[Path | None, typer.Option(help="serve over HTTPS with this PEM certificate (chain) for the "
+                                                  "machine's name; needed off loopback")] = None,
+    tls_key: Annotated[Path | None, typer.Option(help="the PEM private key of --tls-cert")] = None,
     open_browser: Annotated[bool, typer.Option("--open", help="open the page in the default browser")] = False,
     calibration: Annotated[Path | None, typer.Option(help="the rig's camera-projector calibration (OpenCV YAML, XML or "
                                                      "JSON, as `sss calibrate stereo` writes it) for the depth and "
@@ -28,12 +32,15 @@ def view(
     """Serve the live view, live decode, sessions and relighting on a local web page; prints its URL with
     the token every request needs. A local daemon is started for the live view when none runs."""
     from sssphase_core.capture.plan import RigSpec
+    from sssphase_core.errors import InputError
     from sssphase_core.learning.runlog import check_checkpoint_file
     from sssphase_core.store.session import check_output_folder
     from sssphase_view.live import LiveRig
     from sssphase_view.server import serve
 
     check_output_folder(out)
+    if (tls_cert is None) != (tls_key is None):
+        raise InputError("--tls-cert and --tls-key go together: give the certificate and its private key")
     if checkpoint is not None:
         check_checkpoint_file(checkpoint)
     spec = RigSpec.from_toml(rig) if rig is not None else RigSpec()
@@ -46,7 +53,8 @@ def view(
             webbrowser.open(url)
 
     serve(host=host, port=port, sessions=sessions, checkpoint=checkpoint, out=out, rig=LiveRig(spec),
-          allow_remote=allow_remote, calibration=calibration, on_ready=ready)
+          allow_remote=allow_remote, calibration=calibration, on_ready=ready,
+          tls=(tls_cert, tls_key) if tls_cert is not None and tls_key is not None else None)
 
 
 def bench_view(

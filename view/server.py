@@ -6,6 +6,7 @@ from __future__ import annotations
 import ipaddress
 import secrets
 import socket
+import ssl
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -64,15 +65,36 @@ def _head_deadline_protocol() -> type:
     return HeadDeadline
 
 
-def check_host(host: str, allow_remote: bool) -> None:
-    """Loopback only unless ``allow_remote`` (the token still guards every route then)."""
+def check_host(host: str, allow_remote: bool, tls: bool = False) -> None:
+    """Loopback only unless ``allow_remote``, and off loopback only over TLS (``tls``): the token guards every route,
+    and in plain HTTP it would cross the network readable, in every request and the page's URL."""
     try:
         loopback = host == "localhost" or ipaddress.ip_address(host).is_loopback
     except ValueError:
         raise InputError(f"--host must be an IP address (or localhost), got {host!r}") from None
     if not loopback and not allow_remote:
         raise InputError(f"--host {host} is not loopback: anyone on that network could reach the rig; pass "
-                         "--allow-remote to serve it there anyway (the token is still required)")
+                         "--allow-remote (with --tls-cert and --tls-key) to serve it there anyway (the token is still "
+                         "required)")
+    if not loopback and not tls:
+        raise InputError(f"--host {host} is not loopback: the page and its token would cross the network in plain "
+                         "HTTP; give --tls-cert and --tls-key (a certificate for this machine's name and its key, PEM) "
+                         "to serve it over HTTPS")
+
+
+def tls_context(cert: Path, key: Path) -> ssl.SSLContext:
+    """The server's TLS context from a PEM certificate (chain) and its key, refused in one line when they do not
+    load or belong together (before serving, not at the first connection)."""
+    context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    for given, option in ((cert, "--tls-cert"), (key, "--tls-key")):
+        if not Path(given).is_file():
+            raise InputError(f"{option} {given}: {'not a file' if Path(given).exists() else 'no such file'}")
+    try:
+        context.load_cert_chain(cert, key)
+    except (ssl.SSLError, OSError, ValueError) as exc:
+        raise InputError(f"--tls-cert {cert} and --tls-key {key} do not load as a PEM certificate and its key "
+                         f"({getattr(exc, 'reason', None) or exc})") from None
+    return context
 
 
 def check_inputs(sessions: Path | None, checkpoint: Path | None) -> None:
@@ -89,12 +111,16 @@ def check_inputs(sessions: Path | None, checkpoint: Path | None) -> None:
 
 def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = None, checkpoint: Path | None = None,
           out: Path = Path("view_out"), rig: LiveRig | None = None, allow_remote: bool = False,
-          calibration: Path | None = None, on_ready: Callable[[str], None] | None = None) -> None:
+          calibration: Path | None = None, on_ready: Callable[[str], None] | None = None,
+          tls: tuple[Path, Path] | None = None) -> None:
     """Run the view until interrupted; ``on_ready(url)`` gets the URL with its token once it listens. A
-    ``calibration`` file (the rig's camera-projector calibration) is read before serving."""
+    ``calibration`` file (the rig's camera-projector calibration) is read before serving; ``tls`` (certificate,
+    key: PEM files) serves it over HTTPS, which a view off loopback needs."""
     import uvicorn
 
-    check_host(host, allow_remote)
+    check_host(host, allow_remote, tls is not None)
+    if tls is not None:
+        tls_context(*tls)
     check_inputs(sessions, checkpoint)
     stereo = None
     if calibration is not None:
@@ -117,12 +143,14 @@ def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = Non
         sock.close()
         raise InputError(f"cannot listen on {host}:{port}: {exc.strerror}") from None
     bound = sock.getsockname()[1]
-    shown = f"[{host}]" if ":" in host else host
-    url = f"http://{shown}:{bound}/?token={state.token}"
+    named = socket.getfqdn() if host in ("0.0.0.0", "::") else host  # (every address: the URL names the machine)
+    shown = f"[{named}]" if ":" in named else named
+    url = f"{'https' if tls else 'http'}://{shown}:{bound}/?token={state.token}"
     # On loopback the page is reached by its own address or as localhost only (sssphase_view.app.Guard)
     hosts = sorted({host, "127.0.0.1", "localhost"}) if not allow_remote else None
     config = uvicorn.Config(build_app(state, hosts=hosts), log_level="warning", ws="websockets-sansio", lifespan="on",
-                            http=_head_deadline_protocol())
+                            http=_head_deadline_protocol(), ssl_certfile=tls[0] if tls else None,
+                            ssl_keyfile=tls[1] if tls else None)
     class Server(uvicorn.Server):
         def handle_exit(self, sig: int, frame: Any) -> None:
             state.stop_work()  # at once: uvicorn waits for the requests under way, a relight's among them

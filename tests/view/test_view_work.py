@@ -158,3 +158,56 @@ def test_the_live_rig_connects_again_to_a_restarted_daemon(tmp_path, monkeypatch
         rig.close()
         run_sss(["daemon", "stop", "--force"], env=env, cwd=REPO)
         shutil.rmtree(runtime, ignore_errors=True)
+
+
+def test_a_view_off_loopback_needs_tls_and_serves_its_page_over_https(tmp_path):
+    """`--allow-remote` served plain HTTP: the token crossed the network readable in every request and in the
+    page's URL. Off loopback the view now needs a certificate; with one it serves HTTPS (loopback too)."""
+    import json
+    import ssl
+    import urllib.request
+
+    from sssphase_core.errors import InputError
+    from sssphase_view.server import check_host, tls_context
+
+    with pytest.raises(InputError, match=r"would cross the network in plain HTTP; give --tls-cert and --tls-key"):
+        check_host("0.0.0.0", allow_remote=True, tls=False)
+    with pytest.raises(InputError, match=r"not loopback: anyone on that network could reach the rig"):
+        check_host("192.168.1.20", allow_remote=False, tls=True)
+    check_host("0.0.0.0", allow_remote=True, tls=True)
+    check_host("::1", allow_remote=False, tls=False)
+    openssl = shutil.which("openssl")
+    if openssl is None:
+        pytest.skip("no openssl command to make a test certificate")
+    cert, key, other = tmp_path / "cert.pem", tmp_path / "key.pem", tmp_path / "other.pem"
+    for out_key in (key, other):
+        made = subprocess.run([openssl, "req", "-x509", "-newkey", "rsa:2048", "-nodes", "-keyout", str(out_key),
+                               "-out", str(cert), "-days", "1", "-subj", "/CN=localhost",
+                               "-addext", "subjectAltName=IP:127.0.0.1,DNS:localhost"], capture_output=True, timeout=60)
+        assert made.returncode == 0, made.stderr
+    with pytest.raises(InputError, match=r"do not load as a PEM certificate and its key"):
+        tls_context(cert, key)  # the certificate is the second key's
+    with pytest.raises(InputError, match=r"--tls-key .*: no such file"):
+        tls_context(cert, tmp_path / "missing.pem")
+    refused = run_sss(["view", "--host", "0.0.0.0", "--allow-remote"], cwd=tmp_path)
+    assert refused.returncode != 0 and "plain HTTP" in refused.stdout + refused.stderr
+    assert "Traceback" not in refused.stdout + refused.stderr
+    runtime = Path(tempfile.mkdtemp(prefix="ssss", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
+    proc = subprocess.Popen([sys.executable, "-m", "sssphase_cli.main", "view", "--port", "0", "--tls-cert",
+                             str(cert), "--tls-key", str(other), "--out", str(tmp_path / "out")],
+                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, env=env, cwd=REPO)
+    try:
+        line = proc.stdout.readline()
+        m = re.search(r"(https://127\.0\.0\.1:\d+)/\?token=(\S+)", line)
+        assert m, line
+        trusting = ssl.create_default_context(cafile=str(cert))
+        request = urllib.request.Request(m.group(1) + "/api/state", headers={"X-Token": m.group(2)})
+        with urllib.request.urlopen(request, timeout=30, context=trusting) as response:
+            assert response.status == 200 and "sessions" in json.loads(response.read())
+        with pytest.raises(OSError):  # plain HTTP to the HTTPS port gets no page
+            urllib.request.urlopen(m.group(1).replace("https", "http") + "/api/state", timeout=10).read()
+    finally:
+        proc.terminate()
+        proc.wait(20)
+        shutil.rmtree(runtime, ignore_errors=True)
