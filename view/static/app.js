@@ -93,6 +93,7 @@ function connectLive() {
         if (state.liveError && $("message").textContent === state.liveError) say("");  // frames again: the error is over
         state.liveError = null;
         $("status").textContent = `live: ${header.pattern}, exposure ${header.exposure}`;  // (what this frame was taken with)
+        state.lastFrameAt = Date.now();
         state.frames += 1;
         $("frame-count").textContent = state.frames;
         $("fps").textContent = header.fps.toFixed(1);
@@ -133,6 +134,14 @@ function connectLive() {
 }
 
 for (const id of ["pattern", "exposure", "gain", "psp-frame", "decode"]) $(id).onchange = sendSettings;
+
+// a stream that stalls (a daemon gone: the error comes when its call times out) says so, not "live" on a still frame
+setInterval(() => {
+  const waited = (Date.now() - (state.lastFrameAt || Date.now())) / 1000;
+  if (state.socket && !$("decode").checked && waited > 3 && !state.liveError) {
+    $("status").textContent = `live: no frame for ${waited.toFixed(0)} s (waiting for the rig)`;
+  }
+}, 1000);
 
 // The size of the frame on the page, (height, width): naturalWidth/Height read 0 while the next frame loads.
 function shownSize() {
