@@ -658,12 +658,17 @@ def _start_sequence(state: ViewState, session: str, view: int, path: Path, backe
 
     def relight(narrator: Narrator) -> Any:
         try:
-            return relight_sequence(s, path, backend=backend, checkpoint=state.checkpoint, out=out, views=[view],
-                                    resize=resize, narrator=narrator, max_frames=MAX_UPLOAD_FRAMES)
+            with warnings.catch_warnings(record=True) as warned:  # the page's notes, as a still's
+                warnings.simplefilter("always")
+                result = relight_sequence(s, path, backend=backend, checkpoint=state.checkpoint, out=out, views=[view],
+                                          resize=resize, narrator=narrator, max_frames=MAX_UPLOAD_FRAMES)
         except SssError as exc:
             if isinstance(exc, Stopped):
                 raise
             raise _said_of_the_upload(exc, path) from None
+        for w in dict.fromkeys(str(w.message) for w in warned):  # (a frame's warning once, not once per frame)
+            narrator.say(str(_said_of_the_upload(InputError(w), path)))
+        return result
 
     state.relights.submit(run_sequence_job, job, relight, view, files_url(state, out))
     return JSONResponse({"job": job.id}, status_code=202)
