@@ -718,3 +718,86 @@ def test_a_daemon_that_a_plugin_crashed_is_said_to_have_exited(daemon_factory, t
                                                  "crashed by a device plugin: its log is"):
         list(client.stream(rig, 2))
     assert proc.wait(5) == -signal.SIGABRT
+
+
+CLOSE_HANGING_PLUGIN = '''
+import os, time
+import numpy as np
+from sssphase_plugins.api import DeviceInfo, Frame, hookimpl
+
+
+class Camera:
+    def __init__(self, device_id):
+        self.info = DeviceInfo(device_id, "camera", "closehang", "hangs in close", device_id)
+
+    def configure(self, **kw):
+        pass
+
+    def grab(self, timeout_s=5.0):
+        return Frame(np.zeros((4, 4, 3), np.float32), 0, time.monotonic_ns(), 1.0, {})
+
+    def stream(self, count):
+        return (self.grab() for _ in range(count))
+
+    def close(self):
+        while os.path.exists(os.environ["SSS_TEST_HANG_FLAG"]):  # a driver stuck in a USB call
+            time.sleep(0.05)
+
+
+class Provider:
+    kind = "camera"
+
+    def discover(self):
+        return [DeviceInfo("closehang:cam", "camera", "closehang", "hangs in close", "cam")]
+
+    def open(self, device_id, options, shared):
+        return Camera(device_id)
+
+
+@hookimpl
+def sssphase_cameras():
+    return [Provider()]
+'''
+
+
+def test_a_device_whose_close_hangs_holds_neither_the_daemon_nor_its_clients(daemon_factory, tmp_path, monkeypatch):
+    """close_rig ran the plugin's close() on the daemon's main thread: one that never returned left the daemon
+    answering no one ("runs but does not answer"). The close now runs in a thread of its own: close_rig is answered
+    within CLOSE_REPLY_S naming the device, other clients meanwhile, and the device cannot be opened again (busy,
+    named) until its close returns."""
+    flag = tmp_path / "hang"
+    (tmp_path / "closehang_plugin.py").write_text(CLOSE_HANGING_PLUGIN)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("SSS_PLUGINS", "closehang_plugin")
+    monkeypatch.setenv("SSS_TEST_HANG_FLAG", str(flag))
+    monkeypatch.setenv("SSS_OPEN_TIMEOUT_S", "2")  # open_rig waits for a closing device for half of it
+    proc, client, runtime = daemon_factory()
+    rig = client.call("open_rig", camera="closehang:cam")["rig"]
+    flag.touch()
+    pings: list[float] = []
+
+    def ping_meanwhile() -> None:
+        with DaemonClient(client.endpoint, client.token, timeout_s=3.0) as other:
+            time.sleep(0.3)  # while close_rig waits for the close
+            t0 = time.monotonic()
+            other.call("ping", timeout_s=3.0)
+            pings.append(time.monotonic() - t0)
+
+    pinger = threading.Thread(target=ping_meanwhile)
+    pinger.start()
+    t0 = time.monotonic()
+    closed = client.call("close_rig", timeout_s=5.0, rig=rig)
+    assert time.monotonic() - t0 < 3.0
+    assert closed["closed"] == rig and "closehang:cam did not close within" in closed["note"], closed
+    pinger.join(10)
+    assert pings and pings[0] < 1.0, pings
+    t0 = time.monotonic()
+    assert client.ping(timeout_s=2.0) and time.monotonic() - t0 < 1.0
+    assert rig not in {r["rig"] for r in client.call("status")["rigs"]}
+    with pytest.raises(DaemonError, match=r"closehang:cam is still closing: the close\(\) of closehang:cam has not "
+                                          r"returned for \d+ s \(its plugin hangs\)") as exc:
+        client.call("open_rig", camera="closehang:cam", timeout_s=5.0)
+    assert exc.value.code == protocol.BUSY
+    assert client.call("open_rig", camera="sim:camera0")["rig"]  # other devices open meanwhile
+    flag.unlink()  # the close returns: the device can be opened again
+    assert client.call("open_rig", camera="closehang:cam", timeout_s=5.0)["rig"]
