@@ -45,7 +45,7 @@ import numpy as np
 
 from sssphase_plugins.drivers import DeviceError, DeviceInfo, Frame
 from sssphase_plugins.hookspecs import hookimpl
-from sssphase_plugins.usb_util import no_device, optional_import, plugin_options
+from sssphase_plugins.usb_util import check_plugin_options, no_device, optional_import, plugin_options
 
 log = logging.getLogger(__name__)
 
@@ -54,8 +54,10 @@ USB_VENDOR = 0x2676  # Basler AG (USB3 Vision): its udev rule is in udev/60-sssp
 TRIGGERS = ("software", "Line1", "Line2", "Line3")
 #: The ``auto`` choice among raw Bayer formats, best first (12-bit sensors are the common case).
 BAYER_DEPTHS = (12, 10, 16, 8)
-OPTIONS = {"pixel_format", "exposure_us", "gain", "black_level", "roi", "trigger", "trigger_activation", "timeout_s",
-           "buffers", "image_file"}
+#: ``[options.basler]``: each setting and its kind (``usb_util.OPTION_KINDS``); the camera checks the ranges.
+OPTIONS = {"pixel_format": "text", "exposure_us": "positive", "gain": "number", "black_level": "number", "roi": "any",
+           "trigger": "text", "trigger_activation": "text", "timeout_s": "positive", "buffers": "count",
+           "image_file": "text"}
 
 
 @dataclass(frozen=True)
@@ -131,11 +133,8 @@ class BaslerCamera:
     """Camera driver over a pylon ``InstantCamera`` (opened by :class:`BaslerProvider`)."""
 
     def __init__(self, info: DeviceInfo, camera: Any, pylon: Any, options: Mapping[str, Any]) -> None:
-        unknown = sorted(set(options) - OPTIONS)
-        if unknown:
-            raise DeviceError(f"{info.id}: unknown [options.basler] setting(s) {', '.join(unknown)} "
-                              f"(known: {', '.join(sorted(OPTIONS))})")
-        self.info, self.cam, self.pylon, self.opts = info, camera, pylon, dict(options)
+        self.info, self.cam, self.pylon = info, camera, pylon
+        self.opts = check_plugin_options(options, PLUGIN, OPTIONS, info.id)
         self.exposure, self.sequence, self.dropped = 1.0, 0, 0
         self.base_exposure_us = self._positive("exposure_us", 10_000.0)
         self.timeout_s = self._positive("timeout_s", 5.0)
