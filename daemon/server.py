@@ -745,6 +745,10 @@ class Daemon:
         wanted = {k: args[k] for k in ("camera", "projector", "trigger", "turntable") if args.get(k)}
         if "camera" not in wanted or not isinstance(options, dict) or not all(isinstance(v, str) for v in wanted.values()):
             raise ProtocolError(protocol.BAD_ARGS, "open_rig needs a camera device id (string) and an options map")
+        try:  # (no device of the rig is opened for options no plugin would read)
+            manager.check_rig_options(options, wanted.values(), self.pm)
+        except SssError as exc:
+            raise ProtocolError(protocol.BAD_ARGS, str(exc)) from None
         with self.lock:
             stale = self._room_for_a_rig() + self._claim_devices(wanted.values())
         for rig in stale:

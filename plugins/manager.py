@@ -14,11 +14,13 @@ import importlib
 import importlib.metadata
 import importlib.util
 import os
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import pluggy
 
+from sssphase_core.errors import InputError
 from sssphase_core.learning import backends
 from sssphase_core.learning.backends import hookspecs as backend_hookspecs
 from sssphase_plugins import hookspecs
@@ -286,6 +288,29 @@ def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo],
                 _say(errors, loser, f"reports device {d.id}, which plugin {owner} reports too: it opens from {owner}")
     errors.update(pm.load_errors)
     return sorted((d for _, d in found.values()), key=lambda d: d.id), errors
+
+
+def check_rig_options(options: Mapping[str, Any], device_ids: Iterable[str], pm: PluginManager | None = None) -> None:
+    """Refuse, by name, rig options that no plugin reads (an :class:`InputError`): a table named after no installed
+    device plugin (``[options.basle]``), and, in a rig without a simulated device (the sim plugin reads the bare keys,
+    and checks them), a bare key outside every plugin's table (``[options] exposure_us = 1000``). Either was ignored
+    without a word: the devices ran with their defaults. Each plugin checks the settings of its own table."""
+    pm = pm or get_plugin_manager()
+    device_ids = [str(d) for d in device_ids]
+    registered = {r.name for r in plugin_records(pm) if r.ok and "device" in r.kind.split("+")}
+    # a plugin reads the table of its own name, which its devices' ids begin with (one named in $SSS_PLUGINS is
+    # registered under its module's name)
+    plugins = sorted((registered | {d.partition(":")[0] for d in device_ids}) - {"sim"})
+    known = ", ".join(f"[options.{n}]" for n in plugins)
+    unknown = sorted(str(k) for k, v in options.items() if isinstance(v, Mapping) and k not in plugins and k != "sim")
+    if unknown:
+        raise InputError(f"rig options {', '.join(f'[options.{k}]' for k in unknown)[:200]}: no installed device plugin "
+                         f"has that name (a misspelt table is ignored); the tables of the installed plugins: {known}")
+    if not any(d.partition(":")[0] == "sim" for d in device_ids):
+        bare = sorted(str(k) for k, v in options.items() if not isinstance(v, Mapping))
+        if bare:
+            raise InputError(f"rig options {', '.join(bare)[:200]} are outside every plugin's table: a device's settings "
+                             f"go in its plugin's table, e.g. [options.basler] exposure_us = 10000 (tables: {known})")
 
 
 def find_provider(device_id: str, pm: PluginManager | None = None, kind: str | None = None) -> DeviceProvider:

@@ -62,6 +62,22 @@ def _check_fit_record(path: Path, resp: dict[str, Any]) -> None:
         raise InputError(f"{path}: [projector] pixels must be a whole number >= 0, got {pixels!r}")
 
 
+def _check_real_rig_options(path: Path, options: dict[str, Any], device_ids: Any) -> None:
+    """A rig without simulated devices: each plugin's settings are in its own table (``[options.basler]``); a key
+    outside every table (``[options] exposure_us = 1000``) was ignored without a word. (A table named after no
+    installed plugin is refused by the daemon, which knows its plugins.)"""
+    plugins = sorted({str(d).partition(":")[0] for d in device_ids})
+    for key, value in options.items():
+        if key in plugins and not isinstance(value, dict):
+            raise InputError(f"{path}: [options] {key} must be a table of {key} settings ([options.{key}]), got "
+                             f"{type(value).__name__}")
+    bare = sorted(str(k) for k, v in options.items() if not isinstance(v, dict))
+    if bare:
+        raise InputError(f"{path}: [options] {', '.join(bare)[:200]} outside every plugin's table: a device's settings "
+                         f"go in its plugin's table, e.g. [options.{plugins[0]}] {bare[0]} = ... (this rig's plugins: "
+                         f"{', '.join(plugins)})")
+
+
 @dataclass
 class RigSpec:
     """Which devices to use and their options (``--rig RIG.toml``; default: the sim rig)."""
@@ -155,6 +171,8 @@ class RigSpec:
             if unknown:  # a misspelt option was ignored: the capture ran with the default
                 raise InputError(f"{path}: unknown sim rig [options] {', '.join(unknown)} (known: "
                                  f"{', '.join(sorted(SIM_RIG_OPTIONS))})")
+        elif not any(str(v).startswith("sim:") for v in dev.values()):  # the sim plugin reads bare keys; no other
+            _check_real_rig_options(path, options, dev.values())
         return cls(dev["camera"], dev["projector"], dev.get("turntable"), dict(options), **proc,
                    gamma=None if gamma is None else float(gamma), projector_black=None if black is None else float(black),
                    trigger=dev.get("trigger"))

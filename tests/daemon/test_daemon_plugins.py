@@ -161,6 +161,22 @@ def test_a_third_party_plugin_named_like_a_built_in_one_is_listed_broken_and_the
     assert "basler:extra0" not in {d.id for d in manager.discover_devices(pm)[0]}
 
 
+
+def test_rig_options_no_plugin_reads_are_refused_naming_the_known_tables():
+    """[options.basle] (misspelt) and, in a rig of real devices, [options] exposure_us = 1000 (outside every table)
+    were ignored: the capture ran with the devices' defaults and exited 0."""
+    from sssphase_core.errors import InputError
+
+    pm = manager.build_plugin_manager()
+    with pytest.raises(InputError, match=r"rig options \[options.basle\]: no installed device plugin has that name .*"
+                                         r"the tables of the installed plugins: \[options.basler\], .*\[options.hdmi\]"):
+        manager.check_rig_options({"basle": {"exposure_us": 1000}}, ["basler:1", "hdmi:display0"], pm)
+    with pytest.raises(InputError, match=r"rig options exposure_us are outside every plugin's table"):
+        manager.check_rig_options({"exposure_us": 1000}, ["basler:1", "hdmi:display0"], pm)
+    manager.check_rig_options({"basler": {"gain": 0}, "hdmi": {}}, ["basler:1", "hdmi:display0"], pm)
+    manager.check_rig_options({"object": "star", "basler": {"gain": 0}}, ["sim:camera0", "hdmi:display0"], pm)  # sim's
+
+
 CLONES = {  # two plugins that report the sim's camera, and one id that two plugins other than its own report
     "acme_clone": """
 from sssphase_plugins.hookspecs import hookimpl
