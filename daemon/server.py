@@ -395,11 +395,23 @@ class Daemon:
         if preview and not security.is_local(preview) and self.curve is None:
             raise PermissionError(f"the preview {preview} is not loopback/ipc: like the control socket it needs CURVE "
                                   "keys (`sss daemon keys`, --curve-dir)")
-        security.remove_ipc_socket(self.endpoint)  # a dead daemon's socket; nothing else is ever removed
-        self.endpoint = bind(self.control, self.endpoint, self.curve)
-        # over TCP, a peer's connections that never authenticate are limited (its oldest closed beyond 16)
-        self.guard = ConnectionGuard(self.control) if self.endpoint.startswith("tcp://") else None
-        self.preview = Preview(self.ctx, preview, self.curve, token=self.token) if preview else None
+        # held until close(): a daemon started at the same moment found no state file either (the check above);
+        # taken before anything is removed or bound (the other's socket, its port)
+        self.state_lock = None
+        try:
+            self.state_lock = security.hold_state_lock(state_file) if state_file is not None else None
+            security.remove_ipc_socket(self.endpoint)  # a dead daemon's socket; nothing else is ever removed
+            self.endpoint = bind(self.control, self.endpoint, self.curve)
+            # over TCP, a peer's connections that never authenticate are limited (its oldest closed beyond 16)
+            self.guard = ConnectionGuard(self.control) if self.endpoint.startswith("tcp://") else None
+            self.preview = Preview(self.ctx, preview, self.curve, token=self.token) if preview else None
+        except BaseException:  # (another daemon's lock, an address in use) nothing of this one is left behind
+            if self.state_lock is not None and state_file is not None:
+                security.release_state_lock(self.state_lock, state_file)
+            if self.auth is not None:
+                self.auth.stop()
+            self.ctx.destroy(linger=0)
+            raise
         self.pm = manager.get_plugin_manager()
         self.rigs: dict[str, Rig] = {}
         self.closed_rigs: dict[str, str] = {}  # rig id -> why the daemon closed it (the latest 256)
@@ -473,6 +485,8 @@ class Daemon:
         security.remove_ipc_socket(self.endpoint)
         if self.state_file is not None:
             self.state_file.unlink(missing_ok=True)
+        if self.state_lock is not None and self.state_file is not None:  # (after the state file is gone)
+            security.release_state_lock(self.state_lock, self.state_file)
 
     def idle_s(self) -> float:
         """Seconds since the daemon last had an open rig, a running job or a request (0 while it has)."""

@@ -813,3 +813,56 @@ def test_open_rig_refuses_options_no_plugin_reads(daemon):
     with pytest.raises(DaemonError, match=r"rig options exposure_us are outside every plugin's table"):
         client.call("open_rig", camera="example:testpattern0", options={"exposure_us": 1000})
     assert len(client.call("status")["rigs"]) == before  # nothing was opened
+
+
+def test_a_daemon_does_not_start_beside_another_of_the_same_state_file():
+    """Each daemon checked that no other one served, then (later) wrote its state file: two started together both
+    found none, both served, and the state file named only one; the other ran invisibly, holding devices. The state
+    file's lock is now held from that check until the daemon has removed its state file."""
+    from sssphase_daemon.server import Daemon
+
+    folder = Path(tempfile.mkdtemp(prefix="sssl", dir="/tmp"))
+    state = folder / "daemon.json"
+    try:
+        first = Daemon(f"ipc://{folder}/a.sock", token="t" * 32, state_file=state)  # starting: no state file yet
+        with pytest.raises(PermissionError, match=rf"another daemon is starting \(its state file: {state}\): stop it first"):
+            Daemon(f"ipc://{folder}/b.sock", token="t" * 32, state_file=state)
+        first.write_state()
+        with pytest.raises(PermissionError, match=rf"another daemon \(pid {os.getpid()}\) is serving ipc://{folder}/a.sock"):
+            Daemon(f"ipc://{folder}/b.sock", token="t" * 32, state_file=state)
+        assert security.read_state(state).endpoint == f"ipc://{folder}/a.sock"  # the second wrote nothing
+        first.close()
+        second = Daemon(f"ipc://{folder}/b.sock", token="t" * 32, state_file=state)  # once the first is gone
+        second.close()
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_two_daemon_starts_at_once_start_one_daemon(tmp_path):
+    """`sss daemon start` and `sss daemon start --endpoint tcp://...` run together both said "daemon started"."""
+    import socket
+
+    from sss_process import run_sss
+
+    runtime = Path(tempfile.mkdtemp(prefix="ssst", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    results: list[subprocess.CompletedProcess] = []
+    starts = [threading.Thread(target=lambda a=args: results.append(run_sss(["daemon", "start", *a], env=env)))
+              for args in ((), ("--endpoint", f"tcp://127.0.0.1:{port}"))]
+    try:
+        for t in starts:
+            t.start()
+        for t in starts:
+            t.join(120)
+        said = sorted((r.returncode, (r.stdout + r.stderr).strip()) for r in results)
+        assert [rc for rc, _ in said] == [0, 2], said
+        assert said[0][1].startswith("daemon started") and said[1][1] == "error: a daemon is already running " \
+                                                                          "(`sss daemon status`)", said
+        pid = security.read_state(runtime / "daemon.json").pid
+        assert f"(pid {pid})" in said[0][1]
+    finally:
+        run_sss(["daemon", "stop", "--force"], env=env)
+        shutil.rmtree(runtime, ignore_errors=True)
