@@ -19,7 +19,7 @@ Options (``[options.basler]``, all optional):
 - ``trigger``: ``software`` (default: each grab fires pylon's software trigger) or ``Line1``..``Line3``
   (hardware: the frame exposes on the edge the projector's or trigger board's output puts on that
   line, ``trigger_activation`` ``RisingEdge`` by default; see HARDWARE.md for the wiring).
-- ``timeout_s`` (how long a frame may take, default 5), ``buffers`` (pylon's MaxNumBuffer, default 10).
+- ``timeout_s`` (how long a frame may take beyond its exposure, default 5), ``buffers`` (pylon's MaxNumBuffer, default 10).
 - ``image_file``: emulated cameras only (``PYLON_CAMEMU``): a file or folder the emulator streams
   instead of its test image (16-bit PNG/TIFF: the value ``v << (16 - bits)`` gives ``v``). The emulator
   reads it when acquisition starts, so each grab then starts and stops acquisition (a file rewritten
@@ -272,17 +272,28 @@ class BaslerCamera:
                                "reconnect it and continue the capture with --resume")
         return DeviceError(f"{self.info.id}: {doing} failed: {_first_line(exc) if exc else 'no reason given'}")
 
+    def wait_s(self, timeout_s: float | None = None) -> float:
+        """How long a grab waits for its frame: the exposure under way plus ``timeout_s`` (``[options.basler]
+        timeout_s`` by default), so that an 8 s exposure is not "no frame within 5 s"."""
+        return self.base_exposure_us * self.exposure / 1e6 + (self.timeout_s if timeout_s is None else float(timeout_s))
+
+    def _waited(self, wait_s: float) -> str:
+        """What a wait of ``wait_s`` (:meth:`wait_s`) was made of."""
+        exposure_s = self.base_exposure_us * self.exposure / 1e6
+        return f"the {exposure_s:g} s exposure and {wait_s - exposure_s:g} s more"
+
     def grab(self, timeout_s: float | None = None) -> Frame:
         """One frame: software trigger (``trigger = software``), else the next hardware-triggered frame."""
         if self.closed:
             raise DeviceError(f"{self.info.id}: the camera is closed")
-        timeout = self.timeout_s if timeout_s is None else float(timeout_s)
+        timeout = self.wait_s(timeout_s)
         try:
             self._start()
             if self.trigger == "software":
                 self._drain()
                 if not self.cam.WaitForFrameTriggerReady(int(timeout * 1000), self.pylon.TimeoutHandling_Return):
-                    raise DeviceError(f"{self.info.id}: the camera was not ready for a trigger within {timeout:g} s")
+                    raise DeviceError(f"{self.info.id}: the camera was not ready for a trigger within {timeout:g} s "
+                                      f"({self._waited(timeout)})")
                 self.cam.ExecuteSoftwareTrigger()
             return self._retrieve(timeout)
         except self.pylon.GenericException as exc:
@@ -310,13 +321,14 @@ class BaslerCamera:
             result.Release()
 
     def _retrieve(self, timeout: float) -> Frame:
+        """The next frame, waiting ``timeout`` seconds (:meth:`wait_s`) at most."""
         result = self.cam.RetrieveResult(int(timeout * 1000), self.pylon.TimeoutHandling_Return)
         if result is None or not result.IsValid():
             if self._gone():
                 raise self._fail(None, "waiting for a frame")
             cause = ("the trigger never came: is the projector's trigger output wired to "
                      f"{self.trigger} (HARDWARE.md)?" if self.trigger != "software" else "the camera sent nothing")
-            raise DeviceError(f"{self.info.id}: no frame within {timeout:g} s: {cause}")
+            raise DeviceError(f"{self.info.id}: no frame within {timeout:g} s ({self._waited(timeout)}): {cause}")
         try:
             if not result.GrabSucceeded():
                 raise DeviceError(f"{self.info.id}: the frame was lost: {result.GetErrorDescription()} "
