@@ -254,6 +254,12 @@ def daemon_keys(
 
     if directory is not None and directory.exists() and not directory.is_dir():  # was "[Errno 17] File exists"
         raise InputError(f"--dir {directory} is a file: give a folder for the keys")
+    state = security.read_state() if overwrite else None
+    if (state is not None and state.curve_dir and security.is_daemon_process(state.pid, state.started)
+            and Path(state.curve_dir).resolve() == (directory or security.curve_dir()).resolve()):
+        # new keys under a running daemon: every later local command said it "runs but does not answer"
+        raise InputError(f"the daemon (pid {state.pid}) serving {state.endpoint} uses the CURVE keys in "
+                         f"{state.curve_dir}: stop it first (`sss daemon stop`), then replace them")
     try:
         path = security.generate_keys(directory, overwrite=overwrite)
     except FileExistsError as exc:

@@ -866,3 +866,25 @@ def test_two_daemon_starts_at_once_start_one_daemon(tmp_path):
     finally:
         run_sss(["daemon", "stop", "--force"], env=env)
         shutil.rmtree(runtime, ignore_errors=True)
+
+
+def test_keys_are_not_replaced_under_a_daemon_that_uses_them(tmp_path, monkeypatch):
+    """`sss daemon keys --overwrite` while a CURVE daemon ran replaced its keys: every later local command said the
+    daemon "runs but does not answer". It is refused, naming the daemon; other keys may still be replaced."""
+    from sssphase_cli import cmd_daemon
+    from sssphase_core.errors import InputError
+
+    keys = security.generate_keys(tmp_path / "curve")
+    secret = (keys / "server.key_secret").read_bytes()
+    monkeypatch.setattr(security, "state_path", lambda: tmp_path / "daemon.json")
+    security.write_state(security.DaemonState("tcp://127.0.0.1:5599", "t" * 32, 4242, "0", time.time(),
+                                              curve_dir=str(keys)), tmp_path / "daemon.json")
+    monkeypatch.setattr(security, "is_daemon_process", lambda pid, started=None: pid == 4242)
+    with pytest.raises(InputError, match=rf"the daemon \(pid 4242\) serving tcp://127.0.0.1:5599 uses the CURVE keys "
+                                         rf"in {keys}: stop it first \(`sss daemon stop`\), then replace them"):
+        cmd_daemon.daemon_keys(directory=tmp_path / "curve", overwrite=True)
+    assert (keys / "server.key_secret").read_bytes() == secret
+    cmd_daemon.daemon_keys(directory=tmp_path / "other", overwrite=True)  # keys no daemon uses
+    monkeypatch.setattr(security, "is_daemon_process", lambda pid, started=None: False)  # the daemon is gone
+    cmd_daemon.daemon_keys(directory=tmp_path / "curve", overwrite=True)
+    assert (keys / "server.key_secret").read_bytes() != secret
