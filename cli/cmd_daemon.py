@@ -103,7 +103,7 @@ def daemon_start(
     """Start the acquisition daemon (detached unless --foreground)."""
     from sssphase_core.errors import InputError
     from sssphase_daemon import security
-    from sssphase_daemon.client import spawn_daemon
+    from sssphase_daemon.client import spawn_daemon, start_lock
 
     args = [*(["--endpoint", endpoint] if endpoint else []), *(["--preview", preview] if preview else []),
             *(["--curve-dir", str(curve_dir)] if curve_dir else [])]
@@ -122,16 +122,18 @@ def daemon_start(
     problem = security.endpoint_collision(endpoint or security.default_endpoint(), preview, security.state_path())
     if problem:
         raise InputError(problem)
-    if _client() is not None:
-        raise InputError("a daemon is already running (`sss daemon status`)")
-    problem = None if endpoint else security.ipc_path_problem(security.default_endpoint())  # (a given one: above)
-    if problem:  # a daemon that lost its state file still holds the default socket
-        raise InputError(problem)
-    if foreground:
+    with start_lock():  # two starts at once: the second finds the first's daemon (both had found none, and both ran)
+        if _client() is not None:
+            raise InputError("a daemon is already running (`sss daemon status`)")
+        problem = None if endpoint else security.ipc_path_problem(security.default_endpoint())  # (a given one: above)
+        if problem:  # a daemon that lost its state file still holds the default socket
+            raise InputError(problem)
+        if not foreground:
+            proc = spawn_daemon(extra_args=tuple(args))
+    if foreground:  # (the daemon itself refuses to run beside another: its state file's lock)
         from sssphase_daemon.__main__ import main
 
         sys.exit(main(args))
-    proc = spawn_daemon(extra_args=tuple(args))
     state = security.read_state()
     console.print(f"daemon started (pid {proc.pid}) on {state.endpoint if state else '?'}; "
                   f"log: {security.log_dir() / 'daemon.log'}")
@@ -252,6 +254,12 @@ def daemon_keys(
 
     if directory is not None and directory.exists() and not directory.is_dir():  # was "[Errno 17] File exists"
         raise InputError(f"--dir {directory} is a file: give a folder for the keys")
+    state = security.read_state() if overwrite else None
+    if (state is not None and state.curve_dir and security.is_daemon_process(state.pid, state.started)
+            and Path(state.curve_dir).resolve() == (directory or security.curve_dir()).resolve()):
+        # new keys under a running daemon: every later local command said it "runs but does not answer"
+        raise InputError(f"the daemon (pid {state.pid}) serving {state.endpoint} uses the CURVE keys in "
+                         f"{state.curve_dir}: stop it first (`sss daemon stop`), then replace them")
     try:
         path = security.generate_keys(directory, overwrite=overwrite)
     except FileExistsError as exc:

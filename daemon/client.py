@@ -296,7 +296,7 @@ def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | N
     stopped / was left running for another client.
     """
     started = None
-    with _start_lock():  # clients started together: one starts the daemon, the others find it running
+    with start_lock():  # clients started together: one starts the daemon, the others find it running
         client = running_client(timeout_s)
         if client is None:  # it ends itself once unused: an interrupted or killed capture cannot leave it for ever
             started = spawn_daemon(extra_args=("--exit-when-idle", str(LOCAL_DAEMON_IDLE_S)))
@@ -334,10 +334,11 @@ def running_client(timeout_s: float = 10.0) -> DaemonClient | None:
 
 
 @contextlib.contextmanager
-def _start_lock() -> Iterator[None]:
+def start_lock() -> Iterator[None]:
     """An exclusive lock on the runtime dir itself (flock on the directory: no file is left behind) while a
     client looks for the local daemon and starts one: four `sss capture` started at once with no daemon found
-    none and each started its own, and all but one failed ("another daemon is serving")."""
+    none and each started its own, and all but one failed ("another daemon is serving"); two `sss daemon start`
+    with different endpoints both started theirs."""
     import fcntl
 
     fd = os.open(security.runtime_dir(), os.O_RDONLY | os.O_DIRECTORY)

@@ -17,6 +17,7 @@ import stat
 import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
+from typing import Any
 
 from sssphase_core.errors import SssError
 
@@ -220,6 +221,48 @@ def write_state(state: DaemonState, path: Path | None = None) -> Path:
     with atomic_path(path) as tmp, os.fdopen(os.open(tmp, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o600), "w") as f:
         json.dump(asdict(state), f)
     return path
+
+
+def _lock_path(state: Path) -> Path:
+    return state.with_name(state.name + ".lock")
+
+
+def hold_state_lock(path: Path) -> Any:
+    """Lock the file beside the state file ``path`` (``daemon.json.lock``) until :func:`release_state_lock` -- the
+    daemon's life (a process that dies releases it too): two daemons started together each found no state file,
+    both served, and the file named only one of them; the other ran invisibly, holding devices. The lock held is on
+    the file at that path (one its holder removed on its way out, and another daemon then created anew, is not).
+    -> the open lock file; PermissionError when another daemon holds it."""
+    import fcntl
+
+    lock_path = _lock_path(path)
+    for _ in range(20):
+        fd = os.open(lock_path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o600)
+        lock = os.fdopen(fd, "r+")
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            lock.close()
+            running = read_state(path)
+            who = (f"another daemon (pid {running.pid}) is serving {running.endpoint}" if running is not None
+                   else "another daemon is starting")
+            raise PermissionError(f"{who} (its state file: {path}): stop it first") from None
+        try:
+            if os.stat(lock_path, follow_symlinks=False).st_ino == os.fstat(fd).st_ino:
+                return lock
+        except FileNotFoundError:
+            pass
+        lock.close()  # removed by the daemon that held it, as it exited: lock the one at the path now
+    raise PermissionError(f"cannot lock {lock_path}: daemons keep starting and stopping there")
+
+
+def release_state_lock(lock: Any, path: Path) -> None:
+    """Remove the lock file of the state file ``path`` and release ``lock`` (from :func:`hold_state_lock`): a stopped
+    daemon leaves its runtime folder empty."""
+    try:
+        _lock_path(path).unlink(missing_ok=True)
+    finally:
+        lock.close()
 
 
 def state_file_problem(path: Path) -> str | None:

@@ -50,6 +50,14 @@ FRAME_KINDS = ("psp", "white", "black", "level", "dots", "ref", "image")
 DEFAULT_DEADLINE_S = 600.0
 MAX_DEADLINE_S = 86400.0
 
+#: Seconds ``close_rig``'s reply waits for the rig's devices to close (the clients ask with a 2 s timeout); a device
+#: still closing then closes in the background, and cannot be opened again until its close returns.
+CLOSE_REPLY_S = 1.5
+#: Seconds after which a device's close() that has not returned is logged, naming the device.
+CLOSE_WARN_S = 5.0
+#: Seconds ``open_rig`` waits for a device of a rig being closed to finish closing before it says which hangs.
+CLOSING_WAIT_S = 5.0
+
 #: Seconds an ``open_rig`` may take (a camera's boot, a USB enumeration) before the client is told which device
 #: hangs; the daemon serves other requests meanwhile.
 #: ``$SSS_OPEN_TIMEOUT_S`` overrides it (read when the daemon starts).
@@ -101,17 +109,38 @@ class Rig:
     options: dict[str, Any]
     lock: threading.Lock = field(default_factory=threading.Lock)
     orphaned: bool = False  # a job of it lost its client's heartbeats while the client itself was silent too
+    closing: str = ""  # the device whose close() is under way (named while it hangs)
+    closing_since: float = 0.0  # (time.monotonic())
 
-    def close(self) -> None:
+    def close(self, closed: Callable[[str], None] | None = None) -> None:
         """Close the devices and drop them: finished jobs keep their rig for ``status``, not its devices
-        (a sim rig's scene is ~120 MB)."""
+        (a sim rig's scene is ~120 MB). ``closed(device_id)`` is called as each device's close() returns; one
+        that has not returned after :data:`CLOSE_WARN_S` is logged by name (its plugin hangs in close())."""
         for driver in self.devices.values():
+            device_id = _device_id(driver)
+            self.closing, self.closing_since = device_id, time.monotonic()
+            warn = threading.Timer(CLOSE_WARN_S, log.warning, ("%s: close() has not returned within %g s (its plugin "
+                                   "hangs): it cannot be opened again until it does", device_id, CLOSE_WARN_S))
+            warn.daemon = True
+            warn.start()
+            t0 = time.monotonic()
             try:
                 driver.close()
-            except Exception as exc:  # closing must not take the daemon down
-                log.warning("closing %s failed: %s", driver.info.id, exc)
-        self.devices = {}
+            except BaseException as exc:  # noqa: BLE001  (a plugin's sys.exit() too) closing must not take the daemon down
+                log.warning("closing %s failed: %s", device_id, _exception_line(exc))
+            finally:
+                warn.cancel()
+                if time.monotonic() - t0 > CLOSE_WARN_S:
+                    log.info("%s closed after %.1f s", device_id, time.monotonic() - t0)
+                if closed is not None:
+                    closed(device_id)
+        self.devices, self.closing = {}, ""
         _return_freed_memory()
+
+
+def _device_id(driver: Any) -> str:
+    """A driver's device id (its ``info`` was checked when it was opened)."""
+    return str(getattr(getattr(driver, "info", None), "id", "?"))
 
 
 @functools.cache
@@ -154,18 +183,6 @@ def _return_freed_memory() -> None:
     trim = _malloc_trim()
     if trim is not None:
         trim(0)
-
-
-def _close_without_waiting(rig: Rig) -> None:
-    """Close a rig the main thread took back: at once when no device call of it is under way, else (a device that
-    hangs, its cancelled job's call still holding the rig) in the background, so that the daemon keeps serving."""
-    if rig.lock.acquire(blocking=False):
-        try:
-            rig.close()
-        finally:
-            rig.lock.release()
-    else:
-        threading.Thread(target=rig.close, name=f"sss-close-{rig.id}", daemon=True).start()
 
 
 def _close_all(devices: dict[str, Any]) -> None:
@@ -378,11 +395,23 @@ class Daemon:
         if preview and not security.is_local(preview) and self.curve is None:
             raise PermissionError(f"the preview {preview} is not loopback/ipc: like the control socket it needs CURVE "
                                   "keys (`sss daemon keys`, --curve-dir)")
-        security.remove_ipc_socket(self.endpoint)  # a dead daemon's socket; nothing else is ever removed
-        self.endpoint = bind(self.control, self.endpoint, self.curve)
-        # over TCP, a peer's connections that never authenticate are limited (its oldest closed beyond 16)
-        self.guard = ConnectionGuard(self.control) if self.endpoint.startswith("tcp://") else None
-        self.preview = Preview(self.ctx, preview, self.curve, token=self.token) if preview else None
+        # held until close(): a daemon started at the same moment found no state file either (the check above);
+        # taken before anything is removed or bound (the other's socket, its port)
+        self.state_lock = None
+        try:
+            self.state_lock = security.hold_state_lock(state_file) if state_file is not None else None
+            security.remove_ipc_socket(self.endpoint)  # a dead daemon's socket; nothing else is ever removed
+            self.endpoint = bind(self.control, self.endpoint, self.curve)
+            # over TCP, a peer's connections that never authenticate are limited (its oldest closed beyond 16)
+            self.guard = ConnectionGuard(self.control) if self.endpoint.startswith("tcp://") else None
+            self.preview = Preview(self.ctx, preview, self.curve, token=self.token) if preview else None
+        except BaseException:  # (another daemon's lock, an address in use) nothing of this one is left behind
+            if self.state_lock is not None and state_file is not None:
+                security.release_state_lock(self.state_lock, state_file)
+            if self.auth is not None:
+                self.auth.stop()
+            self.ctx.destroy(linger=0)
+            raise
         self.pm = manager.get_plugin_manager()
         self.rigs: dict[str, Rig] = {}
         self.closed_rigs: dict[str, str] = {}  # rig id -> why the daemon closed it (the latest 256)
@@ -393,7 +422,8 @@ class Daemon:
         # at a time (plugins need not be thread-safe); its replies wait here for the main thread to send
         self.discovery_lock = threading.Lock()
         self.discovery_waiters: list[tuple[bytes, list[bytes], Any]] | None = None
-        self.opening = 0  # open_rig requests being answered from their threads
+        self.answering = 0  # open_rig and close_rig requests being answered from their threads
+        self.closing: dict[str, Rig] = {}  # device id -> the rig closing it, until its close() returns
         self.replies: queue.SimpleQueue[list[bytes]] = queue.SimpleQueue()
         self.running = True
         self.started = time.time()
@@ -401,8 +431,8 @@ class Daemon:
         self.state_file = state_file
         self.handlers: dict[str, Callable[[bytes, dict[str, Any]], Any]] = {
             "hello": self._hello, "ping": self._ping, "heartbeat": self._heartbeat,  # devices: _discover_for
-            "plugins": self._plugins, "status": self._status, "open_rig": self._open_rig,
-            "close_rig": self._close_rig, "move": self._move, "capture": self._capture, "stream": self._stream,
+            "plugins": self._plugins, "status": self._status, "open_rig": self._open_rig,  # close_rig: _close_rig
+            "move": self._move, "capture": self._capture, "stream": self._stream,
             "job": self._job, "cancel": self._cancel, "shutdown": self._shutdown,
         }
 
@@ -420,7 +450,7 @@ class Daemon:
         poller.register(self.control, zmq.POLLIN)
         try:
             while self.running:
-                if poller.poll(200 if self.discovery_waiters is None and not self.opening else 20):
+                if poller.poll(200 if self.discovery_waiters is None and not self.answering else 20):
                     frames = self.control.recv_multipart(copy=False)
                     self._handle([f.bytes for f in frames], fd=frames[-1].get(zmq.SRCFD) if self.guard else None)
                 self._send_replies()
@@ -455,6 +485,8 @@ class Daemon:
         security.remove_ipc_socket(self.endpoint)
         if self.state_file is not None:
             self.state_file.unlink(missing_ok=True)
+        if self.state_lock is not None and self.state_file is not None:  # (after the state file is gone)
+            security.release_state_lock(self.state_lock, self.state_file)
 
     def idle_s(self) -> float:
         """Seconds since the daemon last had an open rig, a running job or a request (0 while it has)."""
@@ -470,6 +502,7 @@ class Daemon:
     def _reap(self) -> None:
         """Cancel jobs whose heartbeats stopped (dead client); close long-idle rigs; forget old jobs."""
         now = time.monotonic()
+        taken_back: list[Rig] = []
         with self.lock:
             for job in self.jobs.values():  # running, or finished but not yet acknowledged
                 if not job.cancel.is_set() and now - job.last_beat > self.client_timeout:
@@ -485,9 +518,9 @@ class Daemon:
                 if rid in busy:
                     continue
                 if not self._alive(rig.owner, self.rig_idle_s):
-                    _close_without_waiting(self._forget_rig(rig, f"its client was silent for {self.rig_idle_s:g} s"))
+                    taken_back.append(self._forget_rig(rig, f"its client was silent for {self.rig_idle_s:g} s"))
                 elif rig.orphaned and not self._alive(rig.owner):
-                    _close_without_waiting(self._forget_rig(
+                    taken_back.append(self._forget_rig(
                         rig, f"its client stopped heartbeating its capture for {self.client_timeout:g} s"))
             finished = [j for j in self.jobs.values() if j.state != "running" and j.cancel.is_set()]
             for job in sorted(finished, key=lambda j: j.started)[:-64]:
@@ -495,6 +528,54 @@ class Daemon:
             stale = [c for c in self.last_seen if not self._alive(c) and time.monotonic() - self.last_seen[c] > 600]
             for c in stale:
                 del self.last_seen[c]
+        for rig in taken_back:  # (a cancelled job's device call may still hold it, or its close hang)
+            self._close_in_background(rig)
+
+    def _close_in_background(self, rig: Rig, *, lock_wait_s: float = 0.0,
+                             then: Callable[[bool], None] | None = None) -> None:
+        """Close ``rig`` (already taken out of ``self.rigs``) in a thread of its own: a plugin whose close() hung
+        held the main thread, and the daemon answered no one again ("runs but does not answer"). The close waits
+        up to ``lock_wait_s`` for a device call of the rig under way (a cancelled job's, on a stalled device), then
+        closes regardless; ``then(under_way)`` is called once every device has closed. Until its close() returns a
+        device is in ``self.closing``: ``open_rig`` waits a little for it, then names the device that hangs.
+        Takes ``self.lock``."""
+        with self.lock:
+            for driver in rig.devices.values():
+                self.closing[_device_id(driver)] = rig
+
+        def closed(device_id: str) -> None:
+            with self.lock:
+                if self.closing.get(device_id) is rig:
+                    del self.closing[device_id]
+
+        def run() -> None:
+            under_way = not rig.lock.acquire(timeout=lock_wait_s) if lock_wait_s > 0 else not rig.lock.acquire(False)
+            try:
+                rig.close(closed)
+            finally:
+                if not under_way:
+                    rig.lock.release()
+            if then is not None:
+                then(under_way)
+
+        threading.Thread(target=run, name=f"sss-close-{rig.id}", daemon=True).start()
+
+    def _wait_until_closed(self, ids: Iterable[str], doing: dict[str, str]) -> None:
+        """Wait (at most :data:`CLOSING_WAIT_S`) for those of ``ids`` that a closed rig is still closing; refuse one
+        whose close() has not returned by then, naming the device that hangs (opening a device its plugin is still
+        closing fails or hangs in the driver, where nobody can say why). Simulated devices are shared: not waited for."""
+        deadline = time.monotonic() + min(CLOSING_WAIT_S, 0.5 * self.open_timeout_s)
+        for device_id in ids:
+            if device_id.partition(":")[0] == "sim":
+                continue
+            while (rig := self.closing.get(device_id)) is not None:
+                if time.monotonic() > deadline:
+                    hung, since = rig.closing or device_id, time.monotonic() - rig.closing_since
+                    raise ProtocolError(protocol.BUSY, f"{device_id} is still closing: the close() of {hung} has not "
+                                        f"returned for {since:.0f} s (its plugin hangs), and it cannot be opened again "
+                                        "until it does: check the device, or restart the daemon")
+                doing["what"] = f"{device_id} (waiting for its close)"
+                time.sleep(0.02)
 
     def _forget_rig(self, rig: Rig, why: str) -> Rig:
         """Take a rig back from its client (the caller closes it) and remember ``why``, for the client that comes
@@ -542,6 +623,9 @@ class Daemon:
                 return
             if req.op == "open_rig":  # a plugin may hang in open(): answered from a thread, with a deadline
                 self._open_in_thread(identity, envelope, rid, req.args)
+                return
+            if req.op == "close_rig":  # or in close(): answered from the close's thread, with a deadline
+                self._close_rig(identity, envelope, rid, req.args)
                 return
             result = self.handlers[req.op](identity, req.args)
             reply = protocol.reply_ok(rid, result)
@@ -601,12 +685,12 @@ class Daemon:
                 reply = _error_reply(rid, exc)
             finally:
                 with self.lock:
-                    self.opening -= 1
+                    self.answering -= 1
             if not answer(reply) and opened is not None:  # the client was told it hung: nobody holds this rig
                 with self.lock:
                     late = self.rigs.pop(opened["rig"], None)
                 if late is not None:
-                    late.close()
+                    self._close_in_background(late)
 
         def late() -> None:
             if answer(protocol.reply_error(rid, protocol.DEVICE, f"{doing['what']} did not return within "
@@ -615,7 +699,7 @@ class Daemon:
                 log.error("open_rig: %s did not return within %g s", doing["what"], self.open_timeout_s)
 
         with self.lock:
-            self.opening += 1
+            self.answering += 1
         timer = threading.Timer(self.open_timeout_s, late)
         timer.daemon = True
         timer.start()
@@ -675,10 +759,15 @@ class Daemon:
         wanted = {k: args[k] for k in ("camera", "projector", "trigger", "turntable") if args.get(k)}
         if "camera" not in wanted or not isinstance(options, dict) or not all(isinstance(v, str) for v in wanted.values()):
             raise ProtocolError(protocol.BAD_ARGS, "open_rig needs a camera device id (string) and an options map")
+        try:  # (no device of the rig is opened for options no plugin would read)
+            manager.check_rig_options(options, wanted.values(), self.pm)
+        except SssError as exc:
+            raise ProtocolError(protocol.BAD_ARGS, str(exc)) from None
         with self.lock:
             stale = self._room_for_a_rig() + self._claim_devices(wanted.values())
         for rig in stale:
-            rig.close()
+            self._close_in_background(rig)
+        self._wait_until_closed(wanted.values(), doing)
         shared: dict[str, Any] = {}
         devices: dict[str, Any] = {}
         device_id = "the rig"
@@ -758,24 +847,43 @@ class Daemon:
                                 + (f": the daemon closed it ({why}); open the rig again" if why else ""))
         return rig
 
-    def _close_rig(self, client: bytes, args: dict) -> dict:
+    def _close_rig(self, identity: bytes, envelope: list[bytes], rid: Any, args: dict) -> None:
+        """Take the rig back and answer ``close_rig`` from its close's thread once its devices have closed, or after
+        :data:`CLOSE_REPLY_S` saying they close in the background: a plugin whose close() hung held the main
+        thread, and the daemon answered no one again. A rig that is capturing is refused (raised here)."""
         rig = self._get_rig(args)
-        if not rig.lock.acquire(timeout=1.0):
-            with self.lock:
-                running = any(j.rig is rig and j.state == "running" and not j.cancel.is_set() for j in self.jobs.values())
-                if not running:  # its job was cancelled, but a device call is still under way (a stalled device)
-                    self.rigs.pop(rig.id, None)
-            if running:
+        with self.lock:
+            if any(j.rig is rig and j.state == "running" and not j.cancel.is_set() for j in self.jobs.values()):
                 raise ProtocolError(protocol.BUSY, f"rig {rig.id} is capturing; cancel the job first")
-            threading.Thread(target=rig.close, name=f"sss-close-{rig.id}", daemon=True).start()
-            return {"closed": rig.id, "note": "a device call was still under way: its devices close in the background"}
-        try:
-            rig.close()
+            self.rigs.pop(rig.id, None)
+            self.answering += 1
+        answered, guard = [False], threading.Lock()
+
+        def answer(result: dict[str, Any]) -> None:
+            with guard:
+                if answered[0]:
+                    return
+                answered[0] = True
+            self.replies.put([identity, *envelope, protocol.reply_ok(rid, result)])
             with self.lock:
-                del self.rigs[rig.id]
-        finally:
-            rig.lock.release()
-        return {"closed": rig.id}
+                self.answering -= 1
+
+        def closed(under_way: bool) -> None:
+            timer.cancel()
+            answer({"closed": rig.id, **({"note": "a device call was still under way: its devices close in the "
+                                                  "background"} if under_way else {})})
+
+        def late() -> None:
+            hung = rig.closing or "a device"
+            log.warning("close_rig %s: %s did not close within %g s; it closes in the background", rig.id, hung,
+                        CLOSE_REPLY_S)
+            answer({"closed": rig.id, "note": f"{hung} did not close within {CLOSE_REPLY_S:g} s: its devices close in "
+                                              "the background (it cannot be opened again until its close returns)"})
+
+        timer = threading.Timer(CLOSE_REPLY_S, late)
+        timer.daemon = True
+        timer.start()
+        self._close_in_background(rig, lock_wait_s=1.0, then=closed)
 
     def _move(self, client: bytes, args: dict) -> dict:
         rig = self._get_rig(args)
@@ -874,7 +982,7 @@ class Daemon:
             job.state, job.error = "failed", {"code": protocol.DEVICE, "message": str(exc)}
             with self.lock:
                 self.rigs.pop(job.rig.id, None)
-            threading.Thread(target=job.rig.close, name=f"sss-close-{job.rig.id}", daemon=True).start()
+            self._close_in_background(job.rig)
         except DeviceError as exc:
             job.state, job.error = "failed", {"code": protocol.DEVICE, "message": str(exc)}
         except SssError as exc:

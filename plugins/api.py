@@ -12,7 +12,8 @@ modules behind it (``hookspecs``, ``drivers``, ``usb_util``) may be rearranged w
   (discovery that finds nothing raises :class:`DeviceNotFound`); :func:`check_pattern` checks a
   pattern handed to ``show`` against the projector's resolution;
 - :func:`optional_import` imports a hardware library inside ``discover``/``open`` with the standard
-  message when it is missing, :func:`plugin_options` reads the plugin's own table of rig options.
+  message when it is missing, :func:`plugin_options` reads the plugin's own table of rig options and checks it
+  against the settings the plugin declares (:func:`check_plugin_options` for a table already read).
 
 ``tests/devices/test_dev_conformance.py`` shows the behaviour every driver is held to.
 """
@@ -37,7 +38,7 @@ from sssphase_plugins.drivers import (
     check_pattern,
 )
 from sssphase_plugins.hookspecs import hookimpl
-from sssphase_plugins.usb_util import optional_import, plugin_options
+from sssphase_plugins.usb_util import check_plugin_options, optional_import, plugin_options
 
 __all__ = [
     "DEVICE_KINDS",
@@ -55,6 +56,7 @@ __all__ = [
     "TriggeredCamera",
     "Turntable",
     "check_pattern",
+    "check_plugin_options",
     "hookimpl",
     "optional_import",
     "plugin_options",

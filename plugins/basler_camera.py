@@ -19,7 +19,7 @@ Options (``[options.basler]``, all optional):
 - ``trigger``: ``software`` (default: each grab fires pylon's software trigger) or ``Line1``..``Line3``
   (hardware: the frame exposes on the edge the projector's or trigger board's output puts on that
   line, ``trigger_activation`` ``RisingEdge`` by default; see HARDWARE.md for the wiring).
-- ``timeout_s`` (how long a frame may take, default 5), ``buffers`` (pylon's MaxNumBuffer, default 10).
+- ``timeout_s`` (how long a frame may take beyond its exposure, default 5), ``buffers`` (pylon's MaxNumBuffer, default 10).
 - ``image_file``: emulated cameras only (``PYLON_CAMEMU``): a file or folder the emulator streams
   instead of its test image (16-bit PNG/TIFF: the value ``v << (16 - bits)`` gives ``v``). The emulator
   reads it when acquisition starts, so each grab then starts and stops acquisition (a file rewritten
@@ -45,7 +45,7 @@ import numpy as np
 
 from sssphase_plugins.drivers import DeviceError, DeviceInfo, Frame
 from sssphase_plugins.hookspecs import hookimpl
-from sssphase_plugins.usb_util import no_device, optional_import, plugin_options
+from sssphase_plugins.usb_util import check_plugin_options, no_device, optional_import, plugin_options
 
 log = logging.getLogger(__name__)
 
@@ -54,8 +54,10 @@ USB_VENDOR = 0x2676  # Basler AG (USB3 Vision): its udev rule is in udev/60-sssp
 TRIGGERS = ("software", "Line1", "Line2", "Line3")
 #: The ``auto`` choice among raw Bayer formats, best first (12-bit sensors are the common case).
 BAYER_DEPTHS = (12, 10, 16, 8)
-OPTIONS = {"pixel_format", "exposure_us", "gain", "black_level", "roi", "trigger", "trigger_activation", "timeout_s",
-           "buffers", "image_file"}
+#: ``[options.basler]``: each setting and its kind (``usb_util.OPTION_KINDS``); the camera checks the ranges.
+OPTIONS = {"pixel_format": "text", "exposure_us": "positive", "gain": "number", "black_level": "number", "roi": "any",
+           "trigger": "text", "trigger_activation": "text", "timeout_s": "positive", "buffers": "count",
+           "image_file": "text"}
 
 
 @dataclass(frozen=True)
@@ -131,11 +133,8 @@ class BaslerCamera:
     """Camera driver over a pylon ``InstantCamera`` (opened by :class:`BaslerProvider`)."""
 
     def __init__(self, info: DeviceInfo, camera: Any, pylon: Any, options: Mapping[str, Any]) -> None:
-        unknown = sorted(set(options) - OPTIONS)
-        if unknown:
-            raise DeviceError(f"{info.id}: unknown [options.basler] setting(s) {', '.join(unknown)} "
-                              f"(known: {', '.join(sorted(OPTIONS))})")
-        self.info, self.cam, self.pylon, self.opts = info, camera, pylon, dict(options)
+        self.info, self.cam, self.pylon = info, camera, pylon
+        self.opts = check_plugin_options(options, PLUGIN, OPTIONS, info.id)
         self.exposure, self.sequence, self.dropped = 1.0, 0, 0
         self.base_exposure_us = self._positive("exposure_us", 10_000.0)
         self.timeout_s = self._positive("timeout_s", 5.0)
@@ -273,17 +272,28 @@ class BaslerCamera:
                                "reconnect it and continue the capture with --resume")
         return DeviceError(f"{self.info.id}: {doing} failed: {_first_line(exc) if exc else 'no reason given'}")
 
+    def wait_s(self, timeout_s: float | None = None) -> float:
+        """How long a grab waits for its frame: the exposure under way plus ``timeout_s`` (``[options.basler]
+        timeout_s`` by default), so that an 8 s exposure is not "no frame within 5 s"."""
+        return self.base_exposure_us * self.exposure / 1e6 + (self.timeout_s if timeout_s is None else float(timeout_s))
+
+    def _waited(self, wait_s: float) -> str:
+        """What a wait of ``wait_s`` (:meth:`wait_s`) was made of."""
+        exposure_s = self.base_exposure_us * self.exposure / 1e6
+        return f"the {exposure_s:g} s exposure and {wait_s - exposure_s:g} s more"
+
     def grab(self, timeout_s: float | None = None) -> Frame:
         """One frame: software trigger (``trigger = software``), else the next hardware-triggered frame."""
         if self.closed:
             raise DeviceError(f"{self.info.id}: the camera is closed")
-        timeout = self.timeout_s if timeout_s is None else float(timeout_s)
+        timeout = self.wait_s(timeout_s)
         try:
             self._start()
             if self.trigger == "software":
                 self._drain()
                 if not self.cam.WaitForFrameTriggerReady(int(timeout * 1000), self.pylon.TimeoutHandling_Return):
-                    raise DeviceError(f"{self.info.id}: the camera was not ready for a trigger within {timeout:g} s")
+                    raise DeviceError(f"{self.info.id}: the camera was not ready for a trigger within {timeout:g} s "
+                                      f"({self._waited(timeout)})")
                 self.cam.ExecuteSoftwareTrigger()
             return self._retrieve(timeout)
         except self.pylon.GenericException as exc:
@@ -311,13 +321,14 @@ class BaslerCamera:
             result.Release()
 
     def _retrieve(self, timeout: float) -> Frame:
+        """The next frame, waiting ``timeout`` seconds (:meth:`wait_s`) at most."""
         result = self.cam.RetrieveResult(int(timeout * 1000), self.pylon.TimeoutHandling_Return)
         if result is None or not result.IsValid():
             if self._gone():
                 raise self._fail(None, "waiting for a frame")
             cause = ("the trigger never came: is the projector's trigger output wired to "
                      f"{self.trigger} (HARDWARE.md)?" if self.trigger != "software" else "the camera sent nothing")
-            raise DeviceError(f"{self.info.id}: no frame within {timeout:g} s: {cause}")
+            raise DeviceError(f"{self.info.id}: no frame within {timeout:g} s ({self._waited(timeout)}): {cause}")
         try:
             if not result.GrabSucceeded():
                 raise DeviceError(f"{self.info.id}: the frame was lost: {result.GetErrorDescription()} "

@@ -43,6 +43,8 @@ from sssphase_plugins.hookspecs import hookimpl
 from sssphase_plugins.usb_util import no_device, optional_import, plugin_options
 
 PLUGIN = "hdmi"
+#: ``[options.hdmi]``: each setting and its kind (``usb_util.OPTION_KINDS``).
+OPTIONS = {"latency_s": "seconds", "settle_frames": "whole", "timeout_s": "positive", "verify": "bool"}
 HEADER = struct.Struct("<IHHB")
 VIRTUAL_DRIVERS = ("offscreen", "dummy")
 
@@ -192,9 +194,9 @@ class HdmiProvider:
         info = next((d for d in self.discover() if d.id == device_id), None)
         if info is None:
             raise DeviceError(f"no display {device_id!r} (see `sss devices`)")
-        opts = plugin_options(options, PLUGIN)
-        window = self.window(int(info.serial.removeprefix("display")), settle_frames=int(opts.get("settle_frames", 1)),
-                             verify=bool(opts.get("verify", False)), timeout_s=float(opts.get("timeout_s", 5.0)))
+        opts = plugin_options(options, PLUGIN, OPTIONS, device_id)
+        window = self.window(int(info.serial.removeprefix("display")), settle_frames=opts.get("settle_frames", 1),
+                             verify=opts.get("verify", False), timeout_s=float(opts.get("timeout_s", 5.0)))
         return HdmiProjector(info, window, latency_s=float(opts.get("latency_s", 0.05)))
 
 

@@ -75,6 +75,9 @@ from sssphase_plugins.hookspecs import hookimpl
 from sssphase_plugins.usb_util import no_device, optional_import, plugin_options, sysfs_usb_devices
 
 PLUGIN = "lcr4500"
+#: ``[options.lcr4500]``: each setting and its kind (``usb_util.OPTION_KINDS``).
+OPTIONS = {"mode": ("video", "pattern"), "display": "whole", "exposure_us": "count", "period_us": "count",
+           "latency_s": "seconds", "settle_frames": "whole", "timeout_s": "positive"}
 VID, PID = 0x0451, 0x6401
 NATIVE_RESOLUTION = (912, 1140)
 REPORT_LEN = 64
@@ -346,7 +349,7 @@ class LightCrafterProvider:
 
     def _display(self, opts: Mapping[str, Any]) -> int:
         if "display" in opts:
-            return int(opts["display"])
+            return opts["display"]
         sizes = self.displays()
         if tuple(NATIVE_RESOLUTION) in sizes:
             return sizes.index(tuple(NATIVE_RESOLUTION))
@@ -358,7 +361,7 @@ class LightCrafterProvider:
         if device_id not in found:
             raise DeviceError(f"no LightCrafter {device_id!r} (see `sss devices`)")
         info, path = found[device_id]
-        opts = plugin_options(options, PLUGIN)
+        opts = plugin_options(options, PLUGIN, OPTIONS, device_id)
         dev = self.hid_api().device()
         try:
             dev.open_path(path)
@@ -368,14 +371,14 @@ class LightCrafterProvider:
         dlpc = Dlpc350(dev, name=device_id, timeout_s=float(opts.get("timeout_s", 1.0)))
         window = None
         try:
-            window = self.window(self._display(opts), settle_frames=int(opts.get("settle_frames", 1)),
+            window = self.window(self._display(opts), settle_frames=opts.get("settle_frames", 1),
                                  timeout_s=float(opts.get("timeout_s", 5.0)))
             if tuple(window.size) != NATIVE_RESOLUTION:
                 raise DeviceError(f"{device_id}: the HDMI display is {window.size[0]}x{window.size[1]}, the LightCrafter "
                                   f"needs {NATIVE_RESOLUTION[0]}x{NATIVE_RESOLUTION[1]} (set it in the display settings)")
-            return LightCrafterProjector(info, dlpc, window, mode=str(opts.get("mode", "video")),
-                                         exposure_us=int(opts.get("exposure_us", 16_000)),
-                                         period_us=int(opts.get("period_us", 16_666)),
+            return LightCrafterProjector(info, dlpc, window, mode=opts.get("mode", "video"),
+                                         exposure_us=opts.get("exposure_us", 16_000),
+                                         period_us=opts.get("period_us", 16_666),
                                          latency_s=float(opts.get("latency_s", 0.05)))
         except Exception:
             dlpc.close()

@@ -14,12 +14,13 @@ import importlib
 import importlib.metadata
 import importlib.util
 import os
-import weakref
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import pluggy
 
+from sssphase_core.errors import InputError
 from sssphase_core.learning import backends
 from sssphase_core.learning.backends import hookspecs as backend_hookspecs
 from sssphase_plugins import hookspecs
@@ -36,6 +37,7 @@ class PluginManager(pluggy.PluginManager):
     def __init__(self) -> None:
         super().__init__(hookspecs.PROJECT)
         self.load_errors: dict[str, str] = {}
+        self.distributions: dict[int, tuple[str, str]] = {}  # id(plugin) -> (version, project) of an entry point's
 
 
 @dataclass(frozen=True)
@@ -80,22 +82,57 @@ def _register_checked(pm: PluginManager, name: str, load: Any) -> None:
         pm.load_errors[name] = _registration_error(pm, exc)
 
 
+def _ours(module: str) -> bool:
+    """Whether ``module`` (an entry point's or a plugin's) is one of this package's built-in plugins."""
+    return module.split(".", 1)[0] in ("sssphase_plugins", "sssphase_core")
+
+
+def _name_taken(pm: PluginManager, name: str, module: str, where: str) -> bool:
+    """Whether ``name`` is registered already; when by another module than ``module`` (a third-party entry point
+    named ``basler``), record the newcomer as broken under ``name (where)``: it was dropped, or replaced the built-in
+    one, without a word. The same module named twice (an entry point also in $SSS_PLUGINS) is no error."""
+    registered = pm.get_plugin(name)
+    if registered is None and not pm.is_blocked(name):
+        return False
+    other = getattr(registered, "__name__", type(registered).__name__)
+    if other != module:
+        pm.load_errors[f"{name} ({where})"] = (f"another plugin is registered under this name ({other}): rename one "
+                                               "of the two entry points")
+    return True
+
+
+def _register_entry_point(pm: PluginManager, ep: importlib.metadata.EntryPoint) -> None:
+    """Register this one entry point (pluggy's ``load_setuptools_entrypoints(group, name)`` loads the first of every
+    distribution's entry points of that name: a third-party ``basler`` earlier on the path took the built-in's place)
+    and remember its distribution's version and name (read once: a distribution's metadata is parsed on each read,
+    our README included)."""
+    plugin = ep.load()
+    pm.register(plugin, name=ep.name)
+    if getattr(ep, "dist", None) is not None:
+        pm.distributions[id(plugin)] = (str(ep.dist.version), str(ep.dist.name))
+
+
 def build_plugin_manager() -> PluginManager:
-    """A fresh manager with every hookspec and plugin loaded (see module docstring)."""
+    """A fresh manager with every hookspec and plugin loaded (see module docstring). The built-in plugins are
+    registered first: a third-party plugin under one of their names is listed as broken, never in their place."""
     pm = PluginManager()
     pm.add_hookspecs(hookspecs)
     pm.add_hookspecs(backend_hookspecs)
-    for group in ENTRY_POINT_GROUPS:
-        for ep in importlib.metadata.entry_points(group=group):
-            if pm.has_plugin(ep.name) or pm.is_blocked(ep.name):
-                continue
-            _register_checked(pm, ep.name, lambda g=group, n=ep.name: pm.load_setuptools_entrypoints(g, name=n))
-    extra = [m.strip() for m in os.environ.get(ENV_PLUGINS, "").split(",") if m.strip()]
-    builtins = {n: m for n, m in BUILTIN_PLUGINS.items() if not pm.has_plugin(n)}
-    for name, module in [*builtins.items(), *((m, m) for m in extra)]:
-        if pm.has_plugin(name):
-            continue
+    points = [ep for group in ENTRY_POINT_GROUPS for ep in importlib.metadata.entry_points(group=group)]
+    points.sort(key=lambda ep: not _ours(ep.module))  # (stable: each group's order kept)
+    builtins = [(n, m) for n, m in BUILTIN_PLUGINS.items() if not any(ep.name == n and _ours(ep.module) for ep in points)]
+    for name, module in builtins:  # ours when not installed with their entry points (a source tree)
         _register_checked(pm, name, lambda n=name, m=module: pm.register(importlib.import_module(m), name=n))
+    for ep in points:
+        where = ep.dist.name if getattr(ep, "dist", None) is not None else ep.value
+        if _name_taken(pm, ep.name, ep.module, where):
+            continue
+        _register_checked(pm, ep.name, lambda e=ep: _register_entry_point(pm, e))
+    extra = [m.strip() for m in os.environ.get(ENV_PLUGINS, "").split(",") if m.strip()]
+    for module in extra:
+        if _name_taken(pm, module, module, ENV_PLUGINS):
+            continue
+        _register_checked(pm, module, lambda m=module: pm.register(importlib.import_module(m), name=m))
     return pm
 
 
@@ -107,26 +144,9 @@ def get_plugin_manager(*, refresh: bool = False) -> PluginManager:
     return _manager
 
 
-#: Per plugin manager: the (version, project) of each plugin loaded from a distribution, keyed by id(plugin), and
-#: how many such plugins there were when it was read (reading a distribution's metadata parses its METADATA file,
-#: our README included, each time: 6 ms per `plugins` request of the daemon, 40% of a malformed-request fuzz's CPU).
-_DISTRIBUTIONS: weakref.WeakKeyDictionary[PluginManager, tuple[int, dict[int, tuple[str, str]]]] = weakref.WeakKeyDictionary()
-
-
-def _distributions(pm: PluginManager) -> dict[int, tuple[str, str]]:
-    """id(plugin) -> (version, project) of the plugins ``pm`` loaded from distributions, read once per manager
-    (again when a plugin is registered from another distribution)."""
-    pairs = pm.list_plugin_distinfo()
-    count, known = _DISTRIBUTIONS.get(pm, (-1, {}))
-    if count != len(pairs):
-        known = {id(p): (str(dist.version), f"{dist.project_name}") for p, dist in pairs}
-        _DISTRIBUTIONS[pm] = (len(pairs), known)
-    return known
-
-
 def _plugin_version(pm: PluginManager, plugin: object) -> tuple[str, str]:
-    if id(plugin) in (known := _distributions(pm)):
-        return known[id(plugin)]
+    if id(plugin) in pm.distributions:
+        return pm.distributions[id(plugin)]
     version = getattr(plugin, "__version__", None)
     module = getattr(plugin, "__name__", type(plugin).__name__)
     if version is None and module.startswith(("sssphase_plugins.", "sssphase_core.")):  # ours: the package's
@@ -268,6 +288,29 @@ def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo],
                 _say(errors, loser, f"reports device {d.id}, which plugin {owner} reports too: it opens from {owner}")
     errors.update(pm.load_errors)
     return sorted((d for _, d in found.values()), key=lambda d: d.id), errors
+
+
+def check_rig_options(options: Mapping[str, Any], device_ids: Iterable[str], pm: PluginManager | None = None) -> None:
+    """Refuse, by name, rig options that no plugin reads (an :class:`InputError`): a table named after no installed
+    device plugin (``[options.basle]``), and, in a rig without a simulated device (the sim plugin reads the bare keys,
+    and checks them), a bare key outside every plugin's table (``[options] exposure_us = 1000``). Either was ignored
+    without a word: the devices ran with their defaults. Each plugin checks the settings of its own table."""
+    pm = pm or get_plugin_manager()
+    device_ids = [str(d) for d in device_ids]
+    registered = {r.name for r in plugin_records(pm) if r.ok and "device" in r.kind.split("+")}
+    # a plugin reads the table of its own name, which its devices' ids begin with (one named in $SSS_PLUGINS is
+    # registered under its module's name)
+    plugins = sorted((registered | {d.partition(":")[0] for d in device_ids}) - {"sim"})
+    known = ", ".join(f"[options.{n}]" for n in plugins)
+    unknown = sorted(str(k) for k, v in options.items() if isinstance(v, Mapping) and k not in plugins and k != "sim")
+    if unknown:
+        raise InputError(f"rig options {', '.join(f'[options.{k}]' for k in unknown)[:200]}: no installed device plugin "
+                         f"has that name (a misspelt table is ignored); the tables of the installed plugins: {known}")
+    if not any(d.partition(":")[0] == "sim" for d in device_ids):
+        bare = sorted(str(k) for k, v in options.items() if not isinstance(v, Mapping))
+        if bare:
+            raise InputError(f"rig options {', '.join(bare)[:200]} are outside every plugin's table: a device's settings "
+                             f"go in its plugin's table, e.g. [options.basler] exposure_us = 10000 (tables: {known})")
 
 
 def find_provider(device_id: str, pm: PluginManager | None = None, kind: str | None = None) -> DeviceProvider:

@@ -8,7 +8,7 @@ exposure/ISO through the camera's control queue.
 
 Options (``[options.oak]``): ``socket`` (``"CAM_A"``), ``exposure_us`` (reference exposure, default
 10000; ``configure(exposure=r)`` sets ``r * exposure_us``), ``iso`` (default 100; ``configure(gain=g)``
-sets ``g * 100``), ``raw`` (RAW10 sensor mosaic unpacked to uint16 ``(H, W)`` instead of ISP
+sets ``g * iso``), ``raw`` (RAW10 sensor mosaic unpacked to uint16 ``(H, W)`` instead of ISP
 colour), ``fsin`` (external trigger: each rising edge on the FSIN pin captures one frame),
 ``transfer`` (``"srgb"`` linearises the ISP output, default; ``"linear"``), ``timeout_s`` (5).
 
@@ -32,10 +32,13 @@ import numpy as np
 
 from sssphase_plugins.drivers import DeviceError, DeviceInfo, Frame
 from sssphase_plugins.hookspecs import hookimpl
-from sssphase_plugins.usb_util import no_device, optional_import, plugin_options
+from sssphase_plugins.usb_util import check_plugin_options, no_device, optional_import, plugin_options
 from sssphase_plugins.uvc_camera import srgb_to_linear
 
 PLUGIN = "oak"
+#: ``[options.oak]``: each setting and its kind (``usb_util.OPTION_KINDS``).
+OPTIONS = {"socket": "text", "exposure_us": "positive", "iso": "positive", "raw": "bool", "fsin": "bool",
+           "transfer": ("srgb", "linear"), "timeout_s": "positive"}
 EXPOSURE_TOLERANCE = 0.05
 
 
@@ -71,10 +74,11 @@ def list_oaks(dai: Any) -> list[DeviceInfo]:
 
 class OakCamera:
     def __init__(self, info: DeviceInfo, dai: Any, options: Mapping[str, Any]) -> None:
-        self.info, self.dai, self.opts = info, dai, dict(options)
+        self.info, self.dai, self.opts = info, dai, check_plugin_options(options, PLUGIN, OPTIONS, info.id)
         self.base_exposure_us = float(self.opts.get("exposure_us", 10_000))
+        self.base_iso = float(self.opts.get("iso", 100))
         self.exposure, self.gain = 1.0, 1.0
-        self.raw = bool(self.opts.get("raw", False))
+        self.raw = self.opts.get("raw", False)
         self.timeout = datetime.timedelta(seconds=float(self.opts.get("timeout_s", 5.0)))
         self.sequence = 0
         self.device: Any = None
@@ -119,7 +123,7 @@ class OakCamera:
 
     def _send_exposure(self) -> None:
         ctrl = self.dai.CameraControl()
-        ctrl.setManualExposure(self.exposure_us, int(round(100 * self.gain)))
+        ctrl.setManualExposure(self.exposure_us, int(round(self.base_iso * self.gain)))
         self.control.send(ctrl)
 
     def configure(self, *, exposure: float | None = None, gain: float | None = None,

@@ -38,6 +38,8 @@ from sssphase_plugins.hookspecs import hookimpl
 from sssphase_plugins.usb_util import no_device, optional_import, plugin_options
 
 PLUGIN = "serial"
+#: ``[options.serial]``: each setting and its kind (``usb_util.OPTION_KINDS``).
+OPTIONS = {"baudrate": "count", "timeout_s": "positive", "move_timeout_s": "positive"}
 BOARD_IDS = {(0x0403, 0x6001): "FTDI FT232R serial board", (0x2E8A, 0x000A): "RP2040 CDC-ACM serial board"}
 CAPABILITY = {"trigger": "TRIG", "turntable": "TURN"}
 BAUDRATE = 115200
@@ -209,8 +211,8 @@ class SerialProvider:
         info = next((d for d in self.discover() if d.id == device_id), None)
         if info is None:
             raise DeviceError(f"no serial board {device_id!r} (see `sss devices`)")
-        opts = plugin_options(options, PLUGIN)
-        baud = int(opts.get("baudrate", BAUDRATE))
+        opts = plugin_options(options, PLUGIN, OPTIONS, device_id)
+        baud = opts.get("baudrate", BAUDRATE)
         connect = self._connect or (lambda port: _serial().serial_for_url(port, baudrate=baud, timeout=1.0, write_timeout=1.0))
         board = shared.get(f"serial-board:{key}")
         if board is None:

@@ -4,7 +4,8 @@
   becomes a :class:`DeviceError` that says which extra to install (discovery reports it as the
   reason no device was found, never a traceback).
 * :func:`plugin_options` reads a plugin's own table of the rig options (``[options.uvc]`` in a rig
-  file), so the settings of several plugins in one rig never collide.
+  file), so the settings of several plugins in one rig never collide, and checks it against the settings the
+  plugin declares (:func:`check_plugin_options`: an unknown key or a value of the wrong type is refused by name).
 * :func:`sysfs_identity` reads a device's USB identity (VID/PID/serial/product) from Linux sysfs, so
   discovery needs no USB library and no access rights to the device node.
 * :func:`find_usb`, :func:`reset_usb` use pyusb (extra ``usb``; needs the libusb-1.0 system library)
@@ -15,7 +16,8 @@
 from __future__ import annotations
 
 import importlib
-from collections.abc import Mapping
+import math
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
@@ -34,12 +36,55 @@ def optional_import(module: str, extra: str, library: str | None = None) -> Modu
         raise DeviceNotFound(f"no device: {library or module} not installed (pip install sssphase[{extra}])") from None
 
 
-def plugin_options(options: Mapping[str, Any], name: str) -> dict[str, Any]:
-    """The ``[options.<plugin>]`` table of a rig's options (empty when absent)."""
+def _number(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
+
+
+#: The kinds of value a plugin's option may declare (:func:`check_plugin_options`): what it must be, said to the user.
+OPTION_KINDS: dict[str, tuple[str, Callable[[Any], bool]]] = {
+    "number": ("a number", _number),
+    "positive": ("a positive number", lambda v: _number(v) and v > 0),
+    "seconds": ("a number of seconds >= 0", lambda v: _number(v) and v >= 0),
+    "whole": ("a whole number >= 0", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 0),
+    "count": ("a whole number >= 1", lambda v: isinstance(v, int) and not isinstance(v, bool) and v >= 1),
+    "bool": ("true or false (no quotes)", lambda v: isinstance(v, bool)),
+    "text": ("a string", lambda v: isinstance(v, str)),
+    "any": ("", lambda v: True),  # the plugin checks it itself (a basler roi)
+}
+
+
+def check_plugin_options(table: Mapping[str, Any], name: str, known: Mapping[str, str | tuple[str, ...]],
+                         device_id: str | None = None) -> dict[str, Any]:
+    """``table`` (a plugin's ``[options.<name>]``), checked against ``known``: setting -> one of
+    :data:`OPTION_KINDS`, or a tuple of the strings it may be. A setting not in ``known`` (a misspelt ``latency``) or
+    of the wrong type (``gain = "high"``; ``verify = "false"``, which ``bool()`` read as true; ``buffers = 0.5``, which
+    ``int()`` made 0) raises a :class:`DeviceError` naming it: either was used as the default, or as something else,
+    without a word. -> the table as a dict."""
+    who = device_id or name
+    unknown = sorted(str(k) for k in table if k not in known)
+    if unknown:
+        raise DeviceError(f"{who}: unknown [options.{name}] setting(s) {', '.join(unknown)[:200]} "
+                          f"(known: {', '.join(sorted(known))})")
+    for key, value in table.items():
+        kind = known[key]
+        if isinstance(kind, tuple):
+            if value not in kind or not isinstance(value, str):
+                raise DeviceError(f"{who}: [options.{name}] {key} must be one of {', '.join(kind)}, got {value!r:.60}")
+            continue
+        what, ok = OPTION_KINDS[kind]
+        if not ok(value):
+            raise DeviceError(f"{who}: [options.{name}] {key} must be {what}, got {value!r:.60}")
+    return dict(table)
+
+
+def plugin_options(options: Mapping[str, Any], name: str, known: Mapping[str, str | tuple[str, ...]] | None = None,
+                   device_id: str | None = None) -> dict[str, Any]:
+    """The ``[options.<plugin>]`` table of a rig's options (empty when absent); with ``known``, checked by
+    :func:`check_plugin_options` (errors named after ``device_id``)."""
     table = options.get(name, {})
     if not isinstance(table, Mapping):
         raise DeviceError(f"rig option {name!r} must be a table of {name} settings, got {type(table).__name__}")
-    return dict(table)
+    return dict(table) if known is None else check_plugin_options(table, name, known, device_id)
 
 
 def no_device(reason: str) -> DeviceError:

@@ -31,9 +31,13 @@ import numpy as np
 
 from sssphase_plugins.drivers import DeviceError, DeviceInfo, Frame
 from sssphase_plugins.hookspecs import hookimpl
-from sssphase_plugins.usb_util import no_device, plugin_options, sysfs_identity
+from sssphase_plugins.usb_util import check_plugin_options, no_device, plugin_options, sysfs_identity
 
 PLUGIN = "uvc"
+#: ``[options.uvc]``: each setting and its kind (``usb_util.OPTION_KINDS``).
+OPTIONS = {"width": "count", "height": "count", "fps": "positive", "fourcc": "text", "exposure_us": "positive",
+           "gain": "number", "transfer": ("srgb", "linear"), "timeout_s": "positive", "exposure_settle_frames": "whole",
+           "max_stale_frames": "whole"}
 V4L_ROOT = Path("/sys/class/video4linux")
 RAW_FOURCCS = ("BA81", "GBRG", "GRBG", "RGGB", "BYR2", "Y16 ", "GREY")
 #: The Bayer layout each raw fourcc names (V4L2: BA81 = SBGGR8, BYR2 = SBGGR16); Y16 and GREY do not say
@@ -73,8 +77,11 @@ class UvcCamera:
     def __init__(self, info: DeviceInfo, locate: Callable[[], str], open_capture: Callable[[str], Any],
                  options: Mapping[str, Any]) -> None:
         self.info, self.locate, self.open_capture = info, locate, open_capture
-        self.opts = dict(options)
-        self.fourcc = str(self.opts.get("fourcc", ""))
+        self.opts = check_plugin_options(options, PLUGIN, OPTIONS, info.id)
+        self.fourcc = self.opts.get("fourcc", "")
+        if self.fourcc and len(self.fourcc) != 4:  # (OpenCV's own words: a TypeError about arguments)
+            raise DeviceError(f"{info.id}: [options.uvc] fourcc must be 4 characters (\"MJPG\", \"Y16 \"), got "
+                              f"{self.fourcc!r}")
         self.raw = self.fourcc in RAW_FOURCCS
         self.base_exposure_us = float(self.opts.get("exposure_us", 10_000))
         self.exposure, self.gain = 1.0, self.opts.get("gain")

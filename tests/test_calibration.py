@@ -44,6 +44,42 @@ def test_a_dark_or_clipped_view_is_one_clear_error():
         fit_response(RAMP_LEVELS, _ramp((2.2,) * 3, 0.0) * 10)  # every white pixel clipped
 
 
+
+def test_a_ramp_the_camera_does_not_see_is_refused_and_nothing_is_written(tmp_path, monkeypatch):
+    """A camera that did not see the projector (the Basler emulator's own test image) fitted gamma 1.000 and black
+    0.5000, the clip limit, and the rig file written with them was refused by `sss capture` (black must be < 0.5)."""
+    from sssphase_core.capture import calibration
+
+    unseen = 0.5 + 0.1 * _ramp((1.0,) * 3, 0.0)  # a bright scene that drifts a little from frame to frame
+    with pytest.raises(DataError, match=r"the ramp's black frame reads 0\.\d\d of its white frame .* the camera does "
+                                        r"not see the projector's ramp, or ambient light outweighs it"):
+        fit_response(RAMP_LEVELS, unseen)
+    with pytest.raises(DataError, match=r"the fitted gamma 7\.00 \(R\) is outside \[0\.3, 5\]"):
+        fit_response(RAMP_LEVELS, _ramp((7.0,) * 3, 0.0))
+    rig = tmp_path / "rig.toml"
+    rig.write_text('[devices]\ncamera = "uvc:0"\nprojector = "hdmi:1"\n')
+    monkeypatch.setattr(calibration, "capture_ramp", lambda *a, **k: unseen)
+    with pytest.raises(DataError, match="does not see the projector's ramp"):
+        calibration.calibrate_projector(None, calibration.CalibrationRequest(rig=rig))
+    assert rig.read_text() == '[devices]\ncamera = "uvc:0"\nprojector = "hdmi:1"\n'  # nothing written
+
+
+@pytest.mark.parametrize("black", [0.2, 0.45, 0.49, 0.4999999, 0.6])
+def test_a_high_black_is_either_refused_or_written_as_capture_reads_it(black, tmp_path):
+    """Whatever the projector's black (ambient light adds to it), the fit never writes a rig file that `sss capture`
+    refuses: it is refused by the fit, with one line, or read back as fitted."""
+    from sssphase_core.capture.plan import RigSpec
+
+    try:
+        fit = fit_response(RAMP_LEVELS, _ramp((2.2,) * 3, black))
+    except DataError as exc:
+        assert black >= 0.49 and "does not see the projector's ramp" in str(exc)
+        return
+    rig = tmp_path / "rig.toml"
+    rig.write_text(rig_file_with_response('[devices]\ncamera = "uvc:0"\nprojector = "hdmi:1"\n', fit))
+    assert RigSpec.from_toml(rig).projector_black == pytest.approx(black, abs=1e-3)
+
+
 def test_the_rig_file_keeps_its_comments_and_gets_one_projector_table():
     text = "# my rig\n[devices]\ncamera = \"uvc:0\"  # the left camera\nprojector = \"hdmi:1\"\n\n[projector]\ngamma = 9\n\n[processing]\npatch = 48\n"
     fit = fit_response(RAMP_LEVELS, _ramp((1.9,) * 3, 0.003))

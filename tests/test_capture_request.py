@@ -85,6 +85,25 @@ def test_calibration_request_resolves_and_checks_the_target(tmp_path, monkeypatc
         CalibrationRequest(rig=real, check=True)
 
 
+
+@pytest.mark.parametrize(("options", "said"), [
+    ("[options]\nexposure_us = 1000\n", r"\[options\] exposure_us outside every plugin's table: a device's settings go "
+                                        r"in its plugin's table, e.g. \[options.basler\] exposure_us = ... \(this rig's "
+                                        r"plugins: basler, hdmi\)"),
+    ("[options]\nbasler = \"fast\"\n", r"\[options\] basler must be a table of basler settings \(\[options.basler\]\), "
+                                       r"got str"),
+])
+def test_a_real_rig_s_option_outside_its_plugin_s_table_is_refused_when_read(tmp_path, options, said):
+    """A key under [options] of a rig without simulated devices (only the sim plugin reads bare keys) was ignored:
+    the capture ran with the default and exited 0."""
+    rig = tmp_path / "rig.toml"
+    rig.write_text('[devices]\ncamera = "basler:0815-0000"\nprojector = "hdmi:display0"\n' + options)
+    with pytest.raises(InputError, match=said):
+        RigSpec.from_toml(rig)
+    rig.write_text('[devices]\ncamera = "basler:0815-0000"\nprojector = "hdmi:display0"\n[options.basler]\ngain = 0\n')
+    assert RigSpec.from_toml(rig).options == {"basler": {"gain": 0}}
+
+
 def test_write_rig_response_writes_a_sim_rig_file_with_the_fit(tmp_path):
     import numpy as np
 

@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from sssphase_core.capture.plan import BLACK_LIMIT, GAMMA_RANGE
 from sssphase_core.errors import DataError, InputError
 from sssphase_core.store.files import atomic_path
 
@@ -80,7 +81,11 @@ def ramp_response(images: np.ndarray, *, saturation: float = 0.98,
         raise DataError(f"only {n} camera pixels see the projector's white well exposed (need 50): aim the projector "
                         "at a matte target that fills the view, and check the exposure")
     r = (imgs[:, good] - lo[good]) / (hi[good] - lo[good])  # (L, N, 3)
-    black = np.clip(np.median(lo[good] / hi[good], axis=0), 0.0, 0.5)
+    black = np.clip(np.median(lo[good] / hi[good], axis=0), 0.0, None)
+    if (np.round(black, 5) >= BLACK_LIMIT).any():  # (as the rig file rounds it) a projector's black is ~0.01 of white
+        raise DataError(f"the ramp's black frame reads {black.max():.2f} of its white frame (a projector's black is a "
+                        "few hundredths): the camera does not see the projector's ramp, or ambient light outweighs it; "
+                        "aim the projector at a matte target in the camera's view and darken the room (nothing written)")
     return np.median(r, axis=1), black, n
 
 
@@ -96,6 +101,10 @@ def fit_response(levels: tuple[float, ...], images: np.ndarray) -> ProjectorResp
             raise DataError("the ramp's response is at the noise floor: raise the exposure")
         x, y = np.log(v[ok]), np.log(r[ok, c])
         g = float((x * y).sum() / (x * x).sum())  # through the origin: r(1) = 1
+        if not GAMMA_RANGE[0] <= g <= GAMMA_RANGE[1]:  # (a rig file with it would be refused by `sss capture`)
+            raise DataError(f"the fitted gamma {g:.2f} ({'RGB'[c]}) is outside [{GAMMA_RANGE[0]:g}, {GAMMA_RANGE[1]:g}]: "
+                            "the camera does not follow the projector's ramp; check that it sees the projector's light "
+                            "and nothing else changes between frames (nothing written)")
         gammas.append(g)
         rms = max(rms, float(np.sqrt(np.mean((v[use] ** g - r[use, c]) ** 2))))
     return ProjectorResponse(

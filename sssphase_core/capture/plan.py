@@ -27,6 +27,10 @@ def dot_spacing_for(patch: int) -> int:
 
 #: The tables of a rig file, and the keys of its [projector] table (what `sss calibrate projector` writes).
 RIG_TABLES = ("devices", "processing", "projector", "options")
+#: The projector responses a rig file may give: gamma in [0.3, 5] (each colour's and their mean), black relative to
+#: white in [0, 0.5) (each colour's up to 0.5) -- `sss calibrate projector` refuses a fit outside them.
+GAMMA_RANGE = (0.3, 5.0)
+BLACK_LIMIT = 0.5
 PROJECTOR_KEYS = frozenset({"gamma", "black", "gamma_rgb", "black_rgb", "levels", "response_rgb", "rms", "pixels"})
 
 
@@ -56,6 +60,22 @@ def _check_fit_record(path: Path, resp: dict[str, Any]) -> None:
         raise InputError(f"{path}: [projector] rms must be a finite number >= 0, got {rms!r}")
     if pixels is not None and (isinstance(pixels, bool) or not isinstance(pixels, int) or pixels < 0):
         raise InputError(f"{path}: [projector] pixels must be a whole number >= 0, got {pixels!r}")
+
+
+def _check_real_rig_options(path: Path, options: dict[str, Any], device_ids: Any) -> None:
+    """A rig without simulated devices: each plugin's settings are in its own table (``[options.basler]``); a key
+    outside every table (``[options] exposure_us = 1000``) was ignored without a word. (A table named after no
+    installed plugin is refused by the daemon, which knows its plugins.)"""
+    plugins = sorted({str(d).partition(":")[0] for d in device_ids})
+    for key, value in options.items():
+        if key in plugins and not isinstance(value, dict):
+            raise InputError(f"{path}: [options] {key} must be a table of {key} settings ([options.{key}]), got "
+                             f"{type(value).__name__}")
+    bare = sorted(str(k) for k, v in options.items() if not isinstance(v, dict))
+    if bare:
+        raise InputError(f"{path}: [options] {', '.join(bare)[:200]} outside every plugin's table: a device's settings "
+                         f"go in its plugin's table, e.g. [options.{plugins[0]}] {bare[0]} = ... (this rig's plugins: "
+                         f"{', '.join(plugins)})")
 
 
 @dataclass
@@ -128,7 +148,7 @@ class RigSpec:
                              f"(a white at 2,300 DN: 2300), got {proc['white_scale']:g}, below one DN: its inverse?")
         if "median" in proc and not isinstance(proc["median"], bool):
             raise InputError(f"{path}: [processing] median must be true or false, got {proc['median']!r}")
-        for key, (lo, hi) in (("gamma_rgb", (0.3, 5.0)), ("black_rgb", (0.0, 0.5))):  # per colour, as fitted
+        for key, (lo, hi) in (("gamma_rgb", GAMMA_RANGE), ("black_rgb", (0.0, BLACK_LIMIT))):  # per colour, as fitted
             v = resp.get(key)
             if v is not None and not (_numbers(v, lo, hi) and len(v) == 3):
                 raise InputError(f"{path}: [projector] {key} must be three numbers in [{lo:g}, {hi:g}], got {v!r}")
@@ -138,10 +158,11 @@ class RigSpec:
             gamma = sum(resp["gamma_rgb"]) / 3
         if black is None and "black_rgb" in resp:
             black = sum(resp["black_rgb"]) / 3
-        if gamma is not None and not (isinstance(gamma, int | float) and not isinstance(gamma, bool) and 0.3 <= gamma <= 5):
-            raise InputError(f"{path}: [projector] gamma must be a number in [0.3, 5], got {gamma!r}")
-        if black is not None and not (isinstance(black, int | float) and not isinstance(black, bool) and 0 <= black < 0.5):
-            raise InputError(f"{path}: [projector] black must be a number in [0, 0.5), got {black!r}")
+        if gamma is not None and not (isinstance(gamma, int | float) and not isinstance(gamma, bool) and GAMMA_RANGE[0] <= gamma <= GAMMA_RANGE[1]):
+            raise InputError(f"{path}: [projector] gamma must be a number in [{GAMMA_RANGE[0]:g}, {GAMMA_RANGE[1]:g}], "
+                             f"got {gamma!r}")
+        if black is not None and not (isinstance(black, int | float) and not isinstance(black, bool) and 0 <= black < BLACK_LIMIT):
+            raise InputError(f"{path}: [projector] black must be a number in [0, {BLACK_LIMIT:g}), got {black!r}")
         options = cfg.get("options", {})
         if all(str(v).startswith("sim:") for v in dev.values()):  # a sim rig: its plugin's options only
             from sssphase_core.sim.rig import SIM_RIG_OPTIONS
@@ -150,6 +171,8 @@ class RigSpec:
             if unknown:  # a misspelt option was ignored: the capture ran with the default
                 raise InputError(f"{path}: unknown sim rig [options] {', '.join(unknown)} (known: "
                                  f"{', '.join(sorted(SIM_RIG_OPTIONS))})")
+        elif not any(str(v).startswith("sim:") for v in dev.values()):  # the sim plugin reads bare keys; no other
+            _check_real_rig_options(path, options, dev.values())
         return cls(dev["camera"], dev["projector"], dev.get("turntable"), dict(options), **proc,
                    gamma=None if gamma is None else float(gamma), projector_black=None if black is None else float(black),
                    trigger=dev.get("trigger"))

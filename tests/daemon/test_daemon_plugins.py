@@ -119,6 +119,64 @@ def test_one_module_registered_under_two_names_is_one_line_naming_the_first(monk
                             "name one module; remove one")
 
 
+
+SHADOW = """
+from sssphase_plugins.hookspecs import hookimpl
+from sssphase_plugins.drivers import DeviceInfo
+class P:
+    kind = "camera"
+    def discover(self):
+        return [DeviceInfo("basler:extra0", "camera", "basler", "third-party thing", "extra0")]
+    def open(self, device_id, options, shared):
+        raise RuntimeError("not a camera")
+@hookimpl
+def sssphase_cameras():
+    return [P()]
+"""
+
+
+def test_a_third_party_plugin_named_like_a_built_in_one_is_listed_broken_and_the_built_in_stays(tmp_path, monkeypatch):
+    """An installed distribution's entry point named ``basler`` earlier on the path replaced the built-in Basler
+    plugin without a word (pluggy loads the first entry point of a name), and one later on it was dropped without
+    one. A module of $SSS_PLUGINS named like a built-in (``sim``) was dropped silently too."""
+    (tmp_path / "acme_shadow.py").write_text(SHADOW)
+    (tmp_path / "sim.py").write_text(SHADOW)
+    info = tmp_path / "acme_shadow-0.1.dist-info"
+    info.mkdir()
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: acme-shadow\nVersion: 0.1\n")
+    (info / "entry_points.txt").write_text("[sssphase_devices]\nbasler = acme_shadow\n")
+    monkeypatch.syspath_prepend(str(tmp_path))  # before the built-in's distribution on the path
+    monkeypatch.setenv(manager.ENV_PLUGINS, "sim")
+    pm = manager.build_plugin_manager()
+    records = {r.name: r for r in manager.plugin_records(pm)}
+    assert records["basler"].ok and records["basler"].source == "sssphase"
+    assert pm.get_plugin("basler").__name__ == "sssphase_plugins.basler_camera"
+    said = "another plugin is registered under this name ({}): rename one of the two entry points"
+    assert not records["basler (acme-shadow)"].ok
+    assert records["basler (acme-shadow)"].source == said.format("sssphase_plugins.basler_camera")
+    assert records["sim"].ok and pm.get_plugin("sim").__name__ == "sssphase_plugins.sim_plugin"
+    assert records["sim (SSS_PLUGINS)"].source == said.format("sssphase_plugins.sim_plugin")
+    _, errors = manager.discover_devices(pm)
+    assert "basler (acme-shadow)" in errors  # `sss devices` names it too
+    assert "basler:extra0" not in {d.id for d in manager.discover_devices(pm)[0]}
+
+
+
+def test_rig_options_no_plugin_reads_are_refused_naming_the_known_tables():
+    """[options.basle] (misspelt) and, in a rig of real devices, [options] exposure_us = 1000 (outside every table)
+    were ignored: the capture ran with the devices' defaults and exited 0."""
+    from sssphase_core.errors import InputError
+
+    pm = manager.build_plugin_manager()
+    with pytest.raises(InputError, match=r"rig options \[options.basle\]: no installed device plugin has that name .*"
+                                         r"the tables of the installed plugins: \[options.basler\], .*\[options.hdmi\]"):
+        manager.check_rig_options({"basle": {"exposure_us": 1000}}, ["basler:1", "hdmi:display0"], pm)
+    with pytest.raises(InputError, match=r"rig options exposure_us are outside every plugin's table"):
+        manager.check_rig_options({"exposure_us": 1000}, ["basler:1", "hdmi:display0"], pm)
+    manager.check_rig_options({"basler": {"gain": 0}, "hdmi": {}}, ["basler:1", "hdmi:display0"], pm)
+    manager.check_rig_options({"object": "star", "basler": {"gain": 0}}, ["sim:camera0", "hdmi:display0"], pm)  # sim's
+
+
 CLONES = {  # two plugins that report the sim's camera, and one id that two plugins other than its own report
     "acme_clone": """
 from sssphase_plugins.hookspecs import hookimpl

@@ -718,3 +718,173 @@ def test_a_daemon_that_a_plugin_crashed_is_said_to_have_exited(daemon_factory, t
                                                  "crashed by a device plugin: its log is"):
         list(client.stream(rig, 2))
     assert proc.wait(5) == -signal.SIGABRT
+
+
+CLOSE_HANGING_PLUGIN = '''
+import os, time
+import numpy as np
+from sssphase_plugins.api import DeviceInfo, Frame, hookimpl
+
+
+class Camera:
+    def __init__(self, device_id):
+        self.info = DeviceInfo(device_id, "camera", "closehang", "hangs in close", device_id)
+
+    def configure(self, **kw):
+        pass
+
+    def grab(self, timeout_s=5.0):
+        return Frame(np.zeros((4, 4, 3), np.float32), 0, time.monotonic_ns(), 1.0, {})
+
+    def stream(self, count):
+        return (self.grab() for _ in range(count))
+
+    def close(self):
+        while os.path.exists(os.environ["SSS_TEST_HANG_FLAG"]):  # a driver stuck in a USB call
+            time.sleep(0.05)
+
+
+class Provider:
+    kind = "camera"
+
+    def discover(self):
+        return [DeviceInfo("closehang:cam", "camera", "closehang", "hangs in close", "cam")]
+
+    def open(self, device_id, options, shared):
+        return Camera(device_id)
+
+
+@hookimpl
+def sssphase_cameras():
+    return [Provider()]
+'''
+
+
+def test_a_device_whose_close_hangs_holds_neither_the_daemon_nor_its_clients(daemon_factory, tmp_path, monkeypatch):
+    """close_rig ran the plugin's close() on the daemon's main thread: one that never returned left the daemon
+    answering no one ("runs but does not answer"). The close now runs in a thread of its own: close_rig is answered
+    within CLOSE_REPLY_S naming the device, other clients meanwhile, and the device cannot be opened again (busy,
+    named) until its close returns."""
+    flag = tmp_path / "hang"
+    (tmp_path / "closehang_plugin.py").write_text(CLOSE_HANGING_PLUGIN)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("SSS_PLUGINS", "closehang_plugin")
+    monkeypatch.setenv("SSS_TEST_HANG_FLAG", str(flag))
+    monkeypatch.setenv("SSS_OPEN_TIMEOUT_S", "2")  # open_rig waits for a closing device for half of it
+    proc, client, runtime = daemon_factory()
+    rig = client.call("open_rig", camera="closehang:cam")["rig"]
+    flag.touch()
+    pings: list[float] = []
+
+    def ping_meanwhile() -> None:
+        with DaemonClient(client.endpoint, client.token, timeout_s=3.0) as other:
+            time.sleep(0.3)  # while close_rig waits for the close
+            t0 = time.monotonic()
+            other.call("ping", timeout_s=3.0)
+            pings.append(time.monotonic() - t0)
+
+    pinger = threading.Thread(target=ping_meanwhile)
+    pinger.start()
+    t0 = time.monotonic()
+    closed = client.call("close_rig", timeout_s=5.0, rig=rig)
+    assert time.monotonic() - t0 < 3.0
+    assert closed["closed"] == rig and "closehang:cam did not close within" in closed["note"], closed
+    pinger.join(10)
+    assert pings and pings[0] < 1.0, pings
+    t0 = time.monotonic()
+    assert client.ping(timeout_s=2.0) and time.monotonic() - t0 < 1.0
+    assert rig not in {r["rig"] for r in client.call("status")["rigs"]}
+    with pytest.raises(DaemonError, match=r"closehang:cam is still closing: the close\(\) of closehang:cam has not "
+                                          r"returned for \d+ s \(its plugin hangs\)") as exc:
+        client.call("open_rig", camera="closehang:cam", timeout_s=5.0)
+    assert exc.value.code == protocol.BUSY
+    assert client.call("open_rig", camera="sim:camera0")["rig"]  # other devices open meanwhile
+    flag.unlink()  # the close returns: the device can be opened again
+    assert client.call("open_rig", camera="closehang:cam", timeout_s=5.0)["rig"]
+
+
+def test_open_rig_refuses_options_no_plugin_reads(daemon):
+    """A misspelt plugin table was handed to the plugins, none of which read it: the rig opened with defaults."""
+    _, client = daemon
+    before = len(client.call("status")["rigs"])
+    with pytest.raises(DaemonError, match=r"rig options \[options.basle\]: no installed device plugin has that name") as exc:
+        client.call("open_rig", camera="sim:camera0", options={"object": "star", "basle": {"gain": 0}})
+    assert exc.value.code == protocol.BAD_ARGS
+    with pytest.raises(DaemonError, match=r"rig options exposure_us are outside every plugin's table"):
+        client.call("open_rig", camera="example:testpattern0", options={"exposure_us": 1000})
+    assert len(client.call("status")["rigs"]) == before  # nothing was opened
+
+
+def test_a_daemon_does_not_start_beside_another_of_the_same_state_file():
+    """Each daemon checked that no other one served, then (later) wrote its state file: two started together both
+    found none, both served, and the state file named only one; the other ran invisibly, holding devices. The state
+    file's lock is now held from that check until the daemon has removed its state file."""
+    from sssphase_daemon.server import Daemon
+
+    folder = Path(tempfile.mkdtemp(prefix="sssl", dir="/tmp"))
+    state = folder / "daemon.json"
+    try:
+        first = Daemon(f"ipc://{folder}/a.sock", token="t" * 32, state_file=state)  # starting: no state file yet
+        with pytest.raises(PermissionError, match=rf"another daemon is starting \(its state file: {state}\): stop it first"):
+            Daemon(f"ipc://{folder}/b.sock", token="t" * 32, state_file=state)
+        first.write_state()
+        with pytest.raises(PermissionError, match=rf"another daemon \(pid {os.getpid()}\) is serving ipc://{folder}/a.sock"):
+            Daemon(f"ipc://{folder}/b.sock", token="t" * 32, state_file=state)
+        assert security.read_state(state).endpoint == f"ipc://{folder}/a.sock"  # the second wrote nothing
+        first.close()
+        second = Daemon(f"ipc://{folder}/b.sock", token="t" * 32, state_file=state)  # once the first is gone
+        second.close()
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+def test_two_daemon_starts_at_once_start_one_daemon(tmp_path):
+    """`sss daemon start` and `sss daemon start --endpoint tcp://...` run together both said "daemon started"."""
+    import socket
+
+    from sss_process import run_sss
+
+    runtime = Path(tempfile.mkdtemp(prefix="ssst", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime)}
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    results: list[subprocess.CompletedProcess] = []
+    starts = [threading.Thread(target=lambda a=args: results.append(run_sss(["daemon", "start", *a], env=env)))
+              for args in ((), ("--endpoint", f"tcp://127.0.0.1:{port}"))]
+    try:
+        for t in starts:
+            t.start()
+        for t in starts:
+            t.join(120)
+        said = sorted((r.returncode, (r.stdout + r.stderr).strip()) for r in results)
+        assert [rc for rc, _ in said] == [0, 2], said
+        assert said[0][1].startswith("daemon started") and said[1][1] == "error: a daemon is already running " \
+                                                                          "(`sss daemon status`)", said
+        pid = security.read_state(runtime / "daemon.json").pid
+        assert f"(pid {pid})" in said[0][1]
+    finally:
+        run_sss(["daemon", "stop", "--force"], env=env)
+        shutil.rmtree(runtime, ignore_errors=True)
+
+
+def test_keys_are_not_replaced_under_a_daemon_that_uses_them(tmp_path, monkeypatch):
+    """`sss daemon keys --overwrite` while a CURVE daemon ran replaced its keys: every later local command said the
+    daemon "runs but does not answer". It is refused, naming the daemon; other keys may still be replaced."""
+    from sssphase_cli import cmd_daemon
+    from sssphase_core.errors import InputError
+
+    keys = security.generate_keys(tmp_path / "curve")
+    secret = (keys / "server.key_secret").read_bytes()
+    monkeypatch.setattr(security, "state_path", lambda: tmp_path / "daemon.json")
+    security.write_state(security.DaemonState("tcp://127.0.0.1:5599", "t" * 32, 4242, "0", time.time(),
+                                              curve_dir=str(keys)), tmp_path / "daemon.json")
+    monkeypatch.setattr(security, "is_daemon_process", lambda pid, started=None: pid == 4242)
+    with pytest.raises(InputError, match=rf"the daemon \(pid 4242\) serving tcp://127.0.0.1:5599 uses the CURVE keys "
+                                         rf"in {keys}: stop it first \(`sss daemon stop`\), then replace them"):
+        cmd_daemon.daemon_keys(directory=tmp_path / "curve", overwrite=True)
+    assert (keys / "server.key_secret").read_bytes() == secret
+    cmd_daemon.daemon_keys(directory=tmp_path / "other", overwrite=True)  # keys no daemon uses
+    monkeypatch.setattr(security, "is_daemon_process", lambda pid, started=None: False)  # the daemon is gone
+    cmd_daemon.daemon_keys(directory=tmp_path / "curve", overwrite=True)
+    assert (keys / "server.key_secret").read_bytes() != secret

@@ -127,6 +127,50 @@ def test_a_camera_open_elsewhere_is_one_line(emulator, monkeypatch):
         open_camera()
 
 
+
+class _Recording:
+    """A pylon camera that records the waits it is asked for (the emulator does not take an exposure's time)."""
+
+    def __init__(self, cam, waits, frames=True):
+        self._cam, self._waits, self._frames = cam, waits, frames
+
+    def __getattr__(self, name):
+        return getattr(self._cam, name)
+
+    def WaitForFrameTriggerReady(self, ms, handling):  # noqa: N802 (pylon's name)
+        self._waits.append(("ready", ms))
+        return self._cam.WaitForFrameTriggerReady(ms, handling)
+
+    def RetrieveResult(self, ms, handling):  # noqa: N802
+        if ms:  # (0: the drain of frames already waiting)
+            self._waits.append(("frame", ms))
+            if not self._frames:
+                return None
+        return self._cam.RetrieveResult(ms, handling)
+
+
+def test_a_grab_waits_for_the_exposure_and_the_timeout(emulator):
+    """The wait for a frame was timeout_s (5 s) whatever the exposure: an 8 s exposure failed with "no frame within
+    5 s". It is now the exposure under way plus timeout_s."""
+    cam = open_camera(exposure_us=8_000_000, timeout_s=5)
+    waits: list[tuple[str, int]] = []
+    try:
+        cam.cam = _Recording(cam.cam, waits)
+        cam.grab()
+        assert waits == [("ready", 13_000), ("frame", 13_000)]
+        waits.clear()
+        cam.configure(exposure=0.25)  # a short HDR bracket: 2 s
+        cam.grab(timeout_s=1.0)
+        assert waits == [("ready", 3_000), ("frame", 3_000)]
+        cam.cam = _Recording(cam.cam._cam, waits, frames=False)
+        with pytest.raises(DeviceError, match=r"no frame within 7 s \(the 2 s exposure and 5 s more\): the camera sent "
+                                              r"nothing"):
+            cam.grab()
+    finally:
+        cam.cam = getattr(cam.cam, "_cam", cam.cam)
+        cam.close()
+
+
 def test_buffers_go_back_to_pylon(emulator):
     """Each result is released once its pixels are copied: 25 times more frames than buffers never stall."""
     cam = open_camera(buffers=2, pixel_format="BayerRG8")
@@ -153,7 +197,7 @@ def test_a_hardware_trigger_that_never_comes_is_a_timeout_naming_the_line(emulat
     cam = open_camera(trigger="Line1", timeout_s=0.3)
     try:
         assert cam.cam.TriggerSource.Value == "Line1" and cam.cam.TriggerActivation.Value == "RisingEdge"
-        with pytest.raises(DeviceError, match=r"no frame within 0.3 s: the trigger never came: is the projector's "
+        with pytest.raises(DeviceError, match=r"no frame within 0.31 s \(the 0.01 s exposure and 0.3 s more\): the trigger never came: is the projector's "
                                               r"trigger output wired to Line1"):
             cam.wait_frame()
     finally:
