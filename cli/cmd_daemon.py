@@ -67,10 +67,12 @@ def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] 
         console.print_json(json.dumps({"devices": devs, "errors": errors}))
         return
     table = Table(title=f"devices ({where})")
-    for col in ("id", "kind", "plugin", "model", "serial"):
+    # the id whole on one line (a rig file takes it as it is): the other columns wrap first
+    table.add_column("id", no_wrap=True, min_width=max((len(str(d["id"])) for d in devs), default=2))
+    for col in ("kind", "plugin", "model", "serial"):
         table.add_column(col)
-    for d in devs:
-        table.add_row(d["id"], d["kind"], d["plugin"], d["model"], d["serial"])
+    for d in devs:  # (a plugin's text is not rich markup: "[" would vanish)
+        table.add_row(*(escape(str(d[key])) for key in ("id", "kind", "plugin", "model", "serial")))
     console.print(table)
     for plugin, err in errors.items():
         if err.startswith("no device"):

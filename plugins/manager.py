@@ -170,8 +170,10 @@ def plugin_records(pm: PluginManager | None = None) -> list[PluginRecord]:
     return sorted(records, key=lambda r: r.name)
 
 
-def device_providers(pm: PluginManager | None = None, kind: str | None = None) -> list[tuple[str, DeviceProvider]]:
-    """(plugin name, provider) for every device hook implementation; a raising plugin is recorded."""
+def device_providers(pm: PluginManager | None = None, kind: str | None = None,
+                     timeout: float | None = None) -> list[tuple[str, DeviceProvider]]:
+    """(plugin name, provider) for every device hook implementation; a raising plugin is recorded, and with a
+    ``timeout`` (seconds per hook) so is one whose hook hangs, by name, its devices left out."""
     pm = pm or get_plugin_manager()
     out: list[tuple[str, DeviceProvider]] = []
     for k, hook_name in hookspecs.DEVICE_HOOKS.items():
@@ -179,11 +181,17 @@ def device_providers(pm: PluginManager | None = None, kind: str | None = None) -
             continue
         for impl in getattr(pm.hook, hook_name).get_hookimpls():
             try:
-                providers = list(impl.function() or [])
+                call = lambda impl=impl: list(impl.function() or [])  # noqa: E731
+                providers = call() if timeout is None else _within(timeout, call)
                 bad = [p for p in providers if not all(hasattr(p, a) for a in ("kind", "discover", "open"))]
                 if bad:
                     raise TypeError(f"returned {type(bad[0]).__name__!s:.40} instead of device providers "
                                     "(objects with kind, discover and open)")
+            except _Hung:
+                pm.load_errors[impl.plugin_name] = (f"its hook {hook_name} did not return within {timeout:g} s (it "
+                                                    "hangs): its devices are left out; disable it (SSS_PLUGINS, or "
+                                                    "uninstall it)")
+                continue
             except (Exception, SystemExit) as exc:
                 pm.load_errors[impl.plugin_name] = f"{hook_name} failed: {_error_text(exc)}"
                 continue
@@ -250,12 +258,7 @@ def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo],
     pm = pm or get_plugin_manager()
     found: dict[str, tuple[str, DeviceInfo]] = {}  # id -> (plugin, device): one entry per id
     errors: dict[str, str] = {}
-    try:
-        providers = _within(timeout, lambda: device_providers(pm))
-    except _Hung:
-        return [], {**pm.load_errors, "plugins": f"a plugin's hook did not return within {timeout:g} s "
-                                                 "(it hangs): no device could be listed; disable it (SSS_PLUGINS, "
-                                                 "or uninstall it) and try again"}
+    providers = device_providers(pm, timeout=timeout)  # (a hook that hangs is named in pm.load_errors, added below)
     for plugin, provider in providers:
         try:
             devices = _within(timeout, lambda provider=provider: _discover(provider))
