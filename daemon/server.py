@@ -306,13 +306,13 @@ def _check_frame(job: Job, name: str, frame: Any, first: tuple[tuple[int, ...], 
     data = getattr(frame, "data", None)
     if not isinstance(data, np.ndarray) or data.dtype.kind not in "biuf" or data.ndim not in (2, 3) or not data.size:
         raise DeviceError(f"{who}: frame {name[:60]!r} is not an image array ({type(data).__name__} "
-                          f"{getattr(data, 'shape', '')}): a corrupted transfer")
+                          f"{getattr(data, 'shape', '')}): a corrupted transfer or a fault of its driver")
     seen = (tuple(data.shape), data.dtype.str)
     if first is not None and seen != first:
         raise DeviceError(f"{who}: frame {name[:60]!r} is {seen[0]} {seen[1]}, the job's first frame was {first[0]} "
-                          f"{first[1]}: a corrupted transfer")
+                          f"{first[1]}: a corrupted transfer or a fault of its driver")
     if data.dtype.kind == "f" and not np.isfinite(data).all():
-        raise DeviceError(f"{who}: frame {name[:60]!r} holds NaN or infinite values: a corrupted transfer")
+        raise DeviceError(f"{who}: frame {name[:60]!r} holds NaN or infinite values: a corrupted transfer or a fault of its driver")
     return first or seen
 
 

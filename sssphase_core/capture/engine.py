@@ -185,6 +185,7 @@ def _capture_views(client: ClientLike, req: CaptureRequest, rig: RigSpec, option
                 proc.add(frame, spec)
                 if progress:
                     progress(view, i + 1, len(frames))
+            proc.check_light()
             info = proc.finish()
             if rig.is_sim:
                 write_sim_ground_truth(writer, req, view, frames, options)

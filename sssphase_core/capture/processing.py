@@ -267,6 +267,19 @@ class ViewProcessor:
         if self.dots is not None:
             self.dots.append(image)
 
+    def check_light(self) -> None:
+        """Refuse the view's frames when they are not light in the camera's units (a driver's frames of NaN, of
+        negative numbers, of huge values: what ``sss validate`` and relighting refuse), naming the camera and the
+        frame, before anything of the view is written (a capture wrote them and said "complete")."""
+        from sssphase_core.store.light import light_problem, white_level
+
+        white = self.images.get("white")
+        level = white_level(white) if white is not None else None
+        for name, image in (*self.psp.items(), *self.images.items()):
+            if (problem := light_problem(f"frame {name}", image, level)) is not None:
+                raise DataError(f"the camera {self.rig.camera}: {problem} (its frames are not light as a camera "
+                                "measures it: check the driver's pixel format and black level; the view is not written)")
+
     def finish(self) -> dict[str, Any]:
         """Write the view's arrays (the dot frames were streamed already); returns manifest info."""
         cfg, w = self.plan.psp, self.writer

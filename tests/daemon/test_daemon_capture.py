@@ -472,3 +472,62 @@ def test_the_rig_is_kept_open_while_the_user_turns_the_object_by_hand(monkeypatc
     n = len(calls)
     time.sleep(0.1)
     assert n >= 5 and set(calls) == {"ping"} and len(calls) == n  # pinged while waiting, and only then
+
+
+NEGATIVE_CAMERA = '''
+import time
+import numpy as np
+from sssphase_plugins.api import DeviceInfo, Frame, hookimpl
+
+
+class Camera:
+    info = DeviceInfo("negcam:0", "camera", "negcam", "a camera whose driver reads signed data as light", "0")
+
+    def configure(self, *, exposure=None, gain=None, pixel_format=None):
+        pass
+
+    def grab(self, timeout_s=5.0):
+        return Frame(np.full((48, 64, 3), -1.0, np.float32), 0, time.monotonic_ns(), 1.0, {})
+
+    def stream(self, count):
+        return (self.grab() for _ in range(count))
+
+    def close(self):
+        pass
+
+
+class Provider:
+    kind = "camera"
+
+    def discover(self):
+        return [Camera.info]
+
+    def open(self, device_id, options, shared):
+        return Camera()
+
+
+@hookimpl
+def sssphase_cameras():
+    return [Provider()]
+'''
+
+
+def test_a_camera_whose_frames_are_no_light_fails_the_capture_naming_it_and_writes_no_view(tmp_path):
+    """A driver's frames of -1 everywhere (signed data read as light) captured "1/1 views complete", exit 0; `sss
+    validate` then found the session's images far below zero. The capture now refuses them, naming the camera."""
+    (tmp_path / "negcam.py").write_text(NEGATIVE_CAMERA)
+    rig = tmp_path / "rig.toml"
+    rig.write_text('[devices]\ncamera = "negcam:0"\nprojector = "sim:projector0"\n')
+    runtime = Path(tempfile.mkdtemp(prefix="sssn", dir="/tmp"))
+    env = {**os.environ, "SSS_PLUGINS": "negcam", "PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}",
+           "SSS_RUNTIME_DIR": str(runtime)}
+    try:
+        res = run_sss(["capture", "--object", "apple", "--views", "1", "--rig", str(rig), "--out", str(tmp_path / "s")],
+                      env=env, timeout=300, input="\n")  # (no turntable: "turn the object to view 0 ... press enter")
+    finally:
+        run_sss(["daemon", "stop", "--force"], env=env)
+        shutil.rmtree(runtime, ignore_errors=True)
+    said = res.stdout + res.stderr
+    assert res.returncode != 0 and "Traceback" not in said, said
+    assert "the camera negcam:0: frame " in said and "below -0.25 x the white level" in said, said
+    assert Session.open(tmp_path / "s" / "apple").views() == []
