@@ -225,18 +225,15 @@ def calibrate_stereo(
         MORE_POSES,
         against_simulated_rig,
         calibrate_stereo,
+        check_calibration_out,
         parse_board,
         write_calibration,
     )
-    from sssphase_core.errors import InputError
     from sssphase_core.relight.runner import choose_views
     from sssphase_core.store.session import Session
 
     corners = parse_board(board)
-    if out.suffix.lower() not in (".yml", ".yaml", ".xml", ".json"):
-        raise InputError(f"--out {out}: name a .yml, .yaml, .xml or .json file (OpenCV writes the format its suffix names)")
-    if out.is_dir():
-        raise InputError(f"--out {out} is a folder: name the calibration file to write")
+    check_calibration_out(out)
     s = Session.open(session)
     chosen = choose_views(s, views)
     with console.status(f"finding the board in {len(chosen)} views") as status:
@@ -273,7 +270,13 @@ def calibrate_turntable(
 ) -> None:
     """Find the turntable's axis from a checkerboard standing on it: each view's corners triangulated, the board's
     turns fitted to one axis; `sss geometry` then merges a session's views into one point cloud."""
-    from sssphase_core.capture.stereo_calibration import calibration_entries, parse_board, write_calibration
+    from sssphase_core.capture.stereo_calibration import (
+        CALIBRATION_SUFFIXES,
+        calibration_entries,
+        check_calibration_out,
+        parse_board,
+        write_calibration,
+    )
     from sssphase_core.capture.turntable_calibration import calibrate_turntable, turntable_report
     from sssphase_core.errors import InputError
     from sssphase_core.processing.triangulation import read_calibration
@@ -283,9 +286,11 @@ def calibrate_turntable(
     corners = parse_board(board)
     stereo = read_calibration(calibration)  # (a folder or a missing file: said of --calibration)
     target = out or calibration
-    if target.suffix.lower() not in (".yml", ".yaml", ".xml", ".json"):
-        raise InputError(f"{'--out' if out else '--calibration'} {target}: name a .yml, .yaml, .xml or .json file (OpenCV "
-                         "writes the format its suffix names)")
+    if out is not None:
+        check_calibration_out(out)
+    elif calibration.suffix.lower() not in CALIBRATION_SUFFIXES:
+        raise InputError(f"--calibration {calibration}: name a .yml, .yaml, .xml or .json file (OpenCV writes the "
+                         "format its suffix names)")
     errors, others = calibration_entries(calibration)
     if out is None and others:  # rewritten in place, they would be lost
         raise InputError(f"--calibration {calibration} holds entries sss does not write ({', '.join(others[:6])}): give "

@@ -171,6 +171,36 @@ def test_a_stereo_calibration_that_cannot_be_made_is_one_line_and_writes_nothing
     assert not list(tmp_path.iterdir())
 
 
+def test_a_calibration_is_never_written_over_a_session_or_a_file_it_is_not(exact_stereo_file, tmp_path):
+    """`sss calibrate stereo --out SESSION/manifest.json` replaced the session's manifest (the session was lost), and
+    `--out notes.yml` a user's notes, without a word (`calibrate turntable --out` too); a calibration it wrote before
+    is replaced as ever."""
+    import shutil
+
+    from sssphase_core.capture.stereo_calibration import check_calibration_out
+    from sssphase_core.store.session import Session
+
+    session = Session.create(tmp_path / "s", "board")
+    with pytest.raises(InputError, match=r"--out .*manifest.json would write into the session"):
+        check_calibration_out(session.path / "manifest.json")
+    notes = tmp_path / "notes.yml"
+    notes.write_text('my_notes: "precious"\n')
+    with pytest.raises(InputError, match=r"--out .*notes.yml exists and is not a calibration file"):
+        check_calibration_out(notes)
+    theirs = tmp_path / "theirs.yml"
+    shutil.copy(exact_stereo_file, theirs)
+    with open(theirs, "a") as f:
+        f.write("image_width: 256\n")
+    with pytest.raises(InputError, match=r"holds entries sss does not write \(image_width\), which would be lost"):
+        check_calibration_out(theirs, "--calibration")
+    check_calibration_out(exact_stereo_file)  # one of ours: replaced
+    check_calibration_out(tmp_path / "new.json")
+    res = run_sss(["calibrate", "turntable", str(session.path), "--board", "6x4", "--calibration",
+                   str(exact_stereo_file), "--out", str(notes)], timeout=120)
+    assert res.returncode == 2 and "notes.yml exists and is not a calibration file" in res.stderr, res.stderr
+    assert notes.read_text() == 'my_notes: "precious"\n'
+
+
 def test_each_corners_projector_point_is_read_to_a_tenth_of_a_pixel(board_session):
     """The local homographies give each camera corner's projector point within a tenth of a projector pixel of the
     simulator's exact one (interpolated at the corner), where the nearest decoded pixel is off by up to half a pixel's
@@ -419,6 +449,11 @@ def test_geometry_refines_an_axis_that_is_off_from_the_views_overlaps(soap_turnt
     (tmp_path / "g" / "soap" / "calibration_refined.yml").rename(tmp_path / "o" / "soap" / "calibration_refined.yml")
     merge_views(s, {v: clouds[v] for v in (0, 2)}, read_calibration(wrong), tmp_path / "o", refine=True)
     assert not (tmp_path / "o" / "soap" / "calibration_refined.yml").exists()  # an earlier run's axis is not this one's
+    # ... unless it is the calibration this run was given, as the line that wrote it suggests: never deleted
+    given = write_calibration(tmp_path / "o" / "soap" / "calibration_refined.yml", read_calibration(wrong))
+    merge_views(s, {v: clouds[v] for v in (0, 2)}, read_calibration(given), tmp_path / "o", refine=True,
+                calibration=given)
+    assert given.is_file()
 
 
 def test_bench_axis_scores_the_refinement_against_the_axis_as_given(soap_turntable, tmp_path):

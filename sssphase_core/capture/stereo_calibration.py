@@ -20,7 +20,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from sssphase_core.errors import DataError, InputError
+from sssphase_core.errors import DataError, InputError, SssError
 from sssphase_core.processing.triangulation import StereoCalibration, check_unit
 from sssphase_core.store.files import atomic_path
 
@@ -282,6 +282,35 @@ ERROR_KEYS = ("cam_error", "proj_error", "stereo_error")
 #: not rewritten in place.
 WRITTEN_KEYS = frozenset({"cam_K", "cam_kc", "proj_K", "proj_kc", "R", "T", "unit", "turntable_axis", "turntable_point",
                           *ERROR_KEYS})
+
+
+#: The files a calibration is written as (OpenCV writes the format the suffix names).
+CALIBRATION_SUFFIXES = (".yml", ".yaml", ".xml", ".json")
+
+
+def check_calibration_out(path: Path, what: str = "--out") -> None:
+    """Refuse, in one line before any work, a calibration file to write that is no such file's name, a folder, inside
+    a session (a session's ``manifest.json`` was replaced, the session lost), or an existing file that is not a
+    calibration this program would write back whole (a user's notes, another tool's file with entries of its own)."""
+    from sssphase_core.processing.triangulation import read_calibration
+    from sssphase_core.store.session import refuse_inside_session
+
+    if path.suffix.lower() not in CALIBRATION_SUFFIXES:
+        raise InputError(f"{what} {path}: name a .yml, .yaml, .xml or .json file (OpenCV writes the format its suffix "
+                         "names)")
+    if path.is_dir():
+        raise InputError(f"{what} {path} is a folder: name the calibration file to write")
+    refuse_inside_session(path, what)
+    if path.exists() or path.is_symlink():
+        try:
+            read_calibration(path)
+            others = calibration_entries(path)[1]
+        except (SssError, cv2.error, OSError):
+            raise InputError(f"{what} {path} exists and is not a calibration file: choose another file, or move it "
+                             "away") from None
+        if others:
+            raise InputError(f"{what} {path} exists and holds entries sss does not write ({', '.join(others[:6])}), "
+                             "which would be lost: choose another file, or move it away")
 
 
 def calibration_entries(path: Path | str) -> tuple[dict[str, float], list[str]]:

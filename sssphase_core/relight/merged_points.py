@@ -68,9 +68,17 @@ def to_turntable_frame(points: np.ndarray, stereo: StereoCalibration, angle: flo
     return turned(points, stereo.turntable_axis, stereo.turntable_point, -angle)  # type: ignore[arg-type]
 
 
+def _same_file(a: Path, b: Path) -> bool:
+    try:
+        return a.exists() and b.exists() and a.samefile(b)
+    except OSError:
+        return False
+
+
 def merge_views(s: Session, clouds: dict[int, tuple[np.ndarray, np.ndarray]], stereo: StereoCalibration, out: Path,
                 exact_rig: StereoCalibration | None = None, crop_radius: float | None = None, refine: bool = False,
-                errors: dict[str, float] | None = None, mesh: bool = False) -> MergedCloud | None:
+                errors: dict[str, float] | None = None, mesh: bool = False,
+                calibration: Path | str | None = None) -> MergedCloud | None:
     """``clouds``: per view its points (H, W, 3, camera frame) and white capture (H, W, 3); turned into the frame of
     the turntable at 0 degrees with ``stereo``'s axis and written as ``out/<object>/points_merged.ply``. None where
     the calibration has no turntable or a view recorded no angle. ``exact_rig`` (simulated sessions): each view's
@@ -80,7 +88,8 @@ def merge_views(s: Session, clouds: dict[int, tuple[np.ndarray, np.ndarray]], st
     refine_axis`); where the views pin it down, the merge is about it and the calibration with it is written as
     ``out/<object>/calibration_refined.yml`` (keeping ``errors``, the stereo calibration's recorded RMS errors); where
     they do not, the calibration's axis stands. ``mesh``: each view's range-image mesh turned the same way, together
-    as ``out/<object>/mesh_merged.ply``."""
+    as ``out/<object>/mesh_merged.ply``. ``calibration``: the file ``stereo`` was read from, never removed (an
+    earlier run's refined calibration given back as this run's)."""
     from sssphase_core.store.pointcloud import write_point_cloud
 
     angles = recorded_angles(s, list(clouds))
@@ -115,8 +124,8 @@ def merge_views(s: Session, clouds: dict[int, tuple[np.ndarray, np.ndarray]], st
         from sssphase_core.capture.stereo_calibration import write_calibration
 
         done.refined_calibration = write_calibration(refined, stereo, errors)
-    elif refine:
-        refined.unlink(missing_ok=True)  # an earlier run's axis is not this run's answer
+    elif refine and not (calibration is not None and _same_file(refined, Path(calibration))):
+        refined.unlink(missing_ok=True)  # an earlier run's axis is not this run's answer (unless it is this run's input)
     if mesh:
         from sssphase_core.store.pointcloud import write_range_meshes
 

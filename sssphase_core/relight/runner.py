@@ -629,7 +629,8 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
             clouds = {d.view: (np.load(d.path)["points"], np.asarray(s.load(d.view, "white"), np.float32)) for d in done}
             with say.status(f"{s.name}: merging the views{' (refining the axis)' if refine_axis else ''}"):
                 merged = merge_views(s, clouds, stereo, out, exact_rig, crop_radius=crop_radius, refine=refine_axis,
-                                     errors=_recorded_errors(calibration) if refine_axis else None, mesh=mesh)
+                                     errors=_recorded_errors(calibration) if refine_axis else None, mesh=mesh,
+                                     calibration=calibration)
             if merged is not None:
                 notes, line = refinement_lines(merged, stereo.unit), merged_line(merged, stereo.unit or "the calibration's unit")
                 for said_line in [*notes, line] if merged.refinement is not None else [line, *notes]:  # (a hint after)
