@@ -438,6 +438,9 @@ def test_geometry_refines_an_axis_that_is_off_from_the_views_overlaps(soap_turnt
     plain = merge_views(s, clouds, read_calibration(wrong), tmp_path / "p", exact)  # not refined: said, and off
     assert "--refine-axis fits it to the views' overlaps" in " ".join(refinement_lines(plain, "mm"))
     assert np.median(list(plain.exact.values())) > 5 and near < 0.5, (plain.exact, near)
+    metres = replace(exact, turntable_point=exact.turntable_point / 1000)  # the point in metres, in a file of mm
+    apart = merge_views(s, clouds, metres, tmp_path / "m")  # four copies of the soap far apart: merged without a word
+    assert "warning: no two neighbouring views overlap" in " ".join(refinement_lines(apart, "mm"))
     written = tmp_path / "g" / "soap" / "calibration_refined.yml"
     refined = read_calibration(written)
     assert np.degrees(np.arccos(abs(refined.turntable_axis @ exact.turntable_axis))) < 0.2

@@ -191,6 +191,10 @@ def refinement_lines(done: MergedCloud, unit: str) -> list[str]:
     ``unit``: the calibration's length unit ("" where it names none)."""
     r, unit = done.refinement, f" {unit}" if unit else ""
     if r is None:
+        if not np.isfinite(done.agreement) and len(done.views) >= 3:  # (two views may face away from each other)
+            return [f"warning: no two neighbouring views overlap (no point within {OVERLAP_SPACINGS:g} point spacings of "
+                    "the other view's): the axis is far off (is the calibration's turntable_point in its unit?) or the "
+                    "views are too far apart; --refine-axis fits the axis where they overlap"]
         poor = np.isfinite(done.agreement) and done.agreement > POOR_AGREEMENT * done.spacing
         return [f"note: neighbouring views agree only to {done.agreement / done.spacing:.1f} point spacings: the axis may "
                 "be off; --refine-axis fits it to the views' overlaps"] if poor else []
