@@ -201,6 +201,25 @@ def test_a_calibration_is_never_written_over_a_session_or_a_file_it_is_not(exact
     assert notes.read_text() == 'my_notes: "precious"\n'
 
 
+def test_a_calibration_in_another_unit_is_compared_with_the_simulated_rig_in_that_unit(board_session):
+    """A correct calibration made with `--unit cm` was reported "baseline -90.1%" and its axis "359.52 mm from the true
+    one": the simulated rig's lengths (mm) were compared with its numbers as they stood."""
+    from dataclasses import replace
+
+    from sssphase_core.capture.stereo_calibration import against_simulated_rig
+    from sssphase_core.capture.turntable_calibration import against_simulated_turntable
+    from sssphase_core.sim import session_rig_calibration
+
+    exact = session_rig_calibration(board_session.manifest["rig"])
+    for unit, per_mm in (("mm", 1.0), ("cm", 0.1), ("m", 1e-3), ("in", 1 / 25.4)):
+        mine = replace(exact, translation=exact.translation * per_mm, turntable_point=exact.turntable_point * per_mm,
+                       unit=unit)
+        assert "its baseline +0.0%" in against_simulated_rig(board_session, mine), unit
+        assert "passing 0.00 mm from the true one" in against_simulated_turntable(board_session, mine), unit
+    odd = replace(exact, unit="parsecs")
+    assert "its baseline not compared (the unit 'parsecs' is none of mm, cm, m, in" in against_simulated_rig(board_session, odd)
+
+
 def test_each_corners_projector_point_is_read_to_a_tenth_of_a_pixel(board_session):
     """The local homographies give each camera corner's projector point within a tenth of a projector pixel of the
     simulator's exact one (interpolated at the corner), where the nearest decoded pixel is off by up to half a pixel's

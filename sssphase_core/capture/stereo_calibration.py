@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 
 from sssphase_core.errors import DataError, InputError, SssError
-from sssphase_core.processing.triangulation import StereoCalibration, check_unit
+from sssphase_core.processing.triangulation import MM_PER_UNIT, StereoCalibration, check_unit, mm_per_unit
 from sssphase_core.store.files import atomic_path
 
 #: Half the side (camera px) of the window around a corner whose decoded points its local homography is fitted to,
@@ -245,8 +245,11 @@ def against_simulated_rig(session: Any, calibration: StereoCalibration) -> str |
         parts.append(f"{name} focal length {100 * (got[1, 1] / want[1, 1] - 1):+.1f}%, principal point "
                      f"{np.hypot(*(got[:2, 2] - want[:2, 2])):.1f} px off")
     turn = np.degrees(np.linalg.norm(cv2.Rodrigues(calibration.rotation @ exact.rotation.T)[0]))
+    factor = mm_per_unit(calibration)  # (the simulated rig's lengths are in mm)
+    baseline = (f"its baseline {100 * (factor * calibration.baseline / exact.baseline - 1):+.1f}%" if factor is not None
+                else f"its baseline not compared (the unit {calibration.unit!r} is none of {', '.join(MM_PER_UNIT)})")
     return (f"against the simulated rig's exact calibration: {'; '.join(parts)}; the projector's pose turned {turn:.2f} "
-            f"degrees, its baseline {100 * (calibration.baseline / exact.baseline - 1):+.1f}%")
+            f"degrees, {baseline}")
 
 
 def write_calibration(path: Path | str, calibration: StereoCalibration, errors: dict[str, float] | None = None) -> Path:

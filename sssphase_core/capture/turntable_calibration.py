@@ -21,7 +21,13 @@ import numpy as np
 
 from sssphase_core.capture.stereo_calibration import find_boards, require_boards
 from sssphase_core.errors import DataError, InputError
-from sssphase_core.processing.triangulation import StereoCalibration, axes_apart, triangulate_points, turned
+from sssphase_core.processing.triangulation import (
+    StereoCalibration,
+    axes_apart,
+    mm_per_unit,
+    triangulate_points,
+    turned,
+)
 
 #: Views with the whole board that an axis needs (two turns, so that one bad view shows).
 MIN_TURNTABLE_VIEWS = 3
@@ -168,9 +174,10 @@ def against_simulated_turntable(session: Any, calibration: StereoCalibration) ->
     from sssphase_core.sim import session_rig_calibration
 
     exact = session_rig_calibration(session.manifest.get("rig", {}))
-    if exact is None or exact.turntable_axis is None or calibration.turntable_axis is None:
+    factor = mm_per_unit(calibration)  # (the simulated rig's lengths are in mm)
+    if exact is None or exact.turntable_axis is None or calibration.turntable_axis is None or factor is None:
         return None
-    tilt, miss = axes_apart(calibration.turntable_axis, calibration.turntable_point, exact.turntable_axis,
-                            exact.turntable_point)
+    tilt, miss = axes_apart(calibration.turntable_axis, factor * np.asarray(calibration.turntable_point),
+                            exact.turntable_axis, exact.turntable_point)
     return (f"against the simulated rig's turntable: the axis tilted {tilt:.2f} degrees, passing {miss:.2f} mm from the "
             "true one")

@@ -86,6 +86,16 @@ class StereoCalibration:
         return float(np.linalg.norm(self.translation))
 
 
+#: Millimetres per length unit, for the units a calibration's lengths can be compared in with the simulated rig's (mm).
+MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4, "um": 1e-3, "\u00b5m": 1e-3}
+
+
+def mm_per_unit(calibration: StereoCalibration) -> float | None:
+    """Millimetres per unit of ``calibration``'s lengths (no unit: mm), or None for a unit of no known size: a
+    calibration in cm is compared with the simulated rig (in mm) after this factor, not as if it were mm."""
+    return MM_PER_UNIT.get(calibration.unit or "mm")
+
+
 def check_unit(unit: str, where: str) -> str:
     """``unit`` if it is a length unit's short name (:data:`UNIT_PATTERN`), else refused in one line."""
     if not isinstance(unit, str) or not UNIT_PATTERN.fullmatch(unit):

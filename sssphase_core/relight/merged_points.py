@@ -11,7 +11,13 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sssphase_core.processing.axis_refinement import AxisRefinement, median_spacing, refine_axis
-from sssphase_core.processing.triangulation import StereoCalibration, distance_to_axis, triangulate, turned
+from sssphase_core.processing.triangulation import (
+    StereoCalibration,
+    distance_to_axis,
+    mm_per_unit,
+    triangulate,
+    turned,
+)
 
 if TYPE_CHECKING:
     from sssphase_core.store.session import Session
@@ -132,7 +138,9 @@ def merge_views(s: Session, clouds: dict[int, tuple[np.ndarray, np.ndarray]], st
         done.mesh = out / s.name / "mesh_merged.ply"
         done.n_faces = write_range_meshes(done.mesh, [(merged[v], white) for v, (_, white) in clouds.items()])[1]
     if exact_rig is not None and exact_rig.turntable_axis is not None:
-        done.exact = {v: _exact_distance(s, v, merged[v], exact_rig, angles[v]) for v in clouds}
+        factor = mm_per_unit(stereo)  # (the rig's truth is in mm; a calibration in cm is compared after this factor)
+        if factor is not None:
+            done.exact = {v: _exact_distance(s, v, factor * merged[v], exact_rig, angles[v]) for v in clouds}
     return done
 
 

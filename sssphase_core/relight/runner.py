@@ -703,8 +703,11 @@ def _write_geometry(s: Session, rv: RelightView, geo: Any, out: Path, period: fl
         for xp, yp in ((rv.proj.xp, rv.proj.yp), (geo.xp, geo.yp)):
             scores += [float(np.median(np.hypot(xp - gt[..., 0], yp - gt[..., 1])[ok])), float(np.median((xp - gt[..., 0])[ok]))]
         done.exact = (scores[0], scores[1], scores[2], scores[3])
-        if stereo is not None and exact_rig is not None:  # the truth is the rig's, whichever calibration made the points
-            done.exact_3d = _scored_points(exact_rig, gt, ok, arrays["points_decoded"], arrays["points"])
+        from sssphase_core.processing.triangulation import mm_per_unit
+
+        factor = mm_per_unit(stereo) if stereo is not None else None  # (the rig's truth is in mm)
+        if factor is not None and exact_rig is not None:  # the truth is the rig's, whichever calibration made the points
+            done.exact_3d = _scored_points(exact_rig, gt, ok, factor * arrays["points_decoded"], factor * arrays["points"])
     return done
 
 
