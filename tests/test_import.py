@@ -562,9 +562,12 @@ def test_viz_footprints_shows_the_captured_crops_next_to_a_model(handmade, tmp_p
 
 def test_sss_report_on_a_users_own_session(handmade, tmp_path):
     s = _copy(handmade, tmp_path / "sessions")
-    res = run_sss(["report", str(tmp_path / "sessions"), "--backend", "none,measured", "--out", str(tmp_path / "rep")], timeout=300)
+    res = run_sss(["report", str(tmp_path / "sessions"), "--backend", "none,measured,torch", "--out", str(tmp_path / "rep")],
+                  timeout=300)
     assert res.returncode == 0, res.stdout + res.stderr
+    assert "backend torch left out: no --decoder" in res.stdout  # (it was left out of the tables without a word)
     page = (tmp_path / "rep" / "index.html").read_text()
+    assert "torch: no --decoder" in page
     assert "<h1>sssphase report</h1>" in page and "Captured sessions" in page
     assert "measured PSNR" in page and "handmade" in page
     assert "no footprint model among the backends" in page and "kNN table: not available" in page  # said, not left out

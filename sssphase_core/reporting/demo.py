@@ -544,6 +544,11 @@ def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Pat
     has_measured = all(has_captured_transport(s.arrays(view))
                        for s in tests if view in s.views())
     chosen = tuple(b for b in backends if (b != "torch" or decoder is not None) and (b != "measured" or has_measured))
+    why = {"torch": "no --decoder (a run of `sss train decoder`)",
+           "measured": "the sessions hold no captured dot-grid crops (capture with --footprints)"}
+    left_out = {b: why[b] for b in backends if b not in chosen}
+    for backend, reason in left_out.items():  # (they were left out of the tables without a word)
+        log(f"backend {backend} left out: {reason}")
     if not chosen:  # the report said "done" with no relighting at all
         raise InputError(f"no backend of {', '.join(backends)} can run: torch needs --decoder (a run of `sss train "
                          "decoder`), measured needs sessions captured with --footprints")
@@ -559,6 +564,8 @@ def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Pat
     sims = {"simulated" if "gt/proj_xy" in s.arrays(view) else "captured" for s in tests if view in s.views()}
     demo.report_rig = " and ".join(sorted(sims)).capitalize() + " sessions"
     demo.report_config = _report_config(tests, train, view, chosen, pretrain, decoder)
+    if left_out:
+        demo.report_config["backends_left_out"] = [f"{b}: {reason}" for b, reason in left_out.items()]
     done = {"status": "done", "seconds": 0.0}
     if train:
         demo.results["train_sessions"] = {**done, "root": str(Path(train_sessions)), "sessions": [str(s.path) for s in train]}
