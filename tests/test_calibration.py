@@ -159,6 +159,7 @@ def test_a_checkerboard_session_calibrates_the_rig_and_its_points_land_on_the_su
     (["--board", "6", "--square", "9"], "--board must be COLSxROWS inner corners"),
     (["--board", "6x4", "--square", "0"], "--square must be the board's square side, a positive length"),
     (["--board", "6x4", "--square", "nan"], "--square must be the board's square side, a positive length"),
+    (["--board", "6x4", "--square", "1e300"], r"a positive length in --unit \(mm\), from 1e-06 to 1e\+06, got 1e\+300"),
     (["--board", "6x4", "--square", "9", "--out", "calibration.txt"], "name a .yml, .yaml, .xml or .json file"),
     (["--board", "6x4", "--square", "9", "--unit", "m m"], "--unit must be a length unit's short name"),
     (["--board", "6x4", "--square", "9", "--lens", "fisheye"], "--lens must be one of k1, radial, full"),
@@ -460,6 +461,9 @@ def test_geometry_refines_an_axis_that_is_off_from_the_views_overlaps(soap_turnt
     metres = replace(exact, turntable_point=exact.turntable_point / 1000)  # the point in metres, in a file of mm
     apart = merge_views(s, clouds, metres, tmp_path / "m")  # four copies of the soap far apart: merged without a word
     assert "warning: no two neighbouring views overlap" in " ".join(refinement_lines(apart, "mm"))
+    with pytest.raises(InputError, match=r"--crop-radius 0.001: no point lies within it of the turntable's axis \(the "
+                                         r"nearest is \d+\.?\d* mm from it\)"):  # (an empty cloud, "median nan", exit 0)
+        merge_views(s, clouds, exact, tmp_path / "c", crop_radius=0.001)
     written = tmp_path / "g" / "soap" / "calibration_refined.yml"
     refined = read_calibration(written)
     assert np.degrees(np.arccos(abs(refined.turntable_axis @ exact.turntable_axis))) < 0.2

@@ -195,8 +195,9 @@ def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views:
     (:data:`LENS_MODELS`); refused in one line where fewer than :data:`MIN_VIEWS` views show the whole board."""
     if lens not in LENS_MODELS:
         raise InputError(f"--lens must be one of {', '.join(LENS_MODELS)} (the distortion terms to estimate), got {lens!r}")
-    if not square > 0 or not np.isfinite(square):
-        raise InputError(f"--square must be the board's square side, a positive length (mm), got {square!r}")
+    if not square > 0 or not np.isfinite(square) or not SQUARE_RANGE[0] <= square <= SQUARE_RANGE[1]:
+        raise InputError(f"--square must be the board's square side, a positive length in --unit ({unit}), from "
+                         f"{SQUARE_RANGE[0]:g} to {SQUARE_RANGE[1]:g}, got {square!r}")
     check_unit(unit, "--unit")
     found, skipped, size, projector = find_boards(session, board, views, progress)
     require_boards(session, found, skipped, MIN_VIEWS)
@@ -286,6 +287,10 @@ ERROR_KEYS = ("cam_error", "proj_error", "stereo_error")
 WRITTEN_KEYS = frozenset({"cam_K", "cam_kc", "proj_K", "proj_kc", "R", "T", "unit", "turntable_axis", "turntable_point",
                           *ERROR_KEYS})
 
+
+#: The side of a board's square a calibration takes, in any unit (a micrometre board in mm to a 10 m one in mm): beyond,
+#: the board's points overflow OpenCV's fit (1e300 raised an assertion of its own).
+SQUARE_RANGE = (1e-6, 1e6)
 
 #: The files a calibration is written as (OpenCV writes the format the suffix names).
 CALIBRATION_SUFFIXES = (".yml", ".yaml", ".xml", ".json")

@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from sssphase_core.capture.stereo_calibration import find_boards, require_boards
+from sssphase_core.capture.stereo_calibration import SQUARE_RANGE, find_boards, require_boards
 from sssphase_core.errors import DataError, InputError
 from sssphase_core.processing.triangulation import (
     StereoCalibration,
@@ -80,8 +80,9 @@ def calibrate_turntable(session: Any, board: tuple[int, int], stereo: StereoCali
     """The turntable axis of ``session``'s views of a ``board`` (inner corners) standing on it, triangulated with
     ``stereo``; refused in one line where fewer than :data:`MIN_TURNTABLE_VIEWS` views show the whole board, where
     the session recorded no turntable angles, or where the views do not turn about one axis."""
-    if square is not None and not (np.isfinite(square) and square > 0):
-        raise InputError(f"--square must be the board's square side, a positive length, got {square!r}")
+    if square is not None and not (np.isfinite(square) and SQUARE_RANGE[0] <= square <= SQUARE_RANGE[1]):
+        raise InputError(f"--square must be the board's square side, a positive length in the calibration's unit, from "
+                         f"{SQUARE_RANGE[0]:g} to {SQUARE_RANGE[1]:g}, got {square!r}")
     found, skipped, _, _ = find_boards(session, board, views, progress)
     require_boards(session, found, skipped, MIN_TURNTABLE_VIEWS)
     records = session.manifest.get("views", {})

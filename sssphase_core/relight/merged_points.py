@@ -10,6 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from sssphase_core.errors import InputError
 from sssphase_core.processing.axis_refinement import AxisRefinement, median_spacing, refine_axis
 from sssphase_core.processing.triangulation import (
     StereoCalibration,
@@ -103,9 +104,14 @@ def merge_views(s: Session, clouds: dict[int, tuple[np.ndarray, np.ndarray]], st
         return None
     points = {v: np.asarray(p, np.float64) for v, (p, _) in clouds.items()}
     if crop_radius is not None:  # (the distance to the axis is the same in every view's frame)
+        nearest = np.inf
         for v, p in points.items():
-            far = distance_to_axis(p, stereo.turntable_axis, stereo.turntable_point) > crop_radius
-            points[v] = np.where(far[..., None], np.nan, p)
+            distance = distance_to_axis(p, stereo.turntable_axis, stereo.turntable_point)
+            nearest = min(nearest, float(np.nanmin(distance, initial=np.inf)))
+            points[v] = np.where((distance > crop_radius)[..., None], np.nan, p)
+        if not any(np.isfinite(p).all(-1).any() for p in points.values()):  # (an empty cloud, "median nan", exit 0)
+            raise InputError(f"--crop-radius {crop_radius:g}: no point lies within it of the turntable's axis (the "
+                             f"nearest is {nearest:.4g} {stereo.unit or 'units'} from it): give a larger radius")
     merged = {v: to_turntable_frame(p, stereo, angles[v]) for v, p in points.items()}
     agreement, spacing = _agreement(merged, angles)
     refinement, before, used = None, float("nan"), False
