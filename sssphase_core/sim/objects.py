@@ -345,7 +345,8 @@ def _build() -> dict[str, SimObject]:
                   hand_poses=BOARD_POSES),
         SimObject("turntable_board", "calibration", "the same checkerboard standing on the turntable, 25 mm off its "
                   "axis and leaning back 20 degrees, for `sss calibrate turntable` (its front faces the camera at "
-                  "view 0; `--views 12` shows it in 5)", 50, _turntable_board_sdf, _turntable_board_shade,
+                  "view 0; `--views 12` shows it whole in 3: 0, 30 and 330 degrees)", 50, _turntable_board_sdf,
+                  _turntable_board_shade,
                   _pose(g.rotation_x(deg(-20)))),
     ]
     return {o.name: o for o in objs}
