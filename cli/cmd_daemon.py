@@ -266,8 +266,33 @@ def daemon_keys(
         path = security.generate_keys(directory, overwrite=overwrite)
     except FileExistsError as exc:
         raise InputError(str(exc)) from None
-    console.print(f"CURVE keys written to {path}; start the daemon with --curve-dir {path} and give clients "
-                  f"client.key_secret and server.key")
+    console.print(f"CURVE keys written to {path}; start the daemon with --curve-dir {path}, then `sss daemon "
+                  "connection --out DIR` writes the folder a client on another machine uses it with (SSS_DAEMON=DIR)")
+
+
+def daemon_connection(
+    out: Annotated[Path, typer.Option("--out", help="a new folder for the connection (it holds a secret key)")],
+    host: Annotated[str | None, typer.Option(help="this machine's name as the client reaches it (default: its "
+                                             "fully qualified name), for a daemon listening on every interface")] = None,
+) -> None:
+    """Write the folder a client on another machine uses this daemon with: copy it there and set SSS_DAEMON=FOLDER;
+    `sss capture`, `sss view`, `sss devices` then work through this daemon over CURVE."""
+    import socket
+
+    from sssphase_core.errors import InputError
+    from sssphase_daemon import security
+
+    state = security.read_state()
+    if state is None or not security.is_daemon_process(state.pid, state.started):
+        raise InputError("no daemon is running here: start it off loopback with CURVE keys first (`sss daemon keys`, "
+                         "then `sss daemon start --endpoint tcp://0.0.0.0:5609 --curve-dir DIR`)")
+    try:
+        folder = security.write_connection(out, state, host or socket.getfqdn())
+    except FileExistsError as exc:
+        raise InputError(str(exc)) from None
+    console.print(f"wrote {folder}: copy it to the client's machine (it holds the client's secret key: keep it private, "
+                  f"mode 0700) and set {security.ENV_DAEMON} to its path there (e.g. {security.ENV_DAEMON}=~/{folder.name}"
+                  f"); the client connects to {security.read_connection(folder).endpoint}", highlight=False)
 
 
 def bench_daemon(
@@ -331,6 +356,7 @@ def register(groups: dict[str, typer.Typer]) -> None:
     groups["daemon"].command("stop")(daemon_stop)
     groups["daemon"].command("status")(daemon_status)
     groups["daemon"].command("keys")(daemon_keys)
+    groups["daemon"].command("connection")(daemon_connection)
     groups["bench"].command("daemon")(bench_daemon)
     groups["bench"].command("basler")(bench_basler)
     groups["bench"].command("soak")(bench_soak)

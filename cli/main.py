@@ -36,7 +36,7 @@ GROUP_HELP = {
     "train": "Training: SimSiam pretraining and decoder fitting.",
     "eval": "Evaluation: kNN accuracy, footprint and relighting metrics.",
     "viz": "Visualisations: PCA-RGB feature maps, footprint profiles.",
-    "daemon": "The acquisition daemon: start, stop, status, keys.",
+    "daemon": "The acquisition daemon: start, stop, status, keys, connection (for clients on other machines).",
     "calibrate": "Rig calibration: the projector's response, camera and projector as a stereo pair, the turntable's axis.",
     "repro": "Reproduce the paper's experiments at its scale within a time budget.",
 }

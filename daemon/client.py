@@ -60,6 +60,13 @@ class DaemonClient:
         self.sock.connect(endpoint)
 
     @classmethod
+    def from_connection(cls, folder: Path | str, **kwargs: Any) -> DaemonClient:
+        """A client of the daemon on another machine that ``folder`` (``$SSS_DAEMON``) names: its endpoint and token,
+        over CURVE with the keys there (:func:`~sssphase_daemon.security.read_connection`)."""
+        connection = security.read_connection(folder)
+        return cls(connection.endpoint, connection.token, curve_dir=connection.keys, **kwargs)
+
+    @classmethod
     def from_state(cls, state_file: Path | None = None, **kwargs: Any) -> DaemonClient:
         state = security.read_state(state_file)
         if state is None:
@@ -295,6 +302,16 @@ def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | N
     ``on_start(pid)`` / ``on_stop(pid)`` / ``on_left(pid)`` are told when a daemon had to be started / was
     stopped / was left running for another client.
     """
+    remote = os.environ.get(security.ENV_DAEMON)
+    if remote:  # a daemon on another machine: used, never started or stopped from here
+        client = DaemonClient.from_connection(remote, timeout_s=timeout_s)
+        if not client.ping(timeout_s=min(timeout_s, 5.0)):
+            client.close()
+            raise DaemonUnavailable(f"the daemon at {client.endpoint} ({security.ENV_DAEMON}={remote}) did not answer "
+                                    "within 5 s: is it running there, and this machine's key authorised by it?")
+        with client:
+            yield client
+        return
     started = None
     with start_lock():  # clients started together: one starts the daemon, the others find it running
         client = running_client(timeout_s)
@@ -322,9 +339,11 @@ def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | N
 
 
 def running_client(timeout_s: float = 10.0) -> DaemonClient | None:
-    """A client of the local daemon when one runs and answers, else None."""
+    """A client of the local daemon (or of the remote one ``$SSS_DAEMON`` names) when one runs and answers, else None."""
     try:
-        client = DaemonClient.from_state(timeout_s=timeout_s)
+        remote = os.environ.get(security.ENV_DAEMON)
+        client = (DaemonClient.from_connection(remote, timeout_s=timeout_s) if remote else
+                  DaemonClient.from_state(timeout_s=timeout_s))
     except DaemonUnavailable:
         return None
     if client.ping(timeout_s=2.0):

@@ -352,6 +352,70 @@ def client_keys(directory: Path) -> tuple[bytes, bytes, bytes]:
     return public, secret, server_public
 
 
+#: What ``$SSS_DAEMON`` names: a folder of a daemon on another machine (``sss daemon connection`` writes it there, to be
+#: copied here): its endpoint and token in ``connection.json`` and the CURVE keys this client connects with.
+ENV_DAEMON = "SSS_DAEMON"
+CONNECTION_FILE = "connection.json"
+
+
+@dataclass
+class Connection:
+    """A remote daemon as a client reaches it: its control ``endpoint``, ``token`` and the folder of the client's
+    CURVE keys (``keys``: client.key_secret, and server.key, the daemon's public key)."""
+
+    endpoint: str
+    token: str
+    keys: Path
+
+
+def write_connection(folder: Path, state: DaemonState, host: str) -> Path:
+    """Write the folder a client on another machine connects with (``sss daemon connection``): ``connection.json``
+    (the endpoint, with ``host`` for a daemon bound on every interface, and the token) and the client's CURVE keys
+    from the daemon's key folder, private (0700, files 0600). Refused when the folder exists, or the daemon has no
+    CURVE keys (a loopback daemon is for this machine only)."""
+    import shutil
+
+    if not state.curve_dir:
+        raise KeyFileError(f"the daemon at {state.endpoint} has no CURVE keys: start it off loopback with them (`sss "
+                           "daemon keys`, then `sss daemon start --endpoint tcp://0.0.0.0:5609 --curve-dir DIR`)")
+    if folder.exists() or folder.is_symlink():
+        raise FileExistsError(f"{folder} exists: give a new folder for the connection (it holds a secret key)")
+    parts = tcp_parts(state.endpoint)
+    endpoint = state.endpoint
+    if parts is not None and parts[0] in WILDCARD_HOSTS:
+        endpoint = f"tcp://{'[' + host + ']' if ':' in host else host}:{parts[1]}"
+    keys = Path(state.curve_dir)
+    folder = _private_dir(folder, "a daemon's connection and a secret key", "")
+    for name in (f"{CLIENT_CERT}.key_secret", f"{CLIENT_CERT}.key", f"{SERVER_CERT}.key"):
+        shutil.copyfile(keys / name, folder / name)
+        (folder / name).chmod(0o600)
+    path = folder / CONNECTION_FILE
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    with os.fdopen(fd, "w") as f:
+        json.dump({"format": "sssphase-daemon-connection", "endpoint": endpoint, "token": state.token}, f)
+    return folder
+
+
+def read_connection(folder: Path | str) -> Connection:
+    """The remote daemon ``$SSS_DAEMON`` names, checked: a private folder with ``connection.json`` (a tcp endpoint
+    and a token) and the client's keys; one line naming what is wrong otherwise."""
+    folder = Path(folder)
+    where = f"{ENV_DAEMON}={folder}"
+    if not (folder / CONNECTION_FILE).is_file():
+        raise KeyFileError(f"{where}: no {CONNECTION_FILE} there: give the folder `sss daemon connection --out DIR` "
+                           "wrote on the daemon's machine (copied here)")
+    check_key_dir(folder)
+    try:
+        data = json.loads((folder / CONNECTION_FILE).read_text())
+    except (OSError, ValueError) as exc:
+        raise KeyFileError(f"{where}: {CONNECTION_FILE} does not read as JSON ({exc})") from None
+    endpoint, token = (data.get(k) if isinstance(data, dict) else None for k in ("endpoint", "token"))
+    if not (isinstance(endpoint, str) and tcp_parts(endpoint) and isinstance(token, str) and token):
+        raise KeyFileError(f"{where}: {CONNECTION_FILE} must hold a tcp endpoint and the daemon's token: write it "
+                           "again with `sss daemon connection`")
+    return Connection(endpoint, token, folder)
+
+
 class KeyFileError(SssError, ValueError):
     """A CURVE key file that is missing, damaged or of the wrong kind."""
 
