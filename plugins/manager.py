@@ -106,7 +106,7 @@ def _register_entry_point(pm: PluginManager, ep: importlib.metadata.EntryPoint) 
     distribution's entry points of that name: a third-party ``basler`` earlier on the path took the built-in's place)
     and remember its distribution's version and name (read once: a distribution's metadata is parsed on each read,
     our README included)."""
-    plugin = ep.load()
+    plugin = _imported(ep.name, ep.load) if not _ours(ep.module) else ep.load()
     pm.register(plugin, name=ep.name)
     if getattr(ep, "dist", None) is not None:
         pm.distributions[id(plugin)] = (str(ep.dist.version), str(ep.dist.name))
@@ -132,8 +132,20 @@ def build_plugin_manager() -> PluginManager:
     for module in extra:
         if _name_taken(pm, module, module, ENV_PLUGINS):
             continue
-        _register_checked(pm, module, lambda m=module: pm.register(importlib.import_module(m), name=m))
+        _register_checked(pm, module, lambda m=module: pm.register(_imported(m, lambda: importlib.import_module(m)),
+                                                                   name=m))
     return pm
+
+
+def _imported(name: str, load: Any) -> Any:
+    """A third-party plugin's module, imported within :func:`discovery_timeout_s`: one whose import blocks (a
+    network mount, a device probed at import) hung `sss plugins` and `sss devices` for ever; it is named as broken
+    and the others load (its import may finish later, unused)."""
+    try:
+        return _within(discovery_timeout_s(), load)
+    except _Hung:
+        raise TimeoutError(f"importing it did not finish within {discovery_timeout_s():g} s (it hangs at import): "
+                           "disable it (SSS_PLUGINS, or uninstall it)") from None
 
 
 def get_plugin_manager(*, refresh: bool = False) -> PluginManager:

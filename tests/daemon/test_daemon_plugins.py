@@ -395,3 +395,21 @@ def test_sss_devices_shows_each_id_whole_in_a_narrow_terminal(tmp_path):
     assert res.returncode == 0, res.stdout + res.stderr
     for device_id in ("example:testpattern0", "sim:bench-camera", "sim:turntable0"):
         assert device_id in res.stdout, res.stdout
+
+
+def test_a_plugin_whose_import_blocks_is_named_and_the_others_load(tmp_path):
+    """A third-party plugin that blocks at import (a network mount, a device probed at import) hung `sss plugins` and
+    `sss devices` for ever, even with SSS_DISCOVERY_TIMEOUT_S set; `sss daemon start` gave up naming no plugin."""
+    import os
+    import subprocess
+    import sys
+
+    (tmp_path / "acme_blocks.py").write_text("import time\ntime.sleep(3600)\n")
+    env = {**os.environ, manager.ENV_PLUGINS: "acme_blocks", "PYTHONPATH": str(tmp_path),
+           "SSS_DISCOVERY_TIMEOUT_S": "0.5", "SSS_RUNTIME_DIR": str(tmp_path / "rt"), "COLUMNS": "200"}
+    for command in ("plugins", "devices"):
+        res = subprocess.run([sys.executable, "-m", "sssphase_cli.main", command], capture_output=True, text=True,
+                             timeout=60, env=env)
+        said = res.stdout + res.stderr
+        assert res.returncode == 0 and "Traceback" not in said, said
+        assert "importing it did not finish within 0.5 s (it hangs at import)" in said and "sim" in said, said
