@@ -604,6 +604,8 @@ def test_geometry_of_an_imported_session_triangulates_only_with_the_rigs_calibra
     assert res.returncode == 0, res.stdout + res.stderr
     assert "rays miss each other by" in res.stdout and "is the calibration this rig's" in res.stdout, res.stdout
     assert (tmp_path / "h" / "handmade" / "view_000" / "points.ply").exists() and "the calibration's unit" in res.stdout
+    again = run_sss(["geometry", str(handmade.path), "--out", str(tmp_path / "h")], timeout=120)  # without a calibration
+    assert again.returncode == 0 and not (tmp_path / "h" / "handmade" / "view_000" / "points.ply").exists()  # (stale)
     bad = run_sss(["geometry", str(handmade.path), "--calibration", str(tmp_path), "--out", str(tmp_path / "i")], timeout=120)
     assert bad.returncode == 2 and "a folder, not a calibration file" in bad.stderr and "Traceback" not in bad.stderr
     assert not (tmp_path / "i").exists()  # refused before any work

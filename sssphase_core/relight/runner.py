@@ -613,6 +613,7 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
         say.say("note: no mesh written: meshing joins the 3D points, which need --calibration")
     if refine_axis and (stereo is None or len(done) < 2):
         say.say("note: the axis was not refined: that needs the 3D points of two or more turntable views")
+    merged = None
     if stereo is not None and len(done) > 1:  # a turntable's views: one cloud in the turntable's frame at 0 degrees
         from sssphase_core.relight.merged_points import (
             merge_note,
@@ -635,6 +636,9 @@ def geometry_session(session: Path | str | Session, *, backend: str = "analytic"
                 notes, line = refinement_lines(merged, stereo.unit), merged_line(merged, stereo.unit or "the calibration's unit")
                 for said_line in [*notes, line] if merged.refinement is not None else [line, *notes]:  # (a hint after)
                     say.say(said_line)
+    written = {p.name for p in (getattr(merged, "path", None), getattr(merged, "mesh", None)) if p is not None}
+    for stale in {"points_merged.ply", "mesh_merged.ply"} - written:  # an earlier run's merge is not this run's
+        (out / s.name / stale).unlink(missing_ok=True)
     return done
 
 
@@ -691,6 +695,8 @@ def _write_geometry(s: Session, rv: RelightView, geo: Any, out: Path, period: fl
 
             done.mesh = folder / "mesh.ply"
             _, done.n_faces = write_range_mesh(done.mesh, arrays["points"], rv.white)
+    for stale in {"points.ply", "mesh.ply"} - {p.name for p in (done.cloud, done.mesh) if p is not None}:
+        (folder / stale).unlink(missing_ok=True)  # an earlier run's (another calibration, or --mesh): not this run's
     from sssphase_core.relight.geometry import shift_figure
 
     done.figure = shift_figure(rv.white, shift_x, m, folder / "shift.png", title=f"{rv.object} view {rv.view}: what "
