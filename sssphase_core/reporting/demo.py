@@ -547,11 +547,11 @@ def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Pat
     why = {"torch": "no --decoder (a run of `sss train decoder`)",
            "measured": "the sessions hold no captured dot-grid crops (capture with --footprints)"}
     left_out = {b: why[b] for b in backends if b not in chosen}
-    for backend, reason in left_out.items():  # (they were left out of the tables without a word)
-        log(f"backend {backend} left out: {reason}")
     if not chosen:  # the report said "done" with no relighting at all
         raise InputError(f"no backend of {', '.join(backends)} can run: torch needs --decoder (a run of `sss train "
                          "decoder`), measured needs sessions captured with --footprints")
+    for backend, reason in left_out.items():  # (they were left out of the tables without a word)
+        log(f"backend {backend} left out: {reason}")
     bare = [s.name for s in tests if not has_references(s.arrays(view))]
     if bare:
         raise InputError(f"view {view} of {', '.join(bare)} has no reference captures to relight against (capture with "
