@@ -51,6 +51,7 @@ class DaemonClient:
     def __init__(self, endpoint: str, token: str, *, curve_dir: Path | None = None, timeout_s: float = 10.0,
                  heartbeat_s: float = 1.0, max_message_bytes: int = protocol.DEFAULT_MAX_MESSAGE_BYTES) -> None:
         self.endpoint, self.token = endpoint, token
+        self.connection: Path | None = None  # the $SSS_DAEMON folder this client came from (a daemon elsewhere)
         self.timeout_s, self.heartbeat_s, self.max_bytes = timeout_s, heartbeat_s, max_message_bytes
         self.curve_dir = curve_dir
         self.curve = security.client_keys(curve_dir) if curve_dir is not None else None
@@ -64,7 +65,9 @@ class DaemonClient:
         """A client of the daemon on another machine that ``folder`` (``$SSS_DAEMON``) names: its endpoint and token,
         over CURVE with the keys there (:func:`~sssphase_daemon.security.read_connection`)."""
         connection = security.read_connection(folder)
-        return cls(connection.endpoint, connection.token, curve_dir=connection.keys, **kwargs)
+        client = cls(connection.endpoint, connection.token, curve_dir=connection.keys, **kwargs)
+        client.connection = connection.keys
+        return client
 
     @classmethod
     def from_state(cls, state_file: Path | None = None, **kwargs: Any) -> DaemonClient:
@@ -124,7 +127,12 @@ class DaemonClient:
         msg = self._wait(self.send(op, send_timeout_s=wait, **args), wait)
         if not msg.get("ok"):
             err = msg.get("error") or {}
-            raise DaemonError(str(err.get("code", "?")), f"daemon: {err.get('message', 'unknown error')}")
+            code = str(err.get("code", "?"))
+            if code == protocol.UNAUTHENTICATED and self.connection is not None:  # (not "read it from the state file")
+                raise DaemonError(code, f"the daemon at {self.endpoint} refused the token in {self.connection}/"
+                                  f"{security.CONNECTION_FILE} (it restarted since, or it is another daemon): write the "
+                                  "folder again with `sss daemon connection` on its machine")
+            raise DaemonError(code, f"daemon: {err.get('message', 'unknown error')}")
         return msg["result"]
 
     def ping(self, timeout_s: float = 2.0) -> bool:

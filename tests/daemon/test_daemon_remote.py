@@ -47,6 +47,12 @@ def test_a_client_elsewhere_captures_through_the_daemon_its_connection_folder_na
         assert done.returncode == 0, done.stdout + done.stderr
         assert Session.open(tmp_path / "s" / "soap").views() == [0] and "started a local one" not in done.stdout
         assert not (there / "daemon.json").exists()  # none started there
+        stale = tmp_path / "stale"  # the daemon restarted since the folder was written: another token
+        shutil.copytree(folder, stale)
+        data = json.loads((stale / "connection.json").read_text())
+        (stale / "connection.json").write_text(json.dumps({**data, "token": "x" * 43}))
+        refused = run_sss(["devices"], env={**client, "SSS_DAEMON": str(stale)})
+        assert "refused the token in" in refused.stdout + refused.stderr and "`sss daemon connection`" in refused.stderr
         wrong = tmp_path / "wrong"
         shutil.copytree(folder, wrong)
         (wrong / "connection.json").write_text(json.dumps({"endpoint": "tcp://127.0.0.1:1", "token": ""}))
