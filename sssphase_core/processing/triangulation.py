@@ -69,22 +69,28 @@ class StereoCalibration:
         r, t = self.rotation, self.translation
         if r.shape != (3, 3) or not np.isfinite(r).all() or np.abs(r.T @ r - np.eye(3)).max() > 1e-3 or np.linalg.det(r) < 0:
             raise InputError(f"rotation must be a 3x3 rotation matrix or a Rodrigues vector, got {_shown(r)}")
-        if t.shape != (3,) or not np.isfinite(t).all() or not np.linalg.norm(t) > 0:
-            raise InputError(f"translation must be 3 finite values, not all zero (the baseline), got {_shown(t)}")
+        if t.shape != (3,) or not np.isfinite(t).all() or not 0 < np.linalg.norm(t) <= MAX_LENGTH:
+            raise InputError(f"translation must be 3 finite values, not all zero and at most {MAX_LENGTH:g} long (the "
+                             f"baseline, in the calibration's unit), got {_shown(t)}")
         if (self.turntable_axis is None) != (self.turntable_point is None):
             raise InputError("a turntable needs both its turntable_axis and a turntable_point on it")
         if self.turntable_axis is not None:
             a, q = np.asarray(self.turntable_axis, np.float64), np.asarray(self.turntable_point, np.float64)
             if a.shape != (3,) or not np.isfinite(a).all() or abs(np.linalg.norm(a) - 1) > 1e-3:
                 raise InputError(f"turntable_axis must be a unit vector of 3 values, got {_shown(a)}")
-            if q.shape != (3,) or not np.isfinite(q).all():
-                raise InputError(f"turntable_point must be 3 finite values, got {_shown(q)}")
+            if q.shape != (3,) or not np.isfinite(q).all() or np.abs(q).max() > MAX_LENGTH:
+                raise InputError(f"turntable_point must be 3 finite values, each at most {MAX_LENGTH:g} in size, got "
+                                 f"{_shown(q)}")
 
     @property
     def baseline(self) -> float:
         """Distance between the camera's and the projector's centres (the translation's unit)."""
         return float(np.linalg.norm(self.translation))
 
+
+#: The longest baseline (and turntable point's distance) a calibration may give, in any unit: a pose of 1e200 gave
+#: NaN points ("invalid value encountered in matmul") and an empty points.ply; a lab's rig in micrometres is 1e6.
+MAX_LENGTH = 1e9
 
 #: Millimetres per length unit, for the units a calibration's lengths can be compared in with the simulated rig's (mm).
 MM_PER_UNIT = {"mm": 1.0, "cm": 10.0, "m": 1000.0, "in": 25.4, "um": 1e-3, "\u00b5m": 1e-3}

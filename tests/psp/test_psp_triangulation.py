@@ -118,6 +118,11 @@ def test_calibration_files_are_read_in_the_names_calibration_tools_write(tmp_pat
     ("%YAML:1.0\n---\nR:\n   a: 1\n", "R is not a matrix"),
     ('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "K2": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], '
      '"R": [0, 0, 0], "T": [0, 0, 0]}', "translation must be 3 finite values, not all zero"),
+    ('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "K2": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], '
+     '"R": [0, 0, 0], "T": [1e200, 0, 0]}', r"not all zero and at most 1e\+09 long"),  # (NaN points, an empty PLY)
+    ('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "K2": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], '
+     '"R": [0, 0, 0], "T": [1, 0, 0], "turntable_axis": [0, 1, 0], "turntable_point": [0, 0, 1e200]}',
+     r"turntable_point must be 3 finite values, each at most 1e\+09"),
     ('{"K1": [[-600, 0, 128], [0, 600, 96], [0, 0, 1]], "K2": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], '
      '"R": [0, 0, 0], "T": [1, 0, 0]}', "camera_matrix must be a finite 3x3 matrix with positive focal lengths"),
     ('{"K1": [[600, 0, 128], [0, 600, 96], [0, 0, 1]], "D1": [0.1, 0.2, 0.3], "K2": [[600, 0, 128], [0, 600, 96], '
