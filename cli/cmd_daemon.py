@@ -22,11 +22,12 @@ if TYPE_CHECKING:
 
 console = Console(soft_wrap=True)  # result lines stay whole when piped (no terminal width)
 
-def _client(timeout_s: float = 10.0):
-    """A client for the running local daemon, or None when none answers."""
+def _client(timeout_s: float = 10.0, *, remote_ok: bool = False):
+    """A client for the running local daemon (with ``remote_ok``, the one $SSS_DAEMON names), or None when none
+    answers."""
     from sssphase_daemon.client import running_client
 
-    return running_client(timeout_s)
+    return running_client(timeout_s, remote_ok=remote_ok)
 
 
 def _orphan() -> int | None:
@@ -50,7 +51,7 @@ def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] 
     """List devices with their stable IDs (asks the running daemon, else discovers locally)."""
     from dataclasses import asdict
 
-    client = _client()
+    client = _client(remote_ok=True)
     if client is not None:
         with client:
             found = client.call("devices")

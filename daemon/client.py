@@ -346,10 +346,12 @@ def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | N
                 on_stop(started.pid)
 
 
-def running_client(timeout_s: float = 10.0) -> DaemonClient | None:
-    """A client of the local daemon (or of the remote one ``$SSS_DAEMON`` names) when one runs and answers, else None."""
+def running_client(timeout_s: float = 10.0, *, remote_ok: bool = False) -> DaemonClient | None:
+    """A client of the local daemon (with ``remote_ok``, of the remote one ``$SSS_DAEMON`` names instead) when one
+    runs and answers, else None. `sss daemon start/stop/status` act on this machine's daemon only: with the remote one
+    unreachable, `stop` found no rig in use and stopped the local daemon under its capture."""
     try:
-        remote = os.environ.get(security.ENV_DAEMON)
+        remote = os.environ.get(security.ENV_DAEMON) if remote_ok else None
         client = (DaemonClient.from_connection(remote, timeout_s=timeout_s) if remote else
                   DaemonClient.from_state(timeout_s=timeout_s))
     except DaemonUnavailable:

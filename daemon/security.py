@@ -410,7 +410,9 @@ def read_connection(folder: Path | str) -> Connection:
     except (OSError, ValueError) as exc:
         raise KeyFileError(f"{where}: {CONNECTION_FILE} does not read as JSON ({exc})") from None
     endpoint, token = (data.get(k) if isinstance(data, dict) else None for k in ("endpoint", "token"))
-    if not (isinstance(endpoint, str) and tcp_parts(endpoint) and isinstance(token, str) and token):
+    parts = tcp_parts(endpoint) if isinstance(endpoint, str) else None
+    port = parts[1] if parts else ""
+    if not (parts and port.isdigit() and 0 < int(port) < 65536 and isinstance(token, str) and token):  # (not "*")
         raise KeyFileError(f"{where}: {CONNECTION_FILE} must hold a tcp endpoint and the daemon's token: write it "
                            "again with `sss daemon connection`")
     return Connection(endpoint, token, folder)

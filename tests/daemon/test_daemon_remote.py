@@ -55,11 +55,19 @@ def test_a_client_elsewhere_captures_through_the_daemon_its_connection_folder_na
         assert "refused the token in" in refused.stdout + refused.stderr and "`sss daemon connection`" in refused.stderr
         wrong = tmp_path / "wrong"
         shutil.copytree(folder, wrong)
-        (wrong / "connection.json").write_text(json.dumps({"endpoint": "tcp://127.0.0.1:1", "token": ""}))
-        refused = run_sss(["capture", "--object", "soap", "--views", "1", "--out", str(tmp_path / "w")],
-                          env={**client, "SSS_DAEMON": str(wrong)})
-        assert refused.returncode != 0 and "must hold a tcp endpoint and the daemon's token" in refused.stderr
-        assert "Traceback" not in refused.stderr
+        for endpoint, token in (("tcp://127.0.0.1:1", ""), ("tcp://127.0.0.1:*", "x")):  # ("*": an internal error)
+            (wrong / "connection.json").write_text(json.dumps({"endpoint": endpoint, "token": token}))
+            refused = run_sss(["capture", "--object", "soap", "--views", "1", "--out", str(tmp_path / "w")],
+                              env={**client, "SSS_DAEMON": str(wrong)})
+            assert refused.returncode == 2 and "must hold a tcp endpoint and the daemon's token" in refused.stderr
+            assert "Traceback" not in refused.stderr
+        # `sss daemon stop` acts on this machine's daemon: with SSS_DAEMON set, the rig PC's daemon in use by a rig is
+        # still refused a stop (it looked for rigs through SSS_DAEMON, found none, and stopped the local daemon)
+        held = __import__("sssphase_daemon.client", fromlist=["DaemonClient"]).DaemonClient.from_connection(folder)
+        with held:
+            held.call("open_rig", camera="sim:camera0", projector="sim:projector0", turntable=None, options={})
+            stop = run_sss(["daemon", "stop"], env={**rig_pc, "SSS_DAEMON": str(wrong)})
+            assert stop.returncode != 0 and "rig" in stop.stdout + stop.stderr, stop.stdout + stop.stderr
     finally:
         run_sss(["daemon", "stop", "--force"], env=rig_pc)
         shutil.rmtree(here, ignore_errors=True)
