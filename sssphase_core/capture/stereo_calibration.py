@@ -89,6 +89,10 @@ class StereoResult:
                 if f > MAX_FOCAL_SD or c > MAX_CENTRE_SD * max(self.sizes[name])]
 
 
+#: The side of a board's square a calibration takes, in any unit (a micrometre board in mm to a 10 m one in mm): beyond,
+#: the board's points overflow OpenCV's fit (1e300 raised an assertion of its own).
+SQUARE_RANGE = (1e-6, 1e6)
+
 def parse_board(text: str) -> tuple[int, int]:
     """``COLSxROWS`` inner corners (e.g. ``9x6``: a board of 10 x 7 squares), each at least 2."""
     try:
@@ -287,10 +291,6 @@ ERROR_KEYS = ("cam_error", "proj_error", "stereo_error")
 WRITTEN_KEYS = frozenset({"cam_K", "cam_kc", "proj_K", "proj_kc", "R", "T", "unit", "turntable_axis", "turntable_point",
                           *ERROR_KEYS})
 
-
-#: The side of a board's square a calibration takes, in any unit (a micrometre board in mm to a 10 m one in mm): beyond,
-#: the board's points overflow OpenCV's fit (1e300 raised an assertion of its own).
-SQUARE_RANGE = (1e-6, 1e6)
 
 #: The files a calibration is written as (OpenCV writes the format the suffix names).
 CALIBRATION_SUFFIXES = (".yml", ".yaml", ".xml", ".json")

@@ -14,6 +14,7 @@ from pathlib import Path
 from sss_process import run_sss
 
 from sssphase_core.store.session import Session
+from sssphase_daemon.client import DaemonClient
 
 
 def _free_port() -> int:
@@ -63,7 +64,7 @@ def test_a_client_elsewhere_captures_through_the_daemon_its_connection_folder_na
             assert "Traceback" not in refused.stderr
         # `sss daemon stop` acts on this machine's daemon: with SSS_DAEMON set, the rig PC's daemon in use by a rig is
         # still refused a stop (it looked for rigs through SSS_DAEMON, found none, and stopped the local daemon)
-        held = __import__("sssphase_daemon.client", fromlist=["DaemonClient"]).DaemonClient.from_connection(folder)
+        held = DaemonClient.from_connection(folder)
         with held:
             held.call("open_rig", camera="sim:camera0", projector="sim:projector0", turntable=None, options={})
             stop = run_sss(["daemon", "stop"], env={**rig_pc, "SSS_DAEMON": str(wrong)})
