@@ -93,6 +93,7 @@ class StereoResult:
 #: the board's points overflow OpenCV's fit (1e300 raised an assertion of its own).
 SQUARE_RANGE = (1e-6, 1e6)
 
+
 def parse_board(text: str) -> tuple[int, int]:
     """``COLSxROWS`` inner corners (e.g. ``9x6``: a board of 10 x 7 squares), each at least 2."""
     try:
