@@ -52,8 +52,9 @@ def main(argv: list[str] | None = None) -> int:
     daemon.serve_forever()
     import threading
 
-    if any(t.is_alive() and t.name == "sss-discover" for t in threading.enumerate()):  # a plugin hangs in native
-        logging.shutdown()  # code: the interpreter's teardown would crash under it (SIGSEGV, abort)
+    native = ("sss-discover", "sss-device-", "sss-close-")  # threads that may be inside a driver's native code
+    if any(t.is_alive() and t.name.startswith(native) for t in threading.enumerate()):  # one still is (it hangs):
+        logging.shutdown()  # the interpreter's teardown would crash under it (SIGSEGV, abort)
         os._exit(0)
     return 0
 

@@ -12,6 +12,7 @@ keeps serving. Malformed, oversized, wrong-version or unauthenticated requests g
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import hmac
 import itertools
@@ -57,6 +58,8 @@ CLOSE_REPLY_S = 1.5
 CLOSE_WARN_S = 5.0
 #: Seconds ``open_rig`` waits for a device of a rig being closed to finish closing before it says which hangs.
 CLOSING_WAIT_S = 5.0
+#: Seconds a rig's close at shutdown waits for a device call under way (a grab waiting for its frame).
+SHUTDOWN_CALL_WAIT_S = 5.0
 
 #: Seconds an ``open_rig`` may take (a camera's boot, a USB enumeration) before the client is told which device
 #: hangs; the daemon serves other requests meanwhile.
@@ -466,13 +469,29 @@ class Daemon:
             job.cancel.set()
         for job_thread in [t for t in threading.enumerate() if t.name.startswith("sss-job-")]:
             job_thread.join(timeout=5)
-        closing = [threading.Thread(target=rig.close, name=f"sss-close-{rig.id}", daemon=True) for rig in self.rigs.values()]
+
+        def close_after_its_call(rig: Rig) -> None:
+            # a cancelled job's device call (a grab waiting for its frame) ends first: closing a camera under a
+            # grab under way aborted the daemon inside pylon (SIGABRT at SIGTERM while streaming)
+            ended = rig.lock.acquire(timeout=SHUTDOWN_CALL_WAIT_S)
+            if not ended:
+                log.warning("rig %s: a device call did not end within %g s; closing it regardless", rig.id,
+                            SHUTDOWN_CALL_WAIT_S)
+            try:
+                rig.close()
+            finally:
+                if ended:
+                    rig.lock.release()
+
+        closing = [threading.Thread(target=close_after_its_call, args=(rig,), name=f"sss-close-{rig.id}", daemon=True)
+                   for rig in self.rigs.values()]
         for thread in closing:  # a device that hangs in close (a stalled camera) must not keep the daemon alive
             thread.start()
         for thread in closing:
-            thread.join(timeout=5)
+            thread.join(timeout=SHUTDOWN_CALL_WAIT_S + 5)
             if thread.is_alive():
-                log.warning("%s: a device did not close within 5 s; exiting without it", thread.name)
+                log.warning("%s: a device did not close within %g s; exiting without it", thread.name,
+                            SHUTDOWN_CALL_WAIT_S + 5)
         self.rigs.clear()
         if self.preview:
             self.preview.close()
@@ -1030,8 +1049,8 @@ class Daemon:
 
         def produce() -> None:
             try:
-                with job.rig.lock:
-                    for item in frames(job):
+                with job.rig.lock, contextlib.closing(frames(job)) as items_of_job:  # (its cleanup under the lock)
+                    for item in items_of_job:
                         if not put(("item", item)):
                             return
                 put(("end", None))

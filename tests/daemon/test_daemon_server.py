@@ -803,6 +803,70 @@ def test_a_device_whose_close_hangs_holds_neither_the_daemon_nor_its_clients(dae
     assert client.call("open_rig", camera="closehang:cam", timeout_s=5.0)["rig"]
 
 
+SLOW_GRAB_PLUGIN = '''
+import os, threading, time
+import numpy as np
+from sssphase_plugins.api import DeviceInfo, Frame, hookimpl
+
+
+class Camera:
+    """A grab takes 0.4 s (an exposure); close() notes whether a grab was under way (a vendor SDK aborts then)."""
+
+    def __init__(self, device_id):
+        self.info = DeviceInfo(device_id, "camera", "slowgrab", "slow grabs", device_id)
+        self.grabbing = threading.Event()
+
+    def configure(self, **kw):
+        pass
+
+    def grab(self, timeout_s=5.0):
+        self.grabbing.set()
+        time.sleep(0.4)
+        self.grabbing.clear()
+        return Frame(np.zeros((4, 4, 3), np.float32), 0, time.monotonic_ns(), 1.0, {})
+
+    def stream(self, count):
+        return (self.grab() for _ in range(count))
+
+    def close(self):
+        with open(os.environ["SSS_TEST_CLOSE_LOG"], "a") as log:
+            log.write("closed during a grab\\n" if self.grabbing.is_set() else "closed\\n")
+
+
+class Provider:
+    kind = "camera"
+
+    def discover(self):
+        return [DeviceInfo("slowgrab:cam", "camera", "slowgrab", "slow grabs", "cam")]
+
+    def open(self, device_id, options, shared):
+        return Camera(device_id)
+
+
+@hookimpl
+def sssphase_cameras():
+    return [Provider()]
+'''
+
+
+def test_sigterm_while_streaming_closes_the_camera_after_its_grab_under_way(daemon_factory, tmp_path, monkeypatch):
+    """At SIGTERM the daemon closed its rigs while a cancelled stream's grab was still in the driver: pylon then
+    aborted the daemon (exit -6 instead of 0). The close now waits for the device call under way."""
+    closes = tmp_path / "closes.txt"
+    (tmp_path / "slowgrab_plugin.py").write_text(SLOW_GRAB_PLUGIN)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("SSS_PLUGINS", "slowgrab_plugin")
+    monkeypatch.setenv("SSS_TEST_CLOSE_LOG", str(closes))
+    proc, client, runtime = daemon_factory()
+    rig = client.call("open_rig", camera="slowgrab:cam")["rig"]
+    frames = client.stream(rig, 100)
+    next(frames)  # the next grab is under way
+    time.sleep(0.1)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(20) == 0
+    assert closes.read_text() == "closed\n"
+
+
 def test_open_rig_refuses_options_no_plugin_reads(daemon):
     """A misspelt plugin table was handed to the plugins, none of which read it: the rig opened with defaults."""
     _, client = daemon
