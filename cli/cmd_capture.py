@@ -46,6 +46,7 @@ def capture(
 
     from sssphase_core.capture import CaptureRequest, RigSpec, run_capture
     from sssphase_core.errors import InputError
+    from sssphase_daemon.client import DaemonUnavailable
 
     if not 0 < timeout <= MAX_TIMEOUT_S:  # NaN fails too
         raise InputError(f"--timeout must be a number of seconds in (0, {MAX_TIMEOUT_S}], got {timeout}")
@@ -70,7 +71,14 @@ def capture(
                     tasks[view] = bars[0].add_task(f"view {view + 1}/{views}", total=total)
                 bars[0].update(tasks[view], completed=done)
 
-            session = run_capture(client, req, spec, progress=progress, ask_move=None if spec.turntable else _ask_move)
+            try:
+                session = run_capture(client, req, spec, progress=progress,
+                                      ask_move=None if spec.turntable else _ask_move)
+            except DaemonUnavailable as exc:  # the daemon died or went quiet mid-capture (a remote one too)
+                if not bars or "--resume" in str(exc):
+                    raise
+                raise DaemonUnavailable(f"{exc}: complete views are kept; continue with --resume once it runs "
+                                        "again") from None
     except KeyboardInterrupt:
         # cli.main ignores the exit code typer returns for Ctrl-C, so leave with it here
         Console(stderr=True, soft_wrap=True).print("[yellow]interrupted[/]: complete views are kept; rerun with --resume to continue")

@@ -30,6 +30,26 @@ def _client(timeout_s: float = 10.0, *, remote_ok: bool = False):
     return running_client(timeout_s, remote_ok=remote_ok)
 
 
+def _say_local_only() -> None:
+    """With $SSS_DAEMON set, say that `sss daemon start/stop/status` act on this machine's daemon, not that one."""
+    from sssphase_daemon import security
+
+    if remote := os.environ.get(security.ENV_DAEMON):
+        Console(stderr=True, soft_wrap=True).print(
+            f"note: {security.ENV_DAEMON}={escape(remote)} names a daemon on another machine, which `sss devices`, "
+            "`sss capture` and `sss view` use; `sss daemon start/stop/status` act on this machine's own", highlight=False)
+
+
+def _keyless() -> DaemonState | None:
+    """The local daemon's state when it runs with a server-only CURVE key folder (no client key here to ask it)."""
+    from sssphase_daemon import security
+
+    state = security.read_state()
+    if state is None or not state.curve_dir or security.has_client_key(Path(state.curve_dir)):
+        return None
+    return state if security.is_daemon_process(state.pid, state.started) else None
+
+
 def _orphan() -> int | None:
     """The pid of a sssphase daemon serving the default ipc socket without a state file, else None."""
     from sssphase_daemon import security
@@ -59,9 +79,12 @@ def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] 
     else:
         from sssphase_plugins.manager import discover_devices
 
-        hung = _unanswering()
+        hung, keyless = _unanswering(), _keyless()
         infos, errors = discover_devices()
         devs, where = [asdict(d) for d in infos], ("local discovery (no daemon running)" if hung is None else
+                                                   f"local discovery: the daemon (pid {hung}) admits CURVE clients only "
+                                                   "(no client key here to ask it) and may hold some of these devices"
+                                                   if keyless is not None else
                                                    f"local discovery: the daemon (pid {hung}) does not answer and may "
                                                    "hold these devices; `sss daemon stop` ends it")
     if as_json:
@@ -104,6 +127,7 @@ def daemon_start(
     foreground: Annotated[bool, typer.Option("--foreground", help="run in this process (systemd, debugging)")] = False,
 ) -> None:
     """Start the acquisition daemon (detached unless --foreground)."""
+    _say_local_only()
     from sssphase_core.errors import InputError
     from sssphase_daemon import security
     from sssphase_daemon.client import spawn_daemon, start_lock
@@ -147,10 +171,19 @@ def daemon_stop(
                                                         "(another command's, which then fails)")] = False,
 ) -> None:
     """Stop the running daemon (refused while another command uses it, unless --force)."""
+    _say_local_only()
     from sssphase_core.errors import InputError
     from sssphase_daemon import security
     from sssphase_daemon.client import rigs_in_use
 
+    if (keyless := _keyless()) is not None:  # nothing here can ask it whether a capture runs
+        if not force:
+            raise InputError(f"the daemon (pid {keyless.pid}) admits CURVE clients only, and {keyless.curve_dir} holds "
+                             "no client key to ask it whether a capture runs: `sss daemon stop --force` ends it (SIGTERM)")
+        os.kill(keyless.pid, signal.SIGTERM)
+        if _wait_or_kill(keyless.pid, True, 20.0):
+            console.print(f"daemon (pid {keyless.pid}) stopped")
+        return
     client = _client()
     if client is None:
         state = security.read_state()
@@ -224,6 +257,11 @@ def _wait_or_kill(pid: int, force: bool, seconds: float) -> bool:
 
 def daemon_status() -> None:
     """Show the daemon's endpoint, rigs and jobs."""
+    _say_local_only()
+    if (keyless := _keyless()) is not None:
+        console.print(f"daemon pid {keyless.pid} version {keyless.version} on {keyless.endpoint}: it admits CURVE clients "
+                      f"only, and {keyless.curve_dir} holds no client key to ask it for its rigs and jobs")
+        return
     client = _client()
     if client is None:
         from sssphase_daemon import security
@@ -278,8 +316,6 @@ def daemon_connection(
 ) -> None:
     """Write the folder a client on another machine uses this daemon with: copy it there and set SSS_DAEMON=FOLDER;
     `sss capture`, `sss view`, `sss devices` then work through this daemon over CURVE."""
-    import socket
-
     from sssphase_core.errors import InputError
     from sssphase_daemon import security
 
@@ -287,13 +323,29 @@ def daemon_connection(
     if state is None or not security.is_daemon_process(state.pid, state.started):
         raise InputError("no daemon is running here: start it off loopback with CURVE keys first (`sss daemon keys`, "
                          "then `sss daemon start --endpoint tcp://0.0.0.0:5609 --curve-dir DIR`)")
+    if host is None and security.host_of(state.endpoint) in security.WILDCARD_HOSTS:
+        host = security.machine_name()
+        if host is None:
+            raise InputError("this machine's network name is not known (its name is localhost, and no interface has "
+                             "a route out): give --host NAME, the name or address the client reaches it by")
     try:
-        folder = security.write_connection(out, state, host or socket.getfqdn())
+        folder = security.write_connection(out, state, host or "")
     except FileExistsError as exc:
         raise InputError(str(exc)) from None
-    console.print(f"wrote {folder}: copy it to the client's machine (it holds the client's secret key: keep it private, "
-                  f"mode 0700) and set {security.ENV_DAEMON} to its path there (e.g. {security.ENV_DAEMON}=~/{folder.name}"
-                  f"); the client connects to {security.read_connection(folder).endpoint}", highlight=False)
+    endpoint = security.read_connection(folder, keys=False).endpoint
+    secret = ("it holds the client's secret key: keep it private, mode 0700" if security.has_client_key(folder) else
+              "keep it private, mode 0700")
+    console.print(f"wrote {folder}: copy it to the client's machine ({secret}) and set {security.ENV_DAEMON} to its path there (e.g. {security.ENV_DAEMON}=~/{folder.name}"
+                  f"); the client connects to {endpoint}", highlight=False)
+    if not security.has_client_key(folder):
+        console.print(f"note: {state.curve_dir} holds no client key (the server's keys only): on the client's machine "
+                      f"put its own client.key and client.key_secret (`sss daemon keys` makes a pair) into the folder, "
+                      f"and its client.key into {Path(state.curve_dir) / security.AUTHORIZED} here (the daemon admits it within 2 s)",
+                      highlight=False)
+    if security.is_loopback_host(security.host_of(endpoint)):
+        console.print(f"note: {security.host_of(endpoint)} is the client's own machine: only a client on this machine "
+                      "reaches the daemon so; one on another machine needs this machine's name or address (--host)",
+                      highlight=False)
 
 
 def bench_daemon(

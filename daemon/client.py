@@ -37,6 +37,11 @@ class DaemonUnavailable(SssError):
     """No daemon answers at the endpoint."""
 
 
+class NoClientKey(DaemonUnavailable):
+    """The local daemon admits CURVE clients only, and its key folder holds no client key (a server-only folder):
+    this machine's own commands cannot ask it anything."""
+
+
 @dataclass
 class ReceivedFrame:
     name: str
@@ -75,6 +80,9 @@ class DaemonClient:
         if state is None:
             raise DaemonUnavailable("no daemon is running (start one with `sss daemon start`)")
         curve = Path(state.curve_dir) if state.curve_dir else None
+        if curve is not None and not security.has_client_key(curve):
+            raise NoClientKey(f"the daemon (pid {state.pid}) on {state.endpoint} admits CURVE clients only, and its key "
+                              f"folder {curve} holds no client key for this machine's own commands")
         return cls(state.endpoint, state.token, curve_dir=curve, **kwargs)
 
     def _socket(self, kind: int) -> zmq.Socket:
@@ -273,6 +281,9 @@ def spawn_daemon(*, endpoint: str | None = None, extra_args: tuple[str, ...] = (
                 raise DaemonUnavailable(f"the daemon exited with status {proc.returncode}: {_last_line(log.name, start)} "
                                         f"(see {log.name})")
             state = security.read_state(state_file)
+            if state is not None and state.pid == proc.pid and state.curve_dir and \
+                    not security.has_client_key(Path(state.curve_dir)):  # a server-only key folder: nothing here can
+                return proc  # ask it; it has bound its sockets (the state file is written after)
             if state is not None and state.pid == proc.pid:
                 with DaemonClient(state.endpoint, state.token,
                                   curve_dir=Path(state.curve_dir) if state.curve_dir else None) as client:
@@ -310,15 +321,10 @@ def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | N
     ``on_start(pid)`` / ``on_stop(pid)`` / ``on_left(pid)`` are told when a daemon had to be started / was
     stopped / was left running for another client.
     """
-    remote = os.environ.get(security.ENV_DAEMON)
-    if remote:  # a daemon on another machine: used, never started or stopped from here
-        client = DaemonClient.from_connection(remote, timeout_s=timeout_s)
-        if not client.ping(timeout_s=min(timeout_s, 5.0)):
-            client.close()
-            raise DaemonUnavailable(f"the daemon at {client.endpoint} ({security.ENV_DAEMON}={remote}) did not answer "
-                                    "within 5 s: is it running there, and this machine's key authorised by it?")
-        with client:
-            yield client
+    remote = remote_client(timeout_s)
+    if remote is not None:  # a daemon on another machine: used, never started or stopped from here
+        with remote:
+            yield remote
         return
     started = None
     with start_lock():  # clients started together: one starts the daemon, the others find it running
@@ -346,14 +352,30 @@ def local_client(timeout_s: float = 10.0, *, on_start: Callable[[int], None] | N
                 on_stop(started.pid)
 
 
+def remote_client(timeout_s: float = 10.0) -> DaemonClient | None:
+    """A client of the daemon on another machine that ``$SSS_DAEMON`` names, answering; None when it is unset.
+    Raises :class:`DaemonUnavailable` when that daemon does not answer within 5 s (never a fall back to this
+    machine's: `sss devices` listed the local devices as if they were the remote rig's)."""
+    remote = os.environ.get(security.ENV_DAEMON)
+    if not remote:
+        return None
+    client = DaemonClient.from_connection(remote, timeout_s=timeout_s)
+    if not client.ping(timeout_s=min(timeout_s, 5.0)):
+        client.close()
+        raise DaemonUnavailable(f"the daemon at {client.endpoint} ({security.ENV_DAEMON}={remote}) did not answer "
+                                "within 5 s: is it running there, and this machine's key authorised by it?")
+    return client
+
+
 def running_client(timeout_s: float = 10.0, *, remote_ok: bool = False) -> DaemonClient | None:
-    """A client of the local daemon (with ``remote_ok``, of the remote one ``$SSS_DAEMON`` names instead) when one
-    runs and answers, else None. `sss daemon start/stop/status` act on this machine's daemon only: with the remote one
-    unreachable, `stop` found no rig in use and stopped the local daemon under its capture."""
+    """A client of the local daemon when one runs and answers, else None; with ``remote_ok``, of the remote one
+    ``$SSS_DAEMON`` names instead when set (:func:`remote_client`: raises when it does not answer). `sss daemon
+    start/stop/status` act on this machine's daemon only: with the remote one unreachable, `stop` found no rig in
+    use and stopped the local daemon under its capture."""
+    if remote_ok and (remote := remote_client(timeout_s)) is not None:
+        return remote
     try:
-        remote = os.environ.get(security.ENV_DAEMON) if remote_ok else None
-        client = (DaemonClient.from_connection(remote, timeout_s=timeout_s) if remote else
-                  DaemonClient.from_state(timeout_s=timeout_s))
+        client = DaemonClient.from_state(timeout_s=timeout_s)
     except DaemonUnavailable:
         return None
     if client.ping(timeout_s=2.0):

@@ -94,6 +94,43 @@ def host_of(endpoint: str) -> str:
     return parts[0] if parts else ""
 
 
+def is_loopback_host(host: str) -> bool:
+    """Whether ``host`` (a name or an address, as written) means this machine only: localhost, 127.x, ::1."""
+    import ipaddress
+
+    if host.lower() in LOCAL_HOSTS or host.lower().startswith("localhost."):
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+def host_problem(host: str) -> str | None:
+    """Why ``host`` (``--host``) is not a host name or an address, else None."""
+    if host in WILDCARD_HOSTS or tcp_parts(f"tcp://{'[' + host + ']' if ':' in host else host}:1") is None:
+        return f"--host {host!r} is not a host name or an address (the one the client reaches this machine by)"
+    return None
+
+
+def machine_name() -> str | None:
+    """A name or address other machines may reach this one by: its fully qualified name, else (a machine whose
+    name is localhost) the address of the interface its default route leaves through; None when neither is known
+    (no network)."""
+    import socket
+
+    name = socket.getfqdn()
+    if name and not is_loopback_host(name):
+        return name
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            probe.connect(("192.0.2.1", 9))  # (a UDP connect sends nothing: it only picks the outgoing interface)
+            address = probe.getsockname()[0]
+    except OSError:
+        return None
+    return None if is_loopback_host(address) or address == "0.0.0.0" else address
+
+
 def is_ipv6(endpoint: str) -> bool:
     """A tcp endpoint with a bracketed IPv6 host (its socket needs ZeroMQ's IPV6 option)."""
     return endpoint.startswith("tcp://[")
@@ -340,6 +377,12 @@ def server_keys(directory: Path) -> tuple[bytes, bytes]:
     return public, secret
 
 
+def has_client_key(directory: Path) -> bool:
+    """Whether a CURVE key folder holds a client's secret key: a daemon's own folder may hold only the server's keys
+    and the authorised clients' public ones (each client's secret key stays on its machine)."""
+    return (Path(directory) / f"{CLIENT_CERT}.key_secret").exists()
+
+
 def client_keys(directory: Path) -> tuple[bytes, bytes, bytes]:
     """(client public, client secret, server public) for a CURVE client."""
     check_key_folder(directory)
@@ -371,22 +414,30 @@ class Connection:
 def write_connection(folder: Path, state: DaemonState, host: str) -> Path:
     """Write the folder a client on another machine connects with (``sss daemon connection``): ``connection.json``
     (the endpoint, with ``host`` for a daemon bound on every interface, and the token) and the client's CURVE keys
-    from the daemon's key folder, private (0700, files 0600). Refused when the folder exists, or the daemon has no
-    CURVE keys (a loopback daemon is for this machine only)."""
+    from the daemon's key folder when it has them, private (0700, files 0600). Refused before anything is written
+    when the daemon has no CURVE keys or no tcp endpoint, ``host`` is not a host, or the folder exists."""
     import shutil
 
     if not state.curve_dir:
         raise KeyFileError(f"the daemon at {state.endpoint} has no CURVE keys: start it off loopback with them (`sss "
                            "daemon keys`, then `sss daemon start --endpoint tcp://0.0.0.0:5609 --curve-dir DIR`)")
+    parts = tcp_parts(state.endpoint)
+    if parts is None:
+        raise KeyFileError(f"the daemon serves {state.endpoint}, which no other machine reaches: start it on a tcp "
+                           "endpoint (`sss daemon start --endpoint tcp://0.0.0.0:5609 --curve-dir "
+                           f"{state.curve_dir}`)")
+    endpoint = state.endpoint
+    if parts[0] in WILDCARD_HOSTS:
+        problem = host_problem(host)
+        if problem:
+            raise KeyFileError(problem)
+        endpoint = f"tcp://{'[' + host + ']' if ':' in host else host}:{parts[1]}"
     if folder.exists() or folder.is_symlink():
         raise FileExistsError(f"{folder} exists: give a new folder for the connection (it holds a secret key)")
-    parts = tcp_parts(state.endpoint)
-    endpoint = state.endpoint
-    if parts is not None and parts[0] in WILDCARD_HOSTS:
-        endpoint = f"tcp://{'[' + host + ']' if ':' in host else host}:{parts[1]}"
     keys = Path(state.curve_dir)
     folder = _private_dir(folder, "a daemon's connection and a secret key", "")
-    for name in (f"{CLIENT_CERT}.key_secret", f"{CLIENT_CERT}.key", f"{SERVER_CERT}.key"):
+    names = [f"{SERVER_CERT}.key"] + [f"{CLIENT_CERT}.key_secret", f"{CLIENT_CERT}.key"] * has_client_key(keys)
+    for name in names:  # (a server-only key folder: the client puts its own key pair there)
         shutil.copyfile(keys / name, folder / name)
         (folder / name).chmod(0o600)
     path = folder / CONNECTION_FILE
@@ -396,9 +447,9 @@ def write_connection(folder: Path, state: DaemonState, host: str) -> Path:
     return folder
 
 
-def read_connection(folder: Path | str) -> Connection:
+def read_connection(folder: Path | str, *, keys: bool = True) -> Connection:
     """The remote daemon ``$SSS_DAEMON`` names, checked: a private folder with ``connection.json`` (a tcp endpoint
-    and a token) and the client's keys; one line naming what is wrong otherwise."""
+    and a token) and (``keys``) the client's key pair; one line naming what is wrong otherwise."""
     folder = Path(folder)
     where = f"{ENV_DAEMON}={folder}"
     if not (folder / CONNECTION_FILE).is_file():
@@ -415,6 +466,9 @@ def read_connection(folder: Path | str) -> Connection:
     if not (parts and port.isdigit() and 0 < int(port) < 65536 and isinstance(token, str) and token):  # (not "*")
         raise KeyFileError(f"{where}: {CONNECTION_FILE} must hold a tcp endpoint and the daemon's token: write it "
                            "again with `sss daemon connection`")
+    if keys and not has_client_key(folder):
+        raise KeyFileError(f"{where}: no {CLIENT_CERT}.key_secret there: put this machine's client key pair in it "
+                           f"(`sss daemon keys` makes one), and its {CLIENT_CERT}.key into the daemon's {AUTHORIZED}")
     return Connection(endpoint, token, folder)
 
 

@@ -58,6 +58,8 @@ CLOSE_REPLY_S = 1.5
 CLOSE_WARN_S = 5.0
 #: Seconds ``open_rig`` waits for a device of a rig being closed to finish closing before it says which hangs.
 CLOSING_WAIT_S = 5.0
+#: Seconds between two looks at the authorised clients' keys (a client key copied there is admitted without a restart).
+AUTHORIZED_CHECK_S = 2.0
 #: Seconds a rig's close at shutdown waits for a device call under way (a grab waiting for its frame).
 SHUTDOWN_CALL_WAIT_S = 5.0
 
@@ -376,6 +378,8 @@ class Daemon:
             self.auth = ThreadAuthenticator(self.ctx)
             self.auth.start()
             self.auth.configure_curve(domain="*", location=str(curve_dir / security.AUTHORIZED))
+        self.authorized = self._authorized_keys()
+        self.authorized_checked = time.monotonic()
         self.token = token or security.new_token()
         if self.auth is None:  # frame streams authenticate with the token (ZeroMQ PLAIN), so no other local
             from zmq.auth.thread import (
@@ -458,11 +462,37 @@ class Daemon:
                     self._handle([f.bytes for f in frames], fd=frames[-1].get(zmq.SRCFD) if self.guard else None)
                 self._send_replies()
                 self._reap()
+                self._reload_authorized()
                 if self.exit_when_idle_s is not None and self.idle_s() > self.exit_when_idle_s:
                     log.info("idle for %.0f s (no rig, job or client): exiting", self.idle_s())
                     self.running = False
         finally:
             self.close()
+
+    def _authorized_keys(self) -> tuple[tuple[str, int], ...]:
+        """(name, mtime) of the authorised clients' public keys (none without CURVE)."""
+        if self.curve_dir is None:
+            return ()
+        keys = sorted((self.curve_dir / security.AUTHORIZED).glob("*.key"))
+        return tuple((path.name, path.stat().st_mtime_ns) for path in keys if path.is_file())
+
+    def _reload_authorized(self) -> None:
+        """Every :data:`AUTHORIZED_CHECK_S`, read the authorised clients' keys again when they changed: a client key
+        copied there (or removed) took effect only at a restart, which changed the token every connection folder
+        holds. Connections already made stay."""
+        if self.curve_dir is None or time.monotonic() - self.authorized_checked < AUTHORIZED_CHECK_S:
+            return
+        self.authorized_checked = time.monotonic()
+        try:
+            keys = self._authorized_keys()
+            if keys == self.authorized:
+                return
+            self.auth.configure_curve(domain="*", location=str(self.curve_dir / security.AUTHORIZED))
+        except (OSError, ValueError) as exc:  # a key file half-copied: read again at the next check
+            log.warning("authorised clients not read again: %s", _exception_line(exc))
+            return
+        self.authorized = keys
+        log.info("authorised clients read again: %d key(s) in %s", len(keys), self.curve_dir / security.AUTHORIZED)
 
     def close(self) -> None:
         for job in list(self.jobs.values()):

@@ -162,6 +162,8 @@ def test_a_checkerboard_session_calibrates_the_rig_and_its_points_land_on_the_su
     (["--board", "6x4", "--square", "1e300"], r"a positive length in --unit \(mm\), from 1e-06 to 1e\+06, got 1e\+300"),
     (["--board", "6x4", "--square", "9", "--out", "calibration.txt"], "name a .yml, .yaml, .xml or .json file"),
     (["--board", "6x4", "--square", "9", "--unit", "m m"], "--unit must be a length unit's short name"),
+    (["--board", "6x4", "--square", "9", "--unit", "px"], r"--unit must be one of mm, cm, m, in, um, µm \(the unit of "
+                                                         r"--square\), got 'px'"),
     (["--board", "6x4", "--square", "9", "--lens", "fisheye"], "--lens must be one of k1, radial, full"),
 ])
 def test_a_stereo_calibration_that_cannot_be_made_is_one_line_and_writes_nothing(board_session, tmp_path, args, expected):

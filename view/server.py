@@ -7,6 +7,8 @@ import ipaddress
 import secrets
 import socket
 import ssl
+import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -82,19 +84,46 @@ def check_host(host: str, allow_remote: bool, tls: bool = False) -> None:
                          "to serve it over HTTPS")
 
 
-def tls_context(cert: Path, key: Path) -> ssl.SSLContext:
-    """The server's TLS context from a PEM certificate (chain) and its key, refused in one line when they do not
-    load or belong together (before serving, not at the first connection)."""
-    context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+class _Encrypted(Exception):
+    """The TLS key asked for its passphrase (raised from OpenSSL's password callback)."""
+
+
+def tls_context(cert: Path, key: Path, ask: Callable[[str], str] | None = None) -> str | None:
+    """Check a PEM certificate (chain) and its key before serving (not at the first connection): one line when they
+    do not load or belong together. A key encrypted with a passphrase is asked for it once, with ``ask(prompt)``
+    (OpenSSL asked on the terminal for every load: twice); without ``ask`` it is refused. Returns the passphrase
+    (None: the key has none), which the server loads the key with again."""
     for given, option in ((cert, "--tls-cert"), (key, "--tls-key")):
         if not Path(given).is_file():
             raise InputError(f"{option} {given}: {'not a file' if Path(given).exists() else 'no such file'}")
+    if Path(key).stat().st_mode & 0o077:
+        warnings.warn(f"--tls-key {key} can be read by other users of this machine: chmod 600 it", stacklevel=2)
+
+    def load(password: Callable[[], str] | str) -> None:
+        ssl.create_default_context(ssl.Purpose.CLIENT_AUTH).load_cert_chain(cert, key, password=password)
+
+    def refuse() -> str:
+        raise _Encrypted
+
     try:
-        context.load_cert_chain(cert, key)
+        load(refuse)
+        return None
+    except _Encrypted:
+        pass
     except (ssl.SSLError, OSError, ValueError) as exc:
         raise InputError(f"--tls-cert {cert} and --tls-key {key} do not load as a PEM certificate and its key "
                          f"({getattr(exc, 'reason', None) or exc})") from None
-    return context
+    if ask is None:
+        raise InputError(f"--tls-key {key} is encrypted with a passphrase, and there is no terminal to ask it on: give "
+                         "a key without one, readable by you only (openssl pkey -in KEY -out PLAIN.pem; chmod 600 "
+                         "PLAIN.pem)")
+    passphrase = ask(f"passphrase of {key}: ")
+    try:
+        load(passphrase)
+    except (ssl.SSLError, OSError, ValueError) as exc:
+        raise InputError(f"--tls-key {key} does not open with that passphrase, or is not --tls-cert's key "
+                         f"({getattr(exc, 'reason', None) or exc})") from None
+    return passphrase
 
 
 def check_inputs(sessions: Path | None, checkpoint: Path | None) -> None:
@@ -119,8 +148,11 @@ def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = Non
     import uvicorn
 
     check_host(host, allow_remote, tls is not None)
+    passphrase = None
     if tls is not None:
-        tls_context(*tls)
+        import getpass
+
+        passphrase = tls_context(*tls, ask=getpass.getpass if sys.stdin.isatty() else None)
     check_inputs(sessions, checkpoint)
     stereo = None
     if calibration is not None:
@@ -143,14 +175,18 @@ def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = Non
         sock.close()
         raise InputError(f"cannot listen on {host}:{port}: {exc.strerror}") from None
     bound = sock.getsockname()[1]
-    named = socket.getfqdn() if host in ("0.0.0.0", "::") else host  # (every address: the URL names the machine)
+    named = host  # listening on every address: the URL names the machine as others reach it (not "localhost")
+    if host in ("0.0.0.0", "::"):
+        from sssphase_daemon.security import machine_name
+
+        named = machine_name() or host
     shown = f"[{named}]" if ":" in named else named
     url = f"{'https' if tls else 'http'}://{shown}:{bound}/?token={state.token}"
     # On loopback the page is reached by its own address or as localhost only (sssphase_view.app.Guard)
     hosts = sorted({host, "127.0.0.1", "localhost"}) if not allow_remote else None
     config = uvicorn.Config(build_app(state, hosts=hosts), log_level="warning", ws="websockets-sansio", lifespan="on",
                             http=_head_deadline_protocol(), ssl_certfile=tls[0] if tls else None,
-                            ssl_keyfile=tls[1] if tls else None)
+                            ssl_keyfile=tls[1] if tls else None, ssl_keyfile_password=passphrase)
     class Server(uvicorn.Server):
         def handle_exit(self, sig: int, frame: Any) -> None:
             state.stop_work()  # at once: uvicorn waits for the requests under way, a relight's among them

@@ -200,10 +200,12 @@ def calibrate_stereo(session: Any, board: tuple[int, int], square: float, views:
     (:data:`LENS_MODELS`); refused in one line where fewer than :data:`MIN_VIEWS` views show the whole board."""
     if lens not in LENS_MODELS:
         raise InputError(f"--lens must be one of {', '.join(LENS_MODELS)} (the distortion terms to estimate), got {lens!r}")
+    check_unit(unit, "--unit")
+    if unit not in MM_PER_UNIT:  # (a file read may name any unit; one written here is one whose size is known)
+        raise InputError(f"--unit must be one of {', '.join(MM_PER_UNIT)} (the unit of --square), got {unit!r}")
     if not square > 0 or not np.isfinite(square) or not SQUARE_RANGE[0] <= square <= SQUARE_RANGE[1]:
         raise InputError(f"--square must be the board's square side, a positive length in --unit ({unit}), from "
                          f"{SQUARE_RANGE[0]:g} to {SQUARE_RANGE[1]:g}, got {square!r}")
-    check_unit(unit, "--unit")
     found, skipped, size, projector = find_boards(session, board, views, progress)
     require_boards(session, found, skipped, MIN_VIEWS)
     grid = np.zeros((board[0] * board[1], 3), np.float32)

@@ -63,6 +63,7 @@ class FootprintCache:
         self._dirty = False
         if self.path.exists():
             self._load()
+        self.kept_used = np.zeros(self.size, bool)  # which of the footprints kept before (loaded) were read
 
     def _load(self) -> None:
         """Take the file's footprints when it is a cache of this view and patch; anything else (another
@@ -99,6 +100,8 @@ class FootprintCache:
         out = np.empty((len(pixels), self.patch, self.patch, 3), np.float32)
         if (~miss).any():
             out[~miss] = from_float16(self.data[pos[~miss]])
+            hit = pos[~miss]
+            self.kept_used[hit[hit < len(self.kept_used)]] = True
         if miss.any():
             from sssphase_core.relight.engine import footprint_array
 
@@ -120,6 +123,11 @@ class FootprintCache:
         self.hits += int((~miss).sum())
         self.misses += int(miss.sum())
         return out
+
+    @property
+    def kept_read(self) -> int:
+        """How many footprints were read that an earlier run kept (not those this run computed and read again)."""
+        return int(self.kept_used.sum())
 
     def save(self) -> None:
         if not self._dirty:

@@ -159,7 +159,8 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
             warnings.warn(line, UserWarning, stacklevel=2)
             break
     seconds = time.perf_counter() - t0
-    read = sum(c.hits for c in caches) / max(1, sum(c.hits + c.misses for c in caches))  # footprints not predicted now
+    kept = sum(c.kept_read for c in caches)  # footprints an earlier run kept: not predicted now (a calibration's
+    read = kept / max(1, kept + sum(c.misses for c in caches))  # footprints read again by its relight are not)
     rows = []
     out = Path(out_dir)
     exposure = display_scale(rv.white) if write else None  # one display exposure per view, shared by its patterns

@@ -113,6 +113,7 @@ def test_daemon_sigkill_mid_capture_then_resume_is_byte_identical(reference, dae
     proc.wait()
     _, err = cli.communicate(timeout=60)
     assert cli.returncode == 2 and re.search(r"stopped answering|did not answer|has exited \(killed, or crashed", err), err
+    assert "complete views are kept; continue with --resume" in err, err
     assert Session.open(tmp_path / OBJECT).views() == [0]
     _, _, runtime = daemon_factory()
     done = subprocess.run([*args, "--resume"], capture_output=True, text=True, timeout=120,

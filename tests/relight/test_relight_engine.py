@@ -93,6 +93,13 @@ def test_footprint_cache_skips_the_source_for_cached_pixels(tmp_path, scene):
     np.testing.assert_array_equal(second, first)  # the same image whether the footprints were cached or not
     direct = relight(src, proj, pats[:1], k)
     np.testing.assert_allclose(direct, first, rtol=2e-3, atol=1e-4)  # (float16 storage: close to the source's own)
+    # what an evaluation calls "read from the cache": footprints an earlier run kept, not those this run computed and
+    # read again (a view's calibration pass, then its relight: "read 50% of its footprints from cache" of a first run)
+    assert cache.kept_read == 0 and again.kept_read == n_first
+    fresh = FootprintCache(src, tmp_path / "fresh.npz", proj.shape, k)
+    relight(fresh, proj, pats[:1], k)
+    relight(fresh, proj, pats[1:2], k)
+    assert fresh.hits == fresh.misses == n_first and fresh.kept_read == 0
 
 
 def _cached_once(src, path, scene):

@@ -349,6 +349,11 @@ def test_an_evaluation_starts_from_the_footprints_the_trainings_check_kept(sessi
     assert row["footprints_from_cache"] == 1.0 and "torch read 100% of its footprints" in said.text()
     evaluate_sessions([session], backend="analytic", out=tmp_path / "none", cache=False)  # a model: else kept
     assert not (tmp_path / "none" / "cache").exists()
+    # a first evaluation read back the footprints its own calibration had just cached: "read 50% from cache"
+    said = Recorder()
+    (row,) = evaluate_sessions([session], backend="analytic", out=tmp_path / "fresh", narrator=said).rows
+    assert row["footprints_from_cache"] == 0 and "of its footprints from" not in said.text()
+    assert list((tmp_path / "fresh" / "cache").glob("*.npz"))  # kept for the next one
 
 
 def _tiny_decoder(run):
