@@ -133,15 +133,19 @@ def import_images(
                                             "the frames' noise shows, if any; none: never")] = "auto",
     demosaic: Annotated[str, typer.Option(help="with --bayer, how it demosaiced: malvar or opencv (relit fringes are "
                                                "then compared through it), or other")] = "other",
+    angles: Annotated[str | None, typer.Option(help="each view's turntable angle in degrees, in view order (e.g. "
+                                                    "0,90,180,270): `sss geometry` merges the views with them")] = None,
 ) -> None:
     """Import frames from another rig (named by plan key, '/' as '__' or folders; see SESSION_FORMAT.md)."""
     from sssphase_core.capture import import_folder
+    from sssphase_core.capture.importer import parse_angles
     from sssphase_core.processing.patterns import parse_projector_size
     from sssphase_core.store.session import check_output_folder
 
     check_output_folder(out)  # before any frame is read: a file, a broken link or a session's own folder
     session = import_folder(folder, out, object_name, parse_projector_size(projector), patch=patch, gamma=gamma,
-                            encoding=encoding, bayer=bayer, demosaic=demosaic)
+                            encoding=encoding, bayer=bayer, demosaic=demosaic,
+                            angles=parse_angles(angles) if angles is not None else None)
     rig = session.manifest["rig"]
     for v, info in sorted(session.manifest["views"].items(), key=lambda kv: int(kv[0])):
         found = str(info.get("bayer_detected", "none"))

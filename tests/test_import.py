@@ -860,6 +860,27 @@ def test_view_folders_import_in_numeric_order(frames, tmp_path):
     assert s.load(0, "white").mean() > 1.8 * s.load(1, "white").mean()
 
 
+def test_an_import_records_the_turntable_angles_it_is_given(frames, tmp_path):
+    """Imported sessions had no turntable angle: `sss geometry` could never merge another rig's views."""
+    from sssphase_core.capture.importer import parse_angles
+    from sssphase_core.relight.merged_points import recorded_angles
+
+    folder = tmp_path / "turned"
+    for v in range(2):
+        _perturbed(frames, folder / f"view_{v:03d}", lambda img: img)
+    with pytest.raises(InputError, match=r"--angles gives 3 angles for 2 views: give one per view, in view order"):
+        import_folder(folder, tmp_path / "s", "turned", (W, H), patch=K, angles=[0, 90, 180])
+    with pytest.raises(InputError, match=r"--angles must be finite numbers of degrees"):
+        import_folder(folder, tmp_path / "s", "turned", (W, H), patch=K, angles=[0, float("nan")])
+    assert not (tmp_path / "s" / "turned").exists()
+    with pytest.raises(InputError, match=r"--angles must be the views' turntable angles in degrees, comma-separated"):
+        parse_angles("0;90")
+    s = import_folder(folder, tmp_path / "s", "turned", (W, H), patch=K, angles=parse_angles("0, 90"))
+    assert recorded_angles(s, [0, 1]) == {0: 0.0, 1: 90.0}
+    plain = import_folder(folder, tmp_path / "s", "plain", (W, H), patch=K)
+    assert recorded_angles(plain, [0, 1]) is None and "angles" not in plain.manifest["import_options"]
+
+
 def test_16_bit_npy_frames_import_like_16_bit_pngs(frames, tmp_path):
     """A lab's raw frames saved as uint16 .npy are the camera's codes, like a 16-bit PNG's: divided by the
     top code (they were taken as linear values in the tens of thousands, saturation unseen)."""

@@ -8,7 +8,7 @@ import json
 import re
 import shutil
 import warnings
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -803,17 +803,17 @@ def check_plan_file(folder: Path, size: tuple[int, int], gamma: float, config: A
 
 def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int, int], *, patch: int = 32,
                   gamma: float = 2.2, encoding: str = "auto", bayer: str | None = "auto",
-                  demosaic: str = "other") -> Session:
+                  demosaic: str = "other", angles: Sequence[float] | None = None) -> Session:
     """:func:`_import_folder` holding the session's lock (:func:`~sssphase_core.store.locks.session_lock`): a
     second import (or capture) into the same session is refused while this one runs."""
     with session_lock(Path(root), check_object_name(name)):
         return _import_folder(folder, root, name, projector_size, patch=patch, gamma=gamma, encoding=encoding,
-                              bayer=bayer, demosaic=demosaic)
+                              bayer=bayer, demosaic=demosaic, angles=angles)
 
 
 def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int, int], *, patch: int = 32,
                    gamma: float = 2.2, encoding: str = "auto", bayer: str | None = "auto",
-                   demosaic: str = "other") -> Session:
+                   demosaic: str = "other", angles: Sequence[float] | None = None) -> Session:
     """Import frames captured by another rig into a session, processed by the capture engine's
     :class:`ViewProcessor` exactly like a capture.
 
@@ -830,7 +830,8 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
     relit fringes through it (``isp.through_camera``); ``"auto"`` (default): each view's layout as its noise
     shows it (:func:`isp.detect_bayer_layout`, the reason in the view's ``bayer_detected``), else none;
     ``None`` or ``"none"``: none. A reference that is not a named pattern needs its projected
-    image as ``pattern__<name>.png``. A view where nothing decodes is refused; a failed import leaves
+    image as ``pattern__<name>.png``. ``angles``: each view's turntable angle (degrees, view order), recorded as a
+    capture records it (`sss geometry` merges the views with them). A view where nothing decodes is refused; a failed import leaves
     nothing behind; an interrupted one (Ctrl-C, SIGTERM) keeps its complete views, and the same import run again
     continues from them (after a SIGKILL too: the view it was in is redone).
     """
@@ -885,6 +886,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
     if view_dirs != [folder] and frame_files(folder, strict=False):  # one view's frames would be left out
         raise InputError(f"{folder} holds frames beside its view_NNN folders: move them into a view folder of their "
                          "own (e.g. view_000) or import them separately")
+    angles = check_angles(angles, len(view_dirs))
     # the unwrapping frames are kept: the session is then whole without the folder (`sss export` of it imports again)
     req = CaptureRequest(check_object_name(name), views=len(view_dirs), out=Path(root), keep_unwrap=True)
     views = [(vdir, frame_files(vdir)) for vdir in view_dirs]  # refuse bad names before writing anything
@@ -937,7 +939,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
     settings = {"n_views": len(view_dirs), "imported_from": str(folder.resolve()),
                 "rig": {"camera": "import", "projector_size": [w, h], "patch": patch, "imported": True,
                         "frame_scale": scale, "frame_encoding": encoding, "frame_encoding_from": encoding_tag},
-                "plan": plan_json, "import_options": {"bayer": str(bayer).lower(), "demosaic": demosaic},
+                "plan": plan_json, "import_options": {"bayer": str(bayer).lower(), "demosaic": demosaic, **({"angles": angles} if angles else {})},
                 "imported_frames": [frames_fingerprint(files) for _, files in views]}  # frames replaced: not resumed
     resume = path.exists() and _continues_unfinished_import(path, folder, settings)
     session = Session.create(root, name, resume=resume, **settings, software={"sssphase": __version__})
@@ -1040,7 +1042,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                 writer.abort()
                 session.set_view(view, {"status": "interrupted"})
                 raise
-            writer.commit({"source": str(vdir), **info})
+            writer.commit({"source": str(vdir), **info, **({"angle": angles[view]} if angles else {})})
     except KeyboardInterrupt:  # Ctrl-C or SIGTERM: the complete views stay, and the same import continues from them
         if not session.views():
             _remove(session.path)
@@ -1061,6 +1063,28 @@ def frames_fingerprint(files: dict[str, Path]) -> str:
         stat = files[key].stat()
         digest.update(f"{key}\0{stat.st_size}\0{stat.st_mtime_ns}\n".encode())
     return digest.hexdigest()[:16]
+
+
+def parse_angles(text: str) -> list[float]:
+    """``--angles`` ("0,90,180,270": degrees) -> the numbers; one line naming what does not read."""
+    try:
+        return [float(part) for part in text.split(",")]
+    except ValueError:
+        raise InputError(f"--angles must be the views' turntable angles in degrees, comma-separated (0,90,180,270), "
+                         f"got {text[:60]!r}") from None
+
+
+def check_angles(angles: Sequence[float] | None, n_views: int) -> list[float] | None:
+    """``angles`` as floats when there is one finite angle per view, else refused in one line."""
+    if angles is None:
+        return None
+    angles = [float(a) for a in angles]
+    if len(angles) != n_views:
+        raise InputError(f"--angles gives {len(angles)} angle{'s' if len(angles) != 1 else ''} for {n_views} "
+                         f"view{'s' if n_views != 1 else ''}: give one per view, in view order")
+    if not all(np.isfinite(a) and abs(a) <= 36000 for a in angles):
+        raise InputError(f"--angles must be finite numbers of degrees, got {', '.join(f'{a:g}' for a in angles)}")
+    return angles
 
 
 def _continues_unfinished_import(path: Path, folder: Path, settings: dict[str, Any]) -> bool:
