@@ -33,9 +33,17 @@ DeterministicOpt = Annotated[bool, typer.Option(
     help="CUDA: deterministic kernels, so a resumed run ends with exactly an uninterrupted run's weights (`sss bench "
          "gpu` measures the cost; the docs' paper-scale page gives an H200's: SimSiam resumed exactly without them, the decoder did "
          "not); the CPU's kernels always are.")]
-SeedOpt = Annotated[int, typer.Option(min=0, max=MAX_SEED)]
-EpochsOpt = Annotated[int, typer.Option(min=1, max=100_000)]
-PixelsOpt = Annotated[int, typer.Option(min=1)]
+SeedOpt = Annotated[int, typer.Option(min=0, max=MAX_SEED, help="Random seed (sampling, augmentations, weights): the "
+                                      "same seed and inputs give the same run.")]
+EpochsOpt = Annotated[int, typer.Option(min=1, max=100_000, help="Passes over the sampled patches.")]
+PixelsOpt = Annotated[int, typer.Option(min=1, help="Surface pixels sampled per view.")]
+RigOpt = Annotated[str, typer.Option(help="Simulated rig preset when no --sessions are given (cpu: K=32, paper: K=90; "
+                                     "`sss rigs`).")]
+DeviceOpt = Annotated[str, typer.Option(help="Where to train: auto (a GPU where torch sees one, else cpu), cpu, cuda "
+                                        "or cuda:N.")]
+BatchOpt = Annotated[int, typer.Option(min=1, help="Patches per step.")]
+ResumeOpt = Annotated[bool, typer.Option(help="Continue from out/last.pt when present (--no-resume starts afresh "
+                                         "into an empty --out).")]
 CkptEveryOpt = Annotated[int, typer.Option(min=0, help="Steps between mid-epoch checkpoints (0: epoch ends only).")]
 TimeLimitOpt = Annotated[float | None, typer.Option(
     "--time-limit", min=0.001, help="Seconds this run may train: it stops at the last epoch end that fits (its "
@@ -125,7 +133,7 @@ def train_pretrain(
     pixels_per_view: Annotated[int, typer.Option(min=1, help="Surface pixels sampled per view.")] = 2000,
     epochs: EpochsOpt = 10,
     batch_size: Annotated[int, typer.Option(min=1, help="Patches per step (at least 2: SimSiam's BatchNorm).")] = 64,
-    lr: float = 0.05,
+    lr: Annotated[float, typer.Option(help="Learning rate (SGD with momentum; warmup, then cosine decay).")] = 0.05,
     warmup_epochs: Annotated[float, typer.Option(help="Epochs of linear learning-rate warmup (>= 0), then cosine decay.")] = 2.0,
     augment: Annotated[str, typer.Option(help="psp (weak/strong PSP set) or imagenet (baseline).")] = "psp",
     fix_pred_lr: Annotated[bool, typer.Option(help="Keep the predictor at the base lr (no schedule).")] = True,
@@ -137,7 +145,7 @@ def train_pretrain(
     seed: SeedOpt = 0,
     ckpt_every: CkptEveryOpt = 50,
     time_limit: TimeLimitOpt = None,
-    device: str = "auto",
+    device: DeviceOpt = "auto",
     deterministic: DeterministicOpt = False,
     resume: Annotated[bool, typer.Option(help="Continue from out/last.pt when present.")] = True,
     cache: CacheOpt = DEFAULT_CACHE,
@@ -165,12 +173,12 @@ def train_decoder(
     views: ViewsOpt = None,
     val_views: ValViewsOpt = None,
     n_views: NViewsOpt = 4,
-    rig: str = "cpu",
+    rig: RigOpt = "cpu",
     pixels_per_view: PixelsOpt = 2000,
     noisy_targets: Annotated[bool, typer.Option(help="Add capture noise to the footprint targets.")] = False,
     epochs: EpochsOpt = 10,
-    batch_size: Annotated[int, typer.Option(min=1)] = 32,
-    lr: float = 1e-3,
+    batch_size: BatchOpt = 32,
+    lr: Annotated[float, typer.Option(help="Learning rate (Adam).")] = 1e-3,
     head: HeadOpt = "reciprocal",
     aux_classes: AuxClassesOpt = 0,
     learn_gain: LearnGainOpt = False,
@@ -179,9 +187,9 @@ def train_decoder(
     seed: SeedOpt = 0,
     ckpt_every: CkptEveryOpt = 50,
     time_limit: TimeLimitOpt = None,
-    device: str = "auto",
+    device: DeviceOpt = "auto",
     deterministic: DeterministicOpt = True,
-    resume: bool = True,
+    resume: ResumeOpt = True,
     cache: CacheOpt = DEFAULT_CACHE,
     sessions: SessionsOpt = None,
     check_sessions: CheckSessionsOpt = None,
@@ -209,7 +217,7 @@ def eval_knn(
     objects: ObjectsOpt = "",
     views: ViewsOpt = None,
     n_views: NViewsOpt = 4,
-    rig: str = "cpu",
+    rig: RigOpt = "cpu",
     pixels_per_view: PixelsOpt = 1000,
     k: Annotated[str, typer.Option(help="Neighbours; a comma list adds a sweep (the table uses the first).")] = "20",
     vote: Annotated[str, typer.Option(help="majority or weighted.")] = "majority",
@@ -235,7 +243,7 @@ def eval_footprints(
     objects: ObjectsOpt = "",
     views: ViewsOpt = None,
     n_views: NViewsOpt = 4,
-    rig: str = "cpu",
+    rig: RigOpt = "cpu",
     pixels_per_view: PixelsOpt = 500,
     baseline: Annotated[str, typer.Option(help="Backend to compare with ('' for none).")] = "analytic",
     compare: CompareOpt = None,
@@ -265,9 +273,9 @@ def viz_pca(
     checkpoint: Annotated[Path, typer.Option("--checkpoint", help="Encoder checkpoint (pretraining or decoder run).")],
     objects: Annotated[str, typer.Option(help="Comma-separated objects shown side by side (default: every session "
                                          "under --sessions, else the simulator's soap and shovel).")] = "",
-    view: Annotated[int, typer.Option(min=0)] = 0,
+    view: Annotated[int, typer.Option(min=0, help="The view of each object shown.")] = 0,
     n_views: NViewsOpt = 4,
-    rig: str = "cpu",
+    rig: RigOpt = "cpu",
     stride: Annotated[int, typer.Option(min=1, help="Embed every stride-th pixel in x and y.")] = 2,
     out: Annotated[Path, typer.Option(help="PNG output.")] = Path("pca_rgb.png"),
     cache: CacheOpt = DEFAULT_CACHE,
@@ -288,7 +296,7 @@ def viz_footprints(
     backend: Annotated[str, typer.Option(help="Comma-separated rows: captured (the session's dot-grid crops), torch, "
                                          "analytic, exact (sim sessions), none.")] = "captured,analytic",
     checkpoint: Annotated[Path | None, typer.Option(help="Decoder checkpoint for the torch row.")] = None,
-    view: int = 0,
+    view: Annotated[int, typer.Option(min=0, help="The session's view whose footprints are shown.")] = 0,
     pixels: Annotated[int, typer.Option(min=1, max=16, help="Pixels shown (spread over the object).")] = 6,
     out: Annotated[Path, typer.Option(help="PNG output (profiles in <out>_profiles.png).")] = Path("footprints.png"),
 ) -> None:

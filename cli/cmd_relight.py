@@ -244,7 +244,10 @@ def report(
     pretrain: Annotated[Path | None, typer.Option(help="Pretraining run or checkpoint (kNN table, PCA maps).")] = None,
     decoder: Annotated[Path | None, typer.Option(help="Decoder run or checkpoint (the torch rows).")] = None,
     view: Annotated[int, typer.Option(help="The view of each test session to relight.")] = 0,
-    backend: BackendOpt = "none,analytic,measured,torch",
+    backend: Annotated[str, typer.Option("--backend", help="Comma-separated backends to relight with: none, analytic, "
+                                         "measured, torch (needs --decoder), blend (torch and analytic weighted by how "
+                                         "well they relight the view's own fringe captures; needs --decoder) or exact "
+                                         "(simulated sessions only).")] = "none,analytic,measured,torch",
 ) -> None:
     """The demo's HTML report for your own sessions and runs: relit vs reference vs difference, tables, error
     against run time, kNN, PCA."""

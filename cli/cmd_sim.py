@@ -82,17 +82,21 @@ def rigs() -> None:
     from sssphase_core.processing.patterns import psp_config_for
     from sssphase_core.sim.rig import PRESETS, pixel_pitch_mm, rig_preset
 
-    table = Table(title="Rig presets (sss capture/sim --preset NAME; a real rig: --rig RIG.toml, see HARDWARE.md)")
-    for col in ("preset", "camera", "projector", "patch K", "fringe period (px)", "unwrapping periods (px)",
-                "dot spacing (px)", "camera pixel (mm)", "scattering scale"):
-        table.add_column(col)
+    columns = {}  # one column per preset, one row per setting: readable at 80 columns (the camera's size was cut)
     for name in PRESETS:
         rig = rig_preset(name)
         psp = psp_config_for(rig.projector.width, rig.projector.height)
-        table.add_row(name, f"{rig.camera.width}x{rig.camera.height}", f"{rig.projector.width}x{rig.projector.height}",
-                      str(rig.patch), f"{psp.period:g} x {psp.n_shifts} shifts",
-                      ", ".join(f"{p:g}" for p in psp.unwrap_periods), str(dot_spacing_for(rig.patch)),
-                      f"{pixel_pitch_mm(rig):.3f}", f"{rig.sss_scale:g}")
+        columns[name] = (f"{rig.camera.width}x{rig.camera.height}", f"{rig.projector.width}x{rig.projector.height}",
+                         str(rig.patch), f"{psp.period:g} x {psp.n_shifts} shifts",
+                         ", ".join(f"{p:g}" for p in psp.unwrap_periods), str(dot_spacing_for(rig.patch)),
+                         f"{pixel_pitch_mm(rig):.3f}", f"{rig.sss_scale:g}")
+    table = Table(title="Rig presets (sss capture/sim --preset NAME; a real rig: --rig RIG.toml, see HARDWARE.md)")
+    table.add_column("setting")
+    for name in columns:
+        table.add_column(name, no_wrap=True)
+    for i, setting in enumerate(("camera", "projector", "patch K", "fringe period (px)", "unwrapping periods (px)",
+                                 "dot spacing (px)", "camera pixel (mm)", "scattering scale")):
+        table.add_row(setting, *(values[i] for values in columns.values()))
     Console(soft_wrap=True).print(table)
 
 

@@ -90,6 +90,21 @@ def _register_all() -> None:
 _register_all()
 
 
+def _unwrap_docstrings() -> None:
+    """Each command's help from its docstring with the source's line breaks joined within paragraphs: `sss --help`
+    showed them mid-sentence ("... tone-mapped), mask,⏎ exact projector ...")."""
+    import inspect
+
+    for group in groups.values():
+        for command in group.registered_commands:
+            doc = command.help or (inspect.getdoc(command.callback) if command.callback else None)
+            if doc:
+                command.help = "\n\n".join(" ".join(part.split()) for part in doc.split("\n\n"))
+
+
+_unwrap_docstrings()
+
+
 def _flags_show_no_type() -> None:
     """A flag takes no value, so ``--help`` shows no ``<bool>`` type for it (typer 0.29 prints one)."""
     from typer.core import TyperOption
@@ -158,6 +173,7 @@ INTERRUPTED = {
     "relight": "the footprints computed so far are kept in --out's cache; the same command again computes only the rest",
     "demo": "work done so far is kept; rerun the command to resume",
     "patterns": "the patterns written so far are kept in --out; rerun into a new or emptied folder",
+    "view": "the view stopped; the images it relit are kept in --out",
     "": "outputs written so far are kept; rerun the command to redo the rest",
 }
 

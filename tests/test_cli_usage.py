@@ -370,3 +370,44 @@ def test_an_error_naming_a_path_with_a_newline_stays_one_line(tmp_path) -> None:
     res = _sss("relight", str(folder), "--pattern", "checkerboard", "--out", str(tmp_path / "o"))
     assert res.returncode == 2
     assert res.stderr.strip().splitlines() == [f"error: {tmp_path}/nl\\nx is not a session (no manifest.json)"], res.stderr
+
+
+def test_a_folder_of_sessions_given_for_a_session_names_the_sessions_in_it(tmp_path) -> None:
+    """`sss relight SESSIONS_ROOT` said only "is not a session (no manifest.json)"."""
+    from sssphase_core.store.session import Session
+
+    for name in ("soap", "apple"):
+        Session.create(tmp_path / "sessions", name)
+    res = _sss("relight", str(tmp_path / "sessions"), "--pattern", "checkerboard", "--out", str(tmp_path / "o"))
+    assert res.returncode == 2 and res.stderr.strip().splitlines() == [
+        f"error: {tmp_path}/sessions is not a session (no manifest.json); it holds the sessions apple, soap: give one "
+        f"of them ({tmp_path}/sessions/apple)"], res.stderr
+
+
+def test_the_rig_presets_read_whole_in_an_80_column_terminal() -> None:
+    """`sss rigs` cut the camera's and projector's sizes to "256x1…" and "1920x…" at 80 columns."""
+    res = run_sss(["rigs"], env={**os.environ, "COLUMNS": "80"})
+    assert res.returncode == 0 and max(len(line) for line in res.stdout.splitlines()) <= 90, res.stdout
+    rows = {line.split("│")[1].strip(): [c.strip() for c in line.split("│")[2:-1]] for line in res.stdout.splitlines()
+            if line.startswith("│")}
+    assert rows["camera"][:2] == ["256x192", "1920x1080"] and rows["projector"][:2] == ["256x192", "1920x1080"], rows
+
+
+def test_progress_written_to_a_file_is_said_as_the_work_goes() -> None:
+    """`sss demo > log` showed "[pretrain] running" for minutes, then the finished bars all at once: where no bar can
+    be drawn, a line per tenth of a task (or every 30 s) is printed as it comes."""
+    import io
+
+    from rich.console import Console
+
+    from sssphase_cli.progress import step_bar
+
+    buf = io.StringIO()
+    with step_bar(Console(file=buf, width=200)) as progress:  # (a file: no terminal)
+        for done in range(101):
+            progress("pretrain", done, 100, "loss 0.5")
+        progress("decoder", 0, 7, "")
+        progress("decoder", 7, 7, "")
+        progress("decoder", 7, 7, "")
+    lines = buf.getvalue().splitlines()
+    assert lines == [f"pretrain: {n}/100 loss 0.5" for n in range(0, 101, 10)] + ["decoder: 0/7", "decoder: 7/7"], lines

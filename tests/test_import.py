@@ -576,6 +576,8 @@ def test_sss_report_on_a_users_own_session(handmade, tmp_path):
     assert "pretrain_epochs" not in config and "none given" in config  # not the demo's built-in settings
     assert [p.name for p in (tmp_path / "rep" / "img").glob("*compare.png")]
     assert "[relight] done" in res.stdout
+    timings = page[page.index("<h2>Timings</h2>"):]  # the sessions given were not made here (they showed "done 0 s")
+    assert "test_sessions</td><td class='l'>given (not run here)" in timings, timings
     bad = run_sss(["report", str(s.path), "--view", "3", "--out", str(tmp_path / "r2")], timeout=120)
     assert bad.returncode == 2 and "view 3 is not complete" in bad.stderr and "Traceback" not in bad.stderr
 

@@ -277,7 +277,12 @@ class CaptureRequest:
 
     def _check_frames(self) -> None:
         from sssphase_core.capture.engine import check_brackets
-        from sssphase_core.processing.patterns import REFERENCE_NAMES, check_dot_spacing, check_dot_stride
+        from sssphase_core.processing.patterns import (
+            REFERENCE_NAMES,
+            check_dot_spacing,
+            check_dot_stride,
+            unknown_pattern,
+        )
         from sssphase_core.store.imageio import MAX_FRAME_PIXELS, frame_shape
         from sssphase_core.store.session import check_output_folder
 
@@ -286,7 +291,7 @@ class CaptureRequest:
         for ref in self.references:
             if ref not in REFERENCE_NAMES:  # an unreadable file or values outside [0, 1]: one line before a daemon starts
                 if not Path(ref).exists():  # a misspelt name, most likely
-                    raise InputError(f"--reference {ref!r} is neither an image file nor one of {', '.join(REFERENCE_NAMES)}")
+                    raise InputError(unknown_pattern("--reference", ref))
                 h, w = frame_shape(Path(ref))[:2]
                 if w * h > MAX_FRAME_PIXELS:
                     raise InputError(f"--reference {ref} is {w}x{h}: larger than any projector (scale it down first)")

@@ -46,7 +46,9 @@ def find_weights() -> tuple[Path, Path]:
     for name, folders in _candidates().items():
         hit = next((f / name for f in folders if (f / name).is_file()), None)
         if hit is None:
-            missing.append(f"{name} (looked in {', '.join(str(f) for f in folders) or 'nowhere: install lpips'})")
+            where = (f"looked in {', '.join(str(f) for f in folders)}" if folders else
+                     "no folder to look in: the lpips package is not installed, and SSS_LPIPS_DIR is not set")
+            missing.append(f"{name} ({where})")
         found[name] = hit
     if missing:
         raise InputError("LPIPS needs weights that are not on this machine: " + "; ".join(missing) +

@@ -28,6 +28,19 @@ COARSE_MARGIN = 1.1  # the coarsest period spans the screen plus 5 % on each sid
 REFERENCE_NAMES = ("white", "black", "checkerboard", "stripes_x", "stripes_y")
 
 
+def unknown_pattern(option: str, text: str) -> str:
+    """The line for an ``option`` (--pattern, --reference) that names neither a file nor a named pattern: a path (a
+    folder or a suffix in it) is no such file; a name, the named patterns and the closest one."""
+    import difflib
+    from pathlib import PurePath
+
+    if "/" in text or PurePath(text).suffix:
+        return f"{option} {text}: no such file"
+    close = difflib.get_close_matches(text, REFERENCE_NAMES, n=1)
+    return (f"{option} {text!r} is neither an image file nor one of {', '.join(REFERENCE_NAMES)}"
+            + (f": did you mean {close[0]}?" if close else ""))
+
+
 MAX_SIDE = 16384  # largest projector side a plan or a frame spec may name
 MAX_PROJECTOR_PIXELS = 1 << 26  # and most pixels (64 MP; an 8K projector has 33 MP): 16384 x 16384 took 4 GB a frame
 MAX_SHIFTS = 32  # most phase shifts per fringe set a plan, an import or the decoder takes

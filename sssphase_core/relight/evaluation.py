@@ -90,10 +90,16 @@ def relight_metrics(relit: np.ndarray, reference: np.ndarray, mask: np.ndarray, 
     return out
 
 
+#: The difference panel's top, as a share of the reference's display white (its 99.5th percentile in the mask).
+DIFFERENCE_SCALE = 0.2
+
+
 def comparison_figure(reference: np.ndarray, relit: np.ndarray, mask: np.ndarray, path: Path | str, *, title: str = "",
                       metrics: dict[str, float] | None = None) -> Path:
     """GT | relit | |difference| (PNG). GT and relit share one sRGB exposure; the difference panel
-    is the per-pixel mean absolute error over RGB in linear camera units, with a colour bar."""
+    is the per-pixel mean absolute error over RGB in linear camera units on the decoded pixels, with a colour bar
+    up to :data:`DIFFERENCE_SCALE` of the reference's display white: every backend's figure of one view and pattern
+    has the same scale (each had its own, up to its own 99.5th percentile, which hid which was worse)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -107,10 +113,11 @@ def comparison_figure(reference: np.ndarray, relit: np.ndarray, mask: np.ndarray
     for ax, img, name in ((axes[0], reference, "reference (GT)"), (axes[1], relit, "relit")):
         ax.imshow(srgb(np.nan_to_num(img) / scale), interpolation="nearest")
         ax.set_title(name, fontsize=9)
-    vmax = float(max(np.percentile(diff[mask], 99.5) if mask.any() else diff.max(), 1e-6))
+    vmax = DIFFERENCE_SCALE * scale
     im = axes[2].imshow(np.where(mask, diff, 0.0), cmap="inferno", vmin=0, vmax=vmax, interpolation="nearest")
-    axes[2].set_title("|relit - GT| (linear units)", fontsize=9)
-    fig.colorbar(im, ax=axes[2], fraction=0.046, pad=0.02, label="mean |error| (linear units)")
+    axes[2].set_title("|relit - GT| on the decoded pixels", fontsize=9)
+    fig.colorbar(im, ax=axes[2], fraction=0.046, pad=0.02, extend="max",
+                 label=f"mean |error| (linear units)\nscale: {DIFFERENCE_SCALE:.0%} of GT's white")
     for ax in axes:
         ax.set_axis_off()
     if metrics:

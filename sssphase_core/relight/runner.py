@@ -164,7 +164,7 @@ def resolve_patterns(specs: Sequence[str], rv: RelightView, resize: str = "",
     """``(names, patterns)`` of the patterns ``specs`` names, in the projector's size: an image file (read,
     ``resize``-d), one of the view's own reference patterns, or a named pattern. Each name is its output
     file's, so two patterns may not share one."""
-    from sssphase_core.processing.patterns import REFERENCE_NAMES, reference_pattern
+    from sssphase_core.processing.patterns import REFERENCE_NAMES, reference_pattern, unknown_pattern
 
     say = narrator or Narrator()
     wp, hp = rv.proj.projector_size
@@ -195,7 +195,7 @@ def resolve_patterns(specs: Sequence[str], rv: RelightView, resize: str = "",
             raise InputError(f"--pattern {p!r} is a folder with no pattern images in it ({', '.join(FOLDER_SUFFIXES)}: "
                              "a folder of them is relit as the frames of a sequence)")
         else:
-            raise InputError(f"--pattern {p!r} is neither an image file nor one of {', '.join(REFERENCE_NAMES)}")
+            raise InputError(unknown_pattern("--pattern", p))
     twins = sorted({n for n in names if names.count(n) > 1})
     if twins:  # each pattern's name is its output file's
         raise InputError(f"--pattern: two patterns would both be written as {twins[0]!r}: "
@@ -275,11 +275,13 @@ def widen_line(widths: dict[str, float | None]) -> str | None:
     def stretched_models(names: list[str]) -> str:  # the first model of each backend: the one stretched
         return " and ".join(sorted({BLENDS.get(n, (n,))[0] for n in names}))
 
+    def others(names: list[str]) -> str:  # a blend's other models join unstretched
+        return " (a blend's other models as they are)" if any(n in BLENDS for n in names) else ""
+
     return "; ".join(f"calibration ({', '.join(names)}): the {stretched_models(names)} footprints join the view's fit "
-                     f"stretched {widen:g} x along x, along y and along both, and softened (a blend's other models as they "
-                     "are), so that its fringes can widen them along either axis or both, soften their core, as well as "
-                     "narrow them" for widen, names in by.items()
-                     ) + " (--widen 1: the footprints as they are, only narrowed)"
+                     f"stretched {widen:g} x along x, along y and along both, and softened{others(names)}, so that its "
+                     "fringes can widen them along either axis or both, soften their core, as well as narrow them"
+                     for widen, names in by.items()) + " (--widen 1: the footprints as they are, only narrowed)"
 
 
 def resolve_backend(backend: str, checkpoint: Path | str | None, narrator: Narrator | None = None
@@ -378,7 +380,7 @@ def relight_session(session: Path | str | Session, patterns: Sequence[str], *, b
             claim_output(out, [s])  # images are named by object: another session's of the same object are not replaced
             if auto:  # said once the input is known good
                 say.say(f"backend: {backend}" + ("" if ckpt is not None else
-                                                 " (no --checkpoint: the analytic model; a trained decoder blends in)"))
+                                                 " (no --checkpoint: the analytic model; with a trained decoder's --checkpoint, the decoder blends in)"))
             if ckpt is not None and uses_decoder(backend):
                 from sssphase_core.compute import inference_precision
 
@@ -500,12 +502,14 @@ def write_relit(rv: RelightView, relit: np.ndarray, names: Sequence[str], pats: 
                           float((img[rv.proj.mask] > 1.0).any(axis=-1).mean()) if rv.proj.mask.any() else 0.0)
         line = f"wrote {', '.join(str(p) for p in item.paths)}"
         if "exr" not in formats and item.clipped > 0:
-            line += f"  ({item.clipped:.1%} of the object above 1.0 clipped in the PNG: --format exr keeps them)"
+            share = f"{item.clipped:.1%}" if item.clipped >= 0.001 else "under 0.1%"
+            line += f"  ({share} of the object above 1.0 clipped in the PNG: --format exr keeps them)"
         if name in rv.captured and same_pattern(pat, rv.references[name]):
             item.metrics = relight_metrics(img, rv.captured[name], rv.proj.mask)
             item.figure = comparison_figure(rv.captured[name], img, rv.proj.mask, stem.with_name(stem.name + "_compare.png"),
                                             title=f"{rv.object} view {rv.view}, {name}", metrics=item.metrics)
-            line += f"  (vs reference: PSNR {item.metrics['psnr']:.2f} dB, SSIM {item.metrics['ssim']:.3f})"
+            line += (f"  (vs reference: PSNR {item.metrics['psnr']:.2f} dB, SSIM {item.metrics['ssim']:.3f}; side by side "
+                     f"in {item.figure})")
         else:  # an earlier run's comparison for another pattern of this name would contradict the image beside it
             stem.with_name(stem.name + "_compare.png").unlink(missing_ok=True)
         say.say(line)

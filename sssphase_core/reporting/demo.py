@@ -566,7 +566,7 @@ def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Pat
     demo.report_config = _report_config(tests, train, view, chosen, pretrain, decoder)
     if left_out:
         demo.report_config["backends_left_out"] = [f"{b}: {reason}" for b, reason in left_out.items()]
-    done = {"status": "done", "seconds": 0.0}
+    done = {"status": "done", "seconds": 0.0, "given": True}  # (the user's own sessions and runs: not run here)
     if train:
         demo.results["train_sessions"] = {**done, "root": str(Path(train_sessions)), "sessions": [str(s.path) for s in train]}
     demo.results["test_sessions"] = {**done, "sessions": [str(s.path) for s in tests]}

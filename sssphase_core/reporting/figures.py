@@ -78,8 +78,10 @@ def value_figure(path: Path | str, values: np.ndarray, title: str, *, units: str
     return _save(fig, path)
 
 
-def label_figure(path: Path | str, labels: np.ndarray, names: Mapping[int, str], title: str) -> Path:
-    """A label map (H, W) of integers; each label in ``names`` gets a colour and a legend entry, others black."""
+def label_figure(path: Path | str, labels: np.ndarray, names: Mapping[int, str], title: str, *,
+                 other: str = "other") -> Path:
+    """A label map (H, W) of integers; each label in ``names`` gets a colour and a legend entry, others black (in the
+    legend as ``other`` where there are any)."""
     import matplotlib.patches as mpatches
 
     plt = _pyplot()
@@ -94,6 +96,8 @@ def label_figure(path: Path | str, labels: np.ndarray, names: Mapping[int, str],
     ax.set_title(_title(title), fontsize=10)
     ax.axis("off")
     handles = [mpatches.Patch(color=colour[v], label=names[v]) for v in shown]
+    if not np.isin(labels, list(names)).all():
+        handles.append(mpatches.Patch(facecolor="black", edgecolor="grey", label=other))
     if handles:
         ax.legend(handles=handles, loc="center left", bbox_to_anchor=(1.01, 0.5), fontsize=8, frameon=False)
     return _save(fig, path)
@@ -212,10 +216,11 @@ def plot_profiles(gt: np.ndarray, pred: np.ndarray, path: Path | str, *, title: 
 def plot_metric_vs_time(metrics_path: Path | str, keys: str | Sequence[str], out: Path | str, *, log: bool = True,
                         ylabel: str | None = None, right: Sequence[str] = (), right_label: str = "",
                         chance: float | None = None, title: str | None = None,
-                        reference: tuple[str, float] | None = None) -> None:
+                        reference: tuple[str, float] | None = None, right_span: float = 0.0) -> None:
     """Error against run time: each of ``keys`` (and ``right`` on a second axis) of the metrics.jsonl rows
     against their cumulative ``wall_s``, with a legend; ``chance`` draws the chance level, ``reference``
-    (label, value) a baseline measured in the same run."""
+    (label, value) a baseline measured in the same run. The second axis spans at least ``right_span`` (a change of
+    0.01 dB was drawn corner to corner)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -246,6 +251,10 @@ def plot_metric_vs_time(metrics_path: Path | str, keys: str | Sequence[str], out
             rs = [r for r in rows if key in r]
             lines += twin.plot([r["wall_s"] for r in rs], [r[key] for r in rs], "s--", color=colour, label=key)
         twin.set_ylabel(right_label or ", ".join(right))
+        low, high = twin.get_ylim()
+        if high - low < right_span:
+            middle = (low + high) / 2
+            twin.set_ylim(middle - right_span / 2, middle + right_span / 2)
     ax.legend(handles=lines, fontsize=8, loc="best")
     fig.tight_layout()
     save_figure(fig, out, dpi=120)

@@ -316,7 +316,8 @@ def _validation_plot(out: Path) -> Path:
 
     plot_metric_vs_time(out / METRICS, ("loss", "val_loss"), out / "error_vs_time.png", log=False,
                         ylabel="SBH loss", right=("val_psnr",),
-                        right_label="validation footprint PSNR (dB)", title="decoder error against run time")
+                        right_label="validation footprint PSNR (dB)", title="decoder error against run time",
+                        right_span=1.0)
     return out / "error_vs_time.png"
 
 

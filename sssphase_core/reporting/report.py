@@ -223,11 +223,13 @@ def write_report(out: Path | str, results: dict[str, dict[str, Any]], config: di
     sections.append(html_table(["setting", "value"], [[k, ", ".join(map(str, v)) if isinstance(v, list | tuple) else v]
                                                       for k, v in config.items()], left=2))
     sections.append("<h2>Timings</h2>")
-    trows = [[n, r.get("status", "?") + (" (resumed: skipped)" if r.get("resumed") else ""), float(r.get("seconds", float("nan"))),
-              r.get("reason", "")] for n, r in results.items() if n != "report"]
+    trows = [[n, "given (not run here)", "", r.get("reason", "")] if r.get("given") else
+             [n, r.get("status", "?") + (" (resumed: skipped)" if r.get("resumed") else ""),
+              float(r.get("seconds", float("nan"))), r.get("reason", "")] for n, r in results.items() if n != "report"]
     sections.append(html_table(["step", "status", "seconds", "note"], trows, left=2))
     sections.append(f"<p class='note'>Total {sum(float(r.get('seconds', 0)) for r in results.values()):.1f} s of step time "
-                    "(skipped steps show the time of the run that did them).</p>")
+                    "(skipped steps show the time of the run that did them; the sessions and runs given to `sss "
+                    "report` were made elsewhere: their own records hold their times).</p>")
     page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>{_esc(title)}</title><style>{STYLE}</style></head>"
             f"<body>{''.join(sections)}{LOAD_CHECK}</body></html>")
     path = out / "index.html"

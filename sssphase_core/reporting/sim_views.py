@@ -175,7 +175,8 @@ def decode_view(frames: dict, config, scene, vdir: Path, what: str) -> dict:
                          f"{what}: decoded projector {name} (black: not decoded)", units="projector px", cmap="turbo",
                          vmin=0, vmax=size - 1)
     fig.label_figure(vdir / "reason.png", np.where(scene.mask, corr.reason.astype(np.int16), -1),
-                     {r.value: r.name.lower().replace("_", " ") for r in Reason}, f"{what}: decoding outcome per pixel")
+                     {r.value: r.name.lower().replace("_", " ") for r in Reason}, f"{what}: decoding outcome per pixel",
+                     other="off the object")
     err_map = np.full(scene.mask.shape, np.nan, np.float32)
     err_map[on_object] = err
     fig.value_figure(vdir / "decode_error.png", err_map, f"{what}: correspondence error against the exact map",

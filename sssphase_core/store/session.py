@@ -594,7 +594,12 @@ class Session:
         except RecursionError:
             raise DataError(f"{path / MANIFEST} is corrupt: it nests deeper than a manifest can") from None
         except FileNotFoundError:
-            raise DataError(f"{path} does not exist" if not path.exists() else f"{path} is not a session (no {MANIFEST})") from None
+            if not path.exists():
+                raise DataError(f"{path} does not exist") from None
+            inside = sorted(p.name for p in path.iterdir() if (p / MANIFEST).is_file()) if path.is_dir() else []
+            raise DataError(f"{path} is not a session (no {MANIFEST})" + (  # a folder of sessions given for one
+                f"; it holds the sessions {', '.join(inside[:5])}{', ...' if len(inside) > 5 else ''}: give one of "
+                f"them ({path / inside[0]})" if inside else "")) from None
         except NotADirectoryError:
             raise DataError(f"{path} is a file, not a session folder") from None
         except ValueError as exc:

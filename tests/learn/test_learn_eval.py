@@ -124,6 +124,21 @@ def test_plots_are_written(tmp_path):
         plot_metric_vs_time(tmp_path / "m.jsonl", "missing", tmp_path / "x.png")
 
 
+def test_a_validation_psnr_that_hardly_moves_is_not_drawn_corner_to_corner(tmp_path, monkeypatch):
+    """The decoder's run plot drew a change of 0.014 dB as a steep diagonal across the whole figure."""
+    from sssphase_core.reporting import figures
+
+    drawn = []
+    monkeypatch.setattr(figures, "save_figure", lambda fig, out, dpi=100: drawn.append(fig))
+    (tmp_path / "m.jsonl").write_text('{"wall_s": 1, "loss": 0.3, "val_psnr": 58.942}\n'
+                                      '{"wall_s": 2, "loss": 0.2, "val_psnr": 58.928}\n')
+    figures.plot_metric_vs_time(tmp_path / "m.jsonl", "loss", tmp_path / "t.png", right=("val_psnr",), right_span=1.0)
+    figures.plot_metric_vs_time(tmp_path / "m.jsonl", "loss", tmp_path / "t.png", right=("val_psnr",))
+    spanned, free = (fig.axes[1].get_ylim() for fig in drawn)
+    assert spanned[1] - spanned[0] == pytest.approx(1.0) and spanned[0] < 58.928 < 58.942 < spanned[1]
+    assert free[1] - free[0] < 0.1  # (without it: matplotlib's own margins)
+
+
 def test_throughput_measure_reports_rates_and_sizes():
     from sssphase_core.bench.learn_bench import measure_throughput
 

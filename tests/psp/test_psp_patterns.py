@@ -153,8 +153,12 @@ def test_a_capture_reference_that_is_no_file_lists_the_named_patterns(tmp_path):
     """`sss capture --reference checkerbaord` said only "cannot read checkerbaord: No such file"."""
     from sssphase_core.capture import CaptureRequest, RigSpec
 
-    with pytest.raises(InputError, match="'checkerbaord' is neither an image file nor one of white, black, checkerboard"):
+    with pytest.raises(InputError, match="'checkerbaord' is neither an image file nor one of white, black, checkerboard"
+                                         r".*: did you mean checkerboard\?"):
         CaptureRequest.from_options("apple", RigSpec(), references=["checkerbaord"], out=tmp_path / "s")
+    # a path that is not there is no such file (it was "neither an image file nor one of white, ...")
+    with pytest.raises(InputError, match=r"^--reference pats/logo.png: no such file$"):
+        CaptureRequest.from_options("apple", RigSpec(), references=["pats/logo.png"], out=tmp_path / "s")
 
 
 def test_checkerboard_and_stripes():

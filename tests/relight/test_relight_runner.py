@@ -72,7 +72,7 @@ def test_auto_is_the_analytic_model_calibrated_to_the_view_and_cached(session, t
     res = relight_session(Session.open(session), ["checkerboard"], out=tmp_path, views=[0], narrator=said,
                           formats="exr,png")
     assert res.backend == "analytic"
-    assert said.lines[0] == ("backend: analytic (no --checkpoint: the analytic model; a trained decoder blends in)", "")
+    assert said.lines[0] == ("backend: analytic (no --checkpoint: the analytic model; with a trained decoder's --checkpoint, the decoder blends in)", "")
     mix = res.mixes[0]
     assert mix.shape == (3,) and ((0 <= mix) & (mix <= 1)).all()
     assert "analytic footprints calibrated to the view's fringe captures" in said.text()
