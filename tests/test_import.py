@@ -576,6 +576,8 @@ def test_sss_report_on_a_users_own_session(handmade, tmp_path):
     assert "pretrain_epochs" not in config and "none given" in config  # not the demo's built-in settings
     assert [p.name for p in (tmp_path / "rep" / "img").glob("*compare.png")]
     assert "[relight] done" in res.stdout
+    assert "the simulator's exact footprints" not in page and "blend</code> weighs" not in page  # (not run here)
+    assert "<code>measured</code> splats the session's captured light transport" in page
     timings = page[page.index("<h2>Timings</h2>"):]  # the sessions given were not made here (they showed "done 0 s")
     assert "test_sessions</td><td class='l'>given (not run here)" in timings, timings
     bad = run_sss(["report", str(s.path), "--view", "3", "--out", str(tmp_path / "r2")], timeout=120)

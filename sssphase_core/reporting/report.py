@@ -39,8 +39,13 @@ def _esc(v: Any) -> str:
 
 
 def _fmt(v: Any, digits: int = 3) -> str:
-    if isinstance(v, float | np.floating):
-        return "n/a" if not np.isfinite(v) else f"{v:.{digits}g}"
+    if isinstance(v, float | np.floating):  # a column's figures alike: 0.990 beside 0.989, 49.0; no 1.23e+03 s
+        if not np.isfinite(v):
+            return "n/a"
+        if abs(v) >= 10**digits:
+            return f"{v:.0f}"
+        text = f"{v:#.{digits}g}"
+        return text if "e" in text else text.rstrip(".")
     return _esc(v)
 
 
@@ -119,7 +124,8 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
              "(blur, demosaicing), which bounds every source that takes its light from captures, "
              "<code>none</code> included; inside, the footprints decide."),
             ("psnr_capture", "Relit images against the camera's own capture of the pattern",
-             "The capture carries sensor noise, which bounds every backend (also <code>exact</code>); the relit images "
+             "The capture carries sensor noise, which bounds every backend"
+             + (" (also <code>exact</code>)" if "exact" in backends else "") + "; the relit images "
              "are compared as the camera would record them (its Bayer sampling and demosaicing, where the session "
              "records them)."),
             ("psnr_camera", "Relit images against the camera's image of the pattern without noise",
@@ -131,14 +137,19 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
                                     [[o] + [per_obj[(o, b)][key] if (o, b) in per_obj else "n/a" for b in backends]
                                      for o in objects]))
             parts.append(f"<p class='note'>{note}</p>")
+    said = {"exact": "<code>exact</code> splats the simulator's exact footprints (ground truth no lab has)",
+            "measured": "<code>measured</code> splats the session's captured light transport (one crop per projector dot)",
+            "none": "<code>none</code> keeps each pixel's own light (no scattering)",
+            "blend": "<code>blend</code> weighs torch and analytic pixel by pixel by how well they relight the view's "
+                     "own fringe captures (<code>sss relight</code>'s default with a decoder)"}
+    decoders = [f"<code>{b}</code>" for b in ("torch", "blend") if b in backends]
+    widened = (f" For {' and '.join(decoders)} that fit may also widen the decoder's footprints (they join it stretched "
+               f"{DECODER_WIDEN:g} × along x, y and both, and softened, <code>sss relight --widen</code>'s default for "
+               "them)." if decoders else "")
     parts.append(f"<p class='note'>PSNR in dB with peak 1.0 (linear camera units: a white Lambertian reference reads 1.0), "
                  f"SSIM (11 px Gaussian window), both on the object mask, mean over the view's reference patterns. "
-                 f"{_esc(lpips_note())}. <code>exact</code> splats the simulator's exact footprints (ground truth no lab has); <code>measured</code> splats the session's captured light transport (one crop per projector dot); "
-                 f"<code>none</code> keeps each pixel's own light (no scattering); <code>blend</code> weighs torch and "
-                 f"analytic pixel by pixel by how well they relight the view's own fringe captures (<code>sss relight</code>'s "
-                 f"default with a decoder); for <code>torch</code> and <code>blend</code> that fit may also widen the "
-                 f"decoder's footprints (they join it stretched {DECODER_WIDEN:g} × along x, y and both, and softened, "
-                 f"<code>sss relight --widen</code>'s default for them)."
+                 f"{_esc(lpips_note())}. " + "; ".join(text for b, text in said.items() if b in backends)
+                 + ("." if any(b in backends for b in said) else "") + widened
                  + (f" <code>analytic</code> integrates each footprint pixel at {int(result['analytic_supersample'])}"
                     f" × {int(result['analytic_supersample'])} points here (<code>sss relight</code> and <code>sss eval "
                     "relight</code>: 4 × 4), so their figures for it can differ slightly."

@@ -136,3 +136,11 @@ def test_every_backend_in_the_error_against_run_time_plot_has_a_colour_of_its_ow
     names = ["none", "analytic", "torch", "blend", "exact", "measured", "plugin_a", "plugin_b"]
     colours = backend_colours(names)
     assert list(colours) == names and len(set(colours.values())) == len(names)
+
+
+def test_report_figures_keep_their_digits_and_long_times_read_whole():
+    """A column showed 0.99 beside 0.989 and 49 beside 23.4; 1,234 s read 1.23e+03."""
+    from sssphase_core.reporting.report import _fmt
+
+    assert [_fmt(v) for v in (0.99, 0.989, 49.0, 23.36, 1234.5, float("nan"))] == \
+        ["0.990", "0.989", "49.0", "23.4", "1234", "n/a"]
