@@ -1865,6 +1865,9 @@ def test_an_imported_session_exports_and_imports_again_and_an_export_without_unw
     export_session(session, tmp_path / "e")
     again = import_folder(tmp_path / "e" / "o", tmp_path / "s2", "o", (W, H), patch=K)
     assert np.array_equal(np.asarray(again.read(0, "corr/mask")), np.asarray(session.read(0, "corr/mask")))
+    # the export carries its plan: the projector's size given the wrong way round was imported in silence
+    with pytest.raises(InputError, match=rf"plan.json is the plan of a {W}x{H} projector, but --projector says {H}x{W}"):
+        import_folder(tmp_path / "e" / "o", tmp_path / "s4", "o", (H, W), patch=K)
     shutil.rmtree(tmp_path / "e" / "o" / "view_000" / "unwrap")  # as a session captured without --keep-unwrap
     with pytest.raises(InputError, match=r"PSP frames of one period \(\d+ px\) and none of a longer period to unwrap"):
         import_folder(tmp_path / "e" / "o", tmp_path / "s3", "o", (W, H), patch=K)

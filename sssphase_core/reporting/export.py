@@ -109,4 +109,11 @@ def export_session(session: Session, out: Path, views: list[int] | None = None) 
         with atomic_folder(final) as tmp:
             files = export_view(session, view, tmp)
         written += [final / f.relative_to(tmp) for f in files]
+    plan = session.manifest.get("plan")
+    if isinstance(plan, dict) and plan.get("projector"):  # as `sss patterns` writes it: an import of the export checks
+        import json  # --projector and --gamma against it (a swapped 192x256 went through in silence)
+
+        path = Path(out) / session.name / "plan.json"
+        write_text(path, json.dumps(plan, indent=1))
+        written.append(path)
     return written
