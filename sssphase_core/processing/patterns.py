@@ -401,7 +401,8 @@ def check_dot_stride(stride: int, spacing: int | None = None) -> None:
     """Refuse a dot stride that is not 1 to the dot spacing (every shift: 1; one shift: the spacing)."""
     top = spacing or MAX_DOT_SPACING
     if isinstance(stride, bool) or not isinstance(stride, int) or not 1 <= stride <= top:
-        raise InputError(f"dot stride must be 1 (every dot shift) to {top} (the dot spacing: one shift), got {stride}")
+        upto = f"{top} (the dot spacing: one shift)" if spacing else "the dot spacing (one shift; `sss rigs` gives each preset's)"
+        raise InputError(f"dot stride must be 1 (every dot shift) to {upto}, got {stride}")
 
 
 def capture_plan(
