@@ -12,10 +12,13 @@ field reads, next to each other.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import csv
 import json
 import math
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -119,6 +122,35 @@ def resolve_checkpoint(path: Path | str) -> Path:
     if path.is_dir():
         return path / BEST if (path / BEST).exists() else path / CHECKPOINT
     return path
+
+
+#: The checkpoints a command has read so far (resolved path -> (inode, size, mtime)), within :func:`one_version`.
+_READ: contextvars.ContextVar[dict[str, tuple[int, int, int]] | None] = contextvars.ContextVar("sss_read", default=None)
+
+
+@contextlib.contextmanager
+def one_version() -> Iterator[None]:
+    """Within it, every read of a checkpoint file is of the version read first (:func:`check_same_version`): an
+    evaluation whose checkpoint a running training replaced at an epoch end scored its first view with one model and
+    the next with another, under one name."""
+    token = _READ.set({})
+    try:
+        yield
+    finally:
+        _READ.reset(token)
+
+
+def check_same_version(path: Path) -> None:
+    """Refuse, within :func:`one_version`, a checkpoint file that changed since the command first read it."""
+    read = _READ.get()
+    if read is None:
+        return
+    st = path.stat()
+    first = read.setdefault(str(path.resolve()), (st.st_ino, st.st_size, st.st_mtime_ns))
+    if first != (st.st_ino, st.st_size, st.st_mtime_ns):
+        raise DataError(f"{path} was replaced while this command ran (a training writing it at each epoch end?), so "
+                        "its views would be scored with different models: run it again once the training is done, or "
+                        "give a copy of the checkpoint")
 
 
 def check_checkpoint_file(path: Path | str) -> Path:

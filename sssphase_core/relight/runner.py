@@ -20,6 +20,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from sssphase_core.errors import InputError
+from sssphase_core.learning.runlog import one_version
 from sssphase_core.relight.cache import (
     cache_stem,
     footprint_bytes,
@@ -349,6 +350,7 @@ def check_relight_options(out: Path, patterns: Sequence[str], resize: str, forma
     return chosen
 
 
+@one_version()  # every view with the checkpoint as the command first read it
 def relight_session(session: Path | str | Session, patterns: Sequence[str], *, backend: str = "auto",
                     checkpoint: Path | str | None = None, out: Path | str = Path("relit"),
                     views: str | Sequence[int] | None = "", resize: str = "", chunk: int = 1024, device: str = "cpu",
@@ -559,6 +561,7 @@ def _check_geometry_backend(backend: str) -> None:
                             else "without scattering there is no shift"))
 
 
+@one_version()  # every view with the checkpoint as the command first read it
 def geometry_session(session: Path | str | Session, *, backend: str = "analytic", checkpoint: Path | str | None = None,
                      out: Path | str = Path("geometry"), views: str | Sequence[int] | None = "", device: str = "cpu",
                      calibration: Path | str | None = None, crop_radius: float | None = None,
@@ -833,6 +836,7 @@ def _eval_views(found: Sequence[Session], views: str | Sequence[int] | None, bac
                 "footprints (capture with --footprints)")
 
 
+@one_version()  # every view with the checkpoint as the command first read it
 def evaluate_sessions(sessions: Sequence[Path | str], *, backend: str = EVAL_BACKENDS, checkpoint: Path | str | None = None,
                       views: str | Sequence[int] | None = "", out: Path | str = Path("eval_relight"), device: str = "cpu",
                       calibrate: bool = True, cache: bool = True, widen: float | None = None,

@@ -266,7 +266,12 @@ def run_decoder(opts: DecoderOptions, report: Report = Report(), *,
         if encoder.get("kind") == "decoder":  # it was taken without a word
             report.say(f"{report.style('note:', 'note')} --encoder {opts.encoder} is a decoder run: its encoder is "
                        "used, frozen; the paper's method starts from a pretraining run (`sss train pretrain`)")
-        done, planned = int(encoder.get("loop", {}).get("epoch", 0)), int(encoder.get("config", {}).get("epochs", 0))
+        from sssphase_core.learning.runlog import CHECKPOINT
+
+        # how far the run got is its last.pt's, not its best.pt's (the best kNN may come before the last epoch)
+        latest = Path(opts.encoder) / CHECKPOINT if Path(opts.encoder).is_dir() else Path(opts.encoder).with_name(CHECKPOINT)
+        progress = load_checkpoint(latest, mmap=True) if latest.is_file() else encoder
+        done, planned = int(progress.get("loop", {}).get("epoch", 0)), int(progress.get("config", {}).get("epochs", 0))
         if encoder.get("kind") == "pretrain" and done < planned:  # an interrupted pretraining's last.pt, taken in silence
             report.say(f"{report.style('warning:', 'warning')} --encoder {opts.encoder} is from an unfinished "
                        f"pretraining ({done} of its {planned} epochs done): the same `sss train pretrain` command finishes it; "

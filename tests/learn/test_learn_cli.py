@@ -103,6 +103,14 @@ def test_train_eval_viz_on_the_simulator(tmp_path):
                     "--batch-size", "32", "--views", "0", "--val-views", "1", "--objects", "star", "--pixels-per-view",
                     "64", "--cache", cache)
     assert "is from an unfinished pretraining (2 of its 3 epochs done)" in " ".join(fitted.output.split())
+    finished = torch.load(pre / "last.pt", weights_only=False)  # a finished run whose best kNN came at epoch 1 of 2:
+    save_checkpoint(tmp_path / "finished" / "last.pt", finished)  # its best.pt was taken for an unfinished run's
+    finished["loop"]["epoch"] = 1
+    save_checkpoint(tmp_path / "finished" / "best.pt", finished)
+    quiet = invoke("train", "decoder", "--encoder", str(tmp_path / "finished"), "--out", str(tmp_path / "dec2"),
+                   "--epochs", "1", "--batch-size", "32", "--views", "0", "--val-views", "", "--objects", "star",
+                   "--pixels-per-view", "64", "--cache", cache)
+    assert "unfinished" not in quiet.output, quiet.output
     assert (dec / "error_vs_time.png").exists()
     assert {"step/loss", "step/lr", "epoch/val_loss", "epoch/val_psnr"} <= _tensorboard_scalars(dec / "tb").keys()
     e2e = tmp_path / "e2e"  # the supervised U-Net baseline: no SSL, encoder trained with the decoder

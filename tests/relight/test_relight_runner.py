@@ -487,3 +487,42 @@ def test_footprints_a_device_keeps_reach_every_consumer_without_numpy_reading_th
     fps = footprints_at(rv, np.stack([ys[:3], xs[:3]], 1), ["torch", "analytic"], checkpoint=run)
     assert all(isinstance(f, np.ndarray) and f.shape[0] == 3 for f in fps.values())
     assert "torch" in probe_pixel(rv, (int(ys[0]), int(xs[0])), checkpoint=run).footprints
+
+
+@pytest.mark.slow
+def test_a_checkpoint_a_training_replaces_during_an_evaluation_is_refused_not_mixed(session, tmp_path, monkeypatch):
+    """`sss eval relight --checkpoint runs/dec` while `sss train decoder` still wrote runs/dec/best.pt at its epoch
+    ends scored its first view with one model and the next with another, under one "torch" row."""
+    import dataclasses
+
+    import torch
+
+    from sssphase_core.errors import DataError
+    from sssphase_core.learning.models import Decoder, Encoder, get_preset
+    from sssphase_core.learning.training import save_checkpoint
+    from sssphase_core.relight import runner
+
+    small = dataclasses.replace(get_preset("lite"), name="lite-small", stem=8, stages=(8, 12, 16), bottleneck=32,
+                                proj_hidden=32, proj_dim=32, pred_hidden=8, decoder=(16, 12, 8, 8), attention=4)
+    run = tmp_path / "run"
+
+    def epoch(seed: int) -> None:  # a training's checkpoint at an epoch end (written whole, then renamed)
+        torch.manual_seed(seed)
+        save_checkpoint(run / "best.pt", {"kind": "decoder", "preset": small.to_dict(), "config": {"head": "reciprocal"},
+                                          "encoder": Encoder(small).state_dict(),
+                                          "decoder": Decoder(small, head="reciprocal").state_dict()})
+
+    epoch(0)
+    real = runner.evaluate_view
+
+    def then_the_next_epoch(*args, **kwargs):
+        rows = real(*args, **kwargs)
+        epoch(1)
+        return rows
+
+    monkeypatch.setattr(runner, "evaluate_view", then_the_next_epoch)
+    with pytest.raises(DataError, match=r"best.pt was replaced while this command ran \(a training writing it"):
+        evaluate_sessions([session], backend="torch,blend", checkpoint=run, out=tmp_path / "ev", cache=False)
+    monkeypatch.setattr(runner, "evaluate_view", real)
+    assert len(evaluate_sessions([session], backend="torch,blend", checkpoint=run, out=tmp_path / "ev2",
+                                 cache=False).rows) == 2  # unchanged since: both backends with the same model

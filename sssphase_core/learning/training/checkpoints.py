@@ -12,7 +12,13 @@ from torch import nn
 
 from sssphase_core.errors import DataError, SssError
 from sssphase_core.learning.models import Decoder, Encoder, ModelPreset, get_preset
-from sssphase_core.learning.runlog import BEST, CHECKPOINT, check_checkpoint_file, resolve_checkpoint  # noqa: F401  (the run folder's layout)
+from sssphase_core.learning.runlog import (  # noqa: F401  (the run folder's layout)
+    BEST,
+    CHECKPOINT,
+    check_checkpoint_file,
+    check_same_version,
+    resolve_checkpoint,
+)
 from sssphase_core.store.files import atomic_path
 
 M = TypeVar("M", bound=nn.Module)
@@ -41,6 +47,7 @@ def load_checkpoint(path: Path | str, *, mmap: bool = False) -> dict:
     import pickle
 
     path = check_checkpoint_file(path)
+    check_same_version(path)
     try:
         ckpt = torch.load(path, map_location="cpu", weights_only=True, mmap=mmap)  # mmap: tensors read when touched
     except pickle.UnpicklingError:
