@@ -11,7 +11,8 @@ and returns what it made (a checkpoint and the run's figures, or the evaluation'
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Sequence
+import os
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -148,6 +149,26 @@ def _saying_where_it_stopped(report: Report) -> Iterator[None]:
         raise
 
 
+def one_training_per_folder(run: Callable[..., TrainResult]) -> Callable[..., TrainResult]:
+    """``run(opts, ...)`` holding a lock on ``opts.out`` (:func:`~sssphase_core.store.locks.folder_lock`): two trainings
+    into one run folder both ran to the end, the second's checkpoints over the first's (torchrun: its rank 0 holds
+    it for the group)."""
+    import functools
+
+    @functools.wraps(run)
+    def locked(opts: Any, *args: Any, **kwargs: Any) -> TrainResult:
+        if int(os.environ.get("RANK", "0") or 0) != 0:
+            return run(opts, *args, **kwargs)
+        from sssphase_core.store.locks import folder_lock
+
+        with folder_lock(Path(opts.out), f"run folder {opts.out} is being trained by {{holder}}: wait for it to end, "
+                         "or give another --out"):
+            return run(opts, *args, **kwargs)
+
+    return locked
+
+
+@one_training_per_folder
 def run_pretrain(opts: PretrainOptions, report: Report = Report(), *,
                  config_file: RunConfigFile | None = None) -> TrainResult:
     """SimSiam pretraining of the encoder on PSP patches of the training objects (resumable); draws
@@ -246,6 +267,7 @@ def _check_decoder_options(opts: DecoderOptions) -> int:
     return decoder_patch(None if opts.end_to_end else opts.encoder, opts.preset)
 
 
+@one_training_per_folder
 def run_decoder(opts: DecoderOptions, report: Report = Report(), *,
                 config_file: RunConfigFile | None = None) -> TrainResult:
     """Fit the footprint decoder with the SBH loss on the frozen encoder, or end-to-end (resumable); then

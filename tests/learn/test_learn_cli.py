@@ -402,3 +402,28 @@ def test_a_run_on_sessions_records_no_simulator_options(tmp_path):
                                          .read_text())["options"]
     assert saved(sim) == {"rig": "paper", "n_views": 4, "cache": str(tmp_path / "cache"), "epochs": 2}
     assert saved({**sim, "sessions": tmp_path / "s"}) == {"epochs": 2, "sessions": str(tmp_path / "s")}
+
+
+def test_a_run_folder_takes_one_training_at_a_time(tmp_path):
+    """Two `sss train decoder` into one --out both trained to the end; the folder then held the second run only."""
+    import os
+    from types import SimpleNamespace
+
+    from sssphase_core.errors import InputError
+    from sssphase_core.reporting.learning_runs import one_training_per_folder, run_decoder, run_pretrain
+    from sssphase_core.store.locks import folder_lock
+
+    calls = []
+
+    @one_training_per_folder
+    def train(opts):
+        calls.append(opts.out)
+        return "trained"
+
+    opts = SimpleNamespace(out=tmp_path / "runs" / "dec")
+    with folder_lock(opts.out, "held by {holder}"):  # another training of that folder is running
+        with pytest.raises(InputError, match=rf"run folder {opts.out} is being trained by pid {os.getpid()}: wait for "
+                                             "it to end, or give another --out"):
+            train(opts)
+    assert train(opts) == "trained" and calls == [opts.out] and not list((tmp_path / "runs").iterdir())
+    assert run_decoder.__wrapped__ and run_pretrain.__wrapped__  # (the commands' own runners hold it)
