@@ -7,6 +7,7 @@ import hashlib
 import json
 import os
 import shutil
+import warnings
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -207,11 +208,18 @@ def seed_cache(path: Path, checkpoint: Path | str | None) -> None:
     seed = Path(checkpoint).parent / CHECK_FOLDER / "cache" / path.name
     if not seed.is_file():
         return
-    path.parent.mkdir(parents=True, exist_ok=True)
     try:
-        os.link(seed, path)
-    except OSError:  # another file system, or one without hard links
-        shutil.copyfile(seed, path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(seed, path)
+        except OSError:  # another file system, or one without hard links: copied whole, then renamed
+            from sssphase_core.store.files import atomic_path
+
+            with atomic_path(path, ".npz") as tmp:
+                shutil.copyfile(seed, tmp)
+    except OSError as exc:  # a full or read-only --out: the relight computes those footprints itself (a cache only
+        warnings.warn(f"cache: {path} was not started from {seed} ({exc.strerror or exc}): its footprints are "  # saves
+                      "computed again", UserWarning, stacklevel=2)  # time; it named the seed as if that had failed)
 
 
 @contextmanager

@@ -665,3 +665,36 @@ def test_a_relight_of_variants_only_leaves_the_plain_footprints_out(scene):
     np.testing.assert_allclose(only[0], both[1], rtol=1e-6, atol=1e-8)
     with pytest.raises(ValueError, match="nothing to splat"):
         relight(src, proj, pats, k, plain=False)
+
+
+def test_a_cache_seeded_onto_a_full_disk_leaves_no_cut_file_and_costs_no_image(tmp_path, monkeypatch):
+    """The training check's cache was copied straight to its final name on another file system: a full disk left a
+    cut .npz there and ended the relight with "<the run's cache file>: No space left on device"."""
+    import errno
+    import os
+    import shutil
+
+    from sssphase_core.relight import cache as cache_module
+
+    run = tmp_path / "run"
+    (run / cache_module.CHECK_FOLDER / "cache").mkdir(parents=True)
+    seed = run / cache_module.CHECK_FOLDER / "cache" / "soap_v0_x_torch.npz"
+    seed.write_bytes(b"PK" + bytes(4096))
+
+    def other_file_system(src, dst):
+        raise OSError(errno.EXDEV, "Invalid cross-device link")
+
+    def disk_full(src, dst):
+        with open(dst, "wb") as f:
+            f.write(b"PK" + bytes(100))  # part of it, then the disk is full
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(os, "link", other_file_system)
+    monkeypatch.setattr(shutil, "copyfile", disk_full)
+    target = tmp_path / "out" / "cache" / seed.name
+    with pytest.warns(UserWarning, match=r"was not started from .*soap_v0_x_torch.npz \(No space left on device\)"):
+        cache_module.seed_cache(target, run / "best.pt")
+    assert not target.exists() and not [p for p in target.parent.iterdir()]  # nothing cut under any name
+    monkeypatch.undo()
+    cache_module.seed_cache(target, run / "best.pt")
+    assert target.read_bytes() == seed.read_bytes()
