@@ -162,7 +162,7 @@ def _usage_line(exc: Exception) -> str:
 
 #: errno values that describe the user's paths and disks, reported as one line (not an internal error).
 FILE_SYSTEM_ERRORS = {errno.ENOTDIR, errno.EISDIR, errno.EACCES, errno.EPERM, errno.ENOSPC, errno.EROFS, errno.EEXIST,
-                      errno.ENOENT, errno.ENAMETOOLONG, errno.EDQUOT, errno.ELOOP}
+                      errno.ENOENT, errno.ENAMETOOLONG, errno.EDQUOT, errno.ELOOP, errno.EFBIG}
 
 
 #: what an interrupted command leaves, and how to go on (by its first word)

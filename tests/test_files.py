@@ -72,3 +72,28 @@ for name, write in (("old.json", lambda p: write_text(p, "x" * 100000)),
     assert res.stdout.count("refused") == 3, res.stdout + res.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["old.json"]  # no report, no figure, no temporaries
     assert (tmp_path / "old.json").read_text() == '{"kept": true}\n'
+
+
+def test_a_checkpoint_past_the_file_size_limit_says_so_not_to_free_disk_space(tmp_path):
+    """Under `ulimit -f` a checkpoint write said torch's "unexpected pos 5085824 vs 5085716" and "free some space"
+    with 54 GB free."""
+    import subprocess
+    import sys
+
+    code = """
+import resource, sys
+from pathlib import Path
+import torch
+from sssphase_core.errors import DataError
+from sssphase_core.learning.training import save_checkpoint
+resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000))
+try:
+    save_checkpoint(Path(sys.argv[1]) / "last.pt", {"weights": torch.zeros(100000)})
+except DataError as exc:
+    print(exc)
+"""
+    res = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert (f"could not write the checkpoint {tmp_path / 'last.pt'}: it outgrew the largest file this process may "
+            "write (20,000 bytes: ulimit -f); the previous checkpoint is kept: raise the limit and resume") in res.stdout, \
+        res.stdout + res.stderr
+    assert not list(tmp_path.iterdir())

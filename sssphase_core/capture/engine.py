@@ -6,6 +6,7 @@ is marked so and aborted, never half-written. The client is anything with ``call
 from __future__ import annotations
 
 import contextlib
+import errno
 import itertools
 import json
 import warnings
@@ -17,7 +18,7 @@ from typing import Any, Protocol
 from sssphase_core import __version__
 from sssphase_core.capture.plan import CaptureRequest, RigSpec, build_frames, plan_digest
 from sssphase_core.capture.processing import FrameLike, ViewProcessor, write_sim_ground_truth
-from sssphase_core.errors import InputError
+from sssphase_core.errors import DataError, InputError
 from sssphase_core.store.locks import session_lock
 from sssphase_core.store.session import Session, check_object_name
 
@@ -101,6 +102,10 @@ def check_rig_leaves_capture_options(rig_options: dict[str, Any], own: dict[str,
                          "them from the rig file")
 
 
+#: The errors of a session store that cannot take more (zarr names no file): said with the session and --resume.
+WRITE_FAILURES = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG, errno.EROFS, errno.EIO}
+
+
 def run_capture(client: ClientLike, req: CaptureRequest, rig: RigSpec | None = None, *,
                 progress: Progress | None = None, ask_move: Callable[[int, float], None] | None = None) -> Session:
     """Capture ``req.views`` views of ``req.object`` into ``req.out/<object>`` (resuming if asked)."""
@@ -120,6 +125,11 @@ def run_capture(client: ClientLike, req: CaptureRequest, rig: RigSpec | None = N
                              trigger=rig.trigger, options=options)
         try:
             return _capture_views(client, req, rig, options, opened, progress, ask_move)
+        except OSError as exc:
+            if exc.errno not in WRITE_FAILURES:
+                raise
+            raise DataError(f"cannot write the session {Path(req.out) / req.object}: {exc.strerror or exc} (the views "
+                            "captured so far are kept: make room, then continue with --resume)") from None
         finally:
             try:
                 client.call("close_rig", timeout_s=2.0, rig=opened["rig"])

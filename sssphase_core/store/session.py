@@ -239,10 +239,14 @@ class ViewWriter:
             _zarr_write(self.partial / name, data)
         except OSError as exc:
             self.abort()
-            if exc.errno == errno.ENOSPC:
+            if exc.errno in (errno.ENOSPC, errno.EDQUOT):
                 raise DataError(f"disk full while writing {name} of view {self.view} in {self.session.path}: "
                                 f"free some space and {self.session.rerun}") from exc
-            raise DataError(f"cannot write {name} of view {self.view}: {exc}") from exc
+            if exc.errno == errno.EFBIG:  # (a file-size limit: `ulimit -f`, or a file system's largest file)
+                raise DataError(f"a file of {name} of view {self.view} in {self.session.path} outgrew the largest file "
+                                f"this process may write (ulimit -f): raise the limit and {self.session.rerun}") from exc
+            raise DataError(f"cannot write {name} of view {self.view} in {self.session.path}: "
+                            f"{exc.strerror or exc} ({self.session.rerun})") from exc
         self.arrays[name] = {"shape": list(data.shape), "dtype": np.dtype(data.dtype).str, "checksum": array_checksum(data),
                              "chunks": _chunk_count(data.shape, _chunks(data.shape, np.dtype(data.dtype).itemsize))}
 

@@ -532,3 +532,26 @@ def test_a_camera_whose_frames_are_no_light_fails_the_capture_naming_it_and_writ
     assert res.returncode != 0 and "Traceback" not in said, said
     assert "the camera negcam:0: frame " in said and "below -0.25 x the white level" in said, said
     assert Session.open(tmp_path / "s" / "apple").views() == []
+
+
+@pytest.mark.slow
+def test_a_capture_past_the_file_size_limit_says_so_and_resumes(tmp_path):
+    """Under `ulimit -f` a capture ended in "internal error: OSError: [Errno 27] File too large", naming nothing."""
+    import resource
+
+    runtime = Path(tempfile.mkdtemp(prefix="sssf", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime), "COLUMNS": "300"}
+    args = [sys.executable, "-m", "sssphase_cli.main", "capture", "--object", "soap", "--views", "1", "--out",
+            str(tmp_path / "s")]
+    try:
+        limited = subprocess.run(args, capture_output=True, text=True, env=env, timeout=300,
+                                 preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (200_000, 200_000)))
+        assert limited.returncode == 2 and "Traceback" not in limited.stderr, limited.stderr
+        assert re.search(r"error: a file of \w+ of view 0 in .*/s/soap outgrew the largest file this process may write "
+                         r"\(ulimit -f\): raise the limit and rerun with --resume", limited.stderr), limited.stderr
+        resumed = run_sss(["capture", "--object", "soap", "--views", "1", "--resume", "--out", str(tmp_path / "s")],
+                          env=env, timeout=300)
+        assert resumed.returncode == 0 and Session.open(tmp_path / "s" / "soap").validate(expected_views=1) == []
+    finally:
+        run_sss(["daemon", "stop"], env=env)
+        shutil.rmtree(runtime, ignore_errors=True)

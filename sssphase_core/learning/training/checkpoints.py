@@ -3,6 +3,7 @@ last checkpoint, and the encoder and decoder they hold."""
 
 from __future__ import annotations
 
+import errno
 from collections.abc import Callable
 from pathlib import Path
 from typing import TypeVar
@@ -33,10 +34,19 @@ def save_checkpoint(path: Path, payload: dict) -> None:
         with atomic_path(path) as tmp:
             torch.save(payload, tmp)
     except (OSError, RuntimeError) as exc:
+        import resource
+
         free = shutil.disk_usage(Path(path).parent).free
-        why = "the disk is full" if free < (1 << 20) else str(exc).splitlines()[0][:160]
-        raise DataError(f"could not write the checkpoint {path}: {why} ({free:,} bytes free); "
-                        "the previous checkpoint is kept: free some space and resume") from None
+        limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+        if free < (1 << 20):
+            why, fix = f"the disk is full ({free:,} bytes free)", "free some space and resume"
+        elif limit != resource.RLIM_INFINITY or getattr(exc, "errno", None) == errno.EFBIG:  # (torch: "unexpected pos")
+            limit_text = f"{limit:,} bytes" if limit != resource.RLIM_INFINITY else "a file system's limit"
+            why, fix = f"it outgrew the largest file this process may write ({limit_text}: ulimit -f)", \
+                "raise the limit and resume"
+        else:
+            why, fix = f"{str(exc).splitlines()[0][:160]} ({free:,} bytes free)", "resume once it can be written"
+        raise DataError(f"could not write the checkpoint {path}: {why}; the previous checkpoint is kept: {fix}") from None
 
 
 def load_checkpoint(path: Path | str, *, mmap: bool = False) -> dict:
