@@ -354,6 +354,23 @@ def test_a_decoder_is_not_resumed_on_an_encoder_that_changed_since(pretrained, d
         train_decoder(DecoderConfig(epochs=3, batch_size=16, ckpt_every=0), enc, dataset, tmp_path / "dec", progress=False)
 
 
+def test_a_decoder_is_not_resumed_on_training_data_that_changed_since(pretrained, dataset, tmp_path):
+    """A decoder run stopped, its sessions captured again, and resumed: it finished fitted on both, without a word."""
+    from sssphase_core.bench.synthetic import synthetic_views
+    from sssphase_core.learning.data import PatchDataset
+
+    train_decoder(DecoderConfig(epochs=1, batch_size=16, ckpt_every=0), pretrained, dataset, tmp_path / "dec", progress=False)
+    recaptured = PatchDataset(synthetic_views(("a", "b"), (0, 1), size=(48, 48), patch=16, pixels_per_view=64,
+                                              seed=5)[0], 16, ["a", "b"], with_targets=True)
+    with pytest.raises(DataError, match=r"was fitted on other training data than it is given now \(sessions captured "
+                                        r"again, or other views or pixels\)"):
+        train_decoder(DecoderConfig(epochs=2, batch_size=16, ckpt_every=0), pretrained, recaptured, tmp_path / "dec",
+                      progress=False)
+    train_decoder(DecoderConfig(epochs=2, batch_size=16, ckpt_every=0), pretrained, dataset, tmp_path / "dec",
+                  progress=False)  # the same data resumes
+    assert load_checkpoint(tmp_path / "dec" / CHECKPOINT)["loop"]["epoch"] == 2
+
+
 def test_end_to_end_baseline_trains_the_encoder_too(dataset, tiny, tmp_path):
     from sssphase_core.learning.models import Encoder
 

@@ -117,6 +117,16 @@ def validate_decoder(enc: Encoder, dec: Decoder, dataset: PatchDataset, n: int, 
     return out
 
 
+def data_fingerprint(footprints: torch.Tensor, n_patches: int) -> str:
+    """What a decoder run was fitted on, in a few bytes: a hash of its seeded sample of target footprints (the same
+    sessions, views and pixels give the same) and the number of training patches."""
+    import hashlib
+
+    digest = hashlib.sha256(np.ascontiguousarray(footprints.detach().cpu().numpy()).tobytes())
+    digest.update(str(n_patches).encode())
+    return digest.hexdigest()[:32]
+
+
 def train_decoder(
     cfg: DecoderConfig,
     encoder_ckpt: Path | str | None,
@@ -167,7 +177,12 @@ def train_decoder(
         return batch["footprint"], bool((batch["camera"] != NO_CAMERA).any())
 
     ckpt = resume_state(out_dir, resume, "decoder", p)
+    data = data_fingerprint(first_footprints()[0], len(dataset))
     if ckpt is not None:
+        if ckpt.get("data", data) != data:  # (checkpoints before it was recorded: not checked)
+            raise DataError(f"{out_dir / CHECKPOINT} was fitted on other training data than it is given now (sessions "
+                            "captured again, or other views or pixels): resuming would fit the rest of the run to "
+                            "these; pass --no-resume, or another --out")
         if bool(ckpt["config"].get("end_to_end", False)) != cfg.end_to_end:
             raise DataError(f"{out_dir / CHECKPOINT} is {'an end-to-end' if not cfg.end_to_end else 'a frozen-encoder'} "
                             "decoder run; choose another output folder or pass --no-resume")
@@ -234,6 +249,7 @@ def train_decoder(
                 "kind": "decoder", "preset": p.to_dict(), "config": config_dict(cfg),
                 "encoder": enc.state_dict(), "decoder": dec.state_dict(),
                 "optimizer": opt.state_dict(), "loop": loop.state(), "domain": domain, "trained_on": trained_on,
+                "data": data,
             })
 
     loop.run(step, end_epoch, save, progress=progress)
