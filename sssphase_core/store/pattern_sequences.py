@@ -51,8 +51,10 @@ class PatternSequence:
         return self.path.stem
 
     def frames(self, start: int = 0) -> Iterator[tuple[int, np.ndarray]]:
-        """``(index, pattern)`` from frame ``start`` on, each (Hp, Wp, 3) float32 in [0, 1]; a frame that does not
-        decode ends the sequence early (a video's header may count more frames than it holds)."""
+        """``(index, pattern)`` from frame ``start`` on, each (Hp, Wp, 3) float32 in [0, 1]. A video frame that does
+        not decode ends the sequence early (a video's header may count more frames than it holds); an animated image's
+        frame that does not decode, or is of another size than its first, is refused in one line (the frames before
+        it stay relit)."""
         if self.files is not None:
             yield from self._folder_frames(start)
             return
@@ -90,11 +92,26 @@ class PatternSequence:
         from PIL import Image, ImageSequence
 
         with Image.open(self.path) as img:
-            for index, frame in enumerate(ImageSequence.Iterator(img)):
-                if index >= self.count:
+            frames = ImageSequence.Iterator(img)
+            for index in range(self.count):
+                try:
+                    frame = next(frames)
+                    if frame.size != self.size:  # (a TIFF page's own header: before it is decoded)
+                        raise InputError(f"--pattern {self.path}: frame {index + 1} is {frame.size[0]}x{frame.size[1]} "
+                                         f"but the first is {self.size[0]}x{self.size[1]}: the frames of a sequence "
+                                         "share one size")
+                    if index < start:
+                        continue
+                    rgb = np.asarray(frame.convert("RGB"))
+                except StopIteration:
                     return
-                if index >= start:
-                    yield index, np.asarray(frame.convert("RGB"))
+                except InputError:
+                    raise
+                except (OSError, SyntaxError, ValueError, EOFError, Image.DecompressionBombError) as exc:
+                    raise InputError(f"--pattern {self.path}: frame {index + 1} of {self.count} does not decode "
+                                     f"({str(exc).splitlines()[0][:120] if str(exc) else type(exc).__name__}): the "
+                                     "file is damaged or cut short") from None
+                yield index, rgb
 
     def _fitted(self, rgb: np.ndarray) -> np.ndarray:
         """An 8-bit RGB frame (H, W, 3) -> the projector's pattern (Hp, Wp, 3) float32 in [0, 1]."""

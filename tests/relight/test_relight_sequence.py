@@ -149,6 +149,31 @@ def test_an_animated_image_is_a_sequence_and_a_still_is_not(tmp_path):
     np.testing.assert_allclose([g.mean() for _, g in got], [128 / 255, 1.0], atol=1e-6)
 
 
+def test_an_animated_image_cut_short_or_with_a_huge_page_is_one_line_at_that_frame(tmp_path):
+    """A GIF cut in half failed as "internal error: OSError: image file is truncated"; a multi-page TIFF's 13000 x
+    13000 second page (260 kB on disk) was decoded whole (2.2 GB) and resized: only its first page was checked."""
+    import resource
+
+    from PIL import Image
+
+    rng = np.random.default_rng(0)
+    frames = [Image.fromarray((rng.random((48, 64, 3)) * 255).astype(np.uint8)) for _ in range(5)]
+    frames[0].save(tmp_path / "whole.gif", save_all=True, append_images=frames[1:])
+    data = (tmp_path / "whole.gif").read_bytes()
+    (tmp_path / "cut.gif").write_bytes(data[: len(data) // 2])
+    cut = open_sequence(tmp_path / "cut.gif", (W, H), "fit")
+    with pytest.raises(InputError, match=rf"cut.gif: frame \d of {cut.count} does not decode \(.*\): the file is "
+                                         "damaged or cut short"):
+        list(cut.frames())
+    frames[0].save(tmp_path / "pages.tif", save_all=True, append_images=[Image.new("L", (13000, 13000)), frames[1]],
+                   compression="tiff_adobe_deflate")
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    with pytest.raises(InputError, match=r"pages.tif: frame 2 is 13000x13000 but the first is 64x48: the frames of a "
+                                         "sequence share one size"):
+        list(open_sequence(tmp_path / "pages.tif", (W, H), "fit").frames())
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 100_000  # kB: the page was never decoded
+
+
 def test_sequences_that_cannot_be_used_are_refused_from_their_header(tmp_path):
     (tmp_path / "noise.mp4").write_bytes(os.urandom(5000))
     with pytest.raises(InputError, match="noise.mp4: not a video OpenCV's FFmpeg can read"):
