@@ -18,7 +18,6 @@ import hashlib
 import hmac
 import json
 import secrets
-import shutil
 import time
 import warnings
 from collections.abc import AsyncIterator
@@ -54,7 +53,11 @@ MAX_MESSAGE_CHARS = 4096  # a live-settings message is ~100 characters
 MAX_PENDING_RELIGHTS = 4  # relights run one at a time on a thread of their own; more waiting are refused (429)
 MAX_LIVE_SOCKETS = 4  # live streams at once (each waits on the rig in a thread of the shared pool)
 MAX_VIEW_DIGITS = 9  # a view number in a URL (a 5000-digit one was a 500 in the router, before the token check)
-MAX_UPLOADS = 20  # uploads kept in ``--out``; the least recently used go first, with the images relit under them
+MAX_UPLOADS = 20  # uploads kept in ``--out``; the least recently used go first (what was relit under them stays)
+#: Uploads received at once (each up to MAX_UPLOAD_BYTES in memory: 24 at once took the view from 0.5 to 1.5 GB), and
+#: the seconds one may take to arrive (a body sent a byte at a time held its connection for ever).
+MAX_UPLOADS_AT_ONCE = 2
+UPLOAD_BODY_S = 600.0
 IMAGE_MAGIC = {b"\x89PNG": ".png", b"\xff\xd8\xff": ".jpg", b"II*\x00": ".tif", b"MM\x00*": ".tif", b"BM": ".bmp",
                b"v/1\x01": ".exr"}
 #: Uploads that may be pattern sequences, by their first bytes: GIF, Matroska/WebM; MP4/MOV (``ftyp`` at byte 4) and
@@ -87,6 +90,8 @@ class ViewState:
     live_sockets: int = 0
     #: when each upload was last used (its file's time is its sequence relight's record: never touched)
     upload_used: dict[str, float] = field(default_factory=dict)
+    #: uploads whose bodies are being received (each held in memory until whole)
+    uploading: int = 0
     #: set at the first Ctrl-C (or SIGTERM): the relight under way stops at its next step, as every sequence does
     closing: bool = False
 
@@ -185,12 +190,25 @@ def guarded(handler: Any) -> Any:
         try:
             response = await handler(request, state)
         except SssError as exc:
-            response = _problem(str(exc), getattr(exc, "status", 400))
+            response = _problem(_without_server_paths(str(exc), state), getattr(exc, "status", 400))
         except ClientDisconnect:  # the page went away mid-body: nobody to answer
             response = Response(status_code=499)
         response.headers["X-Content-Type-Options"] = "nosniff"
         return response
     return route
+
+
+def _without_server_paths(text: str, state: ViewState) -> str:
+    """``text`` as the page says it: the server's --sessions and --out folders by those names, not their paths
+    (a view off loopback told every client where the server keeps its data)."""
+    import re
+
+    for folder, said in ((state.out, "--out"), (state.sessions, "--sessions")):
+        if folder is not None:
+            for form in sorted({str(folder), str(Path(folder).resolve())}, key=len, reverse=True):
+                if form not in (".", "/"):  # (a whole path only: never a part of a word or of another path)
+                    text = re.sub(rf"(?<![\w./-]){re.escape(form)}(?=/|\s|$|['\")\],:;])", said, text)
+    return text
 
 
 def view_number(request: Request) -> int:
@@ -260,7 +278,8 @@ def _sessions(state: ViewState) -> dict[str, Any]:
 def _session(state: ViewState, name: str) -> Any:
     found = _sessions(state)
     if name not in found:  # names only: '../x' or an absolute path is never a path here
-        raise InputError(f"no session {name!r} under {state.sessions} (known: {', '.join(found) or 'none'})")
+        where = "under --sessions" if state.sessions is not None else "(the view was started without --sessions)"
+        raise InputError(f"no session {name[:80]!r} {where} (known: {', '.join(found) or 'none'})")  # (no server path)
     return found[name]
 
 
@@ -485,9 +504,10 @@ def _upload_path(state: ViewState, name: str) -> Path:
 
 
 def _forget_old_uploads(state: ViewState) -> None:
-    """Keep the ``MAX_UPLOADS`` most recently used uploads; remove the others and the images relit under them,
-    so that a long session of new patterns does not fill ``--out`` (each upload may be 32 MB). An upload a
-    sequence relight is still relighting is kept, with its frames."""
+    """Keep the ``MAX_UPLOADS`` most recently used uploads; remove the others' files, so that a long session of new
+    patterns does not fill ``--out`` (each upload may be 32 MB). What was relit under them stays: the user's results
+    (they were removed too, a finished video's among them, while the page still listed them). An upload a sequence
+    relight is still relighting is kept."""
     def used(path: Path) -> float:
         with contextlib.suppress(OSError):
             return state.upload_used.get(path.name, path.stat().st_mtime)
@@ -497,11 +517,6 @@ def _forget_old_uploads(state: ViewState) -> None:
     uploads = sorted((state.out / "uploads").glob("upload_*"), key=used, reverse=True)
     for old in (p for p in uploads[MAX_UPLOADS:] if p.name not in busy):
         state.upload_used.pop(old.name, None)
-        for relit in (state.out / "relit").glob(f"*/*_{old.stem}_*"):
-            if relit.is_dir() and not relit.is_symlink():  # a sequence's frames
-                shutil.rmtree(relit, ignore_errors=True)
-            else:
-                relit.unlink(missing_ok=True)
         old.unlink(missing_ok=True)
 
 
@@ -522,8 +537,17 @@ async def upload(request: Request, state: ViewState) -> Response:
     GIF, PNG or TIFF) -> its name for ``/api/relight`` and whether it is a sequence; checked by the pattern reader."""
     from sssphase_core.store.pattern_sequences import is_sequence
 
-    body = await read_body(request, MAX_UPLOAD_BYTES, f"the upload is larger than {MAX_UPLOAD_BYTES >> 20} MB (a "
-                           "longer video: sss relight SESSION --pattern FILE)")
+    if state.uploading >= MAX_UPLOADS_AT_ONCE:
+        return _problem(f"{state.uploading} uploads are under way: send this one when they are done", status=429)
+    state.uploading += 1
+    try:
+        body = await asyncio.wait_for(read_body(request, MAX_UPLOAD_BYTES, f"the upload is larger than "
+                                                f"{MAX_UPLOAD_BYTES >> 20} MB (a longer video: sss relight SESSION "
+                                                "--pattern FILE)"), UPLOAD_BODY_S)
+    except TimeoutError:
+        return _problem(f"the upload did not arrive within {UPLOAD_BODY_S:.0f} s", status=408)
+    finally:
+        state.uploading -= 1
     suffix = _upload_suffix(body)
     if suffix is None:
         return _problem("not an image or a video: upload a PNG, JPEG, TIFF, BMP or EXR image, or an MP4, MOV, MKV, "
@@ -533,9 +557,25 @@ async def upload(request: Request, state: ViewState) -> Response:
     name = f"upload_{hashlib.sha256(body).hexdigest()[:12]}{suffix}"
     if not (folder / name).is_file():  # the same bytes again: the file stays as it was (a sequence's record holds it)
         write_bytes(folder / name, bytes(body))
+        try:  # a body that only starts like an image (4 bytes of a PNG signature) is no upload, and evicts none
+            await asyncio.to_thread(_check_readable, folder / name)
+        except (SssError, OSError) as exc:
+            (folder / name).unlink(missing_ok=True)
+            return _problem(str(_said_of_the_upload(exc, folder / name)))
     state.upload_used[name] = time.time()
     _forget_old_uploads(state)
     return JSONResponse({"name": name, "sequence": await asyncio.to_thread(is_sequence, folder / name)})
+
+
+def _check_readable(path: Path) -> None:
+    """Refuse an upload whose header does not read as the image or sequence its first bytes said."""
+    from sssphase_core.store.imageio import frame_shape
+    from sssphase_core.store.pattern_sequences import is_sequence, sequence_header
+
+    if is_sequence(path):
+        sequence_header(path)
+    else:
+        frame_shape(path)
 
 
 def _said_of_the_upload(exc: SssError, path: Path | str) -> InputError:
@@ -580,8 +620,9 @@ async def relight(request: Request, state: ViewState) -> Response:
     args = await read_json(request)
     if not isinstance(args, dict):
         return _problem("the request body must be a JSON object")
-    pattern = str(args.get("pattern", ""))
-    backend = str(args.get("backend", "auto"))
+    pattern = str(args.get("pattern") or "")  # (null: not given, as the page leaves them; it said "got 'None'")
+    backend = str(args.get("backend") or "auto")[:40]
+    resize = str(args.get("resize") or "")[:40]
     view = args.get("view", 0)
     if isinstance(view, bool) or not isinstance(view, int):
         return _problem("view must be a whole number")
@@ -591,7 +632,7 @@ async def relight(request: Request, state: ViewState) -> Response:
 
         path = _upload_path(state, pattern)
         if await asyncio.to_thread(is_sequence, path):
-            return _start_sequence(state, str(args.get("session", "")), view, path, backend, str(args.get("resize", "")))
+            return _start_sequence(state, str(args.get("session", "")), view, path, backend, resize)
     notes = _Notes(state)
 
     def pattern_spec(s: Any) -> str:
@@ -614,7 +655,7 @@ async def relight(request: Request, state: ViewState) -> Response:
                 warnings.simplefilter("always")
                 result = relight_session(s, [spec], backend=backend, checkpoint=state.checkpoint,
                                          out=relit_folder(state, s), views=[view], formats=("png", "exr"), cache=True,
-                                         resize=str(args.get("resize", "")), narrator=notes)
+                                         resize=resize, narrator=notes)
         except _Closing:
             raise InputError("stopped: the view is closing (the footprints computed so far are kept for the next "
                              "relight)") from None

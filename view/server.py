@@ -67,6 +67,21 @@ def _head_deadline_protocol() -> type:
     return HeadDeadline
 
 
+def _is_loopback(host: str) -> bool:
+    try:
+        return host == "localhost" or ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def allowed_hosts(host: str, allow_remote: bool) -> list[str] | None:
+    """The ``Host:`` names the view answers (None: any): on loopback only its own address and localhost, so that a
+    page of another site whose name resolves to 127.0.0.1 (DNS rebinding) is refused; with ``--allow-remote`` off
+    loopback, any. A loopback host keeps the check with ``--allow-remote`` too (there it opens nothing, and it
+    dropped the guard)."""
+    return sorted({host, "127.0.0.1", "localhost"}) if not allow_remote or _is_loopback(host) else None
+
+
 def check_host(host: str, allow_remote: bool, tls: bool = False) -> None:
     """Loopback only unless ``allow_remote``, and off loopback only over TLS (``tls``): the token guards every route,
     and in plain HTTP it would cross the network readable, in every request and the page's URL."""
@@ -183,7 +198,7 @@ def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = Non
     shown = f"[{named}]" if ":" in named else named
     url = f"{'https' if tls else 'http'}://{shown}:{bound}/?token={state.token}"
     # On loopback the page is reached by its own address or as localhost only (sssphase_view.app.Guard)
-    hosts = sorted({host, "127.0.0.1", "localhost"}) if not allow_remote else None
+    hosts = allowed_hosts(host, allow_remote)
     config = uvicorn.Config(build_app(state, hosts=hosts), log_level="warning", ws="websockets-sansio", lifespan="on",
                             http=_head_deadline_protocol(), ssl_certfile=tls[0] if tls else None,
                             ssl_keyfile=tls[1] if tls else None, ssl_keyfile_password=passphrase)

@@ -197,6 +197,13 @@ def open_sequence(path: Path | str, projector_size: tuple[int, int], resize: str
     return PatternSequence(path, count, float(fps), size, (wp, hp), resize, video)
 
 
+def sequence_header(path: Path | str) -> tuple[int, float, tuple[int, int]]:
+    """A sequence file's (frame count, frames per second, (W, H)) from its header, refused in one line when it does not
+    read (a front end checks an upload with it before keeping it)."""
+    path = Path(path)
+    return _video_header(path) if path.suffix.lower() in VIDEO_SUFFIXES else _image_header(path)
+
+
 def _video_header(path: Path) -> tuple[int, float, tuple[int, int]]:
     import cv2
 

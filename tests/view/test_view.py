@@ -486,20 +486,14 @@ def test_a_video_uploaded_on_the_page_is_relit_frame_by_frame_and_played(served,
     assert _get(base + f"/api/files/relit/{folder}/..%2F..%2Fuploads", token)[0] == 404
     assert _get(base + "/api/files/relit/uploads/" + Path(job["frames"][0]).name, token)[0] == 404
     assert _get(base + "/api/relight/jobs/nope", token)[0] == 404
-    # a file that starts like an MP4 and is not one: accepted as a sequence, its relight fails in one line
+    # a file that starts like an MP4 and is not one: refused at its upload in one line (it was kept, and its relight
+    # failed), naming "the upload", not the server's path
     request = urllib.request.Request(base + "/api/upload", data=b"\0\0\0\x18ftypisom" + os.urandom(4096),
                                      method="POST", headers={"X-Token": token})
-    with urllib.request.urlopen(request, timeout=60) as response:
-        fake = json.loads(response.read())
-    status, answer = _post(base + "/api/relight", token, json.dumps(
-        {"session": "star", "view": 0, "pattern": fake["name"], "backend": "none"}).encode())
-    assert status == 202 and answer["job"]
-    deadline = time.monotonic() + 60
-    while (state := json.loads(_get(base + f"/api/relight/jobs/{answer['job']}", token)[1]))["status"] not in ("done", "failed"):
-        assert time.monotonic() < deadline
-        time.sleep(0.2)
-    assert state["status"] == "failed" and "\n" not in state["error"] and "Traceback" not in state["error"], state
-    assert state["error"].startswith("the upload: ") and "uploads/" not in state["error"], state  # not the server's path
+    with pytest.raises(urllib.error.HTTPError) as refused:
+        urllib.request.urlopen(request, timeout=60)
+    said = json.loads(refused.value.read())["error"]
+    assert refused.value.code == 400 and said.startswith("the upload: not a video") and "uploads/" not in said, said
     # a relight asked to stop stops at its next progress report (here in the first frame's footprints), said so
     writer = cv2.VideoWriter(str(tmp_path / "long.mp4"), cv2.VideoWriter_fourcc(*"mp4v"), 8.0, (256, 192))
     for i in range(30):
@@ -557,26 +551,30 @@ def _png_header_only(width: int, height: int) -> bytes:
 
 
 def test_hostile_input_is_one_message_on_the_page_and_the_server_keeps_serving(served, page, tmp_path):
+    import cv2
+
     page.evaluate("document.querySelector('nav button[data-tab=relight]').click()")
     text = tmp_path / "notes.png"
     text.write_text("not an image at all")
     page.set_file("#upload", text)
     page.wait_for("document.getElementById('message').textContent.includes('not an image')", 30)
-    bomb = tmp_path / "bomb.png"
-    bomb.write_bytes(_png_header_only(40000, 40000))
+    good = tmp_path / "good.png"
+    cv2.imwrite(str(good), np.full((192, 256), 200, np.uint8))
     # the user picks a wrong file and at once the right one; the wrong one's answer comes last and changes nothing
     _answer_the_next_one_late(page, "/api/upload")
     late = tmp_path / "notes_again.png"
     late.write_text("still not an image")
     page.set_file("#upload", late)
-    page.set_file("#upload", bomb)
+    page.set_file("#upload", good)
     page.wait_for("state.uploaded && window.lateAnswered", 30)
     time.sleep(0.3)
     assert page.evaluate("state.uploaded").startswith("upload_")
     assert "not an image" not in page.evaluate("document.getElementById('message').textContent")
-    message = _relight_on_page(page)
-    assert isinstance(message, str) and "far larger than the 256x192 projector" in message
-    assert "refused without decoding it" in message
+    bomb = tmp_path / "bomb.png"  # (a decompression bomb's header: refused at its upload, never decoded nor kept)
+    bomb.write_bytes(_png_header_only(40000, 40000))
+    page.set_file("#upload", bomb)
+    page.wait_for("document.getElementById('message').textContent.includes('refused without decoding it')", 30)
+    assert "the upload declares an image of over 179 MP" in page.evaluate("document.getElementById('message').textContent")
     escape = page.evaluate("""fetch('/api/relight', {method: 'POST', headers: {'X-Token': TOKEN,
         'Content-Type': 'application/json'}, body: JSON.stringify({session: '../../etc', view: 0, pattern: 'checkerboard'})})
         .then(r => r.json())""")
@@ -588,7 +586,8 @@ def test_hostile_input_is_one_message_on_the_page_and_the_server_keeps_serving(s
 
 def test_the_view_keeps_the_most_recently_used_uploads_and_forgets_the_rest(served):
     """Each upload may be 32 MB: a long session of new patterns must not fill ``--out``. The uploads used last
-    stay (with their relit images); the others go, and relighting one of them says to upload it again."""
+    stay; the others' files go (what was relit under them stays), and relighting one of them says to upload it
+    again. A body that only starts like an image is refused, and evicts nothing."""
     import cv2
 
     from sssphase_view.app import MAX_UPLOADS
@@ -615,7 +614,14 @@ def test_the_view_keeps_the_most_recently_used_uploads_and_forgets_the_rest(serv
     later = [upload(10 + i) for i in range(MAX_UPLOADS - 1)]
     kept = {p.name for p in (served["root"] / "out" / "uploads").iterdir()}
     assert len(kept) == MAX_UPLOADS and first in kept and second not in kept and set(later) <= kept
-    assert not list(relit.glob(f"*/*_{Path(second).stem}_*")) and list(relit.glob(f"*/*_{Path(first).stem}_*"))
+    assert list(relit.glob(f"*/*_{Path(second).stem}_*")) and list(relit.glob(f"*/*_{Path(first).stem}_*"))
+    junk = urllib.request.Request(base + "/api/upload", data=b"\x89PNG\r\n\x1a\n" + bytes(8), method="POST",
+                                  headers={"X-Token": token})
+    with pytest.raises(urllib.error.HTTPError) as refused:
+        urllib.request.urlopen(junk, timeout=60)
+    said = json.loads(refused.value.read())["error"]
+    assert refused.value.code == 400 and "the upload" in said and "uploads/" not in said, said
+    assert {p.name for p in (served["root"] / "out" / "uploads").iterdir()} == kept  # nothing kept, none evicted
     # a still upload that cannot be relit is named as the page names it, not by the server's path to it
     png = cv2.imencode(".png", np.zeros((10, 12), np.uint8))[1].tobytes()
     request = urllib.request.Request(base + "/api/upload", data=png, method="POST", headers={"X-Token": token})
@@ -634,6 +640,56 @@ def test_the_view_keeps_the_most_recently_used_uploads_and_forgets_the_rest(serv
         assert status == 400 and "no uploaded pattern" in answer["error"]
     finally:
         planted.unlink()
+
+
+def test_errors_the_page_gets_name_no_server_path(served):
+    """A view off loopback told every client where the server keeps its sessions; null options read "got 'None'"."""
+    base, token = served["base"], served["token"]
+    name = json.loads(_get(base + "/api/state", token)[1])["sessions"][0]["name"]
+    for body, said in (({"session": name, "view": 99, "pattern": "checkerboard"}, "--sessions/"),
+                       ({"session": "nope", "view": 0, "pattern": "checkerboard"}, "no session 'nope' under --sessions"),
+                       ({"session": name, "view": 0, "pattern": "checkerboard", "backend": None, "resize": None}, None)):
+        status, answer = _post(base + "/api/relight", token, json.dumps(body).encode())
+        text = json.dumps(answer)
+        assert str(served["root"]) not in text and "None" not in text, text
+        assert (status == 400 and said in answer["error"]) if said else status == 200, (status, answer)
+
+
+def test_uploads_received_at_once_are_bounded(served):
+    """24 uploads of 32 MB sent at once were all held in memory (0.5 -> 1.5 GB); a third now waits its turn."""
+    import socket
+
+    from sssphase_view.app import MAX_UPLOADS_AT_ONCE
+
+    base, token = served["base"], served["token"]
+    host, port = base.removeprefix("http://").split(":")
+    slow = []
+    try:
+        for _ in range(MAX_UPLOADS_AT_ONCE):  # bodies still arriving
+            sock = socket.create_connection((host, int(port)), timeout=10)
+            sock.sendall(f"POST /api/upload HTTP/1.1\r\nHost: {host}:{port}\r\nX-Token: {token}\r\n"
+                         "Content-Length: 1000000\r\n\r\n".encode() + b"\x89PNG" + bytes(1000))
+            slow.append(sock)
+        time.sleep(0.5)
+        import cv2
+
+        png = cv2.imencode(".png", np.full((192, 256), 7, np.uint8))[1].tobytes()
+        third = urllib.request.Request(base + "/api/upload", data=png, method="POST", headers={"X-Token": token})
+        with pytest.raises(urllib.error.HTTPError) as refused:
+            urllib.request.urlopen(third, timeout=30)
+        assert refused.value.code == 429 and "uploads are under way" in json.loads(refused.value.read())["error"]
+    finally:
+        for sock in slow:
+            sock.close()
+    deadline = time.monotonic() + 10
+    while True:  # their connections closed, the next upload is taken
+        try:
+            with urllib.request.urlopen(third, timeout=30) as response:
+                assert response.status == 200
+            break
+        except urllib.error.HTTPError as exc:
+            assert exc.code == 429 and time.monotonic() < deadline
+            time.sleep(0.2)
 
 
 def test_two_sessions_of_one_object_are_each_relit_into_a_folder_of_their_own(served):
