@@ -6,7 +6,7 @@ from __future__ import annotations
 import sys
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console
@@ -44,9 +44,8 @@ def capture(
     """Capture a session through the daemon (starting a local sim daemon if none runs)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeRemainingColumn
 
-    from sssphase_core.capture import CaptureRequest, RigSpec, run_capture
+    from sssphase_core.capture import CaptureRequest, RigSpec
     from sssphase_core.errors import InputError
-    from sssphase_daemon.client import DaemonUnavailable
 
     if not 0 < timeout <= MAX_TIMEOUT_S:  # NaN fails too
         raise InputError(f"--timeout must be a number of seconds in (0, {MAX_TIMEOUT_S}], got {timeout}")
@@ -71,19 +70,26 @@ def capture(
                     tasks[view] = bars[0].add_task(f"view {view + 1}/{views}", total=total)
                 bars[0].update(tasks[view], completed=done)
 
-            try:
-                session = run_capture(client, req, spec, progress=progress,
-                                      ask_move=None if spec.turntable else _ask_move)
-            except DaemonUnavailable as exc:  # the daemon died or went quiet mid-capture (a remote one too)
-                if not bars or "--resume" in str(exc):
-                    raise
-                raise DaemonUnavailable(f"{exc}: complete views are kept; continue with --resume once it runs "
-                                        "again") from None
+            session = _captured(client, req, spec, progress, started=lambda: bool(bars))
     except KeyboardInterrupt:
         # cli.main ignores the exit code typer returns for Ctrl-C, so leave with it here
         Console(stderr=True, soft_wrap=True).print("[yellow]interrupted[/]: complete views are kept; rerun with --resume to continue")
         sys.exit(130)
     console.print(f"session {session.path}: {len(session.views())}/{views} views complete")
+
+
+def _captured(client: Any, req: Any, spec: Any, progress: Any, started: Any) -> Any:
+    """``run_capture``'s session; a daemon that died or went quiet once frames came (a remote one too) is said with
+    how to go on."""
+    from sssphase_core.capture import run_capture
+    from sssphase_daemon.client import DaemonUnavailable
+
+    try:
+        return run_capture(client, req, spec, progress=progress, ask_move=None if spec.turntable else _ask_move)
+    except DaemonUnavailable as exc:
+        if not started() or "--resume" in str(exc):
+            raise
+        raise DaemonUnavailable(f"{exc}: complete views are kept; continue with --resume once it runs again") from None
 
 
 def _ask_move(view: int, angle: float) -> None:

@@ -52,9 +52,14 @@ def view(
 
             webbrowser.open(url)
 
-    serve(host=host, port=port, sessions=sessions, checkpoint=checkpoint, out=out, rig=LiveRig(spec),
-          allow_remote=allow_remote, calibration=calibration, on_ready=ready,
-          tls=(tls_cert, tls_key) if tls_cert is not None and tls_key is not None else None)
+    try:
+        serve(host=host, port=port, sessions=sessions, checkpoint=checkpoint, out=out, rig=LiveRig(spec),
+              allow_remote=allow_remote, calibration=calibration, on_ready=ready,
+              tls=(tls_cert, tls_key) if tls_cert is not None and tls_key is not None else None)
+    except KeyboardInterrupt:  # (uvicorn re-raises the signal it stopped on, or returns: said alike either way)
+        pass
+    Console(stderr=True, soft_wrap=True).print(f"the view stopped; the images it relit are kept in {out}",
+                                               highlight=False)
 
 
 def bench_view(

@@ -173,7 +173,6 @@ INTERRUPTED = {
     "relight": "the footprints computed so far are kept in --out's cache; the same command again computes only the rest",
     "demo": "work done so far is kept; rerun the command to resume",
     "patterns": "the patterns written so far are kept in --out; rerun into a new or emptied folder",
-    "view": "the view stopped; the images it relit are kept in --out",
     "": "outputs written so far are kept; rerun the command to redo the rest",
 }
 
