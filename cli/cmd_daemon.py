@@ -335,13 +335,14 @@ def daemon_connection(
     endpoint = security.read_connection(folder, keys=False).endpoint
     secret = ("it holds the client's secret key: keep it private, mode 0700" if security.has_client_key(folder) else
               "keep it private, mode 0700")
-    console.print(f"wrote {folder}: copy it to the client's machine ({secret}) and set {security.ENV_DAEMON} to its path there (e.g. {security.ENV_DAEMON}=~/{folder.name}"
-                  f"); the client connects to {endpoint}", highlight=False)
+    console.print(f"wrote {folder}: copy it to the client's machine ({secret}) and set {security.ENV_DAEMON} to its "
+                  f"path there (e.g. {security.ENV_DAEMON}=~/{folder.name}); the client connects to {endpoint}",
+                  highlight=False)
     if not security.has_client_key(folder):
         console.print(f"note: {state.curve_dir} holds no client key (the server's keys only): on the client's machine "
                       f"put its own client.key and client.key_secret (`sss daemon keys` makes a pair) into the folder, "
-                      f"and its client.key into {Path(state.curve_dir) / security.AUTHORIZED} here (the daemon admits it within 2 s)",
-                      highlight=False)
+                      f"and its client.key into {Path(state.curve_dir) / security.AUTHORIZED} here (the daemon admits "
+                      "it within 2 s)", highlight=False)
     if security.is_loopback_host(security.host_of(endpoint)):
         console.print(f"note: {security.host_of(endpoint)} is the client's own machine: only a client on this machine "
                       "reaches the daemon so; one on another machine needs this machine's name or address (--host)",
