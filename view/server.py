@@ -103,7 +103,7 @@ class _Encrypted(Exception):
     """The TLS key asked for its passphrase (raised from OpenSSL's password callback)."""
 
 
-def tls_context(cert: Path, key: Path, ask: Callable[[str], str] | None = None) -> str | None:
+def check_tls(cert: Path, key: Path, ask: Callable[[str], str] | None = None) -> str | None:
     """Check a PEM certificate (chain) and its key before serving (not at the first connection): one line when they
     do not load or belong together. A key encrypted with a passphrase is asked for it once, with ``ask(prompt)``
     (OpenSSL asked on the terminal for every load: twice); without ``ask`` it is refused. Returns the passphrase
@@ -167,7 +167,7 @@ def serve(*, host: str = "127.0.0.1", port: int = 0, sessions: Path | None = Non
     if tls is not None:
         import getpass
 
-        passphrase = tls_context(*tls, ask=getpass.getpass if sys.stdin.isatty() else None)
+        passphrase = check_tls(*tls, ask=getpass.getpass if sys.stdin.isatty() else None)
     check_inputs(sessions, checkpoint)
     stereo = None
     if calibration is not None:

@@ -170,7 +170,7 @@ def test_a_view_off_loopback_needs_tls_and_serves_its_page_over_https(tmp_path):
     import urllib.request
 
     from sssphase_core.errors import InputError
-    from sssphase_view.server import allowed_hosts, check_host, tls_context
+    from sssphase_view.server import allowed_hosts, check_host, check_tls
 
     with pytest.raises(InputError, match=r"would cross the network in plain HTTP; give --tls-cert and --tls-key"):
         check_host("0.0.0.0", allow_remote=True, tls=False)
@@ -192,9 +192,9 @@ def test_a_view_off_loopback_needs_tls_and_serves_its_page_over_https(tmp_path):
                                "-addext", "subjectAltName=IP:127.0.0.1,DNS:localhost"], capture_output=True, timeout=60)
         assert made.returncode == 0, made.stderr
     with pytest.raises(InputError, match=r"do not load as a PEM certificate and its key"):
-        tls_context(cert, key)  # the certificate is the second key's
+        check_tls(cert, key)  # the certificate is the second key's
     with pytest.raises(InputError, match=r"--tls-key .*: no such file"):
-        tls_context(cert, tmp_path / "missing.pem")
+        check_tls(cert, tmp_path / "missing.pem")
     # a key under a passphrase is asked for it once (OpenSSL asked on the terminal at each of two loads), refused
     # in one line where nobody can be asked
     locked, locked_cert = tmp_path / "locked.pem", tmp_path / "locked_cert.pem"
@@ -204,15 +204,15 @@ def test_a_view_off_loopback_needs_tls_and_serves_its_page_over_https(tmp_path):
     assert made.returncode == 0, made.stderr
     locked.chmod(0o600)
     with pytest.raises(InputError, match=r"is encrypted with a passphrase, and there is no terminal to ask it on"):
-        tls_context(locked_cert, locked)
+        check_tls(locked_cert, locked)
     asked: list[str] = []
-    assert tls_context(locked_cert, locked, ask=lambda prompt: asked.append(prompt) or "s3cret") == "s3cret"
+    assert check_tls(locked_cert, locked, ask=lambda prompt: asked.append(prompt) or "s3cret") == "s3cret"
     assert asked == [f"passphrase of {locked}: "]
     with pytest.raises(InputError, match=r"does not open with that passphrase"):
-        tls_context(locked_cert, locked, ask=lambda prompt: "wrong")
+        check_tls(locked_cert, locked, ask=lambda prompt: "wrong")
     other.chmod(0o644)
     with pytest.warns(UserWarning, match=r"can be read by other users of this machine: chmod 600 it"):
-        assert tls_context(cert, other) is None
+        assert check_tls(cert, other) is None
     other.chmod(0o600)
     refused = run_sss(["view", "--host", "0.0.0.0", "--allow-remote"], cwd=tmp_path)
     assert refused.returncode != 0 and "plain HTTP" in refused.stdout + refused.stderr
