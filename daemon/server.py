@@ -117,6 +117,18 @@ class Rig:
     closing: str = ""  # the device whose close() is under way (named while it hangs)
     closing_since: float = 0.0  # (time.monotonic())
 
+    def close_after_its_call(self, wait_s: float, closed: Callable[[str], None] | None = None) -> bool:
+        """:meth:`close` once the device call under way (it holds ``self.lock``) has ended, waiting ``wait_s`` at most
+        (0: not at all), then regardless; True when a call was still under way. Closing a camera under a grab of
+        another thread aborted the daemon inside pylon."""
+        ended = self.lock.acquire(timeout=wait_s) if wait_s > 0 else self.lock.acquire(False)
+        try:
+            self.close(closed)
+        finally:
+            if ended:
+                self.lock.release()
+        return not ended
+
     def close(self, closed: Callable[[str], None] | None = None) -> None:
         """Close the devices and drop them: finished jobs keep their rig for ``status``, not its devices
         (a sim rig's scene is ~120 MB). ``closed(device_id)`` is called as each device's close() returns; one
@@ -500,18 +512,10 @@ class Daemon:
         for job_thread in [t for t in threading.enumerate() if t.name.startswith("sss-job-")]:
             job_thread.join(timeout=5)
 
-        def close_after_its_call(rig: Rig) -> None:
-            # a cancelled job's device call (a grab waiting for its frame) ends first: closing a camera under a
-            # grab under way aborted the daemon inside pylon (SIGABRT at SIGTERM while streaming)
-            ended = rig.lock.acquire(timeout=SHUTDOWN_CALL_WAIT_S)
-            if not ended:
-                log.warning("rig %s: a device call did not end within %g s; closing it regardless", rig.id,
+        def close_after_its_call(rig: Rig) -> None:  # (a cancelled job's grab waiting for its frame ends first)
+            if rig.close_after_its_call(SHUTDOWN_CALL_WAIT_S):
+                log.warning("rig %s: a device call did not end within %g s; closed regardless", rig.id,
                             SHUTDOWN_CALL_WAIT_S)
-            try:
-                rig.close()
-            finally:
-                if ended:
-                    rig.lock.release()
 
         closing = [threading.Thread(target=close_after_its_call, args=(rig,), name=f"sss-close-{rig.id}", daemon=True)
                    for rig in self.rigs.values()]
@@ -598,12 +602,7 @@ class Daemon:
                     del self.closing[device_id]
 
         def run() -> None:
-            under_way = not rig.lock.acquire(timeout=lock_wait_s) if lock_wait_s > 0 else not rig.lock.acquire(False)
-            try:
-                rig.close(closed)
-            finally:
-                if not under_way:
-                    rig.lock.release()
+            under_way = rig.close_after_its_call(lock_wait_s, closed)
             if then is not None:
                 then(under_way)
 

@@ -67,19 +67,14 @@ def _head_deadline_protocol() -> type:
     return HeadDeadline
 
 
-def _is_loopback(host: str) -> bool:
-    try:
-        return host == "localhost" or ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        return False
-
-
 def allowed_hosts(host: str, allow_remote: bool) -> list[str] | None:
     """The ``Host:`` names the view answers (None: any): on loopback only its own address and localhost, so that a
     page of another site whose name resolves to 127.0.0.1 (DNS rebinding) is refused; with ``--allow-remote`` off
     loopback, any. A loopback host keeps the check with ``--allow-remote`` too (there it opens nothing, and it
     dropped the guard)."""
-    return sorted({host, "127.0.0.1", "localhost"}) if not allow_remote or _is_loopback(host) else None
+    from sssphase_daemon.security import is_loopback_host
+
+    return sorted({host, "127.0.0.1", "localhost"}) if not allow_remote or is_loopback_host(host) else None
 
 
 def check_host(host: str, allow_remote: bool, tls: bool = False) -> None:

@@ -939,7 +939,8 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
     settings = {"n_views": len(view_dirs), "imported_from": str(folder.resolve()),
                 "rig": {"camera": "import", "projector_size": [w, h], "patch": patch, "imported": True,
                         "frame_scale": scale, "frame_encoding": encoding, "frame_encoding_from": encoding_tag},
-                "plan": plan_json, "import_options": {"bayer": str(bayer).lower(), "demosaic": demosaic, **({"angles": angles} if angles else {})},
+                "plan": plan_json, "import_options": {"bayer": str(bayer).lower(), "demosaic": demosaic,
+                                                      **({"angles": angles} if angles else {})},
                 "imported_frames": [frames_fingerprint(files) for _, files in views]}  # frames replaced: not resumed
     resume = path.exists() and _continues_unfinished_import(path, folder, settings)
     session = Session.create(root, name, resume=resume, **settings, software={"sssphase": __version__})

@@ -382,7 +382,8 @@ def relight_session(session: Path | str | Session, patterns: Sequence[str], *, b
             claim_output(out, [s])  # images are named by object: another session's of the same object are not replaced
             if auto:  # said once the input is known good
                 say.say(f"backend: {backend}" + ("" if ckpt is not None else
-                                                 " (no --checkpoint: the analytic model; with a trained decoder's --checkpoint, the decoder blends in)"))
+                                                 " (no --checkpoint: the analytic model; with a trained decoder's "
+                                                 "--checkpoint, the decoder blends in)"))
             if ckpt is not None and uses_decoder(backend):
                 from sssphase_core.compute import inference_precision
 

@@ -179,7 +179,7 @@ def open_sequence(path: Path | str, projector_size: tuple[int, int], resize: str
         return _open_folder(path, projector_size, resize)
     check_input_file(path, "pattern")
     video = path.suffix.lower() in VIDEO_SUFFIXES
-    count, fps, size = _video_header(path) if video else _image_header(path)
+    count, fps, size = sequence_header(path)
     wp, hp = projector_size
     if count < 1:
         raise InputError(f"--pattern {path}: no frame could be read from it")
