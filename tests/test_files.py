@@ -76,7 +76,7 @@ for name, write in (("old.json", lambda p: write_text(p, "x" * 100000)),
 
 def test_a_checkpoint_past_the_file_size_limit_says_so_not_to_free_disk_space(tmp_path):
     """Under `ulimit -f` a checkpoint write said torch's "unexpected pos 5085824 vs 5085716" and "free some space"
-    with 54 GB free."""
+    with 54 GB free. It says the previous checkpoint is kept only where there was one."""
     import subprocess
     import sys
 
@@ -86,14 +86,41 @@ from pathlib import Path
 import torch
 from sssphase_core.errors import DataError
 from sssphase_core.learning.training import save_checkpoint
+out = Path(sys.argv[1])
+save_checkpoint(out / "kept.pt", {"weights": torch.zeros(10)})
 resource.setrlimit(resource.RLIMIT_FSIZE, (20000, 20000))
-try:
-    save_checkpoint(Path(sys.argv[1]) / "last.pt", {"weights": torch.zeros(100000)})
-except DataError as exc:
-    print(exc)
+for name in ("last.pt", "kept.pt"):
+    try:
+        save_checkpoint(out / name, {"weights": torch.zeros(100000)})
+    except DataError as exc:
+        print(exc)
 """
     res = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=120)
-    assert (f"could not write the checkpoint {tmp_path / 'last.pt'}: it outgrew the largest file this process may "
-            "write (20,000 bytes: ulimit -f); the previous checkpoint is kept: raise the limit and resume") in res.stdout, \
-        res.stdout + res.stderr
-    assert not list(tmp_path.iterdir())
+    why = "it outgrew the largest file this process may write (20,000 bytes: ulimit -f)"
+    assert (f"could not write the checkpoint {tmp_path / 'last.pt'}: {why}; no checkpoint was written: raise the "
+            "limit and run it again") in res.stdout, res.stdout + res.stderr
+    assert (f"could not write the checkpoint {tmp_path / 'kept.pt'}: {why}; the previous checkpoint is kept: raise "
+            "the limit and resume") in res.stdout, res.stdout + res.stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["kept.pt"]
+    import torch
+
+    assert torch.load(tmp_path / "kept.pt")["weights"].shape == (10,)
+
+
+def test_a_json_write_that_fails_says_a_previous_version_is_kept_only_where_there_was_one(tmp_path, monkeypatch):
+    import errno
+    import json
+
+    from sssphase_core.errors import DataError
+    from sssphase_core.store.session import write_json_atomic
+
+    (tmp_path / "manifest.json").write_text('{"kept": true}')
+    with monkeypatch.context() as m:
+        m.setattr(json, "dump", lambda *a, **k: (_ for _ in ()).throw(OSError(errno.ENOSPC, "No space left on device")))
+        with pytest.raises(DataError, match=r"manifest.json: No space left on device \(the previous version is kept\)$"):
+            write_json_atomic(tmp_path / "manifest.json", {})
+    assert (tmp_path / "manifest.json").read_text() == '{"kept": true}'
+    (tmp_path / "file").write_text("")
+    with pytest.raises(DataError) as caught:
+        write_json_atomic(tmp_path / "file" / "new.json", {})  # (its folder is a file)
+    assert "cannot write" in str(caught.value) and "kept" not in str(caught.value)

@@ -132,7 +132,7 @@ def test_an_import_killed_midway_is_replaced_by_the_next_import_of_its_folder_an
     manifest["views"]["0"]["status"] = "capturing"  # as a SIGKILL mid-view leaves it
     (s.path / "manifest.json").write_text(json.dumps(manifest))
     s = Session.open(s.path)
-    assert s.validate()[0] == "view 0: capturing (not imported completely; run the import again)"
+    assert s.validate()[0] == "view 0: importing (not imported completely; run the import again)"
     with pytest.raises(InputError, match=r"`sss import` of its folder again completes it"):
         choose_views(s, "")
     other = tmp_path / "other"

@@ -51,21 +51,21 @@ def write_images(stem: Path | str, image: np.ndarray, *, scale: float | None = N
 
 
 def _imwrite(path: Path, image: np.ndarray) -> Path:
-    """``cv2.imwrite`` that says so when the file was not written (a name too long, a full disk, no permission),
-    written under a temporary name and renamed once complete."""
+    """Encode ``image`` in memory (``cv2.imencode``, the format from ``path``'s suffix) and write it under a
+    temporary name renamed once complete; a failed write (a full disk, a name too long, no permission) is one line
+    naming the file and the cause (no libpng message on stderr: nothing is encoded into a file)."""
     import cv2
 
-    from sssphase_core.store.files import atomic_path
+    from sssphase_core.store.files import write_bytes
 
-    problem = f"could not write {path} (is the name too long, the disk full, the folder writable?)"
     try:
-        with atomic_path(path, path.suffix) as tmp:  # a full disk leaves the old file (or none), never half of one
-            try:
-                ok = cv2.imwrite(str(tmp), image)
-            except cv2.error:
-                ok = False
-            if not ok:
-                raise InputError(problem)
-    except OSError:  # the rename: a name over the file system's limit
-        raise InputError(problem) from None
+        ok, encoded = cv2.imencode(path.suffix, image)
+    except cv2.error:
+        ok = False
+    if not ok:
+        raise InputError(f"could not encode {path.name} as {path.suffix} ({image.dtype}, shape {image.shape})")
+    try:
+        write_bytes(path, encoded.tobytes())  # a full disk leaves the old file (or none), never half of one
+    except OSError as exc:
+        raise InputError(f"could not write {path}: {exc.strerror or exc}") from None
     return path

@@ -219,8 +219,9 @@ def _relight_frames(s: Session, rv: RelightView, sequence: PatternSequence, back
     _claim_folder(folder, _record(s, rv.view, sequence, backend, ckpt, widen, formats))
     done = _done(folder, rv, sequence, backend)
     if done:
+        rest = "relighting the rest" if len(done) < sequence.count else "none left to relight"
         say.say(f"{rv.object} view {rv.view}: {len(done):,} of {sequence.count:,} frames already relit in {folder}: "
-                "relighting the rest")
+                f"{rest}")
     h, w = rv.white.shape[:2]
     per_chunk = max(1, min(MAX_CHUNK_FRAMES, CHUNK_BYTES // (h * w * 3 * 4)))
     quiet = _Quiet(say)

@@ -58,7 +58,7 @@ def write_exr(path: Path | str, image: np.ndarray, *, attributes: dict[str, str]
         with atomic_path(path, ".exr") as tmp, OpenEXR.File(header, channels) as f:
             f.write(str(tmp))  # renamed once complete: a full disk leaves no truncated EXR under the name
     except (OSError, RuntimeError) as exc:  # a name too long, a full disk, a folder not writable
-        raise InputError(f"could not write {path}: {str(exc).strip().splitlines()[-1] if str(exc).strip() else exc!r}") from None
+        raise InputError(f"could not write {path}: {_write_problem(exc)}") from None
     return path
 
 
@@ -206,3 +206,16 @@ def _check_windows(path: Path | str, OpenEXR: Any) -> list[dict]:
             raise DataError(f"EXR {path} declares a {w}x{h} pixel window, {'empty' if w <= 0 or h <= 0 else f'over {MAX_FRAME_PIXELS >> 20} MP'}"
                             ": far larger than any camera frame or pattern; refused before decoding it")
     return headers
+
+
+def _write_problem(exc: BaseException) -> str:
+    """OpenEXR's or the OS's reason a write failed, in one line, without the temporary file's name."""
+    import re
+
+    if isinstance(exc, OSError) and exc.strerror:
+        return exc.strerror
+    text = str(exc).strip()
+    if not text:
+        return repr(exc)
+    text = text.splitlines()[-1].strip("'\" ")  # ('Failed to write pixel data to image file "….tmp.exr". File too large.')
+    return re.sub(r' to image file "[^"]*"', "", text)

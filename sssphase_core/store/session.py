@@ -116,11 +116,13 @@ def write_json_atomic(path: Path, obj: Any) -> None:
     stays, no temporary file is left, and the error names the file."""
     from sssphase_core.store.files import atomic_path
 
+    existed = path.exists()
     try:
         with atomic_path(path) as tmp, open(tmp, "w") as f:
             json.dump(obj, f, indent=1, sort_keys=True)  # (atomic_path syncs it before the rename)
     except OSError as exc:
-        raise DataError(f"cannot write {path}: {exc.strerror or exc} (the previous version is kept)") from None
+        kept = " (the previous version is kept)" if existed else ""
+        raise DataError(f"cannot write {path}: {exc.strerror or exc}{kept}") from None
 
 
 def _codec(dtype: np.dtype) -> list:
@@ -643,9 +645,12 @@ class Session:
                 else "`sss capture ... --resume` completes it")
 
     def status(self, view: int) -> str:
-        """``pending``, ``capturing``, ``interrupted`` or ``complete``; anything else a manifest holds is named as
-        such (it is printed in messages: no markup or control characters from a file reach the terminal)."""
+        """``pending``, ``capturing`` (``importing`` in an imported session), ``interrupted`` or ``complete``;
+        anything else a manifest holds is named as such (it is printed in messages: no markup or control
+        characters from a file reach the terminal)."""
         status = self.manifest["views"].get(str(view), {}).get("status", "pending")
+        if status == "capturing" and self.imported:
+            return "importing"
         return status if status in VIEW_STATES else "an unknown status"
 
     def views(self) -> list[int]:

@@ -516,7 +516,11 @@ for fmt in ("exr", "png"):
 """
     res = subprocess.run([sys.executable, "-c", code, str(tmp_path / "relit")], capture_output=True, text=True, timeout=120)
     assert res.stdout.count("refused") == 2, res.stdout + res.stderr
-    assert "could not write" in res.stdout
+    # the file and the cause, in one line each (not libpng's "Write Error" on stderr, nor the temporary's name)
+    assert f"refused png could not write {tmp_path / 'relit_png.png'}: File too large" in res.stdout
+    assert f"refused exr could not write {tmp_path / 'relit_exr.exr'}: Failed to write pixel data. File too large" \
+        in res.stdout, res.stdout
+    assert not res.stderr and ".tmp" not in res.stdout
     assert sorted(p.name for p in tmp_path.iterdir()) == [], list(tmp_path.iterdir())  # nothing, not even temporaries
 
 

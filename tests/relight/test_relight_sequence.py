@@ -97,8 +97,11 @@ def test_an_interrupted_sequence_resumes_and_other_settings_are_not_mixed_in(ses
             (folder / f"sand_rake_v0_clip-{i:06d}_none{suffix}.png").unlink()
     said = Recorder()
     relight_sequence(session, clip, backend="none", out=out, narrator=said)
-    assert f"4 of {FRAMES} frames already relit" in said.lines[1]
+    assert f"4 of {FRAMES} frames already relit" in said.lines[1] and "relighting the rest" in said.lines[1]
     assert len(list(folder.glob("*_display.png"))) == FRAMES and kept.stat().st_mtime_ns == before
+    said = Recorder()
+    relight_sequence(session, clip, backend="none", out=out, narrator=said)
+    assert f"{FRAMES} of {FRAMES} frames already relit in {folder}: none left to relight" in said.lines[1]
     with pytest.raises(InputError, match=r"holds frames relit with other settings \(formats differ\)"):
         relight_sequence(session, clip, backend="none", out=out, formats="png,exr")
     foreign = out / "sand_rake_v0_clip_analytic"

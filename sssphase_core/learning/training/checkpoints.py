@@ -30,6 +30,7 @@ def save_checkpoint(path: Path, payload: dict) -> None:
     checkpoint and raises :class:`DataError` naming the file (torch says "unexpected pos 768 vs 662")."""
     import shutil
 
+    existed = Path(path).exists()
     try:
         with atomic_path(path) as tmp:
             torch.save(payload, tmp)
@@ -38,15 +39,17 @@ def save_checkpoint(path: Path, payload: dict) -> None:
 
         free = shutil.disk_usage(Path(path).parent).free
         limit = resource.getrlimit(resource.RLIMIT_FSIZE)[0]
+        again = "resume" if existed else "run it again"
         if free < (1 << 20):
-            why, fix = f"the disk is full ({free:,} bytes free)", "free some space and resume"
+            why, fix = f"the disk is full ({free:,} bytes free)", f"free some space and {again}"
         elif limit != resource.RLIM_INFINITY or getattr(exc, "errno", None) == errno.EFBIG:  # (torch: "unexpected pos")
             limit_text = f"{limit:,} bytes" if limit != resource.RLIM_INFINITY else "a file system's limit"
             why, fix = f"it outgrew the largest file this process may write ({limit_text}: ulimit -f)", \
-                "raise the limit and resume"
+                f"raise the limit and {again}"
         else:
-            why, fix = f"{str(exc).splitlines()[0][:160]} ({free:,} bytes free)", "resume once it can be written"
-        raise DataError(f"could not write the checkpoint {path}: {why}; the previous checkpoint is kept: {fix}") from None
+            why, fix = f"{str(exc).splitlines()[0][:160]} ({free:,} bytes free)", f"{again} once it can be written"
+        kept = "the previous checkpoint is kept" if existed else "no checkpoint was written"
+        raise DataError(f"could not write the checkpoint {path}: {why}; {kept}: {fix}") from None
 
 
 def load_checkpoint(path: Path | str, *, mmap: bool = False) -> dict:
