@@ -236,6 +236,8 @@ class SimCamera:
                 raise DeviceError(f"exposure must be positive, got {exposure}")
             self.exposure = float(exposure)
         if gain is not None:
+            if not gain > 0:  # (a factor: a camera's 0 dB is 1 here)
+                raise DeviceError(f"the sim camera's gain is a factor on the signal and must be positive, got {gain:g}")
             self.gain = float(gain)
         if pixel_format is not None:
             if pixel_format not in ("rgb32f", "bayer16"):
@@ -265,6 +267,8 @@ class SimCamera:
         key = [b.seed, b.view, zlib.crc32(tag.encode()), int(np.float64(self.exposure).view(np.uint64) & 0xFFFFFFFF)]
         rng = np.random.default_rng(key)
         data = b.capture(pattern, tag, rng, self.exposure * self.gain, self.raw)
+        if not self.raw and self.gain != 1.0:  # as a camera's gain: the frame brighter, clipping at a lower light level
+            data = data * np.float32(self.gain)  # (the sensor developed it in units of exposure x gain)
         if self.sequence == self.garbage_at:  # a corrupted transfer: half the rows, NaN where pixels were
             data = np.full((data.shape[0] // 2, *data.shape[1:]), np.nan, np.float32)
         frame = Frame(np.ascontiguousarray(data), self.sequence, b.clock_ns, self.exposure,

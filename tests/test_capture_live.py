@@ -43,7 +43,7 @@ def test_frame_statistics_count_the_clipped_pixels_and_fill_the_histogram():
     image = np.zeros((10, 20, 3), np.float32)
     image[:5] = 0.5
     image[0, :4, 1] = 1.0  # 4 pixels clipped in green only
-    stats = frame_stats(image, clip=0.98)
+    stats = frame_stats(image)
     assert stats.clipped == pytest.approx(4 / 200)
     assert len(stats.histogram) == 3 and all(len(h) == HIST_BINS and sum(h) == 200 for h in stats.histogram)
     assert stats.mean[0] == pytest.approx(0.25) and stats.mean[1] > stats.mean[0]

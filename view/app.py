@@ -88,6 +88,7 @@ class ViewState:
     #: pattern sequences relit in the background (by job id), their progress polled by the page
     jobs: dict[str, SequenceJob] = field(default_factory=dict)
     live_sockets: int = 0
+    live_opened: int = 0  # live pages opened so far (each page's number)
     #: when each upload was last used (its file's time is its sequence relight's record: never touched)
     upload_used: dict[str, float] = field(default_factory=dict)
     #: uploads whose bodies are being received (each held in memory until whole)
@@ -289,6 +290,9 @@ async def api_state(request: Request, state: ViewState) -> Response:
     sessions = []
     found, damaged = await asyncio.to_thread(_scan, state)
     for name, s in found.items():
+        if not s.views():  # (an interrupted first view: nothing to show, and its maps do not exist)
+            damaged[name] = f"no complete view yet; {s.completes_it()}"
+            continue
         views = []
         for v in s.views():
             arrays = s.arrays(v)
@@ -776,8 +780,10 @@ async def live_socket(websocket: WebSocket) -> None:
     """Frames (JSON header, then JPEG bytes) or decoded sets (JSON with PNGs) as fast as the rig gives them;
     the page sends ``{"pattern", "exposure", "psp_frame", "decode"}`` to change what it sees."""
     state: ViewState = websocket.app.state.view
-    if not _authorised(state, websocket.query_params.get("token")):
-        await websocket.close(code=4403)
+    if not _authorised(state, websocket.query_params.get("token")):  # accepted to be closed with the reason (a page
+        await websocket.accept()  # left open across a restart of the view holds the old token: it must not retry)
+        await websocket.close(code=4403, reason="wrong or missing token: the view was restarted, or the URL lost its "
+                                                "token; open the URL `sss view` printed")
         return
     if state.live_sockets >= MAX_LIVE_SOCKETS:  # accepted to be closed with the reason (before accept: a bare 403)
         await websocket.accept()
@@ -786,16 +792,19 @@ async def live_socket(websocket: WebSocket) -> None:
     await websocket.accept()
     state.live_sockets += 1
     settings = state.settings
-    receiving = asyncio.create_task(_receive_settings(websocket, settings, state))
+    state.live_opened += 1
+    mine = state.live_opened  # (settings.changed_by: which page set the rig's settings last)
+    receiving = asyncio.create_task(_receive_settings(websocket, settings, mine))
     last = time.perf_counter()
     try:
         while not receiving.done():
             try:
                 asked = dataclasses.replace(settings)  # what this frame is taken with (the page may change it meanwhile)
+                shared = _shared_settings(asked, mine)
                 if asked.decode:
                     decoded, white, seconds = await asyncio.to_thread(state.live.decode, asked)
                     message = await asyncio.to_thread(_decode_message, decoded, white, seconds, state)
-                    await websocket.send_text(json.dumps(_finite(message)))
+                    await websocket.send_text(json.dumps(_finite({**message, **shared})))
                     continue
                 frame = await asyncio.to_thread(state.live.frame, asked)
             except SssError as exc:
@@ -807,7 +816,7 @@ async def live_socket(websocket: WebSocket) -> None:
                       "requested_ms": frame.requested_s * 1000, "received_ms": frame.received_s * 1000,
                       "sent_ms": time.time() * 1000, "mean": frame.stats.mean, "histogram": frame.stats.histogram,
                       "clipped": frame.stats.clipped, "shape": list(frame.image.shape), "pattern": asked.pattern,
-                      "exposure": asked.exposure, "gain": asked.gain}
+                      "exposure": asked.exposure, "gain": asked.gain, **shared}
             last = now
             await websocket.send_text(json.dumps(header))
             await websocket.send_bytes(_jpeg(display(frame.image * np.float32(asked.exposure), clip=frame.stats.clip)))
@@ -818,7 +827,15 @@ async def live_socket(websocket: WebSocket) -> None:
         state.live_sockets -= 1
 
 
-async def _receive_settings(websocket: WebSocket, settings: LiveSettings, state: ViewState) -> None:
+def _shared_settings(asked: LiveSettings, mine: int) -> dict[str, Any]:
+    """What a frame or decode was taken with, for the page: the rig is one, so every page of the view shares its
+    settings, and a page whose controls another page changed (``by_other``) shows that page's."""
+    return {"settings": {"pattern": asked.pattern, "exposure": asked.exposure, "gain": asked.gain,
+                         "psp_frame": asked.psp_frame, "decode": asked.decode},
+            "by_other": asked.changed_by not in (0, mine)}
+
+
+async def _receive_settings(websocket: WebSocket, settings: LiveSettings, mine: int) -> None:
     while True:
         try:
             received = await websocket.receive()
@@ -835,6 +852,7 @@ async def _receive_settings(websocket: WebSocket, settings: LiveSettings, state:
             continue
         if isinstance(message, dict):
             apply_live_message(settings, message)
+            settings.changed_by = mine
 
 
 def apply_live_message(settings: LiveSettings, message: dict[str, Any]) -> None:

@@ -84,16 +84,35 @@ class FrameStats:
     mean: list[float]  # per channel, in [0, 1] of the camera's range
     histogram: list[list[int]]  # (C, HIST_BINS)
     clipped: float  # share of pixels with some channel at or above ``clip``
-    clip: float
+    clip: float  # in the frame's units (on the sensor, linear)
 
 
-def frame_stats(image: np.ndarray, clip: float = 0.98) -> FrameStats:
-    """``image`` (H, W, 3) linear in [0, 1] of the camera's range -> :class:`FrameStats`."""
-    img = np.asarray(image, np.float32)
+#: A sample this close to the camera's clipping level counts as clipped (demosaicing and the median spread a
+#: clipped sample over its neighbours a little below the level).
+CLIP_FRACTION = 0.98
+
+
+def sensor_full_scale(rig: RigSpec) -> float:
+    """Where ``rig``'s camera clips, on the sensor in linear units of the reference exposure (a frame developed
+    at exposure e, times e): the rig file's ``[processing] saturation``, else the sim camera's full well, else 1
+    (the developed range of a camera whose white scale is its full scale)."""
+    if rig.saturation is not None:
+        return float(rig.saturation)
+    if rig.is_sim:
+        from sssphase_core.sim import rig_preset
+
+        return float(rig_preset(rig.options.get("preset", "cpu")).sensor.saturation(1.0))
+    return 1.0
+
+
+def frame_stats(image: np.ndarray, full_scale: float = 1.0) -> FrameStats:
+    """``image`` (H, W, 3) linear on the sensor, clipping at ``full_scale`` -> :class:`FrameStats` (histograms
+    and means in [0, 1] of that range; clipped: some channel at or above :data:`CLIP_FRACTION` of it)."""
+    img = np.asarray(image, np.float32) / np.float32(full_scale)
     img = img[..., None] if img.ndim == 2 else img
     hist = [np.histogram(np.clip(img[..., c], 0, 1), bins=HIST_BINS, range=(0, 1))[0].tolist() for c in range(img.shape[-1])]
     return FrameStats([float(v) for v in img.reshape(-1, img.shape[-1]).mean(axis=0)], hist,
-                      float((img >= clip).any(axis=-1).mean()), clip)
+                      float((img >= CLIP_FRACTION).any(axis=-1).mean()), CLIP_FRACTION * float(full_scale))
 
 
 def develop_live(frame: Any, rig: RigSpec) -> np.ndarray:
@@ -120,13 +139,16 @@ class LiveDecode:
     yp: np.ndarray
 
 
-def decode_set(images: dict[str, np.ndarray], projector_size: tuple[int, int], bayer: str | None = None) -> LiveDecode:
-    """Decode the developed images of one :func:`psp_set` (keyed by the specs' ``key``)."""
+def decode_set(images: dict[str, np.ndarray], projector_size: tuple[int, int], bayer: str | None = None,
+               saturation: float | None = None) -> LiveDecode:
+    """Decode the developed images of one :func:`psp_set` (keyed by the specs' ``key``); a pixel with a PSP sample at
+    or above ``saturation`` (the images' units; None: not checked) is ``SATURATED``."""
     from sssphase_core.processing import psp
     from sssphase_core.processing.patterns import capture_plan
 
     plan = capture_plan(*projector_size, references=("white", "black"))
-    corr = psp.decode_camera(images, plan.psp, projector_size, bayer=bayer)  # (every fringe set: the unwrapping ladder too)
+    corr = psp.decode_camera(images, plan.psp, projector_size, bayer=bayer,  # (every fringe set: the unwrapping ladder too)
+                             saturation=saturation)
     threshold = 0.01  # psp.decode's min_modulation
     return LiveDecode(corr.mask.copy(), corr.modulation.astype(np.float32), corr.reason.astype(np.uint8), threshold,
                       corr.coverage(), np.where(corr.mask, corr.xp, np.nan).astype(np.float32),

@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import os
 import re
+import shutil
 import struct
 import subprocess
 import sys
@@ -89,8 +90,12 @@ def test_every_route_needs_the_token(served):
     assert _get(base + "/")[0] == 403 and _get(base + "/?token=wrong")[0] == 403
     assert _get(base + "/api/state")[0] == 403 and _get(base + "/api/state", "wrong")[0] == 403
     assert _get(base + "/api/state", served["token"])[0] == 200
-    with pytest.raises(websocket.WebSocketBadStatusException, match="403"):  # refused at the handshake
-        websocket.create_connection(base.replace("http", "ws") + "/ws/live?token=wrong", timeout=10)
+    # a websocket is closed with the reason, no frame sent first (a page left open across a restart of the view
+    # holds the old token: it says so and stops retrying, where a refused handshake read as a dropped connection)
+    ws = websocket.create_connection(base.replace("http", "ws") + "/ws/live?token=wrong", timeout=10)
+    opcode, data = ws.recv_data(control_frame=True)
+    assert opcode == websocket.ABNF.OPCODE_CLOSE and int.from_bytes(data[:2], "big") == 4403
+    assert data[2:].decode().startswith("wrong or missing token: the view was restarted")
 
 
 def test_a_missing_sessions_folder_or_a_checkpoint_that_does_not_load_is_refused_before_serving(tmp_path):
@@ -328,6 +333,41 @@ def test_live_decode_shows_where_the_object_decodes(page):
         assert page.evaluate("document.getElementById('decode-surface').naturalWidth") == 256
     finally:
         _set(page, "decode", False)
+
+
+def test_a_page_shows_the_settings_another_page_gave_the_rig(served, page):
+    """The rig is one and its pages share its settings: a second page that turned live decode on left the first
+    saying "no frame for 7 s (waiting for the rig)" with its box unticked; the first page now takes the other's
+    settings into its controls and says who set them."""
+    other = _live(served["base"], served["token"])
+    try:
+        other.send(json.dumps({"pattern": "grey", "exposure": 0.7, "gain": None, "psp_frame": 0, "decode": False}))
+        page.wait_for("document.getElementById('pattern').value === 'grey' && "
+                      "document.getElementById('exposure').value === '0.7' && "
+                      "document.getElementById('status').textContent.includes('set by another page of this view')", 60)
+    finally:
+        other.close()
+    _set(page, "pattern", "white")
+    _set(page, "exposure", 1)
+    page.wait_for("state.shown.pattern === 'white' && !document.getElementById('status').textContent.includes('another')", 60)
+
+
+def test_a_session_without_a_complete_view_is_listed_as_left_out_with_how_to_complete_it(served):
+    """A capture that stopped in its first view was listed; choosing it showed a bare "Not Found" under the
+    previous session's image."""
+    sessions = served["root"] / "sessions"
+    star = next(p for p in sessions.iterdir() if p.is_dir())
+    stopped = sessions / "stopped"
+    shutil.copytree(star, stopped)
+    try:
+        manifest = json.loads((stopped / "manifest.json").read_text())
+        manifest["views"]["0"]["status"], manifest["object"] = "capturing", "stopped"
+        (stopped / "manifest.json").write_text(json.dumps(manifest))
+        state = json.loads(_get(served["base"] + "/api/state", served["token"])[1])
+        assert "stopped" not in [s["name"] for s in state["sessions"]] and len(state["sessions"]) == 1
+        assert state["damaged"]["stopped"] == "no complete view yet; `sss capture ... --resume` completes it"
+    finally:
+        shutil.rmtree(stopped)
 
 
 def test_a_sessions_maps_have_their_colour_bar_and_unit(page):

@@ -19,7 +19,6 @@ from sss_process import run_sss
 
 pytest.importorskip("starlette")
 
-from sssphase_core.errors import SssError  # noqa: E402
 from sssphase_view.app import MAX_UPLOADS, ViewState, _Closing, _forget_old_uploads, _Notes, relit_folder  # noqa: E402
 from sssphase_view.jobs import SequenceJob  # noqa: E402
 
@@ -139,7 +138,8 @@ def test_ctrl_c_stops_a_sequence_the_view_is_relighting_and_the_view_exits(tmp_p
 @pytest.mark.slow
 def test_the_live_rig_connects_again_to_a_restarted_daemon(tmp_path, monkeypatch):
     """After the daemon died and another started, every live frame failed with "missing or wrong token" until
-    `sss view` was restarted; the first frame after the restart fails, the next one connects to the new daemon."""
+    `sss view` was restarted; then the first frame after the restart failed with it on the page. The frame after
+    a restart now connects to the new daemon at once."""
     from sssphase_view.live import LiveRig, LiveSettings
 
     runtime = Path(tempfile.mkdtemp(prefix="sssr", dir="/tmp"))
@@ -152,8 +152,6 @@ def test_the_live_rig_connects_again_to_a_restarted_daemon(tmp_path, monkeypatch
         stopped = run_sss(["daemon", "stop", "--force"], env=env, cwd=REPO)
         assert stopped.returncode == 0, stopped.stdout + stopped.stderr
         assert run_sss(["daemon", "start"], env=env, cwd=REPO).returncode == 0  # another daemon, another token
-        with pytest.raises(SssError):
-            rig.frame(LiveSettings())
         again = rig.frame(LiveSettings())
         assert again.image.shape == first.image.shape and again.sequence == first.sequence + 1
     finally:
@@ -235,4 +233,35 @@ def test_a_view_off_loopback_needs_tls_and_serves_its_page_over_https(tmp_path):
     finally:
         proc.terminate()
         proc.wait(20)
+        shutil.rmtree(runtime, ignore_errors=True)
+
+
+def test_the_live_gain_brightens_like_a_cameras_and_clipping_is_seen_in_frames_and_decodes(tmp_path, monkeypatch):
+    """On the sim camera a gain made the frame darker and flat grey without one clipped pixel (the sim divided it
+    out and the view measured against 1, not the sensor's full well), a gain of 0 failed every frame until a 1 was
+    typed, an emptied gain field kept the last gain, and live decode never counted a SATURATED pixel."""
+    from sssphase_core.errors import SssError
+    from sssphase_view.live import LiveRig, LiveSettings
+
+    runtime = Path(tempfile.mkdtemp(prefix="sssr", dir="/tmp"))
+    monkeypatch.setenv("SSS_RUNTIME_DIR", str(runtime))
+    rig = LiveRig()
+    try:
+        plain = rig.frame(LiveSettings(exposure=0.5))
+        bright = rig.frame(LiveSettings(exposure=0.5, gain=4.0))
+        lit = plain.image.max(axis=-1) > 0.05
+        ratio = np.median(bright.image[lit] / np.maximum(plain.image[lit], 1e-6))
+        assert 3.5 < ratio < 4.5, ratio
+        assert plain.stats.clipped < 0.01 < bright.stats.clipped and bright.stats.clip == plain.stats.clip > 1
+        with pytest.raises(SssError, match="the sim camera's gain is a factor on the signal and must be positive, got 0"):
+            rig.frame(LiveSettings(exposure=0.5, gain=0.0))
+        back = rig.frame(LiveSettings(exposure=0.5, gain=None))  # the field emptied: the gain the rig opened with
+        np.testing.assert_allclose(np.median(back.image[lit]), np.median(plain.image[lit]), rtol=0.02)
+        calm, _, _ = rig.decode(LiveSettings(exposure=1.0, decode=True))
+        blown, _, _ = rig.decode(LiveSettings(exposure=8.0, decode=True))
+        assert calm.coverage.get("SATURATED", 0) < 0.01 * calm.mask.size
+        assert blown.coverage["SATURATED"] > 0.1 * calm.mask.sum(), blown.coverage
+    finally:
+        rig.close()
+        run_sss(["daemon", "stop", "--force"], env={**os.environ, "SSS_RUNTIME_DIR": str(runtime)}, cwd=REPO)
         shutil.rmtree(runtime, ignore_errors=True)

@@ -59,15 +59,34 @@ function drawHistogram(histogram) {
 function sendSettings() {
   if (!state.socket || state.socket.readyState !== WebSocket.OPEN) return;
   const exposure = Number($("exposure").value), frame = Number($("psp-frame").value);
-  if (!(exposure >= 0.001 && exposure <= 1000)) { say("exposure must be between 0.001 and 1000 (times the rig's): not sent"); return; }
-  if (!Number.isInteger(frame) || frame < 0) { say("the PSP frame is a whole number from 0: not sent"); return; }
+  const gain = $("gain").value === "" ? null : Number($("gain").value);
+  const refused = !(exposure >= 0.001 && exposure <= 1000) ? "exposure must be between 0.001 and 1000 (times the rig's): not sent"
+    : !Number.isInteger(frame) || frame < 0 ? "the PSP frame is a whole number from 0: not sent"
+    : gain !== null && !(gain >= 0 && gain <= 1000) ? "the gain is a number from 0 to 1000 in the camera's unit (empty: as the rig opened it): not sent"
+    : null;
+  if (refused) { say(refused); state.refused = refused; return; }
+  if (state.refused && $("message").textContent === state.refused) say("");  // (the settings are sent now)
+  state.refused = null;
   state.socket.send(JSON.stringify({
-    pattern: $("pattern").value, exposure: Number($("exposure").value),
-    gain: $("gain").value === "" ? null : Number($("gain").value),
-    psp_frame: Number($("psp-frame").value), decode: $("decode").checked,
+    pattern: $("pattern").value, exposure, gain, psp_frame: frame, decode: $("decode").checked,
   }));
   $("decode-panel").hidden = !$("decode").checked;
   if (!$("decode").checked) $("depth-panel").hidden = true;
+}
+
+// The rig is one: every page of the view shares its settings. A frame taken with another page's settings
+// (by_other) puts them in this page's controls, so that what the page shows is what it says.
+function adoptSettings(message) {
+  if (!message.by_other || !message.settings) return;
+  const s = message.settings;
+  if ([...$("pattern").options].some((o) => o.value === s.pattern)) $("pattern").value = s.pattern;
+  $("exposure").value = s.exposure;
+  $("gain").value = s.gain === null ? "" : s.gain;
+  $("psp-frame").value = s.psp_frame;
+  $("decode").checked = s.decode;
+  $("decode-panel").hidden = !s.decode;
+  if (!s.decode) $("depth-panel").hidden = true;
+  state.adopted = true;
 }
 
 function connectLive() {
@@ -75,12 +94,15 @@ function connectLive() {
   const socket = new WebSocket(`${scheme}://${location.host}/ws/live?token=${encodeURIComponent(TOKEN)}`);
   socket.binaryType = "blob";
   let header = null;
-  socket.onopen = () => { state.socket = socket; sendSettings(); $("status").textContent = "live"; };
-  socket.onclose = (event) => {  // the server says why where it can (e.g. the live views already open)
+  socket.onopen = () => { state.socket = socket; state.failedConnects = 0; sendSettings(); $("status").textContent = "live"; };
+  socket.onclose = (event) => {  // the server says why where it can (e.g. the live views already open, a wrong token)
     state.socket = null;
     const again = ![1000, 1013, 4403].includes(event.code);  // dropped (the server restarted, the network): try again
-    $("status").textContent = (event.reason ? `live view closed: ${event.reason}` : "live view closed") +
-      (again ? " (connecting again …)" : "");
+    state.failedConnects = (state.failedConnects || 0) + 1;
+    const gone = again && state.failedConnects > 1 && !event.reason;  // (it never opened again since)
+    $("status").textContent = gone ? "live: the view does not answer (stopped?); trying again every 2 s"
+      : (event.reason ? `live view closed: ${event.reason}` : "live view closed") + (again ? " (connecting again …)" : "");
+    if (event.code === 4403) say(event.reason);
     if (again) setTimeout(connectLive, 2000);
   };
   socket.onmessage = (event) => {
@@ -88,11 +110,12 @@ function connectLive() {
       const old = $("live-image").src, shown = header;
       $("live-image").onload = () => { state.shown = shown; };  // what the image on the page is, once it is drawn
       $("live-image").src = URL.createObjectURL(event.data);
+      $("live-image").hidden = false;
       if (old.startsWith("blob:")) URL.revokeObjectURL(old);
       if (header) {
-        if (state.liveError && $("message").textContent === state.liveError) say("");  // frames again: the error is over
-        state.liveError = null;
-        $("status").textContent = `live: ${header.pattern}, exposure ${header.exposure}`;  // (what this frame was taken with)
+        clearLiveError();  // frames again: the error is over
+        $("status").textContent = `live: ${header.pattern}, exposure ${header.exposure}` +  // (what this frame was taken with)
+          (header.gain === null ? "" : `, gain ${header.gain}`) + (header.by_other ? " (set by another page of this view)" : "");
         state.lastFrameAt = Date.now();
         state.frames += 1;
         $("frame-count").textContent = state.frames;
@@ -105,6 +128,7 @@ function connectLive() {
       return;
     }
     const message = JSON.parse(event.data);
+    adoptSettings(message);
     if (message.type === "frame") { header = message; return; }
     if (message.type === "error") {
       state.liveError = `live: ${message.message}`;
@@ -113,6 +137,11 @@ function connectLive() {
       return;
     }
     if (message.type === "decode" && $("decode").checked) {  // (one asked before the box was unticked: not shown)
+      clearLiveError();
+      state.decodes = (state.decodes || 0) + 1;
+      $("status").textContent = `live decode: set ${state.decodes} in ${message.seconds.toFixed(1)} s, exposure ` +
+        `${message.settings.exposure}` + (message.settings.gain === null ? "" : `, gain ${message.settings.gain}`) +
+        (message.by_other ? " (turned on by another page of this view)" : "") + " · the live frame pauses while it decodes";
       $("decode-mask").src = "data:image/png;base64," + message.mask_png;
       $("decode-modulation").src = "data:image/png;base64," + message.modulation_png;
       $("decode-seconds").textContent = message.seconds.toFixed(2);
@@ -128,9 +157,13 @@ function connectLive() {
       $("depth-range").textContent = message.depth_range ? message.depth_range.map((v) => v.toPrecision(4)).join(" … ") : "";
       $("depth-unit").textContent = message.depth_unit || "";
       $("depth-note").textContent = message.depth_note || "";
-      state.decodes = (state.decodes || 0) + 1;
     }
   };
+}
+
+function clearLiveError() {
+  if (state.liveError && $("message").textContent === state.liveError) say("");
+  state.liveError = null;
 }
 
 for (const id of ["pattern", "exposure", "gain", "psp-frame", "decode"]) $(id).onchange = sendSettings;
@@ -139,7 +172,8 @@ for (const id of ["pattern", "exposure", "gain", "psp-frame", "decode"]) $(id).o
 setInterval(() => {
   const waited = (Date.now() - (state.lastFrameAt || Date.now())) / 1000;
   if (state.socket && !$("decode").checked && waited > 3 && !state.liveError) {
-    $("status").textContent = `live: no frame for ${waited.toFixed(0)} s (waiting for the rig)`;
+    $("status").textContent = `live: no frame for ${waited.toFixed(0)} s (waiting for the rig` +
+      (waited > 8 ? ": a camera this slow, or a daemon that stopped, is told when its call times out)" : ")");
   }
 }, 1000);
 
@@ -152,7 +186,7 @@ function shownSize() {
 $("zoom").onchange = () => {
   const zoom = Number($("zoom").value), img = $("live-image");
   img.style.width = zoom ? `${shownSize()[1] * zoom}px` : "";
-  img.style.maxWidth = zoom ? "none" : "";
+  img.style.maxWidth = img.style.maxHeight = zoom ? "none" : "";
 };
 
 $("live-image").onclick = async (event) => {
