@@ -85,7 +85,8 @@ def _captured(client: Any, req: Any, spec: Any, progress: Any, started: Any) -> 
     from sssphase_daemon.client import DaemonUnavailable
 
     try:
-        return run_capture(client, req, spec, progress=progress, ask_move=None if spec.turntable else _ask_move)
+        return run_capture(client, req, spec, progress=progress,
+                           ask_move=None if spec.turntable or req.views == 1 else _ask_move)
     except DaemonUnavailable as exc:
         if not started() or "--resume" in str(exc):
             raise
@@ -93,7 +94,14 @@ def _captured(client: Any, req: Any, spec: Any, progress: Any, started: Any) -> 
 
 
 def _ask_move(view: int, angle: float) -> None:
-    """A rig without a turntable: the user turns the object."""
+    """A rig without a turntable: the user turns the object (one view: nothing to turn, nothing asked)."""
+    from sssphase_core.errors import InputError
+
+    if not sys.stdin.isatty():  # (typer's confirm printed "aborted" at the end of the input, no more)
+        kept = f"; views 0 to {view - 1} are kept (--resume continues)" if view else ""
+        raise InputError("the rig has no turntable, so each view waits for you to turn the object, and the input is "
+                         "not a terminal: run it in a terminal, add a turntable to the rig file ([devices] turntable), "
+                         f"or capture one view per session (--views 1){kept}")
     typer.confirm(f"turn the object to view {view} ({angle:.0f} deg) and press enter", default=True)
 
 

@@ -365,7 +365,8 @@ def bench_daemon(
 def bench_basler(
     out: Annotated[Path, typer.Option(help="JSON result file (a Markdown table is printed and written next to it)")] = Path("benchmarks/basler.json"),
     frames: Annotated[int, typer.Option(min=10, max=100_000, help="frames per run")] = 200,
-    serial: Annotated[str, typer.Option(help="the camera's serial number (default: pylon's first emulated camera)")] = "0815-0000",
+    serial: Annotated[str | None, typer.Option(help="the camera's serial number (default: the first camera pylon sees; "
+                                                     "pylon's emulator unless PYLON_CAMEMU is set)")] = None,
     md: Annotated[Path | None, typer.Option(help="Markdown table file (default: next to --out)")] = None,
 ) -> None:
     """Basler camera frames/s through the daemon vs pypylon's own grab loop (the pylon emulator unless

@@ -27,13 +27,34 @@ WIDTH, HEIGHT, PIXEL_FORMAT = 1024, 1040, "BayerRG12"
 SERIAL = "0815-0000"
 
 
+def pylon_serials() -> list[str]:
+    """The serial numbers of the cameras pylon sees (the emulator's with ``PYLON_CAMEMU=N``)."""
+    from pypylon import pylon
+
+    return [d.GetSerialNumber() for d in pylon.TlFactory.GetInstance().EnumerateDevices()]
+
+
+def choose_serial(serial: str | None) -> str:
+    """``serial``, checked against the cameras pylon sees, or (None) the first of them; else one line saying
+    what pylon sees and how to get a camera."""
+    from sssphase_core.errors import InputError
+
+    seen = pylon_serials()
+    if serial is None and seen:
+        return seen[0]
+    if serial in seen:
+        return serial
+    emulated = os.environ.get("PYLON_CAMEMU", "0") not in ("", "0")
+    how = "" if emulated else ": connect one, or set PYLON_CAMEMU=1 for pylon's camera emulator"
+    sees = f"it sees {', '.join(seen)}" if seen else f"it sees no camera{how}"
+    raise InputError(f"pylon sees no camera {serial}: {sees}" if serial is not None else f"pylon {sees}")
+
+
 def _open_pylon(serial: str) -> Any:
     from pypylon import pylon
 
     tl = pylon.TlFactory.GetInstance()
-    dev = next((d for d in tl.EnumerateDevices() if d.GetSerialNumber() == serial), None)
-    if dev is None:
-        raise RuntimeError(f"pylon sees no camera {serial} (set PYLON_CAMEMU=1 for the emulator)")
+    dev = next(d for d in tl.EnumerateDevices() if d.GetSerialNumber() == serial)  # (choose_serial checked it)
     cam = pylon.InstantCamera(tl.CreateDevice(dev))
     cam.Open()
     cam.Width.Value, cam.Height.Value, cam.PixelFormat.Value = WIDTH, HEIGHT, PIXEL_FORMAT
@@ -84,8 +105,11 @@ def through_daemon(client: DaemonClient, n: int, serial: str = SERIAL) -> dict[s
             "shape": list(shape or ()), "dtype": dtype}
 
 
-def run_bench(n: int = 200, serial: str = SERIAL) -> tuple[dict[str, Any], str]:
+def run_bench(n: int = 200, serial: str | None = None) -> tuple[dict[str, Any], str]:
+    """The three runs on the camera ``serial`` (None: the first pylon sees; pylon's emulator where
+    ``PYLON_CAMEMU`` is not set) -> (result, Markdown table)."""
     os.environ.setdefault("PYLON_CAMEMU", "1")
+    serial = choose_serial(serial)
     result: dict[str, Any] = {"camera": f"basler:{serial}", "emulated": os.environ.get("PYLON_CAMEMU", "0") != "0",
                               "size": [WIDTH, HEIGHT], "pixel_format": PIXEL_FORMAT, "frames_per_run": n,
                               "cpus": os.cpu_count()}

@@ -54,11 +54,30 @@ def _pygame():
     return optional_import("pygame", "hdmi", "pygame")
 
 
+#: SDL's video drivers other than Wayland, in its own order (SDL_VIDEODRIVER takes such a list)
+NOT_WAYLAND = "x11,kmsdrm,offscreen,dummy"
+
+
+def _init_display(pygame: Any) -> None:
+    """``pygame.display.init()``; without a Wayland display to connect to (no ``WAYLAND_DISPLAY``) and no driver
+    chosen by the user, SDL's Wayland probe is skipped: libwayland printed "error: XDG_RUNTIME_DIR is invalid or
+    not set in the environment." to the terminal under `sss devices` on a machine without a display."""
+    chosen = os.environ.get("SDL_VIDEODRIVER")
+    if chosen or os.environ.get("WAYLAND_DISPLAY"):
+        pygame.display.init()
+        return
+    os.environ["SDL_VIDEODRIVER"] = NOT_WAYLAND
+    try:
+        pygame.display.init()
+    finally:
+        del os.environ["SDL_VIDEODRIVER"]
+
+
 def list_displays() -> list[tuple[int, int]]:
     """(width, height) of each display SDL can open a window on; clear errors when there is none."""
     pygame = _pygame()
     try:
-        pygame.display.init()
+        _init_display(pygame)
         driver = pygame.display.get_driver()
         sizes = [tuple(s) for s in pygame.display.get_desktop_sizes()]
     except pygame.error as exc:
@@ -223,7 +242,7 @@ def window_main(display: int, settle_frames: int, verify: bool) -> int:
     os.dup2(2, 1)  # anything a library prints goes to stderr, never into the reply stream
     try:
         pygame = _pygame()
-        pygame.display.init()
+        _init_display(pygame)
         flags = pygame.FULLSCREEN | pygame.NOFRAME
         try:
             screen, vsync = pygame.display.set_mode((0, 0), flags, display=display, vsync=1), True

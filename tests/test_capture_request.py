@@ -58,6 +58,13 @@ def test_validate_checks_a_request_made_directly(tmp_path):
                                     randomise_rig=True)
     with pytest.raises(InputError, match="--backdrop puts a wall behind the simulator's objects"):
         CaptureRequest.from_options("apple", RigSpec(camera="x:cam", projector="x:proj"), out=tmp_path, backdrop=80)
+    # --hdr on a rig whose clipping level is not given failed after the daemon started, 2 frames in, leaving an
+    # empty session behind
+    with pytest.raises(InputError, match=r"--hdr merges .* give it in the rig file \(\[processing\] saturation"):
+        CaptureRequest.from_options("apple", RigSpec(camera="x:cam", projector="x:proj"), out=tmp_path / "h", hdr=True)
+    assert not (tmp_path / "h").exists()
+    CaptureRequest.from_options("apple", RigSpec(camera="x:cam", projector="x:proj", saturation=0.98),
+                                out=tmp_path / "h", hdr=True)
 
 
 def test_parse_exposures():

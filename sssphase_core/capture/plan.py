@@ -236,8 +236,8 @@ class CaptureRequest:
 
             check_device(device)
             req.sim_options = {**req.sim_options, "device": device}
-        req._check_rig(rig, randomise_rig)
         req.hdr = parse_exposures(hdr_exposures) if hdr_exposures is not None else DEFAULT_HDR if hdr else ()
+        req._check_rig(rig, randomise_rig)
         req._check_frames()
         return req
 
@@ -274,6 +274,9 @@ class CaptureRequest:
         elif self.transport is not None or randomise_rig:
             flag = "--transport" if self.transport is not None else "--randomise-rig"
             raise InputError(f"{flag} changes the simulator's physics and camera: it applies to the sim rig only")
+        if self.hdr and rig.saturation is None and not rig.is_sim:  # (failed mid-view, after the daemon started)
+            raise InputError("--hdr merges each frame's exposures below the camera's clipping level: give it in the rig "
+                             "file ([processing] saturation, linear at exposure 1; see HARDWARE.md's rig file)")
 
     def _check_frames(self) -> None:
         from sssphase_core.capture.engine import check_brackets

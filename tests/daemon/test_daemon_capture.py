@@ -524,7 +524,7 @@ def test_a_camera_whose_frames_are_no_light_fails_the_capture_naming_it_and_writ
            "SSS_RUNTIME_DIR": str(runtime)}
     try:
         res = run_sss(["capture", "--object", "apple", "--views", "1", "--rig", str(rig), "--out", str(tmp_path / "s")],
-                      env=env, timeout=300, input="\n")  # (no turntable: "turn the object to view 0 ... press enter")
+                      env=env, timeout=300)  # (no turntable, one view: nothing to turn, nothing asked)
     finally:
         run_sss(["daemon", "stop", "--force"], env=env)
         shutil.rmtree(runtime, ignore_errors=True)
@@ -555,3 +555,21 @@ def test_a_capture_past_the_file_size_limit_says_so_and_resumes(tmp_path):
     finally:
         run_sss(["daemon", "stop"], env=env)
         shutil.rmtree(runtime, ignore_errors=True)
+
+
+def test_a_rig_without_a_turntable_asks_for_each_view_and_says_what_to_do_when_it_cannot_ask(tmp_path):
+    """Without a terminal to answer "turn the object to view 0", the capture printed "aborted" and nothing else."""
+    rig = tmp_path / "rig.toml"
+    rig.write_text('[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\n')
+    runtime = Path(tempfile.mkdtemp(prefix="sssq", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime), "COLUMNS": "300"}
+    try:
+        res = run_sss(["capture", "--object", "apple", "--views", "2", "--rig", str(rig), "--out", str(tmp_path / "s")],
+                      env=env, timeout=300)
+    finally:
+        run_sss(["daemon", "stop", "--force"], env=env)
+        shutil.rmtree(runtime, ignore_errors=True)
+    said = res.stdout + res.stderr
+    assert res.returncode != 0 and "Traceback" not in said and "aborted" not in said, said
+    assert ("the rig has no turntable, so each view waits for you to turn the object, and the input is not a "
+            "terminal: run it in a terminal") in said, said

@@ -330,3 +330,19 @@ def test_bench_and_sigterm_through_a_daemon(tmp_path, monkeypatch):
         next(frames)  # the camera is acquiring
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(20) == 0
+
+
+def test_bench_basler_names_the_cameras_pylon_sees_when_the_serial_is_not_one(monkeypatch):
+    """`sss bench basler --serial 9999` was an "internal error: RuntimeError" telling to set PYLON_CAMEMU=1 with the
+    emulator on, and with PYLON_CAMEMU=0 it looked for the emulator's serial."""
+    from sssphase_core.errors import InputError
+    from sssphase_daemon import camera_bench
+
+    monkeypatch.setenv("PYLON_CAMEMU", "2")
+    assert camera_bench.choose_serial(None) == "0815-0000"
+    assert camera_bench.choose_serial("0815-0001") == "0815-0001"
+    with pytest.raises(InputError, match=r"^pylon sees no camera 9999: it sees 0815-0000, 0815-0001$"):
+        camera_bench.choose_serial("9999")
+    res = run_sss(["bench", "basler", "--serial", "9999", "--out", "/nonexistent/b.json"], env={**os.environ})
+    assert res.returncode != 0 and "internal error" not in res.stdout + res.stderr
+    assert "pylon sees no camera 9999: it sees 0815-0000, 0815-0001" in res.stdout + res.stderr

@@ -65,3 +65,20 @@ def test_unconfirmed_frame_replies_are_drained(projector):
     projector.show(np.ones((h, w)), confirm=False)
     assert 1 not in projector.window.pending and 4 in projector.window.pending
     assert projector.show(np.zeros((h, w))).frame_id == 5 and not projector.window.pending
+
+
+def test_looking_for_displays_without_one_prints_nothing_of_sdls_own(tmp_path):
+    """On a machine without a display, `sss devices` ended with libwayland's "error: XDG_RUNTIME_DIR is invalid or
+    not set in the environment." on stderr (SDL's Wayland probe): the probe is skipped where no Wayland display is
+    named, and the plugin's own line says why no display was found."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("XDG_RUNTIME_DIR", "WAYLAND_DISPLAY", "DISPLAY",
+                                                           "SDL_VIDEODRIVER")}
+    code = ("from sssphase_plugins import hdmi_projector as hp\ntry:\n    hp.list_displays()\n"
+            "except Exception as exc:\n    print(exc)\n")
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=60)
+    assert "no device found: SDL" in res.stdout, res.stdout + res.stderr
+    assert "XDG_RUNTIME_DIR" not in res.stderr and "error" not in res.stderr, res.stderr
