@@ -342,6 +342,7 @@ const uploadPattern = async (body, label) => {
   const current = ticket("upload");
   state.uploaded = null;
   $("relight-info").textContent = `uploading ${label} …`;
+  $("relight-notes").textContent = "";  // (the last relight's, not this pattern's)
   try {
     const response = await api("/api/upload", { method: "POST", body });
     const answer = await response.json();
