@@ -156,6 +156,13 @@ def colour_map(values: np.ndarray, mask: np.ndarray, lo: float | None = None, hi
 # --- security ---------------------------------------------------------------------------------------------
 
 
+#: The page without its token (a bookmark of the bare address, a URL cut short, a view restarted since)
+TOKEN_PAGE = ("<!doctype html><html lang=en><meta charset=utf-8><title>sss view: token needed</title>"
+              "<body style='font: 16px system-ui, sans-serif; background: #111; color: #ddd; padding: 2em'>"
+              "<h1 style='font-size: 20px'>sss view needs its token</h1><p>Open the URL <code>sss view</code> printed "
+              "when it started: it ends in <code>?token=…</code>. A view started again has a new token.</p></body></html>")
+
+
 def _authorised(state: ViewState, given: str | None) -> bool:
     return given is not None and hmac.compare_digest(given.encode(), state.token.encode())
 
@@ -187,6 +194,8 @@ def guarded(handler: Any) -> Any:
     async def route(request: Request) -> Response:
         state: ViewState = request.app.state.view
         if not _authorised(state, request.headers.get("x-token") or request.query_params.get("token")):
+            if request.url.path == "/":  # a person at a browser, not the page's script: a page that says what to do
+                return HTMLResponse(TOKEN_PAGE, status_code=403, headers={"X-Content-Type-Options": "nosniff"})
             return _problem("a valid token is required: open the URL `sss view` printed", 403)
         try:
             response = await handler(request, state)

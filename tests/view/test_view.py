@@ -88,6 +88,7 @@ def test_every_route_needs_the_token(served):
 
     base = served["base"]
     assert _get(base + "/")[0] == 403 and _get(base + "/?token=wrong")[0] == 403
+    assert b"sss view needs its token" in _get(base + "/?token=wrong")[1]  # (a page for a person, not JSON)
     assert _get(base + "/api/state")[0] == 403 and _get(base + "/api/state", "wrong")[0] == 403
     assert _get(base + "/api/state", served["token"])[0] == 200
     # a websocket is closed with the reason, no frame sent first (a page left open across a restart of the view
