@@ -122,8 +122,10 @@ class DaemonClient:
     def _wait(self, rid: int, timeout_s: float) -> dict[str, Any]:
         deadline = time.monotonic() + timeout_s
         while (left := deadline - time.monotonic()) > 0:
-            if not self.sock.poll(int(left * 1000) + 1):
-                break
+            if not self.sock.poll(int(min(left, 1.0) * 1000) + 1):  # each second: has the daemon's process exited?
+                if left > 1.0 and self._exited_pid() is not None:
+                    break
+                continue
             msg = protocol.unpack(self.sock.recv(), self.max_bytes)
             if isinstance(msg, dict) and msg.get("id") == rid:
                 return msg
@@ -175,15 +177,24 @@ class DaemonClient:
                 raise DaemonError(str(error.get("code", protocol.INTERNAL)), str(error["message"]))
             raise DaemonError(protocol.INTERNAL, f"the job ended ({state['state']}) but its stream did not finish")
 
-    def _gone_words(self, quiet: str = "stopped answering mid-stream") -> str:
-        """What to say of a daemon that went ``quiet``: that it exited, when its state file names a process that
-        is gone (a device plugin that called abort() took it down), else that it went quiet."""
+    def _exited_pid(self) -> int | None:
+        """The pid of this client's daemon when its state file names a process that is gone (killed, or a device
+        plugin that called abort() took it down), else None (running, remote, or nothing to tell)."""
+        if not Path("/proc/self").exists():  # (is_daemon_process reads /proc: without it, nothing can be told)
+            return None
         try:
             state = security.read_state()
         except Exception:  # noqa: BLE001  (a damaged state file: nothing more can be told)
-            state = None
+            return None
         if state is not None and state.endpoint == self.endpoint and not security.is_daemon_process(state.pid):
-            return (f"the daemon (pid {state.pid}) at {self.endpoint} has exited (killed, or crashed by a device "
+            return state.pid
+        return None
+
+    def _gone_words(self, quiet: str = "stopped answering mid-stream") -> str:
+        """What to say of a daemon that went ``quiet``: that it exited (:meth:`_exited_pid`), else that it went quiet."""
+        pid = self._exited_pid()
+        if pid is not None:
+            return (f"the daemon (pid {pid}) at {self.endpoint} has exited (killed, or crashed by a device "
                     f"plugin: its log is {security.log_dir() / 'daemon.log'})")
         return f"the daemon at {self.endpoint} {quiet}"
 
@@ -219,9 +230,12 @@ class DaemonClient:
                 try:  # receive first, poll only when nothing is queued (one syscall less per frame)
                     parts = pull.recv_multipart(flags=zmq.NOBLOCK, copy=False)
                 except zmq.Again:
-                    if not pull.poll(int(self.heartbeat_s * 1000)) and time.monotonic() - last_data > self.timeout_s:
-                        self._check_job(job["job"])
-                        last_data = time.monotonic()
+                    if not pull.poll(int(self.heartbeat_s * 1000)):
+                        if self._exited_pid() is not None:  # said at once, not after timeout_s of silence
+                            raise DaemonUnavailable(self._gone_words()) from None
+                        if time.monotonic() - last_data > self.timeout_s:
+                            self._check_job(job["job"])
+                            last_data = time.monotonic()
                     continue
                 last_data = time.monotonic()
                 header = protocol.unpack(parts[0].bytes, self.max_bytes)

@@ -714,9 +714,12 @@ def test_a_daemon_that_a_plugin_crashed_is_said_to_have_exited(daemon_factory, t
     proc, client, runtime = daemon_factory()
     monkeypatch.setenv("SSS_RUNTIME_DIR", str(runtime))  # where the client finds the daemon's state file
     rig = client.call("open_rig", camera="exiting:abort")["rig"]
+    client.timeout_s = 30.0  # (said when the process is gone, not after this long without a frame: the live view
+    started = time.monotonic()  # showed "no frame for 14 s (waiting for the rig)" after a daemon was killed)
     with pytest.raises(DaemonUnavailable, match=rf"the daemon \(pid {proc.pid}\) at .* has exited \(killed, or "
                                                  "crashed by a device plugin: its log is"):
         list(client.stream(rig, 2))
+    assert time.monotonic() - started < 10
     assert proc.wait(5) == -signal.SIGABRT
 
 
