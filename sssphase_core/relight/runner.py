@@ -141,9 +141,9 @@ def parse_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
 def resize_note(path: str, size: tuple[int, int], mode: str) -> tuple[str, str] | None:
     """``(line, warning)`` when a pattern file was resized (the warning, when ``stretch`` changed its aspect
     ratio), else None."""
-    from sssphase_core.store.imageio import frame_shape
+    from sssphase_core.store.imageio import shown_shape
 
-    h, w = frame_shape(Path(path))[:2]  # from the file's header (PNG/TIFF, .npy, EXR)
+    h, w = shown_shape(Path(path))[:2]  # from the file's header (PNG/TIFF, .npy, EXR), turned as its EXIF tag asks
     if (w, h) == size or not mode:
         return None
     line, warning = f"{path}: {w}x{h} -> {size[0]}x{size[1]} ({mode})", ""

@@ -13,6 +13,7 @@ import struct
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -100,16 +101,29 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
         raise InputError(f"pattern {path} holds {img.n_frames} frames (an animation or a multi-page file): give one "
                          "image file per pattern")
     img = _as_viewers_show_it(img, path)
-    if img.mode in ("LA", "RGBA", "PA") or (img.mode in ("P", "L", "RGB") and "transparency" in img.info):  # (tRNS)
-        img = _over_black(img, path)
-    if img.mode == "1":
-        img = img.convert("L")
-    elif img.mode not in ("L", "RGB", "F") and not img.mode.startswith("I"):
-        img = img.convert("RGB")  # palette (P), CMYK, YCbCr: the colours, not their codes
+    img = _light_modes(img, path)
     if img.size != (wp, hp):
         if not mode:
             raise InputError(f"pattern {path} is {img.size[0]}x{img.size[1]} but the projector is {wp}x{hp} ({hint})")
         img = _resized(img, (wp, hp), mode)
+    return _pil_pattern_values(img, path)
+
+
+def _light_modes(img: Any, path: Path) -> Any:
+    """A decoded Pillow image in a mode whose values are light: alpha composited over black (with a warning), 1-bit as
+    8-bit grey, palette, CMYK and YCbCr as RGB; 8-bit grey and RGB, 16- and 32-bit integers and floats as they are."""
+    if img.mode in ("LA", "RGBA", "PA") or (img.mode in ("P", "L", "RGB") and "transparency" in img.info):  # (tRNS)
+        img = _over_black(img, path)
+    if img.mode == "1":
+        return img.convert("L")
+    if img.mode not in ("L", "RGB", "F") and not img.mode.startswith("I"):
+        return img.convert("RGB")  # palette (P), CMYK, YCbCr: the colours, not their codes
+    return img
+
+
+def _pil_pattern_values(img: Any, path: Path | str) -> np.ndarray:
+    """A Pillow image of :func:`_light_modes` -> float32 values in [0, 1], (H, W) or (H, W, 3): 8-bit codes / 255,
+    16-bit ones / 65535, floats as they are (refused outside [0, 1] or not finite)."""
     arr = np.asarray(img)
     if arr.dtype.kind == "f":
         scale = 1.0
@@ -155,6 +169,40 @@ def _as_viewers_show_it(img: object, path: Path) -> object:
     return ImageOps.exif_transpose(img)
 
 
+def exif_orientation(path: Path) -> int:
+    """The EXIF orientation tag (274) of an image file, from its header (1, as stored, where it has none or it does
+    not read; ``.npy`` and EXR have none)."""
+    from PIL import Image
+
+    if path.suffix.lower() in (".npy", ".exr"):
+        return 1
+    try:
+        if _pil_cannot_decode(path):
+            value = (_tiff_directory(path) or {}).get(274, 1)
+        else:
+            with warnings.catch_warnings(), Image.open(path) as img:
+                warnings.simplefilter("ignore")
+                value = img.getexif().get(274, 1)
+        return int(value) if int(value) in EXIF_ORIENTATIONS else 1  # type: ignore[arg-type]
+    except Exception:  # noqa: BLE001  (a damaged EXIF block or header: the pixels as stored; the reader says more)
+        return 1
+
+
+def shown_shape(path: Path) -> tuple[int, ...]:
+    """:func:`frame_shape` of the image as viewers show it (its EXIF orientation applied: a tag that turns it by
+    90° swaps its width and height)."""
+    shape = frame_shape(path)
+    return (shape[1], shape[0], *shape[2:]) if exif_orientation(path) in (5, 6, 7, 8) else shape
+
+
+def _oriented(arr: np.ndarray, orientation: int) -> np.ndarray:
+    """``arr`` (H, W[, C]) turned as EXIF ``orientation`` asks, as ``PIL.ImageOps.exif_transpose`` turns an image."""
+    turned = {2: lambda a: a[:, ::-1], 3: lambda a: a[::-1, ::-1], 4: lambda a: a[::-1],
+              5: lambda a: a.swapaxes(0, 1), 6: lambda a: np.rot90(a, -1), 7: lambda a: a.swapaxes(0, 1)[::-1, ::-1],
+              8: lambda a: np.rot90(a, 1)}
+    return np.ascontiguousarray(turned[orientation](arr)) if orientation in turned else arr
+
+
 def _max_pattern_pixels(wp: int, hp: int, resize: str) -> int:
     """The most pixels a pattern file for a ``wp`` x ``hp`` projector may have before it is decoded: 4x the
     projector (at least 4 MP) for a pattern used as it is; with ``resize``, a camera or screen image up to
@@ -198,13 +246,13 @@ def _warn_not_opaque(path: Path, not_opaque: float, clear: float) -> None:
 
 
 def _png_16_bit_colour(path: Path) -> bool:
-    """Whether ``path`` is a 16-bit RGB(A) PNG (from its IHDR chunk), which Pillow reads at 8 bits."""
+    """Whether ``path`` is a 16-bit RGB(A) or grey-with-alpha PNG (from its IHDR chunk), which Pillow reads at 8 bits."""
     if path.suffix.lower() != ".png" or not path.is_file():
         return False
     with open(path, "rb") as f:
         head = f.read(26)
     return (len(head) == 26 and head[:8] == b"\x89PNG\r\n\x1a\n" and head[12:16] == b"IHDR" and head[24] == 16
-            and head[25] in (2, 6))
+            and head[25] in (2, 4, 6))
 
 
 def _read_array_pattern(path: Path, projector_size: tuple[int, int], mode: str, hint: str) -> np.ndarray:
@@ -223,6 +271,10 @@ def _read_array_pattern(path: Path, projector_size: tuple[int, int], mode: str, 
                          "refused without reading it (scale it down first"
                          f"{f'; 16-bit, float and array patterns are read whole: {ARRAY_RESIZE_PIXELS / 1e6:.0f} MP at most' if mode else ''})")
     arr = _read_pixels(path, alpha=True)
+    if (orientation := exif_orientation(path)) != 1:  # (OpenCV's unchanged read ignores the tag; Pillow's does not)
+        warnings.warn(f"pattern {path}: its EXIF orientation tag says the stored image is shown "
+                      f"{EXIF_ORIENTATIONS[orientation]}: it is projected as image viewers show it", UserWarning, stacklevel=3)
+        arr = _oriented(arr, orientation)
     if arr.dtype.kind not in "fu":
         raise InputError(f"pattern {path} must be an (H, W) or (H, W, 3) array of floats in [0, 1] or unsigned "
                          f"integers, got {arr.dtype} of shape {arr.shape}")
@@ -252,6 +304,10 @@ def _read_array_pattern(path: Path, projector_size: tuple[int, int], mode: str, 
     return np.clip(data, 0, 1).astype(np.float32)
 
 
+#: :func:`_tiff_directory`'s key for the offset of the file's next image directory (0: a single page)
+NEXT_PAGE = -1
+
+
 def _tiff_directory(path: Path) -> dict[int, object] | None:
     """The first image directory of a TIFF file (tag number -> value), read from its header only; None
     when the file is not a TIFF. Pillow opens only the TIFF layouts it can decode (not 3-channel
@@ -269,7 +325,7 @@ def _tiff_directory(path: Path) -> dict[int, object] | None:
             ifd.load(f)
         except struct.error as exc:  # (the callers report ValueError as an unreadable file)
             raise ValueError(f"its TIFF header is cut short ({exc})") from None
-        return dict(ifd)
+        return {**dict(ifd), NEXT_PAGE: ifd.next}
 
 
 def _pil_cannot_decode(path: Path) -> bool:
@@ -337,6 +393,8 @@ def frame_shape(path: Path) -> tuple[int, ...]:
             tags = _tiff_directory(path) or {}
             if 256 not in tags or 257 not in tags:
                 raise ValueError("a TIFF header without an image size (damaged file?)")
+            if tags.get(NEXT_PAGE):  # (OpenCV reads the first page only, without a word)
+                raise InputError(f"{path} holds several images (a multi-page TIFF): give one image per file")
             channels = int(tags.get(277, 1))  # SamplesPerPixel
             return (int(tags[257]), int(tags[256])) + ((channels,) if channels > 1 else ())
         from PIL import Image

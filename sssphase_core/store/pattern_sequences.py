@@ -102,7 +102,7 @@ class PatternSequence:
                                          "share one size")
                     if index < start:
                         continue
-                    rgb = np.asarray(frame.convert("RGB"))
+                    rgb = _frame_values(frame, self.path, index)
                 except StopIteration:
                     return
                 except InputError:
@@ -114,7 +114,8 @@ class PatternSequence:
                 yield index, rgb
 
     def _fitted(self, rgb: np.ndarray) -> np.ndarray:
-        """An 8-bit RGB frame (H, W, 3) -> the projector's pattern (Hp, Wp, 3) float32 in [0, 1]."""
+        """A frame (H, W, 3), 8-bit codes (a video's) or float32 values in [0, 1] (an animated image's) -> the
+        projector's pattern (Hp, Wp, 3) float32 in [0, 1]."""
         from PIL import Image
 
         from sssphase_core.store.imageio import _resized
@@ -123,8 +124,22 @@ class PatternSequence:
             if not self.resize:  # (a stream whose frames change size part-way; the header's were checked)
                 raise InputError(f"--pattern {self.path}: a frame is {rgb.shape[1]}x{rgb.shape[0]} but the projector is "
                                  f"{self.projector_size[0]}x{self.projector_size[1]} (pass --resize fit, fill or stretch)")
-            rgb = np.asarray(_resized(Image.fromarray(rgb), self.projector_size, self.resize))
-        return rgb.astype(np.float32) / 255.0
+            if rgb.dtype == np.uint8:
+                rgb = np.asarray(_resized(Image.fromarray(rgb), self.projector_size, self.resize))
+            else:
+                rgb = np.stack([np.asarray(_resized(Image.fromarray(np.ascontiguousarray(rgb[..., c])), self.projector_size,
+                                                    self.resize)) for c in range(3)], axis=-1)
+        return rgb.astype(np.float32) / 255.0 if rgb.dtype == np.uint8 else np.clip(rgb, 0, 1).astype(np.float32)
+
+
+def _frame_values(frame: Any, path: Path, index: int) -> np.ndarray:
+    """One decoded frame of an animated image or a multi-page TIFF -> (H, W, 3) float32 in [0, 1], read as a still
+    pattern is (16-bit codes / 65535, floats as they are, alpha as opacity over black): through Pillow's RGB they
+    were clipped to 8 bits (a 16-bit mid-grey relit as full white, a float one as black)."""
+    from sssphase_core.store.imageio import _light_modes, _pil_pattern_values
+
+    values = _pil_pattern_values(_light_modes(frame, path), f"{path} (frame {index + 1})")
+    return np.repeat(values[..., None], 3, -1) if values.ndim == 2 else values
 
 
 def is_sequence(path: Path | str) -> bool:

@@ -353,6 +353,24 @@ def test_a_pattern_tagged_with_an_exif_orientation_is_projected_as_viewers_show_
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert (read_pattern(tmp_path / "plain.png", (8, 6)) == shown / 255.0).all()
+    # a 16-bit colour PNG (read by OpenCV, which ignores the tag) with the same eXIf chunk: turned the same way,
+    # and `--resize`'s line names the size as shown (it said 6x8 -> 8x6 where nothing was resized)
+    import struct
+    import zlib
+
+    from sssphase_core.relight.runner import resize_note
+
+    cv2.imwrite(str(tmp_path / "deep.png"), np.repeat(np.ascontiguousarray(stored)[..., None], 3, -1).astype(np.uint16) * 257)
+    data = (tmp_path / "deep.png").read_bytes()
+    body = exif.tobytes().removeprefix(b"Exif\x00\x00")
+    chunk = struct.pack(">I", len(body)) + b"eXIf" + body + struct.pack(">I", zlib.crc32(b"eXIf" + body))
+    at = data.index(b"IDAT") - 4
+    (tmp_path / "deep.png").write_bytes(data[:at] + chunk + data[at:])
+    with pytest.warns(UserWarning, match="EXIF orientation tag says the stored image is shown rotated 90° clockwise"):
+        got = read_pattern(tmp_path / "deep.png", (8, 6))
+    assert got.shape == (6, 8, 3) and np.abs(got - shown[..., None] / 255.0).max() < 1e-6
+    assert resize_note(str(tmp_path / "deep.png"), (8, 6), "fit") is None
+    assert resize_note(str(tmp_path / "photo.jpg"), (16, 12), "fit")[0].endswith(": 8x6 -> 16x12 (fit)")
 
 
 def test_non_finite_footprints_are_zeroed_with_a_warning(scene):
@@ -702,3 +720,23 @@ def test_a_cache_seeded_onto_a_full_disk_leaves_no_cut_file_and_costs_no_image(t
     monkeypatch.undo()
     cache_module.seed_cache(target, run / "best.pt")
     assert target.read_bytes() == seed.read_bytes()
+
+
+def test_a_16_bit_grey_png_with_alpha_keeps_its_16_bits(tmp_path):
+    """A 16-bit grey+alpha PNG (colour type 4) went through Pillow, which reads it at 8 bits: a ramp of 300 levels
+    kept 5 per row segment."""
+    import struct
+    import zlib
+
+    h, w = 4, 300
+    row = np.empty(2 * w, ">u2")
+    row[0::2], row[1::2] = np.arange(w) * 200, 65535  # grey ramp, opaque
+    raw = b"".join(b"\0" + row.tobytes() for _ in range(h))
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return struct.pack(">I", len(body)) + kind + body + struct.pack(">I", zlib.crc32(kind + body))
+
+    (tmp_path / "la16.png").write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 16, 4, 0, 0, 0))
+                                        + chunk(b"IDAT", zlib.compress(raw)) + chunk(b"IEND", b""))
+    got = read_pattern(tmp_path / "la16.png", (w, h))
+    np.testing.assert_allclose(got[0, :, 0] if got.ndim == 3 else got[0], np.arange(w) * 200 / 65535, atol=1e-6)

@@ -152,6 +152,28 @@ def test_an_animated_image_is_a_sequence_and_a_still_is_not(tmp_path):
     np.testing.assert_allclose([g.mean() for _, g in got], [128 / 255, 1.0], atol=1e-6)
 
 
+def test_the_pages_of_a_16_bit_or_float_tiff_are_read_as_a_still_of_them_is(tmp_path):
+    """The pages of a multi-page 16-bit TIFF went through Pillow's 8-bit RGB: a mid-grey relit as full white (a float
+    one as black). A multi-page TIFF Pillow cannot decode (float RGB) was relit from its first page alone."""
+    from PIL import Image
+
+    from sssphase_core.store.imageio import read_pattern
+
+    for name, grey, ramp in (("grey16.tif", np.full((48, 64), 32768, np.uint16), np.arange(64, dtype=np.uint16) * 1000),
+                             ("greyf.tif", np.full((48, 64), 0.5, np.float32), np.arange(64, dtype=np.float32) / 64)):
+        pages = [Image.fromarray(grey), Image.fromarray(np.ascontiguousarray(np.broadcast_to(ramp, (48, 64))))]
+        pages[0].save(tmp_path / name, save_all=True, append_images=pages[1:])
+        frames = dict(open_sequence(tmp_path / name, (64, 48)).frames())
+        assert frames[0].shape == (48, 64, 3) and abs(frames[0].mean() - 0.5) < 1e-3, (name, frames[0].mean())
+        assert len(np.unique(frames[1][0, :, 0])) == 64  # every level of the ramp (8 bits kept 5 of 64 codes apart)
+        half = dict(open_sequence(tmp_path / name, (32, 24), resize="fit").frames())[0]
+        assert half.shape == (24, 32, 3) and abs(half.mean() - 0.5) < 1e-3
+    rgb = np.random.default_rng(0).random((48, 64, 3)).astype(np.float32)
+    cv2.imwritemulti(str(tmp_path / "float_rgb.tif"), [rgb, 1 - rgb])
+    with pytest.raises(InputError, match=r"float_rgb.tif holds several images \(a multi-page TIFF\): give one image"):
+        read_pattern(tmp_path / "float_rgb.tif", (64, 48))
+
+
 def test_an_animated_image_cut_short_or_with_a_huge_page_is_one_line_at_that_frame(tmp_path):
     """A GIF cut in half failed as "internal error: OSError: image file is truncated"; a multi-page TIFF's 13000 x
     13000 second page (260 kB on disk) was decoded whole (2.2 GB) and resized: only its first page was checked."""
