@@ -62,7 +62,7 @@ def _widen_range(value: float | None) -> float | None:
     from sssphase_core.relight.choices import WIDEN_MAX
 
     if not 1.0 <= value <= WIDEN_MAX:
-        raise typer.BadParameter(f"{value:g} is not a stretch from 1 to {WIDEN_MAX:g} (1: the footprints as they are)")
+        raise typer.BadParameter(f"{value!r} is not a stretch from 1 to {WIDEN_MAX:g} (1: the footprints as they are)")
     return value
 
 

@@ -1618,6 +1618,16 @@ def test_nan_in_a_reference_capture_is_refused_not_scored_as_zero(intact_session
                                              "must be finite"]  # stored as written, but not light
     with pytest.raises(DataError, match=r"ref/checkerboard holds 60 NaN or infinite values"):
         evaluate_view(load_view(Session.open(copy), 0), "none", tmp_path / "img")
+    # `sss report` of it wrote a page of nothing relit and exited 0 (its timings said the relight step was done)
+    from typer.testing import CliRunner
+
+    from sssphase_cli.main import app
+
+    res = CliRunner().invoke(app, ["report", str(copy), "--out", str(tmp_path / "report"), "--backend", "none"])
+    said = str(res.exception)
+    assert res.exit_code != 0 and "nothing was relit (none: view 0 of" in said and "ref/checkerboard holds 60 NaN" in said, \
+        res.output
+    assert (tmp_path / "report" / "index.html").is_file()  # (the page says what each step lacked)
 
 
 def test_eval_relight_says_when_its_checkpoint_is_not_used(intact_session, tmp_path):

@@ -293,7 +293,7 @@ class CaptureRequest:
         reference_keys(self.references)
         for ref in self.references:
             if ref not in REFERENCE_NAMES:  # an unreadable file or values outside [0, 1]: one line before a daemon starts
-                if not Path(ref).exists():  # a misspelt name, most likely
+                if not Path(ref).is_file():  # a misspelt name, most likely (or a folder, a FIFO)
                     raise InputError(unknown_pattern("--reference", ref))
                 h, w = frame_shape(Path(ref))[:2]
                 if w * h > MAX_FRAME_PIXELS:

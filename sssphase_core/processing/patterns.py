@@ -32,8 +32,18 @@ def unknown_pattern(option: str, text: str) -> str:
     """The line for an ``option`` (--pattern, --reference) that names neither a file nor a named pattern: a path (a
     folder or a suffix in it) is no such file; a name, the named patterns and the closest one."""
     import difflib
+    import os
+    import stat
     from pathlib import PurePath
 
+    try:
+        mode = os.stat(text).st_mode
+    except (OSError, ValueError):
+        mode = None
+    if mode is not None and not stat.S_ISREG(mode):  # (it said "no such file" of a FIFO, /dev/zero, a folder)
+        kind = ("a folder" if stat.S_ISDIR(mode) else "a FIFO" if stat.S_ISFIFO(mode)
+                else "a device" if stat.S_ISCHR(mode) or stat.S_ISBLK(mode) else "not a regular file")
+        return f"{option} {text} is {kind}, not an image file"
     if "/" in text or PurePath(text).suffix:
         return f"{option} {text}: no such file"
     close = difflib.get_close_matches(text, REFERENCE_NAMES, n=1)

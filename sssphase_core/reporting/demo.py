@@ -576,4 +576,9 @@ def run_report(out: Path | str, test_sessions: list[Any], *, train_sessions: Pat
         demo.results["decoder"] = {**done, "checkpoint": str(decoder)}
     for name in REPORT_STEPS:
         demo.step(name, getattr(demo, name))
-    return demo.report_dir / "index.html"
+    report = demo.report_dir / "index.html"
+    relit = demo.results["relight"]
+    if relit["status"] != "done" or not relit.get("rows"):  # a report of nothing relit is no success (exit 0 before)
+        why = relit.get("reason") or "; ".join(f"{k}: {v}" for k, v in relit.get("skipped", {}).items()) or "no rows"
+        raise DataError(f"nothing was relit ({why}); {report} says what each step lacked")
+    return report

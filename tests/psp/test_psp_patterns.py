@@ -169,3 +169,17 @@ def test_checkerboard_and_stripes():
     np.testing.assert_array_equal(st[0], [1, 1, 0, 0] * 3)
     sty = stripes(3, 8, 4, "y")
     np.testing.assert_array_equal(sty[:, 0], [1, 1, 0, 0] * 2)
+
+
+def test_a_pattern_name_that_is_no_image_file_says_what_it_is(tmp_path):
+    """A FIFO, /dev/zero and a folder given as --pattern or --reference were each "no such file"."""
+    import os
+
+    from sssphase_core.processing.patterns import unknown_pattern
+
+    os.mkfifo(tmp_path / "fifo.png")
+    assert unknown_pattern("--pattern", str(tmp_path / "fifo.png")).endswith("fifo.png is a FIFO, not an image file")
+    assert unknown_pattern("--pattern", "/dev/zero") == "--pattern /dev/zero is a device, not an image file"
+    assert unknown_pattern("--reference", str(tmp_path)) == f"--reference {tmp_path} is a folder, not an image file"
+    assert unknown_pattern("--pattern", str(tmp_path / "none.png")) == f"--pattern {tmp_path / 'none.png'}: no such file"
+    assert "did you mean checkerboard?" in unknown_pattern("--pattern", "checkerbord")

@@ -684,7 +684,7 @@ def test_relight_with_widen_says_so_and_keeps_eigen_footprints_of_its_own_calibr
     assert off.exit_code == 0 and "stretched" not in off.output and "eigen-footprints" in off.output, off.output
     x = read_exr(tmp_path / "sand_rake_v1_checkerboard_analytic.exr")  # from the plain relight's eigen-footprints
     assert 10 * np.log10(first.max() ** 2 / np.mean((x - first) ** 2)) > 55
-    for value in ("0.9", "nan"):  # NaN is refused as what it is, not as a number above 4
+    for value in ("0.9", "nan", "4.0000001"):  # NaN is refused as what it is, not as a number above 4; 4.0000001 as such
         bad = runner.invoke(app, [*base, "--pattern", "checkerboard", "--out", str(tmp_path), "--widen", value])
         assert bad.exit_code != 0 and f"{value} is not a stretch from 1 to 4" in bad.output and "Traceback" not in bad.output
 
