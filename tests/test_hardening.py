@@ -1630,6 +1630,31 @@ def test_nan_in_a_reference_capture_is_refused_not_scored_as_zero(intact_session
     assert (tmp_path / "report" / "index.html").is_file()  # (the page says what each step lacked)
 
 
+def test_a_near_black_reference_is_warned_of_not_scored_as_excellent_in_silence(intact_session, tmp_path):
+    """A reference capture under an all-black pattern scored "none" 91.5 dB and the analytic model 85 dB, no note."""
+    from sssphase_core.relight import load_view
+    from sssphase_core.relight.evaluation import evaluate_view
+    from sssphase_core.store.session import Session
+
+    copy = tmp_path / "leaf"
+    shutil.copytree(intact_session, copy)
+    s = Session.open(copy)
+    entry = dict(s.manifest["views"]["0"])
+    arrays = {n: np.asarray(s.read(0, n)) for n in s.arrays(0)}
+    arrays["ref/checkerboard"] = arrays["black"].copy()  # what the camera sees of a black pattern
+    arrays["gt/render/checkerboard"] = np.zeros_like(arrays["gt/render/checkerboard"])  # (a simulated session's reference)
+    w = s.begin_view(0)
+    for name, data in arrays.items():
+        w.write(name, data)
+    w.commit({k: v for k, v in entry.items() if k not in ("arrays", "status", "completed")})
+    with pytest.warns(UserWarning, match=r"reference checkerboard: near black \(.*% of the white capture on the decoded "
+                                         r"pixels\): its PSNR \(peak 1.0\) is high whatever is relit"):
+        evaluate_view(load_view(Session.open(copy), 0), "none", tmp_path / "img")
+    with warnings.catch_warnings():  # the intact reference: no such word
+        warnings.simplefilter("error")
+        evaluate_view(load_view(Session.open(intact_session), 0), "none", tmp_path / "img2")
+
+
 def test_eval_relight_says_when_its_checkpoint_is_not_used(intact_session, tmp_path):
     """`sss eval relight S --checkpoint RUN` with the default backends evaluated no model, without a word."""
     ckpt = tmp_path / "run.pt"

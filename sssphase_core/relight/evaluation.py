@@ -179,6 +179,7 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
         seen = img if backend == "measured" else rv.through_camera(img)
         compared = img if capture is not None else seen
         met = relight_metrics(compared, rv.captured[name], rv.proj.mask)
+        _warn_if_near_black(rv, name)
         row = {"object": rv.object, "view": rv.view, "pattern": name, "backend": backend, **met,
                "psnr_interior": interior_psnr(compared, rv.captured[name], rv.proj.mask),
                "seconds": seconds / len(names), "lit_pixels": int(rv.proj.mask.sum()),
@@ -255,6 +256,22 @@ def aggregate(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend", "p
         agg["n"] = len(rs)
         out.append(agg)
     return out
+
+
+#: A reference capture whose mean on the decoded pixels is below this share of the white capture's is near black:
+#: its PSNR (peak 1.0) is high whatever is relit (a black reference scored "none" 91.5 dB).
+NEAR_BLACK_SHARE = 0.02
+
+
+def _warn_if_near_black(rv: Any, name: str) -> None:
+    """Warn when the reference ``name`` of view ``rv`` is near black (:data:`NEAR_BLACK_SHARE` of its white)."""
+    mask = rv.proj.mask
+    white = float(np.mean(rv.white[mask])) if mask.any() else 0.0
+    share = float(np.mean(rv.captured[name][mask])) / white if white > 0 else 0.0
+    if share < NEAR_BLACK_SHARE:
+        warnings.warn(f"{rv.object} view {rv.view}, reference {name}: near black ({share:.2%} of the white capture on "
+                      "the decoded pixels): its PSNR (peak 1.0) is high whatever is relit; score on a pattern that "
+                      "lights the object", UserWarning, stacklevel=3)
 
 
 def metrics_table(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend", "pattern"), title: str = "Relighting"):
