@@ -185,6 +185,11 @@ class ViewProcessor:
 
         if self.rig.saturation is None:
             raise DataError("HDR needs the rig's saturation level ([processing] saturation in the rig file)")
+        frames = np.stack([b[1] for b in bracket])
+        if (level := isp.clipping_below(frames, [b[0] for b in bracket], self.rig.saturation)) is not None:
+            raise DataError(f"the camera's frames clip at {level:.4g} (linear, at exposure 1) but the rig file's "
+                            f"[processing] saturation is {self.rig.saturation:g}: the HDR merge would trust clipped "
+                            f"samples; set saturation = {0.98 * level:.3g} (the view is not written)")
         return isp.hdr_merge(np.stack([b[1] for b in bracket]), [b[0] for b in bracket], self.rig.saturation,
                              spread=4 if self.rig.median else 2)
 

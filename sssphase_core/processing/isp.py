@@ -210,6 +210,33 @@ def develop(raw: np.ndarray, black_level: float, white_scale: float, *, median: 
     return ((rgb - np.float32(black_level)) / np.float32(white_scale)).astype(np.float32)
 
 
+#: A share of a bracket's longest frame at one bright value above which that value is a clipping level (clipped
+#: samples, and the interior of a clipped area after demosaicing, all read the same number).
+FLAT_TOP_SHARE = 0.002
+
+
+def clipping_below(frames: np.ndarray, exposures, saturation: float) -> float | None:
+    """The level (at exposure 1, as ``saturation``) where the longest frame of a bracket ``frames`` (E, ...) visibly
+    clips when that is below ``SATURATION_MARGIN`` x ``saturation``, else None: the value that most of its brightest
+    tenth share exactly, when they are more than :data:`FLAT_TOP_SHARE` of the frame, 5x the next lower value and more
+    than all above it (a spike at the top, not one of a dim 8-bit scene's codes). A rig file whose saturation was too high (4095, a sensor's top
+    code, where developed frames clip at 1.67) made :func:`hdr_merge` trust clipped samples without a word."""
+    longest = int(np.argmax(np.asarray(exposures, float)))
+    on_sensor = (np.asarray(frames[longest], np.float32) * np.float32(exposures[longest])).ravel()
+    bright = on_sensor[on_sensor >= np.percentile(on_sensor, 90)]
+    if bright.size == 0:
+        return None
+    values, counts = np.unique(bright, return_counts=True)
+    i = int(np.argmax(counts))
+    level, at_level = float(values[i]), int(counts[i])
+    if not np.isfinite(level) or level <= 0 or level >= SATURATION_MARGIN * saturation:
+        return None
+    next_below = int(counts[i - 1]) if i > 0 else 0  # (a quantised scene's neighbouring code is about as common)
+    above = int(counts[i + 1:].sum())  # (demosaicing's overshoot around a clipped area: fewer than its interior)
+    spike = at_level > FLAT_TOP_SHARE * on_sensor.size and at_level > 5 * next_below and above < at_level
+    return level if spike else None
+
+
 def hdr_merge(
     frames: np.ndarray,
     exposures,

@@ -573,3 +573,22 @@ def test_a_rig_without_a_turntable_asks_for_each_view_and_says_what_to_do_when_i
     assert res.returncode != 0 and "Traceback" not in said and "aborted" not in said, said
     assert ("the rig has no turntable, so each view waits for you to turn the object, and the input is not a "
             "terminal: run it in a terminal") in said, said
+
+
+def test_an_hdr_capture_whose_rig_file_says_too_high_a_saturation_is_refused_naming_the_level(tmp_path):
+    """`[processing] saturation = 4095` (a sensor's top code) where the frames clip at 1.667: the merge trusted clipped
+    samples and the relit PSNR fell from 38 to 25 dB, without a word."""
+    rig = tmp_path / "rig.toml"
+    rig.write_text('[devices]\ncamera = "sim:camera0"\nprojector = "sim:projector0"\n[processing]\nsaturation = 4095\n')
+    runtime = Path(tempfile.mkdtemp(prefix="ssss", dir="/tmp"))
+    env = {**os.environ, "SSS_RUNTIME_DIR": str(runtime), "COLUMNS": "300"}
+    try:
+        res = run_sss(["capture", "--object", "soap", "--views", "1", "--hdr", "--rig", str(rig), "--out",
+                       str(tmp_path / "s")], env=env, timeout=300)
+    finally:
+        run_sss(["daemon", "stop", "--force"], env=env)
+        shutil.rmtree(runtime, ignore_errors=True)
+    said = res.stdout + res.stderr
+    assert res.returncode != 0 and "Traceback" not in said, said
+    assert re.search(r"the camera's frames clip at 1\.667 \(linear, at exposure 1\) but the rig file's \[processing\] "
+                     r"saturation is 4095: .* set saturation = 1\.63", said), said

@@ -171,3 +171,18 @@ def test_every_bayer_layout_develops_to_the_image_and_a_wrong_one_does_not():
             assert np.abs(isp.develop(mosaic, 0.0, 1.0, median=False) - img)[inner].max() > 0.2, layout
     with pytest.raises(InputError, match="unknown Bayer layout 'RGBG'"):
         isp.develop(np.zeros((4, 4)), 0.0, 1.0, layout="RGBG")
+
+
+def test_a_bracket_that_clips_below_the_rigs_saturation_is_told_apart_from_a_dim_scene():
+    """A rig file's saturation of 4095 (a sensor's top code) where developed frames clip at 1: the HDR merge
+    trusted the clipped samples (relit 25 dB where the right level gave 38)."""
+    from sssphase_core.processing.isp import clipping_below
+
+    rng = np.random.default_rng(0)
+    scene = rng.gamma(2.0, 0.3, (64, 64, 3))  # light with a bright tail
+    exposures = [0.25, 1.0, 4.0]
+    frames = np.stack([np.minimum(scene * t, 1.0) / t for t in exposures])  # the camera clips at 1 on the sensor
+    assert clipping_below(frames, exposures, 4095.0) == pytest.approx(1.0)
+    assert clipping_below(frames, exposures, 1.0) is None  # the right level
+    dim = np.round(scene / scene.max() * 40) / 255  # a dim 8-bit scene: its brightest codes shared, nothing clipped
+    assert clipping_below(np.stack([dim / t for t in exposures]), exposures, 4095.0) is None
