@@ -77,10 +77,12 @@ def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] 
             found = client.call("devices")
         devs, errors, where = found["devices"], found["errors"], "daemon"
     else:
+        from sssphase_cli.output import stdout_to_stderr
         from sssphase_plugins.manager import discover_devices
 
         hung, keyless = _unanswering(), _keyless()
-        infos, errors = discover_devices()
+        with stdout_to_stderr():  # (stdout is the table's, or the JSON's)
+            infos, errors = discover_devices()
         devs, where = [asdict(d) for d in infos], ("local discovery (no daemon running)" if hung is None else
                                                    f"local discovery: the daemon (pid {hung}) admits CURVE clients only "
                                                    "(no client key here to ask it) and may hold some of these devices"

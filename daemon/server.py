@@ -267,6 +267,11 @@ def _image_problem(img: dict[str, Any]) -> str | None:
         return f"the image needs dtype, shape and data ({type(exc).__name__}: {str(exc)[:80]})"
     if arr.ndim not in (2, 3) or (arr.ndim == 3 and arr.shape[-1] not in (1, 3)) or not arr.size:
         return f"the image must be (H, W) or (H, W, 3), got {arr.shape}"
+    if arr.dtype.kind not in "fiu":
+        return f"the image must hold numbers (light in [0, 1]), got {arr.dtype}"
+    values = arr.astype(np.float32, copy=False)
+    if not np.isfinite(values).all() or values.min() < 0 or values.max() > 1:  # (it failed as the camera's fault)
+        return "the image must hold light in [0, 1] (0 black, 1 the projector's full white), got values outside it"
     return None
 
 

@@ -355,13 +355,26 @@ def find_provider(device_id: str, pm: PluginManager | None = None, kind: str | N
         if kind is not None and provider.kind != kind:
             raise KeyError(f"{device_id} is a {provider.kind}, not a {kind}")
         return provider
-    known = ", ".join(d.id for d in discover_devices(pm)[0] if kind is None or d.kind == kind) or "none"
-    raise KeyError(f"no {kind or 'device'} {device_id!r} (known {kind or 'device'}s: {known})")
+    devices, errors = discover_devices(pm)
+    known = ", ".join(d.id for d in devices if kind is None or d.kind == kind) or "none"
+    why = next((e for name, e in errors.items() if name.split(".")[0] == prefix), None)  # (it said only "no camera")
+    raise KeyError(f"no {kind or 'device'} {device_id!r} (known {kind or 'device'}s: {known})"
+                   + (f"; plugin {prefix}: {why}" if why else ""))
 
 
-def _plugin_model_backends() -> list[dict[str, Any]]:
-    """Every plugin's ``sssphase_model_backends`` result, earliest plugin first (pluggy calls the latest first)."""
-    return list(reversed(get_plugin_manager().hook.sssphase_model_backends()))
+def _plugin_model_backends() -> list[tuple[str, Any]]:
+    """Every third-party plugin's ``sssphase_model_backends`` result, or the exception it raised, by plugin name,
+    earliest plugin first (pluggy calls the latest first). Each is called alone: one plugin's hook that raised made
+    every relight an "internal error", built-in backends too."""
+    found = []
+    for impl in reversed(get_plugin_manager().hook.sssphase_model_backends.get_hookimpls()):
+        if impl.function is backends.sssphase_model_backends:  # (the built-ins: core has them already)
+            continue
+        try:
+            found.append((impl.plugin_name, impl.function()))
+        except (Exception, SystemExit) as exc:  # noqa: BLE001  (a third party's code: named, never fatal)
+            found.append((impl.plugin_name, exc))
+    return found
 
 
 backends.use_plugin_backends(_plugin_model_backends)  # core asks for plugin backends through this

@@ -47,3 +47,20 @@ def test_frame_statistics_count_the_clipped_pixels_and_fill_the_histogram():
     assert stats.clipped == pytest.approx(4 / 200)
     assert len(stats.histogram) == 3 and all(len(h) == HIST_BINS and sum(h) == 200 for h in stats.histogram)
     assert stats.mean[0] == pytest.approx(0.25) and stats.mean[1] > stats.mean[0]
+
+
+def test_a_cameras_colour_frames_are_light_whatever_their_type_and_other_shapes_are_refused():
+    """uint16 RGB frames were taken as linear units (65535x too bright, `sss validate` content); RGBA frames made a
+    session `sss validate` refused."""
+    from sssphase_core.capture.plan import RigSpec
+    from sssphase_core.capture.processing import develop_frame
+    from sssphase_core.errors import DataError
+
+    rig = RigSpec(camera="fake:cam0", projector="sim:projector0")
+    codes = np.full((4, 5, 3), 32768, np.uint16)
+    assert develop_frame(codes, rig).max() == pytest.approx(32768 / 65535)
+    assert develop_frame(codes // 16, rig, meta={"bit_depth": 12}).max() == pytest.approx(2048 / 4095)
+    assert develop_frame(np.full((4, 5, 3), 0.25, np.float32), rig).max() == 0.25  # floats as sent
+    with pytest.raises(DataError, match=r"the camera fake:cam0 sends frames of shape \(4, 5, 4\): a colour frame is "
+                                        r"\(H, W, 3\) RGB"):
+        develop_frame(np.zeros((4, 5, 4), np.float32), rig)

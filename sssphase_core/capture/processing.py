@@ -32,11 +32,28 @@ def develop_frame(data: np.ndarray, rig: RigSpec, exposure: float = 1.0, layout:
     are the rig file's; where it gives none, the camera's own (``meta``'s ``black_level`` and
     ``bit_depth``: linear 1.0 is then the sensor's full scale at the reference exposure)."""
     if data.ndim == 3:
-        return np.asarray(data, np.float32)
+        return colour_frame(data, rig, meta)
     black, white = raw_levels(rig, meta)
     from sssphase_core.processing import isp
 
     return isp.develop(data, black, white * exposure, median=rig.median, layout=layout or rig.bayer)
+
+
+def colour_frame(data: np.ndarray, rig: RigSpec, meta: Mapping[str, Any] | None = None) -> np.ndarray:
+    """A camera's colour frame (H, W, 3) -> linear float32: floats as sent; integer codes scaled to [0, 1] by the
+    frame's ``bit_depth`` (its meta), else their type's range (a uint16 RGB frame was taken as linear units, 65535x
+    too bright, and `sss validate` found nothing wrong). Any other channel count is refused naming the camera (an
+    RGBA frame made a session `sss validate` then refused)."""
+    if data.shape[2] != 3:
+        raise DataError(f"the camera {rig.camera} sends frames of shape {tuple(data.shape)}: a colour frame is (H, W, 3) "
+                        "RGB (a raw Bayer frame is (H, W)): check its plugin's pixel format")
+    if data.dtype.kind in "iu":
+        depth = (meta or {}).get("bit_depth")
+        top = float(2 ** int(depth) - 1) if isinstance(depth, int) and 1 <= depth <= 32 else float(np.iinfo(data.dtype).max)
+        return np.asarray(data, np.float32) / np.float32(top)
+    if data.dtype.kind != "f":
+        raise DataError(f"the camera {rig.camera} sends {data.dtype} frames: give floats (linear) or integer codes")
+    return np.asarray(data, np.float32)
 
 
 def raw_levels(rig: RigSpec, meta: Mapping[str, Any] | None = None) -> tuple[float, float]:

@@ -215,6 +215,12 @@ def test_a_pattern_of_another_size_than_the_projector_is_bad_args_before_it_is_r
             client.call("capture", rig=rig, frames=[frame])
         assert exc.value.code == protocol.BAD_ARGS
     assert len(client.call("status")["jobs"]) == jobs
+    # an image of NaN or of values above the projector's white failed in the job as the camera's fault
+    for values in (np.full((192, 256), np.nan, np.float32), np.full((192, 256), 7.0, np.float32)):
+        bad = {"name": "img", "kind": "image", "image": {"dtype": "<f4", "shape": [192, 256], "data": values.tobytes()}}
+        with pytest.raises(DaemonError, match=r"the image must hold light in \[0, 1\]") as exc:
+            client.call("capture", rig=rig, frames=[bad])
+        assert exc.value.code == protocol.BAD_ARGS
     client.call("close_rig", rig=rig)
 
 

@@ -167,3 +167,42 @@ def test_plugins_without_devices_do_not_block_opening_others():
     pm.register(oak_camera, name="oak")  # registered first, like an entry point sorted before "sim"
     pm.register(sim_plugin, name="sim")
     assert manager.find_provider("sim:camera0", pm).kind == "camera"
+
+
+PRINTING_PLUGIN = '''
+from sssphase_plugins.api import DeviceInfo, hookimpl
+
+class Provider:
+    kind = "camera"
+
+    def discover(self):
+        print("chatty: scanning the bus")  # what plugins and their native libraries (depthai) do
+        return [DeviceInfo("chatty:0", "camera", "chatty", "a chatty camera", "0")]
+
+    def open(self, device_id, options, shared):
+        raise RuntimeError("not for opening")
+
+@hookimpl
+def sssphase_cameras():
+    return [Provider()]
+'''
+
+
+def test_sss_devices_json_is_json_whatever_plugins_print(tmp_path):
+    """A plugin's print (and depthai's "USB protocol not available" warning) went into `sss devices --json`, which
+    no JSON reader could then read."""
+    import json
+    import os
+    import tempfile
+
+    from sss_process import run_sss
+
+    (tmp_path / "chatty.py").write_text(PRINTING_PLUGIN)
+    runtime = tempfile.mkdtemp(prefix="sssj", dir="/tmp")
+    env = {**os.environ, "SSS_PLUGINS": "chatty", "SSS_RUNTIME_DIR": runtime,
+           "PYTHONPATH": f"{tmp_path}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
+    res = run_sss(["devices", "--json"], env=env, timeout=120)
+    assert res.returncode == 0, res.stdout + res.stderr
+    found = json.loads(res.stdout)  # (no daemon: local discovery)
+    assert "chatty:0" in [d["id"] for d in found["devices"]]
+    assert "chatty: scanning the bus" in res.stderr

@@ -215,6 +215,45 @@ def test_a_plugin_backend_reaches_core_through_the_plugin_manager(tmp_path, monk
         manager.get_plugin_manager(refresh=True)
 
 
+def test_a_backend_plugin_that_raises_or_takes_a_taken_name_is_left_out_not_the_others(tmp_path, monkeypatch):
+    """A plugin whose backend hook raised made every relight "internal error: RuntimeError", built-in backends too;
+    a plugin's `analytic` replaced the built-in one without a word."""
+    import warnings
+
+    (tmp_path / "crashing_backends.py").write_text(
+        "from sssphase_core.learning.backends import hookimpl\n"
+        "@hookimpl\n"
+        "def sssphase_model_backends():\n"
+        "    raise RuntimeError('gauss backend hook crashed')\n")
+    (tmp_path / "impostor_backends.py").write_text(
+        "from sssphase_core.learning.backends import hookimpl\n"
+        "from sssphase_core.learning.backends.analytic_backend import AnalyticBackend\n"
+        "@hookimpl\n"
+        "def sssphase_model_backends():\n"
+        "    return {'analytic': lambda **o: None, 'mine': lambda **o: AnalyticBackend(patch=8, **o)}\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("SSS_PLUGINS", "crashing_backends,impostor_backends")
+    from sssphase_core.learning import backends
+    from sssphase_plugins import manager
+
+    try:
+        manager.get_plugin_manager(refresh=True)
+        backends._told.clear()
+        with warnings.catch_warnings(record=True) as said:
+            warnings.simplefilter("always")
+            found = available_backends()
+        lines = [str(w.message) for w in said]
+        assert {"torch", "analytic", "mine"} <= set(found)
+        assert isinstance(get_backend("analytic", patch=16), AnalyticBackend)  # the built-in, not the impostor's
+        assert any(line.startswith("model backend plugin crashing_backends failed (RuntimeError: gauss backend hook "
+                                   "crashed)") for line in lines), lines
+        assert "backend 'analytic' of plugin impostor_backends is left out: 'analytic' is a built-in backend " \
+               "(rename it)" in lines, lines
+    finally:
+        monkeypatch.delenv("SSS_PLUGINS")
+        manager.get_plugin_manager(refresh=True)
+
+
 def test_loading_the_backend_registry_does_not_import_torch():
     import subprocess
     import sys

@@ -41,24 +41,47 @@ def sssphase_model_backends() -> dict[str, Callable[..., FootprintBackend]]:
     return {name: _lazy(target) for name, target in BUILTIN.items()}
 
 
-PluginBackends = Callable[[], Iterable[dict[str, Callable[..., FootprintBackend]]]]
+PluginBackends = Callable[[], Iterable[tuple[str, object]]]
 _plugin_backends: PluginBackends | None = None
+_told: set[str] = set()  # the plugin problems warned of (once per process)
 
 
 def use_plugin_backends(source: PluginBackends | None) -> None:
-    """Where plugin backends come from: ``source()`` returns the ``sssphase_model_backends`` results,
-    earliest plugin first. The plugin manager registers itself here when it is imported (core does not
-    import the plugin layer); None: the built-ins only."""
+    """Where plugin backends come from: ``source()`` returns ``(plugin name, its sssphase_model_backends result or
+    the exception it raised)``, earliest plugin first. The plugin manager registers itself here when it is imported
+    (core does not import the plugin layer); None: the built-ins only."""
     global _plugin_backends
     _plugin_backends = source
 
 
+def _warn_once(text: str) -> None:
+    import warnings
+
+    if text not in _told:
+        _told.add(text)
+        warnings.warn(text, UserWarning, stacklevel=3)
+
+
 def available_backends() -> dict[str, Callable[..., FootprintBackend]]:
-    """{name: factory} of the built-ins and of every plugin implementing ``sssphase_model_backends``
-    (a later plugin's name replaces an earlier one's)."""
+    """{name: factory} of the built-ins and of every plugin implementing ``sssphase_model_backends``. A name is the
+    first owner's: the built-ins', then the earliest plugin's (a plugin's ``analytic`` replaced the built-in without
+    a word); a plugin whose hook raised, or returned no ``{name: factory}``, is left out. Each is warned of once."""
     found = sssphase_model_backends()
-    for result in _plugin_backends() if _plugin_backends is not None else []:
-        found.update(result)
+    owner = dict.fromkeys(found, "a built-in backend")
+    for plugin, result in _plugin_backends() if _plugin_backends is not None else []:
+        if isinstance(result, BaseException):
+            _warn_once(f"model backend plugin {plugin} failed ({type(result).__name__}: {str(result)[:160]}): its "
+                       "backends are left out (sss plugins lists it)")
+            continue
+        if not isinstance(result, dict) or not all(isinstance(k, str) and callable(v) for k, v in result.items()):
+            _warn_once(f"model backend plugin {plugin} returned {type(result).__name__}, not {{name: factory}}: its "
+                       "backends are left out")
+            continue
+        for name, factory in result.items():
+            if name in found:
+                _warn_once(f"backend {name!r} of plugin {plugin} is left out: {name!r} is {owner[name]} (rename it)")
+                continue
+            found[name], owner[name] = factory, f"plugin {plugin}'s"
     return found
 
 

@@ -35,6 +35,7 @@ def sssphase_model_backends() -> dict[str, Callable[..., FootprintBackend]]:
     """Return the model backends this plugin provides.
 
     :return: ``{name: factory}``; ``factory(**options)`` (e.g. ``checkpoint=...``) builds a
-        :class:`~sssphase_core.learning.backends.base.FootprintBackend`. A later plugin's name replaces an
-        earlier one's (built-ins are registered first). ``sss plugins`` lists them.
+        :class:`~sssphase_core.learning.backends.base.FootprintBackend`. A name belongs to its first owner: a
+        built-in's name, or an earlier plugin's, is not replaced (the later one is left out with a warning), and
+        a hook that raises leaves only its own plugin's backends out. ``sss plugins`` lists them.
     """
