@@ -77,7 +77,7 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
         crops = rv.session.read(rv.view, "footprints/crops")  # type: ignore[attr-defined]
         weights = transport_weights(px, rv.proj.xp, rv.proj.yp, rv.proj.mask)
         return nearest_measured_source(px, crops, rv.white, weights), int(crops.shape[1])
-    from sssphase_core.learning.backends import get_backend
+    from sssphase_core.learning.backends import accepted_options, get_backend
 
     if name == "torch":
         needs_checkpoint(name, checkpoint)
@@ -85,8 +85,10 @@ def make_source(name: str, rv: RelightView, *, checkpoint: Path | str | None = N
                               **{"black": rv.proj.black, **options})
     elif name == "analytic":
         backend = get_backend("analytic", **{"patch": rv.patch, "black": rv.proj.black, "device": device, **options})
-    else:
-        backend = get_backend(name, **options)
+    else:  # a plugin's: what it takes of what is known of the view
+        offered = {"patch": rv.patch, "black": rv.proj.black, "device": device,
+                   **({"checkpoint": checkpoint} if checkpoint is not None else {})}
+        backend = get_backend(name, **{**accepted_options(name, offered), **options})
     psp, lost = model_inputs(rv)
     source = backend_source(backend, psp)
     usable = white_usable(rv.white, rv.white_saturation)

@@ -138,6 +138,13 @@ def parse_formats(formats: str | Sequence[str]) -> tuple[str, ...]:
     return chosen
 
 
+def _plugin_takes_checkpoint(backend: str) -> bool:
+    """Whether ``backend`` is a plugin's whose factory takes a ``checkpoint`` (its own trained weights)."""
+    from sssphase_core.learning.backends import BUILTIN, accepted_options
+
+    return backend not in BUILTIN and "checkpoint" in accepted_options(backend, {"checkpoint": None})
+
+
 def resize_note(path: str, size: tuple[int, int], mode: str) -> tuple[str, str] | None:
     """``(line, warning)`` when a pattern file was resized (the warning, when ``stretch`` changed its aspect
     ratio), else None."""
@@ -297,7 +304,7 @@ def resolve_backend(backend: str, checkpoint: Path | str | None, narrator: Narra
     if backend == "auto":
         backend = "blend" if checkpoint is not None else "analytic"
     check_backends([backend], checkpoint)
-    if checkpoint is not None and not uses_decoder(backend):
+    if checkpoint is not None and not uses_decoder(backend) and not _plugin_takes_checkpoint(backend):
         (narrator or Narrator()).say(f"note: --checkpoint is not used by --backend {backend}")
     return backend, None if checkpoint is None else Path(checkpoint)
 

@@ -254,6 +254,35 @@ def test_a_backend_plugin_that_raises_or_takes_a_taken_name_is_left_out_not_the_
         manager.get_plugin_manager(refresh=True)
 
 
+def test_a_plugin_backend_is_given_what_its_factory_takes_of_the_view(tmp_path, monkeypatch):
+    """A plugin's factory was called with no options: a trained plugin backend never got its checkpoint, nor the
+    session's patch size, and --checkpoint was "not used" by it."""
+    (tmp_path / "taking_backends.py").write_text(
+        "from sssphase_core.learning.backends import hookimpl\n"
+        "def named(patch, checkpoint=None):\n    return (patch, checkpoint)\n"
+        "def anything(**options):\n    return options\n"
+        "def nothing():\n    return None\n"
+        "@hookimpl\n"
+        "def sssphase_model_backends():\n"
+        "    return {'named': named, 'anything': anything, 'nothing': nothing}\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("SSS_PLUGINS", "taking_backends")
+    from sssphase_core.learning.backends import accepted_options
+    from sssphase_core.relight.runner import _plugin_takes_checkpoint
+    from sssphase_plugins import manager
+
+    offered = {"patch": 16, "black": 0.01, "device": "cpu", "checkpoint": "weights.pt"}
+    try:
+        manager.get_plugin_manager(refresh=True)
+        assert accepted_options("named", offered) == {"patch": 16, "checkpoint": "weights.pt"}
+        assert accepted_options("anything", offered) == offered and accepted_options("nothing", offered) == {}
+        assert _plugin_takes_checkpoint("named") and not _plugin_takes_checkpoint("nothing")
+        assert not _plugin_takes_checkpoint("analytic")
+    finally:
+        monkeypatch.delenv("SSS_PLUGINS")
+        manager.get_plugin_manager(refresh=True)
+
+
 def test_loading_the_backend_registry_does_not_import_torch():
     import subprocess
     import sys

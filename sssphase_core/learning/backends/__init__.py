@@ -85,6 +85,23 @@ def available_backends() -> dict[str, Callable[..., FootprintBackend]]:
     return found
 
 
+def accepted_options(name: str, offered: dict[str, object]) -> dict[str, object]:
+    """Of ``offered`` (what relighting knows of a view: ``patch``, ``black``, ``device``, ``checkpoint``), those
+    backend ``name``'s factory takes: every one where it takes ``**options``, else those it names (a plugin's
+    factory was called with none, so a trained plugin backend never got its weights nor the session's patch size)."""
+    import inspect
+
+    factory = available_backends().get(name)
+    try:
+        parameters = inspect.signature(factory).parameters.values() if factory is not None else ()
+    except (TypeError, ValueError):  # (a builtin or C callable without a signature: nothing offered)
+        return {}
+    if any(p.kind is inspect.Parameter.VAR_KEYWORD for p in parameters):
+        return dict(offered)
+    names = {p.name for p in parameters if p.kind in (inspect.Parameter.KEYWORD_ONLY, inspect.Parameter.POSITIONAL_OR_KEYWORD)}
+    return {k: v for k, v in offered.items() if k in names}
+
+
 def get_backend(name: str, **options: object) -> FootprintBackend:
     """Build backend ``name`` with its options (e.g. ``checkpoint=...`` for torch)."""
     backends = available_backends()
@@ -93,5 +110,6 @@ def get_backend(name: str, **options: object) -> FootprintBackend:
     return backends[name](**options)
 
 
-__all__ = ["BUILTIN", "FootprintBackend", "Query", "as_patches", "available_backends", "get_backend", "hookimpl",
+__all__ = ["BUILTIN", "FootprintBackend", "Query", "accepted_options", "as_patches", "available_backends", "get_backend",
+           "hookimpl",
            "use_plugin_backends"]
