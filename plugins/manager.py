@@ -53,7 +53,10 @@ _manager: PluginManager | None = None
 
 
 def _error_text(exc: BaseException) -> str:
-    return f"{type(exc).__name__}: {exc}".strip()
+    """``Type: message`` in one line: pluggy's PluginValidationError says its cause (an argument the hook spec does
+    not have) on its later lines, which a one-line listing cut off."""
+    text = "; ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+    return f"{type(exc).__name__}: {text}".strip()
 
 
 def _registration_error(pm: PluginManager, exc: BaseException) -> str:

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from sssphase_core.errors import InputError
 from sssphase_core.relight.engine import FootprintSource
 
 
@@ -45,9 +46,17 @@ def backend_source(backend: object, psp: np.ndarray, chunk: int = 256) -> Footpr
         crops = crop_patches(stack, pixels, size, padded=True)
         return crops if as_tensors else crops.numpy()
 
+    def predicted(pixels: np.ndarray) -> np.ndarray | torch.Tensor:
+        fp = backend.predict_footprints(patches(pixels))  # type: ignore[attr-defined]
+        if tuple(fp.shape) != (len(pixels), k, k, 3):  # (a plugin's: named, not "the footprint source")
+            kind = type(backend)
+            raise InputError(f"model backend {kind.__name__} ({kind.__module__}) returned footprints of shape "
+                             f"{tuple(fp.shape)} for {len(pixels)} pixels: expected ({len(pixels)}, {k}, {k}, 3) "
+                             "(its patch is K)")
+        return fp
+
     def source(pixels: np.ndarray) -> np.ndarray | torch.Tensor:
-        parts = [backend.predict_footprints(patches(pixels[i:i + chunk]))  # type: ignore[attr-defined]
-                 for i in range(0, len(pixels), chunk)]
+        parts = [predicted(pixels[i:i + chunk]) for i in range(0, len(pixels), chunk)]
         if not parts:
             return np.zeros((0, k, k, 3), np.float32)
         if len(parts) == 1:  # (a backend's footprints are its own new array: no copy)

@@ -413,3 +413,36 @@ def test_a_plugin_whose_import_blocks_is_named_and_the_others_load(tmp_path):
         said = res.stdout + res.stderr
         assert res.returncode == 0 and "Traceback" not in said, said
         assert "importing it did not finish within 0.5 s (it hangs at import)" in said and "sim" in said, said
+
+
+def test_the_example_plugin_checks_its_options_as_a_plugin_should():
+    """The project's own example ignored a misspelt `widht` and failed on `height = "tall"` with Python's
+    "invalid literal for int()"."""
+    pytest.importorskip("sssphase_example_plugin")
+    from sssphase_example_plugin import PatternProvider
+
+    from sssphase_plugins.drivers import DeviceError
+
+    with pytest.raises(DeviceError, match=r"unknown \[options.example\] setting\(s\) widht \(known: height, width\)"):
+        PatternProvider().open("example:testpattern0", {"example": {"widht": 160}}, {})
+    with pytest.raises(DeviceError, match=r"\[options.example\] height must be a whole number >= 1, got 'tall'"):
+        PatternProvider().open("example:testpattern0", {"example": {"height": "tall"}}, {})
+    assert PatternProvider().open("example:testpattern0", {"example": {"width": 64}}, {}).grab().data.shape == (240, 64, 3)
+
+
+def test_a_hook_with_an_argument_its_spec_lacks_says_which_in_one_line(tmp_path, monkeypatch):
+    """`sss devices` said only "PluginValidationError: Plugin 'x' for hook 'sssphase_projectors'": the cause (an
+    argument the hook spec does not have) was on pluggy's later lines."""
+    from sssphase_plugins import manager
+
+    (tmp_path / "misspelt_hook.py").write_text("from sssphase_plugins.api import hookimpl\n@hookimpl\n"
+                                               "def sssphase_projectors(device_kind):\n    return []\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("SSS_PLUGINS", "misspelt_hook")
+    try:
+        error = manager.get_plugin_manager(refresh=True).load_errors["misspelt_hook"]
+    finally:
+        monkeypatch.delenv("SSS_PLUGINS")
+        manager.get_plugin_manager(refresh=True)
+    assert "\n" not in error and "Argument(s) {'device_kind'} are declared in the hookimpl but can not be found in " \
+        "the hookspec" in error, error

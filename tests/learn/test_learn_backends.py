@@ -335,3 +335,19 @@ def test_auto_precision_is_bf16_only_where_the_cpu_computes_it_natively(monkeypa
     fp32 = TorchBackend(path, precision="fp32").predict_footprints(query)
     bf16 = TorchBackend(path, precision="bf16").predict_footprints(query)
     assert bf16.dtype == np.float32 and 0 < np.abs(bf16 - fp32).mean() < 0.02 * np.abs(fp32).mean()
+
+
+def test_a_backend_returning_footprints_of_the_wrong_shape_is_named():
+    """A plugin backend's (31, 32, 3) footprints were "the footprint source returned ... footprints": which backend?"""
+    from sssphase_core.relight.sources import backend_source
+
+    class Skewed:
+        patch = 8
+
+        def predict_footprints(self, patches):
+            return np.zeros((len(patches), 7, 8, 3), np.float32)
+
+    source = backend_source(Skewed(), np.zeros((8, 20, 30, 3), np.float32))
+    with pytest.raises(InputError, match=r"model backend Skewed \(.*\) returned footprints of shape \(2, 7, 8, 3\) for 2 "
+                                         r"pixels: expected \(2, 8, 8, 3\)"):
+        source(np.array([[5, 10], [6, 11]]))

@@ -13,11 +13,14 @@ from typing import Any
 
 import numpy as np
 
-from sssphase_plugins.api import DeviceError, DeviceInfo, Frame, hookimpl
+from sssphase_plugins.api import DeviceError, DeviceInfo, Frame, hookimpl, plugin_options
 
 __version__ = "0.1.0"
 PLUGIN = "example"
 CAMERA_ID = f"{PLUGIN}:testpattern0"
+#: The settings of its ``[options.example]`` table and their kinds: an unknown one (a misspelt ``widht``) or one of
+#: the wrong type is refused by name when the camera opens.
+OPTIONS = {"width": "count", "height": "count"}
 
 
 def colour_bars(width: int, height: int, phase: float) -> np.ndarray:
@@ -68,8 +71,7 @@ class PatternProvider:
     def open(self, device_id: str, options: Mapping[str, Any], shared: dict[str, Any]) -> PatternCamera:
         if device_id != CAMERA_ID:
             raise DeviceError(f"the example plugin has no camera {device_id!r}")
-        table = options.get(PLUGIN, {})
-        return PatternCamera(table if isinstance(table, Mapping) else {})
+        return PatternCamera(plugin_options(options, PLUGIN, OPTIONS, device_id))
 
 
 @hookimpl
