@@ -1655,6 +1655,28 @@ def test_a_near_black_reference_is_warned_of_not_scored_as_excellent_in_silence(
         evaluate_view(load_view(Session.open(intact_session), 0), "none", tmp_path / "img2")
 
 
+def test_a_turntable_angle_that_is_no_angle_is_a_problem_not_a_view_left_out_of_the_merge(intact_session, tmp_path):
+    """A view's angle of 1e300 passed `sss validate`, and `sss geometry` merged "views 0, 1" with view 1's points
+    gone (turned into NaN)."""
+    import json
+
+    from sssphase_core.errors import DataError
+    from sssphase_core.relight.merged_points import recorded_angles
+    from sssphase_core.store.session import Session
+
+    copy = tmp_path / "leaf"
+    shutil.copytree(intact_session, copy)
+    for angle, problem in ((1e300, "1e+300 is beyond 3600 degrees (ten turns): not a turntable's"),
+                           ("abc", "'abc' is not a number of degrees")):
+        manifest = json.loads((copy / "manifest.json").read_text())
+        manifest["views"]["0"]["angle"] = angle
+        (copy / "manifest.json").write_text(json.dumps(manifest))
+        s = Session.open(copy)
+        assert f"view 0: its turntable angle {problem}" in s.validate()
+        with pytest.raises(DataError, match=f"view 0's turntable angle {re.escape(problem)}"):
+            recorded_angles(s, [0])
+
+
 def test_eval_relight_says_when_its_checkpoint_is_not_used(intact_session, tmp_path):
     """`sss eval relight S --checkpoint RUN` with the default backends evaluated no model, without a word."""
     ckpt = tmp_path / "run.pt"

@@ -10,7 +10,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from sssphase_core.errors import InputError
+from sssphase_core.errors import DataError, InputError
 from sssphase_core.processing.axis_refinement import AxisRefinement, median_spacing, refine_axis
 from sssphase_core.processing.triangulation import (
     StereoCalibration,
@@ -59,12 +59,16 @@ class MergedCloud:
 
 def recorded_angles(s: Session, views: list[int]) -> dict[int, float] | None:
     """The turntable angle (degrees) the session recorded for each view, or None where any view has none."""
+    from sssphase_core.store.session import angle_problem
+
     records = s.manifest.get("views", {})
     angles = {}
     for v in views:
         angle = records.get(str(v), {}).get("angle") if isinstance(records.get(str(v)), dict) else None
-        if isinstance(angle, bool) or not isinstance(angle, int | float) or not np.isfinite(angle):
+        if angle is None:
             return None
+        if (problem := angle_problem(angle)) is not None:  # (1e300 turned view 1's points to NaN: merged without it)
+            raise DataError(f"{s.path}: view {v}'s turntable angle {problem} (`sss validate` lists it)")
         angles[v] = float(angle)
     return angles
 

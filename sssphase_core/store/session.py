@@ -16,6 +16,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import math
 import os
 import re
 import shutil
@@ -109,6 +110,19 @@ def _chunks(shape: tuple[int, ...], itemsize: int, target: int = 2**21) -> tuple
         if chunks[i] > 1 or rest <= target:
             break
     return tuple(max(1, c) for c in chunks)
+
+
+#: The largest turntable angle a session may record, in degrees (ten turns either way: the daemon's own bound).
+MAX_ANGLE = 3600.0
+
+
+def angle_problem(angle: object) -> str | None:
+    """What is wrong with a view's recorded turntable ``angle`` (degrees), or None."""
+    if isinstance(angle, bool) or not isinstance(angle, int | float) or not math.isfinite(angle):
+        return f"{str(angle)[:40]!r} is not a number of degrees"
+    if abs(angle) > MAX_ANGLE:
+        return f"{angle:g} is beyond {MAX_ANGLE:g} degrees (ten turns): not a turntable's"
+    return None
 
 
 def write_json_atomic(path: Path, obj: Any) -> None:
@@ -764,6 +778,8 @@ class Session:
                 problems.append(f"view {v}: {self.status(v)} (not {'imported' if self.imported else 'captured'} "
                                 f"completely; {self.rerun})")
         for v, entry in self.iter_views():
+            if "angle" in entry and (problem := angle_problem(entry["angle"])) is not None:  # (1e300 passed, and
+                problems.append(f"view {v}: its turntable angle {problem}")  # `sss geometry` merged without the view)
             if not (self.path / view_dir_name(v)).is_dir():
                 problems.append(f"view {v}: its folder {view_dir_name(v)} is missing (renamed or deleted?): the manifest "
                                 f"lists {len(entry.get('arrays', {}))} arrays there")
