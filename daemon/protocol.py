@@ -69,16 +69,23 @@ def parse_request(data: bytes, max_bytes: int = DEFAULT_MAX_MESSAGE_BYTES) -> Re
     msg = unpack(data, max_bytes)
     if not isinstance(msg, dict):
         raise ProtocolError(BAD_MESSAGE, "a request must be a map")
-    version = msg.get("v")
-    if version not in SUPPORTED_VERSIONS or isinstance(version, bool):
-        raise ProtocolError(BAD_VERSION, f"protocol version {version!r} not supported (daemon speaks {SUPPORTED_VERSIONS})")
     rid, op, token, args = msg.get("id"), msg.get("op"), msg.get("token", ""), msg.get("args", {})
     if not isinstance(rid, int | str) or isinstance(rid, bool):
         raise ProtocolError(BAD_MESSAGE, "request id must be an int or a string")
+
+    def refused(code: str, message: str) -> ProtocolError:  # answered with the request's id (it said id: None)
+        error = ProtocolError(code, message)
+        error.rid = rid  # type: ignore[attr-defined]
+        return error
+
+    version = msg.get("v")
+    if version not in SUPPORTED_VERSIONS or isinstance(version, bool):
+        raise refused(BAD_VERSION, f"protocol version {str(version)[:20]!r} not supported (daemon speaks "
+                                   f"{SUPPORTED_VERSIONS})")
     if not isinstance(op, str) or not isinstance(token, str) or not isinstance(args, dict):
-        raise ProtocolError(BAD_MESSAGE, "op and token must be strings and args a map")
+        raise refused(BAD_MESSAGE, "op and token must be strings and args a map")
     if op not in OPS:
-        raise ProtocolError(UNKNOWN_OP, f"unknown op {op[:40]!r}")
+        raise refused(UNKNOWN_OP, f"unknown op {op[:40]!r}")
     return Request(rid, op, token, args)
 
 

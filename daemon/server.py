@@ -683,7 +683,7 @@ class Daemon:
             result = self.handlers[req.op](identity, req.args)
             reply = protocol.reply_ok(rid, result)
         except Exception as exc:  # the daemon keeps serving whatever a handler does
-            reply = _error_reply(rid, exc)
+            reply = _error_reply(getattr(exc, "rid", rid), exc)
         except SystemExit as exc:
             reply = _error_reply(rid, exc)
         try:

@@ -53,6 +53,16 @@ def _fuzz_messages(token: str, n: int, rng: np.random.Generator) -> list[list[by
     return [variants[int(rng.integers(0, len(variants)))]() for _ in range(n)]
 
 
+def test_an_error_reply_carries_the_requests_id_where_it_had_one():
+    """PROTOCOL.md says replies carry the request's id; an unknown op or version was answered with id None."""
+    for msg, code in (({"v": 1, "id": 7, "op": "fly", "token": "t"}, protocol.UNKNOWN_OP),
+                      ({"v": 2, "id": "a", "op": "ping", "token": "t"}, protocol.BAD_VERSION),
+                      ({"v": 1, "id": 9, "op": "ping", "token": b"t"}, protocol.BAD_MESSAGE)):
+        with pytest.raises(protocol.ProtocolError) as exc:
+            protocol.parse_request(protocol.pack(msg))
+        assert exc.value.code == code and exc.value.rid == msg["id"]  # type: ignore[attr-defined]
+
+
 def test_fuzzing_10000_messages_leaves_the_daemon_serving(daemon):
     proc, client = daemon
     sock = zmq.Context.instance().socket(zmq.DEALER)
