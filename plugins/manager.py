@@ -219,6 +219,11 @@ def _discover(provider: DeviceProvider) -> list[DeviceInfo]:
     found = list(provider.discover())
     if not all(isinstance(d, DeviceInfo) for d in found):
         raise TypeError("discover() returned something other than DeviceInfo records")
+    kind = getattr(provider, "kind", None)
+    other = next((d for d in found if d.kind != kind), None)
+    if other is not None:  # (listed as one kind, it then failed to open "is a projector, not a turntable")
+        raise TypeError(f"a {kind} provider's discover() reported {other.id} as a {other.kind}: a provider reports "
+                        "devices of its own kind")
     return found
 
 

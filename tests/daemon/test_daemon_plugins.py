@@ -446,3 +446,19 @@ def test_a_hook_with_an_argument_its_spec_lacks_says_which_in_one_line(tmp_path,
         manager.get_plugin_manager(refresh=True)
     assert "\n" not in error and "Argument(s) {'device_kind'} are declared in the hookimpl but can not be found in " \
         "the hookspec" in error, error
+
+
+def test_a_provider_reporting_a_device_of_another_kind_is_named_not_listed(monkeypatch):
+    """A turntable provider whose discover() reported a projector listed it as a turntable; opening it then said
+    "is a projector, not a turntable"."""
+    from sssphase_plugins import manager
+    from sssphase_plugins.drivers import DeviceInfo
+
+    class Mixed:
+        kind = "turntable"
+
+        def discover(self):
+            return [DeviceInfo("mixed:x", "projector", "mixed", "a projector", "x")]
+
+    with pytest.raises(TypeError, match=r"a turntable provider's discover\(\) reported mixed:x as a projector"):
+        manager._discover(Mixed())
