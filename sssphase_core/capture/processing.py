@@ -256,7 +256,9 @@ class ViewProcessor:
             image = image - self.hot
         image, n = repair_outliers(image, self.bound)  # type: ignore[arg-type]
         if key is not None and n > OUTLIER_MAX_SHARE * max(self.lit_values, 1):
-            raise DataError(f"frame {key}: {n:,} of its values ({n / max(self.lit_values, 1):.0%} of the lit ones) are "
+            share = (f"{n / self.lit_values:.0%} of the lit ones" if 0 < n <= self.lit_values  # (it said "123% of")
+                     else f"more than the {self.lit_values:,} lit ones")
+            raise DataError(f"frame {key}: {n:,} of its values ({share}) are "
                             "brighter than full white could make them (from the white capture and the fringe sets): "
                             "not stray samples but another exposure or other units than the other frames; give every "
                             "frame the same exposure and units")
