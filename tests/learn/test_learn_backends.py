@@ -351,3 +351,16 @@ def test_a_backend_returning_footprints_of_the_wrong_shape_is_named():
     with pytest.raises(InputError, match=r"model backend Skewed \(.*\) returned footprints of shape \(2, 7, 8, 3\) for 2 "
                                          r"pixels: expected \(2, 8, 8, 3\)"):
         source(np.array([[5, 10], [6, 11]]))
+
+
+def test_weights_with_a_key_the_model_lacks_say_which():
+    """A checkpoint with an extra key said only "(Error(s) in loading state_dict for Decoder:)"."""
+    import torch
+
+    from sssphase_core.errors import DataError
+    from sssphase_core.learning.training.checkpoints import _load_weights
+
+    module = torch.nn.Linear(2, 2)
+    with pytest.raises(DataError, match=r"x.pt: the decoder weights do not fit the checkpoint's preset \(Unexpected "
+                                        r"key\(s\) in state_dict: \"extra\"\)"):
+        _load_weights(module, {**module.state_dict(), "extra": torch.zeros(1)}, "x.pt", "decoder")

@@ -67,7 +67,9 @@ def load_checkpoint(path: Path | str, *, mmap: bool = False) -> dict:
         raise DataError(f"{path} is not a sssphase checkpoint: it holds pickled Python objects, which are never "
                         "loaded (only tensors, numbers and dicts)") from None
     except Exception as exc:
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        lines = [line.strip().rstrip(".") for line in str(exc).strip().splitlines() if line.strip()]
+        # torch's first line is only "Error(s) in loading state_dict for Decoder:": the keys follow it
+        reason = "; ".join(lines[1:3] if len(lines) > 1 else lines)[:300] or type(exc).__name__
         if "PytorchStreamReader" in reason or "miniz" in reason or "zip archive" in reason:  # torch's words for a cut file
             reason = "the file is damaged or truncated (its zip archive cannot be read)"
         elif "inline_container" in reason or "not in a subdirectory" in reason:  # a zip, but not torch's layout
@@ -110,7 +112,9 @@ def _load_weights(module: nn.Module, state: object, path: Path | str, what: str)
     try:
         module.load_state_dict(state)  # type: ignore[arg-type]
     except (RuntimeError, TypeError, AttributeError) as exc:
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        lines = [line.strip().rstrip(".") for line in str(exc).strip().splitlines() if line.strip()]
+        # torch's first line is only "Error(s) in loading state_dict for Decoder:": the keys follow it
+        reason = "; ".join(lines[1:3] if len(lines) > 1 else lines)[:300] or type(exc).__name__
         raise DataError(f"{path}: the {what} weights do not fit the checkpoint's preset ({reason})") from None
     bad = {name: int((~torch.isfinite(t)).sum()) for name, t in module.state_dict().items() if t.is_floating_point()}
     bad = {name: n for name, n in bad.items() if n}
