@@ -1799,3 +1799,17 @@ def test_validate_holds_clean_renders_and_complex_frames_to_the_test_of_light(in
     assert any("array gt/render/checkerboard holds" in p and "NaN" in p for p in nan.validate()), nan.validate()
     complex_psp = _rewritten(session, tmp_path / "complex", "psp", lambda a: a.astype(np.complex64))
     assert any("array psp holds complex64 values" in p for p in complex_psp.validate()), complex_psp.validate()
+
+
+def test_a_manifest_whose_view_count_is_no_count_is_a_problem(intact_session, tmp_path):
+    """`n_views: 0` passed `sss validate` in silence (text is refused when the session opens)."""
+    import json
+
+    from sssphase_core.store.session import Session
+
+    copy = tmp_path / "leaf"
+    shutil.copytree(intact_session, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["n_views"] = 0
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    assert "the manifest's n_views is 0: the number of views, a whole number >= 1" in Session.open(copy).validate()

@@ -772,7 +772,11 @@ class Session:
             problems.append("the manifest has no capture plan (plan.projector): the patterns its frames were captured "
                             "under are unknown, so it cannot be relit")
         projector = _projector_size(self.manifest)
-        n = expected_views if expected_views is not None else int(self.manifest.get("n_views", 0))
+        declared = self.manifest.get("n_views", 0)
+        if isinstance(declared, bool) or not isinstance(declared, int) or declared < 1:  # (0 or text passed in silence)
+            problems.append(f"the manifest's n_views is {repr(declared)[:40]}: the number of views, a whole number >= 1")
+            declared = 0
+        n = expected_views if expected_views is not None else declared
         for v in range(n):
             if self.status(v) != "complete":
                 problems.append(f"view {v}: {self.status(v)} (not {'imported' if self.imported else 'captured'} "
