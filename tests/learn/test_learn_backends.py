@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import contextlib
+
 import numpy as np
 import pytest
 import torch
@@ -190,29 +192,40 @@ def test_backend_hookspec_is_loaded_by_the_plugin_manager():
     assert isinstance(merged["analytic"](patch=16), AnalyticBackend)
 
 
+@contextlib.contextmanager
+def _backend_plugins(tmp_path, monkeypatch, **modules: str):
+    """The plugin manager loaded with ``modules`` (name -> source) as $SSS_PLUGINS, and reloaded without them after."""
+    from sssphase_plugins import manager
+
+    for name, source in modules.items():
+        (tmp_path / f"{name}.py").write_text(source)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv("SSS_PLUGINS", ",".join(modules))
+    try:
+        yield manager.get_plugin_manager(refresh=True)
+    finally:
+        monkeypatch.delenv("SSS_PLUGINS")
+        manager.get_plugin_manager(refresh=True)
+
+
 def test_a_plugin_backend_reaches_core_through_the_plugin_manager(tmp_path, monkeypatch):
     """Core does not import the plugin layer: the manager hands it the plugins' backends when loaded."""
-    (tmp_path / "my_backend_plugin.py").write_text(
-        "from sssphase_core.learning.backends import hookimpl\n"
-        "from sssphase_core.learning.backends.analytic_backend import AnalyticBackend\n"
-        "@hookimpl\n"
-        "def sssphase_model_backends():\n"
-        "    return {'mine': lambda **o: AnalyticBackend(patch=8, **o)}\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setenv("SSS_PLUGINS", "my_backend_plugin")
     from sssphase_core.learning import backends
     from sssphase_plugins import manager
 
-    try:
-        manager.get_plugin_manager(refresh=True)
-        assert isinstance(get_backend("mine"), AnalyticBackend) and "torch" in available_backends()
-        backends.use_plugin_backends(None)
-        with pytest.raises(InputError, match="unknown model backend 'mine'"):
-            get_backend("mine")
-    finally:
-        backends.use_plugin_backends(manager._plugin_model_backends)
-        monkeypatch.delenv("SSS_PLUGINS")
-        manager.get_plugin_manager(refresh=True)
+    mine = ("from sssphase_core.learning.backends import hookimpl\n"
+            "from sssphase_core.learning.backends.analytic_backend import AnalyticBackend\n"
+            "@hookimpl\n"
+            "def sssphase_model_backends():\n"
+            "    return {'mine': lambda **o: AnalyticBackend(patch=8, **o)}\n")
+    with _backend_plugins(tmp_path, monkeypatch, my_backend_plugin=mine):
+        try:
+            assert isinstance(get_backend("mine"), AnalyticBackend) and "torch" in available_backends()
+            backends.use_plugin_backends(None)
+            with pytest.raises(InputError, match="unknown model backend 'mine'"):
+                get_backend("mine")
+        finally:
+            backends.use_plugin_backends(manager._plugin_model_backends)
 
 
 def test_a_backend_plugin_that_raises_or_takes_a_taken_name_is_left_out_not_the_others(tmp_path, monkeypatch):
@@ -220,24 +233,18 @@ def test_a_backend_plugin_that_raises_or_takes_a_taken_name_is_left_out_not_the_
     a plugin's `analytic` replaced the built-in one without a word."""
     import warnings
 
-    (tmp_path / "crashing_backends.py").write_text(
-        "from sssphase_core.learning.backends import hookimpl\n"
-        "@hookimpl\n"
-        "def sssphase_model_backends():\n"
-        "    raise RuntimeError('gauss backend hook crashed')\n")
-    (tmp_path / "impostor_backends.py").write_text(
-        "from sssphase_core.learning.backends import hookimpl\n"
-        "from sssphase_core.learning.backends.analytic_backend import AnalyticBackend\n"
-        "@hookimpl\n"
-        "def sssphase_model_backends():\n"
-        "    return {'analytic': lambda **o: None, 'mine': lambda **o: AnalyticBackend(patch=8, **o)}\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setenv("SSS_PLUGINS", "crashing_backends,impostor_backends")
     from sssphase_core.learning import backends
-    from sssphase_plugins import manager
 
-    try:
-        manager.get_plugin_manager(refresh=True)
+    crashing = ("from sssphase_core.learning.backends import hookimpl\n"
+                "@hookimpl\n"
+                "def sssphase_model_backends():\n"
+                "    raise RuntimeError('gauss backend hook crashed')\n")
+    impostor = ("from sssphase_core.learning.backends import hookimpl\n"
+                "from sssphase_core.learning.backends.analytic_backend import AnalyticBackend\n"
+                "@hookimpl\n"
+                "def sssphase_model_backends():\n"
+                "    return {'analytic': lambda **o: None, 'mine': lambda **o: AnalyticBackend(patch=8, **o)}\n")
+    with _backend_plugins(tmp_path, monkeypatch, crashing_backends=crashing, impostor_backends=impostor):
         backends._told.clear()
         with warnings.catch_warnings(record=True) as said:
             warnings.simplefilter("always")
@@ -245,42 +252,31 @@ def test_a_backend_plugin_that_raises_or_takes_a_taken_name_is_left_out_not_the_
         lines = [str(w.message) for w in said]
         assert {"torch", "analytic", "mine"} <= set(found)
         assert isinstance(get_backend("analytic", patch=16), AnalyticBackend)  # the built-in, not the impostor's
-        assert any(line.startswith("model backend plugin crashing_backends failed (RuntimeError: gauss backend hook "
-                                   "crashed)") for line in lines), lines
-        assert "backend 'analytic' of plugin impostor_backends is left out: 'analytic' is a built-in backend " \
-               "(rename it)" in lines, lines
-    finally:
-        monkeypatch.delenv("SSS_PLUGINS")
-        manager.get_plugin_manager(refresh=True)
+    assert any(line.startswith("model backend plugin crashing_backends failed (RuntimeError: gauss backend hook "
+                               "crashed)") for line in lines), lines
+    assert "backend 'analytic' of plugin impostor_backends is left out: 'analytic' is a built-in backend " \
+           "(rename it)" in lines, lines
 
 
 def test_a_plugin_backend_is_given_what_its_factory_takes_of_the_view(tmp_path, monkeypatch):
     """A plugin's factory was called with no options: a trained plugin backend never got its checkpoint, nor the
     session's patch size, and --checkpoint was "not used" by it."""
-    (tmp_path / "taking_backends.py").write_text(
-        "from sssphase_core.learning.backends import hookimpl\n"
-        "def named(patch, checkpoint=None):\n    return (patch, checkpoint)\n"
-        "def anything(**options):\n    return options\n"
-        "def nothing():\n    return None\n"
-        "@hookimpl\n"
-        "def sssphase_model_backends():\n"
-        "    return {'named': named, 'anything': anything, 'nothing': nothing}\n")
-    monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setenv("SSS_PLUGINS", "taking_backends")
     from sssphase_core.learning.backends import accepted_options
     from sssphase_core.relight.runner import _plugin_takes_checkpoint
-    from sssphase_plugins import manager
 
+    taking = ("from sssphase_core.learning.backends import hookimpl\n"
+              "def named(patch, checkpoint=None):\n    return (patch, checkpoint)\n"
+              "def anything(**options):\n    return options\n"
+              "def nothing():\n    return None\n"
+              "@hookimpl\n"
+              "def sssphase_model_backends():\n"
+              "    return {'named': named, 'anything': anything, 'nothing': nothing}\n")
     offered = {"patch": 16, "black": 0.01, "device": "cpu", "checkpoint": "weights.pt"}
-    try:
-        manager.get_plugin_manager(refresh=True)
+    with _backend_plugins(tmp_path, monkeypatch, taking_backends=taking):
         assert accepted_options("named", offered) == {"patch": 16, "checkpoint": "weights.pt"}
         assert accepted_options("anything", offered) == offered and accepted_options("nothing", offered) == {}
         assert _plugin_takes_checkpoint("named") and not _plugin_takes_checkpoint("nothing")
         assert not _plugin_takes_checkpoint("analytic")
-    finally:
-        monkeypatch.delenv("SSS_PLUGINS")
-        manager.get_plugin_manager(refresh=True)
 
 
 def test_loading_the_backend_registry_does_not_import_torch():
