@@ -773,9 +773,9 @@ class Session:
                             "under are unknown, so it cannot be relit")
         projector = _projector_size(self.manifest)
         declared = self.manifest.get("n_views", 0)
-        if isinstance(declared, bool) or not isinstance(declared, int) or declared < 1:  # (0 or text passed in silence)
-            problems.append(f"the manifest's n_views is {repr(declared)[:40]}: the number of views, a whole number >= 1")
-            declared = 0
+        if "n_views" in self.manifest and declared == 0 and self.manifest.get("views"):  # (views recorded, and 0
+            # of them declared, passed in silence; a manifest without the key is one the library wrote untold)
+            problems.append("the manifest's n_views is 0: the number of views, a whole number >= 1")
         n = expected_views if expected_views is not None else declared
         for v in range(n):
             if self.status(v) != "complete":
