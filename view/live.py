@@ -78,9 +78,13 @@ class LiveRig:
 
         if self.rig_id is not None:
             return
-        self.client = self._stack.enter_context(local_client())
-        opened = self.client.call("open_rig", camera=self.rig.camera, projector=self.rig.projector, turntable=None,
-                                  options=dict(self.rig.options))
+        try:
+            self.client = self._stack.enter_context(local_client())
+            opened = self.client.call("open_rig", camera=self.rig.camera, projector=self.rig.projector, turntable=None,
+                                      options=dict(self.rig.options))
+        except BaseException:  # (a client left in the stack would be opened again beside it by the next frame)
+            self._forget()
+            raise
         self.rig_id, self.projector_size = opened["rig"], tuple(opened["projector_size"])
 
     def close(self) -> None:
