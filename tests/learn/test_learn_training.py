@@ -503,6 +503,19 @@ def test_bad_checkpoints_are_refused_with_one_clear_line(tmp_path, content, expe
     assert expected in message and "\n" not in message, message
 
 
+def test_a_real_checkpoint_cut_anywhere_is_called_damaged_or_truncated(pretrained, tmp_path):
+    """Cut past its first kilobytes, torch failed with a bare "[Errno 22] Invalid argument"."""
+    from sssphase_core.errors import DataError
+    from sssphase_core.learning.training import load_encoder
+
+    whole = (pretrained / CHECKPOINT).read_bytes()
+    for keep in (100, 5000, len(whole) // 3, len(whole) - 100):
+        cut = tmp_path / f"cut{keep}.pt"
+        cut.write_bytes(whole[:keep])
+        with pytest.raises(DataError, match="damaged or truncated"):
+            load_encoder(cut)
+
+
 def test_a_checkpoint_whose_weights_do_not_fit_its_preset_is_refused(pretrained, tmp_path):
     from sssphase_core.errors import DataError
     from sssphase_core.learning.training import load_encoder

@@ -70,7 +70,8 @@ def load_checkpoint(path: Path | str, *, mmap: bool = False) -> dict:
         lines = [line.strip().rstrip(".") for line in str(exc).strip().splitlines() if line.strip()]
         # torch's first line is only "Error(s) in loading state_dict for Decoder:": the keys follow it
         reason = "; ".join(lines[1:3] if len(lines) > 1 else lines)[:300] or type(exc).__name__
-        if "PytorchStreamReader" in reason or "miniz" in reason or "zip archive" in reason:  # torch's words for a cut file
+        cut = isinstance(exc, OSError) and exc.errno == errno.EINVAL  # torch seeking past a cut file's end
+        if cut or "PytorchStreamReader" in reason or "miniz" in reason or "zip archive" in reason:  # a cut file
             reason = "the file is damaged or truncated (its zip archive cannot be read)"
         elif "inline_container" in reason or "not in a subdirectory" in reason:  # a zip, but not torch's layout
             reason = "it is a zip archive, but not one torch saved (no checkpoint inside)"
