@@ -133,6 +133,14 @@ def test_array_patterns_of_integers_wider_than_16_bits_are_refused_not_relit_bla
         np.save(tmp_path / "wide.npy", (checker * top).astype(dtype))
         with pytest.raises(InputError, match=rf"holds {np.dtype(dtype).name} integers \(from 0 to {top}\).*uint8"):
             read_pattern(tmp_path / "wide.npy", (256, 192))
+    from PIL import Image
+
+    for name, dtype in (("i32.tif", np.int32), ("u16.tif", np.uint16), ("u16.png", np.uint16)):  # Pillow's I and I;16
+        Image.fromarray((checker * 255).astype(dtype)).save(tmp_path / name)
+    with pytest.raises(InputError, match=r"holds 32-bit integers \(from 0 to 255\).*scale is unknown"):
+        read_pattern(tmp_path / "i32.tif", (256, 192))  # was divided by 65535: relit almost black
+    for name in ("u16.tif", "u16.png"):
+        assert np.allclose(read_pattern(tmp_path / name, (256, 192)), checker * 255 / 65535)
 
 
 @pytest.mark.parametrize(("manifest", "expected"), [

@@ -62,8 +62,7 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
     :func:`_resized`; ``True`` means ``stretch``). Palette and CMYK images are read as RGB, an alpha
     channel as opacity over black (transparent = no light, with a warning), an EXIF orientation tag applied as
     image viewers apply it (with a warning), 16-bit images divided by
-    65535 (wider integer types too, when their values fit 16 bits); multi-frame files and integer values below 0 or
-    above 65535 are refused. ``hint`` ends the size-mismatch error (what the user can do).
+    65535; multi-frame files and wider integer types (32-bit: their scale is unknown) are refused. ``hint`` ends the size-mismatch error (what the user can do).
     """
     from PIL import Image
 
@@ -129,9 +128,9 @@ def _pil_pattern_values(img: Any, path: Path | str) -> np.ndarray:
         scale = 1.0
     elif img.mode.startswith("I"):
         scale = 65535.0  # 16-bit PNG/TIFF (Pillow's I;16 and I modes)
-        if arr.min() < 0 or arr.max() > 65535:  # a signed or 32-bit integer image: its range is not a pattern's
-            raise InputError(f"pattern {path} holds integers from {arr.min()} to {arr.max()}: give 8- or 16-bit "
-                             "unsigned values, or floats in [0, 1]")
+        if arr.min() < 0 or arr.max() > 65535 or (code_depth(Path(path)) or 16) > 16:  # 32-bit: 0..255 relit black
+            raise InputError(f"pattern {path} holds {code_depth(Path(path))}-bit integers (from {arr.min()} to "
+                             f"{arr.max()}), whose scale is unknown: give 8- or 16-bit unsigned values, or floats in [0, 1]")
     else:
         scale = 255.0
     if arr.dtype.kind == "f" and not np.isfinite(arr).all():  # a single-channel float TIFF (Pillow's mode F)
