@@ -84,7 +84,12 @@ class Narrator:
 
 def choose_views(session: Session, views: str | Sequence[int] | None = None, say: Narrator | None = None) -> list[int]:
     """The complete views ``views`` names (comma-separated text or numbers; empty or None: all), each once,
-    checked before any is relit; with all views, ``say`` is told which incomplete ones are left out."""
+    checked before any is relit; with all views, ``say`` is told which incomplete ones are left out. A manifest
+    without its rig record (another program's, or edited) is read with defaults, with a warning."""
+    if "rig" not in session.manifest:  # (`sss validate` names it too)
+        from sssphase_core.store.session import RIG_UNKNOWN
+
+        warnings.warn(f"{session.path}: its manifest has no rig record: {RIG_UNKNOWN}", UserWarning, stacklevel=2)
     if not views:
         states = {int(v): session.status(int(v)) for v in session.manifest["views"]}
         left = ", ".join(f"view {v}: {st}" for v, st in sorted(states.items()) if st != "complete")

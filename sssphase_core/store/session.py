@@ -467,6 +467,11 @@ def camera_isp_problem(isp: Any) -> str | None:
     return None
 
 
+#: What a session without its ``rig`` record loses (validate's problem, relight's warning).
+RIG_UNKNOWN = ("the camera, its saturation level and the footprint crop size it was captured with are unknown "
+               "(relighting would assume an unclipped camera and 32-pixel crops)")
+
+
 def rig_problem(rig: Any) -> str | None:
     """What makes a manifest's rig record unusable (a number of the wrong type or range, a footprint crop size
     beyond :data:`~sssphase_core.processing.footprints.PATCH_RANGE`, options that are not a table), or None."""
@@ -771,6 +776,8 @@ class Session:
         if "projector" not in self.manifest.get("plan", {}):  # what relighting reads first (relight.views.load_view)
             problems.append("the manifest has no capture plan (plan.projector): the patterns its frames were captured "
                             "under are unknown, so it cannot be relit")
+        if "rig" not in self.manifest:  # every writer records it: without it the readers fall back on defaults
+            problems.append(f"the manifest has no rig record (rig): {RIG_UNKNOWN}")
         projector = _projector_size(self.manifest)
         declared = self.manifest.get("n_views", 0)
         if "n_views" in self.manifest and declared == 0 and self.manifest.get("views"):  # (views recorded, and 0
@@ -818,6 +825,10 @@ class Session:
                         problems.append(f"view {v}: {problem}")
             if len(problems) == before:  # every array intact: do they belong together?
                 problems += [f"view {v}: {p}" for p in view_consistency(entry.get("arrays", {}), read, projector)]
+        listed = {view_dir_name(int(k)) for k in self.manifest.get("views", {})}
+        for stray in sorted(p.name for p in self.path.glob("view_*") if p.is_dir() and p.name not in listed):
+            problems.append(f"{stray}: a view folder the manifest does not list (copied in from another session, or "
+                            "renamed?): no command reads it")
         return problems
 
 

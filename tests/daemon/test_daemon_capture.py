@@ -202,6 +202,18 @@ def test_validate_reports_corrupt_and_missing_arrays(reference, tmp_path, sss):
     assert Session.open(planless).validate() == [
         "the manifest has no capture plan (plan.projector): the patterns its frames were captured under are unknown, "
         "so it cannot be relit"]
+    # a manifest without its rig record passed validate, and relight assumed an unclipped camera and 32-pixel crops
+    rigless = tmp_path / "rigless" / OBJECT
+    shutil.copytree(reference[0] / OBJECT, rigless)
+    meta = json.loads((rigless / "manifest.json").read_text())
+    del meta["rig"]
+    (rigless / "manifest.json").write_text(json.dumps(meta))
+    assert Session.open(rigless).validate() == [
+        "the manifest has no rig record (rig): the camera, its saturation level and the footprint crop size it was "
+        "captured with are unknown (relighting would assume an unclipped camera and 32-pixel crops)"]
+    done = sss("relight", str(rigless), "--pattern", "checkerboard", "--out", str(tmp_path / "relit"), "--backend", "none")
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.count("its manifest has no rig record") == 1, done.stderr
 
 
 def test_a_view_folder_renamed_away_is_named_once_not_as_every_array_missing(reference, tmp_path, sss):
@@ -213,6 +225,9 @@ def test_a_view_folder_renamed_away_is_named_once_not_as_every_array_missing(ref
     assert [p for p in problems if p.startswith("view 0:")] == [
         f"view 0: its folder view_000 is missing (renamed or deleted?): the manifest lists "
         f"{len(Session.open(tmp_path / OBJECT).arrays(0))} arrays there"], problems
+    # and the folder it became, which no command reads, was not named at all
+    assert "view_007: a view folder the manifest does not list (copied in from another session, or renamed?): no " \
+        "command reads it" in problems, problems
     done = sss("relight", str(tmp_path / OBJECT), "--pattern", "checkerboard", "--views", "0", "--backend", "none",
                "--out", str(tmp_path / "relit"))
     assert done.returncode != 0 and "is missing its folder view_000 (renamed or deleted?)" in " ".join(done.stderr.split())
