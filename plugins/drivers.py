@@ -81,7 +81,10 @@ class Camera(Protocol):
         """Set exposure (relative to the rig's reference exposure), gain and output format."""
 
     def grab(self, timeout_s: float = 5.0) -> Frame:
-        """Trigger one exposure and return the frame (software trigger)."""
+        """Trigger one exposure and return the frame (software trigger). The daemon calls it without
+        ``timeout_s``: the driver's own wait applies, covering the exposure. A camera whose frames may take
+        longer than a client's deadline declares a ``frame_timeout_s`` attribute (seconds), which the daemon's
+        watchdog then allows. ``Frame.meta`` holds plain values (numbers, text, lists, tables)."""
 
     def stream(self, count: int) -> Any:
         """Free-running acquisition: an iterator of ``count`` frames."""

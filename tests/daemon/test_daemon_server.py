@@ -435,6 +435,83 @@ def test_a_plugin_that_exits_or_returns_no_driver_fails_its_request_not_the_daem
     assert proc.poll() is None and client.ping(timeout_s=2.0)
 
 
+QUIRKY_PLUGIN = '''
+import datetime
+from pathlib import Path
+
+import numpy as np
+from sssphase_plugins.api import DeviceInfo, hookimpl
+from sssphase_plugins.drivers import Frame
+
+
+class Camera:
+    def __init__(self, device_id):
+        self.info = DeviceInfo(device_id, "camera", "quirky", "quirky", device_id)
+        self.n = 0
+
+    def configure(self, **kw):
+        pass
+
+    def grab(self, timeout_s=5.0):
+        self.n += 1
+        data = np.full((8, 8, 3), 0.5, np.float32)
+        if self.info.id == "quirky:ndarray":
+            return data
+        meta = {"temperature": np.float32(41.5), "gain_db": np.int64(6), "taken": datetime.datetime(2026, 12, 5, 11),
+                "file": Path("/tmp/x.raw"), "roi": (np.uint16(0), np.uint16(8)), "hist": np.arange(4)}
+        if self.info.id == "quirky:object":
+            meta["sensor"] = {"handle": object()}
+        return Frame(data, self.n, 1000 * self.n, 1.0, meta)
+
+    def stream(self, count):
+        return (self.grab() for _ in range(count))
+
+    def close(self):
+        pass
+
+
+class Provider:
+    kind = "camera"
+
+    def discover(self):
+        return [DeviceInfo(f"quirky:{n}", "camera", "quirky", n, n) for n in ("numpy", "object", "ndarray")]
+
+    def open(self, device_id, options, shared):
+        return Camera(device_id)
+
+
+@hookimpl
+def sssphase_cameras():
+    return [Provider()]
+'''
+
+
+def test_numpy_values_in_a_frames_meta_arrive_as_numbers_and_an_object_is_named_by_its_key(daemon_factory, tmp_path,
+                                                                                           monkeypatch):
+    """A numpy float in Frame.meta failed the job with msgpack's bare "can not serialize 'numpy.float32' object";
+    a driver returning the bare array was "not an image array (memoryview ...)"."""
+    from sssphase_daemon.client import DaemonError
+
+    (tmp_path / "quirky_plugin.py").write_text(QUIRKY_PLUGIN)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("SSS_PLUGINS", "quirky_plugin")
+    proc, client, _ = daemon_factory()
+    rig = client.call("open_rig", camera="quirky:numpy")["rig"]
+    frames = list(client.stream(rig, 2))
+    assert len(frames) == 2 and frames[1].header["meta"] == {
+        "temperature": 41.5, "gain_db": 6, "taken": "2026-12-05T11:00:00", "file": "/tmp/x.raw", "roi": [0, 8],
+        "hist": [0, 1, 2, 3]}
+    rig = client.call("open_rig", camera="quirky:object")["rig"]
+    with pytest.raises(DaemonError, match=r"quirky:object: frame 'stream/1': its meta\['sensor.handle'\] is a object, "
+                                          "which a frame's header cannot carry"):
+        list(client.stream(rig, 2))
+    rig = client.call("open_rig", camera="quirky:ndarray")["rig"]
+    with pytest.raises(DaemonError, match=r"quirky:ndarray: frame 'stream/\d+' came back as numpy.ndarray, not a "
+                                          r"plugins.drivers.Frame"):
+        list(client.stream(rig, 1))
+    assert proc.poll() is None and client.ping(timeout_s=2.0)
+
+
 SLOW_PLUGIN = """
 import time
 from sssphase_plugins.api import DeviceInfo, hookimpl
