@@ -73,8 +73,10 @@ def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] 
 
     client = _client(remote_ok=True)
     if client is not None:
-        with client:
-            found = client.call("devices")
+        from sssphase_plugins.manager import discovery_timeout_s
+
+        with client:  # (the daemon gives a hung plugin discovery_timeout_s, then answers without it)
+            found = client.call("devices", timeout_s=discovery_timeout_s() + 10.0)
         devs, errors, where = found["devices"], found["errors"], "daemon"
     else:
         from sssphase_cli.output import stdout_to_stderr

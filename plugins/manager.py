@@ -248,9 +248,8 @@ class _Hung(Exception):
     pass
 
 
-def _within(seconds: float, fn: Any) -> Any:
-    """``fn()`` run in a daemon thread: its value, or what it raised; :class:`_Hung` when it has not returned
-    within ``seconds`` (the thread is left behind: a plugin's call cannot be interrupted)."""
+def _started(fn: Any) -> tuple[Any, dict[str, Any]]:
+    """``fn()`` started in a daemon thread; the box gets its ``value`` or the ``error`` it raised."""
     import threading
 
     box: dict[str, Any] = {}
@@ -263,7 +262,10 @@ def _within(seconds: float, fn: Any) -> Any:
 
     thread = threading.Thread(target=run, name="sss-discover", daemon=True)
     thread.start()
-    thread.join(seconds)
+    return thread, box
+
+
+def _outcome(thread: Any, box: dict[str, Any]) -> Any:
     if thread.is_alive():
         raise _Hung()
     if "error" in box:
@@ -271,27 +273,79 @@ def _within(seconds: float, fn: Any) -> Any:
     return box["value"]
 
 
+def _within(seconds: float, fn: Any) -> Any:
+    """``fn()`` run in a daemon thread: its value, or what it raised; :class:`_Hung` when it has not returned
+    within ``seconds`` (the thread is left behind: a plugin's call cannot be interrupted)."""
+    thread, box = _started(fn)
+    thread.join(seconds)
+    return _outcome(thread, box)
+
+
+#: Discoveries that did not return in time, by (plugin, kind): (their thread, when it started). A hung plugin is
+#: not called again until its call returns (each `sss devices` through the daemon left one more thread stuck in it).
+_PENDING: dict[tuple[str, str], tuple[Any, float]] = {}
+
+
+def _discover_all(providers: list[tuple[str, DeviceProvider]], timeout: float
+                  ) -> list[tuple[str, str, list[DeviceInfo] | BaseException | float]]:
+    """Each provider's discover(), all at once, within ``timeout`` in all (one after the other, a second plugin
+    waited for the first's timeout: ``sss devices`` gave up first). Per provider (plugin, kind, outcome): its
+    devices, the exception it raised (:class:`_Hung` past the deadline), or, for one still hung from an earlier
+    call, how many seconds ago that call began."""
+    import time
+
+    now = time.monotonic()
+    deadline = now + timeout
+    runs: list[tuple[str, str, Any]] = []
+    for plugin, provider in providers:
+        key = (plugin, str(getattr(provider, "kind", "device")))
+        pending = _PENDING.get(key)
+        if pending is not None and pending[0].is_alive():
+            runs.append((*key, now - pending[1]))
+            continue
+        _PENDING.pop(key, None)
+        runs.append((*key, _started(lambda provider=provider: _discover(provider))))
+    outcomes: list[tuple[str, str, list[DeviceInfo] | BaseException | float]] = []
+    for plugin, kind, run in runs:
+        if isinstance(run, float):
+            outcomes.append((plugin, kind, run))
+            continue
+        thread, box = run
+        thread.join(max(0.0, deadline - time.monotonic()))
+        try:
+            outcomes.append((plugin, kind, _outcome(thread, box)))
+        except BaseException as exc:  # noqa: BLE001  (sorted out by the caller)
+            if isinstance(exc, _Hung):
+                _PENDING[(plugin, kind)] = (thread, now)
+            outcomes.append((plugin, kind, exc))
+    return outcomes
+
+
 def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo], dict[str, str]]:
-    """Run discovery on every provider (this may do device I/O). Returns devices and errors by plugin; a plugin
-    whose hooks or discover() do not return within :func:`discovery_timeout_s` is reported as hung, left out."""
+    """Run discovery on every provider (this may do device I/O), all at once. Returns devices and errors by
+    plugin; a plugin whose hooks or discover() do not return within :func:`discovery_timeout_s` is reported as
+    hung and left out, and is not called again until that call returns."""
     timeout = discovery_timeout_s()
     pm = pm or get_plugin_manager()
     found: dict[str, tuple[str, DeviceInfo]] = {}  # id -> (plugin, device): one entry per id
     errors: dict[str, str] = {}
     providers = device_providers(pm, timeout=timeout)  # (a hook that hangs is named in pm.load_errors, added below)
-    for plugin, provider in providers:
-        try:
-            devices = _within(timeout, lambda provider=provider: _discover(provider))
-        except _Hung:
-            errors[plugin] = (f"discovery of {getattr(provider, 'kind', 'device')}s did not return within "
-                              f"{timeout:g} s (the plugin hangs): its devices are left out")
+    for plugin, kind, devices in _discover_all(providers, timeout):
+        if isinstance(devices, float):
+            errors[plugin] = (f"discovery of {kind}s has not returned for {devices:.0f} s (the plugin hangs): its "
+                              "devices are left out, and it is not asked again until that call returns")
             continue
-        except DeviceNotFound as exc:  # an absent device is an answer, not a failure
-            errors[plugin] = str(exc).strip()
+        if isinstance(devices, _Hung):
+            errors[plugin] = f"discovery of {kind}s did not return within {timeout:g} s (the plugin hangs): its devices are left out"
             continue
-        except (Exception, SystemExit) as exc:
-            errors[plugin] = f"discovery of {getattr(provider, 'kind', 'device')}s failed: {_error_text(exc)}"
+        if isinstance(devices, DeviceNotFound):  # an absent device is an answer, not a failure
+            errors[plugin] = str(devices).strip()
             continue
+        if isinstance(devices, Exception | SystemExit):
+            errors[plugin] = f"discovery of {kind}s failed: {_error_text(devices)}"
+            continue
+        if isinstance(devices, BaseException):
+            raise devices
         for d in devices:
             if d.id not in found:
                 found[d.id] = (plugin, d)

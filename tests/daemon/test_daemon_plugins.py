@@ -383,6 +383,39 @@ def test_a_plugin_that_hangs_in_discovery_is_named_and_left_out(tmp_path, monkey
         sys.modules["acme_hangs"].RELEASE.set()
 
 
+def test_plugins_hung_in_discovery_share_one_timeout_and_are_not_asked_again_while_hung(tmp_path, monkeypatch):
+    """One after the other, two hung plugins took twice the timeout (the daemon's 60 s outlasted `sss devices`'
+    wait, and the daemon looked dead), and every later discovery left one more thread stuck in each."""
+    import sys
+    import time
+
+    for name in ("acme_stuck", "acme_stuck_too"):
+        (tmp_path / f"{name}.py").write_text(textwrap.dedent(HANGS) + "CALLS = []\nP.discover = (lambda f: lambda self: "
+                                             "(CALLS.append(1), f(self))[1])(P.discover)\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv(manager.ENV_PLUGINS, "acme_stuck,acme_stuck_too")
+    monkeypatch.setattr(manager, "DISCOVERY_TIMEOUT_S", 0.6)
+    pm = manager.build_plugin_manager()
+    try:
+        t0 = time.monotonic()
+        devices, errors = manager.discover_devices(pm)
+        assert time.monotonic() - t0 < 1.1  # one timeout for both, not 1.2 s
+        assert all("did not return within 0.6 s" in errors[n] for n in ("acme_stuck", "acme_stuck_too")), errors
+        assert sim_plugin.CAMERA_ID in {d.id for d in devices}
+        devices, errors = manager.discover_devices(pm)  # still hung: said at once, not called again
+        assert "discovery of cameras has not returned for" in errors["acme_stuck"], errors
+        assert [len(sys.modules[n].CALLS) for n in ("acme_stuck", "acme_stuck_too")] == [1, 1]
+        for n in ("acme_stuck", "acme_stuck_too"):
+            sys.modules[n].RELEASE.set()
+        time.sleep(0.2)
+        devices, errors = manager.discover_devices(pm)  # returned since: asked again, and answers
+        assert "acme_stuck" not in errors and [len(sys.modules[n].CALLS) for n in ("acme_stuck", "acme_stuck_too")] == [2, 2]
+    finally:
+        for n in ("acme_stuck", "acme_stuck_too"):
+            if n in sys.modules:
+                sys.modules[n].RELEASE.set()
+
+
 def test_sss_devices_shows_each_id_whole_in_a_narrow_terminal(tmp_path):
     """HARDWARE.md has users copy device IDs from `sss devices` into their rig file; at 80 columns the table cut them
     (`example:testpatte…`)."""
