@@ -288,13 +288,9 @@ def _check_frames(frames: Any) -> list[dict[str, Any]]:
     if not isinstance(frames, list) or not 0 < len(frames) <= MAX_FRAMES_PER_JOB:
         raise ProtocolError(protocol.BAD_ARGS, f"frames must be a list of 1..{MAX_FRAMES_PER_JOB} frame specs")
     for f in frames:
-        exposure = f.get("exposure", 1.0) if isinstance(f, dict) else None
-        ok = (isinstance(f, dict) and isinstance(f.get("name"), str) and f.get("kind") in FRAME_KINDS
-              and isinstance(f.get("params", {}), dict) and isinstance(exposure, int | float)
-              and not isinstance(exposure, bool) and MIN_EXPOSURE <= exposure <= MAX_EXPOSURE
-              and (f.get("kind") != "image" or isinstance(f.get("image"), dict)))
-        if not ok:
-            raise ProtocolError(protocol.BAD_ARGS, f"bad frame spec {str(f)[:120]}")
+        problem = _frame_spec_problem(f)
+        if problem:
+            raise ProtocolError(protocol.BAD_ARGS, f"bad frame spec {str(f)[:120]}: {problem}")
         gain = f.get("gain")
         if gain is not None and (isinstance(gain, bool) or not isinstance(gain, int | float) or not 0 <= gain <= MAX_GAIN):
             raise ProtocolError(protocol.BAD_ARGS, f"frame {f['name'][:60]!r}: gain must be a number in [0, {MAX_GAIN:g}], "
@@ -306,6 +302,24 @@ def _check_frames(frames: Any) -> list[dict[str, Any]]:
         f.setdefault("params", {})
         f.setdefault("exposure", 1.0)
     return frames
+
+
+def _frame_spec_problem(f: Any) -> str | None:
+    """What is wrong with one frame spec's fields (the first found, named), or None."""
+    if not isinstance(f, dict):
+        return f"a frame spec is a table of name, kind, params, exposure, got {type(f).__name__}"
+    if not isinstance(f.get("name"), str):
+        return "name must be text"
+    if f.get("kind") not in FRAME_KINDS:
+        return f"kind must be one of {', '.join(FRAME_KINDS)}, got {str(f.get('kind'))[:40]!r}"
+    if not isinstance(f.get("params", {}), dict):
+        return "params must be a table"
+    exposure = f.get("exposure", 1.0)
+    if isinstance(exposure, bool) or not isinstance(exposure, int | float) or not MIN_EXPOSURE <= exposure <= MAX_EXPOSURE:
+        return f"exposure must be a number from {MIN_EXPOSURE:g} to {MAX_EXPOSURE:g}, got {str(exposure)[:40]}"
+    if f["kind"] == "image" and not isinstance(f.get("image"), dict):
+        return "a frame of kind image needs image: {dtype, shape, data}"
+    return None
 
 
 def _check_pattern_sizes(frames: list[dict[str, Any]], projector: Any) -> None:

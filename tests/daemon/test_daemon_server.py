@@ -250,9 +250,16 @@ def test_devices_of_the_wrong_kind_absurd_exposures_and_angles_are_bad_args_and_
                       options={"object": "star"})["rig"]
     for exposure in (float("inf"), float("nan"), 1e300, 1e-300, True, 0):
         frame = {"name": "w", "kind": "white", "params": {}, "exposure": exposure}
-        with pytest.raises(DaemonError, match="bad frame spec") as exc:
+        with pytest.raises(DaemonError, match="bad frame spec .*: exposure must be a number from 1e-06 to 1e"
+                                              "[+]06, got") as exc:
             client.call("capture", rig=rig, frames=[frame])
         assert exc.value.code == protocol.BAD_ARGS
+    for frame, said in (({"name": 3, "kind": "white"}, "name must be text"),
+                        ({"name": "w", "kind": "grey"}, "kind must be one of psp, white, black, level, dots, ref, "
+                                                        "image, got 'grey'"),
+                        ({"name": "w", "kind": "image"}, "needs image: {dtype, shape, data}")):
+        with pytest.raises(DaemonError, match=re.escape(said)):  # (it was "bad frame spec {...}" alone)
+            client.call("capture", rig=rig, frames=[frame])
     for angle in (1e308, -1e308, float("nan"), float("inf")):
         with pytest.raises(DaemonError, match="within ±3600") as exc:
             client.call("move", rig=rig, angle=angle)
