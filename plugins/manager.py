@@ -70,6 +70,14 @@ def _registration_error(pm: PluginManager, exc: BaseException) -> str:
                 "name one module; remove one")
     if isinstance(exc, ValueError) and first.startswith("Plugin name already registered: "):
         return "another plugin is registered under this name: rename one of the two entry points"
+    if isinstance(exc, pluggy.PluginValidationError) and first.startswith("unknown hook "):
+        import difflib
+
+        hook = first.split("'")[1] if first.count("'") >= 2 else "?"
+        hooks = sorted(h for h in dir(pm.hook) if h.startswith("sssphase_") and getattr(pm.hook, h).spec is not None)
+        near = difflib.get_close_matches(hook, hooks, n=1)
+        return (f"unknown hook {hook!r}{f' (did you mean {near[0]}?)' if near else ''}: the hooks are "
+                f"{', '.join(hooks)}; one from a newer sssphase is marked hookimpl(optionalhook=True)")
     return _error_text(exc)
 
 

@@ -120,6 +120,21 @@ def test_one_module_registered_under_two_names_is_one_line_naming_the_first(monk
 
 
 
+
+def test_a_misspelt_hook_names_the_hooks_and_the_nearest_one(tmp_path, monkeypatch):
+    """pluggy said "unknown hook 'sssphase_camera' in plugin <module ...>": not which hooks there are, nor how a
+    plugin written for a newer sssphase keeps a hook this one lacks from failing it."""
+    (tmp_path / "acme_typo.py").write_text("from sssphase_plugins.api import hookimpl\n@hookimpl\n"
+                                           "def sssphase_camera():\n    return []\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv(manager.ENV_PLUGINS, "acme_typo")
+    records = {r.name: r for r in manager.plugin_records(manager.build_plugin_manager())}
+    assert not records["acme_typo"].ok and records["sim"].ok
+    assert records["acme_typo"].source == (
+        "unknown hook 'sssphase_camera' (did you mean sssphase_cameras?): the hooks are sssphase_cameras, "
+        "sssphase_model_backends, sssphase_projectors, sssphase_triggers, sssphase_turntables; one from a newer "
+        "sssphase is marked hookimpl(optionalhook=True)")
+
 SHADOW = """
 from sssphase_plugins.hookspecs import hookimpl
 from sssphase_plugins.drivers import DeviceInfo
