@@ -110,16 +110,19 @@ def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] 
 
 
 def plugins() -> None:
-    """List device and model-backend plugins with their versions (broken ones named with the error)."""
-    from sssphase_plugins.manager import device_providers, get_plugin_manager, plugin_records
+    """List device and model-backend plugins with their versions and what each provides (broken ones named with the
+    error; backend problems warned of). These are this environment's plugins: a daemon started elsewhere has its own."""
+    from sssphase_plugins.manager import device_providers, get_plugin_manager, plugin_provides, plugin_records
 
     pm = get_plugin_manager()
     device_providers(pm)  # surfaces plugins whose hooks raise
+    provides = plugin_provides(pm)  # (warns of backend plugins that raise, or whose names are taken)
     table = Table(title="plugins")
-    for col in ("name", "kind", "version", "source"):
+    for col in ("name", "kind", "version", "provides", "source"):
         table.add_column(col)
     for r in plugin_records(pm):
-        table.add_row(r.name, r.kind if r.ok else "[red]broken[/]", r.version, r.source if r.ok else f"[red]{r.source}[/]")
+        table.add_row(r.name, r.kind if r.ok else "[red]broken[/]", r.version, ", ".join(provides.get(r.name, [])),
+                      r.source if r.ok else f"[red]{r.source}[/]")
     console.print(table)
 
 

@@ -447,4 +447,27 @@ def _plugin_model_backends() -> list[tuple[str, Any]]:
     return found
 
 
+def plugin_provides(pm: PluginManager | None = None) -> dict[str, list[str]]:
+    """What each plugin provides, by name: the device kinds of its hooks (``cameras``, ...) and the model backends
+    relighting takes from it (a backend whose name another owner has is not its own: :func:`available_backends`
+    warns of it, and of a hook that raised)."""
+    pm = pm or get_plugin_manager()
+    out: dict[str, list[str]] = {}
+    for kind, hook_name in hookspecs.DEVICE_HOOKS.items():
+        for impl in getattr(pm.hook, hook_name).get_hookimpls():
+            out.setdefault(impl.plugin_name, []).append(f"{kind}s")
+    backends.available_backends()  # (warns of the problems)
+    builtin = next((i.plugin_name for i in pm.hook.sssphase_model_backends.get_hookimpls()
+                    if i.function is backends.sssphase_model_backends), None)
+    named = [(builtin, list(backends.BUILTIN))] if builtin is not None else []
+    claimed = set(backends.BUILTIN)  # a name is its first owner's, as available_backends gives it
+    for plugin, result in _plugin_model_backends():
+        if isinstance(result, dict):
+            named.append((plugin, [n for n in result if n not in claimed]))
+            claimed |= set(result)
+    for plugin, names in named:
+        out.setdefault(plugin, []).append(f"backends {', '.join(names)}" if names else "no backend of its own")
+    return out
+
+
 backends.use_plugin_backends(_plugin_model_backends)  # core asks for plugin backends through this

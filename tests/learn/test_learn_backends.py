@@ -252,6 +252,12 @@ def test_a_backend_plugin_that_raises_or_takes_a_taken_name_is_left_out_not_the_
         lines = [str(w.message) for w in said]
         assert {"torch", "analytic", "mine"} <= set(found)
         assert isinstance(get_backend("analytic", patch=16), AnalyticBackend)  # the built-in, not the impostor's
+        from sssphase_plugins.manager import plugin_provides
+
+        provides = plugin_provides()  # `sss plugins` listed a backend plugin as "backend", never which backends
+        assert provides["builtin"] == ["backends torch, analytic"] and provides["sim"] == ["cameras", "projectors",
+                                                                                            "turntables"]
+        assert provides["impostor_backends"] == ["backends mine"] and "crashing_backends" not in provides
     assert any(line.startswith("model backend plugin crashing_backends failed (RuntimeError: gauss backend hook "
                                "crashed)") for line in lines), lines
     assert "backend 'analytic' of plugin impostor_backends is left out: 'analytic' is a built-in backend " \
