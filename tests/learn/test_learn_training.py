@@ -257,6 +257,35 @@ def test_the_decorrelation_term_is_logged_and_keeps_the_projections_apart(pretra
     assert with_term < 0.8 * np.mean([correlation_of(r) for r in plain])  # 0.17 against 0.29 (seeds 0-2)
 
 
+def test_precise_batchnorm_sets_the_running_statistics_to_those_of_the_patches_whatever_they_were(pretrained, dataset):
+    """Each epoch's end replaces BatchNorm's exponential averages (the last augmented batches') with the average
+    over training patches as captured: the first BatchNorm's running mean is its input's mean over them, and
+    garbled running statistics before it change nothing."""
+    from torch import nn
+
+    from sssphase_core.learning.training import load_encoder
+    from sssphase_core.learning.training.pretrain import precise_batchnorm
+
+    encoder = load_encoder(pretrained)
+    bns = [m for m in encoder.modules() if isinstance(m, nn.BatchNorm2d)]
+    n = 16 * (len(dataset) // 16)
+    seen: list[torch.Tensor] = []
+    hook = bns[0].register_forward_hook(lambda m, args, out: seen.append(args[0].detach()))
+    idx = np.random.default_rng(0 + 11).permutation(len(dataset))[:n]
+    with torch.no_grad():
+        encoder.eval()(dataset.batch(idx)["psp"])
+    hook.remove()
+    precise_batchnorm(encoder, dataset, n, 16, 0, torch.device("cpu"))
+    first = {k: v.clone() for k, v in encoder.state_dict().items()}
+    assert torch.allclose(bns[0].running_mean, seen[0].mean(dim=(0, 2, 3)), atol=1e-5)
+    assert not encoder.training and bns[0].momentum == 0.1  # left as it was found
+    for m in bns:  # garbled: another run's, or a resumed one's
+        m.running_mean.fill_(3.0)
+        m.running_var.fill_(7.0)
+    precise_batchnorm(encoder, dataset, n, 16, 0, torch.device("cpu"))
+    assert [k for k, v in encoder.state_dict().items() if not torch.equal(first[k], v)] == []
+
+
 def test_collapse_statistics():
     torch.manual_seed(0)
     healthy = torch.randn(4096, 64)

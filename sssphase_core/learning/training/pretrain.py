@@ -96,6 +96,36 @@ def knn_monitor_indices(dataset: PatchDataset, n: int, seed: int) -> np.ndarray 
     return idx if len(scorable_classes(dataset.labels("object")[idx], dataset.labels("view")[idx])) >= 2 else None
 
 
+#: Training patches whose batch statistics replace BatchNorm's running averages at each epoch's end.
+PRECISE_BN_PATCHES = 8192
+
+
+@torch.no_grad()
+def precise_batchnorm(encoder: nn.Module, dataset: PatchDataset, n: int, batch_size: int, seed: int,
+                      device: torch.device) -> None:
+    """Recompute the encoder's BatchNorm running means and variances as the average over batches of ``n`` training
+    patches (seeded, shuffled, as captured: the distribution the frozen encoder then embeds), in place of the
+    exponential averages the last ~10 training batches of augmented views dominate ("precise BN", Wu & Johnson
+    2021). Eval-mode embeddings then follow the weights, not the last steps' noise: on the demo's captures the
+    kNN rose on all nine runs measured (+0.05 to +0.52 points, learning.md). Dropout is off while they are gathered, as when the encoder
+    is used. Training itself uses batch statistics: nothing else changes, and a resumed run recomputes the same values."""
+    bns = [m for m in encoder.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]
+    if not bns or len(dataset) < 2:
+        return
+    idx = np.random.default_rng(seed + 11).permutation(len(dataset))[:n]
+    momenta, was = [m.momentum for m in bns], encoder.training
+    encoder.eval()  # dropout off, as the frozen encoder runs (it drew from the RNG and widened out_bn's input)
+    for m in bns:
+        m.reset_running_stats()
+        m.momentum = None  # a cumulative average over the batches
+        m.train()
+    for i in range(0, len(idx) - 1, batch_size):  # (a last batch of one patch has no variance)
+        encoder(dataset.batch(idx[i : i + batch_size])["psp"].to(device))
+    for m, momentum in zip(bns, momenta, strict=True):
+        m.momentum = momentum
+    encoder.train(was)
+
+
 @torch.no_grad()
 def knn_monitor(encoder: Encoder, dataset: PatchDataset, idx: np.ndarray, k: int, device: torch.device) -> float:
     """Object kNN accuracy (cosine, majority vote, view-level leave-one-out) of the frozen embeddings of
@@ -200,6 +230,7 @@ def pretrain(
         stats = all_mean({"proj_std": projection_std(z), "eff_rank": effective_rank(y)}, d)
         stats["proj_std_healthy"] = healthy
         stats["collapsed"] = float(stats["proj_std"] < cfg.collapse_std_frac * healthy)
+        precise_batchnorm(model.encoder, dataset, PRECISE_BN_PATCHES, cfg.batch_size, cfg.seed, d.device)
         if knn_idx is not None:  # every rank computes the same number (same weights, same patches)
             stats["knn_acc"] = knn_monitor(model.encoder, dataset, knn_idx, cfg.knn_k, d.device)
             if knn_initial is not None and epoch == 0:  # once, in the first epoch's row
