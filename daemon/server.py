@@ -280,6 +280,8 @@ MAX_ANGLE = 3600.0
 #: a frame's exposure, relative to the rig's own (1.0): HDR brackets span a few powers of two; beyond these
 #: bounds (or NaN/inf) a driver's arithmetic breaks.
 MIN_EXPOSURE, MAX_EXPOSURE = 1e-6, 1e6
+#: The most frames one ``stream`` request may ask for.
+MAX_STREAM_FRAMES = 10_000_000
 #: a frame's camera gain (the driver's own unit, e.g. dB or a factor), when the frame names one
 MAX_GAIN = 1e3
 
@@ -1068,8 +1070,9 @@ class Daemon:
     def _stream(self, client: bytes, args: dict) -> dict:
         rig = self._get_rig(args)
         count = args.get("count")
-        if not isinstance(count, int) or not 0 < count <= 10_000_000:
-            raise ProtocolError(protocol.BAD_ARGS, "stream needs a positive frame count")
+        if isinstance(count, bool) or not isinstance(count, int) or not 0 < count <= MAX_STREAM_FRAMES:
+            raise ProtocolError(protocol.BAD_ARGS, f"stream needs a frame count, a whole number from 1 to "
+                                                   f"{MAX_STREAM_FRAMES:,}, got {str(count)[:40]}")
 
         def run(job: Job) -> Iterator[tuple[str, Any]]:
             job.doing = f"{rig.devices['camera'].info.id} (stream)"

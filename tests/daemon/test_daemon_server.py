@@ -260,6 +260,9 @@ def test_devices_of_the_wrong_kind_absurd_exposures_and_angles_are_bad_args_and_
                         ({"name": "w", "kind": "image"}, "needs image: {dtype, shape, data}")):
         with pytest.raises(DaemonError, match=re.escape(said)):  # (it was "bad frame spec {...}" alone)
             client.call("capture", rig=rig, frames=[frame])
+    for count in (10**12, 0, True, 2.5):  # 10**12 was "needs a positive frame count"
+        with pytest.raises(DaemonError, match=f"a whole number from 1 to 10,000,000, got {count}"):
+            client.call("stream", rig=rig, count=count)
     for angle in (1e308, -1e308, float("nan"), float("inf")):
         with pytest.raises(DaemonError, match="within ±3600") as exc:
             client.call("move", rig=rig, angle=angle)
