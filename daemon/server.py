@@ -801,7 +801,11 @@ class Daemon:
             try:
                 opened = self._open_rig(identity, args, doing)
                 reply = protocol.reply_ok(rid, opened)
-            except BaseException as exc:  # noqa: BLE001  (a plugin's sys.exit() or CancelledError too)
+            except SystemExit as exc:  # named with the call under way (it said "a device plugin" alone)
+                log.exception("open_rig: %s: a device plugin called sys.exit(%s)", doing["what"], exc.code)
+                reply = protocol.reply_error(rid, protocol.DEVICE,
+                                             f"{doing['what']}: a device plugin called sys.exit({exc.code!r})")
+            except BaseException as exc:  # noqa: BLE001  (a plugin's CancelledError too)
                 reply = _error_reply(rid, exc)
             finally:
                 with self.lock:

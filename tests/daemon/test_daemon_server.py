@@ -426,8 +426,8 @@ def test_a_plugin_that_exits_or_returns_no_driver_fails_its_request_not_the_daem
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
     monkeypatch.setenv("SSS_PLUGINS", "exiting_plugin")
     proc, client, _ = daemon_factory()
-    with pytest.raises(DaemonError, match=r"a device plugin called sys.exit\(3\)"):
-        client.call("open_rig", camera="exiting:open")
+    with pytest.raises(DaemonError, match=r"exiting:open \(open\): a device plugin called sys.exit\(3\)"):
+        client.call("open_rig", camera="exiting:open")  # (the plugin was not named)
     with pytest.raises(DaemonError, match="open.. of the plugin of exiting:junk returned int, not a camera driver"):
         client.call("open_rig", camera="exiting:junk")
     rig = client.call("open_rig", camera="exiting:grab")["rig"]
