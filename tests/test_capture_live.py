@@ -64,3 +64,9 @@ def test_a_cameras_colour_frames_are_light_whatever_their_type_and_other_shapes_
     with pytest.raises(DataError, match=r"the camera fake:cam0 sends frames of shape \(4, 5, 4\): a colour frame is "
                                         r"\(H, W, 3\) RGB"):
         develop_frame(np.zeros((4, 5, 4), np.float32), rig)
+    # a mono camera's float (H, W) frame was taken for a Bayer mosaic; a raw frame without its levels named no camera
+    with pytest.raises(DataError, match=r"the camera fake:cam0 sends float32 frames of shape \(4, 6\): an \(H, W\) "
+                                        r"frame is a raw Bayer mosaic of integer codes; a mono camera's plugin sends"):
+        develop_frame(np.zeros((4, 6), np.float32), rig)
+    with pytest.raises(DataError, match=r"the camera fake:cam0 sends raw frames without its black level and bit depth"):
+        develop_frame(np.zeros((4, 6), np.uint16), rig)

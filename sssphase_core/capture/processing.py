@@ -33,7 +33,14 @@ def develop_frame(data: np.ndarray, rig: RigSpec, exposure: float = 1.0, layout:
     ``bit_depth``: linear 1.0 is then the sensor's full scale at the reference exposure)."""
     if data.ndim == 3:
         return colour_frame(data, rig, meta)
-    black, white = raw_levels(rig, meta)
+    if data.dtype.kind not in "iu":  # a mono camera's light, or a raw frame of floats: neither is a mosaic of codes
+        raise DataError(f"the camera {rig.camera} sends {data.dtype} frames of shape {tuple(data.shape)}: an (H, W) "
+                        "frame is a raw Bayer mosaic of integer codes; a mono camera's plugin sends its frame as "
+                        "(H, W, 3), the grey in each channel")
+    try:
+        black, white = raw_levels(rig, meta)
+    except DataError as exc:
+        raise DataError(f"the camera {rig.camera}{str(exc).removeprefix('the camera')}") from None
     from sssphase_core.processing import isp
 
     return isp.develop(data, black, white * exposure, median=rig.median, layout=layout or rig.bayer)
