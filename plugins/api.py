@@ -15,7 +15,8 @@ modules behind it (``hookspecs``, ``drivers``, ``usb_util``) may be rearranged w
   message when it is missing, :func:`plugin_options` reads the plugin's own table of rig options and checks it
   against the settings the plugin declares (:func:`check_plugin_options` for a table already read).
 
-``tests/devices/test_dev_conformance.py`` shows the behaviour every driver is held to.
+:mod:`sssphase_plugins.conformance` holds a driver to the protocols from a plugin's own tests
+(``check_driver(kind, make)``); ``tests/devices/test_dev_conformance.py`` holds every built-in driver to them.
 """
 
 from __future__ import annotations
