@@ -427,9 +427,10 @@ def find_provider(device_id: str, pm: PluginManager | None = None, kind: str | N
         return provider
     devices, errors = discover_devices(pm)
     known = ", ".join(d.id for d in devices if kind is None or d.kind == kind) or "none"
-    why = next((e for name, e in errors.items() if name.split(".")[0] == prefix), None)  # (it said only "no camera")
+    # (it said only "no camera"); a plugin left out for its name's clash is keyed "name (where)"
+    why = "; ".join(f"{name}: {e}" for name, e in errors.items() if name.split(" (", 1)[0].split(".")[0] == prefix)
     raise KeyError(f"no {kind or 'device'} {device_id!r} (known {kind or 'device'}s: {known})"
-                   + (f"; plugin {prefix}: {why}" if why else ""))
+                   + (f"; plugin {why}" if why else ""))
 
 
 def _plugin_model_backends() -> list[tuple[str, Any]]:

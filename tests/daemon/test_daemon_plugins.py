@@ -124,13 +124,13 @@ def test_one_module_registered_under_two_names_is_one_line_naming_the_first(monk
 def test_a_misspelt_hook_names_the_hooks_and_the_nearest_one(tmp_path, monkeypatch):
     """pluggy said "unknown hook 'sssphase_camera' in plugin <module ...>": not which hooks there are, nor how a
     plugin written for a newer sssphase keeps a hook this one lacks from failing it."""
-    (tmp_path / "acme_typo.py").write_text("from sssphase_plugins.api import hookimpl\n@hookimpl\n"
+    (tmp_path / "acme_misspelt.py").write_text("from sssphase_plugins.api import hookimpl\n@hookimpl\n"
                                            "def sssphase_camera():\n    return []\n")
     monkeypatch.syspath_prepend(str(tmp_path))
-    monkeypatch.setenv(manager.ENV_PLUGINS, "acme_typo")
+    monkeypatch.setenv(manager.ENV_PLUGINS, "acme_misspelt")
     records = {r.name: r for r in manager.plugin_records(manager.build_plugin_manager())}
-    assert not records["acme_typo"].ok and records["sim"].ok
-    assert records["acme_typo"].source == (
+    assert not records["acme_misspelt"].ok and records["sim"].ok
+    assert records["acme_misspelt"].source == (
         "unknown hook 'sssphase_camera' (did you mean sssphase_cameras?): the hooks are sssphase_cameras, "
         "sssphase_model_backends, sssphase_projectors, sssphase_triggers, sssphase_turntables; one from a newer "
         "sssphase is marked hookimpl(optionalhook=True)")
@@ -174,6 +174,9 @@ def test_a_third_party_plugin_named_like_a_built_in_one_is_listed_broken_and_the
     _, errors = manager.discover_devices(pm)
     assert "basler (acme-shadow)" in errors  # `sss devices` names it too
     assert "basler:extra0" not in {d.id for d in manager.discover_devices(pm)[0]}
+    with pytest.raises(KeyError, match=r"no camera 'basler:extra0' .*; basler \(acme-shadow\): another plugin is "
+                                       "registered under this name"):  # (it said "no camera" alone)
+        manager.find_provider("basler:extra0", pm, kind="camera")
 
 
 
