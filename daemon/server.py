@@ -396,7 +396,9 @@ def plain_meta(meta: Any, where: str) -> dict[str, Any]:
         if isinstance(value, dict) and all(isinstance(k, str) for k in value):
             return {k: plain(v, f"{key}.{k}" if key else k, depth + 1) for k, v in value.items()}
         what = (f"an array of {np.asarray(value).size} {np.asarray(value).dtype} values (64 numbers at most)"
-                if isinstance(value, np.ndarray | np.generic) else f"a {type(value).__qualname__}")
+                if isinstance(value, np.ndarray | np.generic) else "an integer beyond 64 bits" if isinstance(value, int)
+                else "a table whose keys are not all text" if isinstance(value, dict)
+                else f"of type {type(value).__qualname__}")
         raise DeviceError(f"{where}: its meta[{key!r}] is {what}, which a frame's header cannot carry: give numbers, "
                           "text, lists or tables of them")
 

@@ -512,7 +512,7 @@ def test_numpy_values_in_a_frames_meta_arrive_as_numbers_and_an_object_is_named_
         "temperature": 41.5, "gain_db": 6, "taken": "2026-12-05T11:00:00", "file": "/tmp/x.raw", "roi": [0, 8],
         "hist": [0, 1, 2, 3]}
     rig = client.call("open_rig", camera="quirky:object")["rig"]
-    with pytest.raises(DaemonError, match=r"quirky:object: frame 'stream/1': its meta\['sensor.handle'\] is a object, "
+    with pytest.raises(DaemonError, match=r"quirky:object: frame 'stream/1': its meta\['sensor.handle'\] is of type object, "
                                           "which a frame's header cannot carry"):
         list(client.stream(rig, 2))
     rig = client.call("open_rig", camera="quirky:ndarray")["rig"]
