@@ -324,10 +324,27 @@ def _frame_spec_problem(f: Any) -> str | None:
     return None
 
 
+def projector_size(projector: Any) -> list[int]:
+    """The projector's ``resolution`` as [width, height] of plain positive integers (numpy integers converted);
+    anything else is a :class:`DeviceError` naming it (numpy values failed the reply and left its rig held)."""
+    import operator
+
+    got = getattr(projector, "resolution", None)
+    try:
+        w, h = got  # type: ignore[misc]
+        size = [operator.index(w), operator.index(h)]
+    except Exception:  # noqa: BLE001  (a driver's value of any type)
+        raise DeviceError(f"{projector.info.id}: its resolution must be (width, height) in whole pixels, got "
+                          f"{str(got)[:60]}") from None
+    if min(size) <= 0:
+        raise DeviceError(f"{projector.info.id}: its resolution must be positive, got {size[0]}x{size[1]}")
+    return size
+
+
 def _check_pattern_sizes(frames: list[dict[str, Any]], projector: Any) -> None:
     """Refuse, with the request, a frame whose pattern is not the projector's size: it was rendered in the job
     before the projector refused it (a 16384 x 16384 pattern kept 1 GB of the daemon's memory per request)."""
-    w, h = projector.resolution
+    w, h = projector_size(projector)
     for f in frames:
         shape = f["image"]["shape"] if f["kind"] == "image" else (f["params"]["height"], f["params"]["width"])
         if (int(shape[1]), int(shape[0])) != (w, h):
@@ -934,8 +951,13 @@ class Daemon:
             info = {k: asdict(d.info) for k, d in devices.items()}
             projector = devices.get("projector")
             versions = {r.name: r.version for r in manager.plugin_records(self.pm)}
-            reply = {"rig": rig.id, "devices": info, "projector_size": list(projector.resolution) if projector else None,
+            reply = {"rig": rig.id, "devices": info, "projector_size": projector_size(projector) if projector else None,
                      "plugins": {d["plugin"]: versions.get(d["plugin"], "?") for d in info.values()}}
+            try:
+                protocol.pack(reply)  # (a numpy number in a driver's info failed the reply after the rig was held)
+            except (TypeError, ValueError, OverflowError) as exc:
+                raise DeviceError(f"the drivers of {', '.join(d.info.id for d in devices.values())} describe themselves "
+                                  f"with values a reply cannot carry ({exc}): DeviceInfo fields are text") from None
         except Exception:
             for d in devices.values():
                 d.close()

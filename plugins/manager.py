@@ -14,6 +14,7 @@ import importlib
 import importlib.metadata
 import importlib.util
 import os
+import time
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -227,6 +228,11 @@ def _discover(provider: DeviceProvider) -> list[DeviceInfo]:
     found = list(provider.discover())
     if not all(isinstance(d, DeviceInfo) for d in found):
         raise TypeError("discover() returned something other than DeviceInfo records")
+    for d in found:  # (a numpy serial failed the daemon's reply: `sss devices` waited 40 s, no plugin named)
+        wrong = next((f for f in ("id", "kind", "plugin", "model", "serial") if not isinstance(getattr(d, f), str)), None)
+        if wrong is not None:
+            raise TypeError(f"discover() returned a DeviceInfo whose {wrong} is {type(getattr(d, wrong)).__name__} "
+                            f"{str(getattr(d, wrong))[:40]!r}: its fields are text (str)")
     kind = getattr(provider, "kind", None)
     other = next((d for d in found if d.kind != kind), None)
     if other is not None:  # (listed as one kind, it then failed to open "is a projector, not a turntable")
@@ -294,39 +300,56 @@ def _within(seconds: float, fn: Any) -> Any:
 _PENDING: dict[tuple[str, str], tuple[Any, float]] = {}
 
 
-def _discover_all(providers: list[tuple[str, DeviceProvider]], timeout: float
-                  ) -> list[tuple[str, str, list[DeviceInfo] | BaseException | float]]:
-    """Each provider's discover(), all at once, within ``timeout`` in all (one after the other, a second plugin
-    waited for the first's timeout: ``sss devices`` gave up first). Per provider (plugin, kind, outcome): its
-    devices, the exception it raised (:class:`_Hung` past the deadline), or, for one still hung from an earlier
-    call, how many seconds ago that call began."""
-    import time
+def _start_discovery(plugin: str, provider: DeviceProvider, now: float) -> Any:
+    """``provider.discover()`` started in a thread: ``(thread, box)``, or, for a provider whose earlier call is still
+    hung, the seconds since that call began (it is not called again until it returns)."""
+    key = (plugin, str(getattr(provider, "kind", "device")))
+    pending = _PENDING.get(key)
+    if pending is not None and pending[0].is_alive():
+        return now - pending[1]
+    _PENDING.pop(key, None)
+    return _started(lambda: _discover(provider))
 
+
+def _finish_discovery(plugin: str, provider: DeviceProvider, run: Any, deadline: float, now: float) -> Any:
+    """The outcome of :func:`_start_discovery`'s ``run`` by ``deadline`` (monotonic): the devices, the exception
+    raised (:class:`_Hung` past the deadline, remembered in ``_PENDING``), or the seconds a pending call has hung."""
+    if isinstance(run, float):
+        return run
+    thread, box = run
+    thread.join(max(0.0, deadline - time.monotonic()))
+    try:
+        return _outcome(thread, box)
+    except BaseException as exc:  # noqa: BLE001  (sorted out by the caller)
+        if isinstance(exc, _Hung):
+            _PENDING[(plugin, str(getattr(provider, "kind", "device")))] = (thread, now)
+        return exc
+
+
+def _discover_all(providers: list[tuple[str, DeviceProvider]], timeout: float) -> list[tuple[str, str, Any]]:
+    """Each provider's discover(), all at once, within ``timeout`` in all (one after the other, a second plugin
+    waited for the first's timeout: ``sss devices`` gave up first). Per provider (plugin, kind, outcome of
+    :func:`_finish_discovery`)."""
     now = time.monotonic()
-    deadline = now + timeout
-    runs: list[tuple[str, str, Any]] = []
-    for plugin, provider in providers:
-        key = (plugin, str(getattr(provider, "kind", "device")))
-        pending = _PENDING.get(key)
-        if pending is not None and pending[0].is_alive():
-            runs.append((*key, now - pending[1]))
-            continue
-        _PENDING.pop(key, None)
-        runs.append((*key, _started(lambda provider=provider: _discover(provider))))
-    outcomes: list[tuple[str, str, list[DeviceInfo] | BaseException | float]] = []
-    for plugin, kind, run in runs:
-        if isinstance(run, float):
-            outcomes.append((plugin, kind, run))
-            continue
-        thread, box = run
-        thread.join(max(0.0, deadline - time.monotonic()))
-        try:
-            outcomes.append((plugin, kind, _outcome(thread, box)))
-        except BaseException as exc:  # noqa: BLE001  (sorted out by the caller)
-            if isinstance(exc, _Hung):
-                _PENDING[(plugin, kind)] = (thread, now)
-            outcomes.append((plugin, kind, exc))
-    return outcomes
+    runs = [(plugin, provider, _start_discovery(plugin, provider, now)) for plugin, provider in providers]
+    return [(plugin, str(getattr(provider, "kind", "device")), _finish_discovery(plugin, provider, run, now + timeout, now))
+            for plugin, provider, run in runs]
+
+
+def _outcome_problem(kind: str, outcome: Any, timeout: float) -> str | None:
+    """What a discovery outcome says of its plugin (None: it found devices)."""
+    if isinstance(outcome, float):
+        return (f"discovery of {kind}s has not returned for {outcome:.0f} s (the plugin hangs): its devices are left "
+                "out, and it is not asked again until that call returns")
+    if isinstance(outcome, _Hung):
+        return f"discovery of {kind}s did not return within {timeout:g} s (the plugin hangs): its devices are left out"
+    if isinstance(outcome, DeviceNotFound):  # an absent device is an answer, not a failure
+        return str(outcome).strip()
+    if isinstance(outcome, Exception | SystemExit):
+        return f"discovery of {kind}s failed: {_error_text(outcome)}"
+    if isinstance(outcome, BaseException):
+        raise outcome
+    return None
 
 
 def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo], dict[str, str]]:
@@ -339,21 +362,10 @@ def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo],
     errors: dict[str, str] = {}
     providers = device_providers(pm, timeout=timeout)  # (a hook that hangs is named in pm.load_errors, added below)
     for plugin, kind, devices in _discover_all(providers, timeout):
-        if isinstance(devices, float):
-            errors[plugin] = (f"discovery of {kind}s has not returned for {devices:.0f} s (the plugin hangs): its "
-                              "devices are left out, and it is not asked again until that call returns")
+        problem = _outcome_problem(kind, devices, timeout)
+        if problem is not None:
+            errors[plugin] = problem
             continue
-        if isinstance(devices, _Hung):
-            errors[plugin] = f"discovery of {kind}s did not return within {timeout:g} s (the plugin hangs): its devices are left out"
-            continue
-        if isinstance(devices, DeviceNotFound):  # an absent device is an answer, not a failure
-            errors[plugin] = str(devices).strip()
-            continue
-        if isinstance(devices, Exception | SystemExit):
-            errors[plugin] = f"discovery of {kind}s failed: {_error_text(devices)}"
-            continue
-        if isinstance(devices, BaseException):
-            raise devices
         for d in devices:
             if d.id not in found:
                 found[d.id] = (plugin, d)
@@ -405,13 +417,22 @@ def find_provider(device_id: str, pm: PluginManager | None = None, kind: str | N
     pm = pm or get_plugin_manager()
     providers = device_providers(pm)
     prefix = device_id.split(":", 1)[0]
-    ranked = [(n, p) for n, p in providers if n == prefix] + [(n, p) for n, p in providers if n != prefix]
+    # the id's own plugin first, then providers of the kind asked for: a hung provider of another kind is not waited on
+    ranked = sorted(providers, key=lambda np_: (np_[0] != prefix, kind is not None and getattr(np_[1], "kind", None) != kind))
     matches: list[tuple[str, DeviceProvider]] = []
-    for name, provider in ranked:
-        try:
-            ids = [d.id for d in _discover(provider)]
-        except (Exception, SystemExit):  # a plugin with no device (or a broken one) must not block the others
+    timeout = discovery_timeout_s()
+    hung: dict[str, str] = {}  # plugins whose discover() hangs, said if the device is not found elsewhere
+    for name, provider in ranked:  # one at a time, each within the timeout (a hung one held the daemon's lock)
+        now = time.monotonic()
+        found = _finish_discovery(name, provider, _start_discovery(name, provider, now), now + timeout, now)
+        if isinstance(found, float | _Hung):
+            hung[name] = _outcome_problem(str(getattr(provider, "kind", "device")), found, timeout) or ""
             continue
+        if isinstance(found, BaseException):  # a plugin with no device (or a broken one) must not block the others
+            if not isinstance(found, Exception | SystemExit):
+                raise found
+            continue
+        ids = [d.id for d in found]
         if device_id in ids:
             if name == prefix:  # the plugin the id names owns it
                 matches = [(name, provider)]
@@ -425,6 +446,9 @@ def find_provider(device_id: str, pm: PluginManager | None = None, kind: str | N
         if kind is not None and provider.kind != kind:
             raise KeyError(f"{device_id} is a {provider.kind}, not a {kind}")
         return provider
+    if hung:  # (the daemon said "the plugins' hooks did not return": it was a plugin's discover(), which may hold it)
+        raise KeyError(f"{device_id} was not found, and plugin{'s' if len(hung) > 1 else ''} "
+                       + "; ".join(f"{name}'s {problem}" for name, problem in sorted(hung.items(), key=lambda i: i[0] != prefix)))
     devices, errors = discover_devices(pm)
     known = ", ".join(d.id for d in devices if kind is None or d.kind == kind) or "none"
     # (it said only "no camera"); a plugin left out for its name's clash is keyed "name (where)"

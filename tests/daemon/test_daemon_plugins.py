@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from sssphase_plugins import manager, sim_plugin
-from sssphase_plugins.drivers import Camera, DeviceError, Projector, Turntable
+from sssphase_plugins.drivers import Camera, DeviceError, DeviceInfo, Projector, Turntable
 
 GOOD = """
 from sssphase_plugins.hookspecs import hookimpl
@@ -513,3 +513,17 @@ def test_a_provider_reporting_a_device_of_another_kind_is_named_not_listed(monke
 
     with pytest.raises(TypeError, match=r"a turntable provider's discover\(\) reported mixed:x as a projector"):
         manager._discover(Mixed())
+
+
+def test_a_device_description_that_is_not_text_is_the_plugins_error_not_the_daemons():
+    """A numpy serial passed discovery and failed the daemon's reply: `sss devices` waited 40 s, no plugin named."""
+    import numpy as np
+
+    class P:
+        kind = "camera"
+
+        def discover(self):
+            return [DeviceInfo("acme:1", "camera", "acme", "m", np.int64(42))]
+
+    with pytest.raises(TypeError, match=r"a DeviceInfo whose serial is int64 '42': its fields are text"):
+        manager._discover(P())

@@ -522,6 +522,96 @@ def test_numpy_values_in_a_frames_meta_arrive_as_numbers_and_an_object_is_named_
     assert proc.poll() is None and client.ping(timeout_s=2.0)
 
 
+NUMPY_PLUGIN = '''
+import os
+import threading
+
+import numpy as np
+from sssphase_plugins.api import DeviceInfo, ShowReceipt, check_pattern, hookimpl
+
+STUCK = threading.Event()
+
+
+class Projector:
+    def __init__(self, device_id, resolution):
+        self.info = DeviceInfo(device_id, "projector", "npdev", "np", device_id)
+        self.resolution = resolution
+        self.n = 0
+
+    def show(self, image, *, tag="", confirm=True):
+        self.n += 1
+        check_pattern(image, (256, 192), self.info.id)
+        return ShowReceipt(self.n, tag, self.n)
+
+    def close(self):
+        pass
+
+
+class Projectors:
+    kind = "projector"
+
+    def discover(self):
+        return [DeviceInfo("npdev:numpy", "projector", "npdev", "np", "1"),
+                DeviceInfo("npdev:text", "projector", "npdev", "np", "2")]
+
+    def open(self, device_id, options, shared):
+        return Projector(device_id, (np.int64(256), np.int64(192)) if device_id == "npdev:numpy" else ("256", "192"))
+
+
+class Cameras:
+    kind = "camera"
+
+    def discover(self):
+        if os.environ.get("NPDEV_CAMERAS") == "hang":
+            STUCK.wait()
+        return [DeviceInfo("npdev:cam", "camera", "npdev", "np", np.int64(42))]
+
+    def open(self, device_id, options, shared):
+        raise NotImplementedError
+
+
+@hookimpl
+def sssphase_projectors():
+    return [Projectors()]
+
+
+@hookimpl
+def sssphase_cameras():
+    return [Cameras()]
+'''
+
+
+def test_numpy_values_in_a_drivers_description_and_a_hung_discovery_hold_no_rig_and_no_daemon(daemon_factory, tmp_path,
+                                                                                              monkeypatch):
+    """A projector's resolution of numpy integers failed the open_rig reply after the rig was held (its camera then
+    "in use by rig ... of another client"); a numpy serial in discovery hung `devices` for 40 s; a discover() that
+    hangs held the daemon's discovery lock in open_rig for ever ("restart the daemon")."""
+    from sssphase_daemon.client import DaemonError
+
+    (tmp_path / "npdev_plugin.py").write_text(NUMPY_PLUGIN)
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")]))
+    monkeypatch.setenv("SSS_PLUGINS", "npdev_plugin")
+    monkeypatch.setenv("SSS_DISCOVERY_TIMEOUT_S", "1")
+    monkeypatch.setenv("NPDEV_CAMERAS", "hang")
+    proc, client, _ = daemon_factory()
+    opened = client.call("open_rig", camera="sim:camera0", projector="npdev:numpy", options={"object": "star"})
+    assert opened["projector_size"] == [256, 192]
+    client.call("close_rig", rig=opened["rig"])
+    with pytest.raises(DaemonError, match=r"npdev:text: its resolution must be \(width, height\) in whole pixels, got "
+                                          r"\('256', '192'\)"):
+        client.call("open_rig", camera="sim:camera0", projector="npdev:text", options={"object": "star"})
+    t0 = time.monotonic()
+    with pytest.raises(DaemonError, match=r"npdev:cam was not found, and plugin npdev_plugin's discovery of cameras (did "
+                                          r"not return within 1 s|has not returned for \d+ s) \(the plugin hangs\)"):
+        client.call("open_rig", camera="npdev:cam", timeout_s=20.0)
+    assert time.monotonic() - t0 < 5.0
+    rig = client.call("open_rig", camera="sim:camera0", projector="sim:projector0", options={"object": "star"})["rig"]
+    assert client.call("close_rig", rig=rig)  # the daemon keeps serving the other devices
+    listed = client.call("devices", timeout_s=20.0)
+    assert "has not returned for" in listed["errors"]["npdev_plugin"], listed["errors"]
+    assert client.call("status")["rigs"] == [] and proc.poll() is None
+
+
 SLOW_PLUGIN = """
 import time
 from sssphase_plugins.api import DeviceInfo, hookimpl
