@@ -187,7 +187,8 @@ def plugin_records(pm: PluginManager | None = None) -> list[PluginRecord]:
         if plugin is None or name in pm.load_errors:  # a plugin whose hook failed is listed once, as broken
             continue
         hooks = {impl_hook.name for impl_hook in pm.get_hookcallers(plugin) or []}
-        kinds = [k for k, present in (("device", hooks & device_hooks), ("backend", hooks - device_hooks)) if present]
+        kinds = [k for k, present in (("device", hooks & device_hooks), ("backend", "sssphase_model_backends" in hooks))
+                 if present]  # (an optionalhook this version has no spec for is neither: it is never called)
         version, source = _plugin_version(pm, plugin)
         records.append(PluginRecord(name, "+".join(kinds) or "none", version, source, True))
     records += [PluginRecord(n, "broken", "?", err, False) for n, err in pm.load_errors.items()]
@@ -487,9 +488,11 @@ def plugin_provides(pm: PluginManager | None = None) -> dict[str, list[str]]:
     named = [(builtin, list(backends.BUILTIN))] if builtin is not None else []
     claimed = set(backends.BUILTIN)  # a name is its first owner's, as available_backends gives it
     for plugin, result in _plugin_model_backends():
-        if isinstance(result, dict):
-            named.append((plugin, [n for n in result if n not in claimed]))
-            claimed |= set(result)
+        if isinstance(result, BaseException) or backends.backends_result_problem(result) is not None:
+            out.setdefault(plugin, []).append("no backend (see the warning)")
+            continue
+        named.append((plugin, [n for n in result if n not in claimed]))  # type: ignore[union-attr]
+        claimed |= set(result)  # type: ignore[arg-type]
     for plugin, names in named:
         out.setdefault(plugin, []).append(f"backends {', '.join(names)}" if names else "no backend of its own")
     return out

@@ -134,6 +134,11 @@ def test_a_misspelt_hook_names_the_hooks_and_the_nearest_one(tmp_path, monkeypat
         "unknown hook 'sssphase_camera' (did you mean sssphase_cameras?): the hooks are sssphase_cameras, "
         "sssphase_model_backends, sssphase_projectors, sssphase_triggers, sssphase_turntables; one from a newer "
         "sssphase is marked hookimpl(optionalhook=True)")
+    (tmp_path / "acme_later.py").write_text("from sssphase_plugins.api import hookimpl\n@hookimpl(optionalhook=True)\n"
+                                            "def sssphase_lenses():\n    return []\n")
+    monkeypatch.setenv(manager.ENV_PLUGINS, "acme_later")
+    records = {r.name: r for r in manager.plugin_records(manager.build_plugin_manager())}
+    assert records["acme_later"].ok and records["acme_later"].kind == "none"  # it was listed as a "backend"
 
 SHADOW = """
 from sssphase_plugins.hookspecs import hookimpl

@@ -244,7 +244,13 @@ def test_a_backend_plugin_that_raises_or_takes_a_taken_name_is_left_out_not_the_
                 "@hookimpl\n"
                 "def sssphase_model_backends():\n"
                 "    return {'analytic': lambda **o: None, 'mine': lambda **o: AnalyticBackend(patch=8, **o)}\n")
-    with _backend_plugins(tmp_path, monkeypatch, crashing_backends=crashing, impostor_backends=impostor):
+    intkey = ("from sssphase_core.learning.backends import hookimpl\n"
+              "@hookimpl\n"
+              "def sssphase_model_backends():\n"
+              "    return {3: lambda **o: None}\n")
+    uncallable = intkey.replace("{3: lambda **o: None}", "{'weird': 42}")
+    with _backend_plugins(tmp_path, monkeypatch, crashing_backends=crashing, impostor_backends=impostor,
+                          intkey_backends=intkey, uncallable_backends=uncallable):
         backends._told.clear()
         with warnings.catch_warnings(record=True) as said:
             warnings.simplefilter("always")
@@ -257,7 +263,15 @@ def test_a_backend_plugin_that_raises_or_takes_a_taken_name_is_left_out_not_the_
         provides = plugin_provides()  # `sss plugins` listed a backend plugin as "backend", never which backends
         assert provides["builtin"] == ["backends torch, analytic"] and provides["sim"] == ["cameras", "projectors",
                                                                                             "turntables"]
-        assert provides["impostor_backends"] == ["backends mine"] and "crashing_backends" not in provides
+        assert provides["impostor_backends"] == ["backends mine"]
+        # (a key of 3 crashed `sss plugins` with "internal error: TypeError"; {'weird': 42} was listed as provided)
+        for plugin in ("crashing_backends", "intkey_backends", "uncallable_backends"):
+            assert provides[plugin] == ["no backend (see the warning)"], provides
+        assert "weird" not in found
+    assert "model backend plugin intkey_backends returned a backend named 3: names are non-empty text: its backends " \
+           "are left out" in lines, lines
+    assert "model backend plugin uncallable_backends returned backend 'weird' as int '42', not a factory (callable): " \
+           "its backends are left out" in lines, lines
     assert any(line.startswith("model backend plugin crashing_backends failed (RuntimeError: gauss backend hook "
                                "crashed)") for line in lines), lines
     assert "backend 'analytic' of plugin impostor_backends is left out: 'analytic' is a built-in backend " \

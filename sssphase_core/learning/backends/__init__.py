@@ -62,6 +62,19 @@ def _warn_once(text: str) -> None:
         warnings.warn(text, UserWarning, stacklevel=3)
 
 
+def backends_result_problem(result: object) -> str | None:
+    """Why a plugin's ``sssphase_model_backends()`` result is no ``{name: factory}`` (names non-empty text,
+    factories callable), or None."""
+    if not isinstance(result, dict):
+        return f"returned {type(result).__name__}, not {{name: factory}}"
+    for name, factory in result.items():
+        if not isinstance(name, str) or not name.strip():
+            return f"returned a backend named {name!r}: names are non-empty text"
+        if not callable(factory):
+            return f"returned backend {name!r} as {type(factory).__name__} {str(factory)[:30]!r}, not a factory (callable)"
+    return None
+
+
 def available_backends() -> dict[str, Callable[..., FootprintBackend]]:
     """{name: factory} of the built-ins and of every plugin implementing ``sssphase_model_backends``. A name is the
     first owner's: the built-ins', then the earliest plugin's (a plugin's ``analytic`` replaced the built-in without
@@ -73,9 +86,9 @@ def available_backends() -> dict[str, Callable[..., FootprintBackend]]:
             _warn_once(f"model backend plugin {plugin} failed ({type(result).__name__}: {str(result)[:160]}): its "
                        "backends are left out (sss plugins lists it)")
             continue
-        if not isinstance(result, dict) or not all(isinstance(k, str) and callable(v) for k, v in result.items()):
-            _warn_once(f"model backend plugin {plugin} returned {type(result).__name__}, not {{name: factory}}: its "
-                       "backends are left out")
+        problem = backends_result_problem(result)
+        if problem is not None:
+            _warn_once(f"model backend plugin {plugin} {problem}: its backends are left out")
             continue
         for name, factory in result.items():
             if name in found:
