@@ -17,6 +17,7 @@ import functools
 import hmac
 import itertools
 import logging
+import operator
 import os
 import queue
 import sys
@@ -227,6 +228,7 @@ class Job:
     last_beat: float = field(default_factory=time.monotonic)
     deadline_s: float = DEFAULT_DEADLINE_S  # the longest one device call may take
     doing: str = "the rig"  # the device call under way (named when it stalls)
+    last_stamp: tuple[int, int] | None = None  # the previous frame's (sequence, timestamp_ns): a stale buffer repeats it
 
     def summary(self) -> dict[str, Any]:
         return {"job": self.id, "rig": self.rig.id, "state": self.state, "sent": self.sent, "total": self.total,
@@ -363,6 +365,21 @@ def _check_frame(job: Job, name: str, frame: Any, first: tuple[tuple[int, ...], 
                           "not a plugins.drivers.Frame: its driver must return Frame(data, sequence, timestamp_ns, "
                           "exposure, meta)")
     frame.meta = plain_meta(frame.meta, f"{who}: frame {name[:60]!r}")
+    for field_name in ("sequence", "timestamp_ns"):  # (a text timestamp failed the next frame's header, blamed on its grab)
+        try:
+            setattr(frame, field_name, operator.index(getattr(frame, field_name)))
+        except TypeError:
+            raise DeviceError(f"{who}: frame {name[:60]!r} has {field_name} {str(getattr(frame, field_name))[:40]!r} "
+                              f"of type {type(getattr(frame, field_name)).__name__}: a whole number") from None
+    exposure = getattr(frame, "exposure", None)
+    if isinstance(exposure, bool) or not isinstance(exposure, int | float | np.number) or not float(exposure) > 0:
+        raise DeviceError(f"{who}: frame {name[:60]!r} has exposure {str(exposure)[:40]!r}: a number above 0")
+    frame.exposure = float(exposure)
+    stamp = (frame.sequence, frame.timestamp_ns)
+    if stamp == job.last_stamp:  # the same buffer delivered again: every later frame the same image
+        raise DeviceError(f"{who}: frame {name[:60]!r} repeats the previous frame's sequence {stamp[0]} and timestamp "
+                          f"{stamp[1]}: a stale buffer, or a fault of its driver")
+    job.last_stamp = stamp
     data = getattr(frame, "data", None)
     if not isinstance(data, np.ndarray) or data.dtype.kind not in "biuf" or data.ndim not in (2, 3) or not data.size:
         raise DeviceError(f"{who}: frame {name[:60]!r} is not an image array ({type(data).__name__} "

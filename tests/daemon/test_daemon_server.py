@@ -471,7 +471,11 @@ class Camera:
                 "file": Path("/tmp/x.raw"), "roi": (np.uint16(0), np.uint16(8)), "hist": np.arange(4)}
         if self.info.id == "quirky:object":
             meta["sensor"] = {"handle": object()}
-        return Frame(data, self.n, 1000 * self.n, 1.0, meta)
+        if self.info.id == "quirky:stale":
+            return Frame(data, 7, 7000, 1.0, {})
+        if self.info.id == "quirky:textstamp":
+            return Frame(data, self.n, "y", 1.0, {})
+        return Frame(data, np.int64(self.n), np.uint64(1000 * self.n), np.float32(1.0), meta)
 
     def stream(self, count):
         return (self.grab() for _ in range(count))
@@ -484,7 +488,7 @@ class Provider:
     kind = "camera"
 
     def discover(self):
-        return [DeviceInfo(f"quirky:{n}", "camera", "quirky", n, n) for n in ("numpy", "object", "ndarray")]
+        return [DeviceInfo(f"quirky:{n}", "camera", "quirky", n, n) for n in ("numpy", "object", "ndarray", "stale", "textstamp")]
 
     def open(self, device_id, options, shared):
         return Camera(device_id)
@@ -514,6 +518,14 @@ def test_numpy_values_in_a_frames_meta_arrive_as_numbers_and_an_object_is_named_
     rig = client.call("open_rig", camera="quirky:object")["rig"]
     with pytest.raises(DaemonError, match=r"quirky:object: frame 'stream/1': its meta\['sensor.handle'\] is of type object, "
                                           "which a frame's header cannot carry"):
+        list(client.stream(rig, 2))
+    rig = client.call("open_rig", camera="quirky:stale")["rig"]  # (a stuck buffer passed as a session of one image)
+    with pytest.raises(DaemonError, match=r"quirky:stale: frame 'stream/7' repeats the previous frame's sequence 7 and "
+                                          r"timestamp 7000: a stale buffer"):
+        list(client.stream(rig, 3))
+    rig = client.call("open_rig", camera="quirky:textstamp")["rig"]  # (blamed on the next frame's grab)
+    with pytest.raises(DaemonError, match=r"quirky:textstamp: frame 'stream/1' has timestamp_ns 'y' of type str: a "
+                                          "whole number"):
         list(client.stream(rig, 2))
     rig = client.call("open_rig", camera="quirky:ndarray")["rig"]
     with pytest.raises(DaemonError, match=r"quirky:ndarray: frame 'stream/\d+' came back as numpy.ndarray, not a "
