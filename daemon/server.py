@@ -39,7 +39,7 @@ from sssphase_daemon.frames import ClientGone, FrameSender, Preview, bind, confi
 from sssphase_daemon.guard import ConnectionGuard
 from sssphase_daemon.protocol import ProtocolError
 from sssphase_plugins import manager
-from sssphase_plugins.drivers import DeviceError, PreloadingProjector, TriggeredCamera
+from sssphase_plugins.drivers import DeviceError, PreloadingProjector, TriggeredCamera, plain_meta
 
 log = logging.getLogger("sssphase.daemon")
 MAX_FRAMES_PER_JOB = 200_000
@@ -362,7 +362,7 @@ def _check_frame(job: Job, name: str, frame: Any, first: tuple[tuple[int, ...], 
     who = camera.info.id if camera is not None else "the camera"
     if not hasattr(frame, "meta") or not hasattr(frame, "timestamp_ns"):  # (an ndarray's .data is its memoryview)
         raise DeviceError(f"{who}: frame {name[:60]!r} came back as {type(frame).__module__}.{type(frame).__qualname__}, "
-                          "not a plugins.drivers.Frame: its driver must return Frame(data, sequence, timestamp_ns, "
+                          "not a sssphase_plugins.api.Frame: its driver must return Frame(data, sequence, timestamp_ns, "
                           "exposure, meta)")
     frame.meta = plain_meta(frame.meta, f"{who}: frame {name[:60]!r}")
     for field_name in ("sequence", "timestamp_ns"):  # (a text timestamp failed the next frame's header, blamed on its grab)
@@ -391,54 +391,6 @@ def _check_frame(job: Job, name: str, frame: Any, first: tuple[tuple[int, ...], 
     if data.dtype.kind == "f" and not np.isfinite(data).all():
         raise DeviceError(f"{who}: frame {name[:60]!r} holds NaN or infinite values: a corrupted transfer or a fault of its driver")
     return first or seen
-
-
-#: How many values a frame's metadata may hold in all (it rides in every frame's header).
-MAX_META_VALUES = 1000
-
-
-def plain_meta(meta: Any, where: str) -> dict[str, Any]:
-    """A driver's ``Frame.meta`` as the plain values a header carries: numpy scalars and small arrays become
-    numbers and lists, dates ISO text, paths and enums their text or value. Anything else (an object, a large
-    array) raises :class:`DeviceError` naming its key: msgpack failed on it with a bare TypeError."""
-    import datetime
-    import enum
-
-    count = 0
-
-    def plain(value: Any, key: str, depth: int) -> Any:
-        nonlocal count
-        count += 1
-        if count > MAX_META_VALUES or depth > 8:
-            raise DeviceError(f"{where}: its meta holds more than {MAX_META_VALUES} values or nests deeper than 8 "
-                              f"(at {key!r}): keep a frame's metadata small")
-        if isinstance(value, np.generic | np.ndarray) and np.asarray(value).dtype.kind in "biuf" \
-                and np.asarray(value).size <= 64:
-            value = np.asarray(value).tolist()
-        if isinstance(value, enum.Enum):
-            value = value.value
-        if value is None or isinstance(value, bool | str | bytes) or (isinstance(value, int) and -2**63 <= value < 2**64):
-            return value
-        if isinstance(value, float):
-            return value
-        if isinstance(value, datetime.date | datetime.time):
-            return value.isoformat()
-        if isinstance(value, os.PathLike):
-            return os.fspath(value)
-        if isinstance(value, list | tuple):
-            return [plain(v, f"{key}[{i}]", depth + 1) for i, v in enumerate(value)]
-        if isinstance(value, dict) and all(isinstance(k, str) for k in value):
-            return {k: plain(v, f"{key}.{k}" if key else k, depth + 1) for k, v in value.items()}
-        what = (f"an array of {np.asarray(value).size} {np.asarray(value).dtype} values (64 numbers at most)"
-                if isinstance(value, np.ndarray | np.generic) else "an integer beyond 64 bits" if isinstance(value, int)
-                else "a table whose keys are not all text" if isinstance(value, dict)
-                else f"of type {type(value).__qualname__}")
-        raise DeviceError(f"{where}: its meta[{key!r}] is {what}, which a frame's header cannot carry: give numbers, "
-                          "text, lists or tables of them")
-
-    if not isinstance(meta, dict):
-        raise DeviceError(f"{where}: its meta must be a dict of names to values, got {type(meta).__qualname__}")
-    return plain(meta, "", 0)
 
 
 def _deadline(args: dict, rig: Rig) -> float:

@@ -15,6 +15,7 @@ runs the same from its repository, against a fake of its hardware library::
 from __future__ import annotations
 
 import math
+import operator
 from collections.abc import Callable
 from typing import Any
 
@@ -31,6 +32,7 @@ from sssphase_plugins.drivers import (
     ShowReceipt,
     Trigger,
     Turntable,
+    plain_meta,
 )
 
 PROTOCOLS: dict[str, type] = {"camera": Camera, "projector": Projector, "trigger": Trigger, "turntable": Turntable}
@@ -86,7 +88,18 @@ def check_camera(camera: Any) -> None:
                  f"{who}: a frame is (H, W) raw or (H, W, 3) RGB, got {f.data.shape}")
         _require(f.data.size and np.isfinite(f.data.astype(np.float64)).all(), f"{who}: a frame is empty or not finite")
         _require(f.exposure > 0, f"{who}: Frame.exposure must be above 0, got {f.exposure}")
-        _require(isinstance(f.meta, dict), f"{who}: Frame.meta is a {type(f.meta).__name__}, not a dict")
+        _require(f.data.dtype.kind in "iu" or f.data.ndim == 3,
+                 f"{who}: an (H, W) frame is a raw Bayer mosaic of integer codes, got {f.data.dtype} (a mono camera "
+                 "sends (H, W, 3), its grey in each channel)")
+        try:
+            plain_meta(f.meta, f"{who}: a frame")  # what the daemon sends in every frame's header
+        except DeviceError as exc:
+            raise ConformanceError(str(exc)) from None
+        for name in ("sequence", "timestamp_ns"):
+            try:
+                operator.index(getattr(f, name))
+            except TypeError:
+                raise ConformanceError(f"{who}: Frame.{name} is {getattr(f, name)!r}, not a whole number") from None
     sequences = [f.sequence for f in frames]
     _require(sequences == sorted(set(sequences)), f"{who}: sequence numbers must be distinct and rising, got {sequences}")
     stamps = [f.timestamp_ns for f in frames]
@@ -101,12 +114,13 @@ def check_projector(projector: Any) -> None:
     check_identity(projector, "projector")
     who = projector.info.id
     w, h = projector.resolution
-    _require(isinstance(w, int) and isinstance(h, int) and w > 0 and h > 0,
-             f"{who}: resolution must be two positive integers, got {(w, h)}")
+    _require(type(w) is int and type(h) is int and w > 0 and h > 0,  # (numpy integers are converted by the daemon,
+             f"{who}: resolution must be two positive ints, got {(w, h)}")  # but a plugin should give plain ones)
     ramp = np.broadcast_to(np.linspace(0, 1, w, dtype=np.float32), (h, w))
     first = projector.show(ramp, tag="grey")
     second = projector.show(np.zeros((h, w, 3), np.float32), tag="rgb")
-    _require(isinstance(first, ShowReceipt) and isinstance(second, ShowReceipt), f"{who}: show() must return ShowReceipt")
+    _require(isinstance(first, ShowReceipt) and isinstance(second, ShowReceipt),
+             f"{who}: show() must return a ShowReceipt, got {type(first).__name__}")
     _require((first.tag, second.tag) == ("grey", "rgb"), f"{who}: a receipt carries its pattern's tag")
     _require(second.frame_id > first.frame_id and second.on_screen_ns >= first.on_screen_ns,
              f"{who}: receipts' frame ids must rise and their on-screen times not go back")

@@ -8,6 +8,9 @@ device failures; the daemon turns it into a clear error for the client and keeps
 
 from __future__ import annotations
 
+import datetime
+import enum
+import os
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol, runtime_checkable
@@ -50,6 +53,51 @@ class Frame:
     timestamp_ns: int
     exposure: float
     meta: dict[str, Any] = field(default_factory=dict)
+
+
+#: How many values a frame's metadata may hold in all (it rides in every frame's header).
+MAX_META_VALUES = 1000
+
+
+def plain_meta(meta: Any, where: str) -> dict[str, Any]:
+    """A driver's ``Frame.meta`` as the plain values a header carries: numpy scalars and small arrays become
+    numbers and lists, dates ISO text, paths and enums their text or value. Anything else (an object, a large
+    array) raises :class:`DeviceError` naming its key: msgpack failed on it with a bare TypeError."""
+    count = 0
+
+    def plain(value: Any, key: str, depth: int) -> Any:
+        nonlocal count
+        count += 1
+        if count > MAX_META_VALUES or depth > 8:
+            raise DeviceError(f"{where}: its meta holds more than {MAX_META_VALUES} values or nests deeper than 8 "
+                              f"(at {key!r}): keep a frame's metadata small")
+        if isinstance(value, np.generic | np.ndarray) and np.asarray(value).dtype.kind in "biuf" \
+                and np.asarray(value).size <= 64:
+            value = np.asarray(value).tolist()
+        if isinstance(value, enum.Enum):
+            value = value.value
+        if value is None or isinstance(value, bool | str | bytes) or (isinstance(value, int) and -2**63 <= value < 2**64):
+            return value
+        if isinstance(value, float):
+            return value
+        if isinstance(value, datetime.date | datetime.time):
+            return value.isoformat()
+        if isinstance(value, os.PathLike):
+            return os.fspath(value)
+        if isinstance(value, list | tuple):
+            return [plain(v, f"{key}[{i}]", depth + 1) for i, v in enumerate(value)]
+        if isinstance(value, dict) and all(isinstance(k, str) for k in value):
+            return {k: plain(v, f"{key}.{k}" if key else k, depth + 1) for k, v in value.items()}
+        what = (f"an array of {np.asarray(value).size} {np.asarray(value).dtype} values (64 numbers at most)"
+                if isinstance(value, np.ndarray | np.generic) else "an integer beyond 64 bits" if isinstance(value, int)
+                else "a table whose keys are not all text" if isinstance(value, dict)
+                else f"of type {type(value).__qualname__}")
+        raise DeviceError(f"{where}: its meta[{key!r}] is {what}, which a frame's header cannot carry: give numbers, "
+                          "text, lists or tables of them")
+
+    if not isinstance(meta, dict):
+        raise DeviceError(f"{where}: its meta must be a dict of names to values, got {type(meta).__qualname__}")
+    return plain(meta, "", 0)
 
 
 @dataclass(frozen=True)

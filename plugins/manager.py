@@ -108,8 +108,9 @@ def _name_taken(pm: PluginManager, name: str, module: str, where: str) -> bool:
         return False
     other = getattr(registered, "__name__", type(registered).__name__)
     if other != module:
-        pm.load_errors[f"{name} ({where})"] = (f"another plugin is registered under this name ({other}): rename one "
-                                               "of the two entry points")
+        fix = ("name another module in SSS_PLUGINS (a module there is registered under its own name)"
+               if where == ENV_PLUGINS else "rename one of the two entry points")
+        pm.load_errors[f"{name} ({where})"] = f"another plugin is registered under this name ({other}): {fix}"
     return True
 
 

@@ -175,7 +175,9 @@ def test_a_third_party_plugin_named_like_a_built_in_one_is_listed_broken_and_the
     assert not records["basler (acme-shadow)"].ok
     assert records["basler (acme-shadow)"].source == said.format("sssphase_plugins.basler_camera")
     assert records["sim"].ok and pm.get_plugin("sim").__name__ == "sssphase_plugins.sim_plugin"
-    assert records["sim (SSS_PLUGINS)"].source == said.format("sssphase_plugins.sim_plugin")
+    assert records["sim (SSS_PLUGINS)"].source == ("another plugin is registered under this name "
+                                                   "(sssphase_plugins.sim_plugin): name another module in SSS_PLUGINS "
+                                                   "(a module there is registered under its own name)")
     _, errors = manager.discover_devices(pm)
     assert "basler (acme-shadow)" in errors  # `sss devices` names it too
     assert "basler:extra0" not in {d.id for d in manager.discover_devices(pm)[0]}

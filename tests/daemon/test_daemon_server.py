@@ -529,7 +529,7 @@ def test_numpy_values_in_a_frames_meta_arrive_as_numbers_and_an_object_is_named_
         list(client.stream(rig, 2))
     rig = client.call("open_rig", camera="quirky:ndarray")["rig"]
     with pytest.raises(DaemonError, match=r"quirky:ndarray: frame 'stream/\d+' came back as numpy.ndarray, not a "
-                                          r"plugins.drivers.Frame"):
+                                          r"sssphase_plugins.api.Frame"):
         list(client.stream(rig, 1))
     assert proc.poll() is None and client.ping(timeout_s=2.0)
 

@@ -170,6 +170,12 @@ def test_a_driver_that_breaks_a_rule_is_told_which():
     sloppy.configure = lambda exposure=None, **kw: (_ for _ in ()).throw(api.DeviceError("bad")) if exposure <= 0 else None
     with pytest.raises(ConformanceError, match="acme:0: a frame is a ndarray, not a Frame"):
         check_driver("camera", lambda: sloppy)
+    for frame, said in ((api.Frame(np.zeros((4, 4), np.float32), 1, 1, 1.0), r"an \(H, W\) frame is a raw Bayer mosaic"),
+                        (api.Frame(np.zeros((4, 4, 3)), 1, "y", 1.0), "Frame.timestamp_ns is 'y', not a whole number"),
+                        (api.Frame(np.zeros((4, 4, 3)), 1, 1, 1.0, {"h": object()}), r"its meta\['h'\] is of type object")):
+        sloppy.grab = lambda timeout_s=5.0, frame=frame: frame  # (each passed the checks, and failed every capture)
+        with pytest.raises(ConformanceError, match=said):
+            check_driver("camera", lambda: sloppy)
     with pytest.raises(ConformanceError, match="kind must be one of"):
         check_driver("camra", _Sloppy)
 
