@@ -885,7 +885,7 @@ class Daemon:
         device_id = "the rig"
         try:
             for kind, device_id in wanted.items():
-                doing["what"] = f"the plugins' hooks (finding {device_id})"
+                doing["what"] = f"the plugins' hooks or discover() (finding {device_id})"
                 if not self.discovery_lock.acquire(timeout=0.8 * self.open_timeout_s):  # not while discovery asks the plugins
                     raise ProtocolError(protocol.DEVICE, f"finding {device_id}: another request's device discovery has "
                                         f"not returned for {0.8 * self.open_timeout_s:g} s (a plugin hangs): restart the daemon")

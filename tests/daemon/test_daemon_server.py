@@ -864,7 +864,7 @@ def test_a_plugin_hung_in_its_hook_holds_only_its_own_request(daemon_factory, tm
     monkeypatch.setenv("SSS_OPEN_TIMEOUT_S", "1.5")
     proc, client, runtime = daemon_factory()
     flag.touch()
-    with pytest.raises(DaemonError, match=r"the plugins' hooks \(finding sim:camera0\) did not return within 1.5 s"):
+    with pytest.raises(DaemonError, match=r"the plugins' hooks or discover\(\) \(finding sim:camera0\) did not return within 1.5 s"):
         client.call("open_rig", camera="sim:camera0", timeout_s=5.0)
     assert client.ping(timeout_s=2.0)  # the daemon answers meanwhile
     with pytest.raises(DaemonError, match=r"finding sim:camera0: another request's device discovery has not returned"):
