@@ -128,8 +128,9 @@ def _pil_pattern_values(img: Any, path: Path | str) -> np.ndarray:
         scale = 1.0
     elif img.mode.startswith("I"):
         scale = 65535.0  # 16-bit PNG/TIFF (Pillow's I;16 and I modes)
-        if arr.min() < 0 or arr.max() > 65535 or (code_depth(Path(path)) or 16) > 16:  # 32-bit: 0..255 relit black
-            raise InputError(f"pattern {path} holds {code_depth(Path(path))}-bit integers (from {arr.min()} to "
+        depth = code_depth(Path(path)) if Path(path).is_file() else None  # (a page of a multi-page file: a label)
+        if arr.min() < 0 or arr.max() > 65535 or (depth or 16) > 16:  # 32-bit: 0..255 relit black
+            raise InputError(f"pattern {path} holds {f'{depth}-bit ' if depth else ''}integers (from {arr.min()} to "
                              f"{arr.max()}), whose scale is unknown: give 8- or 16-bit unsigned values, or floats in [0, 1]")
     else:
         scale = 255.0
