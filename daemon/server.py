@@ -329,8 +329,6 @@ def _frame_spec_problem(f: Any) -> str | None:
 def projector_size(projector: Any) -> list[int]:
     """The projector's ``resolution`` as [width, height] of plain positive integers (numpy integers converted);
     anything else is a :class:`DeviceError` naming it (numpy values failed the reply and left its rig held)."""
-    import operator
-
     got = getattr(projector, "resolution", None)
     try:
         w, h = got  # type: ignore[misc]

@@ -114,8 +114,9 @@ def check_projector(projector: Any) -> None:
     check_identity(projector, "projector")
     who = projector.info.id
     w, h = projector.resolution
-    _require(type(w) is int and type(h) is int and w > 0 and h > 0,  # (numpy integers are converted by the daemon,
-             f"{who}: resolution must be two positive ints, got {(w, h)}")  # but a plugin should give plain ones)
+    # plain ints: the daemon converts numpy integers, but a plugin's own clients may not
+    _require(type(w) is int and type(h) is int and w > 0 and h > 0,
+             f"{who}: resolution must be two positive ints, got {(w, h)}")
     ramp = np.broadcast_to(np.linspace(0, 1, w, dtype=np.float32), (h, w))
     first = projector.show(ramp, tag="grey")
     second = projector.show(np.zeros((h, w, 3), np.float32), tag="rgb")

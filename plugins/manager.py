@@ -483,19 +483,14 @@ def plugin_provides(pm: PluginManager | None = None) -> dict[str, list[str]]:
     for kind, hook_name in hookspecs.DEVICE_HOOKS.items():
         for impl in getattr(pm.hook, hook_name).get_hookimpls():
             out.setdefault(impl.plugin_name, []).append(f"{kind}s")
-    backends.available_backends()  # (warns of the problems)
     builtin = next((i.plugin_name for i in pm.hook.sssphase_model_backends.get_hookimpls()
                     if i.function is backends.sssphase_model_backends), None)
-    named = [(builtin, list(backends.BUILTIN))] if builtin is not None else []
-    claimed = set(backends.BUILTIN)  # a name is its first owner's, as available_backends gives it
-    for plugin, result in _plugin_model_backends():
-        if isinstance(result, BaseException) or backends.backends_result_problem(result) is not None:
-            out.setdefault(plugin, []).append("no backend (see the warning)")
+    for plugin, names in backends.backend_plugins().items():  # (warns of the problems)
+        if plugin is None and builtin is None:
             continue
-        named.append((plugin, [n for n in result if n not in claimed]))  # type: ignore[union-attr]
-        claimed |= set(result)  # type: ignore[arg-type]
-    for plugin, names in named:
-        out.setdefault(plugin, []).append(f"backends {', '.join(names)}" if names else "no backend of its own")
+        said = ("no backend (see the warning)" if names is None else
+                f"backends {', '.join(names)}" if names else "no backend of its own")
+        out.setdefault(builtin if plugin is None else plugin, []).append(said)
     return out
 
 

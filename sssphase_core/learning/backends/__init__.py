@@ -75,26 +75,40 @@ def backends_result_problem(result: object) -> str | None:
     return None
 
 
-def available_backends() -> dict[str, Callable[..., FootprintBackend]]:
+def backend_plugins() -> dict[str | None, list[str] | None]:
+    """Whose each backend is, as :func:`available_backends` decides: {plugin: the names it owns} (``None`` for the
+    built-ins), and ``None`` for a plugin whose hook raised or returned no ``{name: factory}`` (warned of)."""
+    owners: dict[str | None, list[str] | None] = {None: list(BUILTIN)}
+    available_backends(owners)
+    return owners
+
+
+def available_backends(owners: dict[str | None, list[str] | None] | None = None) -> dict[str, Callable[..., FootprintBackend]]:
     """{name: factory} of the built-ins and of every plugin implementing ``sssphase_model_backends``. A name is the
     first owner's: the built-ins', then the earliest plugin's (a plugin's ``analytic`` replaced the built-in without
-    a word); a plugin whose hook raised, or returned no ``{name: factory}``, is left out. Each is warned of once."""
+    a word); a plugin whose hook raised, or returned no ``{name: factory}``, is left out. Each is warned of once.
+    ``owners``, when given, gets each plugin's own names (:func:`backend_plugins`)."""
     found = sssphase_model_backends()
     owner = dict.fromkeys(found, "a built-in backend")
+    owners = {} if owners is None else owners
     for plugin, result in _plugin_backends() if _plugin_backends is not None else []:
         if isinstance(result, BaseException):
             _warn_once(f"model backend plugin {plugin} failed ({type(result).__name__}: {str(result)[:160]}): its "
                        "backends are left out (sss plugins lists it)")
+            owners[plugin] = None
             continue
         problem = backends_result_problem(result)
         if problem is not None:
             _warn_once(f"model backend plugin {plugin} {problem}: its backends are left out")
+            owners[plugin] = None
             continue
+        owners[plugin] = []
         for name, factory in result.items():
             if name in found:
                 _warn_once(f"backend {name!r} of plugin {plugin} is left out: {name!r} is {owner[name]} (rename it)")
                 continue
             found[name], owner[name] = factory, f"plugin {plugin}'s"
+            owners[plugin].append(name)  # type: ignore[union-attr]
     return found
 
 

@@ -107,8 +107,9 @@ def precise_batchnorm(encoder: nn.Module, dataset: PatchDataset, n: int, batch_s
     patches (seeded, shuffled, as captured: the distribution the frozen encoder then embeds), in place of the
     exponential averages the last ~10 training batches of augmented views dominate ("precise BN", Wu & Johnson
     2021). Eval-mode embeddings then follow the weights, not the last steps' noise: on the demo's captures the
-    kNN rose on all nine runs measured (+0.05 to +0.52 points, learning.md). Dropout is off while they are gathered, as when the encoder
-    is used. Training itself uses batch statistics: nothing else changes, and a resumed run recomputes the same values."""
+    kNN rose on all nine runs measured (+0.05 to +0.52 points, learning.md). Dropout is off while they are gathered,
+    as when the encoder is used. Training itself uses batch statistics: nothing else changes, and a resumed run
+    recomputes the same values."""
     bns = [m for m in encoder.modules() if isinstance(m, nn.modules.batchnorm._BatchNorm)]
     if not bns or len(dataset) < 2:
         return
