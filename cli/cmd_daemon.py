@@ -73,10 +73,10 @@ def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] 
 
     client = _client(remote_ok=True)
     if client is not None:
-        from sssphase_plugins.manager import discovery_timeout_s
+        from sssphase_plugins.manager import discovery_timeout_s, discovery_wait_s
 
         with client:  # (the daemon gives a hung plugin discovery_timeout_s, then answers without it)
-            found = client.call("devices", timeout_s=discovery_timeout_s() + 10.0)
+            found = client.call("devices", timeout_s=discovery_wait_s(discovery_timeout_s()) + 10.0)
         devs, errors, where = found["devices"], found["errors"], "daemon"
     else:
         from sssphase_cli.output import stdout_to_stderr
@@ -121,8 +121,9 @@ def plugins() -> None:
     for col in ("name", "kind", "version", "provides", "source"):
         table.add_column(col)
     for r in plugin_records(pm):
-        table.add_row(r.name, r.kind if r.ok else "[red]broken[/]", r.version, ", ".join(provides.get(r.name, [])),
-                      r.source if r.ok else f"[red]{r.source}[/]")
+        bad = not r.ok and r.kind != "off"
+        table.add_row(r.name, "[red]broken[/]" if bad else r.kind, r.version, ", ".join(provides.get(r.name, [])),
+                      f"[red]{r.source}[/]" if bad else r.source)
     console.print(table)
 
 

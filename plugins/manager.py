@@ -39,12 +39,13 @@ class PluginManager(pluggy.PluginManager):
         super().__init__(hookspecs.PROJECT)
         self.load_errors: dict[str, str] = {}
         self.distributions: dict[int, tuple[str, str]] = {}  # id(plugin) -> (version, project) of an entry point's
+        self.left_out: list[str] = []  # plugins named '-name' in $SSS_PLUGINS: neither imported nor called
 
 
 @dataclass(frozen=True)
 class PluginRecord:
     name: str
-    kind: str  # "device", "backend", "device+backend" or "broken"
+    kind: str  # "device", "backend", "device+backend", "broken", or "off" (left out by $SSS_PLUGINS)
     version: str
     source: str  # distribution, module path, or the error message
     ok: bool
@@ -104,8 +105,8 @@ def _name_taken(pm: PluginManager, name: str, module: str, where: str) -> bool:
     named ``basler``), record the newcomer as broken under ``name (where)``: it was dropped, or replaced the built-in
     one, without a word. The same module named twice (an entry point also in $SSS_PLUGINS) is no error."""
     registered = pm.get_plugin(name)
-    if registered is None and not pm.is_blocked(name):
-        return False
+    if registered is None:
+        return pm.is_blocked(name)  # (left out: not imported)
     other = getattr(registered, "__name__", type(registered).__name__)
     if other != module:
         fix = ("name another module in SSS_PLUGINS (a module there is registered under its own name)"
@@ -133,21 +134,35 @@ def build_plugin_manager() -> PluginManager:
     pm.add_hookspecs(backend_hookspecs)
     points = [ep for group in ENTRY_POINT_GROUPS for ep in importlib.metadata.entry_points(group=group)]
     points.sort(key=lambda ep: not _ours(ep.module))  # (stable: each group's order kept)
+    entries = [m.strip() for m in os.environ.get(ENV_PLUGINS, "").split(",") if m.strip()]
+    _leave_out(pm, [m[1:].strip() for m in entries if m.startswith("-")], [*BUILTIN_PLUGINS, *(ep.name for ep in points)])
     builtins = [(n, m) for n, m in BUILTIN_PLUGINS.items() if not any(ep.name == n and _ours(ep.module) for ep in points)]
     for name, module in builtins:  # ours when not installed with their entry points (a source tree)
-        _register_checked(pm, name, lambda n=name, m=module: pm.register(importlib.import_module(m), name=n))
+        if not pm.is_blocked(name):
+            _register_checked(pm, name, lambda n=name, m=module: pm.register(importlib.import_module(m), name=n))
     for ep in points:
         where = ep.dist.name if getattr(ep, "dist", None) is not None else ep.value
         if _name_taken(pm, ep.name, ep.module, where):
             continue
         _register_checked(pm, ep.name, lambda e=ep: _register_entry_point(pm, e))
-    extra = [m.strip() for m in os.environ.get(ENV_PLUGINS, "").split(",") if m.strip()]
-    for module in extra:
+    for module in (m for m in entries if not m.startswith("-")):
         if _name_taken(pm, module, module, ENV_PLUGINS):
             continue
         _register_checked(pm, module, lambda m=module: pm.register(_imported(m, lambda: importlib.import_module(m)),
                                                                    name=m))
     return pm
+
+
+def _leave_out(pm: PluginManager, names: list[str], installed: list[str]) -> None:
+    """Block the plugins named ``-name`` in $SSS_PLUGINS (a broken or hanging plugin, or a library not wanted at
+    all): they are neither imported nor called. A name no plugin has is said (a misspelling left it in)."""
+    for name in names:
+        if name not in installed:
+            pm.load_errors[f"-{name} ({ENV_PLUGINS})"] = (f"no plugin is named {name!r} to leave out; the installed "
+                                                          f"plugins: {', '.join(sorted(set(installed)))}")
+            continue
+        pm.set_blocked(name)
+        pm.left_out.append(name)
 
 
 def _imported(name: str, load: Any) -> Any:
@@ -158,7 +173,7 @@ def _imported(name: str, load: Any) -> Any:
         return _within(discovery_timeout_s(), load)
     except _Hung:
         raise TimeoutError(f"importing it did not finish within {discovery_timeout_s():g} s (it hangs at import): "
-                           "disable it (SSS_PLUGINS, or uninstall it)") from None
+                           f"leave it out ({ENV_PLUGINS}=-{name}) or uninstall it") from None
 
 
 def get_plugin_manager(*, refresh: bool = False) -> PluginManager:
@@ -193,6 +208,7 @@ def plugin_records(pm: PluginManager | None = None) -> list[PluginRecord]:
         version, source = _plugin_version(pm, plugin)
         records.append(PluginRecord(name, "+".join(kinds) or "none", version, source, True))
     records += [PluginRecord(n, "broken", "?", err, False) for n, err in pm.load_errors.items()]
+    records += [PluginRecord(n, "off", "", f"left out by {ENV_PLUGINS}=-{n}", False) for n in pm.left_out]
     return sorted(records, key=lambda r: r.name)
 
 
@@ -215,8 +231,8 @@ def device_providers(pm: PluginManager | None = None, kind: str | None = None,
                                     "(objects with kind, discover and open)")
             except _Hung:
                 pm.load_errors[impl.plugin_name] = (f"its hook {hook_name} did not return within {timeout:g} s (it "
-                                                    "hangs): its devices are left out; disable it (SSS_PLUGINS, or "
-                                                    "uninstall it)")
+                                                    "hangs): its devices are left out; leave it out "
+                                                    f"({ENV_PLUGINS}=-{impl.plugin_name}) or uninstall it")
                 continue
             except (Exception, SystemExit) as exc:
                 pm.load_errors[impl.plugin_name] = f"{hook_name} failed: {_error_text(exc)}"
@@ -328,14 +344,31 @@ def _finish_discovery(plugin: str, provider: DeviceProvider, run: Any, deadline:
         return exc
 
 
+# Discovery is one call at a time: run all at once, the built-in plugins' hardware libraries started together
+# (depthai's import, SDL's display start, pylon's start-up: C libraries with no promise of safety beside one
+# another), and a CI test process died with a segmentation fault inside discovery.
+def discovery_wait_s(timeout: float) -> float:
+    """The longest :func:`discover_devices` takes with a per-provider ``timeout``: each provider has ``timeout``
+    from its own start, and the last starts at most ``timeout / 2`` after the first (:func:`_discover_all`)."""
+    return 1.5 * timeout
+
+
 def _discover_all(providers: list[tuple[str, DeviceProvider]], timeout: float) -> list[tuple[str, str, Any]]:
-    """Each provider's discover(), all at once, within ``timeout`` in all (one after the other, a second plugin
-    waited for the first's timeout: ``sss devices`` gave up first). Per provider (plugin, kind, outcome of
-    :func:`_finish_discovery`)."""
-    now = time.monotonic()
-    runs = [(plugin, provider, _start_discovery(plugin, provider, now)) for plugin, provider in providers]
-    return [(plugin, str(getattr(provider, "kind", "device")), _finish_discovery(plugin, provider, run, now + timeout, now))
-            for plugin, provider, run in runs]
+    """Each provider's discover(), one after the other: the next starts when the one before returns, or once that
+    one has run ``timeout / (2 n)`` (a slow or hung plugin; waiting out its whole timeout before the next one made
+    two hung plugins outlast `sss devices`). Each provider has ``timeout`` from its own start. Per provider
+    (plugin, kind, outcome of :func:`_finish_discovery`)."""
+    stagger = timeout / (2 * max(1, len(providers)))
+    runs = []
+    for plugin, provider in providers:
+        started = time.monotonic()
+        run = _start_discovery(plugin, provider, started)
+        if not isinstance(run, float):
+            run[0].join(stagger)
+        runs.append((plugin, provider, run, started))
+    return [(plugin, str(getattr(provider, "kind", "device")),
+             _finish_discovery(plugin, provider, run, started + timeout, started))
+            for plugin, provider, run, started in runs]
 
 
 def _outcome_problem(kind: str, outcome: Any, timeout: float) -> str | None:
@@ -355,9 +388,9 @@ def _outcome_problem(kind: str, outcome: Any, timeout: float) -> str | None:
 
 
 def discover_devices(pm: PluginManager | None = None) -> tuple[list[DeviceInfo], dict[str, str]]:
-    """Run discovery on every provider (this may do device I/O), all at once. Returns devices and errors by
-    plugin; a plugin whose hooks or discover() do not return within :func:`discovery_timeout_s` is reported as
-    hung and left out, and is not called again until that call returns."""
+    """Run discovery on every provider (this may do device I/O), one after the other (:func:`_discover_all`).
+    Returns devices and errors by plugin; a plugin whose hooks or discover() do not return within
+    :func:`discovery_timeout_s` is reported as hung and left out, and is not called again until that call returns."""
     timeout = discovery_timeout_s()
     pm = pm or get_plugin_manager()
     found: dict[str, tuple[str, DeviceInfo]] = {}  # id -> (plugin, device): one entry per id

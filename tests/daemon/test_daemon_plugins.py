@@ -441,6 +441,71 @@ def test_plugins_hung_in_discovery_share_one_timeout_and_are_not_asked_again_whi
                 sys.modules[n].RELEASE.set()
 
 
+TIMED = """
+import threading, time
+from sssphase_plugins.hookspecs import hookimpl
+CALLS = []
+class P:
+    def __init__(self, kind):
+        self.kind = kind
+    def discover(self):
+        CALLS.append((time.monotonic(), "in", self.kind, threading.get_ident()))
+        time.sleep(0.1)  # a bus that takes a moment to enumerate
+        CALLS.append((time.monotonic(), "out", self.kind, threading.get_ident()))
+        return []
+    def open(self, device_id, options, shared):
+        raise NotImplementedError
+@hookimpl
+def sssphase_cameras():
+    return [P("camera")]
+@hookimpl
+def sssphase_projectors():
+    return [P("projector")]
+"""
+
+
+def test_discovery_calls_one_plugin_at_a_time(tmp_path, monkeypatch):
+    """All discoveries started at once: the built-in plugins' hardware libraries started together in one process,
+    and a CI test worker died with a segmentation fault inside discovery. Each call now begins after the one
+    before it has returned (a plugin that hangs holds the next back only for its share of the timeout)."""
+    import sys
+
+    for name in ("acme_timed", "acme_timed_too"):
+        (tmp_path / f"{name}.py").write_text(textwrap.dedent(TIMED))
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv(manager.ENV_PLUGINS, "acme_timed,acme_timed_too")
+    monkeypatch.setattr(manager, "DISCOVERY_TIMEOUT_S", 60.0)
+    pm = manager.build_plugin_manager()
+    devices, errors = manager.discover_devices(pm)
+    assert "acme_timed" not in errors and sim_plugin.CAMERA_ID in {d.id for d in devices}, errors
+    calls = sorted(c for n in ("acme_timed", "acme_timed_too") for c in sys.modules[n].CALLS)
+    assert len(calls) == 8 and [c[1] for c in calls] == ["in", "out"] * 4, calls  # never two inside at once
+
+
+def test_a_plugin_named_with_a_minus_in_sss_plugins_is_left_out_unimported(tmp_path):
+    """A hung plugin's message said "disable it (SSS_PLUGINS, ...)", but SSS_PLUGINS could only add plugins: an
+    installed one could not be turned off short of uninstalling it. ``-name`` leaves it out, not even imported;
+    a name no plugin has is said, with the installed ones."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    code = ("import json, sys\nfrom sssphase_plugins import manager\npm = manager.build_plugin_manager()\n"
+            "devices, errors = manager.discover_devices(pm)\n"
+            "print(json.dumps({'records': [[r.name, r.kind, r.source] for r in manager.plugin_records(pm)], "
+            "'devices': [d.id for d in devices], 'depthai': 'depthai' in sys.modules, "
+            "'plugin': 'sssphase_plugins.oak_camera' in sys.modules}))")
+    env = {**os.environ, manager.ENV_PLUGINS: "-oak, -nosuch", "SSS_RUNTIME_DIR": str(tmp_path / "rt")}
+    res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, env=env)
+    out = json.loads(res.stdout.strip().splitlines()[-1])
+    records = {name: (kind, source) for name, kind, source in out["records"]}
+    assert records["oak"] == ("off", "left out by SSS_PLUGINS=-oak"), records
+    assert not out["depthai"] and not out["plugin"]  # neither the plugin nor its library imported
+    assert records["-nosuch (SSS_PLUGINS)"][0] == "broken" and "no plugin is named 'nosuch'" in records["-nosuch (SSS_PLUGINS)"][1]
+    assert records["sim"][0] == "device" and sim_plugin.CAMERA_ID in out["devices"]  # the others as before
+
+
 def test_sss_devices_shows_each_id_whole_in_a_narrow_terminal(tmp_path):
     """HARDWARE.md has users copy device IDs from `sss devices` into their rig file; at 80 columns the table cut them
     (`example:testpatte…`)."""
