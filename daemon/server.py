@@ -39,7 +39,13 @@ from sssphase_daemon.frames import ClientGone, FrameSender, Preview, bind, confi
 from sssphase_daemon.guard import ConnectionGuard
 from sssphase_daemon.protocol import ProtocolError
 from sssphase_plugins import manager
-from sssphase_plugins.drivers import DeviceError, PreloadingProjector, TriggeredCamera, plain_meta
+from sssphase_plugins.drivers import (
+    DeviceError,
+    PreloadingProjector,
+    ShowReceipt,
+    TriggeredCamera,
+    plain_meta,
+)
 
 log = logging.getLogger("sssphase.daemon")
 MAX_FRAMES_PER_JOB = 200_000
@@ -350,6 +356,18 @@ def _check_pattern_sizes(frames: list[dict[str, Any]], projector: Any) -> None:
         if (int(shape[1]), int(shape[0])) != (w, h):
             raise ProtocolError(protocol.BAD_ARGS, f"frame {f['name'][:60]!r} is {shape[1]}x{shape[0]}, but the projector "
                                                    f"{projector.info.id} shows {w}x{h}")
+
+
+def _check_receipt(receipt: Any, tag: str, who: str) -> None:
+    """A projector's answer to ``show(..., tag=tag)``: a :class:`ShowReceipt` of that pattern (a driver that returned
+    None, or the receipt of another pattern, went unnoticed: the camera was exposed whatever was on screen)."""
+    if not isinstance(receipt, ShowReceipt):
+        raise DeviceError(f"{who}: show() of pattern {tag[:60]!r} came back as {type(receipt).__name__}, not a "
+                          "sssphase_plugins.api.ShowReceipt: a projector confirms each pattern it shows, "
+                          "ShowReceipt(frame_id, tag, on_screen_ns)")
+    if receipt.tag != tag:
+        raise DeviceError(f"{who}: show() of pattern {tag[:60]!r} confirmed pattern {str(receipt.tag)[:60]!r}: the "
+                          "projector shows another pattern than the one asked for (a receipt carries the tag it was given)")
 
 
 def _check_frame(job: Job, name: str, frame: Any, first: tuple[tuple[int, ...], str] | None) -> tuple[tuple[int, ...], str]:
@@ -1045,7 +1063,8 @@ class Daemon:
                 projector.preload([(spec["name"], functools.partial(_pattern_for, spec)) for spec in frames])
             for spec in frames:
                 job.doing = f"{projector.info.id} (show {spec['name'][:60]})"
-                projector.show(_pattern_for(spec), tag=spec["name"], confirm=True)
+                _check_receipt(projector.show(_pattern_for(spec), tag=spec["name"], confirm=True), spec["name"],
+                               projector.info.id)
                 job.doing = f"{camera.info.id} (configure)"
                 camera.configure(exposure=float(spec["exposure"]),
                                  **({"gain": float(spec["gain"])} if spec.get("gain") is not None else {}))

@@ -414,6 +414,7 @@ class Provider:
 @hookimpl
 def sssphase_cameras():
     return [Provider()]
+
 '''
 
 
@@ -451,7 +452,7 @@ from pathlib import Path
 
 import numpy as np
 from sssphase_plugins.api import DeviceInfo, hookimpl
-from sssphase_plugins.drivers import Frame
+from sssphase_plugins.drivers import Frame, ShowReceipt
 
 
 class Camera:
@@ -497,6 +498,37 @@ class Provider:
 @hookimpl
 def sssphase_cameras():
     return [Provider()]
+
+
+class Projector:
+    def __init__(self, device_id):
+        self.info = DeviceInfo(device_id, "projector", "quirky", "quirky", device_id)
+        self.resolution = (8, 8)
+        self.last = "none yet"
+
+    def show(self, image, *, tag="", confirm=True):
+        shown, self.last = self.last, tag
+        if self.info.id == "quirky:noreceipt":
+            return None
+        return ShowReceipt(1, shown if self.info.id == "quirky:lagging" else tag, 1)
+
+    def close(self):
+        pass
+
+
+class Projectors:
+    kind = "projector"
+
+    def discover(self):
+        return [DeviceInfo(f"quirky:{n}", "projector", "quirky", n, n) for n in ("noreceipt", "lagging", "good")]
+
+    def open(self, device_id, options, shared):
+        return Projector(device_id)
+
+
+@hookimpl
+def sssphase_projectors():
+    return [Projectors()]
 '''
 
 
@@ -512,6 +544,7 @@ def test_numpy_values_in_a_frames_meta_arrive_as_numbers_and_an_object_is_named_
     proc, client, _ = daemon_factory()
     rig = client.call("open_rig", camera="quirky:numpy")["rig"]
     frames = list(client.stream(rig, 2))
+    client.call("close_rig", rig=rig)  # (its camera serves the projectors' captures below)
     assert len(frames) == 2 and frames[1].header["meta"] == {
         "temperature": 41.5, "gain_db": 6, "taken": "2026-12-05T11:00:00", "file": "/tmp/x.raw", "roi": [0, 8],
         "hist": [0, 1, 2, 3]}
@@ -531,6 +564,21 @@ def test_numpy_values_in_a_frames_meta_arrive_as_numbers_and_an_object_is_named_
     with pytest.raises(DaemonError, match=r"quirky:ndarray: frame 'stream/\d+' came back as numpy.ndarray, not a "
                                           r"sssphase_plugins.api.Frame"):
         list(client.stream(rig, 1))
+    # a projector's show() answered with None, or with the receipt of the pattern before: the camera was exposed
+    # whatever was on screen, and the capture went on
+    frames = [f for f in json.loads(capture_plan(8, 8, references=("white", "black")).to_json())["frames"]
+              if f["kind"] in ("white", "black")]
+    rig = client.call("open_rig", camera="quirky:numpy", projector="quirky:good")["rig"]
+    assert [f.name for f in client.capture(rig, frames)] == [f["name"] for f in frames]
+    client.call("close_rig", rig=rig)
+    rig = client.call("open_rig", camera="quirky:numpy", projector="quirky:noreceipt")["rig"]
+    with pytest.raises(DaemonError, match=r"quirky:noreceipt: show\(\) of pattern '\w+' came back as NoneType, not a "
+                                          r"sssphase_plugins.api.ShowReceipt"):
+        list(client.capture(rig, frames))
+    client.call("close_rig", rig=rig)
+    rig = client.call("open_rig", camera="quirky:numpy", projector="quirky:lagging")["rig"]
+    with pytest.raises(DaemonError, match=r"quirky:lagging: show\(\) of pattern '\w+' confirmed pattern 'none yet'"):
+        list(client.capture(rig, frames))
     assert proc.poll() is None and client.ping(timeout_s=2.0)
 
 
