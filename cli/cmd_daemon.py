@@ -111,7 +111,8 @@ def devices(as_json: Annotated[bool, typer.Option("--json", help="print JSON")] 
 
 def plugins() -> None:
     """List device and model-backend plugins with their versions and what each provides (broken ones named with the
-    error; backend problems warned of). These are this environment's plugins: a daemon started elsewhere has its own."""
+    error; backend problems warned of). These are this environment's plugins: a daemon started elsewhere has its own.
+    SSS_PLUGINS=mod1,mod2 adds modules as plugins; SSS_PLUGINS=-name leaves an installed one out (listed as off)."""
     from sssphase_plugins.manager import device_providers, get_plugin_manager, plugin_provides, plugin_records
 
     pm = get_plugin_manager()
