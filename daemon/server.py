@@ -918,6 +918,11 @@ class Daemon:
                     raise ProtocolError(protocol.DEVICE, f"open() of the plugin of {device_id} returned "
                                         f"{type(driver).__name__}, not a {kind} driver")
                 devices[kind] = driver
+                said = getattr(driver.info, "id", None)
+                if said != device_id:  # (held under another id, the device was not refused to a second client)
+                    raise ProtocolError(protocol.DEVICE, f"open() of {device_id} returned a driver whose info.id is "
+                                        f"{str(said)[:60]!r}: a driver describes the device it was opened as "
+                                        "(DeviceInfo with that id)")
         except BaseException as exc:  # a plugin's sys.exit() too: the devices opened so far are closed
             _close_all(devices)
             if isinstance(exc, SssError):

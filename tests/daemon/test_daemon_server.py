@@ -489,10 +489,11 @@ class Provider:
     kind = "camera"
 
     def discover(self):
-        return [DeviceInfo(f"quirky:{n}", "camera", "quirky", n, n) for n in ("numpy", "object", "ndarray", "stale", "textstamp")]
+        return [DeviceInfo(f"quirky:{n}", "camera", "quirky", n, n)
+                for n in ("numpy", "object", "ndarray", "stale", "textstamp", "alias")]
 
     def open(self, device_id, options, shared):
-        return Camera(device_id)
+        return Camera("quirky:numpy" if device_id == "quirky:alias" else device_id)
 
 
 @hookimpl
@@ -579,6 +580,9 @@ def test_numpy_values_in_a_frames_meta_arrive_as_numbers_and_an_object_is_named_
     rig = client.call("open_rig", camera="quirky:numpy", projector="quirky:lagging")["rig"]
     with pytest.raises(DaemonError, match=r"quirky:lagging: show\(\) of pattern '\w+' confirmed pattern 'none yet'"):
         list(client.capture(rig, frames))
+    # a driver that calls itself another device: held under that id, its own was not refused to a second client
+    with pytest.raises(DaemonError, match=r"open\(\) of quirky:alias returned a driver whose info.id is 'quirky:numpy'"):
+        client.call("open_rig", camera="quirky:alias")
     assert proc.poll() is None and client.ping(timeout_s=2.0)
 
 
