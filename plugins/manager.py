@@ -150,6 +150,11 @@ def build_plugin_manager() -> PluginManager:
             continue
         _register_checked(pm, module, lambda m=module: pm.register(_imported(m, lambda: importlib.import_module(m)),
                                                                    name=m))
+    for name, plugin in pm.list_name_plugin():  # (listed as kind "none": nothing said why its devices never appeared)
+        unmarked = _unmarked_hooks(pm, plugin) if plugin is not None and not pm.get_hookcallers(plugin) else []
+        if unmarked and name not in pm.load_errors:
+            pm.load_errors[name] = (f"provides nothing: its {', '.join(unmarked)} {'is' if len(unmarked) == 1 else 'are'} "
+                                    "not marked @hookimpl (from sssphase_plugins.api import hookimpl)")
     return pm
 
 
@@ -210,6 +215,14 @@ def plugin_records(pm: PluginManager | None = None) -> list[PluginRecord]:
     records += [PluginRecord(n, "broken", "?", err, False) for n, err in pm.load_errors.items()]
     records += [PluginRecord(n, "off", "", f"left out by {ENV_PLUGINS}=-{n}", False) for n in pm.left_out]
     return sorted(records, key=lambda r: r.name)
+
+
+def _unmarked_hooks(pm: PluginManager, plugin: Any) -> list[str]:
+    """The functions of ``plugin`` named like a hook (``sssphase_cameras``) but not marked ``@hookimpl``: pluggy
+    passes over them without a word."""
+    hooks = {h for h in dir(pm.hook) if h.startswith("sssphase_") and getattr(pm.hook, h).spec is not None}
+    return sorted(h for h in hooks if callable(getattr(plugin, h, None))
+                  and pm.parse_hookimpl_opts(plugin, h) is None)
 
 
 def device_providers(pm: PluginManager | None = None, kind: str | None = None,

@@ -506,6 +506,23 @@ def test_a_plugin_named_with_a_minus_in_sss_plugins_is_left_out_unimported(tmp_p
     assert records["sim"][0] == "device" and sim_plugin.CAMERA_ID in out["devices"]  # the others as before
 
 
+def test_a_plugin_whose_hooks_are_not_marked_is_named_with_the_missing_marker(tmp_path, monkeypatch):
+    """A plugin author who forgot @hookimpl saw the plugin listed as kind "none" and its devices never appear, with
+    nothing said: pluggy passes over unmarked functions."""
+    (tmp_path / "acme_unmarked.py").write_text("def sssphase_cameras():\n    return []\n"
+                                               "def sssphase_turntables():\n    return []\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setenv(manager.ENV_PLUGINS, "acme_unmarked")
+    pm = manager.build_plugin_manager()
+    records = {r.name: r for r in manager.plugin_records(pm)}
+    assert records["acme_unmarked"].kind == "broken" and records["acme_unmarked"].source == (
+        "provides nothing: its sssphase_cameras, sssphase_turntables are not marked @hookimpl (from "
+        "sssphase_plugins.api import hookimpl)")
+    assert records["sim"].ok and records["example"].ok  # (marked ones as before)
+    _, errors = manager.discover_devices(pm)
+    assert "not marked @hookimpl" in errors["acme_unmarked"]
+
+
 def test_sss_devices_shows_each_id_whole_in_a_narrow_terminal(tmp_path):
     """HARDWARE.md has users copy device IDs from `sss devices` into their rig file; at 80 columns the table cut them
     (`example:testpatte…`)."""
