@@ -81,6 +81,38 @@ def test_a_tiff_bomb_is_one_line_wherever_it_is_read_and_pillows_guard_stays_on(
                    str(tmp_path / "r")), "far larger than the 256x192 projector: refused without decoding it")
 
 
+def test_a_png_past_pillows_warning_size_is_refused_in_one_line_without_its_warning(intact_session, tmp_path):
+    """A 10000 x 10000 PNG (above Pillow's 89-megapixel warning, below its error) was refused in one line, but
+    after Pillow's "could be decompression bomb DOS attack" printed as a warning first: the header reads set their
+    warning filter after the open that warns. A folder of them (a sequence) too."""
+    import struct
+    import warnings
+    import zlib
+
+    from sssphase_core.relight import read_pattern
+    from sssphase_core.store.imageio import frame_shape
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    big = tmp_path / "seq" / "big.png"  # (a header alone: nothing is decoded)
+    big.parent.mkdir()
+    big.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", 10000, 10000, 8, 0, 0, 0, 0))
+                    + chunk(b"IEND", b""))
+    with warnings.catch_warnings(record=True) as said:
+        warnings.simplefilter("always")
+        assert frame_shape(big) == (10000, 10000)
+        with pytest.raises(InputError, match="refused without decoding it"):
+            read_pattern(big, (256, 192))
+    assert not [w for w in said if "decompression bomb" in str(w.message) or "unclosed file" in str(w.message)], [
+        str(w.message) for w in said]  # (nor the refused file left open)
+    for pattern in (big, big.parent):
+        res = _cli("relight", str(intact_session), "--pattern", str(pattern), "--backend", "none", "--out",
+                   str(tmp_path / "r"))
+        _one_line(res, "far larger than the 256x192 projector: refused without decoding it")
+        assert "DecompressionBomb" not in res.stdout + res.stderr
+
+
 def test_a_4k_image_is_a_pattern_with_resize_and_refused_once_without(tmp_path):
     """A 3840 x 2160 screen image for the 256 x 192 projector was refused even with --resize, in a message that
     said itself twice ("cannot read pattern X: pattern X is ...")."""

@@ -81,9 +81,12 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
     if as_array:
         return _read_array_pattern(path, (wp, hp), mode, hint)
     try:
-        img = Image.open(path)  # reads the header only: the size is checked before any pixel is decoded
+        with warnings.catch_warnings():  # (PIL's warning of a large image was a second, alarming line before ours)
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            img = Image.open(path)  # reads the header only: the size is checked before any pixel is decoded
         w, h = img.size
         if w * h > _max_pattern_pixels(wp, hp, mode):
+            img.close()
             raise InputError(f"pattern {path} is {w}x{h}, far larger than the {wp}x{hp} projector: refused "
                              f"without decoding it (scale it down first{'' if mode else ', or pass --resize'})")
         with warnings.catch_warnings():
@@ -180,9 +183,10 @@ def exif_orientation(path: Path) -> int:
         if _pil_cannot_decode(path):
             value = (_tiff_directory(path) or {}).get(274, 1)
         else:
-            with warnings.catch_warnings(), Image.open(path) as img:
+            with warnings.catch_warnings():  # (set before the open, which is what warns)
                 warnings.simplefilter("ignore")
-                value = img.getexif().get(274, 1)
+                with Image.open(path) as img:
+                    value = img.getexif().get(274, 1)
         return int(value) if int(value) in EXIF_ORIENTATIONS else 1  # type: ignore[arg-type]
     except Exception:  # noqa: BLE001  (a damaged EXIF block or header: the pixels as stored; the reader says more)
         return 1
@@ -400,9 +404,10 @@ def frame_shape(path: Path) -> tuple[int, ...]:
         from PIL import Image
 
         try:
-            with warnings.catch_warnings(), Image.open(path) as img:
+            with warnings.catch_warnings():  # (set before the open, which is what warns)
                 warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # the callers' own limits, on the size
-                (width, height), pages = img.size, int(getattr(img, "n_frames", 1))
+                with Image.open(path) as img:
+                    (width, height), pages = img.size, int(getattr(img, "n_frames", 1))
         except Image.DecompressionBombError:  # (Pillow's guard, left on for the whole process)
             raise _far_too_large(path) from None
     except InputError:
