@@ -347,6 +347,38 @@ def test_frames_where_nothing_decodes_or_too_small_are_refused_naming_why(tmp_pa
     assert not (tmp_path / "s").exists() or not any((tmp_path / "s").iterdir())
 
 
+def _png8(folder: Path, scale: float) -> Path:
+    """The hand-made rig's PSP, white and black frames as 8-bit PNGs of linear codes times ``scale``."""
+    plan = [f for f in capture_plan(W, H, references=("white", "black")) if f.key.startswith(("psp/", "white", "black"))]
+    folder.mkdir(parents=True)
+    for f, img in zip(plan, _camera(np.stack([f.pattern() for f in plan])), strict=True):
+        path = folder / (f.key.replace("/", "__") + ".png")
+        cv2.imwrite(str(path), np.round(np.clip(img * scale, 0, 1) * 255).astype(np.uint8)[..., ::-1])
+    return folder
+
+
+def test_refusals_of_an_import_name_the_view_and_the_exposure(tmp_path):
+    """Two refusals that sent a lab the wrong way (a probe's findings): missing PSP frames named no view folder;
+    frames far too dark were told only "the frames must be linear images ... above the noise" (12-bit codes in
+    16-bit files read the same way)."""
+    views = tmp_path / "views"
+    shutil.copytree(_png8(tmp_path / "v", 1.0), views / "view_000")
+    shutil.copytree(tmp_path / "v", views / "view_001")
+    coarsest = sorted({int(f.name.split("__")[2][1:]) for f in (views / "view_001").glob("psp__y__*")})[-1]
+    for f in (views / "view_001").glob(f"psp__y__p{coarsest}__*"):
+        f.unlink()
+    with pytest.raises(InputError, match=rf"^{re.escape(str(views / 'view_001'))}: 4 PSP frames missing"):
+        import_folder(views, tmp_path / "s", "missing", (W, H), patch=K)
+    dark = tmp_path / "dark"  # 16-bit integer frames at 2% of their range (float ones are scaled to their white)
+    plan = [f for f in capture_plan(W, H, references=("white", "black")) if f.key.startswith(("psp/", "white", "black"))]
+    for f, img in zip(plan, _camera(np.stack([f.pattern() for f in plan])), strict=True):
+        _write(dark, f.key, img * 0.02, nested=False)
+    with pytest.raises(InputError, match=r"no camera pixel decoded \(.*\): the white's level is 0\.0\d+ in camera units "
+                                         r"where white is about 1, .*: expose the camera longer; if the files hold a 10-, "
+                                         r"12- or 14-bit camera's codes in 16 bits, shift them"):
+        import_folder(dark, tmp_path / "s", "dark", (W, H), patch=K)
+
+
 @pytest.mark.parametrize(("name", "expected"), [
     ("psp__x__p.__s0.png", "no frame name"),
     ("dots__a_b.png", "no frame name"),

@@ -562,9 +562,11 @@ def check_dots_light(vdir: Path, dot_sum: np.ndarray, n_dots: int, white: np.nda
 CLIPPED_SHARE = 0.25
 
 
-def nothing_decoded(vdir: Path, coverage: dict[str, int], clipped: float = 0.0, period: float | None = None) -> str:
+def nothing_decoded(vdir: Path, coverage: dict[str, int], clipped: float = 0.0, period: float | None = None,
+                    white_level: float | None = None) -> str:
     """One line for a view where no camera pixel decoded, with the reasons' shares; ``clipped``: the share of
-    the fringe frames' values at an integer file's top code; ``period``: the finest fringes' (projector px)."""
+    the fringe frames' values at an integer file's top code; ``period``: the finest fringes' (projector px);
+    ``white_level``: the white's (99.9th percentile, camera units), said when far below a camera's exposure."""
     if clipped > CLIPPED_SHARE:
         return (f"{vdir}: no camera pixel decoded: {100 * clipped:.0f}% of the fringe frames' values sit at the files' "
                 "top code (the camera clipped them, so no fringe is left): capture with a shorter exposure")
@@ -572,6 +574,9 @@ def nothing_decoded(vdir: Path, coverage: dict[str, int], clipped: float = 0.0, 
     reasons = ", ".join(f"{100 * n / total:.0f}% {name.lower().replace('_', ' ')}"
                         for name, n in sorted(coverage.items(), key=lambda kv: -kv[1]) if n)
     fine = coverage.get("LOW_MODULATION", 0) >= 0.2 * total  # lit (not shadow) pixels whose fringes are gone
+    if white_level is not None and white_level < EXPOSED_LEVEL:  # (an underexposed view was told only "linear images")
+        return (f"{vdir}: no camera pixel decoded ({reasons}): the white's level is {white_level:.3g} in camera units "
+                f"where white is about 1, below the decoder's thresholds: {DIM_ADVICE}")
     return (f"{vdir}: no camera pixel decoded ({reasons}): the frames must be linear images of the patterns "
             "their names give (`sss patterns` writes them), with fringes above the noise"
             + (f"; lit pixels without fringes: the finest period ({period:g} projector px) may be too fine for the "
@@ -647,6 +652,10 @@ def reference_match(proc: ViewProcessor, frames: list[dict[str, Any]], gamma: fl
 
 #: A white level (camera units) at or above which a view's dropped pixels are not for want of exposure.
 EXPOSED_LEVEL = 0.3
+#: What to do about a white far below 1 (frames read as their type's fraction: a 12-bit camera's codes in 16-bit
+#: files read as at most 1/16, and were told to expose longer).
+DIM_ADVICE = ("expose the camera longer; if the files hold a 10-, 12- or 14-bit camera's codes in 16 bits, shift them "
+              "to the top (x64, x16 or x4); scale a render's frames so that its white is about 1")
 
 
 def _warn_dim_view(vdir: Path, white: np.ndarray, reason: np.ndarray, period: float | None = None) -> None:
@@ -669,8 +678,7 @@ def _warn_dim_view(vdir: Path, white: np.ndarray, reason: np.ndarray, period: fl
                       "and scores leave those pixels out)", stacklevel=3)
         return
     warnings.warn(f"{share} as too faint for the decoder (fringe modulation or light below its thresholds, in camera "
-                  f"units where white is about 1; this white's level is {level:.3g}): expose the camera longer, or scale "
-                  "a render's frames so that its white is about 1", stacklevel=3)
+                  f"units where white is about 1; this white's level is {level:.3g}): {DIM_ADVICE}", stacklevel=3)
 
 
 def _warn_suspect_view(vdir: Path, coverage: dict[str, int], size: tuple[int, int], fringes_clipped: float,
@@ -993,19 +1001,30 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                     _check_fringe_level(vdir / set_key.replace("/", "__"), total / config.n_shifts, level * scale, mean=True)
                 if auto_bayer and detected is None:
                     detected = _detect_bayer(proc, config, demosaic)
-                info = {**proc.finish(), "nonfinite_repaired": loader.repaired}
+                try:
+                    info = {**proc.finish(), "nonfinite_repaired": loader.repaired}
+                except InputError as exc:  # (the decoder's "4 PSP frames missing, e.g. ..." named no view)
+                    raise InputError(f"{vdir}: {exc}" if str(vdir) not in str(exc) else str(exc)) from None
                 if loader.repaired:  # `sss decode` refuses them: say what the import did instead
                     warnings.warn(f"{vdir}: {loader.repaired} NaN or infinite values (a renderer's stray samples?) were "
                                   "repaired from their neighbours (recorded as the view's nonfinite_repaired)",
                                   UserWarning, stacklevel=2)
                 if auto_bayer:
                     info["bayer_detected"] = detected
-                check_opposite_shifts(vdir, pair_sums, proc.images["white"], proc.images["black"])
+                try:
+                    check_opposite_shifts(vdir, pair_sums, proc.images["white"], proc.images["black"])
+                except InputError as exc:  # (linear frames a tool tagged gAMA or sRGB were blamed on a missing frame)
+                    if encoding == "linear":
+                        raise
+                    raise InputError(f"{exc}; or the files hold linear light but were decoded as {encoding} "
+                                     f"({encoding_tag}): then import with --encoding linear") from None
                 if dot_sum is not None:
                     info["dots_light_share"] = round(check_dots_light(vdir, dot_sum, n_dots, proc.images["white"],
                                                                       proc.images["black"]), 4)
                 if not info["coverage"].get("VALID"):
-                    raise InputError(nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values), config.period))
+                    white_level = float(np.percentile(np.asarray(proc.images["white"], np.float32), 99.9))
+                    raise InputError(nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values), config.period,
+                                                     white_level))
                 check_distinct_orientations(vdir, _input_sets(proc, config))  # (fringes decoded: they are not flat)
                 check_white_above_black(vdir, proc.images["white"], proc.images["black"], level * scale)
                 share = fringe_mean_share(_input_sets(proc, config), proc.images["white"], proc.images["black"],

@@ -48,8 +48,8 @@ def check_object_name(name: str) -> str:
     """Refuse names that could escape the session root (``../``, separators, absolute paths)."""
     if not isinstance(name, str) or not NAME_RE.fullmatch(name) or name in (".", ".."):  # fullmatch: "$" allows "\n"
         shown = repr(name) if not isinstance(name, str) or len(name) <= 80 else repr(name[:80]) + f"... ({len(name)} characters)"
-        raise InputError(f"object name {shown} is not allowed: use letters, digits, '_', '-', '.', starting with a "
-                         "letter or digit (no path separators, no '..', at most 64 characters)")
+        raise InputError(f"object name {shown} is not allowed: use ASCII letters (a-z, A-Z), digits, '_', '-', '.', "
+                         "starting with a letter or digit (no path separators, no '..', at most 64 characters)")
     return name
 
 
