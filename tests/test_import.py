@@ -369,6 +369,11 @@ def test_refusals_of_an_import_name_the_view_and_the_exposure(tmp_path):
         f.unlink()
     with pytest.raises(InputError, match=rf"^{re.escape(str(views / 'view_001'))}: 4 PSP frames missing"):
         import_folder(views, tmp_path / "s", "missing", (W, H), patch=K)
+    for f in (views / "view_001").glob(f"psp__x__p{coarsest}__*"):  # a whole period gone: it imported, unwrapping less
+        f.unlink()
+    with pytest.raises(InputError, match=rf"^{re.escape(str(views / 'view_001'))}: its PSP frames have periods .* but "
+                                         rf".*view_000 has periods .*{coarsest} with 4 shifts: the views of an import share"):
+        import_folder(views, tmp_path / "s", "missing", (W, H), patch=K)
     dark = tmp_path / "dark"  # 16-bit integer frames at 2% of their range (float ones are scaled to their white)
     plan = [f for f in capture_plan(W, H, references=("white", "black")) if f.key.startswith(("psp/", "white", "black"))]
     for f, img in zip(plan, _camera(np.stack([f.pattern() for f in plan])), strict=True):

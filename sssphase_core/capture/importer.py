@@ -913,6 +913,12 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                 raise InputError(f"{files[key]}: reference {ref!r} is no named pattern ({', '.join(REFERENCE_NAMES)}), so "
                                  f"the image projected for it is needed as pattern__{ref}.png to relight and evaluate it")
     configs = [psp_config_from_names(vdir, files) for vdir, files in views]
+    for (vdir, _), config in zip(views[1:], configs[1:], strict=True):  # (a view short of a whole period imported)
+        if config != configs[0]:
+            said = [f"periods {', '.join(f'{p:g}' for p in sorted((c.period, *c.unwrap_periods)))} with {c.n_shifts} shifts"
+                    for c in (config, configs[0])]
+            raise InputError(f"{vdir}: its PSP frames have {said[0]}, but {views[0][0]} has {said[1]}: the views of "
+                             "an import share one plan (a view lacks frames the others have, or holds extra ones)")
     for (vdir, _), config in zip(views, configs, strict=True):
         if not config.unwrap_periods and config.period < max(w, h):  # (it decoded nothing, "is --projector right?")
             raise InputError(f"{vdir}: PSP frames of one period ({config.period:g} px) and none of a longer period to "

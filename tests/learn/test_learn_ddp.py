@@ -41,7 +41,8 @@ def test_torchrun_two_cpu_processes(tmp_path):
     env = {**os.environ, "LEARN_TESTS": os.path.dirname(__file__), "OMP_NUM_THREADS": "1"}
     cmd = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc_per_node", "2", str(script), str(tmp_path)]
     proc = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=240)
-    assert proc.returncode == 0, proc.stderr[-3000:]
+    first = [line for line in proc.stderr.splitlines() if line.startswith("[rank1]")]  # (rank 0's tail alone hid the
+    assert proc.returncode == 0, "\n".join(first[-40:]) + "\n...\n" + proc.stderr[-2000:]  # cause: a rank-1 exit)
     for r in (0, 1):
         assert torch.load(tmp_path / f"rank{r}.pt", weights_only=True)["world"] == 2
     pre = torch.load(tmp_path / "pre" / "last.pt", weights_only=True)
