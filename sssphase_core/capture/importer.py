@@ -1028,9 +1028,8 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                     info["dots_light_share"] = round(check_dots_light(vdir, dot_sum, n_dots, proc.images["white"],
                                                                       proc.images["black"]), 4)
                 if not info["coverage"].get("VALID"):
-                    white_level = float(np.percentile(np.asarray(proc.images["white"], np.float32), 99.9))
                     raise InputError(nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values), config.period,
-                                                     white_level))
+                                                     level * scale))
                 check_distinct_orientations(vdir, _input_sets(proc, config))  # (fringes decoded: they are not flat)
                 check_white_above_black(vdir, proc.images["white"], proc.images["black"], level * scale)
                 share = fringe_mean_share(_input_sets(proc, config), proc.images["white"], proc.images["black"],

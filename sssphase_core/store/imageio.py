@@ -81,8 +81,7 @@ def read_pattern(path: Path | str, projector_size: tuple[int, int], *, resize: s
     if as_array:
         return _read_array_pattern(path, (wp, hp), mode, hint)
     try:
-        with warnings.catch_warnings():  # (PIL's warning of a large image was a second, alarming line before ours)
-            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        with header_read():
             img = Image.open(path)  # reads the header only: the size is checked before any pixel is decoded
         w, h = img.size
         if w * h > _max_pattern_pixels(wp, hp, mode):
@@ -367,6 +366,18 @@ def _load_npy(path: Path, **kwargs) -> np.ndarray:
         raise
 
 
+@contextlib.contextmanager
+def header_read() -> Iterator[None]:
+    """Pillow's DecompressionBombWarning silenced around an ``Image.open`` that reads a header alone (entered before
+    the open, which is what warns): the image's size is checked by its reader and refused in one line, which the
+    warning preceded with a second, alarming one."""
+    from PIL import Image
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        yield
+
+
 def _far_too_large(path: Path) -> InputError:
     """The line for an image whose header declares more pixels than Pillow's decompression-bomb guard takes
     (2 x ``Image.MAX_IMAGE_PIXELS``, 179 MP by default; every frame and pattern limit here is below it)."""
@@ -404,10 +415,8 @@ def frame_shape(path: Path) -> tuple[int, ...]:
         from PIL import Image
 
         try:
-            with warnings.catch_warnings():  # (set before the open, which is what warns)
-                warnings.simplefilter("ignore", Image.DecompressionBombWarning)  # the callers' own limits, on the size
-                with Image.open(path) as img:
-                    (width, height), pages = img.size, int(getattr(img, "n_frames", 1))
+            with header_read(), Image.open(path) as img:  # (the callers' own limits, on the size)
+                (width, height), pages = img.size, int(getattr(img, "n_frames", 1))
         except Image.DecompressionBombError:  # (Pillow's guard, left on for the whole process)
             raise _far_too_large(path) from None
     except InputError:

@@ -10,7 +10,6 @@ reads a still: values in [0, 1] (8-bit codes / 255), brought to the projector's 
 
 from __future__ import annotations
 
-import contextlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -158,8 +157,10 @@ def is_sequence(path: Path | str) -> bool:
         return False
     from PIL import Image
 
+    from sssphase_core.store.imageio import header_read
+
     try:
-        with _header_only(), Image.open(path) as img:  # the header (and, for a GIF, a scan of its frames' headers)
+        with header_read(), Image.open(path) as img:  # the header (and, for a GIF, a scan of its frames' headers)
             return getattr(img, "n_frames", 1) > 1
     except (OSError, SyntaxError, ValueError, Image.DecompressionBombError):
         return False  # read as a still, which says what is wrong with it
@@ -240,24 +241,13 @@ def _video_header(path: Path) -> tuple[int, float, tuple[int, int]]:
     return count, fps, size
 
 
-@contextlib.contextmanager
-def _header_only() -> Iterator[None]:
-    """PIL's DecompressionBombWarning silenced around a read of a header alone (no pixel is decoded here; the image's
-    size is checked where it is read, refused in one line: the warning printed a second, alarming line before it)."""
-    import warnings
-
-    from PIL import Image
-
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
-        yield
-
-
 def _image_header(path: Path) -> tuple[int, float, tuple[int, int]]:
     from PIL import Image
 
+    from sssphase_core.store.imageio import header_read
+
     try:
-        with _header_only(), Image.open(path) as img:
+        with header_read(), Image.open(path) as img:
             count, size = int(getattr(img, "n_frames", 1)), img.size
             duration = img.info.get("duration")  # ms per frame (GIF, APNG)
     except (OSError, SyntaxError, ValueError, Image.DecompressionBombError) as exc:
