@@ -10,10 +10,11 @@
 #   --platform manylinux2014_x86_64 --platform manylinux_2_26_x86_64 -d .whl NAME==VERSION   (31 MB in all)
 # Usage: benchmarks/device/paper.sh [BUDGET_S] [repro|all]   (repro first, then the tests and `sss bench sim`;
 #   "repro": the repro alone). One call: timeout_s = BUDGET_S + about 150 (install ~20 s; the repro's own deadline
-#   is BUDGET_S + 110, so that its report comes back). Next lent GPU: `paper.sh 420 repro`, timeout_s 570; then at
-#   once, while the machine is warm (it keeps /tmp/repro for about 30 s): `paper.sh 120 repro`, timeout_s 260, which
-#   skips the finished steps and relights what is left (each relight is kept as it finishes; on 2026-12-04 the
-#   first call's budget ended in the torch relight of the 1080p crab).
+#   is BUDGET_S + 110, so that its report comes back). Next lent GPU: `paper.sh 330 repro`, timeout_s 480 (one call
+#   within the 8 minutes: 338 s on an H100 on 2026-12-05); then at once, while the machine is warm (it keeps
+#   /tmp/repro for about 30 s): `paper.sh 250 repro`, timeout_s 390, which skips the finished steps and relights
+#   what is left (each relight is kept as it finishes; on 2026-12-05 it relit the crab with the decoder in 113 s,
+#   and a third call got no answer from the machine).
 set -o pipefail
 budget=${1:-300}
 out=${OUT:-/tmp/out}
