@@ -149,6 +149,9 @@ def import_images(
                                                "then compared through it), or other")] = "other",
     angles: Annotated[str | None, typer.Option(help="each view's turntable angle in degrees, in view order (e.g. "
                                                     "0,90,180,270): `sss geometry` merges the views with them")] = None,
+    bit_depth: Annotated[int | None, typer.Option(help="the camera's bits per sample (10, 12, 14) when 16-bit files "
+                                                       "hold its codes in their low bits: its top code is then white "
+                                                       "(default: the files' own range)")] = None,
 ) -> None:
     """Import frames from another rig (named by plan key, '/' as '__' or folders; see SESSION_FORMAT.md)."""
     from sssphase_core.capture import import_folder
@@ -159,7 +162,7 @@ def import_images(
     check_output_folder(out)  # before any frame is read: a file, a broken link or a session's own folder
     session = import_folder(folder, out, object_name, parse_projector_size(projector), patch=patch, gamma=gamma,
                             encoding=encoding, bayer=bayer, demosaic=demosaic,
-                            angles=parse_angles(angles) if angles is not None else None)
+                            angles=parse_angles(angles) if angles is not None else None, bit_depth=bit_depth)
     rig = session.manifest["rig"]
     for v, info in sorted(session.manifest["views"].items(), key=lambda kv: int(kv[0])):
         found = str(info.get("bayer_detected", "none"))
@@ -173,7 +176,10 @@ def import_images(
         console.print(f"frames decoded from {rig['frame_encoding']} to linear light ({rig['frame_encoding_from']}; "
                       "--encoding linear reads the codes as light)")
     scale = rig.get("frame_scale", 1.0)
-    if scale != 1.0:
+    if "frame_bit_depth" in rig and scale != 1.0:
+        console.print(f"{rig['frame_bit_depth']}-bit codes: scaled by {scale:.4g}, which puts the camera's top code at 1 "
+                      "(the rig's frame_scale in the manifest)")
+    elif scale != 1.0:
         console.print(f"frames in linear units far from the camera's (float, or integers wider than 16 bits): scaled by {scale:.4g}, which puts the white capture's "
                       "99.9th percentile at 1 (the rig's frame_scale in the manifest)")
     console.print(f"imported {len(session.views())} view(s) into {session.path}")

@@ -1695,6 +1695,32 @@ def test_a_near_black_reference_is_warned_of_not_scored_as_excellent_in_silence(
         evaluate_view(load_view(Session.open(intact_session), 0), "none", tmp_path / "img2")
 
 
+def test_a_view_whose_white_is_far_below_one_is_warned_of_when_scored(intact_session, tmp_path):
+    """12-bit codes in 16-bit files, imported, read as light at most 1/16 of white: relit against them, every
+    backend scored about 14 dB above the same frames at full range (57 against 42.8), and nothing said so."""
+    from sssphase_core.relight import load_view
+    from sssphase_core.relight.evaluation import evaluate_view
+    from sssphase_core.store.session import Session
+
+    copy = tmp_path / "dim"
+    shutil.copytree(intact_session, copy)
+    s = Session.open(copy)
+    entry = dict(s.manifest["views"]["0"])
+    arrays = {n: np.asarray(s.read(0, n)) for n in s.arrays(0)}
+    w = s.begin_view(0)
+    for name, data in arrays.items():  # the light (not the decode, the projector map or the masks) at 1/16
+        light = name in ("white", "black", "psp") or name.startswith(("ref/", "gt/render/"))
+        w.write(name, (data * np.float32(1 / 16)).astype(data.dtype) if light else data)
+    w.commit({k: v for k, v in entry.items() if k not in ("arrays", "status", "completed")})
+    with pytest.warns(UserWarning, match=r"view 0: its white's level is 0\.0\d+ where the PSNR's peak is 1\.0, so its "
+                                         r"scores read [23]\d dB higher than at full range .* --bit-depth"):
+        dim = evaluate_view(load_view(Session.open(copy), 0), "none", tmp_path / "img")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        full = evaluate_view(load_view(Session.open(intact_session), 0), "none", tmp_path / "img2")
+    assert dim[0]["psnr"] > full[0]["psnr"] + 20  # what the warning is for
+
+
 def test_a_turntable_angle_that_is_no_angle_is_a_problem_not_a_view_left_out_of_the_merge(intact_session, tmp_path):
     """A view's angle of 1e300 passed `sss validate`, and `sss geometry` merged "views 0, 1" with view 1's points
     gone (turned into NaN)."""

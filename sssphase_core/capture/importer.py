@@ -354,6 +354,56 @@ def frame_scale(whites: Iterable[Path], levels: Iterable[float]) -> float:
     return 1.0 if LINEAR_RANGE[0] <= level <= LINEAR_RANGE[1] else 1.0 / level
 
 
+#: The camera words ``--bit-depth`` accepts (codes of that many bits, stored in the files' low bits).
+BIT_DEPTHS = (8, 10, 12, 14, 16)
+
+
+def codes_scale(bit_depth: int, file_depth: int | None, encoding: str) -> float:
+    """The factor that puts a ``bit_depth``-bit camera's codes, stored in the low bits of ``file_depth``-bit files
+    (read as code / the file's top code), at 1 for the camera's top code: ``(2^file_depth - 1) / (2^bit_depth - 1)``.
+    One line for a depth no camera word has, float files, a depth above the files', or gamma-encoded codes."""
+    if bit_depth not in BIT_DEPTHS:
+        raise InputError(f"--bit-depth must be one of {', '.join(map(str, BIT_DEPTHS))} (the camera's bits per sample), "
+                         f"got {bit_depth}")
+    if file_depth is None:
+        raise InputError("--bit-depth is for integer frame files (PNG, TIFF, .npy of integers): these frames are "
+                         "float, light already; leave it out")
+    if bit_depth > file_depth:
+        raise InputError(f"--bit-depth {bit_depth} is more bits than the files hold ({file_depth}-bit)")
+    if encoding != "linear" and bit_depth < file_depth:
+        raise InputError(f"--bit-depth {bit_depth} reads linear codes in the files' low bits, but the frames are "
+                         f"{encoding}-encoded: give --encoding linear if the codes are light")
+    return float((2 ** file_depth - 1) / (2 ** bit_depth - 1))
+
+
+def check_codes_fit(path: Path, image: np.ndarray, bit_depth: int) -> None:
+    """Refuse a frame (camera units: the ``bit_depth``-bit top code reads 1) with codes above that top: the files
+    hold wider codes, or codes already shifted to the top of their words."""
+    peak = float(np.nanmax(image)) if image.size else 0.0
+    if peak > 1 + 0.5 / (2 ** bit_depth - 1):
+        raise InputError(f"{path} holds codes up to {peak * (2 ** bit_depth - 1):,.0f}, above a {bit_depth}-bit camera's "
+                         f"top code {2 ** bit_depth - 1:,}: the codes are wider or already shifted to the top of the "
+                         "16-bit words (then leave --bit-depth out)")
+
+
+#: 16-bit files whose white stays below this share of their range get a hint: a camera of fewer bits, whose codes sit
+#: in the words' low bits (a 14-bit camera's top is 0.25), read as light far below white and scored against 1.
+LOW_CODES_LEVEL = 0.25
+
+
+def _warn_low_codes(white: Path, level: float) -> None:
+    """One line when 16-bit files' white level (99.9th percentile, read as code / 65535) is below
+    :data:`LOW_CODES_LEVEL`, naming the camera word its codes would fit (``--bit-depth``)."""
+    if not 0 < level < LOW_CODES_LEVEL:
+        return
+    fits = next((b for b in BIT_DEPTHS[1:] if level * 65535 < 2 ** b), 16)
+    warnings.warn(f"{white}: the white's level is {level:.3g} of the 16-bit files' range ({level * 65535:,.0f} of "
+                  f"65,535): if the camera gives {fits}-bit codes in the words' low bits, import with --bit-depth {fits} "
+                  "(else its frames are read as light far below white: the decoder drops faint pixels and relit PSNR "
+                  "is measured against a white it never reaches); if the camera is 16-bit, expose it longer",
+                  UserWarning, stacklevel=3)
+
+
 def check_not_negative(path: Path, image: np.ndarray, white_level: float, scale: float = 1.0) -> None:
     """Refuse a frame with many values far below zero (:data:`~sssphase_core.store.light.NEGATIVE_LIMIT` of the
     view's white level, in more than :data:`~sssphase_core.store.light.NEGATIVE_SHARE` of its values): a black
@@ -598,6 +648,9 @@ DIM_LIT, DIM_WARN = 0.05, 0.2
 #: range is warned of (Mitsuba renders' references: 0.99-1.00; twice the exposure: 1.9, half: 0.5; far brighter than
 #: full white could make it is refused before: capture.processing.OUTLIER_MAX_SHARE).
 REFERENCE_BRIGHTNESS = (0.67, 1.5)
+#: A reference with more than this share of its lit values replaced by the outlier repair is warned of (fireflies
+#: are a few in 10^4; a reference at 2x the white's exposure had 1,152 of 9,216 replaced, 12%).
+REFERENCE_REPAIR_WARN = 0.01
 #: Warn when more than this share of the decodable pixels failed to unwrap (frames out of order, wrong periods).
 UNWRAP_WARN = 0.2
 
@@ -645,17 +698,29 @@ def reference_match(proc: ViewProcessor, frames: list[dict[str, Any]], gamma: fl
         sent = light[iy, ix]
         if seen.std() > 0 and sent.std() > 0:
             found[name] = float(np.corrcoef(seen, sent)[0, 1])
-        if brightness is not None and sent.mean() > 0:
-            brightness[name] = float(seen.mean() / sent.mean())
+        if brightness is not None and sent.mean() > 0:  # the reference as it came: the outlier repair clips a
+            # brighter exposure towards the white's level (2x the white read 1.3x after it, and was not warned of)
+            raw = (proc.unrepaired.get(f["name"], proc.images[f["name"]]) - proc.images["black"])[m].mean(-1) / white
+            brightness[name] = float(_trimmed_mean(raw) / sent.mean())
     return found
+
+
+#: The brightest share of a reference's pixels its brightness leaves out (a path tracer's fireflies: a few in 10^4).
+BRIGHTNESS_TRIM = 0.002
+
+
+def _trimmed_mean(values: np.ndarray) -> float:
+    """The mean of ``values`` (N,) with the brightest :data:`BRIGHTNESS_TRIM` of them left out."""
+    drop = int(BRIGHTNESS_TRIM * values.size)
+    return float(np.partition(values, values.size - drop - 1)[:values.size - drop].mean()) if drop else float(values.mean())
 
 
 #: A white level (camera units) at or above which a view's dropped pixels are not for want of exposure.
 EXPOSED_LEVEL = 0.3
 #: What to do about a white far below 1 (frames read as their type's fraction: a 12-bit camera's codes in 16-bit
 #: files read as at most 1/16, and were told to expose longer).
-DIM_ADVICE = ("expose the camera longer; if the files hold a 10-, 12- or 14-bit camera's codes in 16 bits, shift them "
-              "to the top (x64, x16 or x4); scale a render's frames so that its white is about 1")
+DIM_ADVICE = ("expose the camera longer; if the files hold a 10-, 12- or 14-bit camera's codes in 16 bits, import with "
+              "--bit-depth 10, 12 or 14; scale a render's frames so that its white is about 1")
 
 
 def _warn_dim_view(vdir: Path, white: np.ndarray, reason: np.ndarray, period: float | None = None) -> None:
@@ -811,17 +876,19 @@ def check_plan_file(folder: Path, size: tuple[int, int], gamma: float, config: A
 
 def import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int, int], *, patch: int = 32,
                   gamma: float = 2.2, encoding: str = "auto", bayer: str | None = "auto",
-                  demosaic: str = "other", angles: Sequence[float] | None = None) -> Session:
+                  demosaic: str = "other", angles: Sequence[float] | None = None,
+                  bit_depth: int | None = None) -> Session:
     """:func:`_import_folder` holding the session's lock (:func:`~sssphase_core.store.locks.session_lock`): a
     second import (or capture) into the same session is refused while this one runs."""
     with session_lock(Path(root), check_object_name(name)):
         return _import_folder(folder, root, name, projector_size, patch=patch, gamma=gamma, encoding=encoding,
-                              bayer=bayer, demosaic=demosaic, angles=angles)
+                              bayer=bayer, demosaic=demosaic, angles=angles, bit_depth=bit_depth)
 
 
 def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[int, int], *, patch: int = 32,
                    gamma: float = 2.2, encoding: str = "auto", bayer: str | None = "auto",
-                   demosaic: str = "other", angles: Sequence[float] | None = None) -> Session:
+                   demosaic: str = "other", angles: Sequence[float] | None = None,
+                   bit_depth: int | None = None) -> Session:
     """Import frames captured by another rig into a session, processed by the capture engine's
     :class:`ViewProcessor` exactly like a capture.
 
@@ -939,6 +1006,12 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                          "(99.9th percentiles): an import's views share one exposure and units (the frames are scaled "
                          "together)")
     scale = frame_scale([files["white"] for _, files in views], levels)
+    depth = code_depth(views[0][1]["white"])
+    top_code = scale  # an integer file's top code in camera units: 1, or a camera word's top with --bit-depth
+    if bit_depth is not None:
+        scale, top_code = codes_scale(bit_depth, depth, encoding), 1.0
+    elif depth == 16:
+        _warn_low_codes(views[0][1]["white"], max(levels))
     path = Path(root) / name
     frames: list[dict[str, Any]] = []
     given = {k for _, files in views for k in files if k.startswith("pattern/")}  # the projected images the user gives
@@ -952,7 +1025,8 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
     plan_json = {"projector": [w, h], "gamma": float(gamma), "psp": asdict(configs[0]), "frames": psp_frames + frames}
     settings = {"n_views": len(view_dirs), "imported_from": str(folder.resolve()),
                 "rig": {"camera": "import", "projector_size": [w, h], "patch": patch, "imported": True,
-                        "frame_scale": scale, "frame_encoding": encoding, "frame_encoding_from": encoding_tag},
+                        "frame_scale": scale, "frame_encoding": encoding, "frame_encoding_from": encoding_tag,
+                        **({"frame_bit_depth": bit_depth} if bit_depth is not None else {})},
                 "plan": plan_json, "import_options": {"bayer": str(bayer).lower(), "demosaic": demosaic,
                                                       **({"angles": angles} if angles else {})},
                 "imported_frames": [frames_fingerprint(files) for _, files in views]}  # frames replaced: not resumed
@@ -982,8 +1056,10 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                     if auto_bayer and detected is None and key.startswith("dots/"):  # before the decode the dots start
                         detected = _detect_bayer(proc, config, demosaic)
                     image = loader.read(files[key])
-                    if key.startswith("psp/") and stores_integers(files[key]):  # read as code / top code
-                        top += int(np.count_nonzero(image >= 0.999 * scale))
+                    if bit_depth is not None:
+                        check_codes_fit(files[key], image, bit_depth)
+                    if key.startswith("psp/") and stores_integers(files[key]):  # the top code reads top_code
+                        top += int(np.count_nonzero(image >= 0.999 * top_code))
                         fringe_values += image.size
                     if key == "black":
                         check_black_below_white(files[key], image, level * scale, scale)
@@ -1039,7 +1115,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                                      "this black frame, where they give 0.50: it is brighter than the scene under the "
                                      "projector's black (the wrong file, or light left on)")
                 _warn_suspect_view(vdir, info["coverage"], (w, h), top / max(1, fringe_values),
-                                   proc.images["white"], proc.corr.mask, scale if stores_integers(files["white"]) else None,
+                                   proc.images["white"], proc.corr.mask, top_code if stores_integers(files["white"]) else None,
                                    share, gamma, encoding)
                 _warn_dim_view(vdir, proc.images["white"], np.asarray(proc.corr.reason), config.period)
                 warn_swapped_axes(vdir, np.asarray(proc.corr.xp), np.asarray(proc.corr.yp), np.asarray(proc.corr.mask))
@@ -1049,11 +1125,24 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                 info["reference_match"] = {k: round(v, 3) for k, v in match.items()}
                 info["reference_brightness"] = {k: round(v, 3) for k, v in bright.items()}
                 off = {ref: b for ref, b in bright.items() if not REFERENCE_BRIGHTNESS[0] <= b <= REFERENCE_BRIGHTNESS[1]}
+                repaired = {ref: proc.repaired[f"ref/{ref}"] for ref in bright if f"ref/{ref}" in proc.repaired}
+                if repaired:
+                    info["reference_repaired"] = repaired
+                heavy = {ref: n for ref, n in repaired.items() if n > REFERENCE_REPAIR_WARN * max(proc.lit_values, 1)}
+                said = {ref: f"{ref} ({b:.2f}x" + (f", {heavy[ref]:,} values clipped" if ref in heavy else "") + ")"
+                        for ref, b in off.items()}
                 if off:  # relit against it, every model scored 12-13 dB
                     warnings.warn(f"{vdir}: the reference capture{'s' if len(off) > 1 else ''} "
-                                  f"{', '.join(f'{ref} ({b:.2f}x)' for ref, b in off.items())} hold{'' if len(off) > 1 else 's'} "
+                                  f"{', '.join(said.values())} hold{'' if len(off) > 1 else 's'} "
                                   "another amount of light than the white capture and the pattern give at the decoded "
                                   "points (1.00x): another exposure, gain or units than the white and the fringes?",
+                                  UserWarning, stacklevel=2)
+                if stray := {ref: n for ref, n in heavy.items() if ref not in off}:
+                    warnings.warn(f"{vdir}: the reference capture{'s' if len(stray) > 1 else ''} "
+                                  f"{', '.join(f'{ref} ({n:,} values, {n / max(proc.lit_values, 1):.1%} of the lit ones)' for ref, n in stray.items())} "
+                                  "held light brighter than full white could make it, replaced by the neighbours' median "
+                                  "(relighting is scored against the repaired image): light the projector did not give "
+                                  "(room light, a reflection) or another exposure in part of the frame?",
                                   UserWarning, stacklevel=2)
                 astray = {ref: r for ref, r in match.items() if r < REFERENCE_MATCH_WARN}
                 if astray:

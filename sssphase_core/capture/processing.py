@@ -170,6 +170,8 @@ class ViewProcessor:
         self.camera_isp = camera_isp
         self.bound: np.ndarray | None = None  # (H, W, 1) the brightest value any pattern can give (once decoded)
         self.outliers = 0  # values above it, repaired
+        self.repaired: dict[str, int] = {}  # frame key -> its values repaired (frames with any; dot grids not)
+        self.unrepaired: dict[str, np.ndarray] = {}  # ref/<name> -> the reference as it came (its brightness check)
         self.lit_values = 0  # values of the pixels the white lights (the share of outliers a frame may hold is of these)
         self.hot: np.ndarray | None = None  # (H, W, C) what hot pixels add to every frame (once decoded)
 
@@ -261,6 +263,8 @@ class ViewProcessor:
 
         if self.hot is not None:
             image = image - self.hot
+        if key is not None and key.startswith("ref/"):  # a reference's exposure is checked on it as it came
+            self.unrepaired[key] = image
         image, n = repair_outliers(image, self.bound)  # type: ignore[arg-type]
         if key is not None and n > OUTLIER_MAX_SHARE * max(self.lit_values, 1):
             share = (f"{n / self.lit_values:.0%} of the lit ones" if 0 < n <= self.lit_values  # (it said "123% of")
@@ -270,6 +274,8 @@ class ViewProcessor:
                             "not stray samples but another exposure or other units than the other frames; give every "
                             "frame the same exposure and units")
         self.outliers += n
+        if key is not None and n:
+            self.repaired[key] = n
         return image
 
     def _add_dots(self, key: str, image: np.ndarray) -> None:

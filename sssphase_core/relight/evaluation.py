@@ -147,6 +147,7 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
         raise InputError(f"{rv.object} view {rv.view} has no reference captures to evaluate against "
                          "(capture with --reference checkerboard ..., or import ref__<name> frames)")
     names = sorted(rv.references)
+    _warn_if_dim_white(rv)
     t0 = time.perf_counter()
     calibrate = bool(options.pop("calibrate", True)) and backend not in MODEL_FREE
     # relight_view's: the calibration may widen the footprints too (by default as `sss relight` does for the backend)
@@ -272,6 +273,22 @@ def _warn_if_near_black(rv: Any, name: str) -> None:
         warnings.warn(f"{rv.object} view {rv.view}, reference {name}: near black ({share:.2%} of the white capture on "
                       "the decoded pixels): its PSNR (peak 1.0) is high whatever is relit; score on a pattern that "
                       "lights the object", UserWarning, stacklevel=3)
+
+
+#: A view whose white (99.9th percentile on the decoded pixels) is below this level is scored far from white = 1.
+DIM_WHITE_LEVEL = 0.25
+
+
+def _warn_if_dim_white(rv: Any) -> None:
+    """Warn when view ``rv``'s white is far below the PSNR's peak of 1 (:data:`DIM_WHITE_LEVEL`): its scores read
+    ``20 log10(1 / level)`` dB higher than the same relighting of frames at full range."""
+    mask = rv.proj.mask
+    level = float(np.percentile(np.asarray(rv.white)[mask], 99.9)) if mask.any() else 0.0
+    if 0 < level < DIM_WHITE_LEVEL:
+        warnings.warn(f"{rv.object} view {rv.view}: its white's level is {level:.3g} where the PSNR's peak is 1.0, so its "
+                      f"scores read {20 * np.log10(1 / level):.0f} dB higher than at full range (16-bit files of a 10-, "
+                      "12- or 14-bit camera: import them with --bit-depth; else the camera was exposed far below its "
+                      "range)", UserWarning, stacklevel=3)
 
 
 def metrics_table(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend", "pattern"), title: str = "Relighting"):
