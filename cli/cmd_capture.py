@@ -172,6 +172,10 @@ def import_images(
         elif "matches no layout clearly" in found:  # a colour filter array suspected, not applied
             console.print(f"view {v}: {found.removeprefix('none: ')}: if the camera demosaiced its frames, pass "
                           "--bayer LAYOUT")
+        method, _, why = str(info.get("demosaic_detected", "")).partition(": ")
+        if method in ("malvar", "opencv"):
+            console.print(f"view {v}: {why}: relit fringes are compared through {method} demosaicing "
+                          "(--demosaic names another)")
     if rig["frame_encoding"] != "linear":
         console.print(f"frames decoded from {rig['frame_encoding']} to linear light ({rig['frame_encoding_from']}; "
                       "--encoding linear reads the codes as light)")

@@ -1406,6 +1406,32 @@ def test_frames_a_camera_demosaiced_itself_drop_the_silhouettes_bleed_when_the_l
     assert not (tmp_path / "s" / "bad").exists()
 
 
+def test_the_demosaicing_a_camera_used_is_the_one_that_gives_its_frames_back():
+    """A demosaiced frame is a fixed point of its method (its samples kept, the rest filled from them, but where the
+    camera clipped): Malvar's and OpenCV's frames are told apart, as floats and as 8-bit codes; OpenCV's bilinear
+    frames and a three-chip camera's are neither. Not said, an exported sim crab relit 10 dB below its session."""
+    import cv2
+
+    from sssphase_core.processing.isp import bayer_mosaic, detect_demosaic, through_camera
+
+    psp = [f for f in capture_plan(W, H) if f.key.startswith("psp/x/")]
+    finest = min(int(f.key.split("/")[2][1:]) for f in psp)
+    plan = [f for f in psp if f.key.startswith(f"psp/x/p{finest}/")]
+    light = (emitted_light(np.stack([f.pattern() for f in plan]), 2.2) * np.float32([0.9, 0.45, 0.15])).astype(np.float32)
+    noisy = light + np.random.default_rng(0).normal(size=light.shape).astype(np.float32) * np.sqrt(light / 3000)
+    mask = np.ones((H, W), bool)
+    for method in ("malvar", "opencv"):
+        frames = np.clip(through_camera(noisy, demosaic=method, layout="GBRG"), 0, 1)
+        for codes in (frames, np.round(frames * 255) / 255):
+            found, why = detect_demosaic(codes, "GBRG", mask)
+            assert found == method, why
+    bilinear = np.stack([cv2.cvtColor(np.round(bayer_mosaic(f) * 65535).astype(np.uint16), cv2.COLOR_BayerBG2RGB)
+                         for f in np.clip(noisy, 0, 1)]).astype(np.float32) / 65535
+    for frames in (bilinear, noisy):
+        found, why = detect_demosaic(frames, "RGGB", mask)
+        assert found is None and why.startswith("neither method gives its fringe frames back"), why
+
+
 def test_the_bayer_layout_a_camera_demosaiced_from_is_read_from_the_frames_noise(tmp_path):
     """Each photosite's shot noise follows its own colour, and the PSP residual I0 + I2 - I1 - I3 is noise
     only, so its variance per 2 x 2 site gives the layout away (`--bayer auto`, the default); frames with no
@@ -1435,9 +1461,14 @@ def test_the_bayer_layout_a_camera_demosaiced_from_is_read_from_the_frames_noise
         elif name == "bayer":
             assert info["bayer_detected"].startswith("GRBG: the noise of its 2 x 2 sites follows GRBG"), info["bayer_detected"]
             assert info["camera_isp"]["bayer"] == "GRBG" and info["coverage"].get(Reason.DEMOSAIC_BLEED.name, 0) > 0
+            # and the method, which relighting needs to compare relit fringes through it (not said: 10 dB lower)
+            assert info["camera_isp"]["demosaic"] == "malvar", info["demosaic_detected"]
+            assert info["demosaic_detected"].startswith("malvar: its fringe frames come back from malvar demosaicing")
         else:
             assert info["bayer_detected"].startswith("none: the noise is alike at every 2 x 2 site"), info["bayer_detected"]
             assert info["camera_isp"] is None
+    told = import_folder(tmp_path / "bayer_opencv", tmp_path / "s", "told", (w, h), patch=16, bayer="GRBG")
+    assert told.manifest["views"]["0"]["camera_isp"] == {"bayer": "GRBG", "demosaic": "opencv", "median": False}
     # a path tracer's firefly (one sample 10^4 times the light) in one frame: still no layout, still GRBG
     for frames, want in ((noisy, None), (through_camera(noisy, demosaic="malvar", median=False, layout="GRBG"), "GRBG")):
         fired = frames[:8].copy()

@@ -847,6 +847,23 @@ def _detect_bayer(proc: ViewProcessor, config: Any, demosaic: str) -> str:
     return f"{layout}: {why}" if layout else f"none: {why}"
 
 
+def _detect_demosaic(proc: ViewProcessor, config: Any) -> str | None:
+    """For a view with a Bayer layout (given or found) whose demosaicing was not said (``--demosaic other``): the
+    method its finest fringes show (:func:`isp.detect_demosaic`), set in ``proc.camera_isp`` so that relighting
+    compares relit fringes through it; returns the reason either way (None: no layout)."""
+    from sssphase_core.processing.isp import detect_demosaic
+
+    if not proc.camera_isp or not proc.camera_isp.get("bayer"):
+        return None
+    white = proc.images["white"] - proc.images.get("black", 0)
+    lit = white.sum(-1, dtype=np.float64)
+    method, why = detect_demosaic(_input_sets(proc, config)[0], proc.camera_isp["bayer"],
+                                  lit > 0.25 * float(np.percentile(lit, 99)))
+    if method is not None:
+        proc.camera_isp = {**proc.camera_isp, "demosaic": method}
+    return f"{method or 'other'}: {why}"
+
+
 def check_plan_file(folder: Path, size: tuple[int, int], gamma: float, config: Any) -> None:
     """Refuse an import whose options or frame names disagree with the ``plan.json`` beside its frames (as `sss
     patterns` writes it): the projector size, its gamma, the PSP periods and shifts (a plan of a 320x240
@@ -1083,6 +1100,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                     _check_fringe_level(vdir / set_key.replace("/", "__"), total / config.n_shifts, level * scale, mean=True)
                 if auto_bayer and detected is None:
                     detected = _detect_bayer(proc, config, demosaic)
+                found_demosaic = _detect_demosaic(proc, config) if demosaic == "other" else None
                 try:
                     info = {**proc.finish(), "nonfinite_repaired": loader.repaired}
                 except InputError as exc:  # (the decoder's "4 PSP frames missing, e.g. ..." named no view)
@@ -1093,6 +1111,8 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                                   UserWarning, stacklevel=2)
                 if auto_bayer:
                     info["bayer_detected"] = detected
+                if found_demosaic is not None:
+                    info["demosaic_detected"] = found_demosaic
                 try:
                     check_opposite_shifts(vdir, pair_sums, proc.images["white"], proc.images["black"])
                 except InputError as exc:  # (linear frames a tool tagged gAMA or sRGB were blamed on a missing frame)

@@ -176,6 +176,40 @@ def bayer_mosaic(rgb: np.ndarray, layout: str = "RGGB") -> np.ndarray:
     return np.take_along_axis(rgb, np.broadcast_to(channel[..., None], rgb.shape[:-1] + (1,)), axis=-1)[..., 0]
 
 
+#: A demosaiced frame is a fixed point of its method: sampling it at its Bayer sites and demosaicing again gives it
+#: back (but where the camera clipped it). A method is named when that redo departs from the fringe frames by less
+#: than DEMOSAIC_MATCH of their light (the exported sim crab's finest fringes: Malvar 0.001 as floats, 0.005 as 8-bit
+#: codes; noisy synthetic fringes: Malvar 0.000-0.003, OpenCV 0.007-0.010; OpenCV's bilinear 0.039 from OpenCV's
+#: edge-aware, three-chip frames 0.17-0.21) and by less than DEMOSAIC_MARGIN of the other method's (0.07-0.21).
+DEMOSAIC_MATCH, DEMOSAIC_MARGIN = 0.02, 0.3
+DEMOSAIC_METHODS = ("malvar", "opencv")
+
+
+def detect_demosaic(frames: np.ndarray, layout: str, mask: np.ndarray) -> tuple[str | None, str]:
+    """``(method, why)``: which of :data:`DEMOSAIC_METHODS` made these frames from a ``layout`` mosaic, or
+    ``(None, why not)``. Each method redoes the frames (:func:`through_camera`), on the ``mask``'s bounding box
+    (even-aligned, so the layout keeps its phase); the one whose redo is (nearly) the frames is theirs.
+    ``frames`` (N, H, W, 3): high-contrast ones tell the methods apart best (the finest fringes); ``mask`` (H, W)."""
+    rows, cols = np.flatnonzero(mask.any(axis=1)), np.flatnonzero(mask.any(axis=0))
+    if rows.size < 8 or cols.size < 8:
+        return None, "too few lit pixels"
+    box = (slice(rows[0] - rows[0] % 2, rows[-1] + 1), slice(cols[0] - cols[0] % 2, cols[-1] + 1))
+    crop = np.asarray(frames, np.float32)[:, box[0], box[1]]
+    # values a camera clipped (a filled colour below 0 beside a bright edge, or at the top) are no fixed point
+    kept = mask[box][None, ..., None] & (crop > 0) & (crop < 0.999 * float(crop.max()))
+    light = float(np.abs(crop[kept]).mean()) if kept.any() else 0.0
+    if not light > 0:
+        return None, "the frames hold no light"
+    departs = {m: float(np.abs(through_camera(crop, demosaic=m, layout=layout) - crop)[kept].mean()) / light
+               for m in DEMOSAIC_METHODS}
+    best, other = sorted(departs, key=departs.__getitem__)
+    said = ", ".join(f"{m} {v:.3f}" for m, v in departs.items())
+    if departs[best] < DEMOSAIC_MATCH and departs[best] < DEMOSAIC_MARGIN * departs[other]:
+        return best, (f"its fringe frames come back from {best} demosaicing of their own Bayer samples (departures "
+                      f"{said})")
+    return None, f"neither method gives its fringe frames back from their Bayer samples (departures {said})"
+
+
 def through_camera(images: np.ndarray, *, demosaic: str = "malvar", median: bool = False, layout: str = "RGGB") -> np.ndarray:
     """What a camera whose raw frames this ISP develops records of linear images, noise aside:
     (..., H, W, 3) -> (..., H, W, 3) float32 in the same units (Bayer sampling in ``layout``, the 3x3
