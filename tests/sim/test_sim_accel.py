@@ -180,21 +180,24 @@ def test_sparse_patterns_are_looked_up_only_where_they_reach_with_the_same_value
 
 
 @pytest.mark.slow
-def test_bench_sim_times_the_plan_and_compares_the_paths(tmp_path):
+def test_bench_sim_times_the_plan_and_compares_the_paths(tmp_path, monkeypatch):
     """`sss bench sim` (the plumbing, on the CPU preset with torch on the CPU): every frame kind timed, the numpy
     baseline measured in the same run, and both paths' footprints and images compared."""
+    import functools
     import json
 
     from typer.testing import CliRunner
 
     from sssphase_cli.main import app
+    from sssphase_core.bench import sim_accel_bench
 
-    out = tmp_path / "sim.json"
+    out = tmp_path / "sim.json"  # fewer dot frames rendered and numpy pixels sampled than the bench's 200 and 20,000
+    monkeypatch.setattr(sim_accel_bench, "run", functools.partial(sim_accel_bench.run, cpu_pixels=2000, dot_sample=20))
     result = CliRunner().invoke(app, ["bench", "sim", "--device", "cpu", "--preset", "cpu", "--object", "sand_rake",
                                       "--out", str(out)])
     assert result.exit_code == 0, result.output
     r = json.loads(out.read_text())
-    assert r["frames"] == 426 and r["dot_frames"] == 400 and r["dot_frames_rendered"] == 200
+    assert r["frames"] == 426 and r["dot_frames"] == 400 and r["dot_frames_rendered"] == 20
     assert r["render_s"] >= r["render_psp_s"] > 0 and r["numpy_psp_white_s"] > 0 and r["sense_frame_s"] > 0
     assert r["device_sense_frame_s"] > 0
     assert r["footprint_max_rel_diff"] < 1e-6 and r["image_max_rel_diff"] < 1e-5
