@@ -356,6 +356,7 @@ def session_views(
     pixels_per_view: int | None = 2000,
     footprints: bool = False,
     seed: int = 0,
+    psp_cache: dict[tuple[str, int], np.ndarray] | None = None,
 ) -> list[ViewData]:
     """Views of the sessions under ``root`` (one folder per object, see ``sssphase_core.store.session``; or
     ``root`` is one session folder: :func:`~sssphase_core.store.session.sessions_at`).
@@ -367,7 +368,9 @@ def session_views(
     those with captured footprints, and each view records how its crops were recorded (the camera's
     ``camera_isp`` and each crop's dot offset, for :mod:`sssphase_core.learning.camera`); otherwise the
     decoded correspondence mask.
-    Material labels come from ``gt/labels`` when present (simulated sessions), else -1.
+    Material labels come from ``gt/labels`` when present (simulated sessions), else -1. ``psp_cache``: the PSP
+    stacks read (and checked) so far by (session folder, view), shared by the views it returns (a run that reads the
+    same views for several steps: at 1080p each stack is 200 MB read, repaired and checked).
     """
     from sssphase_core.store.session import by_object, sessions_at
 
@@ -385,13 +388,17 @@ def session_views(
             if view not in s.views():
                 raise DataError(f"session {s.path} has no complete view {view} (its views: "
                                 f"{', '.join(map(str, s.views())) or 'none'}; choose among those)")
-            psp = repaired_psp(s, view)
-            # NaN surfaced as a NaN loss blamed on the learning rate; huge or negated frames train on no light
             level = white_level(s.load(view, "white")) if "white" in s.arrays(view) else None
-            problem = light_problem("psp", psp, level)
-            if problem:
-                raise DataError(f"session {s.path} view {view}: {problem}: re-capture or re-import the view, or leave it "
-                                "out (--views)")
+            psp = None if psp_cache is None else psp_cache.get((str(s.path), int(view)))
+            if psp is None:
+                psp = repaired_psp(s, view)
+                # NaN surfaced as a NaN loss blamed on the learning rate; huge or negated frames train on no light
+                problem = light_problem("psp", psp, level)
+                if problem:
+                    raise DataError(f"session {s.path} view {view}: {problem}: re-capture or re-import the view, or "
+                                    "leave it out (--views)")
+                if psp_cache is not None:
+                    psp_cache[(str(s.path), int(view))] = psp
             rng_seed = view_seed(seed, name, view)
             fp = None
             if footprints:

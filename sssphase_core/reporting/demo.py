@@ -113,6 +113,7 @@ class Demo:
         captured by a three-chip sim camera (nothing demosaiced). All are fixed for a demo folder."""
         self.out, self.cfg, self.client, self.fresh, self.log = Path(out), config, client, fresh, log
         self.progress = progress
+        self._psp_read: dict[tuple[str, int], Any] = {}  # the training views' PSP stacks, read once for every step
         self.report_dir = self.out / "report"  # index.html and img/
         self.steps_dir = self.out / "steps"
         self.steps_dir.mkdir(parents=True, exist_ok=True)
@@ -212,7 +213,7 @@ class Demo:
         self._need("train_sessions")
         c = self.cfg
         return session_views(self.results["train_sessions"]["root"], c.train_objects, pixels_per_view=c.pixels_per_view,
-                             footprints=footprints, seed=c.seed)
+                             footprints=footprints, seed=c.seed, psp_cache=self._psp_read)
 
     def pretrain(self) -> dict[str, Any]:
         from sssphase_core.learning.backends import get_backend

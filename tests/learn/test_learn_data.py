@@ -136,6 +136,14 @@ def test_session_views_stream_footprints_from_the_store(synthetic, tmp_path, mon
     assert torch.equal(b["dot"].sum(dim=(1, 2)), torch.ones(2)) and torch.equal(b["dot"][:, 3, 3], torch.ones(2))
     (plain,) = session_views(tmp_path, pixels_per_view=None)
     assert len(plain.pixels) == mask.sum() and plain.footprints is None
+    # a run's steps read the same views: with a cache the PSP stack is read (repaired, checked) once for all of them
+    reads = []
+    monkeypatch.setattr(data, "repaired_psp", lambda s, view: reads.append(view) or np.asarray(s.load(view, "psp")))
+    cache: dict = {}
+    (first,) = session_views(tmp_path, pixels_per_view=20, seed=0, psp_cache=cache)
+    (again,) = session_views(tmp_path, footprints=True, pixels_per_view=20, seed=0, psp_cache=cache)
+    assert reads == [0] and again.psp is first.psp and np.array_equal(first.psp, plain.psp)
+    assert again.footprints is not None and np.array_equal(again.pixels, lazy.pixels)
     with pytest.raises(DataError, match="no session"):
         session_views(tmp_path, ["apple"])
 
