@@ -1621,10 +1621,15 @@ def test_frames_too_faint_for_the_decoder_are_scaled_if_float_and_warned_of_if_i
     short = tmp_path / "short"
     short.mkdir()
     ramp = np.linspace(0.005, 0.1, W, dtype=np.float32)[None, :, None]  # exposure x albedo, across the view
+    ramp = ramp * np.array([1.0, 0.8, 0.6], np.float32)  # (a coloured object)
     for f, img in zip(plan, _camera(np.stack([f.pattern() for f in plan])), strict=True):
         _write(short, f.key, img * ramp, nested=False)  # 16-bit codes, white far below the top code on the left
-    with pytest.warns(UserWarning, match=r"\d+% of the pixels holding light were dropped as too faint for the decoder"):
+    with pytest.warns(UserWarning, match=r"\d+% of the pixels holding light were dropped as too faint for the decoder") as got:
         import_folder(short, tmp_path / "s", "short", (W, H), patch=K)
+    # the white's level, said twice (the 16-bit hint and the dim view), is one figure (they quoted 0.0545 and 0.044)
+    levels = {re.search(r"white's level is ([0-9.e-]+)", str(w.message))[1] for w in got
+              if "white's level is" in str(w.message)}
+    assert len(levels) == 1, levels
 
 
 def test_a_dropped_or_copied_fringe_frame_is_refused_and_shifts_out_of_order_are_named(tmp_path):

@@ -730,8 +730,8 @@ def _warn_dim_view(vdir: Path, white: np.ndarray, reason: np.ndarray, period: fl
     from sssphase_core.processing.psp import Reason
 
     grey = np.asarray(white, np.float32).reshape(*reason.shape, -1).mean(-1)
-    level = float(np.percentile(grey, 99.9))
-    lit = grey > DIM_LIT * level
+    lit = grey > DIM_LIT * float(np.percentile(grey, 99.9))
+    level = float(np.percentile(white, 99.9))  # the white's level as every other line of the import gives it
     faint = lit & np.isin(reason, (int(Reason.LOW_MODULATION), int(Reason.SHADOW)))
     if not (lit.any() and faint.sum() > DIM_WARN * lit.sum()):
         return
