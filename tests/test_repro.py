@@ -132,8 +132,17 @@ def test_a_relight_starts_only_if_its_estimate_fits(tmp_path):
     assert repro.relight_estimate_s("torch", 100_000) == RELIGHT_MIN_S  # nothing known yet
     repro.results["footprints"] = {"status": "done", "metrics": {}, "pixels": 256,
                                    "seconds_per_pixel": {"torch": 1e-3, "analytic": 2e-4}}
-    assert repro.relight_estimate_s("torch", 100_000) == pytest.approx(RELIGHT_OVER_FOOTPRINTS * 100.0)
-    assert repro.relight_estimate_s("blend", 100_000) == pytest.approx(RELIGHT_OVER_FOOTPRINTS * 120.0)
+    over = RELIGHT_OVER_FOOTPRINTS["cpu"]  # (a GPU's relight batches are larger than the step's: its factor is lower)
+    assert RELIGHT_OVER_FOOTPRINTS["cuda"] < over
+    assert repro.relight_estimate_s("torch", 100_000) == pytest.approx(over * 100.0)
+    assert repro.relight_estimate_s("blend", 100_000) == pytest.approx(over * 120.0)
+    import torch
+
+    import sssphase_core.compute as compute
+
+    with pytest.MonkeyPatch.context() as mp:  # the same run on a GPU (its device asked for, not touched)
+        mp.setattr(compute, "compute_device", lambda device=None: torch.device("cuda"))
+        assert repro.relight_estimate_s("torch", 100_000) == pytest.approx(RELIGHT_OVER_FOOTPRINTS["cuda"] * 100.0)
     rows = [{"seconds": 40.0, "lit_pixels": 50_000, "psnr": 30.0, "ssim": 0.9, "object": "crab", "pattern": p,
              "backend": "torch"} for p in ("checkerboard", "stripes_x")]
     repro._relight_progress({"crab/torch": rows}, {})

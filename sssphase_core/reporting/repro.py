@@ -89,10 +89,12 @@ PRESETS = {
 #: time of the relight with no scattering before it).
 RELIGHT_MIN_S = 20.0
 #: A whole relight's seconds per lit pixel over its model's seconds per footprint in the footprints step (the
-#: splat, the white-consistent calibration and the scoring besides the footprints): for the analytic model on a
-#: 1080p crab on 2 cores 1.35 (130 s for 182,018 pixels at 0.53 ms per footprint), and 1.04 once its render moved to
-#: torch (54.6 s at 0.29 ms, the step's timing of 2,048 scattered pixels).
-RELIGHT_OVER_FOOTPRINTS = 1.5
+#: splat, the white-consistent calibration and the scoring besides the footprints), by device kind. On 2 cores for
+#: the analytic model on a 1080p crab 1.35 (130 s for 182,018 pixels at 0.53 ms per footprint), and 1.04 once its
+#: render moved to torch (54.6 s at 0.29 ms, the step's timing of 2,048 scattered pixels). On the H100 0.74 for the
+#: decoder (98.4 s for 182,020 pixels at 0.73 ms: the step times batches of ~250 footprints, the relight's are
+#: larger), which 1.5 had estimated at 199 s.
+RELIGHT_OVER_FOOTPRINTS = {"cpu": 1.5, "cuda": 1.0}
 BUDGET_SPENT = "the budget was spent"
 
 STEPS = ("train_sessions", "test_sessions", "pretrain_psp", "pretrain_imagenet", "decoder", "footprints", "knn",
@@ -297,8 +299,8 @@ class PaperRepro(Demo):
 
     def relight_estimate_s(self, backend: str, pixels: int) -> float:
         """Seconds a relight of a view with ``pixels`` lit pixels will take with ``backend``: per lit pixel, as
-        long as the slowest relight with it so far; before any, :data:`RELIGHT_OVER_FOOTPRINTS` times the seconds
-        per footprint of its model(s) in the footprints step (a blend runs both); else the longest relight so far.
+        long as the slowest relight with it so far; before any, :data:`RELIGHT_OVER_FOOTPRINTS` (of the device's kind)
+        times the seconds per footprint of its model(s) in the footprints step (a blend runs both); else the longest relight so far.
         At least :data:`RELIGHT_MIN_S`."""
         def unit_s(rows: list[dict[str, Any]]) -> float:  # the relight's, the scoring's and the figures' seconds
             return float(rows[0].get("unit_seconds") or sum(float(r["seconds"]) for r in rows))
@@ -310,7 +312,10 @@ class PaperRepro(Demo):
         if same:
             guess = max(same) * pixels
         elif all(m in per_footprint for m in models):
-            guess = RELIGHT_OVER_FOOTPRINTS * sum(float(per_footprint[m]) for m in models) * pixels
+            from sssphase_core.compute import compute_device
+
+            over = RELIGHT_OVER_FOOTPRINTS["cuda" if compute_device(self.device).type == "cuda" else "cpu"]
+            guess = over * sum(float(per_footprint[m]) for m in models) * pixels
         else:
             guess = max((unit_s(rows) for rows in self._relit.values() if rows), default=0.0)
         return max(RELIGHT_MIN_S, guess)
