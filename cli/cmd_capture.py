@@ -172,6 +172,8 @@ def import_images(
         elif "matches no layout clearly" in found:  # a colour filter array suspected, not applied
             console.print(f"view {v}: {found.removeprefix('none: ')}: if the camera demosaiced its frames, pass "
                           "--bayer LAYOUT")
+        if "raw_bayer" in info:
+            console.print(f"view {v}: grey frames read as raw Bayer samples ({info['raw_bayer']})")
         method, _, why = str(info.get("demosaic_detected", "")).partition(": ")
         if method in ("malvar", "opencv"):
             console.print(f"view {v}: {why}: relit fringes are compared through {method} demosaicing "

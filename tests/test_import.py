@@ -1034,6 +1034,41 @@ def test_grey_frames_import_as_colour_and_one_grey_frame_among_colour_ones_is_re
     assert not (tmp_path / "s" / "mixed").exists()
 
 
+def test_a_colour_cameras_raw_bayer_frames_are_demosaiced_with_their_layout_and_not_read_as_grey(tmp_path):
+    """A lab's machine-vision camera saves raw Bayer samples (one grey channel): they imported as a monochrome
+    camera's, colour lost and each 2 x 2 cell's colours read as a pattern of light. Now the greens' diagonal is read
+    from the white, the layout asked for (red and blue cannot be told apart) and the samples demosaiced."""
+    from sssphase_core.processing.isp import bayer_mosaic, develop
+
+    w, h = 2 * W, 2 * H
+    plan = [f for f in capture_plan(w, h, references=("white", "black")) if f.key.startswith(("psp/", "white", "black"))]
+    yy, xx = np.mgrid[:h, :w]
+    inside = ((yy - h / 2) / 38) ** 2 + ((xx - w / 2) / 54) ** 2 <= 1
+    light = gaussian_filter(emitted_light(np.stack([f.pattern() for f in plan]), 2.2) * inside[..., None],
+                            (0, 1.2, 1.2, 0)) * np.float32([0.9, 0.45, 0.15])
+    folder = tmp_path / "raw"
+    folder.mkdir()
+    for f, img in zip(plan, light.astype(np.float32), strict=True):
+        np.save(folder / (f.key.replace("/", "__") + ".npy"), bayer_mosaic(img, "GRBG"))
+    with pytest.raises(InputError, match=r"white.npy: a grey frame whose 2 x 2 sites hold different colours' light, "
+                                         r"greens on the main diagonal .* give its layout \(GRBG or GBRG\) with --bayer"):
+        import_folder(folder, tmp_path / "s", "auto", (w, h), patch=16)
+    with pytest.raises(InputError, match=r"--bayer RGGB puts green on the anti diagonal .* on the main one .*GRBG or GBRG"):
+        import_folder(folder, tmp_path / "s", "wrong", (w, h), patch=16, bayer="RGGB")
+    assert not (tmp_path / "s" / "auto").exists() and not (tmp_path / "s" / "wrong").exists()
+    s = import_folder(folder, tmp_path / "s", "raw", (w, h), patch=16, bayer="GRBG")
+    info = s.manifest["views"]["0"]
+    assert info["raw_bayer"] == "GRBG: demosaiced by malvar"
+    assert info["camera_isp"] == {"bayer": "GRBG", "demosaic": "malvar", "median": False}
+    white = np.asarray(s.load(0, "white"))
+    want = develop(bayer_mosaic(light[-2], "GRBG"), 0.0, 1.0, median=False, layout="GRBG")
+    np.testing.assert_allclose(white, want, atol=1e-6)  # the samples as the layout's demosaicing gives them
+    core = inside & (np.hypot((yy - h / 2) / 38, (xx - w / 2) / 54) < 0.7)
+    ratio = white[core].mean(0) / white[core].mean()
+    np.testing.assert_allclose(ratio, np.float32([0.9, 0.45, 0.15]) / 0.5, rtol=0.02)  # its colours, not grey
+    assert s.load(0, "corr/mask")[core].mean() > 0.95
+
+
 def test_frames_beside_view_folders_are_refused_not_left_out(tmp_path):
     """Loose frames next to view_NNN folders were one view silently dropped."""
     folder = _float_frames(tmp_path / "mixed", 1.0)

@@ -241,10 +241,12 @@ class FrameLoader:
     ``repair=False``: refused, as `sss decode` does), times ``scale``, and refused unless every frame has the first's
     size and that size is a camera frame's (at least ``MIN_FRAME_SIDE`` a side), and unless all are colour or all
     grey (one camera takes a view's frames; a grey file among colour ones is an export gone wrong). Frames come
-    back (H, W, 3), a grey one repeated. ``repaired`` counts the values repaired so far."""
+    back (H, W, 3), a grey one repeated, or with ``raw`` ``(layout, method)`` a grey one (a colour camera's raw Bayer
+    samples) demosaiced by ``method`` (:func:`isp.develop`). ``repaired`` counts the values repaired so far."""
 
-    def __init__(self, encoding: str = "linear", scale: float = 1.0, *, repair: bool = True) -> None:
-        self.encoding, self.scale, self.repair = encoding, scale, repair
+    def __init__(self, encoding: str = "linear", scale: float = 1.0, *, repair: bool = True,
+                 raw: tuple[str, str] | None = None) -> None:
+        self.encoding, self.scale, self.repair, self.raw = encoding, scale, repair, raw
         self.first: Path | None = None
         self.shape: tuple[int, ...] | None = None
         self.grey = False  # whether the first frame was grey (set with ``first``)
@@ -261,7 +263,9 @@ class FrameLoader:
             kind = ("grey", "colour") if grey else ("colour", "grey")
             raise InputError(f"{path} is a {kind[0]} image, the other frames ({self.first.name} ...) {kind[1]}: one "
                              "camera takes a view's frames, so write them all colour or all grey")
-        image = (np.repeat(image[..., None], 3, axis=-1) if grey else image) * np.float32(self.scale)
+        if grey and self.raw is not None:
+            image = develop_raw(path, image, *self.raw)
+        image = (np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image) * np.float32(self.scale)
         if self.shape is not None and image.shape != self.shape:
             self.refuse_size(path, image.shape)
         if self.first is None:
@@ -275,6 +279,44 @@ class FrameLoader:
         """Raise for a frame of another size than the first (a subclass words it for its command)."""
         assert self.shape is not None
         raise InputError(f"{path} is {shape[1]}x{shape[0]}, the other frames {self.shape[1]}x{self.shape[0]}")
+
+
+def develop_raw(path: Path, mosaic: np.ndarray, layout: str, method: str) -> np.ndarray:
+    """A grey (H, W) frame of raw Bayer samples in ``layout`` -> (H, W, 3) float32 demosaiced by ``method`` (no
+    median: the camera's samples as they came); one line naming the file for odd sides."""
+    from sssphase_core.processing.isp import develop
+
+    if mosaic.shape[0] % 2 or mosaic.shape[1] % 2:
+        raise InputError(f"{path} is {mosaic.shape[1]}x{mosaic.shape[0]}: raw Bayer samples (--bayer {layout} with grey "
+                         "frames) come in whole 2 x 2 cells, so both sides are even")
+    return develop(mosaic, 0.0, 1.0, median=False, method=method, layout=layout)
+
+
+def raw_mosaic_mode(white: Path, encoding: str, bayer: str | None, demosaic: str) -> tuple[str, str] | None:
+    """``(layout, method)`` when a view's frames are a colour camera's raw Bayer samples to demosaic: grey files with
+    a layout named (``--bayer``; ``demosaic`` ``other``: Malvar). One line when grey files look like raw samples
+    (:func:`isp.detect_raw_mosaic`) and ``--bayer`` is ``auto`` (which of the two non-green sites is red the samples
+    cannot tell), or a named layout puts the greens where the samples do not; None for colour files and
+    monochrome ones."""
+    from sssphase_core.processing.isp import GREEN_DIAGONAL, detect_raw_mosaic
+
+    image = read_imported(white, encoding, keep_grey=True)[0]
+    if image.ndim != 2 or bayer is None or bayer.lower() == "none":
+        return None
+    diagonal, why = detect_raw_mosaic(image)
+    if bayer.lower() == "auto":
+        if diagonal is None:
+            return None  # a monochrome camera's
+        layouts = [k for k, d in GREEN_DIAGONAL.items() if d == diagonal]
+        raise InputError(f"{white}: a grey frame whose {why.removeprefix('its ')}: a colour camera's raw Bayer samples? "
+                         f"give its layout ({' or '.join(layouts)}) with --bayer to demosaic them, or --bayer none for "
+                         "a monochrome camera")
+    layout = bayer.upper()
+    if diagonal is not None and GREEN_DIAGONAL[layout] != diagonal:
+        raise InputError(f"{white}: --bayer {layout} puts green on the {GREEN_DIAGONAL[layout]} diagonal of each 2 x 2 "
+                         f"cell, but these raw samples hold it on the {diagonal} one ({why.split('(')[-1].rstrip(')')}): "
+                         f"{' or '.join(k for k, d in GREEN_DIAGONAL.items() if d == diagonal)}?")
+    return layout, "malvar" if demosaic == "other" else demosaic
 
 
 #: A white capture whose 99.9th percentile is above this many times that of its 3 x 3 median holds fireflies
@@ -1023,6 +1065,9 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                          "(99.9th percentiles): an import's views share one exposure and units (the frames are scaled "
                          "together)")
     scale = frame_scale([files["white"] for _, files in views], levels)
+    raw = raw_mosaic_mode(views[0][1]["white"], encoding, bayer, demosaic)  # grey raw Bayer samples: demosaiced here
+    if raw is not None:
+        demosaic, camera_isp = raw[1], {"bayer": raw[0], "demosaic": raw[1], "median": False}
     depth = code_depth(views[0][1]["white"])
     top_code = scale  # an integer file's top code in camera units: 1, or a camera word's top with --bit-depth
     if bit_depth is not None:
@@ -1064,7 +1109,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
             try:
                 proc = ViewProcessor(writer, plan, spacing, patch, RigSpec(camera="import", turntable=None), req, 0,
                                      camera_isp)
-                loader, top, fringe_values = FrameLoader(encoding, scale), 0, 0
+                loader, top, fringe_values = FrameLoader(encoding, scale, raw=raw), 0, 0
                 set_sums: dict[str, np.ndarray] = {}  # each fringe set's sum: its mean is half the white's light
                 pair_sums: dict[str, list[np.ndarray]] = {}  # opposite shifts' sums per set (even N): all equal
                 dot_sum, n_dots = None, 0  # the dot frames' sum: a full grid holds the white's light
@@ -1113,6 +1158,8 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                     info["bayer_detected"] = detected
                 if found_demosaic is not None:
                     info["demosaic_detected"] = found_demosaic
+                if raw is not None:
+                    info["raw_bayer"] = f"{raw[0]}: demosaiced by {raw[1]}"
                 try:
                     check_opposite_shifts(vdir, pair_sums, proc.images["white"], proc.images["black"])
                 except InputError as exc:  # (linear frames a tool tagged gAMA or sRGB were blamed on a missing frame)

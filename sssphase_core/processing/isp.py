@@ -98,6 +98,58 @@ def detect_bayer_layout(fringe_sets: list[np.ndarray], white: np.ndarray, mask: 
     return best, f"the noise of its 2 x 2 sites follows {best}'s colours (correlation {corr[best]:.2f}, spread {spread:.2f})"
 
 
+#: :func:`detect_raw_mosaic`: a grey frame is a colour camera's raw Bayer samples when its 2 x 2 sites' levels (each
+#: site's median over lit blocks of its sample over the block's mean) spread by at least this factor (max / min: an
+#: RGGB mosaic of the exported sim crab's white 4.7, sites 1.99 0.79 0.80 0.42; the grey of that white, as a
+#: monochrome camera would see it, 1.02, sites 0.99 0.99 1.01 1.01) ...
+RAW_SITE_SPREAD = 1.08
+#: ... and one diagonal's two sites (the greens) agree within this factor of each other's level (the crab's 1.015).
+RAW_GREEN_AGREE = 1.04
+#: Which sites hold green, by layout: the anti-diagonal ((0, 1) and (1, 0)) or the main one ((0, 0) and (1, 1)).
+GREEN_DIAGONAL = {"RGGB": "anti", "BGGR": "anti", "GRBG": "main", "GBRG": "main"}
+
+
+#: ... over at least this many lit 2 x 2 blocks (blocks whose mean is above RAW_LIT of the brightest's, the 99th
+#: percentile).
+RAW_MIN_BLOCKS, RAW_LIT = 64, 0.25
+
+
+def raw_site_levels(grey: np.ndarray) -> np.ndarray | None:
+    """(2, 2) levels of a grey (H, W) frame's 2 x 2 sites: each site's median, over the lit 2 x 2 blocks (their mean
+    above :data:`RAW_LIT` of the 99th percentile of the blocks' means), of its sample over its block's mean (1 at
+    every site for a monochrome camera); None with fewer than :data:`RAW_MIN_BLOCKS` such blocks."""
+    h, w = (grey.shape[0] // 2) * 2, (grey.shape[1] // 2) * 2
+    sites = np.asarray(grey[:h, :w], np.float64).reshape(h // 2, 2, w // 2, 2).transpose(0, 2, 1, 3).reshape(-1, 2, 2)
+    means = sites.mean(axis=(1, 2))
+    finite = np.isfinite(means)
+    if not finite.any():
+        return None
+    lit = finite & (means > RAW_LIT * float(np.percentile(means[finite], 99)))
+    if lit.sum() < RAW_MIN_BLOCKS:
+        return None
+    return np.median(sites[lit] / means[lit, None, None], axis=0)
+
+
+def detect_raw_mosaic(grey: np.ndarray) -> tuple[str | None, str]:
+    """``(diagonal, why)``: where a grey (H, W) frame that is a colour camera's raw Bayer mosaic holds its greens
+    (``"anti"``: RGGB or BGGR, ``"main"``: GRBG or GBRG; :data:`GREEN_DIAGONAL`), or ``(None, why not)`` for a
+    monochrome camera's (its sites alike). Read from the sites' levels (:func:`raw_site_levels`; a white capture
+    shows them best); which of the two non-green sites is red the frame cannot tell."""
+    levels = raw_site_levels(grey)
+    if levels is None:
+        return None, "too few lit 2 x 2 blocks"
+    said = f"site levels {' '.join(f'{v:.2f}' for v in levels.ravel())}"
+    spread = float(levels.max() / max(levels.min(), 1e-12))
+    pairs = {"anti": (levels[0, 1], levels[1, 0]), "main": (levels[0, 0], levels[1, 1])}
+    agree = {d: max(a, b) / max(min(a, b), 1e-12) for d, (a, b) in pairs.items()}
+    diagonal = min(agree, key=agree.__getitem__)
+    if spread < RAW_SITE_SPREAD:
+        return None, f"its 2 x 2 sites are alike ({said})"
+    if agree[diagonal] > RAW_GREEN_AGREE:
+        return None, f"no diagonal's two sites agree as a mosaic's greens do ({said})"
+    return diagonal, f"its 2 x 2 sites hold different colours' light, greens on the {diagonal} diagonal ({said})"
+
+
 def _check_mosaic(raw: np.ndarray) -> np.ndarray:
     raw = np.asarray(raw)
     if raw.ndim != 2 or raw.shape[0] % 2 or raw.shape[1] % 2:
