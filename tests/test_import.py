@@ -1067,6 +1067,17 @@ def test_a_colour_cameras_raw_bayer_frames_are_demosaiced_with_their_layout_and_
     ratio = white[core].mean(0) / white[core].mean()
     np.testing.assert_allclose(ratio, np.float32([0.9, 0.45, 0.15]) / 0.5, rtol=0.02)  # its colours, not grey
     assert s.load(0, "corr/mask")[core].mean() > 0.95
+    # a 12-bit camera's samples, its brightest clipped: Malvar's filters overshoot the top code beside them, which
+    # must not read as codes wider than 12 bits (they are checked as they came, before demosaicing)
+    codes = tmp_path / "codes"
+    codes.mkdir()
+    for f, img in zip(plan, light.astype(np.float32), strict=True):
+        mosaic = bayer_mosaic(img, "GRBG") / (0.8 * float(light[-2].max()))
+        np.save(codes / (f.key.replace("/", "__") + ".npy"), np.round(np.clip(mosaic, 0, 1) * 4095).astype(np.uint16))
+    with pytest.warns(UserWarning, match="clipped"):
+        twelve = import_folder(codes, tmp_path / "s", "twelve", (w, h), patch=16, bayer="GRBG", bit_depth=12)
+    assert twelve.manifest["views"]["0"]["raw_bayer"] == "GRBG: demosaiced by malvar"
+    assert float(np.asarray(twelve.load(0, "white")).max()) > 1.0  # (the overshoot, kept as light)
 
 
 def test_frames_beside_view_folders_are_refused_not_left_out(tmp_path):

@@ -242,11 +242,13 @@ class FrameLoader:
     size and that size is a camera frame's (at least ``MIN_FRAME_SIDE`` a side), and unless all are colour or all
     grey (one camera takes a view's frames; a grey file among colour ones is an export gone wrong). Frames come
     back (H, W, 3), a grey one repeated, or with ``raw`` ``(layout, method)`` a grey one (a colour camera's raw Bayer
-    samples) demosaiced by ``method`` (:func:`isp.develop`). ``repaired`` counts the values repaired so far."""
+    samples) demosaiced by ``method`` (:func:`isp.develop`). With ``bit_depth`` each file's codes are checked against
+    that camera word's top (:func:`check_codes_fit`), before demosaicing (whose filters overshoot at clipped
+    edges). ``repaired`` counts the values repaired so far."""
 
     def __init__(self, encoding: str = "linear", scale: float = 1.0, *, repair: bool = True,
-                 raw: tuple[str, str] | None = None) -> None:
-        self.encoding, self.scale, self.repair, self.raw = encoding, scale, repair, raw
+                 raw: tuple[str, str] | None = None, bit_depth: int | None = None) -> None:
+        self.encoding, self.scale, self.repair, self.raw, self.bit_depth = encoding, scale, repair, raw, bit_depth
         self.first: Path | None = None
         self.shape: tuple[int, ...] | None = None
         self.grey = False  # whether the first frame was grey (set with ``first``)
@@ -263,6 +265,8 @@ class FrameLoader:
             kind = ("grey", "colour") if grey else ("colour", "grey")
             raise InputError(f"{path} is a {kind[0]} image, the other frames ({self.first.name} ...) {kind[1]}: one "
                              "camera takes a view's frames, so write them all colour or all grey")
+        if self.bit_depth is not None:
+            check_codes_fit(path, image * np.float32(self.scale), self.bit_depth)
         if grey and self.raw is not None:
             image = develop_raw(path, image, *self.raw)
         image = (np.repeat(image[..., None], 3, axis=-1) if image.ndim == 2 else image) * np.float32(self.scale)
@@ -1109,7 +1113,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
             try:
                 proc = ViewProcessor(writer, plan, spacing, patch, RigSpec(camera="import", turntable=None), req, 0,
                                      camera_isp)
-                loader, top, fringe_values = FrameLoader(encoding, scale, raw=raw), 0, 0
+                loader, top, fringe_values = FrameLoader(encoding, scale, raw=raw, bit_depth=bit_depth), 0, 0
                 set_sums: dict[str, np.ndarray] = {}  # each fringe set's sum: its mean is half the white's light
                 pair_sums: dict[str, list[np.ndarray]] = {}  # opposite shifts' sums per set (even N): all equal
                 dot_sum, n_dots = None, 0  # the dot frames' sum: a full grid holds the white's light
@@ -1118,8 +1122,6 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                     if auto_bayer and detected is None and key.startswith("dots/"):  # before the decode the dots start
                         detected = _detect_bayer(proc, config, demosaic)
                     image = loader.read(files[key])
-                    if bit_depth is not None:
-                        check_codes_fit(files[key], image, bit_depth)
                     if key.startswith("psp/") and stores_integers(files[key]):  # the top code reads top_code
                         top += int(np.count_nonzero(image >= 0.999 * top_code))
                         fringe_values += image.size
