@@ -1092,7 +1092,9 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
     settings = {"n_views": len(view_dirs), "imported_from": str(folder.resolve()),
                 "rig": {"camera": "import", "projector_size": [w, h], "patch": patch, "imported": True,
                         "frame_scale": scale, "frame_encoding": encoding, "frame_encoding_from": encoding_tag,
-                        **({"frame_bit_depth": bit_depth} if bit_depth is not None else {})},
+                        **({"frame_bit_depth": bit_depth} if bit_depth is not None else {}),
+                        # integer files hold codes 0 .. top: what a camera model's images are clipped to (relighting)
+                        **({"frame_codes_range": [0.0, top_code]} if depth is not None else {})},
                 "plan": plan_json, "import_options": {"bayer": str(bayer).lower(), "demosaic": demosaic,
                                                       **({"angles": angles} if angles else {})},
                 "imported_frames": [frames_fingerprint(files) for _, files in views]}  # frames replaced: not resumed

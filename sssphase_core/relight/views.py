@@ -39,6 +39,7 @@ class RelightView:
     white_saturation: float | None = None  # the white capture's (None: it does not clip, e.g. HDR)
     plan: dict = field(default_factory=dict, repr=False)  # the session's capture plan
     camera_isp: dict | None = None  # the camera pipeline that made its captures, when known (view info)
+    codes_range: tuple[float, float] | None = None  # (0, top code) in linear units: integer frames' range (imports)
     _camera: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
     _model_inputs: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
     _exit_white: tuple[np.ndarray, np.ndarray] | None = field(default=None, repr=False, compare=False)
@@ -73,14 +74,17 @@ class RelightView:
     def through_camera(self, images: np.ndarray) -> np.ndarray:
         """Linear images (..., H, W, 3) as this view's camera records them, noise aside (Bayer sampling and
         its demosaicing, :func:`isp.through_camera`), so that they compare with its captures; unchanged when
-        the session does not say how its frames were made (a camera that demosaics itself, imports)."""
+        the session does not say how its frames were made (a camera that demosaics itself, imports). Frames of
+        integer codes (``codes_range``) hold none of the demosaicing's overshoot below 0 or above the top code: the
+        images are clipped to it as the camera's files were (unclipped, an imported crab scored 3.6 dB low)."""
         if not self.camera_isp or self.camera_isp.get("demosaic") == "other":  # (an import's unknown demosaicer)
             return np.asarray(images, np.float32)
         from sssphase_core.processing.isp import through_camera
 
-        return through_camera(images, demosaic=str(self.camera_isp.get("demosaic", "malvar")),
+        seen = through_camera(images, demosaic=str(self.camera_isp.get("demosaic", "malvar")),
                               median=bool(self.camera_isp.get("median", False)),
                               layout=str(self.camera_isp.get("bayer", "RGGB")))
+        return seen if self.codes_range is None else np.clip(seen, *self.codes_range)
 
     def camera_image(self, name: str) -> np.ndarray:
         """The camera's noise-free image of reference ``name`` (simulated sessions; evaluation only): its
@@ -171,9 +175,18 @@ def load_view(session: object, view: int) -> RelightView:
         if problem := coordinates_problem(name, coord, mask, side):
             raise DataError(f"{where}: {problem}")
     psp_clip, white_clip = session.clip_levels()  # type: ignore[attr-defined]
+    codes = rig.get("frame_codes_range")
     return RelightView(str(m.get("object")), view, proj, psp, white, patch,
                        references, captured, sim, session, psp_clip, white_clip, plan,
-                       m.get("views", {}).get(str(view), {}).get("camera_isp"))
+                       m.get("views", {}).get(str(view), {}).get("camera_isp"),
+                       (float(codes[0]), float(codes[1])) if _codes_range_ok(codes) else None)
+
+
+def _codes_range_ok(codes: object) -> bool:
+    """Whether a manifest's ``frame_codes_range`` is a usable (low, high) pair of finite numbers, low < high."""
+    return (isinstance(codes, (list, tuple)) and len(codes) == 2
+            and all(isinstance(c, (int, float)) and not isinstance(c, bool) and np.isfinite(c) for c in codes)
+            and codes[0] < codes[1])
 
 
 def _check_view_shapes(where: str, mask: np.ndarray, maps: dict[str, np.ndarray], images: dict[str, np.ndarray]) -> None:
