@@ -1774,6 +1774,36 @@ def test_dot_frames_must_be_a_whole_grid_holding_the_whites_light(tmp_path):
         import_folder(folder, tmp_path / "s", "brighter", (W, H), patch=K)
 
 
+def test_each_dot_frame_must_light_its_own_dots_and_crops_keep_capture_order(tmp_path):
+    """Dot frames named dots__<sy>_<sx> (8,105 of 9,282 crops of the wrong pixels), one frame a copy of another or
+    black: the grid's light summed over its frames is unchanged, and each imported without a word. Each frame's
+    light must now fall on its own dots at the decoded points; the crops are stored as a capture takes them."""
+    folder = _dot_frames(tmp_path / "f")
+    s = import_folder(folder, tmp_path / "s", "whole", (W, H), patch=K)
+    dots = np.asarray(s.load(0, "transport/dots"))  # each crop's dot (sx, sy): rows of shifts, as captured
+    order = [(int(sy), int(sx)) for sx, sy in dots % SPACING]
+    assert order == sorted(order) and len(set(order)) == SPACING ** 2
+    swapped = tmp_path / "swapped"
+    swapped.mkdir()
+    for path in folder.iterdir():
+        m = re.fullmatch(r"dots__(\d+)_(\d+)\.npy", path.name)
+        shutil.copy(path, swapped / (f"dots__{m[2]}_{m[1]}.npy" if m else path.name))
+    with pytest.raises(InputError, match=r"dots__1_0.npy: its light falls on projector column 0 and row 1 of each 8 x 8 "
+                                         r"cell .* where dots__1_0 lights column 1 and row 0: x and y swapped"):
+        import_folder(swapped, tmp_path / "s", "swapped", (W, H), patch=K)
+    copied = folder / "dots__2_3.npy"
+    kept = np.load(copied)
+    shutil.copy(folder / "dots__2_2.npy", copied)
+    with pytest.raises(InputError, match=r"dots__2_3.npy: its light falls on projector column 2 and row 2 .* a mislabelled "
+                                         r"or copied dot frame"):
+        import_folder(folder, tmp_path / "s", "copied", (W, H), patch=K)
+    np.save(copied, np.load(folder / "black.npy"))
+    with pytest.raises(InputError, match=r"dots__2_3.npy: holds 0.00 of the light a dot frame of this 8 x 8 grid gives"):
+        import_folder(folder, tmp_path / "s", "black", (W, H), patch=K)
+    np.save(copied, kept)
+    assert not any((tmp_path / "s" / n).exists() for n in ("swapped", "copied", "black"))
+
+
 def test_views_in_other_units_are_refused_naming_both_whites(tmp_path):
     """One view in units 1000x the other's: the shared scale crushed view 0, refused as "100% shadow"."""
     _float_frames(tmp_path / "f" / "view_000", 1.0)

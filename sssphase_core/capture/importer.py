@@ -619,6 +619,15 @@ def check_view_memory(vdir: Path, files: dict[str, Path]) -> None:
                          "crop them to the object, or import on a machine with more memory")
 
 
+def _import_order(key: str) -> tuple[int, ...]:
+    """The order an import reads a view's frames in: the others as named, then the dot frames as a capture takes
+    them (rows of shifts: sy, then sx), so that footprint crops are stored in capture order."""
+    if m := DOTS_KEY_RE.match(key):
+        sx, sy = (int(v) for v in m.groups())
+        return (1, sy, sx)
+    return (0,)
+
+
 def check_dot_frames(vdir: Path, files: dict[str, Path]) -> int:
     """The dot grid's spacing (0 without dot frames); one line naming the missing frames of an incomplete grid."""
     offsets = [tuple(int(v) for v in m.groups()) for k in files if (m := DOTS_KEY_RE.match(k))]
@@ -632,6 +641,59 @@ def check_dot_frames(vdir: Path, files: dict[str, Path]) -> int:
                          f"missing ({named}): a grid's frames together light every projector pixel once; give them "
                          "all, or none")
     return spacing
+
+
+#: :class:`DotPlacement`: a dot frame's light must fall within this many projector px (along x and y, modulo the
+#: spacing) of its name's dots at the decoded points (the sim apple's frames at spacing 8: within 0.03 px; a frame
+#: named dots__<sy>_<sx>, or another frame's copy, is whole pixels off) ...
+DOT_PLACE_TOLERANCE = 0.5
+#: ... where its light is concentrated enough to say (the resultant length of its phase modulo the spacing: 0.48-0.51
+#: for the apple at spacing 8; light spread wider than the spacing says nothing) ...
+DOT_PLACE_MIN_CONCENTRATION = 0.2
+#: ... and hold at least this share of a grid frame's light (the white's, above black, over the spacing squared).
+DOT_FRAME_MIN_LIGHT = 0.25
+#: A dot frame's light counts at a pixel up to this many times the white's there (noise; a firefly counts no more).
+DOT_LIGHT_CAP = 1.5
+
+
+class DotPlacement:
+    """Where an imported dot frame's light falls in projector coordinates, against where its name puts the dots:
+    frames named the other way round (``dots__<sy>_<sx>``), copied, or holding no light imported as footprints of
+    the wrong pixels, and the grid's light summed over all frames could not tell.
+
+    ``xp``, ``yp``, ``mask`` (H, W): the view's decoded correspondences; ``light`` (H, W): the white above black
+    (colours summed); ``spacing``: the grid's."""
+
+    def __init__(self, xp: np.ndarray, yp: np.ndarray, mask: np.ndarray, light: np.ndarray, spacing: int) -> None:
+        self.mask, self.spacing = np.asarray(mask, bool), int(spacing)
+        turn = 2j * np.pi / self.spacing
+        self.ex = np.exp(turn * np.asarray(xp, np.float64)[self.mask]).astype(np.complex64)  # (M,) a pixel's x phase
+        self.ey = np.exp(turn * np.asarray(yp, np.float64)[self.mask]).astype(np.complex64)
+        lit = np.clip(np.asarray(light, np.float32)[self.mask], 0, None)
+        self.frame_light = float(lit.sum()) / self.spacing ** 2  # a grid frame's
+        # no pattern lights a pixel more than full white does: above it, a path tracer's firefly (not yet repaired)
+        self.cap = DOT_LIGHT_CAP * lit + float(np.percentile(lit, 99)) * 0.01
+
+    def check(self, path: Path, sx: int, sy: int, dots: np.ndarray) -> None:
+        """One line unless the ``dots`` (H, W[, 3], above black) of frame ``(sx, sy)`` light its own dots."""
+        w = np.clip(dots.reshape(*self.mask.shape, -1).sum(-1)[self.mask], 0, self.cap).astype(np.float32)
+        total = float(w.sum())
+        if not total >= DOT_FRAME_MIN_LIGHT * self.frame_light:
+            raise InputError(f"{path}: holds {total / max(self.frame_light, 1e-30):.2f} of the light a dot frame of this "
+                             f"{self.spacing} x {self.spacing} grid gives at the decoded points (the white's over "
+                             f"{self.spacing ** 2}): an empty or black frame? give the frame the projector showed")
+        found = []
+        for e, shift in ((self.ex, sx), (self.ey, sy)):
+            z = complex(np.dot(w, e)) * np.exp(-2j * np.pi * shift / self.spacing) / total
+            found.append((np.angle(z) * self.spacing / (2 * np.pi), abs(z)))
+        if min(r for _, r in found) < DOT_PLACE_MIN_CONCENTRATION or all(abs(o) <= DOT_PLACE_TOLERANCE for o, _ in found):
+            return
+        at = [round(shift + o) % self.spacing for shift, (o, _) in zip((sx, sy), found, strict=True)]
+        why = ("x and y swapped in the dot frames' names? (dots__<sx>_<sy>: sx the dots' projector column, sy their row)"
+               if at == [sy, sx] else "a mislabelled or copied dot frame?")
+        raise InputError(f"{path}: its light falls on projector column {at[0]} and row {at[1]} of each "
+                         f"{self.spacing} x {self.spacing} cell (at the decoded points), where dots__{sx}_{sy} lights "
+                         f"column {sx} and row {sy}: {why}")
 
 
 def check_dots_light(vdir: Path, dot_sum: np.ndarray, n_dots: int, white: np.ndarray, black: np.ndarray) -> float:
@@ -1120,7 +1182,8 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                 pair_sums: dict[str, list[np.ndarray]] = {}  # opposite shifts' sums per set (even N): all equal
                 dot_sum, n_dots = None, 0  # the dot frames' sum: a full grid holds the white's light
                 detected = None
-                for key in sorted((k for k in files if not k.startswith("pattern/")), key=lambda k: k.startswith("dots/")):
+                placement = None  # where each dot frame's light falls (once the view has decoded)
+                for key in sorted((k for k in files if not k.startswith("pattern/")), key=_import_order):
                     if auto_bayer and detected is None and key.startswith("dots/"):  # before the decode the dots start
                         detected = _detect_bayer(proc, config, demosaic)
                     image = loader.read(files[key])
@@ -1142,6 +1205,13 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                         dot_sum = image.astype(np.float64) if dot_sum is None else dot_sum + image
                         n_dots += 1
                     proc.add(_ImportedFrame(key, image), {"name": key, "key": key, "exposure": 1.0})
+                    if key.startswith("dots/"):  # (the first dot frame decoded the view)
+                        if placement is None:
+                            corr = proc.decode()
+                            placement = DotPlacement(corr.xp, corr.yp, corr.mask, projector_light(
+                                proc.images["white"], proc.images["black"])[0], spacing)
+                        sx, sy = (int(v) for v in key.removeprefix("dots/").split("_"))
+                        placement.check(files[key], sx, sy, image - proc.images["black"])
                 for key in (k for k in files if k.startswith("pattern/")):
                     proc.patterns[f"ref/{key.removeprefix('pattern/')}"] = read_pattern(
                         files[key], (w, h), hint="the image projected for a reference is the projector's size (--projector)")
