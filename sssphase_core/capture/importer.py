@@ -645,8 +645,9 @@ def check_dot_frames(vdir: Path, files: dict[str, Path]) -> int:
 
 #: :class:`DotPlacement`: a dot frame's light must fall within this many projector px (along x and y, modulo the
 #: spacing) of its name's dots at the decoded points (the sim apple's frames at spacing 8: within 0.03 px; a frame
-#: named dots__<sy>_<sx>, or another frame's copy, is whole pixels off) ...
-DOT_PLACE_TOLERANCE = 0.5
+#: named dots__<sy>_<sx>, or another frame's copy, is whole pixels off; half a pixel is left to another tool's idea of
+#: where a projector pixel's centre lies) ...
+DOT_PLACE_TOLERANCE = 0.75
 #: ... where its light is concentrated enough to say (the resultant length of its phase modulo the spacing: 0.48-0.51
 #: for the apple at spacing 8; light spread wider than the spacing says nothing) ...
 DOT_PLACE_MIN_CONCENTRATION = 0.2
