@@ -1314,6 +1314,7 @@ def test_an_export_with_the_unwrapping_frames_names_them_and_imports_again(sim_d
     from sssphase_core.store.exr import read_exr
 
     session = run_capture(sim_daemon, CaptureRequest("leaf", views=1, keep_unwrap=True, references=("checkerboard",),
+                                                     footprints=True, keep_dots=True, dot_spacing=4,
                                                      out=tmp_path / "captured"))
     out = tmp_path / "export"
     assert _cli("export", str(session.path), "--out", str(out)).returncode == 0
@@ -1321,6 +1322,9 @@ def test_an_export_with_the_unwrapping_frames_names_them_and_imports_again(sim_d
     for stack in ("psp", "unwrap"):
         rows = (view / stack / "keys.csv").read_text().splitlines()[1:]
         assert rows and len(rows) == len(session.manifest["views"]["0"][f"{stack}_keys"]), stack
+    # the kept dot frames too (they had no keys.csv: "'dots/00' is no frame name"), in capture order
+    rows = (view / "dots" / "keys.csv").read_text().splitlines()[1:]
+    assert [r.split(",")[1] for r in rows] == [f"dots/{sx}_{sy}" for sy in range(4) for sx in range(4)]
     width, height = session.manifest["plan"]["projector"]
     with warnings.catch_warnings(record=True) as said:  # its maps, beside the frames, are skipped in silence
         warnings.simplefilter("always")
@@ -1332,6 +1336,18 @@ def test_an_export_with_the_unwrapping_frames_names_them_and_imports_again(sim_d
     assert both.sum() > 0.9 * session.load(0, "corr/mask").sum()
     np.testing.assert_allclose(again.load(0, "corr/xp")[both], session.load(0, "corr/xp")[both], atol=0.05)
     assert read_exr(frames / "white.exr").shape == session.load(0, "white").shape
+    # its footprints, measured again from the dot frames (the camera's Bayer layout read from them, as captured)
+    # (on the pixels both kept: the capture also drops those its camera clipped, which EXR files do not say, and a
+    # crop's scale, the projector area its pixel sees, is smoothed over the kept pixels: crops beside them differ)
+    again = import_folder(out / "leaf", tmp_path / "imported", "auto", (width, height))
+    ours, theirs = ({tuple(p): i for i, p in enumerate(np.asarray(s.load(0, "footprints/pixels")))} for s in (session, again))
+    both_px = sorted(set(ours) & set(theirs))
+    assert len(both_px) == len(ours)
+    want = np.asarray(session.load(0, "footprints/crops"))[[ours[p] for p in both_px]]
+    got = np.asarray(again.load(0, "footprints/crops"))[[theirs[p] for p in both_px]]
+    k = want.shape[1] // 2
+    same = np.isclose(got[:, k, k], want[:, k, k], rtol=0.01, atol=1e-3 * float(want.max())).all(axis=-1)
+    assert same.mean() > 0.8, same.mean()
 
 
 def test_export_never_writes_into_a_session(intact_session, tmp_path):

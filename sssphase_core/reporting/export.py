@@ -60,13 +60,14 @@ def export_view(session: Session, view: int, out: Path) -> list[Path]:
             written.append(write_exr(stem.with_name(stem.name + ".exr"), np.asarray(arr, np.float32)))
         elif len(shape) >= 3 and shape[1:3] == (height, width):
             keys = session.manifest["views"].get(str(view), {}).get(f"{name}_keys") or (
-                _psp_keys(session) if name == "psp" else None)  # (the manifest's psp_keys, unwrap_keys)
-            keys = keys if keys and len(keys) == shape[0] else None
+                _psp_keys(session) if name == "psp" else _dots_keys(session) if name == "dots" else None)
+            keys = keys if keys and len(keys) == shape[0] else None  # (the manifest's psp_keys, unwrap_keys)
+            digits = max(2, len(str(shape[0] - 1)))  # 000 ... 288: the files sort in the stack's order
             for i in range(shape[0]):
                 attributes = {"sssphase_key": keys[i]} if keys else None
-                written.append(write_exr(stem / f"{i:02d}.exr", np.asarray(arr[i], np.float32), attributes=attributes))
-            if keys:  # which fringe each file holds, for tools that read no EXR header
-                write_text(stem / "keys.csv", "file,key\n" + "".join(f"{i:02d}.exr,{k}\n" for i, k in enumerate(keys)))
+                written.append(write_exr(stem / f"{i:0{digits}d}.exr", np.asarray(arr[i], np.float32), attributes=attributes))
+            if keys:  # which frame each file holds, for tools that read no EXR header
+                write_text(stem / "keys.csv", "file,key\n" + "".join(f"{i:0{digits}d}.exr,{k}\n" for i, k in enumerate(keys)))
                 written.append(stem / "keys.csv")
         elif len(shape) == 2:  # per-row records such as footprints/pixels
             stem.parent.mkdir(parents=True, exist_ok=True)
@@ -95,6 +96,13 @@ def _psp_keys(session: Session) -> list[str] | None:
 
     frames = paper_input_frames(session.manifest.get("plan", {}))
     return [f["key"] for f in frames] if frames else None
+
+
+def _dots_keys(session: Session) -> list[str] | None:
+    """The plan keys (``dots/3_5`` ...) of a session's kept ``dots`` stack (``--keep-dots``): its dot frames in
+    capture order, one per grid frame (exposure brackets merged)."""
+    keys = [f["key"] for f in session.manifest.get("plan", {}).get("frames", []) if f.get("kind") == "dots"]
+    return list(dict.fromkeys(keys)) or None
 
 
 def export_session(session: Session, out: Path, views: list[int] | None = None) -> list[Path]:
