@@ -1120,11 +1120,14 @@ def test_a_demosaicing_cameras_integer_frames_are_scored_through_its_clipped_cod
 
 
 def test_frames_beside_view_folders_are_refused_not_left_out(tmp_path):
-    """Loose frames next to view_NNN folders were one view silently dropped."""
+    """Loose frames next to view_NNN folders were one view silently dropped (and said first that view_001 was
+    imported as view 0, before the refusal)."""
     folder = _float_frames(tmp_path / "mixed", 1.0)
     _float_frames(folder / "view_001", 1.0)
-    with pytest.raises(InputError, match="holds frames beside its view_NNN folders"):
-        import_folder(folder, tmp_path / "s", "o", (W, H), patch=K)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the refusal alone
+        with pytest.raises(InputError, match="holds frames beside its view_NNN folders"):
+            import_folder(folder, tmp_path / "s", "o", (W, H), patch=K)
 
 
 def test_a_given_projected_image_wins_over_our_pattern_of_the_same_name(tmp_path):
@@ -1953,8 +1956,9 @@ def test_a_white_of_another_exposure_than_the_fringes_is_refused_not_repaired_as
 
     folder = _float_frames(tmp_path / "frames", 1.0)
     np.save(folder / "white.npy", np.load(folder / "white.npy") * np.float32(2))
-    with pytest.raises(DataError, match=r"frame white: [\d,]+ of its values \(\d+% of the lit ones\) are brighter than "
-                                        r"full white could make them .* another exposure or other units"):
+    # (named by its file, and said as what it is: the white is brighter than the fringes say white is)
+    with pytest.raises(DataError, match=r"frames/white.npy: [\d,]+ of its values \(\d+% of the lit ones\) are brighter "
+                                        r"than the fringe sets say full white is .* another exposure or units"):
         import_folder(folder, tmp_path / "s", "twice", (W, H), patch=K)
     firefly = _float_frames(tmp_path / "firefly", 1.0)  # a few stray samples are still repaired, not refused
     frame = np.load(firefly / "white.npy")

@@ -1079,14 +1079,14 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                        and frame_files(p, strict=False))
         if stray:
             raise InputError(f"{folder / stray[0]} holds frames but is no view folder: name it view_NNN, or move it out")
+    if view_dirs != [folder] and frame_files(folder, strict=False):  # (before the renumbering is said) one view's frames would be left out
+        raise InputError(f"{folder} holds frames beside its view_NNN folders: move them into a view folder of their "
+                         "own (e.g. view_000) or import them separately")
     numbers = [int(p.name[5:]) for p in view_dirs if p != folder]
     if numbers and numbers != list(range(len(numbers))):  # sessions number views 0..N-1
         as_views = "view 0" if len(numbers) == 1 else f"views 0 to {len(numbers) - 1} in that order"
         warnings.warn(f"{folder}: view folder{'s' if len(numbers) > 1 else ''} {', '.join(p.name for p in view_dirs)} "
                       f"{'are' if len(numbers) > 1 else 'is'} imported as {as_views}", stacklevel=2)
-    if view_dirs != [folder] and frame_files(folder, strict=False):  # one view's frames would be left out
-        raise InputError(f"{folder} holds frames beside its view_NNN folders: move them into a view folder of their "
-                         "own (e.g. view_000) or import them separately")
     angles = check_angles(angles, len(view_dirs))
     # the unwrapping frames are kept: the session is then whole without the folder (`sss export` of it imports again)
     req = CaptureRequest(check_object_name(name), views=len(view_dirs), out=Path(root), keep_unwrap=True)
@@ -1178,6 +1178,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
             try:
                 proc = ViewProcessor(writer, plan, spacing, patch, RigSpec(camera="import", turntable=None), req, 0,
                                      camera_isp)
+                proc.sources = {k: str(p) for k, p in files.items()}
                 loader, top, fringe_values = FrameLoader(encoding, scale, raw=raw, bit_depth=bit_depth), 0, 0
                 set_sums: dict[str, np.ndarray] = {}  # each fringe set's sum: its mean is half the white's light
                 pair_sums: dict[str, list[np.ndarray]] = {}  # opposite shifts' sums per set (even N): all equal

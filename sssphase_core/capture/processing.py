@@ -172,6 +172,7 @@ class ViewProcessor:
         self.outliers = 0  # values above it, repaired
         self.repaired: dict[str, int] = {}  # frame key -> its values repaired (frames with any; dot grids not)
         self.unrepaired: dict[str, np.ndarray] = {}  # ref/<name> -> the reference as it came (its brightness check)
+        self.sources: dict[str, str] = {}  # frame key -> the file it came from (an import's), named in its refusals
         self.lit_values = 0  # values of the pixels the white lights (the share of outliers a frame may hold is of these)
         self.hot: np.ndarray | None = None  # (H, W, C) what hot pixels add to every frame (once decoded)
 
@@ -269,7 +270,12 @@ class ViewProcessor:
         if key is not None and n > OUTLIER_MAX_SHARE * max(self.lit_values, 1):
             share = (f"{n / self.lit_values:.0%} of the lit ones" if 0 < n <= self.lit_values  # (it said "123% of")
                      else f"more than the {self.lit_values:,} lit ones")
-            raise DataError(f"frame {key}: {n:,} of its values ({share}) are "
+            name = self.sources.get(key, f"frame {key}")
+            if key == "white":  # the bound is the median of the white and the fringe sets: here, the sets'
+                raise DataError(f"{name}: {n:,} of its values ({share}) are brighter than the fringe sets say full "
+                                "white is (shifted fringes average half of it): the white capture and the fringe "
+                                "frames have another exposure or units; give every frame the same exposure and units")
+            raise DataError(f"{name}: {n:,} of its values ({share}) are "
                             "brighter than full white could make them (from the white capture and the fringe sets): "
                             "not stray samples but another exposure or other units than the other frames; give every "
                             "frame the same exposure and units")
