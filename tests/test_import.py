@@ -1119,6 +1119,20 @@ def test_a_demosaicing_cameras_integer_frames_are_scored_through_its_clipped_cod
     assert lowest["codes"] == 0 and lowest["floats"] < 0  # (float files hold the overshoot: kept)
 
 
+def test_fringes_at_another_exposure_than_the_white_are_refused_naming_the_set(tmp_path):
+    """Fringe frames at twice the white's exposure imported with a warning that led with sRGB files, and relit 6 dB
+    low; unwrapping sets at twice it (enough of them to set the white's estimate the outlier repair bounds frames
+    by) were blamed on the shifts' order."""
+    for name, glob, said in (("all", "psp__*.npy", r"all: the fringe frames average 1\.00 of the white"),
+                             ("unwrap", "psp__?__p[17]*__s*.npy", r"unwrap/psp__[xy]__p(18|71)__s\* average 1\.00 of the white")):
+        folder = _float_frames(tmp_path / name, 1.0)
+        for path in folder.glob(glob):
+            np.save(path, np.load(path) * np.float32(2))
+        with pytest.raises(InputError, match=said + r".* about 2\.0x as exposed as the white"):
+            import_folder(folder, tmp_path / "s", name, (W, H), patch=K)
+        assert not (tmp_path / "s" / name).exists()
+
+
 def test_frames_beside_view_folders_are_refused_not_left_out(tmp_path):
     """Loose frames next to view_NNN folders were one view silently dropped (and said first that view_001 was
     imported as view 0, before the refusal)."""

@@ -523,6 +523,33 @@ def fringe_mean_share(sets: Iterable[np.ndarray], white: np.ndarray, black: np.n
     return float(np.median(np.concatenate(shares)))
 
 
+#: A fringe set averaging this share of the white's light or more is refused: another exposure than the white's
+#: (twice it gives 1.00; sRGB codes read as linear give about 0.73, a projector gamma of 0.45 about 0.6, and both are
+#: warned of instead).
+FRINGE_MEAN_REFUSE = 0.85
+
+
+def check_fringe_exposure(vdir: Path, proc: ViewProcessor, input_share: float) -> None:
+    """Refuse a view whose fringe sets (the learning inputs' ``input_share``, then each unwrapping set's) average
+    :data:`FRINGE_MEAN_REFUSE` of the white's light or more (:func:`fringe_mean_share`): frames at twice the
+    white's exposure imported with a warning about sRGB files and relit 6 dB low; unwrapping sets so exposed were
+    blamed on the shifts' order."""
+    white, black, mask = proc.images["white"], proc.images["black"], proc.corr.mask
+    sets: dict[str, list[np.ndarray]] = {}
+    for key, image in proc.psp.items():
+        sets.setdefault(key.rsplit("/", 1)[0], []).append(image)
+    shares = {"the fringe frames": input_share}
+    shares.update({f"{vdir / k.replace('/', '__')}__s*": fringe_mean_share([np.stack(f)], white, black, mask)
+                   for k, f in sets.items()})
+    for what, share in shares.items():
+        if share >= FRINGE_MEAN_REFUSE:
+            where = f"{vdir}: the fringe frames" if what == "the fringe frames" else what
+            raise InputError(f"{where} average {share:.2f} of the white capture's light (above black, median over "
+                             f"decoded pixels), where fringes of the white's exposure give {FRINGE_MEAN_SHARE:.2f}: they "
+                             f"are about {share / FRINGE_MEAN_SHARE:.1f}x as exposed as the white; give every frame the "
+                             "same exposure and units")
+
+
 def untagged_encoding(files: dict[str, Path]) -> tuple[str, str] | None:
     """``(encoding, why)`` for integer frame files without a colour tag, from one view's fringes (``files`` by
     plan key): ``"srgb"`` when read as linear codes the first fringe set averages a share of the white's light
@@ -1257,6 +1284,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                     raise InputError(f"{files['black']}: the fringe frames average {share:.2f} of the white's light above "
                                      "this black frame, where they give 0.50: it is brighter than the scene under the "
                                      "projector's black (the wrong file, or light left on)")
+                check_fringe_exposure(vdir, proc, share)
                 _warn_suspect_view(vdir, info["coverage"], (w, h), top / max(1, fringe_values),
                                    proc.images["white"], proc.corr.mask, top_code if stores_integers(files["white"]) else None,
                                    share, gamma, encoding)
