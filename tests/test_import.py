@@ -1821,6 +1821,32 @@ def test_each_dot_frame_must_light_its_own_dots_and_crops_keep_capture_order(tmp
     assert not any((tmp_path / "s" / n).exists() for n in ("swapped", "copied", "black"))
 
 
+def test_a_sparse_dot_grid_imports_as_its_capture_keeps_it(tmp_path):
+    """`sss capture --dot-stride 4` takes every 4th dot shift: its frames were refused as a 17 x 17 grid with 264
+    frames missing, and no option could say otherwise. The stride is the offsets' common divisor, the spacing the
+    plan.json's or the last offset plus the stride; the crops are the full grid's at the pixels it covers."""
+    full = _dot_frames(tmp_path / "full")
+    whole = import_folder(full, tmp_path / "s", "whole", (W, H), patch=K)
+    sparse = tmp_path / "sparse"
+    shutil.copytree(full, sparse)
+    for path in sparse.glob("dots__*.npy"):
+        if any(int(v) % 2 for v in re.findall(r"\d+", path.stem)):
+            path.unlink()
+    s = import_folder(sparse, tmp_path / "s", "sparse", (W, H), patch=K)
+    info = s.manifest["views"]["0"]
+    assert info["dot_stride"] == 2 and abs(info["dots_light_share"] - whole.manifest["views"]["0"]["dots_light_share"]) < 0.1
+    assert "transport/crops" not in s.arrays(0)  # (no light transport from a sparse lattice, as captured)
+    rows = {tuple(p): i for i, p in enumerate(np.asarray(whole.load(0, "footprints/pixels")))}
+    pixels = np.asarray(s.load(0, "footprints/pixels"))
+    assert 0 < len(pixels) < len(rows)
+    np.testing.assert_array_equal(np.asarray(s.load(0, "footprints/crops")),
+                                  np.asarray(whole.load(0, "footprints/crops"))[[rows[tuple(p)] for p in pixels]])
+    (sparse / "dots__2_4.npy").unlink()  # a missing frame is named on the sparse lattice
+    with pytest.raises(InputError, match=r"1 of the 16 frames of a 8 x 8 dot grid at dot stride 2 are missing "
+                                         r"\(dots__2_4\)"):
+        import_folder(sparse, tmp_path / "s", "missing", (W, H), patch=K)
+
+
 def test_views_in_other_units_are_refused_naming_both_whites(tmp_path):
     """One view in units 1000x the other's: the shared scale crushed view 0, refused as "100% shadow"."""
     _float_frames(tmp_path / "f" / "view_000", 1.0)

@@ -5,11 +5,12 @@ from __future__ import annotations
 
 import itertools
 import json
+import math
 import re
 import shutil
 import warnings
 from collections.abc import Iterable, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -655,19 +656,40 @@ def _import_order(key: str) -> tuple[int, ...]:
     return (0,)
 
 
-def check_dot_frames(vdir: Path, files: dict[str, Path]) -> int:
-    """The dot grid's spacing (0 without dot frames); one line naming the missing frames of an incomplete grid."""
+def check_dot_frames(vdir: Path, files: dict[str, Path], planned: int | None = None) -> tuple[int, int]:
+    """``(spacing, stride)`` of a view's dot grid ((0, 1) without dot frames); one line naming the missing frames of
+    an incomplete grid. A sparse grid (`sss capture --dot-stride S`: every S-th shift along x and y) has offsets
+    that are multiples of the stride (their greatest common divisor); its spacing is the ``planned`` one (the
+    plan.json beside the frames), else the last offset plus the stride."""
     offsets = [tuple(int(v) for v in m.groups()) for k in files if (m := DOTS_KEY_RE.match(k))]
     if not offsets:
-        return 0
-    spacing = 1 + max(v for o in offsets for v in o)
-    missing = sorted({(sx, sy) for sx in range(spacing) for sy in range(spacing)} - set(offsets), key=lambda o: (o[1], o[0]))
+        return 0, 1
+    stride = math.gcd(*(v for o in offsets for v in o)) or 1
+    last = max(v for o in offsets for v in o)
+    spacing = int(planned) if planned and planned > last else last + (stride if stride > 1 else 1)
+    if stride >= spacing:  # one frame (dots__0_0) or offsets beyond a plan's spacing: a whole grid of that spacing
+        stride = 1
+    lattice = range(0, spacing, stride)
+    missing = sorted({(sx, sy) for sx in lattice for sy in lattice} - set(offsets), key=lambda o: (o[1], o[0]))
     if missing:
         named = ", ".join(f"dots__{sx}_{sy}" for sx, sy in missing[:4]) + (" ..." if len(missing) > 4 else "")
-        raise InputError(f"{vdir}: {len(missing)} of the {spacing * spacing} frames of a {spacing} x {spacing} dot grid are "
+        grid = f"{spacing} x {spacing} dot grid" + (f" at dot stride {stride}" if stride > 1 else "")
+        raise InputError(f"{vdir}: {len(missing)} of the {len(lattice) ** 2} frames of a {grid} are "
                          f"missing ({named}): a grid's frames together light every projector pixel once; give them "
                          "all, or none")
-    return spacing
+    return spacing, stride
+
+
+def planned_dot_spacing(folder: Path) -> int | None:
+    """The dot grids' spacing the ``plan.json`` in ``folder`` names (`sss patterns` and `sss export` write one),
+    or None."""
+    from sssphase_core.capture.psp_folder import read_plan
+
+    path = folder / "plan.json"
+    if not path.is_file():
+        return None
+    spacings = {f.get("params", {}).get("spacing") for f in read_plan(path).get("frames", []) if f.get("kind") == "dots"}
+    return next((int(v) for v in spacings if isinstance(v, int) and not isinstance(v, bool) and v > 0), None)
 
 
 #: :class:`DotPlacement`: a dot frame's light must fall within this many projector px (along x and y, modulo the
@@ -1126,7 +1148,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
             raise InputError(f"{vdir}: needs white, black and psp__x__p<period>__s<n> frames (missing: {', '.join(missing)})"
                              + ("; a render without the projector's black light has an all-zero black frame"
                                 if missing == ["black"] else ""))
-        check_dot_frames(vdir, files)
+        check_dot_frames(vdir, files, planned_dot_spacing(vdir if (vdir / "plan.json").is_file() else folder))
         for key in (k for k in files if k.startswith("ref/")):
             ref = key.removeprefix("ref/")
             if ref not in REFERENCE_NAMES and f"pattern/{ref}" not in files:
@@ -1199,12 +1221,14 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
         for view, ((vdir, files), config, level) in enumerate(zip(views, configs, levels, strict=True)):
             if view in done:
                 continue
-            spacing = max(1, check_dot_frames(vdir, files))
+            spacing, stride = check_dot_frames(vdir, files, planned_dot_spacing(vdir if (vdir / "plan.json").is_file()
+                                                                                else folder))
+            spacing = max(1, spacing)
             plan = CapturePlan(w, h, config, (), gamma)
             writer = session.begin_view(view)
-            try:
-                proc = ViewProcessor(writer, plan, spacing, patch, RigSpec(camera="import", turntable=None), req, 0,
-                                     camera_isp)
+            try:  # (a sparse grid's crops are kept per pixel, as its capture keeps them: no light transport)
+                proc = ViewProcessor(writer, plan, spacing, patch, RigSpec(camera="import", turntable=None),
+                                     replace(req, dot_stride=stride), 0, camera_isp)
                 proc.sources = {k: str(p) for k, p in files.items()}
                 loader, top, fringe_values = FrameLoader(encoding, scale, raw=raw, bit_depth=bit_depth), 0, 0
                 set_sums: dict[str, np.ndarray] = {}  # each fringe set's sum: its mean is half the white's light
@@ -1271,8 +1295,10 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                     raise InputError(f"{exc}; or the files hold linear light but were decoded as {encoding} "
                                      f"({encoding_tag}): then import with --encoding linear") from None
                 if dot_sum is not None:
-                    info["dots_light_share"] = round(check_dots_light(vdir, dot_sum, n_dots, proc.images["white"],
-                                                                      proc.images["black"]), 4)
+                    info["dots_light_share"] = round(check_dots_light(vdir, dot_sum * stride ** 2, n_dots * stride ** 2,
+                                                                      proc.images["white"], proc.images["black"]), 4)
+                    if stride > 1:
+                        info["dot_stride"] = stride
                 if not info["coverage"].get("VALID"):
                     raise InputError(nothing_decoded(vdir, info["coverage"], top / max(1, fringe_values), config.period,
                                                      level * scale))
