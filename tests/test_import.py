@@ -1680,6 +1680,11 @@ def test_an_import_warns_when_a_reference_capture_does_not_follow_its_pattern(tm
     # measured as it came: the outlier repair clips its lit squares towards the white (it read 1.87x after it)
     assert twice.manifest["views"]["0"]["reference_brightness"]["checkerboard"] == pytest.approx(2.0, abs=0.05)
     assert twice.manifest["views"]["0"]["reference_repaired"]["checkerboard"] > 1000
+    from sssphase_core.relight.evaluation import evaluate_view
+
+    with pytest.warns(UserWarning, match=r"twice view 0: the reference capture checkerboard \(2\.0\dx\) holds another "
+                                         r"amount of light .* measures that, not the relighting"):  # said when scored too
+        evaluate_view(load_view(twice, 0), "none", tmp_path / "ev", write=False)
     lamp = images["ref/checkerboard"].copy()
     lamp[:12, :16] += np.float32(1.5) * images["white"][:12, :16]  # a room light on one corner of the scene
     np.save(tmp_path / "right" / "ref__checkerboard.npy", lamp)

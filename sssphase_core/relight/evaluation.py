@@ -148,6 +148,7 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
                          "(capture with --reference checkerboard ..., or import ref__<name> frames)")
     names = sorted(rv.references)
     _warn_if_dim_white(rv)
+    _warn_if_reference_off(rv, names)
     t0 = time.perf_counter()
     calibrate = bool(options.pop("calibrate", True)) and backend not in MODEL_FREE
     # relight_view's: the calibration may widen the footprints too (by default as `sss relight` does for the backend)
@@ -289,6 +290,24 @@ def _warn_if_dim_white(rv: Any) -> None:
                       f"scores read {20 * np.log10(1 / level):.0f} dB higher than at full range (16-bit files of a 10-, "
                       "12- or 14-bit camera: import them with --bit-depth; else the camera was exposed far below its "
                       "range)", UserWarning, stacklevel=3)
+
+
+def _warn_if_reference_off(rv: Any, names: Sequence[str]) -> None:
+    """Warn of the references the view's import measured at another brightness than its white and pattern give
+    (``reference_brightness`` outside :data:`~sssphase_core.capture.importer.REFERENCE_BRIGHTNESS`): every backend's
+    score against them measures that, not relighting (one at 1.98x scored 11.6 dB, said only at the import)."""
+    from sssphase_core.capture.importer import REFERENCE_BRIGHTNESS
+
+    views = getattr(rv.session, "manifest", {}).get("views", {})
+    bright = views.get(str(rv.view), {}).get("reference_brightness") or {}
+    off = {n: b for n, b in bright.items() if n in names and isinstance(b, (int, float))
+           and not REFERENCE_BRIGHTNESS[0] <= b <= REFERENCE_BRIGHTNESS[1]}
+    if off:
+        warnings.warn(f"{rv.object} view {rv.view}: the reference capture{'s' if len(off) > 1 else ''} "
+                      f"{', '.join(f'{n} ({b:.2f}x)' for n, b in off.items())} hold{'' if len(off) > 1 else 's'} another "
+                      "amount of light than the white and the pattern give (as its import said): every backend's score "
+                      "against it measures that, not the relighting; re-capture it at the white's exposure",
+                      UserWarning, stacklevel=3)
 
 
 def metrics_table(rows: Sequence[dict[str, Any]], by: Sequence[str] = ("backend", "pattern"), title: str = "Relighting"):

@@ -114,12 +114,14 @@ def _relight_section(result: dict[str, Any], out: Path) -> str:
             for o in objects]
     means = {a["backend"]: a for a in aggregate(rows, by=("backend",))}
     body.append(["mean"] + [v for b in backends for v in (means[b]["psnr"], means[b]["ssim"])])
-    parts.append("<h3>Relit images against the ground truth (paper-style table)</h3>")
+    parts.append("<h3>Relit images against their references (paper-style table)</h3>")
     parts.append(html_table(cols, body))
+    parts.append("<p class='note'>The reference of a simulated session is the simulator's noise-free render of the "
+                 "pattern (its ground truth); of a captured or imported one, the camera's capture of it.</p>")
     if result.get("training_overlap"):  # views the decoder was trained on: not unseen objects
         parts.append(f"<p class='note'>{_esc(result['training_overlap'])}</p>")
     for key, heading, note in (
-            ("psnr_interior", "Relit images against the ground truth, away from the silhouette",
+            ("psnr_interior", "Relit images against their references, away from the silhouette",
              "PSNR on the object mask less the 2 px next to its edge: there a camera mixes object and background "
              "(blur, demosaicing), which bounds every source that takes its light from captures, "
              "<code>none</code> included; inside, the footprints decide."),
