@@ -1078,6 +1078,26 @@ def test_a_colour_cameras_raw_bayer_frames_are_demosaiced_with_their_layout_and_
         twelve = import_folder(codes, tmp_path / "s", "twelve", (w, h), patch=16, bayer="GRBG", bit_depth=12)
     assert twelve.manifest["views"]["0"]["raw_bayer"] == "GRBG: demosaiced by malvar"
     assert float(np.asarray(twelve.load(0, "white")).max()) > 1.0  # (the overshoot, kept as light)
+    # ... and kept by relighting's camera model too: the codes' range bounds the samples, not frames made from them
+    assert "frame_codes_range" not in twelve.manifest["rig"]  # (clipped to it, relit images scored 3.4 dB low)
+    # the samples saved by a tool as three equal channels are the same samples (they imported as grey light)
+    trip = tmp_path / "trip"
+    trip.mkdir()
+    for path in folder.glob("*.npy"):
+        np.save(trip / path.name, np.repeat(np.load(path)[..., None], 3, axis=-1))
+    with pytest.raises(InputError, match=r"trip/white.npy: a grey frame whose 2 x 2 sites hold different colours"):
+        import_folder(trip, tmp_path / "s", "trip", (w, h), patch=16)
+    tripled = import_folder(trip, tmp_path / "s", "tripled", (w, h), patch=16, bayer="GRBG")
+    np.testing.assert_array_equal(tripled.load(0, "white"), s.load(0, "white"))
+    # one camera per import: a colour view beside a raw one was read by the first view's kind
+    mixed = tmp_path / "mixed"
+    shutil.copytree(folder, mixed / "view_001")
+    (mixed / "view_000").mkdir()
+    for f, img in zip(plan, light.astype(np.float32), strict=True):  # the same scene, as a colour camera's files
+        np.save(mixed / "view_000" / (f.key.replace("/", "__") + ".npy"), img)
+    with pytest.raises(InputError, match=r"view_001/white.npy holds raw Bayer samples, .*view_000/white.npy colour "
+                                         r"frames: the views of one import come from one camera"):
+        import_folder(mixed, tmp_path / "s", "mixed", (w, h), patch=16, bayer="GRBG")
 
 
 def test_a_demosaicing_cameras_integer_frames_are_scored_through_its_clipped_codes(tmp_path):
@@ -1569,6 +1589,10 @@ def test_the_bayer_layout_a_camera_demosaiced_from_is_read_from_the_frames_noise
         else:
             assert info["bayer_detected"].startswith("none: the noise is alike at every 2 x 2 site"), info["bayer_detected"]
             assert info["camera_isp"] is None
+    # a named layout the noise contradicts is said (a GRBG camera's frames named RGGB relit 9 dB low in silence)
+    with pytest.warns(UserWarning, match=r"--bayer RGGB, but the noise of its 2 x 2 sites follows GRBG's colours .* is the "
+                                         r"camera's layout GRBG\?"):
+        import_folder(tmp_path / "bayer", tmp_path / "s", "named_wrong", (w, h), patch=16, bayer="RGGB")
     told = import_folder(tmp_path / "bayer_opencv", tmp_path / "s", "told", (w, h), patch=16, bayer="GRBG")
     assert told.manifest["views"]["0"]["camera_isp"] == {"bayer": "GRBG", "demosaic": "opencv", "median": False}
     # a path tracer's firefly (one sample 10^4 times the light) in one frame: still no layout, still GRBG

@@ -261,6 +261,8 @@ class FrameLoader:
             self.repaired += repaired
         else:
             image = read_frame(path, encoding=self.encoding, keep_grey=True)
+        if self.raw is not None:  # raw samples a tool saved as RGB: three equal channels
+            image = as_grey(image)
         grey = image.ndim == 2
         if self.first is not None and grey != self.grey:
             kind = ("grey", "colour") if grey else ("colour", "grey")
@@ -297,6 +299,15 @@ def develop_raw(path: Path, mosaic: np.ndarray, layout: str, method: str) -> np.
     return develop(mosaic, 0.0, 1.0, median=False, method=method, layout=layout)
 
 
+def as_grey(image: np.ndarray) -> np.ndarray:
+    """A frame whose colour channels are all equal (a tool that saved grey samples as RGB) as (H, W); others as they
+    are."""
+    if image.ndim == 3 and image.shape[-1] in (3, 4) and all(np.array_equal(image[..., 0], image[..., c])
+                                                             for c in (1, 2)):
+        return image[..., 0]
+    return image
+
+
 def raw_mosaic_mode(white: Path, encoding: str, bayer: str | None, demosaic: str) -> tuple[str, str] | None:
     """``(layout, method)`` when a view's frames are a colour camera's raw Bayer samples to demosaic: grey files with
     a layout named (``--bayer``; ``demosaic`` ``other``: Malvar). One line when grey files look like raw samples
@@ -305,7 +316,7 @@ def raw_mosaic_mode(white: Path, encoding: str, bayer: str | None, demosaic: str
     monochrome ones."""
     from sssphase_core.processing.isp import GREEN_DIAGONAL, detect_raw_mosaic
 
-    image = read_imported(white, encoding, keep_grey=True)[0]
+    image = as_grey(read_imported(white, encoding, keep_grey=True)[0])
     if image.ndim != 2 or bayer is None or bayer.lower() == "none":
         return None
     diagonal, why = detect_raw_mosaic(image)
@@ -322,6 +333,25 @@ def raw_mosaic_mode(white: Path, encoding: str, bayer: str | None, demosaic: str
                          f"cell, but these raw samples hold it on the {diagonal} one ({why.split('(')[-1].rstrip(')')}): "
                          f"{' or '.join(k for k, d in GREEN_DIAGONAL.items() if d == diagonal)}?")
     return layout, "malvar" if demosaic == "other" else demosaic
+
+
+def check_one_camera(views: Sequence[tuple[Path, dict[str, Path]]], encoding: str, bayer: str | None,
+                     demosaic: str) -> tuple[str, str] | None:
+    """:func:`raw_mosaic_mode` of an import's views, which come from one camera: one line when their whites are of
+    different kinds (grey or colour files, raw samples or a monochrome camera's; the first view's decided for all,
+    and a colour view after a monochrome one imported its mosaic as grey light)."""
+    kinds = []
+    for _, files in views:
+        white = read_imported(files["white"], encoding, keep_grey=True)[0]
+        mode = raw_mosaic_mode(files["white"], encoding, bayer, demosaic)
+        kinds.append((files["white"], "raw Bayer samples" if mode else "grey frames" if white.ndim == 2 else
+                      "colour frames", mode))
+    first = kinds[0]
+    for other in kinds[1:]:
+        if other[1] != first[1]:
+            raise InputError(f"{other[0]} holds {other[1]}, {first[0]} {first[1]}: the views of one import come from "
+                             "one camera (import them separately, with the options each needs)")
+    return first[2]
 
 
 #: A white capture whose 99.9th percentile is above this many times that of its 3 x 3 median holds fireflies
@@ -1005,6 +1035,19 @@ def _detect_bayer(proc: ViewProcessor, config: Any, demosaic: str) -> str:
     return f"{layout}: {why}" if layout else f"none: {why}"
 
 
+def _check_named_layout(vdir: Path, proc: ViewProcessor, config: Any, layout: str) -> None:
+    """Warn when the Bayer layout the view's noise shows (:func:`isp.detect_bayer_layout`) is not the ``--bayer``
+    one: frames a GRBG camera demosaiced, imported as RGGB, relit 9 dB low without a word."""
+    from sssphase_core.processing.isp import detect_bayer_layout
+
+    white = proc.images["white"] - proc.images.get("black", 0)
+    lit = white.sum(-1, dtype=np.float64)
+    found, why = detect_bayer_layout(_input_sets(proc, config), white, lit > 0.25 * float(np.percentile(lit, 99)))
+    if found is not None and found != layout:
+        warnings.warn(f"{vdir}: --bayer {layout}, but {why}: is the camera's layout {found}? "
+                      "(relighting compares its relit fringes through the layout named)", UserWarning, stacklevel=3)
+
+
 def _detect_demosaic(proc: ViewProcessor, config: Any) -> str | None:
     """For a view with a Bayer layout (given or found) whose demosaicing was not said (``--demosaic other``): the
     method its finest fringes show (:func:`isp.detect_demosaic`), set in ``proc.camera_isp`` so that relighting
@@ -1181,7 +1224,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                          "(99.9th percentiles): an import's views share one exposure and units (the frames are scaled "
                          "together)")
     scale = frame_scale([files["white"] for _, files in views], levels)
-    raw = raw_mosaic_mode(views[0][1]["white"], encoding, bayer, demosaic)  # grey raw Bayer samples: demosaiced here
+    raw = check_one_camera(views, encoding, bayer, demosaic)  # grey raw Bayer samples: demosaiced here
     if raw is not None:
         demosaic, camera_isp = raw[1], {"bayer": raw[0], "demosaic": raw[1], "median": False}
     depth = code_depth(views[0][1]["white"])
@@ -1206,7 +1249,8 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                         "frame_scale": scale, "frame_encoding": encoding, "frame_encoding_from": encoding_tag,
                         **({"frame_bit_depth": bit_depth} if bit_depth is not None else {}),
                         # integer files hold codes 0 .. top: what a camera model's images are clipped to (relighting)
-                        **({"frame_codes_range": [0.0, top_code]} if depth is not None else {})},
+                        # (raw samples demosaiced here keep the filters' overshoot, as the frames stored do)
+                        **({"frame_codes_range": [0.0, top_code]} if depth is not None and raw is None else {})},
                 "plan": plan_json, "import_options": {"bayer": str(bayer).lower(), "demosaic": demosaic,
                                                       **({"angles": angles} if angles else {})},
                 "imported_frames": [frames_fingerprint(files) for _, files in views]}  # frames replaced: not resumed
@@ -1272,6 +1316,8 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                     _check_fringe_level(vdir / set_key.replace("/", "__"), total / config.n_shifts, level * scale, mean=True)
                 if auto_bayer and detected is None:
                     detected = _detect_bayer(proc, config, demosaic)
+                elif camera_isp and raw is None:  # a layout named: the frames' noise may say another
+                    _check_named_layout(vdir, proc, config, camera_isp["bayer"])
                 found_demosaic = _detect_demosaic(proc, config) if demosaic == "other" else None
                 try:
                     info = {**proc.finish(), "nonfinite_repaired": loader.repaired}
