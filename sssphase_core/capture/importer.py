@@ -308,15 +308,16 @@ def as_grey(image: np.ndarray) -> np.ndarray:
     return image
 
 
-def raw_mosaic_mode(white: Path, encoding: str, bayer: str | None, demosaic: str) -> tuple[str, str] | None:
-    """``(layout, method)`` when a view's frames are a colour camera's raw Bayer samples to demosaic: grey files with
+def raw_mosaic_mode(white: Path, image: np.ndarray, bayer: str | None, demosaic: str) -> tuple[str, str] | None:
+    """``(layout, method)`` when a view's frames, whose ``white`` file holds ``image`` (as read, grey kept), are a
+    colour camera's raw Bayer samples to demosaic: grey files with
     a layout named (``--bayer``; ``demosaic`` ``other``: Malvar). One line when grey files look like raw samples
     (:func:`isp.detect_raw_mosaic`) and ``--bayer`` is ``auto`` (which of the two non-green sites is red the samples
     cannot tell), or a named layout puts the greens where the samples do not; None for colour files and
     monochrome ones."""
     from sssphase_core.processing.isp import GREEN_DIAGONAL, detect_raw_mosaic
 
-    image = as_grey(read_imported(white, encoding, keep_grey=True)[0])
+    image = as_grey(image)
     if image.ndim != 2 or bayer is None or bayer.lower() == "none":
         return None
     diagonal, why = detect_raw_mosaic(image)
@@ -343,7 +344,7 @@ def check_one_camera(views: Sequence[tuple[Path, dict[str, Path]]], encoding: st
     kinds = []
     for _, files in views:
         white = read_imported(files["white"], encoding, keep_grey=True)[0]
-        mode = raw_mosaic_mode(files["white"], encoding, bayer, demosaic)
+        mode = raw_mosaic_mode(files["white"], white, bayer, demosaic)
         kinds.append((files["white"], "raw Bayer samples" if mode else "grey frames" if white.ndim == 2 else
                       "colour frames", mode))
     first = kinds[0]
@@ -560,15 +561,17 @@ def fringe_mean_share(sets: Iterable[np.ndarray], white: np.ndarray, black: np.n
 FRINGE_MEAN_REFUSE = 0.85
 
 
-def check_fringe_exposure(vdir: Path, proc: ViewProcessor, input_share: float) -> None:
+def check_fringe_exposure(vdir: Path, proc: ViewProcessor, config: Any, input_share: float) -> None:
     """Refuse a view whose fringe sets (the learning inputs' ``input_share``, then each unwrapping set's) average
     :data:`FRINGE_MEAN_REFUSE` of the white's light or more (:func:`fringe_mean_share`): frames at twice the
     white's exposure imported with a warning about sRGB files and relit 6 dB low; unwrapping sets so exposed were
     blamed on the shifts' order."""
     white, black, mask = proc.images["white"], proc.images["black"], proc.corr.mask
+    inputs = {key.rsplit("/", 1)[0] for key in config.input_keys}  # (their share is ``input_share``)
     sets: dict[str, list[np.ndarray]] = {}
     for key, image in proc.psp.items():
-        sets.setdefault(key.rsplit("/", 1)[0], []).append(image)
+        if key.rsplit("/", 1)[0] not in inputs:
+            sets.setdefault(key.rsplit("/", 1)[0], []).append(image)
     shares = {"the fringe frames": input_share}
     shares.update({f"{vdir / k.replace('/', '__')}__s*": fringe_mean_share([np.stack(f)], white, black, mask)
                    for k, f in sets.items()})
@@ -1022,27 +1025,35 @@ def _input_sets(proc: ViewProcessor, config: Any) -> list[np.ndarray]:
     return [np.stack([proc.psp[k] for k in keys[i:i + n]]) for i in range(0, len(keys), n)]
 
 
-def _detect_bayer(proc: ViewProcessor, config: Any, demosaic: str) -> str:
-    """Set ``proc.camera_isp`` to the Bayer layout the view's frames show (:func:`isp.detect_bayer_layout`,
-    on the lit pixels of the white) before anything decodes them; returns the reason either way."""
-    from sssphase_core.processing.isp import detect_bayer_layout
-
+def _lit_white(proc: ViewProcessor) -> tuple[np.ndarray, np.ndarray]:
+    """The view's white above black (H, W, C) and its well-lit pixels (H, W): colours summed above a quarter of
+    their 99th percentile (the pixels the Bayer readings use)."""
     white = proc.images["white"] - proc.images.get("black", 0)
     lit = white.sum(-1, dtype=np.float64)  # (a stray 3e38 overflows float32)
-    layout, why = detect_bayer_layout(_input_sets(proc, config), white, lit > 0.25 * float(np.percentile(lit, 99)))
+    return white, lit > 0.25 * float(np.percentile(lit, 99))
+
+
+def _noise_layout(proc: ViewProcessor, config: Any) -> tuple[str | None, str]:
+    """The Bayer layout the view's noise shows, and why (:func:`isp.detect_bayer_layout`)."""
+    from sssphase_core.processing.isp import detect_bayer_layout
+
+    white, lit = _lit_white(proc)
+    return detect_bayer_layout(_input_sets(proc, config), white, lit)
+
+
+def _detect_bayer(proc: ViewProcessor, config: Any, demosaic: str) -> str:
+    """Set ``proc.camera_isp`` to the Bayer layout the view's frames show (:func:`_noise_layout`, on the lit pixels
+    of the white) before anything decodes them; returns the reason either way."""
+    layout, why = _noise_layout(proc, config)
     if layout is not None:
         proc.camera_isp = {"bayer": layout, "demosaic": demosaic, "median": False}
     return f"{layout}: {why}" if layout else f"none: {why}"
 
 
 def _check_named_layout(vdir: Path, proc: ViewProcessor, config: Any, layout: str) -> None:
-    """Warn when the Bayer layout the view's noise shows (:func:`isp.detect_bayer_layout`) is not the ``--bayer``
-    one: frames a GRBG camera demosaiced, imported as RGGB, relit 9 dB low without a word."""
-    from sssphase_core.processing.isp import detect_bayer_layout
-
-    white = proc.images["white"] - proc.images.get("black", 0)
-    lit = white.sum(-1, dtype=np.float64)
-    found, why = detect_bayer_layout(_input_sets(proc, config), white, lit > 0.25 * float(np.percentile(lit, 99)))
+    """Warn when the Bayer layout the view's noise shows (:func:`_noise_layout`) is not the ``--bayer`` one: frames
+    a GRBG camera demosaiced, imported as RGGB, relit 9 dB low without a word."""
+    found, why = _noise_layout(proc, config)
     if found is not None and found != layout:
         warnings.warn(f"{vdir}: --bayer {layout}, but {why}: is the camera's layout {found}? "
                       "(relighting compares its relit fringes through the layout named)", UserWarning, stacklevel=3)
@@ -1056,10 +1067,7 @@ def _detect_demosaic(proc: ViewProcessor, config: Any) -> str | None:
 
     if not proc.camera_isp or not proc.camera_isp.get("bayer"):
         return None
-    white = proc.images["white"] - proc.images.get("black", 0)
-    lit = white.sum(-1, dtype=np.float64)
-    method, why = detect_demosaic(_input_sets(proc, config)[0], proc.camera_isp["bayer"],
-                                  lit > 0.25 * float(np.percentile(lit, 99)))
+    method, why = detect_demosaic(_input_sets(proc, config)[0], proc.camera_isp["bayer"], _lit_white(proc)[1])
     if method is not None:
         proc.camera_isp = {**proc.camera_isp, "demosaic": method}
     return f"{method or 'other'}: {why}"
@@ -1171,7 +1179,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                        and frame_files(p, strict=False))
         if stray:
             raise InputError(f"{folder / stray[0]} holds frames but is no view folder: name it view_NNN, or move it out")
-    if view_dirs != [folder] and frame_files(folder, strict=False):  # (before the renumbering is said) one view's frames would be left out
+    if view_dirs != [folder] and frame_files(folder, strict=False):  # one view's frames left out (said first)
         raise InputError(f"{folder} holds frames beside its view_NNN folders: move them into a view folder of their "
                          "own (e.g. view_000) or import them separately")
     numbers = [int(p.name[5:]) for p in view_dirs if p != folder]
@@ -1183,6 +1191,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
     # the unwrapping frames are kept: the session is then whole without the folder (`sss export` of it imports again)
     req = CaptureRequest(check_object_name(name), views=len(view_dirs), out=Path(root), keep_unwrap=True)
     views = [(vdir, frame_files(vdir)) for vdir in view_dirs]  # refuse bad names before writing anything
+    grids: list[tuple[int, int]] = []  # each view's dot grid (spacing, stride)
     for (vdir, files) in views:
         if not files:
             raise InputError(f"{vdir} holds no frame files (psp__x__p<period>__s<n>, white, black ...: see SESSION_FORMAT.md)")
@@ -1191,7 +1200,8 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
             raise InputError(f"{vdir}: needs white, black and psp__x__p<period>__s<n> frames (missing: {', '.join(missing)})"
                              + ("; a render without the projector's black light has an all-zero black frame"
                                 if missing == ["black"] else ""))
-        check_dot_frames(vdir, files, planned_dot_spacing(vdir if (vdir / "plan.json").is_file() else folder))
+        grids.append(check_dot_frames(vdir, files, planned_dot_spacing(vdir if (vdir / "plan.json").is_file()
+                                                                       else folder)))
         for key in (k for k in files if k.startswith("ref/")):
             ref = key.removeprefix("ref/")
             if ref not in REFERENCE_NAMES and f"pattern/{ref}" not in files:
@@ -1265,9 +1275,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
         for view, ((vdir, files), config, level) in enumerate(zip(views, configs, levels, strict=True)):
             if view in done:
                 continue
-            spacing, stride = check_dot_frames(vdir, files, planned_dot_spacing(vdir if (vdir / "plan.json").is_file()
-                                                                                else folder))
-            spacing = max(1, spacing)
+            spacing, stride = max(1, grids[view][0]), grids[view][1]
             plan = CapturePlan(w, h, config, (), gamma)
             writer = session.begin_view(view)
             try:  # (a sparse grid's crops are kept per pixel, as its capture keeps them: no light transport)
@@ -1356,7 +1364,7 @@ def _import_folder(folder: Path, root: Path, name: str, projector_size: tuple[in
                     raise InputError(f"{files['black']}: the fringe frames average {share:.2f} of the white's light above "
                                      "this black frame, where they give 0.50: it is brighter than the scene under the "
                                      "projector's black (the wrong file, or light left on)")
-                check_fringe_exposure(vdir, proc, share)
+                check_fringe_exposure(vdir, proc, config, share)
                 _warn_suspect_view(vdir, info["coverage"], (w, h), top / max(1, fringe_values),
                                    proc.images["white"], proc.corr.mask, top_code if stores_integers(files["white"]) else None,
                                    share, gamma, encoding)

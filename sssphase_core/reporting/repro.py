@@ -148,17 +148,20 @@ class PaperRepro(Demo):
             self.write_report()  # what is finished is on disk even if the run is stopped from outside
         return result
 
+    def _device_kind(self) -> str:
+        """``"cuda"`` or ``"cpu"``: the kind of device the models run on, which the run's planning constants are by."""
+        from sssphase_core.compute import compute_device
+
+        return "cuda" if compute_device(self.device).type == "cuda" else "cpu"
+
     def _plan(self, stage: int, patches: int, most: int) -> tuple[int, float]:
         """(epochs, seconds) for training stage ``stage`` (0: pretrain psp, 1: imagenet, 2: decoder): its share of
         the time left, and the epochs that fit in it at the throughput a pretraining of this run reached (before
         any: :data:`PLANNED_RATE`). The seconds also bound the training loop (``time_limit_s``): the rate is a
         guess (the decoder ran at 0.63 of pretraining's patches/s on the H200), the deadline is kept."""
-        from sssphase_core.compute import compute_device
-
-        kind = compute_device(self.device).type
         measured = [r["patches_s"] for n, r in self.results.items() if n.startswith("pretrain_") and r.get("patches_s")
                     and not r.get("resumed")]  # this run's own throughput, once a stage has run
-        rate = min(measured) if measured else PLANNED_RATE.get((kind if kind == "cuda" else "cpu", self.cfg.model), 100.0)
+        rate = min(measured) if measured else PLANNED_RATE.get((self._device_kind(), self.cfg.model), 100.0)
         shares = self.cfg.train_shares[stage:]
         seconds = max(0.0, self.left_s() - self.cfg.eval_reserve_s) * shares[0] / sum(shares)
         return epochs_within(seconds, patches, rate, most), seconds
@@ -312,10 +315,7 @@ class PaperRepro(Demo):
         if same:
             guess = max(same) * pixels
         elif all(m in per_footprint for m in models):
-            from sssphase_core.compute import compute_device
-
-            over = RELIGHT_OVER_FOOTPRINTS["cuda" if compute_device(self.device).type == "cuda" else "cpu"]
-            guess = over * sum(float(per_footprint[m]) for m in models) * pixels
+            guess = RELIGHT_OVER_FOOTPRINTS[self._device_kind()] * sum(float(per_footprint[m]) for m in models) * pixels
         else:
             guess = max((unit_s(rows) for rows in self._relit.values() if rows), default=0.0)
         return max(RELIGHT_MIN_S, guess)
