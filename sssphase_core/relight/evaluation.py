@@ -95,8 +95,9 @@ DIFFERENCE_SCALE = 0.2
 
 
 def comparison_figure(reference: np.ndarray, relit: np.ndarray, mask: np.ndarray, path: Path | str, *, title: str = "",
-                      metrics: dict[str, float] | None = None) -> Path:
-    """GT | relit | |difference| (PNG). GT and relit share one sRGB exposure; the difference panel
+                      metrics: dict[str, float] | None = None, reference_name: str = "reference (GT)") -> Path:
+    """Reference | relit | |difference| (PNG); ``reference_name`` names the first panel (a simulated session's
+    ground truth, or the camera's capture of the pattern). Reference and relit share one sRGB exposure; the difference panel
     is the per-pixel mean absolute error over RGB in linear camera units on the decoded pixels, with a colour bar
     up to :data:`DIFFERENCE_SCALE` of the reference's display white: every backend's figure of one view and pattern
     has the same scale (each had its own, up to its own 99.5th percentile, which hid which was worse)."""
@@ -110,14 +111,14 @@ def comparison_figure(reference: np.ndarray, relit: np.ndarray, mask: np.ndarray
     scale = display_scale(reference, mask)
     diff = np.abs(np.nan_to_num(relit) - np.nan_to_num(reference)).mean(axis=-1)
     fig, axes = plt.subplots(1, 3, figsize=(10.5, 3.2), constrained_layout=True)
-    for ax, img, name in ((axes[0], reference, "reference (GT)"), (axes[1], relit, "relit")):
+    for ax, img, name in ((axes[0], reference, reference_name), (axes[1], relit, "relit")):
         ax.imshow(srgb(np.nan_to_num(img) / scale), interpolation="nearest")
         ax.set_title(name, fontsize=9)
     vmax = DIFFERENCE_SCALE * scale
     im = axes[2].imshow(np.where(mask, diff, 0.0), cmap="inferno", vmin=0, vmax=vmax, interpolation="nearest")
-    axes[2].set_title("|relit - GT| on the decoded pixels", fontsize=9)
+    axes[2].set_title("|relit - reference| on the decoded pixels", fontsize=9)
     fig.colorbar(im, ax=axes[2], fraction=0.046, pad=0.02, extend="max",
-                 label=f"mean |error| (linear units)\nscale: {DIFFERENCE_SCALE:.0%} of GT's white")
+                 label=f"mean |error| (linear units)\nscale: {DIFFERENCE_SCALE:.0%} of its white")
     for ax in axes:
         ax.set_axis_off()
     if metrics:
@@ -206,7 +207,8 @@ def evaluate_view(rv: Any, backend: str, out_dir: Path | str, *, checkpoint: Pat
 
             write_images(stem, img, scale=exposure)
             row["figure"] = str(comparison_figure(rv.captured[name], img, rv.proj.mask, stem.with_name(stem.name + "_compare.png"),
-                                                  title=f"{rv.object} view {rv.view}, {name}, {backend}", metrics=met))
+                                                  title=f"{rv.object} view {rv.view}, {name}, {backend}", metrics=met,
+                                                  reference_name=rv.reference_name))
         rows.append(row)
     return rows
 

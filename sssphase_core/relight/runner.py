@@ -522,7 +522,8 @@ def write_relit(rv: RelightView, relit: np.ndarray, names: Sequence[str], pats: 
         if name in rv.captured and same_pattern(pat, rv.references[name]):
             item.metrics = relight_metrics(img, rv.captured[name], rv.proj.mask)
             item.figure = comparison_figure(rv.captured[name], img, rv.proj.mask, stem.with_name(stem.name + "_compare.png"),
-                                            title=f"{rv.object} view {rv.view}, {name}", metrics=item.metrics)
+                                            title=f"{rv.object} view {rv.view}, {name}", metrics=item.metrics,
+                                            reference_name=rv.reference_name)
             line += (f"  (vs reference: PSNR {item.metrics['psnr']:.2f} dB, SSIM {item.metrics['ssim']:.3f}; side by side "
                      f"in {item.figure})")
         else:  # an earlier run's comparison for another pattern of this name would contradict the image beside it

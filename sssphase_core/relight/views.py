@@ -86,6 +86,12 @@ class RelightView:
                               layout=str(self.camera_isp.get("bayer", "RGGB")))
         return seen if self.codes_range is None else np.clip(seen, *self.codes_range)
 
+    @property
+    def reference_name(self) -> str:
+        """What its references are, for figures: a simulated session's noise-free renders (ground truth), else the
+        camera's captures of the patterns."""
+        return "reference (GT)" if self.sim is not None else "reference capture"
+
     def camera_image(self, name: str) -> np.ndarray:
         """The camera's noise-free image of reference ``name`` (simulated sessions; evaluation only): its
         render through the sensor's Bayer sampling and demosaicing, without noise. Made once for every
